@@ -1,0 +1,60 @@
+"""Typed exceptions of msk-live. Every message names the file, line, field and value involved where there is one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class MskError(Exception):
+    """Base class of every error msk-live raises on purpose."""
+
+
+class InputError(MskError):
+    """Bad user input: a file, a field or a value that cannot be used.
+
+    The message always says where (file, line, field) and what (the value) when known.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        path: str | Path | None = None,
+        line: int | None = None,
+        field: str | None = None,
+        value: object = None,
+    ) -> None:
+        self.path = Path(path) if path is not None else None
+        self.line = line
+        self.field = field
+        self.value = value
+        where = []
+        if path is not None:
+            where.append(str(path))
+        if line is not None:
+            where.append(f"line {line}")
+        if field is not None:
+            where.append(f"field {field!r}")
+        prefix = ": ".join([", ".join(where)]) + ": " if where else ""
+        suffix = f" (got {value!r})" if value is not None else ""
+        super().__init__(f"{prefix}{message}{suffix}")
+
+
+class FileFormatError(InputError):
+    """A file does not follow the format it claims to have."""
+
+
+class ConfigError(InputError):
+    """A configuration (TOML spec, CLI flag, JSON5 file) is invalid."""
+
+
+class ModelError(MskError):
+    """A musculoskeletal model or model pack is inconsistent or used outside its validity."""
+
+
+class EstimationError(MskError):
+    """An estimation problem could not be set up (never raised from the per-frame live loop)."""
+
+
+class ProtocolError(MskError):
+    """A device spoke something the protocol does not allow."""

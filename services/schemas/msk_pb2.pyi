@@ -1,0 +1,173 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class EmgChunk(_message.Message):
+    __slots__ = ("source_id", "channel_labels", "sample_rate_hz", "first_sample_index", "device_time_ns", "host_time_ns", "n_samples", "n_channels", "samples", "units")
+    SOURCE_ID_FIELD_NUMBER: _ClassVar[int]
+    CHANNEL_LABELS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLE_RATE_HZ_FIELD_NUMBER: _ClassVar[int]
+    FIRST_SAMPLE_INDEX_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    N_SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    N_CHANNELS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    UNITS_FIELD_NUMBER: _ClassVar[int]
+    source_id: str
+    channel_labels: _containers.RepeatedScalarFieldContainer[str]
+    sample_rate_hz: float
+    first_sample_index: int
+    device_time_ns: int
+    host_time_ns: int
+    n_samples: int
+    n_channels: int
+    samples: _containers.RepeatedScalarFieldContainer[float]
+    units: str
+    def __init__(self, source_id: _Optional[str] = ..., channel_labels: _Optional[_Iterable[str]] = ..., sample_rate_hz: _Optional[float] = ..., first_sample_index: _Optional[int] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., n_samples: _Optional[int] = ..., n_channels: _Optional[int] = ..., samples: _Optional[_Iterable[float]] = ..., units: _Optional[str] = ...) -> None: ...
+
+class Vector3(_message.Message):
+    __slots__ = ("x", "y", "z")
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    Z_FIELD_NUMBER: _ClassVar[int]
+    x: float
+    y: float
+    z: float
+    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ...) -> None: ...
+
+class Quaternion(_message.Message):
+    __slots__ = ("w", "x", "y", "z")
+    W_FIELD_NUMBER: _ClassVar[int]
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    Z_FIELD_NUMBER: _ClassVar[int]
+    w: float
+    x: float
+    y: float
+    z: float
+    def __init__(self, w: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ...) -> None: ...
+
+class ImuSample(_message.Message):
+    __slots__ = ("tracker_id", "segment", "packet_counter", "sample_time_fine", "orientation", "acceleration", "rate_of_turn", "magnetic_field", "device_time_ns", "host_time_ns", "coordinate_frame")
+    TRACKER_ID_FIELD_NUMBER: _ClassVar[int]
+    SEGMENT_FIELD_NUMBER: _ClassVar[int]
+    PACKET_COUNTER_FIELD_NUMBER: _ClassVar[int]
+    SAMPLE_TIME_FINE_FIELD_NUMBER: _ClassVar[int]
+    ORIENTATION_FIELD_NUMBER: _ClassVar[int]
+    ACCELERATION_FIELD_NUMBER: _ClassVar[int]
+    RATE_OF_TURN_FIELD_NUMBER: _ClassVar[int]
+    MAGNETIC_FIELD_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    COORDINATE_FRAME_FIELD_NUMBER: _ClassVar[int]
+    tracker_id: str
+    segment: str
+    packet_counter: int
+    sample_time_fine: int
+    orientation: Quaternion
+    acceleration: Vector3
+    rate_of_turn: Vector3
+    magnetic_field: Vector3
+    device_time_ns: int
+    host_time_ns: int
+    coordinate_frame: str
+    def __init__(self, tracker_id: _Optional[str] = ..., segment: _Optional[str] = ..., packet_counter: _Optional[int] = ..., sample_time_fine: _Optional[int] = ..., orientation: _Optional[_Union[Quaternion, _Mapping]] = ..., acceleration: _Optional[_Union[Vector3, _Mapping]] = ..., rate_of_turn: _Optional[_Union[Vector3, _Mapping]] = ..., magnetic_field: _Optional[_Union[Vector3, _Mapping]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., coordinate_frame: _Optional[str] = ...) -> None: ...
+
+class JointAngles(_message.Message):
+    __slots__ = ("coordinates", "q", "qd", "qdd", "phase", "device_time_ns", "host_time_ns")
+    COORDINATES_FIELD_NUMBER: _ClassVar[int]
+    Q_FIELD_NUMBER: _ClassVar[int]
+    QD_FIELD_NUMBER: _ClassVar[int]
+    QDD_FIELD_NUMBER: _ClassVar[int]
+    PHASE_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    coordinates: _containers.RepeatedScalarFieldContainer[str]
+    q: _containers.RepeatedScalarFieldContainer[float]
+    qd: _containers.RepeatedScalarFieldContainer[float]
+    qdd: _containers.RepeatedScalarFieldContainer[float]
+    phase: float
+    device_time_ns: int
+    host_time_ns: int
+    def __init__(self, coordinates: _Optional[_Iterable[str]] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., qdd: _Optional[_Iterable[float]] = ..., phase: _Optional[float] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
+
+class LoadEvent(_message.Message):
+    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns")
+    BARBELL_MASS_KG_FIELD_NUMBER: _ClassVar[int]
+    EXERCISE_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    barbell_mass_kg: float
+    exercise: str
+    device_time_ns: int
+    host_time_ns: int
+    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
+
+class CoordinateTorque(_message.Message):
+    __slots__ = ("coordinate", "inverse_dynamics_nm", "model_nm", "residual_nm")
+    COORDINATE_FIELD_NUMBER: _ClassVar[int]
+    INVERSE_DYNAMICS_NM_FIELD_NUMBER: _ClassVar[int]
+    MODEL_NM_FIELD_NUMBER: _ClassVar[int]
+    RESIDUAL_NM_FIELD_NUMBER: _ClassVar[int]
+    coordinate: str
+    inverse_dynamics_nm: float
+    model_nm: float
+    residual_nm: float
+    def __init__(self, coordinate: _Optional[str] = ..., inverse_dynamics_nm: _Optional[float] = ..., model_nm: _Optional[float] = ..., residual_nm: _Optional[float] = ...) -> None: ...
+
+class ActivationFrame(_message.Message):
+    __slots__ = ("time_s", "method", "groups", "activations", "forces_n", "activation_std", "torques", "solver_status", "iterations", "solve_time_s", "input_arrival_ns", "publish_ns", "flags", "phase")
+    TIME_S_FIELD_NUMBER: _ClassVar[int]
+    METHOD_FIELD_NUMBER: _ClassVar[int]
+    GROUPS_FIELD_NUMBER: _ClassVar[int]
+    ACTIVATIONS_FIELD_NUMBER: _ClassVar[int]
+    FORCES_N_FIELD_NUMBER: _ClassVar[int]
+    ACTIVATION_STD_FIELD_NUMBER: _ClassVar[int]
+    TORQUES_FIELD_NUMBER: _ClassVar[int]
+    SOLVER_STATUS_FIELD_NUMBER: _ClassVar[int]
+    ITERATIONS_FIELD_NUMBER: _ClassVar[int]
+    SOLVE_TIME_S_FIELD_NUMBER: _ClassVar[int]
+    INPUT_ARRIVAL_NS_FIELD_NUMBER: _ClassVar[int]
+    PUBLISH_NS_FIELD_NUMBER: _ClassVar[int]
+    FLAGS_FIELD_NUMBER: _ClassVar[int]
+    PHASE_FIELD_NUMBER: _ClassVar[int]
+    time_s: float
+    method: str
+    groups: _containers.RepeatedScalarFieldContainer[str]
+    activations: _containers.RepeatedScalarFieldContainer[float]
+    forces_n: _containers.RepeatedScalarFieldContainer[float]
+    activation_std: _containers.RepeatedScalarFieldContainer[float]
+    torques: _containers.RepeatedCompositeFieldContainer[CoordinateTorque]
+    solver_status: str
+    iterations: int
+    solve_time_s: float
+    input_arrival_ns: int
+    publish_ns: int
+    flags: _containers.RepeatedScalarFieldContainer[str]
+    phase: float
+    def __init__(self, time_s: _Optional[float] = ..., method: _Optional[str] = ..., groups: _Optional[_Iterable[str]] = ..., activations: _Optional[_Iterable[float]] = ..., forces_n: _Optional[_Iterable[float]] = ..., activation_std: _Optional[_Iterable[float]] = ..., torques: _Optional[_Iterable[_Union[CoordinateTorque, _Mapping]]] = ..., solver_status: _Optional[str] = ..., iterations: _Optional[int] = ..., solve_time_s: _Optional[float] = ..., input_arrival_ns: _Optional[int] = ..., publish_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ..., phase: _Optional[float] = ...) -> None: ...
+
+class DeviceStatus(_message.Message):
+    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns")
+    DEVICE_ID_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    CONNECTED_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_RECEIVED_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_LOST_FIELD_NUMBER: _ClassVar[int]
+    ERRORS_FIELD_NUMBER: _ClassVar[int]
+    LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    device_id: str
+    kind: str
+    connected: bool
+    samples_received: int
+    samples_lost: int
+    errors: int
+    last_error: str
+    host_time_ns: int
+    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ...) -> None: ...

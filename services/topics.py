@@ -1,0 +1,87 @@
+"""Zenoh key expressions of msk-live. docs/topics.md documents the same table; keep both in step.
+
+Every key lives under ``msk/<session>/``. A session name is one key chunk: letters, digits, ``-`` and ``_``.
+"""
+
+from __future__ import annotations
+
+import re
+
+from msk_core.errors import ConfigError
+
+ROOT = "msk"
+ALL_TOPICS = f"{ROOT}/**"
+
+_CHUNK = re.compile(r"^[A-Za-z0-9_\-.]+$")
+
+#: (pattern after ``msk/<session>/``, protobuf type). ``*`` stands for exactly one key chunk.
+TOPIC_TABLE: tuple[tuple[str, str], ...] = (
+    ("emg/*", "msk.EmgChunk"),
+    ("imu/*", "msk.ImuSample"),
+    ("joints", "msk.JointAngles"),
+    ("load", "msk.LoadEvent"),
+    ("activations/*", "msk.ActivationFrame"),
+    ("status/*", "msk.DeviceStatus"),
+)
+
+
+def check_chunk(value: str, what: str) -> str:
+    if not _CHUNK.match(value):
+        raise ConfigError(
+            "must be a single key chunk of letters, digits, '-', '_' or '.'", field=what, value=value
+        )
+    return value
+
+
+def session_prefix(session: str) -> str:
+    return f"{ROOT}/{check_chunk(session, 'session')}"
+
+
+def emg_key(session: str, source: str) -> str:
+    return f"{session_prefix(session)}/emg/{check_chunk(source, 'source')}"
+
+
+def imu_key(session: str, tracker: str) -> str:
+    return f"{session_prefix(session)}/imu/{check_chunk(tracker, 'tracker')}"
+
+
+def joints_key(session: str) -> str:
+    return f"{session_prefix(session)}/joints"
+
+
+def load_key(session: str) -> str:
+    return f"{session_prefix(session)}/load"
+
+
+def activations_key(session: str, method: str) -> str:
+    return f"{session_prefix(session)}/activations/{check_chunk(method, 'method')}"
+
+
+def status_key(session: str, device: str) -> str:
+    return f"{session_prefix(session)}/status/{check_chunk(device, 'device')}"
+
+
+def split_key(key: str) -> tuple[str, str]:
+    """``msk/<session>/<rest>`` -> (session, rest)."""
+    parts = str(key).split("/", 2)
+    if len(parts) < 3 or parts[0] != ROOT:
+        raise ConfigError("not an msk topic (expected msk/<session>/...)", field="key", value=str(key))
+    return parts[1], parts[2]
+
+
+def rename_session(key: str, new_session: str) -> str:
+    _, rest = split_key(key)
+    return f"{session_prefix(new_session)}/{rest}"
+
+
+def message_type_for_key(key: str) -> str | None:
+    """The protobuf type carried by ``key``, or None when the key is not in the table."""
+    _, rest = split_key(key)
+    rest_parts = rest.split("/")
+    for pattern, type_name in TOPIC_TABLE:
+        pattern_parts = pattern.split("/")
+        if len(pattern_parts) == len(rest_parts) and all(
+            p == "*" or p == r for p, r in zip(pattern_parts, rest_parts)
+        ):
+            return type_name
+    return None

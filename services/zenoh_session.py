@@ -1,0 +1,131 @@
+"""Opening Zenoh sessions and declaring loss-free publishers, the same way in every node.
+
+Default: a peer that listens on loopback only and finds other peers by multicast scouting on loopback... is not
+reliable in containers, so nodes instead agree on one well-known loopback endpoint: the first node to start
+listens on it, the others connect to it (peer mode gossips the rest). Everything can be overridden by flags
+(``--mode``, ``--connect``, ``--listen``) or a JSON5 config file (``--zenoh-config``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+from google.protobuf.message import Message
+
+from msk_core.errors import ConfigError
+from services import messages
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """How a node joins the Zenoh network.
+
+    ``connect``/``listen`` empty means: listen on :data:`DEFAULT_ENDPOINT` if it is free, else connect to it.
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: Path | None = None
+    multicast_scouting: bool = False
+
+    def to_config(self) -> zenoh.Config:
+        if self.config_file is not None:
+            path = Path(self.config_file)
+            if not path.is_file():
+                raise ConfigError("Zenoh config file not found", path=path)
+            try:
+                config = zenoh.Config.from_file(str(path))
+            except Exception as error:  # zenoh raises its own ZError with the parser's message
+                raise ConfigError(f"invalid Zenoh config: {error}", path=path) from error
+        else:
+            config = zenoh.Config()
+        if self.mode not in ("peer", "client", "router"):
+            raise ConfigError("Zenoh mode must be peer, client or router", field="mode", value=self.mode)
+        config.insert_json5("mode", json.dumps(self.mode))
+        connect, listen = list(self.connect), list(self.listen)
+        if self.config_file is None and not connect and not listen:
+            if _endpoint_is_free(DEFAULT_ENDPOINT):
+                listen = [DEFAULT_ENDPOINT]
+            else:
+                connect = [DEFAULT_ENDPOINT]
+        if connect:
+            config.insert_json5("connect/endpoints", json.dumps(connect))
+        if listen:
+            config.insert_json5("listen/endpoints", json.dumps(listen))
+        if self.config_file is None:
+            config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        return config
+
+
+def _endpoint_is_free(endpoint: str) -> bool:
+    proto, _, address = endpoint.partition("/")
+    if proto != "tcp":
+        return True
+    host, _, port = address.rpartition(":")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((host, int(port)))
+        except OSError:
+            return False
+    return True
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("Zenoh")
+    group.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh mode (default: peer)")
+    group.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)"
+    )
+    group.add_argument(
+        "--listen", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)"
+    )
+    group.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5", help="Zenoh JSON5 configuration file")
+
+
+def options_from_args(args: argparse.Namespace) -> ZenohOptions:
+    return ZenohOptions(
+        mode=args.mode,
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        config_file=args.zenoh_config,
+    )
+
+
+def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
+    """Open a Zenoh session; use it as ``with open_session(options) as session:``."""
+    return zenoh.open((options or ZenohOptions()).to_config())
+
+
+def declare_data_publisher(session: zenoh.Session, key: str, type_name: str) -> zenoh.Publisher:
+    """A publisher that never drops: reliable transport, blocking congestion control, protobuf encoding with schema."""
+    messages.message_class(type_name)  # fail early on an unknown type
+    return session.declare_publisher(
+        key,
+        encoding=encoding_for(type_name),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+
+
+def encoding_for(type_name: str) -> zenoh.Encoding:
+    return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(type_name)
+
+
+def publish(publisher: zenoh.Publisher, message: Message) -> None:
+    publisher.put(messages.encode(message))
+
+
+def type_name_of_sample(sample: zenoh.Sample) -> str | None:
+    """The protobuf type named in a sample's encoding schema (``application/protobuf;msk.EmgChunk``), if any."""
+    text = str(sample.encoding)
+    if ";" in text:
+        return text.split(";", 1)[1] or None
+    return None
