@@ -1,0 +1,218 @@
+"""OpenSim ``.sto`` / ``.mot`` storage files: reader and writer.
+
+The reader accepts every dialect found in real files: OpenSim 4 headers (``version=1``, ``nRows``, ``nColumns``,
+``inDegrees``), old headers without ``version``, free-text header lines, tab-, comma- (spreadsheet exports with
+trailing commas) or space-delimited columns, padded numbers, trailing delimiters, and CRLF line ends.
+``nRows``/``nColumns`` are kept in :attr:`Storage.header` but not trusted: real files disagree with them.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from msk_core.errors import FileFormatError, InputError
+
+_KEY_VALUE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_ ]*?)\s*=\s*(.*?)\s*$")
+
+
+@dataclass
+class Storage:
+    """A table of time series: ``data[i, j]`` is column ``columns[j]`` at ``time[i]``."""
+
+    time: np.ndarray
+    columns: list[str]
+    data: np.ndarray
+    in_degrees: bool = False
+    header: dict[str, str] = field(default_factory=dict)
+    name: str = ""
+    path: Path | None = None
+
+    def column(self, name: str) -> np.ndarray:
+        """The values of one column (a view), by exact name."""
+        try:
+            j = self.columns.index(name)
+        except ValueError:
+            raise InputError(
+                f"no column {name!r}; available: {', '.join(self.columns)}", path=self.path, field=name
+            ) from None
+        return self.data[:, j]
+
+    def has_column(self, name: str) -> bool:
+        return name in self.columns
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.time.shape[0])
+
+    @property
+    def rate(self) -> float:
+        """Mean sample rate in Hz (``nan`` with fewer than two rows)."""
+        if self.n_rows < 2:
+            return float("nan")
+        return float((self.n_rows - 1) / (self.time[-1] - self.time[0]))
+
+    def select(self, names: list[str]) -> np.ndarray:
+        """Columns ``names`` as an ``(n_rows, len(names))`` array."""
+        return np.column_stack([self.column(n) for n in names]) if names else np.empty((self.n_rows, 0))
+
+
+def _strip_cell(line: str) -> str:
+    # Spreadsheet exports pad every header line with the column delimiter.
+    return line.strip().rstrip(",\t ").strip()
+
+
+def _delimiter(column_line: str) -> str | None:
+    if "\t" in column_line:
+        return "\t"
+    if "," in column_line:
+        return ","
+    return None  # any run of whitespace
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    cells = line.split(delimiter) if delimiter else line.split()
+    cells = [c.strip() for c in cells]
+    while cells and cells[-1] == "":
+        cells.pop()
+    return cells
+
+
+def _parse_bool(text: str, path: Path, line: int, key: str) -> bool:
+    value = text.strip().lower()
+    if value in ("yes", "true", "1"):
+        return True
+    if value in ("no", "false", "0"):
+        return False
+    raise FileFormatError("expected yes or no", path=path, line=line, field=key, value=text)
+
+
+def read_sto(path: str | Path) -> Storage:
+    """Read an OpenSim ``.sto`` or ``.mot`` file. Errors name the file, line and column."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise InputError(f"cannot read storage file: {exc.strerror}", path=path) from exc
+    lines = text.splitlines()
+
+    end = next((i for i, raw in enumerate(lines) if _strip_cell(raw).lower() == "endheader"), None)
+    if end is None:
+        raise FileFormatError("no 'endheader' line: not an OpenSim storage file", path=path)
+
+    header: dict[str, str] = {}
+    name = ""
+    in_degrees = False
+    for i, raw in enumerate(lines[:end]):
+        cell = _strip_cell(raw)
+        if not cell:
+            continue
+        match = _KEY_VALUE.match(cell)
+        if match:
+            key, value = match.group(1), match.group(2)
+            header[key] = value
+            if key.lower() == "indegrees":
+                in_degrees = _parse_bool(value, path, i + 1, key)
+        elif i == 0:
+            name = cell
+
+    col_index = next((i for i in range(end + 1, len(lines)) if lines[i].strip(" ,\t")), None)
+    if col_index is None:
+        raise FileFormatError("no column-label line after 'endheader'", path=path, line=end + 1)
+    delimiter = _delimiter(lines[col_index])
+    labels = _split(lines[col_index], delimiter)
+    for j, label in enumerate(labels):
+        if not label:
+            raise FileFormatError(f"empty column label at position {j + 1}", path=path, line=col_index + 1)
+    if not labels or labels[0].lower() != "time":
+        raise FileFormatError(
+            "first column must be 'time'", path=path, line=col_index + 1, field="time", value=labels[0] if labels else ""
+        )
+    duplicates = sorted({c for c in labels if labels.count(c) > 1})
+    if duplicates:
+        raise FileFormatError(f"duplicate column labels {duplicates}", path=path, line=col_index + 1)
+
+    n_cols = len(labels)
+    rows: list[list[float]] = []
+    for i in range(col_index + 1, len(lines)):
+        raw = lines[i]
+        if not raw.strip(" ,\t"):
+            continue
+        cells = _split(raw, delimiter)
+        if len(cells) != n_cols:
+            raise FileFormatError(
+                f"expected {n_cols} values, found {len(cells)}", path=path, line=i + 1, value=raw[:80]
+            )
+        try:
+            rows.append([float(c) for c in cells])
+        except ValueError:
+            for j, c in enumerate(cells):
+                try:
+                    float(c)
+                except ValueError:
+                    raise FileFormatError("not a number", path=path, line=i + 1, field=labels[j], value=c) from None
+            raise  # pragma: no cover - float() failed above, so a cell must fail here
+    table = np.array(rows, dtype=float).reshape(len(rows), n_cols)
+    time = np.ascontiguousarray(table[:, 0])
+    bad = np.flatnonzero(~np.isfinite(time))
+    if bad.size:
+        raise FileFormatError("time is not finite", path=path, field="time", value=float(time[bad[0]]))
+    return Storage(
+        time=time,
+        columns=labels[1:],
+        data=np.ascontiguousarray(table[:, 1:]),
+        in_degrees=in_degrees,
+        header=header,
+        name=name,
+        path=path,
+    )
+
+
+def write_sto(
+    path: str | Path,
+    time: np.ndarray,
+    columns: list[str],
+    data: np.ndarray,
+    *,
+    in_degrees: bool = False,
+    name: str = "msk-live",
+) -> Path:
+    """Write an OpenSim 4 ``.sto``/``.mot`` (tab-delimited, lossless float text). Returns the path written."""
+    path = Path(path)
+    time = np.asarray(time, dtype=float).reshape(-1)
+    data = np.asarray(data, dtype=float)
+    if data.ndim == 1:
+        data = data[:, None]
+    if data.shape != (time.shape[0], len(columns)):
+        raise InputError(
+            f"data shape {data.shape} does not match (len(time), len(columns)) = {(time.shape[0], len(columns))}",
+            path=path,
+            field="data",
+        )
+    for c in columns:
+        if not c or any(ch in c for ch in "\t\n\r,") or c != c.strip():
+            raise InputError("column labels must be non-empty, without tabs, commas or line breaks", path=path,
+                             field="columns", value=c)
+    if len(set(columns)) != len(columns) or "time" in columns:
+        raise InputError("column labels must be unique and not 'time'", path=path, field="columns", value=columns)
+    if not np.all(np.isfinite(time)):
+        raise InputError("time must be finite", path=path, field="time")
+    if "\n" in name or "=" in name or not name.strip():
+        raise InputError("name must be one non-empty line without '='", path=path, field="name", value=name)
+
+    head = [
+        name.strip(),
+        "version=1",
+        f"nRows={time.shape[0]}",
+        f"nColumns={len(columns) + 1}",
+        f"inDegrees={'yes' if in_degrees else 'no'}",
+        "endheader",
+        "\t".join(["time", *columns]),
+    ]
+    # repr() is the shortest text that reads back to the same double (Unix-epoch times keep their microseconds).
+    body = ["\t".join(map(repr, row)) for row in np.column_stack([time, data]).tolist()]
+    path.write_text("\n".join(head + body) + "\n", encoding="utf-8")
+    return path
