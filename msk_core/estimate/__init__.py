@@ -1,0 +1,17 @@
+"""Personalised calibration and per-frame muscle-activation estimation (the seed method) with its baselines."""
+
+from msk_core.estimate.frame import FrameEstimator, FrameResult, FrameStatus, Method
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.prior import PhasePrior, prior_from_reps
+from msk_core.estimate.profile import SubjectProfile
+
+__all__ = [
+    "FrameEstimator",
+    "FrameResult",
+    "FrameStatus",
+    "Method",
+    "PackLike",
+    "PhasePrior",
+    "SubjectProfile",
+    "prior_from_reps",
+]

@@ -1,0 +1,333 @@
+"""Per-frame activation estimation with a warm PIQP solver (the paper's second optimisation and its baselines).
+
+Model: group force F_g = F_max,g * a_g (no force-length-velocity scaling), model torque tau_m = R(q) F, with R the
+pack's moment arms (n_coordinates x n_groups). Torque residuals are scaled per coordinate by that coordinate's muscle
+torque capacity at the current pose, c_n = sum_g |R_ng| F_max,g (floored at ``MIN_TORQUE_SCALE`` N·m), so that a
+residual is a fraction of what the muscles can produce and no joint dominates by its units.
+
+Methods (a in [0, 1]^G, A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
+
+- ``so``:       min sum a^2  s.t.  A~ a = tau~. When the torque is beyond the muscles' capacity (the equality problem
+  is infeasible) the frame falls back to  min sum a^2 + RESERVE_WEIGHT * |A~ a - tau~|^2  and is flagged
+  ``reserve`` (the residual is what a reserve actuator would have to add).
+- ``hybrid``:   min |A~ a - tau~|^2 + hybrid_weight * sum a^2  (hybrid_weight 0.1 by default).
+- ``proposed``: min 1/2 |A~ a - tau~|^2 / eps^2 + 1/2 sum ((a - mu(phase)) / sigma(phase))^2, i.e. the MAP estimate
+  with torque noise eps * c_n (``torque_tolerance`` eps, default 0.01 = 1 % of capacity) and the subject's
+  N(mu, sigma^2) prior at the current phase of the repetition (pooled over phases when the phase is unknown).
+- ``prior``:    a = mu(phase) clipped to [0, 1], no torque term (the prior-alone baseline).
+
+One :class:`piqp.DenseSolver` per estimator is set up on the first frame and then only ``update()``-d with the new
+matrices, so its workspace and preconditioner are reused frame after frame. ``step()`` never raises on bad data: NaN
+input, infeasible torques or solver failures come back as a flagged :class:`FrameResult` and are counted in
+:attr:`FrameEstimator.flag_counts` (a warning is logged on the first occurrence of each flag).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import TYPE_CHECKING
+
+import numpy as np
+import piqp
+
+from msk_core.errors import EstimationError
+from msk_core.estimate.laplace import laplace_std
+from msk_core.estimate.pack import PackLike, resolve_pack
+from msk_core.estimate.prior import PhasePrior
+
+if TYPE_CHECKING:
+    from msk_core.estimate.profile import SubjectProfile
+
+log = logging.getLogger(__name__)
+
+MIN_TORQUE_SCALE = 1.0  # N·m; floor of the per-coordinate residual scale (coordinates almost no muscle crosses)
+RESERVE_WEIGHT = 1.0e4  # weight of the scaled residual in the `so` reserve fallback
+BOUND_TOL = 1.0e-6  # an activation this close to 0 or 1 counts as at its bound (Laplace free set)
+
+
+class Method(str, Enum):
+    PROPOSED = "proposed"
+    SO = "so"
+    HYBRID = "hybrid"
+    PRIOR = "prior"
+
+
+class FrameStatus(str, Enum):
+    SOLVED = "solved"
+    RESERVE = "reserve"  # so: torque beyond capacity, least-squares fallback used
+    MAX_ITER = "max_iter"  # solver stopped early; result is the last iterate
+    INVALID_INPUT = "invalid_input"  # NaN/inf kinematics, torques or model output; activations are NaN
+    SOLVER_FAILED = "solver_failed"  # numerical failure; activations are NaN
+
+
+@dataclass
+class FrameResult:
+    """One frame's estimate. ``residual`` = model torque - inverse-dynamics torque (N·m, per coordinate)."""
+
+    activations: np.ndarray
+    forces: np.ndarray
+    model_torques: np.ndarray
+    torques: np.ndarray
+    residual: np.ndarray
+    status: FrameStatus
+    iterations: int
+    solve_time_s: float
+    phase: float | None = None
+    _hessian: np.ndarray | None = field(default=None, repr=False)
+    _equality: np.ndarray | None = field(default=None, repr=False)
+    _std: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def flagged(self) -> bool:
+        return self.status is not FrameStatus.SOLVED
+
+    @property
+    def at_bound(self) -> np.ndarray:
+        a = self.activations
+        return (a <= BOUND_TOL) | (a >= 1.0 - BOUND_TOL)
+
+    @property
+    def activation_std(self) -> np.ndarray:
+        """Laplace std of each activation (0 at a bound; NaN when the frame has no valid optimum). Lazy."""
+        if self._std is None:
+            if self._hessian is None or not np.all(np.isfinite(self.activations)):
+                self._std = np.full(self.activations.shape, np.nan)
+            else:
+                self._std = laplace_std(self._hessian, ~self.at_bound, self._equality)
+        return self._std
+
+
+class FrameEstimator:
+    """Streaming estimator: explicit state = the warm PIQP solvers and the flag counters."""
+
+    def __init__(
+        self,
+        pack: PackLike | str,
+        subject: "SubjectProfile | None" = None,
+        method: Method | str = Method.PROPOSED,
+        *,
+        prior: PhasePrior | None = None,
+        f_max: np.ndarray | None = None,
+        torque_tolerance: float = 0.01,
+        hybrid_weight: float = 0.1,
+        eps: float = 1e-8,
+        max_iter: int = 100,
+    ) -> None:
+        self.pack = resolve_pack(pack)
+        try:
+            self.method = Method(method)
+        except ValueError:
+            raise EstimationError(
+                f"unknown method {method!r}; choose one of {', '.join(m.value for m in Method)}"
+            ) from None
+        self.groups = list(self.pack.groups)
+        self.coordinates = list(self.pack.coordinates)
+        if subject is not None:
+            subject.check_pack(self.pack)
+        if f_max is None:
+            f_max = subject.f_max if subject is not None else np.asarray(self.pack.f_max_ref, dtype=float)
+        self.f_max = np.asarray(f_max, dtype=float).copy()
+        if self.f_max.shape != (len(self.groups),) or not np.all(self.f_max > 0):
+            raise EstimationError(f"F_max must be {len(self.groups)} positive values, got {self.f_max}")
+        self.prior = prior if prior is not None else (subject.prior if subject is not None else None)
+        if self.method in (Method.PROPOSED, Method.PRIOR):
+            if self.prior is None:
+                raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
+            if tuple(self.prior.groups) != tuple(self.groups):
+                raise EstimationError("the prior's groups differ from the pack's groups")
+        if not torque_tolerance > 0 or not hybrid_weight > 0:
+            raise EstimationError("torque_tolerance and hybrid_weight must be positive")
+        self.torque_tolerance = float(torque_tolerance)
+        self.hybrid_weight = float(hybrid_weight)
+        self.eps = eps
+        self.max_iter = max_iter
+        self.flag_counts: dict[str, int] = {}
+        self.frames = 0
+        n = len(self.groups)
+        self._lb = np.zeros(n)
+        self._ub = np.ones(n)
+        self._solver: piqp.DenseSolver | None = None
+        self._fallback: piqp.DenseSolver | None = None
+
+    # -- public -------------------------------------------------------------------------------------------------
+
+    def step(
+        self,
+        q: np.ndarray,
+        qd: np.ndarray | None = None,
+        qdd: np.ndarray | None = None,
+        hand_load_newton: float = 0.0,
+        torques: np.ndarray | None = None,
+        phase: float | None = None,
+    ) -> FrameResult:
+        """Estimate one frame. Never raises on bad numbers: the result is flagged instead."""
+        self.frames += 1
+        n_c = len(self.coordinates)
+        try:
+            q = np.asarray(q, dtype=float)
+            if torques is None:
+                if qd is None or qdd is None:
+                    qd = np.zeros(n_c) if qd is None else qd
+                    qdd = np.zeros(n_c) if qdd is None else qdd
+                tau = np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
+            else:
+                tau = np.asarray(torques, dtype=float)
+            r = np.asarray(self.pack.moment_arms(q), dtype=float)
+        except Exception as exc:  # the model pack rejected the pose; the live loop must go on
+            log.debug("model evaluation failed: %s", exc)
+            return self._invalid(np.full(n_c, np.nan), phase)
+        if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
+            return self._invalid(np.full(n_c, np.nan), phase)
+        if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(r)) and np.all(np.isfinite(q))):
+            return self._invalid(tau, phase)
+        if phase is not None and not np.isfinite(phase):
+            phase = None
+        return self._solve(r * self.f_max, tau, phase)
+
+    def reset_counts(self) -> None:
+        self.flag_counts.clear()
+        self.frames = 0
+
+    # -- internals ----------------------------------------------------------------------------------------------
+
+    def _solve(self, a_mat: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
+        scale = np.maximum(np.abs(a_mat).sum(axis=1), MIN_TORQUE_SCALE)
+        at = a_mat / scale[:, None]
+        tt = tau / scale
+        method = self.method
+        if method is Method.PRIOR:
+            mu, _ = self.prior.at(phase)
+            x = np.clip(mu, 0.0, 1.0)
+            return self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, None, None)
+        equality = None
+        if method is Method.SO:
+            if self._so_certainly_infeasible(at, tt):
+                return self._so_fallback(a_mat, tau, at, tt, phase)
+            hess = 2.0 * np.eye(len(self.groups))
+            status, x, it, dt = self._run(hess, np.zeros(len(self.groups)), at, tt)
+            if status in (piqp.PIQP_PRIMAL_INFEASIBLE, piqp.PIQP_DUAL_INFEASIBLE):
+                return self._so_fallback(a_mat, tau, at, tt, phase)
+            equality = at
+        elif method is Method.HYBRID:
+            hess = 2.0 * (at.T @ at + self.hybrid_weight * np.eye(len(self.groups)))
+            status, x, it, dt = self._run(hess, -2.0 * (at.T @ tt))
+        else:
+            mu, sd = self.prior.at(phase)
+            w = 1.0 / self.torque_tolerance**2
+            prec = 1.0 / sd**2
+            hess = w * (at.T @ at) + np.diag(prec)
+            status, x, it, dt = self._run(hess, -(w * (at.T @ tt) + prec * mu))
+        return self._finish(status, x, it, dt, a_mat, tau, phase, hess, equality)
+
+    def _finish(self, status, x, it, dt, a_mat, tau, phase, hess, equality) -> FrameResult:
+        if status == piqp.PIQP_SOLVED:
+            fs = FrameStatus.SOLVED
+        elif status == piqp.PIQP_MAX_ITER_REACHED and np.all(np.isfinite(x)):
+            fs = FrameStatus.MAX_ITER
+        else:
+            fs = FrameStatus.SOLVER_FAILED
+            x = np.full(len(self.groups), np.nan)
+        if fs is not FrameStatus.SOLVER_FAILED:
+            x = np.clip(x, 0.0, 1.0)  # interior-point iterates may sit 1e-9 outside a bound
+        return self._result(x, a_mat, tau, fs, it, dt, phase, hess, equality)
+
+    def _so_certainly_infeasible(self, at: np.ndarray, tt: np.ndarray) -> bool:
+        """Cheap necessary condition: each coordinate's torque must lie within its muscles' range (a in [0,1])."""
+        hi = np.clip(at, 0.0, None).sum(axis=1)
+        lo = np.clip(at, None, 0.0).sum(axis=1)
+        return bool(np.any(tt > hi + 1e-9) or np.any(tt < lo - 1e-9))
+
+    def _so_fallback(self, a_mat, tau, at, tt, phase) -> FrameResult:
+        n = len(self.groups)
+        hess = 2.0 * (RESERVE_WEIGHT * (at.T @ at) + np.eye(n))
+        c = -2.0 * RESERVE_WEIGHT * (at.T @ tt)
+        if self._fallback is None:
+            self._fallback = self._new_solver()
+            self._fallback.setup(np.asfortranarray(hess), c, x_l=self._lb, x_u=self._ub)
+        else:
+            self._fallback.update(P=np.asfortranarray(hess), c=c)
+        t0 = time.perf_counter()
+        status = self._fallback.solve()
+        dt = time.perf_counter() - t0
+        res = self._fallback.result
+        result = self._finish(status, res.x.copy(), int(res.info.iter), dt, a_mat, tau, phase, hess, None)
+        if result.status is FrameStatus.SOLVED:
+            result.status = FrameStatus.RESERVE
+            self._count(FrameStatus.RESERVE)
+        return result
+
+    def _new_solver(self) -> piqp.DenseSolver:
+        solver = piqp.DenseSolver()
+        solver.settings.eps_abs = self.eps
+        solver.settings.eps_rel = self.eps
+        solver.settings.max_iter = self.max_iter
+        solver.settings.verbose = False
+        solver.settings.compute_timings = False
+        return solver
+
+    def _run(self, hess: np.ndarray, c: np.ndarray, a_eq: np.ndarray | None = None, b_eq: np.ndarray | None = None):
+        """Set up on the first frame, then update the matrices of the same solver (warm workspace)."""
+        p = np.asfortranarray(hess)
+        if self._solver is None:
+            self._solver = self._new_solver()
+            if a_eq is None:
+                self._solver.setup(p, c, x_l=self._lb, x_u=self._ub)
+            else:
+                self._solver.setup(p, c, A=np.asfortranarray(a_eq), b=b_eq, x_l=self._lb, x_u=self._ub)
+        elif a_eq is None:
+            self._solver.update(P=p, c=c)
+        else:
+            self._solver.update(A=np.asfortranarray(a_eq), b=b_eq)  # P = 2I and c = 0 never change for `so`
+        t0 = time.perf_counter()
+        status = self._solver.solve()
+        dt = time.perf_counter() - t0
+        res = self._solver.result
+        return status, res.x.copy(), int(res.info.iter), dt
+
+    def _result(self, x, a_mat, tau, status, it, dt, phase, hess, equality) -> FrameResult:
+        forces = self.f_max * x
+        model = a_mat @ x
+        result = FrameResult(
+            activations=x,
+            forces=forces,
+            model_torques=model,
+            torques=tau,
+            residual=model - tau,
+            status=status,
+            iterations=it,
+            solve_time_s=dt,
+            phase=phase,
+            _hessian=hess,
+            _equality=equality,
+        )
+        if status is not FrameStatus.SOLVED and status is not FrameStatus.RESERVE:
+            self._count(status)
+        return result
+
+    def _invalid(self, tau: np.ndarray, phase: float | None) -> FrameResult:
+        n = len(self.groups)
+        nan = np.full(n, np.nan)
+        n_c = len(self.coordinates)
+        result = FrameResult(
+            activations=nan,
+            forces=nan.copy(),
+            model_torques=np.full(n_c, np.nan),
+            torques=np.asarray(tau, dtype=float) if np.shape(tau) == (n_c,) else np.full(n_c, np.nan),
+            residual=np.full(n_c, np.nan),
+            status=FrameStatus.INVALID_INPUT,
+            iterations=0,
+            solve_time_s=0.0,
+            phase=phase,
+        )
+        self._count(FrameStatus.INVALID_INPUT)
+        return result
+
+    def _count(self, status: FrameStatus) -> None:
+        key = status.value
+        first = key not in self.flag_counts
+        self.flag_counts[key] = self.flag_counts.get(key, 0) + 1
+        if first:
+            log.warning("frame %d flagged %r (further occurrences are counted in flag_counts)", self.frames, key)

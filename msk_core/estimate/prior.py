@@ -1,0 +1,133 @@
+"""Phase-dependent activation prior N(mu(phase), sigma(phase)^2) per muscle group (the paper's EMG prior).
+
+Stored as bin means/stds over the phase of a repetition, phase in [0, 1]; :meth:`PhasePrior.at` interpolates linearly
+between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without EMG carry a wide default
+prior (``NO_EMG_MEAN``, ``NO_EMG_STD``) which then acts as a weak min-activation regulariser, and ``has_emg`` says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from msk_core.errors import EstimationError
+
+# Groups without EMG: the prior must not pretend to know them. A zero mean with sigma 0.5 is a weak pull towards
+# rest, weaker than any EMG-derived prior (typical sigma 0.02-0.2), so the torque term decides their activation.
+NO_EMG_MEAN = 0.0
+NO_EMG_STD = 0.5
+# Floor on sigma: a phase bin in which every rep happened to give the same EMG must not become a hard constraint.
+MIN_STD = 0.02
+
+
+@dataclass(frozen=True)
+class PhasePrior:
+    """mean/std arrays of shape (n_bins, n_groups); ``has_emg`` (n_groups,) marks EMG-derived columns."""
+
+    groups: tuple[str, ...]
+    mean: np.ndarray
+    std: np.ndarray
+    has_emg: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.mean.shape != self.std.shape or self.mean.ndim != 2 or self.mean.shape[1] != len(self.groups):
+            raise EstimationError(
+                f"prior arrays must be (n_bins, {len(self.groups)}); got mean {self.mean.shape}, std {self.std.shape}"
+            )
+        if not (np.all(np.isfinite(self.mean)) and np.all(self.std > 0)):
+            raise EstimationError("prior means must be finite and standard deviations positive")
+
+    @property
+    def n_bins(self) -> int:
+        return self.mean.shape[0]
+
+    def at(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """(mu, sigma) at a phase in [0, 1]; ``None`` gives the prior pooled over all phases."""
+        if phase is None or not np.isfinite(phase):
+            return self.pooled()
+        x = min(max(float(phase), 0.0), 1.0) * self.n_bins - 0.5
+        i0 = int(np.floor(x))
+        w = x - i0
+        i0c, i1c = min(max(i0, 0), self.n_bins - 1), min(max(i0 + 1, 0), self.n_bins - 1)
+        mu = (1.0 - w) * self.mean[i0c] + w * self.mean[i1c]
+        sd = (1.0 - w) * self.std[i0c] + w * self.std[i1c]
+        return mu, sd
+
+    def pooled(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mixture of all bins: mean of means, std from the law of total variance."""
+        mu = self.mean.mean(axis=0)
+        var = (self.std**2).mean(axis=0) + self.mean.var(axis=0)
+        return mu, np.sqrt(var)
+
+    def to_dict(self) -> dict:
+        return {
+            "n_bins": self.n_bins,
+            "groups": list(self.groups),
+            "has_emg": [bool(x) for x in self.has_emg],
+            "mean": self.mean.round(6).tolist(),
+            "std": self.std.round(6).tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PhasePrior":
+        return cls(
+            groups=tuple(data["groups"]),
+            mean=np.asarray(data["mean"], dtype=float),
+            std=np.asarray(data["std"], dtype=float),
+            has_emg=np.asarray(data["has_emg"], dtype=bool),
+        )
+
+
+def prior_from_reps(
+    groups: Sequence[str],
+    emg: dict[str, np.ndarray],
+    phases: np.ndarray,
+    rep_index: np.ndarray,
+    *,
+    n_bins: int = 20,
+) -> PhasePrior:
+    """Per group and phase bin, mean and std across repetitions of each rep's bin-mean normalised EMG.
+
+    ``emg`` maps group -> envelope samples aligned with ``phases``/``rep_index`` (rep_index < 0 = outside any rep).
+    With a single repetition the std is the within-bin std (there is no across-rep spread to measure).
+    """
+    n_groups = len(groups)
+    mean = np.full((n_bins, n_groups), NO_EMG_MEAN)
+    std = np.full((n_bins, n_groups), NO_EMG_STD)
+    has_emg = np.zeros(n_groups, dtype=bool)
+    in_rep = rep_index >= 0
+    if not np.any(in_rep):
+        raise EstimationError("no repetition found: cannot build a phase prior")
+    bins = np.minimum((np.clip(phases, 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
+    reps = np.unique(rep_index[in_rep])
+    for g, name in enumerate(groups):
+        if name not in emg:
+            continue
+        has_emg[g] = True
+        x = np.asarray(emg[name], dtype=float)
+        per_rep = np.full((len(reps), n_bins), np.nan)
+        within = np.full((len(reps), n_bins), np.nan)
+        for k, r in enumerate(reps):
+            for b in range(n_bins):
+                sel = (rep_index == r) & (bins == b) & np.isfinite(x)
+                if np.any(sel):
+                    per_rep[k, b] = x[sel].mean()
+                    within[k, b] = x[sel].std()
+        mean[:, g] = _fill_nan(np.nanmean(per_rep, axis=0))
+        if len(reps) > 1:
+            spread = np.nanstd(per_rep, axis=0, ddof=1)
+        else:
+            spread = within[0]
+        std[:, g] = np.maximum(_fill_nan(spread), MIN_STD)
+    return PhasePrior(groups=tuple(groups), mean=mean, std=std, has_emg=has_emg)
+
+
+def _fill_nan(x: np.ndarray) -> np.ndarray:
+    """Empty bins take the value of the nearest filled bin (interpolated)."""
+    ok = np.isfinite(x)
+    if not np.any(ok):
+        return np.zeros_like(x)
+    idx = np.arange(len(x))
+    return np.interp(idx, idx[ok], x[ok])

@@ -1,0 +1,100 @@
+"""Subject profile: the calibrated, person-specific part of the model, saved as readable JSON.
+
+Holds the pack it was calibrated for (name + version), per-group F_max (N) and scale factors against the pack's
+reference, the phase prior N(mu, sigma^2), the EMG normalisation used, the calibration's convergence report and
+provenance (trials, time, software).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from msk_core.errors import EstimationError, FileFormatError
+from msk_core.estimate.prior import PhasePrior
+
+FORMAT = "msk-subject-profile"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class SubjectProfile:
+    pack_name: str
+    pack_version: str
+    groups: list[str]
+    f_max: np.ndarray
+    f_max_ref: np.ndarray
+    prior: PhasePrior | None = None
+    emg_normalisation: dict[str, dict] = field(default_factory=dict)
+    calibration: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)
+
+    @property
+    def scale_factors(self) -> np.ndarray:
+        return self.f_max / self.f_max_ref
+
+    def check_pack(self, pack) -> None:
+        """The profile only makes sense with the pack it was calibrated on."""
+        if pack.name != self.pack_name or list(pack.groups) != list(self.groups):
+            raise EstimationError(
+                f"subject profile was calibrated for pack {self.pack_name!r} v{self.pack_version} "
+                f"with groups {self.groups}; got pack {pack.name!r} with groups {list(pack.groups)}"
+            )
+        if str(pack.version) != str(self.pack_version):
+            raise EstimationError(
+                f"subject profile was calibrated for pack {self.pack_name!r} version {self.pack_version!r}, "
+                f"but the loaded pack is version {pack.version!r}; recalibrate"
+            )
+
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "pack": {"name": self.pack_name, "version": str(self.pack_version)},
+            "groups": {
+                g: {"f_max_n": round(float(f), 3), "f_max_ref_n": round(float(r), 3), "scale": round(float(f / r), 5)}
+                for g, f, r in zip(self.groups, self.f_max, self.f_max_ref)
+            },
+            "prior": self.prior.to_dict() if self.prior is not None else None,
+            "emg_normalisation": self.emg_normalisation,
+            "calibration": self.calibration,
+            "provenance": self.provenance,
+        }
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SubjectProfile":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except OSError as exc:
+            raise FileFormatError(f"cannot read subject profile: {exc.strerror}", path=path) from None
+        except json.JSONDecodeError as exc:
+            raise FileFormatError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise FileFormatError("not a subject profile", path=path, field="format", value=data.get("format"))
+        try:
+            groups = list(data["groups"])
+            f_max = np.array([data["groups"][g]["f_max_n"] for g in groups], dtype=float)
+            f_ref = np.array([data["groups"][g]["f_max_ref_n"] for g in groups], dtype=float)
+            prior = PhasePrior.from_dict(data["prior"]) if data.get("prior") else None
+            return cls(
+                pack_name=data["pack"]["name"],
+                pack_version=str(data["pack"]["version"]),
+                groups=groups,
+                f_max=f_max,
+                f_max_ref=f_ref,
+                prior=prior,
+                emg_normalisation=data.get("emg_normalisation", {}),
+                calibration=data.get("calibration", {}),
+                provenance=data.get("provenance", {}),
+            )
+        except KeyError as exc:
+            raise FileFormatError("missing field", path=path, field=str(exc.args[0])) from None
+        except (TypeError, ValueError, EstimationError) as exc:
+            raise FileFormatError(f"invalid value: {exc}", path=path) from None
