@@ -14,14 +14,14 @@ ALL_TOPICS = f"{ROOT}/**"
 
 _CHUNK = re.compile(r"^[A-Za-z0-9_\-.]+$")
 
-#: (pattern after ``msk/<session>/``, protobuf type). ``*`` stands for exactly one key chunk.
+#: (template after ``msk/<session>/``, protobuf type). A ``<name>`` part stands for exactly one key chunk.
 TOPIC_TABLE: tuple[tuple[str, str], ...] = (
-    ("emg/*", "msk.EmgChunk"),
-    ("imu/*", "msk.ImuSample"),
+    ("emg/<source>", "msk.EmgChunk"),
+    ("imu/<tracker>", "msk.ImuSample"),
     ("joints", "msk.JointAngles"),
     ("load", "msk.LoadEvent"),
-    ("activations/*", "msk.ActivationFrame"),
-    ("status/*", "msk.DeviceStatus"),
+    ("activations/<method>", "msk.ActivationFrame"),
+    ("status/<device>", "msk.DeviceStatus"),
 )
 
 
@@ -81,7 +81,7 @@ def message_type_for_key(key: str) -> str | None:
     for pattern, type_name in TOPIC_TABLE:
         pattern_parts = pattern.split("/")
         if len(pattern_parts) == len(rest_parts) and all(
-            p == "*" or p == r for p, r in zip(pattern_parts, rest_parts)
+            p.startswith("<") or p == r for p, r in zip(pattern_parts, rest_parts)
         ):
             return type_name
     return None

@@ -21,3 +21,18 @@ def shared_dir() -> Path:
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
+
+
+def free_tcp_port() -> int:
+    """A loopback TCP port nobody listens on right now (for Zenoh endpoints and device simulators)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture
+def zenoh_endpoint() -> str:
+    """A fresh loopback endpoint so tests never join each other's (or a developer's) Zenoh network."""
+    return f"tcp/127.0.0.1:{free_tcp_port()}"

@@ -1,0 +1,185 @@
+"""MCAP files in the project's protobuf schemas: a crash-tolerant writer and a reader that survives truncation.
+
+Writer: chunked and zstd-compressed; a chunk is completed (and handed to the OS) at least every ``flush_interval_s``,
+so a recorder killed with SIGKILL leaves a file whose completed chunks are readable. Each topic is one channel whose
+schema is msk.proto's FileDescriptorSet, so Foxglove decodes every message. ``log_time`` is the host receive time
+and ``publish_time`` the device time (host time when the message has none).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.exceptions import McapError
+from mcap.records import Channel, DataEnd, Footer, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from msk_core.errors import FileFormatError, InputError
+from services import messages
+
+PROFILE = ""  # protobuf over MCAP has no profile; "ros1"/"ros2" would be wrong
+LIBRARY = "msk-live"
+
+
+@dataclass(frozen=True)
+class RecordedMessage:
+    topic: str
+    type_name: str
+    data: bytes
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+
+    def decode(self):
+        return messages.decode(self.type_name, self.data)
+
+
+class McapRecorderWriter:
+    """Append protobuf messages to an MCAP file, one channel per topic.
+
+    ``with McapRecorderWriter(path) as writer: writer.write(topic, type_name, payload, log_time_ns, publish_time_ns)``
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        chunk_size: int = 256 * 1024,
+        flush_interval_s: float = 1.0,
+        compression: CompressionType = CompressionType.ZSTD,
+    ) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # Buffered (mcap's Writer needs it); flush() pushes completed chunks to the OS every flush_interval_s.
+        self._file = open(self.path, "wb")
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=compression)
+        self._writer.start(profile=PROFILE, library=LIBRARY)
+        self._schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[str, int] = {}
+        self._sequence: dict[str, int] = {}
+        self._flush_interval_s = flush_interval_s
+        self._last_flush = time.monotonic()
+        self._descriptor_set = messages.file_descriptor_set()
+        self.message_count = 0
+        self._closed = False
+
+    def _channel_id(self, topic: str, type_name: str) -> int:
+        channel_id = self._channel_ids.get(topic)
+        if channel_id is None:
+            messages.message_class(type_name)
+            schema_id = self._schema_ids.get(type_name)
+            if schema_id is None:
+                schema_id = self._writer.register_schema(name=type_name, encoding="protobuf", data=self._descriptor_set)
+                self._schema_ids[type_name] = schema_id
+            channel_id = self._writer.register_channel(topic=topic, message_encoding="protobuf", schema_id=schema_id)
+            self._channel_ids[topic] = channel_id
+            self._sequence[topic] = 0
+        return channel_id
+
+    def write(self, topic: str, type_name: str, payload: bytes, log_time_ns: int, publish_time_ns: int) -> None:
+        channel_id = self._channel_id(topic, type_name)
+        sequence = self._sequence[topic]
+        self._sequence[topic] = sequence + 1
+        self._writer.add_message(
+            channel_id=channel_id,
+            log_time=int(log_time_ns),
+            data=bytes(payload),
+            publish_time=int(publish_time_ns),
+            sequence=sequence,
+        )
+        self.message_count += 1
+        now = time.monotonic()
+        if now - self._last_flush >= self._flush_interval_s:
+            self.flush()
+
+    def write_message(self, topic: str, message, log_time_ns: int | None = None) -> None:
+        """Convenience: serialise a protobuf message; publish time from its device clock."""
+        log_time = messages.now_ns() if log_time_ns is None else log_time_ns
+        self.write(topic, messages.type_name(message), messages.encode(message), log_time, device_time_ns(message, log_time))
+
+    def flush(self) -> None:
+        self._writer.flush()
+        self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._writer.finish()
+            self._file.close()
+
+    def __enter__(self) -> McapRecorderWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def device_time_ns(message, fallback_ns: int) -> int:
+    """The device-clock time of a message (MCAP publish_time), or ``fallback_ns`` when it carries none."""
+    for field in ("device_time_ns", "host_time_ns"):
+        if hasattr(message, field):
+            value = int(getattr(message, field))
+            if value:
+                return value
+    if hasattr(message, "time_s") and message.time_s:
+        return int(round(message.time_s * 1e9))
+    return int(fallback_ns)
+
+
+@dataclass
+class ReadReport:
+    """What :func:`read_messages` found besides the messages."""
+
+    truncated: bool = False
+    error: str = ""
+
+
+def read_messages(path: str | Path, *, report: ReadReport | None = None, tolerate_truncation: bool = True) -> Iterator[RecordedMessage]:
+    """Every message of an MCAP file in file order (which is recording order for files this project writes).
+
+    A file cut short (recorder killed) yields every message of its completed chunks; ``report.truncated`` tells.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("MCAP file not found", path=path)
+    report = report if report is not None else ReadReport()
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    with open(path, "rb") as stream:
+        reader = StreamReader(stream, validate_crcs=True, emit_chunks=False)
+        records = reader.records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                return
+            except (McapError, EOFError, ValueError, Exception) as error:  # truncation shows as various errors
+                if not tolerate_truncation:
+                    raise FileFormatError(f"unreadable MCAP record: {error}", path=path) from error
+                report.truncated = True
+                report.error = f"{type(error).__name__}: {error}"
+                return
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, (DataEnd, Footer)):
+                return
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:
+                    raise FileFormatError(f"message on unknown channel {record.channel_id}", path=path)
+                schema = schemas.get(channel.schema_id)
+                type_name = schema.name if schema is not None else ""
+                yield RecordedMessage(
+                    topic=channel.topic,
+                    type_name=type_name,
+                    data=bytes(record.data),
+                    log_time_ns=record.log_time,
+                    publish_time_ns=record.publish_time,
+                    sequence=record.sequence,
+                )
