@@ -5,7 +5,7 @@ pack's moment arms (n_coordinates x n_groups). Torque residuals are scaled per c
 torque capacity at the current pose, c_n = sum_g |R_ng| F_max,g (floored at ``MIN_TORQUE_SCALE`` N·m), so that a
 residual is a fraction of what the muscles can produce and no joint dominates by its units.
 
-Methods (a in [0, 1]^G, A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
+Methods (a within [a_min, a_max] per group, default [0, 1]; OpenSim bounds by each muscle's min_control; A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
 
 - ``so``:       min sum a^2  s.t.  A~ a = tau~. When the torque is beyond the muscles' capacity (the equality problem
   is infeasible) the frame falls back to  min sum a^2 + RESERVE_WEIGHT * |A~ a - tau~|^2  and is flagged
@@ -79,6 +79,7 @@ class FrameResult:
     _hessian: np.ndarray | None = field(default=None, repr=False)
     _equality: np.ndarray | None = field(default=None, repr=False)
     _std: np.ndarray | None = field(default=None, repr=False)
+    _bounds: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
     @property
     def flagged(self) -> bool:
@@ -87,7 +88,8 @@ class FrameResult:
     @property
     def at_bound(self) -> np.ndarray:
         a = self.activations
-        return (a <= BOUND_TOL) | (a >= 1.0 - BOUND_TOL)
+        lb, ub = self._bounds if self._bounds is not None else (0.0, 1.0)
+        return (a <= lb + BOUND_TOL) | (a >= ub - BOUND_TOL)
 
     @property
     def activation_std(self) -> np.ndarray:
@@ -113,6 +115,8 @@ class FrameEstimator:
         f_max: np.ndarray | None = None,
         torque_tolerance: float = 0.01,
         hybrid_weight: float = 0.1,
+        a_min: float | np.ndarray = 0.0,
+        a_max: float | np.ndarray = 1.0,
         eps: float = 1e-8,
         max_iter: int = 100,
     ) -> None:
@@ -147,8 +151,10 @@ class FrameEstimator:
         self.flag_counts: dict[str, int] = {}
         self.frames = 0
         n = len(self.groups)
-        self._lb = np.zeros(n)
-        self._ub = np.ones(n)
+        self._lb = np.broadcast_to(np.asarray(a_min, dtype=float), (n,)).copy()
+        self._ub = np.broadcast_to(np.asarray(a_max, dtype=float), (n,)).copy()
+        if not (np.all(self._lb >= 0.0) and np.all(self._ub <= 1.0) and np.all(self._lb < self._ub)):
+            raise EstimationError(f"activation bounds must satisfy 0 <= a_min < a_max <= 1; got {a_min}, {a_max}")
         self._solver: piqp.DenseSolver | None = None
         self._fallback: piqp.DenseSolver | None = None
 
@@ -200,7 +206,7 @@ class FrameEstimator:
         method = self.method
         if method is Method.PRIOR:
             mu, _ = self.prior.at(phase)
-            x = np.clip(mu, 0.0, 1.0)
+            x = np.clip(mu, self._lb, self._ub)
             return self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, None, None)
         equality = None
         if method is Method.SO:
@@ -231,13 +237,14 @@ class FrameEstimator:
             fs = FrameStatus.SOLVER_FAILED
             x = np.full(len(self.groups), np.nan)
         if fs is not FrameStatus.SOLVER_FAILED:
-            x = np.clip(x, 0.0, 1.0)  # interior-point iterates may sit 1e-9 outside a bound
+            x = np.clip(x, self._lb, self._ub)  # interior-point iterates may sit 1e-9 outside a bound
         return self._result(x, a_mat, tau, fs, it, dt, phase, hess, equality)
 
     def _so_certainly_infeasible(self, at: np.ndarray, tt: np.ndarray) -> bool:
-        """Cheap necessary condition: each coordinate's torque must lie within its muscles' range (a in [0,1])."""
-        hi = np.clip(at, 0.0, None).sum(axis=1)
-        lo = np.clip(at, None, 0.0).sum(axis=1)
+        """Cheap necessary condition: each coordinate's torque must lie within its muscles' range (a in bounds)."""
+        pos, neg = np.clip(at, 0.0, None), np.clip(at, None, 0.0)
+        hi = pos @ self._ub + neg @ self._lb
+        lo = pos @ self._lb + neg @ self._ub
         return bool(np.any(tt > hi + 1e-9) or np.any(tt < lo - 1e-9))
 
     def _so_fallback(self, a_mat, tau, at, tt, phase) -> FrameResult:
@@ -302,6 +309,7 @@ class FrameEstimator:
             phase=phase,
             _hessian=hess,
             _equality=equality,
+            _bounds=(self._lb, self._ub),
         )
         if status is not FrameStatus.SOLVED and status is not FrameStatus.RESERVE:
             self._count(status)
