@@ -1,0 +1,215 @@
+"""Estimator node: joint kinematics in, muscle activations out, one warm per-frame QP per method.
+
+Subscribes to ``msk/<session>/joints`` (:class:`JointAngles`) and ``msk/<session>/load`` (:class:`LoadEvent`), runs
+:class:`msk_core.estimate.FrameEstimator` for every requested method on every frame, and publishes
+:class:`ActivationFrame` on ``msk/<session>/activations/<method>``. Zenoh callbacks only enqueue; one worker thread
+estimates frames in arrival order, so none is skipped and the solver stays warm. A frame the estimator cannot solve
+(NaN input, torque beyond capacity, a pose the model does not cover) is published with its flag, never dropped.
+Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import signal
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from msk_core.errors import ConfigError
+from msk_core.estimate import FrameEstimator
+from msk_core.estimate.frame import FrameResult
+from msk_core.estimate.profile import SubjectProfile
+from services import messages, topics
+from services.zenoh_session import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    declare_data_publisher,
+    open_session,
+    options_from_args,
+    publish,
+)
+
+log = logging.getLogger(__name__)
+
+GRAVITY = 9.81
+
+
+@dataclass
+class EstimatorStats:
+    frames_in: int = 0
+    frames_out: int = 0
+    load_events: int = 0
+    flagged: dict[str, int] = field(default_factory=dict)
+    rejected: int = 0  # input frames whose coordinates do not match the pack
+    last_error: str = ""
+
+
+class CoordinateMapper:
+    """Reorders a JointAngles message's coordinates into the pack's order (names must all be present)."""
+
+    def __init__(self, pack_coordinates: list[str]) -> None:
+        self.pack_coordinates = pack_coordinates
+        self._cache: dict[tuple[str, ...], np.ndarray] = {}
+
+    def indices(self, names: tuple[str, ...]) -> np.ndarray:
+        index = self._cache.get(names)
+        if index is None:
+            missing = [c for c in self.pack_coordinates if c not in names]
+            if missing:
+                raise ConfigError(
+                    f"joint-angle messages lack the pack's coordinates {missing}; they carry {list(names)}",
+                    field="JointAngles.coordinates",
+                )
+            position = {name: i for i, name in enumerate(names)}
+            index = np.array([position[c] for c in self.pack_coordinates], dtype=int)
+            self._cache[names] = index
+        return index
+
+    def take(self, message, field_name: str) -> np.ndarray:
+        values = np.asarray(getattr(message, field_name), dtype=float)
+        if values.size == 0:
+            return np.zeros(len(self.pack_coordinates))
+        return values[self.indices(tuple(message.coordinates))]
+
+
+def to_message(result: FrameResult, *, method: str, groups, coordinates, time_s: float, arrival_ns: int) -> messages.ActivationFrame:
+    frame = messages.ActivationFrame(
+        time_s=time_s,
+        method=method,
+        groups=list(groups),
+        activations=result.activations.tolist(),
+        forces_n=result.forces.tolist(),
+        solver_status=result.status.value,
+        iterations=int(result.iterations),
+        solve_time_s=float(result.solve_time_s),
+        input_arrival_ns=arrival_ns,
+        phase=-1.0 if result.phase is None else float(result.phase),
+    )
+    if not result.flagged:
+        std = result.activation_std
+        if std is not None and np.all(np.isfinite(std)):
+            frame.activation_std.extend(std.tolist())
+    else:
+        frame.flags.append(result.status.value)
+    for name, tau_id, tau_model, residual in zip(coordinates, result.torques, result.model_torques, result.residual):
+        frame.torques.add(coordinate=name, inverse_dynamics_nm=float(tau_id), model_nm=float(tau_model), residual_nm=float(residual))
+    return frame
+
+
+def main(
+    config: ZenohOptions,
+    *,
+    pack: str,
+    session: str,
+    methods: list[str],
+    subject_path: Path | None = None,
+    initial_load_kg: float = 0.0,
+    stop_event: threading.Event | None = None,
+    ready_event: threading.Event | None = None,
+    stats: EstimatorStats | None = None,
+) -> EstimatorStats:
+    stop_event = stop_event or threading.Event()
+    stats = stats if stats is not None else EstimatorStats()
+    subject = SubjectProfile.load(subject_path) if subject_path is not None else None
+    estimators = {m: FrameEstimator(pack, subject=subject, method=m) for m in methods}
+    first = next(iter(estimators.values()))
+    mapper = CoordinateMapper(list(first.coordinates))
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    load_kg = float(initial_load_kg)
+
+    def on_joints(sample: zenoh.Sample) -> None:
+        inbox.put(("joints", messages.now_ns(), sample.payload.to_bytes()))
+
+    def on_load(sample: zenoh.Sample) -> None:
+        inbox.put(("load", messages.now_ns(), sample.payload.to_bytes()))
+
+    with open_session(config) as zsession:
+        publishers = {
+            m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
+        }
+        subscribers = [
+            zsession.declare_subscriber(topics.joints_key(session), on_joints),
+            zsession.declare_subscriber(topics.load_key(session), on_load),
+        ]
+        if ready_event is not None:
+            ready_event.set()
+        try:
+            while not stop_event.is_set():
+                try:
+                    kind, arrival_ns, payload = inbox.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                if kind == "load":
+                    event = messages.decode("msk.LoadEvent", payload)
+                    load_kg = float(event.barbell_mass_kg)
+                    stats.load_events += 1
+                    continue
+                stats.frames_in += 1
+                joints = messages.decode("msk.JointAngles", payload)
+                try:
+                    q, qd, qdd = (mapper.take(joints, f) for f in ("q", "qd", "qdd"))
+                except ConfigError as error:
+                    stats.rejected += 1
+                    if stats.rejected == 1:
+                        log.error("%s", error)
+                    stats.last_error = str(error)
+                    continue
+                phase = None if joints.phase < 0 else float(joints.phase)
+                time_s = joints.device_time_ns / 1e9
+                for method, estimator in estimators.items():
+                    result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase)
+                    frame = to_message(
+                        result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
+                        time_s=time_s, arrival_ns=arrival_ns,
+                    )
+                    if result.flagged:
+                        stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
+                    frame.publish_ns = messages.now_ns()
+                    publish(publishers[method], frame)
+                stats.frames_out += 1
+        finally:
+            for subscriber in subscribers:
+                subscriber.undeclare()
+    return stats
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--pack", required=True, help="model pack name (e.g. bench_press, deadlift) or path")
+    parser.add_argument("--session", required=True, help="session name: topics msk/<session>/...")
+    parser.add_argument(
+        "--method", action="append", choices=["proposed", "so", "hybrid"], default=None,
+        help="estimation method (repeatable; default: proposed with --subject, else so)",
+    )
+    parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
+    parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
+    add_zenoh_arguments(parser)
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    methods = args.method or (["proposed"] if args.subject else ["so"])
+    if "proposed" in methods and args.subject is None:
+        raise ConfigError("method 'proposed' needs --subject (a calibrated profile with its prior)", field="--method", value="proposed")
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    print(f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}", file=sys.stderr, flush=True)
+    stats = main(
+        options_from_args(args), pack=args.pack, session=args.session, methods=methods,
+        subject_path=args.subject, initial_load_kg=args.load_kg, stop_event=stop,
+    )
+    print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    _parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(_parser)
+    sys.exit(run_from_args(_parser.parse_args()))

@@ -1,0 +1,70 @@
+"""The live estimator node over real Zenoh on loopback: every frame in gives one frame out per method, equal to the
+offline estimator, bad frames are published flagged, and a load event changes the hand load."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from msk_core.estimate import FrameEstimator
+from services import estimator, messages, topics
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+
+model = pytest.importorskip("msk_core.model")
+
+
+def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint):
+    pack = model.load_pack("arm26")
+    coords = list(pack.coordinates)
+    rng = np.random.default_rng(3)
+    lo, hi = np.asarray(pack.coordinate_ranges)[:, 0], np.asarray(pack.coordinate_ranges)[:, 1]
+    poses = [lo + (hi - lo) * (0.2 + 0.6 * rng.random(len(coords))) for _ in range(40)]
+    stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
+    thread = threading.Thread(
+        target=estimator.main,
+        args=(ZenohOptions(listen=(zenoh_endpoint,)),),
+        kwargs=dict(pack="arm26", session="t", methods=["so", "hybrid"], stop_event=stop, ready_event=ready, stats=stats),
+        daemon=True,
+    )
+    thread.start()
+    assert ready.wait(20)
+    received: dict[str, list] = {"so": [], "hybrid": []}
+    with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+        session.declare_subscriber(
+            "msk/t/activations/*",
+            lambda s: received[str(s.key_expr).rsplit("/", 1)[1]].append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())),
+        )
+        joints_pub = declare_data_publisher(session, topics.joints_key("t"), "msk.JointAngles")
+        load_pub = declare_data_publisher(session, topics.load_key("t"), "msk.LoadEvent")
+        deadline = time.monotonic() + 10
+        while not (joints_pub.matching_status.matching and load_pub.matching_status.matching) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        publish(load_pub, messages.LoadEvent(barbell_mass_kg=2.0))
+        # Coordinates deliberately in reverse order: the node maps them by name.
+        for i, q in enumerate(poses):
+            publish(joints_pub, messages.JointAngles(coordinates=coords[::-1], q=q[::-1].tolist(), phase=-1.0, device_time_ns=(i + 1) * 10_000_000))
+        publish(joints_pub, messages.JointAngles(coordinates=coords, q=[float("nan")] * len(coords), device_time_ns=999_000_000_000))
+        publish(joints_pub, messages.JointAngles(coordinates=["not_a_coordinate"], q=[0.0], device_time_ns=1))
+        deadline = time.monotonic() + 30
+        while min(len(v) for v in received.values()) < len(poses) + 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.2)
+    stop.set()
+    thread.join(10)
+    assert stats.rejected == 1 and "lack" in stats.last_error and "not_a_coordinate" in stats.last_error
+    for method in ("so", "hybrid"):
+        frames = received[method]
+        assert len(frames) == len(poses) + 1
+        offline = FrameEstimator(pack, method=method)
+        for frame, q in zip(frames, poses):
+            expected = offline.step(q, np.zeros(len(q)), np.zeros(len(q)), hand_load_newton=2.0 * 9.81)
+            np.testing.assert_allclose(frame.activations, expected.activations, atol=1e-6)
+            assert [t.coordinate for t in frame.torques] == coords
+            np.testing.assert_allclose([t.inverse_dynamics_nm for t in frame.torques], expected.torques, rtol=1e-9)
+            assert frame.publish_ns >= frame.input_arrival_ns > 0
+        assert [f.time_s for f in frames[:-1]] == pytest.approx([(i + 1) * 0.01 for i in range(len(poses))])
+        assert frames[-1].flags == ["invalid_input"] and frames[-1].solver_status == "invalid_input"
+    assert stats.flagged.get("invalid_input") == 2  # the NaN frame, once per method
