@@ -1,0 +1,499 @@
+"""Delsys Trigno SDK client: command port handshake, EMG/AUX data ports, gap detection and reconnection.
+
+Single-threaded and explicit: :meth:`TrignoClient.poll` waits on every socket at once and returns the events that
+happened (EMG blocks, gaps, status changes). A dropped connection never raises from :meth:`poll`: the client reports
+it, retries with exponential backoff, re-runs the handshake, restarts acquisition and reports the estimated gap.
+Everything already received has been returned before the disconnection is reported.
+"""
+
+from __future__ import annotations
+
+import enum
+import selectors
+import socket
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.trigno import protocol as tp
+from msk_core.errors import ConfigError, ProtocolError
+
+
+@dataclass(frozen=True)
+class TrignoConfig:
+    host: str = "127.0.0.1"
+    command_port: int = tp.COMMAND_PORT
+    emg_port: int = tp.EmgPort.AVANTI  # 50043, or 50041 (legacy) for older servers
+    aux_port: int | None = None  # 50044 to also read the AUX stream
+    take_master: bool = True  # send MASTER when MASTER? says NO
+    upsampling: bool | None = None  # None: leave the server's setting
+    endianness: tp.Endianness | None = None  # None: leave the server's setting (LITTLE by default)
+    stop_mode: tp.StopMode = tp.StopMode.STOP_THEN_QUIT
+    connect_timeout_s: float = 2.0
+    reply_timeout_s: float = 3.0
+    reconnect: bool = True
+    backoff_initial_s: float = 0.05
+    backoff_max_s: float = 2.0
+    recv_bytes: int = 65536
+
+    def __post_init__(self) -> None:
+        if not self.host:
+            raise ConfigError("Trigno host must not be empty", field="host", value=self.host)
+        for name in ("command_port", "emg_port"):
+            port = getattr(self, name)
+            if not 0 < int(port) < 65536:
+                raise ConfigError("TCP port must be within 1..65535", field=name, value=port)
+
+
+def parse_address(text: str, *, default_port: int = tp.COMMAND_PORT) -> tuple[str, int]:
+    """``HOST[:PORT]`` -> (host, command port)."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError("expected HOST[:PORT]", field="--trigno", value=text)
+    return host, int(port)
+
+
+class ClientState(enum.Enum):
+    IDLE = "idle"
+    CONNECTED = "connected"
+    STREAMING = "streaming"
+    RECONNECTING = "reconnecting"
+    STOPPED = "stopped"  # stop trigger fired (unsolicited STOPPED) or stop() called
+    CLOSED = "closed"
+
+
+@dataclass(frozen=True)
+class SensorInfo:
+    sensor: int  # 1..16
+    paired: bool
+    type_code: str = ""
+    start_index: int = -1  # 0-based EMG slot, whatever base the server reports in
+
+
+@dataclass(frozen=True)
+class EmgBlock:
+    """Rows of EMG as received: ``samples`` (n, 16) float32 volts for the 16 sensor slots."""
+
+    samples: np.ndarray
+    first_sample_index: int
+    rate_hz: float
+    host_time_ns: int  # when the bytes completing this block arrived
+
+    @property
+    def device_time_ns(self) -> int:
+        return int(round(self.first_sample_index * 1e9 / self.rate_hz))
+
+
+@dataclass(frozen=True)
+class AuxBlock:
+    samples: np.ndarray  # (n, 144) float32, 9 slots per sensor
+    first_sample_index: int
+    rate_hz: float
+    host_time_ns: int
+
+
+@dataclass(frozen=True)
+class GapEvent:
+    """Samples that never arrived (estimated from host time across a reconnection)."""
+
+    first_missing_index: int
+    n_missing: int
+    host_time_ns: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class StatusEvent:
+    state: ClientState
+    detail: str
+    host_time_ns: int
+
+
+Event = EmgBlock | AuxBlock | GapEvent | StatusEvent
+
+
+@dataclass
+class ClientStats:
+    samples_received: int = 0
+    samples_lost: int = 0
+    bytes_discarded: int = 0  # partial samples cut by a dropped connection
+    reconnects: int = 0
+    errors: int = 0
+    last_error: str = ""
+
+
+@dataclass
+class _Link:
+    """The sockets of one connection to the server."""
+
+    command: socket.socket
+    emg: socket.socket
+    aux: socket.socket | None
+    replies: tp.ReplyReader = field(default_factory=tp.ReplyReader)
+    pending_replies: list[str] = field(default_factory=list)
+
+    def close(self) -> None:
+        for sock in (self.command, self.emg, self.aux):
+            if sock is not None:
+                try:
+                    sock.close()
+                except OSError:
+                    pass
+
+
+class TrignoClient:
+    """Use as ``with TrignoClient(config) as client: client.start(); events = client.poll(0.1)``."""
+
+    def __init__(self, config: TrignoConfig) -> None:
+        self.config = config
+        self.state = ClientState.IDLE
+        self.stats = ClientStats()
+        self.protocol_version = ""
+        self.sensors: tuple[SensorInfo, ...] = ()
+        self.rate_hz = 0.0
+        self.aux_rate_hz = 0.0
+        self.endianness = tp.Endianness.LITTLE
+        self.upsampling: bool | None = None
+        self._link: _Link | None = None
+        self._selector = selectors.DefaultSelector()
+        self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG])
+        self._aux_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.AUX])
+        self._next_index = 0
+        self._next_aux_index = 0
+        self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
+        self._gap_pending = False
+        self._backoff = config.backoff_initial_s
+        self._next_attempt = 0.0
+        self._events: list[Event] = []
+        self._want_streaming = False
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> "TrignoClient":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def paired_sensors(self) -> list[int]:
+        return [s.sensor for s in self.sensors if s.paired]
+
+    def connect(self) -> None:
+        """Open the command port, read the banner, configure and query the server, open the data ports."""
+        self._link = self._open_link()
+        self.state = ClientState.CONNECTED
+        self._emit_status(ClientState.CONNECTED, f"protocol {self.protocol_version}")
+
+    def start(self) -> None:
+        """START acquisition (this connection must be master)."""
+        self._require_link()
+        self._command("START")
+        self._want_streaming = True
+        self.state = ClientState.STREAMING
+        self._last_data_time = time.monotonic()
+        self._emit_status(ClientState.STREAMING, "started")
+
+    def stop(self) -> None:
+        """End acquisition the configured way (STOP then QUIT, or QUIT alone) and close the connection."""
+        self._want_streaming = False
+        link = self._link
+        if link is not None:
+            try:
+                if self.config.stop_mode is tp.StopMode.STOP_THEN_QUIT and self.state is ClientState.STREAMING:
+                    self._command("STOP")
+                self._command("QUIT")
+            except (OSError, ProtocolError) as error:
+                self._note_error(f"while stopping: {error}")
+        self._drop_link()
+        self.state = ClientState.STOPPED
+        self._emit_status(ClientState.STOPPED, "stopped by client")
+
+    def close(self) -> None:
+        if self._link is not None and self.state in (ClientState.STREAMING, ClientState.CONNECTED):
+            self.stop()
+        self._drop_link()
+        self.state = ClientState.CLOSED
+        self._selector.close()
+
+    # ------------------------------------------------------------------------------------------ commands
+    def command(self, text: str) -> str:
+        """Send one command and return its reply; ``INVALID COMMAND``/``CANNOT COMPLETE`` raise CommandFailed."""
+        self._require_link()
+        return self._command(text)
+
+    def _require_link(self) -> _Link:
+        if self._link is None:
+            raise ProtocolError(f"Trigno client is not connected (state {self.state.value})")
+        return self._link
+
+    def _command(self, text: str, link: _Link | None = None) -> str:
+        link = link or self._require_link()
+        link.command.sendall(tp.encode_command(text))
+        reply = self._read_reply(link, text)
+        if tp.is_error(reply):
+            raise tp.CommandFailed(text, reply)
+        return reply
+
+    def _read_reply(self, link: _Link, command: str) -> str:
+        deadline = time.monotonic() + self.config.reply_timeout_s
+        while True:
+            while link.pending_replies:
+                reply = link.pending_replies.pop(0)
+                if reply.upper() == tp.UNSOLICITED_STOPPED and command.upper() not in ("STOP", "QUIT"):
+                    self._on_stopped()
+                    continue
+                return reply
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise ProtocolError(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
+            link.command.settimeout(remaining)
+            try:
+                chunk = link.command.recv(4096)
+            except socket.timeout:
+                continue
+            finally:
+                link.command.settimeout(None)
+            if not chunk:
+                raise ConnectionResetError(f"Trigno server closed the command connection (waiting for {command!r})")
+            link.pending_replies.extend(link.replies.feed(chunk))
+
+    def _query(self, link: _Link, text: str) -> str | None:
+        """A query whose failure is tolerated (servers differ in what they support)."""
+        try:
+            return self._command(text, link)
+        except tp.CommandFailed:
+            return None
+
+    # ------------------------------------------------------------------------------------------ handshake
+    def _open_link(self) -> _Link:
+        cfg = self.config
+        command = socket.create_connection((cfg.host, cfg.command_port), timeout=cfg.connect_timeout_s)
+        command.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        link = _Link(command=command, emg=None, aux=None)  # type: ignore[arg-type]
+        try:
+            self.protocol_version = tp.parse_banner(self._read_reply(link, "<banner>"))
+            self._configure(link)
+            link.emg = self._open_data(cfg.emg_port)
+            if cfg.aux_port is not None:
+                link.aux = self._open_data(cfg.aux_port)
+        except BaseException:
+            link.close()
+            raise
+        return link
+
+    def _open_data(self, port: int) -> socket.socket:
+        sock = socket.create_connection((self.config.host, port), timeout=self.config.connect_timeout_s)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        sock.setblocking(False)
+        return sock
+
+    def _configure(self, link: _Link) -> None:
+        cfg = self.config
+        master = self._query(link, "MASTER?")
+        if master is not None and not tp.parse_yes_no(master, command="MASTER?"):
+            if not cfg.take_master:
+                raise ProtocolError("this connection is not the Trigno master and take_master is off")
+            reply = self._command("MASTER", link)
+            if not tp.is_new_master(reply):
+                raise ProtocolError(f"MASTER answered {reply!r}, expected NEW MASTER")
+        if cfg.endianness is not None:
+            self._command(f"ENDIAN {cfg.endianness.value}", link)
+        reply = self._query(link, "ENDIANNESS?")
+        self.endianness = tp.parse_endianness(reply) if reply is not None else (cfg.endianness or tp.Endianness.LITTLE)
+        if cfg.upsampling is not None:
+            self._command(f"UPSAMPLE {'ON' if cfg.upsampling else 'OFF'}", link)
+        reply = self._query(link, "UPSAMPLING?")
+        self.upsampling = tp.parse_yes_no(reply, command="UPSAMPLING?") if reply is not None else cfg.upsampling
+        interval_reply = self._query(link, "FRAME INTERVAL?")
+        interval = tp.parse_float(interval_reply, command="FRAME INTERVAL?") if interval_reply else tp.FRAME_INTERVAL_S
+        per_frame_reply = self._query(link, "MAX SAMPLES EMG?")
+        if per_frame_reply is not None:
+            per_frame = tp.parse_int(per_frame_reply, command="MAX SAMPLES EMG?")
+        else:
+            per_frame = 27 if self.upsampling else 26
+        if per_frame <= 0 or interval <= 0:
+            raise ProtocolError(f"impossible frame: {per_frame} samples per {interval} s")
+        self.rate_hz = per_frame / interval
+        aux_reply = self._query(link, "MAX SAMPLES AUX?")
+        self.aux_rate_hz = (tp.parse_int(aux_reply) if aux_reply else 2) / interval
+        sensors = []
+        for n in range(1, tp.N_SENSORS + 1):
+            reply = self._query(link, f"SENSOR {n} PAIRED?")
+            paired = reply is not None and tp.parse_yes_no(reply, command=f"SENSOR {n} PAIRED?")
+            if not paired:
+                sensors.append(SensorInfo(n, False))
+                continue
+            type_code = self._query(link, f"SENSOR {n} TYPE?") or ""
+            start_reply = self._query(link, f"SENSOR {n} STARTINDEX?")
+            start = tp.normalise_start_index(n, tp.parse_int(start_reply)) if start_reply else n - 1
+            sensors.append(SensorInfo(n, True, type_code.strip(), start))
+        self.sensors = tuple(sensors)
+        self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG], self.endianness)
+        self._aux_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.AUX], self.endianness)
+
+    # ------------------------------------------------------------------------------------------ streaming
+    def poll(self, timeout: float = 0.1) -> list[Event]:
+        """Wait up to ``timeout`` s for data; return every event since the last call (never raises on I/O loss)."""
+        if self.state is ClientState.RECONNECTING:
+            self._try_reconnect(timeout)
+        elif self._link is not None:
+            self._wait_and_read(timeout)
+        else:
+            time.sleep(timeout)
+        events, self._events = self._events, []
+        return events
+
+    def _wait_and_read(self, timeout: float) -> None:
+        link = self._link
+        assert link is not None
+        for sock in (link.command, link.emg, link.aux):
+            if sock is not None and sock.fileno() >= 0:
+                try:
+                    self._selector.register(sock, selectors.EVENT_READ)
+                except KeyError:
+                    pass
+        try:
+            ready = self._selector.select(timeout)
+        finally:
+            for key in list(self._selector.get_map().values()):
+                self._selector.unregister(key.fileobj)
+        try:
+            for key, _ in ready:
+                sock = key.fileobj
+                if sock is link.emg:
+                    self._read_emg(link)
+                elif sock is link.aux:
+                    self._read_aux(link)
+                else:
+                    self._read_command(link)
+        except (OSError, ProtocolError) as error:
+            self._on_connection_lost(str(error) or type(error).__name__)
+
+    def _recv(self, sock: socket.socket) -> bytes:
+        try:
+            chunk = sock.recv(self.config.recv_bytes)
+        except BlockingIOError:
+            return b""
+        if not chunk:
+            raise ConnectionResetError("Trigno server closed a data connection")
+        return chunk
+
+    def _read_emg(self, link: _Link) -> None:
+        chunk = self._recv(link.emg)
+        if not chunk:
+            return
+        now = time.monotonic()
+        rows = self._emg_decoder.feed(chunk)
+        if not len(rows):
+            return
+        if self._gap_pending:
+            self._report_gap(now, len(rows))
+        self._last_data_time = now
+        block = EmgBlock(rows, self._next_index, self.rate_hz, time.time_ns())
+        self._next_index += len(rows)
+        self.stats.samples_received += len(rows)
+        self._events.append(block)
+
+    def _read_aux(self, link: _Link) -> None:
+        assert link.aux is not None
+        chunk = self._recv(link.aux)
+        rows = self._aux_decoder.feed(chunk) if chunk else np.empty((0, 0))
+        if len(rows):
+            self._events.append(AuxBlock(rows, self._next_aux_index, self.aux_rate_hz, time.time_ns()))
+            self._next_aux_index += len(rows)
+
+    def _read_command(self, link: _Link) -> None:
+        chunk = link.command.recv(4096)
+        if not chunk:
+            raise ConnectionResetError("Trigno server closed the command connection")
+        for reply in link.replies.feed(chunk):
+            if reply.upper() == tp.UNSOLICITED_STOPPED:
+                self._on_stopped()
+            else:
+                self._note_error(f"unexpected reply {reply!r} on the command port")
+
+    def _on_stopped(self) -> None:
+        """The server's stop trigger fired: acquisition is over, not a fault (no reconnection)."""
+        self._want_streaming = False
+        self.state = ClientState.STOPPED
+        self._emit_status(ClientState.STOPPED, "STOPPED received from the server (stop trigger)")
+
+    def _report_gap(self, now: float, n_rows: int) -> None:
+        # The first rows after the reconnection were sampled n_rows/rate before they arrived.
+        elapsed = now - n_rows / self.rate_hz - self._last_data_time
+        missing = max(0, int(round(elapsed * self.rate_hz)))
+        self._gap_pending = False
+        self._events.append(GapEvent(self._next_index, missing, time.time_ns(), "connection lost"))
+        self._next_index += missing
+        self.stats.samples_lost += missing
+
+    # ------------------------------------------------------------------------------------------ reconnection
+    def _drain(self, link: _Link) -> None:
+        """Deliver every byte the kernel already holds for the data sockets before they are closed."""
+        for sock, reader in ((link.emg, self._read_emg), (link.aux, self._read_aux)):
+            if sock is None:
+                continue
+            for _ in range(1024):
+                try:
+                    pending = sock.recv(self.config.recv_bytes, socket.MSG_PEEK)
+                except OSError:
+                    break
+                if not pending:
+                    break
+                reader(link)
+
+    def _on_connection_lost(self, reason: str) -> None:
+        self._note_error(f"connection lost: {reason}")
+        if self._link is not None:
+            self._drain(self._link)
+        self.stats.bytes_discarded += self._emg_decoder.discard_partial() + self._aux_decoder.discard_partial()
+        self._drop_link()
+        if not self.config.reconnect:
+            self.state = ClientState.CLOSED
+            self._emit_status(ClientState.CLOSED, f"connection lost: {reason}")
+            return
+        self.state = ClientState.RECONNECTING
+        self._gap_pending = self._want_streaming
+        self._backoff = self.config.backoff_initial_s
+        self._next_attempt = time.monotonic() + self._backoff
+        self._emit_status(ClientState.RECONNECTING, f"connection lost: {reason}")
+
+    def _try_reconnect(self, timeout: float) -> None:
+        delay = self._next_attempt - time.monotonic()
+        if delay > 0:
+            time.sleep(min(delay, timeout))
+            return
+        try:
+            self._link = self._open_link()
+            if self._want_streaming:
+                self._command("START")
+        except (OSError, ProtocolError) as error:
+            self._drop_link()
+            self._backoff = min(self._backoff * 2, self.config.backoff_max_s)
+            self._next_attempt = time.monotonic() + self._backoff
+            self.stats.last_error = f"reconnect failed: {error}"
+            return
+        self.stats.reconnects += 1
+        self.state = ClientState.STREAMING if self._want_streaming else ClientState.CONNECTED
+        self._emit_status(self.state, f"reconnected (protocol {self.protocol_version})")
+
+    def _drop_link(self) -> None:
+        if self._link is not None:
+            self._link.close()
+            self._link = None
+
+    # ------------------------------------------------------------------------------------------ bookkeeping
+    def _note_error(self, text: str) -> None:
+        self.stats.errors += 1
+        self.stats.last_error = text
+
+    def _emit_status(self, state: ClientState, detail: str) -> None:
+        self._events.append(StatusEvent(state, detail, time.time_ns()))
+
+    @property
+    def connected(self) -> bool:
+        return self._link is not None

@@ -1,0 +1,442 @@
+"""A Trigno Control Utility stand-in: a real TCP server speaking the SDK protocol and streaming EMG from a recording.
+
+It serves the command port (banner, replies, errors, master rule, unsolicited ``STOPPED``), the EMG port (50043 and
+the legacy 50041) and the AUX port, in 13.5 ms frames of 26/27 samples. The protocol variants public clients
+disagree about are :class:`TrignoQuirks`, so a driver can be tested against each. :meth:`TrignoSimulator.kill`
+drops every connection at once, like a crashed server; a new simulator on the same ports is a restarted one.
+"""
+
+from __future__ import annotations
+
+import enum
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.trigno import protocol as tp
+from drivers.trigno.source import EmgSource, resample
+
+AUX_SAMPLES_PER_FRAME = 2
+
+
+class UpsamplingReply(enum.Enum):
+    """Reply style to ``UPSAMPLING?``: the manual's ``UPSAMPLING ON|OFF`` or the ``YES|NO`` one client expects."""
+
+    ON_OFF = "on_off"
+    YES_NO = "yes_no"
+
+
+@dataclass(frozen=True)
+class TrignoQuirks:
+    """Server behaviours that differ between Trigno software versions (and between what clients assume)."""
+
+    protocol_version: str = "3.6.0"
+    banner_trailing_space: bool = False
+    start_index_base: int = 1  # STARTINDEX? counts slots from 0 or from 1
+    upsampling_reply: UpsamplingReply = UpsamplingReply.ON_OFF
+    bare_rate_cannot_complete: bool = True  # a bare "RATE?" answers CANNOT COMPLETE
+    first_connection_is_master: bool = True  # else every connection must ask MASTER before START
+    stop_trigger_after_s: float | None = None  # fire the stop trigger (unsolicited STOPPED) after streaming this long
+    quit_stops_acquisition: bool = True  # QUIT alone (one client's way) also ends streaming
+    start_delay_s: float = 0.0  # a real system sends its first data ~2 s after START
+
+
+@dataclass(frozen=True)
+class SimulatorConfig:
+    host: str = "127.0.0.1"
+    command_port: int = tp.COMMAND_PORT  # 0 = any free port (see TrignoSimulator.ports)
+    emg_port: int = tp.DataPort.EMG
+    legacy_emg_port: int | None = tp.DataPort.LEGACY_EMG
+    aux_port: int | None = tp.DataPort.AUX
+    upsampling: bool | None = None  # initial UPSAMPLING state; None = whichever matches the source rate
+    endianness: tp.Endianness = tp.Endianness.LITTLE
+    speed: float = 1.0  # >1 streams faster than real time (tests)
+    loop: bool = True  # restart the recording at its end; else stop sending data
+    fragment_max: int | None = None  # split each frame into random pieces of 1..fragment_max bytes
+    seed: int = 0
+    quirks: TrignoQuirks = field(default_factory=TrignoQuirks)
+
+
+@dataclass
+class SimulatorStats:
+    frames_sent: int = 0
+    samples_sent: int = 0
+    commands: int = 0
+    connections: int = 0
+
+
+class _CommandConnection:
+    def __init__(self, sock: socket.socket, conn_id: int) -> None:
+        self.sock = sock
+        self.id = conn_id
+        self.lock = threading.Lock()
+
+    def send_reply(self, text: str) -> None:
+        with self.lock:
+            self.sock.sendall(text.encode("ascii") + tp.TERMINATOR)
+
+
+class TrignoSimulator:
+    """Start with :meth:`start` (or as a context manager); :meth:`close` stops cleanly, :meth:`kill` abruptly."""
+
+    def __init__(self, source: EmgSource, config: SimulatorConfig | None = None) -> None:
+        self.source = source
+        self.config = config or SimulatorConfig()
+        self.stats = SimulatorStats()
+        self._stop = threading.Event()
+        self._lock = threading.RLock()
+        self._listeners: dict[str, socket.socket] = {}
+        self._command_conns: list[_CommandConnection] = []
+        self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": []}
+        self._threads: list[threading.Thread] = []
+        self._master: int | None = None
+        self._next_conn_id = 1
+        self._running = False
+        self._run_started = 0.0
+        self._frame = 0
+        self._upsampling = self.config.upsampling if self.config.upsampling is not None else source.rate_hz > 1960.0
+        self._endianness = self.config.endianness
+        self._backwards_compatibility = False
+        self._triggers = {"START": False, "STOP": False}
+        self._rng = np.random.default_rng(self.config.seed)
+        self._stream_samples: np.ndarray | None = None
+        self.ports: dict[str, int] = {}
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> "TrignoSimulator":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> "TrignoSimulator":
+        cfg = self.config
+        wanted = {"command": cfg.command_port, "emg": cfg.emg_port, "legacy_emg": cfg.legacy_emg_port, "aux": cfg.aux_port}
+        for name, port in wanted.items():
+            if port is None:
+                continue
+            listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            listener.bind((cfg.host, int(port)))
+            listener.listen(8)
+            listener.settimeout(0.1)
+            self._listeners[name] = listener
+            self.ports[name] = listener.getsockname()[1]
+            self._spawn(self._accept_loop, name, listener)
+        self._spawn(self._stream_loop)
+        return self
+
+    def close(self) -> None:
+        """Stop serving: close every connection and listener, join the threads."""
+        self._stop.set()
+        self._close_all()
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+
+    def kill(self) -> None:
+        """Abrupt server death: connections are reset, nothing more is sent (threads are still joined)."""
+        self._stop.set()
+        with self._lock:
+            conns = [c.sock for c in self._command_conns] + [s for group in self._data_conns.values() for s in group]
+        for sock in conns:
+            try:  # RST instead of FIN, as when a process dies with data in flight
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+            except OSError:
+                pass
+        self.close()
+
+    def _close_all(self) -> None:
+        with self._lock:
+            socks = list(self._listeners.values()) + [c.sock for c in self._command_conns]
+            socks += [s for group in self._data_conns.values() for s in group]
+            self._command_conns.clear()
+            for group in self._data_conns.values():
+                group.clear()
+        for sock in socks:
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            sock.close()
+
+    def _spawn(self, target, *args) -> None:
+        thread = threading.Thread(target=target, args=args, daemon=True, name=f"trigno-sim-{target.__name__}")
+        thread.start()
+        self._threads.append(thread)
+
+    # ------------------------------------------------------------------------------------------ state
+    @property
+    def streaming(self) -> bool:
+        return self._running
+
+    @property
+    def rate_hz(self) -> float:
+        return tp.rate_for(self.samples_per_frame)
+
+    @property
+    def samples_per_frame(self) -> int:
+        return 27 if self._upsampling else 26
+
+    def _stream(self) -> np.ndarray:
+        if self._stream_samples is None:
+            self._stream_samples = resample(self.source.samples, self.source.rate_hz, self.rate_hz)
+        return self._stream_samples
+
+    # ------------------------------------------------------------------------------------------ accepting
+    def _accept_loop(self, name: str, listener: socket.socket) -> None:
+        while not self._stop.is_set():
+            try:
+                sock, _ = listener.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self.stats.connections += 1
+            if name == "command":
+                with self._lock:
+                    conn = _CommandConnection(sock, self._next_conn_id)
+                    self._next_conn_id += 1
+                    if self._master is None and self.config.quirks.first_connection_is_master:
+                        self._master = conn.id
+                    self._command_conns.append(conn)
+                self._spawn(self._command_loop, conn)
+            else:
+                with self._lock:
+                    self._data_conns["aux" if name == "aux" else "emg"].append(sock)
+
+    # ------------------------------------------------------------------------------------------ commands
+    def _command_loop(self, conn: _CommandConnection) -> None:
+        quirks = self.config.quirks
+        banner = f"{tp.BANNER_PREFIX} {quirks.protocol_version}" + (" " if quirks.banner_trailing_space else "")
+        buffer = bytearray()
+        conn.sock.settimeout(0.1)
+        try:
+            conn.send_reply(banner)
+            while not self._stop.is_set():
+                try:
+                    chunk = conn.sock.recv(4096)
+                except socket.timeout:
+                    continue
+                if not chunk:
+                    break
+                buffer += chunk
+                while (index := buffer.find(tp.TERMINATOR)) >= 0:
+                    packet = buffer[:index].decode("ascii", errors="replace")
+                    del buffer[: index + len(tp.TERMINATOR)]
+                    for command in tp.split_packet(packet):
+                        self.stats.commands += 1
+                        reply = self._handle(conn, command)
+                        conn.send_reply(reply)
+                        if command.upper() == "QUIT":
+                            raise ConnectionAbortedError
+        except (OSError, ConnectionAbortedError):
+            pass
+        finally:
+            self._drop_command_connection(conn)
+
+    def _drop_command_connection(self, conn: _CommandConnection) -> None:
+        with self._lock:
+            if conn in self._command_conns:
+                self._command_conns.remove(conn)
+            if self._master == conn.id:
+                self._master = None
+        try:
+            conn.sock.close()
+        except OSError:
+            pass
+
+    def _handle(self, conn: _CommandConnection, command: str) -> str:
+        """The reply to one command (the SDK answers every command with exactly one reply)."""
+        quirks = self.config.quirks
+        words = command.upper().split()
+        text = " ".join(words)
+        is_master = self._master == conn.id
+        if text == "START":
+            if not is_master:
+                return "CANNOT COMPLETE"
+            self._start_streaming()
+            return "OK"
+        if text == "STOP":
+            if not is_master:
+                return "CANNOT COMPLETE"
+            self._running = False
+            return "OK"
+        if text == "QUIT":
+            if is_master and quirks.quit_stops_acquisition:
+                self._running = False
+            return "OK"
+        if text == "MASTER?":
+            return "YES" if is_master else "NO"
+        if text == "MASTER":
+            with self._lock:
+                self._master = conn.id
+            return "NEW MASTER"
+        if text == "VERSION?":
+            return quirks.protocol_version
+        if text == "BACKWARDS COMPATIBILITY?":
+            return "YES" if self._backwards_compatibility else "NO"
+        if len(words) == 3 and words[:2] == ["BACKWARDS", "COMPATIBILITY"] and words[2] in ("ON", "OFF"):
+            if self._running:
+                return "CANNOT COMPLETE"
+            self._backwards_compatibility = words[2] == "ON"
+            return "OK"
+        if text == "UPSAMPLING?":
+            if quirks.upsampling_reply is UpsamplingReply.YES_NO:
+                return "YES" if self._upsampling else "NO"
+            return "UPSAMPLING ON" if self._upsampling else "UPSAMPLING OFF"
+        if len(words) == 2 and words[0] in ("UPSAMPLE", "UPSAMPLING") and words[1] in ("ON", "OFF"):
+            if self._running:
+                return "CANNOT COMPLETE"
+            self._upsampling = words[1] == "ON"
+            self._stream_samples = None
+            return "OK"
+        if text == "ENDIANNESS?":
+            return self._endianness.value
+        if len(words) == 2 and words[0] == "ENDIAN" and words[1] in ("LITTLE", "BIG"):
+            if self._running:
+                return "CANNOT COMPLETE"
+            self._endianness = tp.Endianness(words[1])
+            return "OK"
+        if text == "FRAME INTERVAL?":
+            return f"{tp.FRAME_INTERVAL_S}"
+        if text == "MAX SAMPLES EMG?":
+            return str(self.samples_per_frame)
+        if text == "MAX SAMPLES AUX?":
+            return str(AUX_SAMPLES_PER_FRAME)
+        if text == "RATE?":
+            return "CANNOT COMPLETE" if quirks.bare_rate_cannot_complete else f"{self.rate_hz:.3f}"
+        if text == "TRIGGER?":
+            return f"TRIGGER START {'ON' if self._triggers['START'] else 'OFF'} STOP {'ON' if self._triggers['STOP'] else 'OFF'}"
+        if len(words) == 3 and words[0] == "TRIGGER" and words[1] in ("START", "STOP") and words[2] in ("ON", "OFF"):
+            self._triggers[words[1]] = words[2] == "ON"
+            return "OK"
+        if text == "BASE FIRMWARE?":
+            return "MA2919-BE1506-DS0806-US2008-DA0901"
+        if text == "BASE SERIAL?":
+            return "SP-W01D-1771"
+        if words and words[0] == "SENSOR":
+            return self._sensor_command(words)
+        return "INVALID COMMAND"
+
+    def _sensor_command(self, words: list[str]) -> str:
+        if len(words) < 3 or not words[1].isdigit() or not 1 <= int(words[1]) <= tp.N_SENSORS:
+            return "INVALID COMMAND"
+        n = int(words[1])
+        rest = " ".join(words[2:])
+        paired = self.source.paired[n - 1]
+        if rest in ("PAIRED?", "ACTIVE?"):
+            return "YES" if paired else "NO"
+        if not paired:
+            return "CANNOT COMPLETE"
+        base = self.config.quirks.start_index_base
+        simple = {
+            "TYPE?": "O",
+            "MODE?": "40",
+            "CHANNELCOUNT?": "4",
+            "EMGCHANNELCOUNT?": "1",
+            "AUXCHANNELCOUNT?": "3",
+            "STARTINDEX?": str(n - 1 + base),
+            "AUXSTARTINDEX?": str((n - 1) * tp.AUX_SLOTS_PER_SENSOR + base),
+            "SERIAL?": f"SP-W02C-{1000 + n:04d}",
+            "FIRMWARE?": "40.51",
+        }
+        if rest in simple:
+            return simple[rest]
+        if len(words) == 4 and words[2] == "SETMODE" and words[3].isdigit():
+            return f"SENSOR {n} SET TO MODE {words[3]}"
+        if len(words) == 5 and words[2] == "CHANNEL" and words[3].isdigit():
+            m = int(words[3])
+            if not 1 <= m <= 4:
+                return "CANNOT COMPLETE"
+            emg = m == 1
+            answers = {
+                "RATE?": f"{self.rate_hz:.3f}" if emg else f"{tp.rate_for(AUX_SAMPLES_PER_FRAME):.3f}",
+                "SAMPLES?": str(self.samples_per_frame if emg else AUX_SAMPLES_PER_FRAME),
+                "GAIN?": "300" if emg else "1",
+                "UNITS?": "V" if emg else "g",
+            }
+            return answers.get(words[4], "INVALID COMMAND")
+        return "INVALID COMMAND"
+
+    # ------------------------------------------------------------------------------------------ streaming
+    def _start_streaming(self) -> None:
+        if self._running:
+            return
+        self._frame = 0
+        self._run_started = time.monotonic() + self.config.quirks.start_delay_s / self.config.speed
+        self._running = True
+
+    def _fire_stop_trigger(self) -> None:
+        self._running = False
+        with self._lock:
+            conns = list(self._command_conns)
+        for conn in conns:
+            try:
+                conn.send_reply(tp.UNSOLICITED_STOPPED)
+            except OSError:
+                pass
+
+    def _stream_loop(self) -> None:
+        frame_s = tp.FRAME_INTERVAL_S / self.config.speed
+        while not self._stop.is_set():
+            if not self._running:
+                self._stop.wait(0.005)
+                continue
+            due = self._run_started + self._frame * frame_s
+            delay = due - time.monotonic()
+            if delay > 0:
+                self._stop.wait(min(delay, 0.05))
+                continue
+            limit = self.config.quirks.stop_trigger_after_s
+            if limit is not None and self._frame * tp.FRAME_INTERVAL_S >= limit:
+                self._fire_stop_trigger()
+                continue
+            if not self._send_frame(self._frame):
+                self._running = False
+                continue
+            self._frame += 1
+
+    def _send_frame(self, frame: int) -> bool:
+        """Send frame ``frame`` to every data connection; False at the end of a non-looping recording."""
+        samples = self._stream()
+        spf = self.samples_per_frame
+        n = samples.shape[0]
+        start = frame * spf
+        if not self.config.loop and start + spf > n:
+            return False
+        index = (start + np.arange(spf)) % n
+        emg = samples[index]
+        aux = np.zeros((AUX_SAMPLES_PER_FRAME, tp.FLOATS_PER_SAMPLE[tp.DataPort.AUX]), dtype=np.float32)
+        for k, paired in enumerate(self.source.paired):
+            if paired:  # accelerometer z of a sensor lying flat: 1 g
+                aux[:, k * tp.AUX_SLOTS_PER_SENSOR + 2] = 1.0
+        payloads = {"emg": tp.encode_samples(emg, self._endianness), "aux": tp.encode_samples(aux, self._endianness)}
+        for kind, payload in payloads.items():
+            with self._lock:
+                conns = list(self._data_conns[kind])
+            for sock in conns:
+                try:
+                    self._send_fragmented(sock, payload)
+                except OSError:
+                    with self._lock:
+                        if sock in self._data_conns[kind]:
+                            self._data_conns[kind].remove(sock)
+                    sock.close()
+        self.stats.frames_sent += 1
+        self.stats.samples_sent += spf
+        return True
+
+    def _send_fragmented(self, sock: socket.socket, payload: bytes) -> None:
+        limit = self.config.fragment_max
+        if not limit:
+            sock.sendall(payload)
+            return
+        pos = 0
+        while pos < len(payload):
+            size = int(self._rng.integers(1, limit + 1))
+            sock.sendall(payload[pos : pos + size])
+            pos += size

@@ -1,0 +1,159 @@
+"""EMG recordings a Trigno simulator can stream: a C3D export, a simple .npz, or a synthetic session.
+
+Formats (docs/devices.md has the full description):
+- ``*.c3d``: analog channels whose label ends in ``.EMG<n>`` (or ``.IM EMG<n>``) fill sensor slot n (1..16), in volts.
+- ``*.npz``: ``emg`` (n_samples, n_channels <= 16) volts, ``rate_hz`` scalar; optional ``labels`` (n_channels,)
+  and ``sensors`` (n_channels,) 1-based slot numbers (default 1..n_channels).
+- ``synthetic[:SECONDS[:SEED]]``: bursts of band-limited noise on 4 sensors at 2000 Hz.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.trigno.protocol import N_SENSORS
+from msk_core.errors import FileFormatError, InputError
+
+_EMG_LABEL = re.compile(r"^(?P<name>.*?)\.(?P<im>IM )?EMG(?P<slot>\d+)$")
+
+
+@dataclass(frozen=True)
+class EmgSource:
+    """Samples for the 16 sensor slots (unpaired slots are zero)."""
+
+    samples: np.ndarray  # (n, 16) float32 volts
+    rate_hz: float
+    labels: tuple[str, ...]  # 16 names ("" for unpaired)
+    paired: tuple[bool, ...]  # 16 flags
+    name: str
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.samples.shape[0])
+
+
+def load_source(spec: str | Path) -> EmgSource:
+    """Load an EMG source from a path (.c3d, .npz) or a ``synthetic[:SECONDS[:SEED]]`` spec."""
+    text = str(spec)
+    if text.startswith("synthetic"):
+        parts = text.split(":")
+        try:
+            seconds = float(parts[1]) if len(parts) > 1 and parts[1] else 30.0
+            seed = int(parts[2]) if len(parts) > 2 else 0
+        except ValueError:
+            raise InputError("synthetic source is synthetic[:SECONDS[:SEED]]", field="--from", value=text) from None
+        return synthetic_source(seconds=seconds, seed=seed)
+    path = Path(text)
+    if not path.is_file():
+        raise InputError("EMG source file not found", path=path)
+    suffix = path.suffix.lower()
+    if suffix == ".c3d":
+        return load_c3d(path)
+    if suffix == ".npz":
+        return load_npz(path)
+    raise FileFormatError("unsupported EMG source (expected .c3d, .npz or synthetic[:SECONDS])", path=path, value=suffix)
+
+
+def load_c3d(path: Path) -> EmgSource:
+    import ezc3d  # imported here: only the C3D path needs it
+
+    try:
+        c3d = ezc3d.c3d(str(path))
+    except Exception as error:  # ezc3d raises plain RuntimeError/IOError with its own text
+        raise FileFormatError(f"cannot read C3D: {error}", path=path) from error
+    analog = c3d["parameters"]["ANALOG"]
+    labels = [str(label) for label in analog["LABELS"]["value"]]
+    rate = float(np.atleast_1d(analog["RATE"]["value"])[0])
+    data = np.asarray(c3d["data"]["analogs"])[0]  # (channels, frames)
+    units = [str(u) for u in analog.get("UNITS", {}).get("value", ["V"] * len(labels))]
+    samples = np.zeros((data.shape[1], N_SENSORS), dtype=np.float32)
+    names = [""] * N_SENSORS
+    paired = [False] * N_SENSORS
+    for column, label in enumerate(labels):
+        match = _EMG_LABEL.match(label)
+        if match is None:
+            continue
+        slot = int(match.group("slot"))
+        if not 1 <= slot <= N_SENSORS:
+            raise FileFormatError("EMG slot outside 1..16", path=path, field="ANALOG:LABELS", value=label)
+        values = data[column]
+        if not np.any(values):
+            continue  # an unpaired slot exported as zeros; an IM sensor may own the slot instead
+        if paired[slot - 1]:
+            raise FileFormatError("two EMG channels claim the same sensor slot", path=path, field="ANALOG:LABELS", value=label)
+        scale = 1e-3 if column < len(units) and units[column].strip().lower() == "mv" else 1.0
+        samples[:, slot - 1] = values * scale
+        names[slot - 1] = match.group("name")
+        paired[slot - 1] = True
+    if not any(paired):
+        raise FileFormatError("no non-zero analog channel labelled <name>.EMG<n>", path=path, field="ANALOG:LABELS")
+    return EmgSource(samples, rate, tuple(names), tuple(paired), path.name)
+
+
+def load_npz(path: Path) -> EmgSource:
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except Exception as error:
+        raise FileFormatError(f"cannot read .npz: {error}", path=path) from error
+    with archive:
+        for key in ("emg", "rate_hz"):
+            if key not in archive.files:
+                raise FileFormatError("missing array", path=path, field=key)
+        emg = np.asarray(archive["emg"], dtype=np.float32)
+        if emg.ndim == 1:
+            emg = emg[:, None]
+        if emg.ndim != 2 or not 1 <= emg.shape[1] <= N_SENSORS or emg.shape[0] == 0:
+            raise FileFormatError("emg must be (n_samples, 1..16 channels)", path=path, field="emg", value=emg.shape)
+        if not np.all(np.isfinite(emg)):
+            raise FileFormatError("emg holds NaN or infinite values", path=path, field="emg")
+        rate = float(np.asarray(archive["rate_hz"]).reshape(-1)[0])
+        if not 100.0 <= rate <= 10000.0:
+            raise FileFormatError("rate_hz must be within 100..10000 Hz", path=path, field="rate_hz", value=rate)
+        n_channels = emg.shape[1]
+        labels = [str(x) for x in archive["labels"]] if "labels" in archive.files else [f"sensor{k + 1:02d}" for k in range(n_channels)]
+        sensors = [int(x) for x in archive["sensors"]] if "sensors" in archive.files else list(range(1, n_channels + 1))
+    if len(labels) != n_channels:
+        raise FileFormatError("one label per emg column expected", path=path, field="labels", value=len(labels))
+    if len(sensors) != n_channels or len(set(sensors)) != n_channels or not all(1 <= s <= N_SENSORS for s in sensors):
+        raise FileFormatError("sensors must be distinct slots 1..16, one per column", path=path, field="sensors", value=sensors)
+    samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
+    names = [""] * N_SENSORS
+    paired = [False] * N_SENSORS
+    for column, slot in enumerate(sensors):
+        samples[:, slot - 1] = emg[:, column]
+        names[slot - 1] = labels[column]
+        paired[slot - 1] = True
+    return EmgSource(samples, rate, tuple(names), tuple(paired), path.name)
+
+
+def synthetic_source(*, seconds: float = 30.0, seed: int = 0, rate_hz: float = 2000.0, sensors: int = 4) -> EmgSource:
+    """Bursty EMG-like noise (10-400 Hz content, ~1 mV peaks) on the first ``sensors`` slots."""
+    if seconds <= 0 or not 1 <= sensors <= N_SENSORS:
+        raise InputError("synthetic source needs seconds > 0 and 1..16 sensors", value=(seconds, sensors))
+    rng = np.random.default_rng(seed)
+    n = int(round(seconds * rate_hz))
+    t = np.arange(n) / rate_hz
+    samples = np.zeros((n, N_SENSORS), dtype=np.float32)
+    kernel = np.exp(-np.arange(40) / 6.0)
+    kernel -= kernel.mean()  # zero mean: removes DC like a real differential EMG amplifier
+    for k in range(sensors):
+        envelope = 0.05 + 0.95 * np.clip(np.sin(2 * np.pi * 0.5 * t + k), 0.0, None) ** 2
+        noise = np.convolve(rng.standard_normal(n), kernel, mode="same")
+        samples[:, k] = (3e-4 * envelope * noise).astype(np.float32)
+    names = tuple(f"muscle{k + 1}" if k < sensors else "" for k in range(N_SENSORS))
+    paired = tuple(k < sensors for k in range(N_SENSORS))
+    return EmgSource(samples, rate_hz, names, paired, f"synthetic:{seconds:g}:{seed}")
+
+
+def resample(samples: np.ndarray, rate_in: float, rate_out: float) -> np.ndarray:
+    """Linear resampling (used when the simulated upsampling setting differs from the recording's rate)."""
+    if abs(rate_in - rate_out) < 1e-9:
+        return samples
+    n_out = int(np.floor((samples.shape[0] - 1) * rate_out / rate_in)) + 1
+    t_out = np.arange(n_out) / rate_out
+    t_in = np.arange(samples.shape[0]) / rate_in
+    return np.stack([np.interp(t_out, t_in, samples[:, k]) for k in range(samples.shape[1])], axis=1).astype(np.float32)

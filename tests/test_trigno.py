@@ -1,0 +1,283 @@
+"""Trigno driver against the simulator over real TCP sockets: bit-exact samples, protocol variants, reconnection."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from drivers.trigno import protocol as tp
+from drivers.trigno.client import (
+    AuxBlock,
+    ClientState,
+    EmgBlock,
+    GapEvent,
+    StatusEvent,
+    TrignoClient,
+    TrignoConfig,
+    parse_address,
+)
+from drivers.trigno.simulator import SimulatorConfig, TrignoQuirks, TrignoSimulator, UpsamplingReply
+from drivers.trigno.source import load_source, synthetic_source
+from msk_core.errors import ConfigError, FileFormatError, InputError, ProtocolError
+
+EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
+
+
+def client_for(sim: TrignoSimulator, *, legacy: bool = False, aux: bool = False, **kwargs) -> TrignoClient:
+    config = TrignoConfig(
+        command_port=sim.ports["command"],
+        emg_port=sim.ports["legacy_emg" if legacy else "emg"],
+        aux_port=sim.ports["aux"] if aux else None,
+        **kwargs,
+    )
+    return TrignoClient(config)
+
+
+def collect(client: TrignoClient, *, samples: int = 0, seconds: float = 5.0, until=None) -> list:
+    """Poll until ``samples`` EMG rows (or ``until(events)``) or the time limit."""
+    events: list = []
+    got = 0
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        new = client.poll(0.02)
+        events += new
+        got += sum(len(e.samples) for e in new if isinstance(e, EmgBlock))
+        if (samples and got >= samples) or (until is not None and until(events)):
+            break
+    return events
+
+
+def emg_rows(events: list) -> np.ndarray:
+    blocks = [e.samples for e in events if isinstance(e, EmgBlock)]
+    return np.concatenate(blocks) if blocks else np.empty((0, 16), np.float32)
+
+
+def assert_bit_exact(received: np.ndarray, expected: np.ndarray) -> None:
+    assert received.dtype == np.float32
+    assert np.array_equal(received.view(np.uint32), expected.astype(np.float32).view(np.uint32))
+
+
+# ------------------------------------------------------------------------------------------------ protocol units
+
+
+def test_reply_reader_handles_fragments_banner_space_and_packed_replies():
+    reader = tp.ReplyReader()
+    stream = b"Delsys Trigno System Digital Protocol Version 3.6.0 \r\n\r\nOK\r\n\r\nUPSAMPLING ON\r\n\r\nSTOPPED\r\n\r\n"
+    replies = []
+    for k in range(len(stream)):
+        replies += reader.feed(stream[k : k + 1])
+    assert replies == ["Delsys Trigno System Digital Protocol Version 3.6.0", "OK", "UPSAMPLING ON", "STOPPED"]
+    assert tp.parse_banner(replies[0]) == "3.6.0"
+    with pytest.raises(ProtocolError, match="unexpected Trigno banner"):
+        tp.parse_banner("HTTP/1.1 400 Bad Request")
+
+
+@pytest.mark.parametrize(
+    "reply, value", [("YES", True), ("NO", False), ("UPSAMPLING ON", True), ("UPSAMPLING OFF", False), ("on", True)]
+)
+def test_yes_no_variants(reply, value):
+    assert tp.parse_yes_no(reply) is value
+
+
+def test_yes_no_rejects_other_text():
+    with pytest.raises(ProtocolError, match="not YES/NO"):
+        tp.parse_yes_no("MAYBE", command="UPSAMPLING?")
+
+
+@pytest.mark.parametrize("sensor, reported", [(1, 0), (1, 1), (16, 15), (16, 16), (5, 4), (5, 5)])
+def test_start_index_accepts_both_bases(sensor, reported):
+    assert tp.normalise_start_index(sensor, reported) == sensor - 1
+
+
+def test_start_index_rejects_other_values():
+    with pytest.raises(ProtocolError, match="STARTINDEX of sensor 3 is 7"):
+        tp.normalise_start_index(3, 7)
+
+
+def test_sample_decoder_reassembles_any_split_in_both_byte_orders():
+    rng = np.random.default_rng(1)
+    rows = rng.standard_normal((50, 16)).astype(np.float32)
+    for endianness in tp.Endianness:
+        payload = tp.encode_samples(rows, endianness)
+        decoder = tp.SampleDecoder(16, endianness)
+        out, pos = [], 0
+        while pos < len(payload):
+            size = int(rng.integers(1, 150))
+            out.append(decoder.feed(payload[pos : pos + size]))
+            pos += size
+        assert_bit_exact(np.concatenate(out), rows)
+        assert decoder.pending_bytes == 0
+
+
+def test_encode_commands_packs_several_in_one_packet():
+    assert tp.encode_commands(["SENSOR 1 PAIRED?", "SENSOR 2 PAIRED?"]) == b"SENSOR 1 PAIRED?\r\nSENSOR 2 PAIRED?\r\n\r\n"
+    assert tp.split_packet("SENSOR 1 PAIRED?\r\nSENSOR 2 PAIRED?") == ["SENSOR 1 PAIRED?", "SENSOR 2 PAIRED?"]
+    with pytest.raises(ProtocolError):
+        tp.encode_command("START\r\nSTOP")
+
+
+def test_parse_address():
+    assert parse_address("10.0.0.5") == ("10.0.0.5", 50040)
+    assert parse_address("localhost:6000") == ("localhost", 6000)
+    with pytest.raises(ConfigError, match="HOST\\[:PORT\\]"):
+        parse_address("host:notaport")
+
+
+def test_source_errors_name_file_and_field(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        load_source(tmp_path / "missing.c3d")
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, emg=np.zeros((10, 20)), rate_hz=2000.0)
+    with pytest.raises(FileFormatError, match=r"bad.npz.*field 'emg'"):
+        load_source(bad)
+    no_rate = tmp_path / "norate.npz"
+    np.savez(no_rate, emg=np.zeros((10, 2)))
+    with pytest.raises(FileFormatError, match="field 'rate_hz'"):
+        load_source(no_rate)
+
+
+def test_npz_source_places_columns_in_their_sensor_slots(tmp_path):
+    path = tmp_path / "emg.npz"
+    emg = np.arange(30, dtype=np.float32).reshape(10, 3) * 1e-4
+    np.savez(path, emg=emg, rate_hz=1925.926, labels=np.array(["a", "b", "c"]), sensors=np.array([2, 5, 16]))
+    source = load_source(path)
+    assert source.paired[1] and source.paired[4] and source.paired[15] and sum(source.paired) == 3
+    assert source.labels[4] == "b"
+    assert np.array_equal(source.samples[:, 15], emg[:, 2])
+
+
+# ------------------------------------------------------------------------------------------------ over TCP
+
+
+def test_real_c3d_emg_arrives_bit_exact_through_random_fragmentation(shared_dir):
+    source = load_source(shared_dir / "data/pyomeca-upper/markers_analogs.c3d")
+    assert sum(source.paired) == 13 and source.rate_hz == 2000.0
+    config = SimulatorConfig(**EPHEMERAL, speed=8.0, fragment_max=97, seed=3)
+    with TrignoSimulator(source, config) as sim, client_for(sim) as client:
+        assert client.rate_hz == pytest.approx(2000.0)
+        assert client.paired_sensors == list(range(1, 14))
+        client.start()
+        events = collect(client, samples=4000, seconds=10)
+    rows = emg_rows(events)
+    assert len(rows) >= 4000
+    assert_bit_exact(rows, source.samples[: len(rows)])
+    indices = [e.first_sample_index for e in events if isinstance(e, EmgBlock)]
+    assert indices[0] == 0 and all(b > a for a, b in zip(indices, indices[1:]))
+
+
+def test_big_endian_legacy_port_and_aux_stream():
+    source = synthetic_source(seconds=2.0, seed=5)
+    config = SimulatorConfig(**EPHEMERAL, speed=8.0, fragment_max=13, upsampling=False)
+    with TrignoSimulator(source, config) as sim, client_for(
+        sim, legacy=True, aux=True, endianness=tp.Endianness.BIG, upsampling=True
+    ) as client:
+        assert client.endianness is tp.Endianness.BIG and client.upsampling is True
+        client.start()
+        events = collect(client, samples=1000, seconds=10)
+    assert_bit_exact(emg_rows(events)[:1000], source.samples[:1000])
+    aux = [e for e in events if isinstance(e, AuxBlock)]
+    assert aux and aux[0].samples.shape[1] == 144
+    assert aux[0].samples[0, 2] == 1.0 and aux[0].samples[0, 0] == 0.0  # sensor 1 ACC z = 1 g
+
+
+@pytest.mark.parametrize(
+    "quirks, stop_mode",
+    [
+        (TrignoQuirks(banner_trailing_space=True, start_index_base=0), tp.StopMode.STOP_THEN_QUIT),
+        (TrignoQuirks(upsampling_reply=UpsamplingReply.YES_NO, start_index_base=1), tp.StopMode.QUIT_ONLY),
+        (TrignoQuirks(first_connection_is_master=False, bare_rate_cannot_complete=True), tp.StopMode.STOP_THEN_QUIT),
+        (TrignoQuirks(quit_stops_acquisition=True, start_delay_s=0.3), tp.StopMode.QUIT_ONLY),
+    ],
+)
+def test_protocol_variants(quirks, stop_mode):
+    source = synthetic_source(seconds=2.0, seed=2)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0, quirks=quirks)) as sim:
+        client = client_for(sim, stop_mode=stop_mode)
+        client.connect()
+        assert client.upsampling is True and client.rate_hz == pytest.approx(2000.0)
+        assert [s.start_index for s in client.sensors if s.paired] == [0, 1, 2, 3]
+        with pytest.raises(tp.CommandFailed, match="CANNOT COMPLETE"):
+            client.command("RATE?")
+        client.start()
+        rows = emg_rows(collect(client, samples=200, seconds=10))
+        assert_bit_exact(rows[:200], source.samples[:200])
+        client.stop()
+        deadline = time.monotonic() + 2
+        while sim.streaming and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not sim.streaming
+        assert client.state is ClientState.STOPPED
+        client.close()
+
+
+def test_unsolicited_stopped_ends_acquisition_without_reconnecting():
+    source = synthetic_source(seconds=2.0)
+    quirks = TrignoQuirks(stop_trigger_after_s=0.3)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0, quirks=quirks)) as sim, client_for(sim) as client:
+        client.start()
+        events = collect(client, seconds=5, until=lambda ev: any(isinstance(e, StatusEvent) and e.state is ClientState.STOPPED for e in ev))
+        events += collect(client, seconds=0.2)
+    states = [e.state for e in events if isinstance(e, StatusEvent)]
+    assert ClientState.STOPPED in states and ClientState.RECONNECTING not in states
+    assert len(emg_rows(events)) == math.ceil(0.3 / tp.FRAME_INTERVAL_S) * 27
+
+
+def test_master_rule():
+    source = synthetic_source(seconds=1.0)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0)) as sim:
+        first = client_for(sim)
+        first.connect()
+        with pytest.raises(ProtocolError, match="not the Trigno master"):
+            client_for(sim, take_master=False).connect()
+        second = client_for(sim)  # takes master with MASTER -> NEW MASTER
+        second.connect()
+        assert second.command("MASTER?") == "YES" and first.command("MASTER?") == "NO"
+        with pytest.raises(tp.CommandFailed, match="START"):
+            first.start()
+        second.start()
+        assert len(emg_rows(collect(second, samples=100, seconds=5))) >= 100
+        second.close()
+        first.close()
+
+
+def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_samples():
+    source = synthetic_source(seconds=20.0, seed=9)
+    config = SimulatorConfig(**EPHEMERAL, speed=2.0, fragment_max=300, seed=1)
+    sim = TrignoSimulator(source, config).start()
+    ports = dict(sim.ports)
+    client = client_for(sim, backoff_initial_s=0.02, backoff_max_s=0.2)
+    try:
+        client.connect()
+        client.start()
+        before = collect(client, samples=1500, seconds=10)
+        sim.kill()
+        down = collect(client, seconds=0.6)  # reconnection attempts fail while the server is down
+        restarted_config = SimulatorConfig(
+            command_port=ports["command"], emg_port=ports["emg"], legacy_emg_port=ports["legacy_emg"],
+            aux_port=ports["aux"], speed=2.0, fragment_max=300, seed=2,
+        )
+        sim = TrignoSimulator(source, restarted_config).start()
+        after = collect(client, seconds=10, until=lambda ev: len(emg_rows(ev)) >= 1000)
+    finally:
+        client.close()
+        sim.close()
+    events = before + down + after
+    lost_at = next(i for i, e in enumerate(events) if isinstance(e, StatusEvent) and e.state is ClientState.RECONNECTING)
+    gap_at = next(i for i, e in enumerate(events) if isinstance(e, GapEvent))
+    received_before = emg_rows(events[:lost_at])
+    # everything received before the kill is intact, bit for bit, and nothing arrived between loss and gap
+    assert len(received_before) >= 1500
+    assert_bit_exact(received_before, source.samples[: len(received_before)])
+    assert len(emg_rows(events[lost_at:gap_at])) == 0
+    gap = events[gap_at]
+    assert gap.first_missing_index == len(received_before)
+    assert gap.n_missing > 0.3 * 2000 * 0.5  # down >= 0.6 s of wall time at 2000 Hz (speed 2: half as many frames)
+    resumed = emg_rows(events[gap_at:])
+    assert len(resumed) >= 1000
+    assert_bit_exact(resumed, source.samples[: len(resumed)])  # the restarted server streams from its start
+    first_after = next(e for e in events[gap_at:] if isinstance(e, EmgBlock))
+    assert first_after.first_sample_index == gap.first_missing_index + gap.n_missing
+    assert client.stats.reconnects == 1 and client.stats.samples_lost == gap.n_missing
