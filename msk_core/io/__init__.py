@@ -1,6 +1,20 @@
-"""Readers and writers of the file formats msk-live meets: OpenSim storage, .anc, C3D analogs, Delsys CSV exports."""
+"""Readers and writers of the file formats msk-live meets: OpenSim storage, .anc, C3D analogs, Delsys CSV exports,
+and the alignment of signals recorded at different rates."""
 
+from msk_core.io.align import AlignedTrial, align_to_kinematics, load_trial, resample_linear, window_mean
 from msk_core.io.analog import AnalogRecording, read_anc, read_c3d_analogs
 from msk_core.io.storage import Storage, read_sto, write_sto
 
-__all__ = ["AnalogRecording", "Storage", "read_anc", "read_c3d_analogs", "read_sto", "write_sto"]
+__all__ = [
+    "AlignedTrial",
+    "AnalogRecording",
+    "Storage",
+    "align_to_kinematics",
+    "load_trial",
+    "read_anc",
+    "read_c3d_analogs",
+    "read_sto",
+    "resample_linear",
+    "window_mean",
+    "write_sto",
+]
