@@ -1,0 +1,178 @@
+"""Extract the reduced rigid-body description of a pack from OpenSim (screw axes at the reference pose).
+
+For every OpenSim joint and pack coordinate, the relative motion child-vs-parent per unit coordinate is measured by
+central differences at the reference pose: its instantaneous screw gives the pinocchio joint (point, axis, gain).
+Exact for constant-axis joints and linear couplings; for moving-axis joints (the knee's rolling translations, the
+patella coupler) it is the reference-pose linearisation, whose error ``msk model check`` reports.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from msk_core.errors import ConfigError
+from msk_core.model.osim_tools import OsimPoser
+from msk_core.model.spec import PackSpec, closest
+
+
+def _log_rotation(r: np.ndarray) -> np.ndarray:
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    if angle < 1e-12:
+        return w / 2
+    return w * angle / (2 * np.sin(angle))
+
+
+def joint_graph(model) -> list[tuple[str, str, str]]:
+    """(joint name, parent body, child body) for every joint."""
+    js = model.getJointSet()
+    out = []
+    for i in range(js.getSize()):
+        j = js.get(i)
+        out.append((j.getName(), j.getParentFrame().findBaseFrame().getName(), j.getChildFrame().findBaseFrame().getName()))
+    return out
+
+
+def _screws(poser: OsimPoser, graph, delta: float = 1e-5) -> dict[tuple[str, int], tuple[np.ndarray, np.ndarray]]:
+    """(joint, coordinate index) -> (omega_world, v_child_origin_world) per unit coordinate, for moving joints."""
+    q0 = np.array([c.reference for c in poser.spec.coordinates])
+    poser.set(q0)
+    t0 = poser.transforms()
+    screws = {}
+    for k in range(len(q0)):
+        e = np.zeros(len(q0))
+        e[k] = delta
+        poser.set(q0 + e)
+        tp = poser.transforms()
+        poser.set(q0 - e)
+        tm = poser.transforms()
+        for name, parent, child in graph:
+            rel = {}
+            for key, t in (("p", tp), ("m", tm)):
+                rp, pp = t[parent]
+                rc, pc = t[child]
+                rel[key] = (rp.T @ rc, rp.T @ (pc - pp))
+            omega_p = _log_rotation(rel["p"][0] @ rel["m"][0].T) / (2 * delta)
+            v_p = (rel["p"][1] - rel["m"][1]) / (2 * delta)
+            r0 = t0[parent][0]
+            omega, v = r0 @ omega_p, r0 @ v_p
+            if np.linalg.norm(omega) > 1e-7 or np.linalg.norm(v) > 1e-9:
+                screws[(name, k)] = (omega, v)
+    poser.set(q0)
+    return screws
+
+
+def extract_rigid(
+    poser: OsimPoser, spec: PackSpec, *, root: str, exclude: tuple[str, ...], shared_from: str, gravity: np.ndarray
+) -> dict:
+    """Rigid-body description (see :class:`msk_core.model.rigid.RigidModel`) rooted at ``root``."""
+    model = poser.model
+    graph = joint_graph(model)
+    bodies = {"ground"} | {b for _, p, c in graph for b in (p, c)}
+    for name, field in [(root, "dynamics.root"), (shared_from, "dynamics.shared_from")] + [
+        (b, "dynamics.exclude_bodies") for b in exclude
+    ]:
+        if name and name not in bodies:
+            raise ConfigError(f"unknown body {name!r} ({closest(name, sorted(bodies))})", path=spec.path,
+                              line=spec.line_of(name), field=field, value=name)
+    for lp in spec.dynamics.load_points:
+        if lp.body not in bodies:
+            raise ConfigError(f"unknown body {lp.body!r} ({closest(lp.body, sorted(bodies))})", path=spec.path,
+                              line=spec.line_of(lp.body), field="dynamics.load_points", value=lp.body)
+    screws = _screws(poser, graph)
+    q0 = np.array([c.reference for c in spec.coordinates])
+    poser.set(q0)
+    t0 = poser.transforms()
+    adjacency: dict[str, list[tuple[str, str, bool]]] = {b: [] for b in bodies}
+    for name, parent, child in graph:
+        adjacency[parent].append((child, name, False))
+        adjacency[child].append((parent, name, True))  # traversed child -> parent: motion reversed
+    # breadth-first tree from the root
+    attach: dict[str, int] = {root: -1}  # body -> pinocchio joint index it rides on (-1: fixed to the root)
+    in_shared: dict[str, bool] = {root: root == shared_from}
+    joints: list[dict] = []
+    joint_distal_shared: list[bool] = []
+    queue = deque([root])
+    while queue:
+        body = queue.popleft()
+        for other, jname, reversed_ in adjacency[body]:
+            if other in attach or other in exclude:
+                continue
+            current = attach[body]
+            for k, coord in enumerate(spec.coordinates):
+                if (jname, k) not in screws:
+                    continue
+                omega, v = screws[(jname, k)]
+                origin = t0[other if not reversed_ else body][1] if not reversed_ else t0[body][1]
+                child_origin = t0[graph_child(graph, jname)][1]
+                sign = -1.0 if reversed_ else 1.0
+                w = np.linalg.norm(omega)
+                gains = np.zeros(len(spec.coordinates))
+                if w > 1e-7:
+                    point = child_origin + np.cross(omega, v) / w**2
+                    axis, kind, gains[k] = sign * omega / w, "revolute", w
+                else:
+                    point = origin
+                    axis, kind, gains[k] = sign * v / np.linalg.norm(v), "prismatic", np.linalg.norm(v)
+                joints.append({"name": f"{jname}:{coord.name}", "parent": current, "position": point.tolist(),
+                               "axis": axis.tolist(), "kind": kind, "gains_row": gains.tolist()})
+                joint_distal_shared.append(in_shared[body])
+                current = len(joints) - 1
+            attach[other] = current
+            in_shared[other] = in_shared[body] or other == shared_from
+            queue.append(other)
+    share = spec.dynamics.load_share if shared_from else 1.0
+    body_list = []
+    bs = model.getBodySet()
+    for i in range(bs.getSize()):
+        b = bs.get(i)
+        name = b.getName()
+        if attach.get(name, -1) < 0:
+            continue  # fixed to the root (or excluded): no effect on any pack torque
+        r0, p0 = t0[name]
+        inertia = b.getInertia()
+        mom, prod = inertia.getMoments().to_numpy(), inertia.getProducts().to_numpy()
+        i_body = np.array([[mom[0], prod[0], prod[1]], [prod[0], mom[1], prod[2]], [prod[1], prod[2], mom[2]]])
+        scale = share if in_shared[name] else 1.0
+        body_list.append({
+            "name": name,
+            "joint": attach[name],
+            "mass": scale * b.getMass(),
+            "com": (r0 @ b.getMassCenter().to_numpy() + p0).tolist(),
+            "inertia": (scale * r0 @ i_body @ r0.T).tolist(),
+        })
+    loads = []
+    for lp in spec.dynamics.load_points:
+        r0, p0 = t0[lp.body]
+        loads.append({"body": lp.body, "joint": attach.get(lp.body, -1), "point": (r0 @ np.array(lp.point) + p0).tolist()})
+    loads = [lp for lp in loads if lp["joint"] >= 0]
+    n = len(spec.coordinates)
+    torque_scale = np.ones(n)
+    if shared_from:
+        for k in range(n):
+            sides = {joint_distal_shared[i] for i, j in enumerate(joints) if j["gains_row"][k] != 0}
+            if sides == {True}:
+                torque_scale[k] = 1.0 / share
+            elif len(sides) > 1:
+                raise ConfigError(f"coordinate {spec.coordinates[k].name!r} moves joints on both sides of "
+                                  f"shared_from={shared_from!r}", path=spec.path, field="dynamics.shared_from")
+    gains = np.array([j.pop("gains_row") for j in joints]).reshape(len(joints), n)
+    return {
+        "root": root,
+        "joints": joints,
+        "bodies": body_list,
+        "load_points": loads,
+        "gravity": np.asarray(gravity, dtype=float).tolist(),
+        "load_share": (spec.dynamics.load_share if loads else 1.0),
+        "gains": gains.tolist(),
+        "torque_scale": torque_scale.tolist(),
+    }
+
+
+def graph_child(graph, jname: str) -> str:
+    for name, _parent, child in graph:
+        if name == jname:
+            return child
+    raise KeyError(jname)

@@ -1,0 +1,246 @@
+"""OpenSim side of pack compilation and validation (imported lazily: opensim is only needed offline).
+
+:class:`OsimPoser` sets an OpenSim state from pack coordinates: locked coordinates at their spec values, the pack
+coordinates, linearly coupled coordinates (ratio x driver) and the model's own CoordinateCouplerConstraints.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+
+import numpy as np
+
+from msk_core.errors import ConfigError, ModelError
+from msk_core.model.spec import PackSpec, closest
+
+
+def import_opensim():
+    try:
+        import opensim  # noqa: PLC0415 - heavy optional dependency, offline only
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ModelError("the opensim package is needed to compile or check packs (pip install opensim==4.6)") from exc
+    return opensim
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """OpenSim prints one warning per missing mesh file; keep the terminal readable."""
+    try:
+        fd = os.dup(2)
+    except OSError:  # pragma: no cover
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(fd, 2)
+        os.close(fd)
+
+
+def load_model(path: str | Path, *, gravity: tuple[float, float, float] | None = None, forces: bool = True):
+    """Load an .osim model (optionally without any force elements, for inverse dynamics) -> (model, state)."""
+    osim = import_opensim()
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("OpenSim model not found", path=path)
+    osim.Logger.setLevelString("error")
+    with _quiet_stderr():
+        model = osim.Model(str(path))
+        if not forces:
+            fs = model.updForceSet()
+            for i in range(fs.getSize()):
+                fs.get(i).set_appliesForce(False)
+        if gravity is not None:
+            model.setGravity(osim.Vec3(*gravity))
+        state = model.initSystem()
+    return model, state
+
+
+def _mat(rotation) -> np.ndarray:
+    return np.array([[rotation.get(i, j) for j in range(3)] for i in range(3)])
+
+
+class OsimPoser:
+    """Sets OpenSim poses from pack coordinates (see module docstring)."""
+
+    def __init__(self, model, state, spec: PackSpec) -> None:
+        osim = import_opensim()
+        self.model, self.state, self.spec = model, state, spec
+        cs = model.getCoordinateSet()
+        self.all_names = [cs.get(i).getName() for i in range(cs.getSize())]
+        self.coords = {n: cs.get(n) for n in self.all_names}
+        for name in list(spec.locked) + spec.coordinate_names + [d for c in spec.coordinates for d in c.coupled]:
+            if name not in self.coords:
+                raise ConfigError(
+                    f"unknown coordinate {name!r} ({closest(name, self.all_names)})",
+                    path=spec.path, line=spec.line_of(name), field="coordinates", value=name,
+                )
+        self.couplers = []
+        cset = model.getConstraintSet()
+        for i in range(cset.getSize()):
+            ccc = osim.CoordinateCouplerConstraint.safeDownCast(cset.get(i))
+            if ccc is None or not ccc.get_isEnforced():
+                continue
+            names = ccc.getIndependentCoordinateNames()
+            indep = [names.get(k) for k in range(names.getSize())]
+            self.couplers.append((ccc.getDependentCoordinateName(), indep, ccc.getFunction()))
+        self._osim = osim
+        self.base = {n: self.coords[n].getDefaultValue() for n in self.all_names}
+        self.base.update(spec.locked)
+        # U index of every coordinate (mobility order differs from the coordinate set order)
+        self.u_index = {}
+        for name in self.all_names:
+            state.updU().setToZero()
+            self.coords[name].setSpeedValue(state, 1.0)
+            u = state.getU()
+            self.u_index[name] = int(np.argmax([abs(u.get(k)) for k in range(u.size())]))
+        state.updU().setToZero()
+
+    def values(self, q: np.ndarray) -> dict[str, float]:
+        """All coordinate values for pack pose q."""
+        values = dict(self.base)
+        for c, v in zip(self.spec.coordinates, q):
+            values[c.name] = float(v)
+            for dep, ratio in c.coupled.items():
+                values[dep] = ratio * float(v)
+        for dep, indep, func in self.couplers:
+            values[dep] = func.calcValue(self._osim.Vector([values[n] for n in indep]))
+        return values
+
+    def set(self, q: np.ndarray) -> None:
+        for name, value in self.values(q).items():
+            self.coords[name].setValue(self.state, value, False)
+        self.model.realizePosition(self.state)
+
+    def coordinate_jacobian(self, q: np.ndarray, delta: float = 1e-6) -> tuple[list[str], np.ndarray]:
+        """d(all coordinate values)/d(pack q) by central differences -> (names, (n_all, n))."""
+        cols = []
+        for j in range(len(q)):
+            e = np.zeros(len(q))
+            e[j] = delta
+            plus, minus = self.values(q + e), self.values(q - e)
+            cols.append([(plus[n] - minus[n]) / (2 * delta) for n in self.all_names])
+        return self.all_names, np.array(cols).T
+
+    def transforms(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """World rotation and origin of every body (and ground) at the current state."""
+        out = {"ground": (np.eye(3), np.zeros(3))}
+        bs = self.model.getBodySet()
+        for i in range(bs.getSize()):
+            body = bs.get(i)
+            t = body.getTransformInGround(self.state)
+            out[body.getName()] = (_mat(t.R()), np.array(t.p().to_numpy()))
+        return out
+
+
+def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str, float]]:
+    """Max isometric force, optimal fibre length and tendon slack length of each named muscle."""
+    muscles = model.getMuscles()
+    all_names = [muscles.get(i).getName() for i in range(muscles.getSize())]
+    table = {}
+    for name in names:
+        if name not in all_names:
+            raise ConfigError(
+                f"unknown muscle {name!r} ({closest(name, all_names)})",
+                path=spec.path, line=spec.line_of(f'"{name}"'), field="groups", value=name,
+            )
+        m = muscles.get(name)
+        table[name] = {
+            "f_max": m.getMaxIsometricForce(),
+            "l_opt": m.getOptimalFiberLength(),
+            "l_slack": m.getTendonSlackLength(),
+        }
+    return table
+
+
+JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
+
+
+def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4, progress=None):
+    """Muscle-tendon lengths (S, m) and dl/dq (S, m, n) by central differences of OpenSim path lengths (NaN at jumps)."""
+    muscles = [poser.model.getMuscles().get(n) for n in names]
+    s, n = poses.shape
+    lengths = np.empty((s, len(names)))
+    derivs = np.empty((s, len(names), n))
+
+    def read() -> np.ndarray:
+        return np.array([m.getLength(poser.state) for m in muscles])
+
+    for i, q in enumerate(poses):
+        poser.set(q)
+        lengths[i] = centre = read()
+        for j in range(n):
+            e = np.zeros(n)
+            e[j] = delta
+            poser.set(q + e)
+            plus = read()
+            poser.set(q - e)
+            minus = read()
+            # a path that jumps (wrap-object switch) makes the one-sided slopes disagree: no derivative there
+            jump = np.abs((plus - centre) - (centre - minus)) > JUMP_TOLERANCE * delta
+            derivs[i, :, j] = np.where(jump, np.nan, (plus - minus) / (2 * delta))
+        if progress is not None:
+            progress.update(1)
+    return lengths, derivs
+
+
+def opensim_moment_arms(poser: OsimPoser, names: list[str], q: np.ndarray) -> np.ndarray:
+    """OpenSim computeMomentArm (m, n) at pack pose q; coupled coordinates contribute ratio x their moment arm."""
+    poser.set(q)
+    muscles = [poser.model.getMuscles().get(n) for n in names]
+    out = np.zeros((len(names), len(q)))
+    for j, c in enumerate(poser.spec.coordinates):
+        parts = [(c.name, 1.0)] + list(c.coupled.items())
+        for coord_name, ratio in parts:
+            coord = poser.coords[coord_name]
+            for i, m in enumerate(muscles):
+                out[i, j] += ratio * m.getGeometryPath().computeMomentArm(poser.state, coord)
+    return out
+
+
+def opensim_lengths(poser: OsimPoser, names: list[str], q: np.ndarray) -> np.ndarray:
+    poser.set(q)
+    return np.array([poser.model.getMuscles().get(n).getLength(poser.state) for n in names])
+
+
+def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray) -> None:
+    """Constant forces along gravity at the spec's load points (before initSystem), as the pack applies them."""
+    osim = import_opensim()
+    points = spec.dynamics.load_points
+    if not points:
+        return
+    unit = gravity / np.linalg.norm(gravity)
+    force = unit * spec.dynamics.load_share * total_load / len(points)
+    for k, lp in enumerate(points):
+        pf = osim.PrescribedForce(f"msk_hand_load_{k}", model.getBodySet().get(lp.body))
+        pf.setForceFunctions(osim.Constant(force[0]), osim.Constant(force[1]), osim.Constant(force[2]))
+        pf.setPointFunctions(osim.Constant(lp.point[0]), osim.Constant(lp.point[1]), osim.Constant(lp.point[2]))
+        pf.set_forceIsGlobal(True)
+        pf.set_pointIsGlobal(False)
+        model.addForce(pf)
+
+
+def opensim_inverse_dynamics(poser: OsimPoser, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+    """OpenSim InverseDynamicsSolver torques projected on the pack coordinates (virtual work through couplings)."""
+    osim = poser._osim
+    names, jac = poser.coordinate_jacobian(q)
+    poser.set(q)
+    u_all = jac @ qd
+    udot_all = jac @ qdd
+    state = poser.state
+    nu = state.getNU()
+    udot = osim.Vector(nu, 0.0)
+    for k, name in enumerate(names):
+        poser.coords[name].setSpeedValue(state, float(u_all[k]))
+        udot.set(poser.u_index[name], float(udot_all[k]))
+    poser.model.realizeVelocity(state)
+    solver = osim.InverseDynamicsSolver(poser.model)
+    tau = solver.solve(state, udot)
+    tau_all = np.array([tau.get(poser.u_index[n]) for n in names])
+    for name in names:
+        poser.coords[name].setSpeedValue(state, 0.0)
+    return jac.T @ tau_all

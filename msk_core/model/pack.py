@@ -1,0 +1,178 @@
+"""Runtime model packs: fast moment arms, muscle-tendon lengths and reduced inverse dynamics (no OpenSim needed).
+
+A pack is one JSON file written by :mod:`msk_core.model.compile`. Poses are validated against the fitted ranges:
+by default a pose outside them raises :class:`ModelError`; ``out_of_range=OutOfRange.CLAMP`` evaluates at the
+nearest in-range pose instead (use :meth:`ModelPack.in_range` to flag). Nothing is ever extrapolated.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from msk_core.errors import FileFormatError, ModelError
+from msk_core.model.poly import derivative_matrix
+from msk_core.model.rigid import RigidModel
+
+PACK_FORMAT = "msk-model-pack/1"
+
+
+class OutOfRange(enum.Enum):
+    """What moment_arms / mtu_lengths / inverse_dynamics do with a pose outside the fitted ranges."""
+
+    RAISE = "raise"  # ModelError naming the coordinate, value and range
+    CLAMP = "clamp"  # evaluate at the pose clamped into the ranges (flag it yourself with in_range)
+
+
+class ModelPack:
+    """A compiled model pack. Build with :func:`load_pack`."""
+
+    def __init__(self, data: dict, *, path: Path | None = None) -> None:
+        if data.get("format") != PACK_FORMAT:
+            raise FileFormatError(f"not a model pack (expected format {PACK_FORMAT!r})", path=path, field="format",
+                                  value=data.get("format"))
+        self.path = path
+        self.raw = data
+        self.name: str = data["name"]
+        self.version: str = data["version"]
+        self.description: str = data.get("description", "")
+        self.coordinates: list[str] = list(data["coordinates"])
+        self.coordinate_ranges = np.asarray(data["coordinate_ranges"], dtype=float).reshape(len(self.coordinates), 2)
+        self.reference_pose = np.asarray(data["reference_pose"], dtype=float)
+        self.coupled: dict[str, dict[str, float]] = data.get("coupled", {})
+        self.locked: dict[str, float] = data.get("locked", {})
+        self.groups: list[str] = list(data["groups"])
+        self.members: dict[str, list[str]] = {g: list(data["members"][g]) for g in self.groups}
+        self.member_f_max: dict[str, float] = dict(data["member_f_max"])
+        self.f_max_ref = np.asarray(data["f_max_ref"], dtype=float)
+        self.optimal_fiber_lengths = np.asarray(data["optimal_fiber_lengths"], dtype=float)
+        self.tendon_slack_lengths = np.asarray(data["tendon_slack_lengths"], dtype=float)
+        self.fit_report: dict = data.get("fit_report", {})
+        basis = data["basis"]
+        self._exponents = np.asarray(basis["exponents"], dtype=np.int64).reshape(-1, len(self.coordinates))
+        self._centre = np.asarray(basis["centre"], dtype=float)
+        self._half = np.asarray(basis["half_width"], dtype=float)
+        self._coef = np.asarray(data["length_coefficients"], dtype=float).reshape(len(self.groups), -1)
+        n, g = len(self.coordinates), len(self.groups)
+        rows = [self._coef]
+        for j in range(n):
+            rows.append(-(self._coef @ derivative_matrix(self._exponents, j)) / self._half[j])
+        self._stacked = np.ascontiguousarray(np.vstack(rows))  # (g*(n+1), M)
+        self._cols = np.arange(n)[None, :]
+        self._powers = np.arange(int(self._exponents.max(initial=0)) + 1)
+        self._lo = self.coordinate_ranges[:, 0].copy()
+        self._hi = self.coordinate_ranges[:, 1].copy()
+        self._n, self._g = n, g
+        self.rigid = RigidModel(data["dynamics"], n_coordinates=n)
+        validation = data.get("validation_dynamics")
+        self.validation_rigid = RigidModel(validation, n_coordinates=n) if validation else self.rigid
+
+    # ---- poses -------------------------------------------------------------------------------------------------
+    def in_range(self, q: np.ndarray) -> np.ndarray:
+        """Boolean mask (n_coordinates,): True where q lies inside the fitted range."""
+        q = np.asarray(q, dtype=float)
+        return (q >= self._lo) & (q <= self._hi)
+
+    def _checked(self, q: np.ndarray, out_of_range: OutOfRange) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self._n,):
+            raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, got {q.shape}")
+        if out_of_range is OutOfRange.CLAMP:
+            return np.minimum(np.maximum(q, self._lo), self._hi)
+        if ((q < self._lo) | (q > self._hi)).any():
+            bad = int(np.flatnonzero((q < self._lo) | (q > self._hi))[0])
+            raise ModelError(
+                f"pack {self.name!r}: {self.coordinates[bad]} = {q[bad]:.4f} rad "
+                f"({np.degrees(q[bad]):.1f} deg) outside the fitted range "
+                f"[{np.degrees(self._lo[bad]):.1f}, {np.degrees(self._hi[bad]):.1f}] deg "
+                "(pass out_of_range=OutOfRange.CLAMP to evaluate at the range limit)"
+            )
+        return q
+
+    def _evaluate(self, q: np.ndarray) -> np.ndarray:
+        x = (q - self._centre) / self._half
+        powers = x[:, None] ** self._powers[None, :]
+        phi = powers[self._cols, self._exponents].prod(axis=1)
+        return self._stacked @ phi
+
+    # ---- muscles -----------------------------------------------------------------------------------------------
+    def moment_arms(self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE) -> np.ndarray:
+        """Group moment arms (n_coordinates, n_groups) in metres at pose q (rad); r = -dl/dq (OpenSim sign)."""
+        values = self._evaluate(self._checked(q, out_of_range))
+        return values[self._g :].reshape(self._n, self._g)
+
+    def mtu_lengths(self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE) -> np.ndarray:
+        """Group muscle-tendon lengths (n_groups,) in metres (F_max-weighted mean over the group's bundles)."""
+        return self._evaluate(self._checked(q, out_of_range))[: self._g].copy()
+
+    def lengths_and_moment_arms(
+        self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Both at once (one evaluation): ((n_groups,), (n_coordinates, n_groups))."""
+        values = self._evaluate(self._checked(q, out_of_range))
+        return values[: self._g], values[self._g :].reshape(self._n, self._g)
+
+    # ---- dynamics ----------------------------------------------------------------------------------------------
+    def inverse_dynamics(
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        qdd: np.ndarray,
+        hand_load_newton: float = 0.0,
+        *,
+        gravity: np.ndarray | None = None,
+        out_of_range: OutOfRange = OutOfRange.RAISE,
+    ) -> np.ndarray:
+        """Net joint torques (n_coordinates,) in N·m that produce qdd at (q, qd) while holding the hand load.
+
+        hand_load_newton: total external load (e.g. barbell weight) acting along gravity; the pack's side carries
+        its documented share. gravity: optional gravity vector in the model's ground frame (m/s²), e.g. to express a
+        tilted root; default the pack's gravity.
+        """
+        q = self._checked(q, out_of_range)
+        return self.rigid.inverse_dynamics(q - self.reference_pose, qd, qdd, hand_load_newton, gravity)
+
+    def info(self) -> dict:
+        """Summary for printing."""
+        return {
+            "name": self.name,
+            "version": self.version,
+            "coordinates": self.coordinates,
+            "ranges_deg": np.degrees(self.coordinate_ranges).round(1).tolist(),
+            "groups": {g: self.members[g] for g in self.groups},
+        }
+
+
+def _packs_dir():
+    return resources.files("msk_core.model") / "packs"
+
+
+def available_packs() -> list[str]:
+    """Names of the packs shipped with msk_core."""
+    return sorted(p.name[: -len(".json")] for p in _packs_dir().iterdir() if p.name.endswith(".json"))
+
+
+def load_pack(name_or_path: str | Path) -> ModelPack:
+    """Load a shipped pack by name (e.g. ``"arm26"``) or a pack JSON file by path."""
+    candidate = Path(name_or_path)
+    if candidate.suffix == ".json" or candidate.exists():
+        path = candidate
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise FileFormatError(f"cannot read model pack: {exc.strerror}", path=path) from exc
+    else:
+        resource = _packs_dir() / f"{name_or_path}.json"
+        if not resource.is_file():
+            raise ModelError(f"no shipped model pack {str(name_or_path)!r}; available: {', '.join(available_packs())}")
+        path = Path(str(resource))
+        text = resource.read_text()
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise FileFormatError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from exc
+    return ModelPack(data, path=path)

@@ -1,0 +1,214 @@
+"""Pack specifications (TOML): which coordinates, muscle groups, locked pose, couplings and load a pack compiles.
+
+Angles in a spec are in degrees (``*_deg`` keys), everything else SI. See docs/models.md for the format.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from msk_core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class CoordinateSpec:
+    """One pack coordinate: fitted range, reference value and the model coordinates that follow it linearly."""
+
+    name: str
+    lower: float  # rad
+    upper: float  # rad
+    reference: float  # rad, value used when building the rigid-body model
+    coupled: dict[str, float] = field(default_factory=dict)  # dependent coordinate -> ratio (dq_dep/dq_driver)
+
+
+@dataclass(frozen=True)
+class LoadPoint:
+    """A point (in body coordinates, m) where a share of the hand load acts along gravity."""
+
+    body: str
+    point: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class DynamicsSpec:
+    """How the reduced rigid-body model is rooted, loaded and shared between sides."""
+
+    root: str = "ground"
+    gravity: tuple[float, float, float] | None = None  # None: the model's gravity
+    load_points: tuple[LoadPoint, ...] = ()
+    load_share: float = 1.0  # fraction of hand_load_newton carried by the modelled side (split over load_points)
+    shared_from: str = ""  # bodies distal (from the root) to this body carry mass * load_share ...
+    exclude_bodies: tuple[str, ...] = ()  # subtrees (seen from the root) left out of the model
+
+
+@dataclass(frozen=True)
+class FitSpec:
+    samples: int = 300
+    max_degree: int = 6
+    holdout: float = 0.2
+    seed: int = 1
+
+
+@dataclass(frozen=True)
+class PackSpec:
+    name: str
+    version: str
+    description: str
+    source_model: str
+    coordinates: tuple[CoordinateSpec, ...]
+    locked: dict[str, float]  # model coordinate -> value (rad or m)
+    groups: dict[str, list[str]]
+    dynamics: DynamicsSpec
+    fit: FitSpec
+    path: Path | None = None
+    text: str = ""
+
+    @property
+    def coordinate_names(self) -> list[str]:
+        return [c.name for c in self.coordinates]
+
+    def line_of(self, token: str) -> int | None:
+        """1-based line of the first occurrence of ``token`` in the spec text (for error messages)."""
+        for number, line in enumerate(self.text.splitlines(), start=1):
+            if token in line:
+                return number
+        return None
+
+
+def closest(name: str, choices: list[str], n: int = 3) -> str:
+    """'closest: a, b, c' hint for an unknown name."""
+    hits = difflib.get_close_matches(name, choices, n=n, cutoff=0.4)
+    return f"closest: {', '.join(hits)}" if hits else "no similar name"
+
+
+def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where: str):
+    if key not in table:
+        raise ConfigError(f"missing required key in [{where}]", path=path, field=key)
+    value = table[key]
+    if not isinstance(value, kind):
+        raise ConfigError(f"must be {kind.__name__}", path=path, field=f"{where}.{key}", value=value, line=_line(text, key))
+    return value
+
+
+def _line(text: str, token: str) -> int | None:
+    for number, line in enumerate(text.splitlines(), start=1):
+        if token in line:
+            return number
+    return None
+
+
+def _deg_pair(value: object, path: Path | None, text: str, fieldname: str) -> tuple[float, float]:
+    ok = isinstance(value, list) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value)
+    if not ok or not value[0] < value[1]:
+        raise ConfigError(
+            "must be [lower, upper] in degrees with lower < upper", path=path, field=fieldname, value=value,
+            line=_line(text, fieldname.split(".")[-2] if "." in fieldname else fieldname),
+        )
+    return math.radians(value[0]), math.radians(value[1])
+
+
+def parse_spec(text: str, path: Path | None = None) -> PackSpec:
+    """Parse a spec from TOML text; errors name the file, line, field and value."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"not valid TOML: {exc}", path=path) from exc
+    name = _need(raw, "name", str, path, text, "top level")
+    coords_raw = _need(raw, "coordinates", dict, path, text, "top level")
+    if not coords_raw:
+        raise ConfigError("needs at least one coordinate", path=path, field="coordinates")
+    coordinates = []
+    for cname, entry in coords_raw.items():
+        if not isinstance(entry, dict):
+            raise ConfigError("must be a table", path=path, field=f"coordinates.{cname}", line=_line(text, cname))
+        lo, hi = _deg_pair(entry.get("range_deg"), path, text, f"coordinates.{cname}.range_deg")
+        ref = math.radians(float(entry.get("reference_deg", 0.0)))
+        if not lo <= ref <= hi:
+            raise ConfigError(
+                "reference_deg outside range_deg", path=path, field=f"coordinates.{cname}.reference_deg",
+                value=entry.get("reference_deg"), line=_line(text, cname),
+            )
+        coupled = entry.get("coupled", {})
+        if not isinstance(coupled, dict) or not all(isinstance(v, (int, float)) for v in coupled.values()):
+            raise ConfigError(
+                "coupled must map coordinate names to ratios", path=path, field=f"coordinates.{cname}.coupled",
+                value=coupled, line=_line(text, cname),
+            )
+        coordinates.append(CoordinateSpec(cname, lo, hi, ref, {k: float(v) for k, v in coupled.items()}))
+    locked_raw = raw.get("locked", {})
+    locked = {}
+    for lname, value in locked_raw.items():
+        if isinstance(value, dict) and "deg" in value:
+            locked[lname] = math.radians(float(value["deg"]))
+        elif isinstance(value, dict) and "m" in value:
+            locked[lname] = float(value["m"])
+        else:
+            raise ConfigError(
+                "locked values are { deg = .. } or { m = .. }", path=path, field=f"locked.{lname}", value=value,
+                line=_line(text, lname),
+            )
+    groups_raw = _need(raw, "groups", dict, path, text, "top level")
+    groups = {}
+    for gname, members in groups_raw.items():
+        if not isinstance(members, list) or not members or not all(isinstance(m, str) for m in members):
+            raise ConfigError(
+                "a group is a non-empty list of muscle names", path=path, field=f"groups.{gname}", value=members,
+                line=_line(text, gname),
+            )
+        groups[gname] = list(members)
+    dyn_raw = raw.get("dynamics", {})
+    loads = []
+    for item in dyn_raw.get("load_points", []):
+        if not (isinstance(item, dict) and isinstance(item.get("body"), str) and len(item.get("point", [])) == 3):
+            raise ConfigError(
+                "load_points entries are { body = \"..\", point = [x, y, z] }", path=path,
+                field="dynamics.load_points", value=item, line=_line(text, "load_points"),
+            )
+        loads.append(LoadPoint(item["body"], tuple(float(v) for v in item["point"])))
+    gravity = dyn_raw.get("gravity")
+    dynamics = DynamicsSpec(
+        root=str(dyn_raw.get("root", "ground")),
+        gravity=None if gravity is None else tuple(float(v) for v in gravity),
+        load_points=tuple(loads),
+        load_share=float(dyn_raw.get("load_share", 1.0)),
+        shared_from=str(dyn_raw.get("shared_from", "")),
+        exclude_bodies=tuple(dyn_raw.get("exclude_bodies", [])),
+    )
+    if not 0.0 < dynamics.load_share <= 1.0:
+        raise ConfigError(
+            "must be in (0, 1]", path=path, field="dynamics.load_share", value=dynamics.load_share,
+            line=_line(text, "load_share"),
+        )
+    fit_raw = raw.get("fit", {})
+    fit = FitSpec(
+        samples=int(fit_raw.get("samples", 300)),
+        max_degree=int(fit_raw.get("max_degree", 6)),
+        holdout=float(fit_raw.get("holdout", 0.2)),
+        seed=int(fit_raw.get("seed", 1)),
+    )
+    return PackSpec(
+        name=name,
+        version=str(raw.get("version", "1")),
+        description=str(raw.get("description", "")),
+        source_model=str(raw.get("source_model", "")),
+        coordinates=tuple(coordinates),
+        locked=locked,
+        groups=groups,
+        dynamics=dynamics,
+        fit=fit,
+        path=path,
+        text=text,
+    )
+
+
+def load_spec(path: str | Path) -> PackSpec:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read spec: {exc.strerror}", path=path) from exc
+    return parse_spec(text, path)
