@@ -188,3 +188,17 @@ def test_prior_method_returns_prior_mean_and_model_torque():
     res = est.step(q, torques=np.ones(2), phase=0.25)
     np.testing.assert_allclose(res.activations, prior.at(0.25)[0])
     np.testing.assert_allclose(res.model_torques, pack.moment_arms(q) @ (pack.f_max_ref * res.activations))
+
+
+def test_pose_slightly_outside_pack_range_is_clamped_far_outside_is_flagged():
+    pack = LinearPack()
+    pack.coordinate_ranges = np.array([[-1.0, 1.0], [-1.0, 1.0]])
+    est = FrameEstimator(pack, method="hybrid")
+    tau = np.array([5.0, -3.0])
+    inside = est.step(np.array([1.0, 0.0]), torques=tau)
+    nudged = est.step(np.array([1.0 + np.deg2rad(1.0), 0.0]), torques=tau)
+    assert nudged.clamped and not inside.clamped
+    np.testing.assert_allclose(nudged.activations, inside.activations, atol=1e-7)
+    far = est.step(np.array([1.0 + np.deg2rad(20.0), 0.0]), torques=tau)
+    assert far.status is FrameStatus.INVALID_INPUT
+    assert est.flag_counts == {"out_of_range_clamped": 1, "invalid_input": 1}

@@ -80,10 +80,9 @@ def test_so_reproduces_opensim_static_optimization_with_opensim_moment_arms(arm2
 
 
 def test_so_reproduces_opensim_static_optimization_with_the_arm26_pack(arm26):
-    model_pkg = pytest.importorskip("msk_core.model", reason="model packs (issue 3) not available")
-    if not hasattr(model_pkg, "load_pack"):
-        pytest.skip("msk_core.model.load_pack not there yet (issue 3)")
-    pack = model_pkg.load_pack("arm26")
+    from msk_core.model import load_pack
+
+    pack = load_pack("arm26")
     out, est = _run_so(pack, arm26)
     ref = arm26["ref"].activations.data
     rms = float(np.sqrt(np.mean((out - ref) ** 2)))

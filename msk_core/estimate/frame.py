@@ -19,7 +19,9 @@ Methods (a within [a_min, a_max] per group, default [0, 1]; OpenSim bounds by ea
 One :class:`piqp.DenseSolver` per estimator is set up on the first frame and then only ``update()``-d with the new
 matrices, so its workspace and preconditioner are reused frame after frame. ``step()`` never raises on bad data: NaN
 input, infeasible torques or solver failures come back as a flagged :class:`FrameResult` and are counted in
-:attr:`FrameEstimator.flag_counts` (a warning is logged on the first occurrence of each flag).
+:attr:`FrameEstimator.flag_counts` (a warning is logged on the first occurrence of each flag). Poses up to
+``CLAMP_TOLERANCE`` (5 deg) outside the pack's fitted ranges are clamped into them (``clamped``, counted as
+``out_of_range_clamped``); further out the frame is ``invalid_input`` rather than an extrapolated number.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ log = logging.getLogger(__name__)
 MIN_TORQUE_SCALE = 1.0  # N·m; floor of the per-coordinate residual scale (coordinates almost no muscle crosses)
 RESERVE_WEIGHT = 1.0e4  # weight of the scaled residual in the `so` reserve fallback
 BOUND_TOL = 1.0e-6  # an activation this close to 0 or 1 counts as at its bound (Laplace free set)
+CLAMP_TOLERANCE = np.deg2rad(5.0)  # poses this far outside a pack's fitted range are clamped (and counted)
 
 
 class Method(str, Enum):
@@ -76,6 +79,7 @@ class FrameResult:
     iterations: int
     solve_time_s: float
     phase: float | None = None
+    clamped: bool = False  # the pose was slightly outside the pack's fitted range and was clamped into it
     _hessian: np.ndarray | None = field(default=None, repr=False)
     _equality: np.ndarray | None = field(default=None, repr=False)
     _std: np.ndarray | None = field(default=None, repr=False)
@@ -156,6 +160,8 @@ class FrameEstimator:
         if not (np.all(self._lb >= 0.0) and np.all(self._ub <= 1.0) and np.all(self._lb < self._ub)):
             raise EstimationError(f"activation bounds must satisfy 0 <= a_min < a_max <= 1; got {a_min}, {a_max}")
         self._solver: piqp.DenseSolver | None = None
+        ranges = getattr(self.pack, "coordinate_ranges", None)
+        self._ranges = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
         self._fallback: piqp.DenseSolver | None = None
 
     # -- public -------------------------------------------------------------------------------------------------
@@ -172,8 +178,15 @@ class FrameEstimator:
         """Estimate one frame. Never raises on bad numbers: the result is flagged instead."""
         self.frames += 1
         n_c = len(self.coordinates)
+        clamped = False
         try:
             q = np.asarray(q, dtype=float)
+            if self._ranges is not None and q.shape == (n_c,):
+                qc = np.minimum(np.maximum(q, self._ranges[:, 0]), self._ranges[:, 1])
+                if np.any(np.abs(qc - q) > CLAMP_TOLERANCE):
+                    return self._invalid(np.full(n_c, np.nan), phase)  # far outside: never extrapolate
+                clamped = bool(np.any(qc != q))
+                q = qc
             if torques is None:
                 if qd is None or qdd is None:
                     qd = np.zeros(n_c) if qd is None else qd
@@ -191,7 +204,11 @@ class FrameEstimator:
             return self._invalid(tau, phase)
         if phase is not None and not np.isfinite(phase):
             phase = None
-        return self._solve(r * self.f_max, tau, phase)
+        result = self._solve(r * self.f_max, tau, phase)
+        if clamped:
+            result.clamped = True
+            self._count_key("out_of_range_clamped")
+        return result
 
     def reset_counts(self) -> None:
         self.flag_counts.clear()
@@ -334,7 +351,9 @@ class FrameEstimator:
         return result
 
     def _count(self, status: FrameStatus) -> None:
-        key = status.value
+        self._count_key(status.value)
+
+    def _count_key(self, key: str) -> None:
         first = key not in self.flag_counts
         self.flag_counts[key] = self.flag_counts.get(key, 0) + 1
         if first:

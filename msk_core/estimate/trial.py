@@ -1,0 +1,267 @@
+"""Trial description (TOML) and loading: kinematics, torques, EMG and phase on one time base.
+
+Keys (paths relative to the TOML file)::
+
+    kinematics = "ik.sto"            # required; columns named as the pack's coordinates (radians, or inDegrees=yes)
+    torques = "id.sto"               # optional; columns <coordinate> or <coordinate>_moment. When absent the pack's
+                                     # inverse dynamics computes them from q, qd, qdd (finite differences) and load_kg
+    emg = "emg.sto"                  # optional
+    emg_is_envelope = true           # false: raw EMG, made an envelope offline (zero-phase chain of msk_core.emg)
+    load_kg = 5.0                    # external load held in the hands (default 0)
+    body_mass_kg = 70.0              # optional; torque errors are then also reported in N·m/kg
+    start = 12.0                     # optional, in the files' own time unit (s; may be Unix epoch seconds)
+    end = 30.0
+    phase_signal = "torque:L5_S1_Flex_Ext"   # optional; a kinematics column, or torque:<coordinate> (default:
+                                             # the torque of the pack's first coordinate)
+    [emg_map]                        # EMG column -> pack group
+    rectabd_r = "rectabd_r"
+    [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
+
+The time base is the kinematics within [start, end]; torques and EMG are linearly interpolated onto it, and frames the
+torque file does not cover are dropped (counted in ``dropped_frames``).
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from msk_core.errors import ConfigError, InputError
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.phase import detect_reps
+from msk_core.io import Storage, read_sto
+
+KNOWN_KEYS = {
+    "kinematics",
+    "torques",
+    "emg",
+    "emg_is_envelope",
+    "load_kg",
+    "body_mass_kg",
+    "start",
+    "end",
+    "phase_signal",
+    "emg_map",
+    "emg_max",
+    "name",
+}
+GRAVITY = 9.81
+
+
+@dataclass
+class TrialData:
+    name: str
+    path: Path
+    time: np.ndarray  # (T,)
+    q: np.ndarray  # (T, n_c) rad
+    qd: np.ndarray
+    qdd: np.ndarray
+    torques: np.ndarray  # (T, n_c) N·m
+    torque_source: str  # "file" or "inverse_dynamics"
+    emg: dict[str, np.ndarray]  # group -> (T,) normalised envelope
+    emg_channels: dict[str, str]  # channel -> group
+    emg_normalisation: dict[str, dict]
+    load_kg: float
+    body_mass_kg: float | None
+    phase: np.ndarray  # (T,) in [0, 1], NaN outside reps
+    rep_index: np.ndarray  # (T,) -1 outside reps
+    phase_signal: str
+    dropped_frames: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def hand_load_newton(self) -> float:
+        return self.load_kg * GRAVITY
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.time.size)
+
+
+def _line_of(text: str, key: str) -> int | None:
+    for i, line in enumerate(text.splitlines(), start=1):
+        if re.match(rf"\s*{re.escape(key)}\s*=", line) or line.strip() == f"[{key}]":
+            return i
+    return None
+
+
+def _closest(name: str, options: list[str]) -> str:
+    near = difflib.get_close_matches(name, options, n=3)
+    return f"; did you mean {', '.join(near)}?" if near else ""
+
+
+def load_trial(path: str | Path, pack: PackLike) -> TrialData:
+    """Read a trial TOML and everything it points to, checked against the pack."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read trial file: {exc.strerror}", path=path) from None
+    try:
+        spec = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        m = re.search(r"line (\d+)", str(exc))
+        raise ConfigError(f"invalid TOML: {exc}", path=path, line=int(m.group(1)) if m else None) from None
+
+    def err(message: str, key: str, value: object = None) -> ConfigError:
+        return ConfigError(message, path=path, line=_line_of(text, key.split(".")[0]), field=key, value=value)
+
+    unknown = sorted(set(spec) - KNOWN_KEYS)
+    if unknown:
+        raise err(f"unknown key{_closest(unknown[0], sorted(KNOWN_KEYS))}", unknown[0], unknown[0])
+    if "kinematics" not in spec:
+        raise ConfigError("missing required key", path=path, field="kinematics")
+
+    def number(key: str, default: float | None) -> float | None:
+        value = spec.get(key, default)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+            raise err("must be a number", key, value)
+        return float(value)
+
+    def file_of(key: str) -> Path:
+        value = spec[key]
+        if not isinstance(value, str):
+            raise err("must be a path string", key, value)
+        target = (path.parent / value).resolve()
+        if not target.is_file():
+            raise err(f"file not found: {target}", key, value)
+        return target
+
+    load_kg = number("load_kg", 0.0)
+    if load_kg < 0:
+        raise err("must be >= 0", "load_kg", load_kg)
+    body_mass = number("body_mass_kg", None)
+    if body_mass is not None and body_mass <= 0:
+        raise err("must be > 0", "body_mass_kg", body_mass)
+    start, end = number("start", None), number("end", None)
+
+    kin = read_sto(file_of("kinematics"))
+    coords = list(pack.coordinates)
+    for c in coords:
+        if not kin.has_column(c):
+            raise InputError(
+                f"kinematics has no column for pack coordinate {c!r}{_closest(c, kin.columns)}", path=kin.path, field=c
+            )
+    sel = np.ones(kin.n_rows, dtype=bool)
+    if start is not None:
+        sel &= kin.time >= start
+    if end is not None:
+        sel &= kin.time <= end
+    if sel.sum() < 3:
+        raise err("fewer than 3 kinematics frames between start and end", "start", (start, end))
+    time = kin.time[sel]
+    q = kin.select(coords)[sel]
+    if kin.in_degrees:
+        q = np.deg2rad(q)  # pack coordinates are rotational
+    qd = np.gradient(q, time, axis=0)
+    qdd = np.gradient(qd, time, axis=0)
+
+    dropped = 0
+    if "torques" in spec:
+        tq = read_sto(file_of("torques"))
+        cols = []
+        for c in coords:
+            name = c if tq.has_column(c) else f"{c}_moment"
+            if not tq.has_column(name):
+                raise InputError(
+                    f"torque file has neither {c!r} nor {c + '_moment'!r}{_closest(c, tq.columns)}", path=tq.path, field=c
+                )
+            cols.append(name)
+        raw = tq.select(cols)
+        torques = np.column_stack(
+            [np.interp(time, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
+        )
+        keep = np.all(np.isfinite(torques), axis=1)
+        dropped = int((~keep).sum())
+        time, q, qd, qdd, torques = time[keep], q[keep], qd[keep], qdd[keep], torques[keep]
+        kin_keep = keep
+        source = "file"
+    else:
+        hand = load_kg * GRAVITY
+        torques = np.array([pack.inverse_dynamics(q[i], qd[i], qdd[i], hand) for i in range(len(time))])
+        kin_keep = np.ones(len(time), dtype=bool)
+        source = "inverse_dynamics"
+
+    emg, channels, norm = _load_emg(spec, path, text, file_of, err, pack, time) if "emg" in spec else ({}, {}, {})
+
+    phase_signal = spec.get("phase_signal", f"torque:{coords[0]}")
+    if not isinstance(phase_signal, str):
+        raise err("must be a string", "phase_signal", phase_signal)
+    if phase_signal.startswith("torque:"):
+        c = phase_signal.split(":", 1)[1]
+        if c not in coords:
+            raise err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
+        signal = torques[:, coords.index(c)]
+    else:
+        if not kin.has_column(phase_signal):
+            raise err(f"no such kinematics column{_closest(phase_signal, kin.columns)}", "phase_signal", phase_signal)
+        signal = kin.column(phase_signal)[sel][kin_keep]
+    phase, rep_index = detect_reps(time, signal)
+
+    return TrialData(
+        name=str(spec.get("name", path.stem)),
+        path=path,
+        time=time,
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        torques=torques,
+        torque_source=source,
+        emg=emg,
+        emg_channels=channels,
+        emg_normalisation=norm,
+        load_kg=load_kg,
+        body_mass_kg=body_mass,
+        phase=phase,
+        rep_index=rep_index,
+        phase_signal=phase_signal,
+        dropped_frames=dropped,
+    )
+
+
+def _load_emg(spec, path, text, file_of, err, pack, time):
+    storage: Storage = read_sto(file_of("emg"))
+    mapping = spec.get("emg_map")
+    if not isinstance(mapping, dict) or not mapping:
+        raise err("an [emg_map] table (EMG column -> group) is required with emg", "emg_map", mapping)
+    is_envelope = spec.get("emg_is_envelope", True)
+    if not isinstance(is_envelope, bool):
+        raise err("must be true or false", "emg_is_envelope", is_envelope)
+    maxima = spec.get("emg_max", {})
+    if not isinstance(maxima, dict):
+        raise err("must be a table channel -> value", "emg_max", maxima)
+    groups = list(pack.groups)
+    channels = list(mapping)
+    for ch, group in mapping.items():
+        if not storage.has_column(ch):
+            raise err(f"EMG file has no column {ch!r}{_closest(ch, storage.columns)}", f"emg_map.{ch}", ch)
+        if group not in groups:
+            raise err(f"not a group of pack {pack.name!r}{_closest(str(group), groups)}", f"emg_map.{ch}", group)
+    raw = storage.select(channels)
+    if not is_envelope:
+        from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal
+
+        raw = envelope_zero_phase_noncausal(raw, EmgFilterConfig(rate_hz=storage.rate))
+    emg: dict[str, np.ndarray] = {}
+    norm: dict[str, dict] = {}
+    for j, ch in enumerate(channels):
+        scale = maxima.get(ch, 1.0)
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
+            raise err("must be a positive number", f"emg_max.{ch}", scale)
+        x = np.interp(time, storage.time, raw[:, j] / scale, left=np.nan, right=np.nan)
+        group = mapping[ch]
+        emg[group] = x if group not in emg else np.nanmean([emg[group], x], axis=0)  # several channels: mean
+        norm[ch] = {
+            "group": group,
+            "divisor": float(scale),
+            "source": "emg_max in trial file" if ch in maxima else "as recorded (already normalised)",
+            "envelope": "as recorded" if is_envelope else "zero-phase offline chain (msk_core.emg)",
+        }
+    return emg, dict(mapping), norm
