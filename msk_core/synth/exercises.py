@@ -1,0 +1,116 @@
+"""Exercise definitions: which pack, the top and bottom poses, timing warps, EMG electrode sites and default loads.
+
+Poses are given per coordinate *role* (matched against the pack's coordinate names) in the pack's own sign
+convention, degrees. Coordinates that match no role are held at the pack's reference pose.
+
+Pose sources (sagittal-plane joint angles):
+* Bench press, bar at the chest vs. arms extended: shoulder flexion about −10°..80° and elbow flexion about 95°..10°
+  (e.g. Barnett, Kippers & Turner 1995, J Strength Cond Res 9:222; Lehman 2005, J Strength Cond Res 19:587).
+* Conventional deadlift at lift-off: hip flexion ≈ 70–85°, knee flexion ≈ 60–70°, lumbar flexion ≈ 15–25°,
+  ankle dorsiflexion ≈ 10–20° (Escamilla et al. 2000, Med Sci Sports Exerc 32:1265; Cholewicki, McGill & Norman
+  1991, Med Sci Sports Exerc 23:1179).
+"""
+
+from __future__ import annotations
+
+import enum
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from msk_core.errors import ConfigError
+
+
+class Exercise(enum.Enum):
+    BENCH_PRESS = "bench_press"
+    DEADLIFT = "deadlift"
+
+
+@dataclass(frozen=True)
+class Role:
+    pattern: str  # regex searched in the coordinate name (case-insensitive)
+    top_deg: float
+    bottom_deg: float
+    warp: float = 0.0  # time-warp k of the concentric move (>0: this joint leads)
+
+
+@dataclass(frozen=True)
+class ExerciseSpec:
+    exercise: Exercise
+    pack: str
+    roles: tuple[Role, ...]
+    emg_groups: tuple[str, ...]  # electrode sites, named after the group they record (channel label = group)
+    loads_kg: tuple[float, ...]
+    segments: dict[str, str]  # IMU tracker label -> regex of the pack body it is strapped to
+
+    def poses(self, coordinates: list[str], reference: np.ndarray, ranges: np.ndarray):
+        """(top, bottom, warp) arrays over the pack's coordinates, clipped into the fitted ranges."""
+        top = np.asarray(reference, dtype=float).copy()
+        bottom = top.copy()
+        warp = np.zeros(len(coordinates))
+        used = set()
+        for i, name in enumerate(coordinates):
+            for role in self.roles:
+                if re.search(role.pattern, name, flags=re.IGNORECASE):
+                    top[i], bottom[i], warp[i] = np.radians(role.top_deg), np.radians(role.bottom_deg), role.warp
+                    used.add(role.pattern)
+                    break
+        if not used:
+            raise ConfigError(
+                f"no coordinate of the pack matches the {self.exercise.value} roles", field="coordinates",
+                value=coordinates,
+            )
+        # keep a small margin inside the fitted range so depth jitter never leaves it
+        margin = np.radians(4.0)
+        lo, hi = ranges[:, 0] + margin, ranges[:, 1] - margin
+        return np.clip(top, lo, hi), np.clip(bottom, lo, hi), warp
+
+    def channels(self, groups: list[str]) -> list[str]:
+        chosen = [g for g in self.emg_groups if g in groups]
+        return chosen if chosen else list(groups)
+
+
+BENCH_PRESS = ExerciseSpec(
+    exercise=Exercise.BENCH_PRESS,
+    pack="bench_press",
+    roles=(
+        Role(r"shoulder|arm_flex|elev", 80.0, -10.0, warp=0.1),
+        Role(r"elbow", 10.0, 95.0, warp=-0.1),
+    ),
+    # superficial sites a Trigno set-up can reach (BRA, BicSho and PMCos are covered by other muscles)
+    emg_groups=("PMCla", "PMSte", "DelAnt", "DelMed", "DelPos", "BicLong", "TriLong", "TriLat", "BRD", "LD"),
+    loads_kg=(20.0, 40.0, 50.0, 60.0),
+    segments={"upper_arm_r": r"humerus|upper", "forearm_r": r"radius|ulna|forearm|hand"},
+)
+
+DEADLIFT = ExerciseSpec(
+    exercise=Exercise.DEADLIFT,
+    pack="deadlift",
+    roles=(
+        Role(r"lumbar|L5_S1|L\d_L\d|spine", 0.0, -20.0, warp=-0.2),
+        Role(r"hip", 0.0, 80.0, warp=-0.15),
+        Role(r"knee", 0.0, -65.0, warp=0.35),
+        Role(r"ankle", 0.0, 15.0, warp=0.35),
+    ),
+    emg_groups=("ESL", "ESI", "MUL", "RA", "EO", "IO", "Gmax", "Gmed", "TFL", "BF", "ST", "RF", "VL", "VM", "GM", "TA"),
+    loads_kg=(35.0, 45.0, 65.0, 75.0),
+    segments={
+        "torso": r"torso|thorax|lumbar1|trunk",
+        "pelvis": r"pelvis|sacrum",
+        "thigh_r": r"femur|thigh",
+        "shank_r": r"tibia|shank",
+        "foot_r": r"calcn|talus|foot",
+    },
+)
+
+SPECS: dict[Exercise, ExerciseSpec] = {Exercise.BENCH_PRESS: BENCH_PRESS, Exercise.DEADLIFT: DEADLIFT}
+
+
+def parse_exercise(text: str) -> Exercise:
+    try:
+        return Exercise(text)
+    except ValueError:
+        raise ConfigError(
+            f"unknown exercise; choose from {', '.join(e.value for e in Exercise)}", field="exercise", value=text
+        ) from None

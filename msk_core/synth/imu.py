@@ -1,0 +1,117 @@
+"""Xsens-like inertial streams of the body segments, consistent with the pack's rigid-body kinematics.
+
+Each tracker is strapped to one pack body (at its centre of mass, with a random mounting rotation of up to ~10°).
+Orientation, rate of turn and specific force come from pinocchio's forward kinematics of the pack's rigid model, so
+they agree with each other and with the joint angles. Global frame: ENU with the subject facing north (model +X ->
+north, +Y -> up, +Z -> east), rotated so that the pack's gravity points down. Sensor errors: gyroscope white noise
+and a random-walk bias, accelerometer white noise, orientation white noise plus a slow heading drift (the Kalman
+filter's yaw is only magnetometer-aided), magnetometer noise.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+from scipy.spatial.transform import Rotation
+
+from msk_core.errors import ModelError
+from msk_core.synth.rng import stream
+
+_MODEL_TO_ENU = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+_FIELD_ENU = np.array([0.0, np.cos(np.radians(65.0)), -np.sin(np.radians(65.0))])  # normalised, 65° inclination
+
+
+@dataclass(frozen=True)
+class ImuStream:
+    tracker_id: str  # 8 hex digits
+    segment: str
+    body: str
+    time: np.ndarray  # (n,) s
+    orientation: np.ndarray  # (n, 4) w, x, y, z sensor-to-global
+    acceleration: np.ndarray  # (n, 3) m/s² sensor frame
+    rate_of_turn: np.ndarray  # (n, 3) rad/s sensor frame
+    magnetic_field: np.ndarray  # (n, 3) normalised units, sensor frame
+
+
+def global_frame(gravity: np.ndarray) -> np.ndarray:
+    """Rotation model-ground -> ENU: the standard axis map, then the minimal rotation taking gravity to −Z."""
+    g = _MODEL_TO_ENU @ (np.asarray(gravity, dtype=float) / np.linalg.norm(gravity))
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(g, down)
+    s, c = np.linalg.norm(axis), float(g @ down)
+    if s < 1e-12:
+        fix = np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        fix = Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix()
+    return fix @ _MODEL_TO_ENU
+
+
+def find_body(description: dict, pattern: str) -> dict | None:
+    """The heaviest moving body whose name matches ``pattern``."""
+    matches = [b for b in description["bodies"] if re.search(pattern, b["name"], flags=re.IGNORECASE)]
+    return max(matches, key=lambda b: float(b["mass"]), default=None)
+
+
+def simulate_imu(
+    pack,
+    segments: dict[str, str],
+    time: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    *,
+    seed: int,
+    key: tuple,
+) -> list[ImuStream]:
+    """IMU streams for every segment label whose body regex matches a body of the pack (others are skipped)."""
+    rigid = pack.rigid
+    model, data = rigid.model, rigid.model.createData()
+    gravity = rigid.gravity
+    to_global = global_frame(gravity)
+    streams: list[ImuStream] = []
+    chosen = [(label, find_body(rigid.description, pattern)) for label, pattern in segments.items()]
+    chosen = [(label, body) for label, body in chosen if body is not None]
+    if not chosen:
+        raise ModelError(f"pack {pack.name!r}: no body matches the IMU segments {list(segments)}")
+    n = time.size
+    dq = q - pack.reference_pose[None, :]
+    qp, vp, ap = dq @ rigid.gains.T, qd @ rigid.gains.T, qdd @ rigid.gains.T
+    positions = [np.asarray(j["position"], dtype=float) for j in rigid.description["joints"]]
+    rot = np.empty((len(chosen), n, 3, 3))
+    omega = np.empty((len(chosen), n, 3))
+    spec_force = np.empty((len(chosen), n, 3))
+    for i in range(n):
+        pin.forwardKinematics(model, data, qp[i], vp[i], ap[i])
+        for s, (_, body) in enumerate(chosen):
+            jid = int(body["joint"]) + 1
+            c = np.asarray(body["com"], dtype=float) - positions[int(body["joint"])]
+            r = data.oMi[jid].rotation
+            v = pin.getVelocity(model, data, jid, pin.LOCAL)
+            a = pin.getAcceleration(model, data, jid, pin.LOCAL)
+            w = v.angular
+            v_point = v.linear + np.cross(w, c)
+            acc = a.linear + np.cross(a.angular, c) + np.cross(w, v_point)  # classical acceleration of the point
+            rot[s, i] = r
+            omega[s, i] = w
+            spec_force[s, i] = acc - r.T @ gravity
+    for s, (label, body) in enumerate(chosen):
+        rng = stream(seed, "imu", *key, label)
+        tracker_id = f"{int(stream(seed, 'tracker-id', label).integers(0x00B40000, 0x00B4FFFF)):08X}"
+        mount = Rotation.from_rotvec(rng.normal(0.0, np.radians(6.0), 3)).as_matrix()
+        rate = 1.0 / float(np.median(np.diff(time))) if n > 1 else 100.0
+        drift = np.cumsum(rng.normal(0.0, np.radians(0.6) / np.sqrt(60.0 * rate), n))  # ~0.6°/√min heading walk
+        heading = Rotation.from_rotvec(np.outer(drift, [0.0, 0.0, 1.0])).as_matrix()
+        jitter = Rotation.from_rotvec(rng.normal(0.0, np.radians(0.3), (n, 3))).as_matrix()
+        r_sensor = np.einsum("ij,njk,kl->nil", to_global, rot[s], mount)  # sensor -> global
+        r_meas = heading @ r_sensor @ jitter
+        quat = Rotation.from_matrix(r_meas).as_quat(scalar_first=True)
+        quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)  # w >= 0, as Xsens reports
+        bias = np.radians(0.2) + np.cumsum(rng.normal(0.0, 2e-5, (n, 3)), axis=0)
+        gyro = omega[s] @ mount + bias + rng.normal(0.0, 0.005, (n, 3))  # (R_m^T ω) row-wise
+        accel = spec_force[s] @ mount + rng.normal(0.0, 0.02, (n, 3))
+        mag = np.einsum("nji,j->ni", r_sensor, _FIELD_ENU) + rng.normal(0.0, 0.01, (n, 3))
+        streams.append(ImuStream(tracker_id, label, body["name"], time.copy(), quat, accel, gyro, mag))
+    return streams

@@ -1,0 +1,192 @@
+"""Assemble synthetic trials and sessions: kinematics -> inverse dynamics -> true recruitment -> EMG and IMU."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+
+from msk_core.model import load_pack
+from msk_core.synth.effects import Effects, muscle_factors
+from msk_core.synth.emg import mvc_drive, raw_emg
+from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
+from msk_core.synth.imu import ImuStream, simulate_imu
+from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
+from msk_core.synth.recruitment import recruit
+from msk_core.synth.subject import Subject, make_subject
+
+GRAVITY = 9.81  # the trial files' convention (msk_core.estimate.trial) for load_kg -> N
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    subject_seed: int = 7
+    n_reps: int = 8
+    kinematics_rate_hz: float = 100.0
+    emg_rate_hz: float = 2000.0
+    imu_rate_hz: float = 100.0
+    effects: Effects = Effects()
+    tempo: Tempo = Tempo()
+    loads_kg: dict[Exercise, tuple[float, ...]] | None = None  # None: the exercise defaults
+
+
+@dataclass
+class Trial:
+    name: str
+    exercise: Exercise
+    pack_name: str
+    load_kg: float  # true barbell mass
+    reported_load_kg: float  # what the log / trial file says (differs under load_misreport)
+    coordinates: list[str]
+    groups: list[str]
+    channels: list[str]
+    time: np.ndarray  # (T,) kinematics time base
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    phase: np.ndarray
+    rep: np.ndarray
+    torque_id: np.ndarray  # inverse dynamics with the true load (net joint torque)
+    torque_reported: np.ndarray  # inverse dynamics with the reported load (what a lab computes)
+    torque_muscle: np.ndarray  # what the muscles produce (ID + joint damping, when on)
+    activation: np.ndarray  # (T, G) truth
+    force: np.ndarray  # (T, G) N, truth (active + passive)
+    residual: np.ndarray  # muscle torque − required torque (non-zero only beyond capacity)
+    fallback_frames: int
+    emg_time: np.ndarray  # (E,)
+    emg: np.ndarray  # (E, C) raw volts
+    imu: list[ImuStream] = field(default_factory=list)
+    rep_starts: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rep_ends: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class MvcTrial:
+    exercise: Exercise
+    channels: list[str]
+    time: np.ndarray
+    drive: np.ndarray
+    emg: np.ndarray
+
+
+@dataclass
+class ExerciseSession:
+    spec: ExerciseSpec
+    pack_name: str
+    subject: Subject
+    f_max: np.ndarray  # subject's F_max per group (N)
+    mvc: MvcTrial
+    trials: list[Trial]
+
+
+@dataclass
+class Session:
+    config: SynthConfig
+    exercises: list[ExerciseSession]
+
+
+def _resolve_pack(spec: ExerciseSpec, pack):
+    return load_pack(spec.pack) if pack is None else (load_pack(pack) if isinstance(pack, str) else pack)
+
+
+def _shift(time: np.ndarray, x: np.ndarray, lead_s: float) -> np.ndarray:
+    """x evaluated at time + lead_s (held at the ends)."""
+    if lead_s == 0:
+        return x
+    return np.column_stack([np.interp(time + lead_s, time, x[:, k]) for k in range(x.shape[1])])
+
+
+def generate_trial(
+    spec: ExerciseSpec,
+    pack,
+    subject: Subject,
+    load_kg: float,
+    config: SynthConfig,
+    channels: list[str],
+) -> Trial:
+    """One trial: ``config.n_reps`` repetitions at ``load_kg``."""
+    seed = subject.seed
+    key = (spec.exercise.value, float(load_kg))
+    eff = config.effects
+    top, bottom, warp = spec.poses(pack.coordinates, pack.reference_pose, pack.coordinate_ranges)
+    plan = plan_reps(top, bottom, config.n_reps, seed=seed, key=key, tempo=config.tempo, warp=warp,
+                     lo=pack.coordinate_ranges[:, 0], hi=pack.coordinate_ranges[:, 1])
+    time = np.arange(0.0, plan.duration, 1.0 / config.kinematics_rate_hz)
+    q, qd, qdd, phase, rep = evaluate(plan, time)
+    n, n_c, n_g = time.size, len(pack.coordinates), len(pack.groups)
+    reported = round(load_kg * eff.load_misreport, 3)
+    tau_id = np.empty((n, n_c))
+    tau_rep = np.empty((n, n_c))
+    arms = np.empty((n, n_c, n_g))
+    lengths = np.empty((n, n_g))
+    for k in range(n):
+        tau_id[k] = pack.inverse_dynamics(q[k], qd[k], qdd[k], load_kg * GRAVITY)
+        tau_rep[k] = tau_id[k] if reported == load_kg else pack.inverse_dynamics(q[k], qd[k], qdd[k], reported * GRAVITY)
+        lengths[k], arms[k] = pack.lengths_and_moment_arms(q[k])
+    tau_muscle = tau_id + eff.damping * qd  # muscles also overcome the joint damping (absent from ID)
+    f_max = pack.f_max_ref * subject.f_max_factor
+    active = passive = None
+    if eff.needs_muscle_state:
+        velocity = -np.einsum("tng,tn->tg", arms, qd)  # dl/dt = −r·qd
+        active, passive, _ = muscle_factors(eff, lengths, velocity, pack.optimal_fiber_lengths,
+                                            pack.tendon_slack_lengths)
+    rec = recruit(arms, tau_muscle, f_max, subject.effort_weight, subject.cocontraction,
+                  rate_hz=config.kinematics_rate_hz, seed=seed, key=key, active_factor=active, passive_factor=passive)
+    force = f_max * rec.activation * (1.0 if active is None else active) + (0.0 if passive is None else f_max * passive)
+    # EMG follows the neural drive, which leads the force by the electromechanical delay
+    emg_time = np.arange(0.0, plan.duration, 1.0 / config.emg_rate_hz)
+    index = [pack.groups.index(ch) for ch in channels]
+    drive_k = _shift(time, rec.activation[:, index], eff.emd)
+    drive = np.column_stack([np.interp(emg_time, time, drive_k[:, j]) for j in range(len(channels))])
+    touches = np.asarray([m.t0 for m in plan.moves if m.kind == "bottom"])
+    emg = raw_emg(emg_time, drive, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=config.emg_rate_hz,
+                  seed=seed, key=key, crosstalk=eff.crosstalk, artefact_times=touches)
+    imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
+    qi, qdi, qddi, _, _ = evaluate(plan, imu_time)
+    imu = simulate_imu(pack, spec.segments, imu_time, qi, qdi, qddi, seed=seed, key=key)
+    return Trial(
+        name=f"{spec.exercise.value}_{load_kg:g}kg",
+        exercise=spec.exercise,
+        pack_name=pack.name,
+        load_kg=float(load_kg),
+        reported_load_kg=float(reported),
+        coordinates=list(pack.coordinates),
+        groups=list(pack.groups),
+        channels=list(channels),
+        time=time, q=q, qd=qd, qdd=qdd, phase=phase, rep=rep,
+        torque_id=tau_id, torque_reported=tau_rep, torque_muscle=tau_muscle,
+        activation=rec.activation, force=force, residual=rec.residual, fallback_frames=rec.fallback_frames,
+        emg_time=emg_time, emg=emg, imu=imu, rep_starts=plan.rep_starts, rep_ends=plan.rep_ends,
+    )
+
+
+def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], config: SynthConfig) -> MvcTrial:
+    time, drive = mvc_drive(channels, config.emg_rate_hz, seed=subject.seed)
+    emg = raw_emg(time, drive, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=config.emg_rate_hz,
+                  seed=subject.seed, key=(spec.exercise.value, "mvc"), crosstalk=config.effects.crosstalk)
+    return MvcTrial(spec.exercise, list(channels), time, drive, emg)
+
+
+def generate_exercise(
+    exercise: Exercise, config: SynthConfig, *, pack=None, progress: bool = False
+) -> ExerciseSession:
+    """MVC block plus one trial per load for one exercise. ``pack``: a ModelPack or name (default: the exercise's)."""
+    spec = SPECS[exercise]
+    pack = _resolve_pack(spec, pack)
+    channels = spec.channels(pack.groups)
+    subject = make_subject(config.subject_seed, pack.groups, channels)
+    loads = (config.loads_kg or {}).get(exercise, spec.loads_kg)
+    mvc = generate_mvc(spec, subject, channels, config)
+    trials = []
+    for load in tqdm(loads, desc=f"synth {exercise.value}", unit="load", disable=not progress):
+        trials.append(generate_trial(spec, pack, subject, float(load), config, channels))
+    return ExerciseSession(spec, pack.name, subject, pack.f_max_ref * subject.f_max_factor, mvc, trials)
+
+
+def generate_session(
+    exercises: list[Exercise], config: SynthConfig, *, packs: dict[Exercise, object] | None = None,
+    progress: bool = False,
+) -> Session:
+    packs = packs or {}
+    return Session(config, [generate_exercise(e, config, pack=packs.get(e), progress=progress) for e in exercises])
