@@ -44,7 +44,7 @@ def _fit_muscle(x_fit, l_fit, d_fit, x_test, l_test, d_test, max_degree: int):
         exps, coef = fit_length(x_fit, l_fit, d_fit, degree, derivative_weight=DERIVATIVE_WEIGHT)
         dl = np.stack([monomial_derivatives(x_test, exps, v) @ coef for v in range(k)], axis=1)
         err_r = dl - d_test
-        err_l = monomials(x_test, exps) @ coef - l_test
+        err_l = np.nan_to_num(monomials(x_test, exps) @ coef - l_test)
         score = float(np.sqrt(np.nanmean(err_r**2)))
         if best is None or score < best[2]["r_rms_x"]:
             best = (exps, coef, {"degree": degree, "r_rms_x": score, "dl_x": err_r, "l_err": err_l})
@@ -81,9 +81,9 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
     for i, name in enumerate(names):
         spanned = [j for j in range(n) if np.nanmax(np.abs(derivs[:, i, j])) > SPAN_THRESHOLD]
         if not spanned:
-            muscle_fits[name] = (np.zeros((1, n), dtype=np.int64), np.array([lengths[:, i].mean()]))
+            muscle_fits[name] = (np.zeros((1, n), dtype=np.int64), np.array([np.nanmean(lengths[:, i])]))
             report[name] = {"spans": [], "degree": 0,
-                            "length_rms_mm": float(1e3 * np.std(lengths[:, i]))}
+                            "length_rms_mm": float(1e3 * np.nanstd(lengths[:, i]))}
             continue
         xs = x[:, spanned]
         exps, coef, info = _fit_muscle(
@@ -100,6 +100,7 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
             "holdout_moment_arm_rms_mm": float(1e3 * np.sqrt(np.nanmean(r_err**2))),
             "holdout_moment_arm_max_mm": float(1e3 * np.nanmax(np.abs(r_err))),
             "derivative_samples_dropped_at_path_jumps": int(np.isnan(derivs[:, i, spanned]).any(axis=1).sum()),
+            "length_samples_dropped_as_opensim_glitches": int(np.isnan(lengths[:, i]).sum()),
             "holdout_length_max_mm": float(1e3 * np.max(np.abs(info["l_err"]))),
         }
     # shared basis: union of all bundles' exponents (each closed under differentiation, so is the union)

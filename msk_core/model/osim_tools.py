@@ -158,6 +158,7 @@ def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str,
 
 
 JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
+GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbours 2e-4 rad apart is an OpenSim glitch
 
 
 def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4, progress=None):
@@ -183,6 +184,8 @@ def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta:
             # a path that jumps (wrap-object switch) makes the one-sided slopes disagree: no derivative there
             jump = np.abs((plus - centre) - (centre - minus)) > JUMP_TOLERANCE * delta
             derivs[i, :, j] = np.where(jump, np.nan, (plus - minus) / (2 * delta))
+            # OpenSim wrapping occasionally fails at an isolated pose (length off by cm): drop that length too
+            lengths[i] = np.where(np.abs(plus + minus - 2 * centre) > GLITCH_TOLERANCE, np.nan, lengths[i])
         if progress is not None:
             progress.update(1)
     return lengths, derivs
@@ -205,6 +208,18 @@ def opensim_moment_arms(poser: OsimPoser, names: list[str], q: np.ndarray) -> np
 def opensim_lengths(poser: OsimPoser, names: list[str], q: np.ndarray) -> np.ndarray:
     poser.set(q)
     return np.array([poser.model.getMuscles().get(n).getLength(poser.state) for n in names])
+
+
+def opensim_glitches(poser: OsimPoser, names: list[str], q: np.ndarray, delta: float = 1e-3) -> np.ndarray:
+    """Mask (m,) of bundles whose OpenSim path at q disagrees by > 1 mm with the mean of two nearby poses.
+
+    Such isolated wrap failures are OpenSim artefacts (the path a hair away is fine); checks exclude them.
+    """
+    direction = np.ones(len(q)) * delta
+    centre = opensim_lengths(poser, names, q)
+    plus = opensim_lengths(poser, names, q + direction)
+    minus = opensim_lengths(poser, names, q - direction)
+    return np.abs(plus + minus - 2 * centre) > 1e-3
 
 
 def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray) -> None:

@@ -1,0 +1,106 @@
+"""Validate a pack against OpenSim on fresh random poses (never the fitting poses: a different random stream)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from msk_core.model import osim_tools
+from msk_core.model.pack import ModelPack
+from msk_core.model.spec import parse_spec
+
+CHECK_SEED_OFFSET = 7919  # keeps check poses independent of the fit's Latin hypercube
+
+
+def random_poses(pack: ModelPack, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed + CHECK_SEED_OFFSET)
+    lo, hi = pack.coordinate_ranges[:, 0], pack.coordinate_ranges[:, 1]
+    return rng.uniform(lo, hi, size=(n, len(lo)))
+
+
+def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0,
+                  progress: bool = False) -> dict:
+    """Group moment arms (vs OpenSim computeMomentArm, F_max-weighted like the pack) and lengths."""
+    spec = parse_spec(pack.raw["spec"])
+    model, state = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity)
+    poser = osim_tools.OsimPoser(model, state, spec)
+    names = [m for g in pack.groups for m in pack.members[g]]
+    weights = np.zeros((len(pack.groups), len(names)))
+    col = 0
+    for gi, g in enumerate(pack.groups):
+        forces = np.array([pack.member_f_max[m] for m in pack.members[g]])
+        weights[gi, col : col + len(forces)] = forces / forces.sum()
+        col += len(forces)
+    poses = random_poses(pack, n_poses, seed)
+    ref_r, fit_r, ref_l, fit_l = [], [], [], []
+    glitches = 0
+    for q in tqdm(poses, desc=f"{pack.name}: OpenSim moment arms", disable=not progress):
+        bad = osim_tools.opensim_glitches(poser, names, q)
+        glitches += int(bad.any())
+        group_bad = (weights[:, bad].sum(axis=1) > 0)[:, None]
+        ref_r.append(np.where(group_bad, np.nan, weights @ osim_tools.opensim_moment_arms(poser, names, q)))  # (G, n)
+        ref_l.append(np.where(group_bad[:, 0], np.nan, weights @ osim_tools.opensim_lengths(poser, names, q)))
+        fit_r.append(pack.moment_arms(q).T)
+        fit_l.append(pack.mtu_lengths(q))
+    ref_r, fit_r = np.array(ref_r), np.array(fit_r)  # (S, G, n)
+    err_r = (fit_r - ref_r) * 1e3
+    err_l = (np.array(fit_l) - np.array(ref_l)) * 1e3
+    mean, peak = np.nanmean, np.nanmax
+    per_group = {}
+    for gi, g in enumerate(pack.groups):
+        per_group[g] = {
+            "moment_arm_rms_mm": {c: float(np.sqrt(mean(err_r[:, gi, j] ** 2))) for j, c in enumerate(pack.coordinates)},
+            "moment_arm_max_mm": {c: float(peak(np.abs(err_r[:, gi, j]))) for j, c in enumerate(pack.coordinates)},
+            "length_rms_mm": float(np.sqrt(mean(err_l[:, gi] ** 2))),
+            "length_max_mm": float(peak(np.abs(err_l[:, gi]))),
+        }
+    return {
+        "poses": n_poses,
+        "opensim_glitch_poses_excluded": glitches,
+        "moment_arm_rms_mm": float(np.sqrt(mean(err_r**2))),
+        "moment_arm_max_mm": float(peak(np.abs(err_r))),
+        "length_rms_mm": float(np.sqrt(mean(err_l**2))),
+        "length_max_mm": float(peak(np.abs(err_l))),
+        "groups": per_group,
+        "opensim_moment_arms": ref_r,
+        "pack_moment_arms": fit_r,
+    }
+
+
+def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0,
+                   hand_load: float = 200.0, progress: bool = False) -> dict:
+    """Reduced inverse dynamics (the pack's ground-rooted validation model) vs OpenSim's InverseDynamicsSolver.
+
+    Same locked coordinates, couplings, gravity and hand load; random q, qd (±1 rad/s), qdd (±10 rad/s²).
+    """
+    spec = parse_spec(pack.raw["spec"])
+    osim = osim_tools.import_opensim()
+    model, _ = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity, forces=False)
+    g = np.array(model.getGravity().to_numpy())
+    osim_tools.add_hand_loads(model, spec, hand_load, g)
+    state = model.initSystem()
+    poser = osim_tools.OsimPoser(model, state, spec)
+    rng = np.random.default_rng(seed + 2 * CHECK_SEED_OFFSET)
+    poses = random_poses(pack, n_poses, seed + 1)
+    ref, fit = [], []
+    rigid = pack.validation_rigid
+    for q in tqdm(poses, desc=f"{pack.name}: OpenSim inverse dynamics", disable=not progress):
+        qd = rng.uniform(-1, 1, len(q))
+        qdd = rng.uniform(-10, 10, len(q))
+        ref.append(osim_tools.opensim_inverse_dynamics(poser, q, qd, qdd))
+        fit.append(rigid.inverse_dynamics(q - pack.reference_pose, qd, qdd, hand_load, None))
+    del osim
+    ref, fit = np.array(ref), np.array(fit)
+    peak = np.max(np.abs(ref), axis=0)
+    err = np.abs(fit - ref)
+    return {
+        "poses": n_poses,
+        "hand_load_newton": hand_load,
+        "peak_nm": dict(zip(pack.coordinates, peak.tolist())),
+        "max_error_nm": dict(zip(pack.coordinates, err.max(axis=0).tolist())),
+        "max_error_percent_of_peak": dict(zip(pack.coordinates, (100 * err.max(axis=0) / peak).tolist())),
+        "opensim": ref,
+        "pack": fit,
+    }
