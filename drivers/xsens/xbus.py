@@ -124,8 +124,8 @@ RAW_QUANTITIES: dict[int, tuple[str, str]] = {
     0xE010: ("status_byte", ">B"),
     0xE020: ("status_word", ">I"),
 }
-#: Groups whose DataID bits 3-2 select a coordinate frame.
-FRAME_GROUPS = frozenset({0x2000, 0x4000, 0x8000, 0xD000})
+#: Groups whose DataID bits 3-2 select a coordinate frame (orientation and velocity).
+FRAME_GROUPS = frozenset({0x2000, 0xD000})
 
 
 def quantity_id(data_id: int) -> int:
@@ -138,6 +138,8 @@ def precision_of(data_id: int) -> Precision:
 
 
 def frame_of(data_id: int) -> CoordinateFrame:
+    if (data_id & 0xF800) not in FRAME_GROUPS:
+        return CoordinateFrame.ENU
     bits = data_id & 0xC
     return CoordinateFrame(bits) if bits != 0xC else CoordinateFrame.ENU
 
@@ -204,18 +206,25 @@ def mtdata2_structure_ok(data: bytes | memoryview, start: int = 0, end: int | No
     return i == end
 
 
+#: Bus ids a frame may carry: master, or a device on a bus (stand-alone MT 0x01, wireless trackers 0x01..0x20).
+VALID_BIDS = frozenset({BID_MASTER, *range(0x01, 0x21)})
+#: Message ids the protocol defines (requests, replies and acks).
+VALID_MIDS = frozenset({int(m) for m in Mid} | {int(m) + 1 for m in Mid})
+
+
 class XbusParser:
     """Incremental Xbus frame parser with resynchronisation.
 
     Feed it arbitrary byte chunks; it returns every valid frame. After garbage, a bad checksum or an impossible
     length it drops one byte and searches the next preamble, so intact frames after a corruption are recovered.
-    MTData2 frames must also be structurally valid (item sizes tile the payload) to be accepted, which makes a
-    false frame assembled from garbage (1/256 checksum odds) very unlikely.
+    With ``validate`` (default) a frame must also carry a known BID and MID, and an MTData2 payload must be
+    structurally valid (item sizes tile the payload): a false frame assembled from garbage would otherwise pass the
+    checksum once in 256 tries and swallow the intact frame after it.
     """
 
-    def __init__(self, *, validate_mtdata2: bool = True) -> None:
+    def __init__(self, *, validate: bool = True) -> None:
         self._buffer = bytearray()
-        self._validate = validate_mtdata2
+        self._validate = validate
         self._skipping = False
         self.stats = ParserStats()
 
@@ -246,6 +255,12 @@ class XbusParser:
             pos = start
             if n - pos < 4:
                 break
+            if self._validate and (buf[pos + 1] not in VALID_BIDS or buf[pos + 2] not in VALID_MIDS):
+                # reject an impossible header at once rather than waiting for the bytes its length claims
+                stats.structure_errors += 1
+                self._skip(1)
+                pos += 1
+                continue
             length = buf[pos + 3]
             header = 4
             if length == EXTENDED_LENGTH_MARK:
@@ -333,7 +348,7 @@ class MtData2:
         return None if values is None else values[0]
 
     def frame(self) -> CoordinateFrame:
-        for name in ("quaternion", "rotation_matrix", "euler", "velocity", "acceleration"):
+        for name in ("quaternion", "rotation_matrix", "euler", "velocity"):
             data_id = self.ids.get(name)
             if data_id is not None:
                 return frame_of(data_id)

@@ -1,0 +1,313 @@
+"""An Xsens MTi on a pseudo-terminal: answers Xbus configuration, streams MTData2 from a recording, injects faults.
+
+Open :attr:`XsensSimulator.path` with any serial library (it is a real tty). Faults (:class:`FaultConfig`) corrupt
+whole messages on the wire (bit flips, dropped bytes, garbage between messages) and every corrupted message is
+recorded by its PacketCounter, so a test can check that exactly the intact ones come out of a parser.
+:meth:`unplug` closes the pty, as pulling the USB cable does.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.xsens import frames, xbus
+from drivers.xsens.source import ImuSource
+
+DEFAULT_DEVICE_ID = 0x03700ABC  # 037xxxxx: an MTi-G-700-series device id
+DEFAULT_PRODUCT_CODE = "MTi-G-710-2A8G4"
+DEFAULT_FIRMWARE = (1, 8, 2)
+#: Factory default: quaternion at 100 Hz plus packet counter.
+FACTORY_OUTPUTS = [xbus.OutputSetting(0x1020, 0xFFFF), xbus.OutputSetting(0x2010, 100)]
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """Per-message fault probabilities (at most one fault per message) and an optional unplug."""
+
+    bit_flip: float = 0.0
+    drop_byte: float = 0.0
+    garbage: float = 0.0  # random bytes (with preambles) inserted before the message; the message stays intact
+    unplug_after_messages: int | None = None
+    seed: int = 0
+
+
+@dataclass
+class SimulatorStats:
+    messages_sent: int = 0
+    corrupted_counters: list[int] = field(default_factory=list)  # PacketCounter of every corrupted MTData2
+    garbage_inserts: int = 0
+    commands: int = 0
+
+
+class XsensSimulator:
+    """``with XsensSimulator(source) as sim: open(sim.path)``; starts in Config state after a WakeUp handshake
+    window of 500 ms like a real MTi (no WakeUpAck -> Measurement with the current outputs)."""
+
+    def __init__(
+        self,
+        source: ImuSource,
+        *,
+        device_id: int = DEFAULT_DEVICE_ID,
+        product_code: str = DEFAULT_PRODUCT_CODE,
+        firmware: tuple[int, int, int] = DEFAULT_FIRMWARE,
+        faults: FaultConfig | None = None,
+        speed: float = 1.0,
+        loop: bool = True,
+        wakeup_window_s: float = 0.5,
+    ) -> None:
+        self.source = source
+        self.device_id = device_id
+        self.product_code = product_code
+        self.firmware = firmware
+        self.faults = faults or FaultConfig()
+        self.speed = speed
+        self.loop = loop
+        self.wakeup_window_s = wakeup_window_s
+        self.stats = SimulatorStats()
+        self.path = ""
+        self.measuring = False
+        self.unplugged = False
+        self._outputs = list(source.recorded_config) if source.raw_payloads else list(FACTORY_OUTPUTS)
+        self._verbatim = bool(source.raw_payloads)  # replay recorded payloads until outputs are reconfigured
+        self._rng = np.random.default_rng(self.faults.seed)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._master = -1
+        self._slave = -1
+        self._counter = 0
+        self._sample = 0
+        self._lock = threading.Lock()
+        self._awaiting_ack = False
+        self._wake_deadline = 0.0
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> "XsensSimulator":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> "XsensSimulator":
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        tty.setraw(self._master)
+        self.path = os.ttyname(self._slave)
+        self._thread = threading.Thread(target=self._run, daemon=True, name="xsens-sim")
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._close_fds()
+
+    def unplug(self) -> None:
+        """Close the pty like a pulled cable: the reader sees a hang-up / EIO."""
+        self.unplugged = True
+        self._stop.set()
+        if self._thread is not None and threading.current_thread() is not self._thread:
+            self._thread.join(timeout=2.0)
+        self._close_fds()
+
+    def _close_fds(self) -> None:
+        with self._lock:
+            for fd in (self._master, self._slave):
+                if fd >= 0:
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
+            self._master = self._slave = -1
+
+    # ------------------------------------------------------------------------------------------ main loop
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                written = os.write(self._master, view)
+            except BlockingIOError:
+                time.sleep(0.001)
+                continue
+            view = view[written:]
+
+    def _run(self) -> None:
+        parser = xbus.XbusParser()
+        try:
+            self._power_up()
+            next_due = time.monotonic()
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if self._awaiting_ack and now >= self._wake_deadline:
+                    self._awaiting_ack = False
+                    self._enter_measurement()
+                    next_due = now
+                timeout = 0.01
+                if self.measuring:
+                    timeout = max(0.0, min(timeout, next_due - now))
+                readable, _, _ = select.select([self._master], [], [], timeout)
+                if readable:
+                    chunk = os.read(self._master, 4096)
+                    for message in parser.feed(chunk):
+                        was_measuring = self.measuring
+                        self._handle(message)
+                        if self.measuring and not was_measuring:
+                            next_due = time.monotonic()
+                if self.measuring and time.monotonic() >= next_due:
+                    if not self._send_sample():
+                        self.measuring = False
+                        continue
+                    next_due += 1.0 / (self._rate() * self.speed)
+                    if time.monotonic() - next_due > 0.5:  # fell far behind (debugger, load): do not burst
+                        next_due = time.monotonic()
+                    limit = self.faults.unplug_after_messages
+                    if limit is not None and self.stats.messages_sent >= limit:
+                        self.unplug()
+                        return
+        except OSError:
+            pass  # pty closed under us (unplug/close)
+
+    def _power_up(self) -> None:
+        """Send WakeUp; without a WakeUpAck within the window the device goes to Measurement."""
+        self.measuring = False
+        self._write(xbus.encode_message(xbus.Mid.WAKE_UP))
+        self._wake_deadline = time.monotonic() + self.wakeup_window_s
+        self._awaiting_ack = True
+
+    def _enter_measurement(self) -> None:
+        self.measuring = True
+
+    def _rate(self) -> float:
+        rates = [s.frequency for s in self._outputs if s.frequency not in (0, 0xFFFF)]
+        if self._verbatim or not rates:
+            return self.source.rate_hz
+        return float(max(rates))
+
+    # ------------------------------------------------------------------------------------------ commands
+    def _reply(self, mid: int, data: bytes = b"") -> None:
+        self._write(xbus.encode_message(mid, data))
+
+    def _error(self, code: int) -> None:
+        self._reply(xbus.Mid.ERROR, bytes((code,)))
+
+    def _handle(self, message: xbus.XbusMessage) -> None:
+        self.stats.commands += 1
+        mid, data = message.mid, message.data
+        if self._awaiting_ack:
+            self._awaiting_ack = False  # WakeUpAck (or any command) inside the window: stay in Config
+        if mid == xbus.Mid.GO_TO_CONFIG:
+            self.measuring = False
+            self._reply(xbus.Mid.GO_TO_CONFIG_ACK)
+        elif mid == xbus.Mid.GO_TO_MEASUREMENT:
+            self._reply(xbus.Mid.GO_TO_MEASUREMENT_ACK)
+            self._enter_measurement()
+        elif mid == xbus.Mid.REQ_DID:
+            self._reply(xbus.Mid.DEVICE_ID, self.device_id.to_bytes(4, "big"))
+        elif mid == xbus.Mid.REQ_PRODUCT_CODE:
+            self._reply(xbus.Mid.PRODUCT_CODE, self.product_code.encode("ascii"))
+        elif mid == xbus.Mid.REQ_FW_REV:
+            self._reply(xbus.Mid.FIRMWARE_REV, bytes(self.firmware))
+        elif mid == xbus.Mid.SET_OUTPUT_CONFIGURATION:
+            if self.measuring:
+                self._error(0x04)
+            elif not data:
+                self._reply(xbus.Mid.OUTPUT_CONFIGURATION, xbus.encode_output_configuration(self._outputs))
+            else:
+                self._set_outputs(data)
+        elif mid == xbus.Mid.RESET:
+            self._reply(xbus.Mid.RESET_ACK)
+            self._power_up()
+        elif mid == xbus.Mid.WAKE_UP_ACK:
+            pass
+        else:
+            self._error(0x04)
+
+    def _set_outputs(self, data: bytes) -> None:
+        try:
+            settings = xbus.decode_output_configuration(data)
+        except Exception:
+            self._error(0x21)
+            return
+        for setting in settings:
+            known = xbus.RAW_QUANTITIES.get(setting.data_id) or xbus.FLOAT_QUANTITIES.get(setting.data_id & 0xFFF0)
+            if known is None or (setting.frequency not in (0, 0xFFFF) and not 1 <= setting.frequency <= 2000):
+                self._error(0x21)
+                return
+        self._outputs = settings
+        self._verbatim = False
+        self._reply(xbus.Mid.OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
+
+    # ------------------------------------------------------------------------------------------ streaming
+    def _send_sample(self) -> bool:
+        payload = self._next_payload()
+        if payload is None:
+            return False
+        frame = xbus.encode_message(xbus.Mid.MT_DATA2, payload)
+        counter = xbus.decode_mtdata2(payload).first("packet_counter")
+        self._write(self._inject(frame, counter))
+        self.stats.messages_sent += 1
+        return True
+
+    def _next_payload(self) -> bytes | None:
+        n = self.source.n_samples
+        if n == 0 or (not self.loop and self._sample >= n):
+            return None
+        k = self._sample % n
+        self._sample += 1
+        if self._verbatim:
+            return self.source.raw_payloads[k]
+        items: list[tuple[int, object]] = []
+        for setting in self._outputs:
+            data_id = setting.data_id
+            if data_id == 0x1020:
+                items.append((data_id, (self._counter,)))
+            elif data_id == 0x1060:
+                items.append((data_id, (int(round(self._sample * 1e4 / self._rate())) % 864_000_000,)))
+            elif data_id == 0x1070:
+                items.append((data_id, (int(self._sample / self._rate()),)))
+            elif data_id in (0xE010, 0xE020):
+                items.append((data_id, (0,)))
+            else:
+                spec = xbus.FLOAT_QUANTITIES.get(data_id & 0xFFF0)
+                array = self.source.arrays.get(spec[0]) if spec else None
+                if array is None:
+                    continue  # the recording does not have it: the device would not output it either
+                values = array[k]
+                if spec[0] == "quaternion":
+                    values = frames.from_enu(tuple(values), xbus.frame_of(data_id))
+                items.append((data_id, tuple(values)))
+        self._counter = (self._counter + 1) & 0xFFFF
+        return xbus.encode_mtdata2(items)
+
+    def _inject(self, frame: bytes, counter: int | None) -> bytes:
+        faults = self.faults
+        draw = self._rng.random()
+        if draw < faults.bit_flip:
+            data = bytearray(frame)
+            position = int(self._rng.integers(0, len(data)))
+            data[position] ^= 1 << int(self._rng.integers(0, 8))
+            self._note_corrupted(counter)
+            return bytes(data)
+        draw -= faults.bit_flip
+        if draw < faults.drop_byte:
+            position = int(self._rng.integers(0, len(frame)))
+            self._note_corrupted(counter)
+            return frame[:position] + frame[position + 1 :]
+        draw -= faults.drop_byte
+        if draw < faults.garbage:
+            size = int(self._rng.integers(1, 40))
+            junk = self._rng.integers(0, 256, size, dtype=np.uint8)
+            junk[self._rng.random(size) < 0.2] = xbus.PREAMBLE
+            self.stats.garbage_inserts += 1
+            return junk.tobytes() + frame
+        return frame
+
+    def _note_corrupted(self, counter: int | None) -> None:
+        self.stats.corrupted_counters.append(-1 if counter is None else counter)
