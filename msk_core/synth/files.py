@@ -1,0 +1,137 @@
+"""Write a synthetic session as the project's trial files (TOML + OpenSim storage) plus a truth file (JSON).
+
+Layout under ``out``::
+
+    truth.json                          subject, effects, F_max truth, per-trial facts and file list
+    <exercise>/mvc_emg.sto              MVC block (one channel after another)
+    <exercise>/<exercise>_<load>kg/
+        trial.toml                      read by msk calibrate / estimate / evaluate
+        ik.sto  id.sto  emg.sto         kinematics (rad), inverse dynamics with the *reported* load, EMG
+        truth_activations.sto           true activations per group
+        truth_torques.sto               true ID torque (true load) and the muscle torque per coordinate
+
+``emg.sto`` holds either the raw EMG at 2000 Hz (``EmgOutput.RAW``, large) or its zero-phase envelope at the
+kinematics rate (``EmgOutput.ENVELOPE``, the default); ``[emg_max]`` in the TOML is the MVC envelope peak of the same
+chain, so the trial loader normalises to MVC either way.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal
+from msk_core.io import write_sto
+from msk_core.synth.session import ExerciseSession, Session, Trial
+
+TRUTH_FORMAT = "msk-synth-truth/1"
+
+
+class EmgOutput(enum.Enum):
+    ENVELOPE = "envelope"
+    RAW = "raw"
+
+
+def _envelope(emg: np.ndarray, rate_hz: float) -> np.ndarray:
+    return envelope_zero_phase_noncausal(emg, EmgFilterConfig(rate_hz=rate_hz))
+
+
+def mvc_maxima(ex: ExerciseSession, rate_hz: float) -> dict[str, float]:
+    env = _envelope(ex.mvc.emg, rate_hz)
+    return {ch: float(env[:, k].max()) for k, ch in enumerate(ex.mvc.channels)}
+
+
+def _downsample(time_hi: np.ndarray, x: np.ndarray, time_lo: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(time_lo, time_hi, x[:, k]) for k in range(x.shape[1])])
+
+
+def write_trial(trial: Trial, folder: Path, *, emg_max: dict[str, float], body_mass_kg: float,
+                emg_rate_hz: float, emg_output: EmgOutput) -> dict:
+    folder.mkdir(parents=True, exist_ok=True)
+    name = f"msk-synth {trial.name}"
+    write_sto(folder / "ik.sto", trial.time, trial.coordinates, trial.q, name=name)
+    write_sto(folder / "id.sto", trial.time, [f"{c}_moment" for c in trial.coordinates], trial.torque_reported,
+              name=name)
+    if emg_output is EmgOutput.RAW:
+        write_sto(folder / "emg.sto", trial.emg_time, trial.channels, trial.emg, name=name)
+    else:
+        env = _downsample(trial.emg_time, _envelope(trial.emg, emg_rate_hz), trial.time)
+        write_sto(folder / "emg.sto", trial.time, trial.channels, env, name=name)
+    write_sto(folder / "truth_activations.sto", trial.time, trial.groups, trial.activation, name=name)
+    write_sto(folder / "truth_torques.sto", trial.time,
+              [f"{c}_id" for c in trial.coordinates] + [f"{c}_muscle" for c in trial.coordinates],
+              np.column_stack([trial.torque_id, trial.torque_muscle]), name=name)
+    spec = {
+        "name": trial.name,
+        "kinematics": "ik.sto",
+        "torques": "id.sto",
+        "emg": "emg.sto",
+        "emg_is_envelope": emg_output is EmgOutput.ENVELOPE,
+        "load_kg": trial.reported_load_kg,
+        "body_mass_kg": body_mass_kg,
+        "emg_map": {ch: ch for ch in trial.channels},
+        "emg_max": {ch: emg_max[ch] for ch in trial.channels},
+    }
+    (folder / "trial.toml").write_bytes(tomli_w.dumps(spec).encode())
+    return {
+        "name": trial.name,
+        "trial": str(Path(folder.name) / "trial.toml"),
+        "load_kg": trial.load_kg,
+        "reported_load_kg": trial.reported_load_kg,
+        "duration_s": float(trial.time[-1]),
+        "rep_starts_s": [float(x) for x in trial.rep_starts],
+        "rep_ends_s": [float(x) for x in trial.rep_ends],
+        "peak_abs_torque_nm": dict(zip(trial.coordinates, map(float, np.abs(trial.torque_id).max(axis=0)))),
+        "peak_activation": dict(zip(trial.groups, map(float, trial.activation.max(axis=0)))),
+        "max_abs_torque_residual_nm": float(np.abs(trial.residual).max()),
+        "frames_beyond_capacity": int(trial.fallback_frames),
+        "imu": [{"tracker_id": s.tracker_id, "segment": s.segment, "body": s.body} for s in trial.imu],
+    }
+
+
+def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = EmgOutput.ENVELOPE) -> Path:
+    """Write every exercise and the truth file. Returns the truth file's path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = session.config
+    truth: dict = {
+        "format": TRUTH_FORMAT,
+        "subject_seed": cfg.subject_seed,
+        "n_reps": cfg.n_reps,
+        "rates_hz": {"kinematics": cfg.kinematics_rate_hz, "emg": cfg.emg_rate_hz, "imu": cfg.imu_rate_hz},
+        "effects": cfg.effects.to_dict(),
+        "effects_active": cfg.effects.active(),
+        "recruitment": "min sum_g w_g(t) a_g^2, exact torque match, floors tone + c_g*effort (msk_core.synth.recruitment)",
+        "exercises": {},
+    }
+    for ex in session.exercises:
+        folder = out / ex.spec.exercise.value
+        folder.mkdir(parents=True, exist_ok=True)
+        maxima = mvc_maxima(ex, cfg.emg_rate_hz)
+        if emg_output is EmgOutput.RAW:
+            write_sto(folder / "mvc_emg.sto", ex.mvc.time, ex.mvc.channels, ex.mvc.emg, name="msk-synth mvc")
+        else:
+            t_lo = np.arange(0.0, ex.mvc.time[-1], 1.0 / cfg.kinematics_rate_hz)
+            env = _downsample(ex.mvc.time, _envelope(ex.mvc.emg, cfg.emg_rate_hz), t_lo)
+            write_sto(folder / "mvc_emg.sto", t_lo, ex.mvc.channels, env, name="msk-synth mvc envelope")
+        trials = [
+            write_trial(t, folder / t.name, emg_max=maxima, body_mass_kg=ex.subject.mass_kg,
+                        emg_rate_hz=cfg.emg_rate_hz, emg_output=emg_output)
+            for t in ex.trials
+        ]
+        truth["exercises"][ex.spec.exercise.value] = {
+            "pack": ex.pack_name,
+            "subject": ex.subject.to_dict(),
+            "f_max_n": dict(zip(ex.subject.groups, map(float, ex.f_max))),
+            "channels": ex.mvc.channels,
+            "emg_max": maxima,
+            "mvc": str(Path(ex.spec.exercise.value) / "mvc_emg.sto"),
+            "trials": [{**t, "trial": str(Path(ex.spec.exercise.value) / t["trial"])} for t in trials],
+        }
+    path = out / "truth.json"
+    path.write_text(json.dumps(truth, indent=2, sort_keys=True) + "\n")
+    return path
