@@ -8,8 +8,11 @@ recorded by its PacketCounter, so a test can check that exactly the intact ones 
 
 from __future__ import annotations
 
+import fcntl
 import os
 import select
+import sys
+import termios
 import threading
 import time
 import tty
@@ -169,10 +172,19 @@ class XsensSimulator:
                         next_due = time.monotonic()
                     limit = self.faults.unplug_after_messages
                     if limit is not None and self.stats.messages_sent >= limit:
+                        self._wait_until_read(0.5)  # unplug after the host has the last message
                         self.unplug()
                         return
         except OSError:
             pass  # pty closed under us (unplug/close)
+
+    def _wait_until_read(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pending = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
+            if int.from_bytes(pending, sys.byteorder) == 0:
+                return
+            time.sleep(0.002)
 
     def _power_up(self) -> None:
         """Send WakeUp; without a WakeUpAck within the window the device goes to Measurement."""
@@ -259,7 +271,8 @@ class XsensSimulator:
         n = self.source.n_samples
         if n == 0 or (not self.loop and self._sample >= n):
             return None
-        k = self._sample % n
+        absolute = self._sample
+        k = absolute % n
         self._sample += 1
         if self._verbatim:
             return self.source.raw_payloads[k]
@@ -269,9 +282,9 @@ class XsensSimulator:
             if data_id == 0x1020:
                 items.append((data_id, (self._counter,)))
             elif data_id == 0x1060:
-                items.append((data_id, (int(round(self._sample * 1e4 / self._rate())) % 864_000_000,)))
+                items.append((data_id, (int(round(absolute * 1e4 / self._rate())) % 864_000_000,)))
             elif data_id == 0x1070:
-                items.append((data_id, (int(self._sample / self._rate()),)))
+                items.append((data_id, (int(absolute / self._rate()),)))
             elif data_id in (0xE010, 0xE020):
                 items.append((data_id, (0,)))
             else:

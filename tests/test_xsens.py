@@ -1,0 +1,174 @@
+"""Xsens driver against the pseudo-terminal simulator: configuration, every precision/frame, verbatim replay of a
+real capture, injected faults, unplugging, several trackers; USB discovery helpers."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from drivers.xsens import usb, xbus
+from drivers.xsens.device import TrackerSet, XbusDeviceError, XsensDevice, output_settings
+from drivers.xsens.serial_transport import DeviceDisconnected, SerialTransport
+from drivers.xsens.simulator import FaultConfig, XsensSimulator
+from drivers.xsens.source import load_imu_source, synthetic_imu
+from msk_core.errors import ConfigError, FileFormatError, InputError
+
+
+def read_for(device: XsensDevice, *, count: int = 0, seconds: float = 5.0) -> list:
+    readings = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and (not count or len(readings) < count):
+        readings += device.read()
+    return readings
+
+
+def open_device(sim: XsensSimulator) -> XsensDevice:
+    return XsensDevice(SerialTransport(sim.path, baudrate=921600))
+
+
+@pytest.mark.parametrize("precision", list(xbus.Precision))
+@pytest.mark.parametrize("frame", [xbus.CoordinateFrame.ENU, xbus.CoordinateFrame.NED, xbus.CoordinateFrame.NWU])
+def test_configure_and_measure_every_precision_and_frame(precision, frame):
+    source = synthetic_imu(seconds=5.0, seed=1)
+    with XsensSimulator(source, speed=4.0, device_id=0x03700123) as sim:
+        device = open_device(sim)
+        try:
+            assert device.reset() is True  # WakeUp acknowledged: stays in Config
+            info = device.configure(100, precision=precision, frame=frame)
+            readings = read_for(device, count=40)
+        finally:
+            device.close()
+    assert info["device_id"] == "03700123" and info["product_code"].startswith("MTi-G-710") and info["firmware"] == "1.8.2"
+    assert info["outputs"] == output_settings(100, precision=precision, frame=frame)
+    assert len(readings) >= 40 and device.stats.packets_lost == 0 and device.stats.decode_errors == 0
+    step = {xbus.Precision.FLOAT32: 1e-6, xbus.Precision.FP1220: 2.0**-20, xbus.Precision.FP1632: 2.0**-32, xbus.Precision.FLOAT64: 1e-12}[precision]
+    for reading in readings:
+        k = reading.packet_counter  # the simulator's counter is the recording's sample index here
+        assert reading.tracker_id == "03700123" and reading.frame is frame
+        assert reading.quaternion_enu() == pytest.approx(tuple(source.arrays["quaternion"][k]), abs=4 * step)
+        assert reading.acceleration == pytest.approx(tuple(source.arrays["acceleration"][k]), abs=10 * step)
+        assert reading.device_time_ns == round(k * 1e4 / 100) * 100_000
+
+
+def test_without_wakeup_ack_the_device_measures_with_factory_outputs():
+    with XsensSimulator(synthetic_imu(seconds=5.0), speed=4.0, wakeup_window_s=0.1) as sim:
+        device = open_device(sim)
+        readings = read_for(device, count=10)
+        device.close()
+    assert readings and all(r.quaternion is not None and r.acceleration is None for r in readings)
+
+
+def test_real_capture_is_replayed_verbatim_until_reconfigured(shared_dir):
+    path = shared_dir / "data/xsens-captures/mtig710_set3.bin"
+    source = load_imu_source(path)
+    assert source.rate_hz == pytest.approx(100.0) and len(source.raw_payloads) == 100
+    with XsensSimulator(source, speed=5.0, wakeup_window_s=0.05) as sim:
+        device = open_device(sim)
+        readings = read_for(device, count=30)
+        device.go_to_config()
+        applied = device.set_output_configuration(output_settings(50, precision=xbus.Precision.FLOAT64))
+        device.go_to_measurement()
+        reencoded = read_for(device, count=10)
+        device.close()
+    original = {xbus.decode_mtdata2(p).first("packet_counter"): xbus.decode_mtdata2(p) for p in source.raw_payloads}
+    for reading in readings:
+        assert reading.data == original[reading.packet_counter]  # the device's own bytes, fixed 16.32
+    assert xbus.precision_of(readings[1].data.ids["acceleration"]) is xbus.Precision.FP1632
+    assert applied[2].frequency == 50
+    # after reconfiguration: values re-encoded as float64 from the recording (which has no quaternion)
+    assert all(r.quaternion is None and r.acceleration is not None for r in reencoded)
+    assert xbus.precision_of(reencoded[0].data.ids["acceleration"]) is xbus.Precision.FLOAT64
+
+
+def test_device_error_reply_raises_with_code_name():
+    with XsensSimulator(synthetic_imu(seconds=2.0), speed=2.0, wakeup_window_s=0.05) as sim:
+        device = open_device(sim)
+        time.sleep(0.1)
+        with pytest.raises(XbusDeviceError, match="0x04 \\(invalid message\\).*SET_OUTPUT_CONFIGURATION"):
+            device.set_output_configuration(output_settings(100))  # not allowed in Measurement state
+        device.close()
+
+
+def test_injected_faults_every_intact_message_recovered_and_corrupted_counted():
+    faults = FaultConfig(bit_flip=0.05, drop_byte=0.05, garbage=0.05, unplug_after_messages=600, seed=11)
+    source = synthetic_imu(seconds=10.0, seed=3)
+    with XsensSimulator(source, speed=10.0, faults=faults) as sim:
+        device = open_device(sim)
+        device.reset()
+        device.configure(100, precision=xbus.Precision.FP1220)
+        readings = []
+        with pytest.raises(DeviceDisconnected):
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                readings += device.read()
+        stats = sim.stats
+    corrupted = set(stats.corrupted_counters)
+    assert stats.messages_sent == 600 and len(corrupted) > 30 and stats.garbage_inserts > 10
+    assert [r.packet_counter for r in readings] == [k for k in range(600) if k not in corrupted]
+    # the last message may be the corrupted one: lost packets are counted from counter jumps
+    trailing = sum(1 for k in range(599, -1, -1) if k in corrupted and all(j in corrupted for j in range(k, 600)))
+    assert device.stats.packets_lost == len(corrupted) - trailing
+    assert device.parser.stats.errors >= len(corrupted) - trailing
+
+
+def test_tracker_set_keys_devices_by_id_and_survives_an_unplug():
+    source = synthetic_imu(seconds=5.0)
+    with XsensSimulator(source, speed=4.0, device_id=0x00B41001) as sim_a, XsensSimulator(source, speed=4.0, device_id=0x00B41002) as sim_b:
+        trackers = TrackerSet()
+        for sim in (sim_a, sim_b):
+            device = open_device(sim)
+            device.reset()
+            device.configure(100)
+            trackers.add(device)
+        assert sorted(trackers.devices) == ["00B41001", "00B41002"]
+        seen = set()
+        deadline = time.monotonic() + 5
+        while len(seen) < 2 and time.monotonic() < deadline:
+            seen |= {r.tracker_id for r in trackers.read()}
+        sim_a.unplug()
+        later = []
+        deadline = time.monotonic() + 5
+        while len(later) < 20 and time.monotonic() < deadline:
+            later += trackers.read()
+        trackers.close()
+    assert seen == {"00B41001", "00B41002"}
+    assert "00B41001" in trackers.disconnected and {r.tracker_id for r in later} == {"00B41002"}
+
+
+def test_imu_npz_source_and_errors(tmp_path):
+    path = tmp_path / "imu.npz"
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (50, 1))
+    np.savez(path, rate_hz=60.0, quaternion=q, acceleration=np.zeros((50, 3)))
+    source = load_imu_source(path)
+    assert source.rate_hz == 60.0 and set(source.arrays) == {"quaternion", "acceleration"}
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, rate_hz=60.0, quaternion=np.zeros((50, 3)))
+    with pytest.raises(FileFormatError, match="field 'quaternion'"):
+        load_imu_source(bad)
+    with pytest.raises(InputError, match="not found"):
+        load_imu_source(tmp_path / "none.bin")
+
+
+def test_usb_identities_and_port_matching():
+    assert usb.classify(0x2639, 0x0017) == "MTi-G-700 (native USB)"
+    assert usb.classify(0x2639, 0x0101) == "Awinda Station"
+    assert usb.classify(0x0403, 0xD38D) == "Awinda Station (FTDI)"
+    assert usb.classify(0x0403, 0x6001) is None and usb.classify(0x1234, 0x0001) is None
+    devices = [usb.UsbDevice(0x2639, 0x0200, "MTw", "A1"), usb.UsbDevice(0x2639, 0x0200, "MTw", "B2")]
+    ports = [
+        usb.PortInfo("/dev/ttyUSB1", 0x2639, 0x0200, "B2"),
+        usb.PortInfo("/dev/ttyUSB0", 0x2639, 0x0200, "A1"),
+        usb.PortInfo("/dev/ttyUSB2", 0x0403, 0xD388, "X"),
+        usb.PortInfo("/dev/ttyS0", None, None),
+    ]
+    matched = usb.match_ports(devices, ports)
+    assert [(d.serial_number, d.port) for d in matched] == [("A1", "/dev/ttyUSB0"), ("B2", "/dev/ttyUSB1"), ("X", "/dev/ttyUSB2")]
+    assert isinstance(usb.list_devices(), list)  # real enumeration runs (no Xsens hardware on CI)
+
+
+def test_usb_find_port_without_devices_is_a_clear_error(monkeypatch):
+    monkeypatch.setattr(usb, "list_devices", lambda: [])
+    with pytest.raises(ConfigError, match="no Xsens device"):
+        usb.find_port()
