@@ -1,0 +1,171 @@
+"""Joint kinematics from IMU orientations: sensor-to-segment alignment, joint angles, Kalman angle/velocity/acceleration.
+
+Conventions (documented in docs/signal.md):
+
+* Quaternions are scalar-first ``(w, x, y, z)`` (Xsens order) and give the sensor's orientation in the global frame
+  ``G``: ``v_G = R_GS v_S``. The global frame is Z up (Xsens ENU / NWU: any Z-up frame).
+* Segment frames follow ISB: X anterior, Y superior (along the segment, towards proximal), Z to the subject's right.
+* Joint angles are the intrinsic Z-X-Y Cardan angles of the child segment relative to the parent:
+  1. about Z (medio-lateral): flexion (+) / extension (-) — hip, shoulder and elbow flexion are positive, knee
+     flexion is negative (the shank rotates backwards), as with a right-hand rule about the right-pointing axis;
+  2. about the floating X (anterior): ab/adduction;
+  3. about the child's Y (long axis): internal/external rotation.
+* Static calibration: in the static pose every segment frame is the N-pose frame (X forward, Y up, Z right) turned
+  by the same known heading about global Z. Then ``R_SB = R_GS(static)^T R_GB(static)`` and live
+  ``R_GB(t) = R_GS(t) R_SB``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.common import Q_discrete_white_noise
+from filterpy.kalman import KalmanFilter
+from scipy.spatial.transform import Rotation
+
+from msk_core.errors import ConfigError, InputError
+
+# N-pose segment frame in a Z-up global frame facing +X: segment X -> global X, segment Y (up) -> global Z,
+# segment Z (right) -> global -Y.
+_NPOSE = Rotation.from_matrix(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]))
+
+
+def quats_to_rotation(quats: np.ndarray) -> Rotation:
+    """Rotations from scalar-first unit quaternions ``(n, 4)`` or ``(4,)``; rejects zero or non-finite rows."""
+    q = np.asarray(quats, dtype=float)
+    if q.shape[-1] != 4:
+        raise InputError("quaternions must have 4 components (w, x, y, z)", field="quats", value=q.shape)
+    norms = np.linalg.norm(q, axis=-1)
+    if not np.all(np.isfinite(q)) or np.any(norms < 1e-6):
+        raise InputError("quaternions must be finite and non-zero", field="quats")
+    return Rotation.from_quat(q, scalar_first=True)
+
+
+def npose_segment_orientation(heading_rad: float = 0.0) -> Rotation:
+    """Orientation ``R_GB`` of every segment in the static N-pose when the subject faces ``heading_rad`` (about Z)."""
+    return Rotation.from_euler("z", heading_rad) * _NPOSE
+
+
+def sensor_to_segment(static_quats: np.ndarray, *, heading_rad: float = 0.0,
+                      segment_orientation: Rotation | None = None) -> Rotation:
+    """Fixed sensor-to-segment rotation ``R_SB`` from samples of one sensor during the static pose.
+
+    ``segment_orientation`` is the segment's known static ``R_GB`` (default: N-pose at ``heading_rad``)."""
+    r_gs = quats_to_rotation(static_quats)
+    if r_gs.single:
+        mean = r_gs
+    else:
+        mean = r_gs.mean()
+        spread = np.degrees((mean.inv() * r_gs).magnitude()).max()
+        if spread > 10.0:
+            raise InputError("the sensor moved during the static pose", field="static_quats",
+                             value=f"{spread:.1f} deg from its mean")
+    r_gb = segment_orientation if segment_orientation is not None else npose_segment_orientation(heading_rad)
+    return mean.inv() * r_gb
+
+
+def segment_orientation(quats: np.ndarray, r_sb: Rotation) -> Rotation:
+    """Segment orientation ``R_GB(t) = R_GS(t) R_SB`` for sensor quaternions ``(n, 4)``."""
+    return quats_to_rotation(quats) * r_sb
+
+
+def joint_angles(parent: Rotation, child: Rotation) -> np.ndarray:
+    """Joint angles (rad) ``(n, 3)``: [flexion/extension, ab/adduction, rotation] of ``child`` relative to
+    ``parent`` (intrinsic Z-X-Y Cardan angles of ``R_parent^T R_child``)."""
+    rel = parent.inv() * child
+    return np.atleast_2d(rel.as_euler("ZXY"))
+
+
+@dataclass(frozen=True)
+class KinematicsFilterConfig:
+    """Constant-acceleration model per angle: state [angle, velocity, acceleration], angle measured.
+
+    ``jerk_std`` (rad/s^3) sets the process noise: filterpy ``Q_discrete_white_noise(dim=3, dt, var=(jerk_std*dt)^2)``,
+    i.e. the acceleration changes by about ``jerk_std * dt`` per step. ``angle_std`` (rad) is the measurement noise.
+    Larger ``jerk_std``: less lag, more noise. Set it near the jerk of the movement (fast curls: 10-50 rad/s^3)."""
+
+    dt: float
+    jerk_std: float = 30.0
+    angle_std: float = np.radians(1.0)
+
+    def __post_init__(self) -> None:
+        for name in ("dt", "jerk_std", "angle_std"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ConfigError("must be positive", field=name, value=value)
+
+
+def _matrices(n: int, cfg: KinematicsFilterConfig, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    f1 = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+    # discrete white-noise acceleration increments: per step the acceleration changes by N(0, (jerk_std dt)^2)
+    q1 = Q_discrete_white_noise(dim=3, dt=dt, var=(cfg.jerk_std * dt) ** 2)
+    return np.kron(np.eye(n), f1), np.kron(np.eye(n), q1)
+
+
+class JointKinematicsFilter:
+    """Causal Kalman filter (filterpy) of ``n_angles`` joint angles: angle, velocity and acceleration.
+
+    State: the filterpy ``KalmanFilter`` (x, P). Initialised at the first measurement with zero velocity and
+    acceleration and a wide covariance."""
+
+    def __init__(self, n_angles: int, config: KinematicsFilterConfig) -> None:
+        if n_angles < 1:
+            raise ConfigError("need at least one angle", field="n_angles", value=n_angles)
+        self.n = n_angles
+        self.config = config
+        kf = KalmanFilter(dim_x=3 * n_angles, dim_z=n_angles)
+        kf.F, kf.Q = _matrices(n_angles, config, config.dt)
+        kf.H = np.kron(np.eye(n_angles), np.array([[1.0, 0.0, 0.0]]))
+        kf.R = np.eye(n_angles) * config.angle_std**2
+        self.kf = kf
+        self.initialised = False
+        self._dt = config.dt
+
+    def _init(self, z: np.ndarray) -> None:
+        x = np.zeros(3 * self.n)
+        x[0::3] = z
+        self.kf.x = x
+        p1 = np.diag([self.config.angle_std**2, 10.0**2, 100.0**2])  # rad, rad/s, rad/s^2 before any motion is seen
+        self.kf.P = np.kron(np.eye(self.n), p1)
+        self.initialised = True
+
+    def step(self, angles: np.ndarray, dt: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Filter one sample of ``n_angles`` angles (rad), ``dt`` s after the previous one (default config.dt).
+        Returns (angle, velocity, acceleration), each ``(n_angles,)``. NaN angles are predicted, not updated."""
+        z = np.asarray(angles, dtype=float).reshape(-1)
+        if z.shape[0] != self.n:
+            raise InputError(f"expected {self.n} angles", field="angles", value=z.shape)
+        if not self.initialised:
+            if np.all(np.isfinite(z)):
+                self._init(z)
+            x = self.kf.x if self.initialised else np.full(3 * self.n, np.nan)
+            return x[0::3].copy(), x[1::3].copy(), x[2::3].copy()
+        if dt is not None and dt != self._dt:
+            if not dt > 0:
+                raise InputError("time must increase", field="dt", value=dt)
+            self.kf.F, self.kf.Q = _matrices(self.n, self.config, dt)
+            self._dt = dt
+        self.kf.predict()
+        if np.all(np.isfinite(z)):
+            self.kf.update(z)
+        x = self.kf.x
+        return x[0::3].copy(), x[1::3].copy(), x[2::3].copy()
+
+    def filter(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``step`` over a series ``(n_samples, n_angles)`` at the config rate."""
+        out = [self.step(a) for a in np.atleast_2d(np.asarray(angles, dtype=float))]
+        return tuple(np.array([o[k] for o in out]) for k in range(3))  # type: ignore[return-value]
+
+
+def smooth_kinematics(angles: np.ndarray, config: KinematicsFilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OFFLINE (non-causal) Rauch-Tung-Striebel smoother of the same model: (angle, velocity, acceleration)."""
+    z = np.atleast_2d(np.asarray(angles, dtype=float))
+    if not np.all(np.isfinite(z)):
+        raise InputError("the smoother needs finite angles (interpolate gaps first)", field="angles")
+    f = JointKinematicsFilter(z.shape[1], config)
+    f._init(z[0])
+    kf = f.kf
+    means, covs, _, _ = kf.batch_filter(list(z))
+    xs, _, _, _ = kf.rts_smoother(means, covs)
+    return xs[:, 0::3], xs[:, 1::3], xs[:, 2::3]
