@@ -46,7 +46,12 @@ def detect_reps(
         q_before = np.flatnonzero(quiet[prev_end:r0])
         start = prev_end + q_before[-1] if q_before.size else prev_end + int(np.argmin(dev[prev_end : r0 + 1]))
         q_after = np.flatnonzero(quiet[r1:nxt])
-        end = r1 + q_after[0] if q_after.size else r1 + int(np.argmin(dev[r1:nxt]))
+        if q_after.size:
+            end = r1 + int(q_after[0])
+        elif r1 < nxt:
+            end = r1 + int(np.argmin(dev[r1:nxt]))
+        else:  # the excursion lasts to the end of the recording
+            end = x.size - 1
         prev_end = end
         if time[end] - time[start] < min_duration_s:
             continue

@@ -83,6 +83,14 @@ class TrialData:
         return int(self.time.size)
 
 
+def _within(time: np.ndarray, source_time: np.ndarray) -> np.ndarray:
+    """Times a hair outside the source's span (< 5 % of a sample, e.g. -2e-7 s vs 0 s) are moved onto its ends."""
+    dt = float(np.median(np.diff(source_time))) if source_time.size > 1 else 0.0
+    lo, hi = source_time[0], source_time[-1]
+    clipped = np.clip(time, lo, hi)
+    return np.where(np.abs(clipped - time) <= 0.05 * dt, clipped, time)
+
+
 def _line_of(text: str, key: str) -> int | None:
     for i, line in enumerate(text.splitlines(), start=1):
         if re.match(rf"\s*{re.escape(key)}\s*=", line) or line.strip() == f"[{key}]":
@@ -175,8 +183,9 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
                 )
             cols.append(name)
         raw = tq.select(cols)
+        at = _within(time, tq.time)
         torques = np.column_stack(
-            [np.interp(time, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
+            [np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
         )
         keep = np.all(np.isfinite(torques), axis=1)
         dropped = int((~keep).sum())
@@ -255,7 +264,7 @@ def _load_emg(spec, path, text, file_of, err, pack, time):
         scale = maxima.get(ch, 1.0)
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
             raise err("must be a positive number", f"emg_max.{ch}", scale)
-        x = np.interp(time, storage.time, raw[:, j] / scale, left=np.nan, right=np.nan)
+        x = np.interp(_within(time, storage.time), storage.time, raw[:, j] / scale, left=np.nan, right=np.nan)
         group = mapping[ch]
         emg[group] = x if group not in emg else np.nanmean([emg[group], x], axis=0)  # several channels: mean
         norm[ch] = {

@@ -1,0 +1,168 @@
+"""Offline workflows over whole trials: priors, calibration of a subject, estimation of a trial."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+
+from msk_core.errors import EstimationError
+from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
+from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, Method
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.prior import PhasePrior, prior_from_reps
+from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.trial import TrialData
+
+
+def build_prior(pack: PackLike, trials: list[TrialData], *, n_bins: int = 20) -> PhasePrior:
+    """N(mu, sigma^2) per group and phase bin across all reps of all trials (groups without EMG: wide default)."""
+    groups = list(pack.groups)
+    emg_groups = sorted({g for t in trials for g in t.emg})
+    if not emg_groups:
+        raise EstimationError("calibration trials have no EMG: the prior needs EMG of at least one group")
+    phases, reps, emg = [], [], {g: [] for g in emg_groups}
+    offset = 0
+    for t in trials:
+        phases.append(np.nan_to_num(t.phase, nan=0.0))
+        reps.append(np.where(t.rep_index >= 0, t.rep_index + offset, -1))
+        offset += int(t.rep_index.max()) + 1
+        for g in emg_groups:
+            emg[g].append(t.emg.get(g, np.full(t.n_frames, np.nan)))
+    return prior_from_reps(
+        groups,
+        {g: np.concatenate(v) for g, v in emg.items()},
+        np.concatenate(phases),
+        np.concatenate(reps),
+        n_bins=n_bins,
+    )
+
+
+def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
+    """Moment arms at q, clamped into the pack's fitted range by at most CLAMP_TOLERANCE (else NaN)."""
+    ranges = getattr(pack, "coordinate_ranges", None)
+    if ranges is not None:
+        ranges = np.asarray(ranges, dtype=float).reshape(len(q), 2)
+        qc = np.minimum(np.maximum(q, ranges[:, 0]), ranges[:, 1])
+        if np.any(np.abs(qc - q) > CLAMP_TOLERANCE):
+            return np.full((len(pack.coordinates), len(pack.groups)), np.nan)
+        q = qc
+    return np.asarray(pack.moment_arms(q), dtype=float)
+
+
+def calibration_frames(pack: PackLike, trials: list[TrialData], prior: PhasePrior) -> CalibrationFrames:
+    groups = list(pack.groups)
+    r, tau, mu, sd, emg = [], [], [], [], []
+    for t in trials:
+        for i in range(t.n_frames):
+            m = pack_moment_arms(pack, t.q[i])
+            if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
+                continue  # frames the model cannot represent do not enter the fit
+            ph = t.phase[i]
+            a, b = prior.at(None if not np.isfinite(ph) else float(ph))
+            r.append(m)
+            tau.append(t.torques[i])
+            mu.append(a)
+            sd.append(b)
+            emg.append([t.emg[g][i] if g in t.emg else np.nan for g in groups])
+    if not r:
+        raise EstimationError("no usable calibration frame")
+    return CalibrationFrames(np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float))
+
+
+def calibrate_subject(
+    pack: PackLike,
+    trials: list[TrialData],
+    *,
+    settings: CalibrationSettings | None = None,
+    n_bins: int = 20,
+) -> tuple[SubjectProfile, CalibrationResult]:
+    """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result."""
+    prior = build_prior(pack, trials, n_bins=n_bins)
+    frames = calibration_frames(pack, trials, prior)
+    result = calibrate(pack.f_max_ref, frames, settings)
+    norm = {}
+    for t in trials:
+        for ch, info in t.emg_normalisation.items():
+            norm.setdefault(ch, {**info, "trials": []})["trials"].append(t.name)
+    import msk_core
+
+    profile = SubjectProfile(
+        pack_name=pack.name,
+        pack_version=str(pack.version),
+        groups=list(pack.groups),
+        f_max=result.f_max,
+        f_max_ref=np.asarray(pack.f_max_ref, dtype=float),
+        prior=prior,
+        emg_normalisation=norm,
+        calibration={**result.report(), "frames": int(frames.torques.shape[0])},
+        provenance={
+            "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "trials": [str(t.path) for t in trials],
+            "software": f"msk-live {getattr(msk_core, '__version__', 'dev')}",
+            "phase_signals": sorted({t.phase_signal for t in trials}),
+        },
+    )
+    return profile, result
+
+
+@dataclass
+class TrialEstimate:
+    method: str
+    groups: list[str]
+    coordinates: list[str]
+    time: np.ndarray
+    phase: np.ndarray
+    activations: np.ndarray  # (T, G)
+    activation_std: np.ndarray  # (T, G)
+    model_torques: np.ndarray  # (T, n_c)
+    torques: np.ndarray
+    residual: np.ndarray
+    status: list[str]
+    iterations: np.ndarray
+    solve_time_s: np.ndarray
+    flag_counts: dict[str, int] = field(default_factory=dict)
+
+
+def estimate_trial(
+    pack: PackLike,
+    trial: TrialData,
+    method: Method | str,
+    *,
+    subject: SubjectProfile | None = None,
+    progress: bool = False,
+    **options,
+) -> TrialEstimate:
+    """Run the per-frame estimator over a trial (torques from the trial; phase from its rep detection)."""
+    est = FrameEstimator(pack, subject, method, **options)
+    g, n_c, n = len(est.groups), len(est.coordinates), trial.n_frames
+    out = TrialEstimate(
+        method=est.method.value,
+        groups=list(est.groups),
+        coordinates=list(est.coordinates),
+        time=trial.time,
+        phase=trial.phase,
+        activations=np.zeros((n, g)),
+        activation_std=np.zeros((n, g)),
+        model_torques=np.zeros((n, n_c)),
+        torques=np.zeros((n, n_c)),
+        residual=np.zeros((n, n_c)),
+        status=[],
+        iterations=np.zeros(n, dtype=int),
+        solve_time_s=np.zeros(n),
+    )
+    for i in tqdm(range(n), desc=f"{trial.name} [{est.method.value}]", disable=not progress, leave=False):
+        ph = trial.phase[i]
+        res = est.step(trial.q[i], torques=trial.torques[i], phase=float(ph) if np.isfinite(ph) else None)
+        out.activations[i] = res.activations
+        out.activation_std[i] = res.activation_std
+        out.model_torques[i] = res.model_torques
+        out.torques[i] = res.torques
+        out.residual[i] = res.residual
+        out.status.append(res.status.value)
+        out.iterations[i] = res.iterations
+        out.solve_time_s[i] = res.solve_time_s
+    out.flag_counts = dict(est.flag_counts)
+    return out

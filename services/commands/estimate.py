@@ -1,0 +1,122 @@
+"""``msk calibrate``, ``msk estimate``, ``msk evaluate``: the seed method over trial files (see docs/estimation.md)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from msk_core.errors import ConfigError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    cal = subparsers.add_parser(
+        "calibrate",
+        help="calibrate a subject profile (F_max per group, priors) from training trials",
+        description="Calibrate per-group strength and the phase prior from training trials (TOML) with EMG.",
+    )
+    cal.add_argument("--pack", required=True, help="model pack name or path")
+    cal.add_argument("--trial", action="append", required=True, type=Path, help="training trial TOML (repeatable)")
+    cal.add_argument("--out", required=True, type=Path, help="subject profile JSON to write")
+    cal.add_argument("--alpha", type=float, default=0.5, help="lower bound of the strength factors (default 0.5)")
+    cal.add_argument("--beta", type=float, default=2.5, help="upper bound of the strength factors (default 2.5)")
+    cal.add_argument("--bins", type=int, default=20, help="phase bins of the prior (default 20)")
+    cal.add_argument("--calibrate", choices=["emg", "all"], default="emg",
+                     help="which groups get a strength factor (default: those with EMG)")
+    cal.set_defaults(handler=run_calibrate)
+
+    est = subparsers.add_parser(
+        "estimate",
+        help="estimate activations of a trial, frame by frame",
+        description="Per-frame activation estimation over a trial; writes activations and torques as OpenSim .sto.",
+    )
+    est.add_argument("--pack", required=True, help="model pack name or path")
+    est.add_argument("--subject", type=Path, default=None, help="subject profile JSON (needed for proposed/prior)")
+    est.add_argument("--trial", required=True, type=Path, help="trial TOML")
+    est.add_argument("--method", choices=["proposed", "so", "hybrid", "prior"], default="proposed")
+    est.add_argument("--out", required=True, type=Path, help="activations .sto (torques go to <stem>_torques.sto)")
+    est.set_defaults(handler=run_estimate)
+
+    ev = subparsers.add_parser(
+        "evaluate",
+        help="compare methods against measured EMG and torques; write a report with plots",
+        description="Activation RMSE per method and trial, torque tracking, plots; markdown + PNG + JSON.",
+    )
+    ev.add_argument("--pack", required=True, help="model pack name or path")
+    ev.add_argument("--subject", required=True, type=Path, help="subject profile JSON")
+    ev.add_argument("--trial", action="append", required=True, type=Path, help="evaluation trial TOML (repeatable)")
+    ev.add_argument("--report", required=True, type=Path, help="output directory")
+    ev.set_defaults(handler=run_evaluate)
+
+
+def _pack(name: str):
+    from msk_core.model import load_pack
+
+    return load_pack(name)
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from msk_core.estimate.calibrate import CalibrationSettings
+    from msk_core.estimate.pipeline import calibrate_subject
+    from msk_core.estimate.trial import load_trial
+
+    if args.bins < 2:
+        raise ConfigError("need at least 2 phase bins", field="--bins", value=args.bins)
+    pack = _pack(args.pack)
+    trials = [load_trial(p, pack) for p in args.trial]
+    settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate)
+    print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
+          f"of {len(trials)} trial(s)...", flush=True)
+    profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins)
+    profile.save(args.out)
+    print(f"{result.method}: converged={result.converged} after {result.iterations} iterations "
+          f"({result.message}); projected gradient {result.projected_gradient:.2e}; objective {result.objective:.4g} "
+          f"(" + ", ".join(f"{k} {v:.4g}" for k, v in result.terms.items()) + ")")
+    for g, k, f in zip(pack.groups, result.scale, result.f_max):
+        print(f"  {g:16s} scale {k:6.3f}  F_max {f:9.1f} N")
+    print(f"wrote {args.out}")
+    return 0 if result.converged else 1
+
+
+def run_estimate(args: argparse.Namespace) -> int:
+    from msk_core.estimate.pipeline import estimate_trial
+    from msk_core.estimate.profile import SubjectProfile
+    from msk_core.estimate.trial import load_trial
+    from msk_core.io import write_sto
+
+    pack = _pack(args.pack)
+    subject = SubjectProfile.load(args.subject) if args.subject else None
+    if subject is None and args.method in ("proposed", "prior"):
+        raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
+    trial = load_trial(args.trial, pack)
+    run = estimate_trial(pack, trial, args.method, subject=subject, progress=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_sto(args.out, run.time, run.groups, run.activations, name=f"activations_{run.method}")
+    torque_path = args.out.with_name(f"{args.out.stem}_torques.sto")
+    cols, data = [], []
+    for j, c in enumerate(run.coordinates):
+        cols += [f"{c}_id", f"{c}_model", f"{c}_residual"]
+        data += [run.torques[:, j], run.model_torques[:, j], run.residual[:, j]]
+    write_sto(torque_path, run.time, cols, np.column_stack(data), name=f"torques_{run.method}")
+    flagged = sum(s != "solved" for s in run.status)
+    print(f"{trial.n_frames} frames, {flagged} flagged {run.flag_counts or ''}; median solve "
+          f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations")
+    print(f"wrote {args.out} and {torque_path}")
+    return 0
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    from msk_core.estimate.profile import SubjectProfile
+    from msk_core.estimate.report import write_report
+    from msk_core.estimate.trial import load_trial
+
+    pack = _pack(args.pack)
+    subject = SubjectProfile.load(args.subject)
+    trials = [load_trial(p, pack) for p in args.trial]
+    missing = [t.path for t in trials if not t.emg]
+    if missing:
+        raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
+    write_report(pack, subject, trials, args.report, progress=True)
+    print((args.report / "report.md").read_text())
+    return 0
