@@ -62,7 +62,7 @@ class ExerciseSpec:
                 value=coordinates,
             )
         # keep a small margin inside the fitted range so depth jitter never leaves it
-        margin = np.radians(4.0)
+        margin = np.minimum(np.radians(4.0), 0.1 * (ranges[:, 1] - ranges[:, 0]))
         lo, hi = ranges[:, 0] + margin, ranges[:, 1] - margin
         return np.clip(top, lo, hi), np.clip(bottom, lo, hi), warp
 
@@ -88,9 +88,12 @@ DEADLIFT = ExerciseSpec(
     exercise=Exercise.DEADLIFT,
     pack="deadlift",
     roles=(
-        Role(r"lumbar|L5_S1|L\d_L\d|spine", 0.0, -20.0, warp=-0.2),
+        # fullbody.osim: L5_S1_FE drives six lumbar levels (total flexion = 6 x value), flexion positive
+        Role(r"^L5_S1_FE$", 0.0, 3.5, warp=-0.2),
+        # lumbar_scaled.osim (lumbar_lift pack): one level, flexion negative
+        Role(r"L5_S1_Flex_Ext|lumbar", 0.0, -15.0, warp=-0.2),
         Role(r"hip", 0.0, 80.0, warp=-0.15),
-        Role(r"knee", 0.0, -65.0, warp=0.35),
+        Role(r"knee", 0.0, 65.0, warp=0.35),  # Rajagopal/Lai knee_angle_r: flexion positive
         Role(r"ankle", 0.0, 15.0, warp=0.35),
     ),
     emg_groups=("ESL", "ESI", "MUL", "RA", "EO", "IO", "Gmax", "Gmed", "TFL", "BF", "ST", "RF", "VL", "VM", "GM", "TA"),

@@ -62,12 +62,14 @@ def plan_reps(
     seed: int,
     key: tuple,
     tempo: Tempo = Tempo(),
-    depth_jitter_rad: np.ndarray | float = np.radians(3.0),
+    depth_jitter: float = 0.06,
     warp: np.ndarray | None = None,
     lo: np.ndarray | None = None,
     hi: np.ndarray | None = None,
 ) -> RepPlan:
-    """Draw the timing and depth of ``n_reps`` repetitions (rep-to-rep variability from the ``key`` stream)."""
+    """Draw the timing and depth of ``n_reps`` repetitions (rep-to-rep variability from the ``key`` stream).
+
+    ``depth_jitter``: standard deviation of the bottom pose per repetition, as a fraction of the range of motion."""
     rng = stream(seed, "reps", *key)
     top = np.asarray(top, dtype=float)
     bottom = np.asarray(bottom, dtype=float)
@@ -82,7 +84,7 @@ def plan_reps(
     t += tempo.rest_s
     starts, ends = [], []
     for rep in range(n_reps):
-        depth = np.clip(bottom + rng.normal(0.0, 1.0, n) * depth_jitter_rad * (np.abs(bottom - top) > 1e-9), lo, hi)
+        depth = np.clip(bottom + rng.normal(0.0, 1.0, n) * depth_jitter * np.abs(bottom - top), lo, hi)
         w_down = np.clip(base_warp + rng.normal(0.0, 0.1, n), -0.8, 0.8)
         w_up = np.clip(base_warp + rng.normal(0.0, 0.1, n), -0.8, 0.8)
         ecc = rng.uniform(*tempo.eccentric_s)
