@@ -113,6 +113,8 @@ class TrignoSimulator:
         self.close()
 
     def start(self) -> "TrignoSimulator":
+        if self._listeners:
+            return self  # already serving (start() then ``with sim:``)
         cfg = self.config
         wanted = {"command": cfg.command_port, "emg": cfg.emg_port, "legacy_emg": cfg.legacy_emg_port, "aux": cfg.aux_port}
         for name, port in wanted.items():

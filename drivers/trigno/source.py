@@ -4,6 +4,7 @@ Formats (docs/devices.md has the full description):
 - ``*.c3d``: analog channels whose label ends in ``.EMG<n>`` (or ``.IM EMG<n>``) fill sensor slot n (1..16), in volts.
 - ``*.npz``: ``emg`` (n_samples, n_channels <= 16) volts, ``rate_hz`` scalar; optional ``labels`` (n_channels,)
   and ``sensors`` (n_channels,) 1-based slot numbers (default 1..n_channels).
+- ``*.bin``: raw EMG data-port bytes (little-endian float32, 16 per sample); the rate is given separately (2000 Hz).
 - ``synthetic[:SECONDS[:SEED]]``: bursts of band-limited noise on 4 sensors at 2000 Hz.
 """
 
@@ -36,8 +37,11 @@ class EmgSource:
         return int(self.samples.shape[0])
 
 
-def load_source(spec: str | Path) -> EmgSource:
-    """Load an EMG source from a path (.c3d, .npz) or a ``synthetic[:SECONDS[:SEED]]`` spec."""
+def load_source(spec: str | Path, *, rate_hz: float | None = None) -> EmgSource:
+    """Load an EMG source from a path (.c3d, .npz, .bin) or a ``synthetic[:SECONDS[:SEED]]`` spec.
+
+    ``rate_hz`` is the rate of a raw ``.bin`` stream (default 2000 Hz); other formats carry their own rate.
+    """
     text = str(spec)
     if text.startswith("synthetic"):
         parts = text.split(":")
@@ -55,7 +59,25 @@ def load_source(spec: str | Path) -> EmgSource:
         return load_c3d(path)
     if suffix == ".npz":
         return load_npz(path)
-    raise FileFormatError("unsupported EMG source (expected .c3d, .npz or synthetic[:SECONDS])", path=path, value=suffix)
+    if suffix == ".bin":
+        return load_raw_stream(path, rate_hz=2000.0 if rate_hz is None else rate_hz)
+    raise FileFormatError("unsupported EMG source (expected .c3d, .npz, .bin or synthetic[:SECONDS])", path=path, value=suffix)
+
+
+def load_raw_stream(path: Path, *, rate_hz: float) -> EmgSource:
+    """A capture of the EMG data port: little-endian float32, 16 per sample, no header."""
+    data = path.read_bytes()
+    row_bytes = N_SENSORS * 4
+    if not data or len(data) % row_bytes:
+        raise FileFormatError(f"{len(data)} bytes is not a whole number of {row_bytes}-byte samples (16 float32)", path=path)
+    if not 100.0 <= rate_hz <= 10000.0:
+        raise InputError("rate must be within 100..10000 Hz", field="--rate", value=rate_hz)
+    samples = np.frombuffer(data, dtype="<f4").reshape(-1, N_SENSORS).astype(np.float32)
+    if not np.all(np.isfinite(samples)):
+        raise FileFormatError("stream holds NaN or infinite values", path=path)
+    paired = tuple(bool(np.any(samples[:, k])) for k in range(N_SENSORS))
+    names = tuple(f"sensor{k + 1:02d}" if paired[k] else "" for k in range(N_SENSORS))
+    return EmgSource(samples, rate_hz, names, paired, path.name)
 
 
 def load_c3d(path: Path) -> EmgSource:

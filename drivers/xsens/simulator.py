@@ -46,6 +46,7 @@ class SimulatorStats:
     messages_sent: int = 0
     corrupted_counters: list[int] = field(default_factory=list)  # PacketCounter of every corrupted MTData2
     garbage_inserts: int = 0
+    bytes_dropped: int = 0  # written while no host was reading (line buffer full)
     commands: int = 0
 
 
@@ -98,9 +99,12 @@ class XsensSimulator:
         self.close()
 
     def start(self) -> "XsensSimulator":
+        if self._thread is not None:
+            return self
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         tty.setraw(self._master)
+        os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
         self._thread = threading.Thread(target=self._run, daemon=True, name="xsens-sim")
         self._thread.start()
@@ -132,12 +136,16 @@ class XsensSimulator:
 
     # ------------------------------------------------------------------------------------------ main loop
     def _write(self, data: bytes) -> None:
+        """Write to the line; when nobody reads for a while the bytes are lost, as on a real UART."""
         view = memoryview(data)
         while view:
             try:
                 written = os.write(self._master, view)
             except BlockingIOError:
-                time.sleep(0.001)
+                _, writable, _ = select.select([], [self._master], [], 0.2)
+                if not writable:
+                    self.stats.bytes_dropped += len(view)
+                    return
                 continue
             view = view[written:]
 
@@ -179,12 +187,13 @@ class XsensSimulator:
             pass  # pty closed under us (unplug/close)
 
     def _wait_until_read(self, timeout: float) -> None:
+        # The tty layer moves bytes to the reader's queue asynchronously: require an empty queue several times.
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        empty = 0
+        while time.monotonic() < deadline and empty < 5:
+            time.sleep(0.01)
             pending = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
-            if int.from_bytes(pending, sys.byteorder) == 0:
-                return
-            time.sleep(0.002)
+            empty = empty + 1 if int.from_bytes(pending, sys.byteorder) == 0 else 0
 
     def _power_up(self) -> None:
         """Send WakeUp; without a WakeUpAck within the window the device goes to Measurement."""

@@ -1,0 +1,119 @@
+"""``msk sim``: run a device simulator standalone.
+
+``msk sim trigno --from FILE`` serves the Trigno SDK protocol on TCP (command 50040, EMG 50043 and 50041, AUX 50044);
+``msk sim xsens --from FILE`` opens a pseudo-terminal speaking Xbus and prints its path on the first line.
+FILE formats are described in docs/devices.md (C3D, .npz, raw .bin captures, or ``synthetic[:SECONDS[:SEED]]``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from msk_core.errors import ConfigError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("sim", help="run a Trigno or Xsens device simulator", description=__doc__)
+    devices = parser.add_subparsers(dest="device", metavar="DEVICE", required=True)
+
+    trigno = devices.add_parser("trigno", help="Trigno Control Utility simulator (TCP)")
+    trigno.add_argument("--from", dest="source", required=True, metavar="FILE", help=".c3d, .npz, .bin or synthetic[:SECONDS[:SEED]]")
+    trigno.add_argument("--rate", type=float, default=None, help="sample rate of a raw .bin source (default 2000 Hz)")
+    trigno.add_argument("--host", default="127.0.0.1")
+    trigno.add_argument("--port", type=int, default=50040, help="command port (default 50040)")
+    trigno.add_argument("--emg-port", type=int, default=50043)
+    trigno.add_argument("--legacy-emg-port", type=int, default=50041, help="legacy EMG port; 0 picks a free one")
+    trigno.add_argument("--aux-port", type=int, default=50044)
+    trigno.add_argument("--speed", type=float, default=1.0, help="time scale (>1 faster than real time)")
+    trigno.add_argument("--no-loop", action="store_true", help="stop streaming at the end of the recording")
+    trigno.add_argument("--fragment-max", type=int, default=None, metavar="BYTES", help="split frames into random TCP pieces")
+    trigno.add_argument("--upsampling", choices=["on", "off"], default=None, help="initial upsampling (default: match the source rate)")
+    trigno.add_argument("--banner-space", action="store_true", help="quirk: a space before the banner's CRLFs")
+    trigno.add_argument("--start-index-base", type=int, choices=[0, 1], default=1, help="quirk: STARTINDEX? base")
+    trigno.add_argument("--upsampling-reply", choices=["on_off", "yes_no"], default="on_off", help="quirk: UPSAMPLING? reply style")
+    trigno.add_argument("--no-auto-master", action="store_true", help="quirk: the first connection is not master until MASTER")
+    trigno.add_argument("--stop-trigger-after", type=float, default=None, metavar="S", help="quirk: send STOPPED after S s of streaming")
+    trigno.add_argument("--start-delay", type=float, default=0.0, metavar="S", help="quirk: first data S s after START (real: ~2)")
+    trigno.add_argument("--quit-keeps-streaming", action="store_true", help="quirk: QUIT alone does not stop acquisition")
+    trigno.add_argument("--duration", type=float, default=None, metavar="S", help="exit after S seconds (default: until Ctrl-C)")
+    trigno.set_defaults(handler=run_trigno)
+
+    xsens = devices.add_parser("xsens", help="Xsens MTi simulator on a pseudo-terminal")
+    xsens.add_argument("--from", dest="source", required=True, metavar="FILE", help=".bin Xbus capture, .npz or synthetic[:SECONDS[:SEED]]")
+    xsens.add_argument("--speed", type=float, default=1.0)
+    xsens.add_argument("--no-loop", action="store_true")
+    xsens.add_argument("--device-id", default="03700ABC", help="device id, 8 hex digits")
+    xsens.add_argument("--bit-flip", type=float, default=0.0, metavar="P", help="probability of a flipped bit per message")
+    xsens.add_argument("--drop-byte", type=float, default=0.0, metavar="P", help="probability of a dropped byte per message")
+    xsens.add_argument("--garbage", type=float, default=0.0, metavar="P", help="probability of garbage before a message")
+    xsens.add_argument("--unplug-after", type=int, default=None, metavar="N", help="close the pty after N messages")
+    xsens.add_argument("--seed", type=int, default=0)
+    xsens.add_argument("--duration", type=float, default=None, metavar="S")
+    xsens.set_defaults(handler=run_xsens)
+
+
+def _wait(duration: float | None, alive=lambda: True) -> None:
+    deadline = None if duration is None else time.monotonic() + duration
+    while alive() and (deadline is None or time.monotonic() < deadline):
+        time.sleep(0.05)
+
+
+def run_trigno(args: argparse.Namespace) -> int:
+    from drivers.trigno.simulator import SimulatorConfig, TrignoQuirks, TrignoSimulator, UpsamplingReply
+    from drivers.trigno.source import load_source
+
+    if args.speed <= 0:
+        raise ConfigError("must be positive", field="--speed", value=args.speed)
+    source = load_source(args.source, rate_hz=args.rate)
+    quirks = TrignoQuirks(
+        banner_trailing_space=args.banner_space,
+        start_index_base=args.start_index_base,
+        upsampling_reply=UpsamplingReply(args.upsampling_reply),
+        first_connection_is_master=not args.no_auto_master,
+        stop_trigger_after_s=args.stop_trigger_after,
+        quit_stops_acquisition=not args.quit_keeps_streaming,
+        start_delay_s=args.start_delay,
+    )
+    config = SimulatorConfig(
+        host=args.host, command_port=args.port, emg_port=args.emg_port, legacy_emg_port=args.legacy_emg_port,
+        aux_port=args.aux_port, upsampling=None if args.upsampling is None else args.upsampling == "on",
+        speed=args.speed, loop=not args.no_loop, fragment_max=args.fragment_max, quirks=quirks,
+    )
+    try:
+        sim = TrignoSimulator(source, config).start()
+    except OSError as error:
+        raise ConfigError(f"cannot listen: {error}", field="--port", value=args.port) from error
+    with sim:
+        paired = [f"{k + 1}:{name}" for k, name in enumerate(source.labels) if source.paired[k]]
+        print(
+            f"Trigno simulator on {args.host}: command {sim.ports['command']}, emg {sim.ports['emg']}, "
+            f"legacy emg {sim.ports.get('legacy_emg')}, aux {sim.ports.get('aux')}; {source.name} at {source.rate_hz:g} Hz, "
+            f"sensors {' '.join(paired)}",
+            flush=True,
+        )
+        _wait(args.duration)
+    return 0
+
+
+def run_xsens(args: argparse.Namespace) -> int:
+    from drivers.xsens.simulator import FaultConfig, XsensSimulator
+    from drivers.xsens.source import load_imu_source
+
+    try:
+        device_id = int(args.device_id, 16)
+    except ValueError:
+        raise ConfigError("must be hexadecimal", field="--device-id", value=args.device_id) from None
+    for name in ("bit_flip", "drop_byte", "garbage"):
+        if not 0.0 <= getattr(args, name) <= 1.0:
+            raise ConfigError("probability must be within 0..1", field=f"--{name.replace('_', '-')}", value=getattr(args, name))
+    source = load_imu_source(args.source)
+    faults = FaultConfig(bit_flip=args.bit_flip, drop_byte=args.drop_byte, garbage=args.garbage, unplug_after_messages=args.unplug_after, seed=args.seed)
+    with XsensSimulator(source, device_id=device_id, faults=faults, speed=args.speed, loop=not args.no_loop) as sim:
+        print(sim.path, flush=True)
+        print(f"Xsens simulator {device_id:08X}: {source.name} at {source.rate_hz:g} Hz", file=sys.stderr, flush=True)
+        _wait(args.duration, alive=lambda: not sim.unplugged)
+        stats = sim.stats
+        print(f"sent {stats.messages_sent} messages, corrupted {len(stats.corrupted_counters)}", file=sys.stderr, flush=True)
+    return 0

@@ -1,0 +1,155 @@
+"""Driver nodes end to end: simulators -> drivers -> Zenoh topics, and ``msk record`` / ``msk sim`` on the CLI."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from drivers.trigno.client import TrignoClient, TrignoConfig
+from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
+from drivers.trigno.source import load_source, synthetic_source
+from drivers.xsens import xbus
+from drivers.xsens.device import TrackerSet, XsensDevice
+from drivers.xsens.serial_transport import SerialTransport
+from drivers.xsens.simulator import XsensSimulator
+from drivers.xsens.source import synthetic_imu
+from services import driver_nodes, messages, topics, zenoh_session
+from services.cli import main
+from services.mcap_io import read_messages
+
+EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_nodes_publish_emg_imu_and_status_on_zenoh():
+    emg_source = synthetic_source(seconds=3.0, seed=4)
+    imu_source = synthetic_imu(seconds=3.0, seed=4)
+    options = zenoh_session.ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",))
+    received: list = []
+    with TrignoSimulator(emg_source, SimulatorConfig(**EPHEMERAL, speed=4.0)) as trigno_sim, XsensSimulator(imu_source, speed=4.0, device_id=0x00B40001) as xsens_sim:
+        with zenoh_session.open_session(options) as session:
+            subscriber = session.declare_subscriber(
+                "msk/nodetest/**",
+                lambda sample: received.append((str(sample.key_expr), zenoh_session.type_name_of_sample(sample), bytes(sample.payload.to_bytes()))),
+            )
+            client = TrignoClient(TrignoConfig(command_port=trigno_sim.ports["command"], emg_port=trigno_sim.ports["emg"]))
+            client.connect()
+            trackers = TrackerSet()
+            device = XsensDevice(SerialTransport(xsens_sim.path))
+            device.configure(100)
+            trackers.add(device)
+            sink = driver_nodes.ZenohSink(session)
+            stop = threading.Event()
+            reports = driver_nodes.run_threads(
+                [
+                    lambda: driver_nodes.trigno_loop(client, session="nodetest", source_id="trigno", sink=sink, stop=stop, duration_s=0.6),
+                    lambda: driver_nodes.xsens_loop(trackers, session="nodetest", sink=sink, stop=stop, segments={"00B40001": "upper_arm_r"}, duration_s=0.6),
+                ],
+                stop,
+            )
+            time.sleep(0.3)
+            sink.close()
+            subscriber.undeclare()
+            trackers.close()
+    assert all(isinstance(r, driver_nodes.LoopReport) for r in reports)
+    by_key: dict[str, list] = {}
+    for key, type_name, payload in received:
+        assert topics.message_type_for_key(key) == type_name
+        by_key.setdefault(key, []).append(messages.decode(type_name, payload))
+    chunks = by_key[topics.emg_key("nodetest", "trigno")]
+    samples = np.concatenate([np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in chunks])
+    assert chunks[0].channel_labels == ["sensor01.EMG", "sensor02.EMG", "sensor03.EMG", "sensor04.EMG"]
+    assert samples.shape[0] == reports[0].samples and samples.shape[0] > 500
+    assert np.array_equal(samples, emg_source.samples[: len(samples), :4])  # float32, bit for bit
+    imu = by_key[topics.imu_key("nodetest", "00B40001")]
+    assert len(imu) == reports[1].samples > 50 and imu[0].segment == "upper_arm_r" and imu[0].coordinate_frame == "ENU"
+    k = imu[5].packet_counter
+    assert (imu[5].orientation.w, imu[5].orientation.z) == pytest.approx((imu_source.arrays["quaternion"][k][0], imu_source.arrays["quaternion"][k][3]), abs=1e-6)
+    statuses = by_key[topics.status_key("nodetest", "trigno")] + by_key[topics.status_key("nodetest", "00B40001")]
+    assert {s.kind for s in statuses} == {"trigno", "xsens"}
+    assert any(s.kind == "trigno" and s.samples_received == reports[0].samples for s in statuses)
+
+
+def test_msk_record_writes_samples_exactly_as_received(tmp_path, shared_dir, capsys):
+    emg_source = load_source(shared_dir / "data/pyomeca-upper/markers_analogs.c3d")
+    out = tmp_path / "session.mcap"
+    with TrignoSimulator(emg_source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as trigno_sim, XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0) as xsens_sim:
+        code = main(
+            [
+                "record", "--trigno", f"127.0.0.1:{trigno_sim.ports['command']}", "--trigno-emg-port", str(trigno_sim.ports["emg"]),
+                "--xsens", xsens_sim.path, "--imu-precision", "fp1632", "--imu-frame", "NED",
+                "--segment", "03700abc=thorax", "--duration", "0.8", "--out", str(out), "--session", "rec1",
+            ]
+        )
+    assert code == 0
+    recorded = list(read_messages(out))
+    emg = [m.decode() for m in recorded if m.topic == "msk/rec1/emg/trigno"]
+    rows = np.concatenate([np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in emg])
+    assert rows.shape[1] == 13 and len(rows) > 1000
+    assert np.array_equal(rows, emg_source.samples[: len(rows), :13])
+    assert [c.first_sample_index for c in emg] == list(np.cumsum([0] + [c.n_samples for c in emg[:-1]]))
+    imu = [m.decode() for m in recorded if m.topic == "msk/rec1/imu/03700ABC"]
+    assert len(imu) > 50 and imu[0].segment == "thorax" and imu[0].coordinate_frame == "NED"
+    status = [m.decode() for m in recorded if m.type_name == "msk.DeviceStatus"]
+    assert {s.device_id for s in status} == {"trigno", "03700ABC"}
+    final = [s for s in status if s.device_id == "trigno"][-1]
+    assert final.samples_received == len(rows) and final.samples_lost == 0
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_msk_record_needs_a_device(tmp_path):
+    assert main(["record", "--duration", "1", "--out", str(tmp_path / "x.mcap")]) == 2
+
+
+def test_msk_sim_xsens_prints_a_pty_a_driver_can_open():
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "sim", "xsens", "--from", "synthetic:5", "--speed", "2", "--duration", "8"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        path = process.stdout.readline().strip()
+        assert path.startswith("/dev/")
+        device = XsensDevice(SerialTransport(path))
+        info = device.configure(50, precision=xbus.Precision.FLOAT64)
+        readings = []
+        deadline = time.monotonic() + 5
+        while len(readings) < 10 and time.monotonic() < deadline:
+            readings += device.read()
+        device.close()
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+    assert info["device_id"] == "03700ABC" and len(readings) >= 10
+
+
+def test_msk_sim_trigno_serves_a_client():
+    ports = [free_port() for _ in range(4)]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "sim", "trigno", "--from", "synthetic:5", "--port", str(ports[0]), "--emg-port", str(ports[1]),
+         "--legacy-emg-port", str(ports[2]), "--aux-port", str(ports[3]), "--speed", "4", "--duration", "8", "--start-index-base", "0", "--banner-space"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        line = process.stdout.readline()
+        assert "Trigno simulator" in line, process.stderr.read() if not line else line
+        with TrignoClient(TrignoConfig(command_port=ports[0], emg_port=ports[2])) as client:
+            client.start()
+            got = 0
+            deadline = time.monotonic() + 5
+            while got < 300 and time.monotonic() < deadline:
+                got += sum(len(e.samples) for e in client.poll(0.05) if hasattr(e, "samples"))
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+    assert got >= 300
