@@ -108,7 +108,8 @@ def _settle(p: np.ndarray, i: int, limit: int, step: int, tol: float) -> int:
 
 def detect_reps(time: np.ndarray, values: np.ndarray, config: RepDetectionConfig) -> list[Rep]:
     """Complete reps of a whole trial (offline). A rep is a run of progress above ``start_fraction`` that reaches
-    ``min_depth_fraction``, widened to the surrounding rest points (last/first samples near the local minima)."""
+    ``min_depth_fraction``, widened to the surrounding rest points (last/first samples near the local minima).
+    A rep already under way at the first sample, or not finished at the last, is left out."""
     t, v = _check_series(time, values)
     rest, depth = progress_scale(v, config)
     p = (config.excursion.sign * v - rest) / depth

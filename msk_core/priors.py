@@ -74,6 +74,22 @@ class PhasePriors:
         return cls(groups=groups, mean=mean, std=std, n_reps=n_reps)
 
 
+def average_groups(emg: np.ndarray, labels: list[str], groups: dict[str, list[str]]) -> tuple[np.ndarray, list[str]]:
+    """Columns of ``emg`` ``(n, len(labels))`` averaged per muscle group (e.g. left and right erector spinae
+    channels into one group). Returns ``(n, len(groups))`` and the group names in ``groups`` order."""
+    x = np.asarray(emg, dtype=float)
+    if x.ndim != 2 or x.shape[1] != len(labels):
+        raise InputError(f"expected {len(labels)} EMG columns", field="emg", value=x.shape)
+    cols = []
+    for name, members in groups.items():
+        missing = [m for m in members if m not in labels]
+        if not members or missing:
+            raise InputError(f"group {name!r} names unknown channels {missing}; channels: {', '.join(labels)}",
+                             field=name, value=members)
+        cols.append(x[:, [labels.index(m) for m in members]].mean(axis=1))
+    return np.column_stack(cols), list(groups)
+
+
 def fit_priors(
     phase: np.ndarray,
     rep_index: np.ndarray,

@@ -11,7 +11,7 @@ import pytest
 from msk_core.errors import ConfigError, InputError
 from msk_core.io import load_trial
 from msk_core.phase import Excursion, RepDetectionConfig, detect_reps, rep_phase
-from msk_core.priors import PhasePriors, fit_priors
+from msk_core.priors import PhasePriors, average_groups, fit_priors
 
 
 def _synthetic(n_reps: int, seed: int):
@@ -83,3 +83,12 @@ def test_errors() -> None:
         PhasePriors.from_dict({"groups": ["a"], "n_bins": 1, "mean": [[0.1]], "std": [[0.0]], "n_reps": [[1]]})
     with pytest.raises(ConfigError, match="field 'mean'"):
         PhasePriors.from_dict({"groups": ["a"], "std": [[0.1]], "n_reps": [[1]]})
+
+
+def test_average_groups() -> None:
+    x = np.array([[1.0, 3.0, 10.0], [2.0, 4.0, 20.0]])
+    g, names = average_groups(x, ["es_l", "es_r", "ra"], {"erector": ["es_l", "es_r"], "abdominal": ["ra"]})
+    assert names == ["erector", "abdominal"]
+    np.testing.assert_array_equal(g, [[2.0, 10.0], [3.0, 20.0]])
+    with pytest.raises(InputError, match="group 'x' names unknown channels \\['nope'\\]"):
+        average_groups(x, ["es_l", "es_r", "ra"], {"x": ["nope"]})
