@@ -334,3 +334,32 @@ class DelayLine:
         joined = np.vstack([self.buffer, x])
         self.buffer = joined[joined.shape[0] - self.n_delay :].copy()
         return joined[: x.shape[0]]
+
+
+# --- the whole live chain --------------------------------------------------------------------------------------------
+
+
+class StreamingEmgChain:
+    """Live raw EMG -> envelope -> normalised -> delayed by the electromechanical delay. Explicit state: the
+    envelope filter's and the delay line's. ``process(chunk)`` equals :func:`emg_chain_batch` on the concatenation."""
+
+    def __init__(self, config: EmgFilterConfig, reference: NormalisationReference, *, delay_s: float = 0.0) -> None:
+        n = int(reference.scale.shape[0])
+        self.config = config
+        self.reference = reference
+        self.envelope = EmgEnvelopeFilter(config, n)
+        self.delay = DelayLine(delay_samples(delay_s, config.rate_hz), n)
+
+    def process(self, chunk: np.ndarray) -> np.ndarray:
+        return self.delay.process(self.reference.normalise(self.envelope.process(chunk)))
+
+    def reset(self) -> None:
+        self.envelope.reset()
+        self.delay = DelayLine(self.delay.n_delay, self.delay.buffer.shape[1])
+
+
+def emg_chain_batch(emg: np.ndarray, config: EmgFilterConfig, reference: NormalisationReference, *,
+                    delay_s: float = 0.0) -> np.ndarray:
+    """Batch causal equivalent of :class:`StreamingEmgChain`."""
+    env = reference.normalise(envelope_causal(emg, config))
+    return delay_batch(env, delay_samples(delay_s, config.rate_hz))

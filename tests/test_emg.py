@@ -199,3 +199,19 @@ def test_config_errors() -> None:
         EmgFilterConfig(rate_hz=2000.0, lowpass_hz=0.0)
     with pytest.raises(InputError, match="expected 2 channels"):
         EmgEnvelopeFilter(EmgFilterConfig(rate_hz=2000.0), 2).process(np.zeros((5, 3)))
+
+
+def test_streaming_chain_equals_batch_on_trigno(trigno_emg) -> None:
+    from msk_core.emg import StreamingEmgChain, emg_chain_batch
+
+    rec = trigno_emg
+    cfg = EmgFilterConfig(rate_hz=rec.rate_hz)
+    ref = normalisation_reference([envelope_zero_phase_noncausal(rec.data[:6000], cfg)])  # calibration, offline
+    chain = StreamingEmgChain(cfg, ref, delay_s=0.04)
+    live = _stream(rec.data, chain, [27, 13, 100])
+    batch = emg_chain_batch(rec.data, cfg, ref, delay_s=0.04)
+    assert live.shape == batch.shape
+    np.testing.assert_array_equal(live[:80], 0.0)  # 40 ms delay at 2000 Hz
+    assert _max_rel(live, batch) < 1e-12
+    chain.reset()
+    assert _max_rel(_stream(rec.data, chain, [27]), batch) < 1e-12

@@ -54,7 +54,7 @@ def read_anc(path: str | Path) -> AnalogRecording:
     ``Rate`` and ``Range`` rows, then one row per sample (time then ADC counts). Values stay in ADC counts."""
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     except OSError as exc:
         raise InputError(f"cannot read analog file: {exc.strerror}", path=path) from exc
 

@@ -94,7 +94,7 @@ def read_sto(path: str | Path) -> Storage:
     """Read an OpenSim ``.sto`` or ``.mot`` file. Errors name the file, line and column."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as exc:
         raise InputError(f"cannot read storage file: {exc.strerror}", path=path) from exc
     lines = text.splitlines()
