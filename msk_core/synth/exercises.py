@@ -4,8 +4,9 @@ Poses are given per coordinate *role* (matched against the pack's coordinate nam
 convention, degrees. Coordinates that match no role are held at the pack's reference pose.
 
 Pose sources (sagittal-plane joint angles):
-* Bench press, bar at the chest vs. arms extended: shoulder flexion about −10°..80° and elbow flexion about 95°..10°
-  (e.g. Barnett, Kippers & Turner 1995, J Strength Cond Res 9:222; Lehman 2005, J Strength Cond Res 19:587).
+* Bench press, arms extended vs. bar low over the chest: shoulder flexion ≈ 85° -> slightly extended, elbow flexion
+  ≈ 15° -> 90–130° (e.g. Barnett, Kippers & Turner 1995, J Strength Cond Res 9:222; Lehman 2005, J Strength Cond
+  Res 19:587); a sagittal model without abduction needs the upper end of the elbow range to bring the bar down.
 * Conventional deadlift at lift-off: hip flexion ≈ 70–85°, knee flexion ≈ 60–70°, lumbar flexion ≈ 15–25°,
   ankle dorsiflexion ≈ 10–20° (Escamilla et al. 2000, Med Sci Sports Exerc 32:1265; Cholewicki, McGill & Norman
   1991, Med Sci Sports Exerc 23:1179).
@@ -75,8 +76,11 @@ BENCH_PRESS = ExerciseSpec(
     exercise=Exercise.BENCH_PRESS,
     pack="bench_press",
     roles=(
-        Role(r"shoulder|arm_flex|elev", 80.0, -10.0, warp=0.1),
-        Role(r"elbow", 10.0, 95.0, warp=-0.1),
+        # bench_press pack: elv_angle_r is sagittal shoulder flexion (0 = arm along the trunk), lying supine. The
+        # bottom pose is the lowest bar position this sagittal (elbows-tucked) arm reaches: the bar ~20 cm caudal
+        # of the shoulder and the elbow just below the shoulder; top: arm vertical over the shoulder.
+        Role(r"elv_angle|shoulder|arm_flex|elev", 85.0, -10.0, warp=0.1),
+        Role(r"elbow", 15.0, 120.0, warp=-0.1),
     ),
     # superficial sites a Trigno set-up can reach (BRA, BicSho and PMCos are covered by other muscles)
     emg_groups=("PMCla", "PMSte", "DelAnt", "DelMed", "DelPos", "BicLong", "TriLong", "TriLat", "BRD", "LD"),
@@ -88,12 +92,13 @@ DEADLIFT = ExerciseSpec(
     exercise=Exercise.DEADLIFT,
     pack="deadlift",
     roles=(
-        # fullbody.osim: L5_S1_FE drives six lumbar levels (total flexion = 6 x value), flexion positive
-        Role(r"^L5_S1_FE$", 0.0, 3.5, warp=-0.2),
+        # fullbody.osim: L5_S1_FE drives six lumbar levels (total flexion = 6 x value), flexion NEGATIVE
+        # (checked: T12 moves anterior for L5_S1_FE < 0)
+        Role(r"^L5_S1_FE$", 0.0, -3.0, warp=-0.2),
         # lumbar_scaled.osim (lumbar_lift pack): one level, flexion negative
         Role(r"L5_S1_Flex_Ext|lumbar", 0.0, -15.0, warp=-0.2),
-        Role(r"hip", 0.0, 80.0, warp=-0.15),
-        Role(r"knee", 0.0, 65.0, warp=0.35),  # Rajagopal/Lai knee_angle_r: flexion positive
+        Role(r"hip", 0.0, 75.0, warp=-0.15),
+        Role(r"knee", 0.0, 60.0, warp=0.35),  # Rajagopal/Lai knee_angle_r: flexion positive
         Role(r"ankle", 0.0, 15.0, warp=0.35),
     ),
     emg_groups=("ESL", "ESI", "MUL", "RA", "EO", "IO", "Gmax", "Gmed", "TFL", "BF", "ST", "RF", "VL", "VM", "GM", "TA"),

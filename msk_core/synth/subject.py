@@ -46,7 +46,7 @@ def make_subject(
     groups: list[str] | tuple[str, ...],
     channels: list[str] | tuple[str, ...] = (),
     *,
-    f_max_range: tuple[float, float] = (0.6, 1.6),
+    f_max_range: tuple[float, float] = (0.8, 1.6),
 ) -> Subject:
     """Draw a subject. Groups get their strength factor from the group name's own stream, so the same seed gives the
     same factor for a group whichever pack (and group order) it appears in."""
