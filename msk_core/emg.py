@@ -8,6 +8,8 @@ Three ways to run the same chain:
 * :func:`envelope_zero_phase_noncausal` — offline, zero-phase (``sosfiltfilt``), for calibration trials only: it uses
   future samples and must never feed the live loop.
 
+:class:`StreamingEmgChain` chains the live envelope, :class:`NormalisationReference` and the electromechanical delay.
+
 The streaming filter keeps each stage's state in scipy's own ``zi`` coordinates (second-order sections, transposed
 direct form II). Small chunks (a Trigno frame is 27 samples) are run as one block product per stage — the exact linear
 map ``[y; z'] = [[D, C], [B, A]] [u; z]`` over the chunk, derived from ``sosfilt`` itself — because calling ``sosfilt``
@@ -18,7 +20,7 @@ Larger chunks go through ``sosfilt`` with the carried ``zi``.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal
