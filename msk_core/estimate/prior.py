@@ -1,12 +1,13 @@
 """Phase-dependent activation prior N(mu(phase), sigma(phase)^2) per muscle group (the paper's EMG prior).
 
-Stored as bin means/stds over the phase of a repetition, phase in [0, 1]; :meth:`PhasePrior.at` interpolates linearly
-between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without EMG carry a wide default
+Stored as bin means/stds over the phase of a repetition, phase in [0, 1]; :meth:`PhasePrior.at` interpolates means
+and precisions linearly between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without EMG carry a wide default
 prior (``NO_EMG_MEAN``, ``NO_EMG_STD``) which then acts as a weak min-activation regulariser, and ``has_emg`` says so.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -44,16 +45,33 @@ class PhasePrior:
         return self.mean.shape[0]
 
     def at(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """(mu, sigma) at a phase in [0, 1]; ``None`` gives the prior pooled over all phases."""
-        if phase is None or not np.isfinite(phase):
-            return self.pooled()
-        x = min(max(float(phase), 0.0), 1.0) * self.n_bins - 0.5
-        i0 = int(np.floor(x))
-        w = x - i0
-        i0c, i1c = min(max(i0, 0), self.n_bins - 1), min(max(i0 + 1, 0), self.n_bins - 1)
-        mu = (1.0 - w) * self.mean[i0c] + w * self.mean[i1c]
-        sd = (1.0 - w) * self.std[i0c] + w * self.std[i1c]
-        return mu, sd
+        """(mu, sigma) at a phase in [0, 1]; ``None`` gives the prior pooled over all phases.
+
+        Means and precisions 1/sigma^2 are interpolated linearly between bin centres (clamped at the ends).
+        """
+        mu, prec = self.mean_precision(phase)
+        return mu, 1.0 / np.sqrt(prec)
+
+    def mean_precision(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """(mu, 1/sigma^2) at a phase, from per-bin caches (the per-frame hot path)."""
+        cache = self.__dict__.get("_cache")
+        if cache is None:
+            mu_p, sd_p = self.pooled()
+            cache = (self.mean, 1.0 / self.std**2, np.diff(self.mean, axis=0), np.diff(1.0 / self.std**2, axis=0),
+                     mu_p, 1.0 / sd_p**2)
+            object.__setattr__(self, "_cache", cache)
+        mean, prec, dmean, dprec, mu_p, prec_p = cache
+        if phase is None or not math.isfinite(phase):
+            return mu_p, prec_p
+        n = self.mean.shape[0]
+        x = min(max(float(phase), 0.0), 1.0) * n - 0.5
+        if x <= 0.0:
+            return mean[0], prec[0]
+        if x >= n - 1:
+            return mean[n - 1], prec[n - 1]
+        i = int(x)
+        w = x - i
+        return mean[i] + w * dmean[i], prec[i] + w * dprec[i]
 
     def pooled(self) -> tuple[np.ndarray, np.ndarray]:
         """Mixture of all bins: mean of means, std from the law of total variance."""

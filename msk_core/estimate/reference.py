@@ -35,6 +35,7 @@ def run_opensim_static_optimization(
     out_dir: str | Path,
     *,
     use_muscle_physiology: bool = False,
+    final_time: float | None = None,
 ) -> OpenSimSOResult:
     """Run OpenSim's AnalyzeTool with its StaticOptimization analysis from a setup file.
 
@@ -51,6 +52,9 @@ def run_opensim_static_optimization(
         "results_directory": str(out_dir.resolve() / "results"),
         "use_muscle_physiology": "true" if use_muscle_physiology else "false",
     }
+    if final_time is not None:
+        replacements["final_time"] = repr(float(final_time))
+        replacements["end_time"] = repr(float(final_time))
     for tag, value in replacements.items():
         text, n = re.subn(rf"<{tag}>[^<]*</{tag}>", f"<{tag}>{value}</{tag}>", text)
         if n == 0:

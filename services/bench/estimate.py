@@ -1,0 +1,143 @@
+"""Per-frame activation estimation (model evaluation + warm PIQP solve) beside OpenSim's StaticOptimization.
+
+Figures: time of one ``FrameEstimator.step`` (moment arms + inverse dynamics of the pack + QP + result) for the
+deadlift pack (the largest shipped pack when deadlift is not built), a synthetic 150-group problem, and arm26 `so`
+next to OpenSim's own StaticOptimization per frame on the arm26 tutorial motion, all measured in the same run.
+OpenSim's per-frame cost is the slope between a full and a half-length run (tool set-up cancels out).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.bench import BenchResult
+
+NAME = "estimate"
+DESCRIPTION = "per-frame estimation (pack model + PIQP) vs OpenSim StaticOptimization per frame"
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared"
+
+
+class SyntheticPack:
+    """n_groups muscles over n_coordinates, smooth moment arms r(q) = r0 + r1 q; ID = stiffness and inertia terms."""
+
+    name, version = "synthetic", "bench"
+
+    def __init__(self, n_groups: int, n_coordinates: int = 6, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.coordinates = [f"q{i}" for i in range(n_coordinates)]
+        self.groups = [f"m{i}" for i in range(n_groups)]
+        self.f_max_ref = rng.uniform(200.0, 2000.0, n_groups)
+        span = rng.random((n_coordinates, n_groups)) < 0.4  # each muscle spans ~40 % of the joints
+        self.r0 = np.where(span, rng.uniform(-0.05, 0.05, (n_coordinates, n_groups)), 0.0)
+        self.r1 = np.where(span, rng.uniform(-0.01, 0.01, (n_coordinates, n_groups)), 0.0)
+        self.coordinate_ranges = np.tile([-1.5, 1.5], (n_coordinates, 1))
+
+    def moment_arms(self, q):
+        return self.r0 + self.r1 * q[:, None]
+
+    def inverse_dynamics(self, q, qd, qdd, hand_load_newton):
+        return 40.0 * q + 0.8 * qdd + 0.1 * qd + 0.2 * hand_load_newton
+
+
+def _trajectory(pack, n: int):
+    ranges = np.asarray(getattr(pack, "coordinate_ranges"), dtype=float)
+    lo, hi = ranges[:, 0], ranges[:, 1]
+    t = np.linspace(0.0, n / 100.0, n)[:, None]  # 100 Hz, 2 s repetitions
+    k = np.arange(len(pack.coordinates))[None, :]
+    q = lo + (hi - lo) * (0.5 + 0.35 * np.sin(np.pi * t + 0.7 * k))
+    qd = (hi - lo) * 0.35 * np.pi * np.cos(np.pi * t + 0.7 * k)
+    qdd = -(hi - lo) * 0.35 * np.pi**2 * np.sin(np.pi * t + 0.7 * k)
+    phase = (t[:, 0] / 2.0) % 1.0
+    return q, qd, qdd, phase
+
+
+def _prior(pack):
+    from msk_core.estimate import PhasePrior
+
+    g = len(pack.groups)
+    bins = np.linspace(0, 1, 20)[:, None]
+    mean = 0.15 + 0.1 * np.sin(2 * np.pi * bins + np.arange(g)[None, :])
+    return PhasePrior(tuple(pack.groups), mean, np.full((20, g), 0.08), np.ones(g, dtype=bool))
+
+
+def _time_steps(pack, method: str, n: int, load_n: float) -> tuple[np.ndarray, dict]:
+    from msk_core.estimate import FrameEstimator
+
+    est = FrameEstimator(pack, method=method, prior=_prior(pack) if method == "proposed" else None)
+    q, qd, qdd, phase = _trajectory(pack, n)
+    for i in range(min(50, n)):  # warm-up: solver set-up, caches
+        est.step(q[i], qd[i], qdd[i], load_n, phase=phase[i])
+    est.reset_counts()
+    times = np.empty(n)
+    clock = time.perf_counter
+    for i in range(n):
+        t0 = clock()
+        est.step(q[i], qd[i], qdd[i], load_n, phase=phase[i])
+        times[i] = clock() - t0
+    return times * 1e6, dict(est.flag_counts)
+
+
+def _opensim_so_per_frame_us(workdir: Path) -> float:
+    from msk_core.estimate.reference import run_opensim_static_optimization
+
+    data = SHARED / "data" / "opensim-arm26"
+    args = (data / "arm26_Setup_StaticOptimization.xml", SHARED / "models" / "arm26.osim",
+            data / "arm26_InverseKinematics.mot")
+    full = run_opensim_static_optimization(*args, workdir / "full")
+    half = run_opensim_static_optimization(*args, workdir / "half", final_time=0.5)
+    frames = full.activations.n_rows - half.activations.n_rows
+    return (full.wall_time_s - half.wall_time_s) / frames * 1e6
+
+
+def _deadlift_or_largest():
+    from msk_core.model import available_packs, load_pack
+
+    names = available_packs()
+    if "deadlift" in names:
+        return load_pack("deadlift"), ""
+    packs = [load_pack(n) for n in names]
+    pack = max(packs, key=lambda p: len(p.groups) * 100 + len(p.coordinates))
+    return pack, f"deadlift pack not built; measured on {pack.name} ({len(pack.groups)} groups) instead"
+
+
+def run(quick: bool) -> list[BenchResult]:
+    from msk_core.model import load_pack
+
+    n = 500 if quick else 5000
+    with tempfile.TemporaryDirectory() as tmp:
+        opensim_us = _opensim_so_per_frame_us(Path(tmp))
+    results = []
+
+    pack, note = _deadlift_or_largest()
+    t, flags = _time_steps(pack, "proposed", n, 400.0)
+    details = {"pack": pack.name, "groups": len(pack.groups), "coordinates": len(pack.coordinates), "frames": n,
+               "flags": str(flags)}
+    if note:
+        details["note"] = note
+    for method in ("so", "hybrid"):
+        tm, fl = _time_steps(pack, method, n // 2, 400.0)
+        details[f"{method}_median_us"] = round(float(np.median(tm)), 1)
+        details[f"{method}_flags"] = str(fl)
+    results.append(BenchResult(f"{pack.name} proposed step, median", float(np.median(t)), "µs",
+                               "OpenSim SO per frame (arm26)", opensim_us, "<= 50 µs",
+                               bool(np.median(t) <= 50.0) and not note, details))
+    results.append(BenchResult(f"{pack.name} proposed step, p99", float(np.percentile(t, 99)), "µs",
+                               "OpenSim SO per frame (arm26)", opensim_us, "<= 150 µs",
+                               bool(np.percentile(t, 99) <= 150.0) and not note, {"pack": pack.name}))
+
+    syn = SyntheticPack(150)
+    ts, fl = _time_steps(syn, "proposed", max(n // 10, 100), 0.0)
+    results.append(BenchResult("synthetic 150 groups proposed step, median", float(np.median(ts)), "µs",
+                               "OpenSim SO per frame (arm26)", opensim_us, "<= 1000 µs",
+                               bool(np.median(ts) <= 1000.0), {"coordinates": 6, "flags": str(fl)}))
+
+    arm = load_pack("arm26")
+    ta, fl = _time_steps(arm, "so", n, 0.0)
+    results.append(BenchResult("arm26 so step, median", float(np.median(ta)), "µs",
+                               "OpenSim SO per frame (arm26)", opensim_us, "", None, {"flags": str(fl)}))
+    return results
