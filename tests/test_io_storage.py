@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from msk_core.errors import FileFormatError, InputError
 from msk_core.io import read_sto, write_sto
@@ -109,3 +111,28 @@ def test_write_rejects_bad_input(tmp_path: Path) -> None:
         write_sto(tmp_path / "a.sto", np.arange(2.0), ["a", "a"], np.zeros((2, 2)))
     with pytest.raises(InputError, match="tabs"):
         write_sto(tmp_path / "a.sto", np.arange(2.0), ["a\tb"], np.zeros((2, 1)))
+
+
+_LABEL = st.text(alphabet="abcdefghijklmnopqrstuvwxyzABCXYZ_0123456789.:()[]-", min_size=1, max_size=12).filter(
+    lambda s: s.lower() != "time"
+)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(_LABEL, min_size=1, max_size=6, unique=True),
+    st.integers(min_value=1, max_value=20),
+    st.data(),
+    st.booleans(),
+)
+def test_round_trip_property(tmp_path_factory, labels, n_rows, data, in_degrees) -> None:
+    finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+    values = np.array(data.draw(st.lists(st.lists(finite, min_size=len(labels), max_size=len(labels)),
+                                          min_size=n_rows, max_size=n_rows)))
+    time = np.cumsum(np.abs(np.array(data.draw(st.lists(st.floats(0.001, 1e6), min_size=n_rows, max_size=n_rows)))))
+    path = tmp_path_factory.mktemp("prop") / "x.sto"
+    write_sto(path, time, labels, values, in_degrees=in_degrees, name="prop")
+    back = read_sto(path)
+    assert back.columns == labels and back.in_degrees == in_degrees
+    np.testing.assert_array_equal(back.time, time)
+    np.testing.assert_array_equal(back.data, values)
