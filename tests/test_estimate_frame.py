@@ -60,9 +60,10 @@ def _so_reference(at, tt):
     return res.x
 
 
-def test_so_matches_slsqp_and_torques_exactly():
+@pytest.mark.parametrize("backend", ["dense", "sparse"])
+def test_so_matches_slsqp_and_torques_exactly(backend):
     pack = LinearPack()
-    est = FrameEstimator(pack, method="so")
+    est = FrameEstimator(pack, method="so", backend=backend)
     rng = np.random.default_rng(1)
     for _ in range(20):  # many frames through the same warm solver
         q = rng.uniform(-0.5, 0.5, 2)
@@ -79,12 +80,13 @@ def test_so_matches_slsqp_and_torques_exactly():
     assert est.flag_counts == {}
 
 
-def test_hybrid_and_proposed_match_bounded_least_squares():
+@pytest.mark.parametrize("backend", ["dense", "sparse"])
+def test_hybrid_and_proposed_match_bounded_least_squares(backend):
     pack = LinearPack(seed=3)
     rng = np.random.default_rng(4)
     prior = _prior(pack.groups, rng)
-    hyb = FrameEstimator(pack, method="hybrid")
-    prop = FrameEstimator(pack, method="proposed", prior=prior, torque_tolerance=0.02)
+    hyb = FrameEstimator(pack, method="hybrid", backend=backend)
+    prop = FrameEstimator(pack, method="proposed", prior=prior, torque_tolerance=0.02, backend=backend)
     for k in range(15):
         q = rng.uniform(-0.5, 0.5, 2)
         tau = pack.moment_arms(q) @ (pack.f_max_ref * rng.uniform(0, 0.8, 6)) + rng.normal(0, 5, 2)
@@ -109,9 +111,10 @@ def test_inverse_dynamics_used_when_no_torques_given():
     np.testing.assert_allclose(res.model_torques, res.torques, atol=1e-4)
 
 
-def test_infeasible_and_nan_frames_are_flagged_and_counted_not_raised():
+@pytest.mark.parametrize("backend", ["dense", "sparse"])
+def test_infeasible_and_nan_frames_are_flagged_and_counted_not_raised(backend):
     pack = LinearPack()
-    est = FrameEstimator(pack, method="so")
+    est = FrameEstimator(pack, method="so", backend=backend)
     q = np.array([0.1, 0.2])
     capacity = np.abs(pack.moment_arms(q) * pack.f_max_ref).sum(axis=1)
     res = est.step(q, torques=3.0 * capacity)  # far beyond what the muscles can produce
@@ -178,6 +181,8 @@ def test_construction_errors_are_clear():
         FrameEstimator(pack, method="proposed")
     with pytest.raises(EstimationError, match="unknown method"):
         FrameEstimator(pack, method="magic")
+    with pytest.raises(EstimationError, match="unknown backend"):
+        FrameEstimator(pack, method="so", backend="gpu")
 
 
 def test_prior_method_returns_prior_mean_and_model_torque():
@@ -202,3 +207,18 @@ def test_pose_slightly_outside_pack_range_is_clamped_far_outside_is_flagged():
     far = est.step(np.array([1.0 + np.deg2rad(20.0), 0.0]), torques=tau)
     assert far.status is FrameStatus.INVALID_INPUT
     assert est.flag_counts == {"out_of_range_clamped": 1, "invalid_input": 1}
+
+
+def test_sparse_and_dense_backends_agree_on_a_large_problem():
+    pack = LinearPack(n_coordinates=6, n_groups=60, seed=9)
+    prior = _prior(pack.groups, np.random.default_rng(9))
+    dense = FrameEstimator(pack, method="proposed", prior=prior, backend="dense")
+    sparse = FrameEstimator(pack, method="proposed", prior=prior, backend="sparse")
+    assert FrameEstimator(pack, method="proposed", prior=prior).backend.value == "sparse"  # auto, 60 groups
+    rng = np.random.default_rng(10)
+    for k in range(10):
+        q = rng.uniform(-0.5, 0.5, 6)
+        tau = pack.moment_arms(q) @ (pack.f_max_ref * rng.uniform(0, 0.5, 60))
+        a, b = dense.step(q, torques=tau, phase=k / 10), sparse.step(q, torques=tau, phase=k / 10)
+        np.testing.assert_allclose(a.activations, b.activations, atol=1e-5)
+        np.testing.assert_allclose(a.activation_std, b.activation_std, atol=1e-6)

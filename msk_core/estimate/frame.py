@@ -16,8 +16,9 @@ Methods (a within [a_min, a_max] per group, default [0, 1]; OpenSim bounds by ea
   N(mu, sigma^2) prior at the current phase of the repetition (pooled over phases when the phase is unknown).
 - ``prior``:    a = mu(phase) clipped to [0, 1], no torque term (the prior-alone baseline).
 
-One :class:`piqp.DenseSolver` per estimator is set up on the first frame and then only ``update()``-d with the new
-matrices, so its workspace and preconditioner (``preconditioner_reuse_on_update``) are reused frame after frame.
+One PIQP solver per estimator (dense, or sparse from 40 groups up: :mod:`msk_core.estimate.qp`) is set up on the
+first frame and then only ``update()``-d with the new matrices, so its workspace and preconditioner
+(``preconditioner_reuse_on_update``) are reused frame after frame.
 (PIQP is an interior-point method: it takes no primal starting point, so "warm" means the reused workspace and
 scaling. A KKT-verified re-solve on last frame's active set was tried and measured no faster in numpy.)
 ``step()`` never raises on bad data: NaN
@@ -43,6 +44,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate.laplace import laplace_std
 from msk_core.estimate.pack import PackLike, resolve_pack
 from msk_core.estimate.prior import PhasePrior
+from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
 if TYPE_CHECKING:
     from msk_core.estimate.profile import SubjectProfile
@@ -84,7 +86,7 @@ class FrameResult:
     solve_time_s: float
     phase: float | None = None
     clamped: bool = False  # the pose was slightly outside the pack's fitted range and was clamped into it
-    _hessian: np.ndarray | None = field(default=None, repr=False)
+    _hess_parts: tuple[np.ndarray, float, np.ndarray] | None = field(default=None, repr=False)
     _equality: np.ndarray | None = field(default=None, repr=False)
     _std: np.ndarray | None = field(default=None, repr=False)
     _bounds: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
@@ -100,13 +102,23 @@ class FrameResult:
         return (a <= lb + BOUND_TOL) | (a >= ub - BOUND_TOL)
 
     @property
+    def hessian(self) -> np.ndarray | None:
+        """Hessian of the frame's objective in the activations, w A~'A~ + diag(d) (None for ``prior``)."""
+        if self._hess_parts is None:
+            return None
+        at, w, d = self._hess_parts
+        h = w * (at.T @ at)
+        h.flat[:: h.shape[0] + 1] += d
+        return h
+
+    @property
     def activation_std(self) -> np.ndarray:
         """Laplace std of each activation (0 at a bound; NaN when the frame has no valid optimum). Lazy."""
         if self._std is None:
-            if self._hessian is None or not np.all(np.isfinite(self.activations)):
+            if self._hess_parts is None or not np.all(np.isfinite(self.activations)):
                 self._std = np.full(self.activations.shape, np.nan)
             else:
-                self._std = laplace_std(self._hessian, ~self.at_bound, self._equality)
+                self._std = laplace_std(self.hessian, ~self.at_bound, self._equality)
         return self._std
 
 
@@ -125,6 +137,7 @@ class FrameEstimator:
         hybrid_weight: float = 0.1,
         a_min: float | np.ndarray = 0.0,
         a_max: float | np.ndarray = 1.0,
+        backend: Backend | str = Backend.AUTO,
         eps: float = 1e-8,
         max_iter: int = 100,
     ) -> None:
@@ -163,15 +176,22 @@ class FrameEstimator:
         self._ub = np.broadcast_to(np.asarray(a_max, dtype=float), (n,)).copy()
         if not (np.all(self._lb >= 0.0) and np.all(self._ub <= 1.0) and np.all(self._lb < self._ub)):
             raise EstimationError(f"activation bounds must satisfy 0 <= a_min < a_max <= 1; got {a_min}, {a_max}")
-        self._solver: piqp.DenseSolver | None = None
-        self._so_hessian = 2.0 * np.eye(n)
-        self._zeros = np.zeros(n)
+        try:
+            self.backend = resolve_backend(backend, n)
+        except ValueError:
+            raise EstimationError(f"unknown backend {backend!r}; choose auto, dense or sparse") from None
+        self._two = np.full(n, 2.0)
+        self._hybrid_d = np.full(n, 2.0 * self.hybrid_weight)
         self._torque_weight = 1.0 / self.torque_tolerance**2
+        if self.method is Method.SO:
+            self._qp = EqualityQP(n, len(self.coordinates), self._lb, self._ub, self.backend, eps, max_iter)
+        else:
+            self._qp = self._new_lsq()
         ranges = getattr(self.pack, "coordinate_ranges", None)
         self._ranges = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
         if self._ranges is not None:
             self._lo, self._hi = self._ranges[:, 0].copy(), self._ranges[:, 1].copy()
-        self._fallback: piqp.DenseSolver | None = None
+        self._fallback: LeastSquaresQP | None = None
 
     # -- public -------------------------------------------------------------------------------------------------
 
@@ -237,43 +257,33 @@ class FrameEstimator:
             mu, _ = self.prior.at(phase)
             x = np.clip(mu, self._lb, self._ub)
             return self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, None, None)
-        equality = None
         if method is Method.SO:
             if self._so_certainly_infeasible(at, tt):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
-            hess = self._so_hessian
-            status, x, it, dt = self._run(hess, self._zeros, at, tt)
+            status, x, it, dt = self._qp.solve(at, tt)
             if status in (piqp.PIQP_PRIMAL_INFEASIBLE, piqp.PIQP_DUAL_INFEASIBLE):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
-            equality = at
-        elif method is Method.HYBRID:
-            hess = at.T @ at
-            hess.flat[:: len(self.groups) + 1] += self.hybrid_weight
-            hess *= 2.0
-            status, x, it, dt = self._run(hess, -2.0 * (at.T @ tt))
+            parts = (at, 0.0, self._two)
+            return self._finish(status, x, it, dt, a_mat, tau, phase, parts, at)
+        if method is Method.HYBRID:
+            w, d, c_a = 2.0, self._hybrid_d, None
         else:
-            mu, prec = self.prior.mean_precision(phase)
-            w = self._torque_weight
-            hess = at.T @ at
-            hess *= w
-            hess.flat[:: len(self.groups) + 1] += prec
-            c = at.T @ tt
-            c *= -w
-            c -= prec * mu
-            status, x, it, dt = self._run(hess, c)
-        return self._finish(status, x, it, dt, a_mat, tau, phase, hess, equality)
+            mu, d = self.prior.mean_precision(phase)
+            w, c_a = self._torque_weight, -(d * mu)
+        status, x, it, dt = self._qp.solve(at, tt, w, d, c_a)
+        return self._finish(status, x, it, dt, a_mat, tau, phase, (at, w, d), None)
 
-    def _finish(self, status, x, it, dt, a_mat, tau, phase, hess, equality) -> FrameResult:
+    def _finish(self, status, x, it, dt, a_mat, tau, phase, hess_parts, equality) -> FrameResult:
         if status == piqp.PIQP_SOLVED:
             fs = FrameStatus.SOLVED
-        elif status == piqp.PIQP_MAX_ITER_REACHED and np.all(np.isfinite(x)):
+        elif status == piqp.PIQP_MAX_ITER_REACHED and np.isfinite(x.sum()):
             fs = FrameStatus.MAX_ITER
         else:
             fs = FrameStatus.SOLVER_FAILED
             x = np.full(len(self.groups), np.nan)
         if fs is not FrameStatus.SOLVER_FAILED:
-            x = np.clip(x, self._lb, self._ub)  # interior-point iterates may sit 1e-9 outside a bound
-        return self._result(x, a_mat, tau, fs, it, dt, phase, hess, equality)
+            x = np.minimum(np.maximum(x, self._lb), self._ub)  # interior-point iterates may sit 1e-9 outside
+        return self._result(x, a_mat, tau, fs, it, dt, phase, hess_parts, equality)
 
     def _so_certainly_infeasible(self, at: np.ndarray, tt: np.ndarray) -> bool:
         """Cheap necessary condition: each coordinate's torque must lie within its muscles' range (a in bounds)."""
@@ -283,54 +293,22 @@ class FrameEstimator:
         return bool(np.any(tt > hi + 1e-9) or np.any(tt < lo - 1e-9))
 
     def _so_fallback(self, a_mat, tau, at, tt, phase) -> FrameResult:
-        n = len(self.groups)
-        hess = 2.0 * (RESERVE_WEIGHT * (at.T @ at) + np.eye(n))
-        c = -2.0 * RESERVE_WEIGHT * (at.T @ tt)
+        """min sum a^2 + RESERVE_WEIGHT |A~ a - t~|^2: the least-squares reserve solution, flagged."""
         if self._fallback is None:
-            self._fallback = self._new_solver()
-            self._fallback.setup(np.asfortranarray(hess), c, x_l=self._lb, x_u=self._ub)
-        else:
-            self._fallback.update(P=np.asfortranarray(hess), c=c)
-        t0 = time.perf_counter()
-        status = self._fallback.solve()
-        dt = time.perf_counter() - t0
-        res = self._fallback.result
-        result = self._finish(status, res.x.copy(), int(res.info.iter), dt, a_mat, tau, phase, hess, None)
+            self._fallback = self._new_lsq()
+        w = 2.0 * RESERVE_WEIGHT
+        status, x, it, dt = self._fallback.solve(at, tt, w, self._two, None)
+        result = self._finish(status, x, it, dt, a_mat, tau, phase, (at, w, self._two), None)
         if result.status is FrameStatus.SOLVED:
             result.status = FrameStatus.RESERVE
             self._count(FrameStatus.RESERVE)
         return result
 
-    def _new_solver(self) -> piqp.DenseSolver:
-        solver = piqp.DenseSolver()
-        solver.settings.eps_abs = self.eps
-        solver.settings.eps_rel = self.eps
-        solver.settings.max_iter = self.max_iter
-        solver.settings.verbose = False
-        solver.settings.compute_timings = False
-        solver.settings.preconditioner_reuse_on_update = True  # scaling of consecutive frames hardly changes
-        return solver
+    def _new_lsq(self) -> LeastSquaresQP:
+        return LeastSquaresQP(len(self.groups), len(self.coordinates), self._lb, self._ub, self.backend, self.eps,
+                              self.max_iter)
 
-    def _run(self, hess: np.ndarray, c: np.ndarray, a_eq: np.ndarray | None = None, b_eq: np.ndarray | None = None):
-        """Set up on the first frame, then ``update()`` the matrices of the same solver (warm workspace)."""
-        p = np.asfortranarray(hess)
-        if self._solver is None:
-            self._solver = self._new_solver()
-            if a_eq is None:
-                self._solver.setup(p, c, x_l=self._lb, x_u=self._ub)
-            else:
-                self._solver.setup(p, c, A=np.asfortranarray(a_eq), b=b_eq, x_l=self._lb, x_u=self._ub)
-        elif a_eq is None:
-            self._solver.update(P=p, c=c)
-        else:
-            self._solver.update(A=np.asfortranarray(a_eq), b=b_eq)  # P = 2I and c = 0 never change for `so`
-        t0 = time.perf_counter()
-        status = self._solver.solve()
-        dt = time.perf_counter() - t0
-        res = self._solver.result
-        return status, res.x.copy(), int(res.info.iter), dt
-
-    def _result(self, x, a_mat, tau, status, it, dt, phase, hess, equality) -> FrameResult:
+    def _result(self, x, a_mat, tau, status, it, dt, phase, hess_parts, equality) -> FrameResult:
         forces = self.f_max * x
         model = a_mat @ x
         result = FrameResult(
@@ -343,7 +321,7 @@ class FrameEstimator:
             iterations=it,
             solve_time_s=dt,
             phase=phase,
-            _hessian=hess,
+            _hess_parts=hess_parts,
             _equality=equality,
             _bounds=(self._lb, self._ub),
         )
