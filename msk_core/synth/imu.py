@@ -4,7 +4,7 @@ Each tracker is strapped to one pack body (at its centre of mass, with a random 
 Orientation, rate of turn and specific force come from pinocchio's forward kinematics of the pack's rigid model, so
 they agree with each other and with the joint angles. Global frame: ENU with the subject facing north (model +X ->
 north, +Y -> up, +Z -> east), rotated so that the pack's gravity points down. Sensor errors: gyroscope white noise
-and a random-walk bias, accelerometer white noise, orientation white noise plus a slow heading drift (the Kalman
+and a random-walk bias, accelerometer white noise, smooth orientation error (~0.3°) plus a slow heading drift (the Kalman
 filter's yaw is only magnetometer-aided), magnetometer noise.
 """
 
@@ -18,6 +18,7 @@ import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from msk_core.errors import ModelError
+from msk_core.synth.recruitment import smooth_noise
 from msk_core.synth.rng import stream
 
 _MODEL_TO_ENU = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -104,7 +105,8 @@ def simulate_imu(
         rate = 1.0 / float(np.median(np.diff(time))) if n > 1 else 100.0
         drift = np.cumsum(rng.normal(0.0, np.radians(0.6) / np.sqrt(60.0 * rate), n))  # ~0.6°/√min heading walk
         heading = Rotation.from_rotvec(np.outer(drift, [0.0, 0.0, 1.0])).as_matrix()
-        jitter = Rotation.from_rotvec(rng.normal(0.0, np.radians(0.3), (n, 3))).as_matrix()
+        # the device's orientation filter output wanders smoothly (~0.3°, < 1 Hz) rather than jumping per sample
+        jitter = Rotation.from_rotvec(np.radians(0.3) * smooth_noise(n, 3, rate, min(1.0, 0.2 * rate), rng)).as_matrix()
         r_sensor = np.einsum("ij,njk,kl->nil", to_global, rot[s], mount)  # sensor -> global
         r_meas = heading @ r_sensor @ jitter
         quat = Rotation.from_matrix(r_meas).as_quat(scalar_first=True)
