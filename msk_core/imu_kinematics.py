@@ -169,3 +169,60 @@ def smooth_kinematics(angles: np.ndarray, config: KinematicsFilterConfig) -> tup
     means, covs, _, _ = kf.batch_filter(list(z))
     xs, _, _, _ = kf.rts_smoother(means, covs)
     return xs[:, 0::3], xs[:, 1::3], xs[:, 2::3]
+
+
+@dataclass(frozen=True)
+class Joint:
+    """A joint between two instrumented segments; angles are the child's relative to the parent."""
+
+    name: str
+    parent: str
+    child: str
+
+
+@dataclass(frozen=True)
+class SensorCalibration:
+    """Per segment, the fixed sensor-to-segment rotation ``R_SB``. Serialisable for the subject profile."""
+
+    sensor_to_segment: dict[str, Rotation]
+    heading_rad: float = 0.0
+
+    @classmethod
+    def from_static_pose(cls, static_quats: dict[str, np.ndarray], *, heading_rad: float = 0.0) -> SensorCalibration:
+        """Calibrate every segment from its sensor's samples during the static N-pose."""
+        out = {}
+        for segment, q in static_quats.items():
+            try:
+                out[segment] = sensor_to_segment(q, heading_rad=heading_rad)
+            except InputError as exc:
+                raise InputError(f"segment {segment!r}: {exc}", field=segment) from None
+        return cls(out, heading_rad)
+
+    def joint_angles(self, quats: dict[str, np.ndarray], joints: list[Joint]) -> dict[str, np.ndarray]:
+        """Angles ``(n, 3)`` (rad) of each joint from the sensors' live quaternions ``(n, 4)``."""
+        seg: dict[str, Rotation] = {}
+        out = {}
+        for j in joints:
+            for s in (j.parent, j.child):
+                if s not in seg:
+                    if s not in self.sensor_to_segment or s not in quats:
+                        raise InputError(f"joint {j.name!r} needs segment {s!r}, which is not calibrated or has no "
+                                         "sensor data", field=s)
+                    seg[s] = segment_orientation(quats[s], self.sensor_to_segment[s])
+            out[j.name] = joint_angles(seg[j.parent], seg[j.child])
+        return out
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "heading_rad": self.heading_rad,
+            "sensor_to_segment_wxyz": {k: r.as_quat(scalar_first=True).tolist() for k, r in self.sensor_to_segment.items()},
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, object]) -> SensorCalibration:
+        try:
+            rots = {str(k): quats_to_rotation(np.asarray(v, dtype=float))
+                    for k, v in dict(d["sensor_to_segment_wxyz"]).items()}  # type: ignore[call-overload]
+            return cls(rots, float(d.get("heading_rad", 0.0)))  # type: ignore[arg-type]
+        except KeyError as exc:
+            raise ConfigError("sensor calibration misses a field", field=str(exc.args[0])) from None

@@ -160,3 +160,23 @@ def test_real_xsens_orientation_through_alignment_and_filter(shared_dir, k: int)
     a, v, _ = JointKinematicsFilter(3, cfg).filter(ang)
     assert np.all(np.std(np.diff(a[20:], axis=0), axis=0) < 0.7 * np.std(np.diff(ang[20:], axis=0), axis=0))
     assert np.all(np.abs(v[20:]) < np.radians(10.0))
+
+
+def test_sensor_calibration_for_several_joints_round_trips_json() -> None:
+    import json
+
+    from msk_core.imu_kinematics import Joint, SensorCalibration
+
+    t, q_upper, q_fore, flex = _session(0.7, seed=5)
+    static = t < 1.0
+    cal = SensorCalibration.from_static_pose({"upper_arm": q_upper[static], "forearm": q_fore[static]},
+                                             heading_rad=0.7)
+    back = SensorCalibration.from_dict(json.loads(json.dumps(cal.to_dict())))
+    joints = [Joint("elbow", "upper_arm", "forearm")]
+    angles = back.joint_angles({"upper_arm": q_upper, "forearm": q_fore}, joints)
+    assert np.degrees(np.max(np.abs(angles["elbow"][:, 0] - flex))) < 1.5
+    with pytest.raises(InputError, match="joint 'wrist' needs segment 'forearm'"):
+        cal.joint_angles({"upper_arm": q_upper}, [Joint("wrist", "forearm", "hand")])
+    moving = Rotation.from_euler("z", np.linspace(0, 1.0, 50)[:, None]).as_quat(scalar_first=True)
+    with pytest.raises(InputError, match="segment 'forearm'.*moved"):
+        SensorCalibration.from_static_pose({"upper_arm": q_upper[static], "forearm": moving})
