@@ -313,8 +313,10 @@ class PhaseTracker:
         # after the turning point: falling branch until the signal settles or starts the next rep
         self.trough = min(self.trough, p)
         settled = p > self.trough + self.turn_hysteresis and p < tpl.start_fraction
+        # touch-and-go: the rep is nearly done and progress rises again without resting in between
+        restarted = p > self.trough + 2 * self.turn_hysteresis and self.phase > 0.75
         overdue = t - self.t_start > 2.0 * tpl.mean_duration_s
-        if settled or overdue:
+        if settled or restarted or overdue:
             self.in_rep, self.phase = False, float("nan")
             return self.update(t, value) if p > tpl.start_fraction else self.phase
         # this rep's own depth replaces the template's on the way back (reps differ in depth)
