@@ -79,7 +79,7 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
     osim = osim_tools.import_opensim()
     model, _ = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity, forces=False)
     g = np.array(model.getGravity().to_numpy())
-    osim_tools.add_hand_loads(model, spec, hand_load, g)
+    osim_tools.add_hand_loads(model, spec, hand_load, g, pack.validation_rigid.load_share)
     state = model.initSystem()
     poser = osim_tools.OsimPoser(model, state, spec)
     rng = np.random.default_rng(seed + 2 * CHECK_SEED_OFFSET)

@@ -120,10 +120,12 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
         l_slack.append(float(weights @ [table[m]["l_slack"] for m in members]))
     dyn = spec.dynamics
     rigid = extract_rigid(poser, spec, root=dyn.root, exclude=dyn.exclude_bodies, shared_from=dyn.shared_from,
-                          gravity=g)
+                          gravity=g, load_share=dyn.load_share)
     validation = None
     if dyn.root != "ground" or dyn.shared_from or dyn.exclude_bodies:
-        validation = extract_rigid(poser, spec, root="ground", exclude=(), shared_from="", gravity=g)
+        # the whole model as OpenSim has it (pelvis-rooted, nothing shared: the full bar on this model)
+        validation = extract_rigid(poser, spec, root="ground", exclude=(), shared_from="", gravity=g,
+                                   load_share=1.0 if dyn.shared_from else dyn.load_share)
     source = Path(osim_path)
     return {
         "format": PACK_FORMAT,

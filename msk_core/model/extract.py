@@ -65,7 +65,8 @@ def _screws(poser: OsimPoser, graph, delta: float = 1e-5) -> dict[tuple[str, int
 
 
 def extract_rigid(
-    poser: OsimPoser, spec: PackSpec, *, root: str, exclude: tuple[str, ...], shared_from: str, gravity: np.ndarray
+    poser: OsimPoser, spec: PackSpec, *, root: str, exclude: tuple[str, ...], shared_from: str, gravity: np.ndarray,
+    load_share: float,
 ) -> dict:
     """Rigid-body description (see :class:`msk_core.model.rigid.RigidModel`) rooted at ``root``."""
     model = poser.model
@@ -123,7 +124,7 @@ def extract_rigid(
             attach[other] = current
             in_shared[other] = in_shared[body] or other == shared_from
             queue.append(other)
-    share = spec.dynamics.load_share if shared_from else 1.0
+    share = load_share if shared_from else 1.0
     body_list = []
     bs = model.getBodySet()
     for i in range(bs.getSize()):
@@ -165,7 +166,7 @@ def extract_rigid(
         "bodies": body_list,
         "load_points": loads,
         "gravity": np.asarray(gravity, dtype=float).tolist(),
-        "load_share": (spec.dynamics.load_share if loads else 1.0),
+        "load_share": load_share,
         "gains": gains.tolist(),
         "torque_scale": torque_scale.tolist(),
     }

@@ -222,14 +222,14 @@ def opensim_glitches(poser: OsimPoser, names: list[str], q: np.ndarray, delta: f
     return np.abs(plus + minus - 2 * centre) > 1e-3
 
 
-def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray) -> None:
+def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray, share: float) -> None:
     """Constant forces along gravity at the spec's load points (before initSystem), as the pack applies them."""
     osim = import_opensim()
     points = spec.dynamics.load_points
     if not points:
         return
     unit = gravity / np.linalg.norm(gravity)
-    force = unit * spec.dynamics.load_share * total_load / len(points)
+    force = unit * share * total_load / len(points)
     for k, lp in enumerate(points):
         pf = osim.PrescribedForce(f"msk_hand_load_{k}", model.getBodySet().get(lp.body))
         pf.setForceFunctions(osim.Constant(force[0]), osim.Constant(force[1]), osim.Constant(force[2]))

@@ -67,6 +67,10 @@ class ModelPack:
         self._lo = self.coordinate_ranges[:, 0].copy()
         self._hi = self.coordinate_ranges[:, 1].copy()
         self._n, self._g = n, g
+        self._shape = (n,)
+        self._half_range = (self._hi - self._lo) / 2
+        # flat index of each monomial factor into the (n, D+1) table of powers: phi = prod(table.flat[index], axis=1)
+        self._flat = np.ascontiguousarray(np.arange(n)[None, :] * len(self._powers) + self._exponents)
         self.rigid = RigidModel(data["dynamics"], n_coordinates=n)
         validation = data.get("validation_dynamics")
         self.validation_rigid = RigidModel(validation, n_coordinates=n) if validation else self.rigid
@@ -79,11 +83,11 @@ class ModelPack:
 
     def _checked(self, q: np.ndarray, out_of_range: OutOfRange) -> np.ndarray:
         q = np.asarray(q, dtype=float)
-        if q.shape != (self._n,):
+        if q.shape != self._shape:
             raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, got {q.shape}")
         if out_of_range is OutOfRange.CLAMP:
             return np.minimum(np.maximum(q, self._lo), self._hi)
-        if ((q < self._lo) | (q > self._hi)).any():
+        if (np.abs(q - self._centre) > self._half_range).any():
             bad = int(np.flatnonzero((q < self._lo) | (q > self._hi))[0])
             raise ModelError(
                 f"pack {self.name!r}: {self.coordinates[bad]} = {q[bad]:.4f} rad "
@@ -95,8 +99,7 @@ class ModelPack:
 
     def _evaluate(self, q: np.ndarray) -> np.ndarray:
         x = (q - self._centre) / self._half
-        powers = x[:, None] ** self._powers[None, :]
-        phi = powers[self._cols, self._exponents].prod(axis=1)
+        phi = np.power.outer(x, self._powers).take(self._flat).prod(axis=1)
         return self._stacked @ phi
 
     # ---- muscles -----------------------------------------------------------------------------------------------
@@ -134,7 +137,19 @@ class ModelPack:
         tilted root; default the pack's gravity.
         """
         q = self._checked(q, out_of_range)
-        return self.rigid.inverse_dynamics(q - self.reference_pose, qd, qdd, hand_load_newton, gravity)
+        return self.rigid.inverse_dynamics(q - self.reference_pose, np.asarray(qd, dtype=float),
+                                           np.asarray(qdd, dtype=float), hand_load_newton, gravity)
+
+    def frame(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
+        out_of_range: OutOfRange = OutOfRange.RAISE,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Everything a live frame needs in one call: (mtu lengths, moment arms, joint torques)."""
+        q = self._checked(q, out_of_range)
+        values = self._evaluate(q)
+        tau = self.rigid.inverse_dynamics(q - self.reference_pose, np.asarray(qd, dtype=float),
+                                          np.asarray(qdd, dtype=float), hand_load_newton, None)
+        return values[: self._g], values[self._g :].reshape(self._n, self._g), tau
 
     def info(self) -> dict:
         """Summary for printing."""

@@ -40,42 +40,54 @@ class RigidModel:
                 np.asarray(body["inertia"], dtype=float).reshape(3, 3),
             )
             model.appendBodyToJoint(joint + 1, inertia, pin.SE3.Identity())
-        self.load_frames = []
-        for k, load in enumerate(description["load_points"]):
+        # Hand load: the same tree carrying only unit point masses at the load points; its generalized gravity is
+        # the torque that holds 1 kg at every load point (one cheap call instead of a Jacobian per point).
+        load_model = pin.Model(model)
+        for k in range(1, load_model.njoints):
+            load_model.inertias[k] = pin.Inertia.Zero()
+        self.n_load_points = len(description["load_points"])
+        for load in description["load_points"]:
             joint = int(load["joint"])
-            placement = pin.SE3(np.eye(3), np.asarray(load["point"], dtype=float) - positions[joint])
-            self.load_frames.append(model.addFrame(pin.Frame(f"load{k}_{load['body']}", joint + 1, placement,
-                                                             pin.FrameType.OP_FRAME)))
+            point = np.asarray(load["point"], dtype=float) - positions[joint]
+            load_model.appendBodyToJoint(joint + 1, pin.Inertia(1.0, point, np.zeros((3, 3))), pin.SE3.Identity())
         self.gravity = np.asarray(description["gravity"], dtype=float)
+        self._g_norm = float(np.linalg.norm(self.gravity))
         model.gravity.linear = self.gravity
-        self.model = model
-        self.data = model.createData()
+        load_model.gravity.linear = self.gravity
+        self.model, self.load_model = model, load_model
+        self.data, self.load_data = model.createData(), load_model.createData()
         self.gains = np.asarray(description["gains"], dtype=float).reshape(len(joints), n_coordinates)
         self.torque_scale = np.asarray(description["torque_scale"], dtype=float)
         self.load_share = float(description["load_share"])
         self._projection = self.gains.T * self.torque_scale[:, None]  # (n_coordinates, n_joints)
+        self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
 
     def inverse_dynamics(
         self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float, gravity: np.ndarray | None
     ) -> np.ndarray:
         """Torques at pack coordinates for offsets dq = q - q_ref, velocities and accelerations."""
         qp = self.gains @ dq
-        vp = self.gains @ np.asarray(qd, dtype=float)
-        ap = self.gains @ np.asarray(qdd, dtype=float)
-        g = self.gravity if gravity is None else np.asarray(gravity, dtype=float)
-        if gravity is not None:
-            self.model.gravity.linear = g
+        vp = self.gains @ qd
+        ap = self.gains @ qdd
+        if gravity is None:
+            tau = pin.rnea(self.model, self.data, qp, vp, ap)
+            if hand_load and self.n_load_points:
+                # hand_load acts along gravity: hold (hand_load / |g|) kg, split over the load points
+                tau = tau + (hand_load * self._load_factor) * pin.computeGeneralizedGravity(
+                    self.load_model, self.load_data, qp)
+            return self._projection @ tau
+        g = np.asarray(gravity, dtype=float)
+        self.model.gravity.linear = g
+        self.load_model.gravity.linear = g
         try:
-            tau = pin.rnea(self.model, self.data, qp, vp, ap).copy()
+            tau = pin.rnea(self.model, self.data, qp, vp, ap)
+            if hand_load and self.n_load_points:
+                # along the given gravity, still hand_load newtons
+                factor = self.load_share / self.n_load_points / float(np.linalg.norm(g))
+                tau = tau + (hand_load * factor) * pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
         finally:
-            if gravity is not None:
-                self.model.gravity.linear = self.gravity
-        if hand_load and self.load_frames:
-            norm = np.linalg.norm(g)
-            force = (self.load_share * hand_load / len(self.load_frames)) * (g / norm if norm > 0 else g)
-            for frame in self.load_frames:
-                jac = pin.computeFrameJacobian(self.model, self.data, qp, frame, pin.LOCAL_WORLD_ALIGNED)
-                tau -= jac[:3].T @ force
+            self.model.gravity.linear = self.gravity
+            self.load_model.gravity.linear = self.gravity
         return self._projection @ tau
 
     def body_masses(self) -> dict[str, float]:

@@ -1,0 +1,111 @@
+"""Model-pack speed: one frame of moment arms + inverse dynamics (deadlift pack) vs OpenSim on the same poses.
+
+OpenSim's figure is per frame: computeMomentArm of every group bundle for every pack coordinate plus
+InverseDynamicsSolver, the work the pack replaces (measured here, same run, same poses).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.bench import BenchResult
+
+NAME = "model"
+DESCRIPTION = "deadlift pack: moment arms + inverse dynamics per frame vs OpenSim (target <= 20 us, >= 1000x)"
+SHARED = Path(__file__).resolve().parents[2].parent / "shared"
+
+
+def _pack_frame_time(pack, poses, qd, qdd, repeats: int) -> float:
+    n = len(poses)
+    start = time.perf_counter()
+    for k in range(repeats):
+        q = poses[k % n]
+        pack.moment_arms(q)
+        pack.inverse_dynamics(q, qd, qdd, 600.0)
+    return (time.perf_counter() - start) / repeats
+
+
+def _fused_frame_time(pack, poses, qd, qdd, repeats: int) -> float:
+    n = len(poses)
+    start = time.perf_counter()
+    for k in range(repeats):
+        pack.frame(poses[k % n], qd, qdd, 600.0)
+    return (time.perf_counter() - start) / repeats
+
+
+def _numpy_op_time(repeats: int) -> float:
+    """One trivial numpy call: the unit of interpreter overhead on this (shared, loaded) machine."""
+    q = np.ones(4)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        np.abs(q)
+    return (time.perf_counter() - start) / repeats
+
+
+def _opensim_frame_time(pack, poses, qd, qdd) -> float:
+    from msk_core.model import osim_tools  # noqa: PLC0415 - optional heavy dependency
+    from msk_core.model.spec import parse_spec  # noqa: PLC0415
+
+    spec = parse_spec(pack.raw["spec"])
+    model, state = osim_tools.load_model(SHARED / "models" / "fullbody.osim", gravity=spec.dynamics.gravity)
+    poser = osim_tools.OsimPoser(model, state, spec)
+    names = [m for g in pack.groups for m in pack.members[g]]
+    idmodel, _ = osim_tools.load_model(SHARED / "models" / "fullbody.osim", forces=False)
+    idstate = idmodel.initSystem()
+    idposer = osim_tools.OsimPoser(idmodel, idstate, spec)
+    start = time.perf_counter()
+    for q in poses:
+        osim_tools.opensim_moment_arms(poser, names, q)
+        osim_tools.opensim_inverse_dynamics(idposer, q, qd, qdd)
+    return (time.perf_counter() - start) / len(poses)
+
+
+def run(quick: bool) -> list[BenchResult]:
+    from msk_core.model import load_pack  # noqa: PLC0415
+
+    pack = load_pack("deadlift")
+    rng = np.random.default_rng(0)
+    lo, hi = pack.coordinate_ranges[:, 0], pack.coordinate_ranges[:, 1]
+    poses = rng.uniform(lo, hi, size=(64, len(lo)))
+    qd, qdd = rng.uniform(-1, 1, len(lo)), rng.uniform(-5, 5, len(lo))
+    _pack_frame_time(pack, poses, qd, qdd, 200)  # warm-up
+    pack_s = _pack_frame_time(pack, poses, qd, qdd, 2000 if quick else 20000)
+    fused_s = _fused_frame_time(pack, poses, qd, qdd, 2000 if quick else 20000)
+    details: dict[str, float | str] = {
+        "groups": len(pack.groups),
+        "coordinates": len(pack.coordinates),
+        "numpy_call_us": _numpy_op_time(20000) * 1e6,
+    }
+    try:
+        osim_s = _opensim_frame_time(pack, poses[: 2 if quick else 5], qd, qdd)
+    except Exception as exc:  # noqa: BLE001 - opensim or ../shared missing: report the pack alone
+        osim_s = float("nan")
+        details["opensim"] = f"unavailable: {exc}"
+    per_frame_us = pack_s * 1e6
+    ratio_ok = osim_s != osim_s or osim_s / pack_s >= 1000
+    fused_us = fused_s * 1e6
+    return [
+        BenchResult(
+            name="deadlift frame, fused ModelPack.frame()",
+            value=fused_us,
+            unit="us",
+            baseline_name="OpenSim computeMomentArm + InverseDynamicsSolver",
+            baseline_value=osim_s * 1e6,
+            target="<= 20 us and >= 1000x",
+            passed=fused_us <= 20.0 and (osim_s != osim_s or osim_s / fused_s >= 1000),
+            details=details,
+        ),
+        BenchResult(
+            name="deadlift frame (moment arms + ID)",
+            value=per_frame_us,
+            unit="us",
+            baseline_name="OpenSim computeMomentArm + InverseDynamicsSolver",
+            baseline_value=osim_s * 1e6,
+            target="<= 20 us and >= 1000x",
+            passed=per_frame_us <= 20.0 and ratio_ok,
+            details=details,
+        )
+    ]
