@@ -277,3 +277,17 @@ def test_fuzz_valid_frames_survive_surrounding_garbage_free_of_preambles(payload
     parser = xbus.XbusParser()
     assert [m.data for m in parser.feed(stream)] == payloads
     assert parser.stats.bytes_skipped == len(junk) * (len(frames_) + 1)
+
+
+def test_frame_that_lost_a_byte_cannot_swallow_the_next_preamble(shared_dir):
+    """Dropping a 0xFA data byte keeps the checksum valid once the next frame's preamble is taken as the checksum
+    byte: the parser must still reject it (structure check) and recover the next frame."""
+    _, messages = load_set(shared_dir, 1)
+    frames_ = [m.encode() for m in messages]
+    index, position = next((k, p) for k, f in enumerate(frames_[:-1]) for p in range(5, len(f) - 1) if f[p] == 0xFA)
+    damaged = frames_[index][:position] + frames_[index][position + 1 :]
+    assert (sum(damaged[1:]) + 0xFA) & 0xFF == 0  # the false frame's checksum passes
+    parser = xbus.XbusParser()
+    received = parser.feed(b"".join(frames_[:index]) + damaged + b"".join(frames_[index + 1 :]))
+    assert received == [m for k, m in enumerate(messages) if k != index]
+    assert parser.stats.structure_errors >= 1

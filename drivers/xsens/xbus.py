@@ -7,8 +7,10 @@ preamble, checksum included, is 0 mod 256. Facts: ../shared/protocols/xsens-xbus
 from __future__ import annotations
 
 import enum
+import operator
 import struct
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from msk_core.errors import ProtocolError
 
@@ -56,6 +58,8 @@ class Mid(enum.IntEnum):
     OUTPUT_CONFIGURATION = 0xC1
     ERROR_MODE = 0xDA
 
+
+_MTDATA2 = int(Mid.MT_DATA2)  # a plain int: compared for every frame
 
 #: Xbus error codes carried by an Error (0x42) message.
 ERROR_CODES = {
@@ -170,8 +174,9 @@ def encode_message(mid: int, data: bytes = b"", bid: int = BID_MASTER) -> bytes:
     return bytes((PREAMBLE,)) + body + bytes((checksum(body),))
 
 
-@dataclass(frozen=True, slots=True)
-class XbusMessage:
+class XbusMessage(NamedTuple):
+    """One frame (a NamedTuple: created per message at high rates, so it must be cheap)."""
+
     bid: int
     mid: int
     data: bytes
@@ -226,11 +231,13 @@ class XbusParser:
         self._buffer = bytearray()
         self._validate = validate
         self._skipping = False
+        self._aligned = False
         self.stats = ParserStats()
 
     def reset(self) -> None:
         self._buffer.clear()
         self._skipping = False
+        self._aligned = False
 
     @property
     def pending(self) -> int:
@@ -282,7 +289,15 @@ class XbusParser:
                 pos += 1
                 continue
             mid = buf[pos + 2]
-            if self._validate and mid == Mid.MT_DATA2 and not mtdata2_structure_ok(buf, pos + header, end - 1):
+            # A false frame (1/256 checksum odds) can start in garbage, or be a frame that lost a byte and took the
+            # next preamble as its checksum. So unless the frame follows a valid one and is followed by a preamble,
+            # an MTData2 payload must also be structurally valid.
+            if (
+                self._validate
+                and mid == _MTDATA2
+                and (not self._aligned or end >= n or buf[end] != PREAMBLE)
+                and not mtdata2_structure_ok(buf, pos + header, end - 1)
+            ):
                 stats.structure_errors += 1
                 self._skip(1)
                 pos += 1
@@ -290,6 +305,7 @@ class XbusParser:
             out.append(XbusMessage(buf[pos + 1], mid, bytes(buf[pos + header : end - 1])))
             stats.messages += 1
             self._skipping = False
+            self._aligned = True
             pos = end
         if pos:
             del buf[:pos]
@@ -298,6 +314,7 @@ class XbusParser:
     def _skip(self, count: int) -> None:
         if count <= 0:
             return
+        self._aligned = False
         if not self._skipping:
             self.stats.resyncs += 1
             self._skipping = True
@@ -309,6 +326,7 @@ class XbusParser:
 _FP1220_SCALE = 1.0 / (1 << 20)
 _FP1632_SCALE = 1.0 / (1 << 32)
 _FP1632 = struct.Struct(">Ih")
+_add = operator.add
 
 
 @dataclass(frozen=True, slots=True)
@@ -394,34 +412,109 @@ def _make_decoder(data_id: int, size: int) -> _Decoder | None:
     return name, fp1632
 
 
-def decode_mtdata2(payload: bytes | bytearray | memoryview) -> MtData2:
-    """Decode an MTData2 payload; unknown DataIDs are kept raw in ``unknown`` (skipped by size)."""
-    values: dict[str, tuple] = {}
-    ids: dict[str, int] = {}
-    unknown: list[tuple[int, bytes]] = []
+class _Layout(NamedTuple):
+    """A compiled MTData2 item sequence. A device repeats the same DataIDs and sizes in message after message, so
+    recognising the sequence (one struct call over the item headers) replaces walking the items one by one."""
+
+    check: object  # unpack_from reading every item header
+    headers: tuple  # what ``check`` returns for this sequence
+    unpack_from: object  # unpack_from reading every item's data
+    names: tuple
+    slices: tuple  # slice of the flat tuple per name
+    ids: dict
+    conversions: tuple  # per field: 0 none, 1 fixed 12.20, 2 fixed 16.32, 3 unknown (raw bytes)
+    plain: bool
+
+
+_LAYOUTS: dict[int, list[_Layout]] = {}
+_MAX_LAYOUTS = 1024  # bounded: garbage payloads must not grow the cache without limit
+
+
+def _walk(payload) -> list[tuple[int, int, int]]:
+    """(offset, data_id, size) of each item; ProtocolError when the sizes do not tile the payload."""
+    items = []
     i, n = 0, len(payload)
-    decoders = _DECODERS
     while i < n:
         if i + 3 > n:
             raise ProtocolError(f"MTData2 payload truncated in an item header at byte {i} of {n}")
         data_id = (payload[i] << 8) | payload[i + 1]
         size = payload[i + 2]
-        j = i + 3 + size
-        if j > n:
+        if i + 3 + size > n:
             raise ProtocolError(f"MTData2 item 0x{data_id:04X} claims {size} bytes, only {n - i - 3} left")
-        key = (data_id, size)
-        if key in decoders:
-            decoder = decoders[key]
-        else:
-            decoder = decoders[key] = _make_decoder(data_id, size)
+        items.append((i, data_id, size))
+        i += 3 + size
+    return items
+
+
+def _compile_layout(items: list[tuple[int, int, int]]) -> _Layout:
+    header_fmt, data_fmt = [">"], [">"]
+    headers: list[int] = []
+    names, slices, conversions = [], [], []
+    ids: dict[str, int] = {}
+    position = 0
+    for offset, data_id, size in items:
+        header_fmt.append(f"HB{size}x" if size else "HB")  # the header, then skip the item's data
+        headers += [data_id, size]
+        data_fmt.append("3x")
+        decoder = _make_decoder(data_id, size)  # validates the size of known quantities
         if decoder is None:
-            unknown.append((data_id, bytes(payload[i + 3 : j])))
+            data_fmt.append(f"{size}s")
+            fields, conversion, name = 1, 3, f"0x{data_id:04X}"
         else:
             name = decoder[0]
-            values[name] = decoder[1](payload, i + 3)
+            raw_spec = RAW_QUANTITIES.get(data_id)
+            if raw_spec is not None:
+                data_fmt.append(raw_spec[1][1:])
+                fields, conversion = len(struct.unpack(raw_spec[1], bytes(size))), 0
+            else:
+                precision = Precision(data_id & 0x3)
+                count = FLOAT_QUANTITIES[data_id & 0xFFF0][1]
+                code = {Precision.FLOAT32: "f", Precision.FLOAT64: "d", Precision.FP1220: "i"}.get(precision)
+                data_fmt.append(f"{count}{code}" if code else "Ih" * count)
+                fields = count if code else 2 * count
+                conversion = {Precision.FP1220: 1, Precision.FP1632: 2}.get(precision, 0)
             ids[name] = data_id
-        i = j
-    return MtData2(values, ids, unknown)
+        names.append(name)
+        slices.append(slice(position, position + fields))
+        conversions.append(conversion)
+        position += fields
+    header_struct = struct.Struct("".join(header_fmt))
+    return _Layout(
+        header_struct.unpack_from, tuple(headers), struct.Struct("".join(data_fmt)).unpack_from,
+        tuple(names), tuple(slices), ids, tuple(conversions), not any(conversions),
+    )
+
+
+def decode_mtdata2(payload: bytes | bytearray | memoryview) -> MtData2:
+    """Decode an MTData2 payload; unknown DataIDs are kept raw in ``unknown`` (skipped by size)."""
+    n = len(payload)
+    candidates = _LAYOUTS.get(n)
+    layout = None
+    if candidates:
+        for candidate in candidates:
+            if candidate.check(payload) == candidate.headers:
+                layout = candidate
+                break
+    if layout is None:
+        layout = _compile_layout(_walk(payload))
+        if sum(len(v) for v in _LAYOUTS.values()) < _MAX_LAYOUTS:
+            _LAYOUTS.setdefault(n, []).append(layout)
+    flat = layout.unpack_from(payload)
+    if layout.plain:
+        return MtData2(dict(zip(layout.names, map(flat.__getitem__, layout.slices))), dict(layout.ids), [])
+    values: dict[str, tuple] = {}
+    unknown: list[tuple[int, bytes]] = []
+    for index, (name, part, conversion) in enumerate(zip(layout.names, layout.slices, layout.conversions)):
+        if conversion == 0:
+            values[name] = flat[part]
+        elif conversion == 1:
+            values[name] = tuple(map(_FP1220_SCALE.__mul__, flat[part]))
+        elif conversion == 2:
+            raw = flat[part]  # fraction, integer, fraction, integer, ...
+            values[name] = tuple(map(_add, raw[1::2], map(_FP1632_SCALE.__mul__, raw[0::2])))
+        else:
+            unknown.append((layout.headers[2 * index], flat[part][0]))
+    return MtData2(values, dict(layout.ids), unknown)
 
 
 def item_layout(payload: bytes | bytearray | memoryview) -> list[tuple[int, bytes]]:
