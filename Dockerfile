@@ -1,0 +1,14 @@
+# One image for every msk-live node; docker-compose.yml picks the command.
+FROM python:3.11-slim
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1
+# libusb for Xsens USB discovery (pyusb); the OpenSim extra is not needed at run time.
+RUN apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY msk_core ./msk_core
+COPY drivers ./drivers
+COPY services ./services
+COPY recordings ./recordings
+RUN pip install --no-cache-dir .
+ENTRYPOINT ["msk"]
+CMD ["--help"]
