@@ -48,6 +48,7 @@ class EstimatorStats:
     load_events: int = 0
     flagged: dict[str, int] = field(default_factory=dict)
     rejected: int = 0  # input frames whose coordinates do not match the pack
+    other_exercise: int = 0  # frames skipped while a LoadEvent says another exercise is under way
     last_error: str = ""
 
 
@@ -111,6 +112,7 @@ def main(
     methods: list[str],
     subject_path: Path | None = None,
     initial_load_kg: float = 0.0,
+    exercise: str | None = None,
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
     stats: EstimatorStats | None = None,
@@ -123,21 +125,23 @@ def main(
     mapper = CoordinateMapper(list(first.coordinates))
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     load_kg = float(initial_load_kg)
+    # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events name.
+    exercise = exercise if exercise is not None else first.pack.name
+    current_exercise = ""
 
-    def on_joints(sample: zenoh.Sample) -> None:
-        inbox.put(("joints", messages.now_ns(), sample.payload.to_bytes()))
+    joints_key, load_key = topics.joints_key(session), topics.load_key(session)
 
-    def on_load(sample: zenoh.Sample) -> None:
-        inbox.put(("load", messages.now_ns(), sample.payload.to_bytes()))
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key in (joints_key, load_key):
+            inbox.put(("load" if key == load_key else "joints", messages.now_ns(), sample.payload.to_bytes()))
 
     with open_session(config) as zsession:
         publishers = {
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
-        subscribers = [
-            zsession.declare_subscriber(topics.joints_key(session), on_joints),
-            zsession.declare_subscriber(topics.load_key(session), on_load),
-        ]
+        # One subscriber for both keys keeps load events and frames in their publication order.
+        subscribers = [zsession.declare_subscriber(f"{topics.session_prefix(session)}/*", on_sample)]
         if ready_event is not None:
             ready_event.set()
         try:
@@ -149,9 +153,13 @@ def main(
                 if kind == "load":
                     event = messages.decode("msk.LoadEvent", payload)
                     load_kg = float(event.barbell_mass_kg)
+                    current_exercise = event.exercise or current_exercise
                     stats.load_events += 1
                     continue
                 stats.frames_in += 1
+                if current_exercise and current_exercise != exercise:
+                    stats.other_exercise += 1
+                    continue
                 joints = messages.decode("msk.JointAngles", payload)
                 try:
                     q, qd, qdd = (mapper.take(joints, f) for f in ("q", "qd", "qdd"))
@@ -189,6 +197,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
+    parser.add_argument(
+        "--exercise", default=None,
+        help="estimate only while load events name this exercise (default: the pack's name, e.g. bench_press)",
+    )
     add_zenoh_arguments(parser)
 
 
@@ -202,7 +214,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     print(f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}", file=sys.stderr, flush=True)
     stats = main(
         options_from_args(args), pack=args.pack, session=args.session, methods=methods,
-        subject_path=args.subject, initial_load_kg=args.load_kg, stop_event=stop,
+        subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
     )
     print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}", file=sys.stderr)
     return 0

@@ -26,7 +26,7 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
     thread = threading.Thread(
         target=estimator.main,
         args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-        kwargs=dict(pack="arm26", session="t", methods=["so", "hybrid"], stop_event=stop, ready_event=ready, stats=stats),
+        kwargs=dict(pack="arm26", exercise="arm_curl", session="t", methods=["so", "hybrid"], stop_event=stop, ready_event=ready, stats=stats),
         daemon=True,
     )
     thread.start()
@@ -42,18 +42,22 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
         deadline = time.monotonic() + 10
         while not (joints_pub.matching_status.matching and load_pub.matching_status.matching) and time.monotonic() < deadline:
             time.sleep(0.01)
-        publish(load_pub, messages.LoadEvent(barbell_mass_kg=2.0))
+        publish(load_pub, messages.LoadEvent(barbell_mass_kg=2.0, exercise="arm_curl"))
         # Coordinates deliberately in reverse order: the node maps them by name.
         for i, q in enumerate(poses):
             publish(joints_pub, messages.JointAngles(coordinates=coords[::-1], q=q[::-1].tolist(), phase=-1.0, device_time_ns=(i + 1) * 10_000_000))
         publish(joints_pub, messages.JointAngles(coordinates=coords, q=[float("nan")] * len(coords), device_time_ns=999_000_000_000))
         publish(joints_pub, messages.JointAngles(coordinates=["not_a_coordinate"], q=[0.0], device_time_ns=1))
+        # Another exercise under way: its frames are skipped, not rejected as errors.
+        publish(load_pub, messages.LoadEvent(barbell_mass_kg=60.0, exercise="deadlift"))
+        publish(joints_pub, messages.JointAngles(coordinates=["lumbar_extension"], q=[0.0], device_time_ns=2))
         deadline = time.monotonic() + 30
         while min(len(v) for v in received.values()) < len(poses) + 1 and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(0.2)
     stop.set()
     thread.join(10)
+    assert stats.other_exercise == 1 and stats.load_events == 2
     assert stats.rejected == 1 and "lack" in stats.last_error and "not_a_coordinate" in stats.last_error
     for method in ("so", "hybrid"):
         frames = received[method]
