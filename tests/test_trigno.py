@@ -219,8 +219,10 @@ def test_unsolicited_stopped_ends_acquisition_without_reconnecting():
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0, quirks=quirks)) as sim, client_for(sim) as client:
         client.start()
         events = collect(client, seconds=5, until=lambda ev: any(isinstance(e, StatusEvent) and e.state is ClientState.STOPPED for e in ev))
+        stopped_at = len(events)
         events += collect(client, seconds=0.2)
     states = [e.state for e in events if isinstance(e, StatusEvent)]
+    assert len(emg_rows(events[stopped_at:])) == 0  # everything sent before STOPPED came before the event
     assert ClientState.STOPPED in states and ClientState.RECONNECTING not in states
     assert len(emg_rows(events)) == math.ceil(0.3 / tp.FRAME_INTERVAL_S) * 27
 

@@ -57,3 +57,14 @@ def test_reply_reader_gives_up_on_an_endless_reply():
     else:
         raise AssertionError("an endless reply must be an error")
     assert reader.feed(b"OK\r\n\r\n") == ["OK"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=126), max_size=40))
+def test_simulator_answers_every_command_with_one_reply(command):
+    from drivers.trigno.simulator import TrignoSimulator, _CommandConnection
+    from drivers.trigno.source import synthetic_source
+
+    sim = TrignoSimulator(synthetic_source(seconds=0.1))
+    reply = sim._handle(_CommandConnection(None, 1), command)  # type: ignore[arg-type]
+    assert isinstance(reply, str) and reply and "\r\n\r\n" not in reply

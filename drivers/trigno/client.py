@@ -418,6 +418,8 @@ class TrignoClient:
 
     def _on_stopped(self) -> None:
         """The server's stop trigger fired: acquisition is over, not a fault (no reconnection)."""
+        if self._link is not None:
+            self._drain(self._link)  # frames sent before STOPPED are already here: deliver them first
         self._want_streaming = False
         self.state = ClientState.STOPPED
         self._emit_status(ClientState.STOPPED, "STOPPED received from the server (stop trigger)")
