@@ -201,10 +201,10 @@ class EmgEnvelopeFilter:
                 np.abs(x, out=bin_l_u)
             else:
                 np.copyto(bin_b_u, x)
-                np.matmul(mb, bin_b, out=bout_b)
+                np.dot(mb, bin_b, out=bout_b)  # np.dot: less dispatch overhead than matmul on small matrices
                 np.copyto(bin_b_z, bout_b[n:])
                 np.abs(bout_b[:n], out=bin_l_u)
-            out = ml @ bin_l
+            out = np.dot(ml, bin_l)
             np.copyto(bin_l_z, out[n:])
             return out[:n]
         if n == 0:
