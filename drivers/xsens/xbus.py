@@ -424,6 +424,9 @@ class _Layout(NamedTuple):
     ids: dict
     conversions: tuple  # per field: 0 none, 1 fixed 12.20, 2 fixed 16.32, 3 unknown (raw bytes)
     plain: bool
+    fx20: tuple  # flat indices of every fixed 12.20 component
+    fx32: tuple  # flat indices of the fraction of every fixed 16.32 component (its integer part follows)
+    targets: tuple  # (name, 0 = flat / 1 = converted list, slice) for every known item
 
 
 _LAYOUTS: dict[int, list[_Layout]] = {}
@@ -479,9 +482,26 @@ def _compile_layout(items: list[tuple[int, int, int]]) -> _Layout:
         conversions.append(conversion)
         position += fields
     header_struct = struct.Struct("".join(header_fmt))
+    # Fixed-point components of all items are converted in one pass: 12.20 ones first, then 16.32 ones.
+    fx20 = [k for part, c in zip(slices, conversions) if c == 1 for k in range(part.start, part.stop)]
+    fx32 = [k for part, c in zip(slices, conversions) if c == 2 for k in range(part.start, part.stop, 2)]
+    targets = []
+    next20, next32 = 0, len(fx20)
+    for name, part, conversion in zip(names, slices, conversions):
+        if conversion == 0:
+            targets.append((name, 0, part))
+        elif conversion == 1:
+            count = part.stop - part.start
+            targets.append((name, 1, slice(next20, next20 + count)))
+            next20 += count
+        elif conversion == 2:
+            count = (part.stop - part.start) // 2
+            targets.append((name, 1, slice(next32, next32 + count)))
+            next32 += count
     return _Layout(
         header_struct.unpack_from, tuple(headers), struct.Struct("".join(data_fmt)).unpack_from,
         tuple(names), tuple(slices), ids, tuple(conversions), not any(conversions),
+        tuple(fx20), tuple(fx32), tuple(targets),
     )
 
 
@@ -502,18 +522,14 @@ def decode_mtdata2(payload: bytes | bytearray | memoryview) -> MtData2:
     flat = layout.unpack_from(payload)
     if layout.plain:
         return MtData2(dict(zip(layout.names, map(flat.__getitem__, layout.slices))), dict(layout.ids), [])
-    values: dict[str, tuple] = {}
-    unknown: list[tuple[int, bytes]] = []
-    for index, (name, part, conversion) in enumerate(zip(layout.names, layout.slices, layout.conversions)):
-        if conversion == 0:
-            values[name] = flat[part]
-        elif conversion == 1:
-            values[name] = tuple(map(_FP1220_SCALE.__mul__, flat[part]))
-        elif conversion == 2:
-            raw = flat[part]  # fraction, integer, fraction, integer, ...
-            values[name] = tuple(map(_add, raw[1::2], map(_FP1632_SCALE.__mul__, raw[0::2])))
-        else:
-            unknown.append((layout.headers[2 * index], flat[part][0]))
+    converted = [flat[k] * _FP1220_SCALE for k in layout.fx20] + [flat[k + 1] + flat[k] * _FP1632_SCALE for k in layout.fx32]
+    sources = (flat, converted)
+    values = {name: tuple(sources[source][part]) for name, source, part in layout.targets}
+    unknown = [
+        (layout.headers[2 * index], flat[part][0])
+        for index, (part, conversion) in enumerate(zip(layout.slices, layout.conversions))
+        if conversion == 3
+    ]
     return MtData2(values, dict(layout.ids), unknown)
 
 
