@@ -3,7 +3,8 @@
 Per channel: source s_k(t) = a_k(t + emd) · n_k(t) with n_k unit-RMS noise band-passed 30–300 Hz (the bulk of the
 surface-EMG power spectrum, e.g. De Luca 1997, J Appl Biomech 13:135); optional cross-talk mixes neighbouring sources;
 the electrode multiplies by its gain (RMS volts at a = 1) and adds a white noise floor and occasional motion
-artefacts (damped 2–8 Hz transients, mostly removed by a 20 Hz high-pass as in real recordings).
+artefacts (damped 2–8 Hz transients, mostly removed by a 20 Hz high-pass as in real recordings); the result is
+quantised to the sensor's ADC step.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from scipy import signal
 from msk_core.synth.rng import stream
 
 CARRIER_BAND_HZ = (30.0, 300.0)
+#: ADC step: a Trigno EMG sensor digitises ±11 mV with 16 bits (Delsys Trigno user guide), ~0.34 µV.
+ADC_STEP_V = 22e-3 / 2**16
 
 
 def _carrier_sos(rate_hz: float) -> tuple[np.ndarray, float]:
@@ -79,7 +82,7 @@ def raw_emg(
         for t0 in artefact_times if artefact_times is not None else ():
             if rng.uniform() < artefact_probability:
                 x += motion_artefact(time, t0 + rng.uniform(-0.1, 0.1), rng.uniform(100, 500) * 1e-6, rng.uniform(2, 8))
-        out[:, k] = x
+        out[:, k] = np.round(x / ADC_STEP_V) * ADC_STEP_V
     return out
 
 

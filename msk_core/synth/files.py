@@ -30,6 +30,17 @@ from msk_core.synth.session import ExerciseSession, Session, Trial
 
 TRUTH_FORMAT = "msk-synth-truth/1"
 
+# Storage files are written with values rounded far below every noise level (angles to 1e-8 rad, torques to 1 µN·m,
+# activations to 1e-7, EMG to 0.1 nV): the text is then about half as long as full double precision.
+_DECIMALS = {"angle": 8, "torque": 6, "activation": 7, "emg": 10}
+
+
+def _r(x: np.ndarray, kind: str) -> np.ndarray:
+    return np.round(np.asarray(x, dtype=float), _DECIMALS[kind])
+
+
+MVC_ENVELOPE_RATE_HZ = 50.0  # the 6 Hz envelope needs no more; keeps the MVC file small
+
 
 class EmgOutput(enum.Enum):
     ENVELOPE = "envelope"
@@ -53,18 +64,19 @@ def write_trial(trial: Trial, folder: Path, *, emg_max: dict[str, float], body_m
                 emg_rate_hz: float, emg_output: EmgOutput) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     name = f"msk-synth {trial.name}"
-    write_sto(folder / "ik.sto", trial.time, trial.coordinates, trial.q, name=name)
-    write_sto(folder / "id.sto", trial.time, [f"{c}_moment" for c in trial.coordinates], trial.torque_reported,
-              name=name)
+    write_sto(folder / "ik.sto", trial.time, trial.coordinates, _r(trial.q, "angle"), name=name)
+    write_sto(folder / "id.sto", trial.time, [f"{c}_moment" for c in trial.coordinates],
+              _r(trial.torque_reported, "torque"), name=name)
     if emg_output is EmgOutput.RAW:
-        write_sto(folder / "emg.sto", trial.emg_time, trial.channels, trial.emg, name=name)
+        write_sto(folder / "emg.sto", trial.emg_time, trial.channels, _r(trial.emg, "emg"), name=name)
     else:
         env = _downsample(trial.emg_time, _envelope(trial.emg, emg_rate_hz), trial.time)
-        write_sto(folder / "emg.sto", trial.time, trial.channels, env, name=name)
-    write_sto(folder / "truth_activations.sto", trial.time, trial.groups, trial.activation, name=name)
+        write_sto(folder / "emg.sto", trial.time, trial.channels, _r(env, "emg"), name=name)
+    write_sto(folder / "truth_activations.sto", trial.time, trial.groups, _r(trial.activation, "activation"),
+              name=name)
     write_sto(folder / "truth_torques.sto", trial.time,
               [f"{c}_id" for c in trial.coordinates] + [f"{c}_muscle" for c in trial.coordinates],
-              np.column_stack([trial.torque_id, trial.torque_muscle]), name=name)
+              _r(np.column_stack([trial.torque_id, trial.torque_muscle]), "torque"), name=name)
     spec = {
         "name": trial.name,
         "kinematics": "ik.sto",
@@ -113,11 +125,11 @@ def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = 
         folder.mkdir(parents=True, exist_ok=True)
         maxima = mvc_maxima(ex, cfg.emg_rate_hz)
         if emg_output is EmgOutput.RAW:
-            write_sto(folder / "mvc_emg.sto", ex.mvc.time, ex.mvc.channels, ex.mvc.emg, name="msk-synth mvc")
+            write_sto(folder / "mvc_emg.sto", ex.mvc.time, ex.mvc.channels, _r(ex.mvc.emg, "emg"), name="msk-synth mvc")
         else:
-            t_lo = np.arange(0.0, ex.mvc.time[-1], 1.0 / cfg.kinematics_rate_hz)
+            t_lo = np.arange(0.0, ex.mvc.time[-1], 1.0 / MVC_ENVELOPE_RATE_HZ)
             env = _downsample(ex.mvc.time, _envelope(ex.mvc.emg, cfg.emg_rate_hz), t_lo)
-            write_sto(folder / "mvc_emg.sto", t_lo, ex.mvc.channels, env, name="msk-synth mvc envelope")
+            write_sto(folder / "mvc_emg.sto", t_lo, ex.mvc.channels, _r(env, "emg"), name="msk-synth mvc envelope")
         trials = [
             write_trial(t, folder / t.name, emg_max=maxima, body_mass_kg=ex.subject.mass_kg,
                         emg_rate_hz=cfg.emg_rate_hz, emg_output=emg_output)

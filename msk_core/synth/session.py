@@ -25,7 +25,7 @@ class SynthConfig:
     n_reps: int = 8
     kinematics_rate_hz: float = 100.0
     emg_rate_hz: float = 2000.0
-    imu_rate_hz: float = 100.0
+    imu_rate_hz: float = 60.0  # Xsens Awinda: 60 Hz holds for up to 20 trackers
     effects: Effects = Effects()
     tempo: Tempo = Tempo()
     loads_kg: dict[Exercise, tuple[float, ...]] | None = None  # None: the exercise defaults

@@ -53,6 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--emg-output", choices=[e.value for e in EmgOutput], default=EmgOutput.ENVELOPE.value,
                    help="emg.sto content: MVC-ready zero-phase envelope at the kinematics rate (default) or raw 2 kHz")
     p.add_argument("--no-mcap", action="store_true", help="skip the MCAP recording")
+    p.add_argument("--mcap", type=Path, default=None, help="MCAP path (default OUT/session.mcap)")
     p.add_argument("--device-streams", action="store_true", help="also write Trigno/Xsens replay files under raw/")
     p.add_argument("--session", default="synth", help="session name in the MCAP topics (msk/<session>/...)")
     p.add_argument("--pack", action="append", default=[], metavar="EXERCISE=PACK",
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from services.synth_export import write_device_streams, write_mcap
 
     if not args.no_mcap:
-        written.append(write_mcap(session, args.out / "session.mcap", session_name=args.session))
+        written.append(write_mcap(session, args.mcap or args.out / "session.mcap", session_name=args.session))
     if args.device_streams:
         write_device_streams(session, args.out)
     for ex in session.exercises:
