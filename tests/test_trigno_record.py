@@ -153,3 +153,28 @@ def test_msk_sim_trigno_serves_a_client():
         process.terminate()
         process.wait(timeout=10)
     assert got >= 300
+
+
+def test_msk_drivers_publishes_to_a_connected_peer():
+    port = free_port()
+    received: list = []
+    source = synthetic_source(seconds=3.0, seed=6)
+    listen = zenoh_session.ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",))
+    with zenoh_session.open_session(listen) as session, TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as sim:
+        subscriber = session.declare_subscriber("msk/drv/**", lambda s: received.append((str(s.key_expr), bytes(s.payload.to_bytes()))))
+        time.sleep(0.2)
+        code = main(
+            [
+                "drivers", "--trigno", f"127.0.0.1:{sim.ports['command']}", "--trigno-emg-port", str(sim.ports["emg"]),
+                "--session", "drv", "--duration", "0.8", "--connect", f"tcp/127.0.0.1:{port}",
+            ]
+        )
+        time.sleep(0.3)
+        subscriber.undeclare()
+    assert code == 0
+    chunks = [messages.decode("msk.EmgChunk", p) for k, p in received if k == "msk/drv/emg/trigno"]
+    assert len(chunks) > 10
+    first = chunks[0].first_sample_index  # 0 unless the peers were still exchanging declarations
+    rows = np.concatenate([np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in chunks])
+    assert np.array_equal(rows, source.samples[first : first + len(rows), :4])
+    assert any(k == "msk/drv/status/trigno" for k, _ in received)
