@@ -177,10 +177,11 @@ class EmgEnvelopeFilter:
     def _enter(self, n: int) -> tuple:
         lp = self._lowpass.enter_block(n)
         if self._bandpass is None:
-            fast = (None, None, None, None, None, lp[0], lp[1], lp[2], lp[3], lp[4][n:])
+            fast = (None, None, None, None, None, None, None, lp[0], lp[1], lp[2], lp[3])
         else:
             bp = self._bandpass.enter_block(n)
-            fast = (bp[0], bp[1], bp[2], bp[3], bp[4], lp[0], lp[1], lp[2], lp[3], lp[4][n:])
+            # views made once per chunk size: slicing costs as much as a small copy on the hot path
+            fast = (bp[0], bp[1], bp[2], bp[3], bp[4], bp[4][:n], bp[4][n:], lp[0], lp[1], lp[2], lp[3])
         self._fast_n, self._fast = n, fast
         return fast
 
@@ -196,14 +197,14 @@ class EmgEnvelopeFilter:
         if 0 < n <= _BLOCK_MAX:
             # Hot path (one Trigno frame): one matmul per stage into preallocated buffers, no allocation but the result.
             fast = self._fast if n == self._fast_n else self._enter(n)
-            mb, bin_b, bin_b_u, bin_b_z, bout_b, ml, bin_l, bin_l_u, bin_l_z, _ = fast
+            mb, bin_b, bin_b_u, bin_b_z, bout_b, bout_b_y, bout_b_z, ml, bin_l, bin_l_u, bin_l_z = fast
             if mb is None:
                 np.abs(x, out=bin_l_u)
             else:
                 np.copyto(bin_b_u, x)
                 np.dot(mb, bin_b, out=bout_b)  # np.dot: less dispatch overhead than matmul on small matrices
-                np.copyto(bin_b_z, bout_b[n:])
-                np.abs(bout_b[:n], out=bin_l_u)
+                np.copyto(bin_b_z, bout_b_z)
+                np.abs(bout_b_y, out=bin_l_u)
             out = np.dot(ml, bin_l)
             np.copyto(bin_l_z, out[n:])
             return out[:n]
