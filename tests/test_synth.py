@@ -293,3 +293,28 @@ def test_cli_writes_session_and_reports_bad_input(tmp_path, capsys):
     assert (out / "session.mcap").stat().st_size > 0 and (out / "deadlift" / "deadlift_35kg" / "trial.toml").is_file()
     assert main(["synth", "--exercise", "deadlift", "--effects", "bogus", "--out", str(out)]) != 0
     assert "bogus" in capsys.readouterr().err
+
+
+def test_muscle_effects_and_crosstalk_change_the_truth_in_the_expected_direction():
+    from msk_core.synth.effects import active_force_length, force_velocity, passive_force_length
+
+    # curve sanity: optimum at l̃ = 1, no passive force below slack, fv = 1 isometric, < 1 shortening, > 1 lengthening
+    assert active_force_length(np.array([1.0]))[0] == 1.0 and active_force_length(np.array([0.6]))[0] < 0.5
+    assert passive_force_length(np.array([0.9]))[0] == 0.0 and passive_force_length(np.array([1.6]))[0] == pytest.approx(1.0)
+    fv = force_velocity(np.array([0.0, 0.2, -0.2]))
+    assert fv[0] == 1.0 and fv[1] < 1.0 < fv[2] < 1.8
+    base = generate_exercise(Exercise.BENCH_PRESS, small_config(), pack=PACKS[Exercise.BENCH_PRESS])
+    weak = generate_exercise(Exercise.BENCH_PRESS, small_config(effects=parse_effects("fl_active")),
+                             pack=PACKS[Exercise.BENCH_PRESS])
+    a0, a1 = base.trials[0].activation, weak.trials[0].activation
+    # same torques from force-length-scaled muscles need more activation overall
+    assert a1.sum() > 1.02 * a0.sum()
+    assert np.array_equal(base.trials[0].torque_id, weak.trials[0].torque_id)
+    mixed = generate_exercise(Exercise.BENCH_PRESS, small_config(effects=parse_effects("crosstalk=0.3")),
+                              pack=PACKS[Exercise.BENCH_PRESS])
+
+    def neighbour_corr(ex):
+        env = envelope_causal(ex.trials[0].emg, EmgFilterConfig(rate_hz=2000.0))
+        return np.mean([np.corrcoef(env[:, k], env[:, k + 1])[0, 1] for k in range(env.shape[1] - 1)])
+
+    assert neighbour_corr(mixed) > neighbour_corr(base) + 0.05
