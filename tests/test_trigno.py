@@ -283,3 +283,20 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
     first_after = next(e for e in events[gap_at:] if isinstance(e, EmgBlock))
     assert first_after.first_sample_index == gap.first_missing_index + gap.n_missing
     assert client.stats.reconnects == 1 and client.stats.samples_lost == gap.n_missing
+
+
+def test_stalled_stream_is_treated_as_a_lost_link_and_resumes():
+    source = synthetic_source(seconds=10.0, seed=8)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as sim:
+        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
+        client.connect()
+        client.start()
+        before = emg_rows(collect(client, samples=500, seconds=5))
+        sim.stall()
+        events = collect(client, seconds=5, until=lambda ev: len(emg_rows(ev)) >= 300)
+        client.close()
+    states = [e for e in events if isinstance(e, StatusEvent)]
+    assert states[0].state is ClientState.RECONNECTING and "no EMG data" in states[0].detail
+    gap = next(e for e in events if isinstance(e, GapEvent))
+    assert gap.first_missing_index == len(before) and gap.n_missing > 0
+    assert_bit_exact(emg_rows(events)[:300], source.samples[:300])  # START after reconnection restarts the stream

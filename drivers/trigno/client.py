@@ -33,6 +33,7 @@ class TrignoConfig:
     connect_timeout_s: float = 2.0
     reply_timeout_s: float = 3.0
     reconnect: bool = True
+    stall_timeout_s: float | None = 5.0  # no EMG bytes this long while streaming = lost link (a pulled cable sends no FIN)
     backoff_initial_s: float = 0.05
     backoff_max_s: float = 2.0
     recv_bytes: int = 65536
@@ -164,6 +165,7 @@ class TrignoClient:
         self._next_index = 0
         self._next_aux_index = 0
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
+        self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
         self._backoff = config.backoff_initial_s
         self._next_attempt = 0.0
@@ -194,7 +196,7 @@ class TrignoClient:
         self._command("START")
         self._want_streaming = True
         self.state = ClientState.STREAMING
-        self._last_data_time = time.monotonic()
+        self._last_data_time = self._last_activity = time.monotonic()
         self._emit_status(ClientState.STREAMING, "started")
 
     def stop(self) -> None:
@@ -342,6 +344,14 @@ class TrignoClient:
             self._try_reconnect(timeout)
         elif self._link is not None:
             self._wait_and_read(timeout)
+            stall = self.config.stall_timeout_s
+            if (
+                stall is not None
+                and self.state is ClientState.STREAMING
+                and self._link is not None
+                and time.monotonic() - self._last_activity > stall
+            ):
+                self._on_connection_lost(f"no EMG data for {stall:g} s")
         else:
             time.sleep(timeout)
         events, self._events = self._events, []
@@ -392,7 +402,7 @@ class TrignoClient:
             return
         if self._gap_pending:
             self._report_gap(now, len(rows))
-        self._last_data_time = now
+        self._last_data_time = self._last_activity = now
         block = EmgBlock(rows, self._next_index, self.rate_hz, time.time_ns())
         self._next_index += len(rows)
         self.stats.samples_received += len(rows)
@@ -480,6 +490,7 @@ class TrignoClient:
             self.stats.last_error = f"reconnect failed: {error}"
             return
         self.stats.reconnects += 1
+        self._last_activity = time.monotonic()
         self.state = ClientState.STREAMING if self._want_streaming else ClientState.CONNECTED
         self._emit_status(self.state, f"reconnected (protocol {self.protocol_version})")
 

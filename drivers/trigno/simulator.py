@@ -150,6 +150,10 @@ class TrignoSimulator:
                 pass
         self.close()
 
+    def stall(self) -> None:
+        """Stop sending data without telling anyone, as when a cable is pulled (no FIN, no RST, no STOPPED)."""
+        self._running = False
+
     def _close_all(self) -> None:
         with self._lock:
             socks = list(self._listeners.values()) + [c.sock for c in self._command_conns]
