@@ -215,7 +215,7 @@ class TrignoClient:
         self._emit_status(ClientState.STOPPED, "stopped by client")
 
     def close(self) -> None:
-        if self._link is not None and self.state in (ClientState.STREAMING, ClientState.CONNECTED):
+        if self._link is not None:  # also after a stop trigger: QUIT politely
             self.stop()
         self._drop_link()
         self.state = ClientState.CLOSED
