@@ -64,6 +64,97 @@ def _screws(poser: OsimPoser, graph, delta: float = 1e-5) -> dict[tuple[str, int
     return screws
 
 
+NONLINEAR_TOLERANCE = 1e-4  # rad or m: screw change across the range beyond which a joint gets the 6-DoF chain
+CHAIN_SAMPLES = 61
+CHAIN_DEGREE = 8
+
+
+def _relative(t: dict, fixed: str, moving: str) -> tuple[np.ndarray, np.ndarray]:
+    rf, pf = t[fixed]
+    rm, pm = t[moving]
+    return rf.T @ rm, rf.T @ (pm - pf)
+
+
+def _screw_at(poser: OsimPoser, q: np.ndarray, k: int, parent: str, child: str, delta: float = 1e-5):
+    """(axis point, omega) of child vs parent per unit coordinate k at pose q, in the parent's frame."""
+    e = np.zeros(len(q))
+    e[k] = delta
+    poser.set(q + e)
+    rp, pp = _relative(poser.transforms(), parent, child)
+    poser.set(q - e)
+    rm, pm = _relative(poser.transforms(), parent, child)
+    poser.set(q)
+    r0, p0 = _relative(poser.transforms(), parent, child)
+    omega = _log_rotation(rp @ rm.T) / (2 * delta)
+    v = (pp - pm) / (2 * delta)
+    w = np.linalg.norm(omega)
+    if w < 1e-7:
+        return np.zeros(3), omega
+    return p0 + np.cross(omega, v) / w**2, omega
+
+
+def _is_nonlinear(poser: OsimPoser, spec: PackSpec, k: int, parent: str, child: str) -> bool:
+    """True when the joint's screw (axis, point, rate) changes across coordinate k's range."""
+    q0 = np.array([c.reference for c in spec.coordinates])
+    c = spec.coordinates[k]
+    samples = []
+    for value in (c.lower, c.reference, c.upper):
+        q = q0.copy()
+        q[k] = value
+        samples.append(_screw_at(poser, q, k, parent, child))
+    poser.set(q0)
+    # compare in the parent frame: the rate vector and the axis line (point projected off the axis)
+    (p_ref, w_ref) = samples[1]
+    for point, omega in (samples[0], samples[2]):
+        if np.linalg.norm(omega - w_ref) > NONLINEAR_TOLERANCE:
+            return True
+        if np.linalg.norm(w_ref) > 1e-7:
+            u = w_ref / np.linalg.norm(w_ref)
+            d = point - p_ref
+            if np.linalg.norm(d - u * (u @ d)) > NONLINEAR_TOLERANCE:
+                return True
+    return False
+
+
+def _euler_xyz(r: np.ndarray) -> np.ndarray:
+    """Angles (a, b, c) with r = Rx(a) Ry(b) Rz(c)."""
+    b = np.arcsin(np.clip(r[0, 2], -1.0, 1.0))
+    return np.array([np.arctan2(-r[1, 2], r[2, 2]), b, np.arctan2(-r[0, 1], r[0, 0])])
+
+
+def _chain(poser: OsimPoser, spec: PackSpec, k: int, fixed: str, moving: str) -> tuple[np.ndarray, list[dict]]:
+    """Exact 1-coordinate joint as x, y, z translations then X, Y, Z rotations (world-aligned at the reference,
+    through the moving body's origin), each a degree-8 polynomial of the coordinate. Returns (origin, functions)."""
+    q0 = np.array([c.reference for c in spec.coordinates])
+    c = spec.coordinates[k]
+    poser.set(q0)
+    t0 = poser.transforms()
+    rf0 = t0[fixed][0]
+    rel_r0, rel_p0 = _relative(t0, fixed, moving)
+    values = np.linspace(c.lower, c.upper, CHAIN_SAMPLES)
+    dofs = []
+    for value in values:
+        q = q0.copy()
+        q[k] = value
+        poser.set(q)
+        rel_r, rel_p = _relative(poser.transforms(), fixed, moving)
+        d = rf0 @ (rel_p - rel_p0)
+        dr = rf0 @ rel_r @ rel_r0.T @ rf0.T
+        dofs.append(np.concatenate([d, _euler_xyz(dr)]))
+    poser.set(q0)
+    dofs = np.unwrap(np.array(dofs), axis=0)
+    centre, half = (c.upper + c.lower) / 2 - c.reference, (c.upper - c.lower) / 2
+    x = (values - c.reference - centre) / half
+    vander = x[:, None] ** np.arange(CHAIN_DEGREE + 1)[None, :]
+    functions = []
+    for j in range(6):
+        coef, *_ = np.linalg.lstsq(vander, dofs[:, j], rcond=None)
+        coef[0] -= np.polynomial.polynomial.polyval(-centre / half, coef)  # exactly the reference pose at q_ref
+        functions.append({"coordinate": k, "centre": centre, "half_width": half, "coefficients": coef.tolist(),
+                          "fit_max_error": float(np.max(np.abs(vander @ coef - dofs[:, j])))})
+    return t0[moving][1], functions
+
+
 def extract_rigid(
     poser: OsimPoser, spec: PackSpec, *, root: str, exclude: tuple[str, ...], shared_from: str, gravity: np.ndarray,
     load_share: float,
@@ -106,9 +197,20 @@ def extract_rigid(
                 if (jname, k) not in screws:
                     continue
                 omega, v = screws[(jname, k)]
+                sign = -1.0 if reversed_ else 1.0
+                if _is_nonlinear(poser, spec, k, graph_parent(graph, jname), graph_child(graph, jname)):
+                    origin, functions = _chain(poser, spec, k, body, other)
+                    axes = np.eye(3)
+                    for j, function in enumerate(functions):
+                        joints.append({"name": f"{jname}:{coord.name}:{'xyzXYZ'[j]}", "parent": current,
+                                       "position": origin.tolist(), "axis": axes[j % 3].tolist(),
+                                       "kind": "prismatic" if j < 3 else "revolute",
+                                       "gains_row": [0.0] * len(spec.coordinates), "function": function})
+                        joint_distal_shared.append(in_shared[body])
+                        current = len(joints) - 1
+                    continue
                 origin = t0[other if not reversed_ else body][1] if not reversed_ else t0[body][1]
                 child_origin = t0[graph_child(graph, jname)][1]
-                sign = -1.0 if reversed_ else 1.0
                 w = np.linalg.norm(omega)
                 gains = np.zeros(len(spec.coordinates))
                 if w > 1e-7:
@@ -153,7 +255,8 @@ def extract_rigid(
     torque_scale = np.ones(n)
     if shared_from:
         for k in range(n):
-            sides = {joint_distal_shared[i] for i, j in enumerate(joints) if j["gains_row"][k] != 0}
+            sides = {joint_distal_shared[i] for i, j in enumerate(joints)
+                     if j["gains_row"][k] != 0 or j.get("function", {}).get("coordinate") == k}
             if sides == {True}:
                 torque_scale[k] = 1.0 / share
             elif len(sides) > 1:
@@ -170,6 +273,13 @@ def extract_rigid(
         "gains": gains.tolist(),
         "torque_scale": torque_scale.tolist(),
     }
+
+
+def graph_parent(graph, jname: str) -> str:
+    for name, parent, _child in graph:
+        if name == jname:
+            return parent
+    raise KeyError(jname)
 
 
 def graph_child(graph, jname: str) -> str:

@@ -60,6 +60,20 @@ class RigidModel:
         self.torque_scale = np.asarray(description["torque_scale"], dtype=float)
         self.load_share = float(description["load_share"])
         self._projection = self.gains.T * self.torque_scale[:, None]  # (n_coordinates, n_joints)
+        # joints whose value is a polynomial of one coordinate (rolling knee, patella): q_j = f(dq_k)
+        nonlinear = [(i, j["function"]) for i, j in enumerate(joints) if "function" in j]
+        self._nl = np.array([i for i, _ in nonlinear], dtype=np.int64)
+        self._nl_coord = np.array([f["coordinate"] for _, f in nonlinear], dtype=np.int64)
+        self._nl_centre = np.array([f["centre"] for _, f in nonlinear], dtype=float)
+        self._nl_half = np.array([f["half_width"] for _, f in nonlinear], dtype=float)
+        coef = (np.array([f["coefficients"] for _, f in nonlinear], dtype=float) if nonlinear
+                else np.zeros((0, 1)))
+        degree = coef.shape[1]
+        self._nl_coef = coef
+        self._nl_d1 = coef[:, 1:] * np.arange(1, degree)[None, :] if degree > 1 else np.zeros((len(nonlinear), 1))
+        self._nl_d2 = (self._nl_d1[:, 1:] * np.arange(1, degree - 1)[None, :] if degree > 2
+                       else np.zeros((len(nonlinear), 1)))
+        self._nl_powers = np.arange(max(degree, 1))
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
 
     def inverse_dynamics(
@@ -69,13 +83,25 @@ class RigidModel:
         qp = self.gains @ dq
         vp = self.gains @ qd
         ap = self.gains @ qdd
+        projection = self._projection
+        if len(self._nl):
+            k = self._nl_coord
+            x = (dq[k] - self._nl_centre) / self._nl_half
+            powers = x[:, None] ** self._nl_powers[None, :]
+            d1 = (self._nl_d1 * powers[:, : self._nl_d1.shape[1]]).sum(axis=1) / self._nl_half
+            d2 = (self._nl_d2 * powers[:, : self._nl_d2.shape[1]]).sum(axis=1) / self._nl_half**2
+            qp[self._nl] = (self._nl_coef * powers[:, : self._nl_coef.shape[1]]).sum(axis=1)
+            vp[self._nl] = d1 * qd[k]
+            ap[self._nl] = d1 * qdd[k] + d2 * qd[k] ** 2
+            projection = projection.copy()
+            projection[k, self._nl] = d1 * self.torque_scale[k]  # virtual work: tau_k += f'(q) tau_j
         if gravity is None:
             tau = pin.rnea(self.model, self.data, qp, vp, ap)
             if hand_load and self.n_load_points:
                 # hand_load acts along gravity: hold (hand_load / |g|) kg, split over the load points
                 tau = tau + (hand_load * self._load_factor) * pin.computeGeneralizedGravity(
                     self.load_model, self.load_data, qp)
-            return self._projection @ tau
+            return projection @ tau
         g = np.asarray(gravity, dtype=float)
         self.model.gravity.linear = g
         self.load_model.gravity.linear = g
@@ -88,7 +114,7 @@ class RigidModel:
         finally:
             self.model.gravity.linear = self.gravity
             self.load_model.gravity.linear = self.gravity
-        return self._projection @ tau
+        return projection @ tau
 
     def body_masses(self) -> dict[str, float]:
         return {b["name"]: float(b["mass"]) for b in self.description["bodies"]}
