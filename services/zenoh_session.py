@@ -129,3 +129,10 @@ def type_name_of_sample(sample: zenoh.Sample) -> str | None:
     if ";" in text:
         return text.split(";", 1)[1] or None
     return None
+
+
+def free_loopback_endpoint() -> str:
+    """A loopback TCP endpoint nobody listens on now: a private network for a self-contained graph (demo, tests)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
