@@ -14,7 +14,7 @@ import pytest
 
 from services.cli import main
 
-CHANNELS = ["rectabd_r", "rectabd_l", "iliocost_r", "iliocost_l", "longlumb_r", "longlumb_l", "longthor_r", "longthor_l"]
+CHANNELS = [f"{m}_{side}" for m in ("rectabd", "iliocost", "longlumb", "longthor") for side in ("r", "l")]
 
 
 def _toml(tmp_path, shared_dir, name):

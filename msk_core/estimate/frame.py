@@ -5,7 +5,8 @@ pack's moment arms (n_coordinates x n_groups). Torque residuals are scaled per c
 torque capacity at the current pose, c_n = sum_g |R_ng| F_max,g (floored at ``MIN_TORQUE_SCALE`` N·m), so that a
 residual is a fraction of what the muscles can produce and no joint dominates by its units.
 
-Methods (a within [a_min, a_max] per group, default [0, 1]; OpenSim bounds by each muscle's min_control; A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
+Methods (a within [a_min, a_max] per group, default [0, 1] - OpenSim bounds by each muscle's min_control;
+A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
 
 - ``so``:       min sum a^2  s.t.  A~ a = tau~. When the torque is beyond the muscles' capacity (the equality problem
   is infeasible) the frame falls back to  min sum a^2 + RESERVE_WEIGHT * |A~ a - tau~|^2  and is flagged
@@ -32,7 +33,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import TYPE_CHECKING

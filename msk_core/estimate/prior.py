@@ -1,8 +1,9 @@
 """Phase-dependent activation prior N(mu(phase), sigma(phase)^2) per muscle group (the paper's EMG prior).
 
 Stored as bin means/stds over the phase of a repetition, phase in [0, 1]; :meth:`PhasePrior.at` interpolates means
-and precisions linearly between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without EMG carry a wide default
-prior (``NO_EMG_MEAN``, ``NO_EMG_STD``) which then acts as a weak min-activation regulariser, and ``has_emg`` says so.
+and precisions linearly between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without
+EMG carry a wide default prior (``NO_EMG_MEAN``, ``NO_EMG_STD``) which then acts as a weak min-activation regulariser,
+and ``has_emg`` says so.
 """
 
 from __future__ import annotations

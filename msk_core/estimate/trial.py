@@ -179,7 +179,9 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
             name = c if tq.has_column(c) else f"{c}_moment"
             if not tq.has_column(name):
                 raise InputError(
-                    f"torque file has neither {c!r} nor {c + '_moment'!r}{_closest(c, tq.columns)}", path=tq.path, field=c
+                    f"torque file has neither {c!r} nor {c + '_moment'!r}{_closest(c, tq.columns)}",
+                    path=tq.path,
+                    field=c,
                 )
             cols.append(name)
         raw = tq.select(cols)
