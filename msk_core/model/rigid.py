@@ -60,48 +60,66 @@ class RigidModel:
         self.torque_scale = np.asarray(description["torque_scale"], dtype=float)
         self.load_share = float(description["load_share"])
         self._projection = self.gains.T * self.torque_scale[:, None]  # (n_coordinates, n_joints)
-        # joints whose value is a polynomial of one coordinate (rolling knee, patella): q_j = f(dq_k)
-        nonlinear = [(i, j["function"]) for i, j in enumerate(joints) if "function" in j]
-        self._nl = np.array([i for i, _ in nonlinear], dtype=np.int64)
-        self._nl_coord = np.array([f["coordinate"] for _, f in nonlinear], dtype=np.int64)
-        self._nl_centre = np.array([f["centre"] for _, f in nonlinear], dtype=float)
-        self._nl_half = np.array([f["half_width"] for _, f in nonlinear], dtype=float)
-        coef = (np.array([f["coefficients"] for _, f in nonlinear], dtype=float) if nonlinear
-                else np.zeros((0, 1)))
-        degree = coef.shape[1]
-        self._nl_coef = coef
-        self._nl_d1 = coef[:, 1:] * np.arange(1, degree)[None, :] if degree > 1 else np.zeros((len(nonlinear), 1))
-        self._nl_d2 = (self._nl_d1[:, 1:] * np.arange(1, degree - 1)[None, :] if degree > 2
-                       else np.zeros((len(nonlinear), 1)))
-        self._nl_powers = np.arange(max(degree, 1))
+        # joints whose value is a polynomial of one coordinate (rolling knee, patella): q_j = f(dq_k), grouped by
+        # coordinate so each group costs one power vector and three small matrix products per call
+        self._nl_groups = []
+        for k in sorted({j["function"]["coordinate"] for j in joints if "function" in j}):
+            idx = [i for i, j in enumerate(joints) if j.get("function", {}).get("coordinate") == k]
+            funcs = [joints[i]["function"] for i in idx]
+            coef = np.array([f["coefficients"] for f in funcs], dtype=float)
+            degree = coef.shape[1]
+            d1 = coef[:, 1:] * np.arange(1, degree)[None, :]
+            d2 = d1[:, 1:] * np.arange(1, degree - 1)[None, :]
+            half, centre = float(funcs[0]["half_width"]), float(funcs[0]["centre"])
+            m = len(idx)
+            stacked = np.zeros((3 * m, degree))  # rows: f, f', f'' over the same power vector
+            stacked[:m] = coef
+            stacked[m : 2 * m, : degree - 1] = d1 / half
+            stacked[2 * m :, : degree - 2] = d2 / half**2
+            self._nl_groups.append({
+                "k": k, "idx": np.array(idx), "m": m, "centre": centre, "inv_half": 1.0 / half,
+                "stacked": stacked, "powers": np.arange(degree).astype(float),
+                "scale": float(self.torque_scale[k]),
+            })
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
+
+    def _joint_motion(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray):
+        """Pinocchio q, v, a and the per-group derivatives f'(q) needed to project torques back."""
+        gains = self.gains
+        qp, vp, ap = gains @ dq, gains @ qd, gains @ qdd
+        slopes = []
+        for grp in self._nl_groups:
+            k = grp["k"]
+            x = (float(dq[k]) - grp["centre"]) * grp["inv_half"]
+            values = grp["stacked"] @ np.power(x, grp["powers"])
+            m = grp["m"]
+            d1, d2 = values[m : 2 * m], values[2 * m :]
+            v, a = float(qd[k]), float(qdd[k])
+            idx = grp["idx"]
+            qp[idx] = values[:m]
+            vp[idx] = d1 * v
+            ap[idx] = d1 * a + d2 * (v * v)
+            slopes.append(d1)
+        return qp, vp, ap, slopes
+
+    def _project(self, tau: np.ndarray, slopes: list) -> np.ndarray:
+        out = self._projection @ tau
+        for grp, d1 in zip(self._nl_groups, slopes):
+            out[grp["k"]] += grp["scale"] * (d1 @ tau[grp["idx"]])  # virtual work: tau_k += f'(q) . tau_j
+        return out
 
     def inverse_dynamics(
         self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float, gravity: np.ndarray | None
     ) -> np.ndarray:
         """Torques at pack coordinates for offsets dq = q - q_ref, velocities and accelerations."""
-        qp = self.gains @ dq
-        vp = self.gains @ qd
-        ap = self.gains @ qdd
-        projection = self._projection
-        if len(self._nl):
-            k = self._nl_coord
-            x = (dq[k] - self._nl_centre) / self._nl_half
-            powers = x[:, None] ** self._nl_powers[None, :]
-            d1 = (self._nl_d1 * powers[:, : self._nl_d1.shape[1]]).sum(axis=1) / self._nl_half
-            d2 = (self._nl_d2 * powers[:, : self._nl_d2.shape[1]]).sum(axis=1) / self._nl_half**2
-            qp[self._nl] = (self._nl_coef * powers[:, : self._nl_coef.shape[1]]).sum(axis=1)
-            vp[self._nl] = d1 * qd[k]
-            ap[self._nl] = d1 * qdd[k] + d2 * qd[k] ** 2
-            projection = projection.copy()
-            projection[k, self._nl] = d1 * self.torque_scale[k]  # virtual work: tau_k += f'(q) tau_j
+        qp, vp, ap, slopes = self._joint_motion(dq, qd, qdd)
         if gravity is None:
             tau = pin.rnea(self.model, self.data, qp, vp, ap)
             if hand_load and self.n_load_points:
                 # hand_load acts along gravity: hold (hand_load / |g|) kg, split over the load points
                 tau = tau + (hand_load * self._load_factor) * pin.computeGeneralizedGravity(
                     self.load_model, self.load_data, qp)
-            return projection @ tau
+            return self._project(tau, slopes)
         g = np.asarray(gravity, dtype=float)
         self.model.gravity.linear = g
         self.load_model.gravity.linear = g
@@ -114,7 +132,7 @@ class RigidModel:
         finally:
             self.model.gravity.linear = self.gravity
             self.load_model.gravity.linear = self.gravity
-        return projection @ tau
+        return self._project(tau, slopes)
 
     def body_masses(self) -> dict[str, float]:
         return {b["name"]: float(b["mass"]) for b in self.description["bodies"]}
