@@ -56,6 +56,29 @@ def find_body(description: dict, pattern: str) -> dict | None:
     return max(matches, key=lambda b: float(b["mass"]), default=None)
 
 
+def joint_motion(rigid, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pinocchio joint positions, velocities, accelerations (n, n_joints) for coordinate offsets dq = q − q_ref.
+
+    Linear joints follow the pack's gains; a joint with a ``function`` (polynomial of one coordinate, e.g. a rolling
+    knee or the patella) follows it, with the chain rule for its rates (as RigidModel.inverse_dynamics does)."""
+    qp, vp, ap = dq @ rigid.gains.T, qd @ rigid.gains.T, qdd @ rigid.gains.T
+    for j, joint in enumerate(rigid.description["joints"]):
+        f = joint.get("function")
+        if not f:
+            continue
+        k = int(f["coordinate"])
+        coef = np.asarray(f["coefficients"], dtype=float)
+        half = float(f["half_width"])
+        x = (dq[:, k] - float(f["centre"])) / half
+        poly = np.polynomial.polynomial
+        d1 = poly.polyval(x, poly.polyder(coef)) / half if coef.size > 1 else np.zeros_like(x)
+        d2 = poly.polyval(x, poly.polyder(coef, 2)) / half**2 if coef.size > 2 else np.zeros_like(x)
+        qp[:, j] = poly.polyval(x, coef)
+        vp[:, j] = d1 * qd[:, k]
+        ap[:, j] = d1 * qdd[:, k] + d2 * qd[:, k] ** 2
+    return qp, vp, ap
+
+
 def simulate_imu(
     pack,
     segments: dict[str, str],
@@ -79,7 +102,7 @@ def simulate_imu(
         raise ModelError(f"pack {pack.name!r}: no body matches the IMU segments {list(segments)}")
     n = time.size
     dq = q - pack.reference_pose[None, :]
-    qp, vp, ap = dq @ rigid.gains.T, qd @ rigid.gains.T, qdd @ rigid.gains.T
+    qp, vp, ap = joint_motion(rigid, dq, qd, qdd)
     positions = [np.asarray(j["position"], dtype=float) for j in rigid.description["joints"]]
     rot = np.empty((len(chosen), n, 3, 3))
     omega = np.empty((len(chosen), n, 3))
