@@ -77,6 +77,41 @@ def joint_angles(parent: Rotation, child: Rotation) -> np.ndarray:
     return np.atleast_2d(rel.as_euler("ZXY"))
 
 
+def twist_angle(parent: Rotation, child: Rotation, axis: np.ndarray) -> np.ndarray:
+    """Angle (rad, in (-pi, pi]) of ``child`` relative to ``parent`` about ``axis`` (a unit vector in the parent frame):
+    the twist of the swing-twist decomposition of ``R_parent^T R_child``. Exact for a hinge about ``axis`` whatever
+    its tilt, where the Cardan angles of ``joint_angles`` mix a tilted hinge axis into ab/adduction and rotation."""
+    a = np.asarray(axis, dtype=float)
+    norm = np.linalg.norm(a)
+    if a.shape != (3,) or not np.isfinite(norm) or norm < 1e-9:
+        raise InputError("the hinge axis must be a non-zero 3-vector", field="axis", value=a.tolist())
+    quat = np.atleast_2d((parent.inv() * child).as_quat(scalar_first=True))
+    angle = 2.0 * np.arctan2(quat[:, 1:] @ (a / norm), quat[:, 0])
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def model_ground_orientation(gravity: np.ndarray, heading_rad: float = 0.0) -> Rotation:
+    """Orientation ``R_GM`` of a musculoskeletal model's ground frame (OpenSim: X anterior, Y up, Z right) in the
+    Z-up global frame when the subject faces ``heading_rad`` and the model's ``gravity`` vector points down.
+
+    Upright models (gravity along -Y) give ``npose_segment_orientation(heading_rad)``; a supine bench-press model
+    (gravity along -X) is that frame turned by the smallest rotation taking its gravity to -Z (chest up)."""
+    g = np.asarray(gravity, dtype=float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or np.linalg.norm(g) < 1e-9:
+        raise InputError("gravity must be a finite non-zero 3-vector", field="gravity", value=g.tolist())
+    upright = npose_segment_orientation(heading_rad)
+    g_global = upright.apply(g / np.linalg.norm(g))
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(g_global, down)
+    s, c = float(np.linalg.norm(axis)), float(g_global @ down)
+    if s < 1e-12:
+        # already down, or straight up: a half turn about the heading's horizontal right axis
+        fix = Rotation.identity() if c > 0 else Rotation.from_rotvec(np.pi * upright.apply([0.0, 0.0, 1.0]))
+    else:
+        fix = Rotation.from_rotvec(axis / s * np.arctan2(s, c))
+    return fix * upright
+
+
 @dataclass(frozen=True)
 class KinematicsFilterConfig:
     """Constant-acceleration model per angle: state [angle, velocity, acceleration], angle measured.

@@ -1,0 +1,16 @@
+"""``msk kinematics``: the live kinematics node (IMU orientations in, model joint coordinates out over Zenoh)."""
+
+from __future__ import annotations
+
+import argparse
+
+from services import kinematics_node
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "kinematics", help="run the live IMU-to-joint-angles node", description=kinematics_node.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    kinematics_node.add_arguments(parser)
+    parser.set_defaults(handler=kinematics_node.run_from_args)

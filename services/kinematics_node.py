@@ -1,0 +1,252 @@
+"""Kinematics node: IMU orientations in, model joint coordinates out.
+
+Subscribes to ``msk/<session>/imu/*`` (:class:`ImuSample`), groups the trackers' samples of the same instant
+(:class:`msk_core.imu_stream.SegmentSynchroniser`), calibrates on the static pose at the start of every set, maps the
+segment orientations to the pack's coordinates through the pack's IMU table (:mod:`msk_core.imu_mapping`), filters
+them causally (angle, velocity, acceleration) and publishes :class:`JointAngles` on ``msk/<out-session>/joints`` at
+the IMU rate. Zenoh callbacks only enqueue; one worker thread does the rest in arrival order. Nothing is dropped
+silently: every sample or frame not published is counted in :class:`KinematicsStats`. Docs: docs/kinematics.md.
+Run ``python -m services.kinematics_node --pack bench_press --session lab`` or ``msk kinematics``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import queue
+import signal
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from drivers.xsens.frames import to_enu
+from drivers.xsens.xbus import CoordinateFrame
+from msk_core.errors import ConfigError, FileFormatError
+from msk_core.imu_kinematics import KinematicsFilterConfig
+from msk_core.imu_mapping import ImuJointMapper, mapping_for, parse_pose
+from msk_core.imu_stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
+from msk_core.model import load_pack
+from msk_core.phase import RepTemplate
+from services import messages, topics
+from services.zenoh_session import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    declare_data_publisher,
+    open_session,
+    options_from_args,
+    publish,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class KinematicsStats:
+    samples_in: int = 0
+    ignored: int = 0  # samples of segments the pack's table does not use (e.g. another exercise's trackers)
+    undecodable: int = 0
+    unknown_frame: int = 0  # samples in a global frame other than ENU/NED/NWU
+    out_of_order: int = 0  # a tracker's sample not newer than its previous one
+    frames_synced: int = 0  # instants at which every needed segment had a sample
+    frames_incomplete: int = 0  # instants some needed segment missed (its samples of others discarded, counted)
+    samples_discarded: int = 0  # samples thrown away with incomplete instants
+    missing: dict[str, int] = field(default_factory=dict)  # segment -> instants it missed
+    calibration_frames: int = 0  # frames spent as the static pose (not published)
+    calibrations: int = 0
+    calibration_failures: int = 0
+    restarts: int = 0  # gaps longer than --gap: a new set, recalibrated
+    bad_frames: int = 0
+    frames_out: int = 0
+    last_error: str = ""
+
+
+def load_template(path: Path) -> RepTemplate:
+    """A rep template from ``msk emg priors`` output (``{"rep_template": ...}``) or a bare ``RepTemplate.to_dict()``."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise FileFormatError(f"cannot read the rep template: {exc}", path=str(path)) from None
+    if not isinstance(doc, dict):
+        raise FileFormatError("expected a JSON object", path=str(path))
+    return RepTemplate.from_dict(doc.get("rep_template", doc))
+
+
+def _segment_of(key: str, sample) -> str:
+    return sample.segment or key.rsplit("/", 1)[1]
+
+
+def main(
+    config: ZenohOptions,
+    *,
+    pack: str,
+    session: str,
+    output_session: str | None = None,
+    facing_deg: float = 0.0,
+    static_pose_deg: dict[str, float] | None = None,
+    static_s: float = 0.5,
+    gap_s: float = 1.0,
+    sync_tolerance_s: float = 0.008,
+    max_wait_s: float = 0.5,
+    filter_config: KinematicsFilterConfig | None = None,
+    phase_template: RepTemplate | None = None,
+    phase_coordinate: str | None = None,
+    stop_event: threading.Event | None = None,
+    ready_event: threading.Event | None = None,
+    stats: KinematicsStats | None = None,
+) -> KinematicsStats:
+    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east)."""
+    stop_event = stop_event or threading.Event()
+    stats = stats if stats is not None else KinematicsStats()
+    model = load_pack(pack)
+    # ENU: x east, y north; the mapping's heading is counter-clockwise from x
+    mapper = ImuJointMapper.for_pack(model, heading_rad=math.radians(90.0 - facing_deg), mapping=mapping_for(model.name))
+    if (phase_template is None) != (phase_coordinate is None):
+        raise ConfigError("phase tracking needs both a rep template and a coordinate", field="phase_coordinate",
+                          value=phase_coordinate)
+    if phase_coordinate is not None and phase_coordinate not in mapper.coordinates:
+        raise ConfigError(f"not a coordinate of pack {model.name!r} ({mapper.coordinates})",
+                          field="phase_coordinate", value=phase_coordinate)
+    kinematics = StreamingJointKinematics(
+        mapper, static_pose_rad=mapper.static_pose(static_pose_deg), static_s=static_s, gap_s=gap_s,
+        filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
+        phase_template=phase_template, phase_coordinate=phase_coordinate,
+    )
+    sync = SegmentSynchroniser(mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9), max_wait_ns=int(max_wait_s * 1e9))
+    needed = set(mapper.segments)
+    coordinates = list(mapper.coordinates)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    prefix = f"{topics.session_prefix(session)}/imu/"
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def handle(key: str, payload: bytes) -> None:
+        stats.samples_in += 1
+        try:
+            imu = messages.decode("msk.ImuSample", payload)
+        except messages.MessageDecodeError as exc:
+            stats.undecodable += 1
+            stats.last_error = f"{key}: {exc}"
+            return
+        segment = _segment_of(key, imu)
+        if segment not in needed:
+            stats.ignored += 1
+            return
+        try:
+            frame = CoordinateFrame[imu.coordinate_frame or "ENU"]  # Xsens' default output frame is ENU
+        except KeyError:
+            stats.unknown_frame += 1
+            stats.last_error = f"{key}: unknown coordinate_frame {imu.coordinate_frame!r} (ENU, NED or NWU)"
+            return
+        o = imu.orientation
+        quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
+        before = sync.out_of_order
+        events = sync.push(segment, int(imu.device_time_ns), quat)
+        stats.out_of_order += sync.out_of_order - before
+        for event in events:
+            if isinstance(event, IncompleteFrame):
+                stats.frames_incomplete += 1
+                stats.samples_discarded += event.samples
+                for s in event.missing:
+                    stats.missing[s] = stats.missing.get(s, 0) + 1
+                stats.last_error = (f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
+                                    f"(topics {prefix}<tracker>; pack {model.name!r} needs {mapper.segments})")
+                if stats.frames_incomplete == 1:
+                    log.error("%s", stats.last_error)
+                continue
+            stats.frames_synced += 1
+            out = kinematics.step(event)
+            _copy_counters(kinematics, stats)
+            if out is None:
+                continue
+            joints = messages.JointAngles(
+                coordinates=coordinates, q=out.q.tolist(), qd=out.qd.tolist(), qdd=out.qdd.tolist(), phase=out.phase,
+                device_time_ns=out.time_ns, host_time_ns=messages.now_ns(),
+            )
+            publish(publisher, joints)
+            stats.frames_out += 1
+
+    with open_session(config) as zsession:
+        publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
+        subscriber = zsession.declare_subscriber(f"{prefix}*", on_sample)
+        if ready_event is not None:
+            ready_event.set()
+        try:
+            while not stop_event.is_set():
+                try:
+                    key, payload = inbox.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                handle(key, payload)
+        finally:
+            subscriber.undeclare()
+    return stats
+
+
+def _copy_counters(kinematics: StreamingJointKinematics, stats: KinematicsStats) -> None:
+    c = kinematics.counters
+    stats.calibration_frames, stats.calibrations = c.calibration_frames, c.calibrations
+    stats.calibration_failures, stats.restarts, stats.bad_frames = c.calibration_failures, c.restarts, c.bad_frames
+    if c.last_error:
+        stats.last_error = c.last_error
+        c.last_error = ""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--pack", required=True, help="model pack with an IMU table: bench_press or deadlift")
+    parser.add_argument("--session", required=True, help="session name: reads msk/<session>/imu/*")
+    parser.add_argument("--out-session", default=None, help="publish on msk/<OUT>/joints (default: --session)")
+    parser.add_argument("--facing-deg", type=float, default=0.0,
+                        help="compass direction the subject faces during calibration, degrees (0 north, 90 east; default 0)")
+    parser.add_argument("--static-pose", default="", metavar="NAME=DEG,...",
+                        help="pose held during calibration, degrees (default: the pack table's, see docs/kinematics.md)")
+    parser.add_argument("--static-s", type=float, default=0.5, help="seconds of static pose at the start of a set (default 0.5)")
+    parser.add_argument("--gap", type=float, default=1.0, help="an IMU gap longer than this many seconds starts a new set (default 1)")
+    parser.add_argument("--sync-tolerance-ms", type=float, default=8.0, help="trackers' samples this close are one instant (default 8)")
+    parser.add_argument("--jerk-std", type=float, default=100.0, help="Kalman process noise, rad/s^3 (default 100)")
+    parser.add_argument("--angle-std-deg", type=float, default=1.0, help="Kalman measurement noise, degrees (default 1)")
+    parser.add_argument("--imu-rate", type=float, default=60.0, help="nominal IMU rate, Hz (default 60; actual dt from timestamps)")
+    parser.add_argument("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
+    parser.add_argument("--phase-template", type=Path, default=None,
+                        help="rep template JSON (`msk emg priors` output or RepTemplate dict), in the coordinate's units (rad)")
+    add_zenoh_arguments(parser)
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    for name in ("static_s", "gap", "sync_tolerance_ms", "imu_rate"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError("must be positive", field="--" + name.replace("_", "-"), value=value)
+    model = load_pack(args.pack)
+    mapping_for(model.name)  # fail before joining the network when the pack has no IMU table
+    pose = parse_pose(args.static_pose, list(model.coordinates))
+    template = load_template(args.phase_template) if args.phase_template is not None else None
+    filter_config = KinematicsFilterConfig(dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg))
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    out = args.out_session or args.session
+    print(f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}", file=sys.stderr, flush=True)
+    stats = main(
+        options_from_args(args), pack=args.pack, session=args.session, output_session=args.out_session,
+        facing_deg=args.facing_deg, static_pose_deg=pose, static_s=args.static_s, gap_s=args.gap,
+        sync_tolerance_s=args.sync_tolerance_ms / 1e3, filter_config=filter_config, phase_template=template,
+        phase_coordinate=args.phase_coordinate, stop_event=stop,
+    )
+    print(f"published {stats.frames_out} frames; calibrations {stats.calibrations}; incomplete instants "
+          f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"
+          + (f"; last error: {stats.last_error}" if stats.last_error else ""), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    _parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(_parser)
+    sys.exit(run_from_args(_parser.parse_args()))

@@ -1,0 +1,287 @@
+"""IMU -> joint coordinates: the pack tables against the packs' own rigid models, the synchroniser, and the live
+kinematics node over real Zenoh on loopback fed with the shipped demo recording, scored against its true joints."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from scipy.spatial.transform import Rotation
+
+from msk_core.errors import ConfigError, InputError
+from msk_core.imu_kinematics import model_ground_orientation, npose_segment_orientation, twist_angle
+from msk_core.imu_mapping import MAPPINGS, WORLD, ImuJointMapper, mapping_for, parse_pose
+from msk_core.imu_stream import IncompleteFrame, SegmentSynchroniser, SyncedFrame
+from msk_core.model import load_pack
+from msk_core.phase import Excursion, PhaseTracker, RepDetectionConfig, learn_template
+from msk_core.synth.exercises import SPECS, Exercise
+from msk_core.synth.imu import find_body, global_frame, joint_motion
+from services import kinematics_node, messages, replayer, topics
+from services.cli import main as cli_main
+from services.mcap_io import read_messages
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = REPO / "recordings" / "demo_session.mcap"
+
+
+# --- msk_core.imu_kinematics additions --------------------------------------------------------------------------
+
+def test_twist_angle_is_exact_for_a_tilted_hinge_and_ignores_swing():
+    axis = np.array([0.226, 0.022, 0.974]) / np.linalg.norm([0.226, 0.022, 0.974])
+    parent = Rotation.from_euler("xyz", [10, -30, 50], degrees=True)
+    angles = np.radians([-170.0, -20.0, 0.0, 15.0, 120.0])
+    child = parent * Rotation.from_rotvec(np.outer(angles, axis))
+    np.testing.assert_allclose(twist_angle(parent, child, axis), angles, atol=1e-12)
+    # a swing about a perpendicular axis leaves the twist alone
+    perp = np.cross(axis, [1.0, 0.0, 0.0])
+    swung = parent * Rotation.from_rotvec(perp / np.linalg.norm(perp) * 0.3)
+    assert abs(twist_angle(parent, swung, axis)[0]) < 1e-12
+    with pytest.raises(InputError, match="axis"):
+        twist_angle(parent, child, np.zeros(3))
+
+
+def test_model_ground_orientation_matches_the_synthetic_global_frame():
+    upright = np.array([0.0, -9.81, 0.0])
+    assert np.allclose(model_ground_orientation(upright, 0.3).as_matrix(), npose_segment_orientation(0.3).as_matrix())
+    for gravity in (upright, np.array([-9.80665, 0.0, 0.0])):  # deadlift, supine bench press
+        # the synth's subjects face north in ENU: heading 90 deg from east
+        np.testing.assert_allclose(model_ground_orientation(gravity, np.pi / 2).as_matrix(), global_frame(gravity), atol=1e-12)
+        r = model_ground_orientation(gravity, 1.0)
+        np.testing.assert_allclose(r.apply(gravity / np.linalg.norm(gravity)), [0.0, 0.0, -1.0], atol=1e-12)
+
+
+# --- the tables ---------------------------------------------------------------------------------------------------
+
+def _body_rotations(pack, segments: dict[str, str], q: np.ndarray) -> dict[str, np.ndarray]:
+    """Model-ground rotations of the bodies the synth straps each tracker to, by pinocchio forward kinematics."""
+    rigid = pack.rigid
+    data = rigid.model.createData()
+    qp, _, _ = joint_motion(rigid, (q - pack.reference_pose)[None, :], np.zeros((1, q.size)), np.zeros((1, q.size)))
+    pin.forwardKinematics(rigid.model, data, qp[0])
+    out = {WORLD: np.eye(3)}
+    for label, pattern in segments.items():
+        body = find_body(rigid.description, pattern)
+        if body is not None:
+            out[label] = data.oMi[int(body["joint"]) + 1].rotation.copy()
+    return out
+
+
+@pytest.mark.parametrize("exercise", [Exercise.BENCH_PRESS, Exercise.DEADLIFT])
+def test_table_reproduces_the_packs_segment_kinematics(exercise):
+    spec = SPECS[exercise]
+    pack = load_pack(spec.pack)
+    mapper = ImuJointMapper.for_pack(pack, heading_rad=0.0)
+    ranges = np.asarray(pack.coordinate_ranges)
+    rng = np.random.default_rng(5)
+    assert set(mapper.segments) <= set(spec.segments), "every table segment is one the synth instruments"
+    worst = {}
+    for _ in range(20):
+        q = ranges[:, 0] + (ranges[:, 1] - ranges[:, 0]) * rng.random(len(pack.coordinates))
+        bodies = _body_rotations(pack, spec.segments, q)
+        mine = mapper.segment_orientations(q)
+        for i, h in enumerate(mapper.hinges):
+            rel = Rotation.from_matrix(bodies[h.parent].T @ bodies[h.child])
+            got = pack.reference_pose[i] + twist_angle(Rotation.identity(), rel, h.unit_axis)[0] / h.gain
+            worst[h.coordinate] = max(worst.get(h.coordinate, 0.0), abs(np.degrees(got - q[i])))
+            # the tree composition gives the same relative orientation up to the hinge's off-axis motion
+            mine_rel = mine[h.parent].inv() * mine[h.child]
+            assert np.degrees((mine_rel.inv() * rel).magnitude()) < 12.0
+    # exact hinges; the rolling knee's off-axis rotation costs a little; the knee is the only non-hinge joint
+    for name, err in worst.items():
+        assert err < (1.5 if name == "knee_angle_r" else 0.05), (name, err)
+
+
+def test_mapping_errors_are_clear():
+    with pytest.raises(ConfigError, match="no IMU mapping for pack 'arm26'"):
+        mapping_for("arm26")
+    with pytest.raises(ConfigError, match="unknown coordinate"):
+        parse_pose("elbow=10", ["elbow_flex_r"])
+    with pytest.raises(ConfigError, match="NAME=DEGREES"):
+        parse_pose("elbow_flex_r", ["elbow_flex_r"])
+    assert parse_pose("elbow_flex_r=20, elv_angle_r=80", ["elv_angle_r", "elbow_flex_r"]) == {"elbow_flex_r": 20.0, "elv_angle_r": 80.0}
+    assert set(MAPPINGS) == {"bench_press", "deadlift"}
+
+
+# --- synchroniser -------------------------------------------------------------------------------------------------
+
+def test_synchroniser_groups_jittered_interleaved_samples_and_names_missing_segments():
+    sync = SegmentSynchroniser(["a", "b", "c"], tolerance_ns=3_000_000, max_wait_ns=100_000_000)
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    events = []
+    period = 16_666_667
+    for k in range(10):
+        t = k * period
+        order = ["c", "a", "b"] if k % 2 else ["b", "c", "a"]
+        for j, s in enumerate(order):
+            if s == "b" and k == 4:
+                continue  # tracker b misses instant 4
+            events += sync.push(s, t + (j - 1) * 1_000_000, q)  # +-1 ms clock jitter between trackers
+    events += sync.push("a", 9 * period, q)  # a repeat: counted, not a new instant
+    synced = [e for e in events if isinstance(e, SyncedFrame)]
+    incomplete = [e for e in events if isinstance(e, IncompleteFrame)]
+    assert len(synced) == 9 and sync.out_of_order == 1
+    assert len(incomplete) == 1 and incomplete[0].missing == ("b",) and incomplete[0].samples == 2
+    assert abs(incomplete[0].time_ns - 4 * period) <= 1_000_000
+    # a dead tracker does not stall the others forever: after max_wait their instants are reported incomplete
+    for k in range(10, 20):
+        events = sync.push("a", k * period, q) + sync.push("b", k * period, q)
+    pending = sum(len(b) for b in sync.buffers.values())
+    assert pending <= 2 * (100_000_000 // period + 2)
+    assert all(e.missing == ("c",) for e in events if isinstance(e, IncompleteFrame))
+
+
+# --- the node over Zenoh on the demo recording -------------------------------------------------------------------
+
+def _recording():
+    imu, joints = defaultdict(list), []
+    for m in read_messages(DEMO):
+        if "/imu/" in m.topic:
+            imu[m.topic.rsplit("/", 1)[1]].append(m.decode().device_time_ns)
+        elif m.topic == topics.joints_key("synth"):
+            j = m.decode()
+            joints.append((j.device_time_ns, tuple(j.coordinates), list(j.q), list(j.qd), list(j.qdd), j.phase))
+    return imu, joints
+
+
+def _start_node(endpoint: str, **kwargs):
+    stop, ready, stats = threading.Event(), threading.Event(), kinematics_node.KinematicsStats()
+    thread = threading.Thread(
+        target=kinematics_node.main, args=(ZenohOptions(connect=(endpoint,)),),
+        kwargs=dict(session="synth", stop_event=stop, ready_event=ready, stats=stats, **kwargs), daemon=True,
+    )
+    thread.start()
+    assert ready.wait(20)
+    return thread, stop, stats
+
+
+def _wait_idle(stats_list, timeout_s: float) -> None:
+    deadline, last = time.monotonic() + timeout_s, None
+    while time.monotonic() < deadline:
+        now = tuple(s.samples_in for s in stats_list)
+        if now == last:
+            return
+        last = now
+        time.sleep(0.5)
+
+
+def test_node_on_demo_recording_recovers_true_joints(zenoh_endpoint, tmp_path):
+    assert DEMO.is_file(), f"{DEMO} missing (regenerate: see recordings/README.md)"
+    imu_times, truth = _recording()
+    bench = load_pack("bench_press")
+    # rep template for the phase, learnt from the true elbow angle of the first bench trial (what calibration does)
+    tb = np.array([j[0] for j in truth if j[1] == tuple(bench.coordinates)]) / 1e9
+    qb = np.array([j[2] for j in truth if j[1] == tuple(bench.coordinates)])
+    first = slice(0, int(np.flatnonzero(np.diff(tb) > 1.0)[0]) + 1)
+    template = learn_template(tb[first], qb[first, 1], RepDetectionConfig(excursion=Excursion.INCREASE))
+    template_path = tmp_path / "priors.json"
+    template_path.write_text(json.dumps({"rep_template": template.to_dict()}))
+
+    received = []
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        session.declare_subscriber(
+            topics.joints_key("kin"), lambda s: received.append(messages.decode("msk.JointAngles", s.payload.to_bytes())))
+        nodes = [
+            _start_node(zenoh_endpoint, pack="bench_press", output_session="kin",
+                        phase_template=kinematics_node.load_template(template_path), phase_coordinate="elbow_flex_r"),
+            _start_node(zenoh_endpoint, pack="deadlift", output_session="kin"),
+        ]
+        replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), DEMO, rate=None, wait_subscribers_s=1.0)
+        _wait_idle([n[2] for n in nodes], 20)
+        time.sleep(0.3)
+    for _, stop, _ in nodes:
+        stop.set()
+    for thread, _, _ in nodes:
+        thread.join(10)
+    (_, _, bench_stats), (_, _, dl_stats) = nodes
+
+    n_bench = len(imu_times["upper_arm_r"])
+    n_dl = len(imu_times["pelvis"])
+    for stats, n, n_sets, n_trackers in ((bench_stats, n_bench, 2, 2), (dl_stats, n_dl, 2, 4)):
+        assert stats.frames_incomplete == 0 and stats.out_of_order == 0 and stats.bad_frames == 0, stats
+        assert stats.frames_synced == n, stats  # every instant of the recording, none lost in transit
+        assert stats.calibrations == n_sets and stats.restarts == n_sets - 1 and stats.calibration_failures == 0
+        assert stats.frames_out + stats.calibration_frames == n
+        assert stats.ignored == stats.samples_in - n * n_trackers  # the other exercise's trackers
+    assert len(received) == bench_stats.frames_out + dl_stats.frames_out
+
+    report = {}
+    for pack in (bench, load_pack("deadlift")):
+        names = tuple(pack.coordinates)
+        mine = [m for m in received if tuple(m.coordinates) == names]
+        t = np.array([m.device_time_ns for m in mine]) / 1e9
+        true = [j for j in truth if j[1] == names]
+        tt = np.array([j[0] for j in true]) / 1e9
+        for i, name in enumerate(names):
+            est = np.array([[m.q[i], m.qd[i], m.qdd[i]] for m in mine])
+            ref = np.column_stack([np.interp(t, tt, [j[k][i] for j in true]) for k in (2, 3, 4)])
+            rms = float(np.degrees(np.sqrt(np.mean((est[:, 0] - ref[:, 0]) ** 2))))
+            corr_qd = float(np.corrcoef(est[:, 1], ref[:, 1])[0, 1])
+            corr_qdd = float(np.corrcoef(est[:, 2], ref[:, 2])[0, 1])
+            report[name] = (rms, corr_qd, corr_qdd, float(np.degrees(np.ptp(ref[:, 0]))))
+    print("\ncoordinate: RMS error (deg), corr(qd), corr(qdd), true range (deg)")
+    for name, (rms, cqd, cqdd, span) in report.items():
+        print(f"  {name:15s} {rms:5.2f}  {cqd:.3f}  {cqdd:.3f}  {span:6.1f}")
+    for name, (rms, cqd, cqdd, span) in report.items():
+        assert rms < 2.0, (name, rms)
+        # the ankle barely moves (4 deg) and the lumbar level 2.5 deg: their rates are mostly noise-limited
+        assert cqd > (0.8 if span < 5 else 0.95), (name, cqd)
+        assert cqdd > (0.3 if span < 5 else 0.6), (name, cqdd)
+
+    # phase: the node's causal tracking on its filtered elbow against the same tracker run on the true elbow
+    mine = [m for m in received if tuple(m.coordinates) == tuple(bench.coordinates)]
+    phase = np.array([m.phase for m in mine])
+    t = np.array([m.device_time_ns for m in mine]) / 1e9
+    true_elbow = np.interp(t, tb, qb[:, 1])
+    tracker = PhaseTracker(template)
+    offline = np.nan_to_num(tracker.process(t, true_elbow), nan=-1.0)
+    in_rep = phase >= 0
+    print(f"phase: in a rep {in_rep.mean():.2f} of frames (true elbow: {(offline >= 0).mean():.2f}), agreement of "
+          f"in/out {np.mean(in_rep == (offline >= 0)):.3f}, median |diff| "
+          f"{np.median(np.abs(phase - offline)[in_rep & (offline >= 0)]):.4f}; true-elbow reps {tracker.rep_count}")
+    assert tracker.rep_count == 6 and np.all(phase[in_rep] < 1.0) and np.all(phase[~in_rep] == -1.0)
+    assert np.mean(in_rep == (offline >= 0)) > 0.97
+    assert np.median(np.abs(phase - offline)[in_rep & (offline >= 0)]) < 0.02
+    # and it follows the generator's own phase where both are inside a rep
+    true_phase = np.interp(t, tb, [j[5] for j in truth if j[1] == tuple(bench.coordinates)])
+    both = in_rep & (true_phase >= 0)
+    assert np.median(np.abs(phase[both] - true_phase[both])) < 0.1
+
+
+def test_node_counts_and_names_a_missing_segment(zenoh_endpoint):
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        thread, stop, stats = _start_node(zenoh_endpoint, pack="bench_press", max_wait_s=0.2)
+        pub = declare_data_publisher(session, topics.imu_key("synth", "00B40001"), "msk.ImuSample")
+        deadline = time.monotonic() + 10
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        publish(pub, messages.ImuSample(segment="upper_arm_r", orientation=messages.Quaternion(w=1.0),
+                                        device_time_ns=1, coordinate_frame="XYZ"))
+        for k in range(60):  # one second of the upper arm only: the forearm tracker is off
+            publish(pub, messages.ImuSample(
+                tracker_id="00B40001", segment="upper_arm_r", orientation=messages.Quaternion(w=1.0),
+                device_time_ns=1_000_000_000 + k * 16_666_667, coordinate_frame="ENU"))
+        deadline = time.monotonic() + 10
+        while stats.samples_in < 61 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    stop.set()
+    thread.join(10)
+    assert stats.frames_out == 0 and stats.frames_synced == 0
+    assert stats.unknown_frame == 1
+    # all but the last ~max_wait of samples are declared incomplete; the rest still wait for the forearm
+    assert 60 - 14 <= stats.frames_incomplete < 60 and stats.missing == {"forearm_r": stats.frames_incomplete}
+    assert stats.samples_discarded == stats.frames_incomplete
+    assert "no sample from segment(s) ['forearm_r']" in stats.last_error and "upper_arm_r" in stats.last_error
+
+
+def test_cli_rejects_a_pack_without_table_and_a_bad_pose(capsys):
+    assert cli_main(["kinematics", "--pack", "arm26", "--session", "x"]) == 2
+    assert "no IMU mapping for pack 'arm26'" in capsys.readouterr().err
+    assert cli_main(["kinematics", "--pack", "bench_press", "--session", "x", "--static-pose", "elbow=3"]) == 2
+    assert "unknown coordinate" in capsys.readouterr().err
