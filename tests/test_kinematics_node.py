@@ -90,12 +90,13 @@ def test_table_reproduces_the_packs_segment_kinematics(exercise):
             rel = Rotation.from_matrix(bodies[h.parent].T @ bodies[h.child])
             got = pack.reference_pose[i] + twist_angle(Rotation.identity(), rel, h.unit_axis)[0] / h.gain
             worst[h.coordinate] = max(worst.get(h.coordinate, 0.0), abs(np.degrees(got - q[i])))
-            # the tree composition gives the same relative orientation up to the hinge's off-axis motion
-            mine_rel = mine[h.parent].inv() * mine[h.child]
-            assert np.degrees((mine_rel.inv() * rel).magnitude()) < 12.0
+            # the tree composition gives the same relative orientation, up to the rolling knee's off-axis motion
+            # (ab/adduction and rotation reach ~10 deg at 120 deg flexion; ~1 deg at the 4 deg static pose)
+            off = np.degrees(((mine[h.parent].inv() * mine[h.child]).inv() * rel).magnitude())
+            assert off < (12.0 if h.coordinate == "knee_angle_r" else 0.05), (h.coordinate, off)
     # exact hinges; the rolling knee's off-axis rotation costs a little; the knee is the only non-hinge joint
     for name, err in worst.items():
-        assert err < (1.5 if name == "knee_angle_r" else 0.05), (name, err)
+        assert err < (0.5 if name == "knee_angle_r" else 0.05), (name, err)
 
 
 def test_mapping_errors_are_clear():
@@ -285,3 +286,11 @@ def test_cli_rejects_a_pack_without_table_and_a_bad_pose(capsys):
     assert "no IMU mapping for pack 'arm26'" in capsys.readouterr().err
     assert cli_main(["kinematics", "--pack", "bench_press", "--session", "x", "--static-pose", "elbow=3"]) == 2
     assert "unknown coordinate" in capsys.readouterr().err
+
+
+def test_docs_example_runs():
+    text = (REPO / "docs" / "kinematics.md").read_text()
+    blocks = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]
+    assert blocks, "docs/kinematics.md has a python example"
+    for block in blocks:
+        exec(compile(block, "docs/kinematics.md", "exec"), {})
