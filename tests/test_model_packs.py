@@ -54,6 +54,10 @@ def test_moment_arms_vs_opensim(shared_dir, name, model, poses):
             assert worst < 40.0, (group, stats)
         else:
             assert worst < 2.0 and rms < 1.0, (group, stats)
+        # against the derivative of OpenSim's own path length the groups without path switches meet the issue's
+        # 2 mm max; RA/EO (deadlift: sums over six lumbar levels of ~400-950 mm) stay within ~1 % of their size
+        assert max(stats["path_derivative_max_mm"].values()) < (10.0 if group in WRAP_JUMP_GROUPS else 2.0), (
+            group, stats)
 
 
 @pytest.mark.parametrize(("name", "model"), [("lumbar_lift", "lumbar_scaled.osim"), ("bench_press", "fullbody.osim"),

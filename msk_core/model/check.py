@@ -34,18 +34,29 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
         weights[gi, col : col + len(forces)] = forces / forces.sum()
         col += len(forces)
     poses = random_poses(pack, n_poses, seed)
-    ref_r, fit_r, ref_l, fit_l = [], [], [], []
+    ref_r, fit_r, ref_l, fit_l, fd_r = [], [], [], [], []
     glitches = 0
+    delta = 1e-5
     for q in tqdm(poses, desc=f"{pack.name}: OpenSim moment arms", disable=not progress):
         bad = osim_tools.opensim_glitches(poser, names, q)
         glitches += int(bad.any())
         group_bad = (weights[:, bad].sum(axis=1) > 0)[:, None]
         ref_r.append(np.where(group_bad, np.nan, weights @ osim_tools.opensim_moment_arms(poser, names, q)))  # (G, n)
         ref_l.append(np.where(group_bad[:, 0], np.nan, weights @ osim_tools.opensim_lengths(poser, names, q)))
+        # second reference: -dl/dq of OpenSim's own path length (computeMomentArm can pick another wrap solution)
+        fd = np.zeros((len(pack.groups), len(q)))
+        for j in range(len(q)):
+            e = np.zeros(len(q))
+            e[j] = delta
+            plus = osim_tools.opensim_lengths(poser, names, q + e)
+            minus = osim_tools.opensim_lengths(poser, names, q - e)
+            fd[:, j] = -(weights @ (plus - minus)) / (2 * delta)
+        fd_r.append(np.where(group_bad, np.nan, fd))
         fit_r.append(pack.moment_arms(q).T)
         fit_l.append(pack.mtu_lengths(q))
     ref_r, fit_r = np.array(ref_r), np.array(fit_r)  # (S, G, n)
     err_r = (fit_r - ref_r) * 1e3
+    err_fd = (fit_r - np.array(fd_r)) * 1e3
     err_l = (np.array(fit_l) - np.array(ref_l)) * 1e3
     mean, peak = np.nanmean, np.nanmax
     per_group = {}
@@ -54,6 +65,7 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
             "moment_arm_rms_mm": {c: float(np.sqrt(mean(err_r[:, gi, j] ** 2))) for j, c in enumerate(pack.coordinates)},
             "moment_arm_max_mm": {c: float(peak(np.abs(err_r[:, gi, j]))) for j, c in enumerate(pack.coordinates)},
             "length_rms_mm": float(np.sqrt(mean(err_l[:, gi] ** 2))),
+            "path_derivative_max_mm": {c: float(peak(np.abs(err_fd[:, gi, j]))) for j, c in enumerate(pack.coordinates)},
             "length_max_mm": float(peak(np.abs(err_l[:, gi]))),
         }
     return {
@@ -63,6 +75,8 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
         "moment_arm_max_mm": float(peak(np.abs(err_r))),
         "length_rms_mm": float(np.sqrt(mean(err_l**2))),
         "length_max_mm": float(peak(np.abs(err_l))),
+        "path_derivative_rms_mm": float(np.sqrt(mean(err_fd**2))),
+        "path_derivative_max_mm": float(peak(np.abs(err_fd))),
         "groups": per_group,
         "opensim_moment_arms": ref_r,
         "pack_moment_arms": fit_r,

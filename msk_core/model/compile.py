@@ -20,7 +20,13 @@ from msk_core.errors import ConfigError
 from msk_core.model import osim_tools
 from msk_core.model.extract import extract_rigid
 from msk_core.model.pack import PACK_FORMAT
-from msk_core.model.poly import fit_length, monomial_derivatives, monomials
+from msk_core.model.poly import (
+    fit_length,
+    hinge_derivatives,
+    hinge_values,
+    monomial_derivatives,
+    monomials,
+)
 from msk_core.model.spec import PackSpec
 
 SPAN_THRESHOLD = 1e-4  # m/rad: a bundle "spans" a coordinate when |moment arm| exceeds 0.1 mm somewhere
@@ -34,21 +40,65 @@ def latin_hypercube(n: int, lower: np.ndarray, upper: np.ndarray, rng: np.random
     return lower + u * (upper - lower)
 
 
-def _fit_muscle(x_fit, l_fit, d_fit, x_test, l_test, d_test, max_degree: int):
+def _fit_muscle(x_fit, l_fit, d_fit, x_test, l_test, d_test, max_degree: int, hinges=()):
     """Pick the degree with the best held-out moment-arm RMS; returns (exponents, coef, report)."""
     best = None
     k = x_fit.shape[1]
+    hinges = list(hinges)
     for degree in range(1, max_degree + 1):
-        if math.comb(k + degree, degree) > 0.5 * len(x_fit) * (k + 1):
+        if math.comb(k + degree, degree) + 3 * len(hinges) > 0.5 * len(x_fit) * (k + 1):
             break
-        exps, coef = fit_length(x_fit, l_fit, d_fit, degree, derivative_weight=DERIVATIVE_WEIGHT)
-        dl = np.stack([monomial_derivatives(x_test, exps, v) @ coef for v in range(k)], axis=1)
+        exps, coef = fit_length(x_fit, l_fit, d_fit, degree, derivative_weight=DERIVATIVE_WEIGHT, hinges=hinges)
+        dl = np.stack([np.hstack([monomial_derivatives(x_test, exps, v), hinge_derivatives(x_test, hinges, v)]) @ coef
+                       for v in range(k)], axis=1)
         err_r = dl - d_test
-        err_l = np.nan_to_num(monomials(x_test, exps) @ coef - l_test)
+        err_l = np.nan_to_num(np.hstack([monomials(x_test, exps), hinge_values(x_test, hinges)]) @ coef - l_test)
         score = float(np.sqrt(np.nanmean(err_r**2)))
         if best is None or score < best[2]["r_rms_x"]:
             best = (exps, coef, {"degree": degree, "r_rms_x": score, "dl_x": err_r, "l_err": err_l})
     return best
+
+
+KNOT_JUMP = 1.5e-3  # m/rad: a moment-arm step this large between neighbouring scan poses is a path switch
+KNOT_STEP_DEG = 0.25
+MAX_KNOTS = 3  # per bundle and coordinate
+
+
+def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dict[str, list[tuple[int, float]]]:
+    """Per bundle, (coordinate index, normalised x) where its moment arm jumps: a scan of each coordinate alone
+    (others at their reference) on a fine grid. Isolated glitches (a jump straight back) are ignored."""
+    n = len(spec.coordinates)
+    q0 = np.array([c.reference for c in spec.coordinates])
+    knots: dict[str, list[tuple[int, float]]] = {m: [] for m in names}
+    for j, c in enumerate(spec.coordinates):
+        count = int(np.ceil(np.degrees(c.upper - c.lower) / KNOT_STEP_DEG)) + 1
+        values = np.linspace(c.lower, c.upper, count)
+        poses = np.repeat(q0[None, :], count, axis=0)
+        poses[:, j] = values
+        bar = tqdm(total=count, desc=f"{spec.name}: path-switch scan {c.name}", unit="pose", disable=not progress)
+        _, derivs = osim_tools.sample_lengths(poser, names, poses, delta=1e-5, progress=bar, only=j)
+        bar.close()
+        r = derivs[:, :, j]  # (count, m) dl/dq (NaN where the slopes disagree: right at a switch)
+        for i, name in enumerate(names):
+            series = r[:, i]
+            good = np.flatnonzero(np.isfinite(series))
+            if len(good) < 3:
+                continue
+            steps = np.diff(series[good])
+            size = np.abs(steps)
+            # a switch is a step far above the smooth variation around it (median of its +-5 neighbours)
+            local = np.array([np.median(np.delete(size[max(0, a - 5) : a + 6], min(a, 5))) for a in range(len(size))])
+            jumps = np.flatnonzero((size > KNOT_JUMP) & (size > 8 * local))
+            jumps = sorted(jumps, key=lambda a: -size[a])[:MAX_KNOTS]
+            for a in jumps:
+                back = [b for b in jumps if 0 < abs(b - a) <= 3 and np.sign(steps[b]) != np.sign(steps[a])]
+                if back:
+                    continue  # isolated glitch: a jump straight back
+                q_knot = (values[good[a]] + values[good[a + 1]]) / 2
+                x_knot = (q_knot - (c.upper + c.lower) / 2) / ((c.upper - c.lower) / 2)
+                knots[name].append((j, float(x_knot)))
+    del n
+    return knots
 
 
 def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True) -> dict:
@@ -72,6 +122,7 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
     bar = tqdm(total=len(poses), desc=f"{spec.name}: OpenSim lengths", unit="pose", disable=not progress)
     lengths, derivs = osim_tools.sample_lengths(poser, names, poses, progress=bar)
     bar.close()
+    knots = detect_knots(poser, names, spec, progress)
     x = (poses - centre) / half
     dx = derivs * half[None, None, :]  # dl/dx
     fit_idx, test_idx = np.arange(n_test, len(poses)), np.arange(n_test)
@@ -81,22 +132,27 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
     for i, name in enumerate(names):
         spanned = [j for j in range(n) if np.nanmax(np.abs(derivs[:, i, j])) > SPAN_THRESHOLD]
         if not spanned:
-            muscle_fits[name] = (np.zeros((1, n), dtype=np.int64), np.array([np.nanmean(lengths[:, i])]))
+            muscle_fits[name] = (np.zeros((1, n), dtype=np.int64), np.array([np.nanmean(lengths[:, i])]), [],
+                                 np.zeros(0))
             report[name] = {"spans": [], "degree": 0,
                             "length_rms_mm": float(1e3 * np.nanstd(lengths[:, i]))}
             continue
         xs = x[:, spanned]
+        local_hinges = [(spanned.index(j), xk) for j, xk in knots[name] if j in spanned]
         exps, coef, info = _fit_muscle(
             xs[fit_idx], lengths[fit_idx, i], dx[fit_idx, i][:, spanned],
-            xs[test_idx], lengths[test_idx, i], dx[test_idx, i][:, spanned], spec.fit.max_degree,
+            xs[test_idx], lengths[test_idx, i], dx[test_idx, i][:, spanned], spec.fit.max_degree, local_hinges,
         )
         full = np.zeros((len(exps), n), dtype=np.int64)
         full[:, spanned] = exps
-        muscle_fits[name] = (full, coef)
+        global_hinges = [(spanned[lj], xk) for lj, xk in local_hinges]
+        muscle_fits[name] = (full, coef[: len(exps)], global_hinges, coef[len(exps) :])
         r_err = info["dl_x"] / half[spanned][None, :]
         report[name] = {
             "spans": [spec.coordinates[j].name for j in spanned],
             "degree": info["degree"],
+            "knots_deg": [[spec.coordinates[j].name, float(np.degrees(centre[j] + xk * half[j]))]
+                          for j, xk in global_hinges],
             "holdout_moment_arm_rms_mm": float(1e3 * np.sqrt(np.nanmean(r_err**2))),
             "holdout_moment_arm_max_mm": float(1e3 * np.nanmax(np.abs(r_err))),
             "derivative_samples_dropped_at_path_jumps": int(np.isnan(derivs[:, i, spanned]).any(axis=1).sum()),
@@ -104,17 +160,22 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
             "holdout_length_max_mm": float(1e3 * np.max(np.abs(info["l_err"]))),
         }
     # shared basis: union of all bundles' exponents (each closed under differentiation, so is the union)
-    basis = sorted({tuple(e) for full, _ in muscle_fits.values() for e in full.tolist()}, key=lambda e: (sum(e), e))
+    basis = sorted({tuple(e) for fit in muscle_fits.values() for e in fit[0].tolist()}, key=lambda e: (sum(e), e))
     index = {e: k for k, e in enumerate(basis)}
-    coefficients = np.zeros((len(spec.groups), len(basis)))
+    hinges = sorted({h for fit in muscle_fits.values() for h in fit[2]})
+    hinge_index = {h: k for k, h in enumerate(hinges)}
+    coefficients = np.zeros((len(spec.groups), len(basis) + 3 * len(hinges)))
     f_max, l_opt, l_slack = [], [], []
     for gi, (group, members) in enumerate(spec.groups.items()):
         forces = np.array([table[m]["f_max"] for m in members])
         weights = forces / forces.sum()
         for w, m in zip(weights, members):
-            full, coef = muscle_fits[m]
+            full, coef, muscle_hinges, hinge_coef = muscle_fits[m]
             for e, c in zip(full.tolist(), coef):
                 coefficients[gi, index[tuple(e)]] += w * c
+            for h_i, h in enumerate(muscle_hinges):
+                col = len(basis) + 3 * hinge_index[h]
+                coefficients[gi, col : col + 3] += w * hinge_coef[3 * h_i : 3 * h_i + 3]
         f_max.append(float(forces.sum()))
         l_opt.append(float(weights @ [table[m]["l_opt"] for m in members]))
         l_slack.append(float(weights @ [table[m]["l_slack"] for m in members]))
@@ -146,7 +207,8 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
         "f_max_ref": f_max,
         "optimal_fiber_lengths": l_opt,
         "tendon_slack_lengths": l_slack,
-        "basis": {"exponents": [list(e) for e in basis], "centre": centre.tolist(), "half_width": half.tolist()},
+        "basis": {"exponents": [list(e) for e in basis], "centre": centre.tolist(), "half_width": half.tolist(),
+                  "hinges": [[j, xk] for j, xk in hinges]},
         "length_coefficients": coefficients.tolist(),
         "dynamics": rigid,
         "validation_dynamics": validation,

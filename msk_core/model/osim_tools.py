@@ -161,12 +161,13 @@ JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
 GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbours 2e-4 rad apart is an OpenSim glitch
 
 
-def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4, progress=None):
+def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4, progress=None,
+                   only: int | None = None):
     """Muscle-tendon lengths (S, m) and dl/dq (S, m, n) by central differences of OpenSim path lengths (NaN at jumps)."""
     muscles = [poser.model.getMuscles().get(n) for n in names]
     s, n = poses.shape
     lengths = np.empty((s, len(names)))
-    derivs = np.empty((s, len(names), n))
+    derivs = np.full((s, len(names), n), np.nan)
 
     def read() -> np.ndarray:
         return np.array([m.getLength(poser.state) for m in muscles])
@@ -174,7 +175,7 @@ def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta:
     for i, q in enumerate(poses):
         poser.set(q)
         lengths[i] = centre = read()
-        for j in range(n):
+        for j in range(n) if only is None else (only,):
             e = np.zeros(n)
             e[j] = delta
             poser.set(q + e)

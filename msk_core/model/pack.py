@@ -58,10 +58,31 @@ class ModelPack:
         self._half = np.asarray(basis["half_width"], dtype=float)
         self._coef = np.asarray(data["length_coefficients"], dtype=float).reshape(len(self.groups), -1)
         n, g = len(self.coordinates), len(self.groups)
-        rows = [self._coef]
+        hinges = basis.get("hinges", [])
+        self._hinge_var = np.array([int(h[0]) for h in hinges], dtype=np.int64)
+        self._hinge_knot = np.array([float(h[1]) for h in hinges], dtype=float)
+        n_mono, n_h = len(self._exponents), len(hinges)
+        poly, hcoef = self._coef[:, :n_mono], self._coef[:, n_mono:]
+        # feature vector: [monomials (M), h (H), h² (H), h³ (H), step (H)]; lengths use the first M + 3H
+        lengths = np.zeros((g, n_mono + 4 * n_h))
+        lengths[:, :n_mono] = poly
+        for i in range(n_h):
+            for p in range(3):
+                lengths[:, n_mono + p * n_h + i] = hcoef[:, 3 * i + p]
+        rows = [lengths]
         for j in range(n):
-            rows.append(-(self._coef @ derivative_matrix(self._exponents, j)) / self._half[j])
-        self._stacked = np.ascontiguousarray(np.vstack(rows))  # (g*(n+1), M)
+            r = np.zeros((g, n_mono + 4 * n_h))
+            r[:, :n_mono] = poly @ derivative_matrix(self._exponents, j)
+            for i in range(n_h):
+                if self._hinge_var[i] != j:
+                    continue
+                a1, a2, a3 = hcoef[:, 3 * i], hcoef[:, 3 * i + 1], hcoef[:, 3 * i + 2]
+                r[:, n_mono + 3 * n_h + i] += a1  # d h / dx = step
+                r[:, n_mono + i] += 2 * a2  # d h² / dx = 2h
+                r[:, n_mono + n_h + i] += 3 * a3  # d h³ / dx = 3h²
+            rows.append(-r / self._half[j])
+        self._stacked = np.ascontiguousarray(np.vstack(rows))  # (g*(n+1), M + 4H)
+        self._has_hinges = n_h > 0
         self._cols = np.arange(n)[None, :]
         self._powers = np.arange(int(self._exponents.max(initial=0)) + 1)
         self._lo = self.coordinate_ranges[:, 0].copy()
@@ -100,6 +121,11 @@ class ModelPack:
     def _evaluate(self, q: np.ndarray) -> np.ndarray:
         x = (q - self._centre) / self._half
         phi = np.power.outer(x, self._powers).take(self._flat).prod(axis=1)
+        if self._has_hinges:
+            d = x.take(self._hinge_var) - self._hinge_knot
+            h = np.maximum(d, 0.0)
+            hh = h * h
+            phi = np.concatenate((phi, h, hh, hh * h, (d > 0.0).astype(float)))
         return self._stacked @ phi
 
     # ---- muscles -----------------------------------------------------------------------------------------------

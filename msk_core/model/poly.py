@@ -47,20 +47,46 @@ def derivative_matrix(exponents: np.ndarray, var: int) -> np.ndarray:
     return matrix
 
 
+def hinge_values(x: np.ndarray, hinges: list[tuple[int, float]]) -> np.ndarray:
+    """Truncated powers h, h², h³ (h = max(x_var - knot, 0)) per hinge -> (S, 3H).
+
+    A hinge lets the length's slope (the moment arm) jump at a knot: OpenSim paths that switch wrap objects do.
+    """
+    cols = []
+    for var, knot in hinges:
+        h = np.maximum(x[:, var] - knot, 0.0)
+        cols += [h, h * h, h * h * h]
+    return np.stack(cols, axis=1) if cols else np.zeros((len(x), 0))
+
+
+def hinge_derivatives(x: np.ndarray, hinges: list[tuple[int, float]], var: int) -> np.ndarray:
+    """d/dx_var of :func:`hinge_values`: step, 2h, 3h² for hinges on var, zero otherwise."""
+    cols = []
+    for hvar, knot in hinges:
+        if hvar != var:
+            cols += [np.zeros(len(x))] * 3
+            continue
+        h = np.maximum(x[:, hvar] - knot, 0.0)
+        cols += [(x[:, hvar] > knot).astype(float), 2 * h, 3 * h * h]
+    return np.stack(cols, axis=1) if cols else np.zeros((len(x), 0))
+
+
 def fit_length(
-    x: np.ndarray, length: np.ndarray, dl_dx: np.ndarray, degree: int, derivative_weight: float = 1.0
+    x: np.ndarray, length: np.ndarray, dl_dx: np.ndarray, degree: int, derivative_weight: float = 1.0,
+    hinges: list[tuple[int, float]] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares fit of l(x) to lengths and their derivatives jointly (Hermite-style).
 
-    x (S, k) normalised coordinates of the k spanned coordinates, length (S,), dl_dx (S, k).
-    Returns (exponents (M, k), coefficients (M,)).
+    x (S, k) normalised coordinates of the k spanned coordinates, length (S,), dl_dx (S, k); hinges index x's
+    columns. Returns (exponents (M, k), coefficients (M + 3H,)): monomial coefficients then hinge coefficients.
     """
     k = x.shape[1]
     exponents = total_degree_exponents(k, degree)
-    blocks = [monomials(x, exponents)]
+    blocks = [np.hstack([monomials(x, exponents), hinge_values(x, list(hinges))])]
     targets = [length]
     for var in range(k):
-        blocks.append(derivative_weight * monomial_derivatives(x, exponents, var))
+        blocks.append(derivative_weight * np.hstack([monomial_derivatives(x, exponents, var),
+                                                     hinge_derivatives(x, list(hinges), var)]))
         targets.append(derivative_weight * dl_dx[:, var])
     a = np.vstack(blocks)
     b = np.concatenate(targets)

@@ -62,6 +62,8 @@ def _print_check(report: dict) -> None:
     print(f"moment arms over {m['poses']} fresh poses: RMS {m['moment_arm_rms_mm']:.3f} mm, max "
           f"{m['moment_arm_max_mm']:.3f} mm (targets 0.5 / 2 mm); lengths RMS {m['length_rms_mm']:.3f} mm, max "
           f"{m['length_max_mm']:.3f} mm; OpenSim glitch poses excluded: {m['opensim_glitch_poses_excluded']}")
+    print(f"moment arms vs -dl/dq of OpenSim's own path length: RMS {m['path_derivative_rms_mm']:.3f} mm, max "
+          f"{m['path_derivative_max_mm']:.3f} mm (computeMomentArm may pick another wrap solution)")
     coords = list(next(iter(m["groups"].values()))["moment_arm_rms_mm"])
     print(f"{'group':14s} " + " ".join(f"{c[:18]:>18s} rms/max" for c in coords) + "   length max")
     for g, s in m["groups"].items():
