@@ -64,7 +64,7 @@ class PackMapping:
 
     pack: str
     hinges: tuple[HingeMap, ...]
-    static_pose_deg: Mapping[str, float] = field(default_factory=dict)  # the calibration pose (default: the synth's start)
+    static_pose_deg: Mapping[str, float] = field(default_factory=dict)  # calibration pose (the synth's start pose)
 
     @property
     def coordinates(self) -> list[str]:

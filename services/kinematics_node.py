@@ -27,7 +27,7 @@ import zenoh
 
 from drivers.xsens.frames import to_enu
 from drivers.xsens.xbus import CoordinateFrame
-from msk_core.errors import ConfigError, FileFormatError
+from msk_core.errors import ConfigError, FileFormatError, MskError
 from msk_core.imu_kinematics import KinematicsFilterConfig
 from msk_core.imu_mapping import ImuJointMapper, mapping_for, parse_pose
 from msk_core.imu_stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
@@ -61,7 +61,8 @@ class KinematicsStats:
     calibrations: int = 0
     calibration_failures: int = 0
     restarts: int = 0  # gaps longer than --gap: a new set, recalibrated
-    bad_frames: int = 0
+    bad_frames: int = 0  # non-finite or zero quaternions
+    rejected: int = 0  # samples that raised an input error while being processed
     frames_out: int = 0
     last_error: str = ""
 
@@ -105,7 +106,7 @@ def main(
     stats = stats if stats is not None else KinematicsStats()
     model = load_pack(pack)
     # ENU: x east, y north; the mapping's heading is counter-clockwise from x
-    mapper = ImuJointMapper.for_pack(model, heading_rad=math.radians(90.0 - facing_deg), mapping=mapping_for(model.name))
+    mapper = ImuJointMapper.for_pack(model, heading_rad=math.radians(90.0 - facing_deg))
     if (phase_template is None) != (phase_coordinate is None):
         raise ConfigError("phase tracking needs both a rep template and a coordinate", field="phase_coordinate",
                           value=phase_coordinate)
@@ -117,7 +118,8 @@ def main(
         filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
         phase_template=phase_template, phase_coordinate=phase_coordinate,
     )
-    sync = SegmentSynchroniser(mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9), max_wait_ns=int(max_wait_s * 1e9))
+    sync = SegmentSynchroniser(mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9),
+                               max_wait_ns=int(max_wait_s * 1e9))
     needed = set(mapper.segments)
     coordinates = list(mapper.coordinates)
     inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -139,7 +141,7 @@ def main(
             stats.ignored += 1
             return
         try:
-            frame = CoordinateFrame[imu.coordinate_frame or "ENU"]  # Xsens' default output frame is ENU
+            frame = CoordinateFrame[(imu.coordinate_frame or "ENU").upper()]  # Xsens' default output is ENU
         except KeyError:
             stats.unknown_frame += 1
             stats.last_error = f"{key}: unknown coordinate_frame {imu.coordinate_frame!r} (ENU, NED or NWU)"
@@ -172,6 +174,15 @@ def main(
             publish(publisher, joints)
             stats.frames_out += 1
 
+    def guarded(key: str, payload: bytes) -> None:
+        try:
+            handle(key, payload)
+        except MskError as error:  # one bad sample must not stop the node: count it, say why, go on
+            stats.rejected += 1
+            stats.last_error = f"{key}: {error}"
+            if stats.rejected == 1:
+                log.error("%s", stats.last_error)
+
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
         subscriber = zsession.declare_subscriber(f"{prefix}*", on_sample)
@@ -183,9 +194,14 @@ def main(
                     key, payload = inbox.get(timeout=0.05)
                 except queue.Empty:
                     continue
-                handle(key, payload)
+                guarded(key, payload)
         finally:
             subscriber.undeclare()
+            while True:  # what already arrived is still processed and published: nothing received is lost
+                try:
+                    guarded(*inbox.get_nowait())
+                except queue.Empty:
+                    break
     return stats
 
 
@@ -199,27 +215,28 @@ def _copy_counters(kinematics: StreamingJointKinematics, stats: KinematicsStats)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--pack", required=True, help="model pack with an IMU table: bench_press or deadlift")
-    parser.add_argument("--session", required=True, help="session name: reads msk/<session>/imu/*")
-    parser.add_argument("--out-session", default=None, help="publish on msk/<OUT>/joints (default: --session)")
-    parser.add_argument("--facing-deg", type=float, default=0.0,
-                        help="compass direction the subject faces during calibration, degrees (0 north, 90 east; default 0)")
-    parser.add_argument("--static-pose", default="", metavar="NAME=DEG,...",
-                        help="pose held during calibration, degrees (default: the pack table's, see docs/kinematics.md)")
-    parser.add_argument("--static-s", type=float, default=0.5, help="seconds of static pose at the start of a set (default 0.5)")
-    parser.add_argument("--gap", type=float, default=1.0, help="an IMU gap longer than this many seconds starts a new set (default 1)")
-    parser.add_argument("--sync-tolerance-ms", type=float, default=8.0, help="trackers' samples this close are one instant (default 8)")
-    parser.add_argument("--jerk-std", type=float, default=100.0, help="Kalman process noise, rad/s^3 (default 100)")
-    parser.add_argument("--angle-std-deg", type=float, default=1.0, help="Kalman measurement noise, degrees (default 1)")
-    parser.add_argument("--imu-rate", type=float, default=60.0, help="nominal IMU rate, Hz (default 60; actual dt from timestamps)")
-    parser.add_argument("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
-    parser.add_argument("--phase-template", type=Path, default=None,
-                        help="rep template JSON (`msk emg priors` output or RepTemplate dict), in the coordinate's units (rad)")
+    add = parser.add_argument
+    add("--pack", required=True, help="model pack with an IMU table: bench_press or deadlift")
+    add("--session", required=True, help="session name: reads msk/<session>/imu/*")
+    add("--out-session", default=None, help="publish on msk/<OUT>/joints (default: --session)")
+    add("--facing-deg", type=float, default=0.0,
+        help="compass direction the subject faces during calibration, degrees (0 north, 90 east; default 0)")
+    add("--static-pose", default="", metavar="NAME=DEG,...",
+        help="pose held during calibration, degrees (default: the pack table's, see docs/kinematics.md)")
+    add("--static-s", type=float, default=0.5, help="seconds of static pose at the start of a set (default 0.5)")
+    add("--gap", type=float, default=1.0, help="an IMU gap longer than this (s) starts a new set (default 1)")
+    add("--sync-tolerance-ms", type=float, default=8.0, help="trackers' samples this close are one instant (default 8)")
+    add("--jerk-std", type=float, default=100.0, help="Kalman process noise, rad/s^3 (default 100)")
+    add("--angle-std-deg", type=float, default=1.0, help="Kalman measurement noise, degrees (default 1)")
+    add("--imu-rate", type=float, default=60.0, help="nominal IMU rate, Hz (default 60; dt comes from timestamps)")
+    add("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
+    add("--phase-template", type=Path, default=None,
+        help="rep template JSON (`msk emg priors` output or a RepTemplate dict) learnt in radians")
     add_zenoh_arguments(parser)
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    for name in ("static_s", "gap", "sync_tolerance_ms", "imu_rate"):
+    for name in ("static_s", "gap", "sync_tolerance_ms", "imu_rate", "jerk_std", "angle_std_deg"):
         value = getattr(args, name)
         if not (math.isfinite(value) and value > 0):
             raise ConfigError("must be positive", field="--" + name.replace("_", "-"), value=value)
@@ -227,12 +244,14 @@ def run_from_args(args: argparse.Namespace) -> int:
     mapping_for(model.name)  # fail before joining the network when the pack has no IMU table
     pose = parse_pose(args.static_pose, list(model.coordinates))
     template = load_template(args.phase_template) if args.phase_template is not None else None
-    filter_config = KinematicsFilterConfig(dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg))
+    filter_config = KinematicsFilterConfig(
+        dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg))
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     out = args.out_session or args.session
-    print(f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}", file=sys.stderr, flush=True)
+    print(f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}",
+          file=sys.stderr, flush=True)
     stats = main(
         options_from_args(args), pack=args.pack, session=args.session, output_session=args.out_session,
         facing_deg=args.facing_deg, static_pose_deg=pose, static_s=args.static_s, gap_s=args.gap,

@@ -294,3 +294,57 @@ def test_docs_example_runs():
     assert blocks, "docs/kinematics.md has a python example"
     for block in blocks:
         exec(compile(block, "docs/kinematics.md", "exec"), {})
+
+
+def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoint):
+    """``python -m services.kinematics_node`` as a real process; trackers report in NED, the subject faces east."""
+    import signal
+    import subprocess
+    import sys
+
+    from drivers.xsens.frames import from_enu
+    from drivers.xsens.xbus import CoordinateFrame
+
+    pack = load_pack("bench_press")
+    mapper = ImuJointMapper.for_pack(pack, heading_rad=0.0)  # facing east = heading 0 from ENU x
+    q0, q1 = np.radians([60.0, 30.0]), np.radians([20.0, 95.0])
+    mount = {"upper_arm_r": [0.2, 0.1, -0.3], "forearm_r": [-0.1, 0.25, 0.1]}
+
+    def ned(q):
+        body = mapper.segment_orientations(q)
+        return {s: from_enu((body[s] * Rotation.from_rotvec(m)).as_quat(scalar_first=True), CoordinateFrame.NED)
+                for s, m in mount.items()}
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.kinematics_node", "--pack", "bench_press", "--session", "cli",
+         "--facing-deg", "90", "--static-pose", "elv_angle_r=60,elbow_flex_r=30", "--listen", zenoh_endpoint],
+        cwd=REPO, stderr=subprocess.PIPE, text=True,
+    )
+    received = []
+    try:
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+            session.declare_subscriber(topics.joints_key("cli"),
+                                       lambda s: received.append(messages.decode("msk.JointAngles", s.payload.to_bytes())))
+            pubs = {s: declare_data_publisher(session, topics.imu_key("cli", f"00B4000{i}"), "msk.ImuSample")
+                    for i, s in enumerate(mount)}
+            deadline = time.monotonic() + 30
+            while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            for k in range(120):  # 0.5 s static at q0, then 1.5 s at q1
+                quats = ned(q0 if k < 31 else q1)
+                for s, pub in pubs.items():
+                    w, x, y, z = quats[s]
+                    publish(pub, messages.ImuSample(segment=s, orientation=messages.Quaternion(w=w, x=x, y=y, z=z),
+                                                    device_time_ns=10**9 + k * 16_666_667, coordinate_frame="NED"))
+            deadline = time.monotonic() + 20
+            while len(received) < 89 and time.monotonic() < deadline:
+                time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "published 89 frames; calibrations 1; incomplete instants 0" in err
+    assert len(received) == 89 and received[0].coordinates == list(pack.coordinates)
+    np.testing.assert_allclose(received[-1].q, q1, atol=np.radians(0.05))
+    np.testing.assert_allclose(received[-1].qd, 0.0, atol=0.01)
+    assert all(m.phase == -1.0 for m in received)
