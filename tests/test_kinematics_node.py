@@ -348,3 +348,39 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
     np.testing.assert_allclose(received[-1].q, q1, atol=np.radians(0.05))
     np.testing.assert_allclose(received[-1].qd, 0.0, atol=0.01)
     assert all(m.phase == -1.0 for m in received)
+
+
+def test_streaming_recalibrates_after_a_gap_and_counts_bad_and_moving_static_frames():
+    from msk_core.imu_kinematics import KinematicsFilterConfig
+    from msk_core.imu_stream import StreamingJointKinematics
+
+    pack = load_pack("deadlift")
+    mapper = ImuJointMapper.for_pack(pack, heading_rad=np.pi / 2)
+    q0 = mapper.static_pose()
+    live = StreamingJointKinematics(mapper, static_pose_rad=q0, static_s=0.2, gap_s=1.0,
+                                    filter_config=KinematicsFilterConfig(dt=1 / 60))
+
+    def frame(k, q, mount_seed, t0=0):
+        body = mapper.segment_orientations(q)
+        mounts = Rotation.from_rotvec(np.random.default_rng(mount_seed).normal(0.0, 0.3, (len(mapper.segments), 3)))
+        return SyncedFrame(t0 + k * 16_666_667, {s: (body[s] * mounts[i]).as_quat(scalar_first=True)
+                                                 for i, s in enumerate(mapper.segments)})
+
+    bent = q0 + np.radians([-2.0, 40.0, 10.0, 3.0])
+    # the subject moves through the first static window: calibration fails, is counted, and retried
+    for k in range(13):
+        assert live.step(frame(k, q0 + np.radians([0, 3.0 * k, 0, 0]), 1)) is None
+    assert live.counters.calibration_failures == 1 and "moved during the static pose" in live.counters.last_error
+    outs = [live.step(frame(k, q0 if k < 30 else bent, 1)) for k in range(13, 120)]
+    assert live.counters.calibrations == 1
+    np.testing.assert_allclose(outs[-1].q, bent, atol=np.radians(0.05))
+    bad = frame(120, bent, 1)
+    bad.quats["pelvis"][:] = np.nan
+    assert live.step(bad) is None and live.counters.bad_frames == 1
+    # a new set 5 s later with the trackers strapped on differently: a fresh calibration, the same angles
+    t1 = 10**10
+    outs = [live.step(frame(k, q0 if k < 20 else bent, 2, t1)) for k in range(100)]
+    assert live.counters.restarts == 1 and live.counters.calibrations == 2
+    np.testing.assert_allclose(outs[-1].q, bent, atol=np.radians(0.05))
+    assert live.counters.frames == 221
+    assert live.counters.published + live.counters.calibration_frames + live.counters.bad_frames == 221
