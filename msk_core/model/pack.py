@@ -63,12 +63,10 @@ class ModelPack:
         self._hinge_knot = np.array([float(h[1]) for h in hinges], dtype=float)
         n_mono, n_h = len(self._exponents), len(hinges)
         poly, hcoef = self._coef[:, :n_mono], self._coef[:, n_mono:]
-        # feature vector: [monomials (M), h (H), h² (H), h³ (H), step (H)]; lengths use the first M + 3H
+        # feature vector: [monomials (M), h1, h1², h1³, h2, ... (3H), step1 .. stepH (H)]; lengths use M + 3H
         lengths = np.zeros((g, n_mono + 4 * n_h))
         lengths[:, :n_mono] = poly
-        for i in range(n_h):
-            for p in range(3):
-                lengths[:, n_mono + p * n_h + i] = hcoef[:, 3 * i + p]
+        lengths[:, n_mono : n_mono + 3 * n_h] = hcoef
         rows = [lengths]
         for j in range(n):
             r = np.zeros((g, n_mono + 4 * n_h))
@@ -78,8 +76,8 @@ class ModelPack:
                     continue
                 a1, a2, a3 = hcoef[:, 3 * i], hcoef[:, 3 * i + 1], hcoef[:, 3 * i + 2]
                 r[:, n_mono + 3 * n_h + i] += a1  # d h / dx = step
-                r[:, n_mono + i] += 2 * a2  # d h² / dx = 2h
-                r[:, n_mono + n_h + i] += 3 * a3  # d h³ / dx = 3h²
+                r[:, n_mono + 3 * i] += 2 * a2  # d h² / dx = 2h
+                r[:, n_mono + 3 * i + 1] += 3 * a3  # d h³ / dx = 3h²
             rows.append(-r / self._half[j])
         self._stacked = np.ascontiguousarray(np.vstack(rows))  # (g*(n+1), M + 4H)
         self._has_hinges = n_h > 0
@@ -91,7 +89,12 @@ class ModelPack:
         self._shape = (n,)
         self._half_range = (self._hi - self._lo) / 2
         # flat index of each monomial factor into the (n, D+1) table of powers: phi = prod(table.flat[index], axis=1)
-        self._flat = np.ascontiguousarray(np.arange(n)[None, :] * len(self._powers) + self._exponents)
+        flat = np.arange(n)[None, :] * len(self._powers) + self._exponents
+        # only the columns of coordinates that appear in some monomial: one take + multiply per coordinate
+        self._flat_cols = [np.ascontiguousarray(flat[:, j]) for j in range(n) if self._exponents[:, j].any()]
+        if not self._flat_cols:
+            self._flat_cols = [np.ascontiguousarray(flat[:, 0])]
+        self._hinge_powers = np.array([1.0, 2.0, 3.0])
         self.rigid = RigidModel(data["dynamics"], n_coordinates=n)
         validation = data.get("validation_dynamics")
         self.validation_rigid = RigidModel(validation, n_coordinates=n) if validation else self.rigid
@@ -108,7 +111,7 @@ class ModelPack:
             raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, got {q.shape}")
         if out_of_range is OutOfRange.CLAMP:
             return np.minimum(np.maximum(q, self._lo), self._hi)
-        if (np.abs(q - self._centre) > self._half_range).any():
+        if (np.abs(q - self._centre) > self._half_range).any():  # one pass: |q - centre| <= half range
             bad = int(np.flatnonzero((q < self._lo) | (q > self._hi))[0])
             raise ModelError(
                 f"pack {self.name!r}: {self.coordinates[bad]} = {q[bad]:.4f} rad "
@@ -120,12 +123,14 @@ class ModelPack:
 
     def _evaluate(self, q: np.ndarray) -> np.ndarray:
         x = (q - self._centre) / self._half
-        phi = np.power.outer(x, self._powers).take(self._flat).prod(axis=1)
+        table = np.power.outer(x, self._powers).ravel()
+        cols = self._flat_cols
+        phi = table.take(cols[0])
+        for col in cols[1:]:
+            phi *= table.take(col)
         if self._has_hinges:
             d = x.take(self._hinge_var) - self._hinge_knot
-            h = np.maximum(d, 0.0)
-            hh = h * h
-            phi = np.concatenate((phi, h, hh, hh * h, (d > 0.0).astype(float)))
+            phi = np.concatenate((phi, np.power.outer(np.maximum(d, 0.0), self._hinge_powers).ravel(), d > 0.0))
         return self._stacked @ phi
 
     # ---- muscles -----------------------------------------------------------------------------------------------
