@@ -1,0 +1,41 @@
+"""`msk model compile|check|show` end to end on arm26 (small and fast)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from services import cli
+
+pytest.importorskip("opensim")
+
+
+def test_model_show_and_unknown_pack(capsys):
+    assert cli.main(["model", "show", "deadlift"]) == 0
+    out = capsys.readouterr().out
+    assert "group VM" in out and "vasmed_r, vasint_r" in out and "knee_angle_r" in out
+    assert cli.main(["model", "show", "squat_pack"]) == 2
+    assert "no shipped model pack 'squat_pack'" in capsys.readouterr().err
+
+
+def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
+    spec = (repo_root / "msk_core" / "model" / "specs" / "arm26.toml").read_text()
+    spec = spec.replace("samples = 400", "samples = 100")
+    (tmp_path / "a.toml").write_text(spec)
+    osim = shared_dir / "models" / "arm26.osim"
+    assert cli.main(["model", "compile", "--osim", str(osim), "--spec", str(tmp_path / "a.toml"),
+                     "--out", str(tmp_path / "a.json")]) == 0
+    assert cli.main(["model", "check", str(tmp_path / "a.json"), "--osim", str(osim), "--poses", "6",
+                     "--json", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "moment arms over 6 fresh poses" in out and "% of peak" in out
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["pack"] == "arm26"
+    assert set(report["muscles"]["groups"]) == {"TRIlong", "TRIlat", "TRImed", "BIClong", "BICshort", "BRA"}
+    assert max(report["dynamics"]["max_error_percent_of_peak"].values()) < 1e-3
+    # bad spec -> exit code 2 and a message naming the file and field
+    (tmp_path / "bad.toml").write_text(spec.replace('name = "arm26"', 'name = 5'))
+    assert cli.main(["model", "compile", "--osim", str(osim), "--spec", str(tmp_path / "bad.toml"),
+                     "--out", str(tmp_path / "b.json")]) == 2
+    assert "bad.toml" in capsys.readouterr().err
