@@ -248,7 +248,15 @@ def plot(curves: dict, scores: list[MethodScore], out: Path) -> list[Path]:
     return written
 
 
-def main(*, recordings: Path = DEFAULT_RECORDINGS, out: Path, rate: float | None = None, endpoint: str | None = None, log=print) -> dict:
+def main(
+    *,
+    recordings: Path = DEFAULT_RECORDINGS,
+    out: Path,
+    rate: float | None = None,
+    exercises: list[str] | None = None,
+    endpoint: str | None = None,
+    log=print,
+) -> dict:
     recording = recordings / "demo_session.mcap"
     if not recording.is_file():
         raise InputError("demo recording not found (generate it with `msk synth`)", path=recording)
@@ -257,7 +265,11 @@ def main(*, recordings: Path = DEFAULT_RECORDINGS, out: Path, rate: float | None
         from services.zenoh_session import free_loopback_endpoint
 
         endpoint = free_loopback_endpoint()
-    exercises = sorted(p.name for p in (recordings / "demo").iterdir() if p.is_dir())
+    available = sorted(p.name for p in (recordings / "demo").iterdir() if p.is_dir())
+    unknown = sorted(set(exercises or []) - set(available))
+    if unknown:
+        raise InputError(f"no such exercise in the demo session; available: {', '.join(available)}", field="--exercise", value=unknown)
+    exercises = exercises or available
     subjects, calibration = {}, {}
     for exercise in exercises:
         subjects[exercise], calibration[exercise] = calibrate(recordings, out, exercise, log)
@@ -269,7 +281,10 @@ def main(*, recordings: Path = DEFAULT_RECORDINGS, out: Path, rate: float | None
     summary = {"calibration": calibration, "graph": graph, "scores": [s.__dict__ for s in scores]}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     (out / "report.md").write_text(
-        "# msk-live demo\n\nLive estimates (Zenoh graph fed by the replayed session) scored against the synthetic truth.\n\n"
+        "# msk-live demo\n\nLive estimates (Zenoh graph fed by the replayed session) scored against the synthetic truth.\n"
+        f"Replay rate: {rate or 'max'}. Latency = estimator publish time - input arrival time"
+        + (" (at rate max it includes the queue behind the replay burst; run with --rate 1 for live latency)" if rate is None else "")
+        + ".\n\n"
         + table + "\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in plots) + "\n"
     )
     log("")
@@ -284,8 +299,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
     parser.add_argument("--recordings", type=Path, default=DEFAULT_RECORDINGS, help="folder with demo_session.mcap and demo/ (default: the embedded one)")
     parser.add_argument("--rate", default="max", help="replay speed: 'max' (default) or a factor, 1 = real time")
+    parser.add_argument("--exercise", action="append", default=None, help="only this exercise (repeatable; default: all)")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    main(recordings=args.recordings, out=args.out, rate=replayer.parse_rate(args.rate))
+    main(recordings=args.recordings, out=args.out, rate=replayer.parse_rate(args.rate), exercises=args.exercise)
     return 0

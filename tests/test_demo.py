@@ -1,0 +1,56 @@
+"""`msk demo` end to end on the embedded session (one exercise to keep it short): calibration, the live Zenoh graph
+(recorder + estimator fed by the replayer), and the scored report."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from services import demo
+from services.mcap_io import read_messages
+
+
+def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
+    out = tmp_path / "demo"
+    lines: list[str] = []
+    summary = demo.main(out=out, exercises=["bench_press"], log=lines.append)
+    graph = summary["graph"]
+    assert graph["estimated_frames"] == graph["expected_frames"] and graph["expected_frames"]["bench_press"] > 1000
+    # Every replayed message and every activation frame reached the recorder.
+    recorded = list(read_messages(out / "live.mcap"))
+    activations = [r for r in recorded if r.type_name == "msk.ActivationFrame"]
+    assert len(activations) == 3 * graph["expected_frames"]["bench_press"]
+    assert len(recorded) == graph["replayed"] + len(activations)
+    scores = {(s["trial"], s["method"]): s for s in summary["scores"]}
+    assert {m for _, m in scores} == {"proposed", "so", "hybrid"}
+    assert {s["role"] for s in summary["scores"]} == {"calibration", "held out"}
+    for (trial, method), s in scores.items():
+        assert 0 < s["activation_rmse"] < 0.5, (trial, method)
+    # Static optimisation matches the torques exactly unless a frame is beyond capacity (then flagged).
+    for trial in {t for t, _ in scores}:
+        so = scores[(trial, "so")]
+        assert so["torque_rmse_nm"] < 0.5 or so["flagged"] > 0
+    report = (out / "report.md").read_text()
+    assert "| bench_press_50kg | held out | proposed |" in report
+    assert (out / "bench_press_50kg.png").stat().st_size > 10_000
+    profile = json.loads((out / "subject_bench_press.json").read_text())
+    assert profile["pack"]["name"] == "bench_press"
+    assert any("calibrated" in line for line in lines)
+
+
+def test_demo_rejects_unknown_exercise(tmp_path):
+    with pytest.raises(Exception, match="--exercise"):
+        demo.main(out=tmp_path, exercises=["squat"], log=lambda _: None)
+
+
+def test_cli_help_and_version(repo_root):
+    version = subprocess.run([sys.executable, "-m", "services.cli", "--version"], cwd=repo_root, capture_output=True, text=True, check=True)
+    assert version.stdout.startswith("msk-live ")
+    helptext = subprocess.run([sys.executable, "-m", "services.cli", "--help"], cwd=repo_root, capture_output=True, text=True, check=True).stdout
+    for command in ("demo", "recorder", "replay", "estimator", "bench"):
+        assert command in helptext
+    bad = subprocess.run([sys.executable, "-m", "services.cli", "replay", "missing.mcap", "--rate", "max"], cwd=repo_root, capture_output=True, text=True)
+    assert bad.returncode == 2 and "missing.mcap" in bad.stderr and "not found" in bad.stderr

@@ -1,0 +1,56 @@
+"""The one Zenoh helper every node uses: flags, JSON5 config files and clear errors."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import pytest
+
+from msk_core.errors import ConfigError
+from services import messages
+from services.zenoh_session import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    declare_data_publisher,
+    open_session,
+    options_from_args,
+    publish,
+    type_name_of_sample,
+)
+
+
+def test_json5_config_file_and_flags_connect_two_peers(tmp_path, zenoh_endpoint):
+    config = tmp_path / "zenoh.json5"
+    config.write_text(f'{{ // a comment, as JSON5 allows\n mode: "peer", listen: {{ endpoints: ["{zenoh_endpoint}"] }},\n'
+                      f' scouting: {{ multicast: {{ enabled: false }} }} }}\n')
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    listener = options_from_args(parser.parse_args(["--zenoh-config", str(config)]))
+    connector = options_from_args(parser.parse_args(["--connect", zenoh_endpoint]))
+    received = []
+    with open_session(listener) as a, open_session(connector) as b:
+        a.declare_subscriber("msk/**", lambda s: received.append((type_name_of_sample(s), s.payload.to_bytes())))
+        publisher = declare_data_publisher(b, "msk/x/load", "msk.LoadEvent")
+        deadline = time.monotonic() + 10
+        while not publisher.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        publish(publisher, messages.LoadEvent(barbell_mass_kg=42.5))
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert received[0][0] == "msk.LoadEvent"
+    assert messages.decode("msk.LoadEvent", received[0][1]).barbell_mass_kg == 42.5
+
+
+def test_bad_configuration_is_reported_precisely(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        ZenohOptions(config_file=tmp_path / "nope.json5").to_config()
+    broken = tmp_path / "broken.json5"
+    broken.write_text("{ mode: ")
+    with pytest.raises(ConfigError, match="broken.json5"):
+        ZenohOptions(config_file=broken).to_config()
+    with pytest.raises(ConfigError, match="mode"):
+        ZenohOptions(mode="satellite").to_config()
+    with pytest.raises(Exception, match="unknown message type"):
+        with open_session(ZenohOptions(listen=("tcp/127.0.0.1:0",))) as session:
+            declare_data_publisher(session, "msk/x/y", "msk.Nope")
