@@ -1,8 +1,8 @@
 """Compare a pack's inverse dynamics with a recorded OpenSim inverse-dynamics result (IK + ID .sto files).
 
 The pack's model is rooted at its locked pelvis, so each frame's pelvis orientation (from the IK file, through
-OpenSim) enters as the gravity vector expressed in the pelvis frame; pelvis translation/rotation accelerations are
-neglected (documented). Pack coordinate velocities/accelerations come from a smoothing spline of the IK angles.
+OpenSim) enters as the gravity vector expressed in the pelvis frame, with the pelvis origin's linear acceleration
+folded in (g - a); the pelvis' angular velocity/acceleration is neglected (documented). Pack coordinate velocities/accelerations come from a smoothing spline of the IK angles.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def read_sto(path: str | Path) -> tuple[list[str], np.ndarray, bool]:
 
 def compare_with_recorded_id(
     pack: ModelPack, osim_path: str | Path, ik_path: str | Path, id_path: str | Path, *, hand_load_newton: float,
-    root_body: str = "pelvis",
+    root_body: str = "pelvis", include_root_acceleration: bool = True,
 ) -> dict:
     """Pack torques vs the recorded ID column of each pack coordinate, frame by frame."""
     ik_names, ik, ik_deg = read_sto(ik_path)
@@ -63,15 +63,23 @@ def compare_with_recorded_id(
         spline = make_smoothing_spline(t, q[:, j], lam=1e-4)
         qd[:, j] = spline.derivative(1)(t)
         qdd[:, j] = spline.derivative(2)(t)
-    pack_tau, gravities = [], []
+    rotations, origins = [], []
     for k in range(len(t)):
         for name in ik_names[1:]:
             if coords.contains(name):
                 coords.get(name).setValue(state, float(ik[k, ik_names.index(name)]), False)
         model.realizePosition(state)
-        rot = root.getTransformInGround(state).R()
-        r = np.array([[rot.get(i, j) for j in range(3)] for i in range(3)])
-        g = r.T @ g_world
+        transform = root.getTransformInGround(state)
+        rot = transform.R()
+        rotations.append(np.array([[rot.get(i, j) for j in range(3)] for i in range(3)]))
+        origins.append(np.array(transform.p().to_numpy()))
+    origins = np.array(origins)
+    # the root's linear acceleration enters as a fictitious force: effective gravity g - a_root
+    accel = np.stack([make_smoothing_spline(t, origins[:, i], lam=1e-4).derivative(2)(t) for i in range(3)], axis=1)
+    pack_tau, gravities = [], []
+    for k in range(len(t)):
+        r = rotations[k]
+        g = r.T @ (g_world - (accel[k] if include_root_acceleration else 0.0))
         gravities.append(g)
         pack_tau.append(pack.inverse_dynamics(q[k], qd[k], qdd[k], hand_load_newton, gravity=g,
                                               out_of_range=OutOfRange.CLAMP))
