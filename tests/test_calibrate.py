@@ -30,9 +30,10 @@ def _synthetic(seed=0, t=60, n_c=2, g=5, emg_groups=4, noise=0.0):
     return f_ref, k_true, a_true, frames
 
 
-def test_joint_lbfgsb_and_alternating_reach_the_same_optimum():
+@pytest.mark.parametrize("strength_prior_std", [None, 0.3])
+def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std):
     f_ref, _, _, frames = _synthetic(seed=1, t=40, noise=0.03)
-    s = CalibrationSettings(torque_tolerance=0.02)
+    s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std)
     joint = calibrate(f_ref, frames, s)
     alt = calibrate_alternating(f_ref, frames, s)
     assert joint.converged, joint.message
@@ -44,7 +45,8 @@ def test_joint_lbfgsb_and_alternating_reach_the_same_optimum():
     assert joint.scale[4] == 1.0
     assert np.all((joint.scale >= 0.5) & (joint.scale <= 2.5))
     rep = joint.report()
-    assert rep["converged"] and set(rep["terms"]) == {"torque", "prior", "emg"}
+    expected = {"torque", "prior", "emg"} | ({"strength"} if strength_prior_std else set())
+    assert rep["converged"] and set(rep["terms"]) == expected
 
 
 def test_calibration_recovers_true_strength_from_clean_emg():

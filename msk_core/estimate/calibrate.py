@@ -61,6 +61,7 @@ class CalibrationSettings:
     emg_std: float = 0.05
     prior_weight: float = 1.0
     emg_weight: float = 1.0
+    strength_prior_std: float | None = None  # optional N(1, s^2) on each free strength factor (off by default)
     calibrate: str = "emg"  # "emg": only groups with EMG; "all": every group
     a_min: float = 0.0
     max_iter: int = 20000
@@ -116,6 +117,7 @@ class _Problem:
         if s.calibrate not in ("all", "emg"):
             raise EstimationError(f"calibrate must be 'emg' or 'all', got {s.calibrate!r}")
         self.k_bounds = [(lo, hi) if f else (1.0, 1.0) for f in free]
+        self.w_k = 0.0 if s.strength_prior_std is None else 1.0 / s.strength_prior_std**2
         self.a_min = s.a_min
 
     def terms(self, k: np.ndarray, a: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
@@ -125,6 +127,8 @@ class _Problem:
             "prior": 0.5 * float(np.sum(self.w_p * (a - self.mu) ** 2)),
             "emg": 0.5 * float(np.sum(self.w_e * (a - self.e) ** 2)),
         }
+        if self.w_k:
+            terms["strength"] = 0.5 * self.w_k * float(np.sum((k - 1.0) ** 2))
         return terms, rho
 
     def value_grad(self, z: np.ndarray) -> tuple[float, np.ndarray]:
@@ -132,7 +136,7 @@ class _Problem:
         terms, rho = self.terms(k, a)
         back = np.einsum("tn,tng->tg", rho * self.inv_s, self.m)  # d(torque)/d(a_tg k_g)
         grad_a = back * k + self.w_p * (a - self.mu) + self.w_e * (a - self.e)
-        grad_k = np.sum(back * a, axis=0)
+        grad_k = np.sum(back * a, axis=0) + self.w_k * (k - 1.0)
         return sum(terms.values()), np.concatenate([grad_k, grad_a.ravel()])
 
     def bounds(self) -> list[tuple[float, float]]:
@@ -227,7 +231,12 @@ def calibrate_alternating(
         kk = np.where(fixed, lo, k)
         if np.any(~fixed):
             rhs = target - rows[:, fixed] @ lo[fixed]
-            kk[~fixed] = lsq_linear(rows[:, ~fixed], rhs, bounds=(lo[~fixed], hi[~fixed]), tol=1e-14).x
+            mat = rows[:, ~fixed]
+            if prob.w_k:  # the strength prior as extra least-squares rows sqrt(w_k) (k - 1)
+                n_free = int((~fixed).sum())
+                mat = np.vstack([mat, np.sqrt(prob.w_k) * np.eye(n_free)])
+                rhs = np.concatenate([rhs, np.full(n_free, np.sqrt(prob.w_k))])
+            kk[~fixed] = lsq_linear(mat, rhs, bounds=(lo[~fixed], hi[~fixed]), tol=1e-14).x
         z = np.concatenate([kk, a.ravel()])
         value, _ = prob.value_grad(z)
         if previous - value <= tol * max(1.0, abs(value)):
