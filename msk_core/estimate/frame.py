@@ -189,8 +189,10 @@ class FrameEstimator:
             self._qp = self._new_lsq()
         ranges = getattr(self.pack, "coordinate_ranges", None)
         self._ranges = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
-        if self._ranges is not None:
-            self._lo, self._hi = self._ranges[:, 0].copy(), self._ranges[:, 1].copy()
+        n_c = len(self.coordinates)
+        self._lo = self._ranges[:, 0].copy() if self._ranges is not None else np.full(n_c, -np.inf)
+        self._hi = self._ranges[:, 1].copy() if self._ranges is not None else np.full(n_c, np.inf)
+        self._lo_list, self._hi_list = self._lo.tolist(), self._hi.tolist()
         self._fallback: LeastSquaresQP | None = None
 
     # -- public -------------------------------------------------------------------------------------------------
@@ -210,13 +212,18 @@ class FrameEstimator:
         clamped = False
         try:
             q = np.asarray(q, dtype=float)
-            if self._ranges is not None and q.shape == (n_c,):
-                if (q < self._lo).any() or (q > self._hi).any():
-                    qc = np.minimum(np.maximum(q, self._lo), self._hi)
-                    if (np.abs(qc - q) > CLAMP_TOLERANCE).any():
-                        return self._invalid(np.full(n_c, np.nan), phase)  # far outside: never extrapolate
-                    clamped = True
-                    q = qc
+            if q.shape != (n_c,):
+                return self._invalid(np.full(n_c, np.nan), phase)
+            # plain floats: a few comparisons on <= 10 numbers cost less than numpy calls; NaN fails every test
+            values = q.tolist()
+            if not all(lo <= v <= hi for v, lo, hi in zip(values, self._lo_list, self._hi_list)):
+                if not all(math.isfinite(v) for v in values):
+                    return self._invalid(np.full(n_c, np.nan), phase)
+                qc = np.minimum(np.maximum(q, self._lo), self._hi)
+                if (np.abs(qc - q) > CLAMP_TOLERANCE).any():
+                    return self._invalid(np.full(n_c, np.nan), phase)  # far outside: never extrapolate
+                clamped = True
+                q = qc
             if torques is None:
                 if qd is None or qdd is None:
                     qd = np.zeros(n_c) if qd is None else qd
@@ -230,8 +237,8 @@ class FrameEstimator:
             return self._invalid(np.full(n_c, np.nan), phase)
         if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
             return self._invalid(np.full(n_c, np.nan), phase)
-        # one reduction over everything: NaN/inf anywhere in q, tau or R makes the sum non-finite
-        if not np.isfinite(tau.sum() + r.sum() + q.sum()):
+        # NaN/inf anywhere in tau or R makes the sum non-finite (q was checked above)
+        if not math.isfinite(float(tau.sum()) + float(r.sum())):
             return self._invalid(tau, phase)
         if phase is not None and not math.isfinite(phase):
             phase = None
