@@ -1,7 +1,8 @@
 """Per-frame activation estimation (model evaluation + warm PIQP solve) beside OpenSim's StaticOptimization.
 
 Figures: time of one ``FrameEstimator.step`` (moment arms + inverse dynamics of the pack + QP + result) for the
-deadlift pack (the largest shipped pack when deadlift is not built), a synthetic 150-group problem, and arm26 `so`
+deadlift pack on the synthetic generator's lift (the largest shipped pack when deadlift is not built), a synthetic
+150-group problem, and arm26 `so`
 next to OpenSim's own StaticOptimization per frame on the arm26 tutorial motion, all measured in the same run.
 OpenSim's per-frame cost is the slope between a full and a half-length run (tool set-up cancels out).
 """
@@ -45,15 +46,29 @@ class SyntheticPack:
 
 
 def _trajectory(pack, n: int):
+    """q, qd, qdd, phase at 100 Hz: the synthetic session generator's lift (its poses for the pack, min-jerk reps)
+    when the pack is one of its exercises, else a coordinated sine sweep through the fitted ranges."""
+    from msk_core.synth.exercises import SPECS
+    from msk_core.synth.kinematics import evaluate, plan_reps
+
     ranges = np.asarray(getattr(pack, "coordinate_ranges"), dtype=float)
+    spec = next((s for s in SPECS.values() if s.pack == pack.name), None)
+    if spec is not None:
+        top, bottom, warp = spec.poses(list(pack.coordinates), pack.reference_pose, ranges)
+        plan = plan_reps(top, bottom, 1 + n // 500, seed=1, key=("bench",), warp=warp)
+        time_s = np.arange(n) / 100.0 % plan.duration
+        q, qd, qdd, phase, _ = evaluate(plan, time_s)
+        return q, qd, qdd, np.where(phase >= 0, phase, np.nan)
     lo, hi = ranges[:, 0], ranges[:, 1]
     t = np.linspace(0.0, n / 100.0, n)[:, None]  # 100 Hz, 2 s repetitions
-    k = np.arange(len(pack.coordinates))[None, :]
-    q = lo + (hi - lo) * (0.5 + 0.35 * np.sin(np.pi * t + 0.7 * k))
-    qd = (hi - lo) * 0.35 * np.pi * np.cos(np.pi * t + 0.7 * k)
-    qdd = -(hi - lo) * 0.35 * np.pi**2 * np.sin(np.pi * t + 0.7 * k)
-    phase = (t[:, 0] / 2.0) % 1.0
-    return q, qd, qdd, phase
+    q = lo + (hi - lo) * (0.5 + 0.35 * np.sin(np.pi * t))
+    qd = (hi - lo) * 0.35 * np.pi * np.cos(np.pi * t)
+    qdd = -(hi - lo) * 0.35 * np.pi**2 * np.sin(np.pi * t)
+    return q, qd, qdd, (t[:, 0] / 2.0) % 1.0
+
+
+def _ph(value: float) -> float | None:
+    return None if value != value else float(value)
 
 
 def _prior(pack):
@@ -71,13 +86,14 @@ def _time_steps(pack, method: str, n: int, load_n: float) -> tuple[np.ndarray, d
     est = FrameEstimator(pack, method=method, prior=_prior(pack) if method == "proposed" else None)
     q, qd, qdd, phase = _trajectory(pack, n)
     for i in range(min(50, n)):  # warm-up: solver set-up, caches
-        est.step(q[i], qd[i], qdd[i], load_n, phase=phase[i])
+        est.step(q[i], qd[i], qdd[i], load_n, phase=_ph(phase[i]))
     est.reset_counts()
     times = np.empty(n)
     clock = time.perf_counter
     for i in range(n):
+        ph = _ph(phase[i])
         t0 = clock()
-        est.step(q[i], qd[i], qdd[i], load_n, phase=phase[i])
+        est.step(q[i], qd[i], qdd[i], load_n, phase=ph)
         times[i] = clock() - t0
     return times * 1e6, dict(est.flag_counts)
 
@@ -114,13 +130,13 @@ def run(quick: bool) -> list[BenchResult]:
     results = []
 
     pack, note = _deadlift_or_largest()
-    t, flags = _time_steps(pack, "proposed", n, 200.0)
+    t, flags = _time_steps(pack, "proposed", n, 600.0)  # 60 kg bar
     details = {"pack": pack.name, "groups": len(pack.groups), "coordinates": len(pack.coordinates), "frames": n,
                "flags": str(flags)}
     if note:
         details["note"] = note
     for method in ("so", "hybrid"):
-        tm, fl = _time_steps(pack, method, n // 2, 200.0)
+        tm, fl = _time_steps(pack, method, n // 2, 600.0)
         details[f"{method}_median_us"] = round(float(np.median(tm)), 1)
         details[f"{method}_flags"] = str(fl)
     results.append(BenchResult(f"{pack.name} proposed step, median", float(np.median(t)), "µs",
