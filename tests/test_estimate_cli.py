@@ -74,6 +74,8 @@ def test_msk_estimate_so_writes_activations_and_torques(arm26_trials, tmp_path, 
     tq = read_sto(out.with_name("act_torques.sto"))
     assert tq.columns[:3] == ["r_shoulder_elev_id", "r_shoulder_elev_model", "r_shoulder_elev_residual"]
     assert np.abs(tq.column("r_elbow_flex_residual")).max() < 1e-3  # so matches the torques
+    std = read_sto(out.with_name("act_std.sto"))
+    assert std.columns == act.columns and np.all(std.data >= 0) and np.any(std.data > 0)
     np.testing.assert_allclose(tq.column("r_elbow_flex_id"), read_sto(
         arm26_trials["trial"].path.parent / _rel_path(arm26_trials["plain"], "torques")).column("r_elbow_flex_moment"),
         atol=1e-4)  # the ID time stamps sit 2e-7 s before the kinematics ones: values are interpolated

@@ -86,6 +86,10 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
         ax.fill_between(t, prior_mu[:, j] - prior_sd[:, j], prior_mu[:, j] + prior_sd[:, j], color="0.85",
                         label="prior μ ± σ")
         ax.plot(t, trial.emg[g], color="k", lw=1.5, label="measured (EMG)")
+        if (trial.name, "proposed") in runs:
+            run = runs[(trial.name, "proposed")]
+            a, s = run.activations[:, j], run.activation_std[:, j]
+            ax.fill_between(t, a - s, a + s, color="C0", alpha=0.2, lw=0, label="proposed ± Laplace std")
         for method, style in (("proposed", "C0-"), ("so", "C3--"), ("hybrid", "C2:")):
             if (trial.name, method) in runs:
                 ax.plot(t, runs[(trial.name, method)].activations[:, j], style, lw=1.2, label=method)

@@ -35,7 +35,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     est.add_argument("--subject", type=Path, default=None, help="subject profile JSON (needed for proposed/prior)")
     est.add_argument("--trial", required=True, type=Path, help="trial TOML")
     est.add_argument("--method", choices=["proposed", "so", "hybrid", "prior"], default="proposed")
-    est.add_argument("--out", required=True, type=Path, help="activations .sto (torques go to <stem>_torques.sto)")
+    est.add_argument("--out", required=True, type=Path,
+                     help="activations .sto (torques go to <stem>_torques.sto, Laplace std to <stem>_std.sto)")
     est.set_defaults(handler=run_estimate)
 
     ev = subparsers.add_parser(
@@ -99,10 +100,12 @@ def run_estimate(args: argparse.Namespace) -> int:
         cols += [f"{c}_id", f"{c}_model", f"{c}_residual"]
         data += [run.torques[:, j], run.model_torques[:, j], run.residual[:, j]]
     write_sto(torque_path, run.time, cols, np.column_stack(data), name=f"torques_{run.method}")
+    std_path = args.out.with_name(f"{args.out.stem}_std.sto")
+    write_sto(std_path, run.time, run.groups, run.activation_std, name=f"activation_std_{run.method}")
     flagged = sum(s != "solved" for s in run.status)
     print(f"{trial.n_frames} frames, {flagged} flagged {run.flag_counts or ''}; median solve "
           f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations")
-    print(f"wrote {args.out} and {torque_path}")
+    print(f"wrote {args.out}, {torque_path} and {std_path} (Laplace std per activation)")
     return 0
 
 
