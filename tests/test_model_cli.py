@@ -39,3 +39,14 @@ def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
     assert cli.main(["model", "compile", "--osim", str(osim), "--spec", str(tmp_path / "bad.toml"),
                      "--out", str(tmp_path / "b.json")]) == 2
     assert "bad.toml" in capsys.readouterr().err
+
+
+def test_model_check_with_recorded_lift(shared_dir, tmp_path, capsys):
+    lift = shared_dir / "data" / "backmodel-lift" / "stoop5kg"
+    code = cli.main(["model", "check", "lumbar_lift", "--osim", str(shared_dir / "models" / "lumbar_scaled.osim"),
+                     "--poses", "4", "--recorded", str(lift / "ik.sto"), str(lift / "id.sto"),
+                     "--recorded-load", "49.03", "--json", str(tmp_path / "r.json")])
+    assert code == 0
+    assert "correlation" in capsys.readouterr().out
+    recorded = json.loads((tmp_path / "r.json").read_text())["recorded"][0]
+    assert recorded["frames"] > 300 and recorded["correlation"]["L5_S1_Flex_Ext"] > 0.75

@@ -29,6 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--hand-load", type=float, default=200.0, help="hand load for the dynamics check, N")
     p.add_argument("--json", type=Path, default=None, help="also write the report here")
+    p.add_argument("--recorded", nargs=2, type=Path, metavar=("IK_STO", "ID_STO"), action="append", default=[],
+                   help="also compare with a recorded OpenSim IK + ID pair (repeatable), e.g. backmodel-lift trials")
+    p.add_argument("--recorded-load", type=float, default=0.0, help="hand load of the recorded trials, N")
     p.set_defaults(handler=run_check)
 
     p = sub.add_parser("scale", help="scale the source OpenSim model to a person and recompile the pack")
@@ -85,8 +88,18 @@ def run_check(args: argparse.Namespace) -> int:
     muscles = check_muscles(pack, args.osim, n_poses=args.poses, seed=args.seed, progress=True)
     dynamics = check_dynamics(pack, args.osim, n_poses=args.poses, seed=args.seed, hand_load=args.hand_load,
                               progress=True)
-    report = {"pack": pack.name, "muscles": muscles, "dynamics": dynamics}
+    report = {"pack": pack.name, "muscles": muscles, "dynamics": dynamics, "recorded": []}
     _print_check(report)
+    if args.recorded:
+        from msk_core.model.reference_id import compare_with_recorded_id  # noqa: PLC0415
+
+        for ik, idf in args.recorded:
+            rec = compare_with_recorded_id(pack, args.osim, ik, idf, hand_load_newton=args.recorded_load)
+            report["recorded"].append({"ik": str(ik), "id": str(idf), **rec})
+            for c in pack.coordinates:
+                print(f"recorded {idf}: {c} RMS error {rec['rms_error_nm'][c]:.2f} N·m = "
+                      f"{rec['rms_error_percent_of_peak'][c]:.1f} % of peak {rec['peak_nm'][c]:.1f} N·m, "
+                      f"correlation {rec['correlation'][c]:.3f} ({rec['frames']} frames)")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=1, default=lambda o: np.asarray(o).tolist()))
     return 0
