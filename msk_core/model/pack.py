@@ -205,7 +205,7 @@ def available_packs() -> list[str]:
 def load_pack(name_or_path: str | Path) -> ModelPack:
     """Load a shipped pack by name (e.g. ``"arm26"``) or a pack JSON file by path."""
     candidate = Path(name_or_path)
-    if candidate.suffix == ".json" or candidate.exists():
+    if candidate.suffix == ".json" or candidate.is_file():
         path = candidate
         try:
             text = path.read_text()
