@@ -1,8 +1,8 @@
 """msk estimate / calibrate / evaluate end to end on the real arm26 tutorial files with the arm26 pack.
 
 The arm26 data have no EMG, so the calibration test synthesises it from a known truth. The tutorial motion is nearly
-unloaded (activations ~0.01-0.05, below any EMG noise floor), so the synthetic trial uses the same kinematics with the
-inverse-dynamics torques of a 5x heavier arm; activations `so` finds for them with strength F_ref reproduce the
+unloaded (activations ~0.01-0.05, below any EMG noise floor), so the synthetic trial is one repetition of the motion
+(forward, then backward) with the inverse-dynamics torques of a 5x heavier arm; activations `so` finds for them with strength F_ref reproduce the
 torques, so with true strength k_true x F_ref the muscles' EMG is a_so / k_true (three muscles), and calibration must
 find k_true.
 """
@@ -47,14 +47,22 @@ def arm26_trials(shared_dir, tmp_path):
     )
     pack = load_pack("arm26")
     trial = load_trial(plain, pack)
-    heavy = read_sto(data / "arm26_InverseDynamics.sto")
-    write_sto(tmp_path / "id_heavy.sto", heavy.time, heavy.columns, 5.0 * heavy.data)
+    # One repetition: the tutorial motion, then the same motion backwards (time-reversed rigid-body dynamics without
+    # damping has the same torques at the mirrored instants), with 5x the torques.
+    ik = read_sto(data / "arm26_InverseKinematics.mot")
+    tau = read_sto(data / "arm26_InverseDynamics.sto")
+    t_rep = np.r_[ik.time, 2 * ik.time[-1] - ik.time[::-1][1:]]
+    write_sto(tmp_path / "ik_rep.mot", t_rep, ik.columns, np.vstack([ik.data, ik.data[::-1][1:]]), in_degrees=True)
+    write_sto(tmp_path / "id_rep.sto", t_rep, tau.columns, 5.0 * np.vstack([tau.data, tau.data[::-1][1:]]))
     heavy_toml = base / "heavy.toml"
-    heavy_toml.write_text(plain.read_text().replace(
-        _rel(data / "arm26_InverseDynamics.sto", base), _rel(tmp_path / "id_heavy.sto", base)))
-    so = estimate_trial(pack, load_trial(heavy_toml, pack), "so")
+    heavy_toml.write_text(
+        f'kinematics = "{_rel(tmp_path / "ik_rep.mot", base)}"\ntorques = "{_rel(tmp_path / "id_rep.sto", base)}"\n'
+        'phase_signal = "r_elbow_flex"\nbody_mass_kg = 70.0\n'
+    )
+    heavy_trial = load_trial(heavy_toml, pack)
+    so = estimate_trial(pack, heavy_trial, "so")
     emg = np.column_stack([so.activations[:, so.groups.index(g)] / k for g, k in K_TRUE.items()])
-    write_sto(tmp_path / "emg.sto", trial.time, [f"ch_{g}" for g in K_TRUE], emg)
+    write_sto(tmp_path / "emg.sto", heavy_trial.time, [f"ch_{g}" for g in K_TRUE], emg)
     with_emg = base / "arm26_emg.toml"
     with_emg.write_text(
         heavy_toml.read_text()
@@ -106,7 +114,7 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     rc = main(["estimate", "--pack", "arm26", "--subject", str(profile_path), "--trial", str(arm26_trials["emg"]),
                "--method", "proposed", "--out", str(out)])
     assert rc == 0
-    assert read_sto(out).n_rows == arm26_trials["trial"].n_frames
+    assert read_sto(out).n_rows == load_trial(arm26_trials["emg"], arm26_trials["pack"]).n_frames
 
     report = tmp_path / "report"
     rc = main(["evaluate", "--pack", "arm26", "--subject", str(profile_path), "--trial", str(arm26_trials["emg"]),

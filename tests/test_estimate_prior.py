@@ -10,6 +10,7 @@ import pytest
 from msk_core.errors import EstimationError, FileFormatError
 from msk_core.estimate import PhasePrior, SubjectProfile, prior_from_reps
 from msk_core.estimate.phase import detect_reps
+from msk_core.estimate.prior import REST_PHASE
 from msk_core.io import read_sto
 
 
@@ -52,11 +53,25 @@ def test_prior_from_reps_mean_and_spread_across_reps():
     np.testing.assert_allclose(sd_p[0], 0.1)
 
 
+def test_rest_prior_from_samples_outside_reps_selected_by_negative_phase():
+    phase = np.r_[np.full(10, np.nan), np.linspace(0, 0.99, 30), np.full(10, np.nan)]
+    rep_index = np.r_[np.full(10, -1), np.zeros(30, dtype=int), np.full(10, -1)]
+    emg = np.r_[np.full(10, 0.02), np.full(30, 0.3), np.full(10, 0.04)]
+    prior = prior_from_reps(["a"], {"a": emg}, phase, rep_index, n_bins=3)
+    mu, sd = prior.at(REST_PHASE)
+    np.testing.assert_allclose(mu, [0.03])
+    np.testing.assert_allclose(sd, [0.02])  # spread 0.01, floored at MIN_STD
+    np.testing.assert_allclose(prior.at(0.5)[0], [0.3])
+    back = PhasePrior.from_dict(json.loads(json.dumps(prior.to_dict())))
+    np.testing.assert_allclose(back.at(REST_PHASE)[0], mu)
+
+
 def test_phase_prior_interpolates_between_bin_centres_and_clamps():
     prior = PhasePrior(("g",), np.array([[0.0], [1.0]]), np.array([[0.1], [0.2]]), np.array([True]))
     assert prior.at(0.25)[0][0] == 0.0 and prior.at(0.75)[0][0] == 1.0  # bin centres
     np.testing.assert_allclose(prior.at(0.5)[0], [0.5])
-    np.testing.assert_allclose(prior.at(-3.0)[0], [0.0])
+    np.testing.assert_allclose(prior.at(3.0)[0], [1.0])  # clamped at the last bin
+    np.testing.assert_allclose(prior.at(-1.0)[0], prior.pooled()[0])  # between reps, no rest state: pooled
     prec = 0.5 * (1 / 0.01 + 1 / 0.04)
     np.testing.assert_allclose(prior.at(0.5)[1], [1 / np.sqrt(prec)])
 

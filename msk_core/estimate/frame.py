@@ -14,7 +14,8 @@ A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
 - ``hybrid``:   min |A~ a - tau~|^2 + hybrid_weight * sum a^2  (hybrid_weight 0.1 by default).
 - ``proposed``: min 1/2 |A~ a - tau~|^2 / eps^2 + 1/2 sum ((a - mu(phase)) / sigma(phase))^2, i.e. the MAP estimate
   with torque noise eps * c_n (``torque_tolerance`` eps, default 0.01 = 1 % of capacity) and the subject's
-  N(mu, sigma^2) prior at the current phase of the repetition (pooled over phases when the phase is unknown).
+  N(mu, sigma^2) prior at the current phase of the repetition (the rest prior between repetitions, phase < 0;
+  pooled over phases when the phase is unknown, None/NaN).
 - ``prior``:    a = mu(phase) clipped to [0, 1], no torque term (the prior-alone baseline).
 
 One PIQP solver per estimator (dense, or sparse from 40 groups up: :mod:`msk_core.estimate.qp`) is set up on the

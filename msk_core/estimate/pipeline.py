@@ -12,7 +12,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
 from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, Method
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.prior import PhasePrior, prior_from_reps
+from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
@@ -40,6 +40,11 @@ def build_prior(pack: PackLike, trials: list[TrialData], *, n_bins: int = 20) ->
     )
 
 
+def trial_phase(trial: TrialData, i: int) -> float:
+    """Phase of frame i: in [0, 1] inside a rep, REST_PHASE between reps."""
+    return REST_PHASE if trial.rep_index[i] < 0 else float(trial.phase[i])
+
+
 def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
     """Moment arms at q, clamped into the pack's fitted range by at most CLAMP_TOLERANCE (else NaN)."""
     ranges = getattr(pack, "coordinate_ranges", None)
@@ -53,6 +58,7 @@ def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
 
 
 def calibration_frames(pack: PackLike, trials: list[TrialData], prior: PhasePrior) -> CalibrationFrames:
+    """Stacked training frames; frames outside any rep carry no prior term (std = inf)."""
     groups = list(pack.groups)
     r, tau, mu, sd, emg = [], [], [], [], []
     for t in trials:
@@ -60,8 +66,10 @@ def calibration_frames(pack: PackLike, trials: list[TrialData], prior: PhasePrio
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
-            ph = t.phase[i]
-            a, b = prior.at(None if not np.isfinite(ph) else float(ph))
+            if t.rep_index[i] >= 0:
+                a, b = prior.at(float(t.phase[i]))
+            else:  # the prior is a distribution across reps: between reps only torque and the trial's EMG count
+                a, b = np.zeros(len(groups)), np.full(len(groups), np.inf)
             r.append(m)
             tau.append(t.torques[i])
             mu.append(a)
@@ -154,8 +162,7 @@ def estimate_trial(
         solve_time_s=np.zeros(n),
     )
     for i in tqdm(range(n), desc=f"{trial.name} [{est.method.value}]", disable=not progress, leave=False):
-        ph = trial.phase[i]
-        res = est.step(trial.q[i], torques=trial.torques[i], phase=float(ph) if np.isfinite(ph) else None)
+        res = est.step(trial.q[i], torques=trial.torques[i], phase=trial_phase(trial, i))
         out.activations[i] = res.activations
         out.activation_std[i] = res.activation_std
         out.model_torques[i] = res.model_torques

@@ -4,6 +4,10 @@ Stored as bin means/stds over the phase of a repetition, phase in [0, 1]; :meth:
 and precisions linearly between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without
 EMG carry a wide default prior (``NO_EMG_MEAN``, ``NO_EMG_STD``) which then acts as a weak min-activation regulariser,
 and ``has_emg`` says so.
+
+Between repetitions the subject rests, which no phase bin describes: the prior then has a ``rest`` state (mean/std of
+the EMG outside the calibration reps), selected by a negative phase (``REST_PHASE`` = -1, the project's "outside a
+repetition" convention). ``None``/NaN means the phase is unknown and selects the prior pooled over the rep phases.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ NO_EMG_MEAN = 0.0
 NO_EMG_STD = 0.5
 # Floor on sigma: a phase bin in which every rep happened to give the same EMG must not become a hard constraint.
 MIN_STD = 0.02
+REST_PHASE = -1.0  # phase value meaning "between repetitions" (any negative phase)
+MIN_REST_SAMPLES = 5
 
 
 @dataclass(frozen=True)
@@ -32,6 +38,8 @@ class PhasePrior:
     mean: np.ndarray
     std: np.ndarray
     has_emg: np.ndarray
+    rest_mean: np.ndarray | None = None  # (n_groups,) prior between repetitions; None: use the pooled prior
+    rest_std: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.mean.shape != self.std.shape or self.mean.ndim != 2 or self.mean.shape[1] != len(self.groups):
@@ -40,13 +48,21 @@ class PhasePrior:
             )
         if not (np.all(np.isfinite(self.mean)) and np.all(self.std > 0)):
             raise EstimationError("prior means must be finite and standard deviations positive")
+        if (self.rest_mean is None) != (self.rest_std is None):
+            raise EstimationError("rest prior needs both mean and std")
+        if self.rest_mean is not None and (
+            self.rest_mean.shape != (len(self.groups),)
+            or self.rest_std.shape != (len(self.groups),)
+            or not np.all(self.rest_std > 0)
+        ):
+            raise EstimationError(f"rest prior must be {len(self.groups)} means and positive stds")
 
     @property
     def n_bins(self) -> int:
         return self.mean.shape[0]
 
     def at(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """(mu, sigma) at a phase in [0, 1]; ``None`` gives the prior pooled over all phases.
+        """(mu, sigma) at a phase in [0, 1]; negative: between reps (rest); ``None``: pooled over all phases.
 
         Means and precisions 1/sigma^2 are interpolated linearly between bin centres (clamped at the ends).
         """
@@ -58,12 +74,15 @@ class PhasePrior:
         cache = self.__dict__.get("_cache")
         if cache is None:
             mu_p, sd_p = self.pooled()
+            rest = (mu_p, 1.0 / sd_p**2) if self.rest_mean is None else (self.rest_mean, 1.0 / self.rest_std**2)
             cache = (self.mean, 1.0 / self.std**2, np.diff(self.mean, axis=0), np.diff(1.0 / self.std**2, axis=0),
-                     mu_p, 1.0 / sd_p**2)
+                     mu_p, 1.0 / sd_p**2, rest)
             object.__setattr__(self, "_cache", cache)
-        mean, prec, dmean, dprec, mu_p, prec_p = cache
+        mean, prec, dmean, dprec, mu_p, prec_p, rest = cache
         if phase is None or not math.isfinite(phase):
             return mu_p, prec_p
+        if phase < 0.0:
+            return rest
         n = self.mean.shape[0]
         x = min(max(float(phase), 0.0), 1.0) * n - 0.5
         if x <= 0.0:
@@ -87,6 +106,8 @@ class PhasePrior:
             "has_emg": [bool(x) for x in self.has_emg],
             "mean": self.mean.round(6).tolist(),
             "std": self.std.round(6).tolist(),
+            "rest_mean": None if self.rest_mean is None else self.rest_mean.round(6).tolist(),
+            "rest_std": None if self.rest_std is None else self.rest_std.round(6).tolist(),
         }
 
     @classmethod
@@ -96,6 +117,8 @@ class PhasePrior:
             mean=np.asarray(data["mean"], dtype=float),
             std=np.asarray(data["std"], dtype=float),
             has_emg=np.asarray(data["has_emg"], dtype=bool),
+            rest_mean=None if data.get("rest_mean") is None else np.asarray(data["rest_mean"], dtype=float),
+            rest_std=None if data.get("rest_std") is None else np.asarray(data["rest_std"], dtype=float),
         )
 
 
@@ -110,13 +133,17 @@ def prior_from_reps(
     """Per group and phase bin, mean and std across repetitions of each rep's bin-mean normalised EMG.
 
     ``emg`` maps group -> envelope samples aligned with ``phases``/``rep_index`` (rep_index < 0 = outside any rep).
-    With a single repetition the std is the within-bin std (there is no across-rep spread to measure).
+    With a single repetition the std is the within-bin std (there is no across-rep spread to measure). Samples outside
+    any rep (at least ``MIN_REST_SAMPLES``) give the rest prior: their mean and std per group.
     """
     n_groups = len(groups)
     mean = np.full((n_bins, n_groups), NO_EMG_MEAN)
     std = np.full((n_bins, n_groups), NO_EMG_STD)
     has_emg = np.zeros(n_groups, dtype=bool)
     in_rep = rep_index >= 0
+    have_rest = int((~in_rep).sum()) >= MIN_REST_SAMPLES
+    rest_mean = np.full(n_groups, NO_EMG_MEAN)
+    rest_std = np.full(n_groups, NO_EMG_STD)
     if not np.any(in_rep):
         raise EstimationError("no repetition found: cannot build a phase prior")
     bins = np.minimum((np.clip(phases, 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
@@ -140,7 +167,17 @@ def prior_from_reps(
         else:
             spread = within[0]
         std[:, g] = np.maximum(_fill_nan(spread), MIN_STD)
-    return PhasePrior(groups=tuple(groups), mean=mean, std=std, has_emg=has_emg)
+        rest = x[~in_rep & np.isfinite(x)]
+        if rest.size >= MIN_REST_SAMPLES:
+            rest_mean[g], rest_std[g] = rest.mean(), max(rest.std(), MIN_STD)
+    return PhasePrior(
+        groups=tuple(groups),
+        mean=mean,
+        std=std,
+        has_emg=has_emg,
+        rest_mean=rest_mean if have_rest else None,
+        rest_std=rest_std if have_rest else None,
+    )
 
 
 def _fill_nan(x: np.ndarray) -> np.ndarray:

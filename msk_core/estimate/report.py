@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.estimate.metrics import activation_rmse, torque_tracking
-from msk_core.estimate.pipeline import TrialEstimate, estimate_trial
+from msk_core.estimate.pipeline import TrialEstimate, estimate_trial, trial_phase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
@@ -77,8 +77,9 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
 
     written = []
     t = trial.time - trial.time[0]
-    prior_mu = np.array([subject.prior.at(p if np.isfinite(p) else None)[0] for p in trial.phase])
-    prior_sd = np.array([subject.prior.at(p if np.isfinite(p) else None)[1] for p in trial.phase])
+    prior_at = [subject.prior.at(trial_phase(trial, i)) for i in range(trial.n_frames)]
+    prior_mu = np.array([m for m, _ in prior_at])
+    prior_sd = np.array([s for _, s in prior_at])
     groups = list(subject.groups)
     for g in trial.emg:
         j = groups.index(g)
