@@ -146,7 +146,7 @@ def prior_from_reps(
     rest_std = np.full(n_groups, NO_EMG_STD)
     if not np.any(in_rep):
         raise EstimationError("no repetition found: cannot build a phase prior")
-    bins = np.minimum((np.clip(phases, 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
+    bins = np.minimum((np.clip(np.nan_to_num(phases, nan=0.0), 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
     reps = np.unique(rep_index[in_rep])
     for g, name in enumerate(groups):
         if name not in emg:
