@@ -90,7 +90,6 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
     Same locked coordinates, couplings, gravity and hand load; random q, qd (±1 rad/s), qdd (±10 rad/s²).
     """
     spec = parse_spec(pack.raw["spec"])
-    osim = osim_tools.import_opensim()
     model, _ = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity, forces=False)
     g = np.array(model.getGravity().to_numpy())
     osim_tools.add_hand_loads(model, spec, hand_load, g, pack.validation_rigid.load_share)
@@ -105,7 +104,6 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
         qdd = rng.uniform(-10, 10, len(q))
         ref.append(osim_tools.opensim_inverse_dynamics(poser, q, qd, qdd))
         fit.append(rigid.inverse_dynamics(q - pack.reference_pose, qd, qdd, hand_load, None))
-    del osim
     ref, fit = np.array(ref), np.array(fit)
     peak = np.max(np.abs(ref), axis=0)
     err = np.abs(fit - ref)

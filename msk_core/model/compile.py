@@ -67,7 +67,6 @@ MAX_KNOTS = 3  # per bundle and coordinate
 def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dict[str, list[tuple[int, float]]]:
     """Per bundle, (coordinate index, normalised x) where its moment arm jumps: a scan of each coordinate alone
     (others at their reference) on a fine grid. Isolated glitches (a jump straight back) are ignored."""
-    n = len(spec.coordinates)
     q0 = np.array([c.reference for c in spec.coordinates])
     knots: dict[str, list[tuple[int, float]]] = {m: [] for m in names}
     for j, c in enumerate(spec.coordinates):
@@ -97,7 +96,6 @@ def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dic
                 q_knot = (values[good[a]] + values[good[a + 1]]) / 2
                 x_knot = (q_knot - (c.upper + c.lower) / 2) / ((c.upper - c.lower) / 2)
                 knots[name].append((j, float(x_knot)))
-    del n
     return knots
 
 

@@ -1,9 +1,10 @@
 """Extract the reduced rigid-body description of a pack from OpenSim (screw axes at the reference pose).
 
 For every OpenSim joint and pack coordinate, the relative motion child-vs-parent per unit coordinate is measured by
-central differences at the reference pose: its instantaneous screw gives the pinocchio joint (point, axis, gain).
-Exact for constant-axis joints and linear couplings; for moving-axis joints (the knee's rolling translations, the
-patella coupler) it is the reference-pose linearisation, whose error ``msk model check`` reports.
+central differences at the reference pose: its instantaneous screw gives the pinocchio joint (point, axis, gain),
+exact for constant-axis joints and linear couplings. Joints whose screw changes across the range (the rolling
+walker knee, the patella coupler) become a chain of three translations and three rotations, each a polynomial of
+the coordinate fitted to OpenSim's relative transforms (``msk model check`` reports the resulting ID error).
 """
 
 from __future__ import annotations
@@ -209,15 +210,14 @@ def extract_rigid(
                         joint_distal_shared.append(in_shared[body])
                         current = len(joints) - 1
                     continue
-                origin = t0[other if not reversed_ else body][1] if not reversed_ else t0[body][1]
                 child_origin = t0[graph_child(graph, jname)][1]
                 w = np.linalg.norm(omega)
                 gains = np.zeros(len(spec.coordinates))
                 if w > 1e-7:
                     point = child_origin + np.cross(omega, v) / w**2
                     axis, kind, gains[k] = sign * omega / w, "revolute", w
-                else:
-                    point = origin
+                else:  # pure translation: the axis line may pass anywhere, use the child's origin
+                    point = child_origin
                     axis, kind, gains[k] = sign * v / np.linalg.norm(v), "prismatic", np.linalg.norm(v)
                 joints.append({"name": f"{jname}:{coord.name}", "parent": current, "position": point.tolist(),
                                "axis": axis.tolist(), "kind": kind, "gains_row": gains.tolist()})

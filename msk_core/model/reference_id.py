@@ -15,7 +15,6 @@ from scipy.interpolate import make_smoothing_spline
 from msk_core.errors import FileFormatError
 from msk_core.model import osim_tools
 from msk_core.model.pack import ModelPack, OutOfRange
-from msk_core.model.spec import parse_spec
 
 
 def read_sto(path: str | Path) -> tuple[list[str], np.ndarray, bool]:
@@ -50,7 +49,6 @@ def compare_with_recorded_id(
     id_names, idd, _ = read_sto(id_path)
     if ik_deg:
         ik[:, 1:] = np.radians(ik[:, 1:])
-    spec = parse_spec(pack.raw["spec"])
     model, state = osim_tools.load_model(osim_path)
     coords = model.getCoordinateSet()
     root = model.getBodySet().get(root_body)
@@ -88,7 +86,6 @@ def compare_with_recorded_id(
     recorded = np.stack([np.interp(t, id_t, idd[:, id_names.index(c)]) for c in pack.coordinates], axis=1)
     err = pack_tau - recorded
     peak = np.max(np.abs(recorded), axis=0)
-    del spec
     return {
         "frames": len(t),
         "peak_nm": dict(zip(pack.coordinates, peak.tolist())),
