@@ -192,6 +192,7 @@ def test_prior_method_returns_prior_mean_and_model_torque():
     q = np.array([0.2, 0.1])
     res = est.step(q, torques=np.ones(2), phase=0.25)
     np.testing.assert_allclose(res.activations, prior.at(0.25)[0])
+    np.testing.assert_allclose(res.activation_std, prior.at(0.25)[1])
     np.testing.assert_allclose(res.model_torques, pack.moment_arms(q) @ (pack.f_max_ref * res.activations))
 
 

@@ -104,7 +104,7 @@ class FrameResult:
 
     @property
     def hessian(self) -> np.ndarray | None:
-        """Hessian of the frame's objective in the activations, w A~'A~ + diag(d) (None for ``prior``)."""
+        """Hessian of the frame's objective in the activations, w A~'A~ + diag(d) (``prior``: diag(1/sigma^2))."""
         if self._hess_parts is None:
             return None
         at, w, d = self._hess_parts
@@ -262,9 +262,10 @@ class FrameEstimator:
         tt = tau / scale
         method = self.method
         if method is Method.PRIOR:
-            mu, _ = self.prior.at(phase)
+            mu, prec = self.prior.mean_precision(phase)
             x = np.clip(mu, self._lb, self._ub)
-            return self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, None, None)
+            # curvature of the prior alone: the std reported is the prior's sigma
+            return self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, (at, 0.0, prec), None)
         if method is Method.SO:
             if self._so_certainly_infeasible(at, tt):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
