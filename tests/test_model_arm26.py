@@ -108,7 +108,8 @@ def test_compile_small_arm26(tmp_path, arm26_osim):
     # a coarse compile still lands within a few mm of the shipped pack; dynamics are identical
     np.testing.assert_allclose(pack.moment_arms(q), shipped.moment_arms(q), atol=4e-3)
     np.testing.assert_allclose(
-        pack.inverse_dynamics(q, np.ones(2), np.ones(2), 20.0), shipped.inverse_dynamics(q, np.ones(2), np.ones(2), 20.0)
+        pack.inverse_dynamics(q, np.ones(2), np.ones(2), 20.0),
+        shipped.inverse_dynamics(q, np.ones(2), np.ones(2), 20.0),
     )
     assert pack.fit_report["samples"] == 80
 

@@ -62,10 +62,12 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
     per_group = {}
     for gi, g in enumerate(pack.groups):
         per_group[g] = {
-            "moment_arm_rms_mm": {c: float(np.sqrt(mean(err_r[:, gi, j] ** 2))) for j, c in enumerate(pack.coordinates)},
+            "moment_arm_rms_mm": {c: float(np.sqrt(mean(err_r[:, gi, j] ** 2)))
+                                  for j, c in enumerate(pack.coordinates)},
             "moment_arm_max_mm": {c: float(peak(np.abs(err_r[:, gi, j]))) for j, c in enumerate(pack.coordinates)},
             "length_rms_mm": float(np.sqrt(mean(err_l[:, gi] ** 2))),
-            "path_derivative_max_mm": {c: float(peak(np.abs(err_fd[:, gi, j]))) for j, c in enumerate(pack.coordinates)},
+            "path_derivative_max_mm": {c: float(peak(np.abs(err_fd[:, gi, j])))
+                                       for j, c in enumerate(pack.coordinates)},
             "length_max_mm": float(peak(np.abs(err_l[:, gi]))),
         }
     return {

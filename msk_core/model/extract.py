@@ -32,7 +32,8 @@ def joint_graph(model) -> list[tuple[str, str, str]]:
     out = []
     for i in range(js.getSize()):
         j = js.get(i)
-        out.append((j.getName(), j.getParentFrame().findBaseFrame().getName(), j.getChildFrame().findBaseFrame().getName()))
+        parent, child = j.getParentFrame().findBaseFrame(), j.getChildFrame().findBaseFrame()
+        out.append((j.getName(), parent.getName(), child.getName()))
     return out
 
 
@@ -249,7 +250,8 @@ def extract_rigid(
     loads = []
     for lp in spec.dynamics.load_points:
         r0, p0 = t0[lp.body]
-        loads.append({"body": lp.body, "joint": attach.get(lp.body, -1), "point": (r0 @ np.array(lp.point) + p0).tolist()})
+        point = r0 @ np.array(lp.point) + p0
+        loads.append({"body": lp.body, "joint": attach.get(lp.body, -1), "point": point.tolist()})
     loads = [lp for lp in loads if lp["joint"] >= 0]
     n = len(spec.coordinates)
     torque_scale = np.ones(n)

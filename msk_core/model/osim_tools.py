@@ -163,7 +163,7 @@ GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbo
 
 def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4, progress=None,
                    only: int | None = None):
-    """Muscle-tendon lengths (S, m) and dl/dq (S, m, n) by central differences of OpenSim path lengths (NaN at jumps)."""
+    """Muscle-tendon lengths (S, m) and dl/dq (S, m, n): central differences of OpenSim path lengths (NaN at jumps)."""
     muscles = [poser.model.getMuscles().get(n) for n in names]
     s, n = poses.shape
     lengths = np.empty((s, len(names)))

@@ -108,7 +108,8 @@ class ModelPack:
     def _checked(self, q: np.ndarray, out_of_range: OutOfRange) -> np.ndarray:
         q = np.asarray(q, dtype=float)
         if q.shape != self._shape:
-            raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, got {q.shape}")
+            raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, "
+                             f"got {q.shape}")
         if out_of_range is OutOfRange.CLAMP:
             return np.minimum(np.maximum(q, self._lo), self._hi)
         if (np.abs(q - self._centre) > self._half_range).any():  # one pass: |q - centre| <= half range

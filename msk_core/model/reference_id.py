@@ -2,7 +2,8 @@
 
 The pack's model is rooted at its locked pelvis, so each frame's pelvis orientation (from the IK file, through
 OpenSim) enters as the gravity vector expressed in the pelvis frame, with the pelvis origin's linear acceleration
-folded in (g - a); the pelvis' angular velocity/acceleration is neglected (documented). Pack coordinate velocities/accelerations come from a smoothing spline of the IK angles.
+folded in (g - a); the pelvis' angular velocity/acceleration is neglected (documented). Pack coordinate
+velocities/accelerations come from a smoothing spline of the IK angles.
 """
 
 from __future__ import annotations
@@ -91,7 +92,8 @@ def compare_with_recorded_id(
         "peak_nm": dict(zip(pack.coordinates, peak.tolist())),
         "rms_error_nm": dict(zip(pack.coordinates, np.sqrt(np.mean(err**2, axis=0)).tolist())),
         "max_error_nm": dict(zip(pack.coordinates, np.max(np.abs(err), axis=0).tolist())),
-        "rms_error_percent_of_peak": dict(zip(pack.coordinates, (100 * np.sqrt(np.mean(err**2, axis=0)) / peak).tolist())),
+        "rms_error_percent_of_peak": dict(zip(pack.coordinates,
+                                              (100 * np.sqrt(np.mean(err**2, axis=0)) / peak).tolist())),
         "correlation": dict(zip(pack.coordinates, [float(np.corrcoef(pack_tau[:, j], recorded[:, j])[0, 1])
                                                     for j in range(len(pack.coordinates))])),
         "time": t,

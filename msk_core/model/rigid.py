@@ -78,7 +78,8 @@ class RigidModel:
             stacked[2 * m :, : degree - 2] = d2 / half**2
             contiguous = idx == list(range(idx[0], idx[0] + m))
             self._nl_groups.append({
-                "k": k, "idx": slice(idx[0], idx[0] + m) if contiguous else np.array(idx), "m": m, "centre": centre, "inv_half": 1.0 / half,
+                "k": k, "idx": slice(idx[0], idx[0] + m) if contiguous else np.array(idx), "m": m,
+                "centre": centre, "inv_half": 1.0 / half,
                 "stacked": stacked, "powers": np.arange(degree).astype(float),
                 "scale": float(self.torque_scale[k]),
             })

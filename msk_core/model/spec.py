@@ -90,7 +90,8 @@ def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where
         raise ConfigError(f"missing required key in [{where}]", path=path, field=key)
     value = table[key]
     if not isinstance(value, kind):
-        raise ConfigError(f"must be {kind.__name__}", path=path, field=f"{where}.{key}", value=value, line=_line(text, key))
+        raise ConfigError(f"must be {kind.__name__}", path=path, field=f"{where}.{key}", value=value,
+                          line=_line(text, key))
     return value
 
 

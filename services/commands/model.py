@@ -72,7 +72,8 @@ def _print_check(report: dict) -> None:
     for g, s in m["groups"].items():
         cells = " ".join(f"{s['moment_arm_rms_mm'][c]:12.3f}/{s['moment_arm_max_mm'][c]:<12.3f}" for c in coords)
         print(f"{g:14s} {cells}   {s['length_max_mm']:.3f} mm")
-    print(f"inverse dynamics vs OpenSim InverseDynamicsSolver ({d['poses']} poses, hand load {d['hand_load_newton']} N):")
+    print(f"inverse dynamics vs OpenSim InverseDynamicsSolver ({d['poses']} poses, "
+          f"hand load {d['hand_load_newton']} N):")
     for c in d["peak_nm"]:
         print(f"  {c:22s} peak {d['peak_nm'][c]:9.3f} N·m  max error {d['max_error_nm'][c]:.3g} N·m "
               f"= {d['max_error_percent_of_peak'][c]:.3f} % of peak (target 1 %)")
