@@ -50,3 +50,8 @@ def test_model_check_with_recorded_lift(shared_dir, tmp_path, capsys):
     assert "correlation" in capsys.readouterr().out
     recorded = json.loads((tmp_path / "r.json").read_text())["recorded"][0]
     assert recorded["frames"] > 300 and recorded["correlation"]["L5_S1_Flex_Ext"] > 0.75
+
+
+def test_model_check_defaults_to_the_shared_source_model(shared_dir, capsys):
+    assert cli.main(["model", "check", "arm26", "--poses", "2"]) == 0
+    assert "moment arms over 2 fresh poses" in capsys.readouterr().out

@@ -4,11 +4,26 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
 from msk_core.errors import ConfigError
+
+SHARED_MODELS = Path(os.environ.get("MSK_SHARED_DIR", Path(__file__).resolve().parents[2].parent / "shared")) / "models"
+
+
+def _source_osim(pack, given: Path | None) -> Path:
+    """--osim, or the pack's source model in the reference material (MSK_SHARED_DIR or ../shared)."""
+    if given is not None:
+        return given
+    if pack.raw.get("scaling"):
+        raise ConfigError("a scaled pack needs --osim (its scaled .osim was written beside it)", field="--osim")
+    candidate = SHARED_MODELS / pack.raw["source_model"]
+    if not candidate.is_file():
+        raise ConfigError(f"no --osim given and the source model is not at {candidate}", field="--osim")
+    return candidate
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,7 +39,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("check", help="compare a pack with OpenSim on fresh random poses")
     p.add_argument("pack", help="shipped pack name or pack .json path")
-    p.add_argument("--osim", type=Path, required=True, help="the OpenSim model the pack was compiled from")
+    p.add_argument("--osim", type=Path, default=None,
+                   help="the OpenSim model the pack was compiled from (default: shared/models/<source model>)")
     p.add_argument("--poses", type=int, default=30, help="random poses (default 30)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--hand-load", type=float, default=200.0, help="hand load for the dynamics check, N")
@@ -36,7 +52,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("scale", help="scale the source OpenSim model to a person and recompile the pack")
     p.add_argument("--pack", required=True, help="shipped pack name or pack .json path (its spec is reused)")
-    p.add_argument("--osim", type=Path, required=True, help="the generic OpenSim model of that pack")
+    p.add_argument("--osim", type=Path, default=None,
+                   help="the generic OpenSim model of that pack (default: shared/models/<source model>)")
     p.add_argument("--mass-kg", type=float, required=True)
     p.add_argument("--height-m", type=float, required=True)
     p.add_argument("--segment", action="append", default=[], metavar="NAME=LENGTH_M",
@@ -86,6 +103,7 @@ def run_check(args: argparse.Namespace) -> int:
     if args.poses < 2:
         raise ConfigError("need at least 2 poses", field="--poses", value=args.poses)
     pack = load_pack(args.pack)
+    args.osim = _source_osim(pack, args.osim)
     muscles = check_muscles(pack, args.osim, n_poses=args.poses, seed=args.seed, progress=True)
     dynamics = check_dynamics(pack, args.osim, n_poses=args.poses, seed=args.seed, hand_load=args.hand_load,
                               progress=True)
@@ -109,8 +127,11 @@ def run_check(args: argparse.Namespace) -> int:
 def run_scale(args: argparse.Namespace) -> int:
     from msk_core.model.scale import parse_segments, scale_pack  # noqa: PLC0415 - needs opensim
 
+    from msk_core.model import load_pack  # noqa: PLC0415
+
     segments = parse_segments(args.segment)
-    out, summary = scale_pack(args.pack, args.osim, mass_kg=args.mass_kg, height_m=args.height_m,
+    osim = _source_osim(load_pack(args.pack), args.osim)
+    out, summary = scale_pack(args.pack, osim, mass_kg=args.mass_kg, height_m=args.height_m,
                               segments=segments, out=args.out, samples=args.samples)
     print(f"wrote {out}")
     for key, value in summary.items():
