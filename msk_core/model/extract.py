@@ -201,6 +201,12 @@ def extract_rigid(
                 omega, v = screws[(jname, k)]
                 sign = -1.0 if reversed_ else 1.0
                 if _is_nonlinear(poser, spec, k, graph_parent(graph, jname), graph_child(graph, jname)):
+                    movers = [spec.coordinates[kk].name for kk in range(len(spec.coordinates)) if (jname, kk) in screws]
+                    if len(movers) > 1:
+                        # the polynomial chain replays one coordinate's path; two would need a 2-D surface
+                        raise ConfigError(f"joint {jname!r} has a moving axis and is driven by several pack "
+                                          f"coordinates {movers}; lock all but one", path=spec.path,
+                                          field="coordinates", value=movers)
                     origin, functions = _chain(poser, spec, k, body, other)
                     axes = np.eye(3)
                     for j, function in enumerate(functions):
