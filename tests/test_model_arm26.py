@@ -134,3 +134,17 @@ def test_spec_value_errors(tmp_path):
     with pytest.raises(ConfigError, match="range_deg"):
         parse_spec(text, tmp_path / "x.toml")
     assert load_spec(SPEC_DIR / "arm26.toml").name == "arm26"
+
+
+@pytest.mark.parametrize("name", ["arm26", "bench_press", "deadlift", "lumbar_lift"])
+def test_vectorised_evaluation_matches_per_frame(name):
+    pack = load_pack(name)
+    rng = np.random.default_rng(4)
+    q = rng.uniform(pack.coordinate_ranges[:, 0], pack.coordinate_ranges[:, 1], size=(40, len(pack.coordinates)))
+    lengths, arms = pack.lengths_and_moment_arms_many(q)
+    for k in range(len(q)):
+        np.testing.assert_allclose(lengths[k], pack.mtu_lengths(q[k]), rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(arms[k], pack.moment_arms(q[k]), rtol=1e-12, atol=1e-15)
+    q[3, 0] = pack.coordinate_ranges[0, 1] + 0.1
+    with pytest.raises(ModelError, match=pack.coordinates[0]):
+        pack.lengths_and_moment_arms_many(q)

@@ -151,6 +151,34 @@ class ModelPack:
         values = self._evaluate(self._checked(q, out_of_range))
         return values[: self._g], values[self._g :].reshape(self._n, self._g)
 
+    def lengths_and_moment_arms_many(
+        self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised over frames (offline work): q (S, n) -> lengths (S, n_groups), moment arms (S, n, n_groups)."""
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != self._n:
+            raise ModelError(f"pack {self.name!r}: q must have shape (frames, {self._n}), got {q.shape}")
+        if out_of_range is OutOfRange.CLAMP:
+            q = np.minimum(np.maximum(q, self._lo), self._hi)
+        else:
+            bad = np.abs(q - self._centre) > self._half_range
+            if bad.any():
+                frame = int(np.nonzero(bad)[0][0])
+                self._checked(q[frame], OutOfRange.RAISE)  # raises with the coordinate, value and range
+        x = (q - self._centre) / self._half
+        table = x[:, :, None] ** self._powers[None, None, :]  # (S, n, D+1)
+        flat = table.reshape(len(q), -1)
+        phi = flat[:, self._flat_cols[0]]
+        for col in self._flat_cols[1:]:
+            phi = phi * flat[:, col]
+        if self._has_hinges:
+            d = x[:, self._hinge_var] - self._hinge_knot
+            h = np.maximum(d, 0.0)
+            hinge = (h[:, :, None] ** self._hinge_powers[None, None, :]).reshape(len(q), -1)
+            phi = np.hstack((phi, hinge, (d > 0.0).astype(float)))
+        values = phi @ self._stacked.T  # (S, g*(n+1))
+        return values[:, : self._g], values[:, self._g :].reshape(len(q), self._n, self._g)
+
     # ---- dynamics ----------------------------------------------------------------------------------------------
     def inverse_dynamics(
         self,
