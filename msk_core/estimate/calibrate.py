@@ -183,7 +183,7 @@ def calibrate(
         jac=True,
         method="L-BFGS-B",
         bounds=prob.bounds(),
-        options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": 1e-15, "maxcor": 30},
+        options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": 1e-15, "maxcor": 10},
     )
     return prob.result(res.x, "L-BFGS-B (joint)", bool(res.success), int(res.nit), str(res.message), s, f_ref)
 
