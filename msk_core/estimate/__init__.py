@@ -2,7 +2,7 @@
 
 from msk_core.estimate.frame import FrameEstimator, FrameResult, FrameStatus, Method
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.prior import PhasePrior, prior_from_reps
+from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
 from msk_core.estimate.profile import SubjectProfile
 
 __all__ = [
@@ -12,6 +12,7 @@ __all__ = [
     "Method",
     "PackLike",
     "PhasePrior",
+    "REST_PHASE",
     "SubjectProfile",
     "prior_from_reps",
 ]
