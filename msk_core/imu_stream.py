@@ -110,7 +110,7 @@ class JointOutput:
     q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
-    phase: float  # [0, 1) inside a rep, -1 when unknown (no template, or outside a rep)
+    phase: float  # [0, 1) inside a rep, -1 between reps, NaN when unknown (no rep template)
 
 
 class StreamingJointKinematics:
@@ -174,7 +174,7 @@ class StreamingJointKinematics:
             return None
         angles = self.mapper.angles({s: q[None, :] for s, q in quats.items()})[0]
         q, qd, qdd = self.filter.step(angles, dt=dt_s)
-        phase = -1.0
+        phase = float("nan")
         if self.tracker is not None and self.phase_index is not None:
             p = self.tracker.update(frame.time_ns / 1e9, float(q[self.phase_index]))
             phase = -1.0 if not np.isfinite(p) else float(p)

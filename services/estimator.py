@@ -91,8 +91,9 @@ def to_message(result: FrameResult, *, method: str, groups, coordinates, time_s:
         iterations=int(result.iterations),
         solve_time_s=float(result.solve_time_s),
         input_arrival_ns=arrival_ns,
-        phase=-1.0 if result.phase is None else float(result.phase),
     )
+    if result.phase is not None:
+        frame.phase = float(result.phase)
     if not result.flagged:
         std = result.activation_std
         if std is not None and np.all(np.isfinite(std)):
@@ -169,7 +170,8 @@ def main(
                         log.error("%s", error)
                     stats.last_error = str(error)
                     continue
-                phase = None if joints.phase < 0 else float(joints.phase)
+                # Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1).
+                phase = float(joints.phase) if joints.HasField("phase") else None
                 time_s = joints.device_time_ns / 1e9
                 for method, estimator in estimators.items():
                     result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase)

@@ -168,9 +168,11 @@ def main(
             if out is None:
                 continue
             joints = messages.JointAngles(
-                coordinates=coordinates, q=out.q.tolist(), qd=out.qd.tolist(), qdd=out.qdd.tolist(), phase=out.phase,
+                coordinates=coordinates, q=out.q.tolist(), qd=out.qd.tolist(), qdd=out.qdd.tolist(),
                 device_time_ns=out.time_ns, host_time_ns=messages.now_ns(),
             )
+            if np.isfinite(out.phase):  # left unset = unknown (no rep template); -1 = between reps
+                joints.phase = out.phase
             publish(publisher, joints)
             stats.frames_out += 1
 

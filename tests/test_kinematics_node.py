@@ -347,7 +347,7 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
     assert len(received) == 89 and received[0].coordinates == list(pack.coordinates)
     np.testing.assert_allclose(received[-1].q, q1, atol=np.radians(0.05))
     np.testing.assert_allclose(received[-1].qd, 0.0, atol=0.01)
-    assert all(m.phase == -1.0 for m in received)
+    assert not any(m.HasField("phase") for m in received), "no rep template: phase must be left unknown (unset)"
 
 
 def test_streaming_recalibrates_after_a_gap_and_counts_bad_and_moving_static_frames():
