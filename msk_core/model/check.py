@@ -94,7 +94,13 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
     spec = parse_spec(pack.raw["spec"])
     model, _ = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity, forces=False)
     g = np.array(model.getGravity().to_numpy())
-    osim_tools.add_hand_loads(model, spec, hand_load, g, pack.validation_rigid.load_share)
+    redirect = {}
+    if spec.dynamics.hanging:
+        # the same pendulum arms as the pack: pivots at the reference pose (hanging bodies' joints are locked)
+        poser = osim_tools.OsimPoser(model, model.initSystem(), spec)
+        poser.set(pack.reference_pose)
+        redirect = osim_tools.hang_subtrees(model, poser.state, spec)
+    osim_tools.add_hand_loads(model, spec, hand_load, g, pack.validation_rigid.load_share, redirect)
     state = model.initSystem()
     poser = osim_tools.OsimPoser(model, state, spec)
     rng = np.random.default_rng(seed + 2 * CHECK_SEED_OFFSET)

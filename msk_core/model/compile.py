@@ -27,7 +27,7 @@ from msk_core.model.poly import (
     monomial_derivatives,
     monomials,
 )
-from msk_core.model.spec import PackSpec
+from msk_core.model.spec import PackSpec, parse_spec
 
 SPAN_THRESHOLD = 1e-4  # m/rad: a bundle "spans" a coordinate when |moment arm| exceeds 0.1 mm somewhere
 DERIVATIVE_WEIGHT = 5.0  # moment arms matter more than lengths (and some OpenSim paths jump in length, not in r)
@@ -177,14 +177,7 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
         f_max.append(float(forces.sum()))
         l_opt.append(float(weights @ [table[m]["l_opt"] for m in members]))
         l_slack.append(float(weights @ [table[m]["l_slack"] for m in members]))
-    dyn = spec.dynamics
-    rigid = extract_rigid(poser, spec, root=dyn.root, exclude=dyn.exclude_bodies, shared_from=dyn.shared_from,
-                          gravity=g, load_share=dyn.load_share)
-    validation = None
-    if dyn.root != "ground" or dyn.shared_from or dyn.exclude_bodies:
-        # the whole model as OpenSim has it (pelvis-rooted, nothing shared: the full bar on this model)
-        validation = extract_rigid(poser, spec, root="ground", exclude=(), shared_from="", gravity=g,
-                                   load_share=1.0 if dyn.shared_from else dyn.load_share)
+    rigid, validation = _dynamics(poser, spec, g)
     source = Path(osim_path)
     return {
         "format": PACK_FORMAT,
@@ -213,6 +206,42 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
         "fit_report": {"samples": len(poses), "holdout": n_test, "muscles": report},
         "spec": spec.text,
     }
+
+
+def _dynamics(poser, spec: PackSpec, g: np.ndarray) -> tuple[dict, dict | None]:
+    """(live rigid-body description, ground-rooted validation description or None)."""
+    dyn = spec.dynamics
+    rigid = extract_rigid(poser, spec, root=dyn.root, exclude=dyn.exclude_bodies, shared_from=dyn.shared_from,
+                          gravity=g, load_share=dyn.load_share)
+    validation = None
+    if dyn.root != "ground" or dyn.shared_from or dyn.exclude_bodies:
+        # the whole model as OpenSim has it (pelvis-rooted, nothing shared: the full bar on this model)
+        validation = extract_rigid(poser, spec, root="ground", exclude=(), shared_from="", gravity=g,
+                                   load_share=1.0 if dyn.shared_from else dyn.load_share)
+    return rigid, validation
+
+
+def recompile_dynamics(pack: dict, osim_path: str | Path, spec: PackSpec) -> dict:
+    """A copy of ``pack`` with its rigid-body part rebuilt from ``spec`` (whose muscle part must be unchanged).
+
+    The muscle fits depend only on coordinates, groups, locked pose and [fit] -- all checked equal to the pack's
+    own spec -- so this equals a full :func:`compile_pack` without the slow OpenSim path sampling."""
+    old = parse_spec(pack["spec"])
+    for field in ("coordinates", "locked", "groups", "fit"):
+        if getattr(old, field) != getattr(spec, field):
+            raise ConfigError(f"spec changes {field!r}: recompile the whole pack", path=spec.path, field=field)
+    model, state = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity)
+    g = np.array(model.getGravity().to_numpy())
+    poser = osim_tools.OsimPoser(model, state, spec)
+    rigid, validation = _dynamics(poser, spec, g)
+    source = Path(osim_path)
+    out = dict(pack)
+    out.update(dynamics=rigid, validation_dynamics=validation, spec=spec.text, version=spec.version,
+               description=spec.description,
+               source_sha256=hashlib.sha256(source.read_bytes()).hexdigest())
+    if out["source_sha256"] != pack["source_sha256"]:
+        raise ConfigError("a different OpenSim model than the pack was compiled from", path=source)
+    return out
 
 
 def write_pack(pack: dict, out: str | Path) -> Path:

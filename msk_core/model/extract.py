@@ -165,9 +165,10 @@ def extract_rigid(
     model = poser.model
     graph = joint_graph(model)
     bodies = {"ground"} | {b for _, p, c in graph for b in (p, c)}
+    hanging = tuple(spec.dynamics.hanging)
     for name, field in [(root, "dynamics.root"), (shared_from, "dynamics.shared_from")] + [
         (b, "dynamics.exclude_bodies") for b in exclude
-    ]:
+    ] + [(b, "dynamics.hanging") for b in hanging]:
         if name and name not in bodies:
             raise ConfigError(f"unknown body {name!r} ({closest(name, sorted(bodies))})", path=spec.path,
                               line=spec.line_of(name), field=field, value=name)
@@ -188,6 +189,7 @@ def extract_rigid(
     in_shared: dict[str, bool] = {root: root == shared_from}
     joints: list[dict] = []
     joint_distal_shared: list[bool] = []
+    pivot_of: dict[str, str] = {}  # body of a hanging subtree -> the body whose origin it hangs from
     queue = deque([root])
     while queue:
         body = queue.popleft()
@@ -195,6 +197,14 @@ def extract_rigid(
             if other in attach or other in exclude:
                 continue
             current = attach[body]
+            pivot = pivot_of.get(body) or (other if other in hanging else None)
+            if pivot is not None:
+                # a pendulum: no joints, it rides on the pivot's parent as a point mass at the pivot
+                pivot_of[other] = pivot
+                attach[other] = current
+                in_shared[other] = in_shared[body] or other == shared_from
+                queue.append(other)
+                continue
             for k, coord in enumerate(spec.coordinates):
                 if (jname, k) not in screws:
                     continue
@@ -246,18 +256,25 @@ def extract_rigid(
         mom, prod = inertia.getMoments().to_numpy(), inertia.getProducts().to_numpy()
         i_body = np.array([[mom[0], prod[0], prod[1]], [prod[0], mom[1], prod[2]], [prod[1], prod[2], mom[2]]])
         scale = share if in_shared[name] else 1.0
-        body_list.append({
+        entry = {
             "name": name,
             "joint": attach[name],
             "mass": scale * b.getMass(),
             "com": (r0 @ b.getMassCenter().to_numpy() + p0).tolist(),
             "inertia": (scale * r0 @ i_body @ r0.T).tolist(),
-        })
+        }
+        if name in pivot_of:  # hanging plumb: its weight acts through the pivot (point mass, no rotary inertia)
+            entry.update(com=t0[pivot_of[name]][1].tolist(), inertia=np.zeros((3, 3)).tolist(),
+                         hanging_from=pivot_of[name])
+        body_list.append(entry)
     loads = []
     for lp in spec.dynamics.load_points:
         r0, p0 = t0[lp.body]
         point = r0 @ np.array(lp.point) + p0
-        loads.append({"body": lp.body, "joint": attach.get(lp.body, -1), "point": point.tolist()})
+        load = {"body": lp.body, "joint": attach.get(lp.body, -1), "point": point.tolist()}
+        if lp.body in pivot_of:  # held in a hanging hand: same line of action as a force at the pivot
+            load.update(point=t0[pivot_of[lp.body]][1].tolist(), hanging_from=pivot_of[lp.body])
+        loads.append(load)
     loads = [lp for lp in loads if lp["joint"] >= 0]
     n = len(spec.coordinates)
     torque_scale = np.ones(n)

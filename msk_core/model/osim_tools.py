@@ -223,18 +223,77 @@ def opensim_glitches(poser: OsimPoser, names: list[str], q: np.ndarray, delta: f
     return np.abs(plus + minus - 2 * centre) > 1e-3
 
 
-def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray, share: float) -> None:
-    """Constant forces along gravity at the spec's load points (before initSystem), as the pack applies them."""
+def _subtree(model, top: str) -> list[str]:
+    """``top`` and every body distal of it (children through joints, away from ground)."""
+    js = model.getJointSet()
+    children: dict[str, list[str]] = {}
+    for i in range(js.getSize()):
+        j = js.get(i)
+        children.setdefault(j.getParentFrame().findBaseFrame().getName(), []).append(
+            j.getChildFrame().findBaseFrame().getName())
+    out, stack = [], [top]
+    while stack:
+        body = stack.pop()
+        out.append(body)
+        stack.extend(children.get(body, []))
+    return out
+
+
+HANGING_RESIDUAL_MASS = 1e-9  # kg
+
+
+def hang_subtrees(model, state, spec: PackSpec) -> dict[str, str]:
+    """Reproduce the pack's pendulum assumption (``[dynamics] hanging``) in an OpenSim model (before initSystem).
+
+    Every body of a hanging subtree becomes (nearly) massless; its total mass becomes a point mass welded to the pivot
+    body's parent at the pivot (the pivot body's origin at the current pose). Returns hanging body -> the point-mass
+    body that carries its load points. ``state`` must be realised to Position (the pose that defines the pivot).
+    """
+    osim = import_opensim()
+    bodies = model.getBodySet()
+    redirect: dict[str, str] = {}
+    plan = []  # measure every pivot before the first edit invalidates the system
+    for pivot in spec.dynamics.hanging:
+        members = _subtree(model, pivot)
+        mass = sum(bodies.get(b).getMass() for b in members)
+        joint = next(model.getJointSet().get(i) for i in range(model.getJointSet().getSize())
+                     if model.getJointSet().get(i).getChildFrame().findBaseFrame().getName() == pivot)
+        parent = bodies.get(joint.getParentFrame().findBaseFrame().getName())
+        ground_point = bodies.get(pivot).getPositionInGround(state)
+        local = model.getGround().findStationLocationInAnotherFrame(state, ground_point, parent).to_numpy()
+        plan.append((pivot, members, mass, parent, local))
+    for pivot, members, mass, parent, local in plan:
+        for b in members:
+            # OpenSim refuses massless leaf bodies: 1 µg (torques ~1e-8 N·m) stands in for zero
+            bodies.get(b).setMass(HANGING_RESIDUAL_MASS)
+            bodies.get(b).setInertia(osim.Inertia(0.0, 0.0, 0.0))
+        name = f"msk_pendulum_{pivot}"
+        point_mass = osim.Body(name, mass, osim.Vec3(0.0), osim.Inertia(0.0, 0.0, 0.0))
+        model.addBody(point_mass)
+        model.addJoint(osim.WeldJoint(f"{name}_weld", parent, osim.Vec3(*local), osim.Vec3(0.0), point_mass,
+                                      osim.Vec3(0.0), osim.Vec3(0.0)))
+        redirect.update({b: name for b in members})
+    return redirect
+
+
+def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray, share: float,
+                   redirect: dict[str, str] | None = None) -> None:
+    """Constant forces along gravity at the spec's load points (before initSystem), as the pack applies them.
+
+    ``redirect`` (from :func:`hang_subtrees`): load points on hanging bodies act at the pendulum's pivot instead
+    (same line of action as the hand hanging plumb below it)."""
     osim = import_opensim()
     points = spec.dynamics.load_points
     if not points:
         return
+    redirect = redirect or {}
     unit = gravity / np.linalg.norm(gravity)
     force = unit * share * total_load / len(points)
     for k, lp in enumerate(points):
-        pf = osim.PrescribedForce(f"msk_hand_load_{k}", model.getBodySet().get(lp.body))
+        body, point = (redirect[lp.body], (0.0, 0.0, 0.0)) if lp.body in redirect else (lp.body, lp.point)
+        pf = osim.PrescribedForce(f"msk_hand_load_{k}", model.getBodySet().get(body))
         pf.setForceFunctions(osim.Constant(force[0]), osim.Constant(force[1]), osim.Constant(force[2]))
-        pf.setPointFunctions(osim.Constant(lp.point[0]), osim.Constant(lp.point[1]), osim.Constant(lp.point[2]))
+        pf.setPointFunctions(osim.Constant(point[0]), osim.Constant(point[1]), osim.Constant(point[2]))
         pf.set_forceIsGlobal(True)
         pf.set_pointIsGlobal(False)
         model.addForce(pf)

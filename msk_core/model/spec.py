@@ -43,6 +43,9 @@ class DynamicsSpec:
     load_share: float = 1.0  # fraction of hand_load_newton carried by the modelled side (split over load_points)
     shared_from: str = ""  # bodies distal (from the root) to this body carry mass * load_share ...
     exclude_bodies: tuple[str, ...] = ()  # subtrees (seen from the root) left out of the model
+    # subtrees that hang freely from their body's origin (a pendulum, e.g. the arms from the shoulders): their mass
+    # and their load points act at that pivot, along gravity (quasi-static: plumb below the pivot at any trunk angle)
+    hanging: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -178,6 +181,7 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         load_share=float(dyn_raw.get("load_share", 1.0)),
         shared_from=str(dyn_raw.get("shared_from", "")),
         exclude_bodies=tuple(dyn_raw.get("exclude_bodies", [])),
+        hanging=tuple(dyn_raw.get("hanging", [])),
     )
     if not 0.0 < dynamics.load_share <= 1.0:
         raise ConfigError(
