@@ -31,6 +31,7 @@ from services.zenoh_session import (
 @dataclass
 class ReplayStats:
     published: int = 0
+    excluded: int = 0
     truncated: bool = False
 
 
@@ -64,8 +65,12 @@ def main(
     session_name: str | None = None,
     wait_subscribers_s: float = 0.0,
     progress: bool = False,
+    exclude: tuple[str, ...] = (),
 ) -> ReplayStats:
+    """Publish every message of ``mcap_path`` except those whose (renamed) key matches an ``exclude`` key expression."""
     stats = ReplayStats()
+    excluded_keys = [zenoh.KeyExpr(pattern) for pattern in exclude]
+    keep: dict[str, bool] = {}
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
     with open_session(config) as session:
@@ -74,6 +79,11 @@ def main(
         iterator = read_messages(mcap_path, report=report)
         for recorded in tqdm(iterator, desc=f"replay {Path(mcap_path).name}", unit="msg", disable=not progress):
             key = topics.rename_session(recorded.topic, session_name) if session_name else recorded.topic
+            if key not in keep:
+                keep[key] = not any(pattern.intersects(zenoh.KeyExpr(key)) for pattern in excluded_keys)
+            if not keep[key]:
+                stats.excluded += 1
+                continue
             publisher = publishers.get(key)
             if publisher is None:
                 publisher = declare_data_publisher(session, key, recorded.type_name)
@@ -100,6 +110,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", default="1", help="speed factor (1 = original timing) or 'max' (default: 1)")
     parser.add_argument("--session", default=None, help="republish under msk/<SESSION>/... instead of the recorded session")
     parser.add_argument(
+        "--exclude", action="append", default=[], metavar="KEYEXPR",
+        help="do not publish keys matching this key expression, e.g. 'msk/*/joints' to recompute joints live (repeatable)",
+    )
+    parser.add_argument(
         "--wait-subscribers", type=float, default=2.0, metavar="S",
         help="wait up to S seconds for a subscriber on each new key before publishing on it (default 2)",
     )
@@ -114,9 +128,11 @@ def run_from_args(args: argparse.Namespace) -> int:
         session_name=args.session,
         wait_subscribers_s=args.wait_subscribers,
         progress=sys.stderr.isatty(),
+        exclude=tuple(args.exclude),
     )
     note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
-    print(f"published {stats.published} messages from {args.mcap}{note}", file=sys.stderr)
+    skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""
+    print(f"published {stats.published} messages from {args.mcap}{skipped}{note}", file=sys.stderr)
     return 0
 
 

@@ -95,7 +95,7 @@ def test_replay_in_original_timing_under_a_new_session(tmp_path, zenoh_endpoint)
         deadline = time.monotonic() + 5
         while len(received) < 11 and time.monotonic() < deadline:
             time.sleep(0.01)
-    assert stats.published == 11
+    assert stats.published == 11 and stats.excluded == 0
     assert [r[2] for r in received] == [20.0 + i for i in range(11)]
     assert {r[1] for r in received} == {"msk/new/load"}
     span = received[-1][0] - received[0][0]
@@ -143,3 +143,22 @@ def test_recorder_killed_with_sigkill_leaves_readable_completed_chunks(tmp_path,
     assert report.truncated, "a SIGKILLed recorder cannot have written the MCAP footer"
     assert len(recovered) > 0.3 * sent, f"only {len(recovered)} of {sent} messages survive the kill"
     assert recovered == list(range(len(recovered))), "recovered messages must be the sent prefix, in order"
+
+
+def test_replay_can_leave_out_keys(tmp_path, zenoh_endpoint):
+    source = tmp_path / "mixed.mcap"
+    with McapRecorderWriter(source) as writer:
+        for i in range(5):
+            writer.write_message(topics.joints_key("old"), messages.JointAngles(coordinates=["a"], q=[float(i)]), log_time_ns=i + 1)
+            writer.write_message(topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=float(i)), log_time_ns=i + 1)
+    received = []
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        session.declare_subscriber("msk/**", lambda s: received.append(str(s.key_expr)))
+        stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), source, rate=None, session_name="new",
+                              wait_subscribers_s=5.0, exclude=("msk/*/joints",))
+        deadline = time.monotonic() + 5
+        while len(received) < 5 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)
+    assert stats.published == 5 and stats.excluded == 5
+    assert received == ["msk/new/load"] * 5
