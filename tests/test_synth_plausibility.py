@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msk_core.model.pack import available_packs
+from msk_core.model.pack import available_packs, load_pack
 from msk_core.synth import Exercise, SynthConfig, generate_exercise
 
 
@@ -43,13 +43,17 @@ def test_bench_press_60kg_joint_moments_in_literature_range():
 
 
 @pytest.mark.skipif("deadlift" not in available_packs(), reason="deadlift pack not built")
-@pytest.mark.xfail(strict=True, reason="deadlift pack 1.0 locks the arms to the thorax, so the bar moves behind the "
-                   "feet when the trunk inclines: lumbar moment ~660 N·m, hip ~0 (reported to the model work)")
 def test_deadlift_75kg_joint_moments_in_literature_range():
     cfg = SynthConfig(n_reps=1, loads_kg={Exercise.DEADLIFT: (75.0,)})
     ex = generate_exercise(Exercise.DEADLIFT, cfg)
-    lo, hi = _peak(ex, "L5_S1")
-    assert 150.0 <= -lo <= 450.0, ("lumbar extension moment", lo, hi)  # flexion negative in the pack
+    trial = ex.trials[0]
+    pack = load_pack("deadlift")
+    # the pack's lumbar torque is the virtual-work sum over six coupled levels: read the L5/S1 level alone, as the
+    # literature reports it (whole trunk, whole bar). Flexion is negative in the pack, so extension is positive.
+    rep = trial.rep >= 0
+    l5s1 = np.array([pack.joint_torques(q, qd, qdd, 75.0 * 9.80665)["L5_S1_IVDjnt:L5_S1_FE"]
+                     for q, qd, qdd in zip(trial.q[rep][::5], trial.qd[rep][::5], trial.qdd[rep][::5])])
+    assert 150.0 <= l5s1.max() <= 450.0, ("L5/S1 extension moment", l5s1.min(), l5s1.max())
     lo, hi = _peak(ex, "hip")
     assert 80.0 <= -lo <= 300.0, ("hip extension moment", lo, hi)  # flexion positive: extension negative
-    assert ex.trials[0].fallback_frames <= 0.2 * ex.trials[0].time.size
+    assert trial.fallback_frames <= 0.2 * trial.time.size

@@ -200,6 +200,18 @@ class ModelPack:
         return self.rigid.inverse_dynamics(q - self.reference_pose, np.asarray(qd, dtype=float),
                                            np.asarray(qdd, dtype=float), hand_load_newton, gravity)
 
+    def joint_torques(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
+        out_of_range: OutOfRange = OutOfRange.RAISE,
+    ) -> dict[str, float]:
+        """Net moment (N·m) about every joint of the reduced model, by joint name (``"<OpenSim joint>:<coordinate>"``).
+
+        A coupled coordinate's torque is the virtual-work sum over its joints (deadlift: six lumbar levels); this
+        gives each level alone, e.g. ``"L5_S1_IVDjnt:L5_S1_FE"`` is the L5/S1 moment literature reports."""
+        q = self._checked(q, out_of_range)
+        tau = self.rigid.joint_torques(q - self.reference_pose, qd, qdd, hand_load_newton)
+        return dict(zip(self.rigid.joint_names, tau.tolist()))
+
     def frame(
         self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
         out_of_range: OutOfRange = OutOfRange.RAISE,

@@ -84,6 +84,10 @@ class RigidModel:
                 "scale": float(self.torque_scale[k]),
             })
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
+        self.joint_names = [j["name"] for j in joints]
+        moved_by = [j["function"]["coordinate"] if "function" in j else int(np.argmax(np.abs(self.gains[i])))
+                    for i, j in enumerate(joints)]
+        self._joint_scale = self.torque_scale[moved_by]
 
     def _joint_motion(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray):
         """Pinocchio q, v, a and the per-group derivatives f'(q) needed to project torques back."""
@@ -135,6 +139,18 @@ class RigidModel:
             self.model.gravity.linear = self.gravity
             self.load_model.gravity.linear = self.gravity
         return self._project(tau, slopes)
+
+    def joint_torques(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float) -> np.ndarray:
+        """Net torque (or force) about each reduced-model joint (n_joints,), before the virtual-work projection.
+
+        Scaled like the coordinate it moves (torque_scale: e.g. a lumbar level of a foot-rooted, side-shared model
+        reports the whole-trunk moment), so e.g. the L5/S1 level moment of a coupled lumbar spine can be read."""
+        qp, vp, ap, _ = self._joint_motion(np.asarray(dq, dtype=float), np.asarray(qd, dtype=float),
+                                           np.asarray(qdd, dtype=float))
+        tau = pin.rnea(self.model, self.data, qp, vp, ap).copy()
+        if hand_load and self.n_load_points:
+            tau += (hand_load * self._load_factor) * pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
+        return tau * self._joint_scale
 
     def body_masses(self) -> dict[str, float]:
         return {b["name"]: float(b["mass"]) for b in self.description["bodies"]}

@@ -9,10 +9,9 @@ Pose sources (sagittal-plane joint angles):
   Res 19:587); a sagittal model without abduction needs the upper end of the elbow range to bring the bar down.
 * Deadlift: a conventional start has hip flexion ≈ 70–85°, knee flexion ≈ 60–70°, lumbar flexion ≈ 15–25°, ankle
   dorsiflexion ≈ 10–20° (Escamilla et al. 2000, Med Sci Sports Exerc 32:1265; Cholewicki, McGill & Norman 1991,
-  Med Sci Sports Exerc 23:1179). The deadlift pack 1.0 keeps the arms locked to the thorax, so with a deep knee
-  bend the bar (hand load) ends up ~0.35 m behind the ankle and the knee moment exceeds every plausible subject's
-  quadriceps; the generator therefore lifts stiff-legged (Romanian style: hip 75°, knee 20°, lumbar 15°, ankle 8°; 4° forward lean when upright),
-  which the pack's geometry can carry. Revisit when the pack lets the arms hang vertically.
+  Med Sci Sports Exerc 23:1179). The deadlift pack (1.1) lets the arms hang plumb from the shoulders, so the bar
+  stays over the mid-foot: lift-off at hip 75°, knee 60°, ankle 15°, lumbar −3.5° per level (21° in total; flexion
+  is negative in the pack); 4° forward lean at lockout.
 """
 
 from __future__ import annotations
@@ -97,12 +96,12 @@ DEADLIFT = ExerciseSpec(
     roles=(
         # fullbody.osim: L5_S1_FE drives six lumbar levels (total flexion = 6 x value), flexion NEGATIVE
         # (checked: T12 moves anterior for L5_S1_FE < 0)
-        Role(r"^L5_S1_FE$", 0.0, -2.5, warp=-0.2),
+        Role(r"^L5_S1_FE$", 0.0, -3.5, warp=-0.2),
         # lumbar_scaled.osim (lumbar_lift pack): one level, flexion negative
         Role(r"L5_S1_Flex_Ext|lumbar", 0.0, -15.0, warp=-0.2),
         Role(r"hip", 0.0, 75.0, warp=-0.15),
-        Role(r"knee", 0.0, 20.0, warp=0.15),  # Rajagopal/Lai knee_angle_r: flexion positive
-        Role(r"ankle", 4.0, 8.0, warp=0.1),
+        Role(r"knee", 0.0, 60.0, warp=0.15),  # Rajagopal/Lai knee_angle_r: flexion positive
+        Role(r"ankle", 4.0, 15.0, warp=0.1),
     ),
     emg_groups=("ESL", "ESI", "MUL", "RA", "EO", "IO", "Gmax", "Gmed", "TFL", "BF", "ST", "RF", "VL", "VM", "GM", "TA"),
     loads_kg=(35.0, 45.0, 65.0, 75.0),
