@@ -2,9 +2,10 @@
 
 1. Calibrate one subject profile per exercise (strength per muscle group + the N(mu, sigma^2) EMG prior) on the
    lighter-load trial of ``recordings/demo`` (OpenSim storage files + trial TOMLs written by ``msk synth``).
-2. Start, on a private loopback Zenoh endpoint, a recorder and one estimator node per exercise pack (methods
-   ``proposed``, ``so`` and ``hybrid``), then replay ``recordings/demo_session.mcap`` (raw EMG, IMU, joints, load
-   events) through them. The heavier-load trial of each exercise is held out from calibration.
+2. Start, on a private loopback Zenoh endpoint, a recorder and per exercise pack a kinematics node (IMU -> joint
+   angles) and an estimator node (methods ``proposed``, ``so`` and ``hybrid``), then replay
+   ``recordings/demo_session.mcap`` (raw EMG, IMU and load events; its recorded joint angles are left out, so the
+   joints come from the IMUs as on a real rig) through them. The heavier-load trial of each exercise is held out.
 3. Read the recorded activation topics back from MCAP and score them against the true activations the generator
    used: RMSE per method and trial, torque tracking, solver time and end-to-end latency; plots in the output folder.
 """
@@ -26,7 +27,7 @@ from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
 from msk_core.io import read_sto
 from msk_core.model import load_pack
-from services import estimator, messages, recorder, replayer
+from services import estimator, kinematics_node, recorder, replayer
 from services.mcap_io import read_messages
 from services.zenoh_session import ZenohOptions
 
@@ -95,19 +96,36 @@ def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, di
     return path, report
 
 
-def run_live_graph(recording: Path, out_mcap: Path, subjects: dict[str, Path], endpoint: str, rate: float | None, log) -> dict:
-    """Recorder + estimators as Zenoh peers, the replayer publishing the recording; returns node statistics."""
-    expected_frames = {ex: 0 for ex in subjects}
+def _wait_until(condition, deadline: float) -> bool:
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.1)
+    return condition()
+
+
+def run_live_graph(
+    recording: Path, out_mcap: Path, subjects: dict[str, Path], endpoint: str, rate: float | None, log, *, joints_from: str = "imu"
+) -> dict:
+    """Recorder + (kinematics +) estimator nodes as Zenoh peers, the replayer publishing the recording.
+
+    ``joints_from="imu"``: the recording's joint angles are left out and kinematics nodes compute them from the IMU
+    streams, as on a real rig; ``"recorded"``: the recorded joint angles are replayed as they are.
+    """
+    counts = {"imu": 0, "joints": {ex: 0 for ex in subjects}}
     current = ""
     for recorded in read_messages(recording):
         if recorded.type_name == "msk.LoadEvent":
             current = recorded.decode().exercise or current
-        elif recorded.type_name == "msk.JointAngles" and current in expected_frames:
-            expected_frames[current] += 1
+        elif recorded.type_name == "msk.ImuSample":
+            counts["imu"] += 1
+        elif recorded.type_name == "msk.JointAngles" and current in counts["joints"]:
+            counts["joints"][current] += 1
     stop = threading.Event()
     threads, ready = [], []
     rec_stats = recorder.RecorderStats()
     est_stats = {ex: estimator.EstimatorStats() for ex in subjects}
+    kin_stats = {ex: kinematics_node.KinematicsStats() for ex in subjects} if joints_from == "imu" else {}
 
     def start(target, *args, **kwargs):
         event = threading.Event()
@@ -122,30 +140,50 @@ def run_live_graph(recording: Path, out_mcap: Path, subjects: dict[str, Path], e
             estimator.main, ZenohOptions(connect=(endpoint,)), pack=exercise, session=SESSION, methods=list(METHODS),
             subject_path=subject, exercise=exercise, stats=est_stats[exercise],
         )
+        if joints_from == "imu":
+            start(kinematics_node.main, ZenohOptions(connect=(endpoint,)), pack=exercise, session=SESSION, stats=kin_stats[exercise])
     for event in ready:
         if not event.wait(60):
             raise RuntimeError("a demo node did not start within 60 s")
-    log(f"live graph up: recorder + {len(subjects)} estimator nodes; replaying {recording.name} at rate {rate or 'max'}")
+    nodes = f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"
+    log(f"live graph up: {nodes}; replaying {recording.name} at rate {rate or 'max'} (joints from {joints_from})")
     started = time.perf_counter()
-    replay_stats = replayer.main(ZenohOptions(connect=(endpoint,)), recording, rate=rate, session_name=SESSION, wait_subscribers_s=5.0, progress=sys.stderr.isatty())
+    replay_stats = replayer.main(
+        ZenohOptions(connect=(endpoint,)), recording, rate=rate, session_name=SESSION, wait_subscribers_s=5.0,
+        progress=sys.stderr.isatty(), exclude=(f"msk/{SESSION}/joints",) if joints_from == "imu" else (),
+    )
     deadline = time.monotonic() + 600
-    while time.monotonic() < deadline and any(est_stats[ex].frames_out < n for ex, n in expected_frames.items()):
-        time.sleep(0.1)
-    expected_messages = replay_stats.published + sum(n * len(METHODS) for n in expected_frames.values())
-    while time.monotonic() < deadline and rec_stats.written < expected_messages:
-        time.sleep(0.1)
+    if kin_stats:
+        _wait_until(lambda: all(k.samples_in >= counts["imu"] for k in kin_stats.values()), deadline)
+        joints_total = sum(k.frames_out for k in kin_stats.values())
+        joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
+    else:
+        joints_total = sum(counts["joints"].values())
+        joints_per_exercise = counts["joints"]
+    _wait_until(lambda: all(e.frames_in >= joints_total for e in est_stats.values()), deadline)
+    activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
+    expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames
+    _wait_until(lambda: rec_stats.written >= expected_messages, deadline)
     elapsed = time.perf_counter() - started
     stop.set()
     for thread in threads:
         thread.join(30)
     log(
-        f"replayed {replay_stats.published} messages; estimated "
-        + ", ".join(f"{est_stats[ex].frames_out}/{n} {ex} frames" for ex, n in expected_frames.items())
-        + f" x {len(METHODS)} methods in {elapsed:.1f} s; recorded {rec_stats.written} messages"
+        f"replayed {replay_stats.published} messages"
+        + (f" (left out {replay_stats.excluded} recorded joint frames); kinematics nodes published "
+           + ", ".join(f"{n} {ex}" for ex, n in joints_per_exercise.items()) + " joint frames" if kin_stats else "")
+        + "; estimated " + ", ".join(f"{est_stats[ex].frames_out} {ex}" for ex in est_stats)
+        + f" frames x {len(METHODS)} methods in {elapsed:.1f} s; recorded {rec_stats.written}/{expected_messages} messages"
     )
-    return {"replayed": replay_stats.published, "recorded": rec_stats.written, "expected_frames": expected_frames,
-            "estimated_frames": {ex: s.frames_out for ex, s in est_stats.items()},
-            "flagged": {ex: s.flagged for ex, s in est_stats.items()}, "seconds": elapsed}
+    return {
+        "joints_from": joints_from, "replayed": replay_stats.published, "recorded": rec_stats.written,
+        "expected_messages": expected_messages, "joint_frames": joints_per_exercise,
+        "estimated_frames": {ex: s.frames_out for ex, s in est_stats.items()},
+        "flagged": {ex: s.flagged for ex, s in est_stats.items()},
+        "kinematics": {ex: {"frames_out": k.frames_out, "incomplete": k.frames_incomplete, "calibrations": k.calibrations}
+                       for ex, k in kin_stats.items()},
+        "seconds": elapsed,
+    }
 
 
 def trial_windows(recorded_mcap: Path) -> list[TrialWindow]:
@@ -254,6 +292,7 @@ def main(
     out: Path,
     rate: float | None = None,
     exercises: list[str] | None = None,
+    joints_from: str = "imu",
     endpoint: str | None = None,
     log=print,
 ) -> dict:
@@ -274,7 +313,7 @@ def main(
     for exercise in exercises:
         subjects[exercise], calibration[exercise] = calibrate(recordings, out, exercise, log)
     live_mcap = out / "live.mcap"
-    graph = run_live_graph(recording, live_mcap, subjects, endpoint, rate, log)
+    graph = run_live_graph(recording, live_mcap, subjects, endpoint, rate, log, joints_from=joints_from)
     scores, curves = score(live_mcap, recordings)
     table = markdown(scores)
     plots = plot(curves, scores, out)
@@ -300,8 +339,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recordings", type=Path, default=DEFAULT_RECORDINGS, help="folder with demo_session.mcap and demo/ (default: the embedded one)")
     parser.add_argument("--rate", default="max", help="replay speed: 'max' (default) or a factor, 1 = real time")
     parser.add_argument("--exercise", action="append", default=None, help="only this exercise (repeatable; default: all)")
+    parser.add_argument(
+        "--joints-from", choices=["imu", "recorded"], default="imu",
+        help="imu (default): kinematics nodes compute joint angles from the replayed IMU streams, as on a real rig; "
+        "recorded: replay the session's joint angles",
+    )
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    main(recordings=args.recordings, out=args.out, rate=replayer.parse_rate(args.rate), exercises=args.exercise)
+    main(recordings=args.recordings, out=args.out, rate=replayer.parse_rate(args.rate), exercises=args.exercise, joints_from=args.joints_from)
     return 0

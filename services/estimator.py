@@ -11,6 +11,7 @@ Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk e
 from __future__ import annotations
 
 import argparse
+import bisect
 import logging
 import queue
 import signal
@@ -50,6 +51,32 @@ class EstimatorStats:
     rejected: int = 0  # input frames whose coordinates do not match the pack
     other_exercise: int = 0  # frames skipped while a LoadEvent says another exercise is under way
     last_error: str = ""
+
+
+class LoadTimeline:
+    """Barbell load and exercise in effect at a given device time.
+
+    Load events and joint angles reach the estimator by different paths (the joints through a kinematics node, which
+    lags), so a load event is applied to the frames by device time, not by arrival order. An event without a device
+    time takes effect from the latest frame seen.
+    """
+
+    def __init__(self, initial_load_kg: float = 0.0) -> None:
+        self._times: list[int] = [-1]
+        self._events: list[tuple[float, str]] = [(float(initial_load_kg), "")]
+        self._latest_frame_ns = 0
+
+    def add(self, device_time_ns: int, mass_kg: float, exercise: str) -> None:
+        when = int(device_time_ns) if device_time_ns else self._latest_frame_ns
+        index = bisect.bisect_right(self._times, when)
+        previous_exercise = self._events[index - 1][1]
+        self._times.insert(index, when)
+        self._events.insert(index, (float(mass_kg), exercise or previous_exercise))
+
+    def at(self, device_time_ns: int) -> tuple[float, str]:
+        """(mass in kg, exercise or "" when never named) in effect at ``device_time_ns``."""
+        self._latest_frame_ns = max(self._latest_frame_ns, int(device_time_ns))
+        return self._events[bisect.bisect_right(self._times, int(device_time_ns)) - 1]
 
 
 class CoordinateMapper:
@@ -125,10 +152,9 @@ def main(
     first = next(iter(estimators.values()))
     mapper = CoordinateMapper(list(first.coordinates))
     inbox: queue.SimpleQueue = queue.SimpleQueue()
-    load_kg = float(initial_load_kg)
+    loads = LoadTimeline(initial_load_kg)
     # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events name.
     exercise = exercise if exercise is not None else first.pack.name
-    current_exercise = ""
 
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
 
@@ -153,15 +179,15 @@ def main(
                     continue
                 if kind == "load":
                     event = messages.decode("msk.LoadEvent", payload)
-                    load_kg = float(event.barbell_mass_kg)
-                    current_exercise = event.exercise or current_exercise
+                    loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
                     stats.load_events += 1
                     continue
                 stats.frames_in += 1
+                joints = messages.decode("msk.JointAngles", payload)
+                load_kg, current_exercise = loads.at(joints.device_time_ns)
                 if current_exercise and current_exercise != exercise:
                     stats.other_exercise += 1
                     continue
-                joints = messages.decode("msk.JointAngles", payload)
                 try:
                     q, qd, qdd = (mapper.take(joints, f) for f in ("q", "qd", "qdd"))
                 except ConfigError as error:

@@ -18,12 +18,17 @@ def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
     lines: list[str] = []
     summary = demo.main(out=out, exercises=["bench_press"], log=lines.append)
     graph = summary["graph"]
-    assert graph["estimated_frames"] == graph["expected_frames"] and graph["expected_frames"]["bench_press"] > 1000
-    # Every replayed message and every activation frame reached the recorder.
+    assert graph["joints_from"] == "imu"
+    # Joint angles come from the kinematics node (IMU at 60 Hz, the first 0.5 s of each set is its static calibration).
+    kinematics = graph["kinematics"]["bench_press"]
+    assert kinematics["calibrations"] == 2 and kinematics["incomplete"] == 0
+    assert graph["estimated_frames"] == graph["joint_frames"] and graph["joint_frames"]["bench_press"] > 1000
+    # Every replayed message, every computed joint frame and every activation frame reached the recorder.
     recorded = list(read_messages(out / "live.mcap"))
     activations = [r for r in recorded if r.type_name == "msk.ActivationFrame"]
-    assert len(activations) == 3 * graph["expected_frames"]["bench_press"]
-    assert len(recorded) == graph["replayed"] + len(activations)
+    joints = [r for r in recorded if r.type_name == "msk.JointAngles"]
+    assert len(activations) == 3 * graph["joint_frames"]["bench_press"] and len(joints) == graph["joint_frames"]["bench_press"]
+    assert len(recorded) == graph["replayed"] + len(joints) + len(activations) == graph["expected_messages"]
     scores = {(s["trial"], s["method"]): s for s in summary["scores"]}
     assert {m for _, m in scores} == {"proposed", "so", "hybrid"}
     assert {s["role"] for s in summary["scores"]} == {"calibration", "held out"}

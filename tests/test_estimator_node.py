@@ -49,8 +49,8 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
         publish(joints_pub, messages.JointAngles(coordinates=coords, q=[float("nan")] * len(coords), device_time_ns=999_000_000_000))
         publish(joints_pub, messages.JointAngles(coordinates=["not_a_coordinate"], q=[0.0], device_time_ns=1))
         # Another exercise under way: its frames are skipped, not rejected as errors.
-        publish(load_pub, messages.LoadEvent(barbell_mass_kg=60.0, exercise="deadlift"))
-        publish(joints_pub, messages.JointAngles(coordinates=["lumbar_extension"], q=[0.0], device_time_ns=2))
+        publish(load_pub, messages.LoadEvent(barbell_mass_kg=60.0, exercise="deadlift", device_time_ns=1_000_000_000_000))
+        publish(joints_pub, messages.JointAngles(coordinates=["lumbar_extension"], q=[0.0], device_time_ns=1_000_000_000_001))
         deadline = time.monotonic() + 30
         while min(len(v) for v in received.values()) < len(poses) + 1 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -72,3 +72,19 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
         assert [f.time_s for f in frames[:-1]] == pytest.approx([(i + 1) * 0.01 for i in range(len(poses))])
         assert frames[-1].flags == ["invalid_input"] and frames[-1].solver_status == "invalid_input"
     assert stats.flagged.get("invalid_input") == 2  # the NaN frame, once per method
+
+
+def test_load_events_apply_by_device_time_not_arrival_order():
+    timeline = estimator.LoadTimeline(initial_load_kg=0.0)
+    assert timeline.at(5) == (0.0, "")
+    timeline.add(100, 40.0, "bench_press")
+    timeline.add(300, 0.0, "bench_press")
+    timeline.add(400, 60.0, "deadlift")
+    # Frames that arrive late (through the kinematics node) still get the load that was on the bar at their time.
+    assert timeline.at(150) == (40.0, "bench_press")
+    assert timeline.at(350) == (0.0, "bench_press")
+    assert timeline.at(99) == (0.0, "")
+    assert timeline.at(500) == (60.0, "deadlift")
+    # An event without a device time applies from the latest frame seen; an event naming no exercise keeps the last one.
+    timeline.add(0, 70.0, "")
+    assert timeline.at(500) == (70.0, "deadlift") and timeline.at(450) == (60.0, "deadlift")
