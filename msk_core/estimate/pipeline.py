@@ -4,26 +4,63 @@ from __future__ import annotations
 
 import datetime as _dt
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 from tqdm import tqdm
 
 from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
-from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, Method
+from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, FrameStatus, Method
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
 
-def build_prior(pack: PackLike, trials: list[TrialData], *, n_bins: int = 20) -> PhasePrior:
-    """N(mu, sigma^2) per group and phase bin across all reps of all trials (groups without EMG: wide default)."""
+class NoEmgPrior(str, Enum):
+    """Prior of a group without EMG (see docs/estimation.md, "Groups without EMG")."""
+
+    MIN_EFFORT = "min_effort"  # static optimisation's share of the calibration torques, binned like EMG (default)
+    SYNERGIST = "synergist"  # the prior of the measured group with the most similar moment arms; else min effort
+    WIDE = "wide"  # N(0, 0.5^2): nearly free (the first version; lets unmeasured groups soak up the torque)
+
+
+SYNERGIST_MIN_COSINE = 0.9  # moment-arm similarity a measured group needs to stand in for an unmeasured one
+
+
+def build_prior(
+    pack: PackLike,
+    trials: list[TrialData],
+    *,
+    n_bins: int = 20,
+    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
+    synergists: dict[str, str] | None = None,
+) -> PhasePrior:
+    """N(mu, sigma^2) per group and phase bin across all reps of all trials.
+
+    Groups with EMG: from their normalised envelopes. Groups without: ``synergists`` (unmeasured -> measured group)
+    first, then ``no_emg``: the minimal-effort (``so``) activation over the same reps, a measured synergist, or the
+    wide default.
+    """
     groups = list(pack.groups)
+    no_emg = NoEmgPrior(no_emg)
     emg_groups = sorted({g for t in trials for g in t.emg})
     if not emg_groups:
         raise EstimationError("calibration trials have no EMG: the prior needs EMG of at least one group")
-    phases, reps, emg = [], [], {g: [] for g in emg_groups}
+    synergists = dict(synergists or {})
+    for g, h in synergists.items():
+        if g not in groups or h not in emg_groups:
+            raise EstimationError(
+                f"synergist {g!r} -> {h!r}: the first must be a pack group, the second a group with EMG "
+                f"(groups with EMG: {emg_groups})"
+            )
+    missing = [g for g in groups if g not in emg_groups and g not in synergists]
+    if no_emg is NoEmgPrior.SYNERGIST and missing:
+        synergists.update(pick_synergists(pack, trials, missing, emg_groups))
+        missing = [g for g in missing if g not in synergists]
+    effort = missing if no_emg is not NoEmgPrior.WIDE else []
+    phases, reps, emg = [], [], {g: [] for g in emg_groups + effort}
     offset = 0
     for t in trials:
         phases.append(np.nan_to_num(t.phase, nan=0.0))
@@ -31,13 +68,72 @@ def build_prior(pack: PackLike, trials: list[TrialData], *, n_bins: int = 20) ->
         offset += int(t.rep_index.max()) + 1
         for g in emg_groups:
             emg[g].append(t.emg.get(g, np.full(t.n_frames, np.nan)))
-    return prior_from_reps(
+        if effort:
+            so = min_effort_activations(pack, t)
+            for g in effort:
+                emg[g].append(so[:, groups.index(g)])
+    prior = prior_from_reps(
         groups,
         {g: np.concatenate(v) for g, v in emg.items()},
         np.concatenate(phases),
         np.concatenate(reps),
         n_bins=n_bins,
     )
+    mean, std = prior.mean.copy(), prior.std.copy()
+    rest_mean = None if prior.rest_mean is None else prior.rest_mean.copy()
+    rest_std = None if prior.rest_std is None else prior.rest_std.copy()
+    sources = []
+    for j, g in enumerate(groups):
+        if g in emg_groups:
+            sources.append("emg")
+        elif g in synergists:
+            h = groups.index(synergists[g])
+            mean[:, j], std[:, j] = mean[:, h], std[:, h]
+            if rest_mean is not None:
+                rest_mean[j], rest_std[j] = rest_mean[h], rest_std[h]
+            sources.append(f"synergist:{synergists[g]}")
+        else:
+            sources.append("min_effort" if g in effort else "default")
+    return PhasePrior(
+        groups=tuple(groups),
+        mean=mean,
+        std=std,
+        has_emg=np.array([g in emg_groups for g in groups]),
+        rest_mean=rest_mean,
+        rest_std=rest_std,
+        sources=tuple(sources),
+    )
+
+
+def min_effort_activations(pack: PackLike, trial: TrialData) -> np.ndarray:
+    """(T, G) static-optimisation activations (reference F_max) of a trial's frames; NaN where not solved."""
+    est = FrameEstimator(pack, None, Method.SO)
+    out = np.full((trial.n_frames, len(est.groups)), np.nan)
+    for i in range(trial.n_frames):
+        res = est.step(trial.q[i], torques=trial.torques[i])
+        if res.status is FrameStatus.SOLVED:  # reserve frames would put the torque deficit on the prior
+            out[i] = res.activations
+    return out
+
+
+def pick_synergists(
+    pack: PackLike, trials: list[TrialData], unmeasured: list[str], measured: list[str]
+) -> dict[str, str]:
+    """Unmeasured group -> the measured group whose moment arms over the trials' frames are the most similar
+    (cosine of the stacked (frames x coordinates) columns, at least ``SYNERGIST_MIN_COSINE``); ties go to the first."""
+    groups = list(pack.groups)
+    arms = [pack_moment_arms(pack, q) for t in trials for q in t.q]
+    r = np.array([m for m in arms if np.all(np.isfinite(m))])  # (T, n_c, G)
+    cols = r.transpose(2, 0, 1).reshape(len(groups), -1)
+    norm = np.linalg.norm(cols, axis=1)
+    picked = {}
+    for g in unmeasured:
+        i = groups.index(g)
+        cos = [float(cols[i] @ cols[groups.index(h)]) / max(norm[i] * norm[groups.index(h)], 1e-300) for h in measured]
+        best = int(np.argmax(cos))  # first of equals
+        if cos[best] >= SYNERGIST_MIN_COSINE:
+            picked[g] = measured[best]
+    return picked
 
 
 def trial_phase(trial: TrialData, i: int) -> float:
@@ -86,9 +182,11 @@ def calibrate_subject(
     *,
     settings: CalibrationSettings | None = None,
     n_bins: int = 20,
+    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
+    synergists: dict[str, str] | None = None,
 ) -> tuple[SubjectProfile, CalibrationResult]:
     """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result."""
-    prior = build_prior(pack, trials, n_bins=n_bins)
+    prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
     frames = calibration_frames(pack, trials, prior)
     result = calibrate(pack.f_max_ref, frames, settings)
     norm = {}

@@ -3,7 +3,8 @@
 Stored as bin means/stds over the phase of a repetition, phase in [0, 1]; :meth:`PhasePrior.at` interpolates means
 and precisions linearly between bin centres (clamped at the ends) so the prior is continuous in phase. Groups without
 EMG carry a wide default prior (``NO_EMG_MEAN``, ``NO_EMG_STD``) which then acts as a weak min-activation regulariser,
-and ``has_emg`` says so.
+and ``has_emg`` says so. :func:`msk_core.estimate.pipeline.build_prior` replaces that default by a derived prior
+(minimal effort or a measured synergist, see ``sources``).
 
 Between repetitions the subject rests, which no phase bin describes: the prior then has a ``rest`` state (mean/std of
 the EMG outside the calibration reps), selected by a negative phase (``REST_PHASE`` = -1, the project's "outside a
@@ -40,8 +41,12 @@ class PhasePrior:
     has_emg: np.ndarray
     rest_mean: np.ndarray | None = None  # (n_groups,) prior between repetitions; None: use the pooled prior
     rest_std: np.ndarray | None = None
+    # where each group's prior comes from: "emg", "min_effort", "synergist:<group>" or "default" (N(0, 0.5^2))
+    sources: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
+        if self.sources is not None and len(self.sources) != len(self.groups):
+            raise EstimationError(f"prior sources must name {len(self.groups)} groups, got {len(self.sources)}")
         if self.mean.shape != self.std.shape or self.mean.ndim != 2 or self.mean.shape[1] != len(self.groups):
             raise EstimationError(
                 f"prior arrays must be (n_bins, {len(self.groups)}); got mean {self.mean.shape}, std {self.std.shape}"
@@ -108,6 +113,7 @@ class PhasePrior:
             "std": self.std.round(6).tolist(),
             "rest_mean": None if self.rest_mean is None else self.rest_mean.round(6).tolist(),
             "rest_std": None if self.rest_std is None else self.rest_std.round(6).tolist(),
+            "sources": None if self.sources is None else list(self.sources),
         }
 
     @classmethod
@@ -119,6 +125,7 @@ class PhasePrior:
             has_emg=np.asarray(data["has_emg"], dtype=bool),
             rest_mean=None if data.get("rest_mean") is None else np.asarray(data["rest_mean"], dtype=float),
             rest_std=None if data.get("rest_std") is None else np.asarray(data["rest_std"], dtype=float),
+            sources=None if data.get("sources") is None else tuple(data["sources"]),
         )
 
 

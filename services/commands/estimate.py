@@ -24,6 +24,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal.add_argument("--bins", type=int, default=20, help="phase bins of the prior (default 20)")
     cal.add_argument("--calibrate", choices=["emg", "all"], default="emg",
                      help="which groups get a strength factor (default: those with EMG)")
+    cal.add_argument("--no-emg-prior", choices=["min_effort", "synergist", "wide"], default="min_effort",
+                     help="prior of groups without EMG: static optimisation's share over the reps (default), the "
+                          "measured group with the most similar moment arms, or the wide N(0, 0.5^2)")
+    cal.add_argument("--synergist", action="append", default=[], metavar="GROUP=MEASURED",
+                     help="explicit prior source for a group without EMG (repeatable; overrides --no-emg-prior)")
     cal.set_defaults(handler=run_calibrate)
 
     est = subparsers.add_parser(
@@ -64,12 +69,19 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     if args.bins < 2:
         raise ConfigError("need at least 2 phase bins", field="--bins", value=args.bins)
+    synergists = {}
+    for item in args.synergist:
+        group, sep, measured = item.partition("=")
+        if not sep or not group or not measured:
+            raise ConfigError("expected GROUP=MEASURED_GROUP", field="--synergist", value=item)
+        synergists[group.strip()] = measured.strip()
     pack = _pack(args.pack)
     trials = [load_trial(p, pack) for p in args.trial]
     settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate)
     print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
           f"of {len(trials)} trial(s)...", flush=True)
-    profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins)
+    profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins,
+                                        no_emg=args.no_emg_prior, synergists=synergists)
     profile.save(args.out)
     print(f"{result.method}: converged={result.converged} after {result.iterations} iterations "
           f"({result.message}); projected gradient {result.projected_gradient:.2e}; objective {result.objective:.4g} "
