@@ -11,7 +11,7 @@ from msk_core.model import load_pack
 
 pytest.importorskip("opensim")
 
-from msk_core.model.check import check_dynamics, check_muscles  # noqa: E402
+from msk_core.model.check import check_dynamics, check_hanging_static, check_muscles  # noqa: E402
 from msk_core.model.reference_id import compare_with_recorded_id  # noqa: E402
 
 DEADLIFT_GROUPS = ["ESL", "ESI", "MUL", "RA", "IO", "EO", "TFL", "AddLong", "Gmax", "PM", "RF", "ST", "BF", "Gmed",
@@ -94,6 +94,24 @@ def test_deadlift_foot_rooted_dynamics():
     assert masses["head_neck"] == pytest.approx(0.5 * full["head_neck"])
     assert "pelvis" in masses and "pelvis" not in full  # the pelvis moves when rooted at the foot
     assert "femur_l" not in masses  # the left leg stands on its own foot
+
+
+def test_deadlift_arms_hang_plumb(shared_dir):
+    """Pack 1.1: the bar hangs below the shoulders whatever the trunk angle (arms as pendulums), checked twice."""
+    pack = load_pack("deadlift")
+    zeros = np.zeros(4)
+    # (1) the bar's lever about the hip changes with the trunk angle exactly as the shoulder's horizontal position
+    #     does: leaning the trunk forward moves the bar forward (with arms locked to the thorax it moved backward)
+    upright, leaning = np.radians([0.0, 75.0, 60.0, 15.0]), np.radians([-3.5, 75.0, 60.0, 15.0])
+    bar = [pack.inverse_dynamics(q, zeros, zeros, 1000.0) - pack.inverse_dynamics(q, zeros, zeros, 0.0)
+           for q in (upright, leaning)]
+    assert bar[1][1] < bar[0][1] < 0.0  # more hip extension moment from the bar when leaning further forward
+    # (2) OpenSim with the real arm bodies, the shoulder flexion solved so the hand hangs plumb (static poses)
+    report = check_hanging_static(pack, shared_dir / "models" / "fullbody.osim",
+                                  swing={"humerus_r": "elv_angle_r", "humerus_l": "elv_angle_l"}, n_poses=8,
+                                  hand_load=735.0)
+    for coord, pct in report["max_error_percent_of_peak"].items():
+        assert pct < 0.5, (coord, report)
 
 
 def test_lumbar_lift_vs_recorded_id(shared_dir):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import FileFormatError, ModelError
-from msk_core.model.poly import derivative_matrix
+from msk_core.model.poly import FeatureEvaluator, derivative_matrix
 from msk_core.model.rigid import RigidModel
 
 PACK_FORMAT = "msk-model-pack/1"
@@ -81,7 +81,6 @@ class ModelPack:
             rows.append(-r / self._half[j])
         self._stacked = np.ascontiguousarray(np.vstack(rows))  # (g*(n+1), M + 4H)
         self._has_hinges = n_h > 0
-        self._cols = np.arange(n)[None, :]
         self._powers = np.arange(int(self._exponents.max(initial=0)) + 1)
         self._lo = self.coordinate_ranges[:, 0].copy()
         self._hi = self.coordinate_ranges[:, 1].copy()
@@ -95,6 +94,9 @@ class ModelPack:
         if not self._flat_cols:
             self._flat_cols = [np.ascontiguousarray(flat[:, 0])]
         self._hinge_powers = np.array([1.0, 2.0, 3.0])
+        self._features = FeatureEvaluator(self._exponents, list(zip(self._hinge_var.tolist(),
+                                                                    self._hinge_knot.tolist())))
+        self._half_range_list = self._half_range.tolist()
         self.rigid = RigidModel(data["dynamics"], n_coordinates=n)
         validation = data.get("validation_dynamics")
         self.validation_rigid = RigidModel(validation, n_coordinates=n) if validation else self.rigid
@@ -105,50 +107,56 @@ class ModelPack:
         q = np.asarray(q, dtype=float)
         return (q >= self._lo) & (q <= self._hi)
 
-    def _checked(self, q: np.ndarray, out_of_range: OutOfRange) -> np.ndarray:
+    def _raise_out_of_range(self, q: np.ndarray) -> None:
+        bad = int(np.flatnonzero((q < self._lo) | (q > self._hi))[0])
+        raise ModelError(
+            f"pack {self.name!r}: {self.coordinates[bad]} = {q[bad]:.4f} rad "
+            f"({np.degrees(q[bad]):.1f} deg) outside the fitted range "
+            f"[{np.degrees(self._lo[bad]):.1f}, {np.degrees(self._hi[bad]):.1f}] deg "
+            "(pass out_of_range=OutOfRange.CLAMP to evaluate at the range limit)"
+        )
+
+    def _pose(self, q: np.ndarray, out_of_range: OutOfRange) -> tuple[np.ndarray, np.ndarray]:
+        """(q checked or clamped, q - centre): one subtraction serves the range check and the normalisation."""
         q = np.asarray(q, dtype=float)
         if q.shape != self._shape:
             raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, "
                              f"got {q.shape}")
         if out_of_range is OutOfRange.CLAMP:
-            return np.minimum(np.maximum(q, self._lo), self._hi)
-        if (np.abs(q - self._centre) > self._half_range).any():  # one pass: |q - centre| <= half range
-            bad = int(np.flatnonzero((q < self._lo) | (q > self._hi))[0])
-            raise ModelError(
-                f"pack {self.name!r}: {self.coordinates[bad]} = {q[bad]:.4f} rad "
-                f"({np.degrees(q[bad]):.1f} deg) outside the fitted range "
-                f"[{np.degrees(self._lo[bad]):.1f}, {np.degrees(self._hi[bad]):.1f}] deg "
-                "(pass out_of_range=OutOfRange.CLAMP to evaluate at the range limit)"
-            )
-        return q
+            q = np.minimum(np.maximum(q, self._lo), self._hi)
+            return q, q - self._centre
+        offset = q - self._centre
+        # |q - centre| <= half range, on Python floats (cheaper than three numpy calls for a handful of values)
+        for value, half in zip(offset.tolist(), self._half_range_list):
+            if value > half or -value > half:
+                self._raise_out_of_range(q)
+        return q, offset
+
+    def _checked(self, q: np.ndarray, out_of_range: OutOfRange) -> np.ndarray:
+        return self._pose(q, out_of_range)[0]
 
     def _evaluate(self, q: np.ndarray) -> np.ndarray:
-        x = (q - self._centre) / self._half
-        table = np.power.outer(x, self._powers).ravel()
-        cols = self._flat_cols
-        phi = table.take(cols[0])
-        for col in cols[1:]:
-            phi *= table.take(col)
-        if self._has_hinges:
-            d = x.take(self._hinge_var) - self._hinge_knot
-            phi = np.concatenate((phi, np.power.outer(np.maximum(d, 0.0), self._hinge_powers).ravel(), d > 0.0))
-        return self._stacked @ phi
+        """Lengths then moment arms, (g * (n + 1),), at an in-range pose (reference implementation order)."""
+        return self._stacked @ self._features((q - self._centre) / self._half)
+
+    def _values(self, q: np.ndarray, out_of_range: OutOfRange) -> tuple[np.ndarray, np.ndarray]:
+        q, offset = self._pose(q, out_of_range)
+        return q, self._stacked @ self._features(offset / self._half)
 
     # ---- muscles -----------------------------------------------------------------------------------------------
     def moment_arms(self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE) -> np.ndarray:
         """Group moment arms (n_coordinates, n_groups) in metres at pose q (rad); r = -dl/dq (OpenSim sign)."""
-        values = self._evaluate(self._checked(q, out_of_range))
-        return values[self._g :].reshape(self._n, self._g)
+        return self._values(q, out_of_range)[1][self._g :].reshape(self._n, self._g)
 
     def mtu_lengths(self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE) -> np.ndarray:
         """Group muscle-tendon lengths (n_groups,) in metres (F_max-weighted mean over the group's bundles)."""
-        return self._evaluate(self._checked(q, out_of_range))[: self._g].copy()
+        return self._values(q, out_of_range)[1][: self._g].copy()
 
     def lengths_and_moment_arms(
         self, q: np.ndarray, *, out_of_range: OutOfRange = OutOfRange.RAISE
     ) -> tuple[np.ndarray, np.ndarray]:
         """Both at once (one evaluation): ((n_groups,), (n_coordinates, n_groups))."""
-        values = self._evaluate(self._checked(q, out_of_range))
+        values = self._values(q, out_of_range)[1]
         return values[: self._g], values[self._g :].reshape(self._n, self._g)
 
     def lengths_and_moment_arms_many(
@@ -197,8 +205,7 @@ class ModelPack:
         tilted root; default the pack's gravity.
         """
         q = self._checked(q, out_of_range)
-        return self.rigid.inverse_dynamics(q - self.reference_pose, np.asarray(qd, dtype=float),
-                                           np.asarray(qdd, dtype=float), hand_load_newton, gravity)
+        return self.rigid.inverse_dynamics(q - self.reference_pose, qd, qdd, hand_load_newton, gravity)
 
     def joint_torques(
         self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
@@ -217,10 +224,8 @@ class ModelPack:
         out_of_range: OutOfRange = OutOfRange.RAISE,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Everything a live frame needs in one call: (mtu lengths, moment arms, joint torques)."""
-        q = self._checked(q, out_of_range)
-        values = self._evaluate(q)
-        tau = self.rigid.inverse_dynamics(q - self.reference_pose, np.asarray(qd, dtype=float),
-                                          np.asarray(qdd, dtype=float), hand_load_newton, None)
+        q, values = self._values(q, out_of_range)
+        tau = self.rigid.inverse_dynamics(q - self.reference_pose, qd, qdd, hand_load_newton, None)
         return values[: self._g], values[self._g :].reshape(self._n, self._g), tau
 
     def info(self) -> dict:

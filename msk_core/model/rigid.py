@@ -61,7 +61,13 @@ class RigidModel:
         self.load_share = float(description["load_share"])
         self._projection = self.gains.T * self.torque_scale[:, None]  # (n_coordinates, n_joints)
         # joints whose value is a polynomial of one coordinate (rolling knee, patella): q_j = f(dq_k), grouped by
-        # coordinate so each group costs one power vector and three small matrix products per call
+        # coordinate so each group costs one power vector and one small matrix product per call
+        n_joints = len(joints)
+        self._gains_t = np.ascontiguousarray(self.gains.T)  # (n_coordinates, n_joints)
+        self._motion_in = np.zeros((3, n_coordinates))  # rows dq, qd, qdd (preallocated: one matmul per frame)
+        self._motion = np.zeros((3, n_joints))  # rows: pinocchio q, v, a (contiguous rows for pinocchio)
+        # projection back to the coordinates; the columns of polynomial joints are refreshed with f'(q) each frame
+        self._frame_projection = self._projection.copy()
         self._nl_groups = []
         for k in sorted({j["function"]["coordinate"] for j in joints if "function" in j}):
             idx = [i for i, j in enumerate(joints) if j.get("function", {}).get("coordinate") == k]
@@ -77,55 +83,58 @@ class RigidModel:
             stacked[m : 2 * m, : degree - 1] = d1 / half
             stacked[2 * m :, : degree - 2] = d2 / half**2
             contiguous = idx == list(range(idx[0], idx[0] + m))
-            self._nl_groups.append({
-                "k": k, "idx": slice(idx[0], idx[0] + m) if contiguous else np.array(idx), "m": m,
-                "centre": centre, "inv_half": 1.0 / half,
-                "stacked": stacked, "powers": np.arange(degree).astype(float),
-                "scale": float(self.torque_scale[k]),
-            })
+            sel = slice(idx[0], idx[0] + m) if contiguous else np.array(idx)
+            mix = np.zeros((3, 3))  # [f, f'v, f'a + f''v²] = mix @ [f, f', f'']: one product per frame
+            mix[0, 0] = 1.0
+            # a tuple, unpacked once per frame (cheaper than dict look-ups on the hot path)
+            self._nl_groups.append((
+                k, sel, contiguous, m, centre, 1.0 / half, stacked, np.arange(degree).astype(float),
+                np.empty(degree), mix, self._motion[:, sel] if contiguous else None,
+                self._frame_projection[k, sel] if contiguous else None, float(self.torque_scale[k]),
+            ))
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
         self.joint_names = [j["name"] for j in joints]
         moved_by = [j["function"]["coordinate"] if "function" in j else int(np.argmax(np.abs(self.gains[i])))
                     for i, j in enumerate(joints)]
         self._joint_scale = self.torque_scale[moved_by]
 
-    def _joint_motion(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray):
-        """Pinocchio q, v, a and the per-group derivatives f'(q) needed to project torques back."""
-        gains = self.gains
-        qp, vp, ap = gains @ dq, gains @ qd, gains @ qdd
-        slopes = []
-        for grp in self._nl_groups:
-            k = grp["k"]
-            x = (float(dq[k]) - grp["centre"]) * grp["inv_half"]
-            values = grp["stacked"] @ np.power(x, grp["powers"])
-            m = grp["m"]
-            d1, d2 = values[m : 2 * m], values[2 * m :]
-            v, a = float(qd[k]), float(qdd[k])
-            idx = grp["idx"]
-            qp[idx] = values[:m]
-            vp[idx] = d1 * v
-            ap[idx] = d1 * a + d2 * (v * v)
-            slopes.append(d1)
-        return qp, vp, ap, slopes
-
-    def _project(self, tau: np.ndarray, slopes: list) -> np.ndarray:
-        out = self._projection @ tau
-        for grp, d1 in zip(self._nl_groups, slopes):
-            out[grp["k"]] += grp["scale"] * (d1 @ tau[grp["idx"]])  # virtual work: tau_k += f'(q) . tau_j
-        return out
+    def _joint_motion(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+        """Pinocchio q, v, a as the rows of the (3, n_joints) motion buffer; refreshes the frame projection."""
+        motion_in = self._motion_in
+        motion_in[0] = dq
+        motion_in[1] = qd
+        motion_in[2] = qdd
+        motion = np.dot(motion_in, self._gains_t, out=self._motion)
+        for k, idx, contiguous, m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
+                projection_view, scale in self._nl_groups:
+            dq_k, v, a = motion_in[:, k].tolist()
+            values = stacked @ np.power((dq_k - centre) * inv_half, powers, out=power_buf)
+            mix[1, 1] = v
+            mix[2, 1] = a
+            mix[2, 2] = v * v
+            if contiguous:
+                np.matmul(mix, values.reshape(3, m), out=motion_view)
+                # virtual work: tau_k += f'(q) . tau_j, folded into the projection matrix
+                np.multiply(values[m : 2 * m], scale, out=projection_view)
+            else:
+                motion[:, idx] = mix @ values.reshape(3, m)
+                self._frame_projection[k, idx] = scale * values[m : 2 * m]
+        return motion
 
     def inverse_dynamics(
         self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float, gravity: np.ndarray | None
     ) -> np.ndarray:
         """Torques at pack coordinates for offsets dq = q - q_ref, velocities and accelerations."""
-        qp, vp, ap, slopes = self._joint_motion(dq, qd, qdd)
+        motion = self._joint_motion(dq, qd, qdd)
+        qp, vp, ap = motion
         if gravity is None:
             tau = pin.rnea(self.model, self.data, qp, vp, ap)
             if hand_load and self.n_load_points:
                 # hand_load acts along gravity: hold (hand_load / |g|) kg, split over the load points
-                tau = tau + (hand_load * self._load_factor) * pin.computeGeneralizedGravity(
-                    self.load_model, self.load_data, qp)
-            return self._project(tau, slopes)
+                load = pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
+                load *= hand_load * self._load_factor
+                tau += load
+            return self._frame_projection @ tau
         g = np.asarray(gravity, dtype=float)
         self.model.gravity.linear = g
         self.load_model.gravity.linear = g
@@ -138,15 +147,14 @@ class RigidModel:
         finally:
             self.model.gravity.linear = self.gravity
             self.load_model.gravity.linear = self.gravity
-        return self._project(tau, slopes)
+        return self._frame_projection @ tau
 
     def joint_torques(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float) -> np.ndarray:
         """Net torque (or force) about each reduced-model joint (n_joints,), before the virtual-work projection.
 
         Scaled like the coordinate it moves (torque_scale: e.g. a lumbar level of a foot-rooted, side-shared model
         reports the whole-trunk moment), so e.g. the L5/S1 level moment of a coupled lumbar spine can be read."""
-        qp, vp, ap, _ = self._joint_motion(np.asarray(dq, dtype=float), np.asarray(qd, dtype=float),
-                                           np.asarray(qdd, dtype=float))
+        qp, vp, ap = self._joint_motion(dq, qd, qdd)
         tau = pin.rnea(self.model, self.data, qp, vp, ap).copy()
         if hand_load and self.n_load_points:
             tau += (hand_load * self._load_factor) * pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
