@@ -5,6 +5,8 @@ Subscribes to ``msk/<session>/joints`` (:class:`JointAngles`) and ``msk/<session
 :class:`ActivationFrame` on ``msk/<session>/activations/<method>``. Zenoh callbacks only enqueue; one worker thread
 estimates frames in arrival order, so none is skipped and the solver stays warm. A frame the estimator cannot solve
 (NaN input, torque beyond capacity, a pose the model does not cover) is published with its flag, never dropped.
+Phase: the JointAngles' own when set; else, with a subject profile holding a rep template (``msk calibrate`` on a
+kinematic phase coordinate), the causal :class:`msk_core.estimate.phase.LivePhase` on that coordinate; else unknown.
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -26,6 +28,7 @@ import zenoh
 from msk_core.errors import ConfigError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.frame import FrameResult
+from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from services import messages, topics
 from services.zenoh_session import (
@@ -151,6 +154,8 @@ def main(
     estimators = {m: FrameEstimator(pack, subject=subject, method=m) for m in methods}
     first = next(iter(estimators.values()))
     mapper = CoordinateMapper(list(first.coordinates))
+    # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
+    live_phase = LivePhase.from_profile(subject, first.coordinates) if subject is not None else None
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     loads = LoadTimeline(initial_load_kg)
     # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events name.
@@ -197,8 +202,13 @@ def main(
                     stats.last_error = str(error)
                     continue
                 # Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1).
-                phase = float(joints.phase) if joints.HasField("phase") else None
                 time_s = joints.device_time_ns / 1e9
+                if joints.HasField("phase"):
+                    phase = float(joints.phase)
+                elif live_phase is not None:  # no phase upstream: track it on the subject's rep template
+                    phase = live_phase.update(time_s, q)
+                else:
+                    phase = None
                 for method, estimator in estimators.items():
                     result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase)
                     frame = to_message(

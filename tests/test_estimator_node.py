@@ -88,3 +88,73 @@ def test_load_events_apply_by_device_time_not_arrival_order():
     # An event without a device time applies from the latest frame seen; an event naming no exercise keeps the last one.
     timeline.add(0, 70.0, "")
     assert timeline.at(500) == (70.0, "deadlift") and timeline.at(450) == (60.0, "deadlift")
+
+
+def _curl_reps(n_reps: int = 3, rate: float = 100.0):
+    """Elbow curls: rest, flex to 1.6 rad and back (1.5 s per rep), rest; shoulder still."""
+    rest, rep = int(0.8 * rate), int(1.5 * rate)
+    elbow = [0.2] * rest
+    for _ in range(n_reps):
+        elbow += list(0.2 + 1.4 * np.sin(np.pi * np.arange(rep) / rep) ** 2) + [0.2] * rest
+    elbow = np.array(elbow)
+    return np.arange(elbow.size) / rate, np.column_stack([np.full(elbow.size, 0.3), elbow])
+
+
+def test_node_fills_the_phase_from_the_profiles_rep_template(zenoh_endpoint, tmp_path):
+    from msk_core.estimate import PhasePrior, SubjectProfile
+    from msk_core.estimate.phase import LivePhase, kinematic_phase, learn_phase_model
+
+    pack = model.load_pack("arm26")
+    coords, groups = list(pack.coordinates), list(pack.groups)
+    t, q = _curl_reps()
+    phase_model = learn_phase_model("r_elbow_flex", [(t, q[:, 1])])
+    bins = 10  # a prior that differs per phase bin and at rest, so a wrong phase gives other activations
+    prior = PhasePrior(tuple(groups), np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
+                       np.full((bins, len(groups)), 0.05), np.ones(len(groups), dtype=bool),
+                       rest_mean=np.full(len(groups), 0.01), rest_std=np.full(len(groups), 0.02))
+    profile = SubjectProfile(pack.name, str(pack.version), groups, np.asarray(pack.f_max_ref, dtype=float),
+                             np.asarray(pack.f_max_ref, dtype=float), prior, phase_model=phase_model)
+    path = tmp_path / "subject.json"
+    profile.save(path)
+    stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
+    thread = threading.Thread(
+        target=estimator.main, args=(ZenohOptions(listen=(zenoh_endpoint,)),),
+        kwargs=dict(pack="arm26", exercise="arm_curl", session="p", methods=["proposed"], subject_path=path,
+                    stop_event=stop, ready_event=ready, stats=stats),
+        daemon=True,
+    )
+    thread.start()
+    assert ready.wait(20)
+    received: list = []
+    with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+        session.declare_subscriber("msk/p/activations/*",
+                                   lambda s: received.append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())))
+        joints_pub = declare_data_publisher(session, topics.joints_key("p"), "msk.JointAngles")
+        deadline = time.monotonic() + 10
+        while not joints_pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for ti, qi in zip(t, q):  # no phase field: the node must track it
+            publish(joints_pub, messages.JointAngles(coordinates=coords, q=qi.tolist(), device_time_ns=int(round(ti * 1e9))))
+        # a message that carries its phase keeps it
+        publish(joints_pub, messages.JointAngles(coordinates=coords, q=q[0].tolist(), phase=0.25,
+                                                 device_time_ns=int(round((t[-1] + 1.0) * 1e9))))
+        deadline = time.monotonic() + 60
+        while len(received) < t.size + 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    stop.set()
+    thread.join(10)
+    assert len(received) == t.size + 1
+    expected = LivePhase(SubjectProfile.load(path).phase_model, coords).process(t, q)
+    got = np.array([f.phase for f in received[:-1]])
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    assert received[-1].phase == 0.25
+    # the tracked phase is the offline rep phase (msk_core.phase) of the same signal: rest between reps, 3 reps
+    offline, index = kinematic_phase(t, q[:, 1])
+    inside = (index >= 0) & (got >= 0)
+    assert np.mean((index >= 0) == (got >= 0)) > 0.85 and np.median(np.abs(got[inside] - offline[inside])) < 0.05
+    assert np.all(got[index < 0][:10] == -1.0) and got.max() > 0.9
+    # and the estimator used it: the proposed activations follow the prior at that phase, not the pooled prior
+    offline_est = FrameEstimator(pack, profile, "proposed")
+    for k in (50, 150, 300):
+        ref = offline_est.step(q[k], np.zeros(2), np.zeros(2), phase=float(expected[k]))
+        np.testing.assert_allclose(received[k].activations, ref.activations, atol=1e-6)

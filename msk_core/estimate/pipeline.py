@@ -13,6 +13,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
 from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, FrameStatus, Method
 from msk_core.estimate.pack import PackLike
+from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
 from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -189,6 +190,7 @@ def calibrate_subject(
     prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
     frames = calibration_frames(pack, trials, prior)
     result = calibrate(pack.f_max_ref, frames, settings)
+    phase_model = learn_trials_phase_model(pack, trials)
     norm = {}
     for t in trials:
         for ch, info in t.emg_normalisation.items():
@@ -210,8 +212,24 @@ def calibrate_subject(
             "software": f"msk-live {getattr(msk_core, '__version__', 'dev')}",
             "phase_signals": sorted({t.phase_signal for t in trials}),
         },
+        phase_model=phase_model,
     )
     return profile, result
+
+
+def learn_trials_phase_model(pack: PackLike, trials: list[TrialData]) -> PhaseModel | None:
+    """Rep template on the trials' phase coordinate (None when their phase is not kinematic: nothing to track live)."""
+    coordinates = {t.phase_coordinate for t in trials}
+    if None in coordinates:
+        return None
+    if len(coordinates) > 1:
+        raise EstimationError(
+            f"calibration trials define the phase on different coordinates {sorted(coordinates)}; set one "
+            "phase_signal in all trial files"
+        )
+    (coordinate,) = coordinates
+    j = list(pack.coordinates).index(coordinate)
+    return learn_phase_model(coordinate, [(t.time, t.q[:, j]) for t in trials])
 
 
 @dataclass
@@ -239,17 +257,23 @@ def estimate_trial(
     *,
     subject: SubjectProfile | None = None,
     progress: bool = False,
+    live_phase: bool = False,
     **options,
 ) -> TrialEstimate:
-    """Run the per-frame estimator over a trial (torques from the trial; phase from its rep detection)."""
+    """Run the per-frame estimator over a trial (torques from the trial). Phase: the trial's offline rep detection,
+    or with ``live_phase`` the causal tracker of the subject's rep template, frame by frame as the live node does."""
     est = FrameEstimator(pack, subject, method, **options)
+    tracker = LivePhase.from_profile(subject, est.coordinates) if live_phase else None
+    if live_phase and tracker is None:
+        raise EstimationError("live_phase needs a subject profile calibrated with a kinematic phase coordinate")
+    phases = tracker.process(trial.time, trial.q) if tracker is not None else None
     g, n_c, n = len(est.groups), len(est.coordinates), trial.n_frames
     out = TrialEstimate(
         method=est.method.value,
         groups=list(est.groups),
         coordinates=list(est.coordinates),
         time=trial.time,
-        phase=trial.phase,
+        phase=trial.phase if phases is None else np.where(phases < 0, np.nan, phases),
         activations=np.zeros((n, g)),
         activation_std=np.zeros((n, g)),
         model_torques=np.zeros((n, n_c)),
@@ -260,7 +284,8 @@ def estimate_trial(
         solve_time_s=np.zeros(n),
     )
     for i in tqdm(range(n), desc=f"{trial.name} [{est.method.value}]", disable=not progress, leave=False):
-        res = est.step(trial.q[i], torques=trial.torques[i], phase=trial_phase(trial, i))
+        phase = trial_phase(trial, i) if phases is None else float(phases[i])
+        res = est.step(trial.q[i], torques=trial.torques[i], phase=phase)
         out.activations[i] = res.activations
         out.activation_std[i] = res.activation_std
         out.model_torques[i] = res.model_torques

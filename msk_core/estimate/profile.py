@@ -2,7 +2,8 @@
 
 Holds the pack it was calibrated for (name + version), per-group F_max (N) and scale factors against the pack's
 reference, the phase prior N(mu, sigma^2), the EMG normalisation used, the calibration's convergence report and
-provenance (trials, time, software).
+provenance (trials, time, software), and the rep template on the phase coordinate (``phase_model``) from which the live
+node tracks the phase when joint-angle messages carry none.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from msk_core.errors import EstimationError, FileFormatError
+from msk_core.errors import EstimationError, FileFormatError, MskError
+from msk_core.estimate.phase import PhaseModel
 from msk_core.estimate.prior import PhasePrior
 
 FORMAT = "msk-subject-profile"
@@ -31,6 +33,7 @@ class SubjectProfile:
     emg_normalisation: dict[str, dict] = field(default_factory=dict)
     calibration: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    phase_model: PhaseModel | None = None  # rep template on the phase coordinate: the live node tracks the phase
 
     @property
     def scale_factors(self) -> np.ndarray:
@@ -62,6 +65,7 @@ class SubjectProfile:
             "emg_normalisation": self.emg_normalisation,
             "calibration": self.calibration,
             "provenance": self.provenance,
+            "phase_model": None if self.phase_model is None else self.phase_model.to_dict(),
         }
 
     def save(self, path: str | Path) -> None:
@@ -83,6 +87,7 @@ class SubjectProfile:
             f_max = np.array([data["groups"][g]["f_max_n"] for g in groups], dtype=float)
             f_ref = np.array([data["groups"][g]["f_max_ref_n"] for g in groups], dtype=float)
             prior = PhasePrior.from_dict(data["prior"]) if data.get("prior") else None
+            phase_model = PhaseModel.from_dict(data["phase_model"]) if data.get("phase_model") else None
             return cls(
                 pack_name=data["pack"]["name"],
                 pack_version=str(data["pack"]["version"]),
@@ -93,8 +98,9 @@ class SubjectProfile:
                 emg_normalisation=data.get("emg_normalisation", {}),
                 calibration=data.get("calibration", {}),
                 provenance=data.get("provenance", {}),
+                phase_model=phase_model,
             )
         except KeyError as exc:
             raise FileFormatError("missing field", path=path, field=str(exc.args[0])) from None
-        except (TypeError, ValueError, EstimationError) as exc:
+        except (TypeError, ValueError, MskError) as exc:
             raise FileFormatError(f"invalid value: {exc}", path=path) from None

@@ -11,8 +11,9 @@ Keys (paths relative to the TOML file)::
     body_mass_kg = 70.0              # optional; torque errors are then also reported in N·m/kg
     start = 12.0                     # optional, in the files' own time unit (s; may be Unix epoch seconds)
     end = 30.0
-    phase_signal = "torque:L5_S1_Flex_Ext"   # optional; a kinematics column, or torque:<coordinate> (default:
-                                             # the torque of the pack's first coordinate)
+    phase_signal = "torque:L5_S1_Flex_Ext"   # optional; a kinematics column, or torque:<coordinate>. Default: the
+                                             # pack's phase coordinate (bench_press elbow_flex_r, deadlift
+                                             # hip_flexion_r), else the torque of its first coordinate
     [emg_map]                        # EMG column -> pack group
     rectabd_r = "rectabd_r"
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
@@ -31,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from msk_core.errors import ConfigError, InputError
+from msk_core.errors import ConfigError, EstimationError, InputError
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.phase import detect_reps
+from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, detect_reps, kinematic_phase
 from msk_core.io import Storage, read_sto
 
 KNOWN_KEYS = {
@@ -72,6 +73,7 @@ class TrialData:
     rep_index: np.ndarray  # (T,) -1 outside reps
     phase_signal: str
     dropped_frames: int = 0
+    phase_coordinate: str | None = None  # the pack coordinate the phase comes from (kinematic phase; live-trackable)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -202,19 +204,39 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
 
     emg, channels, norm = _load_emg(spec, path, text, file_of, err, pack, time) if "emg" in spec else ({}, {}, {})
 
-    phase_signal = spec.get("phase_signal", f"torque:{coords[0]}")
+    default_signal = DEFAULT_PHASE_COORDINATES.get(pack.name)
+    if default_signal not in coords:
+        default_signal = f"torque:{coords[0]}"
+    phase_signal = spec.get("phase_signal", default_signal)
     if not isinstance(phase_signal, str):
         raise err("must be a string", "phase_signal", phase_signal)
-    if phase_signal.startswith("torque:"):
-        c = phase_signal.split(":", 1)[1]
-        if c not in coords:
-            raise err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
-        signal = torques[:, coords.index(c)]
-    else:
-        if not kin.has_column(phase_signal):
-            raise err(f"no such kinematics column{_closest(phase_signal, kin.columns)}", "phase_signal", phase_signal)
-        signal = kin.column(phase_signal)[sel][kin_keep]
-    phase, rep_index = detect_reps(time, signal)
+    phase_coordinate = None
+    extra: dict = {}
+    try:
+        if phase_signal.startswith("torque:"):
+            c = phase_signal.split(":", 1)[1]
+            if c not in coords:
+                raise err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
+            phase, rep_index = detect_reps(time, torques[:, coords.index(c)])
+        else:
+            if phase_signal in coords:  # radians, as the live node sees it
+                phase_coordinate = phase_signal
+                signal = q[:, coords.index(phase_signal)]
+            elif kin.has_column(phase_signal):
+                signal = kin.column(phase_signal)[sel][kin_keep]
+            else:
+                raise err(f"no such kinematics column{_closest(phase_signal, kin.columns)}", "phase_signal",
+                          phase_signal)
+            try:
+                phase, rep_index = kinematic_phase(time, signal)
+            except EstimationError as exc:
+                # msk_core.phase only counts complete reps (rest - excursion - rest); a trial with a single movement
+                # (e.g. arm26's one flexion) falls back to the minimal detector and has no live-trackable phase
+                phase, rep_index = detect_reps(time, signal)
+                phase_coordinate = None
+                extra["phase_fallback"] = str(exc)
+    except EstimationError as exc:
+        raise err(f"{exc}", "phase_signal", phase_signal) from None
 
     return TrialData(
         name=str(spec.get("name", path.stem)),
@@ -234,6 +256,8 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
         rep_index=rep_index,
         phase_signal=phase_signal,
         dropped_frames=dropped,
+        phase_coordinate=phase_coordinate,
+        extra=extra,
     )
 
 
