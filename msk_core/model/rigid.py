@@ -78,10 +78,13 @@ class RigidModel:
             d2 = d1[:, 1:] * np.arange(1, degree - 1)[None, :]
             half, centre = float(funcs[0]["half_width"]), float(funcs[0]["centre"])
             m = len(idx)
-            stacked = np.zeros((3 * m, degree))  # rows: f, f', f'' over the same power vector
+            scale = float(self.torque_scale[k])
+            # rows: f, f', f'' and scale * f' (the projection column) over the same power vector
+            stacked = np.zeros((4 * m, degree))
             stacked[:m] = coef
             stacked[m : 2 * m, : degree - 1] = d1 / half
-            stacked[2 * m :, : degree - 2] = d2 / half**2
+            stacked[2 * m : 3 * m, : degree - 2] = d2 / half**2
+            stacked[3 * m :, : degree - 1] = scale * d1 / half
             contiguous = idx == list(range(idx[0], idx[0] + m))
             sel = slice(idx[0], idx[0] + m) if contiguous else np.array(idx)
             mix = np.zeros((3, 3))  # [f, f'v, f'a + f''v²] = mix @ [f, f', f'']: one product per frame
@@ -90,9 +93,10 @@ class RigidModel:
             self._nl_groups.append((
                 k, sel, contiguous, m, centre, 1.0 / half, stacked, np.arange(degree).astype(float),
                 np.empty(degree), mix, self._motion[:, sel] if contiguous else None,
-                self._frame_projection[k, sel] if contiguous else None, float(self.torque_scale[k]),
+                self._frame_projection[k, sel] if contiguous else None,
             ))
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
+        self._scaled_load: float | None = None  # hand load the load model's gravity is currently scaled for
         self.joint_names = [j["name"] for j in joints]
         moved_by = [j["function"]["coordinate"] if "function" in j else int(np.argmax(np.abs(self.gains[i])))
                     for i, j in enumerate(joints)]
@@ -106,19 +110,19 @@ class RigidModel:
         motion_in[2] = qdd
         motion = np.dot(motion_in, self._gains_t, out=self._motion)
         for k, idx, contiguous, m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
-                projection_view, scale in self._nl_groups:
+                projection_view in self._nl_groups:
             dq_k, v, a = motion_in[:, k].tolist()
             values = stacked @ np.power((dq_k - centre) * inv_half, powers, out=power_buf)
             mix[1, 1] = v
             mix[2, 1] = a
             mix[2, 2] = v * v
             if contiguous:
-                np.matmul(mix, values.reshape(3, m), out=motion_view)
+                np.matmul(mix, values[: 3 * m].reshape(3, m), out=motion_view)
                 # virtual work: tau_k += f'(q) . tau_j, folded into the projection matrix
-                np.multiply(values[m : 2 * m], scale, out=projection_view)
+                projection_view[...] = values[3 * m :]
             else:
-                motion[:, idx] = mix @ values.reshape(3, m)
-                self._frame_projection[k, idx] = scale * values[m : 2 * m]
+                motion[:, idx] = mix @ values[: 3 * m].reshape(3, m)
+                self._frame_projection[k, idx] = values[3 * m :]
         return motion
 
     def inverse_dynamics(
@@ -130,12 +134,10 @@ class RigidModel:
         if gravity is None:
             tau = pin.rnea(self.model, self.data, qp, vp, ap)
             if hand_load and self.n_load_points:
-                # hand_load acts along gravity: hold (hand_load / |g|) kg, split over the load points
-                load = pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
-                load *= hand_load * self._load_factor
-                tau += load
+                tau += self._load_torque(hand_load, qp)
             return self._frame_projection @ tau
         g = np.asarray(gravity, dtype=float)
+        self._scaled_load = None  # the load model's gravity is reset below
         self.model.gravity.linear = g
         self.load_model.gravity.linear = g
         try:
@@ -157,8 +159,18 @@ class RigidModel:
         qp, vp, ap = self._joint_motion(dq, qd, qdd)
         tau = pin.rnea(self.model, self.data, qp, vp, ap).copy()
         if hand_load and self.n_load_points:
-            tau += (hand_load * self._load_factor) * pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
+            tau += self._load_torque(hand_load, qp)
         return tau * self._joint_scale
+
+    def _load_torque(self, hand_load: float, qp: np.ndarray) -> np.ndarray:
+        """Torque holding hand_load newtons along the pack gravity, split over the load points.
+
+        The load model carries unit masses; its gravity is pre-scaled by hand_load / |g| / points and rescaled only
+        when the load changes (a live stream keeps one load for many frames): one pinocchio call per frame."""
+        if hand_load != self._scaled_load:
+            self.load_model.gravity.linear = self.gravity * (hand_load * self._load_factor)
+            self._scaled_load = hand_load
+        return pin.computeGeneralizedGravity(self.load_model, self.load_data, qp)
 
     def body_masses(self) -> dict[str, float]:
         return {b["name"]: float(b["mass"]) for b in self.description["bodies"]}
