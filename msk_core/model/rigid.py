@@ -89,11 +89,13 @@ class RigidModel:
             sel = slice(idx[0], idx[0] + m) if contiguous else np.array(idx)
             mix = np.zeros((3, 3))  # [f, f'v, f'a + f''v²] = mix @ [f, f', f'']: one product per frame
             mix[0, 0] = 1.0
+            values = np.empty(4 * m)  # preallocated product: its views below need no per-frame slicing
             # a tuple, unpacked once per frame (cheaper than dict look-ups on the hot path)
             self._nl_groups.append((
                 k, sel, contiguous, m, centre, 1.0 / half, stacked, np.arange(degree).astype(float),
                 np.empty(degree), mix, self._motion[:, sel] if contiguous else None,
                 self._frame_projection[k, sel] if contiguous else None,
+                values, values[: 3 * m].reshape(3, m), values[3 * m :],
             ))
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
         self._scaled_load: float | None = None  # hand load the load model's gravity is currently scaled for
@@ -109,20 +111,20 @@ class RigidModel:
         motion_in[1] = qd
         motion_in[2] = qdd
         motion = np.dot(motion_in, self._gains_t, out=self._motion)
-        for k, idx, contiguous, m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
-                projection_view in self._nl_groups:
+        for k, idx, contiguous, _m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
+                projection_view, values, f_rows, slope in self._nl_groups:
             dq_k, v, a = motion_in[:, k].tolist()
-            values = stacked @ np.power((dq_k - centre) * inv_half, powers, out=power_buf)
+            np.dot(stacked, np.power((dq_k - centre) * inv_half, powers, out=power_buf), out=values)
             mix[1, 1] = v
             mix[2, 1] = a
             mix[2, 2] = v * v
             if contiguous:
-                np.matmul(mix, values[: 3 * m].reshape(3, m), out=motion_view)
+                np.matmul(mix, f_rows, out=motion_view)
                 # virtual work: tau_k += f'(q) . tau_j, folded into the projection matrix
-                projection_view[...] = values[3 * m :]
+                projection_view[...] = slope
             else:
-                motion[:, idx] = mix @ values[: 3 * m].reshape(3, m)
-                self._frame_projection[k, idx] = values[3 * m :]
+                motion[:, idx] = mix @ f_rows
+                self._frame_projection[k, idx] = slope
         return motion
 
     def inverse_dynamics(
