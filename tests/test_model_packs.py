@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -123,3 +124,26 @@ def test_lumbar_lift_vs_recorded_id(shared_dir):
                                           lift / trial / "id.sto", hand_load_newton=5 * 9.80665)
         assert report["correlation"]["L5_S1_Flex_Ext"] > 0.75, report["correlation"]
         assert report["rms_error_percent_of_peak"]["L5_S1_Flex_Ext"] < 30.0, report["rms_error_percent_of_peak"]
+
+
+def test_recompile_dynamics_reproduces_the_shipped_deadlift(shared_dir):
+    import json  # noqa: PLC0415
+
+    from msk_core.errors import ConfigError  # noqa: PLC0415
+    from msk_core.model.compile import recompile_dynamics  # noqa: PLC0415
+    from msk_core.model.spec import load_spec, parse_spec  # noqa: PLC0415
+
+    pack = load_pack("deadlift")
+    spec_path = Path(__file__).resolve().parents[1] / "msk_core" / "model" / "specs" / "deadlift.toml"
+    spec = load_spec(spec_path)
+    raw = json.loads(json.dumps(pack.raw))
+    out = recompile_dynamics(raw, shared_dir / "models" / "fullbody.osim", spec)
+    for key in ("dynamics", "validation_dynamics"):
+        np.testing.assert_allclose(np.array(out[key]["gains"]), np.array(pack.raw[key]["gains"]), atol=1e-12)
+        for a, b in zip(out[key]["bodies"], pack.raw[key]["bodies"]):
+            assert a["name"] == b["name"] and a.get("hanging_from") == b.get("hanging_from")
+            np.testing.assert_allclose(a["com"], b["com"], atol=1e-12)
+    assert out["length_coefficients"] == pack.raw["length_coefficients"]
+    changed = parse_spec(spec.text.replace('TA = ["tibant_r"]', 'TA = ["tibant_r", "perlong_r"]'))
+    with pytest.raises(ConfigError, match="groups"):
+        recompile_dynamics(raw, shared_dir / "models" / "fullbody.osim", changed)
