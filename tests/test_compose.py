@@ -26,7 +26,7 @@ def compose(repo_root):
 def test_every_msk_service_command_parses(compose, repo_root):
     parser = build_parser()
     msk_services = {name: s for name, s in compose["services"].items() if s.get("image", "").startswith("msk-live")}
-    assert {"drivers", "estimator", "recorder", "trigno-sim", "replayer"} <= set(msk_services)
+    assert {"drivers", "kinematics", "estimator", "recorder", "trigno-sim", "replayer"} <= set(msk_services)
     for name, service in msk_services.items():
         argv = shlex.split(_expand(service["command"]))
         try:
