@@ -171,3 +171,25 @@ def test_trial_without_torques_uses_pack_inverse_dynamics_and_start_end(arm26_tr
     elbow = np.interp(trial.time, ref.time, ref.column("r_elbow_flex_moment"))
     # finite differences of unfiltered IK vs OpenSim's ID of the 6 Hz-filtered motion: same shape, gravity-dominated
     assert np.corrcoef(trial.torques[:, 1], elbow)[0, 1] > 0.95
+
+
+def test_msk_calibrate_prior_options_for_groups_without_emg(arm26_trials, tmp_path, capsys):
+    pack = arm26_trials["pack"]
+    out = tmp_path / "syn.json"
+    rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(out),
+               "--synergist", "BRA=BIClong", "--strength-prior-std", "0.3"])
+    assert rc == 0, capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    sources = dict(zip(pack.groups, doc["prior"]["sources"]))
+    assert sources["BRA"] == "synergist:BIClong" and sources["TRIlong"] == "min_effort" and sources["BIClong"] == "emg"
+    assert doc["calibration"]["settings"]["strength_prior_std"] == 0.3
+    prior = SubjectProfile.load(out).prior
+    j, k = list(pack.groups).index("BRA"), list(pack.groups).index("BIClong")
+    np.testing.assert_allclose(prior.mean[:, j], prior.mean[:, k])
+    capsys.readouterr()
+    assert main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(out),
+                 "--synergist", "BRA=TRIlong"]) != 0
+    assert "a group with EMG" in capsys.readouterr().err
+    assert main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(out),
+                 "--synergist", "BRA"]) != 0
+    assert "GROUP=MEASURED" in capsys.readouterr().err
