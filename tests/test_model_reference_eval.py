@@ -1,13 +1,20 @@
-"""The fast per-frame evaluation (ModelPack.frame / moment_arms / mtu_lengths / inverse_dynamics) equals a
-straightforward evaluation of the pack's stored polynomials and rigid-body description to 1e-12."""
+"""The fast per-frame evaluation (ModelPack.frame / moment_arms / mtu_lengths / inverse_dynamics), numpy and
+compiled (numba), equals a straightforward evaluation of the pack's stored polynomials and rigid-body description
+to 1e-12."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from msk_core.model import load_pack
+from msk_core.errors import ModelError
+from msk_core.model import Evaluator, OutOfRange, load_pack
 from msk_core.model.poly import (
     FeatureEvaluator,
     hinge_derivatives,
@@ -68,9 +75,10 @@ def reference_inverse_dynamics(rigid, dq, qd, qdd, load: float, gravity=None) ->
     return out
 
 
+@pytest.mark.parametrize("evaluator", list(Evaluator))
 @pytest.mark.parametrize("name", PACKS)
-def test_fast_frame_matches_reference(name):
-    pack = load_pack(name)
+def test_fast_frame_matches_reference(name, evaluator):
+    pack = load_pack(name, evaluator=evaluator)
     rng = np.random.default_rng(11)
     lo, hi = pack.coordinate_ranges[:, 0], pack.coordinate_ranges[:, 1]
     for _ in range(40):
@@ -117,3 +125,79 @@ def test_feature_evaluator_blocks_and_fallback():
             ref = np.concatenate([monomials(x[None], exps)[0], hinge_values(x[None], hinges)[0],
                                   [float(x[v] > k) for v, k in hinges]])
             np.testing.assert_allclose(fe(x), ref, rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", PACKS)
+def test_compiled_evaluator_matches_numpy_everywhere(name):
+    """Every public per-frame call of a compiled pack agrees with the numpy evaluator (1e-12), incl. clamping,
+    per-joint torques, the validation model and the out-of-range / shape errors."""
+    fast, slow = load_pack(name, evaluator=Evaluator.COMPILED), load_pack(name)
+    assert fast.evaluator is Evaluator.COMPILED and slow.evaluator is Evaluator.NUMPY
+    rng = np.random.default_rng(5)
+    lo, hi = fast.coordinate_ranges[:, 0], fast.coordinate_ranges[:, 1]
+    n = len(lo)
+    for _ in range(10):
+        q = rng.uniform(lo - 0.3, hi + 0.3)  # some coordinates outside their range
+        qd, qdd = rng.uniform(-2, 2, n), rng.uniform(-10, 10, n)
+        for a, b in zip(fast.frame(q, qd, qdd, 300.0, out_of_range=OutOfRange.CLAMP),
+                        slow.frame(q, qd, qdd, 300.0, out_of_range=OutOfRange.CLAMP)):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(b).max()))
+        inside = np.clip(q, lo, hi)
+        np.testing.assert_allclose(fast.mtu_lengths(q, out_of_range=OutOfRange.CLAMP), slow.mtu_lengths(inside),
+                                   rtol=1e-12, atol=1e-15)
+        ft, st = fast.joint_torques(inside, qd, qdd, 300.0), slow.joint_torques(inside, qd, qdd, 300.0)
+        assert list(ft) == list(st)
+        np.testing.assert_allclose(list(ft.values()), list(st.values()), rtol=1e-12,
+                                   atol=1e-12 * max(1.0, np.abs(list(st.values())).max()))
+        dq = inside - fast.reference_pose
+        ref = slow.validation_rigid.inverse_dynamics(dq, qd, qdd, 300.0, None)
+        np.testing.assert_allclose(fast.validation_rigid.inverse_dynamics(dq, qd, qdd, 300.0, None), ref,
+                                   rtol=1e-12, atol=1e-12 * max(1.0, np.abs(ref).max()))
+        if not fast.in_range(q).all():
+            bad = fast.coordinates[int(np.flatnonzero(~fast.in_range(q))[0])]
+            for call in (lambda: fast.frame(q, qd, qdd), lambda: fast.moment_arms(q),
+                         lambda: fast.inverse_dynamics(q, qd, qdd)):
+                with pytest.raises(ModelError, match=bad):
+                    call()
+    q = (lo + hi) / 2
+    # inputs of any float-convertible kind and layout give the same numbers (no silent re-specialisation)
+    column = np.tile(q[:, None], (1, 3))[:, 1]
+    assert np.array_equal(fast.moment_arms(column), fast.moment_arms(q))
+    assert np.array_equal(fast.moment_arms(q.tolist()), fast.moment_arms(q))
+    with pytest.raises(ModelError, match="qd must have shape"):
+        fast.frame(q, np.zeros(n + 1), np.zeros(n))
+    with pytest.raises(ModelError, match="gravity must be a 3-vector"):
+        fast.inverse_dynamics(q, np.zeros(n), np.zeros(n), gravity=[0.0, -9.81])
+
+
+def test_compiled_evaluator_without_numba_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "numba", None)  # import numba -> ImportError
+    monkeypatch.delitem(sys.modules, "msk_core.model.kernels", raising=False)
+    with pytest.raises(ModelError, match="needs numba"):
+        load_pack("arm26", evaluator=Evaluator.COMPILED)
+    assert load_pack("arm26").evaluator is Evaluator.NUMPY  # the default never needs numba
+
+
+def test_kernels_compile_in_memory_where_nothing_is_writable(tmp_path):
+    """No writable cache location (read-only install, no user cache): numba cannot cache, the kernels compile in
+    memory. Simulated root-proof: the module's __pycache__ and the user's ~/.cache are files, not directories."""
+    module_dir, home = tmp_path / "pkg", tmp_path / "home"
+    module_dir.mkdir()
+    home.mkdir()
+    (module_dir / "__pycache__").write_text("not a directory")
+    (home / ".cache").write_text("not a directory")
+    (module_dir / "ro_kernel.py").write_text(textwrap.dedent("""
+        from msk_core.model.kernels import _jit
+
+        @_jit
+        def twice(x):
+            return 2.0 * x
+    """))
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
+    env.update(HOME=str(home), PYTHONPATH=os.pathsep.join([str(module_dir), *sys.path]),
+               PYTHONDONTWRITEBYTECODE="1")
+    done = subprocess.run([sys.executable, "-c", "import ro_kernel; print(ro_kernel.twice(21.0), "
+                           "type(ro_kernel.twice._cache).__name__)"],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["42.0", "NullCache"]

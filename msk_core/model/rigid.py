@@ -8,14 +8,29 @@ the transposed gains (virtual work).
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pinocchio as pin
+
+from msk_core.errors import ModelError
+
+
+def compiled_kernels():
+    """:mod:`msk_core.model.kernels`, imported (numba with it, ~0.5 s) only when a compiled evaluator is asked for."""
+    try:
+        kernels = importlib.import_module("msk_core.model.kernels")
+    except ImportError as exc:
+        raise ModelError(f"the compiled model evaluator needs numba ({exc}); install numba or use the numpy "
+                         "evaluator") from exc
+    return kernels
 
 
 class RigidModel:
     """Pinocchio model + projection between pack coordinates and pinocchio joints."""
 
-    def __init__(self, description: dict, *, n_coordinates: int) -> None:
+    def __init__(self, description: dict, *, n_coordinates: int, compiled: bool = False) -> None:
+        """compiled: evaluate with the numba kernels (:mod:`msk_core.model.kernels`) instead of numpy + pinocchio."""
         self.description = description
         model = pin.Model()
         joints = description["joints"]
@@ -103,6 +118,61 @@ class RigidModel:
         moved_by = [j["function"]["coordinate"] if "function" in j else int(np.argmax(np.abs(self.gains[i])))
                     for i, j in enumerate(joints)]
         self._joint_scale = self.torque_scale[moved_by]
+        self._kernels = compiled_kernels() if compiled else None
+        self.tables = self._tables(self._kernels, joints) if compiled else None
+
+    def _tables(self, kernels, joints: list[dict]):
+        """The compiled kernels' view of this model: read back from the pinocchio models (same placements and
+        aggregated inertias), plus the polynomial joints."""
+        n_joints = len(joints)
+        joint_int = np.zeros((n_joints, 3), dtype=np.int64)
+        joint_float = np.zeros((n_joints, kernels.JOINT_FLOAT_COLUMNS))
+        width = max([len(j["function"]["coefficients"]) for j in joints if "function" in j], default=1)
+        poly_coef = np.zeros((n_joints, width))
+        for i, joint in enumerate(joints):
+            placement = self.model.jointPlacements[i + 1]
+            if not np.array_equal(placement.rotation, np.eye(3)) or int(self.model.parents[i + 1]) >= i + 1:
+                raise ValueError(f"joint {joint['name']!r}: expected an aligned placement after its parent")
+            joint_int[i, kernels.PARENT] = int(joint["parent"])
+            joint_int[i, kernels.KIND] = kernels.REVOLUTE if joint["kind"] == "revolute" else kernels.PRISMATIC
+            row = joint_float[i]
+            row[kernels.OFFSET : kernels.OFFSET + 3] = placement.translation
+            row[kernels.AXIS : kernels.AXIS + 3] = np.asarray(joint["axis"], dtype=float)
+            body, load = self.model.inertias[i + 1], self.load_model.inertias[i + 1]
+            row[kernels.MASS] = body.mass
+            row[kernels.LEVER : kernels.LEVER + 3] = body.lever
+            row[kernels.INERTIA : kernels.INERTIA + 9] = np.asarray(body.inertia).reshape(9)
+            row[kernels.LOAD_MASS] = load.mass
+            row[kernels.LOAD_LEVER : kernels.LOAD_LEVER + 3] = load.lever
+            function = joint.get("function")
+            if function is None:
+                joint_int[i, kernels.POLY_COORD] = -1
+                continue
+            k = int(function["coordinate"])
+            joint_int[i, kernels.POLY_COORD] = k
+            row[kernels.POLY_CENTRE] = float(function["centre"])
+            row[kernels.POLY_HALF] = float(function["half_width"])
+            row[kernels.POLY_SCALE] = float(self.torque_scale[k])
+            coef = np.asarray(function["coefficients"], dtype=float)
+            poly_coef[i, : len(coef)] = coef
+        return kernels.RigidTables.build(
+            joint_int=joint_int, joint_float=joint_float, poly_coef=poly_coef,
+            gains=np.ascontiguousarray(self.gains), projection=np.ascontiguousarray(self._projection),
+            load_per_point=self.load_share / self.n_load_points if self.n_load_points else 0.0,
+        )
+
+    def _compiled(self, dq, qd, qdd, hand_load: float, gravity) -> tuple[np.ndarray, np.ndarray]:
+        t = self.tables
+        n = t.n
+        dq, qd, qdd = (np.ascontiguousarray(a, dtype=np.float64) for a in (dq, qd, qdd))
+        if dq.shape != (n,) or qd.shape != (n,) or qdd.shape != (n,):
+            raise ValueError(f"dq, qd, qdd must have shape ({n},), got {dq.shape}, {qd.shape}, {qdd.shape}")
+        g = self.gravity if gravity is None else np.ascontiguousarray(gravity, dtype=np.float64)
+        if g.shape != (3,):
+            raise ValueError(f"gravity must be a 3-vector, got shape {g.shape}")
+        out = np.empty(n + t.n_joints)
+        self._kernels.rigid(dq, qd, qdd, float(hand_load), g, t.ints, t.floats, out)
+        return out[:n], out[n:]
 
     def _joint_motion(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
         """Pinocchio q, v, a as the rows of the (3, n_joints) motion buffer; refreshes the frame projection."""
@@ -131,6 +201,14 @@ class RigidModel:
         self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float, gravity: np.ndarray | None
     ) -> np.ndarray:
         """Torques at pack coordinates for offsets dq = q - q_ref, velocities and accelerations."""
+        if self.tables is None:
+            return self.inverse_dynamics_numpy(dq, qd, qdd, hand_load, gravity)
+        return self._compiled(dq, qd, qdd, hand_load, gravity)[0]
+
+    def inverse_dynamics_numpy(
+        self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load: float, gravity: np.ndarray | None
+    ) -> np.ndarray:
+        """:meth:`inverse_dynamics` with numpy + pinocchio (the numpy evaluator; the benchmark's baseline)."""
         motion = self._joint_motion(dq, qd, qdd)
         qp, vp, ap = motion
         if gravity is None:
@@ -158,6 +236,8 @@ class RigidModel:
 
         Scaled like the coordinate it moves (torque_scale: e.g. a lumbar level of a foot-rooted, side-shared model
         reports the whole-trunk moment), so e.g. the L5/S1 level moment of a coupled lumbar spine can be read."""
+        if self.tables is not None:
+            return self._compiled(dq, qd, qdd, hand_load, None)[1] * self._joint_scale
         qp, vp, ap = self._joint_motion(dq, qd, qdd)
         tau = pin.rnea(self.model, self.data, qp, vp, ap).copy()
         if hand_load and self.n_load_points:
