@@ -4,7 +4,7 @@ The numpy path spends a frame in ~20 numpy calls and 2 pinocchio calls of 0.4-3 
 one compiled call over tables built once at pack load (:class:`MuscleTables`, :class:`RigidTables`):
 
 * features: power table of x = (q - centre) / half, monomials as products of table entries, hinges;
-* lengths and moment arms: the (lengths + derivative) matrix in CSR form (deadlift: ~10 % non-zero);
+* lengths and moment arms: the (lengths + derivative) matrix in CSC form (deadlift: ~10 % non-zero);
 * rigid body: recursive Newton-Euler in world coordinates (the same tree, inertias and joint models pinocchio
   builds from the pack; the hand load is a static force on the aggregated load-point masses), the polynomial joints
   (rolling knee) by Horner, torques projected to pack coordinates by virtual work.
@@ -103,15 +103,15 @@ RIGID_WORK = 9 + 3 + 4 * 6 + 4  # per joint: rotation, origin, S, v, a, f, then 
 
 @_jit
 def _muscle_views(ints, floats):
-    n, n_groups, m, n_h, rows, nnz, width = ints[0], ints[1], ints[2], ints[3], ints[4], ints[5], ints[6]
+    n, n_groups, m, n_h, n_rows, nnz, width = ints[0], ints[1], ints[2], ints[3], ints[4], ints[5], ints[6]
     o = 7
-    exponents = ints[o : o + m * n].reshape((m, n))
+    factors = ints[o : o + m * n].reshape((m, n))
     o += m * n
     hinge_var = ints[o : o + n_h]
     o += n_h
     indptr = ints[o : o + m + 4 * n_h + 1]
     o += m + 4 * n_h + 1
-    cols = ints[o : o + nnz]
+    rows = ints[o : o + nnz]
     pose = floats[: 6 * n].reshape((6, n))
     f = 6 * n
     hinge_knot = floats[f : f + n_h]
@@ -123,7 +123,7 @@ def _muscle_views(ints, floats):
     phi = floats[f : f + m + 4 * n_h]
     f += m + 4 * n_h
     work = floats[f : f + 3 * n]
-    return n_groups, rows, exponents, hinge_var, indptr, cols, pose, hinge_knot, vals, powers, phi, work
+    return n_groups, n_rows, factors, hinge_var, indptr, rows, pose, hinge_knot, vals, powers, phi, work
 
 
 @_jit
@@ -202,8 +202,7 @@ def rigid_torques(dq, qd, qdd, hand_load, gravity, ints, floats, tau, tau_joint)
     qj = work[w0 : w0 + nj]
     vj = work[w0 + nj : w0 + 2 * nj]
     aj = work[w0 + 2 * nj : w0 + 3 * nj]
-    slope = work[w0 + 3 * nj : w0 + 4 * nj]
-    w0 += 4 * nj
+    slope = work[w0 + 3 * nj : w0 + 4 * nj]  # f'(q) of polynomial joints (read only for those)
     for i in range(nj):
         s0 = 0.0
         s1 = 0.0
@@ -390,7 +389,7 @@ def frame(q, qd, qdd, hand_load, gravity, mode, muscle_ints, muscle_floats, rigi
     """One frame into out: lengths (G) and moment arms (n × G) if mode & MUSCLES, then tau (n) and tau per joint (J)
     if mode & DYNAMICS. Returns False (nothing evaluated) when mode has no CLAMP and q is outside the fitted ranges.
     """
-    n_groups, rows, exponents, hinge_var, indptr, cols, pose, hinge_knot, vals, powers, phi, work = _muscle_views(
+    n_groups, n_rows, factors, hinge_var, indptr, rows, pose, hinge_knot, vals, powers, phi, work = _muscle_views(
         muscle_ints, muscle_floats)
     n = q.shape[0]
     x = work[:n]
@@ -409,8 +408,8 @@ def frame(q, qd, qdd, hand_load, gravity, mode, muscle_ints, muscle_floats, rigi
     if mode & MUSCLES:
         for j in range(n):
             x[j] = (qc[j] - pose[CENTRE, j]) / pose[HALF, j]
-        muscle_values(x, exponents, hinge_var, hinge_knot, indptr, cols, vals, powers, phi, out[:rows])
-        base = rows
+        muscle_values(x, factors, hinge_var, hinge_knot, indptr, rows, vals, powers, phi, out[:n_rows])
+        base = n_rows
     if mode & DYNAMICS:
         for j in range(n):
             dq[j] = qc[j] - pose[REFERENCE, j]
