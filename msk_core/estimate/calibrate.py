@@ -7,6 +7,11 @@ half a squared, normalised error so that J reads as a negative log-likelihood:
     J = 1/2 sum_t,n ((sum_g R_tng F_ref,g k_g a_tg - tau_tn) / (eps c_tn))^2            torque, eps = torque_tolerance
       + 1/2 w_prior sum_t,g ((a_tg - mu_g(phase_t)) / sigma_g(phase_t))^2                  N(mu, sigma^2) across reps
       + 1/2 w_emg   sum_t,g in EMG ((a_tg - e_g(t)) / emg_std)^2                            the trial's own EMG
+      + 1/2 sum_g free ((k_g - 1) / strength_prior_std)^2                                 N(1, 0.3^2) strength prior
+
+The strength prior (default s = 0.3, ``None`` = off) keeps the factors the data barely identify (groups that stay
+near rest, nearly collinear force columns) at the reference; well-identified factors move freely (torque terms over
+thousands of frames outweigh it).
 
 with c_tn = sum_g |R_tng| F_ref,g the reference torque capacity of coordinate n (the same per-coordinate scaling as the
 estimator, fixed so it does not depend on k). Groups without EMG have no EMG term, and by default
@@ -59,9 +64,12 @@ class CalibrationSettings:
     strength_bounds: tuple[float, float] = (0.5, 2.5)
     torque_tolerance: float = 0.01
     emg_std: float = 0.05
+    # optional signal-dependent EMG noise: sigma_tg = sqrt(emg_std^2 + (emg_relative_std * e_tg)^2) (sEMG amplitude
+    # noise grows with the amplitude); None: constant emg_std
+    emg_relative_std: float | None = None
     prior_weight: float = 1.0
     emg_weight: float = 1.0
-    strength_prior_std: float | None = None  # optional N(1, s^2) on each free strength factor (off by default)
+    strength_prior_std: float | None = 0.3  # N(1, s^2) on each free strength factor (None: off)
     calibrate: str = "emg"  # "emg": only groups with EMG; "all": every group
     a_min: float = 0.0
     max_iter: int = 20000
@@ -108,7 +116,8 @@ class _Problem:
         self.w_p = s.prior_weight / frames.prior_std**2
         has = np.isfinite(frames.emg)
         self.e = np.where(has, frames.emg, 0.0)
-        self.w_e = np.where(has, s.emg_weight / s.emg_std**2, 0.0)
+        var_e = s.emg_std**2 + (0.0 if s.emg_relative_std is None else (s.emg_relative_std * self.e) ** 2)
+        self.w_e = np.where(has, s.emg_weight / var_e, 0.0)
         self.t, _, self.g = self.m.shape
         lo, hi = s.strength_bounds
         if not 0 < lo <= 1.0 <= hi:

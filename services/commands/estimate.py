@@ -24,8 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal.add_argument("--bins", type=int, default=20, help="phase bins of the prior (default 20)")
     cal.add_argument("--calibrate", choices=["emg", "all"], default="emg",
                      help="which groups get a strength factor (default: those with EMG)")
-    cal.add_argument("--strength-prior-std", type=float, default=None,
-                     help="optional N(1, s^2) prior on each calibrated strength factor (default: off)")
+    cal.add_argument("--strength-prior-std", type=float, default=0.3,
+                     help="N(1, s^2) prior on each calibrated strength factor (default 0.3; 0 = off)")
     cal.add_argument("--no-emg-prior", choices=["min_effort", "synergist", "wide"], default="min_effort",
                      help="prior of groups without EMG: static optimisation's share over the reps (default), the "
                           "measured group with the most similar moment arms, or the wide N(0, 0.5^2)")
@@ -79,10 +79,10 @@ def run_calibrate(args: argparse.Namespace) -> int:
         synergists[group.strip()] = measured.strip()
     pack = _pack(args.pack)
     trials = [load_trial(p, pack) for p in args.trial]
-    if args.strength_prior_std is not None and not args.strength_prior_std > 0:
-        raise ConfigError("must be > 0", field="--strength-prior-std", value=args.strength_prior_std)
+    if not args.strength_prior_std >= 0:
+        raise ConfigError("must be >= 0 (0 = off)", field="--strength-prior-std", value=args.strength_prior_std)
     settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate,
-                                   strength_prior_std=args.strength_prior_std)
+                                   strength_prior_std=args.strength_prior_std or None)
     print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
           f"of {len(trials)} trial(s)...", flush=True)
     profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins,
