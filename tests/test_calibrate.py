@@ -30,10 +30,11 @@ def _synthetic(seed=0, t=60, n_c=2, g=5, emg_groups=4, noise=0.0):
     return f_ref, k_true, a_true, frames
 
 
-@pytest.mark.parametrize("strength_prior_std", [None, 0.3])
-def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std):
+@pytest.mark.parametrize("strength_prior_std,emg_relative_std", [(None, None), (0.3, None), (0.3, 0.1)])
+def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std, emg_relative_std):
     f_ref, _, _, frames = _synthetic(seed=1, t=40, noise=0.03)
-    s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std)
+    s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std,
+                            emg_relative_std=emg_relative_std)
     joint = calibrate(f_ref, frames, s)
     alt = calibrate_alternating(f_ref, frames, s)
     assert joint.converged, joint.message
@@ -47,6 +48,12 @@ def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std)
     rep = joint.report()
     expected = {"torque", "prior", "emg"} | ({"strength"} if strength_prior_std else set())
     assert rep["converged"] and set(rep["terms"]) == expected
+    if emg_relative_std is not None:  # the EMG term with sigma^2 = emg_std^2 + (rel * e)^2, evaluated independently
+        e = np.where(np.isfinite(frames.emg), frames.emg, 0.0)
+        var = s.emg_std**2 + (emg_relative_std * e) ** 2
+        has = np.isfinite(frames.emg)
+        expected_emg = 0.5 * np.sum(((joint.activations - e) ** 2 / var)[has])
+        np.testing.assert_allclose(rep["terms"]["emg"], expected_emg, rtol=1e-10)
 
 
 def test_calibration_recovers_true_strength_from_clean_emg():
