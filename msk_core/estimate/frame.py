@@ -195,6 +195,8 @@ class FrameEstimator:
         self._hi = self._ranges[:, 1].copy() if self._ranges is not None else np.full(n_c, np.inf)
         self._lo_list, self._hi_list = self._lo.tolist(), self._hi.tolist()
         self._fallback: LeastSquaresQP | None = None
+        # ModelPack.frame() gives lengths, moment arms and torques in one (compiled) call; other packs need not have it
+        self._fused_frame = getattr(self.pack, "frame", None)
 
     # -- public -------------------------------------------------------------------------------------------------
 
@@ -229,10 +231,14 @@ class FrameEstimator:
                 if qd is None or qdd is None:
                     qd = np.zeros(n_c) if qd is None else qd
                     qdd = np.zeros(n_c) if qdd is None else qdd
-                tau = np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
+                if self._fused_frame is not None:  # one model call for moment arms and inverse dynamics
+                    _, r, tau = self._fused_frame(q, qd, qdd, hand_load_newton)
+                else:
+                    tau = np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
+                    r = np.asarray(self.pack.moment_arms(q), dtype=float)
             else:
                 tau = np.asarray(torques, dtype=float)
-            r = np.asarray(self.pack.moment_arms(q), dtype=float)
+                r = np.asarray(self.pack.moment_arms(q), dtype=float)
         except Exception as exc:  # the model pack rejected the pose; the live loop must go on
             log.debug("model evaluation failed: %s", exc)
             return self._invalid(np.full(n_c, np.nan), phase)

@@ -111,18 +111,18 @@ def _opensim_so_per_frame_us(workdir: Path) -> float:
 
 
 def _deadlift_or_largest():
-    from msk_core.model import available_packs, load_pack
+    from msk_core.model import Evaluator, available_packs, load_pack
 
     names = available_packs()
     if "deadlift" in names:
-        return load_pack("deadlift"), ""
-    packs = [load_pack(n) for n in names]
+        return load_pack("deadlift", evaluator=Evaluator.COMPILED), ""  # what the live estimator loads
+    packs = [load_pack(n, evaluator=Evaluator.COMPILED) for n in names]
     pack = max(packs, key=lambda p: len(p.groups) * 100 + len(p.coordinates))
     return pack, f"deadlift pack not built; measured on {pack.name} ({len(pack.groups)} groups) instead"
 
 
 def run(quick: bool) -> list[BenchResult]:
-    from msk_core.model import load_pack
+    from msk_core.model import Evaluator, load_pack
 
     n = 500 if quick else 5000
     with tempfile.TemporaryDirectory() as tmp:
@@ -152,7 +152,7 @@ def run(quick: bool) -> list[BenchResult]:
                                "OpenSim SO per frame (arm26)", opensim_us, "<= 1000 µs",
                                bool(np.median(ts) <= 1000.0), {"coordinates": 6, "flags": str(fl)}))
 
-    ta, fl = _arm26_so_steps(load_pack("arm26"), n)
+    ta, fl = _arm26_so_steps(load_pack("arm26", evaluator=Evaluator.COMPILED), n)
     results.append(BenchResult("arm26 so step (tutorial motion), median", float(np.median(ta)), "µs",
                                "OpenSim SO per frame (arm26)", opensim_us, "", None, {"flags": str(fl)}))
     return results
