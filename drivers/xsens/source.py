@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers import parse_synthetic_spec
 from drivers.xsens import xbus
 from msk_core.errors import FileFormatError, InputError
 
@@ -49,14 +50,9 @@ class ImuSource:
 
 def load_imu_source(spec: str | Path) -> ImuSource:
     text = str(spec)
-    if text.startswith("synthetic"):
-        parts = text.split(":")
-        try:
-            seconds = float(parts[1]) if len(parts) > 1 and parts[1] else 30.0
-            seed = int(parts[2]) if len(parts) > 2 else 0
-        except ValueError:
-            raise InputError("synthetic source is synthetic[:SECONDS[:SEED]]", field="--from", value=text) from None
-        return synthetic_imu(seconds=seconds, seed=seed)
+    synthetic = parse_synthetic_spec(text)
+    if synthetic is not None:
+        return synthetic_imu(seconds=synthetic[0], seed=synthetic[1])
     path = Path(text)
     if not path.is_file():
         raise InputError("IMU source file not found", path=path)
