@@ -11,7 +11,7 @@ Layout under ``out``::
         truth_torques.sto               true ID torque (true load) and the muscle torque per coordinate
 
 ``emg.sto`` holds either the raw EMG at 2000 Hz (``EmgOutput.RAW``, large) or its zero-phase envelope at the
-kinematics rate (``EmgOutput.ENVELOPE``, the default); ``[emg_max]`` in the TOML is the MVC envelope peak of the same
+kinematics rate (``EmgOutput.ENVELOPE``, the default); ``[emg_max]`` in the TOML is the MVC amplitude (highest 0.5 s mean of the envelope) of the same
 chain, so the trial loader normalises to MVC either way.
 """
 
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal
+from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal, windowed_peak
 from msk_core.io import write_sto
 from msk_core.synth.session import ExerciseSession, Session, Trial
 
@@ -51,9 +51,13 @@ def _envelope(emg: np.ndarray, rate_hz: float) -> np.ndarray:
     return envelope_zero_phase_noncausal(emg, EmgFilterConfig(rate_hz=rate_hz))
 
 
+MVC_WINDOW_S = 0.5  # MVC amplitude = highest 0.5 s mean of the envelope (msk_core.emg.windowed_peak)
+
+
 def mvc_maxima(ex: ExerciseSession, rate_hz: float) -> dict[str, float]:
     env = _envelope(ex.mvc.emg, rate_hz)
-    return {ch: float(env[:, k].max()) for k, ch in enumerate(ex.mvc.channels)}
+    peaks = windowed_peak(env, int(round(MVC_WINDOW_S * rate_hz)))
+    return {ch: float(peaks[k]) for k, ch in enumerate(ex.mvc.channels)}
 
 
 def _downsample(time_hi: np.ndarray, x: np.ndarray, time_lo: np.ndarray) -> np.ndarray:
