@@ -17,6 +17,7 @@ from pathlib import Path
 
 import zenoh
 
+from msk_core.errors import ConfigError
 from services import messages, topics
 from services.mcap_io import McapRecorderWriter, device_time_ns
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args, type_name_of_sample
@@ -36,7 +37,7 @@ def resolve_type(key: str, sample_type: str | None) -> str | None:
         return sample_type
     try:
         return topics.message_type_for_key(key)
-    except Exception:
+    except ConfigError:  # not an msk/<session>/... key
         return None
 
 

@@ -1,5 +1,5 @@
 """docker-compose.yml stays true to the code: every node's command is a valid ``msk`` command line, every node joins
-the router, and the files it names exist. (No Docker engine here; `docker-compose config` was also run by hand.)"""
+the router, and the files it names exist. (No Docker engine runs here, so the file is checked against the code.)"""
 
 from __future__ import annotations
 

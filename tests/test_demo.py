@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+from msk_core.errors import InputError
 from services import demo
 from services.mcap_io import read_messages
 
@@ -47,7 +48,7 @@ def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
 
 
 def test_demo_rejects_unknown_exercise(tmp_path):
-    with pytest.raises(Exception, match="--exercise"):
+    with pytest.raises(InputError, match="--exercise"):
         demo.main(out=tmp_path, exercises=["squat"], log=lambda _: None)
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from msk_core.errors import ConfigError
 from services import messages, recorder, replayer, topics
 from services.mcap_io import McapRecorderWriter, ReadReport, read_messages
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
@@ -103,9 +104,9 @@ def test_replay_in_original_timing_under_a_new_session(tmp_path, zenoh_endpoint)
 
 
 def test_replay_rejects_bad_rate():
-    with pytest.raises(Exception, match="--rate"):
+    with pytest.raises(ConfigError, match="--rate"):
         replayer.parse_rate("fast")
-    with pytest.raises(Exception, match="--rate"):
+    with pytest.raises(ConfigError, match="--rate"):
         replayer.parse_rate("-1")
     assert replayer.parse_rate("max") is None
     assert replayer.parse_rate("2") == 2.0

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from msk_core.errors import ConfigError
 from services import messages, topics
 from services.schemas import msk_pb2
 
@@ -92,5 +93,5 @@ def test_topic_keys_and_types():
     assert topics.message_type_for_key("msk/s1/activations/so") == "msk.ActivationFrame"
     assert topics.message_type_for_key("msk/s1/unknown/x") is None
     assert topics.rename_session("msk/a/imu/t1", "b") == "msk/b/imu/t1"
-    with pytest.raises(Exception, match="session"):
+    with pytest.raises(ConfigError, match="session"):
         topics.emg_key("bad/session", "x")

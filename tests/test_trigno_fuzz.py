@@ -37,15 +37,15 @@ def test_reply_reader_and_reply_parsers_any_bytes(data, cuts):
         replies += reader.feed(data[position : position + cuts[k % len(cuts)]])
         position += cuts[k % len(cuts)]
         k += 1
-    errors = 0
+    # TCP fragmentation must not change what the reader sees: the same bytes in one piece give the same replies.
+    assert replies == tp.ReplyReader().feed(data)
     for reply in replies:
         assert reply == reply.strip() and reply
         for parse in (tp.parse_yes_no, tp.parse_int, tp.parse_float, tp.parse_endianness, tp.parse_banner):
             try:
                 parse(reply)
             except ProtocolError:
-                errors += 1
-    assert errors <= 5 * len(replies)
+                pass  # the only exception a parser may raise on garbage; anything else fails the test
 
 
 def test_reply_reader_gives_up_on_an_endless_reply():

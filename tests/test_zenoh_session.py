@@ -51,6 +51,6 @@ def test_bad_configuration_is_reported_precisely(tmp_path):
         ZenohOptions(config_file=broken).to_config()
     with pytest.raises(ConfigError, match="mode"):
         ZenohOptions(mode="satellite").to_config()
-    with pytest.raises(Exception, match="unknown message type"):
+    with pytest.raises(messages.MessageDecodeError, match="unknown message type"):
         with open_session(ZenohOptions(listen=("tcp/127.0.0.1:0",))) as session:
             declare_data_publisher(session, "msk/x/y", "msk.Nope")

@@ -197,6 +197,7 @@ class FrameEstimator:
         self._fallback: LeastSquaresQP | None = None
         # ModelPack.frame() gives lengths, moment arms and torques in one (compiled) call; other packs need not have it
         self._fused_frame = getattr(self.pack, "frame", None)
+        self._model_error_logged = False
 
     # -- public -------------------------------------------------------------------------------------------------
 
@@ -239,8 +240,10 @@ class FrameEstimator:
             else:
                 tau = np.asarray(torques, dtype=float)
                 r = np.asarray(self.pack.moment_arms(q), dtype=float)
-        except Exception as exc:  # the model pack rejected the pose; the live loop must go on
-            log.debug("model evaluation failed: %s", exc)
+        except Exception as exc:  # the model pack rejected the pose (or failed): the live loop must go on, flagged
+            if not self._model_error_logged:  # say it once, with the reason; later frames are counted as invalid_input
+                log.warning("model evaluation failed, frame flagged invalid_input: %s: %s", type(exc).__name__, exc)
+                self._model_error_logged = True
             return self._invalid(np.full(n_c, np.nan), phase)
         if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
             return self._invalid(np.full(n_c, np.nan), phase)

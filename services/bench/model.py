@@ -139,7 +139,8 @@ def run(quick: bool) -> list[BenchResult]:
             baseline_name="OpenSim computeMomentArm + InverseDynamicsSolver",
             baseline_value=osim_s * 1e6,
             target="<= 20 us and >= 1000x",
-            passed=fused_us <= 20.0 and (osim_s != osim_s or osim_s / fused_s >= 1000),
+            # without the OpenSim baseline the ">= 1000x" half cannot be judged: no verdict rather than a pass
+            passed=None if osim_s != osim_s else (fused_us <= 20.0 and osim_s / fused_s >= 1000),
             details=details,
         ),
         BenchResult(
