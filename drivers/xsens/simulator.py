@@ -22,6 +22,7 @@ import numpy as np
 
 from drivers.xsens import frames, xbus
 from drivers.xsens.source import ImuSource
+from msk_core.errors import ProtocolError
 
 DEFAULT_DEVICE_ID = 0x03700ABC  # 037xxxxx: an MTi-G-700-series device id
 DEFAULT_PRODUCT_CODE = "MTi-G-710-2A8G4"
@@ -253,7 +254,7 @@ class XsensSimulator:
     def _set_outputs(self, data: bytes) -> None:
         try:
             settings = xbus.decode_output_configuration(data)
-        except Exception:
+        except ProtocolError:  # malformed SetOutputConfiguration payload: the device answers "invalid parameter"
             self._error(0x21)
             return
         for setting in settings:

@@ -18,7 +18,7 @@ import numpy as np
 
 from drivers import parse_synthetic_spec
 from drivers.xsens import xbus
-from msk_core.errors import FileFormatError, InputError
+from msk_core.errors import FileFormatError, InputError, ProtocolError
 
 #: Quantities a source may carry, with their component counts.
 QUANTITIES = {
@@ -74,7 +74,7 @@ def load_capture(path: Path) -> ImuSource:
     for index, message in enumerate(messages):
         try:
             decoded = xbus.decode_mtdata2(message.data)
-        except Exception as error:
+        except ProtocolError as error:
             raise FileFormatError(f"MTData2 message {index} does not decode: {error}", path=path) from error
         counters.append(decoded.first("packet_counter"))
         for name in QUANTITIES:
