@@ -186,13 +186,10 @@ def run_live_graph(
     }
 
 
-def trial_windows(recorded_mcap: Path) -> list[TrialWindow]:
+def trial_windows(load_events: list) -> list[TrialWindow]:
     """Trials as the load events delimit them: a non-zero mass opens one, the next zero closes it."""
     windows, open_window = [], None
-    for recorded in read_messages(recorded_mcap):
-        if recorded.type_name != "msk.LoadEvent":
-            continue
-        event = recorded.decode()
+    for event in load_events:
         t = event.device_time_ns / 1e9
         if event.barbell_mass_kg > 0:
             open_window = TrialWindow(event.exercise, event.barbell_mass_kg, t, float("inf"))
@@ -205,12 +202,15 @@ def trial_windows(recorded_mcap: Path) -> list[TrialWindow]:
 
 def score(recorded_mcap: Path, recordings: Path) -> tuple[list[MethodScore], dict]:
     frames: dict[str, list] = {m: [] for m in METHODS}
-    for recorded in read_messages(recorded_mcap):
+    load_events = []
+    for recorded in read_messages(recorded_mcap):  # one pass over the recording for frames and load events
         if recorded.type_name == "msk.ActivationFrame":
             frame = recorded.decode()
             frames[frame.method].append(frame)
+        elif recorded.type_name == "msk.LoadEvent":
+            load_events.append(recorded.decode())
     scores, curves = [], {}
-    for window in trial_windows(recorded_mcap):
+    for window in trial_windows(load_events):
         folders = _trial_folders(recordings, window.exercise)
         folder = next((f for f in folders if f.name == window.name), None)
         if folder is None:

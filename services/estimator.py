@@ -30,6 +30,7 @@ from msk_core.estimate import FrameEstimator
 from msk_core.estimate.frame import FrameResult
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.trial import GRAVITY
 from services import messages, topics
 from services.zenoh_session import (
     ZenohOptions,
@@ -42,7 +43,6 @@ from services.zenoh_session import (
 
 log = logging.getLogger(__name__)
 
-GRAVITY = 9.81
 
 
 @dataclass

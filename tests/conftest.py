@@ -35,4 +35,6 @@ def free_tcp_port() -> int:
 @pytest.fixture
 def zenoh_endpoint() -> str:
     """A fresh loopback endpoint so tests never join each other's (or a developer's) Zenoh network."""
-    return f"tcp/127.0.0.1:{free_tcp_port()}"
+    from services.zenoh_session import free_loopback_endpoint
+
+    return free_loopback_endpoint()

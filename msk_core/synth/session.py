@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
+from msk_core.estimate.trial import GRAVITY  # the trial files' convention for load_kg -> N
 from msk_core.model import load_pack
 from msk_core.synth.effects import Effects, muscle_factors
 from msk_core.synth.emg import mvc_drive, raw_emg
@@ -16,7 +17,6 @@ from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
 from msk_core.synth.recruitment import recruit
 from msk_core.synth.subject import Subject, make_subject
 
-GRAVITY = 9.81  # the trial files' convention (msk_core.estimate.trial) for load_kg -> N
 
 
 @dataclass(frozen=True)
