@@ -80,13 +80,14 @@ def test_so_matches_slsqp_and_torques_exactly(backend):
     assert est.flag_counts == {}
 
 
-@pytest.mark.parametrize("backend", ["dense", "sparse"])
-def test_hybrid_and_proposed_match_bounded_least_squares(backend):
+@pytest.mark.parametrize("backend,hot_start", [("dense", False), ("sparse", False), ("dense", True)])
+def test_hybrid_and_proposed_match_bounded_least_squares(backend, hot_start):
     pack = LinearPack(seed=3)
     rng = np.random.default_rng(4)
     prior = _prior(pack.groups, rng)
-    hyb = FrameEstimator(pack, method="hybrid", backend=backend)
-    prop = FrameEstimator(pack, method="proposed", prior=prior, torque_tolerance=0.02, backend=backend)
+    hyb = FrameEstimator(pack, method="hybrid", backend=backend, hot_start=hot_start)
+    prop = FrameEstimator(pack, method="proposed", prior=prior, torque_tolerance=0.02, backend=backend,
+                          hot_start=hot_start)
     for k in range(15):
         q = rng.uniform(-0.5, 0.5, 2)
         tau = pack.moment_arms(q) @ (pack.f_max_ref * rng.uniform(0, 0.8, 6)) + rng.normal(0, 5, 2)
@@ -100,6 +101,8 @@ def test_hybrid_and_proposed_match_bounded_least_squares(backend):
         res = prop.step(q, torques=tau, phase=phase)
         np.testing.assert_allclose(res.activations, ref_p.x, atol=1e-5)
         np.testing.assert_allclose(res.residual, res.model_torques - tau)
+        assert res.solver == ("active_set" if hot_start else "piqp")
+    assert prop.solver_counts == ({"active_set": 15, "piqp": 0} if hot_start else {"active_set": 0, "piqp": 15})
 
 
 def test_inverse_dynamics_used_when_no_torques_given():
@@ -213,8 +216,8 @@ def test_pose_slightly_outside_pack_range_is_clamped_far_outside_is_flagged():
 def test_sparse_and_dense_backends_agree_on_a_large_problem():
     pack = LinearPack(n_coordinates=6, n_groups=60, seed=9)
     prior = _prior(pack.groups, np.random.default_rng(9))
-    dense = FrameEstimator(pack, method="proposed", prior=prior, backend="dense")
-    sparse = FrameEstimator(pack, method="proposed", prior=prior, backend="sparse")
+    dense = FrameEstimator(pack, method="proposed", prior=prior, backend="dense", hot_start=False)
+    sparse = FrameEstimator(pack, method="proposed", prior=prior, backend="sparse", hot_start=False)
     assert FrameEstimator(pack, method="proposed", prior=prior).backend.value == "sparse"  # auto, 60 groups
     rng = np.random.default_rng(10)
     for k in range(10):

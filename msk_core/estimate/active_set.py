@@ -1,0 +1,248 @@
+"""Hot-started primal active-set solve of the per-frame box-constrained least-squares QP, compiled, KKT-certified.
+
+Problem (the ``proposed`` / ``hybrid`` / reserve shape of :mod:`msk_core.estimate.qp`), with A = R diag(F_max) and the
+per-coordinate capacity scale c_n = max(sum_g |A_ng|, c_min):
+
+    min 1/2 w |A~ a - t~|^2 + 1/2 sum_g d_g (a_g - mu_g)^2,   lb <= a <= ub,   A~ = diag(1/c) A,  t~ = tau / c
+
+Strictly convex (d > 0), so the optimum is unique and the KKT conditions certify it: on the free set the gradient is
+zero, at a lower bound it is >= 0, at an upper bound <= 0. Consecutive frames of a movement share almost the same
+active set, so the classical primal active-set method (Nocedal & Wright, Numerical Optimization, 2nd ed., alg. 16.3)
+started from the previous frame's solution and active set usually ends after one equality-constrained solve (a
+solve of the free block's normal equations, done through the Woodbury identity as an m x m system, m = number
+of coordinates) with the certificate in hand. When it does not within
+``max_iter`` working-set changes (a cycle, a degenerate frame, a failed factorisation) it says so and the caller
+solves the frame with PIQP instead: the answer is always either certified here or PIQP's.
+
+Why this exists: PIQP (interior point) takes no starting point, and on a 19-group frame its ~8 iterations cost
+~40 µs; this method reuses what the last frame learned and typically costs a few µs.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+#: result codes of :func:`solve_box_lsq`
+CERTIFIED, NOT_CONVERGED, FACTORISATION_FAILED = 0, 1, 2
+#: working-set states
+LOWER, FREE, UPPER = -1, 0, 1
+#: sign tolerance of the multipliers, relative to the problem's gradient scale (see the kernel)
+MULTIPLIER_TOL = 1e-10
+
+
+def _jit(fn):
+    try:
+        return numba.njit(cache=True)(fn)
+    except RuntimeError:  # no writable cache location: compile in memory at first call
+        return numba.njit(fn)
+
+
+@_jit
+def _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
+    """y[:nf] = H_FF^-1 rhs[:nf] with H = w A~'A~ + diag(d), by the Woodbury identity: only an m x m system
+    (m coordinates << G groups): H_FF^-1 = D^-1 - D^-1 A_F' (I/w + A_F D^-1 A_F')^-1 A_F D^-1.
+    False when the m x m capacitance matrix is not numerically positive definite (it is, for d > 0 and w > 0)."""
+    m = at.shape[0]
+    for a in range(nf):  # u = D^-1 rhs
+        y[a] = rhs[a] / d[free_idx[a]]
+    for i in range(m):  # S = I/w + A_F D^-1 A_F' (lower triangle), z = A_F u
+        for j in range(i + 1):
+            acc = 0.0
+            for a in range(nf):
+                fi = free_idx[a]
+                acc += at[i, fi] * at[j, fi] / d[fi]
+            s_mat[i, j] = acc
+        s_mat[i, i] += 1.0 / w
+        acc = 0.0
+        for a in range(nf):
+            acc += at[i, free_idx[a]] * y[a]
+        z[i] = acc
+    for i in range(m):  # Cholesky S = L L' in place (lower triangle)
+        for j in range(i + 1):
+            acc = s_mat[i, j]
+            for k in range(j):
+                acc -= s_mat[i, k] * s_mat[j, k]
+            if i == j:
+                if not acc > 0.0:
+                    return False
+                s_mat[i, i] = np.sqrt(acc)
+            else:
+                s_mat[i, j] = acc / s_mat[j, j]
+    for i in range(m):  # z <- S^-1 z
+        acc = z[i]
+        for k in range(i):
+            acc -= s_mat[i, k] * z[k]
+        z[i] = acc / s_mat[i, i]
+    for i in range(m - 1, -1, -1):
+        acc = z[i]
+        for k in range(i + 1, m):
+            acc -= s_mat[k, i] * z[k]
+        z[i] = acc / s_mat[i, i]
+    for a in range(nf):  # y = u - D^-1 A_F' z
+        fi = free_idx[a]
+        acc = 0.0
+        for i in range(m):
+            acc += at[i, fi] * z[i]
+        y[a] -= acc / d[fi]
+    return True
+
+
+@_jit
+def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb, ub, min_scale, x, state,
+                  max_iter):
+    """Solve the frame's QP from the working set in ``state`` and the point ``x`` (both updated in place).
+
+    r: moment arms (m, G); tau: (m,); f_max, lb, ub, x: (G,); state: int8 (G,) LOWER/FREE/UPPER. The prior
+    (mu, d) is interpolated here, mu = (1 - frac) mean_table[row0] + frac mean_table[row1] (d from prec_table alike),
+    to spare the per-frame array operations in Python.
+    Returns (code, working-set changes, out (m + 3, G): rows A~ | x | forces | d, torques (2, m): model | residual).
+    ``x`` holds the certified optimum when code == CERTIFIED; otherwise its content is unspecified (re-seed it).
+    """
+    m, g = r.shape
+    out = np.empty((m + 3, g))
+    at = out[:m]
+    d = out[m + 2]
+    mu = np.empty(g)
+    for j in range(g):
+        mu[j] = mean_table[row0, j] + frac * (mean_table[row1, j] - mean_table[row0, j])
+        d[j] = prec_table[row0, j] + frac * (prec_table[row1, j] - prec_table[row0, j])
+    tt = np.empty(m)
+    for n in range(m):
+        s = 0.0
+        for j in range(g):
+            at[n, j] = r[n, j] * f_max[j]
+            s += abs(at[n, j])
+        if s < min_scale:
+            s = min_scale
+        for j in range(g):
+            at[n, j] /= s
+        tt[n] = tau[n] / s
+    # gradient of 1/2 w |A~ a - t~|^2 + 1/2 sum d (a - mu)^2 is  w A~'(A~ a - t~) + d (a - mu); its scale sets the
+    # multiplier tolerance
+    grad_scale = 0.0
+    for j in range(g):
+        s = 0.0
+        for n in range(m):
+            s += abs(at[n, j]) * (abs(tt[n]) + abs(at[n, j]))
+        grad_scale = max(grad_scale, w * s + d[j] * (1.0 + abs(mu[j])))
+    tol = MULTIPLIER_TOL * grad_scale
+    # feasible start consistent with the working set
+    for i in range(g):
+        if state[i] == LOWER:
+            x[i] = lb[i]
+        elif state[i] == UPPER:
+            x[i] = ub[i]
+        else:
+            x[i] = min(max(x[i], lb[i]), ub[i])
+    free_idx = np.empty(g, dtype=np.int64)
+    rhs = np.empty(g)
+    y = np.empty(g)
+    e = np.empty(m)
+    s_mat = np.empty((m, m))
+    z = np.empty(m)
+    code = NOT_CONVERGED
+    changes = 0
+    while True:
+        nf = 0
+        for i in range(g):
+            if state[i] == FREE:
+                free_idx[nf] = i
+                nf += 1
+        # equality-constrained minimiser over the free set, the others fixed at their bounds:
+        # H_FF y = w A~_F'(t~ - A~_B x_B) + d_F mu_F
+        for n in range(m):
+            s = tt[n]
+            for j in range(g):
+                if state[j] != FREE:
+                    s -= at[n, j] * x[j]
+            e[n] = s
+        for a in range(nf):
+            fi = free_idx[a]
+            s = 0.0
+            for n in range(m):
+                s += at[n, fi] * e[n]
+            rhs[a] = w * s + d[fi] * mu[fi]
+        if nf > 0 and not _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
+            code = FACTORISATION_FAILED
+            break
+        # step towards it, stopped by the first bound in the way
+        alpha = 1.0
+        block = -1
+        for a in range(nf):
+            fi = free_idx[a]
+            p = y[a] - x[fi]
+            if p < 0.0 and x[fi] + p < lb[fi]:
+                t = (lb[fi] - x[fi]) / p
+                if t < alpha:
+                    alpha, block = t, fi
+            elif p > 0.0 and x[fi] + p > ub[fi]:
+                t = (ub[fi] - x[fi]) / p
+                if t < alpha:
+                    alpha, block = t, fi
+        for a in range(nf):
+            fi = free_idx[a]
+            x[fi] += alpha * (y[a] - x[fi])
+        if block >= 0:
+            if changes >= max_iter:
+                break
+            changes += 1
+            # the blocking variable joins the working set at the bound it hit
+            if x[block] - lb[block] <= ub[block] - x[block]:
+                state[block], x[block] = LOWER, lb[block]
+            else:
+                state[block], x[block] = UPPER, ub[block]
+            continue
+        # full step: x is the working set's minimiser; the multipliers of its bounds decide
+        for n in range(m):
+            s = -tt[n]
+            for j in range(g):
+                s += at[n, j] * x[j]
+            e[n] = s
+        worst = tol
+        worst_i = -1
+        for i in range(g):
+            if state[i] == FREE:
+                continue
+            s = 0.0
+            for n in range(m):
+                s += at[n, i] * e[n]
+            grad = w * s + d[i] * (x[i] - mu[i])
+            violation = -grad if state[i] == LOWER else grad  # lower bound needs grad >= 0, upper <= 0
+            if violation > worst:
+                worst, worst_i = violation, i
+        if worst_i < 0:
+            code = CERTIFIED
+            break
+        if changes >= max_iter:
+            break
+        changes += 1
+        state[worst_i] = FREE  # the most violated bound is released
+    torques = np.empty((2, m))
+    for j in range(g):
+        out[m, j] = x[j]
+        out[m + 1, j] = f_max[j] * x[j]
+    for n in range(m):
+        s = 0.0
+        for j in range(g):
+            s += r[n, j] * out[m + 1, j]
+        torques[0, n] = s
+        torques[1, n] = s - tau[n]
+    return code, changes, out, torques
+
+
+@_jit
+def seed_state(x, lb, ub, tol, state):
+    """Working set of a solution found elsewhere (PIQP): variables within ``tol`` of a bound are held there."""
+    for i in range(x.shape[0]):
+        if x[i] <= lb[i] + tol:
+            state[i] = LOWER
+        elif x[i] >= ub[i] - tol:
+            state[i] = UPPER
+        else:
+            state[i] = FREE
+
+
+def new_state(n_groups: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, working set) to start from: everything free at 0 (the first frame may take a few changes)."""
+    return np.zeros(n_groups), np.zeros(n_groups, dtype=np.int8)

@@ -1,0 +1,165 @@
+"""The hot-started active-set solve: the same optimum as PIQP and an independent bounded least-squares solve, a
+KKT certificate checked here in numpy, PIQP taking over when the working set is not found in time."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import lsq_linear
+
+from msk_core.estimate import FrameEstimator, PhasePrior
+from msk_core.estimate import active_set
+from msk_core.estimate.frame import MIN_TORQUE_SCALE, _prior_rows, _prior_table
+from msk_core.estimate.prior import REST_PHASE
+
+
+def _random_problem(rng, m, g):
+    r = rng.uniform(-0.05, 0.05, (m, g)) * (rng.random((m, g)) < 0.6)
+    f_max = rng.uniform(100.0, 3000.0, g)
+    capacity = np.abs(r * f_max).sum(axis=1)
+    tau = capacity * rng.uniform(-0.8, 0.8, m)  # some beyond what a subset can do: active bounds at 0 and 1
+    w = 10.0 ** rng.uniform(0, 5)
+    mean = rng.uniform(-0.2, 1.2, (1, g))  # priors outside [0, 1] push variables onto both bounds
+    prec = 10.0 ** rng.uniform(-1, 3.5, (1, g))
+    return r, f_max, tau, w, mean, prec
+
+
+def _scaled(r, f_max, tau):
+    a = r * f_max
+    c = np.maximum(np.abs(a).sum(axis=1), MIN_TORQUE_SCALE)
+    return a / c[:, None], tau / c
+
+
+def _kkt_violation(at, tt, w, d, mu, x):
+    """Largest violation of the box-QP optimality conditions, relative to the gradient's scale."""
+    grad = w * at.T @ (at @ x - tt) + d * (x - mu)
+    lower, upper = x <= 0.0, x >= 1.0
+    free = ~(lower | upper)
+    worst = max(np.abs(grad[free]).max(initial=0.0), (-grad[lower]).max(initial=0.0), grad[upper].max(initial=0.0))
+    scale = np.max(w * np.abs(at).T @ (np.abs(tt) + 1.0) + d * (1.0 + np.abs(mu)))
+    return worst / scale
+
+
+@pytest.mark.parametrize("m,g", [(1, 3), (2, 6), (4, 19), (6, 60), (10, 8)])
+def test_cold_solve_is_certified_and_matches_bounded_least_squares(m, g):
+    rng = np.random.default_rng(m * 100 + g)
+    lb, ub = np.zeros(g), np.ones(g)
+    for _ in range(40):
+        r, f_max, tau, w, mean, prec = _random_problem(rng, m, g)
+        x, state = active_set.new_state(g)
+        code, changes, out, torques = active_set.solve_box_lsq(
+            r, f_max, tau, w, mean, prec, 0, 0, 0.0, lb, ub, MIN_TORQUE_SCALE, x, state, 4 * g + 10)
+        assert code == active_set.CERTIFIED
+        at, tt = _scaled(r, f_max, tau)
+        np.testing.assert_allclose(out[:m], at, rtol=1e-14)
+        np.testing.assert_array_equal(out[m], x)
+        assert np.all((x >= 0.0) & (x <= 1.0))
+        assert _kkt_violation(at, tt, w, prec[0], mean[0], x) < 1e-9
+        sd = 1.0 / np.sqrt(prec[0])
+        ref = lsq_linear(np.vstack([np.sqrt(w) * at, np.diag(1.0 / sd)]), np.r_[np.sqrt(w) * tt, mean[0] / sd],
+                         bounds=(0, 1), tol=1e-13, lsq_solver="exact")
+        np.testing.assert_allclose(x, ref.x, atol=1e-6)
+        np.testing.assert_allclose(torques[0], r @ (f_max * x), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(torques[1], torques[0] - tau, rtol=1e-12, atol=1e-9)
+
+
+def test_hot_start_reuses_the_working_set_and_cannot_be_fooled_by_a_stale_one():
+    rng = np.random.default_rng(5)
+    m, g = 4, 19
+    r, f_max, tau, w, mean, prec = _random_problem(rng, m, g)
+    lb, ub = np.zeros(g), np.ones(g)
+    x, state = active_set.new_state(g)
+    args = (lb, ub, MIN_TORQUE_SCALE)
+    cold = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x, state, 100)
+    assert cold[0] == active_set.CERTIFIED
+    again = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x, state, 100)
+    assert again[0] == active_set.CERTIFIED and again[1] == 0  # same frame: one solve, no working-set change
+    # a working set that is wrong everywhere: still the same optimum, after changes
+    wrong = np.where(state == active_set.FREE, active_set.UPPER, active_set.FREE).astype(np.int8)
+    x2 = np.full(g, 0.5)
+    flipped = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x2, wrong, 200)
+    assert flipped[0] == active_set.CERTIFIED and flipped[1] > 0
+    np.testing.assert_allclose(x2, x, atol=1e-10)
+    # too few changes allowed: no certificate (the caller then asks PIQP)
+    wrong = np.where(state == active_set.FREE, active_set.UPPER, active_set.FREE).astype(np.int8)
+    short = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, np.full(g, 0.5), wrong, 0)
+    assert short[0] == active_set.NOT_CONVERGED
+
+
+class SmoothPack:
+    """Moment arms r(q) = r0 + q r1 and a torque that sweeps beyond the muscles' reach and back."""
+
+    name, version = "smooth", "1"
+
+    def __init__(self, m=4, g=19, seed=0):
+        rng = np.random.default_rng(seed)
+        self.coordinates = [f"c{i}" for i in range(m)]
+        self.groups = [f"g{i}" for i in range(g)]
+        self.f_max_ref = rng.uniform(200.0, 2500.0, g)
+        self.r0 = rng.uniform(-0.05, 0.05, (m, g)) * (rng.random((m, g)) < 0.6)
+        self.r1 = rng.uniform(-0.02, 0.02, (m, g)) * (self.r0 != 0)
+
+    def moment_arms(self, q):
+        return self.r0 + np.asarray(q)[:, None] * self.r1
+
+    def inverse_dynamics(self, q, qd, qdd, hand_load_newton):
+        return 150.0 * np.sin(3.0 * np.asarray(q)) + 2.0 * np.asarray(qdd)
+
+
+def _prior(groups, rng):
+    n_bins = 20
+    mean = rng.uniform(0.0, 0.5, (n_bins, len(groups)))
+    std = rng.uniform(0.03, 0.3, (n_bins, len(groups)))
+    return PhasePrior(tuple(groups), mean, std, np.ones(len(groups), dtype=bool),
+                      rest_mean=np.full(len(groups), 0.02), rest_std=np.full(len(groups), 0.05))
+
+
+@pytest.mark.parametrize("method", ["proposed", "hybrid"])
+def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
+    pack = SmoothPack()
+    prior = _prior(pack.groups, np.random.default_rng(1)) if method == "proposed" else None
+    hot = FrameEstimator(pack, method=method, prior=prior)
+    piqp_only = FrameEstimator(pack, method=method, prior=prior, hot_start=False)
+    limited = FrameEstimator(pack, method=method, prior=prior, hot_start_max_changes=1)
+    t = np.arange(600) / 100.0
+    q = 0.6 * np.sin(np.outer(t, [1.0, 1.3, 0.7, 2.1]))
+    qdd = -0.6 * np.sin(np.outer(t, [1.0, 1.3, 0.7, 2.1])) * np.array([1.0, 1.69, 0.49, 4.41])
+    phases = [None if i % 97 == 0 else (REST_PHASE if (i // 150) % 2 else (i % 150) / 150) for i in range(600)]
+    sources = {"active_set": 0, "piqp": 0}
+    bound_disagreements = 0
+    for i in range(600):
+        a = hot.step(q[i], None, qdd[i], phase=phases[i])
+        b = piqp_only.step(q[i], None, qdd[i], phase=phases[i])
+        c = limited.step(q[i], None, qdd[i], phase=phases[i])
+        assert a.status.value == b.status.value == c.status.value == "solved"
+        np.testing.assert_allclose(a.activations, b.activations, atol=2e-4)
+        np.testing.assert_allclose(c.activations, a.activations, atol=2e-4)
+        np.testing.assert_allclose(a.model_torques, b.model_torques, rtol=1e-3, atol=0.05)
+        # the std is 0 at a bound: PIQP's interior iterate may stop just above a bound the active set pins exactly
+        # (and then the free block, hence every free std, differs too)
+        same = a.at_bound == b.at_bound
+        if same.all():
+            np.testing.assert_allclose(a.activation_std, b.activation_std, atol=1e-3)
+        else:
+            assert np.all(np.minimum(b.activations[~same], 1.0 - b.activations[~same]) < 2e-4)
+            bound_disagreements += 1
+        sources[c.solver] += 1
+    if method == "proposed":  # hybrid sends many groups to 0, where PIQP stops ~1e-5 above it in most frames
+        assert bound_disagreements < 60  # measured 33 of 600 (PIQP eps 1e-8)
+    assert hot.solver_counts == {"active_set": 600, "piqp": 0}
+    assert piqp_only.solver_counts == {"active_set": 0, "piqp": 600}
+    # one change allowed: frames needing more go to PIQP, which then seeds the next frame's working set
+    assert limited.solver_counts == sources and sources["piqp"] > 0 and sources["active_set"] > 300
+
+
+def test_prior_rows_interpolate_exactly_like_the_prior():
+    prior = _prior([f"g{i}" for i in range(5)], np.random.default_rng(3))
+    mean_t, prec_t = _prior_table(prior)
+    phases = [None, math.nan, REST_PHASE, -0.3, 0.0, 1e-9, 0.024, 0.025, 0.026, 0.5, 0.731, 0.975, 0.99, 1.0, 1.5]
+    for phase in phases:
+        i0, i1, frac = _prior_rows(phase, prior.n_bins)
+        mu, prec = prior.mean_precision(phase)
+        np.testing.assert_allclose(mean_t[i0] + frac * (mean_t[i1] - mean_t[i0]), mu, rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(prec_t[i0] + frac * (prec_t[i1] - prec_t[i0]), prec, rtol=1e-14)
