@@ -172,3 +172,28 @@ def test_usb_find_port_without_devices_is_a_clear_error(monkeypatch):
     monkeypatch.setattr(usb, "list_devices", lambda: [])
     with pytest.raises(ConfigError, match="no Xsens device"):
         usb.find_port()
+
+
+def _capture_without_time(path, n: int = 20) -> None:
+    """A capture of quaternion-only MTData2 messages (no SampleTimeFine): the rate is not in the data."""
+    frames = []
+    for k in range(n):
+        angle = 0.01 * k
+        payload = xbus.encode_mtdata2([(0x2010, [np.cos(angle), np.sin(angle), 0.0, 0.0])])
+        frames.append(xbus.encode_message(0x36, payload))
+    path.write_bytes(b"".join(frames))
+
+
+def test_capture_rate_from_time_else_output_configuration_else_default_with_warning(tmp_path, caplog):
+    path = tmp_path / "quat_only.bin"
+    _capture_without_time(path)
+    with caplog.at_level("WARNING", logger="drivers.xsens.source"):
+        assert load_imu_source(path).rate_hz == 100.0
+    assert "quat_only.bin" in caplog.text and "assuming the factory default of 100 Hz" in caplog.text
+    caplog.clear()
+    config = [xbus.OutputSetting(0x1020, 0xFFFF), xbus.OutputSetting(0x2010, 60)]
+    (tmp_path / "quat_only_outputconfig.bin").write_bytes(xbus.encode_output_configuration(config))
+    with caplog.at_level("WARNING", logger="drivers.xsens.source"):
+        source = load_imu_source(path)
+    assert source.rate_hz == 60.0 and caplog.text == ""
+    assert source.arrays["quaternion"].shape == (20, 4)

@@ -11,6 +11,7 @@ Formats (docs/devices.md has the full description):
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +34,9 @@ QUANTITIES = {
     "temperature": 1,
 }
 GRAVITY = 9.81
+DEFAULT_RATE_HZ = 100.0  # an MTi's factory output rate, assumed only when a capture carries no rate information
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -93,8 +97,21 @@ def load_capture(path: Path) -> ImuSource:
         recorded = xbus.decode_output_configuration(config_path.read_bytes())
     else:
         recorded = [xbus.OutputSetting(data_id, 0xFFFF) for data_id, _ in xbus.item_layout(messages[0].data)]
-    rate = _rate_from_counters(messages) or 100.0
+    rate = _rate_from_counters(messages)
+    if rate is None and config_path.is_file():
+        rate = _rate_from_configuration(recorded)
+    if rate is None:
+        rate = DEFAULT_RATE_HZ
+        log.warning("%s: no SampleTimeFine in the capture and no output configuration beside it (%s); "
+                    "assuming the factory default of %.0f Hz", path, config_path.name, rate)
     return ImuSource(rate, arrays, path.name, [m.data for m in messages], recorded)
+
+
+def _rate_from_configuration(settings: list[xbus.OutputSetting]) -> float | None:
+    """The output rate the device was configured for: the highest real frequency in its SetOutputConfiguration
+    (0 and 0xFFFF mean "with every message" and carry no rate)."""
+    rates = [s.frequency for s in settings if 0 < s.frequency < 0xFFFF]
+    return float(max(rates)) if rates else None
 
 
 def _rate_from_counters(messages: list[xbus.XbusMessage]) -> float | None:
