@@ -152,6 +152,8 @@ def main(
     stats = stats if stats is not None else EstimatorStats()
     subject = SubjectProfile.load(subject_path) if subject_path is not None else None
     estimators = {m: FrameEstimator(pack, subject=subject, method=m) for m in methods}
+    for estimator in estimators.values():  # compiled kernels and solvers ready before the first live frame
+        estimator.warm_up()
     first = next(iter(estimators.values()))
     mapper = CoordinateMapper(list(first.coordinates))
     # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).

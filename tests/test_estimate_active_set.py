@@ -163,3 +163,16 @@ def test_prior_rows_interpolate_exactly_like_the_prior():
         mu, prec = prior.mean_precision(phase)
         np.testing.assert_allclose(mean_t[i0] + frac * (mean_t[i1] - mean_t[i0]), mu, rtol=1e-14, atol=1e-15)
         np.testing.assert_allclose(prec_t[i0] + frac * (prec_t[i1] - prec_t[i0]), prec, rtol=1e-14)
+
+
+def test_warm_up_leaves_a_fresh_estimator():
+    pack = SmoothPack()
+    prior = _prior(pack.groups, np.random.default_rng(2))
+    warmed, fresh = (FrameEstimator(pack, method="proposed", prior=prior) for _ in range(2))
+    warmed.warm_up()
+    assert warmed.frames == 0 and warmed.flag_counts == {} and warmed.solver_counts == {"active_set": 0, "piqp": 0}
+    q = np.array([0.1, -0.2, 0.3, 0.0])
+    tau = np.array([20.0, -10.0, 5.0, 0.0])
+    a, b = warmed.step(q, torques=tau), fresh.step(q, torques=tau)
+    np.testing.assert_array_equal(a.activations, b.activations)
+    assert a.iterations == b.iterations
