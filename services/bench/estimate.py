@@ -19,7 +19,7 @@ import numpy as np
 from services.bench import BenchResult
 
 NAME = "estimate"
-DESCRIPTION = "per-frame estimation (pack model + PIQP) vs OpenSim StaticOptimization per frame"
+DESCRIPTION = "per-frame estimation (pack model + hot-started QP) vs PIQP every frame and OpenSim StaticOptimization"
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 
