@@ -87,14 +87,28 @@ def test_yes_no_rejects_other_text():
         tp.parse_yes_no("MAYBE", command="UPSAMPLING?")
 
 
-@pytest.mark.parametrize("sensor, reported", [(1, 0), (1, 1), (16, 15), (16, 16), (5, 4), (5, 5)])
-def test_start_index_accepts_both_bases(sensor, reported):
-    assert tp.normalise_start_index(sensor, reported) == sensor - 1
+@pytest.mark.parametrize("base", [0, 1])
+def test_start_indices_accept_both_bases(base):
+    reported = {n: n - 1 + base for n in (1, 2, 5, 16)}
+    assert tp.normalise_start_indices(reported) == {1: 0, 2: 1, 5: 4, 16: 15}
+    # a single sensor is in its own slot under either reading
+    assert tp.normalise_start_indices({5: 4 + base}) == {5: 4}
 
 
-def test_start_index_rejects_other_values():
-    with pytest.raises(ProtocolError, match="STARTINDEX of sensor 3 is 7"):
-        tp.normalise_start_index(3, 7)
+def test_start_indices_of_multi_slot_sensors_and_impossible_values_never_fail():
+    # a 4-channel sensor in slot 1 pushes the next sensor's first channel to slot 5 (1-based: 5, 0-based: 4)
+    assert tp.normalise_start_indices({1: 1, 2: 5, 3: 16}) == {1: 0, 2: 4, 3: 15}
+    assert tp.normalise_start_indices({1: 0, 2: 4}) == {1: 0, 2: 4}
+    assert tp.normalise_start_indices({3: 7, 4: 99}) == {3: 6, 4: -1}
+
+
+def test_banner_variants():
+    assert tp.parse_banner("Delsys Trigno System Digital Protocol Version 3.6.0 ") == "3.6.0"
+    assert tp.parse_banner("Delsys Trigno System Digital Protocol Version 4.2.10") == "4.2.10"
+    assert tp.parse_banner("Delsys Trigno Discover SDK version: 1.6.4\r\n") == "1.6.4"
+    assert tp.parse_banner("Trigno Control Utility") == "Trigno Control Utility"
+    with pytest.raises(ProtocolError, match="unexpected Trigno banner"):
+        tp.parse_banner("SSH-2.0-OpenSSH_9.6")
 
 
 def test_sample_decoder_reassembles_any_split_in_both_byte_orders():

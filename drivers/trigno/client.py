@@ -25,13 +25,15 @@ class TrignoConfig:
     host: str = "127.0.0.1"
     command_port: int = tp.COMMAND_PORT
     emg_port: int = tp.EmgPort.AVANTI  # 50043, or 50041 (legacy) for older servers
-    aux_port: int | None = None  # 50044 to also read the AUX stream
+    aux_port: int | None = None  # 50044 (Avanti AUX) or 50042 (legacy ACC) to also read an auxiliary stream
+    aux_layout: tp.AuxLayout | None = None  # None: from the port number (50042 -> legacy ACC, else Avanti AUX)
     take_master: bool = True  # send MASTER when MASTER? says NO
     upsampling: bool | None = None  # None: leave the server's setting
     endianness: tp.Endianness | None = None  # None: leave the server's setting (LITTLE by default)
     stop_mode: tp.StopMode = tp.StopMode.STOP_THEN_QUIT
     connect_timeout_s: float = 2.0
     reply_timeout_s: float = 3.0
+    banner_line_grace_s: float = 0.5  # accept a banner ending in a single CRLF after this long without the blank line
     reconnect: bool = True
     stall_timeout_s: float | None = 5.0  # no EMG bytes this long while streaming = lost link (a pulled cable sends no FIN)
     backoff_initial_s: float = 0.05
@@ -41,10 +43,16 @@ class TrignoConfig:
     def __post_init__(self) -> None:
         if not self.host:
             raise ConfigError("Trigno host must not be empty", field="host", value=self.host)
-        for name in ("command_port", "emg_port"):
+        for name in ("command_port", "emg_port", "aux_port"):
             port = getattr(self, name)
-            if not 0 < int(port) < 65536:
+            if port is not None and not 0 < int(port) < 65536:
                 raise ConfigError("TCP port must be within 1..65535", field=name, value=port)
+
+    @property
+    def resolved_aux_layout(self) -> tp.AuxLayout:
+        if self.aux_layout is not None:
+            return self.aux_layout
+        return tp.AuxLayout.for_port(self.aux_port) if self.aux_port is not None else tp.AuxLayout.AVANTI
 
 
 def parse_address(text: str, *, default_port: int = tp.COMMAND_PORT) -> tuple[str, int]:
@@ -71,7 +79,7 @@ class SensorInfo:
     sensor: int  # 1..16
     paired: bool
     type_code: str = ""
-    start_index: int = -1  # 0-based EMG slot, whatever base the server reports in
+    start_index: int = -1  # 0-based EMG slot, whatever base the server reports in (-1: unknown)
 
 
 @dataclass(frozen=True)
@@ -90,7 +98,7 @@ class EmgBlock:
 
 @dataclass(frozen=True)
 class AuxBlock:
-    samples: np.ndarray  # (n, 144) float32, 9 slots per sensor
+    samples: np.ndarray  # (n, 144) float32, 9 slots per sensor (Avanti AUX), or (n, 48) x,y,z per sensor (legacy ACC)
     first_sample_index: int
     rate_hz: float
     host_time_ns: int
@@ -161,7 +169,7 @@ class TrignoClient:
         self._link: _Link | None = None
         self._selector = selectors.DefaultSelector()
         self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG])
-        self._aux_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.AUX])
+        self._aux_decoder = tp.SampleDecoder(config.resolved_aux_layout.floats_per_sample)
         self._next_index = 0
         self._next_aux_index = 0
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
@@ -192,8 +200,7 @@ class TrignoClient:
 
     def start(self) -> None:
         """START acquisition (this connection must be master)."""
-        self._require_link()
-        self._command("START")
+        self._start_acquisition(self._require_link())
         self._want_streaming = True
         self.state = ClientState.STREAMING
         self._last_data_time = self._last_activity = time.monotonic()
@@ -240,17 +247,53 @@ class TrignoClient:
             raise tp.CommandFailed(text, reply)
         return reply
 
+    def _start_acquisition(self, link: _Link) -> None:
+        """START; a server still acquiring for an earlier connection (ours before a network drop, or a crashed
+        client's) may refuse it, so a refused START is retried once after a STOP."""
+        try:
+            self._command("START", link)
+        except tp.CommandFailed:
+            try:
+                self._command("STOP", link)
+            except tp.CommandFailed:
+                pass
+            self._command("START", link)
+
+    def _set_option(self, link: _Link, command: str, query: str, wanted: bool | tp.Endianness) -> None:
+        """Send a setting; a refusal is an error only when the server is not already set that way (some servers
+        refuse settings while acquiring, e.g. after a reconnection)."""
+        try:
+            self._command(command, link)
+        except tp.CommandFailed:
+            reply = self._query(link, query)
+            if reply is None:
+                raise
+            current = tp.parse_endianness(reply) if isinstance(wanted, tp.Endianness) else tp.parse_yes_no(reply, command=query)
+            if current != wanted:
+                raise
+
     def _read_reply(self, link: _Link, command: str) -> str:
+        """The next reply on the command port. An unsolicited ``STOPPED`` is never taken as the reply: it is the
+        stop trigger (handled at once), except while we STOP/QUIT ourselves, where it is the reply only when
+        nothing else arrives shortly after it."""
         deadline = time.monotonic() + self.config.reply_timeout_s
+        stopping = command.upper() in ("STOP", "QUIT")
+        stopped_seen = False
         while True:
             while link.pending_replies:
                 reply = link.pending_replies.pop(0)
-                if reply.upper() == tp.UNSOLICITED_STOPPED and command.upper() not in ("STOP", "QUIT"):
-                    self._on_stopped()
+                if reply.upper() == tp.UNSOLICITED_STOPPED:
+                    if stopping:
+                        stopped_seen = True
+                        deadline = min(deadline, time.monotonic() + 0.5)
+                    else:
+                        self._on_stopped()
                     continue
                 return reply
             remaining = deadline - time.monotonic()
             if remaining <= 0:
+                if stopped_seen:
+                    return tp.UNSOLICITED_STOPPED
                 raise ProtocolError(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
             link.command.settimeout(remaining)
             try:
@@ -277,7 +320,7 @@ class TrignoClient:
         command.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         link = _Link(command=command, emg=None, aux=None)  # type: ignore[arg-type]
         try:
-            self.protocol_version = tp.parse_banner(self._read_reply(link, "<banner>"))
+            self.protocol_version = tp.parse_banner(self._read_banner(link))
             self._configure(link)
             link.emg = self._open_data(cfg.emg_port)
             if cfg.aux_port is not None:
@@ -286,6 +329,33 @@ class TrignoClient:
             link.close()
             raise
         return link
+
+    def _read_banner(self, link: _Link) -> str:
+        """The greeting, read before anything is sent: normally a line and a blank line, but a banner ending in a
+        single CRLF is accepted once nothing more has come for ``banner_line_grace_s``."""
+        start = time.monotonic()
+        deadline = start + self.config.reply_timeout_s
+        while True:
+            if link.pending_replies:
+                return link.pending_replies.pop(0)
+            now = time.monotonic()
+            if now - start >= self.config.banner_line_grace_s:
+                line = link.replies.take_line()
+                if line is not None:
+                    return line
+            if now >= deadline:
+                raise ProtocolError(f"no banner from the Trigno server within {self.config.reply_timeout_s} s")
+            grace_end = start + self.config.banner_line_grace_s
+            link.command.settimeout(max(0.01, (grace_end if now < grace_end else deadline) - now))
+            try:
+                chunk = link.command.recv(4096)
+            except socket.timeout:
+                continue
+            finally:
+                link.command.settimeout(None)
+            if not chunk:
+                raise ConnectionResetError("Trigno server closed the command connection before its banner")
+            link.pending_replies.extend(link.replies.feed(chunk))
 
     def _open_data(self, port: int) -> socket.socket:
         sock = socket.create_connection((self.config.host, port), timeout=self.config.connect_timeout_s)
@@ -303,39 +373,61 @@ class TrignoClient:
             if not tp.is_new_master(reply):
                 raise ProtocolError(f"MASTER answered {reply!r}, expected NEW MASTER")
         if cfg.endianness is not None:
-            self._command(f"ENDIAN {cfg.endianness.value}", link)
+            self._set_option(link, f"ENDIAN {cfg.endianness.value}", "ENDIANNESS?", cfg.endianness)
         reply = self._query(link, "ENDIANNESS?")
         self.endianness = tp.parse_endianness(reply) if reply is not None else (cfg.endianness or tp.Endianness.LITTLE)
         if cfg.upsampling is not None:
-            self._command(f"UPSAMPLE {'ON' if cfg.upsampling else 'OFF'}", link)
+            self._set_option(link, f"UPSAMPLE {'ON' if cfg.upsampling else 'OFF'}", "UPSAMPLING?", cfg.upsampling)
         reply = self._query(link, "UPSAMPLING?")
         self.upsampling = tp.parse_yes_no(reply, command="UPSAMPLING?") if reply is not None else cfg.upsampling
         interval_reply = self._query(link, "FRAME INTERVAL?")
         interval = tp.parse_float(interval_reply, command="FRAME INTERVAL?") if interval_reply else tp.FRAME_INTERVAL_S
-        per_frame_reply = self._query(link, "MAX SAMPLES EMG?")
-        if per_frame_reply is not None:
-            per_frame = tp.parse_int(per_frame_reply, command="MAX SAMPLES EMG?")
-        else:
-            per_frame = 27 if self.upsampling else 26
-        if per_frame <= 0 or interval <= 0:
-            raise ProtocolError(f"impossible frame: {per_frame} samples per {interval} s")
+        if not 0.001 <= interval <= 1.0:
+            raise ProtocolError(f"FRAME INTERVAL? answered {interval_reply!r}: not a frame interval in seconds")
+        self.sensors = self._query_sensors(link)
+        per_frame = self._emg_samples_per_frame(link)
         self.rate_hz = per_frame / interval
         aux_reply = self._query(link, "MAX SAMPLES AUX?")
-        self.aux_rate_hz = (tp.parse_int(aux_reply) if aux_reply else 2) / interval
-        sensors = []
+        aux_per_frame = tp.parse_int(aux_reply, command="MAX SAMPLES AUX?") if aux_reply else 2
+        self.aux_rate_hz = (aux_per_frame if aux_per_frame > 0 else 2) / interval
+        self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG], self.endianness)
+        self._aux_decoder = tp.SampleDecoder(cfg.resolved_aux_layout.floats_per_sample, self.endianness)
+
+    def _query_sensors(self, link: _Link) -> tuple[SensorInfo, ...]:
+        paired: dict[int, str] = {}
+        starts: dict[int, int] = {}
         for n in range(1, tp.N_SENSORS + 1):
             reply = self._query(link, f"SENSOR {n} PAIRED?")
-            paired = reply is not None and tp.parse_yes_no(reply, command=f"SENSOR {n} PAIRED?")
-            if not paired:
-                sensors.append(SensorInfo(n, False))
+            if reply is None or not tp.parse_yes_no(reply, command=f"SENSOR {n} PAIRED?"):
                 continue
-            type_code = self._query(link, f"SENSOR {n} TYPE?") or ""
+            paired[n] = (self._query(link, f"SENSOR {n} TYPE?") or "").strip()
             start_reply = self._query(link, f"SENSOR {n} STARTINDEX?")
-            start = tp.normalise_start_index(n, tp.parse_int(start_reply)) if start_reply else n - 1
-            sensors.append(SensorInfo(n, True, type_code.strip(), start))
-        self.sensors = tuple(sensors)
-        self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG], self.endianness)
-        self._aux_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.AUX], self.endianness)
+            if start_reply is not None:
+                try:
+                    starts[n] = tp.parse_int(start_reply, command=f"SENSOR {n} STARTINDEX?")
+                except ProtocolError as error:  # informative only: never a reason to refuse the server
+                    self._note_error(str(error))
+        slots = tp.normalise_start_indices(starts)
+        return tuple(
+            SensorInfo(n, n in paired, paired.get(n, ""), slots.get(n, n - 1 if n in paired else -1))
+            for n in range(1, tp.N_SENSORS + 1)
+        )
+
+    def _emg_samples_per_frame(self, link: _Link) -> int:
+        """EMG samples per frame: ``MAX SAMPLES EMG?``; else ``SENSOR n CHANNEL 1 SAMPLES?`` of the first paired
+        sensor; else 27 with upsampling on, 26 otherwise (the counts a real system reported)."""
+        reply = self._query(link, "MAX SAMPLES EMG?")
+        command = "MAX SAMPLES EMG?"
+        if reply is None:
+            first = next((s.sensor for s in self.sensors if s.paired), None)
+            command = f"SENSOR {first} CHANNEL 1 SAMPLES?"
+            reply = self._query(link, command) if first is not None else None
+        if reply is None:
+            return 27 if self.upsampling else 26
+        per_frame = tp.parse_int(reply, command=command)
+        if not 1 <= per_frame <= 1000:
+            raise ProtocolError(f"{command} answered {reply!r}: not a sample count per frame")
+        return per_frame
 
     # ------------------------------------------------------------------------------------------ streaming
     def poll(self, timeout: float = 0.1) -> list[Event]:
@@ -482,7 +574,7 @@ class TrignoClient:
         try:
             self._link = self._open_link()
             if self._want_streaming:
-                self._command("START")
+                self._start_acquisition(self._link)
         except (OSError, ProtocolError) as error:
             self._drop_link()
             self._backoff = min(self._backoff * 2, self.config.backoff_max_s)

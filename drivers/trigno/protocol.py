@@ -19,6 +19,7 @@ COMMAND_PORT = 50040
 FRAME_INTERVAL_S = 0.0135
 N_SENSORS = 16
 AUX_SLOTS_PER_SENSOR = 9
+LEGACY_ACC_SLOTS_PER_SENSOR = 3  # legacy ACC port 50042: x, y, z per sensor
 BYTES_PER_FLOAT = 4
 MAX_REPLY_BYTES = 64 * 1024  # a reply longer than this means we are not talking to a Trigno server
 
@@ -44,10 +45,30 @@ class DataPort(enum.IntEnum):
 #: Floats per sample on each data port.
 FLOATS_PER_SAMPLE = {
     DataPort.LEGACY_EMG: 16,
-    DataPort.LEGACY_ACC: 48,
+    DataPort.LEGACY_ACC: 16 * LEGACY_ACC_SLOTS_PER_SENSOR,
     DataPort.EMG: 16,
     DataPort.AUX: 16 * AUX_SLOTS_PER_SENSOR,
 }
+
+
+class AuxLayout(enum.Enum):
+    """What the auxiliary data port carries: 9 slots per sensor (Avanti AUX, 50044) or ACC x,y,z (legacy, 50042)."""
+
+    AVANTI = "avanti"
+    LEGACY_ACC = "legacy_acc"
+
+    @property
+    def slots_per_sensor(self) -> int:
+        return AUX_SLOTS_PER_SENSOR if self is AuxLayout.AVANTI else LEGACY_ACC_SLOTS_PER_SENSOR
+
+    @property
+    def floats_per_sample(self) -> int:
+        return N_SENSORS * self.slots_per_sensor
+
+    @classmethod
+    def for_port(cls, port: int) -> "AuxLayout":
+        """The layout of a default port number (ports are configurable: pass the layout explicitly otherwise)."""
+        return cls.LEGACY_ACC if int(port) == DataPort.LEGACY_ACC else cls.AVANTI
 
 
 class Endianness(enum.Enum):
@@ -120,13 +141,36 @@ class ReplyReader:
             raise ProtocolError(f"no reply terminator in {size} bytes from the Trigno command port")
         return replies
 
+    def take_line(self) -> str | None:
+        """The first complete CRLF- (or LF-) terminated line still buffered, for a banner that lacks the blank
+        line; None when there is none."""
+        index = self._buffer.find(b"\n")
+        if index < 0:
+            return None
+        raw = bytes(self._buffer[:index])
+        del self._buffer[: index + 1]
+        while self._buffer[:2] == b"\r\n" or self._buffer[:1] == b"\n":  # the blank line, when it is late
+            del self._buffer[: 2 if self._buffer[:1] == b"\r" else 1]
+        return raw.decode("ascii", errors="replace").strip() or None
+
+
+_BANNER_VERSION = re.compile(r"\bversion\b\s*[:=]?\s*(\S+)", re.IGNORECASE)
+
 
 def parse_banner(text: str) -> str:
-    """The protocol version from the connection banner (with or without trailing space)."""
-    text = text.strip()
-    if not text.startswith(BANNER_PREFIX):
-        raise ProtocolError(f"unexpected Trigno banner {text!r} (expected {BANNER_PREFIX!r} ...)")
-    return text[len(BANNER_PREFIX) :].strip()
+    """The protocol version from the connection banner.
+
+    The documented banner is ``Delsys Trigno System Digital Protocol Version 3.6.0``, but the wording differs
+    between TCU and Trigno Discover releases, so any first line naming Delsys or Trigno is accepted: the version is
+    the word after ``Version`` (the whole line when there is none). Anything else is not a Trigno server.
+    """
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    first = lines[0] if lines else ""
+    upper = first.upper()
+    if "DELSYS" not in upper and "TRIGNO" not in upper:
+        raise ProtocolError(f"unexpected Trigno banner {text.strip()!r} (expected {BANNER_PREFIX!r} ...)")
+    match = _BANNER_VERSION.search(first)
+    return match.group(1) if match else first
 
 
 def is_error(reply: str) -> bool:
@@ -172,19 +216,25 @@ def is_new_master(reply: str) -> bool:
     return "NEW MASTER" in reply.upper()
 
 
-def normalise_start_index(sensor: int, reported: int, slots_per_sensor: int = 1) -> int:
-    """0-based first slot of ``sensor`` (1..16) whatever base the server uses for ``STARTINDEX?``.
+def normalise_start_indices(reported: dict[int, int], slots: int = N_SENSORS) -> dict[int, int]:
+    """0-based first slot of each sensor (1..16) from its ``STARTINDEX?`` reply, whatever base the server uses.
 
-    One client reads the reply as 1-based, another as 0-based; a server following either is accepted.
+    One client reads the reply as 1-based, another as 0-based. The base is decided over all sensors at once: a
+    reply of 0 proves 0-based and a reply of ``slots`` proves 1-based; otherwise the base under which more sensors
+    sit in their own slot wins (ties: 1-based, as in the SDK manual's examples). Multi-channel sensors may start
+    elsewhere than their own slot; only an index outside the port's slots is dropped (-1): slot information is
+    informative, a strange value must not stop acquisition.
     """
-    zero_based = (sensor - 1) * slots_per_sensor
-    if reported == zero_based:
-        return zero_based
-    if reported == zero_based + 1:
-        return zero_based
-    raise ProtocolError(
-        f"STARTINDEX of sensor {sensor} is {reported}; expected {zero_based} (0-based) or {zero_based + 1} (1-based)"
-    )
+    values = list(reported.values())
+    if 0 in values:
+        base = 0
+    elif slots in values:
+        base = 1
+    else:
+        own_zero = sum(1 for n, v in reported.items() if v == n - 1)
+        own_one = sum(1 for n, v in reported.items() if v == n)
+        base = 0 if own_zero > own_one else 1
+    return {n: (v - base if 0 <= v - base < slots else -1) for n, v in reported.items()}
 
 
 def samples_per_frame(rate_hz: float) -> int:

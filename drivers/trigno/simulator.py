@@ -51,6 +51,7 @@ class SimulatorConfig:
     emg_port: int = tp.DataPort.EMG
     legacy_emg_port: int | None = tp.DataPort.LEGACY_EMG
     aux_port: int | None = tp.DataPort.AUX
+    legacy_acc_port: int | None = None  # e.g. 50042: legacy ACC stream, x,y,z per sensor (48 floats per sample)
     upsampling: bool | None = None  # initial UPSAMPLING state; None = whichever matches the source rate
     endianness: tp.Endianness = tp.Endianness.LITTLE
     speed: float = 1.0  # >1 streams faster than real time (tests)
@@ -90,7 +91,7 @@ class TrignoSimulator:
         self._lock = threading.RLock()
         self._listeners: dict[str, socket.socket] = {}
         self._command_conns: list[_CommandConnection] = []
-        self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": []}
+        self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": [], "legacy_acc": []}
         self._threads: list[threading.Thread] = []
         self._master: int | None = None
         self._next_conn_id = 1
@@ -116,7 +117,10 @@ class TrignoSimulator:
         if self._listeners:
             return self  # already serving (start() then ``with sim:``)
         cfg = self.config
-        wanted = {"command": cfg.command_port, "emg": cfg.emg_port, "legacy_emg": cfg.legacy_emg_port, "aux": cfg.aux_port}
+        wanted = {
+            "command": cfg.command_port, "emg": cfg.emg_port, "legacy_emg": cfg.legacy_emg_port, "aux": cfg.aux_port,
+            "legacy_acc": cfg.legacy_acc_port,
+        }
         for name, port in wanted.items():
             if port is None:
                 continue
@@ -212,7 +216,7 @@ class TrignoSimulator:
                 self._spawn(self._command_loop, conn)
             else:
                 with self._lock:
-                    self._data_conns["aux" if name == "aux" else "emg"].append(sock)
+                    self._data_conns[name if name in ("aux", "legacy_acc") else "emg"].append(sock)
 
     # ------------------------------------------------------------------------------------------ commands
     def _command_loop(self, conn: _CommandConnection) -> None:
@@ -420,7 +424,13 @@ class TrignoSimulator:
         for k, paired in enumerate(self.source.paired):
             if paired:  # accelerometer z of a sensor lying flat: 1 g
                 aux[:, k * tp.AUX_SLOTS_PER_SENSOR + 2] = 1.0
-        payloads = {"emg": tp.encode_samples(emg, self._endianness), "aux": tp.encode_samples(aux, self._endianness)}
+        # legacy ACC port: the same accelerations, x,y,z per sensor (the first 3 of each sensor's 9 AUX slots)
+        acc = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)[:, :, :3].reshape(AUX_SAMPLES_PER_FRAME, -1)
+        payloads = {
+            "emg": tp.encode_samples(emg, self._endianness),
+            "aux": tp.encode_samples(aux, self._endianness),
+            "legacy_acc": tp.encode_samples(acc, self._endianness),
+        }
         for kind, payload in payloads.items():
             with self._lock:
                 conns = list(self._data_conns[kind])

@@ -1,0 +1,277 @@
+"""The Trigno client against a *different* server than our simulator: a minimal TCU imitation written here from the
+protocol facts (../shared/protocols/trigno-tcp.md) alone, exercising what the facts allow but our simulator never
+does — another banner wording and terminator, replies split across TCP segments with a trailing space, refused
+queries with documented fallbacks, 0-based start indices of a multi-channel sensor, big-endian data by default,
+odd-sized data chunks, a refused START, ``STOPPED`` racing the reply to ``STOP``, the legacy ACC port.
+"""
+
+from __future__ import annotations
+
+import itertools
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from drivers.trigno import protocol as tp
+from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, StatusEvent, TrignoClient, TrignoConfig
+from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
+from drivers.trigno.source import synthetic_source
+
+TERM = b"\r\n\r\n"
+
+
+def known_rows(n: int, channels: int, paired: tuple[int, ...]) -> np.ndarray:
+    """Distinct float32 values per sample and slot (0.0 in unpaired slots, as the SDK streams them)."""
+    rows = np.zeros((n, channels), np.float32)
+    k = np.arange(n, dtype=np.float64)[:, None]
+    for slot in paired:
+        rows[:, slot - 1 : slot] = (np.sin(0.01 * k * slot) * 1e-3).astype(np.float32)
+    return rows
+
+
+class FakeTcu:
+    """One command connection at a time, EMG and AUX data ports; answers from a table, streams on START."""
+
+    def __init__(
+        self,
+        *,
+        banner: bytes,
+        answers: dict[str, str],
+        emg: bytes,
+        aux: bytes = b"",
+        chunk_sizes: tuple[int, ...] = (7, 1, 13, 64, 3, 250, 5),
+        refuse_first_start: bool = False,
+        stopped_before_stop_reply: bool = False,
+    ) -> None:
+        self.banner = banner
+        self.answers = answers
+        self.payloads = {"emg": emg, "aux": aux}
+        self.chunk_sizes = chunk_sizes
+        self.refuse_first_start = refuse_first_start
+        self.stopped_before_stop_reply = stopped_before_stop_reply
+        self.commands: list[str] = []
+        self.acquiring = False
+        self._data: dict[str, list[socket.socket]] = {"emg": [], "aux": []}
+        self._listeners = {}
+        for name in ("command", "emg", "aux"):
+            listener = socket.create_server(("127.0.0.1", 0))
+            listener.settimeout(0.1)
+            self._listeners[name] = listener
+        self.ports = {name: listener.getsockname()[1] for name, listener in self._listeners.items()}
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._accept, args=(name,), daemon=True) for name in self._listeners]
+        for thread in self._threads:
+            thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(2)
+        for listener in self._listeners.values():
+            listener.close()
+        for socks in self._data.values():
+            for sock in socks:
+                sock.close()
+
+    def _accept(self, name: str) -> None:
+        listener = self._listeners[name]
+        while not self._stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except (socket.timeout, OSError):
+                continue
+            if name == "command":
+                threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+            else:
+                self._data[name].append(conn)
+
+    def _send_split(self, conn: socket.socket, data: bytes) -> None:
+        """Two TCP segments per message: a reader must not assume a reply arrives whole."""
+        half = max(1, len(data) // 2)
+        conn.sendall(data[:half])
+        time.sleep(0.002)
+        conn.sendall(data[half:])
+
+    def _serve(self, conn: socket.socket) -> None:
+        with conn:
+            self._send_split(conn, self.banner)
+            buffer = b""
+            while not self._stop.is_set():
+                chunk = conn.recv(1024)
+                if not chunk:
+                    return
+                buffer += chunk
+                while TERM in buffer:
+                    packet, buffer = buffer.split(TERM, 1)
+                    for command in packet.decode("ascii").split("\r\n"):
+                        if command.strip():
+                            self._send_split(conn, self._answer(command.strip()) + TERM)
+                            if command.strip() == "QUIT":
+                                return
+
+    def _answer(self, command: str) -> bytes:
+        self.commands.append(command)
+        if command == "START":
+            if self.refuse_first_start and self.acquiring:
+                return b"CANNOT COMPLETE "
+            self.acquiring = True
+            threading.Thread(target=self._stream, daemon=True).start()
+            return b"OK "
+        if command == "STOP":
+            self.acquiring = False
+            return (b"STOPPED" + TERM + b"OK") if self.stopped_before_stop_reply else b"OK "
+        if command == "QUIT":
+            return b"OK"
+        return (self.answers.get(command, "INVALID COMMAND") + " ").encode("ascii")
+
+    def _stream(self) -> None:
+        time.sleep(0.05)
+        for name, payload in self.payloads.items():
+            for sock in self._data[name]:
+                sizes = itertools.cycle(self.chunk_sizes)
+                pos = 0
+                while pos < len(payload):
+                    size = next(sizes)
+                    sock.sendall(payload[pos : pos + size])
+                    pos += size
+
+
+def sensor_answers(paired: dict[int, int]) -> dict[str, str]:
+    """PAIRED?/TYPE?/STARTINDEX? answers for {sensor: reported start index}."""
+    answers = {}
+    for n in range(1, 17):
+        answers[f"SENSOR {n} PAIRED?"] = "YES" if n in paired else "NO"
+        if n in paired:
+            answers[f"SENSOR {n} TYPE?"] = "O"
+            answers[f"SENSOR {n} STARTINDEX?"] = str(paired[n])
+    return answers
+
+
+def run_until(client: TrignoClient, n_rows: int, *, aux_rows: int = 0, seconds: float = 5.0) -> list:
+    events: list = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        events += client.poll(0.02)
+        emg = sum(len(e.samples) for e in events if isinstance(e, EmgBlock))
+        aux = sum(len(e.samples) for e in events if isinstance(e, AuxBlock))
+        if emg >= n_rows and aux >= aux_rows:
+            break
+    return events
+
+
+def stack(events: list, kind: type) -> np.ndarray:
+    return np.concatenate([e.samples for e in events if isinstance(e, kind)])
+
+
+@pytest.mark.parametrize(
+    "banner",
+    [
+        b"Delsys Trigno System Digital Protocol Version 4.0.1" + TERM,
+        b"Delsys Trigno System Digital Protocol Version 3.6.0 " + TERM,
+        b"Delsys Trigno System Digital Protocol Version 3.6.2\r\n",  # no blank line after the greeting
+    ],
+)
+def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
+    # sensor 1 is a 4-channel sensor (slots 1-4), the next sensor starts in slot 5; 0-based STARTINDEX replies
+    rows = known_rows(600, 16, paired=(1, 5))
+    answers = {
+        "MASTER?": "YES",
+        "ENDIANNESS?": "BIG",  # server-side setting the client did not ask for
+        "UPSAMPLING?": "UPSAMPLING OFF",
+        "FRAME INTERVAL?": "0.0135",
+        "SENSOR 1 CHANNEL 1 SAMPLES?": "26",  # MAX SAMPLES EMG? is refused: INVALID COMMAND
+        "MAX SAMPLES AUX?": "2",
+        **sensor_answers({1: 0, 5: 4}),
+    }
+    server = FakeTcu(banner=banner, answers=answers, emg=tp.encode_samples(rows, tp.Endianness.BIG))
+    client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"]))
+    try:
+        client.connect()
+        assert client.protocol_version == banner.split(b"Version ")[1].strip().decode()
+        assert client.endianness is tp.Endianness.BIG and client.upsampling is False
+        assert client.rate_hz == pytest.approx(26 / 0.0135)
+        assert client.paired_sensors == [1, 5]
+        assert [s.start_index for s in client.sensors if s.paired] == [0, 4]
+        client.start()
+        events = run_until(client, len(rows))
+        received = stack(events, EmgBlock)
+        assert np.array_equal(received.view(np.uint32), rows.view(np.uint32))
+        assert not np.any(received[:, [1, 2, 3, 5, 15]])
+        client.stop()
+        assert client.stats.errors == 0
+    finally:
+        client.close()
+        server.close()
+    assert server.commands[-2:] == ["STOP", "QUIT"]
+
+
+def test_refused_start_is_retried_after_stop_and_stopped_racing_the_stop_reply_is_not_an_error():
+    rows = known_rows(300, 16, paired=(2,))
+    answers = {"MASTER?": "YES", "UPSAMPLING?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({2: 2})}
+    server = FakeTcu(
+        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers,
+        emg=tp.encode_samples(rows), refuse_first_start=True, stopped_before_stop_reply=True,
+    )
+    server.acquiring = True  # a previous client left the server acquiring: START answers CANNOT COMPLETE
+    client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"]))
+    try:
+        client.connect()
+        assert client.rate_hz == pytest.approx(2000.0) and client.sensors[1].start_index == 1
+        client.start()
+        events = run_until(client, len(rows))
+        assert np.array_equal(stack(events, EmgBlock).view(np.uint32), rows.view(np.uint32))
+        client.stop()
+        events = client.poll(0.05)
+    finally:
+        client.close()
+        server.close()
+    assert server.commands.count("START") == 2 and server.commands[-2:] == ["STOP", "QUIT"]
+    assert client.stats.errors == 0, client.stats.last_error
+    assert [e.state for e in events if isinstance(e, StatusEvent)] == [ClientState.STOPPED]
+
+
+def test_legacy_acc_port_carries_three_axes_per_sensor():
+    emg = known_rows(54, 16, paired=(1,))
+    acc = known_rows(4, 48, paired=(1, 2, 3))  # sensor 1: x, y, z
+    answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({1: 1})}
+    server = FakeTcu(
+        banner=b"Delsys Trigno System Digital Protocol Version 3.1.0" + TERM, answers=answers,
+        emg=tp.encode_samples(emg), aux=tp.encode_samples(acc), chunk_sizes=(11, 100),
+    )
+    config = TrignoConfig(
+        command_port=server.ports["command"], emg_port=server.ports["emg"], aux_port=server.ports["aux"],
+        aux_layout=tp.AuxLayout.LEGACY_ACC,  # an ephemeral port: the layout cannot come from the number 50042
+    )
+    client = TrignoClient(config)
+    try:
+        client.connect()
+        client.start()
+        events = run_until(client, len(emg), aux_rows=len(acc))
+    finally:
+        client.close()
+        server.close()
+    received = stack(events, AuxBlock)
+    assert received.shape == (4, 48)
+    assert np.array_equal(received.view(np.uint32), acc.view(np.uint32))
+    assert TrignoConfig(aux_port=50042).resolved_aux_layout is tp.AuxLayout.LEGACY_ACC
+    assert TrignoConfig(aux_port=50044).resolved_aux_layout is tp.AuxLayout.AVANTI
+
+
+def test_our_simulator_serves_the_legacy_acc_port():
+    source = synthetic_source(seconds=1.0)
+    config = SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None, legacy_acc_port=0, speed=4.0)
+    with TrignoSimulator(source, config) as sim:
+        client = TrignoClient(TrignoConfig(
+            command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=sim.ports["legacy_acc"],
+            aux_layout=tp.AuxLayout.LEGACY_ACC,
+        ))
+        with client:
+            client.start()
+            events = run_until(client, 100, aux_rows=4)
+    acc = stack(events, AuxBlock)
+    assert acc.shape[1] == 48
+    # paired sensors 1-4 lie flat: z = 1 g; x, y = 0; unpaired sensors all zero
+    assert np.all(acc[:, [2, 5, 8, 11]] == 1.0) and not np.any(acc[:, [0, 1, 3, 4]]) and not np.any(acc[:, 12:])
