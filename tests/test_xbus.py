@@ -80,8 +80,12 @@ def test_parser_skips_garbage_and_bad_checksums():
     stream = b"\x00\xfa\x13garbage" + good[0] + bytes(corrupt) + b"\xfa" + good[2]
     parser = xbus.XbusParser()
     messages = parser.feed(stream)
+    # "\xfa\x13g a" is a plausible header (bus 0x13, MID 0x67 = GravityMagnitude ack, 0x61 = 97 bytes): the parser
+    # must wait for 97 bytes before it can reject it, so a false header delays frames but never loses them
+    assert messages == []
+    messages = parser.feed(bytes(100))  # the line idles (no preamble)
     assert [m.data[-1] for m in messages] == [0, 2]
-    assert parser.stats.checksum_errors >= 1 and parser.stats.bytes_skipped > 0 and parser.stats.resyncs == 2
+    assert parser.stats.checksum_errors >= 2 and parser.stats.bytes_skipped > 0 and parser.stats.resyncs == 3
 
 
 # ------------------------------------------------------------------------------------------------ real captures

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -11,6 +12,10 @@ from msk_core.errors import ProtocolError
 
 #: What the project asks a tracker for (PacketCounter and SampleTimeFine with every message).
 DEFAULT_QUANTITIES = (0x2010, 0x4020, 0x8020, 0xC020)
+#: Output frequencies meaning "with every message" (equivalent in a SetOutputConfiguration echo).
+EVERY_MESSAGE = (0, 0xFFFF)
+
+log = logging.getLogger(__name__)
 
 
 class XbusDeviceError(ProtocolError):
@@ -52,6 +57,8 @@ class DeviceStats:
     decode_errors: int = 0
     packets_lost: int = 0  # from PacketCounter jumps: corrupted or dropped messages
     device_errors: int = 0
+    restarts: int = 0  # WakeUp seen while measuring: the device reset itself (counters start again)
+    reconnects: int = 0  # reopened and reconfigured after an unplug
     last_error: str = ""
 
 
@@ -91,8 +98,10 @@ class XsensDevice:
         self.parser = xbus.XbusParser()
         self.stats = DeviceStats()
         self.device_id: int | None = None
+        self.output_configuration: list[xbus.OutputSetting] = []  # as the device echoed it (what it applied)
         self._queue: list[xbus.XbusMessage] = []  # data frames read while waiting for a reply
         self._last_counter: dict[int, int] = {}
+        self._configured: dict | None = None  # configure() arguments, replayed by reconnect()
 
     @property
     def tracker_id(self) -> str:
@@ -174,9 +183,24 @@ class XsensDevice:
         return FirmwareRevision(*reply.data[:3])
 
     def set_output_configuration(self, settings: list[xbus.OutputSetting]) -> list[xbus.OutputSetting]:
-        """Apply an output configuration; returns what the device says it applied."""
+        """Apply an output configuration; returns what the device says it applied (its ack echoes the applied
+        configuration, which may differ from the request: rates rounded to what the device can do, 0 for 0xFFFF).
+        Differences are logged and counted in ``stats.last_error``; an echo without payload means "as requested"."""
         reply = self.request(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
-        return xbus.decode_output_configuration(reply.data)
+        applied = xbus.decode_output_configuration(reply.data) if reply.data else list(settings)
+        differences = configuration_differences(settings, applied)
+        if differences:
+            self.stats.last_error = f"{self.transport.name}: output configuration applied differs: {differences}"
+            log.warning("%s", self.stats.last_error)
+        self.output_configuration = applied
+        return applied
+
+    def request_baudrate(self) -> int:
+        """The device's serial baud rate in bit/s (ReqBaudrate 0x18 with no data; the reply carries the code)."""
+        reply = self.request(xbus.Mid.BAUDRATE)
+        if len(reply.data) != 1 or reply.data[0] not in xbus.BAUD_CODES:
+            raise ProtocolError(f"Baudrate reply {reply.data.hex() or 'empty'} is not one Xbus baud-rate code")
+        return xbus.BAUD_CODES[reply.data[0]]
 
     def request_output_configuration(self) -> list[xbus.OutputSetting]:
         return xbus.decode_output_configuration(self.request(xbus.Mid.SET_OUTPUT_CONFIGURATION).data)
@@ -187,6 +211,7 @@ class XsensDevice:
 
     def configure(self, rate_hz: int = 100, *, precision=xbus.Precision.FLOAT32, frame=xbus.CoordinateFrame.ENU) -> dict:
         """The usual sequence: GoToConfig, identify, set outputs, GoToMeasurement. Returns the device's identity."""
+        self._configured = {"rate_hz": rate_hz, "precision": precision, "frame": frame}
         self.go_to_config()
         device_id = self.request_device_id()
         product = self.request_product_code()
@@ -206,7 +231,16 @@ class XsensDevice:
             self.stats.messages += 1
             if message.mid == xbus.Mid.ERROR:
                 self.stats.device_errors += 1
-                self.stats.last_error = f"device error 0x{message.data[0] if message.data else 0:02X}"
+                code = message.data[0] if message.data else 0
+                self.stats.last_error = f"device error 0x{code:02X} ({xbus.ERROR_CODES.get(code, 'unknown')})"
+                continue
+            if message.mid == xbus.Mid.WAKE_UP:
+                # The device reset itself (power dip, watchdog). Not acknowledged: without a WakeUpAck it returns
+                # to Measurement with its stored outputs; its PacketCounter starts again, which is no packet loss.
+                if self.stats.readings or readings:
+                    self.stats.restarts += 1
+                    self.stats.last_error = "device restarted (WakeUp while measuring)"
+                self._last_counter.clear()
                 continue
             if message.mid != xbus.Mid.MT_DATA2:
                 continue
@@ -245,6 +279,47 @@ class XsensDevice:
     def close(self) -> None:
         self.transport.close()
 
+    @property
+    def can_reconnect(self) -> bool:
+        return self._configured is not None and hasattr(self.transport, "reopen")
+
+    def reconnect(self) -> None:
+        """Open the port again and redo configure() with the same arguments (after an unplug). The device must
+        report the same device id. Raises DeviceDisconnected while it is absent, ProtocolError when it does not
+        answer or is another device; statistics carry on."""
+        if not self.can_reconnect:
+            raise ProtocolError(f"{self.transport.name}: cannot reconnect (never configured, or the transport cannot reopen)")
+        previous = self.device_id
+        transport = self.transport.reopen()  # type: ignore[attr-defined]
+        self.transport = transport
+        self.parser = xbus.XbusParser()
+        self._queue.clear()
+        self._last_counter.clear()
+        try:
+            self.configure(**self._configured)  # type: ignore[arg-type]
+        except BaseException:
+            transport.close()
+            raise
+        if previous is not None and self.device_id != previous:
+            found = self.device_id
+            self.device_id = previous  # the tracker keeps its id; this port now has another device
+            transport.close()
+            raise ProtocolError(f"{transport.name}: device {found:08X} answered where {previous:08X} was")
+        self.stats.reconnects += 1
+
+
+def configuration_differences(requested: list[xbus.OutputSetting], applied: list[xbus.OutputSetting]) -> list[str]:
+    """What the device applied differently from the request (0 and 0xFFFF, "every message", are the same)."""
+    def normal(frequency: int) -> int:
+        return 0xFFFF if frequency in EVERY_MESSAGE else frequency
+
+    wanted = {s.data_id: normal(s.frequency) for s in requested}
+    got = {s.data_id: normal(s.frequency) for s in applied}
+    out = [f"0x{i:04X} missing" for i in wanted if i not in got]
+    out += [f"0x{i:04X} at {got[i]} Hz instead of {f}" for i, f in wanted.items() if i in got and got[i] != f]
+    out += [f"0x{i:04X} added" for i in got if i not in wanted]
+    return out
+
 
 def _mid_name(mid: int) -> str:
     try:
@@ -255,10 +330,16 @@ def _mid_name(mid: int) -> str:
 
 @dataclass
 class TrackerSet:
-    """Several devices keyed by tracker id (device id as 8 hex digits)."""
+    """Several devices keyed by tracker id (device id as 8 hex digits). An unplugged device moves to
+    ``disconnected`` (reason kept); with ``reconnect`` its port is reopened every ``retry_interval_s`` and, once the
+    same device answers, it is reconfigured as before and returns to ``devices`` (same XsensDevice object)."""
 
     devices: dict[str, XsensDevice] = field(default_factory=dict)
     disconnected: dict[str, str] = field(default_factory=dict)
+    reconnect: bool = True
+    retry_interval_s: float = 0.5
+    _lost: dict[str, XsensDevice] = field(default_factory=dict)
+    _next_attempt: dict[str, float] = field(default_factory=dict)
 
     def add(self, device: XsensDevice) -> str:
         if device.device_id is None:
@@ -279,9 +360,29 @@ class TrackerSet:
                 self.disconnected[key] = str(error)
                 del self.devices[key]
                 device.close()
+                if self.reconnect and device.can_reconnect:
+                    self._lost[key] = device
+                    self._next_attempt[key] = time.monotonic() + self.retry_interval_s
+        if self._lost:
+            self._try_reconnect()
         return out
+
+    def _try_reconnect(self) -> None:
+        now = time.monotonic()
+        for key, device in list(self._lost.items()):
+            if now < self._next_attempt[key]:
+                continue
+            try:
+                device.reconnect()
+            except (DeviceDisconnected, ProtocolError) as error:
+                device.stats.last_error = f"reconnect failed: {error}"  # ``disconnected`` keeps why it went away
+                self._next_attempt[key] = time.monotonic() + self.retry_interval_s
+                continue
+            del self._lost[key], self._next_attempt[key], self.disconnected[key]
+            self.devices[key] = device
 
     def close(self) -> None:
         for device in self.devices.values():
             device.close()
         self.devices.clear()
+        self._lost.clear()

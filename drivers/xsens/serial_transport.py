@@ -6,8 +6,8 @@ from typing import Protocol
 
 from msk_core.errors import ConfigError, MskError
 
-#: Baud rates an MTi accepts (Xbus baud codes in ../shared/protocols/xsens-xbus.md); 115200 8N1 is the default.
-BAUD_RATES = (9600, 57600, 115200, 230400, 460800, 921600, 2000000, 4000000)
+#: Baud rates an MTi accepts (the Xbus baud codes, xbus.BAUD_CODES); 115200 8N1 is the factory default.
+BAUD_RATES = (4800, 9600, 14400, 19200, 28800, 38400, 57600, 76800, 115200, 230400, 460800, 921600, 2000000, 4000000)
 
 
 class DeviceDisconnected(MskError):
@@ -24,6 +24,12 @@ class Transport(Protocol):
     def close(self) -> None: ...
 
 
+class Reopenable(Protocol):
+    """A transport that can open its port again (same path, same settings) after the device came back."""
+
+    def reopen(self) -> "Transport": ...
+
+
 class SerialTransport:
     """A serial port; ``read`` returns what is available within ``timeout`` seconds (possibly nothing)."""
 
@@ -33,6 +39,8 @@ class SerialTransport:
         if baudrate not in BAUD_RATES:
             raise ConfigError(f"unsupported baud rate; use one of {BAUD_RATES}", field="baudrate", value=baudrate)
         self.name = port
+        self.baudrate = baudrate
+        self.timeout = timeout
         try:
             self._serial = serial.Serial(port, baudrate=baudrate, timeout=timeout, write_timeout=2.0)
         except (serial.SerialException, OSError) as error:
@@ -61,6 +69,11 @@ class SerialTransport:
             self._serial.close()
         except self._errors:
             pass
+
+    def reopen(self) -> "SerialTransport":
+        """The same port opened again: after an unplug, a stable path (/dev/serial/by-id/...) names the replugged
+        device. Raises DeviceDisconnected while it is still absent."""
+        return SerialTransport(self.name, baudrate=self.baudrate, timeout=self.timeout)
 
     def fileno(self) -> int:
         return self._serial.fileno()

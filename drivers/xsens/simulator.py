@@ -29,6 +29,10 @@ DEFAULT_PRODUCT_CODE = "MTi-G-710-2A8G4"
 DEFAULT_FIRMWARE = (1, 8, 2)
 #: Factory default: quaternion at 100 Hz plus packet counter.
 FACTORY_OUTPUTS = [xbus.OutputSetting(0x1020, 0xFFFF), xbus.OutputSetting(0x2010, 100)]
+#: Outputs an MTi-G-710 accepts that the simulator has no values for (GNSS PVT data, satellite info): accepted and
+#: echoed like a real device, then omitted from MTData2 as a device without GNSS reception would.
+ACCEPTED_WITHOUT_DATA = frozenset({0x7010, 0x7020})
+DEFAULT_BAUDRATE = 115200
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,7 @@ class XsensSimulator:
         self.loop = loop
         self.wakeup_window_s = wakeup_window_s
         self.stats = SimulatorStats()
+        self.baudrate = DEFAULT_BAUDRATE
         self.path = ""
         self.measuring = False
         self.unplugged = False
@@ -246,6 +251,15 @@ class XsensSimulator:
         elif mid == xbus.Mid.RESET:
             self._reply(xbus.Mid.RESET_ACK)
             self._power_up()
+        elif mid == xbus.Mid.BAUDRATE:
+            if data:  # SetBaudrate: takes effect after a reset; a pty has no line rate to change
+                if len(data) != 1 or data[0] not in xbus.BAUD_CODES:
+                    self._error(0x20)
+                    return
+                self.baudrate = xbus.BAUD_CODES[data[0]]
+                self._reply(xbus.Mid.BAUDRATE_ACK)
+            else:
+                self._reply(xbus.Mid.BAUDRATE_ACK, bytes((xbus.baud_code(self.baudrate),)))
         elif mid == xbus.Mid.WAKE_UP_ACK:
             pass
         else:
@@ -258,8 +272,12 @@ class XsensSimulator:
             self._error(0x21)
             return
         for setting in settings:
-            known = xbus.RAW_QUANTITIES.get(setting.data_id) or xbus.FLOAT_QUANTITIES.get(setting.data_id & 0xFFF0)
-            if known is None or (setting.frequency not in (0, 0xFFFF) and not 1 <= setting.frequency <= 2000):
+            known = (
+                xbus.RAW_QUANTITIES.get(setting.data_id)
+                or xbus.FLOAT_QUANTITIES.get(setting.data_id & 0xFFF0)
+                or setting.data_id in ACCEPTED_WITHOUT_DATA
+            )
+            if not known or (setting.frequency not in (0, 0xFFFF) and not 1 <= setting.frequency <= 2000):
                 self._error(0x21)
                 return
         self._outputs = settings

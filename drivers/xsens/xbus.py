@@ -213,8 +213,36 @@ def mtdata2_structure_ok(data: bytes | memoryview, start: int = 0, end: int | No
 
 #: Bus ids a frame may carry: master, or a device on a bus (stand-alone MT 0x01, wireless trackers 0x01..0x20).
 VALID_BIDS = frozenset({BID_MASTER, *range(0x01, 0x21)})
-#: Message ids the protocol defines (requests, replies and acks).
-VALID_MIDS = frozenset({int(m) for m in Mid} | {int(m) + 1 for m in Mid})
+#: Message ids in public Xsens sources beyond :class:`Mid` (MT0101P, XDA headers, ethzasl_xsens_driver mtdef.py):
+#: InitMT 0x02, SetPeriod 0x04, ReqDataLength 0x0A, SetProcessingFlags 0x20, SetNoRotation 0x22,
+#: AvailableScenarios 0x62, GravityMagnitude 0x66, LeverArmGPS 0x68, MagneticDeclination 0x6A, LatLonAlt 0x6E,
+#: Heading 0x82, LocationID 0x84, ExtOutputMode 0x86, StringOutputTypes 0x8E, GPSStatus 0xA6, AdjustUTCTime 0xA8,
+#: OutputMode 0xD0, OutputSettings 0xD2, OutputSkipFactor 0xD4, SyncIn/Out 0xD6/0xD8, TransmitDelay 0xDC,
+#: ObjectAlignment 0xE0, AlignmentRotation 0xEC; and the wireless (Awinda/MTw) range 0xB0-0xCF.
+OTHER_PUBLIC_MIDS = frozenset({
+    0x02, 0x04, 0x0A, 0x20, 0x22, 0x62, 0x66, 0x68, 0x6A, 0x6E, 0x82, 0x84, 0x86, 0x8E,
+    0xA6, 0xA8, 0xD0, 0xD2, 0xD4, 0xD6, 0xD8, 0xDC, 0xE0, 0xEC,
+})
+#: Message ids a frame may carry (requests, set messages, replies and acks). A device may send any of them (e.g.
+#: a Warning, or the answer to another program's request on a shared port): they must parse, not count as errors.
+VALID_MIDS = frozenset(
+    {int(m) for m in Mid} | {int(m) + 1 for m in Mid}
+    | OTHER_PUBLIC_MIDS | {m + 1 for m in OTHER_PUBLIC_MIDS} | set(range(0xB0, 0xD0))
+)
+
+#: Xbus baud-rate codes (SetBaudrate 0x18 payload) -> bits per second; 0x80 and 0x0A both mean 921600.
+BAUD_CODES = {
+    0x80: 921600, 0x0A: 921600, 0x00: 460800, 0x01: 230400, 0x02: 115200, 0x03: 76800, 0x04: 57600, 0x05: 38400,
+    0x06: 28800, 0x07: 19200, 0x08: 14400, 0x09: 9600, 0x0B: 4800, 0x0C: 2000000, 0x0D: 4000000,
+}
+
+
+def baud_code(rate: int) -> int:
+    """The Xbus code of a baud rate (0x80 for 921600, the code the manual lists first)."""
+    for code, value in BAUD_CODES.items():
+        if value == rate:
+            return code
+    raise ProtocolError(f"no Xbus baud-rate code for {rate} bit/s (known: {sorted(set(BAUD_CODES.values()))})")
 
 
 class XbusParser:

@@ -1,0 +1,299 @@
+"""The Xsens driver against a *different* device than our simulator: a minimal MTi imitation on a real
+pseudo-terminal, written here from the protocol facts (../shared/protocols/xsens-xbus.md) with its own framing code.
+It does what the facts allow and our simulator never does: replies from bus id 0x01, an ack echoing a configuration
+other than the request, extended-length MTData2 with unknown items (GNSS PVT, satellite info, raw sensor readout),
+NED fixed 16.32 orientation, Warning and Error messages between data, a WakeUp mid-stream (the device restarted),
+bytes written in odd-sized pieces. Also: reconnection after an unplug, and the real recorded output configuration.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import select
+import struct
+import threading
+import time
+import tty
+
+import pytest
+
+from drivers.xsens import xbus
+from drivers.xsens.device import TrackerSet, XsensDevice
+from drivers.xsens.serial_transport import SerialTransport
+from drivers.xsens.simulator import XsensSimulator
+from drivers.xsens.source import load_imu_source, synthetic_imu
+from msk_core.errors import ProtocolError
+
+DEVICE_ID = 0x03701234
+
+
+def frame(bid: int, mid: int, data: bytes = b"") -> bytes:
+    """Xbus frame, written independently of drivers.xsens.xbus: extended length above 254 bytes."""
+    length = bytes([len(data)]) if len(data) < 255 else bytes([0xFF, len(data) >> 8, len(data) & 0xFF])
+    body = bytes([bid, mid]) + length + data
+    return b"\xfa" + body + bytes([(-sum(body)) & 0xFF])
+
+
+def item(data_id: int, data: bytes) -> bytes:
+    return struct.pack(">HB", data_id, len(data)) + data
+
+
+def fp1632(values) -> bytes:
+    out = b""
+    for v in values:
+        i = round(v * 2**32)
+        out += struct.pack(">Ih", i & 0xFFFFFFFF, i >> 32)
+    return out
+
+
+def fp1220(values) -> bytes:
+    return struct.pack(f">{len(values)}i", *[round(v * 2**20) for v in values])
+
+
+QUAT_NED = (0.5, 0.5, -0.5, 0.5)  # any unit quaternion; fixed 16.32 carries it almost exactly
+ACC = (0.125, -7.26, -1.2)
+GYRO = (0.01, -0.02, 0.03)
+MAG = (0.4, 0.1, -0.9)
+
+
+def mtdata2(counter: int) -> bytes:
+    payload = item(0x1020, struct.pack(">H", counter)) + item(0x1060, struct.pack(">I", 100 * counter))
+    payload += item(0x2016, fp1632(QUAT_NED))  # quaternion, NED (bits 3-2 = 0x4), fixed 16.32 (bits 1-0 = 2)
+    payload += item(0x4023, struct.pack(">3d", *ACC))  # acceleration, float64
+    payload += item(0x8021, fp1220(GYRO))  # rate of turn, fixed 12.20
+    payload += item(0xC020, struct.pack(">3f", *MAG))
+    payload += item(0xA010, bytes(range(9)))  # raw sensor readout: unknown to the driver, skipped by size
+    if counter % 4 == 0:
+        payload += item(0x7010, bytes(94))  # GNSS PVT at a quarter of the rate
+        payload += item(0x7020, bytes(range(200)))  # satellite info: the message needs an extended length
+    return payload
+
+
+class FakeMti:
+    """Answers configuration from bus id 0x01, echoes the configuration it applied (rates capped at 100 Hz), and
+    after GoToMeasurement streams ``count`` messages with a restart (WakeUp, counter from 0) after ``restart_at``."""
+
+    def __init__(self, *, count: int = 40, restart_at: int = 20, pieces=(1, 7, 3, 64, 17, 250)) -> None:
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        self._slave = slave
+        self.path = os.ttyname(slave)
+        self.count, self.restart_at, self.pieces = count, restart_at, pieces
+        self.received_mids: list[int] = []
+        self.applied: list[tuple[int, int]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        os.close(self.master)
+        os.close(self._slave)
+
+    def _write(self, data: bytes) -> None:
+        sizes = itertools.cycle(self.pieces)
+        pos = 0
+        while pos < len(data):
+            size = next(sizes)
+            os.write(self.master, data[pos : pos + size])
+            pos += size
+            time.sleep(0.0005)
+
+    def _requests(self, buffer: bytearray):
+        """Complete host frames (the host only sends short, standard-length frames)."""
+        while True:
+            start = buffer.find(b"\xfa")
+            if start < 0 or len(buffer) - start < 4 or len(buffer) - start < 5 + buffer[start + 3]:
+                return
+            n = buffer[start + 3]
+            mid, data = buffer[start + 2], bytes(buffer[start + 4 : start + 4 + n])
+            del buffer[: start + 5 + n]
+            yield mid, data
+
+    def _run(self) -> None:
+        buffer = bytearray()
+        while not self._stop.is_set():
+            if not select.select([self.master], [], [], 0.02)[0]:
+                continue
+            buffer += os.read(self.master, 4096)
+            for mid, data in self._requests(buffer):
+                self.received_mids.append(mid)
+                self._answer(mid, data)
+
+    def _answer(self, mid: int, data: bytes) -> None:
+        if mid == 0x30:
+            self._write(frame(0x01, 0x31))
+        elif mid == 0x00:
+            self._write(frame(0x01, 0x01, struct.pack(">I", DEVICE_ID)))
+        elif mid == 0x1C:
+            self._write(frame(0x01, 0x1D, b"MTi-630-2A8G4\x00\x00"))
+        elif mid == 0x12:
+            self._write(frame(0x01, 0x13, bytes([1, 12, 0, 0, 0, 0, 0])))  # newer firmware sends build info too
+        elif mid == 0x18 and not data:
+            self._write(frame(0x01, 0x19, b"\x80"))
+        elif mid == 0xC0:
+            entries = [struct.unpack_from(">HH", data, k) for k in range(0, len(data), 4)]
+            self.applied = [(i, f if f in (0, 0xFFFF) else min(f, 100)) for i, f in entries]
+            self._write(frame(0x01, 0xC1, b"".join(struct.pack(">HH", i, f) for i, f in self.applied)))
+        elif mid == 0x10:
+            self._write(frame(0x01, 0x11))
+            threading.Thread(target=self._stream, daemon=True).start()
+        else:
+            self._write(frame(0x01, 0x42, b"\x04"))
+
+    def _stream(self) -> None:
+        for k in range(self.count):
+            counter = k if k < self.restart_at else k - self.restart_at
+            if k == self.restart_at:
+                self._write(frame(0xFF, 0x3E))  # WakeUp: the device restarted; no ack -> back to Measurement
+            if k == 5:
+                self._write(frame(0xFF, 0x43, struct.pack(">I", 0x1234)))  # a Warning between data
+            if k == 25:
+                self._write(frame(0xFF, 0x42, b"\x1e"))  # Error: timer overflow
+            self._write(frame(0xFF, 0x36, mtdata2(counter)))
+            time.sleep(0.002)
+
+
+def test_independent_device_bus_01_replies_modified_echo_extended_unknown_items_restart(caplog):
+    fake = FakeMti()
+    device = XsensDevice(SerialTransport(fake.path, baudrate=921600))
+    try:
+        with caplog.at_level(logging.WARNING, logger="drivers.xsens.device"):
+            identity = device.configure(200, precision=xbus.Precision.FP1632, frame=xbus.CoordinateFrame.NED)
+        assert identity["device_id"] == f"{DEVICE_ID:08X}" and identity["product_code"] == "MTi-630-2A8G4"
+        assert identity["firmware"] == "1.12.0"
+        # the ack echoes what was applied (rates capped at 100 Hz); the driver keeps that, and says so
+        assert [(s.data_id, s.frequency) for s in device.output_configuration] == fake.applied
+        assert all(s.frequency == 100 for s in device.output_configuration if s.frequency not in (0, 0xFFFF))
+        assert "at 100 Hz instead of 200" in caplog.text
+        readings = []
+        deadline = time.monotonic() + 5
+        while len(readings) < fake.count and time.monotonic() < deadline:
+            readings += device.read()
+    finally:
+        device.close()
+        fake.close()
+    assert [r.packet_counter for r in readings] == list(range(20)) + list(range(20))
+    first = readings[0]
+    assert first.frame is xbus.CoordinateFrame.NED
+    assert first.quaternion == pytest.approx(QUAT_NED, abs=2**-32)
+    assert first.acceleration == ACC
+    assert first.rate_of_turn == pytest.approx(GYRO, abs=2**-20)
+    assert first.magnetic_field == pytest.approx(MAG, rel=1e-7)
+    assert first.sample_time_fine == 0 and readings[3].device_time_ns == 3 * 100 * 100_000
+    assert [(i, len(raw)) for i, raw in first.data.unknown] == [(0xA010, 9), (0x7010, 94), (0x7020, 200)]
+    assert [i for i, _ in readings[1].data.unknown] == [0xA010]
+    stats = device.stats
+    assert stats.packets_lost == 0 and stats.restarts == 1 and stats.decode_errors == 0
+    assert stats.device_errors == 1 and "timer overflow" in stats.last_error
+    assert device.parser.stats.errors == 0 and device.parser.stats.bytes_skipped == 0
+
+
+def test_baudrate_request_to_independent_device_and_simulator():
+    fake = FakeMti()
+    device = XsensDevice(SerialTransport(fake.path))
+    try:
+        device.go_to_config()
+        assert device.request_baudrate() == 921600  # code 0x80
+    finally:
+        device.close()
+        fake.close()
+    assert xbus.baud_code(115200) == 0x02 and xbus.baud_code(921600) == 0x80
+    with pytest.raises(ProtocolError, match="no Xbus baud-rate code"):
+        xbus.baud_code(1234)
+    with XsensSimulator(synthetic_imu(seconds=1.0)) as sim:
+        device = XsensDevice(SerialTransport(sim.path))
+        device.reset()
+        assert device.request_baudrate() == 115200
+        device.close()
+
+
+def test_simulator_accepts_the_real_recorded_output_configuration(shared_dir):
+    """A real MTi-G-710 was configured with GNSS PVT (0x7010): a faithful device must accept it, not Error 0x21."""
+    payload = (shared_dir / "data/xsens-captures/mtig710_set1_outputconfig.bin").read_bytes()
+    recorded = xbus.decode_output_configuration(payload)
+    assert 0x7010 in [s.data_id for s in recorded]
+    # the fixed 12.20 capture (set 2) re-encoded in the float32 configuration of set 1
+    source = load_imu_source(shared_dir / "data/xsens-captures/mtig710_set2.bin")
+    with XsensSimulator(source, speed=4.0) as sim:
+        device = XsensDevice(SerialTransport(sim.path))
+        device.reset()
+        assert device.set_output_configuration(recorded) == recorded
+        device.go_to_measurement()
+        readings = []
+        deadline = time.monotonic() + 5
+        while len(readings) < 5 and time.monotonic() < deadline:
+            readings += device.read()
+        device.close()
+    assert readings and readings[0].data.ids["euler"] == 0x2030 and readings[0].data.ids["acceleration"] == 0x4020
+    assert readings[0].acceleration == pytest.approx(source.arrays["acceleration"][0], abs=1e-5)
+
+
+def test_tracker_reconnects_after_unplug_through_a_stable_port_name(tmp_path):
+    """/dev/serial/by-id names survive a replug while /dev/ttyUSBn may not: a symlink plays that stable name."""
+    link = tmp_path / "usb-Xsens_MTi-G-710-if00"
+    source = synthetic_imu(seconds=20.0)
+    sim = XsensSimulator(source, speed=2.0, device_id=0x03700ABC).start()
+    link.symlink_to(sim.path)
+    trackers = TrackerSet(retry_interval_s=0.05)
+    try:
+        device = XsensDevice(SerialTransport(str(link), baudrate=921600))
+        device.configure(100, precision=xbus.Precision.FP1220, frame=xbus.CoordinateFrame.NWU)
+        trackers.add(device)
+        before = read_until(trackers, lambda r: len(r) >= 20)
+        sim.unplug()
+        down = read_until(trackers, lambda r: "03700ABC" in trackers.disconnected, seconds=3)
+        assert not trackers.devices
+        deadline = time.monotonic() + 0.2
+        while time.monotonic() < deadline:  # reconnection attempts fail while the device is away
+            assert trackers.read() == []
+            time.sleep(0.02)
+        assert "03700ABC" in trackers.disconnected and "reconnect failed" in device.stats.last_error
+        sim = XsensSimulator(source, speed=2.0, device_id=0x03700ABC).start()  # replugged: a new tty
+        link.unlink()
+        link.symlink_to(sim.path)
+        after = read_until(trackers, lambda r: len(r) >= 20, seconds=8)
+        connected = list(trackers.devices)
+    finally:
+        trackers.close()
+        sim.close()
+    assert len(before) >= 20 and len(after) >= 20
+    assert {r.tracker_id for r in before + down + after} == {"03700ABC"}
+    assert trackers.disconnected == {} and connected == ["03700ABC"]
+    assert device.stats.reconnects == 1
+    # reconfigured as before: fixed 12.20 orientation in NWU
+    assert after[-1].frame is xbus.CoordinateFrame.NWU and after[-1].data.ids["quaternion"] == 0x2019
+    assert [r.packet_counter for r in after[1:]] == [r.packet_counter + 1 for r in after[:-1]]
+
+
+def test_reconnect_refuses_another_device_on_the_same_port(tmp_path):
+    link = tmp_path / "tracker"
+    source = synthetic_imu(seconds=5.0)
+    sim = XsensSimulator(source, speed=2.0, device_id=0x03700001).start()
+    link.symlink_to(sim.path)
+    device = XsensDevice(SerialTransport(str(link)))
+    device.configure(100)
+    sim.unplug()
+    other = XsensSimulator(source, speed=2.0, device_id=0x03700002).start()
+    link.unlink()
+    link.symlink_to(other.path)
+    try:
+        with pytest.raises(ProtocolError, match="device 03700002 answered where 03700001 was"):
+            device.reconnect()
+    finally:
+        device.close()
+        other.close()
+    assert device.tracker_id == "03700001" and device.stats.reconnects == 0
+
+
+def read_until(trackers: TrackerSet, done, *, seconds: float = 5.0) -> list:
+    readings: list = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        readings += trackers.read()
+        if done(readings):
+            break
+    return readings
