@@ -275,3 +275,29 @@ def test_our_simulator_serves_the_legacy_acc_port():
     assert acc.shape[1] == 48
     # paired sensors 1-4 lie flat: z = 1 g; x, y = 0; unpaired sensors all zero
     assert np.all(acc[:, [2, 5, 8, 11]] == 1.0) and not np.any(acc[:, [0, 1, 3, 4]]) and not np.any(acc[:, 12:])
+
+
+def test_emg_port_falls_back_when_the_configured_one_refuses():
+    """Clients disagree on the default EMG port (50043 vs 50041): a server offering only the other one still works."""
+    from tests.conftest import free_tcp_port
+
+    rows = known_rows(100, 16, paired=(3,))
+    answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({3: 3})}
+    server = FakeTcu(banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers, emg=tp.encode_samples(rows))
+    closed = free_tcp_port()  # nobody listens there: connection refused
+    config = TrignoConfig(command_port=server.ports["command"], emg_port=closed, emg_port_fallback=server.ports["emg"])
+    client = TrignoClient(config)
+    try:
+        client.connect()
+        assert client.emg_port == server.ports["emg"]
+        client.start()
+        received = stack(run_until(client, len(rows)), EmgBlock)
+    finally:
+        client.close()
+        server.close()
+    assert np.array_equal(received.view(np.uint32), rows.view(np.uint32))
+    with pytest.raises(ConnectionRefusedError):
+        TrignoClient(TrignoConfig(command_port=free_tcp_port())).connect()
+    assert TrignoConfig().resolved_emg_fallback == 50041
+    assert TrignoConfig(emg_port=6000).resolved_emg_fallback is None  # custom ports never fall back to defaults
+    assert TrignoConfig(emg_port_fallback=0).resolved_emg_fallback is None

@@ -25,6 +25,9 @@ class TrignoConfig:
     host: str = "127.0.0.1"
     command_port: int = tp.COMMAND_PORT
     emg_port: int = tp.EmgPort.AVANTI  # 50043, or 50041 (legacy) for older servers
+    # Clients disagree on the default EMG port: when emg_port refuses the connection, this one is tried.
+    # None: 50041 when emg_port is the default 50043 (a custom port never falls back to a default one); 0: never.
+    emg_port_fallback: int | None = None
     aux_port: int | None = None  # 50044 (Avanti AUX) or 50042 (legacy ACC) to also read an auxiliary stream
     aux_layout: tp.AuxLayout | None = None  # None: from the port number (50042 -> legacy ACC, else Avanti AUX)
     take_master: bool = True  # send MASTER when MASTER? says NO
@@ -43,10 +46,16 @@ class TrignoConfig:
     def __post_init__(self) -> None:
         if not self.host:
             raise ConfigError("Trigno host must not be empty", field="host", value=self.host)
-        for name in ("command_port", "emg_port", "aux_port"):
+        for name in ("command_port", "emg_port", "aux_port", "emg_port_fallback"):
             port = getattr(self, name)
-            if port is not None and not 0 < int(port) < 65536:
+            if port is not None and not (0 < int(port) < 65536 or (name == "emg_port_fallback" and port == 0)):
                 raise ConfigError("TCP port must be within 1..65535", field=name, value=port)
+
+    @property
+    def resolved_emg_fallback(self) -> int | None:
+        if self.emg_port_fallback is None:
+            return int(tp.EmgPort.LEGACY) if self.emg_port == tp.EmgPort.AVANTI else None
+        return self.emg_port_fallback or None
 
     @property
     def resolved_aux_layout(self) -> tp.AuxLayout:
@@ -166,6 +175,7 @@ class TrignoClient:
         self.aux_rate_hz = 0.0
         self.endianness = tp.Endianness.LITTLE
         self.upsampling: bool | None = None
+        self.emg_port = 0  # the EMG port actually connected (emg_port, or emg_port_fallback when it was refused)
         self._link: _Link | None = None
         self._selector = selectors.DefaultSelector()
         self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG])
@@ -322,7 +332,7 @@ class TrignoClient:
         try:
             self.protocol_version = tp.parse_banner(self._read_banner(link))
             self._configure(link)
-            link.emg = self._open_data(cfg.emg_port)
+            link.emg = self._open_emg()
             if cfg.aux_port is not None:
                 link.aux = self._open_data(cfg.aux_port)
         except BaseException:
@@ -356,6 +366,19 @@ class TrignoClient:
             if not chunk:
                 raise ConnectionResetError("Trigno server closed the command connection before its banner")
             link.pending_replies.extend(link.replies.feed(chunk))
+
+    def _open_emg(self) -> socket.socket:
+        cfg = self.config
+        try:
+            sock = self._open_data(cfg.emg_port)
+            self.emg_port = cfg.emg_port
+        except ConnectionRefusedError:
+            fallback = cfg.resolved_emg_fallback
+            if fallback is None or fallback == cfg.emg_port:
+                raise
+            sock = self._open_data(fallback)
+            self.emg_port = fallback
+        return sock
 
     def _open_data(self, port: int) -> socket.socket:
         sock = socket.create_connection((self.config.host, port), timeout=self.config.connect_timeout_s)
