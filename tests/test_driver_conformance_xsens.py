@@ -58,8 +58,9 @@ GYRO = (0.01, -0.02, 0.03)
 MAG = (0.4, 0.1, -0.9)
 
 
-def mtdata2(counter: int) -> bytes:
-    payload = item(0x1020, struct.pack(">H", counter)) + item(0x1060, struct.pack(">I", 100 * counter))
+def mtdata2(counter: int, stf0: int = 0) -> bytes:
+    sample_time = (stf0 + 100 * counter) % 864_000_000  # 10 kHz ticks at 100 Hz; wraps after one day
+    payload = item(0x1020, struct.pack(">H", counter)) + item(0x1060, struct.pack(">I", sample_time))
     payload += item(0x2016, fp1632(QUAT_NED))  # quaternion, NED (bits 3-2 = 0x4), fixed 16.32 (bits 1-0 = 2)
     payload += item(0x4023, struct.pack(">3d", *ACC))  # acceleration, float64
     payload += item(0x8021, fp1220(GYRO))  # rate of turn, fixed 12.20
@@ -75,12 +76,12 @@ class FakeMti:
     """Answers configuration from bus id 0x01, echoes the configuration it applied (rates capped at 100 Hz), and
     after GoToMeasurement streams ``count`` messages with a restart (WakeUp, counter from 0) after ``restart_at``."""
 
-    def __init__(self, *, count: int = 40, restart_at: int = 20, pieces=(1, 7, 3, 64, 17, 250)) -> None:
+    def __init__(self, *, count: int = 40, restart_at: int | None = 20, stf0: int = 0, pieces=(1, 7, 3, 64, 17, 250)) -> None:
         self.master, slave = os.openpty()
         tty.setraw(slave)
         self._slave = slave
         self.path = os.ttyname(slave)
-        self.count, self.restart_at, self.pieces = count, restart_at, pieces
+        self.count, self.restart_at, self.stf0, self.pieces = count, restart_at, stf0, pieces
         self.received_mids: list[int] = []
         self.applied: list[tuple[int, int]] = []
         self._stop = threading.Event()
@@ -146,14 +147,15 @@ class FakeMti:
 
     def _stream(self) -> None:
         for k in range(self.count):
-            counter = k if k < self.restart_at else k - self.restart_at
+            restarted = self.restart_at is not None and k >= self.restart_at
+            counter = k - self.restart_at if restarted else k
             if k == self.restart_at:
                 self._write(frame(0xFF, 0x3E))  # WakeUp: the device restarted; no ack -> back to Measurement
             if k == 5:
                 self._write(frame(0xFF, 0x43, struct.pack(">I", 0x1234)))  # a Warning between data
             if k == 25:
                 self._write(frame(0xFF, 0x42, b"\x1e"))  # Error: timer overflow
-            self._write(frame(0xFF, 0x36, mtdata2(counter)))
+            self._write(frame(0xFF, 0x36, mtdata2(counter, self.stf0)))
             time.sleep(0.002)
 
 
@@ -297,3 +299,21 @@ def read_until(trackers: TrackerSet, done, *, seconds: float = 5.0) -> list:
         if done(readings):
             break
     return readings
+
+
+def test_sample_time_fine_wrapping_after_a_day_keeps_device_time_continuous():
+    fake = FakeMti(count=30, restart_at=None, stf0=864_000_000 - 1000)  # wraps after 10 messages
+    device = XsensDevice(SerialTransport(fake.path))
+    try:
+        device.configure(100)
+        readings = []
+        deadline = time.monotonic() + 5
+        while len(readings) < fake.count and time.monotonic() < deadline:
+            readings += device.read()
+    finally:
+        device.close()
+        fake.close()
+    ticks = [r.sample_time_fine for r in readings]
+    assert len(readings) == 30 and ticks[9] == 863_999_900 and ticks[10] == 0
+    times = [r.device_time_ns for r in readings]
+    assert all(b - a == 100 * 100_000 for a, b in zip(times, times[1:]))

@@ -14,6 +14,8 @@ from msk_core.errors import ProtocolError
 DEFAULT_QUANTITIES = (0x2010, 0x4020, 0x8020, 0xC020)
 #: Output frequencies meaning "with every message" (equivalent in a SetOutputConfiguration echo).
 EVERY_MESSAGE = (0, 0xFFFF)
+#: SampleTimeFine (10 kHz ticks) wraps after one day on 10/100-series devices; others wrap at 2^32.
+SAMPLE_TIME_FINE_DAY = 864_000_000
 
 log = logging.getLogger(__name__)
 
@@ -41,10 +43,12 @@ class ImuReading:
     frame: xbus.CoordinateFrame
     host_time_ns: int
     data: xbus.MtData2
+    sample_time_offset: int = 0  # ticks added by unwrapping SampleTimeFine (a day per wrap on 10/100-series)
 
     @property
     def device_time_ns(self) -> int:
-        return 0 if self.sample_time_fine is None else self.sample_time_fine * 100_000
+        """Device time since power-up, continuous across SampleTimeFine wraps (0 without SampleTimeFine)."""
+        return 0 if self.sample_time_fine is None else (self.sample_time_fine + self.sample_time_offset) * 100_000
 
     def quaternion_enu(self) -> tuple[float, float, float, float] | None:
         return None if self.quaternion is None else frames.to_enu(self.quaternion, self.frame)
@@ -101,6 +105,8 @@ class XsensDevice:
         self.output_configuration: list[xbus.OutputSetting] = []  # as the device echoed it (what it applied)
         self._queue: list[xbus.XbusMessage] = []  # data frames read while waiting for a reply
         self._last_counter: dict[int, int] = {}
+        self._last_time: dict[int, int] = {}  # last SampleTimeFine per bus id
+        self._time_offset: dict[int, int] = {}  # unwrapping offset per bus id
         self._configured: dict | None = None  # configure() arguments, replayed by reconnect()
 
     @property
@@ -241,6 +247,8 @@ class XsensDevice:
                     self.stats.restarts += 1
                     self.stats.last_error = "device restarted (WakeUp while measuring)"
                 self._last_counter.clear()
+                self._last_time.clear()
+                self._time_offset.clear()
                 continue
             if message.mid != xbus.Mid.MT_DATA2:
                 continue
@@ -262,11 +270,20 @@ class XsensDevice:
                 self.stats.packets_lost += (counter - last - 1) & 0xFFFF
             self._last_counter[bid] = counter
         tracker = self.tracker_id if bid == xbus.BID_MASTER else f"{self.tracker_id}-{bid:02d}"
+        sample_time = data.first("sample_time_fine")
+        if sample_time is not None:
+            last = self._last_time.get(bid)
+            if last is not None and sample_time < last:
+                period = SAMPLE_TIME_FINE_DAY if last < SAMPLE_TIME_FINE_DAY else 1 << 32
+                if last - sample_time > period // 2:  # a wrap, not a sample arriving late
+                    self._time_offset[bid] = self._time_offset.get(bid, 0) + period
+            self._last_time[bid] = sample_time
         return ImuReading(
             tracker_id=tracker,
             bus_id=bid,
             packet_counter=counter,
-            sample_time_fine=data.first("sample_time_fine"),
+            sample_time_fine=sample_time,
+            sample_time_offset=self._time_offset.get(bid, 0),
             quaternion=data.get("quaternion"),
             acceleration=data.get("acceleration"),
             rate_of_turn=data.get("rate_of_turn"),
@@ -295,6 +312,8 @@ class XsensDevice:
         self.parser = xbus.XbusParser()
         self._queue.clear()
         self._last_counter.clear()
+        self._last_time.clear()
+        self._time_offset.clear()
         try:
             self.configure(**self._configured)  # type: ignore[arg-type]
         except BaseException:
