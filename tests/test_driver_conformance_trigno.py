@@ -184,7 +184,10 @@ def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
         "FRAME INTERVAL?": "0.0135",
         "SENSOR 1 CHANNEL 1 SAMPLES?": "26",  # MAX SAMPLES EMG? is refused: INVALID COMMAND
         "MAX SAMPLES AUX?": "2",
-        **sensor_answers({1: 0, 5: 4}),
+        **sensor_answers({1: 0, 5: 4, 9: 8}),
+        "SENSOR 1 ACTIVE?": "YES",  # sensor 5's ACTIVE? is refused (INVALID COMMAND): taken as active
+        "SENSOR 9 ACTIVE?": "NO",  # paired but switched off: its other answers would be garbage
+        "SENSOR 9 STARTINDEX?": "\x7f\x01",
     }
     server = FakeTcu(banner=banner, answers=answers, emg=tp.encode_samples(rows, tp.Endianness.BIG))
     client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"]))
@@ -193,8 +196,9 @@ def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
         assert client.protocol_version == banner.split(b"Version ")[1].strip().decode()
         assert client.endianness is tp.Endianness.BIG and client.upsampling is False
         assert client.rate_hz == pytest.approx(26 / 0.0135)
-        assert client.paired_sensors == [1, 5]
-        assert [s.start_index for s in client.sensors if s.paired] == [0, 4]
+        assert client.paired_sensors == [1, 5, 9] and client.active_sensors == [1, 5]
+        assert [s.start_index for s in client.sensors if s.active] == [0, 4]
+        assert not any(c.startswith("SENSOR 9 ") and c != "SENSOR 9 PAIRED?" and c != "SENSOR 9 ACTIVE?" for c in server.commands)
         client.start()
         events = run_until(client, len(rows))
         received = stack(events, EmgBlock)
@@ -269,6 +273,8 @@ def test_our_simulator_serves_the_legacy_acc_port():
             aux_layout=tp.AuxLayout.LEGACY_ACC,
         ))
         with client:
+            # one public client asks MAX SAMPLES EMG without the "?"
+            assert client.command("MAX SAMPLES EMG") == client.command("MAX SAMPLES EMG?") == "27"
             client.start()
             events = run_until(client, 100, aux_rows=4)
     acc = stack(events, AuxBlock)

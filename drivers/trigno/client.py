@@ -89,6 +89,7 @@ class SensorInfo:
     paired: bool
     type_code: str = ""
     start_index: int = -1  # 0-based EMG slot, whatever base the server reports in (-1: unknown)
+    active: bool = False  # paired and switched on (a paired sensor that is off streams zeros)
 
 
 @dataclass(frozen=True)
@@ -201,6 +202,10 @@ class TrignoClient:
     @property
     def paired_sensors(self) -> list[int]:
         return [s.sensor for s in self.sensors if s.paired]
+
+    @property
+    def active_sensors(self) -> list[int]:
+        return [s.sensor for s in self.sensors if s.active]
 
     def connect(self) -> None:
         """Open the command port, read the banner, configure and query the server, open the data ports."""
@@ -418,11 +423,19 @@ class TrignoClient:
 
     def _query_sensors(self, link: _Link) -> tuple[SensorInfo, ...]:
         paired: dict[int, str] = {}
+        active: set[int] = set()
         starts: dict[int, int] = {}
         for n in range(1, tp.N_SENSORS + 1):
             reply = self._query(link, f"SENSOR {n} PAIRED?")
             if reply is None or not tp.parse_yes_no(reply, command=f"SENSOR {n} PAIRED?"):
                 continue
+            paired[n] = ""
+            # A paired sensor that is not active answers further queries with garbage (trignoclient's experience):
+            # ask nothing more of it. A server without ACTIVE? is taken to mean every paired sensor is on.
+            reply = self._query(link, f"SENSOR {n} ACTIVE?")
+            if reply is not None and not tp.parse_yes_no(reply, command=f"SENSOR {n} ACTIVE?"):
+                continue
+            active.add(n)
             paired[n] = (self._query(link, f"SENSOR {n} TYPE?") or "").strip()
             start_reply = self._query(link, f"SENSOR {n} STARTINDEX?")
             if start_reply is not None:
@@ -432,7 +445,7 @@ class TrignoClient:
                     self._note_error(str(error))
         slots = tp.normalise_start_indices(starts)
         return tuple(
-            SensorInfo(n, n in paired, paired.get(n, ""), slots.get(n, n - 1 if n in paired else -1))
+            SensorInfo(n, n in paired, paired.get(n, ""), slots.get(n, n - 1 if n in paired else -1), n in active)
             for n in range(1, tp.N_SENSORS + 1)
         )
 

@@ -264,6 +264,8 @@ class TrignoSimulator:
         quirks = self.config.quirks
         words = command.upper().split()
         text = " ".join(words)
+        if text in ("MAX SAMPLES EMG", "MAX SAMPLES AUX"):  # one public client sends these without the "?"
+            text += "?"
         is_master = self._master == conn.id
         if text == "START":
             if not is_master:
