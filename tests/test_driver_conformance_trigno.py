@@ -19,6 +19,7 @@ from drivers.trigno import protocol as tp
 from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, StatusEvent, TrignoClient, TrignoConfig
 from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
 from drivers.trigno.source import synthetic_source
+from msk_core.errors import ProtocolError
 
 TERM = b"\r\n\r\n"
 
@@ -45,6 +46,7 @@ class FakeTcu:
         chunk_sizes: tuple[int, ...] = (7, 1, 13, 64, 3, 250, 5),
         refuse_first_start: bool = False,
         stopped_before_stop_reply: bool = False,
+        delays: dict[str, float] | None = None,
     ) -> None:
         self.banner = banner
         self.answers = answers
@@ -52,6 +54,7 @@ class FakeTcu:
         self.chunk_sizes = chunk_sizes
         self.refuse_first_start = refuse_first_start
         self.stopped_before_stop_reply = stopped_before_stop_reply
+        self.delays = delays or {}
         self.commands: list[str] = []
         self.acquiring = False
         self._data: dict[str, list[socket.socket]] = {"emg": [], "aux": []}
@@ -108,6 +111,7 @@ class FakeTcu:
                     packet, buffer = buffer.split(TERM, 1)
                     for command in packet.decode("ascii").split("\r\n"):
                         if command.strip():
+                            time.sleep(self.delays.get(command.strip(), 0.0))
                             self._send_split(conn, self._answer(command.strip()) + TERM)
                             if command.strip() == "QUIT":
                                 return
@@ -307,3 +311,21 @@ def test_emg_port_falls_back_when_the_configured_one_refuses():
     assert TrignoConfig().resolved_emg_fallback == 50041
     assert TrignoConfig(emg_port=6000).resolved_emg_fallback is None  # custom ports never fall back to defaults
     assert TrignoConfig(emg_port_fallback=0).resolved_emg_fallback is None
+
+
+def test_a_reply_arriving_after_its_timeout_is_not_taken_for_the_next_one():
+    answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", "BASE SERIAL?": "SP-W01D-1771", "BASE FIRMWARE?": "MA2919", **sensor_answers({1: 1})}
+    server = FakeTcu(
+        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers, emg=b"",
+        delays={"BASE SERIAL?": 0.45},  # answered while the next command waits
+    )
+    client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], reply_timeout_s=0.3))
+    try:
+        client.connect()
+        with pytest.raises(ProtocolError, match="no reply to 'BASE SERIAL\\?'"):
+            client.command("BASE SERIAL?")
+        assert client.command("BASE FIRMWARE?") == "MA2919"  # not the late serial number
+        assert client.command("MASTER?") == "YES"
+    finally:
+        client.close()
+        server.close()

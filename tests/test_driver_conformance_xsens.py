@@ -76,7 +76,11 @@ class FakeMti:
     """Answers configuration from bus id 0x01, echoes the configuration it applied (rates capped at 100 Hz), and
     after GoToMeasurement streams ``count`` messages with a restart (WakeUp, counter from 0) after ``restart_at``."""
 
-    def __init__(self, *, count: int = 40, restart_at: int | None = 20, stf0: int = 0, pieces=(1, 7, 3, 64, 17, 250)) -> None:
+    def __init__(
+        self, *, count: int = 40, restart_at: int | None = 20, stf0: int = 0, pieces=(1, 7, 3, 64, 17, 250),
+        device_id: bytes = struct.pack(">I", DEVICE_ID),
+    ) -> None:
+        self.device_id = device_id
         self.master, slave = os.openpty()
         tty.setraw(slave)
         self._slave = slave
@@ -128,7 +132,7 @@ class FakeMti:
         if mid == 0x30:
             self._write(frame(0x01, 0x31))
         elif mid == 0x00:
-            self._write(frame(0x01, 0x01, struct.pack(">I", DEVICE_ID)))
+            self._write(frame(0x01, 0x01, self.device_id))
         elif mid == 0x1C:
             self._write(frame(0x01, 0x1D, b"MTi-630-2A8G4\x00\x00"))
         elif mid == 0x12:
@@ -317,3 +321,15 @@ def test_sample_time_fine_wrapping_after_a_day_keeps_device_time_continuous():
     assert len(readings) == 30 and ticks[9] == 863_999_900 and ticks[10] == 0
     times = [r.device_time_ns for r in readings]
     assert all(b - a == 100 * 100_000 for a, b in zip(times, times[1:]))
+
+
+def test_eight_byte_device_id_is_kept_whole():
+    fake = FakeMti(device_id=bytes.fromhex("0123456789ABCDEF"))
+    device = XsensDevice(SerialTransport(fake.path))
+    try:
+        device.go_to_config()
+        assert device.request_device_id() == 0x0123456789ABCDEF
+        assert device.tracker_id == "0123456789ABCDEF"
+    finally:
+        device.close()
+        fake.close()

@@ -153,6 +153,7 @@ class _Link:
     aux: socket.socket | None
     replies: tp.ReplyReader = field(default_factory=tp.ReplyReader)
     pending_replies: list[str] = field(default_factory=list)
+    late_replies: int = 0  # commands that timed out: their replies, when they come, belong to nobody
 
     def close(self) -> None:
         for sock in (self.command, self.emg, self.aux):
@@ -304,11 +305,15 @@ class TrignoClient:
                     else:
                         self._on_stopped()
                     continue
+                if link.late_replies:  # one reply per command: this one answers a command that timed out
+                    link.late_replies -= 1
+                    continue
                 return reply
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 if stopped_seen:
                     return tp.UNSOLICITED_STOPPED
+                link.late_replies += 1  # so a late reply is not taken as the next command's
                 raise ProtocolError(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
             link.command.settimeout(remaining)
             try:
@@ -551,6 +556,8 @@ class TrignoClient:
         for reply in link.replies.feed(chunk):
             if reply.upper() == tp.UNSOLICITED_STOPPED:
                 self._on_stopped()
+            elif link.late_replies:
+                link.late_replies -= 1
             else:
                 self._note_error(f"unexpected reply {reply!r} on the command port")
 

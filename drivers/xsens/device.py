@@ -102,6 +102,7 @@ class XsensDevice:
         self.parser = xbus.XbusParser()
         self.stats = DeviceStats()
         self.device_id: int | None = None
+        self.device_id_size = 4  # bytes of the DeviceID reply (4, or 8 on newer devices): hex digits of tracker_id
         self.output_configuration: list[xbus.OutputSetting] = []  # as the device echoed it (what it applied)
         self._queue: list[xbus.XbusMessage] = []  # data frames read while waiting for a reply
         self._last_counter: dict[int, int] = {}
@@ -111,7 +112,7 @@ class XsensDevice:
 
     @property
     def tracker_id(self) -> str:
-        return f"{self.device_id:08X}" if self.device_id is not None else self.transport.name
+        return f"{self.device_id:0{2 * self.device_id_size}X}" if self.device_id is not None else self.transport.name
 
     # ------------------------------------------------------------------------------------------ messaging
     def send(self, mid: int, data: bytes = b"") -> None:
@@ -174,8 +175,9 @@ class XsensDevice:
     def request_device_id(self) -> int:
         reply = self.request(xbus.Mid.REQ_DID)
         if len(reply.data) not in (4, 8):
-            raise ProtocolError(f"DeviceID reply has {len(reply.data)} bytes, expected 4")
-        self.device_id = int.from_bytes(reply.data[:4], "big")
+            raise ProtocolError(f"DeviceID reply has {len(reply.data)} bytes, expected 4 or 8")
+        self.device_id = int.from_bytes(reply.data, "big")  # 8-byte ids (newer devices) kept whole: unique keys
+        self.device_id_size = len(reply.data)
         return self.device_id
 
     def request_product_code(self) -> str:
@@ -224,7 +226,7 @@ class XsensDevice:
         firmware = self.request_firmware_revision()
         applied = self.set_output_configuration(output_settings(rate_hz, precision=precision, frame=frame))
         self.go_to_measurement()
-        return {"device_id": f"{device_id:08X}", "product_code": product, "firmware": str(firmware), "outputs": applied}
+        return {"device_id": self.tracker_id, "product_code": product, "firmware": str(firmware), "outputs": applied}
 
     # ------------------------------------------------------------------------------------------ measurement
     def read(self) -> list[ImuReading]:
