@@ -333,3 +333,28 @@ def test_eight_byte_device_id_is_kept_whole():
     finally:
         device.close()
         fake.close()
+
+
+@pytest.mark.parametrize("set_number", [1, 2, 3, 4])
+def test_line_load_estimate_matches_the_real_captures(shared_dir, set_number):
+    """The serial load predicted from a real output configuration vs the bytes the real device sent at 100 Hz."""
+    folder = shared_dir / "data/xsens-captures"
+    settings = xbus.decode_output_configuration((folder / f"mtig710_set{set_number}_outputconfig.bin").read_bytes())
+    messages = xbus.iter_capture((folder / f"mtig710_set{set_number}.bin").read_bytes())[50:]  # filter running
+    measured = 10 * 100 * sum(len(xbus.encode_message(m.mid, m.data)) for m in messages) / len(messages)
+    predicted = xbus.output_bits_per_second(settings)
+    assert measured <= predicted <= 1.05 * measured
+    assert predicted > 115200  # that real configuration could not run at the factory baud rate
+
+
+def test_configure_warns_when_the_outputs_exceed_the_baud_rate(caplog):
+    with XsensSimulator(synthetic_imu(seconds=2.0)) as sim, caplog.at_level(logging.WARNING, logger="drivers.xsens.device"):
+        slow = XsensDevice(SerialTransport(sim.path, baudrate=115200))
+        slow.configure(100, precision=xbus.Precision.FLOAT64)  # about 135 kbit/s
+        assert "line carries 115 kbit/s" in slow.stats.last_error and "135 kbit/s" in caplog.text
+        slow.close()
+        caplog.clear()
+        fast = XsensDevice(SerialTransport(sim.path, baudrate=921600))
+        fast.configure(100, precision=xbus.Precision.FLOAT64)
+        fast.close()
+    assert "kbit/s" not in caplog.text and fast.stats.last_error == ""

@@ -225,8 +225,21 @@ class XsensDevice:
         product = self.request_product_code()
         firmware = self.request_firmware_revision()
         applied = self.set_output_configuration(output_settings(rate_hz, precision=precision, frame=frame))
+        self._check_line_capacity(applied)
         self.go_to_measurement()
         return {"device_id": self.tracker_id, "product_code": product, "firmware": str(firmware), "outputs": applied}
+
+    def _check_line_capacity(self, settings: list[xbus.OutputSetting]) -> None:
+        """Warn when the outputs need more than the serial line carries (the device then drops messages; the
+        factory 115200 baud holds about 11 kB/s). Native USB devices have no line rate (no ``baudrate``)."""
+        baudrate = getattr(self.transport, "baudrate", None)
+        needed = xbus.output_bits_per_second(settings)
+        if baudrate and needed > 0.9 * baudrate:
+            self.stats.last_error = (
+                f"{self.transport.name}: outputs need {needed / 1000:.0f} kbit/s, the line carries {baudrate / 1000:.0f}"
+                " kbit/s: lower the rate or precision, or raise the baud rate"
+            )
+            log.warning("%s", self.stats.last_error)
 
     # ------------------------------------------------------------------------------------------ measurement
     def read(self) -> list[ImuReading]:

@@ -654,6 +654,26 @@ def encode_output_configuration(settings: list[OutputSetting]) -> bytes:
     return b"".join(struct.pack(">HH", s.data_id, s.frequency) for s in settings)
 
 
+def item_size(data_id: int) -> int | None:
+    """Data bytes of one MTData2 item of this DataID (None when the quantity is not in the tables)."""
+    raw_spec = RAW_QUANTITIES.get(data_id)
+    if raw_spec is not None:
+        return struct.calcsize(raw_spec[1])
+    spec = FLOAT_QUANTITIES.get(data_id & 0xFFF0)
+    return None if spec is None else spec[1] * PRECISION_SIZE[Precision(data_id & 0x3)]
+
+
+def output_bits_per_second(settings: list[OutputSetting]) -> float:
+    """Serial line load of an output configuration (8N1: 10 bits per byte): MTData2 messages at the highest output
+    rate, each item at its own rate (0/0xFFFF: in every message). Unknown DataIDs count their 3-byte header only."""
+    rates = [s.frequency for s in settings if s.frequency not in (0, 0xFFFF)]
+    message_rate = float(max(rates)) if rates else 100.0
+    payload = sum((3 + (item_size(s.data_id) or 0)) * (message_rate if s.frequency in (0, 0xFFFF) else s.frequency)
+                  for s in settings)
+    overhead = message_rate * (6 + 1)  # FA BID MID LEN [LENext] ... CS (extended header counted: worst case)
+    return 10.0 * (payload + overhead)
+
+
 def iter_capture(data: bytes) -> list[XbusMessage]:
     """Every frame of a raw serial capture."""
     return XbusParser().feed(data)
