@@ -358,3 +358,22 @@ def test_configure_warns_when_the_outputs_exceed_the_baud_rate(caplog):
         fast.configure(100, precision=xbus.Precision.FLOAT64)
         fast.close()
     assert "kbit/s" not in caplog.text and fast.stats.last_error == ""
+
+
+def test_switching_the_baud_rate_through_a_reset():
+    with XsensSimulator(synthetic_imu(seconds=2.0), speed=2.0) as sim:
+        device = XsensDevice(SerialTransport(sim.path))  # factory 115200
+        device.reset()
+        with pytest.raises(ProtocolError, match="no Xbus baud-rate code"):
+            device.set_baudrate(1000)
+        device.set_baudrate(921600)
+        assert device.transport.baudrate == 921600 and sim.baudrate == 921600
+        assert device.request_baudrate() == 921600
+        device.configure(100, precision=xbus.Precision.FLOAT64)  # fits at 921600: no line-capacity warning
+        assert device.stats.last_error == ""
+        readings = []
+        deadline = time.monotonic() + 5
+        while len(readings) < 5 and time.monotonic() < deadline:
+            readings += device.read()
+        device.close()
+    assert len(readings) >= 5

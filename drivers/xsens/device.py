@@ -159,6 +159,31 @@ class XsensDevice:
         self.send(xbus.Mid.RESET)  # ResetAck, then WakeUp: both are consumed by wait_for_wakeup
         return self.wait_for_wakeup(timeout)
 
+    def set_baudrate(self, rate: int, *, timeout: float = 1.0) -> None:
+        """Move the device and the host port to ``rate`` bit/s: SetBaudrate (stored by the device, effective after a
+        restart), Reset, host port switched after the ResetAck, WakeUp acknowledged at the new rate (Config state)."""
+        code = xbus.baud_code(rate)
+        switch = getattr(self.transport, "set_baudrate", None)
+        if switch is None:
+            raise ProtocolError(f"{self.transport.name}: this transport has no baud rate to change")
+        self.go_to_config()
+        self.request(xbus.Mid.BAUDRATE, bytes((code,)))
+        self.send(xbus.Mid.RESET)
+        deadline = time.monotonic() + timeout
+        switched = False
+        while time.monotonic() < deadline:
+            for message in self._read_messages():
+                if message.mid == xbus.Mid.RESET_ACK and not switched:
+                    switch(rate)  # the ack came at the old rate; what follows comes at the new one
+                    switched = True
+                elif message.mid == xbus.Mid.WAKE_UP:
+                    if not switched:
+                        switch(rate)
+                    self.send(xbus.Mid.WAKE_UP_ACK)
+                    self._last_counter.clear()
+                    return
+        raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
+
     def go_to_config(self, *, attempts: int = 3) -> None:
         """Enter Config state (a streaming device may need more than one request at high rates)."""
         for attempt in range(attempts):

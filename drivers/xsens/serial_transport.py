@@ -70,6 +70,16 @@ class SerialTransport:
         except self._errors:
             pass
 
+    def set_baudrate(self, baudrate: int) -> None:
+        """Change the line rate of the open port (after the device was told to switch)."""
+        if baudrate not in BAUD_RATES:
+            raise ConfigError(f"unsupported baud rate; use one of {BAUD_RATES}", field="baudrate", value=baudrate)
+        try:
+            self._serial.baudrate = baudrate
+        except self._errors as error:
+            raise DeviceDisconnected(f"{self.name}: {error}") from error
+        self.baudrate = baudrate
+
     def reopen(self) -> "SerialTransport":
         """The same port opened again: after an unplug, a stable path (/dev/serial/by-id/...) names the replugged
         device. Raises DeviceDisconnected while it is still absent."""
