@@ -82,6 +82,12 @@ def test_yes_no_variants(reply, value):
     assert tp.parse_yes_no(reply) is value
 
 
+def test_wordier_replies():
+    assert tp.parse_yes_no("YES MASTER") is True and tp.parse_yes_no("No.") is False
+    assert tp.is_error("INVALID COMMAND") and tp.is_error("cannot complete ") and tp.is_error("CANNOT COMPLETE: NOT PAIRED")
+    assert not tp.is_error("OK") and not tp.is_error("INVALID") and not tp.is_error("CANNOT COMPLETED")
+
+
 def test_yes_no_rejects_other_text():
     with pytest.raises(ProtocolError, match="not YES/NO"):
         tp.parse_yes_no("MAYBE", command="UPSAMPLING?")

@@ -174,18 +174,19 @@ def parse_banner(text: str) -> str:
 
 
 def is_error(reply: str) -> bool:
-    return reply.strip().upper() in ERROR_REPLIES
+    """``INVALID COMMAND`` / ``CANNOT COMPLETE``, also with words after them (a detail some servers may add)."""
+    text = " ".join(reply.strip().upper().split())
+    return any(text == e or text.startswith(e + " ") or text.startswith(e + ":") for e in ERROR_REPLIES)
 
 
 def parse_yes_no(reply: str, *, command: str = "") -> bool:
     """``YES``/``NO`` and the variants ``UPSAMPLING ON|OFF``, ``ON``/``OFF``, ``TRUE``/``FALSE``."""
-    text = reply.strip().upper()
-    words = text.split()
-    last = words[-1] if words else ""
-    if last in ("YES", "ON", "TRUE"):
-        return True
-    if last in ("NO", "OFF", "FALSE"):
-        return False
+    # the last yes/no word decides: "UPSAMPLING ON", "YES", and wordier variants such as "YES MASTER"
+    for word in reversed(reply.strip().upper().replace(".", " ").split()):
+        if word in ("YES", "ON", "TRUE"):
+            return True
+        if word in ("NO", "OFF", "FALSE"):
+            return False
     raise ProtocolError(f"reply {reply!r} to {command!r} is not YES/NO or ON/OFF")
 
 
