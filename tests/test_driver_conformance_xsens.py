@@ -377,3 +377,37 @@ def test_switching_the_baud_rate_through_a_reset():
             readings += device.read()
         device.close()
     assert len(readings) >= 5
+
+
+def test_a_port_back_without_its_device_is_probed_once_and_retried_ever_more_slowly(tmp_path):
+    """A USB-serial converter can come back while the sensor behind it is off: a silent tty."""
+    link = tmp_path / "tracker"
+    sim = XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0, device_id=0x03700001).start()
+    link.symlink_to(sim.path)
+    trackers = TrackerSet(retry_interval_s=0.01, retry_max_s=0.04)
+    device = XsensDevice(SerialTransport(str(link)))
+    device.configure(100)
+    trackers.add(device)
+    read_until(trackers, lambda r: len(r) >= 3)
+    sim.unplug()
+    read_until(trackers, lambda r: "03700001" in trackers.disconnected)
+    master, slave = os.openpty()  # the silent port
+    tty.setraw(slave)
+    link.unlink()
+    link.symlink_to(os.ttyname(slave))
+    try:
+        delays = []
+        for _ in range(4):
+            trackers._next_attempt["03700001"] = 0.0  # attempt now
+            assert trackers.read() == []
+            delays.append(trackers.retry_delay("03700001"))
+        time.sleep(0.05)
+        received = os.read(master, 4096)
+    finally:
+        trackers.close()
+        os.close(master)
+        os.close(slave)
+    assert delays == [0.02, 0.04, 0.04, 0.04]  # doubling, capped
+    # each attempt sent exactly one GoToConfig probe and gave up: no full configure() against a silent port
+    assert received == xbus.encode_message(xbus.Mid.GO_TO_CONFIG) * 4
+    assert "reconnect failed" in device.stats.last_error and "03700001" in trackers.disconnected

@@ -340,10 +340,12 @@ class XsensDevice:
     def can_reconnect(self) -> bool:
         return self._configured is not None and hasattr(self.transport, "reopen")
 
-    def reconnect(self) -> None:
+    def reconnect(self, *, probe_timeout_s: float = 0.3) -> None:
         """Open the port again and redo configure() with the same arguments (after an unplug). The device must
         report the same device id. Raises DeviceDisconnected while it is absent, ProtocolError when it does not
-        answer or is another device; statistics carry on."""
+        answer or is another device; statistics carry on. A single short GoToConfig probes first: a port that is
+        back without its device (a USB-serial converter whose sensor is off) must not block the caller for the
+        full configure() timeouts."""
         if not self.can_reconnect:
             raise ProtocolError(f"{self.transport.name}: cannot reconnect (never configured, or the transport cannot reopen)")
         previous = self.device_id
@@ -354,16 +356,18 @@ class XsensDevice:
         self._last_counter.clear()
         self._last_time.clear()
         self._time_offset.clear()
+        size = self.device_id_size
         try:
+            self.request(xbus.Mid.GO_TO_CONFIG, timeout=probe_timeout_s)
             self.configure(**self._configured)  # type: ignore[arg-type]
         except BaseException:
             transport.close()
             raise
         if previous is not None and self.device_id != previous:
-            found = self.device_id
-            self.device_id = previous  # the tracker keeps its id; this port now has another device
+            found = self.tracker_id
+            self.device_id, self.device_id_size = previous, size  # the tracker keeps its id; another device is here
             transport.close()
-            raise ProtocolError(f"{transport.name}: device {found:08X} answered where {previous:08X} was")
+            raise ProtocolError(f"{transport.name}: device {found} answered where {self.tracker_id} was")
         self.stats.reconnects += 1
 
 
@@ -390,15 +394,18 @@ def _mid_name(mid: int) -> str:
 @dataclass
 class TrackerSet:
     """Several devices keyed by tracker id (device id as 8 hex digits). An unplugged device moves to
-    ``disconnected`` (reason kept); with ``reconnect`` its port is reopened every ``retry_interval_s`` and, once the
-    same device answers, it is reconfigured as before and returns to ``devices`` (same XsensDevice object)."""
+    ``disconnected`` (reason kept); with ``reconnect`` its port is reopened after ``retry_interval_s``, the delay
+    doubling after each failure up to ``retry_max_s``, and once the same device answers it is reconfigured as before
+    and returns to ``devices`` (same XsensDevice object)."""
 
     devices: dict[str, XsensDevice] = field(default_factory=dict)
     disconnected: dict[str, str] = field(default_factory=dict)
     reconnect: bool = True
     retry_interval_s: float = 0.5
+    retry_max_s: float = 5.0
     _lost: dict[str, XsensDevice] = field(default_factory=dict)
     _next_attempt: dict[str, float] = field(default_factory=dict)
+    _delay: dict[str, float] = field(default_factory=dict)
 
     def add(self, device: XsensDevice) -> str:
         if device.device_id is None:
@@ -421,6 +428,7 @@ class TrackerSet:
                 device.close()
                 if self.reconnect and device.can_reconnect:
                     self._lost[key] = device
+                    self._delay[key] = self.retry_interval_s
                     self._next_attempt[key] = time.monotonic() + self.retry_interval_s
         if self._lost:
             self._try_reconnect()
@@ -435,10 +443,15 @@ class TrackerSet:
                 device.reconnect()
             except (DeviceDisconnected, ProtocolError) as error:
                 device.stats.last_error = f"reconnect failed: {error}"  # ``disconnected`` keeps why it went away
-                self._next_attempt[key] = time.monotonic() + self.retry_interval_s
+                self._delay[key] = min(2 * self._delay[key], self.retry_max_s)
+                self._next_attempt[key] = time.monotonic() + self._delay[key]
                 continue
-            del self._lost[key], self._next_attempt[key], self.disconnected[key]
+            del self._lost[key], self._next_attempt[key], self._delay[key], self.disconnected[key]
             self.devices[key] = device
+
+    def retry_delay(self, key: str) -> float | None:
+        """Seconds between reconnection attempts for a lost tracker now (None when it is not lost)."""
+        return self._delay.get(key)
 
     def close(self) -> None:
         for device in self.devices.values():
