@@ -87,6 +87,8 @@ class FakeTcu:
             except (socket.timeout, OSError):
                 continue
             if name == "command":
+                # no Nagle: the split replies go out as two segments at once instead of waiting for delayed ACKs
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
             else:
                 self._data[name].append(conn)
