@@ -331,3 +331,20 @@ def test_a_reply_arriving_after_its_timeout_is_not_taken_for_the_next_one():
     finally:
         client.close()
         server.close()
+
+
+def test_raw_capture_cut_inside_its_last_sample_loads_the_whole_samples(tmp_path, caplog):
+    from drivers.trigno.source import load_source
+    from msk_core.errors import FileFormatError
+
+    rows = known_rows(10, 16, paired=(1, 4))
+    path = tmp_path / "cut.bin"
+    path.write_bytes(tp.encode_samples(rows) + tp.encode_samples(rows[:1])[:37])
+    with caplog.at_level("WARNING", logger="drivers.trigno.source"):
+        source = load_source(path)
+    assert np.array_equal(source.samples.view(np.uint32), rows.view(np.uint32))
+    assert source.paired == tuple(k in (0, 3) for k in range(16))
+    assert "37 trailing bytes" in caplog.text and "cut.bin" in caplog.text
+    path.write_bytes(bytes(63))
+    with pytest.raises(FileFormatError, match="less than one 64-byte sample"):
+        load_source(path)

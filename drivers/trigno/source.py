@@ -10,6 +10,7 @@ Formats (docs/devices.md has the full description):
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,8 @@ import numpy as np
 from drivers import parse_synthetic_spec
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import FileFormatError, InputError
+
+log = logging.getLogger(__name__)
 
 _EMG_LABEL = re.compile(r"^(?P<name>.*?)\.(?P<im>IM )?EMG(?P<slot>\d+)$")
 
@@ -61,11 +64,16 @@ def load_source(spec: str | Path, *, rate_hz: float | None = None) -> EmgSource:
 
 
 def load_raw_stream(path: Path, *, rate_hz: float) -> EmgSource:
-    """A capture of the EMG data port: little-endian float32, 16 per sample, no header."""
+    """A capture of the EMG data port: little-endian float32, 16 per sample, no header. A capture cut inside its
+    last sample (the stream has no framing, so a recording can stop anywhere) loses that sample with a warning."""
     data = path.read_bytes()
     row_bytes = N_SENSORS * 4
-    if not data or len(data) % row_bytes:
-        raise FileFormatError(f"{len(data)} bytes is not a whole number of {row_bytes}-byte samples (16 float32)", path=path)
+    if len(data) < row_bytes:
+        raise FileFormatError(f"{len(data)} bytes is less than one {row_bytes}-byte sample (16 float32)", path=path)
+    if len(data) % row_bytes:
+        log.warning("%s: %d trailing bytes are an incomplete sample (capture cut mid-sample); dropped",
+                    path, len(data) % row_bytes)
+        data = data[: len(data) - len(data) % row_bytes]
     if not 100.0 <= rate_hz <= 10000.0:
         raise InputError("rate must be within 100..10000 Hz", field="--rate", value=rate_hz)
     samples = np.frombuffer(data, dtype="<f4").reshape(-1, N_SENSORS).astype(np.float32)
