@@ -411,3 +411,16 @@ def test_a_port_back_without_its_device_is_probed_once_and_retried_ever_more_slo
     # each attempt sent exactly one GoToConfig probe and gave up: no full configure() against a silent port
     assert received == xbus.encode_message(xbus.Mid.GO_TO_CONFIG) * 4
     assert "reconnect failed" in device.stats.last_error and "03700001" in trackers.disconnected
+
+
+def test_capture_with_two_bus_ids_and_a_cut_last_frame_keeps_one_tracker(tmp_path, caplog):
+    own = [frame(0xFF, 0x36, mtdata2(k)) for k in range(6)]
+    other = [frame(0x02, 0x36, mtdata2(100 + k)) for k in range(6)]
+    stream = b"".join(a + b for a, b in zip(own, other)) + own[0][:20]
+    path = tmp_path / "two_trackers.bin"
+    path.write_bytes(stream)
+    with caplog.at_level(logging.WARNING, logger="drivers.xsens.source"):
+        source = load_imu_source(path)
+    assert [xbus.decode_mtdata2(p).first("packet_counter") for p in source.raw_payloads] == list(range(6))
+    assert source.rate_hz == pytest.approx(100.0)  # SampleTimeFine steps of 100 ticks
+    assert "bus ids [2, 255]; using 0xFF only" in caplog.text and "20 trailing bytes" in caplog.text

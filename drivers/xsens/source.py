@@ -12,6 +12,7 @@ Formats (docs/devices.md has the full description):
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -73,6 +74,14 @@ def load_capture(path: Path) -> ImuSource:
     messages = [m for m in parser.feed(data) if m.mid == xbus.Mid.MT_DATA2]
     if not messages:
         raise FileFormatError(f"no valid MTData2 frame in {len(data)} bytes", path=path)
+    if parser.stats.bytes_skipped or parser.pending:
+        log.warning("%s: %d bytes outside valid frames skipped, %d trailing bytes of an incomplete frame dropped",
+                    path, parser.stats.bytes_skipped, parser.pending)
+    bus_ids = Counter(m.bid for m in messages)
+    if len(bus_ids) > 1:  # several trackers in one stream (bus ids): one source is one tracker
+        bid = xbus.BID_MASTER if xbus.BID_MASTER in bus_ids else bus_ids.most_common(1)[0][0]
+        log.warning("%s: MTData2 from bus ids %s; using 0x%02X only", path, sorted(bus_ids), bid)
+        messages = [m for m in messages if m.bid == bid]
     columns: dict[str, list] = {}
     counters = []
     for index, message in enumerate(messages):
