@@ -182,7 +182,7 @@ def stack(events: list, kind: type) -> np.ndarray:
 )
 def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
     # sensor 1 is a 4-channel sensor (slots 1-4), the next sensor starts in slot 5; 0-based STARTINDEX replies
-    rows = known_rows(600, 16, paired=(1, 5))
+    rows = known_rows(600, 16, paired=(1, 2, 3, 4, 5))
     answers = {
         "MASTER?": "YES",
         "ENDIANNESS?": "BIG",  # server-side setting the client did not ask for
@@ -192,6 +192,8 @@ def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
         "MAX SAMPLES AUX?": "2",
         **sensor_answers({1: 0, 5: 4, 9: 8}),
         "SENSOR 1 ACTIVE?": "YES",  # sensor 5's ACTIVE? is refused (INVALID COMMAND): taken as active
+        "SENSOR 1 EMGCHANNELCOUNT?": "4",
+        "SENSOR 5 EMGCHANNELCOUNT?": "1",
         "SENSOR 9 ACTIVE?": "NO",  # paired but switched off: its other answers would be garbage
         "SENSOR 9 STARTINDEX?": "\x7f\x01",
     }
@@ -204,12 +206,15 @@ def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
         assert client.rate_hz == pytest.approx(26 / 0.0135)
         assert client.paired_sensors == [1, 5, 9] and client.active_sensors == [1, 5]
         assert [s.start_index for s in client.sensors if s.active] == [0, 4]
+        assert client.emg_columns == [
+            ("sensor01.EMG1", 0), ("sensor01.EMG2", 1), ("sensor01.EMG3", 2), ("sensor01.EMG4", 3), ("sensor05.EMG", 4),
+        ]
         assert not any(c.startswith("SENSOR 9 ") and c != "SENSOR 9 PAIRED?" and c != "SENSOR 9 ACTIVE?" for c in server.commands)
         client.start()
         events = run_until(client, len(rows))
         received = stack(events, EmgBlock)
         assert np.array_equal(received.view(np.uint32), rows.view(np.uint32))
-        assert not np.any(received[:, [1, 2, 3, 5, 15]])
+        assert not np.any(received[:, 5:])
         client.stop()
         assert client.stats.errors == 0
     finally:

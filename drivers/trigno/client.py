@@ -90,6 +90,13 @@ class SensorInfo:
     type_code: str = ""
     start_index: int = -1  # 0-based EMG slot, whatever base the server reports in (-1: unknown)
     active: bool = False  # paired and switched on (a paired sensor that is off streams zeros)
+    emg_channels: int = 1  # EMGCHANNELCOUNT? (multi-channel sensors fill consecutive slots from start_index)
+
+    @property
+    def emg_slots(self) -> list[int]:
+        """0-based EMG-port slots holding this sensor's EMG channels (its own slot when the start is unknown)."""
+        first = self.start_index if self.start_index >= 0 else self.sensor - 1
+        return [k for k in range(first, first + self.emg_channels) if 0 <= k < tp.N_SENSORS]
 
 
 @dataclass(frozen=True)
@@ -207,6 +214,19 @@ class TrignoClient:
     @property
     def active_sensors(self) -> list[int]:
         return [s.sensor for s in self.sensors if s.active]
+
+    @property
+    def emg_columns(self) -> list[tuple[str, int]]:
+        """(label, 0-based slot) of every EMG channel of the active sensors: ``sensorNN.EMG`` for single-channel
+        sensors, ``sensorNN.EMGk`` (k = 1..) for multi-channel ones."""
+        out = []
+        for info in self.sensors:
+            if not info.active:
+                continue
+            slots = info.emg_slots
+            for k, slot in enumerate(slots, start=1):
+                out.append((f"sensor{info.sensor:02d}.EMG" + (str(k) if len(slots) > 1 else ""), slot))
+        return out
 
     def connect(self) -> None:
         """Open the command port, read the banner, configure and query the server, open the data ports."""
@@ -430,6 +450,7 @@ class TrignoClient:
         paired: dict[int, str] = {}
         active: set[int] = set()
         starts: dict[int, int] = {}
+        channels: dict[int, int] = {}
         for n in range(1, tp.N_SENSORS + 1):
             reply = self._query(link, f"SENSOR {n} PAIRED?")
             if reply is None or not tp.parse_yes_no(reply, command=f"SENSOR {n} PAIRED?"):
@@ -448,9 +469,18 @@ class TrignoClient:
                     starts[n] = tp.parse_int(start_reply, command=f"SENSOR {n} STARTINDEX?")
                 except ProtocolError as error:  # informative only: never a reason to refuse the server
                     self._note_error(str(error))
+            count_reply = self._query(link, f"SENSOR {n} EMGCHANNELCOUNT?")
+            if count_reply is not None:
+                try:
+                    channels[n] = max(0, min(tp.N_SENSORS, tp.parse_int(count_reply, command=f"SENSOR {n} EMGCHANNELCOUNT?")))
+                except ProtocolError as error:
+                    self._note_error(str(error))
         slots = tp.normalise_start_indices(starts)
         return tuple(
-            SensorInfo(n, n in paired, paired.get(n, ""), slots.get(n, n - 1 if n in paired else -1), n in active)
+            SensorInfo(
+                n, n in paired, paired.get(n, ""), slots.get(n, n - 1 if n in paired else -1), n in active,
+                channels.get(n, 1),
+            )
             for n in range(1, tp.N_SENSORS + 1)
         )
 
