@@ -14,6 +14,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from drivers.trigno import protocol as tp
 from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, StatusEvent, TrignoClient, TrignoConfig
@@ -47,7 +49,11 @@ class FakeTcu:
         refuse_first_start: bool = False,
         stopped_before_stop_reply: bool = False,
         delays: dict[str, float] | None = None,
+        reply_pad: bytes = b" ",
+        split_fraction: float = 0.5,
     ) -> None:
+        self.reply_pad = reply_pad
+        self.split_fraction = split_fraction
         self.banner = banner
         self.answers = answers
         self.payloads = {"emg": emg, "aux": aux}
@@ -95,7 +101,7 @@ class FakeTcu:
 
     def _send_split(self, conn: socket.socket, data: bytes) -> None:
         """Two TCP segments per message: a reader must not assume a reply arrives whole."""
-        half = max(1, len(data) // 2)
+        half = max(1, int(len(data) * self.split_fraction))
         conn.sendall(data[:half])
         time.sleep(0.002)
         conn.sendall(data[half:])
@@ -122,16 +128,16 @@ class FakeTcu:
         self.commands.append(command)
         if command == "START":
             if self.refuse_first_start and self.acquiring:
-                return b"CANNOT COMPLETE "
+                return b"CANNOT COMPLETE" + self.reply_pad
             self.acquiring = True
             threading.Thread(target=self._stream, daemon=True).start()
-            return b"OK "
+            return b"OK" + self.reply_pad
         if command == "STOP":
             self.acquiring = False
-            return (b"STOPPED" + TERM + b"OK") if self.stopped_before_stop_reply else b"OK "
+            return (b"STOPPED" + TERM + b"OK") if self.stopped_before_stop_reply else b"OK" + self.reply_pad
         if command == "QUIT":
             return b"OK"
-        return (self.answers.get(command, "INVALID COMMAND") + " ").encode("ascii")
+        return self.answers.get(command, "INVALID COMMAND").encode("ascii") + self.reply_pad
 
     def _stream(self) -> None:
         time.sleep(0.05)
@@ -353,3 +359,48 @@ def test_raw_capture_cut_inside_its_last_sample_loads_the_whole_samples(tmp_path
     path.write_bytes(bytes(63))
     with pytest.raises(FileFormatError, match="less than one 64-byte sample"):
         load_source(path)
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    version=st.from_regex(r"[0-9]{1,2}\.[0-9]{1,2}\.[0-9]{1,3}", fullmatch=True),
+    banner_end=st.sampled_from([TERM, b" " + TERM, b"\r\n"]),
+    pad=st.sampled_from([b"", b" ", b"  ", b"\t"]),
+    split=st.floats(0.05, 0.95),
+    chunks=st.lists(st.integers(1, 300), min_size=1, max_size=6),
+    endianness=st.sampled_from(list(tp.Endianness)),
+    base=st.sampled_from([0, 1]),
+    per_frame=st.sampled_from([None, 15, 26, 27, 29]),  # None: MAX SAMPLES EMG? refused
+    upsampling_reply=st.sampled_from(["UPSAMPLING ON", "UPSAMPLING OFF", "YES", "NO"]),
+    sensors=st.sets(st.integers(1, 16), min_size=1, max_size=5),
+)
+def test_any_conformant_server_variant(version, banner_end, pad, split, chunks, endianness, base, per_frame, upsampling_reply, sensors):
+    """Every combination of what the facts leave open: the client gets the version, rate, sensors and every sample."""
+    rows = known_rows(120, 16, paired=tuple(sorted(sensors)))
+    answers = {
+        "MASTER?": "YES", "ENDIANNESS?": endianness.value, "UPSAMPLING?": upsampling_reply, "FRAME INTERVAL?": "0.0135",
+        **sensor_answers({n: n - 1 + base for n in sensors}),
+    }
+    if per_frame is not None:
+        answers["MAX SAMPLES EMG?"] = str(per_frame)
+    upsampled = upsampling_reply in ("UPSAMPLING ON", "YES")
+    server = FakeTcu(
+        banner=f"Delsys Trigno System Digital Protocol Version {version}".encode() + banner_end, answers=answers,
+        emg=tp.encode_samples(rows, endianness), chunk_sizes=tuple(chunks), reply_pad=pad, split_fraction=split,
+    )
+    client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], banner_line_grace_s=0.1))
+    try:
+        client.connect()
+        client.start()
+        received = stack(run_until(client, len(rows)), EmgBlock)
+    finally:
+        client.close()
+        server.close()
+    assert client.protocol_version == version
+    assert client.upsampling is upsampled and client.endianness is endianness
+    expected_per_frame = per_frame if per_frame is not None else (27 if upsampled else 26)
+    assert client.rate_hz == pytest.approx(expected_per_frame / 0.0135)
+    assert client.paired_sensors == sorted(sensors)
+    assert [s.start_index for s in client.sensors if s.paired] == [n - 1 for n in sorted(sensors)]
+    assert np.array_equal(received.view(np.uint32), rows.view(np.uint32))
+    assert client.stats.errors == 0, client.stats.last_error
