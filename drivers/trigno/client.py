@@ -485,12 +485,12 @@ class TrignoClient:
         )
 
     def _emg_samples_per_frame(self, link: _Link) -> int:
-        """EMG samples per frame: ``MAX SAMPLES EMG?``; else ``SENSOR n CHANNEL 1 SAMPLES?`` of the first paired
+        """EMG samples per frame: ``MAX SAMPLES EMG?``; else ``SENSOR n CHANNEL 1 SAMPLES?`` of the first active
         sensor; else 27 with upsampling on, 26 otherwise (the counts a real system reported)."""
         reply = self._query(link, "MAX SAMPLES EMG?")
         command = "MAX SAMPLES EMG?"
         if reply is None:
-            first = next((s.sensor for s in self.sensors if s.paired), None)
+            first = next((s.sensor for s in self.sensors if s.active), None)
             command = f"SENSOR {first} CHANNEL 1 SAMPLES?"
             reply = self._query(link, command) if first is not None else None
         if reply is None:
