@@ -246,7 +246,7 @@ class XsensDevice:
         """The usual sequence: GoToConfig, identify, set outputs, GoToMeasurement. Returns the device's identity."""
         self._configured = {"rate_hz": rate_hz, "precision": precision, "frame": frame}
         self.go_to_config()
-        device_id = self.request_device_id()
+        self.request_device_id()
         product = self.request_product_code()
         firmware = self.request_firmware_revision()
         applied = self.set_output_configuration(output_settings(rate_hz, precision=precision, frame=frame))
