@@ -25,13 +25,18 @@ Sink = Callable[[str, Message, int, int], None]
 # ------------------------------------------------------------------------------------------------ conversions
 
 
-def emg_chunk(block: EmgBlock, *, source_id: str, sensors: list[int]) -> messages.EmgChunk:
-    """An EmgChunk of the paired sensors' columns (float32 values as received: protobuf floats are float32)."""
-    columns = [s - 1 for s in sensors]
-    rows = block.samples[:, columns]
+def emg_columns(client: TrignoClient) -> list[tuple[str, int]]:
+    """(label, 0-based slot) of the EMG channels to publish: every EMG channel of the active sensors (multi-channel
+    sensors give one column per channel, ``sensorNN.EMGk``); all 16 slots when the server told us nothing."""
+    return client.emg_columns or [(f"sensor{s:02d}.EMG", s - 1) for s in range(1, 17)]
+
+
+def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]) -> messages.EmgChunk:
+    """An EmgChunk of the given (label, slot) columns (float32 values as received: protobuf floats are float32)."""
+    rows = block.samples[:, [slot for _, slot in columns]]
     return messages.EmgChunk(
         source_id=source_id,
-        channel_labels=[f"sensor{s:02d}.EMG" for s in sensors],
+        channel_labels=[label for label, _ in columns],
         sample_rate_hz=block.rate_hz,
         first_sample_index=block.first_sample_index,
         device_time_ns=block.device_time_ns,
@@ -102,7 +107,7 @@ def trigno_loop(
     report = LoopReport()
     emg_key = topics.emg_key(session, source_id)
     status_key = topics.status_key(session, source_id)
-    sensors = client.paired_sensors or list(range(1, 17))
+    columns = emg_columns(client)
 
     def publish_status() -> None:
         stats = client.stats
@@ -121,7 +126,7 @@ def trigno_loop(
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             for event in client.poll(0.05):
                 if isinstance(event, EmgBlock):
-                    chunk = emg_chunk(event, source_id=source_id, sensors=sensors)
+                    chunk = emg_chunk(event, source_id=source_id, columns=columns)
                     sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
                     report.messages += 1
                     report.samples += len(event.samples)
@@ -171,7 +176,7 @@ def xsens_loop(
     deadline = None if duration_s is None else time.monotonic() + duration_s
     publish_status()
     next_status = time.monotonic() + status_interval_s
-    unplugged = 0
+    lost = set(trackers.disconnected)
     while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
         if not trackers.devices:
             time.sleep(0.05)
@@ -180,9 +185,10 @@ def xsens_loop(
             sink(topics.imu_key(session, reading.tracker_id), message, reading.host_time_ns, reading.device_time_ns)
             report.messages += 1
             report.samples += 1
-        if len(trackers.disconnected) != unplugged:
-            unplugged = len(trackers.disconnected)
-            report.states.append("disconnected")
+        if set(trackers.disconnected) != lost:  # a tracker went away or came back (TrackerSet reconnects)
+            now_lost = set(trackers.disconnected)
+            report.states.extend(["disconnected"] * len(now_lost - lost) + ["reconnected"] * len(lost - now_lost))
+            lost = now_lost
             publish_status()
         if time.monotonic() >= next_status:
             publish_status()

@@ -134,25 +134,32 @@ def test_msk_sim_xsens_prints_a_pty_a_driver_can_open():
 
 
 def test_msk_sim_trigno_serves_a_client():
-    ports = [free_port() for _ in range(4)]
+    ports = [free_port() for _ in range(5)]
     process = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "sim", "trigno", "--from", "synthetic:5", "--port", str(ports[0]), "--emg-port", str(ports[1]),
-         "--legacy-emg-port", str(ports[2]), "--aux-port", str(ports[3]), "--speed", "4", "--duration", "8", "--start-index-base", "0", "--banner-space"],
+         "--legacy-emg-port", str(ports[2]), "--aux-port", str(ports[3]), "--legacy-acc-port", str(ports[4]),
+         "--speed", "4", "--duration", "8", "--start-index-base", "0", "--banner-space"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
         line = process.stdout.readline()
         assert "Trigno simulator" in line, process.stderr.read() if not line else line
-        with TrignoClient(TrignoConfig(command_port=ports[0], emg_port=ports[2])) as client:
+        assert f"legacy acc {ports[4]}" in line
+        with TrignoClient(TrignoConfig(command_port=ports[0], emg_port=ports[2])) as client, \
+                socket.create_connection(("127.0.0.1", ports[4]), timeout=5) as acc:
             client.start()
             got = 0
             deadline = time.monotonic() + 5
             while got < 300 and time.monotonic() < deadline:
                 got += sum(len(e.samples) for e in client.poll(0.05) if hasattr(e, "samples"))
+            acc_bytes = b""
+            while len(acc_bytes) < 10 * 192 and time.monotonic() < deadline:
+                acc_bytes += acc.recv(65536)
     finally:
         process.terminate()
         process.wait(timeout=10)
     assert got >= 300
+    assert len(acc_bytes) >= 10 * 192  # legacy ACC port: 48 float32 per sample
 
 
 def test_msk_drivers_publishes_to_a_connected_peer():

@@ -65,13 +65,13 @@ def _client_run(ports: dict, *, with_messages: bool):
         samples = 0
         with TrignoClient(TrignoConfig(command_port=ports["command"], emg_port=ports["emg"])) as client:
             client.start()
-            sensors = client.paired_sensors
+            columns = driver_nodes.emg_columns(client)
             while time.monotonic() < deadline:
                 for event in client.poll(0.1):
                     if isinstance(event, EmgBlock):
                         samples += len(event.samples)
                         if with_messages:
-                            driver_nodes.emg_chunk(event, source_id="bench", sensors=sensors).SerializeToString()
+                            driver_nodes.emg_chunk(event, source_id="bench", columns=columns).SerializeToString()
         return samples
 
     return run

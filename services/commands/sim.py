@@ -26,6 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     trigno.add_argument("--emg-port", type=int, default=50043)
     trigno.add_argument("--legacy-emg-port", type=int, default=50041, help="legacy EMG port; 0 picks a free one")
     trigno.add_argument("--aux-port", type=int, default=50044)
+    trigno.add_argument("--legacy-acc-port", type=int, default=50042,
+                        help="legacy ACC port, as a real TCU listens on it (48 floats per sample); -1: off, 0: free port")
     trigno.add_argument("--speed", type=float, default=1.0, help="time scale (>1 faster than real time)")
     trigno.add_argument("--no-loop", action="store_true", help="stop streaming at the end of the recording")
     trigno.add_argument("--fragment-max", type=int, default=None, metavar="BYTES", help="split frames into random TCP pieces")
@@ -78,7 +80,8 @@ def run_trigno(args: argparse.Namespace) -> int:
     )
     config = SimulatorConfig(
         host=args.host, command_port=args.port, emg_port=args.emg_port, legacy_emg_port=args.legacy_emg_port,
-        aux_port=args.aux_port, upsampling=None if args.upsampling is None else args.upsampling == "on",
+        aux_port=args.aux_port, legacy_acc_port=None if args.legacy_acc_port < 0 else args.legacy_acc_port,
+        upsampling=None if args.upsampling is None else args.upsampling == "on",
         speed=args.speed, loop=not args.no_loop, fragment_max=args.fragment_max, quirks=quirks,
     )
     try:
@@ -89,7 +92,7 @@ def run_trigno(args: argparse.Namespace) -> int:
         paired = [f"{k + 1}:{name}" for k, name in enumerate(source.labels) if source.paired[k]]
         print(
             f"Trigno simulator on {args.host}: command {sim.ports['command']}, emg {sim.ports['emg']}, "
-            f"legacy emg {sim.ports.get('legacy_emg')}, aux {sim.ports.get('aux')}; {source.name} at {source.rate_hz:g} Hz, "
+            f"legacy emg {sim.ports.get('legacy_emg')}, aux {sim.ports.get('aux')}, legacy acc {sim.ports.get('legacy_acc')}; {source.name} at {source.rate_hz:g} Hz, "
             f"sensors {' '.join(paired)}",
             flush=True,
         )
