@@ -83,15 +83,33 @@ def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, di
     profile.save(path)
     truth = json.loads((recordings / "demo" / "truth.json").read_text())["exercises"][exercise]["f_max_n"]
     true_f = np.array([truth[g] for g in pack.groups])
+    error = np.abs(profile.f_max / true_f - 1.0)
+    measured = np.array([s != "not_calibrated" for s in result.status])
+    identified = result.identified
+
+    def median(mask: np.ndarray) -> float | None:
+        return float(np.median(error[mask])) if np.any(mask) else None
+
     report = {
         "seconds": time.perf_counter() - started,
         "converged": bool(result.report().get("converged", True)),
-        "strength_error_median": float(np.median(np.abs(profile.f_max / true_f - 1.0))),
+        "strength_error_median": float(np.median(error)),
+        "strength_error_median_emg": median(measured),
+        "strength_error_median_identified": median(identified),
+        "identified_groups": [g for g, ok in zip(pack.groups, identified) if ok],
+        "status": dict(zip(pack.groups, result.status)),
         "reference_error_median": float(np.median(np.abs(np.asarray(pack.f_max_ref) / true_f - 1.0))),
     }
+
+    def pct(x: float | None) -> str:
+        return "n/a" if x is None else f"{100 * x:.0f} %"
+
     log(
-        f"[{exercise}] calibrated in {report['seconds']:.1f} s; median |F_max error| vs truth "
-        f"{100 * report['strength_error_median']:.0f} % (model reference: {100 * report['reference_error_median']:.0f} %)"
+        f"[{exercise}] calibrated in {report['seconds']:.1f} s; median |F_max error| vs truth: all groups "
+        f"{pct(report['strength_error_median'])}, EMG-measured ({int(measured.sum())}) "
+        f"{pct(report['strength_error_median_emg'])}, identified ({int(identified.sum())}: "
+        f"{', '.join(report['identified_groups']) or 'none'}) {pct(report['strength_error_median_identified'])} "
+        f"(model reference: {pct(report['reference_error_median'])})"
     )
     return path, report
 

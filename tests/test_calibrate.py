@@ -34,7 +34,7 @@ def _synthetic(seed=0, t=60, n_c=2, g=5, emg_groups=4, noise=0.0):
 def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std, emg_relative_std):
     f_ref, _, _, frames = _synthetic(seed=1, t=40, noise=0.03)
     s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std,
-                            emg_relative_std=emg_relative_std)
+                            emg_relative_std=emg_relative_std, identify_max_std=None)  # the NLP optimum itself
     joint = calibrate(f_ref, frames, s)
     alt = calibrate_alternating(f_ref, frames, s)
     assert joint.converged, joint.message
@@ -75,3 +75,59 @@ def test_strength_bounds_are_respected_and_validated():
     frames.torques[3, 0] = np.nan
     with pytest.raises(EstimationError, match="NaN"):
         CalibrationFrames(frames.moment_arms, frames.torques, frames.prior_mean, frames.prior_std, frames.emg)
+
+
+def test_prior_on_emg_groups_counts_their_emg_twice_and_biases_strength():
+    """With exact EMG and torques the strength is the truth; a smoothed across-rep prior on the same groups (built
+    from that EMG) pulls activations off it and k absorbs the difference — hence weight 0 by default."""
+    f_ref, k_true, a_true, frames = _synthetic(seed=4, t=80, emg_groups=5)
+    frames.prior_mean[:] = 0.8 * a_true + 0.05  # a phase-averaged, flattened version of the activations
+    frames.prior_std[:] = 0.03
+    base = CalibrationSettings(strength_prior_std=None, identify_max_std=None)
+    default = calibrate(f_ref, frames, base)
+    np.testing.assert_allclose(default.scale, k_true, rtol=2e-3)
+    doubled = calibrate(f_ref, frames, CalibrationSettings(strength_prior_std=None, identify_max_std=None,
+                                                           emg_group_prior_weight=1.0))
+    assert np.median(np.abs(doubled.scale / k_true - 1.0)) > 0.05
+
+
+@pytest.mark.parametrize("mode", ["shrink", "truncate"])
+def test_identifiability_flags_a_group_the_data_cannot_see_and_keeps_it_at_reference(mode):
+    f_ref, k_true, a_true, frames = _synthetic(seed=5, t=120, emg_groups=5, noise=0.01)
+    frames.moment_arms[:, :, 2] *= 1e-4  # group 2 barely acts on any coordinate: its strength is invisible
+    frames.torques = np.einsum("tng,tg->tn", frames.moment_arms * f_ref, a_true * k_true)
+    res = calibrate(f_ref, frames, CalibrationSettings(identify_max_std=0.15, identify=mode))
+    assert res.status[2] == "unidentified" and abs(res.scale[2] - 1.0) < 1e-3 and res.identified_share[2] < 0.01
+    assert res.strength_std_data[2] > 0.15
+    if mode == "shrink":  # posterior std of an unseen factor = the strength prior's
+        assert abs(res.strength_std[2] - 0.3) < 1e-3
+    else:
+        assert np.isnan(res.strength_std[2])
+    ok = [j for j in range(5) if j != 2]
+    assert all(res.status[j] == "identified" for j in ok), res.status
+    assert np.all(res.strength_std_data[ok] / res.scale[ok] <= 0.15)
+    assert np.all(res.strength_std[ok] <= res.strength_std_data[ok] + 1e-12)
+    assert np.median(np.abs(res.scale[ok] / k_true[ok] - 1.0)) <= 0.05
+    assert res.converged and res.projected_gradient < 1e-4
+    rep = res.report(["g0", "g1", "g2", "g3", "g4"])
+    assert rep["strength"]["g2"]["status"] == "unidentified" and rep["strength"]["g0"]["std_data"] is not None
+    assert res.identified.tolist() == [True, True, False, True, True]
+
+
+def test_laplace_strength_std_matches_the_spread_of_repeated_calibrations():
+    """The curvature-based std of k (activations marginalised, residual autocorrelation accounted for) agrees with
+    the empirical spread of k over independent EMG noise draws (white noise: tau_int ~ 1)."""
+    f_ref, k_true, a_true, frames = _synthetic(seed=6, t=60, emg_groups=5)
+    s = CalibrationSettings(strength_prior_std=None, identify_max_std=None, emg_std=0.05, torque_tolerance=0.02)
+    rng = np.random.default_rng(0)
+    draws, stds = [], []
+    for _ in range(30):
+        f = CalibrationFrames(frames.moment_arms, frames.torques, frames.prior_mean, np.full_like(a_true, np.inf),
+                              np.clip(a_true + 0.05 * rng.normal(size=a_true.shape), 0, 1))
+        r = calibrate(f_ref, f, s)
+        draws.append(r.scale)
+        stds.append(r.strength_std_data)
+    empirical = np.std(draws, axis=0)
+    predicted = np.median(stds, axis=0)
+    ratio = predicted / empirical
+    assert np.all((ratio > 0.5) & (ratio < 2.0)), (predicted, empirical)

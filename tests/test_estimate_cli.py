@@ -97,8 +97,23 @@ def _rel_path(toml: Path, key: str) -> str:
 
 def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials, tmp_path, capsys):
     profile_path = tmp_path / "subject.json"
+    # TRIlat and TRImed have the same moment arms: each alone is unidentified, their common factor is identified
     rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(profile_path)])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    strength = json.loads(profile_path.read_text())["calibration"]["strength"]
+    assert strength["TRIlat"]["status"] == strength["TRImed"]["status"] == "combination", strength
+    assert strength["TRIlat"]["std_data"] > 10.0 and abs(strength["TRIlat"]["identified_share"] - 0.5) < 0.01
+    assert abs(strength["TRIlat"]["scale"] / 0.8 - 1) <= 0.10
+    assert strength["BIClong"]["status"] == "identified" and abs(strength["BIClong"]["scale"] / 1.5 - 1) <= 0.10
+    assert strength["BRA"]["status"] == "not_calibrated"
+    assert "TRIlat" in printed and "combination" in printed and "std (data)" in printed
+    # without the identifiability pass every factor stays free (same common factor here)
+    off = tmp_path / "subject_free.json"
+    rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(off),
+               "--identify-max-std", "0"])
     assert rc == 0, capsys.readouterr().out
+    assert json.loads(off.read_text())["calibration"]["settings"]["identify_max_std"] is None
     doc = json.loads(profile_path.read_text())
     assert doc["pack"] == {"name": "arm26", "version": str(arm26_trials["pack"].version)}
     assert doc["calibration"]["converged"] is True

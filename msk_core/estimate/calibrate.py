@@ -5,9 +5,17 @@ calibrated strength coefficients) and activations a_tg in [a_min, 1] for every t
 half a squared, normalised error so that J reads as a negative log-likelihood:
 
     J = 1/2 sum_t,n ((sum_g R_tng F_ref,g k_g a_tg - tau_tn) / (eps c_tn))^2            torque, eps = torque_tolerance
-      + 1/2 w_prior sum_t,g ((a_tg - mu_g(phase_t)) / sigma_g(phase_t))^2                  N(mu, sigma^2) across reps
+      + 1/2 w_prior sum_t,g w_tg ((a_tg - mu_g(phase_t)) / sigma_g(phase_t))^2             N(mu, sigma^2) across reps
       + 1/2 w_emg   sum_t,g in EMG ((a_tg - e_g(t)) / emg_std)^2                            the trial's own EMG
       + 1/2 sum_g free ((k_g - 1) / strength_prior_std)^2                                 N(1, 0.3^2) strength prior
+
+w_tg = 1 for groups without EMG, ``emg_group_prior_weight`` (default 0) where the group's own EMG is known: the
+prior is built from that same EMG, so both terms would count it twice (and its phase-averaged mean biases k).
+
+Identifiability: the Laplace (Gauss-Newton) covariance of k with the activations and the held factors marginalised,
+the data's curvature divided by the residuals' integrated autocorrelation time (frames are not independent), gives
+each group a data-only std; ``StrengthStatus`` says identified / combination / unidentified / at_bound /
+not_calibrated, and ``IdentifyMode`` what is done with unidentified directions (report only by default).
 
 The strength prior (default s = 0.3, ``None`` = off) keeps the factors the data barely identify (groups that stay
 near rest, nearly collinear force columns) at the reference; well-identified factors move freely (torque terms over
@@ -26,12 +34,35 @@ show both reach the same optimum. Convergence is reported (iterations, projected
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from enum import Enum
 
 import numpy as np
 import piqp
 from scipy.optimize import lsq_linear, minimize
 
 from msk_core.errors import EstimationError
+
+
+class IdentifyMode(str, Enum):
+    """What the calibration does with strength directions the data do not determine."""
+
+    SHRINK = "shrink"  # strength prior weighed by the residuals' autocorrelation time: MAP shrinks them to 1
+    TRUNCATE = "truncate"  # directions with relative std > identify_max_std set to the reference, a re-solved
+    REPORT = "report"  # plain MAP of the objective as written; identifiability only reported
+
+
+COMBINATION_MIN_SHARE = 0.25  # a group with at least this share in identified directions is part of a known combination
+
+
+class StrengthStatus(str, Enum):
+    """What the calibration could say about a group's strength factor."""
+
+    IDENTIFIED = "identified"  # free, data-only relative Laplace std <= identify_max_std, inside the bounds
+    COMBINATION = "combination"  # alone unidentified, but >= COMBINATION_MIN_SHARE of it lies in identified
+    # combinations (a left/right pair: their common factor is known, the split is not; each has share 1/2)
+    UNIDENTIFIED = "unidentified"  # data-only std above the threshold, outside identified combinations: ~reference
+    AT_BOUND = "at_bound"  # the data push it to alpha or beta: the model cannot fit them inside the range
+    NOT_CALIBRATED = "not_calibrated"  # no EMG (calibrate="emg"): fixed at the reference by design
 
 
 @dataclass
@@ -68,9 +99,23 @@ class CalibrationSettings:
     # noise grows with the amplitude); None: constant emg_std
     emg_relative_std: float | None = None
     prior_weight: float = 1.0
+    # weight of the across-rep prior on a group in the frames where that group's own EMG is known. The prior is built
+    # from the same EMG (phase-binned across reps), so with the EMG term it counts that evidence twice, and its
+    # smoothed mean fights the frame's EMG: with the true activations as EMG the strength is then recovered with a
+    # 25 % (bench) / 12 % (deadlift) median error instead of 0 (docs/estimation.md). 0 = the EMG decides.
+    emg_group_prior_weight: float = 0.0
     emg_weight: float = 1.0
     strength_prior_std: float | None = 0.3  # N(1, s^2) on each free strength factor (None: off)
     calibrate: str = "emg"  # "emg": only groups with EMG; "all": every group
+    # identifiability: a strength direction (eigenvector of the data-only Laplace covariance of log k, activations
+    # and held factors marginalised) whose relative std exceeds this is unidentified and held at the reference;
+    # a group is "identified" when its own relative std is within it. 0.15 = half the strength prior's std (the data
+    # then carry >= 4/5 of the precision). None: keep every factor free, report only
+    identify_max_std: float | None = 0.15
+    identify: "IdentifyMode" = None  # type: ignore[assignment]  # None -> IdentifyMode.REPORT (see docs)
+
+    def __post_init__(self) -> None:
+        self.identify = IdentifyMode(self.identify or IdentifyMode.REPORT)
     a_min: float = 0.0
     max_iter: int = 20000
     gtol: float = 1e-7
@@ -89,9 +134,41 @@ class CalibrationResult:
     message: str
     method: str
     settings: CalibrationSettings = field(default_factory=CalibrationSettings)
+    # per group: Laplace std of k from the curvature of J (activations marginalised), with the strength prior and
+    # from the data alone (NaN: not a calibrated factor), and the group's status (see StrengthStatus)
+    strength_std: np.ndarray | None = None
+    strength_std_data: np.ndarray | None = None
+    status: list[str] | None = None
+    identified_share: np.ndarray | None = None  # diag of the projector on the identified directions
 
-    def report(self) -> dict:
-        """JSON-ready convergence report (stored in the subject profile)."""
+    @property
+    def identified(self) -> np.ndarray:
+        """Groups whose strength the data determined (free, data std within the threshold, not at a bound)."""
+        return np.array([s == StrengthStatus.IDENTIFIED.value for s in (self.status or [])], dtype=bool)
+
+    def identifiability(self, groups: list[str] | tuple[str, ...]) -> dict[str, dict]:
+        """Per group: scale, Laplace std (posterior and data only) and status, JSON-ready."""
+        out = {}
+        for j, g in enumerate(groups):
+            std = None if self.strength_std is None else self.strength_std[j]
+            std_d = None if self.strength_std_data is None else self.strength_std_data[j]
+            out[g] = {
+                "scale": float(self.scale[j]),
+                "std": None if std is None or not np.isfinite(std) else float(std),
+                "std_data": None if std_d is None or not np.isfinite(std_d) else float(std_d),
+                "status": None if self.status is None else self.status[j],
+                "identified_share": None if self.identified_share is None or not np.isfinite(self.identified_share[j])
+                else float(self.identified_share[j]),
+            }
+        return out
+
+    def report(self, groups: list[str] | tuple[str, ...] | None = None) -> dict:
+        """JSON-ready convergence report (stored in the subject profile); with ``groups`` also the per-group
+        identifiability (``strength``)."""
+        extra = {} if groups is None or self.status is None else {"strength": self.identifiability(groups)}
+        return {**self._convergence(), **extra}
+
+    def _convergence(self) -> dict:
         return {
             "method": self.method,
             "converged": bool(self.converged),
@@ -104,6 +181,19 @@ class CalibrationResult:
         }
 
 
+def integrated_autocorrelation(x: np.ndarray, *, cutoff: float = 0.05) -> float:
+    """1 + 2 sum_L rho(L), summed until the autocorrelation first drops below ``cutoff`` (>= 1)."""
+    x = np.asarray(x, dtype=float) - np.mean(x)
+    var = float(np.dot(x, x))
+    if var <= 0.0 or x.size < 3:
+        return 1.0
+    spectrum = np.fft.rfft(x, 2 * x.size)
+    acf = np.fft.irfft(spectrum * np.conj(spectrum))[: x.size] / var
+    below = np.flatnonzero(acf[1:] < cutoff)
+    stop = int(below[0]) + 1 if below.size else x.size
+    return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:stop])))
+
+
 class _Problem:
     """Objective pieces shared by both solvers."""
 
@@ -113,8 +203,8 @@ class _Problem:
         self.inv_s = 1.0 / (s.torque_tolerance * cap)
         self.tau = frames.torques
         self.mu = frames.prior_mean
-        self.w_p = s.prior_weight / frames.prior_std**2
         has = np.isfinite(frames.emg)
+        self.w_p = np.where(has, s.emg_group_prior_weight, 1.0) * s.prior_weight / frames.prior_std**2
         self.e = np.where(has, frames.emg, 0.0)
         var_e = s.emg_std**2 + (0.0 if s.emg_relative_std is None else (s.emg_relative_std * self.e) ** 2)
         self.w_e = np.where(has, s.emg_weight / var_e, 0.0)
@@ -125,8 +215,10 @@ class _Problem:
         free = np.ones(self.g, dtype=bool) if s.calibrate == "all" else np.any(has, axis=0)
         if s.calibrate not in ("all", "emg"):
             raise EstimationError(f"calibrate must be 'emg' or 'all', got {s.calibrate!r}")
+        self.free = free.copy()  # calibrated factors (others fixed at the reference)
         self.k_bounds = [(lo, hi) if f else (1.0, 1.0) for f in free]
         self.w_k = 0.0 if s.strength_prior_std is None else 1.0 / s.strength_prior_std**2
+        self.w_k_obj = self.w_k  # the strength prior's weight in the objective (x tau_int in IdentifyMode.SHRINK)
         self.a_min = s.a_min
 
     def terms(self, k: np.ndarray, a: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
@@ -137,7 +229,7 @@ class _Problem:
             "emg": 0.5 * float(np.sum(self.w_e * (a - self.e) ** 2)),
         }
         if self.w_k:
-            terms["strength"] = 0.5 * self.w_k * float(np.sum((k - 1.0) ** 2))
+            terms["strength"] = 0.5 * self.w_k_obj * float(np.sum((k - 1.0) ** 2))
         return terms, rho
 
     def value_grad(self, z: np.ndarray) -> tuple[float, np.ndarray]:
@@ -145,11 +237,68 @@ class _Problem:
         terms, rho = self.terms(k, a)
         back = np.einsum("tn,tng->tg", rho * self.inv_s, self.m)  # d(torque)/d(a_tg k_g)
         grad_a = back * k + self.w_p * (a - self.mu) + self.w_e * (a - self.e)
-        grad_k = np.sum(back * a, axis=0) + self.w_k * (k - 1.0)
+        grad_k = np.sum(back * a, axis=0) + self.w_k_obj * (k - 1.0)
         return sum(terms.values()), np.concatenate([grad_k, grad_a.ravel()])
 
     def bounds(self) -> list[tuple[float, float]]:
         return self.k_bounds + [(self.a_min, 1.0)] * (self.t * self.g)
+
+    def hold_at_reference(self, groups: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Fix the factors of ``groups`` (bool mask) at k = 1; returns z with them set."""
+        z = z.copy()
+        for j in np.flatnonzero(groups):
+            self.k_bounds[j] = (1.0, 1.0)
+            z[j] = 1.0
+        return z
+
+    def strength_std(self, z: np.ndarray, *, with_prior: bool, return_cov: bool = False):
+        """Laplace std of each free k: the inverse of the Gauss-Newton curvature of J in k after marginalising the
+        activations (Schur complement of the per-frame activation blocks; activations at a bound are held, as in
+        the estimator's Laplace std). NaN for factors that are not free; inf when the data carry no information."""
+        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
+        free_k = np.array([lo < hi for lo, hi in self.k_bounds])
+        out = np.full(self.g, np.nan)
+        if not np.any(free_k):
+            return (out, np.zeros((0, 0))) if return_cov else out
+        b = self.m * self.inv_s[:, :, None]  # (T, n_c, G): torque residual rows
+        btb = np.einsum("tng,tnh->tgh", b, b)
+        h_kk = np.einsum("tg,tgh,th->gh", a, btb, a)
+        h_ka = a[:, :, None] * btb * k[None, None, :]  # (T, G_k, G_a)
+        h_aa = k[None, :, None] * btb * k[None, None, :]
+        diag = self.w_p + self.w_e
+        h_aa[:, np.arange(self.g), np.arange(self.g)] += diag
+        held = (a <= self.a_min + 1e-9) | (a >= 1.0 - 1e-9)  # activations at a bound carry no curvature
+        h_ka = np.where(held[:, None, :], 0.0, h_ka)
+        h_aa = np.where(held[:, :, None] | held[:, None, :], 0.0, h_aa)
+        eye = np.eye(self.g)[None]
+        # tiny ridge: an activation that only the torque sees, collinear with another, has a flat direction
+        h_aa = h_aa + eye * np.where(held[:, :, None], 1.0, 1e-9 * (1.0 + np.abs(h_aa).max(axis=(1, 2)))[:, None, None])
+        schur = h_kk - np.einsum("tga,tab->gb", h_ka, np.linalg.solve(h_aa, h_ka.transpose(0, 2, 1)))
+        # the factors held at the reference are not known either: with a strength prior they are nuisance
+        # variables N(1, s^2) and marginalised too, so a free factor confounded with one of them is not credited
+        # with information it does not have; the free factors' own prior only enters the posterior std
+        nuisance = ~free_k & (self.w_k > 0)
+        keep = free_k | nuisance
+        prec = np.where(nuisance | (free_k & with_prior), self.w_k, 0.0)
+        # the curvature counts every frame as independent evidence; the residuals are correlated over ~0.1 s
+        # (6 Hz envelopes, smooth activations), so the data carry the information of T / tau_int frames
+        s_ff = schur[np.ix_(keep, keep)] / self.correlation_frames(z) + np.diag(prec[keep])
+        s_ff = 0.5 * (s_ff + s_ff.T)
+        evals, evecs = np.linalg.eigh(s_ff)
+        floor = 1e-12 * max(float(evals.max()), 1e-300)  # a flat direction reads as a huge (not NaN) std
+        cov = (evecs / np.maximum(evals, floor)) @ evecs.T
+        sub = free_k[keep]
+        out[free_k] = np.sqrt(np.diag(cov)[sub])
+        return (out, cov[np.ix_(sub, sub)]) if return_cov else out
+
+    def correlation_frames(self, z: np.ndarray) -> float:
+        """Integrated autocorrelation time (frames) of the fitted residuals: median over the EMG residual series
+        a_g - e_g of each group with EMG and the torque residual of each coordinate (>= 1)."""
+        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
+        _, rho = self.terms(k, a)
+        series = [rho[:, n] for n in range(rho.shape[1])]
+        series += [(a - self.e)[:, j] for j in range(self.g) if np.all(self.w_e[:, j] > 0)]
+        return max(1.0, float(np.median([integrated_autocorrelation(x) for x in series])))
 
     def projected_gradient(self, z: np.ndarray) -> float:
         _, grad = self.value_grad(z)
@@ -182,19 +331,88 @@ class _Problem:
 def calibrate(
     f_max_ref: np.ndarray, frames: CalibrationFrames, settings: CalibrationSettings | None = None
 ) -> CalibrationResult:
-    """Joint bound-constrained solve (L-BFGS-B, analytic gradient) of the calibration problem."""
+    """Joint bound-constrained solve (L-BFGS-B, analytic gradient) of the calibration problem, with the
+    identifiability pass (unidentified factors held at the reference, then re-solved)."""
     s = settings or CalibrationSettings()
     f_ref = np.asarray(f_max_ref, dtype=float)
     prob = _Problem(f_ref, frames, s)
-    res = minimize(
-        prob.value_grad,
-        prob.start(),
-        jac=True,
-        method="L-BFGS-B",
-        bounds=prob.bounds(),
-        options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": 1e-15, "maxcor": 10},
-    )
-    return prob.result(res.x, "L-BFGS-B (joint)", bool(res.success), int(res.nit), str(res.message), s, f_ref)
+
+    def solve(z0: np.ndarray) -> tuple[np.ndarray, bool, int, str]:
+        res = minimize(
+            prob.value_grad,
+            z0,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=prob.bounds(),
+            options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": 1e-15, "maxcor": 10},
+        )
+        return res.x, bool(res.success), int(res.nit), str(res.message)
+
+    return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)")
+
+
+def _solve_identified(prob: "_Problem", s: CalibrationSettings, f_ref: np.ndarray, solve, method: str) -> CalibrationResult:
+    """Solve with every factor free; then keep only what the data determine: eigen-directions of the data-only
+    covariance of log k (activations and held factors marginalised; relative std, as strength is a scale) whose
+    std exceeds ``identify_max_std`` are set back to the reference (truncated eigen-solution,
+    log k = P log k_hat with P the projector on the identified directions), and the activations are re-solved with
+    k held there. A group alone
+    unidentified can so keep its share of an identified combination (left/right pairs, muscles with the same
+    moment arms: only their common factor is known)."""
+    z, converged, iterations, message = solve(prob.start())
+    tau = prob.correlation_frames(z)
+    if s.identify is IdentifyMode.SHRINK and prob.w_k and tau > 1.0:
+        # the data terms count T frames, but carry the information of T / tau_int: weigh the strength prior up by
+        # tau_int so that the MAP shrinks what the data cannot determine towards the reference, and re-solve
+        prob.w_k_obj = prob.w_k * tau
+        z, converged, more, message = solve(z)
+        iterations += more
+        message += f"; strength prior weighed by tau_int = {tau:.1f} frames"
+    std_data, cov = prob.strength_std(z, with_prior=False, return_cov=True)
+    std_post = prob.strength_std(z, with_prior=True)
+    free = np.array([lo < hi for lo, hi in prob.k_bounds])
+    share = np.where(free, 1.0, np.nan)  # fraction of each factor inside the identified directions
+    lo_b, hi_b = s.strength_bounds
+    k_hat = z[: prob.g].copy()
+    rel_std = std_data / k_hat  # strength is a scale: its precision is relative (F_max error is relative)
+    if s.identify is IdentifyMode.TRUNCATE and s.identify_max_std is not None and np.any(free):
+        rel_cov = cov / np.outer(k_hat[free], k_hat[free])  # covariance of log k
+        var, vec = np.linalg.eigh(0.5 * (rel_cov + rel_cov.T))
+        known = vec[:, var <= s.identify_max_std**2]
+        proj = known @ known.T
+        if known.shape[1] < int(free.sum()):
+            k = k_hat.copy()
+            k[free] = np.clip(np.exp(proj @ np.log(k_hat[free])), lo_b, hi_b)
+            for j in np.flatnonzero(free):
+                prob.k_bounds[j] = (float(k[j]), float(k[j]))
+            z[: prob.g] = k
+            z, converged, more, message = solve(z)
+            iterations += more
+            message += "; unidentified directions held at the reference"
+    if s.identify_max_std is not None and np.any(free):  # share of each factor in the identified directions
+        rel_cov = cov / np.outer(k_hat[free], k_hat[free])
+        var, vec = np.linalg.eigh(0.5 * (rel_cov + rel_cov.T))
+        known = vec[:, var <= s.identify_max_std**2]
+        share[free] = np.clip(np.sum(known**2, axis=1), 0.0, 1.0)
+    if s.identify is IdentifyMode.TRUNCATE and s.identify_max_std is not None:
+        std_post = np.where(free & (rel_std <= s.identify_max_std), std_post, np.nan)  # of the free estimate
+    k = z[: prob.g]
+    status = []
+    for j in range(prob.g):
+        if not free[j]:
+            status.append(StrengthStatus.NOT_CALIBRATED.value)
+        elif min(k[j] - lo_b, hi_b - k[j]) <= 1e-6 * hi_b:
+            status.append(StrengthStatus.AT_BOUND.value)
+        elif s.identify_max_std is None or rel_std[j] <= s.identify_max_std:
+            status.append(StrengthStatus.IDENTIFIED.value)
+        elif share[j] >= COMBINATION_MIN_SHARE:
+            status.append(StrengthStatus.COMBINATION.value)
+        else:
+            status.append(StrengthStatus.UNIDENTIFIED.value)
+    result = prob.result(z, method, converged, iterations, message, s, f_ref)
+    result.strength_std, result.strength_std_data, result.status = std_post, std_data, status
+    result.identified_share = share
+    return result
 
 
 def calibrate_alternating(
@@ -205,51 +423,55 @@ def calibrate_alternating(
     max_sweeps: int = 2000,
     tol: float = 1e-12,
 ) -> CalibrationResult:
-    """Independent check: exact block minimisation, a-step by PIQP per frame, k-step by bounded least squares."""
+    """Independent check: exact block minimisation, a-step by PIQP per frame, k-step by bounded least squares
+    (same identifiability passes as :func:`calibrate`)."""
     s = settings or CalibrationSettings()
     f_ref = np.asarray(f_max_ref, dtype=float)
     prob = _Problem(f_ref, frames, s)
-    z = prob.start()
     g = prob.g
-    lo = np.array([b[0] for b in prob.k_bounds])
-    hi = np.array([b[1] for b in prob.k_bounds])
     solver = piqp.DenseSolver()
     solver.settings.eps_abs = 1e-10
     solver.settings.eps_rel = 1e-10
     ready = False
-    previous = np.inf
-    sweeps = 0
-    for sweeps in range(1, max_sweeps + 1):
-        k = z[:g]
-        a = z[g:].reshape(prob.t, g)
-        for t in range(prob.t):
-            at = prob.m[t] * k[None, :] * prob.inv_s[t][:, None]
-            hess = at.T @ at + np.diag(prob.w_p[t] + prob.w_e[t])
-            c = -(at.T @ (prob.tau[t] * prob.inv_s[t]) + prob.w_p[t] * prob.mu[t] + prob.w_e[t] * prob.e[t])
-            if not ready:
-                solver.setup(np.asfortranarray(hess), c, x_l=np.full(g, s.a_min), x_u=np.ones(g))
-                ready = True
-            else:
-                solver.update(P=np.asfortranarray(hess), c=c)
-            solver.solve()
-            a[t] = np.clip(solver.result.x, s.a_min, 1.0)
-        # k-step: torque residuals are linear in k -> stacked bounded least squares
-        rows = (prob.m * a[:, None, :] * prob.inv_s[:, :, None]).reshape(-1, g)
-        target = (prob.tau * prob.inv_s).ravel()
-        fixed = lo == hi
-        kk = np.where(fixed, lo, k)
-        if np.any(~fixed):
-            rhs = target - rows[:, fixed] @ lo[fixed]
-            mat = rows[:, ~fixed]
-            if prob.w_k:  # the strength prior as extra least-squares rows sqrt(w_k) (k - 1)
-                n_free = int((~fixed).sum())
-                mat = np.vstack([mat, np.sqrt(prob.w_k) * np.eye(n_free)])
-                rhs = np.concatenate([rhs, np.full(n_free, np.sqrt(prob.w_k))])
-            kk[~fixed] = lsq_linear(mat, rhs, bounds=(lo[~fixed], hi[~fixed]), tol=1e-14).x
-        z = np.concatenate([kk, a.ravel()])
-        value, _ = prob.value_grad(z)
-        if previous - value <= tol * max(1.0, abs(value)):
-            break
-        previous = value
-    pg = prob.projected_gradient(z)
-    return prob.result(z, "alternating (PIQP + lsq_linear)", pg < 1e-4, sweeps, f"{sweeps} sweeps", s, f_ref)
+
+    def solve(z: np.ndarray) -> tuple[np.ndarray, bool, int, str]:
+        nonlocal ready
+        lo = np.array([b[0] for b in prob.k_bounds])
+        hi = np.array([b[1] for b in prob.k_bounds])
+        previous = np.inf
+        sweeps = 0
+        for sweeps in range(1, max_sweeps + 1):
+            k = z[:g]
+            a = z[g:].reshape(prob.t, g).copy()
+            for t in range(prob.t):
+                at = prob.m[t] * k[None, :] * prob.inv_s[t][:, None]
+                hess = at.T @ at + np.diag(prob.w_p[t] + prob.w_e[t])
+                c = -(at.T @ (prob.tau[t] * prob.inv_s[t]) + prob.w_p[t] * prob.mu[t] + prob.w_e[t] * prob.e[t])
+                if not ready:
+                    solver.setup(np.asfortranarray(hess), c, x_l=np.full(g, s.a_min), x_u=np.ones(g))
+                    ready = True
+                else:
+                    solver.update(P=np.asfortranarray(hess), c=c)
+                solver.solve()
+                a[t] = np.clip(solver.result.x, s.a_min, 1.0)
+            # k-step: torque residuals are linear in k -> stacked bounded least squares
+            rows = (prob.m * a[:, None, :] * prob.inv_s[:, :, None]).reshape(-1, g)
+            target = (prob.tau * prob.inv_s).ravel()
+            fixed = lo == hi
+            kk = np.where(fixed, lo, k)
+            if np.any(~fixed):
+                rhs = target - rows[:, fixed] @ lo[fixed]
+                mat = rows[:, ~fixed]
+                if prob.w_k_obj:  # the strength prior as extra least-squares rows sqrt(w_k) (k - 1)
+                    n_free = int((~fixed).sum())
+                    mat = np.vstack([mat, np.sqrt(prob.w_k_obj) * np.eye(n_free)])
+                    rhs = np.concatenate([rhs, np.full(n_free, np.sqrt(prob.w_k_obj))])
+                kk[~fixed] = lsq_linear(mat, rhs, bounds=(lo[~fixed], hi[~fixed]), tol=1e-14).x
+            z = np.concatenate([kk, a.ravel()])
+            value, _ = prob.value_grad(z)
+            if previous - value <= tol * max(1.0, abs(value)):
+                break
+            previous = value
+        return z, prob.projected_gradient(z) < 1e-4, sweeps, f"{sweeps} sweeps"
+
+    return _solve_identified(prob, s, f_ref, solve, "alternating (PIQP + lsq_linear)")

@@ -205,7 +205,7 @@ def calibrate_subject(
         f_max_ref=np.asarray(pack.f_max_ref, dtype=float),
         prior=prior,
         emg_normalisation=norm,
-        calibration={**result.report(), "frames": int(frames.torques.shape[0])},
+        calibration={**result.report(list(pack.groups)), "frames": int(frames.torques.shape[0])},
         provenance={
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "trials": [str(t.path) for t in trials],

@@ -26,6 +26,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="which groups get a strength factor (default: those with EMG)")
     cal.add_argument("--strength-prior-std", type=float, default=0.3,
                      help="N(1, s^2) prior on each calibrated strength factor (default 0.3; 0 = off)")
+    cal.add_argument("--identify-max-std", type=float, default=0.15,
+                     help="a strength factor whose data-only relative Laplace std exceeds this is reported "
+                          "unidentified (default 0.15; 0 = off)")
+    cal.add_argument("--identify", choices=["report", "shrink", "truncate"], default="report",
+                     help="unidentified strength directions: report only (plain MAP, default), shrink to the "
+                          "reference (strength prior weighed by the residuals' autocorrelation time) or truncate "
+                          "(set to the reference); see docs/estimation.md")
     cal.add_argument("--no-emg-prior", choices=["min_effort", "synergist", "wide"], default="min_effort",
                      help="prior of groups without EMG: static optimisation's share over the reps (default), the "
                           "measured group with the most similar moment arms, or the wide N(0, 0.5^2)")
@@ -81,8 +88,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     trials = [load_trial(p, pack) for p in args.trial]
     if not args.strength_prior_std >= 0:
         raise ConfigError("must be >= 0 (0 = off)", field="--strength-prior-std", value=args.strength_prior_std)
+    if not args.identify_max_std >= 0:
+        raise ConfigError("must be >= 0 (0 = off)", field="--identify-max-std", value=args.identify_max_std)
     settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate,
-                                   strength_prior_std=args.strength_prior_std or None)
+                                   strength_prior_std=args.strength_prior_std or None,
+                                   identify_max_std=args.identify_max_std or None, identify=args.identify)
     print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
           f"of {len(trials)} trial(s)...", flush=True)
     profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins,
@@ -91,8 +101,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
     print(f"{result.method}: converged={result.converged} after {result.iterations} iterations "
           f"({result.message}); projected gradient {result.projected_gradient:.2e}; objective {result.objective:.4g} "
           f"(" + ", ".join(f"{k} {v:.4g}" for k, v in result.terms.items()) + ")")
-    for g, k, f in zip(pack.groups, result.scale, result.f_max):
-        print(f"  {g:16s} scale {k:6.3f}  F_max {f:9.1f} N")
+    for g, info in result.identifiability(pack.groups).items():
+        std = "" if info["std_data"] is None else f"  std (data) {info['std_data']:7.3f}"
+        print(f"  {g:16s} scale {info['scale']:6.3f}  F_max {info['scale'] * pack.f_max_ref[pack.groups.index(g)]:9.1f} N"
+              f"{std:21s}  {info['status']}")
+    counts = {s: result.status.count(s) for s in dict.fromkeys(result.status)}
+    print("strength: " + ", ".join(f"{n} {s}" for s, n in counts.items())
+          + ("" if result.settings.identify_max_std is None else
+             f" (identified: data-only relative Laplace std <= {result.settings.identify_max_std}; "
+             f"unidentified directions: {result.settings.identify.value})"))
     print(f"wrote {args.out}")
     return 0 if result.converged else 1
 
