@@ -154,9 +154,33 @@ def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
     return np.asarray(pack.moment_arms(q), dtype=float)
 
 
-def calibration_frames(pack: PackLike, trials: list[TrialData], prior: PhasePrior) -> CalibrationFrames:
-    """Stacked training frames; frames outside any rep carry no prior term (std = inf)."""
+def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
+    """RMS of (EMG - static optimisation's activation) over the measured groups and the frames inside reps: how far
+    the minimal-effort hypothesis is from activations where it can be checked (NaN without any such frame)."""
     groups = list(pack.groups)
+    diffs = []
+    for t in trials:
+        if not t.emg:
+            continue
+        so = min_effort_activations(pack, t)
+        inside = t.rep_index >= 0
+        for g, e in t.emg.items():
+            d = (e - so[:, groups.index(g)])[inside]
+            diffs.append(d[np.isfinite(d)])
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+
+def calibration_frames(
+    pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0
+) -> CalibrationFrames:
+    """Stacked training frames; frames outside any rep carry no prior term (std = inf). ``min_effort_std`` widens
+    the prior of groups whose prior is the minimal-effort share (their activation nobody measured) by the error
+    that hypothesis shows on the measured groups (:func:`min_effort_error`), added in quadrature: the across-rep
+    spread of a deterministic static-optimisation solution says nothing about how wrong it is, and an overconfident
+    prior on them makes the calibration credit the measured groups' strength with information it does not have."""
+    groups = list(pack.groups)
+    widen = np.array([s == "min_effort" for s in (prior.sources or ("",) * len(groups))]) * (min_effort_std or 0.0)
     r, tau, mu, sd, emg = [], [], [], [], []
     for t in trials:
         for i in range(t.n_frames):
@@ -165,6 +189,7 @@ def calibration_frames(pack: PackLike, trials: list[TrialData], prior: PhasePrio
                 continue  # frames the model cannot represent do not enter the fit
             if t.rep_index[i] >= 0:
                 a, b = prior.at(float(t.phase[i]))
+                b = np.sqrt(b**2 + widen**2)
             else:  # the prior is a distribution across reps: between reps only torque and the trial's EMG count
                 a, b = np.zeros(len(groups)), np.full(len(groups), np.inf)
             r.append(m)
@@ -188,7 +213,8 @@ def calibrate_subject(
 ) -> tuple[SubjectProfile, CalibrationResult]:
     """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result."""
     prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
-    frames = calibration_frames(pack, trials, prior)
+    me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
+    frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error)
     result = calibrate(pack.f_max_ref, frames, settings)
     phase_model = learn_trials_phase_model(pack, trials)
     norm = {}
@@ -205,7 +231,8 @@ def calibrate_subject(
         f_max_ref=np.asarray(pack.f_max_ref, dtype=float),
         prior=prior,
         emg_normalisation=norm,
-        calibration={**result.report(list(pack.groups)), "frames": int(frames.torques.shape[0])},
+        calibration={**result.report(list(pack.groups)), "frames": int(frames.torques.shape[0]),
+                     "min_effort_error_rms": None if np.isnan(me_error) else me_error},
         provenance={
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "trials": [str(t.path) for t in trials],
