@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
+from msk_core.estimate.emd import estimate_emd, shift_emg
 from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, FrameStatus, Method
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
@@ -210,8 +211,21 @@ def calibrate_subject(
     n_bins: int = 20,
     no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
     synergists: dict[str, str] | None = None,
+    emd_s: float | str | None = "auto",
 ) -> tuple[SubjectProfile, CalibrationResult]:
-    """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result."""
+    """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result.
+
+    ``emd_s``: electromechanical delay applied to the EMG before both ("auto": estimated from the trials,
+    :mod:`msk_core.estimate.emd`; a number: given, seconds; None or 0: none)."""
+    if emd_s == "auto":
+        emd = estimate_emd(pack, trials).to_dict() | {"source": "estimated"}
+    elif emd_s is None or isinstance(emd_s, (int, float)):
+        if emd_s is not None and not 0 <= float(emd_s) <= 0.5:
+            raise EstimationError(f"electromechanical delay must be in [0, 0.5] s, got {emd_s}")
+        emd = {"delay_s": float(emd_s or 0.0), "source": "given"}
+    else:
+        raise EstimationError(f"emd_s must be 'auto', a delay in seconds or None, got {emd_s!r}")
+    trials = [shift_emg(t, emd["delay_s"]) for t in trials]
     prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
     me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
     frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error)
@@ -232,7 +246,7 @@ def calibrate_subject(
         prior=prior,
         emg_normalisation=norm,
         calibration={**result.report(list(pack.groups)), "frames": int(frames.torques.shape[0]),
-                     "min_effort_error_rms": None if np.isnan(me_error) else me_error},
+                     "min_effort_error_rms": None if np.isnan(me_error) else me_error, "emd": emd},
         provenance={
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "trials": [str(t.path) for t in trials],

@@ -29,6 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal.add_argument("--identify-max-std", type=float, default=0.15,
                      help="a strength factor whose data-only relative Laplace std exceeds this is reported "
                           "unidentified (default 0.15; 0 = off)")
+    cal.add_argument("--emd", default="auto", metavar="auto|SECONDS",
+                     help="electromechanical delay applied to the EMG: estimated from the trials (auto, default) or "
+                          "given in seconds (0 = none)")
     cal.add_argument("--identify", choices=["report", "shrink", "truncate"], default="report",
                      help="unidentified strength directions: report only (plain MAP, default), shrink to the "
                           "reference (strength prior weighed by the residuals' autocorrelation time) or truncate "
@@ -93,14 +96,25 @@ def run_calibrate(args: argparse.Namespace) -> int:
     settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate,
                                    strength_prior_std=args.strength_prior_std or None,
                                    identify_max_std=args.identify_max_std or None, identify=args.identify)
+    if args.emd == "auto":
+        emd_s: float | str = "auto"
+    else:
+        try:
+            emd_s = float(args.emd)
+        except ValueError:
+            raise ConfigError("expected 'auto' or a delay in seconds", field="--emd", value=args.emd) from None
+        if not 0 <= emd_s <= 0.5:
+            raise ConfigError("must be in [0, 0.5] s", field="--emd", value=args.emd)
     print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
           f"of {len(trials)} trial(s)...", flush=True)
     profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins,
-                                        no_emg=args.no_emg_prior, synergists=synergists)
+                                        no_emg=args.no_emg_prior, synergists=synergists, emd_s=emd_s)
     profile.save(args.out)
     print(f"{result.method}: converged={result.converged} after {result.iterations} iterations "
           f"({result.message}); projected gradient {result.projected_gradient:.2e}; objective {result.objective:.4g} "
           f"(" + ", ".join(f"{k} {v:.4g}" for k, v in result.terms.items()) + ")")
+    emd = profile.calibration["emd"]
+    print(f"electromechanical delay: {1000 * emd['delay_s']:.0f} ms ({emd['source']})")
     for g, info in result.identifiability(pack.groups).items():
         std = "" if info["std_data"] is None else f"  std (data) {info['std_data']:7.3f}"
         print(f"  {g:16s} scale {info['scale']:6.3f}  F_max {info['scale'] * pack.f_max_ref[pack.groups.index(g)]:9.1f} N"

@@ -1,0 +1,89 @@
+"""Electromechanical delay (EMD) for calibration: EMG leads the force it causes by some 30-100 ms.
+
+Offline the envelope is zero-phase (no filter lag), so what is left between the EMG and the joint torque is the
+physiological delay. Calibration compares activations with the EMG frame by frame; a lead of 50 ms at rep speeds of
+~1 s per movement makes the EMG-implied torque early, and the strength factors absorb the mismatch. The delay is
+estimated as the shift that lets the EMG, through the pack's moment arms, explain the inverse-dynamics torque best:
+for each candidate delay d, least squares of the (capacity-scaled) torque on the columns R_ng F_ref,g e_g(t - d) of
+the groups with EMG plus an intercept per coordinate (the unmeasured groups' share), free factors; the delay with the
+smallest residual wins (parabolic refinement between frames). The strength factors of this fit are not used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from msk_core.errors import EstimationError
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.trial import TrialData
+
+MAX_DELAY_S = 0.15  # beyond the physiological range (Cavanagh & Komi 1979: 30-100 ms)
+
+
+@dataclass(frozen=True)
+class EmdEstimate:
+    delay_s: float
+    candidates_s: np.ndarray  # delays tried
+    residual: np.ndarray  # relative residual sum of squares per candidate (1 = nothing explained)
+
+    def to_dict(self) -> dict:
+        return {
+            "delay_s": float(self.delay_s),
+            "candidates_s": [round(float(x), 6) for x in self.candidates_s],
+            "relative_residual": [round(float(x), 6) for x in self.residual],
+        }
+
+
+def shift_emg(trial: TrialData, delay_s: float) -> TrialData:
+    """The trial with each EMG envelope delayed by ``delay_s`` (e(t - d): aligned with the force it causes); the
+    first ``d`` of the trial holds the first sample."""
+    if delay_s == 0 or not trial.emg:
+        return trial
+    emg = {g: np.interp(trial.time - delay_s, trial.time, e) for g, e in trial.emg.items()}
+    return replace(trial, emg=emg, extra={**trial.extra, "emg_delay_s": float(delay_s)})
+
+
+def _design(pack: PackLike, trials: list[TrialData], delay_s: float, moment_arms: list[np.ndarray]):
+    groups = list(pack.groups)
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    emg_groups = sorted({g for t in trials for g in t.emg})
+    cols = [groups.index(g) for g in emg_groups]
+    rows, target = [], []
+    n_c = len(pack.coordinates)
+    for t, arms in zip(trials, moment_arms):
+        ok = np.all(np.isfinite(arms), axis=(1, 2)) & np.all(np.isfinite(t.torques), axis=1)
+        e = np.column_stack([np.interp(t.time - delay_s, t.time, t.emg[g]) if g in t.emg else np.zeros(t.n_frames)
+                             for g in emg_groups])
+        m = arms[ok] * f_ref[None, None, :]
+        scale = 1.0 / np.maximum(np.abs(m).sum(axis=2), 1.0)  # per-coordinate capacity, as in the calibration
+        x = m[:, :, cols] * e[ok][:, None, :] * scale[:, :, None]  # (T, n_c, G_emg)
+        intercept = np.broadcast_to(np.eye(n_c)[None], (x.shape[0], n_c, n_c)) * scale[:, :, None]
+        rows.append(np.concatenate([x, intercept], axis=2).reshape(-1, len(cols) + n_c))
+        target.append((t.torques[ok] * scale).ravel())
+    return np.vstack(rows), np.concatenate(target)
+
+
+def estimate_emd(pack: PackLike, trials: list[TrialData], *, max_delay_s: float = MAX_DELAY_S) -> EmdEstimate:
+    """Delay in [0, max_delay_s] that best explains the trials' torques by their EMG (see module docstring)."""
+    if not any(t.emg for t in trials):
+        raise EstimationError("EMD estimation needs EMG in at least one trial")
+    dt = float(np.median(np.concatenate([np.diff(t.time) for t in trials])))
+    candidates = np.arange(0, int(round(max_delay_s / dt)) + 1) * dt
+    from msk_core.estimate.pipeline import pack_moment_arms  # shared clamping rule; pipeline imports this module
+
+    arms = [np.array([pack_moment_arms(pack, q) for q in t.q]) for t in trials]
+    residual = np.empty(candidates.size)
+    for i, d in enumerate(candidates):
+        x, y = _design(pack, trials, d, arms)
+        coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+        residual[i] = float(np.sum((y - x @ coef) ** 2) / max(float(np.sum((y - y.mean()) ** 2)), 1e-300))
+    best = int(np.argmin(residual))
+    delay = float(candidates[best])
+    if 0 < best < candidates.size - 1:  # parabola through the minimum and its neighbours
+        r0, r1, r2 = residual[best - 1 : best + 2]
+        curv = r0 - 2 * r1 + r2
+        if curv > 0:
+            delay += dt * float(np.clip(0.5 * (r0 - r2) / curv, -0.5, 0.5))
+    return EmdEstimate(delay_s=delay, candidates_s=candidates, residual=residual)
