@@ -45,6 +45,13 @@ def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
     profile = json.loads((out / "subject_bench_press.json").read_text())
     assert profile["pack"]["name"] == "bench_press"
     assert any("calibrated" in line for line in lines)
+    # strength error vs truth over all groups, the EMG-measured ones and those the data identify (see profile)
+    cal = summary["calibration"]["bench_press"]
+    statuses = profile["calibration"]["strength"]
+    assert cal["status"] == {g: v["status"] for g, v in statuses.items()}
+    assert set(cal["identified_groups"]) == {g for g, v in statuses.items() if v["status"] == "identified"}
+    assert 0 <= cal["strength_error_median"] < 1 and 0 <= cal["strength_error_median_emg"] < 1
+    assert any("EMG-measured" in line and "identified" in line for line in lines)
 
 
 def test_demo_rejects_unknown_exercise(tmp_path):

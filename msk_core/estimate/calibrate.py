@@ -112,10 +112,10 @@ class CalibrationSettings:
     # a group is "identified" when its own relative std is within it. 0.15 = half the strength prior's std (the data
     # then carry >= 4/5 of the precision). None: keep every factor free, report only
     identify_max_std: float | None = 0.15
-    identify: "IdentifyMode" = None  # type: ignore[assignment]  # None -> IdentifyMode.REPORT (see docs)
+    identify: IdentifyMode | str = IdentifyMode.REPORT  # what happens to unidentified directions (docs/estimation.md)
 
     def __post_init__(self) -> None:
-        self.identify = IdentifyMode(self.identify or IdentifyMode.REPORT)
+        self.identify = IdentifyMode(self.identify)
     a_min: float = 0.0
     max_iter: int = 20000
     gtol: float = 1e-7
