@@ -243,14 +243,6 @@ class _Problem:
     def bounds(self) -> list[tuple[float, float]]:
         return self.k_bounds + [(self.a_min, 1.0)] * (self.t * self.g)
 
-    def hold_at_reference(self, groups: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Fix the factors of ``groups`` (bool mask) at k = 1; returns z with them set."""
-        z = z.copy()
-        for j in np.flatnonzero(groups):
-            self.k_bounds[j] = (1.0, 1.0)
-            z[j] = 1.0
-        return z
-
     def strength_std(self, z: np.ndarray, *, with_prior: bool, return_cov: bool = False):
         """Laplace std of each free k: the inverse of the Gauss-Newton curvature of J in k after marginalising the
         activations (Schur complement of the per-frame activation blocks; activations at a bound are held, as in
@@ -352,13 +344,13 @@ def calibrate(
 
 
 def _solve_identified(prob: "_Problem", s: CalibrationSettings, f_ref: np.ndarray, solve, method: str) -> CalibrationResult:
-    """Solve with every factor free; then keep only what the data determine: eigen-directions of the data-only
-    covariance of log k (activations and held factors marginalised; relative std, as strength is a scale) whose
-    std exceeds ``identify_max_std`` are set back to the reference (truncated eigen-solution,
-    log k = P log k_hat with P the projector on the identified directions), and the activations are re-solved with
-    k held there. A group alone
-    unidentified can so keep its share of an identified combination (left/right pairs, muscles with the same
-    moment arms: only their common factor is known)."""
+    """Solve with every factor free, then per ``s.identify``: REPORT keeps that optimum; SHRINK re-solves with the
+    strength prior weighed by the residuals' autocorrelation time; TRUNCATE sets the eigen-directions of the
+    data-only covariance of log k whose std exceeds ``identify_max_std`` back to the reference (log k = P log k_hat,
+    P the projector on the identified directions) and re-solves the activations with k held there. Then the
+    per-group stds and statuses: a group alone unidentified is a ``combination`` when a large enough share of it lies
+    in identified directions (left/right pairs, muscles with the same moment arms: only their common factor is
+    known)."""
     z, converged, iterations, message = solve(prob.start())
     tau = prob.correlation_frames(z)
     if s.identify is IdentifyMode.SHRINK and prob.w_k and tau > 1.0:
