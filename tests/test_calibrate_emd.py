@@ -57,4 +57,5 @@ def test_generator_emd_is_estimated_and_correcting_it_improves_strength(tmp_path
         measured = np.array([s != "not_calibrated" for s in result.status])
         errors[emd] = float(np.median(np.abs(profile.f_max / f_true - 1.0)[measured]))
         assert profile.calibration["emd"]["source"] == ("given" if emd == 0.0 else "estimated")
+    # measured: 28 % -> 17 % median error on the measured groups (constant EMG noise: 37 % -> 18 %)
     assert errors["auto"] < 0.75 * errors[0.0], errors

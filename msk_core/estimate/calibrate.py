@@ -6,8 +6,12 @@ half a squared, normalised error so that J reads as a negative log-likelihood:
 
     J = 1/2 sum_t,n ((sum_g R_tng F_ref,g k_g a_tg - tau_tn) / (eps c_tn))^2            torque, eps = torque_tolerance
       + 1/2 w_prior sum_t,g w_tg ((a_tg - mu_g(phase_t)) / sigma_g(phase_t))^2             N(mu, sigma^2) across reps
-      + 1/2 w_emg   sum_t,g in EMG ((a_tg - e_g(t)) / emg_std)^2                            the trial's own EMG
+      + 1/2 w_emg   sum_t,g in EMG ((a_tg - e_g(t)) / sigma_e)^2                            the trial's own EMG
       + 1/2 sum_g free ((k_g - 1) / strength_prior_std)^2                                 N(1, 0.3^2) strength prior
+
+with sigma_e = sqrt(emg_std^2 + (emg_relative_std e_g(t))^2) (amplitude-estimate noise grows with the amplitude); under
+``IdentifyMode.SHRINK`` the strength prior is weighed by the residuals' autocorrelation time tau (the data terms
+then count T/tau independent frames).
 
 w_tg = 1 for groups without EMG, ``emg_group_prior_weight`` (default 0) where the group's own EMG is known: the
 prior is built from that same EMG, so both terms would count it twice (and its phase-averaged mean biases k).
@@ -95,9 +99,9 @@ class CalibrationSettings:
     strength_bounds: tuple[float, float] = (0.5, 2.5)
     torque_tolerance: float = 0.01
     emg_std: float = 0.05
-    # optional signal-dependent EMG noise: sigma_tg = sqrt(emg_std^2 + (emg_relative_std * e_tg)^2) (sEMG amplitude
-    # noise grows with the amplitude); None: constant emg_std
-    emg_relative_std: float | None = None
+    # signal-dependent EMG noise: sigma_tg = sqrt(emg_std^2 + (emg_relative_std * e_tg)^2) (an sEMG amplitude
+    # estimate's error grows with the amplitude; docs/estimation.md); None: constant emg_std
+    emg_relative_std: float | None = 0.1
     prior_weight: float = 1.0
     # weight of the across-rep prior on a group in the frames where that group's own EMG is known. The prior is built
     # from the same EMG (phase-binned across reps), so with the EMG term it counts that evidence twice, and its

@@ -33,9 +33,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="electromechanical delay applied to the EMG: estimated from the trials (auto, default) or "
                           "given in seconds (0 = none)")
     cal.add_argument("--identify", choices=["report", "shrink", "truncate"], default="report",
-                     help="unidentified strength directions: report only (plain MAP, default), shrink to the "
-                          "reference (strength prior weighed by the residuals' autocorrelation time) or truncate "
-                          "(set to the reference); see docs/estimation.md")
+                     help="strength directions the data do not determine: report only (plain MAP, default), shrink "
+                          "to the reference (strength prior weighed by the residuals' autocorrelation time) or "
+                          "truncate (set to the reference); see docs/estimation.md")
+    cal.add_argument("--emg-relative-std", type=float, default=0.1,
+                     help="EMG noise grows with the envelope: std = sqrt(0.05^2 + (r e)^2) (default r = 0.1; 0 = "
+                          "constant 0.05)")
     cal.add_argument("--no-emg-prior", choices=["min_effort", "synergist", "wide"], default="min_effort",
                      help="prior of groups without EMG: static optimisation's share over the reps (default), the "
                           "measured group with the most similar moment arms, or the wide N(0, 0.5^2)")
@@ -93,9 +96,13 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise ConfigError("must be >= 0 (0 = off)", field="--strength-prior-std", value=args.strength_prior_std)
     if not args.identify_max_std >= 0:
         raise ConfigError("must be >= 0 (0 = off)", field="--identify-max-std", value=args.identify_max_std)
+    if not args.emg_relative_std >= 0:
+        raise ConfigError("must be >= 0 (0 = constant EMG noise)", field="--emg-relative-std",
+                          value=args.emg_relative_std)
     settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate,
                                    strength_prior_std=args.strength_prior_std or None,
-                                   identify_max_std=args.identify_max_std or None, identify=args.identify)
+                                   identify_max_std=args.identify_max_std or None, identify=args.identify,
+                                   emg_relative_std=args.emg_relative_std or None)
     if args.emd == "auto":
         emd_s: float | str = "auto"
     else:
