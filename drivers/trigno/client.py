@@ -335,16 +335,21 @@ class TrignoClient:
                     return tp.UNSOLICITED_STOPPED
                 link.late_replies += 1  # so a late reply is not taken as the next command's
                 raise ProtocolError(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
-            link.command.settimeout(remaining)
-            try:
-                chunk = link.command.recv(4096)
-            except socket.timeout:
-                continue
-            finally:
-                link.command.settimeout(None)
-            if not chunk:
-                raise ConnectionResetError(f"Trigno server closed the command connection (waiting for {command!r})")
-            link.pending_replies.extend(link.replies.feed(chunk))
+            self._receive(link, remaining, f"Trigno server closed the command connection (waiting for {command!r})")
+
+    @staticmethod
+    def _receive(link: _Link, timeout_s: float, closed_message: str) -> None:
+        """Whatever the command port delivers within ``timeout_s``, parsed into pending replies (nothing on timeout)."""
+        link.command.settimeout(timeout_s)
+        try:
+            chunk = link.command.recv(4096)
+        except socket.timeout:
+            return
+        finally:
+            link.command.settimeout(None)
+        if not chunk:
+            raise ConnectionResetError(closed_message)
+        link.pending_replies.extend(link.replies.feed(chunk))
 
     def _query(self, link: _Link, text: str) -> str | None:
         """A query whose failure is tolerated (servers differ in what they support)."""
@@ -386,16 +391,8 @@ class TrignoClient:
             if now >= deadline:
                 raise ProtocolError(f"no banner from the Trigno server within {self.config.reply_timeout_s} s")
             grace_end = start + self.config.banner_line_grace_s
-            link.command.settimeout(max(0.01, (grace_end if now < grace_end else deadline) - now))
-            try:
-                chunk = link.command.recv(4096)
-            except socket.timeout:
-                continue
-            finally:
-                link.command.settimeout(None)
-            if not chunk:
-                raise ConnectionResetError("Trigno server closed the command connection before its banner")
-            link.pending_replies.extend(link.replies.feed(chunk))
+            self._receive(link, max(0.01, (grace_end if now < grace_end else deadline) - now),
+                          "Trigno server closed the command connection before its banner")
 
     def _open_emg(self) -> socket.socket:
         cfg = self.config
