@@ -9,6 +9,7 @@ drops every connection at once, like a crashed server; a new simulator on the sa
 from __future__ import annotations
 
 import enum
+import select
 import socket
 import threading
 import time
@@ -90,6 +91,7 @@ class TrignoSimulator:
         self._stop = threading.Event()
         self._lock = threading.RLock()
         self._listeners: dict[str, socket.socket] = {}
+        self._accept_locks: dict[str, threading.Lock] = {}
         self._command_conns: list[_CommandConnection] = []
         self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": [], "legacy_acc": []}
         self._threads: list[threading.Thread] = []
@@ -197,26 +199,59 @@ class TrignoSimulator:
 
     # ------------------------------------------------------------------------------------------ accepting
     def _accept_loop(self, name: str, listener: socket.socket) -> None:
+        lock = self._accept_locks.setdefault(name, threading.Lock())
         while not self._stop.is_set():
             try:
-                sock, _ = listener.accept()
-            except socket.timeout:
-                continue
-            except OSError:
+                if not select.select([listener], [], [], 0.1)[0]:
+                    continue
+            except (OSError, ValueError):  # listener closed
                 return
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with lock:  # accept and register as one step (see _accept_pending_data)
+                try:
+                    if not select.select([listener], [], [], 0)[0]:
+                        continue  # START's pending accept took it
+                    sock, _ = listener.accept()
+                except socket.timeout:
+                    continue
+                except (OSError, ValueError):  # listener closed
+                    return
+                self._register(name, sock)
+
+    def _register(self, name: str, sock: socket.socket) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        with self._lock:
             self.stats.connections += 1
+        if name == "command":
+            with self._lock:
+                conn = _CommandConnection(sock, self._next_conn_id)
+                self._next_conn_id += 1
+                if self._master is None and self.config.quirks.first_connection_is_master:
+                    self._master = conn.id
+                self._command_conns.append(conn)
+            self._spawn(self._command_loop, conn)
+        else:
+            with self._lock:
+                self._data_conns[name if name in ("aux", "legacy_acc") else "emg"].append(sock)
+
+    def _accept_pending_data(self) -> None:
+        """Data connections a client opened before START wait in the listeners' backlogs until an accept thread runs,
+        which on a busy machine can be after the first frames: accept them now, so that (as on a real TCU) a client
+        connected before START receives the stream from its first frame."""
+        for name, listener in list(self._listeners.items()):
             if name == "command":
-                with self._lock:
-                    conn = _CommandConnection(sock, self._next_conn_id)
-                    self._next_conn_id += 1
-                    if self._master is None and self.config.quirks.first_connection_is_master:
-                        self._master = conn.id
-                    self._command_conns.append(conn)
-                self._spawn(self._command_loop, conn)
-            else:
-                with self._lock:
-                    self._data_conns[name if name in ("aux", "legacy_acc") else "emg"].append(sock)
+                continue
+            # the accept thread holds this lock from accept() to registration, never while waiting
+            with self._accept_locks.setdefault(name, threading.Lock()):
+                while True:
+                    try:
+                        if not select.select([listener], [], [], 0)[0]:
+                            break
+                        sock, _ = listener.accept()
+                    except (socket.timeout, BlockingIOError):
+                        break
+                    except (OSError, ValueError):  # listener closed
+                        return
+                    self._register(name, sock)
 
     # ------------------------------------------------------------------------------------------ commands
     def _command_loop(self, conn: _CommandConnection) -> None:
@@ -378,6 +413,7 @@ class TrignoSimulator:
     def _start_streaming(self) -> None:
         if self._running:
             return
+        self._accept_pending_data()
         self._frame = 0
         self._run_started = time.monotonic() + self.config.quirks.start_delay_s / self.config.speed
         self._running = True
