@@ -11,7 +11,7 @@ from scipy.optimize import lsq_linear
 
 from msk_core.estimate import FrameEstimator, PhasePrior
 from msk_core.estimate import active_set
-from msk_core.estimate.frame import MIN_TORQUE_SCALE, _prior_rows, _prior_table
+from msk_core.estimate.frame import MIN_TORQUE_SCALE
 from msk_core.estimate.prior import REST_PHASE
 
 
@@ -156,13 +156,21 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
 
 def test_prior_rows_interpolate_exactly_like_the_prior():
     prior = _prior([f"g{i}" for i in range(5)], np.random.default_rng(3))
-    mean_t, prec_t = _prior_table(prior)
+    mean_t, prec_t = prior.table()
     phases = [None, math.nan, REST_PHASE, -0.3, 0.0, 1e-9, 0.024, 0.025, 0.026, 0.5, 0.731, 0.975, 0.99, 1.0, 1.5]
     for phase in phases:
-        i0, i1, frac = _prior_rows(phase, prior.n_bins)
+        i0, i1, frac = prior.rows(phase)
         mu, prec = prior.mean_precision(phase)
         np.testing.assert_allclose(mean_t[i0] + frac * (mean_t[i1] - mean_t[i0]), mu, rtol=1e-14, atol=1e-15)
         np.testing.assert_allclose(prec_t[i0] + frac * (prec_t[i1] - prec_t[i0]), prec, rtol=1e-14)
+    # the rows themselves: bins, pooled prior (law of total variance), rest prior
+    n = prior.n_bins
+    np.testing.assert_array_equal(mean_t[:n], prior.mean)
+    np.testing.assert_allclose(mean_t[n], prior.mean.mean(axis=0))
+    np.testing.assert_allclose(1.0 / prec_t[n], (prior.std**2).mean(axis=0) + prior.mean.var(axis=0))
+    np.testing.assert_array_equal(mean_t[n + 1], prior.rest_mean)
+    np.testing.assert_allclose(prec_t[n + 1], 1.0 / prior.rest_std**2)
+    assert prior.rows(0.5) == (9, 10, pytest.approx(0.5))  # 20 bins: phase 0.5 lies between bin centres 9 and 10
 
 
 def test_warm_up_leaves_a_fresh_estimator():

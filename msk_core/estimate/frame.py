@@ -50,7 +50,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate import active_set
 from msk_core.estimate.laplace import laplace_std
 from msk_core.estimate.pack import PackLike, resolve_pack
-from msk_core.estimate.prior import REST_PHASE, PhasePrior
+from msk_core.estimate.prior import PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
 if TYPE_CHECKING:
@@ -128,30 +128,6 @@ class FrameResult:
             else:
                 self._std = laplace_std(self.hessian, ~self.at_bound, self._equality)
         return self._std
-
-
-def _prior_table(prior: PhasePrior) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, precision) tables of shape (n_bins + 2, G): the phase bins, the pooled prior, the rest prior."""
-    mu_p, prec_p = prior.mean_precision(None)
-    rest_mu, rest_prec = prior.mean_precision(REST_PHASE)
-    return (np.vstack([prior.mean, mu_p, rest_mu]),
-            np.vstack([1.0 / prior.std**2, prec_p, rest_prec]))
-
-
-def _prior_rows(phase: float | None, n_bins: int) -> tuple[int, int, float]:
-    """Rows of :func:`_prior_table` and the weight of the second, as :meth:`PhasePrior.mean_precision` interpolates:
-    linearly between bin centres, clamped at the ends; unknown phase -> pooled row, negative -> rest row."""
-    if phase is None or not math.isfinite(phase):
-        return n_bins, n_bins, 0.0
-    if phase < 0.0:
-        return n_bins + 1, n_bins + 1, 0.0
-    x = min(max(float(phase), 0.0), 1.0) * n_bins - 0.5
-    if x <= 0.0:
-        return 0, 0, 0.0
-    if x >= n_bins - 1:
-        return n_bins - 1, n_bins - 1, 0.0
-    i = int(x)
-    return i, i + 1, x - i
 
 
 class FrameEstimator:
@@ -236,11 +212,9 @@ class FrameEstimator:
         # prior as one table for the compiled solve: phase bins, then the pooled row, then the rest row (hybrid: one
         # row, mean 0, precision 2 * hybrid_weight)
         if self.method is Method.PROPOSED:
-            self._prior_mean, self._prior_prec = _prior_table(self.prior)
-            self._prior_bins = self.prior.n_bins
+            self._prior_mean, self._prior_prec = self.prior.table()
         else:
             self._prior_mean, self._prior_prec = np.zeros((1, n)), self._hybrid_d[None, :].copy()
-            self._prior_bins = 0
         self.solver_counts: dict[str, int] = {"active_set": 0, "piqp": 0}
         # ModelPack.frame() gives lengths, moment arms and torques in one (compiled) call; other packs need not have it
         self._fused_frame = getattr(self.pack, "frame", None)
@@ -315,7 +289,7 @@ class FrameEstimator:
             pose = np.zeros(n_c) if self._ranges is None else self._ranges.mean(axis=1)
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)
         self.reset_counts()
-        self._hot_x[:], self._hot_state[:] = 0.0, active_set.FREE
+        self._reset_hot_start()
 
     def reset_counts(self) -> None:
         self.flag_counts.clear()
@@ -367,7 +341,7 @@ class FrameEstimator:
             w, row0, row1, frac = 2.0, 0, 0, 0.0
         else:
             w = self._torque_weight
-            row0, row1, frac = _prior_rows(phase, self._prior_bins)
+            row0, row1, frac = self.prior.rows(phase)
         t0 = time.perf_counter()
         code, changes, out, torques = active_set.solve_box_lsq(
             r, self.f_max, tau, w, self._prior_mean, self._prior_prec, row0, row1, frac, self._lb, self._ub,
@@ -400,7 +374,11 @@ class FrameEstimator:
                 self._hot_x[:] = result.activations
                 active_set.seed_state(self._hot_x, self._lb, self._ub, BOUND_TOL, self._hot_state)
             else:
-                self._hot_x[:], self._hot_state[:] = 0.0, active_set.FREE
+                self._reset_hot_start()
+
+    def _reset_hot_start(self) -> None:
+        """Next frame starts cold: everything free at 0 (the state :func:`active_set.new_state` gives)."""
+        self._hot_x[:], self._hot_state[:] = 0.0, active_set.FREE
 
     def _finish(self, status, x, it, dt, a_mat, tau, phase, hess_parts, equality) -> FrameResult:
         if status == piqp.PIQP_SOLVED:

@@ -75,28 +75,45 @@ class PhasePrior:
         return mu, 1.0 / np.sqrt(prec)
 
     def mean_precision(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """(mu, 1/sigma^2) at a phase, from per-bin caches (the per-frame hot path)."""
+        """(mu, 1/sigma^2) at a phase, from the cached :meth:`table` (the per-frame hot path)."""
+        mean, prec, dmean, dprec = self._tables()
+        i0, i1, frac = self.rows(phase)
+        if i0 == i1:
+            return mean[i0], prec[i0]
+        return mean[i0] + frac * dmean[i0], prec[i0] + frac * dprec[i0]
+
+    def table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, precision) tables of shape (n_bins + 2, G): the phase bins, then the pooled prior (unknown phase),
+        then the rest prior (between reps). :meth:`rows` says which rows a phase interpolates."""
+        mean, prec, _, _ = self._tables()
+        return mean, prec
+
+    def rows(self, phase: float | None) -> tuple[int, int, float]:
+        """(row0, row1, frac) of :meth:`table`: the prior at ``phase`` is row0 + frac * (row1 - row0), linear between
+        bin centres and clamped at the ends; unknown phase (None/NaN) -> the pooled row, negative -> the rest row."""
+        n = self.mean.shape[0]
+        if phase is None or not math.isfinite(phase):
+            return n, n, 0.0
+        if phase < 0.0:
+            return n + 1, n + 1, 0.0
+        x = min(max(float(phase), 0.0), 1.0) * n - 0.5
+        if x <= 0.0:
+            return 0, 0, 0.0
+        if x >= n - 1:
+            return n - 1, n - 1, 0.0
+        i = int(x)
+        return i, i + 1, x - i
+
+    def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         cache = self.__dict__.get("_cache")
         if cache is None:
             mu_p, sd_p = self.pooled()
-            rest = (mu_p, 1.0 / sd_p**2) if self.rest_mean is None else (self.rest_mean, 1.0 / self.rest_std**2)
-            cache = (self.mean, 1.0 / self.std**2, np.diff(self.mean, axis=0), np.diff(1.0 / self.std**2, axis=0),
-                     mu_p, 1.0 / sd_p**2, rest)
+            rest_mu, rest_sd = (mu_p, sd_p) if self.rest_mean is None else (self.rest_mean, self.rest_std)
+            mean = np.vstack([self.mean, mu_p, rest_mu])
+            prec = np.vstack([1.0 / self.std**2, 1.0 / sd_p**2, 1.0 / rest_sd**2])
+            cache = (mean, prec, np.diff(mean, axis=0), np.diff(prec, axis=0))
             object.__setattr__(self, "_cache", cache)
-        mean, prec, dmean, dprec, mu_p, prec_p, rest = cache
-        if phase is None or not math.isfinite(phase):
-            return mu_p, prec_p
-        if phase < 0.0:
-            return rest
-        n = self.mean.shape[0]
-        x = min(max(float(phase), 0.0), 1.0) * n - 0.5
-        if x <= 0.0:
-            return mean[0], prec[0]
-        if x >= n - 1:
-            return mean[n - 1], prec[n - 1]
-        i = int(x)
-        w = x - i
-        return mean[i] + w * dmean[i], prec[i] + w * dprec[i]
+        return cache
 
     def pooled(self) -> tuple[np.ndarray, np.ndarray]:
         """Mixture of all bins: mean of means, std from the law of total variance."""
