@@ -132,6 +132,7 @@ class TrignoSimulator:
             listener.listen(8)
             listener.settimeout(0.1)
             self._listeners[name] = listener
+            self._accept_locks[name] = threading.Lock()
             self.ports[name] = listener.getsockname()[1]
             self._spawn(self._accept_loop, name, listener)
         self._spawn(self._stream_loop)
@@ -199,23 +200,30 @@ class TrignoSimulator:
 
     # ------------------------------------------------------------------------------------------ accepting
     def _accept_loop(self, name: str, listener: socket.socket) -> None:
-        lock = self._accept_locks.setdefault(name, threading.Lock())
         while not self._stop.is_set():
             try:
-                if not select.select([listener], [], [], 0.1)[0]:
+                if not select.select([listener], [], [], 0.1)[0]:  # wait without holding the accept lock
                     continue
             except (OSError, ValueError):  # listener closed
                 return
-            with lock:  # accept and register as one step (see _accept_pending_data)
-                try:
-                    if not select.select([listener], [], [], 0)[0]:
-                        continue  # START's pending accept took it
-                    sock, _ = listener.accept()
-                except socket.timeout:
-                    continue
-                except (OSError, ValueError):  # listener closed
-                    return
-                self._register(name, sock)
+            if self._accept_ready(name, listener) is None:
+                return
+
+    def _accept_ready(self, name: str, listener: socket.socket) -> bool | None:
+        """Accept and register one connection waiting on ``listener``, as one step under its lock (so that
+        :meth:`_accept_pending_data` sees every connection either registered or still waiting). True: one was
+        accepted; False: none was waiting; None: the listener is closed."""
+        with self._accept_locks[name]:
+            try:
+                if not select.select([listener], [], [], 0)[0]:
+                    return False
+                sock, _ = listener.accept()
+            except (socket.timeout, BlockingIOError):
+                return False
+            except (OSError, ValueError):
+                return None
+            self._register(name, sock)
+            return True
 
     def _register(self, name: str, sock: socket.socket) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -238,20 +246,9 @@ class TrignoSimulator:
         which on a busy machine can be after the first frames: accept them now, so that (as on a real TCU) a client
         connected before START receives the stream from its first frame."""
         for name, listener in list(self._listeners.items()):
-            if name == "command":
-                continue
-            # the accept thread holds this lock from accept() to registration, never while waiting
-            with self._accept_locks.setdefault(name, threading.Lock()):
-                while True:
-                    try:
-                        if not select.select([listener], [], [], 0)[0]:
-                            break
-                        sock, _ = listener.accept()
-                    except (socket.timeout, BlockingIOError):
-                        break
-                    except (OSError, ValueError):  # listener closed
-                        return
-                    self._register(name, sock)
+            if name != "command":
+                while self._accept_ready(name, listener):
+                    pass
 
     # ------------------------------------------------------------------------------------------ commands
     def _command_loop(self, conn: _CommandConnection) -> None:
