@@ -1,7 +1,8 @@
 """The demo: the embedded synthetic gym session through the whole live graph, scored against its known truth.
 
 1. Calibrate one subject profile per exercise (strength per muscle group + the N(mu, sigma^2) EMG prior) on the
-   lighter-load trial of ``recordings/demo`` (OpenSim storage files + trial TOMLs written by ``msk synth``).
+   lighter-load trial of ``recordings/demo`` and the isometric MVC trials (one maximal contraction per electrode site
+   against a dynamometer) - OpenSim storage files + trial TOMLs written by ``msk synth``.
 2. Start, on a private loopback Zenoh endpoint, a recorder and per exercise pack a kinematics node (IMU -> joint
    angles) and an estimator node (methods ``proposed``, ``so`` and ``hybrid``), then replay
    ``recordings/demo_session.mcap`` (raw EMG, IMU and load events; its recorded joint angles are left out, so the
@@ -76,9 +77,12 @@ def _trial_folders(recordings: Path, exercise: str) -> list[Path]:
 def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, dict]:
     pack = load_pack(exercise)
     training = _trial_folders(recordings, exercise)[0]
-    log(f"[{exercise}] calibrating on {training.name} ...")
+    isometric = sorted((recordings / "demo" / exercise / "mvc").glob("*/trial.toml"))
+    log(f"[{exercise}] calibrating on {training.name}" + (f" + {len(isometric)} isometric MVC trials" if isometric else "")
+        + " ...")
     started = time.perf_counter()
-    profile, result = calibrate_subject(pack, [load_trial(training / "trial.toml", pack)])
+    trials = [load_trial(training / "trial.toml", pack)] + [load_trial(p, pack) for p in isometric]
+    profile, result = calibrate_subject(pack, trials)
     path = out / f"subject_{exercise}.json"
     profile.save(path)
     truth = json.loads((recordings / "demo" / "truth.json").read_text())["exercises"][exercise]["f_max_n"]

@@ -318,3 +318,41 @@ def test_muscle_effects_and_crosstalk_change_the_truth_in_the_expected_direction
         return np.mean([np.corrcoef(env[:, k], env[:, k + 1])[0, 1] for k in range(env.shape[1] - 1)])
 
     assert neighbour_corr(mixed) > neighbour_corr(base) + 0.05
+
+
+def test_mvc_blocks_are_isometric_trials_with_dynamometer_torques(bench, tmp_path):
+    """Each MVC block is one site's maximal contraction in its test position; the torques are the muscles' (true
+    F_max, true activations of every group) and the written isometric trial loads as such."""
+    from msk_core.estimate.trial import load_trial
+    from msk_core.synth.session import test_position
+
+    pack = load_pack(PACKS[Exercise.BENCH_PRESS])
+    mvc = bench.mvc
+    assert mvc.poses.shape == (len(mvc.channels), len(pack.coordinates))
+    lo, hi = pack.coordinate_ranges[:, 0], pack.coordinate_ranges[:, 1]
+    for k, ch in enumerate(mvc.channels):
+        sl = mvc.block(k)
+        assert np.all(mvc.poses[k] >= lo) and np.all(mvc.poses[k] <= hi)
+        g = pack.groups.index(ch)
+        # the target group is the most active, at MVC level; the others co-contract
+        peak = mvc.activation[sl].max(axis=0)
+        assert peak[g] > 0.95 and np.all(np.delete(peak, g) < 0.3)
+        torque = mvc.activation[sl] @ (pack.moment_arms(mvc.poses[k]) * bench.f_max[None, :]).T
+        assert np.allclose(torque, mvc.torque[sl], atol=1e-9)
+        # the test position gives the target a larger capacity share than the middle of the ranges does
+        share = lambda q: np.max(np.abs(pack.moment_arms(q)[:, g]) * pack.f_max_ref[g]  # noqa: E731
+                                 / (np.abs(pack.moment_arms(q)) @ pack.f_max_ref))
+        assert share(mvc.poses[k]) >= share(0.5 * (lo + hi)) - 1e-12
+    assert np.array_equal(test_position(pack, 0), test_position(pack, 0))
+    truth = json.loads(write_session(generate_session([Exercise.BENCH_PRESS], small_config(), packs=PACKS),
+                                     tmp_path).read_text())
+    entries = truth["exercises"]["bench_press"]["isometric_trials"]
+    assert [e["channel"] for e in entries] == mvc.channels
+    trial = load_trial(tmp_path / entries[0]["trial"], pack)
+    assert trial.isometric and np.all(trial.rep_index == -1) and np.all(np.isnan(trial.phase))
+    assert np.allclose(trial.q, trial.q[0]) and set(trial.emg) == set(mvc.channels)
+    from msk_core.emg import windowed_peak
+
+    target = trial.emg[entries[0]["channel"]]  # the block is the normalisation reference of its own channel:
+    assert windowed_peak(target[:, None], 25)[0] == pytest.approx(1.0, abs=0.02)  # its highest 0.5 s mean is 1
+    assert np.abs(trial.torques).max() == pytest.approx(max(entries[0]["peak_abs_torque_nm"].values()), rel=0.02)

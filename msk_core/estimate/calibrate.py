@@ -123,6 +123,7 @@ class CalibrationSettings:
     a_min: float = 0.0
     max_iter: int = 20000
     gtol: float = 1e-7
+    ftol: float = 1e-15  # L-BFGS-B stops when an iteration lowers the objective by less than ftol (relative)
 
 
 @dataclass
@@ -244,6 +245,15 @@ class _Problem:
         grad_k = np.sum(back * a, axis=0) + self.w_k_obj * (k - 1.0)
         return sum(terms.values()), np.concatenate([grad_k, grad_a.ravel()])
 
+    def diagonal_curvature(self, z: np.ndarray) -> np.ndarray:
+        """Diagonal of the Gauss-Newton Hessian of J at z (the Jacobi preconditioner of the joint solve)."""
+        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
+        b2 = (self.m * self.inv_s[:, :, None]) ** 2  # (T, n_c, G)
+        col = b2.sum(axis=1)  # (T, G): sum_n (m_tng / s_tn)^2
+        h_a = col * k**2 + self.w_p + self.w_e
+        h_k = np.sum(col * a**2, axis=0) + self.w_k_obj
+        return np.concatenate([h_k, h_a.ravel()])
+
     def bounds(self) -> list[tuple[float, float]]:
         return self.k_bounds + [(self.a_min, 1.0)] * (self.t * self.g)
 
@@ -334,15 +344,26 @@ def calibrate(
     prob = _Problem(f_ref, frames, s)
 
     def solve(z0: np.ndarray) -> tuple[np.ndarray, bool, int, str]:
+        # Jacobi preconditioning (z = d y, d = curvature^-1/2 at the start): one strength factor collects the
+        # curvature of thousands of frames, one activation that of one frame; unscaled, L-BFGS-B spends most of its
+        # iterations on that spread (bench press demo with its isometric trials: 2203 -> 170 iterations, same optimum)
+        d = 1.0 / np.sqrt(np.maximum(prob.diagonal_curvature(z0), 1e-12))
+
+        def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
+            value, grad = prob.value_grad(d * y)
+            return value, grad * d
+
+        bounds = [(lo / di, hi / di) for (lo, hi), di in zip(prob.bounds(), d)]
         res = minimize(
-            prob.value_grad,
-            z0,
+            scaled,
+            z0 / d,
             jac=True,
             method="L-BFGS-B",
-            bounds=prob.bounds(),
-            options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": 1e-15, "maxcor": 10},
+            bounds=bounds,
+            options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": s.ftol, "maxcor": 10},
         )
-        return res.x, bool(res.success), int(res.nit), str(res.message)
+        z = np.clip(res.x * d, [b[0] for b in prob.bounds()], [b[1] for b in prob.bounds()])
+        return z, bool(res.success), int(res.nit), str(res.message)
 
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)")
 

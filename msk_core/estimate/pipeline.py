@@ -43,8 +43,10 @@ def build_prior(
 
     Groups with EMG: from their normalised envelopes. Groups without: ``synergists`` (unmeasured -> measured group)
     first, then ``no_emg``: the minimal-effort (``so``) activation over the same reps, a measured synergist, or the
-    wide default.
+    wide default. Isometric trials are left out: they have no phase, and their contractions are not the rest between
+    reps either.
     """
+    trials = [t for t in trials if not t.isometric]
     groups = list(pack.groups)
     no_emg = NoEmgPrior(no_emg)
     emg_groups = sorted({g for t in trials for g in t.emg})
@@ -161,7 +163,7 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
     groups = list(pack.groups)
     diffs = []
     for t in trials:
-        if not t.emg:
+        if not t.emg or t.isometric:
             continue
         so = min_effort_activations(pack, t)
         inside = t.rep_index >= 0
@@ -188,7 +190,9 @@ def calibration_frames(
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
-            if t.rep_index[i] >= 0:
+            if t.isometric:
+                a, b = isometric_cocontraction_prior(t, i, groups)
+            elif t.rep_index[i] >= 0:
                 a, b = prior.at(float(t.phase[i]))
                 b = np.sqrt(b**2 + widen**2)
             else:  # the prior is a distribution across reps: between reps only torque and the trial's EMG count
@@ -201,6 +205,29 @@ def calibration_frames(
     if not r:
         raise EstimationError("no usable calibration frame")
     return CalibrationFrames(np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float))
+
+
+ISOMETRIC_COCONTRACTION_STD = 0.05  # added in quadrature to the measured groups' spread (an unmeasured group is not one of them)
+
+
+def isometric_cocontraction_prior(trial: TrialData, i: int, groups: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Prior of frame i of an isometric trial: N(median, s^2) of the measured groups' EMG in that frame for the groups
+    nobody measured (they co-contract like the measured ones; the median ignores the one or few groups pushing
+    maximally), s^2 = (1.4826 MAD)^2 + ISOMETRIC_COCONTRACTION_STD^2; none (std = inf) for measured groups, whose own
+    EMG decides. Without it a free unmeasured synergist soaks up the torque of the contraction and the measured
+    group's strength is not separated from it."""
+    e = np.array([trial.emg[g][i] for g in trial.emg], dtype=float)
+    e = e[np.isfinite(e)]
+    mean = np.zeros(len(groups))
+    std = np.full(len(groups), np.inf)
+    if e.size == 0:
+        return mean, std
+    centre = float(np.median(e))
+    spread = 1.4826 * float(np.median(np.abs(e - centre)))
+    for j, g in enumerate(groups):
+        if g not in trial.emg:
+            mean[j], std[j] = max(centre, 0.0), float(np.hypot(spread, ISOMETRIC_COCONTRACTION_STD))
+    return mean, std
 
 
 def calibrate_subject(
@@ -217,6 +244,11 @@ def calibrate_subject(
 
     ``emd_s``: electromechanical delay applied to the EMG before both ("auto": estimated from the trials,
     :mod:`msk_core.estimate.emd`; a number: given, seconds; None or 0: none)."""
+    if all(t.isometric for t in trials):
+        raise EstimationError(
+            "calibration needs at least one trial with reps besides the isometric ones: the N(mu, sigma^2) prior per "
+            f"phase of the movement is learned from reps (trials: {', '.join(t.name for t in trials)})"
+        )
     if emd_s == "auto":
         emd = estimate_emd(pack, trials).to_dict() | {"source": "estimated"}
     elif emd_s is None or isinstance(emd_s, (int, float)):
@@ -259,7 +291,9 @@ def calibrate_subject(
 
 
 def learn_trials_phase_model(pack: PackLike, trials: list[TrialData]) -> PhaseModel | None:
-    """Rep template on the trials' phase coordinate (None when their phase is not kinematic: nothing to track live)."""
+    """Rep template on the trials' phase coordinate (None when their phase is not kinematic: nothing to track live).
+    Isometric trials have no reps and are left out."""
+    trials = [t for t in trials if not t.isometric]
     coordinates = {t.phase_coordinate for t in trials}
     if None in coordinates:
         return None

@@ -14,6 +14,11 @@ Keys (paths relative to the TOML file)::
     phase_signal = "torque:L5_S1_Flex_Ext"   # optional; a kinematics column, or torque:<coordinate>. Default: the
                                              # pack's phase coordinate (bench_press elbow_flex_r, deadlift
                                              # hip_flexion_r), else the torque of its first coordinate
+    isometric = true                 # optional: a static-pose trial (isometric MVC against a dynamometer or a fixed
+                                     # bar). It needs ``torques`` (the measured ones: inverse dynamics of a static pose
+                                     # cannot know the push), has no reps or phase, and enters calibration with its
+                                     # torque and EMG terms only - a contraction that isolates one muscle group is
+                                     # what separates that group's strength from its synergists' (docs/estimation.md)
     [emg_map]                        # EMG column -> pack group
     rectabd_r = "rectabd_r"
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
@@ -50,6 +55,7 @@ KNOWN_KEYS = {
     "emg_map",
     "emg_max",
     "name",
+    "isometric",
 }
 GRAVITY = 9.81
 
@@ -74,6 +80,7 @@ class TrialData:
     phase_signal: str
     dropped_frames: int = 0
     phase_coordinate: str | None = None  # the pack coordinate the phase comes from (kinematic phase; live-trackable)
+    isometric: bool = False  # static-pose trial: no reps, no phase (``isometric = true``)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -151,6 +158,14 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     if body_mass is not None and body_mass <= 0:
         raise err("must be > 0", "body_mass_kg", body_mass)
     start, end = number("start", None), number("end", None)
+    isometric = spec.get("isometric", False)
+    if not isinstance(isometric, bool):
+        raise err("must be true or false", "isometric", isometric)
+    if isometric and "torques" not in spec:
+        raise err(
+            "an isometric trial needs the measured joint torques (`torques = ...`): inverse dynamics of a static pose "
+            "knows nothing of the push against the dynamometer", "isometric", isometric,
+        )
 
     kin = read_sto(file_of("kinematics"))
     coords = list(pack.coordinates)
@@ -210,10 +225,14 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     phase_signal = spec.get("phase_signal", default_signal)
     if not isinstance(phase_signal, str):
         raise err("must be a string", "phase_signal", phase_signal)
+    if isometric and "phase_signal" in spec:
+        raise err("an isometric trial has no reps, so no phase", "phase_signal", phase_signal)
     phase_coordinate = None
     extra: dict = {}
     try:
-        if phase_signal.startswith("torque:"):
+        if isometric:
+            phase, rep_index, phase_signal = np.full(time.size, np.nan), np.full(time.size, -1), "none (isometric)"
+        elif phase_signal.startswith("torque:"):
             c = phase_signal.split(":", 1)[1]
             if c not in coords:
                 raise err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
@@ -257,6 +276,7 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
         phase_signal=phase_signal,
         dropped_frames=dropped,
         phase_coordinate=phase_coordinate,
+        isometric=isometric,
         extra=extra,
     )
 

@@ -4,6 +4,8 @@ Layout under ``out``::
 
     truth.json                          subject, effects, F_max truth, per-trial facts and file list
     <exercise>/mvc_emg.sto              MVC block (one channel after another)
+    <exercise>/mvc/<channel>/           that channel's maximal contraction as an isometric trial (``isometric = true``):
+        trial.toml  ik.sto  id.sto  emg.sto   test position, dynamometer joint torques, EMG of every site
     <exercise>/<exercise>_<load>kg/
         trial.toml                      read by msk calibrate / estimate / evaluate
         ik.sto  id.sto  emg.sto         kinematics (rad), inverse dynamics with the *reported* load, EMG
@@ -109,6 +111,53 @@ def write_trial(trial: Trial, folder: Path, *, emg_max: dict[str, float], body_m
     }
 
 
+ISOMETRIC_RATE_HZ = 50.0  # isometric trials: a static pose and 6 Hz envelopes need no more
+
+
+def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[str, float], emg_rate_hz: float,
+                           emg_output: EmgOutput) -> list[dict]:
+    """One isometric trial per MVC block (the contraction of one site, the EMG of all), under ``folder/mvc``."""
+    mvc = ex.mvc
+    if mvc.torque is None:
+        return []
+    env = _envelope(mvc.emg, emg_rate_hz) if emg_output is EmgOutput.ENVELOPE else None
+    out = []
+    for k, ch in enumerate(mvc.channels):
+        sl = mvc.block(k)
+        t_hi = mvc.time[sl] - mvc.time[sl][0]
+        t_lo = np.arange(0.0, t_hi[-1], 1.0 / ISOMETRIC_RATE_HZ)
+        sub = folder / "mvc" / ch
+        sub.mkdir(parents=True, exist_ok=True)
+        name = f"msk-synth mvc {ch}"
+        coords = mvc.coordinates
+        write_sto(sub / "ik.sto", t_lo, coords, _r(np.repeat(mvc.poses[k][None], t_lo.size, 0), "angle"), name=name)
+        write_sto(sub / "id.sto", t_lo, [f"{c}_moment" for c in coords], _r(_downsample(t_hi, mvc.torque[sl], t_lo),
+                  "torque"), name=name)
+        if emg_output is EmgOutput.RAW:
+            write_sto(sub / "emg.sto", t_hi, mvc.channels, _r(mvc.emg[sl], "emg"), name=name)
+        else:
+            write_sto(sub / "emg.sto", t_lo, mvc.channels, _r(_downsample(t_hi, env[sl], t_lo), "emg"), name=name)
+        spec = {
+            "name": f"mvc_{ch}",
+            "isometric": True,
+            "kinematics": "ik.sto",
+            "torques": "id.sto",
+            "emg": "emg.sto",
+            "emg_is_envelope": emg_output is EmgOutput.ENVELOPE,
+            "body_mass_kg": ex.subject.mass_kg,
+            "emg_map": {c: c for c in mvc.channels},
+            "emg_max": {c: emg_max[c] for c in mvc.channels},
+        }
+        (sub / "trial.toml").write_bytes(tomli_w.dumps(spec).encode())
+        out.append({
+            "channel": ch,
+            "trial": str(Path("mvc") / ch / "trial.toml"),
+            "pose_deg": dict(zip(coords, np.degrees(mvc.poses[k]).round(3).tolist())),
+            "peak_abs_torque_nm": dict(zip(coords, map(float, np.abs(mvc.torque[sl]).max(axis=0)))),
+        })
+    return out
+
+
 def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = EmgOutput.ENVELOPE) -> Path:
     """Write every exercise and the truth file. Returns the truth file's path."""
     out = Path(out)
@@ -134,6 +183,8 @@ def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = 
             t_lo = np.arange(0.0, ex.mvc.time[-1], 1.0 / MVC_ENVELOPE_RATE_HZ)
             env = _downsample(ex.mvc.time, _envelope(ex.mvc.emg, cfg.emg_rate_hz), t_lo)
             write_sto(folder / "mvc_emg.sto", t_lo, ex.mvc.channels, _r(env, "emg"), name="msk-synth mvc envelope")
+        isometric = write_isometric_trials(ex, folder, emg_max=maxima, emg_rate_hz=cfg.emg_rate_hz,
+                                           emg_output=emg_output)
         trials = [
             write_trial(t, folder / t.name, emg_max=maxima, body_mass_kg=ex.subject.mass_kg,
                         emg_rate_hz=cfg.emg_rate_hz, emg_output=emg_output)
@@ -146,6 +197,7 @@ def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = 
             "channels": ex.mvc.channels,
             "emg_max": maxima,
             "mvc": str(Path(ex.spec.exercise.value) / "mvc_emg.sto"),
+            "isometric_trials": [{**t, "trial": str(Path(ex.spec.exercise.value) / t["trial"])} for t in isometric],
             "trials": [{**t, "trial": str(Path(ex.spec.exercise.value) / t["trial"])} for t in trials],
         }
     path = out / "truth.json"

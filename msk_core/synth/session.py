@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -10,11 +11,12 @@ from tqdm import tqdm
 from msk_core.estimate.trial import GRAVITY  # the trial files' convention for load_kg -> N
 from msk_core.model import load_pack
 from msk_core.synth.effects import Effects, muscle_factors
-from msk_core.synth.emg import mvc_drive, raw_emg
+from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg
 from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
 from msk_core.synth.imu import ImuStream, simulate_imu
 from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
-from msk_core.synth.recruitment import recruit
+from msk_core.synth.recruitment import TONE, recruit
+from msk_core.synth.rng import stream
 from msk_core.synth.subject import Subject, make_subject
 
 
@@ -63,11 +65,24 @@ class Trial:
 
 @dataclass
 class MvcTrial:
+    """The MVC session: one isometric maximal contraction per electrode site, in that muscle's test position, against
+    a dynamometer that measures the joint torques (the usual way to both normalise EMG and measure strength)."""
+
     exercise: Exercise
     channels: list[str]
-    time: np.ndarray
-    drive: np.ndarray
-    emg: np.ndarray
+    time: np.ndarray  # (E,) EMG time base, all blocks one after another
+    drive: np.ndarray  # (E, C) neural drive of each site
+    emg: np.ndarray  # (E, C) raw volts
+    block_s: float = MVC_BLOCK_S
+    coordinates: list[str] = field(default_factory=list)  # the pack's, when poses/torque are simulated
+    poses: np.ndarray | None = None  # (C, n_c) test position of each channel's block, rad
+    activation: np.ndarray | None = None  # (E, G) every group's activation (drive delayed by the EMD)
+    torque: np.ndarray | None = None  # (E, n_c) joint torques the dynamometer measures, N·m
+
+    def block(self, k: int) -> slice:
+        """EMG samples of channel k's contraction."""
+        n = int(round(self.block_s / float(self.time[1] - self.time[0])))
+        return slice(k * n, (k + 1) * n)
 
 
 @dataclass
@@ -161,11 +176,61 @@ def generate_trial(
     )
 
 
-def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], config: SynthConfig) -> MvcTrial:
-    time, drive = mvc_drive(channels, config.emg_rate_hz, seed=subject.seed)
+def test_position(pack, group: int, *, points: int = 5) -> np.ndarray:
+    """The pose (within the inner 80 % of the pack's fitted ranges, ``points`` per coordinate) where group ``group``
+    has the largest share of the reference torque capacity of any coordinate it crosses: where a maximal contraction
+    of it against a dynamometer is least masked by its synergists (manual-muscle-test positions follow the same idea).
+    """
+    ranges = np.asarray(pack.coordinate_ranges, dtype=float)
+    grid = [np.linspace(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), points) for lo, hi in ranges]
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    best, best_share = None, -1.0
+    for pose in itertools.product(*grid):
+        pose = np.asarray(pose)
+        arms = np.abs(np.asarray(pack.moment_arms(pose), dtype=float)) * f_ref[None, :]  # (n_c, G) N·m
+        share = float(np.max(arms[:, group] / np.maximum(arms.sum(axis=1), 1e-12)))
+        if share > best_share + 1e-12:
+            best, best_share = pose, share
+    return best
+
+
+def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], config: SynthConfig, pack=None) -> MvcTrial:
+    """MVC blocks (EMG of every site while one site contracts maximally); with ``pack`` also each block's test
+    position and the joint torques a dynamometer measures: sum_g r_g(pose) F_g (f_g a_g + p_g), where groups without an
+    electrode co-contract as the measured non-target sites do (5-15 % of the effort; an electrode does not change a
+    muscle's activation), and the force follows the drive by the EMD."""
+    time, drive = mvc_drive(channels, config.emg_rate_hz, seed=subject.seed, block_s=MVC_BLOCK_S)
     emg = raw_emg(time, drive, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=config.emg_rate_hz,
                   seed=subject.seed, key=(spec.exercise.value, "mvc"), crosstalk=config.effects.crosstalk)
-    return MvcTrial(spec.exercise, list(channels), time, drive, emg)
+    mvc = MvcTrial(spec.exercise, list(channels), time, drive, emg)
+    if pack is None:
+        return mvc
+    groups = list(pack.groups)
+    f_max = np.asarray(pack.f_max_ref, dtype=float) * subject.f_max_factor
+    eff = config.effects
+    lagged = _shift(time, drive, -eff.emd)  # force follows the drive
+    activation = np.empty((time.size, len(groups)))
+    torque = np.empty((time.size, len(pack.coordinates)))
+    poses = np.empty((len(channels), len(pack.coordinates)))
+    for k, ch in enumerate(channels):
+        sl = mvc.block(k)
+        poses[k] = test_position(pack, groups.index(ch))
+        effort = lagged[sl, k]
+        for j, g in enumerate(groups):
+            if g in channels:
+                activation[sl, j] = lagged[sl, channels.index(g)]
+            else:  # co-contracts like the sites with an electrode do (mvc_drive: 5-15 % of the effort)
+                share = stream(subject.seed, "mvc", ch, "unmeasured", g).uniform(0.05, 0.15)
+                activation[sl, j] = np.maximum(TONE, share * effort)
+        lengths, arms = pack.lengths_and_moment_arms(poses[k])
+        active, passive = np.ones(len(groups)), np.zeros(len(groups))
+        if eff.needs_muscle_state:  # isometric: force-velocity at zero speed is 1
+            active, passive, _ = muscle_factors(eff, lengths[None], np.zeros((1, len(groups))),
+                                                pack.optimal_fiber_lengths, pack.tendon_slack_lengths)
+            active, passive = active[0], passive[0]
+        torque[sl] = (activation[sl] * active + passive) @ (np.asarray(arms) * f_max[None, :]).T
+    mvc.coordinates, mvc.poses, mvc.activation, mvc.torque = list(pack.coordinates), poses, activation, torque
+    return mvc
 
 
 def generate_exercise(
@@ -177,7 +242,7 @@ def generate_exercise(
     channels = spec.channels(pack.groups)
     subject = make_subject(config.subject_seed, pack.groups, channels)
     loads = (config.loads_kg or {}).get(exercise, spec.loads_kg)
-    mvc = generate_mvc(spec, subject, channels, config)
+    mvc = generate_mvc(spec, subject, channels, config, pack)
     trials = []
     for load in tqdm(loads, desc=f"synth {exercise.value}", unit="load", disable=not progress):
         trials.append(generate_trial(spec, pack, subject, float(load), config, channels))
