@@ -10,7 +10,7 @@ import sys
 import pytest
 
 
-@pytest.mark.parametrize("name", ["emg", "estimate"])
+@pytest.mark.parametrize("name", ["emg", "estimate", "calibrate"])
 def test_bench_quick_reports_figures_with_same_run_baselines(name, tmp_path, repo_root):
     out = tmp_path / "bench.json"
     run = subprocess.run(
@@ -26,6 +26,10 @@ def test_bench_quick_reports_figures_with_same_run_baselines(name, tmp_path, rep
     assert with_baseline, "every benchmark reports at least one figure against a same-run baseline"
     assert all(r["baseline_value"] > 0 for r in with_baseline)
     assert f"== {name}:" in run.stdout
+    if name == "calibrate":  # the preconditioned solve reaches the optimum of the problem as written
+        (result,) = results
+        assert result["details"]["max_abs_strength_difference"] < 1e-3
+        assert result["details"]["iterations"] < result["details"]["baseline_iterations"]
 
 
 def test_bench_rejects_unknown_names(repo_root):

@@ -30,10 +30,11 @@ def _synthetic(seed=0, t=60, n_c=2, g=5, emg_groups=4, noise=0.0):
     return f_ref, k_true, a_true, frames
 
 
+@pytest.mark.parametrize("precondition", [True, False])
 @pytest.mark.parametrize("strength_prior_std,emg_relative_std", [(None, None), (0.3, None), (0.3, 0.1)])
-def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std, emg_relative_std):
+def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std, emg_relative_std, precondition):
     f_ref, _, _, frames = _synthetic(seed=1, t=40, noise=0.03)
-    s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std,
+    s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std, precondition=precondition,
                             emg_relative_std=emg_relative_std, identify_max_std=None)  # the NLP optimum itself
     joint = calibrate(f_ref, frames, s)
     alt = calibrate_alternating(f_ref, frames, s)

@@ -123,6 +123,7 @@ class CalibrationSettings:
     a_min: float = 0.0
     max_iter: int = 20000
     gtol: float = 1e-7
+    precondition: bool = True  # Jacobi-scaled variables in the joint solve (False: as written; msk bench calibrate)
     ftol: float = 1e-15  # L-BFGS-B stops when an iteration lowers the objective by less than ftol (relative)
 
 
@@ -347,7 +348,7 @@ def calibrate(
         # Jacobi preconditioning (z = d y, d = curvature^-1/2 at the start): one strength factor collects the
         # curvature of thousands of frames, one activation that of one frame; unscaled, L-BFGS-B spends most of its
         # iterations on that spread (bench press demo with its isometric trials: 2203 -> 170 iterations, same optimum)
-        d = 1.0 / np.sqrt(np.maximum(prob.diagonal_curvature(z0), 1e-12))
+        d = 1.0 / np.sqrt(np.maximum(prob.diagonal_curvature(z0), 1e-12)) if s.precondition else np.ones_like(z0)
 
         def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
             value, grad = prob.value_grad(d * y)

@@ -113,7 +113,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if not 0 <= emd_s <= 0.5:
             raise ConfigError("must be in [0, 0.5] s", field="--emd", value=args.emd)
     print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
-          f"of {len(trials)} trial(s)...", flush=True)
+          f"of {len(trials)} trial(s)"
+          + (f" ({sum(t.isometric for t in trials)} isometric)" if any(t.isometric for t in trials) else "")
+          + "...", flush=True)
     profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins,
                                         no_emg=args.no_emg_prior, synergists=synergists, emd_s=emd_s)
     profile.save(args.out)
