@@ -108,6 +108,8 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert strength["BIClong"]["status"] == "identified" and abs(strength["BIClong"]["scale"] / 1.5 - 1) <= 0.10
     assert strength["BRA"]["status"] == "not_calibrated"
     assert "TRIlat" in printed and "combination" in printed and "std (data)" in printed
+    hint = [line for line in printed.splitlines() if line.startswith("hint:")]  # no isometric trial given
+    assert len(hint) == 1 and "TRIlat" in hint[0] and "TRImed" in hint[0] and "isometric = true" in hint[0], hint
     # without the identifiability pass every factor stays free (same common factor here)
     off = tmp_path / "subject_free.json"
     rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(off),

@@ -133,6 +133,10 @@ def run_calibrate(args: argparse.Namespace) -> int:
           + ("" if result.settings.identify_max_std is None else
              f" (identified: data-only relative Laplace std <= {result.settings.identify_max_std}; "
              f"unidentified directions: {result.settings.identify.value})"))
+    vague = [g for g, st in zip(pack.groups, result.status) if st in ("unidentified", "combination")]
+    if vague and not any(t.isometric for t in trials):
+        print(f"hint: the lifts do not separate the strength of {', '.join(vague)} from their synergists'; isometric "
+              "MVC trials with measured torque (trial key `isometric = true`, docs/estimation.md) do")
     print(f"wrote {args.out}")
     return 0 if result.converged else 1
 

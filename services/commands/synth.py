@@ -90,5 +90,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"{t.name}: {len(t.rep_starts)} reps, {t.time[-1]:.1f} s, peak |torque| "
                   + ", ".join(f"{c} {abs(t.torque_id[:, i]).max():.0f}" for i, c in enumerate(t.coordinates))
                   + " N·m" + (f", {t.fallback_frames} frames beyond capacity" if t.fallback_frames else ""))
-    print("wrote " + ", ".join(str(p) for p in written) + f" and trial folders under {args.out}")
+    print("wrote " + ", ".join(str(p) for p in written) + f" and trial folders under {args.out} (the lifts, and each "
+          "MVC contraction as an isometric trial under <exercise>/mvc/<channel>)")
     return 0
