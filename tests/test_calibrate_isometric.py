@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from msk_core.errors import ConfigError, EstimationError
-from msk_core.estimate.pipeline import calibrate_subject, isometric_cocontraction_prior
+from msk_core.errors import ConfigError, EstimationError, InputError
+from msk_core.estimate.pipeline import calibrate_subject, isometric_cocontraction_prior, isometric_target
 from msk_core.estimate.trial import load_trial
+from msk_core.io import read_sto, write_sto
 from msk_core.model import load_pack
 
 DEMO = Path(__file__).resolve().parents[1] / "recordings" / "demo"
@@ -42,24 +44,61 @@ def test_isometric_trial_format_and_errors(tmp_path):
         load_trial(toml, pack)
     assert exc.value.value == "yes"
     toml.write_text(text)
+    ik = read_sto(toml.parent / "ik.sto")  # a pose that is not held
+    moving = ik.data.copy()
+    moving[:, 1] += np.radians(np.linspace(0.0, 20.0, ik.n_rows))
+    write_sto(toml.parent / "ik.sto", ik.time, ik.columns, moving)
+    with pytest.raises(InputError, match="holds one pose") as exc:
+        load_trial(toml, pack)
+    assert exc.value.field == ik.columns[1] and exc.value.value == pytest.approx(20.0, abs=0.1)
+    write_sto(toml.parent / "ik.sto", ik.time, ik.columns, ik.data)
     with pytest.raises(EstimationError, match="at least one trial with reps"):
         calibrate_subject(pack, [load_trial(toml, pack)])
 
 
 def test_unmeasured_groups_cocontract_like_the_measured_ones():
     pack = load_pack("bench_press")
-    trial = load_trial(DEMO / "bench_press" / "mvc" / "DelAnt" / "trial.toml", pack)
     groups = list(pack.groups)
-    i = int(np.nanargmax(trial.emg["DelAnt"]))  # the plateau: DelAnt near 1, the others 5-15 %
-    mean, std = isometric_cocontraction_prior(trial, i, groups)
-    e = np.array([trial.emg[g][i] for g in trial.emg])
+    trial = load_trial(DEMO / "bench_press" / "mvc" / "PMSte" / "trial.toml", pack)
+    assert isometric_target(trial) == "PMSte"
+    i = int(np.nanargmax(trial.emg["PMSte"]))  # the plateau: PMSte near 1, the others 5-15 %
+    arms = np.asarray(pack.moment_arms(trial.q[i]))
+    mean, std = isometric_cocontraction_prior(trial, i, groups, arms, "PMSte")
+    others = np.array([trial.emg[g][i] for g in trial.emg if g != "PMSte"])
+    spread = 1.4826 * np.median(np.abs(others - np.median(others)))
     for j, g in enumerate(groups):
+        cosine = arms[:, j] @ arms[:, groups.index("PMSte")] / np.linalg.norm(arms[:, j]) / np.linalg.norm(
+            arms[:, groups.index("PMSte")])
         if g in trial.emg:
             assert mean[j] == 0 and np.isinf(std[j])  # the group's own EMG decides
+        elif cosine >= 0.9:  # a synergist of the target (PMCos, the sternal head's twin) may push maximally too
+            assert np.isinf(std[j]), g
         else:
-            assert mean[j] == pytest.approx(np.median(e))
-            assert std[j] == pytest.approx(np.hypot(1.4826 * np.median(np.abs(e - np.median(e))), 0.05))
-            assert 0.02 < mean[j] < 0.3  # co-contraction, not the target's MVC
+            assert mean[j] == pytest.approx(np.median(others)) and 0.02 < mean[j] < 0.3  # not the target's MVC
+            assert std[j] == pytest.approx(np.hypot(spread, 0.05))
+    assert np.isinf(std[groups.index("PMCos")]) and np.isfinite(std[groups.index("BRA")])
+    # with fewer than 3 other sites recorded nothing says how the rest co-contract: no prior for anyone
+    few = replace(trial, emg={g: trial.emg[g] for g in ("PMSte", "DelAnt", "LD")})
+    mean, std = isometric_cocontraction_prior(few, i, groups, arms)
+    assert np.all(np.isinf(std))
+
+
+def test_isometric_trials_with_only_the_target_electrode_do_not_claim_what_they_cannot_know():
+    """Each block recording only its own site: the other groups' activations are free, and every strength the
+    calibration then calls identified is still close to the truth (the rest is reported unidentified)."""
+    pack = load_pack("bench_press")
+    truth = json.loads((DEMO / "truth.json").read_text())["exercises"]["bench_press"]
+    f_true = np.array([truth["f_max_n"][g] for g in pack.groups])
+    lift = load_trial(DEMO / "bench_press" / "bench_press_40kg" / "trial.toml", pack)
+    only = []
+    for e in truth["isometric_trials"]:
+        t = load_trial(DEMO / e["trial"], pack)
+        only.append(replace(t, emg={e["channel"]: t.emg[e["channel"]]}))
+    profile, result = calibrate_subject(pack, [lift, *only])
+    error = np.abs(profile.f_max / f_true - 1.0)
+    identified = result.identified
+    assert identified.any() and np.all(error[identified] <= 0.10), dict(zip(pack.groups, error.round(2)))
+    assert np.all(np.array(result.status)[error > 0.3] != "identified")
 
 
 def test_isometric_mvc_trials_identify_strengths_the_lift_cannot():

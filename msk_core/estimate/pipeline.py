@@ -46,12 +46,17 @@ def build_prior(
     wide default. Isometric trials are left out: they have no phase, and their contractions are not the rest between
     reps either.
     """
+    isometric = [t.name for t in trials if t.isometric]
     trials = [t for t in trials if not t.isometric]
     groups = list(pack.groups)
     no_emg = NoEmgPrior(no_emg)
     emg_groups = sorted({g for t in trials for g in t.emg})
     if not emg_groups:
-        raise EstimationError("calibration trials have no EMG: the prior needs EMG of at least one group")
+        raise EstimationError(
+            f"the trials with reps ({', '.join(t.name for t in trials) or 'none'}) have no EMG: the prior needs EMG of at "
+            "least one group in a trial with reps" + (f" (isometric trials have no phase: {', '.join(isometric)})"
+                                                      if isometric else "")
+        )
     synergists = dict(synergists or {})
     for g, h in synergists.items():
         if g not in groups or h not in emg_groups:
@@ -186,12 +191,13 @@ def calibration_frames(
     widen = np.array([s == "min_effort" for s in (prior.sources or ("",) * len(groups))]) * (min_effort_std or 0.0)
     r, tau, mu, sd, emg = [], [], [], [], []
     for t in trials:
+        target = isometric_target(t) if t.isometric else None
         for i in range(t.n_frames):
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
             if t.isometric:
-                a, b = isometric_cocontraction_prior(t, i, groups)
+                a, b = isometric_cocontraction_prior(t, i, groups, m, target)
             elif t.rep_index[i] >= 0:
                 a, b = prior.at(float(t.phase[i]))
                 b = np.sqrt(b**2 + widen**2)
@@ -208,25 +214,44 @@ def calibration_frames(
 
 
 ISOMETRIC_COCONTRACTION_STD = 0.05  # added in quadrature to the measured groups' spread (an unmeasured group is not one of them)
+ISOMETRIC_MIN_SITES = 3  # non-target sites with EMG needed to say how the others co-contract
 
 
-def isometric_cocontraction_prior(trial: TrialData, i: int, groups: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Prior of frame i of an isometric trial: N(median, s^2) of the measured groups' EMG in that frame for the groups
-    nobody measured (they co-contract like the measured ones; the median ignores the one or few groups pushing
-    maximally), s^2 = (1.4826 MAD)^2 + ISOMETRIC_COCONTRACTION_STD^2; none (std = inf) for measured groups, whose own
-    EMG decides. Without it a free unmeasured synergist soaks up the torque of the contraction and the measured
-    group's strength is not separated from it."""
-    e = np.array([trial.emg[g][i] for g in trial.emg], dtype=float)
+def isometric_target(trial: TrialData) -> str | None:
+    """The group an isometric trial contracts maximally: the one whose EMG peaks highest (None without EMG)."""
+    peaks = {g: float(np.nanmax(e)) for g, e in trial.emg.items() if np.any(np.isfinite(e))}
+    return max(peaks, key=peaks.get) if peaks else None
+
+
+def isometric_cocontraction_prior(
+    trial: TrialData, i: int, groups: list[str], moment_arms: np.ndarray | None = None, target: str | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Prior of frame i of an isometric trial for the groups without EMG in it: N(median, s^2) of the other sites'
+    EMG in that frame (the target, ``isometric_target``, left out), s^2 = (1.4826 MAD)^2 + ISOMETRIC_COCONTRACTION_STD^2:
+    they co-contract like the measured non-target sites. None (std = inf) for groups with EMG (their EMG decides);
+    for a synergist of the target (moment arms at the pose, ``moment_arms`` (n_c, G), with cosine >=
+    ``SYNERGIST_MIN_COSINE``: another head of the same muscle may push maximally with it, so its activation is not
+    known); and for everyone when fewer than ``ISOMETRIC_MIN_SITES`` non-target sites are recorded (nothing to say
+    how the others co-contract). Without a prior a free unmeasured group soaks up torque and the target's strength
+    is then reported as not identified rather than confidently wrong."""
+    target = isometric_target(trial) if target is None else target
+    e = np.array([trial.emg[g][i] for g in trial.emg if g != target], dtype=float)
     e = e[np.isfinite(e)]
     mean = np.zeros(len(groups))
     std = np.full(len(groups), np.inf)
-    if e.size == 0:
+    if e.size < ISOMETRIC_MIN_SITES:
         return mean, std
     centre = float(np.median(e))
     spread = 1.4826 * float(np.median(np.abs(e - centre)))
+    t = groups.index(target) if target in groups else None
     for j, g in enumerate(groups):
-        if g not in trial.emg:
-            mean[j], std[j] = max(centre, 0.0), float(np.hypot(spread, ISOMETRIC_COCONTRACTION_STD))
+        if g in trial.emg:
+            continue
+        if moment_arms is not None and t is not None:
+            a, b = moment_arms[:, j], moment_arms[:, t]
+            if float(a @ b) >= SYNERGIST_MIN_COSINE * max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-300):
+                continue
+        mean[j], std[j] = max(centre, 0.0), float(np.hypot(spread, ISOMETRIC_COCONTRACTION_STD))
     return mean, std
 
 
@@ -244,6 +269,8 @@ def calibrate_subject(
 
     ``emd_s``: electromechanical delay applied to the EMG before both ("auto": estimated from the trials,
     :mod:`msk_core.estimate.emd`; a number: given, seconds; None or 0: none)."""
+    if not trials:
+        raise EstimationError("calibration needs at least one trial")
     if all(t.isometric for t in trials):
         raise EstimationError(
             "calibration needs at least one trial with reps besides the isometric ones: the N(mu, sigma^2) prior per "

@@ -15,10 +15,13 @@ Keys (paths relative to the TOML file)::
                                              # pack's phase coordinate (bench_press elbow_flex_r, deadlift
                                              # hip_flexion_r), else the torque of its first coordinate
     isometric = true                 # optional: a static-pose trial (isometric MVC against a dynamometer or a fixed
-                                     # bar). It needs ``torques`` (the measured ones: inverse dynamics of a static pose
-                                     # cannot know the push), has no reps or phase, and enters calibration with its
-                                     # torque and EMG terms only - a contraction that isolates one muscle group is
-                                     # what separates that group's strength from its synergists' (docs/estimation.md)
+                                     # bar). It needs ``torques``: the net joint moments the muscles produce, i.e. the
+                                     # static inverse dynamics with the measured external force (dynamometer torque
+                                     # plus the segments' own gravity moment) - inverse dynamics of the pose alone
+                                     # cannot know the push. The pose may not move by more than ISOMETRIC_MAX_MOTION_DEG.
+                                     # No reps or phase; it enters calibration with its torque and EMG terms only - a
+                                     # contraction that isolates one muscle group is what separates that group's
+                                     # strength from its synergists' (docs/estimation.md)
     [emg_map]                        # EMG column -> pack group
     rectabd_r = "rectabd_r"
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
@@ -58,6 +61,7 @@ KNOWN_KEYS = {
     "isometric",
 }
 GRAVITY = 9.81
+ISOMETRIC_MAX_MOTION_DEG = 10.0  # an isometric trial's coordinates stay within this range (a held test position)
 
 
 @dataclass
@@ -185,6 +189,15 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     q = kin.select(coords)[sel]
     if kin.in_degrees:
         q = np.deg2rad(q)  # pack coordinates are rotational
+    if isometric:
+        motion = np.degrees(np.ptp(q, axis=0))
+        worst = int(np.argmax(motion))
+        if motion[worst] > ISOMETRIC_MAX_MOTION_DEG:
+            raise InputError(
+                f"an isometric trial holds one pose, but {coords[worst]!r} moves by {motion[worst]:.1f} deg "
+                f"(> {ISOMETRIC_MAX_MOTION_DEG:g}); drop `isometric = true` or trim with start/end",
+                path=kin.path, field=coords[worst], value=round(float(motion[worst]), 1),
+            )
     qd = np.gradient(q, time, axis=0)
     qdd = np.gradient(qd, time, axis=0)
 

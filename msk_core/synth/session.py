@@ -176,7 +176,7 @@ def generate_trial(
     )
 
 
-def test_position(pack, group: int, *, points: int = 5) -> np.ndarray:
+def muscle_test_position(pack, group: int, *, points: int = 5) -> np.ndarray:
     """The pose (within the inner 80 % of the pack's fitted ranges, ``points`` per coordinate) where group ``group``
     has the largest share of the reference torque capacity of any coordinate it crosses: where a maximal contraction
     of it against a dynamometer is least masked by its synergists (manual-muscle-test positions follow the same idea).
@@ -214,7 +214,7 @@ def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], conf
     poses = np.empty((len(channels), len(pack.coordinates)))
     for k, ch in enumerate(channels):
         sl = mvc.block(k)
-        poses[k] = test_position(pack, groups.index(ch))
+        poses[k] = muscle_test_position(pack, groups.index(ch))
         effort = lagged[sl, k]
         for j, g in enumerate(groups):
             if g in channels:
