@@ -125,3 +125,19 @@ def test_isometric_mvc_trials_identify_strengths_the_lift_cannot():
     identified = result.identified
     assert identified.sum() >= 14 > results["lift"][1].identified.sum()
     assert np.median(error[identified]) <= 0.08
+
+
+def test_msk_calibrate_takes_a_folder_of_isometric_trials(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "subject.json"
+    rc = main(["calibrate", "--pack", "bench_press", "--trial", str(DEMO / "bench_press" / "bench_press_40kg" / "trial.toml"),
+               "--trial", str(DEMO / "bench_press" / "mvc"), "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert rc == 0 and "of 11 trial(s) (10 isometric)" in printed and "hint:" not in printed, printed
+    profile = json.loads(out.read_text())
+    assert sum("/mvc/" in p for p in profile["provenance"]["trials"]) == 10
+    (tmp_path / "empty").mkdir()
+    rc = main(["calibrate", "--pack", "bench_press", "--trial", str(tmp_path / "empty"), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no trial.toml" in err and "empty" in err, err

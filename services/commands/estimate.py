@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msk_core.errors import ConfigError
+from msk_core.errors import ConfigError, InputError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -17,7 +17,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Calibrate per-group strength and the phase prior from training trials (TOML) with EMG.",
     )
     cal.add_argument("--pack", required=True, help="model pack name or path")
-    cal.add_argument("--trial", action="append", required=True, type=Path, help="training trial TOML (repeatable)")
+    cal.add_argument("--trial", action="append", required=True, type=Path,
+                     help="training trial TOML (repeatable), or a folder: every trial.toml under it (e.g. the "
+                          "isometric MVC trials of msk synth's <exercise>/mvc)")
     cal.add_argument("--out", required=True, type=Path, help="subject profile JSON to write")
     cal.add_argument("--alpha", type=float, default=0.5, help="lower bound of the strength factors (default 0.5)")
     cal.add_argument("--beta", type=float, default=2.5, help="upper bound of the strength factors (default 2.5)")
@@ -77,6 +79,20 @@ def _pack(name: str):
     return load_pack(name)
 
 
+def _trial_files(paths: list[Path]) -> list[Path]:
+    """Trial TOMLs; a folder stands for every ``trial.toml`` under it (sorted)."""
+    files = []
+    for path in paths:
+        if path.is_dir():
+            found = sorted(path.rglob("trial.toml"))
+            if not found:
+                raise InputError("folder holds no trial.toml", path=path, field="--trial")
+            files.extend(found)
+        else:
+            files.append(path)
+    return files
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     from msk_core.estimate.calibrate import CalibrationSettings
     from msk_core.estimate.pipeline import calibrate_subject
@@ -91,7 +107,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError("expected GROUP=MEASURED_GROUP", field="--synergist", value=item)
         synergists[group.strip()] = measured.strip()
     pack = _pack(args.pack)
-    trials = [load_trial(p, pack) for p in args.trial]
+    trials = [load_trial(p, pack) for p in _trial_files(args.trial)]
     if not args.strength_prior_std >= 0:
         raise ConfigError("must be >= 0 (0 = off)", field="--strength-prior-std", value=args.strength_prior_std)
     if not args.identify_max_std >= 0:
