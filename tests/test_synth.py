@@ -357,3 +357,21 @@ def test_mvc_blocks_are_isometric_trials_with_dynamometer_torques(bench, tmp_pat
     target = trial.emg[entries[0]["channel"]]  # the block is the normalisation reference of its own channel:
     assert windowed_peak(target[:, None], 25)[0] == pytest.approx(1.0, abs=0.02)  # its highest 0.5 s mean is 1
     assert np.abs(trial.torques).max() == pytest.approx(max(entries[0]["peak_abs_torque_nm"].values()), rel=0.02)
+
+
+def test_isometric_trials_with_raw_emg_load_as_the_envelope_version(tmp_path):
+    """With raw EMG written (2000 Hz slices of the MVC recording), the loader's offline envelope of an isometric trial
+    matches the written-envelope version: the same normalisation reference either way."""
+    from msk_core.estimate.trial import load_trial
+
+    pack = load_pack(PACKS[Exercise.BENCH_PRESS])
+    session = generate_session([Exercise.BENCH_PRESS], small_config(), packs=PACKS)
+    loaded = {}
+    for mode in (EmgOutput.ENVELOPE, EmgOutput.RAW):
+        truth = json.loads(write_session(session, tmp_path / mode.value, emg_output=mode).read_text())
+        entry = truth["exercises"]["bench_press"]["isometric_trials"][0]
+        loaded[mode] = load_trial(tmp_path / mode.value / entry["trial"], pack)
+    env, raw = loaded[EmgOutput.ENVELOPE], loaded[EmgOutput.RAW]
+    assert raw.isometric and set(raw.emg) == set(env.emg)
+    for g in env.emg:  # the raw slice's envelope differs only at the slice's first samples (filter start-up)
+        assert np.nanmax(np.abs(raw.emg[g][10:] - env.emg[g][10:])) < 0.01, g
