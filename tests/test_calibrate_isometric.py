@@ -137,6 +137,8 @@ def test_msk_calibrate_takes_a_folder_of_isometric_trials(tmp_path, capsys):
     assert rc == 0 and "of 11 trial(s) (10 isometric)" in printed and "hint:" not in printed, printed
     profile = json.loads(out.read_text())
     assert sum("/mvc/" in p for p in profile["provenance"]["trials"]) == 10
+    assert sorted(profile["calibration"]["isometric_trials"]) == sorted(f"mvc_{c}" for c in (
+        "BRD", "BicLong", "DelAnt", "DelMed", "DelPos", "LD", "PMCla", "PMSte", "TriLat", "TriLong"))
     (tmp_path / "empty").mkdir()
     rc = main(["calibrate", "--pack", "bench_press", "--trial", str(tmp_path / "empty"), "--out", str(out)])
     err = capsys.readouterr().err

@@ -305,7 +305,8 @@ def calibrate_subject(
         prior=prior,
         emg_normalisation=norm,
         calibration={**result.report(list(pack.groups)), "frames": int(frames.torques.shape[0]),
-                     "min_effort_error_rms": None if np.isnan(me_error) else me_error, "emd": emd},
+                     "min_effort_error_rms": None if np.isnan(me_error) else me_error, "emd": emd,
+                     "isometric_trials": [t.name for t in trials if t.isometric]},
         provenance={
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "trials": [str(t.path) for t in trials],
