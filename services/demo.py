@@ -288,8 +288,9 @@ def strength_markdown(calibration: dict) -> str:
     lines = []
     for exercise, rep in calibration.items():
         lines += [
-            f"### {exercise}: calibrated on {rep['trials']['lift']} + {rep['trials']['isometric']} isometric MVC trials "
-            f"in {rep['seconds']:.1f} s",
+            f"### {exercise}: calibrated on {rep['trials']['lift']}"
+            + (f" + {rep['trials']['isometric']} isometric MVC trials" if rep["trials"]["isometric"] else "")
+            + f" in {rep['seconds']:.1f} s",
             "",
             f"Median |F_max / truth - 1|: {100 * rep['strength_error_median']:.1f} % "
             f"(model reference {100 * rep['reference_error_median']:.1f} %).",

@@ -51,6 +51,20 @@ def test_isometric_trial_format_and_errors(tmp_path):
     with pytest.raises(InputError, match="holds one pose") as exc:
         load_trial(toml, pack)
     assert exc.value.field == ik.columns[1] and exc.value.value == pytest.approx(20.0, abs=0.1)
+    moving[5, 0] = np.nan  # a gap in another coordinate does not hide the movement
+    write_sto(toml.parent / "ik.sto", ik.time, ik.columns, moving)
+    with pytest.raises(InputError, match="holds one pose"):
+        load_trial(toml, pack)
+    settling = ik.data.copy()  # moving into position before the dynamometer records: those frames are not used
+    settling[:20, 1] += np.radians(np.linspace(30.0, 0.0, 20))
+    write_sto(toml.parent / "ik.sto", ik.time, ik.columns, settling)
+    tq = read_sto(toml.parent / "id.sto")
+    write_sto(toml.parent / "id.sto", tq.time[20:], tq.columns, tq.data[20:])
+    assert load_trial(toml, pack).dropped_frames == 20
+    write_sto(toml.parent / "id.sto", tq.time[:1], tq.columns, tq.data[:1])
+    with pytest.raises(InputError, match="fewer than 3 frames"):
+        load_trial(toml, pack)
+    write_sto(toml.parent / "id.sto", tq.time, tq.columns, tq.data)
     write_sto(toml.parent / "ik.sto", ik.time, ik.columns, ik.data)
     with pytest.raises(EstimationError, match="at least one trial with reps"):
         calibrate_subject(pack, [load_trial(toml, pack)])

@@ -69,7 +69,8 @@ def estimate_emd(pack: PackLike, trials: list[TrialData], *, max_delay_s: float 
     """Delay in [0, max_delay_s] that best explains the trials' torques by their EMG (see module docstring)."""
     if not any(t.emg for t in trials):
         raise EstimationError("EMD estimation needs EMG in at least one trial")
-    dt = min(float(np.median(np.diff(t.time))) for t in trials)  # the finest frame interval (isometric trials are 50 Hz)
+    # the finest frame interval (isometric trials are 50 Hz, lifts 100 Hz)
+    dt = min(float(np.median(np.diff(t.time))) for t in trials if t.n_frames >= 2)
     candidates = np.arange(0, int(round(max_delay_s / dt)) + 1) * dt
     from msk_core.estimate.pipeline import pack_moment_arms  # shared clamping rule; pipeline imports this module
 

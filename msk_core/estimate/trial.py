@@ -189,15 +189,6 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     q = kin.select(coords)[sel]
     if kin.in_degrees:
         q = np.deg2rad(q)  # pack coordinates are rotational
-    if isometric:
-        motion = np.degrees(np.ptp(q, axis=0))
-        worst = int(np.argmax(motion))
-        if motion[worst] > ISOMETRIC_MAX_MOTION_DEG:
-            raise InputError(
-                f"an isometric trial holds one pose, but {coords[worst]!r} moves by {motion[worst]:.1f} deg "
-                f"(> {ISOMETRIC_MAX_MOTION_DEG:g}); drop `isometric = true` or trim with start/end",
-                path=kin.path, field=coords[worst], value=round(float(motion[worst]), 1),
-            )
     qd = np.gradient(q, time, axis=0)
     qdd = np.gradient(qd, time, axis=0)
 
@@ -229,6 +220,19 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
         torques = np.array([pack.inverse_dynamics(q[i], qd[i], qdd[i], hand) for i in range(len(time))])
         kin_keep = np.ones(len(time), dtype=bool)
         source = "inverse_dynamics"
+
+    if time.size < 3:
+        raise InputError(f"fewer than 3 frames left where the torque file covers the kinematics ({time.size})",
+                         path=path, field="torques")
+    if isometric:  # on the frames that are used; gaps (NaN) in the kinematics do not hide a movement
+        motion = np.degrees(np.nan_to_num(np.nanmax(q, axis=0) - np.nanmin(q, axis=0), nan=0.0))
+        worst = int(np.argmax(motion))
+        if motion[worst] > ISOMETRIC_MAX_MOTION_DEG:
+            raise InputError(
+                f"an isometric trial holds one pose, but {coords[worst]!r} moves by {motion[worst]:.1f} deg "
+                f"(> {ISOMETRIC_MAX_MOTION_DEG:g}); drop `isometric = true` or trim with start/end",
+                path=kin.path, field=coords[worst], value=round(float(motion[worst]), 1),
+            )
 
     emg, channels, norm = _load_emg(spec, path, text, file_of, err, pack, time) if "emg" in spec else ({}, {}, {})
 
