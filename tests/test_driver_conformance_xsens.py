@@ -175,10 +175,7 @@ def test_independent_device_bus_01_replies_modified_echo_extended_unknown_items_
         assert [(s.data_id, s.frequency) for s in device.output_configuration] == fake.applied
         assert all(s.frequency == 100 for s in device.output_configuration if s.frequency not in (0, 0xFFFF))
         assert "at 100 Hz instead of 200" in caplog.text
-        readings = []
-        deadline = time.monotonic() + 5
-        while len(readings) < fake.count and time.monotonic() < deadline:
-            readings += device.read()
+        readings = read_until(device, lambda got: len(got) >= fake.count)
     finally:
         device.close()
         fake.close()
@@ -229,10 +226,7 @@ def test_simulator_accepts_the_real_recorded_output_configuration(shared_dir):
         device.reset()
         assert device.set_output_configuration(recorded) == recorded
         device.go_to_measurement()
-        readings = []
-        deadline = time.monotonic() + 5
-        while len(readings) < 5 and time.monotonic() < deadline:
-            readings += device.read()
+        readings = read_until(device, lambda got: len(got) >= 5)
         device.close()
     assert readings and readings[0].data.ids["euler"] == 0x2030 and readings[0].data.ids["acceleration"] == 0x4020
     assert readings[0].acceleration == pytest.approx(source.arrays["acceleration"][0], abs=1e-5)
@@ -295,11 +289,12 @@ def test_reconnect_refuses_another_device_on_the_same_port(tmp_path):
     assert device.tracker_id == "03700001" and device.stats.reconnects == 0
 
 
-def read_until(trackers: TrackerSet, done, *, seconds: float = 5.0) -> list:
+def read_until(source: XsensDevice | TrackerSet, done, *, seconds: float = 5.0) -> list:
+    """``source.read()`` until ``done(readings)`` or ``seconds`` pass."""
     readings: list = []
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
-        readings += trackers.read()
+        readings += source.read()
         if done(readings):
             break
     return readings
@@ -310,10 +305,7 @@ def test_sample_time_fine_wrapping_after_a_day_keeps_device_time_continuous():
     device = XsensDevice(SerialTransport(fake.path))
     try:
         device.configure(100)
-        readings = []
-        deadline = time.monotonic() + 5
-        while len(readings) < fake.count and time.monotonic() < deadline:
-            readings += device.read()
+        readings = read_until(device, lambda got: len(got) >= fake.count)
     finally:
         device.close()
         fake.close()
@@ -371,10 +363,7 @@ def test_switching_the_baud_rate_through_a_reset():
         assert device.request_baudrate() == 921600
         device.configure(100, precision=xbus.Precision.FLOAT64)  # fits at 921600: no line-capacity warning
         assert device.stats.last_error == ""
-        readings = []
-        deadline = time.monotonic() + 5
-        while len(readings) < 5 and time.monotonic() < deadline:
-            readings += device.read()
+        readings = read_until(device, lambda got: len(got) >= 5)
         device.close()
     assert len(readings) >= 5
 
