@@ -74,10 +74,14 @@ def _trial_folders(recordings: Path, exercise: str) -> list[Path]:
     return sorted(folders, key=lambda p: float(p.name.rsplit("_", 1)[1].removesuffix("kg")))
 
 
+def calibration_trial_files(recordings: Path, exercise: str) -> tuple[Path, list[Path]]:
+    """The demo's calibration input for an exercise: the lighter lift's folder and the isometric MVC trial files."""
+    return _trial_folders(recordings, exercise)[0], sorted((recordings / "demo" / exercise / "mvc").glob("*/trial.toml"))
+
+
 def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, dict]:
     pack = load_pack(exercise)
-    training = _trial_folders(recordings, exercise)[0]
-    isometric = sorted((recordings / "demo" / exercise / "mvc").glob("*/trial.toml"))
+    training, isometric = calibration_trial_files(recordings, exercise)
     log(f"[{exercise}] calibrating on {training.name}" + (f" + {len(isometric)} isometric MVC trials" if isometric else "")
         + " ...")
     started = time.perf_counter()

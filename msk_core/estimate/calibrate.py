@@ -354,7 +354,8 @@ def calibrate(
             value, grad = prob.value_grad(d * y)
             return value, grad * d
 
-        bounds = [(lo / di, hi / di) for (lo, hi), di in zip(prob.bounds(), d)]
+        lower, upper = np.array(prob.bounds()).T
+        bounds = list(zip(lower / d, upper / d))
         res = minimize(
             scaled,
             z0 / d,
@@ -363,7 +364,7 @@ def calibrate(
             bounds=bounds,
             options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": s.ftol, "maxcor": 10},
         )
-        z = np.clip(res.x * d, [b[0] for b in prob.bounds()], [b[1] for b in prob.bounds()])
+        z = np.clip(res.x * d, lower, upper)
         return z, bool(res.success), int(res.nit), str(res.message)
 
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)")

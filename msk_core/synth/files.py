@@ -56,10 +56,10 @@ def _envelope(emg: np.ndarray, rate_hz: float) -> np.ndarray:
 MVC_WINDOW_S = 0.5  # MVC amplitude = highest 0.5 s mean of the envelope (msk_core.emg.windowed_peak)
 
 
-def mvc_maxima(ex: ExerciseSession, rate_hz: float) -> dict[str, float]:
-    env = _envelope(ex.mvc.emg, rate_hz)
-    peaks = windowed_peak(env, int(round(MVC_WINDOW_S * rate_hz)))
-    return {ch: float(peaks[k]) for k, ch in enumerate(ex.mvc.channels)}
+def mvc_maxima(channels: list[str], envelope: np.ndarray, rate_hz: float) -> dict[str, float]:
+    """MVC amplitude per channel from the MVC recording's envelope (``_envelope`` of its raw EMG)."""
+    peaks = windowed_peak(envelope, int(round(MVC_WINDOW_S * rate_hz)))
+    return {ch: float(peaks[k]) for k, ch in enumerate(channels)}
 
 
 def _downsample(time_hi: np.ndarray, x: np.ndarray, time_lo: np.ndarray) -> np.ndarray:
@@ -114,13 +114,13 @@ def write_trial(trial: Trial, folder: Path, *, emg_max: dict[str, float], body_m
 ISOMETRIC_RATE_HZ = 50.0  # isometric trials: a static pose and 6 Hz envelopes need no more
 
 
-def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[str, float], emg_rate_hz: float,
+def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[str, float], envelope: np.ndarray,
                            emg_output: EmgOutput) -> list[dict]:
-    """One isometric trial per MVC block (the contraction of one site, the EMG of all), under ``folder/mvc``."""
+    """One isometric trial per MVC block (the contraction of one site, the EMG of all), under ``folder/mvc``;
+    ``envelope`` is the whole MVC recording's (sliced per block, so no block starts with a filter transient)."""
     mvc = ex.mvc
     if mvc.torque is None:
         return []
-    env = _envelope(mvc.emg, emg_rate_hz) if emg_output is EmgOutput.ENVELOPE else None
     out = []
     for k, ch in enumerate(mvc.channels):
         sl = mvc.block(k)
@@ -136,7 +136,7 @@ def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[s
         if emg_output is EmgOutput.RAW:
             write_sto(sub / "emg.sto", t_hi, mvc.channels, _r(mvc.emg[sl], "emg"), name=name)
         else:
-            write_sto(sub / "emg.sto", t_lo, mvc.channels, _r(_downsample(t_hi, env[sl], t_lo), "emg"), name=name)
+            write_sto(sub / "emg.sto", t_lo, mvc.channels, _r(_downsample(t_hi, envelope[sl], t_lo), "emg"), name=name)
         spec = {
             "name": f"mvc_{ch}",
             "isometric": True,
@@ -176,15 +176,15 @@ def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = 
     for ex in session.exercises:
         folder = out / ex.spec.exercise.value
         folder.mkdir(parents=True, exist_ok=True)
-        maxima = mvc_maxima(ex, cfg.emg_rate_hz)
+        mvc_envelope = _envelope(ex.mvc.emg, cfg.emg_rate_hz)  # once: maxima, mvc_emg.sto, isometric trials
+        maxima = mvc_maxima(ex.mvc.channels, mvc_envelope, cfg.emg_rate_hz)
         if emg_output is EmgOutput.RAW:
             write_sto(folder / "mvc_emg.sto", ex.mvc.time, ex.mvc.channels, _r(ex.mvc.emg, "emg"), name="msk-synth mvc")
         else:
             t_lo = np.arange(0.0, ex.mvc.time[-1], 1.0 / MVC_ENVELOPE_RATE_HZ)
-            env = _downsample(ex.mvc.time, _envelope(ex.mvc.emg, cfg.emg_rate_hz), t_lo)
+            env = _downsample(ex.mvc.time, mvc_envelope, t_lo)
             write_sto(folder / "mvc_emg.sto", t_lo, ex.mvc.channels, _r(env, "emg"), name="msk-synth mvc envelope")
-        isometric = write_isometric_trials(ex, folder, emg_max=maxima, emg_rate_hz=cfg.emg_rate_hz,
-                                           emg_output=emg_output)
+        isometric = write_isometric_trials(ex, folder, emg_max=maxima, envelope=mvc_envelope, emg_output=emg_output)
         trials = [
             write_trial(t, folder / t.name, emg_max=maxima, body_mass_kg=ex.subject.mass_kg,
                         emg_rate_hz=cfg.emg_rate_hz, emg_output=emg_output)

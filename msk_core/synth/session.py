@@ -176,22 +176,27 @@ def generate_trial(
     )
 
 
-def muscle_test_position(pack, group: int, *, points: int = 5) -> np.ndarray:
-    """The pose (within the inner 80 % of the pack's fitted ranges, ``points`` per coordinate) where group ``group``
-    has the largest share of the reference torque capacity of any coordinate it crosses: where a maximal contraction
-    of it against a dynamometer is least masked by its synergists (manual-muscle-test positions follow the same idea).
-    """
+def muscle_test_positions(pack, groups: list[int], *, points: int = 5) -> np.ndarray:
+    """Per group in ``groups``, the pose (within the inner 80 % of the pack's fitted ranges, ``points`` per coordinate)
+    where it has the largest share of the reference torque capacity of any coordinate it crosses: where a maximal
+    contraction of it against a dynamometer is least masked by its synergists (manual-muscle-test positions follow the
+    same idea). The grid's moment arms are evaluated once for all groups. Returns (len(groups), n_c)."""
     ranges = np.asarray(pack.coordinate_ranges, dtype=float)
-    grid = [np.linspace(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), points) for lo, hi in ranges]
+    grid = [np.asarray(p) for p in itertools.product(
+        *[np.linspace(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), points) for lo, hi in ranges])]
     f_ref = np.asarray(pack.f_max_ref, dtype=float)
-    best, best_share = None, -1.0
-    for pose in itertools.product(*grid):
-        pose = np.asarray(pose)
+    shares = []  # (poses, G): each group's largest capacity share at each pose
+    for pose in grid:
         arms = np.abs(np.asarray(pack.moment_arms(pose), dtype=float)) * f_ref[None, :]  # (n_c, G) N·m
-        share = float(np.max(arms[:, group] / np.maximum(arms.sum(axis=1), 1e-12)))
-        if share > best_share + 1e-12:
-            best, best_share = pose, share
-    return best
+        shares.append(np.max(arms / np.maximum(arms.sum(axis=1, keepdims=True), 1e-12), axis=0))
+    out = np.empty((len(groups), len(ranges)))
+    for k, group in enumerate(groups):
+        best, best_share = None, -1.0
+        for pose, share in zip(grid, shares):  # first pose that is better by more than round-off
+            if share[group] > best_share + 1e-12:
+                best, best_share = pose, float(share[group])
+        out[k] = best
+    return out
 
 
 def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], config: SynthConfig, pack=None) -> MvcTrial:
@@ -211,10 +216,9 @@ def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], conf
     lagged = _shift(time, drive, -eff.emd)  # force follows the drive
     activation = np.empty((time.size, len(groups)))
     torque = np.empty((time.size, len(pack.coordinates)))
-    poses = np.empty((len(channels), len(pack.coordinates)))
+    poses = muscle_test_positions(pack, [groups.index(ch) for ch in channels])
     for k, ch in enumerate(channels):
         sl = mvc.block(k)
-        poses[k] = muscle_test_position(pack, groups.index(ch))
         effort = lagged[sl, k]
         for j, g in enumerate(groups):
             if g in channels:

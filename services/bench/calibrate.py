@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -15,18 +14,17 @@ from services.bench import BenchResult
 NAME = "calibrate"
 DESCRIPTION = "calibration NLP on the demo lift + isometric MVC trials: preconditioned vs as written (same run)"
 
-DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo"
-
 
 def _frames(exercise: str):
     from msk_core.estimate.pipeline import build_prior, calibration_frames
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
+    from services.demo import DEFAULT_RECORDINGS, calibration_trial_files
 
     pack = load_pack(exercise)
-    truth = json.loads((DEMO / "truth.json").read_text())["exercises"][exercise]
-    lift = min((DEMO / t["trial"] for t in truth["trials"]), key=lambda p: float(p.parent.name.rsplit("_", 1)[1][:-2]))
-    trials = [load_trial(lift, pack)] + [load_trial(DEMO / t["trial"], pack) for t in truth["isometric_trials"]]
+    truth = json.loads((DEFAULT_RECORDINGS / "demo" / "truth.json").read_text())["exercises"][exercise]
+    lift, isometric = calibration_trial_files(DEFAULT_RECORDINGS, exercise)
+    trials = [load_trial(lift / "trial.toml", pack)] + [load_trial(p, pack) for p in isometric]
     frames = calibration_frames(pack, trials, build_prior(pack, trials))
     return pack, frames, np.array([truth["f_max_n"][g] for g in pack.groups])
 
