@@ -1,8 +1,8 @@
 """Kinematics node: IMU orientations in, model joint coordinates out.
 
 Subscribes to ``msk/<session>/imu/*`` (:class:`ImuSample`), groups the trackers' samples of the same instant
-(:class:`msk_core.imu_stream.SegmentSynchroniser`), calibrates on the static pose at the start of every set, maps the
-segment orientations to the pack's coordinates through the pack's IMU table (:mod:`msk_core.imu_mapping`), filters
+(:class:`msk_core.imu.stream.SegmentSynchroniser`), calibrates on the static pose at the start of every set, maps the
+segment orientations to the pack's coordinates through the pack's IMU table (:mod:`msk_core.imu.mapping`), filters
 them causally (angle, velocity, acceleration) and publishes :class:`JointAngles` on ``msk/<out-session>/joints`` at
 the IMU rate. Zenoh callbacks only enqueue; one worker thread does the rest in arrival order. Nothing is dropped
 silently: every sample or frame not published is counted in :class:`KinematicsStats`. Docs: docs/kinematics.md.
@@ -28,11 +28,11 @@ import zenoh
 from drivers.xsens.frames import to_enu
 from drivers.xsens.xbus import CoordinateFrame
 from msk_core.errors import ConfigError, FileFormatError, MskError
-from msk_core.imu_kinematics import KinematicsFilterConfig
-from msk_core.imu_mapping import ImuJointMapper, mapping_for, parse_pose
-from msk_core.imu_stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
+from msk_core.imu.kinematics import KinematicsFilterConfig
+from msk_core.imu.mapping import ImuJointMapper, mapping_for, parse_pose
+from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
 from msk_core.model import load_pack
-from msk_core.phase import RepTemplate
+from msk_core.signal.reps import RepTemplate
 from services import messages, topics
 from services.zenoh_session import (
     ZenohOptions,

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
 
-from msk_core.emg import (
+from msk_core.signal.emg import (
     DelayLine,
     EmgEnvelopeFilter,
     EmgFilterConfig,
@@ -203,7 +203,7 @@ def test_config_errors() -> None:
 
 
 def test_streaming_chain_equals_batch_on_trigno(trigno_emg) -> None:
-    from msk_core.emg import StreamingEmgChain, emg_chain_batch
+    from msk_core.signal.emg import StreamingEmgChain, emg_chain_batch
 
     rec = trigno_emg
     cfg = EmgFilterConfig(rate_hz=rec.rate_hz)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msk_core.emg import EmgFilterConfig, envelope_causal, envelope_zero_phase_noncausal
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_zero_phase_noncausal
 from msk_core.io import read_anc, read_sto
 from services.cli import main
 
@@ -54,8 +54,8 @@ def test_errors_exit_2(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureF
 def test_priors_command(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import json
 
-    from msk_core.phase import RepTemplate
-    from msk_core.priors import PhasePriors
+    from msk_core.signal.reps import RepTemplate
+    from msk_core.signal.priors import PhasePriors
 
     out = tmp_path / "priors.json"
     folder = shared_dir / "data/backmodel-lift/squat5kg"

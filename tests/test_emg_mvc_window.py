@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference, windowed_peak
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference, windowed_peak
 from msk_core.errors import ConfigError, InputError
 
 

@@ -148,7 +148,7 @@ def test_node_fills_the_phase_from_the_profiles_rep_template(zenoh_endpoint, tmp
     got = np.array([f.phase for f in received[:-1]])
     np.testing.assert_allclose(got, expected, atol=1e-12)
     assert received[-1].phase == 0.25
-    # the tracked phase is the offline rep phase (msk_core.phase) of the same signal: rest between reps, 3 reps
+    # the tracked phase is the offline rep phase (msk_core.signal.reps) of the same signal: rest between reps, 3 reps
     offline, index = kinematic_phase(t, q[:, 1])
     inside = (index >= 0) & (got >= 0)
     assert np.mean((index >= 0) == (got >= 0)) > 0.85 and np.median(np.abs(got[inside] - offline[inside])) < 0.05

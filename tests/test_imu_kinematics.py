@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from msk_core.errors import ConfigError, InputError
-from msk_core.imu_kinematics import (
+from msk_core.imu.kinematics import (
     JointKinematicsFilter,
     KinematicsFilterConfig,
     joint_angles,
@@ -165,7 +165,7 @@ def test_real_xsens_orientation_through_alignment_and_filter(shared_dir, k: int)
 def test_sensor_calibration_for_several_joints_round_trips_json() -> None:
     import json
 
-    from msk_core.imu_kinematics import Joint, SensorCalibration
+    from msk_core.imu.kinematics import Joint, SensorCalibration
 
     t, q_upper, q_fore, flex = _session(0.7, seed=5)
     static = t < 1.0

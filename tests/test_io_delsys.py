@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msk_core.emg import EmgFilterConfig, envelope_causal
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.errors import FileFormatError, InputError
 from msk_core.io import read_delsys_csv, read_emgworks_csv, read_trigno_discover_csv
 

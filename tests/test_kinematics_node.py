@@ -15,11 +15,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from msk_core.errors import ConfigError, InputError
-from msk_core.imu_kinematics import model_ground_orientation, npose_segment_orientation, twist_angle
-from msk_core.imu_mapping import MAPPINGS, WORLD, ImuJointMapper, mapping_for, parse_pose
-from msk_core.imu_stream import IncompleteFrame, SegmentSynchroniser, SyncedFrame
+from msk_core.imu.kinematics import model_ground_orientation, npose_segment_orientation, twist_angle
+from msk_core.imu.mapping import MAPPINGS, WORLD, ImuJointMapper, mapping_for, parse_pose
+from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, SyncedFrame
 from msk_core.model import load_pack
-from msk_core.phase import Excursion, PhaseTracker, RepDetectionConfig, learn_template
+from msk_core.signal.reps import Excursion, PhaseTracker, RepDetectionConfig, learn_template
 from msk_core.synth.exercises import SPECS, Exercise
 from msk_core.synth.imu import find_body, global_frame, joint_motion
 from services import kinematics_node, messages, replayer, topics
@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "recordings" / "demo_session.mcap"
 
 
-# --- msk_core.imu_kinematics additions --------------------------------------------------------------------------
+# --- msk_core.imu.kinematics additions --------------------------------------------------------------------------
 
 def test_twist_angle_is_exact_for_a_tilted_hinge_and_ignores_swing():
     axis = np.array([0.226, 0.022, 0.974]) / np.linalg.norm([0.226, 0.022, 0.974])
@@ -351,8 +351,8 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
 
 
 def test_streaming_recalibrates_after_a_gap_and_counts_bad_and_moving_static_frames():
-    from msk_core.imu_kinematics import KinematicsFilterConfig
-    from msk_core.imu_stream import StreamingJointKinematics
+    from msk_core.imu.kinematics import KinematicsFilterConfig
+    from msk_core.imu.stream import StreamingJointKinematics
 
     pack = load_pack("deadlift")
     mapper = ImuJointMapper.for_pack(pack, heading_rad=np.pi / 2)

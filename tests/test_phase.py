@@ -10,7 +10,7 @@ import pytest
 
 from msk_core.errors import ConfigError, InputError
 from msk_core.io import load_trial
-from msk_core.phase import (
+from msk_core.signal.reps import (
     Excursion,
     PhaseMode,
     PhaseTracker,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference
 from msk_core.io import resample_linear
-from msk_core.phase import Excursion, PhaseTracker, RepDetectionConfig, detect_reps, learn_template, rep_phase
-from msk_core.priors import fit_priors
+from msk_core.signal.reps import Excursion, PhaseTracker, RepDetectionConfig, detect_reps, learn_template, rep_phase
+from msk_core.signal.priors import fit_priors
 from msk_core.synth import Exercise, SynthConfig, generate_exercise
 
 CASES = {Exercise.DEADLIFT: "hip_flexion_r", Exercise.BENCH_PRESS: "elbow_flex_r"}

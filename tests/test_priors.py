@@ -10,8 +10,8 @@ import pytest
 
 from msk_core.errors import ConfigError, InputError
 from msk_core.io import load_trial
-from msk_core.phase import Excursion, RepDetectionConfig, detect_reps, rep_phase
-from msk_core.priors import PhasePriors, average_groups, fit_priors
+from msk_core.signal.reps import Excursion, RepDetectionConfig, detect_reps, rep_phase
+from msk_core.signal.priors import PhasePriors, average_groups, fit_priors
 
 
 def _synthetic(n_reps: int, seed: int):

@@ -10,7 +10,7 @@ import numpy as np
 import piqp
 import pytest
 
-from msk_core.emg import EmgFilterConfig, envelope_causal, envelope_group_delay_s
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_group_delay_s
 from msk_core.errors import ConfigError
 from msk_core.model import load_pack
 from msk_core.model.pack import available_packs
@@ -130,7 +130,7 @@ def _best_lag(time, truth, envelope, skip=4000):
 
 @pytest.mark.parametrize("emd", [0.0, 0.06])
 def test_emg_generator_through_project_chain_recovers_activation(emd):
-    """Rep-like activation bursts -> raw EMG (generator) -> causal chain (msk_core.emg) -> MVC-normalised envelope."""
+    """Rep-like activation bursts -> raw EMG (generator) -> causal chain (msk_core.signal.emg) -> MVC-normalised envelope."""
     from msk_core.synth.emg import mvc_drive, raw_emg
     from msk_core.synth.subject import make_subject
 
@@ -352,7 +352,7 @@ def test_mvc_blocks_are_isometric_trials_with_dynamometer_torques(bench, tmp_pat
     trial = load_trial(tmp_path / entries[0]["trial"], pack)
     assert trial.isometric and np.all(trial.rep_index == -1) and np.all(np.isnan(trial.phase))
     assert np.allclose(trial.q, trial.q[0]) and set(trial.emg) == set(mvc.channels)
-    from msk_core.emg import windowed_peak
+    from msk_core.signal.emg import windowed_peak
 
     target = trial.emg[entries[0]["channel"]]  # the block is the normalisation reference of its own channel:
     assert windowed_peak(target[:, None], 25)[0] == pytest.approx(1.0, abs=0.02)  # its highest 0.5 s mean is 1

@@ -49,7 +49,7 @@ import piqp
 from msk_core.errors import EstimationError
 from msk_core.estimate import active_set
 from msk_core.estimate.laplace import laplace_std
-from msk_core.estimate.pack import PackLike, resolve_pack
+from msk_core.estimate.pack import CLAMP_TOLERANCE, PackLike, resolve_pack
 from msk_core.estimate.prior import PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
@@ -61,7 +61,6 @@ log = logging.getLogger(__name__)
 MIN_TORQUE_SCALE = 1.0  # N·m; floor of the per-coordinate residual scale (coordinates almost no muscle crosses)
 RESERVE_WEIGHT = 1.0e4  # weight of the scaled residual in the `so` reserve fallback
 BOUND_TOL = 1.0e-6  # an activation this close to 0 or 1 counts as at its bound (Laplace free set)
-CLAMP_TOLERANCE = np.deg2rad(5.0)  # poses this far outside a pack's fitted range are clamped (and counted)
 
 
 class Method(str, Enum):

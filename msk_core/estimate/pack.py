@@ -6,6 +6,8 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+CLAMP_TOLERANCE = np.deg2rad(5.0)  # poses this far outside a pack's fitted range are clamped (and counted)
+
 
 @runtime_checkable
 class PackLike(Protocol):
@@ -37,3 +39,15 @@ def resolve_pack(pack: "PackLike | str") -> PackLike:
 
         return load_pack(pack, evaluator=Evaluator.COMPILED)
     return pack
+
+
+def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
+    """Moment arms at q, clamped into the pack's fitted range by at most CLAMP_TOLERANCE (else NaN)."""
+    ranges = getattr(pack, "coordinate_ranges", None)
+    if ranges is not None:
+        ranges = np.asarray(ranges, dtype=float).reshape(len(q), 2)
+        qc = np.minimum(np.maximum(q, ranges[:, 0]), ranges[:, 1])
+        if np.any(np.abs(qc - q) > CLAMP_TOLERANCE):
+            return np.full((len(pack.coordinates), len(pack.groups)), np.nan)
+        q = qc
+    return np.asarray(pack.moment_arms(q), dtype=float)

@@ -7,7 +7,7 @@ deviation. A rep is where the deviation exceeds ``enter`` x the 98th-percentile 
 back below ``leave`` x that; reps shorter than ``min_duration_s`` are dropped. Phase = time through the rep in [0, 1].
 This is offline (it looks at the whole trial); it is used for ``torque:<coordinate>`` phase signals.
 
-On a kinematic phase coordinate the phase is msk_core.phase's (``detect_reps`` + ``rep_phase``, turning-point mode);
+On a kinematic phase coordinate the phase is msk_core.signal.reps's (``detect_reps`` + ``rep_phase``, turning-point mode);
 calibration learns a rep template on it and :class:`LivePhase` tracks the same phase causally from the template.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 
 from msk_core.errors import EstimationError, InputError
 from msk_core.estimate.prior import REST_PHASE
-from msk_core.phase import (
+from msk_core.signal.reps import (
     Excursion,
     PhaseMode,
     PhaseTracker,
@@ -30,7 +30,7 @@ from msk_core.phase import (
     learn_template,
     rep_phase,
 )
-from msk_core.phase import detect_reps as detect_kinematic_reps
+from msk_core.signal.reps import detect_reps as detect_kinematic_reps
 
 
 def detect_reps(
@@ -88,10 +88,10 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
 
 
-# -- kinematic phase: the project's msk_core.phase, shared by calibration (offline) and the live node ------------------
+# -- kinematic phase: the project's msk_core.signal.reps, shared by calibration (offline) and the live node ------------------
 
 # The offline phase of a rep and the live tracker's phase must mean the same thing, or the prior learnt per phase bin
-# is read at the wrong bins live: both use msk_core.phase's turning-point phase (start..bottom -> [0, 0.5),
+# is read at the wrong bins live: both use msk_core.signal.reps's turning-point phase (start..bottom -> [0, 0.5),
 # bottom..end -> [0.5, 1)) on the same coordinate, and the live tracker follows the template learnt at calibration.
 PHASE_MODE = PhaseMode.TURNING_POINT
 # Per pack, the coordinate whose excursion defines a rep (issue 4: elbow angle on the bench, hip angle in a deadlift).
@@ -107,7 +107,7 @@ def excursion_of(time: np.ndarray, values: np.ndarray, *, rest_window_s: float =
 
 
 def rep_config(time: np.ndarray, values: np.ndarray) -> RepDetectionConfig:
-    """msk_core.phase's default detection settings with the excursion direction of this signal."""
+    """msk_core.signal.reps's default detection settings with the excursion direction of this signal."""
     return RepDetectionConfig(excursion=excursion_of(time, values))
 
 

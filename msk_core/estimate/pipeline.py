@@ -12,8 +12,8 @@ from tqdm import tqdm
 from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
 from msk_core.estimate.emd import estimate_emd, shift_emg
-from msk_core.estimate.frame import CLAMP_TOLERANCE, FrameEstimator, FrameStatus, Method
-from msk_core.estimate.pack import PackLike
+from msk_core.estimate.frame import FrameEstimator, FrameStatus, Method
+from msk_core.estimate.pack import PackLike, pack_moment_arms  # noqa: F401 (re-exported: imported from here before)
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
 from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
 from msk_core.estimate.profile import SubjectProfile
@@ -148,18 +148,6 @@ def pick_synergists(
 def trial_phase(trial: TrialData, i: int) -> float:
     """Phase of frame i: in [0, 1] inside a rep, REST_PHASE between reps."""
     return REST_PHASE if trial.rep_index[i] < 0 else float(trial.phase[i])
-
-
-def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
-    """Moment arms at q, clamped into the pack's fitted range by at most CLAMP_TOLERANCE (else NaN)."""
-    ranges = getattr(pack, "coordinate_ranges", None)
-    if ranges is not None:
-        ranges = np.asarray(ranges, dtype=float).reshape(len(q), 2)
-        qc = np.minimum(np.maximum(q, ranges[:, 0]), ranges[:, 1])
-        if np.any(np.abs(qc - q) > CLAMP_TOLERANCE):
-            return np.full((len(pack.coordinates), len(pack.groups)), np.nan)
-        q = qc
-    return np.asarray(pack.moment_arms(q), dtype=float)
 
 
 def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:

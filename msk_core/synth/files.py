@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal, windowed_peak
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, windowed_peak
 from msk_core.io import write_sto
 from msk_core.synth.session import ExerciseSession, Session, Trial
 
@@ -53,7 +53,7 @@ def _envelope(emg: np.ndarray, rate_hz: float) -> np.ndarray:
     return envelope_zero_phase_noncausal(emg, EmgFilterConfig(rate_hz=rate_hz))
 
 
-MVC_WINDOW_S = 0.5  # MVC amplitude = highest 0.5 s mean of the envelope (msk_core.emg.windowed_peak)
+MVC_WINDOW_S = 0.5  # MVC amplitude = highest 0.5 s mean of the envelope (msk_core.signal.emg.windowed_peak)
 
 
 def mvc_maxima(channels: list[str], envelope: np.ndarray, rate_hz: float) -> dict[str, float]:

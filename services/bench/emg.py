@@ -7,7 +7,7 @@ import time
 import numpy as np
 from scipy import signal
 
-from msk_core.emg import EmgEnvelopeFilter, EmgFilterConfig, envelope_causal
+from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig, envelope_causal
 from services.bench import BenchResult
 
 NAME = "emg"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msk_core.emg import (
+from msk_core.signal.emg import (
     EmgFilterConfig,
     NormalisationMode,
     envelope_causal,
@@ -25,8 +25,8 @@ from msk_core.emg import (
 )
 from msk_core.errors import InputError
 from msk_core.io import AnalogRecording, load_trial, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
-from msk_core.phase import Excursion, PhaseMode, RepDetectionConfig, detect_reps, learn_template, rep_phase
-from msk_core.priors import fit_priors
+from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, learn_template, rep_phase
+from msk_core.signal.priors import fit_priors
 
 
 def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:

@@ -1,0 +1,87 @@
+"""The tree reads as the data flow and the import graph stays clean: no cycles inside msk_core (lazy imports inside
+functions included), msk_core imports no I/O framework, drivers/ stands alone, nothing imports upward."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+IO_FRAMEWORKS = ("zenoh", "mcap", "serial", "usb", "mcap_protobuf")
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module this file imports, at any depth (imports inside functions count)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return found
+
+
+def _graph(package: str) -> dict[str, set[str]]:
+    files = {_module_name(p): p for p in (ROOT / package).rglob("*.py")}
+    return {name: {m for m in _imports(path) if m in files and m != name} for name, path in files.items()}
+
+
+def test_msk_core_has_no_import_cycles():
+    graph = _graph("msk_core")
+    # a package's __init__ re-exporting its modules is not a cycle through them
+    graph = {m: {d for d in deps if not m.startswith(d + ".")} for m, deps in graph.items()}
+    state: dict[str, int] = {}
+    cycles: list[list[str]] = []
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for dep in sorted(graph[node]):
+            if state.get(dep) == 1:
+                cycles.append(stack[stack.index(dep):] + [dep])
+            elif dep not in state:
+                visit(dep, stack + [dep])
+        state[node] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+    assert not cycles, f"import cycles in msk_core: {cycles}"
+
+
+def test_msk_core_imports_no_io_framework_and_drivers_stand_alone():
+    for path in (ROOT / "msk_core").rglob("*.py"):
+        bad = {m for m in _imports(path) if m.split(".")[0] in IO_FRAMEWORKS + ("services", "drivers")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+    for path in (ROOT / "drivers").rglob("*.py"):
+        # the shared exception hierarchy is the one thing drivers take from msk_core
+        bad = {m for m in _imports(path) if m.split(".")[0] in ("services", "msk_core")
+               and not m.startswith("msk_core.errors")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+def test_the_tree_has_a_room_per_stage_and_old_import_paths_still_work():
+    for room in ("model", "signal", "imu", "estimate", "io", "synth"):
+        assert (ROOT / "msk_core" / room / "__init__.py").is_file(), room
+    import msk_core.emg
+    import msk_core.imu_kinematics
+    import msk_core.imu_mapping
+    import msk_core.imu_stream
+    import msk_core.phase
+    import msk_core.priors
+    import msk_core.signal.emg
+    import msk_core.signal.reps
+
+    assert msk_core.emg is msk_core.signal.emg  # one module object: monkeypatching either path patches both
+    assert msk_core.phase is msk_core.signal.reps
+    assert msk_core.imu_stream.StreamingJointKinematics is not None
+    assert msk_core.priors.__name__ == "msk_core.signal.priors"
+    assert msk_core.imu_kinematics.__name__ == "msk_core.imu.kinematics"
+    assert msk_core.imu_mapping.__name__ == "msk_core.imu.mapping"
