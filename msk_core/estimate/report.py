@@ -29,12 +29,13 @@ class MethodScore:
 
 
 def evaluate(
-    pack, subject: SubjectProfile, trials: list[TrialData], *, methods=METHODS, progress: bool = False
+    pack, subject: SubjectProfile, trials: list[TrialData], *, methods=METHODS, progress: bool = False, **options
 ) -> tuple[list[MethodScore], dict[tuple[str, str], TrialEstimate]]:
+    """Every method over every trial; ``options`` go to each :class:`FrameEstimator` (solver, activation bounds)."""
     scores, runs = [], {}
     for trial in trials:
         for method in methods:
-            run = estimate_trial(pack, trial, method, subject=subject, progress=progress)
+            run = estimate_trial(pack, trial, method, subject=subject, progress=progress, **options)
             runs[(trial.name, method)] = run
             scores.append(
                 MethodScore(
@@ -121,9 +122,10 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
     return written
 
 
-def write_report(pack, subject: SubjectProfile, trials: list[TrialData], out: Path, *, progress: bool = False) -> dict:
+def write_report(pack, subject: SubjectProfile, trials: list[TrialData], out: Path, *, progress: bool = False,
+                 **options) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    scores, runs = evaluate(pack, subject, trials, progress=progress)
+    scores, runs = evaluate(pack, subject, trials, progress=progress, **options)
     plots = []
     for trial in trials:
         plots += plot_trial(trial, runs, subject, out)

@@ -6,7 +6,7 @@ Keys (paths relative to the TOML file)::
     torques = "id.sto"               # optional; columns <coordinate> or <coordinate>_moment. When absent the pack's
                                      # inverse dynamics computes them from q, qd, qdd (finite differences) and load_kg
     emg = "emg.sto"                  # optional
-    emg_is_envelope = true           # false: raw EMG, made an envelope offline (zero-phase chain of msk_core.emg)
+    emg_is_envelope = true           # false: raw EMG, made an envelope offline (zero-phase chain of msk_core.signal.emg)
     load_kg = 5.0                    # external load held in the hands (default 0)
     body_mass_kg = 70.0              # optional; torque errors are then also reported in N·m/kg
     start = 12.0                     # optional, in the files' own time unit (s; may be Unix epoch seconds)
@@ -22,6 +22,11 @@ Keys (paths relative to the TOML file)::
                                      # No reps or phase; it enters calibration with its torque and EMG terms only - a
                                      # contraction that isolates one muscle group is what separates that group's
                                      # strength from its synergists' (docs/estimation.md)
+    lowpass_coordinates_hz = 6.0     # optional: low-pass the coordinates as OpenSim's AnalyzeTool does
+                                     # (``lowpass_cutoff_frequency_for_coordinates``: padded, zero-phase
+                                     # Butterworth, velocities and accelerations from a quintic spline); the whole
+                                     # file is filtered, then [start, end] taken. Default: no filter, finite
+                                     # differences
     [emg_map]                        # EMG column -> pack group
     rectabd_r = "rectabd_r"
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
@@ -44,6 +49,7 @@ from msk_core.errors import ConfigError, EstimationError, InputError
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, detect_reps, kinematic_phase
 from msk_core.io import Storage, read_sto
+from msk_core.signal.kinematics_filter import lowpass_coordinates
 
 KNOWN_KEYS = {
     "kinematics",
@@ -59,6 +65,7 @@ KNOWN_KEYS = {
     "emg_max",
     "name",
     "isometric",
+    "lowpass_coordinates_hz",
 }
 GRAVITY = 9.81
 ISOMETRIC_MAX_MOTION_DEG = 10.0  # an isometric trial's coordinates stay within this range (a held test position)
@@ -116,184 +123,259 @@ def _closest(name: str, options: list[str]) -> str:
     return f"; did you mean {', '.join(near)}?" if near else ""
 
 
-def load_trial(path: str | Path, pack: PackLike) -> TrialData:
-    """Read a trial TOML and everything it points to, checked against the pack."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"cannot read trial file: {exc.strerror}", path=path) from None
-    try:
-        spec = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        m = re.search(r"line (\d+)", str(exc))
-        raise ConfigError(f"invalid TOML: {exc}", path=path, line=int(m.group(1)) if m else None) from None
+@dataclass
+class _TrialFile:
+    """A parsed trial TOML: its path, text (for line numbers in errors) and table."""
 
-    def err(message: str, key: str, value: object = None) -> ConfigError:
-        return ConfigError(message, path=path, line=_line_of(text, key.split(".")[0]), field=key, value=value)
+    path: Path
+    text: str
+    spec: dict
 
-    unknown = sorted(set(spec) - KNOWN_KEYS)
-    if unknown:
-        raise err(f"unknown key{_closest(unknown[0], sorted(KNOWN_KEYS))}", unknown[0], unknown[0])
-    if "kinematics" not in spec:
-        raise ConfigError("missing required key", path=path, field="kinematics")
+    @classmethod
+    def read(cls, path: str | Path) -> "_TrialFile":
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise ConfigError(f"cannot read trial file: {exc.strerror}", path=path) from None
+        try:
+            spec = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            m = re.search(r"line (\d+)", str(exc))
+            raise ConfigError(f"invalid TOML: {exc}", path=path, line=int(m.group(1)) if m else None) from None
+        return cls(path, text, spec)
 
-    def number(key: str, default: float | None) -> float | None:
-        value = spec.get(key, default)
+    def err(self, message: str, key: str, value: object = None) -> ConfigError:
+        return ConfigError(message, path=self.path, line=_line_of(self.text, key.split(".")[0]), field=key, value=value)
+
+    def number(self, key: str, default: float | None) -> float | None:
+        value = self.spec.get(key, default)
         if value is None:
             return None
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            raise err("must be a number", key, value)
+            raise self.err("must be a number", key, value)
         return float(value)
 
-    def file_of(key: str) -> Path:
-        value = spec[key]
+    def file_of(self, key: str) -> Path:
+        value = self.spec[key]
         if not isinstance(value, str):
-            raise err("must be a path string", key, value)
-        target = (path.parent / value).resolve()
+            raise self.err("must be a path string", key, value)
+        target = (self.path.parent / value).resolve()
         if not target.is_file():
-            raise err(f"file not found: {target}", key, value)
+            raise self.err(f"file not found: {target}", key, value)
         return target
 
-    load_kg = number("load_kg", 0.0)
+
+@dataclass(frozen=True)
+class _TrialOptions:
+    """The trial's scalar keys, validated."""
+
+    load_kg: float
+    body_mass_kg: float | None
+    start: float | None
+    end: float | None
+    isometric: bool
+    lowpass_coordinates_hz: float | None
+
+
+def _parse_options(trial: _TrialFile) -> _TrialOptions:
+    spec = trial.spec
+    unknown = sorted(set(spec) - KNOWN_KEYS)
+    if unknown:
+        raise trial.err(f"unknown key{_closest(unknown[0], sorted(KNOWN_KEYS))}", unknown[0], unknown[0])
+    if "kinematics" not in spec:
+        raise ConfigError("missing required key", path=trial.path, field="kinematics")
+    load_kg = trial.number("load_kg", 0.0)
     if load_kg < 0:
-        raise err("must be >= 0", "load_kg", load_kg)
-    body_mass = number("body_mass_kg", None)
+        raise trial.err("must be >= 0", "load_kg", load_kg)
+    body_mass = trial.number("body_mass_kg", None)
     if body_mass is not None and body_mass <= 0:
-        raise err("must be > 0", "body_mass_kg", body_mass)
-    start, end = number("start", None), number("end", None)
+        raise trial.err("must be > 0", "body_mass_kg", body_mass)
     isometric = spec.get("isometric", False)
     if not isinstance(isometric, bool):
-        raise err("must be true or false", "isometric", isometric)
+        raise trial.err("must be true or false", "isometric", isometric)
     if isometric and "torques" not in spec:
-        raise err(
+        raise trial.err(
             "an isometric trial needs the measured joint torques (`torques = ...`): inverse dynamics of a static pose "
             "knows nothing of the push against the dynamometer", "isometric", isometric,
         )
+    cutoff = trial.number("lowpass_coordinates_hz", None)
+    if cutoff is not None and cutoff <= 0:
+        raise trial.err("must be > 0 (leave the key out for no filtering)", "lowpass_coordinates_hz", cutoff)
+    return _TrialOptions(load_kg, body_mass, trial.number("start", None), trial.number("end", None), isometric, cutoff)
 
-    kin = read_sto(file_of("kinematics"))
-    coords = list(pack.coordinates)
+
+@dataclass
+class _Kinematics:
+    storage: Storage
+    selected: np.ndarray  # rows of the storage within [start, end]
+    time: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+
+
+def _read_kinematics(trial: _TrialFile, options: _TrialOptions, coords: list[str]) -> _Kinematics:
+    kin = read_sto(trial.file_of("kinematics"))
     for c in coords:
         if not kin.has_column(c):
             raise InputError(
                 f"kinematics has no column for pack coordinate {c!r}{_closest(c, kin.columns)}", path=kin.path, field=c
             )
-    sel = np.ones(kin.n_rows, dtype=bool)
-    if start is not None:
-        sel &= kin.time >= start
-    if end is not None:
-        sel &= kin.time <= end
-    if sel.sum() < 3:
-        raise err("fewer than 3 kinematics frames between start and end", "start", (start, end))
-    time = kin.time[sel]
-    q = kin.select(coords)[sel]
+    q_all = kin.select(coords)
     if kin.in_degrees:
-        q = np.deg2rad(q)  # pack coordinates are rotational
-    qd = np.gradient(q, time, axis=0)
-    qdd = np.gradient(qd, time, axis=0)
-
-    dropped = 0
-    if "torques" in spec:
-        tq = read_sto(file_of("torques"))
-        cols = []
-        for c in coords:
-            name = c if tq.has_column(c) else f"{c}_moment"
-            if not tq.has_column(name):
-                raise InputError(
-                    f"torque file has neither {c!r} nor {c + '_moment'!r}{_closest(c, tq.columns)}",
-                    path=tq.path,
-                    field=c,
-                )
-            cols.append(name)
-        raw = tq.select(cols)
-        at = _within(time, tq.time)
-        torques = np.column_stack(
-            [np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
-        )
-        keep = np.all(np.isfinite(torques), axis=1)
-        dropped = int((~keep).sum())
-        time, q, qd, qdd, torques = time[keep], q[keep], qd[keep], qdd[keep], torques[keep]
-        kin_keep = keep
-        source = "file"
+        q_all = np.deg2rad(q_all)  # pack coordinates are rotational
+    sel = np.ones(kin.n_rows, dtype=bool)
+    if options.start is not None:
+        sel &= kin.time >= options.start
+    if options.end is not None:
+        sel &= kin.time <= options.end
+    if sel.sum() < 3:
+        raise trial.err("fewer than 3 kinematics frames between start and end", "start", (options.start, options.end))
+    time = kin.time[sel]
+    if options.lowpass_coordinates_hz is not None:
+        # as OpenSim's AnalyzeTool prepares a coordinates file: whole file filtered, then the window taken
+        try:
+            filtered = lowpass_coordinates(kin.time, q_all, options.lowpass_coordinates_hz)
+        except InputError as exc:
+            raise trial.err(f"{exc} (kinematics {kin.path})", "lowpass_coordinates_hz",
+                            options.lowpass_coordinates_hz) from None
+        q, qd, qdd = (x[sel] for x in filtered)
     else:
-        hand = load_kg * GRAVITY
-        torques = np.array([pack.inverse_dynamics(q[i], qd[i], qdd[i], hand) for i in range(len(time))])
-        kin_keep = np.ones(len(time), dtype=bool)
-        source = "inverse_dynamics"
+        q = q_all[sel]
+        qd = np.gradient(q, time, axis=0)
+        qdd = np.gradient(qd, time, axis=0)
+    return _Kinematics(kin, sel, time, q, qd, qdd)
 
-    if time.size < 3:
-        raise InputError(f"fewer than 3 frames left where the torque file covers the kinematics ({time.size})",
-                         path=path, field="torques")
-    if isometric:  # on the frames that are used; gaps (NaN) in the kinematics do not hide a movement
-        motion = np.degrees(np.nan_to_num(np.nanmax(q, axis=0) - np.nanmin(q, axis=0), nan=0.0))
-        worst = int(np.argmax(motion))
-        if motion[worst] > ISOMETRIC_MAX_MOTION_DEG:
+
+def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin: _Kinematics):
+    """(torques, frames kept of the kinematics window, torque source, frames dropped); trims ``kin`` to the kept frames."""
+    coords = list(pack.coordinates)
+    if "torques" not in trial.spec:
+        hand = options.load_kg * GRAVITY
+        torques = np.array([pack.inverse_dynamics(kin.q[i], kin.qd[i], kin.qdd[i], hand) for i in range(len(kin.time))])
+        return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", 0
+    tq = read_sto(trial.file_of("torques"))
+    cols = []
+    for c in coords:
+        name = c if tq.has_column(c) else f"{c}_moment"
+        if not tq.has_column(name):
             raise InputError(
-                f"an isometric trial holds one pose, but {coords[worst]!r} moves by {motion[worst]:.1f} deg "
-                f"(> {ISOMETRIC_MAX_MOTION_DEG:g}); drop `isometric = true` or trim with start/end",
-                path=kin.path, field=coords[worst], value=round(float(motion[worst]), 1),
+                f"torque file has neither {c!r} nor {c + '_moment'!r}{_closest(c, tq.columns)}", path=tq.path, field=c
             )
+        cols.append(name)
+    raw = tq.select(cols)
+    at = _within(kin.time, tq.time)
+    torques = np.column_stack([np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))])
+    keep = np.all(np.isfinite(torques), axis=1)
+    kin.time, kin.q, kin.qd, kin.qdd = kin.time[keep], kin.q[keep], kin.qd[keep], kin.qdd[keep]
+    return torques[keep], keep, "file", int((~keep).sum())
 
-    emg, channels, norm = _load_emg(spec, path, text, file_of, err, pack, time) if "emg" in spec else ({}, {}, {})
 
+def _check_held_pose(kin: _Kinematics, coords: list[str]) -> None:
+    """An isometric trial holds one pose (on the frames used; gaps (NaN) in the kinematics do not hide a movement)."""
+    motion = np.degrees(np.nan_to_num(np.nanmax(kin.q, axis=0) - np.nanmin(kin.q, axis=0), nan=0.0))
+    worst = int(np.argmax(motion))
+    if motion[worst] > ISOMETRIC_MAX_MOTION_DEG:
+        raise InputError(
+            f"an isometric trial holds one pose, but {coords[worst]!r} moves by {motion[worst]:.1f} deg "
+            f"(> {ISOMETRIC_MAX_MOTION_DEG:g}); drop `isometric = true` or trim with start/end",
+            path=kin.storage.path, field=coords[worst], value=round(float(motion[worst]), 1),
+        )
+
+
+@dataclass
+class _Phase:
+    phase: np.ndarray
+    rep_index: np.ndarray
+    signal: str
+    coordinate: str | None
+    extra: dict
+
+
+def _trial_phase(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin: _Kinematics, torques: np.ndarray,
+                 kin_keep: np.ndarray) -> _Phase:
+    """Reps and phase from the trial's phase signal (``phase_signal``, else the pack's default)."""
+    coords = list(pack.coordinates)
     default_signal = DEFAULT_PHASE_COORDINATES.get(pack.name)
     if default_signal not in coords:
         default_signal = f"torque:{coords[0]}"
-    phase_signal = spec.get("phase_signal", default_signal)
+    phase_signal = trial.spec.get("phase_signal", default_signal)
     if not isinstance(phase_signal, str):
-        raise err("must be a string", "phase_signal", phase_signal)
-    if isometric and "phase_signal" in spec:
-        raise err("an isometric trial has no reps, so no phase", "phase_signal", phase_signal)
-    phase_coordinate = None
-    extra: dict = {}
+        raise trial.err("must be a string", "phase_signal", phase_signal)
+    if options.isometric and "phase_signal" in trial.spec:
+        raise trial.err("an isometric trial has no reps, so no phase", "phase_signal", phase_signal)
+    n = kin.time.size
+    if options.isometric:
+        return _Phase(np.full(n, np.nan), np.full(n, -1), "none (isometric)", None, {})
     try:
-        if isometric:
-            phase, rep_index, phase_signal = np.full(time.size, np.nan), np.full(time.size, -1), "none (isometric)"
-        elif phase_signal.startswith("torque:"):
+        if phase_signal.startswith("torque:"):
             c = phase_signal.split(":", 1)[1]
             if c not in coords:
-                raise err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
-            phase, rep_index = detect_reps(time, torques[:, coords.index(c)])
+                raise trial.err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
+            phase, rep_index = detect_reps(kin.time, torques[:, coords.index(c)])
+            return _Phase(phase, rep_index, phase_signal, None, {})
+        if phase_signal in coords:  # radians, as the live node sees it
+            coordinate: str | None = phase_signal
+            signal = kin.q[:, coords.index(phase_signal)]
+        elif kin.storage.has_column(phase_signal):
+            coordinate = None
+            signal = kin.storage.column(phase_signal)[kin.selected][kin_keep]
         else:
-            if phase_signal in coords:  # radians, as the live node sees it
-                phase_coordinate = phase_signal
-                signal = q[:, coords.index(phase_signal)]
-            elif kin.has_column(phase_signal):
-                signal = kin.column(phase_signal)[sel][kin_keep]
-            else:
-                raise err(f"no such kinematics column{_closest(phase_signal, kin.columns)}", "phase_signal",
-                          phase_signal)
-            try:
-                phase, rep_index = kinematic_phase(time, signal)
-            except EstimationError as exc:
-                # msk_core.phase only counts complete reps (rest - excursion - rest); a trial with a single movement
-                # (e.g. arm26's one flexion) falls back to the minimal detector and has no live-trackable phase
-                phase, rep_index = detect_reps(time, signal)
-                phase_coordinate = None
-                extra["phase_fallback"] = str(exc)
+            raise trial.err(f"no such kinematics column{_closest(phase_signal, kin.storage.columns)}", "phase_signal",
+                            phase_signal)
+        try:
+            phase, rep_index = kinematic_phase(kin.time, signal)
+            return _Phase(phase, rep_index, phase_signal, coordinate, {})
+        except EstimationError as exc:
+            # msk_core.signal.reps only counts complete reps (rest - excursion - rest); a trial with a single movement
+            # (e.g. arm26's one flexion) falls back to the minimal detector and has no live-trackable phase
+            phase, rep_index = detect_reps(kin.time, signal)
+            return _Phase(phase, rep_index, phase_signal, None, {"phase_fallback": str(exc)})
     except EstimationError as exc:
-        raise err(f"{exc}", "phase_signal", phase_signal) from None
+        raise trial.err(f"{exc}", "phase_signal", phase_signal) from None
 
+
+def load_trial(path: str | Path, pack: PackLike) -> TrialData:
+    """Read a trial TOML and everything it points to, checked against the pack."""
+    trial = _TrialFile.read(path)
+    options = _parse_options(trial)
+    coords = list(pack.coordinates)
+    kin = _read_kinematics(trial, options, coords)
+    torques, kin_keep, source, dropped = _attach_torques(trial, options, pack, kin)
+    if kin.time.size < 3:
+        raise InputError(f"fewer than 3 frames left where the torque file covers the kinematics ({kin.time.size})",
+                         path=trial.path, field="torques")
+    if options.isometric:
+        _check_held_pose(kin, coords)
+    if "emg" in trial.spec:
+        emg, channels, norm = _load_emg(trial.spec, trial.path, trial.text, trial.file_of, trial.err, pack, kin.time)
+    else:
+        emg, channels, norm = {}, {}, {}
+    phase = _trial_phase(trial, options, pack, kin, torques, kin_keep)
+    extra = dict(phase.extra)
+    if options.lowpass_coordinates_hz is not None:
+        extra["lowpass_coordinates_hz"] = options.lowpass_coordinates_hz
     return TrialData(
-        name=str(spec.get("name", path.stem)),
-        path=path,
-        time=time,
-        q=q,
-        qd=qd,
-        qdd=qdd,
+        name=str(trial.spec.get("name", trial.path.stem)),
+        path=trial.path,
+        time=kin.time,
+        q=kin.q,
+        qd=kin.qd,
+        qdd=kin.qdd,
         torques=torques,
         torque_source=source,
         emg=emg,
         emg_channels=channels,
         emg_normalisation=norm,
-        load_kg=load_kg,
-        body_mass_kg=body_mass,
-        phase=phase,
-        rep_index=rep_index,
-        phase_signal=phase_signal,
+        load_kg=options.load_kg,
+        body_mass_kg=options.body_mass_kg,
+        phase=phase.phase,
+        rep_index=phase.rep_index,
+        phase_signal=phase.signal,
         dropped_frames=dropped,
-        phase_coordinate=phase_coordinate,
-        isometric=isometric,
+        phase_coordinate=phase.coordinate,
+        isometric=options.isometric,
         extra=extra,
     )
 
@@ -318,7 +400,7 @@ def _load_emg(spec, path, text, file_of, err, pack, time):
             raise err(f"not a group of pack {pack.name!r}{_closest(str(group), groups)}", f"emg_map.{ch}", group)
     raw = storage.select(channels)
     if not is_envelope:
-        from msk_core.emg import EmgFilterConfig, envelope_zero_phase_noncausal
+        from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal
 
         raw = envelope_zero_phase_noncausal(raw, EmgFilterConfig(rate_hz=storage.rate))
     emg: dict[str, np.ndarray] = {}
@@ -334,6 +416,6 @@ def _load_emg(spec, path, text, file_of, err, pack, time):
             "group": group,
             "divisor": float(scale),
             "source": "emg_max in trial file" if ch in maxima else "as recorded (already normalised)",
-            "envelope": "as recorded" if is_envelope else "zero-phase offline chain (msk_core.emg)",
+            "envelope": "as recorded" if is_envelope else "zero-phase offline chain (msk_core.signal.emg)",
         }
     return emg, dict(mapping), norm

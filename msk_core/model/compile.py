@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -101,16 +102,67 @@ def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dic
 
 def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True) -> dict:
     """Compile and return the pack dictionary (write it with :func:`write_pack`)."""
-    gravity = spec.dynamics.gravity
-    model, state = osim_tools.load_model(osim_path, gravity=gravity)
+    model, state = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity)
     g = np.array(model.getGravity().to_numpy())
     poser = osim_tools.OsimPoser(model, state, spec)
+    names = _member_names(spec)
+    table = osim_tools.muscle_table(model, names, spec)
+    fits = _fit_lengths(poser, names, spec, progress)
+    rigid, validation = _dynamics(poser, spec, g)
+    source = Path(osim_path)
+    return {
+        "format": PACK_FORMAT,
+        "name": spec.name,
+        "version": spec.version,
+        "description": spec.description,
+        "source_model": spec.source_model or source.name,
+        "source_sha256": hashlib.sha256(source.read_bytes()).hexdigest(),
+        "coordinates": spec.coordinate_names,
+        "coordinate_ranges": [[c.lower, c.upper] for c in spec.coordinates],
+        "reference_pose": [c.reference for c in spec.coordinates],
+        "coupled": {c.name: c.coupled for c in spec.coordinates if c.coupled},
+        "locked": spec.locked,
+        "groups": list(spec.groups),
+        "members": spec.groups,
+        "member_f_max": {m: table[m]["f_max"] for m in names},
+        "member_optimal_fiber_length": {m: table[m]["l_opt"] for m in names},
+        **_group_parameters(spec, table),
+        "basis": {"exponents": [list(e) for e in fits.basis], "centre": fits.centre.tolist(),
+                  "half_width": fits.half.tolist(), "hinges": [[j, xk] for j, xk in fits.hinges]},
+        "length_coefficients": _group_coefficients(spec, table, fits).tolist(),
+        "dynamics": rigid,
+        "validation_dynamics": validation,
+        "fit_report": {"samples": fits.n_poses, "holdout": fits.n_test, "muscles": fits.report},
+        "spec": spec.text,
+    }
+
+
+def _member_names(spec: PackSpec) -> list[str]:
+    """Every muscle of the spec's groups, in group order; a muscle may belong to one group only."""
     names = [m for g_ in spec.groups.values() for m in g_]
     if len(set(names)) != len(names):
         dup = sorted({m for m in names if names.count(m) > 1})
         raise ConfigError("a muscle belongs to more than one group", path=spec.path, line=spec.line_of(dup[0]),
                           field="groups", value=dup)
-    table = osim_tools.muscle_table(model, names, spec)
+    return names
+
+
+@dataclass
+class _LengthFits:
+    """Per-muscle polynomial length fits and the shared basis they are expressed in."""
+
+    muscles: dict  # name -> (exponents, coefficients, hinges, hinge coefficients)
+    basis: list[tuple[int, ...]]
+    hinges: list[tuple[int, float]]
+    centre: np.ndarray
+    half: np.ndarray
+    n_poses: int
+    n_test: int
+    report: dict
+
+
+def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: bool) -> _LengthFits:
+    """Sample OpenSim's muscle lengths over the coordinate box and fit each muscle's length polynomial."""
     lo = np.array([c.lower for c in spec.coordinates])
     hi = np.array([c.upper for c in spec.coordinates])
     centre, half = (lo + hi) / 2, (hi - lo) / 2
@@ -159,52 +211,52 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True
         }
     # shared basis: union of all bundles' exponents (each closed under differentiation, so is the union)
     basis = sorted({tuple(e) for fit in muscle_fits.values() for e in fit[0].tolist()}, key=lambda e: (sum(e), e))
-    index = {e: k for k, e in enumerate(basis)}
     hinges = sorted({h for fit in muscle_fits.values() for h in fit[2]})
-    hinge_index = {h: k for k, h in enumerate(hinges)}
-    coefficients = np.zeros((len(spec.groups), len(basis) + 3 * len(hinges)))
-    f_max, l_opt, l_slack = [], [], []
-    for gi, (group, members) in enumerate(spec.groups.items()):
+    return _LengthFits(muscle_fits, basis, hinges, centre, half, len(poses), n_test, report)
+
+
+def _group_coefficients(spec: PackSpec, table: dict, fits: _LengthFits) -> np.ndarray:
+    """Each group's length polynomial: its members' fits weighted by their share of the group's F_max."""
+    index = {e: k for k, e in enumerate(fits.basis)}
+    hinge_index = {h: k for k, h in enumerate(fits.hinges)}
+    coefficients = np.zeros((len(spec.groups), len(fits.basis) + 3 * len(fits.hinges)))
+    for gi, members in enumerate(spec.groups.values()):
         forces = np.array([table[m]["f_max"] for m in members])
-        weights = forces / forces.sum()
-        for w, m in zip(weights, members):
-            full, coef, muscle_hinges, hinge_coef = muscle_fits[m]
+        for w, m in zip(forces / forces.sum(), members):
+            full, coef, muscle_hinges, hinge_coef = fits.muscles[m]
             for e, c in zip(full.tolist(), coef):
                 coefficients[gi, index[tuple(e)]] += w * c
             for h_i, h in enumerate(muscle_hinges):
-                col = len(basis) + 3 * hinge_index[h]
+                col = len(fits.basis) + 3 * hinge_index[h]
                 coefficients[gi, col : col + 3] += w * hinge_coef[3 * h_i : 3 * h_i + 3]
+    return coefficients
+
+
+def _group_parameters(spec: PackSpec, table: dict) -> dict:
+    """Per-group F_max (sum), force-weighted optimal fibre and tendon slack lengths, and activation bounds."""
+    f_max, l_opt, l_slack = [], [], []
+    for members in spec.groups.values():
+        forces = np.array([table[m]["f_max"] for m in members])
+        weights = forces / forces.sum()
         f_max.append(float(forces.sum()))
         l_opt.append(float(weights @ [table[m]["l_opt"] for m in members]))
         l_slack.append(float(weights @ [table[m]["l_slack"] for m in members]))
-    rigid, validation = _dynamics(poser, spec, g)
-    source = Path(osim_path)
     return {
-        "format": PACK_FORMAT,
-        "name": spec.name,
-        "version": spec.version,
-        "description": spec.description,
-        "source_model": spec.source_model or source.name,
-        "source_sha256": hashlib.sha256(source.read_bytes()).hexdigest(),
-        "coordinates": spec.coordinate_names,
-        "coordinate_ranges": [[c.lower, c.upper] for c in spec.coordinates],
-        "reference_pose": [c.reference for c in spec.coordinates],
-        "coupled": {c.name: c.coupled for c in spec.coordinates if c.coupled},
-        "locked": spec.locked,
-        "groups": list(spec.groups),
-        "members": spec.groups,
-        "member_f_max": {m: table[m]["f_max"] for m in names},
-        "member_optimal_fiber_length": {m: table[m]["l_opt"] for m in names},
         "f_max_ref": f_max,
         "optimal_fiber_lengths": l_opt,
         "tendon_slack_lengths": l_slack,
-        "basis": {"exponents": [list(e) for e in basis], "centre": centre.tolist(), "half_width": half.tolist(),
-                  "hinges": [[j, xk] for j, xk in hinges]},
-        "length_coefficients": coefficients.tolist(),
-        "dynamics": rigid,
-        "validation_dynamics": validation,
-        "fit_report": {"samples": len(poses), "holdout": n_test, "muscles": report},
-        "spec": spec.text,
+        **group_activation_bounds(spec.groups, table),
+    }
+
+
+def group_activation_bounds(groups: dict[str, list[str]], table: dict) -> dict:
+    """OpenSim's per-muscle control bounds as the pack's per-group activation bounds: one activation drives every
+    member, so it must respect all of them (largest min_control, smallest max_control)."""
+    return {
+        "member_min_control": {m: float(table[m]["min_control"]) for ms in groups.values() for m in ms},
+        "member_max_control": {m: float(table[m]["max_control"]) for ms in groups.values() for m in ms},
+        "min_control": [max(float(table[m]["min_control"]) for m in ms) for ms in groups.values()],
+        "max_control": [min(float(table[m]["max_control"]) for m in ms) for ms in groups.values()],
     }
 
 

@@ -138,7 +138,7 @@ class OsimPoser:
 
 
 def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str, float]]:
-    """Max isometric force, optimal fibre length and tendon slack length of each named muscle."""
+    """Max isometric force, optimal fibre length, tendon slack length and control bounds of each named muscle."""
     muscles = model.getMuscles()
     all_names = [muscles.get(i).getName() for i in range(muscles.getSize())]
     table = {}
@@ -153,6 +153,8 @@ def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str,
             "f_max": m.getMaxIsometricForce(),
             "l_opt": m.getOptimalFiberLength(),
             "l_slack": m.getTendonSlackLength(),
+            "min_control": m.getMinControl(),  # OpenSim's StaticOptimization bounds the activation by these
+            "max_control": m.getMaxControl(),
         }
     return table
 

@@ -58,6 +58,10 @@ class ModelPack:
         self.f_max_ref = np.asarray(data["f_max_ref"], dtype=float)
         self.optimal_fiber_lengths = np.asarray(data["optimal_fiber_lengths"], dtype=float)
         self.tendon_slack_lengths = np.asarray(data["tendon_slack_lengths"], dtype=float)
+        # OpenSim's control bounds per group (StaticOptimization bounds activations by them); packs compiled before
+        # they were recorded read as [0, 1]
+        self.min_control = np.asarray(data.get("min_control", np.zeros(len(self.groups))), dtype=float)
+        self.max_control = np.asarray(data.get("max_control", np.ones(len(self.groups))), dtype=float)
         self.fit_report: dict = data.get("fit_report", {})
         basis = data["basis"]
         self._exponents = np.asarray(basis["exponents"], dtype=np.int64).reshape(-1, len(self.coordinates))

@@ -59,6 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     est.add_argument("--method", choices=["proposed", "so", "hybrid", "prior"], default="proposed")
     est.add_argument("--out", required=True, type=Path,
                      help="activations .sto (torques go to <stem>_torques.sto, Laplace std to <stem>_std.sto)")
+    add_solver_arguments(est)
     est.set_defaults(handler=run_estimate)
 
     ev = subparsers.add_parser(
@@ -70,13 +71,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--subject", required=True, type=Path, help="subject profile JSON")
     ev.add_argument("--trial", action="append", required=True, type=Path, help="evaluation trial TOML (repeatable)")
     ev.add_argument("--report", required=True, type=Path, help="output directory")
+    add_solver_arguments(ev)
     ev.set_defaults(handler=run_evaluate)
 
 
-def _pack(name: str):
-    from msk_core.model import load_pack
+def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
+    """The numerical paths of the per-frame estimate (docs/estimation.md, "Solvers and dynamics")."""
+    parser.add_argument("--solver", choices=["active-set", "piqp"], default="active-set",
+                        help="per-frame QP: the compiled active-set hot start, certified by its KKT conditions, with "
+                             "PIQP when it cannot certify (default), or the warm PIQP on every frame")
+    parser.add_argument("--dynamics", choices=["compiled", "pinocchio"], default="pinocchio",
+                        help="moment arms and inverse dynamics: numpy + pinocchio (default offline) or the compiled "
+                             "numba kernels (the live node's default); they agree to ~1e-13")
+    parser.add_argument("--activation-bounds", choices=["unit", "model"], default="unit",
+                        help="activations within [0, 1] (default), or within each group's OpenSim min_control / "
+                             "max_control from the pack, as OpenSim's StaticOptimization bounds them")
 
-    return load_pack(name)
+
+def estimator_options(args: argparse.Namespace, pack) -> dict:
+    """FrameEstimator keyword arguments for the solver flags."""
+    options: dict = {"hot_start": args.solver == "active-set"}
+    if args.activation_bounds == "model":
+        options["a_min"], options["a_max"] = pack.min_control, pack.max_control
+    return options
+
+
+def _pack(name: str, dynamics: str = "pinocchio"):
+    from msk_core.model import Evaluator, load_pack
+
+    return load_pack(name, evaluator=Evaluator.COMPILED if dynamics == "compiled" else Evaluator.NUMPY)
 
 
 def _trial_files(paths: list[Path]) -> list[Path]:
@@ -163,12 +186,12 @@ def run_estimate(args: argparse.Namespace) -> int:
     from msk_core.estimate.trial import load_trial
     from msk_core.io import write_sto
 
-    pack = _pack(args.pack)
+    pack = _pack(args.pack, args.dynamics)
     subject = SubjectProfile.load(args.subject) if args.subject else None
     if subject is None and args.method in ("proposed", "prior"):
         raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
     trial = load_trial(args.trial, pack)
-    run = estimate_trial(pack, trial, args.method, subject=subject, progress=True)
+    run = estimate_trial(pack, trial, args.method, subject=subject, progress=True, **estimator_options(args, pack))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_sto(args.out, run.time, run.groups, run.activations, name=f"activations_{run.method}")
     torque_path = args.out.with_name(f"{args.out.stem}_torques.sto")
@@ -191,12 +214,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from msk_core.estimate.report import write_report
     from msk_core.estimate.trial import load_trial
 
-    pack = _pack(args.pack)
+    pack = _pack(args.pack, args.dynamics)
     subject = SubjectProfile.load(args.subject)
     trials = [load_trial(p, pack) for p in args.trial]
     missing = [t.path for t in trials if not t.emg]
     if missing:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
-    write_report(pack, subject, trials, args.report, progress=True)
+    write_report(pack, subject, trials, args.report, progress=True, **estimator_options(args, pack))
     print((args.report / "report.md").read_text())
     return 0
