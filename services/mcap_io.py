@@ -138,6 +138,18 @@ class ReadReport:
     error: str = ""
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_mcap_magic(path: Path) -> None:
+    """A file that does not start with MCAP's magic bytes is not a recording cut short but not a recording at all."""
+    with open(path, "rb") as stream:
+        head = stream.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC:
+        shown = "an empty file" if not head else f"it starts with {head!r}"
+        raise FileFormatError(f"not an MCAP recording ({shown}; MCAP files start with {MCAP_MAGIC!r})", path=path)
+
+
 def read_messages(path: str | Path, *, report: ReadReport | None = None, tolerate_truncation: bool = True) -> Iterator[RecordedMessage]:
     """Every message of an MCAP file in file order (which is recording order for files this project writes).
 
@@ -146,6 +158,7 @@ def read_messages(path: str | Path, *, report: ReadReport | None = None, tolerat
     path = Path(path)
     if not path.is_file():
         raise InputError("MCAP file not found", path=path)
+    check_mcap_magic(path)
     report = report if report is not None else ReadReport()
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
