@@ -52,3 +52,32 @@ def start_estimator(endpoint: str, stop: threading.Event, *, pack: str, session:
     ).start()
     assert ready.wait(60), "estimator node did not start within 60 s"
     return stats
+
+
+def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict[str, list[str]], session: str = "rep") -> dict:
+    """Replay ``source`` at full speed through one estimator per pack (``{pack: methods}``) and record everything."""
+    import time
+
+    from services import recorder, replayer
+
+    joints = sum(1 for r in read_messages(source) if r.type_name == "msk.JointAngles")
+    stop, ready = threading.Event(), threading.Event()
+    rec_stats = recorder.RecorderStats()
+    rec = threading.Thread(target=recorder.main, args=(ZenohOptions(listen=(endpoint,)), out),
+                           kwargs=dict(stats=rec_stats, stop_event=stop, ready_event=ready), daemon=True)
+    rec.start()
+    assert ready.wait(30), "recorder did not start within 30 s"
+    stats = {pack: start_estimator(endpoint, stop, pack=pack, session=session, methods=methods) for pack, methods in packs.items()}
+    replayed = replayer.main(ZenohOptions(connect=(endpoint,)), source, rate=None, session_name=session, wait_subscribers_s=5.0)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not all(s.frames_in >= joints for s in stats.values()):
+        time.sleep(0.1)
+    expected = replayed.published + sum(s.frames_out * len(packs[p]) for p, s in stats.items())
+    while time.monotonic() < deadline and rec_stats.written < expected:
+        time.sleep(0.1)
+    stop.set()
+    rec.join(30)
+    counts = {"replayed": replayed.published, "recorded": rec_stats.written, "expected": expected, "joints": joints,
+              "estimated": {p: s.frames_out for p, s in stats.items()}, "frames_in": {p: s.frames_in for p, s in stats.items()}}
+    assert rec_stats.written == expected, f"recorded {rec_stats.written} of {expected} messages: {counts}"
+    return counts
