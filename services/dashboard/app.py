@@ -168,7 +168,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run_from_args(args: argparse.Namespace) -> int:
     server = DashboardServer(options_from_args(args), DashboardConfig(session=args.session), host=args.host, port=args.port)
     print(f"dashboard of session {args.session!r} on {server.url} (Ctrl-C stops)", file=sys.stderr, flush=True)
-    server.run()  # uvicorn handles SIGINT/SIGTERM and shuts the bridge down through the lifespan
+    try:
+        server.run()  # uvicorn handles SIGINT/SIGTERM: closes the sockets, then the lifespan stops the bridge
+    except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it handled, once shut down
+        pass
+    print(f"dashboard stopped; the bridge received {server.state.received} messages", file=sys.stderr)
     return 0
 
 
