@@ -182,10 +182,11 @@ def _silhouette(offset_x: float) -> list[str]:
 def render_svg(body: BodyMap, *, fills: dict[str, str] | None = None, width: int | None = None) -> str:
     """Both views side by side; each muscle shape has ``class="muscle"`` and ``data-group``; ``fills`` colours them."""
     fills = fills or {}
-    total_w = 2 * VIEW_WIDTH + 20
+    # The figures span x = 30..170 of each view: the margins outside them are cut off.
+    left, total_w = 26, 2 * VIEW_WIDTH + 20 - 52
     size = f' width="{width}" height="{round(width * (VIEW_HEIGHT + 24) / total_w)}"' if width else ""
     out = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {total_w} {VIEW_HEIGHT + 24}"{size} '
+        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="{left} 4 {total_w} {VIEW_HEIGHT + 20}"{size} '
         f'class="bodymap" data-pack="{escape(body.pack)}" role="img" aria-label="body map of {escape(body.pack)}">',
         "<defs>",
     ]

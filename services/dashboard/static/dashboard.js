@@ -11,7 +11,7 @@ const state = {
   torqueHistory: {}, // method -> coordinate -> {t: [], id: [], model: []}
 };
 const charts = { bars: null, torques: {} };
-window.mskDashboard = { state, charts };
+window.mskDashboard = { state, charts, merge: (update) => { merge(update); scheduleRender(); } };
 
 // Same colour scale as services/dashboard/bodymap.py: pale yellow (0) -> orange -> red -> dark red (1).
 const STOPS = [[0, [255, 245, 200]], [0.35, [253, 174, 97]], [0.7, [230, 60, 40]], [1, [140, 10, 20]]];
