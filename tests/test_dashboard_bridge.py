@@ -164,3 +164,19 @@ def test_bad_session_name_is_refused():
 
     with pytest.raises(ConfigError, match="--session"):
         DashboardServer(ZenohOptions(), DashboardConfig(session="a/b"), port=free_tcp_port())
+
+
+def test_devices_without_estimates_are_not_live_data():
+    from services.dashboard.bridge import _message_class
+
+    state = DashboardState("t")
+    chunk = messages.EmgChunk(source_id="trigno-1", first_sample_index=0, n_samples=1, n_channels=1, samples=[0.0])
+    now = time.time_ns()
+    state.on_sample(PREFIX + "emg/trigno-1", "msk.EmgChunk", messages.encode(chunk), arrival_ns=now)
+    update = state.changes(0, now_ns=now + 500_000_000)[1]
+    assert update["data_age_s"] == pytest.approx(0.5) and update["activation_age_s"] is None  # the page says "no data"
+    state.on_sample(PREFIX + "activations/so", "msk.ActivationFrame", activation_payload("so", [0.1, 0.2], t=1), arrival_ns=now)
+    assert state.changes(0, now_ns=now + 10**9)[1]["activation_age_s"] == pytest.approx(1.0)
+    # message types are looked up in the schema itself, so types added to msk.proto later are decoded too
+    assert _message_class("msk.DeviceStatus") is messages.DeviceStatus
+    assert _message_class("msk.NoSuchType") is None and _message_class("other.EmgChunk") is None and _message_class(None) is None

@@ -102,7 +102,7 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             envelope = [0.5] + [None] * (len(switched["frame"]) - 1)
             page.evaluate("""([method, envelope]) => {
                 const frame = {...window.mskDashboard.state.activations[method], envelope};
-                window.mskDashboard.merge({topics: {['activations/' + method]: frame}, data_age_s: 0});
+                window.mskDashboard.merge({topics: {['activations/' + method]: frame}, data_age_s: 0, activation_age_s: 0});
             }""", [other, envelope])
             page.wait_for_function("() => window.mskDashboard.charts.bars.data.datasets[2].data[0] !== null")
             envelope_bars = page.evaluate("window.mskDashboard.charts.bars.data.datasets[2].data")

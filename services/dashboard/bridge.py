@@ -20,9 +20,11 @@ from dataclasses import dataclass, field
 
 import zenoh
 from google.protobuf import json_format
+from google.protobuf.message import DecodeError
 
 from msk_core.errors import MskError
 from services import messages, topics
+from services.schemas import msk_pb2
 from services.zenoh_session import ZenohOptions, open_session, type_name_of_sample
 
 log = logging.getLogger(__name__)
@@ -32,6 +34,18 @@ HAS_MEASURED_ENVELOPE = "measured_envelope" in messages.ActivationFrame.DESCRIPT
 MAX_PLAUSIBLE_LATENCY_S = 60.0
 #: A device whose last sample is older than this is shown as not delivering.
 DEVICE_SILENT_AFTER_S = 1.0
+
+
+def _message_class(type_name: str | None):
+    """The generated class of ``msk.<Type>``, also for types newer than :data:`messages.MESSAGE_TYPES` (e.g. EmgEnvelope)."""
+    if not type_name:
+        return None
+    if type_name in messages.MESSAGE_TYPES:
+        return messages.MESSAGE_TYPES[type_name]
+    package, _, name = type_name.rpartition(".")
+    if package != "msk" or name not in msk_pb2.DESCRIPTOR.message_types_by_name:
+        return None
+    return getattr(msk_pb2, name, None)
 
 
 def _finite(values) -> list[float | None]:
@@ -140,6 +154,7 @@ class DashboardState:
         self._devices: dict[str, DeviceHealth] = {}
         self._devices_seq = 0
         self.last_data_ns = 0  # arrival of the newest data sample (activations, joints, devices)
+        self.last_activation_ns = 0  # arrival of the newest activation frame: what the page is about
         self.received = 0
         self.decode_errors = 0
 
@@ -152,10 +167,12 @@ class DashboardState:
         kind = rest.split("/", 1)[0]
         try:
             type_name = type_name or topics.message_type_for_key(key)
-            if type_name is None or type_name not in messages.MESSAGE_TYPES:
+            message_class = _message_class(type_name)
+            if message_class is None:
                 return
-            message = messages.decode(type_name, payload)
-        except MskError as error:
+            message = message_class()
+            message.ParseFromString(payload)
+        except (MskError, DecodeError) as error:
             with self._lock:
                 self.decode_errors += 1
             log.warning("%s: %s", key, error)
@@ -164,7 +181,7 @@ class DashboardState:
             self.received += 1
             if kind == "activations":
                 self._put(rest, activation_dict(message, arrival_ns))
-                self.last_data_ns = arrival_ns
+                self.last_data_ns = self.last_activation_ns = arrival_ns
                 if not self._joints_have_phase:
                     self._phase_method = self._phase_method or message.method
                     if message.method == self._phase_method:
@@ -192,8 +209,12 @@ class DashboardState:
                 self._devices_seq = self._next()
             elif kind in ("emg", "imu"):
                 self._count_device_sample(kind, rest.split("/", 1)[-1], message, arrival_ns)
-            elif kind == "envelopes":
-                self.last_data_ns = arrival_ns
+            elif kind == "envelopes":  # the estimator's EMG envelopes: shown as a stream in the health table
+                device = self._device("EMG envelopes", "estimator")
+                device.messages += 1
+                device.samples += 1
+                device.last_arrival_ns = self.last_data_ns = arrival_ns
+                self._devices_seq = self._next()
                 self._put("envelopes", json_format.MessageToDict(message))
 
     def _count_device_sample(self, kind: str, source: str, message, arrival_ns: int) -> None:
@@ -236,6 +257,7 @@ class DashboardState:
             if self._devices_seq > since or any(d.last_arrival_ns for d in self._devices.values()):
                 update["devices"] = {name: d.as_dict(now_ns) for name, d in self._devices.items()}
             update["data_age_s"] = (now_ns - self.last_data_ns) / 1e9 if self.last_data_ns else None
+            update["activation_age_s"] = (now_ns - self.last_activation_ns) / 1e9 if self.last_activation_ns else None
             return self._seq, update
 
 

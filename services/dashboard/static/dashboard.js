@@ -6,7 +6,7 @@ const RECONNECT_MIN_MS = 500, RECONNECT_MAX_MS = 3000;
 
 const state = {
   config: null, socket: null, lastMessageMs: 0, reconnectMs: RECONNECT_MIN_MS, connection: "connecting",
-  activations: {}, joints: null, load: null, reps: null, devices: {}, envelopes: null, dataAge: null,
+  activations: {}, joints: null, load: null, reps: null, devices: {}, envelopes: null, dataAge: null, activationAge: null,
   method: localStorage.getItem("msk-method") || null, pack: null, packGroupsKey: null, updates: 0,
   torqueHistory: {}, // method -> coordinate -> {t: [], id: [], model: []}
 };
@@ -62,6 +62,7 @@ setInterval(() => {
 function merge(update) {
   state.updates += 1;
   state.dataAge = update.data_age_s;
+  state.activationAge = update.activation_age_s;
   if (update.devices) state.devices = update.devices;
   for (const [topic, value] of Object.entries(update.topics || {})) {
     if (topic.startsWith("activations/")) {
@@ -99,7 +100,9 @@ function currentMethod() {
 
 function render() {
   const noDataAfter = state.config ? state.config.no_data_after_s : 2;
-  const live = state.connection === "open" && state.dataAge !== null && state.dataAge !== undefined && state.dataAge <= noDataAfter;
+  // Live = activation frames arrive: devices that still deliver without estimates are no data for a coach.
+  const age = state.activationAge;
+  const live = state.connection === "open" && age !== null && age !== undefined && age <= noDataAfter;
   const status = document.getElementById("status");
   const pill = state.connection !== "open" ? state.connection : (live ? "live" : "nodata");
   status.className = "pill " + pill;
@@ -112,7 +115,9 @@ function render() {
     ? "The dashboard server is not answering; reconnecting by itself."
     : state.dataAge === null || state.dataAge === undefined
       ? `Nothing received yet on msk/${session}/…: are the estimator and the devices running for session "${session}"?`
-      : `Nothing new on msk/${session}/… for ${state.dataAge.toFixed(0)} s. The last values are shown greyed out.`;
+      : age === null || age === undefined || (state.dataAge <= noDataAfter && age > noDataAfter)
+        ? `The devices deliver but no muscle estimates arrive on msk/${session}/activations/…: is the estimator running?`
+        : `Nothing new on msk/${session}/… for ${age.toFixed(0)} s. The last values are shown greyed out.`;
   renderHeader();
   renderMethods();
   const method = currentMethod();
