@@ -140,7 +140,10 @@ def test_msk_dashboard_command_serves_the_page_and_stops_on_sigint(zenoh_endpoin
         assert config["session"] == "gym" and config["packs"]["bench_press"][0] == "BRA"
         page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read().decode()
         assert "chart-4.6.1.umd.min.js" in page and 'id="nodata"' in page
-        assert urllib.request.urlopen(f"http://127.0.0.1:{port}/static/vendor/chart-4.6.1.umd.min.js", timeout=5).status == 200
+        request = urllib.request.Request(f"http://127.0.0.1:{port}/static/vendor/chart-4.6.1.umd.min.js", headers={"Accept-Encoding": "gzip"})
+        with urllib.request.urlopen(request, timeout=5) as response:  # compressed for the tablet
+            assert response.status == 200 and response.headers["Content-Encoding"] == "gzip"
+            assert len(response.read()) < 100_000
         svg = urllib.request.urlopen(f"http://127.0.0.1:{port}/bodymap/deadlift.svg", timeout=5).read().decode()
         assert 'data-group="Gmax"' in svg
         with pytest.raises(urllib.error.HTTPError) as missing:

@@ -108,3 +108,26 @@ def test_reps_from_phase_split_on_wrap_and_rest():
     reps = report.reps_from_phase(t, phase)
     assert [(round(a, 1), round(b, 1)) for a, b in reps] == [(0.5, 1.4), (1.5, 2.4), (3.0, 3.9)]
     assert report.reps_from_phase(t, [math.nan] * 40) == []
+
+
+def test_reps_without_any_phase_come_from_msk_core_rep_detection():
+    """Joint angles without a phase (e.g. an older recording): the reps of the first bench press set are found by
+    msk_core's kinematic rep detection on the pack's phase coordinate (elbow_flex_r)."""
+    from msk_core.model import load_pack
+
+    data = report.SessionData()
+    for recorded in read_messages(DEMO_MCAP):
+        if recorded.type_name == "msk.JointAngles":
+            j = recorded.decode()
+            data.joint_time.append(j.device_time_ns / 1e9)
+            data.joint_phase.append(math.nan)
+            data.joint_q.setdefault(tuple(j.coordinates), []).append((j.device_time_ns / 1e9, list(j.q)))
+        elif recorded.type_name == "msk.LoadEvent":
+            e = recorded.decode()
+            data.loads.append((e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise))
+    window = report.set_windows(data)[0]
+    assert (window.exercise, window.load_kg) == ("bench_press", 40)
+    series = report.MethodSeries(groups=("BRA",), time=[window.start_s], phase=[math.nan])
+    reps, source = report.reps_in_set(data, window, series, load_pack("bench_press"))
+    assert source == "rep detection on elbow_flex_r (msk_core.phase)"
+    assert len(reps) == 3 and all(1.0 < b - a < 6.0 for a, b in reps)
