@@ -98,20 +98,22 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             page.select_option("#method", other)
             switched = wait_for(page, lambda p: p["method"] == other and p["bars"] == [a if a is not None else 0 for a in p["frame"]],
                                 5, f"the bars of method {other}")
-            # Where a frame carries measured EMG envelopes (estimator with EMG), they are drawn beside the estimate.
-            envelope = [0.5] + [None] * (len(switched["frame"]) - 1)
-            page.evaluate("""([method, envelope]) => {
-                const frame = {...window.mskDashboard.state.activations[method], envelope};
-                window.mskDashboard.merge({topics: {['activations/' + method]: frame}, data_age_s: 0, activation_age_s: 0});
-            }""", [other, envelope])
-            page.wait_for_function("() => window.mskDashboard.charts.bars.data.datasets[2].data[0] !== null")
-            envelope_bars = page.evaluate("window.mskDashboard.charts.bars.data.datasets[2].data")
-            assert envelope_bars[0] == pytest.approx([0.492, 0.508]) and all(v is None for v in envelope_bars[1:])
             replay.join(30)
             assert not replay.is_alive(), "the replay of the first set did not finish within 30 s"
             stopped = wait_for(page, lambda p: p["status"] == "nodata", 10, "'no data' after the replay stopped")
             assert page.is_visible("#nodata") and "Nothing new" in page.inner_text("#nodata-detail")
             assert stopped["method"] == other and switched["bars"] is not None
+            # Where a frame carries measured EMG envelopes (estimator with EMG), they are drawn beside the estimate (checked
+            # while the replay is stopped, so that no newer frame replaces the one given to the page).
+            envelope = [0.5] + [None] * (len(switched["frame"]) - 1)
+            page.evaluate("""([method, envelope]) => {
+                const frame = {...window.mskDashboard.state.activations[method], envelope};
+                const s = window.mskDashboard.state;
+                window.mskDashboard.merge({topics: {['activations/' + method]: frame}, data_age_s: s.dataAge, activation_age_s: s.activationAge});
+            }""", [other, envelope])
+            page.wait_for_function("() => window.mskDashboard.charts.bars.data.datasets[2].data[0] !== null", timeout=5000)
+            envelope_bars = page.evaluate("window.mskDashboard.charts.bars.data.datasets[2].data")
+            assert envelope_bars[0] == pytest.approx([0.492, 0.508]) and all(v is None for v in envelope_bars[1:])
 
             replay = replay_in_background(zenoh_endpoint, second_set, rate=2.0)
             resumed = wait_for(page, lambda p: p["status"] == "live", 15, "live again after the replay resumed")

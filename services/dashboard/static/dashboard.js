@@ -45,7 +45,7 @@ function connect() {
     state.socket = null;
     state.connection = "reconnecting";
     scheduleRender();
-    setTimeout(connect, state.reconnectMs);
+    setTimeout(start, state.reconnectMs);
     state.reconnectMs = Math.min(state.reconnectMs * 2, RECONNECT_MAX_MS);
   };
 }
@@ -275,8 +275,17 @@ function renderDevices(frame) {
     : "";
 }
 
-fetch("/config.json").then((r) => r.json()).then((config) => {
-  state.config = config;
-  document.getElementById("session").textContent = `session ${config.session}`;
-  connect();
-});
+// The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.
+function start() {
+  fetch("/config.json", { cache: "no-store" }).then((r) => r.json()).then((config) => {
+    state.config = config;
+    document.getElementById("session").textContent = `session ${config.session}`;
+    connect();
+  }).catch(() => {
+    state.connection = state.connection === "connecting" ? "connecting" : "reconnecting";
+    scheduleRender();
+    setTimeout(start, state.reconnectMs);
+    state.reconnectMs = Math.min(state.reconnectMs * 2, RECONNECT_MAX_MS);
+  });
+}
+start();
