@@ -24,10 +24,16 @@ CHROMIUM_ARGS = [
 ]
 
 
-def launch_chromium(playwright):
-    """Debian's Chromium through Playwright; never a downloaded browser."""
+def require_chromium() -> None:
+    """Skip (with the reason) before any set-up when Debian's Chromium or Playwright is missing."""
     if not Path(CHROMIUM).is_file() and shutil.which(CHROMIUM) is None:
         pytest.skip(f"Chromium not found at {CHROMIUM} (apt-get install chromium; .ci/run installs it)")
+    pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e .[test])")
+
+
+def launch_chromium(playwright):
+    """Debian's Chromium through Playwright; never a downloaded browser."""
+    require_chromium()
     return playwright.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
 
 

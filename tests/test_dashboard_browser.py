@@ -14,9 +14,8 @@ from services import replayer
 from services.dashboard.app import DashboardConfig, DashboardServer
 from services.zenoh_session import ZenohOptions
 from tests.conftest import free_tcp_port
-from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, start_estimator, trimmed_recording
+from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, require_chromium, start_estimator, trimmed_recording
 
-sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e .[test])")
 
 SESSION = "dash"
 PROBE = """() => {
@@ -60,6 +59,8 @@ def replay_in_background(endpoint: str, recording, rate: float) -> threading.Thr
 
 @pytest.mark.slow
 def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoint):
+    require_chromium()
+    from playwright import sync_api
     # Two pieces of the bench press: reps end at 4.9 s and 8.6 s of the first set, 23.8 s and 28.0 s of the second.
     first_set = trimmed_recording(DEMO_MCAP, tmp_path / "set1.mcap", 0.0, 9.5)
     second_set = trimmed_recording(DEMO_MCAP, tmp_path / "set2.mcap", 18.0, 28.5)

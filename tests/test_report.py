@@ -12,7 +12,7 @@ import pytest
 
 from services.dashboard import report
 from services.mcap_io import McapRecorderWriter, read_messages
-from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, record_with_estimates
+from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, record_with_estimates, require_chromium
 
 METHODS = {"bench_press": ["so", "hybrid"], "deadlift": ["so", "hybrid"]}
 
@@ -26,13 +26,20 @@ def demo_with_estimates(tmp_path_factory):
     return out, counts
 
 
-@pytest.mark.slow
-def test_report_of_the_demo_session(demo_with_estimates, tmp_path):
-    recording, counts = demo_with_estimates
-    out = tmp_path / "report"
+@pytest.fixture(scope="module")
+def demo_report(demo_with_estimates, tmp_path_factory):
+    recording, _ = demo_with_estimates
+    out = tmp_path_factory.mktemp("report") / "out"
     result = subprocess.run([sys.executable, "-m", "services.cli", "report", str(recording), "--out", str(out)],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
+    assert "4 sets, 12 reps, methods hybrid, so" in result.stderr
+    return recording, out
+
+
+@pytest.mark.slow
+def test_report_of_the_demo_session(demo_report):
+    recording, out = demo_report
     summary = json.loads((out / "report.json").read_text())
     assert summary["methods"] == ["hybrid", "so"]
     sets = summary["sets"]
@@ -67,7 +74,13 @@ def test_report_of_the_demo_session(demo_with_estimates, tmp_path):
     assert sum(1 for d in devices if d.startswith("imu ")) == 6
     assert {p.name for p in out.glob("*.png")} >= {"set1_activation.png", "set1_peaks.png", "set1_methods.png", "devices.png"}
 
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e .[test])")
+
+@pytest.mark.slow
+def test_report_renders_in_chromium(demo_report):
+    require_chromium()
+    from playwright import sync_api
+
+    _, out = demo_report
     with sync_api.sync_playwright() as playwright:
         browser = launch_chromium(playwright)
         page = browser.new_page(viewport={"width": 1100, "height": 1400})
