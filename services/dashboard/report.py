@@ -412,7 +412,7 @@ def plot_devices(devices: dict, duration_s: float, out: Path) -> str | None:
             counts, _ = np.histogram(d["times"], bins=bins, weights=d["weights"])
             ax.step(bins[:-1], counts, where="post", label=f"{name} ({d['kind']})")
     ax.set_yscale("log")
-    ax.set_xlabel("session time (s)")
+    ax.set_xlabel("time received (s, the recording's log time: a recording of a fast replay is compressed)")
     ax.set_ylabel("samples per second")
     ax.legend(fontsize=8, loc="lower right")
     fig.savefig(out / "devices.png", dpi=90)
@@ -509,7 +509,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     # Session length on the devices' clock (a recording of a fast replay is shorter in log time than the session).
     device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
     duration = max((data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0)
-    device_plot = plot_devices(devices, duration, out)
+    device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
     methods = sorted({m for m, _ in data.frames})
     title = f"Session report: {Path(recording).name}"
     sections = [set_html(s, s["plots"]) for s in sets]
