@@ -160,6 +160,18 @@ def test_msk_dashboard_command_serves_the_page_and_stops_on_sigint(zenoh_endpoin
     assert "dashboard of session 'gym' on http://127.0.0.1:" in stderr and "dashboard stopped" in stderr
 
 
+def test_port_in_use_is_a_clear_error():
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = subprocess.run([sys.executable, "-m", "services.cli", "dashboard", "--port", str(port)],
+                                capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in result.stderr
+
+
 def test_bad_session_name_is_refused():
     from msk_core.errors import ConfigError
     from services.dashboard.app import DashboardConfig, DashboardServer

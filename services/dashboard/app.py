@@ -168,7 +168,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
 
 
+def _check_port_free(host: str, port: int) -> None:
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as error:
+            raise ConfigError(f"cannot listen on {host}:{port} ({error.strerror}); choose another --port or --host",
+                              field="--port", value=port) from None
+
+
 def run_from_args(args: argparse.Namespace) -> int:
+    _check_port_free(args.host, args.port)
     server = DashboardServer(options_from_args(args), DashboardConfig(session=args.session), host=args.host, port=args.port)
     where = server.url if args.host not in ("0.0.0.0", "::") else f"port {args.port} of every network interface of this machine"
     print(f"dashboard of session {args.session!r} on {where} (Ctrl-C stops)", file=sys.stderr, flush=True)

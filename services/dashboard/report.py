@@ -555,3 +555,9 @@ def run_from_args(args: argparse.Namespace) -> int:
     print(f"report of {args.recording}: {len(summary['sets'])} sets, {sum(len(s['reps']) for s in summary['sets'])} reps, "
           f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}", file=sys.stderr)
     return 0
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(_parser)
+    sys.exit(run_from_args(_parser.parse_args()))
