@@ -1,0 +1,563 @@
+"""``msk report REC.mcap --out DIR``: an HTML session report (``DIR/report.html`` with PNG plots and inline SVG body
+maps beside it, ``DIR/report.json`` with the numbers).
+
+Sets come from the load events (a mass opens a set, the next zero closes it); repetitions from the phase the frames
+carry (``JointAngles.phase``, else ``ActivationFrame.phase``), else from msk_core's kinematic rep detection on the
+pack's phase coordinate. Per set and method: peak and mean activation of every muscle group in every rep, time under
+tension, the balance between the left and right groups (packs with both sides) and between the muscles pulling each
+joint one way and the other (sign of the pack's moment arms at the set's median pose), the comparison of the methods
+when several ran, and the health of every device over the session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import html
+import json
+import math
+import sys
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from msk_core.errors import EstimationError, InputError, ModelError
+from msk_core.model import OutOfRange, load_pack
+from services.dashboard import bodymap
+from services.mcap_io import ReadReport, read_messages
+
+PRIMARY_METHODS = ("assisted", "proposed", "so", "hybrid")  # the first present is the one the report details
+ACTIVE_THRESHOLD = 0.2  # "time active" of a muscle: activation above this
+MIN_REP_S = 0.3
+REST_GAP_S = 0.5
+
+
+@dataclass
+class MethodSeries:
+    groups: tuple[str, ...]
+    time: list[float] = field(default_factory=list)
+    activations: list[list[float]] = field(default_factory=list)
+    phase: list[float] = field(default_factory=list)  # NaN when unset
+    residual: list[list[float]] = field(default_factory=list)
+    solve_s: list[float] = field(default_factory=list)
+    flagged: list[bool] = field(default_factory=list)  # per frame: carried a flag
+
+
+@dataclass
+class SessionData:
+    frames: dict[tuple[str, tuple[str, ...]], MethodSeries] = field(default_factory=dict)
+    joint_time: list[float] = field(default_factory=list)
+    joint_phase: list[float] = field(default_factory=list)
+    joint_q: dict[tuple[str, ...], list[tuple[float, list[float]]]] = field(default_factory=dict)
+    loads: list[tuple[float, float, str]] = field(default_factory=list)
+    emg: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)  # source -> (log s, first index, n)
+    imu: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # tracker -> (log s, packet counter)
+    status: dict[str, list[tuple[float, bool, int, int]]] = field(default_factory=dict)
+    start_log_ns: int = 0
+    end_log_ns: int = 0
+    truncated: bool = False
+
+
+def read_session(path: Path, *, progress: bool = False) -> SessionData:
+    if not Path(path).is_file():
+        raise InputError("recording not found", path=path)
+    data, report = SessionData(), ReadReport()
+    for recorded in tqdm(read_messages(path, report=report), desc=f"read {Path(path).name}", unit="msg", disable=not progress):
+        data.start_log_ns = data.start_log_ns or recorded.log_time_ns
+        data.end_log_ns = recorded.log_time_ns
+        log_s = (recorded.log_time_ns - data.start_log_ns) / 1e9
+        kind = recorded.type_name
+        if kind == "msk.ActivationFrame":
+            f = recorded.decode()
+            key = (f.method, tuple(f.groups))
+            series = data.frames.get(key) or data.frames.setdefault(key, MethodSeries(tuple(f.groups)))
+            series.time.append(f.time_s)
+            series.activations.append(list(f.activations))
+            series.phase.append(f.phase if f.HasField("phase") else math.nan)
+            series.residual.append([t.residual_nm for t in f.torques])
+            series.solve_s.append(f.solve_time_s)
+            series.flagged.append(bool(f.flags))
+        elif kind == "msk.JointAngles":
+            j = recorded.decode()
+            t = j.device_time_ns / 1e9
+            data.joint_time.append(t)
+            data.joint_phase.append(j.phase if j.HasField("phase") else math.nan)
+            data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
+        elif kind == "msk.LoadEvent":
+            e = recorded.decode()
+            data.loads.append((e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise))
+        elif kind == "msk.EmgChunk":
+            c = recorded.decode()
+            data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, c.first_sample_index, c.n_samples))
+        elif kind == "msk.ImuSample":
+            s = recorded.decode()
+            data.imu.setdefault(s.tracker_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, s.packet_counter))
+        elif kind == "msk.DeviceStatus":
+            s = recorded.decode()
+            data.status.setdefault(s.device_id, []).append((log_s, s.connected, s.samples_lost, s.errors))
+    data.truncated = report.truncated
+    if data.start_log_ns == 0:
+        raise InputError("the recording holds no messages", path=path)
+    return data
+
+
+# ---- sets and repetitions -----------------------------------------------------------------------------------------
+@dataclass
+class SetWindow:
+    index: int
+    exercise: str
+    load_kg: float
+    start_s: float
+    end_s: float
+
+    @property
+    def name(self) -> str:
+        return f"set {self.index}: {self.exercise.replace('_', ' ') or 'exercise'} {self.load_kg:g} kg"
+
+
+def set_windows(data: SessionData) -> list[SetWindow]:
+    windows: list[SetWindow] = []
+    current: SetWindow | None = None
+    for t, mass, exercise in sorted(data.loads):
+        if current is not None:
+            current.end_s = t
+            windows.append(current)
+            current = None
+        if mass > 0:
+            current = SetWindow(len(windows) + 1, exercise, mass, t, math.inf)
+    if current is not None:
+        windows.append(current)
+    if not windows:  # no load events: the whole session is one set
+        times = [t for s in data.frames.values() for t in s.time] or data.joint_time
+        if times:
+            windows.append(SetWindow(1, "", 0.0, min(times), max(times)))
+    return windows
+
+
+def reps_from_phase(time: np.ndarray, phase: np.ndarray) -> list[tuple[float, float]]:
+    """(start, end) times of reps: runs of phase >= 0, split where the phase wraps to the next rep."""
+    reps, start, last = [], None, None
+    for t, p in zip(time, phase):
+        inside = math.isfinite(p) and p >= 0
+        if start is not None and (not inside or (last is not None and p < last[1] - 0.5) or t - last[0] > REST_GAP_S):
+            if last[0] - start >= MIN_REP_S:
+                reps.append((start, last[0]))
+            start = None
+        if inside and start is None:
+            start = t
+        last = (t, p) if inside else None
+    if start is not None and last is not None and last[0] - start >= MIN_REP_S:
+        reps.append((start, last[0]))
+    return reps
+
+
+def reps_in_set(data: SessionData, window: SetWindow, series: MethodSeries, pack) -> tuple[list[tuple[float, float]], str]:
+    jt, jp = np.asarray(data.joint_time), np.asarray(data.joint_phase)
+    inside = (jt >= window.start_s) & (jt <= window.end_s)
+    if np.any(np.isfinite(jp[inside])):
+        return reps_from_phase(jt[inside], jp[inside]), "phase of the joint angles"
+    ft, fp = np.asarray(series.time), np.asarray(series.phase)
+    inside = (ft >= window.start_s) & (ft <= window.end_s)
+    if np.any(np.isfinite(fp[inside])):
+        return reps_from_phase(ft[inside], fp[inside]), "phase of the activation frames"
+    from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase
+
+    for coordinates, samples in data.joint_q.items():
+        coordinate = DEFAULT_PHASE_COORDINATES.get(pack.name) if pack is not None else None
+        if coordinate not in coordinates:
+            continue
+        t = np.array([s[0] for s in samples])
+        q = np.array([s[1][coordinates.index(coordinate)] for s in samples])
+        keep = (t >= window.start_s) & (t <= window.end_s)
+        try:
+            phase, rep_index = kinematic_phase(t[keep], q[keep])
+        except EstimationError:
+            return [], f"no repetition found on {coordinate}"
+        tk = t[keep]
+        return [(float(tk[rep_index == k][0]), float(tk[rep_index == k][-1])) for k in range(rep_index.max() + 1)], \
+            f"rep detection on {coordinate} (msk_core.phase)"
+    return [], "no phase and no joint angles of the pack's phase coordinate"
+
+
+# ---- the numbers ----------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=1)
+def _packs_by_groups() -> dict[tuple[str, ...], str]:
+    from services.dashboard.app import packs_by_groups
+
+    return packs_by_groups()
+
+
+@functools.lru_cache(maxsize=None)
+def _pack_for(groups: tuple[str, ...]):
+    name = _packs_by_groups().get(groups)
+    return load_pack(name) if name else None
+
+
+def median_pose(data: SessionData, pack, window: SetWindow) -> np.ndarray | None:
+    for coordinates, samples in data.joint_q.items():
+        if all(c in coordinates for c in pack.coordinates):
+            rows = [q for t, q in samples if window.start_s <= t <= window.end_s]
+            if rows:
+                idx = [coordinates.index(c) for c in pack.coordinates]
+                return np.median(np.asarray(rows)[:, idx], axis=0)
+    return None
+
+
+def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np.ndarray], pose: np.ndarray | None) -> dict:
+    """Left/right pairs of groups and, per joint, the moment of the groups pulling each way (reference strengths)."""
+    out: dict = {"left_right": [], "joints": []}
+    placements = bodymap.place_groups(pack).placements
+    side_of = {}
+    for p in placements:
+        side_of.setdefault(p.group, set()).add((p.region, p.side))
+    for g in groups:
+        for region, side in side_of.get(g, ()):
+            if side != "r":
+                continue
+            partners = [h for h in groups if h != g and (region, "l") in side_of.get(h, ()) and (region, "r") not in side_of.get(h, ())]
+            if len(side_of.get(g, ())) == 1 and partners:
+                i, j = groups.index(g), groups.index(partners[0])
+                per_rep = [(float(np.mean(activations[m, i])), float(np.mean(activations[m, j]))) for m in rep_masks if m.any()]
+                out["left_right"].append({"right": g, "left": partners[0], "per_rep": per_rep})
+    if pose is not None:
+        arms = pack.moment_arms(np.asarray(pose), out_of_range=OutOfRange.CLAMP)  # (n_coordinates, n_groups)
+        order = [list(pack.groups).index(g) for g in groups]
+        f_ref = np.asarray(pack.f_max_ref)[order]
+        for c, coordinate in enumerate(pack.coordinates):
+            r = arms[c, order]
+            big = np.abs(r) > 1e-3  # 1 mm: groups that barely act on the joint are left out
+            positive, negative = np.flatnonzero(big & (r > 0)), np.flatnonzero(big & (r < 0))
+            if not len(positive) or not len(negative):
+                continue
+            per_rep = []
+            for m in rep_masks:
+                if not m.any():
+                    continue
+                a = np.nanmean(activations[m], axis=0)
+                pos, neg = float(np.sum(a[positive] * f_ref[positive] * r[positive])), float(np.sum(a[negative] * f_ref[negative] * -r[negative]))
+                per_rep.append((pos, neg, min(pos, neg) / max(pos, neg) if max(pos, neg) > 0 else 0.0))
+            out["joints"].append({
+                "coordinate": coordinate, "positive": [groups[i] for i in positive], "negative": [groups[i] for i in negative],
+                "per_rep": per_rep,
+            })
+    return out
+
+
+def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
+    in_set = {}
+    for (method, groups), series in data.frames.items():
+        t = np.asarray(series.time)
+        m = (t >= window.start_s) & (t <= window.end_s)
+        if m.sum() >= 3 and (window.exercise == "" or _pack_name_matches(groups, window.exercise)):
+            in_set[method] = (series, m)
+    if not in_set:
+        return None
+    primary = next((m for m in PRIMARY_METHODS if m in in_set), sorted(in_set)[0])
+    series, mask = in_set[primary]
+    groups = list(series.groups)
+    pack = _pack_for(series.groups)
+    reps, rep_source = reps_in_set(data, window, series, pack)
+    result = {"name": window.name, "exercise": window.exercise, "load_kg": window.load_kg, "start_s": window.start_s,
+              "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
+              "pack": pack.name if pack else None, "groups": groups, "primary": primary, "rep_source": rep_source,
+              "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
+              "time_under_tension_s": float(sum(b - a for a, b in reps)), "methods": {}}
+    for method, (s, m) in in_set.items():
+        t = np.asarray(s.time)[m]
+        a = np.asarray(s.activations, dtype=float)[m]
+        rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
+        dt = np.median(np.diff(t)) if len(t) > 1 else 0.0
+        per_group = {}
+        for i, g in enumerate(s.groups):
+            per_group[g] = {
+                "peak": [float(np.nanmax(a[rm, i])) if rm.any() else None for rm in rep_masks],
+                "mean": [float(np.nanmean(a[rm, i])) if rm.any() else None for rm in rep_masks],
+                "set_peak": float(np.nanmax(a[:, i])), "set_mean": float(np.nanmean(a[:, i])),
+                "time_active_s": float(np.sum(a[:, i] > ACTIVE_THRESHOLD) * dt),
+            }
+        residual = np.asarray(s.residual, dtype=float)[m]
+        result["methods"][method] = {
+            "frames": int(m.sum()), "flagged": int(np.asarray(s.flagged)[m].sum()), "groups": per_group,
+            "torque_residual_rms_nm": float(np.sqrt(np.nanmean(residual ** 2))) if residual.size else None,
+            "solve_ms_median": float(np.median(np.asarray(s.solve_s)[m]) * 1e3),
+            "_t": t, "_a": a,
+        }
+    # methods against the primary, on the frames both estimated (same input times)
+    ref_t, ref_a = result["methods"][primary]["_t"], result["methods"][primary]["_a"]
+    for method, info in result["methods"].items():
+        common, ia, ib = np.intersect1d(ref_t, info["_t"], return_indices=True)
+        diff = info["_a"][ib] - ref_a[ia]
+        info["rms_difference_to_primary"] = float(np.sqrt(np.nanmean(diff ** 2))) if common.size else None
+    if pack is not None:
+        t, a = result["methods"][primary]["_t"], result["methods"][primary]["_a"]
+        rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
+        result["balance"] = balance(pack, groups, a, rep_masks, median_pose(data, pack, window))
+    return result
+
+
+def _pack_name_matches(groups: tuple[str, ...], exercise: str) -> bool:
+    name = _packs_by_groups().get(groups)
+    return name is None or name == exercise
+
+
+def device_health(data: SessionData) -> dict:
+    devices = {}
+    for source, chunks in data.emg.items():
+        lost, gaps, restarts, expected = 0, 0, 0, None
+        for _, first, n in chunks:
+            if expected is not None and first > expected:
+                lost, gaps = lost + first - expected, gaps + 1
+            elif expected is not None and first < expected:
+                restarts += 1
+            expected = first + n
+        devices[source] = {"kind": "EMG", "messages": len(chunks), "samples": int(sum(c[2] for c in chunks)), "samples_lost": int(lost),
+                           "gaps": gaps, "restarts": restarts,
+                           "times": [c[0] for c in chunks], "weights": [c[2] for c in chunks]}
+    for tracker, samples in data.imu.items():
+        counters = np.array([s[1] for s in samples], dtype=np.int64)
+        steps = np.diff(counters) % 65536 if len(counters) > 1 else np.array([], dtype=np.int64)  # 16-bit counter
+        restarts = steps >= 32768  # the counter went back: the tracker restarted its measurement, nothing was lost
+        devices[f"imu {tracker}"] = {"kind": "IMU", "messages": len(samples), "samples": len(samples),
+                                     "samples_lost": int(np.sum(np.maximum(steps[~restarts] - 1, 0))) if steps.size else 0,
+                                     "gaps": int(np.sum((steps > 1) & ~restarts)), "restarts": int(np.sum(restarts)),
+                                     "times": [s[0] for s in samples], "weights": [1] * len(samples)}
+    for device, statuses in data.status.items():
+        entry = devices.setdefault(device, {"kind": "status", "messages": 0, "samples": 0, "samples_lost": 0, "times": [], "weights": []})
+        entry["status_messages"] = len(statuses)
+        entry["disconnected_reports"] = int(sum(1 for s in statuses if not s[1]))
+        entry["samples_lost"] = max(entry["samples_lost"], max(s[2] for s in statuses))
+        entry["errors"] = max(s[3] for s in statuses)
+    return devices
+
+
+# ---- plots ------------------------------------------------------------------------------------------------------------
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_set(result: dict, out: Path, stem: str) -> list[str]:
+    plt = _plt()
+    primary = result["methods"][result["primary"]]
+    t, a, groups = primary["_t"], primary["_a"], result["groups"]
+    t0 = result["start_s"]
+    files = []
+    # 1. activation over the set, the 6 busiest groups, reps shaded
+    top = np.argsort(np.nanmax(a, axis=0))[::-1][:6]
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    fig.subplots_adjust(left=0.07, right=0.86, bottom=0.14, top=0.93)
+    for k, rep in enumerate(result["reps"]):
+        ax.axvspan(rep["start_s"] - t0, rep["end_s"] - t0, color="tab:blue", alpha=0.08)
+        ax.text((rep["start_s"] + rep["end_s"]) / 2 - t0, 1.02, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue")
+    for i in top:
+        ax.plot(t - t0, a[:, i], lw=1.4, label=groups[i])
+    ax.set_ylim(0, 1.08)
+    ax.set_xlabel("time in set (s)")
+    ax.set_ylabel(f"activation ({result['primary']})")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    files.append(f"{stem}_activation.png")
+    fig.savefig(out / files[-1], dpi=90)
+    plt.close(fig)
+    # 2. peak per rep and muscle (heat map)
+    if result["reps"]:
+        peak = np.array([[v if v is not None else np.nan for v in primary["groups"][g]["peak"]] for g in groups])
+        fig, ax = plt.subplots(figsize=(2.4 + 0.7 * len(result["reps"]), 0.3 * len(groups) + 1.0))
+        fig.subplots_adjust(left=0.2, right=0.88, bottom=0.3 / (0.3 * len(groups) + 1.0), top=1 - 0.35 / (0.3 * len(groups) + 1.0))
+        image = ax.imshow(peak, vmin=0, vmax=1, cmap="YlOrRd", aspect="auto")
+        for (i, j), v in np.ndenumerate(peak):
+            if np.isfinite(v):
+                ax.text(j, i, f"{100 * v:.0f}", ha="center", va="center", fontsize=7, color="white" if v > 0.6 else "black")
+        ax.set_xticks(range(len(result["reps"])), [f"rep {k + 1}" for k in range(len(result["reps"]))], fontsize=8)
+        ax.set_yticks(range(len(groups)), groups, fontsize=8)
+        ax.set_title("peak activation per rep (%)", fontsize=9)
+        fig.colorbar(image, ax=ax, fraction=0.05)
+        files.append(f"{stem}_peaks.png")
+        fig.savefig(out / files[-1], dpi=90)
+        plt.close(fig)
+    # 3. methods side by side: mean activation over the set
+    if len(result["methods"]) > 1:
+        methods = sorted(result["methods"])
+        fig, ax = plt.subplots(figsize=(10, 3.2))
+        fig.subplots_adjust(left=0.07, right=0.98, bottom=0.22, top=0.95)
+        x = np.arange(len(groups))
+        width = 0.8 / len(methods)
+        for k, method in enumerate(methods):
+            means = [result["methods"][method]["groups"][g]["set_mean"] for g in groups]
+            ax.bar(x + (k - (len(methods) - 1) / 2) * width, means, width, label=method)
+        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)
+        ax.set_ylabel("mean activation in the set")
+        ax.legend(fontsize=8)
+        files.append(f"{stem}_methods.png")
+        fig.savefig(out / files[-1], dpi=90)
+        plt.close(fig)
+    return files
+
+
+def plot_devices(devices: dict, duration_s: float, out: Path) -> str | None:
+    if not any(d["times"] for d in devices.values()):
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(10, 2.8))
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.17, top=0.95)
+    bins = np.arange(0, max(duration_s, 1.0) + 1.0, 1.0)
+    for name, d in devices.items():
+        if d["times"]:
+            counts, _ = np.histogram(d["times"], bins=bins, weights=d["weights"])
+            ax.step(bins[:-1], counts, where="post", label=f"{name} ({d['kind']})")
+    ax.set_yscale("log")
+    ax.set_xlabel("time received (s, the recording's log time: a recording of a fast replay is compressed)")
+    ax.set_ylabel("samples per second")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.savefig(out / "devices.png", dpi=90)
+    plt.close(fig)
+    return "devices.png"
+
+
+# ---- HTML -------------------------------------------------------------------------------------------------------------
+CSS = """
+body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:0;background:#f4f6f8;color:#1d2630}
+header{background:#1d2630;color:#fff;padding:14px 22px}header h1{margin:0;font-size:22px}header div{color:#aab4c0;font-size:14px}
+main{padding:12px 22px;max-width:1200px}section{background:#fff;border-radius:10px;padding:12px 16px;margin:12px 0;box-shadow:0 1px 3px rgba(0,0,0,.08)}
+h2{font-size:18px;margin:4px 0 8px}h3{font-size:15px;margin:12px 0 6px}table{border-collapse:collapse;font-size:13px;margin:6px 0}
+th,td{padding:3px 8px;border-bottom:1px solid #e6e9ed;text-align:right}th:first-child,td:first-child{text-align:left}
+.row{display:flex;gap:16px;flex-wrap:wrap;align-items:flex-start}.bodymap{width:300px}img{max-width:100%}.note{color:#6b7684;font-size:13px}
+.kpi{display:inline-block;margin-right:22px}.kpi b{font-size:22px;display:block}
+"""
+
+
+def _pct(v) -> str:
+    return "–" if v is None or not math.isfinite(v) else f"{100 * v:.0f}"
+
+
+def _table(headers: list[str], rows: list[list[str]]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
+    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def set_html(result: dict, plots: list[str]) -> str:
+    primary = result["methods"][result["primary"]]
+    groups, reps = result["groups"], result["reps"]
+    parts = [f'<section class="set" id="set-{result["name"].split(":")[0].split()[-1]}"><h2>{html.escape(result["name"])}</h2>']
+    parts.append(
+        f'<div class="kpi"><b>{len(reps)}</b>reps</div><div class="kpi"><b>{result["time_under_tension_s"]:.1f} s</b>time under tension</div>'
+        f'<div class="kpi"><b>{result["end_s"] - result["start_s"]:.1f} s</b>set duration</div>'
+        f'<div class="kpi"><b>{html.escape(result["primary"])}</b>method shown</div>'
+        f'<p class="note">Repetitions from the {html.escape(result["rep_source"])}; rep durations: '
+        + (", ".join(f"{r['duration_s']:.1f} s" for r in reps) or "none") + ".</p>"
+    )
+    body_svg = ""
+    if result["pack"]:
+        fills = {g: bodymap.activation_colour(primary["groups"][g]["set_peak"]) for g in groups}
+        body_svg = f'<div class="bodymap">{bodymap.place_groups(load_pack(result["pack"])).svg(fills=fills)}<div class="note">peak activation in the set</div></div>'
+    images = "".join(f'<img src="{p}" alt="{html.escape(p)}">' for p in plots)
+    parts.append(f'<div class="row">{body_svg}<div style="flex:1;min-width:300px">{images}</div></div>')
+    headers = ["muscle"] + [f"rep {k + 1} peak / mean %" for k in range(len(reps))] + ["set peak %", f"time > {ACTIVE_THRESHOLD:.0%} (s)"]
+    rows = []
+    for g in groups:
+        v = primary["groups"][g]
+        rows.append([html.escape(g)] + [f"{_pct(p)} / {_pct(m)}" for p, m in zip(v["peak"], v["mean"])]
+                    + [_pct(v["set_peak"]), f"{v['time_active_s']:.1f}"])
+    parts.append(f"<h3>Per muscle and rep ({html.escape(result['primary'])})</h3>" + _table(headers, rows))
+    bal = result.get("balance")
+    if bal:
+        if bal["left_right"]:
+            rows = [[f"{html.escape(p['right'])} / {html.escape(p['left'])}"] + [f"{_pct(r)} / {_pct(l)}" for r, l in p["per_rep"]] for p in bal["left_right"]]
+            parts.append("<h3>Left / right balance (mean activation per rep, right / left %)</h3>"
+                         + _table(["pair"] + [f"rep {k + 1}" for k in range(len(reps))], rows))
+        else:
+            parts.append('<p class="note">Left / right balance: this model pack has muscles of one side only.</p>')
+        if bal["joints"]:
+            rows = []
+            for j in bal["joints"]:
+                rows.append([html.escape(j["coordinate"]), html.escape(", ".join(j["positive"])), html.escape(", ".join(j["negative"]))]
+                            + [f"{p:.0f} / {n:.0f} N·m ({100 * c:.0f} %)" for p, n, c in j["per_rep"]])
+            parts.append("<h3>Agonist / antagonist balance</h3><p class='note'>Per joint, mean moment of the groups pulling the "
+                         "coordinate positive / negative over each rep (activation × reference strength × moment arm at the "
+                         "set's median pose); in brackets the co-contraction, smaller / larger.</p>"
+                         + _table(["joint", "positive", "negative"] + [f"rep {k + 1}" for k in range(len(reps))], rows))
+    if len(result["methods"]) > 1:
+        rows = []
+        for method in sorted(result["methods"]):
+            info = result["methods"][method]
+            rows.append([html.escape(method), str(info["frames"]), f"{info['rms_difference_to_primary']:.3f}" if info["rms_difference_to_primary"] is not None else "–",
+                         f"{info['torque_residual_rms_nm']:.2f}" if info["torque_residual_rms_nm"] is not None else "–", str(info["flagged"]),
+                         f"{info['solve_ms_median']:.2f}"])
+        parts.append(f"<h3>Methods compared</h3>" + _table(
+            ["method", "frames", f"RMS difference to {result['primary']}", "torque residual RMS (N·m)", "flagged frames", "solve time median (ms)"], rows))
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
+    data = read_session(recording, progress=progress)
+    out.mkdir(parents=True, exist_ok=True)
+    sets = []
+    for k, window in enumerate(set_windows(data)):
+        result = summarise_set(data, window)
+        if result is not None:
+            result["plots"] = plot_set(result, out, f"set{window.index}")
+            sets.append(result)
+    devices = device_health(data)
+    # Session length on the devices' clock (a recording of a fast replay is shorter in log time than the session).
+    device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
+    duration = max((data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0)
+    device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
+    methods = sorted({m for m, _ in data.frames})
+    title = f"Session report: {Path(recording).name}"
+    sections = [set_html(s, s["plots"]) for s in sets]
+    if not data.frames:
+        sections.insert(0, '<section><h2>No activation frames</h2><p>This recording holds no <code>activations/&lt;method&gt;</code> '
+                        "topic: record while an estimator runs (e.g. <code>msk demo</code> writes <code>out/demo/live.mcap</code>) "
+                        "and report on that recording. Sets, repetitions and device health below come from the raw data.</p></section>")
+    rows = [[html.escape(name), d["kind"], str(d["messages"]), str(d["samples"]), str(d["samples_lost"]), str(d.get("gaps", "–")),
+             str(d.get("restarts", "–")), str(d.get("disconnected_reports", "–")), str(d.get("errors", "–"))]
+            for name, d in sorted(devices.items())]
+    health = ("<section><h2>Device health over the session</h2>"
+              + _table(["device", "kind", "messages", "samples", "samples missing", "gaps", "restarts", "disconnected reports", "errors"], rows)
+              + "<p class='note'>Samples missing: jumps of the EMG sample index or of the IMU packet counter (a pause between "
+              "trials of a recording shows as one gap); restarts: the counter went back to an earlier value.</p>"
+              + (f'<img src="{device_plot}" alt="samples per second">' if device_plot else "")
+              + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
+              + "</section>")
+    overview = (f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
+                f"<div class='kpi'><b>{len(sets)}</b>sets with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
+                f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div></section>")
+    page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
+            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><header><h1>{html.escape(title)}</h1>"
+            f"<div>msk-live · {len(sets)} sets · methods: {html.escape(', '.join(methods) or 'none')}</div></header><main>"
+            + overview + "".join(sections) + health + "</main></body></html>")
+    (out / "report.html").write_text(page)
+    summary = {
+        "recording": str(recording), "duration_s": duration, "methods": methods,
+        "sets": [{k: v for k, v in s.items() if k != "methods"} | {"methods": {m: {k: v for k, v in info.items() if not k.startswith("_")}
+                 for m, info in s["methods"].items()}} for s in sets],
+        "devices": {name: {k: v for k, v in d.items() if k not in ("times", "weights")} for name, d in devices.items()},
+    }
+    (out / "report.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    return summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", type=Path, help="MCAP recording of a session (with activations/<method> topics)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder: report.html, report.json and the plots")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    summary = write_report(args.recording, args.out, progress=sys.stderr.isatty())
+    print(f"report of {args.recording}: {len(summary['sets'])} sets, {sum(len(s['reps']) for s in summary['sets'])} reps, "
+          f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(_parser)
+    sys.exit(run_from_args(_parser.parse_args()))

@@ -1,0 +1,291 @@
+// msk-live coaches' dashboard: one WebSocket, newest frame per topic, redrawn at most once per animation frame.
+"use strict";
+
+const TORQUE_WINDOW_S = 10;
+const RECONNECT_MIN_MS = 500, RECONNECT_MAX_MS = 3000;
+
+const state = {
+  config: null, socket: null, lastMessageMs: 0, reconnectMs: RECONNECT_MIN_MS, connection: "connecting",
+  activations: {}, joints: null, load: null, reps: null, devices: {}, envelopes: null, dataAge: null, activationAge: null,
+  method: localStorage.getItem("msk-method") || null, pack: null, packGroupsKey: null, updates: 0,
+  torqueHistory: {}, // method -> coordinate -> {t: [], id: [], model: []}
+};
+const charts = { bars: null, torques: {} };
+window.mskDashboard = { state, charts, merge: (update) => { merge(update); scheduleRender(); } };
+
+// Same colour scale as services/dashboard/bodymap.py: pale yellow (0) -> orange -> red -> dark red (1).
+const STOPS = [[0, [255, 245, 200]], [0.35, [253, 174, 97]], [0.7, [230, 60, 40]], [1, [140, 10, 20]]];
+function activationColour(v) {
+  if (v === null || v === undefined || Number.isNaN(v)) return "#b8bec7";
+  v = Math.min(Math.max(v, 0), 1);
+  for (let i = 1; i < STOPS.length; i++) {
+    const [v0, c0] = STOPS[i - 1], [v1, c1] = STOPS[i];
+    if (v <= v1) {
+      const f = (v - v0) / (v1 - v0);
+      const c = c0.map((a, k) => Math.round(a + (c1[k] - a) * f));
+      return "#" + c.map((x) => x.toString(16).padStart(2, "0")).join("");
+    }
+  }
+  return "#8c0a14";
+}
+
+function connect() {
+  const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws";
+  const socket = new WebSocket(url);
+  state.socket = socket;
+  socket.onopen = () => { state.reconnectMs = RECONNECT_MIN_MS; state.lastMessageMs = Date.now(); };
+  socket.onmessage = (event) => {
+    state.lastMessageMs = Date.now();
+    state.connection = "open";
+    merge(JSON.parse(event.data));
+    scheduleRender();
+  };
+  socket.onclose = () => {
+    if (state.socket !== socket) return;
+    state.socket = null;
+    state.connection = "reconnecting";
+    scheduleRender();
+    setTimeout(start, state.reconnectMs);
+    state.reconnectMs = Math.min(state.reconnectMs * 2, RECONNECT_MAX_MS);
+  };
+}
+
+// A bridge that stops answering without closing the socket (machine asleep, network cut) counts as gone.
+setInterval(() => {
+  const limit = 4000 * (state.config ? state.config.heartbeat_s : 0.5);
+  if (state.socket && state.connection === "open" && Date.now() - state.lastMessageMs > limit) {
+    state.socket.close();
+  }
+  scheduleRender();
+}, 500);
+
+function merge(update) {
+  state.updates += 1;
+  state.dataAge = update.data_age_s;
+  state.activationAge = update.activation_age_s;
+  if (update.devices) state.devices = update.devices;
+  for (const [topic, value] of Object.entries(update.topics || {})) {
+    if (topic.startsWith("activations/")) {
+      const method = topic.slice("activations/".length);
+      state.activations[method] = value;
+      recordTorques(method, value);
+    } else if (topic === "joints") state.joints = value;
+    else if (topic === "load") state.load = value;
+    else if (topic === "reps") state.reps = value;
+    else if (topic === "envelopes") state.envelopes = value;
+  }
+}
+
+function recordTorques(method, frame) {
+  const byCoordinate = (state.torqueHistory[method] = state.torqueHistory[method] || {});
+  for (const t of frame.torques) {
+    let h = byCoordinate[t.coordinate];
+    if (!h || (h.t.length && frame.time_s < h.t[h.t.length - 1])) h = byCoordinate[t.coordinate] = { t: [], id: [], model: [] };
+    h.t.push(frame.time_s); h.id.push(t.inverse_dynamics_nm); h.model.push(t.model_nm);
+    while (h.t.length && h.t[0] < frame.time_s - TORQUE_WINDOW_S) { h.t.shift(); h.id.shift(); h.model.shift(); }
+  }
+}
+
+let renderPending = false;
+function scheduleRender() {
+  if (!renderPending) { renderPending = true; requestAnimationFrame(() => { renderPending = false; render(); }); }
+}
+
+function currentMethod() {
+  const methods = Object.keys(state.activations).sort();
+  if (!methods.length) return null;
+  if (!state.method || !methods.includes(state.method)) state.method = methods.includes("proposed") ? "proposed" : methods[0];
+  return state.method;
+}
+
+function render() {
+  const noDataAfter = state.config ? state.config.no_data_after_s : 2;
+  // Live = activation frames arrive: devices that still deliver without estimates are no data for a coach.
+  const age = state.activationAge;
+  const live = state.connection === "open" && age !== null && age !== undefined && age <= noDataAfter;
+  const status = document.getElementById("status");
+  const pill = state.connection !== "open" ? state.connection : (live ? "live" : "nodata");
+  status.className = "pill " + pill;
+  status.dataset.state = pill;
+  status.textContent = { live: "live", nodata: "no data", connecting: "connecting", reconnecting: "reconnecting" }[pill];
+  const overlay = document.getElementById("nodata");
+  overlay.hidden = pill === "live";
+  const session = state.config ? state.config.session : "?";
+  document.getElementById("nodata-detail").textContent = state.connection !== "open"
+    ? "The dashboard server is not answering; reconnecting by itself."
+    : state.dataAge === null || state.dataAge === undefined
+      ? `Nothing received yet on msk/${session}/…: are the estimator and the devices running for session "${session}"?`
+      : age === null || age === undefined || (state.dataAge <= noDataAfter && age > noDataAfter)
+        ? `The devices deliver but no muscle estimates arrive on msk/${session}/activations/…: is the estimator running?`
+        : `Nothing new on msk/${session}/… for ${age.toFixed(0)} s. The last values are shown greyed out.`;
+  renderHeader();
+  renderMethods();
+  const method = currentMethod();
+  const frame = method ? state.activations[method] : null;
+  if (frame) { renderBars(frame); renderBodyMap(frame); renderTorques(method); }
+  renderDevices(frame);
+}
+
+function renderHeader() {
+  if (state.load) {
+    document.getElementById("exercise").textContent = (state.load.exercise || "–").replace("_", " ");
+    document.getElementById("load").textContent = `${state.load.mass_kg.toFixed(1)} kg`;
+  }
+  const reps = state.reps;
+  document.getElementById("reps").textContent = reps ? reps.in_set : 0;
+  document.getElementById("set").textContent = reps && reps.set ? reps.set : "–";
+  const phase = reps ? reps.phase : null;
+  const fill = document.getElementById("phase-fill");
+  const text = document.getElementById("phase-text");
+  if (phase === null || phase === undefined) { fill.style.width = "0"; text.textContent = "unknown"; }
+  else if (phase < 0) { fill.style.width = "0"; text.textContent = "rest"; }
+  else {
+    fill.style.width = `${(100 * phase).toFixed(0)}%`;
+    text.textContent = phase < 0.5 ? "lowering" : "lifting";
+  }
+}
+
+function renderMethods() {
+  const select = document.getElementById("method");
+  const methods = Object.keys(state.activations).sort();
+  if (select.options.length !== methods.length || methods.some((m, i) => select.options[i].value !== m)) {
+    select.replaceChildren(...methods.map((m) => new Option(m, m)));
+  }
+  const method = currentMethod();
+  if (method && select.value !== method) select.value = method;
+}
+document.getElementById("method").addEventListener("change", (event) => {
+  state.method = event.target.value;
+  localStorage.setItem("msk-method", state.method);
+  scheduleRender();
+});
+
+function renderBars(frame) {
+  const labels = frame.groups;
+  const a = frame.activations.map((v) => (v === null ? 0 : v));
+  const uncertainty = frame.std.length === labels.length
+    ? frame.std.map((s, i) => (s === null ? null : [Math.max(0, a[i] - s), Math.min(1, a[i] + s)])) : labels.map(() => null);
+  const envelope = frame.envelope && frame.envelope.length === labels.length
+    ? frame.envelope.map((e) => (e === null ? null : [Math.max(0, e - 0.008), Math.min(1.02, e + 0.008)])) : labels.map(() => null);
+  if (!charts.bars) {
+    charts.bars = new Chart(document.getElementById("bars"), {
+      type: "bar",
+      data: { labels, datasets: [
+        { label: "estimate", data: a, backgroundColor: a.map(activationColour), borderColor: "#5b6470", borderWidth: 1, grouped: false, barPercentage: 0.85, order: 3 },
+        { label: "± uncertainty", data: uncertainty, backgroundColor: "rgba(29,38,48,.35)", grouped: false, barPercentage: 0.14, order: 2 },
+        { label: "measured envelope", data: envelope, backgroundColor: "#1f5fbf", grouped: false, barPercentage: 1.0, order: 1 },
+      ] },
+      options: {
+        indexAxis: "y", animation: false, responsive: true, maintainAspectRatio: false,
+        scales: { x: { min: 0, max: 1, ticks: { callback: (v) => `${Math.round(v * 100)}%` } }, y: { ticks: { font: { size: 13 } } } },
+        plugins: { legend: { display: false }, tooltip: { enabled: true } },
+      },
+    });
+    return;
+  }
+  const chart = charts.bars;
+  chart.data.labels = labels;
+  chart.data.datasets[0].data = a;
+  chart.data.datasets[0].backgroundColor = a.map(activationColour);
+  chart.data.datasets[1].data = uncertainty;
+  chart.data.datasets[2].data = envelope;
+  chart.update("none");
+}
+
+function packFor(groups) {
+  if (!state.config) return null;
+  const key = groups.join(",");
+  for (const [name, packGroups] of Object.entries(state.config.packs)) if (packGroups.join(",") === key) return name;
+  return null;
+}
+
+function renderBodyMap(frame) {
+  const key = frame.groups.join(",");
+  const box = document.getElementById("bodymap");
+  if (state.packGroupsKey !== key) {
+    state.packGroupsKey = key;
+    state.pack = packFor(frame.groups);
+    box.replaceChildren();
+    if (!state.pack) { box.textContent = "These muscle groups match no shipped model pack: no body map."; return; }
+    const pack = state.pack;
+    fetch(`/bodymap/${pack}.svg`).then((r) => r.text()).then((svg) => {
+      if (state.pack !== pack) return;
+      box.innerHTML = svg;
+      const mapped = new Set([...box.querySelectorAll(".muscle")].map((e) => e.dataset.group));
+      const missing = frame.groups.filter((g) => !mapped.has(g));
+      document.getElementById("unmapped").textContent = missing.length ? `not on the map: ${missing.join(", ")}` : "";
+      scheduleRender();
+    });
+  }
+  const value = Object.fromEntries(frame.groups.map((g, i) => [g, frame.activations[i]]));
+  for (const shape of box.querySelectorAll(".muscle")) {
+    const colour = activationColour(value[shape.dataset.group]);
+    if (shape.getAttribute("fill") !== colour) shape.setAttribute("fill", colour);
+  }
+}
+
+function renderTorques(method) {
+  const history = state.torqueHistory[method] || {};
+  const box = document.getElementById("torques");
+  for (const [coordinate, h] of Object.entries(history)) {
+    let chart = charts.torques[coordinate];
+    if (!chart) {
+      const wrap = document.createElement("div");
+      wrap.innerHTML = `<div class="torque-title">${coordinate}</div><div class="torque"><canvas></canvas></div>`;
+      box.appendChild(wrap);
+      chart = charts.torques[coordinate] = new Chart(wrap.querySelector("canvas"), {
+        type: "line",
+        data: { datasets: [
+          { label: "inverse dynamics", data: [], borderColor: "#1d2630", borderWidth: 2, pointRadius: 0 },
+          { label: "model", data: [], borderColor: "#e63c28", borderWidth: 2, borderDash: [5, 3], pointRadius: 0 },
+        ] },
+        options: {
+          animation: false, responsive: true, maintainAspectRatio: false, parsing: false, normalized: true,
+          scales: { x: { type: "linear", min: -TORQUE_WINDOW_S, max: 0, ticks: { maxTicksLimit: 6, callback: (v) => `${v.toFixed(0)} s` } }, y: { ticks: { maxTicksLimit: 4 } } },
+          plugins: { legend: { display: Object.keys(charts.torques).length === 0, position: "top", labels: { boxWidth: 14, font: { size: 11 } } } },
+        },
+      });
+      chart.wrap = wrap;
+    }
+    const latest = h.t.length ? h.t[h.t.length - 1] : 0; // x: seconds before the newest frame
+    chart.data.datasets[0].data = h.t.map((t, i) => ({ x: t - latest, y: h.id[i] }));
+    chart.data.datasets[1].data = h.t.map((t, i) => ({ x: t - latest, y: h.model[i] }));
+    chart.update("none");
+  }
+  // Coordinates of another pack (the exercise changed) are hidden, not deleted: they come back with it.
+  for (const [coordinate, chart] of Object.entries(charts.torques)) chart.wrap.hidden = !(coordinate in history);
+}
+
+function fmt(v, digits = 1, unit = "") { return v === null || v === undefined ? "–" : `${v.toFixed(digits)}${unit}`; }
+
+function renderDevices(frame) {
+  const rows = Object.entries(state.devices).sort().map(([name, d]) => {
+    const ok = d.delivering && d.connected !== false;
+    const stateText = d.connected === false ? "disconnected" : d.delivering ? "delivering" : "silent";
+    const tr = document.createElement("tr");
+    tr.innerHTML = `<td>${name}<br><span class="hint">${d.kind}</span></td><td class="${ok ? "ok" : "bad"}">${stateText}</td>`
+      + `<td>${d.samples}</td><td class="${d.samples_lost ? "bad" : ""}">${d.samples_lost}</td><td>${fmt(d.latency_ms, 1, " ms")}</td>`;
+    return tr;
+  });
+  document.querySelector("#devices tbody").replaceChildren(...rows);
+  const info = document.getElementById("estimator");
+  info.textContent = frame
+    ? `estimator ${frame.method}: ${frame.solver_status}${frame.flags.length ? " (" + frame.flags.join(", ") + ")" : ""}, `
+      + `solve+publish ${fmt(frame.estimator_latency_ms, 2, " ms")}, to this page ${fmt(frame.transport_latency_ms, 1, " ms")}`
+    : "";
+}
+
+// The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.
+function start() {
+  fetch("/config.json", { cache: "no-store" }).then((r) => r.json()).then((config) => {
+    state.config = config;
+    document.getElementById("session").textContent = `session ${config.session}`;
+    connect();
+  }).catch(() => {
+    state.connection = state.connection === "connecting" ? "connecting" : "reconnecting";
+    scheduleRender();
+    setTimeout(start, state.reconnectMs);
+    state.reconnectMs = Math.min(state.reconnectMs * 2, RECONNECT_MAX_MS);
+  });
+}
+start();

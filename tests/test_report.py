@@ -1,0 +1,146 @@
+"""`msk report` on the demo recording run through live estimators (two methods per exercise): sets, reps, per-muscle
+per-rep numbers, balance, the method comparison and device health, and the HTML renders in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from services.dashboard import report
+from services.mcap_io import McapRecorderWriter, read_messages
+from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, record_with_estimates, require_chromium
+
+METHODS = {"bench_press": ["so", "hybrid"], "deadlift": ["so", "hybrid"]}
+
+
+@pytest.fixture(scope="module")
+def demo_with_estimates(tmp_path_factory):
+    from services.zenoh_session import free_loopback_endpoint
+
+    out = tmp_path_factory.mktemp("report") / "live.mcap"
+    counts = record_with_estimates(DEMO_MCAP, out, free_loopback_endpoint(), packs=METHODS)
+    return out, counts
+
+
+@pytest.fixture(scope="module")
+def demo_report(demo_with_estimates, tmp_path_factory):
+    recording, _ = demo_with_estimates
+    out = tmp_path_factory.mktemp("report") / "out"
+    result = subprocess.run([sys.executable, "-m", "services.cli", "report", str(recording), "--out", str(out)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "4 sets, 12 reps, methods hybrid, so" in result.stderr
+    return recording, out
+
+
+@pytest.mark.slow
+def test_report_of_the_demo_session(demo_report):
+    recording, out = demo_report
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["methods"] == ["hybrid", "so"]
+    sets = summary["sets"]
+    # The demo session: bench press 40 and 50 kg, deadlift 45 and 75 kg, three reps each (load events + joint phase).
+    assert [(s["exercise"], s["load_kg"]) for s in sets] == [("bench_press", 40), ("bench_press", 50), ("deadlift", 45), ("deadlift", 75)]
+    for s in sets:
+        assert len(s["reps"]) == 3 and s["rep_source"] == "phase of the joint angles"
+        assert s["time_under_tension_s"] == pytest.approx(sum(r["duration_s"] for r in s["reps"]))
+        assert 2.0 < s["time_under_tension_s"] < s["end_s"] - s["start_s"]
+        assert set(s["methods"]) == {"so", "hybrid"} and s["primary"] == "so"
+        so = s["methods"]["so"]
+        assert so["frames"] > 500 and so["rms_difference_to_primary"] == 0.0
+        assert s["methods"]["hybrid"]["rms_difference_to_primary"] > 0.0
+        for g, v in so["groups"].items():
+            assert len(v["peak"]) == len(v["mean"]) == 3
+            for peak, mean in zip(v["peak"], v["mean"]):
+                assert 0.0 <= mean <= peak <= 1.0 + 1e-9, g
+        # agonist/antagonist balance on every joint with muscles pulling both ways
+        assert s["balance"]["joints"] and all(len(j["per_rep"]) == 3 for j in s["balance"]["joints"])
+        assert s["balance"]["left_right"] == []  # both packs model one side
+    # heavier set, larger extensor moment at the lumbar joint (set mean over reps)
+    lumbar = [next(j for j in s["balance"]["joints"] if j["coordinate"] == "L5_S1_FE") for s in sets[2:]]
+    assert sum(p for p, _, _ in lumbar[1]["per_rep"]) > sum(p for p, _, _ in lumbar[0]["per_rep"])
+    # per-rep peaks agree with the recorded frames of the first rep
+    first_rep = sets[0]["reps"][0]
+    frames = [r.decode() for r in read_messages(recording) if r.topic.endswith("/activations/so")]
+    inside = [f for f in frames if first_rep["start_s"] <= f.time_s <= first_rep["end_s"] and f.groups[0] == "BRA"]
+    tri = list(inside[0].groups).index("TriLat")
+    assert sets[0]["methods"]["so"]["groups"]["TriLat"]["peak"][0] == pytest.approx(max(f.activations[tri] for f in inside))
+    devices = summary["devices"]
+    assert devices["trigno-synth"]["samples"] > 100_000 and devices["trigno-synth"]["gaps"] == 3  # the pauses between trials
+    assert sum(1 for d in devices if d.startswith("imu ")) == 6
+    assert {p.name for p in out.glob("*.png")} >= {"set1_activation.png", "set1_peaks.png", "set1_methods.png", "devices.png"}
+
+
+@pytest.mark.slow
+def test_report_renders_in_chromium(demo_report):
+    require_chromium()
+    from playwright import sync_api
+
+    _, out = demo_report
+    with sync_api.sync_playwright() as playwright:
+        browser = launch_chromium(playwright)
+        page = browser.new_page(viewport={"width": 1100, "height": 1400})
+        page.goto((out / "report.html").as_uri())
+        page.wait_for_load_state("load")
+        images = page.evaluate("[...document.images].map(i => [i.getAttribute('src'), i.complete && i.naturalWidth])")
+        assert images and all(width > 100 for _, width in images), images
+        assert page.locator("section.set").count() == 4
+        assert page.locator("section.set svg.bodymap .muscle").count() > 20
+        assert "Agonist / antagonist balance" in page.inner_text("body") and "Methods compared" in page.inner_text("body")
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "report.png"), full_page=False)
+        browser.close()
+
+
+def test_report_without_activations_says_so(tmp_path):
+    short = tmp_path / "raw.mcap"
+    with McapRecorderWriter(short) as writer:
+        for k, recorded in enumerate(read_messages(DEMO_MCAP)):
+            if k > 3000:
+                break
+            writer.write(recorded.topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns)
+    summary = report.write_report(short, tmp_path / "out")
+    assert summary["methods"] == [] and summary["sets"] == []
+    assert "No activation frames" in (tmp_path / "out" / "report.html").read_text()
+
+
+def test_report_names_a_missing_recording(tmp_path):
+    from msk_core.errors import InputError
+
+    with pytest.raises(InputError, match="recording not found"):
+        report.write_report(tmp_path / "nope.mcap", tmp_path / "out")
+
+
+def test_reps_from_phase_split_on_wrap_and_rest():
+    t = [0.1 * i for i in range(40)]
+    phase = [-1.0] * 5 + [i / 10 for i in range(10)] + [i / 10 for i in range(10)] + [-1.0] * 5 + [i / 10 for i in range(10)]
+    reps = report.reps_from_phase(t, phase)
+    assert [(round(a, 1), round(b, 1)) for a, b in reps] == [(0.5, 1.4), (1.5, 2.4), (3.0, 3.9)]
+    assert report.reps_from_phase(t, [math.nan] * 40) == []
+
+
+def test_reps_without_any_phase_come_from_msk_core_rep_detection():
+    """Joint angles without a phase (e.g. an older recording): the reps of the first bench press set are found by
+    msk_core's kinematic rep detection on the pack's phase coordinate (elbow_flex_r)."""
+    from msk_core.model import load_pack
+
+    data = report.SessionData()
+    for recorded in read_messages(DEMO_MCAP):
+        if recorded.type_name == "msk.JointAngles":
+            j = recorded.decode()
+            data.joint_time.append(j.device_time_ns / 1e9)
+            data.joint_phase.append(math.nan)
+            data.joint_q.setdefault(tuple(j.coordinates), []).append((j.device_time_ns / 1e9, list(j.q)))
+        elif recorded.type_name == "msk.LoadEvent":
+            e = recorded.decode()
+            data.loads.append((e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise))
+    window = report.set_windows(data)[0]
+    assert (window.exercise, window.load_kg) == ("bench_press", 40)
+    series = report.MethodSeries(groups=("BRA",), time=[window.start_s], phase=[math.nan])
+    reps, source = report.reps_in_set(data, window, series, load_pack("bench_press"))
+    assert source == "rep detection on elbow_flex_r (msk_core.phase)"
+    assert len(reps) == 3 and all(1.0 < b - a < 6.0 for a, b in reps)
