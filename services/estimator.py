@@ -32,6 +32,7 @@ from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import GRAVITY
 from services import messages, topics
+from services.graph import ReadySpec, declare_ready
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -146,6 +147,7 @@ def main(
     exercise: str | None = None,
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
+    ready_key: ReadySpec | None = None,
     stats: EstimatorStats | None = None,
 ) -> EstimatorStats:
     stop_event = stop_event or threading.Event()
@@ -176,6 +178,7 @@ def main(
         }
         # One subscriber for both keys keeps load events and frames in their publication order.
         subscribers = [zsession.declare_subscriber(f"{topics.session_prefix(session)}/*", on_sample)]
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
         try:
