@@ -148,13 +148,15 @@ class Graph:
     joins them (bounded), so a recorder closes its MCAP.
     """
 
-    def __init__(self, session: str, endpoint: str) -> None:
+    def __init__(self, session: str, endpoint: str, *, external_listener: bool = False) -> None:
+        """``external_listener``: someone else (e.g. the caller's own session) listens on ``endpoint``; every node
+        connects to it."""
         self.session = topics.check_chunk(session, "session")
         self.endpoint = endpoint
         self.stop_event = threading.Event()
         self._threads: list[_ThreadNode] = []
         self._processes: list[_ProcessNode] = []
-        self._listening = False
+        self._listening = external_listener
 
     # -- membership ---------------------------------------------------------------------------------------------
 
