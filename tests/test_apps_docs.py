@@ -58,7 +58,8 @@ def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, z
                     p.kill()
     assert doc.returncode == 0, err
     lines = out.splitlines()
-    assert len(lines) == 100 and all(line.startswith("so ") for line in lines)
+    # callbacks already under way when it stops may print a few more
+    assert len(lines) >= 100 and all(line.startswith("so ") for line in lines)
     assert "'TriLong':" in lines[-1]
     assert cli.returncode == 0, cli_err
     decoded = [json.loads(line) for line in cli_out.splitlines()]
