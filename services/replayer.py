@@ -127,6 +127,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--wait-subscribers", type=float, default=2.0, metavar="S",
         help="wait up to S seconds for a subscriber on each new key before publishing on it (default 2)",
     )
+    parser.add_argument(
+        "--wait-node", action="append", default=[], metavar="NAME",
+        help="publish nothing before graph node NAME of --session has its subscribers up (services.graph; repeatable; "
+        "an error naming the missing nodes after --wait-nodes-timeout)",
+    )
+    parser.add_argument("--wait-nodes-timeout", type=float, default=60.0, metavar="S", help="default 60")
     add_zenoh_arguments(parser)
 
 
@@ -139,6 +145,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         wait_subscribers_s=args.wait_subscribers,
         progress=sys.stderr.isatty(),
         exclude=tuple(args.exclude),
+        wait_nodes=tuple(args.wait_node),
+        wait_nodes_s=args.wait_nodes_timeout,
     )
     note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
     skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""
