@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,7 @@ from msk_core.io import read_sto
 from msk_core.model import load_pack
 from services import estimator, kinematics_node, recorder, replayer
 from services.mcap_io import read_messages
+from services.graph import Graph, wait_for
 from services.zenoh_session import ZenohOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -127,12 +127,8 @@ def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, di
     return path, report
 
 
-def _wait_until(condition, deadline: float) -> bool:
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.1)
-    return condition()
+GRAPH_READY_S = 60.0
+DRAIN_S = 600.0  # the whole replay at rate max on a loaded 2-core machine takes ~1-2 min; generous, and bounded
 
 
 def run_live_graph(
@@ -152,53 +148,58 @@ def run_live_graph(
             counts["imu"] += 1
         elif recorded.type_name == "msk.JointAngles" and current in counts["joints"]:
             counts["joints"][current] += 1
-    stop = threading.Event()
-    threads, ready = [], []
     rec_stats = recorder.RecorderStats()
     est_stats = {ex: estimator.EstimatorStats() for ex in subjects}
     kin_stats = {ex: kinematics_node.KinematicsStats() for ex in subjects} if joints_from == "imu" else {}
 
-    def start(target, *args, **kwargs):
-        event = threading.Event()
-        thread = threading.Thread(target=target, args=args, kwargs={**kwargs, "stop_event": stop, "ready_event": event}, daemon=True)
-        thread.start()
-        threads.append(thread)
-        ready.append(event)
-
-    start(recorder.main, ZenohOptions(listen=(endpoint,)), out_mcap, stats=rec_stats)
-    for exercise, subject in subjects.items():
-        start(
-            estimator.main, ZenohOptions(connect=(endpoint,)), pack=exercise, session=SESSION, methods=list(METHODS),
-            subject_path=subject, exercise=exercise, stats=est_stats[exercise],
+    with Graph(SESSION, endpoint) as graph:
+        graph.add_thread("recorder", recorder.main, out_mcap, stats=rec_stats)
+        for exercise, subject in subjects.items():
+            graph.add_thread(
+                f"estimator-{exercise}", estimator.main, pack=exercise, session=SESSION, methods=list(METHODS),
+                subject_path=subject, exercise=exercise, stats=est_stats[exercise], after=("recorder",),
+            )
+        for exercise in kin_stats:
+            # its joints go to the recorder and every estimator (each follows the exercise the load events name)
+            graph.add_thread(
+                f"kinematics-{exercise}", kinematics_node.main, pack=exercise, session=SESSION, stats=kin_stats[exercise],
+                after=("recorder", *(f"estimator-{ex}" for ex in subjects)),
+            )
+        graph.wait_ready(GRAPH_READY_S)
+        nodes = f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"
+        log(f"live graph up: {nodes}; replaying {recording.name} at rate {rate or 'max'} (joints from {joints_from})")
+        started = time.perf_counter()
+        replay_stats = replayer.main(
+            ZenohOptions(connect=(endpoint,)), recording, rate=rate, session_name=SESSION,
+            progress=sys.stderr.isatty(), exclude=(f"msk/{SESSION}/joints",) if joints_from == "imu" else (),
+            wait_nodes=tuple(graph.nodes), wait_nodes_s=GRAPH_READY_S,
         )
-        if joints_from == "imu":
-            start(kinematics_node.main, ZenohOptions(connect=(endpoint,)), pack=exercise, session=SESSION, stats=kin_stats[exercise])
-    for event in ready:
-        if not event.wait(60):
-            raise RuntimeError("a demo node did not start within 60 s")
-    nodes = f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"
-    log(f"live graph up: {nodes}; replaying {recording.name} at rate {rate or 'max'} (joints from {joints_from})")
-    started = time.perf_counter()
-    replay_stats = replayer.main(
-        ZenohOptions(connect=(endpoint,)), recording, rate=rate, session_name=SESSION, wait_subscribers_s=5.0,
-        progress=sys.stderr.isatty(), exclude=(f"msk/{SESSION}/joints",) if joints_from == "imu" else (),
-    )
-    deadline = time.monotonic() + 600
-    if kin_stats:
-        _wait_until(lambda: all(k.samples_in >= counts["imu"] for k in kin_stats.values()), deadline)
-        joints_total = sum(k.frames_out for k in kin_stats.values())
-        joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
-    else:
-        joints_total = sum(counts["joints"].values())
-        joints_per_exercise = counts["joints"]
-    _wait_until(lambda: all(e.frames_in >= joints_total for e in est_stats.values()), deadline)
-    activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
-    expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames
-    _wait_until(lambda: rec_stats.written >= expected_messages, deadline)
-    elapsed = time.perf_counter() - started
-    stop.set()
-    for thread in threads:
-        thread.join(30)
+        deadline = time.monotonic() + DRAIN_S
+
+        def left() -> float:
+            return max(1.0, deadline - time.monotonic())
+
+        if kin_stats:
+            wait_for(
+                f"the kinematics nodes to receive all {counts['imu']} IMU samples",
+                lambda: all(k.samples_in >= counts["imu"] for k in kin_stats.values()),
+                lambda: ", ".join(f"{ex} {k.samples_in}" for ex, k in kin_stats.items()), left(),
+            )
+            joints_total = sum(k.frames_out for k in kin_stats.values())
+            joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
+        else:
+            joints_total = sum(counts["joints"].values())
+            joints_per_exercise = counts["joints"]
+        wait_for(
+            f"every estimator to receive all {joints_total} joint frames",
+            lambda: all(e.frames_in >= joints_total for e in est_stats.values()),
+            lambda: ", ".join(f"{ex} {e.frames_in}" for ex, e in est_stats.items()), left(),
+        )
+        activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
+        expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames
+        wait_for(f"the recorder to write all {expected_messages} messages", lambda: rec_stats.written >= expected_messages,
+                 lambda: f"{rec_stats.written} written", left())
+        elapsed = time.perf_counter() - started
     log(
         f"replayed {replay_stats.published} messages"
         + (f" (left out {replay_stats.excluded} recorded joint frames); kinematics nodes published "

@@ -7,6 +7,11 @@ estimates frames in arrival order, so none is skipped and the solver stays warm.
 (NaN input, torque beyond capacity, a pose the model does not cover) is published with its flag, never dropped.
 Phase: the JointAngles' own when set; else, with a subject profile holding a rep template (``msk calibrate`` on a
 kinematic phase coordinate), the causal :class:`msk_core.estimate.phase.LivePhase` on that coordinate; else unknown.
+EMG (with a subject profile that carries MVC normalisation, or ``--emg-map``): subscribes to ``msk/<session>/emg/**``,
+runs the causal envelope chain (:mod:`msk_core.estimate.live_emg`), publishes :class:`EmgEnvelope` on
+``msk/<session>/envelopes`` (one per EMG chunk), fills ``ActivationFrame.measured_envelope`` and feeds the ``assisted``
+method; EMG gaps, a stalled source and channels without MVC are flagged in the frames (``emg_gap``, ``emg_stalled``,
+``no_mvc``) and counted in :class:`EstimatorStats`.
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -28,10 +33,12 @@ import zenoh
 from msk_core.errors import ConfigError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.frame import FrameResult
+from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, LiveEmg
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import GRAVITY
 from services import messages, topics
+from services.graph import ReadySpec, declare_ready
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -54,6 +61,10 @@ class EstimatorStats:
     rejected: int = 0  # input frames whose coordinates do not match the pack
     other_exercise: int = 0  # frames skipped while a LoadEvent says another exercise is under way
     last_error: str = ""
+    emg_chunks: int = 0
+    envelopes_out: int = 0
+    emg_flags: dict[str, int] = field(default_factory=dict)  # frames carrying each EMG flag
+    emg: EmgCounters | None = None  # gaps, lost and duplicate samples, channels without MVC (None: no EMG path)
 
 
 class LoadTimeline:
@@ -135,6 +146,27 @@ def to_message(result: FrameResult, *, method: str, groups, coordinates, time_s:
     return frame
 
 
+def emg_to_envelope(block, arrival_ns: int) -> messages.EmgEnvelope:
+    """The envelope at the chunk's last sample (the topic's documented decimation: one message per chunk)."""
+    t = int(block.device_time_ns[-1])
+    return messages.EmgEnvelope(time_s=t / 1e9, groups=block.groups, envelope=block.envelope[-1].tolist(),
+                                device_time_ns=t, host_time_ns=arrival_ns, flags=block.flags)
+
+
+def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: bool | None,
+                  electrode_map: dict[str, str] | None, clock: ClockMode | str, stall_s: float = 0.25) -> LiveEmg | None:
+    """The EMG path: on with ``emg=True``; with None, on when the profile or ``electrode_map`` maps electrodes."""
+    setup = EmgSetup.from_profile(subject, electrode_map) if subject is not None else EmgSetup(dict(electrode_map or {}), {})
+    if emg is None:
+        emg = bool(setup.channel_group)
+    if not emg:
+        return None
+    if not setup.channel_group:
+        raise ConfigError("the EMG path needs an electrode -> group map (from the subject profile or --emg-map)",
+                          field="emg_map")
+    return LiveEmg(groups, setup, clock=clock, stall_s=stall_s)
+
+
 def main(
     config: ZenohOptions,
     *,
@@ -142,10 +174,15 @@ def main(
     session: str,
     methods: list[str],
     subject_path: Path | None = None,
+    emg: bool | None = False,
+    electrode_map: dict[str, str] | None = None,
+    emg_clock: ClockMode | str = ClockMode.DEVICE,
+    emg_stall_s: float = 0.25,
     initial_load_kg: float = 0.0,
     exercise: str | None = None,
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
+    ready_key: ReadySpec | None = None,
     stats: EstimatorStats | None = None,
 ) -> EstimatorStats:
     stop_event = stop_event or threading.Event()
@@ -158,6 +195,13 @@ def main(
     mapper = CoordinateMapper(list(first.coordinates))
     # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
     live_phase = LivePhase.from_profile(subject, first.coordinates) if subject is not None else None
+    live_emg = make_live_emg(subject, list(first.groups), emg=emg, electrode_map=electrode_map, clock=emg_clock,
+                             stall_s=emg_stall_s)
+    if "assisted" in estimators and live_emg is None:
+        raise ConfigError("method 'assisted' needs EMG: a subject profile with MVC normalisation or an electrode map",
+                          field="method", value="assisted")
+    if live_emg is not None:
+        stats.emg = live_emg.counters
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     loads = LoadTimeline(initial_load_kg)
     # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events name.
@@ -170,12 +214,20 @@ def main(
         if key in (joints_key, load_key):
             inbox.put(("load" if key == load_key else "joints", messages.now_ns(), sample.payload.to_bytes()))
 
+    def on_emg(sample: zenoh.Sample) -> None:
+        inbox.put(("emg", messages.now_ns(), sample.payload.to_bytes()))
+
     with open_session(config) as zsession:
         publishers = {
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
         # One subscriber for both keys keeps load events and frames in their publication order.
         subscribers = [zsession.declare_subscriber(f"{topics.session_prefix(session)}/*", on_sample)]
+        envelope_publisher = None
+        if live_emg is not None:
+            envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
+            subscribers.append(zsession.declare_subscriber(f"{topics.session_prefix(session)}/emg/**", on_emg))
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
         try:
@@ -183,6 +235,18 @@ def main(
                 try:
                     kind, arrival_ns, payload = inbox.get(timeout=0.05)
                 except queue.Empty:
+                    continue
+                if kind == "emg":
+                    chunk = messages.decode("msk.EmgChunk", payload)
+                    stats.emg_chunks += 1
+                    block = live_emg.add_chunk(
+                        chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
+                        chunk.device_time_ns, np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels),
+                        arrival_ns,
+                    )
+                    if block is not None and block.groups:
+                        publish(envelope_publisher, emg_to_envelope(block, arrival_ns))
+                        stats.envelopes_out += 1
                     continue
                 if kind == "load":
                     event = messages.decode("msk.LoadEvent", payload)
@@ -211,12 +275,18 @@ def main(
                     phase = live_phase.update(time_s, q)
                 else:
                     phase = None
+                envelope, emg_flags = (None, []) if live_emg is None else live_emg.at(joints.device_time_ns, arrival_ns)
+                for flag in emg_flags:
+                    stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
                 for method, estimator in estimators.items():
-                    result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase)
+                    result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
                     frame = to_message(
                         result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
                         time_s=time_s, arrival_ns=arrival_ns,
                     )
+                    if envelope is not None:
+                        frame.measured_envelope.extend(envelope.tolist())
+                        frame.flags.extend(emg_flags)
                     if result.flagged:
                         stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
                     frame.publish_ns = messages.now_ns()
@@ -232,10 +302,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pack", required=True, help="model pack name (e.g. bench_press, deadlift) or path")
     parser.add_argument("--session", required=True, help="session name: topics msk/<session>/...")
     parser.add_argument(
-        "--method", action="append", choices=["proposed", "so", "hybrid"], default=None,
+        "--method", action="append", choices=["proposed", "so", "hybrid", "assisted"], default=None,
         help="estimation method (repeatable; default: proposed with --subject, else so)",
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
+    parser.add_argument("--emg", action=argparse.BooleanOptionalAction, default=None,
+                        help="use the EMG on msk/<session>/emg/** (default: when the profile maps electrodes)")
+    parser.add_argument("--emg-map", action="append", default=[], metavar="CHANNEL=GROUP",
+                        help="electrode -> group (repeatable; default: the subject profile's map)")
+    parser.add_argument("--emg-clock", choices=[c.value for c in ClockMode], default=ClockMode.DEVICE.value,
+                        help="device: EMG and kinematics share one clock (recordings); host: align separate device "
+                        "clocks by host arrival (docs/topics.md)")
+    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
     parser.add_argument(
         "--exercise", default=None,
@@ -246,17 +325,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     methods = args.method or (["proposed"] if args.subject else ["so"])
-    if "proposed" in methods and args.subject is None:
-        raise ConfigError("method 'proposed' needs --subject (a calibrated profile with its prior)", field="--method", value="proposed")
+    for needs_prior in ("proposed", "assisted"):
+        if needs_prior in methods and args.subject is None:
+            raise ConfigError(f"method {needs_prior!r} needs --subject (a calibrated profile with its prior)",
+                              field="--method", value=needs_prior)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     print(f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}", file=sys.stderr, flush=True)
+    electrode_map = None
+    if args.emg_map:
+        electrode_map = {}
+        for item in args.emg_map:
+            channel, sep, group = item.partition("=")
+            if not sep or not channel or not group:
+                raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
+            electrode_map[channel] = group
+    ready = None
+    if args.ready_key:
+        node = args.ready_key.rsplit("/", 1)[-1]
+        ready = ReadySpec(args.session, node, tuple(args.ready_after))
     stats = main(
         options_from_args(args), pack=args.pack, session=args.session, methods=methods,
         subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
+        emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready,
     )
-    print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}", file=sys.stderr)
+    print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
+          + (f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
+             f"frames flagged {stats.emg_flags or 'none'}" if stats.emg is not None else ""), file=sys.stderr)
     return 0
 
 

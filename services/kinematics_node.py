@@ -34,6 +34,7 @@ from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJ
 from msk_core.model import load_pack
 from msk_core.signal.reps import RepTemplate
 from services import messages, topics
+from services.graph import ReadySpec, declare_ready
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -99,6 +100,7 @@ def main(
     phase_coordinate: str | None = None,
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
+    ready_key: ReadySpec | None = None,
     stats: KinematicsStats | None = None,
 ) -> KinematicsStats:
     """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east)."""
@@ -188,6 +190,7 @@ def main(
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
         subscriber = zsession.declare_subscriber(f"{prefix}*", on_sample)
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
         try:

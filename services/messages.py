@@ -22,6 +22,7 @@ LoadEvent = msk_pb2.LoadEvent
 ActivationFrame = msk_pb2.ActivationFrame
 CoordinateTorque = msk_pb2.CoordinateTorque
 DeviceStatus = msk_pb2.DeviceStatus
+EmgEnvelope = msk_pb2.EmgEnvelope
 Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion
 
@@ -30,7 +31,7 @@ AnyMessage: TypeAlias = Message
 #: Top-level message types that travel on topics, by protobuf full name (e.g. ``"msk.EmgChunk"``).
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.DESCRIPTOR.full_name: cls
-    for cls in (EmgChunk, ImuSample, JointAngles, LoadEvent, ActivationFrame, DeviceStatus)
+    for cls in (EmgChunk, ImuSample, JointAngles, LoadEvent, ActivationFrame, DeviceStatus, EmgEnvelope)
 }
 
 

@@ -19,6 +19,7 @@ import zenoh
 
 from msk_core.errors import ConfigError
 from services import messages, topics
+from services.graph import ReadySpec, declare_ready
 from services.mcap_io import McapRecorderWriter, device_time_ns
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args, type_name_of_sample
 
@@ -49,6 +50,7 @@ def main(
     duration_s: float | None = None,
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
+    ready_key: ReadySpec | None = None,
     flush_interval_s: float = 1.0,
     stats: RecorderStats | None = None,
 ) -> RecorderStats:
@@ -62,6 +64,7 @@ def main(
 
     with open_session(config) as session, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
         subscriber = session.declare_subscriber(key_expr, on_sample)
+        token = declare_ready(session, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
         deadline = None if duration_s is None else time.monotonic() + duration_s

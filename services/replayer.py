@@ -17,7 +17,7 @@ import zenoh
 from tqdm import tqdm
 
 from msk_core.errors import ConfigError
-from services import topics
+from services import graph, topics
 from services.mcap_io import ReadReport, read_messages
 from services.zenoh_session import (
     ZenohOptions,
@@ -66,14 +66,24 @@ def main(
     wait_subscribers_s: float = 0.0,
     progress: bool = False,
     exclude: tuple[str, ...] = (),
+    wait_nodes: tuple[str, ...] = (),
+    wait_nodes_s: float = 60.0,
 ) -> ReplayStats:
-    """Publish every message of ``mcap_path`` except those whose (renamed) key matches an ``exclude`` key expression."""
+    """Publish every message of ``mcap_path`` except those whose (renamed) key matches an ``exclude`` key expression.
+
+    ``wait_nodes``: names of graph nodes (:mod:`services.graph`) of session ``session_name`` whose subscribers this
+    session must know before the first message goes out (:class:`services.graph.GraphTimeout` after ``wait_nodes_s``).
+    """
     stats = ReplayStats()
     excluded_keys = [zenoh.KeyExpr(pattern) for pattern in exclude]
     keep: dict[str, bool] = {}
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
     with open_session(config) as session:
+        if wait_nodes:
+            if session_name is None:
+                raise ConfigError("waiting for graph nodes needs the session they belong to", field="session_name")
+            graph.wait_for_nodes(session, session_name, wait_nodes, wait_nodes_s)
         start_wall = None
         start_log = None
         iterator = read_messages(mcap_path, report=report)
@@ -117,6 +127,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--wait-subscribers", type=float, default=2.0, metavar="S",
         help="wait up to S seconds for a subscriber on each new key before publishing on it (default 2)",
     )
+    parser.add_argument(
+        "--wait-node", action="append", default=[], metavar="NAME",
+        help="publish nothing before graph node NAME of --session has its subscribers up (services.graph; repeatable; "
+        "an error naming the missing nodes after --wait-nodes-timeout)",
+    )
+    parser.add_argument("--wait-nodes-timeout", type=float, default=60.0, metavar="S", help="default 60")
     add_zenoh_arguments(parser)
 
 
@@ -129,6 +145,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         wait_subscribers_s=args.wait_subscribers,
         progress=sys.stderr.isatty(),
         exclude=tuple(args.exclude),
+        wait_nodes=tuple(args.wait_node),
+        wait_nodes_s=args.wait_nodes_timeout,
     )
     note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
     skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""

@@ -22,6 +22,7 @@ TOPIC_TABLE: tuple[tuple[str, str], ...] = (
     ("load", "msk.LoadEvent"),
     ("activations/<method>", "msk.ActivationFrame"),
     ("status/<device>", "msk.DeviceStatus"),
+    ("envelopes", "msk.EmgEnvelope"),
 )
 
 
@@ -55,6 +56,10 @@ def load_key(session: str) -> str:
 
 def activations_key(session: str, method: str) -> str:
     return f"{session_prefix(session)}/activations/{check_chunk(method, 'method')}"
+
+
+def envelopes_key(session: str) -> str:
+    return f"{session_prefix(session)}/envelopes"
 
 
 def status_key(session: str, device: str) -> str:

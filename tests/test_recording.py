@@ -35,6 +35,7 @@ def _write_source_recording(path: Path, *, burst: int) -> list[tuple[str, bytes]
                 "msk.LoadEvent": topics.load_key("lab"),
                 "msk.ActivationFrame": topics.activations_key("lab", "proposed"),
                 "msk.DeviceStatus": topics.status_key("lab", "trigno"),
+                "msk.EmgEnvelope": topics.envelopes_key("lab"),
             }[name]
             writer.write(key, name, messages.encode(message), t0 + i * 1_000_000, t0 + i * 1_000_000)
             written.append((key, messages.encode(message)))

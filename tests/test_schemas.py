@@ -34,7 +34,10 @@ def sample_messages():
         activation_std=[0.01, 0.02],
         torques=[messages.CoordinateTorque(coordinate="elbow_flexion", inverse_dynamics_nm=10.0, model_nm=9.5, residual_nm=0.5)],
         solver_status="solved", iterations=7, solve_time_s=3e-5, input_arrival_ns=1, publish_ns=2, flags=["nan_input"], phase=0.4,
+        measured_envelope=[float("nan"), 0.31],
     )
+    yield messages.EmgEnvelope(time_s=1.25, groups=["BRD"], envelope=[0.31], device_time_ns=1_250_000_000,
+                               host_time_ns=3, flags=["emg_gap"])
     yield messages.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True, samples_received=10, samples_lost=2, errors=1, last_error="gap")
 
 

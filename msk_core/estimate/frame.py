@@ -17,6 +17,11 @@ A = R diag(F_max), A~ = diag(1/c) A, tau~ = tau / c):
   N(mu, sigma^2) prior at the current phase of the repetition (the rest prior between repetitions, phase < 0;
   pooled over phases when the phase is unknown, None/NaN).
 - ``prior``:    a = mu(phase) clipped to [0, 1], no torque term (the prior-alone baseline).
+- ``assisted``: ``proposed`` with the frame's own measured EMG: for every group whose normalised envelope e_g is
+  given (``step(emg=...)``, finite), the prior term is replaced by the calibration's EMG term N(e_g, sigma_e^2),
+  sigma_e^2 = emg_std^2 + (emg_relative_std e_g)^2 (:class:`msk_core.estimate.calibrate.CalibrationSettings`, which
+  also gives the calibrated prior no weight where a group's EMG is known); the phase prior for the other groups.
+  Always one warm PIQP per frame (no active-set hot start: the EMG changes the prior every frame).
 
 One PIQP solver per estimator (dense, or sparse from 40 groups up: :mod:`msk_core.estimate.qp`) is set up on the
 first frame and then only ``update()``-d with the new matrices, so its workspace and preconditioner
@@ -68,6 +73,7 @@ class Method(str, Enum):
     SO = "so"
     HYBRID = "hybrid"
     PRIOR = "prior"
+    ASSISTED = "assisted"
 
 
 class FrameStatus(str, Enum):
@@ -149,6 +155,8 @@ class FrameEstimator:
         max_iter: int = 100,
         hot_start: bool = True,
         hot_start_max_changes: int | None = None,
+        emg_std: float = 0.05,
+        emg_relative_std: float = 0.1,
     ) -> None:
         self.pack = resolve_pack(pack)
         try:
@@ -167,13 +175,17 @@ class FrameEstimator:
         if self.f_max.shape != (len(self.groups),) or not np.all(self.f_max > 0):
             raise EstimationError(f"F_max must be {len(self.groups)} positive values, got {self.f_max}")
         self.prior = prior if prior is not None else (subject.prior if subject is not None else None)
-        if self.method in (Method.PROPOSED, Method.PRIOR):
+        if self.method in (Method.PROPOSED, Method.PRIOR, Method.ASSISTED):
             if self.prior is None:
                 raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
             if tuple(self.prior.groups) != tuple(self.groups):
                 raise EstimationError("the prior's groups differ from the pack's groups")
         if not torque_tolerance > 0 or not hybrid_weight > 0:
             raise EstimationError("torque_tolerance and hybrid_weight must be positive")
+        if not emg_std > 0 or not emg_relative_std >= 0:
+            raise EstimationError("emg_std must be positive and emg_relative_std non-negative")
+        self.emg_std, self.emg_relative_std = float(emg_std), float(emg_relative_std)
+        self._emg: np.ndarray | None = None
         self.torque_tolerance = float(torque_tolerance)
         self.hybrid_weight = float(hybrid_weight)
         self.eps = eps
@@ -210,7 +222,7 @@ class FrameEstimator:
         self._hot_max_changes = 2 * n + 10 if hot_start_max_changes is None else int(hot_start_max_changes)
         # prior as one table for the compiled solve: phase bins, then the pooled row, then the rest row (hybrid: one
         # row, mean 0, precision 2 * hybrid_weight)
-        if self.method is Method.PROPOSED:
+        if self.method in (Method.PROPOSED, Method.ASSISTED):
             self._prior_mean, self._prior_prec = self.prior.table()
         else:
             self._prior_mean, self._prior_prec = np.zeros((1, n)), self._hybrid_d[None, :].copy()
@@ -229,9 +241,13 @@ class FrameEstimator:
         hand_load_newton: float = 0.0,
         torques: np.ndarray | None = None,
         phase: float | None = None,
+        emg: np.ndarray | None = None,
     ) -> FrameResult:
-        """Estimate one frame. Never raises on bad numbers: the result is flagged instead."""
+        """Estimate one frame. Never raises on bad numbers: the result is flagged instead.
+
+        ``emg``: normalised envelope per group (NaN where not measured), used by ``assisted`` only."""
         self.frames += 1
+        self._emg = emg
         n_c = len(self.coordinates)
         clamped = False
         try:
@@ -328,11 +344,25 @@ class FrameEstimator:
             w, d, c_a = 2.0, self._hybrid_d, None
         else:
             mu, d = self.prior.mean_precision(phase)
+            if method is Method.ASSISTED and self._emg is not None:
+                mu, d = self._emg_term(mu, d)
             w, c_a = self._torque_weight, -(d * mu)
         status, x, it, dt = self._qp.solve(at, tt, w, d, c_a)
         result = self._finish(status, x, it, dt, a_mat, tau, phase, (at, w, d), None)
         self._after_piqp(result)
         return result
+
+    def _emg_term(self, mu: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Prior (mean, precision) with the measured groups' N(e_g, sigma_e^2) in place of the phase prior."""
+        e = np.asarray(self._emg, dtype=float)
+        measured = np.isfinite(e)
+        if e.shape != mu.shape or not measured.any():
+            return mu, d
+        mu, d = mu.copy(), d.copy()
+        em = e[measured]
+        mu[measured] = em
+        d[measured] = 1.0 / (self.emg_std**2 + (self.emg_relative_std * em) ** 2)
+        return mu, d
 
     def _hot_solve(self, r, tau, phase) -> FrameResult | None:
         """The frame from the hot-started active-set method when it certifies the optimum, else None (-> PIQP)."""

@@ -121,7 +121,7 @@ class CoordinateTorque(_message.Message):
     def __init__(self, coordinate: _Optional[str] = ..., inverse_dynamics_nm: _Optional[float] = ..., model_nm: _Optional[float] = ..., residual_nm: _Optional[float] = ...) -> None: ...
 
 class ActivationFrame(_message.Message):
-    __slots__ = ("time_s", "method", "groups", "activations", "forces_n", "activation_std", "torques", "solver_status", "iterations", "solve_time_s", "input_arrival_ns", "publish_ns", "flags", "phase")
+    __slots__ = ("time_s", "method", "groups", "activations", "forces_n", "activation_std", "torques", "solver_status", "iterations", "solve_time_s", "input_arrival_ns", "publish_ns", "flags", "phase", "measured_envelope")
     TIME_S_FIELD_NUMBER: _ClassVar[int]
     METHOD_FIELD_NUMBER: _ClassVar[int]
     GROUPS_FIELD_NUMBER: _ClassVar[int]
@@ -136,6 +136,7 @@ class ActivationFrame(_message.Message):
     PUBLISH_NS_FIELD_NUMBER: _ClassVar[int]
     FLAGS_FIELD_NUMBER: _ClassVar[int]
     PHASE_FIELD_NUMBER: _ClassVar[int]
+    MEASURED_ENVELOPE_FIELD_NUMBER: _ClassVar[int]
     time_s: float
     method: str
     groups: _containers.RepeatedScalarFieldContainer[str]
@@ -150,7 +151,24 @@ class ActivationFrame(_message.Message):
     publish_ns: int
     flags: _containers.RepeatedScalarFieldContainer[str]
     phase: float
-    def __init__(self, time_s: _Optional[float] = ..., method: _Optional[str] = ..., groups: _Optional[_Iterable[str]] = ..., activations: _Optional[_Iterable[float]] = ..., forces_n: _Optional[_Iterable[float]] = ..., activation_std: _Optional[_Iterable[float]] = ..., torques: _Optional[_Iterable[_Union[CoordinateTorque, _Mapping]]] = ..., solver_status: _Optional[str] = ..., iterations: _Optional[int] = ..., solve_time_s: _Optional[float] = ..., input_arrival_ns: _Optional[int] = ..., publish_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ..., phase: _Optional[float] = ...) -> None: ...
+    measured_envelope: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, time_s: _Optional[float] = ..., method: _Optional[str] = ..., groups: _Optional[_Iterable[str]] = ..., activations: _Optional[_Iterable[float]] = ..., forces_n: _Optional[_Iterable[float]] = ..., activation_std: _Optional[_Iterable[float]] = ..., torques: _Optional[_Iterable[_Union[CoordinateTorque, _Mapping]]] = ..., solver_status: _Optional[str] = ..., iterations: _Optional[int] = ..., solve_time_s: _Optional[float] = ..., input_arrival_ns: _Optional[int] = ..., publish_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ..., phase: _Optional[float] = ..., measured_envelope: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class EmgEnvelope(_message.Message):
+    __slots__ = ("time_s", "groups", "envelope", "device_time_ns", "host_time_ns", "flags")
+    TIME_S_FIELD_NUMBER: _ClassVar[int]
+    GROUPS_FIELD_NUMBER: _ClassVar[int]
+    ENVELOPE_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    FLAGS_FIELD_NUMBER: _ClassVar[int]
+    time_s: float
+    groups: _containers.RepeatedScalarFieldContainer[str]
+    envelope: _containers.RepeatedScalarFieldContainer[float]
+    device_time_ns: int
+    host_time_ns: int
+    flags: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, time_s: _Optional[float] = ..., groups: _Optional[_Iterable[str]] = ..., envelope: _Optional[_Iterable[float]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class DeviceStatus(_message.Message):
     __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns")

@@ -1,0 +1,255 @@
+"""Live EMG for the estimator: raw chunks -> causal, MVC-normalised envelope per muscle group, aligned to kinematics.
+
+Chain per source (one Trigno base, say), as :mod:`msk_core.emg` defines it and ``msk emg envelope`` runs offline:
+band-pass, full-wave rectification, 3rd-order 6 Hz Butterworth low-pass (:class:`msk_core.emg.EmgEnvelopeFilter`,
+carried filter state), then division by each channel's MVC amplitude from the subject profile; channels mapped to the
+same group are averaged. A channel without an MVC amplitude is left out and reported (``no_mvc``), never used raw.
+
+Clocks. Every EMG sample has a *device time* from its sample index: ``device_time_ns`` of the chunk's row 0 plus
+``row / sample_rate_hz``. A kinematics frame has its own device time (the IMU clock). ``ClockMode.DEVICE``: both
+streams share one clock (recordings and synthetic sessions made on one time base), the EMG is read at the frame's
+device time. ``ClockMode.HOST``: the two devices have their own clocks; each is mapped to the host clock by the
+smallest (host arrival - device time) seen so far (the fastest delivery bounds the offset from above), so the
+alignment error is the difference of the two streams' fastest delivery latencies (a few ms on loopback).
+The group activation at time t is read from the envelope at ``t - emd`` (electromechanical delay: EMG leads force).
+
+Problems are explicit: a jump in the sample index is a gap (counted, samples lost counted; the filter restarts
+from rest after it and the envelope is not used for ``GAP_SETTLE_S``, flag ``emg_gap``); a source whose newest
+sample is older than ``stall_s`` on the host clock, or that has not reached the frame's time by more than that, is
+stalled (``emg_stalled``); repeated sample indices are dropped (counted as duplicates).
+"""
+
+from __future__ import annotations
+
+import bisect
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from msk_core.emg import EmgEnvelopeFilter, EmgFilterConfig
+from msk_core.errors import ConfigError
+
+GAP_SETTLE_S = 0.5  # the 6 Hz low-pass restarts from rest after a gap: ~3 time constants before it is trusted
+HISTORY_S = 10.0  # envelope kept per source for the lookup at t - emd (kinematics may lag the EMG by seconds in a replay)
+
+FLAG_GAP = "emg_gap"
+FLAG_STALLED = "emg_stalled"
+FLAG_NO_MVC = "no_mvc"
+
+
+class ClockMode(str, enum.Enum):
+    DEVICE = "device"
+    HOST = "host"
+
+
+@dataclass(frozen=True)
+class EmgSetup:
+    """Which channel feeds which group, each channel's MVC amplitude (same units as the raw EMG) and the EMD."""
+
+    channel_group: dict[str, str]
+    mvc: dict[str, float]
+    emd_s: float = 0.0
+
+    @classmethod
+    def from_profile(cls, profile, channel_group: dict[str, str] | None = None) -> "EmgSetup":
+        """From a subject profile's ``emg_normalisation`` (channel -> group, divisor) and calibrated EMD;
+        ``channel_group`` (a session file's electrode map) overrides the profile's map."""
+        norm = dict(getattr(profile, "emg_normalisation", {}) or {})
+        mapping = dict(channel_group) if channel_group is not None else {ch: info["group"] for ch, info in norm.items()}
+        mvc = {ch: float(info["divisor"]) for ch, info in norm.items() if "divisor" in info}
+        emd = (getattr(profile, "calibration", {}) or {}).get("emd", {}) or {}
+        return cls(channel_group=mapping, mvc=mvc, emd_s=float(emd.get("delay_s", 0.0)))
+
+
+@dataclass
+class EmgCounters:
+    chunks: int = 0
+    samples: int = 0
+    gaps: int = 0
+    samples_lost: int = 0
+    duplicates: int = 0
+    unmapped_channels: list[str] = field(default_factory=list)
+    no_mvc_channels: list[str] = field(default_factory=list)
+
+
+@dataclass
+class EnvelopeBlock:
+    """The envelope of one chunk: ``envelope`` (n, n_groups of this source) normalised, per sample device time."""
+
+    source: str
+    groups: list[str]
+    device_time_ns: np.ndarray
+    envelope: np.ndarray
+    flags: list[str]
+
+
+class _Source:
+    def __init__(self, name: str, labels: tuple[str, ...], rate_hz: float, setup: EmgSetup, config: EmgFilterConfig,
+                 counters: EmgCounters) -> None:
+        self.name = name
+        self.labels = labels
+        self.rate_hz = rate_hz
+        self.filter = EmgEnvelopeFilter(config, len(labels))
+        mapped = [i for i, ch in enumerate(labels) if ch in setup.channel_group]
+        for ch in labels:
+            if ch not in setup.channel_group and ch not in counters.unmapped_channels:
+                counters.unmapped_channels.append(ch)
+        self.no_mvc = [labels[i] for i in mapped if labels[i] not in setup.mvc]
+        for ch in self.no_mvc:
+            if ch not in counters.no_mvc_channels:
+                counters.no_mvc_channels.append(ch)
+        usable = [i for i in mapped if labels[i] in setup.mvc]
+        self.groups = sorted({setup.channel_group[labels[i]] for i in usable})
+        self.groups_without_mvc = sorted({setup.channel_group[labels[i]] for i in mapped} - set(self.groups))
+        # group envelope = mean of its channels' normalised envelopes: one (channels x groups) averaging matrix
+        self.weights = np.zeros((len(labels), len(self.groups)))
+        self.scale = np.ones(len(labels))
+        for i in usable:
+            g = self.groups.index(setup.channel_group[labels[i]])
+            self.weights[i, g] = 1.0
+            self.scale[i] = 1.0 / setup.mvc[labels[i]]
+        self.weights /= np.maximum(self.weights.sum(axis=0, keepdims=True), 1.0)
+        self.next_index: int | None = None
+        self.settled_from_ns = 0  # device time from which the envelope is trusted (after start or a gap)
+        self.max_age_ns = int(2e9 / rate_hz) + 1  # a sample stands for its period (rounding to whole ns)
+        self.starts: list[int] = []  # device time of each kept chunk's first sample
+        self.times: list[np.ndarray] = []
+        self.values: list[np.ndarray] = []
+        self.last_device_ns = -1
+        self.last_arrival_ns = 0
+        self.offset_ns: int | None = None  # min(host arrival - device time): device -> host clock
+
+    def lookup(self, t: int) -> np.ndarray | None:
+        """Envelope of the newest sample at or before device time ``t`` (None: before the history)."""
+        c = bisect.bisect_right(self.starts, t) - 1
+        if c < 0:
+            return None
+        times = self.times[c]
+        k = int(np.searchsorted(times, t, side="right")) - 1
+        if t - times[k] > self.max_age_ns:  # t falls in a gap between chunks
+            return None
+        return self.values[c][k]
+
+    def keep(self, times: np.ndarray, values: np.ndarray) -> None:
+        self.starts.append(int(times[0]))
+        self.times.append(times)
+        self.values.append(values)
+        if len(self.starts) > 64 and self.starts[0] < times[-1] - HISTORY_S * 1e9:
+            drop = bisect.bisect_left(self.starts, int(times[-1] - HISTORY_S * 1e9))
+            del self.starts[:drop], self.times[:drop], self.values[:drop]
+
+
+class LiveEmg:
+    """Explicit state: per source the envelope filter state, the next expected sample index, the clock offset and a
+    short envelope history; counters for gaps, lost and duplicate samples and channels without MVC."""
+
+    def __init__(self, groups: list[str], setup: EmgSetup, *, clock: ClockMode | str = ClockMode.DEVICE,
+                 stall_s: float = 0.25, bandpass_hz: tuple[float, float] | None = (20.0, 450.0),
+                 lowpass_hz: float = 6.0, lowpass_order: int = 3) -> None:
+        self.groups = list(groups)
+        unknown = sorted({g for g in setup.channel_group.values() if g not in self.groups})
+        if unknown:
+            raise ConfigError(f"electrode map names groups that are not in the pack {self.groups}", field="emg_map",
+                              value=unknown)
+        if not 0 <= setup.emd_s <= 0.5:
+            raise ConfigError("electromechanical delay must be in [0, 0.5] s", field="emd_s", value=setup.emd_s)
+        self.setup = setup
+        self.clock = ClockMode(clock)
+        self.stall_ns = int(stall_s * 1e9)
+        self._filter_args = {"bandpass_hz": bandpass_hz, "lowpass_hz": lowpass_hz, "lowpass_order": lowpass_order}
+        self.sources: dict[str, _Source] = {}
+        self.counters = EmgCounters()
+        self._joints_offset_ns: int | None = None
+        self._group_index = {g: i for i, g in enumerate(self.groups)}
+
+    @property
+    def electrode_groups(self) -> list[str]:
+        """Pack groups an electrode is mapped to (in pack order)."""
+        mapped = set(self.setup.channel_group.values())
+        return [g for g in self.groups if g in mapped]
+
+    def add_chunk(self, source: str, labels, rate_hz: float, first_sample_index: int, device_time_ns: int,
+                  samples: np.ndarray, arrival_ns: int) -> EnvelopeBlock | None:
+        """Filter one chunk ``samples`` (n, channels). Returns the normalised group envelope of its new samples."""
+        labels = tuple(labels)
+        state = self.sources.get(source)
+        if state is None or state.labels != labels or state.rate_hz != rate_hz:
+            config = EmgFilterConfig(rate_hz=float(rate_hz), **self._filter_args)
+            state = self.sources[source] = _Source(source, labels, float(rate_hz), self.setup, config, self.counters)
+        x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
+        n = x.shape[0]
+        self.counters.chunks += 1
+        flags: list[str] = []
+        first = int(first_sample_index)
+        period_ns = 1e9 / state.rate_hz
+        if state.next_index is not None and first != state.next_index:
+            if first > state.next_index:  # samples never arrived: restart the filter at rest after the gap
+                self.counters.gaps += 1
+                self.counters.samples_lost += first - state.next_index
+                state.filter.reset()
+                state.settled_from_ns = int(device_time_ns + GAP_SETTLE_S * 1e9)
+                flags.append(FLAG_GAP)
+            else:  # repeated rows (a re-sent chunk): keep only the new ones
+                skip = min(n, state.next_index - first)
+                self.counters.duplicates += skip
+                x, first, device_time_ns = x[skip:], first + skip, int(device_time_ns + skip * period_ns)
+                n = x.shape[0]
+        elif state.next_index is None:
+            state.settled_from_ns = int(device_time_ns)
+        if n == 0:
+            return None
+        self.counters.samples += n
+        envelope = state.filter.process(x)
+        group_env = (envelope * state.scale) @ state.weights
+        times = device_time_ns + np.round(np.arange(n) * period_ns).astype(np.int64)
+        state.next_index = first + n
+        state.last_device_ns = int(times[-1])
+        state.last_arrival_ns = int(arrival_ns)
+        offset = int(arrival_ns) - int(times[-1])
+        state.offset_ns = offset if state.offset_ns is None else min(state.offset_ns, offset)
+        state.keep(times, group_env)
+        if state.no_mvc:
+            flags.append(FLAG_NO_MVC)
+        return EnvelopeBlock(source, state.groups, times, group_env, flags)
+
+    def at(self, device_time_ns: int, arrival_ns: int) -> tuple[np.ndarray, list[str]]:
+        """Measured envelope of every pack group for the kinematics frame at ``device_time_ns`` (its clock) that
+        arrived at ``arrival_ns``: NaN where no electrode, no MVC, a gap or a stalled source. Plus the frame's flags."""
+        out = np.full(len(self.groups), np.nan)
+        flags: set[str] = set()
+        if self.clock is ClockMode.HOST:
+            offset = int(arrival_ns) - int(device_time_ns)
+            self._joints_offset_ns = offset if self._joints_offset_ns is None else min(self._joints_offset_ns, offset)
+        wanted_groups = set(self.setup.channel_group.values())
+        served: set[str] = set()
+        for state in self.sources.values():
+            if state.groups_without_mvc:
+                flags.add(FLAG_NO_MVC)
+            if not state.groups:
+                continue
+            t = int(device_time_ns - self.setup.emd_s * 1e9)
+            if self.clock is ClockMode.HOST:
+                if state.offset_ns is None:
+                    continue
+                t = t + self._joints_offset_ns - state.offset_ns  # frame's host time -> this source's device time
+            stalled = arrival_ns - state.last_arrival_ns > self.stall_ns or t - state.last_device_ns > self.stall_ns
+            if stalled:
+                flags.add(FLAG_STALLED)
+                continue
+            # newest sample at or before t (causal: never a later sample); the frame may be ahead by < stall_s
+            if t < state.settled_from_ns:
+                value = None
+            elif t >= state.last_device_ns:  # the EMG for t has not arrived yet (< stall_s behind): newest sample
+                value = state.values[-1][-1]
+            else:
+                value = state.lookup(t)
+            if value is None:
+                flags.add(FLAG_GAP)
+                continue
+            for j, g in enumerate(state.groups):
+                out[self._group_index[g]] = value[j]
+                served.add(g)
+        if wanted_groups - served and not self.sources:
+            flags.add(FLAG_STALLED)  # electrodes are configured but no EMG has arrived yet
+        return out, sorted(flags)

@@ -1,0 +1,279 @@
+"""Starting a graph of Zenoh nodes (threads or processes), knowing when it is ready, and stopping it cleanly.
+
+Shared by ``msk demo``, ``msk live``, ``msk replay`` and the tests.
+
+Readiness. A node is ready when its subscribers are declared; it then declares a Zenoh *liveliness token* on
+``msk/<session>/graph/<node>`` (:func:`declare_ready`). A publisher that must not lose the first messages (the
+replayer, the device drivers of ``msk live``) waits with :func:`wait_for_nodes` until its *own* Zenoh session sees
+the token of every node of the graph. A session learns a peer's declarations in the order the peer made them, so a
+token seen means that node's subscribers are known to the publisher's session and its data are routed to them.
+
+Why not Zenoh's matching status: it turns true as soon as *one* subscriber matches (e.g. the recorder on ``msk/**``)
+while a node that connected later (a kinematics node) is not yet known to the publisher; its first messages went to
+the recorder only, and the demo waited for them for ever (issue 15, "start-up races").
+
+Every wait is bounded and, when it expires, raises :class:`GraphTimeout` saying what it waited for and what arrived.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from msk_core.errors import MskError
+from services import topics
+from services.zenoh_session import ZenohOptions, open_session
+
+log = logging.getLogger(__name__)
+
+GRAPH_CHUNK = "graph"
+
+
+class GraphTimeout(MskError):
+    """A bounded wait of the graph expired; the message says what was awaited and what arrived (counts)."""
+
+
+def ready_key(session: str, node: str) -> str:
+    return f"{topics.session_prefix(session)}/{GRAPH_CHUNK}/{topics.check_chunk(node, 'node')}"
+
+
+@dataclass(frozen=True)
+class ReadySpec:
+    """How a node says it is ready: its token key and the nodes it publishes to (``after``), which its own session
+    must know before the token is declared, so the node's first published messages reach them too."""
+
+    session: str
+    node: str
+    after: tuple[str, ...] = ()
+    timeout_s: float = 60.0
+
+    @property
+    def key(self) -> str:
+        return ready_key(self.session, self.node)
+
+
+def declare_ready(zsession: zenoh.Session, spec: ReadySpec | None):
+    """Say "my subscribers are declared" (call after declaring them); keep the returned token for the node's life.
+
+    With ``spec.after``, first wait (bounded) until this session knows those nodes' subscribers."""
+    if spec is None:
+        return None
+    if spec.after:
+        wait_for_nodes(zsession, spec.session, spec.after, spec.timeout_s)
+    return zsession.liveliness().declare_token(spec.key)
+
+
+def wait_for_nodes(zsession: zenoh.Session, session: str, nodes: Sequence[str], timeout_s: float) -> float:
+    """Block until ``zsession`` sees the readiness token of every node in ``nodes``; return the seconds waited.
+
+    Raises :class:`GraphTimeout` naming the nodes still missing when ``timeout_s`` expires.
+    """
+    wanted = {ready_key(session, n): n for n in nodes}
+    if not wanted:
+        return 0.0
+    seen: set[str] = set()
+    changed = threading.Condition()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with changed:
+            if sample.kind == zenoh.SampleKind.PUT:
+                seen.add(key)
+            else:
+                seen.discard(key)
+            changed.notify_all()
+
+    started = time.monotonic()
+    deadline = started + timeout_s
+    subscriber = zsession.liveliness().declare_subscriber(
+        f"{topics.session_prefix(session)}/{GRAPH_CHUNK}/*", on_token, history=True
+    )
+    try:
+        with changed:
+            while not set(wanted) <= seen:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    missing = sorted(n for k, n in wanted.items() if k not in seen)
+                    raise GraphTimeout(
+                        f"waited {timeout_s:g} s for {len(wanted)} nodes of session {session!r} to be ready: "
+                        f"{len(wanted) - len(missing)} ready, missing {missing}"
+                    )
+                changed.wait(min(left, 0.1))
+    finally:
+        subscriber.undeclare()
+    return time.monotonic() - started
+
+
+def wait_for(what: str, condition: Callable[[], bool], progress: Callable[[], str], timeout_s: float,
+             poll_s: float = 0.05) -> float:
+    """Poll ``condition`` until true; on expiry raise :class:`GraphTimeout` with ``what`` and ``progress()``."""
+    started = time.monotonic()
+    deadline = started + timeout_s
+    while not condition():
+        if time.monotonic() >= deadline:
+            raise GraphTimeout(f"waited {timeout_s:g} s for {what}; arrived: {progress()}")
+        time.sleep(poll_s)
+    return time.monotonic() - started
+
+
+@dataclass
+class _ThreadNode:
+    name: str
+    thread: threading.Thread
+    ready: threading.Event
+    error: list[BaseException] = field(default_factory=list)
+
+
+@dataclass
+class _ProcessNode:
+    name: str
+    process: subprocess.Popen
+    log_path: Path | None
+
+
+class Graph:
+    """Nodes of one session on one private endpoint: the first node listens, the others connect.
+
+    Use as a context manager; :meth:`stop` sets every thread node's stop event and SIGINTs every process node, then
+    joins them (bounded), so a recorder closes its MCAP.
+    """
+
+    def __init__(self, session: str, endpoint: str, *, external_listener: bool = False) -> None:
+        """``external_listener``: someone else (e.g. the caller's own session) listens on ``endpoint``; every node
+        connects to it."""
+        self.session = topics.check_chunk(session, "session")
+        self.endpoint = endpoint
+        self.stop_event = threading.Event()
+        self._threads: list[_ThreadNode] = []
+        self._processes: list[_ProcessNode] = []
+        self._listening = external_listener
+
+    # -- membership ---------------------------------------------------------------------------------------------
+
+    @property
+    def nodes(self) -> list[str]:
+        return [n.name for n in self._threads] + [n.name for n in self._processes]
+
+    def options(self) -> ZenohOptions:
+        """Zenoh options for the next member: the first listens on the endpoint, the rest connect to it."""
+        if not self._listening:
+            self._listening = True
+            return ZenohOptions(listen=(self.endpoint,))
+        return ZenohOptions(connect=(self.endpoint,))
+
+    def add_thread(self, name: str, target: Callable, *args, after: Sequence[str] = (), **kwargs) -> None:
+        """Run ``target(options, *args, **kwargs, stop_event=, ready_event=, ready_key=)`` in a thread.
+
+        ``after``: the nodes this one publishes to (see :class:`ReadySpec`)."""
+        ready = threading.Event()
+        node = _ThreadNode(name, None, ready)  # type: ignore[arg-type]
+        options = self.options()
+
+        def run() -> None:
+            try:
+                target(options, *args, **kwargs, stop_event=self.stop_event, ready_event=ready,
+                       ready_key=ReadySpec(self.session, name, tuple(after)))
+            except BaseException as error:  # reported by wait_ready/stop, not lost in a thread
+                node.error.append(error)
+                log.exception("node %s failed", name)
+                ready.set()
+
+        node.thread = threading.Thread(target=run, name=f"node-{name}", daemon=True)
+        node.thread.start()
+        self._threads.append(node)
+
+    def add_process(self, name: str, argv: Sequence[str], *, after: Sequence[str] = (), log_path: Path | None = None,
+                    env: dict[str, str] | None = None) -> subprocess.Popen:
+        """Start ``argv`` (its Zenoh flags, ``--ready-key`` and ``--ready-after`` appended) as a separate process."""
+        options = self.options()
+        flags = [f"--listen={e}" for e in options.listen] + [f"--connect={e}" for e in options.connect]
+        flags += [f"--ready-after={n}" for n in after]
+        out = open(log_path, "wb") if log_path is not None else subprocess.DEVNULL
+        process = subprocess.Popen(
+            [*argv, *flags, "--ready-key", ready_key(self.session, name)], stdout=out, stderr=subprocess.STDOUT,
+            env={**os.environ, **(env or {})},
+        )
+        self._processes.append(_ProcessNode(name, process, log_path))
+        return process
+
+    # -- readiness ----------------------------------------------------------------------------------------------
+
+    def wait_ready(self, timeout_s: float = 60.0) -> float:
+        """Every node up with its subscribers declared, as seen from a fresh session on the graph's endpoint."""
+        started = time.monotonic()
+        for node in self._threads:
+            node.ready.wait(max(0.0, started + timeout_s - time.monotonic()))
+            self._raise_failed()
+        for node in self._processes:
+            if node.process.poll() is not None:
+                raise GraphTimeout(f"node {node.name} exited with code {node.process.returncode} before it was ready"
+                                   + self._log_tail(node))
+        with open_session(ZenohOptions(connect=(self.endpoint,))) as zsession:
+            try:
+                wait_for_nodes(zsession, self.session, self.nodes, max(0.1, started + timeout_s - time.monotonic()))
+            except GraphTimeout as error:
+                dead = [f"{n.name} (exit {n.process.returncode})" for n in self._processes if n.process.poll() is not None]
+                raise GraphTimeout(f"{error}" + (f"; exited: {dead}" if dead else "")) from None
+        return time.monotonic() - started
+
+    def failed(self) -> list[str]:
+        """Nodes that stopped with an error (threads) or exited (processes) while the graph runs."""
+        bad = [f"{n.name}: {n.error[0]!r}" for n in self._threads if n.error]
+        bad += [f"{n.name}: exit {n.process.returncode}" for n in self._processes if n.process.poll() is not None]
+        return bad
+
+    def _raise_failed(self) -> None:
+        for node in self._threads:
+            if node.error:
+                raise node.error[0]
+
+    @staticmethod
+    def _log_tail(node: _ProcessNode) -> str:
+        if node.log_path is None or not node.log_path.is_file():
+            return ""
+        return "; its log ends with:\n" + "\n".join(node.log_path.read_text(errors="replace").splitlines()[-15:])
+
+    # -- stop ---------------------------------------------------------------------------------------------------
+
+    def stop(self, timeout_s: float = 30.0) -> dict[str, int | None]:
+        """Stop every node; returns the exit code of each process node (None: it had to be killed)."""
+        self.stop_event.set()
+        for node in self._processes:
+            if node.process.poll() is None:
+                node.process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + timeout_s
+        codes: dict[str, int | None] = {}
+        for node in self._processes:
+            try:
+                codes[node.name] = node.process.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.error("node %s did not stop within %g s after SIGINT; killed", node.name, timeout_s)
+                node.process.kill()
+                node.process.wait(5)
+                codes[node.name] = None
+        for node in self._threads:
+            node.thread.join(max(0.1, deadline - time.monotonic()))
+            if node.thread.is_alive():
+                log.error("node %s did not stop within %g s", node.name, timeout_s)
+        return codes
+
+    def __enter__(self) -> "Graph":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def python_module(module: str, *args: str) -> list[str]:
+    """argv running ``python -m module args`` with this interpreter."""
+    return [sys.executable, "-m", module, *args]

@@ -1,0 +1,68 @@
+"""docs/apps.md: the Python subscriber block runs against a replay of the demo session through an estimator node, and
+`msk subscribe` prints decoded frames (text and JSON)."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import threading
+
+from services import estimator, replayer
+from services.graph import Graph, wait_for
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session
+
+SESSION = "appsdoc"
+
+
+def doc_block(repo_root) -> str:
+    blocks = re.findall(r"```python\n(.*?)```", (repo_root / "docs" / "apps.md").read_text(), flags=re.S)
+    assert len(blocks) == 1
+    return blocks[0]
+
+
+def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, zenoh_endpoint, tmp_path):
+    code = doc_block(repo_root).replace('"tcp/127.0.0.1:7447", "demo"', f'"{zenoh_endpoint}", "{SESSION}"')
+    assert zenoh_endpoint in code  # the block's constants are where the test expects them
+    script = tmp_path / "subscriber.py"
+    script.write_text(code)
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=["so"])
+        graph.wait_ready(60)
+        doc = subprocess.Popen([sys.executable, str(script)], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        cli = None
+        try:
+            with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+                # the doc subscriber is the only one on activations: a publisher there matches once it is declared
+                probe = declare_data_publisher(zsession, f"msk/{SESSION}/activations/probe", "msk.ActivationFrame")
+                wait_for("the doc subscriber to subscribe", lambda: probe.matching_status.matching,
+                         lambda: "no subscriber on activations yet", 60)
+                probe.undeclare()
+            cli = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", "subscribe", f"msk/{SESSION}/activations/*", "--json", "--count", "5",
+                 "--connect", zenoh_endpoint], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            first_line: list[str] = []
+            reader = threading.Thread(target=lambda: first_line.append(cli.stderr.readline()), daemon=True)
+            reader.start()
+            reader.join(60)
+            assert first_line and "subscribed to" in first_line[0], first_line
+            stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), repo_root / "recordings" / "demo_session.mcap",
+                                  rate=None, session_name=SESSION, exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"))
+            assert stats.published > 5000
+            out, err = doc.communicate(timeout=120)
+            cli_out, cli_err = cli.communicate(timeout=60)
+        finally:
+            for p in (doc, cli):
+                if p is not None and p.poll() is None:
+                    p.kill()
+    assert doc.returncode == 0, err
+    lines = out.splitlines()
+    # callbacks already under way when it stops may print a few more
+    assert len(lines) >= 100 and all(line.startswith("so ") for line in lines)
+    assert "'TriLong':" in lines[-1]
+    assert cli.returncode == 0, cli_err
+    decoded = [json.loads(line) for line in cli_out.splitlines()]
+    assert len(decoded) == 5 and all(d["type"] == "msk.ActivationFrame" and d["message"]["method"] == "so" for d in decoded)
+    assert len(decoded[0]["message"]["activations"]) == 13 and "5 messages" in cli_err
+    assert graph.failed() == []

@@ -1,0 +1,221 @@
+"""EMG in the live estimator on the demo session: the streamed envelope equals the offline `msk emg envelope` one, the
+node publishes envelopes and measured_envelope beside the estimates, and `assisted` beats `proposed` held out."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time as time_module
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msk_core.emg import EmgFilterConfig, envelope_causal
+from msk_core.estimate import FrameEstimator
+from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup, LiveEmg
+from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.trial import GRAVITY
+from msk_core.io import read_sto, write_sto
+from services import demo, estimator, messages, topics
+from services.graph import Graph, wait_for
+from services.mcap_io import read_messages
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session
+
+RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
+MCAP = RECORDINGS / "demo_session.mcap"
+SESSION = "emgtest"
+NODE_SECONDS = 12.0  # of the session streamed through the node
+STALL_S = 1.0  # generous: on a loaded 2-core machine delivery may pause for a few 100 ms (stall logic: unit test below)
+
+
+@pytest.fixture(scope="module")
+def profile_path(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("subject")
+    path, _ = demo.calibrate(RECORDINGS, out, "bench_press", lambda _: None)
+    return path
+
+
+def session_messages(until_s: float | None = None):
+    first = None
+    for recorded in read_messages(MCAP):
+        first = recorded.log_time_ns if first is None else first
+        if until_s is not None and recorded.log_time_ns - first > until_s * 1e9:
+            return
+        yield recorded
+
+
+def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(zenoh_endpoint, profile_path, tmp_path):
+    profile = SubjectProfile.load(profile_path)
+    setup = EmgSetup.from_profile(profile)
+    inputs = [r for r in session_messages(NODE_SECONDS) if r.type_name in ("msk.EmgChunk", "msk.JointAngles", "msk.LoadEvent")]
+    chunks = [r.decode() for r in inputs if r.type_name == "msk.EmgChunk"]
+    # then the EMG source goes silent while the kinematics go on for STALL_S + 1 s: those frames must say so
+    inputs += [r for r in session_messages(NODE_SECONDS + STALL_S + 1.0)
+               if r.type_name == "msk.JointAngles" and r.log_time_ns > inputs[-1].log_time_ns]
+    n_joints = sum(r.type_name == "msk.JointAngles" for r in inputs)
+    assert len(chunks) > 500 and n_joints > 300
+    indices = [(c.first_sample_index, c.n_samples) for c in chunks]
+    assert all(a + n == b for (a, n), (b, _) in zip(indices, indices[1:])), "the slice is one contiguous EMG block"
+
+    envelopes, frames = [], {m: [] for m in ("assisted", "proposed")}
+    stats = estimator.EstimatorStats()
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=list(frames),
+                         subject_path=profile_path, emg=True, emg_stall_s=STALL_S, stats=stats)
+        graph.wait_ready(60)
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+            lock = threading.Lock()
+
+            def on_envelope(sample):
+                with lock:
+                    envelopes.append(messages.decode("msk.EmgEnvelope", sample.payload.to_bytes()))
+
+            def on_frame(sample):
+                frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
+                with lock:
+                    frames[frame.method].append(frame)
+
+            subs = [zsession.declare_subscriber(topics.envelopes_key(SESSION), on_envelope),
+                    zsession.declare_subscriber(f"{topics.session_prefix(SESSION)}/activations/*", on_frame)]
+            from services.graph import wait_for_nodes
+
+            wait_for_nodes(zsession, SESSION, graph.nodes, 30)
+            publishers = {}
+            start_wall, start_log = time_module.monotonic(), inputs[0].log_time_ns
+            for recorded in inputs:  # paced at 4x real time: EMG and joints interleave as on a rig, not in a burst
+                delay = start_wall + (recorded.log_time_ns - start_log) / 4e9 - time_module.monotonic()
+                if delay > 0:
+                    time_module.sleep(delay)
+                key = topics.rename_session(recorded.topic, SESSION)
+                if key not in publishers:
+                    publishers[key] = declare_data_publisher(zsession, key, recorded.type_name)
+                publishers[key].put(recorded.data)
+            wait_for("every envelope and frame", lambda: len(envelopes) == len(chunks)
+                     and all(len(f) == n_joints for f in frames.values()),
+                     lambda: f"{len(envelopes)}/{len(chunks)} envelopes, "
+                     + ", ".join(f"{m} {len(f)}/{n_joints}" for m, f in frames.items()), 120)
+            for sub in subs:
+                sub.undeclare()
+    assert stats.emg.gaps == 0 and stats.emg.samples_lost == 0 and stats.emg_chunks == len(chunks)
+
+    # offline: the raw EMG of the same chunks, one .sto, through `msk emg envelope` (causal chain, default band-pass)
+    labels = list(chunks[0].channel_labels)
+    raw = np.concatenate([np.asarray(c.samples, dtype=float).reshape(c.n_samples, c.n_channels) for c in chunks])
+    rate = chunks[0].sample_rate_hz
+    time = chunks[0].device_time_ns / 1e9 + np.arange(raw.shape[0]) / rate
+    write_sto(tmp_path / "raw.sto", time, labels, raw, name="raw EMG")
+    subprocess.run([sys.executable, "-m", "services.cli", "emg", "envelope", str(tmp_path / "raw.sto"), "-o",
+                    str(tmp_path / "env.sto")], check=True, capture_output=True)
+    offline = read_sto(tmp_path / "env.sto")
+    ends = np.cumsum([c.n_samples for c in chunks]) - 1  # each message carries the envelope at its chunk's last row
+    groups = list(envelopes[0].groups)
+    expected = np.column_stack([
+        np.mean([offline.column(ch)[ends] / setup.mvc[ch] for ch, g in setup.channel_group.items() if g == group], axis=0)
+        for group in groups])
+    live = np.array([e.envelope for e in envelopes])
+    assert live.shape == expected.shape
+    # the .sto text keeps ~8 significant digits of the raw input and the envelope: equal to that precision
+    np.testing.assert_allclose(live, expected, rtol=1e-6, atol=1e-12)
+    # and to float precision against the same offline chain in memory (the CLI's function, no text round trip)
+    in_memory = envelope_causal(raw, EmgFilterConfig(rate_hz=rate))[ends]
+    expected = np.column_stack([
+        np.mean([in_memory[:, labels.index(ch)] / setup.mvc[ch] for ch, g in setup.channel_group.items() if g == group], axis=0)
+        for group in groups])
+    np.testing.assert_allclose(live, expected, rtol=1e-10, atol=1e-15)
+    assert np.allclose([e.time_s for e in envelopes], time[ends])
+
+    # every frame carries the measured envelope beside the estimate: NaN exactly where no electrode
+    pack_groups = list(frames["assisted"][0].groups)
+    no_electrode = [g for g in pack_groups if g not in set(setup.channel_group.values())]
+    assert sorted(no_electrode) == ["BRA", "BicSho", "PMCos"]
+    emg_end_s = time[-1]
+    covered = [f for f in frames["assisted"] if time[0] + 0.05 <= f.time_s <= emg_end_s]  # before: no EMG yet
+    assert len(covered) > 300
+    for frame in covered:
+        env = np.array(frame.measured_envelope)
+        assert env.shape == (len(pack_groups),)
+        assert all(np.isnan(env[pack_groups.index(g)]) for g in no_electrode)
+        assert np.all(np.isfinite(np.delete(env, [pack_groups.index(g) for g in no_electrode]))), (frame.flags, frame.time_s, time[0], emg_end_s, covered.index(frame))
+        assert not frame.flags and len(frame.activation_std) == len(pack_groups)
+    # after the EMG's end the frames say so (stalled), and carry no stale envelope
+    after = [f for f in frames["assisted"] if f.time_s > emg_end_s + STALL_S + 0.01]
+    assert len(after) > 10 and all("emg_stalled" in f.flags and np.all(np.isnan(f.measured_envelope)) for f in after)
+    assert stats.emg_flags.get("emg_stalled", 0) >= len(after)
+
+
+def test_live_emg_flags_gaps_and_stalls_and_counts_lost_samples():
+    setup = EmgSetup({"a": "G1", "b": "G2", "c": "G2"}, {"a": 1.0, "b": 2.0}, emd_s=0.0)
+    live = LiveEmg(["G1", "G2", "G3"], setup)
+    rng = np.random.default_rng(0)
+    rate, n = 2000.0, 27
+    t_ns = lambda i: int(round(i * 1e9 / rate))  # noqa: E731
+    env, flags = live.at(0, 0)
+    assert FLAG_STALLED in flags and np.all(np.isnan(env))  # configured electrodes, no EMG yet
+    index = 0
+    for k in range(200):
+        block = live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index))
+        index += n
+    assert block.groups == ["G1", "G2"] and "no_mvc" in block.flags  # channel c has no MVC: left out, said so
+    assert live.counters.no_mvc_channels == ["c"]
+    env, flags = live.at(t_ns(index - 100), t_ns(index))
+    assert np.all(np.isfinite(env[:2])) and np.isnan(env[2]) and FLAG_GAP not in flags and FLAG_STALLED not in flags
+    # 1000 samples never arrive: counted, the chunk flagged, and frames just after it flagged (filter restarting)
+    index += 1000
+    block = live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index))
+    assert FLAG_GAP in block.flags and live.counters.gaps == 1 and live.counters.samples_lost == 1000
+    env, flags = live.at(t_ns(index + 10), t_ns(index + 27))
+    assert FLAG_GAP in flags and np.all(np.isnan(env))
+    # a re-sent chunk: its rows are dropped as duplicates, not filtered twice
+    assert live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index)) is None
+    assert live.counters.duplicates == n
+    # the source stops: frames 0.3 s later on the host clock are flagged stalled, never given stale EMG
+    env, flags = live.at(t_ns(index + 27) + int(0.3e9), t_ns(index + 27) + int(0.3e9))
+    assert FLAG_STALLED in flags and np.all(np.isnan(env))
+
+
+def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile_path):
+    """Streaming over the held-out trial (recorded joints, live causal EMG), scored against the generator's truth."""
+    profile = SubjectProfile.load(profile_path)
+    estimators = {m: FrameEstimator("bench_press", subject=profile, method=m) for m in ("proposed", "assisted")}
+    groups = estimators["proposed"].groups
+    live = LiveEmg(groups, EmgSetup.from_profile(profile))
+    loads = estimator.LoadTimeline()
+    window = next(w for w in demo.trial_windows([r.decode() for r in read_messages(MCAP) if r.type_name == "msk.LoadEvent"])
+                  if w.name == "bench_press_50kg")
+    mapper = estimator.CoordinateMapper(estimators["proposed"].coordinates)
+    times, estimates = [], {m: [] for m in estimators}
+    for recorded in read_messages(MCAP):
+        if recorded.type_name == "msk.LoadEvent":
+            event = recorded.decode()
+            loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
+        elif recorded.type_name == "msk.EmgChunk":
+            c = recorded.decode()
+            live.add_chunk(c.source_id, c.channel_labels, c.sample_rate_hz, c.first_sample_index, c.device_time_ns,
+                           np.asarray(c.samples).reshape(c.n_samples, c.n_channels), recorded.log_time_ns)
+        elif recorded.type_name == "msk.JointAngles":
+            joints = recorded.decode()
+            t = joints.device_time_ns / 1e9
+            if not window.start_s <= t <= window.end_s:
+                continue
+            envelope, _ = live.at(joints.device_time_ns, recorded.log_time_ns)
+            load_kg, _ = loads.at(joints.device_time_ns)
+            q, qd, qdd = (mapper.take(joints, f) for f in ("q", "qd", "qdd"))
+            phase = float(joints.phase) if joints.HasField("phase") else None
+            for m, est in estimators.items():
+                estimates[m].append(est.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase,
+                                             emg=envelope).activations)
+            times.append(t - window.start_s)
+    truth = read_sto(RECORDINGS / "demo" / "bench_press" / "bench_press_50kg" / "truth_activations.sto")
+    true = np.column_stack([np.interp(times, truth.time, truth.column(g)) for g in groups])
+    no_electrode = [groups.index(g) for g in ("BRA", "BicSho", "PMCos")]
+    rmse = {}
+    for m, a in estimates.items():
+        a = np.array(a)
+        ok = np.all(np.isfinite(a), axis=1)
+        rmse[m] = {"no_electrode": float(np.sqrt(np.mean((a[ok][:, no_electrode] - true[ok][:, no_electrode]) ** 2))),
+                   "all": float(np.sqrt(np.mean((a[ok] - true[ok]) ** 2)))}
+    print(f"held-out bench_press_50kg, {len(times)} frames, activation RMSE: {rmse}")
+    assert len(times) > 500
+    assert rmse["assisted"]["no_electrode"] < rmse["proposed"]["no_electrode"], rmse

@@ -1,0 +1,102 @@
+"""services.graph: readiness over Zenoh liveliness, late subscribers, bounded waits that say what is missing."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from services import topics
+from services.graph import Graph, GraphTimeout, declare_ready, wait_for, wait_for_nodes
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services import messages
+
+SESSION = "graphtest"
+N_MESSAGES = 300
+
+
+def counting_node(options: ZenohOptions, *, counts: dict, label: str, delay_s: float, stop_event, ready_event, ready_key):
+    """Joins the network at once but declares its subscriber only after ``delay_s`` (a slow-starting node)."""
+    with open_session(options) as zsession:
+        time.sleep(delay_s)
+        counts[label] = 0
+
+        def on_sample(_sample) -> None:
+            counts[label] += 1
+
+        subscriber = zsession.declare_subscriber(f"{topics.session_prefix(SESSION)}/load", on_sample)
+        token = declare_ready(zsession, ready_key)  # noqa: F841
+        ready_event.set()
+        stop_event.wait(30)
+        subscriber.undeclare()
+
+
+def test_publisher_waits_for_every_node_even_one_that_subscribes_late(zenoh_endpoint):
+    counts: dict[str, int] = {}
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("early", counting_node, counts=counts, label="early", delay_s=0.0)
+        graph.add_thread("late", counting_node, counts=counts, label="late", delay_s=1.5)
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+            publisher = declare_data_publisher(zsession, topics.load_key(SESSION), "msk.LoadEvent")
+            # Zenoh's matching status turns true with the first subscriber: publishing then would lose the late one's
+            deadline = time.monotonic() + 10
+            while not publisher.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert publisher.matching_status.matching and "late" not in counts
+            waited = wait_for_nodes(zsession, SESSION, graph.nodes, timeout_s=20)
+            assert waited > 0.5  # it did wait for the late node
+            for i in range(N_MESSAGES):
+                publish(publisher, messages.LoadEvent(barbell_mass_kg=float(i)))
+            wait_for("both nodes to count every message", lambda: all(counts.get(n) == N_MESSAGES for n in ("early", "late")),
+                     lambda: str(counts), timeout_s=20)
+    assert counts == {"early": N_MESSAGES, "late": N_MESSAGES}
+
+
+def test_wait_for_nodes_names_what_is_missing_when_it_expires(zenoh_endpoint):
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("present", counting_node, counts={}, label="present", delay_s=0.0)
+        graph.wait_ready(20)
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+            with pytest.raises(GraphTimeout, match=r"2 nodes .*1 ready, missing \['absent'\]"):
+                wait_for_nodes(zsession, SESSION, ["present", "absent"], timeout_s=1.0)
+    with pytest.raises(GraphTimeout, match=r"waited 0.2 s for the answer; arrived: 41 of 42"):
+        wait_for("the answer", lambda: False, lambda: "41 of 42", timeout_s=0.2)
+
+
+def failing_node(options, *, stop_event, ready_event, ready_key):
+    raise RuntimeError("device not found")
+
+
+def test_a_node_that_fails_at_start_is_reported_and_the_graph_stops(zenoh_endpoint):
+    graph = Graph(SESSION, zenoh_endpoint)
+    graph.add_thread("broken", failing_node)
+    with pytest.raises(RuntimeError, match="device not found"):
+        graph.wait_ready(10)
+    assert graph.failed() == ["broken: RuntimeError('device not found')"]
+    started = time.monotonic()
+    graph.stop(5)
+    assert time.monotonic() - started < 5
+    assert not any(t.name == "node-broken" for t in threading.enumerate())
+
+
+def test_msk_replay_waits_for_named_graph_nodes(zenoh_endpoint, repo_root):
+    import subprocess
+    import sys
+
+    counts: dict[str, int] = {}
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("late", counting_node, counts=counts, label="late", delay_s=1.5)
+        replay = subprocess.run(
+            [sys.executable, "-m", "services.cli", "replay", str(repo_root / "recordings" / "demo_session.mcap"),
+             "--rate", "max", "--session", SESSION, "--wait-node", "late", "--connect", zenoh_endpoint,
+             "--exclude", f"msk/{SESSION}/imu/*", "--exclude", f"msk/{SESSION}/emg/*", "--exclude", f"msk/{SESSION}/joints"],
+            cwd=repo_root, capture_output=True, text=True, timeout=120)
+        assert replay.returncode == 0, replay.stderr
+        assert "published 8 messages" in replay.stderr
+        wait_for("the late node to count the 8 load events", lambda: counts.get("late") == 8, lambda: str(counts), 20)
+        missing = subprocess.run(
+            [sys.executable, "-m", "services.cli", "replay", str(repo_root / "recordings" / "demo_session.mcap"),
+             "--session", SESSION, "--wait-node", "late", "--wait-node", "ghost", "--wait-nodes-timeout", "1",
+             "--connect", zenoh_endpoint], cwd=repo_root, capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and "1 ready, missing ['ghost']" in missing.stderr, missing.stderr

@@ -1,0 +1,86 @@
+"""`msk view` driven in a real pseudo-terminal (tmux) while the demo session is replayed through an estimator node:
+the screen shows bars, torques, load, rep/phase and device health, and ends on the newest frame (not a queue)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import threading
+import uuid
+
+import pytest
+
+from services import estimator, messages, replayer, topics
+from services.graph import Graph, wait_for
+from services.view import RepCounter, ViewState, render
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+
+SESSION = "viewtest"
+
+
+def capture(name: str) -> str:
+    return subprocess.run(["tmux", "capture-pane", "-p", "-t", name], capture_output=True, text=True, check=True).stdout
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is needed to drive the view in a pseudo-terminal")
+def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
+    name = f"mskview-{uuid.uuid4().hex[:8]}"
+    last: dict[str, messages.ActivationFrame] = {}
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=["so", "hybrid"])
+        graph.wait_ready(60)
+        # COLUMNS/LINES: the pane size as rich should see it even when a tmux server with another default size runs
+        command = (f"env COLUMNS=160 LINES=60 {sys.executable} -m services.cli view --session {SESSION} --method so --connect {zenoh_endpoint} "
+                   "--duration 120 --refresh-hz 20")
+        subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "160", "-y", "60", "-c", str(repo_root), command],
+                       check=True)
+        try:
+            with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+                probe = declare_data_publisher(zsession, topics.status_key(SESSION, "trigno-test"), "msk.DeviceStatus")
+                wait_for("the view to subscribe", lambda: probe.matching_status.matching,
+                         lambda: "no subscriber on the status key; screen:\n" + capture(name), 60)
+                publish(probe, messages.DeviceStatus(device_id="trigno-test", kind="trigno", connected=True,
+                                                     samples_received=123456, samples_lost=27))
+                lock = threading.Lock()
+
+                def keep_last(sample):
+                    frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
+                    with lock:
+                        last[frame.method] = frame
+
+                sub = zsession.declare_subscriber(f"msk/{SESSION}/activations/*", keep_last)
+                stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), repo_root / "recordings" / "demo_session.mcap",
+                                      rate=None, session_name=SESSION,
+                                      exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"))
+                assert stats.published > 5000
+                est = graph._threads[0]  # noqa: SLF001 - the node's thread is idle once its inbox is empty
+
+                def settled() -> bool:
+                    with lock:
+                        frame = last.get("so")
+                    return frame is not None and f"t {frame.time_s:.2f} s" in capture(name)
+
+                # the screen reaches the newest frame soon after the estimator does: it never replays a backlog
+                wait_for("the view to show the newest frame", settled,
+                         lambda: f"newest so frame t={last.get('so').time_s if 'so' in last else None}; screen:\n"
+                         + capture(name), 120)
+                sub.undeclare()
+            screen = capture(name)
+        finally:
+            subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+    assert est.error == []
+    for expected in ("activations · so", "BicLong", "TriLong", "hybrid", "torque tracking", "elbow_flex_r",
+                     "inverse dynamics", "trigno-test", "123456", "27", "load ", " kg", "rep ", "phase "):
+        assert expected in screen, (expected, screen)
+    assert "█" in screen or "▓" in screen
+
+
+def test_render_without_frames_and_rep_counter():
+    state = ViewState()
+    text = "".join(str(r) for r in render(state, "s").renderables)
+    assert "waiting for activations" in text
+    reps = RepCounter()
+    for phase in (-1, -1, 0.0, 0.3, 0.7, 0.95, 0.1, 0.6, -1, -1, 0.05, 0.5, None, -1):
+        reps.update(phase)
+    assert reps.reps == 3
