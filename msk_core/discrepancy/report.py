@@ -45,7 +45,7 @@ def _xcorr_plot(path: Path, result: DiscrepancyResult) -> None:
     for c, corr in zip(result.data.coordinates, xc["corr"]):
         ax.plot(np.asarray(xc["lag_s"]) * 1000, corr, label=c)
     ax.axvline(0, color="0.6", lw=0.8)
-    ax.set_xlabel("lag of EMG-implied torque behind measured torque (ms; > 0: EMG leads)")
+    ax.set_xlabel("lag of the EMG-implied torque (ms; > 0: EMG leads)")
     ax.set_ylabel("correlation")
     ax.legend(fontsize=7)
     fig.tight_layout()

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
 from msk_core.discrepancy.model import Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation, mse
 
-MIN_REDUCTION = 0.25
+MIN_REDUCTION = 0.10
 BIC_MARGIN = 10.0
 
 
