@@ -23,7 +23,7 @@ import numpy as np
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
 from msk_core.estimate.effects import (
     active_force_length,
-    crosstalk_matrix,
+    unmix_envelopes,
     fibre_length,
     force_velocity,
     passive_force_length,
@@ -53,7 +53,7 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     ]
     if len(data.emg_groups) >= 2:
         out.append(Candidate("crosstalk", tuple({"fraction": c} for c in (0.05, 0.1, 0.15, 0.2, 0.3, 0.4)),
-                             "x = M(c)^-1 e: each electrode holds (1 - c) of its muscle and c of its neighbours'"))
+                             "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's"))
     if data.optimal is not None and data.trials[0].lengths is not None:
         out += [
             Candidate("fl_active", tuple({"width": w} for w in (0.25, 0.35, 0.45, 0.6, 0.8)),
@@ -115,9 +115,8 @@ def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict
         x = np.column_stack([np.interp(trial.time - delay, trial.time, x[:, k]) for k in range(x.shape[1])])
     if "crosstalk" in model:
         idx = [data.emg_groups.index(g) for g in data.electrode_order]
-        inv = np.linalg.inv(crosstalk_matrix(len(idx), model["crosstalk"]["fraction"]))
         x = x.copy()
-        x[:, idx] = np.clip(x[:, idx] @ inv.T, 0.0, None)
+        x[:, idx] = unmix_envelopes(x[:, idx], model["crosstalk"]["fraction"])
     return x
 
 

@@ -9,7 +9,8 @@ enters the per-frame QP without changing it (see docs/discrepancy.md for the for
 - known torque offsets (``fl_passive``, ``passive_joint``, ``damping``, ``load_scale``): the torque the active
   muscles must produce is tau - offset(q, qd, load);
 - time shifts (``emd``): the prior is looked up at the phase ``delay`` seconds ago (frame history kept here);
-- EMG unmixing (``crosstalk``): the prior's means of the measured groups are unmixed once, at construction.
+- EMG unmixing (``crosstalk``): the prior's means of the measured groups are unmixed once, at construction
+  (incoherent sources: powers add, :func:`unmix_envelopes`).
 
 Sign conventions: inverse-dynamics torque = active muscle torque + passive/offset terms; a lengthening velocity is
 negative shortening; moment arm r = -dL/dq, so dL/dt = -R^T qd.
@@ -82,6 +83,15 @@ def crosstalk_matrix(n: int, fraction: float) -> np.ndarray:
     if n == 1:
         m[0, 0] = 1.0
     return m
+
+
+def unmix_envelopes(e: np.ndarray, fraction: float) -> np.ndarray:
+    """Envelopes (..., n) in electrode order with the neighbours' cross-talk removed. Cross-talk mixes the raw signals
+    of different muscles, which are incoherent: powers add, so envelope^2 = (M o M) s^2 (o: element-wise), and
+    s = sqrt(max((M o M)^-1 e^2, 0))."""
+    m = crosstalk_matrix(e.shape[-1], fraction)
+    inv = np.linalg.inv(m * m)
+    return np.sqrt(np.clip((np.asarray(e) ** 2) @ inv.T, 0.0, None))
 
 
 @dataclass
@@ -227,10 +237,9 @@ class ModelEffects:
             return prior
         order = [g for g in p["electrode_order"] if g in self.groups]
         idx = [self.groups.index(g) for g in order]
-        inv = np.linalg.inv(crosstalk_matrix(len(idx), p["fraction"]))
         mean = prior.mean.copy()
-        mean[:, idx] = np.clip(mean[:, idx] @ inv.T, 0.0, 1.0)
+        mean[:, idx] = np.clip(unmix_envelopes(mean[:, idx], p["fraction"]), 0.0, 1.0)
         rest = None if prior.rest_mean is None else prior.rest_mean.copy()
         if rest is not None:
-            rest[idx] = np.clip(inv @ rest[idx], 0.0, 1.0)
+            rest[idx] = np.clip(unmix_envelopes(rest[idx], p["fraction"]), 0.0, 1.0)
         return replace(prior, mean=mean, rest_mean=rest)
