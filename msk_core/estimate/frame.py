@@ -322,6 +322,8 @@ class FrameEstimator:
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)
         self.reset_counts()
         self._reset_hot_start()
+        if self._phase_history is not None:  # the throw-away frame is no part of the delay's look-back
+            self._phase_history.clear()
 
     def reset_counts(self) -> None:
         self.flag_counts.clear()
