@@ -53,6 +53,7 @@ import piqp
 
 from msk_core.errors import EstimationError
 from msk_core.estimate import active_set
+from msk_core.estimate.effects import ModelEffects
 from msk_core.estimate.laplace import laplace_std
 from msk_core.estimate.pack import CLAMP_TOLERANCE, PackLike, resolve_pack
 from msk_core.estimate.prior import PhasePrior
@@ -169,12 +170,22 @@ class FrameEstimator:
         self.coordinates = list(self.pack.coordinates)
         if subject is not None:
             subject.check_pack(self.pack)
+        # the profile's model effects (msk_core.estimate.effects): force scales, torque offsets, a prior delay
+        self.effects: ModelEffects | None = None
+        if subject is not None and getattr(subject, "effects", None):
+            self.effects = ModelEffects.from_dict(subject.effects, self.groups, self.coordinates).bind(self.pack)
+        self._f_max_profile = None if subject is None else np.asarray(subject.f_max, dtype=float)
         if f_max is None:
             f_max = subject.f_max if subject is not None else np.asarray(self.pack.f_max_ref, dtype=float)
+            if self.effects is not None:
+                f_max = np.asarray(f_max, dtype=float) * self.effects.strength_gain
         self.f_max = np.asarray(f_max, dtype=float).copy()
         if self.f_max.shape != (len(self.groups),) or not np.all(self.f_max > 0):
             raise EstimationError(f"F_max must be {len(self.groups)} positive values, got {self.f_max}")
         self.prior = prior if prior is not None else (subject.prior if subject is not None else None)
+        if self.effects is not None and prior is None:
+            self.prior = self.effects.unmix_prior(self.prior)
+        self._phase_history = None if self.effects is None else self.effects.new_phase_history()
         if self.method in (Method.PROPOSED, Method.PRIOR, Method.ASSISTED):
             if self.prior is None:
                 raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
@@ -264,18 +275,39 @@ class FrameEstimator:
                     return self._invalid(np.full(n_c, np.nan), phase)  # far outside: never extrapolate
                 clamped = True
                 q = qc
+            lengths = None
+            if self.effects is not None:
+                qd = np.zeros(n_c) if qd is None else np.asarray(qd, dtype=float)
+                qdd = np.zeros(n_c) if qdd is None else np.asarray(qdd, dtype=float)
+                if torques is None:  # the external load as the effects say it really was
+                    hand_load_newton = hand_load_newton * self.effects.load_ratio
             if torques is None:
                 if qd is None or qdd is None:
                     qd = np.zeros(n_c) if qd is None else qd
                     qdd = np.zeros(n_c) if qdd is None else qdd
                 if self._fused_frame is not None:  # one model call for moment arms and inverse dynamics
-                    _, r, tau = self._fused_frame(q, qd, qdd, hand_load_newton)
+                    lengths, r, tau = self._fused_frame(q, qd, qdd, hand_load_newton)
                 else:
                     tau = np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
-                    r = np.asarray(self.pack.moment_arms(q), dtype=float)
+                    if self.effects is not None and self.effects.needs_lengths:
+                        lengths, r = self.pack.lengths_and_moment_arms(q)
+                        r = np.asarray(r, dtype=float)
+                    else:
+                        r = np.asarray(self.pack.moment_arms(q), dtype=float)
             else:
                 tau = np.asarray(torques, dtype=float)
-                r = np.asarray(self.pack.moment_arms(q), dtype=float)
+                if self.effects is not None and self.effects.needs_lengths:
+                    lengths, r = self.pack.lengths_and_moment_arms(q)
+                    r = np.asarray(r, dtype=float)
+                else:
+                    r = np.asarray(self.pack.moment_arms(q), dtype=float)
+                if self.effects is not None and self.effects.load_ratio != 1.0 and hand_load_newton:
+                    # measured torques hold the reported load: add the rest of the true load's moment
+                    load = (np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
+                            - np.asarray(self.pack.inverse_dynamics(q, qd, qdd, 0.0), dtype=float))
+                    tau = tau + (self.effects.load_ratio - 1.0) * load
+            if self.effects is not None:
+                r, tau, phase = self._apply_effects(q, qd, lengths, r, tau, phase)
         except Exception as exc:  # the model pack rejected the pose (or failed): the live loop must go on, flagged
             if not self._model_error_logged:  # say it once, with the reason; later frames are counted as invalid_input
                 log.warning("model evaluation failed, frame flagged invalid_input: %s: %s", type(exc).__name__, exc)
@@ -305,6 +337,8 @@ class FrameEstimator:
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)
         self.reset_counts()
         self._reset_hot_start()
+        if self._phase_history is not None:  # the throw-away frame is no part of the delay's look-back
+            self._phase_history.clear()
 
     def reset_counts(self) -> None:
         self.flag_counts.clear()
@@ -312,6 +346,24 @@ class FrameEstimator:
         self.frames = 0
 
     # -- internals ----------------------------------------------------------------------------------------------
+
+    def _apply_effects(self, q, qd, lengths, r, tau, phase):
+        """Moment arms scaled by the per-frame force factors, torque minus the known offsets, the prior's phase
+        delayed (the QP itself is unchanged)."""
+        eff = self.effects
+        r = np.asarray(r, dtype=float)
+        scale = eff.force_scale(lengths, r, qd)
+        offset = eff.torque_offset(q, qd, lengths, r, self._f_max_profile)
+        if offset is not None:
+            tau = np.asarray(tau, dtype=float) - offset
+        if scale is not None:
+            r = r * scale[None, :]
+        if eff._arm_scale is not None:
+            r = r * eff._arm_scale
+        if self._phase_history is not None:  # EMG (and the prior learned from it) leads the force: look back
+            self._phase_history.append(phase)
+            phase = self._phase_history[0]
+        return r, tau, phase
 
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         method = self.method

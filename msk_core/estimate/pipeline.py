@@ -376,7 +376,9 @@ def estimate_trial(
     )
     for i in tqdm(range(n), desc=f"{trial.name} [{est.method.value}]", disable=not progress, leave=False):
         phase = trial_phase(trial, i) if phases is None else float(phases[i])
-        res = est.step(trial.q[i], torques=trial.torques[i], phase=phase)
+        # qd, qdd and the load only matter to a profile's effects (with torques given, no inverse dynamics runs)
+        res = est.step(trial.q[i], trial.qd[i], trial.qdd[i], trial.hand_load_newton, torques=trial.torques[i],
+                       phase=phase)
         out.activations[i] = res.activations
         out.activation_std[i] = res.activation_std
         out.model_torques[i] = res.model_torques

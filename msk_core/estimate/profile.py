@@ -34,6 +34,9 @@ class SubjectProfile:
     calibration: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
     phase_model: PhaseModel | None = None  # rep template on the phase coordinate: the live node tracks the phase
+    # model effects beyond F = F_max a found by `msk discrepancy` (msk_core.estimate.effects; versioned, with the
+    # evidence); None: the plain model, and the JSON has no `effects` key (profiles without it behave as before)
+    effects: dict | None = None
 
     @property
     def scale_factors(self) -> np.ndarray:
@@ -66,7 +69,7 @@ class SubjectProfile:
             "calibration": self.calibration,
             "provenance": self.provenance,
             "phase_model": None if self.phase_model is None else self.phase_model.to_dict(),
-        }
+        } | ({} if self.effects is None else {"effects": self.effects})
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
@@ -99,8 +102,22 @@ class SubjectProfile:
                 calibration=data.get("calibration", {}),
                 provenance=data.get("provenance", {}),
                 phase_model=phase_model,
+                effects=_checked_effects(data.get("effects"), groups, path),
             )
         except KeyError as exc:
             raise FileFormatError("missing field", path=path, field=str(exc.args[0])) from None
         except (TypeError, ValueError, MskError) as exc:
             raise FileFormatError(f"invalid value: {exc}", path=path) from None
+
+
+def _checked_effects(effects, groups: list[str], path: Path) -> dict | None:
+    """The ``effects`` section as stored, after checking it parses (version, names, groups)."""
+    if effects is None:
+        return None
+    from msk_core.estimate.effects import ModelEffects
+
+    try:
+        ModelEffects.from_dict(effects, groups, [])
+    except EstimationError as exc:
+        raise FileFormatError(str(exc), path=path, field="effects") from None
+    return effects

@@ -1,0 +1,172 @@
+"""Per-sample arrays of a session for the discrepancy analysis: kinematics, torques, moment arms, muscle state, EMG and
+the prior, all on the trials' frames, and the capacity scale c_tn = sum_g |R_tng| F_max,g (N·m, floored at 1) that
+makes a torque gap a fraction of what the muscles can produce at that pose (the estimator's own residual scale)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from msk_core.errors import EstimationError, InputError
+from msk_core.estimate.frame import CLAMP_TOLERANCE, MIN_TORQUE_SCALE
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.prior import REST_PHASE
+from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.trial import TrialData
+
+CAPACITY_MARGIN = 0.95  # frames needing more than this share of a coordinate's capacity are left out
+MAX_DELAY_S = 0.2  # longest electromechanical delay searched (physiological 30-100 ms; the generator allows 200)
+
+
+@dataclass
+class TrialArrays:
+    name: str
+    path: str
+    time: np.ndarray  # (T,)
+    q: np.ndarray  # (T, n_c)
+    qd: np.ndarray
+    tau: np.ndarray  # (T, n_c) inverse-dynamics torque, N·m
+    arms: np.ndarray  # (T, n_c, G) m
+    lengths: np.ndarray | None  # (T, G) MTU length, m
+    scale: np.ndarray  # (T, n_c) capacity c, N·m
+    emg: np.ndarray  # (T, G_E) envelopes of the groups with EMG (as recorded, not yet delayed)
+    prior_mean: np.ndarray  # (T, G) prior mean at each frame's phase (used for groups without EMG)
+    min_effort: np.ndarray  # (T, G) static optimisation's activations of the frame's torque (demand-following share)
+    tau_load: np.ndarray  # (T, n_c) the external load's part of the ID torque (ID(L) - ID(0)), N·m
+    phase: np.ndarray  # (T,) NaN outside reps
+    load_kg: float
+
+    @property
+    def n(self) -> int:
+        return int(self.time.size)
+
+    @property
+    def frame_interval_s(self) -> float:
+        return float(np.median(np.diff(self.time)))
+
+
+@dataclass
+class SessionArrays:
+    groups: list[str]
+    coordinates: list[str]
+    emg_groups: list[str]  # groups with EMG in every trial (the others use the prior, as the estimator does)
+    electrode_order: list[str]  # EMG groups in the order of the first trial's emg_map (neighbours for cross-talk)
+    f_max: np.ndarray
+    base_delay_s: float  # the profile's calibrated electromechanical delay (already part of the model)
+    optimal: np.ndarray | None
+    slack: np.ndarray | None
+    lo: np.ndarray | None
+    hi: np.ndarray | None
+    trials: list[TrialArrays]
+
+    @property
+    def emg_index(self) -> np.ndarray:
+        return np.array([self.groups.index(g) for g in self.emg_groups], dtype=int)
+
+    @property
+    def other_index(self) -> np.ndarray:
+        return np.array([j for j, g in enumerate(self.groups) if g not in self.emg_groups], dtype=int)
+
+
+def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: float = MAX_DELAY_S) -> None:
+    """The precise input errors of ``msk discrepancy`` (file and field named)."""
+    if not train:
+        raise EstimationError("discrepancy needs at least one training trial")
+    if not holdout:
+        raise EstimationError("discrepancy needs at least one held-out trial (the candidates are scored on them)")
+    seen = {str(t.path.resolve()) if t.path else t.name: t for t in train}
+    for t in holdout:
+        key = str(t.path.resolve()) if t.path else t.name
+        if key in seen:
+            raise InputError("a held-out trial must not also be a training trial (the score would not be held out)",
+                             path=t.path, field="--holdout", value=str(t.path))
+    for t in holdout:
+        if t.torque_source != "file":
+            raise InputError("a held-out trial needs measured torques (`torques = ...`, an inverse-dynamics file): the "
+                             "gap is measured against them", path=t.path, field="torques")
+    if not any(t.emg for t in train + holdout):
+        raise InputError("no trial has EMG (`emg = ...` with an [emg_map]): the gap between what the EMG implies and "
+                         "the torques needs it", path=train[0].path, field="emg")
+    for t in train + holdout:
+        if t.isometric:
+            continue
+        span = float(t.time[-1] - t.time[0])
+        if span <= 2 * max_delay_s:
+            raise InputError(f"trial lasts {span:.3f} s, not longer than twice the longest delay searched "
+                             f"({max_delay_s:g} s)", path=t.path, field="kinematics", value=round(span, 3))
+
+
+def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_groups: list[str]) -> TrialArrays:
+    groups = list(pack.groups)
+    n_c, g = len(pack.coordinates), len(groups)
+    q = trial.q
+    ranges = getattr(pack, "coordinate_ranges", None)
+    keep = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(trial.torques), axis=1)
+    if ranges is not None:
+        r = np.asarray(ranges, dtype=float).reshape(n_c, 2)
+        qc = np.clip(q, r[:, 0], r[:, 1])
+        keep &= np.all(np.abs(np.nan_to_num(qc - q)) <= CLAMP_TOLERANCE, axis=1)  # the estimator's rule
+        q = qc
+    many = getattr(pack, "lengths_and_moment_arms_many", None)
+    lengths = None
+    if many is not None:
+        from msk_core.model.pack import OutOfRange
+
+        lengths, arms = many(np.nan_to_num(q), out_of_range=OutOfRange.CLAMP)
+    else:
+        arms = np.array([pack.moment_arms(x) for x in np.nan_to_num(q)]).reshape(-1, n_c, g)
+    scale = np.maximum(np.abs(arms * profile.f_max).sum(axis=2), MIN_TORQUE_SCALE)
+    # frames beyond the muscles' capacity (a torque outside [sum of negative, sum of positive] moment capacities at
+    # some coordinate): no activation explains them (the estimator flags them `reserve`); they stay out of the fit
+    a = arms * profile.f_max
+    reach_hi, reach_lo = np.clip(a, 0, None).sum(axis=2), np.clip(a, None, 0).sum(axis=2)
+    tau0 = np.nan_to_num(trial.torques)
+    keep &= np.all((tau0 <= CAPACITY_MARGIN * reach_hi) & (tau0 >= CAPACITY_MARGIN * reach_lo), axis=1)
+    prior = profile.prior
+    if prior is not None:
+        phases = [REST_PHASE if r < 0 else float(p) for p, r in zip(trial.phase, trial.rep_index)]
+        mean = np.array([prior.mean_precision(p)[0] for p in phases])
+    else:
+        mean = np.zeros((trial.n_frames, g))
+    emg = np.column_stack([trial.emg[x] for x in emg_groups]) if emg_groups else np.zeros((trial.n_frames, 0))
+    keep &= np.all(np.isfinite(emg), axis=1)
+    hand = trial.load_kg * 9.81
+    if hand > 0:
+        tau_load = np.array([np.asarray(pack.inverse_dynamics(a, b, c, hand)) - np.asarray(pack.inverse_dynamics(a, b, c, 0.0))
+                             for a, b, c in zip(q, trial.qd, trial.qdd)])
+    else:
+        tau_load = np.zeros((trial.n_frames, n_c))
+    from msk_core.estimate.pipeline import min_effort_activations
+
+    so = np.nan_to_num(min_effort_activations(pack, trial)) if len(emg_groups) < g else np.zeros((trial.n_frames, g))
+    sel = keep
+    return TrialArrays(
+        name=trial.name, path=str(trial.path), time=trial.time[sel], q=q[sel], qd=trial.qd[sel], tau=trial.torques[sel],
+        arms=arms[sel], lengths=None if lengths is None else lengths[sel], scale=scale[sel], emg=emg[sel],
+        prior_mean=mean[sel], min_effort=so[sel], tau_load=tau_load[sel], phase=trial.phase[sel], load_kg=trial.load_kg,
+    )
+
+
+def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialData]) -> SessionArrays:
+    """Arrays of the trials (isometric trials left out: no phase, and the effects searched here need movement)."""
+    profile.check_pack(pack)
+    trials = [t for t in trials if not t.isometric]
+    groups = list(pack.groups)
+    emg_groups = [g for g in groups if all(g in t.emg for t in trials)]
+    if not emg_groups:
+        raise InputError("no group has EMG in every trial; the EMG-implied torque needs the same electrodes throughout",
+                         path=trials[0].path if trials else None, field="emg_map")
+    first = trials[0]
+    order = [first.emg_channels[ch] for ch in first.emg_channels if first.emg_channels[ch] in emg_groups]
+    order = list(dict.fromkeys(order))
+    emd = (profile.calibration or {}).get("emd") or {}
+    ranges = getattr(pack, "coordinate_ranges", None)
+    r = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
+    return SessionArrays(
+        groups=groups, coordinates=list(pack.coordinates), emg_groups=emg_groups, electrode_order=order,
+        f_max=np.asarray(profile.f_max, dtype=float), base_delay_s=float(emd.get("delay_s", 0.0) or 0.0),
+        optimal=getattr(pack, "optimal_fiber_lengths", None), slack=getattr(pack, "tendon_slack_lengths", None),
+        lo=None if r is None else r[:, 0], hi=None if r is None else r[:, 1],
+        trials=[_arrays(pack, profile, t, emg_groups) for t in trials],
+    )

@@ -1,0 +1,263 @@
+"""The EMG-driven torque model, its candidate effects, and their fit on training trials / score on held-out trials.
+
+Every sample is one frame t and coordinate n, in capacity-scaled units (torque / c_tn, c = sum_g |R_ng| F_max,g):
+
+    y_tn = tau_tn / c_tn                                        (inverse-dynamics torque)
+    m_tn = sum_{g with EMG} A_tng (1 + d_g) phi_tg x_tg         (EMG-implied; d_g: strength re-fit, ridge to 0)
+         + sum_{g without EMG} A_tng phi_tg mu_tg               (the prior's mean at the phase, as estimated today)
+         + b_n / c_tn                                           (per-coordinate offset: the unmeasured groups' bias)
+         + sum_j beta_j Z_tnj                                   (the effect's linear terms)
+    gap_tn = y_tn - m_tn,   A_tng = R_tng F_max,g / c_tn
+
+x = EMG envelope (delayed by the profile's calibrated EMD), phi = 1 without a muscle-state effect. The "none" model
+has the strength re-fit and the offsets only; each candidate adds its term (a 1-D/2-D grid for its nonlinear
+parameter, least squares for the linear ones). Fitted on the training trials, scored on the held-out trials.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
+from msk_core.estimate.effects import (
+    active_force_length,
+    unmix_envelopes,
+    fibre_length,
+    force_velocity,
+    passive_force_length,
+    passive_joint_basis,
+    shortening_speed,
+)
+
+GAIN_RIDGE = 0.05  # ridge on the strength re-fit, relative to each column's own sum of squares
+GAIN_RIDGE_ABS = 0.1  # ... plus this much absolute (scaled-torque units): pins directions the data leave open
+TINY_RIDGE = 1e-9
+
+
+@dataclass(frozen=True)
+class Candidate:
+    name: str
+    grid: tuple[dict, ...]  # settings of the nonlinear parameters ({} when there are none)
+    formula: str
+
+
+def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Candidate]:
+    """The candidates that apply to this pack and session (muscle-state ones need fibre lengths, load needs load)."""
+    dt = min(t.frame_interval_s for t in data.trials)
+    delays = np.arange(0, int(round(MAX_DELAY_S / dt)) + 1) * dt
+    out = [
+        Candidate("emd", tuple({"delay_total_s": float(d)} for d in delays),
+                  "x_g(t) = e_g(t - d): EMG leads the force by the electromechanical delay d"),
+    ]
+    if len(data.emg_groups) >= 2:
+        out.append(Candidate("crosstalk", tuple({"fraction": c} for c in (0.05, 0.1, 0.15, 0.2, 0.3, 0.4)),
+                             "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's"))
+    if data.optimal is not None and data.trials[0].lengths is not None:
+        out += [
+            Candidate("fl_active", tuple({"width": w} for w in (0.25, 0.35, 0.45, 0.6, 0.8)),
+                      "phi_g = exp(-((l_g - 1)/w)^2), l_g normalised fibre length"),
+            Candidate("fl_passive", tuple({"strain": s} for s in (0.3, 0.45, 0.6, 0.8, 1.0)),
+                      "Z = sum_g A_g (exp(4 (l_g - 1)/s) - 1)/(e^4 - 1) for l_g > 1, one scale"),
+            Candidate("fv", tuple({"v_max": v, "eccentric": e} for v in (5.0, 10.0, 15.0, 20.0) for e in (1.4, 1.8)),
+                      "phi_g = Hill force-velocity(shortening speed / v_max l_opt), eccentric plateau"),
+        ]
+    if data.lo is not None:
+        out.append(Candidate("passive_joint", tuple({"decay_rad": d} for d in (0.05, 0.1, 0.2, 0.35)),
+                             "Z_n = k_lo,n exp((lo_n - q_n)/d) - k_hi,n exp((q_n - hi_n)/d) / c_n"))
+    out.append(Candidate("damping", ({},), "Z_n = -b_n qd_n / c_n (muscles also overcome joint damping)"))
+    if len({t.load_kg for t in train}) >= 2:  # with one load a load scale is a strength scale (not separable)
+        out.append(Candidate("load_scale", ({},), "Z = beta tau_load / c: the reported load is off by 1/(1 - beta)"))
+    multi = [g for g in data.emg_groups if _crosses(data, g) > 1]
+    if multi:
+        out.append(Candidate("moment_arm_scale", ({},),
+                             "per (group, coordinate) scale of R_ng for groups with EMG crossing several coordinates"))
+    return out
+
+
+def _crosses(data: SessionArrays, group: str) -> int:
+    j = data.groups.index(group)
+    return int(sum(np.any(np.abs(t.arms[:, n, j]) > 1e-4) for t in data.trials[:1] for n in range(len(data.coordinates))))
+
+
+UNMEASURED_PHASE_BINS = 6  # free phase profile of each unmeasured group's demand share (nuisance)
+
+
+def phase_basis(phase: np.ndarray, n: int = UNMEASURED_PHASE_BINS) -> list[np.ndarray]:
+    """Periodic hat functions over the rep phase (n, summing to 1 inside reps) and an indicator of rest."""
+    inside = np.isfinite(phase)
+    p = np.where(inside, phase, 0.0) * n
+    out = []
+    for k in range(n):
+        d = np.abs(((p - k + n / 2) % n) - n / 2)
+        out.append(np.where(inside, np.clip(1.0 - d, 0.0, None), 0.0))
+    out.append((~inside).astype(float))
+    return out
+
+
+@dataclass
+class Design:
+    y: np.ndarray  # (N,)
+    fixed: np.ndarray  # (N,) the model with every linear coefficient at 0
+    columns: np.ndarray  # (N, p)
+    names: list[str]
+    ridge: np.ndarray  # (p,) relative ridge
+    n_frames: int
+    n_coordinates: int
+
+
+def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
+    """(T, G_E) activations the EMG stands for under the model: delayed, unmixed."""
+    delay = model.get("emd", {}).get("delay_total_s", data.base_delay_s)
+    x = trial.emg
+    if delay > 0:
+        x = np.column_stack([np.interp(trial.time - delay, trial.time, x[:, k]) for k in range(x.shape[1])])
+    if "crosstalk" in model:
+        idx = [data.emg_groups.index(g) for g in data.electrode_order]
+        x = x.copy()
+        x[:, idx] = unmix_envelopes(x[:, idx], model["crosstalk"]["fraction"])
+    return x
+
+
+def force_factor(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
+    phi = np.ones((trial.n, len(data.groups)))
+    if "fl_active" in model:
+        phi *= active_force_length(fibre_length(trial.lengths, data.optimal, data.slack), model["fl_active"]["width"])
+    if "fv" in model:
+        v = shortening_speed(trial.arms, trial.qd, data.optimal, model["fv"]["v_max"])
+        phi *= force_velocity(v, model["fv"]["eccentric"])
+    return phi
+
+
+def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> Design:
+    n, n_c = trial.n, len(data.coordinates)
+    e_idx, o_idx = data.emg_index, data.other_index
+    a = trial.arms * data.f_max / trial.scale[:, :, None]  # (T, n_c, G)
+    x = effective_emg(data, trial, model)
+    phi = force_factor(data, trial, model)
+    contrib = a[:, :, e_idx] * (phi[:, e_idx] * x)[:, None, :]  # (T, n_c, G_E)
+    fixed = contrib.sum(axis=2)
+    if o_idx.size:
+        fixed = fixed + (a[:, :, o_idx] * (phi[:, o_idx] * trial.prior_mean[:, o_idx])[:, None, :]).sum(axis=2)
+    cols, names, ridge = [], [], []
+    onehot = np.eye(n_c)
+    # strength re-fit per measured group (ridge toward the calibrated strength); with moment_arm_scale one per group
+    # and coordinate for the groups crossing several coordinates
+    multi = set()
+    if "moment_arm_scale" in model:
+        for k, g in enumerate(data.emg_groups):
+            if _crosses(data, g) > 1:
+                multi.add(k)
+                for c in range(n_c):
+                    if np.any(np.abs(contrib[:, c, k]) > 0):
+                        cols.append((contrib[:, :, k] * onehot[c]).ravel())
+                        names.append(f"arm:{g}:{data.coordinates[c]}")
+                        ridge.append(GAIN_RIDGE)
+    for k, g in enumerate(data.emg_groups):
+        if k not in multi:
+            cols.append(contrib[:, :, k].ravel()), names.append(f"gain:{g}"), ridge.append(GAIN_RIDGE)
+    for j in o_idx:  # the unmeasured groups' prior-mean contribution, re-scaled like the measured groups' strength
+        col = a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None]
+        if np.any(col != 0):
+            cols.append(col.ravel()), names.append(f"prior:{data.groups[j]}"), ridge.append(GAIN_RIDGE)
+        base = a[:, :, j] * (phi[:, j] * trial.min_effort[:, j])[:, None]  # follows the frame's demand (load)
+        for k, w in enumerate(phase_basis(trial.phase)):  # ... with a free share per phase of the rep
+            col = base * w[:, None]
+            if np.any(col != 0):
+                cols.append(col.ravel()), names.append(f"demand:{data.groups[j]}:{k}"), ridge.append(GAIN_RIDGE)
+    inv_c = 1.0 / trial.scale
+    for c in range(n_c):
+        cols.append((inv_c * onehot[c]).ravel()), names.append(f"offset:{data.coordinates[c]}"), ridge.append(TINY_RIDGE)
+    if "fl_passive" in model:
+        pas = passive_force_length(fibre_length(trial.lengths, data.optimal, data.slack), model["fl_passive"]["strain"])
+        cols.append((a * pas[:, None, :]).sum(axis=2).ravel()), names.append("fl_passive:scale")
+        ridge.append(TINY_RIDGE)
+    if "passive_joint" in model:
+        up, low = passive_joint_basis(trial.q, data.lo, data.hi, model["passive_joint"]["decay_rad"])
+        for c in range(n_c):
+            cols.append((low * inv_c * onehot[c]).ravel()), names.append(f"passive_joint:k_lower:{data.coordinates[c]}")
+            cols.append((-up * inv_c * onehot[c]).ravel()), names.append(f"passive_joint:k_upper:{data.coordinates[c]}")
+            ridge += [TINY_RIDGE, TINY_RIDGE]
+    if "damping" in model:
+        for c in range(n_c):
+            cols.append((-trial.qd * inv_c * onehot[c]).ravel()), names.append(f"damping:b:{data.coordinates[c]}")
+            ridge.append(TINY_RIDGE)
+    if "load_scale" in model:
+        cols.append((trial.tau_load * inv_c).ravel()), names.append("load_scale:beta"), ridge.append(TINY_RIDGE)
+    return Design(y=(trial.tau * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols), names=names,
+                  ridge=np.asarray(ridge), n_frames=n, n_coordinates=n_c)
+
+
+@dataclass
+class Fit:
+    model: dict[str, dict]
+    names: list[str]
+    coef: np.ndarray
+    train_mse: float
+    n_params: int  # linear coefficients + nonlinear parameters
+
+
+def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> Fit:
+    """Least squares (normal equations, relative ridge) of the linear coefficients over the trials."""
+    designs = [design(data, t, model) for t in trials]
+    x = np.vstack([d.columns for d in designs])
+    r = np.concatenate([d.y - d.fixed for d in designs])
+    g = x.T @ x
+    diag = np.diag(g).copy()
+    ridge = designs[0].ridge
+    g[np.diag_indices_from(g)] += ridge * np.maximum(diag, 1e-12) + np.where(ridge >= GAIN_RIDGE, GAIN_RIDGE_ABS, 0.0)
+    coef = np.linalg.solve(g, x.T @ r)
+    res = r - x @ coef
+    n_nonlinear = sum(len(p) for p in model.values())
+    return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
+               n_params=len(coef) + n_nonlinear)
+
+
+def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:
+    """(T, n_c) torque gap y - m in capacity-scaled units under a fitted model."""
+    d = design(data, trial, f.model)
+    return (d.y - d.fixed - d.columns @ f.coef).reshape(d.n_frames, d.n_coordinates)
+
+
+def baseline_gaps(data: SessionArrays, trial: TrialArrays) -> np.ndarray:
+    """(T, n_c) the profile as it stands: no re-fit, no offsets, no effect."""
+    d = design(data, trial, {})
+    return (d.y - d.fixed).reshape(d.n_frames, d.n_coordinates)
+
+
+def integrated_autocorrelation(res: list[np.ndarray], max_lag: int = 400) -> float:
+    """tau_int = 1 + 2 sum_k rho_k (up to the first lag where rho < 0.05) of the residual series, averaged over series:
+    how many consecutive samples carry one sample's worth of information."""
+    taus = []
+    for s in res:
+        s = s - s.mean()
+        v = float(s @ s)
+        if v <= 0 or s.size < 10:
+            continue
+        tau = 1.0
+        for k in range(1, min(max_lag, s.size // 2)):
+            rho = float(s[:-k] @ s[k:]) / v
+            if rho < 0.05:
+                break
+            tau += 2.0 * rho
+        taus.append(tau)
+    return float(np.mean(taus)) if taus else 1.0
+
+
+@dataclass
+class Score:
+    name: str
+    parameters: dict
+    fit: Fit
+    holdout_mse: float
+    reduction: float  # 1 - holdout MSE / holdout MSE of the base model
+    delta_bic_train: float
+    delta_bic_holdout: float
+    accepted: bool
+    reason: str
+    extra: dict = field(default_factory=dict)
+
+
+def mse(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:
+    return float(np.mean(np.concatenate([gaps(data, t, f).ravel() for t in trials]) ** 2))

@@ -1,0 +1,220 @@
+"""The whole discrepancy workflow on loaded trials: gaps, where they concentrate, the candidate search, the profile with
+the named effects, and the gaps on the held-out trials before and after (torque and activation)."""
+
+from __future__ import annotations
+
+import copy
+import datetime as _dt
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
+from msk_core.discrepancy.model import Fit, design, effective_emg, fibre_length, gaps
+from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
+from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.trial import TrialData
+
+N_BINS = 12
+XCORR_MAX_LAG_S = 0.2
+
+
+def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
+    """The profile's ``effects`` section for a fitted model (the per-coordinate offsets are nuisance, left out)."""
+    coef = dict(zip(f.names, f.coef.tolist()))
+    arm_groups = {k.split(":")[1] for k in coef if k.startswith("arm:")}
+    # the re-fitted strengths, kept within the calibration's usual bounds
+    gain = {g: (1.0 if g in arm_groups else float(np.clip(1.0 + coef.get(f"gain:{g}", 0.0), 0.5, 2.0)))
+            for g in data.emg_groups}
+    effects = []
+    for name, setting in f.model.items():
+        if name == "emd":
+            extra = setting["delay_total_s"] - data.base_delay_s
+            params = {"delay_s": round(max(extra, 0.0), 6), "delay_total_s": round(setting["delay_total_s"], 6),
+                      "frame_interval_s": round(min(t.frame_interval_s for t in data.trials), 9)}
+        elif name == "crosstalk":
+            params = {"fraction": setting["fraction"], "electrode_order": list(data.electrode_order)}
+        elif name in ("fl_active", "fv"):
+            params = dict(setting)
+        elif name == "fl_passive":
+            params = {"strain": setting["strain"], "scale": coef["fl_passive:scale"]}
+        elif name == "passive_joint":
+            params = {"decay_rad": setting["decay_rad"],
+                      "k_lower_nm": [coef[f"passive_joint:k_lower:{c}"] for c in data.coordinates],
+                      "k_upper_nm": [coef[f"passive_joint:k_upper:{c}"] for c in data.coordinates]}
+        elif name == "damping":
+            params = {"b_nms_per_rad": [coef[f"damping:b:{c}"] for c in data.coordinates]}
+        elif name == "load_scale":
+            params = {"true_over_reported": 1.0 - coef["load_scale:beta"]}
+        elif name == "moment_arm_scale":
+            scales: dict[str, dict[str, float]] = {}
+            for key, value in coef.items():
+                if key.startswith("arm:"):
+                    _, g, c = key.split(":", 2)
+                    scales.setdefault(g, {})[c] = 1.0 + value
+            params = {"scales": scales}
+        else:  # pragma: no cover - the library and this table are kept in step
+            raise ValueError(name)
+        effects.append({"name": name, "parameters": params})
+    return {"format_version": EFFECTS_FORMAT_VERSION, "effects": effects,
+            "strength_gain": {g: round(k, 6) for g, k in gain.items()}, "evidence": evidence}
+
+
+def _binned(x: np.ndarray, y: np.ndarray, bins: int = N_BINS) -> tuple[list[float], list[float]]:
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < bins:
+        return [], []
+    edges = np.quantile(x[ok], np.linspace(0, 1, bins + 1))
+    idx = np.clip(np.searchsorted(edges, x[ok], side="right") - 1, 0, bins - 1)
+    centres = [float(np.mean(x[ok][idx == k])) if np.any(idx == k) else float("nan") for k in range(bins)]
+    means = [float(np.mean(y[ok][idx == k])) if np.any(idx == k) else float("nan") for k in range(bins)]
+    return centres, means
+
+
+def _corr(x: np.ndarray, y: np.ndarray) -> float:
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 3 or np.std(x[ok]) == 0 or np.std(y[ok]) == 0:
+        return 0.0
+    return float(np.corrcoef(x[ok], y[ok])[0, 1])
+
+
+def relations(data: SessionArrays, trials, f: Fit) -> dict:
+    """Where the gaps of model ``f`` concentrate on ``trials``: binned means and correlations against joint angle and
+    velocity (per coordinate), phase, load; per EMG group the gap seen along its moment arms against its fibre length
+    and lengthening velocity; and the correlation of torque with the EMG-implied torque against the lag."""
+    g = np.vstack([gaps(data, t, f) for t in trials])
+    q = np.vstack([t.q for t in trials])
+    qd = np.vstack([t.qd for t in trials])
+    phase = np.concatenate([t.phase for t in trials])
+    load = np.concatenate([np.full(t.n, t.load_kg) for t in trials])
+    out: dict = {"coordinates": {}, "groups": {}}
+    for n, c in enumerate(data.coordinates):
+        out["coordinates"][c] = {
+            "angle": dict(zip(("x", "gap"), _binned(q[:, n], g[:, n]))),
+            "velocity": dict(zip(("x", "gap"), _binned(qd[:, n], g[:, n]))),
+            "phase": dict(zip(("x", "gap"), _binned(phase, g[:, n]))),
+            "corr_angle": _corr(q[:, n], g[:, n]), "corr_velocity": _corr(qd[:, n], g[:, n]),
+            "corr_load": _corr(load, g[:, n]),
+        }
+    if data.optimal is not None and trials[0].lengths is not None:
+        arms = np.vstack([t.arms * data.f_max / t.scale[:, :, None] for t in trials])
+        lengths = np.vstack([fibre_length(t.lengths, data.optimal, data.slack) for t in trials])
+        vel = -np.einsum("tng,tn->tg", np.vstack([t.arms for t in trials]), qd)
+        for j in data.emg_index:
+            a = arms[:, :, j]
+            along = (a * g).sum(axis=1) / np.maximum((a * a).sum(axis=1), 1e-12)
+            out["groups"][data.groups[j]] = {"corr_fibre_length": _corr(lengths[:, j], along),
+                                             "corr_lengthening_velocity": _corr(vel[:, j], along)}
+    dt = min(t.frame_interval_s for t in trials)
+    lags = np.arange(-int(round(XCORR_MAX_LAG_S / dt)), int(round(XCORR_MAX_LAG_S / dt)) + 1)
+    xc = np.zeros((lags.size, len(data.coordinates)))
+    for t in trials:
+        d = design(data, t, {"emd": {"delay_total_s": 0.0}})
+        y = d.y.reshape(t.n, -1)
+        m = d.fixed.reshape(t.n, -1)
+        for k, lag in enumerate(lags):  # torque at t against the EMG-implied torque at t - lag
+            a, b = (y[lag:], m[: t.n - lag]) if lag >= 0 else (y[: t.n + lag], m[-lag:])
+            for n in range(y.shape[1]):
+                xc[k, n] += _corr(a[:, n], b[:, n]) / len(trials)
+    out["xcorr"] = {"lag_s": (lags * dt).tolist(), "corr": xc.T.tolist(),
+                    "peak_lag_s": [float(lags[int(np.argmax(xc[:, n]))] * dt) for n in range(xc.shape[1])]}
+    return out
+
+
+def _rms(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+
+def activation_gaps(pack, profile: SubjectProfile, trials: list[TrialData], groups: list[str], delay_s: float,
+                    progress: bool = False) -> dict:
+    """RMS of (estimated activation (``proposed``) - EMG envelope delayed by ``delay_s``) per EMG group, pooled over
+    the trials, plus the activations themselves for plots."""
+    from msk_core.estimate.pipeline import estimate_trial
+
+    diffs: dict[str, list[np.ndarray]] = {g: [] for g in groups}
+    for t in trials:
+        est = estimate_trial(pack, t, "proposed", subject=profile, progress=progress)
+        for g in groups:
+            e = np.interp(t.time - delay_s, t.time, t.emg[g])
+            diffs[g].append(est.activations[:, list(pack.groups).index(g)] - e)
+    per = {g: _rms(np.concatenate(v)) for g, v in diffs.items()}
+    return {"per_group": per, "rms": _rms(np.concatenate([np.concatenate(v) for v in diffs.values()]))}
+
+
+@dataclass
+class DiscrepancyResult:
+    data: SessionArrays
+    selection: Selection
+    profile_with_effects: SubjectProfile | None
+    summary: dict
+    relations_before: dict
+    relations_after: dict
+    extra: dict = field(default_factory=dict)
+
+
+def _score_dict(s) -> dict:
+    return {"effect": s.name, "parameters": s.parameters, "holdout_mse_reduction": round(s.reduction, 5),
+            "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6), "delta_bic_train": round(s.delta_bic_train, 2),
+            "delta_bic_holdout": round(s.delta_bic_holdout, 2), "n_params": s.fit.n_params, "accepted": s.accepted,
+            "reason": s.reason}
+
+
+def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialData], holdout: list[TrialData], *,
+                    max_effects: int = 1, activation: bool = True, progress: bool = False) -> DiscrepancyResult:
+    check_inputs(train, holdout, MAX_DELAY_S)
+    data = session_arrays(pack, profile, train + holdout)
+    n_train = len([t for t in train if not t.isometric])
+    tr, ho = data.trials[:n_train], data.trials[n_train:]
+    sel = select_effects(data, tr, ho, max_effects=max_effects, progress=progress)
+    before_fit, after_fit = sel.none_fit, sel.final_fit
+    per_c_before = np.sqrt(np.mean(np.vstack([gaps(data, t, before_fit) for t in ho]) ** 2, axis=0))
+    per_c_after = np.sqrt(np.mean(np.vstack([gaps(data, t, after_fit) for t in ho]) ** 2, axis=0))
+    named = sel.named
+    candidates = [_score_dict(s) for s in sel.steps[0]] if sel.steps else []
+    evidence = {
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "training_trials": [t.path for t in tr], "holdout_trials": [t.path for t in ho],
+        "criterion": {"min_holdout_mse_reduction": MIN_REDUCTION, "bic_margin": BIC_MARGIN},
+        "gap_before_rms": float(np.sqrt(sel.gap_before_mse)), "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
+        "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
+    }
+    profile_out = None
+    if named:
+        profile_out = copy.deepcopy(profile)
+        profile_out.effects = effects_section(data, after_fit, evidence)
+    summary = {
+        "effect": "none" if not named else (named[0] if len(named) == 1 else named),
+        "parameters": {} if not named else (
+            profile_out.effects["effects"][0]["parameters"] if len(named) == 1
+            else {e["name"]: e["parameters"] for e in profile_out.effects["effects"]}),
+        "gap_before": float(np.sqrt(sel.gap_before_mse)),
+        "gap_after": float(np.sqrt(sel.gap_after_mse)),
+        "gap_units": "RMS held-out torque gap, fraction of each coordinate's muscle torque capacity at the pose",
+        "gap_per_coordinate": {c: {"before": float(b), "after": float(a)}
+                               for c, b, a in zip(data.coordinates, per_c_before, per_c_after)},
+        "candidates": candidates,
+        "greedy_steps": [[_score_dict(s) for s in step] for step in sel.steps],
+        "criterion": evidence["criterion"],
+        "autocorrelation_frames": sel.autocorrelation_frames,
+        "training_trials": evidence["training_trials"], "holdout_trials": evidence["holdout_trials"],
+        "emg_groups": data.emg_groups,
+        "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
+    }
+    if profile_out is not None:
+        summary["strength_gain"] = profile_out.effects["strength_gain"]
+    if activation:
+        held = [t for t in holdout if not t.isometric]
+        d0 = data.base_delay_s
+        d1 = after_fit.model.get("emd", {}).get("delay_total_s", d0)
+        before = activation_gaps(pack, profile, held, data.emg_groups, d0, progress)
+        after = activation_gaps(pack, profile_out, held, data.emg_groups, d1, progress) if profile_out else before
+        summary["activation_gap_before"] = before["rms"]
+        summary["activation_gap_after"] = after["rms"]
+        summary["activation_gap_per_group"] = {g: {"before": before["per_group"][g], "after": after["per_group"][g]}
+                                               for g in data.emg_groups}
+    return DiscrepancyResult(data=data, selection=sel, profile_with_effects=profile_out, summary=summary,
+                             relations_before=relations(data, ho, before_fit),
+                             relations_after=relations(data, ho, after_fit))

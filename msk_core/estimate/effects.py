@@ -1,0 +1,245 @@
+"""Model effects beyond F = F_max * a, as the subject profile's ``effects`` section carries them into estimation.
+
+Found and fitted by :mod:`msk_core.discrepancy` (``msk discrepancy``); used by :class:`FrameEstimator` so that
+``msk estimate``, ``msk evaluate``, the live estimator node and the demo pick them up through the profile. Each effect
+enters the per-frame QP without changing it (see docs/discrepancy.md for the formulas):
+
+- per-frame force scales (``fl_active``, ``fv``; ``moment_arm_scale`` per group and coordinate; the strength re-fit
+  ``strength_gain``): the moment-arm matrix is scaled column by column, R~ = R * s(q, qd);
+- known torque offsets (``fl_passive``, ``passive_joint``, ``damping``, ``load_scale``): the torque the active
+  muscles must produce is tau - offset(q, qd, load);
+- time shifts (``emd``): the prior is looked up at the phase ``delay`` seconds ago (frame history kept here);
+- EMG unmixing (``crosstalk``): the prior's means of the measured groups are unmixed once, at construction
+  (incoherent sources: powers add, :func:`unmix_envelopes`).
+
+Sign conventions: inverse-dynamics torque = active muscle torque + passive/offset terms; a lengthening velocity is
+negative shortening; moment arm r = -dL/dq, so dL/dt = -R^T qd.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from msk_core.errors import EstimationError
+
+EFFECTS_FORMAT_VERSION = 1
+
+#: every effect name the profile may carry
+EFFECT_NAMES = ("emd", "fl_active", "fl_passive", "passive_joint", "fv", "damping", "load_scale", "moment_arm_scale",
+                "crosstalk")
+MUSCLE_STATE_EFFECTS = ("fl_active", "fl_passive", "fv")
+PASSIVE_SHAPE = 4.0  # exponential shape of the passive force-length curve (Thelen 2003: k^PE = 4)
+FV_CURVATURE = 0.25  # Hill's a/F0 (shortening branch)
+FV_ECCENTRIC_HALF = 0.17  # eccentric plateau reached half-way at this lengthening speed (fraction of v_max)
+
+
+def fibre_length(lengths: np.ndarray, optimal: np.ndarray, slack: np.ndarray) -> np.ndarray:
+    """Normalised fibre length, rigid tendon, no pennation: (L_mtu - L_slack) / L_opt, clipped to [0.3, 2.0]."""
+    return np.clip((np.asarray(lengths) - slack) / optimal, 0.3, 2.0)
+
+
+def shortening_speed(arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray, v_max: float) -> np.ndarray:
+    """Shortening speed in units of v_max (optimal fibre lengths per second); arms (..., n_c, G), qd (..., n_c)."""
+    lengthening = -np.einsum("...ng,...n->...g", arms, qd)  # dL/dt = -R^T qd
+    return -lengthening / (v_max * optimal)
+
+
+def active_force_length(l_norm: np.ndarray, width: float) -> np.ndarray:
+    """Gaussian active force-length curve exp(-((l - 1) / width)^2)."""
+    return np.exp(-(((l_norm - 1.0) / width) ** 2))
+
+
+def passive_force_length(l_norm: np.ndarray, strain: float) -> np.ndarray:
+    """Passive force / F_max: (exp(k (l - 1) / strain) - 1) / (exp(k) - 1) beyond optimal length (1 at l = 1 + strain)."""
+    stretch = np.maximum(l_norm - 1.0, 0.0)
+    return np.expm1(PASSIVE_SHAPE * stretch / strain) / np.expm1(PASSIVE_SHAPE)
+
+
+def force_velocity(v: np.ndarray, eccentric: float) -> np.ndarray:
+    """Hill force-velocity multiplier; v = shortening speed / v_max (negative: lengthening, plateau ``eccentric``)."""
+    v = np.asarray(v, dtype=float)
+    shortening = np.maximum(1.0 - v, 0.0) / (1.0 + np.maximum(v, 0.0) / FV_CURVATURE)
+    u = np.maximum(-v, 0.0)
+    lengthening = 1.0 + (eccentric - 1.0) * u / (u + FV_ECCENTRIC_HALF)
+    return np.where(v >= 0.0, shortening, lengthening)
+
+
+def passive_joint_basis(q: np.ndarray, lo: np.ndarray, hi: np.ndarray, decay: float) -> tuple[np.ndarray, np.ndarray]:
+    """(toward upper limit, toward lower limit) exponentials exp((q - hi)/decay), exp((lo - q)/decay); each 1 at its
+    range limit. The joint's passive elastic moment is k_lo * lower - k_hi * upper (it pushes away from the limit)."""
+    return np.exp((q - hi) / decay), np.exp((lo - q) / decay)
+
+
+def crosstalk_matrix(n: int, fraction: float) -> np.ndarray:
+    """Electrode k sees (1 - c) of its muscle and c shared by its neighbours k - 1, k + 1 in the electrode order."""
+    m = np.eye(n) * (1.0 - fraction)
+    for k in range(n):
+        nb = [j for j in (k - 1, k + 1) if 0 <= j < n]
+        for j in nb:
+            m[k, j] = fraction / len(nb)
+    if n == 1:
+        m[0, 0] = 1.0
+    return m
+
+
+def unmix_envelopes(e: np.ndarray, fraction: float) -> np.ndarray:
+    """Envelopes (..., n) in electrode order with the neighbours' cross-talk removed. Cross-talk mixes the raw signals
+    of different muscles, which are incoherent: powers add, so envelope^2 = (M o M) s^2 (o: element-wise), and
+    s = sqrt(max((M o M)^-1 e^2, 0))."""
+    m = crosstalk_matrix(e.shape[-1], fraction)
+    inv = np.linalg.inv(m * m)
+    return np.sqrt(np.clip((np.asarray(e) ** 2) @ inv.T, 0.0, None))
+
+
+@dataclass
+class ModelEffects:
+    """The profile's effects, ready for per-frame use. ``from_dict`` checks names, versions and the pack."""
+
+    effects: list[dict]  # [{"name": ..., "parameters": {...}}]
+    groups: list[str]
+    coordinates: list[str]
+    strength_gain: np.ndarray  # (G,) multiplies F_max (the re-fit that goes with the effects; 1 = unchanged)
+    evidence: dict = field(default_factory=dict)
+    # derived, per pack
+    _arm_scale: np.ndarray | None = None
+    _optimal: np.ndarray | None = None
+    _slack: np.ndarray | None = None
+    _lo: np.ndarray | None = None
+    _hi: np.ndarray | None = None
+
+    @property
+    def names(self) -> list[str]:
+        return [e["name"] for e in self.effects]
+
+    def params(self, name: str) -> dict | None:
+        for e in self.effects:
+            if e["name"] == name:
+                return e["parameters"]
+        return None
+
+    @property
+    def needs_lengths(self) -> bool:
+        return any(n in self.names for n in MUSCLE_STATE_EFFECTS)
+
+    @property
+    def delay_frames(self) -> int:
+        p = self.params("emd")
+        if not p or p["delay_s"] <= 0:
+            return 0
+        return int(round(p["delay_s"] / p["frame_interval_s"]))
+
+    @property
+    def load_ratio(self) -> float:
+        """true / reported external load (1 without ``load_scale``)."""
+        p = self.params("load_scale")
+        return 1.0 if p is None else float(p["true_over_reported"])
+
+    # -- (de)serialisation -------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "format_version": EFFECTS_FORMAT_VERSION,
+            "effects": self.effects,
+            "strength_gain": {g: round(float(k), 6) for g, k in zip(self.groups, self.strength_gain)},
+            "evidence": self.evidence,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict, groups: list[str], coordinates: list[str]) -> "ModelEffects":
+        if not isinstance(data, dict):
+            raise EstimationError("effects: must be a table")
+        version = data.get("format_version")
+        if version != EFFECTS_FORMAT_VERSION:
+            raise EstimationError(f"effects.format_version: {version!r} is not supported (this software reads "
+                                  f"{EFFECTS_FORMAT_VERSION})")
+        effects = data.get("effects", [])
+        for e in effects:
+            if not isinstance(e, dict) or e.get("name") not in EFFECT_NAMES or not isinstance(e.get("parameters"), dict):
+                raise EstimationError(f"effects.effects: unknown or malformed effect {e!r}; known: "
+                                      f"{', '.join(EFFECT_NAMES)}")
+        gains = data.get("strength_gain", {})
+        unknown = sorted(set(gains) - set(groups))
+        if unknown:
+            raise EstimationError(f"effects.strength_gain: groups {unknown} are not in the profile's groups")
+        gain = np.array([float(gains.get(g, 1.0)) for g in groups])
+        if not np.all(gain > 0):
+            raise EstimationError(f"effects.strength_gain: gains must be positive, got {gain}")
+        return cls(list(effects), list(groups), list(coordinates), gain, dict(data.get("evidence", {})))
+
+    def bind(self, pack) -> "ModelEffects":
+        """Pack-dependent constants (fibre lengths, ranges, the moment-arm scale matrix)."""
+        out = replace(self)
+        if self.needs_lengths:
+            if not hasattr(pack, "optimal_fiber_lengths") or not hasattr(pack, "lengths_and_moment_arms"):
+                raise EstimationError(f"effects {self.names} need muscle lengths, which pack {pack.name!r} lacks")
+            out._optimal = np.asarray(pack.optimal_fiber_lengths, dtype=float)
+            out._slack = np.asarray(pack.tendon_slack_lengths, dtype=float)
+        ranges = getattr(pack, "coordinate_ranges", None)
+        if "passive_joint" in self.names:
+            if ranges is None:
+                raise EstimationError(f"effect passive_joint needs the coordinate ranges, which pack {pack.name!r} "
+                                      "lacks")
+            r = np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
+            out._lo, out._hi = r[:, 0].copy(), r[:, 1].copy()
+        scale = np.ones((len(self.coordinates), len(self.groups)))
+        p = self.params("moment_arm_scale")
+        if p:
+            for g, per in p["scales"].items():
+                for c, s in per.items():
+                    if g not in self.groups or c not in self.coordinates:
+                        raise EstimationError(f"effects moment_arm_scale: unknown group/coordinate {g!r}/{c!r}")
+                    scale[self.coordinates.index(c), self.groups.index(g)] = float(s)
+        out._arm_scale = scale if p else None
+        return out
+
+    # -- per frame ---------------------------------------------------------------------------------------------
+    def force_scale(self, lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
+        """(G,) per-frame multiplier of each group's active force (fl * fv), None when no such effect is on."""
+        scale = None
+        p = self.params("fl_active")
+        if p:
+            scale = active_force_length(fibre_length(lengths, self._optimal, self._slack), p["width"])
+        p = self.params("fv")
+        if p:
+            v = shortening_speed(arms, qd, self._optimal, p["v_max"])
+            f = force_velocity(v, p["eccentric"])
+            scale = f if scale is None else scale * f
+        return scale
+
+    def torque_offset(self, q, qd, lengths, arms, f_max_profile) -> np.ndarray | None:
+        """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping."""
+        out = None
+        p = self.params("fl_passive")
+        if p:
+            pas = passive_force_length(fibre_length(lengths, self._optimal, self._slack), p["strain"])
+            out = p["scale"] * (arms @ (f_max_profile * pas))
+        p = self.params("passive_joint")
+        if p:
+            up, low = passive_joint_basis(q, self._lo, self._hi, p["decay_rad"])
+            t = np.asarray(p["k_lower_nm"]) * low - np.asarray(p["k_upper_nm"]) * up
+            out = t if out is None else out + t
+        p = self.params("damping")
+        if p:
+            t = -np.asarray(p["b_nms_per_rad"]) * qd  # ID = muscle - b qd: the muscles also overcome the damping
+            out = t if out is None else out + t
+        return out
+
+    def new_phase_history(self) -> deque | None:
+        n = self.delay_frames
+        return deque(maxlen=n + 1) if n > 0 else None
+
+    def unmix_prior(self, prior):
+        """The prior with the measured groups' means unmixed (``crosstalk``); as given otherwise."""
+        p = self.params("crosstalk")
+        if not p or prior is None:
+            return prior
+        order = [g for g in p["electrode_order"] if g in self.groups]
+        idx = [self.groups.index(g) for g in order]
+        mean = prior.mean.copy()
+        mean[:, idx] = np.clip(unmix_envelopes(mean[:, idx], p["fraction"]), 0.0, 1.0)
+        rest = None if prior.rest_mean is None else prior.rest_mean.copy()
+        if rest is not None:
+            rest[idx] = np.clip(unmix_envelopes(rest[idx], p["fraction"]), 0.0, 1.0)
+        return replace(prior, mean=mean, rest_mean=rest)

@@ -1,0 +1,69 @@
+"""``msk discrepancy``: where the model and the measurement disagree, the missing effect named, added to the subject
+profile, and the gap shrinking on held-out trials (docs/discrepancy.md)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from msk_core.errors import ConfigError, InputError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "discrepancy",
+        help="find what the model is missing (candidate effects scored on held-out trials), add it to the profile",
+        description="Torque and activation gaps per sample, where they concentrate, a library of candidate effects "
+                    "fitted on the training trials and scored on the held-out trials; writes DIR/summary.json, "
+                    "DIR/report.md with plots and, with --out, the subject profile with the named effect(s).",
+    )
+    p.add_argument("--pack", required=True, help="model pack name or path")
+    p.add_argument("--subject", required=True, type=Path, help="calibrated subject profile JSON")
+    p.add_argument("--trial", action="append", required=True, type=Path, help="training trial TOML (repeatable)")
+    p.add_argument("--holdout", action="append", required=True, type=Path,
+                   help="held-out trial TOML (repeatable; needs measured torques)")
+    p.add_argument("--report", required=True, type=Path, help="output directory (summary.json, report.md, PNGs)")
+    p.add_argument("--out", type=Path, default=None, help="write the profile with the named effect(s) here")
+    p.add_argument("--max-effects", type=int, default=1,
+                   help="greedy forward selection: up to this many effects (default 1)")
+    p.set_defaults(handler=run_discrepancy_command)
+
+
+def run_discrepancy_command(args: argparse.Namespace) -> int:
+    from msk_core.discrepancy.report import write_report
+    from msk_core.discrepancy.workflow import run_discrepancy
+    from msk_core.estimate.profile import SubjectProfile
+    from msk_core.estimate.trial import load_trial
+    from msk_core.model import load_pack
+
+    if args.max_effects < 1:
+        raise ConfigError("must be >= 1", field="--max-effects", value=args.max_effects)
+    train_paths = [p.resolve() for p in args.trial]
+    for p in args.holdout:
+        if p.resolve() in train_paths:
+            raise InputError("a held-out trial must not also be a training trial (the score would not be held out)",
+                             path=p, field="--holdout", value=str(p))
+    pack = load_pack(args.pack)
+    profile = SubjectProfile.load(args.subject)
+    train = [load_trial(p, pack) for p in args.trial]
+    holdout = [load_trial(p, pack) for p in args.holdout]
+    result = run_discrepancy(pack, profile, train, holdout, max_effects=args.max_effects, progress=True)
+    report = write_report(result, args.report)
+    s = result.summary
+    effect = s["effect"] if isinstance(s["effect"], str) else ", ".join(s["effect"])
+    print(f"named effect: {effect}")
+    print(f"held-out RMS torque gap (fraction of capacity): before {s['gap_before']:.4f}, after {s['gap_after']:.4f}")
+    if "activation_gap_before" in s:
+        print(f"held-out RMS activation gap: before {s['activation_gap_before']:.4f}, "
+              f"after {s['activation_gap_after']:.4f}")
+    for c in s["candidates"][:5]:
+        print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  dBIC train "
+              f"{c['delta_bic_train']:8.1f}  held-out {c['delta_bic_holdout']:8.1f}  {c['reason']}")
+    if args.out is not None:
+        if result.profile_with_effects is None:
+            print(f"no effect named: {args.out} not written (the profile stays as it is)")
+        else:
+            result.profile_with_effects.save(args.out)
+            print(f"wrote {args.out}")
+    print(f"wrote {report}")
+    return 0

@@ -1,0 +1,320 @@
+"""msk discrepancy: the profile's effects inside the per-frame estimator (exact equivalences), the live node loading
+them, the input errors, and detection on synthetic sessions with one hidden effect, none, and two at once (a
+representative subset; the full matrix over seeds and exercises is `msk bench discrepancy`)."""
+
+from __future__ import annotations
+
+import functools
+import json
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msk_core.errors import InputError
+from msk_core.estimate import FrameEstimator, SubjectProfile
+from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION, ModelEffects
+from msk_core.estimate.pipeline import build_prior, estimate_trial
+from msk_core.estimate.trial import load_trial
+from msk_core.model import load_pack
+from msk_core.synth import SynthConfig, generate_session, parse_effects
+from msk_core.synth.exercises import Exercise
+from msk_core.synth.files import write_session
+
+_DIRS: list[Path] = []
+LOADS = {"bench_press": (40.0, 60.0), "deadlift": (45.0, 75.0)}
+
+
+# -- synthetic sessions (cached per process: the generator and the prior are the slow part) -------------------------
+
+@functools.lru_cache(maxsize=None)
+def synthetic(exercise: str, effects: str, seed: int, loads: tuple[float, ...] | None = None, reps: int = 3):
+    """(folder, pack, trials, profile, truth): the last load is held out, the others train (default: the lighter
+    load trains, the heavier is held out). The profile has the generator-independent reference strengths and the prior of the training trial's EMG
+    (no calibration: the discrepancy re-fits the strengths anyway, and calibrating costs ~20 s per session)."""
+    ex = Exercise(exercise)
+    folder = Path(tempfile.mkdtemp(prefix=f"disc_{exercise}_"))
+    _DIRS.append(folder)
+    loads = loads or LOADS[exercise]
+    cfg = SynthConfig(subject_seed=seed, n_reps=reps, effects=parse_effects(effects), loads_kg={ex: loads})
+    truth = json.loads(write_session(generate_session([ex], cfg), folder).read_text())
+    pack = load_pack(exercise)
+    trials = [load_trial(folder / exercise / f"{exercise}_{load:g}kg" / "trial.toml", pack) for load in loads]
+    profile = reference_profile(pack, trials[:-1])
+    return folder, pack, trials, profile, truth
+
+
+def reference_profile(pack, trials) -> SubjectProfile:
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    return SubjectProfile(pack.name, str(pack.version), list(pack.groups), f_ref.copy(), f_ref.copy(),
+                          build_prior(pack, trials))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _cleanup():
+    yield
+    for folder in _DIRS:
+        shutil.rmtree(folder, ignore_errors=True)
+    synthetic.cache_clear()
+
+
+def discrepancy(exercise: str, effects: str, seed: int, max_effects: int = 1, loads=None, activation: bool = False):
+    from msk_core.discrepancy import run_discrepancy
+
+    _, pack, trials, profile, _ = synthetic(exercise, effects, seed, loads)
+    return run_discrepancy(pack, profile, trials[:-1], trials[-1:], max_effects=max_effects, activation=activation)
+
+
+# -- effects inside the estimator: exact equivalences --------------------------------------------------------------
+
+def _arm26_profile(effects: dict | None) -> tuple:
+    pack = load_pack("arm26")
+    groups = list(pack.groups)
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    from msk_core.estimate import PhasePrior
+
+    bins = 10
+    prior = PhasePrior(tuple(groups), np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
+                       np.full((bins, len(groups)), 0.05), np.ones(len(groups), dtype=bool),
+                       rest_mean=np.full(len(groups), 0.01), rest_std=np.full(len(groups), 0.02))
+    return pack, SubjectProfile(pack.name, str(pack.version), groups, f_ref.copy(), f_ref.copy(), prior,
+                                effects=effects)
+
+
+def _effects(*items, gain=None) -> dict:
+    return {"format_version": EFFECTS_FORMAT_VERSION, "effects": [{"name": n, "parameters": p} for n, p in items],
+            "strength_gain": gain or {}, "evidence": {}}
+
+
+def _poses(pack, n=30, seed=1):
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(pack.coordinate_ranges)[:, 0], np.asarray(pack.coordinate_ranges)[:, 1]
+    return [lo + (hi - lo) * (0.2 + 0.6 * rng.random(len(lo))) for _ in range(n)], rng
+
+
+def test_profile_without_effects_is_unchanged_and_with_effects_round_trips(tmp_path):
+    pack, plain = _arm26_profile(None)
+    assert "effects" not in plain.to_dict()
+    eff = _effects(("damping", {"b_nms_per_rad": [1.0, 2.0]}), gain={"TRIlong": 1.2})
+    _, with_eff = _arm26_profile(eff)
+    with_eff.save(tmp_path / "p.json")
+    loaded = SubjectProfile.load(tmp_path / "p.json")
+    assert loaded.effects == eff
+    bad = dict(eff, format_version=99)
+    (tmp_path / "bad.json").write_text(json.dumps(dict(with_eff.to_dict(), effects=bad)))
+    with pytest.raises(InputError, match="format_version"):
+        SubjectProfile.load(tmp_path / "bad.json")
+
+
+@pytest.mark.parametrize("method", ["proposed", "so", "hybrid"])
+def test_torque_offsets_and_force_scales_equal_the_plain_estimator_on_transformed_inputs(method):
+    """damping + passive joint moment + load scale + strength gain: the estimator with the effects gives exactly what
+    the plain estimator gives on the torques the active muscles must produce, with F_max times the gain."""
+    b = np.array([1.5, 0.8])
+    pj = {"decay_rad": 0.2, "k_lower_nm": [2.0, 1.0], "k_upper_nm": [0.5, 3.0]}
+    gain = {"TRIlong": 1.3, "BIClong": 0.8}
+    pack, profile = _arm26_profile(_effects(("damping", {"b_nms_per_rad": b.tolist()}), ("passive_joint", pj),
+                                            ("load_scale", {"true_over_reported": 1.2}), gain=gain))
+    _, plain_profile = _arm26_profile(None)
+    g = np.array([gain.get(x, 1.0) for x in pack.groups])
+    with_eff = FrameEstimator(pack, profile, method)
+    plain = FrameEstimator(pack, plain_profile, method, f_max=plain_profile.f_max * g)
+    lo, hi = np.asarray(pack.coordinate_ranges)[:, 0], np.asarray(pack.coordinate_ranges)[:, 1]
+    poses, rng = _poses(pack)
+    for k, q in enumerate(poses):
+        qd, qdd = rng.normal(0, 1.0, 2), rng.normal(0, 2.0, 2)
+        hand = 30.0
+        # from inverse dynamics (the live node's path): the true load is 1.2 x the reported one
+        res = with_eff.step(q, qd, qdd, hand_load_newton=hand, phase=0.1 * (k % 10))
+        tau = np.asarray(pack.inverse_dynamics(q, qd, qdd, 1.2 * hand))
+        passive = np.array(pj["k_lower_nm"]) * np.exp((lo - q) / 0.2) - np.array(pj["k_upper_nm"]) * np.exp((q - hi) / 0.2)
+        ref = plain.step(q, torques=tau + b * qd - passive, phase=0.1 * (k % 10))
+        np.testing.assert_allclose(res.activations, ref.activations, atol=2e-6)
+        # from measured torques (msk estimate's path): the reported load's torques, the rest of the load added
+        measured = np.asarray(pack.inverse_dynamics(q, qd, qdd, hand))
+        res2 = with_eff.step(q, qd, qdd, hand_load_newton=hand, torques=measured, phase=0.1 * (k % 10))
+        np.testing.assert_allclose(res2.activations, ref.activations, atol=2e-6)
+        assert np.max(np.abs(res.activations - plain.step(q, torques=measured, phase=0.1 * (k % 10)).activations)) > 0
+
+
+def test_force_length_scales_each_groups_moment_arms_and_delay_looks_up_the_earlier_phase():
+    pack, profile = _arm26_profile(_effects(("fl_active", {"width": 0.4}),
+                                            ("emd", {"delay_s": 0.03, "frame_interval_s": 0.01})))
+    est = FrameEstimator(pack, profile, "proposed")
+    poses, rng = _poses(pack, 25)
+    from msk_core.estimate.effects import active_force_length, fibre_length
+
+    phases = [0.04 * k for k in range(len(poses))]
+    for k, q in enumerate(poses):
+        tau = rng.normal(0, 5.0, 2)
+        res = est.step(q, torques=tau, phase=phases[k])
+        lengths, arms = pack.lengths_and_moment_arms(q)
+        fl = active_force_length(fibre_length(lengths, pack.optimal_fiber_lengths, pack.tendon_slack_lengths), 0.4)
+        # the same problem with F_max scaled by fl at this pose, and the prior at the phase 3 frames earlier
+        ref = FrameEstimator(pack, _arm26_profile(None)[1], "proposed", f_max=profile.f_max * fl, hot_start=False)
+        expected = ref.step(q, torques=tau, phase=phases[max(k - 3, 0)])
+        np.testing.assert_allclose(res.activations, expected.activations, atol=2e-6)
+
+
+def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_path):
+    from services import estimator, messages, topics
+    from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+
+    pack, profile = _arm26_profile(_effects(("fl_active", {"width": 0.4}),
+                                            ("passive_joint", {"decay_rad": 0.2, "k_lower_nm": [3.0, 2.0],
+                                                               "k_upper_nm": [1.0, 4.0]}), gain={"BIClong": 1.4}))
+    path = tmp_path / "subject.json"
+    profile.save(path)
+    poses, _ = _poses(pack, 20)
+    coords = list(pack.coordinates)
+    stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
+    thread = threading.Thread(target=estimator.main, args=(ZenohOptions(listen=(zenoh_endpoint,)),),
+                              kwargs=dict(pack="arm26", exercise="arm_curl", session="e", methods=["hybrid"],
+                                          subject_path=path, stop_event=stop, ready_event=ready, stats=stats),
+                              daemon=True)
+    thread.start()
+    assert ready.wait(20)
+    received: list = []
+    with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+        session.declare_subscriber("msk/e/activations/*", lambda s: received.append(
+            messages.decode("msk.ActivationFrame", s.payload.to_bytes())))
+        pub = declare_data_publisher(session, topics.joints_key("e"), "msk.JointAngles")
+        deadline = time.monotonic() + 10
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for i, q in enumerate(poses):
+            publish(pub, messages.JointAngles(coordinates=coords, q=q.tolist(), phase=-1.0,
+                                              device_time_ns=(i + 1) * 10_000_000))
+        deadline = time.monotonic() + 30
+        while len(received) < len(poses) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    stop.set()
+    thread.join(10)
+    assert len(received) == len(poses), f"waited for {len(poses)} frames, got {len(received)}"
+    offline = FrameEstimator(pack, SubjectProfile.load(path), "hybrid")
+    plain = FrameEstimator(pack, _arm26_profile(None)[1], "hybrid")
+    differs = 0
+    for frame, q in zip(received, poses):
+        z = np.zeros(len(q))
+        expected = offline.step(q, z, z, hand_load_newton=0.0, phase=-1.0)
+        np.testing.assert_allclose(frame.activations, expected.activations, atol=1e-6)
+        differs += np.max(np.abs(expected.activations - plain.step(q, z, z, phase=-1.0).activations)) > 1e-3
+    assert differs >= len(poses) // 2
+
+
+# -- input errors ----------------------------------------------------------------------------------------------
+
+def test_input_errors_name_the_file_and_field(tmp_path):
+    from msk_core.discrepancy import check_inputs
+
+    folder, pack, trials, profile, _ = synthetic("bench_press", "none", 5)
+    train, held = trials
+    src = Path(held.path)
+    no_torque = tmp_path / "held_no_torques.toml"
+    no_torque.write_text("\n".join(line for line in src.read_text().splitlines() if not line.startswith("torques"))
+                         .replace('"ik.sto"', f'"{src.parent / "ik.sto"}"').replace('"emg.sto"', f'"{src.parent / "emg.sto"}"'))
+    held_id = load_trial(no_torque, pack)
+    with pytest.raises(InputError, match=r"held_no_torques\.toml.*'torques'"):
+        check_inputs([train], [held_id])
+    with pytest.raises(InputError, match=r"'--holdout'"):
+        check_inputs([train], [train])
+    from dataclasses import replace
+
+    with pytest.raises(InputError, match=r"'emg'"):
+        check_inputs([replace(train, emg={})], [replace(held, emg={})])
+    short = replace(train, time=train.time[:30], q=train.q[:30], torques=train.torques[:30])
+    with pytest.raises(InputError, match=r"'kinematics'.*longest delay"):
+        check_inputs([short], [held])
+
+
+# -- detection on synthetic sessions ------------------------------------------------------------------------------
+
+def _shrink(result) -> float:
+    s = result.summary
+    return 1.0 - s["gap_after"] / s["gap_before"]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_no_hidden_effect_names_none(seed):
+    result = discrepancy("bench_press", "none", seed)
+    assert result.summary["effect"] == "none", result.summary["candidates"][:3]
+    assert result.profile_with_effects is None
+
+
+def test_electromechanical_delay_is_named_and_the_profile_improves_estimation(tmp_path):
+    result = discrepancy("bench_press", "emd=0.15", 3, activation=True)
+    s = result.summary
+    assert s["effect"] == "emd", s["candidates"][:3]
+    assert abs(s["parameters"]["delay_s"] - 0.15) <= 0.03
+    assert _shrink(result) >= 0.3, (s["gap_before"], s["gap_after"])
+    # the profile with the effect: held-out activation RMSE against the truth no worse (here: better)
+    _, pack, trials, profile, _ = synthetic("bench_press", "emd=0.15", 3)
+    held = trials[1]
+    from msk_core.io import read_sto
+
+    truth = read_sto(Path(held.path).parent / "truth_activations.sto")
+    a_true = np.column_stack([np.interp(held.time, truth.time, truth.column(g)) for g in pack.groups])
+
+    def rmse(p):
+        est = estimate_trial(pack, held, "proposed", subject=p)
+        return float(np.sqrt(np.nanmean((est.activations - a_true) ** 2)))
+
+    before, after = rmse(profile), rmse(result.profile_with_effects)
+    assert after <= before, (before, after)
+
+    # and the activation gap (estimate - EMG) on the held-out trial shrinks with it
+    assert s["activation_gap_after"] < s["activation_gap_before"]
+
+
+def test_joint_damping_is_named():
+    result = discrepancy("bench_press", "damping=5", 3)
+    assert result.summary["effect"] == "damping", result.summary["candidates"][:3]
+    b = result.summary["parameters"]["b_nms_per_rad"]
+    assert all(2.5 <= x <= 7.5 for x in b), b  # 5 N·m·s/rad at every coordinate
+    assert _shrink(result) >= 0.3
+
+
+def test_load_misreport_is_named_when_the_training_trials_have_two_loads():
+    result = discrepancy("bench_press", "load_misreport=1.3", 2, loads=(40.0, 60.0, 50.0))
+    s = result.summary
+    assert s["effect"] == "load_scale", s["candidates"][:3]
+    # the trial files report 1.3 x the true load: true / reported = 0.77; the fit gets the direction, not the size
+    # (measured 0.51: the load's moment is partly confounded with the strength re-fit; docs/discrepancy.md, Limits)
+    assert 0.4 < s["parameters"]["true_over_reported"] < 0.95
+    assert _shrink(result) >= 0.3
+
+
+def test_two_hidden_effects_are_both_named_with_max_effects_2():
+    result = discrepancy("deadlift", "emd=0.15,fl_passive", 1, max_effects=2)
+    assert sorted(result.summary["effect"]) == ["emd", "fl_passive"], result.summary["greedy_steps"]
+
+
+def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
+    from services.cli import main
+
+    folder, pack, trials, profile, _ = synthetic("bench_press", "emd=0.15", 3)
+    subject = tmp_path / "subject.json"
+    profile.save(subject)
+    report, out = tmp_path / "report", tmp_path / "with_effect.json"
+    assert main(["discrepancy", "--pack", "bench_press", "--subject", str(subject), "--trial", str(trials[0].path),
+                 "--holdout", str(trials[1].path), "--report", str(report), "--out", str(out)]) == 0
+    summary = json.loads((report / "summary.json").read_text())
+    assert summary["effect"] == "emd" and summary["gap_after"] < summary["gap_before"]
+    assert [c["effect"] for c in summary["candidates"]][0] == "emd"
+    assert {"parameters", "gap_before", "gap_after", "candidates"} <= set(summary)
+    for png in ("gap_vs_angle", "gap_vs_velocity", "gap_vs_phase", "xcorr_vs_lag", "gap_rms"):
+        assert (report / f"{png}.png").stat().st_size > 1000
+    assert "emd" in (report / "report.md").read_text()
+    loaded = SubjectProfile.load(out)
+    assert loaded.effects["effects"][0]["name"] == "emd"
+    assert main(["estimate", "--pack", "bench_press", "--subject", str(out), "--trial", str(trials[1].path),
+                 "--out", str(tmp_path / "act.sto")]) == 0
+    capsys.readouterr()
+    assert main(["discrepancy", "--pack", "bench_press", "--subject", str(subject), "--trial", str(trials[0].path),
+                 "--holdout", str(trials[0].path), "--report", str(report)]) == 2
+    err = capsys.readouterr().err
+    assert "--holdout" in err and "bench_press_40kg" in err, err
