@@ -51,6 +51,8 @@ from services.zenoh_session import (
 log = logging.getLogger(__name__)
 
 
+SOLVERS = ("active-set", "piqp")
+
 
 @dataclass
 class EstimatorStats:
@@ -167,6 +169,100 @@ def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: boo
     return LiveEmg(groups, setup, clock=clock, stall_s=stall_s)
 
 
+class EstimatorNode:
+    """The node's state between Zenoh and the estimators: load timeline, coordinate order, phase tracking, the EMG
+    path; one ``handle_*`` per input kind, each returning the messages to publish (no Zenoh in here)."""
+
+    def __init__(self, pack: str, methods: list[str], subject: SubjectProfile | None, stats: EstimatorStats, *,
+                 emg: bool | None, electrode_map: dict[str, str] | None, emg_clock: ClockMode | str,
+                 emg_stall_s: float, initial_load_kg: float, exercise: str | None, solver: str) -> None:
+        if solver not in SOLVERS:
+            raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
+        self.stats = stats
+        self.estimators = {m: FrameEstimator(pack, subject=subject, method=m, hot_start=solver == "active-set")
+                           for m in methods}
+        for estimator in self.estimators.values():  # compiled kernels and solvers ready before the first live frame
+            estimator.warm_up()
+        first = next(iter(self.estimators.values()))
+        self.mapper = CoordinateMapper(list(first.coordinates))
+        # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
+        self.live_phase = LivePhase.from_profile(subject, first.coordinates) if subject is not None else None
+        self.live_emg = make_live_emg(subject, list(first.groups), emg=emg, electrode_map=electrode_map,
+                                      clock=emg_clock, stall_s=emg_stall_s)
+        if "assisted" in self.estimators and self.live_emg is None:
+            raise ConfigError("method 'assisted' needs EMG: a subject profile with MVC normalisation or an electrode "
+                              "map", field="method", value="assisted")
+        if self.live_emg is not None:
+            stats.emg = self.live_emg.counters
+        self.loads = LoadTimeline(initial_load_kg)
+        # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
+        # name.
+        self.exercise = exercise if exercise is not None else first.pack.name
+
+    def handle_emg(self, payload: bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
+        chunk = messages.decode("msk.EmgChunk", payload)
+        self.stats.emg_chunks += 1
+        block = self.live_emg.add_chunk(
+            chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
+            chunk.device_time_ns, np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels),
+            arrival_ns,
+        )
+        if block is None or not block.groups:
+            return None
+        self.stats.envelopes_out += 1
+        return emg_to_envelope(block, arrival_ns)
+
+    def handle_load(self, payload: bytes) -> None:
+        event = messages.decode("msk.LoadEvent", payload)
+        self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
+        self.stats.load_events += 1
+
+    def handle_joints(self, payload: bytes, arrival_ns: int) -> list[tuple[str, messages.ActivationFrame]]:
+        """(method, frame) for every method; empty when the frame is skipped (other exercise, wrong coordinates)."""
+        stats = self.stats
+        stats.frames_in += 1
+        joints = messages.decode("msk.JointAngles", payload)
+        load_kg, current_exercise = self.loads.at(joints.device_time_ns)
+        if current_exercise and current_exercise != self.exercise:
+            stats.other_exercise += 1
+            return []
+        try:
+            q, qd, qdd = (self.mapper.take(joints, f) for f in ("q", "qd", "qdd"))
+        except ConfigError as error:
+            stats.rejected += 1
+            if stats.rejected == 1:
+                log.error("%s", error)
+            stats.last_error = str(error)
+            return []
+        time_s = joints.device_time_ns / 1e9
+        phase = self._phase(joints, time_s, q)
+        envelope, emg_flags = (None, []) if self.live_emg is None else self.live_emg.at(joints.device_time_ns,
+                                                                                          arrival_ns)
+        for flag in emg_flags:
+            stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
+        out = []
+        for method, estimator in self.estimators.items():
+            result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
+            frame = to_message(result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
+                               time_s=time_s, arrival_ns=arrival_ns)
+            if envelope is not None:
+                frame.measured_envelope.extend(envelope.tolist())
+                frame.flags.extend(emg_flags)
+            if result.flagged:
+                stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
+            out.append((method, frame))
+        stats.frames_out += 1
+        return out
+
+    def _phase(self, joints, time_s: float, q: np.ndarray) -> float | None:
+        """Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1)."""
+        if joints.HasField("phase"):
+            return float(joints.phase)
+        if self.live_phase is not None:  # no phase upstream: track it on the subject's rep template
+            return self.live_phase.update(time_s, q)
+        return None
+
+
 def main(
     config: ZenohOptions,
     *,
@@ -180,6 +276,7 @@ def main(
     emg_stall_s: float = 0.25,
     initial_load_kg: float = 0.0,
     exercise: str | None = None,
+    solver: str = "active-set",
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
     ready_key: ReadySpec | None = None,
@@ -188,25 +285,9 @@ def main(
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else EstimatorStats()
     subject = SubjectProfile.load(subject_path) if subject_path is not None else None
-    estimators = {m: FrameEstimator(pack, subject=subject, method=m) for m in methods}
-    for estimator in estimators.values():  # compiled kernels and solvers ready before the first live frame
-        estimator.warm_up()
-    first = next(iter(estimators.values()))
-    mapper = CoordinateMapper(list(first.coordinates))
-    # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
-    live_phase = LivePhase.from_profile(subject, first.coordinates) if subject is not None else None
-    live_emg = make_live_emg(subject, list(first.groups), emg=emg, electrode_map=electrode_map, clock=emg_clock,
-                             stall_s=emg_stall_s)
-    if "assisted" in estimators and live_emg is None:
-        raise ConfigError("method 'assisted' needs EMG: a subject profile with MVC normalisation or an electrode map",
-                          field="method", value="assisted")
-    if live_emg is not None:
-        stats.emg = live_emg.counters
+    node = EstimatorNode(pack, methods, subject, stats, emg=emg, electrode_map=electrode_map, emg_clock=emg_clock,
+                         emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver)
     inbox: queue.SimpleQueue = queue.SimpleQueue()
-    loads = LoadTimeline(initial_load_kg)
-    # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events name.
-    exercise = exercise if exercise is not None else first.pack.name
-
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
 
     def on_sample(sample: zenoh.Sample) -> None:
@@ -224,7 +305,7 @@ def main(
         # One subscriber for both keys keeps load events and frames in their publication order.
         subscribers = [zsession.declare_subscriber(f"{topics.session_prefix(session)}/*", on_sample)]
         envelope_publisher = None
-        if live_emg is not None:
+        if node.live_emg is not None:
             envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
             subscribers.append(zsession.declare_subscriber(f"{topics.session_prefix(session)}/emg/**", on_emg))
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
@@ -237,61 +318,15 @@ def main(
                 except queue.Empty:
                     continue
                 if kind == "emg":
-                    chunk = messages.decode("msk.EmgChunk", payload)
-                    stats.emg_chunks += 1
-                    block = live_emg.add_chunk(
-                        chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
-                        chunk.device_time_ns, np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels),
-                        arrival_ns,
-                    )
-                    if block is not None and block.groups:
-                        publish(envelope_publisher, emg_to_envelope(block, arrival_ns))
-                        stats.envelopes_out += 1
-                    continue
-                if kind == "load":
-                    event = messages.decode("msk.LoadEvent", payload)
-                    loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
-                    stats.load_events += 1
-                    continue
-                stats.frames_in += 1
-                joints = messages.decode("msk.JointAngles", payload)
-                load_kg, current_exercise = loads.at(joints.device_time_ns)
-                if current_exercise and current_exercise != exercise:
-                    stats.other_exercise += 1
-                    continue
-                try:
-                    q, qd, qdd = (mapper.take(joints, f) for f in ("q", "qd", "qdd"))
-                except ConfigError as error:
-                    stats.rejected += 1
-                    if stats.rejected == 1:
-                        log.error("%s", error)
-                    stats.last_error = str(error)
-                    continue
-                # Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1).
-                time_s = joints.device_time_ns / 1e9
-                if joints.HasField("phase"):
-                    phase = float(joints.phase)
-                elif live_phase is not None:  # no phase upstream: track it on the subject's rep template
-                    phase = live_phase.update(time_s, q)
-                else:
-                    phase = None
-                envelope, emg_flags = (None, []) if live_emg is None else live_emg.at(joints.device_time_ns, arrival_ns)
-                for flag in emg_flags:
-                    stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
-                for method, estimator in estimators.items():
-                    result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
-                    frame = to_message(
-                        result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
-                        time_s=time_s, arrival_ns=arrival_ns,
-                    )
+                    envelope = node.handle_emg(payload, arrival_ns)
                     if envelope is not None:
-                        frame.measured_envelope.extend(envelope.tolist())
-                        frame.flags.extend(emg_flags)
-                    if result.flagged:
-                        stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
-                    frame.publish_ns = messages.now_ns()
-                    publish(publishers[method], frame)
-                stats.frames_out += 1
+                        publish(envelope_publisher, envelope)
+                elif kind == "load":
+                    node.handle_load(payload)
+                else:
+                    for method, frame in node.handle_joints(payload, arrival_ns):
+                        frame.publish_ns = messages.now_ns()
+                        publish(publishers[method], frame)
         finally:
             for subscriber in subscribers:
                 subscriber.undeclare()
@@ -315,6 +350,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "clocks by host arrival (docs/topics.md)")
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    parser.add_argument("--solver", choices=SOLVERS, default="active-set",
+                        help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
+                        "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')")
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
     parser.add_argument(
         "--exercise", default=None,
@@ -348,7 +386,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     stats = main(
         options_from_args(args), pack=args.pack, session=args.session, methods=methods,
         subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
-        emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready,
+        emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready, solver=args.solver,
     )
     print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
           + (f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
