@@ -83,6 +83,100 @@ def _segment_of(key: str, sample) -> str:
     return sample.segment or key.rsplit("/", 1)[1]
 
 
+class KinematicsNode:
+    """The node's state between Zenoh and the IMU kinematics: segment synchroniser, streaming kinematics, counters.
+    :meth:`handle` takes one IMU message and returns the JointAngles to publish (no Zenoh in here)."""
+
+    def __init__(self, pack: str, session: str, stats: KinematicsStats, *, facing_deg: float,
+                 static_pose_deg: dict[str, float] | None, static_s: float, gap_s: float, sync_tolerance_s: float,
+                 max_wait_s: float, filter_config: KinematicsFilterConfig | None, phase_template: RepTemplate | None,
+                 phase_coordinate: str | None) -> None:
+        self.stats = stats
+        self.model = load_pack(pack)
+        # ENU: x east, y north; the mapping's heading is counter-clockwise from x
+        self.mapper = ImuJointMapper.for_pack(self.model, heading_rad=math.radians(90.0 - facing_deg))
+        if (phase_template is None) != (phase_coordinate is None):
+            raise ConfigError("phase tracking needs both a rep template and a coordinate", field="phase_coordinate",
+                              value=phase_coordinate)
+        if phase_coordinate is not None and phase_coordinate not in self.mapper.coordinates:
+            raise ConfigError(f"not a coordinate of pack {self.model.name!r} ({self.mapper.coordinates})",
+                              field="phase_coordinate", value=phase_coordinate)
+        self.kinematics = StreamingJointKinematics(
+            self.mapper, static_pose_rad=self.mapper.static_pose(static_pose_deg), static_s=static_s, gap_s=gap_s,
+            filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
+            phase_template=phase_template, phase_coordinate=phase_coordinate,
+        )
+        self.sync = SegmentSynchroniser(self.mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9),
+                                        max_wait_ns=int(max_wait_s * 1e9))
+        self.needed = set(self.mapper.segments)
+        self.coordinates = list(self.mapper.coordinates)
+        self.prefix = f"{topics.session_prefix(session)}/imu/"
+
+    def handle(self, key: str, payload: bytes) -> list[messages.JointAngles]:
+        """One IMU message in; the joint-angle frames it completes out. A bad sample is counted, never raised."""
+        try:
+            return self._handle(key, payload)
+        except MskError as error:  # one bad sample must not stop the node: count it, say why, go on
+            self.stats.rejected += 1
+            self.stats.last_error = f"{key}: {error}"
+            if self.stats.rejected == 1:
+                log.error("%s", self.stats.last_error)
+            return []
+
+    def _handle(self, key: str, payload: bytes) -> list[messages.JointAngles]:
+        stats = self.stats
+        stats.samples_in += 1
+        try:
+            imu = messages.decode("msk.ImuSample", payload)
+        except messages.MessageDecodeError as exc:
+            stats.undecodable += 1
+            stats.last_error = f"{key}: {exc}"
+            return []
+        segment = _segment_of(key, imu)
+        if segment not in self.needed:
+            stats.ignored += 1
+            return []
+        try:
+            frame = CoordinateFrame[(imu.coordinate_frame or "ENU").upper()]  # Xsens' default output is ENU
+        except KeyError:
+            stats.unknown_frame += 1
+            stats.last_error = f"{key}: unknown coordinate_frame {imu.coordinate_frame!r} (ENU, NED or NWU)"
+            return []
+        o = imu.orientation
+        quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
+        before = self.sync.out_of_order
+        events = self.sync.push(segment, int(imu.device_time_ns), quat)
+        stats.out_of_order += self.sync.out_of_order - before
+        return [joints for event in events if (joints := self._frame(event)) is not None]
+
+    def _frame(self, event) -> messages.JointAngles | None:
+        stats = self.stats
+        if isinstance(event, IncompleteFrame):
+            stats.frames_incomplete += 1
+            stats.samples_discarded += event.samples
+            for s in event.missing:
+                stats.missing[s] = stats.missing.get(s, 0) + 1
+            stats.last_error = (f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
+                                f"(topics {self.prefix}<tracker>; pack {self.model.name!r} needs "
+                                f"{self.mapper.segments})")
+            if stats.frames_incomplete == 1:
+                log.error("%s", stats.last_error)
+            return None
+        stats.frames_synced += 1
+        out = self.kinematics.step(event)
+        _copy_counters(self.kinematics, stats)
+        if out is None:
+            return None
+        joints = messages.JointAngles(
+            coordinates=self.coordinates, q=out.q.tolist(), qd=out.qd.tolist(), qdd=out.qdd.tolist(),
+            device_time_ns=out.time_ns, host_time_ns=messages.now_ns(),
+        )
+        if np.isfinite(out.phase):  # left unset = unknown (no rep template); -1 = between reps
+            joints.phase = out.phase
+        stats.frames_out += 1
+        return joints
+
+
 def main(
     config: ZenohOptions,
     *,
@@ -106,105 +200,38 @@ def main(
     """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east)."""
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else KinematicsStats()
-    model = load_pack(pack)
-    # ENU: x east, y north; the mapping's heading is counter-clockwise from x
-    mapper = ImuJointMapper.for_pack(model, heading_rad=math.radians(90.0 - facing_deg))
-    if (phase_template is None) != (phase_coordinate is None):
-        raise ConfigError("phase tracking needs both a rep template and a coordinate", field="phase_coordinate",
-                          value=phase_coordinate)
-    if phase_coordinate is not None and phase_coordinate not in mapper.coordinates:
-        raise ConfigError(f"not a coordinate of pack {model.name!r} ({mapper.coordinates})",
-                          field="phase_coordinate", value=phase_coordinate)
-    kinematics = StreamingJointKinematics(
-        mapper, static_pose_rad=mapper.static_pose(static_pose_deg), static_s=static_s, gap_s=gap_s,
-        filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
-        phase_template=phase_template, phase_coordinate=phase_coordinate,
-    )
-    sync = SegmentSynchroniser(mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9),
-                               max_wait_ns=int(max_wait_s * 1e9))
-    needed = set(mapper.segments)
-    coordinates = list(mapper.coordinates)
+    node = KinematicsNode(pack, session, stats, facing_deg=facing_deg, static_pose_deg=static_pose_deg,
+                          static_s=static_s, gap_s=gap_s, sync_tolerance_s=sync_tolerance_s, max_wait_s=max_wait_s,
+                          filter_config=filter_config, phase_template=phase_template,
+                          phase_coordinate=phase_coordinate)
     inbox: queue.SimpleQueue = queue.SimpleQueue()
-    prefix = f"{topics.session_prefix(session)}/imu/"
 
     def on_sample(sample: zenoh.Sample) -> None:
         inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
 
-    def handle(key: str, payload: bytes) -> None:
-        stats.samples_in += 1
-        try:
-            imu = messages.decode("msk.ImuSample", payload)
-        except messages.MessageDecodeError as exc:
-            stats.undecodable += 1
-            stats.last_error = f"{key}: {exc}"
-            return
-        segment = _segment_of(key, imu)
-        if segment not in needed:
-            stats.ignored += 1
-            return
-        try:
-            frame = CoordinateFrame[(imu.coordinate_frame or "ENU").upper()]  # Xsens' default output is ENU
-        except KeyError:
-            stats.unknown_frame += 1
-            stats.last_error = f"{key}: unknown coordinate_frame {imu.coordinate_frame!r} (ENU, NED or NWU)"
-            return
-        o = imu.orientation
-        quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
-        before = sync.out_of_order
-        events = sync.push(segment, int(imu.device_time_ns), quat)
-        stats.out_of_order += sync.out_of_order - before
-        for event in events:
-            if isinstance(event, IncompleteFrame):
-                stats.frames_incomplete += 1
-                stats.samples_discarded += event.samples
-                for s in event.missing:
-                    stats.missing[s] = stats.missing.get(s, 0) + 1
-                stats.last_error = (f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
-                                    f"(topics {prefix}<tracker>; pack {model.name!r} needs {mapper.segments})")
-                if stats.frames_incomplete == 1:
-                    log.error("%s", stats.last_error)
-                continue
-            stats.frames_synced += 1
-            out = kinematics.step(event)
-            _copy_counters(kinematics, stats)
-            if out is None:
-                continue
-            joints = messages.JointAngles(
-                coordinates=coordinates, q=out.q.tolist(), qd=out.qd.tolist(), qdd=out.qdd.tolist(),
-                device_time_ns=out.time_ns, host_time_ns=messages.now_ns(),
-            )
-            if np.isfinite(out.phase):  # left unset = unknown (no rep template); -1 = between reps
-                joints.phase = out.phase
-            publish(publisher, joints)
-            stats.frames_out += 1
-
-    def guarded(key: str, payload: bytes) -> None:
-        try:
-            handle(key, payload)
-        except MskError as error:  # one bad sample must not stop the node: count it, say why, go on
-            stats.rejected += 1
-            stats.last_error = f"{key}: {error}"
-            if stats.rejected == 1:
-                log.error("%s", stats.last_error)
-
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
-        subscriber = zsession.declare_subscriber(f"{prefix}*", on_sample)
+        subscriber = zsession.declare_subscriber(f"{node.prefix}*", on_sample)
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
+
+        def process(key: str, payload: bytes) -> None:
+            for joints in node.handle(key, payload):
+                publish(publisher, joints)
+
         try:
             while not stop_event.is_set():
                 try:
                     key, payload = inbox.get(timeout=0.05)
                 except queue.Empty:
                     continue
-                guarded(key, payload)
+                process(key, payload)
         finally:
             subscriber.undeclare()
             while True:  # what already arrived is still processed and published: nothing received is lost
                 try:
-                    guarded(*inbox.get_nowait())
+                    process(*inbox.get_nowait())
                 except queue.Empty:
                     break
     return stats
