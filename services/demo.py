@@ -17,7 +17,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,53 +24,19 @@ import numpy as np
 from msk_core.errors import InputError
 from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
-from msk_core.io import read_sto
 from msk_core.model import load_pack
 from services import estimator, kinematics_node, recorder, replayer
+from msk_core.estimate.report import plot_strength, strength_markdown
+from services.live_scoring import (  # noqa: F401 - re-exported: imported from services.demo before
+    METHODS, MethodScore, TrialWindow, _trial_folders, markdown, plot, score, trial_windows,
+)
 from services.mcap_io import read_messages
 from services.graph import Graph, wait_for
 from services.zenoh_session import ZenohOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RECORDINGS = REPO_ROOT / "recordings"
-METHODS = ("proposed", "so", "hybrid")
 SESSION = "demo"
-
-
-@dataclass
-class TrialWindow:
-    exercise: str
-    load_kg: float
-    start_s: float
-    end_s: float
-
-    @property
-    def name(self) -> str:
-        return f"{self.exercise}_{self.load_kg:g}kg"
-
-
-@dataclass
-class MethodScore:
-    exercise: str
-    trial: str
-    role: str  # "calibration" or "held out"
-    method: str
-    frames: int
-    activation_rmse: float
-    torque_rmse_nm: float
-    flagged: int
-    solve_us_median: float
-    solve_us_p99: float
-    latency_ms_median: float
-    latency_ms_p99: float
-    per_group_rmse: dict[str, float] = field(default_factory=dict)
-
-
-def _trial_folders(recordings: Path, exercise: str) -> list[Path]:
-    folders = sorted(p for p in (recordings / "demo" / exercise).iterdir() if (p / "trial.toml").is_file())
-    if len(folders) < 2:
-        raise InputError("the demo needs two trials per exercise (calibration + held out)", path=recordings / "demo" / exercise)
-    return sorted(folders, key=lambda p: float(p.name.rsplit("_", 1)[1].removesuffix("kg")))
 
 
 def calibration_trial_files(recordings: Path, exercise: str) -> tuple[Path, list[Path]]:
@@ -216,170 +181,6 @@ def run_live_graph(
                        for ex, k in kin_stats.items()},
         "seconds": elapsed,
     }
-
-
-def trial_windows(load_events: list) -> list[TrialWindow]:
-    """Trials as the load events delimit them: a non-zero mass opens one, the next zero closes it."""
-    windows, open_window = [], None
-    for event in load_events:
-        t = event.device_time_ns / 1e9
-        if event.barbell_mass_kg > 0:
-            open_window = TrialWindow(event.exercise, event.barbell_mass_kg, t, float("inf"))
-        elif open_window is not None:
-            open_window.end_s = t
-            windows.append(open_window)
-            open_window = None
-    return windows
-
-
-def score(recorded_mcap: Path, recordings: Path) -> tuple[list[MethodScore], dict]:
-    frames: dict[str, list] = {m: [] for m in METHODS}
-    load_events = []
-    for recorded in read_messages(recorded_mcap):  # one pass over the recording for frames and load events
-        if recorded.type_name == "msk.ActivationFrame":
-            frame = recorded.decode()
-            frames[frame.method].append(frame)
-        elif recorded.type_name == "msk.LoadEvent":
-            load_events.append(recorded.decode())
-    scores, curves = [], {}
-    for window in trial_windows(load_events):
-        folders = _trial_folders(recordings, window.exercise)
-        folder = next((f for f in folders if f.name == window.name), None)
-        if folder is None:
-            continue
-        role = "calibration" if folder == folders[0] else "held out"
-        truth = read_sto(folder / "truth_activations.sto")
-        for method in METHODS:
-            inside = [f for f in frames[method] if window.start_s - 1e-6 <= f.time_s <= window.end_s + 1e-6 and set(f.groups) == set(truth.columns)]
-            if not inside:
-                continue
-            groups = list(inside[0].groups)
-            t = np.array([f.time_s - window.start_s for f in inside])
-            estimated = np.array([f.activations for f in inside])
-            true = np.column_stack([np.interp(t, truth.time, truth.column(g)) for g in groups])
-            ok = np.all(np.isfinite(estimated), axis=1)
-            residual = np.array([[c.residual_nm for c in f.torques] for f in inside])
-            solve = np.array([f.solve_time_s for f in inside]) * 1e6
-            latency = np.array([(f.publish_ns - f.input_arrival_ns) / 1e6 for f in inside])
-            per_group = {g: float(np.sqrt(np.mean((estimated[ok, i] - true[ok, i]) ** 2))) for i, g in enumerate(groups)}
-            scores.append(MethodScore(
-                exercise=window.exercise, trial=window.name, role=role, method=method, frames=len(inside),
-                activation_rmse=float(np.sqrt(np.mean((estimated[ok] - true[ok]) ** 2))),
-                torque_rmse_nm=float(np.sqrt(np.mean(residual[ok] ** 2))),
-                flagged=int(sum(1 for f in inside if f.flags)),
-                solve_us_median=float(np.median(solve)), solve_us_p99=float(np.percentile(solve, 99)),
-                latency_ms_median=float(np.median(latency)), latency_ms_p99=float(np.percentile(latency, 99)),
-                per_group_rmse=per_group,
-            ))
-            curves[(window.name, method)] = (t, estimated, true, groups)
-    return scores, curves
-
-
-def markdown(scores: list[MethodScore]) -> str:
-    lines = [
-        "| trial | role | method | frames | activation RMSE | torque residual RMS (N·m) | flagged | solve µs (median / p99) | latency ms (median / p99) |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for s in scores:
-        lines.append(
-            f"| {s.trial} | {s.role} | {s.method} | {s.frames} | {s.activation_rmse:.3f} | {s.torque_rmse_nm:.2f} | {s.flagged} | "
-            f"{s.solve_us_median:.0f} / {s.solve_us_p99:.0f} | {s.latency_ms_median:.2f} / {s.latency_ms_p99:.2f} |"
-        )
-    return "\n".join(lines)
-
-
-def strength_markdown(calibration: dict) -> str:
-    """Per exercise: calibrated F_max against the generator's truth and the model's reference, with the status."""
-    lines = []
-    for exercise, rep in calibration.items():
-        lines += [
-            f"### {exercise}: calibrated on {rep['trials']['lift']}"
-            + (f" + {rep['trials']['isometric']} isometric MVC trials" if rep["trials"]["isometric"] else "")
-            + f" in {rep['seconds']:.1f} s",
-            "",
-            f"Median |F_max / truth - 1|: {100 * rep['strength_error_median']:.1f} % "
-            f"(model reference {100 * rep['reference_error_median']:.1f} %).",
-            "",
-            "| group | status | calibrated F_max (N) | true F_max (N) | error | reference (N) | reference error |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for g, v in rep["groups"].items():
-            lines.append(
-                f"| {g} | {v['status']} | {v['f_max_n']:.0f} | {v['truth_n']:.0f} | {100 * (v['f_max_n'] / v['truth_n'] - 1):+.0f} % "
-                f"| {v['reference_n']:.0f} | {100 * (v['reference_n'] / v['truth_n'] - 1):+.0f} % |"
-            )
-        lines.append("")
-    return "\n".join(lines)
-
-
-STRENGTH_COLOURS = {"identified": "tab:green", "not_calibrated": "dimgrey"}
-
-
-def plot_strength(calibration: dict, out: Path) -> Path:
-    """F_max / truth per group: calibrated and the model's reference (1 = exact)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(len(calibration), 1, figsize=(13, 2.8 * len(calibration)), squeeze=False)
-    for ax, (exercise, rep) in zip(axes[:, 0], calibration.items()):
-        groups = list(rep["groups"])
-        x = np.arange(len(groups))
-        cal = [rep["groups"][g]["f_max_n"] / rep["groups"][g]["truth_n"] for g in groups]
-        ref = [rep["groups"][g]["reference_n"] / rep["groups"][g]["truth_n"] for g in groups]
-        ax.bar(x - 0.2, ref, 0.4, color="lightgrey")
-        status = [rep["groups"][g]["status"] for g in groups]
-        ax.bar(x + 0.2, cal, 0.4, color=[STRENGTH_COLOURS.get(st, "tab:orange") for st in status])
-        ax.axhline(1.0, color="black", lw=1)
-        ax.axhspan(0.9, 1.1, color="tab:green", alpha=0.08)
-        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)
-        ax.set_ylim(0.0, max(1.5, 1.05 * max(cal + ref)))
-        ax.set_ylabel("F_max / truth")
-        ax.set_title(f"{exercise}: median error {100 * rep['strength_error_median']:.0f} % "
-                     f"(reference {100 * rep['reference_error_median']:.0f} %)", fontsize=10)
-    from matplotlib.patches import Patch
-
-    handles = [Patch(color="lightgrey", label="model reference"),
-               Patch(color=STRENGTH_COLOURS["identified"], label="calibrated: identified"),
-               Patch(color="tab:orange", label="calibrated: combination / unidentified / at bound"),
-               Patch(color=STRENGTH_COLOURS["not_calibrated"], label="no EMG: kept at reference")]
-    axes[0, 0].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    fig.tight_layout()
-    path = out / "strength.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-def plot(curves: dict, scores: list[MethodScore], out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    written = []
-    for trial in sorted({s.trial for s in scores if s.role == "held out"}):
-        truth_t, _, truth, groups = curves[(trial, "proposed")]
-        # The four groups that work hardest in the truth: where people look first.
-        top = np.argsort(truth.max(axis=0))[::-1][:4]
-        fig, axes = plt.subplots(len(top), 1, figsize=(10, 2.2 * len(top)), sharex=True)
-        for ax, gi in zip(np.atleast_1d(axes), top):
-            ax.plot(truth_t, truth[:, gi], color="black", lw=2, label="truth")
-            for method, colour in zip(METHODS, ("tab:green", "tab:red", "tab:blue")):
-                t, est, _, _ = curves[(trial, method)]
-                ax.plot(t, est[:, gi], color=colour, lw=1, label=method)
-            ax.set_ylabel(groups[gi])
-            ax.set_ylim(0, 1)
-        np.atleast_1d(axes)[0].legend(loc="upper right", ncol=4, fontsize=8)
-        np.atleast_1d(axes)[-1].set_xlabel("time in trial (s)")
-        fig.suptitle(f"{trial} (held out from calibration): live activations vs truth")
-        fig.tight_layout()
-        path = out / f"{trial}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
-    return written
 
 
 def main(
