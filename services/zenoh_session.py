@@ -21,6 +21,7 @@ from msk_core.errors import ConfigError
 from services import messages
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+LOOPBACK_ANY_PORT = "tcp/127.0.0.1:0"
 
 
 @dataclass(frozen=True)
@@ -28,9 +29,11 @@ class ZenohOptions:
     """How a node joins the Zenoh network.
 
     ``connect``/``listen`` empty means: listen on :data:`DEFAULT_ENDPOINT` if it is free, else connect to it.
+    Without a config file a node never listens beyond loopback unless told to with ``listen`` (Zenoh's own default
+    for a peer is every interface). ``mode`` None: the config file's mode, else peer.
     """
 
-    mode: str = "peer"
+    mode: str | None = "peer"
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     config_file: Path | None = None
@@ -47,15 +50,19 @@ class ZenohOptions:
                 raise ConfigError(f"invalid Zenoh config: {error}", path=path) from error
         else:
             config = zenoh.Config()
-        if self.mode not in ("peer", "client", "router"):
-            raise ConfigError("Zenoh mode must be peer, client or router", field="mode", value=self.mode)
-        config.insert_json5("mode", json.dumps(self.mode))
+        mode = self.mode if self.mode is not None else (None if self.config_file is not None else "peer")
+        if mode is not None:
+            if mode not in ("peer", "client", "router"):
+                raise ConfigError("Zenoh mode must be peer, client or router", field="mode", value=mode)
+            config.insert_json5("mode", json.dumps(mode))
         connect, listen = list(self.connect), list(self.listen)
         if self.config_file is None and not connect and not listen:
             if _endpoint_is_free(DEFAULT_ENDPOINT):
                 listen = [DEFAULT_ENDPOINT]
             else:
                 connect = [DEFAULT_ENDPOINT]
+        if self.config_file is None and not listen and mode in ("peer", "router"):
+            listen = [LOOPBACK_ANY_PORT]  # Zenoh would listen on tcp/[::]:0 (every interface) otherwise
         if connect:
             config.insert_json5("connect/endpoints", json.dumps(connect))
         if listen:
@@ -80,7 +87,10 @@ def _endpoint_is_free(endpoint: str) -> bool:
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("Zenoh")
-    group.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh mode (default: peer)")
+    group.add_argument(
+        "--mode", choices=["peer", "client", "router"], default=None,
+        help="Zenoh mode (default: the --zenoh-config file's, else peer)",
+    )
     group.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)"
     )
