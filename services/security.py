@@ -13,6 +13,7 @@ Roles (CN ``msk-<role>``):
 * ``recorder``   reads everything (``msk/**``), publishes nothing
 * ``operator``   publishes ``msk/*/load`` (barbell changes) and reads everything
 * ``tablet``     reads ``msk/*/activations/**`` and ``msk/*/status/**`` only
+* ``replayer``   plays a recording back: device topics, load and joints
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ ROLE_POLICIES: dict[str, RolePolicy] = {
     "recorder": RolePolicy(publish=(), subscribe=("msk/**",)),
     "operator": RolePolicy(publish=("msk/*/load",), subscribe=("msk/**",)),
     "tablet": RolePolicy(publish=(), subscribe=("msk/*/activations/**", "msk/*/status/**")),
+    "replayer": RolePolicy(publish=(*DEVICE_KEYS, "msk/*/load", "msk/*/joints"), subscribe=()),
 }
 
 VALIDITY_DAYS = 825  # browsers' and rustls' comfort limit for leaf certificates
