@@ -18,7 +18,7 @@ import zenoh
 from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
-from services import messages
+from services import messages, topics
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 LOOPBACK_ANY_PORT = "tcp/127.0.0.1:0"
@@ -114,13 +114,26 @@ def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
     return zenoh.open((options or ZenohOptions()).to_config())
 
 
-def declare_data_publisher(session: zenoh.Session, key: str, type_name: str) -> zenoh.Publisher:
-    """A publisher that never drops: reliable transport, blocking congestion control, protobuf encoding with schema."""
+def declare_data_publisher(
+    session: zenoh.Session, key: str, type_name: str, *, delivery: topics.Delivery | None = None
+) -> zenoh.Publisher:
+    """A reliable publisher with protobuf encoding and the topic's delivery policy (:data:`services.topics.DELIVERY`).
+
+    Lossless topics block under congestion (a slow subscriber slows the publisher, nothing is dropped); newest-wins
+    topics drop, per subscriber link, what a full queue cannot take, so a hung view never stalls its publisher.
+    """
     messages.message_class(type_name)  # fail early on an unknown type
+    if delivery is None:
+        try:
+            delivery = topics.delivery_for_key(key)
+        except ConfigError:  # not an msk/<session>/... key
+            delivery = topics.Delivery.LOSSLESS
     return session.declare_publisher(
         key,
         encoding=encoding_for(type_name),
-        congestion_control=zenoh.CongestionControl.BLOCK,
+        congestion_control=(
+            zenoh.CongestionControl.BLOCK if delivery is topics.Delivery.LOSSLESS else zenoh.CongestionControl.DROP
+        ),
         reliability=zenoh.Reliability.RELIABLE,
     )
 
