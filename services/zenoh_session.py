@@ -138,6 +138,41 @@ def declare_data_publisher(
     )
 
 
+#: Samples each device publisher keeps for a restarted recorder to fetch (per key; >= 10 s at 100 messages/s).
+DEVICE_HISTORY_SAMPLES = 1000
+
+
+def declare_history_publisher(
+    session: zenoh.Session, key: str, type_name: str, *, history_samples: int = DEVICE_HISTORY_SAMPLES
+):
+    """A lossless data publisher that also keeps its last ``history_samples`` for late or restarted subscribers
+    (a Zenoh AdvancedPublisher with a cache; :func:`declare_history_subscriber` fetches it)."""
+    import zenoh.ext
+
+    messages.message_class(type_name)
+    return zenoh.ext.declare_advanced_publisher(
+        session,
+        key,
+        encoding=encoding_for(type_name),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+        cache=zenoh.ext.CacheConfig(max_samples=history_samples),
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(),  # sequence numbers (else the cache needs timestamping)
+        publisher_detection=True,
+    )
+
+
+def declare_history_subscriber(session: zenoh.Session, key_expr: str, callback, *, history_s: float):
+    """A subscriber that first receives what publishers of :func:`declare_history_publisher` kept from the last
+    ``history_s`` seconds (also from publishers that appear later), then the live samples."""
+    import zenoh.ext
+
+    return zenoh.ext.declare_advanced_subscriber(
+        session, key_expr, callback,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_age=float(history_s)),
+    )
+
+
 def encoding_for(type_name: str) -> zenoh.Encoding:
     return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(type_name)
 

@@ -77,9 +77,9 @@ def _client(endpoint: str) -> zenoh.Session:
     return open_session(ZenohOptions(mode="client", connect=(endpoint,)))
 
 
-def _start_recorder(out: Path, endpoint: str, session: zenoh.Session) -> subprocess.Popen:
+def _start_recorder(out: Path, endpoint: str, session: zenoh.Session, *flags: str) -> subprocess.Popen:
     """``msk recorder`` as a client of the router; returns once it is subscribed (a probe publisher matches it)."""
-    process = _msk("recorder", "--out", str(out), "--mode", "client", "--connect", endpoint)
+    process = _msk("recorder", "--out", str(out), "--mode", "client", "--connect", endpoint, *flags)
     probe = session.declare_publisher(f"msk/{SESSION}/probe-{os.getpid()}-{time.monotonic_ns()}")
     try:
         def matched() -> bool:
@@ -184,3 +184,89 @@ def test_hung_app_stalls_no_publisher_and_the_recorder_loses_nothing(router, tmp
     assert app_received < n_frames, (
         f"the hung app received all {n_frames} frames: its link was never congested, so this test showed nothing"
     )
+
+
+def _start_trigno_simulator() -> tuple[subprocess.Popen, dict[str, int]]:
+    """``msk sim trigno`` on free loopback ports (real TCP); returns the process and its ports."""
+    process = _msk("sim", "trigno", "--from", "synthetic:60:7", "--port", "0", "--emg-port", "0",
+                   "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1")
+    line = process.stdout.readline()
+    if "command" not in line:
+        _stop(process)
+        raise AssertionError(f"the Trigno simulator did not start: {line!r} {process.communicate()[1][-2000:]}")
+    import re
+
+    ports = {name: int(port) for name, port in re.findall(r"(command|emg) (\d+)", line)}
+    return process, ports
+
+
+def _emg_chunks(paths: list[Path], key: str) -> list[messages.EmgChunk]:
+    return [m.decode() for path in paths for m in read_messages(path) if m.topic == key]
+
+
+def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(router, tmp_path):
+    """Real Trigno simulator -> ``msk drivers`` -> router -> ``msk recorder``. The recorder is SIGKILLed mid-session
+    and started again with the same --out: the killed file opens up to its last completed chunk (the most recent
+    message in it is at most one flush interval older than the kill), the restart writes ``rec-001.mcap``, and the
+    EMG of both files joined is every sample the driver received, each once, without a gap (first_sample_index)."""
+    out = tmp_path / "rec.mcap"
+    emg_key = topics.emg_key(SESSION, "trigno")
+    flush_interval_s = 0.5
+    session = _client(router)
+    simulator, ports = _start_trigno_simulator()
+    processes = [simulator]
+    try:
+        recorder = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
+        processes.append(recorder)
+        drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
+                       "--trigno-emg-port", str(ports["emg"]), "--duration", "9", "--mode", "client", "--connect", router)
+        processes.append(drivers)
+
+        def emg_recorded() -> int:
+            if drivers.poll() is not None:
+                raise AssertionError(f"msk drivers exited {drivers.returncode}: {drivers.communicate()[1][-2000:]}")
+            return len(_emg_chunks([out], emg_key)) if out.exists() else 0
+
+        _wait(lambda: emg_recorded() > 50, 40, "the first EMG chunks in the recorder's file", emg_recorded)
+        time.sleep(1.0)
+        recorder.kill()  # SIGKILL
+        kill_ns = time.time_ns()
+        recorder.wait(10)
+        time.sleep(1.0)  # the recorder is down for a while; the driver goes on
+        restarted = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
+        processes.append(restarted)
+        try:
+            drivers_out, drivers_err = drivers.communicate(timeout=40)  # --duration ends it, with its summary
+        except subprocess.TimeoutExpired:
+            raise AssertionError("msk drivers did not end 40 s after its --duration of 9 s") from None
+        time.sleep(1.0)  # its last messages reach the recorder
+        restarted_err = _stop(restarted)
+    finally:
+        for process in processes:
+            _stop(process, signal.SIGKILL) if process.poll() is None else None
+        session.close()
+    assert recorder.returncode == -signal.SIGKILL
+    continuation = tmp_path / "rec-001.mcap"
+    assert continuation.is_file(), f"the restarted recorder did not continue into {continuation.name}: {restarted_err}"
+    report = ReadReport()
+    first_part = list(read_messages(out, report=report))
+    assert report.truncated, "a SIGKILLed recorder cannot have written the MCAP footer"
+    last_kept_ns = max(m.log_time_ns for m in first_part)
+    lost_window_s = (kill_ns - last_kept_ns) / 1e9
+    assert lost_window_s <= flush_interval_s + 1.0, f"the killed file ends {lost_window_s:.2f} s before the kill"
+    chunks = _emg_chunks([out, continuation], emg_key)
+    starts = [c.first_sample_index for c in chunks]
+    assert len(starts) == len(set(starts)), f"{len(starts) - len(set(starts))} chunks recorded twice"
+    gaps = [(a.first_sample_index, b.first_sample_index) for a, b in zip(chunks, chunks[1:])
+            if b.first_sample_index != a.first_sample_index + a.n_samples]
+    assert not gaps, f"gaps in the joined recording (previous start, next start): {gaps[:5]}"
+    import re
+
+    summary = re.search(r"published (\d+) samples in (\d+) messages", drivers_out)
+    assert summary, f"msk drivers printed no summary: {drivers_out!r} {drivers_err[-1000:]}"
+    sent = int(summary.group(1))
+    recorded = sum(c.n_samples for c in chunks)
+    assert chunks[0].first_sample_index == 0
+    assert recorded == sent, f"msk drivers published {sent} EMG samples, the two files hold {recorded}"
+    print(f"killed file: {len(first_part)} messages, ends {lost_window_s:.2f} s before the kill; "
+          f"joined: {len(chunks)} EMG chunks, {recorded} samples of {sent} published")

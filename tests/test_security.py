@@ -21,7 +21,7 @@ import zenoh
 
 from services import messages, security, zenoh_session
 from services.schemas import msk_pb2
-from services.zenoh_session import ZenohOptions, declare_data_publisher, publish
+from services.zenoh_session import ZenohOptions, declare_data_publisher, declare_history_publisher, publish
 from tests.conftest import free_tcp_port
 
 SESSION = "gym1"
@@ -239,11 +239,13 @@ def test_subscribe_only_client_cannot_inject_load_or_emg(pki, router):
         sessions["estimator"].declare_subscriber(f"msk/{SESSION}/emg/**", estimator_inbox)
         sessions["recorder"].declare_subscriber(f"msk/{SESSION}/**", recorder_inbox)
         real_load = declare_data_publisher(sessions["operator"], load_key, "msk.LoadEvent")
-        real_emg = declare_data_publisher(sessions["driver"], emg_key, "msk.EmgChunk")
+        real_emg = declare_history_publisher(sessions["driver"], emg_key, "msk.EmgChunk")  # what msk drivers uses
         fake_load = declare_data_publisher(sessions["tablet"], load_key, "msk.LoadEvent")
         fake_emg = declare_data_publisher(sessions["tablet"], emg_key, "msk.EmgChunk")
         _wait_matched(real_load, load_key)
-        _wait_matched(real_emg, emg_key)
+        probe = sessions["driver"].declare_publisher(emg_key)  # an AdvancedPublisher has no matching status
+        _wait_matched(probe, emg_key)
+        probe.undeclare()
         for index in range(N):
             publish(fake_load, msk_pb2.LoadEvent(barbell_mass_kg=999.0))
             publish(fake_emg, _emg("fake", index))
