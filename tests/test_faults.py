@@ -270,3 +270,100 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
     assert recorded == sent, f"msk drivers published {sent} EMG samples, the two files hold {recorded}"
     print(f"killed file: {len(first_part)} messages, ends {lost_window_s:.2f} s before the kill; "
           f"joined: {len(chunks)} EMG chunks, {recorded} samples of {sent} published")
+
+
+class _RealTimeReplay(threading.Thread):
+    """Publishes the demo recording's device data (EMG, IMU, joints, load) under our session at its real pace,
+    counting what it sent per key: the driver and kinematics nodes of a live session, as one loss-free source."""
+
+    def __init__(self, session: zenoh.Session, source: Path) -> None:
+        super().__init__(daemon=True)
+        self.session, self.source = session, source
+        self.sent: dict[str, int] = {}
+        self.stop = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            publishers = {}
+            start_wall = start_log = None
+            for recorded in read_messages(self.source):
+                if self.stop.is_set():
+                    return
+                key = topics.rename_session(recorded.topic, SESSION)
+                if key not in publishers:
+                    publishers[key] = declare_data_publisher(self.session, key, recorded.type_name)
+                if start_wall is None:
+                    start_wall, start_log = time.monotonic(), recorded.log_time_ns
+                if (delay := start_wall + (recorded.log_time_ns - start_log) / 1e9 - time.monotonic()) > 0:
+                    time.sleep(delay)
+                publishers[key].put(recorded.data)
+                self.sent[key] = self.sent.get(key, 0) + 1
+        except BaseException as error:  # reported by the test
+            self.error = error
+
+
+def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(router, tmp_path, repo_root):
+    """Device data of the demo session flows at real time through the router to ``msk recorder`` and ``msk estimator``
+    (bench_press, SO). The estimator is SIGKILLed while it publishes and started again: it publishes activation
+    frames again within RESUME_BOUND_S of the restart (a fresh process: warm-up of the solver, phase tracking anew),
+    and the recorder holds every device message published, per key (zero lost)."""
+    resume_bound_s = 45.0  # start-up is import + model + numba warm-up: ~7 s on an idle 2-core machine
+    out = tmp_path / "session.mcap"
+    session = _client(router)
+    recorder = _start_recorder(out, router, session)
+    estimator_argv = ("estimator", "--pack", "bench_press", "--session", SESSION, "--method", "so",
+                      "--mode", "client", "--connect", router)
+    arrivals: list[tuple[float, messages.ActivationFrame]] = []
+    session.declare_subscriber(f"msk/{SESSION}/activations/**",
+                               lambda s: arrivals.append((time.monotonic(), messages.decode("msk.ActivationFrame", s.payload.to_bytes()))))
+    estimator = _msk(*estimator_argv)
+    restarted = None
+    source = _RealTimeReplay(session, repo_root / "recordings" / "demo_session.mcap")
+    source.start()
+    try:
+        def alive(process):
+            if process.poll() is not None:
+                raise AssertionError(f"msk estimator exited {process.returncode}: {process.communicate()[1][-2000:]}")
+            return True
+
+        _wait(lambda: alive(estimator) and len(arrivals) > 0, resume_bound_s + 30, "the first activation frame",
+              lambda: f"{len(arrivals)} frames; sent {source.sent}")
+        time.sleep(1.5)
+        estimator.kill()  # SIGKILL, mid-session
+        estimator.wait(10)
+        before_kill = len(arrivals)
+        restart_at = time.monotonic()
+        restarted = _msk(*estimator_argv)
+        _wait(lambda: alive(restarted) and any(t > restart_at for t, _ in arrivals), resume_bound_s,
+              "the restarted estimator's first activation frame", lambda: f"{len(arrivals)} frames in all")
+        resume_s = next(t for t, _ in arrivals if t > restart_at) - restart_at
+        time.sleep(1.5)
+        source.stop.set()
+        source.join(30)
+        assert source.error is None, f"the source failed: {source.error!r}"
+        time.sleep(1.5)  # > the recorder's flush interval
+        _stop(restarted)
+        _stop(recorder)
+    finally:
+        source.stop.set()
+        for process in (estimator, restarted, recorder):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait(10)
+        session.close()
+    assert estimator.returncode == -signal.SIGKILL
+    recorded: dict[str, int] = {}
+    for message in read_messages(out):
+        recorded[message.topic] = recorded.get(message.topic, 0) + 1
+    device = {key: n for key, n in source.sent.items() if "/activations/" not in key}
+    assert sum(device.values()) > 1000 and any("/joints" in k for k in device) and any("/emg/" in k for k in device)
+    lost = {key: n - recorded.get(key, 0) for key, n in device.items() if recorded.get(key, 0) != n}
+    assert not lost, f"the recorder lost device messages (key: sent - recorded): {lost}"
+    after = [frame for t, frame in arrivals if t > restart_at]
+    assert before_kill > 0 and len(after) > 10, f"{before_kill} frames before the kill, {len(after)} after the restart"
+    assert all(0.0 <= a <= 1.0 for frame in after for a in frame.activations)
+    times = [frame.time_s for frame in after]
+    assert times == sorted(times), "the restarted estimator publishes frames out of order"
+    print(f"estimator resumed {resume_s:.1f} s after the restart; {before_kill} frames before the kill, "
+          f"{len(after)} after; device messages sent = recorded = {sum(device.values())}")
