@@ -196,7 +196,7 @@ def _start_trigno_simulator() -> tuple[subprocess.Popen, dict[str, int]]:
         raise AssertionError(f"the Trigno simulator did not start: {line!r} {process.communicate()[1][-2000:]}")
     import re
 
-    ports = {name: int(port) for name, port in re.findall(r"(command|emg) (\d+)", line)}
+    ports = {name: int(port) for name, port in re.findall(r"(command|legacy emg|emg|aux) (\d+)", line)}
     return process, ports
 
 
@@ -367,3 +367,61 @@ def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(r
     assert times == sorted(times), "the restarted estimator publishes frames out of order"
     print(f"estimator resumed {resume_s:.1f} s after the restart; {before_kill} frames before the kill, "
           f"{len(after)} after; device messages sent = recorded = {sum(device.values())}")
+
+
+def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router, tmp_path):
+    """The Trigno simulator (``msk sim trigno``) is SIGKILLed under a running ``msk drivers`` and started again on
+    the same ports: DeviceStatus goes connected -> disconnected -> connected, EMG chunks resume by themselves, the
+    sample indices jump by exactly the samples the status reports lost, and nothing is repeated."""
+    import re
+
+    session = _client(router)
+    statuses: list[messages.DeviceStatus] = []
+    chunks: list[tuple[float, messages.EmgChunk]] = []
+    session.declare_subscriber(topics.status_key(SESSION, "trigno"),
+                               lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
+    session.declare_subscriber(topics.emg_key(SESSION, "trigno"),
+                               lambda s: chunks.append((time.monotonic(), messages.decode("msk.EmgChunk", s.payload.to_bytes()))))
+    simulator, ports = _start_trigno_simulator()  # the second simulator takes the same ports
+    processes = [simulator]
+    try:
+        drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
+                       "--trigno-emg-port", str(ports["emg"]), "--mode", "client", "--connect", router)
+        processes.append(drivers)
+        _wait(lambda: len(chunks) > 30, 40, "EMG chunks from msk drivers", lambda: f"{len(chunks)} chunks")
+        simulator.kill()
+        simulator.wait(10)
+        gone_at = time.monotonic()
+        _wait(lambda: any(not s.connected for s in statuses), 15, "a DeviceStatus saying the Trigno is disconnected",
+              lambda: [s.connected for s in statuses])
+        time.sleep(1.0)
+        back = _msk("sim", "trigno", "--from", "synthetic:60:7", "--port", str(ports["command"]),
+                    "--emg-port", str(ports["emg"]), "--legacy-emg-port", str(ports["legacy emg"]),
+                    "--aux-port", str(ports["aux"]), "--legacy-acc-port", "-1")
+        processes.append(back)
+        assert "command" in back.stdout.readline(), back.stderr.read()[-2000:]
+        back_at = time.monotonic()
+        _wait(lambda: sum(1 for t, _ in chunks if t > back_at) > 30, 30, "EMG chunks after the Trigno came back",
+              lambda: f"{len(chunks)} chunks in all; statuses {[s.connected for s in statuses]}")
+        time.sleep(1.5)  # a periodic status after the resumption
+        _stop(drivers)
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait(10)
+        session.close()
+    states = [s.connected for s in statuses]
+    first_down = states.index(False)
+    assert True in states[:first_down] and True in states[first_down:], f"connected states in order: {states}"
+    before = [c for t, c in chunks if t < gone_at]
+    after = [c for t, c in chunks if t > back_at]
+    indices = [c.first_sample_index for _, c in chunks]
+    assert indices == sorted(indices) and len(set(indices)) == len(indices), "EMG indices repeat or go back"
+    jumps = [(a.first_sample_index + a.n_samples, b.first_sample_index) for (_, a), (_, b) in zip(chunks, chunks[1:])
+             if b.first_sample_index != a.first_sample_index + a.n_samples]
+    lost = max(s.samples_lost for s in statuses)
+    assert len(jumps) == 1 and jumps[0][1] - jumps[0][0] == lost > 0, f"jumps {jumps}; status reports {lost} lost"
+    assert len(before) > 30 and len(after) > 30
+    print(f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
+          f"(= the index jump), {len(after)} chunks after it came back")
