@@ -233,9 +233,30 @@ def access_control(roles: dict[str, RolePolicy] = ROLE_POLICIES) -> dict:
                                "messages": ["declare_subscriber"], "key_exprs": list(policy.subscribe)})
             role_rules.append({"id": f"{role}-receive", "permission": "allow", "flows": ["egress"],
                                "messages": ["put", "delete"], "key_exprs": list(policy.subscribe)})
+        # History (a restarted recorder fetching what device publishers kept, services.zenoh_session
+        # .declare_history_publisher): the publisher's cache is a queryable announced by a liveliness token under
+        # <key>/@adv/**, a verbatim chunk that msk/** does not cover.
+        if policy.publish:
+            history_keys = _with_history(policy.publish)
+            role_rules.append({"id": f"{role}-history-serve", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["declare_queryable", "reply", "liveliness_token"], "key_exprs": history_keys})
+            role_rules.append({"id": f"{role}-history-asked", "permission": "allow", "flows": ["egress"],
+                               "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
+                               "key_exprs": history_keys})
+        if policy.subscribe:
+            history_keys = _with_history(policy.subscribe)
+            role_rules.append({"id": f"{role}-history-fetch", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
+                               "key_exprs": history_keys})
+            role_rules.append({"id": f"{role}-history-receive", "permission": "allow", "flows": ["egress"],
+                               "messages": ["reply", "liveliness_token", "declare_queryable"], "key_exprs": history_keys})
         rules.extend(role_rules)
         policies.append({"id": role, "rules": [r["id"] for r in role_rules], "subjects": [role]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def _with_history(keys: tuple[str, ...]) -> list[str]:
+    return [*keys, *(f"{key}/@adv/**" if key.endswith("**") else f"{key}/**/@adv/**" for key in keys)]
 
 
 def router_config(pki_dir: Path | str, *, listen: tuple[str, ...] = (f"tls/0.0.0.0:{DEFAULT_TLS_PORT}",), acl: bool = True) -> dict:

@@ -323,3 +323,32 @@ def test_certs_command_writes_a_usable_pki_and_configs(tmp_path):
     assert oct((tmp_path / "pki" / "tablet.key").stat().st_mode & 0o777) == "0o600"
     for path in (tmp_path / "pki" / "zenoh").iterdir():
         zenoh.Config.from_file(str(path))  # Zenoh itself parses every config
+
+
+def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(pki, router):
+    """What a restarted recorder does (tests/test_faults.py): the driver published 50 EMG chunks before the recorder
+    joined; the recorder (role recorder) fetches all 50 from the driver's history, then the 10 live ones. A tablet
+    asking the same history gets none of it (device data is not its to read)."""
+    from services.zenoh_session import declare_history_subscriber
+
+    sessions = {role: _client(pki, role, router) for role in ("driver", "recorder", "tablet")}
+    key = f"msk/{SESSION}/emg/history"
+    recorder, tablet = Inbox(), Inbox()
+    try:
+        publisher = declare_history_publisher(sessions["driver"], key, "msk.EmgChunk")
+        for index in range(50):
+            publish(publisher, _emg("trigno", index))
+        time.sleep(0.3)
+        declare_history_subscriber(sessions["recorder"], f"msk/{SESSION}/**", recorder, history_s=10)
+        declare_history_subscriber(sessions["tablet"], f"msk/{SESSION}/emg/**", tablet, history_s=10)
+        _wait_for(lambda: recorder.count(key) >= 50, 20, "the 50 chunks of history at the recorder", lambda: dict(recorder.keys))
+        for index in range(50, 60):
+            publish(publisher, _emg("trigno", index))
+        _wait_for(lambda: recorder.count(key) >= 60, 20, "60 chunks at the recorder", lambda: dict(recorder.keys))
+        time.sleep(0.5)
+        indices = [messages.decode("msk.EmgChunk", data).first_sample_index for k, data in recorder.payloads if k == key]
+        assert indices == [27 * i for i in range(60)]
+        assert tablet.keys == Counter(), f"the tablet read device data: {dict(tablet.keys)}"
+    finally:
+        for session in sessions.values():
+            session.close()
