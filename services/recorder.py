@@ -198,7 +198,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     print(
         f"recorded {stats.written} messages to {out}"
         + (f"; skipped {stats.skipped_unknown} on keys of unknown type" if stats.skipped_unknown else "")
-        + (f"; {stats.undecodable} undecodable" if stats.undecodable else ""),
+        + (f"; {stats.undecodable} undecodable" if stats.undecodable else "")
+        + (f"; left out {stats.already_recorded} the earlier parts hold" if stats.already_recorded else ""),
         file=sys.stderr,
     )
     return 0

@@ -156,7 +156,12 @@ def declare_history_publisher(
         encoding=encoding_for(type_name),
         congestion_control=zenoh.CongestionControl.BLOCK,
         reliability=zenoh.Reliability.RELIABLE,
-        cache=zenoh.ext.CacheConfig(max_samples=history_samples),
+        # replies block like the data: a burst of up to history_samples replies must not be dropped on a busy link
+        # (a lost reply leaves the subscriber holding back live samples until its query times out)
+        cache=zenoh.ext.CacheConfig(
+            max_samples=history_samples,
+            replies_config=zenoh.ext.RepliesConfig(congestion_control=zenoh.CongestionControl.BLOCK),
+        ),
         sample_miss_detection=zenoh.ext.MissDetectionConfig(),  # sequence numbers (else the cache needs timestamping)
         publisher_detection=True,
     )
