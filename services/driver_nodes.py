@@ -201,7 +201,8 @@ def xsens_loop(
 
 
 class ZenohSink:
-    """Publishes each message on its key with a loss-free publisher declared on first use."""
+    """Publishes each message on its key with a loss-free publisher declared on first use, which keeps the last
+    :data:`~services.zenoh_session.DEVICE_HISTORY_SAMPLES` for a restarted recorder."""
 
     def __init__(self, session: zenoh.Session) -> None:
         self._session = session
@@ -212,7 +213,11 @@ class ZenohSink:
         with self._lock:
             publisher = self._publishers.get(key)
             if publisher is None:
-                publisher = zenoh_session.declare_data_publisher(self._session, key, messages.type_name(message))
+                type_name = messages.type_name(message)
+                if topics.delivery_for_key(key) is topics.Delivery.LOSSLESS:
+                    publisher = zenoh_session.declare_history_publisher(self._session, key, type_name)
+                else:
+                    publisher = zenoh_session.declare_data_publisher(self._session, key, type_name)
                 self._publishers[key] = publisher
         zenoh_session.publish(publisher, message)
 

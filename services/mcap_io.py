@@ -65,6 +65,7 @@ class McapRecorderWriter:
         self._last_flush = time.monotonic()
         self._descriptor_set = messages.file_descriptor_set()
         self.message_count = 0
+        self._unflushed = 0
         self._closed = False
 
     def _channel_id(self, topic: str, type_name: str) -> int:
@@ -92,6 +93,7 @@ class McapRecorderWriter:
             sequence=sequence,
         )
         self.message_count += 1
+        self._unflushed += 1
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval_s:
             self.flush()
@@ -104,6 +106,12 @@ class McapRecorderWriter:
     def flush(self) -> None:
         self._writer.flush()
         self._last_flush = time.monotonic()
+        self._unflushed = 0
+
+    def flush_if_due(self) -> None:
+        """Flush when messages wait in the open chunk for longer than the interval (data paused: nothing else would)."""
+        if self._unflushed and time.monotonic() - self._last_flush >= self._flush_interval_s:
+            self.flush()
 
     def close(self) -> None:
         if not self._closed:

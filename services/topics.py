@@ -6,6 +6,7 @@ Every key lives under ``msk/<session>/``. A session name is one key chunk: lette
 from __future__ import annotations
 
 import re
+from enum import Enum
 
 from msk_core.errors import ConfigError
 
@@ -24,6 +25,27 @@ TOPIC_TABLE: tuple[tuple[str, str], ...] = (
     ("status/<device>", "msk.DeviceStatus"),
     ("envelopes", "msk.EmgEnvelope"),
 )
+
+
+class Delivery(Enum):
+    """How a topic's publisher behaves when a subscriber does not keep up (docs/topics.md, "Delivery")."""
+
+    #: reliable + blocking congestion control: the publisher waits for a slow subscriber, nothing is dropped
+    LOSSLESS = "lossless"
+    #: reliable + drop congestion control: a subscriber whose queue is full misses messages, nobody waits for it
+    NEWEST_WINS = "newest-wins"
+
+
+#: Per topic template: device data and what is derived from it frame by frame must reach the recorder and the
+#: estimator whole; what views and apps read (activations, status) must never stall its publisher.
+DELIVERY: dict[str, Delivery] = {
+    "emg/<source>": Delivery.LOSSLESS,
+    "imu/<tracker>": Delivery.LOSSLESS,
+    "joints": Delivery.LOSSLESS,
+    "load": Delivery.LOSSLESS,
+    "activations/<method>": Delivery.NEWEST_WINS,
+    "status/<device>": Delivery.NEWEST_WINS,
+}
 
 
 def check_chunk(value: str, what: str) -> str:
@@ -79,14 +101,25 @@ def rename_session(key: str, new_session: str) -> str:
     return f"{session_prefix(new_session)}/{rest}"
 
 
-def message_type_for_key(key: str) -> str | None:
-    """The protobuf type carried by ``key``, or None when the key is not in the table."""
+def _template_for_key(key: str) -> str | None:
     _, rest = split_key(key)
     rest_parts = rest.split("/")
-    for pattern, type_name in TOPIC_TABLE:
+    for pattern, _type_name in TOPIC_TABLE:
         pattern_parts = pattern.split("/")
         if len(pattern_parts) == len(rest_parts) and all(
             p.startswith("<") or p == r for p, r in zip(pattern_parts, rest_parts)
         ):
-            return type_name
+            return pattern
     return None
+
+
+def message_type_for_key(key: str) -> str | None:
+    """The protobuf type carried by ``key``, or None when the key is not in the table."""
+    template = _template_for_key(key)
+    return None if template is None else dict(TOPIC_TABLE)[template]
+
+
+def delivery_for_key(key: str) -> Delivery:
+    """The delivery policy of ``key``; keys outside the table are lossless (the safe side for data)."""
+    template = _template_for_key(key)
+    return Delivery.LOSSLESS if template is None else DELIVERY[template]

@@ -18,9 +18,10 @@ import zenoh
 from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
-from services import messages
+from services import messages, topics
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+LOOPBACK_ANY_PORT = "tcp/127.0.0.1:0"
 
 
 @dataclass(frozen=True)
@@ -28,9 +29,11 @@ class ZenohOptions:
     """How a node joins the Zenoh network.
 
     ``connect``/``listen`` empty means: listen on :data:`DEFAULT_ENDPOINT` if it is free, else connect to it.
+    Without a config file a node never listens beyond loopback unless told to with ``listen`` (Zenoh's own default
+    for a peer is every interface). ``mode`` None: the config file's mode, else peer.
     """
 
-    mode: str = "peer"
+    mode: str | None = "peer"
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     config_file: Path | None = None
@@ -47,15 +50,19 @@ class ZenohOptions:
                 raise ConfigError(f"invalid Zenoh config: {error}", path=path) from error
         else:
             config = zenoh.Config()
-        if self.mode not in ("peer", "client", "router"):
-            raise ConfigError("Zenoh mode must be peer, client or router", field="mode", value=self.mode)
-        config.insert_json5("mode", json.dumps(self.mode))
+        mode = self.mode if self.mode is not None else (None if self.config_file is not None else "peer")
+        if mode is not None:
+            if mode not in ("peer", "client", "router"):
+                raise ConfigError("Zenoh mode must be peer, client or router", field="mode", value=mode)
+            config.insert_json5("mode", json.dumps(mode))
         connect, listen = list(self.connect), list(self.listen)
         if self.config_file is None and not connect and not listen:
             if _endpoint_is_free(DEFAULT_ENDPOINT):
                 listen = [DEFAULT_ENDPOINT]
             else:
                 connect = [DEFAULT_ENDPOINT]
+        if self.config_file is None and not listen and mode in ("peer", "router"):
+            listen = [LOOPBACK_ANY_PORT]  # Zenoh would listen on tcp/[::]:0 (every interface) otherwise
         if connect:
             config.insert_json5("connect/endpoints", json.dumps(connect))
         if listen:
@@ -80,7 +87,10 @@ def _endpoint_is_free(endpoint: str) -> bool:
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("Zenoh")
-    group.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh mode (default: peer)")
+    group.add_argument(
+        "--mode", choices=["peer", "client", "router"], default=None,
+        help="Zenoh mode (default: the --zenoh-config file's, else peer)",
+    )
     group.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)"
     )
@@ -104,14 +114,67 @@ def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
     return zenoh.open((options or ZenohOptions()).to_config())
 
 
-def declare_data_publisher(session: zenoh.Session, key: str, type_name: str) -> zenoh.Publisher:
-    """A publisher that never drops: reliable transport, blocking congestion control, protobuf encoding with schema."""
+def declare_data_publisher(
+    session: zenoh.Session, key: str, type_name: str, *, delivery: topics.Delivery | None = None
+) -> zenoh.Publisher:
+    """A reliable publisher with protobuf encoding and the topic's delivery policy (:data:`services.topics.DELIVERY`).
+
+    Lossless topics block under congestion (a slow subscriber slows the publisher, nothing is dropped); newest-wins
+    topics drop, per subscriber link, what a full queue cannot take, so a hung view never stalls its publisher.
+    """
     messages.message_class(type_name)  # fail early on an unknown type
+    if delivery is None:
+        try:
+            delivery = topics.delivery_for_key(key)
+        except ConfigError:  # not an msk/<session>/... key
+            delivery = topics.Delivery.LOSSLESS
     return session.declare_publisher(
+        key,
+        encoding=encoding_for(type_name),
+        congestion_control=(
+            zenoh.CongestionControl.BLOCK if delivery is topics.Delivery.LOSSLESS else zenoh.CongestionControl.DROP
+        ),
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+
+
+#: Samples each device publisher keeps for a restarted recorder to fetch (per key; >= 10 s at 100 messages/s).
+DEVICE_HISTORY_SAMPLES = 1000
+
+
+def declare_history_publisher(
+    session: zenoh.Session, key: str, type_name: str, *, history_samples: int = DEVICE_HISTORY_SAMPLES
+):
+    """A lossless data publisher that also keeps its last ``history_samples`` for late or restarted subscribers
+    (a Zenoh AdvancedPublisher with a cache; :func:`declare_history_subscriber` fetches it)."""
+    import zenoh.ext
+
+    messages.message_class(type_name)
+    return zenoh.ext.declare_advanced_publisher(
+        session,
         key,
         encoding=encoding_for(type_name),
         congestion_control=zenoh.CongestionControl.BLOCK,
         reliability=zenoh.Reliability.RELIABLE,
+        # replies block like the data: a burst of up to history_samples replies must not be dropped on a busy link
+        # (a lost reply leaves the subscriber holding back live samples until its query times out)
+        cache=zenoh.ext.CacheConfig(
+            max_samples=history_samples,
+            replies_config=zenoh.ext.RepliesConfig(congestion_control=zenoh.CongestionControl.BLOCK),
+        ),
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(),  # sequence numbers (else the cache needs timestamping)
+        publisher_detection=True,
+    )
+
+
+def declare_history_subscriber(session: zenoh.Session, key_expr: str, callback, *, history_s: float):
+    """A subscriber that first receives what publishers of :func:`declare_history_publisher` kept from the last
+    ``history_s`` seconds (also from publishers that appear later), then the live samples."""
+    import zenoh.ext
+
+    return zenoh.ext.declare_advanced_subscriber(
+        session, key_expr, callback,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_age=float(history_s)),
     )
 
 

@@ -1,0 +1,256 @@
+"""Athletes per machine: N independent live sessions at real-time rate until p99 latency > 2 ms or a sample is lost.
+
+A session is what one rack runs: a Trigno (``msk sim trigno``, 16 channels at 2 kHz, real TCP) read by
+``msk drivers``; the Xsens trackers and the kinematics node replaced by the demo recording's IMU, joint angles and
+load played at real time (``msk replay``, 6 trackers at 100 Hz, joints at ~80 Hz); and ``msk estimator`` (SO) on
+the joints. All sessions join one ``msk router``. This process subscribes to every session and measures:
+
+* latency: the estimator's ``publish_ns - input_arrival_ns`` of every activation frame (joint angles in to
+  activations out, one host clock), p99 over all sessions;
+* loss: EMG samples (``first_sample_index`` jumps, DeviceStatus ``samples_lost``) and joint frames without their
+  activation frame;
+* CPU per session: user + system time of the session's processes (/proc) over the measured window, in cores.
+
+Baseline: the same figures with one session, from the same run. N grows until a target fails (quick: N <= 2).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.bench import BenchResult
+
+NAME = "sessions"
+DESCRIPTION = "live sessions one machine serves (Trigno + IMU/joints + estimator each): p99 <= 2 ms, no sample lost"
+
+P99_TARGET_MS = 2.0
+DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
+
+
+def _msk(*argv: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+
+
+def _cpu_seconds(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@dataclass
+class _Observed:
+    latencies_ns: list[int] = field(default_factory=list)
+    joints: dict[str, int] = field(default_factory=dict)
+    activations: dict[str, int] = field(default_factory=dict)
+    emg_next: dict[str, int] = field(default_factory=dict)
+    emg_jumps: int = 0
+    status_lost: dict[str, int] = field(default_factory=dict)
+    measuring: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def _observe(zsession, observed: _Observed) -> list:
+    from services import messages
+
+    def on_sample(sample) -> None:
+        key = str(sample.key_expr)
+        parts = key.split("/")
+        session, kind = parts[1], parts[2]
+        with observed.lock:
+            if kind == "activations":
+                frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
+                if observed.measuring:
+                    observed.latencies_ns.append(frame.publish_ns - frame.input_arrival_ns)
+                    observed.activations[session] = observed.activations.get(session, 0) + 1
+            elif kind == "joints" and observed.measuring:
+                observed.joints[session] = observed.joints.get(session, 0) + 1
+            elif kind == "emg":
+                chunk = messages.decode("msk.EmgChunk", sample.payload.to_bytes())
+                expected = observed.emg_next.get(session)
+                if observed.measuring and expected is not None and chunk.first_sample_index != expected:
+                    observed.emg_jumps += 1
+                observed.emg_next[session] = chunk.first_sample_index + chunk.n_samples
+            elif kind == "status":
+                status = messages.decode("msk.DeviceStatus", sample.payload.to_bytes())
+                observed.status_lost[session] = int(status.samples_lost)
+
+    return [zsession.declare_subscriber(f"msk/{kind}", on_sample)
+            for kind in ("*/activations/**", "*/joints", "*/emg/**", "*/status/**")]
+
+
+def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0) -> dict[str, float]:
+    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures."""
+    from services.zenoh_session import ZenohOptions, open_session
+
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    processes: list[subprocess.Popen] = []
+    per_session: dict[str, list[subprocess.Popen]] = {}
+    router = _msk("router", "--listen", endpoint)
+    processes.append(router)
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"msk router did not listen on {endpoint} within 30 s") from None
+                time.sleep(0.05)
+        observed = _Observed()
+        with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as zsession:
+            subscribers = _observe(zsession, observed)
+            for index in range(n_sessions):
+                name = f"bench{index}"
+                sim = _msk("sim", "trigno", "--from", "synthetic:120:7", "--port", "0", "--emg-port", "0",
+                           "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1")
+                processes.append(sim)
+                ports = dict(re.findall(r"(command|emg) (\d+)", sim.stdout.readline()))
+                if "command" not in ports:
+                    raise RuntimeError("msk sim trigno did not report its ports")
+                client = ("--mode", "client", "--connect", endpoint)
+                estimator = _msk("estimator", "--pack", "bench_press", "--session", name, "--method", "so", *client)
+                drivers = _msk("drivers", "--session", name, "--trigno", f"127.0.0.1:{ports['command']}",
+                               "--trigno-emg-port", ports["emg"], *client)
+                processes += [estimator, drivers]
+                per_session[name] = [sim, drivers, estimator]
+            deadline = time.monotonic() + warm_up_timeout_s
+            replays = {}
+            with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as probe_session:
+                # an estimator subscribes once warmed up; our own subscribers are in the other session
+                probes = {name: probe_session.declare_publisher(f"msk/{name}/joints") for name in per_session}
+                while True:
+                    with observed.lock:
+                        streaming = len(observed.emg_next)
+                    waiting = [name for name, probe in probes.items() if not probe.matching_status.matching]
+                    if streaming == n_sessions and not waiting:
+                        break
+                    if time.monotonic() > deadline:
+                        raise RuntimeError(f"after {warm_up_timeout_s:.0f} s {streaming} of {n_sessions} sessions stream "
+                                           f"EMG; estimators not subscribed yet: {waiting}")
+                    time.sleep(0.1)
+                for probe in probes.values():
+                    probe.undeclare()
+            for name in per_session:
+                replay = _msk("replay", str(DEMO), "--session", name, "--rate", "1", "--exclude", "msk/*/emg/**",
+                              "--mode", "client", "--connect", endpoint)
+                processes.append(replay)
+                per_session[name].append(replay)
+                replays[name] = replay
+            deadline = time.monotonic() + warm_up_timeout_s
+            with observed.lock:
+                observed.measuring = True
+            while True:
+                with observed.lock:
+                    publishing = set(observed.activations)
+                    n_frames = len(observed.latencies_ns)
+                if len(publishing) == n_sessions and n_frames > 10 * n_sessions:
+                    break
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"after {warm_up_timeout_s:.0f} s only {sorted(publishing)} publish activations")
+                time.sleep(0.2)
+            time.sleep(2.0)  # first solves of each estimator (lazy caches) are not the steady state
+            with observed.lock:  # the measured window starts now
+                observed.latencies_ns.clear()
+                observed.joints.clear()
+                observed.activations.clear()
+                observed.emg_jumps = 0
+                lost_before = sum(observed.status_lost.values())
+            cpu0 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
+            wall0 = time.monotonic()
+            time.sleep(seconds)
+            for replay in replays.values():
+                replay.send_signal(signal.SIGINT)
+            cpu1 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
+            wall = time.monotonic() - wall0
+            time.sleep(1.5)  # frames in flight reach us
+            with observed.lock:
+                observed.measuring = False
+                latencies = np.asarray(observed.latencies_ns, dtype=float) / 1e6
+                joints_without_frame = sum(max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items())
+                emg_lost = sum(observed.status_lost.values()) - lost_before
+                jumps = observed.emg_jumps
+            for subscriber in subscribers:
+                subscriber.undeclare()
+    finally:
+        for process in reversed(processes):
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for process in reversed(processes):
+            try:
+                process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(10)
+    cpu = [(cpu1[name] - cpu0[name]) / wall for name in per_session]
+    return {
+        "sessions": n_sessions,
+        "frames": int(latencies.size),
+        "p50_ms": float(np.percentile(latencies, 50)) if latencies.size else float("nan"),
+        "p99_ms": float(np.percentile(latencies, 99)) if latencies.size else float("nan"),
+        "max_ms": float(latencies.max()) if latencies.size else float("nan"),
+        "frames_over_2ms": int((latencies > P99_TARGET_MS).sum()),
+        "joint_frames_lost": int(joints_without_frame),
+        "emg_samples_lost": int(emg_lost),
+        "emg_index_jumps": int(jumps),
+        "cpu_cores_per_session": float(np.mean(cpu)),
+    }
+
+
+def _ok(figures: dict) -> bool:
+    return (figures["frames"] > 0 and figures["p99_ms"] <= P99_TARGET_MS and figures["joint_frames_lost"] == 0
+            and figures["emg_samples_lost"] == 0 and figures["emg_index_jumps"] == 0)
+
+
+def run(*, quick: bool = False) -> list[BenchResult]:
+    seconds = 6.0 if quick else 15.0
+    max_sessions = 2 if quick else 8
+    runs = []
+    for n in range(1, max_sessions + 1):
+        figures = measure(n, seconds=seconds)
+        runs.append(figures)
+        print("    " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()),
+              flush=True)
+        if not _ok(figures):
+            break
+    served = max((f["sessions"] for f in runs if _ok(f)), default=0)
+    one = runs[0]
+    last_ok = next((f for f in reversed(runs) if _ok(f)), one)
+    return [
+        BenchResult(
+            name="sessions served (p99 <= 2 ms, nothing lost)", value=float(served), unit="sessions",
+            target=f">= 1 (tried up to {runs[-1]['sessions']})", passed=served >= 1,
+            details={f"p99_ms@{f['sessions']}": f["p99_ms"] for f in runs},
+        ),
+        BenchResult(
+            name=f"p99 latency at {last_ok['sessions']} session(s)", value=last_ok["p99_ms"], unit="ms",
+            baseline_name="1 session", baseline_value=one["p99_ms"], target=f"<= {P99_TARGET_MS} ms",
+            passed=last_ok["p99_ms"] <= P99_TARGET_MS,
+        ),
+        BenchResult(
+            name="CPU per session", value=last_ok["cpu_cores_per_session"], unit="cores",
+            baseline_name="1 session", baseline_value=one["cpu_cores_per_session"],
+            details={f"cpu@{f['sessions']}": f["cpu_cores_per_session"] for f in runs},
+        ),
+    ]

@@ -1,0 +1,327 @@
+"""Secured network mode: a private CA, one certificate per role, and the Zenoh configs that use them.
+
+Every node is a Zenoh *client* of one router (``msk router``). The router listens on TLS only and demands a client
+certificate signed by the deployment's CA (mutual TLS); the common name (CN) of that certificate names the client's
+role, and the router's ``access_control`` section says what each role may publish and subscribe to. Nothing is
+allowed by default. ``msk certs`` writes the CA, the certificates and these configs; docs/deployment.md explains them.
+
+Roles (CN ``msk-<role>``):
+
+* ``driver``     publishes device data: ``msk/*/emg/**``, ``msk/*/imu/**``, ``msk/*/status/**``
+* ``kinematics`` reads IMU, publishes ``msk/*/joints``
+* ``estimator``  reads EMG, joints, load and status, publishes ``msk/*/activations/**``
+* ``recorder``   reads everything (``msk/**``), publishes nothing
+* ``operator``   publishes ``msk/*/load`` (barbell changes) and reads everything
+* ``tablet``     reads ``msk/*/activations/**`` and ``msk/*/status/**`` only
+* ``replayer``   plays a recording back: device topics, load and joints
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import ipaddress
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from msk_core.errors import ConfigError
+
+CN_PREFIX = "msk-"
+ROUTER_ROLE = "router"
+DEFAULT_TLS_PORT = 7447
+
+DEVICE_KEYS = ("msk/*/emg/**", "msk/*/imu/**", "msk/*/status/**")
+
+
+@dataclass(frozen=True)
+class RolePolicy:
+    """What a role may publish (``put``) and subscribe to (``declare_subscriber``), as Zenoh key expressions."""
+
+    publish: tuple[str, ...]
+    subscribe: tuple[str, ...]
+
+
+ROLE_POLICIES: dict[str, RolePolicy] = {
+    "driver": RolePolicy(publish=DEVICE_KEYS, subscribe=()),
+    "kinematics": RolePolicy(publish=("msk/*/joints",), subscribe=("msk/*/imu/**", "msk/*/load")),
+    "estimator": RolePolicy(
+        publish=("msk/*/activations/**",),
+        subscribe=("msk/*/emg/**", "msk/*/joints", "msk/*/load", "msk/*/status/**"),
+    ),
+    "recorder": RolePolicy(publish=(), subscribe=("msk/**",)),
+    "operator": RolePolicy(publish=("msk/*/load",), subscribe=("msk/**",)),
+    "tablet": RolePolicy(publish=(), subscribe=("msk/*/activations/**", "msk/*/status/**")),
+    "replayer": RolePolicy(publish=(*DEVICE_KEYS, "msk/*/load", "msk/*/joints"), subscribe=()),
+}
+
+VALIDITY_DAYS = 825  # browsers' and rustls' comfort limit for leaf certificates
+
+
+def common_name(role: str) -> str:
+    return f"{CN_PREFIX}{role}"
+
+
+def check_role(role: str) -> str:
+    if role != ROUTER_ROLE and role not in ROLE_POLICIES:
+        raise ConfigError(f"unknown role; known: {', '.join(ROLE_POLICIES)}", field="role", value=role)
+    return role
+
+
+# --- certificates -----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Pki:
+    """Where ``write_pki`` put the files (all PEM)."""
+
+    directory: Path
+
+    @property
+    def ca_cert(self) -> Path:
+        return self.directory / "ca.pem"
+
+    @property
+    def ca_key(self) -> Path:
+        return self.directory / "ca.key"
+
+    def cert(self, role: str) -> Path:
+        return self.directory / f"{check_role(role)}.pem"
+
+    def key(self, role: str) -> Path:
+        return self.directory / f"{check_role(role)}.key"
+
+
+def _new_key() -> ec.EllipticCurvePrivateKey:
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+
+
+def _name(cn: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "msk-live"), x509.NameAttribute(NameOID.COMMON_NAME, cn)])
+
+
+def make_ca(cn: str = "msk-live CA", *, days: int = 3650) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    key = _new_key()
+    now = _dt.datetime.now(_dt.timezone.utc)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(_name(cn))
+        .issuer_name(_name(cn))
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - _dt.timedelta(minutes=5))
+        .not_valid_after(now + _dt.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True, content_commitment=False, key_encipherment=False, data_encipherment=False,
+                key_agreement=False, key_cert_sign=True, crl_sign=True, encipher_only=False, decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    return key, cert
+
+
+def make_leaf(
+    ca_key: ec.EllipticCurvePrivateKey,
+    ca_cert: x509.Certificate,
+    cn: str,
+    *,
+    hosts: tuple[str, ...] = (),
+    days: int = VALIDITY_DAYS,
+) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A certificate for one node. ``hosts`` (DNS names or IP addresses) make it usable by a TLS server."""
+    key = _new_key()
+    now = _dt.datetime.now(_dt.timezone.utc)
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(_name(cn))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - _dt.timedelta(minutes=5))
+        .not_valid_after(now + _dt.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True, content_commitment=False, key_encipherment=False, data_encipherment=False,
+                key_agreement=False, key_cert_sign=False, crl_sign=False, encipher_only=False, decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False
+        )
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
+    )
+    if hosts:
+        builder = builder.add_extension(x509.SubjectAlternativeName([_general_name(h) for h in hosts]), critical=False)
+    return key, builder.sign(ca_key, hashes.SHA256())
+
+
+def _general_name(host: str) -> x509.GeneralName:
+    try:
+        return x509.IPAddress(ipaddress.ip_address(host))
+    except ValueError:
+        return x509.DNSName(host)
+
+
+def write_pki(
+    directory: Path,
+    *,
+    router_hosts: tuple[str, ...] = ("localhost", "127.0.0.1"),
+    roles: tuple[str, ...] = tuple(ROLE_POLICIES),
+    ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate] | None = None,
+) -> Pki:
+    """A CA (unless given), the router's certificate for ``router_hosts`` and one client certificate per role."""
+    if not router_hosts:
+        raise ConfigError("the router certificate needs at least one host name or address", field="router_hosts", value=router_hosts)
+    for role in roles:
+        check_role(role)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    pki = Pki(directory)
+    ca_key, ca_cert = ca if ca is not None else make_ca()
+    _write(pki.ca_key, _key_pem(ca_key), private=True)
+    _write(pki.ca_cert, ca_cert.public_bytes(serialization.Encoding.PEM))
+    for role, hosts in [(ROUTER_ROLE, tuple(router_hosts))] + [(r, ()) for r in roles]:
+        key, cert = make_leaf(ca_key, ca_cert, common_name(role), hosts=hosts)
+        _write(pki.key(role), _key_pem(key), private=True)
+        _write(pki.cert(role), cert.public_bytes(serialization.Encoding.PEM))
+    return pki
+
+
+def _write(path: Path, data: bytes, *, private: bool = False) -> None:
+    path.write_bytes(data)
+    if private:
+        path.chmod(0o600)
+
+
+# --- Zenoh configs ----------------------------------------------------------------------------------------------
+
+
+def access_control(roles: dict[str, RolePolicy] = ROLE_POLICIES) -> dict:
+    """The router's ``access_control`` section: deny by default; per role, allow exactly its flows.
+
+    The router applies it on each client's link: ``ingress`` is what the client sends, ``egress`` what it gets.
+    A subscriber needs its ``declare_subscriber`` let in and the matching ``put`` let out; a publisher needs its
+    ``put`` let in and the subscribers' declarations let out (a Zenoh publisher only sends what someone wants).
+    """
+    rules, subjects, policies = [], [], []
+    for role, policy in roles.items():
+        subjects.append({"id": role, "cert_common_names": [common_name(role)]})
+        role_rules = []
+        if policy.publish:
+            role_rules.append({"id": f"{role}-publish", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["put", "delete"], "key_exprs": list(policy.publish)})
+            # Subscribers declare broad expressions (the recorder's msk/**): the publisher must see them to send.
+            role_rules.append({"id": f"{role}-publish-interest", "permission": "allow", "flows": ["egress"],
+                               "messages": ["declare_subscriber"], "key_exprs": ["msk/**"]})
+        if policy.subscribe:
+            role_rules.append({"id": f"{role}-subscribe", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["declare_subscriber"], "key_exprs": list(policy.subscribe)})
+            role_rules.append({"id": f"{role}-receive", "permission": "allow", "flows": ["egress"],
+                               "messages": ["put", "delete"], "key_exprs": list(policy.subscribe)})
+        # History (a restarted recorder fetching what device publishers kept, services.zenoh_session
+        # .declare_history_publisher): the publisher's cache is a queryable announced by a liveliness token under
+        # <key>/@adv/**, a verbatim chunk that msk/** does not cover.
+        if policy.publish:
+            history_keys = _with_history(policy.publish)
+            role_rules.append({"id": f"{role}-history-serve", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["declare_queryable", "reply", "liveliness_token"], "key_exprs": history_keys})
+            role_rules.append({"id": f"{role}-history-asked", "permission": "allow", "flows": ["egress"],
+                               "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
+                               "key_exprs": history_keys})
+        if policy.subscribe:
+            history_keys = _with_history(policy.subscribe)
+            role_rules.append({"id": f"{role}-history-fetch", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
+                               "key_exprs": history_keys})
+            role_rules.append({"id": f"{role}-history-receive", "permission": "allow", "flows": ["egress"],
+                               "messages": ["reply", "liveliness_token", "declare_queryable"], "key_exprs": history_keys})
+        rules.extend(role_rules)
+        policies.append({"id": role, "rules": [r["id"] for r in role_rules], "subjects": [role]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def _with_history(keys: tuple[str, ...]) -> list[str]:
+    return [*keys, *(f"{key}/@adv/**" if key.endswith("**") else f"{key}/**/@adv/**" for key in keys)]
+
+
+def router_config(pki_dir: Path | str, *, listen: tuple[str, ...] = (f"tls/0.0.0.0:{DEFAULT_TLS_PORT}",), acl: bool = True) -> dict:
+    """The router's Zenoh config: TLS listener(s) demanding a CA-signed client certificate, and the ACL."""
+    pki = Pki(Path(pki_dir))
+    for endpoint in listen:
+        if not endpoint.startswith("tls/"):
+            raise ConfigError("a secured router listens on tls/ endpoints only", field="listen", value=endpoint)
+    config = {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": str(pki.ca_cert),
+                    "listen_certificate": str(pki.cert(ROUTER_ROLE)),
+                    "listen_private_key": str(pki.key(ROUTER_ROLE)),
+                    "enable_mtls": True,
+                }
+            }
+        },
+    }
+    if acl:
+        config["access_control"] = access_control()
+    return config
+
+
+def client_config(pki_dir: Path | str, role: str, *, connect: tuple[str, ...]) -> dict:
+    """A node's Zenoh config: client of the router over TLS, presenting the certificate of ``role``."""
+    pki = Pki(Path(pki_dir))
+    check_role(role)
+    for endpoint in connect:
+        if not endpoint.startswith("tls/"):
+            raise ConfigError("a secured node connects over tls/ only", field="connect", value=endpoint)
+    return {
+        "mode": "client",
+        "connect": {"endpoints": list(connect)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": str(pki.ca_cert),
+                    "connect_certificate": str(pki.cert(role)),
+                    "connect_private_key": str(pki.key(role)),
+                    "enable_mtls": True,
+                    "verify_name_on_connect": True,
+                }
+            }
+        },
+    }
+
+
+def write_configs(
+    out_dir: Path, pki_dir_as_seen_by_nodes: Path | str, *, router_listen: tuple[str, ...], client_connect: tuple[str, ...]
+) -> dict[str, Path]:
+    """``router.json5`` and ``<role>.json5`` for every role, referencing the PKI by ``pki_dir_as_seen_by_nodes``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = {}
+    documents = {ROUTER_ROLE: router_config(pki_dir_as_seen_by_nodes, listen=router_listen)}
+    for role in ROLE_POLICIES:
+        documents[role] = client_config(pki_dir_as_seen_by_nodes, role, connect=client_connect)
+    for role, document in documents.items():
+        path = out_dir / f"{role}.json5"
+        path.write_text(json.dumps(document, indent=2) + "\n")
+        written[role] = path
+    return written

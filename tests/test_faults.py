@@ -1,0 +1,429 @@
+"""Faults with counted messages: real processes (``msk router``, ``msk recorder``, a hung app), real Zenoh on
+loopback, real MCAP files. docs/deployment.md ("Faults") reports the figures these tests bound."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services import messages, topics
+from services.mcap_io import ReadReport, read_messages
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from tests.conftest import free_tcp_port
+
+pytestmark = pytest.mark.slow
+
+SESSION = "fault"
+
+
+def _msk(*argv: str, **popen) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+
+
+def _stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 15) -> str:
+    """Stop a process we started (signal, then kill after ``timeout_s``); returns its stderr."""
+    if process.poll() is None:
+        try:
+            process.send_signal(sig)
+            process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+    try:
+        return process.communicate(timeout=10)[1] or ""
+    except (subprocess.TimeoutExpired, ValueError):
+        return ""
+
+
+def _wait(predicate, timeout_s: float, what: str, have=lambda: "") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"after {timeout_s:.0f} s still waiting for {what}; have: {have()}")
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def router():
+    """``msk router`` on a free loopback port; yields its endpoint."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    process = _msk("router", "--listen", endpoint)
+
+    def listening() -> bool:
+        if process.poll() is not None:
+            raise AssertionError(f"msk router exited {process.returncode}: {process.communicate()[1][-2000:]}")
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return True
+        except OSError:
+            return False
+
+    _wait(listening, 30, f"msk router listening on {endpoint}")
+    yield endpoint
+    _stop(process)
+
+
+def _client(endpoint: str) -> zenoh.Session:
+    return open_session(ZenohOptions(mode="client", connect=(endpoint,)))
+
+
+def _start_recorder(out: Path, endpoint: str, session: zenoh.Session, *flags: str) -> subprocess.Popen:
+    """``msk recorder`` as a client of the router; returns once it is subscribed (a probe publisher matches it)."""
+    process = _msk("recorder", "--out", str(out), "--mode", "client", "--connect", endpoint, *flags)
+    probe = session.declare_publisher(f"msk/{SESSION}/probe-{os.getpid()}-{time.monotonic_ns()}")
+    try:
+        def matched() -> bool:
+            if process.poll() is not None:
+                raise AssertionError(f"msk recorder exited {process.returncode}: {process.communicate()[1][-2000:]}")
+            return probe.matching_status.matching
+
+        _wait(matched, 30, f"msk recorder writing {out.name} to subscribe")
+    finally:
+        probe.undeclare()
+    return process
+
+
+def _activation(index: int, n_groups: int = 60) -> messages.ActivationFrame:
+    return messages.ActivationFrame(
+        time_s=index * 0.01, method="so", groups=[f"muscle_{g:02d}" for g in range(n_groups)],
+        activations=[0.5] * n_groups, forces_n=[100.0] * n_groups, solver_status="solved",
+    )
+
+
+def _emg(index: int) -> messages.EmgChunk:
+    return messages.EmgChunk(
+        source_id="trigno", channel_labels=[f"ch{c}" for c in range(16)], sample_rate_hz=2000.0,
+        first_sample_index=27 * index, n_samples=27, n_channels=16, samples=[0.001] * (27 * 16), units="V",
+    )
+
+
+HUNG_APP = textwrap.dedent(
+    """
+    import signal, sys, threading, zenoh
+    endpoint, key = sys.argv[1], sys.argv[2]
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    config.insert_json5("transport/link/tcp/so_rcvbuf", "65536")  # a small app: congested sooner
+    count = [0]
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    with zenoh.open(config) as session:
+        session.declare_subscriber(key, lambda sample: count.__setitem__(0, count[0] + 1))
+        print("ready", flush=True)
+        done.wait(120)
+    print(count[0], flush=True)
+    """
+)
+
+
+def test_hung_app_stalls_no_publisher_and_the_recorder_loses_nothing(router, tmp_path):
+    """A tablet app that stops reading (SIGSTOP) while the estimator publishes activation frames (newest-wins) and
+    the driver EMG (lossless) at 5x real-time rates (~7.6 MB towards the app): no put waits for the hung app, the recorder holds every message
+    of both, and the hung app itself missed frames (so its link was congested, and the frames were dropped for it
+    alone)."""
+    n_frames = 4000  # ~1.9 kB activation frames: well beyond the kernel's and Zenoh's buffers towards the app hold
+    frame_rate_hz = 500.0
+    out = tmp_path / "hung.mcap"
+    publisher_session = _client(router)
+    recorder = _start_recorder(out, router, publisher_session)
+    app = subprocess.Popen([sys.executable, "-c", HUNG_APP, router, f"msk/{SESSION}/activations/**"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert app.stdout.readline().strip() == "ready", app.stderr.read()[-2000:]
+        activations = declare_data_publisher(publisher_session, topics.activations_key(SESSION, "so"), "msk.ActivationFrame")
+        emg = declare_data_publisher(publisher_session, topics.emg_key(SESSION, "trigno"), "msk.EmgChunk")
+        time.sleep(0.3)  # the app's subscription reaches the router
+        os.kill(app.pid, signal.SIGSTOP)  # the app hangs: it reads nothing from now on
+        longest_put = 0.0
+        start = time.monotonic()
+        for index in range(n_frames):
+            due = start + index / frame_rate_hz
+            if (delay := due - time.monotonic()) > 0:
+                time.sleep(delay)
+            before = time.monotonic()
+            publish(activations, _activation(index))
+            publish(emg, _emg(index))
+            longest_put = max(longest_put, time.monotonic() - before)
+        publish_time = time.monotonic() - start
+        os.kill(app.pid, signal.SIGCONT)
+
+        time.sleep(1.5)  # > the recorder's flush interval
+        _stop(recorder)
+        recorded = list(read_messages(out))
+        app.send_signal(signal.SIGTERM)
+        app_out, app_err = app.communicate(timeout=30)
+        app_received = int(app_out.strip().splitlines()[-1])
+    finally:
+        for process in (app, recorder):
+            if process.poll() is None:
+                process.kill()
+                process.wait(10)
+        publisher_session.close()
+    print(f"hung app received {app_received} of {n_frames}; longest put {longest_put * 1e3:.1f} ms; "
+          f"published in {publish_time:.2f} s")
+    by_key = {}
+    for message in recorded:
+        by_key.setdefault(message.topic, []).append(message)
+    frames = by_key.get(topics.activations_key(SESSION, "so"), [])
+    chunks = by_key.get(topics.emg_key(SESSION, "trigno"), [])
+    assert len(chunks) == n_frames, f"recorder lost {n_frames - len(chunks)} of {n_frames} EMG chunks"
+    assert len(frames) == n_frames, f"recorder lost {n_frames - len(frames)} of {n_frames} activation frames"
+    assert [m.decode().first_sample_index for m in chunks] == [27 * i for i in range(n_frames)]
+    assert longest_put < 0.5, f"a put waited {longest_put:.2f} s: the hung app stalled the publisher"
+    assert publish_time < n_frames / frame_rate_hz + 3.0, f"publishing {n_frames} frames took {publish_time:.1f} s"
+    assert app_received < n_frames, (
+        f"the hung app received all {n_frames} frames: its link was never congested, so this test showed nothing"
+    )
+
+
+def _start_trigno_simulator() -> tuple[subprocess.Popen, dict[str, int]]:
+    """``msk sim trigno`` on free loopback ports (real TCP); returns the process and its ports."""
+    process = _msk("sim", "trigno", "--from", "synthetic:60:7", "--port", "0", "--emg-port", "0",
+                   "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1")
+    line = process.stdout.readline()
+    if "command" not in line:
+        _stop(process)
+        raise AssertionError(f"the Trigno simulator did not start: {line!r} {process.communicate()[1][-2000:]}")
+    import re
+
+    ports = {name: int(port) for name, port in re.findall(r"(command|legacy emg|emg|aux) (\d+)", line)}
+    return process, ports
+
+
+def _emg_chunks(paths: list[Path], key: str) -> list[messages.EmgChunk]:
+    return [m.decode() for path in paths for m in read_messages(path) if m.topic == key]
+
+
+def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(router, tmp_path):
+    """Real Trigno simulator -> ``msk drivers`` -> router -> ``msk recorder``. The recorder is SIGKILLed mid-session
+    and started again with the same --out: the killed file opens up to its last completed chunk (the most recent
+    message in it is at most one flush interval older than the kill), the restart writes ``rec-001.mcap``, and the
+    EMG of both files joined is every sample the driver received, each once, without a gap (first_sample_index)."""
+    out = tmp_path / "rec.mcap"
+    emg_key = topics.emg_key(SESSION, "trigno")
+    flush_interval_s = 0.5
+    session = _client(router)
+    simulator, ports = _start_trigno_simulator()
+    processes = [simulator]
+    try:
+        recorder = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
+        processes.append(recorder)
+        drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
+                       "--trigno-emg-port", str(ports["emg"]), "--duration", "9", "--mode", "client", "--connect", router)
+        processes.append(drivers)
+
+        def emg_recorded() -> int:
+            if drivers.poll() is not None:
+                raise AssertionError(f"msk drivers exited {drivers.returncode}: {drivers.communicate()[1][-2000:]}")
+            return len(_emg_chunks([out], emg_key)) if out.exists() else 0
+
+        _wait(lambda: emg_recorded() > 50, 40, "the first EMG chunks in the recorder's file", emg_recorded)
+        time.sleep(1.0)
+        recorder.kill()  # SIGKILL
+        kill_ns = time.time_ns()
+        recorder.wait(10)
+        time.sleep(1.0)  # the recorder is down for a while; the driver goes on
+        restarted = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
+        processes.append(restarted)
+        try:
+            drivers_out, drivers_err = drivers.communicate(timeout=40)  # --duration ends it, with its summary
+        except subprocess.TimeoutExpired:
+            raise AssertionError("msk drivers did not end 40 s after its --duration of 9 s") from None
+        time.sleep(1.0)  # its last messages reach the recorder
+        restarted_err = _stop(restarted)
+    finally:
+        for process in processes:
+            _stop(process, signal.SIGKILL) if process.poll() is None else None
+        session.close()
+    assert recorder.returncode == -signal.SIGKILL
+    continuation = tmp_path / "rec-001.mcap"
+    assert continuation.is_file(), f"the restarted recorder did not continue into {continuation.name}: {restarted_err}"
+    report = ReadReport()
+    first_part = list(read_messages(out, report=report))
+    assert report.truncated, "a SIGKILLed recorder cannot have written the MCAP footer"
+    last_kept_ns = max(m.log_time_ns for m in first_part)
+    lost_window_s = (kill_ns - last_kept_ns) / 1e9
+    assert lost_window_s <= flush_interval_s + 1.0, f"the killed file ends {lost_window_s:.2f} s before the kill"
+    chunks = _emg_chunks([out, continuation], emg_key)
+    starts = [c.first_sample_index for c in chunks]
+    assert len(starts) == len(set(starts)), f"{len(starts) - len(set(starts))} chunks recorded twice"
+    gaps = [(a.first_sample_index, b.first_sample_index) for a, b in zip(chunks, chunks[1:])
+            if b.first_sample_index != a.first_sample_index + a.n_samples]
+    assert not gaps, f"gaps in the joined recording (previous start, next start): {gaps[:5]}; {restarted_err[-600:]}"
+    import re
+
+    summary = re.search(r"published (\d+) samples in (\d+) messages", drivers_out)
+    assert summary, f"msk drivers printed no summary: {drivers_out!r} {drivers_err[-1000:]}"
+    sent = int(summary.group(1))
+    recorded = sum(c.n_samples for c in chunks)
+    assert chunks[0].first_sample_index == 0
+    assert recorded == sent, (f"msk drivers published {sent} EMG samples, the two files hold {recorded}; "
+                              f"restarted recorder: {restarted_err[-600:]}")
+    print(f"killed file: {len(first_part)} messages, ends {lost_window_s:.2f} s before the kill; "
+          f"joined: {len(chunks)} EMG chunks, {recorded} samples of {sent} published")
+
+
+class _RealTimeReplay(threading.Thread):
+    """Publishes the demo recording's device data (EMG, IMU, joints, load) under our session at its real pace,
+    counting what it sent per key: the driver and kinematics nodes of a live session, as one loss-free source."""
+
+    def __init__(self, session: zenoh.Session, source: Path) -> None:
+        super().__init__(daemon=True)
+        self.session, self.source = session, source
+        self.sent: dict[str, int] = {}
+        self.stop = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            publishers = {}
+            start_wall = start_log = None
+            for recorded in read_messages(self.source):
+                if self.stop.is_set():
+                    return
+                key = topics.rename_session(recorded.topic, SESSION)
+                if key not in publishers:
+                    publishers[key] = declare_data_publisher(self.session, key, recorded.type_name)
+                if start_wall is None:
+                    start_wall, start_log = time.monotonic(), recorded.log_time_ns
+                if (delay := start_wall + (recorded.log_time_ns - start_log) / 1e9 - time.monotonic()) > 0:
+                    time.sleep(delay)
+                publishers[key].put(recorded.data)
+                self.sent[key] = self.sent.get(key, 0) + 1
+        except BaseException as error:  # reported by the test
+            self.error = error
+
+
+def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(router, tmp_path, repo_root):
+    """Device data of the demo session flows at real time through the router to ``msk recorder`` and ``msk estimator``
+    (bench_press, SO). The estimator is SIGKILLed while it publishes and started again: it publishes activation
+    frames again within RESUME_BOUND_S of the restart (a fresh process: warm-up of the solver, phase tracking anew),
+    and the recorder holds every device message published, per key (zero lost)."""
+    resume_bound_s = 45.0  # start-up is import + model + numba warm-up: ~7 s on an idle 2-core machine
+    out = tmp_path / "session.mcap"
+    session = _client(router)
+    recorder = _start_recorder(out, router, session)
+    estimator_argv = ("estimator", "--pack", "bench_press", "--session", SESSION, "--method", "so",
+                      "--mode", "client", "--connect", router)
+    arrivals: list[tuple[float, messages.ActivationFrame]] = []
+    session.declare_subscriber(f"msk/{SESSION}/activations/**",
+                               lambda s: arrivals.append((time.monotonic(), messages.decode("msk.ActivationFrame", s.payload.to_bytes()))))
+    estimator = _msk(*estimator_argv)
+    restarted = None
+    source = _RealTimeReplay(session, repo_root / "recordings" / "demo_session.mcap")
+    source.start()
+    try:
+        def alive(process):
+            if process.poll() is not None:
+                raise AssertionError(f"msk estimator exited {process.returncode}: {process.communicate()[1][-2000:]}")
+            return True
+
+        _wait(lambda: alive(estimator) and len(arrivals) > 0, resume_bound_s + 30, "the first activation frame",
+              lambda: f"{len(arrivals)} frames; sent {source.sent}")
+        time.sleep(1.5)
+        estimator.kill()  # SIGKILL, mid-session
+        estimator.wait(10)
+        before_kill = len(arrivals)
+        restart_at = time.monotonic()
+        restarted = _msk(*estimator_argv)
+        _wait(lambda: alive(restarted) and any(t > restart_at for t, _ in arrivals), resume_bound_s,
+              "the restarted estimator's first activation frame", lambda: f"{len(arrivals)} frames in all")
+        resume_s = next(t for t, _ in arrivals if t > restart_at) - restart_at
+        time.sleep(1.5)
+        source.stop.set()
+        source.join(30)
+        assert source.error is None, f"the source failed: {source.error!r}"
+        time.sleep(1.5)  # > the recorder's flush interval
+        _stop(restarted)
+        _stop(recorder)
+    finally:
+        source.stop.set()
+        for process in (estimator, restarted, recorder):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait(10)
+        session.close()
+    assert estimator.returncode == -signal.SIGKILL
+    recorded: dict[str, int] = {}
+    for message in read_messages(out):
+        recorded[message.topic] = recorded.get(message.topic, 0) + 1
+    device = {key: n for key, n in source.sent.items() if "/activations/" not in key}
+    assert sum(device.values()) > 1000 and any("/joints" in k for k in device) and any("/emg/" in k for k in device)
+    lost = {key: n - recorded.get(key, 0) for key, n in device.items() if recorded.get(key, 0) != n}
+    assert not lost, f"the recorder lost device messages (key: sent - recorded): {lost}"
+    after = [frame for t, frame in arrivals if t > restart_at]
+    assert before_kill > 0 and len(after) > 10, f"{before_kill} frames before the kill, {len(after)} after the restart"
+    assert all(0.0 <= a <= 1.0 for frame in after for a in frame.activations)
+    times = [frame.time_s for frame in after]
+    assert times == sorted(times), "the restarted estimator publishes frames out of order"
+    print(f"estimator resumed {resume_s:.1f} s after the restart; {before_kill} frames before the kill, "
+          f"{len(after)} after; device messages sent = recorded = {sum(device.values())}")
+
+
+def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router, tmp_path):
+    """The Trigno simulator (``msk sim trigno``) is SIGKILLed under a running ``msk drivers`` and started again on
+    the same ports: DeviceStatus goes connected -> disconnected -> connected, EMG chunks resume by themselves, the
+    sample indices jump by exactly the samples the status reports lost, and nothing is repeated."""
+    import re
+
+    session = _client(router)
+    statuses: list[messages.DeviceStatus] = []
+    chunks: list[tuple[float, messages.EmgChunk]] = []
+    session.declare_subscriber(topics.status_key(SESSION, "trigno"),
+                               lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
+    session.declare_subscriber(topics.emg_key(SESSION, "trigno"),
+                               lambda s: chunks.append((time.monotonic(), messages.decode("msk.EmgChunk", s.payload.to_bytes()))))
+    simulator, ports = _start_trigno_simulator()  # the second simulator takes the same ports
+    processes = [simulator]
+    try:
+        drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
+                       "--trigno-emg-port", str(ports["emg"]), "--mode", "client", "--connect", router)
+        processes.append(drivers)
+        _wait(lambda: len(chunks) > 30, 40, "EMG chunks from msk drivers", lambda: f"{len(chunks)} chunks")
+        simulator.kill()
+        simulator.wait(10)
+        gone_at = time.monotonic()
+        _wait(lambda: any(not s.connected for s in statuses), 15, "a DeviceStatus saying the Trigno is disconnected",
+              lambda: [s.connected for s in statuses])
+        time.sleep(1.0)
+        back = _msk("sim", "trigno", "--from", "synthetic:60:7", "--port", str(ports["command"]),
+                    "--emg-port", str(ports["emg"]), "--legacy-emg-port", str(ports["legacy emg"]),
+                    "--aux-port", str(ports["aux"]), "--legacy-acc-port", "-1")
+        processes.append(back)
+        assert "command" in back.stdout.readline(), back.stderr.read()[-2000:]
+        back_at = time.monotonic()
+        _wait(lambda: sum(1 for t, _ in chunks if t > back_at) > 30, 30, "EMG chunks after the Trigno came back",
+              lambda: f"{len(chunks)} chunks in all; statuses {[s.connected for s in statuses]}")
+        time.sleep(1.5)  # a periodic status after the resumption
+        _stop(drivers)
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait(10)
+        session.close()
+    states = [s.connected for s in statuses]
+    first_down = states.index(False)
+    assert True in states[:first_down] and True in states[first_down:], f"connected states in order: {states}"
+    before = [c for t, c in chunks if t < gone_at]
+    after = [c for t, c in chunks if t > back_at]
+    indices = [c.first_sample_index for _, c in chunks]
+    assert indices == sorted(indices) and len(set(indices)) == len(indices), "EMG indices repeat or go back"
+    jumps = [(a.first_sample_index + a.n_samples, b.first_sample_index) for (_, a), (_, b) in zip(chunks, chunks[1:])
+             if b.first_sample_index != a.first_sample_index + a.n_samples]
+    lost = max(s.samples_lost for s in statuses)
+    assert len(jumps) == 1 and jumps[0][1] - jumps[0][0] == lost > 0, f"jumps {jumps}; status reports {lost} lost"
+    assert len(before) > 30 and len(after) > 30
+    print(f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
+          f"(= the index jump), {len(after)} chunks after it came back")
