@@ -44,6 +44,7 @@ DELIVERY: dict[str, Delivery] = {
     "joints": Delivery.LOSSLESS,
     "load": Delivery.LOSSLESS,
     "activations/<method>": Delivery.NEWEST_WINS,
+    "envelopes": Delivery.NEWEST_WINS,  # like the activations they sit beside: for views and apps
     "status/<device>": Delivery.NEWEST_WINS,
 }
 

@@ -72,7 +72,9 @@ def _check_structure(document: dict, name: str) -> None:
             assert 2 <= len(parts) <= 3 and parts[1].startswith("/"), f"{name}: {service_name}: bad volume {mount!r}"
             assert len(parts) == 2 or parts[2] in ("ro", "rw"), f"{name}: {service_name}: bad volume mode {mount!r}"
         for port in service.get("ports", []):
-            assert re.fullmatch(r"\d+:\d+", str(port)), f"{name}: {service_name}: bad port {port!r}"
+            # as compose does: ${VAR:-default} stands for its default when VAR is unset
+            resolved = re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", str(port))
+            assert re.fullmatch(r"(127\.0\.0\.1:)?\d+:\d+", resolved), f"{name}: {service_name}: bad port {port!r}"
 
 
 def _merge(base: dict, override: dict) -> dict:
