@@ -149,10 +149,16 @@ class ReadReport:
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
-def check_mcap_magic(path: Path) -> None:
-    """A file that does not start with MCAP's magic bytes is not a recording cut short but not a recording at all."""
+def check_mcap_magic(path: Path, *, allow_cut_header: bool = False) -> None:
+    """A file that does not start with MCAP's magic bytes is not a recording cut short but not a recording at all.
+    ``allow_cut_header``: an empty file or a part of the magic passes (a recording being written, or killed before its
+    header reached the disk)."""
+    if not Path(path).is_file():
+        raise InputError("MCAP file not found", path=path)
     with open(path, "rb") as stream:
         head = stream.read(len(MCAP_MAGIC))
+    if allow_cut_header and MCAP_MAGIC.startswith(head):
+        return
     if head != MCAP_MAGIC:
         shown = "an empty file" if not head else f"it starts with {head!r}"
         raise FileFormatError(f"not an MCAP recording ({shown}; MCAP files start with {MCAP_MAGIC!r})", path=path)
@@ -166,7 +172,7 @@ def read_messages(path: str | Path, *, report: ReadReport | None = None, tolerat
     path = Path(path)
     if not path.is_file():
         raise InputError("MCAP file not found", path=path)
-    check_mcap_magic(path)
+    check_mcap_magic(path, allow_cut_header=tolerate_truncation)
     report = report if report is not None else ReadReport()
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from msk_core.errors import ConfigError
 from services import graph, topics
-from services.mcap_io import ReadReport, read_messages
+from services.mcap_io import ReadReport, check_mcap_magic, read_messages
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -137,6 +137,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
+    check_mcap_magic(args.mcap)  # an empty or foreign file is no recording, not one cut short
     stats = main(
         options_from_args(args),
         args.mcap,
