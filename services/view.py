@@ -17,7 +17,6 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-import zenoh
 from rich.console import Console, Group
 from rich.live import Live
 from rich.panel import Panel

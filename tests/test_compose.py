@@ -4,7 +4,6 @@ the router, and the files it names exist. (No Docker engine runs here, so the fi
 from __future__ import annotations
 
 import json
-import os
 import re
 import shlex
 from pathlib import Path

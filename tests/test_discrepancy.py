@@ -17,7 +17,7 @@ import pytest
 
 from msk_core.errors import InputError
 from msk_core.estimate import FrameEstimator, SubjectProfile
-from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION, ModelEffects
+from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
 from msk_core.estimate.pipeline import build_prior, estimate_trial
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
-from msk_core.discrepancy.model import Fit, design, effective_emg, fibre_length, gaps
+from msk_core.discrepancy.model import Fit, design, fibre_length, gaps
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
 from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
 from msk_core.estimate.pack import PackLike

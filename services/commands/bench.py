@@ -6,7 +6,6 @@ import argparse
 import importlib
 import json
 import pkgutil
-import sys
 from dataclasses import asdict
 from pathlib import Path
 

@@ -17,14 +17,13 @@ import html
 import json
 import math
 import sys
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from msk_core.errors import EstimationError, InputError, ModelError
+from msk_core.errors import EstimationError, InputError
 from msk_core.model import OutOfRange, load_pack
 from services.dashboard import bodymap
 from services.mcap_io import ReadReport, read_messages
@@ -490,7 +489,7 @@ def set_html(result: dict, plots: list[str]) -> str:
             rows.append([html.escape(method), str(info["frames"]), f"{info['rms_difference_to_primary']:.3f}" if info["rms_difference_to_primary"] is not None else "–",
                          f"{info['torque_residual_rms_nm']:.2f}" if info["torque_residual_rms_nm"] is not None else "–", str(info["flagged"]),
                          f"{info['solve_ms_median']:.2f}"])
-        parts.append(f"<h3>Methods compared</h3>" + _table(
+        parts.append("<h3>Methods compared</h3>" + _table(
             ["method", "frames", f"RMS difference to {result['primary']}", "torque residual RMS (N·m)", "flagged frames", "solve time median (ms)"], rows))
     parts.append("</section>")
     return "".join(parts)
