@@ -352,3 +352,41 @@ def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(
     finally:
         for session in sessions.values():
             session.close()
+
+
+def test_the_dashboard_joins_the_secured_network_as_a_tablet(pki, router, tmp_path):
+    """`msk dashboard --zenoh-config tablet.json5`: its bridge gets every activation frame and status the tablet may
+    read, nothing of the device data it may not, and the page state shows them."""
+    from services.dashboard.bridge import Bridge, DashboardState
+    from services.zenoh_session import ZenohOptions
+
+    config = tmp_path / "tablet.json5"
+    config.write_text(json.dumps(security.client_config(pki.directory, "tablet", connect=(router,))))
+    state = DashboardState(SESSION)
+    bridge = Bridge(ZenohOptions(mode=None, config_file=config), state)
+    sessions = {role: _client(pki, role, router) for role in ("driver", "estimator")}
+    bridge.start()
+    try:
+        activations_key, status_key = f"msk/{SESSION}/activations/so", f"msk/{SESSION}/status/trigno"
+        activations = declare_data_publisher(sessions["estimator"], activations_key, "msk.ActivationFrame")
+        status = declare_data_publisher(sessions["driver"], status_key, "msk.DeviceStatus")
+        emg = declare_data_publisher(sessions["driver"], f"msk/{SESSION}/emg/trigno", "msk.EmgChunk")
+        _wait_matched(activations, activations_key)
+        _wait_matched(status, status_key)
+        for index in range(N):
+            publish(activations, msk_pb2.ActivationFrame(method="so", time_s=index * 0.01, groups=["BicLong"],
+                                                         activations=[0.5]))
+            publish(status, msk_pb2.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True,
+                                                 samples_received=index))
+            publish(emg, _emg("trigno", index))
+        _wait_for(lambda: state.changes(0)[1]["topics"].get("activations/so") is not None, 20,
+                  "the dashboard state to hold an activation frame", lambda: list(state.changes(0)[1]["topics"]))
+        time.sleep(0.5)
+        update = state.changes(0)[1]
+        assert "activations/so" in update["topics"]
+        # the status names its device; EMG chunks (refused to tablets) would add their source as a second one
+        assert set(update["devices"]) == {"trigno-1"}, update["devices"]
+    finally:
+        bridge.stop()
+        for session in sessions.values():
+            session.close()

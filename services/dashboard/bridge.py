@@ -261,9 +261,13 @@ class DashboardState:
             return self._seq, update
 
 
+#: what the page reads, under msk/<session>/
+TOPIC_FAMILIES = ("activations/**", "status/**", "envelopes", "joints", "load", "emg/**", "imu/**")
+
+
 @dataclass
 class Bridge:
-    """The Zenoh side: one subscriber on ``msk/<session>/**`` feeding a :class:`DashboardState`."""
+    """The Zenoh side: a subscriber per topic family of ``msk/<session>/`` feeding a :class:`DashboardState`."""
 
     options: ZenohOptions
     state: DashboardState
@@ -279,7 +283,10 @@ class Bridge:
             except Exception:  # a callback must never raise into Zenoh; the count shows it on the page
                 log.exception("dashboard bridge: sample on %s", sample.key_expr)
 
-        self._subscribers.append(self._session.declare_subscriber(f"{self.state.prefix}**", on_sample))
+        # One subscriber per topic family, not one on msk/<s>/**: on the secured network a tablet may read only
+        # activations and status, and the router refuses a subscription it cannot grant whole.
+        for family in TOPIC_FAMILIES:
+            self._subscribers.append(self._session.declare_subscriber(f"{self.state.prefix}{family}", on_sample))
 
     def stop(self) -> None:
         for subscriber in self._subscribers:
