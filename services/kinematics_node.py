@@ -102,8 +102,17 @@ def main(
     ready_event: threading.Event | None = None,
     ready_key: ReadySpec | None = None,
     stats: KinematicsStats | None = None,
+    clock: str = "device",
 ) -> KinematicsStats:
-    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east)."""
+    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east).
+
+    ``clock="device"``: the trackers share one device clock (recordings, a Link/Awinda station); ``"host"``: each
+    tracker has its own clock (separate USB/serial MTi's, each counting from its own power-up): a tracker's device
+    time is mapped to the host clock by the smallest (host receive time - device time) seen so far, as the
+    estimator's ``--emg-clock host`` does, so samples of the same instant meet in the synchroniser."""
+    if clock not in ("device", "host"):
+        raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
+    host_offsets: dict[str, int] = {}
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else KinematicsStats()
     model = load_pack(pack)
@@ -151,7 +160,12 @@ def main(
         o = imu.orientation
         quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
         before = sync.out_of_order
-        events = sync.push(segment, int(imu.device_time_ns), quat)
+        time_ns = int(imu.device_time_ns)
+        if clock == "host":
+            offset = int(imu.host_time_ns) - time_ns
+            host_offsets[segment] = min(host_offsets.get(segment, offset), offset)
+            time_ns += host_offsets[segment]
+        events = sync.push(segment, time_ns, quat)
         stats.out_of_order += sync.out_of_order - before
         for event in events:
             if isinstance(event, IncompleteFrame):
@@ -237,6 +251,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
     add("--phase-template", type=Path, default=None,
         help="rep template JSON (`msk emg priors` output or a RepTemplate dict) learnt in radians")
+    add("--imu-clock", choices=["device", "host"], default="device",
+        help="device: the trackers share one clock (recordings); host: separate trackers, each device clock mapped "
+        "to the host clock (docs/kinematics.md)")
+    add("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
+    add("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     add_zenoh_arguments(parser)
 
 
@@ -261,7 +280,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         options_from_args(args), pack=args.pack, session=args.session, output_session=args.out_session,
         facing_deg=args.facing_deg, static_pose_deg=pose, static_s=args.static_s, gap_s=args.gap,
         sync_tolerance_s=args.sync_tolerance_ms / 1e3, filter_config=filter_config, phase_template=template,
-        phase_coordinate=args.phase_coordinate, stop_event=stop,
+        phase_coordinate=args.phase_coordinate, stop_event=stop, clock=args.imu_clock,
+        ready_key=ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
+        if args.ready_key else None,
     )
     print(f"published {stats.frames_out} frames; calibrations {stats.calibrations}; incomplete instants "
           f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"

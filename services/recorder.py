@@ -108,6 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="MCAP file to write")
     parser.add_argument("--key", default=topics.ALL_TOPICS, help="key expression to record (default: msk/**)")
     parser.add_argument("--duration", type=float, default=None, help="seconds to record (default: until Ctrl-C)")
+    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
     add_zenoh_arguments(parser)
 
 
@@ -116,7 +117,12 @@ def run_from_args(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     print(f"recording {args.key} to {args.out}", file=sys.stderr, flush=True)
-    stats = main(options_from_args(args), args.out, key_expr=args.key, duration_s=args.duration, stop_event=stop)
+    ready = None
+    if args.ready_key:
+        session, node = topics.split_key(args.ready_key)[0], args.ready_key.rsplit("/", 1)[-1]
+        ready = ReadySpec(session, node)
+    stats = main(options_from_args(args), args.out, key_expr=args.key, duration_s=args.duration, stop_event=stop,
+                 ready_key=ready)
     print(
         f"recorded {stats.written} messages to {args.out}"
         + (f"; skipped {stats.skipped_unknown} on keys of unknown type" if stats.skipped_unknown else "")
