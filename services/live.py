@@ -33,7 +33,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, InputError
 from services import topics
-from services.graph import Graph, GraphTimeout, python_module
+from services.graph import Graph, GraphTimeout, python_module, wait_for
 from services.live_session import SIM_METHODS, LiveSession, check_against_pack
 from services.mcap_io import read_messages
 
@@ -272,6 +272,43 @@ def driver_argv(plan: LivePlan, kind: str) -> list[str]:
     return argv
 
 
+@dataclass
+class FlowCounts:
+    """Messages of the session seen by the graph's monitor node (updated live)."""
+
+    joints: int = 0
+    activations: Counter = field(default_factory=Counter)  # method -> frames
+
+    def text(self) -> str:
+        return f"{self.joints} joint frames; activation frames " + (
+            ", ".join(f"{m} {n}" for m, n in self.activations.items()) or "none")
+
+
+def monitor(options, *, session: str, counts: FlowCounts, stop_event: threading.Event, ready_event: threading.Event,
+            ready_key) -> None:
+    """A graph node of ``msk live`` itself: counts joints and activation frames, so the stop can wait (bounded)
+    until the estimator has answered every joint frame before it is stopped."""
+    from services.graph import declare_ready
+    from services.zenoh_session import open_session
+
+    prefix = topics.session_prefix(session)
+
+    def on_joints(_sample) -> None:
+        counts.joints += 1
+
+    def on_activation(sample) -> None:
+        counts.activations[str(sample.key_expr).rsplit("/", 1)[1]] += 1
+
+    with open_session(options) as zsession:
+        subscribers = [zsession.declare_subscriber(f"{prefix}/joints", on_joints),
+                       zsession.declare_subscriber(f"{prefix}/activations/*", on_activation)]
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs
+        ready_event.set()
+        stop_event.wait()
+        for subscriber in subscribers:
+            subscriber.undeclare()
+
+
 class _Stopper:
     """SIGINT/SIGTERM set an event (the main thread then stops the graph in order) instead of raising mid-way."""
 
@@ -302,19 +339,21 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     graph = Graph(s.name, endpoint)
+    counts = FlowCounts()
     drivers = []
     started = time.monotonic()
     with _Stopper() as stopper:
         try:
             graph.add_process("recorder", python_module("services.recorder", "--out", str(mcap)), log_path=logs / "recorder.log")
+            graph.add_thread("monitor", monitor, session=s.name, counts=counts)
             estimator = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
                                       "--emg-clock", "host", "--load-kg", str(s.load_kg))
             for method in plan.methods:
                 estimator += ["--method", method]
-            graph.add_process("estimator", estimator, after=("recorder",), log_path=logs / "estimator.log")
+            graph.add_process("estimator", estimator, after=("recorder", "monitor"), log_path=logs / "estimator.log")
             graph.add_process("kinematics", python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name,
                                                           "--imu-clock", "host"),
-                              after=("recorder", "estimator"), log_path=logs / "kinematics.log")
+                              after=("recorder", "estimator", "monitor"), log_path=logs / "kinematics.log")
             if plan.trigno is not None:
                 drivers.append("drivers-trigno")
                 graph.add_process("drivers-trigno", driver_argv(plan, "trigno"), after=("recorder", "estimator"),
@@ -344,7 +383,7 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
                 reason = stopper.signal or "signal"
             elapsed = time.monotonic() - started
         finally:
-            codes = stop_in_order(graph, drivers, simulators, locals().get("viewer"))
+            codes = stop_in_order(graph, drivers, simulators, locals().get("viewer"), counts, plan.methods, log)
     summary = summarise(mcap, elapsed)
     summary["stopped_by"] = reason
     summary["exit_codes"] = codes
@@ -372,7 +411,16 @@ def _wait_ready(graph: Graph, stopper: _Stopper) -> None:
         raise error[0]
 
 
-def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | None, viewer) -> dict:
+def _settle(what: str, done, counts: FlowCounts, timeout_s: float, log) -> None:
+    """Bounded wait for the downstream nodes to catch up; on expiry say so with the counts, and go on stopping."""
+    try:
+        wait_for(what, done, counts.text, timeout_s)
+    except GraphTimeout as error:
+        log(f"warning: {error}")
+
+
+def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | None, viewer, counts: FlowCounts,
+                  methods, log) -> dict:
     """Sources first, the recorder last, so what the devices sent flows through and is recorded."""
     if simulators is not None:
         simulators.hold()
@@ -384,6 +432,18 @@ def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | Non
         process = processes.get(name)
         if process is None:
             continue
+        if name == "kinematics":  # joints stop changing: the drivers' last samples went through
+            last = [counts.joints, time.monotonic()]
+
+            def quiet() -> bool:
+                if counts.joints != last[0]:
+                    last[:] = [counts.joints, time.monotonic()]
+                return time.monotonic() - last[1] >= DRAIN_S
+
+            _settle("the kinematics node to publish its last joint frames", quiet, counts, STOP_TIMEOUT_S, log)
+        elif name == "estimator":  # every joint frame answered by every method
+            _settle(f"the estimator to answer all joint frames ({', '.join(methods)})",
+                    lambda: all(counts.activations[m] >= counts.joints for m in methods), counts, STOP_TIMEOUT_S, log)
         if process.poll() is None:
             process.send_signal(signal.SIGINT)
         try:
