@@ -179,3 +179,20 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
     assert all(n == joints for n in frames.values()), (joints, frames)
     assert summary["frames_estimated"] == dict(frames) and summary["samples"]["emg/trigno"] == sent["trigno"]["samples"]
     assert "emg/trigno" in output and "frames estimated" in output
+
+
+def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_path):
+    import re
+
+    from services.live_session import _SECTIONS
+
+    text = (REPO / "docs" / "live.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    (tmp_path / "subject_bench_press.json").write_text("{}")
+    path = tmp_path / "session.toml"
+    path.write_text(block)
+    session = load_session_file(path)
+    assert session.pack == "bench_press" and session.trackers and session.electrodes and session.trigno_host
+    documented = set(re.findall(r"^\| `([a-z_]+\.[a-z_<>]+)` \|", text, re.M))
+    keys = {f"{s}.{k}" for s, ks in _SECTIONS.items() if ks for k in ks} | {"trackers.<id>", "electrodes.<channel>"}
+    assert documented == keys
