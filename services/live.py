@@ -426,7 +426,8 @@ def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | Non
         simulators.hold()
         time.sleep(DRAIN_S)
     processes = {n.name: n.process for n in graph._processes}
-    order = [*drivers, "kinematics", "estimator", "recorder"]
+    # Xsens before Trigno: the last joint frames still find EMG (no ``emg_stalled`` flags at the end of a session)
+    order = sorted(drivers, key=lambda d: d != "drivers-xsens") + ["kinematics", "estimator", "recorder"]
     codes = {}
     for name in order:
         process = processes.get(name)

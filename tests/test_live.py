@@ -196,3 +196,27 @@ def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_pat
     documented = set(re.findall(r"^\| `([a-z_]+\.[a-z_<>]+)` \|", text, re.M))
     keys = {f"{s}.{k}" for s, ks in _SECTIONS.items() if ks for k in ks} | {"trackers.<id>", "electrodes.<channel>"}
     assert documented == keys
+
+
+def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp_path):
+    from services import live
+
+    profile = {"f_max": [], "emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}
+    (tmp_path / "subject.json").write_text(json.dumps(profile))
+    doc = _doc(session__out="rec", trigno={"host": "10.0.0.5:50040", "emg_port": 50041},
+               xsens={"ports": ["/dev/ttyUSB0", "usb"], "rate_hz": 60},
+               electrodes={"sensor01.EMG": "PMCla", "sensor02.EMG": "BRA"})  # BRA: a group
+    path = tmp_path / "session.toml"
+    path.write_text(_toml(doc))
+    plan, simulators = live.plan_for(load_session_file(path), sim=False, log=lambda *_: None)
+    assert simulators is None and plan.methods == ("proposed", "so")
+    trigno = live.driver_argv(plan, "trigno")
+    assert trigno[trigno.index("--trigno") + 1] == "10.0.0.5:50040" and trigno[trigno.index("--trigno-emg-port") + 1] == "50041"
+    xsens = live.driver_argv(plan, "xsens")
+    assert [xsens[i + 1] for i, a in enumerate(xsens) if a == "--xsens"] == ["/dev/ttyUSB0", "usb"]
+    assert xsens[xsens.index("--imu-rate") + 1] == "60"
+    assert "--segment=00B4EB80=upper_arm_r" in xsens and "--segment=00B497B2=forearm_r" in xsens
+    live_profile = json.loads(plan.subject.read_text())["emg_normalisation"]
+    assert plan.subject == tmp_path / "rec" / "subject_session.json"
+    assert live_profile["sensor01.EMG"] == {"group": "pec_clav", "divisor": 0.2}  # the electrode's group and MVC
+    assert "divisor" not in live_profile["sensor02.EMG"]  # a bare group: no MVC, flagged no_mvc, never raw volts
