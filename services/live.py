@@ -344,28 +344,32 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
     started = time.monotonic()
     with _Stopper() as stopper:
         try:
-            graph.add_process("recorder", python_module("services.recorder", "--out", str(mcap)), log_path=logs / "recorder.log")
+            graph.add_process("recorder", python_module("services.recorder", "--out", str(mcap)),
+                              log_path=logs / "recorder.log", own_session=True)
             graph.add_thread("monitor", monitor, session=s.name, counts=counts)
             estimator = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
                                       "--emg-clock", "host", "--load-kg", str(s.load_kg))
             for method in plan.methods:
                 estimator += ["--method", method]
-            graph.add_process("estimator", estimator, after=("recorder", "monitor"), log_path=logs / "estimator.log")
+            graph.add_process("estimator", estimator, after=("recorder", "monitor"), log_path=logs / "estimator.log",
+                              own_session=True)
             graph.add_process("kinematics", python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name,
                                                           "--imu-clock", "host"),
-                              after=("recorder", "estimator", "monitor"), log_path=logs / "kinematics.log")
+                              after=("recorder", "estimator", "monitor"), log_path=logs / "kinematics.log",
+                              own_session=True)
             if plan.trigno is not None:
                 drivers.append("drivers-trigno")
                 graph.add_process("drivers-trigno", driver_argv(plan, "trigno"), after=("recorder", "estimator"),
-                                  log_path=logs / "drivers-trigno.log")
+                                  log_path=logs / "drivers-trigno.log", own_session=True)
             if plan.xsens_ports:
                 drivers.append("drivers-xsens")
                 graph.add_process("drivers-xsens", driver_argv(plan, "xsens"), after=("recorder", "kinematics"),
-                                  log_path=logs / "drivers-xsens.log")
+                                  log_path=logs / "drivers-xsens.log", own_session=True)
             _wait_ready(graph, stopper)
             viewer = None
             if view and not stopper.event.is_set():
-                viewer = subprocess.Popen(python_module("services.cli", "view", "--session", s.name, f"--connect={endpoint}"))
+                viewer = subprocess.Popen(python_module("services.cli", "view", "--session", s.name, f"--connect={endpoint}"),
+                                          start_new_session=True)  # Ctrl-C reaches msk live only: it stops in order
             log(f"live session {s.name!r} running: {', '.join(graph.nodes)}" + (" + view" if viewer else "")
                 + f"; recording to {mcap}" + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops"))
             started = time.monotonic()
@@ -425,12 +429,11 @@ def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | Non
     if simulators is not None:
         simulators.hold()
         time.sleep(DRAIN_S)
-    processes = {n.name: n.process for n in graph._processes}
     # Xsens before Trigno: the last joint frames still find EMG (no ``emg_stalled`` flags at the end of a session)
     order = sorted(drivers, key=lambda d: d != "drivers-xsens") + ["kinematics", "estimator", "recorder"]
     codes = {}
     for name in order:
-        process = processes.get(name)
+        process = graph.process(name)
         if process is None:
             continue
         if name == "kinematics":  # joints stop changing: the drivers' last samples went through

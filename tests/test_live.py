@@ -129,7 +129,7 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "120", "--out", str(out)],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
     )
     lines: list[str] = []
     try:
@@ -141,7 +141,7 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
             if ready:
                 lines.append(process.stdout.readline())
         time.sleep(6.0)  # some seconds of live data
-        process.send_signal(signal.SIGINT)
+        os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C in a terminal: to the whole foreground process group
         rest, _ = process.communicate(timeout=60)
     finally:
         if process.poll() is None:
