@@ -365,6 +365,8 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
                 drivers.append("drivers-xsens")
                 graph.add_process("drivers-xsens", driver_argv(plan, "xsens"), after=("recorder", "kinematics"),
                                   log_path=logs / "drivers-xsens.log", own_session=True)
+            # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
+            (logs / "pids.json").write_text(json.dumps({n: graph.process(n).pid for n in graph.nodes if graph.process(n)}) + "\n")
             _wait_ready(graph, stopper)
             viewer = None
             if view and not stopper.event.is_set():

@@ -152,6 +152,11 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stopped_by"] == "SIGINT" and summary["duration_s"] < 120, summary
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    pids = json.loads((out / "logs" / "pids.json").read_text())
+    assert set(pids) == {"recorder", "estimator", "kinematics", "drivers-trigno", "drivers-xsens"}
+    for node, pid in pids.items():  # every node process ended with msk live
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
 
     # the MCAP is readable and holds every sample each simulator sent (counted independently of the summary)
     emg, imu, frames = Counter(), Counter(), Counter()
