@@ -193,18 +193,25 @@ class Graph:
         self._threads.append(node)
 
     def add_process(self, name: str, argv: Sequence[str], *, after: Sequence[str] = (), log_path: Path | None = None,
-                    env: dict[str, str] | None = None) -> subprocess.Popen:
-        """Start ``argv`` (its Zenoh flags, ``--ready-key`` and ``--ready-after`` appended) as a separate process."""
+                    env: dict[str, str] | None = None, own_session: bool = False) -> subprocess.Popen:
+        """Start ``argv`` (its Zenoh flags, ``--ready-key`` and ``--ready-after`` appended) as a separate process.
+
+        ``own_session``: in its own process group, so a Ctrl-C in the terminal reaches only the caller, which then
+        stops the nodes in the order it chooses (``msk live``)."""
         options = self.options()
         flags = [f"--listen={e}" for e in options.listen] + [f"--connect={e}" for e in options.connect]
         flags += [f"--ready-after={n}" for n in after]
         out = open(log_path, "wb") if log_path is not None else subprocess.DEVNULL
         process = subprocess.Popen(
             [*argv, *flags, "--ready-key", ready_key(self.session, name)], stdout=out, stderr=subprocess.STDOUT,
-            env={**os.environ, **(env or {})},
+            env={**os.environ, **(env or {})}, start_new_session=own_session,
         )
         self._processes.append(_ProcessNode(name, process, log_path))
         return process
+
+    def process(self, name: str) -> subprocess.Popen | None:
+        """The process of node ``name`` (None for a thread node or an unknown name)."""
+        return next((n.process for n in self._processes if n.name == name), None)
 
     # -- readiness ----------------------------------------------------------------------------------------------
 

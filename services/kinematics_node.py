@@ -90,7 +90,11 @@ class KinematicsNode:
     def __init__(self, pack: str, session: str, stats: KinematicsStats, *, facing_deg: float,
                  static_pose_deg: dict[str, float] | None, static_s: float, gap_s: float, sync_tolerance_s: float,
                  max_wait_s: float, filter_config: KinematicsFilterConfig | None, phase_template: RepTemplate | None,
-                 phase_coordinate: str | None) -> None:
+                 phase_coordinate: str | None, clock: str = "device") -> None:
+        if clock not in ("device", "host"):
+            raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
+        self.clock = clock
+        self.host_offsets: dict[str, int] = {}  # per segment: smallest (host receive - device time) seen
         self.stats = stats
         self.model = load_pack(pack)
         # ENU: x east, y north; the mapping's heading is counter-clockwise from x
@@ -145,7 +149,12 @@ class KinematicsNode:
         o = imu.orientation
         quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
         before = self.sync.out_of_order
-        events = self.sync.push(segment, int(imu.device_time_ns), quat)
+        time_ns = int(imu.device_time_ns)
+        if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
+            offset = int(imu.host_time_ns) - time_ns
+            self.host_offsets[segment] = min(self.host_offsets.get(segment, offset), offset)
+            time_ns += self.host_offsets[segment]
+        events = self.sync.push(segment, time_ns, quat)
         stats.out_of_order += self.sync.out_of_order - before
         return [joints for event in events if (joints := self._frame(event)) is not None]
 
@@ -196,14 +205,20 @@ def main(
     ready_event: threading.Event | None = None,
     ready_key: ReadySpec | None = None,
     stats: KinematicsStats | None = None,
+    clock: str = "device",
 ) -> KinematicsStats:
-    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east)."""
+    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east).
+
+    ``clock="device"``: the trackers share one device clock (recordings, a Link/Awinda station); ``"host"``: each
+    tracker has its own clock (separate USB/serial MTi's, each counting from its own power-up): a tracker's device
+    time is mapped to the host clock by the smallest (host receive time - device time) seen so far, as the
+    estimator's ``--emg-clock host`` does, so samples of the same instant meet in the synchroniser."""
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else KinematicsStats()
     node = KinematicsNode(pack, session, stats, facing_deg=facing_deg, static_pose_deg=static_pose_deg,
                           static_s=static_s, gap_s=gap_s, sync_tolerance_s=sync_tolerance_s, max_wait_s=max_wait_s,
                           filter_config=filter_config, phase_template=phase_template,
-                          phase_coordinate=phase_coordinate)
+                          phase_coordinate=phase_coordinate, clock=clock)
     inbox: queue.SimpleQueue = queue.SimpleQueue()
 
     def on_sample(sample: zenoh.Sample) -> None:
@@ -264,6 +279,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
     add("--phase-template", type=Path, default=None,
         help="rep template JSON (`msk emg priors` output or a RepTemplate dict) learnt in radians")
+    add("--imu-clock", choices=["device", "host"], default="device",
+        help="device: the trackers share one clock (recordings); host: separate trackers, each device clock mapped "
+        "to the host clock (docs/kinematics.md)")
+    add("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
+    add("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     add_zenoh_arguments(parser)
 
 
@@ -288,7 +308,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         options_from_args(args), pack=args.pack, session=args.session, output_session=args.out_session,
         facing_deg=args.facing_deg, static_pose_deg=pose, static_s=args.static_s, gap_s=args.gap,
         sync_tolerance_s=args.sync_tolerance_ms / 1e3, filter_config=filter_config, phase_template=template,
-        phase_coordinate=args.phase_coordinate, stop_event=stop,
+        phase_coordinate=args.phase_coordinate, stop_event=stop, clock=args.imu_clock,
+        ready_key=ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
+        if args.ready_key else None,
     )
     print(f"published {stats.frames_out} frames; calibrations {stats.calibrations}; incomplete instants "
           f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"

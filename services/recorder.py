@@ -182,6 +182,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="on start, fetch what device publishers kept from the last S seconds (default 10; 0: off)")
     parser.add_argument("--key", default=topics.ALL_TOPICS, help="key expression to record (default: msk/**)")
     parser.add_argument("--duration", type=float, default=None, help="seconds to record (default: until Ctrl-C)")
+    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
     add_zenoh_arguments(parser)
 
 
@@ -196,8 +197,13 @@ def run_from_args(args: argparse.Namespace) -> int:
     already_recorded = recorded_tail_in(previous) if previous else None
     print(f"recording {args.key} to {out}" + (f" (continuing {len(previous)} earlier part(s))" if previous else ""),
           file=sys.stderr, flush=True)
+    ready = None
+    if args.ready_key:
+        session, node = topics.split_key(args.ready_key)[0], args.ready_key.rsplit("/", 1)[-1]
+        ready = ReadySpec(session, node)
     stats = main(options_from_args(args), out, key_expr=args.key, duration_s=args.duration, stop_event=stop,
-                 flush_interval_s=args.flush_interval, history_s=args.history, already_recorded=already_recorded)
+                 flush_interval_s=args.flush_interval, history_s=args.history, already_recorded=already_recorded,
+                 ready_key=ready)
     print(
         f"recorded {stats.written} messages to {out}"
         + (f"; skipped {stats.skipped_unknown} on keys of unknown type" if stats.skipped_unknown else "")

@@ -384,3 +384,36 @@ def test_streaming_recalibrates_after_a_gap_and_counts_bad_and_moving_static_fra
     np.testing.assert_allclose(outs[-1].q, bent, atol=np.radians(0.05))
     assert live.counters.frames == 221
     assert live.counters.published + live.counters.calibration_frames + live.counters.bad_frames == 221
+
+
+@pytest.mark.parametrize("clock", ["device", "host"])
+def test_host_clock_syncs_trackers_whose_device_clocks_differ(zenoh_endpoint, clock):
+    """Separate trackers count SampleTimeFine from their own power-up (here 7.3 s apart): only ``--imu-clock host``
+    puts their samples of one instant together (by host receive time), as ``msk live`` needs."""
+    n, period = 90, 16_666_667
+    rng = np.random.default_rng(3)
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        thread, stop, stats = _start_node(zenoh_endpoint, pack="bench_press", clock=clock)
+        pubs = {seg: declare_data_publisher(session, topics.imu_key("synth", seg), "msk.ImuSample")
+                for seg in ("upper_arm_r", "forearm_r")}
+        deadline = time.monotonic() + 10
+        while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        power_up = {"upper_arm_r": 12_000_000_000, "forearm_r": 4_700_000_000}  # device time at the first sample
+        host0 = time.time_ns()
+        for k in range(n):
+            for seg, pub in pubs.items():
+                host = host0 + k * period + int(rng.integers(0, 3_000_000))  # delivery jitter up to 3 ms
+                publish(pub, messages.ImuSample(
+                    tracker_id=seg, segment=seg, orientation=messages.Quaternion(w=1.0), coordinate_frame="ENU",
+                    device_time_ns=power_up[seg] + k * period, host_time_ns=host))
+        deadline = time.monotonic() + 10
+        while stats.samples_in < 2 * n and time.monotonic() < deadline:
+            time.sleep(0.05)
+    stop.set()
+    thread.join(10)
+    assert stats.samples_in == 2 * n
+    if clock == "device":
+        assert stats.frames_synced == 0 and stats.frames_incomplete > n // 2
+    else:
+        assert stats.frames_synced >= n - 2 and stats.frames_incomplete <= 2, stats

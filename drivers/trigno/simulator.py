@@ -98,6 +98,7 @@ class TrignoSimulator:
         self._master: int | None = None
         self._next_conn_id = 1
         self._running = False
+        self._held = False
         self._run_started = 0.0
         self._frame = 0
         self._upsampling = self.config.upsampling if self.config.upsampling is not None else source.rate_hz > 1960.0
@@ -114,6 +115,11 @@ class TrignoSimulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def hold(self) -> None:
+        """Stop sending data from now on (sensors switched off) while connections stay open: a clean end of a
+        simulated session, after which ``stats.samples_sent`` is final and a reading client can receive all of it."""
+        self._held = True
 
     def start(self) -> "TrignoSimulator":
         if self._listeners:
@@ -428,7 +434,7 @@ class TrignoSimulator:
     def _stream_loop(self) -> None:
         frame_s = tp.FRAME_INTERVAL_S / self.config.speed
         while not self._stop.is_set():
-            if not self._running:
+            if not self._running or self._held:
                 self._stop.wait(0.005)
                 continue
             due = self._run_started + self._frame * frame_s

@@ -84,6 +84,7 @@ class XsensSimulator:
         self.path = ""
         self.measuring = False
         self.unplugged = False
+        self._held = False
         self._outputs = list(source.recorded_config) if source.raw_payloads else list(FACTORY_OUTPUTS)
         self._verbatim = bool(source.raw_payloads)  # replay recorded payloads until outputs are reconfigured
         self._rng = np.random.default_rng(self.faults.seed)
@@ -121,6 +122,11 @@ class XsensSimulator:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         self._close_fds()
+
+    def hold(self) -> None:
+        """Stop sending measurements from now on while the port stays open: a clean end of a simulated session,
+        after which ``stats.messages_sent`` is final and the host can read all of it."""
+        self._held = True
 
     def unplug(self) -> None:
         """Close the pty like a pulled cable: the reader sees a hang-up / EIO."""
@@ -177,7 +183,7 @@ class XsensSimulator:
                         self._handle(message)
                         if self.measuring and not was_measuring:
                             next_due = time.monotonic()
-                if self.measuring and time.monotonic() >= next_due:
+                if self.measuring and not self._held and time.monotonic() >= next_due:
                     if not self._send_sample():
                         self.measuring = False
                         continue

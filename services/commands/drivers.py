@@ -1,12 +1,16 @@
 """``msk drivers``: run the Trigno and/or Xsens driver nodes, publishing EmgChunk, ImuSample and DeviceStatus
-on msk/<session>/emg/<source>, msk/<session>/imu/<tracker> and msk/<session>/status/<device>."""
+on msk/<session>/emg/<source>, msk/<session>/imu/<tracker> and msk/<session>/status/<device>.
+
+Ctrl-C or SIGTERM ends acquisition cleanly (STOP/QUIT, final status) and prints what was published."""
 
 from __future__ import annotations
 
 import argparse
+import signal
 import threading
 
 from services import driver_nodes, topics, zenoh_session
+from services.graph import ReadySpec, declare_ready
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -14,6 +18,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     driver_nodes.add_device_arguments(parser)
     parser.add_argument("--session", default="live", help="session name used in the topic keys (default: live)")
     parser.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: until Ctrl-C)")
+    # graph readiness (services.graph): wait for these nodes before acquiring, then declare the token
+    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     zenoh_session.add_zenoh_arguments(parser)
     parser.set_defaults(handler=run)
 
@@ -21,12 +28,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):  # the loops end cleanly and report, rather than being torn down
+        signal.signal(signum, lambda *_: stop.set())
+    ready = None
+    if args.ready_key:
+        ready = ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
     with zenoh_session.open_session(zenoh_session.options_from_args(args)) as session:
+        token = declare_ready(session, ready)  # noqa: F841 - alive while the node runs
         sink = driver_nodes.ZenohSink(session)
         try:
             reports = driver_nodes.run_devices(args, sink, session=args.session, duration_s=args.duration, stop=stop)
         finally:
             sink.close()
     for report in reports:
-        print(f"published {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps", flush=True)
+        gaps = sum(g.n_missing for g in report.gaps)
+        print(f"published {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps "
+              f"({gaps} samples)", flush=True)
     return 0

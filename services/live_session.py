@@ -1,0 +1,178 @@
+"""The session file of ``msk live`` (TOML): devices, tracker and electrode maps, pack, subject, load, output.
+
+Format in docs/live.md. :func:`load_session_file` checks every key and raises :class:`msk_core.errors.ConfigError`
+naming the file, the key and the value; nothing is guessed silently.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from msk_core.errors import ConfigError
+from services import topics
+
+METHODS = ("proposed", "assisted", "so", "hybrid")
+SIM_METHODS = ("proposed", "assisted", "so")
+
+_SECTIONS = {
+    "session": {"name", "out", "pack", "subject", "load_kg", "methods"},
+    "trigno": {"host", "emg_port", "id"},
+    "xsens": {"ports", "rate_hz", "baud"},
+    "trackers": None,  # free keys: tracker ids
+    "electrodes": None,  # free keys: channel labels
+}
+
+
+@dataclass
+class LiveSession:
+    """A parsed session file (paths resolved against the file's folder)."""
+
+    path: Path | None
+    name: str = "live"
+    out: Path = Path("out/live")
+    pack: str = "bench_press"
+    subject: Path | None = None
+    load_kg: float = 0.0
+    methods: tuple[str, ...] = ()
+    trigno_host: str | None = None  # HOST[:PORT]
+    trigno_emg_port: int | None = None
+    trigno_id: str = "trigno"
+    xsens_ports: tuple[str, ...] = ()  # serial ports or "usb"
+    imu_rate_hz: int = 100
+    xsens_baud: int = 115200
+    trackers: dict[str, str] = field(default_factory=dict)  # tracker id (8 hex digits) -> segment
+    electrodes: dict[str, str] = field(default_factory=dict)  # Trigno channel label -> profile electrode or group
+    given: set[str] = field(default_factory=set)  # dotted keys present in the file
+
+
+def _error(path: Path | None, key: str, message: str, value=None) -> ConfigError:
+    return ConfigError(message, path=path, field=key, value=value)
+
+
+def _type(path, key, value, kind, what):
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        raise _error(path, key, f"must be {what}", value)
+    return value
+
+
+def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool = True) -> LiveSession:
+    """Check a session document; ``require_devices=False`` (``--sim``): the simulators replace the device keys and
+    the bundled session provides pack, subject, maps and load when the file leaves them out."""
+    base = path.parent if path is not None else Path.cwd()
+    for section, value in doc.items():
+        if section not in _SECTIONS:
+            raise _error(path, section, f"unknown section (expected {', '.join(_SECTIONS)})", section)
+        if not isinstance(value, dict):
+            raise _error(path, section, "must be a table ([" + section + "])", value)
+        allowed = _SECTIONS[section]
+        for key in value:
+            if allowed is not None and key not in allowed:
+                raise _error(path, f"{section}.{key}", f"unknown key (expected {', '.join(sorted(allowed))})", key)
+    session = LiveSession(path)
+    session.given = {f"{s}.{k}" for s, t in doc.items() for k in t} | set(doc)
+    s = doc.get("session", {})
+    if "name" in s:
+        try:
+            session.name = topics.check_chunk(_type(path, "session.name", s["name"], str, "a string"), "session")
+        except ConfigError as error:
+            raise _error(path, "session.name", f"not a valid key chunk ({error})", s["name"]) from None
+    if "out" in s:
+        session.out = base / _type(path, "session.out", s["out"], str, "a folder path")
+    if "pack" in s:
+        session.pack = _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path")
+    elif require_devices:
+        raise _error(path, "session.pack", "missing: the model pack (e.g. \"bench_press\")")
+    if "subject" in s:
+        subject = base / _type(path, "session.subject", s["subject"], str, "a path to a subject profile JSON")
+        if not subject.is_file():
+            raise _error(path, "session.subject", "subject profile not found (make one with `msk calibrate`)", str(subject))
+        session.subject = subject
+    if "load_kg" in s:
+        load = _type(path, "session.load_kg", s["load_kg"], (int, float), "a number of kilograms")
+        if not (math.isfinite(load) and load >= 0):
+            raise _error(path, "session.load_kg", "must be a finite mass >= 0 kg", load)
+        session.load_kg = float(load)
+    elif require_devices:
+        raise _error(path, "session.load_kg", "missing: the barbell mass in kg (0 for none)")
+    if "methods" in s:
+        methods = _type(path, "session.methods", s["methods"], list, f"a list of methods ({', '.join(METHODS)})")
+        if not methods:
+            raise _error(path, "session.methods", "must name at least one method", methods)
+        for m in methods:
+            if m not in METHODS:
+                raise _error(path, "session.methods", f"unknown method (expected {', '.join(METHODS)})", m)
+        session.methods = tuple(dict.fromkeys(methods))
+    t = doc.get("trigno")
+    if t is not None:
+        if "host" not in t:
+            raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
+        session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
+        if "emg_port" in t:
+            port = _type(path, "trigno.emg_port", t["emg_port"], int, "a TCP port number")
+            if not 1 <= port <= 65535:
+                raise _error(path, "trigno.emg_port", "must be a TCP port 1..65535", port)
+            session.trigno_emg_port = port
+        if "id" in t:
+            session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
+    x = doc.get("xsens")
+    if x is not None:
+        if "ports" not in x:
+            raise _error(path, "xsens.ports", "missing: the trackers' serial ports, or [\"usb\"]")
+        ports = x["ports"]
+        if isinstance(ports, str):
+            ports = [ports]
+        if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
+            raise _error(path, "xsens.ports", "must be a list of serial ports or \"usb\"", x["ports"])
+        session.xsens_ports = tuple(ports)
+        if "rate_hz" in x:
+            rate = _type(path, "xsens.rate_hz", x["rate_hz"], int, "an integer rate in Hz")
+            if not 1 <= rate <= 2000:
+                raise _error(path, "xsens.rate_hz", "must be within 1..2000 Hz", rate)
+            session.imu_rate_hz = rate
+        if "baud" in x:
+            session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
+    for tracker, segment in doc.get("trackers", {}).items():
+        key = f"trackers.{tracker}"
+        try:
+            int(tracker, 16)
+        except ValueError:
+            raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker) from None
+        if len(tracker) != 8:
+            raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker)
+        session.trackers[tracker.upper()] = _type(path, key, segment, str, "a body segment name")
+    for label, target in doc.get("electrodes", {}).items():
+        session.electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
+    if require_devices:
+        if session.trigno_host is None and not session.xsens_ports:
+            raise _error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
+        if session.xsens_ports and not session.trackers:
+            raise _error(path, "trackers", "missing: the tracker -> segment map ([trackers] \"00B4EB80\" = \"upper_arm_r\")")
+        if session.trigno_host is not None and not session.electrodes:
+            raise _error(path, "electrodes", "missing: the electrode -> group map ([electrodes] \"sensor01.EMG\" = ...)")
+    return session
+
+
+def load_session_file(path: Path, *, require_devices: bool = True) -> LiveSession:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("session file not found", path=path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"not valid TOML: {error}", path=path) from None
+    return parse_session(doc, path, require_devices=require_devices)
+
+
+def check_against_pack(session: LiveSession, groups: list[str], segments: list[str], profile_electrodes: dict[str, dict]) -> None:
+    """Maps that name things the pack or the profile do not have are errors (file, key, value)."""
+    for tracker, segment in session.trackers.items():
+        if segment not in segments:
+            raise _error(session.path, f"trackers.{tracker}", f"not a segment the pack's IMU table uses ({', '.join(segments)})", segment)
+    for label, target in session.electrodes.items():
+        if target not in profile_electrodes and target not in groups:
+            raise _error(session.path, f"electrodes.{label}",
+                         "neither an electrode of the subject profile "
+                         f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack", target)

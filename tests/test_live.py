@@ -1,0 +1,227 @@
+"""``msk live``: the session file's errors, and ``msk live --sim`` end to end as a user runs it (a subprocess, real
+simulators over TCP and ptys, real driver/kinematics/estimator/recorder processes over Zenoh), stopped by SIGINT."""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from msk_core.errors import ConfigError
+from services.live_session import check_against_pack, load_session_file, parse_session
+
+REPO = Path(__file__).resolve().parents[1]
+GOOD = {
+    "session": {"name": "gym", "pack": "bench_press", "load_kg": 60, "subject": "subject.json", "methods": ["proposed", "so"]},
+    "trigno": {"host": "192.168.1.20"},
+    "xsens": {"ports": ["usb"], "rate_hz": 100},
+    "trackers": {"00B4EB80": "upper_arm_r", "00B497B2": "forearm_r"},
+    "electrodes": {"sensor01.EMG": "PMCla"},
+}
+
+
+def _doc(**changes) -> dict:
+    doc = json.loads(json.dumps(GOOD))
+    for dotted, value in changes.items():
+        section, _, key = dotted.partition("__")
+        if key:
+            if value is None:
+                doc[section].pop(key)
+            else:
+                doc.setdefault(section, {})[key] = value
+        elif value is None:
+            doc.pop(section)
+        else:
+            doc[section] = value
+    return doc
+
+
+def _toml(doc: dict) -> str:
+    def value(v):
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return str(v)
+
+    return "\n".join(f"[{s}]\n" + "\n".join(f"{json.dumps(k)} = {value(v)}" for k, v in t.items()) for s, t in doc.items()) + "\n"
+
+
+def test_a_good_session_file_parses_with_paths_resolved(tmp_path):
+    (tmp_path / "subject.json").write_text("{}")
+    path = tmp_path / "session.toml"
+    path.write_text(_toml(GOOD))
+    session = load_session_file(path)
+    assert (session.name, session.pack, session.load_kg, session.methods) == ("gym", "bench_press", 60.0, ("proposed", "so"))
+    assert session.subject == tmp_path / "subject.json" and session.out == Path("out/live")  # default: cwd-relative
+    assert session.trigno_host == "192.168.1.20" and session.xsens_ports == ("usb",) and session.imu_rate_hz == 100
+    assert session.trackers == {"00B4EB80": "upper_arm_r", "00B497B2": "forearm_r"}
+
+
+@pytest.mark.parametrize(
+    "changes, key, value",
+    [
+        ({"session__pack": None}, "session.pack", None),
+        ({"session__load_kg": None}, "session.load_kg", None),
+        ({"session__load_kg": -5}, "session.load_kg", "-5"),
+        ({"session__methods": ["proposed", "magic"]}, "session.methods", "magic"),
+        ({"session__name": "a b"}, "session.name", "a b"),
+        ({"session__subject": "missing.json"}, "session.subject", "missing.json"),
+        ({"session__colour": "red"}, "session.colour", "colour"),
+        ({"trigno__host": None}, "trigno.host", None),
+        ({"trigno__emg_port": 70000}, "trigno.emg_port", "70000"),
+        ({"xsens__ports": []}, "xsens.ports", "[]"),
+        ({"xsens__rate_hz": 5000}, "xsens.rate_hz", "5000"),
+        ({"trackers": {"upperarm": "upper_arm_r"}}, "trackers.upperarm", "upperarm"),
+        ({"trackers": None}, "trackers", None),
+        ({"electrodes": None}, "electrodes", None),
+        ({"trigno": None, "xsens": None}, "trigno", None),
+        ({"camera": {"fps": 30}}, "camera", "camera"),
+    ],
+)
+def test_a_bad_session_file_names_file_key_and_value(tmp_path, changes, key, value):
+    (tmp_path / "subject.json").write_text("{}")
+    path = tmp_path / "session.toml"
+    path.write_text(_toml(_doc(**changes)))
+    with pytest.raises(ConfigError) as error:
+        load_session_file(path)
+    message = str(error.value)
+    assert str(path) in message and f"field {key!r}" in message
+    if value is not None:
+        assert value in message
+
+
+def test_maps_must_name_the_packs_segments_and_the_profiles_electrodes():
+    session = parse_session(_doc(session__subject=None), require_devices=False)
+    check_against_pack(session, ["PMCla_group"], ["upper_arm_r", "forearm_r"], {"PMCla": {"group": "x"}})
+    session.trackers["00B4E1AE"] = "torso"
+    with pytest.raises(ConfigError, match="trackers.00B4E1AE.*torso"):
+        check_against_pack(session, [], ["upper_arm_r", "forearm_r"], {"PMCla": {}})
+    session = parse_session(_doc(session__subject=None, electrodes={"sensor02.EMG": "nowhere"}), require_devices=False)
+    with pytest.raises(ConfigError, match="electrodes.sensor02.EMG.*nowhere"):
+        check_against_pack(session, ["biceps"], ["upper_arm_r", "forearm_r"], {"PMCla": {}})
+
+
+def test_cli_reports_a_bad_session_file_without_a_traceback(tmp_path):
+    path = tmp_path / "session.toml"
+    path.write_text("[session]\npack = \"bench_press\"\nload_kg = \"heavy\"\n")
+    result = subprocess.run([sys.executable, "-m", "services.cli", "live", str(path), "--no-view"], cwd=REPO,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert "session.load_kg" in result.stderr and "heavy" in result.stderr and str(path) in result.stderr
+
+
+STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
+
+
+def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_sigint(tmp_path):
+    from services.mcap_io import read_messages
+
+    out = tmp_path / "live"
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "120", "--out", str(out)],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + STARTUP_S
+        while not any("live session" in line and "running" in line for line in lines):
+            left = deadline - time.monotonic()
+            assert left > 0 and process.poll() is None, f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines)
+            ready, _, _ = select.select([process.stdout], [], [], min(left, 1.0))
+            if ready:
+                lines.append(process.stdout.readline())
+        time.sleep(6.0)  # some seconds of live data
+        os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C in a terminal: to the whole foreground process group
+        rest, _ = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(10)
+    output = "".join(lines) + rest
+    assert process.returncode == 0, output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stopped_by"] == "SIGINT" and summary["duration_s"] < 120, summary
+    assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    pids = json.loads((out / "logs" / "pids.json").read_text())
+    assert set(pids) == {"recorder", "estimator", "kinematics", "drivers-trigno", "drivers-xsens"}
+    for node, pid in pids.items():  # every node process ended with msk live
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+    # the MCAP is readable and holds every sample each simulator sent (counted independently of the summary)
+    emg, imu, frames = Counter(), Counter(), Counter()
+    joints = 0
+    for m in read_messages(out / "session.mcap"):
+        if m.type_name == "msk.EmgChunk":
+            emg[m.decode().source_id] += m.decode().n_samples
+        elif m.type_name == "msk.ImuSample":
+            imu[m.decode().tracker_id] += 1
+        elif m.type_name == "msk.ActivationFrame":
+            frames[m.decode().method] += 1
+        elif m.type_name == "msk.JointAngles":
+            joints += 1
+    sent = summary["simulators_sent"]
+    assert sent["trigno"]["samples"] > 2000 * 3, sent  # seconds of EMG, not a handful
+    assert emg == {"trigno": sent["trigno"]["samples"]}, (emg, sent)
+    trackers = {k: v["samples"] for k, v in sent.items() if k != "trigno"}
+    assert len(trackers) == 2 and min(trackers.values()) > 60 * 3, sent
+    assert dict(imu) == trackers, (imu, sent)
+    assert all(v["bytes_dropped"] == 0 for k, v in sent.items() if k != "trigno")
+
+    # activations of every requested method (default proposed, assisted, so) for every joint frame
+    assert summary["methods"] == ["proposed", "assisted", "so"]
+    assert joints > 60 * 2 and set(frames) == {"proposed", "assisted", "so"}, (joints, frames)
+    assert all(n == joints for n in frames.values()), (joints, frames)
+    assert summary["frames_estimated"] == dict(frames) and summary["samples"]["emg/trigno"] == sent["trigno"]["samples"]
+    assert "emg/trigno" in output and "frames estimated" in output
+
+
+def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_path):
+    import re
+
+    from services.live_session import _SECTIONS
+
+    text = (REPO / "docs" / "live.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    (tmp_path / "subject_bench_press.json").write_text("{}")
+    path = tmp_path / "session.toml"
+    path.write_text(block)
+    session = load_session_file(path)
+    assert session.pack == "bench_press" and session.trackers and session.electrodes and session.trigno_host
+    documented = set(re.findall(r"^\| `([a-z_]+\.[a-z_<>]+)` \|", text, re.M))
+    keys = {f"{s}.{k}" for s, ks in _SECTIONS.items() if ks for k in ks} | {"trackers.<id>", "electrodes.<channel>"}
+    assert documented == keys
+
+
+def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp_path):
+    from services import live
+
+    profile = {"f_max": [], "emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}
+    (tmp_path / "subject.json").write_text(json.dumps(profile))
+    doc = _doc(session__out="rec", trigno={"host": "10.0.0.5:50040", "emg_port": 50041},
+               xsens={"ports": ["/dev/ttyUSB0", "usb"], "rate_hz": 60},
+               electrodes={"sensor01.EMG": "PMCla", "sensor02.EMG": "BRA"})  # BRA: a group
+    path = tmp_path / "session.toml"
+    path.write_text(_toml(doc))
+    plan, simulators = live.plan_for(load_session_file(path), sim=False, log=lambda *_: None)
+    assert simulators is None and plan.methods == ("proposed", "so")
+    trigno = live.driver_argv(plan, "trigno")
+    assert trigno[trigno.index("--trigno") + 1] == "10.0.0.5:50040" and trigno[trigno.index("--trigno-emg-port") + 1] == "50041"
+    xsens = live.driver_argv(plan, "xsens")
+    assert [xsens[i + 1] for i, a in enumerate(xsens) if a == "--xsens"] == ["/dev/ttyUSB0", "usb"]
+    assert xsens[xsens.index("--imu-rate") + 1] == "60"
+    assert "--segment=00B4EB80=upper_arm_r" in xsens and "--segment=00B497B2=forearm_r" in xsens
+    live_profile = json.loads(plan.subject.read_text())["emg_normalisation"]
+    assert plan.subject == tmp_path / "rec" / "subject_session.json"
+    assert live_profile["sensor01.EMG"] == {"group": "pec_clav", "divisor": 0.2}  # the electrode's group and MVC
+    assert "divisor" not in live_profile["sensor02.EMG"]  # a bare group: no MVC, flagged no_mvc, never raw volts
