@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import signal
+import socket
+import subprocess
 import sys
 import threading
 import time
@@ -23,6 +25,26 @@ def router_options(options: ZenohOptions) -> ZenohOptions:
     if options.config_file is None and not options.listen and not options.connect:
         listen = (DEFAULT_ENDPOINT,)
     return replace(options, mode="router", listen=listen)
+
+
+def wait_until_listening(process: subprocess.Popen, port: int, *, timeout_s: float = 30.0) -> None:
+    """Return once the router ``process`` accepts TCP connections on loopback ``port``. When it exits first, or
+    ``timeout_s`` passes, raise :class:`RuntimeError` naming the port, the wait, the exit code and its stderr's tail
+    (the process is killed first when still running)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return
+        except OSError:
+            if process.poll() is None and time.monotonic() <= deadline:
+                time.sleep(0.05)
+                continue
+        if process.poll() is None:
+            process.kill()
+        _, err = process.communicate(timeout=10)
+        raise RuntimeError(f"msk router did not listen on 127.0.0.1:{port} within {timeout_s:g} s "
+                           f"(exit {process.returncode}): {(err or '')[-2000:]}")
 
 
 def main(

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -17,6 +16,7 @@ import pytest
 import zenoh
 
 from services import messages, topics
+from services.router import wait_until_listening
 from services.mcap_io import ReadReport, read_messages
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 from tests.conftest import free_tcp_port
@@ -58,17 +58,7 @@ def router():
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     process = _msk("router", "--listen", endpoint)
-
-    def listening() -> bool:
-        if process.poll() is not None:
-            raise AssertionError(f"msk router exited {process.returncode}: {process.communicate()[1][-2000:]}")
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-            return True
-        except OSError:
-            return False
-
-    _wait(listening, 30, f"msk router listening on {endpoint}")
+    wait_until_listening(process, port)
     yield endpoint
     _stop(process)
 
@@ -375,7 +365,6 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     """The Trigno simulator (``msk sim trigno``) is SIGKILLed under a running ``msk drivers`` and started again on
     the same ports: DeviceStatus goes connected -> disconnected -> connected, EMG chunks resume by themselves, the
     sample indices jump by exactly the samples the status reports lost, and nothing is repeated."""
-    import re
 
     session = _client(router)
     statuses: list[messages.DeviceStatus] = []

@@ -14,12 +14,12 @@ import sys
 import threading
 import time
 from collections import Counter
-from pathlib import Path
 
 import pytest
 import zenoh
 
 from services import messages, security, zenoh_session
+from services.router import wait_until_listening
 from services.schemas import msk_pb2
 from services.zenoh_session import ZenohOptions, declare_data_publisher, declare_history_publisher, publish
 from tests.conftest import free_tcp_port
@@ -64,17 +64,10 @@ def router(pki, tmp_path_factory):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-                break
-            except OSError:
-                if process.poll() is not None or time.monotonic() > deadline:
-                    process.kill()
-                    out, err = process.communicate(timeout=10)
-                    pytest.fail(f"msk router did not listen on 127.0.0.1:{port} within 30 s (exit {process.poll()}): {err[-2000:]}")
-                time.sleep(0.05)
+        try:
+            wait_until_listening(process, port)
+        except RuntimeError as error:
+            pytest.fail(str(error))
         yield f"tls/localhost:{port}"
     finally:
         process.terminate()

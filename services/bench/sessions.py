@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.router import wait_until_listening
 from services.bench import BenchResult
 
 NAME = "sessions"
@@ -109,15 +110,7 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
     router = _msk("router", "--listen", endpoint)
     processes.append(router)
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"msk router did not listen on {endpoint} within 30 s") from None
-                time.sleep(0.05)
+        wait_until_listening(router, port)
         observed = _Observed()
         with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as zsession:
             subscribers = _observe(zsession, observed)
