@@ -5,9 +5,13 @@ never stalls the network threads. Run ``python -m services.recorder --out FILE.m
 
 Crashes: a chunk is completed and handed to the OS at least every ``--flush-interval`` seconds (also when data
 pauses), so a recorder killed with SIGKILL loses at most what arrived in that interval. Started again with the same
-``--out``, it continues into the next free ``FILE-001.mcap``, ``FILE-002.mcap``...: on start it fetches the last
-``--history`` seconds the device publishers keep (:func:`services.zenoh_session.declare_history_publisher`) and
+``--out``, it continues into the next free ``FILE-001.mcap``, ``FILE-002.mcap``...: on start it fetches what the
+device publishers keep (:func:`services.zenoh_session.declare_history_publisher`, the last 1000 messages per key) and
 leaves out what the previous files already hold, so the parts join without a gap or a duplicate.
+
+History and live samples are merged per key by :class:`HistoryMerge`: the live samples of a key wait until that
+key's history is in (the first fetch at start, or a fetch on the first live sample of a key that appears later),
+then whatever both delivered is written once, in publishing order.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from __future__ import annotations
 import argparse
 import collections
 import hashlib
+import logging
 import queue
 import signal
 import sys
@@ -34,13 +39,15 @@ from services.zenoh_session import (
     DEVICE_HISTORY_SAMPLES,
     ZenohOptions,
     add_zenoh_arguments,
-    declare_history_subscriber,
+    fetch_history,
     open_session,
     options_from_args,
     type_name_of_sample,
 )
 
-DEFAULT_HISTORY_S = 10.0
+DEFAULT_HISTORY_TIMEOUT_S = 10.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -49,7 +56,10 @@ class RecorderStats:
     written: int = 0
     skipped_unknown: int = 0
     undecodable: int = 0
-    already_recorded: int = 0  # history samples the previous parts already hold
+    already_recorded: int = 0  # samples written already (by the previous parts, or live and history both)
+    history_fetched: int = 0  # samples the publishers' caches sent
+    history_fetches: int = 0
+    history_errors: int = 0
 
 
 def resolve_type(key: str, sample_type: str | None) -> str | None:
@@ -73,26 +83,44 @@ def main(
     ready_key: ReadySpec | None = None,
     flush_interval_s: float = 1.0,
     stats: RecorderStats | None = None,
-    history_s: float = DEFAULT_HISTORY_S,
+    history: bool = True,
+    history_timeout_s: float = DEFAULT_HISTORY_TIMEOUT_S,
     already_recorded: dict[str, set[bytes]] | None = None,
 ) -> RecorderStats:
     """Record until ``duration_s`` elapses or ``stop_event`` is set. ``stats`` (if given) is updated live.
 
-    ``history_s`` > 0 first fetches what history publishers kept from that many seconds; ``already_recorded`` (topic ->
-    digests of the last messages of the previous parts, :func:`recorded_tail_in`) drops what those parts hold.
+    ``history``: first fetch what history publishers keep (each fetch waits at most ``history_timeout_s``);
+    ``already_recorded`` (topic -> digests of the last messages of the previous parts, :func:`recorded_tail_in`)
+    drops what those parts hold.
     """
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else RecorderStats()
     inbox: queue.SimpleQueue = queue.SimpleQueue()
 
     def on_sample(sample: zenoh.Sample) -> None:
-        inbox.put((messages.now_ns(), str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes()))
+        inbox.put(_Item(LIVE, messages.now_ns(), str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes()))
 
     with open_session(config) as session, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
-        if history_s > 0:
-            subscriber = declare_history_subscriber(session, key_expr, on_sample, history_s=history_s)
-        else:
-            subscriber = session.declare_subscriber(key_expr, on_sample)
+        merge = HistoryMerge(lambda item: _write(writer, item, stats), stats, already_recorded=already_recorded)
+
+        def fetch(scope: str) -> None:  # on its own thread: the main loop goes on writing the other keys
+            started = time.monotonic()
+            try:
+                samples, errors = fetch_history(session, scope, timeout_s=history_timeout_s)
+            except Exception as error:  # a closed session at shutdown, an access-control refusal...
+                samples, errors = [], [f"{type(error).__name__}: {error}"]
+            received_ns = messages.now_ns()
+            for sample in samples:
+                inbox.put(_Item(HISTORY, received_ns, str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes()))
+            inbox.put(_FetchDone(scope, len(samples), errors, time.monotonic() - started))
+
+        def start_fetch(scope: str) -> None:
+            threading.Thread(target=fetch, args=(scope,), name=f"history {scope}", daemon=True).start()
+
+        subscriber = session.declare_subscriber(key_expr, on_sample)
+        if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
+            merge.begin_fetch(key_expr, initial=True)
+            start_fetch(key_expr)
         token = declare_ready(session, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
@@ -106,23 +134,151 @@ def main(
                 except queue.Empty:
                     writer.flush_if_due()
                     continue
-                _write(writer, item, stats, already_recorded)
+                for scope in merge.accept(item, fetch_new_keys=history and _has_history(item)):
+                    start_fetch(scope)
         finally:
             subscriber.undeclare()
             while True:  # drain what already arrived: nothing received is lost on a clean stop
                 try:
-                    _write(writer, inbox.get_nowait(), stats, already_recorded)
+                    merge.accept(inbox.get_nowait(), fetch_new_keys=False)
                 except queue.Empty:
                     break
+            merge.release_all()  # live samples still waiting for a history that did not come in time
     return stats
 
 
-def _write(writer: McapRecorderWriter, item, stats: RecorderStats, already_recorded: dict[str, set[bytes]] | None = None) -> None:
-    receive_ns, key, sample_type, payload = item
+LIVE, HISTORY = "live", "history"
+
+
+@dataclass(frozen=True)
+class _Item:
+    origin: str  # LIVE or HISTORY
+    receive_ns: int
+    key: str
+    sample_type: str | None
+    payload: bytes
+
+
+@dataclass(frozen=True)
+class _FetchDone:
+    scope: str  # the key expression fetched
+    count: int
+    errors: list[str]
+    elapsed_s: float
+
+
+def _has_history(item) -> bool:
+    """Only loss-free device topics are published with a cache (services.driver_nodes.ZenohSink)."""
+    if not isinstance(item, _Item) or item.origin != LIVE:
+        return False
+    try:
+        return topics.delivery_for_key(item.key) is topics.Delivery.LOSSLESS
+    except ConfigError:
+        return False
+
+
+class HistoryMerge:
+    """Writes history and live samples once each, and for every key its history before its live samples.
+
+    While a fetch is out, live samples wait (all of them, so the file keeps their arrival order across keys; a fetch
+    takes milliseconds); when it is done the history is written, then the waiting samples. A sample already written (the same payload digest: every message
+    carries its host time, so equal payloads are the same message) is counted in ``stats.already_recorded`` and left
+    out, whether the earlier parts, the history or the live stream wrote it first. Per key the last
+    ``2 * DEVICE_HISTORY_SAMPLES`` digests are remembered: more than one cache can send again.
+    """
+
+    def __init__(self, write, stats: RecorderStats, *, already_recorded: dict[str, set[bytes]] | None = None,
+                 remembered_per_key: int = 2 * DEVICE_HISTORY_SAMPLES) -> None:
+        self._write = write
+        self._stats = stats
+        self._remembered_per_key = remembered_per_key
+        self._recent: dict[str, tuple[collections.deque, set[bytes]]] = {}
+        for key, digests in (already_recorded or {}).items():
+            for digest in digests:
+                self._remember(key, digest)
+        self._initial_pending = False
+        self._pending_keys: set[str] = set()  # keys with a fetch of their own out
+        self._known_keys: set[str] = set()  # keys whose history was fetched (or found absent)
+        self._waiting: list[_Item] = []  # live samples held, in arrival order
+
+    def begin_fetch(self, scope: str, *, initial: bool = False) -> None:
+        if initial:
+            self._initial_pending = True
+        else:
+            self._pending_keys.add(scope)
+
+    def accept(self, item, *, fetch_new_keys: bool) -> list[str]:
+        """Take one inbox item; returns the keys whose history should be fetched now."""
+        if isinstance(item, _FetchDone):
+            self._fetch_done(item)
+            return []
+        if item.origin == HISTORY:
+            self._known_keys.add(item.key)
+            self._emit(item)
+            return []
+        if (fetch_new_keys and not self._initial_pending
+                and item.key not in self._known_keys and item.key not in self._pending_keys):
+            # a publisher that appeared after the start: it may have published before our subscription reached it
+            self._pending_keys.add(item.key)
+            self._waiting.append(item)
+            return [item.key]
+        if self._fetching():
+            self._waiting.append(item)
+            return []
+        self._known_keys.add(item.key)
+        self._emit(item)
+        return []
+
+    def release_all(self) -> None:
+        self._initial_pending = False
+        self._pending_keys.clear()
+        self._release()
+
+    def _fetch_done(self, done: _FetchDone) -> None:
+        self._stats.history_fetches += 1
+        self._stats.history_errors += len(done.errors)
+        if done.errors:
+            log.warning("history of %s: %d error replies (%s)", done.scope, len(done.errors), "; ".join(done.errors[:3]))
+        if done.scope in self._pending_keys:
+            self._pending_keys.discard(done.scope)
+            self._known_keys.add(done.scope)
+        else:
+            self._initial_pending = False
+        self._release()  # keys live during a fetch that no cache answered for have no history publisher
+
+    def _fetching(self) -> bool:
+        return self._initial_pending or bool(self._pending_keys)
+
+    def _release(self) -> None:
+        if self._fetching():
+            return
+        waiting, self._waiting = self._waiting, []
+        for item in waiting:
+            self._known_keys.add(item.key)
+            self._emit(item)
+
+    def _emit(self, item: _Item) -> None:
+        if item.origin == HISTORY:
+            self._stats.history_fetched += 1
+        digest = _digest(item.payload)
+        recent = self._recent.get(item.key)
+        if recent is not None and digest in recent[1]:
+            self._stats.already_recorded += 1
+            return
+        self._remember(item.key, digest)
+        self._write(item)
+
+    def _remember(self, key: str, digest: bytes) -> None:
+        order, members = self._recent.setdefault(key, (collections.deque(), set()))
+        order.append(digest)
+        members.add(digest)
+        if len(order) > self._remembered_per_key:
+            members.discard(order.popleft())
+
+
+def _write(writer: McapRecorderWriter, item: _Item, stats: RecorderStats) -> None:
+    receive_ns, key, sample_type, payload = item.receive_ns, item.key, item.sample_type, item.payload
     stats.received += 1
-    if already_recorded and _digest(payload) in already_recorded.get(key, ()):
-        stats.already_recorded += 1
-        return
     type_name = resolve_type(key, sample_type)
     if type_name is None:
         stats.skipped_unknown += 1
@@ -130,6 +286,9 @@ def _write(writer: McapRecorderWriter, item, stats: RecorderStats, already_recor
     try:
         message = messages.decode(type_name, payload)
         publish_ns = device_time_ns(message, receive_ns)
+        if item.origin == HISTORY and getattr(message, "host_time_ns", 0):
+            # from a cache, late: log it when the driver's host received it, where a live recorder would have
+            receive_ns = min(receive_ns, int(message.host_time_ns))
     except messages.MessageDecodeError:
         stats.undecodable += 1
         publish_ns = receive_ns
@@ -178,8 +337,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--flush-interval", type=float, default=1.0, metavar="S",
                         help="complete a chunk at least this often: the most a crash can lose (default 1 s)")
-    parser.add_argument("--history", type=float, default=DEFAULT_HISTORY_S, metavar="S",
-                        help="on start, fetch what device publishers kept from the last S seconds (default 10; 0: off)")
+    parser.add_argument("--history", action=argparse.BooleanOptionalAction, default=True,
+                        help="on start (and for each device key that appears later) fetch what the device publishers "
+                             "keep, the last 1000 messages per key, leaving out what earlier parts hold (default: on)")
+    parser.add_argument("--history-timeout", type=float, default=DEFAULT_HISTORY_TIMEOUT_S, metavar="S",
+                        help="longest wait for a history fetch; that key's live messages wait with it (default 10 s)")
     parser.add_argument("--key", default=topics.ALL_TOPICS, help="key expression to record (default: msk/**)")
     parser.add_argument("--duration", type=float, default=None, help="seconds to record (default: until Ctrl-C)")
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
@@ -192,6 +354,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         signal.signal(signum, lambda *_: stop.set())
     if not args.flush_interval > 0:
         raise ConfigError("must be positive", field="--flush-interval", value=args.flush_interval)
+    if not args.history_timeout > 0:
+        raise ConfigError("must be positive", field="--history-timeout", value=args.history_timeout)
     previous = part_paths(args.out)
     out = next_part_path(args.out)
     already_recorded = recorded_tail_in(previous) if previous else None
@@ -202,13 +366,16 @@ def run_from_args(args: argparse.Namespace) -> int:
         session, node = topics.split_key(args.ready_key)[0], args.ready_key.rsplit("/", 1)[-1]
         ready = ReadySpec(session, node)
     stats = main(options_from_args(args), out, key_expr=args.key, duration_s=args.duration, stop_event=stop,
-                 flush_interval_s=args.flush_interval, history_s=args.history, already_recorded=already_recorded,
+                 flush_interval_s=args.flush_interval, history=args.history, history_timeout_s=args.history_timeout,
+                 already_recorded=already_recorded,
                  ready_key=ready)
     print(
         f"recorded {stats.written} messages to {out}"
         + (f"; skipped {stats.skipped_unknown} on keys of unknown type" if stats.skipped_unknown else "")
         + (f"; {stats.undecodable} undecodable" if stats.undecodable else "")
-        + (f"; left out {stats.already_recorded} the earlier parts hold" if stats.already_recorded else ""),
+        + (f"; history: {stats.history_fetched} messages from the publishers' caches" if stats.history_fetched else "")
+        + (f" ({stats.history_errors} error replies)" if stats.history_errors else "")
+        + (f"; left out {stats.already_recorded} already recorded" if stats.already_recorded else ""),
         file=sys.stderr,
     )
     return 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import socket
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -146,7 +147,7 @@ def declare_history_publisher(
     session: zenoh.Session, key: str, type_name: str, *, history_samples: int = DEVICE_HISTORY_SAMPLES
 ):
     """A lossless data publisher that also keeps its last ``history_samples`` for late or restarted subscribers
-    (a Zenoh AdvancedPublisher with a cache; :func:`declare_history_subscriber` fetches it)."""
+    (a Zenoh AdvancedPublisher with a cache; :func:`fetch_history` fetches it)."""
     import zenoh.ext
 
     messages.message_class(type_name)
@@ -167,15 +168,47 @@ def declare_history_publisher(
     )
 
 
-def declare_history_subscriber(session: zenoh.Session, key_expr: str, callback, *, history_s: float):
-    """A subscriber that first receives what publishers of :func:`declare_history_publisher` kept from the last
-    ``history_s`` seconds (also from publishers that appear later), then the live samples."""
-    import zenoh.ext
+def history_selector(key_expr: str) -> str:
+    """Where the caches of :func:`declare_history_publisher` answer for ``key_expr``: each publisher's cache is a
+    queryable under ``<key>/@adv/...``, a verbatim chunk that ``**`` does not cover."""
+    return f"{key_expr}/@adv/**" if key_expr.endswith("**") else f"{key_expr}/**/@adv/**"
 
-    return zenoh.ext.declare_advanced_subscriber(
-        session, key_expr, callback,
-        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_age=float(history_s)),
-    )
+
+def fetch_history(session: zenoh.Session, key_expr: str, *, timeout_s: float) -> tuple[list[zenoh.Sample], list[str]]:
+    """Everything the caches of :func:`declare_history_publisher` hold on ``key_expr``, per publisher in publishing
+    order; and the error replies (as text). Returns when every cache has answered, or after ``timeout_s`` with what
+    arrived by then.
+
+    Publishers are found by their liveliness tokens, then each cache is asked on its own key: under access control a
+    reader may query each device key it may read, not a broader expression. A plain query rather than Zenoh's
+    AdvancedSubscriber history: that one delivers live samples as soon as they come, and when one of a publisher
+    arrives before the publisher's token, it drops the history older than that sample (about one restart in five on
+    loopback). The caller holds the live samples of a key until its history is in (:class:`services.recorder.HistoryMerge`).
+    """
+    deadline = time.monotonic() + float(timeout_s)
+    errors: list[str] = []
+    caches = []
+    for reply in session.liveliness().get(history_selector(key_expr), timeout=float(timeout_s)):
+        if reply.ok is not None:
+            caches.append(str(reply.ok.key_expr))
+        else:
+            errors.append(reply.err.payload.to_string())
+    pending = [  # asked at once, read one after the other: the caches answer in parallel
+        session.get(cache, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,  # a cache answers with the data key, not the one asked
+                    timeout=max(0.1, deadline - time.monotonic()))
+        for cache in caches
+    ]
+    key = zenoh.KeyExpr(key_expr)
+    samples: list[zenoh.Sample] = []
+    for replies in pending:
+        for reply in replies:
+            if reply.ok is not None:
+                if key.intersects(reply.ok.key_expr):
+                    samples.append(reply.ok)
+            else:
+                errors.append(reply.err.payload.to_string())
+    return samples, errors
 
 
 def encoding_for(type_name: str) -> zenoh.Encoding:

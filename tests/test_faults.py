@@ -25,6 +25,7 @@ pytestmark = pytest.mark.slow
 
 SESSION = "fault"
 
+CHUNKS_PER_S = 50  # a lower bound on the simulated Trigno's EMG chunks per second (2 kHz in 27-sample chunks: 74)
 
 def _msk(*argv: str, **popen) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
@@ -209,14 +210,15 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
     try:
         recorder = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
         processes.append(recorder)
+        # no --duration: the driver runs until the restarted recorder is seen recording, however slow the machine
         drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
-                       "--trigno-emg-port", str(ports["emg"]), "--duration", "9", "--mode", "client", "--connect", router)
+                       "--trigno-emg-port", str(ports["emg"]), "--mode", "client", "--connect", router)
         processes.append(drivers)
 
-        def emg_recorded() -> int:
+        def emg_recorded(path: Path = out) -> int:
             if drivers.poll() is not None:
                 raise AssertionError(f"msk drivers exited {drivers.returncode}: {drivers.communicate()[1][-2000:]}")
-            return len(_emg_chunks([out], emg_key)) if out.exists() else 0
+            return len(_emg_chunks([path], emg_key)) if path.exists() else 0
 
         _wait(lambda: emg_recorded() > 50, 40, "the first EMG chunks in the recorder's file", emg_recorded)
         time.sleep(1.0)
@@ -226,10 +228,19 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
         time.sleep(1.0)  # the recorder is down for a while; the driver goes on
         restarted = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
         processes.append(restarted)
+        down_s = (time.time_ns() - kill_ns) / 1e9
+        continuation = tmp_path / "rec-001.mcap"
+        recorded_before = len(_emg_chunks([out], emg_key))
+        # the history (what the driver published while the recorder was down) and then 2 s of live chunks
+        expected = recorded_before + int((down_s + 2.0) * CHUNKS_PER_S)
+        _wait(lambda: emg_recorded(out) + emg_recorded(continuation) >= expected, 40,
+              f"{expected} EMG chunks in the two files ({down_s:.1f} s down)",
+              lambda: f"{emg_recorded(out)} + {emg_recorded(continuation)}")
+        drivers.send_signal(signal.SIGINT)  # it stops the device and prints its summary
         try:
-            drivers_out, drivers_err = drivers.communicate(timeout=40)  # --duration ends it, with its summary
+            drivers_out, drivers_err = drivers.communicate(timeout=40)
         except subprocess.TimeoutExpired:
-            raise AssertionError("msk drivers did not end 40 s after its --duration of 9 s") from None
+            raise AssertionError("msk drivers did not end 40 s after SIGINT") from None
         time.sleep(1.0)  # its last messages reach the recorder
         restarted_err = _stop(restarted)
     finally:
@@ -237,7 +248,6 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
             _stop(process, signal.SIGKILL) if process.poll() is None else None
         session.close()
     assert recorder.returncode == -signal.SIGKILL
-    continuation = tmp_path / "rec-001.mcap"
     assert continuation.is_file(), f"the restarted recorder did not continue into {continuation.name}: {restarted_err}"
     report = ReadReport()
     first_part = list(read_messages(out, report=report))

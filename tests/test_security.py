@@ -318,33 +318,44 @@ def test_certs_command_writes_a_usable_pki_and_configs(tmp_path):
         zenoh.Config.from_file(str(path))  # Zenoh itself parses every config
 
 
-def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(pki, router):
+def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(pki, router, tmp_path):
     """What a restarted recorder does (tests/test_faults.py): the driver published 50 EMG chunks before the recorder
-    joined; the recorder (role recorder) fetches all 50 from the driver's history, then the 10 live ones. A tablet
-    asking the same history gets none of it (device data is not its to read)."""
-    from services.zenoh_session import declare_history_subscriber
+    joined; the recorder (``services.recorder.main`` as role recorder) writes all 50 from the driver's history, then
+    the 10 live ones, in order. A tablet asking the same history gets none of it (device data is not its to read)."""
+    from services import recorder as recorder_node
+    from services.mcap_io import read_messages
+    from services.zenoh_session import fetch_history
 
-    sessions = {role: _client(pki, role, router) for role in ("driver", "recorder", "tablet")}
+    sessions = {role: _client(pki, role, router) for role in ("driver", "tablet")}
     key = f"msk/{SESSION}/emg/history"
-    recorder, tablet = Inbox(), Inbox()
+    config = tmp_path / "recorder.json5"
+    config.write_text(json.dumps(security.client_config(pki.directory, "recorder", connect=(router,))))
+    out = tmp_path / "late.mcap"
+    stats, stop, ready = recorder_node.RecorderStats(), threading.Event(), threading.Event()
+    thread = threading.Thread(target=recorder_node.main, args=(ZenohOptions(mode=None, config_file=config), out),
+                              kwargs=dict(stop_event=stop, ready_event=ready, stats=stats, flush_interval_s=0.2))
     try:
         publisher = declare_history_publisher(sessions["driver"], key, "msk.EmgChunk")
         for index in range(50):
             publish(publisher, _emg("trigno", index))
         time.sleep(0.3)
-        declare_history_subscriber(sessions["recorder"], f"msk/{SESSION}/**", recorder, history_s=10)
-        declare_history_subscriber(sessions["tablet"], f"msk/{SESSION}/emg/**", tablet, history_s=10)
-        _wait_for(lambda: recorder.count(key) >= 50, 20, "the 50 chunks of history at the recorder", lambda: dict(recorder.keys))
+        thread.start()
+        _wait_for(ready.is_set, 20, "the recorder to subscribe")
+        _wait_for(lambda: stats.history_fetches >= 1, 20, "the recorder's history fetch", lambda: stats)
         for index in range(50, 60):
             publish(publisher, _emg("trigno", index))
-        _wait_for(lambda: recorder.count(key) >= 60, 20, "60 chunks at the recorder", lambda: dict(recorder.keys))
-        time.sleep(0.5)
-        indices = [messages.decode("msk.EmgChunk", data).first_sample_index for k, data in recorder.payloads if k == key]
-        assert indices == [27 * i for i in range(60)]
-        assert tablet.keys == Counter(), f"the tablet read device data: {dict(tablet.keys)}"
+        _wait_for(lambda: stats.written >= 60, 20, "60 chunks written by the recorder", lambda: stats)
+        tablet_history, tablet_errors = fetch_history(sessions["tablet"], f"msk/{SESSION}/emg/**", timeout_s=3)
     finally:
+        stop.set()
+        thread.join(20)
         for session in sessions.values():
             session.close()
+    assert not thread.is_alive(), "the recorder did not stop within 20 s"
+    indices = [messages.decode("msk.EmgChunk", m.data).first_sample_index for m in read_messages(out) if m.topic == key]
+    assert indices == [27 * i for i in range(60)]
+    assert stats.history_fetched == 50 and stats.history_errors == 0, stats
+    assert tablet_history == [], f"the tablet read {len(tablet_history)} device messages from the history ({tablet_errors})"
 
 
 def test_the_dashboard_joins_the_secured_network_as_a_tablet(pki, router, tmp_path):
