@@ -426,3 +426,80 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     assert len(before) > 30 and len(after) > 30
     print(f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
           f"(= the index jump), {len(after)} chunks after it came back")
+
+
+def _start_xsens_simulator(device_id: str) -> tuple[subprocess.Popen, str]:
+    """``msk sim xsens`` on a new pseudo-terminal; returns the process and the pty's path."""
+    process = _msk("sim", "xsens", "--from", "synthetic:60:7", "--device-id", device_id)
+    path = process.stdout.readline().strip()
+    if not path.startswith("/dev/"):
+        _stop(process)
+        raise AssertionError(f"the Xsens simulator did not start: {path!r} {process.communicate()[1][-2000:]}")
+    return process, path
+
+
+def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router, tmp_path):
+    """The Xsens simulator (``msk sim xsens``, a pseudo-terminal) is SIGKILLed under a running ``msk drivers``, as a
+    pulled USB cable; a new one appears behind the same stable port name (as /dev/serial/by-id gives). DeviceStatus
+    goes connected -> disconnected -> connected, the IMU samples resume by themselves, and every sample ``msk drivers``
+    says it published reached the subscriber."""
+    device_id = "03700ABC"
+    link = tmp_path / "usb-Xsens_MTi-if00"
+    session = _client(router)
+    statuses: list[messages.DeviceStatus] = []
+    imu: list[tuple[float, messages.ImuSample]] = []
+    session.declare_subscriber(topics.status_key(SESSION, device_id),
+                               lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
+    session.declare_subscriber(topics.imu_key(SESSION, device_id),
+                               lambda s: imu.append((time.monotonic(), messages.decode("msk.ImuSample", s.payload.to_bytes()))))
+    simulator, pty_path = _start_xsens_simulator(device_id)
+    link.symlink_to(pty_path)
+    processes = [simulator]
+    try:
+        drivers = _msk("drivers", "--session", SESSION, "--xsens", str(link), "--mode", "client", "--connect", router)
+        processes.append(drivers)
+
+        def imu_received() -> int:
+            if drivers.poll() is not None:
+                raise AssertionError(f"msk drivers exited {drivers.returncode}: {drivers.communicate()[1][-2000:]}")
+            return len(imu)
+
+        _wait(lambda: imu_received() > 100, 40, "IMU samples from msk drivers", imu_received)
+        simulator.kill()  # the pty goes with the process: the cable is pulled
+        simulator.wait(10)
+        gone_at = time.monotonic()
+        _wait(lambda: any(not s.connected for s in statuses), 15, "a DeviceStatus saying the tracker is disconnected",
+              lambda: [s.connected for s in statuses])
+        time.sleep(1.0)
+        back, pty_path = _start_xsens_simulator(device_id)  # plugged in again: a new tty behind the same name
+        processes.append(back)
+        link.unlink()
+        link.symlink_to(pty_path)
+        back_at = time.monotonic()
+        _wait(lambda: sum(1 for t, _ in imu if t > back_at) > 100, 30, "IMU samples after the tracker came back",
+              lambda: f"{len(imu)} samples in all; statuses {[s.connected for s in statuses]}")
+        time.sleep(1.5)  # a periodic status after the resumption
+        drivers.send_signal(signal.SIGINT)  # it closes the tracker and prints its summary
+        try:
+            drivers_out, drivers_err = drivers.communicate(timeout=40)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("msk drivers did not end 40 s after SIGINT") from None
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait(10)
+        session.close()
+    states = [s.connected for s in statuses]
+    first_down = states.index(False)
+    assert True in states[:first_down] and states[-1], f"connected states in order: {states}"
+    before = [sample for t, sample in imu if t < gone_at]
+    after = [sample for t, sample in imu if t > back_at]
+    assert len(before) > 100 and len(after) > 100
+    import re
+
+    summary = re.search(r"published (\d+) samples in (\d+) messages", drivers_out + drivers_err)
+    assert summary, f"msk drivers printed no summary: {drivers_out!r} {drivers_err[-1000:]}"
+    assert len(imu) == int(summary.group(1)), f"msk drivers published {summary.group(1)} IMU samples, {len(imu)} arrived"
+    print(f"Xsens gone {back_at - gone_at:.1f} s: status said disconnected, {len(after)} samples after it came back, "
+          f"{len(imu)} of {summary.group(1)} published arrived")
