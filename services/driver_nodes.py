@@ -122,26 +122,31 @@ def trigno_loop(
     client.start()
     publish_status()
     next_status = time.monotonic() + status_interval_s
+    def publish_data(event) -> None:
+        if isinstance(event, EmgBlock):
+            chunk = emg_chunk(event, source_id=source_id, columns=columns)
+            sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
+            report.messages += 1
+            report.samples += len(event.samples)
+        elif isinstance(event, GapEvent):
+            report.gaps.append(event)
+
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             for event in client.poll(0.05):
-                if isinstance(event, EmgBlock):
-                    chunk = emg_chunk(event, source_id=source_id, columns=columns)
-                    sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
-                    report.messages += 1
-                    report.samples += len(event.samples)
-                elif isinstance(event, GapEvent):
-                    report.gaps.append(event)
-                elif isinstance(event, StatusEvent):
+                if isinstance(event, StatusEvent):
                     report.states.append(event.state.value)
                     publish_status()
                     if event.state is ClientState.STOPPED:
                         return report
+                else:
+                    publish_data(event)
             if time.monotonic() >= next_status:
                 publish_status()
                 next_status += status_interval_s
     finally:
-        client.stop()
+        for event in client.stop():  # the frames already on their way when we said STOP
+            publish_data(event)
         publish_status()
     return report
 

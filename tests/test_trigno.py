@@ -320,3 +320,29 @@ def test_stalled_stream_is_treated_as_a_lost_link_and_resumes():
     gap = next(e for e in events if isinstance(e, GapEvent))
     assert gap.first_missing_index == len(before) and gap.n_missing > 0
     assert_bit_exact(emg_rows(events)[:300], source.samples[:300])  # START after reconnection restarts the stream
+
+
+def test_stop_returns_the_frames_already_sent_so_the_client_receives_every_sample_the_server_sent():
+    """STOP, then what is in flight: the frames the server sent before it stopped are still in the socket buffers
+    (here 0.3 s worth, left unread on purpose). stop() reads them before closing, so received == sent exactly."""
+    source = synthetic_source(seconds=30.0, seed=4)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, fragment_max=61, seed=4)) as sim:
+        client = client_for(sim, stop_mode=tp.StopMode.STOP_THEN_QUIT)
+        client.connect()
+        client.start()
+        events = collect(client, samples=400, seconds=10)
+        time.sleep(0.3)  # the server goes on sending; nobody reads
+        drained = client.stop()
+        deadline = time.monotonic() + 2
+        while sim.streaming and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not sim.streaming
+        events += drained
+        assert not any(isinstance(e, StatusEvent) for e in drained)
+        assert client.poll(0.01)[-1].state is ClientState.STOPPED  # the status stays for poll()
+        client.close()
+    rows = emg_rows(events)
+    drained_rows = sum(len(e.samples) for e in drained if isinstance(e, EmgBlock))
+    assert drained_rows >= 400, f"only {drained_rows} samples read after STOP (0.3 s at 2 kHz = 600 were in flight)"
+    assert len(rows) == sim.stats.samples_sent, f"received {len(rows)} of {sim.stats.samples_sent} samples sent"
+    assert_bit_exact(rows, source.samples[: len(rows)])

@@ -242,20 +242,47 @@ class TrignoClient:
         self._last_data_time = self._last_activity = time.monotonic()
         self._emit_status(ClientState.STREAMING, "started")
 
-    def stop(self) -> None:
-        """End acquisition the configured way (STOP then QUIT, or QUIT alone) and close the connection."""
+    def stop(self, *, drain_s: float = 1.0) -> list[Event]:
+        """End acquisition the configured way (STOP then QUIT, or QUIT alone) and close the connection.
+
+        Returns the data events not yet polled (status events stay for :meth:`poll`): what was read before, and, after STOP, the frames the server had
+        already sent (read until the data ports are quiet for 0.1 s, at most ``drain_s``), which closing the sockets
+        would otherwise throw away."""
         self._want_streaming = False
         link = self._link
         if link is not None:
             try:
                 if self.config.stop_mode is tp.StopMode.STOP_THEN_QUIT and self.state is ClientState.STREAMING:
                     self._command("STOP")
+                    self._read_until_quiet(link, drain_s)
                 self._command("QUIT")
             except (OSError, ProtocolError) as error:
                 self._note_error(f"while stopping: {error}")
         self._drop_link()
         self.state = ClientState.STOPPED
+        pending = [e for e in self._events if not isinstance(e, StatusEvent)]
+        self._events = [e for e in self._events if isinstance(e, StatusEvent)]  # still for poll()
         self._emit_status(ClientState.STOPPED, "stopped by client")
+        return pending
+
+    def _read_until_quiet(self, link: _Link, drain_s: float, quiet_s: float = 0.1) -> None:
+        """Read the data ports after STOP until nothing comes for ``quiet_s`` (or ``drain_s`` has passed)."""
+        ports = [sock for sock in (link.emg, link.aux) if sock is not None and sock.fileno() >= 0]
+        if not ports:
+            return
+        deadline = time.monotonic() + drain_s
+        with selectors.DefaultSelector() as selector:
+            for sock in ports:
+                selector.register(sock, selectors.EVENT_READ)
+            while (left := deadline - time.monotonic()) > 0:
+                ready = selector.select(min(quiet_s, left))
+                if not ready:
+                    return
+                for key, _ in ready:
+                    if key.fileobj is link.emg:
+                        self._read_emg(link)
+                    else:
+                        self._read_aux(link)
 
     def close(self) -> None:
         if self._link is not None:  # also after a stop trigger: QUIT politely
