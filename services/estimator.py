@@ -24,6 +24,7 @@ import queue
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -194,6 +195,7 @@ class EstimatorNode:
                               "map", field="method", value="assisted")
         if self.live_emg is not None:
             stats.emg = self.live_emg.counters
+        self._last_method = list(self.estimators)[-1]  # frames_out counts input frames done
         self.loads = LoadTimeline(initial_load_kg)
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
         # name.
@@ -219,13 +221,17 @@ class EstimatorNode:
 
     def handle_joints(self, payload: bytes, arrival_ns: int) -> list[tuple[str, messages.ActivationFrame]]:
         """(method, frame) for every method; empty when the frame is skipped (other exercise, wrong coordinates)."""
+        return list(self.frames_for_joints(payload, arrival_ns))
+
+    def frames_for_joints(self, payload: bytes, arrival_ns: int) -> Iterator[tuple[str, messages.ActivationFrame]]:
+        """:meth:`handle_joints` one method at a time, so each frame can be published as soon as it is solved."""
         stats = self.stats
         stats.frames_in += 1
         joints = messages.decode("msk.JointAngles", payload)
         load_kg, current_exercise = self.loads.at(joints.device_time_ns)
         if current_exercise and current_exercise != self.exercise:
             stats.other_exercise += 1
-            return []
+            return
         try:
             q, qd, qdd = (self.mapper.take(joints, f) for f in ("q", "qd", "qdd"))
         except ConfigError as error:
@@ -233,14 +239,13 @@ class EstimatorNode:
             if stats.rejected == 1:
                 log.error("%s", error)
             stats.last_error = str(error)
-            return []
+            return
         time_s = joints.device_time_ns / 1e9
         phase = self._phase(joints, time_s, q)
         envelope, emg_flags = (None, []) if self.live_emg is None else self.live_emg.at(joints.device_time_ns,
                                                                                           arrival_ns)
         for flag in emg_flags:
             stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
-        out = []
         for method, estimator in self.estimators.items():
             result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
             frame = to_message(result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
@@ -250,9 +255,9 @@ class EstimatorNode:
                 frame.flags.extend(emg_flags)
             if result.flagged:
                 stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
-            out.append((method, frame))
-        stats.frames_out += 1
-        return out
+            if method == self._last_method:
+                stats.frames_out += 1
+            yield method, frame
 
     def _phase(self, joints, time_s: float, q: np.ndarray) -> float | None:
         """Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1)."""
@@ -324,7 +329,7 @@ def main(
                 elif kind == "load":
                     node.handle_load(payload)
                 else:
-                    for method, frame in node.handle_joints(payload, arrival_ns):
+                    for method, frame in node.frames_for_joints(payload, arrival_ns):  # each out as soon as solved
                         frame.publish_ns = messages.now_ns()
                         publish(publishers[method], frame)
         finally:
