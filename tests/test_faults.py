@@ -407,14 +407,9 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
         time.sleep(1.5)  # a periodic status after the resumption
         _stop(drivers)
     finally:
-        for process in processes:
-            if process.poll() is None:
-                process.kill()
-                process.wait(10)
+        _kill_all(processes)
         session.close()
-    states = [s.connected for s in statuses]
-    first_down = states.index(False)
-    assert True in states[:first_down] and True in states[first_down:], f"connected states in order: {states}"
+    _assert_connected_then_down_then_up(statuses)
     before = [c for t, c in chunks if t < gone_at]
     after = [c for t, c in chunks if t > back_at]
     indices = [c.first_sample_index for _, c in chunks]
@@ -426,6 +421,20 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     assert len(before) > 30 and len(after) > 30
     print(f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
           f"(= the index jump), {len(after)} chunks after it came back")
+
+
+def _kill_all(processes: list[subprocess.Popen]) -> None:
+    for process in processes:
+        if process.poll() is None:
+            process.kill()
+            process.wait(10)
+
+
+def _assert_connected_then_down_then_up(statuses: list[messages.DeviceStatus]) -> None:
+    states = [s.connected for s in statuses]
+    assert False in states, f"no DeviceStatus said disconnected: {states}"
+    first_down = states.index(False)
+    assert True in states[:first_down] and True in states[first_down:], f"connected states in order: {states}"
 
 
 def _start_xsens_simulator(device_id: str) -> tuple[subprocess.Popen, str]:
@@ -485,14 +494,9 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
         except subprocess.TimeoutExpired:
             raise AssertionError("msk drivers did not end 40 s after SIGINT") from None
     finally:
-        for process in processes:
-            if process.poll() is None:
-                process.kill()
-                process.wait(10)
+        _kill_all(processes)
         session.close()
-    states = [s.connected for s in statuses]
-    first_down = states.index(False)
-    assert True in states[:first_down] and states[-1], f"connected states in order: {states}"
+    _assert_connected_then_down_then_up(statuses)
     before = [sample for t, sample in imu if t < gone_at]
     after = [sample for t, sample in imu if t > back_at]
     assert len(before) > 100 and len(after) > 100
