@@ -2,11 +2,18 @@
 
 A candidate is named when, against the current model (at first: "none" = strength re-fit + offsets):
 
-1. its held-out mean-squared torque gap is at least ``MIN_REDUCTION`` (10 %) smaller (minimum effect size), and
+1. its held-out mean-squared torque gap is at least ``MIN_REDUCTION`` (10 %) smaller (minimum effect size),
 2. the Bayesian information criterion prefers it by more than ``BIC_MARGIN`` (10: "very strong" on the Kass-Raftery
-   scale) both on the training trials and on the held-out trials, with Gaussian errors:
-   dBIC = N_eff ln(MSE_cand / MSE_base) + dp ln(N_eff), where dp counts its extra parameters (linear and grid) and
-   N_eff = N / tau_int discounts the gaps' autocorrelation (consecutive frames are not independent samples).
+   scale) on the training trials, where its parameters were fitted, with Gaussian errors:
+   dBIC = N_eff ln(MSE_cand / MSE_base) + dp ln(N_eff), dp its extra parameters (linear and grid), and
+3. the held-out trials, where nothing was fitted, favour it by a log-likelihood ratio of more than ``BIC_MARGIN``
+   on the same scale: -2 ln LR = N_eff ln(MSE_cand / MSE_base) < -10 (no parameter penalty: a candidate that overfits
+   the training trials pays for it here as a worse held-out fit, so a penalty would count the parameters twice).
+
+N_eff = N / tau_int discounts the gaps' autocorrelation (consecutive frames are not independent samples). tau_int is
+measured on the residuals of the candidate, the larger model of the pair: the base model's residuals still carry the
+very effect being tested, whose smooth signature would inflate tau_int and so penalise exactly the effects that are
+there (the usual choice of a nested test, whose noise is estimated from the fuller model).
 
 Among the candidates that pass, the one with the largest held-out reduction is named; with ``max_effects`` > 1 it
 joins the model, the others are refitted on top of it, and the search repeats.
@@ -33,17 +40,18 @@ def _n_eff(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> tuple[floa
     return n / tau, tau
 
 
-def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, n_eff_train: float, n_eff_hold: float,
-                    cand: Candidate) -> Score:
+def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand: Candidate) -> Score:
     best = None
     for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training gap
         f = fit(data, train, {**base.model, cand.name: dict(setting)})
         if best is None or f.train_mse < best.train_mse:
             best = f
     hold = mse(data, holdout, best)
+    n_eff_train, tau_train = _n_eff(data, train, best)
+    n_eff_hold, tau_hold = _n_eff(data, holdout, best)
     dp = best.n_params - base.n_params
     dbic_train = n_eff_train * float(np.log(best.train_mse / base.train_mse)) + dp * float(np.log(n_eff_train))
-    dbic_hold = n_eff_hold * float(np.log(hold / base_hold_mse)) + dp * float(np.log(n_eff_hold))
+    dbic_hold = n_eff_hold * float(np.log(hold / base_hold_mse))  # -2 ln LR on data the fit never saw
     reduction = 1.0 - hold / base_hold_mse
     reasons = []
     if reduction < MIN_REDUCTION:
@@ -51,10 +59,11 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, n_eff
     if dbic_train > -BIC_MARGIN:
         reasons.append(f"training dBIC {dbic_train:.1f} > -{BIC_MARGIN:g}")
     if dbic_hold > -BIC_MARGIN:
-        reasons.append(f"held-out dBIC {dbic_hold:.1f} > -{BIC_MARGIN:g}")
+        reasons.append(f"held-out -2 ln LR {dbic_hold:.1f} > -{BIC_MARGIN:g}")
     return Score(name=cand.name, parameters=dict(best.model[cand.name]), fit=best, holdout_mse=hold,
                  reduction=reduction, delta_bic_train=dbic_train, delta_bic_holdout=dbic_hold,
-                 accepted=not reasons, reason="; ".join(reasons) or "passes")
+                 accepted=not reasons, reason="; ".join(reasons) or "passes",
+                 extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold})
 
 
 @dataclass
@@ -76,12 +85,11 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
     before = base_hold
     named, steps, tau = [], [], 1.0
     for step in range(max_effects):
-        n_tr, tau = _n_eff(data, train, base)
-        n_ho, _ = _n_eff(data, holdout, base)
+        _, tau = _n_eff(data, train, base)
         remaining = [c for c in library if c.name not in base.model]
         if not remaining:
             break
-        scores = [score_candidate(data, train, holdout, base, base_hold, n_tr, n_ho, c)
+        scores = [score_candidate(data, train, holdout, base, base_hold, c)
                   for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
                                 disable=not progress)]
         scores.sort(key=lambda s: -s.reduction)
