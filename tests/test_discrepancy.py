@@ -32,10 +32,12 @@ LOADS = {"bench_press": (40.0, 60.0), "deadlift": (45.0, 75.0)}
 # -- synthetic sessions (cached per process: the generator and the prior are the slow part) -------------------------
 
 @functools.lru_cache(maxsize=None)
-def synthetic(exercise: str, effects: str, seed: int, loads: tuple[float, ...] | None = None, reps: int = 3):
+def synthetic(exercise: str, effects: str, seed: int, loads: tuple[float, ...] | None = None, reps: int = 3,
+              calibrated: bool = True):
     """(folder, pack, trials, profile, truth): the last load is held out, the others train (default: the lighter
     load trains, the heavier is held out). The profile is calibrated on the training trials as a user would
-    (``msk calibrate --emd 0``: the paper's model without a delay; 1-7 s per session), as in `msk bench discrepancy`."""
+    (``msk calibrate --emd 0``: the paper's model without a delay; 1-7 s per session), as in `msk bench discrepancy`;
+    ``calibrated=False``: no profile (None)."""
     ex = Exercise(exercise)
     folder = Path(tempfile.mkdtemp(prefix=f"disc_{exercise}_"))
     _DIRS.append(folder)
@@ -44,7 +46,7 @@ def synthetic(exercise: str, effects: str, seed: int, loads: tuple[float, ...] |
     truth = json.loads(write_session(generate_session([ex], cfg), folder).read_text())
     pack = load_pack(exercise)
     trials = [load_trial(folder / exercise / f"{exercise}_{load:g}kg" / "trial.toml", pack) for load in loads]
-    profile, _ = calibrate_subject(pack, trials[:-1], emd_s=0.0)
+    profile = calibrate_subject(pack, trials[:-1], emd_s=0.0)[0] if calibrated else None
     return folder, pack, trials, profile, truth
 
 
@@ -205,7 +207,7 @@ def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_pa
 def test_input_errors_name_the_file_and_field(tmp_path):
     from msk_core.discrepancy import check_inputs
 
-    folder, pack, trials, profile, _ = synthetic("bench_press", "none", 5)
+    folder, pack, trials, _, _ = synthetic("bench_press", "none", 5, calibrated=False)
     train, held = trials
     src = Path(held.path)
     no_torque = tmp_path / "held_no_torques.toml"
@@ -232,7 +234,7 @@ def _shrink(result) -> float:
     return 1.0 - s["gap_after"] / s["gap_before"]
 
 
-@pytest.mark.parametrize("seed", [1, 2, 8])
+@pytest.mark.parametrize("seed", [1, 8])
 def test_no_hidden_effect_names_none(seed):
     """Seed 8: a passive-moment candidate takes 12.7 % off the held-out gap of this effect-free session (the groups
     without EMG are pose-dependent misfit; true activations for them remove it) - below the minimum effect size."""
