@@ -41,6 +41,9 @@ class Candidate:
     name: str
     grid: tuple[dict, ...]  # settings of the nonlinear parameters ({} when there are none)
     formula: str
+    # re-mixes the EMG channels (cross-talk unmixing adds the neighbours' envelope noise to each channel): its
+    # residuals are rougher than the base model's whether or not it explains anything (select.py, tau_int)
+    remixes_emg: bool = False
 
 
 def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Candidate]:
@@ -53,7 +56,8 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     ]
     if len(data.emg_groups) >= 2:
         out.append(Candidate("crosstalk", tuple({"fraction": c} for c in (0.05, 0.1, 0.15, 0.2, 0.3, 0.4)),
-                             "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's"))
+                             "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's",
+                             remixes_emg=True))
     if data.optimal is not None and data.trials[0].lengths is not None:
         out += [
             Candidate("fl_active", tuple({"width": w} for w in (0.25, 0.35, 0.45, 0.6, 0.8)),
@@ -253,7 +257,7 @@ class Score:
     holdout_mse: float
     reduction: float  # 1 - holdout MSE / holdout MSE of the base model
     delta_bic_train: float
-    delta_bic_holdout: float
+    minus2_ln_lr_holdout: float  # -2 ln (likelihood ratio) on the held-out trials, N_eff ln(MSE_cand / MSE_base)
     accepted: bool
     reason: str
     extra: dict = field(default_factory=dict)
@@ -261,3 +265,15 @@ class Score:
 
 def mse(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:
     return float(np.mean(np.concatenate([gaps(data, t, f).ravel() for t in trials]) ** 2))
+
+
+def target_ms(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:
+    """Mean square of the torque the model must explain: y, or with ``load_scale`` the corrected y - beta tau_load / c.
+    A load scale changes its own target: shrinking the target and, through the strengths, the EMG-implied torque with it
+    shrinks every gap - EMG noise included - without explaining anything (in a bench press, where the bar is nearly all
+    of the torque, it is the same as a strength scale). Scores compare MSE / target_ms (the unexplained fraction)."""
+    if "load_scale" not in f.model:
+        return 1.0
+    beta = float(f.coef[f.names.index("load_scale:beta")])
+    ys = np.concatenate([(t.tau - beta * t.tau_load).ravel() / t.scale.ravel() for t in trials])
+    return float(np.mean(ys**2))

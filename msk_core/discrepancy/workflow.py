@@ -158,8 +158,8 @@ class DiscrepancyResult:
 def _score_dict(s) -> dict:
     return {"effect": s.name, "parameters": s.parameters, "holdout_mse_reduction": round(s.reduction, 5),
             "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6), "delta_bic_train": round(s.delta_bic_train, 2),
-            "delta_bic_holdout": round(s.delta_bic_holdout, 2), "n_params": s.fit.n_params, "accepted": s.accepted,
-            "reason": s.reason}
+            "minus2_ln_lr_holdout": round(s.minus2_ln_lr_holdout, 2), "n_params": s.fit.n_params,
+            "accepted": s.accepted, "reason": s.reason, "tau_frames": {k: round(v, 2) for k, v in s.extra.items()}}
 
 
 def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialData], holdout: list[TrialData], *,
@@ -177,7 +177,8 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
     evidence = {
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "training_trials": [t.path for t in tr], "holdout_trials": [t.path for t in ho],
-        "criterion": {"min_holdout_mse_reduction": MIN_REDUCTION, "bic_margin": BIC_MARGIN},
+        "criterion": {"min_holdout_mse_reduction": MIN_REDUCTION, "bic_margin": BIC_MARGIN,
+                      "minus2_ln_lr_holdout": "-2 ln LR on the held-out trials (no parameter penalty), < -bic_margin"},
         "gap_before_rms": float(np.sqrt(sel.gap_before_mse)), "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
         "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
     }

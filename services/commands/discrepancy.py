@@ -58,7 +58,7 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
               f"after {s['activation_gap_after']:.4f}")
     for c in s["candidates"][:5]:
         print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  dBIC train "
-              f"{c['delta_bic_train']:8.1f}  held-out {c['delta_bic_holdout']:8.1f}  {c['reason']}")
+              f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  {c['reason']}")
     if args.out is not None:
         if result.profile_with_effects is None:
             print(f"no effect named: {args.out} not written (the profile stays as it is)")
