@@ -146,9 +146,9 @@ def run_live_graph(
 
         if kin_stats:
             wait_for(
-                f"the kinematics nodes to receive all {counts['imu']} IMU samples",
-                lambda: all(k.samples_in >= counts["imu"] for k in kin_stats.values()),
-                lambda: ", ".join(f"{ex} {k.samples_in}" for ex, k in kin_stats.items()), left(),
+                f"the kinematics nodes to process all {counts['imu']} IMU samples",
+                lambda: all(k.samples_done >= counts["imu"] for k in kin_stats.values()),
+                lambda: ", ".join(f"{ex} {k.samples_done}" for ex, k in kin_stats.items()), left(),
             )
             joints_total = sum(k.frames_out for k in kin_stats.values())
             joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
@@ -156,9 +156,9 @@ def run_live_graph(
             joints_total = sum(counts["joints"].values())
             joints_per_exercise = counts["joints"]
         wait_for(
-            f"every estimator to receive all {joints_total} joint frames",
-            lambda: all(e.frames_in >= joints_total for e in est_stats.values()),
-            lambda: ", ".join(f"{ex} {e.frames_in}" for ex, e in est_stats.items()), left(),
+            f"every estimator to process all {joints_total} joint frames",
+            lambda: all(e.frames_done >= joints_total for e in est_stats.values()),
+            lambda: ", ".join(f"{ex} {e.frames_done}" for ex, e in est_stats.items()), left(),
         )
         activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
         expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames

@@ -58,6 +58,7 @@ SOLVERS = ("active-set", "piqp")
 @dataclass
 class EstimatorStats:
     frames_in: int = 0
+    frames_done: int = 0  # input frames whose activation frames are all published: a waiter's exact end condition
     frames_out: int = 0
     load_events: int = 0
     flagged: dict[str, int] = field(default_factory=dict)
@@ -332,6 +333,7 @@ def main(
                     for method, frame in node.frames_for_joints(payload, arrival_ns):  # each out as soon as solved
                         frame.publish_ns = messages.now_ns()
                         publish(publishers[method], frame)
+                    stats.frames_done += 1
         finally:
             for subscriber in subscribers:
                 subscriber.undeclare()

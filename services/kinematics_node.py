@@ -65,6 +65,7 @@ class KinematicsStats:
     bad_frames: int = 0  # non-finite or zero quaternions
     rejected: int = 0  # samples that raised an input error while being processed
     frames_out: int = 0
+    samples_done: int = 0  # samples whose joint frames (if any) are published: a waiter's exact end condition
     last_error: str = ""
 
 
@@ -234,6 +235,7 @@ def main(
         def process(key: str, payload: bytes) -> None:
             for joints in node.handle(key, payload):
                 publish(publisher, joints)
+            stats.samples_done += 1
 
         try:
             while not stop_event.is_set():

@@ -76,7 +76,7 @@ def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict
     stats = {pack: start_estimator(endpoint, stop, pack=pack, session=session, methods=methods) for pack, methods in packs.items()}
     replayed = replayer.main(ZenohOptions(connect=(endpoint,)), source, rate=None, session_name=session, wait_subscribers_s=5.0)
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not all(s.frames_in >= joints for s in stats.values()):
+    while time.monotonic() < deadline and not all(s.frames_done >= joints for s in stats.values()):
         time.sleep(0.1)
     expected = replayed.published + sum(s.frames_out * len(packs[p]) for p, s in stats.items())
     while time.monotonic() < deadline and rec_stats.written < expected:
