@@ -219,7 +219,7 @@ class ZenohSink:
             publisher = self._publishers.get(key)
             if publisher is None:
                 type_name = messages.type_name(message)
-                if topics.delivery_for_key(key) is topics.Delivery.LOSSLESS:
+                if zenoh_session.keeps_history(key):
                     publisher = zenoh_session.declare_history_publisher(self._session, key, type_name)
                 else:
                     publisher = zenoh_session.declare_data_publisher(self._session, key, type_name)

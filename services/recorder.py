@@ -40,6 +40,7 @@ from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
     fetch_history,
+    keeps_history,
     open_session,
     options_from_args,
     type_name_of_sample,
@@ -104,7 +105,6 @@ def main(
         merge = HistoryMerge(lambda item: _write(writer, item, stats), stats, already_recorded=already_recorded)
 
         def fetch(scope: str) -> None:  # on its own thread: the main loop goes on writing the other keys
-            started = time.monotonic()
             try:
                 samples, errors = fetch_history(session, scope, timeout_s=history_timeout_s)
             except Exception as error:  # a closed session at shutdown, an access-control refusal...
@@ -112,7 +112,7 @@ def main(
             received_ns = messages.now_ns()
             for sample in samples:
                 inbox.put(_Item(HISTORY, received_ns, str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes()))
-            inbox.put(_FetchDone(scope, len(samples), errors, time.monotonic() - started))
+            inbox.put(_FetchDone(scope, errors))
 
         def start_fetch(scope: str) -> None:
             threading.Thread(target=fetch, args=(scope,), name=f"history {scope}", daemon=True).start()
@@ -134,7 +134,7 @@ def main(
                 except queue.Empty:
                     writer.flush_if_due()
                     continue
-                for scope in merge.accept(item, fetch_new_keys=history and _has_history(item)):
+                for scope in merge.accept(item, fetch_new_keys=history):
                     start_fetch(scope)
         finally:
             subscriber.undeclare()
@@ -162,19 +162,7 @@ class _Item:
 @dataclass(frozen=True)
 class _FetchDone:
     scope: str  # the key expression fetched
-    count: int
     errors: list[str]
-    elapsed_s: float
-
-
-def _has_history(item) -> bool:
-    """Only loss-free device topics are published with a cache (services.driver_nodes.ZenohSink)."""
-    if not isinstance(item, _Item) or item.origin != LIVE:
-        return False
-    try:
-        return topics.delivery_for_key(item.key) is topics.Delivery.LOSSLESS
-    except ConfigError:
-        return False
 
 
 class HistoryMerge:
@@ -188,8 +176,9 @@ class HistoryMerge:
     """
 
     def __init__(self, write, stats: RecorderStats, *, already_recorded: dict[str, set[bytes]] | None = None,
-                 remembered_per_key: int = 2 * DEVICE_HISTORY_SAMPLES) -> None:
+                 remembered_per_key: int = 2 * DEVICE_HISTORY_SAMPLES, keeps_history=keeps_history) -> None:
         self._write = write
+        self._keeps_history = keeps_history  # asked once per new key, not per message
         self._stats = stats
         self._remembered_per_key = remembered_per_key
         self._recent: dict[str, tuple[collections.deque, set[bytes]]] = {}
@@ -208,7 +197,8 @@ class HistoryMerge:
             self._pending_keys.add(scope)
 
     def accept(self, item, *, fetch_new_keys: bool) -> list[str]:
-        """Take one inbox item; returns the keys whose history should be fetched now."""
+        """Take one inbox item; returns the keys whose history should be fetched now (``fetch_new_keys``: for a key
+        first seen live whose publishers keep a history)."""
         if isinstance(item, _FetchDone):
             self._fetch_done(item)
             return []
@@ -216,8 +206,8 @@ class HistoryMerge:
             self._known_keys.add(item.key)
             self._emit(item)
             return []
-        if (fetch_new_keys and not self._initial_pending
-                and item.key not in self._known_keys and item.key not in self._pending_keys):
+        if (fetch_new_keys and not self._initial_pending and item.key not in self._known_keys
+                and item.key not in self._pending_keys and self._keeps_history(item.key)):
             # a publisher that appeared after the start: it may have published before our subscription reached it
             self._pending_keys.add(item.key)
             self._waiting.append(item)

@@ -31,6 +31,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from msk_core.errors import ConfigError
 
+from services.zenoh_session import history_selector
 CN_PREFIX = "msk-"
 ROUTER_ROLE = "router"
 DEFAULT_TLS_PORT = 7447
@@ -256,7 +257,7 @@ def access_control(roles: dict[str, RolePolicy] = ROLE_POLICIES) -> dict:
 
 
 def _with_history(keys: tuple[str, ...]) -> list[str]:
-    return [*keys, *(f"{key}/@adv/**" if key.endswith("**") else f"{key}/**/@adv/**" for key in keys)]
+    return [*keys, *(history_selector(key) for key in keys)]
 
 
 def router_config(pki_dir: Path | str, *, listen: tuple[str, ...] = (f"tls/0.0.0.0:{DEFAULT_TLS_PORT}",), acl: bool = True) -> dict:

@@ -168,6 +168,14 @@ def declare_history_publisher(
     )
 
 
+def keeps_history(key: str) -> bool:
+    """Whether a key's publishers keep a history (:func:`declare_history_publisher`): the loss-free device topics."""
+    try:
+        return topics.delivery_for_key(key) is topics.Delivery.LOSSLESS
+    except ConfigError:  # not an msk/<session>/... key
+        return False
+
+
 def history_selector(key_expr: str) -> str:
     """Where the caches of :func:`declare_history_publisher` answer for ``key_expr``: each publisher's cache is a
     queryable under ``<key>/@adv/...``, a verbatim chunk that ``**`` does not cover."""
