@@ -196,7 +196,6 @@ class EstimatorNode:
                               "map", field="method", value="assisted")
         if self.live_emg is not None:
             stats.emg = self.live_emg.counters
-        self._last_method = list(self.estimators)[-1]  # frames_out counts input frames done
         self.loads = LoadTimeline(initial_load_kg)
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
         # name.
@@ -256,9 +255,8 @@ class EstimatorNode:
                 frame.flags.extend(emg_flags)
             if result.flagged:
                 stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
-            if method == self._last_method:
-                stats.frames_out += 1
             yield method, frame
+        stats.frames_out += 1
 
     def _phase(self, joints, time_s: float, q: np.ndarray) -> float | None:
         """Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1)."""
