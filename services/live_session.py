@@ -58,6 +58,13 @@ def _type(path, key, value, kind, what):
     return value
 
 
+def _int_within(path, key, value, low: int, high: int, what: str, out_of_range: str) -> int:
+    number = _type(path, key, value, int, what)
+    if not low <= number <= high:
+        raise _error(path, key, out_of_range, number)
+    return number
+
+
 def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool = True) -> LiveSession:
     """Check a session document; ``require_devices=False`` (``--sim``): the simulators replace the device keys and
     the bundled session provides pack, subject, maps and load when the file leaves them out."""
@@ -111,10 +118,8 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
         session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
         if "emg_port" in t:
-            port = _type(path, "trigno.emg_port", t["emg_port"], int, "a TCP port number")
-            if not 1 <= port <= 65535:
-                raise _error(path, "trigno.emg_port", "must be a TCP port 1..65535", port)
-            session.trigno_emg_port = port
+            session.trigno_emg_port = _int_within(path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number",
+                                                  "must be a TCP port 1..65535")
         if "id" in t:
             session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
     x = doc.get("xsens")
@@ -128,10 +133,8 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             raise _error(path, "xsens.ports", "must be a list of serial ports or \"usb\"", x["ports"])
         session.xsens_ports = tuple(ports)
         if "rate_hz" in x:
-            rate = _type(path, "xsens.rate_hz", x["rate_hz"], int, "an integer rate in Hz")
-            if not 1 <= rate <= 2000:
-                raise _error(path, "xsens.rate_hz", "must be within 1..2000 Hz", rate)
-            session.imu_rate_hz = rate
+            session.imu_rate_hz = _int_within(path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz",
+                                              "must be within 1..2000 Hz")
         if "baud" in x:
             session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
     for tracker, segment in doc.get("trackers", {}).items():

@@ -53,26 +53,24 @@ def _xcorr_plot(path: Path, result: DiscrepancyResult) -> None:
     plt.close(fig)
 
 
+def _before_after_bars(ax, per_name: dict, ylabel: str, rotation: int) -> None:
+    names = list(per_name)
+    x = np.arange(len(names))
+    ax.bar(x - 0.2, [per_name[n]["before"] for n in names], 0.4, label="before")
+    ax.bar(x + 0.2, [per_name[n]["after"] for n in names], 0.4, label="after")
+    ax.set_xticks(x, names, rotation=rotation, fontsize=7)
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=8)
+
+
 def _rms_plot(path: Path, summary: dict) -> None:
     plt = _plt()
     per_c = summary["gap_per_coordinate"]
     per_g = summary.get("activation_gap_per_group", {})
     fig, axes = plt.subplots(1, 2 if per_g else 1, figsize=(10 if per_g else 5, 3.4), squeeze=False)
-    names = list(per_c)
-    x = np.arange(len(names))
-    axes[0][0].bar(x - 0.2, [per_c[n]["before"] for n in names], 0.4, label="before")
-    axes[0][0].bar(x + 0.2, [per_c[n]["after"] for n in names], 0.4, label="after")
-    axes[0][0].set_xticks(x, names, rotation=30, fontsize=7)
-    axes[0][0].set_ylabel("held-out RMS torque gap (fraction of capacity)")
-    axes[0][0].legend(fontsize=8)
+    _before_after_bars(axes[0][0], per_c, "held-out RMS torque gap (fraction of capacity)", 30)
     if per_g:
-        names = list(per_g)
-        x = np.arange(len(names))
-        axes[0][1].bar(x - 0.2, [per_g[n]["before"] for n in names], 0.4, label="before")
-        axes[0][1].bar(x + 0.2, [per_g[n]["after"] for n in names], 0.4, label="after")
-        axes[0][1].set_xticks(x, names, rotation=60, fontsize=7)
-        axes[0][1].set_ylabel("held-out RMS activation gap (estimate - EMG)")
-        axes[0][1].legend(fontsize=8)
+        _before_after_bars(axes[0][1], per_g, "held-out RMS activation gap (estimate - EMG)", 60)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
