@@ -150,7 +150,11 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     fixed = contrib.sum(axis=2)
     if o_idx.size:
         fixed = fixed + (a[:, :, o_idx] * (phi[:, o_idx] * trial.prior_mean[:, o_idx])[:, None, :]).sum(axis=2)
-    cols, names, ridge, ab = [], [], [], []
+    cols, names, ridge, ridge_abs = [], [], [], []
+
+    def add(column: np.ndarray, name: str, rel: float = TINY_RIDGE, absolute: float = 0.0) -> None:
+        cols.append(column.ravel()), names.append(name), ridge.append(rel), ridge_abs.append(absolute)
+
     onehot = np.eye(n_c)
     # strength re-fit per measured group (ridge toward the calibrated strength); with moment_arm_scale one per group
     # and coordinate for the groups crossing several coordinates
@@ -161,43 +165,38 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
                 multi.add(k)
                 for c in range(n_c):
                     if np.any(np.abs(contrib[:, c, k]) > 0):
-                        cols.append((contrib[:, :, k] * onehot[c]).ravel())
-                        names.append(f"arm:{g}:{data.coordinates[c]}")
-                        ridge.append(MEASURED_RIDGE), ab.append(MEASURED_RIDGE_ABS)
+                        add(contrib[:, :, k] * onehot[c], f"arm:{g}:{data.coordinates[c]}", MEASURED_RIDGE,
+                            MEASURED_RIDGE_ABS)
     for k, g in enumerate(data.emg_groups):
         if k not in multi:
-            cols.append(contrib[:, :, k].ravel()), names.append(f"gain:{g}"), ridge.append(MEASURED_RIDGE), ab.append(MEASURED_RIDGE_ABS)
+            add(contrib[:, :, k], f"gain:{g}", MEASURED_RIDGE, MEASURED_RIDGE_ABS)
     for j in o_idx:  # the unmeasured groups' prior-mean contribution, re-scaled like the measured groups' strength
         col = a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None]
         if np.any(col != 0):
-            cols.append(col.ravel()), names.append(f"prior:{data.groups[j]}"), ridge.append(GAIN_RIDGE), ab.append(GAIN_RIDGE_ABS)
+            add(col, f"prior:{data.groups[j]}", GAIN_RIDGE, GAIN_RIDGE_ABS)
         base = a[:, :, j] * (phi[:, j] * trial.min_effort[:, j])[:, None]  # follows the frame's demand (load)
         for k, w in enumerate(phase_basis(trial.phase)):  # ... with a free share per phase of the rep
             col = base * w[:, None]
             if np.any(col != 0):
-                cols.append(col.ravel()), names.append(f"demand:{data.groups[j]}:{k}"), ridge.append(GAIN_RIDGE), ab.append(GAIN_RIDGE_ABS)
+                add(col, f"demand:{data.groups[j]}:{k}", GAIN_RIDGE, GAIN_RIDGE_ABS)
     inv_c = 1.0 / trial.scale
     for c in range(n_c):
-        cols.append((inv_c * onehot[c]).ravel()), names.append(f"offset:{data.coordinates[c]}"), ridge.append(TINY_RIDGE)
+        add(inv_c * onehot[c], f"offset:{data.coordinates[c]}")
     if "fl_passive" in model:
         pas = passive_force_length(fibre_length(trial.lengths, data.optimal, data.slack), model["fl_passive"]["strain"])
-        cols.append((a * pas[:, None, :]).sum(axis=2).ravel()), names.append("fl_passive:scale")
-        ridge.append(TINY_RIDGE)
+        add((a * pas[:, None, :]).sum(axis=2), "fl_passive:scale")
     if "passive_joint" in model:
         up, low = passive_joint_basis(trial.q, data.lo, data.hi, model["passive_joint"]["decay_rad"])
         for c in range(n_c):
-            cols.append((low * inv_c * onehot[c]).ravel()), names.append(f"passive_joint:k_lower:{data.coordinates[c]}")
-            cols.append((-up * inv_c * onehot[c]).ravel()), names.append(f"passive_joint:k_upper:{data.coordinates[c]}")
-            ridge += [TINY_RIDGE, TINY_RIDGE]
+            add(low * inv_c * onehot[c], f"passive_joint:k_lower:{data.coordinates[c]}")
+            add(-up * inv_c * onehot[c], f"passive_joint:k_upper:{data.coordinates[c]}")
     if "damping" in model:
         for c in range(n_c):
-            cols.append((-trial.qd * inv_c * onehot[c]).ravel()), names.append(f"damping:b:{data.coordinates[c]}")
-            ridge.append(TINY_RIDGE)
+            add(-trial.qd * inv_c * onehot[c], f"damping:b:{data.coordinates[c]}")
     if "load_scale" in model:
-        cols.append((trial.tau_load * inv_c).ravel()), names.append("load_scale:beta"), ridge.append(TINY_RIDGE)
-    ab += [0.0] * (len(ridge) - len(ab))  # the nuisance gains come first; offsets and effect terms get no absolute ridge
+        add(trial.tau_load * inv_c, "load_scale:beta")
     return Design(y=(trial.tau * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols), names=names,
-                  ridge=np.asarray(ridge), ridge_abs=np.asarray(ab), n_frames=n, n_coordinates=n_c)
+                  ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c)
 
 
 @dataclass
