@@ -295,6 +295,21 @@ def test_load_scale_is_not_named_for_shrinking_its_own_target():
     assert load["holdout_mse_reduction"] < 0.1, load
 
 
+def test_a_term_that_a_left_out_training_trial_contradicts_is_not_named():
+    """Effect-free bench press, seed 8, two training loads: the muscles' passive force takes ~23 % off the held-out
+    gap with a training dBIC of -22 and a held-out -2 ln LR of -24, but fitted on one training load it makes the
+    other ~15 % worse. Without the leave-one-training-trial-out check it was named."""
+    result = discrepancy("bench_press", "none", 8, loads=(40.0, 60.0, 50.0))
+    s = result.summary
+    assert s["effect"] == "none", s["candidates"][:3]
+    passive = next(c for c in s["candidates"] if c["effect"] == "fl_passive")
+    assert passive["holdout_mse_reduction"] >= 0.15 and passive["delta_bic_train"] < -10, passive
+    assert "left out of the fit" in passive["reason"], passive
+    left_out = passive["left_out_training_trials"]
+    assert sorted(left_out) == ["bench_press_40kg", "bench_press_60kg"], left_out
+    assert max(v["minus2_ln_lr"] for v in left_out.values()) > 10, left_out
+
+
 def test_crosstalk_is_named_with_its_mixing_fraction():
     """Deadlift seed 1: with the measured groups' strength re-fit held as tightly as the unmeasured groups' terms, the
     strength mismatch hid the mixing and `passive_joint` was named instead (docs/discrepancy.md, Ridge)."""

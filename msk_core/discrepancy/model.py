@@ -267,6 +267,7 @@ class Score:
     accepted: bool
     reason: str
     extra: dict = field(default_factory=dict)
+    left_out_reductions: dict = field(default_factory=dict)  # training trial -> reduction when left out of the fit
 
 
 def mse(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:

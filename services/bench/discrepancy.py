@@ -1,8 +1,9 @@
 """``msk bench discrepancy``: (1) one run of the discrepancy workflow on a demo-sized session (two deadlift trials of
 ~60 s, 19 groups), timed beside the plain per-frame estimator over the held-out trial in the same run; (2) the
 detection matrix on synthetic sessions: every hidden effect of ``msk synth`` one at a time over three subject seeds and
-both exercises, at stated sizes and at the generator's own defaults, no effect over eight seeds, and two at once - how
-often the right effect is named and by how much the held-out torque gap shrinks (``--quick``: one seed)."""
+both exercises, at stated sizes and at the generator's own defaults, no effect over eight seeds (one training load,
+and two), and two at once - how often the right effect is named and by how much the held-out torque gap shrinks
+(``--quick``: one seed)."""
 
 from __future__ import annotations
 
@@ -120,12 +121,13 @@ def run(quick: bool) -> list[BenchResult]:
     # gap is removed completely, so 1 - gap(none) / gap_before(effect) is the shrink attainable in that case
     none_gap: dict[tuple, float] = {}
     none_cases = []
-    for exercise in ("bench_press", "deadlift"):
-        for seed in ((1,) if quick else NONE_SEEDS):
-            c = detection_case(exercise, "none", seed)
-            c["case"] = f"{exercise}/{seed}"
-            none_cases.append(c)
-            none_gap[_key(exercise, seed, False)] = c["gap_before"]
+    for three in (False, True):  # one training load, and two (the held-out load between them)
+        for exercise in ("bench_press", "deadlift"):
+            for seed in ((1,) if quick else NONE_SEEDS):
+                c = detection_case(exercise, "none", seed, three_loads=three)
+                c["case"] = f"{exercise}/{seed}{' (two training loads)' if three else ''}"
+                none_cases.append(c)
+                none_gap[_key(exercise, seed, three)] = c["gap_before"]
 
     def attainable(exercise: str, seed: int, three_loads: bool, before: float) -> float:
         key = _key(exercise, seed, three_loads)
