@@ -242,6 +242,7 @@ def test_no_hidden_effect_names_none(seed):
     result = discrepancy("bench_press", "none", seed)
     s = result.summary
     assert s["effect"] == "none", s["candidates"][:3]
+    assert len(s["calibration_at_bounds"]) <= 3, s["calibration_at_bounds"]  # 0-3 of 13 without an effect
     assert result.profile_with_effects is None
     # cross-talk unmixing adds the neighbours' envelope noise: its tau_int is never taken below the "none" model's
     ct = next(c for c in s["candidates"] if c["effect"] == "crosstalk")
@@ -325,6 +326,11 @@ def test_two_hidden_effects_are_both_named_with_max_effects_2():
     # exponential moment than by the muscle curve; docs/discrepancy.md, Limits)
     result = discrepancy("deadlift", "emd=0.15,fl_passive", 2, max_effects=2)
     assert sorted(result.summary["effect"]) == ["emd", "fl_passive"], result.summary["greedy_steps"]
+    # the calibration without the passive force pinned the back extensors at the upper bound and the abdominals at
+    # the lower one (the passive extension moment of the flexed trunk taken for extensor strength): the report says so
+    pinned = {b["group"]: b for b in result.summary["calibration_at_bounds"]}
+    for g, side in [("ESL", "upper"), ("ESI", "upper"), ("MUL", "upper"), ("RA", "lower"), ("EO", "lower")]:
+        assert pinned[g]["side"] == side and pinned[g]["coordinates"] == ["L5_S1_FE"], pinned
 
 
 def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
@@ -342,7 +348,13 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     assert {"parameters", "gap_before", "gap_after", "candidates"} <= set(summary)
     for png in ("gap_vs_angle", "gap_vs_velocity", "gap_vs_phase", "xcorr_vs_lag", "gap_rms"):
         assert (report / f"{png}.png").stat().st_size > 1000
-    assert "emd" in (report / "report.md").read_text()
+    text = (report / "report.md").read_text()
+    assert "emd" in text
+    # the groups the calibration pinned at a bound are listed (this session: 4 of 13, all upper)
+    assert len(summary["calibration_at_bounds"]) >= 2, summary["calibration_at_bounds"]
+    assert "## Calibration strengths at their bounds" in text
+    for b in summary["calibration_at_bounds"]:
+        assert f"| {b['group']} | {b['scale']:.2f} | {b['side']} |" in text
     loaded = SubjectProfile.load(out)
     assert loaded.effects["effects"][0]["name"] == "emd"
     assert main(["estimate", "--pack", "bench_press", "--subject", str(out), "--trial", str(trials[1].path),

@@ -123,6 +123,13 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         lines += ["", "| group (gap along its moment arms) | fibre length | lengthening velocity |", "|---|---|---|"]
         lines += [f"| {g} | {v['corr_fibre_length']:+.2f} | {v['corr_lengthening_velocity']:+.2f} |"
                   for g, v in groups.items()]
+    pinned = s.get("calibration_at_bounds") or []
+    if pinned:
+        lines += ["", "## Calibration strengths at their bounds", "",
+                  "The calibration pushed these strengths to the edge of their range: it absorbed torque it could not "
+                  "explain with activations (a missing effect, or groups whose strength the data cannot separate): look at the coordinates they cross first.", "",
+                  "| group | strength scale | bound | coordinates |", "|---|---|---|---|"]
+        lines += [f"| {b['group']} | {b['scale']:.2f} | {b['side']} | {', '.join(b['coordinates'])} |" for b in pinned]
     lines += ["", "## Plots", "",
               "![gap vs angle](gap_vs_angle.png)", "", "![gap vs velocity](gap_vs_velocity.png)", "",
               "![gap vs phase](gap_vs_phase.png)", "", "![cross-correlation vs lag](xcorr_vs_lag.png)", "",

@@ -62,6 +62,26 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
             "strength_gain": {g: round(k, 6) for g, k in gain.items()}, "evidence": evidence}
 
 
+def calibration_at_bounds(data: SessionArrays, profile: SubjectProfile) -> list[dict]:
+    """The groups whose calibrated strength sits at the calibration's bounds (status ``at_bound``), with the side and
+    the coordinates they cross. A strength pinned at a bound absorbed torque the calibration could not explain with
+    activations: a missing effect often shows here first (a passive extension moment in a deadlift drives the back
+    extensors to the upper bound and the abdominals to the lower one)."""
+    strength = (profile.calibration or {}).get("strength") or {}
+    if not isinstance(strength, dict):
+        return []
+    crosses = np.any(np.vstack([np.abs(t.arms).max(axis=0)[None] for t in data.trials]) > 0, axis=0)  # (n_c, G)
+    out = []
+    for g, info in strength.items():
+        if not isinstance(info, dict) or info.get("status") != "at_bound" or g not in data.groups:
+            continue
+        j = data.groups.index(g)
+        scale = float(info.get("scale", profile.f_max[j] / profile.f_max_ref[j]))
+        out.append({"group": g, "scale": round(scale, 4), "side": "upper" if scale >= 1.0 else "lower",
+                    "coordinates": [c for c, x in zip(data.coordinates, crosses[:, j]) if x]})
+    return out
+
+
 def _binned(x: np.ndarray, y: np.ndarray, bins: int = N_BINS) -> tuple[list[float], list[float]]:
     ok = np.isfinite(x) & np.isfinite(y)
     if ok.sum() < bins:
@@ -206,6 +226,7 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         "autocorrelation_frames": sel.autocorrelation_frames,
         "training_trials": evidence["training_trials"], "holdout_trials": evidence["holdout_trials"],
         "emg_groups": data.emg_groups,
+        "calibration_at_bounds": calibration_at_bounds(data, profile),
         "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
     }
     if profile_out is not None:
