@@ -468,7 +468,8 @@ def set_html(result: dict, plots: list[str]) -> str:
     bal = result.get("balance")
     if bal:
         if bal["left_right"]:
-            rows = [[f"{html.escape(p['right'])} / {html.escape(p['left'])}"] + [f"{_pct(r)} / {_pct(l)}" for r, l in p["per_rep"]] for p in bal["left_right"]]
+            rows = [[f"{html.escape(p['right'])} / {html.escape(p['left'])}"]
+                    + [f"{_pct(right)} / {_pct(left)}" for right, left in p["per_rep"]] for p in bal["left_right"]]
             parts.append("<h3>Left / right balance (mean activation per rep, right / left %)</h3>"
                          + _table(["pair"] + [f"rep {k + 1}" for k in range(len(reps))], rows))
         else:
