@@ -100,7 +100,9 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     lines += [
         f"Criterion: held-out MSE reduction >= {s['criterion']['min_holdout_mse_reduction']:.0%}, dBIC < "
         f"-{s['criterion']['bic_margin']:g} on the training trials and -2 ln LR < -{s['criterion']['bic_margin']:g} on "
-        f"the held-out trials (N_eff = N / tau_int, tau_int the autocorrelation time of the candidate's gaps in frames; "
+        f"the held-out trials; with several training trials, none left out of the fit may favour the model without "
+        f"the candidate by -2 ln LR > {s['criterion']['bic_margin']:g} "
+        f"(N_eff = N / tau_int, tau_int the autocorrelation time of the candidate's gaps in frames; "
         f"{s['autocorrelation_frames']:.1f} for the \"none\" model). Docs: docs/discrepancy.md.", "",
         "## Candidates (first step, ranked by held-out reduction)", "",
         "| candidate | held-out MSE reduction | dBIC train | -2 ln LR held-out | parameters | verdict |",

@@ -2,14 +2,17 @@
 
 A candidate is named when, against the current model (at first: "none" = strength re-fit + offsets):
 
-1. its held-out mean-squared torque gap is at least ``MIN_REDUCTION`` (15 %) smaller (minimum effect size: above the
-   largest improvement any candidate made on the effect-free synthetic sessions, 12.7 %, docs/discrepancy.md),
+1. its held-out mean-squared torque gap is at least ``MIN_REDUCTION`` (15 %) smaller (minimum effect size, set above
+   the largest improvement on the effect-free synthetic sessions when it was chosen, 12.7 %; the closest calls now
+   are in docs/discrepancy.md, Criterion),
 2. the Bayesian information criterion prefers it by more than ``BIC_MARGIN`` (10: "very strong" on the Kass-Raftery
    scale) on the training trials, where its parameters were fitted, with Gaussian errors:
    dBIC = N_eff ln(MSE_cand / MSE_base) + dp ln(N_eff), dp its extra parameters (linear and grid), and
 3. the held-out trials, where nothing was fitted, favour it by a log-likelihood ratio of more than ``BIC_MARGIN``
    on the same scale: -2 ln LR = N_eff ln(MSE_cand / MSE_base) < -10 (no parameter penalty: a candidate that overfits
-   the training trials pays for it here as a worse held-out fit, so a penalty would count the parameters twice).
+   the training trials pays for it here as a worse held-out fit, so a penalty would count the parameters twice), and
+4. with several training trials, none of them, left out of the fit, favours the base model by -2 ln LR > ``BIC_MARGIN``
+   (``_left_out_reductions``: an effect of the body holds on every trial).
 
 N_eff = N / tau_int discounts the gaps' autocorrelation (consecutive frames are not independent samples). tau_int is
 measured on the residuals of the candidate, the larger model of the pair: the base model's residuals still carry the
