@@ -353,8 +353,11 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     # the groups the calibration pinned at a bound are listed (this session: 4 of 13, all upper)
     assert len(summary["calibration_at_bounds"]) >= 2, summary["calibration_at_bounds"]
     assert "## Calibration strengths at their bounds" in text
+    printed = capsys.readouterr().out
+    assert "calibration strengths at their bounds" in printed, printed
     for b in summary["calibration_at_bounds"]:
         assert f"| {b['group']} | {b['scale']:.2f} | {b['side']} |" in text
+        assert f"{b['group']} {b['scale']:.2f} ({b['side']}" in printed
     loaded = SubjectProfile.load(out)
     assert loaded.effects["effects"][0]["name"] == "emd"
     assert main(["estimate", "--pack", "bench_press", "--subject", str(out), "--trial", str(trials[1].path),

@@ -59,6 +59,10 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     for c in s["candidates"][:5]:
         print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  dBIC train "
               f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  {c['reason']}")
+    if s["calibration_at_bounds"]:
+        print("calibration strengths at their bounds (look at these coordinates first): "
+              + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
+                          for b in s["calibration_at_bounds"]))
     if args.out is not None:
         if result.profile_with_effects is None:
             print(f"no effect named: {args.out} not written (the profile stays as it is)")
