@@ -85,9 +85,15 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     return out
 
 
-def _crosses(data: SessionArrays, group: str) -> int:
+def crossed_coordinates(data: SessionArrays, group: str) -> list[str]:
+    """The coordinates a group has a moment arm about (> 0.1 mm anywhere in the first trial)."""
     j = data.groups.index(group)
-    return int(sum(np.any(np.abs(t.arms[:, n, j]) > 1e-4) for t in data.trials[:1] for n in range(len(data.coordinates))))
+    arms = data.trials[0].arms[:, :, j]
+    return [c for n, c in enumerate(data.coordinates) if np.any(np.abs(arms[:, n]) > 1e-4)]
+
+
+def _crosses(data: SessionArrays, group: str) -> int:
+    return len(crossed_coordinates(data, group))
 
 
 UNMEASURED_PHASE_BINS = 6  # free phase profile of each unmeasured group's demand share (nuisance)

@@ -129,7 +129,8 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     if pinned:
         lines += ["", "## Calibration strengths at their bounds", "",
                   "The calibration pushed these strengths to the edge of their range: it absorbed torque it could not "
-                  "explain with activations (a missing effect, or groups whose strength the data cannot separate): look at the coordinates they cross first.", "",
+                  "explain with activations (a missing effect, or groups whose strength the data cannot separate): "
+                  "look at the coordinates they cross first.", "",
                   "| group | strength scale | bound | coordinates |", "|---|---|---|---|"]
         lines += [f"| {b['group']} | {b['scale']:.2f} | {b['side']} | {', '.join(b['coordinates'])} |" for b in pinned]
     lines += ["", "## Plots", "",

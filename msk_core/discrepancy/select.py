@@ -48,7 +48,36 @@ def _n_eff(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> tuple[floa
     return n / tau, tau
 
 
-def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand: Candidate) -> Score:
+def _unexplained(data: SessionArrays, trials: list[TrialArrays], f: Fit, ms: float | None = None) -> float:
+    """MSE / mean square of the target (model.target_ms: the MSE ratio unless a candidate changes its own target)."""
+    return (mse(data, trials, f) if ms is None else ms) / target_ms(data, trials, f)
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """One training trial left out of the fit: the base model fitted on the others, once per greedy step."""
+    trial: TrialArrays
+    rest: list[TrialArrays]
+    base_fit: Fit
+    base_unexplained: float  # on the left-out trial
+    offered: frozenset[str]  # the candidates the other trials still define (a load scale needs two loads)
+
+
+def left_out_bases(data: SessionArrays, train: list[TrialArrays], base: Fit) -> list[LeftOut]:
+    """With several training trials, each left out in turn (none with one training trial)."""
+    if len(train) < 2:
+        return []
+    out = []
+    for k, trial in enumerate(train):
+        rest = train[:k] + train[k + 1:]
+        b = fit(data, rest, base.model)
+        out.append(LeftOut(trial, rest, b, _unexplained(data, [trial], b),
+                           frozenset(c.name for c in candidate_library(data, rest))))
+    return out
+
+
+def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand: Candidate,
+                    left_out: list[LeftOut]) -> Score:
     best = None
     for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training gap
         f = fit(data, train, {**base.model, cand.name: dict(setting)})
@@ -61,17 +90,16 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
         n_eff_train, tau_train = min((n_eff_train, tau_train), _n_eff(data, train, base))
         n_eff_hold, tau_hold = min((n_eff_hold, tau_hold), _n_eff(data, holdout, base))
     dp = best.n_params - base.n_params
-    # unexplained fractions (model.target_ms: the same as the MSE ratios unless a candidate changes its own target)
-    ratio_train = (best.train_mse / target_ms(data, train, best)) / (base.train_mse / target_ms(data, train, base))
-    ratio_hold = (hold / target_ms(data, holdout, best)) / (base_hold_mse / target_ms(data, holdout, base))
+    ratio_train = _unexplained(data, train, best, best.train_mse) / _unexplained(data, train, base, base.train_mse)
+    ratio_hold = _unexplained(data, holdout, best, hold) / _unexplained(data, holdout, base, base_hold_mse)
     dbic_train = n_eff_train * float(np.log(ratio_train)) + dp * float(np.log(n_eff_train))
     lr_hold = n_eff_hold * float(np.log(ratio_hold))  # -2 ln LR on data the fit never saw
     reduction = 1.0 - ratio_hold
-    left_out = _left_out_reductions(data, train, base, cand, best.model[cand.name])
+    left_out_scores = _left_out_reductions(data, left_out, base, cand, best.model[cand.name])
     reasons = []
     if reduction < MIN_REDUCTION:
         reasons.append(f"held-out reduction {reduction:.1%} < {MIN_REDUCTION:.0%}")
-    for label, (r, lr) in left_out.items():
+    for label, (r, lr) in left_out_scores.items():
         if lr > BIC_MARGIN:
             reasons.append(f"training trial {label}, left out of the fit, contradicts it ({r:+.1%}, -2 ln LR {lr:+.1f} "
                            f"> {BIC_MARGIN:g})")
@@ -83,10 +111,10 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
                  reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold,
                  accepted=not reasons, reason="; ".join(reasons) or "passes",
                  extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold},
-                 left_out_reductions=left_out)
+                 left_out_reductions=left_out_scores)
 
 
-def _left_out_reductions(data: SessionArrays, train: list[TrialArrays], base: Fit, cand: Candidate,
+def _left_out_reductions(data: SessionArrays, left_out: list[LeftOut], base: Fit, cand: Candidate,
                          setting: dict) -> dict[str, tuple[float, float]]:
     """With several training trials: for each one, the candidate (at its chosen setting) and the base model fitted on
     the *other* training trials; returns the candidate's reduction of that trial's unexplained fraction and its
@@ -96,17 +124,13 @@ def _left_out_reductions(data: SessionArrays, train: list[TrialArrays], base: Fi
     other 14-16 % worse; docs/discrepancy.md, Criterion). Skipped for a trial whose absence leaves the candidate
     undefined (a load scale needs two loads)."""
     out: dict[str, tuple[float, float]] = {}
-    if len(train) < 2:
-        return out
-    for k, trial in enumerate(train):
-        rest = train[:k] + train[k + 1:]
-        if cand.name not in {c.name for c in candidate_library(data, rest)}:
+    for lo in left_out:
+        if cand.name not in lo.offered:
             continue
-        b = fit(data, rest, base.model)
-        c = fit(data, rest, {**base.model, cand.name: dict(setting)})
-        ratio = (mse(data, [trial], c) / target_ms(data, [trial], c)) / (mse(data, [trial], b) / target_ms(data, [trial], b))
-        n_eff, _ = _n_eff(data, [trial], c)
-        out[trial.name] = (1.0 - ratio, n_eff * float(np.log(ratio)))
+        c = fit(data, lo.rest, {**base.model, cand.name: dict(setting)})
+        ratio = _unexplained(data, [lo.trial], c) / lo.base_unexplained
+        n_eff, _ = _n_eff(data, [lo.trial], c)
+        out[lo.trial.name] = (1.0 - ratio, n_eff * float(np.log(ratio)))
     return out
 
 
@@ -133,7 +157,8 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
         remaining = [c for c in library if c.name not in base.model]
         if not remaining:
             break
-        scores = [score_candidate(data, train, holdout, base, base_hold, c)
+        left_out = left_out_bases(data, train, base)
+        scores = [score_candidate(data, train, holdout, base, base_hold, c, left_out)
                   for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
                                 disable=not progress)]
         scores.sort(key=lambda s: -s.reduction)

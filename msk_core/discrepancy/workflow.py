@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
-from msk_core.discrepancy.model import Fit, design, fibre_length, gaps
+from msk_core.discrepancy.model import Fit, crossed_coordinates, design, fibre_length, gaps
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
 from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
 from msk_core.estimate.pack import PackLike
@@ -70,7 +70,6 @@ def calibration_at_bounds(data: SessionArrays, profile: SubjectProfile) -> list[
     strength = (profile.calibration or {}).get("strength") or {}
     if not isinstance(strength, dict):
         return []
-    crosses = np.any(np.vstack([np.abs(t.arms).max(axis=0)[None] for t in data.trials]) > 0, axis=0)  # (n_c, G)
     out = []
     for g, info in strength.items():
         if not isinstance(info, dict) or info.get("status") != "at_bound" or g not in data.groups:
@@ -78,7 +77,7 @@ def calibration_at_bounds(data: SessionArrays, profile: SubjectProfile) -> list[
         j = data.groups.index(g)
         scale = float(info.get("scale", profile.f_max[j] / profile.f_max_ref[j]))
         out.append({"group": g, "scale": round(scale, 4), "side": "upper" if scale >= 1.0 else "lower",
-                    "coordinates": [c for c, x in zip(data.coordinates, crosses[:, j]) if x]})
+                    "coordinates": crossed_coordinates(data, g)})
     return out
 
 
