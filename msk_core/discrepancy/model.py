@@ -270,6 +270,7 @@ class Score:
     reduction: float  # 1 - holdout MSE / holdout MSE of the base model
     delta_bic_train: float
     minus2_ln_lr_holdout: float  # -2 ln (likelihood ratio) on the held-out trials, N_eff ln(MSE_cand / MSE_base)
+    holdout_bic: float  # the same plus dp ln N_eff (its extra parameters): the rank among candidates that pass
     accepted: bool
     reason: str
     extra: dict = field(default_factory=dict)

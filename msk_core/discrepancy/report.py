@@ -103,15 +103,16 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         f"the held-out trials; with several training trials, none left out of the fit may favour the model without "
         f"the candidate by -2 ln LR > {s['criterion']['bic_margin']:g} "
         f"(N_eff = N / tau_int, tau_int the autocorrelation time of the candidate's gaps in frames; "
-        f"{s['autocorrelation_frames']:.1f} for the \"none\" model). Docs: docs/discrepancy.md.", "",
-        "## Candidates (first step, ranked by held-out reduction)", "",
-        "| candidate | held-out MSE reduction | dBIC train | -2 ln LR held-out | parameters | verdict |",
-        "|---|---|---|---|---|---|",
+        f"{s['autocorrelation_frames']:.1f} for the \"none\" model). Of those that pass, the one with the lowest "
+        f"held-out BIC (-2 ln LR + its extra parameters x ln N_eff) is named. Docs: docs/discrepancy.md.", "",
+        "## Candidates (first step, ranked by held-out BIC)", "",
+        "| candidate | held-out MSE reduction | dBIC train | -2 ln LR held-out | held-out BIC | parameters | verdict |",
+        "|---|---|---|---|---|---|---|",
     ]
     for c in s["candidates"]:
         params = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}=…" for k, v in c["parameters"].items())
         lines.append(f"| {c['effect']} | {c['holdout_mse_reduction']:.1%} | {c['delta_bic_train']:.1f} | "
-                     f"{c['minus2_ln_lr_holdout']:.1f} | {params} | {c['reason']} |")
+                     f"{c['minus2_ln_lr_holdout']:.1f} | {c['holdout_bic']:.1f} | {params} | {c['reason']} |")
     lines += ["", "## Gap per coordinate (held-out RMS)", "", "| coordinate | before | after |", "|---|---|---|"]
     lines += [f"| {c} | {v['before']:.4f} | {v['after']:.4f} |" for c, v in s["gap_per_coordinate"].items()]
     rel = result.relations_before["coordinates"]

@@ -22,7 +22,11 @@ candidate that re-mixes the EMG channels (cross-talk unmixing subtracts the neig
 noise): its residuals are rougher whether or not it explains anything (tau_int halved on sessions without cross-talk,
 docs/discrepancy.md), which would inflate N_eff; for it the larger of the two tau_int is used.
 
-Among the candidates that pass, the one with the largest held-out reduction is named; with ``max_effects`` > 1 it
+Among the candidates that pass, the one with the lowest held-out BIC, -2 ln LR + dp ln(N_eff) on the held-out trials,
+is named: two candidates that both explain the gap are often two descriptions of one effect (a muscle's passive force
+and the joint's passive moment), and the held-out fit alone prefers the one with more parameters (a predictive score
+is not consistent: it keeps a larger model that is no truer), while BIC takes the extra parameters' fit as evidence
+only where it pays for them. With ``max_effects`` > 1 it
 joins the model, the others are refitted on top of it, and the search repeats.
 """
 
@@ -94,6 +98,7 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
     ratio_hold = _unexplained(data, holdout, best, hold) / _unexplained(data, holdout, base, base_hold_mse)
     dbic_train = n_eff_train * float(np.log(ratio_train)) + dp * float(np.log(n_eff_train))
     lr_hold = n_eff_hold * float(np.log(ratio_hold))  # -2 ln LR on data the fit never saw
+    bic_hold = lr_hold + dp * float(np.log(n_eff_hold))  # ranks the candidates (select_effects)
     reduction = 1.0 - ratio_hold
     left_out_scores = _left_out_reductions(data, left_out, base, cand, best.model[cand.name])
     reasons = []
@@ -108,7 +113,7 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
     if lr_hold > -BIC_MARGIN:
         reasons.append(f"held-out -2 ln LR {lr_hold:.1f} > -{BIC_MARGIN:g}")
     return Score(name=cand.name, parameters=dict(best.model[cand.name]), fit=best, holdout_mse=hold,
-                 reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold,
+                 reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold, holdout_bic=bic_hold,
                  accepted=not reasons, reason="; ".join(reasons) or "passes",
                  extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold},
                  left_out_reductions=left_out_scores)
@@ -139,7 +144,7 @@ class Selection:
     none_fit: Fit
     final_fit: Fit
     named: list[str]
-    steps: list[list[Score]]  # per greedy step, the candidates ranked by held-out reduction
+    steps: list[list[Score]]  # per greedy step, the candidates ranked by held-out BIC
     gap_before_mse: float
     gap_after_mse: float
     autocorrelation_frames: float
@@ -161,7 +166,7 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
         scores = [score_candidate(data, train, holdout, base, base_hold, c, left_out)
                   for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
                                 disable=not progress)]
-        scores.sort(key=lambda s: -s.reduction)
+        scores.sort(key=lambda s: s.holdout_bic)
         steps.append(scores)
         winner = next((s for s in scores if s.accepted), None)
         if winner is None:

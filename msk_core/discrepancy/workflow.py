@@ -177,7 +177,8 @@ class DiscrepancyResult:
 def _score_dict(s) -> dict:
     return {"effect": s.name, "parameters": s.parameters, "holdout_mse_reduction": round(s.reduction, 5),
             "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6), "delta_bic_train": round(s.delta_bic_train, 2),
-            "minus2_ln_lr_holdout": round(s.minus2_ln_lr_holdout, 2), "n_params": s.fit.n_params,
+            "minus2_ln_lr_holdout": round(s.minus2_ln_lr_holdout, 2), "holdout_bic": round(s.holdout_bic, 2),
+            "n_params": s.fit.n_params,
             "accepted": s.accepted, "reason": s.reason, "tau_frames": {k: round(v, 2) for k, v in s.extra.items()},
             "left_out_training_trials": {k: {"reduction": round(r, 5), "minus2_ln_lr": round(lr, 2)}
                                          for k, (r, lr) in s.left_out_reductions.items()}}
@@ -201,7 +202,8 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         "criterion": {"min_holdout_mse_reduction": MIN_REDUCTION, "bic_margin": BIC_MARGIN,
                       "minus2_ln_lr_holdout": "-2 ln LR on the held-out trials (no parameter penalty), < -bic_margin",
                       "left_out_training_trials": "with several training trials, none left out of the fit may "
-                                                  "favour the base model by -2 ln LR > bic_margin"},
+                                                  "favour the base model by -2 ln LR > bic_margin",
+                      "rank": "of those that pass, the lowest held-out BIC (-2 ln LR + extra parameters x ln N_eff)"},
         "gap_before_rms": float(np.sqrt(sel.gap_before_mse)), "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
         "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
     }

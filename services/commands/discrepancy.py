@@ -58,7 +58,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
               f"after {s['activation_gap_after']:.4f}")
     for c in s["candidates"][:5]:
         print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  dBIC train "
-              f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  {c['reason']}")
+              f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  BIC {c['holdout_bic']:8.1f}  "
+              f"{c['reason']}")
     if s["calibration_at_bounds"]:
         print("calibration strengths at their bounds (look at these coordinates first): "
               + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
