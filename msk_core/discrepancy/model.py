@@ -162,29 +162,29 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
         cols.append(column.ravel()), names.append(name), ridge.append(rel), ridge_abs.append(absolute)
 
     onehot = np.eye(n_c)
-    # strength re-fit per measured group (ridge toward the calibrated strength); with moment_arm_scale one per group
-    # and coordinate for the groups crossing several coordinates
+    # The columns are the same for every trial of the session (a fit on the training trials is applied to the held-out
+    # ones): a column that is zero in one trial (a group that static optimisation leaves off in one phase) stays, and
+    # its absolute ridge holds its coefficient at 0 where the data say nothing.
+    # Strength re-fit per measured group (ridge toward the calibrated strength); with moment_arm_scale one per group
+    # and coordinate crossed, for the groups crossing several coordinates
     multi = set()
     if "moment_arm_scale" in model:
         for k, g in enumerate(data.emg_groups):
-            if _crosses(data, g) > 1:
+            crossed = crossed_coordinates(data, g)
+            if len(crossed) > 1:
                 multi.add(k)
-                for c in range(n_c):
-                    if np.any(np.abs(contrib[:, c, k]) > 0):
-                        add(contrib[:, :, k] * onehot[c], f"arm:{g}:{data.coordinates[c]}", MEASURED_RIDGE,
-                            MEASURED_RIDGE_ABS)
+                for c in crossed:
+                    add(contrib[:, :, k] * onehot[data.coordinates.index(c)], f"arm:{g}:{c}", MEASURED_RIDGE,
+                        MEASURED_RIDGE_ABS)
     for k, g in enumerate(data.emg_groups):
         if k not in multi:
             add(contrib[:, :, k], f"gain:{g}", MEASURED_RIDGE, MEASURED_RIDGE_ABS)
     for j in o_idx:  # the unmeasured groups' prior-mean contribution, re-scaled like the measured groups' strength
-        col = a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None]
-        if np.any(col != 0):
-            add(col, f"prior:{data.groups[j]}", GAIN_RIDGE, GAIN_RIDGE_ABS)
+        add(a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None], f"prior:{data.groups[j]}", GAIN_RIDGE,
+            GAIN_RIDGE_ABS)
         base = a[:, :, j] * (phi[:, j] * trial.min_effort[:, j])[:, None]  # follows the frame's demand (load)
         for k, w in enumerate(phase_basis(trial.phase)):  # ... with a free share per phase of the rep
-            col = base * w[:, None]
-            if np.any(col != 0):
-                add(col, f"demand:{data.groups[j]}:{k}", GAIN_RIDGE, GAIN_RIDGE_ABS)
+            add(base * w[:, None], f"demand:{data.groups[j]}:{k}", GAIN_RIDGE, GAIN_RIDGE_ABS)
     inv_c = 1.0 / trial.scale
     for c in range(n_c):
         add(inv_c * onehot[c], f"offset:{data.coordinates[c]}")
