@@ -225,6 +225,18 @@ def test_input_errors_name_the_file_and_field(tmp_path):
     short = replace(train, time=train.time[:30], q=train.q[:30], torques=train.torques[:30])
     with pytest.raises(InputError, match=r"'kinematics'.*longest delay"):
         check_inputs([short], [held])
+    # a held-out trial whose every frame needs more torque than the muscles have (here: 50x the measured torques):
+    # refused with the trial's file, the field, and the count of frames left out and why
+    from msk_core.discrepancy.data import session_arrays
+
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    reference = SubjectProfile(pack.name, str(pack.version), list(pack.groups), f_ref.copy(), f_ref.copy(), None)
+    assert not session_arrays(pack, reference, [train]).trials[0].left_out.get("non-finite EMG")
+    overloaded = replace(held, torques=50.0 * held.torques)
+    n = held.n_frames
+    with pytest.raises(InputError, match=rf"bench_press_60kg.*'torques'.*only 0 of {n} .* {n} \(torque beyond 95% of the "
+                                         r"muscles' capacity\)"):
+        session_arrays(pack, reference, [train, overloaded])
 
 
 # -- detection on synthetic sessions ------------------------------------------------------------------------------
@@ -360,6 +372,11 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     assert "## Calibration strengths at their bounds" in text
     printed = capsys.readouterr().out
     assert "calibration strengths at their bounds" in printed, printed
+    # the frames no activation explains (the heavier trial's hardest instants) are counted, reported and printed
+    left_out = summary["frames_left_out"]["bench_press_60kg"]["torque beyond 95% of the muscles' capacity"]
+    assert 1 <= left_out < 0.05 * summary["frames"]["holdout"], summary["frames_left_out"]
+    assert f"frames left out of bench_press_60kg: {left_out} (torque beyond" in printed, printed
+    assert "Frames left out of the analysis" in text
     for b in summary["calibration_at_bounds"]:
         assert f"| {b['group']} | {b['scale']:.2f} | {b['side']} |" in text
         assert f"{b['group']} {b['scale']:.2f} ({b['side']}" in printed

@@ -16,6 +16,7 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
 CAPACITY_MARGIN = 0.95  # frames needing more than this share of a coordinate's capacity are left out
+MIN_FRAMES = 20  # a trial with fewer frames left for the analysis is refused (nothing to fit or score)
 MAX_DELAY_S = 0.2  # longest electromechanical delay searched (physiological 30-100 ms; the generator allows 200)
 
 
@@ -36,6 +37,7 @@ class TrialArrays:
     tau_load: np.ndarray  # (T, n_c) the external load's part of the ID torque (ID(L) - ID(0)), N·m
     phase: np.ndarray  # (T,) NaN outside reps
     load_kg: float
+    left_out: dict[str, int]  # frames left out of the analysis, by reason (the first reason that applies)
 
     @property
     def n(self) -> int:
@@ -103,10 +105,17 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     q = trial.q
     ranges = getattr(pack, "coordinate_ranges", None)
     keep = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(trial.torques), axis=1)
+    left_out = {"non-finite kinematics or torques": int((~keep).sum())}
+
+    def drop(reason: str, ok: np.ndarray) -> None:
+        nonlocal keep
+        left_out[reason] = int((keep & ~ok).sum())
+        keep &= ok
+
     if ranges is not None:
         r = np.asarray(ranges, dtype=float).reshape(n_c, 2)
         qc = np.clip(q, r[:, 0], r[:, 1])
-        keep &= np.all(np.abs(np.nan_to_num(qc - q)) <= CLAMP_TOLERANCE, axis=1)  # the estimator's rule
+        drop("outside the pack's coordinate ranges", np.all(np.abs(np.nan_to_num(qc - q)) <= CLAMP_TOLERANCE, axis=1))
         q = qc
     many = getattr(pack, "lengths_and_moment_arms_many", None)
     lengths = None
@@ -122,7 +131,8 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     a = arms * profile.f_max
     reach_hi, reach_lo = np.clip(a, 0, None).sum(axis=2), np.clip(a, None, 0).sum(axis=2)
     tau0 = np.nan_to_num(trial.torques)
-    keep &= np.all((tau0 <= CAPACITY_MARGIN * reach_hi) & (tau0 >= CAPACITY_MARGIN * reach_lo), axis=1)
+    drop(f"torque beyond {CAPACITY_MARGIN:.0%} of the muscles' capacity",
+         np.all((tau0 <= CAPACITY_MARGIN * reach_hi) & (tau0 >= CAPACITY_MARGIN * reach_lo), axis=1))
     prior = profile.prior
     if prior is not None:
         phases = [REST_PHASE if r < 0 else float(p) for p, r in zip(trial.phase, trial.rep_index)]
@@ -130,7 +140,13 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     else:
         mean = np.zeros((trial.n_frames, g))
     emg = np.column_stack([trial.emg[x] for x in emg_groups]) if emg_groups else np.zeros((trial.n_frames, 0))
-    keep &= np.all(np.isfinite(emg), axis=1)
+    drop("non-finite EMG", np.all(np.isfinite(emg), axis=1))
+    if keep.sum() < MIN_FRAMES:
+        raise InputError(f"only {int(keep.sum())} of {trial.n_frames} frames are left for the discrepancy analysis "
+                         f"(at least {MIN_FRAMES} needed); left out: "
+                         + ", ".join(f"{n} ({reason})" for reason, n in left_out.items() if n)
+                         + " - for torques beyond the capacity, check the load and the profile's strengths",
+                         path=trial.path, field="torques" if trial.torque_source == "file" else "kinematics")
     hand = trial.load_kg * 9.81
     if hand > 0:
         tau_load = np.array([np.asarray(pack.inverse_dynamics(a, b, c, hand)) - np.asarray(pack.inverse_dynamics(a, b, c, 0.0))
@@ -145,6 +161,7 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
         name=trial.name, path=str(trial.path), time=trial.time[sel], q=q[sel], qd=trial.qd[sel], tau=trial.torques[sel],
         arms=arms[sel], lengths=None if lengths is None else lengths[sel], scale=scale[sel], emg=emg[sel],
         prior_mean=mean[sel], min_effort=so[sel], tau_load=tau_load[sel], phase=trial.phase[sel], load_kg=trial.load_kg,
+        left_out={k: v for k, v in left_out.items() if v},
     )
 
 

@@ -94,6 +94,11 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         f"({1 - s['gap_after'] / s['gap_before']:.0%} smaller)." if s["gap_before"] > 0 else "",
         "",
     ]
+    left_out = s.get("frames_left_out") or {}
+    if left_out:
+        lines += ["Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "
+                  + "; ".join(f"{t}: " + ", ".join(f"{n} ({why})" for why, n in v.items()) for t, v in left_out.items())
+                  + f" (of {s['frames']['training']} training and {s['frames']['holdout']} held-out frames kept).", ""]
     if "activation_gap_before" in s:
         lines += [f"Held-out RMS activation gap (proposed estimate - EMG, groups with EMG): before "
                   f"{s['activation_gap_before']:.4f}, after {s['activation_gap_after']:.4f}.", ""]

@@ -229,6 +229,7 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         "emg_groups": data.emg_groups,
         "calibration_at_bounds": calibration_at_bounds(data, profile),
         "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
+        "frames_left_out": {t.name: t.left_out for t in tr + ho if t.left_out},
     }
     if profile_out is not None:
         summary["strength_gain"] = profile_out.effects["strength_gain"]

@@ -60,6 +60,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
         print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  dBIC train "
               f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  BIC {c['holdout_bic']:8.1f}  "
               f"{c['reason']}")
+    for trial, why in (s.get("frames_left_out") or {}).items():
+        print(f"frames left out of {trial}: " + ", ".join(f"{n} ({reason})" for reason, n in why.items()))
     if s["calibration_at_bounds"]:
         print("calibration strengths at their bounds (look at these coordinates first): "
               + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
