@@ -222,6 +222,10 @@ def test_input_errors_name_the_file_and_field(tmp_path):
 
     with pytest.raises(InputError, match=r"'emg'"):
         check_inputs([replace(train, emg={})], [replace(held, emg={})])
+    with pytest.raises(InputError, match=r"bench_press_40kg.*'--trial'.*isometric"):
+        check_inputs([replace(train, isometric=True)], [held])
+    with pytest.raises(InputError, match=r"bench_press_60kg.*'--holdout'.*isometric"):
+        check_inputs([train], [replace(held, isometric=True)])
     short = replace(train, time=train.time[:30], q=train.q[:30], torques=train.torques[:30])
     with pytest.raises(InputError, match=r"'kinematics'.*longest delay"):
         check_inputs([short], [held])

@@ -83,6 +83,11 @@ def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: 
         if key in seen:
             raise InputError("a held-out trial must not also be a training trial (the score would not be held out)",
                              path=t.path, field="--holdout", value=str(t.path))
+    for label, trials in (("--trial", train), ("--holdout", holdout)):
+        if all(t.isometric for t in trials):
+            raise InputError("every trial here is isometric (`isometric = true`); the effects are searched in movement, "
+                             "so at least one trial with reps is needed", path=trials[0].path, field=label,
+                             value=", ".join(t.name for t in trials))
     for t in holdout:
         if t.torque_source != "file":
             raise InputError("a held-out trial needs measured torques (`torques = ...`, an inverse-dynamics file): the "
