@@ -7,7 +7,10 @@ and two), and two at once - how often the right effect is named and by how much 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import os
 import shutil
 import tempfile
 import time
@@ -108,6 +111,84 @@ def _timing() -> BenchResult:
     )
 
 
+SHARED = Path(os.environ.get("MSK_SHARED_DIR", Path(__file__).resolve().parents[2].parent / "shared"))
+#: arm26 sessions built outside `msk synth`: the EMG of four measured muscles is the static-optimisation activation
+#: (another recruitment than the generator's) divided by a known strength factor, times (1 + noise), the noise a
+#: 6 Hz-low-passed Gaussian of the stated relative size; no effect is hidden
+ARM26_STRENGTH = {"BIClong": 1.5, "BICshort": 1.3, "TRIlat": 0.8, "TRImed": 0.8}
+ARM26_NOISE = (0.1, 0.2, 0.3)
+
+
+def arm26_null_session(folder: Path, noise: float, seed: int, reps: int = 4):
+    """(pack, train, holdout, profile): the arm26 tutorial motion forward and back, ``reps`` times, with the tutorial's
+    inverse-dynamics torques x5 (training) and x7 (held out), EMG as above, calibrated with ``--emd 0``."""
+    from scipy.signal import butter, sosfiltfilt
+
+    from msk_core.estimate.pipeline import calibrate_subject, estimate_trial
+    from msk_core.estimate.trial import load_trial
+    from msk_core.io import read_sto, write_sto
+    from msk_core.model import load_pack
+
+    data = SHARED / "data" / "opensim-arm26"
+    pack = load_pack("arm26")
+    ik, tau = read_sto(data / "arm26_InverseKinematics.mot"), read_sto(data / "arm26_InverseDynamics.sto")
+    t_one = np.r_[ik.time, 2 * ik.time[-1] - ik.time[::-1][1:]]
+    q_one, tau_one = np.vstack([ik.data, ik.data[::-1][1:]]), np.vstack([tau.data, tau.data[::-1][1:]])
+    span = t_one[-1]
+    t = np.r_[np.concatenate([t_one[:-1] + k * span for k in range(reps)]), reps * span]
+    q = np.vstack([q_one[:-1]] * reps + [q_one[-1:]])
+    torques = np.vstack([tau_one[:-1]] * reps + [tau_one[-1:]])
+    write_sto(folder / "ik.mot", t, ik.columns, q, in_degrees=True)
+    sos = butter(3, 6.0 / (0.5 / float(np.median(np.diff(t)))), output="sos")
+    trials = []
+    for name, factor, stream in (("train", 5.0, seed), ("held", 7.0, 1000 + seed)):
+        write_sto(folder / f"id_{name}.sto", t, tau.columns, factor * torques)
+        toml = folder / f"{name}.toml"
+        toml.write_text(f'kinematics = "ik.mot"\ntorques = "id_{name}.sto"\nphase_signal = "r_elbow_flex"\n'
+                        "body_mass_kg = 70.0\n")
+        so = estimate_trial(pack, load_trial(toml, pack), "so")
+        rng = np.random.default_rng(stream)
+        emg = []
+        for g, k in ARM26_STRENGTH.items():
+            n = sosfiltfilt(sos, rng.normal(size=so.time.size))
+            emg.append(np.clip(so.activations[:, so.groups.index(g)] / k * (1.0 + noise * n / n.std()), 0.0, None))
+        write_sto(folder / f"emg_{name}.sto", so.time, [f"ch_{g}" for g in ARM26_STRENGTH], np.column_stack(emg))
+        toml.write_text(toml.read_text() + f'emg = "emg_{name}.sto"\nemg_is_envelope = true\n[emg_map]\n'
+                        + "".join(f'ch_{g} = "{g}"\n' for g in ARM26_STRENGTH))
+        trials.append(load_trial(toml, pack))
+    profile, _ = calibrate_subject(pack, trials[:1], emd_s=0.0)
+    return pack, trials[:1], trials[1:], profile
+
+
+def _arm26_nulls(quick: bool) -> BenchResult | None:
+    """The answer "none" on sessions of another model, recruitment and noise than `msk synth`'s."""
+    from msk_core.discrepancy import run_discrepancy
+
+    if not (SHARED / "data" / "opensim-arm26").is_dir():
+        print(f"    arm26 sessions skipped: {SHARED / 'data' / 'opensim-arm26'} not found", flush=True)
+        return None
+    details: dict[str, float | str] = {}
+    clean = []
+    for noise in ARM26_NOISE:
+        named = []
+        for seed in range(1, 3 if quick else 11):
+            folder = Path(tempfile.mkdtemp(prefix="bench_disc_arm26_"))
+            try:
+                with contextlib.redirect_stderr(io.StringIO()):  # per-frame estimator flags
+                    pack, train, holdout, profile = arm26_null_session(folder, noise, seed)
+                    s = run_discrepancy(pack, profile, train, holdout, activation=False).summary
+            finally:
+                shutil.rmtree(folder, ignore_errors=True)
+            named.append(s["effect"])
+            clean.append(s["effect"] == "none")
+        found = {e: named.count(e) for e in sorted(set(named))}
+        details[f"EMG noise {noise:.0%}"] = ", ".join(f"{e} {n}/{len(named)}" for e, n in found.items())
+        print(f"    arm26, no effect, EMG noise {noise:.0%}: {details[f'EMG noise {noise:.0%}']}", flush=True)
+    return BenchResult(name="no hidden effect, arm26 with static-optimisation EMG (not msk synth): 'none' named",
+                       value=float(np.mean(clean)), unit="fraction of cases", target="1.0", passed=all(clean),
+                       details=details)
+
+
 def _key(exercise: str, seed: int, three_loads: bool) -> tuple:
     return exercise, seed, three_loads
 
@@ -116,6 +197,9 @@ def run(quick: bool) -> list[BenchResult]:
     results = [_timing()]
     r = results[0]
     print(f"    {r.name}: {r.value:.1f} s wall, {r.details['cpu_s']:.1f} s CPU", flush=True)
+    arm26 = _arm26_nulls(quick)
+    if arm26 is not None:
+        results.append(arm26)
     seeds = (1,) if quick else (1, 2, 3)
     # the same subjects and noise without any hidden effect: their held-out gap is what is left when an effect's own
     # gap is removed completely, so 1 - gap(none) / gap_before(effect) is the shrink attainable in that case
