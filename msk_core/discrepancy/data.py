@@ -71,6 +71,11 @@ class SessionArrays:
         return np.array([j for j, g in enumerate(self.groups) if g not in self.emg_groups], dtype=int)
 
 
+def describe_left_out(left_out: dict[str, int]) -> str:
+    """``"12 (reason), 3 (reason)"``: the frames left out of a trial, by reason (reasons with none left out skipped)."""
+    return ", ".join(f"{n} ({reason})" for reason, n in left_out.items() if n)
+
+
 def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: float = MAX_DELAY_S) -> None:
     """The precise input errors of ``msk discrepancy`` (file and field named)."""
     if not train:
@@ -148,9 +153,8 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     drop("non-finite EMG", np.all(np.isfinite(emg), axis=1))
     if keep.sum() < MIN_FRAMES:
         raise InputError(f"only {int(keep.sum())} of {trial.n_frames} frames are left for the discrepancy analysis "
-                         f"(at least {MIN_FRAMES} needed); left out: "
-                         + ", ".join(f"{n} ({reason})" for reason, n in left_out.items() if n)
-                         + " - for torques beyond the capacity, check the load and the profile's strengths",
+                         f"(at least {MIN_FRAMES} needed); left out: {describe_left_out(left_out)}"
+                         " - for torques beyond the capacity, check the load and the profile's strengths",
                          path=trial.path, field="torques" if trial.torque_source == "file" else "kinematics")
     hand = trial.load_kg * 9.81
     if hand > 0:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msk_core.discrepancy.data import describe_left_out
 from msk_core.discrepancy.workflow import DiscrepancyResult
 
 
@@ -97,7 +98,7 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     left_out = s.get("frames_left_out") or {}
     if left_out:
         lines += ["Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "
-                  + "; ".join(f"{t}: " + ", ".join(f"{n} ({why})" for why, n in v.items()) for t, v in left_out.items())
+                  + "; ".join(f"{t}: {describe_left_out(v)}" for t, v in left_out.items())
                   + f" (of {s['frames']['training']} training and {s['frames']['holdout']} held-out frames kept).", ""]
     if "activation_gap_before" in s:
         lines += [f"Held-out RMS activation gap (proposed estimate - EMG, groups with EMG): before "

@@ -30,6 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_discrepancy_command(args: argparse.Namespace) -> int:
+    from msk_core.discrepancy.data import describe_left_out
     from msk_core.discrepancy.report import write_report
     from msk_core.discrepancy.workflow import run_discrepancy
     from msk_core.estimate.profile import SubjectProfile
@@ -61,7 +62,7 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
               f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  BIC {c['holdout_bic']:8.1f}  "
               f"{c['reason']}")
     for trial, why in (s.get("frames_left_out") or {}).items():
-        print(f"frames left out of {trial}: " + ", ".join(f"{n} ({reason})" for reason, n in why.items()))
+        print(f"frames left out of {trial}: {describe_left_out(why)}")
     if s["calibration_at_bounds"]:
         print("calibration strengths at their bounds (look at these coordinates first): "
               + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
