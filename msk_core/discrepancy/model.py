@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
 from msk_core.estimate.effects import (
@@ -39,6 +40,12 @@ GAIN_RIDGE_ABS = 0.1  # ... plus this much absolute (scaled-torque units): pins 
 MEASURED_RIDGE = 0.01
 MEASURED_RIDGE_ABS = 0.02
 TINY_RIDGE = 1e-9
+# The range the measured groups' strength re-fit 1 + d (and a moment-arm scale) may take: the range the profile's
+# ``strength_gain`` is written in, so that the model scored is the model the profile carries. Unbounded, noisy EMG
+# let the re-fit switch electrodes off (1 + d near 0: the fit moved the torque onto noise-free nuisance columns),
+# which held-out trials at another load then showed as a pose-following gap that any candidate could "explain"
+# (docs/discrepancy.md, "Noisy EMG").
+STRENGTH_GAIN_RANGE = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -205,6 +212,16 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
                   ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c)
 
 
+def _strength_bounds(data: SessionArrays, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds on the coefficients: 1 + d in STRENGTH_GAIN_RANGE for the measured groups' strength (and moment-arm)
+    scales, free for the rest."""
+    lower, upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    for j, name in enumerate(names):
+        if name.startswith(("gain:", "arm:")):
+            lower[j], upper[j] = STRENGTH_GAIN_RANGE[0] - 1.0, STRENGTH_GAIN_RANGE[1] - 1.0
+    return lower, upper
+
+
 @dataclass
 class Fit:
     model: dict[str, dict]
@@ -224,6 +241,10 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     ridge = designs[0].ridge
     g[np.diag_indices_from(g)] += ridge * np.maximum(diag, 1e-12) + designs[0].ridge_abs
     coef = np.linalg.solve(g, x.T @ r)
+    lower, upper = _strength_bounds(data, designs[0].names)
+    if np.any(coef < lower) or np.any(coef > upper):  # the same quadratic, minimised inside the bounds
+        chol = np.linalg.cholesky(g)
+        coef = lsq_linear(chol.T, np.linalg.solve(chol, x.T @ r), bounds=(lower, upper), method="bvls").x
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
     return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),

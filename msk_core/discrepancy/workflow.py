@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
-from msk_core.discrepancy.model import Fit, crossed_coordinates, design, fibre_length, gaps
+from msk_core.discrepancy.model import STRENGTH_GAIN_RANGE, Fit, crossed_coordinates, design, fibre_length, gaps
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
 from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
 from msk_core.estimate.pack import PackLike
@@ -25,8 +25,8 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
     """The profile's ``effects`` section for a fitted model (the per-coordinate offsets are nuisance, left out)."""
     coef = dict(zip(f.names, f.coef.tolist()))
     arm_groups = {k.split(":")[1] for k in coef if k.startswith("arm:")}
-    # the re-fitted strengths, kept within the calibration's usual bounds
-    gain = {g: (1.0 if g in arm_groups else float(np.clip(1.0 + coef.get(f"gain:{g}", 0.0), 0.5, 2.0)))
+    # the re-fitted strengths (the fit keeps them in STRENGTH_GAIN_RANGE; the clip only removes round-off)
+    gain = {g: (1.0 if g in arm_groups else float(np.clip(1.0 + coef.get(f"gain:{g}", 0.0), *STRENGTH_GAIN_RANGE)))
             for g in data.emg_groups}
     effects = []
     for name, setting in f.model.items():
