@@ -212,13 +212,28 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
                   ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c)
 
 
-def _strength_bounds(data: SessionArrays, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds on the coefficients: 1 + d in STRENGTH_GAIN_RANGE for the measured groups' strength (and moment-arm)
-    scales, free for the rest."""
+def typical_force_factor(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> np.ndarray:
+    """(G_E,) each measured group's force factor phi (force-length x force-velocity; 1 without them) averaged over the
+    training frames, weighted by its EMG: what the factor does to the group's force where it works. A muscle-state
+    factor (<= 1 concentric) is a shape *and* a strength change; the strength bound applies to the product."""
+    num = np.zeros(len(data.emg_groups))
+    den = np.zeros(len(data.emg_groups))
+    for t in trials:
+        x = effective_emg(data, t, model)
+        phi = force_factor(data, t, model)[:, data.emg_index]
+        num += (phi * x).sum(axis=0)
+        den += x.sum(axis=0)
+    return np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
+
+
+def _strength_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds on the coefficients: the strength (and moment-arm) scales of the measured groups, times their typical
+    force factor, in STRENGTH_GAIN_RANGE; the other coefficients free."""
     lower, upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
     for j, name in enumerate(names):
         if name.startswith(("gain:", "arm:")):
-            lower[j], upper[j] = STRENGTH_GAIN_RANGE[0] - 1.0, STRENGTH_GAIN_RANGE[1] - 1.0
+            phi = max(float(phi_typical[data.emg_groups.index(name.split(":")[1])]), 1e-3)
+            lower[j], upper[j] = STRENGTH_GAIN_RANGE[0] / phi - 1.0, STRENGTH_GAIN_RANGE[1] / phi - 1.0
     return lower, upper
 
 
@@ -229,6 +244,7 @@ class Fit:
     coef: np.ndarray
     train_mse: float
     n_params: int  # linear coefficients + nonlinear parameters
+    phi_typical: np.ndarray | None = None  # (G_E,) typical_force_factor on the training trials
 
 
 def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> Fit:
@@ -241,14 +257,15 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     ridge = designs[0].ridge
     g[np.diag_indices_from(g)] += ridge * np.maximum(diag, 1e-12) + designs[0].ridge_abs
     coef = np.linalg.solve(g, x.T @ r)
-    lower, upper = _strength_bounds(data, designs[0].names)
+    phi_typical = typical_force_factor(data, trials, model)
+    lower, upper = _strength_bounds(data, designs[0].names, phi_typical)
     if np.any(coef < lower) or np.any(coef > upper):  # the same quadratic, minimised inside the bounds
         chol = np.linalg.cholesky(g)
         coef = lsq_linear(chol.T, np.linalg.solve(chol, x.T @ r), bounds=(lower, upper), method="bvls").x
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
     return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
-               n_params=len(coef) + n_nonlinear)
+               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical)
 
 
 def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:
