@@ -447,3 +447,21 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
                  "--holdout", str(trials[0].path), "--report", str(report)]) == 2
     err = capsys.readouterr().err
     assert "--holdout" in err and "bench_press_40kg" in err, err
+
+
+# -- sessions not made by msk synth: arm26, static-optimisation EMG, effects built on the muscle side ---------------
+
+@pytest.mark.parametrize("effect, noise, seed, expected", [
+    (None, 0.3, 4, "none"),  # unbounded, the re-fit switched the electrodes off and `fl_active` was named (36 %)
+    ("damping", 0.1, 1, "damping"),
+    ("fl_active", 0.1, 2, "fl_active"),  # a parabola, not the candidate's Gaussian
+])
+def test_arm26_sessions_outside_the_generator(shared_dir, tmp_path, effect, noise, seed, expected):
+    from msk_core.discrepancy import run_discrepancy
+    from services.bench.discrepancy import arm26_session
+
+    pack, train, holdout, profile = arm26_session(tmp_path, noise, seed, effect=effect)
+    s = run_discrepancy(pack, profile, train, holdout, activation=False).summary
+    assert s["effect"] == expected, s["candidates"][:3]
+    if expected != "none":
+        assert s["gap_after"] < 0.85 * s["gap_before"], (s["gap_before"], s["gap_after"])
