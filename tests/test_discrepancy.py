@@ -251,6 +251,27 @@ def _shrink(result) -> float:
     return 1.0 - s["gap_after"] / s["gap_before"]
 
 
+@pytest.mark.parametrize("singular", [False, True])
+def test_bounded_quadratic_minimum_meets_the_optimality_conditions(singular):
+    """KKT: gradient Gc - h is 0 on free coefficients, >= 0 at a lower bound, <= 0 at an upper one; a singular G
+    (two identical columns) does not raise."""
+    from msk_core.discrepancy.model import _bounded_quadratic_minimum
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(80, 6))
+    if singular:
+        x[:, 5] = x[:, 4]
+    g, h = x.T @ x, x.T @ (x @ np.array([2.0, -2.0, 0.5, 0.0, 1.0, 0.0]) + 0.1 * rng.normal(size=80))
+    lower = np.array([-1.0, -1.0, -np.inf, -np.inf, -np.inf, -np.inf])
+    upper = np.array([1.0, 1.0, np.inf, np.inf, np.inf, np.inf])
+    c = _bounded_quadratic_minimum(g, h, lower, upper)
+    grad = g @ c - h
+    scale = np.abs(h).max()
+    assert c[0] == pytest.approx(1.0) and c[1] == pytest.approx(-1.0), c  # both bounds bind
+    assert grad[0] <= 1e-8 * scale and grad[1] >= -1e-8 * scale, grad
+    assert np.all(np.abs(grad[2:]) <= 1e-6 * scale), grad
+
+
 def test_strength_refit_stays_in_the_range_the_profile_is_written_in():
     """An electrode reading 4x too high asks the unbounded re-fit for a strength of ~0.25 of the calibrated one; the fit
     keeps it at the range's edge (0.5) and re-optimises the other coefficients around it (better than clipping). On

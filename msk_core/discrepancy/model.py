@@ -246,6 +246,19 @@ def _strength_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndar
     return lower, upper
 
 
+def _bounded_quadratic_minimum(g: np.ndarray, h: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """argmin 1/2 c'Gc - h'c within [lower, upper], as the least-squares problem ||S c - S^-T h|| with G = S'S
+    (Cholesky; a near-singular G through its eigen-decomposition, eigenvalues floored)."""
+    try:
+        chol = np.linalg.cholesky(g)
+        a, b = chol.T, np.linalg.solve(chol, h)
+    except np.linalg.LinAlgError:
+        w, v = np.linalg.eigh(0.5 * (g + g.T))
+        w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+        a, b = np.sqrt(w)[:, None] * v.T, (v.T @ h) / np.sqrt(w)
+    return lsq_linear(a, b, bounds=(lower, upper), method="bvls").x
+
+
 @dataclass
 class Fit:
     model: dict[str, dict]
@@ -271,8 +284,7 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     phi_typical = typical_force_factor(data, trials, model)
     lower, upper = _strength_bounds(data, designs[0].names, phi_typical, remixed="crosstalk" in model)
     if np.any(coef < lower) or np.any(coef > upper):  # the same quadratic, minimised inside the bounds
-        chol = np.linalg.cholesky(g)
-        coef = lsq_linear(chol.T, np.linalg.solve(chol, x.T @ r), bounds=(lower, upper), method="bvls").x
+        coef = _bounded_quadratic_minimum(g, x.T @ r, lower, upper)
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
     return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
