@@ -212,33 +212,20 @@ def test_msk_calibrate_prior_options_for_groups_without_emg(arm26_trials, tmp_pa
     assert "GROUP=MEASURED" in capsys.readouterr().err
 
 
-def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_delay(arm26_trials, tmp_path, capsys):
-    """The discrepancy workflow on the arm26 pack, torques from the inverse-dynamics file: two loads (5x and 7x the
-    tutorial's torques), EMG from the activations of each, leading them by 60 ms. Calibrated without a delay, the
-    workflow names the delay; with EMG that does not lead, "none". (Static optimisation leaves TRIlong off in one phase
-    of the lighter trial only: the training and held-out designs must still share their columns.)"""
-    pack = arm26_trials["pack"]
-    base = arm26_trials["emg"].parent
-    tau = read_sto(tmp_path / "id_rep.sto")
+def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_delay(shared_dir, tmp_path, capsys):
+    """The discrepancy workflow through the CLI on the arm26 pack, torques from the inverse-dynamics file: two loads
+    (5x and 7x the tutorial's torques), EMG from the static-optimisation activations of each, leading them by 60 ms
+    (`msk bench discrepancy`'s arm26 sessions, one rep, no noise). Calibrated without a delay, the workflow names the
+    delay; with EMG that does not lead, "none". (Static optimisation leaves TRIlong off in one phase of the lighter
+    trial only: the training and held-out designs must still share their columns.)"""
+    from services.bench.discrepancy import ARM26_EMD_S, arm26_session
 
-    def trial(name: str, factor: float, delay_s: float) -> Path:
-        write_sto(tmp_path / f"id_{name}.sto", tau.time, tau.columns, factor / 5.0 * tau.data)
-        toml = base / f"{name}.toml"
-        toml.write_text(f'kinematics = "{_rel(tmp_path / "ik_rep.mot", base)}"\n'
-                        f'torques = "{_rel(tmp_path / f"id_{name}.sto", base)}"\n'
-                        'phase_signal = "r_elbow_flex"\nbody_mass_kg = 70.0\n')
-        so = estimate_trial(pack, load_trial(toml, pack), "so")
-        # the envelope at t is the activation at t + delay: the EMG leads the force
-        emg = np.column_stack([np.interp(so.time + delay_s, so.time, so.activations[:, so.groups.index(g)] / k)
-                               for g, k in K_TRUE.items()])
-        write_sto(tmp_path / f"emg_{name}.sto", so.time, [f"ch_{g}" for g in K_TRUE], emg)
-        toml.write_text(toml.read_text() + f'emg = "{_rel(tmp_path / f"emg_{name}.sto", base)}"\n'
-                        'emg_is_envelope = true\n[emg_map]\n' + "".join(f'ch_{g} = "{g}"\n' for g in K_TRUE))
-        return toml
-
-    for delay_s, expected in ((0.06, "emd"), (0.0, "none")):
-        train, held = trial(f"train_{delay_s:g}", 5.0, delay_s), trial(f"held_{delay_s:g}", 7.0, delay_s)
-        subject, report = tmp_path / f"subject_{delay_s:g}.json", tmp_path / f"report_{delay_s:g}"
+    for effect, expected in (("emd", "emd"), (None, "none")):
+        folder = tmp_path / str(effect)
+        folder.mkdir()
+        pack, _, _, _ = arm26_session(folder, 0.0, 1, reps=1, effect=effect, calibrate=False)
+        train, held = folder / "train.toml", folder / "held.toml"
+        subject, report = folder / "subject.json", folder / "report"
         assert main(["calibrate", "--pack", "arm26", "--trial", str(train), "--emd", "0", "--out", str(subject)]) == 0
         assert main(["discrepancy", "--pack", "arm26", "--subject", str(subject), "--trial", str(train),
                      "--holdout", str(held), "--report", str(report)]) == 0
@@ -247,6 +234,6 @@ def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_d
         assert summary["effect"] == expected, summary["candidates"][:3]
         assert list(summary["gap_per_coordinate"]) == list(pack.coordinates)
         if expected == "emd":
-            assert abs(summary["parameters"]["delay_s"] - delay_s) <= 0.02, summary["parameters"]
+            assert abs(summary["parameters"]["delay_s"] - ARM26_EMD_S) <= 0.02, summary["parameters"]
             assert summary["gap_after"] < 0.7 * summary["gap_before"], summary
     capsys.readouterr()

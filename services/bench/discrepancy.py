@@ -134,10 +134,12 @@ ARM26_EFFECTS = {
 ARM26_EMD_S = 0.06
 
 
-def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: str | None = None):
+def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: str | None = None,
+                  calibrate: bool = True):
     """(pack, train, holdout, profile): the arm26 tutorial motion forward and back, ``reps`` times, with the tutorial's
     inverse-dynamics torques x5 (training) and x7 (held out), EMG as above (with ``effect`` hidden as in
-    ARM26_EFFECTS), calibrated with ``--emd 0``."""
+    ARM26_EFFECTS), calibrated with ``--emd 0`` (``calibrate=False``: profile None). The files stay in ``folder``:
+    ``train.toml`` and ``held.toml`` are trial files for the CLI."""
     from scipy.signal import butter, sosfiltfilt
 
     from msk_core.estimate.effects import fibre_length
@@ -204,7 +206,7 @@ def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: 
         toml.write_text(toml.read_text() + f'emg = "emg_{name}.sto"\nemg_is_envelope = true\n[emg_map]\n'
                         + "".join(f'ch_{g} = "{g}"\n' for g in ARM26_STRENGTH))
         trials.append(load_trial(toml, pack))
-    profile, _ = calibrate_subject(pack, trials[:1], emd_s=0.0)
+    profile = calibrate_subject(pack, trials[:1], emd_s=0.0)[0] if calibrate else None
     return pack, trials[:1], trials[1:], profile
 
 
