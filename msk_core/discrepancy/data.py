@@ -61,8 +61,6 @@ class SessionArrays:
     lo: np.ndarray | None
     hi: np.ndarray | None
     trials: list[TrialArrays]
-    strength_scale: np.ndarray | None = None  # (G,) calibrated / reference strength
-    calibration_bounds: tuple[float, float] = (0.5, 2.5)  # the calibration's bounds on strength / reference
 
     @property
     def emg_index(self) -> np.ndarray:
@@ -197,19 +195,4 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
         optimal=getattr(pack, "optimal_fiber_lengths", None), slack=getattr(pack, "tendon_slack_lengths", None),
         lo=None if r is None else r[:, 0], hi=None if r is None else r[:, 1],
         trials=[_arrays(pack, profile, t, emg_groups) for t in trials],
-        strength_scale=np.asarray(profile.f_max, dtype=float) / np.asarray(profile.f_max_ref, dtype=float),
-        calibration_bounds=_calibration_bounds(profile),
     )
-
-
-def _calibration_bounds(profile: SubjectProfile) -> tuple[float, float]:
-    """The calibration's bounds on strength / reference (its recorded settings, else the calibration's default)."""
-    from msk_core.estimate.calibrate import CalibrationSettings
-
-    settings = (profile.calibration or {}).get("settings") or {}
-    bounds = settings.get("strength_bounds") or CalibrationSettings().strength_bounds
-    try:
-        lo, hi = (float(b) for b in bounds)
-    except (TypeError, ValueError):
-        return tuple(CalibrationSettings().strength_bounds)
-    return (lo, hi) if 0 < lo <= 1 <= hi else tuple(CalibrationSettings().strength_bounds)

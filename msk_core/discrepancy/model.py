@@ -226,23 +226,14 @@ def typical_force_factor(data: SessionArrays, trials: list[TrialArrays], model: 
     return np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
 
 
-def _strength_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray,
-                     remixed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _strength_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds on the coefficients: the strength (and moment-arm) scales of the measured groups, times their typical
-    force factor, in STRENGTH_GAIN_RANGE; the other coefficients free. With the EMG re-mixed (cross-talk unmixing) the
-    calibrated strengths, found on the mixed envelopes, no longer anchor the re-fit: the range widens to what the
-    calibration itself allowed (its bounds x the reference), where that is wider."""
+    force factor, in STRENGTH_GAIN_RANGE; the other coefficients free."""
     lower, upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
     for j, name in enumerate(names):
         if name.startswith(("gain:", "arm:")):
-            g = name.split(":")[1]
-            phi = max(float(phi_typical[data.emg_groups.index(g)]), 1e-3)
-            lo_r, hi_r = STRENGTH_GAIN_RANGE
-            if remixed and data.strength_scale is not None:
-                scale = float(data.strength_scale[data.groups.index(g)])
-                alpha, beta = data.calibration_bounds
-                lo_r, hi_r = min(lo_r, alpha / scale), max(hi_r, beta / scale)
-            lower[j], upper[j] = lo_r / phi - 1.0, hi_r / phi - 1.0
+            phi = max(float(phi_typical[data.emg_groups.index(name.split(":")[1])]), 1e-3)
+            lower[j], upper[j] = STRENGTH_GAIN_RANGE[0] / phi - 1.0, STRENGTH_GAIN_RANGE[1] / phi - 1.0
     return lower, upper
 
 
@@ -267,8 +258,6 @@ class Fit:
     train_mse: float
     n_params: int  # linear coefficients + nonlinear parameters
     phi_typical: np.ndarray | None = None  # (G_E,) typical_force_factor on the training trials
-    lower: np.ndarray | None = None  # (p,) the coefficients' bounds (-inf / inf where free)
-    upper: np.ndarray | None = None
 
 
 def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> Fit:
@@ -282,13 +271,13 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     g[np.diag_indices_from(g)] += ridge * np.maximum(diag, 1e-12) + designs[0].ridge_abs
     coef = np.linalg.solve(g, x.T @ r)
     phi_typical = typical_force_factor(data, trials, model)
-    lower, upper = _strength_bounds(data, designs[0].names, phi_typical, remixed="crosstalk" in model)
+    lower, upper = _strength_bounds(data, designs[0].names, phi_typical)
     if np.any(coef < lower) or np.any(coef > upper):  # the same quadratic, minimised inside the bounds
         coef = _bounded_quadratic_minimum(g, x.T @ r, lower, upper)
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
     return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
-               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical, lower=lower, upper=upper)
+               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical)
 
 
 def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:

@@ -25,15 +25,13 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
     """The profile's ``effects`` section for a fitted model (the per-coordinate offsets are nuisance, left out)."""
     coef = dict(zip(f.names, f.coef.tolist()))
     arm_groups = {k.split(":")[1] for k in coef if k.startswith("arm:")}
-    # the re-fitted strengths, inside the bounds the fit used (the clip only removes round-off)
-    bounds = {n: (lo, hi) for n, lo, hi in zip(f.names, f.lower, f.upper)} if f.lower is not None else {}
-    gain = {}
-    for g in data.emg_groups:
-        if g in arm_groups:
-            gain[g] = 1.0
-            continue
-        lo, hi = bounds.get(f"gain:{g}", (STRENGTH_GAIN_RANGE[0] - 1.0, STRENGTH_GAIN_RANGE[1] - 1.0))
-        gain[g] = float(1.0 + np.clip(coef.get(f"gain:{g}", 0.0), lo, hi))
+    # the re-fitted strengths (the fit keeps them, times the typical force factor, in STRENGTH_GAIN_RANGE; the clip
+    # only removes round-off)
+    phi = f.phi_typical if f.phi_typical is not None else np.ones(len(data.emg_groups))
+    gain = {g: (1.0 if g in arm_groups else float(np.clip(1.0 + coef.get(f"gain:{g}", 0.0),
+                                                          STRENGTH_GAIN_RANGE[0] / max(phi[k], 1e-3),
+                                                          STRENGTH_GAIN_RANGE[1] / max(phi[k], 1e-3))))
+            for k, g in enumerate(data.emg_groups)}
     effects = []
     for name, setting in f.model.items():
         if name == "emd":
