@@ -473,9 +473,12 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
 # -- sessions not made by msk synth: arm26, static-optimisation EMG, effects built on the muscle side ---------------
 
 @pytest.mark.parametrize("effect, noise, seed, expected", [
-    (None, 0.3, 4, "none"),  # unbounded, the re-fit switched the electrodes off and `fl_active` was named (36 %)
-    ("damping", 0.1, 1, "damping"),
-    ("fl_active", 0.1, 2, "fl_active"),  # a parabola, not the candidate's Gaussian
+    (None, 0.3, 4, {"none"}),  # unbounded, the re-fit switched the electrodes off and `fl_active` was named (36 %)
+    ("damping", 0.1, 1, {"damping"}),
+    ("fl_active", 0.1, 2, {"fl_active"}),  # a parabola, not the candidate's Gaussian
+    # taken into the calibration (docs/discrepancy.md): not found, but never named as something else (with a wider
+    # strength range for cross-talk, unmixing undid the calibration and `crosstalk` was named, 8 of 10 sessions)
+    ("passive_joint", 0.2, 1, {"none", "passive_joint", "fl_passive"}),
 ])
 def test_arm26_sessions_outside_the_generator(shared_dir, tmp_path, effect, noise, seed, expected):
     from msk_core.discrepancy import run_discrepancy
@@ -483,6 +486,6 @@ def test_arm26_sessions_outside_the_generator(shared_dir, tmp_path, effect, nois
 
     pack, train, holdout, profile = arm26_session(tmp_path, noise, seed, effect=effect)
     s = run_discrepancy(pack, profile, train, holdout, activation=False).summary
-    assert s["effect"] == expected, s["candidates"][:3]
-    if expected != "none":
+    assert s["effect"] in expected, s["candidates"][:3]
+    if s["effect"] != "none":
         assert s["gap_after"] < 0.85 * s["gap_before"], (s["gap_before"], s["gap_after"])
