@@ -489,3 +489,29 @@ def test_arm26_sessions_outside_the_generator(shared_dir, tmp_path, effect, nois
     assert s["effect"] in expected, s["candidates"][:3]
     if s["effect"] != "none":
         assert s["gap_after"] < 0.85 * s["gap_before"], (s["gap_before"], s["gap_after"])
+
+
+def test_passive_and_damping_terms_keep_their_physical_sign(shared_dir, tmp_path, monkeypatch):
+    """arm26 with a parabolic active force-length effect (10 % noise, seed 4): free in sign, the passive-force term
+    fitted a *negative* passive force (the muscles' force falling off at long lengths) and `fl_passive` was named
+    (31 % off the held-out MSE). Kept >= 0 it cannot, and the wrong name goes."""
+    import msk_core.discrepancy.model as model
+    from msk_core.discrepancy import run_discrepancy
+    from msk_core.discrepancy.data import session_arrays
+    from services.bench.discrepancy import arm26_session
+
+    pack, train, holdout, profile = arm26_session(tmp_path, 0.1, 4, effect="fl_active")
+    data = session_arrays(pack, profile, train + holdout)
+    setting = {"fl_passive": {"strain": 0.6}}
+    bounded = model.fit(data, data.trials[:1], setting)
+    assert bounded.coef[bounded.names.index("fl_passive:scale")] >= 0.0
+    for name in ("damping", "passive_joint"):
+        f = model.fit(data, data.trials[:1], {name: {"decay_rad": 0.2} if name == "passive_joint" else {}})
+        assert all(c >= 0.0 for n, c in zip(f.names, f.coef) if n.startswith(model.NON_NEGATIVE)), f.names
+    summary = run_discrepancy(pack, profile, train, holdout, activation=False).summary
+    assert summary["effect"] in ("none", "fl_active"), summary["candidates"][:3]
+
+    monkeypatch.setattr(model, "NON_NEGATIVE", ())  # free in sign: the negative passive force and the wrong name
+    free = model.fit(data, data.trials[:1], setting)
+    assert free.coef[free.names.index("fl_passive:scale")] < 0.0
+    assert run_discrepancy(pack, profile, train, holdout, activation=False).summary["effect"] == "fl_passive"

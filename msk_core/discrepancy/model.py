@@ -226,14 +226,22 @@ def typical_force_factor(data: SessionArrays, trials: list[TrialArrays], model: 
     return np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
 
 
+# passive force is tensile, an elastic joint moment pushes away from its limit, damping dissipates
+NON_NEGATIVE = ("fl_passive:scale", "passive_joint:k_lower:", "passive_joint:k_upper:", "damping:b:")
+
+
 def _strength_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds on the coefficients: the strength (and moment-arm) scales of the measured groups, times their typical
-    force factor, in STRENGTH_GAIN_RANGE; the other coefficients free."""
+    force factor, in STRENGTH_GAIN_RANGE; the passive and damping terms >= 0 (NON_NEGATIVE: free in sign, they fitted
+    unphysical negative moments - a negative passive force for an active force-length effect, a joint moment pulling
+    toward its limit for a passive force - and were named for them); the other coefficients free."""
     lower, upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
     for j, name in enumerate(names):
         if name.startswith(("gain:", "arm:")):
             phi = max(float(phi_typical[data.emg_groups.index(name.split(":")[1])]), 1e-3)
             lower[j], upper[j] = STRENGTH_GAIN_RANGE[0] / phi - 1.0, STRENGTH_GAIN_RANGE[1] / phi - 1.0
+        elif name.startswith(NON_NEGATIVE):
+            lower[j] = 0.0
     return lower, upper
 
 
