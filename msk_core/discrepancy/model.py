@@ -11,7 +11,9 @@ Every sample is one frame t and coordinate n, in capacity-scaled units (torque /
 
 x = EMG envelope (delayed by the profile's calibrated EMD), phi = 1 without a muscle-state effect. The "none" model
 has the strength re-fit and the offsets only; each candidate adds its term (a 1-D/2-D grid for its nonlinear
-parameter, least squares for the linear ones). Fitted on the training trials, scored on the held-out trials.
+parameter, least squares for the linear ones, bounded where physics or the profile bound them: 1 + d_g times the
+group's typical force factor in STRENGTH_GAIN_RANGE, the passive and damping terms >= 0). Fitted on the training
+trials, scored on the held-out trials.
 """
 
 from __future__ import annotations
@@ -230,7 +232,7 @@ def typical_force_factor(data: SessionArrays, trials: list[TrialArrays], model: 
 NON_NEGATIVE = ("fl_passive:scale", "passive_joint:k_lower:", "passive_joint:k_upper:", "damping:b:")
 
 
-def _strength_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _coefficient_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds on the coefficients: the strength (and moment-arm) scales of the measured groups, times their typical
     force factor, in STRENGTH_GAIN_RANGE; the passive and damping terms >= 0 (NON_NEGATIVE: free in sign, they fitted
     unphysical negative moments - a negative passive force for an active force-length effect, a joint moment pulling
@@ -279,7 +281,7 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     g[np.diag_indices_from(g)] += ridge * np.maximum(diag, 1e-12) + designs[0].ridge_abs
     coef = np.linalg.solve(g, x.T @ r)
     phi_typical = typical_force_factor(data, trials, model)
-    lower, upper = _strength_bounds(data, designs[0].names, phi_typical)
+    lower, upper = _coefficient_bounds(data, designs[0].names, phi_typical)
     if np.any(coef < lower) or np.any(coef > upper):  # the same quadratic, minimised inside the bounds
         coef = _bounded_quadratic_minimum(g, x.T @ r, lower, upper)
     res = r - x @ coef
