@@ -130,6 +130,8 @@ class Design:
     ridge_abs: np.ndarray  # (p,) absolute ridge
     n_frames: int
     n_coordinates: int
+    emg_sum: np.ndarray  # (G_E,) sum over the frames of each measured group's effective EMG x
+    phi_emg_sum: np.ndarray  # (G_E,) ... of phi x (typical_force_factor)
 
 
 def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
@@ -211,20 +213,17 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     if "load_scale" in model:
         add(trial.tau_load * inv_c, "load_scale:beta")
     return Design(y=(trial.tau * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols), names=names,
-                  ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c)
+                  ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c,
+                  emg_sum=x.sum(axis=0), phi_emg_sum=(phi[:, e_idx] * x).sum(axis=0))
 
 
-def typical_force_factor(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> np.ndarray:
+def typical_force_factor(designs: list[Design]) -> np.ndarray:
     """(G_E,) each measured group's force factor phi (force-length x force-velocity; 1 without them) averaged over the
-    training frames, weighted by its EMG: what the factor does to the group's force where it works. A muscle-state
-    factor (<= 1 concentric) is a shape *and* a strength change; the strength bound applies to the product."""
-    num = np.zeros(len(data.emg_groups))
-    den = np.zeros(len(data.emg_groups))
-    for t in trials:
-        x = effective_emg(data, t, model)
-        phi = force_factor(data, t, model)[:, data.emg_index]
-        num += (phi * x).sum(axis=0)
-        den += x.sum(axis=0)
+    designs' frames (the training trials), weighted by its EMG: what the factor does to the group's force where it
+    works. A muscle-state factor (<= 1 concentric) is a shape *and* a strength change; the strength bound applies to
+    the product."""
+    num = sum(d.phi_emg_sum for d in designs)
+    den = sum(d.emg_sum for d in designs)
     return np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
 
 
@@ -232,7 +231,7 @@ def typical_force_factor(data: SessionArrays, trials: list[TrialArrays], model: 
 NON_NEGATIVE = ("fl_passive:scale", "passive_joint:k_lower:", "passive_joint:k_upper:", "damping:b:")
 
 
-def _coefficient_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def coefficient_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds on the coefficients: the strength (and moment-arm) scales of the measured groups, times their typical
     force factor, in STRENGTH_GAIN_RANGE; the passive and damping terms >= 0 (NON_NEGATIVE: free in sign, they fitted
     unphysical negative moments - a negative passive force for an active force-length effect, a joint moment pulling
@@ -267,7 +266,9 @@ class Fit:
     coef: np.ndarray
     train_mse: float
     n_params: int  # linear coefficients + nonlinear parameters
-    phi_typical: np.ndarray | None = None  # (G_E,) typical_force_factor on the training trials
+    phi_typical: np.ndarray  # (G_E,) typical_force_factor on the training trials
+    lower: np.ndarray  # (p,) the coefficients' bounds (coefficient_bounds; -inf / inf where free)
+    upper: np.ndarray
 
 
 def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> Fit:
@@ -280,14 +281,14 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     ridge = designs[0].ridge
     g[np.diag_indices_from(g)] += ridge * np.maximum(diag, 1e-12) + designs[0].ridge_abs
     coef = np.linalg.solve(g, x.T @ r)
-    phi_typical = typical_force_factor(data, trials, model)
-    lower, upper = _coefficient_bounds(data, designs[0].names, phi_typical)
+    phi_typical = typical_force_factor(designs)
+    lower, upper = coefficient_bounds(data, designs[0].names, phi_typical)
     if np.any(coef < lower) or np.any(coef > upper):  # the same quadratic, minimised inside the bounds
         coef = _bounded_quadratic_minimum(g, x.T @ r, lower, upper)
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
     return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
-               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical)
+               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical, lower=lower, upper=upper)
 
 
 def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
-from msk_core.discrepancy.model import STRENGTH_GAIN_RANGE, Fit, crossed_coordinates, design, fibre_length, gaps
+from msk_core.discrepancy.model import Fit, crossed_coordinates, design, fibre_length, gaps
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
 from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
 from msk_core.estimate.pack import PackLike
@@ -25,13 +25,10 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
     """The profile's ``effects`` section for a fitted model (the per-coordinate offsets are nuisance, left out)."""
     coef = dict(zip(f.names, f.coef.tolist()))
     arm_groups = {k.split(":")[1] for k in coef if k.startswith("arm:")}
-    # the re-fitted strengths (the fit keeps them, times the typical force factor, in STRENGTH_GAIN_RANGE; the clip
-    # only removes round-off)
-    phi = f.phi_typical if f.phi_typical is not None else np.ones(len(data.emg_groups))
-    gain = {g: (1.0 if g in arm_groups else float(np.clip(1.0 + coef.get(f"gain:{g}", 0.0),
-                                                          STRENGTH_GAIN_RANGE[0] / max(phi[k], 1e-3),
-                                                          STRENGTH_GAIN_RANGE[1] / max(phi[k], 1e-3))))
-            for k, g in enumerate(data.emg_groups)}
+    # the re-fitted strengths, within the bounds the fit kept them in (the clip only removes round-off)
+    bounds = {n: (lo, hi) for n, lo, hi in zip(f.names, f.lower, f.upper)}
+    gain = {g: (1.0 if g in arm_groups else 1.0 + float(np.clip(coef[f"gain:{g}"], *bounds[f"gain:{g}"])))
+            for g in data.emg_groups}
     effects = []
     for name, setting in f.model.items():
         if name == "emd":
