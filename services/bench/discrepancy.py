@@ -123,14 +123,15 @@ ARM26_NOISE = (0.1, 0.2, 0.3)
 #: hidden effects built on the muscle side of the arm26 sessions (not `msk synth`'s formulas): the muscles produce
 #: the torque the effect leaves them, the EMG follows static optimisation of that torque, the reported torque stays
 #: the inverse-dynamics one
-ARM26_EFFECTS = {
-    "emd": "emd",  # the EMG leads the force by 60 ms
-    "damping": "damping",  # joint damping 0.15 x RMS(torque) / RMS(velocity) per coordinate: muscles also overcome it
-    "passive_joint": "passive_joint",  # an elastic moment rising exponentially (0.3 rad) toward each coordinate's
-    # smallest angle in the motion, 30 % of the training torque's RMS there: the muscles produce the rest
-    "fl_active": "fl_active",  # active force-length, a parabola 1 - ((l - 1) / 0.6)^2 (floor 0.1; not the candidate's
-    # Gaussian): the same force takes activation / factor
-}
+#: each is named by the candidate of the same name
+ARM26_EFFECTS = (
+    "emd",  # the EMG leads the force by 60 ms
+    "damping",  # joint damping 0.15 x RMS(torque) / RMS(velocity) per coordinate: muscles also overcome it
+    "passive_joint",  # an elastic moment rising exponentially (0.3 rad) toward each coordinate's smallest angle in the
+    # motion, 30 % of the training torque's RMS there: the muscles produce the rest
+    "fl_active",  # active force-length, a parabola 1 - ((l - 1) / 0.6)^2 (floor 0.1; not the candidate's Gaussian):
+    # the same force takes activation / factor
+)
 ARM26_EMD_S = 0.06
 
 
@@ -210,69 +211,56 @@ def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: 
     return pack, trials[:1], trials[1:], profile
 
 
-def arm26_null_session(folder: Path, noise: float, seed: int, reps: int = 4):
-    """``arm26_session`` without a hidden effect."""
-    return arm26_session(folder, noise, seed, reps)
-
-
-def _arm26_nulls(quick: bool) -> BenchResult | None:
-    """The answer "none" on sessions of another model, recruitment and noise than `msk synth`'s."""
+def _arm26_named(noise: float, seeds: range, effect: str | None, label: str) -> list[str]:
+    """The effect named on each seed's arm26 session (``effect`` hidden, or none); prints the counts under ``label``."""
     from msk_core.discrepancy import run_discrepancy
 
+    named = []
+    for seed in seeds:
+        folder = Path(tempfile.mkdtemp(prefix="bench_disc_arm26_"))
+        try:
+            with contextlib.redirect_stderr(io.StringIO()):  # per-frame estimator flags
+                pack, train, holdout, profile = arm26_session(folder, noise, seed, effect=effect)
+                named.append(run_discrepancy(pack, profile, train, holdout, activation=False).summary["effect"])
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+    print(f"    arm26, {label}: {_counts(named)}", flush=True)
+    return named
+
+
+def _counts(named: list[str]) -> str:
+    """``"none 9/10, fl_active 1/10"``."""
+    return ", ".join(f"{e} {named.count(e)}/{len(named)}" for e in sorted(set(named)))
+
+
+def _arm26(quick: bool) -> list[BenchResult]:
+    """On sessions of another model, recruitment and noise than `msk synth`'s: "none" without a hidden effect, the
+    right name with one of ARM26_EFFECTS (at 10 % and 20 % EMG noise)."""
     if not (SHARED / "data" / "opensim-arm26").is_dir():
         print(f"    arm26 sessions skipped: {SHARED / 'data' / 'opensim-arm26'} not found", flush=True)
-        return None
-    details: dict[str, float | str] = {}
+        return []
+    nulls: dict[str, float | str] = {}
     clean = []
     for noise in ARM26_NOISE:
-        named = []
-        for seed in range(1, 3 if quick else 11):
-            folder = Path(tempfile.mkdtemp(prefix="bench_disc_arm26_"))
-            try:
-                with contextlib.redirect_stderr(io.StringIO()):  # per-frame estimator flags
-                    pack, train, holdout, profile = arm26_null_session(folder, noise, seed)
-                    s = run_discrepancy(pack, profile, train, holdout, activation=False).summary
-            finally:
-                shutil.rmtree(folder, ignore_errors=True)
-            named.append(s["effect"])
-            clean.append(s["effect"] == "none")
-        found = {e: named.count(e) for e in sorted(set(named))}
-        details[f"EMG noise {noise:.0%}"] = ", ".join(f"{e} {n}/{len(named)}" for e, n in found.items())
-        print(f"    arm26, no effect, EMG noise {noise:.0%}: {details[f'EMG noise {noise:.0%}']}", flush=True)
-    return BenchResult(name="no hidden effect, arm26 with static-optimisation EMG (not msk synth): 'none' named",
-                       value=float(np.mean(clean)), unit="fraction of cases", target="1.0", passed=all(clean),
-                       details=details)
-
-
-def _arm26_effects(quick: bool) -> BenchResult | None:
-    """Hidden effects built on the muscle side of arm26 sessions (ARM26_EFFECTS), at 10 % and 20 % EMG noise: how often
-    the right one is named, and what is named instead."""
-    from msk_core.discrepancy import run_discrepancy
-
-    if not (SHARED / "data" / "opensim-arm26").is_dir():
-        return None
-    details: dict[str, float | str] = {}
+        named = _arm26_named(noise, range(1, 3 if quick else 11), None, f"no effect, EMG noise {noise:.0%}")
+        nulls[f"EMG noise {noise:.0%}"] = _counts(named)
+        clean += [e == "none" for e in named]
+    effects: dict[str, float | str] = {}
     hits = []
-    for effect, expected in ARM26_EFFECTS.items():
+    for effect in ARM26_EFFECTS:
         for noise in (0.1, 0.2):
-            named = []
-            for seed in range(1, 2 if quick else 6):
-                folder = Path(tempfile.mkdtemp(prefix="bench_disc_arm26_"))
-                try:
-                    with contextlib.redirect_stderr(io.StringIO()):
-                        pack, train, holdout, profile = arm26_session(folder, noise, seed, effect=effect)
-                        s = run_discrepancy(pack, profile, train, holdout, activation=False).summary
-                finally:
-                    shutil.rmtree(folder, ignore_errors=True)
-                named.append(s["effect"])
-                hits.append(s["effect"] == expected)
-            found = {e: named.count(e) for e in sorted(set(named))}
             label = f"{effect}, EMG noise {noise:.0%}"
-            details[label] = ", ".join(f"{e} {n}/{len(named)}" for e, n in found.items())
-            print(f"    arm26, hidden {label}: {details[label]}", flush=True)
-    return BenchResult(name="hidden effect on arm26 sessions (not msk synth): right effect named",
-                       value=float(np.mean(hits)), unit="fraction of cases", target=">= 0.9",
-                       passed=bool(np.mean(hits) >= 0.9), details=details)
+            named = _arm26_named(noise, range(1, 2 if quick else 6), effect, f"hidden {label}")
+            effects[label] = _counts(named)
+            hits += [e == effect for e in named]
+    return [
+        BenchResult(name="no hidden effect, arm26 with static-optimisation EMG (not msk synth): 'none' named",
+                    value=float(np.mean(clean)), unit="fraction of cases", target="1.0", passed=all(clean),
+                    details=nulls),
+        BenchResult(name="hidden effect on arm26 sessions (not msk synth): right effect named",
+                    value=float(np.mean(hits)), unit="fraction of cases", target=">= 0.9",
+                    passed=bool(np.mean(hits) >= 0.9), details=effects),
+    ]
 
 
 def _key(exercise: str, seed: int, three_loads: bool) -> tuple:
@@ -283,9 +271,7 @@ def run(quick: bool) -> list[BenchResult]:
     results = [_timing()]
     r = results[0]
     print(f"    {r.name}: {r.value:.1f} s wall, {r.details['cpu_s']:.1f} s CPU", flush=True)
-    for arm26 in (_arm26_nulls(quick), _arm26_effects(quick)):
-        if arm26 is not None:
-            results.append(arm26)
+    results += _arm26(quick)
     seeds = (1,) if quick else (1, 2, 3)
     # the same subjects and noise without any hidden effect: their held-out gap is what is left when an effect's own
     # gap is removed completely, so 1 - gap(none) / gap_before(effect) is the shrink attainable in that case
