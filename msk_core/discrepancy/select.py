@@ -83,9 +83,9 @@ def left_out_bases(data: SessionArrays, train: list[TrialArrays], base: Fit) -> 
 def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand: Candidate,
                     left_out: list[LeftOut]) -> Score:
     best = None
-    for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training gap
-        f = fit(data, train, {**base.model, cand.name: dict(setting)})
-        if best is None or f.train_mse < best.train_mse:
+    for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training unexplained fraction
+        f = fit(data, train, {**base.model, cand.name: dict(setting)})  # (the MSE, unless it changes its target)
+        if best is None or _unexplained(data, train, f, f.train_mse) < _unexplained(data, train, best, best.train_mse):
             best = f
     hold = mse(data, holdout, best)
     n_eff_train, tau_train = _n_eff(data, train, best)

@@ -48,7 +48,7 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
         elif name == "damping":
             params = {"b_nms_per_rad": [coef[f"damping:b:{c}"] for c in data.coordinates]}
         elif name == "load_scale":
-            params = {"true_over_reported": 1.0 - coef["load_scale:beta"]}
+            params = {"true_over_reported": setting["true_over_reported"]}
         elif name == "moment_arm_scale":
             scales: dict[str, dict[str, float]] = {}
             for key, value in coef.items():
