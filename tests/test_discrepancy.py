@@ -357,6 +357,14 @@ def test_electromechanical_delay_is_named_and_the_profile_improves_estimation(tm
     # uses) are rougher: with the none model's tau_int the evidence would be discounted for the effect being there
     emd = next(c for c in s["candidates"] if c["effect"] == "emd")
     assert emd["tau_frames"]["tau_train_frames"] < s["autocorrelation_frames"]
+    # how sure: the delay helps every held-out rep, not the pooled gap through one or two
+    reps = emd["holdout_reps"]
+    assert reps["reps"] == 3 and reps["improved"] == 3 and reps["min_reduction"] > 0.1, reps
+    assert [r["rep"] for r in reps["per_rep"]] == [0, 1, 2]
+    from msk_core.discrepancy.select import rep_reductions
+    held_arrays = result.data.trials[1:]
+    none = result.selection.none_fit
+    assert [x for _, _, x in rep_reductions(result.data, held_arrays, none, none)] == [0.0, 0.0, 0.0]
     # the profile with the effect: held-out activation RMSE against the truth no worse (here: better)
     _, pack, trials, profile, _ = synthetic("bench_press", "emd=0.15", 3)
     held = trials[1]
@@ -468,6 +476,9 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     assert summary["effect"] == "emd" and summary["gap_after"] < summary["gap_before"]
     assert [c["effect"] for c in summary["candidates"]][0] == "emd"
     assert {"parameters", "gap_before", "gap_after", "candidates"} <= set(summary)
+    reps = summary["candidates"][0]["holdout_reps"]
+    assert f"How consistent: emd lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps" \
+        in (report / "report.md").read_text()
     for png in ("gap_vs_angle", "gap_vs_velocity", "gap_vs_phase", "xcorr_vs_lag", "gap_rms"):
         assert (report / f"{png}.png").stat().st_size > 1000
     text = (report / "report.md").read_text()

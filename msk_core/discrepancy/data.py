@@ -36,6 +36,7 @@ class TrialArrays:
     min_effort: np.ndarray  # (T, G) static optimisation's activations of the frame's torque (demand-following share)
     tau_load: np.ndarray  # (T, n_c) the external load's part of the ID torque (ID(L) - ID(0)), N·m
     phase: np.ndarray  # (T,) NaN outside reps
+    rep_index: np.ndarray  # (T,) the rep each frame belongs to, -1 outside reps
     load_kg: float
     left_out: dict[str, int]  # frames left out of the analysis, by reason (the first reason that applies)
 
@@ -169,7 +170,8 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     return TrialArrays(
         name=trial.name, path=str(trial.path), time=trial.time[sel], q=q[sel], qd=trial.qd[sel], tau=trial.torques[sel],
         arms=arms[sel], lengths=None if lengths is None else lengths[sel], scale=scale[sel], emg=emg[sel],
-        prior_mean=mean[sel], min_effort=so[sel], tau_load=tau_load[sel], phase=trial.phase[sel], load_kg=trial.load_kg,
+        prior_mean=mean[sel], min_effort=so[sel], tau_load=tau_load[sel], phase=trial.phase[sel],
+        rep_index=np.asarray(trial.rep_index)[sel], load_kg=trial.load_kg,
         left_out={k: v for k, v in left_out.items() if v},
     )
 

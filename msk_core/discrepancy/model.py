@@ -339,6 +339,7 @@ class Score:
     reason: str
     extra: dict = field(default_factory=dict)
     left_out_reductions: dict = field(default_factory=dict)  # training trial -> reduction when left out of the fit
+    rep_reductions: list = field(default_factory=list)  # [(held-out trial, rep, reduction)] (select.rep_reductions)
 
 
 def mse(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:

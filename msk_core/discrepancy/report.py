@@ -95,6 +95,13 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         f"({1 - s['gap_after'] / s['gap_before']:.0%} smaller)." if s["gap_before"] > 0 else "",
         "",
     ]
+    for step in s["greedy_steps"]:  # how sure: does the named effect help rep after rep?
+        win = next((c for c in step if c["accepted"]), None)
+        reps = (win or {}).get("holdout_reps") or {}
+        if reps.get("reps"):
+            lines += [f"How consistent: {win['effect']} lowers the unexplained torque in {reps['improved']} of "
+                      f"{reps['reps']} held-out reps (median {reps['median_reduction']:.0%}, lowest "
+                      f"{reps['min_reduction']:.0%}).", ""]
     left_out = s.get("frames_left_out") or {}
     if left_out:
         lines += ["Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "
@@ -112,12 +119,15 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         f"{s['autocorrelation_frames']:.1f} for the \"none\" model). Of those that pass, the one with the lowest "
         f"held-out BIC (-2 ln LR + its extra parameters x ln N_eff) is named. Docs: docs/discrepancy.md.", "",
         "## Candidates (first step, ranked by held-out BIC)", "",
-        "| candidate | held-out MSE reduction | dBIC train | -2 ln LR held-out | held-out BIC | parameters | verdict |",
-        "|---|---|---|---|---|---|---|",
+        "| candidate | held-out MSE reduction | held-out reps improved | dBIC train | -2 ln LR held-out | held-out BIC "
+        "| parameters | verdict |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for c in s["candidates"]:
         params = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}=…" for k, v in c["parameters"].items())
-        lines.append(f"| {c['effect']} | {c['holdout_mse_reduction']:.1%} | {c['delta_bic_train']:.1f} | "
+        reps = c.get("holdout_reps") or {}
+        lines.append(f"| {c['effect']} | {c['holdout_mse_reduction']:.1%} | "
+                     f"{reps.get('improved', 0)}/{reps.get('reps', 0)} | {c['delta_bic_train']:.1f} | "
                      f"{c['minus2_ln_lr_holdout']:.1f} | {c['holdout_bic']:.1f} | {params} | {c['reason']} |")
     lines += ["", "## Gap per coordinate (held-out RMS)", "", "| coordinate | before | after |", "|---|---|---|"]
     lines += [f"| {c} | {v['before']:.4f} | {v['after']:.4f} |" for c, v in s["gap_per_coordinate"].items()]

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
 from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation, mse,
-                                        target_ms)
+                                        target_ms, target_torque)
 
 MIN_REDUCTION = 0.15
 BIC_MARGIN = 10.0
@@ -112,11 +112,28 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
         reasons.append(f"training dBIC {dbic_train:.1f} > -{BIC_MARGIN:g}")
     if lr_hold > -BIC_MARGIN:
         reasons.append(f"held-out -2 ln LR {lr_hold:.1f} > -{BIC_MARGIN:g}")
+    per_rep = rep_reductions(data, holdout, best, base)
     return Score(name=cand.name, parameters=dict(best.model[cand.name]), fit=best, holdout_mse=hold,
                  reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold, holdout_bic=bic_hold,
                  accepted=not reasons, reason="; ".join(reasons) or "passes",
                  extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold},
-                 left_out_reductions=left_out_scores)
+                 left_out_reductions=left_out_scores, rep_reductions=per_rep)
+
+
+def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit, base: Fit) -> list[tuple[str, int, float]]:
+    """Each held-out rep's reduction of the unexplained fraction by the candidate (how sure: an effect of the body
+    helps rep after rep; one that wins on the pooled gap through a rep or two does not). [(trial, rep, reduction)]."""
+    out = []
+    for t in holdout:
+        g_c, g_b = gaps(data, t, cand), gaps(data, t, base)
+        y_c = target_torque(t, cand.model) / t.scale
+        y_b = target_torque(t, base.model) / t.scale
+        for r in np.unique(t.rep_index[t.rep_index >= 0]):
+            m = t.rep_index == r
+            frac_c = float(np.mean(g_c[m] ** 2)) / max(float(np.mean(y_c[m] ** 2)), 1e-300)
+            frac_b = float(np.mean(g_b[m] ** 2)) / max(float(np.mean(y_b[m] ** 2)), 1e-300)
+            out.append((t.name, int(r), 1.0 - frac_c / max(frac_b, 1e-300)))
+    return out
 
 
 def _left_out_reductions(data: SessionArrays, left_out: list[LeftOut], base: Fit, cand: Candidate,

@@ -182,7 +182,18 @@ def _score_dict(s) -> dict:
             "n_params": s.fit.n_params,
             "accepted": s.accepted, "reason": s.reason, "tau_frames": {k: round(v, 2) for k, v in s.extra.items()},
             "left_out_training_trials": {k: {"reduction": round(r, 5), "minus2_ln_lr": round(lr, 2)}
-                                         for k, (r, lr) in s.left_out_reductions.items()}}
+                                         for k, (r, lr) in s.left_out_reductions.items()},
+            "holdout_reps": _rep_summary(s.rep_reductions)}
+
+
+def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
+    """How consistently a candidate helps: of the held-out reps, how many it improves (unexplained fraction of the
+    rep's frames lower than the base model's), the median and lowest reduction, and each rep's."""
+    red = np.array([r for _, _, r in per_rep])
+    return {"reps": int(red.size), "improved": int(np.sum(red > 0)),
+            "median_reduction": round(float(np.median(red)), 5) if red.size else None,
+            "min_reduction": round(float(red.min()), 5) if red.size else None,
+            "per_rep": [{"trial": t, "rep": r, "reduction": round(x, 5)} for t, r, x in per_rep]}
 
 
 def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialData], holdout: list[TrialData], *,

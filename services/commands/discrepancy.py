@@ -58,7 +58,9 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
         print(f"held-out RMS activation gap: before {s['activation_gap_before']:.4f}, "
               f"after {s['activation_gap_after']:.4f}")
     for c in s["candidates"][:5]:
-        print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  dBIC train "
+        reps = c.get("holdout_reps") or {}
+        print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  "
+              f"reps improved {reps.get('improved', 0)}/{reps.get('reps', 0)}  dBIC train "
               f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  BIC {c['holdout_bic']:8.1f}  "
               f"{c['reason']}")
     for trial, why in (s.get("frames_left_out") or {}).items():
