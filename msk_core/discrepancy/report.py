@@ -99,9 +99,14 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         win = next((c for c in step if c["accepted"]), None)
         reps = (win or {}).get("holdout_reps") or {}
         if reps.get("reps"):
+            between = reps.get("between_reps_reduction")
             lines += [f"How consistent: {win['effect']} lowers the unexplained torque in {reps['improved']} of "
                       f"{reps['reps']} held-out reps (median {reps['median_reduction']:.0%}, lowest "
-                      f"{reps['min_reduction']:.0%}).", ""]
+                      f"{reps['min_reduction']:.0%})"
+                      + ("." if between is None else f"; between reps (set-up, rests): {between:.0%}.")
+                      + (" Most of its evidence is outside the reps: check what the athlete did there."
+                         if between is not None and reps["improved"] * 2 <= reps["reps"] and between > 0 else ""),
+                      ""]
     left_out = s.get("frames_left_out") or {}
     if left_out:
         lines += ["Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "

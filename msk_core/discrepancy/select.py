@@ -122,14 +122,16 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
 
 def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit, base: Fit) -> list[tuple[str, int, float]]:
     """Each held-out rep's reduction of the unexplained fraction by the candidate (how sure: an effect of the body
-    helps rep after rep; one that wins on the pooled gap through a rep or two does not). [(trial, rep, reduction)]."""
+    helps rep after rep; one that wins on the pooled gap through a rep or two does not), and the frames between reps
+    as rep -1 (set-up and rests: a passive moment can show there alone). [(trial, rep, reduction)]."""
     out = []
     for t in holdout:
         g_c, g_b = gaps(data, t, cand), gaps(data, t, base)
         y_c = target_torque(t, cand.model) / t.scale
         y_b = target_torque(t, base.model) / t.scale
-        for r in np.unique(t.rep_index[t.rep_index >= 0]):
-            m = t.rep_index == r
+        reps = np.unique(t.rep_index)
+        for r in ([-1] if reps[0] < 0 else []) + [int(x) for x in reps[reps >= 0]]:
+            m = (t.rep_index < 0) if r < 0 else (t.rep_index == r)
             frac_c = float(np.mean(g_c[m] ** 2)) / max(float(np.mean(y_c[m] ** 2)), 1e-300)
             frac_b = float(np.mean(g_b[m] ** 2)) / max(float(np.mean(y_b[m] ** 2)), 1e-300)
             out.append((t.name, int(r), 1.0 - frac_c / max(frac_b, 1e-300)))

@@ -188,11 +188,14 @@ def _score_dict(s) -> dict:
 
 def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
     """How consistently a candidate helps: of the held-out reps, how many it improves (unexplained fraction of the
-    rep's frames lower than the base model's), the median and lowest reduction, and each rep's."""
-    red = np.array([r for _, _, r in per_rep])
+    rep's frames lower than the base model's), the median and lowest reduction, the frames between reps (pooled over
+    the trials' set-up and rests), and each rep's (rep -1: between reps)."""
+    red = np.array([x for _, r, x in per_rep if r >= 0])
+    between = [x for _, r, x in per_rep if r < 0]
     return {"reps": int(red.size), "improved": int(np.sum(red > 0)),
             "median_reduction": round(float(np.median(red)), 5) if red.size else None,
             "min_reduction": round(float(red.min()), 5) if red.size else None,
+            "between_reps_reduction": round(float(np.median(between)), 5) if between else None,
             "per_rep": [{"trial": t, "rep": r, "reduction": round(x, 5)} for t, r, x in per_rep]}
 
 
