@@ -502,6 +502,7 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     assert len(summary["calibration_at_bounds"]) >= 2, summary["calibration_at_bounds"]
     assert "## Calibration strengths at their bounds" in text
     printed = capsys.readouterr().out
+    assert f"emd lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps" in printed
     assert "calibration strengths at their bounds" in printed, printed
     # the frames no activation explains (the heavier trial's hardest instants) are counted, reported and printed
     left_out = summary["frames_left_out"]["bench_press_60kg"]["torque beyond 95% of the muscles' capacity"]
