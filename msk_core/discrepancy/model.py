@@ -215,7 +215,8 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     if "damping" in model:
         for c in range(n_c):
             add(-trial.qd * inv_c * onehot[c], f"damping:b:{data.coordinates[c]}")
-    return Design(y=(target_torque(trial, model) * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols), names=names,
+    return Design(y=(target_torque(trial, model) * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols),
+                  names=names,
                   ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c,
                   emg_sum=x.sum(axis=0), phi_emg_sum=(phi[:, e_idx] * x).sum(axis=0))
 

@@ -77,6 +77,25 @@ def _rms_plot(path: Path, summary: dict) -> None:
     plt.close(fig)
 
 
+def consistency_sentences(summary: dict) -> list[str]:
+    """How sure, rep by rep: one sentence per named effect (greedy step) on the held-out reps it improves, and a
+    warning when its evidence is mostly between the reps (set-up, rests) rather than in them."""
+    out = []
+    for step in summary["greedy_steps"]:
+        win = next((c for c in step if c["accepted"]), None)
+        reps = (win or {}).get("holdout_reps") or {}
+        if not reps.get("reps"):
+            continue
+        between = reps.get("between_reps_reduction")
+        text = (f"{win['effect']} lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps "
+                f"(median {reps['median_reduction']:.0%}, lowest {reps['min_reduction']:.0%})")
+        text += "." if between is None else f"; between reps (set-up, rests): {between:.0%}."
+        if between is not None and between > 0 and reps["improved"] * 2 <= reps["reps"]:
+            text += " Most of its evidence is outside the reps: check what the athlete did there."
+        out.append(text)
+    return out
+
+
 def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -95,18 +114,7 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         f"({1 - s['gap_after'] / s['gap_before']:.0%} smaller)." if s["gap_before"] > 0 else "",
         "",
     ]
-    for step in s["greedy_steps"]:  # how sure: does the named effect help rep after rep?
-        win = next((c for c in step if c["accepted"]), None)
-        reps = (win or {}).get("holdout_reps") or {}
-        if reps.get("reps"):
-            between = reps.get("between_reps_reduction")
-            lines += [f"How consistent: {win['effect']} lowers the unexplained torque in {reps['improved']} of "
-                      f"{reps['reps']} held-out reps (median {reps['median_reduction']:.0%}, lowest "
-                      f"{reps['min_reduction']:.0%})"
-                      + ("." if between is None else f"; between reps (set-up, rests): {between:.0%}.")
-                      + (" Most of its evidence is outside the reps: check what the athlete did there."
-                         if between is not None and reps["improved"] * 2 <= reps["reps"] and between > 0 else ""),
-                      ""]
+    lines += [x for sentence in consistency_sentences(s) for x in (f"How consistent: {sentence}", "")]
     left_out = s.get("frames_left_out") or {}
     if left_out:
         lines += ["Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "

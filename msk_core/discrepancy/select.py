@@ -120,7 +120,8 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
                  left_out_reductions=left_out_scores, rep_reductions=per_rep)
 
 
-def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit, base: Fit) -> list[tuple[str, int, float]]:
+def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit,
+                   base: Fit) -> list[tuple[str, int, float]]:
     """Each held-out rep's reduction of the unexplained fraction by the candidate (how sure: an effect of the body
     helps rep after rep; one that wins on the pooled gap through a rep or two does not), and the frames between reps
     as rep -1 (set-up and rests: a passive moment can show there alone). [(trial, rep, reduction)]."""

@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_discrepancy_command(args: argparse.Namespace) -> int:
     from msk_core.discrepancy.data import describe_left_out
-    from msk_core.discrepancy.report import write_report
+    from msk_core.discrepancy.report import consistency_sentences, write_report
     from msk_core.discrepancy.workflow import run_discrepancy
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.estimate.trial import load_trial
@@ -57,14 +57,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     if "activation_gap_before" in s:
         print(f"held-out RMS activation gap: before {s['activation_gap_before']:.4f}, "
               f"after {s['activation_gap_after']:.4f}")
-    for step in s["greedy_steps"]:  # how sure, rep by rep (docs/discrepancy.md, Outputs)
-        win = next((c for c in step if c["accepted"]), None)
-        reps = (win or {}).get("holdout_reps") or {}
-        if reps.get("reps"):
-            between = reps.get("between_reps_reduction")
-            print(f"{win['effect']} lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps "
-                  f"(median {reps['median_reduction']:.0%})"
-                  + ("" if between is None else f"; between reps: {between:.0%}"))
+    for sentence in consistency_sentences(s):  # how sure, rep by rep (docs/discrepancy.md, Outputs)
+        print(sentence)
     for c in s["candidates"][:5]:
         reps = c.get("holdout_reps") or {}
         print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  "
