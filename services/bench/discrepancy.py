@@ -43,14 +43,23 @@ DEFAULT_CASES = {
     "load_misreport": ("load_misreport", "load_scale"),
     "crosstalk": ("crosstalk", "crosstalk"),
 }
+#: the sized effects near the top of the generator's ranges, where their gap stands above the floor
+LARGE_CASES = {
+    "emd": ("emd=0.2", "emd"),
+    "damping": ("damping=15", "damping"),
+    "load_misreport": ("load_misreport=1.8", "load_scale"),
+    "crosstalk": ("crosstalk=0.5", "crosstalk"),
+}
 NONE_SEEDS = (1, 2, 3, 4, 5, 6, 7, 8)
 LOADS = {"bench_press": (40.0, 60.0), "deadlift": (45.0, 75.0)}
 LOADS_3 = {"bench_press": (40.0, 60.0, 50.0), "deadlift": (45.0, 75.0, 65.0)}  # load scale: train on two loads
 
 
-def session(exercise: str, effects: str, seed: int, *, reps: int = 3, three_loads: bool = False):
+def session(exercise: str, effects: str, seed: int, *, reps: int = 3, three_loads: bool = False,
+            heavier_trains: bool = False):
     """Generate, write and load a synthetic session and calibrate the subject on its training trials as a user would
-    (``msk calibrate --emd 0``: the paper's model, no delay); returns (folder, pack, train, holdout, profile)."""
+    (``msk calibrate --emd 0``: the paper's model, no delay); returns (folder, pack, train, holdout, profile).
+    ``heavier_trains``: the heavier load trains and the lighter is held out (one training load only)."""
     from msk_core.estimate.pipeline import calibrate_subject
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
@@ -60,6 +69,10 @@ def session(exercise: str, effects: str, seed: int, *, reps: int = 3, three_load
 
     ex = Exercise(exercise)
     loads = (LOADS_3 if three_loads else LOADS)[exercise]
+    if heavier_trains:
+        if three_loads:
+            raise ValueError("heavier_trains applies to one training load")
+        loads = loads[::-1]
     folder = Path(tempfile.mkdtemp(prefix=f"bench_disc_{exercise}_"))
     cfg = SynthConfig(subject_seed=seed, n_reps=reps, effects=parse_effects(effects), loads_kg={ex: loads})
     write_session(generate_session([ex], cfg), folder)
@@ -70,10 +83,12 @@ def session(exercise: str, effects: str, seed: int, *, reps: int = 3, three_load
     return folder, pack, train, holdout, profile
 
 
-def detection_case(exercise: str, effects: str, seed: int, *, max_effects: int = 1, three_loads: bool = False) -> dict:
+def detection_case(exercise: str, effects: str, seed: int, *, max_effects: int = 1, three_loads: bool = False,
+                   heavier_trains: bool = False) -> dict:
     from msk_core.discrepancy import run_discrepancy
 
-    folder, pack, train, holdout, profile = session(exercise, effects, seed, three_loads=three_loads)
+    folder, pack, train, holdout, profile = session(exercise, effects, seed, three_loads=three_loads,
+                                                    heavier_trains=heavier_trains)
     try:
         result = run_discrepancy(pack, profile, train, holdout, max_effects=max_effects, activation=False)
     finally:
@@ -263,8 +278,8 @@ def _arm26(quick: bool) -> list[BenchResult]:
     ]
 
 
-def _key(exercise: str, seed: int, three_loads: bool) -> tuple:
-    return exercise, seed, three_loads
+def _key(exercise: str, seed: int, three_loads: bool, heavier_trains: bool = False) -> tuple:
+    return exercise, seed, three_loads, heavier_trains
 
 
 def run(quick: bool) -> list[BenchResult]:
@@ -285,22 +300,35 @@ def run(quick: bool) -> list[BenchResult]:
                 none_cases.append(c)
                 none_gap[_key(exercise, seed, three)] = c["gap_before"]
 
-    def attainable(exercise: str, seed: int, three_loads: bool, before: float) -> float:
-        key = _key(exercise, seed, three_loads)
+    def attainable(exercise: str, seed: int, three_loads: bool, before: float, heavier_trains: bool = False) -> float:
+        key = _key(exercise, seed, three_loads, heavier_trains)
         if key not in none_gap:
-            none_gap[key] = detection_case(exercise, "none", seed, three_loads=three_loads)["gap_before"]
+            none_gap[key] = detection_case(exercise, "none", seed, three_loads=three_loads,
+                                           heavier_trains=heavier_trains)["gap_before"]
         return 1.0 - none_gap[key] / before
 
-    matrix = [(key, setting, expected, "") for key, (setting, expected) in CASES.items()]
-    matrix += [(key, setting, expected, " (generator default size)") for key, (setting, expected) in DEFAULT_CASES.items()]
-    for key, setting, expected, label in matrix:
+    # the direction reversed (the heavier load trains, the lighter is held out): effect-free sessions first
+    for exercise in ("bench_press", "deadlift"):
+        for seed in ((1,) if quick else NONE_SEEDS):
+            c = detection_case(exercise, "none", seed, heavier_trains=True)
+            c["case"] = f"{exercise}/{seed} (heavier load trains)"
+            none_cases.append(c)
+            none_gap[_key(exercise, seed, False, True)] = c["gap_before"]
+
+    matrix = [(key, setting, expected, "", False) for key, (setting, expected) in CASES.items()]
+    matrix += [(key, setting, expected, " (generator default size)", False)
+               for key, (setting, expected) in DEFAULT_CASES.items()]
+    matrix += [(key, setting, expected, " (large size)", False) for key, (setting, expected) in LARGE_CASES.items()]
+    matrix += [(key, setting, expected, " (heavier load trains)", True) for key, (setting, expected) in CASES.items()
+               if key != "load_misreport"]  # a load scale needs two training loads
+    for key, setting, expected, label, heavier in matrix:
         cases = []
         for exercise in ("bench_press", "deadlift"):
             for seed in seeds:
                 three = key == "load_misreport"
-                c = detection_case(exercise, setting, seed, three_loads=three)
+                c = detection_case(exercise, setting, seed, three_loads=three, heavier_trains=heavier)
                 c["case"] = f"{exercise}/{seed}"
-                c["attainable"] = attainable(exercise, seed, three, c["gap_before"])
+                c["attainable"] = attainable(exercise, seed, three, c["gap_before"], heavier)
                 cases.append(c)
         hits = [expected in c["named"][:1] for c in cases]
         shrink = float(np.median([c["shrink"] for c in cases]))
