@@ -14,6 +14,7 @@ repetition" convention). ``None``/NaN means the phase is unknown and selects the
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -185,11 +186,10 @@ def prior_from_reps(
                 if np.any(sel):
                     per_rep[k, b] = x[sel].mean()
                     within[k, b] = x[sel].std()
-        mean[:, g] = _fill_nan(np.nanmean(per_rep, axis=0))
-        if len(reps) > 1:
-            spread = np.nanstd(per_rep, axis=0, ddof=1)
-        else:
-            spread = within[0]
+        with warnings.catch_warnings():  # a bin no rep reached (short reps) is NaN here and filled from its neighbours
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean[:, g] = _fill_nan(np.nanmean(per_rep, axis=0))
+            spread = np.nanstd(per_rep, axis=0, ddof=1) if len(reps) > 1 else within[0]
         std[:, g] = np.maximum(_fill_nan(spread), MIN_STD)
         rest = x[~in_rep & np.isfinite(x)]
         if rest.size >= MIN_REST_SAMPLES:
