@@ -344,7 +344,12 @@ class Score:
 
 
 def mse(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:
-    return float(np.mean(np.concatenate([gaps(data, t, f).ravel() for t in trials]) ** 2))
+    return mean_square([gaps(data, t, f) for t in trials])
+
+
+def mean_square(res: list[np.ndarray]) -> float:
+    """The mean square of gaps already computed, pooled over trials and coordinates."""
+    return float(np.mean(np.concatenate([r.ravel() for r in res]) ** 2))
 
 
 def target_torque(trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:

@@ -38,15 +38,19 @@ import numpy as np
 from tqdm import tqdm
 
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
-from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation, mse,
-                                        target_ms, target_torque)
+from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation,
+                                        mean_square, mse, target_ms, target_torque)
 
 MIN_REDUCTION = 0.15
 BIC_MARGIN = 10.0
 
 
 def _n_eff(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> tuple[float, float]:
-    res = [gaps(data, t, f) for t in trials]
+    return _n_eff_of([gaps(data, t, f) for t in trials])
+
+
+def _n_eff_of(res: list[np.ndarray]) -> tuple[float, float]:
+    """(N_eff, tau_int) of residuals already computed ((T, n_c) per trial)."""
     n = sum(r.size for r in res)
     tau = integrated_autocorrelation([r[:, c] for r in res for c in range(r.shape[1])])
     return n / tau, tau
@@ -80,21 +84,25 @@ def left_out_bases(data: SessionArrays, train: list[TrialArrays], base: Fit) -> 
     return out
 
 
-def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand: Candidate,
+def score_candidate(data, train, holdout, base: Fit, base_hold_gaps: list[np.ndarray], cand: Candidate,
                     left_out: list[LeftOut]) -> Score:
-    best = None
+    """``base_hold_gaps``: the base model's gaps on the held-out trials (the same for every candidate of a step)."""
+    best, best_fraction = None, np.inf
     for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training unexplained fraction
         f = fit(data, train, {**base.model, cand.name: dict(setting)})  # (the MSE, unless it changes its target)
-        if best is None or _unexplained(data, train, f, f.train_mse) < _unexplained(data, train, best, best.train_mse):
-            best = f
-    hold = mse(data, holdout, best)
+        fraction = _unexplained(data, train, f, f.train_mse)
+        if best is None or fraction < best_fraction:
+            best, best_fraction = f, fraction
+    hold_gaps = [gaps(data, t, best) for t in holdout]  # once: the held-out MSE, N_eff and the per-rep reductions
+    hold = mean_square(hold_gaps)
+    base_hold_mse = mean_square(base_hold_gaps)
     n_eff_train, tau_train = _n_eff(data, train, best)
-    n_eff_hold, tau_hold = _n_eff(data, holdout, best)
+    n_eff_hold, tau_hold = _n_eff_of(hold_gaps)
     if cand.remixes_emg:
         n_eff_train, tau_train = min((n_eff_train, tau_train), _n_eff(data, train, base))
-        n_eff_hold, tau_hold = min((n_eff_hold, tau_hold), _n_eff(data, holdout, base))
+        n_eff_hold, tau_hold = min((n_eff_hold, tau_hold), _n_eff_of(base_hold_gaps))
     dp = best.n_params - base.n_params
-    ratio_train = _unexplained(data, train, best, best.train_mse) / _unexplained(data, train, base, base.train_mse)
+    ratio_train = best_fraction / _unexplained(data, train, base, base.train_mse)
     ratio_hold = _unexplained(data, holdout, best, hold) / _unexplained(data, holdout, base, base_hold_mse)
     dbic_train = n_eff_train * float(np.log(ratio_train)) + dp * float(np.log(n_eff_train))
     lr_hold = n_eff_hold * float(np.log(ratio_hold))  # -2 ln LR on data the fit never saw
@@ -112,7 +120,7 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
         reasons.append(f"training dBIC {dbic_train:.1f} > -{BIC_MARGIN:g}")
     if lr_hold > -BIC_MARGIN:
         reasons.append(f"held-out -2 ln LR {lr_hold:.1f} > -{BIC_MARGIN:g}")
-    per_rep = rep_reductions(data, holdout, best, base)
+    per_rep = rep_reductions(data, holdout, best, base, hold_gaps, base_hold_gaps)
     return Score(name=cand.name, parameters=dict(best.model[cand.name]), fit=best, holdout_mse=hold,
                  reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold, holdout_bic=bic_hold,
                  accepted=not reasons, reason="; ".join(reasons) or "passes",
@@ -120,14 +128,17 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_mse: float, cand:
                  left_out_reductions=left_out_scores, rep_reductions=per_rep)
 
 
-def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit,
-                   base: Fit) -> list[tuple[str, int, float]]:
+def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit, base: Fit,
+                   cand_gaps: list[np.ndarray] | None = None,
+                   base_gaps: list[np.ndarray] | None = None) -> list[tuple[str, int, float]]:
     """Each held-out rep's reduction of the unexplained fraction by the candidate (how sure: an effect of the body
     helps rep after rep; one that wins on the pooled gap through a rep or two does not), and the frames between reps
-    as rep -1 (set-up and rests: a passive moment can show there alone). [(trial, rep, reduction)]."""
+    as rep -1 (set-up and rests: a passive moment can show there alone). [(trial, rep, reduction)]. The models' gaps
+    on ``holdout`` are computed unless given."""
+    cand_gaps = cand_gaps if cand_gaps is not None else [gaps(data, t, cand) for t in holdout]
+    base_gaps = base_gaps if base_gaps is not None else [gaps(data, t, base) for t in holdout]
     out = []
-    for t in holdout:
-        g_c, g_b = gaps(data, t, cand), gaps(data, t, base)
+    for t, g_c, g_b in zip(holdout, cand_gaps, base_gaps):
         y_c = target_torque(t, cand.model) / t.scale
         y_b = target_torque(t, base.model) / t.scale
         reps = np.unique(t.rep_index)
@@ -183,7 +194,8 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
         if not remaining:
             break
         left_out = left_out_bases(data, train, base)
-        scores = [score_candidate(data, train, holdout, base, base_hold, c, left_out)
+        base_hold_gaps = [gaps(data, t, base) for t in holdout]
+        scores = [score_candidate(data, train, holdout, base, base_hold_gaps, c, left_out)
                   for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
                                 disable=not progress)]
         scores.sort(key=lambda s: s.holdout_bic)
