@@ -272,7 +272,7 @@ def test_bounded_quadratic_minimum_meets_the_optimality_conditions(singular):
     assert np.all(np.abs(grad[2:]) <= 1e-6 * scale), grad
 
 
-def test_strength_refit_stays_in_the_range_the_profile_is_written_in():
+def test_strength_refit_stays_in_the_range_the_profile_is_written_in(monkeypatch):
     """An electrode reading 4x too high asks the unbounded re-fit for a strength of ~0.25 of the calibrated one; the fit
     keeps it at the range's edge (0.5) and re-optimises the other coefficients around it (better than clipping). On
     arm26 with 30 % EMG noise the unbounded re-fit all but switched the electrodes off, and a force-length factor then
@@ -296,12 +296,9 @@ def test_strength_refit_stays_in_the_range_the_profile_is_written_in():
     # solution fits the training trial worse than the bounded minimiser
     import msk_core.discrepancy.model as model
 
-    saved = model.STRENGTH_GAIN_RANGE
-    model.STRENGTH_GAIN_RANGE = (-np.inf, np.inf)
-    try:
+    with monkeypatch.context() as patch:
+        patch.setattr(model, "STRENGTH_GAIN_RANGE", (-np.inf, np.inf))
         free = fit(data, train, {})
-    finally:
-        model.STRENGTH_GAIN_RANGE = saved
     k0 = free.names.index(f"gain:{data.emg_groups[0]}")
     assert 1.0 + free.coef[k0] < 0.4, free.coef[k0]
     clipped = free.coef.copy()
