@@ -66,6 +66,56 @@ def test_calibration_recovers_true_strength_from_clean_emg():
     np.testing.assert_allclose(res.f_max, res.scale * f_ref)
 
 
+def _with_passive_moment(seed: int, t: int = 80):
+    """Synthetic frames whose torques also carry a passive moment (an exponential of a pose signal, 2 coefficients:
+    one per coordinate) that no activation produces."""
+    f_ref, k_true, a_true, frames = _synthetic(seed=seed, t=t, noise=0.01)
+    pose = np.linspace(0.0, 1.0, t)
+    basis = np.zeros((t, 2, 2))
+    basis[:, 0, 0] = np.exp(-pose / 0.3)  # rises toward one end of the motion
+    basis[:, 1, 1] = -np.exp(-(1.0 - pose) / 0.3)  # ... and the other, opposite sign
+    beta_true = np.array([0.6, 0.4]) * np.abs(frames.torques).max(axis=0)
+    torques = frames.torques + np.einsum("tnp,p->tn", basis, beta_true)
+    plain = CalibrationFrames(frames.moment_arms, torques, frames.prior_mean, frames.prior_std, frames.emg)
+    with_basis = CalibrationFrames(frames.moment_arms, torques, frames.prior_mean, frames.prior_std, frames.emg,
+                                   torque_basis=basis, torque_basis_lower=np.zeros(2),
+                                   torque_basis_names=("passive:0", "passive:1"))
+    return f_ref, k_true, beta_true, plain, with_basis
+
+
+def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
+    """A moment the activations do not produce goes into the strengths of a plain calibration; with its basis the
+    calibration fits its coefficients instead, and both solvers agree on that optimum."""
+    f_ref, k_true, beta_true, plain, with_basis = _with_passive_moment(seed=6)
+    s = CalibrationSettings(strength_prior_std=None, identify_max_std=None)
+    absorbed = calibrate(f_ref, plain, s)
+    fitted = calibrate(f_ref, with_basis, s)
+    alt = calibrate_alternating(f_ref, with_basis, s)
+    err = lambda k: float(np.median(np.abs(k[:4] - k_true[:4]) / k_true[:4]))  # noqa: E731
+    assert err(fitted.scale) <= 0.05 < err(absorbed.scale), (fitted.scale, absorbed.scale, k_true)
+    np.testing.assert_allclose(fitted.torque_coefficients, beta_true, rtol=0.15)
+    assert absorbed.torque_coefficients is None and "torque_coefficients" not in absorbed.report()
+    assert fitted.report()["torque_coefficients"] == pytest.approx(list(fitted.torque_coefficients))
+    assert fitted.projected_gradient < 1e-4 and alt.projected_gradient < 1e-4
+    np.testing.assert_allclose(fitted.objective, alt.objective, rtol=1e-5)
+    np.testing.assert_allclose(fitted.torque_coefficients, alt.torque_coefficients, rtol=1e-3)
+    np.testing.assert_allclose(fitted.scale, alt.scale, atol=2e-3)
+
+
+def test_a_torque_basis_respects_its_lower_bound_and_is_checked():
+    f_ref, _, beta_true, plain, with_basis = _with_passive_moment(seed=7)
+    flipped = CalibrationFrames(plain.moment_arms, plain.torques, plain.prior_mean, plain.prior_std, plain.emg,
+                                torque_basis=-with_basis.torque_basis, torque_basis_lower=np.zeros(2))
+    res = calibrate(f_ref, flipped, CalibrationSettings(identify_max_std=None))
+    assert np.all(res.torque_coefficients >= 0.0) and np.any(res.torque_coefficients <= 1e-9)
+    with pytest.raises(EstimationError, match=r"torque_basis must be \(80, 2, p\)"):
+        CalibrationFrames(plain.moment_arms, plain.torques, plain.prior_mean, plain.prior_std, plain.emg,
+                          torque_basis=np.zeros((79, 2, 1)))
+    with pytest.raises(EstimationError, match="torque_basis_lower must be"):
+        CalibrationFrames(plain.moment_arms, plain.torques, plain.prior_mean, plain.prior_std, plain.emg,
+                          torque_basis=np.zeros((80, 2, 2)), torque_basis_lower=np.zeros(3))
+
+
 def test_strength_bounds_are_respected_and_validated():
     f_ref, _, _, frames = _synthetic(seed=3)
     frames.torques *= 10.0  # far stronger than any activation pattern can make with k <= 1.2

@@ -9,6 +9,11 @@ half a squared, normalised error so that J reads as a negative log-likelihood:
       + 1/2 w_emg   sum_t,g in EMG ((a_tg - e_g(t)) / sigma_e)^2                            the trial's own EMG
       + 1/2 sum_g free ((k_g - 1) / strength_prior_std)^2                                 N(1, 0.3^2) strength prior
 
+Optionally (``CalibrationFrames.torque_basis`` Z, (T, n_c, p)) the torque term carries + sum_j Z_tnj beta_j: torque
+the muscles' activations do not produce (a passive moment, joint damping; :mod:`msk_core.discrepancy`), its
+coefficients beta_j >= ``torque_basis_lower`` fitted jointly with k and a. Without it a calibration takes such a
+moment into the strengths (a passive extension moment raises the extensors' k and lowers the flexors').
+
 with sigma_e = sqrt(emg_std^2 + (emg_relative_std e_g(t))^2) (amplitude-estimate noise grows with the amplitude); under
 ``IdentifyMode.SHRINK`` the strength prior is weighed by the residuals' autocorrelation time tau (the data terms
 then count T/tau independent frames).
@@ -78,9 +83,25 @@ class CalibrationFrames:
     prior_mean: np.ndarray  # (T, G)
     prior_std: np.ndarray  # (T, G)
     emg: np.ndarray  # (T, G)
+    # torque not produced by the activations, known up to linear coefficients fitted with k and a (None: none)
+    torque_basis: np.ndarray | None = None  # (T, n_c, p) N·m per unit coefficient
+    torque_basis_lower: np.ndarray | None = None  # (p,) lower bounds of the coefficients (None: free)
+    torque_basis_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         t, n_c, g = self.moment_arms.shape
+        if self.torque_basis is not None:
+            z = self.torque_basis
+            if z.ndim != 3 or z.shape[:2] != (t, n_c):
+                raise EstimationError(f"calibration torque_basis must be ({t}, {n_c}, p), got {z.shape}")
+            if not np.all(np.isfinite(z)):
+                raise EstimationError("calibration torque_basis has non-finite values")
+            if self.torque_basis_lower is not None and np.shape(self.torque_basis_lower) != (z.shape[2],):
+                raise EstimationError(f"calibration torque_basis_lower must be ({z.shape[2]},), got "
+                                      f"{np.shape(self.torque_basis_lower)}")
+            if self.torque_basis_names and len(self.torque_basis_names) != z.shape[2]:
+                raise EstimationError(f"calibration torque_basis_names: {len(self.torque_basis_names)} names for "
+                                      f"{z.shape[2]} columns")
         for name, arr, shape in (
             ("torques", self.torques, (t, n_c)),
             ("prior_mean", self.prior_mean, (t, g)),
@@ -146,6 +167,7 @@ class CalibrationResult:
     strength_std_data: np.ndarray | None = None
     status: list[str] | None = None
     identified_share: np.ndarray | None = None  # diag of the projector on the identified directions
+    torque_coefficients: np.ndarray | None = None  # (p,) the torque basis' fitted coefficients (None: no basis)
 
     @property
     def identified(self) -> np.ndarray:
@@ -175,7 +197,7 @@ class CalibrationResult:
         return {**self._convergence(), **extra}
 
     def _convergence(self) -> dict:
-        return {
+        out = {
             "method": self.method,
             "converged": bool(self.converged),
             "iterations": int(self.iterations),
@@ -185,6 +207,9 @@ class CalibrationResult:
             "message": self.message,
             "settings": asdict(self.settings),
         }
+        if self.torque_coefficients is not None:
+            out["torque_coefficients"] = [float(x) for x in self.torque_coefficients]
+        return out
 
 
 def integrated_autocorrelation(x: np.ndarray, *, cutoff: float = 0.05) -> float:
@@ -226,9 +251,25 @@ class _Problem:
         self.w_k = 0.0 if s.strength_prior_std is None else 1.0 / s.strength_prior_std**2
         self.w_k_obj = self.w_k  # the strength prior's weight in the objective (x tau_int in IdentifyMode.SHRINK)
         self.a_min = s.a_min
+        # the torque basis' coefficients beta, the last p variables: z = (k, a, beta)
+        self.basis = (np.zeros((self.t, self.m.shape[1], 0)) if frames.torque_basis is None
+                      else np.asarray(frames.torque_basis, dtype=float))
+        self.p = self.basis.shape[2]
+        lower = frames.torque_basis_lower
+        self.beta_lower = np.full(self.p, -np.inf) if lower is None else np.asarray(lower, dtype=float)
+        self.beta = np.zeros(self.p)  # held while only (k, a) are solved or reported
 
-    def terms(self, k: np.ndarray, a: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
-        rho = (np.einsum("tng,tg->tn", self.m, a * k) - self.tau) * self.inv_s
+    def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(k, a, beta) of a variable vector (beta: the held self.beta when z has none)."""
+        n = self.g + self.t * self.g
+        return z[: self.g], z[self.g : n].reshape(self.t, self.g), (z[n:] if z.size > n else self.beta)
+
+    def offset(self, beta: np.ndarray) -> np.ndarray:
+        return np.einsum("tnp,p->tn", self.basis, beta) if self.p else 0.0
+
+    def terms(self, k: np.ndarray, a: np.ndarray, beta: np.ndarray | None = None) -> tuple[dict[str, float], np.ndarray]:
+        beta = self.beta if beta is None else beta
+        rho = (np.einsum("tng,tg->tn", self.m, a * k) + self.offset(beta) - self.tau) * self.inv_s
         terms = {
             "torque": 0.5 * float(np.sum(rho**2)),
             "prior": 0.5 * float(np.sum(self.w_p * (a - self.mu) ** 2)),
@@ -238,31 +279,41 @@ class _Problem:
             terms["strength"] = 0.5 * self.w_k_obj * float(np.sum((k - 1.0) ** 2))
         return terms, rho
 
+    @property
+    def n_vars(self) -> int:
+        return self.g * (1 + self.t) + self.p
+
     def value_grad(self, z: np.ndarray) -> tuple[float, np.ndarray]:
-        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
-        terms, rho = self.terms(k, a)
+        """J and its gradient in all variables (k, a, beta); with z = (k, a) only (beta held), in those."""
+        k, a, beta = self.split(z)
+        terms, rho = self.terms(k, a, beta)
         back = np.einsum("tn,tng->tg", rho * self.inv_s, self.m)  # d(torque)/d(a_tg k_g)
         grad_a = back * k + self.w_p * (a - self.mu) + self.w_e * (a - self.e)
         grad_k = np.sum(back * a, axis=0) + self.w_k_obj * (k - 1.0)
-        return sum(terms.values()), np.concatenate([grad_k, grad_a.ravel()])
+        parts = [grad_k, grad_a.ravel()]
+        if z.size == self.n_vars and self.p:
+            parts.append(np.einsum("tn,tnp->p", rho * self.inv_s, self.basis))
+        return sum(terms.values()), np.concatenate(parts)
 
     def diagonal_curvature(self, z: np.ndarray) -> np.ndarray:
         """Diagonal of the Gauss-Newton Hessian of J at z (the Jacobi preconditioner of the joint solve)."""
-        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
+        k, a, _ = self.split(z)
         b2 = (self.m * self.inv_s[:, :, None]) ** 2  # (T, n_c, G)
         col = b2.sum(axis=1)  # (T, G): sum_n (m_tng / s_tn)^2
         h_a = col * k**2 + self.w_p + self.w_e
         h_k = np.sum(col * a**2, axis=0) + self.w_k_obj
-        return np.concatenate([h_k, h_a.ravel()])
+        h_beta = np.einsum("tnp,tn->p", self.basis**2, self.inv_s**2)
+        return np.concatenate([h_k, h_a.ravel(), h_beta])
 
     def bounds(self) -> list[tuple[float, float]]:
-        return self.k_bounds + [(self.a_min, 1.0)] * (self.t * self.g)
+        return (self.k_bounds + [(self.a_min, 1.0)] * (self.t * self.g)
+                + [(float(lo), np.inf) for lo in self.beta_lower])
 
     def strength_std(self, z: np.ndarray, *, with_prior: bool, return_cov: bool = False):
         """Laplace std of each free k: the inverse of the Gauss-Newton curvature of J in k after marginalising the
         activations (Schur complement of the per-frame activation blocks; activations at a bound are held, as in
         the estimator's Laplace std). NaN for factors that are not free; inf when the data carry no information."""
-        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
+        k, a, _ = self.split(z)
         free_k = np.array([lo < hi for lo, hi in self.k_bounds])
         out = np.full(self.g, np.nan)
         if not np.any(free_k):
@@ -301,8 +352,8 @@ class _Problem:
     def correlation_frames(self, z: np.ndarray) -> float:
         """Integrated autocorrelation time (frames) of the fitted residuals: median over the EMG residual series
         a_g - e_g of each group with EMG and the torque residual of each coordinate (>= 1)."""
-        k, a = z[: self.g], z[self.g :].reshape(self.t, self.g)
-        _, rho = self.terms(k, a)
+        k, a, beta = self.split(z)
+        _, rho = self.terms(k, a, beta)
         series = [rho[:, n] for n in range(rho.shape[1])]
         series += [(a - self.e)[:, j] for j in range(self.g) if np.all(self.w_e[:, j] > 0)]
         return max(1.0, float(np.median([integrated_autocorrelation(x) for x in series])))
@@ -315,11 +366,12 @@ class _Problem:
 
     def start(self) -> np.ndarray:
         a0 = np.clip(np.where(self.w_e > 0, self.e, self.mu), self.a_min, 1.0)
-        return np.concatenate([np.ones(self.g), a0.ravel()])
+        return np.concatenate([np.ones(self.g), a0.ravel(), np.clip(np.zeros(self.p), self.beta_lower, None)])
 
     def result(self, z, method, converged, iterations, message, settings, f_ref) -> CalibrationResult:
-        k, a = z[: self.g].copy(), z[self.g :].reshape(self.t, self.g).copy()
-        terms, _ = self.terms(k, a)
+        k, a, beta = self.split(z)
+        k, a = k.copy(), a.copy()
+        terms, _ = self.terms(k, a, beta)
         return CalibrationResult(
             scale=k,
             f_max=k * f_ref,
@@ -332,6 +384,7 @@ class _Problem:
             message=message,
             method=method,
             settings=settings,
+            torque_coefficients=beta.copy() if self.p else None,
         )
 
 
@@ -460,12 +513,13 @@ def calibrate_alternating(
         previous = np.inf
         sweeps = 0
         for sweeps in range(1, max_sweeps + 1):
-            k = z[:g]
-            a = z[g:].reshape(prob.t, g).copy()
+            k, a, beta = prob.split(z)
+            a = a.copy()
+            tau = prob.tau - prob.offset(beta)  # the torque the activations must produce
             for t in range(prob.t):
                 at = prob.m[t] * k[None, :] * prob.inv_s[t][:, None]
                 hess = at.T @ at + np.diag(prob.w_p[t] + prob.w_e[t])
-                c = -(at.T @ (prob.tau[t] * prob.inv_s[t]) + prob.w_p[t] * prob.mu[t] + prob.w_e[t] * prob.e[t])
+                c = -(at.T @ (tau[t] * prob.inv_s[t]) + prob.w_p[t] * prob.mu[t] + prob.w_e[t] * prob.e[t])
                 if not ready:
                     solver.setup(np.asfortranarray(hess), c, x_l=np.full(g, s.a_min), x_u=np.ones(g))
                     ready = True
@@ -473,20 +527,24 @@ def calibrate_alternating(
                     solver.update(P=np.asfortranarray(hess), c=c)
                 solver.solve()
                 a[t] = np.clip(solver.result.x, s.a_min, 1.0)
-            # k-step: torque residuals are linear in k -> stacked bounded least squares
+            # (k, beta)-step: torque residuals are linear in k and beta -> stacked bounded least squares
             rows = (prob.m * a[:, None, :] * prob.inv_s[:, :, None]).reshape(-1, g)
+            basis_rows = (prob.basis * prob.inv_s[:, :, None]).reshape(rows.shape[0], prob.p)
             target = (prob.tau * prob.inv_s).ravel()
             fixed = lo == hi
             kk = np.where(fixed, lo, k)
-            if np.any(~fixed):
+            n_free = int((~fixed).sum())
+            if n_free or prob.p:
                 rhs = target - rows[:, fixed] @ lo[fixed]
-                mat = rows[:, ~fixed]
-                if prob.w_k_obj:  # the strength prior as extra least-squares rows sqrt(w_k) (k - 1)
-                    n_free = int((~fixed).sum())
-                    mat = np.vstack([mat, np.sqrt(prob.w_k_obj) * np.eye(n_free)])
+                mat = np.hstack([rows[:, ~fixed], basis_rows])
+                if prob.w_k_obj and n_free:  # the strength prior as extra least-squares rows sqrt(w_k) (k - 1)
+                    prior_rows = np.hstack([np.sqrt(prob.w_k_obj) * np.eye(n_free), np.zeros((n_free, prob.p))])
+                    mat = np.vstack([mat, prior_rows])
                     rhs = np.concatenate([rhs, np.full(n_free, np.sqrt(prob.w_k_obj))])
-                kk[~fixed] = lsq_linear(mat, rhs, bounds=(lo[~fixed], hi[~fixed]), tol=1e-14).x
-            z = np.concatenate([kk, a.ravel()])
+                sol = lsq_linear(mat, rhs, bounds=(np.r_[lo[~fixed], prob.beta_lower], np.r_[hi[~fixed],
+                                 np.full(prob.p, np.inf)]), tol=1e-14).x
+                kk[~fixed], beta = sol[:n_free], sol[n_free:]
+            z = np.concatenate([kk, a.ravel(), beta])
             value, _ = prob.value_grad(z)
             if previous - value <= tol * max(1.0, abs(value)):
                 break
