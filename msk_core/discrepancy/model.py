@@ -18,7 +18,7 @@ trials, scored on the held-out trials.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import lsq_linear
@@ -273,6 +273,16 @@ class Fit:
     phi_typical: np.ndarray  # (G_E,) typical_force_factor on the training trials
     lower: np.ndarray  # (p,) the coefficients' bounds (coefficient_bounds; -inf / inf where free)
     upper: np.ndarray
+    # the calibrated strengths the fit was made with: the session's, or a re-calibration's with the candidate's torque
+    # in the calibration (recalibrate.py); ``gaps`` and the other users of a fit evaluate it with these
+    f_max: np.ndarray | None = None
+
+
+def on(data: SessionArrays, f: Fit) -> SessionArrays:
+    """The session arrays with the strengths ``f`` was fitted with (the same frames and capacity scale)."""
+    if f.f_max is None or f.f_max is data.f_max or np.array_equal(f.f_max, data.f_max):
+        return data
+    return replace(data, f_max=f.f_max)
 
 
 def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> Fit:
@@ -292,12 +302,12 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
     return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
-               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical, lower=lower, upper=upper)
+               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical, lower=lower, upper=upper, f_max=data.f_max)
 
 
 def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:
-    """(T, n_c) torque gap y - m in capacity-scaled units under a fitted model."""
-    d = design(data, trial, f.model)
+    """(T, n_c) torque gap y - m in capacity-scaled units under a fitted model (with the strengths it was fitted with)."""
+    d = design(on(data, f), trial, f.model)
     return (d.y - d.fixed - d.columns @ f.coef).reshape(d.n_frames, d.n_coordinates)
 
 

@@ -32,14 +32,15 @@ joins the model, the others are refitted on top of it, and the search repeats.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from tqdm import tqdm
 
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
 from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation,
-                                        mean_square, mse, target_ms, target_torque)
+                                        mean_square, mse, on, target_ms, target_torque)
+from msk_core.discrepancy.recalibrate import TORQUE_EFFECTS, Recalibrator
 
 MIN_REDUCTION = 0.15
 BIC_MARGIN = 10.0
@@ -84,15 +85,36 @@ def left_out_bases(data: SessionArrays, train: list[TrialArrays], base: Fit) -> 
     return out
 
 
+@dataclass
+class Base:
+    """The model a candidate is compared with in one greedy step: its fit, its held-out gaps and its left-out fits."""
+    fit: Fit
+    hold_gaps: list[np.ndarray]
+    left_out: list[LeftOut]
+
+
+def base_state(data: SessionArrays, train: list[TrialArrays], holdout: list[TrialArrays], f: Fit) -> Base:
+    return Base(f, [gaps(data, t, f) for t in holdout], left_out_bases(on(data, f), train, f))
+
+
 def score_candidate(data, train, holdout, base: Fit, base_hold_gaps: list[np.ndarray], cand: Candidate,
-                    left_out: list[LeftOut]) -> Score:
-    """``base_hold_gaps``: the base model's gaps on the held-out trials (the same for every candidate of a step)."""
+                    left_out: list[LeftOut], recalibrated: tuple[Recalibrator, Base] | None = None) -> Score:
+    """``base_hold_gaps``: the base model's gaps on the held-out trials (the same for every candidate of a step).
+    ``recalibrated``: for a torque-term candidate, the re-calibrator and the base model re-calibrated the same way;
+    the candidate is then fitted with the strengths of a calibration that has its torque in it, and compared with
+    that base (recalibrate.py)."""
+    data = on(data, base)  # the strengths the base model was fitted with (a re-calibration's, after a torque term)
     best, best_fraction = None, np.inf
     for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training unexplained fraction
         f = fit(data, train, {**base.model, cand.name: dict(setting)})  # (the MSE, unless it changes its target)
         fraction = _unexplained(data, train, f, f.train_mse)
         if best is None or fraction < best_fraction:
             best, best_fraction = f, fraction
+    if recalibrated is not None:
+        recal, rbase = recalibrated
+        best = fit(replace(data, f_max=recal.f_max(best.model)), train, best.model)
+        best_fraction = _unexplained(data, train, best, best.train_mse)
+        base, base_hold_gaps, left_out = rbase.fit, rbase.hold_gaps, rbase.left_out
     hold_gaps = [gaps(data, t, best) for t in holdout]  # once: the held-out MSE, N_eff and the per-rep reductions
     hold = mean_square(hold_gaps)
     base_hold_mse = mean_square(base_hold_gaps)
@@ -108,7 +130,7 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_gaps: list[np.nda
     lr_hold = n_eff_hold * float(np.log(ratio_hold))  # -2 ln LR on data the fit never saw
     bic_hold = lr_hold + dp * float(np.log(n_eff_hold))  # ranks the candidates (select_effects)
     reduction = 1.0 - ratio_hold
-    left_out_scores = _left_out_reductions(data, left_out, base, cand, best.model[cand.name])
+    left_out_scores = _left_out_reductions(on(data, best), left_out, base, cand, best.model[cand.name])
     reasons = []
     if reduction < MIN_REDUCTION:
         reasons.append(f"held-out reduction {reduction:.1%} < {MIN_REDUCTION:.0%}")
@@ -124,7 +146,8 @@ def score_candidate(data, train, holdout, base: Fit, base_hold_gaps: list[np.nda
     return Score(name=cand.name, parameters=dict(best.model[cand.name]), fit=best, holdout_mse=hold,
                  reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold, holdout_bic=bic_hold,
                  accepted=not reasons, reason="; ".join(reasons) or "passes",
-                 extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold},
+                 extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold,
+                        "recalibrated": recalibrated is not None},
                  left_out_reductions=left_out_scores, rep_reductions=per_rep)
 
 
@@ -182,7 +205,9 @@ class Selection:
 
 
 def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[TrialArrays], *,
-                   max_effects: int = 1, progress: bool = False) -> Selection:
+                   max_effects: int = 1, progress: bool = False, recalibrator: Recalibrator | None = None) -> Selection:
+    """Greedy forward selection. With a ``recalibrator``, the torque-term candidates (recalibrate.TORQUE_EFFECTS) are
+    fitted with a calibration that has their torque in it, against the base model calibrated the same way."""
     library = candidate_library(data, train)
     none = fit(data, train, {})
     base, base_hold = none, mse(data, holdout, none)
@@ -193,9 +218,20 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
         remaining = [c for c in library if c.name not in base.model]
         if not remaining:
             break
-        left_out = left_out_bases(data, train, base)
-        base_hold_gaps = [gaps(data, t, base) for t in holdout]
-        scores = [score_candidate(data, train, holdout, base, base_hold_gaps, c, left_out)
+        plain = base_state(data, train, holdout, base)
+        rbase = None
+
+        def recalibrated(c: Candidate) -> tuple[Recalibrator, Base] | None:
+            nonlocal rbase
+            if recalibrator is None or c.name not in TORQUE_EFFECTS or not recalibrator.supports(
+                    {**base.model, c.name: {}}):
+                return None
+            if rbase is None:  # the base model re-calibrated with its own torque terms (none at the first step)
+                rbase = base_state(data, train, holdout,
+                                   fit(replace(data, f_max=recalibrator.f_max(base.model)), train, base.model))
+            return recalibrator, rbase
+
+        scores = [score_candidate(data, train, holdout, base, plain.hold_gaps, c, plain.left_out, recalibrated(c))
                   for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
                                 disable=not progress)]
         scores.sort(key=lambda s: s.holdout_bic)

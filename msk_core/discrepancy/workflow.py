@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
-from msk_core.discrepancy.model import Fit, crossed_coordinates, design, fibre_length, gaps
+from msk_core.discrepancy.model import Fit, crossed_coordinates, design, fibre_length, gaps, on
+from msk_core.discrepancy.recalibrate import Recalibrator
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
 from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
 from msk_core.estimate.pack import PackLike
@@ -119,7 +120,7 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
             "corr_load": _corr(load, g[:, n]),
         }
     if data.optimal is not None and trials[0].lengths is not None:
-        arms = np.vstack([t.arms * data.f_max / t.scale[:, :, None] for t in trials])
+        arms = np.vstack([t.arms * on(data, f).f_max / t.scale[:, :, None] for t in trials])
         lengths = np.vstack([fibre_length(t.lengths, data.optimal, data.slack) for t in trials])
         vel = -np.einsum("tng,tn->tg", np.vstack([t.arms for t in trials]), qd)
         for j in data.emg_index:
@@ -180,7 +181,9 @@ def _score_dict(s) -> dict:
             "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6), "delta_bic_train": round(s.delta_bic_train, 2),
             "minus2_ln_lr_holdout": round(s.minus2_ln_lr_holdout, 2), "holdout_bic": round(s.holdout_bic, 2),
             "n_params": s.fit.n_params,
-            "accepted": s.accepted, "reason": s.reason, "tau_frames": {k: round(v, 2) for k, v in s.extra.items()},
+            "accepted": s.accepted, "reason": s.reason,
+            "tau_frames": {k: round(v, 2) for k, v in s.extra.items() if k.startswith("tau_")},
+            "recalibrated": bool(s.extra.get("recalibrated", False)),
             "left_out_training_trials": {k: {"reduction": round(r, 5), "minus2_ln_lr": round(lr, 2)}
                                          for k, (r, lr) in s.left_out_reductions.items()},
             "holdout_reps": _rep_summary(s.rep_reductions)}
@@ -200,12 +203,16 @@ def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
 
 
 def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialData], holdout: list[TrialData], *,
-                    max_effects: int = 1, activation: bool = True, progress: bool = False) -> DiscrepancyResult:
+                    max_effects: int = 1, activation: bool = True, progress: bool = False,
+                    recalibrate: bool = False) -> DiscrepancyResult:
+    """``recalibrate``: fit the torque-term candidates with a calibration of the training trials that has their torque
+    in it (recalibrate.py); False: every candidate with the profile's strengths."""
     check_inputs(train, holdout, MAX_DELAY_S)
     data = session_arrays(pack, profile, train + holdout)
     n_train = len([t for t in train if not t.isometric])
     tr, ho = data.trials[:n_train], data.trials[n_train:]
-    sel = select_effects(data, tr, ho, max_effects=max_effects, progress=progress)
+    recalibrator = Recalibrator(pack, profile, train, data.base_delay_s) if recalibrate else None
+    sel = select_effects(data, tr, ho, max_effects=max_effects, progress=progress, recalibrator=recalibrator)
     before_fit, after_fit = sel.none_fit, sel.final_fit
     per_c_before = np.sqrt(np.mean(np.vstack([gaps(data, t, before_fit) for t in ho]) ** 2, axis=0))
     per_c_after = np.sqrt(np.mean(np.vstack([gaps(data, t, after_fit) for t in ho]) ** 2, axis=0))
@@ -223,8 +230,14 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
     }
     profile_out = None
+    recalibrated = after_fit.f_max is not None and not np.array_equal(after_fit.f_max, data.f_max)
     if named:
         profile_out = copy.deepcopy(profile)
+        if recalibrated:  # the strengths of the calibration with the named torque terms in it
+            evidence["recalibrated"] = {
+                "f_max_before": [round(float(x), 4) for x in data.f_max],
+                "calibration": recalibrator.report(after_fit.model) if recalibrator else None}
+            profile_out.f_max = np.asarray(after_fit.f_max, dtype=float).copy()
         profile_out.effects = effects_section(data, after_fit, evidence)
     summary = {
         "effect": "none" if not named else (named[0] if len(named) == 1 else named),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -168,7 +169,8 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
 
 
 def calibration_frames(
-    pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0
+    pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0,
+    torque_basis: TorqueBasis | None = None,
 ) -> CalibrationFrames:
     """Stacked training frames; frames outside any rep carry no prior term (std = inf). ``min_effort_std`` widens
     the prior of groups whose prior is the minimal-effort share (their activation nobody measured) by the error
@@ -177,13 +179,16 @@ def calibration_frames(
     prior on them makes the calibration credit the measured groups' strength with information it does not have."""
     groups = list(pack.groups)
     widen = np.array([s == "min_effort" for s in (prior.sources or ("",) * len(groups))]) * (min_effort_std or 0.0)
-    r, tau, mu, sd, emg = [], [], [], [], []
+    r, tau, mu, sd, emg, basis = [], [], [], [], [], []
     for t in trials:
         target = isometric_target(t) if t.isometric else None
+        z = None if torque_basis is None else torque_basis.columns(t)
         for i in range(t.n_frames):
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
+            if z is not None:
+                basis.append(z[i])
             if t.isometric:
                 a, b = isometric_cocontraction_prior(t, i, groups, m, target)
             elif t.rep_index[i] >= 0:
@@ -198,7 +203,20 @@ def calibration_frames(
             emg.append([t.emg[g][i] if g in t.emg else np.nan for g in groups])
     if not r:
         raise EstimationError("no usable calibration frame")
-    return CalibrationFrames(np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float))
+    extra = {} if torque_basis is None else {"torque_basis": np.array(basis), "torque_basis_lower": torque_basis.lower,
+                                             "torque_basis_names": tuple(torque_basis.names)}
+    return CalibrationFrames(np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float),
+                             **extra)
+
+
+@dataclass(frozen=True)
+class TorqueBasis:
+    """Torque the muscles' activations do not produce, linear in coefficients the calibration fits: ``columns(trial)``
+    gives (T, n_c, p) N·m per unit coefficient on every frame of a trial, ``lower`` the coefficients' lower bounds."""
+
+    columns: Callable[[TrialData], np.ndarray]
+    lower: np.ndarray
+    names: tuple[str, ...]
 
 
 ISOMETRIC_COCONTRACTION_STD = 0.05  # added in quadrature to the measured groups' spread (an unmeasured group is not one of them)
@@ -252,11 +270,15 @@ def calibrate_subject(
     no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
     synergists: dict[str, str] | None = None,
     emd_s: float | str | None = "auto",
+    torque_basis: TorqueBasis | None = None,
+    start: CalibrationResult | None = None,
 ) -> tuple[SubjectProfile, CalibrationResult]:
     """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result.
 
     ``emd_s``: electromechanical delay applied to the EMG before both ("auto": estimated from the trials,
-    :mod:`msk_core.estimate.emd`; a number: given, seconds; None or 0: none)."""
+    :mod:`msk_core.estimate.emd`; a number: given, seconds; None or 0: none). ``torque_basis``: torque the
+    activations do not produce, its coefficients fitted with the strengths (:class:`TorqueBasis`); ``start``: a
+    calibration of the same trials to start the solve from (:func:`msk_core.estimate.calibrate.calibrate`)."""
     if not trials:
         raise EstimationError("calibration needs at least one trial")
     if all(t.isometric for t in trials):
@@ -275,8 +297,9 @@ def calibrate_subject(
     trials = [shift_emg(t, emd["delay_s"]) for t in trials]
     prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
     me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
-    frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error)
-    result = calibrate(pack.f_max_ref, frames, settings)
+    frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error,
+                                torque_basis=torque_basis)
+    result = calibrate(pack.f_max_ref, frames, settings, start=start)
     phase_model = learn_trials_phase_model(pack, trials)
     norm = {}
     for t in trials:

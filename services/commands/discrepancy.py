@@ -26,6 +26,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the profile with the named effect(s) here")
     p.add_argument("--max-effects", type=int, default=1,
                    help="greedy forward selection: up to this many effects (default 1)")
+    p.add_argument("--recalibrate", action="store_true",
+                   help="fit the torque-term candidates (passive force, passive joint moment, damping) with a "
+                        "re-calibration of the training trials that has their torque in it, against the model without "
+                        "them re-calibrated the same way: for profiles whose calibration took such a moment into the "
+                        "strengths (groups at their bounds); costs one calibration per such candidate and step")
     p.set_defaults(handler=run_discrepancy_command)
 
 
@@ -48,7 +53,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     profile = SubjectProfile.load(args.subject)
     train = [load_trial(p, pack) for p in args.trial]
     holdout = [load_trial(p, pack) for p in args.holdout]
-    result = run_discrepancy(pack, profile, train, holdout, max_effects=args.max_effects, progress=True)
+    result = run_discrepancy(pack, profile, train, holdout, max_effects=args.max_effects, progress=True,
+                             recalibrate=args.recalibrate)
     report = write_report(result, args.report)
     s = result.summary
     effect = s["effect"] if isinstance(s["effect"], str) else ", ".join(s["effect"])
@@ -71,6 +77,9 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
         print("calibration strengths at their bounds (look at these coordinates first): "
               + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
                           for b in s["calibration_at_bounds"]))
+        if not args.recalibrate and s["effect"] == "none":
+            print("  the calibration may have taken a passive moment or damping into these strengths: "
+                  "--recalibrate fits those candidates with a calibration that has their torque in it")
     if args.out is not None:
         if result.profile_with_effects is None:
             print(f"no effect named: {args.out} not written (the profile stays as it is)")

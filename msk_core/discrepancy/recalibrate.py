@@ -1,0 +1,115 @@
+"""Re-calibration with a candidate's torque in the calibration (docs/discrepancy.md, "Re-calibration").
+
+A calibration on trials that carry a moment the activations do not produce (a passive elastic moment, joint damping)
+takes it into the strengths: a passive extension moment raises the extensors' and lowers the flexors' F_max. The
+discrepancy model's strength re-fit is held near the calibrated strengths (model.STRENGTH_GAIN_RANGE), so it cannot
+undo that, and the candidate that describes the moment then explains only what is left of it. For the candidates that
+are torque terms (``TORQUE_EFFECTS``), the calibration is therefore re-run with the candidate's torque as a basis whose
+coefficients it fits with the strengths (``CalibrationFrames.torque_basis``), and the candidate is fitted and scored
+with those strengths, against the model without it re-calibrated the same way (same trials, settings and delay).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+
+from msk_core.estimate.calibrate import CalibrationSettings
+from msk_core.estimate.effects import fibre_length, passive_force_length, passive_joint_basis
+from msk_core.estimate.pack import PackLike
+from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.trial import TrialData
+
+TORQUE_EFFECTS = ("fl_passive", "passive_joint", "damping")  # re-calibrated with their torque as a basis
+# the effects a re-calibration can carry: the torque terms as a basis, the delay as the calibration's own EMG delay;
+# a model with any other (cross-talk, force scales, load scale, moment-arm scales) is not re-calibrated
+HONOURED = TORQUE_EFFECTS + ("emd",)
+
+
+def calibration_settings(profile: SubjectProfile) -> CalibrationSettings:
+    """The settings the profile was calibrated with (its report's ``settings``); the defaults where absent."""
+    stored = ((profile.calibration or {}).get("settings")) or {}
+    known = {f.name for f in dataclasses.fields(CalibrationSettings)}
+    kwargs = {k: v for k, v in stored.items() if k in known} if isinstance(stored, dict) else {}
+    if isinstance(kwargs.get("strength_bounds"), list):
+        kwargs["strength_bounds"] = tuple(kwargs["strength_bounds"])
+    try:
+        return CalibrationSettings(**kwargs)
+    except (TypeError, ValueError):
+        return CalibrationSettings()
+
+
+def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_max: np.ndarray) -> tuple[
+        np.ndarray, list[str]]:
+    """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient, as the
+    discrepancy model writes them (model.design): passive muscle force with the profile's F_max, the joint's elastic
+    moment at each range limit, damping; all >= 0 coefficients."""
+    from msk_core.model.pack import OutOfRange
+
+    n_c = len(pack.coordinates)
+    q, qd = np.nan_to_num(trial.q), np.nan_to_num(trial.qd)
+    cols, names = [], []
+    eye = np.eye(n_c)
+    if "fl_passive" in model:
+        lengths, arms = pack.lengths_and_moment_arms_many(q, out_of_range=OutOfRange.CLAMP)
+        pas = passive_force_length(fibre_length(lengths, np.asarray(pack.optimal_fiber_lengths),
+                                                np.asarray(pack.tendon_slack_lengths)), model["fl_passive"]["strain"])
+        cols.append(np.einsum("tng,tg->tn", arms, f_max * pas)), names.append("fl_passive:scale")
+    if "passive_joint" in model:
+        r = np.asarray(pack.coordinate_ranges, dtype=float).reshape(n_c, 2)
+        up, low = passive_joint_basis(q, r[:, 0], r[:, 1], model["passive_joint"]["decay_rad"])
+        for c, name in enumerate(pack.coordinates):
+            cols.append(low * eye[c]), names.append(f"passive_joint:k_lower:{name}")
+            cols.append(-up * eye[c]), names.append(f"passive_joint:k_upper:{name}")
+    if "damping" in model:
+        for c, name in enumerate(pack.coordinates):
+            cols.append(-qd * eye[c]), names.append(f"damping:b:{name}")
+    return np.stack(cols, axis=2), names
+
+
+class Recalibrator:
+    """Calibrations of the training trials with a model's torque terms in them (cached per model)."""
+
+    def __init__(self, pack: PackLike, profile: SubjectProfile, train: list[TrialData], base_delay_s: float) -> None:
+        self.pack, self.profile, self.train = pack, profile, list(train)
+        self.settings = calibration_settings(profile)
+        self.base_delay_s = base_delay_s
+        self.f_max_profile = np.asarray(profile.f_max, dtype=float)
+        self.reports: dict[str, dict] = {}
+        self._cache: dict[str, np.ndarray] = {}
+        self._plain: dict[float, object] = {}  # delay -> the calibration without a torque basis (the warm start)
+
+    @staticmethod
+    def supports(model: dict[str, dict]) -> bool:
+        return all(name in HONOURED for name in model)
+
+    def f_max(self, model: dict[str, dict]) -> np.ndarray:
+        """The strengths of a calibration with ``model``'s torque terms fitted alongside (its delay applied to the
+        EMG); ``{}``: the plain calibration of these trials with the profile's settings."""
+        from msk_core.estimate.pipeline import TorqueBasis, calibrate_subject
+
+        if not self.supports(model):
+            raise ValueError(f"a re-calibration cannot carry {sorted(set(model) - set(HONOURED))}")
+        key = json.dumps(model, sort_keys=True)
+        if key not in self._cache:
+            terms = {k: v for k, v in model.items() if k in TORQUE_EFFECTS}
+            basis = None
+            if terms:
+                names = torque_columns(self.pack, self.train[0], terms, self.f_max_profile)[1]
+                basis = TorqueBasis(columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile)[0],
+                                    lower=np.zeros(len(names)), names=tuple(names))
+            delay = float(model.get("emd", {}).get("delay_total_s", self.base_delay_s))
+            if basis is not None and delay not in self._plain:
+                self.f_max({k: v for k, v in model.items() if k not in TORQUE_EFFECTS})
+            profile, result = calibrate_subject(self.pack, self.train, settings=self.settings, emd_s=delay,
+                                                torque_basis=basis, start=self._plain.get(delay))
+            if basis is None:
+                self._plain[delay] = result
+            self._cache[key] = np.asarray(profile.f_max, dtype=float)
+            self.reports[key] = profile.calibration
+        return self._cache[key]
+
+    def report(self, model: dict[str, dict]) -> dict | None:
+        return self.reports.get(json.dumps(model, sort_keys=True))
