@@ -586,14 +586,19 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
     assert plain["effect"] == "none"
     passive = next(c for c in plain["candidates"] if c["effect"] == "passive_joint")
     assert passive["holdout_mse_reduction"] < 0.15 and not passive["recalibrated"]
-    assert "--recalibrate fits those candidates" in capsys.readouterr().out
+    assert "--recalibrate fits those candidates with a calibration that has them in it" in capsys.readouterr().out
 
     assert main(args + ["--report", str(tmp_path / "recal"), "--out", str(out), "--recalibrate"]) == 0
     s = json.loads((tmp_path / "recal" / "summary.json").read_text())
     assert s["effect"] == "passive_joint", s["candidates"][:3]
     assert s["candidates"][0]["recalibrated"] and s["candidates"][0]["holdout_mse_reduction"] > 0.3
     assert s["gap_after"] < 0.85 * s["gap_before"] and s["gap_before"] == pytest.approx(plain["gap_before"])
-    assert "--recalibrate fits those candidates" not in capsys.readouterr().out
+    assert "--recalibrate fits those candidates with a calibration that has them in it" not in capsys.readouterr().out
+    assert s["recalibrate"] and not plain["recalibrate"] and "recalibrated_strengths" not in plain
+    assert {"TRIlat", "TRImed", "BICshort"} <= set(s["recalibrated_strengths"]), s["recalibrated_strengths"]
+    text = (tmp_path / "recal" / "report.md").read_text()
+    tri = s["recalibrated_strengths"]["TRIlat"]
+    assert f"| TRIlat | {tri['before']:.0f} | {tri['after']:.0f} | {tri['after'] / tri['before']:.2f} |" in text
     written = SubjectProfile.load(out)
     groups, ref = list(pack.groups), np.asarray(pack.f_max_ref)
 

@@ -7,6 +7,9 @@ undo that, and the candidate that describes the moment then explains only what i
 are torque terms (``TORQUE_EFFECTS``), the calibration is therefore re-run with the candidate's torque as a basis whose
 coefficients it fits with the strengths (``CalibrationFrames.torque_basis``), and the candidate is fitted and scored
 with those strengths, against the model without it re-calibrated the same way (same trials, settings and delay).
+The force-factor candidates (``FORCE_EFFECTS``: active force-length, force-velocity) are re-calibrated the same way,
+with their factor on each frame's moment arms: otherwise the candidates that describe a moment would get a freedom
+the candidates that describe a force do not, and win against them for that alone.
 """
 
 from __future__ import annotations
@@ -23,9 +26,11 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
 TORQUE_EFFECTS = ("fl_passive", "passive_joint", "damping")  # re-calibrated with their torque as a basis
-# the effects a re-calibration can carry: the torque terms as a basis, the delay as the calibration's own EMG delay;
-# a model with any other (cross-talk, force scales, load scale, moment-arm scales) is not re-calibrated
-HONOURED = TORQUE_EFFECTS + ("emd",)
+FORCE_EFFECTS = ("fl_active", "fv")  # ... with their per-frame force factor on the moment arms
+RECALIBRATED = TORQUE_EFFECTS + FORCE_EFFECTS  # the candidates fitted with a re-calibration (muscle and joint state)
+# the effects a re-calibration can carry: those, and the delay as the calibration's own EMG delay; a model with any
+# other (cross-talk, load scale, moment-arm scales) is not re-calibrated
+HONOURED = RECALIBRATED + ("emd",)
 
 
 def calibration_settings(profile: SubjectProfile) -> CalibrationSettings:
@@ -69,6 +74,23 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_m
     return np.stack(cols, axis=2), names
 
 
+def force_factor(pack: PackLike, trial: TrialData, model: dict[str, dict]) -> np.ndarray:
+    """(T, G) the force-factor effects of ``model`` on every frame of ``trial`` (as model.force_factor writes them)."""
+    from msk_core.estimate.effects import active_force_length, force_velocity, shortening_speed
+    from msk_core.model.pack import OutOfRange
+
+    lengths, arms = pack.lengths_and_moment_arms_many(np.nan_to_num(trial.q), out_of_range=OutOfRange.CLAMP)
+    optimal = np.asarray(pack.optimal_fiber_lengths)
+    phi = np.ones((trial.n_frames, len(pack.groups)))
+    if "fl_active" in model:
+        phi *= active_force_length(fibre_length(lengths, optimal, np.asarray(pack.tendon_slack_lengths)),
+                                   model["fl_active"]["width"])
+    if "fv" in model:
+        v = shortening_speed(arms, np.nan_to_num(trial.qd), optimal, model["fv"]["v_max"])
+        phi *= force_velocity(v, model["fv"]["eccentric"])
+    return phi
+
+
 class Recalibrator:
     """Calibrations of the training trials with a model's torque terms in them (cached per model)."""
 
@@ -95,17 +117,20 @@ class Recalibrator:
         key = json.dumps(model, sort_keys=True)
         if key not in self._cache:
             terms = {k: v for k, v in model.items() if k in TORQUE_EFFECTS}
+            forces = {k: v for k, v in model.items() if k in FORCE_EFFECTS}
+            scale = (lambda t: force_factor(self.pack, t, forces)) if forces else None
             basis = None
             if terms:
                 names = torque_columns(self.pack, self.train[0], terms, self.f_max_profile)[1]
                 basis = TorqueBasis(columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile)[0],
                                     lower=np.zeros(len(names)), names=tuple(names))
             delay = float(model.get("emd", {}).get("delay_total_s", self.base_delay_s))
-            if basis is not None and delay not in self._plain:
-                self.f_max({k: v for k, v in model.items() if k not in TORQUE_EFFECTS})
+            plain = basis is None and scale is None
+            if not plain and delay not in self._plain:
+                self.f_max({k: v for k, v in model.items() if k not in RECALIBRATED})
             profile, result = calibrate_subject(self.pack, self.train, settings=self.settings, emd_s=delay,
-                                                torque_basis=basis, start=self._plain.get(delay))
-            if basis is None:
+                                                torque_basis=basis, force_scale=scale, start=self._plain.get(delay))
+            if plain:
                 self._plain[delay] = result
             self._cache[key] = np.asarray(profile.f_max, dtype=float)
             self.reports[key] = profile.calibration

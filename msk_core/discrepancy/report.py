@@ -163,6 +163,14 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
                   "look at the coordinates they cross first.", "",
                   "| group | strength scale | bound | coordinates |", "|---|---|---|---|"]
         lines += [f"| {b['group']} | {b['scale']:.2f} | {b['side']} | {', '.join(b['coordinates'])} |" for b in pinned]
+    recal = s.get("recalibrated_strengths")
+    if recal:
+        lines += ["", "## Strengths re-calibrated with the named torque terms (--recalibrate)", "",
+                  "The written profile carries the strengths of a calibration of the training trials that fitted the "
+                  "named torque terms alongside (docs/discrepancy.md, Re-calibration).", "",
+                  "| group | F_max before (N) | F_max after (N) | ratio |", "|---|---|---|---|"]
+        lines += [f"| {g} | {v['before']:.0f} | {v['after']:.0f} | {v['after'] / v['before']:.2f} |"
+                  for g, v in recal.items()]
     lines += ["", "## Plots", "",
               "![gap vs angle](gap_vs_angle.png)", "", "![gap vs velocity](gap_vs_velocity.png)", "",
               "![gap vs phase](gap_vs_phase.png)", "", "![cross-correlation vs lag](xcorr_vs_lag.png)", "",

@@ -40,7 +40,7 @@ from tqdm import tqdm
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
 from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation,
                                         mean_square, mse, on, target_ms, target_torque)
-from msk_core.discrepancy.recalibrate import TORQUE_EFFECTS, Recalibrator
+from msk_core.discrepancy.recalibrate import RECALIBRATED, Recalibrator
 
 MIN_REDUCTION = 0.15
 BIC_MARGIN = 10.0
@@ -100,8 +100,8 @@ def base_state(data: SessionArrays, train: list[TrialArrays], holdout: list[Tria
 def score_candidate(data, train, holdout, base: Fit, base_hold_gaps: list[np.ndarray], cand: Candidate,
                     left_out: list[LeftOut], recalibrated: tuple[Recalibrator, Base] | None = None) -> Score:
     """``base_hold_gaps``: the base model's gaps on the held-out trials (the same for every candidate of a step).
-    ``recalibrated``: for a torque-term candidate, the re-calibrator and the base model re-calibrated the same way;
-    the candidate is then fitted with the strengths of a calibration that has its torque in it, and compared with
+    ``recalibrated``: for a muscle- or joint-state candidate, the re-calibrator and the base model re-calibrated the
+    same way; the candidate is then fitted with the strengths of a calibration that has it in it, and compared with
     that base (recalibrate.py)."""
     data = on(data, base)  # the strengths the base model was fitted with (a re-calibration's, after a torque term)
     best, best_fraction = None, np.inf
@@ -206,8 +206,9 @@ class Selection:
 
 def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[TrialArrays], *,
                    max_effects: int = 1, progress: bool = False, recalibrator: Recalibrator | None = None) -> Selection:
-    """Greedy forward selection. With a ``recalibrator``, the torque-term candidates (recalibrate.TORQUE_EFFECTS) are
-    fitted with a calibration that has their torque in it, against the base model calibrated the same way."""
+    """Greedy forward selection. With a ``recalibrator``, the muscle- and joint-state candidates
+    (recalibrate.RECALIBRATED) are fitted with a calibration that has them in it, against the base model calibrated
+    the same way."""
     library = candidate_library(data, train)
     none = fit(data, train, {})
     base, base_hold = none, mse(data, holdout, none)
@@ -223,7 +224,7 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
 
         def recalibrated(c: Candidate) -> tuple[Recalibrator, Base] | None:
             nonlocal rbase
-            if recalibrator is None or c.name not in TORQUE_EFFECTS or not recalibrator.supports(
+            if recalibrator is None or c.name not in RECALIBRATED or not recalibrator.supports(
                     {**base.model, c.name: {}}):
                 return None
             if rbase is None:  # the base model re-calibrated with its own torque terms (none at the first step)

@@ -259,8 +259,13 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
         "frames_left_out": {t.name: t.left_out for t in tr + ho if t.left_out},
     }
+    summary["recalibrate"] = bool(recalibrate)
     if profile_out is not None:
         summary["strength_gain"] = profile_out.effects["strength_gain"]
+        if recalibrated:  # the groups whose calibrated strength moved by more than 1 %
+            summary["recalibrated_strengths"] = {
+                g: {"before": float(b), "after": float(a)}
+                for g, b, a in zip(data.groups, data.f_max, profile_out.f_max) if abs(a / b - 1.0) > 0.01}
     if activation:
         held = [t for t in holdout if not t.isometric]
         d0 = data.base_delay_s

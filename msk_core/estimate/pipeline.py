@@ -170,7 +170,7 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
 
 def calibration_frames(
     pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0,
-    torque_basis: TorqueBasis | None = None,
+    torque_basis: TorqueBasis | None = None, force_scale: Callable[[TrialData], np.ndarray] | None = None,
 ) -> CalibrationFrames:
     """Stacked training frames; frames outside any rep carry no prior term (std = inf). ``min_effort_std`` widens
     the prior of groups whose prior is the minimal-effort share (their activation nobody measured) by the error
@@ -183,10 +183,13 @@ def calibration_frames(
     for t in trials:
         target = isometric_target(t) if t.isometric else None
         z = None if torque_basis is None else torque_basis.columns(t)
+        phi = None if force_scale is None else force_scale(t)
         for i in range(t.n_frames):
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
+            if phi is not None:
+                m = m * phi[i]
             if z is not None:
                 basis.append(z[i])
             if t.isometric:
@@ -271,13 +274,15 @@ def calibrate_subject(
     synergists: dict[str, str] | None = None,
     emd_s: float | str | None = "auto",
     torque_basis: TorqueBasis | None = None,
+    force_scale: Callable[[TrialData], np.ndarray] | None = None,
     start: CalibrationResult | None = None,
 ) -> tuple[SubjectProfile, CalibrationResult]:
     """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result.
 
     ``emd_s``: electromechanical delay applied to the EMG before both ("auto": estimated from the trials,
     :mod:`msk_core.estimate.emd`; a number: given, seconds; None or 0: none). ``torque_basis``: torque the
-    activations do not produce, its coefficients fitted with the strengths (:class:`TorqueBasis`); ``start``: a
+    activations do not produce, its coefficients fitted with the strengths (:class:`TorqueBasis`); ``force_scale``:
+    a per-frame factor on each group's active force (:func:`calibration_frames`); ``start``: a
     calibration of the same trials to start the solve from (:func:`msk_core.estimate.calibrate.calibrate`)."""
     if not trials:
         raise EstimationError("calibration needs at least one trial")
@@ -298,7 +303,7 @@ def calibrate_subject(
     prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
     me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
     frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error,
-                                torque_basis=torque_basis)
+                                torque_basis=torque_basis, force_scale=force_scale)
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
     phase_model = learn_trials_phase_model(pack, trials)
     norm = {}

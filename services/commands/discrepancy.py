@@ -27,10 +27,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-effects", type=int, default=1,
                    help="greedy forward selection: up to this many effects (default 1)")
     p.add_argument("--recalibrate", action="store_true",
-                   help="fit the torque-term candidates (passive force, passive joint moment, damping) with a "
-                        "re-calibration of the training trials that has their torque in it, against the model without "
-                        "them re-calibrated the same way: for profiles whose calibration took such a moment into the "
-                        "strengths (groups at their bounds); costs one calibration per such candidate and step")
+                   help="fit the muscle- and joint-state candidates (passive force, passive joint moment, damping, "
+                        "active force-length, force-velocity) with a re-calibration of the training trials that has "
+                        "them in it, against the model without them re-calibrated the same way: for profiles whose "
+                        "calibration took such an effect into the strengths (groups at their bounds); costs one "
+                        "calibration per such candidate and step")
     p.set_defaults(handler=run_discrepancy_command)
 
 
@@ -78,8 +79,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
               + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
                           for b in s["calibration_at_bounds"]))
         if not args.recalibrate and s["effect"] == "none":
-            print("  the calibration may have taken a passive moment or damping into these strengths: "
-                  "--recalibrate fits those candidates with a calibration that has their torque in it")
+            print("  the calibration may have taken a passive moment, damping or a force-length/velocity effect into "
+                  "these strengths: --recalibrate fits those candidates with a calibration that has them in it")
     if args.out is not None:
         if result.profile_with_effects is None:
             print(f"no effect named: {args.out} not written (the profile stays as it is)")
