@@ -306,7 +306,7 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
 
 
 def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:
-    """(T, n_c) torque gap y - m in capacity-scaled units under a fitted model (with the strengths it was fitted with)."""
+    """(T, n_c) torque gap y - m in capacity-scaled units under a fitted model, with the strengths it was fitted at."""
     d = design(on(data, f), trial, f.model)
     return (d.y - d.fixed - d.columns @ f.coef).reshape(d.n_frames, d.n_coordinates)
 

@@ -131,8 +131,8 @@ def _timing() -> list[BenchResult]:
         details={"cpu_s": cpu, "named": json.dumps(result.summary["effect"]), "gap_before": result.summary["gap_before"],
                  "gap_after": result.summary["gap_after"]},
     ), BenchResult(
-        name=f"msk discrepancy --recalibrate, {size}, without the activation gaps (one calibration per torque-term "
-             "candidate and step)",
+        name=f"msk discrepancy --recalibrate, {size}, without the activation gaps (one calibration per muscle- or "
+             "joint-state candidate and step)",
         value=elapsed_recal, unit="s", baseline_name="the same run without --recalibrate", baseline_value=elapsed_plain,
         target="reported (opt-in)", passed=None,
         details={"named": json.dumps(recal.summary["effect"]), "gap_after": recal.summary["gap_after"]},
@@ -292,8 +292,8 @@ def _arm26(quick: bool) -> list[BenchResult]:
         recal[label] = _counts(named)
         recal_hits += [e == "passive_joint" for e in named]
     for noise in (0.1, 0.3):
-        named = _arm26_named(noise, range(1, 3 if quick else 11), None, f"no effect, EMG noise {noise:.0%}, --recalibrate",
-                             recalibrate=True)
+        named = _arm26_named(noise, range(1, 3 if quick else 11), None,
+                             f"no effect, EMG noise {noise:.0%}, --recalibrate", recalibrate=True)
         recal[f"no effect, EMG noise {noise:.0%}, --recalibrate"] = _counts(named)
         recal_clean += [e == "none" for e in named]
     return [
