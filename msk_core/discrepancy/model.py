@@ -25,13 +25,11 @@ from scipy.optimize import lsq_linear
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
 from msk_core.estimate.effects import (
-    active_force_length,
-    unmix_envelopes,
     fibre_length,
-    force_velocity,
+    muscle_force_factor,
     passive_force_length,
     passive_joint_basis,
-    shortening_speed,
+    unmix_envelopes,
 )
 
 GAIN_RIDGE = 0.05  # ridge on the unmeasured groups' re-fit, relative to each column's own sum of squares
@@ -153,13 +151,9 @@ def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict
 
 
 def force_factor(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
-    phi = np.ones((trial.n, len(data.groups)))
-    if "fl_active" in model:
-        phi *= active_force_length(fibre_length(trial.lengths, data.optimal, data.slack), model["fl_active"]["width"])
-    if "fv" in model:
-        v = shortening_speed(trial.arms, trial.qd, data.optimal, model["fv"]["v_max"])
-        phi *= force_velocity(v, model["fv"]["eccentric"])
-    return phi
+    phi = muscle_force_factor(trial.lengths, trial.arms, trial.qd, data.optimal, data.slack,
+                              fl_active=model.get("fl_active"), fv=model.get("fv"))
+    return np.ones((trial.n, len(data.groups))) if phi is None else phi
 
 
 def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> Design:

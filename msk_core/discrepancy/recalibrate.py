@@ -20,7 +20,8 @@ import json
 import numpy as np
 
 from msk_core.estimate.calibrate import CalibrationSettings
-from msk_core.estimate.effects import fibre_length, passive_force_length, passive_joint_basis
+from msk_core.estimate.effects import (fibre_length, muscle_force_factor, passive_force_length,
+                                       passive_joint_basis)
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -75,20 +76,14 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_m
 
 
 def force_factor(pack: PackLike, trial: TrialData, model: dict[str, dict]) -> np.ndarray:
-    """(T, G) the force-factor effects of ``model`` on every frame of ``trial`` (as model.force_factor writes them)."""
-    from msk_core.estimate.effects import active_force_length, force_velocity, shortening_speed
+    """(T, G) the force-factor effects of ``model`` on every frame of ``trial`` (1 where none is on)."""
     from msk_core.model.pack import OutOfRange
 
     lengths, arms = pack.lengths_and_moment_arms_many(np.nan_to_num(trial.q), out_of_range=OutOfRange.CLAMP)
-    optimal = np.asarray(pack.optimal_fiber_lengths)
-    phi = np.ones((trial.n_frames, len(pack.groups)))
-    if "fl_active" in model:
-        phi *= active_force_length(fibre_length(lengths, optimal, np.asarray(pack.tendon_slack_lengths)),
-                                   model["fl_active"]["width"])
-    if "fv" in model:
-        v = shortening_speed(arms, np.nan_to_num(trial.qd), optimal, model["fv"]["v_max"])
-        phi *= force_velocity(v, model["fv"]["eccentric"])
-    return phi
+    phi = muscle_force_factor(lengths, arms, np.nan_to_num(trial.qd), np.asarray(pack.optimal_fiber_lengths),
+                              np.asarray(pack.tendon_slack_lengths), fl_active=model.get("fl_active"),
+                              fv=model.get("fv"))
+    return np.ones((trial.n_frames, len(pack.groups))) if phi is None else phi
 
 
 class Recalibrator:

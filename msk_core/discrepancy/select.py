@@ -97,12 +97,13 @@ def base_state(data: SessionArrays, train: list[TrialArrays], holdout: list[Tria
     return Base(f, [gaps(data, t, f) for t in holdout], left_out_bases(on(data, f), train, f))
 
 
-def score_candidate(data, train, holdout, base: Fit, base_hold_gaps: list[np.ndarray], cand: Candidate,
-                    left_out: list[LeftOut], recalibrated: tuple[Recalibrator, Base] | None = None) -> Score:
-    """``base_hold_gaps``: the base model's gaps on the held-out trials (the same for every candidate of a step).
-    ``recalibrated``: for a muscle- or joint-state candidate, the re-calibrator and the base model re-calibrated the
-    same way; the candidate is then fitted with the strengths of a calibration that has it in it, and compared with
-    that base (recalibrate.py)."""
+def score_candidate(data, train, holdout, current: Base, cand: Candidate,
+                    recalibrated: tuple[Recalibrator, Base] | None = None) -> Score:
+    """``current``: the model of this greedy step (the same for every candidate of the step). ``recalibrated``: for a
+    muscle- or joint-state candidate, the re-calibrator and the current model re-calibrated the same way; the
+    candidate is then fitted with the strengths of a calibration that has it in it, and compared with that
+    (recalibrate.py)."""
+    base, base_hold_gaps, left_out = current.fit, current.hold_gaps, current.left_out
     data = on(data, base)  # the strengths the base model was fitted with (a re-calibration's, after a torque term)
     best, best_fraction = None, np.inf
     for setting in cand.grid:  # nonlinear parameters: the grid point with the lowest training unexplained fraction
@@ -232,7 +233,7 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
                                    fit(replace(data, f_max=recalibrator.f_max(base.model)), train, base.model))
             return recalibrator, rbase
 
-        scores = [score_candidate(data, train, holdout, base, plain.hold_gaps, c, plain.left_out, recalibrated(c))
+        scores = [score_candidate(data, train, holdout, plain, c, recalibrated(c))
                   for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
                                 disable=not progress)]
         scores.sort(key=lambda s: s.holdout_bic)

@@ -257,18 +257,16 @@ class _Problem:
         self.p = self.basis.shape[2]
         lower = frames.torque_basis_lower
         self.beta_lower = np.full(self.p, -np.inf) if lower is None else np.asarray(lower, dtype=float)
-        self.beta = np.zeros(self.p)  # held while only (k, a) are solved or reported
 
     def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(k, a, beta) of a variable vector (beta: the held self.beta when z has none)."""
+        """(k, a, beta) of a variable vector."""
         n = self.g + self.t * self.g
-        return z[: self.g], z[self.g : n].reshape(self.t, self.g), (z[n:] if z.size > n else self.beta)
+        return z[: self.g], z[self.g : n].reshape(self.t, self.g), z[n:]
 
     def offset(self, beta: np.ndarray) -> np.ndarray:
         return np.einsum("tnp,p->tn", self.basis, beta) if self.p else 0.0
 
-    def terms(self, k: np.ndarray, a: np.ndarray, beta: np.ndarray | None = None) -> tuple[dict[str, float], np.ndarray]:
-        beta = self.beta if beta is None else beta
+    def terms(self, k: np.ndarray, a: np.ndarray, beta: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
         rho = (np.einsum("tng,tg->tn", self.m, a * k) + self.offset(beta) - self.tau) * self.inv_s
         terms = {
             "torque": 0.5 * float(np.sum(rho**2)),
@@ -279,21 +277,15 @@ class _Problem:
             terms["strength"] = 0.5 * self.w_k_obj * float(np.sum((k - 1.0) ** 2))
         return terms, rho
 
-    @property
-    def n_vars(self) -> int:
-        return self.g * (1 + self.t) + self.p
-
     def value_grad(self, z: np.ndarray) -> tuple[float, np.ndarray]:
-        """J and its gradient in all variables (k, a, beta); with z = (k, a) only (beta held), in those."""
+        """J and its gradient in all variables (k, a, beta)."""
         k, a, beta = self.split(z)
         terms, rho = self.terms(k, a, beta)
         back = np.einsum("tn,tng->tg", rho * self.inv_s, self.m)  # d(torque)/d(a_tg k_g)
         grad_a = back * k + self.w_p * (a - self.mu) + self.w_e * (a - self.e)
         grad_k = np.sum(back * a, axis=0) + self.w_k_obj * (k - 1.0)
-        parts = [grad_k, grad_a.ravel()]
-        if z.size == self.n_vars and self.p:
-            parts.append(np.einsum("tn,tnp->p", rho * self.inv_s, self.basis))
-        return sum(terms.values()), np.concatenate(parts)
+        grad_beta = np.einsum("tn,tnp->p", rho * self.inv_s, self.basis)
+        return sum(terms.values()), np.concatenate([grad_k, grad_a.ravel(), grad_beta])
 
     def diagonal_curvature(self, z: np.ndarray) -> np.ndarray:
         """Diagonal of the Gauss-Newton Hessian of J at z (the Jacobi preconditioner of the joint solve)."""

@@ -67,6 +67,19 @@ def force_velocity(v: np.ndarray, eccentric: float) -> np.ndarray:
     return np.where(v >= 0.0, shortening, lengthening)
 
 
+def muscle_force_factor(lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray,
+                        slack: np.ndarray, *, fl_active: dict | None = None, fv: dict | None = None) -> np.ndarray | None:
+    """Factor on each group's active force, active force-length x force-velocity, for one frame ((G,); arms (n_c, G),
+    qd (n_c,)) or many ((T, G)); ``fl_active`` {"width"}, ``fv`` {"v_max", "eccentric"}; None when neither is on."""
+    scale = None
+    if fl_active:
+        scale = active_force_length(fibre_length(lengths, optimal, slack), fl_active["width"])
+    if fv:
+        f = force_velocity(shortening_speed(arms, qd, optimal, fv["v_max"]), fv["eccentric"])
+        scale = f if scale is None else scale * f
+    return scale
+
+
 def passive_joint_basis(q: np.ndarray, lo: np.ndarray, hi: np.ndarray, decay: float) -> tuple[np.ndarray, np.ndarray]:
     """(toward upper limit, toward lower limit) exponentials exp((q - hi)/decay), exp((lo - q)/decay); each 1 at its
     range limit. The joint's passive elastic moment is k_lo * lower - k_hi * upper (it pushes away from the limit)."""
@@ -197,16 +210,8 @@ class ModelEffects:
     # -- per frame ---------------------------------------------------------------------------------------------
     def force_scale(self, lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
         """(G,) per-frame multiplier of each group's active force (fl * fv), None when no such effect is on."""
-        scale = None
-        p = self.params("fl_active")
-        if p:
-            scale = active_force_length(fibre_length(lengths, self._optimal, self._slack), p["width"])
-        p = self.params("fv")
-        if p:
-            v = shortening_speed(arms, qd, self._optimal, p["v_max"])
-            f = force_velocity(v, p["eccentric"])
-            scale = f if scale is None else scale * f
-        return scale
+        return muscle_force_factor(lengths, arms, qd, self._optimal, self._slack, fl_active=self.params("fl_active"),
+                                   fv=self.params("fv"))
 
     def torque_offset(self, q, qd, lengths, arms, f_max_profile) -> np.ndarray | None:
         """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping."""
