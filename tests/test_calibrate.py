@@ -96,6 +96,8 @@ def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
     np.testing.assert_allclose(fitted.torque_coefficients, beta_true, rtol=0.15)
     assert absorbed.torque_coefficients is None and "torque_coefficients" not in absorbed.report()
     assert fitted.report()["torque_coefficients"] == pytest.approx(list(fitted.torque_coefficients))
+    assert fitted.report()["torque_basis"] == pytest.approx(dict(zip(("passive:0", "passive:1"),
+                                                                     fitted.torque_coefficients)))
     assert fitted.projected_gradient < 1e-4 and alt.projected_gradient < 1e-4
     np.testing.assert_allclose(fitted.objective, alt.objective, rtol=1e-5)
     np.testing.assert_allclose(fitted.torque_coefficients, alt.torque_coefficients, rtol=1e-3)

@@ -610,6 +610,8 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
     recal = written.effects["evidence"]["recalibrated"]
     assert recal["f_max_before"] == pytest.approx(list(profile.f_max), rel=1e-3)
     assert len(recal["calibration"]["torque_coefficients"]) == 2 * len(pack.coordinates)
+    assert set(recal["calibration"]["torque_basis"]) == {f"passive_joint:k_{side}:{c}" for c in pack.coordinates
+                                                         for side in ("lower", "upper")}
     # the profile with the effect and the re-calibrated strengths is what the estimator uses from then on
     assert main(["estimate", "--pack", "arm26", "--subject", str(out), "--trial", str(holdout[0].path),
                  "--out", str(tmp_path / "act.sto")]) == 0

@@ -47,7 +47,7 @@ from enum import Enum
 
 import numpy as np
 import piqp
-from scipy.optimize import lsq_linear, minimize
+from scipy.optimize import Bounds, lsq_linear, minimize
 
 from msk_core.errors import EstimationError
 
@@ -168,6 +168,7 @@ class CalibrationResult:
     status: list[str] | None = None
     identified_share: np.ndarray | None = None  # diag of the projector on the identified directions
     torque_coefficients: np.ndarray | None = None  # (p,) the torque basis' fitted coefficients (None: no basis)
+    torque_basis_names: tuple[str, ...] = ()  # their names (CalibrationFrames.torque_basis_names; may be empty)
 
     @property
     def identified(self) -> np.ndarray:
@@ -209,6 +210,8 @@ class CalibrationResult:
         }
         if self.torque_coefficients is not None:
             out["torque_coefficients"] = [float(x) for x in self.torque_coefficients]
+            if self.torque_basis_names:  # by name as well, for whoever reads the report
+                out["torque_basis"] = dict(zip(self.torque_basis_names, out["torque_coefficients"]))
         return out
 
 
@@ -255,6 +258,7 @@ class _Problem:
         self.basis = (np.zeros((self.t, self.m.shape[1], 0)) if frames.torque_basis is None
                       else np.asarray(frames.torque_basis, dtype=float))
         self.p = self.basis.shape[2]
+        self.basis_names = tuple(frames.torque_basis_names or ())
         lower = frames.torque_basis_lower
         self.beta_lower = np.full(self.p, -np.inf) if lower is None else np.asarray(lower, dtype=float)
 
@@ -297,9 +301,12 @@ class _Problem:
         h_beta = np.einsum("tnp,tn->p", self.basis**2, self.inv_s**2)
         return np.concatenate([h_k, h_a.ravel(), h_beta])
 
-    def bounds(self) -> list[tuple[float, float]]:
-        return (self.k_bounds + [(self.a_min, 1.0)] * (self.t * self.g)
-                + [(float(lo), np.inf) for lo in self.beta_lower])
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) of every variable (k, a, beta)."""
+        k_lo, k_hi = np.array(self.k_bounds, dtype=float).reshape(self.g, 2).T
+        n_a = self.t * self.g
+        return (np.concatenate([k_lo, np.full(n_a, self.a_min), self.beta_lower]),
+                np.concatenate([k_hi, np.ones(n_a), np.full(self.p, np.inf)]))
 
     def strength_std(self, z: np.ndarray, *, with_prior: bool, return_cov: bool = False):
         """Laplace std of each free k: the inverse of the Gauss-Newton curvature of J in k after marginalising the
@@ -352,8 +359,8 @@ class _Problem:
 
     def projected_gradient(self, z: np.ndarray) -> float:
         _, grad = self.value_grad(z)
-        b = np.array(self.bounds())
-        pg = np.clip(z - grad, b[:, 0], b[:, 1]) - z
+        lower, upper = self.bounds()
+        pg = np.clip(z - grad, lower, upper) - z
         return float(np.max(np.abs(pg)))
 
     def start(self) -> np.ndarray:
@@ -377,6 +384,7 @@ class _Problem:
             method=method,
             settings=settings,
             torque_coefficients=beta.copy() if self.p else None,
+            torque_basis_names=tuple(self.basis_names) if self.p else (),
         )
 
 
@@ -402,8 +410,8 @@ def calibrate(
             value, grad = prob.value_grad(d * y)
             return value, grad * d
 
-        lower, upper = np.array(prob.bounds()).T
-        bounds = list(zip(lower / d, upper / d))
+        lower, upper = prob.bounds()
+        bounds = Bounds(lower / d, upper / d)
         res = minimize(
             scaled,
             z0 / d,

@@ -171,6 +171,7 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
 def calibration_frames(
     pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0,
     torque_basis: TorqueBasis | None = None, force_scale: Callable[[TrialData], np.ndarray] | None = None,
+    frame_stride: int = 1,
 ) -> CalibrationFrames:
     """Stacked training frames; frames outside any rep carry no prior term (std = inf). ``min_effort_std`` widens
     the prior of groups whose prior is the minimal-effort share (their activation nobody measured) by the error
@@ -184,7 +185,7 @@ def calibration_frames(
         target = isometric_target(t) if t.isometric else None
         z = None if torque_basis is None else torque_basis.columns(t)
         phi = None if force_scale is None else force_scale(t)
-        for i in range(t.n_frames):
+        for i in range(0, t.n_frames, frame_stride):
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
@@ -264,6 +265,50 @@ def isometric_cocontraction_prior(
     return mean, std
 
 
+@dataclass(frozen=True)
+class CalibrationInputs:
+    """What a calibration of a set of trials needs before its NLP, and does not change with a torque basis or a
+    force scale: the trials with their EMG shifted by the delay, the prior learned from them, and the minimal-effort
+    error (:func:`calibration_inputs`). A re-calibration of the same trials with other terms reuses it."""
+
+    trials: list[TrialData]
+    prior: PhasePrior
+    min_effort_error: float  # NaN when no group's prior is the minimal-effort share
+    emd: dict
+
+
+def calibration_inputs(
+    pack: PackLike,
+    trials: list[TrialData],
+    *,
+    n_bins: int = 20,
+    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
+    synergists: dict[str, str] | None = None,
+    emd_s: float | str | None = "auto",
+) -> CalibrationInputs:
+    """The delay (``emd_s``, as in :func:`calibrate_subject`) applied to the trials' EMG, then the prior and the
+    minimal-effort error."""
+    if not trials:
+        raise EstimationError("calibration needs at least one trial")
+    if all(t.isometric for t in trials):
+        raise EstimationError(
+            "calibration needs at least one trial with reps besides the isometric ones: the N(mu, sigma^2) prior per "
+            f"phase of the movement is learned from reps (trials: {', '.join(t.name for t in trials)})"
+        )
+    if emd_s == "auto":
+        emd = estimate_emd(pack, trials).to_dict() | {"source": "estimated"}
+    elif emd_s is None or isinstance(emd_s, (int, float)):
+        if emd_s is not None and not 0 <= float(emd_s) <= 0.5:
+            raise EstimationError(f"electromechanical delay must be in [0, 0.5] s, got {emd_s}")
+        emd = {"delay_s": float(emd_s or 0.0), "source": "given"}
+    else:
+        raise EstimationError(f"emd_s must be 'auto', a delay in seconds or None, got {emd_s!r}")
+    trials = [shift_emg(t, emd["delay_s"]) for t in trials]
+    prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
+    me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
+    return CalibrationInputs(trials=trials, prior=prior, min_effort_error=me_error, emd=emd)
+
+
 def calibrate_subject(
     pack: PackLike,
     trials: list[TrialData],
@@ -284,26 +329,26 @@ def calibrate_subject(
     activations do not produce, its coefficients fitted with the strengths (:class:`TorqueBasis`); ``force_scale``:
     a per-frame factor on each group's active force (:func:`calibration_frames`); ``start``: a
     calibration of the same trials to start the solve from (:func:`msk_core.estimate.calibrate.calibrate`)."""
-    if not trials:
-        raise EstimationError("calibration needs at least one trial")
-    if all(t.isometric for t in trials):
-        raise EstimationError(
-            "calibration needs at least one trial with reps besides the isometric ones: the N(mu, sigma^2) prior per "
-            f"phase of the movement is learned from reps (trials: {', '.join(t.name for t in trials)})"
-        )
-    if emd_s == "auto":
-        emd = estimate_emd(pack, trials).to_dict() | {"source": "estimated"}
-    elif emd_s is None or isinstance(emd_s, (int, float)):
-        if emd_s is not None and not 0 <= float(emd_s) <= 0.5:
-            raise EstimationError(f"electromechanical delay must be in [0, 0.5] s, got {emd_s}")
-        emd = {"delay_s": float(emd_s or 0.0), "source": "given"}
-    else:
-        raise EstimationError(f"emd_s must be 'auto', a delay in seconds or None, got {emd_s!r}")
-    trials = [shift_emg(t, emd["delay_s"]) for t in trials]
-    prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
-    me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
+    inputs = calibration_inputs(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists, emd_s=emd_s)
+    return calibrate_inputs(pack, inputs, settings=settings, torque_basis=torque_basis, force_scale=force_scale,
+                            start=start)
+
+
+def calibrate_inputs(
+    pack: PackLike,
+    inputs: CalibrationInputs,
+    *,
+    settings: CalibrationSettings | None = None,
+    torque_basis: TorqueBasis | None = None,
+    force_scale: Callable[[TrialData], np.ndarray] | None = None,
+    start: CalibrationResult | None = None,
+    frame_stride: int = 1,
+) -> tuple[SubjectProfile, CalibrationResult]:
+    """The calibration NLP on prepared inputs (:func:`calibration_inputs`); the rest as :func:`calibrate_subject`.
+    ``frame_stride``: every n-th frame of each trial enters the NLP (:func:`calibration_frames`)."""
+    trials, prior, me_error, emd = inputs.trials, inputs.prior, inputs.min_effort_error, inputs.emd
     frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error,
-                                torque_basis=torque_basis, force_scale=force_scale)
+                                torque_basis=torque_basis, force_scale=force_scale, frame_stride=frame_stride)
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
     phase_model = learn_trials_phase_model(pack, trials)
     norm = {}
