@@ -24,13 +24,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
-from msk_core.estimate.effects import (
-    fibre_length,
-    muscle_force_factor,
-    passive_force_length,
-    passive_joint_basis,
-    unmix_envelopes,
-)
+from msk_core.estimate.effects import muscle_force_factor, torque_term_columns, torque_term_names, unmix_envelopes
 
 GAIN_RIDGE = 0.05  # ridge on the unmeasured groups' re-fit, relative to each column's own sum of squares
 GAIN_RIDGE_ABS = 0.1  # ... plus this much absolute (scaled-torque units): pins directions the data leave open
@@ -198,17 +192,10 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     inv_c = 1.0 / trial.scale
     for c in range(n_c):
         add(inv_c * onehot[c], f"offset:{data.coordinates[c]}")
-    if "fl_passive" in model:
-        pas = passive_force_length(fibre_length(trial.lengths, data.optimal, data.slack), model["fl_passive"]["strain"])
-        add((a * pas[:, None, :]).sum(axis=2), "fl_passive:scale")
-    if "passive_joint" in model:
-        up, low = passive_joint_basis(trial.q, data.lo, data.hi, model["passive_joint"]["decay_rad"])
-        for c in range(n_c):
-            add(low * inv_c * onehot[c], f"passive_joint:k_lower:{data.coordinates[c]}")
-            add(-up * inv_c * onehot[c], f"passive_joint:k_upper:{data.coordinates[c]}")
-    if "damping" in model:
-        for c in range(n_c):
-            add(-trial.qd * inv_c * onehot[c], f"damping:b:{data.coordinates[c]}")
+    terms = torque_term_columns(model, trial.q, trial.qd, trial.lengths, trial.arms, data.f_max, data.optimal,
+                                data.slack, data.lo, data.hi)  # (T, n_c, p) N·m per unit coefficient
+    for j, name in enumerate(torque_term_names(model, data.coordinates)):
+        add(terms[:, :, j] * inv_c, name)
     return Design(y=(target_torque(trial, model) * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols),
                   names=names,
                   ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c,

@@ -20,13 +20,12 @@ import json
 import numpy as np
 
 from msk_core.estimate.calibrate import CalibrationSettings
-from msk_core.estimate.effects import (fibre_length, muscle_force_factor, passive_force_length,
-                                       passive_joint_basis)
+from msk_core.estimate.effects import TORQUE_TERMS, muscle_force_factor, torque_term_columns, torque_term_names
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
-TORQUE_EFFECTS = ("fl_passive", "passive_joint", "damping")  # re-calibrated with their torque as a basis
+TORQUE_EFFECTS = TORQUE_TERMS  # re-calibrated with their torque as a basis
 FORCE_EFFECTS = ("fl_active", "fv")  # ... with their per-frame force factor on the moment arms
 RECALIBRATED = TORQUE_EFFECTS + FORCE_EFFECTS  # the candidates fitted with a re-calibration (muscle and joint state)
 # the effects a re-calibration can carry: those, and the delay as the calibration's own EMG delay; a model with any
@@ -52,39 +51,26 @@ def calibration_settings(profile: SubjectProfile) -> CalibrationSettings:
 
 def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_max: np.ndarray) -> tuple[
         np.ndarray, list[str]]:
-    """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient, as the
-    discrepancy model writes them (model.design): passive muscle force with the profile's F_max, the joint's elastic
-    moment at each range limit, damping; all >= 0 coefficients."""
+    """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient
+    (effects.torque_term_columns, as the discrepancy model writes them), with the profile's F_max; and their names."""
     from msk_core.model.pack import OutOfRange
 
     n_c = len(pack.coordinates)
-    q, qd = np.nan_to_num(trial.q), np.nan_to_num(trial.qd)
-    cols = []
-    eye = np.eye(n_c)
+    q = np.nan_to_num(trial.q)
+    lengths = arms = None
     if "fl_passive" in model:
         lengths, arms = pack.lengths_and_moment_arms_many(q, out_of_range=OutOfRange.CLAMP)
-        pas = passive_force_length(fibre_length(lengths, np.asarray(pack.optimal_fiber_lengths),
-                                                np.asarray(pack.tendon_slack_lengths)), model["fl_passive"]["strain"])
-        cols.append(np.einsum("tng,tg->tn", arms, f_max * pas))
-    if "passive_joint" in model:
-        r = np.asarray(pack.coordinate_ranges, dtype=float).reshape(n_c, 2)
-        up, low = passive_joint_basis(q, r[:, 0], r[:, 1], model["passive_joint"]["decay_rad"])
-        for c in range(n_c):
-            cols += [low * eye[c], -up * eye[c]]
-    if "damping" in model:
-        cols += [-qd * eye[c] for c in range(n_c)]
-    return np.stack(cols, axis=2), torque_column_names(pack, model)
+    r = getattr(pack, "coordinate_ranges", None)
+    r = None if r is None else np.asarray(r, dtype=float).reshape(n_c, 2)
+    cols = torque_term_columns(model, q, np.nan_to_num(trial.qd), lengths, arms, f_max,
+                               np.asarray(pack.optimal_fiber_lengths), np.asarray(pack.tendon_slack_lengths),
+                               None if r is None else r[:, 0], None if r is None else r[:, 1])
+    return cols, torque_column_names(pack, model)
 
 
 def torque_column_names(pack: PackLike, model: dict[str, dict]) -> list[str]:
     """The names of :func:`torque_columns`' columns, in order (as the discrepancy model's coefficients)."""
-    names = ["fl_passive:scale"] if "fl_passive" in model else []
-    if "passive_joint" in model:
-        for name in pack.coordinates:
-            names += [f"passive_joint:k_lower:{name}", f"passive_joint:k_upper:{name}"]
-    if "damping" in model:
-        names += [f"damping:b:{name}" for name in pack.coordinates]
-    return names
+    return torque_term_names(model, list(pack.coordinates))
 
 
 def force_factor(pack: PackLike, trial: TrialData, model: dict[str, dict]) -> np.ndarray:

@@ -10,10 +10,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
-from msk_core.discrepancy.model import Fit, crossed_coordinates, design, fibre_length, gaps, on
+from msk_core.discrepancy.model import Fit, crossed_coordinates, design, gaps, on
 from msk_core.discrepancy.recalibrate import Recalibrator
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
-from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION
+from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION, fibre_length
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData

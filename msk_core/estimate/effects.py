@@ -86,6 +86,43 @@ def passive_joint_basis(q: np.ndarray, lo: np.ndarray, hi: np.ndarray, decay: fl
     return np.exp((q - hi) / decay), np.exp((lo - q) / decay)
 
 
+TORQUE_TERMS = ("fl_passive", "passive_joint", "damping")  # the effects that are torque linear in coefficients
+
+
+def torque_term_names(model: dict, coordinates: list[str]) -> list[str]:
+    """Names of :func:`torque_term_columns`' coefficients, in order."""
+    names = ["fl_passive:scale"] if "fl_passive" in model else []
+    if "passive_joint" in model:
+        for c in coordinates:
+            names += [f"passive_joint:k_lower:{c}", f"passive_joint:k_upper:{c}"]
+    if "damping" in model:
+        names += [f"damping:b:{c}" for c in coordinates]
+    return names
+
+
+def torque_term_columns(model: dict, q: np.ndarray, qd: np.ndarray, lengths: np.ndarray | None, arms: np.ndarray,
+                        f_max: np.ndarray, optimal: np.ndarray | None, slack: np.ndarray | None,
+                        lo: np.ndarray | None, hi: np.ndarray | None) -> np.ndarray:
+    """(..., n_c, p) the torque terms of ``model`` (its ``TORQUE_TERMS``, each with its nonlinear setting) per unit
+    coefficient, N·m: passive muscle force Σ_g R_g F_max,g p_g(l) (one scale); the joint's elastic moment at each range
+    limit (k_lower, k_upper per coordinate); damping −q̇ (b per coordinate). Every coefficient is >= 0 physically.
+    q, qd (..., n_c); lengths (..., G) and arms (..., n_c, G). The one definition the discrepancy model, the
+    re-calibration and the estimator's torque offset share."""
+    n_c = q.shape[-1]
+    eye = np.eye(n_c)
+    cols = []
+    if "fl_passive" in model:
+        pas = passive_force_length(fibre_length(lengths, optimal, slack), model["fl_passive"]["strain"])
+        cols.append(np.einsum("...ng,...g->...n", arms, f_max * pas))
+    if "passive_joint" in model:
+        up, low = passive_joint_basis(q, lo, hi, model["passive_joint"]["decay_rad"])
+        for c in range(n_c):
+            cols += [low * eye[c], -up * eye[c]]
+    if "damping" in model:
+        cols += [-qd * eye[c] for c in range(n_c)]
+    return np.stack(cols, axis=-1) if cols else np.zeros(np.shape(q) + (0,))
+
+
 def crosstalk_matrix(n: int, fraction: float) -> np.ndarray:
     """Electrode k sees (1 - c) of its muscle and c shared by its neighbours k - 1, k + 1 in the electrode order."""
     m = np.eye(n) * (1.0 - fraction)
@@ -214,22 +251,21 @@ class ModelEffects:
                                    fv=self.params("fv"))
 
     def torque_offset(self, q, qd, lengths, arms, f_max_profile) -> np.ndarray | None:
-        """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping."""
-        out = None
-        p = self.params("fl_passive")
-        if p:
-            pas = passive_force_length(fibre_length(lengths, self._optimal, self._slack), p["strain"])
-            out = p["scale"] * (arms @ (f_max_profile * pas))
-        p = self.params("passive_joint")
-        if p:
-            up, low = passive_joint_basis(q, self._lo, self._hi, p["decay_rad"])
-            t = np.asarray(p["k_lower_nm"]) * low - np.asarray(p["k_upper_nm"]) * up
-            out = t if out is None else out + t
-        p = self.params("damping")
-        if p:
-            t = -np.asarray(p["b_nms_per_rad"]) * qd  # ID = muscle - b qd: the muscles also overcome the damping
-            out = t if out is None else out + t
-        return out
+        """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping
+        (:func:`torque_term_columns` times the fitted coefficients; ID = muscle - b qd: the muscles also overcome the
+        damping). None when the profile has none of them."""
+        model = {name: self.params(name) for name in TORQUE_TERMS if self.params(name)}
+        if not model:
+            return None
+        coef = [model["fl_passive"]["scale"]] if "fl_passive" in model else []
+        if "passive_joint" in model:
+            p = model["passive_joint"]
+            coef += [x for pair in zip(p["k_lower_nm"], p["k_upper_nm"]) for x in pair]
+        if "damping" in model:
+            coef += list(model["damping"]["b_nms_per_rad"])
+        cols = torque_term_columns(model, np.asarray(q, dtype=float), np.asarray(qd, dtype=float), lengths, arms,
+                                   f_max_profile, self._optimal, self._slack, self._lo, self._hi)
+        return cols @ np.asarray(coef, dtype=float)
 
     def new_phase_history(self) -> deque | None:
         n = self.delay_frames
