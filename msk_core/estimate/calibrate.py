@@ -311,8 +311,9 @@ class _Problem:
     def strength_std(self, z: np.ndarray, *, with_prior: bool, return_cov: bool = False):
         """Laplace std of each free k: the inverse of the Gauss-Newton curvature of J in k after marginalising the
         activations (Schur complement of the per-frame activation blocks; activations at a bound are held, as in
-        the estimator's Laplace std). NaN for factors that are not free; inf when the data carry no information."""
-        k, a, _ = self.split(z)
+        the estimator's Laplace std) and the torque basis' coefficients (those at their lower bound held). NaN for
+        factors that are not free; inf when the data carry no information."""
+        k, a, beta = self.split(z)
         free_k = np.array([lo < hi for lo, hi in self.k_bounds])
         out = np.full(self.g, np.nan)
         if not np.any(free_k):
@@ -331,6 +332,20 @@ class _Problem:
         # tiny ridge: an activation that only the torque sees, collinear with another, has a flat direction
         h_aa = h_aa + eye * np.where(held[:, :, None], 1.0, 1e-9 * (1.0 + np.abs(h_aa).max(axis=(1, 2)))[:, None, None])
         schur = h_kk - np.einsum("tga,tab->gb", h_ka, np.linalg.solve(h_aa, h_ka.transpose(0, 2, 1)))
+        free_beta = beta > self.beta_lower + 1e-9 * (1.0 + np.abs(beta))  # at the bound: held, like activations
+        if np.any(free_beta):
+            # the coefficients couple every frame: the Schur complement over the activations of the (k, beta) block,
+            # then beta marginalised (a strength confounded with a passive moment is not known better than that)
+            zb = self.basis[:, :, free_beta] * self.inv_s[:, :, None]  # (T, n_c, p_free)
+            btz = np.einsum("tng,tnp->tgp", b, zb)
+            h_kb = np.einsum("tg,tgp->gp", a, btz)
+            h_ab = np.where(held[:, :, None], 0.0, k[None, :, None] * btz)  # (T, G_a, p)
+            h_bb = np.einsum("tnp,tnq->pq", zb, zb)
+            solved = np.linalg.solve(h_aa, h_ab)  # (T, G_a, p)
+            s_kb = h_kb - np.einsum("tga,tap->gp", h_ka, solved)
+            s_bb = h_bb - np.einsum("tap,taq->pq", h_ab, solved)
+            s_bb = 0.5 * (s_bb + s_bb.T) + np.eye(s_bb.shape[0]) * 1e-12 * max(float(np.abs(s_bb).max()), 1e-300)
+            schur = schur - s_kb @ np.linalg.solve(s_bb, s_kb.T)
         # the factors held at the reference are not known either: with a strength prior they are nuisance
         # variables N(1, s^2) and marginalised too, so a free factor confounded with one of them is not credited
         # with information it does not have; the free factors' own prior only enters the posterior std
