@@ -599,6 +599,10 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
     text = (tmp_path / "recal" / "report.md").read_text()
     tri = s["recalibrated_strengths"]["TRIlat"]
     assert f"| TRIlat | {tri['before']:.0f} | {tri['after']:.0f} | {tri['after'] / tri['before']:.2f} |" in text
+    terms = s["recalibrated_torque_terms"]  # what the re-calibration fitted with the strengths, by name, >= 0
+    assert set(terms) == {f"passive_joint:k_{side}:{c}" for c in pack.coordinates for side in ("lower", "upper")}
+    assert min(terms.values()) >= 0.0 and max(terms.values()) > 0.0
+    assert all(f"| {k} | {v:.4g} |" in text for k, v in terms.items())
     written = SubjectProfile.load(out)
     groups, ref = list(pack.groups), np.asarray(pack.f_max_ref)
 

@@ -165,12 +165,17 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         lines += [f"| {b['group']} | {b['scale']:.2f} | {b['side']} | {', '.join(b['coordinates'])} |" for b in pinned]
     recal = s.get("recalibrated_strengths")
     if recal:
-        lines += ["", "## Strengths re-calibrated with the named torque terms (--recalibrate)", "",
-                  "The written profile carries the strengths of a calibration of the training trials that fitted the "
-                  "named torque terms alongside (docs/discrepancy.md, Re-calibration).", "",
+        lines += ["", "## Strengths re-calibrated with the named effect (--recalibrate)", "",
+                  "The written profile carries the strengths of a calibration of the training trials that had the "
+                  "named effect in it (docs/discrepancy.md, Re-calibration).", "",
                   "| group | F_max before (N) | F_max after (N) | ratio |", "|---|---|---|---|"]
         lines += [f"| {g} | {v['before']:.0f} | {v['after']:.0f} | {v['after'] / v['before']:.2f} |"
                   for g, v in recal.items()]
+        terms = s.get("recalibrated_torque_terms") or {}
+        if terms:
+            lines += ["", "Fitted with them, the torque terms' coefficients (N·m per unit of each term, as in the "
+                      "effect's parameters):", "", "| term | coefficient |", "|---|---|"]
+            lines += [f"| {k} | {v:.4g} |" for k, v in terms.items()]
     lines += ["", "## Plots", "",
               "![gap vs angle](gap_vs_angle.png)", "", "![gap vs velocity](gap_vs_velocity.png)", "",
               "![gap vs phase](gap_vs_phase.png)", "", "![cross-correlation vs lag](xcorr_vs_lag.png)", "",

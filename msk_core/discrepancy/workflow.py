@@ -266,6 +266,9 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
             summary["recalibrated_strengths"] = {
                 g: {"before": float(b), "after": float(a)}
                 for g, b, a in zip(data.groups, data.f_max, profile_out.f_max) if abs(a / b - 1.0) > 0.01}
+            terms = ((evidence["recalibrated"].get("calibration") or {}).get("torque_basis")) or {}
+            if terms:  # what that calibration fitted alongside the strengths (N·m per unit of each term)
+                summary["recalibrated_torque_terms"] = {k: float(v) for k, v in terms.items()}
     if activation:
         held = [t for t in holdout if not t.isometric]
         d0 = data.base_delay_s
