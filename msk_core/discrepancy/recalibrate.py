@@ -49,10 +49,10 @@ def calibration_settings(profile: SubjectProfile) -> CalibrationSettings:
         return CalibrationSettings()
 
 
-def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_max: np.ndarray) -> tuple[
-        np.ndarray, list[str]]:
+def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_max: np.ndarray) -> np.ndarray:
     """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient
-    (effects.torque_term_columns, as the discrepancy model writes them), with the profile's F_max; and their names."""
+    (effects.torque_term_columns, as the discrepancy model writes them; names: effects.torque_term_names), with the
+    profile's F_max."""
     from msk_core.model.pack import OutOfRange
 
     n_c = len(pack.coordinates)
@@ -62,15 +62,9 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_m
         lengths, arms = pack.lengths_and_moment_arms_many(q, out_of_range=OutOfRange.CLAMP)
     r = getattr(pack, "coordinate_ranges", None)
     r = None if r is None else np.asarray(r, dtype=float).reshape(n_c, 2)
-    cols = torque_term_columns(model, q, np.nan_to_num(trial.qd), lengths, arms, f_max,
+    return torque_term_columns(model, q, np.nan_to_num(trial.qd), lengths, arms, f_max,
                                np.asarray(pack.optimal_fiber_lengths), np.asarray(pack.tendon_slack_lengths),
                                None if r is None else r[:, 0], None if r is None else r[:, 1])
-    return cols, torque_column_names(pack, model)
-
-
-def torque_column_names(pack: PackLike, model: dict[str, dict]) -> list[str]:
-    """The names of :func:`torque_columns`' columns, in order (as the discrepancy model's coefficients)."""
-    return torque_term_names(model, list(pack.coordinates))
 
 
 def force_factor(pack: PackLike, trial: TrialData, model: dict[str, dict]) -> np.ndarray:
@@ -88,7 +82,7 @@ class Recalibrator:
     """Calibrations of the training trials with a model's torque terms in them (cached per model)."""
 
     def __init__(self, pack: PackLike, profile: SubjectProfile, train: list[TrialData], base_delay_s: float) -> None:
-        self.pack, self.profile, self.train = pack, profile, list(train)
+        self.pack, self.train = pack, list(train)
         settings = calibration_settings(profile)
         self.settings = dataclasses.replace(settings, ftol=max(settings.ftol, RECALIBRATION_FTOL))
         self.base_delay_s = base_delay_s
@@ -116,8 +110,8 @@ class Recalibrator:
             scale = (lambda t: force_factor(self.pack, t, forces)) if forces else None
             basis = None
             if terms:
-                names = torque_column_names(self.pack, terms)
-                basis = TorqueBasis(columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile)[0],
+                names = torque_term_names(terms, list(self.pack.coordinates))
+                basis = TorqueBasis(columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile),
                                     lower=np.zeros(len(names)), names=tuple(names))
             delay = float(model.get("emd", {}).get("delay_total_s", self.base_delay_s))
             plain = basis is None and scale is None

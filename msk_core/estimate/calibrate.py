@@ -399,7 +399,7 @@ class _Problem:
             method=method,
             settings=settings,
             torque_coefficients=beta.copy() if self.p else None,
-            torque_basis_names=tuple(self.basis_names) if self.p else (),
+            torque_basis_names=self.basis_names if self.p else (),
         )
 
 

@@ -171,7 +171,6 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
 def calibration_frames(
     pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0,
     torque_basis: TorqueBasis | None = None, force_scale: Callable[[TrialData], np.ndarray] | None = None,
-    frame_stride: int = 1,
 ) -> CalibrationFrames:
     """Stacked training frames; frames outside any rep carry no prior term (std = inf). ``min_effort_std`` widens
     the prior of groups whose prior is the minimal-effort share (their activation nobody measured) by the error
@@ -185,7 +184,7 @@ def calibration_frames(
         target = isometric_target(t) if t.isometric else None
         z = None if torque_basis is None else torque_basis.columns(t)
         phi = None if force_scale is None else force_scale(t)
-        for i in range(0, t.n_frames, frame_stride):
+        for i in range(t.n_frames):
             m = pack_moment_arms(pack, t.q[i])
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
@@ -342,13 +341,11 @@ def calibrate_inputs(
     torque_basis: TorqueBasis | None = None,
     force_scale: Callable[[TrialData], np.ndarray] | None = None,
     start: CalibrationResult | None = None,
-    frame_stride: int = 1,
 ) -> tuple[SubjectProfile, CalibrationResult]:
-    """The calibration NLP on prepared inputs (:func:`calibration_inputs`); the rest as :func:`calibrate_subject`.
-    ``frame_stride``: every n-th frame of each trial enters the NLP (:func:`calibration_frames`)."""
+    """The calibration NLP on prepared inputs (:func:`calibration_inputs`); the rest as :func:`calibrate_subject`."""
     trials, prior, me_error, emd = inputs.trials, inputs.prior, inputs.min_effort_error, inputs.emd
     frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error,
-                                torque_basis=torque_basis, force_scale=force_scale, frame_stride=frame_stride)
+                                torque_basis=torque_basis, force_scale=force_scale)
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
     phase_model = learn_trials_phase_model(pack, trials)
     norm = {}
