@@ -23,6 +23,7 @@ ActivationFrame = msk_pb2.ActivationFrame
 CoordinateTorque = msk_pb2.CoordinateTorque
 DeviceStatus = msk_pb2.DeviceStatus
 EmgEnvelope = msk_pb2.EmgEnvelope
+InputDrop = msk_pb2.InputDrop
 Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion
 
@@ -62,6 +63,65 @@ def decode(name: str, payload: bytes) -> Message:
     except DecodeError as error:
         raise MessageDecodeError(f"{len(payload)} bytes are not a valid {name}: {error}") from error
     return message
+
+
+def has_unknown_fields(message: Message) -> bool:
+    """True when the parsed bytes held fields the type does not define (another type's bytes, or garbage)."""
+    size = message.ByteSize()
+    probe = type(message)()
+    probe.CopyFrom(message)
+    probe.DiscardUnknownFields()
+    return probe.ByteSize() != size
+
+
+def _finite(value: float) -> bool:
+    return value == value and abs(value) != float("inf")
+
+
+def problems(message: Message) -> list[str]:
+    """What makes a decoded message unusable by the nodes (empty: none). NaN joint angles or activations are data
+    (the estimator flags them); a shape that does not add up, a missing id or an impossible mass are not."""
+    found: list[str] = []
+    if isinstance(message, EmgChunk):
+        if not message.source_id:
+            found.append("source_id is empty")
+        if message.n_samples == 0 or message.n_channels == 0:
+            found.append(f"no samples ({message.n_samples} x {message.n_channels})")
+        elif len(message.samples) != message.n_samples * message.n_channels:
+            found.append(f"{len(message.samples)} samples for {message.n_samples} rows x {message.n_channels} channels")
+        if len(message.channel_labels) != message.n_channels:
+            found.append(f"{len(message.channel_labels)} channel labels for {message.n_channels} channels")
+        if not (_finite(message.sample_rate_hz) and message.sample_rate_hz > 0):
+            found.append(f"sample_rate_hz {message.sample_rate_hz} is not a positive rate")
+    elif isinstance(message, ImuSample):
+        if not message.tracker_id:
+            found.append("tracker_id is empty")
+        if not message.HasField("orientation"):
+            found.append("no orientation")
+    elif isinstance(message, JointAngles):
+        n = len(message.coordinates)
+        if n == 0:
+            found.append("no coordinates")
+        if len(message.q) != n:
+            found.append(f"{len(message.q)} angles for {n} coordinates")
+        for name in ("qd", "qdd"):
+            if len(getattr(message, name)) not in (0, n):
+                found.append(f"{len(getattr(message, name))} values of {name} for {n} coordinates")
+    elif isinstance(message, LoadEvent):
+        if not (_finite(message.barbell_mass_kg) and message.barbell_mass_kg >= 0):
+            found.append(f"barbell_mass_kg {message.barbell_mass_kg} is not a mass >= 0")
+    elif isinstance(message, ActivationFrame):
+        if not message.method:
+            found.append("method is empty")
+        if len(message.activations) != len(message.groups):
+            found.append(f"{len(message.activations)} activations for {len(message.groups)} groups")
+    elif isinstance(message, EmgEnvelope):
+        if len(message.envelope) != len(message.groups):
+            found.append(f"{len(message.envelope)} envelope values for {len(message.groups)} groups")
+    elif isinstance(message, DeviceStatus):
+        if not message.device_id:
+            found.append("device_id is empty")
+    return found
 
 
 def file_descriptor_set() -> bytes:

@@ -97,16 +97,20 @@ class JointAngles(_message.Message):
     def __init__(self, coordinates: _Optional[_Iterable[str]] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., qdd: _Optional[_Iterable[float]] = ..., phase: _Optional[float] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
 
 class LoadEvent(_message.Message):
-    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns")
+    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete")
     BARBELL_MASS_KG_FIELD_NUMBER: _ClassVar[int]
     EXERCISE_FIELD_NUMBER: _ClassVar[int]
     DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
     HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    SET_NUMBER_FIELD_NUMBER: _ClassVar[int]
+    ATHLETE_FIELD_NUMBER: _ClassVar[int]
     barbell_mass_kg: float
     exercise: str
     device_time_ns: int
     host_time_ns: int
-    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
+    set_number: int
+    athlete: str
+    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ...) -> None: ...
 
 class CoordinateTorque(_message.Message):
     __slots__ = ("coordinate", "inverse_dynamics_nm", "model_nm", "residual_nm")
@@ -121,7 +125,7 @@ class CoordinateTorque(_message.Message):
     def __init__(self, coordinate: _Optional[str] = ..., inverse_dynamics_nm: _Optional[float] = ..., model_nm: _Optional[float] = ..., residual_nm: _Optional[float] = ...) -> None: ...
 
 class ActivationFrame(_message.Message):
-    __slots__ = ("time_s", "method", "groups", "activations", "forces_n", "activation_std", "torques", "solver_status", "iterations", "solve_time_s", "input_arrival_ns", "publish_ns", "flags", "phase", "measured_envelope")
+    __slots__ = ("time_s", "method", "groups", "activations", "forces_n", "activation_std", "torques", "solver_status", "iterations", "solve_time_s", "input_arrival_ns", "publish_ns", "flags", "phase", "measured_envelope", "exercise")
     TIME_S_FIELD_NUMBER: _ClassVar[int]
     METHOD_FIELD_NUMBER: _ClassVar[int]
     GROUPS_FIELD_NUMBER: _ClassVar[int]
@@ -137,6 +141,7 @@ class ActivationFrame(_message.Message):
     FLAGS_FIELD_NUMBER: _ClassVar[int]
     PHASE_FIELD_NUMBER: _ClassVar[int]
     MEASURED_ENVELOPE_FIELD_NUMBER: _ClassVar[int]
+    EXERCISE_FIELD_NUMBER: _ClassVar[int]
     time_s: float
     method: str
     groups: _containers.RepeatedScalarFieldContainer[str]
@@ -152,7 +157,8 @@ class ActivationFrame(_message.Message):
     flags: _containers.RepeatedScalarFieldContainer[str]
     phase: float
     measured_envelope: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, time_s: _Optional[float] = ..., method: _Optional[str] = ..., groups: _Optional[_Iterable[str]] = ..., activations: _Optional[_Iterable[float]] = ..., forces_n: _Optional[_Iterable[float]] = ..., activation_std: _Optional[_Iterable[float]] = ..., torques: _Optional[_Iterable[_Union[CoordinateTorque, _Mapping]]] = ..., solver_status: _Optional[str] = ..., iterations: _Optional[int] = ..., solve_time_s: _Optional[float] = ..., input_arrival_ns: _Optional[int] = ..., publish_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ..., phase: _Optional[float] = ..., measured_envelope: _Optional[_Iterable[float]] = ...) -> None: ...
+    exercise: str
+    def __init__(self, time_s: _Optional[float] = ..., method: _Optional[str] = ..., groups: _Optional[_Iterable[str]] = ..., activations: _Optional[_Iterable[float]] = ..., forces_n: _Optional[_Iterable[float]] = ..., activation_std: _Optional[_Iterable[float]] = ..., torques: _Optional[_Iterable[_Union[CoordinateTorque, _Mapping]]] = ..., solver_status: _Optional[str] = ..., iterations: _Optional[int] = ..., solve_time_s: _Optional[float] = ..., input_arrival_ns: _Optional[int] = ..., publish_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ..., phase: _Optional[float] = ..., measured_envelope: _Optional[_Iterable[float]] = ..., exercise: _Optional[str] = ...) -> None: ...
 
 class EmgEnvelope(_message.Message):
     __slots__ = ("time_s", "groups", "envelope", "device_time_ns", "host_time_ns", "flags")
@@ -171,7 +177,7 @@ class EmgEnvelope(_message.Message):
     def __init__(self, time_s: _Optional[float] = ..., groups: _Optional[_Iterable[str]] = ..., envelope: _Optional[_Iterable[float]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class DeviceStatus(_message.Message):
-    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns")
+    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped")
     DEVICE_ID_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     CONNECTED_FIELD_NUMBER: _ClassVar[int]
@@ -180,6 +186,7 @@ class DeviceStatus(_message.Message):
     ERRORS_FIELD_NUMBER: _ClassVar[int]
     LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
     HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_FIELD_NUMBER: _ClassVar[int]
     device_id: str
     kind: str
     connected: bool
@@ -188,4 +195,15 @@ class DeviceStatus(_message.Message):
     errors: int
     last_error: str
     host_time_ns: int
-    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
+    dropped: _containers.RepeatedCompositeFieldContainer[InputDrop]
+    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ...) -> None: ...
+
+class InputDrop(_message.Message):
+    __slots__ = ("key", "reason", "count")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    key: str
+    reason: str
+    count: int
+    def __init__(self, key: _Optional[str] = ..., reason: _Optional[str] = ..., count: _Optional[int] = ...) -> None: ...
