@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import bisect
 import logging
-import queue
 import signal
 import sys
 import threading
@@ -29,9 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import zenoh
-
-from msk_core.errors import ConfigError
+from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.frame import FrameResult
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, LiveEmg
@@ -39,7 +36,9 @@ from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import GRAVITY
 from services import messages, topics
+from msk_core.model.pack import available_packs
 from services.graph import ReadySpec, declare_ready
+from services.node_runtime import InputCounts, NodeInputs, StatusReporter
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -53,6 +52,7 @@ log = logging.getLogger(__name__)
 
 
 SOLVERS = ("active-set", "piqp")
+NODE_NAME = "estimator"
 
 
 @dataclass
@@ -65,6 +65,7 @@ class EstimatorStats:
     rejected: int = 0  # input frames whose coordinates do not match the pack
     other_exercise: int = 0  # frames skipped while a LoadEvent says another exercise is under way
     last_error: str = ""
+    inputs: InputCounts | None = None  # received and dropped inputs per key (services.node_runtime)
     emg_chunks: int = 0
     envelopes_out: int = 0
     emg_flags: dict[str, int] = field(default_factory=dict)  # frames carrying each EMG flag
@@ -200,9 +201,10 @@ class EstimatorNode:
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
         # name.
         self.exercise = exercise if exercise is not None else first.pack.name
+        self.known_exercises = {*available_packs(), self.exercise, first.pack.name}
 
-    def handle_emg(self, payload: bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
-        chunk = messages.decode("msk.EmgChunk", payload)
+    def handle_emg(self, chunk: messages.EmgChunk | bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
+        chunk = messages.as_message("msk.EmgChunk", chunk)
         self.stats.emg_chunks += 1
         block = self.live_emg.add_chunk(
             chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
@@ -214,23 +216,33 @@ class EstimatorNode:
         self.stats.envelopes_out += 1
         return emg_to_envelope(block, arrival_ns)
 
-    def handle_load(self, payload: bytes) -> None:
-        event = messages.decode("msk.LoadEvent", payload)
+    def handle_load(self, event: messages.LoadEvent | bytes) -> None:
+        """Apply a load event; one naming an exercise no pack has is refused (:class:`ConfigError`), since it would
+        stop the estimates of this pack while nothing is estimated for that exercise."""
+        event = messages.as_message("msk.LoadEvent", event)
+        if event.exercise and event.exercise not in self.known_exercises:
+            raise ConfigError(f"load event names an exercise that is not a model pack (known: "
+                              f"{', '.join(sorted(self.known_exercises))})", field="LoadEvent.exercise",
+                              value=event.exercise)
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
 
-    def handle_joints(self, payload: bytes, arrival_ns: int) -> list[tuple[str, messages.ActivationFrame]]:
+    def handle_joints(self, payload: messages.JointAngles | bytes, arrival_ns: int) -> list[tuple[str, messages.ActivationFrame]]:
         """(method, frame) for every method; empty when the frame is skipped (other exercise, wrong coordinates)."""
         return list(self.frames_for_joints(payload, arrival_ns))
 
-    def frames_for_joints(self, payload: bytes, arrival_ns: int) -> Iterator[tuple[str, messages.ActivationFrame]]:
+    def frames_for_joints(self, joints: messages.JointAngles | bytes, arrival_ns: int
+                          ) -> Iterator[tuple[str, messages.ActivationFrame]]:
         """:meth:`handle_joints` one method at a time, so each frame can be published as soon as it is solved."""
         stats = self.stats
         stats.frames_in += 1
-        joints = messages.decode("msk.JointAngles", payload)
+        joints = messages.as_message("msk.JointAngles", joints)
         load_kg, current_exercise = self.loads.at(joints.device_time_ns)
         if current_exercise and current_exercise != self.exercise:
             stats.other_exercise += 1
+            if stats.other_exercise == 1:
+                log.info("load events say %r is under way: frames are not estimated with pack %r until the "
+                         "exercise changes back", current_exercise, self.exercise)
             return
         try:
             q, qd, qdd = (self.mapper.take(joints, f) for f in ("q", "qd", "qdd"))
@@ -250,6 +262,7 @@ class EstimatorNode:
             result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
             frame = to_message(result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
                                time_s=time_s, arrival_ns=arrival_ns)
+            frame.exercise = self.exercise
             if envelope is not None:
                 frame.measured_envelope.extend(envelope.tolist())
                 frame.flags.extend(emg_flags)
@@ -291,50 +304,61 @@ def main(
     subject = SubjectProfile.load(subject_path) if subject_path is not None else None
     node = EstimatorNode(pack, methods, subject, stats, emg=emg, electrode_map=electrode_map, emg_clock=emg_clock,
                          emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver)
-    inbox: queue.SimpleQueue = queue.SimpleQueue()
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        if key in (joints_key, load_key):
-            inbox.put(("load" if key == load_key else "joints", messages.now_ns(), sample.payload.to_bytes()))
-
-    def on_emg(sample: zenoh.Sample) -> None:
-        inbox.put(("emg", messages.now_ns(), sample.payload.to_bytes()))
 
     with open_session(config) as zsession:
         publishers = {
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
-        # One subscriber for both keys keeps load events and frames in their publication order.
-        subscribers = [zsession.declare_subscriber(f"{topics.session_prefix(session)}/*", on_sample)]
+        inputs = NodeInputs(zsession, NODE_NAME)
+        reporter = StatusReporter(zsession, session, NODE_NAME, inputs.counts)
+        stats.inputs = inputs.counts
+        # exact keys, as the estimator role's access control allows them (services.session_graph)
+        inputs.subscribe(joints_key)
+        inputs.subscribe(load_key)
         envelope_publisher = None
         if node.live_emg is not None:
             envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
-            subscribers.append(zsession.declare_subscriber(f"{topics.session_prefix(session)}/emg/**", on_emg))
+            inputs.subscribe(f"{topics.session_prefix(session)}/emg/*")
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
-        try:
-            while not stop_event.is_set():
-                try:
-                    kind, arrival_ns, payload = inbox.get(timeout=0.05)
-                except queue.Empty:
-                    continue
-                if kind == "emg":
-                    envelope = node.handle_emg(payload, arrival_ns)
-                    if envelope is not None:
-                        publish(envelope_publisher, envelope)
-                elif kind == "load":
-                    node.handle_load(payload)
-                else:
-                    for method, frame in node.frames_for_joints(payload, arrival_ns):  # each out as soon as solved
+        reporter.tick(force=True)
+
+        def handle(item) -> None:
+            try:
+                if item.key == load_key:
+                    node.handle_load(item.message)
+                elif item.key == joints_key:
+                    for method, frame in node.frames_for_joints(item.message, item.arrival_ns):  # each out when solved
                         frame.publish_ns = messages.now_ns()
                         publish(publishers[method], frame)
                     stats.frames_done += 1
+                else:
+                    envelope = node.handle_emg(item.message, item.arrival_ns)
+                    if envelope is not None:
+                        publish(envelope_publisher, envelope)
+            except MskError as error:  # an input this node cannot use: counted, said once per kind, the node goes on
+                reporter.error(f"{item.key}: {error}")
+                stats.last_error = str(error)
+                kind = (item.key, type(error).__name__)
+                if kind not in said:
+                    said.add(kind)
+                    log.error("input on %s not used: %s (further ones counted in msk/%s/status/%s)", item.key,
+                              error, session, NODE_NAME)
+
+        said: set[tuple[str, str]] = set()
+        try:
+            while not stop_event.is_set():
+                item = inputs.get(0.05)
+                if item is not None:
+                    handle(item)
+                reporter.tick()
         finally:
-            for subscriber in subscribers:
-                subscriber.undeclare()
+            inputs.close()
+            for item in inputs.drain():  # what had arrived before the stop is still answered
+                handle(item)
+            reporter.final()
     return stats
 
 
@@ -393,7 +417,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
         emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready, solver=args.solver,
     )
+    dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
+          f"; inputs dropped {dropped or 'none'}"
           + (f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
              f"frames flagged {stats.emg_flags or 'none'}" if stats.emg is not None else ""), file=sys.stderr)
     return 0

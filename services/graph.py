@@ -36,7 +36,7 @@ from services.zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger(__name__)
 
-GRAPH_CHUNK = "graph"
+GRAPH_CHUNK = topics.GRAPH_CHUNK
 
 
 class GraphTimeout(MskError):

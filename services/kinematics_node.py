@@ -15,7 +15,6 @@ import argparse
 import json
 import logging
 import math
-import queue
 import signal
 import sys
 import threading
@@ -23,7 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from drivers.xsens.frames import to_enu
 from drivers.xsens.xbus import CoordinateFrame
@@ -35,6 +33,7 @@ from msk_core.model import load_pack
 from msk_core.signal.reps import RepTemplate
 from services import messages, topics
 from services.graph import ReadySpec, declare_ready
+from services.node_runtime import InputCounts, NodeInputs, StatusReporter
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -45,6 +44,7 @@ from services.zenoh_session import (
 )
 
 log = logging.getLogger(__name__)
+NODE_NAME = "kinematics"
 
 
 @dataclass
@@ -67,6 +67,7 @@ class KinematicsStats:
     frames_out: int = 0
     samples_done: int = 0  # samples whose joint frames (if any) are published: a waiter's exact end condition
     last_error: str = ""
+    inputs: InputCounts | None = None  # received and dropped inputs per key (services.node_runtime)
 
 
 def load_template(path: Path) -> RepTemplate:
@@ -117,7 +118,7 @@ class KinematicsNode:
         self.coordinates = list(self.mapper.coordinates)
         self.prefix = f"{topics.session_prefix(session)}/imu/"
 
-    def handle(self, key: str, payload: bytes) -> list[messages.JointAngles]:
+    def handle(self, key: str, payload: messages.ImuSample | bytes) -> list[messages.JointAngles]:
         """One IMU message in; the joint-angle frames it completes out. A bad sample is counted, never raised."""
         try:
             return self._handle(key, payload)
@@ -128,11 +129,11 @@ class KinematicsNode:
                 log.error("%s", self.stats.last_error)
             return []
 
-    def _handle(self, key: str, payload: bytes) -> list[messages.JointAngles]:
+    def _handle(self, key: str, payload: messages.ImuSample | bytes) -> list[messages.JointAngles]:
         stats = self.stats
         stats.samples_in += 1
         try:
-            imu = messages.decode("msk.ImuSample", payload)
+            imu = messages.as_message("msk.ImuSample", payload)
         except messages.MessageDecodeError as exc:
             stats.undecodable += 1
             stats.last_error = f"{key}: {exc}"
@@ -220,37 +221,36 @@ def main(
                           static_s=static_s, gap_s=gap_s, sync_tolerance_s=sync_tolerance_s, max_wait_s=max_wait_s,
                           filter_config=filter_config, phase_template=phase_template,
                           phase_coordinate=phase_coordinate, clock=clock)
-    inbox: queue.SimpleQueue = queue.SimpleQueue()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
-
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
-        subscriber = zsession.declare_subscriber(f"{node.prefix}*", on_sample)
+        inputs = NodeInputs(zsession, NODE_NAME, expected_type="msk.ImuSample")
+        reporter = StatusReporter(zsession, output_session or session, NODE_NAME, inputs.counts)
+        stats.inputs = inputs.counts
+        inputs.subscribe(f"{node.prefix}*")
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
+        reporter.tick(force=True)
 
-        def process(key: str, payload: bytes) -> None:
-            for joints in node.handle(key, payload):
+        def process(item) -> None:
+            rejected = stats.rejected
+            for joints in node.handle(item.key, item.message):
                 publish(publisher, joints)
+            if stats.rejected != rejected:
+                reporter.error(stats.last_error)
             stats.samples_done += 1
 
         try:
             while not stop_event.is_set():
-                try:
-                    key, payload = inbox.get(timeout=0.05)
-                except queue.Empty:
-                    continue
-                process(key, payload)
+                item = inputs.get(0.05)
+                if item is not None:
+                    process(item)
+                reporter.tick()
         finally:
-            subscriber.undeclare()
-            while True:  # what already arrived is still processed and published: nothing received is lost
-                try:
-                    process(*inbox.get_nowait())
-                except queue.Empty:
-                    break
+            inputs.close()
+            for item in inputs.drain():  # what already arrived is still processed and published: nothing is lost
+                process(item)
+            reporter.final()
     return stats
 
 

@@ -65,6 +65,13 @@ def decode(name: str, payload: bytes) -> Message:
     return message
 
 
+def as_message(name: str, message_or_payload: Message | bytes) -> Message:
+    """Handlers take decoded messages (the node runtime decodes); bytes are decoded here (tests, tools)."""
+    if isinstance(message_or_payload, (bytes, bytearray, memoryview)):
+        return decode(name, bytes(message_or_payload))
+    return message_or_payload
+
+
 def has_unknown_fields(message: Message) -> bool:
     """True when the parsed bytes held fields the type does not define (another type's bytes, or garbage)."""
     size = message.ByteSize()
@@ -93,9 +100,7 @@ def problems(message: Message) -> list[str]:
             found.append(f"{len(message.channel_labels)} channel labels for {message.n_channels} channels")
         if not (_finite(message.sample_rate_hz) and message.sample_rate_hz > 0):
             found.append(f"sample_rate_hz {message.sample_rate_hz} is not a positive rate")
-    elif isinstance(message, ImuSample):
-        if not message.tracker_id:
-            found.append("tracker_id is empty")
+    elif isinstance(message, ImuSample):  # the tracker is also in the key: an empty tracker_id is tolerated
         if not message.HasField("orientation"):
             found.append("no orientation")
     elif isinstance(message, JointAngles):

@@ -5,15 +5,11 @@ certificate signed by the deployment's CA (mutual TLS); the common name (CN) of 
 role, and the router's ``access_control`` section says what each role may publish and subscribe to. Nothing is
 allowed by default. ``msk certs`` writes the CA, the certificates and these configs; docs/deployment.md explains them.
 
-Roles (CN ``msk-<role>``):
-
-* ``driver``     publishes device data: ``msk/*/emg/**``, ``msk/*/imu/**``, ``msk/*/status/**``
-* ``kinematics`` reads IMU, publishes ``msk/*/joints``
-* ``estimator``  reads EMG, joints, load and status, publishes ``msk/*/activations/**``
-* ``recorder``   reads everything (``msk/**``), publishes nothing
-* ``operator``   publishes ``msk/*/load`` (barbell changes) and reads everything
-* ``tablet``     reads ``msk/*/activations/**`` and ``msk/*/status/**`` only
-* ``replayer``   plays a recording back: device topics, load and joints
+Roles (CN ``msk-<role>``) and what each may publish and read come from the declared session graph
+(``services.session_graph``): a role may publish and subscribe to exactly the keys of the nodes that run as it
+(driver, kinematics, estimator, recorder, operator = ``msk live`` itself and a second terminal's tools, tablet,
+replayer), declare their readiness tokens ``msk/<s>/graph/<node>`` and, when it publishes, watch the other nodes'
+tokens. A refused declaration is logged by the router (``RUST_LOG=warn`` shows "denied") and by the node.
 """
 
 from __future__ import annotations
@@ -30,35 +26,42 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from msk_core.errors import ConfigError
-
+from services import session_graph, topics
 from services.zenoh_session import history_selector
+
 CN_PREFIX = "msk-"
 ROUTER_ROLE = "router"
 DEFAULT_TLS_PORT = 7447
 
-DEVICE_KEYS = ("msk/*/emg/**", "msk/*/imu/**", "msk/*/status/**")
-
-
 @dataclass(frozen=True)
 class RolePolicy:
-    """What a role may publish (``put``) and subscribe to (``declare_subscriber``), as Zenoh key expressions."""
+    """What a role may publish (``put``) and subscribe to (``declare_subscriber``), as Zenoh key expressions, and
+    the readiness tokens it declares (``tokens``) or watches (``watch_tokens``)."""
 
     publish: tuple[str, ...]
     subscribe: tuple[str, ...]
+    tokens: tuple[str, ...] = ()
+    watch_tokens: tuple[str, ...] = ()
 
 
-ROLE_POLICIES: dict[str, RolePolicy] = {
-    "driver": RolePolicy(publish=DEVICE_KEYS, subscribe=()),
-    "kinematics": RolePolicy(publish=("msk/*/joints",), subscribe=("msk/*/imu/**", "msk/*/load")),
-    "estimator": RolePolicy(
-        publish=("msk/*/activations/**",),
-        subscribe=("msk/*/emg/**", "msk/*/joints", "msk/*/load", "msk/*/status/**"),
-    ),
-    "recorder": RolePolicy(publish=(), subscribe=("msk/**",)),
-    "operator": RolePolicy(publish=("msk/*/load",), subscribe=("msk/**",)),
-    "tablet": RolePolicy(publish=(), subscribe=("msk/*/activations/**", "msk/*/status/**")),
-    "replayer": RolePolicy(publish=(*DEVICE_KEYS, "msk/*/load", "msk/*/joints"), subscribe=()),
-}
+def _policies_from_graph() -> dict[str, RolePolicy]:
+    prefix = f"{topics.ROOT}/*/"
+
+    def full(keys: tuple[str, ...]) -> tuple[str, ...]:  # every topic: msk/** as the recorder declares it
+        return tuple(topics.ALL_TOPICS if k == session_graph.EVERY_TOPIC else prefix + k for k in keys)
+
+    policies = {}
+    for role, keys in session_graph.role_keys().items():
+        policies[role] = RolePolicy(
+            publish=full(keys.publish),
+            subscribe=full(keys.subscribe),
+            tokens=tuple(prefix + k for k in keys.tokens),
+            watch_tokens=(f"{prefix}{topics.GRAPH_CHUNK}/*",) if keys.watches_tokens else (),
+        )
+    return policies
+
+
+ROLE_POLICIES: dict[str, RolePolicy] = _policies_from_graph()
 
 VALIDITY_DAYS = 825  # browsers' and rustls' comfort limit for leaf certificates
 
@@ -251,6 +254,15 @@ def access_control(roles: dict[str, RolePolicy] = ROLE_POLICIES) -> dict:
                                "key_exprs": history_keys})
             role_rules.append({"id": f"{role}-history-receive", "permission": "allow", "flows": ["egress"],
                                "messages": ["reply", "liveliness_token", "declare_queryable"], "key_exprs": history_keys})
+        if policy.tokens:  # "I am ready": services.graph.declare_ready
+            role_rules.append({"id": f"{role}-ready", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["liveliness_token"], "key_exprs": list(policy.tokens)})
+        if policy.watch_tokens:  # wait for the readers: services.graph.wait_for_nodes
+            role_rules.append({"id": f"{role}-watch-ready", "permission": "allow", "flows": ["ingress"],
+                               "messages": ["declare_liveliness_subscriber", "liveliness_query"],
+                               "key_exprs": list(policy.watch_tokens)})
+            role_rules.append({"id": f"{role}-see-ready", "permission": "allow", "flows": ["egress"],
+                               "messages": ["liveliness_token", "reply"], "key_exprs": list(policy.watch_tokens)})
         rules.extend(role_rules)
         policies.append({"id": role, "rules": [r["id"] for r in role_rules], "subjects": [role]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}

@@ -12,6 +12,8 @@ from msk_core.errors import ConfigError
 
 ROOT = "msk"
 ALL_TOPICS = f"{ROOT}/**"
+#: ``msk/<session>/graph/<node>``: the readiness (liveliness) tokens of a session's nodes (services.graph)
+GRAPH_CHUNK = "graph"
 
 _CHUNK = re.compile(r"^[A-Za-z0-9_\-.]+$")
 
