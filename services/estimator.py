@@ -310,8 +310,8 @@ def main(
         publishers = {
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
-        inputs = NodeInputs(zsession, NODE_NAME)
-        reporter = StatusReporter(zsession, session, NODE_NAME, inputs.counts)
+        inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
+        reporter = StatusReporter(zsession, session, NODE_NAME, inputs.counts, inputs)
         stats.inputs = inputs.counts
         # exact keys, as the estimator role's access control allows them (services.session_graph)
         inputs.subscribe(joints_key)

@@ -148,11 +148,15 @@ class Graph:
     joins them (bounded), so a recorder closes its MCAP.
     """
 
-    def __init__(self, session: str, endpoint: str, *, external_listener: bool = False) -> None:
-        """``external_listener``: someone else (e.g. the caller's own session) listens on ``endpoint``; every node
-        connects to it."""
+    def __init__(self, session: str, endpoint: str, *, external_listener: bool = False,
+                 role_configs: Callable[[str], Path] | None = None, observer_role: str = "operator") -> None:
+        """``external_listener``: someone else (e.g. the caller's own session, a router) listens on ``endpoint``;
+        every node connects to it. ``role_configs``: the secured mode; each member joins with the Zenoh config file
+        of its role (TLS client of the router, ``services.security``), ``observer_role``'s for the readiness check."""
         self.session = topics.check_chunk(session, "session")
         self.endpoint = endpoint
+        self.role_configs = role_configs
+        self.observer_role = observer_role
         self.stop_event = threading.Event()
         self._threads: list[_ThreadNode] = []
         self._processes: list[_ProcessNode] = []
@@ -164,20 +168,26 @@ class Graph:
     def nodes(self) -> list[str]:
         return [n.name for n in self._threads] + [n.name for n in self._processes]
 
-    def options(self) -> ZenohOptions:
-        """Zenoh options for the next member: the first listens on the endpoint, the rest connect to it."""
+    def options(self, role: str | None = None) -> ZenohOptions:
+        """Zenoh options for the next member: the first listens on the endpoint, the rest connect to it; in the
+        secured mode, the config of ``role``."""
+        if self.role_configs is not None:
+            if role is None:
+                raise GraphTimeout("a member of a secured graph needs a role")  # a programming error, said plainly
+            return ZenohOptions(mode=None, config_file=self.role_configs(role))
         if not self._listening:
             self._listening = True
             return ZenohOptions(listen=(self.endpoint,))
         return ZenohOptions(connect=(self.endpoint,))
 
-    def add_thread(self, name: str, target: Callable, *args, after: Sequence[str] = (), **kwargs) -> None:
+    def add_thread(self, name: str, target: Callable, *args, after: Sequence[str] = (), role: str | None = None,
+                   **kwargs) -> None:
         """Run ``target(options, *args, **kwargs, stop_event=, ready_event=, ready_key=)`` in a thread.
 
         ``after``: the nodes this one publishes to (see :class:`ReadySpec`)."""
         ready = threading.Event()
         node = _ThreadNode(name, None, ready)  # type: ignore[arg-type]
-        options = self.options()
+        options = self.options(role)
 
         def run() -> None:
             try:
@@ -193,13 +203,14 @@ class Graph:
         self._threads.append(node)
 
     def add_process(self, name: str, argv: Sequence[str], *, after: Sequence[str] = (), log_path: Path | None = None,
-                    env: dict[str, str] | None = None, own_session: bool = False) -> subprocess.Popen:
+                    env: dict[str, str] | None = None, own_session: bool = False,
+                    role: str | None = None) -> subprocess.Popen:
         """Start ``argv`` (its Zenoh flags, ``--ready-key`` and ``--ready-after`` appended) as a separate process.
 
         ``own_session``: in its own process group, so a Ctrl-C in the terminal reaches only the caller, which then
         stops the nodes in the order it chooses (``msk live``)."""
-        options = self.options()
-        flags = [f"--listen={e}" for e in options.listen] + [f"--connect={e}" for e in options.connect]
+        options = self.options(role)
+        flags = zenoh_flags(options)
         flags += [f"--ready-after={n}" for n in after]
         out = open(log_path, "wb") if log_path is not None else subprocess.DEVNULL
         process = subprocess.Popen(
@@ -225,13 +236,19 @@ class Graph:
             if node.process.poll() is not None:
                 raise GraphTimeout(f"node {node.name} exited with code {node.process.returncode} before it was ready"
                                    + self._log_tail(node))
-        with open_session(ZenohOptions(connect=(self.endpoint,))) as zsession:
+        with open_session(self.observer_options()) as zsession:
             try:
                 wait_for_nodes(zsession, self.session, self.nodes, max(0.1, started + timeout_s - time.monotonic()))
             except GraphTimeout as error:
                 dead = [f"{n.name} (exit {n.process.returncode})" for n in self._processes if n.process.poll() is not None]
                 raise GraphTimeout(f"{error}" + (f"; exited: {dead}" if dead else "")) from None
         return time.monotonic() - started
+
+    def observer_options(self) -> ZenohOptions:
+        """How a client that watches the graph (readiness, ``msk live``'s view) joins it."""
+        if self.role_configs is not None:
+            return ZenohOptions(mode=None, config_file=self.role_configs(self.observer_role))
+        return ZenohOptions(connect=(self.endpoint,))
 
     def failed(self) -> list[str]:
         """Nodes that stopped with an error (threads) or exited (processes) while the graph runs."""
@@ -279,6 +296,16 @@ class Graph:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def zenoh_flags(options: ZenohOptions) -> list[str]:
+    """The command-line flags (services.zenoh_session.add_zenoh_arguments) that give a process ``options``."""
+    flags = [f"--listen={e}" for e in options.listen] + [f"--connect={e}" for e in options.connect]
+    if options.config_file is not None:
+        flags.append(f"--zenoh-config={options.config_file}")
+    if options.mode is not None and options.config_file is None:
+        flags.append(f"--mode={options.mode}")
+    return flags
 
 
 def python_module(module: str, *args: str) -> list[str]:

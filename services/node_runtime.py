@@ -154,8 +154,14 @@ class NodeInputs:
     """
 
     def __init__(self, zsession: zenoh.Session, node: str, *, max_payload_bytes: int = MAX_PAYLOAD_BYTES,
-                 max_queue: int = MAX_QUEUE, expected_type: str | None = None, keep_rejected: bool = False) -> None:
+                 max_queue: int = MAX_QUEUE, expected_type: str | None = None, keep_rejected: bool = False,
+                 role: str | None = None) -> None:
+        """``role``: the access-control role the node joined with (``ZenohOptions.role``); a subscription the
+        router would refuse to it is said at once (log and :attr:`refusals`), as the router says it only in its
+        trace log."""
         self.node = node
+        self.role = role
+        self.refusals: list[str] = []
         self._keep_rejected = keep_rejected
         self.counts = InputCounts()
         self._zsession = zsession
@@ -166,6 +172,13 @@ class NodeInputs:
         self._closed = False
 
     def subscribe(self, key_expr: str) -> None:
+        if self.role is not None:
+            from services.security import refused
+
+            reason = refused(self.role, "subscribe", key_expr)
+            if reason is not None:
+                self.refusals.append(reason)
+                log.error("%s: subscription refused by the router's access control: %s", self.node, reason)
         self._subscribers.append(self._zsession.declare_subscriber(key_expr, self._on_sample))
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -232,11 +245,13 @@ class StatusReporter:
     """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: at start, at most every
     :data:`STATUS_PERIOD_S` while anything changed, and once more (``connected`` False) at stop."""
 
-    def __init__(self, zsession: zenoh.Session, session: str, node: str, counts: InputCounts) -> None:
+    def __init__(self, zsession: zenoh.Session, session: str, node: str, counts: InputCounts,
+                 inputs: NodeInputs | None = None) -> None:
         self.node = node
         self.counts = counts
         self.errors = 0
         self.last_error = ""
+        self._inputs = inputs  # its refusals count as errors: a node its role does not let read what it needs
         self._publisher = declare_data_publisher(zsession, topics.status_key(session, node), "msk.DeviceStatus")
         self._last_sent = 0.0
         self._last_state: tuple | None = None
@@ -247,10 +262,12 @@ class StatusReporter:
         self.last_error = text
 
     def message(self, connected: bool = True) -> messages.DeviceStatus:
+        refusals = self._inputs.refusals if self._inputs is not None else []
         return messages.DeviceStatus(
             device_id=self.node, kind="node", connected=connected,
             samples_received=sum(self.counts.received.values()), samples_lost=self.counts.total_dropped,
-            errors=self.errors, last_error=self.last_error, host_time_ns=messages.now_ns(),
+            errors=self.errors + len(refusals), last_error=self.last_error or (refusals[-1] if refusals else ""),
+            host_time_ns=messages.now_ns(),
             dropped=self.counts.drops(),
         )
 

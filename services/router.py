@@ -16,6 +16,8 @@ import threading
 import time
 from dataclasses import replace
 
+import zenoh
+
 from services.zenoh_session import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_arguments, open_session, options_from_args
 
 
@@ -56,6 +58,8 @@ def main(
 ) -> str:
     """Run a router until ``stop_event`` is set or ``duration_s`` elapses; returns its Zenoh id."""
     stop_event = stop_event or threading.Event()
+    # Zenoh's own log (RUST_LOG, default warn): the access control says there which declaration it refused to whom
+    zenoh.init_log_from_env_or("warn")
     with open_session(router_options(config)) as session:
         zid = str(session.zid())
         print(f"router {zid} up", file=sys.stderr, flush=True)

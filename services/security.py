@@ -63,6 +63,34 @@ def _policies_from_graph() -> dict[str, RolePolicy]:
 
 ROLE_POLICIES: dict[str, RolePolicy] = _policies_from_graph()
 
+def refused(role: str, action: str, key: str) -> str | None:
+    """Why the router refuses ``role`` to ``action`` ("publish" or "subscribe") on ``key``; None when allowed. The
+    router itself says so only in its trace log: nodes ask here first, so a refusal is said plainly where it happens."""
+    import zenoh
+
+    policy = ROLE_POLICIES.get(role)
+    if policy is None:
+        return f"role {role!r} is not a role of services/security.py; the router refuses it everything"
+    allowed = policy.publish if action == "publish" else policy.subscribe
+    if any(zenoh.KeyExpr(a).includes(zenoh.KeyExpr(key)) for a in allowed):
+        return None
+    return f"role {role!r} may {action} only {list(allowed) or 'nothing'}; the router refuses {key}"
+
+
+def role_of_config(config_file: Path | str) -> str | None:
+    """The role a node joins with: the CN of the client certificate its Zenoh config names (None: not a secured
+    config of ``write_configs``)."""
+    try:
+        document = json.loads(Path(config_file).read_text())
+        certificate = Path(document["transport"]["link"]["tls"]["connect_certificate"])
+        subject = x509.load_pem_x509_certificate(certificate.read_bytes()).subject
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    names = subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    name = str(names[0].value) if names else ""
+    return name[len(CN_PREFIX):] if name.startswith(CN_PREFIX) else None
+
+
 VALIDITY_DAYS = 825  # browsers' and rustls' comfort limit for leaf certificates
 
 

@@ -40,6 +40,15 @@ class ZenohOptions:
     config_file: Path | None = None
     multicast_scouting: bool = False
 
+    @property
+    def role(self) -> str | None:
+        """The access-control role this node joins with (secured configs of ``msk certs``), else None."""
+        if self.config_file is None:
+            return None
+        from services.security import role_of_config  # security builds on this module
+
+        return role_of_config(self.config_file)
+
     def to_config(self) -> zenoh.Config:
         if self.config_file is not None:
             path = Path(self.config_file)
@@ -58,7 +67,7 @@ class ZenohOptions:
             config.insert_json5("mode", json.dumps(mode))
         connect, listen = list(self.connect), list(self.listen)
         if self.config_file is None and not connect and not listen:
-            if _endpoint_is_free(DEFAULT_ENDPOINT):
+            if endpoint_is_free(DEFAULT_ENDPOINT):
                 listen = [DEFAULT_ENDPOINT]
             else:
                 connect = [DEFAULT_ENDPOINT]
@@ -73,7 +82,7 @@ class ZenohOptions:
         return config
 
 
-def _endpoint_is_free(endpoint: str) -> bool:
+def endpoint_is_free(endpoint: str) -> bool:
     proto, _, address = endpoint.partition("/")
     if proto != "tcp":
         return True
