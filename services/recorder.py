@@ -1,7 +1,18 @@
 """Recorder node: subscribes to ``msk/**`` and logs every message to an MCAP file, one channel per key.
 
-Zenoh callbacks only enqueue (receive time stamped on arrival); one writer thread serialises to disk, so a slow disk
-never stalls the network threads. Run ``python -m services.recorder --out FILE.mcap`` or ``msk recorder``.
+Inputs come through :class:`services.node_runtime.NodeInputs` like every node's (``keep_rejected=True``): Zenoh
+callbacks only enqueue (receive time stamped on arrival); this node's thread checks each payload against its topic's
+type and serialises to disk, so a slow disk never stalls the network threads. Run
+``python -m services.recorder --out FILE.mcap`` or ``msk recorder``.
+
+Typed channels hold messages only: a payload that fails the checks of :func:`services.node_runtime.check_payload`
+(garbage, another type's bytes, a message failing its type's checks, a key outside the topic table) goes into a
+channel of its own per key and reason, without a schema and labelled with the reason
+(:meth:`services.mcap_io.McapRecorderWriter.write_rejected`), which :func:`services.mcap_io.read_messages`, and so
+``msk report`` and ``msk replay``, leave out. A payload larger than :data:`services.node_runtime.MAX_PAYLOAD_BYTES`
+is never copied, only counted. The counts per key and reason travel in the recorder's status on
+``msk/<session>/status/recorder`` (:class:`services.node_runtime.StatusReporter`; the session of the graph, of
+``--key`` or ``--session``), and its last status is written into the file at stop.
 
 Crashes: a chunk is completed and handed to the OS at least every ``--flush-interval`` seconds (also when data
 pauses), so a recorder killed with SIGKILL loses at most what arrived in that interval. Started again with the same
@@ -11,7 +22,22 @@ leaves out what the previous files already hold, so the parts join without a gap
 
 History and live samples are merged per key by :class:`HistoryMerge`: the live samples of a key wait until that
 key's history is in (the first fetch at start, or a fetch on the first live sample of a key that appears later),
-then whatever both delivered is written once, in publishing order.
+then the history is written, then the live samples, in publishing order.
+
+What is left out as recorded already. Zenoh delivers each publication once to a subscription, so live samples are
+never compared with one another: identical messages (a publisher that leaves ``host_time_ns`` unset) are as many
+messages, and each is written. A copy can only come from a history fetch, compared by payload digest and occurrence
+(each recorded occurrence cancels one copy, never more):
+
+* against the previous parts: a cache sends again the newest messages those parts end with, so per key the oldest
+  history samples that match the last :data:`DEVICE_HISTORY_SAMPLES` messages of the parts
+  (:func:`recorded_tail_in`) are left out;
+* against the live stream: a sample published between the subscription and the cache's answer comes both ways, so
+  per key the newest history samples that match a live sample held for this fetch and received before the fetch
+  returned are left out (the live copy is written, with its true arrival time).
+
+Messages that carry their host time or a sample index (every driver node's) are therefore never confused. Identical
+bytes can be: a cache holding more copies than the file tail or the overlap holds loses as many as those hold.
 """
 
 from __future__ import annotations
@@ -25,16 +51,27 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
+from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
 from services import messages, topics
 from services.graph import ReadySpec, declare_ready
-from services.mcap_io import McapRecorderWriter, device_time_ns
-from services.mcap_io import read_messages
+from services.mcap_io import REJECTED_REASON, McapRecorderWriter, device_time_ns, read_messages
+from services.node_runtime import (
+    MAX_PAYLOAD_BYTES,
+    DropReason,
+    Inbound,
+    InputCounts,
+    NodeInputs,
+    Rejected,
+    StatusReporter,
+    check_payload,
+)
 from services.zenoh_session import (
     DEVICE_HISTORY_SAMPLES,
     ZenohOptions,
@@ -47,29 +84,36 @@ from services.zenoh_session import (
 )
 
 DEFAULT_HISTORY_TIMEOUT_S = 10.0
+NODE_NAME = "recorder"
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class RecorderStats:
-    received: int = 0
-    written: int = 0
-    skipped_unknown: int = 0
-    undecodable: int = 0
-    already_recorded: int = 0  # samples written already (by the previous parts, or live and history both)
+    received: int = 0  # inputs handed to the file (after leaving out what was recorded already)
+    written: int = 0  # messages written to the typed channels
+    rejected: int = 0  # payloads kept in the rejected channels (services.mcap_io.McapRecorderWriter.write_rejected)
+    already_recorded: int = 0  # history samples written already (by the previous parts, or live too)
     history_fetched: int = 0  # samples the publishers' caches sent
     history_fetches: int = 0
     history_errors: int = 0
+    inputs: InputCounts | None = None  # received and dropped per key and reason (the recorder's status)
 
 
-def resolve_type(key: str, sample_type: str | None) -> str | None:
-    """Message type from the sample's encoding schema, else from the topic table."""
-    if sample_type in messages.MESSAGE_TYPES:
-        return sample_type
+def status_session(key_expr: str, ready_key: ReadySpec | None, session: str | None = None) -> str | None:
+    """The session whose ``status/recorder`` key the recorder reports on: ``session``, else the graph's, else the one
+    ``key_expr`` names (``msk/<session>/**``); None when it records several sessions and none was given."""
+    if session is not None:
+        return topics.check_chunk(session, "--session")
+    if ready_key is not None:
+        return ready_key.session
+    parts = key_expr.split("/")
+    if len(parts) < 2 or parts[0] != topics.ROOT:
+        return None
     try:
-        return topics.message_type_for_key(key)
-    except ConfigError:  # not an msk/<session>/... key
+        return topics.check_chunk(parts[1], "session")
+    except ConfigError:  # a wildcard: several sessions
         return None
 
 
@@ -86,65 +130,98 @@ def main(
     stats: RecorderStats | None = None,
     history: bool = True,
     history_timeout_s: float = DEFAULT_HISTORY_TIMEOUT_S,
-    already_recorded: dict[str, set[bytes]] | None = None,
+    already_recorded: Mapping[str, Iterable[bytes]] | None = None,
+    session: str | None = None,
+    max_payload_bytes: int = MAX_PAYLOAD_BYTES,
 ) -> RecorderStats:
     """Record until ``duration_s`` elapses or ``stop_event`` is set. ``stats`` (if given) is updated live.
 
     ``history``: first fetch what history publishers keep (each fetch waits at most ``history_timeout_s``);
     ``already_recorded`` (topic -> digests of the last messages of the previous parts, :func:`recorded_tail_in`)
-    drops what those parts hold.
+    drops what those parts hold. ``session``: where the recorder's status goes (:func:`status_session`).
     """
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else RecorderStats()
-    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    reporting_session = status_session(key_expr, ready_key, session)
+    fetched: queue.SimpleQueue[_Fetched] = queue.SimpleQueue()
 
-    def on_sample(sample: zenoh.Sample) -> None:
-        inbox.put(_Item(LIVE, messages.now_ns(), str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes()))
-
-    with open_session(config) as session, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
-        merge = HistoryMerge(lambda item: _write(writer, item, stats), stats, already_recorded=already_recorded)
+    with open_session(config) as zsession, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
+        inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
+        stats.inputs = inputs.counts
+        reporter = (StatusReporter(zsession, reporting_session, NODE_NAME, inputs.counts)
+                    if reporting_session is not None else None)
+        merge = HistoryMerge(lambda item: _write(writer, item, stats, inputs.counts), stats,
+                             already_recorded=already_recorded)
 
         def fetch(scope: str) -> None:  # on its own thread: the main loop goes on writing the other keys
             try:
-                samples, errors = fetch_history(session, scope, timeout_s=history_timeout_s)
+                samples, errors = fetch_history(zsession, scope, timeout_s=history_timeout_s)
             except Exception as error:  # a closed session at shutdown, an access-control refusal...
                 samples, errors = [], [f"{type(error).__name__}: {error}"]
-            received_ns = messages.now_ns()
-            for sample in samples:
-                inbox.put(_Item(HISTORY, received_ns, str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes()))
-            inbox.put(_FetchDone(scope, errors))
+            finished_ns = messages.now_ns()
+            items = [item for sample in samples
+                     if (item := _history_item(sample, finished_ns, inputs.counts, max_payload_bytes)) is not None]
+            fetched.put(_Fetched(scope, tuple(items), errors, finished_ns))
 
-        def start_fetch(scope: str) -> None:
-            threading.Thread(target=fetch, args=(scope,), name=f"history {scope}", daemon=True).start()
+        def start_fetches(scopes: list[str]) -> None:
+            for scope in scopes:
+                threading.Thread(target=fetch, args=(scope,), name=f"history {scope}", daemon=True).start()
 
-        subscriber = session.declare_subscriber(key_expr, on_sample)
+        inputs.subscribe(key_expr)
         if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
             merge.begin_fetch(key_expr, initial=True)
-            start_fetch(key_expr)
-        token = declare_ready(session, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
+            start_fetches([key_expr])
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
+        if reporter is not None:
+            reporter.tick(force=True)
         deadline = None if duration_s is None else time.monotonic() + duration_s
         try:
-            while True:
-                if stop_event.is_set() or (deadline is not None and time.monotonic() >= deadline):
-                    break
-                try:
-                    item = inbox.get(timeout=0.05)
-                except queue.Empty:
+            while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
+                start_fetches(_take_fetched(fetched, inputs, merge, fetch_new_keys=history))
+                inbound = inputs.get(0.05)
+                if inbound is None:
                     writer.flush_if_due()
-                    continue
-                for scope in merge.accept(item, fetch_new_keys=history):
-                    start_fetch(scope)
+                else:
+                    start_fetches(merge.accept(_live_item(inbound), fetch_new_keys=history))
+                if reporter is not None:
+                    reporter.tick()
         finally:
-            subscriber.undeclare()
-            while True:  # drain what already arrived: nothing received is lost on a clean stop
-                try:
-                    merge.accept(inbox.get_nowait(), fetch_new_keys=False)
-                except queue.Empty:
-                    break
+            inputs.close()
+            # nothing received is lost on a clean stop: what is queued, and the fetches that came back meanwhile
+            _take_fetched(fetched, inputs, merge, fetch_new_keys=False)
+            for inbound in inputs.drain():
+                merge.accept(_live_item(inbound), fetch_new_keys=False)
             merge.release_all()  # live samples still waiting for a history that did not come in time
+            if reporter is not None:
+                _record_final_status(writer, reporter, reporting_session)
     return stats
+
+
+def _take_fetched(fetched: queue.SimpleQueue, inputs: NodeInputs, merge: HistoryMerge, *,
+                  fetch_new_keys: bool) -> list[str]:
+    """Hand the fetches that came back to ``merge``, each after the live samples received before it returned (those
+    are the ones its history can hold too). Returns the keys to fetch next."""
+    scopes: list[str] = []
+    while True:
+        try:
+            done = fetched.get_nowait()
+        except queue.Empty:
+            return scopes
+        while (inbound := inputs.get(0.0)) is not None:
+            scopes += merge.accept(_live_item(inbound), fetch_new_keys=fetch_new_keys)
+            if inbound.arrival_ns > done.finished_ns:
+                break
+        scopes += merge.accept(done, fetch_new_keys=fetch_new_keys)
+
+
+def _record_final_status(writer: McapRecorderWriter, reporter: StatusReporter, session: str) -> None:
+    """Publish the last status and write it into the file too (the subscription is closed: it would not come back)."""
+    reporter.final()
+    status = reporter.message(connected=False)
+    writer.write(topics.status_key(session, NODE_NAME), "msk.DeviceStatus", messages.encode(status),
+                 status.host_time_ns, status.host_time_ns)
 
 
 LIVE, HISTORY = "live", "history"
@@ -155,36 +232,63 @@ class _Item:
     origin: str  # LIVE or HISTORY
     receive_ns: int
     key: str
-    sample_type: str | None
     payload: bytes
+    message: Message | None  # None when rejected
+    rejected: Rejected | None = None
 
 
 @dataclass(frozen=True)
-class _FetchDone:
+class _Fetched:
+    """A history fetch that came back: its samples, per publisher in publishing order, and its error replies."""
+
     scope: str  # the key expression fetched
+    items: tuple[_Item, ...]
     errors: list[str]
+    finished_ns: int  # when the fetch returned: a live sample received later cannot be in its history
+
+
+def _live_item(inbound: Inbound) -> _Item:
+    return _Item(LIVE, inbound.arrival_ns, inbound.key, inbound.payload, inbound.message, inbound.rejected)
+
+
+def _history_item(sample: zenoh.Sample, received_ns: int, counts: InputCounts, max_bytes: int) -> _Item | None:
+    """A cache's sample checked like a live one (an oversized one is counted and never copied)."""
+    key = str(sample.key_expr)
+    size = len(sample.payload)
+    if size > max_bytes:
+        _count_dropped(counts, Rejected(DropReason.OVERSIZED, key, f"{size} bytes (at most {max_bytes})"))
+        return None
+    payload = sample.payload.to_bytes()
+    try:
+        message = check_payload(key, payload, encoding_type=type_name_of_sample(sample), max_bytes=max_bytes)
+    except Rejected as error:
+        return _Item(HISTORY, received_ns, key, payload, None, error)
+    return _Item(HISTORY, received_ns, key, payload, message)
+
+
+def _count_dropped(counts: InputCounts, rejected: Rejected) -> None:
+    if counts.count_dropped(rejected.key, rejected.reason) == 1:
+        log.warning("%s: %s (from a publisher's history; further ones are counted in its status)", NODE_NAME, rejected)
 
 
 class HistoryMerge:
     """Writes history and live samples once each, and for every key its history before its live samples.
 
     While a fetch is out, live samples wait (all of them, so the file keeps their arrival order across keys; a fetch
-    takes milliseconds); when it is done the history is written, then the waiting samples. A sample already written (the same payload digest: every message
-    carries its host time, so equal payloads are the same message) is counted in ``stats.already_recorded`` and left
-    out, whether the earlier parts, the history or the live stream wrote it first. Per key the last
-    ``2 * DEVICE_HISTORY_SAMPLES`` digests are remembered: more than one cache can send again.
+    takes milliseconds); when it is done the history is written, less what the previous parts or the live samples
+    already hold (the module docstring's rule), then the waiting samples. Live samples are never left out.
     """
 
-    def __init__(self, write, stats: RecorderStats, *, already_recorded: dict[str, set[bytes]] | None = None,
-                 remembered_per_key: int = 2 * DEVICE_HISTORY_SAMPLES, keeps_history=keeps_history) -> None:
+    def __init__(self, write: Callable[[_Item], None], stats: RecorderStats, *,
+                 already_recorded: Mapping[str, Iterable[bytes]] | None = None,
+                 keeps_history: Callable[[str], bool] = keeps_history) -> None:
         self._write = write
         self._keeps_history = keeps_history  # asked once per new key, not per message
         self._stats = stats
-        self._remembered_per_key = remembered_per_key
-        self._recent: dict[str, tuple[collections.deque, set[bytes]]] = {}
-        for key, digests in (already_recorded or {}).items():
-            for digest in digests:
-                self._remember(key, digest)
+        # per key, the digests the previous parts end with (occurrences: each cancels one copy from a cache)
+        self._earlier: dict[str, collections.Counter] = {
+            key: collections.Counter(digests) for key, digests in (already_recorded or {}).items()
+        }
         self._initial_pending = False
         self._pending_keys: set[str] = set()  # keys with a fetch of their own out
         self._known_keys: set[str] = set()  # keys whose history was fetched (or found absent)
@@ -196,15 +300,11 @@ class HistoryMerge:
         else:
             self._pending_keys.add(scope)
 
-    def accept(self, item, *, fetch_new_keys: bool) -> list[str]:
-        """Take one inbox item; returns the keys whose history should be fetched now (``fetch_new_keys``: for a key
-        first seen live whose publishers keep a history)."""
-        if isinstance(item, _FetchDone):
-            self._fetch_done(item)
-            return []
-        if item.origin == HISTORY:
-            self._known_keys.add(item.key)
-            self._emit(item)
+    def accept(self, item: _Item | _Fetched, *, fetch_new_keys: bool) -> list[str]:
+        """Take a live sample or a fetch that came back; returns the keys whose history should be fetched now
+        (``fetch_new_keys``: for a key first seen live whose publishers keep a history)."""
+        if isinstance(item, _Fetched):
+            self._fetched(item)
             return []
         if (fetch_new_keys and not self._initial_pending and item.key not in self._known_keys
                 and item.key not in self._pending_keys and self._keeps_history(item.key)):
@@ -216,7 +316,7 @@ class HistoryMerge:
             self._waiting.append(item)
             return []
         self._known_keys.add(item.key)
-        self._emit(item)
+        self._write(item)
         return []
 
     def release_all(self) -> None:
@@ -224,17 +324,43 @@ class HistoryMerge:
         self._pending_keys.clear()
         self._release()
 
-    def _fetch_done(self, done: _FetchDone) -> None:
+    def _fetched(self, done: _Fetched) -> None:
         self._stats.history_fetches += 1
         self._stats.history_errors += len(done.errors)
+        self._stats.history_fetched += len(done.items)
         if done.errors:
             log.warning("history of %s: %d error replies (%s)", done.scope, len(done.errors), "; ".join(done.errors[:3]))
+        for item in self._new_history(done):
+            self._known_keys.add(item.key)
+            self._write(item)
         if done.scope in self._pending_keys:
             self._pending_keys.discard(done.scope)
             self._known_keys.add(done.scope)
         else:
             self._initial_pending = False
         self._release()  # keys live during a fetch that no cache answered for have no history publisher
+
+    def _new_history(self, done: _Fetched) -> list[_Item]:
+        """The fetch's samples less those the previous parts or the live samples hold (one for one, by digest)."""
+        per_key: dict[str, list[int]] = {}
+        for index, item in enumerate(done.items):
+            per_key.setdefault(item.key, []).append(index)
+        keep = [True] * len(done.items)
+        for key, indices in per_key.items():
+            digests = {index: _digest(done.items[index].payload) for index in indices}
+            earlier = self._earlier.pop(key, collections.Counter())
+            for index in indices:  # oldest first: the previous parts end where the cache begins
+                if earlier[digests[index]] > 0:
+                    earlier[digests[index]] -= 1
+                    keep[index] = False
+            live = collections.Counter(_digest(item.payload) for item in self._waiting
+                                       if item.key == key and item.receive_ns <= done.finished_ns)
+            for index in reversed(indices):  # newest first: the live samples begin where the cache ends
+                if keep[index] and live[digests[index]] > 0:
+                    live[digests[index]] -= 1
+                    keep[index] = False
+        self._stats.already_recorded += keep.count(False)
+        return [item for item, kept in zip(done.items, keep) if kept]
 
     def _fetching(self) -> bool:
         return self._initial_pending or bool(self._pending_keys)
@@ -245,44 +371,26 @@ class HistoryMerge:
         waiting, self._waiting = self._waiting, []
         for item in waiting:
             self._known_keys.add(item.key)
-            self._emit(item)
-
-    def _emit(self, item: _Item) -> None:
-        if item.origin == HISTORY:
-            self._stats.history_fetched += 1
-        digest = _digest(item.payload)
-        recent = self._recent.get(item.key)
-        if recent is not None and digest in recent[1]:
-            self._stats.already_recorded += 1
-            return
-        self._remember(item.key, digest)
-        self._write(item)
-
-    def _remember(self, key: str, digest: bytes) -> None:
-        order, members = self._recent.setdefault(key, (collections.deque(), set()))
-        order.append(digest)
-        members.add(digest)
-        if len(order) > self._remembered_per_key:
-            members.discard(order.popleft())
+            self._write(item)
 
 
-def _write(writer: McapRecorderWriter, item: _Item, stats: RecorderStats) -> None:
-    receive_ns, key, sample_type, payload = item.receive_ns, item.key, item.sample_type, item.payload
+def _write(writer: McapRecorderWriter, item: _Item, stats: RecorderStats, counts: InputCounts) -> None:
     stats.received += 1
-    type_name = resolve_type(key, sample_type)
-    if type_name is None:
-        stats.skipped_unknown += 1
+    if item.rejected is not None:
+        if item.origin == HISTORY:  # a live one was counted by NodeInputs
+            _count_dropped(counts, item.rejected)
+        writer.write_rejected(item.key, item.rejected.reason.value, item.rejected.detail, item.payload, item.receive_ns)
+        stats.rejected += 1
         return
-    try:
-        message = messages.decode(type_name, payload)
-        publish_ns = device_time_ns(message, receive_ns)
-        if item.origin == HISTORY and getattr(message, "host_time_ns", 0):
+    message = item.message
+    receive_ns = item.receive_ns
+    publish_ns = device_time_ns(message, receive_ns)
+    if item.origin == HISTORY:
+        counts.count_received(item.key)
+        if getattr(message, "host_time_ns", 0):
             # from a cache, late: log it when the driver's host received it, where a live recorder would have
             receive_ns = min(receive_ns, int(message.host_time_ns))
-    except messages.MessageDecodeError:
-        stats.undecodable += 1
-        publish_ns = receive_ns
-    writer.write(key, type_name, payload, receive_ns, publish_ns)
+    writer.write(item.key, messages.type_name(message), item.payload, receive_ns, publish_ns)
     stats.written += 1
 
 
@@ -310,14 +418,14 @@ def _digest(payload: bytes) -> bytes:
     return hashlib.blake2b(payload, digest_size=16).digest()
 
 
-def recorded_tail_in(paths: list[Path], per_topic: int = DEVICE_HISTORY_SAMPLES) -> dict[str, set[bytes]]:
-    """Per topic, digests of the last ``per_topic`` messages the (possibly truncated) files hold: all that a
-    publisher's history can send again (every message carries its host time, so equal payloads are the same message)."""
+def recorded_tail_in(paths: list[Path], per_topic: int = DEVICE_HISTORY_SAMPLES) -> dict[str, list[bytes]]:
+    """Per topic, digests of the last ``per_topic`` payloads the (possibly truncated) files hold, typed or rejected,
+    in file order, one per occurrence: all that a publisher's history can send again."""
     tails: dict[str, collections.deque] = {}
     for path in paths:
-        for message in read_messages(path):
+        for message in read_messages(path, include_rejected=True):
             tails.setdefault(message.topic, collections.deque(maxlen=per_topic)).append(_digest(message.data))
-    return {topic: set(tail) for topic, tail in tails.items()}
+    return {topic: list(tail) for topic, tail in tails.items()}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -334,7 +442,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="longest wait for a history fetch; that key's live messages wait with it (default 10 s)")
     parser.add_argument("--key", default=topics.ALL_TOPICS, help="key expression to record (default: msk/**)")
     parser.add_argument("--duration", type=float, default=None, help="seconds to record (default: until Ctrl-C)")
+    parser.add_argument("--session", default=None,
+                        help="report the recorder's status (inputs received and dropped) on msk/SESSION/status/recorder "
+                             "(default: the session --key names; with msk/** and no --session, no status)")
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
+    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     add_zenoh_arguments(parser)
 
 
@@ -354,21 +466,29 @@ def run_from_args(args: argparse.Namespace) -> int:
     ready = None
     if args.ready_key:
         session, node = topics.split_key(args.ready_key)[0], args.ready_key.rsplit("/", 1)[-1]
-        ready = ReadySpec(session, node)
+        ready = ReadySpec(session, node, tuple(args.ready_after))
     stats = main(options_from_args(args), out, key_expr=args.key, duration_s=args.duration, stop_event=stop,
                  flush_interval_s=args.flush_interval, history=args.history, history_timeout_s=args.history_timeout,
-                 already_recorded=already_recorded,
-                 ready_key=ready)
-    print(
+                 already_recorded=already_recorded, ready_key=ready, session=args.session)
+    print(summary_line(stats, out), file=sys.stderr)
+    return 0
+
+
+def summary_line(stats: RecorderStats, out: Path) -> str:
+    """What a recorder run wrote, kept apart and dropped, in one line."""
+    dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
+    oversized = sum(reasons.get(DropReason.OVERSIZED.value, 0) for reasons in dropped.values())
+    queue_full = sum(reasons.get(DropReason.QUEUE_FULL.value, 0) for reasons in dropped.values())
+    return (
         f"recorded {stats.written} messages to {out}"
-        + (f"; skipped {stats.skipped_unknown} on keys of unknown type" if stats.skipped_unknown else "")
-        + (f"; {stats.undecodable} undecodable" if stats.undecodable else "")
+        + (f"; kept {stats.rejected} rejected payloads apart, in channels labelled {REJECTED_REASON}"
+           if stats.rejected else "")
+        + (f"; dropped {oversized} oversized payloads" if oversized else "")
+        + (f"; dropped {queue_full} on a full queue" if queue_full else "")
         + (f"; history: {stats.history_fetched} messages from the publishers' caches" if stats.history_fetched else "")
         + (f" ({stats.history_errors} error replies)" if stats.history_errors else "")
-        + (f"; left out {stats.already_recorded} already recorded" if stats.already_recorded else ""),
-        file=sys.stderr,
+        + (f"; left out {stats.already_recorded} already recorded" if stats.already_recorded else "")
     )
-    return 0
 
 
 if __name__ == "__main__":

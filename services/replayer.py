@@ -3,6 +3,9 @@
 ``--rate 1`` keeps the original timing (from ``log_time``), ``--rate 2`` plays twice as fast, ``--rate max`` as fast as
 the network accepts (blocking congestion control: nothing is dropped). ``--session NAME`` republishes under
 ``msk/NAME/...``. Run ``python -m services.replayer FILE.mcap`` or ``msk replay``.
+
+Only messages of the msk types are published: the payloads the recorder kept apart as rejected (and any channel
+without an msk protobuf type) are left out and counted per key and reason, never published as typed data.
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
@@ -33,6 +36,7 @@ class ReplayStats:
     published: int = 0
     excluded: int = 0
     truncated: bool = False
+    left_out: dict[tuple[str, str], int] = field(default_factory=dict)  # (topic, reason) -> rejected payloads
 
 
 def parse_rate(text: str | float | None) -> float | None:
@@ -112,6 +116,7 @@ def main(
         for publisher in publishers.values():
             publisher.undeclare()
     stats.truncated = report.truncated
+    stats.left_out = dict(report.left_out)
     return stats
 
 
@@ -151,6 +156,9 @@ def run_from_args(args: argparse.Namespace) -> int:
     )
     note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
     skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""
+    if stats.left_out:
+        skipped += f", left out {sum(stats.left_out.values())} rejected payloads (" + ", ".join(
+            f"{topic}: {n} {reason}" for (topic, reason), n in sorted(stats.left_out.items())) + ")"
     print(f"published {stats.published} messages from {args.mcap}{skipped}{note}", file=sys.stderr)
     return 0
 

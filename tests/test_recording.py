@@ -19,6 +19,7 @@ from services.zenoh_session import ZenohOptions, declare_data_publisher, open_se
 from tests.test_schemas import sample_messages
 
 BURST = 20_000
+LABELS = [f"sensor{n:02d}.EMG" for n in range(1, 17)]  # a valid chunk names its channels (messages.problems)
 
 
 def _write_source_recording(path: Path, *, burst: int) -> list[tuple[str, bytes]]:
@@ -41,7 +42,7 @@ def _write_source_recording(path: Path, *, burst: int) -> list[tuple[str, bytes]
             written.append((key, messages.encode(message)))
         for i in range(burst):
             chunk = messages.EmgChunk(
-                source_id="trigno", n_samples=27, n_channels=16, sample_rate_hz=2000.0,
+                source_id="trigno", n_samples=27, n_channels=16, sample_rate_hz=2000.0, channel_labels=LABELS,
                 first_sample_index=27 * i, samples=[float(i % 1000)] * (27 * 16), units="V",
             )
             payload = messages.encode(chunk)
@@ -131,7 +132,9 @@ def test_recorder_killed_with_sigkill_leaves_readable_completed_chunks(tmp_path,
                 time.sleep(0.01)
             start = time.monotonic()
             while time.monotonic() - start < 3.0:  # > 2 flush intervals of the recorder
-                publish(publisher, messages.EmgChunk(source_id="trigno", first_sample_index=sent, samples=[1.0] * 432))
+                publish(publisher, messages.EmgChunk(source_id="trigno", first_sample_index=sent, samples=[1.0] * 432,
+                                                     n_samples=27, n_channels=16, channel_labels=LABELS,
+                                                     sample_rate_hz=2000.0))
                 sent += 1
                 time.sleep(0.001)
         os.kill(process.pid, signal.SIGKILL)
