@@ -1,7 +1,9 @@
 """Driver nodes: acquisition loops that turn Trigno/Xsens driver events into EmgChunk, ImuSample and DeviceStatus
 messages and hand them to a sink (Zenoh publishers, or an MCAP file for ``msk record``).
 
-Each loop runs in its own thread until ``stop`` is set or its deadline passes; sinks must be thread-safe.
+Each loop runs in its own thread until ``stop`` is set or its deadline passes; sinks must be thread-safe. A loop's
+last DeviceStatus of each device, published as it ends, says ``connected = False`` with the final counts: the driver
+no longer delivers, whatever the link's state (``msk live`` records it, and its summary reads it).
 """
 
 from __future__ import annotations
@@ -109,10 +111,10 @@ def trigno_loop(
     status_key = topics.status_key(session, source_id)
     columns = emg_columns(client)
 
-    def publish_status() -> None:
+    def publish_status(*, final: bool = False) -> None:
         stats = client.stats
         status = device_status(
-            device_id=source_id, kind="trigno", connected=client.connected, received=stats.samples_received,
+            device_id=source_id, kind="trigno", connected=client.connected and not final, received=stats.samples_received,
             lost=stats.samples_lost, errors=stats.errors, last_error=stats.last_error,
         )
         sink(status_key, status, status.host_time_ns, 0)
@@ -147,7 +149,7 @@ def trigno_loop(
     finally:
         for event in client.stop():  # the frames already on their way when we said STOP
             publish_data(event)
-        publish_status()
+        publish_status(final=True)
     return report
 
 
@@ -166,11 +168,11 @@ def xsens_loop(
     segments = segments or {}
     known = dict(trackers.devices)
 
-    def publish_status() -> None:
+    def publish_status(*, final: bool = False) -> None:
         for tracker_id, device in known.items():
             stats = device.stats
             status = device_status(
-                device_id=tracker_id, kind="xsens", connected=tracker_id in trackers.devices,
+                device_id=tracker_id, kind="xsens", connected=tracker_id in trackers.devices and not final,
                 received=stats.readings, lost=stats.packets_lost,
                 errors=stats.decode_errors + stats.device_errors + device.parser.stats.errors,
                 last_error=trackers.disconnected.get(tracker_id, stats.last_error),
@@ -182,23 +184,25 @@ def xsens_loop(
     publish_status()
     next_status = time.monotonic() + status_interval_s
     lost = set(trackers.disconnected)
-    while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-        if not trackers.devices:
-            time.sleep(0.05)
-        for reading in trackers.read():
-            message = imu_sample(reading, segment=segments.get(reading.tracker_id, ""))
-            sink(topics.imu_key(session, reading.tracker_id), message, reading.host_time_ns, reading.device_time_ns)
-            report.messages += 1
-            report.samples += 1
-        if set(trackers.disconnected) != lost:  # a tracker went away or came back (TrackerSet reconnects)
-            now_lost = set(trackers.disconnected)
-            report.states.extend(["disconnected"] * len(now_lost - lost) + ["reconnected"] * len(lost - now_lost))
-            lost = now_lost
-            publish_status()
-        if time.monotonic() >= next_status:
-            publish_status()
-            next_status += status_interval_s
-    publish_status()
+    try:
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            if not trackers.devices:
+                time.sleep(0.05)
+            for reading in trackers.read():
+                message = imu_sample(reading, segment=segments.get(reading.tracker_id, ""))
+                sink(topics.imu_key(session, reading.tracker_id), message, reading.host_time_ns, reading.device_time_ns)
+                report.messages += 1
+                report.samples += 1
+            if set(trackers.disconnected) != lost:  # a tracker went away or came back (TrackerSet reconnects)
+                now_lost = set(trackers.disconnected)
+                report.states.extend(["disconnected"] * len(now_lost - lost) + ["reconnected"] * len(lost - now_lost))
+                lost = now_lost
+                publish_status()
+            if time.monotonic() >= next_status:
+                publish_status()
+                next_status += status_interval_s
+    finally:
+        publish_status(final=True)
     return report
 
 

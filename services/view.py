@@ -2,21 +2,25 @@
 
 Per muscle group: the estimated activation as a bar with its uncertainty (+- one Laplace std) and, where an electrode
 is, the measured EMG envelope beside it; torque tracking per joint (inverse dynamics vs muscle model); repetition
-counter and phase; the barbell load; device health (connected, samples received and lost, estimator latency).
+counter and phase; exercise, load and set (the operator's ``LoadEvent``; the exercise else from the frames); device
+health (connected, samples received and lost, estimator latency); the inputs the view dropped as unusable.
 
-It keeps up by showing the newest frame: Zenoh callbacks overwrite one slot per topic (no queue), and the screen is
-redrawn at ``refresh_hz`` from whatever is newest. Run ``msk view --session NAME`` beside ``msk live`` or a replay.
+Inputs come through :class:`services.node_runtime.NodeInputs` (a malformed message is dropped and counted, never shown
+and never fatal); the view's thread takes them in order and overwrites one slot per topic, and the screen is redrawn
+at ``refresh_hz`` from whatever is newest. Run ``msk view --session NAME`` beside ``msk live`` or a replay.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import signal
 import threading
 import time
 from dataclasses import dataclass, field
 
+from google.protobuf.message import Message
 from rich.console import Console, Group
 from rich.live import Live
 from rich.panel import Panel
@@ -24,9 +28,14 @@ from rich.table import Table
 from rich.text import Text
 
 from services import messages, topics
+from services.node_runtime import InputCounts, NodeInputs
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
 
+log = logging.getLogger(__name__)
+
 BAR_WIDTH = 30
+#: How long the view's input thread waits for a message before looking at its stop flag again.
+POLL_S = 0.1
 
 
 @dataclass
@@ -54,32 +63,52 @@ class ViewState:
     load: messages.LoadEvent | None = None
     envelope: messages.EmgEnvelope | None = None
     received: int = 0
-    reps: RepCounter = field(default_factory=RepCounter)
+    sets: int = 0  # the operator's set number, else load events with a mass counted
+    reps: RepCounter = field(default_factory=RepCounter)  # in the current set
+    inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def on_sample(self, key: str, payload: bytes) -> None:
-        try:
-            _, rest = topics.split_key(key)
-        except Exception:
-            return
+    def on_message(self, key: str, message: Message) -> None:
+        """One checked message of ``key`` (its topic's type, :func:`services.node_runtime.check_payload`)."""
+        _, rest = topics.split_key(key)
         kind = rest.split("/", 1)[0]
-        try:
-            with self.lock:
-                self.received += 1
-                if kind == "activations":
-                    frame = messages.decode("msk.ActivationFrame", payload)
-                    if not self.frames or frame.method == next(iter(self.frames)):  # reps from the first method only
-                        self.reps.update(frame.phase if frame.HasField("phase") else None)
-                    self.frames[frame.method] = frame
-                elif kind == "status":
-                    status = messages.decode("msk.DeviceStatus", payload)
-                    self.status[status.device_id or rest] = status
-                elif kind == "load":
-                    self.load = messages.decode("msk.LoadEvent", payload)
-                elif kind == "envelopes":
-                    self.envelope = messages.decode("msk.EmgEnvelope", payload)
-        except messages.MessageDecodeError:
-            pass  # a bad message must not stop the view; the next one replaces it
+        with self.lock:
+            self.received += 1
+            if kind == "activations":
+                if not self.frames or message.method == next(iter(self.frames)):  # reps from the first method only
+                    self.reps.update(message.phase if message.HasField("phase") else None)
+                self.frames[message.method] = message
+            elif kind == "status":
+                self.status[message.device_id] = message
+            elif kind == "load":
+                self._on_load(message)
+            elif kind == "envelopes":
+                self.envelope = message
+
+    def _on_load(self, load: messages.LoadEvent) -> None:
+        """A new set (the operator's set number changed; without numbers, a load event with a mass) restarts the reps."""
+        number = int(load.set_number)
+        if (number > 0 and number != self.sets) or (number == 0 and load.barbell_mass_kg > 0):
+            self.sets = number if number > 0 else self.sets + 1
+            self.reps = RepCounter()
+        self.load = load
+
+
+def session_facts(load: messages.LoadEvent | None, frame: messages.ActivationFrame | None, sets: int) -> str:
+    """``exercise bench press · load 60 kg · set 2``: the load event's, the exercise else the frame's."""
+    exercise = (load.exercise if load is not None else "") or (frame.exercise if frame is not None else "")
+    return (f"exercise {exercise.replace('_', ' ') if exercise else 'unknown'}"
+            + f" · load {f'{load.barbell_mass_kg:g} kg' if load is not None else 'unknown'}"
+            + f" · set {sets if sets else '–'}"
+            + (f" · {load.athlete}" if load is not None and load.athlete else ""))
+
+
+def dropped_text(inputs: InputCounts) -> str:
+    """``2 dropped (msk/s/joints: oversized 1, ...)``, or "" when nothing was dropped."""
+    drops = inputs.drops()
+    if not drops:
+        return ""
+    return f"{sum(d.count for d in drops)} dropped (" + ", ".join(f"{d.key}: {d.reason} {d.count}" for d in drops) + ")"
 
 
 def bar(value: float, std: float | None, width: int = BAR_WIDTH, marker: float = math.nan) -> Text:
@@ -111,12 +140,14 @@ def render(state: ViewState, session: str, primary: str | None = None) -> Group:
     with state.lock:
         frames = dict(state.frames)
         status = dict(state.status)
-        load, received, reps = state.load, state.received, state.reps.reps
+        load, received, reps, sets = state.load, state.received, state.reps.reps, state.sets
     methods = list(frames)
     method = primary if primary in frames else (methods[0] if methods else None)
-    header = Text(f"msk view · session {session} · {received} messages", style="bold")
+    dropped = dropped_text(state.inputs)
+    header = Text(f"msk view · session {session} · {received} messages" + (f" · {dropped}" if dropped else ""), style="bold")
     if method is None:
-        return Group(header, Text("waiting for activations on " + f"msk/{session}/activations/* ..."))
+        return Group(header, Text(session_facts(load, None, sets)),
+                     Text("waiting for activations on " + f"msk/{session}/activations/* ..."))
     frame = frames[method]
     groups = list(frame.groups)
     std = list(frame.activation_std) if len(frame.activation_std) == len(groups) else [None] * len(groups)
@@ -147,19 +178,28 @@ def render(state: ViewState, session: str, primary: str | None = None) -> Group:
     phase_text = "unknown" if phase is None else ("rest" if phase < 0 else f"{phase:.2f}")
     latency_ms = (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
     session_line = Text(
-        f"rep {reps} · phase {phase_text} · load "
-        + (f"{load.barbell_mass_kg:g} kg {load.exercise}" if load is not None else "unknown")
+        session_facts(load, frame, sets) + f" · rep {reps} · phase {phase_text}"
         + f" · t {frame.time_s:.2f} s · latency {latency_ms:.2f} ms · solver {frame.solver_status}"
         + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
     )
+    devices = {name: s for name, s in status.items() if s.kind != "node"}
     health = Table(title="devices")
     for column in ("device", "kind", "connected", "samples", "lost", "errors"):
         health.add_column(column)
-    for name, s in status.items():
+    for name, s in devices.items():
         health.add_row(name, s.kind, "yes" if s.connected else "NO", str(s.samples_received), str(s.samples_lost), str(s.errors))
-    if not status:
+    if not devices:
         health.add_row("(no device status on this session)", "", "", "", "", "")
-    return Group(header, session_line, muscles, torques, health)
+    nodes = {name: s for name, s in status.items() if s.kind == "node"}
+    if not nodes:
+        return Group(header, session_line, muscles, torques, health)
+    node_table = Table(title="nodes (inputs dropped as unusable)")
+    for column in ("node", "running", "received", "dropped"):
+        node_table.add_column(column)
+    for name, s in nodes.items():
+        node_table.add_row(name, "yes" if s.connected else "stopped", str(s.samples_received),
+                           str(sum(d.count for d in s.dropped)))
+    return Group(header, session_line, muscles, torques, health, node_table)
 
 
 def main(config: ZenohOptions, *, session: str, method: str | None = None, refresh_hz: float = 10.0,
@@ -169,9 +209,12 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
     state = ViewState()
     deadline = None if duration_s is None else time.monotonic() + duration_s
     with open_session(config) as zsession:
-        subscriber = zsession.declare_subscriber(
-            f"{topics.session_prefix(session)}/**", lambda s: state.on_sample(str(s.key_expr), s.payload.to_bytes())
-        )
+        inputs = NodeInputs(zsession, "view")
+        state.inputs = inputs.counts
+        inputs.subscribe(f"{topics.session_prefix(session)}/**")
+        taking = threading.Event()
+        taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
+        taker.start()
         try:
             with Live(render(state, session, method), console=console, refresh_per_second=refresh_hz,
                       screen=False, transient=False) as live:
@@ -179,8 +222,22 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
                     live.update(Panel(render(state, session, method)))
                     stop_event.wait(1.0 / refresh_hz)
         finally:
-            subscriber.undeclare()
+            taking.set()
+            inputs.close()
+            taker.join(5.0)
     return state
+
+
+def take_inputs(inputs: NodeInputs, state: ViewState, stop: threading.Event) -> None:
+    """The view's input thread: every checked message, in arrival order, into ``state`` until ``stop``."""
+    while not stop.is_set():
+        inbound = inputs.get(POLL_S)
+        if inbound is None:
+            continue
+        try:
+            state.on_message(inbound.key, inbound.message)
+        except Exception:  # a message the checks let through must not freeze the screen
+            log.exception("msk view: message on %s", inbound.key)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

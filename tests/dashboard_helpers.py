@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 import threading
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -79,11 +80,88 @@ def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict
     while time.monotonic() < deadline and not all(s.frames_done >= joints for s in stats.values()):
         time.sleep(0.1)
     expected = replayed.published + sum(s.frames_out * len(packs[p]) for p, s in stats.items())
-    while time.monotonic() < deadline and rec_stats.written < expected:
+    while time.monotonic() < deadline and rec_stats.written < expected:  # (plus the nodes' own status messages)
         time.sleep(0.1)
     stop.set()
     rec.join(30)
-    counts = {"replayed": replayed.published, "recorded": rec_stats.written, "expected": expected, "joints": joints,
+    # the replayed data and the estimates, every one; the nodes' status messages (kind "node") come on top
+    data = sum(1 for r in read_messages(out) if not (r.type_name == "msk.DeviceStatus" and r.decode().kind == "node"))
+    counts = {"replayed": replayed.published, "recorded": data, "expected": expected, "joints": joints,
               "estimated": {p: s.frames_out for p, s in stats.items()}, "frames_in": {p: s.frames_in for p, s in stats.items()}}
-    assert rec_stats.written == expected, f"recorded {rec_stats.written} of {expected} messages: {counts}"
+    assert data == expected, f"recorded {data} of {expected} messages: {counts}"
     return counts
+
+
+# ---- unusable inputs over a real Zenoh session (the readers must drop and count them, and go on) ---------------------
+#: A payload far over services.node_runtime.MAX_PAYLOAD_BYTES.
+HUGE_PAYLOAD_BYTES = 50 * 1024 * 1024
+
+
+@dataclass
+class BadInputs:
+    """Publishers on a session's topics, one per key, for unusable payloads and then valid messages after them (the
+    same publisher keeps them in order). ``expected`` collects the drops the reader should count: {(key, reason): n}."""
+
+    zsession: object
+    session: str
+    expected: dict[tuple[str, str], int] = field(default_factory=dict)
+    _publishers: dict[str, object] = field(default_factory=dict)
+
+    def publisher(self, rest: str):
+        import zenoh
+
+        key = f"msk/{self.session}/{rest}"
+        if key not in self._publishers:
+            self._publishers[key] = self.zsession.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+        return self._publishers[key]
+
+    def wait_matched(self, rests: list[str], timeout_s: float = 30.0) -> None:
+        """Wait until the reader's subscriptions match every key of ``rests`` (else a payload could go nowhere)."""
+        import time
+
+        publishers = {rest: self.publisher(rest) for rest in rests}
+        deadline = time.monotonic() + timeout_s
+        while not all(p.matching_status.matching for p in publishers.values()):
+            assert time.monotonic() < deadline, (
+                f"no subscriber within {timeout_s} s on {[r for r, p in publishers.items() if not p.matching_status.matching]}")
+            time.sleep(0.05)
+
+    def bad(self, rest: str, payload: bytes, reason: str, *, encoding_type: str | None = None) -> None:
+        self._put(rest, payload, encoding_type)
+        key = f"msk/{self.session}/{rest}"
+        self.expected[(key, reason)] = self.expected.get((key, reason), 0) + 1
+
+    def good(self, rest: str, message) -> None:
+        from services import messages
+
+        self._put(rest, messages.encode(message), messages.type_name(message))
+
+    def _put(self, rest: str, payload: bytes, encoding_type: str | None) -> None:
+        from services.zenoh_session import encoding_for
+
+        publisher = self.publisher(rest)
+        if encoding_type is None:
+            publisher.put(payload)
+        else:
+            publisher.put(payload, encoding=encoding_for(encoding_type))
+
+    def publish_every_kind(self) -> None:
+        """Garbage bytes, an empty payload, a message of the wrong type and a 50 MB payload, on several topics."""
+        from services import messages
+
+        chunk = messages.EmgChunk(source_id="trigno", n_samples=1, n_channels=1, samples=[0.0], channel_labels=["a"],
+                                  sample_rate_hz=2000.0)
+        self.bad("activations/so", b"\xff\xff not protobuf", "undecodable")
+        self.bad("activations/so", b"", "invalid")  # decodes to a frame without method or groups
+        self.bad("status/trigno", messages.encode(chunk), "wrong_type", encoding_type="msk.EmgChunk")
+        self.bad("load", b"\xff\xff not protobuf", "undecodable")
+        self.bad("joints", bytes(HUGE_PAYLOAD_BYTES), "oversized")
+
+    def close(self) -> None:
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+        self._publishers.clear()
+
+
+BAD_INPUT_TOPICS = ["activations/so", "status/trigno", "load", "joints"]

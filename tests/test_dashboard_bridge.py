@@ -22,15 +22,16 @@ from tests.conftest import free_tcp_port
 PREFIX = "msk/t/"
 
 
-def activation_payload(method: str, a: list[float], *, t: float, phase: float | None = None, envelope=None) -> bytes:
+def activation_frame(method: str, a: list[float], *, t: float, phase: float | None = None, envelope=None,
+                     exercise: str = "") -> messages.ActivationFrame:
     frame = messages.ActivationFrame(time_s=t, method=method, groups=["A", "B"], activations=a, activation_std=[0.1, float("nan")],
-                                     publish_ns=2_000_000, input_arrival_ns=1_000_000)
+                                     publish_ns=2_000_000, input_arrival_ns=1_000_000, exercise=exercise)
     frame.torques.add(coordinate="elbow", inverse_dynamics_nm=3.0, model_nm=2.5, residual_nm=0.5)
     if phase is not None:
         frame.phase = phase
     if envelope is not None:
         frame.measured_envelope.extend(envelope)
-    return messages.encode(frame)
+    return frame
 
 
 def test_state_keeps_only_the_newest_frame_per_topic():
@@ -38,7 +39,7 @@ def test_state_keeps_only_the_newest_frame_per_topic():
     seq0, first = state.changes(0)
     assert first["topics"] == {} and first["data_age_s"] is None
     for i in range(50):  # a burst the page did not take: only the last one is left
-        state.on_sample(PREFIX + "activations/so", "msk.ActivationFrame", activation_payload("so", [i / 50, 0.5], t=i))
+        state.on_message(PREFIX + "activations/so", activation_frame("so", [i / 50, 0.5], t=i))
     seq, update = state.changes(seq0)
     # no joint angles with a phase: the reps follow the first method's frames (phase unset here: unknown)
     assert sorted(update["topics"]) == ["activations/so", "reps"] and update["topics"]["reps"]["phase"] is None
@@ -48,21 +49,20 @@ def test_state_keeps_only_the_newest_frame_per_topic():
     assert frame["estimator_latency_ms"] == 1.0 and frame["torques"][0]["model_nm"] == 2.5
     assert json.dumps(update, allow_nan=False)
     assert state.changes(seq)[1]["topics"] == {}  # nothing new since
-    state.on_sample(PREFIX + "activations/hybrid", "msk.ActivationFrame", activation_payload("hybrid", [0.1, 0.2], t=50))
+    state.on_message(PREFIX + "activations/hybrid", activation_frame("hybrid", [0.1, 0.2], t=50))
     assert list(state.changes(seq)[1]["topics"]) == ["activations/hybrid"]
-    state.on_sample("msk/other/activations/so", "msk.ActivationFrame", activation_payload("so", [1, 1], t=1))  # other session
-    state.on_sample(PREFIX + "activations/so", "msk.ActivationFrame", b"\xff\xff not protobuf")
-    assert state.decode_errors == 1 and state.received == 51
+    state.on_message("msk/other/activations/so", activation_frame("so", [1, 1], t=1))  # other session
+    assert state.received == 51
 
 
 def test_measured_envelope_is_forwarded_when_the_schema_has_it():
     state = DashboardState("t")
     if HAS_MEASURED_ENVELOPE:
-        payload = activation_payload("so", [0.2, 0.3], t=1, envelope=[0.25, float("nan")])
+        frame = activation_frame("so", [0.2, 0.3], t=1, envelope=[0.25, float("nan")])
         expected = [0.25, None]  # NaN where no electrode
     else:
-        payload, expected = activation_payload("so", [0.2, 0.3], t=1), []
-    state.on_sample(PREFIX + "activations/so", "msk.ActivationFrame", payload)
+        frame, expected = activation_frame("so", [0.2, 0.3], t=1), []
+    state.on_message(PREFIX + "activations/so", frame)
     assert state.changes(0)[1]["topics"]["activations/so"]["envelope"] == expected
 
 
@@ -81,19 +81,18 @@ def test_rep_counter_counts_rest_transitions_and_wraps_and_restarts_per_set():
 
 def test_reps_from_joints_phase_and_device_health_from_samples():
     state = DashboardState("t")
-    state.on_sample(PREFIX + "load", "msk.LoadEvent", messages.encode(messages.LoadEvent(barbell_mass_kg=60, exercise="deadlift")))
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="deadlift"))
     for p in [-1.0, 0.2, 0.7, -1.0]:
-        state.on_sample(PREFIX + "joints", "msk.JointAngles", messages.encode(messages.JointAngles(coordinates=["x"], q=[0.0], phase=p)))
+        state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
     now = time.time_ns()
     for first in (0, 100, 300):  # samples 200..299 never arrived
         chunk = messages.EmgChunk(source_id="trigno-1", first_sample_index=first, n_samples=100, n_channels=1,
                                   samples=[0.0] * 100, host_time_ns=now)
-        state.on_sample(PREFIX + "emg/trigno-1", "msk.EmgChunk", messages.encode(chunk), arrival_ns=now + 3_000_000)
-    state.on_sample(PREFIX + "status/xsens-1", "msk.DeviceStatus",
-                    messages.encode(messages.DeviceStatus(device_id="xsens-1", kind="xsens", connected=False, samples_lost=7)))
+        state.on_message(PREFIX + "emg/trigno-1", chunk, arrival_ns=now + 3_000_000)
+    state.on_message(PREFIX + "status/xsens-1", messages.DeviceStatus(device_id="xsens-1", kind="xsens", connected=False, samples_lost=7))
     update = state.changes(0, now_ns=now + 4_000_000)[1]
     assert update["topics"]["reps"] == {"in_set": 1, "total": 1, "set": 1, "phase": -1.0}
-    assert update["topics"]["load"] == {"mass_kg": 60, "exercise": "deadlift"}
+    assert update["topics"]["load"] == {"mass_kg": 60, "exercise": "deadlift", "set_number": 0, "athlete": ""}
     trigno = update["devices"]["trigno-1"]
     assert trigno["samples"] == 300 and trigno["samples_lost"] == 100 and trigno["delivering"]
     assert trigno["latency_ms"] == pytest.approx(3.0)
@@ -182,16 +181,116 @@ def test_bad_session_name_is_refused():
 
 
 def test_devices_without_estimates_are_not_live_data():
-    from services.dashboard.bridge import _message_class
-
     state = DashboardState("t")
     chunk = messages.EmgChunk(source_id="trigno-1", first_sample_index=0, n_samples=1, n_channels=1, samples=[0.0])
     now = time.time_ns()
-    state.on_sample(PREFIX + "emg/trigno-1", "msk.EmgChunk", messages.encode(chunk), arrival_ns=now)
+    state.on_message(PREFIX + "emg/trigno-1", chunk, arrival_ns=now)
     update = state.changes(0, now_ns=now + 500_000_000)[1]
     assert update["data_age_s"] == pytest.approx(0.5) and update["activation_age_s"] is None  # the page says "no data"
-    state.on_sample(PREFIX + "activations/so", "msk.ActivationFrame", activation_payload("so", [0.1, 0.2], t=1), arrival_ns=now)
+    state.on_message(PREFIX + "activations/so", activation_frame("so", [0.1, 0.2], t=1), arrival_ns=now)
     assert state.changes(0, now_ns=now + 10**9)[1]["activation_age_s"] == pytest.approx(1.0)
-    # message types are looked up in the schema itself, so types added to msk.proto later are decoded too
-    assert _message_class("msk.DeviceStatus") is messages.DeviceStatus
-    assert _message_class("msk.NoSuchType") is None and _message_class("other.EmgChunk") is None and _message_class(None) is None
+
+
+def imu(tracker: str, counter: int, host_time_ns: int, segment: str = "") -> messages.ImuSample:
+    sample = messages.ImuSample(tracker_id=tracker, segment=segment, packet_counter=counter, host_time_ns=host_time_ns)
+    sample.orientation.w = 1.0
+    return sample
+
+
+def test_every_tracker_and_the_trigno_base_are_rows_of_their_own():
+    """Each Xsens tracker under its own id (the one its DeviceStatus uses), with its own samples; one that stops goes
+    silent while the other delivers; the Trigno base under its EmgChunk.source_id, merged with its status."""
+    state = DashboardState("t")
+    t0 = time.time_ns()
+    for k in range(20):  # both trackers stream for 0.2 s
+        for tracker, segment in (("00B4EB80", "upper_arm_r"), ("00B497B2", "forearm_r")):
+            state.on_message(PREFIX + f"imu/{segment}", imu(tracker, k, t0, segment), arrival_ns=t0 + k * 10_000_000)
+    for k in range(20, 320):  # then only the forearm tracker, for 3 s more
+        state.on_message(PREFIX + "imu/forearm_r", imu("00B497B2", k, t0, "forearm_r"), arrival_ns=t0 + k * 10_000_000)
+    for tracker in ("00B4EB80", "00B497B2"):
+        state.on_message(PREFIX + f"status/{tracker}", messages.DeviceStatus(device_id=tracker, kind="xsens", connected=True))
+    chunk = messages.EmgChunk(source_id="trigno", first_sample_index=0, n_samples=27, n_channels=1, samples=[0.0] * 27,
+                              channel_labels=["sensor01.EMG"], sample_rate_hz=2000.0, host_time_ns=t0)
+    state.on_message(PREFIX + "emg/trigno", chunk, arrival_ns=t0 + 3_190_000_000)
+    state.on_message(PREFIX + "status/trigno", messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True, samples_lost=3))
+    devices = state.changes(0, now_ns=t0 + 3_200_000_000)[1]["devices"]
+    assert sorted(devices) == ["00B497B2", "00B4EB80", "trigno"]  # no phantom "xsens" row, one row per device
+    upper, forearm, trigno = devices["00B4EB80"], devices["00B497B2"], devices["trigno"]
+    assert (upper["kind"], upper["segment"], upper["samples"], upper["delivering"]) == ("xsens", "upper_arm_r", 20, False)
+    assert (forearm["kind"], forearm["segment"], forearm["samples"], forearm["delivering"]) == ("xsens", "forearm_r", 320, True)
+    assert upper["connected"] is True and upper["age_s"] == pytest.approx(3.01)  # its status says connected: silent still
+    assert (trigno["kind"], trigno["samples"], trigno["samples_lost"], trigno["delivering"]) == ("trigno", 27, 3, True)
+
+
+def test_session_facts_from_the_load_event_else_from_the_frames():
+    state = DashboardState("t")
+    state.on_message(PREFIX + "activations/so", activation_frame("so", [0.1, 0.2], t=1, exercise="bench_press"))
+    facts = state.changes(0)[1]["topics"]["session"]
+    assert facts == {"exercise": "bench_press", "load_kg": None, "athlete": None}  # no load event yet: the frames'
+    for p in (-1.0, 0.2, 0.8, -1.0):
+        state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
+    seq, _ = state.changes(0)
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
+    update = state.changes(seq)[1]["topics"]
+    assert update["session"] == {"exercise": "bench_press", "load_kg": 60, "athlete": "Ana"}
+    assert update["reps"]["set"] == 2 and update["reps"]["in_set"] == 0
+    for p in (0.2, 0.8, -1.0):
+        state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
+    # the operator corrects the load within set 2: same set, the reps of the set are kept
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2, athlete="Ana"))
+    topics_now = state.changes(0)[1]["topics"]
+    assert topics_now["reps"]["set"] == 2 and topics_now["reps"]["in_set"] == 1 and topics_now["session"]["load_kg"] == 62.5
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, athlete="Ana"))
+    assert state.changes(0)[1]["topics"]["reps"] | {"phase": None} == {"in_set": 0, "total": 2, "set": 3, "phase": None}
+
+
+def test_node_statuses_are_nodes_with_their_dropped_inputs_not_devices():
+    state = DashboardState("t")
+    status = messages.DeviceStatus(device_id="estimator-bench_press", kind="node", connected=True, samples_received=900,
+                                   samples_lost=4, dropped=[messages.InputDrop(key="msk/t/joints", reason="undecodable", count=3),
+                                                            messages.InputDrop(key="msk/t/load", reason="invalid", count=1)])
+    state.on_message(PREFIX + "status/estimator-bench_press", status)
+    update = state.changes(0)[1]
+    assert "estimator-bench_press" not in update.get("devices", {})
+    node = update["nodes"]["estimator-bench_press"]
+    assert (node["running"], node["received"], node["dropped"]) == (True, 900, 4)
+    assert node["drops"] == [["msk/t/joints", "undecodable", 3], ["msk/t/load", "invalid", 1]]
+    assert update["nodes"]["dashboard"]["dropped"] == 0  # the bridge's own inputs
+
+
+def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):
+    """Garbage, an empty payload, another type and a 50 MB payload on the session's topics: each is dropped and
+    counted per key and reason (shown as the dashboard's node row); the valid messages after them are shown."""
+    from services.dashboard.bridge import Bridge
+    from services.zenoh_session import ZenohOptions, open_session
+    from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
+
+    state = DashboardState("t")
+    bridge = Bridge(ZenohOptions(listen=(zenoh_endpoint,)), state)
+    bridge.start()
+    try:
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+            inputs = BadInputs(zsession, "t")
+            inputs.wait_matched(BAD_INPUT_TOPICS)
+            inputs.publish_every_kind()
+            inputs.good("activations/so", activation_frame("so", [0.25, 0.5], t=7.0, exercise="deadlift"))
+            inputs.good("load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1))
+            inputs.good("status/trigno", messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True))
+            deadline = time.monotonic() + 30
+            expected_dropped = sum(inputs.expected.values())
+            while time.monotonic() < deadline:
+                update = state.changes(0)[1]
+                if update["nodes"]["dashboard"]["dropped"] >= expected_dropped and "load" in update["topics"] \
+                        and "activations/so" in update["topics"] and "trigno" in update.get("devices", {}):
+                    break
+                time.sleep(0.05)
+            inputs.close()
+    finally:
+        bridge.stop()
+    update = state.changes(0)[1]
+    assert update["topics"]["activations/so"]["activations"] == [0.25, 0.5]
+    assert update["topics"]["session"] == {"exercise": "deadlift", "load_kg": 80, "athlete": None}
+    assert update["devices"]["trigno"]["connected"] is True
+    node = update["nodes"]["dashboard"]
+    assert {(key, reason): n for key, reason, n in node["drops"]} == inputs.expected
+    assert node["dropped"] == 5 and state.received == 3

@@ -1,6 +1,7 @@
 """`msk dashboard` in a real headless Chromium while the demo recording is replayed through a live estimator:
 the bars, the rep counter and the body-map colours change, the method can be switched, the page says "no data" when
-the replay stops and recovers when it resumes, and it reconnects by itself when the dashboard server restarts."""
+the replay stops and recovers when it resumes, and it reconnects by itself when the dashboard server restarts. And, fed
+over Zenoh without an estimator, the "no data" state (last values greyed beside a notice) and a row per device."""
 
 from __future__ import annotations
 
@@ -86,7 +87,9 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             first = wait_for(page, lambda p: p["status"] == "live" and p["bars"] and p["fills"], 15, "live frames")
             assert first["reps"] == "0" and first["set"] == "1"
             assert set(first["torqueCharts"]) == {"elv_angle_r", "elbow_flex_r"}
-            assert {"trigno-synth", "xsens"} <= set(first["devices"])
+            # every tracker under its own id (ImuSample.tracker_id), the Trigno base under its source id
+            wait_for(page, lambda p: {"trigno-synth", "00B4EB80", "00B497B2"} <= set(p["devices"]), 10, "a row per device")
+            assert "xsens" not in page.evaluate(PROBE)["devices"]
             # The bars show what the selected method estimated, and they move with the lift.
             later = wait_for(page, lambda p: p["bars"] != first["bars"] and p["fills"] != first["fills"], 10,
                              "bars and body-map colours to change")
@@ -103,6 +106,7 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             assert not replay.is_alive(), "the replay of the first set did not finish within 30 s"
             stopped = wait_for(page, lambda p: p["status"] == "nodata", 10, "'no data' after the replay stopped")
             assert page.is_visible("#nodata") and "Nothing new" in page.inner_text("#nodata-detail")
+            assert page.evaluate("getComputedStyle(document.querySelector('.panel.bars')).filter") == "grayscale(1)"
             assert stopped["method"] == other and switched["bars"] is not None
             # Where a frame carries measured EMG envelopes (estimator with EMG), they are drawn beside the estimate (checked
             # while the replay is stopped, so that no newer frame replaces the one given to the page).
@@ -135,3 +139,147 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
         stop.set()
         dashboard.stop()
     assert estimator_stats.frames_out > 0
+
+
+class LiveStreams:
+    """Publishes, 20 times a second until told to stop, what a running session does: activation frames of the
+    bench press, two Xsens trackers, the Trigno base; each stream can be stopped on its own."""
+
+    def __init__(self, zsession, session: str) -> None:
+        from msk_core.model import load_pack
+
+        self.groups = list(load_pack("bench_press").groups)
+        self.running = {"activations": True, "00B4EB80": True, "00B497B2": True, "trigno": True}
+        self._stop = threading.Event()
+        self._zsession, self._session = zsession, session
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> "LiveStreams":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        from services import messages, topics
+        from services.zenoh_session import declare_data_publisher, publish
+
+        s = self._session
+        publishers = {
+            "activations": declare_data_publisher(self._zsession, topics.activations_key(s, "so"), "msk.ActivationFrame"),
+            "00B4EB80": declare_data_publisher(self._zsession, topics.imu_key(s, "upper_arm_r"), "msk.ImuSample"),
+            "00B497B2": declare_data_publisher(self._zsession, topics.imu_key(s, "forearm_r"), "msk.ImuSample"),
+            "trigno": declare_data_publisher(self._zsession, topics.emg_key(s, "trigno"), "msk.EmgChunk"),
+        }
+        k = 0
+        while not self._stop.wait(0.05):
+            k += 1
+            now = time.time_ns()
+            if self.running["activations"]:
+                a = [0.2 + 0.6 * ((i * 7 + k) % 10) / 10 for i in range(len(self.groups))]
+                publish(publishers["activations"], messages.ActivationFrame(
+                    time_s=k * 0.05, method="so", groups=self.groups, activations=a, activation_std=[0.05] * len(a),
+                    exercise="bench_press", solver_status="ok", publish_ns=now, input_arrival_ns=now - 500_000))
+            for tracker, segment in (("00B4EB80", "upper_arm_r"), ("00B497B2", "forearm_r")):
+                if self.running[tracker]:
+                    sample = messages.ImuSample(tracker_id=tracker, segment=segment, packet_counter=k, host_time_ns=now)
+                    sample.orientation.w = 1.0
+                    publish(publishers[tracker], sample)
+            if self.running["trigno"]:
+                publish(publishers["trigno"], messages.EmgChunk(
+                    source_id="trigno", first_sample_index=27 * k, n_samples=27, n_channels=1, samples=[0.0] * 27,
+                    channel_labels=["sensor01.EMG"], sample_rate_hz=2000.0, host_time_ns=now))
+        for publisher in publishers.values():
+            publisher.undeclare()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+ROWS = """() => Object.fromEntries([...document.querySelectorAll('#devices tbody tr')].map(
+    tr => [tr.dataset.device, [...tr.cells].slice(1, 3).map(c => c.textContent)]))"""
+LAYOUT = """() => {
+  const box = (e) => { const r = e.getBoundingClientRect(); return {x: r.x, y: r.y, w: r.width, h: r.height}; };
+  const main = document.querySelector('main'), notice = document.getElementById('nodata');
+  const mapPanel = document.querySelector('.panel.map').getBoundingClientRect();
+  const probe = document.elementFromPoint(mapPanel.x + 20, mapPanel.y + mapPanel.height - 30);
+  return {
+    pill: box(document.getElementById('status')), main: box(main), notice: box(notice),
+    noticeVisible: !notice.hidden && getComputedStyle(notice).display !== 'none',
+    noticeBackground: getComputedStyle(notice).backgroundColor,
+    noticeTitle: document.querySelector('.nodata-title').textContent,
+    panelFilter: getComputedStyle(document.querySelector('.panel.bars')).filter,
+    panelOpacity: Number(getComputedStyle(document.querySelector('.panel.bars')).opacity),
+    mapVisibleBesideNotice: document.querySelector('.panel.map').contains(probe),
+    bodyState: document.body.dataset.state,
+  };
+}"""
+
+
+def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path, zenoh_endpoint):
+    """The page fed over Zenoh without an estimator: the header shows the load event's exercise, load and set; each
+    tracker and the Trigno base are rows of their own, and the tracker that stops goes silent; when the frames stop,
+    the badge stays a badge and the last values stay visible, greyed out, beside a readable "No data" notice."""
+    require_chromium()
+    from playwright import sync_api
+
+    from services import messages, topics
+    from services.zenoh_session import declare_data_publisher, open_session, publish
+    from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
+
+    session = "floor"
+    dashboard = DashboardServer(ZenohOptions(listen=(zenoh_endpoint,)), DashboardConfig(session=session, no_data_after_s=1.5),
+                                port=free_tcp_port())
+    dashboard.start()
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    try:
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession, sync_api.sync_playwright() as playwright:
+            browser = launch_chromium(playwright)
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            errors: list[str] = []
+            page.on("pageerror", lambda error: errors.append(str(error)))
+            page.goto(dashboard.url)
+            bad = BadInputs(zsession, session)
+            bad.wait_matched(BAD_INPUT_TOPICS)
+            bad.publish_every_kind()
+            load = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
+            publish(load, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
+            node = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
+            publish(node, messages.DeviceStatus(device_id="estimator", kind="node", connected=True, samples_received=50,
+                                                dropped=[messages.InputDrop(key=f"msk/{session}/joints", reason="invalid", count=2)]))
+            streams = LiveStreams(zsession, session).start()
+            try:
+                page.wait_for_function("() => document.getElementById('status').dataset.state === 'live'", timeout=15000)
+                page.wait_for_function("() => document.querySelectorAll('#devices tbody tr').length === 3", timeout=10000)
+                rows = page.evaluate(ROWS)
+                assert sorted(rows) == ["00B497B2", "00B4EB80", "trigno"] and {r[0] for r in rows.values()} == {"delivering"}
+                assert [page.inner_text(f"#{k}") for k in ("exercise", "load", "set")] == ["bench press", "60.0 kg", "2"]
+                assert "Ana" in page.inner_text("#athlete")
+                page.wait_for_function("() => document.querySelector('#nodes tr[data-node=\"dashboard\"] td:nth-child(4)').textContent === '5'",
+                                       timeout=10000)
+                assert page.inner_text('#nodes tr[data-node="estimator"]').split("\t")[1:] == ["running", "50", "2"]
+                streams.running["00B4EB80"] = False  # the upper-arm tracker stops; the others go on
+                page.wait_for_function("() => document.querySelector('#devices tr[data-device=\"00B4EB80\"] td:nth-child(2)').textContent === 'silent'",
+                                       timeout=10000)
+                rows = page.evaluate(ROWS)
+                assert rows["00B497B2"][0] == rows["trigno"][0] == "delivering" and int(rows["00B4EB80"][1]) > 5
+                page.locator(".panel.side").screenshot(path=str(ARTIFACTS / "dashboard-devices.png"))
+                live = page.evaluate(LAYOUT)
+            finally:
+                streams.stop()
+            page.wait_for_function("() => document.getElementById('status').dataset.state === 'nodata'", timeout=10000)
+            page.wait_for_timeout(300)
+            page.screenshot(path=str(ARTIFACTS / "dashboard-nodata.png"))
+            stale = page.evaluate(LAYOUT)
+            bad.close()
+            assert not errors, errors
+            browser.close()
+    finally:
+        dashboard.stop()
+    assert not live["noticeVisible"] and live["panelFilter"] == "none" and live["bodyState"] == "live"
+    # the badge stays a badge in the header
+    assert stale["pill"]["h"] < 60 and stale["pill"]["w"] < 300 and stale["pill"]["y"] < stale["main"]["y"]
+    # a notice of its own size, opaque and readable, not a veil over the page
+    assert stale["noticeVisible"] and stale["noticeTitle"] == "No data" and stale["noticeBackground"] == "rgb(255, 255, 255)"
+    assert stale["notice"]["w"] * stale["notice"]["h"] < 0.3 * stale["main"]["w"] * stale["main"]["h"]
+    # the last values are still there, greyed out, and not covered
+    assert "grayscale(1)" in stale["panelFilter"] and 0.3 < stale["panelOpacity"] < 1 and stale["mapVisibleBesideNotice"]

@@ -137,10 +137,74 @@ def test_reps_without_any_phase_come_from_msk_core_rep_detection():
             data.joint_q.setdefault(tuple(j.coordinates), []).append((j.device_time_ns / 1e9, list(j.q)))
         elif recorded.type_name == "msk.LoadEvent":
             e = recorded.decode()
-            data.loads.append((e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise))
+            data.loads.append(report.Load(e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise))
     window = report.set_windows(data)[0]
     assert (window.exercise, window.load_kg) == ("bench_press", 40)
     series = report.MethodSeries(groups=("BRA",), time=[window.start_s], phase=[math.nan])
     reps, source = report.reps_in_set(data, window, series, load_pack("bench_press"))
     assert source == "rep detection on elbow_flex_r (msk_core.phase)"
     assert len(reps) == 3 and all(1.0 < b - a < 6.0 for a, b in reps)
+
+
+def write_small_session(path, *, loads: list, start_ns: int = 1_773_480_600_000_000_000) -> None:
+    """Two sets of three reps (phase of the joint angles), frames of the bench press with ``exercise`` set, and the
+    given load events as (seconds after the start, LoadEvent)."""
+    from services import messages
+
+    with McapRecorderWriter(path) as writer:
+        def write(message, t_s: float, topic: str) -> None:
+            ns = start_ns + int(t_s * 1e9)
+            writer.write(f"msk/s/{topic}", messages.type_name(message), messages.encode(message), ns, ns)
+
+        for t_s, event in loads:
+            event.device_time_ns = start_ns + int(t_s * 1e9)
+            write(event, t_s, "load")
+        for t_s, connected in ((0.0, True), (5.0, False), (6.0, True), (19.9, False)):  # lost once, then the stop
+            write(messages.DeviceStatus(device_id="00B4EB80", kind="xsens", connected=connected), t_s, "status/00B4EB80")
+        write(messages.DeviceStatus(device_id="estimator", kind="node", connected=False, dropped=[
+            messages.InputDrop(key="msk/s/joints", reason="undecodable", count=2)]), 19.9, "status/estimator")
+        for k in range(400):  # 20 s at 20 Hz: reps of 2 s at 1-3, 4-6, 7-9 s of each 10 s set
+            t_s = k * 0.05
+            in_set = t_s % 10.0
+            phase = ((in_set - 1.0) % 3.0) / 2.0 if 1.0 <= in_set < 10.0 and (in_set - 1.0) % 3.0 < 2.0 else -1.0
+            joints = messages.JointAngles(coordinates=["elbow_flex_r"], q=[1.0], phase=phase,
+                                          device_time_ns=start_ns + int(t_s * 1e9))
+            write(joints, t_s, "joints")
+            frame = messages.ActivationFrame(time_s=start_ns / 1e9 + t_s, method="so", groups=["A", "B"],
+                                             activations=[0.5 + 0.4 * max(phase, 0.0), 0.1], exercise="bench_press")
+            write(frame, t_s, "activations/so")
+
+
+def test_report_header_names_athlete_date_exercise_and_load(tmp_path):
+    import datetime
+
+    from services import messages
+
+    recording = tmp_path / "session.mcap"
+    write_small_session(recording, loads=[
+        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, athlete="Ana Lima")),
+        (0.5, messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=1, athlete="Ana Lima")),  # corrected
+        (10.0, messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=2, athlete="Ana Lima")),
+    ])
+    summary = report.write_report(recording, tmp_path / "out")
+    started = datetime.datetime.fromtimestamp(1_773_480_600).astimezone()
+    assert summary["athlete"] == "Ana Lima" and summary["exercises"] == ["bench_press"]
+    assert summary["loads_kg"] == [60, 62.5, 70] and summary["date"].startswith(started.strftime("%Y-%m-%d %H:%M"))
+    assert [(s["name"], len(s["reps"])) for s in summary["sets"]] == [("set 1: bench press, 62.5 kg", 3),
+                                                                      ("set 2: bench press, 70 kg", 3)]
+    page = (tmp_path / "out" / "report.html").read_text()
+    header = page[page.index("<header>"):page.index("</header>")]
+    assert f"Session report: Ana Lima, {summary['date']}" in header and "bench press · 60, 62.5, 70 kg" in header
+    assert "1773480600" not in header
+    assert summary["devices"]["00B4EB80"]["disconnected_reports"] == 1  # the loss, not the driver's final status
+    assert "estimator" not in summary["devices"] and summary["node_inputs_dropped"] == {"estimator": 2}  # a node
+
+
+def test_report_without_load_events_takes_the_exercise_of_the_frames(tmp_path):
+    recording = tmp_path / "session.mcap"
+    write_small_session(recording, loads=[])
+    summary = report.write_report(recording, tmp_path / "out")
+    assert [s["name"] for s in summary["sets"]] == ["set 1: bench press, load unknown"]
+    assert summary["athlete"] is None and summary["exercises"] == ["bench_press"] and summary["loads_kg"] == []
+    header = (tmp_path / "out" / "report.html").read_text().split("</header>")[0]
+    assert "athlete not named" in header and "bench press · load unknown" in header and "exercise 0 kg" not in header

@@ -13,7 +13,7 @@ import pytest
 
 from services import estimator, messages, replayer, topics
 from services.graph import Graph, wait_for
-from services.view import RepCounter, ViewState, render
+from services.view import RepCounter, ViewState, main, render
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 SESSION = "viewtest"
@@ -84,3 +84,70 @@ def test_render_without_frames_and_rep_counter():
     for phase in (-1, -1, 0.0, 0.3, 0.7, 0.95, 0.1, 0.6, -1, -1, 0.05, 0.5, None, -1):
         reps.update(phase)
     assert reps.reps == 3
+
+
+def screen_text(state: ViewState, session: str = "s") -> str:
+    from io import StringIO
+
+    from rich.console import Console
+
+    console = Console(file=StringIO(), width=200, color_system=None)
+    console.print(render(state, session))
+    return console.file.getvalue()
+
+
+def frame(exercise: str = "bench_press") -> messages.ActivationFrame:
+    return messages.ActivationFrame(time_s=1.0, method="so", groups=["BicLong"], activations=[0.4], exercise=exercise)
+
+
+def test_session_facts_come_from_the_load_event_else_the_frames():
+    state = ViewState()
+    state.on_message("msk/s/activations/so", frame())
+    text = screen_text(state)
+    assert "exercise bench press · load unknown · set –" in text  # no load event: the frame's exercise
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
+    assert "exercise bench press · load 60 kg · set 2 · Ana" in screen_text(state)
+    for phase in (-1.0, 0.1, 0.7, -1.0):
+        state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", phase=phase, exercise="bench_press"))
+    assert state.reps.reps == 1
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2))
+    assert state.reps.reps == 1 and "load 62.5 kg · set 2" in screen_text(state)  # a correction within the set
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3))
+    assert state.reps.reps == 0 and "load 70 kg · set 3" in screen_text(state)  # the next set starts at rep 0
+
+
+def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):
+    """Garbage, an empty payload, another type and a 50 MB payload on the session's topics: the view drops and counts
+    each (its header says so), keeps running, and shows the valid frame and load published after them."""
+    from io import StringIO
+
+    from rich.console import Console
+
+    from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
+
+    stop = threading.Event()
+    result: list[ViewState] = []
+    console = Console(file=StringIO(), width=200, height=60, color_system=None, force_terminal=True)  # Live redraws
+    view = threading.Thread(target=lambda: result.append(main(
+        ZenohOptions(listen=(zenoh_endpoint,)), session="bad", refresh_hz=20, stop_event=stop, console=console)), daemon=True)
+    view.start()
+    try:
+        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
+            inputs = BadInputs(zsession, "bad")
+            inputs.wait_matched(BAD_INPUT_TOPICS)
+            inputs.publish_every_kind()
+            inputs.good("activations/so", frame("deadlift"))
+            inputs.good("load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1))
+            wait_for("the view to show the valid frame and load", lambda: "load 80 kg" in console.file.getvalue()
+                     and "5 dropped" in console.file.getvalue(), lambda: console.file.getvalue()[-3000:], 30)
+            inputs.close()
+    finally:
+        stop.set()
+        view.join(10)
+    assert not view.is_alive() and result
+    state = result[0]
+    assert {(d.key, d.reason): d.count for d in state.inputs.drops()} == inputs.expected
+    assert state.received == 2 and state.frames["so"].exercise == "deadlift"
+    text = screen_text(state, "bad")
+    assert "5 dropped (msk/bad/activations/so: invalid 1, msk/bad/activations/so: undecodable 1" in text
+    assert "msk/bad/joints: oversized 1" in text and "exercise deadlift · load 80 kg · set 1" in text

@@ -1,72 +1,93 @@
 """``msk subscribe KEY [--json]``: print the decoded messages of any msk topic (a key expression, e.g.
 ``msk/demo/activations/*`` or ``msk/demo/**``), one line each: the key and the message as protobuf text or JSON.
 
-The type comes from the sample's encoding (``application/protobuf;msk.<Type>``), else from the topic table
-(docs/topics.md). Stops after ``--count`` messages or ``--duration`` seconds, else at Ctrl-C.
+Inputs come through :class:`services.node_runtime.NodeInputs`, like every node's: a key expression whose topics all
+carry one type (``msk/demo/activations/*``) expects that type, a broader one (``msk/demo/**``) each key's type from
+the topic table (docs/topics.md). A message that is oversized, does not decode, carries another type or fails its
+type's checks is not printed: it is counted per key and reason (the first of each is logged on stderr) and the
+counts are printed at the end. Stops after ``--count`` messages or ``--duration`` seconds, else at Ctrl-C.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import queue
 import sys
 import time
 
+import zenoh
 from google.protobuf import json_format, text_format
+from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
 from services import messages, topics
-from services.zenoh_session import add_zenoh_arguments, open_session, options_from_args, type_name_of_sample
+from services.node_runtime import InputCounts, NodeInputs
+from services.zenoh_session import add_zenoh_arguments, open_session, options_from_args
+
+#: How long the loop waits for a message before looking at the deadline again.
+POLL_S = 0.05
 
 
-def render(key: str, type_name: str | None, payload: bytes, *, as_json: bool) -> str:
-    """One printed line for one sample (undecodable or untyped payloads say so rather than vanish)."""
-    if type_name is None:
-        try:
-            type_name = topics.message_type_for_key(key)
-        except ConfigError:
-            type_name = None
-    if type_name is None:
-        return json.dumps({"key": key, "error": f"unknown type, {len(payload)} bytes"}) if as_json else f"{key} <unknown type, {len(payload)} bytes>"
+def topic_types(key_expr: str) -> set[str]:
+    """The message types of the topics of docs/topics.md that ``key_expr`` can match (any session)."""
     try:
-        message = messages.decode(type_name, payload)
-    except messages.MessageDecodeError as error:
-        return json.dumps({"key": key, "error": str(error)}) if as_json else f"{key} <{error}>"
+        wanted = zenoh.KeyExpr(key_expr)
+    except Exception as error:  # zenoh's own error type
+        raise ConfigError(f"not a valid key expression: {error}", field="KEY", value=key_expr) from None
+    found = set()
+    for template, type_name in topics.TOPIC_TABLE:
+        pattern = "/".join("*" if part.startswith("<") else part for part in template.split("/"))
+        if wanted.intersects(zenoh.KeyExpr(f"{topics.ROOT}/*/{pattern}")):
+            found.add(type_name)
+    return found
+
+
+def expected_type(key_expr: str) -> str | None:
+    """The one type every topic ``key_expr`` matches carries, or None when it spans several (each key's own type
+    then); :class:`ConfigError` when it matches no msk topic at all."""
+    found = topic_types(key_expr)
+    if not found:
+        raise ConfigError("matches no msk topic (msk/<session>/..., docs/topics.md)", field="KEY", value=key_expr)
+    return found.pop() if len(found) == 1 else None
+
+
+def render(key: str, message: Message, *, as_json: bool) -> str:
+    """One printed line for one checked message."""
+    type_name = messages.type_name(message)
     if as_json:
         body = json_format.MessageToDict(message, preserving_proto_field_name=True)
         return json.dumps({"key": key, "type": type_name, "message": body}, allow_nan=True)
     return f"{key} {type_name} {text_format.MessageToString(message, as_one_line=True)}"
 
 
-def run(args: argparse.Namespace) -> int:
-    try:
-        import zenoh
+def dropped_summary(counts: InputCounts) -> str:
+    """``; dropped 3 (msk/s/joints: oversized 1, ...)``, or "" when nothing was dropped."""
+    drops = counts.drops()
+    if not drops:
+        return ""
+    return f"; dropped {sum(d.count for d in drops)} (" + ", ".join(f"{d.key}: {d.reason} {d.count}" for d in drops) + ")"
 
-        zenoh.KeyExpr(args.key)
-    except Exception as error:  # zenoh's own error type
-        raise ConfigError(f"not a valid key expression: {error}", field="KEY", value=args.key) from None
-    inbox: queue.SimpleQueue = queue.SimpleQueue()
+
+def run(args: argparse.Namespace) -> int:
+    wanted_type = expected_type(args.key)
     printed = 0
     deadline = None if args.duration is None else time.monotonic() + args.duration
     with open_session(options_from_args(args)) as session:
-        subscriber = session.declare_subscriber(
-            args.key, lambda s: inbox.put((str(s.key_expr), type_name_of_sample(s), s.payload.to_bytes()))
-        )
+        inputs = NodeInputs(session, "subscribe", expected_type=wanted_type)
+        inputs.subscribe(args.key)
         print(f"msk subscribe: subscribed to {args.key}", file=sys.stderr, flush=True)
         try:
             while (args.count is None or printed < args.count) and (deadline is None or time.monotonic() < deadline):
-                try:
-                    key, type_name, payload = inbox.get(timeout=0.05)
-                except queue.Empty:
+                inbound = inputs.get(POLL_S)
+                if inbound is None:
                     continue
-                print(render(key, type_name, payload, as_json=args.json), flush=True)
+                print(render(inbound.key, inbound.message, as_json=args.json), flush=True)
                 printed += 1
         except KeyboardInterrupt:
             pass
         finally:
-            subscriber.undeclare()
-    print(f"msk subscribe: {printed} messages on {args.key}", file=sys.stderr)
+            inputs.close()
+    print(f"msk subscribe: {printed} messages on {args.key}{dropped_summary(inputs.counts)}", file=sys.stderr)
     return 0
 
 

@@ -180,6 +180,10 @@ def _check_port_free(host: str, port: int) -> None:
                               field="--port", value=port) from None
 
 
+def _drops_text(state: DashboardState) -> str:
+    return ", ".join(f"{d.key}: {d.reason} {d.count}" for d in state.input_counts.drops())
+
+
 def run_from_args(args: argparse.Namespace) -> int:
     _check_port_free(args.host, args.port)
     server = DashboardServer(options_from_args(args), DashboardConfig(session=args.session), host=args.host, port=args.port)
@@ -189,7 +193,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         server.run()  # uvicorn handles SIGINT/SIGTERM: closes the sockets, then the lifespan stops the bridge
     except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it handled, once shut down
         pass
-    print(f"dashboard stopped; the bridge received {server.state.received} messages", file=sys.stderr)
+    dropped = server.state.input_counts.total_dropped
+    print(f"dashboard stopped; the bridge received {server.state.received} messages"
+          + (f" and dropped {dropped} it could not use ({_drops_text(server.state)})" if dropped else ""), file=sys.stderr)
     return 0
 
 

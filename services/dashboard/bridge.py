@@ -1,13 +1,18 @@
 """Zenoh -> dashboard bridge: subscribes to a session's topics and keeps only the newest frame of each.
 
-Zenoh callbacks decode each sample into a small JSON-ready dict and overwrite the previous one of its topic under a
-lock; page connections take what changed since their last send (:meth:`DashboardState.changes`). A slow page therefore
-skips frames, it never makes anything queue. What must not be lost to skipping is counted here, on every sample:
-repetitions (from the phase), per-device samples, gaps and arrival rate.
+The bridge takes its inputs through :class:`services.node_runtime.NodeInputs`: Zenoh callbacks only check the size and
+enqueue, the bridge's own thread decodes and checks each message (a malformed one is dropped and counted per topic and
+reason, the page shows the counts) and hands it to :meth:`DashboardState.on_message`, which turns it into a small
+JSON-ready dict that overwrites the previous one of its topic under a lock. Page connections take what changed since
+their last send (:meth:`DashboardState.changes`). A slow page therefore skips frames, it never makes anything queue.
+What must not be lost to skipping is counted here, on every message: repetitions (from the phase), per-device
+samples, gaps and arrival rate.
 
 Topics (``msk/<session>/...``): ``activations/<method>``, ``joints``, ``load``, ``status/<device>``, ``envelopes``
-(when the estimator publishes EMG envelopes), and ``emg/<source>`` / ``imu/<tracker>`` for device health
-(counted, not forwarded). ``ActivationFrame.measured_envelope`` is read only when the schema has that field.
+(when the estimator publishes EMG envelopes), and ``emg/<source>`` / ``imu/<tracker>`` for device health (counted,
+not forwarded). Each device is one row under its own id, the one its ``DeviceStatus`` uses: the Trigno base by
+``EmgChunk.source_id``, each Xsens tracker by ``ImuSample.tracker_id``. A ``DeviceStatus`` of kind ``node`` is a
+node's own status (its dropped inputs), shown apart from the devices.
 """
 
 from __future__ import annotations
@@ -20,12 +25,11 @@ from dataclasses import dataclass, field
 
 import zenoh
 from google.protobuf import json_format
-from google.protobuf.message import DecodeError
+from google.protobuf.message import Message
 
-from msk_core.errors import MskError
 from services import messages, topics
-from services.schemas import msk_pb2
-from services.zenoh_session import ZenohOptions, open_session, type_name_of_sample
+from services.node_runtime import InputCounts, NodeInputs
+from services.zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger(__name__)
 
@@ -34,18 +38,10 @@ HAS_MEASURED_ENVELOPE = "measured_envelope" in messages.ActivationFrame.DESCRIPT
 MAX_PLAUSIBLE_LATENCY_S = 60.0
 #: A device whose last sample is older than this is shown as not delivering.
 DEVICE_SILENT_AFTER_S = 1.0
-
-
-def _message_class(type_name: str | None):
-    """The generated class of ``msk.<Type>``, also for types newer than :data:`messages.MESSAGE_TYPES` (e.g. EmgEnvelope)."""
-    if not type_name:
-        return None
-    if type_name in messages.MESSAGE_TYPES:
-        return messages.MESSAGE_TYPES[type_name]
-    package, _, name = type_name.rpartition(".")
-    if package != "msk" or name not in msk_pb2.DESCRIPTOR.message_types_by_name:
-        return None
-    return getattr(msk_pb2, name, None)
+#: The row of the bridge's own inputs among the nodes.
+BRIDGE_NODE = "dashboard"
+#: How long the bridge's thread waits for a message before looking at its stop flag again.
+POLL_S = 0.1
 
 
 def _finite(values) -> list[float | None]:
@@ -53,9 +49,10 @@ def _finite(values) -> list[float | None]:
     return [float(v) if math.isfinite(v) else None for v in values]
 
 
-def activation_dict(frame, arrival_ns: int) -> dict:
-    out = {
+def activation_dict(frame: messages.ActivationFrame, arrival_ns: int) -> dict:
+    return {
         "method": frame.method,
+        "exercise": frame.exercise,
         "time_s": frame.time_s,
         "groups": list(frame.groups),
         "activations": _finite(frame.activations),
@@ -71,14 +68,13 @@ def activation_dict(frame, arrival_ns: int) -> dict:
         "estimator_latency_ms": (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else None,
         "transport_latency_ms": (arrival_ns - frame.publish_ns) / 1e6 if frame.publish_ns else None,
     }
-    return out
 
 
 class RepCounter:
     """Counts repetitions from a phase stream: [0, 1) inside a rep, negative at rest, None unknown.
 
     A rep ends when the phase leaves a rep for rest, or wraps from late in one rep to early in the next. A new set
-    (a load event with a mass) starts the count again; the total over the session is kept.
+    starts the count again; the total over the session is kept.
     """
 
     def __init__(self) -> None:
@@ -88,8 +84,9 @@ class RepCounter:
         self.phase: float | None = None
         self._previous: float | None = None
 
-    def new_set(self) -> None:
-        self.sets += 1
+    def new_set(self, number: int = 0) -> None:
+        """Start set ``number`` (the operator's ``LoadEvent.set_number``), or the next one when 0 (not counted)."""
+        self.sets = number if number > 0 else self.sets + 1
         self.in_set = 0
         self._previous = None
 
@@ -113,6 +110,7 @@ class DeviceHealth:
     """One device as the bridge sees it: its own status messages and the samples it delivers."""
 
     kind: str
+    segment: str = ""  # an Xsens tracker's body segment (ImuSample.segment), when the driver knows it
     messages: int = 0
     samples: int = 0
     samples_lost: int = 0  # gaps in EmgChunk.first_sample_index; DeviceStatus.samples_lost when larger
@@ -126,10 +124,28 @@ class DeviceHealth:
     def as_dict(self, now_ns: int) -> dict:
         age = (now_ns - self.last_arrival_ns) / 1e9 if self.last_arrival_ns else None
         return {
-            "kind": self.kind, "messages": self.messages, "samples": self.samples, "samples_lost": self.samples_lost,
+            "kind": self.kind, "segment": self.segment, "messages": self.messages, "samples": self.samples, "samples_lost": self.samples_lost,
             "connected": self.connected, "delivering": age is not None and age < DEVICE_SILENT_AFTER_S,
             "age_s": age, "errors": self.errors, "last_error": self.last_error, "latency_ms": self.latency_ms,
         }
+
+
+def node_dict(status: messages.DeviceStatus) -> dict:
+    """A node's own status (``kind = "node"``): running or stopped, inputs taken, inputs dropped (per topic, reason)."""
+    return {
+        "running": bool(status.connected), "received": int(status.samples_received),
+        "dropped": sum(int(d.count) for d in status.dropped),
+        "drops": [[d.key, d.reason, int(d.count)] for d in status.dropped],
+        "errors": int(status.errors), "last_error": status.last_error,
+    }
+
+
+def counts_dict(counts: InputCounts, errors: int) -> dict:
+    """The bridge's own inputs, in the shape of :func:`node_dict`."""
+    drops = counts.drops()
+    return {"running": True, "received": sum(counts.as_dict()["received"].values()),
+            "dropped": sum(int(d.count) for d in drops), "drops": [[d.key, d.reason, int(d.count)] for d in drops],
+            "errors": errors, "last_error": ""}
 
 
 def _latency_ms(arrival_ns: int, host_time_ns: int) -> float | None:
@@ -140,11 +156,15 @@ def _latency_ms(arrival_ns: int, host_time_ns: int) -> float | None:
 
 
 class DashboardState:
-    """The newest frame of every topic of one session, plus counters; safe to feed from Zenoh's threads."""
+    """The newest frame of every topic of one session, plus counters; fed by the bridge's thread, read by pages.
 
-    def __init__(self, session: str) -> None:
+    ``input_counts``: what the bridge's :class:`NodeInputs` took and dropped (shown as the ``dashboard`` node).
+    """
+
+    def __init__(self, session: str, input_counts: InputCounts | None = None) -> None:
         self.session = session
         self.prefix = topics.session_prefix(session) + "/"
+        self.input_counts = input_counts or InputCounts()
         self._lock = threading.Lock()
         self._seq = 0
         self._latest: dict[str, tuple[int, object]] = {}  # topic (after the prefix) -> (seq, JSON-ready value)
@@ -153,62 +173,34 @@ class DashboardState:
         self._phase_method: str | None = None  # activation stream counted when the joints carry no phase
         self._devices: dict[str, DeviceHealth] = {}
         self._devices_seq = 0
+        self._nodes: dict[str, dict] = {}  # node -> node_dict of its newest status
+        self._load: messages.LoadEvent | None = None
+        self._frame_exercise = ""  # ActivationFrame.exercise of the newest frame: the exercise when no LoadEvent came
         self.last_data_ns = 0  # arrival of the newest data sample (activations, joints, devices)
         self.last_activation_ns = 0  # arrival of the newest activation frame: what the page is about
         self.received = 0
-        self.decode_errors = 0
+        self.errors = 0  # messages that passed the checks but could not be shown (logged by the bridge)
 
-    # ---- input (Zenoh threads) ---------------------------------------------------------------------------------
-    def on_sample(self, key: str, type_name: str | None, payload: bytes, arrival_ns: int | None = None) -> None:
+    # ---- input (the bridge's thread) ---------------------------------------------------------------------------
+    def on_message(self, key: str, message: Message, arrival_ns: int | None = None) -> None:
+        """One checked message of ``key`` (its topic's type, :func:`services.node_runtime.check_payload`)."""
         if not key.startswith(self.prefix):
             return
         rest = key[len(self.prefix):]
+        kind, _, name = rest.partition("/")
         arrival_ns = arrival_ns or time.time_ns()
-        kind = rest.split("/", 1)[0]
-        try:
-            type_name = type_name or topics.message_type_for_key(key)
-            message_class = _message_class(type_name)
-            if message_class is None:
-                return
-            message = message_class()
-            message.ParseFromString(payload)
-        except (MskError, DecodeError) as error:
-            with self._lock:
-                self.decode_errors += 1
-            log.warning("%s: %s", key, error)
-            return
         with self._lock:
             self.received += 1
             if kind == "activations":
-                self._put(rest, activation_dict(message, arrival_ns))
-                self.last_data_ns = self.last_activation_ns = arrival_ns
-                if not self._joints_have_phase:
-                    self._phase_method = self._phase_method or message.method
-                    if message.method == self._phase_method:
-                        self._reps.update(message.phase if message.HasField("phase") else None)
-                        self._put("reps", self._reps.as_dict())
+                self._on_activations(rest, message, arrival_ns)
             elif kind == "joints":
-                self.last_data_ns = arrival_ns
-                has_phase = message.HasField("phase")
-                self._joints_have_phase = self._joints_have_phase or has_phase
-                if has_phase:
-                    self._reps.update(message.phase)
-                    self._put("reps", self._reps.as_dict())
-                self._put("joints", {"coordinates": list(message.coordinates), "q": _finite(message.q),
-                                      "phase": message.phase if has_phase else None})
+                self._on_joints(message, arrival_ns)
             elif kind == "load":
-                if message.barbell_mass_kg > 0:
-                    self._reps.new_set()
-                    self._put("reps", self._reps.as_dict())
-                self._put("load", {"mass_kg": message.barbell_mass_kg, "exercise": message.exercise})
+                self._on_load(message)
             elif kind == "status":
-                device = self._device(message.device_id or rest.split("/", 1)[-1], message.kind)
-                device.connected = bool(message.connected)
-                device.samples_lost = max(device.samples_lost, int(message.samples_lost))
-                device.errors, device.last_error = int(message.errors), message.last_error
-                self._devices_seq = self._next()
+                self._on_status(name, message)
             elif kind in ("emg", "imu"):
-                self._count_device_sample(kind, rest.split("/", 1)[-1], message, arrival_ns)
+                self._count_device_sample(kind, message, arrival_ns)
             elif kind == "envelopes":  # the estimator's EMG envelopes: shown as a stream in the health table
                 device = self._device("EMG envelopes", "estimator")
                 device.messages += 1
@@ -217,15 +209,73 @@ class DashboardState:
                 self._devices_seq = self._next()
                 self._put("envelopes", json_format.MessageToDict(message))
 
-    def _count_device_sample(self, kind: str, source: str, message, arrival_ns: int) -> None:
+    def _on_activations(self, topic: str, frame: messages.ActivationFrame, arrival_ns: int) -> None:
+        self._put(topic, activation_dict(frame, arrival_ns))
+        self.last_data_ns = self.last_activation_ns = arrival_ns
+        if frame.exercise != self._frame_exercise:
+            self._frame_exercise = frame.exercise
+            self._put_session()
+        if not self._joints_have_phase:
+            self._phase_method = self._phase_method or frame.method
+            if frame.method == self._phase_method:
+                self._reps.update(frame.phase if frame.HasField("phase") else None)
+                self._put("reps", self._reps.as_dict())
+
+    def _on_joints(self, joints: messages.JointAngles, arrival_ns: int) -> None:
+        self.last_data_ns = arrival_ns
+        has_phase = joints.HasField("phase")
+        self._joints_have_phase = self._joints_have_phase or has_phase
+        if has_phase:
+            self._reps.update(joints.phase)
+            self._put("reps", self._reps.as_dict())
+        self._put("joints", {"coordinates": list(joints.coordinates), "q": _finite(joints.q),
+                             "phase": joints.phase if has_phase else None})
+
+    def _on_load(self, load: messages.LoadEvent) -> None:
+        """A set starts when the operator's set number changes; without set numbers, with every load event that
+        carries a mass (the operator changing only the load within a set does not restart the rep count)."""
+        number = int(load.set_number)
+        if (number > 0 and number != self._reps.sets) or (number == 0 and load.barbell_mass_kg > 0):
+            self._reps.new_set(number)
+            self._put("reps", self._reps.as_dict())
+        self._load = load
+        self._put("load", {"mass_kg": load.barbell_mass_kg, "exercise": load.exercise, "set_number": number,
+                           "athlete": load.athlete})
+        self._put_session()
+
+    def _put_session(self) -> None:
+        """Exercise (the load event's, else the activation frames'), load and athlete, for the page's header."""
+        load = self._load
+        exercise = (load.exercise if load is not None else "") or self._frame_exercise
+        self._put("session", {
+            "exercise": exercise or None,
+            "load_kg": load.barbell_mass_kg if load is not None else None,
+            "athlete": load.athlete if load is not None and load.athlete else None,
+        })
+
+    def _on_status(self, name: str, status: messages.DeviceStatus) -> None:
+        if status.kind == "node":
+            self._nodes[status.device_id or name] = node_dict(status)
+            self._devices_seq = self._next()
+            return
+        device = self._device(status.device_id or name, status.kind)
+        device.connected = bool(status.connected)
+        device.samples_lost = max(device.samples_lost, int(status.samples_lost))
+        device.errors, device.last_error = int(status.errors), status.last_error
+        self._devices_seq = self._next()
+
+    def _count_device_sample(self, kind: str, message: messages.EmgChunk | messages.ImuSample, arrival_ns: int) -> None:
+        """A sample of the device that sent it: the Trigno base by ``source_id``, each tracker by ``tracker_id`` (the
+        ids their DeviceStatus use; :func:`messages.problems` guarantees both are set)."""
         if kind == "emg":
-            device = self._device(message.source_id or source, "trigno")
+            device = self._device(message.source_id, "trigno")
             n = int(message.n_samples)
             if device._next_index is not None and message.first_sample_index > device._next_index:
                 device.samples_lost += int(message.first_sample_index - device._next_index)
             device._next_index = int(message.first_sample_index) + n
         else:
-            device = self._device("xsens", "xsens")  # one Xsens station carries every tracker
+            device = self._device(message.tracker_id, "xsens")
+            device.segment = message.segment or device.segment
             n = 1
         device.messages += 1
         device.samples += n
@@ -247,15 +297,21 @@ class DashboardState:
     def _put(self, topic: str, value: object) -> None:
         self._latest[topic] = (self._next(), value)
 
+    def count_error(self) -> None:
+        with self._lock:
+            self.errors += 1
+
     # ---- output (page connections) -----------------------------------------------------------------------------
     def changes(self, since: int, now_ns: int | None = None) -> tuple[int, dict]:
-        """Everything newer than ``since`` as ``{"topics": {...}, "devices": {...}?}`` and the sequence to ask next."""
+        """Everything newer than ``since`` as ``{"topics": {...}, "devices": {...}?, "nodes": {...}, ...}`` and the
+        sequence to ask next."""
         now_ns = now_ns or time.time_ns()
         with self._lock:
             changed = {topic: value for topic, (seq, value) in self._latest.items() if seq > since}
             update: dict = {"topics": changed}
             if self._devices_seq > since or any(d.last_arrival_ns for d in self._devices.values()):
                 update["devices"] = {name: d.as_dict(now_ns) for name, d in self._devices.items()}
+            update["nodes"] = dict(self._nodes) | {BRIDGE_NODE: counts_dict(self.input_counts, self.errors)}
             update["data_age_s"] = (now_ns - self.last_data_ns) / 1e9 if self.last_data_ns else None
             update["activation_age_s"] = (now_ns - self.last_activation_ns) / 1e9 if self.last_activation_ns else None
             return self._seq, update
@@ -267,31 +323,49 @@ TOPIC_FAMILIES = ("activations/**", "status/**", "envelopes", "joints", "load", 
 
 @dataclass
 class Bridge:
-    """The Zenoh side: a subscriber per topic family of ``msk/<session>/`` feeding a :class:`DashboardState`."""
+    """The Zenoh side: :class:`NodeInputs` on each topic family of ``msk/<session>/`` and a thread feeding its
+    checked messages to a :class:`DashboardState`."""
 
     options: ZenohOptions
     state: DashboardState
     _session: zenoh.Session | None = None
-    _subscribers: list = field(default_factory=list)
+    _inputs: NodeInputs | None = None
+    _thread: threading.Thread | None = None
+    _stop: threading.Event = field(default_factory=threading.Event)
 
     def start(self) -> None:
         self._session = open_session(self.options)
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                self.state.on_sample(str(sample.key_expr), type_name_of_sample(sample), sample.payload.to_bytes())
-            except Exception:  # a callback must never raise into Zenoh; the count shows it on the page
-                log.exception("dashboard bridge: sample on %s", sample.key_expr)
-
+        self._inputs = NodeInputs(self._session, BRIDGE_NODE)
+        self.state.input_counts = self._inputs.counts
         # One subscriber per topic family, not one on msk/<s>/**: on the secured network a tablet may read only
         # activations and status, and the router refuses a subscription it cannot grant whole.
         for family in TOPIC_FAMILIES:
-            self._subscribers.append(self._session.declare_subscriber(f"{self.state.prefix}{family}", on_sample))
+            self._inputs.subscribe(f"{self.state.prefix}{family}")
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, args=(self._inputs,), name="dashboard-bridge", daemon=True)
+        self._thread.start()
+
+    def _run(self, inputs: NodeInputs) -> None:
+        while not self._stop.is_set():
+            inbound = inputs.get(POLL_S)
+            if inbound is not None:
+                self._take(inbound.key, inbound.message, inbound.arrival_ns)
+
+    def _take(self, key: str, message: Message, arrival_ns: int) -> None:
+        try:
+            self.state.on_message(key, message, arrival_ns)
+        except Exception:  # a message the checks let through must not stop the page; the count shows it
+            self.state.count_error()
+            log.exception("dashboard bridge: message on %s", key)
 
     def stop(self) -> None:
-        for subscriber in self._subscribers:
-            subscriber.undeclare()
-        self._subscribers.clear()
+        self._stop.set()
+        if self._inputs is not None:
+            self._inputs.close()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+        self._inputs = None
         if self._session is not None:
             self._session.close()
             self._session = None

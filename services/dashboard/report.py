@@ -1,7 +1,10 @@
 """``msk report REC.mcap --out DIR``: an HTML session report (``DIR/report.html`` with PNG plots and inline SVG body
 maps beside it, ``DIR/report.json`` with the numbers).
 
-Sets come from the load events (a mass opens a set, the next zero closes it); repetitions from the phase the frames
+The header names the athlete (``LoadEvent.athlete``), the date of the recording's first message, the exercises
+(the load events', else the activation frames' ``exercise``) and the loads. Sets come from the load events (a mass
+opens a set, the next load event closes it unless it carries the same ``set_number``, which corrects the running
+set's load); repetitions from the phase the frames
 carry (``JointAngles.phase``, else ``ActivationFrame.phase``), else from msk_core's kinematic rep detection on the
 pack's phase coordinate. Per set and method: peak and mean activation of every muscle group in every rep, time under
 tension, the balance between the left and right groups (packs with both sides) and between the muscles pulling each
@@ -12,6 +15,7 @@ when several ran, and the health of every device over the session.
 from __future__ import annotations
 
 import argparse
+import datetime
 import functools
 import html
 import json
@@ -45,16 +49,29 @@ class MethodSeries:
     flagged: list[bool] = field(default_factory=list)  # per frame: carried a flag
 
 
+@dataclass(frozen=True, order=True)
+class Load:
+    """One operator load event, on the devices' clock."""
+
+    time_s: float
+    mass_kg: float
+    exercise: str
+    set_number: int = 0  # 0: not counted
+    athlete: str = ""
+
+
 @dataclass
 class SessionData:
     frames: dict[tuple[str, tuple[str, ...]], MethodSeries] = field(default_factory=dict)
     joint_time: list[float] = field(default_factory=list)
     joint_phase: list[float] = field(default_factory=list)
     joint_q: dict[tuple[str, ...], list[tuple[float, list[float]]]] = field(default_factory=dict)
-    loads: list[tuple[float, float, str]] = field(default_factory=list)
+    loads: list[Load] = field(default_factory=list)
+    frame_exercises: list[str] = field(default_factory=list)  # ActivationFrame.exercise values, in order of appearance
     emg: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)  # source -> (log s, first index, n)
     imu: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # tracker -> (log s, packet counter)
     status: dict[str, list[tuple[float, bool, int, int]]] = field(default_factory=dict)
+    node_drops: dict[str, int] = field(default_factory=dict)  # node -> inputs dropped (its last DeviceStatus of kind "node")
     start_log_ns: int = 0
     end_log_ns: int = 0
     truncated: bool = False
@@ -79,6 +96,8 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             series.residual.append([t.residual_nm for t in f.torques])
             series.solve_s.append(f.solve_time_s)
             series.flagged.append(bool(f.flags))
+            if f.exercise and f.exercise not in data.frame_exercises:
+                data.frame_exercises.append(f.exercise)
         elif kind == "msk.JointAngles":
             j = recorded.decode()
             t = j.device_time_ns / 1e9
@@ -87,7 +106,7 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
         elif kind == "msk.LoadEvent":
             e = recorded.decode()
-            data.loads.append((e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise))
+            data.loads.append(Load(e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise, int(e.set_number), e.athlete))
         elif kind == "msk.EmgChunk":
             c = recorded.decode()
             data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, c.first_sample_index, c.n_samples))
@@ -96,7 +115,10 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             data.imu.setdefault(s.tracker_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, s.packet_counter))
         elif kind == "msk.DeviceStatus":
             s = recorded.decode()
-            data.status.setdefault(s.device_id, []).append((log_s, s.connected, s.samples_lost, s.errors))
+            if s.kind == "node":  # a node's own status: its dropped inputs, not a device
+                data.node_drops[s.device_id] = sum(int(d.count) for d in s.dropped)
+            else:
+                data.status.setdefault(s.device_id, []).append((log_s, s.connected, s.samples_lost, s.errors))
     data.truncated = report.truncated
     if data.start_log_ns == 0:
         raise InputError("the recording holds no messages", path=path)
@@ -106,34 +128,58 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
 # ---- sets and repetitions -----------------------------------------------------------------------------------------
 @dataclass
 class SetWindow:
-    index: int
-    exercise: str
-    load_kg: float
+    index: int  # position in the session, from 1 (file names)
+    exercise: str  # "" when not known: frames of any pack belong to the set
+    load_kg: float  # 0 when not known
     start_s: float
     end_s: float
+    number: int = 0  # the operator's set number; 0: not counted (``index`` is shown)
 
     @property
     def name(self) -> str:
-        return f"set {self.index}: {self.exercise.replace('_', ' ') or 'exercise'} {self.load_kg:g} kg"
+        exercise = self.exercise.replace("_", " ") or "exercise not named"
+        load = f"{self.load_kg:g} kg" if self.load_kg > 0 else "load unknown"
+        return f"set {self.number or self.index}: {exercise}, {load}"
 
 
 def set_windows(data: SessionData) -> list[SetWindow]:
     windows: list[SetWindow] = []
     current: SetWindow | None = None
-    for t, mass, exercise in sorted(data.loads):
+    for load in sorted(data.loads):
+        if current is not None and load.mass_kg > 0 and load.set_number > 0 and load.set_number == current.number:
+            current.load_kg, current.exercise = load.mass_kg, load.exercise or current.exercise  # a correction
+            continue
         if current is not None:
-            current.end_s = t
+            current.end_s = load.time_s
             windows.append(current)
             current = None
-        if mass > 0:
-            current = SetWindow(len(windows) + 1, exercise, mass, t, math.inf)
+        if load.mass_kg > 0:
+            current = SetWindow(len(windows) + 1, load.exercise, load.mass_kg, load.time_s, math.inf, load.set_number)
     if current is not None:
         windows.append(current)
-    if not windows:  # no load events: the whole session is one set
+    if not windows:  # no load events: the whole session is one set, of the frames' exercise when they name one
         times = [t for s in data.frames.values() for t in s.time] or data.joint_time
         if times:
-            windows.append(SetWindow(1, "", 0.0, min(times), max(times)))
+            exercise = data.frame_exercises[0] if len(data.frame_exercises) == 1 else ""
+            windows.append(SetWindow(1, exercise, 0.0, min(times), max(times)))
     return windows
+
+
+def session_facts(data: SessionData) -> dict:
+    """Athlete, date (the first message's, local time of this machine), exercises and loads of the session."""
+    athletes = list(dict.fromkeys(load.athlete for load in sorted(data.loads) if load.athlete))
+    exercises = list(dict.fromkeys(load.exercise for load in sorted(data.loads) if load.exercise)) or data.frame_exercises
+    loads = list(dict.fromkeys(load.mass_kg for load in sorted(data.loads) if load.mass_kg > 0))
+    started = datetime.datetime.fromtimestamp(data.start_log_ns / 1e9).astimezone()
+    return {"athlete": ", ".join(athletes) or None, "date": started.strftime("%Y-%m-%d %H:%M %Z").strip(),
+            "started_at": started.isoformat(timespec="seconds"), "exercises": list(exercises), "loads_kg": loads}
+
+
+def facts_line(facts: dict) -> str:
+    """``bench press · 40, 50 kg``: the exercises and loads of the header (said to be unknown when they are)."""
+    exercises = ", ".join(e.replace("_", " ") for e in facts["exercises"]) or "exercise not named"
+    loads = ", ".join(f"{kg:g}" for kg in facts["loads_kg"]) + " kg" if facts["loads_kg"] else "load unknown"
+    return f"{exercises} · {loads}"
 
 
 def reps_from_phase(time: np.ndarray, phase: np.ndarray) -> list[tuple[float, float]]:
@@ -259,7 +305,8 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     groups = list(series.groups)
     pack = _pack_for(series.groups)
     reps, rep_source = reps_in_set(data, window, series, pack)
-    result = {"name": window.name, "exercise": window.exercise, "load_kg": window.load_kg, "start_s": window.start_s,
+    result = {"name": window.name, "index": window.index, "set_number": window.number, "exercise": window.exercise,
+              "load_kg": window.load_kg, "start_s": window.start_s,
               "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
               "pack": pack.name if pack else None, "groups": groups, "primary": primary, "rep_source": rep_source,
               "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
@@ -326,7 +373,8 @@ def device_health(data: SessionData) -> dict:
     for device, statuses in data.status.items():
         entry = devices.setdefault(device, {"kind": "status", "messages": 0, "samples": 0, "samples_lost": 0, "times": [], "weights": []})
         entry["status_messages"] = len(statuses)
-        entry["disconnected_reports"] = int(sum(1 for s in statuses if not s[1]))
+        # the last status of a driver that stopped cleanly says disconnected: the stop, not a loss of the device
+        entry["disconnected_reports"] = int(sum(1 for s in statuses[:-1] if not s[1]))
         entry["samples_lost"] = max(entry["samples_lost"], max(s[2] for s in statuses))
         entry["errors"] = max(s[3] for s in statuses)
     return devices
@@ -423,6 +471,7 @@ def plot_devices(devices: dict, duration_s: float, out: Path) -> str | None:
 CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:0;background:#f4f6f8;color:#1d2630}
 header{background:#1d2630;color:#fff;padding:14px 22px}header h1{margin:0;font-size:22px}header div{color:#aab4c0;font-size:14px}
+header div.facts{color:#fff;font-size:17px;margin:4px 0 2px}
 main{padding:12px 22px;max-width:1200px}section{background:#fff;border-radius:10px;padding:12px 16px;margin:12px 0;box-shadow:0 1px 3px rgba(0,0,0,.08)}
 h2{font-size:18px;margin:4px 0 8px}h3{font-size:15px;margin:12px 0 6px}table{border-collapse:collapse;font-size:13px;margin:6px 0}
 th,td{padding:3px 8px;border-bottom:1px solid #e6e9ed;text-align:right}th:first-child,td:first-child{text-align:left}
@@ -444,7 +493,7 @@ def _table(headers: list[str], rows: list[list[str]]) -> str:
 def set_html(result: dict, plots: list[str]) -> str:
     primary = result["methods"][result["primary"]]
     groups, reps = result["groups"], result["reps"]
-    parts = [f'<section class="set" id="set-{result["name"].split(":")[0].split()[-1]}"><h2>{html.escape(result["name"])}</h2>']
+    parts = [f'<section class="set" id="set-{result["index"]}"><h2>{html.escape(result["name"])}</h2>']
     parts.append(
         f'<div class="kpi"><b>{len(reps)}</b>reps</div><div class="kpi"><b>{result["time_under_tension_s"]:.1f} s</b>time under tension</div>'
         f'<div class="kpi"><b>{result["end_s"] - result["start_s"]:.1f} s</b>set duration</div>'
@@ -511,7 +560,8 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     duration = max((data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0)
     device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
     methods = sorted({m for m, _ in data.frames})
-    title = f"Session report: {Path(recording).name}"
+    facts = session_facts(data)
+    title = f"Session report: {facts['athlete'] or 'athlete not named'}, {facts['date']}"
     sections = [set_html(s, s["plots"]) for s in sets]
     if not data.frames:
         sections.insert(0, '<section><h2>No activation frames</h2><p>This recording holds no <code>activations/&lt;method&gt;</code> '
@@ -523,8 +573,12 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     health = ("<section><h2>Device health over the session</h2>"
               + _table(["device", "kind", "messages", "samples", "samples missing", "gaps", "restarts", "disconnected reports", "errors"], rows)
               + "<p class='note'>Samples missing: jumps of the EMG sample index or of the IMU packet counter (a pause between "
-              "trials of a recording shows as one gap); restarts: the counter went back to an earlier value.</p>"
+              "trials of a recording shows as one gap); restarts: the counter went back to an earlier value; disconnected "
+              "reports: status messages saying the device was not connected, the last one (the driver's stop) left out.</p>"
               + (f'<img src="{device_plot}" alt="samples per second">' if device_plot else "")
+              + ("<p class='note'>Inputs the nodes dropped as unusable: "
+                 + html.escape(", ".join(f"{node} {n}" for node, n in sorted(data.node_drops.items()))) + ".</p>"
+                 if data.node_drops else "")
               + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
               + "</section>")
     overview = (f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
@@ -532,14 +586,17 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
                 f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div></section>")
     page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
             f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><header><h1>{html.escape(title)}</h1>"
-            f"<div>msk-live · {len(sets)} sets · methods: {html.escape(', '.join(methods) or 'none')}</div></header><main>"
+            f"<div class='facts'>{html.escape(facts_line(facts))}</div>"
+            f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} sets · methods: "
+            f"{html.escape(', '.join(methods) or 'none')}</div></header><main>"
             + overview + "".join(sections) + health + "</main></body></html>")
     (out / "report.html").write_text(page)
     summary = {
-        "recording": str(recording), "duration_s": duration, "methods": methods,
+        "recording": str(recording), **facts, "duration_s": duration, "methods": methods,
         "sets": [{k: v for k, v in s.items() if k != "methods"} | {"methods": {m: {k: v for k, v in info.items() if not k.startswith("_")}
                  for m, info in s["methods"].items()}} for s in sets],
         "devices": {name: {k: v for k, v in d.items() if k not in ("times", "weights")} for name, d in devices.items()},
+        "node_inputs_dropped": dict(sorted(data.node_drops.items())),
     }
     (out / "report.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
     return summary

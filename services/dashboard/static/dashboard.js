@@ -6,7 +6,8 @@ const RECONNECT_MIN_MS = 500, RECONNECT_MAX_MS = 3000;
 
 const state = {
   config: null, socket: null, lastMessageMs: 0, reconnectMs: RECONNECT_MIN_MS, connection: "connecting",
-  activations: {}, joints: null, load: null, reps: null, devices: {}, envelopes: null, dataAge: null, activationAge: null,
+  activations: {}, joints: null, load: null, session: null, reps: null, devices: {}, nodes: {}, envelopes: null,
+  dataAge: null, activationAge: null,
   method: localStorage.getItem("msk-method") || null, pack: null, packGroupsKey: null, updates: 0,
   torqueHistory: {}, // method -> coordinate -> {t: [], id: [], model: []}
 };
@@ -64,6 +65,7 @@ function merge(update) {
   state.dataAge = update.data_age_s;
   state.activationAge = update.activation_age_s;
   if (update.devices) state.devices = update.devices;
+  if (update.nodes) state.nodes = update.nodes;
   for (const [topic, value] of Object.entries(update.topics || {})) {
     if (topic.startsWith("activations/")) {
       const method = topic.slice("activations/".length);
@@ -71,6 +73,7 @@ function merge(update) {
       recordTorques(method, value);
     } else if (topic === "joints") state.joints = value;
     else if (topic === "load") state.load = value;
+    else if (topic === "session") state.session = value;
     else if (topic === "reps") state.reps = value;
     else if (topic === "envelopes") state.envelopes = value;
   }
@@ -105,8 +108,9 @@ function render() {
   const live = state.connection === "open" && age !== null && age !== undefined && age <= noDataAfter;
   const status = document.getElementById("status");
   const pill = state.connection !== "open" ? state.connection : (live ? "live" : "nodata");
-  status.className = "pill " + pill;
+  status.className = "pill pill-" + pill;
   status.dataset.state = pill;
+  document.body.dataset.state = pill; // greys the last values out (dashboard.css) while not live
   status.textContent = { live: "live", nodata: "no data", connecting: "connecting", reconnecting: "reconnecting" }[pill];
   const overlay = document.getElementById("nodata");
   overlay.hidden = pill === "live";
@@ -124,12 +128,16 @@ function render() {
   const frame = method ? state.activations[method] : null;
   if (frame) { renderBars(frame); renderBodyMap(frame); renderTorques(method); }
   renderDevices(frame);
+  renderNodes();
 }
 
+// Exercise, load and athlete from the operator's load event (the exercise falls back to the activation frames').
 function renderHeader() {
-  if (state.load) {
-    document.getElementById("exercise").textContent = (state.load.exercise || "–").replace("_", " ");
-    document.getElementById("load").textContent = `${state.load.mass_kg.toFixed(1)} kg`;
+  const facts = state.session;
+  if (facts) {
+    document.getElementById("exercise").textContent = facts.exercise ? facts.exercise.replaceAll("_", " ") : "–";
+    document.getElementById("load").textContent = facts.load_kg === null ? "–" : `${facts.load_kg.toFixed(1)} kg`;
+    document.getElementById("athlete").textContent = facts.athlete ? `· ${facts.athlete}` : "";
   }
   const reps = state.reps;
   document.getElementById("reps").textContent = reps ? reps.in_set : 0;
@@ -263,7 +271,9 @@ function renderDevices(frame) {
     const ok = d.delivering && d.connected !== false;
     const stateText = d.connected === false ? "disconnected" : d.delivering ? "delivering" : "silent";
     const tr = document.createElement("tr");
-    tr.innerHTML = `<td>${name}<br><span class="hint">${d.kind}</span></td><td class="${ok ? "ok" : "bad"}">${stateText}</td>`
+    tr.dataset.device = name;
+    tr.innerHTML = `<td>${escapeHtml(name)}<br><span class="hint">${escapeHtml(d.kind)}${d.segment ? " · " + escapeHtml(d.segment) : ""}</span></td>`
+      + `<td class="${ok ? "ok" : "bad"}">${stateText}</td>`
       + `<td>${d.samples}</td><td class="${d.samples_lost ? "bad" : ""}">${d.samples_lost}</td><td>${fmt(d.latency_ms, 1, " ms")}</td>`;
     return tr;
   });
@@ -273,6 +283,23 @@ function renderDevices(frame) {
     ? `estimator ${frame.method}: ${frame.solver_status}${frame.flags.length ? " (" + frame.flags.join(", ") + ")" : ""}, `
       + `solve+publish ${fmt(frame.estimator_latency_ms, 2, " ms")}, to this page ${fmt(frame.transport_latency_ms, 1, " ms")}`
     : "";
+}
+
+function escapeHtml(text) {
+  return String(text).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+}
+
+// Each node's own status (DeviceStatus kind "node") and this dashboard's bridge: inputs dropped, per topic and reason.
+function renderNodes() {
+  const rows = Object.entries(state.nodes).sort().map(([name, n]) => {
+    const tr = document.createElement("tr");
+    tr.dataset.node = name;
+    tr.title = n.drops.map(([key, reason, count]) => `${key}: ${reason} ${count}`).join("\n");
+    tr.innerHTML = `<td>${escapeHtml(name)}</td><td class="${n.running ? "ok" : "bad"}">${n.running ? "running" : "stopped"}</td>`
+      + `<td>${n.received}</td><td class="${n.dropped ? "bad" : ""}">${n.dropped}</td>`;
+    return tr;
+  });
+  document.querySelector("#nodes tbody").replaceChildren(...rows);
 }
 
 // The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.

@@ -1,0 +1,64 @@
+"""At a clean stop every driver loop's last DeviceStatus of each device says connected = False with its final counts
+(the Trigno base and each Xsens tracker), so that `msk live`'s recording and summary.json end with the devices
+stopped. Real simulators: the Trigno over TCP, two Xsens trackers on their own pseudo-terminals."""
+
+from __future__ import annotations
+
+import threading
+
+from drivers.trigno.client import TrignoClient, TrignoConfig
+from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
+from drivers.trigno.source import synthetic_source
+from drivers.xsens.device import TrackerSet, XsensDevice
+from drivers.xsens.serial_transport import SerialTransport
+from drivers.xsens.simulator import XsensSimulator
+from drivers.xsens.source import synthetic_imu
+from services import driver_nodes, messages, topics
+
+EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
+TRACKERS = {"00B4EB80": 0x00B4EB80, "00B497B2": 0x00B497B2}
+
+
+def test_last_status_of_every_device_at_a_clean_stop_is_disconnected_with_final_counts():
+    published: list[tuple[str, object]] = []
+    lock = threading.Lock()
+
+    def sink(key, message, host_time_ns, device_time_ns):
+        with lock:
+            published.append((key, message))
+
+    imu_source = synthetic_imu(seconds=10.0, seed=2)
+    stop = threading.Event()
+    simulators = [XsensSimulator(imu_source, speed=1.0, device_id=number).start() for number in TRACKERS.values()]
+    trackers = TrackerSet()
+    with TrignoSimulator(synthetic_source(seconds=10.0, seed=2), SimulatorConfig(**EPHEMERAL, speed=1.0)) as trigno_sim:
+        client = TrignoClient(TrignoConfig(command_port=trigno_sim.ports["command"], emg_port=trigno_sim.ports["emg"]))
+        try:
+            client.connect()
+            for simulator in simulators:
+                device = XsensDevice(SerialTransport(simulator.path))
+                device.configure(100)
+                trackers.add(device)
+            threading.Timer(1.0, stop.set).start()  # what SIGINT does in `msk drivers`
+            reports = driver_nodes.run_threads([
+                lambda: driver_nodes.trigno_loop(client, session="s", source_id="trigno", sink=sink, stop=stop),
+                lambda: driver_nodes.xsens_loop(trackers, session="s", sink=sink, stop=stop, status_interval_s=0.2),
+            ], stop)
+        finally:
+            trackers.close()
+            client.close()
+            for simulator in simulators:
+                simulator.close()
+    assert all(isinstance(r, driver_nodes.LoopReport) for r in reports), reports
+    statuses = {device: [m for k, m in published if k == topics.status_key("s", device)] for device in ["trigno", *TRACKERS]}
+    emg_samples = sum(m.n_samples for k, m in published if k == topics.emg_key("s", "trigno"))
+    assert emg_samples == reports[0].samples > 1000
+    last = statuses["trigno"][-1]
+    assert (last.kind, last.connected, last.samples_received) == ("trigno", False, emg_samples)
+    assert any(s.connected for s in statuses["trigno"])  # it was connected while streaming
+    for tracker in TRACKERS:
+        readings = sum(1 for k, m in published if k == topics.imu_key("s", tracker))
+        last = statuses[tracker][-1]
+        assert readings > 50 and isinstance(last, messages.DeviceStatus)
+        assert (last.kind, last.connected, last.samples_received) == ("xsens", False, readings), (tracker, last)
+        assert all(s.connected for s in statuses[tracker][:-1])  # streaming until the stop
