@@ -1,5 +1,9 @@
 """docker-compose.yml stays true to the code: every node's command is a valid ``msk`` command line, every node joins
-the router, and the files it names exist. (No Docker engine runs here, so the file is checked against the code.)"""
+the router, and the files it names exist. (No Docker engine runs here, so the file is checked against the code.)
+
+Both compose files and the router's access control are what the declared session graph (services/session_graph.py)
+generates: the committed files equal ``services.deploy_files``' output, every secured service presents the role of
+its graph declaration, and every key a participant publishes or reads is one its role may."""
 
 from __future__ import annotations
 
@@ -11,6 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from services import deploy_files, security, session_graph, topics
 from services.cli import build_parser
 
 
@@ -27,7 +32,7 @@ def compose(repo_root):
 def test_every_msk_service_command_parses(compose, repo_root):
     parser = build_parser()
     msk_services = {name: s for name, s in compose["services"].items() if s.get("image", "").startswith("msk-live")}
-    assert {"drivers", "kinematics", "estimator", "recorder", "trigno-sim", "replayer"} <= set(msk_services)
+    assert set(msk_services) == {d.service for d in deploy_files.DEPLOYMENTS.values()} | {"trigno-sim"}
     for name, service in msk_services.items():
         argv = shlex.split(_expand(service["command"]))
         try:
@@ -52,9 +57,17 @@ def test_compose_references_existing_files(compose, repo_root):
 
 _SERVICE_KEYS = {"image", "build", "restart", "depends_on", "environment", "command", "ports", "expose", "volumes",
                  "devices", "profiles", "stop_signal"}
-#: compose service -> the certificate role it presents in the secured variant
-SECURE_ROLES = {"drivers": "driver", "kinematics": "kinematics", "estimator": "estimator", "recorder": "recorder",
-                "replayer": "replayer"}
+
+
+def _graph_roles() -> dict[str, str]:
+    """compose service -> the role its graph declarations run as, read from the declarations themselves (a service
+    whose participants disagree on their role is reported, not resolved)."""
+    roles: dict[str, set[str]] = {}
+    for decl in [*session_graph.NODES.values(), *session_graph.CLIENTS.values()]:
+        if decl.command:
+            roles.setdefault(deploy_files.DEPLOYMENTS[decl.command].service, set()).add(decl.role)
+    assert all(len(r) == 1 for r in roles.values()), f"participants of one service with several roles: {roles}"
+    return {service: role.pop() for service, role in roles.items()}
 
 
 def _check_structure(document: dict, name: str) -> None:
@@ -110,7 +123,7 @@ def test_secured_variant_runs_every_node_with_its_role_certificate(compose, secu
     pki_dir = tmp_path / "pki"
     assert main(["certs", "--out", str(pki_dir), "--pki-path", "/pki", "--router-host", "zenohd"]) == 0
     written = {p.name for p in (pki_dir / "zenoh").iterdir()}
-    for name, role in SECURE_ROLES.items():
+    for name, role in _graph_roles().items():
         service = merged["services"][name]
         args = parser.parse_args(shlex.split(_expand(service["command"])))
         assert args.mode is None and args.connect == [] and args.listen == [], f"{name}: flags would override the TLS config"
@@ -150,3 +163,139 @@ def test_deployment_doc_commands_parse_and_certs_runs(repo_root, tmp_path, monke
     referenced = {Path(m) for line in lines for m in re.findall(r"--zenoh-config (\S+)", line)}
     for path in referenced:
         assert (tmp_path / path).is_file(), f"docs/deployment.md uses {path}, which msk certs did not write"
+
+
+# --- generated from the session graph ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", [deploy_files.COMPOSE_FILE, deploy_files.SECURE_COMPOSE_FILE])
+def test_committed_compose_file_is_what_the_graph_generates(repo_root, name):
+    expected = deploy_files.generated_files()[name]
+    committed = (repo_root / name).read_text()
+    if committed != expected:
+        diff = "".join(deploy_files.stale_files(repo_root).get(name, []))
+        pytest.fail(f"{name} is not what services/session_graph.py generates; run {deploy_files.WRITE_HINT}\n{diff}")
+
+
+def _secured_roles_mismatches(compose: dict, secure_compose: dict) -> list[str]:
+    """Where the compose files disagree with the graph: a service missing or extra, a service running another
+    command than its declarations', or a secured service presenting another role's config."""
+    parser = build_parser()
+    expected = _graph_roles()
+    problems = []
+    extra = set(compose["services"]) - {"zenohd", "trigno-sim"}
+    if extra != set(expected):
+        problems.append(f"docker-compose.yml runs {sorted(extra)}, the graph declares {sorted(expected)}")
+    secured = set(secure_compose["services"]) - {"zenohd"}
+    if secured != set(expected):
+        problems.append(f"docker-compose.secure.yml secures {sorted(secured)}, the graph declares {sorted(expected)}")
+    commands = {d.service: c for c, d in deploy_files.DEPLOYMENTS.items()}
+    for name in sorted(secured & set(expected)):
+        args = parser.parse_args(shlex.split(_expand(secure_compose["services"][name]["command"])))
+        if args.command != commands[name]:
+            problems.append(f"{name}: runs `msk {args.command}`, its declarations `msk {commands[name]}`")
+        if str(args.zenoh_config) != deploy_files.role_config(expected[name]):
+            problems.append(f"{name}: uses {args.zenoh_config}, its declarations run as role {expected[name]!r} "
+                            f"({deploy_files.role_config(expected[name])})")
+    return problems
+
+
+def test_every_secured_service_uses_the_role_of_its_graph_declaration(compose, secure_compose):
+    problems = _secured_roles_mismatches(compose, secure_compose)
+    assert not problems, "\n".join(problems)
+
+
+def _concrete(key: str) -> str:
+    """A key a participant really uses for ``key`` (after ``msk/<session>/``): a chunk for each ``*``; every topic
+    is what the recorder declares, ``msk/**``."""
+    if key == session_graph.EVERY_TOPIC:
+        return topics.ALL_TOPICS
+    return f"{topics.ROOT}/lab/" + "/".join("c1" if part == "*" else part for part in key.split("/"))
+
+
+def _participant_refusals() -> list[str]:
+    """Every key a graph participant publishes or reads that the access control refuses to its role."""
+    refusals = []
+    for decl in [*session_graph.NODES.values(), *session_graph.CLIENTS.values()]:
+        for action, keys in (("publish", decl.publish_keys()), ("subscribe", decl.subscribe_keys())):
+            for key in keys:
+                reason = security.refused(decl.role, action, _concrete(key))
+                if reason is not None:
+                    refusals.append(f"{decl.name}: {reason}")
+    return refusals
+
+
+def test_every_topic_of_a_participant_is_allowed_to_its_role():
+    refusals = _participant_refusals()
+    assert not refusals, "\n".join(refusals)
+
+
+def _token_problems(policies: dict[str, security.RolePolicy]) -> list[str]:
+    """A node whose role may not declare its readiness token, or a publishing node whose role may not watch the
+    readers' tokens it waits for (services.graph)."""
+    problems = []
+    for decl in session_graph.NODES.values():
+        policy = policies[decl.role]
+        token = f"{topics.ROOT}/*/{topics.GRAPH_CHUNK}/{decl.name}"
+        if token not in policy.tokens:
+            problems.append(f"{decl.name}: role {decl.role!r} may declare only {list(policy.tokens)}, not {token}")
+        if decl.publishes and f"{topics.ROOT}/*/{topics.GRAPH_CHUNK}/*" not in policy.watch_tokens:
+            problems.append(f"{decl.name}: role {decl.role!r} publishes but may not watch its readers' tokens")
+    return problems
+
+
+def test_every_node_may_declare_its_readiness_token():
+    problems = _token_problems(security.ROLE_POLICIES)
+    assert not problems, "\n".join(problems)
+
+
+def _acl_mismatches(acl: dict, graph: dict[str, session_graph.RoleKeys]) -> list[str]:
+    """Where the router's access control differs from the graph's keys: per role, the key expressions of its
+    publish, subscribe, receive and readiness rules are the graph's keys under ``msk/*/`` (``**``: ``msk/**``)."""
+
+    def full(keys: tuple[str, ...]) -> list[str] | None:  # None: the role has no such rule
+        if not keys:
+            return None
+        return [topics.ALL_TOPICS if k == session_graph.EVERY_TOPIC else f"{topics.ROOT}/*/{k}" for k in keys]
+
+    rules = {rule["id"]: rule["key_exprs"] for rule in acl["rules"]}
+    problems = []
+    subjects = {s["id"] for s in acl["subjects"]}
+    if subjects != set(graph):
+        problems.append(f"access control subjects {sorted(subjects)}, graph roles {sorted(graph)}")
+    for role, keys in graph.items():
+        expected = {"publish": full(keys.publish), "subscribe": full(keys.subscribe),
+                    "receive": full(keys.subscribe), "ready": full(keys.tokens)}
+        for rule, key_exprs in expected.items():
+            actual = rules.get(f"{role}-{rule}")
+            if actual != key_exprs:
+                problems.append(f"rule {role}-{rule}: {actual}, the graph gives {key_exprs}")
+    return problems
+
+
+def test_access_control_is_derived_from_the_graph():
+    problems = _acl_mismatches(security.access_control(), session_graph.role_keys())
+    assert not problems, "\n".join(problems)
+
+
+def test_deploy_files_check_fails_on_a_stale_file_and_write_fixes_it(tmp_path, capsys):
+    (tmp_path / deploy_files.COMPOSE_FILE).write_text(deploy_files.compose_text())
+    (tmp_path / deploy_files.SECURE_COMPOSE_FILE).write_text(
+        deploy_files.secure_compose_text().replace("/pki/zenoh/driver.json5", "/pki/zenoh/tablet.json5"))
+    assert deploy_files.main(["--root", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert "-      --zenoh-config /pki/zenoh/tablet.json5" in out
+    assert "+      --zenoh-config /pki/zenoh/driver.json5" in out
+    assert f"\n{deploy_files.SECURE_COMPOSE_FILE}: not what" in out and "--write" in out  # the plain file is fine
+    assert deploy_files.main(["--root", str(tmp_path), "--write"]) == 0
+    assert deploy_files.main(["--root", str(tmp_path)]) == 0
+    assert (tmp_path / deploy_files.SECURE_COMPOSE_FILE).read_text() == deploy_files.secure_compose_text()
+
+
+def test_a_graph_command_without_a_deployment_is_an_error():
+    from msk_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="does not deploy"):
+        deploy_files.graph_services({k: v for k, v in deploy_files.DEPLOYMENTS.items() if k != "kinematics"})
+    with pytest.raises(ConfigError, match="no participant"):
+        deploy_files.graph_services({**deploy_files.DEPLOYMENTS, "gone": deploy_files.Deployment("gone", ())})
