@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import threading
+import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -164,6 +166,43 @@ def attach_options(explicit: ZenohOptions, session: str | None) -> tuple[ZenohOp
     if info is None:
         return explicit, None
     return info.options(), info
+
+
+def client_options(explicit: ZenohOptions, session: str | None, default_session: str, tool: str
+                   ) -> tuple[ZenohOptions, str]:
+    """A second terminal's tool (``msk dashboard``, ``msk view``, ``msk subscribe``): its Zenoh options and session
+    name, from its flags or the running session (:func:`attach_options`); says on stderr where it attaches."""
+    options, info = attach_options(explicit, session)
+    name = session or (info.session if info is not None else default_session)
+    if info is not None:
+        print(f"{tool}: attached to the running session {name!r} on {', '.join(info.connect)} "
+              f"(announced in {info.out}/{SESSION_FILE})", file=sys.stderr, flush=True)
+    elif not (explicit.connect or explicit.listen or explicit.config_file is not None):
+        print(f"{tool}: no running msk live announced in {registry_dir()}; looking for session {name!r} on "
+              f"{where(options)}", file=sys.stderr, flush=True)
+    return options, name
+
+
+def silence_notice(tool: str, what: str, options: ZenohOptions, received, *, first_s: float = 3.0,
+                   every_s: float = 15.0, stop: threading.Event | None = None) -> threading.Thread:
+    """A thread that says on stderr, ``first_s`` after start and then every ``every_s`` while ``received()`` stays 0,
+    what ``tool`` waits for and where (a wait that says nothing looks like a hang)."""
+    stop = stop or threading.Event()
+
+    def watch() -> None:
+        started = time.monotonic()
+        wait = first_s
+        while not stop.wait(wait):
+            if received():
+                return
+            print(f"{tool}: waited {time.monotonic() - started:.0f} s for {what} on {where(options)}: "
+                  "0 messages so far (is `msk live` running? `msk live` prints the session and its endpoint)",
+                  file=sys.stderr, flush=True)
+            wait = every_s
+
+    thread = threading.Thread(target=watch, name=f"{tool}-silence", daemon=True)
+    thread.start()
+    return thread
 
 
 def where(options: ZenohOptions) -> str:

@@ -89,6 +89,8 @@ def problems(message: Message) -> list[str]:
     """What makes a decoded message unusable by the nodes (empty: none). NaN joint angles or activations are data
     (the estimator flags them); a shape that does not add up, a missing id or an impossible mass are not."""
     found: list[str] = []
+    if message.ByteSize() == 0:  # no field set: an empty payload, never a message a node of this project sends
+        return ["empty: no field is set"]
     if isinstance(message, EmgChunk):
         if not message.source_id:
             found.append("source_id is empty")

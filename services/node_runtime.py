@@ -32,7 +32,7 @@ import zenoh
 from google.protobuf.message import Message
 
 from services import messages, topics
-from services.zenoh_session import declare_data_publisher, publish, type_name_of_sample
+from services.zenoh_session import declare_data_publisher, fetch_history, publish, type_name_of_sample
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +180,16 @@ class NodeInputs:
                 self.refusals.append(reason)
                 log.error("%s: subscription refused by the router's access control: %s", self.node, reason)
         self._subscribers.append(self._zsession.declare_subscriber(key_expr, self._on_sample))
+
+    def fetch_history(self, key_expr: str, timeout_s: float = 2.0) -> int:
+        """Queue what the publishers' history caches hold on ``key_expr`` (services.zenoh_session.fetch_history),
+        e.g. the session facts ``msk live`` published before this reader started; returns how many samples came."""
+        samples, errors = fetch_history(self._zsession, key_expr, timeout_s=timeout_s)
+        for error in errors:
+            log.warning("%s: history of %s: %s", self.node, key_expr, error)
+        for sample in samples:
+            self._on_sample(sample)
+        return len(samples)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

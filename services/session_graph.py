@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import zenoh
+
 from msk_core.errors import ConfigError
 from services import topics
 
@@ -57,7 +59,10 @@ def _key(template: str, own_name: str) -> str:
     if template not in known:
         raise ConfigError(f"not a topic template of services/topics.py (known: {sorted(known)})", field="template",
                           value=template)
-    return "/".join("*" if part.startswith("<") else part for part in template.split("/"))
+    # a trailing <name> chunk as **: a reader may subscribe to emg/* or emg/** alike and the access control lets
+    # both through (every key actually published is one chunk deep: services.topics.check_chunk)
+    parts = template.split("/")
+    return "/".join(("**" if i == len(parts) - 1 else "*") if p.startswith("<") else p for i, p in enumerate(parts))
 
 
 #: The nodes of a live session. ``monitor`` is ``msk live`` itself: it publishes the session facts (exercise, load,
@@ -96,10 +101,7 @@ def live_nodes(*, trigno: bool, xsens: bool) -> list[NodeDecl]:
 
 
 def _matches(published: str, subscribed: str) -> bool:
-    if subscribed == EVERY_TOPIC:
-        return True
-    p, s = published.split("/"), subscribed.split("/")
-    return len(p) == len(s) and all(a == b or "*" in (a, b) for a, b in zip(p, s))
+    return zenoh.KeyExpr(f"s/{published}").intersects(zenoh.KeyExpr(f"s/{subscribed}"))
 
 
 def readers_of(node: NodeDecl, graph: list[NodeDecl]) -> tuple[str, ...]:
@@ -147,5 +149,4 @@ def _collapse(keys) -> tuple[str, ...]:
 
 
 def _covers(general: str, specific: str) -> bool:
-    g, s = general.split("/"), specific.split("/")
-    return len(g) == len(s) and all(a == b or a == "*" for a, b in zip(g, s))
+    return zenoh.KeyExpr(f"s/{general}").includes(zenoh.KeyExpr(f"s/{specific}"))

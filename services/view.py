@@ -212,6 +212,7 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
         inputs = NodeInputs(zsession, "view")
         state.inputs = inputs.counts
         inputs.subscribe(f"{topics.session_prefix(session)}/**")
+        inputs.fetch_history(topics.load_key(session))  # the facts msk live published before this view started
         taking = threading.Event()
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()
@@ -241,7 +242,8 @@ def take_inputs(inputs: NodeInputs, state: ViewState, stop: threading.Event) -> 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--session", default="live", help="session name (default: live)")
+    parser.add_argument("--session", default=None,
+                        help="session name (default: the running msk live's, else live)")
     parser.add_argument("--method", default=None, help="method drawn as bars (default: the first seen)")
     parser.add_argument("--refresh-hz", type=float, default=10.0, help="redraws per second (default 10)")
     parser.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="stop after this long")
@@ -249,10 +251,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    topics.check_chunk(args.session, "session")
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    main(options_from_args(args), session=args.session, method=args.method, refresh_hz=args.refresh_hz,
+    from services import discovery
+
+    options, session = discovery.client_options(options_from_args(args), args.session, "live", "msk view")
+    topics.check_chunk(session, "session")
+    main(options, session=session, method=args.method, refresh_hz=args.refresh_hz,
          duration_s=args.duration, stop_event=stop)
     return 0

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 import time
 
 import zenoh
@@ -20,7 +21,7 @@ from google.protobuf import json_format, text_format
 from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
-from services import messages, topics
+from services import discovery, messages, topics
 from services.node_runtime import InputCounts, NodeInputs
 from services.zenoh_session import add_zenoh_arguments, open_session, options_from_args
 
@@ -72,10 +73,14 @@ def run(args: argparse.Namespace) -> int:
     wanted_type = expected_type(args.key)
     printed = 0
     deadline = None if args.duration is None else time.monotonic() + args.duration
-    with open_session(options_from_args(args)) as session:
+    named = args.key.split("/")[1] if args.key.count("/") >= 2 and "*" not in args.key.split("/")[1] else None
+    options, _ = discovery.client_options(options_from_args(args), named, named or "", "msk subscribe")
+    with open_session(options) as session:
         inputs = NodeInputs(session, "subscribe", expected_type=wanted_type)
         inputs.subscribe(args.key)
         print(f"msk subscribe: subscribed to {args.key}", file=sys.stderr, flush=True)
+        quiet = threading.Event()
+        discovery.silence_notice("msk subscribe", args.key, options, lambda: printed, stop=quiet)
         try:
             while (args.count is None or printed < args.count) and (deadline is None or time.monotonic() < deadline):
                 inbound = inputs.get(POLL_S)
@@ -86,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
         finally:
+            quiet.set()
             inputs.close()
     print(f"msk subscribe: {printed} messages on {args.key}{dropped_summary(inputs.counts)}", file=sys.stderr)
     return 0

@@ -158,7 +158,8 @@ class DashboardServer:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--session", default="lab", help="session name: topics msk/<session>/... (default: lab)")
+    parser.add_argument("--session", default=None,
+                        help="session name: topics msk/<session>/... (default: the running msk live's, else lab)")
     parser.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     parser.add_argument(
         "--host", default="127.0.0.1",
@@ -186,13 +187,19 @@ def _drops_text(state: DashboardState) -> str:
 
 def run_from_args(args: argparse.Namespace) -> int:
     _check_port_free(args.host, args.port)
-    server = DashboardServer(options_from_args(args), DashboardConfig(session=args.session), host=args.host, port=args.port)
+    from services import discovery
+
+    options, session = discovery.client_options(options_from_args(args), args.session, "lab", "msk dashboard")
+    server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port)
+    quiet = threading.Event()
+    discovery.silence_notice("msk dashboard", f"msk/{session}/**", options, lambda: server.state.received, stop=quiet)
     where = server.url if args.host not in ("0.0.0.0", "::") else f"port {args.port} of every network interface of this machine"
-    print(f"dashboard of session {args.session!r} on {where} (Ctrl-C stops)", file=sys.stderr, flush=True)
+    print(f"dashboard of session {session!r} on {where} (Ctrl-C stops)", file=sys.stderr, flush=True)
     try:
         server.run()  # uvicorn handles SIGINT/SIGTERM: closes the sockets, then the lifespan stops the bridge
     except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it handled, once shut down
         pass
+    quiet.set()
     dropped = server.state.input_counts.total_dropped
     print(f"dashboard stopped; the bridge received {server.state.received} messages"
           + (f" and dropped {dropped} it could not use ({_drops_text(server.state)})" if dropped else ""), file=sys.stderr)

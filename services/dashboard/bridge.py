@@ -341,6 +341,8 @@ class Bridge:
         # activations and status, and the router refuses a subscription it cannot grant whole.
         for family in TOPIC_FAMILIES:
             self._inputs.subscribe(f"{self.state.prefix}{family}")
+        # the session facts msk live published before this page started (its load publisher keeps them)
+        self._inputs.fetch_history(f"{self.state.prefix}load")
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, args=(self._inputs,), name="dashboard-bridge", daemon=True)
         self._thread.start()
