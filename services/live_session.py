@@ -7,10 +7,12 @@ naming the file, the key and the value; nothing is guessed silently.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import ConfigError
 from services import topics
 
@@ -18,12 +20,25 @@ METHODS = ("proposed", "assisted", "so", "hybrid")
 SIM_METHODS = ("proposed", "assisted", "so")
 
 _SECTIONS = {
-    "session": {"name", "out", "pack", "subject", "load_kg", "methods"},
+    "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete"},
     "trigno": {"host", "emg_port", "id"},
     "xsens": {"ports", "rate_hz", "baud"},
     "trackers": None,  # free keys: tracker ids
     "electrodes": None,  # free keys: channel labels
 }
+
+#: The EMG channel labels the Trigno driver publishes (EmgChunk.channel_labels, drivers.trigno.client.TrignoClient
+#: .emg_columns): ``sensorNN.EMG`` for a single-channel sensor, ``sensorNN.EMGk`` (k = 1..) for a multi-channel one;
+#: NN is the sensor number, two digits. The driver publishes no AUX channel.
+TRIGNO_CHANNEL_FORM = f"sensorNN.EMG, or sensorNN.EMGk for the channels of a multi-channel sensor (NN = 01..{N_SENSORS:02d}, k = 1..{N_SENSORS})"
+_TRIGNO_CHANNEL = re.compile(r"sensor(\d\d)\.EMG([1-9]\d?)?")
+
+
+def is_trigno_channel(label: str) -> bool:
+    """Whether ``label`` is a channel label the Trigno driver can publish (:data:`TRIGNO_CHANNEL_FORM`)."""
+    match = _TRIGNO_CHANNEL.fullmatch(label)
+    return (match is not None and 1 <= int(match.group(1)) <= N_SENSORS
+            and (match.group(2) is None or int(match.group(2)) <= N_SENSORS))
 
 
 @dataclass
@@ -32,8 +47,9 @@ class LiveSession:
 
     path: Path | None
     name: str = "live"
+    athlete: str = ""  # who lifts (shown in report headers); "" when not named
     out: Path = Path("out/live")
-    pack: str = "bench_press"
+    pack: str = "bench_press"  # a shipped pack name, or the resolved path of a pack JSON file
     subject: Path | None = None
     load_kg: float = 0.0
     methods: tuple[str, ...] = ()
@@ -88,8 +104,13 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             raise _error(path, "session.name", f"not a valid key chunk ({error})", s["name"]) from None
     if "out" in s:
         session.out = base / _type(path, "session.out", s["out"], str, "a folder path")
+    if "athlete" in s:
+        athlete = _type(path, "session.athlete", s["athlete"], str, "a string (who lifts)")
+        if not athlete.isprintable():
+            raise _error(path, "session.athlete", "must be one line of printable text", athlete)
+        session.athlete = athlete
     if "pack" in s:
-        session.pack = _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path")
+        session.pack = _pack(path, base, _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path"))
     elif require_devices:
         raise _error(path, "session.pack", "missing: the model pack (e.g. \"bench_press\")")
     if "subject" in s:
@@ -147,6 +168,8 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker)
         session.trackers[tracker.upper()] = _type(path, key, segment, str, "a body segment name")
     for label, target in doc.get("electrodes", {}).items():
+        if not is_trigno_channel(label):
+            raise _error(path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label)
         session.electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
     if require_devices:
         if session.trigno_host is None and not session.xsens_ports:
@@ -156,6 +179,22 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         if session.trigno_host is not None and not session.electrodes:
             raise _error(path, "electrodes", "missing: the electrode -> group map ([electrodes] \"sensor01.EMG\" = ...)")
     return session
+
+
+def _pack(path: Path | None, base: Path, value: str) -> str:
+    """A shipped pack name as it is; anything else is a pack JSON file, relative to the session file's folder (as
+    ``load_pack`` takes a name or a file), returned resolved."""
+    from msk_core.model.pack import available_packs
+
+    packs = available_packs()
+    if value in packs:
+        return value
+    candidate = base / value
+    if value.endswith(".json") or "/" in value or "\\" in value or candidate.is_file():
+        if not candidate.is_file():
+            raise _error(path, "session.pack", "pack file not found", str(candidate))
+        return str(candidate)
+    raise _error(path, "session.pack", f"unknown pack (shipped: {', '.join(packs)}; or the path of a pack JSON file)", value)
 
 
 def load_session_file(path: Path, *, require_devices: bool = True) -> LiveSession:

@@ -1,14 +1,25 @@
 """``msk live SESSION.toml``: run a whole session (drivers, kinematics, estimator, recorder, live view) on the
 real devices; ``msk live --sim`` on the Trigno/Xsens simulators fed by the bundled synthetic session. Ctrl-C,
-SIGTERM or ``--duration`` stop it cleanly: OUT/session.mcap and OUT/summary.json. Docs: docs/live.md."""
+SIGTERM or ``--duration`` stop it cleanly: OUT/session.mcap and OUT/summary.json, exit code 0. When a node it
+started fails (e.g. a driver that cannot reach its device), the session stops, the terminal says which node failed,
+with its exit code and the end of its log (OUT/logs/<node>.log), and the exit code is 3. Docs: docs/live.md."""
 
 from __future__ import annotations
 
 import argparse
+import ast
 import math
+import signal
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from msk_core.errors import ConfigError
+
+#: ``msk live``'s exit code when a node of the session failed (2: a bad session file or option, before the start)
+EXIT_NODE_FAILED = 3
+LOG_TAIL_LINES = 12
+_NODE_FAILED = "node failed: "  # services.live.run_graph: stopped_by = "node failed: " + repr(graph.failed())
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -22,6 +33,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="output folder: DIR/session.mcap, DIR/summary.json (default: the file's session.out, else out/live)")
     parser.add_argument("--no-view", action="store_true", help="no live terminal view (scripts, CI)")
+    parser.add_argument("--listen", default=None, metavar="ENDPOINT",
+                        help="the graph's Zenoh endpoint (default: tcp/127.0.0.1:7447 when free, else a free loopback "
+                        "port; printed at start and written to OUT/session.json)")
+    parser.add_argument("--pki", type=Path, default=None, metavar="DIR",
+                        help="secured mode: a TLS router with access control, every node with its role's certificate "
+                        "from DIR (written by `msk certs --out DIR`)")
     parser.set_defaults(handler=run)
 
 
@@ -39,5 +56,66 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give a session file (docs/live.md), or --sim to run on the simulators", field="SESSION.toml")
     if args.out is not None:
         session.out = args.out
-    live.main(session, sim=args.sim, duration_s=args.duration, view=not args.no_view)
-    return 0
+    summary = live.main(session, sim=args.sim, duration_s=args.duration, view=not args.no_view, listen=args.listen,
+                        pki=args.pki)
+    failures = node_failures(summary, session.out / "logs")
+    for failure in failures:
+        print(f"msk live: error: {failure.text()}", file=sys.stderr)
+    return EXIT_NODE_FAILED if failures else 0
+
+
+@dataclass(frozen=True)
+class NodeFailure:
+    """A node of the session that failed: it ended by itself while the session ran (named in ``stopped_by``), or
+    ended with a non-zero exit code, or did not stop when asked and was killed (exit code None)."""
+
+    node: str
+    exit_code: int | None
+    during_session: bool  # it ended by itself while the session ran (what stopped the session)
+    detail: str  # what the graph said of it (``stopped_by``), e.g. "exit 2"
+    log: Path
+
+    def text(self) -> str:
+        code = self.exit_code
+        if code is None:
+            how = f"ended while the session ran ({self.detail})" if self.during_session else \
+                "did not stop when asked (SIGINT) and was killed"
+        else:
+            if code < 0:
+                how = f"was killed by signal {-code}" + (f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else "")
+            else:
+                how = f"exited with code {code}"
+            how += " while the session ran, which stopped the session" if self.during_session else " when stopped"
+        return f"node {self.node} failed: it {how}; " + log_tail(self.log, LOG_TAIL_LINES)
+
+
+def log_tail(path: Path, lines: int) -> str:
+    """The last ``lines`` non-blank lines of a node's log, indented, after a line naming the file."""
+    if not path.is_file():
+        return f"no log at {path}"
+    tail = [line for line in path.read_text(errors="replace").splitlines() if line.strip()][-lines:]
+    if not tail:
+        return f"its log {path} is empty"
+    return f"the end of its log {path}:\n" + "\n".join(f"    {line}" for line in tail)
+
+
+def node_failures(summary: dict, logs: Path) -> list[NodeFailure]:
+    """The failed nodes of a session from its summary (``stopped_by``, ``exit_codes``); none after a clean stop
+    (``--duration``, SIGINT, SIGTERM) where every node exited 0 when ``msk live`` stopped it."""
+    stopped_by = str(summary.get("stopped_by", ""))
+    codes: dict[str, int | None] = summary.get("exit_codes", {})
+    ended: dict[str, str] = {}  # node -> detail, for the nodes that ended by themselves
+    if stopped_by.startswith(_NODE_FAILED):
+        try:
+            entries = ast.literal_eval(stopped_by[len(_NODE_FAILED):])
+        except (ValueError, SyntaxError):
+            entries = None
+        if not isinstance(entries, list) or not all(isinstance(e, str) for e in entries):
+            entries = [stopped_by[len(_NODE_FAILED):]]
+        for entry in entries:
+            node, _, detail = entry.partition(": ")
+            ended[node] = detail
+    failures = [NodeFailure(node, codes.get(node), True, detail, logs / f"{node}.log") for node, detail in ended.items()]
+    failures += [NodeFailure(node, code, False, "", logs / f"{node}.log")
+                 for node, code in codes.items() if node not in ended and code != 0]
+    return failures

@@ -1,0 +1,271 @@
+"""``msk live``'s session file (pack, channel labels, athlete) and its exit code when a node fails: a session whose
+Trigno driver cannot reach its device stops and exits 3 naming the node, its exit code and the end of its log; a
+clean stop (SIGTERM) of a ``--sim`` session exits 0."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msk_core.errors import ConfigError
+from msk_core.model.pack import available_packs
+from services.commands.live import EXIT_NODE_FAILED, node_failures
+from services.live_session import TRIGNO_CHANNEL_FORM, is_trigno_channel, load_session_file
+
+REPO = Path(__file__).resolve().parents[1]
+GOOD = """\
+[session]
+name = "gym"
+pack = "bench_press"
+subject = "subject.json"
+load_kg = 60
+
+[trigno]
+host = "192.168.1.20"
+
+[electrodes]
+"sensor01.EMG" = "PMCla"
+"""
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    (tmp_path / "subject.json").write_text("{}")
+    path = tmp_path / "session.toml"
+    path.write_text(text)
+    return path
+
+
+def _refusal(path: Path) -> str:
+    with pytest.raises(ConfigError) as error:
+        load_session_file(path)
+    return str(error.value)
+
+
+# ------------------------------------------------------------------------------------------------ session.pack
+
+
+def test_an_unknown_pack_is_refused_naming_file_field_value_and_the_shipped_packs(tmp_path):
+    path = _write(tmp_path, GOOD.replace('pack = "bench_press"', 'pack = "bench_pres"'))
+    message = _refusal(path)
+    assert str(path) in message and "field 'session.pack'" in message and "'bench_pres'" in message, message
+    assert all(pack in message for pack in available_packs()) and "bench_press" in available_packs(), message
+
+
+def test_a_pack_file_is_resolved_against_the_session_file_and_a_missing_one_refused(tmp_path, monkeypatch):
+    from msk_core.model import load_pack
+
+    shipped = load_pack("bench_press").path
+    (tmp_path / "packs").mkdir()
+    (tmp_path / "packs" / "mine.json").write_text(Path(shipped).read_text())
+    path = _write(tmp_path, GOOD.replace('pack = "bench_press"', 'pack = "packs/mine.json"'))
+    monkeypatch.chdir(REPO)  # not the session file's folder: the path is relative to the file
+    session = load_session_file(path)
+    assert session.pack == str(tmp_path / "packs" / "mine.json")
+    assert load_pack(session.pack).name == "bench_press"  # what plan_for and the nodes load
+    path.write_text(GOOD.replace('pack = "bench_press"', 'pack = "packs/theirs.json"'))
+    message = _refusal(path)
+    assert "field 'session.pack'" in message and "pack file not found" in message
+    assert str(tmp_path / "packs" / "theirs.json") in message, message
+
+
+def test_the_cli_refuses_an_unknown_pack_before_starting_anything(tmp_path):
+    path = _write(tmp_path, GOOD.replace('pack = "bench_press"', 'pack = "squat"'))
+    result = subprocess.run([sys.executable, "-m", "services.cli", "live", str(path), "--no-view"], cwd=REPO,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert str(path) in result.stderr and "session.pack" in result.stderr and "deadlift" in result.stderr, result.stderr
+    assert not (tmp_path / "out").exists() and "running" not in result.stdout
+
+
+# ------------------------------------------------------------------------------------------------ electrodes.<label>
+
+
+@pytest.mark.parametrize("label", ["sensor1.EMG", "sensor17.EMG", "sensor00.EMG", "sensor01.emg", "Sensor01.EMG",
+                                   "sensor01.EMG0", "sensor01.EMG17", "sensor01.ACC", "sensor01.AUX", "sensor01",
+                                   "PMCla", "sensor01.EMG "])
+def test_an_electrode_key_the_trigno_does_not_publish_is_refused_with_the_valid_form(tmp_path, label):
+    path = _write(tmp_path, GOOD + f'"{label}" = "DelAnt"\n')
+    message = _refusal(path)
+    assert str(path) in message and f"field 'electrodes.{label}'" in message and repr(label) in message, message
+    assert TRIGNO_CHANNEL_FORM in message and "sensorNN.EMG" in message
+
+
+def _published_labels(client) -> list[str]:
+    """The channel labels the Trigno driver node puts in EmgChunk.channel_labels for this client."""
+    from drivers.trigno.client import EmgBlock
+    from services.driver_nodes import emg_chunk, emg_columns
+
+    block = EmgBlock(np.zeros((2, 16), dtype=np.float32), 0, 2000.0, 0)
+    return list(emg_chunk(block, source_id="trigno", columns=emg_columns(client)).channel_labels)
+
+
+def test_every_label_the_trigno_driver_publishes_is_accepted(tmp_path):
+    """Labels from the driver itself: a real handshake with the simulator (16 paired sensors), multi-channel sensors
+    (sensorNN.EMGk) and the fallback when the server names no sensor."""
+    from drivers.trigno.client import SensorInfo, TrignoClient, TrignoConfig
+    from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
+    from drivers.trigno.source import EmgSource
+
+    source = EmgSource(np.zeros((400, 16), dtype=np.float32), 2000.0, tuple(f"m{k}" for k in range(16)), (True,) * 16, "test")
+    simulator = TrignoSimulator(source, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None)).start()
+    try:
+        client = TrignoClient(TrignoConfig(host="127.0.0.1", command_port=simulator.ports["command"],
+                                           emg_port=simulator.ports["emg"], emg_port_fallback=0))
+        with client:
+            from_simulator = _published_labels(client)
+    finally:
+        simulator.close()
+    assert len(from_simulator) == 16 and from_simulator[0] == "sensor01.EMG", from_simulator
+    multi = TrignoClient(TrignoConfig())
+    multi.sensors = (SensorInfo(3, True, start_index=2, active=True, emg_channels=4),
+                     SensorInfo(16, True, start_index=15, active=True))
+    from_multi = _published_labels(multi)
+    assert from_multi == ["sensor03.EMG1", "sensor03.EMG2", "sensor03.EMG3", "sensor03.EMG4", "sensor16.EMG"]
+    fallback = _published_labels(TrignoClient(TrignoConfig()))
+    labels = sorted(set(from_simulator + from_multi + fallback))
+    assert all(is_trigno_channel(label) for label in labels), [x for x in labels if not is_trigno_channel(x)]
+    path = _write(tmp_path, GOOD.replace('"sensor01.EMG" = "PMCla"\n', "".join(f'"{x}" = "PMCla"\n' for x in labels)))
+    assert sorted(load_session_file(path).electrodes) == labels
+
+
+# ------------------------------------------------------------------------------------------------ session.athlete
+
+
+def test_the_athlete_is_parsed_and_checked(tmp_path):
+    path = _write(tmp_path, GOOD)
+    assert load_session_file(path).athlete == ""
+    path.write_text(GOOD.replace('name = "gym"', 'name = "gym"\nathlete = "Anna K."'))
+    assert load_session_file(path).athlete == "Anna K."
+    for bad in ("42", '"Anna\\nK."', '["Anna"]'):
+        path.write_text(GOOD.replace('name = "gym"', f'name = "gym"\nathlete = {bad}'))
+        message = _refusal(path)
+        assert str(path) in message and "field 'session.athlete'" in message, message
+
+
+# ------------------------------------------------------------------------------------------------ exit code
+
+
+def _summary(stopped_by: str, **codes) -> dict:
+    """The two keys run_graph puts in summary.json, as a real run writes them."""
+    base = {"drivers-xsens": 0, "drivers-trigno": 0, "kinematics": 0, "estimator": 0, "recorder": 0}
+    return {"duration_s": 5.0, "stopped_by": stopped_by, "exit_codes": {**base, **codes}}
+
+
+@pytest.mark.parametrize("stopped_by", ["duration", "SIGINT", "SIGTERM"])
+def test_a_clean_stop_has_no_failed_node(tmp_path, stopped_by):
+    assert node_failures(_summary(stopped_by), tmp_path) == []
+
+
+def test_failed_nodes_are_named_with_exit_code_and_log_tail(tmp_path):
+    (tmp_path / "drivers-trigno.log").write_text("".join(f"line {k}\n" for k in range(30)) + "\n\nthe last words\n")
+    failed = node_failures(_summary("node failed: ['drivers-trigno: exit 2']", **{"drivers-trigno": 2}), tmp_path)
+    assert [(f.node, f.exit_code, f.during_session) for f in failed] == [("drivers-trigno", 2, True)]
+    text = failed[0].text()
+    assert "node drivers-trigno failed" in text and "exited with code 2 while the session ran" in text, text
+    assert str(tmp_path / "drivers-trigno.log") in text and "the last words" in text and "line 19" in text
+    assert "line 18" not in text, text  # the last 12 non-blank lines only
+
+    # ended by itself with 0 while the session ran: still what stopped the session
+    failed = node_failures(_summary("node failed: ['drivers-xsens: exit 0']"), tmp_path)
+    assert [(f.node, f.exit_code) for f in failed] == [("drivers-xsens", 0)]
+    assert "exited with code 0 while the session ran" in failed[0].text()
+    assert f"no log at {tmp_path / 'drivers-xsens.log'}" in failed[0].text()
+
+    # a clean stop, but a node failed on its way out, one had to be killed, one died of a signal
+    failed = node_failures(_summary("SIGINT", estimator=1, recorder=None, kinematics=-9), tmp_path)
+    texts = {f.node: f.text() for f in failed}
+    assert set(texts) == {"estimator", "recorder", "kinematics"}
+    assert "exited with code 1 when stopped" in texts["estimator"]
+    assert "did not stop when asked (SIGINT) and was killed" in texts["recorder"]
+    assert "killed by signal 9 (SIGKILL)" in texts["kinematics"]
+
+    # a thread node of msk live itself (no process, no exit code)
+    failed = node_failures(_summary("node failed: [\"monitor: RuntimeError('zenoh closed')\"]"), tmp_path)
+    assert [f.node for f in failed] == ["monitor"] and "zenoh closed" in failed[0].text()
+
+
+# ------------------------------------------------------------------------------------------------ real runs
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory) -> tuple[Path, dict]:
+    """A calibrated bench-press subject (as ``msk live --sim`` makes it) and an environment whose cache holds it."""
+    from services import live
+
+    cache = tmp_path_factory.mktemp("cache")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("XDG_CACHE_HOME", str(cache))
+        subject = live.sim_subject("bench_press", lambda *_: None)
+    return subject, {**os.environ, "XDG_CACHE_HOME": str(cache), "PYTHONUNBUFFERED": "1"}
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # nobody listens on it once closed: connect is refused at once
+
+
+def test_msk_live_exits_3_naming_the_node_that_failed_and_why(tmp_path, calibrated):
+    subject, env = calibrated
+    (tmp_path / "subject.json").write_text(subject.read_text())
+    port = _closed_port()
+    path = tmp_path / "session.toml"
+    path.write_text(GOOD.replace('host = "192.168.1.20"', f'host = "127.0.0.1:{port}"')
+                    .replace('name = "gym"', 'name = "gym-fail"\nout = "out"\nmethods = ["proposed"]'))
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, "-m", "services.cli", "live", str(path), "--no-view", "--duration", "100"],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=150)
+    elapsed = time.monotonic() - started
+    out = tmp_path / "out"
+    assert result.returncode == EXIT_NODE_FAILED, result.stdout + result.stderr
+    assert elapsed < 90, elapsed  # stopped when the driver failed, not at --duration
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["exit_codes"]["drivers-trigno"] == 2, summary
+    # the nodes msk live stopped itself (SIGINT) exit 0: they are not reported
+    assert {n: c for n, c in summary["exit_codes"].items() if n != "drivers-trigno"} == \
+        {"kinematics": 0, "estimator": 0, "recorder": 0}, summary
+    errors = [line for line in result.stderr.splitlines() if line.startswith("msk live: error:")]
+    assert len(errors) == 1 and "node drivers-trigno failed" in errors[0], result.stderr
+    assert "exited with code 2" in errors[0] and str(out / "logs" / "drivers-trigno.log") in errors[0], result.stderr
+    assert "cannot reach the Trigno server" in result.stderr and str(port) in result.stderr, result.stderr
+    assert "stopped by node failed" in result.stdout, result.stdout
+
+
+def test_msk_live_exits_0_after_a_clean_stop_by_sigterm(tmp_path, calibrated):
+    _, env = calibrated
+    out = tmp_path / "live"
+    process = subprocess.Popen([sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "100",
+                                "--out", str(out)], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True, start_new_session=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(process.stdout), daemon=True)  # every line as it comes
+    reader.start()
+    try:
+        deadline = time.monotonic() + 120
+        while not any("running" in line and "recording to" in line for line in list(lines)):  # the stop handlers are set
+            assert time.monotonic() < deadline and process.poll() is None, "msk live --sim did not start:\n" + "".join(lines)
+            time.sleep(0.1)
+        time.sleep(2.0)
+        process.send_signal(signal.SIGTERM)  # to msk live alone, as a service manager does
+        process.wait(60)
+        reader.join(10)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(10)
+    output = "".join(lines)
+    assert process.returncode == 0, output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stopped_by"] == "SIGTERM" and summary["duration_s"] < 60, output
+    assert node_failures(summary, out / "logs") == [] and set(summary["exit_codes"].values()) == {0}, summary
+    assert "stopped by SIGTERM" in output and "msk live: error" not in output, output
