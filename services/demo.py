@@ -25,7 +25,7 @@ from msk_core.errors import InputError
 from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
-from services import estimator, kinematics_node, recorder, replayer
+from services import estimator, kinematics_node, recorder, replayer, session_graph
 from msk_core.estimate.report import plot_strength, strength_markdown
 from services.live_scoring import (  # noqa: F401 - re-exported: imported from services.demo before
     METHODS, MethodScore, TrialWindow, _trial_folders, markdown, plot, score, trial_windows,
@@ -117,18 +117,26 @@ def run_live_graph(
     est_stats = {ex: estimator.EstimatorStats() for ex in subjects}
     kin_stats = {ex: kinematics_node.KinematicsStats() for ex in subjects} if joints_from == "imu" else {}
 
+    # the declared graph (services.session_graph) with one estimator (and kinematics node) per exercise; each waits
+    # for the nodes that read what it publishes (the kinematics' joints go to the recorder and every estimator, each
+    # following the exercise the load events name)
+    declared = [session_graph.NODES["recorder"]]
+    declared += [session_graph.instance("estimator", f"estimator-{ex}") for ex in subjects]
+    declared += [session_graph.instance("kinematics", f"kinematics-{ex}") for ex in kin_stats]
     with Graph(SESSION, endpoint) as graph:
         graph.add_thread("recorder", recorder.main, out_mcap, stats=rec_stats)
         for exercise, subject in subjects.items():
+            node = declared[1 + list(subjects).index(exercise)]
             graph.add_thread(
-                f"estimator-{exercise}", estimator.main, pack=exercise, session=SESSION, methods=list(METHODS),
-                subject_path=subject, exercise=exercise, stats=est_stats[exercise], after=("recorder",),
+                node.name, estimator.main, pack=exercise, session=SESSION, methods=list(METHODS),
+                subject_path=subject, exercise=exercise, stats=est_stats[exercise],
+                after=session_graph.readers_of(node, declared),
             )
         for exercise in kin_stats:
-            # its joints go to the recorder and every estimator (each follows the exercise the load events name)
+            node = declared[1 + len(subjects) + list(kin_stats).index(exercise)]
             graph.add_thread(
-                f"kinematics-{exercise}", kinematics_node.main, pack=exercise, session=SESSION, stats=kin_stats[exercise],
-                after=("recorder", *(f"estimator-{ex}" for ex in subjects)),
+                node.name, kinematics_node.main, pack=exercise, session=SESSION, stats=kin_stats[exercise],
+                after=session_graph.readers_of(node, declared),
             )
         graph.wait_ready(GRAPH_READY_S)
         nodes = f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"

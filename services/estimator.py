@@ -36,7 +36,7 @@ from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import GRAVITY
 from services import messages, topics
-from msk_core.model.pack import available_packs
+from msk_core.model.pack import available_packs, is_known_exercise
 from services.graph import ReadySpec, declare_ready
 from services.node_runtime import InputCounts, NodeInputs, StatusReporter
 from services.zenoh_session import (
@@ -201,7 +201,7 @@ class EstimatorNode:
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
         # name.
         self.exercise = exercise if exercise is not None else first.pack.name
-        self.known_exercises = {*available_packs(), self.exercise, first.pack.name}
+        self.own_exercises = (self.exercise, first.pack.name)
 
     def handle_emg(self, chunk: messages.EmgChunk | bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
         chunk = messages.as_message("msk.EmgChunk", chunk)
@@ -220,10 +220,9 @@ class EstimatorNode:
         """Apply a load event; one naming an exercise no pack has is refused (:class:`ConfigError`), since it would
         stop the estimates of this pack while nothing is estimated for that exercise."""
         event = messages.as_message("msk.LoadEvent", event)
-        if event.exercise and event.exercise not in self.known_exercises:
+        if event.exercise and not is_known_exercise(event.exercise, self.own_exercises):
             raise ConfigError(f"load event names an exercise that is not a model pack (known: "
-                              f"{', '.join(sorted(self.known_exercises))})", field="LoadEvent.exercise",
-                              value=event.exercise)
+                              f"{', '.join(available_packs())})", field="LoadEvent.exercise", value=event.exercise)
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
 

@@ -18,8 +18,10 @@ calibrated on the bundled calibration trials as ``msk demo`` does (cached). Docs
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import queue
 import signal
 import subprocess
 import threading
@@ -31,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import ConfigError, InputError
-from services import topics
-from services.graph import Graph, GraphTimeout, python_module, wait_for
+from services import messages, session_graph, topics
+from services.graph import Graph, GraphTimeout, python_module, wait_for, zenoh_flags
 from services.live_session import SIM_METHODS, LiveSession, check_against_pack
 from services.mcap_io import read_messages
 
@@ -191,45 +193,63 @@ def session_profile(subject: Path, electrodes: dict[str, str], groups: list[str]
 # ------------------------------------------------------------------------------------------------ summary
 
 
-def summarise(mcap: Path, duration_s: float) -> dict:
-    """What the recording holds: samples per device, samples lost (last DeviceStatus), frames and flags per method."""
+def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
+    """What the recording (one file, or the parts this session wrote) holds: samples per device, samples lost and the
+    final state of each device (its last DeviceStatus), frames and flags per method, and per node of the graph what
+    it received, dropped as unusable (per topic and reason) and could not use (its last status)."""
     emg, imu, lost, status_seen = Counter(), Counter(), {}, {}
     frames, flags = Counter(), {}
-    envelopes = joints = 0
-    for m in read_messages(mcap):
-        t = m.type_name
-        if t == "msk.EmgChunk":
-            c = m.decode()
-            emg[c.source_id] += c.n_samples
-        elif t == "msk.ImuSample":
-            imu[m.decode().tracker_id] += 1
-        elif t == "msk.DeviceStatus":
-            s = m.decode()
-            lost[s.device_id] = int(s.samples_lost)
-            status_seen[s.device_id] = {"connected": s.connected, "errors": int(s.errors), "last_error": s.last_error}
-        elif t == "msk.ActivationFrame":
-            f = m.decode()
-            frames[f.method] += 1
-            for flag in f.flags:
-                flags.setdefault(f.method, Counter())[flag] += 1
-        elif t == "msk.EmgEnvelope":
-            envelopes += 1
-        elif t == "msk.JointAngles":
-            joints += 1
+    envelopes = joints = chunks = 0
+    nodes: dict[str, messages.DeviceStatus] = {}
+    for part in [mcap] if isinstance(mcap, Path) else mcap:
+        for m in read_messages(part):
+            t = m.type_name
+            if t == "msk.EmgChunk":
+                c = m.decode()
+                emg[c.source_id] += c.n_samples
+                chunks += 1
+            elif t == "msk.ImuSample":
+                imu[m.decode().tracker_id] += 1
+            elif t == "msk.DeviceStatus":
+                s = m.decode()
+                if s.kind == "node":
+                    nodes[s.device_id] = s
+                    continue
+                lost[s.device_id] = int(s.samples_lost)
+                status_seen[s.device_id] = {"kind": s.kind, "connected": s.connected, "errors": int(s.errors),
+                                            "last_error": s.last_error}
+            elif t == "msk.ActivationFrame":
+                f = m.decode()
+                frames[f.method] += 1
+                for flag in f.flags:
+                    flags.setdefault(f.method, Counter())[flag] += 1
+            elif t == "msk.EmgEnvelope":
+                envelopes += 1
+            elif t == "msk.JointAngles":
+                joints += 1
+    dropped: dict[str, dict[str, dict[str, int]]] = {}
+    for name, status in nodes.items():
+        per_key = dropped.setdefault(name, {})
+        for drop in status.dropped:
+            per_key.setdefault(drop.key, {})[drop.reason] = int(drop.count)
     return {
         "duration_s": round(duration_s, 3),
         "samples": {**{f"emg/{k}": v for k, v in emg.items()}, **{f"imu/{k}": v for k, v in imu.items()}},
         "samples_lost": lost,
         "devices": status_seen,
         "joint_frames": joints,
+        "emg_chunks": chunks,
         "envelopes": envelopes,
         "frames_estimated": dict(frames),
         "flags": {m: dict(c) for m, c in flags.items()},
+        "inputs_dropped": dropped,
+        "node_errors": {name: int(s.errors) for name, s in nodes.items()},
+        "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
     }
 
 
 def summary_text(summary: dict) -> str:
-    lines = [f"session of {summary['duration_s']:.1f} s"]
+    lines = [f"session of {summary['duration_s']:.1f} s" + (f", stopped by {summary['stopped_by']}" if "stopped_by" in summary else "")]
     for device, n in summary["samples"].items():
         name = device.split("/", 1)[1]
         lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost")
@@ -237,6 +257,12 @@ def summary_text(summary: dict) -> str:
     for method, n in summary["frames_estimated"].items():
         f = summary["flags"].get(method, {})
         lines.append(f"  {method}: {n} frames estimated; flags {', '.join(f'{k} {v}' for k, v in f.items()) or 'none'}")
+    for node, per_key in summary.get("inputs_dropped", {}).items():
+        if per_key:
+            lines.append(f"  {node} dropped unusable inputs: " + ", ".join(
+                f"{key} {reason} {n}" for key, reasons in per_key.items() for reason, n in reasons.items()))
+    for node, text in summary.get("node_last_error", {}).items():
+        lines.append(f"  {node}: {summary['node_errors'][node]} inputs not used, last: {text}")
     if "simulators_sent" in summary:
         lines.append("  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items()))
     return "\n".join(lines)
@@ -255,6 +281,7 @@ class LivePlan:
     trigno: tuple[str, int] | None = None  # (HOST[:PORT], EMG port)
     xsens_ports: list[str] = field(default_factory=list)
     trackers: dict[str, str] = field(default_factory=dict)
+    exercise: str = ""  # the pack's name (session.pack may be a path)
 
 
 def driver_argv(plan: LivePlan, kind: str) -> list[str]:
@@ -277,18 +304,38 @@ class FlowCounts:
 
     joints: int = 0
     activations: Counter = field(default_factory=Counter)  # method -> frames
+    facts: dict = field(default_factory=dict)  # the latest LoadEvent on the session's load topic, as a dict
 
     def text(self) -> str:
         return f"{self.joints} joint frames; activation frames " + (
             ", ".join(f"{m} {n}" for m, n in self.activations.items()) or "none")
 
 
-def monitor(options, *, session: str, counts: FlowCounts, stop_event: threading.Event, ready_event: threading.Event,
-            ready_key) -> None:
-    """A graph node of ``msk live`` itself: counts joints and activation frames, so the stop can wait (bounded)
-    until the estimator has answered every joint frame before it is stopped."""
+@dataclass
+class SessionFacts:
+    """What the session is about, published by ``msk live`` on ``msk/<session>/load`` at start and when the operator
+    changes them (``msk load``): the exercise (pack), the barbell load, the set under way and the athlete."""
+
+    exercise: str
+    load_kg: float
+    set_number: int = 1
+    athlete: str = ""
+
+    def message(self) -> messages.LoadEvent:
+        return messages.LoadEvent(barbell_mass_kg=float(self.load_kg), exercise=self.exercise,
+                                  set_number=int(self.set_number), athlete=self.athlete,
+                                  host_time_ns=messages.now_ns())  # no device time: in effect from the latest frame
+
+
+def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, stop_event: threading.Event,
+            ready_event: threading.Event, ready_key, on_facts=None, exercise: str = "") -> None:
+    """The graph node of ``msk live`` itself (``monitor`` in services.session_graph): counts joints and activation
+    frames, so the stop can wait (bounded) until the estimator has answered every joint frame, and publishes the
+    session facts put on ``facts`` (a history publisher: a late ``msk load`` or a restarted recorder fetches them)."""
+    from msk_core.model.pack import is_known_exercise
     from services.graph import declare_ready
-    from services.zenoh_session import open_session
+    from services.node_runtime import Rejected, check_payload
+    from services.zenoh_session import declare_history_publisher, open_session, publish
 
     prefix = topics.session_prefix(session)
 
@@ -298,12 +345,30 @@ def monitor(options, *, session: str, counts: FlowCounts, stop_event: threading.
     def on_activation(sample) -> None:
         counts.activations[str(sample.key_expr).rsplit("/", 1)[1]] += 1
 
+    def on_load(sample) -> None:  # its own facts and an operator's (`msk load`): the session's current ones
+        try:
+            event = check_payload(str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.LoadEvent")
+        except Rejected:
+            return  # the estimator and recorder count bad inputs; here only the facts matter
+        if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
+            return  # as the estimator refuses it: not a fact of this session
+        counts.facts = {"exercise": event.exercise, "load_kg": event.barbell_mass_kg, "set_number": event.set_number,
+                        "athlete": event.athlete}
+        if on_facts is not None:
+            on_facts(dict(counts.facts))
+
     with open_session(options) as zsession:
+        load = declare_history_publisher(zsession, topics.load_key(session), "msk.LoadEvent", history_samples=100)
         subscribers = [zsession.declare_subscriber(f"{prefix}/joints", on_joints),
-                       zsession.declare_subscriber(f"{prefix}/activations/*", on_activation)]
+                       zsession.declare_subscriber(f"{prefix}/activations/*", on_activation),
+                       zsession.declare_subscriber(topics.load_key(session), on_load)]
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs
         ready_event.set()
-        stop_event.wait()
+        while not stop_event.is_set():
+            try:
+                publish(load, facts.get(timeout=0.1).message())
+            except queue.Empty:
+                continue
         for subscriber in subscribers:
             subscriber.undeclare()
 
@@ -330,48 +395,76 @@ class _Stopper:
             signal.signal(signum, handler)
 
 
+def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
+    """The command line of node ``name`` of the declared graph (services.session_graph.NODES)."""
+    s = plan.session
+    if name == "recorder":
+        return python_module("services.recorder", "--out", str(mcap))
+    if name == "estimator":
+        argv = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
+                             "--emg-clock", "host", "--load-kg", str(s.load_kg))
+        return argv + [a for method in plan.methods for a in ("--method", method)]
+    if name == "kinematics":
+        return python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name, "--imu-clock", "host")
+    if name in ("drivers-trigno", "drivers-xsens"):
+        return driver_argv(plan, name.split("-", 1)[1])
+    raise ConfigError("not a process node of msk live's graph", field="node", value=name)
+
+
 def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint: str, log,
-              simulators: Simulators | None = None) -> dict:
+              simulators: Simulators | None = None, pki: Path | None = None) -> dict:
+    """Start the declared graph (services.session_graph.live_nodes), announce it (OUT/session.json, the registry of
+    services.discovery), publish the session facts, run until the duration, a signal or a failed node, then stop in
+    order. ``pki``: the secured mode (a TLS router with access control, each node with its role's certificate)."""
+    from services import discovery
+
     s = plan.session
     out = s.out
     mcap = out / "session.mcap"
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    graph = Graph(s.name, endpoint)
+    recorded_before = set(out.glob("session*.mcap"))
     counts = FlowCounts()
-    drivers = []
+    facts: queue.Queue = queue.Queue()
+    router = None
+    announced: list[Path] = []
+    announcement = discovery.Announcement()
     started = time.monotonic()
     with _Stopper() as stopper:
         try:
-            graph.add_process("recorder", python_module("services.recorder", "--out", str(mcap)),
-                              log_path=logs / "recorder.log", own_session=True)
-            graph.add_thread("monitor", monitor, session=s.name, counts=counts)
-            estimator = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
-                                      "--emg-clock", "host", "--load-kg", str(s.load_kg))
-            for method in plan.methods:
-                estimator += ["--method", method]
-            graph.add_process("estimator", estimator, after=("recorder", "monitor"), log_path=logs / "estimator.log",
-                              own_session=True)
-            graph.add_process("kinematics", python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name,
-                                                          "--imu-clock", "host"),
-                              after=("recorder", "estimator", "monitor"), log_path=logs / "kinematics.log",
-                              own_session=True)
-            if plan.trigno is not None:
-                drivers.append("drivers-trigno")
-                graph.add_process("drivers-trigno", driver_argv(plan, "trigno"), after=("recorder", "estimator"),
-                                  log_path=logs / "drivers-trigno.log", own_session=True)
-            if plan.xsens_ports:
-                drivers.append("drivers-xsens")
-                graph.add_process("drivers-xsens", driver_argv(plan, "xsens"), after=("recorder", "kinematics"),
-                                  log_path=logs / "drivers-xsens.log", own_session=True)
+            if pki is not None:
+                router, endpoint, role_configs = start_secured_router(pki, out, log)
+                graph = Graph(s.name, endpoint, external_listener=True, role_configs=role_configs)
+            else:
+                graph = Graph(s.name, endpoint)
+            nodes = session_graph.live_nodes(trigno=plan.trigno is not None, xsens=bool(plan.xsens_ports))
+            drivers = [n.name for n in nodes if n.role == "driver"]
+            for decl in nodes:
+                after = session_graph.readers_of(decl, nodes)
+                if decl.name == "monitor":
+                    graph.add_thread("monitor", monitor, session=s.name, counts=counts, facts=facts, after=after,
+                                     role=decl.role, on_facts=announcement.update_facts, exercise=plan.exercise)
+                else:
+                    graph.add_process(decl.name, node_argv(plan, decl.name, mcap), after=after, role=decl.role,
+                                      log_path=logs / f"{decl.name}.log", own_session=True)
             # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
-            (logs / "pids.json").write_text(json.dumps({n: graph.process(n).pid for n in graph.nodes if graph.process(n)}) + "\n")
+            pids = {n: graph.process(n).pid for n in graph.nodes if graph.process(n)}
+            (logs / "pids.json").write_text(json.dumps({**pids, **({"router": router.pid} if router else {})}) + "\n")
             _wait_ready(graph, stopper)
+            facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", "")))
+            observer = graph.observer_options()
+            info = discovery.SessionInfo(
+                session=s.name, connect=[endpoint], pid=os.getpid(), out=str(out.resolve()), pack=plan.exercise,
+                zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "")
+            info = dataclasses.replace(info, attach=discovery.attach_commands(info))
+            announced = announcement.announce(info, out)
             viewer = None
             if view and not stopper.event.is_set():
-                viewer = subprocess.Popen(python_module("services.cli", "view", "--session", s.name, f"--connect={endpoint}"),
+                viewer = subprocess.Popen(python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
                                           start_new_session=True)  # Ctrl-C reaches msk live only: it stops in order
-            log(f"live session {s.name!r} running: {', '.join(graph.nodes)}" + (" + view" if viewer else "")
+            log(f"live session {s.name!r} running on {endpoint}" + (" (TLS, access control)" if pki is not None else "")
+                + f"; attach: {'; '.join(info.attach)}")
+            log(f"running: {', '.join(graph.nodes)}" + (" + view" if viewer else "")
                 + f"; recording to {mcap}" + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops"))
             started = time.monotonic()
             deadline = None if duration_s is None else started + duration_s
@@ -388,13 +481,81 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
                 reason = stopper.signal or "signal"
             elapsed = time.monotonic() - started
         finally:
-            codes = stop_in_order(graph, drivers, simulators, locals().get("viewer"), counts, plan.methods, log)
-    summary = summarise(mcap, elapsed)
+            for path in announced[1:]:  # the registry entry; OUT/session.json stays as a record
+                discovery.withdraw(path)
+            codes = {}
+            if "graph" in locals():
+                codes = stop_in_order(graph, locals().get("drivers", []), simulators, locals().get("viewer"), counts,
+                                      plan.methods, log)
+            if router is not None:
+                codes["router"] = stop_process(router)
+    # the parts this session's recorder wrote (it continues into session-001.mcap ... when OUT holds older ones)
+    parts = sorted(set(out.glob("session*.mcap")) - recorded_before)
+    summary = summarise(parts, elapsed)
+    summary["recordings"] = [str(p) for p in parts]
     summary["stopped_by"] = reason
     summary["exit_codes"] = codes
     if simulators is not None:
         summary["simulators_sent"] = simulators.sent()
     return summary
+
+
+def router_host(pki: Path) -> str:
+    """The loopback name the router certificate of ``pki`` is valid for (the nodes verify it on connect)."""
+    from cryptography import x509
+
+    from services.security import Pki
+
+    path = Pki(pki).cert("router")
+    if not path.is_file():
+        raise ConfigError("no router certificate: make the folder with `msk certs --out DIR`", path=path)
+    certificate = x509.load_pem_x509_certificate(path.read_bytes())
+    try:
+        names = certificate.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        names = []
+    hosts = [str(getattr(n, "value", "")) for n in names]
+    for host in ("127.0.0.1", "localhost"):
+        if host in hosts:
+            return host
+    raise ConfigError(f"the router certificate is for {hosts or 'no host'}, not for this machine's loopback "
+                      "(127.0.0.1 or localhost): make it with `msk certs` (its default hosts)", path=path)
+
+
+def start_secured_router(pki: Path, out: Path, log):
+    """``msk router`` on a free loopback TLS port with the access control of the declared graph, and one Zenoh client
+    config per role (OUT/zenoh/<role>.json5) connecting to it; returns (process, endpoint, role -> config path)."""
+    from services import router as router_node
+    from services import security
+    from services.zenoh_session import free_loopback_endpoint
+
+    pki = Path(pki).resolve()
+    host = router_host(pki)
+    port = int(free_loopback_endpoint().rsplit(":", 1)[1])
+    endpoint = f"tls/{host}:{port}"
+    configs = security.write_configs(out / "zenoh", pki, router_listen=(f"tls/127.0.0.1:{port}",),
+                                     client_connect=(endpoint,))
+    log_path = out / "logs" / "router.log"
+    process = subprocess.Popen(python_module("services.cli", "router", f"--zenoh-config={configs['router']}"),
+                               stdout=open(log_path, "wb"), stderr=subprocess.STDOUT, start_new_session=True,
+                               env={**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")})
+    try:
+        router_node.wait_until_listening(process, port)
+    except RuntimeError as error:
+        raise GraphTimeout(f"{error}; router log: {log_path}") from None
+    log(f"secured: router on {endpoint} (TLS, client certificates of {pki}, access control of the session graph)")
+    return process, endpoint, lambda role: configs[role]
+
+
+def stop_process(process: subprocess.Popen, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        return process.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(5)
+        return None
 
 
 def _wait_ready(graph: Graph, stopper: _Stopper) -> None:
@@ -499,7 +660,7 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
         raise ConfigError("method 'assisted' needs EMG: a [trigno] device and an [electrodes] map", path=session.path,
                           field="session.methods", value="assisted")
     profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
-    plan = LivePlan(session, tuple(methods), profile_path, trackers=trackers)
+    plan = LivePlan(session, tuple(methods), profile_path, trackers=trackers, exercise=model.name)
     if sim:
         simulators = start_simulators(sources)
         plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
@@ -520,13 +681,26 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
     return plan, simulators
 
 
-def main(session: LiveSession, *, sim: bool, duration_s: float | None, view: bool, log=print) -> dict:
-    from services.zenoh_session import free_loopback_endpoint
+def default_live_endpoint() -> str:
+    """The well-known loopback endpoint when no other session holds it (a client with no flags, or the ten-line
+    subscriber of docs/apps.md, then finds this session there), else a free loopback port (found through
+    services.discovery)."""
+    from services.zenoh_session import DEFAULT_ENDPOINT, endpoint_is_free, free_loopback_endpoint
 
+    return DEFAULT_ENDPOINT if endpoint_is_free(DEFAULT_ENDPOINT) else free_loopback_endpoint()
+
+
+def main(session: LiveSession, *, sim: bool, duration_s: float | None, view: bool, log=print,
+         listen: str | None = None, pki: Path | None = None) -> dict:
+    """``listen``: the loopback endpoint of the graph (default :func:`default_live_endpoint`); ``pki``: a folder
+    written by ``msk certs``, for the secured mode."""
+    if pki is not None and listen is not None:
+        raise ConfigError("the secured mode picks its own TLS endpoint; give --pki or --listen, not both",
+                          field="--listen", value=listen)
     plan, simulators = plan_for(session, sim=sim, log=log)
     try:
-        summary = run_graph(plan, duration_s=duration_s, view=view, endpoint=free_loopback_endpoint(), log=log,
-                            simulators=simulators)
+        summary = run_graph(plan, duration_s=duration_s, view=view, endpoint=listen or default_live_endpoint(),
+                            log=log, simulators=simulators, pki=pki)
     except BaseException:
         if simulators is not None:
             simulators.close()
@@ -534,5 +708,5 @@ def main(session: LiveSession, *, sim: bool, duration_s: float | None, view: boo
     summary["methods"] = list(plan.methods)
     (session.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     log(summary_text(summary))
-    log(f"recording: {session.out / 'session.mcap'}; summary: {session.out / 'summary.json'}")
+    log(f"recording: {', '.join(summary.get('recordings', [])) or 'none'}; summary: {session.out / 'summary.json'}")
     return summary

@@ -16,6 +16,7 @@ all of them and :data:`OWN_STATUS` for ``status/<the node's own name>`` (a node 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import zenoh
@@ -98,6 +99,12 @@ def live_nodes(*, trigno: bool, xsens: bool) -> list[NodeDecl]:
     names += ["drivers-trigno"] if trigno else []
     names += ["drivers-xsens"] if xsens else []
     return [NODES[n] for n in names]
+
+
+def instance(kind: str, name: str) -> NodeDecl:
+    """A node of kind ``kind`` (a key of :data:`NODES`) under another name, e.g. one estimator per exercise in the
+    demo (``estimator-deadlift``)."""
+    return dataclasses.replace(NODES[kind], name=name)
 
 
 def _matches(published: str, subscribed: str) -> bool:

@@ -23,7 +23,7 @@ def doc_block(repo_root) -> str:
 
 
 def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, zenoh_endpoint, tmp_path):
-    code = doc_block(repo_root).replace('"tcp/127.0.0.1:7447", "demo"', f'"{zenoh_endpoint}", "{SESSION}"')
+    code = doc_block(repo_root).replace('"tcp/127.0.0.1:7447", "sim"', f'"{zenoh_endpoint}", "{SESSION}"')
     assert zenoh_endpoint in code  # the block's constants are where the test expects them
     script = tmp_path / "subscriber.py"
     script.write_text(code)

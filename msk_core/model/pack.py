@@ -337,6 +337,12 @@ def available_packs() -> list[str]:
     return sorted(p.name[: -len(".json")] for p in _packs_dir().iterdir() if p.name.endswith(".json"))
 
 
+def is_known_exercise(exercise: str, also: tuple[str, ...] = ()) -> bool:
+    """Whether ``exercise`` names a shipped pack (or one of ``also``, e.g. the pack a node was started with): what
+    a load event may say is under way. Bytes that happen to decode as a load event name something else."""
+    return exercise in also or exercise in available_packs()
+
+
 def load_pack(name_or_path: str | Path, *, evaluator: Evaluator = Evaluator.NUMPY) -> ModelPack:
     """Load a shipped pack by name (e.g. ``"arm26"``) or a pack JSON file by path.
 

@@ -15,6 +15,7 @@ import sys
 import time
 
 from msk_core.errors import ConfigError
+from msk_core.model.pack import available_packs, is_known_exercise
 from services import discovery, messages, topics
 from services.zenoh_session import add_zenoh_arguments, declare_data_publisher, open_session, options_from_args, publish
 
@@ -52,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("no running msk live found (none announced in "
                           f"{discovery.registry_dir()}); name the session and its endpoint with --session and --connect",
                           field="--session")
+    if args.exercise is not None and not is_known_exercise(args.exercise):
+        raise ConfigError(f"not a model pack (known: {', '.join(available_packs())})", field="--exercise",
+                          value=args.exercise)
     event = new_facts(info.facts if info is not None else {}, load_kg=args.load_kg, set_number=args.set,
                       next_set=args.next_set, exercise=args.exercise, athlete=args.athlete)
     key = topics.load_key(session)

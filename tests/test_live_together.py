@@ -1,0 +1,197 @@
+"""``msk live --sim`` used as a user would, together with the tools of a second terminal and with bad messages on
+its topics; and the same graph secured (``--pki``): real simulators, real node processes, real Zenoh (and TLS router).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from services import messages, topics
+from services.mcap_io import read_messages
+
+REPO = Path(__file__).resolve().parents[1]
+STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
+SESSION = "sim"
+
+
+def _msk(*argv: str, env: dict, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+class LiveProcess:
+    """``msk live --sim`` in a subprocess; :meth:`wait_running` reads its output until the graph is up."""
+
+    def __init__(self, out: Path, env: dict, *extra: str) -> None:
+        self.out = out
+        self.lines: list[str] = []
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "150", "--out", str(out),
+             *extra],
+            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+    def wait_running(self) -> str:
+        deadline = time.monotonic() + STARTUP_S
+        while not any("live session" in line and "running" in line for line in self.lines):
+            left = deadline - time.monotonic()
+            assert left > 0 and self.process.poll() is None, (
+                f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(self.lines))
+            ready, _, _ = select.select([self.process.stdout], [], [], min(left, 1.0))
+            if ready:
+                self.lines.append(self.process.stdout.readline())
+        return next(line for line in self.lines if "live session" in line)
+
+    def stop(self) -> tuple[int, str, dict]:
+        os.killpg(self.process.pid, signal.SIGINT)  # Ctrl-C
+        rest, _ = self.process.communicate(timeout=90)
+        output = "".join(self.lines) + rest
+        return self.process.returncode, output, json.loads((self.out / "summary.json").read_text())
+
+    def kill(self) -> None:
+        """After a failed test: msk live and its nodes (each in a process group of its own, listed in pids.json)."""
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait(10)
+        pids = self.out / "logs" / "pids.json"
+        for pid in json.loads(pids.read_text()).values() if pids.is_file() else []:
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+
+
+def _environment(tmp_path: Path) -> dict:
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")  # the calibrated bundled subject
+    return {**os.environ, "XDG_CACHE_HOME": str(cache), "MSK_SESSIONS_DIR": str(tmp_path / "sessions"),
+            "PYTHONUNBUFFERED": "1"}
+
+
+def _bad_payloads() -> list[tuple[str, bytes, str | None]]:
+    """(topic after msk/<s>/, payload, encoding type) for every topic a node of the graph reads."""
+    garbage = bytes(range(256)) * 8  # 2 kB that is no protobuf message
+    wrong = messages.encode(messages.ActivationFrame(method="so", groups=["x"], activations=[0.5]))
+    load_as_joints = messages.encode(messages.LoadEvent(barbell_mass_kg=500.0, exercise="bench_press"))
+    huge = b"\x00" * (50 * 1024 * 1024)
+    bad = []
+    for topic in ("joints", "load", "emg/trigno", "imu/00B4EB80"):
+        bad += [(topic, garbage, None), (topic, b"", None), (topic, wrong, None), (topic, huge, None)]
+    bad.append(("joints", load_as_joints, "msk.LoadEvent"))  # a valid message of another type, labelled as such
+    bad.append(("load", messages.encode(messages.LoadEvent(barbell_mass_kg=1.0, exercise="upper_arm_r")), None))
+    return bad
+
+
+def _publish_bad_messages(endpoint: str) -> int:
+    import zenoh
+
+    from services.zenoh_session import ZenohOptions, encoding_for, open_session
+
+    with open_session(ZenohOptions(connect=(endpoint,))) as session:
+        for topic, payload, type_name in _bad_payloads():
+            key = f"{topics.session_prefix(SESSION)}/{topic}"
+            options = {"encoding": encoding_for(type_name)} if type_name else {}
+            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, **options)
+        time.sleep(1.0)
+    return len(_bad_payloads())
+
+
+def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
+    env = _environment(tmp_path)
+    out = tmp_path / "live"
+    live = LiveProcess(out, env)
+    try:
+        line = live.wait_running()
+        info = json.loads((out / "session.json").read_text())  # written as soon as the graph is up
+        assert info["session"] == SESSION and info["connect"] and info["connect"][0] in line, (info, line)
+        assert "msk dashboard --session sim" in line
+        # a second terminal: no endpoint flags, the running session is found
+        printed = _msk("subscribe", f"msk/{SESSION}/activations/*", "--count", "3", "--json", env=env)
+        assert printed.returncode == 0, printed.stderr
+        frames = [json.loads(row) for row in printed.stdout.splitlines()]
+        assert len(frames) == 3 and all(f["type"] == "msk.ActivationFrame" for f in frames), printed.stdout
+        assert all(f["message"]["exercise"] == "bench_press" for f in frames)
+        sent = _publish_bad_messages(info["connect"][0])
+        changed = _msk("load", "60", "--next-set", env=env)
+        assert changed.returncode == 0 and "set 2" in changed.stdout, changed.stdout + changed.stderr
+        time.sleep(3.0)  # the nodes go on: seconds of valid input after the bad ones
+        code, output, summary = live.stop()
+    finally:
+        live.kill()
+    assert code == 0, output
+    assert all(c == 0 for c in summary["exit_codes"].values()), summary["exit_codes"]
+    assert not (tmp_path / "sessions").exists() or not list((tmp_path / "sessions").glob("*.json"))  # withdrawn
+
+    # every node kept going: each joint frame answered by every method, nothing the simulators sent lost
+    joints = summary["joint_frames"]
+    assert joints > 100 and all(n == joints for n in summary["frames_estimated"].values()), summary
+    assert summary["samples"]["emg/trigno"] == summary["simulators_sent"]["trigno"]["samples"]
+    # ... and counted what they dropped, per topic, in their status
+    dropped = summary["inputs_dropped"]
+    prefix = topics.session_prefix(SESSION)
+    assert sum(dropped["estimator"][f"{prefix}/joints"].values()) == 5, dropped  # garbage, empty, wrong x2, huge
+    assert dropped["estimator"][f"{prefix}/joints"]["oversized"] == 1
+    assert sum(dropped["estimator"][f"{prefix}/emg/trigno"].values()) == 4, dropped
+    assert sum(dropped["kinematics"][f"{prefix}/imu/00B4EB80"].values()) == 4, dropped
+    assert summary["node_errors"]["estimator"] >= 1  # the load event naming no exercise: refused, said, counted
+    assert sum(sum(v.values()) for v in dropped["recorder"].values()) >= sent - 2  # valid-looking bytes kept typed
+
+    # the session facts reached the recording: the start's and the operator's
+    loads = [m.decode() for m in read_messages(out / "session.mcap") if m.type_name == "msk.LoadEvent"]
+    facts = [(e.exercise, e.barbell_mass_kg, e.set_number) for e in loads if e.exercise != "upper_arm_r"]
+    assert facts[:2] == [("bench_press", 50.0, 1), ("bench_press", 60.0, 2)], facts
+    report = _msk("report", str(out / "session.mcap"), "--out", str(tmp_path / "report"), env=env, timeout=120)
+    assert report.returncode == 0, report.stderr
+
+
+@pytest.mark.slow
+def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
+    from services import security
+    from services.zenoh_session import ZenohOptions, open_session
+
+    env = _environment(tmp_path)
+    pki = tmp_path / "pki"
+    assert _msk("certs", "--out", str(pki), env=env).returncode == 0
+    out = tmp_path / "secured"
+    live = LiveProcess(out, env, "--pki", str(pki))
+    received: Counter = Counter()
+    try:
+        line = live.wait_running()
+        assert "tls/" in line and "access control" in line, line
+        info = json.loads((out / "session.json").read_text())
+        assert info["connect"][0].startswith("tls/") and info["zenoh_config"], info
+        # a tablet: its role reads activations and status, nothing else
+        tablet = security.client_config(pki, "tablet", connect=tuple(info["connect"]))
+        (tmp_path / "tablet.json5").write_text(json.dumps(tablet))
+        with open_session(ZenohOptions(mode=None, config_file=tmp_path / "tablet.json5")) as session:
+            subscribers = [session.declare_subscriber(f"msk/{SESSION}/{topic}",
+                                                      lambda s, t=topic: received.update([t]))
+                           for topic in ("activations/*", "status/*", "emg/*", "imu/*", "joints", "envelopes", "load")]
+            time.sleep(5.0)
+            for subscriber in subscribers:
+                subscriber.undeclare()
+        # the attach commands work in the secured mode too (the operator's config from session.json)
+        printed = _msk("subscribe", f"msk/{SESSION}/envelopes", "--count", "2", env=env)
+        assert printed.returncode == 0 and printed.stdout.count("msk.EmgEnvelope") == 2, printed.stderr
+        code, output, summary = live.stop()
+    finally:
+        live.kill()
+    assert code == 0, output
+    assert all(c == 0 for c in summary["exit_codes"].values()), summary["exit_codes"]
+    sent = summary["simulators_sent"]
+    assert summary["samples"]["emg/trigno"] == sent["trigno"]["samples"] > 2000 * 5, summary
+    assert {k: v for k, v in summary["samples"].items() if k.startswith("imu/")} == {
+        f"imu/{k}": v["samples"] for k, v in sent.items() if k != "trigno"}
+    joints = summary["joint_frames"]
+    assert joints > 200 and all(n == joints for n in summary["frames_estimated"].values()), summary
+    assert summary["envelopes"] > 0 and summary["envelopes"] == summary["emg_chunks"], summary
+    assert set(received) == {"activations/*", "status/*"}, received  # the tablet got nothing else
+    assert not any(summary.get("node_errors", {}).values()), summary.get("node_errors")
