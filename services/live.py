@@ -322,9 +322,10 @@ class SessionFacts:
     athlete: str = ""
 
     def message(self) -> messages.LoadEvent:
+        now = messages.now_ns()  # msk live maps every device clock onto the host clock: its device time is now
         return messages.LoadEvent(barbell_mass_kg=float(self.load_kg), exercise=self.exercise,
-                                  set_number=int(self.set_number), athlete=self.athlete,
-                                  host_time_ns=messages.now_ns())  # no device time: in effect from the latest frame
+                                  set_number=int(self.set_number), athlete=self.athlete, device_time_ns=now,
+                                  host_time_ns=now)
 
 
 def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, stop_event: threading.Event,

@@ -97,6 +97,14 @@ def check_payload(key: str, payload: bytes, *, encoding_type: str | None = None,
     return message
 
 
+def publication_id(sample: zenoh.Sample) -> tuple[str, int, int] | None:
+    """(publisher's Zenoh id, entity id, sequence number) of a sample, when Zenoh carries its source info."""
+    info = sample.source_info
+    if info is None:
+        return None
+    return str(info.source_id.zid), int(info.source_id.eid), int(info.source_sn)
+
+
 @dataclass(frozen=True)
 class Inbound:
     """One message a node took from its queue."""
@@ -107,6 +115,9 @@ class Inbound:
     payload: bytes
     arrival_ns: int
     rejected: Rejected | None = None
+    #: the publication's identity (publisher's session, entity, sequence number) when Zenoh carries it (history
+    #: publishers: their cache replies carry the same, so a reader knows a publication it got both ways)
+    source: tuple[str, int, int] | None = None
 
 
 @dataclass
@@ -198,7 +209,7 @@ class NodeInputs:
         if size > self._max_bytes:  # never copied, never queued
             self._dropped(key, DropReason.OVERSIZED, f"{size} bytes (at most {self._max_bytes})")
             return
-        item = (key, type_name_of_sample(sample), sample.payload.to_bytes(), arrival_ns)
+        item = (key, type_name_of_sample(sample), sample.payload.to_bytes(), arrival_ns, publication_id(sample))
         try:
             self._queue.put(item, timeout=QUEUE_WAIT_S)
         except queue.Full:
@@ -221,15 +232,16 @@ class NodeInputs:
             if inbound is not None:
                 return inbound
 
-    def _checked(self, key: str, encoding_type: str | None, payload: bytes, arrival_ns: int) -> Inbound | None:
+    def _checked(self, key: str, encoding_type: str | None, payload: bytes, arrival_ns: int,
+                 source: tuple[str, int, int] | None) -> Inbound | None:
         try:
             message = check_payload(key, payload, encoding_type=encoding_type, expected_type=self._expected_type,
                                     max_bytes=self._max_bytes)
         except Rejected as error:
             self._dropped(key, error.reason, error.detail)
-            return Inbound(key, "", None, payload, arrival_ns, error) if self._keep_rejected else None
+            return Inbound(key, "", None, payload, arrival_ns, error, source) if self._keep_rejected else None
         self.counts.count_received(key)
-        return Inbound(key, messages.type_name(message), message, payload, arrival_ns)
+        return Inbound(key, messages.type_name(message), message, payload, arrival_ns, source=source)
 
     def close(self) -> None:
         """Undeclare the subscribers (nothing new arrives; :meth:`drain` then empties the queue)."""

@@ -63,6 +63,7 @@ from services import messages, topics
 from services.graph import ReadySpec, declare_ready
 from services.mcap_io import REJECTED_REASON, McapRecorderWriter, device_time_ns, read_messages
 from services.node_runtime import (
+    publication_id,
     MAX_PAYLOAD_BYTES,
     DropReason,
     Inbound,
@@ -235,6 +236,7 @@ class _Item:
     payload: bytes
     message: Message | None  # None when rejected
     rejected: Rejected | None = None
+    source: tuple[str, int, int] | None = None  # the publication's identity, when Zenoh carries it
 
 
 @dataclass(frozen=True)
@@ -248,7 +250,8 @@ class _Fetched:
 
 
 def _live_item(inbound: Inbound) -> _Item:
-    return _Item(LIVE, inbound.arrival_ns, inbound.key, inbound.payload, inbound.message, inbound.rejected)
+    return _Item(LIVE, inbound.arrival_ns, inbound.key, inbound.payload, inbound.message, inbound.rejected,
+                 inbound.source)
 
 
 def _history_item(sample: zenoh.Sample, received_ns: int, counts: InputCounts, max_bytes: int) -> _Item | None:
@@ -259,11 +262,12 @@ def _history_item(sample: zenoh.Sample, received_ns: int, counts: InputCounts, m
         _count_dropped(counts, Rejected(DropReason.OVERSIZED, key, f"{size} bytes (at most {max_bytes})"))
         return None
     payload = sample.payload.to_bytes()
+    source = publication_id(sample)
     try:
         message = check_payload(key, payload, encoding_type=type_name_of_sample(sample), max_bytes=max_bytes)
     except Rejected as error:
-        return _Item(HISTORY, received_ns, key, payload, None, error)
-    return _Item(HISTORY, received_ns, key, payload, message)
+        return _Item(HISTORY, received_ns, key, payload, None, error, source)
+    return _Item(HISTORY, received_ns, key, payload, message, source=source)
 
 
 def _count_dropped(counts: InputCounts, rejected: Rejected) -> None:
@@ -293,6 +297,10 @@ class HistoryMerge:
         self._pending_keys: set[str] = set()  # keys with a fetch of their own out
         self._known_keys: set[str] = set()  # keys whose history was fetched (or found absent)
         self._waiting: list[_Item] = []  # live samples held, in arrival order
+        # per key, the publications written from a history fetch (identity from Zenoh's source info): the live copy
+        # of one may still arrive after the fetch returned (replies and data take different paths through a router)
+        self._from_history: dict[str, collections.deque] = {}
+        self._from_history_set: dict[str, set] = {}
 
     def begin_fetch(self, scope: str, *, initial: bool = False) -> None:
         if initial:
@@ -305,6 +313,9 @@ class HistoryMerge:
         (``fetch_new_keys``: for a key first seen live whose publishers keep a history)."""
         if isinstance(item, _Fetched):
             self._fetched(item)
+            return []
+        if item.source is not None and item.source in self._from_history_set.get(item.key, ()):
+            self._stats.already_recorded += 1  # this very publication came with a history fetch, written then
             return []
         if (fetch_new_keys and not self._initial_pending and item.key not in self._known_keys
                 and item.key not in self._pending_keys and self._keeps_history(item.key)):
@@ -347,20 +358,39 @@ class HistoryMerge:
             per_key.setdefault(item.key, []).append(index)
         keep = [True] * len(done.items)
         for key, indices in per_key.items():
+            live_sources = {item.source for item in self._waiting if item.key == key and item.source is not None}
+            for index in indices:  # exact: the same publication, already held live
+                if done.items[index].source is not None and done.items[index].source in live_sources:
+                    keep[index] = False
+            indices = [index for index in indices if keep[index]]
             digests = {index: _digest(done.items[index].payload) for index in indices}
             earlier = self._earlier.pop(key, collections.Counter())
             for index in indices:  # oldest first: the previous parts end where the cache begins
                 if earlier[digests[index]] > 0:
                     earlier[digests[index]] -= 1
                     keep[index] = False
-            live = collections.Counter(_digest(item.payload) for item in self._waiting
-                                       if item.key == key and item.receive_ns <= done.finished_ns)
+            # without an identity (a publisher without source info), by digest: only what arrived before the fetch
+            # returned can be in its history
+            live = collections.Counter(_digest(item.payload) for item in self._waiting if item.key == key
+                                       and item.source is None and item.receive_ns <= done.finished_ns)
             for index in reversed(indices):  # newest first: the live samples begin where the cache ends
-                if keep[index] and live[digests[index]] > 0:
+                if keep[index] and done.items[index].source is None and live[digests[index]] > 0:
                     live[digests[index]] -= 1
                     keep[index] = False
         self._stats.already_recorded += keep.count(False)
-        return [item for item, kept in zip(done.items, keep) if kept]
+        kept = [item for item, kept in zip(done.items, keep) if kept]
+        for item in kept:
+            if item.source is not None:
+                self._remember_history(item.key, item.source)
+        return kept
+
+    def _remember_history(self, key: str, source: tuple[str, int, int]) -> None:
+        recent = self._from_history.setdefault(key, collections.deque())
+        known = self._from_history_set.setdefault(key, set())
+        recent.append(source)
+        known.add(source)
+        if len(recent) > 2 * DEVICE_HISTORY_SAMPLES:
+            known.discard(recent.popleft())
 
     def _fetching(self) -> bool:
         return self._initial_pending or bool(self._pending_keys)

@@ -71,7 +71,7 @@ def test_report_of_the_demo_session(demo_report):
     assert sets[0]["methods"]["so"]["groups"]["TriLat"]["peak"][0] == pytest.approx(max(f.activations[tri] for f in inside))
     devices = summary["devices"]
     assert devices["trigno-synth"]["samples"] > 100_000 and devices["trigno-synth"]["gaps"] == 3  # the pauses between trials
-    assert sum(1 for d in devices if d.startswith("imu ")) == 6
+    assert sum(1 for d in devices.values() if d["kind"] == "IMU") == 6  # each tracker under its own id
     assert {p.name for p in out.glob("*.png")} >= {"set1_activation.png", "set1_peaks.png", "set1_methods.png", "devices.png"}
 
 

@@ -32,6 +32,7 @@ def new_facts(current: dict, *, load_kg: float | None, set_number: int | None, n
         raise ConfigError("must be a finite mass >= 0 kg", field="KG", value=load_kg)
     if set_number is not None and set_number < 1:
         raise ConfigError("sets are counted from 1", field="--set", value=set_number)
+    now = messages.now_ns()
     number = int(current.get("set_number", 0) or 0)
     if next_set:
         number += 1
@@ -41,7 +42,7 @@ def new_facts(current: dict, *, load_kg: float | None, set_number: int | None, n
         barbell_mass_kg=float(load_kg if load_kg is not None else current.get("load_kg", 0.0)),
         exercise=exercise if exercise is not None else str(current.get("exercise", "")),
         set_number=number, athlete=athlete if athlete is not None else str(current.get("athlete", "")),
-        host_time_ns=messages.now_ns())
+        device_time_ns=now, host_time_ns=now)  # msk live maps the device clocks onto the host clock
 
 
 def run(args: argparse.Namespace) -> int:

@@ -366,7 +366,8 @@ def device_health(data: SessionData) -> dict:
         counters = np.array([s[1] for s in samples], dtype=np.int64)
         steps = np.diff(counters) % 65536 if len(counters) > 1 else np.array([], dtype=np.int64)  # 16-bit counter
         restarts = steps >= 32768  # the counter went back: the tracker restarted its measurement, nothing was lost
-        devices[f"imu {tracker}"] = {"kind": "IMU", "messages": len(samples), "samples": len(samples),
+        # under the tracker's own id, the id its DeviceStatus carries: one row per device
+        devices[tracker] = {"kind": "IMU", "messages": len(samples), "samples": len(samples),
                                      "samples_lost": int(np.sum(np.maximum(steps[~restarts] - 1, 0))) if steps.size else 0,
                                      "gaps": int(np.sum((steps > 1) & ~restarts)), "restarts": int(np.sum(restarts)),
                                      "times": [s[0] for s in samples], "weights": [1] * len(samples)}
