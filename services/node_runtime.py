@@ -13,7 +13,7 @@ queue is bounded: when the node falls behind by :data:`MAX_QUEUE` messages a cal
 what had already arrived, so nothing received is lost.
 
 The counts travel in the node's :class:`DeviceStatus` (``kind = "node"``, ``dropped``) on ``msk/<session>/status/<node>``
-(:class:`StatusReporter`: at start, every second while they change, and a last one at stop), which the recorder
+(:class:`StatusReporter`: at start, every second, and a last one at stop), which the recorder
 logs and ``msk live`` sums up in ``summary.json``.
 """
 
@@ -276,7 +276,6 @@ class StatusReporter:
         self._inputs = inputs  # its refusals count as errors: a node its role does not let read what it needs
         self._publisher = declare_data_publisher(zsession, topics.status_key(session, node), "msk.DeviceStatus")
         self._last_sent = 0.0
-        self._last_state: tuple | None = None
 
     def error(self, text: str) -> None:
         """An input the node decoded but could not use (logged by the caller); counted in the status."""
@@ -294,14 +293,12 @@ class StatusReporter:
         )
 
     def tick(self, *, force: bool = False) -> None:
-        """Publish when due (call from the node's loop)."""
+        """Publish when due (call from the node's loop): every :data:`STATUS_PERIOD_S`, so a view or dashboard that
+        starts late sees every node within a second, as it sees every device."""
         now = time.monotonic()
         if not force and now - self._last_sent < STATUS_PERIOD_S:
             return
-        state = (self.counts.total_dropped, self.errors, len(self.counts.received))
-        if not force and state == self._last_state:
-            return
-        self._last_state, self._last_sent = state, now
+        self._last_sent = now
         publish(self._publisher, self.message())
 
     def final(self) -> None:
