@@ -95,3 +95,17 @@ def test_signal_doc_prints_what_it_says(shared_dir: Path, tmp_path: Path, monkey
 def test_readme_starts_with_the_two_setup_commands() -> None:
     language, block, _ = _blocks(REPO / "README.md")[0]
     assert language in SHELL and _command_lines(block) == ["python3 dev.py demo", "python3 dev.py test"]
+
+
+def test_the_role_table_of_deployment_md_is_the_access_control_the_graph_gives() -> None:
+    from services import security
+
+    text = (REPO / "docs" / "deployment.md").read_text()
+    rows = re.findall(r"^\| (\w+) \| (.*?) \| (.*?) \| (.*?) \|$", text, re.M)
+    documented = {role: (re.findall(r"`([^`]+)`", publish), re.findall(r"`([^`]+)`", subscribe),
+                         re.findall(r"`([^`]+)`", tokens)) for role, publish, subscribe, tokens in rows
+                  if role in security.ROLE_POLICIES}
+    assert set(documented) == set(security.ROLE_POLICIES)
+    for role, policy in security.ROLE_POLICIES.items():
+        assert documented[role] == (list(policy.publish), list(policy.subscribe),
+                                    [t.rsplit("/", 1)[1] for t in policy.tokens]), role
