@@ -38,7 +38,7 @@ from msk_core.estimate.trial import GRAVITY
 from services import messages, topics
 from msk_core.model.pack import available_packs, is_known_exercise
 from services.graph import ReadySpec, declare_ready
-from services.node_runtime import InputCounts, NodeInputs, StatusReporter
+from services.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -347,17 +347,7 @@ def main(
                               error, session, NODE_NAME)
 
         said: set[tuple[str, str]] = set()
-        try:
-            while not stop_event.is_set():
-                item = inputs.get(0.05)
-                if item is not None:
-                    handle(item)
-                reporter.tick()
-        finally:
-            inputs.close()
-            for item in inputs.drain():  # what had arrived before the stop is still answered
-                handle(item)
-            reporter.final()
+        serve(inputs, handle, stop_event, reporter)  # what arrived before the stop is still answered
     return stats
 
 

@@ -33,7 +33,7 @@ from msk_core.model import load_pack
 from msk_core.signal.reps import RepTemplate
 from services import messages, topics
 from services.graph import ReadySpec, declare_ready
-from services.node_runtime import InputCounts, NodeInputs, StatusReporter
+from services.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -240,17 +240,7 @@ def main(
                 reporter.error(stats.last_error)
             stats.samples_done += 1
 
-        try:
-            while not stop_event.is_set():
-                item = inputs.get(0.05)
-                if item is not None:
-                    process(item)
-                reporter.tick()
-        finally:
-            inputs.close()
-            for item in inputs.drain():  # what already arrived is still processed and published: nothing is lost
-                process(item)
-            reporter.final()
+        serve(inputs, process, stop_event, reporter)  # what arrived before the stop is still published
     return stats
 
 

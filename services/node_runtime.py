@@ -263,6 +263,26 @@ class NodeInputs:
                 yield inbound
 
 
+def serve(inputs: NodeInputs, handle, stop_event: threading.Event, reporter: StatusReporter | None = None,
+          poll_s: float = 0.05) -> None:
+    """The node loop: every usable input to ``handle(inbound)`` in arrival order, the status when due, until
+    ``stop_event``; then the subscriptions closed, what had arrived still handled (nothing received is lost) and
+    the last status published."""
+    try:
+        while not stop_event.is_set():
+            inbound = inputs.get(poll_s)
+            if inbound is not None:
+                handle(inbound)
+            if reporter is not None:
+                reporter.tick()
+    finally:
+        inputs.close()
+        for inbound in inputs.drain():
+            handle(inbound)
+        if reporter is not None:
+            reporter.final()
+
+
 class StatusReporter:
     """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: at start, at most every
     :data:`STATUS_PERIOD_S` while anything changed, and once more (``connected`` False) at stop."""

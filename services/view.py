@@ -28,7 +28,7 @@ from rich.table import Table
 from rich.text import Text
 
 from services import messages, topics
-from services.node_runtime import InputCounts, NodeInputs
+from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
 
 log = logging.getLogger(__name__)
@@ -231,14 +231,14 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
 
 def take_inputs(inputs: NodeInputs, state: ViewState, stop: threading.Event) -> None:
     """The view's input thread: every checked message, in arrival order, into ``state`` until ``stop``."""
-    while not stop.is_set():
-        inbound = inputs.get(POLL_S)
-        if inbound is None:
-            continue
+
+    def take(inbound) -> None:
         try:
             state.on_message(inbound.key, inbound.message)
         except Exception:  # a message the checks let through must not freeze the screen
             log.exception("msk view: message on %s", inbound.key)
+
+    serve(inputs, take, stop, poll_s=POLL_S)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
+from services.graph import wait_for
 from services import live, messages, recorder, replayer, topics
 from services.dashboard import report as session_report
 from services.mcap_io import REJECTED_ENCODING, REJECTED_REASON, McapRecorderWriter, ReadReport, read_messages
@@ -32,11 +33,7 @@ STATUS = topics.status_key(SESSION, recorder.NODE_NAME)
 
 
 def _wait(condition: Callable[[], bool], timeout_s: float, what: str, have: Callable[[], object] = lambda: "") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"after {timeout_s:g} s still waiting for {what}; have: {have()}")
-        time.sleep(0.02)
+    wait_for(what, condition, lambda: str(have()), timeout_s, poll_s=0.02)  # the graph's bounded wait
 
 
 @contextlib.contextmanager

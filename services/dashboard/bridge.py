@@ -28,7 +28,7 @@ from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from services import messages, topics
-from services.node_runtime import InputCounts, NodeInputs
+from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -348,10 +348,8 @@ class Bridge:
         self._thread.start()
 
     def _run(self, inputs: NodeInputs) -> None:
-        while not self._stop.is_set():
-            inbound = inputs.get(POLL_S)
-            if inbound is not None:
-                self._take(inbound.key, inbound.message, inbound.arrival_ns)
+        serve(inputs, lambda inbound: self._take(inbound.key, inbound.message, inbound.arrival_ns), self._stop,
+              poll_s=POLL_S)
 
     def _take(self, key: str, message: Message, arrival_ns: int) -> None:
         try:
