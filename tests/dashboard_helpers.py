@@ -158,6 +158,14 @@ class BadInputs:
         self.bad("load", b"\xff\xff not protobuf", "undecodable")
         self.bad("joints", bytes(HUGE_PAYLOAD_BYTES), "oversized")
 
+    def every_kind_then(self, goods: dict[str, object]) -> None:
+        """Once the reader listens: every kind of unusable payload, then the valid messages ``goods`` (topic after
+        ``msk/<session>/`` -> message), each after the bad ones on its key."""
+        self.wait_matched(BAD_INPUT_TOPICS)
+        self.publish_every_kind()
+        for rest, message in goods.items():
+            self.good(rest, message)
+
     def close(self) -> None:
         for publisher in self._publishers.values():
             publisher.undeclare()

@@ -263,7 +263,7 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     counted per key and reason (shown as the dashboard's node row); the valid messages after them are shown."""
     from services.dashboard.bridge import Bridge
     from services.zenoh_session import ZenohOptions, open_session
-    from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
+    from tests.dashboard_helpers import BadInputs
 
     state = DashboardState("t")
     bridge = Bridge(ZenohOptions(listen=(zenoh_endpoint,)), state)
@@ -271,11 +271,10 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     try:
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             inputs = BadInputs(zsession, "t")
-            inputs.wait_matched(BAD_INPUT_TOPICS)
-            inputs.publish_every_kind()
-            inputs.good("activations/so", activation_frame("so", [0.25, 0.5], t=7.0, exercise="deadlift"))
-            inputs.good("load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1))
-            inputs.good("status/trigno", messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True))
+            inputs.every_kind_then({
+                "activations/so": activation_frame("so", [0.25, 0.5], t=7.0, exercise="deadlift"),
+                "load": messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1),
+                "status/trigno": messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True)})
             deadline = time.monotonic() + 30
             expected_dropped = sum(inputs.expected.values())
             while time.monotonic() < deadline:

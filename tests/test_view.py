@@ -123,7 +123,7 @@ def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endp
 
     from rich.console import Console
 
-    from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
+    from tests.dashboard_helpers import BadInputs
 
     stop = threading.Event()
     result: list[ViewState] = []
@@ -134,10 +134,8 @@ def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endp
     try:
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             inputs = BadInputs(zsession, "bad")
-            inputs.wait_matched(BAD_INPUT_TOPICS)
-            inputs.publish_every_kind()
-            inputs.good("activations/so", frame("deadlift"))
-            inputs.good("load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1))
+            inputs.every_kind_then({"activations/so": frame("deadlift"),
+                                    "load": messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1)})
             wait_for("the view to show the valid frame and load", lambda: "load 80 kg" in console.file.getvalue()
                      and "5 dropped" in console.file.getvalue(), lambda: console.file.getvalue()[-3000:], 30)
             inputs.close()
