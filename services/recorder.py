@@ -94,6 +94,7 @@ log = logging.getLogger(__name__)
 class RecorderStats:
     received: int = 0  # inputs handed to the file (after leaving out what was recorded already)
     written: int = 0  # messages written to the typed channels
+    node_status: int = 0  # of which the graph's nodes' own status (kind "node"): not data a waiter counts
     rejected: int = 0  # payloads kept in the rejected channels (services.mcap_io.McapRecorderWriter.write_rejected)
     already_recorded: int = 0  # history samples written already (by the previous parts, or live too)
     history_fetched: int = 0  # samples the publishers' caches sent
@@ -422,6 +423,8 @@ def _write(writer: McapRecorderWriter, item: _Item, stats: RecorderStats, counts
             receive_ns = min(receive_ns, int(message.host_time_ns))
     writer.write(item.key, messages.type_name(message), item.payload, receive_ns, publish_ns)
     stats.written += 1
+    if isinstance(message, messages.DeviceStatus) and message.kind == "node":
+        stats.node_status += 1
 
 
 def part_paths(out_path: Path) -> list[Path]:

@@ -80,7 +80,7 @@ def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict
     while time.monotonic() < deadline and not all(s.frames_done >= joints for s in stats.values()):
         time.sleep(0.1)
     expected = replayed.published + sum(s.frames_out * len(packs[p]) for p, s in stats.items())
-    while time.monotonic() < deadline and rec_stats.written < expected:  # (plus the nodes' own status messages)
+    while time.monotonic() < deadline and rec_stats.written - rec_stats.node_status < expected:
         time.sleep(0.1)
     stop.set()
     rec.join(30)
