@@ -61,10 +61,26 @@ class SimSources:
 
 def sim_sources(recording: Path, pack: str) -> SimSources:
     """Arrays of the last (held-out) trial of ``pack`` in the bundled recording: EMG chunks -> one (n, 16) Trigno
-    source, IMU samples -> one Xsens source per tracker (quaternion, acceleration, rate of turn, magnetic field)."""
+    source, IMU samples -> one Xsens source per tracker (quaternion, acceleration, rate of turn, magnetic field).
+    Every source starts at the trial's first instant and is cut to one common duration, so sample k of each is the
+    same instant of the trial, in every round of the loop."""
     from drivers.trigno.protocol import N_SENSORS
     from drivers.trigno.source import EmgSource
     from drivers.xsens.source import ImuSource
+
+    def _common_loop(streams: dict[str, tuple[int, float]]) -> dict[str, int]:
+        """Per stream name, (samples, rate in Hz) -> the most samples, no more than it has, such that every stream
+        spans one and the same duration: looping simulators then stay on one world round after round (a 60 Hz and
+        a 2000 Hz stream loop together only on multiples of 50 ms)."""
+        slowest = min(streams, key=lambda name: streams[name][1])
+        n_slow, rate_slow = streams[slowest]
+        for m in range(n_slow, n_slow // 2, -1):
+            counts = {name: m / rate_slow * rate for name, (_, rate) in streams.items()}
+            if all(abs(c - round(c)) < 1e-6 and round(c) <= streams[name][0] for name, c in counts.items()):
+                return {name: int(round(c)) for name, c in counts.items()}
+        raise InputError(f"the {pack} trial's streams have no common duration within its shorter half, so the "
+                         "simulators could not loop together", path=recording,
+                         value={name: rate for name, (_, rate) in streams.items()})
 
     if not recording.is_file():
         raise InputError("bundled session not found (generate it with `msk synth`, recordings/README.md)", path=recording)
@@ -82,13 +98,14 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     if not windows:
         raise InputError(f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack)
     t0, t1, load = windows[-1]
-    emg_rows, labels, rate, imu = [], None, None, {}
+    emg_rows, labels, rate, imu, emg_start = [], None, None, {}, None
     for m in read_messages(recording):
         if m.type_name == "msk.EmgChunk":
             c = m.decode()
             if t0 <= c.device_time_ns < t1:
                 emg_rows.append(np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels))
                 labels, rate = list(c.channel_labels), c.sample_rate_hz
+                emg_start = c.device_time_ns if emg_start is None else min(emg_start, c.device_time_ns)
         elif m.type_name == "msk.ImuSample":
             s = m.decode()
             if t0 <= s.device_time_ns < t1:
@@ -97,29 +114,42 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
                     (s.device_time_ns, [o.w, o.x, o.y, o.z], [a.x, a.y, a.z], [g.x, g.y, g.z], [b.x, b.y, b.z]))
     if not emg_rows or not imu:
         raise InputError(f"no EMG or IMU samples in the {pack} trial of the bundled session", path=recording)
+    starts = {"emg": emg_start, **{t: min(r[0] for r in rows) for t, (_, rows) in imu.items()}}
+    if max(starts.values()) - min(starts.values()) > 1e9 / (2 * rate):
+        raise InputError(f"the {pack} trial's streams do not start at one instant (first samples at device times "
+                         f"{starts} ns): the simulators could not sample one world", path=recording)
     emg = np.concatenate(emg_rows)
     if emg.shape[1] > N_SENSORS:
         raise InputError(f"{emg.shape[1]} EMG channels exceed the Trigno's {N_SENSORS} sensors", path=recording)
-    samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
-    samples[:, : emg.shape[1]] = emg
+    imu_rates = {}
+    for tracker, (_, rows) in imu.items():
+        rows.sort(key=lambda r: r[0])
+        imu_rates[tracker] = float(round(1.0 / np.median(np.diff(np.array([r[0] for r in rows], dtype=float) / 1e9))))
+    counts = _common_loop({"emg": (emg.shape[0], float(rate)),
+                          **{t: (len(rows), imu_rates[t]) for t, (_, rows) in imu.items()}})
+    samples = np.zeros((counts["emg"], N_SENSORS), dtype=np.float32)
+    samples[:, : emg.shape[1]] = emg[: counts["emg"]]
     names = tuple(labels) + ("",) * (N_SENSORS - len(labels))
     source = EmgSource(samples, float(rate), names, tuple(k < len(labels) for k in range(N_SENSORS)), f"{recording.name}:{pack}")
     trackers = {}
     for tracker, (segment, rows) in imu.items():
-        rows.sort(key=lambda r: r[0])
-        times = np.array([r[0] for r in rows], dtype=float) / 1e9
-        imu_rate = float(round(1.0 / np.median(np.diff(times))))
+        rows = rows[: counts[tracker]]
         arrays = {name: np.array([r[k] for r in rows], dtype=float)
                   for k, name in enumerate(("quaternion", "acceleration", "rate_of_turn", "magnetic_field"), start=1)}
-        trackers[tracker] = (segment, ImuSource(imu_rate, arrays, f"{recording.name}:{segment}"))
+        trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
     electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(labels)}
     return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg")
 
 
 @dataclass
 class Simulators:
-    trigno: object
+    """The session's simulated devices, sampling one world: one trial clock is shared by all, so a device that starts
+    streaming at t streams the trial from the instant t, whatever the others did; each keeps its own device clock and
+    counters."""
+
+    trigno: object  # drivers.trigno.simulator.TrignoSimulator
     xsens: dict[str, object]  # tracker id -> XsensSimulator
+    clock: object  # drivers.trial_clock.TrialClock
 
     def hold(self) -> None:
         self.trigno.hold()
@@ -132,28 +162,42 @@ class Simulators:
             sim.close()
 
     def sent(self) -> dict:
-        return {"trigno": {"samples": self.trigno.stats.samples_sent, "frames": self.trigno.stats.frames_sent},
-                **{t: {"samples": s.stats.messages_sent, "bytes_dropped": s.stats.bytes_dropped} for t, s in self.xsens.items()}}
+        """Per device: what it sent, its stated latency and the trial sample it started streaming at."""
+        t = self.trigno.stats
+        return {"trigno": {"samples": t.samples_sent, "frames": t.frames_sent, "latency_s": t.latency_s,
+                           "start_index": t.start_index},
+                **{tracker: {"samples": s.stats.messages_sent, "bytes_dropped": s.stats.bytes_dropped,
+                             "latency_s": s.stats.latency_s, "start_index": s.stats.start_index,
+                             "samples_skipped": s.stats.samples_skipped} for tracker, s in self.xsens.items()}}
 
 
-def start_simulators(sources: SimSources) -> Simulators:
+def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0, xsens_latency_s: float = 0.0,
+                     clock: object | None = None) -> Simulators:
+    """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
+    that starts when the first device starts streaming, so the set begins with its static pose as the first device
+    is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
+    ``*_latency_s``: each device's stated delivery latency (a sample measured at t leaves at t + latency)."""
+    from drivers.trial_clock import TrialClock
     from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
     from drivers.xsens.simulator import XsensSimulator
 
+    clock = TrialClock() if clock is None else clock
     # free ports: several sessions (tests, users) may run side by side; no legacy/aux listeners needed
-    trigno = TrignoSimulator(sources.emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None)).start()
+    trigno = TrignoSimulator(sources.emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None,
+                                                          trial_clock=clock, latency_s=trigno_latency_s)).start()
     xsens = {}
     try:
         for tracker, (_, source) in sources.imu.items():
             # a long wake-up window: the simulator waits in Config for the driver instead of streaming into a port
             # nobody has opened yet (a real MTi would, and those messages would never be read)
-            xsens[tracker] = XsensSimulator(source, device_id=int(tracker, 16), wakeup_window_s=3600.0).start()
+            xsens[tracker] = XsensSimulator(source, device_id=int(tracker, 16), wakeup_window_s=3600.0,
+                                            trial_clock=clock, latency_s=xsens_latency_s).start()
     except BaseException:
         trigno.close()
         for sim in xsens.values():
             sim.close()
         raise
-    return Simulators(trigno, xsens)
+    return Simulators(trigno, xsens, clock)
 
 
 # ------------------------------------------------------------------------------------------------ subject

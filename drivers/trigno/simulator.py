@@ -4,11 +4,19 @@ It serves the command port (banner, replies, errors, master rule, unsolicited ``
 the legacy 50041) and the AUX port, in 13.5 ms frames of 26/27 samples. The protocol variants public clients
 disagree about are :class:`TrignoQuirks`, so a driver can be tested against each. :meth:`TrignoSimulator.kill`
 drops every connection at once, like a crashed server; a new simulator on the same ports is a restarted one.
+
+One world: with ``SimulatorConfig.trial_clock`` (a :class:`drivers.trial_clock.TrialClock` shared with the Xsens
+simulators of a session), a START at wall time t streams the trial from its sample of that instant (modulo the
+trial's length when looping), as a physical base samples the one world; without one every START plays the trial
+from sample 0. Either way the sample index the client counts starts at 0 with START: the device clock is the base's
+own. ``SimulatorConfig.latency_s`` delays every frame: the base measures a frame's last sample at t and its bytes
+leave at t + latency.
 """
 
 from __future__ import annotations
 
 import enum
+import math
 import select
 import socket
 import threading
@@ -18,7 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.trigno import protocol as tp
+from drivers.trial_clock import TrialClock
 from drivers.trigno.source import EmgSource, resample
+from msk_core.errors import ConfigError
 
 AUX_SAMPLES_PER_FRAME = 2
 
@@ -60,6 +70,15 @@ class SimulatorConfig:
     fragment_max: int | None = None  # split each frame into random pieces of 1..fragment_max bytes
     seed: int = 0
     quirks: TrignoQuirks = field(default_factory=TrignoQuirks)
+    trial_clock: TrialClock | None = None  # one world shared by a session's simulators (None: START plays from 0)
+    latency_s: float = 0.0  # a frame leaves this long (device seconds) after its last sample was measured
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speed) and self.speed > 0):
+            raise ConfigError("must be a positive number", field="speed", value=self.speed)
+        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise ConfigError("device latency must be a finite number of seconds >= 0", field="latency_s",
+                              value=self.latency_s)
 
 
 @dataclass
@@ -68,6 +87,8 @@ class SimulatorStats:
     samples_sent: int = 0
     commands: int = 0
     connections: int = 0
+    latency_s: float = 0.0  # the stated device latency applied to every frame (SimulatorConfig.latency_s)
+    start_index: int | None = None  # trial (stream) sample index the latest START streamed first; None: no START yet
 
 
 class _CommandConnection:
@@ -87,7 +108,7 @@ class TrignoSimulator:
     def __init__(self, source: EmgSource, config: SimulatorConfig | None = None) -> None:
         self.source = source
         self.config = config or SimulatorConfig()
-        self.stats = SimulatorStats()
+        self.stats = SimulatorStats(latency_s=self.config.latency_s)
         self._stop = threading.Event()
         self._lock = threading.RLock()
         self._listeners: dict[str, socket.socket] = {}
@@ -99,8 +120,9 @@ class TrignoSimulator:
         self._next_conn_id = 1
         self._running = False
         self._held = False
-        self._run_started = 0.0
-        self._frame = 0
+        self._run_started = 0.0  # wall instant (time.monotonic) the latest START took effect
+        self._first_index = 0  # stream sample index of the run's sample 0 (0 without a trial clock)
+        self._frame = 0  # frames sent since START
         self._upsampling = self.config.upsampling if self.config.upsampling is not None else source.rate_hz > 1960.0
         self._endianness = self.config.endianness
         self._backwards_compatibility = False
@@ -419,7 +441,26 @@ class TrignoSimulator:
         self._accept_pending_data()
         self._frame = 0
         self._run_started = time.monotonic() + self.config.quirks.start_delay_s / self.config.speed
+        self._first_index = self._index_at(self._run_started)
+        self.stats.start_index = self._first_index
         self._running = True
+
+    def _index_at(self, wall_s: float) -> int:
+        """The stream sample measured first at or after ``wall_s``: 0 without a trial clock (each START plays the
+        trial from its start), else the trial's sample of that instant."""
+        clock = self.config.trial_clock
+        return 0 if clock is None else clock.first_index(wall_s, self.rate_hz, self.config.speed)
+
+    def _frame_due(self, frame: int) -> float:
+        """Wall instant (time.monotonic) at which ``frame`` leaves: without a trial clock one frame interval after
+        the previous from START; with one, when its last sample is measured on the trial's sample grid. Plus the
+        device latency in both cases."""
+        cfg = self.config
+        latency = cfg.latency_s / cfg.speed
+        if cfg.trial_clock is None:
+            return self._run_started + frame * tp.FRAME_INTERVAL_S / cfg.speed + latency
+        last = self._first_index + (frame + 1) * self.samples_per_frame - 1
+        return cfg.trial_clock.instant(last, self.rate_hz, cfg.speed) + latency
 
     def _fire_stop_trigger(self) -> None:
         self._running = False
@@ -432,13 +473,11 @@ class TrignoSimulator:
                 pass
 
     def _stream_loop(self) -> None:
-        frame_s = tp.FRAME_INTERVAL_S / self.config.speed
         while not self._stop.is_set():
             if not self._running or self._held:
                 self._stop.wait(0.005)
                 continue
-            due = self._run_started + self._frame * frame_s
-            delay = due - time.monotonic()
+            delay = self._frame_due(self._frame) - time.monotonic()
             if delay > 0:
                 self._stop.wait(min(delay, 0.05))
                 continue
@@ -456,7 +495,7 @@ class TrignoSimulator:
         samples = self._stream()
         spf = self.samples_per_frame
         n = samples.shape[0]
-        start = frame * spf
+        start = self._first_index + frame * spf
         if not self.config.loop and start + spf > n:
             return False
         index = (start + np.arange(spf)) % n

@@ -4,11 +4,20 @@ Open :attr:`XsensSimulator.path` with any serial library (it is a real tty). Fau
 whole messages on the wire (bit flips, dropped bytes, garbage between messages) and every corrupted message is
 recorded by its PacketCounter, so a test can check that exactly the intact ones come out of a parser.
 :meth:`unplug` closes the pty, as pulling the USB cable does.
+
+One world: with ``trial_clock`` (a :class:`drivers.trial_clock.TrialClock` shared with the other simulators of a
+session) the device samples on the trial's grid: entering Measurement at wall time t it measures first the trial's
+first sample at or after t (modulo the trial's length when looping), at that sample's instant, as a physical tracker
+samples the one world; without one every entry into Measurement plays the trial on from where the previous one
+stopped (sample 0 at first). The device's own clock and
+counters stay its own: PacketCounter counts its messages, SampleTimeFine (with a trial clock) counts 10 kHz ticks
+from its power-up (:meth:`start`). ``latency_s`` delays every message: measured at t, its bytes leave at t + latency.
 """
 
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import select
 import sys
@@ -20,9 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.trial_clock import TrialClock
 from drivers.xsens import frames, xbus
 from drivers.xsens.source import ImuSource
-from msk_core.errors import ProtocolError
+from msk_core.errors import ConfigError, ProtocolError
 
 DEFAULT_DEVICE_ID = 0x03700ABC  # 037xxxxx: an MTi-G-700-series device id
 DEFAULT_PRODUCT_CODE = "MTi-G-710-2A8G4"
@@ -53,6 +63,9 @@ class SimulatorStats:
     garbage_inserts: int = 0
     bytes_dropped: int = 0  # written while no host was reading (line buffer full)
     commands: int = 0
+    latency_s: float = 0.0  # the stated device latency applied to every message (XsensSimulator latency_s)
+    start_index: int | None = None  # source sample the latest entry into Measurement measured first (None: none yet)
+    samples_skipped: int = 0  # with a trial clock: samples not sent because the simulator fell > 0.5 s behind
 
 
 class XsensSimulator:
@@ -70,7 +83,17 @@ class XsensSimulator:
         speed: float = 1.0,
         loop: bool = True,
         wakeup_window_s: float = 0.5,
+        trial_clock: TrialClock | None = None,
+        latency_s: float = 0.0,
     ) -> None:
+        """``trial_clock``: the one world a session's simulators sample (None: each entry into Measurement continues
+        the trial from where it stopped); ``latency_s``: device seconds between measuring a sample and its bytes
+        leaving."""
+        if not (math.isfinite(speed) and speed > 0):
+            raise ConfigError("must be a positive number", field="speed", value=speed)
+        if not (math.isfinite(latency_s) and latency_s >= 0):
+            raise ConfigError("device latency must be a finite number of seconds >= 0", field="latency_s",
+                              value=latency_s)
         self.source = source
         self.device_id = device_id
         self.product_code = product_code
@@ -79,7 +102,9 @@ class XsensSimulator:
         self.speed = speed
         self.loop = loop
         self.wakeup_window_s = wakeup_window_s
-        self.stats = SimulatorStats()
+        self.trial_clock = trial_clock
+        self.latency_s = latency_s
+        self.stats = SimulatorStats(latency_s=latency_s)
         self.baudrate = DEFAULT_BAUDRATE
         self.path = ""
         self.measuring = False
@@ -93,7 +118,11 @@ class XsensSimulator:
         self._master = -1
         self._slave = -1
         self._counter = 0
-        self._sample = 0
+        self._sample = 0  # samples measured so far (without a trial clock: also the source index of the next)
+        self._grid = 0  # with a trial clock: the next sample's index on the trial's grid at the output rate
+        self._next_due = 0.0  # wall instant (time.monotonic) the next message leaves
+        self._measured_at = 0.0  # with a trial clock: wall instant the next sample is measured
+        self._powered_at = 0.0  # wall instant of power-up (start): SampleTimeFine's origin with a trial clock
         self._lock = threading.Lock()
         self._awaiting_ack = False
         self._wake_deadline = 0.0
@@ -113,6 +142,7 @@ class XsensSimulator:
         tty.setraw(self._master)
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
+        self._powered_at = time.monotonic()
         self._thread = threading.Thread(target=self._run, daemon=True, name="xsens-sim")
         self._thread.start()
         return self
@@ -165,31 +195,24 @@ class XsensSimulator:
         parser = xbus.XbusParser()
         try:
             self._power_up()
-            next_due = time.monotonic()
             while not self._stop.is_set():
                 now = time.monotonic()
                 if self._awaiting_ack and now >= self._wake_deadline:
                     self._awaiting_ack = False
                     self._enter_measurement()
-                    next_due = now
                 timeout = 0.01
                 if self.measuring:
-                    timeout = max(0.0, min(timeout, next_due - now))
+                    timeout = max(0.0, min(timeout, self._next_due - now))
                 readable, _, _ = select.select([self._master], [], [], timeout)
                 if readable:
                     chunk = os.read(self._master, 4096)
                     for message in parser.feed(chunk):
-                        was_measuring = self.measuring
                         self._handle(message)
-                        if self.measuring and not was_measuring:
-                            next_due = time.monotonic()
-                if self.measuring and not self._held and time.monotonic() >= next_due:
+                if self.measuring and not self._held and time.monotonic() >= self._next_due:
                     if not self._send_sample():
                         self.measuring = False
                         continue
-                    next_due += 1.0 / (self._rate() * self.speed)
-                    if time.monotonic() - next_due > 0.5:  # fell far behind (debugger, load): do not burst
-                        next_due = time.monotonic()
+                    self._schedule_next()
                     limit = self.faults.unplug_after_messages
                     if limit is not None and self.stats.messages_sent >= limit:
                         self._wait_until_read(0.5)  # unplug after the host has the last message
@@ -215,7 +238,50 @@ class XsensSimulator:
         self._awaiting_ack = True
 
     def _enter_measurement(self) -> None:
+        """Measure from now on: without a trial clock the first sample is now; with one, the trial's next grid
+        instant (its sample of that instant)."""
+        if self.measuring:
+            return
         self.measuring = True
+        now = time.monotonic()
+        if self.trial_clock is None:
+            self._next_due = now + self.latency_s / self.speed
+            self.stats.start_index = self._sample
+            return
+        self._grid = self.trial_clock.first_index(now, self._rate(), self.speed)
+        self._measured_at = self.trial_clock.instant(self._grid, self._rate(), self.speed)
+        self._next_due = self._measured_at + self.latency_s / self.speed
+        self.stats.start_index = self._trial_index()
+
+    def _period(self) -> float:
+        """Wall seconds between two samples at the output rate."""
+        return 1.0 / (self._rate() * self.speed)
+
+    def _trial_index(self) -> int:
+        """With a trial clock: the source sample (unwrapped) of the next grid instant, nearest in time when the
+        output rate differs from the source's."""
+        return int(round(self._grid * self.source.rate_hz / self._rate()))
+
+    def _schedule_next(self) -> None:
+        """After a message: the next one's instants. A simulator far behind (debugger, load) does not burst: without
+        a trial clock it resumes from now; with one it skips to the present on the grid (the skipped samples are
+        counted, and the PacketCounter jumps over them as for messages lost on the line)."""
+        period = self._period()
+        if self.trial_clock is None:
+            self._next_due += period
+            if time.monotonic() - self._next_due > 0.5:
+                self._next_due = time.monotonic()
+            return
+        self._grid += 1
+        latency = self.latency_s / self.speed
+        behind = time.monotonic() - (self.trial_clock.instant(self._grid, self._rate(), self.speed) + latency)
+        if behind > 0.5:
+            skipped = int(behind / period)
+            self._grid += skipped
+            self._counter = (self._counter + skipped) & 0xFFFF
+            self.stats.samples_skipped += skipped
+        self._measured_at = self.trial_clock.instant(self._grid, self._rate(), self.speed)
+        self._next_due = self._measured_at + latency
 
     def _rate(self) -> float:
         rates = [s.frequency for s in self._outputs if s.frequency not in (0, 0xFFFF)]
@@ -301,11 +367,20 @@ class XsensSimulator:
         self.stats.messages_sent += 1
         return True
 
+    def _sample_time(self, absolute: int) -> tuple[int, int]:
+        """(SampleTimeFine: 10 kHz ticks wrapping daily, SampleTimeCoarse: whole seconds) of the sample being sent:
+        with a trial clock the device's own clock from power-up at the sample's instant; without one, the time of
+        source sample ``absolute`` from sample 0."""
+        if self.trial_clock is None:
+            return int(round(absolute * 1e4 / self._rate())) % 864_000_000, int(absolute / self._rate())
+        seconds = (self._measured_at - self._powered_at) * self.speed
+        return int(round(seconds * 1e4)) % 864_000_000, int(seconds)
+
     def _next_payload(self) -> bytes | None:
         n = self.source.n_samples
-        if n == 0 or (not self.loop and self._sample >= n):
+        absolute = self._sample if self.trial_clock is None else self._trial_index()
+        if n == 0 or (not self.loop and absolute >= n):
             return None
-        absolute = self._sample
         k = absolute % n
         self._sample += 1
         if self._verbatim:
@@ -316,9 +391,9 @@ class XsensSimulator:
             if data_id == 0x1020:
                 items.append((data_id, (self._counter,)))
             elif data_id == 0x1060:
-                items.append((data_id, (int(round(absolute * 1e4 / self._rate())) % 864_000_000,)))
+                items.append((data_id, (self._sample_time(absolute)[0],)))
             elif data_id == 0x1070:
-                items.append((data_id, (int(absolute / self._rate()),)))
+                items.append((data_id, (self._sample_time(absolute)[1],)))
             elif data_id in (0xE010, 0xE020):
                 items.append((data_id, (0,)))
             else:
