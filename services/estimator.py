@@ -35,7 +35,7 @@ from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, LiveEmg
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import GRAVITY
-from services import messages, topics
+from services import messages, session_graph, topics
 from msk_core.model.pack import available_packs, is_known_exercise
 from services.graph import ReadySpec, declare_ready
 from services.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
@@ -304,6 +304,7 @@ def main(
     node = EstimatorNode(pack, methods, subject, stats, emg=emg, electrode_map=electrode_map, emg_clock=emg_clock,
                          emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver)
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
+    emg_prefix = f"{topics.session_prefix(session)}/emg/"
 
     with open_session(config) as zsession:
         publishers = {
@@ -312,9 +313,10 @@ def main(
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
         reporter = StatusReporter(zsession, session, NODE_NAME, inputs.counts, inputs)
         stats.inputs = inputs.counts
-        # exact keys, as the estimator role's access control allows them (services.session_graph)
-        inputs.subscribe(joints_key)
-        inputs.subscribe(load_key)
+        # One subscription for joints and load keeps a load event and the frames after it in publication order
+        # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
+        # for it (services.session_graph). Envelopes, the other one-chunk topic, are its own output: ignored.
+        inputs.subscribe(f"{topics.session_prefix(session)}/{session_graph.SESSION_TOPICS}")
         envelope_publisher = None
         if node.live_emg is not None:
             envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
@@ -333,7 +335,7 @@ def main(
                         frame.publish_ns = messages.now_ns()
                         publish(publishers[method], frame)
                     stats.frames_done += 1
-                else:
+                elif item.key.startswith(emg_prefix):
                     envelope = node.handle_emg(item.message, item.arrival_ns)
                     if envelope is not None:
                         publish(envelope_publisher, envelope)

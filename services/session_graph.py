@@ -25,6 +25,9 @@ from msk_core.errors import ConfigError
 from services import topics
 
 EVERY_TOPIC = "**"
+#: the session's one-chunk topics (joints, load, envelopes) in one subscription ``msk/<s>/*``: a reader that needs a
+#: load event and the joint frames after it in their publication order reads them so
+SESSION_TOPICS = "*"
 OWN_STATUS = "status/<self>"
 DEVICE_STATUS = "status/<device>"
 
@@ -52,8 +55,8 @@ class NodeDecl:
 
 
 def _key(template: str, own_name: str) -> str:
-    if template == EVERY_TOPIC:
-        return EVERY_TOPIC
+    if template in (EVERY_TOPIC, SESSION_TOPICS):
+        return template
     if template == OWN_STATUS:
         return f"status/{own_name}"
     known = {t for t, _ in topics.TOPIC_TABLE}
@@ -71,7 +74,7 @@ def _key(template: str, own_name: str) -> str:
 NODES: dict[str, NodeDecl] = {n.name: n for n in (
     NodeDecl("recorder", "recorder", publishes=(OWN_STATUS,), subscribes=(EVERY_TOPIC,), command="recorder"),
     NodeDecl("estimator", "estimator", publishes=("activations/<method>", "envelopes", OWN_STATUS),
-             subscribes=("joints", "load", "emg/<source>"), command="estimator"),
+             subscribes=(SESSION_TOPICS, "emg/<source>"), command="estimator"),
     NodeDecl("kinematics", "kinematics", publishes=("joints", OWN_STATUS), subscribes=("imu/<tracker>",),
              command="kinematics"),
     NodeDecl("drivers-trigno", "driver", publishes=("emg/<source>", DEVICE_STATUS), command="drivers"),
@@ -108,7 +111,9 @@ def instance(kind: str, name: str) -> NodeDecl:
 
 
 def _matches(published: str, subscribed: str) -> bool:
-    return zenoh.KeyExpr(f"s/{published}").intersects(zenoh.KeyExpr(f"s/{subscribed}"))
+    # what is published is one chunk deep under a <name> part: emg/** stands for emg/<source> here
+    concrete = published[: -len("**")] + "*" if published.endswith("/**") else published
+    return zenoh.KeyExpr(f"s/{concrete}").intersects(zenoh.KeyExpr(f"s/{subscribed}"))
 
 
 def readers_of(node: NodeDecl, graph: list[NodeDecl]) -> tuple[str, ...]:
