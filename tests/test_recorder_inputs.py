@@ -37,10 +37,13 @@ def _wait(condition: Callable[[], bool], timeout_s: float, what: str, have: Call
 
 
 @contextlib.contextmanager
-def _recording(endpoint: str, out: Path, **kwargs) -> Iterator[tuple[recorder.RecorderStats, threading.Event]]:
-    """``recorder.main`` in a thread listening on ``endpoint``; stopped (and joined) on exit."""
+def _recording(endpoint: str, out: Path, *, connect: bool = False, **kwargs
+               ) -> Iterator[tuple[recorder.RecorderStats, threading.Event]]:
+    """``recorder.main`` in a thread listening on ``endpoint`` (``connect``: connecting to it) until its first history
+    fetch is in; stopped (and joined) on exit."""
     stop, ready, stats = threading.Event(), threading.Event(), recorder.RecorderStats()
-    thread = threading.Thread(target=recorder.main, args=(ZenohOptions(listen=(endpoint,)), out),
+    options = ZenohOptions(connect=(endpoint,)) if connect else ZenohOptions(listen=(endpoint,))
+    thread = threading.Thread(target=recorder.main, args=(options, out),
                               kwargs={"stop_event": stop, "ready_event": ready, "stats": stats, **kwargs}, daemon=True)
     thread.start()
     try:
@@ -235,20 +238,10 @@ def test_a_restarted_recorder_continues_into_the_next_part_and_the_parts_join_on
 def _run_part(endpoint: str, out: Path, driver_session, driver, indices: range, *, expected: int, **kwargs) -> recorder.RecorderStats:
     """A recorder connected to the driver's session, recording while ``indices`` are published, until it has written
     ``expected`` chunks."""
-    stop, ready, stats = threading.Event(), threading.Event(), recorder.RecorderStats()
-    thread = threading.Thread(target=recorder.main, args=(ZenohOptions(connect=(endpoint,)), out),
-                              kwargs={"stop_event": stop, "ready_event": ready, "stats": stats, **kwargs}, daemon=True)
-    thread.start()
-    try:
-        assert ready.wait(20), "the recorder did not start"
-        _wait(lambda: stats.history_fetches >= 1, 20, "the recorder's history fetch", lambda: stats)
+    with _recording(endpoint, out, connect=True, **kwargs) as (stats, _):
         _key_matched(driver_session, EMG)
         for index in indices:
             publish(driver, _emg(index))
         _wait(lambda: stats.written >= expected, 20, f"{expected} chunks written", lambda: stats)
         time.sleep(0.2)  # anything more (a copy from the cache) would show in the parts
-    finally:
-        stop.set()
-        thread.join(30)
-    assert not thread.is_alive(), "the recorder did not stop within 30 s"
     return stats
