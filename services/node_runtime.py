@@ -202,6 +202,27 @@ class NodeInputs:
             self._on_sample(sample)
         return len(samples)
 
+    def fetch_session_facts(self, session: str, timeout_s: float = 5.0) -> threading.Thread:
+        """In the background: once this Zenoh session knows ``msk live``'s own node (its readiness token; a peer
+        learns another's declarations only once connected to it, a moment after joining), queue the session facts
+        (exercise, load, set) its load publisher keeps, published before this reader started. Without an ``msk live``
+        (a replay) or with a role that may not see readiness tokens, nothing is fetched."""
+        from services.graph import GraphTimeout, wait_for_nodes
+        from services.session_graph import NODES
+
+        def fetch() -> None:
+            try:
+                wait_for_nodes(self._zsession, session, (NODES["monitor"].name,), timeout_s)
+                self.fetch_history(topics.load_key(session))
+            except GraphTimeout:
+                return
+            except Exception as error:  # a session closed meanwhile: the facts come with the next change
+                log.info("%s: session facts not fetched: %s", self.node, error)
+
+        thread = threading.Thread(target=fetch, name=f"{self.node}-facts", daemon=True)
+        thread.start()
+        return thread
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         arrival_ns = messages.now_ns()

@@ -212,7 +212,7 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
         inputs = NodeInputs(zsession, "view")
         state.inputs = inputs.counts
         inputs.subscribe(f"{topics.session_prefix(session)}/**")
-        inputs.fetch_history(topics.load_key(session))  # the facts msk live published before this view started
+        inputs.fetch_session_facts(session)  # the facts msk live published before this view started
         taking = threading.Event()
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()

@@ -342,7 +342,7 @@ class Bridge:
         for family in TOPIC_FAMILIES:
             self._inputs.subscribe(f"{self.state.prefix}{family}")
         # the session facts msk live published before this page started (its load publisher keeps them)
-        self._inputs.fetch_history(f"{self.state.prefix}load")
+        self._inputs.fetch_session_facts(self.state.session)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, args=(self._inputs,), name="dashboard-bridge", daemon=True)
         self._thread.start()
