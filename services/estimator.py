@@ -311,7 +311,7 @@ def main(
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
-        reporter = StatusReporter(zsession, session, NODE_NAME, inputs.counts, inputs)
+        reporter = StatusReporter(zsession, session, NODE_NAME, inputs)
         stats.inputs = inputs.counts
         # One subscription for joints and load keeps a load event and the frames after it in publication order
         # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics

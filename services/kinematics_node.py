@@ -224,7 +224,7 @@ def main(
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
         inputs = NodeInputs(zsession, NODE_NAME, expected_type="msk.ImuSample", role=config.role)
-        reporter = StatusReporter(zsession, output_session or session, NODE_NAME, inputs.counts, inputs)
+        reporter = StatusReporter(zsession, output_session or session, NODE_NAME, inputs)
         stats.inputs = inputs.counts
         inputs.subscribe(f"{node.prefix}*")
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)

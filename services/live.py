@@ -348,7 +348,6 @@ class FlowCounts:
 
     joints: int = 0
     activations: Counter = field(default_factory=Counter)  # method -> frames
-    facts: dict = field(default_factory=dict)  # the latest LoadEvent on the session's load topic, as a dict
 
     def text(self) -> str:
         return f"{self.joints} joint frames; activation frames " + (
@@ -397,10 +396,9 @@ def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, st
             return  # the estimator and recorder count bad inputs; here only the facts matter
         if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
             return  # as the estimator refuses it: not a fact of this session
-        counts.facts = {"exercise": event.exercise, "load_kg": event.barbell_mass_kg, "set_number": event.set_number,
-                        "athlete": event.athlete}
         if on_facts is not None:
-            on_facts(dict(counts.facts))
+            on_facts({"exercise": event.exercise, "load_kg": event.barbell_mass_kg, "set_number": event.set_number,
+                      "athlete": event.athlete})
 
     with open_session(options) as zsession:
         load = declare_history_publisher(zsession, topics.load_key(session), "msk.LoadEvent", history_samples=100)

@@ -305,13 +305,12 @@ def serve(inputs: NodeInputs, handle, stop_event: threading.Event, reporter: Sta
 
 
 class StatusReporter:
-    """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: at start, at most every
-    :data:`STATUS_PERIOD_S` while anything changed, and once more (``connected`` False) at stop."""
+    """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: its inputs' counts, at start,
+    every :data:`STATUS_PERIOD_S`, and once more (``connected`` False) at stop."""
 
-    def __init__(self, zsession: zenoh.Session, session: str, node: str, counts: InputCounts,
-                 inputs: NodeInputs | None = None) -> None:
+    def __init__(self, zsession: zenoh.Session, session: str, node: str, inputs: NodeInputs) -> None:
         self.node = node
-        self.counts = counts
+        self.counts = inputs.counts
         self.errors = 0
         self.last_error = ""
         self._inputs = inputs  # its refusals count as errors: a node its role does not let read what it needs
@@ -324,7 +323,7 @@ class StatusReporter:
         self.last_error = text
 
     def message(self, connected: bool = True) -> messages.DeviceStatus:
-        refusals = self._inputs.refusals if self._inputs is not None else []
+        refusals = self._inputs.refusals
         return messages.DeviceStatus(
             device_id=self.node, kind="node", connected=connected,
             samples_received=sum(self.counts.received.values()), samples_lost=self.counts.total_dropped,

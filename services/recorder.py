@@ -150,7 +150,7 @@ def main(
     with open_session(config) as zsession, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
         inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
         stats.inputs = inputs.counts
-        reporter = (StatusReporter(zsession, reporting_session, NODE_NAME, inputs.counts)
+        reporter = (StatusReporter(zsession, reporting_session, NODE_NAME, inputs)
                     if reporting_session is not None else None)
         merge = HistoryMerge(lambda item: _write(writer, item, stats, inputs.counts), stats,
                              already_recorded=already_recorded)

@@ -49,7 +49,7 @@ def test_inputs_drop_and_count_bad_messages_keep_order_and_drain_at_close(zenoh_
             open_session(ZenohOptions(connect=(zenoh_endpoint,))) as sender:
         inputs = NodeInputs(node_session, "probe", max_payload_bytes=1 << 20)
         inputs.subscribe(KEY)
-        reporter = StatusReporter(node_session, "rt", "probe", inputs.counts, inputs)
+        reporter = StatusReporter(node_session, "rt", "probe", inputs)
         status: list[messages.DeviceStatus] = []
         watcher = sender.declare_subscriber(topics.status_key("rt", "probe"),
                                             lambda s: status.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
@@ -85,7 +85,7 @@ def test_a_subscription_the_role_may_not_make_is_said_and_counted(zenoh_endpoint
         inputs.subscribe("msk/rt/activations/*")  # allowed to a tablet
         assert inputs.refusals == []
         inputs.subscribe("msk/rt/emg/*")
-        reporter = StatusReporter(session, "rt", "tablet-probe", inputs.counts, inputs)
+        reporter = StatusReporter(session, "rt", "tablet-probe", inputs)
         inputs.close()
     assert len(inputs.refusals) == 1 and "role 'tablet'" in inputs.refusals[0] and "msk/rt/emg/*" in inputs.refusals[0]
     assert "refused by the router's access control" in caplog.text
