@@ -24,12 +24,6 @@ class Transport(Protocol):
     def close(self) -> None: ...
 
 
-class Reopenable(Protocol):
-    """A transport that can open its port again (same path, same settings) after the device came back."""
-
-    def reopen(self) -> "Transport": ...
-
-
 class SerialTransport:
     """A serial port; ``read`` returns what is available within ``timeout`` seconds (possibly nothing)."""
 

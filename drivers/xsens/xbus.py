@@ -7,7 +7,6 @@ preamble, checksum included, is 0 mod 256. Facts: ../shared/protocols/xsens-xbus
 from __future__ import annotations
 
 import enum
-import operator
 import struct
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -130,11 +129,6 @@ RAW_QUANTITIES: dict[int, tuple[str, str]] = {
 }
 #: Groups whose DataID bits 3-2 select a coordinate frame (orientation and velocity).
 FRAME_GROUPS = frozenset({0x2000, 0xD000})
-
-
-def quantity_id(data_id: int) -> int:
-    """The DataID with its format nibble cleared (what identifies the quantity)."""
-    return data_id & 0xFFF0
 
 
 def precision_of(data_id: int) -> Precision:
@@ -354,7 +348,6 @@ class XbusParser:
 _FP1220_SCALE = 1.0 / (1 << 20)
 _FP1632_SCALE = 1.0 / (1 << 32)
 _FP1632 = struct.Struct(">Ih")
-_add = operator.add
 
 
 @dataclass(frozen=True, slots=True)
@@ -402,7 +395,6 @@ class MtData2:
 
 
 _Decoder = tuple[str, object]
-_DECODERS: dict[tuple[int, int], _Decoder | None] = {}
 
 
 def _make_decoder(data_id: int, size: int) -> _Decoder | None:
@@ -575,22 +567,6 @@ def item_layout(payload: bytes | bytearray | memoryview) -> list[tuple[int, byte
     if i != n:
         raise ProtocolError(f"MTData2 payload has {n - i} trailing bytes")
     return out
-
-
-def decode_real(raw: bytes, precision: Precision) -> tuple[float, ...]:
-    """Decode the components of a real quantity stored at ``precision``."""
-    size = PRECISION_SIZE[precision]
-    if len(raw) % size:
-        raise ProtocolError(f"{len(raw)} bytes is not a whole number of {precision.name} components")
-    count = len(raw) // size
-    if precision is Precision.FLOAT32:
-        return struct.unpack(f">{count}f", raw)
-    if precision is Precision.FLOAT64:
-        return struct.unpack(f">{count}d", raw)
-    if precision is Precision.FP1220:
-        return tuple(v * _FP1220_SCALE for v in struct.unpack(f">{count}i", raw))
-    parts = struct.unpack(">" + "Ih" * count, raw)
-    return tuple(parts[k + 1] + parts[k] * _FP1632_SCALE for k in range(0, 2 * count, 2))
 
 
 def encode_real(values, precision: Precision) -> bytes:

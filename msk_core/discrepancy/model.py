@@ -292,12 +292,6 @@ def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:
     return (d.y - d.fixed - d.columns @ f.coef).reshape(d.n_frames, d.n_coordinates)
 
 
-def baseline_gaps(data: SessionArrays, trial: TrialArrays) -> np.ndarray:
-    """(T, n_c) the profile as it stands: no re-fit, no offsets, no effect."""
-    d = design(data, trial, {})
-    return (d.y - d.fixed).reshape(d.n_frames, d.n_coordinates)
-
-
 def integrated_autocorrelation(res: list[np.ndarray], max_lag: int = 400) -> float:
     """tau_int = 1 + 2 sum_k rho_k (up to the first lag where rho < 0.05) of the residual series, averaged over series:
     how many consecutive samples carry one sample's worth of information."""

@@ -13,7 +13,6 @@ Everything is explicit state; nothing is dropped without being counted in :class
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -181,7 +180,3 @@ class StreamingJointKinematics:
         c.published += 1
         return JointOutput(frame.time_ns, q, qd, qdd, phase)
 
-
-def frames_from_arrays(times_ns: np.ndarray, quats: Mapping[str, np.ndarray]) -> list[SyncedFrame]:
-    """Frames of already aligned arrays (offline use and tests): ``quats[segment]`` is ``(n, 4)``."""
-    return [SyncedFrame(int(t), {s: q[i] for s, q in quats.items()}) for i, t in enumerate(times_ns)]
