@@ -41,6 +41,14 @@ def _install() -> None:
     stamp.touch()
 
 
+def _parallel(args: list[str]) -> list[str]:
+    """pytest-xdist options: one worker per core, the tests that run whole live sessions kept on one worker
+    (tests/conftest.py); none when the caller chose (``-n``, ``-p no:xdist``)."""
+    if any(a.startswith(("-n", "--numprocesses", "--dist")) or a == "no:xdist" for a in args):
+        return []
+    return ["-n", "auto", "--dist", "loadgroup"]
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] not in ("demo", "test", "bench"):
         print(__doc__)
@@ -49,7 +57,7 @@ def main(argv: list[str]) -> int:
     _install()
     os.chdir(ROOT)
     if command == "test":
-        return subprocess.call([str(PYTHON), "-m", "pytest", *rest])
+        return subprocess.call([str(PYTHON), "-m", "pytest", *_parallel(rest), *rest])
     return subprocess.call([str(BIN / "msk"), command, *rest])
 
 

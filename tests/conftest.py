@@ -10,6 +10,25 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = Path(os.environ.get("MSK_SHARED_DIR", REPO_ROOT.parent / "shared"))
 
+# Modules whose tests run a whole `msk live` session (real-time simulators, the well-known Zenoh port 7447 when free,
+# the machine's calibration cache): under pytest-xdist (`python3 dev.py test` runs two workers) they share one worker,
+# one after another, so two sessions never race for the port or the cache, and the other worker runs the rest.
+LIVE_SESSION_MODULES = frozenset({"test_live", "test_live_session", "test_live_together", "test_live_dashboard",
+                                  "test_sim_clock"})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.stem in LIVE_SESSION_MODULES:
+            item.add_marker(pytest.mark.xdist_group("live-session"))
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_session_registry(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Each test process announces and finds `msk live` sessions in its own registry (services/discovery.py), so a
+    test never attaches to a session of another worker or of the developer's machine."""
+    os.environ["MSK_SESSIONS_DIR"] = str(tmp_path_factory.mktemp("sessions"))
+
 
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
