@@ -6,7 +6,8 @@ end), ``joints`` (JointAngles q, qd, qdd, phase at the kinematics rate), ``emg/<
 27-sample chunks at 2000 Hz as a Trigno frame, row-major) and ``imu/<tracker>`` (ImuSample per sample).
 
 Device streams (per trial folder ``raw/<trial>/``):
-* ``trigno.npz`` (emg, rate_hz, labels, sensors) for ``drivers.trigno`` sources, and ``trigno_emg.bin``, the EMG
+* ``trigno.npz`` (emg, rate_hz, labels, sensors; acc, acc_rate_hz: each sensor's accelerometer in g at the
+  Avanti ACC rate, streamed on the AUX port) for ``drivers.trigno`` sources, and ``trigno_emg.bin``, the EMG
   data port's byte stream (16 little-endian float32 per sample, unpaired slots zero);
 * ``xsens_<segment>.npz`` (rate_hz, quaternion, acceleration, rate_of_turn, magnetic_field; ENU) for
   ``drivers.xsens`` sources, and ``xsens_<segment>.bin``, Xbus MTData2 frames (PacketCounter, SampleTimeFine,
@@ -22,6 +23,7 @@ import numpy as np
 
 from drivers.trigno.protocol import N_SENSORS, encode_samples
 from drivers.xsens import xbus
+from msk_core.signal.clock_sync import STANDARD_GRAVITY
 from msk_core.synth.session import Session, Trial
 from services import messages, topics
 from services.mcap_io import McapRecorderWriter
@@ -134,28 +136,39 @@ def write_device_streams(session: Session, out: str | Path) -> list[Path]:
     written: list[Path] = []
     for ex in session.exercises:
         for trial in ex.trials:
-            folder = out / "raw" / trial.name
-            folder.mkdir(parents=True, exist_ok=True)
-            n_ch = len(trial.channels)
-            if n_ch > N_SENSORS:
-                raise ValueError(f"{n_ch} EMG channels exceed the Trigno's {N_SENSORS} sensors")
-            savez_deterministic(folder / "trigno.npz", emg=trial.emg.astype(np.float32), rate_hz=session.config.emg_rate_hz,
-                     labels=np.asarray(trial.channels), sensors=np.arange(1, n_ch + 1))
-            rows = np.zeros((trial.emg.shape[0], N_SENSORS), dtype=np.float32)
-            rows[:, :n_ch] = trial.emg
-            (folder / "trigno_emg.bin").write_bytes(encode_samples(rows))
-            written += [folder / "trigno.npz", folder / "trigno_emg.bin"]
-            for imu in trial.imu:
-                npz = folder / f"xsens_{imu.segment}.npz"
-                savez_deterministic(npz, rate_hz=session.config.imu_rate_hz, quaternion=imu.orientation,
-                         acceleration=imu.acceleration, rate_of_turn=imu.rate_of_turn,
-                         magnetic_field=imu.magnetic_field)
-                frames = [
-                    _mtdata2(k, int(round(t * 1e4)), imu.orientation[k], imu.acceleration[k], imu.rate_of_turn[k],
-                             imu.magnetic_field[k])
-                    for k, t in enumerate(imu.time)
-                ]
-                binary = folder / f"xsens_{imu.segment}.bin"
-                binary.write_bytes(b"".join(frames))
-                written += [npz, binary]
+            written += write_trial_device_streams(trial, out / "raw" / trial.name, emg_rate_hz=session.config.emg_rate_hz,
+                                                  imu_rate_hz=session.config.imu_rate_hz)
+    return written
+
+
+def write_trial_device_streams(trial: Trial, folder: Path, *, emg_rate_hz: float, imu_rate_hz: float) -> list[Path]:
+    """One trial's replay files in ``folder``: ``trigno.npz`` (with each sensor's accelerometer, ``acc`` in g at
+    ``acc_rate_hz``, when the trial has them), ``trigno_emg.bin``, ``xsens_<segment>.npz`` and ``.bin``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    n_ch = len(trial.channels)
+    if n_ch > N_SENSORS:
+        raise ValueError(f"{n_ch} EMG channels exceed the Trigno's {N_SENSORS} sensors")
+    acc = {}
+    if trial.emg_acc is not None:
+        rate = 1.0 / float(np.median(np.diff(trial.emg_acc.time)))
+        acc = {"acc": (trial.emg_acc.acceleration / STANDARD_GRAVITY).astype(np.float32), "acc_rate_hz": rate}
+    savez_deterministic(folder / "trigno.npz", emg=trial.emg.astype(np.float32), rate_hz=emg_rate_hz,
+                        labels=np.asarray(trial.channels), sensors=np.arange(1, n_ch + 1), **acc)
+    rows = np.zeros((trial.emg.shape[0], N_SENSORS), dtype=np.float32)
+    rows[:, :n_ch] = trial.emg
+    (folder / "trigno_emg.bin").write_bytes(encode_samples(rows))
+    written = [folder / "trigno.npz", folder / "trigno_emg.bin"]
+    for imu in trial.imu:
+        npz = folder / f"xsens_{imu.segment}.npz"
+        savez_deterministic(npz, rate_hz=imu_rate_hz, quaternion=imu.orientation,
+                            acceleration=imu.acceleration, rate_of_turn=imu.rate_of_turn,
+                            magnetic_field=imu.magnetic_field)
+        frames = [
+            _mtdata2(k, int(round(t * 1e4)), imu.orientation[k], imu.acceleration[k], imu.rate_of_turn[k],
+                     imu.magnetic_field[k])
+            for k, t in enumerate(imu.time)
+        ]
+        binary = folder / f"xsens_{imu.segment}.bin"
+        binary.write_bytes(b"".join(frames))
+        written += [npz, binary]
     return written

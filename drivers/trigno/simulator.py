@@ -11,6 +11,11 @@ trial's length when looping), as a physical base samples the one world; without 
 from sample 0. Either way the sample index the client counts starts at 0 with START: the device clock is the base's
 own. ``SimulatorConfig.latency_s`` delays every frame: the base measures a frame's last sample at t and its bytes
 leave at t + latency.
+
+The AUX port (and the legacy ACC port) carry each paired sensor's accelerometer in g: the source's ``acc`` (the
+synthetic session's site accelerations) sampled at the AUX instants, 2 per frame, AUX sample k measured at EMG
+device time k / 148.148 Hz (with the frame's EMG sample 0 and its middle), on the trial's grid like the EMG; a source
+without accelerations has its sensors lying flat and still (z = 1 g).
 """
 
 from __future__ import annotations
@@ -129,6 +134,7 @@ class TrignoSimulator:
         self._triggers = {"START": False, "STOP": False}
         self._rng = np.random.default_rng(self.config.seed)
         self._stream_samples: np.ndarray | None = None
+        self._acc_grid: tuple[np.ndarray, np.ndarray] | None = None  # source accelerations, one loop closed
         self.ports: dict[str, int] = {}
 
     # ------------------------------------------------------------------------------------------ lifecycle
@@ -364,7 +370,7 @@ class TrignoSimulator:
             if self._running:
                 return "CANNOT COMPLETE"
             self._upsampling = words[1] == "ON"
-            self._stream_samples = None
+            self._stream_samples = self._acc_grid = None
             return "OK"
         if text == "ENDIANNESS?":
             return self._endianness.value
@@ -500,10 +506,7 @@ class TrignoSimulator:
             return False
         index = (start + np.arange(spf)) % n
         emg = samples[index]
-        aux = np.zeros((AUX_SAMPLES_PER_FRAME, tp.FLOATS_PER_SAMPLE[tp.DataPort.AUX]), dtype=np.float32)
-        for k, paired in enumerate(self.source.paired):
-            if paired:  # accelerometer z of a sensor lying flat: 1 g
-                aux[:, k * tp.AUX_SLOTS_PER_SENSOR + 2] = 1.0
+        aux = self._aux_rows(start)
         # legacy ACC port: the same accelerations, x,y,z per sensor (the first 3 of each sensor's 9 AUX slots)
         acc = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)[:, :, :3].reshape(AUX_SAMPLES_PER_FRAME, -1)
         payloads = {
@@ -525,6 +528,29 @@ class TrignoSimulator:
         self.stats.frames_sent += 1
         self.stats.samples_sent += spf
         return True
+
+    def _aux_rows(self, start: int) -> np.ndarray:
+        """The AUX port's samples of the frame whose first EMG sample is stream sample ``start``: ACC x, y, z (g) of
+        every paired sensor in the first 3 of its 9 slots (the sensors answer 3 AUX channels), at the instants of
+        the frame's first EMG sample and of its middle, the trial looping with the EMG."""
+        aux = np.zeros((AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR), dtype=np.float32)
+        paired = np.array(self.source.paired)
+        if self.source.acc is None:
+            aux[:, paired, 2] = 1.0  # accelerometer z of a sensor lying flat: 1 g
+            return aux.reshape(AUX_SAMPLES_PER_FRAME, -1)
+        if self._acc_grid is None:
+            period = self._stream().shape[0] / self.rate_hz
+            times = np.arange(self.source.acc.shape[0]) / self.source.acc_rate_hz
+            acc = self.source.acc[times < period]  # the trial is the EMG's: a longer tail never plays
+            times = np.append(times[: len(acc)], period)
+            self._acc_grid = (times, np.concatenate([acc, acc[:1]]))  # the loop closes on its first sample
+        times, values = self._acc_grid
+        t = (start / self.rate_hz + np.arange(AUX_SAMPLES_PER_FRAME) * tp.FRAME_INTERVAL_S / AUX_SAMPLES_PER_FRAME)
+        t = np.clip(t % times[-1], 0.0, times[-1])
+        i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+        w = ((t - times[i]) / (times[i + 1] - times[i]))[:, None, None]
+        aux[:, paired, :3] = ((1.0 - w) * values[i] + w * values[i + 1])[:, paired]
+        return aux.reshape(AUX_SAMPLES_PER_FRAME, -1)
 
     def _send_fragmented(self, sock: socket.socket, payload: bytes) -> None:
         limit = self.config.fragment_max

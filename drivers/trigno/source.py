@@ -3,7 +3,8 @@
 Formats (docs/devices.md has the full description):
 - ``*.c3d``: analog channels whose label ends in ``.EMG<n>`` (or ``.IM EMG<n>``) fill sensor slot n (1..16), in volts.
 - ``*.npz``: ``emg`` (n_samples, n_channels <= 16) volts, ``rate_hz`` scalar; optional ``labels`` (n_channels,)
-  and ``sensors`` (n_channels,) 1-based slot numbers (default 1..n_channels).
+  and ``sensors`` (n_channels,) 1-based slot numbers (default 1..n_channels); optional ``acc`` (m, n_channels, 3) in g
+  with ``acc_rate_hz``: each sensor's accelerometer (Avanti ACC, streamed on the AUX port).
 - ``*.bin``: raw EMG data-port bytes (little-endian float32, 16 per sample); the rate is given separately (2000 Hz).
 - ``synthetic[:SECONDS[:SEED]]``: bursts of band-limited noise on 4 sensors at 2000 Hz.
 """
@@ -35,6 +36,8 @@ class EmgSource:
     labels: tuple[str, ...]  # 16 names ("" for unpaired)
     paired: tuple[bool, ...]  # 16 flags
     name: str
+    acc: np.ndarray | None = None  # (m, 16, 3) float32 g: each sensor's accelerometer; None: sensors lying flat
+    acc_rate_hz: float = 0.0  # rate of ``acc``; it spans the same trial as ``samples``
 
     @property
     def n_samples(self) -> int:
@@ -142,18 +145,43 @@ def load_npz(path: Path) -> EmgSource:
         n_channels = emg.shape[1]
         labels = [str(x) for x in archive["labels"]] if "labels" in archive.files else [f"sensor{k + 1:02d}" for k in range(n_channels)]
         sensors = [int(x) for x in archive["sensors"]] if "sensors" in archive.files else list(range(1, n_channels + 1))
+        acc, acc_rate = _npz_acc(archive, path, emg.shape[0] / rate, n_channels)
     if len(labels) != n_channels:
         raise FileFormatError("one label per emg column expected", path=path, field="labels", value=len(labels))
     if len(sensors) != n_channels or len(set(sensors)) != n_channels or not all(1 <= s <= N_SENSORS for s in sensors):
         raise FileFormatError("sensors must be distinct slots 1..16, one per column", path=path, field="sensors", value=sensors)
     samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
+    slot_acc = None if acc is None else np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
     names = [""] * N_SENSORS
     paired = [False] * N_SENSORS
     for column, slot in enumerate(sensors):
         samples[:, slot - 1] = emg[:, column]
+        if slot_acc is not None:
+            slot_acc[:, slot - 1] = acc[:, column]
         names[slot - 1] = labels[column]
         paired[slot - 1] = True
-    return EmgSource(samples, rate, tuple(names), tuple(paired), path.name)
+    return EmgSource(samples, rate, tuple(names), tuple(paired), path.name, slot_acc, acc_rate)
+
+
+def _npz_acc(archive, path: Path, emg_s: float, n_channels: int) -> tuple[np.ndarray | None, float]:
+    """The optional accelerometer arrays of a Trigno .npz: ``acc`` (m, n_channels, 3) g at ``acc_rate_hz``, spanning
+    the EMG's duration (within two of its samples)."""
+    if ("acc" in archive.files) != ("acc_rate_hz" in archive.files):
+        raise FileFormatError("acc and acc_rate_hz go together", path=path, field="acc")
+    if "acc" not in archive.files:
+        return None, 0.0
+    acc = np.asarray(archive["acc"], dtype=np.float32)
+    rate = float(np.asarray(archive["acc_rate_hz"]).reshape(-1)[0])
+    if not 1.0 <= rate <= 10000.0:
+        raise FileFormatError("acc_rate_hz must be within 1..10000 Hz", path=path, field="acc_rate_hz", value=rate)
+    if acc.ndim != 3 or acc.shape[1:] != (n_channels, 3) or acc.shape[0] < 2:
+        raise FileFormatError(f"acc must be (m >= 2, {n_channels} channels, 3 axes)", path=path, field="acc",
+                              value=acc.shape)
+    if not np.all(np.isfinite(acc)):
+        raise FileFormatError("acc holds NaN or infinite values", path=path, field="acc")
+    if abs(acc.shape[0] / rate - emg_s) > 2.0 / rate:
+        raise FileFormatError(f"acc spans {acc.shape[0] / rate:.3f} s, the EMG {emg_s:.3f} s", path=path, field="acc")
+    return acc, rate
 
 
 def synthetic_source(*, seconds: float = 30.0, seed: int = 0, rate_hz: float = 2000.0, sensors: int = 4) -> EmgSource:

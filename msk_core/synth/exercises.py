@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import enum
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +39,15 @@ class Role:
 
 
 @dataclass(frozen=True)
+class ElectrodeSite:
+    """Where an EMG sensor sits: on which pack body, and where on it. A Trigno Avanti sensor's accelerometer measures
+    the motion of that point (``msk_core.synth.imu.simulate_electrode_acc``)."""
+
+    body: str | None  # regex of the pack body under the electrode; None: a part the pack keeps still (its ground)
+    along: float = 1.0  # on the line from the body's joint centre (0) to its centre of mass (1)
+
+
+@dataclass(frozen=True)
 class ExerciseSpec:
     exercise: Exercise
     pack: str
@@ -46,6 +55,8 @@ class ExerciseSpec:
     emg_groups: tuple[str, ...]  # electrode sites, named after the group they record (channel label = group)
     loads_kg: tuple[float, ...]
     segments: dict[str, str]  # IMU tracker label -> regex of the pack body it is strapped to
+    # electrode site (group) -> where its sensor sits; a site not listed, or whose body the pack lacks, lies still
+    electrode_sites: dict[str, ElectrodeSite] = field(default_factory=dict)
 
     def poses(self, coordinates: list[str], reference: np.ndarray, ranges: np.ndarray):
         """(top, bottom, warp) arrays over the pack's coordinates, clipped into the fitted ranges."""
@@ -88,6 +99,15 @@ BENCH_PRESS = ExerciseSpec(
     emg_groups=("PMCla", "PMSte", "DelAnt", "DelMed", "DelPos", "BicLong", "TriLong", "TriLat", "BRD", "LD"),
     loads_kg=(20.0, 40.0, 50.0, 60.0),
     segments={"upper_arm_r": r"humerus|upper", "forearm_r": r"radius|ulna|forearm|hand"},
+    # lying on the bench, the trunk is the pack's ground: the chest and back sensors (PMCla, PMSte, LD) lie still;
+    # the deltoid bellies are proximal on the upper arm, biceps and triceps at its middle (the tracker sits at the
+    # centre of mass, a little distal of them), brachioradialis proximal on the forearm
+    electrode_sites={
+        **{g: ElectrodeSite(r"humerus|upper", 0.4) for g in ("DelAnt", "DelMed", "DelPos")},
+        **{g: ElectrodeSite(r"humerus|upper", 0.8) for g in ("BicLong", "TriLong", "TriLat")},
+        "BRD": ElectrodeSite(r"radius|forearm", 0.5),
+        **{g: ElectrodeSite(None) for g in ("PMCla", "PMSte", "LD")},
+    },
 )
 
 DEADLIFT = ExerciseSpec(
@@ -111,6 +131,15 @@ DEADLIFT = ExerciseSpec(
         "thigh_r": r"femur|thigh",
         "shank_r": r"tibia|shank",
         "foot_r": r"calcn|talus|foot",
+    },
+    # erector spinae and multifidus over the lumbar vertebrae, the abdominal wall at mid-lumbar level, gluteals and
+    # TFL on the pelvis, thigh and shank muscles at the middle of their segments
+    electrode_sites={
+        "ESL": ElectrodeSite(r"lumbar1", 0.6), "ESI": ElectrodeSite(r"lumbar2"), "MUL": ElectrodeSite(r"lumbar5"),
+        **{g: ElectrodeSite(r"lumbar3") for g in ("RA", "EO", "IO")},
+        **{g: ElectrodeSite(r"pelvis", 0.7) for g in ("Gmax", "Gmed", "TFL")},
+        **{g: ElectrodeSite(r"femur|thigh", 0.8) for g in ("BF", "ST", "RF", "VL", "VM")},
+        **{g: ElectrodeSite(r"tibia|shank", 0.8) for g in ("GM", "TA")},
     },
 )
 

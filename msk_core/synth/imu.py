@@ -79,6 +79,48 @@ def joint_motion(rigid, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> tupl
     return qp, vp, ap
 
 
+def body_point_motion(pack, points: list[tuple[dict, float]], q: np.ndarray, qd: np.ndarray,
+                      qdd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Motion of points fixed on pack bodies, from pinocchio's forward kinematics of the rigid model. ``points``: per
+    point, (pack body, where on it: 0 at the body's joint centre, 1 at its centre of mass, on the line between).
+    Returns, per point and sample, the body's rotation (P, n, 3, 3: body -> model ground), its angular velocity
+    (P, n, 3, rad/s) and the point's specific force (P, n, 3, m/s²: acceleration minus gravity, what an accelerometer
+    measures), the last two in the body frame."""
+    rigid = pack.rigid
+    model, data = rigid.model, rigid.model.createData()
+    gravity = rigid.gravity
+    n = q.shape[0]
+    dq = q - pack.reference_pose[None, :]
+    qp, vp, ap = joint_motion(rigid, dq, qd, qdd)
+    positions = [np.asarray(j["position"], dtype=float) for j in rigid.description["joints"]]
+    joints = sorted({int(body["joint"]) for body, _ in points})
+    rot_j = np.empty((len(joints), n, 3, 3))
+    gravity_j = np.empty((len(joints), n, 3))  # gravity in the body frame
+    v_lin, v_ang, a_lin, a_ang = (np.empty((len(joints), n, 3)) for _ in range(4))
+    for i in range(n):
+        pin.forwardKinematics(model, data, qp[i], vp[i], ap[i])
+        for s, joint in enumerate(joints):
+            jid = joint + 1
+            r = data.oMi[jid].rotation
+            v = pin.getVelocity(model, data, jid, pin.LOCAL)
+            a = pin.getAcceleration(model, data, jid, pin.LOCAL)
+            rot_j[s, i], gravity_j[s, i] = r, r.T @ gravity
+            v_lin[s, i], v_ang[s, i], a_lin[s, i], a_ang[s, i] = v.linear, v.angular, a.linear, a.angular
+    rot = np.empty((len(points), n, 3, 3))
+    omega = np.empty((len(points), n, 3))
+    spec_force = np.empty((len(points), n, 3))
+    for p, (body, along) in enumerate(points):
+        s = joints.index(int(body["joint"]))
+        c = np.asarray(body["com"], dtype=float) - positions[int(body["joint"])]
+        if along != 1.0:
+            c = along * c
+        w = v_ang[s]
+        v_point = v_lin[s] + np.cross(w, c)
+        acc = a_lin[s] + np.cross(a_ang[s], c) + np.cross(w, v_point)  # classical acceleration of the point
+        rot[p], omega[p], spec_force[p] = rot_j[s], w, acc - gravity_j[s]
+    return rot, omega, spec_force
+
+
 def simulate_imu(
     pack,
     segments: dict[str, str],
@@ -92,35 +134,14 @@ def simulate_imu(
 ) -> list[ImuStream]:
     """IMU streams for every segment label whose body regex matches a body of the pack (others are skipped)."""
     rigid = pack.rigid
-    model, data = rigid.model, rigid.model.createData()
-    gravity = rigid.gravity
-    to_global = global_frame(gravity)
+    to_global = global_frame(rigid.gravity)
     streams: list[ImuStream] = []
     chosen = [(label, find_body(rigid.description, pattern)) for label, pattern in segments.items()]
     chosen = [(label, body) for label, body in chosen if body is not None]
     if not chosen:
         raise ModelError(f"pack {pack.name!r}: no body matches the IMU segments {list(segments)}")
     n = time.size
-    dq = q - pack.reference_pose[None, :]
-    qp, vp, ap = joint_motion(rigid, dq, qd, qdd)
-    positions = [np.asarray(j["position"], dtype=float) for j in rigid.description["joints"]]
-    rot = np.empty((len(chosen), n, 3, 3))
-    omega = np.empty((len(chosen), n, 3))
-    spec_force = np.empty((len(chosen), n, 3))
-    for i in range(n):
-        pin.forwardKinematics(model, data, qp[i], vp[i], ap[i])
-        for s, (_, body) in enumerate(chosen):
-            jid = int(body["joint"]) + 1
-            c = np.asarray(body["com"], dtype=float) - positions[int(body["joint"])]
-            r = data.oMi[jid].rotation
-            v = pin.getVelocity(model, data, jid, pin.LOCAL)
-            a = pin.getAcceleration(model, data, jid, pin.LOCAL)
-            w = v.angular
-            v_point = v.linear + np.cross(w, c)
-            acc = a.linear + np.cross(a.angular, c) + np.cross(w, v_point)  # classical acceleration of the point
-            rot[s, i] = r
-            omega[s, i] = w
-            spec_force[s, i] = acc - r.T @ gravity
+    rot, omega, spec_force = body_point_motion(pack, [(body, 1.0) for _, body in chosen], q, qd, qdd)
     for s, (label, body) in enumerate(chosen):
         rng = stream(seed, "imu", *key, label)
         tracker_id = f"{int(stream(seed, 'tracker-id', label).integers(0x00B40000, 0x00B4FFFF)):08X}"
@@ -140,3 +161,54 @@ def simulate_imu(
         mag = np.einsum("nji,j->ni", r_sensor, _FIELD_ENU) + rng.normal(0.0, 0.01, (n, 3))
         streams.append(ImuStream(tracker_id, label, body["name"], time.copy(), quat, accel, gyro, mag))
     return streams
+
+
+@dataclass(frozen=True)
+class ElectrodeAccStream:
+    """What the accelerometers of the EMG sensors (Trigno Avanti, AUX port) measure: per channel, the specific force
+    of its site in its own axes."""
+
+    channels: list[str]
+    bodies: list[str | None]  # pack body under each sensor; None: a part the pack keeps still
+    time: np.ndarray  # (n,) s
+    acceleration: np.ndarray  # (n, C, 3) m/s², sensor frame (at rest: +|g| along the sensor's up axis)
+
+
+def simulate_electrode_acc(
+    pack,
+    sites: dict,
+    channels: list[str],
+    time: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    *,
+    seed: int,
+    key: tuple,
+) -> ElectrodeAccStream:
+    """Accelerometer of each EMG sensor: the specific force of its site (``sites``: channel -> ElectrodeSite), as the
+    same rigid-body kinematics give the trackers', so a sensor and a tracker on one body measure one motion at two
+    points of it. A sensor's axes follow the muscle it is stuck on, not the body's: a uniformly random mounting
+    rotation per channel. A channel without a site, or whose body the pack lacks, lies on a part the pack keeps
+    still (the bench-press trunk on the bench): it measures gravity alone. White noise 0.02 m/s² (about 2 mg), as the
+    trackers' accelerometers."""
+    rigid = pack.rigid
+    bodies: list[dict | None] = []
+    for channel in channels:
+        site = sites.get(channel)
+        bodies.append(None if site is None or site.body is None else find_body(rigid.description, site.body))
+    moving = [(b, sites[ch].along) for ch, b in zip(channels, bodies) if b is not None]
+    n = time.size
+    gravity = np.asarray(rigid.gravity, dtype=float)
+    spec_force = body_point_motion(pack, moving, q, qd, qdd)[2] if moving else np.empty((0, n, 3))
+    acc = np.empty((n, len(channels), 3))
+    m = 0
+    for k, (channel, body) in enumerate(zip(channels, bodies)):
+        rng = stream(seed, "electrode-acc", *key, channel)
+        mount = Rotation.random(random_state=rng).as_matrix()
+        if body is None:
+            force = np.broadcast_to(-gravity, (n, 3))  # still in the ground frame: the support pushes up
+        else:
+            force, m = spec_force[m], m + 1
+        acc[:, k] = force @ mount + rng.normal(0.0, 0.02, (n, 3))
+    return ElectrodeAccStream(list(channels), [None if b is None else b["name"] for b in bodies], time.copy(), acc)

@@ -13,7 +13,7 @@ from msk_core.model import load_pack
 from msk_core.synth.effects import Effects, muscle_factors
 from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg
 from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
-from msk_core.synth.imu import ImuStream, simulate_imu
+from msk_core.synth.imu import ElectrodeAccStream, ImuStream, simulate_electrode_acc, simulate_imu
 from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
 from msk_core.synth.recruitment import TONE, recruit
 from msk_core.synth.rng import stream
@@ -28,6 +28,7 @@ class SynthConfig:
     kinematics_rate_hz: float = 100.0
     emg_rate_hz: float = 2000.0
     imu_rate_hz: float = 60.0  # Xsens Awinda: 60 Hz holds for up to 20 trackers
+    emg_acc_rate_hz: float = 2 / 0.0135  # Trigno Avanti ACC on the AUX port: 2 samples per 13.5 ms frame (148.1 Hz)
     effects: Effects = Effects()
     tempo: Tempo = Tempo()
     loads_kg: dict[Exercise, tuple[float, ...]] | None = None  # None: the exercise defaults
@@ -59,6 +60,7 @@ class Trial:
     emg_time: np.ndarray  # (E,)
     emg: np.ndarray  # (E, C) raw volts
     imu: list[ImuStream] = field(default_factory=list)
+    emg_acc: ElectrodeAccStream | None = None  # the EMG sensors' accelerometers (Trigno AUX port)
     rep_starts: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rep_ends: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -160,6 +162,9 @@ def generate_trial(
     imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
     qi, qdi, qddi, _, _ = evaluate(plan, imu_time)
     imu = simulate_imu(pack, spec.segments, imu_time, qi, qdi, qddi, seed=seed, key=key)
+    acc_time = np.arange(0.0, plan.duration, 1.0 / config.emg_acc_rate_hz)
+    qa, qda, qdda, _, _ = evaluate(plan, acc_time)
+    emg_acc = simulate_electrode_acc(pack, spec.electrode_sites, channels, acc_time, qa, qda, qdda, seed=seed, key=key)
     return Trial(
         name=f"{spec.exercise.value}_{load_kg:g}kg",
         exercise=spec.exercise,
@@ -172,7 +177,7 @@ def generate_trial(
         time=time, q=q, qd=qd, qdd=qdd, phase=phase, rep=rep,
         torque_id=tau_id, torque_reported=tau_rep, torque_muscle=tau_muscle,
         activation=rec.activation, force=force, residual=rec.residual, fallback_frames=rec.fallback_frames,
-        emg_time=emg_time, emg=emg, imu=imu, rep_starts=plan.rep_starts, rep_ends=plan.rep_ends,
+        emg_time=emg_time, emg=emg, imu=imu, rep_starts=plan.rep_starts, rep_ends=plan.rep_ends, emg_acc=emg_acc,
     )
 
 
