@@ -237,7 +237,7 @@ class ClockSync:
                 break
             first, last = covered
             if self._next_end_ns is None or self._next_end_ns - window_ns < first:
-                self._next_end_ns = max(self._next_end_ns or 0, first + window_ns)
+                self._next_end_ns = first + window_ns  # the first window, or the data restart later (pruned)
             if self._next_end_ns > last:
                 break
             self._evaluate(self._next_end_ns - window_ns, self._next_end_ns)
@@ -277,8 +277,15 @@ class ClockSync:
         lags = int(round(cfg.max_lag_s * cfg.grid_hz))
         lag_ns = int(round(lags * 1e9 / cfg.grid_hz))
         tracker = self._grid_feature(self._tracker, self._center_ns, start_ns - lag_ns, n + 2 * lags)
+        if tracker is None:
+            self.windows.append(WindowEstimate(start_ns, end_ns, SyncStatus.WAITING, None, None, None, None,
+                                               "the tracker does not cover the window"))
+            return
+        tracker_rms = float(np.std(tracker[lags:lags + n]))
+        rows = sliding_window_view(tracker, n)  # (2 lags + 1, n): the tracker at each lag
+        centred = rows - rows.mean(axis=1, keepdims=True)
+        centred_norm = np.linalg.norm(centred, axis=1)
         moving_emg, best = 0, None
-        tracker_rms = float(np.std(tracker[lags:lags + n])) if tracker is not None else 0.0
         for sensor, stream in self._emg.items():
             x = self._grid_feature(stream, 0, start_ns, n)
             if x is None:
@@ -288,22 +295,19 @@ class ClockSync:
             if x_rms < cfg.min_motion_m_s2:
                 continue
             moving_emg += 1
-            if tracker is None or tracker_rms < cfg.min_motion_m_s2:
+            if tracker_rms < cfg.min_motion_m_s2:
                 continue
-            rows = sliding_window_view(tracker, n)  # (2 lags + 1, n): the tracker at each lag
-            centred = rows - rows.mean(axis=1, keepdims=True)
-            r = centred @ x / (np.linalg.norm(centred, axis=1) * np.linalg.norm(x))
+            r = centred @ x / (centred_norm * np.linalg.norm(x))
             k = int(np.argmax(r))
             if best is None or r[k] > best[1][best[0]]:
                 best = (k, r, sensor)
         rest = [] if moving_emg else ["no EMG-clock sensor moved"]
         if tracker_rms < cfg.min_motion_m_s2:
             rest.append("the tracker did not move")
-        if best is None:
-            reason = (" and ".join(rest) if rest else "the tracker does not cover the window") + \
-                f" (feature RMS below {cfg.min_motion_m_s2:g} m/s²)"
-            status = SyncStatus.NO_MOVEMENT if rest else SyncStatus.WAITING
-            self.windows.append(WindowEstimate(start_ns, end_ns, status, None, None, None, None, reason))
+        if best is None:  # rest on one side at least
+            reason = " and ".join(rest) + f" (feature RMS below {cfg.min_motion_m_s2:g} m/s²)"
+            self.windows.append(WindowEstimate(start_ns, end_ns, SyncStatus.NO_MOVEMENT, None, None, None, None,
+                                               reason))
             return
         k, r, sensor = best
         peak, width, refined = float(r[k]), None, float(k)
