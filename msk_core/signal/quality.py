@@ -64,6 +64,7 @@ CLEAR_HOPS = 3  # ... and is gone from 3 in a row before it clears: worst case 0
 RAIL_FRACTION_OF_RANGE = 0.95
 SATURATION_CHECK_FRACTION = 0.001  # any clipping (1 sample in a 0.5 s window at 2 kHz) caps the amplitude seen
 SATURATION_BAD_FRACTION = 0.01  # 1 % of the samples clipped: the envelope is capped over whole bursts
+PINNED_FRACTION = 0.5  # most of the window at the rail: the channel is pinned there (not judged flat nor silent)
 # Flat line. A live Trigno channel never holds still: the quietest 0.5 s window of a connected channel of the
 # pyomeca-upper recording has a standard deviation of 0.9 uV, the 16-bit converter's step over 22 mV is 0.34 uV;
 # 0.1 uV is below one step, so only a held or zero-filled channel is that still.
@@ -272,11 +273,11 @@ def _evidence(m: WindowMetrics, line_power_seen: np.ndarray) -> tuple[np.ndarray
     window whose EMG is so strong that this interference would not reach the raise level cannot tell whether it is
     gone (a contraction masks it): such a window neither raises nor clears mains."""
     sat, flat_still = m.rail_fraction, (m.std_v < FLAT_STD_V) | (m.repeat_fraction >= FLAT_REPEAT_FRACTION)
-    pinned = sat >= 0.5  # a channel pinned to the rail is saturated: neither flat nor silent, whatever it looks like
+    pinned = sat >= PINNED_FRACTION  # saturated: neither flat nor silent, whatever it looks like
     flat = flat_still & ~pinned
     ratio = m.low_freq_ratio
     band_power = m.band_rms_v**2
-    present, absent = [], []
+    present, absent = [], []  # one row per detector, in the order of DETECTORS
     for threshold in (SATURATION_CHECK_FRACTION, SATURATION_BAD_FRACTION):
         present.append(sat >= threshold)
         absent.append(sat < CLEAR_RATIO * threshold)
