@@ -6,11 +6,15 @@ carried filter state), then division by each channel's MVC amplitude from the su
 same group are averaged. A channel without an MVC amplitude is left out and reported (``no_mvc``), never used raw.
 
 Clocks. Every EMG sample has a *device time* from its sample index: ``device_time_ns`` of the chunk's row 0 plus
-``row / sample_rate_hz``. A kinematics frame has its own device time (the IMU clock). ``ClockMode.DEVICE``: both
-streams share one clock (recordings and synthetic sessions made on one time base), the EMG is read at the frame's
-device time. ``ClockMode.HOST``: the two devices have their own clocks; each is mapped to the host clock by the
-smallest (host arrival - device time) seen so far (the fastest delivery bounds the offset from above), so the
-alignment error is the difference of the two streams' fastest delivery latencies (a few ms on loopback).
+``row / sample_rate_hz``. A kinematics frame has its own time. ``ClockMode.DEVICE``: both streams share one clock
+(recordings and synthetic sessions made on one time base), the EMG is read at the frame's device time.
+``ClockMode.HOST``: each EMG source's clock is mapped onto the host clock by its receipt times
+(:class:`msk_core.signal.host_clock.HostClock`: the smallest receipt minus device time of each chunk's last sample over
+the last ``clock_window_s``, minus the source's stated latency), unless an offset measured another way was set for it
+(:meth:`LiveEmg.set_offset`, e.g. from accelerations). The frames: with ``joints_clock="host"`` their times are on
+the host clock already (the kinematics node mapped each tracker, ``--imu-clock host``); with ``"arrival"`` they are
+mapped by their own receipt times the same way. :meth:`LiveEmg.clock_report` says, per stream, the offset applied,
+its spread, the latency assumed and the method.
 The group activation at time t is read from the envelope at ``t - emd`` (electromechanical delay: EMG leads force).
 
 Problems are explicit: a jump in the sample index is a gap (counted, samples lost counted; the filter restarts
@@ -29,6 +33,15 @@ import numpy as np
 
 from msk_core.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.errors import ConfigError
+from msk_core.signal.host_clock import (
+    METHOD_ARRIVAL,
+    METHOD_DEVICE,
+    METHOD_HOST,
+    WINDOW_S,
+    ClockReport,
+    HostClock,
+    check_latency_ns,
+)
 
 GAP_SETTLE_S = 0.5  # the 6 Hz low-pass restarts from rest after a gap: ~3 time constants before it is trusted
 HISTORY_S = 10.0  # envelope kept per source for the lookup at t - emd (kinematics may lag the EMG by seconds in a replay)
@@ -41,6 +54,20 @@ FLAG_NO_MVC = "no_mvc"
 class ClockMode(str, enum.Enum):
     DEVICE = "device"
     HOST = "host"
+
+
+class JointsClock(str, enum.Enum):
+    """With ``ClockMode.HOST``: the clock of the kinematics frames' times."""
+
+    HOST = "host"  # on the host clock already (the kinematics node mapped each tracker): used as they are
+    ARRIVAL = "arrival"  # on a device clock: mapped onto the host clock by their receipt times, as an EMG source
+
+JOINTS_STREAM = "joints"
+
+
+def emg_stream(source: str) -> str:
+    """The name of an EMG source's stream in clock reports (as its topic, ``emg/<source>``)."""
+    return f"emg/{source}"
 
 
 @dataclass(frozen=True)
@@ -86,7 +113,7 @@ class EnvelopeBlock:
 
 class _Source:
     def __init__(self, name: str, labels: tuple[str, ...], rate_hz: float, setup: EmgSetup, config: EmgFilterConfig,
-                 counters: EmgCounters) -> None:
+                 counters: EmgCounters, clock: HostClock) -> None:
         self.name = name
         self.labels = labels
         self.rate_hz = rate_hz
@@ -118,7 +145,16 @@ class _Source:
         self.values: list[np.ndarray] = []
         self.last_device_ns = -1
         self.last_arrival_ns = 0
-        self.offset_ns: int | None = None  # min(host arrival - device time): device -> host clock
+        self.clock = clock  # the arrival mapping: device time -> host clock
+        self.measured: ClockReport | None = None  # an offset set from outside (LiveEmg.set_offset): used instead
+
+    @property
+    def offset_ns(self) -> int | None:
+        """Device time + this = host instant the sample was measured (None: no mapping yet)."""
+        return self.measured.offset_ns if self.measured is not None else self.clock.offset_ns
+
+    def clock_report(self) -> ClockReport | None:
+        return self.measured if self.measured is not None else self.clock.report()
 
     def lookup(self, t: int) -> np.ndarray | None:
         """Envelope of the newest sample at or before device time ``t`` (None: before the history)."""
@@ -146,7 +182,12 @@ class LiveEmg:
 
     def __init__(self, groups: list[str], setup: EmgSetup, *, clock: ClockMode | str = ClockMode.DEVICE,
                  stall_s: float = 0.25, bandpass_hz: tuple[float, float] | None = (20.0, 450.0),
-                 lowpass_hz: float = 6.0, lowpass_order: int = 3) -> None:
+                 lowpass_hz: float = 6.0, lowpass_order: int = 3, joints_clock: JointsClock | str = JointsClock.ARRIVAL,
+                 latency_ns: dict[str, int] | None = None, default_latency_ns: int = 0,
+                 clock_window_s: float = WINDOW_S) -> None:
+        """``latency_ns``: per EMG source id, its stated device latency (a sample measured at host instant T is
+        received at T + latency at the soonest); sources not named have ``default_latency_ns``. Only with
+        ``ClockMode.HOST`` (with one clock nothing is mapped)."""
         self.groups = list(groups)
         unknown = sorted({g for g in setup.channel_group.values() if g not in self.groups})
         if unknown:
@@ -156,11 +197,21 @@ class LiveEmg:
             raise ConfigError("electromechanical delay must be in [0, 0.5] s", field="emd_s", value=setup.emd_s)
         self.setup = setup
         self.clock = ClockMode(clock)
+        self.joints_clock = JointsClock(joints_clock)
+        self.latency_ns = {source: check_latency_ns(value, f"latency of EMG source {source}")
+                           for source, value in (latency_ns or {}).items()}
+        self.default_latency_ns = check_latency_ns(default_latency_ns, "default EMG latency")
+        if self.clock is ClockMode.DEVICE and (self.default_latency_ns or any(self.latency_ns.values())):
+            raise ConfigError("a device latency is applied when device clocks are mapped onto the host clock "
+                              "(clock 'host'); with one clock (clock 'device') nothing is mapped", field="latency",
+                              value={**self.latency_ns, "default": self.default_latency_ns})
+        self.clock_window_s = float(clock_window_s)
+        self._joints_clock = HostClock(JOINTS_STREAM, window_s=self.clock_window_s)
+        self._measured: dict[str, ClockReport] = {}  # offsets set from outside, per EMG source id
         self.stall_ns = int(stall_s * 1e9)
         self._filter_args = {"bandpass_hz": bandpass_hz, "lowpass_hz": lowpass_hz, "lowpass_order": lowpass_order}
         self.sources: dict[str, _Source] = {}
         self.counters = EmgCounters()
-        self._joints_offset_ns: int | None = None
         self._group_index = {g: i for i, g in enumerate(self.groups)}
 
     @property
@@ -170,13 +221,21 @@ class LiveEmg:
         return [g for g in self.groups if g in mapped]
 
     def add_chunk(self, source: str, labels, rate_hz: float, first_sample_index: int, device_time_ns: int,
-                  samples: np.ndarray, arrival_ns: int) -> EnvelopeBlock | None:
-        """Filter one chunk ``samples`` (n, channels). Returns the normalised group envelope of its new samples."""
+                  samples: np.ndarray, arrival_ns: int, receipt_ns: int | None = None) -> EnvelopeBlock | None:
+        """Filter one chunk ``samples`` (n, channels). Returns the normalised group envelope of its new samples.
+
+        ``arrival_ns``: when this node got the chunk (host clock; stalls are judged on it); ``receipt_ns``: when the
+        host received the chunk's bytes from the device (the driver's ``host_time_ns``, recorded with the chunk, so a
+        replay maps the clock as live did); default ``arrival_ns``."""
         labels = tuple(labels)
         state = self.sources.get(source)
         if state is None or state.labels != labels or state.rate_hz != rate_hz:
             config = EmgFilterConfig(rate_hz=float(rate_hz), **self._filter_args)
-            state = self.sources[source] = _Source(source, labels, float(rate_hz), self.setup, config, self.counters)
+            clock = HostClock(emg_stream(source), latency_ns=self.latency_ns.get(source, self.default_latency_ns),
+                              window_s=self.clock_window_s)
+            state = self.sources[source] = _Source(source, labels, float(rate_hz), self.setup, config, self.counters,
+                                                   clock)
+            state.measured = self._measured.get(source)
         x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
         n = x.shape[0]
         self.counters.chunks += 1
@@ -206,21 +265,57 @@ class LiveEmg:
         state.next_index = first + n
         state.last_device_ns = int(times[-1])
         state.last_arrival_ns = int(arrival_ns)
-        offset = int(arrival_ns) - int(times[-1])
-        state.offset_ns = offset if state.offset_ns is None else min(state.offset_ns, offset)
+        if self.clock is ClockMode.HOST:  # the block left the device when its last sample was measured
+            state.clock.add(int(times[-1]), int(arrival_ns if receipt_ns is None else receipt_ns))
         state.keep(times, group_env)
         if state.no_mvc:
             flags.append(FLAG_NO_MVC)
         return EnvelopeBlock(source, state.groups, times, group_env, flags)
 
-    def at(self, device_time_ns: int, arrival_ns: int) -> tuple[np.ndarray, list[str]]:
+    def set_offset(self, source: str, offset_ns: int | None, spread_ns: int = 0, method: str = "") -> None:
+        """Map EMG source ``source`` with an offset measured another way (device time + ``offset_ns`` = host instant
+        measured; ``spread_ns`` how sure; ``method`` names the way, e.g. "acceleration") instead of its arrival
+        mapping, from now on; ``offset_ns`` None goes back to the arrival mapping. Only with ``ClockMode.HOST``."""
+        if self.clock is not ClockMode.HOST:
+            raise ConfigError("an offset is set only when device clocks are mapped onto the host clock (clock "
+                              "'host')", field="clock", value=self.clock.value)
+        if offset_ns is None:
+            self._measured.pop(source, None)
+        else:
+            if not method or method in (METHOD_ARRIVAL, METHOD_DEVICE, METHOD_HOST):
+                raise ConfigError("name the way the offset was measured (not arrival, device or host, which are "
+                                  "this module's own)", field="method", value=method)
+            if int(spread_ns) < 0:
+                raise ConfigError("a spread is >= 0 ns", field="spread_ns", value=spread_ns)
+            self._measured[source] = ClockReport(emg_stream(source), int(offset_ns), int(spread_ns),
+                                                 self.latency_ns.get(source, self.default_latency_ns), method)
+        if source in self.sources:
+            self.sources[source].measured = self._measured.get(source)
+
+    def clock_report(self) -> list[ClockReport]:
+        """Per stream (each EMG source seen, ``emg/<source>``, then ``joints``): the offset applied onto the host
+        clock, its spread, the latency assumed and the method; a stream not mapped yet is left out."""
+        if self.clock is ClockMode.DEVICE:
+            return [ClockReport(name, 0, 0, 0, METHOD_DEVICE)
+                    for name in [*map(emg_stream, self.sources), JOINTS_STREAM]]
+        reports = [r for r in (state.clock_report() for state in self.sources.values()) if r is not None]
+        if self.joints_clock is JointsClock.HOST:
+            reports.append(ClockReport(JOINTS_STREAM, 0, 0, 0, METHOD_HOST))
+        elif (joints := self._joints_clock.report()) is not None:
+            reports.append(joints)
+        return reports
+
+    def at(self, device_time_ns: int, arrival_ns: int, receipt_ns: int | None = None) -> tuple[np.ndarray, list[str]]:
         """Measured envelope of every pack group for the kinematics frame at ``device_time_ns`` (its clock) that
-        arrived at ``arrival_ns``: NaN where no electrode, no MVC, a gap or a stalled source. Plus the frame's flags."""
+        arrived at ``arrival_ns`` (``receipt_ns``: its receipt stamp for the arrival mapping of ``joints_clock``
+        "arrival", e.g. the JointAngles' ``host_time_ns``; default ``arrival_ns``): NaN where no electrode, no MVC, a
+        gap or a stalled source. Plus the frame's flags."""
         out = np.full(len(self.groups), np.nan)
         flags: set[str] = set()
-        if self.clock is ClockMode.HOST:
-            offset = int(arrival_ns) - int(device_time_ns)
-            self._joints_offset_ns = offset if self._joints_offset_ns is None else min(self._joints_offset_ns, offset)
+        frame_ns = int(device_time_ns)  # the frame's instant on the clock the EMG is mapped onto
+        if self.clock is ClockMode.HOST and self.joints_clock is JointsClock.ARRIVAL:
+            self._joints_clock.add(frame_ns, int(arrival_ns if receipt_ns is None else receipt_ns))
+            frame_ns += self._joints_clock.offset_ns
         wanted_groups = set(self.setup.channel_group.values())
         served: set[str] = set()
         for state in self.sources.values():
@@ -228,11 +323,11 @@ class LiveEmg:
                 flags.add(FLAG_NO_MVC)
             if not state.groups:
                 continue
-            t = int(device_time_ns - self.setup.emd_s * 1e9)
+            t = int(frame_ns - self.setup.emd_s * 1e9)
             if self.clock is ClockMode.HOST:
                 if state.offset_ns is None:
                     continue
-                t = t + self._joints_offset_ns - state.offset_ns  # frame's host time -> this source's device time
+                t -= state.offset_ns  # the frame's host instant -> this source's device time
             stalled = arrival_ns - state.last_arrival_ns > self.stall_ns or t - state.last_device_ns > self.stall_ns
             if stalled:
                 flags.add(FLAG_STALLED)
