@@ -4,6 +4,13 @@ The reader accepts every dialect found in real files: OpenSim 4 headers (``versi
 ``inDegrees``), old headers without ``version``, free-text header lines, tab-, comma- (spreadsheet exports with
 trailing commas) or space-delimited columns, padded numbers, trailing delimiters, and CRLF line ends.
 ``nRows``/``nColumns`` are kept in :attr:`Storage.header` but not trusted: real files disagree with them.
+
+The column-label line is split as OpenSim 4 splits it (``FileAdapter::tokenize``, what ``TimeSeriesTable`` and the
+tools read): a run of delimiters is one separator and leading or trailing ones are ignored, so a label line that
+indents the first label or separates the labels with two tabs while the rows use one is read; labels are trimmed.
+Data rows are split on every delimiter, as OpenSim does: an empty cell inside a row (two tabs) is an error, like
+OpenSim's "unexpected number of columns". Where OpenSim reads a file that is still refused here, it is on purpose:
+duplicate labels (a column could not be named) and text that is not a number (OpenSim reads it as NaN).
 """
 
 from __future__ import annotations
@@ -74,11 +81,17 @@ def _delimiter(column_line: str) -> str | None:
 
 
 def _split(line: str, delimiter: str | None) -> list[str]:
+    """A data row's cells: every delimiter separates (trailing ones ignored)."""
     cells = line.split(delimiter) if delimiter else line.split()
     cells = [c.strip() for c in cells]
     while cells and cells[-1] == "":
         cells.pop()
     return cells
+
+
+def _split_labels(line: str, delimiter: str | None) -> list[str]:
+    """The column labels as OpenSim tokenizes them: runs of delimiters are one separator, labels trimmed."""
+    return [c for c in _split(line, delimiter) if c]
 
 
 def _parse_bool(text: str, path: Path, line: int, key: str) -> bool:
@@ -123,10 +136,7 @@ def read_sto(path: str | Path) -> Storage:
     if col_index is None:
         raise FileFormatError("no column-label line after 'endheader'", path=path, line=end + 1)
     delimiter = _delimiter(lines[col_index])
-    labels = _split(lines[col_index], delimiter)
-    for j, label in enumerate(labels):
-        if not label:
-            raise FileFormatError(f"empty column label at position {j + 1}", path=path, line=col_index + 1)
+    labels = _split_labels(lines[col_index], delimiter)
     if not labels or labels[0].lower() != "time":
         raise FileFormatError(
             "first column must be 'time'", path=path, line=col_index + 1, field="time", value=labels[0] if labels else ""
@@ -144,7 +154,9 @@ def read_sto(path: str | Path) -> Storage:
         cells = _split(raw, delimiter)
         if len(cells) != n_cols:
             raise FileFormatError(
-                f"expected {n_cols} values, found {len(cells)}", path=path, line=i + 1, value=raw[:80]
+                f"expected {n_cols} values, found {len(cells)} (one value per column label on line "
+                f"{col_index + 1}; an empty cell between two delimiters counts)", path=path, line=i + 1,
+                value=raw[:80],
             )
         try:
             rows.append([float(c) for c in cells])
