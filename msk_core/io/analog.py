@@ -22,6 +22,18 @@ class AnalogRecording:
     header: dict[str, str] = field(default_factory=dict)
     channel_info: dict[str, list[str]] = field(default_factory=dict)  # per-channel header rows, e.g. "Range"
     path: Path | None = None
+    # channels the file itself says are not EMG -> why (a force-plate channel, a unit that is not a voltage)
+    not_emg: dict[str, str] = field(default_factory=dict)
+
+    def emg_only(self) -> AnalogRecording:
+        """The recording without the channels :attr:`not_emg` names (all of them when it is empty)."""
+        keep = [lab for lab in self.labels if lab not in self.not_emg]
+        if not keep:
+            raise InputError(
+                f"no EMG channel: all {len(self.labels)} analog channels are not EMG ("
+                + "; ".join(f"{c}: {why}" for c, why in self.not_emg.items()) + ")", path=self.path,
+            )
+        return self.select(keep)
 
     def index(self, label: str) -> int:
         try:
@@ -46,6 +58,7 @@ class AnalogRecording:
             header=dict(self.header),
             channel_info={k: [v[i] for i in idx] for k, v in self.channel_info.items()},
             path=self.path,
+            not_emg={lab: self.not_emg[lab] for lab in labels if lab in self.not_emg},
         )
 
 
@@ -125,8 +138,17 @@ def read_anc(path: str | Path) -> AnalogRecording:
     )
 
 
+# units an EMG channel may carry (ANALOG:UNITS, compared case-insensitively); any other given unit is not EMG
+VOLTAGE_UNITS = frozenset({"v", "mv", "uv", "µv", "μv", "volt", "volts"})
+
+
 def read_c3d_analogs(path: str | Path) -> AnalogRecording:
-    """Analog channels of a C3D file via ezc3d (scaled to physical units by ezc3d: SCALE, OFFSET, GEN_SCALE)."""
+    """Analog channels of a C3D file via ezc3d (scaled to physical units by ezc3d: SCALE, OFFSET, GEN_SCALE).
+
+    A gait C3D keeps force plates and EMG in one analog block. The file says which channels are not EMG, and the
+    recording's :attr:`AnalogRecording.not_emg` records them: the channels FORCE_PLATFORM:CHANNEL assigns to the
+    FORCE_PLATFORM:USED plates (1-based analog channel numbers), and channels whose ANALOG:UNITS entry is given and is
+    not a voltage (N, Nmm, g, deg ...). Channels without a unit stay EMG candidates."""
     import ezc3d  # local import: only this reader needs it
 
     path = Path(path)
@@ -142,16 +164,56 @@ def read_c3d_analogs(path: str | Path) -> AnalogRecording:
     rate = float(c3d["header"]["analogs"]["frame_rate"])
     if analogs.shape[1] != len(labels):
         raise FileFormatError(f"{len(labels)} labels for {analogs.shape[1]} channels", path=path, field="ANALOG:LABELS")
-    units = [str(u) for u in params["UNITS"]["value"]] if "UNITS" in params else [""] * len(labels)
+    units = [str(u).strip() for u in params["UNITS"]["value"]] if "UNITS" in params else [""] * len(labels)
+    if len(units) < len(labels):  # a short UNITS list leaves the last channels without a unit
+        units += [""] * (len(labels) - len(units))
     point_rate = float(c3d["header"]["points"]["frame_rate"]) or rate
     t0 = float(c3d["header"]["points"]["first_frame"]) / point_rate
     time = t0 + np.arange(analogs.shape[0]) / rate
+    not_emg = _force_plate_channels(c3d["parameters"], labels, path)
+    for label, unit in zip(labels, units):
+        if label not in not_emg and unit and unit.lower() not in VOLTAGE_UNITS:
+            not_emg[label] = f"unit {unit!r} is not a voltage (ANALOG:UNITS)"
     return AnalogRecording(
         time=time,
         labels=labels,
         data=np.ascontiguousarray(analogs, dtype=float),
         rate_hz=rate,
-        units=units,
+        units=units[: len(labels)],
         header={"point_rate": str(point_rate)},
         path=path,
+        not_emg=not_emg,
     )
+
+
+def _force_plate_channels(parameters, labels: list[str], path: Path) -> dict[str, str]:
+    """Analog channels of the used force plates (FORCE_PLATFORM:CHANNEL, one column of 1-based channel numbers
+    per plate, the first FORCE_PLATFORM:USED columns) -> 'force plate k (FORCE_PLATFORM:CHANNEL)'."""
+    if "FORCE_PLATFORM" not in parameters:
+        return {}
+    group = parameters["FORCE_PLATFORM"]
+    used_raw = np.asarray(group["USED"]["value"]).reshape(-1) if "USED" in group else np.zeros(0)
+    used = int(used_raw[0]) if used_raw.size else 0
+    if used <= 0:
+        return {}
+    if "CHANNEL" not in group:
+        raise FileFormatError(f"FORCE_PLATFORM:USED is {used} but there is no FORCE_PLATFORM:CHANNEL", path=path,
+                              field="FORCE_PLATFORM:CHANNEL")
+    channels = np.asarray(group["CHANNEL"]["value"], dtype=float)
+    if channels.ndim == 1:
+        channels = channels[:, None]
+    if channels.shape[1] < used or not np.all(channels == np.round(channels)):
+        raise FileFormatError(f"expected integer channel numbers for {used} plates, got shape {channels.shape}",
+                              path=path, field="FORCE_PLATFORM:CHANNEL", value=channels.tolist())
+    found: dict[str, str] = {}
+    for plate in range(used):
+        for number in channels[:, plate].astype(int).tolist():
+            if number == 0:  # unassigned slot (plates of a type with fewer channels)
+                continue
+            if not 1 <= number <= len(labels):
+                raise FileFormatError(
+                    f"force plate {plate + 1} names analog channel {number}, but there are {len(labels)} channels",
+                    path=path, field="FORCE_PLATFORM:CHANNEL", value=number,
+                )
+            found[labels[number - 1]] = f"force plate {plate + 1} (FORCE_PLATFORM:CHANNEL)"
+    return found

@@ -44,7 +44,12 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
                               units=[""] * len(s.columns), path=path)
     else:
         raise InputError("unknown EMG file type; expected .anc, .c3d, .csv, .sto or .mot", path=path, value=suffix)
-    return rec.select(channels) if channels else rec
+    if channels:
+        return rec.select(channels)  # asked for by name: taken as they are
+    if rec.not_emg:  # e.g. the force-plate channels of a gait C3D
+        print(f"left out {len(rec.not_emg)} channels that are not EMG: "
+              + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items()))
+    return rec.emg_only()
 
 
 def _channels(text: str | None) -> list[str] | None:
