@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from msk_core.errors import ConfigError
+from msk_core.model.names import ROTATION_UNIT, DisplayNames, parse_names
 
 
 @dataclass(frozen=True)
@@ -23,6 +24,11 @@ class CoordinateSpec:
     upper: float  # rad
     reference: float  # rad, value used when building the rigid-body model
     coupled: dict[str, float] = field(default_factory=dict)  # dependent coordinate -> ratio (dq_dep/dq_driver)
+
+    @property
+    def unit(self) -> str:
+        """The unit people read it in: a pack coordinate is a rotation (its range is given in degrees)."""
+        return ROTATION_UNIT
 
 
 @dataclass(frozen=True)
@@ -39,6 +45,8 @@ class DynamicsSpec:
 
     root: str = "ground"
     gravity: tuple[float, float, float] | None = None  # None: the model's gravity
+    # where the hand load (barbell, box) acts; () = the pack has no hand load: its external loads, if any (ground
+    # reaction forces of a walk), are in the recorded inverse dynamics a trial gives as torques
     load_points: tuple[LoadPoint, ...] = ()
     load_share: float = 1.0  # fraction of hand_load_newton carried by the modelled side (split over load_points)
     shared_from: str = ""  # bodies distal (from the root) to this body carry mass * load_share ...
@@ -46,6 +54,11 @@ class DynamicsSpec:
     # subtrees that hang freely from their body's origin (a pendulum, e.g. the arms from the shoulders): their mass
     # and their load points act at that pivot, along gravity (quasi-static: plumb below the pivot at any trunk angle)
     hanging: tuple[str, ...] = ()
+
+    @property
+    def has_hand_load(self) -> bool:
+        """Whether the pack carries a hand load at all (``load_points`` given)."""
+        return bool(self.load_points)
 
 
 @dataclass(frozen=True)
@@ -69,10 +82,15 @@ class PackSpec:
     fit: FitSpec
     path: Path | None = None
     text: str = ""
+    names: dict[str, str] = field(default_factory=dict)  # group or coordinate -> display name ([names])
 
     @property
     def coordinate_names(self) -> list[str]:
         return [c.name for c in self.coordinates]
+
+    def display_names(self) -> DisplayNames:
+        """The display names of the groups and coordinates (their model names where ``[names]`` gives none)."""
+        return DisplayNames.of(self.groups, {c.name: c.unit for c in self.coordinates}, self.names)
 
     def line_of(self, token: str) -> int | None:
         """1-based line of the first occurrence of ``token`` in the spec text (for error messages)."""
@@ -164,30 +182,7 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
                 line=_line(text, gname),
             )
         groups[gname] = list(members)
-    dyn_raw = raw.get("dynamics", {})
-    loads = []
-    for item in dyn_raw.get("load_points", []):
-        if not (isinstance(item, dict) and isinstance(item.get("body"), str) and len(item.get("point", [])) == 3):
-            raise ConfigError(
-                "load_points entries are { body = \"..\", point = [x, y, z] }", path=path,
-                field="dynamics.load_points", value=item, line=_line(text, "load_points"),
-            )
-        loads.append(LoadPoint(item["body"], tuple(float(v) for v in item["point"])))
-    gravity = dyn_raw.get("gravity")
-    dynamics = DynamicsSpec(
-        root=str(dyn_raw.get("root", "ground")),
-        gravity=None if gravity is None else tuple(float(v) for v in gravity),
-        load_points=tuple(loads),
-        load_share=float(dyn_raw.get("load_share", 1.0)),
-        shared_from=str(dyn_raw.get("shared_from", "")),
-        exclude_bodies=tuple(dyn_raw.get("exclude_bodies", [])),
-        hanging=tuple(dyn_raw.get("hanging", [])),
-    )
-    if not 0.0 < dynamics.load_share <= 1.0:
-        raise ConfigError(
-            "must be in (0, 1]", path=path, field="dynamics.load_share", value=dynamics.load_share,
-            line=_line(text, "load_share"),
-        )
+    dynamics = _parse_dynamics(raw.get("dynamics", {}), path, text)
     fit_raw = raw.get("fit", {})
     fit = FitSpec(
         samples=int(fit_raw.get("samples", 300)),
@@ -207,7 +202,69 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         fit=fit,
         path=path,
         text=text,
+        names=parse_names(raw.get("names", {}), [*groups, *(c.name for c in coordinates)], path=path, text=text),
     )
+
+
+DYNAMICS_KEYS = ("root", "gravity", "load_points", "load_share", "shared_from", "exclude_bodies", "hanging")
+
+
+def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSpec:
+    """The [dynamics] table. Without ``load_points`` the pack has no hand load (its inverse dynamics takes none);
+    ``load_share`` is then only meaningful with ``shared_from`` (the share of the shared bodies' mass)."""
+    if not isinstance(dyn_raw, dict):
+        raise ConfigError("must be a table", path=path, field="dynamics", line=_line(text, "[dynamics]"))
+    unknown = sorted(set(dyn_raw) - set(DYNAMICS_KEYS))
+    if unknown:
+        raise ConfigError(f"unknown key ({closest(unknown[0], list(DYNAMICS_KEYS))})", path=path,
+                          field=f"dynamics.{unknown[0]}", line=_line(text, unknown[0]))
+    points = dyn_raw.get("load_points", [])
+    if not isinstance(points, list):
+        raise ConfigError("must be a list of { body = \"..\", point = [x, y, z] } (leave it out for a pack without "
+                          "a hand load)", path=path, field="dynamics.load_points", value=points,
+                          line=_line(text, "load_points"))
+    loads = []
+    for item in points:
+        point = item.get("point") if isinstance(item, dict) else None
+        if not (isinstance(item, dict) and isinstance(item.get("body"), str) and isinstance(point, list)
+                and len(point) == 3 and all(_is_number(v) for v in point)):
+            raise ConfigError(
+                "load_points entries are { body = \"..\", point = [x, y, z] }", path=path,
+                field="dynamics.load_points", value=item, line=_line(text, "load_points"),
+            )
+        loads.append(LoadPoint(item["body"], tuple(float(v) for v in point)))
+    shared_from = str(dyn_raw.get("shared_from", ""))
+    share = dyn_raw.get("load_share", 1.0)
+    if "load_share" in dyn_raw:
+        line = _line(text, "load_share")
+        if not _is_number(share) or not 0.0 < share <= 1.0:
+            raise ConfigError(
+                "must be a number in (0, 1]: the share of the hand load (and of the shared_from bodies' mass) this "
+                "side carries; a pack without a hand load leaves load_points and load_share out",
+                path=path, field="dynamics.load_share", value=share, line=line)
+        if not loads and not shared_from:
+            raise ConfigError(
+                "load_share without load_points or shared_from shares nothing: this pack has no hand load (no "
+                "load_points) and no shared bodies; leave load_share out", path=path, field="dynamics.load_share",
+                value=share, line=line)
+    gravity = dyn_raw.get("gravity")
+    if gravity is not None and not (isinstance(gravity, list) and len(gravity) == 3
+                                    and all(_is_number(v) for v in gravity)):
+        raise ConfigError("must be [x, y, z] in m/s²", path=path, field="dynamics.gravity", value=gravity,
+                          line=_line(text, "gravity"))
+    return DynamicsSpec(
+        root=str(dyn_raw.get("root", "ground")),
+        gravity=None if gravity is None else tuple(float(v) for v in gravity),
+        load_points=tuple(loads),
+        load_share=float(share),
+        shared_from=shared_from,
+        exclude_bodies=tuple(dyn_raw.get("exclude_bodies", [])),
+        hanging=tuple(dyn_raw.get("hanging", [])),
+    )
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def load_spec(path: str | Path) -> PackSpec:
