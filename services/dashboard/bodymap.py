@@ -65,6 +65,17 @@ REGIONS: dict[str, Region] = {
     "semitendinosus": Region("back", 15, 276, 6.5, 32, 3, "semitendinosus / semimembranosus"),
     "gastroc_lateral": Region("back", 28, 350, 6, 20, 3, "gastrocnemius, lateral"),
     "gastroc_medial": Region("back", 16, 350, 6, 20, 3, "gastrocnemius, medial"),
+    # the rest of a leg's muscles (gait2392 packs every right-leg muscle)
+    "gluteus_minimus": Region("back", 33, 214, 7, 5, -10, "gluteus minimus"),
+    "deep_hip_rotators": Region("back", 18, 243, 9, 3.5, 0, "piriformis, gemelli, quadratus femoris"),
+    "adductor_magnus": Region("back", 8, 262, 5.5, 26, 5, "adductor magnus"),
+    "pectineus_adductor_brevis": Region("front", 13, 226, 5, 7, 20, "pectineus, adductor brevis"),
+    "gracilis": Region("front", 7, 280, 2.5, 32, 3, "gracilis"),
+    "sartorius": Region("front", 20, 262, 2.5, 44, -22, "sartorius"),
+    "soleus": Region("back", 22, 380, 7, 14, 0, "soleus"),
+    "deep_posterior_calf": Region("back", 22, 400, 4, 7, 0, "tibialis posterior, long toe flexors"),
+    "peroneals": Region("front", 32, 362, 3, 24, 0, "peroneals"),
+    "toe_extensors": Region("front", 19, 372, 3, 22, 0, "long toe extensors"),
 }
 
 #: Lower-case OpenSim muscle names (side suffix removed) -> region; first match wins.
@@ -80,6 +91,14 @@ MUSCLE_RULES: tuple[tuple[str, str], ...] = (
     (r"vasmed|vasint", "vastus_medialis"), (r"tibant", "tibialis_anterior"), (r"glmax", "gluteus_maximus"),
     (r"glmed", "gluteus_medius"), (r"bf[ls]h", "biceps_femoris"), (r"semiten|semimem", "semitendinosus"),
     (r"gaslat", "gastroc_lateral"), (r"gasmed", "gastroc_medial"),
+    # gait2392's names
+    (r"glut_max", "gluteus_maximus"), (r"glut_med", "gluteus_medius"), (r"glut_min", "gluteus_minimus"),
+    (r"quad_fem|gem$|peri$", "deep_hip_rotators"), (r"iliacus", "psoas"), (r"add_long", "adductor_longus"),
+    (r"add_brev|pect$", "pectineus_adductor_brevis"), (r"add_mag", "adductor_magnus"), (r"grac$", "gracilis"),
+    (r"sar$", "sartorius"), (r"rect_fem", "rectus_femoris"), (r"vas_lat", "vastus_lateralis"),
+    (r"vas_med|vas_int", "vastus_medialis"), (r"bifem", "biceps_femoris"), (r"lat_gas", "gastroc_lateral"),
+    (r"med_gas", "gastroc_medial"), (r"soleus", "soleus"), (r"tib_post|flex_dig|flex_hal", "deep_posterior_calf"),
+    (r"tib_ant", "tibialis_anterior"), (r"per_", "peroneals"), (r"ext_dig|ext_hal", "toe_extensors"),
 )
 _RULES = tuple((re.compile(pattern), region) for pattern, region in MUSCLE_RULES)
 _SIDE = re.compile(r"_([rl])$")
