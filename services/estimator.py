@@ -11,7 +11,10 @@ EMG (with a subject profile that carries MVC normalisation, or ``--emg-map``): s
 runs the causal envelope chain (:mod:`msk_core.estimate.live_emg`), publishes :class:`EmgEnvelope` on
 ``msk/<session>/envelopes`` (one per EMG chunk), fills ``ActivationFrame.measured_envelope`` and feeds the ``assisted``
 method; EMG gaps, a stalled source and channels without MVC are flagged in the frames (``emg_gap``, ``emg_stalled``,
-``no_mvc``) and counted in :class:`EstimatorStats`.
+``no_mvc``) and counted in :class:`EstimatorStats`. With ``--emg-clock host`` each EMG source's clock is mapped onto
+the host clock by the driver's receipt times (``EmgChunk.host_time_ns``, so a replay maps as live did) less its
+stated latency (``--emg-latency-ms``), and the node's status (``msk/<session>/status/estimator``) carries, per stream,
+the offset applied, its spread, the latency and the method (``DeviceStatus.clocks``).
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -31,10 +34,11 @@ import numpy as np
 from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.frame import FrameResult
-from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, LiveEmg
+from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import GRAVITY
+from msk_core.signal.host_clock import ClockReport, parse_latencies
 from services import messages, session_graph, topics
 from msk_core.model.pack import available_packs, is_known_exercise
 from services.graph import ReadySpec, declare_ready
@@ -159,7 +163,9 @@ def emg_to_envelope(block, arrival_ns: int) -> messages.EmgEnvelope:
 
 
 def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: bool | None,
-                  electrode_map: dict[str, str] | None, clock: ClockMode | str, stall_s: float = 0.25) -> LiveEmg | None:
+                  electrode_map: dict[str, str] | None, clock: ClockMode | str, stall_s: float = 0.25,
+                  joints_clock: JointsClock | str = JointsClock.ARRIVAL, latency_ns: dict[str, int] | None = None,
+                  default_latency_ns: int = 0) -> LiveEmg | None:
     """The EMG path: on with ``emg=True``; with None, on when the profile or ``electrode_map`` maps electrodes."""
     setup = EmgSetup.from_profile(subject, electrode_map) if subject is not None else EmgSetup(dict(electrode_map or {}), {})
     if emg is None:
@@ -169,7 +175,8 @@ def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: boo
     if not setup.channel_group:
         raise ConfigError("the EMG path needs an electrode -> group map (from the subject profile or --emg-map)",
                           field="emg_map")
-    return LiveEmg(groups, setup, clock=clock, stall_s=stall_s)
+    return LiveEmg(groups, setup, clock=clock, stall_s=stall_s, joints_clock=joints_clock, latency_ns=latency_ns,
+                   default_latency_ns=default_latency_ns)
 
 
 class EstimatorNode:
@@ -178,7 +185,9 @@ class EstimatorNode:
 
     def __init__(self, pack: str, methods: list[str], subject: SubjectProfile | None, stats: EstimatorStats, *,
                  emg: bool | None, electrode_map: dict[str, str] | None, emg_clock: ClockMode | str,
-                 emg_stall_s: float, initial_load_kg: float, exercise: str | None, solver: str) -> None:
+                 emg_stall_s: float, initial_load_kg: float, exercise: str | None, solver: str,
+                 joints_clock: JointsClock | str = JointsClock.ARRIVAL, emg_latency_ns: dict[str, int] | None = None,
+                 default_emg_latency_ns: int = 0) -> None:
         if solver not in SOLVERS:
             raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
         self.stats = stats
@@ -191,7 +200,8 @@ class EstimatorNode:
         # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
         self.live_phase = LivePhase.from_profile(subject, first.coordinates) if subject is not None else None
         self.live_emg = make_live_emg(subject, list(first.groups), emg=emg, electrode_map=electrode_map,
-                                      clock=emg_clock, stall_s=emg_stall_s)
+                                      clock=emg_clock, stall_s=emg_stall_s, joints_clock=joints_clock,
+                                      latency_ns=emg_latency_ns, default_latency_ns=default_emg_latency_ns)
         if "assisted" in self.estimators and self.live_emg is None:
             raise ConfigError("method 'assisted' needs EMG: a subject profile with MVC normalisation or an electrode "
                               "map", field="method", value="assisted")
@@ -209,7 +219,7 @@ class EstimatorNode:
         block = self.live_emg.add_chunk(
             chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
             chunk.device_time_ns, np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels),
-            arrival_ns,
+            arrival_ns, chunk.host_time_ns or arrival_ns,  # the driver's receipt, else this node's
         )
         if block is None or not block.groups:
             return None
@@ -253,8 +263,8 @@ class EstimatorNode:
             return
         time_s = joints.device_time_ns / 1e9
         phase = self._phase(joints, time_s, q)
-        envelope, emg_flags = (None, []) if self.live_emg is None else self.live_emg.at(joints.device_time_ns,
-                                                                                          arrival_ns)
+        envelope, emg_flags = (None, []) if self.live_emg is None else self.live_emg.at(
+            joints.device_time_ns, arrival_ns, joints.host_time_ns or arrival_ns)
         for flag in emg_flags:
             stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
         for method, estimator in self.estimators.items():
@@ -269,6 +279,10 @@ class EstimatorNode:
                 stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
             yield method, frame
         stats.frames_out += 1
+
+    def clock_report(self) -> list[ClockReport]:
+        """The EMG path's clock mappings per stream (:meth:`LiveEmg.clock_report`); empty without EMG."""
+        return [] if self.live_emg is None else self.live_emg.clock_report()
 
     def _phase(self, joints, time_s: float, q: np.ndarray) -> float | None:
         """Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1)."""
@@ -290,6 +304,9 @@ def main(
     electrode_map: dict[str, str] | None = None,
     emg_clock: ClockMode | str = ClockMode.DEVICE,
     emg_stall_s: float = 0.25,
+    joints_clock: JointsClock | str = JointsClock.ARRIVAL,
+    emg_latency_ns: dict[str, int] | None = None,
+    default_emg_latency_ns: int = 0,
     initial_load_kg: float = 0.0,
     exercise: str | None = None,
     solver: str = "active-set",
@@ -302,7 +319,9 @@ def main(
     stats = stats if stats is not None else EstimatorStats()
     subject = SubjectProfile.load(subject_path) if subject_path is not None else None
     node = EstimatorNode(pack, methods, subject, stats, emg=emg, electrode_map=electrode_map, emg_clock=emg_clock,
-                         emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver)
+                         emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver,
+                         joints_clock=joints_clock, emg_latency_ns=emg_latency_ns,
+                         default_emg_latency_ns=default_emg_latency_ns)
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
     emg_prefix = f"{topics.session_prefix(session)}/emg/"
 
@@ -311,7 +330,7 @@ def main(
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
-        reporter = StatusReporter(zsession, session, NODE_NAME, inputs)
+        reporter = StatusReporter(zsession, session, NODE_NAME, inputs, clocks=node.clock_report)
         stats.inputs = inputs.counts
         # One subscription for joints and load keeps a load event and the frames after it in publication order
         # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
@@ -368,6 +387,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--emg-clock", choices=[c.value for c in ClockMode], default=ClockMode.DEVICE.value,
                         help="device: EMG and kinematics share one clock (recordings); host: align separate device "
                         "clocks by host arrival (docs/topics.md)")
+    parser.add_argument("--joints-clock", choices=[c.value for c in JointsClock], default=JointsClock.ARRIVAL.value,
+                        help="with --emg-clock host: the joint frames' times are on the host clock already (host: "
+                        "the kinematics node ran with --imu-clock host) or on a device clock, mapped by their "
+                        "arrival (default)")
+    parser.add_argument("--emg-latency-ms", action="append", default=[], metavar="[SOURCE=]MS",
+                        help="with --emg-clock host: the stated latency of EMG source SOURCE (without SOURCE=: of "
+                        "every source not named), taken off before its clock is mapped (repeatable; default 0)")
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--solver", choices=SOLVERS, default="active-set",
@@ -399,6 +425,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             if not sep or not channel or not group:
                 raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
             electrode_map[channel] = group
+    latency_ns, default_latency_ns = parse_latencies(args.emg_latency_ms, "--emg-latency-ms")
     ready = None
     if args.ready_key:
         node = args.ready_key.rsplit("/", 1)[-1]
@@ -407,6 +434,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         options_from_args(args), pack=args.pack, session=args.session, methods=methods,
         subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
         emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready, solver=args.solver,
+        joints_clock=args.joints_clock, emg_latency_ns=latency_ns, default_emg_latency_ns=default_latency_ns,
     )
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"

@@ -5,7 +5,10 @@ Subscribes to ``msk/<session>/imu/*`` (:class:`ImuSample`), groups the trackers'
 segment orientations to the pack's coordinates through the pack's IMU table (:mod:`msk_core.imu.mapping`), filters
 them causally (angle, velocity, acceleration) and publishes :class:`JointAngles` on ``msk/<out-session>/joints`` at
 the IMU rate. Zenoh callbacks only enqueue; one worker thread does the rest in arrival order. Nothing is dropped
-silently: every sample or frame not published is counted in :class:`KinematicsStats`. Docs: docs/kinematics.md.
+silently: every sample or frame not published is counted in :class:`KinematicsStats`. With ``--imu-clock host`` each
+tracker's clock is mapped onto the host clock by its receipt times less its stated latency (``--imu-latency-ms``,
+:class:`msk_core.signal.host_clock.HostClock`), and the node's status carries each tracker's mapping
+(``DeviceStatus.clocks``, ``imu/<tracker>``). Docs: docs/kinematics.md.
 Run ``python -m services.kinematics_node --pack bench_press --session lab`` or ``msk kinematics``.
 """
 
@@ -30,6 +33,14 @@ from msk_core.imu.kinematics import KinematicsFilterConfig
 from msk_core.imu.mapping import ImuJointMapper, mapping_for, parse_pose
 from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
 from msk_core.model import load_pack
+from msk_core.signal.host_clock import (
+    METHOD_DEVICE,
+    WINDOW_S,
+    ClockReport,
+    HostClock,
+    check_latency_ns,
+    parse_latencies,
+)
 from msk_core.signal.reps import RepTemplate
 from services import messages, topics
 from services.graph import ReadySpec, declare_ready
@@ -92,11 +103,22 @@ class KinematicsNode:
     def __init__(self, pack: str, session: str, stats: KinematicsStats, *, facing_deg: float,
                  static_pose_deg: dict[str, float] | None, static_s: float, gap_s: float, sync_tolerance_s: float,
                  max_wait_s: float, filter_config: KinematicsFilterConfig | None, phase_template: RepTemplate | None,
-                 phase_coordinate: str | None, clock: str = "device") -> None:
+                 phase_coordinate: str | None, clock: str = "device", latency_ns: dict[str, int] | None = None,
+                 default_latency_ns: int = 0, clock_window_s: float = WINDOW_S) -> None:
+        """``latency_ns``: per tracker id (its topic's last chunk), its stated latency; trackers not named have
+        ``default_latency_ns`` (``clock="host"`` only: with one device clock nothing is mapped)."""
         if clock not in ("device", "host"):
             raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
         self.clock = clock
-        self.host_offsets: dict[str, int] = {}  # per segment: smallest (host receive - device time) seen
+        self.latency_ns = {t: check_latency_ns(v, f"latency of tracker {t}") for t, v in (latency_ns or {}).items()}
+        self.default_latency_ns = check_latency_ns(default_latency_ns, "default IMU latency")
+        if clock == "device" and (self.default_latency_ns or any(self.latency_ns.values())):
+            raise ConfigError("a tracker latency is applied when the trackers' clocks are mapped onto the host clock "
+                              "(--imu-clock host); with one device clock nothing is mapped", field="latency",
+                              value={**self.latency_ns, "default": self.default_latency_ns})
+        self.clock_window_s = clock_window_s
+        self.host_clocks: dict[str, HostClock] = {}  # per tracker: its device clock -> the host clock
+        self.device_trackers: set[str] = set()  # trackers seen on the shared device clock
         self.stats = stats
         self.model = load_pack(pack)
         # ENU: x east, y north; the mapping's heading is counter-clockwise from x
@@ -153,12 +175,25 @@ class KinematicsNode:
         before = self.sync.out_of_order
         time_ns = int(imu.device_time_ns)
         if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
-            offset = int(imu.host_time_ns) - time_ns
-            self.host_offsets[segment] = min(self.host_offsets.get(segment, offset), offset)
-            time_ns += self.host_offsets[segment]
+            tracker = key.rsplit("/", 1)[1]
+            mapping = self.host_clocks.get(tracker)
+            if mapping is None:
+                mapping = self.host_clocks[tracker] = HostClock(
+                    f"imu/{tracker}", latency_ns=self.latency_ns.get(tracker, self.default_latency_ns),
+                    window_s=self.clock_window_s)
+            mapping.add(time_ns, int(imu.host_time_ns))
+            time_ns += mapping.offset_ns
+        else:
+            self.device_trackers.add(key.rsplit("/", 1)[1])
         events = self.sync.push(segment, time_ns, quat)
         stats.out_of_order += self.sync.out_of_order - before
         return [joints for event in events if (joints := self._frame(event)) is not None]
+
+    def clock_report(self) -> list[ClockReport]:
+        """Per tracker seen (``imu/<tracker>``): the mapping onto the host clock its samples get (``device``: none)."""
+        if self.clock == "device":
+            return [ClockReport(f"imu/{t}", 0, 0, 0, METHOD_DEVICE) for t in sorted(self.device_trackers)]
+        return [r for r in (c.report() for c in self.host_clocks.values()) if r is not None]
 
     def _frame(self, event) -> messages.JointAngles | None:
         stats = self.stats
@@ -208,23 +243,28 @@ def main(
     ready_key: ReadySpec | None = None,
     stats: KinematicsStats | None = None,
     clock: str = "device",
+    latency_ns: dict[str, int] | None = None,
+    default_latency_ns: int = 0,
 ) -> KinematicsStats:
     """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east).
 
     ``clock="device"``: the trackers share one device clock (recordings, a Link/Awinda station); ``"host"``: each
     tracker has its own clock (separate USB/serial MTi's, each counting from its own power-up): a tracker's device
     time is mapped to the host clock by the smallest (host receive time - device time) seen so far, as the
-    estimator's ``--emg-clock host`` does, so samples of the same instant meet in the synchroniser."""
+    estimator's ``--emg-clock host`` does, so samples of the same instant meet in the synchroniser; over the last
+    seconds only (msk_core.signal.host_clock), less each tracker's stated latency (``latency_ns`` per tracker id,
+    ``default_latency_ns`` for the others)."""
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else KinematicsStats()
     node = KinematicsNode(pack, session, stats, facing_deg=facing_deg, static_pose_deg=static_pose_deg,
                           static_s=static_s, gap_s=gap_s, sync_tolerance_s=sync_tolerance_s, max_wait_s=max_wait_s,
                           filter_config=filter_config, phase_template=phase_template,
-                          phase_coordinate=phase_coordinate, clock=clock)
+                          phase_coordinate=phase_coordinate, clock=clock, latency_ns=latency_ns,
+                          default_latency_ns=default_latency_ns)
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
         inputs = NodeInputs(zsession, NODE_NAME, expected_type="msk.ImuSample", role=config.role)
-        reporter = StatusReporter(zsession, output_session or session, NODE_NAME, inputs)
+        reporter = StatusReporter(zsession, output_session or session, NODE_NAME, inputs, clocks=node.clock_report)
         stats.inputs = inputs.counts
         inputs.subscribe(f"{node.prefix}*")
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
@@ -274,6 +314,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--imu-clock", choices=["device", "host"], default="device",
         help="device: the trackers share one clock (recordings); host: separate trackers, each device clock mapped "
         "to the host clock (docs/kinematics.md)")
+    add("--imu-latency-ms", action="append", default=[], metavar="[TRACKER=]MS",
+        help="with --imu-clock host: the stated latency of tracker TRACKER (without TRACKER=: of every tracker not "
+        "named), taken off before its clock is mapped (repeatable; default 0)")
     add("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
     add("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     add_zenoh_arguments(parser)
@@ -293,6 +336,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
+    latency_ns, default_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
     out = args.out_session or args.session
     print(f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}",
           file=sys.stderr, flush=True)
@@ -300,7 +344,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         options_from_args(args), pack=args.pack, session=args.session, output_session=args.out_session,
         facing_deg=args.facing_deg, static_pose_deg=pose, static_s=args.static_s, gap_s=args.gap,
         sync_tolerance_s=args.sync_tolerance_ms / 1e3, filter_config=filter_config, phase_template=template,
-        phase_coordinate=args.phase_coordinate, stop_event=stop, clock=args.imu_clock,
+        phase_coordinate=args.phase_coordinate, stop_event=stop, clock=args.imu_clock, latency_ns=latency_ns,
+        default_latency_ns=default_latency_ns,
         ready_key=ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
         if args.ready_key else None,
     )

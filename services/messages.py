@@ -24,6 +24,7 @@ CoordinateTorque = msk_pb2.CoordinateTorque
 DeviceStatus = msk_pb2.DeviceStatus
 EmgEnvelope = msk_pb2.EmgEnvelope
 InputDrop = msk_pb2.InputDrop
+ClockOffset = msk_pb2.ClockOffset
 Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion
 

@@ -14,7 +14,8 @@ what had already arrived, so nothing received is lost.
 
 The counts travel in the node's :class:`DeviceStatus` (``kind = "node"``, ``dropped``) on ``msk/<session>/status/<node>``
 (:class:`StatusReporter`: at start, every second, and a last one at stop), which the recorder
-logs and ``msk live`` sums up in ``summary.json``.
+logs and ``msk live`` sums up in ``summary.json``; so do, for a node that maps device clocks onto the host clock, its
+mappings per stream (``clocks``, :func:`clock_offsets`).
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from enum import Enum
 
 import zenoh
 from google.protobuf.message import Message
 
+from msk_core.signal.host_clock import ClockReport
 from services import messages, topics
 from services.zenoh_session import declare_data_publisher, fetch_history, publish, type_name_of_sample
 
@@ -304,12 +306,21 @@ def serve(inputs: NodeInputs, handle, stop_event: threading.Event, reporter: Sta
             reporter.final()
 
 
-class StatusReporter:
-    """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: its inputs' counts, at start,
-    every :data:`STATUS_PERIOD_S`, and once more (``connected`` False) at stop."""
+def clock_offsets(reports: Iterable[ClockReport]) -> list[messages.ClockOffset]:
+    """Clock mappings (msk_core.signal.host_clock) as the status carries them, in ms."""
+    return [messages.ClockOffset(source=r.source, offset_ms=r.offset_ns / 1e6, spread_ms=r.spread_ns / 1e6,
+                                 latency_ms=r.latency_ns / 1e6, method=r.method, samples=r.samples) for r in reports]
 
-    def __init__(self, zsession: zenoh.Session, session: str, node: str, inputs: NodeInputs) -> None:
+
+class StatusReporter:
+    """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: its inputs' counts (and, with
+    ``clocks``, the clock mappings it applies), at start, every :data:`STATUS_PERIOD_S`, and once more
+    (``connected`` False) at stop."""
+
+    def __init__(self, zsession: zenoh.Session, session: str, node: str, inputs: NodeInputs,
+                 clocks: Callable[[], Iterable[ClockReport]] | None = None) -> None:
         self.node = node
+        self._clocks = clocks
         self.counts = inputs.counts
         self.errors = 0
         self.last_error = ""
@@ -330,6 +341,7 @@ class StatusReporter:
             errors=self.errors + len(refusals), last_error=self.last_error or (refusals[-1] if refusals else ""),
             host_time_ns=messages.now_ns(),
             dropped=self.counts.drops(),
+            clocks=clock_offsets(self._clocks()) if self._clocks is not None else [],
         )
 
     def tick(self, *, force: bool = False) -> None:

@@ -177,7 +177,7 @@ class EmgEnvelope(_message.Message):
     def __init__(self, time_s: _Optional[float] = ..., groups: _Optional[_Iterable[str]] = ..., envelope: _Optional[_Iterable[float]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class DeviceStatus(_message.Message):
-    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped")
+    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks")
     DEVICE_ID_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     CONNECTED_FIELD_NUMBER: _ClassVar[int]
@@ -187,6 +187,7 @@ class DeviceStatus(_message.Message):
     LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
     HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
     DROPPED_FIELD_NUMBER: _ClassVar[int]
+    CLOCKS_FIELD_NUMBER: _ClassVar[int]
     device_id: str
     kind: str
     connected: bool
@@ -196,7 +197,24 @@ class DeviceStatus(_message.Message):
     last_error: str
     host_time_ns: int
     dropped: _containers.RepeatedCompositeFieldContainer[InputDrop]
-    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ...) -> None: ...
+    clocks: _containers.RepeatedCompositeFieldContainer[ClockOffset]
+    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ...) -> None: ...
+
+class ClockOffset(_message.Message):
+    __slots__ = ("source", "offset_ms", "spread_ms", "latency_ms", "method", "samples")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_MS_FIELD_NUMBER: _ClassVar[int]
+    SPREAD_MS_FIELD_NUMBER: _ClassVar[int]
+    LATENCY_MS_FIELD_NUMBER: _ClassVar[int]
+    METHOD_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    source: str
+    offset_ms: float
+    spread_ms: float
+    latency_ms: float
+    method: str
+    samples: int
+    def __init__(self, source: _Optional[str] = ..., offset_ms: _Optional[float] = ..., spread_ms: _Optional[float] = ..., latency_ms: _Optional[float] = ..., method: _Optional[str] = ..., samples: _Optional[int] = ...) -> None: ...
 
 class InputDrop(_message.Message):
     __slots__ = ("key", "reason", "count")
