@@ -8,15 +8,22 @@ nearest in-range pose instead (use :meth:`ModelPack.in_range` to flag). Nothing 
 from __future__ import annotations
 
 import enum
+import functools
 import json
+import tomllib
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from msk_core.errors import FileFormatError, ModelError
+from msk_core.model.names import ROTATION_UNIT, DisplayNames, parse_names
 from msk_core.model.poly import FeatureEvaluator, derivative_matrix
 from msk_core.model.rigid import RigidModel, compiled_kernels
+
+if TYPE_CHECKING:
+    from msk_core.model.spec import PackSpec
 
 PACK_FORMAT = "msk-model-pack/1"
 
@@ -63,6 +70,7 @@ class ModelPack:
         self.min_control = np.asarray(data.get("min_control", np.zeros(len(self.groups))), dtype=float)
         self.max_control = np.asarray(data.get("max_control", np.ones(len(self.groups))), dtype=float)
         self.fit_report: dict = data.get("fit_report", {})
+        self.display_names: DisplayNames = names_of(data, path)
         basis = data["basis"]
         self._exponents = np.asarray(basis["exponents"], dtype=np.int64).reshape(-1, len(self.coordinates))
         self._centre = np.asarray(basis["centre"], dtype=float)
@@ -343,11 +351,8 @@ def is_known_exercise(exercise: str, also: tuple[str, ...] = ()) -> bool:
     return exercise in also or exercise in available_packs()
 
 
-def load_pack(name_or_path: str | Path, *, evaluator: Evaluator = Evaluator.NUMPY) -> ModelPack:
-    """Load a shipped pack by name (e.g. ``"arm26"``) or a pack JSON file by path.
-
-    evaluator: ``Evaluator.COMPILED`` for the fast per-frame path (numba; ~3x faster frames, compiled once and
-    cached on first use); ``Evaluator.NUMPY`` (default) keeps the numpy + pinocchio arithmetic."""
+def _read_pack(name_or_path: str | Path) -> tuple[dict, Path]:
+    """The JSON of a shipped pack (by name) or of a pack file (by path), and where it was read."""
     candidate = Path(name_or_path)
     if candidate.suffix == ".json" or candidate.is_file():
         path = candidate
@@ -362,7 +367,49 @@ def load_pack(name_or_path: str | Path, *, evaluator: Evaluator = Evaluator.NUMP
         path = Path(str(resource))
         text = resource.read_text()
     try:
-        data = json.loads(text)
+        return json.loads(text), path
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from exc
+
+
+def load_pack(name_or_path: str | Path, *, evaluator: Evaluator = Evaluator.NUMPY) -> ModelPack:
+    """Load a shipped pack by name (e.g. ``"arm26"``) or a pack JSON file by path.
+
+    evaluator: ``Evaluator.COMPILED`` for the fast per-frame path (numba; ~3x faster frames, compiled once and
+    cached on first use); ``Evaluator.NUMPY`` (default) keeps the numpy + pinocchio arithmetic."""
+    data, path = _read_pack(name_or_path)
     return ModelPack(data, path=path, evaluator=evaluator)
+
+
+def names_of(data: dict, path: Path | None = None) -> DisplayNames:
+    """The display names of a pack's groups and coordinates: its spec's ``[names]`` table (msk_core.model.names),
+    the model names where it gives none. The spec the pack was compiled from is embedded in the pack (``spec``)."""
+    try:
+        table = tomllib.loads(data.get("spec", "")).get("names", {})
+    except tomllib.TOMLDecodeError as exc:
+        raise FileFormatError(f"the pack's embedded spec is not valid TOML: {exc}", path=path, field="spec") from exc
+    groups, coordinates = list(data["groups"]), list(data["coordinates"])
+    names = parse_names(table, [*groups, *coordinates], path=path, text=data.get("spec", ""))
+    return DisplayNames.of(groups, {c: ROTATION_UNIT for c in coordinates}, names)  # pack coordinates: rotations
+
+
+@functools.lru_cache(maxsize=32)
+def pack_display_names(name_or_path: str | Path) -> DisplayNames:
+    """:func:`names_of` a shipped pack or a pack file without building the pack (what a view or page needs)."""
+    return names_of(*_read_pack(name_or_path))
+
+
+def with_names(data: dict, spec: PackSpec) -> dict:
+    """A copy of pack ``data`` carrying ``spec`` as its embedded spec, when the two differ only in their ``[names]``
+    tables (and comments): a change of display names needs no recompile. Any other difference is refused, naming the
+    spec file and the first differing key."""
+    old, new = tomllib.loads(data.get("spec", "")), tomllib.loads(spec.text)
+    old.pop("names", None)
+    new.pop("names", None)
+    changed = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if changed:
+        raise ModelError(f"{spec.path or 'the spec'}: differs from the spec pack {data.get('name')!r} was compiled "
+                         f"from in [{changed[0]}], not only in [names]: recompile the pack (msk model compile)")
+    out = dict(data, spec=spec.text)
+    names_of(out)  # the names fit the pack's groups and coordinates
+    return out
