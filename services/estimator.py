@@ -37,7 +37,7 @@ from msk_core.estimate.frame import FrameResult
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
-from msk_core.estimate.trial import GRAVITY
+from msk_core.units import GRAVITY
 from msk_core.signal.host_clock import ClockReport, parse_latencies
 from services import messages, session_graph, topics
 from msk_core.model.pack import available_packs, is_known_exercise

@@ -8,6 +8,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 IO_FRAMEWORKS = ("zenoh", "mcap", "serial", "usb", "mcap_protobuf")
+DRIVERS_MAY_IMPORT = ("msk_core.errors", "msk_core.units")
 
 
 def _module_name(path: Path) -> str:
@@ -61,10 +62,34 @@ def test_msk_core_imports_no_io_framework_and_drivers_stand_alone():
         bad = {m for m in _imports(path) if m.split(".")[0] in IO_FRAMEWORKS + ("services", "drivers")}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
     for path in (ROOT / "drivers").rglob("*.py"):
-        # the shared exception hierarchy is the one thing drivers take from msk_core
+        # the shared exception hierarchy and physical constants (two leaf modules) are what drivers take from msk_core
         bad = {m for m in _imports(path) if m.split(".")[0] in ("services", "msk_core")
-               and not m.startswith("msk_core.errors")}
+               and not m.startswith(DRIVERS_MAY_IMPORT)}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+def test_what_drivers_take_from_msk_core_are_leaves():
+    # a leaf imports nothing of the project, so drivers taking it still pull in no science code
+    for module in DRIVERS_MAY_IMPORT:
+        path = ROOT / (module.replace(".", "/") + ".py")
+        inner = {m for m in _imports(path) if m.split(".")[0] in ("msk_core", "services", "drivers")}
+        assert not inner, f"{path.relative_to(ROOT)} imports {sorted(inner)}"
+
+
+def test_one_gravity():
+    # GRAVITY = 9.81 is defined once (msk_core.units); a second definition or a literal 9.81 would drift from it
+    definitions, literals = [], []
+    for package in ("msk_core", "services", "drivers"):
+        for path in (ROOT / package).rglob("*.py"):
+            where = str(path.relative_to(ROOT))
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+                if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "GRAVITY"
+                                                        for t in node.targets):
+                    definitions.append(f"{where}:{node.lineno}")
+                elif isinstance(node, ast.Constant) and node.value == 9.81 and where != "msk_core/units.py":
+                    literals.append(f"{where}:{node.lineno}")
+    assert len(definitions) == 1 and definitions[0].startswith("msk_core/units.py:"), definitions
+    assert not literals, f"9.81 written out instead of msk_core.units.GRAVITY: {literals}"
 
 
 def test_the_tree_has_a_room_per_stage_and_old_import_paths_still_work():

@@ -21,6 +21,7 @@ import numpy as np
 from drivers import parse_synthetic_spec
 from drivers.xsens import xbus
 from msk_core.errors import FileFormatError, InputError, ProtocolError
+from msk_core.units import GRAVITY
 
 #: Quantities a source may carry, with their component counts.
 QUANTITIES = {
@@ -34,7 +35,6 @@ QUANTITIES = {
     "delta_v": 3,
     "temperature": 1,
 }
-GRAVITY = 9.81
 DEFAULT_RATE_HZ = 100.0  # an MTi's factory output rate, assumed only when a capture carries no rate information
 
 log = logging.getLogger(__name__)

@@ -157,7 +157,7 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
                          f"(at least {MIN_FRAMES} needed); left out: {describe_left_out(left_out)}"
                          " - for torques beyond the capacity, check the load and the profile's strengths",
                          path=trial.path, field="torques" if trial.torque_source == "file" else "kinematics")
-    hand = trial.load_kg * 9.81
+    hand = trial.hand_load_newton
     if hand > 0:
         tau_load = np.array([np.asarray(pack.inverse_dynamics(a, b, c, hand)) - np.asarray(pack.inverse_dynamics(a, b, c, 0.0))
                              for a, b, c in zip(q, trial.qd, trial.qdd)])

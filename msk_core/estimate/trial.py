@@ -50,6 +50,7 @@ from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, detect_reps, kinematic_phase
 from msk_core.io import Storage, read_sto
 from msk_core.signal.kinematics_filter import lowpass_coordinates
+from msk_core.units import GRAVITY
 
 KNOWN_KEYS = {
     "kinematics",
@@ -67,7 +68,6 @@ KNOWN_KEYS = {
     "isometric",
     "lowpass_coordinates_hz",
 }
-GRAVITY = 9.81
 ISOMETRIC_MAX_MOTION_DEG = 10.0  # an isometric trial's coordinates stay within this range (a held test position)
 
 

@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from msk_core.estimate.trial import GRAVITY  # the trial files' convention for load_kg -> N
 from msk_core.model import load_pack
 from msk_core.synth.effects import Effects, muscle_factors
 from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg
@@ -18,6 +17,7 @@ from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
 from msk_core.synth.recruitment import TONE, recruit
 from msk_core.synth.rng import stream
 from msk_core.synth.subject import Subject, make_subject
+from msk_core.units import GRAVITY
 
 
 
