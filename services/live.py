@@ -35,7 +35,7 @@ import numpy as np
 from msk_core.errors import ConfigError, InputError
 from services import messages, session_graph, topics
 from services.graph import Graph, GraphTimeout, python_module, wait_for, zenoh_flags
-from services.live_session import SIM_METHODS, LiveSession, check_against_pack
+from services.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.mcap_io import read_messages
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -171,12 +171,13 @@ class Simulators:
                              "samples_skipped": s.stats.samples_skipped} for tracker, s in self.xsens.items()}}
 
 
-def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0, xsens_latency_s: float = 0.0,
-                     clock: object | None = None) -> Simulators:
+def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
+                     xsens_latency_s: float | dict[str, float] = 0.0, clock: object | None = None) -> Simulators:
     """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
     that starts when the first device starts streaming, so the set begins with its static pose as the first device
     is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
-    ``*_latency_s``: each device's stated delivery latency (a sample measured at t leaves at t + latency)."""
+    ``*_latency_s``: each device's stated delivery latency (a sample measured at t leaves at t + latency);
+    ``xsens_latency_s`` one for every tracker, or per tracker id (0 for a tracker not named)."""
     from drivers.trial_clock import TrialClock
     from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
     from drivers.xsens.simulator import XsensSimulator
@@ -190,8 +191,9 @@ def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0, xsen
         for tracker, (_, source) in sources.imu.items():
             # a long wake-up window: the simulator waits in Config for the driver instead of streaming into a port
             # nobody has opened yet (a real MTi would, and those messages would never be read)
+            latency_s = xsens_latency_s.get(tracker, 0.0) if isinstance(xsens_latency_s, dict) else xsens_latency_s
             xsens[tracker] = XsensSimulator(source, device_id=int(tracker, 16), wakeup_window_s=3600.0,
-                                            trial_clock=clock, latency_s=xsens_latency_s).start()
+                                            trial_clock=clock, latency_s=latency_s).start()
     except BaseException:
         trigno.close()
         for sim in xsens.values():
@@ -239,8 +241,9 @@ def session_profile(subject: Path, electrodes: dict[str, str], groups: list[str]
 
 def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     """What the recording (one file, or the parts this session wrote) holds: samples per device, samples lost and the
-    final state of each device (its last DeviceStatus), frames and flags per method, and per node of the graph what
-    it received, dropped as unusable (per topic and reason) and could not use (its last status)."""
+    final state of each device (its last DeviceStatus), frames and flags per method, per node of the graph what
+    it received, dropped as unusable (per topic and reason) and could not use (its last status), and per stream the
+    clock mapping the node that maps it reported last (offset, spread, latency, method)."""
     emg, imu, lost, status_seen = Counter(), Counter(), {}, {}
     frames, flags = Counter(), {}
     envelopes = joints = chunks = 0
@@ -289,6 +292,10 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
         "inputs_dropped": dropped,
         "node_errors": {name: int(s.errors) for name, s in nodes.items()},
         "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
+        "clocks": {c.source: {"offset_ms": c.offset_ms, "spread_ms": round(c.spread_ms, 3),
+                              "latency_ms": round(c.latency_ms, 3), "method": c.method, "samples": int(c.samples),
+                              "node": name}
+                   for name, s in nodes.items() for c in s.clocks},
     }
 
 
@@ -307,6 +314,9 @@ def summary_text(summary: dict) -> str:
                 f"{key} {reason} {n}" for key, reasons in per_key.items() for reason, n in reasons.items()))
     for node, text in summary.get("node_last_error", {}).items():
         lines.append(f"  {node}: {summary['node_errors'][node]} inputs not used, last: {text}")
+    for source, clock in summary.get("clocks", {}).items():
+        lines.append(f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "
+                     f"{clock['latency_ms']:g} ms ({clock['node']})")
     if "simulators_sent" in summary:
         lines.append("  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items()))
     return "\n".join(lines)
@@ -326,6 +336,9 @@ class LivePlan:
     xsens_ports: list[str] = field(default_factory=list)
     trackers: dict[str, str] = field(default_factory=dict)
     exercise: str = ""  # the pack's name (session.pack may be a path)
+    trigno_latency_ms: float = 0.0  # stated device latencies the clock mappings take off (live_session.stated_latencies)
+    tracker_latency_ms: dict[str, float] = field(default_factory=dict)
+    names: dict[str, str] = field(default_factory=dict)  # the session file's display names (over the pack's)
 
 
 def driver_argv(plan: LivePlan, kind: str) -> list[str]:
@@ -363,12 +376,13 @@ class SessionFacts:
     load_kg: float
     set_number: int = 1
     athlete: str = ""
+    names: dict[str, str] = field(default_factory=dict)  # display names the session file gives (LoadEvent.names)
 
     def message(self) -> messages.LoadEvent:
         now = messages.now_ns()  # msk live maps every device clock onto the host clock: its device time is now
         return messages.LoadEvent(barbell_mass_kg=float(self.load_kg), exercise=self.exercise,
-                                  set_number=int(self.set_number), athlete=self.athlete, device_time_ns=now,
-                                  host_time_ns=now)
+                                  set_number=int(self.set_number), athlete=self.athlete, names=self.names,
+                                  device_time_ns=now, host_time_ns=now)
 
 
 def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, stop_event: threading.Event,
@@ -444,11 +458,15 @@ def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
     if name == "recorder":
         return python_module("services.recorder", "--out", str(mcap))
     if name == "estimator":
+        # the joints are on the host clock already: the kinematics node maps each tracker's clock
         argv = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
-                             "--emg-clock", "host", "--load-kg", str(s.load_kg))
+                             "--emg-clock", "host", "--joints-clock", "host", "--load-kg", str(s.load_kg),
+                             "--emg-latency-ms", f"{s.trigno_id}={plan.trigno_latency_ms:g}")
         return argv + [a for method in plan.methods for a in ("--method", method)]
     if name == "kinematics":
-        return python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name, "--imu-clock", "host")
+        return python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name, "--imu-clock", "host",
+                             *(a for tracker, ms in plan.tracker_latency_ms.items()
+                               for a in ("--imu-latency-ms", f"{tracker}={ms:g}")))
     if name in ("drivers-trigno", "drivers-xsens"):
         return driver_argv(plan, name.split("-", 1)[1])
     raise ConfigError("not a process node of msk live's graph", field="node", value=name)
@@ -494,7 +512,8 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
             pids = {n: graph.process(n).pid for n in graph.nodes if graph.process(n)}
             (logs / "pids.json").write_text(json.dumps({**pids, **({"router": router.pid} if router else {})}) + "\n")
             _wait_ready(graph, stopper)
-            facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", "")))
+            facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", ""),
+                                   names=plan.names))
             observer = graph.observer_options()
             info = discovery.SessionInfo(
                 session=s.name, connect=[endpoint], pid=os.getpid(), out=str(out.resolve()), pack=plan.exercise,
@@ -703,9 +722,13 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
         raise ConfigError("method 'assisted' needs EMG: a [trigno] device and an [electrodes] map", path=session.path,
                           field="session.methods", value="assisted")
     profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
-    plan = LivePlan(session, tuple(methods), profile_path, trackers=trackers, exercise=model.name)
-    if sim:
-        simulators = start_simulators(sources)
+    trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
+    plan = LivePlan(session, tuple(methods), profile_path, trackers=trackers, exercise=model.name,
+                    trigno_latency_ms=trigno_latency_ms, tracker_latency_ms=tracker_latency_ms,
+                    names=session_names(session, model.display_names))
+    if sim:  # the simulated devices have the latencies the session states (0 unless it says)
+        simulators = start_simulators(sources, trigno_latency_s=trigno_latency_ms / 1e3,
+                                      xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()})
         plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
         plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
         session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))

@@ -11,20 +11,25 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import ConfigError
 from services import topics
+
+if TYPE_CHECKING:
+    from msk_core.model.names import DisplayNames
 
 METHODS = ("proposed", "assisted", "so", "hybrid")
 SIM_METHODS = ("proposed", "assisted", "so")
 
 _SECTIONS = {
     "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete"},
-    "trigno": {"host", "emg_port", "id"},
-    "xsens": {"ports", "rate_hz", "baud"},
+    "trigno": {"host", "emg_port", "id", "latency_ms"},
+    "xsens": {"ports", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
     "trackers": None,  # free keys: tracker ids
     "electrodes": None,  # free keys: channel labels
+    "names": None,  # free keys: the pack's groups and coordinates (session_names checks them against the pack)
 }
 
 #: The EMG channel labels the Trigno driver publishes (EmgChunk.channel_labels, drivers.trigno.client.TrignoClient
@@ -32,6 +37,27 @@ _SECTIONS = {
 #: NN is the sensor number, two digits. The driver publishes no AUX channel.
 TRIGNO_CHANNEL_FORM = f"sensorNN.EMG, or sensorNN.EMGk for the channels of a multi-channel sensor (NN = 01..{N_SENSORS:02d}, k = 1..{N_SENSORS})"
 _TRIGNO_CHANNEL = re.compile(r"sensor(\d\d)\.EMG([1-9]\d?)?")
+
+
+#: Stated device latencies (docs/devices.md, "Device latency"): what the host clock mappings take off each device's
+#: fastest delivery. The Trigno: Delsys documents frames (13.5 ms of 26 or 27 EMG samples, ``FRAME INTERVAL?``) but
+#: no delivery latency; the mapping already uses each frame's last sample, so the frame adds nothing, and what the
+#: radio, base and Trigno Control Utility add is not known: 0 until measured (state it as ``trigno.latency_ms``).
+TRIGNO_LATENCY_MS = 0.0
+#: An MTi: from a physical event to the message on its output "far below 2 ms" (Xsens MTi User Manual MT0605P,
+#: 5.4 "Communication timing"), then the message's serial transmission (:func:`tracker_latency_ms`).
+MTI_PROCESSING_MS = 2.0
+
+
+def tracker_latency_ms(baud: int, rate_hz: int) -> float:
+    """The default stated latency of an MTi on a serial line: its processing (:data:`MTI_PROCESSING_MS`) plus the
+    transmission of one MTData2 message of the driver's outputs at ``rate_hz`` at ``baud`` (8N1; 7.2 ms at the
+    factory 115200 baud): the host stamps a sample when its message's last byte is in."""
+    from drivers.xsens import xbus
+    from drivers.xsens.device import output_settings
+
+    bits_per_message = xbus.output_bits_per_second(output_settings(rate_hz)) / rate_hz
+    return MTI_PROCESSING_MS + 1e3 * bits_per_message / baud
 
 
 def is_trigno_channel(label: str) -> bool:
@@ -59,9 +85,31 @@ class LiveSession:
     xsens_ports: tuple[str, ...] = ()  # serial ports or "usb"
     imu_rate_hz: int = 100
     xsens_baud: int = 115200
+    trigno_latency_ms: float | None = None  # stated Trigno latency (None: TRIGNO_LATENCY_MS, or the simulator's)
+    xsens_latency_ms: float | None = None  # stated latency of every tracker not named below (None: the default)
+    tracker_latency_ms: dict[str, float] = field(default_factory=dict)  # tracker id -> its stated latency
     trackers: dict[str, str] = field(default_factory=dict)  # tracker id (8 hex digits) -> segment
     electrodes: dict[str, str] = field(default_factory=dict)  # Trigno channel label -> profile electrode or group
+    names: dict[str, object] = field(default_factory=dict)  # [names] as written: group or coordinate -> display name
     given: set[str] = field(default_factory=set)  # dotted keys present in the file
+
+
+def stated_latencies(session: LiveSession, trackers: dict[str, str], *, simulated: bool) -> tuple[float, dict[str, float]]:
+    """(Trigno latency, {tracker id: latency}) in ms as the session states them, each defaulting to the documented
+    value (:data:`TRIGNO_LATENCY_MS`, :func:`tracker_latency_ms` at the session's baud and rate) on real devices, to
+    0 (the simulators' own latency, which the stated one replaces) under ``--sim``. A tracker named in
+    ``xsens.tracker_latency_ms`` that is not one of ``trackers`` is an error (file, key, value)."""
+    for tracker in session.tracker_latency_ms:
+        if tracker not in trackers:
+            raise _error(session.path, f"xsens.tracker_latency_ms.{tracker}",
+                         f"not a tracker of this session ({', '.join(trackers) or 'none'})", tracker)
+    trigno = session.trigno_latency_ms
+    every_tracker = session.xsens_latency_ms
+    if trigno is None:
+        trigno = 0.0 if simulated else TRIGNO_LATENCY_MS
+    if every_tracker is None:
+        every_tracker = 0.0 if simulated else tracker_latency_ms(session.xsens_baud, session.imu_rate_hz)
+    return trigno, {t: session.tracker_latency_ms.get(t, every_tracker) for t in trackers}
 
 
 def _error(path: Path | None, key: str, message: str, value=None) -> ConfigError:
@@ -72,6 +120,13 @@ def _type(path, key, value, kind, what):
     if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
         raise _error(path, key, f"must be {what}", value)
     return value
+
+
+def _latency_ms(path, key, value) -> float:
+    number = _type(path, key, value, (int, float), "a latency in milliseconds")
+    if not (math.isfinite(number) and 0 <= number <= 1000):
+        raise _error(path, key, "must be a latency within 0..1000 ms", number)
+    return float(number)
 
 
 def _int_within(path, key, value, low: int, high: int, what: str, out_of_range: str) -> int:
@@ -135,38 +190,51 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         session.methods = tuple(dict.fromkeys(methods))
     t = doc.get("trigno")
     if t is not None:
-        if "host" not in t:
+        if "host" in t:
+            session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
+        elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
             raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
-        session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
         if "emg_port" in t:
             session.trigno_emg_port = _int_within(path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number",
                                                   "must be a TCP port 1..65535")
         if "id" in t:
             session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
+        if "latency_ms" in t:
+            session.trigno_latency_ms = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
     x = doc.get("xsens")
     if x is not None:
-        if "ports" not in x:
+        if "ports" in x:
+            ports = x["ports"]
+            if isinstance(ports, str):
+                ports = [ports]
+            if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
+                raise _error(path, "xsens.ports", "must be a list of serial ports or \"usb\"", x["ports"])
+            session.xsens_ports = tuple(ports)
+        elif require_devices:
             raise _error(path, "xsens.ports", "missing: the trackers' serial ports, or [\"usb\"]")
-        ports = x["ports"]
-        if isinstance(ports, str):
-            ports = [ports]
-        if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
-            raise _error(path, "xsens.ports", "must be a list of serial ports or \"usb\"", x["ports"])
-        session.xsens_ports = tuple(ports)
         if "rate_hz" in x:
             session.imu_rate_hz = _int_within(path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz",
                                               "must be within 1..2000 Hz")
         if "baud" in x:
             session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
+            if session.xsens_baud <= 0:
+                raise _error(path, "xsens.baud", "must be a positive baud rate", session.xsens_baud)
+        if "latency_ms" in x:
+            session.xsens_latency_ms = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
+        per_tracker = x.get("tracker_latency_ms", {})
+        if not isinstance(per_tracker, dict):
+            raise _error(path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker)
+        for tracker, value in per_tracker.items():
+            key = f"xsens.tracker_latency_ms.{tracker}"
+            session.tracker_latency_ms[_tracker_id(path, key, tracker)] = _latency_ms(path, key, value)
     for tracker, segment in doc.get("trackers", {}).items():
         key = f"trackers.{tracker}"
-        try:
-            int(tracker, 16)
-        except ValueError:
-            raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker) from None
-        if len(tracker) != 8:
-            raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker)
-        session.trackers[tracker.upper()] = _type(path, key, segment, str, "a body segment name")
+        session.trackers[_tracker_id(path, key, tracker)] = _type(path, key, segment, str, "a body segment name")
+    for tracker in session.tracker_latency_ms:
+        if session.trackers and tracker not in session.trackers:
+            raise _error(path, f"xsens.tracker_latency_ms.{tracker}", "not a tracker of [trackers] "
+                         f"({', '.join(session.trackers)})", tracker)
+    session.names = dict(doc.get("names", {}))
     for label, target in doc.get("electrodes", {}).items():
         if not is_trigno_channel(label):
             raise _error(path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label)
@@ -179,6 +247,17 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         if session.trigno_host is not None and not session.electrodes:
             raise _error(path, "electrodes", "missing: the electrode -> group map ([electrodes] \"sensor01.EMG\" = ...)")
     return session
+
+
+def _tracker_id(path: Path | None, key: str, tracker: str) -> str:
+    """A tracker id as the drivers publish it (8 hexadecimal digits, upper case), else an error naming ``key``."""
+    try:
+        int(tracker, 16)
+    except ValueError:
+        raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker) from None
+    if len(tracker) != 8:
+        raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker)
+    return tracker.upper()
 
 
 def _pack(path: Path | None, base: Path, value: str) -> str:
@@ -218,3 +297,12 @@ def check_against_pack(session: LiveSession, groups: list[str], segments: list[s
             raise _error(session.path, f"electrodes.{label}",
                          "neither an electrode of the subject profile "
                          f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack", target)
+
+
+def session_names(session: LiveSession, pack_names: DisplayNames) -> dict[str, str]:
+    """The session file's ``[names]`` (group or coordinate = "display name"), checked against the pack's groups and
+    coordinates (errors name the file, field and value): the names that replace the pack's on every surface."""
+    from msk_core.model.names import parse_names
+
+    return parse_names(session.names, [*pack_names.groups, *pack_names.coordinates], path=session.path,
+                       what="a muscle group or coordinate of the session's pack")
