@@ -1,0 +1,58 @@
+"""The real walk (lowerlimb-walk, pack gait2392) through the offline commands with the committed trial files: the paper's
+protocol, every electrode in calibration (first half) and none at estimation (second half, held out).
+
+Defaults only, nothing tuned to the walk. What is asserted is what was measured to hold (docs/estimation.md, "The
+walk"): proposed well below `so` in activation RMSE, torque R >= 0.95 on hip adduction, hip rotation and ankle and
+>= 0.9 on hip flexion and knee (the issue's 0.95 is not met there), no solver failures.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msk_core.io import read_sto
+from services.cli import main
+
+pytestmark = [pytest.mark.needs_shared, pytest.mark.slow]
+
+WALK_TRIALS = Path(__file__).resolve().parents[1] / "recordings" / "lowerlimb-walk"
+
+
+def _trial(name: str, shared_dir: Path, tmp_path: Path) -> Path:
+    """The committed trial file, or a copy pointing at ``shared_dir`` when the data are not at ../shared."""
+    path = WALK_TRIALS / f"{name}.toml"
+    walk = (shared_dir / "data" / "lowerlimb-walk").resolve()
+    if (WALK_TRIALS / "../../../shared/data/lowerlimb-walk").resolve() == walk:
+        return path
+    copy = tmp_path / path.name
+    copy.write_text(path.read_text().replace("../../../shared/data/lowerlimb-walk", str(walk)))
+    return copy
+
+
+def test_the_papers_protocol_on_the_walk(shared_dir, tmp_path):
+    subject, report = tmp_path / "walk_subject.json", tmp_path / "report"
+    train, held = _trial("walk_train", shared_dir, tmp_path), _trial("walk_holdout", shared_dir, tmp_path)
+    assert main(["calibrate", "--pack", "gait2392", "--trial", str(train), "--out", str(subject)]) == 0
+    calibration = json.loads(subject.read_text())["calibration"]
+    assert calibration["converged"] and calibration["projected_gradient_inf_norm"] < 1e-2
+    assert main(["evaluate", "--pack", "gait2392", "--subject", str(subject), "--trial", str(held),
+                 "--report", str(report)]) == 0
+    scores = {s["method"]: s for s in json.loads((report / "metrics.json").read_text())["scores"]}
+    rmse = {m: s["activation_rmse"]["mean"] for m, s in scores.items()}
+    torque_r = {c: t["r"] for c, t in scores["proposed"]["torque"].items()}
+    print(f"walk, held-out half: activation RMSE {rmse}; proposed torque R {torque_r}")
+    assert rmse["proposed"] < 0.85 * rmse["so"]
+    assert min(torque_r[c] for c in ("hip_adduction_r", "hip_rotation_r", "ankle_angle_r")) >= 0.95
+    assert min(torque_r[c] for c in ("hip_flexion_r", "knee_angle_r")) >= 0.9
+    assert all(not s["flag_counts"].get("solver_failed") for s in scores.values())
+    # msk estimate writes every group of the pack, the 9 measured and the 34 without EMG
+    out = tmp_path / "walk_proposed.sto"
+    assert main(["estimate", "--pack", "gait2392", "--subject", str(subject), "--trial", str(held),
+                 "--method", "proposed", "--out", str(out)]) == 0
+    activations = read_sto(out)
+    assert len(activations.columns) == 43 and "glut_med1_r" in activations.columns
+    assert np.all(np.isfinite(activations.data)) and activations.data.min() >= 0.0
