@@ -35,7 +35,7 @@ import numpy as np
 from msk_core.errors import ConfigError, InputError
 from services import messages, session_graph, topics
 from services.graph import Graph, GraphTimeout, python_module, wait_for, zenoh_flags
-from services.live_session import SIM_METHODS, LiveSession, check_against_pack, stated_latencies
+from services.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.mcap_io import read_messages
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -338,6 +338,7 @@ class LivePlan:
     exercise: str = ""  # the pack's name (session.pack may be a path)
     trigno_latency_ms: float = 0.0  # stated device latencies the clock mappings take off (live_session.stated_latencies)
     tracker_latency_ms: dict[str, float] = field(default_factory=dict)
+    names: dict[str, str] = field(default_factory=dict)  # the session file's display names (over the pack's)
 
 
 def driver_argv(plan: LivePlan, kind: str) -> list[str]:
@@ -375,12 +376,13 @@ class SessionFacts:
     load_kg: float
     set_number: int = 1
     athlete: str = ""
+    names: dict[str, str] = field(default_factory=dict)  # display names the session file gives (LoadEvent.names)
 
     def message(self) -> messages.LoadEvent:
         now = messages.now_ns()  # msk live maps every device clock onto the host clock: its device time is now
         return messages.LoadEvent(barbell_mass_kg=float(self.load_kg), exercise=self.exercise,
-                                  set_number=int(self.set_number), athlete=self.athlete, device_time_ns=now,
-                                  host_time_ns=now)
+                                  set_number=int(self.set_number), athlete=self.athlete, names=self.names,
+                                  device_time_ns=now, host_time_ns=now)
 
 
 def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, stop_event: threading.Event,
@@ -510,7 +512,8 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
             pids = {n: graph.process(n).pid for n in graph.nodes if graph.process(n)}
             (logs / "pids.json").write_text(json.dumps({**pids, **({"router": router.pid} if router else {})}) + "\n")
             _wait_ready(graph, stopper)
-            facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", "")))
+            facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", ""),
+                                   names=plan.names))
             observer = graph.observer_options()
             info = discovery.SessionInfo(
                 session=s.name, connect=[endpoint], pid=os.getpid(), out=str(out.resolve()), pack=plan.exercise,
@@ -721,7 +724,8 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
     profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
     trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
     plan = LivePlan(session, tuple(methods), profile_path, trackers=trackers, exercise=model.name,
-                    trigno_latency_ms=trigno_latency_ms, tracker_latency_ms=tracker_latency_ms)
+                    trigno_latency_ms=trigno_latency_ms, tracker_latency_ms=tracker_latency_ms,
+                    names=session_names(session, model.display_names))
     if sim:  # the simulated devices have the latencies the session states (0 unless it says)
         simulators = start_simulators(sources, trigno_latency_s=trigno_latency_ms / 1e3,
                                       xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()})

@@ -11,10 +11,14 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import ConfigError
 from services import topics
+
+if TYPE_CHECKING:
+    from msk_core.model.names import DisplayNames
 
 METHODS = ("proposed", "assisted", "so", "hybrid")
 SIM_METHODS = ("proposed", "assisted", "so")
@@ -25,6 +29,7 @@ _SECTIONS = {
     "xsens": {"ports", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
     "trackers": None,  # free keys: tracker ids
     "electrodes": None,  # free keys: channel labels
+    "names": None,  # free keys: the pack's groups and coordinates (session_names checks them against the pack)
 }
 
 #: The EMG channel labels the Trigno driver publishes (EmgChunk.channel_labels, drivers.trigno.client.TrignoClient
@@ -85,6 +90,7 @@ class LiveSession:
     tracker_latency_ms: dict[str, float] = field(default_factory=dict)  # tracker id -> its stated latency
     trackers: dict[str, str] = field(default_factory=dict)  # tracker id (8 hex digits) -> segment
     electrodes: dict[str, str] = field(default_factory=dict)  # Trigno channel label -> profile electrode or group
+    names: dict[str, object] = field(default_factory=dict)  # [names] as written: group or coordinate -> display name
     given: set[str] = field(default_factory=set)  # dotted keys present in the file
 
 
@@ -228,6 +234,7 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         if session.trackers and tracker not in session.trackers:
             raise _error(path, f"xsens.tracker_latency_ms.{tracker}", "not a tracker of [trackers] "
                          f"({', '.join(session.trackers)})", tracker)
+    session.names = dict(doc.get("names", {}))
     for label, target in doc.get("electrodes", {}).items():
         if not is_trigno_channel(label):
             raise _error(path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label)
@@ -290,3 +297,12 @@ def check_against_pack(session: LiveSession, groups: list[str], segments: list[s
             raise _error(session.path, f"electrodes.{label}",
                          "neither an electrode of the subject profile "
                          f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack", target)
+
+
+def session_names(session: LiveSession, pack_names: DisplayNames) -> dict[str, str]:
+    """The session file's ``[names]`` (group or coordinate = "display name"), checked against the pack's groups and
+    coordinates (errors name the file, field and value): the names that replace the pack's on every surface."""
+    from msk_core.model.names import parse_names
+
+    return parse_names(session.names, [*pack_names.groups, *pack_names.coordinates], path=session.path,
+                       what="a muscle group or coordinate of the session's pack")

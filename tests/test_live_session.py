@@ -152,6 +152,32 @@ def test_the_athlete_is_parsed_and_checked(tmp_path):
         assert str(path) in message and "field 'session.athlete'" in message, message
 
 
+# ------------------------------------------------------------------------------------------------ [names]
+
+
+def test_the_session_files_names_override_the_packs_and_reach_the_session_facts(tmp_path):
+    from msk_core.model.pack import pack_display_names
+    from services.live import SessionFacts, plan_for
+    from services.live_session import session_names
+
+    names = '\n[names]\nPMCla = "Upper chest"\nelbow_flex_r = "Elbow bend"\n'
+    path = _write(tmp_path, GOOD.replace('load_kg = 60', 'load_kg = 60\nout = "out"') + names)
+    plan, _ = plan_for(load_session_file(path), sim=False, log=lambda *_: None)
+    assert plan.names == {"PMCla": "Upper chest", "elbow_flex_r": "Elbow bend"}
+    event = SessionFacts(exercise=plan.exercise, load_kg=60, names=plan.names).message()
+    assert dict(event.names) == plan.names  # on the wire: every surface shows them
+    bench = pack_display_names("bench_press")
+    for table, field, message in (('PMCl = "Upper chest"', "names.PMCl", "closest: PMCla"),
+                                  ("PMCla = 3", "names.PMCla", "must be a display name"),
+                                  ('PMCla = "Upper\\nchest"', "names.PMCla", "one line of printable text")):
+        path.write_text(GOOD + "\n[names]\n" + table + "\n")
+        with pytest.raises(ConfigError) as error:
+            session_names(load_session_file(path), bench)
+        assert str(path) in str(error.value) and error.value.field == field and message in str(error.value)
+    path.write_text('names = "Upper chest"\n' + GOOD)
+    assert "field 'names'" in _refusal(path)  # a table, not a value
+
+
 # ------------------------------------------------------------------------------------------------ exit code
 
 

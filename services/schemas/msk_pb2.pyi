@@ -97,20 +97,29 @@ class JointAngles(_message.Message):
     def __init__(self, coordinates: _Optional[_Iterable[str]] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., qdd: _Optional[_Iterable[float]] = ..., phase: _Optional[float] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
 
 class LoadEvent(_message.Message):
-    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete")
+    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete", "names")
+    class NamesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: str
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[str] = ...) -> None: ...
     BARBELL_MASS_KG_FIELD_NUMBER: _ClassVar[int]
     EXERCISE_FIELD_NUMBER: _ClassVar[int]
     DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
     HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
     SET_NUMBER_FIELD_NUMBER: _ClassVar[int]
     ATHLETE_FIELD_NUMBER: _ClassVar[int]
+    NAMES_FIELD_NUMBER: _ClassVar[int]
     barbell_mass_kg: float
     exercise: str
     device_time_ns: int
     host_time_ns: int
     set_number: int
     athlete: str
-    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ...) -> None: ...
+    names: _containers.ScalarMap[str, str]
+    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ..., names: _Optional[_Mapping[str, str]] = ...) -> None: ...
 
 class CoordinateTorque(_message.Message):
     __slots__ = ("coordinate", "inverse_dynamics_nm", "model_nm", "residual_nm")
