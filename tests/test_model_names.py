@@ -114,3 +114,13 @@ def test_with_names_refreshes_only_the_names():
     refit = parse_spec(spec.text.replace("samples = 400", "samples = 500"), Path("arm26.toml"))
     with pytest.raises(ModelError, match=r"arm26.toml: differs .* in \[fit\], not only in \[names\]: recompile"):
         with_names(data, refit)
+
+
+def test_the_names_a_surface_shows_for_frames():
+    from msk_core.model.pack import names_for
+
+    assert names_for("bench_press", ["TriLat", "BRA"]).group("BRA") == "Brachialis"
+    assert names_for("bench_press", ["TriLat"], {"TriLat": "Triceps"}).group("TriLat") == "Triceps"
+    # frames of another pack, or of a pack that is not shipped: their model names
+    assert names_for("deadlift", ["TriLat"]).group("TriLat") == "TriLat"
+    assert names_for("my_pack", ["A"]).groups == {"A": "A"} and names_for("", ["A"]).missing == ("A",)

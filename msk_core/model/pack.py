@@ -11,14 +11,15 @@ import enum
 import functools
 import json
 import tomllib
+from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from msk_core.errors import FileFormatError, ModelError
-from msk_core.model.names import ROTATION_UNIT, DisplayNames, parse_names
+from msk_core.errors import ConfigError, FileFormatError, ModelError
+from msk_core.model.names import ROTATION_UNIT, DisplayNames, fallback_names, parse_names
 from msk_core.model.poly import FeatureEvaluator, derivative_matrix
 from msk_core.model.rigid import RigidModel, compiled_kernels
 
@@ -397,6 +398,19 @@ def names_of(data: dict, path: Path | None = None) -> DisplayNames:
 def pack_display_names(name_or_path: str | Path) -> DisplayNames:
     """:func:`names_of` a shipped pack or a pack file without building the pack (what a view or page needs)."""
     return names_of(*_read_pack(name_or_path))
+
+
+def names_for(exercise: str, groups: Sequence[str] = (), overrides: Mapping[str, str] | None = None) -> DisplayNames:
+    """The display names a surface shows for frames of ``exercise`` (a shipped pack's name) with ``groups``: the
+    pack's names with a session's ``overrides`` (``LoadEvent.names``) in place; the model names when the exercise
+    names no shipped pack or the groups are not all the pack's (frames of another pack)."""
+    try:
+        names = pack_display_names(exercise) if exercise in available_packs() else None
+    except (ModelError, FileFormatError, ConfigError):  # a broken pack file: its frames still show, by model name
+        names = None
+    if names is None or not set(groups) <= set(names.groups):
+        names = fallback_names(groups)
+    return names.with_overrides(overrides or {})
 
 
 def with_names(data: dict, spec: PackSpec) -> dict:

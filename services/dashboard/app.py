@@ -77,7 +77,8 @@ def create_app(config: DashboardConfig, state: DashboardState, *, on_startup=(),
         if name not in pack_index.values():
             return Response(f"no shipped model pack {name!r}", status_code=404, media_type="text/plain")
         if name not in svg_cache:
-            svg_cache[name] = bodymap.place_groups(load_pack(name)).svg()
+            pack = load_pack(name)
+            svg_cache[name] = bodymap.place_groups(pack).svg(names=pack.display_names.groups)
         return Response(svg_cache[name], media_type="image/svg+xml")
 
     async def frames(websocket: WebSocket):

@@ -131,8 +131,9 @@ class BodyMap:
     placements: list[Placement] = field(default_factory=list)
     unmapped: list[str] = field(default_factory=list)
 
-    def svg(self, *, fills: dict[str, str] | None = None, width: int | None = None) -> str:
-        return render_svg(self, fills=fills, width=width)
+    def svg(self, *, fills: dict[str, str] | None = None, width: int | None = None,
+            names: dict[str, str] | None = None) -> str:
+        return render_svg(self, fills=fills, width=width, names=names)
 
 
 def place_groups(pack) -> BodyMap:
@@ -198,9 +199,12 @@ def _silhouette(offset_x: float) -> list[str]:
     return parts
 
 
-def render_svg(body: BodyMap, *, fills: dict[str, str] | None = None, width: int | None = None) -> str:
-    """Both views side by side; each muscle shape has ``class="muscle"`` and ``data-group``; ``fills`` colours them."""
-    fills = fills or {}
+def render_svg(body: BodyMap, *, fills: dict[str, str] | None = None, width: int | None = None,
+               names: dict[str, str] | None = None) -> str:
+    """Both views side by side; each muscle shape has ``class="muscle"`` and ``data-group``; ``fills`` colours them;
+    its tooltip names the group and side ("Brachialis (right)") by ``names`` (display names, msk_core.model.names),
+    else by its model name and region ("BRA (brachialis, right)")."""
+    fills, names = fills or {}, names or {}
     # The figures span x = 30..170 of each view: the margins outside them are cut off.
     left, total_w = 26, 2 * VIEW_WIDTH + 20 - 52
     size = f' width="{width}" height="{round(width * (VIEW_HEIGHT + 24) / total_w)}"' if width else ""
@@ -230,8 +234,10 @@ def render_svg(body: BodyMap, *, fills: dict[str, str] | None = None, width: int
             fill = fills.get(group, "#b8bec7")
             attrs = (f'class="muscle" data-group="{escape(group)}" data-side="{side}" fill="{fill}" stroke="#5b6470" '
                      f'stroke-width="0.8"{clip}')
+            side_word = "right" if side == "r" else "left"
+            title = f"{names[group]} ({side_word})" if group in names else f"{group} ({region.label}, {side_word})"
             shapes.append(
-                f'<g><title>{escape(group)} ({region.label}, {"right" if side == "r" else "left"})</title>'
+                f"<g><title>{escape(title)}</title>"
                 + _ellipse(cx, region.cy, region.rx, region.ry, tilt, attrs) + "</g>"
             )
     out.append("</defs>")

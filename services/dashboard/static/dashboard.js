@@ -79,6 +79,23 @@ function merge(update) {
   }
 }
 
+// Display names (the session entry: the pack's, or the session file's [names]); the model name where none is known.
+function groupName(group) {
+  const names = state.session && state.session.names;
+  return (names && names.groups[group]) || group;
+}
+function coordinateName(coordinate) {
+  const names = state.session && state.session.names;
+  const entry = names && names.coordinates[coordinate];
+  return { name: entry ? entry.name : coordinate, torqueUnit: entry && entry.torque_unit ? entry.torque_unit : "N·m" };
+}
+// A bar label: the display name, on two lines at its comma where there is room for them (Chart.js takes an array).
+function barLabel(group, count) {
+  const name = groupName(group);
+  const comma = name.indexOf(", ");
+  return count <= 20 && comma > 0 ? [name.slice(0, comma + 1), name.slice(comma + 2)] : name;
+}
+
 function recordTorques(method, frame) {
   const byCoordinate = (state.torqueHistory[method] = state.torqueHistory[method] || {});
   for (const t of frame.torques) {
@@ -169,7 +186,7 @@ document.getElementById("method").addEventListener("change", (event) => {
 });
 
 function renderBars(frame) {
-  const labels = frame.groups;
+  const labels = frame.groups.map((g) => barLabel(g, frame.groups.length));
   const a = frame.activations.map((v) => (v === null ? 0 : v));
   const uncertainty = frame.std.length === labels.length
     ? frame.std.map((s, i) => (s === null ? null : [Math.max(0, a[i] - s), Math.min(1, a[i] + s)])) : labels.map(() => null);
@@ -221,7 +238,7 @@ function renderBodyMap(frame) {
       box.innerHTML = svg;
       const mapped = new Set([...box.querySelectorAll(".muscle")].map((e) => e.dataset.group));
       const missing = frame.groups.filter((g) => !mapped.has(g));
-      document.getElementById("unmapped").textContent = missing.length ? `not on the map: ${missing.join(", ")}` : "";
+      document.getElementById("unmapped").textContent = missing.length ? `not on the map: ${missing.map(groupName).join(", ")}` : "";
       scheduleRender();
     });
   }
@@ -239,7 +256,7 @@ function renderTorques(method) {
     let chart = charts.torques[coordinate];
     if (!chart) {
       const wrap = document.createElement("div");
-      wrap.innerHTML = `<div class="torque-title">${coordinate}</div><div class="torque"><canvas></canvas></div>`;
+      wrap.innerHTML = `<div class="torque-title"></div><div class="torque"><canvas></canvas></div>`;
       box.appendChild(wrap);
       chart = charts.torques[coordinate] = new Chart(wrap.querySelector("canvas"), {
         type: "line",
@@ -255,6 +272,10 @@ function renderTorques(method) {
       });
       chart.wrap = wrap;
     }
+    const { name, torqueUnit } = coordinateName(coordinate); // names may come after the chart was made
+    const title = `${name} (${torqueUnit})`;
+    const titleBox = chart.wrap.querySelector(".torque-title");
+    if (titleBox.textContent !== title) titleBox.textContent = title;
     const latest = h.t.length ? h.t[h.t.length - 1] : 0; // x: seconds before the newest frame
     chart.data.datasets[0].data = h.t.map((t, i) => ({ x: t - latest, y: h.id[i] }));
     chart.data.datasets[1].data = h.t.map((t, i) => ({ x: t - latest, y: h.model[i] }));
