@@ -7,7 +7,8 @@ by content, not by any clock: the recorded raw EMG (``msk.EmgChunk``) is, sample
 EMG from some trial sample on (bit for bit), and each tracker's recorded ``msk.ImuSample`` quaternions are its trial
 orientations from some trial sample on. So the recording itself says which trial instant each EMG sample and each
 IMU sample is, whatever the devices' clocks; the frame's trial instant is that of the IMU samples the kinematics
-node's own mapping (per tracker: device time + smallest host-minus-device time so far) puts at the frame's time.
+node's own mapping (per tracker: device time + smallest host-minus-device time over the last 5 s) puts at the frame's
+time.
 
 The offline envelope is the causal chain of ``msk emg envelope`` (``msk_core.emg.envelope_causal``: 20-450 Hz
 band-pass, rectification, 6 Hz 3rd-order low-pass), MVC-normalised and averaged per group as the subject profile of
@@ -40,6 +41,7 @@ from drivers.xsens.xbus import CoordinateFrame
 from msk_core.emg import EmgFilterConfig, envelope_causal
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.signal.host_clock import windowed_offsets
 from services.live import RECORDINGS, sim_sources
 from services.mcap_io import read_messages
 
@@ -159,7 +161,7 @@ def frame_trial_instants(frames_ns: np.ndarray, trackers: dict[str, Stream]) -> 
     trackers of the trial time of the sample the node's mapping puts there) and the trackers' spread."""
     per_tracker = []
     for tracker, s in trackers.items():
-        mapped = s.device_ns + np.minimum.accumulate(s.host_ns - s.device_ns)  # the kinematics node's --imu-clock host
+        mapped = s.device_ns + windowed_offsets(s.device_ns, s.host_ns)  # the kinematics node's --imu-clock host
         nearest = np.argmin(np.abs(mapped[None, :] - frames_ns[:, None]), axis=1)
         distance_s = np.abs(mapped[nearest] - frames_ns) / 1e9
         assert distance_s.max() <= 0.008, f"tracker {tracker}: a frame {distance_s.max() * 1e3:.1f} ms from its samples"
