@@ -1,9 +1,11 @@
 """Live terminal view of a session (``msk view``), drawn with ``rich``.
 
-Per muscle group: the estimated activation as a bar with its uncertainty (+- one Laplace std) and, where an electrode
-is, the measured EMG envelope beside it; torque tracking per joint (inverse dynamics vs muscle model); repetition
-counter and phase; exercise, load and set (the operator's ``LoadEvent``; the exercise else from the frames); device
-health (connected, samples received and lost, estimator latency); the inputs the view dropped as unusable.
+Per muscle group, by its display name (the pack's, or the session file's ``[names]`` carried by ``LoadEvent.names``;
+the model names with a legend when the terminal is too narrow): the estimated activation in % as a bar with its
+uncertainty (+- one Laplace std) and, where an electrode is, the measured EMG envelope in % beside it; torque tracking
+per joint (inverse dynamics vs muscle model, with the joint's unit); repetition counter and phase; the time in the
+set; exercise, load and set (the operator's ``LoadEvent``; the exercise else from the frames); device health
+(connected, samples received and lost, estimator latency); the inputs the view dropped as unusable.
 
 Inputs come through :class:`services.node_runtime.NodeInputs` (a malformed message is dropped and counted, never shown
 and never fatal); the view's thread takes them in order and overwrites one slot per topic, and the screen is redrawn
@@ -27,6 +29,8 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from msk_core.model.names import DisplayNames
+from msk_core.model.pack import names_for
 from services import messages, topics
 from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
@@ -34,6 +38,9 @@ from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_sessi
 log = logging.getLogger(__name__)
 
 BAR_WIDTH = 30
+#: A set's start further than this from a frame is not on the frames' clock (a load event of another clock): the
+#: set's time then counts from the frame.
+MAX_SET_S = 6 * 3600.0
 #: How long the view's input thread waits for a message before looking at its stop flag again.
 POLL_S = 0.1
 
@@ -65,6 +72,8 @@ class ViewState:
     received: int = 0
     sets: int = 0  # the operator's set number, else load events with a mass counted
     reps: RepCounter = field(default_factory=RepCounter)  # in the current set
+    names: dict[str, str] = field(default_factory=dict)  # the session's display names (LoadEvent.names), kept
+    set_start_s: float | None = None  # the current set's start on the frames' clock (s)
     inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -77,6 +86,9 @@ class ViewState:
             if kind == "activations":
                 if not self.frames or message.method == next(iter(self.frames)):  # reps from the first method only
                     self.reps.update(message.phase if message.HasField("phase") else None)
+                    start = self.set_start_s
+                    if start is None or abs(message.time_s - start) > MAX_SET_S:  # no start on the frames' clock
+                        self.set_start_s = message.time_s
                 self.frames[message.method] = message
             elif kind == "status":
                 self.status[message.device_id] = message
@@ -91,6 +103,9 @@ class ViewState:
         if (number > 0 and number != self.sets) or (number == 0 and load.barbell_mass_kg > 0):
             self.sets = number if number > 0 else self.sets + 1
             self.reps = RepCounter()
+            self.set_start_s = load.device_time_ns / 1e9 if load.device_time_ns else None
+        if load.names:  # a load event without names (msk load) leaves the session's names in effect
+            self.names = dict(load.names)
         self.load = load
 
 
@@ -109,6 +124,11 @@ def dropped_text(inputs: InputCounts) -> str:
     if not drops:
         return ""
     return f"{sum(d.count for d in drops)} dropped (" + ", ".join(f"{d.key}: {d.reason} {d.count}" for d in drops) + ")"
+
+
+def percent(value: float) -> str:
+    """An activation or normalised envelope in [0, 1] as a whole percentage ("" when not known)."""
+    return f"{100 * value:.0f}" if math.isfinite(value) else ""
 
 
 def bar(value: float, std: float | None, width: int = BAR_WIDTH, marker: float = math.nan) -> Text:
@@ -136,10 +156,31 @@ def bar(value: float, std: float | None, width: int = BAR_WIDTH, marker: float =
     return text
 
 
-def render(state: ViewState, session: str, primary: str | None = None) -> Group:
+def set_time_text(set_number: int, start_s: float | None, time_s: float) -> str:
+    """``12.3 s in set 2``: the frame's time from its set's start (from the first frame when no set is counted)."""
+    if start_s is None:
+        return "time in set unknown"
+    return f"{time_s - start_s:.1f} s " + (f"in set {set_number}" if set_number else "since the first frame")
+
+
+def muscle_labels(names: DisplayNames, groups: list[str], methods: int, width: int | None) -> tuple[list[str], str]:
+    """The group labels of the muscle table: display names, or the model names (abbreviations) when the table would
+    not fit ``width`` columns with them, and then the legend that explains them."""
+    full = [names.group(g) for g in groups]
+    # label, bar, activation % and EMG envelope % columns, one per other method; rich draws 3 characters per column
+    needed = max(map(len, full), default=0) + BAR_WIDTH + len("activation %") + len("EMG envelope %") \
+        + 10 * max(methods - 1, 0) + 3 * (3 + methods) + 1
+    if width is None or needed <= width or full == groups:
+        return full, ""
+    return list(groups), names.legend(groups)
+
+
+def render(state: ViewState, session: str, primary: str | None = None, width: int | None = None) -> Group:
+    """The screen; ``width`` (the terminal's columns) decides whether muscles show by display name or abbreviation."""
     with state.lock:
         frames = dict(state.frames)
         status = dict(state.status)
+        overrides, set_start_s = dict(state.names), state.set_start_s
         load, received, reps, sets = state.load, state.received, state.reps.reps, state.sets
     methods = list(frames)
     method = primary if primary in frames else (methods[0] if methods else None)
@@ -150,36 +191,43 @@ def render(state: ViewState, session: str, primary: str | None = None) -> Group:
                      Text("waiting for activations on " + f"msk/{session}/activations/* ..."))
     frame = frames[method]
     groups = list(frame.groups)
+    exercise = frame.exercise or (load.exercise if load is not None else "")  # the names of the frame's pack
+    names = names_for(exercise, groups, overrides)
+    labels, legend = muscle_labels(names, groups, len(methods), width)
     std = list(frame.activation_std) if len(frame.activation_std) == len(groups) else [None] * len(groups)
     envelope = list(frame.measured_envelope) if len(frame.measured_envelope) == len(groups) else [math.nan] * len(groups)
     muscles = Table(title=f"activations · {method} (█ estimate, ░ ±1 sd, ┃ EMG envelope)", expand=False)
-    muscles.add_column("group")
+    muscles.add_column("muscle")
     muscles.add_column("estimate")
-    muscles.add_column("a", justify="right")
-    muscles.add_column("EMG", justify="right")
+    muscles.add_column("activation %", justify="right")
+    muscles.add_column("EMG envelope %", justify="right")
     for other in methods:
         if other != method:
-            muscles.add_column(other, justify="right")
+            muscles.add_column(f"{other} %", justify="right")
     for i, g in enumerate(groups):
         a = frame.activations[i] if i < len(frame.activations) else math.nan
         env = envelope[i]
-        row = [g, bar(a, std[i], marker=env), f"{a:.2f}", "" if not math.isfinite(env) else f"{env:.2f}"]
+        row = [Text(labels[i]), bar(a, std[i], marker=env), percent(a), percent(env)]
         for other in methods:
             if other != method:
                 of = frames[other]
-                row.append(f"{of.activations[list(of.groups).index(g)]:.2f}" if g in of.groups else "")
+                row.append(percent(of.activations[list(of.groups).index(g)]) if g in of.groups else "")
         muscles.add_row(*row)
-    torques = Table(title="torque tracking (N·m)")
-    for column in ("joint", "inverse dynamics", "muscles", "residual"):
-        torques.add_column(column, justify="right" if column != "joint" else "left")
+    torques = Table(title="torque tracking")
+    for column in ("joint", "inverse dynamics", "muscles", "residual", "unit"):
+        torques.add_column(column, justify="right" if column not in ("joint", "unit") else "left")
     for c in frame.torques:
-        torques.add_row(c.coordinate, f"{c.inverse_dynamics_nm:.1f}", f"{c.model_nm:.1f}", f"{c.residual_nm:.1f}")
+        torques.add_row(Text(names.coordinate(c.coordinate)), f"{c.inverse_dynamics_nm:.1f}", f"{c.model_nm:.1f}",
+                        f"{c.residual_nm:.1f}", names.torque_unit(c.coordinate) or "N·m")  # *_nm fields: N·m
+    if legend:
+        muscles.caption, muscles.caption_justify = legend, "left"
     phase = frame.phase if frame.HasField("phase") else None
     phase_text = "unknown" if phase is None else ("rest" if phase < 0 else f"{phase:.2f}")
     latency_ms = (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
     session_line = Text(
         session_facts(load, frame, sets) + f" · rep {reps} · phase {phase_text}"
-        + f" · t {frame.time_s:.2f} s · latency {latency_ms:.2f} ms · solver {frame.solver_status}"
+        + f" · {set_time_text(sets, set_start_s, frame.time_s)} · latency {latency_ms:.2f} ms"
+        + f" · solver {frame.solver_status}"
         + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
     )
     devices = {name: s for name, s in status.items() if s.kind != "node"}
@@ -220,7 +268,7 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
             with Live(render(state, session, method), console=console, refresh_per_second=refresh_hz,
                       screen=False, transient=False) as live:
                 while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
-                    live.update(Panel(render(state, session, method)))
+                    live.update(Panel(render(state, session, method, width=live.console.width - 4)))  # the panel
                     stop_event.wait(1.0 / refresh_hz)
         finally:
             taking.set()

@@ -42,7 +42,9 @@ def test_state_keeps_only_the_newest_frame_per_topic():
         state.on_message(PREFIX + "activations/so", activation_frame("so", [i / 50, 0.5], t=i))
     seq, update = state.changes(seq0)
     # no joint angles with a phase: the reps follow the first method's frames (phase unset here: unknown)
-    assert sorted(update["topics"]) == ["activations/so", "reps"] and update["topics"]["reps"]["phase"] is None
+    # and the session entry: the names of the frames' groups
+    assert sorted(update["topics"]) == ["activations/so", "reps", "session"]
+    assert update["topics"]["reps"]["phase"] is None
     frame = update["topics"]["activations/so"]
     assert frame["time_s"] == 49 and frame["activations"] == [0.98, 0.5]
     assert frame["std"] == [0.1, None]  # NaN -> null: the page gets valid JSON
@@ -226,13 +228,15 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     state = DashboardState("t")
     state.on_message(PREFIX + "activations/so", activation_frame("so", [0.1, 0.2], t=1, exercise="bench_press"))
     facts = state.changes(0)[1]["topics"]["session"]
+    assert facts.pop("names")["groups"] == {"A": "A", "B": "B"}  # not the groups of the pack: by their model names
     assert facts == {"exercise": "bench_press", "load_kg": None, "athlete": None}  # no load event yet: the frames'
     for p in (-1.0, 0.2, 0.8, -1.0):
         state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
     seq, _ = state.changes(0)
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
     update = state.changes(seq)[1]["topics"]
-    assert update["session"] == {"exercise": "bench_press", "load_kg": 60, "athlete": "Ana"}
+    assert update["session"] | {"names": None} == {"exercise": "bench_press", "load_kg": 60, "athlete": "Ana",
+                                                   "names": None}
     assert update["reps"]["set"] == 2 and update["reps"]["in_set"] == 0
     for p in (0.2, 0.8, -1.0):
         state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
@@ -242,6 +246,31 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     assert topics_now["reps"]["set"] == 2 and topics_now["reps"]["in_set"] == 1 and topics_now["session"]["load_kg"] == 62.5
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, athlete="Ana"))
     assert state.changes(0)[1]["topics"]["reps"] | {"phase": None} == {"in_set": 0, "total": 2, "set": 3, "phase": None}
+
+
+def test_display_names_of_the_frames_pack_and_the_sessions_reach_the_page():
+    state = DashboardState("t")
+    groups = list(load_pack("bench_press").groups)
+    frame = messages.ActivationFrame(time_s=1.0, method="so", groups=groups, activations=[0.1] * len(groups),
+                                     exercise="bench_press")
+    state.on_message(PREFIX + "activations/so", frame)
+    names = state.changes(0)[1]["topics"]["session"]["names"]
+    assert names["groups"]["TriLat"] == "Triceps brachii, lateral and medial heads" and list(names["groups"]) == groups
+    assert names["coordinates"]["elv_angle_r"] == {"name": "Shoulder flexion", "unit": "deg", "torque_unit": "N·m"}
+    # the session file's names (msk live's first load event) replace the pack's and stay through an operator's event
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
+                                                         names={"PMCla": "Upper chest"}))
+    seq, update = state.changes(0)
+    assert update["topics"]["session"]["names"]["groups"]["PMCla"] == "Upper chest"
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2))
+    names = state.changes(seq)[1]["topics"]["session"]["names"]
+    assert names["groups"]["PMCla"] == "Upper chest" and names["groups"]["BRA"] == "Brachialis"
+    # the body map's tooltips name the groups
+    svg = bodymap.place_groups(load_pack("bench_press")).svg(names=load_pack("bench_press").display_names.groups)
+    titles = [e.text for e in ET.fromstring(svg).iter("{http://www.w3.org/2000/svg}title")]
+    assert "Pectoralis major, clavicular part (right)" in titles, titles
+    assert "PMCla (pectoralis major, clavicular, right)" in ET.tostring(ET.fromstring(bodymap.place_groups(
+        load_pack("bench_press")).svg()), encoding="unicode")  # without names: model name and region
 
 
 def test_node_statuses_are_nodes_with_their_dropped_inputs_not_devices():
@@ -288,7 +317,8 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
         bridge.stop()
     update = state.changes(0)[1]
     assert update["topics"]["activations/so"]["activations"] == [0.25, 0.5]
-    assert update["topics"]["session"] == {"exercise": "deadlift", "load_kg": 80, "athlete": None}
+    session = update["topics"]["session"]
+    assert session | {"names": None} == {"exercise": "deadlift", "load_kg": 80, "athlete": None, "names": None}
     assert update["devices"]["trigno"]["connected"] is True
     node = update["nodes"]["dashboard"]
     assert {(key, reason): n for key, reason, n in node["drops"]} == inputs.expected

@@ -30,6 +30,8 @@ PROBE = """() => {
     frame: s.method && s.activations[s.method] ? s.activations[s.method].activations : null,
     fills: [...document.querySelectorAll('#bodymap .muscle')].map(e => e.getAttribute('fill')),
     torqueCharts: Object.keys(c.torques),
+    labels: c.bars ? c.bars.data.labels.map((l) => (Array.isArray(l) ? l.join(' ') : l)) : [],
+    torqueTitles: [...document.querySelectorAll('#torques .torque-title')].map((e) => e.textContent),
     devices: Object.keys(s.devices),
     updates: s.updates, dataAge: s.dataAge,
   };
@@ -87,6 +89,10 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             first = wait_for(page, lambda p: p["status"] == "live" and p["bars"] and p["fills"], 15, "live frames")
             assert first["reps"] == "0" and first["set"] == "1"
             assert set(first["torqueCharts"]) == {"elv_angle_r", "elbow_flex_r"}
+            # muscles and joints by their display names, torques with their unit
+            named = wait_for(page, lambda p: "Biceps brachii, long head" in p["labels"], 5, "display names on the bars")
+            assert "Triceps brachii, lateral and medial heads" in named["labels"] and "BicLong" not in named["labels"]
+            assert sorted(named["torqueTitles"]) == ["Elbow flexion (N·m)", "Shoulder flexion (N·m)"]
             # every tracker under its own id (ImuSample.tracker_id), the Trigno base under its source id
             wait_for(page, lambda p: {"trigno-synth", "00B4EB80", "00B497B2"} <= set(p["devices"]), 10, "a row per device")
             assert "xsens" not in page.evaluate(PROBE)["devices"]
@@ -242,7 +248,8 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
             bad.wait_matched(BAD_INPUT_TOPICS)
             bad.publish_every_kind()
             load = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
-            publish(load, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
+            publish(load, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana",
+                                             names={"PMCla": "Upper chest"}))  # the session file's name
             node = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
             publish(node, messages.DeviceStatus(device_id="estimator", kind="node", connected=True, samples_received=50,
                                                 dropped=[messages.InputDrop(key=f"msk/{session}/joints", reason="invalid", count=2)]))
@@ -254,6 +261,8 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
                 assert sorted(rows) == ["00B497B2", "00B4EB80", "trigno"] and {r[0] for r in rows.values()} == {"delivering"}
                 assert [page.inner_text(f"#{k}") for k in ("exercise", "load", "set")] == ["bench press", "60.0 kg", "2"]
                 assert "Ana" in page.inner_text("#athlete")
+                labels = page.evaluate(PROBE)["labels"]
+                assert "Upper chest" in labels and "Brachialis" in labels and "PMCla" not in labels, labels
                 page.wait_for_function("() => document.querySelector('#nodes tr[data-node=\"dashboard\"] td:nth-child(4)').textContent === '5'",
                                        timeout=10000)
                 assert page.inner_text('#nodes tr[data-node="estimator"]').split("\t")[1:] == ["running", "50", "2"]

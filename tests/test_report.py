@@ -90,7 +90,11 @@ def test_report_renders_in_chromium(demo_report):
         assert images and all(width > 100 for _, width in images), images
         assert page.locator("section.set").count() == 4
         assert page.locator("section.set svg.bodymap .muscle").count() > 20
-        assert "Agonist / antagonist balance" in page.inner_text("body") and "Methods compared" in page.inner_text("body")
+        text = page.inner_text("body")
+        assert "Agonist / antagonist balance" in text and "Methods compared" in text
+        # muscles and joints by their display names; the model names only where the method plot needs them, explained
+        assert "Triceps brachii, lateral and medial heads" in text and "Lumbar extension, per level" in text
+        assert "Abbreviations: BRA: Brachialis · BRD: Brachioradialis" in text
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "report.png"), full_page=False)
         browser.close()
@@ -146,9 +150,10 @@ def test_reps_without_any_phase_come_from_msk_core_rep_detection():
     assert len(reps) == 3 and all(1.0 < b - a < 6.0 for a, b in reps)
 
 
-def write_small_session(path, *, loads: list, start_ns: int = 1_773_480_600_000_000_000) -> None:
-    """Two sets of three reps (phase of the joint angles), frames of the bench press with ``exercise`` set, and the
-    given load events as (seconds after the start, LoadEvent)."""
+def write_small_session(path, *, loads: list, start_ns: int = 1_773_480_600_000_000_000,
+                        groups: tuple[str, str] = ("A", "B")) -> None:
+    """Two sets of three reps (phase of the joint angles), frames of the bench press with ``exercise`` set (two
+    ``groups``), and the given load events as (seconds after the start, LoadEvent)."""
     from services import messages
 
     with McapRecorderWriter(path) as writer:
@@ -170,7 +175,7 @@ def write_small_session(path, *, loads: list, start_ns: int = 1_773_480_600_000_
             joints = messages.JointAngles(coordinates=["elbow_flex_r"], q=[1.0], phase=phase,
                                           device_time_ns=start_ns + int(t_s * 1e9))
             write(joints, t_s, "joints")
-            frame = messages.ActivationFrame(time_s=start_ns / 1e9 + t_s, method="so", groups=["A", "B"],
+            frame = messages.ActivationFrame(time_s=start_ns / 1e9 + t_s, method="so", groups=list(groups),
                                              activations=[0.5 + 0.4 * max(phase, 0.0), 0.1], exercise="bench_press")
             write(frame, t_s, "activations/so")
 
@@ -208,3 +213,22 @@ def test_report_without_load_events_takes_the_exercise_of_the_frames(tmp_path):
     assert summary["athlete"] is None and summary["exercises"] == ["bench_press"] and summary["loads_kg"] == []
     header = (tmp_path / "out" / "report.html").read_text().split("</header>")[0]
     assert "athlete not named" in header and "bench press · load unknown" in header and "exercise 0 kg" not in header
+
+
+def test_report_names_muscles_by_their_display_names_and_the_sessions(tmp_path):
+    from services import messages
+
+    recording = tmp_path / "session.mcap"
+    write_small_session(recording, groups=("TriLat", "PMCla"), loads=[
+        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
+                                 names={"PMCla": "Upper chest"})),  # the session file's name, from msk live
+        (10.0, messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=2)),  # msk load: names stay
+    ])
+    summary = report.write_report(recording, tmp_path / "out")
+    for s in summary["sets"]:
+        assert s["names"]["groups"]["TriLat"] == "Triceps brachii, lateral and medial heads"
+        assert s["names"]["groups"]["PMCla"] == "Upper chest"
+    page = (tmp_path / "out" / "report.html").read_text()
+    rows = [row.split("</td>")[0] for row in page.split("<tr><td>")[1:]]
+    assert rows.count("Triceps brachii, lateral and medial heads") == rows.count("Upper chest") == 2  # one per set
+    assert "TriLat" not in rows and "PMCla" not in rows

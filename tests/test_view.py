@@ -1,5 +1,6 @@
 """`msk view` driven in a real pseudo-terminal (tmux) while the demo session is replayed through an estimator node:
-the screen shows bars, torques, load, rep/phase and device health, and ends on the newest frame (not a queue)."""
+the screen shows bars, torques, load, rep/phase and device health, muscles and joints by their display names with
+units, the time in the set, and ends on the newest frame (not a queue)."""
 
 from __future__ import annotations
 
@@ -44,35 +45,47 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
                                                      samples_received=123456, samples_lost=27))
                 lock = threading.Lock()
 
+                set_start: list[float] = []  # device times of the load events that start a set (a mass)
+
                 def keep_last(sample):
                     frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
                     with lock:
                         last[frame.method] = frame
 
+                def keep_set_start(sample):
+                    load = messages.decode("msk.LoadEvent", sample.payload.to_bytes())
+                    if load.barbell_mass_kg > 0:
+                        set_start.append(load.device_time_ns / 1e9)
+
                 sub = zsession.declare_subscriber(f"msk/{SESSION}/activations/*", keep_last)
+                loads = zsession.declare_subscriber(topics.load_key(SESSION), keep_set_start)
                 stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), repo_root / "recordings" / "demo_session.mcap",
                                       rate=None, session_name=SESSION,
                                       exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"))
                 assert stats.published > 5000
                 est = graph._threads[0]  # noqa: SLF001 - the node's thread is idle once its inbox is empty
 
-                def settled() -> bool:
+                def settled() -> bool:  # the newest frame's time from its set's start
                     with lock:
                         frame = last.get("so")
-                    return frame is not None and f"t {frame.time_s:.2f} s" in capture(name)
+                    return frame is not None and bool(set_start) \
+                        and f"{frame.time_s - set_start[-1]:.1f} s in set " in capture(name)
 
                 # the screen reaches the newest frame soon after the estimator does: it never replays a backlog
                 wait_for("the view to show the newest frame", settled,
                          lambda: f"newest so frame t={last.get('so').time_s if 'so' in last else None}; screen:\n"
                          + capture(name), 120)
                 sub.undeclare()
+                loads.undeclare()
             screen = capture(name)
         finally:
             subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
     assert est.error == []
-    for expected in ("activations · so", "BicLong", "TriLong", "hybrid", "torque tracking", "elbow_flex_r",
+    for expected in ("activations · so", "Biceps brachii, long head", "Triceps brachii, long head", "hybrid %",
+                     "activation %", "EMG envelope %", "torque tracking", "Elbow flexion", "Shoulder flexion", "N·m",
                      "inverse dynamics", "trigno-test", "123456", "27", "load ", " kg", "rep ", "phase "):
         assert expected in screen, (expected, screen)
+    assert "BicLong" not in screen and "elbow_flex_r" not in screen  # 160 columns: no abbreviation needed
     assert "█" in screen or "▓" in screen
 
 
@@ -86,14 +99,47 @@ def test_render_without_frames_and_rep_counter():
     assert reps.reps == 3
 
 
-def screen_text(state: ViewState, session: str = "s") -> str:
+def screen_text(state: ViewState, session: str = "s", width: int = 200) -> str:
     from io import StringIO
 
     from rich.console import Console
 
-    console = Console(file=StringIO(), width=200, color_system=None)
-    console.print(render(state, session))
+    console = Console(file=StringIO(), width=width, color_system=None)
+    console.print(render(state, session, width=width))
     return console.file.getvalue()
+
+
+def test_display_names_units_and_the_time_in_the_set():
+    state = ViewState()
+    torque = messages.CoordinateTorque(coordinate="elbow_flex_r", inverse_dynamics_nm=12.5, model_nm=12.0,
+                                       residual_nm=0.5)
+    groups = ["TriLat", "PMCla"]
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
+                                                      device_time_ns=100_000_000_000))
+    state.on_message("msk/s/activations/so", messages.ActivationFrame(
+        method="so", time_s=112.34, groups=groups, activations=[0.42, 0.071], measured_envelope=[0.38, float("nan")],
+        torques=[torque], exercise="bench_press"))
+    text = screen_text(state)
+    for expected in ("muscle", "activation %", "EMG envelope %", "Triceps brachii, lateral and medial heads",
+                     "Pectoralis major, clavicular part", " 42 ", " 38 ", " 7 ", "Elbow flexion", "12.5", "N·m",
+                     "12.3 s in set 1"):
+        assert expected in text, (expected, text)
+    assert "TriLat" not in text and "elbow_flex_r" not in text and "1795" not in text
+    # too narrow for the display names: the model names, explained by a legend
+    narrow = screen_text(state, width=80)
+    assert "│ TriLat " in narrow and "TriLat: Triceps brachii, lateral and medial heads" in narrow.replace("\n", " ")
+    # the session file's names (LoadEvent.names) replace the pack's, and stay when a later event carries none
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
+                                                      names={"PMCla": "Upper chest", "elbow_flex_r": "Elbow"}))
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=1))
+    text = screen_text(state)
+    assert "Upper chest" in text and "Elbow " in text and "Pectoralis major" not in text
+    assert "Triceps brachii, lateral and medial heads" in text
+    # frames of a pack the view does not know: their model names
+    state.on_message("msk/s/activations/so", messages.ActivationFrame(
+        method="so", time_s=113.0, groups=["X1"], activations=[0.5], exercise="my_pack"))
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="my_pack", set_number=2))
+    assert "│ X1 " in screen_text(state)
 
 
 def frame(exercise: str = "bench_press") -> messages.ActivationFrame:

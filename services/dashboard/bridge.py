@@ -13,6 +13,10 @@ Topics (``msk/<session>/...``): ``activations/<method>``, ``joints``, ``load``, 
 not forwarded). Each device is one row under its own id, the one its ``DeviceStatus`` uses: the Trigno base by
 ``EmgChunk.source_id``, each Xsens tracker by ``ImuSample.tracker_id``. A ``DeviceStatus`` of kind ``node`` is a
 node's own status (its dropped inputs), shown apart from the devices.
+
+The page's header comes from the ``session`` entry: exercise, load and athlete, and the display names of the frames'
+muscle groups and joints with their units (the pack's, with the session file's ``[names]`` that ``LoadEvent.names``
+carries; msk_core.model.names).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import zenoh
 from google.protobuf import json_format
 from google.protobuf.message import Message
 
+from msk_core.model.pack import names_for
 from services import messages, topics
 from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, open_session
@@ -176,6 +181,8 @@ class DashboardState:
         self._nodes: dict[str, dict] = {}  # node -> node_dict of its newest status
         self._load: messages.LoadEvent | None = None
         self._frame_exercise = ""  # ActivationFrame.exercise of the newest frame: the exercise when no LoadEvent came
+        self._frame_groups: tuple[str, ...] = ()  # the newest frame's groups: whose display names the page shows
+        self._names: dict[str, str] = {}  # the session file's display names (LoadEvent.names), kept until others come
         self.last_data_ns = 0  # arrival of the newest data sample (activations, joints, devices)
         self.last_activation_ns = 0  # arrival of the newest activation frame: what the page is about
         self.received = 0
@@ -212,8 +219,8 @@ class DashboardState:
     def _on_activations(self, topic: str, frame: messages.ActivationFrame, arrival_ns: int) -> None:
         self._put(topic, activation_dict(frame, arrival_ns))
         self.last_data_ns = self.last_activation_ns = arrival_ns
-        if frame.exercise != self._frame_exercise:
-            self._frame_exercise = frame.exercise
+        if frame.exercise != self._frame_exercise or tuple(frame.groups) != self._frame_groups:
+            self._frame_exercise, self._frame_groups = frame.exercise, tuple(frame.groups)
             self._put_session()
         if not self._joints_have_phase:
             self._phase_method = self._phase_method or frame.method
@@ -238,19 +245,24 @@ class DashboardState:
         if (number > 0 and number != self._reps.sets) or (number == 0 and load.barbell_mass_kg > 0):
             self._reps.new_set(number)
             self._put("reps", self._reps.as_dict())
+        if load.names:  # a load event without names (msk load) leaves the session's names in effect
+            self._names = dict(load.names)
         self._load = load
         self._put("load", {"mass_kg": load.barbell_mass_kg, "exercise": load.exercise, "set_number": number,
                            "athlete": load.athlete})
         self._put_session()
 
     def _put_session(self) -> None:
-        """Exercise (the load event's, else the activation frames'), load and athlete, for the page's header."""
+        """Exercise (the load event's, else the activation frames'), load and athlete, for the page's header, and the
+        display names of the frames' groups and coordinates (of the frames' pack, else the session's exercise)."""
         load = self._load
         exercise = (load.exercise if load is not None else "") or self._frame_exercise
+        names = names_for(self._frame_exercise or exercise, self._frame_groups, self._names)
         self._put("session", {
             "exercise": exercise or None,
             "load_kg": load.barbell_mass_kg if load is not None else None,
             "athlete": load.athlete if load is not None and load.athlete else None,
+            "names": names.as_dict(),
         })
 
     def _on_status(self, name: str, status: messages.DeviceStatus) -> None:

@@ -9,7 +9,9 @@ carry (``JointAngles.phase``, else ``ActivationFrame.phase``), else from msk_cor
 pack's phase coordinate. Per set and method: peak and mean activation of every muscle group in every rep, time under
 tension, the balance between the left and right groups (packs with both sides) and between the muscles pulling each
 joint one way and the other (sign of the pack's moment arms at the set's median pose), the comparison of the methods
-when several ran, and the health of every device over the session.
+when several ran, and the health of every device over the session. Muscles and joints are named by their display
+names (the pack's, with the session file's ``[names]`` from ``LoadEvent.names``; msk_core.model.names); the model
+names (abbreviations) only on the method comparison's axis, explained beside it.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from tqdm import tqdm
 
 from msk_core.errors import EstimationError, InputError
 from msk_core.model import OutOfRange, load_pack
+from msk_core.model.names import DisplayNames
+from msk_core.model.pack import names_for
 from services.dashboard import bodymap
 from services.mcap_io import ReadReport, read_messages
 
@@ -68,6 +72,7 @@ class SessionData:
     joint_q: dict[tuple[str, ...], list[tuple[float, list[float]]]] = field(default_factory=dict)
     loads: list[Load] = field(default_factory=list)
     frame_exercises: list[str] = field(default_factory=list)  # ActivationFrame.exercise values, in order of appearance
+    names: dict[str, str] = field(default_factory=dict)  # the session file's display names (the last LoadEvent.names)
     emg: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)  # source -> (log s, first index, n)
     imu: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # tracker -> (log s, packet counter)
     status: dict[str, list[tuple[float, bool, int, int]]] = field(default_factory=dict)
@@ -107,6 +112,7 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
         elif kind == "msk.LoadEvent":
             e = recorded.decode()
             data.loads.append(Load(e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise, int(e.set_number), e.athlete))
+            data.names = dict(e.names) or data.names  # an event without names leaves them in effect
         elif kind == "msk.EmgChunk":
             c = recorded.decode()
             data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, c.first_sample_index, c.n_samples))
@@ -305,10 +311,12 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     groups = list(series.groups)
     pack = _pack_for(series.groups)
     reps, rep_source = reps_in_set(data, window, series, pack)
+    names = names_for(pack.name if pack is not None else window.exercise, groups, data.names)
     result = {"name": window.name, "index": window.index, "set_number": window.number, "exercise": window.exercise,
               "load_kg": window.load_kg, "start_s": window.start_s,
               "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
-              "pack": pack.name if pack else None, "groups": groups, "primary": primary, "rep_source": rep_source,
+              "pack": pack.name if pack else None, "groups": groups, "names": names.as_dict(), "_names": names,
+              "primary": primary, "rep_source": rep_source,
               "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
               "time_under_tension_s": float(sum(b - a for a, b in reps)), "methods": {}}
     for method, (s, m) in in_set.items():
@@ -395,6 +403,7 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
     plt = _plt()
     primary = result["methods"][result["primary"]]
     t, a, groups = primary["_t"], primary["_a"], result["groups"]
+    names: DisplayNames = result["_names"]
     t0 = result["start_s"]
     files = []
     # 1. activation over the set, the 6 busiest groups, reps shaded
@@ -405,13 +414,13 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
         ax.axvspan(rep["start_s"] - t0, rep["end_s"] - t0, color="tab:blue", alpha=0.08)
         ax.text((rep["start_s"] + rep["end_s"]) / 2 - t0, 1.02, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue")
     for i in top:
-        ax.plot(t - t0, a[:, i], lw=1.4, label=groups[i])
+        ax.plot(t - t0, a[:, i], lw=1.4, label=names.group(groups[i]))
     ax.set_ylim(0, 1.08)
     ax.set_xlabel("time in set (s)")
     ax.set_ylabel(f"activation ({result['primary']})")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     files.append(f"{stem}_activation.png")
-    fig.savefig(out / files[-1], dpi=90)
+    fig.savefig(out / files[-1], dpi=90, bbox_inches="tight")  # the legend's display names beside the plot
     plt.close(fig)
     # 2. peak per rep and muscle (heat map)
     if result["reps"]:
@@ -423,11 +432,11 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
             if np.isfinite(v):
                 ax.text(j, i, f"{100 * v:.0f}", ha="center", va="center", fontsize=7, color="white" if v > 0.6 else "black")
         ax.set_xticks(range(len(result["reps"])), [f"rep {k + 1}" for k in range(len(result["reps"]))], fontsize=8)
-        ax.set_yticks(range(len(groups)), groups, fontsize=8)
+        ax.set_yticks(range(len(groups)), [names.group(g) for g in groups], fontsize=8)
         ax.set_title("peak activation per rep (%)", fontsize=9)
         fig.colorbar(image, ax=ax, fraction=0.05)
         files.append(f"{stem}_peaks.png")
-        fig.savefig(out / files[-1], dpi=90)
+        fig.savefig(out / files[-1], dpi=90, bbox_inches="tight")  # the display names left of the map
         plt.close(fig)
     # 3. methods side by side: mean activation over the set
     if len(result["methods"]) > 1:
@@ -439,7 +448,7 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
         for k, method in enumerate(methods):
             means = [result["methods"][method]["groups"][g]["set_mean"] for g in groups]
             ax.bar(x + (k - (len(methods) - 1) / 2) * width, means, width, label=method)
-        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)
+        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)  # abbreviations: the legend is under the plot
         ax.set_ylabel("mean activation in the set")
         ax.legend(fontsize=8)
         files.append(f"{stem}_methods.png")
@@ -494,6 +503,7 @@ def _table(headers: list[str], rows: list[list[str]]) -> str:
 def set_html(result: dict, plots: list[str]) -> str:
     primary = result["methods"][result["primary"]]
     groups, reps = result["groups"], result["reps"]
+    names: DisplayNames = result["_names"]
     parts = [f'<section class="set" id="set-{result["index"]}"><h2>{html.escape(result["name"])}</h2>']
     parts.append(
         f'<div class="kpi"><b>{len(reps)}</b>reps</div><div class="kpi"><b>{result["time_under_tension_s"]:.1f} s</b>time under tension</div>'
@@ -505,20 +515,24 @@ def set_html(result: dict, plots: list[str]) -> str:
     body_svg = ""
     if result["pack"]:
         fills = {g: bodymap.activation_colour(primary["groups"][g]["set_peak"]) for g in groups}
-        body_svg = f'<div class="bodymap">{bodymap.place_groups(load_pack(result["pack"])).svg(fills=fills)}<div class="note">peak activation in the set</div></div>'
+        svg = bodymap.place_groups(load_pack(result["pack"])).svg(fills=fills, names=names.groups)
+        body_svg = f'<div class="bodymap">{svg}<div class="note">peak activation in the set</div></div>'
     images = "".join(f'<img src="{p}" alt="{html.escape(p)}">' for p in plots)
+    legend = names.legend(groups) if any(p.endswith("_methods.png") for p in plots) else ""
+    if legend:  # the method comparison's axis names the muscles by their model names
+        images += f'<p class="note">Abbreviations: {html.escape(legend)}.</p>'
     parts.append(f'<div class="row">{body_svg}<div style="flex:1;min-width:300px">{images}</div></div>')
     headers = ["muscle"] + [f"rep {k + 1} peak / mean %" for k in range(len(reps))] + ["set peak %", f"time > {ACTIVE_THRESHOLD:.0%} (s)"]
     rows = []
     for g in groups:
         v = primary["groups"][g]
-        rows.append([html.escape(g)] + [f"{_pct(p)} / {_pct(m)}" for p, m in zip(v["peak"], v["mean"])]
+        rows.append([html.escape(names.group(g))] + [f"{_pct(p)} / {_pct(m)}" for p, m in zip(v["peak"], v["mean"])]
                     + [_pct(v["set_peak"]), f"{v['time_active_s']:.1f}"])
     parts.append(f"<h3>Per muscle and rep ({html.escape(result['primary'])})</h3>" + _table(headers, rows))
     bal = result.get("balance")
     if bal:
         if bal["left_right"]:
-            rows = [[f"{html.escape(p['right'])} / {html.escape(p['left'])}"]
+            rows = [[f"{html.escape(names.group(p['right']))} / {html.escape(names.group(p['left']))}"]
                     + [f"{_pct(right)} / {_pct(left)}" for right, left in p["per_rep"]] for p in bal["left_right"]]
             parts.append("<h3>Left / right balance (mean activation per rep, right / left %)</h3>"
                          + _table(["pair"] + [f"rep {k + 1}" for k in range(len(reps))], rows))
@@ -527,8 +541,11 @@ def set_html(result: dict, plots: list[str]) -> str:
         if bal["joints"]:
             rows = []
             for j in bal["joints"]:
-                rows.append([html.escape(j["coordinate"]), html.escape(", ".join(j["positive"])), html.escape(", ".join(j["negative"]))]
-                            + [f"{p:.0f} / {n:.0f} N·m ({100 * c:.0f} %)" for p, n, c in j["per_rep"]])
+                unit = names.torque_unit(j["coordinate"]) or "N·m"
+                rows.append([html.escape(names.coordinate(j["coordinate"])),
+                             html.escape(", ".join(map(names.group, j["positive"]))),
+                             html.escape(", ".join(map(names.group, j["negative"])))]
+                            + [f"{p:.0f} / {n:.0f} {unit} ({100 * c:.0f} %)" for p, n, c in j["per_rep"]])
             parts.append("<h3>Agonist / antagonist balance</h3><p class='note'>Per joint, mean moment of the groups pulling the "
                          "coordinate positive / negative over each rep (activation × reference strength × moment arm at the "
                          "set's median pose); in brackets the co-contraction, smaller / larger.</p>"
@@ -594,7 +611,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     (out / "report.html").write_text(page)
     summary = {
         "recording": str(recording), **facts, "duration_s": duration, "methods": methods,
-        "sets": [{k: v for k, v in s.items() if k != "methods"} | {"methods": {m: {k: v for k, v in info.items() if not k.startswith("_")}
+        "sets": [{k: v for k, v in s.items() if k != "methods" and not k.startswith("_")} | {"methods": {m: {k: v for k, v in info.items() if not k.startswith("_")}
                  for m, info in s["methods"].items()}} for s in sets],
         "devices": {name: {k: v for k, v in d.items() if k not in ("times", "weights")} for name, d in devices.items()},
         "node_inputs_dropped": dict(sorted(data.node_drops.items())),
