@@ -26,7 +26,7 @@ from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
 from services import estimator, kinematics_node, recorder, replayer, session_graph
-from msk_core.estimate.report import plot_strength, strength_markdown
+from services.reports.strength import plot_strength, strength_markdown
 from services.live_scoring import (  # noqa: F401 - re-exported: imported from services.demo before
     METHODS, MethodScore, TrialWindow, _trial_folders, markdown, plot, score, trial_windows,
 )

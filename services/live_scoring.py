@@ -1,7 +1,7 @@
 """Scoring a live run against the generator's truth: the activation frames an MCAP recording holds, cut into trials
 by its load events and compared with each trial's true activations (RMSE per method and group, torque residual,
 solver time, end-to-end latency), as a markdown table and plots. ``msk demo`` uses it; any recording of a synthetic
-session (``msk synth``) can be scored the same way. Beside it, :mod:`msk_core.estimate.report` scores trials offline.
+session (``msk synth``) can be scored the same way. Beside it, :mod:`msk_core.estimate.scores` scores trials offline.
 """
 
 from __future__ import annotations

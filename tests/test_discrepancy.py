@@ -338,7 +338,7 @@ def test_the_report_says_when_an_effect_is_found_between_the_reps(tmp_path):
     """Deadlift with the muscles' passive force, trained on 75 kg, 45 kg held out: the passive force is named, but
     its evidence is the held-out trial's set-up and rests (the gap there falls by > 90 %), while inside the reps it
     helps one of three. The report says so rather than letting the pooled reduction speak for the reps."""
-    from msk_core.discrepancy.report import write_report
+    from services.reports.discrepancy import write_report
 
     result = discrepancy("deadlift", "fl_passive", 1, loads=(75.0, 45.0))
     s = result.summary

@@ -101,7 +101,7 @@ def test_compile_small_arm26(tmp_path, arm26_osim):
     text = (SPEC_DIR / "arm26.toml").read_text()
     text = text.replace("samples = 400", "samples = 80").replace("max_degree = 10", "max_degree = 5")
     spec = parse_spec(text, tmp_path / "small.toml")
-    out = write_pack(compile_pack(arm26_osim, spec, progress=False), tmp_path / "small")
+    out = write_pack(compile_pack(arm26_osim, spec), tmp_path / "small")
     pack = load_pack(out)
     shipped = load_pack("arm26")
     q = np.array([0.5, 1.4])
@@ -118,7 +118,7 @@ def test_spec_unknown_names_name_line_and_closest(tmp_path, arm26_osim):
     text = (SPEC_DIR / "arm26.toml").read_text().replace('BRA = ["BRA"]', 'BRA = ["BRAA"]')
     spec = parse_spec(text, tmp_path / "bad.toml")
     with pytest.raises(ConfigError) as err:
-        compile_pack(arm26_osim, spec, progress=False)
+        compile_pack(arm26_osim, spec)
     message = str(err.value)
     assert "bad.toml" in message and "BRAA" in message and "closest: BRA" in message
     line = text.splitlines().index('BRA = ["BRAA"]') + 1
@@ -126,7 +126,7 @@ def test_spec_unknown_names_name_line_and_closest(tmp_path, arm26_osim):
     text = (SPEC_DIR / "arm26.toml").read_text().replace("r_elbow_flex = ", "r_elbow_flx = ")  # range and name
     spec = parse_spec(text, tmp_path / "bad2.toml")
     with pytest.raises(ConfigError, match="closest: r_elbow_flex"):
-        compile_pack(arm26_osim, spec, progress=False)
+        compile_pack(arm26_osim, spec)
 
 
 def test_spec_value_errors(tmp_path):

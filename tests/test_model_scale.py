@@ -20,7 +20,7 @@ from services import cli  # noqa: E402
 def test_scale_arm26_matches_measurements(shared_dir, tmp_path):
     osim = shared_dir / "models" / "arm26.osim"
     out, summary = scale_pack("arm26", osim, mass_kg=90.0, height_m=1.95, segments={"upper_arm": 0.34},
-                              out=tmp_path / "arm26_subject.json", samples=120, progress=False)
+                              out=tmp_path / "arm26_subject.json", samples=120)
     scaled = load_pack(out)
     generic = load_pack("arm26")
     # the scaled OpenSim model has the measured upper-arm length and the person's mass share

@@ -35,12 +35,12 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from tqdm import tqdm
 
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
 from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation,
                                         mean_square, mse, on, target_ms, target_torque)
 from msk_core.discrepancy.recalibrate import RECALIBRATED, Recalibrator
+from msk_core.progress import Progress, counted
 
 MIN_REDUCTION = 0.15
 BIC_MARGIN = 10.0
@@ -206,7 +206,8 @@ class Selection:
 
 
 def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[TrialArrays], *,
-                   max_effects: int = 1, progress: bool = False, recalibrator: Recalibrator | None = None) -> Selection:
+                   max_effects: int = 1, progress: Progress | None = None,
+                   recalibrator: Recalibrator | None = None) -> Selection:
     """Greedy forward selection. With a ``recalibrator``, the muscle- and joint-state candidates
     (recalibrate.RECALIBRATED) are fitted with a calibration that has them in it, against the base model calibrated
     the same way."""
@@ -234,8 +235,7 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
             return recalibrator, rbase
 
         scores = [score_candidate(data, train, holdout, plain, c, recalibrated(c))
-                  for c in tqdm(remaining, desc=f"discrepancy: candidates (step {step + 1})", unit="candidate",
-                                disable=not progress)]
+                  for c in counted(remaining, progress, f"discrepancy step {step + 1} (candidates)")]
         scores.sort(key=lambda s: s.holdout_bic)
         steps.append(scores)
         winner = next((s for s in scores if s.accepted), None)

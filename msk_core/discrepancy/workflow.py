@@ -17,6 +17,7 @@ from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION, fibre_length
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
+from msk_core.progress import Progress
 
 N_BINS = 12
 XCORR_MAX_LAG_S = 0.2
@@ -150,7 +151,7 @@ def _rms(x: np.ndarray) -> float:
 
 
 def activation_gaps(pack, profile: SubjectProfile, trials: list[TrialData], groups: list[str], delay_s: float,
-                    progress: bool = False) -> dict:
+                    progress: Progress | None = None) -> dict:
     """RMS of (estimated activation (``proposed``) - EMG envelope delayed by ``delay_s``) per EMG group, pooled over
     the trials, plus the activations themselves for plots."""
     from msk_core.estimate.pipeline import estimate_trial
@@ -203,7 +204,7 @@ def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
 
 
 def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialData], holdout: list[TrialData], *,
-                    max_effects: int = 1, activation: bool = True, progress: bool = False,
+                    max_effects: int = 1, activation: bool = True, progress: Progress | None = None,
                     recalibrate: bool = False) -> DiscrepancyResult:
     """``recalibrate``: fit the torque-term candidates with a calibration of the training trials that has their torque
     in it (recalibrate.py); False: every candidate with the profile's strengths."""

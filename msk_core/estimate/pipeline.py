@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
-from tqdm import tqdm
 
 from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
@@ -19,6 +18,7 @@ from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
 from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
+from msk_core.progress import Progress, counted
 
 
 class NoEmgPrior(str, Enum):
@@ -417,7 +417,7 @@ def estimate_trial(
     method: Method | str,
     *,
     subject: SubjectProfile | None = None,
-    progress: bool = False,
+    progress: Progress | None = None,
     live_phase: bool = False,
     **options,
 ) -> TrialEstimate:
@@ -444,7 +444,7 @@ def estimate_trial(
         iterations=np.zeros(n, dtype=int),
         solve_time_s=np.zeros(n),
     )
-    for i in tqdm(range(n), desc=f"{trial.name} [{est.method.value}]", disable=not progress, leave=False):
+    for i in counted(range(n), progress, f"{trial.name} [{est.method.value}] (frames)"):
         phase = trial_phase(trial, i) if phases is None else float(phases[i])
         # qd, qdd and the load only matter to a profile's effects (with torques given, no inverse dynamics runs)
         res = est.step(trial.q[i], trial.qd[i], trial.qdd[i], trial.hand_load_newton, torques=trial.torques[i],

@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from msk_core.model import osim_tools
 from msk_core.model.pack import ModelPack
 from msk_core.model.spec import parse_spec
+from msk_core.progress import Progress, counted
 
 CHECK_SEED_OFFSET = 7919  # keeps check poses independent of the fit's Latin hypercube
 
@@ -21,7 +21,7 @@ def random_poses(pack: ModelPack, n: int, seed: int) -> np.ndarray:
 
 
 def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0,
-                  progress: bool = False) -> dict:
+                  progress: Progress | None = None) -> dict:
     """Group moment arms (vs OpenSim computeMomentArm, F_max-weighted like the pack) and lengths."""
     spec = parse_spec(pack.raw["spec"])
     model, state = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity)
@@ -37,7 +37,7 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
     ref_r, fit_r, ref_l, fit_l, fd_r = [], [], [], [], []
     glitches = 0
     delta = 1e-5
-    for q in tqdm(poses, desc=f"{pack.name}: OpenSim moment arms", disable=not progress):
+    for q in counted(poses, progress, f"{pack.name}: OpenSim moment arms (poses)"):
         bad = osim_tools.opensim_glitches(poser, names, q)
         glitches += int(bad.any())
         group_bad = (weights[:, bad].sum(axis=1) > 0)[:, None]
@@ -86,7 +86,7 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
 
 
 def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0,
-                   hand_load: float = 200.0, progress: bool = False) -> dict:
+                   hand_load: float = 200.0, progress: Progress | None = None) -> dict:
     """Reduced inverse dynamics (the pack's ground-rooted validation model) vs OpenSim's InverseDynamicsSolver.
 
     Same locked coordinates, couplings, gravity and hand load; random q, qd (±1 rad/s), qdd (±10 rad/s²).
@@ -107,7 +107,7 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
     poses = random_poses(pack, n_poses, seed + 1)
     ref, fit = [], []
     rigid = pack.validation_rigid
-    for q in tqdm(poses, desc=f"{pack.name}: OpenSim inverse dynamics", disable=not progress):
+    for q in counted(poses, progress, f"{pack.name}: OpenSim inverse dynamics (poses)"):
         qd = rng.uniform(-1, 1, len(q))
         qdd = rng.uniform(-10, 10, len(q))
         ref.append(osim_tools.opensim_inverse_dynamics(poser, q, qd, qdd))

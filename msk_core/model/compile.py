@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from msk_core.errors import ConfigError
 from msk_core.model import osim_tools
@@ -29,6 +28,7 @@ from msk_core.model.poly import (
     monomials,
 )
 from msk_core.model.spec import PackSpec, parse_spec
+from msk_core.progress import Progress
 
 SPAN_THRESHOLD = 1e-4  # m/rad: a bundle "spans" a coordinate when |moment arm| exceeds 0.1 mm somewhere
 DERIVATIVE_WEIGHT = 5.0  # moment arms matter more than lengths (and some OpenSim paths jump in length, not in r)
@@ -65,7 +65,8 @@ KNOT_STEP_DEG = 0.25
 MAX_KNOTS = 3  # per bundle and coordinate
 
 
-def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dict[str, list[tuple[int, float]]]:
+def detect_knots(poser, names: list[str], spec: PackSpec,
+                 progress: Progress | None) -> dict[str, list[tuple[int, float]]]:
     """Per bundle, (coordinate index, normalised x) where its moment arm jumps: a scan of each coordinate alone
     (others at their reference) on a fine grid. Isolated glitches (a jump straight back) are ignored."""
     q0 = np.array([c.reference for c in spec.coordinates])
@@ -75,9 +76,8 @@ def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dic
         values = np.linspace(c.lower, c.upper, count)
         poses = np.repeat(q0[None, :], count, axis=0)
         poses[:, j] = values
-        bar = tqdm(total=count, desc=f"{spec.name}: path-switch scan {c.name}", unit="pose", disable=not progress)
-        _, derivs = osim_tools.sample_lengths(poser, names, poses, delta=1e-5, progress=bar, only=j)
-        bar.close()
+        _, derivs = osim_tools.sample_lengths(poser, names, poses, delta=1e-5, only=j, progress=progress,
+                                              task=f"{spec.name}: path-switch scan {c.name} (poses)")
         r = derivs[:, :, j]  # (count, m) dl/dq (NaN where the slopes disagree: right at a switch)
         for i, name in enumerate(names):
             series = r[:, i]
@@ -100,7 +100,7 @@ def detect_knots(poser, names: list[str], spec: PackSpec, progress: bool) -> dic
     return knots
 
 
-def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: bool = True) -> dict:
+def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: Progress | None = None) -> dict:
     """Compile and return the pack dictionary (write it with :func:`write_pack`)."""
     model, state = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity)
     g = np.array(model.getGravity().to_numpy())
@@ -161,7 +161,7 @@ class _LengthFits:
     report: dict
 
 
-def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: bool) -> _LengthFits:
+def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | None) -> _LengthFits:
     """Sample OpenSim's muscle lengths over the coordinate box and fit each muscle's length polynomial."""
     lo = np.array([c.lower for c in spec.coordinates])
     hi = np.array([c.upper for c in spec.coordinates])
@@ -169,9 +169,8 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: bool) -> _Le
     rng = np.random.default_rng(spec.fit.seed)
     poses = latin_hypercube(spec.fit.samples, lo, hi, rng)
     n_test = max(1, int(round(spec.fit.holdout * len(poses))))
-    bar = tqdm(total=len(poses), desc=f"{spec.name}: OpenSim lengths", unit="pose", disable=not progress)
-    lengths, derivs = osim_tools.sample_lengths(poser, names, poses, progress=bar)
-    bar.close()
+    lengths, derivs = osim_tools.sample_lengths(poser, names, poses, progress=progress,
+                                                task=f"{spec.name}: OpenSim lengths (poses)")
     knots = detect_knots(poser, names, spec, progress)
     x = (poses - centre) / half
     dx = derivs * half[None, None, :]  # dl/dx

@@ -14,6 +14,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, ModelError
 from msk_core.model.spec import PackSpec, closest
+from msk_core.progress import Progress, counted
 
 
 def import_opensim():
@@ -163,8 +164,8 @@ JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
 GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbours 2e-4 rad apart is an OpenSim glitch
 
 
-def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4, progress=None,
-                   only: int | None = None):
+def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4,
+                   only: int | None = None, progress: Progress | None = None, task: str = "OpenSim lengths (poses)"):
     """Muscle-tendon lengths (S, m) and dl/dq (S, m, n): central differences of OpenSim path lengths (NaN at jumps)."""
     muscles = [poser.model.getMuscles().get(n) for n in names]
     s, n = poses.shape
@@ -174,7 +175,7 @@ def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta:
     def read() -> np.ndarray:
         return np.array([m.getLength(poser.state) for m in muscles])
 
-    for i, q in enumerate(poses):
+    for i, q in enumerate(counted(poses, progress, task)):
         poser.set(q)
         lengths[i] = centre = read()
         for j in range(n) if only is None else (only,):
@@ -189,8 +190,6 @@ def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta:
             derivs[i, :, j] = np.where(jump, np.nan, (plus - minus) / (2 * delta))
             # OpenSim wrapping occasionally fails at an isolated pose (length off by cm): drop that length too
             lengths[i] = np.where(np.abs(plus + minus - 2 * centre) > GLITCH_TOLERANCE, np.nan, lengths[i])
-        if progress is not None:
-            progress.update(1)
     return lengths, derivs
 
 

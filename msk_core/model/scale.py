@@ -19,6 +19,7 @@ from msk_core.model import osim_tools
 from msk_core.model.compile import compile_pack, write_pack
 from msk_core.model.pack import load_pack
 from msk_core.model.spec import closest, parse_spec
+from msk_core.progress import Progress
 
 
 def parse_segments(items: list[str]) -> dict[str, float]:
@@ -111,7 +112,7 @@ def scale_model(osim_path: str | Path, spec_text: str, *, mass_kg: float, height
 
 def scale_pack(pack_name_or_path: str, osim_path: str | Path, *, mass_kg: float, height_m: float,
                segments: dict[str, float], out: str | Path, samples: int | None = None,
-               progress: bool = True) -> tuple[Path, dict]:
+               progress: Progress | None = None) -> tuple[Path, dict]:
     """Scale the pack's source model to the person and recompile the pack from it (same spec)."""
     pack = load_pack(pack_name_or_path)
     spec_text = pack.raw["spec"]

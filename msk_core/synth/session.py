@@ -6,9 +6,9 @@ import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
-from tqdm import tqdm
 
 from msk_core.model import load_pack
+from msk_core.progress import Progress, counted
 from msk_core.synth.effects import Effects, muscle_factors
 from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg
 from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
@@ -243,7 +243,7 @@ def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], conf
 
 
 def generate_exercise(
-    exercise: Exercise, config: SynthConfig, *, pack=None, progress: bool = False
+    exercise: Exercise, config: SynthConfig, *, pack=None, progress: Progress | None = None
 ) -> ExerciseSession:
     """MVC block plus one trial per load for one exercise. ``pack``: a ModelPack or name (default: the exercise's)."""
     spec = SPECS[exercise]
@@ -253,14 +253,14 @@ def generate_exercise(
     loads = (config.loads_kg or {}).get(exercise, spec.loads_kg)
     mvc = generate_mvc(spec, subject, channels, config, pack)
     trials = []
-    for load in tqdm(loads, desc=f"synth {exercise.value}", unit="load", disable=not progress):
+    for load in counted(loads, progress, f"synth {exercise.value} (loads)"):
         trials.append(generate_trial(spec, pack, subject, float(load), config, channels))
     return ExerciseSession(spec, pack.name, subject, pack.f_max_ref * subject.f_max_factor, mvc, trials)
 
 
 def generate_session(
     exercises: list[Exercise], config: SynthConfig, *, packs: dict[Exercise, object] | None = None,
-    progress: bool = False,
+    progress: Progress | None = None,
 ) -> Session:
     packs = packs or {}
     return Session(config, [generate_exercise(e, config, pack=packs.get(e), progress=progress) for e in exercises])

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from msk_core.errors import ConfigError, InputError
+from services.commands.progress import ProgressBar
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,11 +38,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_discrepancy_command(args: argparse.Namespace) -> int:
     from msk_core.discrepancy.data import describe_left_out
-    from msk_core.discrepancy.report import consistency_sentences, write_report
     from msk_core.discrepancy.workflow import run_discrepancy
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
+    from services.reports.discrepancy import consistency_sentences, write_report
 
     if args.max_effects < 1:
         raise ConfigError("must be >= 1", field="--max-effects", value=args.max_effects)
@@ -54,7 +55,7 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     profile = SubjectProfile.load(args.subject)
     train = [load_trial(p, pack) for p in args.trial]
     holdout = [load_trial(p, pack) for p in args.holdout]
-    result = run_discrepancy(pack, profile, train, holdout, max_effects=args.max_effects, progress=True,
+    result = run_discrepancy(pack, profile, train, holdout, max_effects=args.max_effects, progress=ProgressBar(),
                              recalibrate=args.recalibrate)
     report = write_report(result, args.report)
     s = result.summary

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import ConfigError, InputError
+from services.commands.progress import ProgressBar
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -191,7 +192,8 @@ def run_estimate(args: argparse.Namespace) -> int:
     if subject is None and args.method in ("proposed", "prior"):
         raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
     trial = load_trial(args.trial, pack)
-    run = estimate_trial(pack, trial, args.method, subject=subject, progress=True, **estimator_options(args, pack))
+    run = estimate_trial(pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False),
+                         **estimator_options(args, pack))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_sto(args.out, run.time, run.groups, run.activations, name=f"activations_{run.method}")
     torque_path = args.out.with_name(f"{args.out.stem}_torques.sto")
@@ -211,8 +213,8 @@ def run_estimate(args: argparse.Namespace) -> int:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     from msk_core.estimate.profile import SubjectProfile
-    from msk_core.estimate.report import write_report
     from msk_core.estimate.trial import load_trial
+    from services.reports.evaluation import write_report
 
     pack = _pack(args.pack, args.dynamics)
     subject = SubjectProfile.load(args.subject)
@@ -220,6 +222,6 @@ def run_evaluate(args: argparse.Namespace) -> int:
     missing = [t.path for t in trials if not t.emg]
     if missing:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
-    write_report(pack, subject, trials, args.report, progress=True, **estimator_options(args, pack))
+    write_report(pack, subject, trials, args.report, progress=ProgressBar(leave=False), **estimator_options(args, pack))
     print((args.report / "report.md").read_text())
     return 0

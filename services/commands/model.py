@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import ConfigError
+from services.commands.progress import ProgressBar
 
 SHARED_MODELS = Path(os.environ.get("MSK_SHARED_DIR", Path(__file__).resolve().parents[2].parent / "shared")) / "models"
 
@@ -72,7 +73,7 @@ def run_compile(args: argparse.Namespace) -> int:
     from msk_core.model.spec import load_spec  # noqa: PLC0415
 
     spec = load_spec(args.spec)
-    out = write_pack(compile_pack(args.osim, spec), args.out)
+    out = write_pack(compile_pack(args.osim, spec, progress=ProgressBar()), args.out)
     print(f"wrote {out}")
     return 0
 
@@ -104,9 +105,9 @@ def run_check(args: argparse.Namespace) -> int:
         raise ConfigError("need at least 2 poses", field="--poses", value=args.poses)
     pack = load_pack(args.pack)
     args.osim = _source_osim(pack, args.osim)
-    muscles = check_muscles(pack, args.osim, n_poses=args.poses, seed=args.seed, progress=True)
+    muscles = check_muscles(pack, args.osim, n_poses=args.poses, seed=args.seed, progress=ProgressBar())
     dynamics = check_dynamics(pack, args.osim, n_poses=args.poses, seed=args.seed, hand_load=args.hand_load,
-                              progress=True)
+                              progress=ProgressBar())
     report = {"pack": pack.name, "muscles": muscles, "dynamics": dynamics, "recorded": []}
     _print_check(report)
     if args.recorded:
@@ -132,7 +133,7 @@ def run_scale(args: argparse.Namespace) -> int:
     segments = parse_segments(args.segment)
     osim = _source_osim(load_pack(args.pack), args.osim)
     out, summary = scale_pack(args.pack, osim, mass_kg=args.mass_kg, height_m=args.height_m,
-                              segments=segments, out=args.out, samples=args.samples)
+                              segments=segments, out=args.out, samples=args.samples, progress=ProgressBar())
     print(f"wrote {out}")
     for key, value in summary.items():
         print(f"  {key}: {value}")

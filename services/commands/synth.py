@@ -18,6 +18,7 @@ from msk_core.errors import ConfigError
 from msk_core.synth import Exercise, SynthConfig, generate_session, parse_effects, parse_exercise
 from msk_core.synth.effects import DEFAULTS
 from msk_core.synth.files import EmgOutput, write_session
+from services.commands.progress import ProgressBar
 
 
 def _loads(values: list[str], exercises: list[Exercise]) -> dict[Exercise, tuple[float, ...]]:
@@ -75,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         packs[parse_exercise(name.strip())] = pack.strip()
     config = SynthConfig(subject_seed=args.subject_seed, n_reps=args.reps, effects=parse_effects(args.effects),
                          loads_kg=_loads(args.loads, exercises) or None)
-    session = generate_session(exercises, config, packs=packs, progress=not args.quiet)
+    session = generate_session(exercises, config, packs=packs, progress=None if args.quiet else ProgressBar())
     truth = write_session(session, args.out, emg_output=EmgOutput(args.emg_output))
     written = [truth]
     # services-level exports import MCAP and driver code, which msk_core must not

@@ -1,4 +1,5 @@
-"""``msk discrepancy`` report: summary.json, report.md and PNG plots (matplotlib, Agg)."""
+"""The ``msk discrepancy`` report: summary.json, report.md and PNG plots of a :class:`DiscrepancyResult`, and the
+sentences saying how consistently the named effect helps, rep by rep (printed by the command too)."""
 
 from __future__ import annotations
 
@@ -9,19 +10,11 @@ import numpy as np
 
 from msk_core.discrepancy.data import describe_left_out
 from msk_core.discrepancy.workflow import DiscrepancyResult
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from services.reports import pyplot
 
 
 def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str) -> None:
-    plt = _plt()
+    plt = pyplot()
     coords = result.data.coordinates
     fig, axes = plt.subplots(1, len(coords), figsize=(3.6 * len(coords), 3.2), squeeze=False)
     for ax, c in zip(axes[0], coords):
@@ -40,7 +33,7 @@ def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str)
 
 
 def _xcorr_plot(path: Path, result: DiscrepancyResult) -> None:
-    plt = _plt()
+    plt = pyplot()
     xc = result.relations_before["xcorr"]
     fig, ax = plt.subplots(figsize=(5, 3.2))
     for c, corr in zip(result.data.coordinates, xc["corr"]):
@@ -65,7 +58,7 @@ def _before_after_bars(ax, per_name: dict, ylabel: str, rotation: int) -> None:
 
 
 def _rms_plot(path: Path, summary: dict) -> None:
-    plt = _plt()
+    plt = pyplot()
     per_c = summary["gap_per_coordinate"]
     per_g = summary.get("activation_gap_per_group", {})
     fig, axes = plt.subplots(1, 2 if per_g else 1, figsize=(10 if per_g else 5, 3.4), squeeze=False)
@@ -97,6 +90,7 @@ def consistency_sentences(summary: dict) -> list[str]:
 
 
 def write_report(result: DiscrepancyResult, folder: Path) -> Path:
+    """Write folder/summary.json, folder/report.md and its plots; returns the path of report.md."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     s = result.summary
