@@ -35,7 +35,7 @@ class RigidModel:
         model = pin.Model()
         joints = description["joints"]
         positions = [np.asarray(j["position"], dtype=float) for j in joints]
-        for j, pos in zip(joints, positions):
+        for i, (j, pos) in enumerate(zip(joints, positions)):
             parent = int(j["parent"])
             parent_pos = positions[parent] if parent >= 0 else np.zeros(3)
             axis = np.asarray(j["axis"], dtype=float)
@@ -44,7 +44,8 @@ class RigidModel:
             elif j["kind"] == "prismatic":
                 jm = pin.JointModelPrismaticUnaligned(axis)
             else:
-                raise ValueError(f"unknown joint kind {j['kind']!r}")
+                raise ModelError(f"rigid model: joint {j['name']!r} (dynamics.joints[{i}].kind) is {j['kind']!r}; "
+                                 "expected 'revolute' or 'prismatic'")
             model.addJoint(parent + 1, jm, pin.SE3(np.eye(3), pos - parent_pos), j["name"])
         for body in description["bodies"]:
             joint = int(body["joint"])
@@ -132,7 +133,10 @@ class RigidModel:
         for i, joint in enumerate(joints):
             placement = self.model.jointPlacements[i + 1]
             if not np.array_equal(placement.rotation, np.eye(3)) or int(self.model.parents[i + 1]) >= i + 1:
-                raise ValueError(f"joint {joint['name']!r}: expected an aligned placement after its parent")
+                parent = int(self.model.parents[i + 1]) - 1
+                raise ModelError(f"rigid model: joint {joint['name']!r} (dynamics.joints[{i}]) needs an unrotated "
+                                 f"placement and a parent listed before it (parent {parent}); the compiled evaluator "
+                                 "reads the tree in that order")
             joint_int[i, kernels.PARENT] = int(joint["parent"])
             joint_int[i, kernels.KIND] = kernels.REVOLUTE if joint["kind"] == "revolute" else kernels.PRISMATIC
             row = joint_float[i]
@@ -166,10 +170,11 @@ class RigidModel:
         n = t.n
         dq, qd, qdd = (np.ascontiguousarray(a, dtype=np.float64) for a in (dq, qd, qdd))
         if dq.shape != (n,) or qd.shape != (n,) or qdd.shape != (n,):
-            raise ValueError(f"dq, qd, qdd must have shape ({n},), got {dq.shape}, {qd.shape}, {qdd.shape}")
+            bad, value = next((name, a) for name, a in zip(("dq", "qd", "qdd"), (dq, qd, qdd)) if a.shape != (n,))
+            raise ModelError(f"rigid model: {bad} must have shape ({n},) (one value per coordinate), got {value.shape}")
         g = self.gravity if gravity is None else np.ascontiguousarray(gravity, dtype=np.float64)
         if g.shape != (3,):
-            raise ValueError(f"gravity must be a 3-vector, got shape {g.shape}")
+            raise ModelError(f"rigid model: gravity must be a 3-vector (m/s²), got shape {g.shape}")
         out = np.empty(n + t.n_joints)
         self._kernels.rigid(dq, qd, qdd, float(hand_load), g, t.ints, t.floats, out)
         return out[:n], out[n:]
