@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msk_core.emg import EmgFilterConfig, envelope_causal
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup, LiveEmg
 from msk_core.estimate.profile import SubjectProfile

@@ -10,7 +10,7 @@ IMU sample is, whatever the devices' clocks; the frame's trial instant is that o
 node's own mapping (per tracker: device time + smallest host-minus-device time over the last 5 s) puts at the frame's
 time.
 
-The offline envelope is the causal chain of ``msk emg envelope`` (``msk_core.emg.envelope_causal``: 20-450 Hz
+The offline envelope is the causal chain of ``msk emg envelope`` (``msk_core.signal.emg.envelope_causal``: 20-450 Hz
 band-pass, rectification, 6 Hz 3rd-order low-pass), MVC-normalised and averaged per group as the subject profile of
 the session says, run over the recorded raw EMG and placed on the trial's time axis. For every group with an
 electrode, the frames' measured envelopes are cross-correlated with the offline envelope at the frames' trial
@@ -38,9 +38,9 @@ import pytest
 
 from drivers.xsens.frames import to_enu
 from drivers.xsens.xbus import CoordinateFrame
-from msk_core.emg import EmgFilterConfig, envelope_causal
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.signal.host_clock import windowed_offsets
 from services.live import RECORDINGS, sim_sources
 from services.mcap_io import read_messages

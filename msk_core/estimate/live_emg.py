@@ -1,9 +1,10 @@
 """Live EMG for the estimator: raw chunks -> causal, MVC-normalised envelope per muscle group, aligned to kinematics.
 
-Chain per source (one Trigno base, say), as :mod:`msk_core.emg` defines it and ``msk emg envelope`` runs offline:
-band-pass, full-wave rectification, 3rd-order 6 Hz Butterworth low-pass (:class:`msk_core.emg.EmgEnvelopeFilter`,
-carried filter state), then division by each channel's MVC amplitude from the subject profile; channels mapped to the
-same group are averaged. A channel without an MVC amplitude is left out and reported (``no_mvc``), never used raw.
+Chain per source (one Trigno base, say), as :mod:`msk_core.signal.emg` defines it and ``msk emg envelope`` runs
+offline: band-pass, full-wave rectification, 3rd-order 6 Hz Butterworth low-pass
+(:class:`msk_core.signal.emg.EmgEnvelopeFilter`, carried filter state), then division by each channel's MVC amplitude
+from the subject profile; channels mapped to the same group are averaged. A channel without an MVC amplitude is left
+out and reported (``no_mvc``), never used raw.
 
 Clocks. Every EMG sample has a *device time* from its sample index: ``device_time_ns`` of the chunk's row 0 plus
 ``row / sample_rate_hz``. A kinematics frame has its own time. ``ClockMode.DEVICE``: both streams share one clock
@@ -31,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from msk_core.emg import EmgEnvelopeFilter, EmgFilterConfig
+from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.errors import ConfigError
 from msk_core.signal.host_clock import (
     METHOD_ARRIVAL,
