@@ -100,6 +100,6 @@ def test_the_tree_has_a_room_per_stage_and_its_root_only_what_every_stage_shares
         assert (ROOT / "msk_core" / room / "__init__.py").is_file(), room
     # a module at the root is an error type, a constant or the progress callback every stage uses, never a second
     # name for a stage's module (each concept is imported from one place)
-    shared = {"__init__", "errors", "units", "progress", "phase", "priors"}
+    shared = {"__init__", "errors", "units", "progress"}
     root = {p.stem for p in (ROOT / "msk_core").glob("*.py")}
     assert root == shared, f"msk_core/ root: unexpected {sorted(root - shared)}, missing {sorted(shared - root)}"
