@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup, LiveEmg
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.io import read_sto, write_sto
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.units import GRAVITY
 from services import demo, estimator, messages, topics
 from services.graph import Graph, wait_for
