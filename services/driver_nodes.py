@@ -1,5 +1,5 @@
-"""Driver nodes: acquisition loops that turn Trigno/Xsens driver events into EmgChunk, ImuSample and DeviceStatus
-messages and hand them to a sink (Zenoh publishers, or an MCAP file for ``msk record``).
+"""Driver nodes: acquisition loops that turn Trigno/Xsens driver events into EmgChunk, AccChunk, ImuSample and
+DeviceStatus messages and hand them to a sink (Zenoh publishers, or an MCAP file for ``msk record``).
 
 Each loop runs in its own thread until ``stop`` is set or its deadline passes; sinks must be thread-safe. A loop's
 last DeviceStatus of each device, published as it ends, says ``connected = False`` with the final counts: the driver
@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import zenoh
 from google.protobuf.message import Message
 
-from drivers.trigno.client import ClientState, EmgBlock, GapEvent, StatusEvent, TrignoClient
+from drivers.trigno import protocol as tp
+from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, GapEvent, StatusEvent, TrignoClient
 from drivers.xsens.device import ImuReading, TrackerSet
 from services import messages, topics, zenoh_session
 
@@ -47,6 +48,35 @@ def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]
         n_channels=rows.shape[1],
         samples=rows.ravel().tolist(),
         units="V",
+    )
+
+
+def acc_sensors(client: TrignoClient) -> list[tuple[str, int]]:
+    """(label, sensor number 1..16) of the sensors whose accelerometers to publish: the active sensors (every slot
+    when the server told us nothing), labelled ``sensorNN`` as their EMG channels ``sensorNN.EMG...``."""
+    numbers = client.active_sensors or list(range(1, tp.N_SENSORS + 1))
+    return [(f"sensor{n:02d}", n) for n in numbers]
+
+
+def acc_chunk(block: AuxBlock, *, source_id: str, sensors: list[tuple[str, int]],
+              layout: tp.AuxLayout) -> messages.AccChunk:
+    """An AccChunk of the given (label, sensor number) sensors: each sensor's ACC x, y, z in g, the first three of
+    its slots on the AUX port (9 per sensor, Avanti) or its three on the legacy ACC port. Row k is AUX sample
+    ``first_sample_index + k``, measured at EMG device time ``(first_sample_index + k) / rate`` (both counts start
+    with START)."""
+    rows = block.samples.reshape(len(block.samples), tp.N_SENSORS, layout.slots_per_sensor)
+    values = rows[:, [n - 1 for _, n in sensors], :3]
+    return messages.AccChunk(
+        source_id=source_id,
+        sensor_labels=[label for label, _ in sensors],
+        sample_rate_hz=block.rate_hz,
+        first_sample_index=block.first_sample_index,
+        device_time_ns=int(round(block.first_sample_index * 1e9 / block.rate_hz)),
+        host_time_ns=block.host_time_ns,
+        n_samples=values.shape[0],
+        n_sensors=values.shape[1],
+        samples=values.ravel().tolist(),
+        units="g",
     )
 
 
@@ -105,11 +135,15 @@ def trigno_loop(
     duration_s: float | None = None,
     status_interval_s: float = 1.0,
 ) -> LoopReport:
-    """Start acquisition and publish until ``stop``/``duration_s``; then STOP/QUIT. The client must be connected."""
+    """Start acquisition and publish until ``stop``/``duration_s``; then STOP/QUIT. The client must be connected.
+    With an AUX port (``TrignoConfig.aux_port``) the sensors' accelerometers go to ``acc/<source_id>``."""
     report = LoopReport()
     emg_key = topics.emg_key(session, source_id)
+    acc_key = topics.acc_key(session, source_id)
     status_key = topics.status_key(session, source_id)
     columns = emg_columns(client)
+    sensors = acc_sensors(client)
+    layout = client.config.resolved_aux_layout
 
     def publish_status(*, final: bool = False) -> None:
         stats = client.stats
@@ -130,6 +164,10 @@ def trigno_loop(
             sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
             report.messages += 1
             report.samples += len(event.samples)
+        elif isinstance(event, AuxBlock):
+            chunk = acc_chunk(event, source_id=source_id, sensors=sensors, layout=layout)
+            sink(acc_key, chunk, event.host_time_ns, chunk.device_time_ns)
+            report.messages += 1
         elif isinstance(event, GapEvent):
             report.gaps.append(event)
 
@@ -284,12 +322,14 @@ def run_threads(targets: list[Callable[[], LoopReport]], stop: threading.Event) 
 
 def add_device_arguments(parser) -> None:
     """``--trigno HOST[:PORT]`` and ``--xsens PORT|usb`` with their options (shared by ``msk record`` and ``msk drivers``)."""
-    from drivers.trigno import protocol as tp
     from drivers.xsens import xbus
 
     group = parser.add_argument_group("Delsys Trigno")
     group.add_argument("--trigno", metavar="HOST[:PORT]", default=None, help="Trigno Control Utility address (command port, default 50040)")
     group.add_argument("--trigno-emg-port", type=int, default=int(tp.EmgPort.AVANTI), metavar="PORT", help="EMG data port: 50043 (default) or legacy 50041")
+    group.add_argument("--trigno-aux-port", type=int, default=None, metavar="PORT",
+                       help="also read the sensors' accelerometers from this port (50044 AUX, or legacy ACC 50042) and "
+                       "publish them on msk/<session>/acc/<id> (default: not read)")
     group.add_argument("--trigno-stop", choices=[m.value for m in tp.StopMode], default=tp.StopMode.STOP_THEN_QUIT.value, help="how to end acquisition")
     group.add_argument("--trigno-id", default="trigno", help="source id used in topics and messages (default: trigno)")
     group = parser.add_argument_group("Xsens")
@@ -302,11 +342,11 @@ def add_device_arguments(parser) -> None:
 
 
 def open_trigno(args) -> TrignoClient:
-    from drivers.trigno import protocol as tp
     from drivers.trigno.client import TrignoConfig, parse_address
 
     host, port = parse_address(args.trigno)
-    client = TrignoClient(TrignoConfig(host=host, command_port=port, emg_port=args.trigno_emg_port, stop_mode=tp.StopMode(args.trigno_stop)))
+    client = TrignoClient(TrignoConfig(host=host, command_port=port, emg_port=args.trigno_emg_port,
+                                       aux_port=args.trigno_aux_port, stop_mode=tp.StopMode(args.trigno_stop)))
     try:
         client.connect()
     except OSError as error:

@@ -16,6 +16,7 @@ from msk_core.errors import MskError
 from services.schemas import msk_pb2
 
 EmgChunk = msk_pb2.EmgChunk
+AccChunk = msk_pb2.AccChunk
 ImuSample = msk_pb2.ImuSample
 JointAngles = msk_pb2.JointAngles
 LoadEvent = msk_pb2.LoadEvent
@@ -25,6 +26,7 @@ DeviceStatus = msk_pb2.DeviceStatus
 EmgEnvelope = msk_pb2.EmgEnvelope
 InputDrop = msk_pb2.InputDrop
 ClockOffset = msk_pb2.ClockOffset
+ClockAlignment = msk_pb2.ClockAlignment
 Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion
 
@@ -33,7 +35,7 @@ AnyMessage: TypeAlias = Message
 #: Top-level message types that travel on topics, by protobuf full name (e.g. ``"msk.EmgChunk"``).
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.DESCRIPTOR.full_name: cls
-    for cls in (EmgChunk, ImuSample, JointAngles, LoadEvent, ActivationFrame, DeviceStatus, EmgEnvelope)
+    for cls in (EmgChunk, AccChunk, ImuSample, JointAngles, LoadEvent, ActivationFrame, DeviceStatus, EmgEnvelope)
 }
 
 
@@ -101,6 +103,18 @@ def problems(message: Message) -> list[str]:
             found.append(f"{len(message.samples)} samples for {message.n_samples} rows x {message.n_channels} channels")
         if len(message.channel_labels) != message.n_channels:
             found.append(f"{len(message.channel_labels)} channel labels for {message.n_channels} channels")
+        if not (_finite(message.sample_rate_hz) and message.sample_rate_hz > 0):
+            found.append(f"sample_rate_hz {message.sample_rate_hz} is not a positive rate")
+    elif isinstance(message, AccChunk):
+        if not message.source_id:
+            found.append("source_id is empty")
+        if message.n_samples == 0 or message.n_sensors == 0:
+            found.append(f"no samples ({message.n_samples} x {message.n_sensors})")
+        elif len(message.samples) != message.n_samples * message.n_sensors * 3:
+            found.append(f"{len(message.samples)} values for {message.n_samples} rows x {message.n_sensors} sensors "
+                         "x 3 axes")
+        if len(message.sensor_labels) != message.n_sensors:
+            found.append(f"{len(message.sensor_labels)} sensor labels for {message.n_sensors} sensors")
         if not (_finite(message.sample_rate_hz) and message.sample_rate_hz > 0):
             found.append(f"sample_rate_hz {message.sample_rate_hz} is not a positive rate")
     elif isinstance(message, ImuSample):  # the tracker is also in the key: an empty tracker_id is tolerated

@@ -73,11 +73,13 @@ def _key(template: str, own_name: str) -> str:
 #: set) and watches the flow so that the stop waits until every joint frame is answered.
 NODES: dict[str, NodeDecl] = {n.name: n for n in (
     NodeDecl("recorder", "recorder", publishes=(OWN_STATUS,), subscribes=(EVERY_TOPIC,), command="recorder"),
+    # the estimator reads the trackers' and the EMG sensors' accelerations to measure the EMG clock against each
+    # tracker's (msk_core/estimate/clock_alignment.py)
     NodeDecl("estimator", "estimator", publishes=("activations/<method>", "envelopes", OWN_STATUS),
-             subscribes=(SESSION_TOPICS, "emg/<source>"), command="estimator"),
+             subscribes=(SESSION_TOPICS, "emg/<source>", "acc/<source>", "imu/<tracker>"), command="estimator"),
     NodeDecl("kinematics", "kinematics", publishes=("joints", OWN_STATUS), subscribes=("imu/<tracker>",),
              command="kinematics"),
-    NodeDecl("drivers-trigno", "driver", publishes=("emg/<source>", DEVICE_STATUS), command="drivers"),
+    NodeDecl("drivers-trigno", "driver", publishes=("emg/<source>", "acc/<source>", DEVICE_STATUS), command="drivers"),
     NodeDecl("drivers-xsens", "driver", publishes=("imu/<tracker>", DEVICE_STATUS), command="drivers"),
     NodeDecl("monitor", "operator", publishes=("load",),
              subscribes=("joints", "activations/<method>", DEVICE_STATUS)),
@@ -91,7 +93,8 @@ CLIENTS: dict[str, NodeDecl] = {n.name: n for n in (
     NodeDecl("tablet", "tablet", subscribes=("activations/<method>", DEVICE_STATUS), command="dashboard",
              is_node=False),
     # `msk replay`: a recording's device data, load and joints back on the wire
-    NodeDecl("replayer", "replayer", publishes=("emg/<source>", "imu/<tracker>", DEVICE_STATUS, "load", "joints"),
+    NodeDecl("replayer", "replayer", publishes=("emg/<source>", "acc/<source>", "imu/<tracker>", DEVICE_STATUS, "load",
+                                                "joints"),
              command="replay", is_node=False),
 )}
 

@@ -20,6 +20,7 @@ _CHUNK = re.compile(r"^[A-Za-z0-9_\-.]+$")
 #: (template after ``msk/<session>/``, protobuf type). A ``<name>`` part stands for exactly one key chunk.
 TOPIC_TABLE: tuple[tuple[str, str], ...] = (
     ("emg/<source>", "msk.EmgChunk"),
+    ("acc/<source>", "msk.AccChunk"),
     ("imu/<tracker>", "msk.ImuSample"),
     ("joints", "msk.JointAngles"),
     ("load", "msk.LoadEvent"),
@@ -42,6 +43,7 @@ class Delivery(Enum):
 #: estimator whole; what views and apps read (activations, status) must never stall its publisher.
 DELIVERY: dict[str, Delivery] = {
     "emg/<source>": Delivery.LOSSLESS,
+    "acc/<source>": Delivery.LOSSLESS,
     "imu/<tracker>": Delivery.LOSSLESS,
     "joints": Delivery.LOSSLESS,
     "load": Delivery.LOSSLESS,
@@ -65,6 +67,11 @@ def session_prefix(session: str) -> str:
 
 def emg_key(session: str, source: str) -> str:
     return f"{session_prefix(session)}/emg/{check_chunk(source, 'source')}"
+
+
+def acc_key(session: str, source: str) -> str:
+    """The accelerometers on EMG source ``source``'s clock (Trigno AUX): ``msk/<session>/acc/<source>``."""
+    return f"{session_prefix(session)}/acc/{check_chunk(source, 'source')}"
 
 
 def imu_key(session: str, tracker: str) -> str:

@@ -21,6 +21,11 @@ def sample_messages():
         device_time_ns=13_500_000, host_time_ns=1_700_000_000_000_000_000, n_samples=2, n_channels=2,
         samples=[0.5, -0.25, 1e-3, 2e-3], units="V",
     )
+    yield messages.AccChunk(
+        source_id="trigno-1", sensor_labels=["sensor01", "sensor03"], sample_rate_hz=2 / 0.0135, first_sample_index=2,
+        device_time_ns=13_500_000, host_time_ns=1_700_000_000_000_000_000, n_samples=1, n_sensors=2,
+        samples=[0.0, 0.0, 1.0, 0.5, -0.25, 0.75], units="g",
+    )
     yield messages.ImuSample(
         tracker_id="0343A1B2", segment="upper_arm_r", packet_counter=65535, sample_time_fine=864_000_000 - 1,
         orientation=messages.Quaternion(w=0.5, x=0.5, y=-0.5, z=0.5), acceleration=messages.Vector3(x=0.0, y=-7.26, z=-1.2),

@@ -30,6 +30,30 @@ class EmgChunk(_message.Message):
     units: str
     def __init__(self, source_id: _Optional[str] = ..., channel_labels: _Optional[_Iterable[str]] = ..., sample_rate_hz: _Optional[float] = ..., first_sample_index: _Optional[int] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., n_samples: _Optional[int] = ..., n_channels: _Optional[int] = ..., samples: _Optional[_Iterable[float]] = ..., units: _Optional[str] = ...) -> None: ...
 
+class AccChunk(_message.Message):
+    __slots__ = ("source_id", "sensor_labels", "sample_rate_hz", "first_sample_index", "device_time_ns", "host_time_ns", "n_samples", "n_sensors", "samples", "units")
+    SOURCE_ID_FIELD_NUMBER: _ClassVar[int]
+    SENSOR_LABELS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLE_RATE_HZ_FIELD_NUMBER: _ClassVar[int]
+    FIRST_SAMPLE_INDEX_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    N_SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    N_SENSORS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    UNITS_FIELD_NUMBER: _ClassVar[int]
+    source_id: str
+    sensor_labels: _containers.RepeatedScalarFieldContainer[str]
+    sample_rate_hz: float
+    first_sample_index: int
+    device_time_ns: int
+    host_time_ns: int
+    n_samples: int
+    n_sensors: int
+    samples: _containers.RepeatedScalarFieldContainer[float]
+    units: str
+    def __init__(self, source_id: _Optional[str] = ..., sensor_labels: _Optional[_Iterable[str]] = ..., sample_rate_hz: _Optional[float] = ..., first_sample_index: _Optional[int] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., n_samples: _Optional[int] = ..., n_sensors: _Optional[int] = ..., samples: _Optional[_Iterable[float]] = ..., units: _Optional[str] = ...) -> None: ...
+
 class Vector3(_message.Message):
     __slots__ = ("x", "y", "z")
     X_FIELD_NUMBER: _ClassVar[int]
@@ -210,20 +234,50 @@ class DeviceStatus(_message.Message):
     def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ...) -> None: ...
 
 class ClockOffset(_message.Message):
-    __slots__ = ("source", "offset_ms", "spread_ms", "latency_ms", "method", "samples")
+    __slots__ = ("source", "offset_ms", "spread_ms", "latency_ms", "method", "samples", "arrival_offset_ms", "reason", "alignments")
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     OFFSET_MS_FIELD_NUMBER: _ClassVar[int]
     SPREAD_MS_FIELD_NUMBER: _ClassVar[int]
     LATENCY_MS_FIELD_NUMBER: _ClassVar[int]
     METHOD_FIELD_NUMBER: _ClassVar[int]
     SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    ARRIVAL_OFFSET_MS_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    ALIGNMENTS_FIELD_NUMBER: _ClassVar[int]
     source: str
     offset_ms: float
     spread_ms: float
     latency_ms: float
     method: str
     samples: int
-    def __init__(self, source: _Optional[str] = ..., offset_ms: _Optional[float] = ..., spread_ms: _Optional[float] = ..., latency_ms: _Optional[float] = ..., method: _Optional[str] = ..., samples: _Optional[int] = ...) -> None: ...
+    arrival_offset_ms: float
+    reason: str
+    alignments: _containers.RepeatedCompositeFieldContainer[ClockAlignment]
+    def __init__(self, source: _Optional[str] = ..., offset_ms: _Optional[float] = ..., spread_ms: _Optional[float] = ..., latency_ms: _Optional[float] = ..., method: _Optional[str] = ..., samples: _Optional[int] = ..., arrival_offset_ms: _Optional[float] = ..., reason: _Optional[str] = ..., alignments: _Optional[_Iterable[_Union[ClockAlignment, _Mapping]]] = ...) -> None: ...
+
+class ClockAlignment(_message.Message):
+    __slots__ = ("reference", "status", "reason", "device_offset_ms", "spread_ms", "drift_ppm", "peak_correlation", "sensor", "windows", "host_offset_ms")
+    REFERENCE_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_OFFSET_MS_FIELD_NUMBER: _ClassVar[int]
+    SPREAD_MS_FIELD_NUMBER: _ClassVar[int]
+    DRIFT_PPM_FIELD_NUMBER: _ClassVar[int]
+    PEAK_CORRELATION_FIELD_NUMBER: _ClassVar[int]
+    SENSOR_FIELD_NUMBER: _ClassVar[int]
+    WINDOWS_FIELD_NUMBER: _ClassVar[int]
+    HOST_OFFSET_MS_FIELD_NUMBER: _ClassVar[int]
+    reference: str
+    status: str
+    reason: str
+    device_offset_ms: float
+    spread_ms: float
+    drift_ppm: float
+    peak_correlation: float
+    sensor: str
+    windows: int
+    host_offset_ms: float
+    def __init__(self, reference: _Optional[str] = ..., status: _Optional[str] = ..., reason: _Optional[str] = ..., device_offset_ms: _Optional[float] = ..., spread_ms: _Optional[float] = ..., drift_ppm: _Optional[float] = ..., peak_correlation: _Optional[float] = ..., sensor: _Optional[str] = ..., windows: _Optional[int] = ..., host_offset_ms: _Optional[float] = ...) -> None: ...
 
 class InputDrop(_message.Message):
     __slots__ = ("key", "reason", "count")
