@@ -33,14 +33,7 @@ from msk_core.imu.kinematics import KinematicsFilterConfig
 from msk_core.imu.mapping import ImuJointMapper, mapping_for, parse_pose
 from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
 from msk_core.model import load_pack
-from msk_core.signal.host_clock import (
-    METHOD_DEVICE,
-    WINDOW_S,
-    ClockReport,
-    HostClock,
-    check_latency_ns,
-    parse_latencies,
-)
+from msk_core.signal.host_clock import METHOD_DEVICE, WINDOW_S, ClockReport, DeviceClocks, parse_latencies
 from msk_core.signal.reps import RepTemplate
 from services import messages, topics
 from services.graph import ReadySpec, declare_ready
@@ -110,14 +103,13 @@ class KinematicsNode:
         if clock not in ("device", "host"):
             raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
         self.clock = clock
-        self.latency_ns = {t: check_latency_ns(v, f"latency of tracker {t}") for t, v in (latency_ns or {}).items()}
-        self.default_latency_ns = check_latency_ns(default_latency_ns, "default IMU latency")
-        if clock == "device" and (self.default_latency_ns or any(self.latency_ns.values())):
+        # per tracker: its device clock -> the host clock (the estimator maps the trackers with the same rule)
+        self.host_clocks = DeviceClocks("imu", latency_ns=latency_ns, default_latency_ns=default_latency_ns,
+                                        window_s=clock_window_s)
+        if clock == "device" and (self.host_clocks.default_latency_ns or any(self.host_clocks.latency_ns.values())):
             raise ConfigError("a tracker latency is applied when the trackers' clocks are mapped onto the host clock "
                               "(--imu-clock host); with one device clock nothing is mapped", field="latency",
-                              value={**self.latency_ns, "default": self.default_latency_ns})
-        self.clock_window_s = clock_window_s
-        self.host_clocks: dict[str, HostClock] = {}  # per tracker: its device clock -> the host clock
+                              value={**self.host_clocks.latency_ns, "default": self.host_clocks.default_latency_ns})
         self.device_trackers: set[str] = set()  # trackers seen on the shared device clock
         self.stats = stats
         self.model = load_pack(pack)
@@ -175,14 +167,7 @@ class KinematicsNode:
         before = self.sync.out_of_order
         time_ns = int(imu.device_time_ns)
         if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
-            tracker = key.rsplit("/", 1)[1]
-            mapping = self.host_clocks.get(tracker)
-            if mapping is None:
-                mapping = self.host_clocks[tracker] = HostClock(
-                    f"imu/{tracker}", latency_ns=self.latency_ns.get(tracker, self.default_latency_ns),
-                    window_s=self.clock_window_s)
-            mapping.add(time_ns, int(imu.host_time_ns))
-            time_ns += mapping.offset_ns
+            time_ns = self.host_clocks.to_host(key.rsplit("/", 1)[1], time_ns, int(imu.host_time_ns))
         else:
             self.device_trackers.add(key.rsplit("/", 1)[1])
         events = self.sync.push(segment, time_ns, quat)
@@ -193,7 +178,7 @@ class KinematicsNode:
         """Per tracker seen (``imu/<tracker>``): the mapping onto the host clock its samples get (``device``: none)."""
         if self.clock == "device":
             return [ClockReport(f"imu/{t}", 0, 0, 0, METHOD_DEVICE) for t in sorted(self.device_trackers)]
-        return [r for r in (c.report() for c in self.host_clocks.values()) if r is not None]
+        return self.host_clocks.reports()
 
     def _frame(self, event) -> messages.JointAngles | None:
         stats = self.stats

@@ -56,6 +56,13 @@ class ClockReport:
     latency_ns: int
     method: str
     samples: int = 0
+    #: with an offset measured another way (e.g. "acceleration"): the arrival mapping's offset at the same moment,
+    #: which it replaces (arrival minus applied: how much later the arrival mapping would put every sample)
+    arrival_offset_ns: int | None = None
+    reason: str = ""  # why this method (e.g. why no other way has an offset yet)
+    #: how the stream's clock was measured against other device clocks
+    #: (msk_core.estimate.clock_alignment.Alignment, one per tracker)
+    alignments: tuple = ()
 
 
 def check_latency_ns(latency_ns: int, field: str = "latency") -> int:
@@ -142,6 +149,42 @@ class HostClock:
         if offset is None:
             return None
         return ClockReport(self.source, offset, self.spread_ns(), self.latency_ns, METHOD_ARRIVAL, len(self._window))
+
+
+class DeviceClocks:
+    """The host mappings of streams that each run on their own device clock (one MTi per tracker): a
+    :class:`HostClock` per stream, made on its first sample with its stated latency (``latency_ns`` by name, else
+    ``default_latency_ns``). The kinematics node maps its trackers with it and the estimator the same trackers again,
+    from the same samples, to the same host instants. ``prefix``: the streams' names in reports (``imu`` ->
+    ``imu/<name>``)."""
+
+    def __init__(self, prefix: str, *, latency_ns: dict[str, int] | None = None, default_latency_ns: int = 0,
+                 window_s: float = WINDOW_S) -> None:
+        self.prefix = prefix
+        self.latency_ns = {name: check_latency_ns(value, f"latency of {prefix}/{name}")
+                           for name, value in (latency_ns or {}).items()}
+        self.default_latency_ns = check_latency_ns(default_latency_ns, f"default latency of {prefix}")
+        self.window_s = window_s
+        self.clocks: dict[str, HostClock] = {}
+
+    def to_host(self, name: str, device_ns: int, receipt_ns: int) -> int:
+        """Add stream ``name``'s sample (device time, host receipt time) to its mapping; the host instant it was
+        measured at, by the mapping after it."""
+        clock = self.clocks.get(name)
+        if clock is None:
+            clock = self.clocks[name] = HostClock(f"{self.prefix}/{name}", window_s=self.window_s,
+                                                  latency_ns=self.latency_ns.get(name, self.default_latency_ns))
+        clock.add(device_ns, receipt_ns)
+        return int(device_ns) + clock.offset_ns
+
+    def offset_ns(self, name: str) -> int | None:
+        """Stream ``name``'s current offset (device time + this = host instant measured); None before its first
+        sample."""
+        clock = self.clocks.get(name)
+        return None if clock is None else clock.offset_ns
+
+    def reports(self) -> list[ClockReport]:
+        return [r for r in (c.report() for c in self.clocks.values()) if r is not None]
 
 
 def windowed_offsets(device_ns, receipt_ns, *, latency_ns: int = 0, window_s: float = WINDOW_S) -> np.ndarray:
