@@ -13,8 +13,14 @@ runs the causal envelope chain (:mod:`msk_core.estimate.live_emg`), publishes :c
 method; EMG gaps, a stalled source and channels without MVC are flagged in the frames (``emg_gap``, ``emg_stalled``,
 ``no_mvc``) and counted in :class:`EstimatorStats`. With ``--emg-clock host`` each EMG source's clock is mapped onto
 the host clock by the driver's receipt times (``EmgChunk.host_time_ns``, so a replay maps as live did) less its
-stated latency (``--emg-latency-ms``), and the node's status (``msk/<session>/status/estimator``) carries, per stream,
-the offset applied, its spread, the latency and the method (``DeviceStatus.clocks``).
+stated latency (``--emg-latency-ms``), until the accelerations say better (``--emg-align acceleration``, the
+default): the node also reads the EMG sensors' accelerometers (``msk/<session>/acc/<source>``) and the trackers'
+samples (``msk/<session>/imu/<tracker>``, mapped as the kinematics node maps them, ``--imu-latency-ms``), measures
+each EMG clock against each tracker's (:mod:`msk_core.estimate.clock_alignment`) and maps the EMG through the
+trackers it locks on. ``--emg-wait-ms``: a joint frame waits up to that long for the EMG of its instant (a device
+that delivers later than the trackers). The node's status (``msk/<session>/status/estimator``) carries, per stream,
+the offset applied, its spread, the latency, the method, why, the arrival mapping an acceleration offset replaces and
+every tracker's estimate (``DeviceStatus.clocks``).
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -26,6 +32,7 @@ import logging
 import signal
 import sys
 import threading
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,12 +40,13 @@ from pathlib import Path
 import numpy as np
 from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
+from msk_core.estimate.clock_alignment import AccelerationAlignment
 from msk_core.estimate.frame import FrameResult
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
 from msk_core.units import GRAVITY
-from msk_core.signal.host_clock import ClockReport, parse_latencies
 from services import messages, session_graph, topics
 from msk_core.model.pack import available_packs, is_known_exercise
 from services.graph import ReadySpec, declare_ready
@@ -57,6 +65,8 @@ log = logging.getLogger(__name__)
 
 SOLVERS = ("active-set", "piqp")
 NODE_NAME = "estimator"
+ALIGN_ACCELERATION = "acceleration"  # measure each EMG clock against the trackers' (msk_core.estimate.clock_alignment)
+ALIGN_ARRIVAL = "arrival"  # the arrival mapping alone
 
 
 @dataclass
@@ -74,6 +84,9 @@ class EstimatorStats:
     envelopes_out: int = 0
     emg_flags: dict[str, int] = field(default_factory=dict)  # frames carrying each EMG flag
     emg: EmgCounters | None = None  # gaps, lost and duplicate samples, channels without MVC (None: no EMG path)
+    acc_chunks: int = 0
+    imu_samples: int = 0
+    frames_waited: int = 0  # joint frames held back for the EMG of their instant (--emg-wait-ms)
 
 
 class LoadTimeline:
@@ -179,6 +192,13 @@ def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: boo
                    default_latency_ns=default_latency_ns)
 
 
+@dataclass
+class _Held:
+    joints: messages.JointAngles
+    arrival_ns: int
+    waited: bool = False
+
+
 class EstimatorNode:
     """The node's state between Zenoh and the estimators: load timeline, coordinate order, phase tracking, the EMG
     path; one ``handle_*`` per input kind, each returning the messages to publish (no Zenoh in here)."""
@@ -187,7 +207,13 @@ class EstimatorNode:
                  emg: bool | None, electrode_map: dict[str, str] | None, emg_clock: ClockMode | str,
                  emg_stall_s: float, initial_load_kg: float, exercise: str | None, solver: str,
                  joints_clock: JointsClock | str = JointsClock.ARRIVAL, emg_latency_ns: dict[str, int] | None = None,
-                 default_emg_latency_ns: int = 0) -> None:
+                 default_emg_latency_ns: int = 0, emg_align: str = ALIGN_ARRIVAL,
+                 imu_latency_ns: dict[str, int] | None = None, default_imu_latency_ns: int = 0,
+                 emg_wait_s: float = 0.0) -> None:
+        """``emg_align``: with ``emg_clock`` "host", ``"acceleration"`` measures each EMG clock against the
+        trackers' from the accelerations (the trackers mapped with ``imu_latency_ns`` / ``default_imu_latency_ns``
+        as the kinematics node maps them); ``emg_wait_s``: how long a joint frame (:meth:`offer_joints`) may wait
+        for the EMG of its instant."""
         if solver not in SOLVERS:
             raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
         self.stats = stats
@@ -207,6 +233,22 @@ class EstimatorNode:
                               "map", field="method", value="assisted")
         if self.live_emg is not None:
             stats.emg = self.live_emg.counters
+        if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
+            raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
+        # the EMG clock measured against the trackers': only where device clocks are mapped onto the host clock
+        self.alignment = None
+        if self.live_emg is not None and self.live_emg.clock is ClockMode.HOST and emg_align == ALIGN_ACCELERATION:
+            trackers = DeviceClocks("imu", latency_ns=imu_latency_ns, default_latency_ns=default_imu_latency_ns,
+                                    window_s=self.live_emg.clock_window_s)
+            self.alignment = AccelerationAlignment(self.live_emg, trackers)
+        elif self.live_emg is not None and (imu_latency_ns or default_imu_latency_ns):
+            raise ConfigError("a tracker latency is used to measure the EMG clock against the trackers' (--emg-clock "
+                              "host --emg-align acceleration)", field="--imu-latency-ms",
+                              value={**(imu_latency_ns or {}), "default": default_imu_latency_ns})
+        if not (np.isfinite(emg_wait_s) and 0 <= emg_wait_s <= 1.0):
+            raise ConfigError("the wait for the EMG is 0..1000 ms", field="--emg-wait-ms", value=emg_wait_s * 1e3)
+        self.emg_wait_ns = int(round(emg_wait_s * 1e9))
+        self._held: deque[_Held] = deque()  # joint frames waiting for their EMG, oldest first
         self.loads = LoadTimeline(initial_load_kg)
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
         # name.
@@ -225,6 +267,48 @@ class EstimatorNode:
             return None
         self.stats.envelopes_out += 1
         return emg_to_envelope(block, arrival_ns)
+
+    def handle_acc(self, chunk: messages.AccChunk | bytes) -> None:
+        """The accelerometers on an EMG source's clock (Trigno AUX): to the clock alignment (ignored without one)."""
+        if self.alignment is None:
+            return
+        chunk = messages.as_message("msk.AccChunk", chunk)
+        self.stats.acc_chunks += 1
+        n = chunk.n_samples
+        times = chunk.device_time_ns + np.round(np.arange(n) * 1e9 / chunk.sample_rate_hz).astype(np.int64)
+        acc = np.asarray(chunk.samples, dtype=float).reshape(n, chunk.n_sensors, 3)
+        self.alignment.add_acc(chunk.source_id, chunk.sensor_labels, times, acc)
+
+    def handle_imu(self, key: str, sample: messages.ImuSample | bytes) -> None:
+        """A tracker sample (``key``: its topic, whose last chunk names the tracker, as for the kinematics node): its
+        clock mapping and acceleration to the clock alignment (ignored without one)."""
+        if self.alignment is None:
+            return
+        sample = messages.as_message("msk.ImuSample", sample)
+        self.stats.imu_samples += 1
+        a = sample.acceleration
+        self.alignment.add_tracker_sample(key.rsplit("/", 1)[1], sample.device_time_ns, sample.host_time_ns,
+                                          (a.x, a.y, a.z) if sample.HasField("acceleration") else None)
+
+    def offer_joints(self, joints: messages.JointAngles | bytes, arrival_ns: int) -> None:
+        """A joint frame to estimate once its EMG is here (:meth:`release`), in arrival order."""
+        self._held.append(_Held(messages.as_message("msk.JointAngles", joints), int(arrival_ns)))
+
+    def release(self, now_ns: int, *, flush: bool = False) -> list[tuple[messages.JointAngles, int]]:
+        """The held joint frames (with their arrival times) to estimate now, oldest first: each once the EMG of its
+        instant has arrived (:meth:`LiveEmg.awaits`), it has waited ``emg_wait_s`` or ``flush``."""
+        out = []
+        while self._held:
+            head = self._held[0]
+            if (not flush and self.live_emg is not None and now_ns - head.arrival_ns < self.emg_wait_ns
+                    and self.live_emg.awaits(head.joints.device_time_ns, now_ns)):
+                for held in self._held:  # the frames behind it wait with it
+                    held.waited = True
+                break
+            self._held.popleft()
+            self.stats.frames_waited += head.waited
+            out.append((head.joints, head.arrival_ns))
+        return out
 
     def handle_load(self, event: messages.LoadEvent | bytes) -> None:
         """Apply a load event; one naming an exercise no pack has is refused (:class:`ConfigError`), since it would
@@ -281,8 +365,12 @@ class EstimatorNode:
         stats.frames_out += 1
 
     def clock_report(self) -> list[ClockReport]:
-        """The EMG path's clock mappings per stream (:meth:`LiveEmg.clock_report`); empty without EMG."""
-        return [] if self.live_emg is None else self.live_emg.clock_report()
+        """The EMG path's clock mappings per stream (:meth:`LiveEmg.clock_report`), with the acceleration alignment's
+        findings on each EMG stream (:meth:`AccelerationAlignment.report`); empty without EMG."""
+        if self.live_emg is None:
+            return []
+        reports = self.live_emg.clock_report()
+        return reports if self.alignment is None else self.alignment.report(reports)
 
     def _phase(self, joints, time_s: float, q: np.ndarray) -> float | None:
         """Unset = unknown (prior pooled over phases); negative = between reps (rest prior); else [0, 1)."""
@@ -307,6 +395,10 @@ def main(
     joints_clock: JointsClock | str = JointsClock.ARRIVAL,
     emg_latency_ns: dict[str, int] | None = None,
     default_emg_latency_ns: int = 0,
+    emg_align: str = ALIGN_ARRIVAL,
+    imu_latency_ns: dict[str, int] | None = None,
+    default_imu_latency_ns: int = 0,
+    emg_wait_s: float = 0.0,
     initial_load_kg: float = 0.0,
     exercise: str | None = None,
     solver: str = "active-set",
@@ -321,9 +413,12 @@ def main(
     node = EstimatorNode(pack, methods, subject, stats, emg=emg, electrode_map=electrode_map, emg_clock=emg_clock,
                          emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver,
                          joints_clock=joints_clock, emg_latency_ns=emg_latency_ns,
-                         default_emg_latency_ns=default_emg_latency_ns)
+                         default_emg_latency_ns=default_emg_latency_ns, emg_align=emg_align,
+                         imu_latency_ns=imu_latency_ns, default_imu_latency_ns=default_imu_latency_ns,
+                         emg_wait_s=emg_wait_s)
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
-    emg_prefix = f"{topics.session_prefix(session)}/emg/"
+    prefix = topics.session_prefix(session)
+    emg_prefix, acc_prefix, imu_prefix = f"{prefix}/emg/", f"{prefix}/acc/", f"{prefix}/imu/"
 
     with open_session(config) as zsession:
         publishers = {
@@ -340,35 +435,55 @@ def main(
         if node.live_emg is not None:
             envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
             inputs.subscribe(f"{topics.session_prefix(session)}/emg/*")
+        if node.alignment is not None:  # the EMG clock measured against the trackers'
+            inputs.subscribe(f"{acc_prefix}*")
+            inputs.subscribe(f"{imu_prefix}*")
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
         reporter.tick(force=True)
+
+        def not_used(key: str, error: MskError) -> None:
+            """An input this node cannot use: counted, said once per kind, the node goes on."""
+            reporter.error(f"{key}: {error}")
+            stats.last_error = str(error)
+            kind = (key, type(error).__name__)
+            if kind not in said:
+                said.add(kind)
+                log.error("input on %s not used: %s (further ones counted in msk/%s/status/%s)", key, error,
+                          session, NODE_NAME)
+
+        def estimate(final: bool = False) -> None:
+            """The joint frames whose EMG is here (or that waited long enough), each method out when solved."""
+            for joints, arrival_ns in node.release(messages.now_ns(), flush=final):
+                try:
+                    for method, frame in node.frames_for_joints(joints, arrival_ns):
+                        frame.publish_ns = messages.now_ns()
+                        publish(publishers[method], frame)
+                except MskError as error:
+                    not_used(joints_key, error)
+                stats.frames_done += 1
 
         def handle(item) -> None:
             try:
                 if item.key == load_key:
                     node.handle_load(item.message)
                 elif item.key == joints_key:
-                    for method, frame in node.frames_for_joints(item.message, item.arrival_ns):  # each out when solved
-                        frame.publish_ns = messages.now_ns()
-                        publish(publishers[method], frame)
-                    stats.frames_done += 1
+                    node.offer_joints(item.message, item.arrival_ns)
                 elif item.key.startswith(emg_prefix):
                     envelope = node.handle_emg(item.message, item.arrival_ns)
                     if envelope is not None:
                         publish(envelope_publisher, envelope)
-            except MskError as error:  # an input this node cannot use: counted, said once per kind, the node goes on
-                reporter.error(f"{item.key}: {error}")
-                stats.last_error = str(error)
-                kind = (item.key, type(error).__name__)
-                if kind not in said:
-                    said.add(kind)
-                    log.error("input on %s not used: %s (further ones counted in msk/%s/status/%s)", item.key,
-                              error, session, NODE_NAME)
+                elif item.key.startswith(acc_prefix):
+                    node.handle_acc(item.message)
+                elif item.key.startswith(imu_prefix):
+                    node.handle_imu(item.key, item.message)
+            except MskError as error:
+                not_used(item.key, error)
 
         said: set[tuple[str, str]] = set()
-        serve(inputs, handle, stop_event, reporter)  # what arrived before the stop is still answered
+        # what arrived before the stop is still answered; held frames are estimated at the latest then
+        serve(inputs, handle, stop_event, reporter, tick=estimate)
     return stats
 
 
@@ -394,6 +509,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--emg-latency-ms", action="append", default=[], metavar="[SOURCE=]MS",
                         help="with --emg-clock host: the stated latency of EMG source SOURCE (without SOURCE=: of "
                         "every source not named), taken off before its clock is mapped (repeatable; default 0)")
+    parser.add_argument("--emg-align", choices=[ALIGN_ACCELERATION, ALIGN_ARRIVAL], default=ALIGN_ACCELERATION,
+                        help="with --emg-clock host: acceleration (default) measures each EMG clock against the "
+                        "trackers' from the accelerations (msk/<s>/acc/*, msk/<s>/imu/*) and maps the EMG through "
+                        "them once an EMG sensor moves with a tracker, the arrival mapping until then; arrival: the "
+                        "arrival mapping alone (docs/live.md, Clocks)")
+    parser.add_argument("--imu-latency-ms", action="append", default=[], metavar="[TRACKER=]MS",
+                        help="with --emg-align acceleration: the trackers' stated latencies, as the kinematics node "
+                        "is given them (repeatable; default 0)")
+    parser.add_argument("--emg-wait-ms", type=float, default=0.0,
+                        help="a joint frame waits up to this long for the EMG of its instant before it is estimated "
+                        "with the newest EMG there is (default 0: never waits)")
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--solver", choices=SOLVERS, default="active-set",
@@ -426,6 +552,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                 raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
             electrode_map[channel] = group
     latency_ns, default_latency_ns = parse_latencies(args.emg_latency_ms, "--emg-latency-ms")
+    imu_latency_ns, default_imu_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
+    emg_align = args.emg_align if args.emg_clock == ClockMode.HOST.value else ALIGN_ARRIVAL
     ready = None
     if args.ready_key:
         node = args.ready_key.rsplit("/", 1)[-1]
@@ -435,12 +563,17 @@ def run_from_args(args: argparse.Namespace) -> int:
         subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
         emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready, solver=args.solver,
         joints_clock=args.joints_clock, emg_latency_ns=latency_ns, default_emg_latency_ns=default_latency_ns,
+        emg_align=emg_align, imu_latency_ns=imu_latency_ns, default_imu_latency_ns=default_imu_latency_ns,
+        emg_wait_s=args.emg_wait_ms / 1e3,
     )
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
           f"; inputs dropped {dropped or 'none'}"
           + (f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
-             f"frames flagged {stats.emg_flags or 'none'}" if stats.emg is not None else ""), file=sys.stderr)
+             f"frames flagged {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
+             if stats.emg is not None else "")
+          + (f"; accelerations: {stats.acc_chunks} EMG-clock chunks, {stats.imu_samples} tracker samples"
+             if stats.acc_chunks or stats.imu_samples else ""), file=sys.stderr)
     return 0
 
 

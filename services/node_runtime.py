@@ -287,29 +287,52 @@ class NodeInputs:
 
 
 def serve(inputs: NodeInputs, handle, stop_event: threading.Event, reporter: StatusReporter | None = None,
-          poll_s: float = 0.05) -> None:
+          poll_s: float = 0.05, tick: Callable[[bool], None] | None = None) -> None:
     """The node loop: every usable input to ``handle(inbound)`` in arrival order, the status when due, until
     ``stop_event``; then the subscriptions closed, what had arrived still handled (nothing received is lost) and
-    the last status published."""
+    the last status published. ``tick(final)``: called after every input or ``poll_s`` without one (``False``),
+    and once more after the last input (``True``), e.g. for a node that holds inputs back for a while."""
     try:
         while not stop_event.is_set():
             inbound = inputs.get(poll_s)
             if inbound is not None:
                 handle(inbound)
+            if tick is not None:
+                tick(False)
             if reporter is not None:
                 reporter.tick()
     finally:
         inputs.close()
         for inbound in inputs.drain():
             handle(inbound)
+        if tick is not None:
+            tick(True)
         if reporter is not None:
             reporter.final()
 
 
 def clock_offsets(reports: Iterable[ClockReport]) -> list[messages.ClockOffset]:
-    """Clock mappings (msk_core.signal.host_clock) as the status carries them, in ms."""
-    return [messages.ClockOffset(source=r.source, offset_ms=r.offset_ns / 1e6, spread_ms=r.spread_ns / 1e6,
-                                 latency_ms=r.latency_ns / 1e6, method=r.method, samples=r.samples) for r in reports]
+    """Clock mappings (msk_core.signal.host_clock) as the status carries them, in ms, with the alignments they come
+    from (msk_core.estimate.clock_alignment)."""
+    out = []
+    for r in reports:
+        message = messages.ClockOffset(source=r.source, offset_ms=r.offset_ns / 1e6, spread_ms=r.spread_ns / 1e6,
+                                       latency_ms=r.latency_ns / 1e6, method=r.method, samples=r.samples,
+                                       reason=r.reason, alignments=[_alignment(a) for a in r.alignments])
+        if r.arrival_offset_ns is not None:
+            message.arrival_offset_ms = r.arrival_offset_ns / 1e6
+        out.append(message)
+    return out
+
+
+def _alignment(alignment) -> messages.ClockAlignment:
+    """An ``Alignment`` (msk_core.estimate.clock_alignment): a ClockSync answer against one reference stream."""
+    answer = alignment.offset
+    return messages.ClockAlignment(
+        reference=alignment.reference, status=answer.status.value, reason=answer.reason,
+        device_offset_ms=(answer.offset_ns or 0) / 1e6, spread_ms=(answer.spread_ns or 0) / 1e6,
+        drift_ppm=answer.drift_ppm or 0.0, peak_correlation=answer.peak_correlation or 0.0, sensor=answer.sensor or "",
+        windows=answer.windows, host_offset_ms=(alignment.host_offset_ns or 0) / 1e6)
 
 
 class StatusReporter:

@@ -16,7 +16,8 @@ the last ``clock_window_s``, minus the source's stated latency), unless an offse
 the host clock already (the kinematics node mapped each tracker, ``--imu-clock host``); with ``"arrival"`` they are
 mapped by their own receipt times the same way. :meth:`LiveEmg.clock_report` says, per stream, the offset applied,
 its spread, the latency assumed and the method.
-The group activation at time t is read from the envelope at ``t - emd`` (electromechanical delay: EMG leads force).
+The group activation at time t is read from the envelope at ``t - emd`` (electromechanical delay: EMG leads force);
+:meth:`LiveEmg.awaits` says whether that EMG is still on its way (a caller may hold the frame until it is here).
 
 Problems are explicit: a jump in the sample index is a gap (counted, samples lost counted; the filter restarts
 from rest after it and the envelope is not used for ``GAP_SETTLE_S``, flag ``emg_gap``); a source whose newest
@@ -292,6 +293,34 @@ class LiveEmg:
                                                  self.latency_ns.get(source, self.default_latency_ns), method)
         if source in self.sources:
             self.sources[source].measured = self._measured.get(source)
+
+    def arrival_offset_ns(self, source: str) -> int | None:
+        """EMG source ``source``'s arrival mapping (its receipt times less its stated latency), whether or not an
+        offset measured another way replaces it; None before its first chunk or with ``ClockMode.DEVICE``."""
+        state = self.sources.get(source)
+        return None if state is None or self.clock is not ClockMode.HOST else state.clock.offset_ns
+
+    def awaits(self, device_time_ns: int, now_ns: int) -> bool:
+        """Whether the EMG of the kinematics frame at ``device_time_ns`` is still on its way at host time ``now_ns``:
+        some source that feeds groups delivers (its newest chunk is less than ``stall_s`` old) but has not reached
+        the frame's instant (less the EMD) yet. A device that delivers later than the trackers (a base station
+        buffering its frames) makes every frame wait for it; :meth:`at` reads the newest sample it has otherwise."""
+        frame_ns = int(device_time_ns)
+        if self.clock is ClockMode.HOST and self.joints_clock is JointsClock.ARRIVAL:
+            if self._joints_clock.offset_ns is None:
+                return False
+            frame_ns += self._joints_clock.offset_ns
+        for state in self.sources.values():
+            if not state.groups or now_ns - state.last_arrival_ns > self.stall_ns:
+                continue
+            t = int(frame_ns - self.setup.emd_s * 1e9)
+            if self.clock is ClockMode.HOST:
+                if state.offset_ns is None:
+                    continue
+                t -= state.offset_ns
+            if t > state.last_device_ns:
+                return True
+        return False
 
     def clock_report(self) -> list[ClockReport]:
         """Per stream (each EMG source seen, ``emg/<source>``, then ``joints``): the offset applied onto the host
