@@ -43,6 +43,9 @@ RECORDINGS = REPO_ROOT / "recordings"
 READY_TIMEOUT_S = 90.0
 STOP_TIMEOUT_S = 20.0
 DRAIN_S = 0.6  # after the simulators stop sending: bytes in flight reach the drivers, messages the nodes
+#: how long a joint frame may wait in the estimator for the EMG of its instant: a Trigno delivers each 13.5 ms frame
+#: after its last sample, plus the base's own latency; beyond this the frame reads the newest EMG there is
+EMG_WAIT_MS = 150.0
 
 
 # ------------------------------------------------------------------------------------------------ simulator sources
@@ -63,7 +66,9 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     """Arrays of the last (held-out) trial of ``pack`` in the bundled recording: EMG chunks -> one (n, 16) Trigno
     source, IMU samples -> one Xsens source per tracker (quaternion, acceleration, rate of turn, magnetic field).
     Every source starts at the trial's first instant and is cut to one common duration, so sample k of each is the
-    same instant of the trial, in every round of the loop."""
+    same instant of the trial, in every round of the loop. The recording holds no accelerometer data of the EMG
+    sensors: each sensor's (on the Trigno's AUX port) is computed from the recorded joint angles
+    (:func:`electrode_accelerations`)."""
     from drivers.trigno.protocol import N_SENSORS
     from drivers.trigno.source import EmgSource
     from drivers.xsens.source import ImuSource
@@ -98,9 +103,13 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     if not windows:
         raise InputError(f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack)
     t0, t1, load = windows[-1]
-    emg_rows, labels, rate, imu, emg_start = [], None, None, {}, None
+    emg_rows, labels, rate, imu, emg_start, joints = [], None, None, {}, None, []
     for m in read_messages(recording):
-        if m.type_name == "msk.EmgChunk":
+        if m.type_name == "msk.JointAngles":
+            j = m.decode()
+            if t0 <= j.device_time_ns < t1:
+                joints.append(j)
+        elif m.type_name == "msk.EmgChunk":
             c = m.decode()
             if t0 <= c.device_time_ns < t1:
                 emg_rows.append(np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels))
@@ -130,7 +139,11 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     samples = np.zeros((counts["emg"], N_SENSORS), dtype=np.float32)
     samples[:, : emg.shape[1]] = emg[: counts["emg"]]
     names = tuple(labels) + ("",) * (N_SENSORS - len(labels))
-    source = EmgSource(samples, float(rate), names, tuple(k < len(labels) for k in range(N_SENSORS)), f"{recording.name}:{pack}")
+    acc_rate, acc = electrode_accelerations(joints, labels, pack, emg_start, recording)
+    slot_acc = np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
+    slot_acc[:, : len(labels)] = acc
+    source = EmgSource(samples, float(rate), names, tuple(k < len(labels) for k in range(N_SENSORS)),
+                       f"{recording.name}:{pack}", slot_acc, acc_rate)
     trackers = {}
     for tracker, (segment, rows) in imu.items():
         rows = rows[: counts[tracker]]
@@ -139,6 +152,42 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
         trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
     electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(labels)}
     return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg")
+
+
+def electrode_accelerations(joints: list, channels: list[str], pack: str, start_ns: int, recording: Path
+                            ) -> tuple[float, np.ndarray]:
+    """(rate in Hz, (n, channels, 3) in g): what each EMG sensor's accelerometer measures during the recorded trial,
+    at the recorded joint frames' instants from ``start_ns`` (the trial's first EMG sample) on. The synthetic
+    generator's own model (:func:`msk_core.synth.imu.simulate_electrode_acc`): each channel's site on the pack body
+    of the exercise's electrode sites (a site on a part the pack keeps still measures gravity alone), its specific
+    force from the pack's rigid-body kinematics of the recorded angles, velocities and accelerations, in a random
+    mounting (seeded), plus 0.02 m/s² noise; the trackers' recorded accelerations come from the same kinematics."""
+    from msk_core.model import load_pack
+    from msk_core.signal.clock_sync import STANDARD_GRAVITY
+    from msk_core.synth import SPECS
+    from msk_core.synth.imu import simulate_electrode_acc
+
+    model = load_pack(pack)
+    specs = [spec for spec in SPECS.values() if spec.pack == model.name]
+    if not joints or not specs:
+        raise InputError(f"the {pack} trial of the bundled session has no joint frames, or no synthetic exercise "
+                         "uses the pack: the simulated Trigno sensors' accelerations cannot be computed",
+                         path=recording, value=(len(joints), model.name))
+    names = list(joints[0].coordinates)
+    missing = [c for c in model.coordinates if c not in names]
+    if missing:
+        raise InputError(f"the recorded joint frames lack the pack's coordinates {missing}", path=recording)
+    order = [names.index(c) for c in model.coordinates]
+    q, qd, qdd = (np.array([np.asarray(getattr(j, f), dtype=float)[order] for j in joints]) for f in ("q", "qd", "qdd"))
+    times = np.array([j.device_time_ns for j in joints], dtype=np.int64)
+    step_ns = float(np.median(np.diff(times)))
+    if abs(times[0] - start_ns) > 1000 or np.any(np.abs(np.diff(times) - step_ns) > 1000):  # 1 µs: rounding
+        raise InputError("the recorded joint frames do not start with the EMG or are not evenly spaced",
+                         path=recording, value=(int(times[0]), int(start_ns)))
+    time_s = np.arange(len(joints)) * step_ns / 1e9
+    stream = simulate_electrode_acc(model, specs[0].electrode_sites, list(channels), time_s, q, qd, qdd, seed=0,
+                                    key=("live-sim", model.name))
+    return 1e9 / step_ns, (stream.acceleration / STANDARD_GRAVITY).astype(np.float32)
 
 
 @dataclass
@@ -172,28 +221,38 @@ class Simulators:
 
 
 def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
-                     xsens_latency_s: float | dict[str, float] = 0.0, clock: object | None = None) -> Simulators:
+                     xsens_latency_s: float | dict[str, float] = 0.0, clock: object | None = None,
+                     trackers_after_trigno_s: float | None = None) -> Simulators:
     """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
     that starts when the first device starts streaming, so the set begins with its static pose as the first device
     is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
-    ``*_latency_s``: each device's stated delivery latency (a sample measured at t leaves at t + latency);
-    ``xsens_latency_s`` one for every tracker, or per tracker id (0 for a tracker not named)."""
+    ``*_latency_s``: each device's delivery latency (a sample measured at t leaves at t + latency);
+    ``xsens_latency_s`` one for every tracker, or per tracker id (0 for a tracker not named).
+    ``trackers_after_trigno_s``: the trackers measure from that long after the Trigno's first sample on (each waits
+    for the Trigno to start), as trackers switched on after the base; None: as soon as their driver asks."""
     from drivers.trial_clock import TrialClock
     from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
     from drivers.xsens.simulator import XsensSimulator
 
     clock = TrialClock() if clock is None else clock
-    # free ports: several sessions (tests, users) may run side by side; no legacy/aux listeners needed
-    trigno = TrignoSimulator(sources.emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None,
+    # free ports: several sessions (tests, users) may run side by side; the AUX port carries the sensors'
+    # accelerometers, no legacy listeners needed
+    trigno = TrignoSimulator(sources.emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=0,
                                                           trial_clock=clock, latency_s=trigno_latency_s)).start()
+
+    def after_trigno() -> float | None:
+        start = trigno.stats.start_index
+        return None if start is None else clock.instant(start, trigno.rate_hz) + trackers_after_trigno_s
+
     xsens = {}
     try:
         for tracker, (_, source) in sources.imu.items():
             # a long wake-up window: the simulator waits in Config for the driver instead of streaming into a port
             # nobody has opened yet (a real MTi would, and those messages would never be read)
             latency_s = xsens_latency_s.get(tracker, 0.0) if isinstance(xsens_latency_s, dict) else xsens_latency_s
-            xsens[tracker] = XsensSimulator(source, device_id=int(tracker, 16), wakeup_window_s=3600.0,
-                                            trial_clock=clock, latency_s=latency_s).start()
+            xsens[tracker] = XsensSimulator(
+                source, device_id=int(tracker, 16), wakeup_window_s=3600.0, trial_clock=clock, latency_s=latency_s,
+                measure_not_before=None if trackers_after_trigno_s is None else after_trigno).start()
     except BaseException:
         trigno.close()
         for sim in xsens.values():
@@ -292,11 +351,29 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
         "inputs_dropped": dropped,
         "node_errors": {name: int(s.errors) for name, s in nodes.items()},
         "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
-        "clocks": {c.source: {"offset_ms": c.offset_ms, "spread_ms": round(c.spread_ms, 3),
-                              "latency_ms": round(c.latency_ms, 3), "method": c.method, "samples": int(c.samples),
-                              "node": name}
-                   for name, s in nodes.items() for c in s.clocks},
+        "clocks": {c.source: clock_summary(c, name) for name, s in nodes.items() for c in s.clocks},
     }
+
+
+def clock_summary(clock: messages.ClockOffset, node: str) -> dict:
+    """One stream's clock mapping as ``summary.json`` says it: the offset applied (ms since the epoch), its spread,
+    the latency taken off, the method and why, and, with an offset measured another way, the arrival mapping it
+    replaces and that mapping's error (arrival minus applied: how much later it would have put every sample); per
+    tracker the acceleration alignment's estimate (``device_offset_ms``: tracker device time minus EMG device time)."""
+    out = {"offset_ms": clock.offset_ms, "spread_ms": round(clock.spread_ms, 3), "latency_ms": round(clock.latency_ms, 3),
+           "method": clock.method, "samples": int(clock.samples), "node": node}
+    if clock.reason:
+        out["reason"] = clock.reason
+    if clock.HasField("arrival_offset_ms"):
+        out["arrival_offset_ms"] = clock.arrival_offset_ms
+        out["arrival_error_ms"] = round(clock.arrival_offset_ms - clock.offset_ms, 3)
+    if clock.alignments:
+        out["alignments"] = {a.reference: {
+            "status": a.status, "reason": a.reason, "device_offset_ms": a.device_offset_ms,
+            "spread_ms": round(a.spread_ms, 3), "drift_ppm": round(a.drift_ppm, 3),
+            "peak_correlation": round(a.peak_correlation, 4), "sensor": a.sensor, "windows": int(a.windows),
+            "host_offset_ms": a.host_offset_ms} for a in clock.alignments}
+    return out
 
 
 def summary_text(summary: dict) -> str:
@@ -316,7 +393,10 @@ def summary_text(summary: dict) -> str:
         lines.append(f"  {node}: {summary['node_errors'][node]} inputs not used, last: {text}")
     for source, clock in summary.get("clocks", {}).items():
         lines.append(f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "
-                     f"{clock['latency_ms']:g} ms ({clock['node']})")
+                     f"{clock['latency_ms']:g} ms ({clock['node']})"
+                     + (f"; the arrival mapping was {clock['arrival_error_ms']:+.1f} ms off"
+                        if "arrival_error_ms" in clock else "")
+                     + (f"; {clock['reason']}" if clock.get("method") == "arrival" and clock.get("reason") else ""))
     if "simulators_sent" in summary:
         lines.append("  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items()))
     return "\n".join(lines)
@@ -333,6 +413,7 @@ class LivePlan:
     methods: tuple[str, ...]
     subject: Path
     trigno: tuple[str, int] | None = None  # (HOST[:PORT], EMG port)
+    trigno_aux_port: int | None = None  # the sensors' accelerometers (AUX port), for the EMG clock's alignment
     xsens_ports: list[str] = field(default_factory=list)
     trackers: dict[str, str] = field(default_factory=dict)
     exercise: str = ""  # the pack's name (session.pack may be a path)
@@ -347,6 +428,8 @@ def driver_argv(plan: LivePlan, kind: str) -> list[str]:
     if kind == "trigno":
         host, emg_port = plan.trigno
         argv += ["--trigno", host, "--trigno-emg-port", str(emg_port), "--trigno-id", s.trigno_id]
+        if plan.trigno_aux_port is not None:
+            argv += ["--trigno-aux-port", str(plan.trigno_aux_port)]
     else:
         for port in plan.xsens_ports:
             argv += ["--xsens", port]
@@ -458,10 +541,15 @@ def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
     if name == "recorder":
         return python_module("services.recorder", "--out", str(mcap))
     if name == "estimator":
-        # the joints are on the host clock already: the kinematics node maps each tracker's clock
+        # the joints are on the host clock already: the kinematics node maps each tracker's clock. The EMG clock is
+        # measured against the trackers' from the accelerations, the trackers mapped as the kinematics node maps
+        # them; each joint frame waits (bounded) for the EMG of its instant.
         argv = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
                              "--emg-clock", "host", "--joints-clock", "host", "--load-kg", str(s.load_kg),
                              "--emg-latency-ms", f"{s.trigno_id}={plan.trigno_latency_ms:g}")
+        if plan.trigno is not None:
+            argv += ["--emg-align", "acceleration", "--emg-wait-ms", f"{EMG_WAIT_MS:g}",
+                     *(a for tracker, ms in plan.tracker_latency_ms.items() for a in ("--imu-latency-ms", f"{tracker}={ms:g}"))]
         return argv + [a for method in plan.methods for a in ("--method", method)]
     if name == "kinematics":
         return python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name, "--imu-clock", "host",
@@ -730,6 +818,7 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
         simulators = start_simulators(sources, trigno_latency_s=trigno_latency_ms / 1e3,
                                       xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()})
         plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
+        plan.trigno_aux_port = simulators.trigno.ports["aux"]
         plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
         session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))
         log(f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
@@ -743,6 +832,8 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
             from drivers.trigno import protocol as tp
 
             plan.trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
+            # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
+            plan.trigno_aux_port = int(tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
         plan.xsens_ports = list(session.xsens_ports)
     return plan, simulators
 

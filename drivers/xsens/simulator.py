@@ -25,6 +25,7 @@ import termios
 import threading
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,10 +86,13 @@ class XsensSimulator:
         wakeup_window_s: float = 0.5,
         trial_clock: TrialClock | None = None,
         latency_s: float = 0.0,
+        measure_not_before: Callable[[], float | None] | None = None,
     ) -> None:
         """``trial_clock``: the one world a session's simulators sample (None: each entry into Measurement continues
         the trial from where it stopped); ``latency_s``: device seconds between measuring a sample and its bytes
-        leaving."""
+        leaving; ``measure_not_before``: the earliest wall instant (``time.monotonic()``) the tracker measures from
+        after entering Measurement, None while it is not known yet (it waits): a tracker switched on after another
+        device, e.g. a given time after the Trigno starts."""
         if not (math.isfinite(speed) and speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=speed)
         if not (math.isfinite(latency_s) and latency_s >= 0):
@@ -104,6 +108,8 @@ class XsensSimulator:
         self.wakeup_window_s = wakeup_window_s
         self.trial_clock = trial_clock
         self.latency_s = latency_s
+        self.measure_not_before = measure_not_before
+        self._first_pending = False  # in Measurement, waiting for measure_not_before to say when it starts
         self.stats = SimulatorStats(latency_s=latency_s)
         self.baudrate = DEFAULT_BAUDRATE
         self.path = ""
@@ -196,6 +202,8 @@ class XsensSimulator:
         try:
             self._power_up()
             while not self._stop.is_set():
+                if self.measuring and self._first_pending:
+                    self._schedule_first()
                 now = time.monotonic()
                 if self._awaiting_ack and now >= self._wake_deadline:
                     self._awaiting_ack = False
@@ -243,7 +251,18 @@ class XsensSimulator:
         if self.measuring:
             return
         self.measuring = True
+        self._schedule_first()
+
+    def _schedule_first(self) -> None:
+        """The first sample's instants after entering Measurement (not before ``measure_not_before``)."""
         now = time.monotonic()
+        self._first_pending = False
+        if self.measure_not_before is not None:
+            earliest = self.measure_not_before()
+            if earliest is None:
+                self._first_pending, self._next_due = True, math.inf
+                return
+            now = max(now, earliest)
         if self.trial_clock is None:
             self._next_due = now + self.latency_s / self.speed
             self.stats.start_index = self._sample
