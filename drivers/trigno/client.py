@@ -156,7 +156,7 @@ class _Link:
     """The sockets of one connection to the server."""
 
     command: socket.socket
-    emg: socket.socket
+    emg: socket.socket | None  # None until the handshake on the command port is done
     aux: socket.socket | None
     replies: tp.ReplyReader = field(default_factory=tp.ReplyReader)
     pending_replies: list[str] = field(default_factory=list)
@@ -260,7 +260,7 @@ class TrignoClient:
                 self._note_error(f"while stopping: {error}")
         self._drop_link()
         self.state = ClientState.STOPPED
-        pending = [e for e in self._events if not isinstance(e, StatusEvent)]
+        pending: list[Event] = [e for e in self._events if not isinstance(e, StatusEvent)]
         self._events = [e for e in self._events if isinstance(e, StatusEvent)]  # still for poll()
         self._emit_status(ClientState.STOPPED, "stopped by client")
         return pending
@@ -390,7 +390,7 @@ class TrignoClient:
         cfg = self.config
         command = socket.create_connection((cfg.host, cfg.command_port), timeout=cfg.connect_timeout_s)
         command.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        link = _Link(command=command, emg=None, aux=None)  # type: ignore[arg-type]
+        link = _Link(command=command, emg=None, aux=None)
         try:
             self.protocol_version = tp.parse_banner(self._read_banner(link))
             self._configure(link)
@@ -446,9 +446,9 @@ class TrignoClient:
         if master is not None and not tp.parse_yes_no(master, command="MASTER?"):
             if not cfg.take_master:
                 raise ProtocolError("this connection is not the Trigno master and take_master is off")
-            reply = self._command("MASTER", link)
-            if not tp.is_new_master(reply):
-                raise ProtocolError(f"MASTER answered {reply!r}, expected NEW MASTER")
+            answer = self._command("MASTER", link)
+            if not tp.is_new_master(answer):
+                raise ProtocolError(f"MASTER answered {answer!r}, expected NEW MASTER")
         if cfg.endianness is not None:
             self._set_option(link, f"ENDIAN {cfg.endianness.value}", "ENDIANNESS?", cfg.endianness)
         reply = self._query(link, "ENDIANNESS?")
@@ -560,10 +560,9 @@ class TrignoClient:
                 self._selector.unregister(key.fileobj)
         try:
             for key, _ in ready:
-                sock = key.fileobj
-                if sock is link.emg:
+                if key.fileobj is link.emg:
                     self._read_emg(link)
-                elif sock is link.aux:
+                elif key.fileobj is link.aux:
                     self._read_aux(link)
                 else:
                     self._read_command(link)
@@ -580,6 +579,7 @@ class TrignoClient:
         return chunk
 
     def _read_emg(self, link: _Link) -> None:
+        assert link.emg is not None  # called only once the handshake opened it, as _read_aux for link.aux
         chunk = self._recv(link.emg)
         if not chunk:
             return

@@ -275,6 +275,7 @@ class SampleDecoder:
     def feed(self, chunk: bytes | bytearray | memoryview) -> np.ndarray:
         """Complete samples in ``chunk`` (plus buffered bytes) as a float32 array of shape (n, channels)."""
         self.stats.bytes_in += len(chunk)
+        data: bytes | bytearray | memoryview
         if self._partial:
             self._partial += chunk
             data = self._partial

@@ -151,13 +151,14 @@ def load_npz(path: Path) -> EmgSource:
     if len(sensors) != n_channels or len(set(sensors)) != n_channels or not all(1 <= s <= N_SENSORS for s in sensors):
         raise FileFormatError("sensors must be distinct slots 1..16, one per column", path=path, field="sensors", value=sensors)
     samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
-    slot_acc = None if acc is None else np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
+    slot_acc = None
+    if acc is not None:
+        slot_acc = np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
+        slot_acc[:, np.asarray(sensors) - 1] = acc  # the slots are distinct (checked above)
     names = [""] * N_SENSORS
     paired = [False] * N_SENSORS
     for column, slot in enumerate(sensors):
         samples[:, slot - 1] = emg[:, column]
-        if slot_acc is not None:
-            slot_acc[:, slot - 1] = acc[:, column]
         names[slot - 1] = labels[column]
         paired[slot - 1] = True
     return EmgSource(samples, rate, tuple(names), tuple(paired), path.name, slot_acc, acc_rate)

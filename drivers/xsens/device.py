@@ -271,7 +271,7 @@ class XsensDevice:
         """Readings available now (waits at most the transport timeout). Raises DeviceDisconnected when unplugged."""
         messages, self._queue = self._queue, []
         messages += self._read_messages()
-        readings = []
+        readings: list[ImuReading] = []
         now = time.time_ns()
         for message in messages:
             self.stats.messages += 1

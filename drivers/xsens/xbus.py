@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import enum
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from msk_core.errors import ProtocolError
 
@@ -196,7 +197,7 @@ class ParserStats:
         return self.checksum_errors + self.length_errors + self.structure_errors
 
 
-def mtdata2_structure_ok(data: bytes | memoryview, start: int = 0, end: int | None = None) -> bool:
+def mtdata2_structure_ok(data: bytes | bytearray | memoryview, start: int = 0, end: int | None = None) -> bool:
     """True when the MTData2 item sizes tile the payload exactly (guards against false frames after garbage)."""
     i = start
     end = len(data) if end is None else end
@@ -432,21 +433,25 @@ def _make_decoder(data_id: int, size: int) -> _Decoder | None:
     return name, fp1632
 
 
+# struct.Struct.unpack_from: the values it reads are ints, floats or bytes, as the format says.
+_Unpack = Callable[[bytes | bytearray | memoryview], tuple[Any, ...]]
+
+
 class _Layout(NamedTuple):
     """A compiled MTData2 item sequence. A device repeats the same DataIDs and sizes in message after message, so
     recognising the sequence (one struct call over the item headers) replaces walking the items one by one."""
 
-    check: object  # unpack_from reading every item header
-    headers: tuple  # what ``check`` returns for this sequence
-    unpack_from: object  # unpack_from reading every item's data
-    names: tuple
-    slices: tuple  # slice of the flat tuple per name
-    ids: dict
-    conversions: tuple  # per field: 0 none, 1 fixed 12.20, 2 fixed 16.32, 3 unknown (raw bytes)
+    check: _Unpack  # unpack_from reading every item header
+    headers: tuple[int, ...]  # what ``check`` returns for this sequence
+    unpack_from: _Unpack  # unpack_from reading every item's data
+    names: tuple[str, ...]
+    slices: tuple[slice, ...]  # slice of the flat tuple per name
+    ids: dict[str, int]
+    conversions: tuple[int, ...]  # per field: 0 none, 1 fixed 12.20, 2 fixed 16.32, 3 unknown (raw bytes)
     plain: bool
-    fx20: tuple  # flat indices of every fixed 12.20 component
-    fx32: tuple  # flat indices of the fraction of every fixed 16.32 component (its integer part follows)
-    targets: tuple  # (name, 0 = flat / 1 = converted list, slice) for every known item
+    fx20: tuple[int, ...]  # flat indices of every fixed 12.20 component
+    fx32: tuple[int, ...]  # flat indices of the fraction of every fixed 16.32 component (its integer part follows)
+    targets: tuple[tuple[str, int, slice], ...]  # (name, 0 = flat / 1 = converted list, slice) for every known item
 
 
 _LAYOUTS: dict[int, list[_Layout]] = {}
