@@ -171,16 +171,18 @@ class AccelerationAlignment:
             for pair in tracker.pairs.values():
                 pair.answer = pair.sync.update()
         for source, state in self._sources.items():
-            alignments, hosts = [], []
+            alignments: list[Alignment] = []
+            hosts: list[tuple[int, int]] = []
             for name, tracker in self._trackers.items():
-                pair = tracker.pairs.get(source)
-                if pair is None:
+                found = tracker.pairs.get(source)
+                if found is None:
                     continue
-                tracker_offset = self.trackers.offset_ns(name)
-                host = pair.answer.emg_host_offset_ns(tracker_offset) if pair.answer.locked else None
-                alignments.append(Alignment(f"imu/{name}", pair.answer, host))
+                tracker_offset = self.trackers.offset_ns(name)  # mapped before its pair was made: never None
+                host = (found.answer.emg_host_offset_ns(tracker_offset)
+                        if found.answer.locked and tracker_offset is not None else None)
+                alignments.append(Alignment(f"imu/{name}", found.answer, host))
                 if host is not None:
-                    hosts.append((host, pair.answer.spread_ns or 0))
+                    hosts.append((host, found.answer.spread_ns or 0))
             state.alignments = tuple(alignments)
             if hosts:
                 applied = int(round(float(np.median([h for h, _ in hosts]))))

@@ -175,7 +175,9 @@ class DeviceClocks:
             clock = self.clocks[name] = HostClock(f"{self.prefix}/{name}", window_s=self.window_s,
                                                   latency_ns=self.latency_ns.get(name, self.default_latency_ns))
         clock.add(device_ns, receipt_ns)
-        return int(device_ns) + clock.offset_ns
+        offset = clock.offset_ns
+        assert offset is not None  # a clock with a sample has an offset
+        return int(device_ns) + offset
 
     def offset_ns(self, name: str) -> int | None:
         """Stream ``name``'s current offset (device time + this = host instant measured); None before its first
