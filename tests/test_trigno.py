@@ -270,7 +270,7 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
     config = SimulatorConfig(**EPHEMERAL, speed=2.0, fragment_max=300, seed=1)
     sim = TrignoSimulator(source, config).start()
     ports = dict(sim.ports)
-    client = client_for(sim, backoff_initial_s=0.02, backoff_max_s=0.2)
+    client = client_for(sim, aux=True, backoff_initial_s=0.02, backoff_max_s=0.2)
     try:
         client.connect()
         client.start()
@@ -303,6 +303,13 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
     first_after = next(e for e in events[gap_at:] if isinstance(e, EmgBlock))
     assert first_after.first_sample_index == gap.first_missing_index + gap.n_missing
     assert client.stats.reconnects == 1 and client.stats.samples_lost == gap.n_missing
+    # the accelerometers stay on the EMG clock: the AUX index jumps over the same gap (2 AUX per 27 EMG samples)
+    aux_before = [e for e in events[:lost_at] if isinstance(e, AuxBlock)]
+    aux_after = [e for e in events[gap_at:] if isinstance(e, AuxBlock)]
+    assert aux_before and aux_after and not [e for e in events[lost_at:gap_at] if isinstance(e, AuxBlock)]
+    resumed_s = first_after.first_sample_index / first_after.rate_hz
+    assert abs(aux_after[0].first_sample_index / aux_after[0].rate_hz - resumed_s) <= 1 / aux_after[0].rate_hz
+    assert all(a.first_sample_index + len(a.samples) == b.first_sample_index for a, b in zip(aux_after, aux_after[1:]))
 
 
 def test_stalled_stream_is_treated_as_a_lost_link_and_resumes():

@@ -191,6 +191,7 @@ class TrignoClient:
         self._aux_decoder = tp.SampleDecoder(config.resolved_aux_layout.floats_per_sample)
         self._next_index = 0
         self._next_aux_index = 0
+        self._aux_after_gap: list[tuple[np.ndarray, int]] = []  # AUX rows of a resumed stream, before its gap is known
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
         self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
@@ -599,9 +600,14 @@ class TrignoClient:
         assert link.aux is not None
         chunk = self._recv(link.aux)
         rows = self._aux_decoder.feed(chunk) if chunk else np.empty((0, 0))
-        if len(rows):
-            self._events.append(AuxBlock(rows, self._next_aux_index, self.aux_rate_hz, time.time_ns()))
-            self._next_aux_index += len(rows)
+        if len(rows) and self._gap_pending:  # placed on the EMG clock once the EMG says how long the gap was
+            self._aux_after_gap.append((rows, time.time_ns()))
+        elif len(rows):
+            self._emit_aux(rows, time.time_ns())
+
+    def _emit_aux(self, rows: np.ndarray, host_time_ns: int) -> None:
+        self._events.append(AuxBlock(rows, self._next_aux_index, self.aux_rate_hz, host_time_ns))
+        self._next_aux_index += len(rows)
 
     def _read_command(self, link: _Link) -> None:
         chunk = link.command.recv(4096)
@@ -631,6 +637,14 @@ class TrignoClient:
         self._events.append(GapEvent(self._next_index, missing, time.time_ns(), "connection lost"))
         self._next_index += missing
         self.stats.samples_lost += missing
+        # the AUX stream resumed with the EMG: its sample index jumps over the same gap, so that AUX sample k stays
+        # measured at EMG device time k / aux rate (the accelerometers on the EMG clock)
+        if self.aux_rate_hz > 0 and self.rate_hz > 0:
+            resumed = int(round(self._next_index * self.aux_rate_hz / self.rate_hz))
+            self._next_aux_index = max(self._next_aux_index, resumed)
+        for rows, host_time_ns in self._aux_after_gap:
+            self._emit_aux(rows, host_time_ns)
+        self._aux_after_gap = []
 
     # ------------------------------------------------------------------------------------------ reconnection
     def _drain(self, link: _Link) -> None:
