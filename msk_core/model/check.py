@@ -54,9 +54,9 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
         fd_r.append(np.where(group_bad, np.nan, fd))
         fit_r.append(pack.moment_arms(q).T)
         fit_l.append(pack.mtu_lengths(q))
-    ref_r, fit_r = np.array(ref_r), np.array(fit_r)  # (S, G, n)
-    err_r = (fit_r - ref_r) * 1e3
-    err_fd = (fit_r - np.array(fd_r)) * 1e3
+    opensim_arms, pack_arms = np.array(ref_r), np.array(fit_r)  # (S, G, n)
+    err_r = (pack_arms - opensim_arms) * 1e3
+    err_fd = (pack_arms - np.array(fd_r)) * 1e3
     err_l = (np.array(fit_l) - np.array(ref_l)) * 1e3
     mean, peak = np.nanmean, np.nanmax
     per_group = {}
@@ -80,8 +80,8 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
         "path_derivative_rms_mm": float(np.sqrt(mean(err_fd**2))),
         "path_derivative_max_mm": float(peak(np.abs(err_fd))),
         "groups": per_group,
-        "opensim_moment_arms": ref_r,
-        "pack_moment_arms": fit_r,
+        "opensim_moment_arms": opensim_arms,
+        "pack_moment_arms": pack_arms,
     }
 
 
@@ -105,14 +105,14 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
     poser = osim_tools.OsimPoser(model, state, spec)
     rng = np.random.default_rng(seed + 2 * CHECK_SEED_OFFSET)
     poses = random_poses(pack, n_poses, seed + 1)
-    ref, fit = [], []
+    opensim_tau, pack_tau = [], []
     rigid = pack.validation_rigid
     for q in counted(poses, progress, f"{pack.name}: OpenSim inverse dynamics (poses)"):
         qd = rng.uniform(-1, 1, len(q))
         qdd = rng.uniform(-10, 10, len(q))
-        ref.append(osim_tools.opensim_inverse_dynamics(poser, q, qd, qdd))
-        fit.append(rigid.inverse_dynamics(q - pack.reference_pose, qd, qdd, hand_load, None))
-    ref, fit = np.array(ref), np.array(fit)
+        opensim_tau.append(osim_tools.opensim_inverse_dynamics(poser, q, qd, qdd))
+        pack_tau.append(rigid.inverse_dynamics(q - pack.reference_pose, qd, qdd, hand_load, None))
+    ref, fit = np.array(opensim_tau), np.array(pack_tau)
     peak = np.max(np.abs(ref), axis=0)
     err = np.abs(fit - ref)
     return {
@@ -153,7 +153,7 @@ def check_hanging_static(pack: ModelPack, osim_path: str | Path, *, swing: dict[
         subtree = set(osim_tools._subtree(model, pivot))
         hand_of[pivot] = next(b for b in loads if b in subtree)
     poses = random_poses(pack, n_poses, seed + 2)
-    ref, fit, angles = [], [], []
+    opensim_tau, pack_tau, angles = [], [], []
     zeros = np.zeros(len(pack.coordinates))
     for q in poses:
         poser.set(q)
@@ -171,10 +171,10 @@ def check_hanging_static(pack: ModelPack, osim_path: str | Path, *, swing: dict[
 
             solved[coord] = brentq(offset, -1.5, 1.5, xtol=1e-10)
         poser.base.update(solved)
-        ref.append(osim_tools.opensim_inverse_dynamics(poser, q, zeros, zeros))
-        fit.append(pack.validation_rigid.inverse_dynamics(q - pack.reference_pose, zeros, zeros, hand_load, None))
+        opensim_tau.append(osim_tools.opensim_inverse_dynamics(poser, q, zeros, zeros))
+        pack_tau.append(pack.validation_rigid.inverse_dynamics(q - pack.reference_pose, zeros, zeros, hand_load, None))
         angles.append([np.degrees(v) for v in solved.values()])
-    ref, fit = np.array(ref), np.array(fit)
+    ref, fit = np.array(opensim_tau), np.array(pack_tau)
     peak = np.max(np.abs(ref), axis=0)
     err = np.abs(fit - ref)
     return {

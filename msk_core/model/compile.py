@@ -88,8 +88,8 @@ def detect_knots(poser, names: list[str], spec: PackSpec,
             size = np.abs(steps)
             # a switch is a step far above the smooth variation around it (median of its +-5 neighbours)
             local = np.array([np.median(np.delete(size[max(0, a - 5) : a + 6], min(a, 5))) for a in range(len(size))])
-            jumps = np.flatnonzero((size > KNOT_JUMP) & (size > 8 * local))
-            jumps = sorted(jumps, key=lambda a: -size[a])[:MAX_KNOTS]
+            jumps = sorted(np.flatnonzero((size > KNOT_JUMP) & (size > 8 * local)).tolist(),
+                           key=lambda a: -size[a])[:MAX_KNOTS]
             for a in jumps:
                 back = [b for b in jumps if 0 < abs(b - a) <= 3 and np.sign(steps[b]) != np.sign(steps[a])]
                 if back:
@@ -147,11 +147,16 @@ def _member_names(spec: PackSpec) -> list[str]:
     return names
 
 
+# one muscle's length polynomial: exponents (terms, n), coefficients (terms,), hinges (coordinate, knot) and the
+# hinge coefficients (3 per hinge)
+_MuscleFit = tuple[np.ndarray, np.ndarray, list[tuple[int, float]], np.ndarray]
+
+
 @dataclass
 class _LengthFits:
     """Per-muscle polynomial length fits and the shared basis they are expressed in."""
 
-    muscles: dict  # name -> (exponents, coefficients, hinges, hinge coefficients)
+    muscles: dict[str, _MuscleFit]
     basis: list[tuple[int, ...]]
     hinges: list[tuple[int, float]]
     centre: np.ndarray
@@ -176,7 +181,7 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | N
     dx = derivs * half[None, None, :]  # dl/dx
     fit_idx, test_idx = np.arange(n_test, len(poses)), np.arange(n_test)
     n = len(spec.coordinates)
-    muscle_fits = {}
+    muscle_fits: dict[str, _MuscleFit] = {}
     report = {}
     for i, name in enumerate(names):
         spanned = [j for j in range(n) if np.nanmax(np.abs(derivs[:, i, j])) > SPAN_THRESHOLD]

@@ -134,7 +134,7 @@ def _chain(poser: OsimPoser, spec: PackSpec, k: int, fixed: str, moving: str) ->
     rf0 = t0[fixed][0]
     rel_r0, rel_p0 = _relative(t0, fixed, moving)
     values = np.linspace(c.lower, c.upper, CHAIN_SAMPLES)
-    dofs = []
+    dof_rows = []
     for value in values:
         q = q0.copy()
         q[k] = value
@@ -142,9 +142,9 @@ def _chain(poser: OsimPoser, spec: PackSpec, k: int, fixed: str, moving: str) ->
         rel_r, rel_p = _relative(poser.transforms(), fixed, moving)
         d = rf0 @ (rel_p - rel_p0)
         dr = rf0 @ rel_r @ rel_r0.T @ rf0.T
-        dofs.append(np.concatenate([d, _euler_xyz(dr)]))
+        dof_rows.append(np.concatenate([d, _euler_xyz(dr)]))
     poser.set(q0)
-    dofs = np.unwrap(np.array(dofs), axis=0)
+    dofs = np.unwrap(np.array(dof_rows), axis=0)
     centre, half = (c.upper + c.lower) / 2 - c.reference, (c.upper - c.lower) / 2
     x = (values - c.reference - centre) / half
     vander = x[:, None] ** np.arange(CHAIN_DEGREE + 1)[None, :]
@@ -287,7 +287,7 @@ def extract_rigid(
             elif len(sides) > 1:
                 raise ConfigError(f"coordinate {spec.coordinates[k].name!r} moves joints on both sides of "
                                   f"shared_from={shared_from!r}", path=spec.path, field="dynamics.shared_from")
-    gains = np.array([j.pop("gains_row") for j in joints]).reshape(len(joints), n)
+    gain_matrix = np.array([j.pop("gains_row") for j in joints]).reshape(len(joints), n)
     return {
         "root": root,
         "joints": joints,
@@ -295,7 +295,7 @@ def extract_rigid(
         "load_points": loads,
         "gravity": np.asarray(gravity, dtype=float).tolist(),
         "load_share": load_share,
-        "gains": gains.tolist(),
+        "gains": gain_matrix.tolist(),
         "torque_scale": torque_scale.tolist(),
     }
 

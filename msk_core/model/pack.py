@@ -24,6 +24,7 @@ from msk_core.model.poly import FeatureEvaluator, derivative_matrix
 from msk_core.model.rigid import RigidModel, compiled_kernels
 
 if TYPE_CHECKING:
+    from msk_core.model.kernels import MuscleTables
     from msk_core.model.spec import PackSpec
 
 PACK_FORMAT = "msk-model-pack/1"
@@ -122,13 +123,14 @@ class ModelPack:
         self.rigid = RigidModel(data["dynamics"], n_coordinates=n, compiled=compiled)
         validation = data.get("validation_dynamics")
         self.validation_rigid = RigidModel(validation, n_coordinates=n, compiled=compiled) if validation else self.rigid
-        self.muscle_tables = None
+        self.muscle_tables: MuscleTables | None = None
         if compiled:
             kernels = self._kernels = compiled_kernels()
-            self.muscle_tables = kernels.MuscleTables.build(
+            muscle_tables: MuscleTables = kernels.MuscleTables.build(
                 lo=self._lo, hi=self._hi, centre=self._centre, half=self._half, half_range=self._half_range,
                 reference=self.reference_pose, exponents=self._exponents, hinge_var=self._hinge_var,
                 hinge_knot=self._hinge_knot, stacked=self._stacked, n_groups=g)
+            self.muscle_tables = muscle_tables
             self._frame_kernel = kernels.frame
             self._both = kernels.MUSCLES | kernels.DYNAMICS
             self._modes = {  # (out_of_range, parts) -> kernels.frame mode bits
@@ -137,12 +139,11 @@ class ModelPack:
                 for part in (kernels.MUSCLES, kernels.DYNAMICS, kernels.MUSCLES | kernels.DYNAMICS)
             }
             # the compiled frame's output layout: lengths (G), moment arms (n × G), tau (n), tau per joint (J)
-            nj = self.rigid.tables.n_joints
-            self._frame_size = g * (n + 1) + n + nj
+            rigid_tables = self.rigid.compiled_tables
+            self._frame_size = g * (n + 1) + n + rigid_tables.n_joints
             self._lengths_at, self._arms_at = slice(0, g), slice(g, g * (n + 1))
             self._tau_at = slice(g * (n + 1), g * (n + 1) + n)
-            self._tables = (self.muscle_tables.ints, self.muscle_tables.floats, self.rigid.tables.ints,
-                            self.rigid.tables.floats)
+            self._tables = (muscle_tables.ints, muscle_tables.floats, rigid_tables.ints, rigid_tables.floats)
 
     # ---- poses -------------------------------------------------------------------------------------------------
     def in_range(self, q: np.ndarray) -> np.ndarray:
@@ -191,7 +192,7 @@ class ModelPack:
         kernels = self._kernels
         if dynamics:
             q, qd, qdd = self._vectors(q, qd, qdd)
-            out = np.empty(self._n + self.rigid.tables.n_joints)
+            out = np.empty(self._n + self.rigid.compiled_tables.n_joints)
             mode = self._modes[out_of_range, kernels.DYNAMICS]
         else:
             q, qd, qdd = self._vectors(q, q, q)  # qd, qdd not read

@@ -7,6 +7,7 @@ and coefficient matrices; x = (q - centre) / half_width maps each fitted range o
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -73,7 +74,7 @@ def hinge_derivatives(x: np.ndarray, hinges: list[tuple[int, float]], var: int) 
 
 def fit_length(
     x: np.ndarray, length: np.ndarray, dl_dx: np.ndarray, degree: int, derivative_weight: float = 1.0,
-    hinges: list[tuple[int, float]] = (),
+    hinges: Sequence[tuple[int, float]] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares fit of l(x) to lengths and their derivatives jointly (Hermite-style).
 

@@ -62,7 +62,7 @@ def compare_with_recorded_id(
         spline = make_smoothing_spline(t, q[:, j], lam=1e-4)
         qd[:, j] = spline.derivative(1)(t)
         qdd[:, j] = spline.derivative(2)(t)
-    rotations, origins = [], []
+    rotations, origin_rows = [], []
     for k in range(len(t)):
         for name in ik_names[1:]:
             if coords.contains(name):
@@ -71,18 +71,18 @@ def compare_with_recorded_id(
         transform = root.getTransformInGround(state)
         rot = transform.R()
         rotations.append(np.array([[rot.get(i, j) for j in range(3)] for i in range(3)]))
-        origins.append(np.array(transform.p().to_numpy()))
-    origins = np.array(origins)
+        origin_rows.append(np.array(transform.p().to_numpy()))
+    origins = np.array(origin_rows)
     # the root's linear acceleration enters as a fictitious force: effective gravity g - a_root
     accel = np.stack([make_smoothing_spline(t, origins[:, i], lam=1e-4).derivative(2)(t) for i in range(3)], axis=1)
-    pack_tau, gravities = [], []
+    pack_rows, gravities = [], []
     for k in range(len(t)):
         r = rotations[k]
         g = r.T @ (g_world - (accel[k] if include_root_acceleration else 0.0))
         gravities.append(g)
-        pack_tau.append(pack.inverse_dynamics(q[k], qd[k], qdd[k], hand_load_newton, gravity=g,
-                                              out_of_range=OutOfRange.CLAMP))
-    pack_tau = np.array(pack_tau)
+        pack_rows.append(pack.inverse_dynamics(q[k], qd[k], qdd[k], hand_load_newton, gravity=g,
+                                               out_of_range=OutOfRange.CLAMP))
+    pack_tau = np.array(pack_rows)
     id_t = idd[:, 0] - ik[0, 0]
     recorded = np.stack([np.interp(t, id_t, idd[:, id_names.index(c)]) for c in pack.coordinates], axis=1)
     err = pack_tau - recorded

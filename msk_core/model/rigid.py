@@ -9,14 +9,19 @@ the transposed gains (virtual work).
 from __future__ import annotations
 
 import importlib
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 
 from msk_core.errors import ModelError
 
+if TYPE_CHECKING:  # the module itself is imported lazily (numba): see compiled_kernels
+    from msk_core.model.kernels import RigidTables
 
-def compiled_kernels():
+
+def compiled_kernels() -> ModuleType:
     """:mod:`msk_core.model.kernels`, imported (numba with it, ~0.5 s) only when a compiled evaluator is asked for."""
     try:
         kernels = importlib.import_module("msk_core.model.kernels")
@@ -108,7 +113,7 @@ class RigidModel:
             values = np.empty(4 * m)  # preallocated product: its views below need no per-frame slicing
             # a tuple, unpacked once per frame (cheaper than dict look-ups on the hot path)
             self._nl_groups.append((
-                k, sel, contiguous, m, centre, 1.0 / half, stacked, np.arange(degree).astype(float),
+                k, sel, m, centre, 1.0 / half, stacked, np.arange(degree).astype(float),
                 np.empty(degree), mix, self._motion[:, sel] if contiguous else None,
                 self._frame_projection[k, sel] if contiguous else None,
                 values, values[: 3 * m].reshape(3, m), values[3 * m :],
@@ -120,9 +125,16 @@ class RigidModel:
                     for i, j in enumerate(joints)]
         self._joint_scale = self.torque_scale[moved_by]
         self._kernels = compiled_kernels() if compiled else None
-        self.tables = self._tables(self._kernels, joints) if compiled else None
+        self.tables: RigidTables | None = None if self._kernels is None else self._tables(self._kernels, joints)
 
-    def _tables(self, kernels, joints: list[dict]):
+    @property
+    def compiled_tables(self) -> RigidTables:
+        """:attr:`tables`, which only a model built with ``compiled=True`` has."""
+        if self.tables is None:
+            raise ModelError("rigid model: built with compiled=False, it has no compiled tables")
+        return self.tables
+
+    def _tables(self, kernels: ModuleType, joints: list[dict]) -> RigidTables:
         """The compiled kernels' view of this model: read back from the pinocchio models (same placements and
         aggregated inertias), plus the polynomial joints."""
         n_joints = len(joints)
@@ -166,7 +178,9 @@ class RigidModel:
         )
 
     def _compiled(self, dq, qd, qdd, hand_load: float, gravity) -> tuple[np.ndarray, np.ndarray]:
-        t = self.tables
+        t, kernels = self.tables, self._kernels
+        if t is None or kernels is None:
+            raise ModelError("rigid model: built with compiled=False, it has no compiled evaluator")
         n = t.n
         dq, qd, qdd = (np.ascontiguousarray(a, dtype=np.float64) for a in (dq, qd, qdd))
         if dq.shape != (n,) or qd.shape != (n,) or qdd.shape != (n,):
@@ -176,7 +190,7 @@ class RigidModel:
         if g.shape != (3,):
             raise ModelError(f"rigid model: gravity must be a 3-vector (m/s²), got shape {g.shape}")
         out = np.empty(n + t.n_joints)
-        self._kernels.rigid(dq, qd, qdd, float(hand_load), g, t.ints, t.floats, out)
+        kernels.rigid(dq, qd, qdd, float(hand_load), g, t.ints, t.floats, out)
         return out[:n], out[n:]
 
     def _joint_motion(self, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
@@ -186,14 +200,14 @@ class RigidModel:
         motion_in[1] = qd
         motion_in[2] = qdd
         motion = np.dot(motion_in, self._gains_t, out=self._motion)
-        for k, idx, contiguous, _m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
+        for k, idx, _m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
                 projection_view, values, f_rows, slope in self._nl_groups:
             dq_k, v, a = motion_in[:, k].tolist()
             np.dot(stacked, np.power((dq_k - centre) * inv_half, powers, out=power_buf), out=values)
             mix[1, 1] = v
             mix[2, 1] = a
             mix[2, 2] = v * v
-            if contiguous:
+            if motion_view is not None and projection_view is not None:  # views of a contiguous group's columns
                 np.matmul(mix, f_rows, out=motion_view)
                 # virtual work: tau_k += f'(q) . tau_j, folded into the projection matrix
                 projection_view[...] = slope

@@ -123,9 +123,15 @@ def _line(text: str, token: str) -> int | None:
     return None
 
 
+def _vector3(values: list[float]) -> tuple[float, float, float]:
+    """A checked [x, y, z] list (three numbers) as floats."""
+    x, y, z = values
+    return float(x), float(y), float(z)
+
+
 def _deg_pair(value: object, path: Path | None, text: str, fieldname: str) -> tuple[float, float]:
-    ok = isinstance(value, list) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value)
-    if not ok or not value[0] < value[1]:
+    if not (isinstance(value, list) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value)
+            and value[0] < value[1]):
         raise ConfigError(
             "must be [lower, upper] in degrees with lower < upper", path=path, field=fieldname, value=value,
             line=_line(text, fieldname.split(".")[-2] if "." in fieldname else fieldname),
@@ -232,7 +238,7 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
                 "load_points entries are { body = \"..\", point = [x, y, z] }", path=path,
                 field="dynamics.load_points", value=item, line=_line(text, "load_points"),
             )
-        loads.append(LoadPoint(item["body"], tuple(float(v) for v in point)))
+        loads.append(LoadPoint(item["body"], _vector3(point)))
     shared_from = str(dyn_raw.get("shared_from", ""))
     share = dyn_raw.get("load_share", 1.0)
     if "load_share" in dyn_raw:
@@ -254,7 +260,7 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
                           line=_line(text, "gravity"))
     return DynamicsSpec(
         root=str(dyn_raw.get("root", "ground")),
-        gravity=None if gravity is None else tuple(float(v) for v in gravity),
+        gravity=None if gravity is None else _vector3(gravity),
         load_points=tuple(loads),
         load_share=float(share),
         shared_from=shared_from,
