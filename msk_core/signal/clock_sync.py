@@ -250,9 +250,13 @@ class ClockSync:
         data of the tracker and of at least one EMG sensor."""
         cfg = self.config
         pad_ns, lag_ns = int(round(cfg.pad_s * 1e9)), int(round(cfg.max_lag_s * 1e9))
-        spans = [(s.first_ns, s.last_ns) for s in self._emg.values() if s.last_ns is not None]
-        first = max(min(a for a, _ in spans) + pad_ns, self._tracker.first_ns - self._center_ns + lag_ns + pad_ns)
-        last = min(max(b for _, b in spans) - pad_ns, self._tracker.last_ns - self._center_ns - lag_ns - pad_ns)
+        spans = [(s.first_ns, s.last_ns) for s in self._emg.values()
+                 if s.first_ns is not None and s.last_ns is not None]
+        tracker_first, tracker_last = self._tracker.first_ns, self._tracker.last_ns
+        if not spans or tracker_first is None or tracker_last is None:
+            return None
+        first = max(min(a for a, _ in spans) + pad_ns, tracker_first - self._center_ns + lag_ns + pad_ns)
+        last = min(max(b for _, b in spans) - pad_ns, tracker_last - self._center_ns - lag_ns - pad_ns)
         return (first, last) if last > first else None
 
     def _grid_feature(self, stream: _Stream, shift_ns: int, t0_ns: int, n: int) -> np.ndarray | None:
@@ -387,7 +391,8 @@ class ClockSync:
                                f"±{cfg.max_lag_s:g} s search and {cfg.pad_s:g} s filter margins)", windows_seen=seen)
         together = [w for w in evaluated if w.status is SyncStatus.NOT_TOGETHER]
         if together:
-            best = max(together, key=lambda w: w.peak_correlation)
+            # a window with movement has a peak correlation (None is for rest only)
+            best = max(together, key=lambda w: -math.inf if w.peak_correlation is None else w.peak_correlation)
             return ClockOffset(SyncStatus.NOT_TOGETHER, f"{len(together)} window(s) with movement, none accepted: "
                                f"{best.reason}", peak_correlation=best.peak_correlation, sensor=best.sensor,
                                windows_seen=seen)

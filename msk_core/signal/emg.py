@@ -176,6 +176,7 @@ class EmgEnvelopeFilter:
 
     def _enter(self, n: int) -> tuple:
         lp = self._lowpass.enter_block(n)
+        fast: tuple  # the seven band-pass buffers (None without a band-pass), then the four low-pass ones
         if self._bandpass is None:
             fast = (None, None, None, None, None, None, None, lp[0], lp[1], lp[2], lp[3])
         else:
