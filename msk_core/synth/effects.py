@@ -76,7 +76,8 @@ def parse_effects(text: str | None) -> Effects:
         lo, hi = limits[name]
         if not lo <= number <= hi:
             raise ConfigError(f"effect value must be in [{lo}, {hi}]", field="effects", value=token)
-        effects = replace(effects, **{name: number})
+        # mypy checks a ** mapping's value type against every field, the booleans too; name is a float field here
+        effects = replace(effects, **{name: number})  # type: ignore[arg-type]
     return effects
 
 

@@ -119,7 +119,8 @@ def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[s
     """One isometric trial per MVC block (the contraction of one site, the EMG of all), under ``folder/mvc``;
     ``envelope`` is the whole MVC recording's (sliced per block, so no block starts with a filter transient)."""
     mvc = ex.mvc
-    if mvc.torque is None:
+    poses, torque = mvc.poses, mvc.torque  # simulated together, with a pack
+    if poses is None or torque is None:
         return []
     out = []
     for k, ch in enumerate(mvc.channels):
@@ -130,8 +131,8 @@ def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[s
         sub.mkdir(parents=True, exist_ok=True)
         name = f"msk-synth mvc {ch}"
         coords = mvc.coordinates
-        write_sto(sub / "ik.sto", t_lo, coords, _r(np.repeat(mvc.poses[k][None], t_lo.size, 0), "angle"), name=name)
-        write_sto(sub / "id.sto", t_lo, [f"{c}_moment" for c in coords], _r(_downsample(t_hi, mvc.torque[sl], t_lo),
+        write_sto(sub / "ik.sto", t_lo, coords, _r(np.repeat(poses[k][None], t_lo.size, 0), "angle"), name=name)
+        write_sto(sub / "id.sto", t_lo, [f"{c}_moment" for c in coords], _r(_downsample(t_hi, torque[sl], t_lo),
                   "torque"), name=name)
         if emg_output is EmgOutput.RAW:
             write_sto(sub / "emg.sto", t_hi, mvc.channels, _r(mvc.emg[sl], "emg"), name=name)
@@ -152,8 +153,8 @@ def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[s
         out.append({
             "channel": ch,
             "trial": str(Path("mvc") / ch / "trial.toml"),
-            "pose_deg": dict(zip(coords, np.degrees(mvc.poses[k]).round(3).tolist())),
-            "peak_abs_torque_nm": dict(zip(coords, map(float, np.abs(mvc.torque[sl]).max(axis=0)))),
+            "pose_deg": dict(zip(coords, np.degrees(poses[k]).round(3).tolist())),
+            "peak_abs_torque_nm": dict(zip(coords, map(float, np.abs(torque[sl]).max(axis=0)))),
         })
     return out
 

@@ -136,8 +136,8 @@ def simulate_imu(
     rigid = pack.rigid
     to_global = global_frame(rigid.gravity)
     streams: list[ImuStream] = []
-    chosen = [(label, find_body(rigid.description, pattern)) for label, pattern in segments.items()]
-    chosen = [(label, body) for label, body in chosen if body is not None]
+    found = [(label, find_body(rigid.description, pattern)) for label, pattern in segments.items()]
+    chosen = [(label, body) for label, body in found if body is not None]
     if not chosen:
         raise ModelError(f"pack {pack.name!r}: no body matches the IMU segments {list(segments)}")
     n = time.size
