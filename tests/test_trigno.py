@@ -203,6 +203,23 @@ def test_big_endian_legacy_port_and_aux_stream():
     assert aux[0].samples[0, 2] == 1.0 and aux[0].samples[0, 0] == 0.0  # sensor 1 ACC z = 1 g
 
 
+
+def test_refused_aux_port_leaves_emg_streaming_and_says_why():
+    """Sensors or a server without an AUX stream: the accelerations only check the clocks, the EMG is the session."""
+    from tests.conftest import free_tcp_port
+
+    source = synthetic_source(seconds=2.0, seed=6)
+    closed = free_tcp_port()
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=8.0)) as sim, TrignoClient(
+        TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=closed)
+    ) as client:
+        client.start()
+        events = collect(client, samples=1000, seconds=10)
+    assert_bit_exact(emg_rows(events)[:1000], source.samples[:1000])
+    assert not [e for e in events if isinstance(e, AuxBlock)]
+    assert f"AUX port {closed} refused" in client.aux_unavailable and client.stats.last_error == client.aux_unavailable
+
+
 @pytest.mark.parametrize(
     "quirks, stop_mode",
     [

@@ -182,6 +182,7 @@ class TrignoClient:
         self.sensors: tuple[SensorInfo, ...] = ()
         self.rate_hz = 0.0
         self.aux_rate_hz = 0.0
+        self.aux_unavailable = ""  # why the AUX port asked for is not read (refused), empty while it is
         self.endianness = tp.Endianness.LITTLE
         self.upsampling: bool | None = None
         self.emg_port = 0  # the EMG port actually connected (emg_port, or emg_port_fallback when it was refused)
@@ -397,7 +398,7 @@ class TrignoClient:
             self._configure(link)
             link.emg = self._open_emg()
             if cfg.aux_port is not None:
-                link.aux = self._open_data(cfg.aux_port)
+                link.aux = self._open_aux(cfg.aux_port)
         except BaseException:
             link.close()
             raise
@@ -433,6 +434,20 @@ class TrignoClient:
                 raise
             sock = self._open_data(fallback)
             self.emg_port = fallback
+        return sock
+
+    def _open_aux(self, port: int) -> socket.socket | None:
+        """The auxiliary (accelerometer) port, or None when the server refuses it: the EMG is what the session needs
+        (the accelerations only check the clocks), so a server or sensors without an AUX stream leave EMG streaming,
+        with the reason in :attr:`aux_unavailable`, the stats' last error and a status event."""
+        try:
+            sock = self._open_data(port)
+        except OSError as error:
+            self.aux_unavailable = f"AUX port {port} refused ({error}); streaming EMG without accelerations"
+            self._note_error(self.aux_unavailable)
+            self._emit_status(ClientState.CONNECTED, self.aux_unavailable)
+            return None
+        self.aux_unavailable = ""
         return sock
 
     def _open_data(self, port: int) -> socket.socket:
