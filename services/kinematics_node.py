@@ -75,14 +75,20 @@ class KinematicsStats:
 
 
 def load_template(path: Path) -> RepTemplate:
-    """A rep template from ``msk emg priors`` output (``{"rep_template": ...}``) or a bare ``RepTemplate.to_dict()``."""
+    """The rep template of a subject profile (``msk calibrate``'s ``phase_model``, the one the estimator tracks) or a
+    bare ``RepTemplate.to_dict()``."""
     try:
         doc = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise FileFormatError(f"cannot read the rep template: {exc}", path=str(path)) from None
     if not isinstance(doc, dict):
         raise FileFormatError("expected a JSON object", path=str(path))
-    return RepTemplate.from_dict(doc.get("rep_template", doc))
+    if "phase_model" in doc:
+        if not isinstance(doc["phase_model"], dict):
+            raise FileFormatError("the subject profile has no rep template (calibrated without a kinematic phase "
+                                  "coordinate)", path=str(path), field="phase_model")
+        doc = doc["phase_model"].get("template", {})
+    return RepTemplate.from_dict(doc)
 
 
 def _segment_of(key: str, sample) -> str:
@@ -295,7 +301,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--imu-rate", type=float, default=60.0, help="nominal IMU rate, Hz (default 60; dt comes from timestamps)")
     add("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
     add("--phase-template", type=Path, default=None,
-        help="rep template JSON (`msk emg priors` output or a RepTemplate dict) learnt in radians")
+        help="rep template JSON (a subject profile from msk calibrate, or a RepTemplate dict) learnt in radians")
     add("--imu-clock", choices=["device", "host"], default="device",
         help="device: the trackers share one clock (recordings); host: separate trackers, each device clock mapped "
         "to the host clock (docs/kinematics.md)")

@@ -31,6 +31,7 @@ from rich.text import Text
 
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
+from msk_core.signal.reps import PhaseRepCounter
 from services import messages, topics
 from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
@@ -46,22 +47,6 @@ POLL_S = 0.1
 
 
 @dataclass
-class RepCounter:
-    """Counts repetitions from the phase stream: a rep starts when the phase enters [0, 0.5) from rest (-1) or from
-    the end of the previous rep (>= 0.5)."""
-
-    reps: int = 0
-    _last: float | None = None
-
-    def update(self, phase: float | None) -> None:
-        if phase is None or not math.isfinite(phase):
-            return
-        if 0.0 <= phase < 0.5 and (self._last is None or self._last < 0.0 or self._last >= 0.5):
-            self.reps += 1
-        self._last = phase
-
-
-@dataclass
 class ViewState:
     """Newest message per topic (overwritten, never queued) and counters the view derives from them."""
 
@@ -71,7 +56,7 @@ class ViewState:
     envelope: messages.EmgEnvelope | None = None
     received: int = 0
     sets: int = 0  # the operator's set number, else load events with a mass counted
-    reps: RepCounter = field(default_factory=RepCounter)  # in the current set
+    reps: PhaseRepCounter = field(default_factory=PhaseRepCounter)  # in the current set
     names: dict[str, str] = field(default_factory=dict)  # the session's display names (LoadEvent.names), kept
     set_start_s: float | None = None  # the current set's start on the frames' clock (s)
     inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
@@ -85,7 +70,7 @@ class ViewState:
             self.received += 1
             if kind == "activations":
                 if not self.frames or message.method == next(iter(self.frames)):  # reps from the first method only
-                    self.reps.update(message.phase if message.HasField("phase") else None)
+                    self.reps.update(message.time_s, message.phase if message.HasField("phase") else None)
                     start = self.set_start_s
                     if start is None or abs(message.time_s - start) > MAX_SET_S:  # no start on the frames' clock
                         self.set_start_s = message.time_s
@@ -102,7 +87,7 @@ class ViewState:
         number = int(load.set_number)
         if (number > 0 and number != self.sets) or (number == 0 and load.barbell_mass_kg > 0):
             self.sets = number if number > 0 else self.sets + 1
-            self.reps = RepCounter()
+            self.reps = PhaseRepCounter()
             self.set_start_s = load.device_time_ns / 1e9 if load.device_time_ns else None
         if load.names:  # a load event without names (msk load) leaves the session's names in effect
             self.names = dict(load.names)
@@ -181,7 +166,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         frames = dict(state.frames)
         status = dict(state.status)
         overrides, set_start_s = dict(state.names), state.set_start_s
-        load, received, reps, sets = state.load, state.received, state.reps.reps, state.sets
+        # the rep under way, else the last one done
+        load, received, reps, sets = state.load, state.received, state.reps.count + state.reps.in_rep, state.sets
     methods = list(frames)
     method = primary if primary in frames else (methods[0] if methods else None)
     dropped = dropped_text(state.inputs)

@@ -16,6 +16,7 @@ from msk_core.estimate.pipeline import calibrate_subject, isometric_cocontractio
 from msk_core.estimate.trial import load_trial
 from msk_core.io import read_sto, write_sto
 from msk_core.model import load_pack
+from msk_core.signal.reps import REST_PHASE
 
 DEMO = Path(__file__).resolve().parents[1] / "recordings" / "demo"
 
@@ -30,7 +31,7 @@ def test_isometric_trial_format_and_errors(tmp_path):
     toml = _copy_trial(DEMO / "bench_press" / "mvc" / "DelAnt", tmp_path / "DelAnt")
     trial = load_trial(toml, pack)
     assert trial.isometric and trial.phase_signal == "none (isometric)" and trial.torque_source == "file"
-    assert np.all(trial.rep_index == -1) and np.all(np.isnan(trial.phase))
+    assert np.all(trial.rep_index == -1) and np.all(trial.phase == REST_PHASE)
     text = toml.read_text()
     toml.write_text(text.replace('torques = "id.sto"\n', ""))
     with pytest.raises(ConfigError, match="measured joint torques") as exc:

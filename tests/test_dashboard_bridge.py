@@ -14,6 +14,7 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from msk_core.model import available_packs, load_pack
+from msk_core.signal.reps import MIN_REP_S
 from services import messages
 from services.dashboard import bodymap
 from services.dashboard.bridge import HAS_MEASURED_ENVELOPE, DashboardState, RepCounter
@@ -32,6 +33,10 @@ def activation_frame(method: str, a: list[float], *, t: float, phase: float | No
     if envelope is not None:
         frame.measured_envelope.extend(envelope)
     return frame
+
+
+def joints(phase: float, t: float) -> messages.JointAngles:
+    return messages.JointAngles(coordinates=["x"], q=[0.0], phase=phase, device_time_ns=int(round(t * 1e9)))
 
 
 def test_state_keeps_only_the_newest_frame_per_topic():
@@ -71,21 +76,25 @@ def test_measured_envelope_is_forwarded_when_the_schema_has_it():
 def test_rep_counter_counts_rest_transitions_and_wraps_and_restarts_per_set():
     reps = RepCounter()
     reps.new_set()
-    for p in [-1, 0.0, 0.3, 0.6, 0.9, -1, -1, 0.1, 0.5, 0.95, 0.05, 0.5, 0.9, -1]:
-        reps.update(p)
+    for k, p in enumerate([-1, 0.0, 0.3, 0.6, 0.9, -1, -1, 0.1, 0.5, 0.95, 0.05, 0.5, 0.9, -1]):
+        reps.update(0.2 * k, p)  # 5 Hz
     assert (reps.in_set, reps.total, reps.sets) == (3, 3, 1)
-    reps.update(None)  # unknown phase: no rep invented
+    reps.update(3.0, None)  # unknown phase: no rep invented
+    reps.update(3.2, 0.1)  # a flicker into a rep, shorter than MIN_REP_S: not a rep
+    reps.update(3.2 + 0.9 * MIN_REP_S, 0.6)
+    reps.update(3.8, -1)
+    assert (reps.in_set, reps.total) == (3, 3)
     reps.new_set()
-    reps.update(0.2)
-    reps.update(-1)
+    for t, p in ((4.0, 0.2), (4.4, 0.7), (4.8, -1)):
+        reps.update(t, p)
     assert (reps.in_set, reps.total, reps.sets) == (1, 4, 2)
 
 
 def test_reps_from_joints_phase_and_device_health_from_samples():
     state = DashboardState("t")
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="deadlift"))
-    for p in [-1.0, 0.2, 0.7, -1.0]:
-        state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
+    for k, p in enumerate([-1.0, 0.2, 0.7, -1.0]):
+        state.on_message(PREFIX + "joints", joints(p, 0.4 * k))
     now = time.time_ns()
     for first in (0, 100, 300):  # samples 200..299 never arrived
         chunk = messages.EmgChunk(source_id="trigno-1", first_sample_index=first, n_samples=100, n_channels=1,
@@ -230,16 +239,16 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     facts = state.changes(0)[1]["topics"]["session"]
     assert facts.pop("names")["groups"] == {"A": "A", "B": "B"}  # not the groups of the pack: by their model names
     assert facts == {"exercise": "bench_press", "load_kg": None, "athlete": None}  # no load event yet: the frames'
-    for p in (-1.0, 0.2, 0.8, -1.0):
-        state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
+    for k, p in enumerate((-1.0, 0.2, 0.8, -1.0)):
+        state.on_message(PREFIX + "joints", joints(p, 0.4 * k))
     seq, _ = state.changes(0)
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
     update = state.changes(seq)[1]["topics"]
     assert update["session"] | {"names": None} == {"exercise": "bench_press", "load_kg": 60, "athlete": "Ana",
                                                    "names": None}
     assert update["reps"]["set"] == 2 and update["reps"]["in_set"] == 0
-    for p in (0.2, 0.8, -1.0):
-        state.on_message(PREFIX + "joints", messages.JointAngles(coordinates=["x"], q=[0.0], phase=p))
+    for k, p in enumerate((0.2, 0.8, -1.0)):
+        state.on_message(PREFIX + "joints", joints(p, 2.0 + 0.4 * k))
     # the operator corrects the load within set 2: same set, the reps of the set are kept
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2, athlete="Ana"))
     topics_now = state.changes(0)[1]["topics"]

@@ -49,20 +49,3 @@ def test_errors_exit_2(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureF
     assert "unknown EMG file type" in capsys.readouterr().err
     assert main(["emg", "envelope", str(anc), "--lowpass-hz", "5000", "-o", str(tmp_path / "x.sto")]) == 2
     assert "lowpass_hz" in capsys.readouterr().err
-
-
-def test_priors_command(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    import json
-
-    from msk_core.signal.reps import RepTemplate
-    from msk_core.signal.priors import PhasePriors
-
-    out = tmp_path / "priors.json"
-    folder = shared_dir / "data/backmodel-lift/squat5kg"
-    assert main(["emg", "priors", str(folder), "--channels", "iliocost_r,longthor_r", "--coordinate", "pelvis_ty",
-                 "--excursion", "decrease", "--bins", "8", "-o", str(out)]) == 0
-    assert "4 repetitions, 2 channels, 8 phase bins" in capsys.readouterr().out
-    doc = json.loads(out.read_text())
-    pr = PhasePriors.from_dict(doc["priors"])
-    assert pr.groups == ("iliocost_r", "longthor_r") and pr.mean.shape == (8, 2) and np.all(pr.n_reps == 4)
-    assert RepTemplate.from_dict(doc["rep_template"]).n_reps == 4

@@ -12,7 +12,7 @@ from scipy.optimize import lsq_linear
 from msk_core.estimate import FrameEstimator, PhasePrior
 from msk_core.estimate import active_set
 from msk_core.estimate.frame import MIN_TORQUE_SCALE
-from msk_core.estimate.prior import REST_PHASE
+from msk_core.signal.reps import REST_PHASE
 
 
 def _random_problem(rng, m, g):

@@ -12,9 +12,8 @@ from msk_core.errors import ConfigError, EstimationError
 from msk_core.estimate import SubjectProfile
 from msk_core.estimate.phase import LivePhase, PhaseModel, kinematic_phase, learn_phase_model
 from msk_core.estimate.pipeline import learn_trials_phase_model
-from msk_core.estimate.prior import REST_PHASE
 from msk_core.estimate.trial import load_trial
-from msk_core.signal.reps import PhaseMode, RepDetectionConfig, detect_reps, rep_phase
+from msk_core.signal.reps import REST_PHASE, PhaseMode, RepDetectionConfig, detect_reps, rep_phase
 
 model = pytest.importorskip("msk_core.model")
 DEMO = Path(__file__).resolve().parents[1] / "recordings" / "demo"

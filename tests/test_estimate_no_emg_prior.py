@@ -10,8 +10,9 @@ import pytest
 from msk_core.errors import EstimationError
 from msk_core.estimate import PhasePrior, SubjectProfile
 from msk_core.estimate.pipeline import NoEmgPrior, build_prior, pick_synergists
-from msk_core.estimate.prior import NO_EMG_STD, REST_PHASE
+from msk_core.estimate.prior import NO_EMG_STD
 from msk_core.estimate.trial import TrialData
+from msk_core.signal.reps import REST_PHASE
 
 # one coordinate; g0, g1 extensors (g1 unmeasured, like g0), g2 flexor (measured), g3 flexor unmeasured
 ARMS = np.array([[0.05, 0.03, -0.04, -0.02]])
@@ -36,14 +37,14 @@ def _trial(n_reps: int = 4) -> TrialData:
     tau, phase, index = [], [], []
     for k in range(n_reps):
         tau += [0.0] * rest
-        phase += [np.nan] * rest
+        phase += [REST_PHASE] * rest
         index += [-1] * rest
         ph = np.arange(rep) / rep
         tau += list((10.0 + 2.0 * k) * np.sin(np.pi * ph))  # extension torque, a bit larger each rep
         phase += list(ph)
         index += [k] * rep
     tau += [0.0] * rest
-    phase += [np.nan] * rest
+    phase += [REST_PHASE] * rest
     index += [-1] * rest
     n = len(tau)
     tau = np.array(tau)[:, None]
@@ -64,7 +65,7 @@ def test_min_effort_prior_is_static_optimisation_binned_over_reps():
     # independent so for one coordinate: a_g = max(A_g, 0) tau / sum max(A_h, 0)^2 while no group saturates
     a_cols = np.clip(ARMS[0] * F_REF, 0.0, None)
     so = trial.torques[:, 0:1] * a_cols / (a_cols @ a_cols)
-    bins = np.minimum((np.nan_to_num(trial.phase) * 10).astype(int), 9)
+    bins = np.minimum((trial.phase * 10).astype(int), 9)  # used inside reps only
     for b in (2, 5, 8):
         per_rep = [so[(trial.rep_index == k) & (bins == b), 1].mean() for k in range(4)]
         np.testing.assert_allclose(prior.mean[b, 1], np.mean(per_rep), rtol=1e-4)

@@ -181,8 +181,8 @@ def test_node_on_demo_recording_recovers_true_joints(zenoh_endpoint, tmp_path):
     qb = np.array([j[2] for j in truth if j[1] == tuple(bench.coordinates)])
     first = slice(0, int(np.flatnonzero(np.diff(tb) > 1.0)[0]) + 1)
     template = learn_template(tb[first], qb[first, 1], RepDetectionConfig(excursion=Excursion.INCREASE))
-    template_path = tmp_path / "priors.json"
-    template_path.write_text(json.dumps({"rep_template": template.to_dict()}))
+    template_path = tmp_path / "subject.json"  # the template a calibration stores in the subject profile
+    template_path.write_text(json.dumps({"phase_model": {"coordinate": "elbow_flex_r", "template": template.to_dict()}}))
 
     received = []
     with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:

@@ -3,21 +3,26 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from msk_core.errors import ConfigError, InputError
-from msk_core.io import load_trial
+from msk_core.io import align_to_kinematics, read_sto
 from msk_core.signal.reps import (
+    REST_PHASE,
     Excursion,
     PhaseMode,
+    PhaseRepCounter,
     PhaseTracker,
     RepDetectionConfig,
     RepTemplate,
     detect_reps,
+    in_rep,
     learn_template,
+    phase_rep_spans,
     rep_phase,
 )
 
@@ -53,7 +58,7 @@ def test_offline_reps_on_synthetic_lifts(seed: int) -> None:
     for mode in PhaseMode:
         phase, index = rep_phase(t, reps, mode)
         inside = index >= 0
-        assert np.all((phase[inside] >= 0) & (phase[inside] < 1)) and np.isnan(phase[~inside]).all()
+        assert np.all((phase[inside] >= 0) & (phase[inside] < 1)) and np.all(phase[~inside] == REST_PHASE)
         for k in range(len(reps)):
             assert np.all(np.diff(phase[index == k]) > 0)  # monotonic inside each rep
         if mode is PhaseMode.TURNING_POINT:
@@ -71,8 +76,9 @@ def test_causal_tracker_follows_offline_phase_on_new_synthetic_set(seed: int) ->
     tracker = PhaseTracker(template)
     live = np.array([tracker.update(a, b) for a, b in zip(t, angle)])
     assert tracker.rep_count == len(truth)
-    both = np.isfinite(offline) & np.isfinite(live)
-    assert both.sum() > 0.85 * np.isfinite(offline).sum()
+    assert np.all(live[~in_rep(live)] == REST_PHASE)  # between reps, never unknown
+    both = in_rep(offline) & in_rep(live)
+    assert both.sum() > 0.85 * in_rep(offline).sum()
     err = np.abs(offline - live)[both]
     assert np.median(err) < 0.03 and np.percentile(err, 95) < 0.15
 
@@ -88,13 +94,14 @@ def test_touch_and_go_reps() -> None:
     live = tracker.process(t, angle)
     assert tracker.rep_count == 6
     offline, _ = rep_phase(t, reps)
-    both = np.isfinite(offline) & np.isfinite(live)
+    both = in_rep(offline) & in_rep(live)
     assert np.median(np.abs(offline - live)[both]) < 0.03
 
 
 @pytest.mark.parametrize("trial", ["squat5kg", "stoop5kg"])
 def test_reps_and_phase_on_backmodel_lifts(shared_dir: Path, trial: str) -> None:
-    aligned = load_trial(shared_dir / "data/backmodel-lift" / trial)
+    folder = shared_dir / "data/backmodel-lift" / trial
+    aligned = align_to_kinematics(*(read_sto(folder / f) for f in ("emgFilt.sto", "ik.sto", "id.sto")))
     height = aligned.coordinate("pelvis_ty")  # the pelvis drops in every lift, squat or stoop
     cfg = RepDetectionConfig(excursion=Excursion.DECREASE)
     reps = detect_reps(aligned.time, height, cfg)
@@ -106,9 +113,23 @@ def test_reps_and_phase_on_backmodel_lifts(shared_dir: Path, trial: str) -> None
     assert l5[index >= 0].mean() > 2.0 * l5[index < 0].mean()
     tracker = PhaseTracker(learn_template(aligned.time, height, cfg))
     live = tracker.process(aligned.time, height)
-    both = np.isfinite(phase) & np.isfinite(live)
-    assert both.sum() > 0.8 * np.isfinite(phase).sum()
+    both = in_rep(phase) & in_rep(live)
+    assert both.sum() > 0.8 * in_rep(phase).sum()
     assert np.median(np.abs(phase - live)[both]) < 0.05
+
+
+def test_reps_of_a_phase_stream_split_on_wrap_rest_and_gaps() -> None:
+    t = [0.1 * i for i in range(40)]
+    phase = [-1.0] * 5 + [i / 10 for i in range(10)] + [i / 10 for i in range(10)] + [-1.0] * 5 + [i / 10 for i in range(10)]
+    assert [(round(a, 1), round(b, 1)) for a, b in phase_rep_spans(t, phase)] == [(0.5, 1.4), (1.5, 2.4), (3.0, 3.9)]
+    assert phase_rep_spans(t, [math.nan] * 40) == []
+    gap = [0.0, 0.1, 0.2, 0.3, 1.0, 1.1, 1.2, 1.3]  # the stream paused 0.7 s inside what looked like one rep
+    assert phase_rep_spans(gap, [0.1 * i for i in range(8)]) == [(0.0, 0.3), (1.0, 1.3)]
+    short = [0.0, 0.1, 0.2]  # shorter than MIN_REP_S: a flicker, no rep
+    assert phase_rep_spans(short + [0.3], [0.2, 0.4, 0.6, REST_PHASE]) == []
+    counter = PhaseRepCounter()  # live: a rep is counted at the sample that ends it
+    done = [counter.update(0.2 * k, p) for k, p in enumerate([REST_PHASE, 0.1, 0.5, 0.9, REST_PHASE])]
+    assert done[:4] == [None] * 4 and done[4] == pytest.approx((0.2, 0.6)) and counter.count == 1
 
 
 def test_errors() -> None:

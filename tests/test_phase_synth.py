@@ -5,10 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from msk_core.estimate.prior import fit_phase_prior
 from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference
 from msk_core.io import resample_linear
-from msk_core.signal.reps import Excursion, PhaseTracker, RepDetectionConfig, detect_reps, learn_template, rep_phase
-from msk_core.signal.priors import fit_priors
+from msk_core.signal.reps import (
+    Excursion,
+    PhaseTracker,
+    RepDetectionConfig,
+    detect_reps,
+    in_rep,
+    learn_template,
+    rep_phase,
+)
 from msk_core.synth import Exercise, SynthConfig, generate_exercise
 
 CASES = {Exercise.DEADLIFT: "hip_flexion_r", Exercise.BENCH_PRESS: "elbow_flex_r"}
@@ -35,8 +43,8 @@ def test_reps_match_the_generator(session) -> None:
     offline, _ = rep_phase(trial.time, reps)
     live = PhaseTracker(learn_template(trial.time, signal, RepDetectionConfig(excursion=Excursion.INCREASE)))
     phase_live = live.process(trial.time, signal)
-    both = np.isfinite(offline) & np.isfinite(phase_live)
-    assert both.sum() > 0.8 * np.isfinite(offline).sum()
+    both = in_rep(offline) & in_rep(phase_live)
+    assert both.sum() > 0.8 * in_rep(offline).sum()
     assert np.median(np.abs(offline - phase_live)[both]) < 0.05
 
 
@@ -51,9 +59,10 @@ def test_priors_from_raw_synthetic_emg_follow_true_activation(session) -> None:
     reps = detect_reps(trial.time, signal, RepDetectionConfig(excursion=Excursion.INCREASE))
     phase, index = rep_phase(trial.time, reps)
     ok = np.all(np.isfinite(normalised), axis=1)
-    priors = fit_priors(phase[ok], index[ok], normalised[ok], trial.channels, n_bins=10)
-    truth = fit_priors(phase, index, trial.activation[:, [trial.groups.index(c) for c in trial.channels]],
-                       trial.channels, n_bins=10)
+    columns = lambda x: {c: x[:, j] for j, c in enumerate(trial.channels)}  # noqa: E731
+    priors = fit_phase_prior(trial.channels, columns(normalised[ok]), phase[ok], index[ok], n_bins=10)
+    truth = fit_phase_prior(trial.channels, columns(trial.activation[:, [trial.groups.index(c) for c in trial.channels]]),
+                            phase, index, n_bins=10)
     # the most active muscles: the prior's phase profile follows the true activation's
     main = np.argsort(truth.mean.mean(axis=0))[-3:]
     for g in main:

@@ -119,14 +119,6 @@ def test_report_names_a_missing_recording(tmp_path):
         report.write_report(tmp_path / "nope.mcap", tmp_path / "out")
 
 
-def test_reps_from_phase_split_on_wrap_and_rest():
-    t = [0.1 * i for i in range(40)]
-    phase = [-1.0] * 5 + [i / 10 for i in range(10)] + [i / 10 for i in range(10)] + [-1.0] * 5 + [i / 10 for i in range(10)]
-    reps = report.reps_from_phase(t, phase)
-    assert [(round(a, 1), round(b, 1)) for a, b in reps] == [(0.5, 1.4), (1.5, 2.4), (3.0, 3.9)]
-    assert report.reps_from_phase(t, [math.nan] * 40) == []
-
-
 def test_reps_without_any_phase_come_from_msk_core_rep_detection():
     """Joint angles without a phase (e.g. an older recording): the reps of the first bench press set are found by
     msk_core's kinematic rep detection on the pack's phase coordinate (elbow_flex_r)."""
@@ -146,7 +138,7 @@ def test_reps_without_any_phase_come_from_msk_core_rep_detection():
     assert (window.exercise, window.load_kg) == ("bench_press", 40)
     series = report.MethodSeries(groups=("BRA",), time=[window.start_s], phase=[math.nan])
     reps, source = report.reps_in_set(data, window, series, load_pack("bench_press"))
-    assert source == "rep detection on elbow_flex_r (msk_core.phase)"
+    assert source == "rep detection on elbow_flex_r (msk_core.signal.reps)"
     assert len(reps) == 3 and all(1.0 < b - a < 6.0 for a, b in reps)
 
 

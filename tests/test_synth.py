@@ -14,6 +14,7 @@ from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_group
 from msk_core.errors import ConfigError
 from msk_core.model import load_pack
 from msk_core.model.pack import available_packs
+from msk_core.signal.reps import REST_PHASE
 from msk_core.synth import Exercise, SynthConfig, generate_exercise, generate_session, parse_effects
 from msk_core.synth.files import EmgOutput, write_session
 
@@ -350,7 +351,7 @@ def test_mvc_blocks_are_isometric_trials_with_dynamometer_torques(bench, tmp_pat
     entries = truth["exercises"]["bench_press"]["isometric_trials"]
     assert [e["channel"] for e in entries] == mvc.channels
     trial = load_trial(tmp_path / entries[0]["trial"], pack)
-    assert trial.isometric and np.all(trial.rep_index == -1) and np.all(np.isnan(trial.phase))
+    assert trial.isometric and np.all(trial.rep_index == -1) and np.all(trial.phase == REST_PHASE)
     assert np.allclose(trial.q, trial.q[0]) and set(trial.emg) == set(mvc.channels)
     from msk_core.signal.emg import windowed_peak
 

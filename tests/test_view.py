@@ -14,7 +14,7 @@ import pytest
 
 from services import estimator, messages, replayer, topics
 from services.graph import Graph, wait_for
-from services.view import RepCounter, ViewState, main, render
+from services.view import ViewState, main, render
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 SESSION = "viewtest"
@@ -93,10 +93,10 @@ def test_render_without_frames_and_rep_counter():
     state = ViewState()
     text = "".join(str(r) for r in render(state, "s").renderables)
     assert "waiting for activations" in text
-    reps = RepCounter()
-    for phase in (-1, -1, 0.0, 0.3, 0.7, 0.95, 0.1, 0.6, -1, -1, 0.05, 0.5, None, -1):
-        reps.update(phase)
-    assert reps.reps == 3
+    for k, phase in enumerate((-1, -1, 0.0, 0.3, 0.7, 0.95, 0.1, 0.6, 0.9, -1, -1, 0.05, 0.5, 0.8)):
+        state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", time_s=0.2 * k, phase=phase))
+    assert (state.reps.count, state.reps.in_rep) == (2, True)  # the third rep is under way
+    assert "rep 3 · phase 0.80" in screen_text(state)
 
 
 def screen_text(state: ViewState, session: str = "s", width: int = 200) -> str:
@@ -153,13 +153,14 @@ def test_session_facts_come_from_the_load_event_else_the_frames():
     assert "exercise bench press · load unknown · set –" in text  # no load event: the frame's exercise
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
     assert "exercise bench press · load 60 kg · set 2 · Ana" in screen_text(state)
-    for phase in (-1.0, 0.1, 0.7, -1.0):
-        state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", phase=phase, exercise="bench_press"))
-    assert state.reps.reps == 1
+    for k, phase in enumerate((-1.0, 0.1, 0.7, -1.0)):
+        state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", phase=phase, time_s=2.0 + 0.4 * k,
+                                                                           exercise="bench_press"))
+    assert state.reps.count == 1
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2))
-    assert state.reps.reps == 1 and "load 62.5 kg · set 2" in screen_text(state)  # a correction within the set
+    assert state.reps.count == 1 and "load 62.5 kg · set 2" in screen_text(state)  # a correction within the set
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3))
-    assert state.reps.reps == 0 and "load 70 kg · set 3" in screen_text(state)  # the next set starts at rep 0
+    assert state.reps.count == 0 and "load 70 kg · set 3" in screen_text(state)  # the next set starts at rep 0
 
 
 def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):

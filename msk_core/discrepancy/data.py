@@ -11,7 +11,6 @@ import numpy as np
 from msk_core.errors import EstimationError, InputError
 from msk_core.estimate.frame import CLAMP_TOLERANCE, MIN_TORQUE_SCALE
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.prior import REST_PHASE
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
@@ -35,7 +34,7 @@ class TrialArrays:
     prior_mean: np.ndarray  # (T, G) prior mean at each frame's phase (used for groups without EMG)
     min_effort: np.ndarray  # (T, G) static optimisation's activations of the frame's torque (demand-following share)
     tau_load: np.ndarray  # (T, n_c) the external load's part of the ID torque (ID(L) - ID(0)), N·m
-    phase: np.ndarray  # (T,) NaN outside reps
+    phase: np.ndarray  # (T,) REST_PHASE outside reps
     rep_index: np.ndarray  # (T,) the rep each frame belongs to, -1 outside reps
     load_kg: float
     left_out: dict[str, int]  # frames left out of the analysis, by reason (the first reason that applies)
@@ -146,8 +145,7 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
          np.all((tau0 <= CAPACITY_MARGIN * reach_hi) & (tau0 >= CAPACITY_MARGIN * reach_lo), axis=1))
     prior = profile.prior
     if prior is not None:
-        phases = [REST_PHASE if r < 0 else float(p) for p, r in zip(trial.phase, trial.rep_index)]
-        mean = np.array([prior.mean_precision(p)[0] for p in phases])
+        mean = np.array([prior.mean_precision(float(p))[0] for p in trial.phase])
     else:
         mean = np.zeros((trial.n_frames, g))
     emg = np.column_stack([trial.emg[x] for x in emg_groups]) if emg_groups else np.zeros((trial.n_frames, 0))

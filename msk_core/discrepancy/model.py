@@ -25,6 +25,7 @@ from scipy.optimize import lsq_linear
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
 from msk_core.estimate.effects import muscle_force_factor, torque_term_columns, torque_term_names, unmix_envelopes
+from msk_core.signal.reps import in_rep
 
 GAIN_RIDGE = 0.05  # ridge on the unmeasured groups' re-fit, relative to each column's own sum of squares
 GAIN_RIDGE_ABS = 0.1  # ... plus this much absolute (scaled-torque units): pins directions the data leave open
@@ -107,7 +108,7 @@ UNMEASURED_PHASE_BINS = 6  # free phase profile of each unmeasured group's deman
 
 def phase_basis(phase: np.ndarray, n: int = UNMEASURED_PHASE_BINS) -> list[np.ndarray]:
     """Periodic hat functions over the rep phase (n, summing to 1 inside reps) and an indicator of rest."""
-    inside = np.isfinite(phase)
+    inside = in_rep(phase)
     p = np.where(inside, phase, 0.0) * n
     out = []
     for k in range(n):

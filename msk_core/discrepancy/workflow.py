@@ -18,6 +18,7 @@ from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
+from msk_core.signal.reps import in_rep
 
 N_BINS = 12
 XCORR_MAX_LAG_S = 0.2
@@ -110,13 +111,14 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
     q = np.vstack([t.q for t in trials])
     qd = np.vstack([t.qd for t in trials])
     phase = np.concatenate([t.phase for t in trials])
+    inside = in_rep(phase)  # frames between reps have no phase of the rep to bin
     load = np.concatenate([np.full(t.n, t.load_kg) for t in trials])
     out: dict = {"coordinates": {}, "groups": {}}
     for n, c in enumerate(data.coordinates):
         out["coordinates"][c] = {
             "angle": dict(zip(("x", "gap"), _binned(q[:, n], g[:, n]))),
             "velocity": dict(zip(("x", "gap"), _binned(qd[:, n], g[:, n]))),
-            "phase": dict(zip(("x", "gap"), _binned(phase, g[:, n]))),
+            "phase": dict(zip(("x", "gap"), _binned(phase[inside], g[inside, n]))),
             "corr_angle": _corr(q[:, n], g[:, n]), "corr_velocity": _corr(qd[:, n], g[:, n]),
             "corr_load": _corr(load, g[:, n]),
         }

@@ -3,8 +3,9 @@
 from msk_core.estimate.frame import FrameEstimator, FrameResult, FrameStatus, Method
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import LivePhase, PhaseModel
-from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
+from msk_core.estimate.prior import PhasePrior, fit_phase_prior
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.signal.reps import REST_PHASE
 
 __all__ = [
     "FrameEstimator",
@@ -17,5 +18,5 @@ __all__ = [
     "PhasePrior",
     "REST_PHASE",
     "SubjectProfile",
-    "prior_from_reps",
+    "fit_phase_prior",
 ]

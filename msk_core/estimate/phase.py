@@ -1,94 +1,31 @@
-"""Repetition phase for estimation: the minimal offline detector (torque signals) and the kinematic phase shared by
-calibration and the live node (:func:`kinematic_phase`, :class:`PhaseModel`, :class:`LivePhase`).
+"""Repetition phase for estimation: the offline phase of a trial (:func:`kinematic_phase`, :func:`torque_phase`) and
+the live phase of the node (:class:`PhaseModel`, :class:`LivePhase`), both msk_core.signal.reps's.
 
-A repetition is an excursion of a kinematic signal (e.g. trunk tilt in a lift, elbow angle on the bench) away from its
-rest level. Rest = median of the signal's first and last 0.5 s; the excursion direction is that of the largest
-deviation. A rep is where the deviation exceeds ``enter`` x the 98th-percentile deviation, widened to where it falls
-back below ``leave`` x that; reps shorter than ``min_duration_s`` are dropped. Phase = time through the rep in [0, 1].
-This is offline (it looks at the whole trial); it is used for ``torque:<coordinate>`` phase signals.
-
-On a kinematic phase coordinate the phase is msk_core.signal.reps's (``detect_reps`` + ``rep_phase``, turning-point mode);
-calibration learns a rep template on it and :class:`LivePhase` tracks the same phase causally from the template.
+Offline, the reps of the trial's phase signal come from ``msk_core.signal.reps.detect_reps`` (complete reps: rest ->
+excursion -> rest, direction from the trial's rest level) and their phase from ``rep_phase`` in turning-point mode;
+calibration learns a rep template on a kinematic phase coordinate and :class:`LivePhase` tracks the same phase causally
+from it. Between reps the phase is ``REST_PHASE``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
 
 from msk_core.errors import EstimationError, InputError
-from msk_core.estimate.prior import REST_PHASE
 from msk_core.signal.reps import (
     Excursion,
     PhaseMode,
     PhaseTracker,
     RepDetectionConfig,
     RepTemplate,
+    detect_reps,
     learn_template,
     rep_phase,
 )
-from msk_core.signal.reps import detect_reps as detect_kinematic_reps
-
-
-def detect_reps(
-    time: np.ndarray,
-    signal: np.ndarray,
-    *,
-    enter: float = 0.5,
-    leave: float = 0.15,
-    min_duration_s: float = 0.5,
-    rest_window_s: float = 0.5,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(phase, rep_index) per sample; samples outside any rep get phase NaN and rep_index -1."""
-    time = np.asarray(time, dtype=float)
-    x = np.asarray(signal, dtype=float)
-    if time.shape != x.shape or x.size < 3 or not np.all(np.isfinite(x)):
-        raise EstimationError("rep detection needs a finite signal with at least 3 samples, aligned with time")
-    edge = (time - time[0] <= rest_window_s) | (time[-1] - time <= rest_window_s)
-    direction = np.sign(np.median(x) - np.median(x[edge])) or 1.0
-    dev = direction * x
-    dev = dev - np.percentile(dev, 2)  # rest level = the most rest-like values (robust minimum)
-    scale = float(np.percentile(dev, 98))
-    if scale <= 0:
-        raise EstimationError("signal never leaves its rest level: no repetition to detect")
-    runs = _runs(dev > enter * scale)
-    quiet = dev <= leave * scale
-    phase = np.full(x.shape, np.nan)
-    rep_index = np.full(x.shape, -1, dtype=int)
-    k = 0
-    prev_end = 0
-    for j, (r0, r1) in enumerate(runs):
-        nxt = runs[j + 1][0] if j + 1 < len(runs) else x.size
-        q_before = np.flatnonzero(quiet[prev_end:r0])
-        start = prev_end + q_before[-1] if q_before.size else prev_end + int(np.argmin(dev[prev_end : r0 + 1]))
-        q_after = np.flatnonzero(quiet[r1:nxt])
-        if q_after.size:
-            end = r1 + int(q_after[0])
-        elif r1 < nxt:
-            end = r1 + int(np.argmin(dev[r1:nxt]))
-        else:  # the excursion lasts to the end of the recording
-            end = x.size - 1
-        prev_end = end
-        if time[end] - time[start] < min_duration_s:
-            continue
-        phase[start : end + 1] = (time[start : end + 1] - time[start]) / (time[end] - time[start])
-        rep_index[start : end + 1] = k
-        k += 1
-    if k == 0:
-        raise EstimationError("no repetition found in the phase signal")
-    return phase, rep_index
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[start, end) index pairs of the True runs of a boolean array."""
-    d = np.diff(np.r_[0, mask.astype(np.int8), 0])
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
-
-
-# -- kinematic phase: the project's msk_core.signal.reps, shared by calibration (offline) and the live node ------------------
 
 # The offline phase of a rep and the live tracker's phase must mean the same thing, or the prior learnt per phase bin
 # is read at the wrong bins live: both use msk_core.signal.reps's turning-point phase (start..bottom -> [0, 0.5),
@@ -106,19 +43,36 @@ def excursion_of(time: np.ndarray, values: np.ndarray, *, rest_window_s: float =
     return Excursion.DECREASE if np.median(x) < np.median(x[edge]) else Excursion.INCREASE
 
 
-def rep_config(time: np.ndarray, values: np.ndarray) -> RepDetectionConfig:
-    """msk_core.signal.reps's default detection settings with the excursion direction of this signal."""
-    return RepDetectionConfig(excursion=excursion_of(time, values))
+# A joint torque need not come back to rest between the movements of a set (the lumbar moment of a box lift stays above
+# a fifth of its range while the box is put down and lifted again): on a torque, a rep starts above 0.3 of its range.
+TORQUE_START_FRACTION = 0.3
+
+
+def rep_config(time: np.ndarray, values: np.ndarray, *, torque: bool = False) -> RepDetectionConfig:
+    """msk_core.signal.reps's default detection settings with the excursion direction of this signal (and on a joint
+    torque, ``TORQUE_START_FRACTION``)."""
+    config = RepDetectionConfig(excursion=excursion_of(time, values))
+    return replace(config, start_fraction=TORQUE_START_FRACTION) if torque else config
 
 
 def kinematic_phase(time: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(phase, rep_index) of a whole trial from one coordinate (offline; NaN / -1 outside reps)."""
+    """(phase, rep_index) of a whole trial from one coordinate (offline; ``REST_PHASE`` / -1 outside reps)."""
+    return _offline_phase(time, values, rep_config(time, values), "phase coordinate")
+
+
+def torque_phase(time: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(phase, rep_index) of a whole trial from one joint torque (``phase_signal = "torque:<coordinate>"``)."""
+    return _offline_phase(time, values, rep_config(time, values, torque=True), "phase torque")
+
+
+def _offline_phase(time: np.ndarray, values: np.ndarray, config: RepDetectionConfig,
+                   what: str) -> tuple[np.ndarray, np.ndarray]:
     try:
-        reps = detect_kinematic_reps(time, values, rep_config(time, values))
+        reps = detect_reps(time, values, config)
     except InputError as exc:
-        raise EstimationError(f"rep detection on the phase coordinate failed: {exc}") from None
+        raise EstimationError(f"rep detection on the {what} failed: {exc}") from None
     if not reps:
-        raise EstimationError("no complete repetition found on the phase coordinate")
+        raise EstimationError(f"no complete repetition found on the {what}")
     return rep_phase(time, reps, PHASE_MODE)
 
 
@@ -159,8 +113,7 @@ def learn_phase_model(coordinate: str, series: list[tuple[np.ndarray, np.ndarray
 class LivePhase:
     """Causal phase of the current frame from the profile's rep template. Explicit state; ``update`` per frame.
 
-    Returns a phase in [0, 1) inside a rep and ``REST_PHASE`` between reps (the estimator's rest prior), the same
-    convention as :meth:`msk_core.estimate.PhasePrior.at`.
+    Returns a phase in [0, 1) inside a rep and ``REST_PHASE`` between reps (the estimator's rest prior).
     """
 
     def __init__(self, model: PhaseModel, coordinates: Sequence[str]) -> None:
@@ -183,9 +136,8 @@ class LivePhase:
         """Phase of the frame at time ``t`` (s) with pack coordinates ``q`` (rad)."""
         value = float(q[self.index])
         if not math.isfinite(value) or not math.isfinite(t):
-            return REST_PHASE if not self.tracker.in_rep else self.tracker.phase
-        phase = self.tracker.update(t, value)
-        return REST_PHASE if math.isnan(phase) else phase
+            return self.tracker.phase  # a frame without a pose: the rep (or rest) goes on
+        return self.tracker.update(t, value)
 
     def process(self, time: np.ndarray, q: np.ndarray) -> np.ndarray:
         """``update`` over a trial's frames; returns the phases."""

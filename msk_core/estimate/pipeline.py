@@ -15,7 +15,7 @@ from msk_core.estimate.emd import estimate_emd, shift_emg
 from msk_core.estimate.frame import FrameEstimator, FrameStatus, Method
 from msk_core.estimate.pack import PackLike, pack_moment_arms  # noqa: F401 (re-exported: imported from here before)
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
-from msk_core.estimate.prior import REST_PHASE, PhasePrior, prior_from_reps
+from msk_core.estimate.prior import PhasePrior, fit_phase_prior
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress, counted
@@ -58,6 +58,9 @@ def build_prior(
             "least one group in a trial with reps" + (f" (isometric trials have no phase: {', '.join(isometric)})"
                                                       if isometric else "")
         )
+    if not any(np.any(t.rep_index >= 0) for t in trials):
+        raise EstimationError("no trial has a complete repetition: the prior is learned per phase of the reps ("
+                              + "; ".join(f"{t.name}: {t.extra.get('no_reps', 'no reps')}" for t in trials) + ")")
     synergists = dict(synergists or {})
     for g, h in synergists.items():
         if g not in groups or h not in emg_groups:
@@ -73,7 +76,7 @@ def build_prior(
     phases, reps, emg = [], [], {g: [] for g in emg_groups + effort}
     offset = 0
     for t in trials:
-        phases.append(np.nan_to_num(t.phase, nan=0.0))
+        phases.append(t.phase)
         reps.append(np.where(t.rep_index >= 0, t.rep_index + offset, -1))
         offset += int(t.rep_index.max()) + 1
         for g in emg_groups:
@@ -82,7 +85,7 @@ def build_prior(
             so = min_effort_activations(pack, t)
             for g in effort:
                 emg[g].append(so[:, groups.index(g)])
-    prior = prior_from_reps(
+    prior = fit_phase_prior(
         groups,
         {g: np.concatenate(v) for g, v in emg.items()},
         np.concatenate(phases),
@@ -147,8 +150,8 @@ def pick_synergists(
 
 
 def trial_phase(trial: TrialData, i: int) -> float:
-    """Phase of frame i: in [0, 1] inside a rep, REST_PHASE between reps."""
-    return REST_PHASE if trial.rep_index[i] < 0 else float(trial.phase[i])
+    """Phase of frame i: in [0, 1) inside a rep, REST_PHASE between reps."""
+    return float(trial.phase[i])
 
 
 def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
@@ -434,7 +437,7 @@ def estimate_trial(
         groups=list(est.groups),
         coordinates=list(est.coordinates),
         time=trial.time,
-        phase=trial.phase if phases is None else np.where(phases < 0, np.nan, phases),
+        phase=trial.phase if phases is None else phases,
         activations=np.zeros((n, g)),
         activation_std=np.zeros((n, g)),
         model_torques=np.zeros((n, n_c)),
@@ -445,7 +448,7 @@ def estimate_trial(
         solve_time_s=np.zeros(n),
     )
     for i in counted(range(n), progress, f"{trial.name} [{est.method.value}] (frames)"):
-        phase = trial_phase(trial, i) if phases is None else float(phases[i])
+        phase = float(trial.phase[i] if phases is None else phases[i])
         # qd, qdd and the load only matter to a profile's effects (with torques given, no inverse dynamics runs)
         res = est.step(trial.q[i], trial.qd[i], trial.qdd[i], trial.hand_load_newton, torques=trial.torques[i],
                        phase=phase)

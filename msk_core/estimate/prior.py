@@ -7,8 +7,11 @@ and ``has_emg`` says so. :func:`msk_core.estimate.pipeline.build_prior` replaces
 (minimal effort or a measured synergist, see ``sources``).
 
 Between repetitions the subject rests, which no phase bin describes: the prior then has a ``rest`` state (mean/std of
-the EMG outside the calibration reps), selected by a negative phase (``REST_PHASE`` = -1, the project's "outside a
-repetition" convention). ``None``/NaN means the phase is unknown and selects the prior pooled over the rep phases.
+the EMG outside the calibration reps), selected by ``REST_PHASE`` (msk_core.signal.reps: any negative phase).
+``None``/NaN means the phase is unknown and selects the prior pooled over the rep phases.
+
+:func:`fit_phase_prior` fits it from reps (statistics across reps: each rep contributes one value per bin, so a slow rep
+does not weigh more than a fast one, and sigma is the rep-to-rep variability).
 """
 
 from __future__ import annotations
@@ -28,7 +31,6 @@ NO_EMG_MEAN = 0.0
 NO_EMG_STD = 0.5
 # Floor on sigma: a phase bin in which every rep happened to give the same EMG must not become a hard constraint.
 MIN_STD = 0.02
-REST_PHASE = -1.0  # phase value meaning "between repetitions" (any negative phase)
 MIN_REST_SAMPLES = 5
 
 
@@ -68,7 +70,7 @@ class PhasePrior:
         return self.mean.shape[0]
 
     def at(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """(mu, sigma) at a phase in [0, 1]; negative: between reps (rest); ``None``: pooled over all phases.
+        """(mu, sigma) at a phase in [0, 1]; ``REST_PHASE``: between reps (rest); ``None``/NaN: pooled over all phases.
 
         Means and precisions 1/sigma^2 are interpolated linearly between bin centres (clamped at the ends).
         """
@@ -91,7 +93,8 @@ class PhasePrior:
 
     def rows(self, phase: float | None) -> tuple[int, int, float]:
         """(row0, row1, frac) of :meth:`table`: the prior at ``phase`` is row0 + frac * (row1 - row0), linear between
-        bin centres and clamped at the ends; unknown phase (None/NaN) -> the pooled row, negative -> the rest row."""
+        bin centres and clamped at the ends; unknown phase (None/NaN) -> the pooled row, rest (negative) -> the rest
+        row."""
         n = self.mean.shape[0]
         if phase is None or not math.isfinite(phase):
             return n, n, 0.0
@@ -147,7 +150,7 @@ class PhasePrior:
         )
 
 
-def prior_from_reps(
+def fit_phase_prior(
     groups: Sequence[str],
     emg: dict[str, np.ndarray],
     phases: np.ndarray,
@@ -157,7 +160,8 @@ def prior_from_reps(
 ) -> PhasePrior:
     """Per group and phase bin, mean and std across repetitions of each rep's bin-mean normalised EMG.
 
-    ``emg`` maps group -> envelope samples aligned with ``phases``/``rep_index`` (rep_index < 0 = outside any rep).
+    ``emg`` maps group -> envelope samples aligned with ``phases``/``rep_index`` (rep_index < 0 = outside any rep, where
+    the phase is ``REST_PHASE``).
     With a single repetition the std is the within-bin std (there is no across-rep spread to measure). Samples outside
     any rep (at least ``MIN_REST_SAMPLES``) give the rest prior: their mean and std per group.
     """

@@ -13,7 +13,8 @@ Keys (paths relative to the TOML file)::
     end = 30.0
     phase_signal = "torque:L5_S1_Flex_Ext"   # optional; a kinematics column, or torque:<coordinate>. Default: the
                                              # pack's phase coordinate (bench_press elbow_flex_r, deadlift
-                                             # hip_flexion_r), else the torque of its first coordinate
+                                             # hip_flexion_r), else the torque of its first coordinate. A signal
+                                             # without a complete rep leaves every frame at rest (``extra["no_reps"]``)
     isometric = true                 # optional: a static-pose trial (isometric MVC against a dynamometer or a fixed
                                      # bar). It needs ``torques``: the net joint moments the muscles produce, i.e. the
                                      # static inverse dynamics with the measured external force (dynamometer torque
@@ -32,7 +33,7 @@ Keys (paths relative to the TOML file)::
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
 
 The time base is the kinematics within [start, end]; torques and EMG are linearly interpolated onto it, and frames the
-torque file does not cover are dropped (counted in ``dropped_frames``).
+torque file does not cover are dropped (counted in ``dropped_frames``). Reps and phase: :mod:`msk_core.estimate.phase`.
 """
 
 from __future__ import annotations
@@ -47,9 +48,10 @@ import numpy as np
 
 from msk_core.errors import ConfigError, EstimationError, InputError
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, detect_reps, kinematic_phase
+from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
 from msk_core.signal.kinematics_filter import lowpass_coordinates
+from msk_core.signal.reps import REST_PHASE
 from msk_core.units import GRAVITY
 
 KNOWN_KEYS = {
@@ -86,7 +88,7 @@ class TrialData:
     emg_normalisation: dict[str, dict]
     load_kg: float
     body_mass_kg: float | None
-    phase: np.ndarray  # (T,) in [0, 1], NaN outside reps
+    phase: np.ndarray  # (T,) in [0, 1) inside a rep, REST_PHASE outside (isometric trials: every frame)
     rep_index: np.ndarray  # (T,) -1 outside reps
     phase_signal: str
     dropped_frames: int = 0
@@ -307,33 +309,30 @@ def _trial_phase(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin:
         raise trial.err("an isometric trial has no reps, so no phase", "phase_signal", phase_signal)
     n = kin.time.size
     if options.isometric:
-        return _Phase(np.full(n, np.nan), np.full(n, -1), "none (isometric)", None, {})
+        return _Phase(np.full(n, REST_PHASE), np.full(n, -1), "none (isometric)", None, {})
+    if phase_signal.startswith("torque:"):
+        c = phase_signal.split(":", 1)[1]
+        if c not in coords:
+            raise trial.err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
+        coordinate, signal, phase_of = None, torques[:, coords.index(c)], torque_phase
+    elif phase_signal in coords:  # radians, as the live node sees it
+        coordinate, signal, phase_of = phase_signal, kin.q[:, coords.index(phase_signal)], kinematic_phase
+    elif kin.storage.has_column(phase_signal):
+        coordinate, signal = None, kin.storage.column(phase_signal)[kin.selected][kin_keep]
+        phase_of = kinematic_phase
+    else:
+        raise trial.err(f"no such kinematics column{_closest(phase_signal, kin.storage.columns)}", "phase_signal",
+                        phase_signal)
+    if not np.all(np.isfinite(signal)):
+        bad = int(np.flatnonzero(~np.isfinite(signal))[0])
+        raise trial.err(f"the phase signal is not finite at t = {kin.time[bad]:g} s", "phase_signal", phase_signal)
     try:
-        if phase_signal.startswith("torque:"):
-            c = phase_signal.split(":", 1)[1]
-            if c not in coords:
-                raise trial.err(f"not a pack coordinate{_closest(c, coords)}", "phase_signal", phase_signal)
-            phase, rep_index = detect_reps(kin.time, torques[:, coords.index(c)])
-            return _Phase(phase, rep_index, phase_signal, None, {})
-        if phase_signal in coords:  # radians, as the live node sees it
-            coordinate: str | None = phase_signal
-            signal = kin.q[:, coords.index(phase_signal)]
-        elif kin.storage.has_column(phase_signal):
-            coordinate = None
-            signal = kin.storage.column(phase_signal)[kin.selected][kin_keep]
-        else:
-            raise trial.err(f"no such kinematics column{_closest(phase_signal, kin.storage.columns)}", "phase_signal",
-                            phase_signal)
-        try:
-            phase, rep_index = kinematic_phase(kin.time, signal)
-            return _Phase(phase, rep_index, phase_signal, coordinate, {})
-        except EstimationError as exc:
-            # msk_core.signal.reps only counts complete reps (rest - excursion - rest); a trial with a single movement
-            # (e.g. arm26's one flexion) falls back to the minimal detector and has no live-trackable phase
-            phase, rep_index = detect_reps(kin.time, signal)
-            return _Phase(phase, rep_index, phase_signal, None, {"phase_fallback": str(exc)})
+        phase, rep_index = phase_of(kin.time, signal)
     except EstimationError as exc:
-        raise trial.err(f"{exc}", "phase_signal", phase_signal) from None
+        # msk_core.signal.reps only counts complete reps (rest - excursion - rest): a trial of a single movement
+        # (arm26's one flexion) has none; it still serves what needs no phase (static optimisation, inverse dynamics)
+        return _Phase(np.full(n, REST_PHASE), np.full(n, -1), phase_signal, None, {"no_reps": str(exc)})
+    return _Phase(phase, rep_index, phase_signal, coordinate, {})
 
 
 def load_trial(path: str | Path, pack: PackLike) -> TrialData:

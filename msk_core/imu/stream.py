@@ -109,7 +109,7 @@ class JointOutput:
     q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
-    phase: float  # [0, 1) inside a rep, -1 between reps, NaN when unknown (no rep template)
+    phase: float  # [0, 1) inside a rep, REST_PHASE (msk_core.signal.reps) between reps, NaN when unknown (no template)
 
 
 class StreamingJointKinematics:
@@ -175,8 +175,7 @@ class StreamingJointKinematics:
         q, qd, qdd = self.filter.step(angles, dt=dt_s)
         phase = float("nan")
         if self.tracker is not None and self.phase_index is not None:
-            p = self.tracker.update(frame.time_ns / 1e9, float(q[self.phase_index]))
-            phase = -1.0 if not np.isfinite(p) else float(p)
+            phase = self.tracker.update(frame.time_ns / 1e9, float(q[self.phase_index]))
         c.published += 1
         return JointOutput(frame.time_ns, q, qd, qdd, phase)
 

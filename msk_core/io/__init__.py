@@ -1,7 +1,7 @@
 """Readers and writers of the file formats msk-live meets: OpenSim storage, .anc, C3D analogs, Delsys CSV exports,
 and the alignment of signals recorded at different rates."""
 
-from msk_core.io.align import AlignedTrial, align_to_kinematics, load_trial, resample_linear, window_mean
+from msk_core.io.align import AlignedTrial, align_to_kinematics, resample_linear, window_mean
 from msk_core.io.analog import AnalogRecording, read_anc, read_c3d_analogs
 from msk_core.io.delsys import (
     DelsysChannel,
@@ -19,7 +19,6 @@ __all__ = [
     "DelsysExport",
     "Storage",
     "align_to_kinematics",
-    "load_trial",
     "read_anc",
     "read_c3d_analogs",
     "read_delsys_csv",

@@ -6,12 +6,11 @@ Times are compared as given (the backmodel-lift files share Unix-epoch seconds);
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from msk_core.errors import InputError
-from msk_core.io.storage import Storage, read_sto
+from msk_core.io.storage import Storage
 
 
 def resample_linear(
@@ -118,13 +117,3 @@ def align_to_kinematics(
     if id_ is not None and id_rows is not None:
         id_kept = _rows(id_, id_rows[ok])
     return AlignedTrial(time=t, emg=res, emg_columns=list(cols), ik=ik_kept, id=id_kept)
-
-
-def load_trial(folder: str | Path, *, emg_file: str = "emgFilt.sto", ik_file: str = "ik.sto",
-               id_file: str | None = "id.sto", emg_columns: list[str] | None = None) -> AlignedTrial:
-    """Load an OpenSim/CEINMS trial folder (``emgFilt.sto``, ``ik.sto``, ``id.sto``) and align it on the ik times."""
-    folder = Path(folder)
-    emg = read_sto(folder / emg_file)
-    ik = read_sto(folder / ik_file)
-    id_ = read_sto(folder / id_file) if id_file else None
-    return align_to_kinematics(emg, ik, id_, emg_columns=emg_columns)

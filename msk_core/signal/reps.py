@@ -4,7 +4,12 @@ Offline (:func:`detect_reps`, :func:`rep_phase`) sees the whole trial. Live (:cl
 maps the progress of the signal through the current rep onto a :class:`RepTemplate` learned at calibration.
 
 Progress is the signal normalised to the rep range: ``p = (s * sign - rest) / depth`` (0 at rest, 1 at a full rep),
-``sign`` set by :class:`Excursion`. Phase is in [0, 1) inside a rep and ``nan`` outside.
+``sign`` set by :class:`Excursion`. Phase is in [0, 1) inside a rep and :data:`REST_PHASE` between reps, everywhere in
+the project (offline arrays, the live tracker, the wire); NaN means the phase is unknown (no rep template, no phase
+signal). :func:`in_rep` tells the two apart.
+
+Counting reps of a phase stream (the dashboards live, the report offline): :class:`PhaseRepCounter`,
+:func:`phase_rep_spans`.
 """
 
 from __future__ import annotations
@@ -15,6 +20,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from msk_core.errors import ConfigError, InputError
+
+# Phase of a sample between repetitions (the subject rests). Any negative phase reads as rest; NaN is "unknown".
+REST_PHASE = -1.0
+
+
+def in_rep(phase: np.ndarray | float) -> np.ndarray:
+    """True where ``phase`` is inside a repetition ([0, 1)); False at rest (:data:`REST_PHASE`) and where unknown."""
+    with np.errstate(invalid="ignore"):
+        return np.asarray(phase, dtype=float) >= 0.0
 
 
 class Excursion(enum.Enum):
@@ -137,9 +151,9 @@ def detect_reps(time: np.ndarray, values: np.ndarray, config: RepDetectionConfig
 
 
 def rep_phase(time: np.ndarray, reps: list[Rep], mode: PhaseMode = PhaseMode.TURNING_POINT) -> tuple[np.ndarray, np.ndarray]:
-    """Phase in [0, 1) of every sample inside a rep (``nan`` outside) and the rep index (-1 outside)."""
+    """Phase in [0, 1) of every sample inside a rep (:data:`REST_PHASE` outside) and the rep index (-1 outside)."""
     t = np.asarray(time, dtype=float).reshape(-1)
-    phase = np.full(t.shape, np.nan)
+    phase = np.full(t.shape, REST_PHASE)
     index = np.full(t.shape, -1, dtype=int)
     for k, rep in enumerate(reps):
         sl = slice(rep.start, rep.end)
@@ -276,7 +290,7 @@ class PhaseTracker:
     def reset(self) -> None:
         self.in_rep = False
         self.passed_turn = False
-        self.phase = float("nan")
+        self.phase = REST_PHASE
         self.peak = 0.0
         self.trough = float("inf")
         self.t_start = float("nan")
@@ -287,7 +301,7 @@ class PhaseTracker:
         return (tpl.excursion.sign * value - tpl.rest) / tpl.depth
 
     def update(self, t: float, value: float) -> float:
-        """Phase in [0, 1) of the sample at time ``t`` (``nan`` when no rep is under way)."""
+        """Phase in [0, 1) of the sample at time ``t`` (:data:`REST_PHASE` when no rep is under way)."""
         tpl = self.template
         p = self.progress(value)
         if not self.in_rep:
@@ -297,11 +311,11 @@ class PhaseTracker:
                 self.phase = float(np.interp(p, *self._rise))
                 self.rep_count += 1
                 return self.phase
-            return float("nan")
+            return REST_PHASE
         if not self.passed_turn:
             self.peak = max(self.peak, p)
             if p < tpl.start_fraction and self.peak < tpl.min_depth_fraction:
-                self.in_rep, self.phase = False, float("nan")  # false start
+                self.in_rep, self.phase = False, REST_PHASE  # false start
                 self.rep_count -= 1
                 return self.phase
             if self.peak >= tpl.min_depth_fraction and p < self.peak - self.turn_hysteresis:
@@ -317,16 +331,74 @@ class PhaseTracker:
         restarted = p > self.trough + 2 * self.turn_hysteresis and self.phase > 0.75
         overdue = t - self.t_start > 2.0 * tpl.mean_duration_s
         if settled or restarted or overdue:
-            self.in_rep, self.phase = False, float("nan")
+            self.in_rep, self.phase = False, REST_PHASE
             return self.update(t, value) if p > tpl.start_fraction else self.phase
         # this rep's own depth replaces the template's on the way back (reps differ in depth)
         cand = float(np.interp(p * self._peak_progress / self.peak, *self._fall))
         self.phase = min(max(self.phase, cand, self._turn_phase), float(np.nextafter(1.0, 0.0)))
         phase = self.phase
         if cand >= self._end_phase:  # back at the template's resting level: this rep is over
-            self.in_rep, self.phase = False, float("nan")
+            self.in_rep, self.phase = False, REST_PHASE
         return phase
 
     def process(self, time: np.ndarray, values: np.ndarray) -> np.ndarray:
         """``update`` over a series; returns the phases."""
         return np.array([self.update(float(a), float(b)) for a, b in zip(time, values)])
+
+
+# -- reps of a phase stream: the live rep count of the dashboards and the report's reps --------------------------------
+
+# A run of in-rep phase shorter than this is no repetition (a tracker that flickers into a rep and out again).
+MIN_REP_S = 0.3
+# Samples further apart than this do not belong to one rep (the stream had a gap: the rep is closed at its last sample).
+MAX_SAMPLE_GAP_S = 0.5
+
+
+class PhaseRepCounter:
+    """Repetitions of a phase stream (:data:`REST_PHASE` between reps, NaN unknown), one sample at a time.
+
+    A rep is a run of samples inside a rep. It ends at the first sample at rest or of unknown phase, where the phase
+    wraps (falls by more than 0.5: the next rep began without rest, which starts at that sample), or before a sample
+    more than ``MAX_SAMPLE_GAP_S`` after the previous one; it counts when its samples span at least ``MIN_REP_S``.
+    Explicit state; ``update`` per sample, ``finish`` at the end of the data.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0  # reps completed
+        self._start: float | None = None  # time of the first sample of the rep under way
+        self._last: tuple[float, float] | None = None  # (time, phase) of its newest sample
+
+    @property
+    def in_rep(self) -> bool:
+        """A rep is under way (not yet counted)."""
+        return self._start is not None
+
+    def update(self, t: float, phase: float | None) -> tuple[float, float] | None:
+        """The sample at time ``t`` (s); returns the (first, last sample time) of the rep it completed, if any."""
+        inside = phase is not None and phase >= 0.0  # NaN compares False
+        done = None
+        last = self._last
+        if last is not None and (not inside or phase < last[1] - 0.5 or t - last[0] > MAX_SAMPLE_GAP_S):
+            done = self.finish()
+        if inside:
+            if self._start is None:
+                self._start = t
+            self._last = (t, float(phase))
+        return done
+
+    def finish(self) -> tuple[float, float] | None:
+        """Close the rep under way (end of the data); returns its span when it counts."""
+        start, last = self._start, self._last
+        self._start = self._last = None
+        if start is None or last is None or last[0] - start < MIN_REP_S:
+            return None
+        self.count += 1
+        return start, last[0]
+
+
+def phase_rep_spans(time: np.ndarray, phase: np.ndarray) -> list[tuple[float, float]]:
+    """(first, last sample time) of each rep of a recorded phase series, as :class:`PhaseRepCounter` counts them."""
+    counter = PhaseRepCounter()
+    spans = [span for t, p in zip(time, phase) if (span := counter.update(float(t), float(p))) is not None]
+    last = counter.finish()
+    return spans + ([last] if last is not None else [])

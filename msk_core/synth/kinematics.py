@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from msk_core.signal.reps import REST_PHASE
 from msk_core.synth.rng import stream
 
 
@@ -107,13 +108,14 @@ def plan_reps(
 
 
 def evaluate(plan: RepPlan, time: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """q, qd, qdd (n_samples, n_coordinates), phase in [0, 1) (−1 outside repetitions) and rep index (−1 at rest)."""
+    """q, qd, qdd (n_samples, n_coordinates), phase in [0, 1) (REST_PHASE outside repetitions) and rep index (−1 at
+    rest)."""
     time = np.asarray(time, dtype=float)
     n = plan.moves[0].q0.shape[0]
     q = np.empty((time.size, n))
     qd = np.zeros_like(q)
     qdd = np.zeros_like(q)
-    phase = np.full(time.size, -1.0)
+    phase = np.full(time.size, REST_PHASE)
     rep_index = np.full(time.size, -1, dtype=np.int64)
     bounds = np.asarray([m.t0 for m in plan.moves])
     which = np.clip(np.searchsorted(bounds, time, side="right") - 1, 0, len(plan.moves) - 1)

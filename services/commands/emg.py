@@ -5,13 +5,11 @@ Examples::
     msk emg envelope ../shared/data/rajagopal-walk/emg_walk_raw.anc --channels SOL,GAS,TA -o walk_env.sto
     msk emg envelope session.csv --zero-phase --mvc mvc1.csv --mvc mvc2.csv -o env.sto   # Delsys CSV, offline
     msk emg reps ../shared/data/backmodel-lift/squat5kg/ik.sto --coordinate pelvis_ty --excursion decrease
-    msk emg priors ../shared/data/backmodel-lift/squat5kg --coordinate pelvis_ty --excursion decrease -o priors.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +22,8 @@ from msk_core.signal.emg import (
     normalisation_reference,
 )
 from msk_core.errors import InputError
-from msk_core.io import AnalogRecording, load_trial, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
-from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, learn_template, rep_phase
-from msk_core.signal.priors import fit_priors
+from msk_core.io import AnalogRecording, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
+from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, rep_phase
 
 
 def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
@@ -98,23 +95,6 @@ def _reps(args: argparse.Namespace) -> int:
     return 0
 
 
-def _priors(args: argparse.Namespace) -> int:
-    trial = load_trial(args.folder, emg_file=args.emg_file, ik_file=args.ik_file, id_file=None,
-                       emg_columns=_channels(args.channels))
-    cfg = RepDetectionConfig(excursion=Excursion(args.excursion))
-    signal = trial.coordinate(args.coordinate)
-    reps = detect_reps(trial.time, signal, cfg)
-    mode = PhaseMode(args.mode)
-    phase, index = rep_phase(trial.time, reps, mode)
-    priors = fit_priors(phase, index, trial.emg, trial.emg_columns, n_bins=args.bins)
-    template = learn_template(trial.time, signal, cfg, mode=mode)
-    out = {"source": str(args.folder), "coordinate": args.coordinate, "priors": priors.to_dict(),
-           "rep_template": template.to_dict()}
-    args.output.write_text(json.dumps(out, indent=1))
-    print(f"{len(reps)} repetitions, {len(trial.emg_columns)} channels, {args.bins} phase bins -> {args.output}")
-    return 0
-
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("emg", help="EMG envelopes from raw files; repetitions and phase of kinematics",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -144,16 +124,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--mode", choices=[m.value for m in PhaseMode], default=PhaseMode.TURNING_POINT.value)
     r.add_argument("--phase-out", type=Path, help="write time, phase and rep index as .sto")
     r.set_defaults(handler=_reps)
-
-    q = sub.add_parser("priors", help="phase priors N(mu, sigma^2) and the rep template of a trial folder -> JSON")
-    q.add_argument("folder", type=Path, help="folder with the normalised EMG envelopes and the kinematics")
-    q.add_argument("--emg-file", default="emgFilt.sto")
-    q.add_argument("--ik-file", default="ik.sto")
-    q.add_argument("--channels", help="comma-separated EMG columns (default: all)")
-    q.add_argument("--coordinate", required=True)
-    q.add_argument("--excursion", choices=[x.value for x in Excursion], required=True)
-    q.add_argument("--mode", choices=[m.value for m in PhaseMode], default=PhaseMode.TURNING_POINT.value)
-    q.add_argument("--bins", type=int, default=20)
-    q.add_argument("-o", "--output", type=Path, required=True)
-    q.set_defaults(handler=_priors)
 

@@ -32,6 +32,7 @@ from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from msk_core.model.pack import names_for
+from msk_core.signal.reps import PhaseRepCounter
 from services import messages, topics
 from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, open_session
@@ -76,10 +77,9 @@ def activation_dict(frame: messages.ActivationFrame, arrival_ns: int) -> dict:
 
 
 class RepCounter:
-    """Counts repetitions from a phase stream: [0, 1) inside a rep, negative at rest, None unknown.
-
-    A rep ends when the phase leaves a rep for rest, or wraps from late in one rep to early in the next. A new set
-    starts the count again; the total over the session is kept.
+    """Repetitions in the current set and over the session, from a phase stream ([0, 1) inside a rep, negative at
+    rest, None unknown), counted by :class:`msk_core.signal.reps.PhaseRepCounter` (the rule the session report uses).
+    A new set starts the count again (a rep under way at the change is not counted); the total is kept.
     """
 
     def __init__(self) -> None:
@@ -87,24 +87,20 @@ class RepCounter:
         self.total = 0
         self.sets = 0
         self.phase: float | None = None
-        self._previous: float | None = None
+        self._reps = PhaseRepCounter()
 
     def new_set(self, number: int = 0) -> None:
         """Start set ``number`` (the operator's ``LoadEvent.set_number``), or the next one when 0 (not counted)."""
         self.sets = number if number > 0 else self.sets + 1
         self.in_set = 0
-        self._previous = None
+        self._reps = PhaseRepCounter()
 
-    def update(self, phase: float | None) -> None:
+    def update(self, t: float, phase: float | None) -> None:
+        """The phase of the sample at time ``t`` (s, the stream's own clock)."""
         self.phase = phase
-        if phase is None or not math.isfinite(phase):
-            self._previous = None
-            return
-        previous = self._previous
-        if previous is not None and previous >= 0.0 and (phase < 0.0 or phase < previous - 0.5):
+        if self._reps.update(t, phase) is not None:
             self.in_set += 1
             self.total += 1
-        self._previous = phase
 
     def as_dict(self) -> dict:
         return {"in_set": self.in_set, "total": self.total, "set": self.sets, "phase": self.phase}
@@ -225,7 +221,7 @@ class DashboardState:
         if not self._joints_have_phase:
             self._phase_method = self._phase_method or frame.method
             if frame.method == self._phase_method:
-                self._reps.update(frame.phase if frame.HasField("phase") else None)
+                self._reps.update(frame.time_s, frame.phase if frame.HasField("phase") else None)
                 self._put("reps", self._reps.as_dict())
 
     def _on_joints(self, joints: messages.JointAngles, arrival_ns: int) -> None:
@@ -233,7 +229,7 @@ class DashboardState:
         has_phase = joints.HasField("phase")
         self._joints_have_phase = self._joints_have_phase or has_phase
         if has_phase:
-            self._reps.update(joints.phase)
+            self._reps.update(joints.device_time_ns / 1e9, joints.phase)
             self._put("reps", self._reps.as_dict())
         self._put("joints", {"coordinates": list(joints.coordinates), "q": _finite(joints.q),
                              "phase": joints.phase if has_phase else None})

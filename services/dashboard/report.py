@@ -5,10 +5,11 @@ The header names the athlete (``LoadEvent.athlete``), the date of the recording'
 (the load events', else the activation frames' ``exercise``) and the loads. Sets come from the load events (a mass
 opens a set, the next load event closes it unless it carries the same ``set_number``, which corrects the running
 set's load); repetitions from the phase the frames
-carry (``JointAngles.phase``, else ``ActivationFrame.phase``), else from msk_core's kinematic rep detection on the
-pack's phase coordinate. Per set and method: peak and mean activation of every muscle group in every rep, time under
-tension, the balance between the left and right groups (packs with both sides) and between the muscles pulling each
-joint one way and the other (sign of the pack's moment arms at the set's median pose), the comparison of the methods
+carry (``JointAngles.phase``, else ``ActivationFrame.phase``; counted as the live dashboards count them,
+``msk_core.signal.reps.phase_rep_spans``), else from msk_core's kinematic rep detection on the pack's phase
+coordinate. Per set and method: peak and mean activation of every muscle group in every rep, time under tension,
+the balance between the left and right groups (packs with both sides) and between the muscles pulling each joint one
+way and the other (sign of the pack's moment arms at the set's median pose), the comparison of the methods
 when several ran, and the health of every device over the session. Muscles and joints are named by their display
 names (the pack's, with the session file's ``[names]`` from ``LoadEvent.names``; msk_core.model.names); the model
 names (abbreviations) only on the method comparison's axis, explained beside it.
@@ -33,13 +34,12 @@ from msk_core.errors import EstimationError, InputError
 from msk_core.model import OutOfRange, load_pack
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
+from msk_core.signal.reps import phase_rep_spans
 from services.dashboard import bodymap
 from services.mcap_io import ReadReport, read_messages
 
 PRIMARY_METHODS = ("assisted", "proposed", "so", "hybrid")  # the first present is the one the report details
 ACTIVE_THRESHOLD = 0.2  # "time active" of a muscle: activation above this
-MIN_REP_S = 0.3
-REST_GAP_S = 0.5
 
 
 @dataclass
@@ -188,32 +188,15 @@ def facts_line(facts: dict) -> str:
     return f"{exercises} · {loads}"
 
 
-def reps_from_phase(time: np.ndarray, phase: np.ndarray) -> list[tuple[float, float]]:
-    """(start, end) times of reps: runs of phase >= 0, split where the phase wraps to the next rep."""
-    reps, start, last = [], None, None
-    for t, p in zip(time, phase):
-        inside = math.isfinite(p) and p >= 0
-        if start is not None and (not inside or (last is not None and p < last[1] - 0.5) or t - last[0] > REST_GAP_S):
-            if last[0] - start >= MIN_REP_S:
-                reps.append((start, last[0]))
-            start = None
-        if inside and start is None:
-            start = t
-        last = (t, p) if inside else None
-    if start is not None and last is not None and last[0] - start >= MIN_REP_S:
-        reps.append((start, last[0]))
-    return reps
-
-
 def reps_in_set(data: SessionData, window: SetWindow, series: MethodSeries, pack) -> tuple[list[tuple[float, float]], str]:
     jt, jp = np.asarray(data.joint_time), np.asarray(data.joint_phase)
     inside = (jt >= window.start_s) & (jt <= window.end_s)
     if np.any(np.isfinite(jp[inside])):
-        return reps_from_phase(jt[inside], jp[inside]), "phase of the joint angles"
+        return phase_rep_spans(jt[inside], jp[inside]), "phase of the joint angles"
     ft, fp = np.asarray(series.time), np.asarray(series.phase)
     inside = (ft >= window.start_s) & (ft <= window.end_s)
     if np.any(np.isfinite(fp[inside])):
-        return reps_from_phase(ft[inside], fp[inside]), "phase of the activation frames"
+        return phase_rep_spans(ft[inside], fp[inside]), "phase of the activation frames"
     from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase
 
     for coordinates, samples in data.joint_q.items():
@@ -229,7 +212,7 @@ def reps_in_set(data: SessionData, window: SetWindow, series: MethodSeries, pack
             return [], f"no repetition found on {coordinate}"
         tk = t[keep]
         return [(float(tk[rep_index == k][0]), float(tk[rep_index == k][-1])) for k in range(rep_index.max() + 1)], \
-            f"rep detection on {coordinate} (msk_core.phase)"
+            f"rep detection on {coordinate} (msk_core.signal.reps)"
     return [], "no phase and no joint angles of the pack's phase coordinate"
 
 
