@@ -183,8 +183,9 @@ def graph_services(deployments: dict[str, Deployment] = DEPLOYMENTS) -> list[Gra
             raise ConfigError(f"participants {list(names)} run as `msk {command}`, which services/deploy_files.py "
                               f"does not deploy: add it to DEPLOYMENTS", field="command", value=command)
         services.append(GraphService(command, roles[0], names, deployments[command]))
-    names = [s.deployment.service for s in services]
-    clashes = sorted({n for n in names if names.count(n) > 1} | (set(names) & {ROUTER.name, TRIGNO_SIM.name}))
+    service_names = [s.deployment.service for s in services]
+    clashes = sorted({n for n in service_names if service_names.count(n) > 1}
+                     | (set(service_names) & {ROUTER.name, TRIGNO_SIM.name}))
     if clashes:
         raise ConfigError("two compose services would have the same name", field="service", value=clashes)
     order = list(deployments)

@@ -229,8 +229,8 @@ class Graph:
     def wait_ready(self, timeout_s: float = 60.0) -> float:
         """Every node up with its subscribers declared, as seen from a fresh session on the graph's endpoint."""
         started = time.monotonic()
-        for node in self._threads:
-            node.ready.wait(max(0.0, started + timeout_s - time.monotonic()))
+        for thread_node in self._threads:
+            thread_node.ready.wait(max(0.0, started + timeout_s - time.monotonic()))
             self._raise_failed()
         for node in self._processes:
             if node.process.poll() is not None:
@@ -285,10 +285,10 @@ class Graph:
                 node.process.kill()
                 node.process.wait(5)
                 codes[node.name] = None
-        for node in self._threads:
-            node.thread.join(max(0.1, deadline - time.monotonic()))
-            if node.thread.is_alive():
-                log.error("node %s did not stop within %g s", node.name, timeout_s)
+        for thread_node in self._threads:
+            thread_node.thread.join(max(0.1, deadline - time.monotonic()))
+            if thread_node.thread.is_alive():
+                log.error("node %s did not stop within %g s", thread_node.name, timeout_s)
         return codes
 
     def __enter__(self) -> "Graph":

@@ -196,7 +196,7 @@ def main(
             for inbound in inputs.drain():
                 merge.accept(_live_item(inbound), fetch_new_keys=False)
             merge.release_all()  # live samples still waiting for a history that did not come in time
-            if reporter is not None:
+            if reporter is not None and reporting_session is not None:  # a reporter exists for a session only
                 _record_final_status(writer, reporter, reporting_session)
     return stats
 
@@ -414,13 +414,15 @@ def _write(writer: McapRecorderWriter, item: _Item, stats: RecorderStats, counts
         stats.rejected += 1
         return
     message = item.message
+    assert message is not None, "an item is decoded unless it was rejected"
     receive_ns = item.receive_ns
     publish_ns = device_time_ns(message, receive_ns)
     if item.origin == HISTORY:
         counts.count_received(item.key)
-        if getattr(message, "host_time_ns", 0):
+        host_time_ns = int(getattr(message, "host_time_ns", 0))  # the device messages' field
+        if host_time_ns:
             # from a cache, late: log it when the driver's host received it, where a live recorder would have
-            receive_ns = min(receive_ns, int(message.host_time_ns))
+            receive_ns = min(receive_ns, host_time_ns)
     writer.write(item.key, messages.type_name(message), item.payload, receive_ns, publish_ns)
     stats.written += 1
     if isinstance(message, messages.DeviceStatus) and message.kind == "node":

@@ -26,6 +26,7 @@ from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
     declare_data_publisher,
+    has_subscribers,
     open_session,
     options_from_args,
 )
@@ -55,7 +56,7 @@ def parse_rate(text: str | float | None) -> float | None:
 def wait_for_subscribers(publisher: zenoh.Publisher, timeout_s: float) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        if publisher.matching_status.matching:
+        if has_subscribers(publisher):
             return True
         time.sleep(0.01)
     return False
@@ -88,8 +89,7 @@ def main(
             if session_name is None:
                 raise ConfigError("waiting for graph nodes needs the session they belong to", field="session_name")
             graph.wait_for_nodes(session, session_name, wait_nodes, wait_nodes_s)
-        start_wall = None
-        start_log = None
+        start: tuple[float, int] | None = None  # (wall clock, log time) of the first message replayed at a rate
         iterator = read_messages(mcap_path, report=report)
         for recorded in tqdm(iterator, desc=f"replay {Path(mcap_path).name}", unit="msg", disable=not progress):
             key = topics.rename_session(recorded.topic, session_name) if session_name else recorded.topic
@@ -105,8 +105,9 @@ def main(
                 if wait_subscribers_s > 0:
                     wait_for_subscribers(publisher, wait_subscribers_s)
             if rate is not None:
-                if start_wall is None:
-                    start_wall, start_log = time.monotonic(), recorded.log_time_ns
+                if start is None:
+                    start = (time.monotonic(), recorded.log_time_ns)
+                start_wall, start_log = start
                 due = start_wall + (recorded.log_time_ns - start_log) / 1e9 / rate
                 delay = due - time.monotonic()
                 if delay > 0:

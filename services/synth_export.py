@@ -20,6 +20,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.trigno.protocol import N_SENSORS, encode_samples
 from drivers.xsens import xbus
@@ -116,7 +117,7 @@ def _mtdata2(packet_counter: int, fine: int, quat, acc, gyr, mag) -> bytes:
     return xbus.encode_message(xbus.Mid.MT_DATA2, b"".join(items))
 
 
-def savez_deterministic(path: Path, **arrays: np.ndarray) -> Path:
+def savez_deterministic(path: Path, **arrays: ArrayLike) -> Path:
     """Like ``np.savez`` but with fixed zip timestamps, so equal arrays give equal bytes."""
     import io
     import zipfile
@@ -148,7 +149,7 @@ def write_trial_device_streams(trial: Trial, folder: Path, *, emg_rate_hz: float
     n_ch = len(trial.channels)
     if n_ch > N_SENSORS:
         raise ValueError(f"{n_ch} EMG channels exceed the Trigno's {N_SENSORS} sensors")
-    acc = {}
+    acc: dict[str, ArrayLike] = {}
     if trial.emg_acc is not None:
         rate = 1.0 / float(np.median(np.diff(trial.emg_acc.time)))
         acc = {"acc": (trial.emg_acc.acceleration / STANDARD_GRAVITY).astype(np.float32), "acc_rate_hz": rate}

@@ -172,7 +172,8 @@ def declare_history_publisher(
             max_samples=history_samples,
             replies_config=zenoh.ext.RepliesConfig(congestion_control=zenoh.CongestionControl.BLOCK),
         ),
-        sample_miss_detection=zenoh.ext.MissDetectionConfig(),  # sequence numbers (else the cache needs timestamping)
+        # sequence numbers, no heartbeat (else the cache needs timestamping)
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None),
         publisher_detection=True,
     )
 
@@ -208,7 +209,7 @@ def fetch_history(session: zenoh.Session, key_expr: str, *, timeout_s: float) ->
     for reply in session.liveliness().get(history_selector(key_expr), timeout=float(timeout_s)):
         if reply.ok is not None:
             caches.append(str(reply.ok.key_expr))
-        else:
+        elif reply.err is not None:
             errors.append(reply.err.payload.to_string())
     pending = [  # asked at once, read one after the other: the caches answer in parallel
         session.get(cache, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
@@ -223,13 +224,19 @@ def fetch_history(session: zenoh.Session, key_expr: str, *, timeout_s: float) ->
             if reply.ok is not None:
                 if key.intersects(reply.ok.key_expr):
                     samples.append(reply.ok)
-            else:
+            elif reply.err is not None:
                 errors.append(reply.err.payload.to_string())
     return samples, errors
 
 
 def encoding_for(type_name: str) -> zenoh.Encoding:
     return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(type_name)
+
+
+def has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches the publisher's key now."""
+    # zenoh 1.10's stub types matching_status as bool; it returns a MatchingStatus, whose .matching is the bool
+    return bool(publisher.matching_status.matching)  # type: ignore[attr-defined]
 
 
 def publish(publisher: zenoh.Publisher, message: Message) -> None:

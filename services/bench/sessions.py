@@ -39,7 +39,7 @@ P99_TARGET_MS = 2.0
 DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
 
 
-def _msk(*argv: str) -> subprocess.Popen:
+def _msk(*argv: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, text=True)
 
@@ -101,7 +101,7 @@ def _observe(zsession, observed: _Observed) -> list:
 
 def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0) -> dict[str, float]:
     """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures."""
-    from services.zenoh_session import ZenohOptions, open_session
+    from services.zenoh_session import ZenohOptions, has_subscribers, open_session
 
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -119,7 +119,8 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
                 sim = _msk("sim", "trigno", "--from", "synthetic:120:7", "--port", "0", "--emg-port", "0",
                            "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1")
                 processes.append(sim)
-                ports = dict(re.findall(r"(command|emg) (\d+)", sim.stdout.readline()))
+                ports_line = sim.stdout.readline() if sim.stdout is not None else ""  # _msk pipes stdout
+                ports = dict(re.findall(r"(command|emg) (\d+)", ports_line))
                 if "command" not in ports:
                     raise RuntimeError("msk sim trigno did not report its ports")
                 client = ("--mode", "client", "--connect", endpoint)
@@ -136,7 +137,7 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
                 while True:
                     with observed.lock:
                         streaming = len(observed.emg_next)
-                    waiting = [name for name, probe in probes.items() if not probe.matching_status.matching]
+                    waiting = [name for name, probe in probes.items() if not has_subscribers(probe)]
                     if streaming == n_sessions and not waiting:
                         break
                     if time.monotonic() > deadline:

@@ -8,12 +8,14 @@ import json
 import pkgutil
 from dataclasses import asdict
 from pathlib import Path
+from types import ModuleType
 
 from msk_core.errors import ConfigError
 from services import bench
 
 
-def _benchmarks() -> dict[str, object]:
+def _benchmarks() -> dict[str, ModuleType]:
+    """The modules of services.bench with a NAME, a DESCRIPTION and run(quick=...), by NAME."""
     found = {}
     for info in pkgutil.iter_modules(bench.__path__):
         module = importlib.import_module(f"{bench.__name__}.{info.name}")

@@ -17,7 +17,14 @@ import time
 from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs, is_known_exercise
 from services import discovery, messages, topics
-from services.zenoh_session import add_zenoh_arguments, declare_data_publisher, open_session, options_from_args, publish
+from services.zenoh_session import (
+    add_zenoh_arguments,
+    declare_data_publisher,
+    has_subscribers,
+    open_session,
+    options_from_args,
+    publish,
+)
 
 #: How long to wait for a reader of the load topic (the recorder, the estimator) before publishing anyway.
 READERS_TIMEOUT_S = 5.0
@@ -63,9 +70,9 @@ def run(args: argparse.Namespace) -> int:
     with open_session(options) as zsession:
         publisher = declare_data_publisher(zsession, key, "msk.LoadEvent")
         deadline = time.monotonic() + READERS_TIMEOUT_S
-        while not publisher.matching_status.matching and time.monotonic() < deadline:
+        while not has_subscribers(publisher) and time.monotonic() < deadline:
             time.sleep(0.02)
-        if not publisher.matching_status.matching:
+        if not has_subscribers(publisher):
             print(f"msk load: waited {READERS_TIMEOUT_S:g} s for a reader of {key} at {discovery.where(options)}: "
                   "0 readers; publishing anyway (is the session running?)", file=sys.stderr)
         publish(publisher, event)

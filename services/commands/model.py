@@ -108,14 +108,15 @@ def run_check(args: argparse.Namespace) -> int:
     muscles = check_muscles(pack, args.osim, n_poses=args.poses, seed=args.seed, progress=ProgressBar())
     dynamics = check_dynamics(pack, args.osim, n_poses=args.poses, seed=args.seed, hand_load=args.hand_load,
                               progress=ProgressBar())
-    report = {"pack": pack.name, "muscles": muscles, "dynamics": dynamics, "recorded": []}
+    recorded: list[dict] = []  # filled below, printed with the report
+    report = {"pack": pack.name, "muscles": muscles, "dynamics": dynamics, "recorded": recorded}
     _print_check(report)
     if args.recorded:
         from msk_core.model.reference_id import compare_with_recorded_id  # noqa: PLC0415
 
         for ik, idf in args.recorded:
             rec = compare_with_recorded_id(pack, args.osim, ik, idf, hand_load_newton=args.recorded_load)
-            report["recorded"].append({"ik": str(ik), "id": str(idf), **rec})
+            recorded.append({"ik": str(ik), "id": str(idf), **rec})
             for c in pack.coordinates:
                 print(f"recorded {idf}: {c} RMS error {rec['rms_error_nm'][c]:.2f} N·m = "
                       f"{rec['rms_error_percent_of_peak'][c]:.1f} % of peak {rec['peak_nm'][c]:.1f} N·m, "

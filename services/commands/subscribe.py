@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             while (args.count is None or printed < args.count) and (deadline is None or time.monotonic() < deadline):
                 inbound = inputs.get(POLL_S)
-                if inbound is None:
+                if inbound is None or inbound.message is None:  # none in time (rejected ones are not kept here)
                     continue
                 print(render(inbound.key, inbound.message, as_json=args.json), flush=True)
                 printed += 1

@@ -150,7 +150,7 @@ def place_groups(pack) -> BodyMap:
         if not strength:
             body.unmapped.append(group)
             continue
-        region = max(strength, key=strength.get)
+        region = max(strength, key=strength.__getitem__)
         sides = {s for s in (muscle_side(m) for m in members if muscle_region(m) == region) if s}
         if not sides and not any(muscle_side(m) for m in members):
             sides = pack_sides or {"r", "l"}
