@@ -22,7 +22,10 @@ The group activation at time t is read from the envelope at ``t - emd`` (electro
 Problems are explicit: a jump in the sample index is a gap (counted, samples lost counted; the filter restarts
 from rest after it and the envelope is not used for ``GAP_SETTLE_S``, flag ``emg_gap``); a source whose newest
 sample is older than ``stall_s`` on the host clock, or that has not reached the frame's time by more than that, is
-stalled (``emg_stalled``); repeated sample indices are dropped (counted as duplicates).
+stalled (``emg_stalled``); repeated sample indices are dropped (counted as duplicates). An electrode the quality
+monitor judges bad (:meth:`LiveEmg.exclude_channels`, :mod:`msk_core.estimate.live_quality`) is left out of its
+group's envelope from the next chunk on, and a group whose every electrode is bad has no envelope (NaN) while they
+are; the envelope samples so made, and the frames that read them, carry ``electrode_bad``.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ HISTORY_S = 10.0  # envelope kept per source for the lookup at t - emd (kinemati
 FLAG_GAP = "emg_gap"
 FLAG_STALLED = "emg_stalled"
 FLAG_NO_MVC = "no_mvc"
+FLAG_ELECTRODE_BAD = "electrode_bad"
 
 
 class ClockMode(str, enum.Enum):
@@ -132,19 +136,22 @@ class _Source:
         self.groups = sorted({setup.channel_group[labels[i]] for i in usable})
         self.groups_without_mvc = sorted({setup.channel_group[labels[i]] for i in mapped} - set(self.groups))
         # group envelope = mean of its channels' normalised envelopes: one (channels x groups) averaging matrix
-        self.weights = np.zeros((len(labels), len(self.groups)))
+        self.membership = np.zeros((len(labels), len(self.groups)))
         self.scale = np.ones(len(labels))
         for i in usable:
             g = self.groups.index(setup.channel_group[labels[i]])
-            self.weights[i, g] = 1.0
+            self.membership[i, g] = 1.0
             self.scale[i] = 1.0 / setup.mvc[labels[i]]
-        self.weights /= np.maximum(self.weights.sum(axis=0, keepdims=True), 1.0)
+        self.excluded: frozenset[str] = frozenset()  # usable channels left out (bad electrodes)
+        self.weights = self.membership / np.maximum(self.membership.sum(axis=0, keepdims=True), 1.0)
+        self.without = np.zeros(len(self.groups), dtype=bool)  # groups whose every electrode is left out
         self.next_index: int | None = None
         self.settled_from_ns = 0  # device time from which the envelope is trusted (after start or a gap)
         self.max_age_ns = int(2e9 / rate_hz) + 1  # a sample stands for its period (rounding to whole ns)
         self.starts: list[int] = []  # device time of each kept chunk's first sample
         self.times: list[np.ndarray] = []
         self.values: list[np.ndarray] = []
+        self.masked: list[bool] = []  # per kept chunk: made with an electrode left out
         self.last_device_ns = -1
         self.last_arrival_ns = 0
         self.clock = clock  # the arrival mapping: device time -> host clock
@@ -158,8 +165,26 @@ class _Source:
     def clock_report(self) -> ClockReport | None:
         return self.measured if self.measured is not None else self.clock.report()
 
-    def lookup(self, t: int) -> np.ndarray | None:
-        """Envelope of the newest sample at or before device time ``t`` (None: before the history)."""
+    def exclude(self, channels: frozenset[str]) -> None:
+        """Leave the electrodes ``channels`` out of their groups' envelopes from the next chunk on (the others of a
+        group are averaged without them; a group with none left has no envelope)."""
+        excluded = frozenset(ch for ch in channels if ch in self.labels)
+        if excluded == self.excluded:
+            return
+        self.excluded = excluded
+        kept = self.membership * np.array([ch not in excluded for ch in self.labels], dtype=float)[:, None]
+        counts = kept.sum(axis=0, keepdims=True)
+        self.weights = kept / np.maximum(counts, 1.0)
+        self.without = (counts[0] == 0) & (self.membership.sum(axis=0) > 0)
+
+    @property
+    def masking(self) -> bool:
+        """Whether an electrode that feeds a group is left out now."""
+        return any(self.membership[self.labels.index(ch)].any() for ch in self.excluded)
+
+    def lookup(self, t: int) -> tuple[np.ndarray, bool] | None:
+        """Envelope of the newest sample at or before device time ``t`` and whether an electrode was left out of it
+        (None: before the history)."""
         c = bisect.bisect_right(self.starts, t) - 1
         if c < 0:
             return None
@@ -167,15 +192,16 @@ class _Source:
         k = int(np.searchsorted(times, t, side="right")) - 1
         if t - times[k] > self.max_age_ns:  # t falls in a gap between chunks
             return None
-        return self.values[c][k]
+        return self.values[c][k], self.masked[c]
 
-    def keep(self, times: np.ndarray, values: np.ndarray) -> None:
+    def keep(self, times: np.ndarray, values: np.ndarray, masked: bool) -> None:
         self.starts.append(int(times[0]))
         self.times.append(times)
         self.values.append(values)
+        self.masked.append(masked)
         if len(self.starts) > 64 and self.starts[0] < times[-1] - HISTORY_S * 1e9:
             drop = bisect.bisect_left(self.starts, int(times[-1] - HISTORY_S * 1e9))
-            del self.starts[:drop], self.times[:drop], self.values[:drop]
+            del self.starts[:drop], self.times[:drop], self.values[:drop], self.masked[:drop]
 
 
 class LiveEmg:
@@ -213,6 +239,7 @@ class LiveEmg:
         self.stall_ns = int(stall_s * 1e9)
         self._filter_args = {"bandpass_hz": bandpass_hz, "lowpass_hz": lowpass_hz, "lowpass_order": lowpass_order}
         self.sources: dict[str, _Source] = {}
+        self._excluded: dict[str, frozenset[str]] = {}  # per EMG source id, the electrodes left out (exclude_channels)
         self.counters = EmgCounters()
         self._group_index = {g: i for i, g in enumerate(self.groups)}
 
@@ -238,6 +265,7 @@ class LiveEmg:
             state = self.sources[source] = _Source(source, labels, float(rate_hz), self.setup, config, self.counters,
                                                    clock)
             state.measured = self._measured.get(source)
+            state.exclude(self._excluded.get(source, frozenset()))
         x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
         n = x.shape[0]
         self.counters.chunks += 1
@@ -261,18 +289,30 @@ class LiveEmg:
         if n == 0:
             return None
         self.counters.samples += n
-        envelope = state.filter.process(x)
+        envelope = state.filter.process(x)  # every channel, a bad one too: its filter is settled when it recovers
         group_env = (envelope * state.scale) @ state.weights
+        group_env[:, state.without] = np.nan
+        masked = state.masking
         times = device_time_ns + np.round(np.arange(n) * period_ns).astype(np.int64)
         state.next_index = first + n
         state.last_device_ns = int(times[-1])
         state.last_arrival_ns = int(arrival_ns)
         if self.clock is ClockMode.HOST:  # the block left the device when its last sample was measured
             state.clock.add(int(times[-1]), int(arrival_ns if receipt_ns is None else receipt_ns))
-        state.keep(times, group_env)
+        state.keep(times, group_env, masked)
         if state.no_mvc:
             flags.append(FLAG_NO_MVC)
+        if masked:
+            flags.append(FLAG_ELECTRODE_BAD)
         return EnvelopeBlock(source, state.groups, times, group_env, flags)
+
+    def exclude_channels(self, source: str, channels) -> None:
+        """Leave the electrodes ``channels`` (labels) of EMG source ``source`` out of their groups' envelopes from its
+        next chunk on, e.g. those the quality monitor judges bad; an empty set takes every electrode back. Given
+        before the source's first chunk they are kept until it comes."""
+        self._excluded[source] = frozenset(channels)
+        if source in self.sources:
+            self.sources[source].exclude(self._excluded[source])
 
     def set_offset(self, source: str, offset_ns: int | None, spread_ns: int = 0, method: str = "") -> None:
         """Map EMG source ``source`` with an offset measured another way (device time + ``offset_ns`` = host instant
@@ -339,7 +379,7 @@ class LiveEmg:
         """Measured envelope of every pack group for the kinematics frame at ``device_time_ns`` (its clock) that
         arrived at ``arrival_ns`` (``receipt_ns``: its receipt stamp for the arrival mapping of ``joints_clock``
         "arrival", e.g. the JointAngles' ``host_time_ns``; default ``arrival_ns``): NaN where no electrode, no MVC, a
-        gap or a stalled source. Plus the frame's flags."""
+        gap, a stalled source, or every electrode of the group bad. Plus the frame's flags."""
         out = np.full(len(self.groups), np.nan)
         flags: set[str] = set()
         frame_ns = int(device_time_ns)  # the frame's instant on the clock the EMG is mapped onto
@@ -364,14 +404,17 @@ class LiveEmg:
                 continue
             # newest sample at or before t (causal: never a later sample); the frame may be ahead by < stall_s
             if t < state.settled_from_ns:
-                value = None
+                found = None
             elif t >= state.last_device_ns:  # the EMG for t has not arrived yet (< stall_s behind): newest sample
-                value = state.values[-1][-1]
+                found = state.values[-1][-1], state.masked[-1]
             else:
-                value = state.lookup(t)
-            if value is None:
+                found = state.lookup(t)
+            if found is None:
                 flags.add(FLAG_GAP)
                 continue
+            value, masked = found
+            if masked:
+                flags.add(FLAG_ELECTRODE_BAD)
             for j, g in enumerate(state.groups):
                 out[self._group_index[g]] = value[j]
                 served.add(g)
