@@ -16,6 +16,24 @@ The AUX port (and the legacy ACC port) carry each paired sensor's accelerometer 
 synthetic session's site accelerations) sampled at the AUX instants, 2 per frame, AUX sample k measured at EMG
 device time k / 148.148 Hz (with the frame's EMG sample 0 and its middle), on the trial's grid like the EMG; a source
 without accelerations has its sensors lying flat and still (z = 1 g).
+
+Electrode faults (``SimulatorConfig.faults``, :class:`SensorFault`): per sensor and time span, what a failing
+electrode does to its EMG, as the stream shows it, at physical amplitudes (the quality monitor,
+:mod:`msk_core.signal.quality`, then judges them as it judges a real sensor):
+
+- ``lift_off``: the electrode comes off the skin. The muscle's EMG fades out (50 ms) and the floating inputs carry the
+  electrode's moving half-cell potential: a baseline wander below 10 Hz of ``amplitude_v`` RMS (default 2 mV) over the
+  sensor's own noise floor (0.75 uV RMS, the Avanti's stated baseline noise); pressed back, the EMG fades in again.
+- ``hum``: mains interference picked up by the leads: ``mains_hz`` (default 50 Hz) of ``amplitude_v`` peak (default
+  300 uV) with its 3rd and 5th harmonics at 30 % and 10 % of it, phase-locked to the device clock, added to the EMG.
+- ``saturation``: the electrode knocked and pressed (against the bench, by the bar): an impact artefact 4 times a
+  second (each a 30 Hz oscillation of ``amplitude_v`` peak, default 25 mV, decaying in 20 ms, the intervals jittered
+  by +-20 %) on top of the EMG, which the converter clips at its +-11 mV range.
+- ``flat``: the sensor stops sampling (battery out, out of radio range) and its slot holds the last value it sent.
+
+Times are on the base's device clock: seconds after START (the EMG sample index / rate), the clock the EMG chunks
+carry; a new START plays the faults again from 0. Every frame is clipped to the sensors' input range
+(+-:data:`msk_core.signal.quality.TRIGNO_EMG_RANGE_V`), as the converter does.
 """
 
 from __future__ import annotations
@@ -26,14 +44,17 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import signal as sp_signal
 
 from drivers.trigno import protocol as tp
 from drivers.trial_clock import TrialClock
 from drivers.trigno.source import EmgSource, resample
 from msk_core.errors import ConfigError
+from msk_core.signal.quality import TRIGNO_EMG_RANGE_V
 
 AUX_SAMPLES_PER_FRAME = 2
 
@@ -60,6 +81,138 @@ class TrignoQuirks:
     start_delay_s: float = 0.0  # a real system sends its first data ~2 s after START
 
 
+class FaultKind(str, enum.Enum):
+    """What goes wrong with an electrode (module docstring: what each does to the signal)."""
+
+    LIFT_OFF = "lift_off"
+    HUM = "hum"
+    SATURATION = "saturation"
+    FLAT = "flat"
+
+
+#: ``amplitude_v`` when a fault states none: lift-off wander RMS, hum peak of the fundamental, impact peak (volts)
+DEFAULT_FAULT_AMPLITUDE_V = {FaultKind.LIFT_OFF: 2e-3, FaultKind.HUM: 300e-6, FaultKind.SATURATION: 25e-3}
+SENSOR_NOISE_RMS_V = 0.75e-6  # Trigno Avanti baseline noise (< 750 nV RMS): what a sensor off the skin still reads
+LIFT_OFF_FADE_S = 0.05  # the EMG fades out as the electrode comes off, in as it is pressed back
+WANDER_CUTOFF_HZ = 10.0  # the lifted electrode's baseline wander: movement of its half-cell potential, below 10 Hz
+HUM_HARMONICS = ((3, 0.3), (5, 0.1))  # mains pickup: odd harmonics (non-linear loads), relative to the fundamental
+IMPACT_RATE_HZ = 4.0  # saturation: impacts per second (a sensor pressed and knocked during the lift)
+IMPACT_JITTER = 0.2  # +- share of the interval between impacts
+IMPACT_RING_HZ = 30.0  # each impact: the electrode-skin interface ringing through the sensor's band
+IMPACT_DECAY_S = 0.020
+
+
+@dataclass(frozen=True)
+class SensorFault:
+    """One injected electrode fault: ``sensor`` (1..16) shows ``kind`` from ``start_s`` to ``end_s`` (device clock:
+    seconds after START). ``amplitude_v``: the kind's size (None: :data:`DEFAULT_FAULT_AMPLITUDE_V`; not used by
+    ``flat``); ``mains_hz``: the hum's fundamental."""
+
+    sensor: int
+    kind: FaultKind
+    start_s: float
+    end_s: float
+    amplitude_v: float | None = None
+    mains_hz: float = 50.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "kind", FaultKind(self.kind))
+        if not (isinstance(self.sensor, int) and 1 <= self.sensor <= tp.N_SENSORS):
+            raise ConfigError(f"a sensor is numbered 1..{tp.N_SENSORS}", field="sensor", value=self.sensor)
+        if not (math.isfinite(self.start_s) and math.isfinite(self.end_s) and 0 <= self.start_s < self.end_s):
+            raise ConfigError("need 0 <= start_s < end_s (seconds after START)", field="start_s",
+                              value=(self.start_s, self.end_s))
+        if self.amplitude_v is not None and not (math.isfinite(self.amplitude_v) and self.amplitude_v > 0):
+            raise ConfigError("an amplitude is a positive number of volts", field="amplitude_v", value=self.amplitude_v)
+        if not (math.isfinite(self.mains_hz) and 40.0 <= self.mains_hz <= 70.0):
+            raise ConfigError("mains frequency must be 40..70 Hz (50 or 60)", field="mains_hz", value=self.mains_hz)
+
+    @property
+    def amplitude(self) -> float:
+        return self.amplitude_v if self.amplitude_v is not None else DEFAULT_FAULT_AMPLITUDE_V.get(self.kind, 0.0)
+
+    @classmethod
+    def parse(cls, text: str) -> SensorFault:
+        """``SENSOR:KIND:START-END`` (seconds after START), e.g. ``5:hum:10-15`` (the ``msk live --sim-fault`` form)."""
+        parts = text.split(":")
+        kinds = ", ".join(k.value for k in FaultKind)
+        if len(parts) != 3 or "-" not in parts[2]:
+            raise ConfigError(f"expected SENSOR:KIND:START-END, e.g. 5:hum:10-15 (kinds: {kinds})", field="fault",
+                              value=text)
+        sensor, kind, span = parts
+        start, _, end = span.partition("-")
+        try:
+            return cls(int(sensor), FaultKind(kind.strip().lower().replace("-", "_")), float(start), float(end))
+        except ValueError:
+            raise ConfigError(f"expected SENSOR:KIND:START-END with a sensor number, one of {kinds} and times in "
+                              "seconds", field="fault", value=text) from None
+
+    def describe(self) -> dict:
+        """As ``summary.json`` records it."""
+        return {"sensor": self.sensor, "kind": self.kind.value, "start_s": self.start_s, "end_s": self.end_s,
+                "amplitude_v": self.amplitude if self.kind is not FaultKind.FLAT else None,
+                **({"mains_hz": self.mains_hz} if self.kind is FaultKind.HUM else {})}
+
+
+class _FaultSignals:
+    """The faults' signals on one run's sample grid (sample k of the run at device time k / rate), made once per rate
+    from the simulator's seed: what :meth:`apply` does to each frame."""
+
+    def __init__(self, faults: tuple[SensorFault, ...], rate_hz: float, seed: int) -> None:
+        self.rate_hz = rate_hz
+        self.spans = []
+        for i, fault in enumerate(faults):
+            k0, k1 = int(round(fault.start_s * rate_hz)), int(round(fault.end_s * rate_hz))
+            rng = np.random.default_rng([seed, i])
+            self.spans.append((fault, k0, k1, self._signal(fault, k1 - k0, rng)))
+
+    def _signal(self, fault: SensorFault, n: int, rng: np.random.Generator) -> np.ndarray | None:
+        rate, t = self.rate_hz, np.arange(n) / self.rate_hz
+        if fault.kind is FaultKind.HUM:
+            phase = rng.uniform(0, 2 * np.pi)
+            hum = np.sin(2 * np.pi * fault.mains_hz * t + phase)
+            for harmonic, share in HUM_HARMONICS:
+                hum += share * np.sin(2 * np.pi * harmonic * fault.mains_hz * t + harmonic * phase)
+            return fault.amplitude * hum
+        if fault.kind is FaultKind.LIFT_OFF:
+            pad = int(rate)  # 1 s of run-in, so the wander has its steady spectrum from the first sample
+            sos = sp_signal.butter(4, WANDER_CUTOFF_HZ, btype="low", fs=rate, output="sos")
+            wander = sp_signal.sosfilt(sos, rng.standard_normal(n + pad))[pad:]
+            wander *= fault.amplitude / max(float(np.std(wander)), 1e-30)
+            return wander + SENSOR_NOISE_RMS_V * rng.standard_normal(n)
+        if fault.kind is FaultKind.SATURATION:
+            artefact = np.zeros(n)
+            onset = rng.uniform(0, 1 / IMPACT_RATE_HZ)
+            ring = np.arange(int(5 * IMPACT_DECAY_S * rate)) / rate
+            impact = np.exp(-ring / IMPACT_DECAY_S) * np.sin(2 * np.pi * IMPACT_RING_HZ * ring)
+            while onset * rate < n:
+                k = int(onset * rate)
+                m = min(len(impact), n - k)
+                artefact[k : k + m] += rng.choice([-1.0, 1.0]) * fault.amplitude * impact[:m]
+                onset += (1 + rng.uniform(-IMPACT_JITTER, IMPACT_JITTER)) / IMPACT_RATE_HZ
+            return artefact
+        return None  # flat: the held value is the run's own sample
+
+    def apply(self, emg: np.ndarray, first: int, held: Callable[[int, int], float]) -> None:
+        """Inject into ``emg`` (the frame's rows, run samples ``first``...) in place; ``held(k, column)``: the clean
+        value of run sample ``k`` in that column (what a flat sensor keeps sending)."""
+        n = emg.shape[0]
+        for fault, k0, k1, sig in self.spans:
+            lo, hi = max(k0, first), min(k1, first + n)
+            if lo >= hi:
+                continue
+            column, rows, part = fault.sensor - 1, slice(lo - first, hi - first), slice(lo - k0, hi - k0)
+            if fault.kind is FaultKind.FLAT:
+                emg[rows, column] = held(k0 - 1, column) if k0 > 0 else 0.0
+            elif fault.kind is FaultKind.LIFT_OFF:
+                k = np.arange(lo, hi)
+                fade = int(LIFT_OFF_FADE_S * self.rate_hz)
+                off = np.clip(np.minimum(k - k0 + 1, k1 - k) / fade, 0.0, 1.0)  # 0 on the skin .. 1 off it
+                emg[rows, column] = (1 - off) * emg[rows, column] + off * sig[part]
+            else:
+                emg[rows, column] += sig[part]
+
+
 @dataclass(frozen=True)
 class SimulatorConfig:
     host: str = "127.0.0.1"
@@ -77,8 +230,13 @@ class SimulatorConfig:
     quirks: TrignoQuirks = field(default_factory=TrignoQuirks)
     trial_clock: TrialClock | None = None  # one world shared by a session's simulators (None: START plays from 0)
     latency_s: float = 0.0  # a frame leaves this long (device seconds) after its last sample was measured
+    faults: tuple[SensorFault, ...] = ()  # electrode faults injected at stated device times (module docstring)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "faults", tuple(self.faults))
+        for fault in self.faults:
+            if not isinstance(fault, SensorFault):
+                raise ConfigError("faults are SensorFault(sensor, kind, start_s, end_s)", field="faults", value=fault)
         if not (math.isfinite(self.speed) and self.speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=self.speed)
         if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
@@ -113,6 +271,11 @@ class TrignoSimulator:
     def __init__(self, source: EmgSource, config: SimulatorConfig | None = None) -> None:
         self.source = source
         self.config = config or SimulatorConfig()
+        for fault in self.config.faults:
+            if not source.paired[fault.sensor - 1]:
+                raise ConfigError(f"sensor {fault.sensor} is not paired in {source.name} (paired: "
+                                  f"{[k + 1 for k, p in enumerate(source.paired) if p]}): no EMG to inject a fault in",
+                                  field="faults", value=fault.sensor)
         self.stats = SimulatorStats(latency_s=self.config.latency_s)
         self._stop = threading.Event()
         self._lock = threading.RLock()
@@ -135,6 +298,7 @@ class TrignoSimulator:
         self._rng = np.random.default_rng(self.config.seed)
         self._stream_samples: np.ndarray | None = None
         self._acc_grid: tuple[np.ndarray, np.ndarray] | None = None  # source accelerations, one loop closed
+        self._fault_signals: _FaultSignals | None = None  # the injected faults on the run's grid at the rate in use
         self.ports: dict[str, int] = {}
 
     # ------------------------------------------------------------------------------------------ lifecycle
@@ -370,7 +534,7 @@ class TrignoSimulator:
             if self._running:
                 return "CANNOT COMPLETE"
             self._upsampling = words[1] == "ON"
-            self._stream_samples = self._acc_grid = None
+            self._stream_samples = self._acc_grid = self._fault_signals = None
             return "OK"
         if text == "ENDIANNESS?":
             return self._endianness.value
@@ -506,6 +670,11 @@ class TrignoSimulator:
             return False
         index = (start + np.arange(spf)) % n
         emg = samples[index]
+        if self.config.faults:
+            if self._fault_signals is None:
+                self._fault_signals = _FaultSignals(self.config.faults, self.rate_hz, self.config.seed)
+            self._fault_signals.apply(emg, frame * spf, lambda k, column: samples[(self._first_index + k) % n, column])
+        np.clip(emg, -TRIGNO_EMG_RANGE_V, TRIGNO_EMG_RANGE_V, out=emg)  # the converter's range
         aux = self._aux_rows(start)
         # legacy ACC port: the same accelerations, x,y,z per sensor (the first 3 of each sensor's 9 AUX slots)
         acc = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)[:, :, :3].reshape(AUX_SAMPLES_PER_FRAME, -1)
