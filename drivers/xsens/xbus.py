@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import enum
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -609,7 +609,7 @@ def encode_item(data_id: int, values) -> bytes:
     return struct.pack(">HB", data_id, len(raw)) + raw
 
 
-def encode_mtdata2(items: list[tuple[int, object]]) -> bytes:
+def encode_mtdata2(items: Sequence[tuple[int, object]]) -> bytes:
     """An MTData2 payload from ``(data_id, values)`` pairs (values as bytes for unknown IDs)."""
     return b"".join(encode_item(data_id, values) for data_id, values in items)
 

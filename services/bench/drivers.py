@@ -124,7 +124,7 @@ def trigno_results(quick: bool) -> list[BenchResult]:
         manager.shutdown()
     expected = 2000.0 * seconds
     sustained = client_samples >= 0.95 * expected and node_samples >= 0.95 * expected
-    details = {"seconds": seconds, "client_samples": client_samples, "node_samples": node_samples, "bare_samples": bare_samples,
+    details: dict[str, float | str] = {"seconds": seconds, "client_samples": client_samples, "node_samples": node_samples, "bare_samples": bare_samples,
                "expected_samples": expected}
     return [
         BenchResult("trigno client CPU share (16 ch x 2000 Hz)", client, "core", "bare recv loop", bare, "< 0.05",

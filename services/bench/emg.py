@@ -7,6 +7,7 @@ import time
 import numpy as np
 from scipy import signal
 
+from msk_core.errors import ConfigError
 from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig, envelope_causal
 from services.bench import BenchResult
 
@@ -45,6 +46,9 @@ def run(quick: bool) -> list[BenchResult]:
             out.append(f.process(emg[i : i + CHUNK]))
 
     bp, lp = cfg.bandpass_sos(), cfg.lowpass_sos()
+    if bp is None:
+        raise ConfigError("the EMG filter benchmark times the band-pass too: the default filter must have one",
+                          field="bandpass_hz", value=cfg.bandpass_hz)
 
     def batch() -> None:
         signal.sosfilt(lp, np.abs(signal.sosfilt(bp, emg, axis=0)), axis=0)
