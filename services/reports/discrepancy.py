@@ -76,7 +76,9 @@ def consistency_sentences(summary: dict) -> list[str]:
     out = []
     for step in summary["greedy_steps"]:
         win = next((c for c in step if c["accepted"]), None)
-        reps = (win or {}).get("holdout_reps") or {}
+        if win is None:
+            continue
+        reps = win.get("holdout_reps") or {}
         if not reps.get("reps"):
             continue
         between = reps.get("between_reps_reduction")
