@@ -20,7 +20,11 @@ each EMG clock against each tracker's (:mod:`msk_core.estimate.clock_alignment`)
 trackers it locks on. ``--emg-wait-ms``: a joint frame waits up to that long for the EMG of its instant (a device
 that delivers later than the trackers). The node's status (``msk/<session>/status/estimator``) carries, per stream,
 the offset applied, its spread, the latency, the method, why, the arrival mapping an acceleration offset replaces and
-every tracker's estimate (``DeviceStatus.clocks``).
+every tracker's estimate (``DeviceStatus.clocks``). Electrode quality: one monitor per EMG source judges each
+electrode from the raw chunks (:mod:`msk_core.estimate.live_quality`); the status carries per electrode its channel,
+group, state (unknown, good, check, bad), reasons, time in check and bad and its fault episodes
+(``DeviceStatus.electrodes``), published at once when a state changes; a bad electrode is left out of its group's
+envelope, and the frames that read such an envelope carry ``electrode_bad``.
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -43,6 +47,7 @@ from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
 from msk_core.estimate.frame import FrameResult
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
+from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
@@ -87,6 +92,7 @@ class EstimatorStats:
     acc_chunks: int = 0
     imu_samples: int = 0
     frames_waited: int = 0  # joint frames held back for the EMG of their instant (--emg-wait-ms)
+    quality_changes: int = 0  # EMG chunks after which an electrode's state or reasons changed
 
 
 class LoadTimeline:
@@ -175,6 +181,18 @@ def emg_to_envelope(block, arrival_ns: int) -> messages.EmgEnvelope:
                                 device_time_ns=t, host_time_ns=arrival_ns, flags=block.flags)
 
 
+def electrode_quality(report: ElectrodeReport) -> messages.ElectrodeQuality:
+    """One electrode's quality as the status carries it (times in s on the EMG device clock)."""
+    return messages.ElectrodeQuality(
+        source=report.source, channel=report.channel, group=report.group, state=report.state.value,
+        reasons=[f.value for f in report.faults], detail=report.detail, since_s=report.since_ns / 1e9,
+        check_s=report.check_s, bad_s=report.bad_s, episodes=report.episodes,
+        episode_reasons={f.value: n for f, n in report.episode_faults.items()},
+        recent=[messages.FaultEpisode(start_s=e.start_ns / 1e9, worst=e.worst.value, reasons=[f.value for f in e.faults],
+                                      **({} if e.end_ns is None else {"end_s": e.end_ns / 1e9})) for e in report.recent],
+    )
+
+
 def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: bool | None,
                   electrode_map: dict[str, str] | None, clock: ClockMode | str, stall_s: float = 0.25,
                   joints_clock: JointsClock | str = JointsClock.ARRIVAL, latency_ns: dict[str, int] | None = None,
@@ -233,6 +251,8 @@ class EstimatorNode:
                               "map", field="method", value="assisted")
         if self.live_emg is not None:
             stats.emg = self.live_emg.counters
+        # each electrode judged from its raw EMG; a bad one is left out of its group's envelope
+        self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
             raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
         # the EMG clock measured against the trackers': only where device clocks are mapped onto the host clock
@@ -258,10 +278,18 @@ class EstimatorNode:
     def handle_emg(self, chunk: messages.EmgChunk | bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
         chunk = messages.as_message("msk.EmgChunk", chunk)
         self.stats.emg_chunks += 1
-        block = self.live_emg.add_chunk(
+        live_emg, quality = self.live_emg, self.quality
+        if live_emg is None or quality is None:
+            raise ConfigError("EMG reached an estimator running without its EMG path (--emg)", field="emg",
+                              value=chunk.source_id)
+        samples = np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels)
+        if quality.add_chunk(chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
+                             chunk.device_time_ns, samples, chunk.units):
+            self.stats.quality_changes += 1
+        live_emg.exclude_channels(chunk.source_id, quality.bad_channels(chunk.source_id))
+        block = live_emg.add_chunk(
             chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
-            chunk.device_time_ns, np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels),
-            arrival_ns, chunk.host_time_ns or arrival_ns,  # the driver's receipt, else this node's
+            chunk.device_time_ns, samples, arrival_ns, chunk.host_time_ns or arrival_ns,  # the driver's receipt, else ours
         )
         if block is None or not block.groups:
             return None
@@ -364,6 +392,10 @@ class EstimatorNode:
             yield method, frame
         stats.frames_out += 1
 
+    def electrode_report(self) -> list[messages.ElectrodeQuality]:
+        """Each electrode's quality (:class:`msk_core.estimate.live_quality.LiveQuality`); empty without EMG."""
+        return [] if self.quality is None else [electrode_quality(r) for r in self.quality.report()]
+
     def clock_report(self) -> list[ClockReport]:
         """The EMG path's clock mappings per stream (:meth:`LiveEmg.clock_report`), with the acceleration alignment's
         findings on each EMG stream (:meth:`AccelerationAlignment.report`); empty without EMG."""
@@ -425,7 +457,8 @@ def main(
             m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
         }
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
-        reporter = StatusReporter(zsession, session, NODE_NAME, inputs, clocks=node.clock_report)
+        reporter = StatusReporter(zsession, session, NODE_NAME, inputs, clocks=node.clock_report,
+                                  electrodes=node.electrode_report)
         stats.inputs = inputs.counts
         # One subscription for joints and load keeps a load event and the frames after it in publication order
         # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
@@ -471,9 +504,12 @@ def main(
                 elif item.key == joints_key:
                     node.offer_joints(item.message, item.arrival_ns)
                 elif item.key.startswith(emg_prefix):
+                    changes = stats.quality_changes
                     envelope = node.handle_emg(item.message, item.arrival_ns)
                     if envelope is not None:
                         publish(envelope_publisher, envelope)
+                    if stats.quality_changes != changes:  # an electrode's state changed: said now, not within 1 s
+                        reporter.tick(force=True)
                 elif item.key.startswith(acc_prefix):
                     node.handle_acc(item.message)
                 elif item.key.startswith(imu_prefix):

@@ -13,7 +13,11 @@ device, samples lost, frames estimated, flags) is read back from the MCAP, print
 
 ``--sim``: a Trigno simulator (TCP) and one Xsens simulator per tracker (pty, own SampleTimeFine clock) stream the
 held-out trial of the bundled synthetic session (``recordings/demo_session.mcap``) of the pack; the subject is
-calibrated on the bundled calibration trials as ``msk demo`` does (cached). Docs: docs/live.md.
+calibrated on the bundled calibration trials as ``msk demo`` does (cached). ``sim_faults``
+(``msk live --sim --sim-fault SENSOR:KIND:START-END``): electrode faults the Trigno simulator injects
+(:class:`drivers.trigno.simulator.SensorFault`), for a demonstration of the electrode quality the estimator reports;
+the summary then holds, per electrode, its time in check and bad and its fault episodes, beside what was injected.
+Docs: docs/live.md.
 """
 
 from __future__ import annotations
@@ -214,7 +218,9 @@ class Simulators:
         """Per device: what it sent, its stated latency and the trial sample it started streaming at."""
         t = self.trigno.stats
         return {"trigno": {"samples": t.samples_sent, "frames": t.frames_sent, "latency_s": t.latency_s,
-                           "start_index": t.start_index},
+                           "start_index": t.start_index,
+                           **({"faults": [f.describe() for f in self.trigno.config.faults]}
+                              if self.trigno.config.faults else {})},
                 **{tracker: {"samples": s.stats.messages_sent, "bytes_dropped": s.stats.bytes_dropped,
                              "latency_s": s.stats.latency_s, "start_index": s.stats.start_index,
                              "samples_skipped": s.stats.samples_skipped} for tracker, s in self.xsens.items()}}
@@ -222,14 +228,15 @@ class Simulators:
 
 def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
                      xsens_latency_s: float | dict[str, float] = 0.0, clock: object | None = None,
-                     trackers_after_trigno_s: float | None = None) -> Simulators:
+                     trackers_after_trigno_s: float | None = None, trigno_faults: tuple = ()) -> Simulators:
     """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
     that starts when the first device starts streaming, so the set begins with its static pose as the first device
     is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
     ``*_latency_s``: each device's delivery latency (a sample measured at t leaves at t + latency);
     ``xsens_latency_s`` one for every tracker, or per tracker id (0 for a tracker not named).
     ``trackers_after_trigno_s``: the trackers measure from that long after the Trigno's first sample on (each waits
-    for the Trigno to start), as trackers switched on after the base; None: as soon as their driver asks."""
+    for the Trigno to start), as trackers switched on after the base; None: as soon as their driver asks.
+    ``trigno_faults``: electrode faults the Trigno injects (:class:`drivers.trigno.simulator.SensorFault`)."""
     from drivers.trial_clock import TrialClock
     from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
     from drivers.xsens.simulator import XsensSimulator
@@ -238,7 +245,8 @@ def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
     # free ports: several sessions (tests, users) may run side by side; the AUX port carries the sensors'
     # accelerometers, no legacy listeners needed
     trigno = TrignoSimulator(sources.emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=0,
-                                                          trial_clock=clock, latency_s=trigno_latency_s)).start()
+                                                          trial_clock=clock, latency_s=trigno_latency_s,
+                                                          faults=tuple(trigno_faults))).start()
 
     def after_trigno() -> float | None:
         start = trigno.stats.start_index
@@ -352,6 +360,21 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
         "node_errors": {name: int(s.errors) for name, s in nodes.items()},
         "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
         "clocks": {c.source: clock_summary(c, name) for name, s in nodes.items() for c in s.clocks},
+        "electrodes": {f"{e.source}/{e.channel}": electrode_summary(e) for s in nodes.values() for e in s.electrodes},
+    }
+
+
+def electrode_summary(electrode: messages.ElectrodeQuality) -> dict:
+    """One electrode's quality over the session as ``summary.json`` says it (the estimator's last status): the muscle
+    group, the state at the end, the time spent in check and bad, the fault episodes (how many, per fault how many
+    it was raised in, and the last ones with their device times)."""
+    return {
+        "group": electrode.group, "state": electrode.state, "reasons": list(electrode.reasons),
+        "check_s": round(electrode.check_s, 3), "bad_s": round(electrode.bad_s, 3), "episodes": int(electrode.episodes),
+        "episode_reasons": dict(sorted(electrode.episode_reasons.items())),
+        "recent_episodes": [{"start_s": round(e.start_s, 4),
+                             "end_s": round(e.end_s, 4) if e.HasField("end_s") else None,
+                             "worst": e.worst, "reasons": list(e.reasons)} for e in electrode.recent],
     }
 
 
@@ -397,6 +420,15 @@ def summary_text(summary: dict) -> str:
                      + (f"; the arrival mapping was {clock['arrival_error_ms']:+.1f} ms off"
                         if "arrival_error_ms" in clock else "")
                      + (f"; {clock['reason']}" if clock.get("method") == "arrival" and clock.get("reason") else ""))
+    electrodes = summary.get("electrodes", {})
+    faulty = {name: e for name, e in electrodes.items() if e["episodes"]}
+    if electrodes:
+        lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
+    for name, e in faulty.items():
+        lines.append(f"  electrode {name}" + (f" ({e['group']})" if e["group"] else "")
+                     + f": {e['episodes']} fault episode{'s' if e['episodes'] != 1 else ''} ("
+                     + ", ".join(f"{reason} {n}" for reason, n in e["episode_reasons"].items())
+                     + f"), {e['check_s']:.1f} s check, {e['bad_s']:.1f} s bad; now {e['state']}")
     if "simulators_sent" in summary:
         lines.append("  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items()))
     return "\n".join(lines)
@@ -782,10 +814,14 @@ def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | Non
     return codes
 
 
-def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulators | None]:
+def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) -> tuple[LivePlan, Simulators | None]:
+    """The graph's plan and, with ``sim``, the started simulators (the Trigno injecting ``sim_faults``)."""
     from msk_core.imu.mapping import mapping_for
     from msk_core.model import load_pack
 
+    if sim_faults and not sim:
+        raise ConfigError("electrode faults are injected by the simulated Trigno: add --sim", field="--sim-fault",
+                          value=[f"{f.sensor}:{f.kind.value}:{f.start_s:g}-{f.end_s:g}" for f in sim_faults])
     session.out.mkdir(parents=True, exist_ok=True)
     model = load_pack(session.pack)
     segments = list(mapping_for(model.name).segments)
@@ -816,7 +852,8 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
                     names=session_names(session, model.display_names))
     if sim:  # the simulated devices have the latencies the session states (0 unless it says)
         simulators = start_simulators(sources, trigno_latency_s=trigno_latency_ms / 1e3,
-                                      xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()})
+                                      xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()},
+                                      trigno_faults=sim_faults)
         plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
         plan.trigno_aux_port = simulators.trigno.ports["aux"]
         plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
@@ -825,6 +862,10 @@ def plan_for(session: LiveSession, *, sim: bool, log) -> tuple[LivePlan, Simulat
             f"{sum(sources.emg.paired)} sensors), Xsens " + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}"
                                                                       for t, seg in trackers.items())
             + f"; streaming the bundled {sources.trial} trial")
+        for fault in sim_faults:
+            label = f"sensor{fault.sensor:02d}.EMG"
+            log(f"injecting {fault.kind.value} on {label} ({electrodes.get(label, 'not in the electrode map')}) "
+                f"from {fault.start_s:g} to {fault.end_s:g} s after the Trigno starts streaming")
         for tracker in set(sources.imu) - set(trackers):
             simulators.xsens.pop(tracker).close()  # trackers of segments the pack does not use
     else:
@@ -848,13 +889,14 @@ def default_live_endpoint() -> str:
 
 
 def main(session: LiveSession, *, sim: bool, duration_s: float | None, view: bool, log=print,
-         listen: str | None = None, pki: Path | None = None) -> dict:
+         listen: str | None = None, pki: Path | None = None, sim_faults: tuple = ()) -> dict:
     """``listen``: the loopback endpoint of the graph (default :func:`default_live_endpoint`); ``pki``: a folder
-    written by ``msk certs``, for the secured mode."""
+    written by ``msk certs``, for the secured mode; ``sim_faults``: electrode faults the simulated Trigno injects
+    (:class:`drivers.trigno.simulator.SensorFault`, with ``sim``)."""
     if pki is not None and listen is not None:
         raise ConfigError("the secured mode picks its own TLS endpoint; give --pki or --listen, not both",
                           field="--listen", value=listen)
-    plan, simulators = plan_for(session, sim=sim, log=log)
+    plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults))
     try:
         summary = run_graph(plan, duration_s=duration_s, view=view, endpoint=listen or default_live_endpoint(),
                             log=log, simulators=simulators, pki=pki)

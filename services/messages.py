@@ -27,6 +27,8 @@ EmgEnvelope = msk_pb2.EmgEnvelope
 InputDrop = msk_pb2.InputDrop
 ClockOffset = msk_pb2.ClockOffset
 ClockAlignment = msk_pb2.ClockAlignment
+ElectrodeQuality = msk_pb2.ElectrodeQuality
+FaultEpisode = msk_pb2.FaultEpisode
 Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion
 

@@ -337,13 +337,15 @@ def _alignment(alignment) -> messages.ClockAlignment:
 
 class StatusReporter:
     """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: its inputs' counts (and, with
-    ``clocks``, the clock mappings it applies), at start, every :data:`STATUS_PERIOD_S`, and once more
-    (``connected`` False) at stop."""
+    ``clocks``, the clock mappings it applies; with ``electrodes``, the EMG electrodes' quality), at start, every
+    :data:`STATUS_PERIOD_S`, and once more (``connected`` False) at stop."""
 
     def __init__(self, zsession: zenoh.Session, session: str, node: str, inputs: NodeInputs,
-                 clocks: Callable[[], Iterable[ClockReport]] | None = None) -> None:
+                 clocks: Callable[[], Iterable[ClockReport]] | None = None,
+                 electrodes: Callable[[], Iterable[messages.ElectrodeQuality]] | None = None) -> None:
         self.node = node
         self._clocks = clocks
+        self._electrodes = electrodes
         self.counts = inputs.counts
         self.errors = 0
         self.last_error = ""
@@ -365,6 +367,7 @@ class StatusReporter:
             host_time_ns=messages.now_ns(),
             dropped=self.counts.drops(),
             clocks=clock_offsets(self._clocks()) if self._clocks is not None else [],
+            electrodes=list(self._electrodes()) if self._electrodes is not None else [],
         )
 
     def tick(self, *, force: bool = False) -> None:

@@ -29,6 +29,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="session file (docs/live.md); optional with --sim")
     parser.add_argument("--sim", action="store_true",
                         help="simulated Trigno (TCP) and Xsens (pty) devices streaming the bundled synthetic session")
+    parser.add_argument("--sim-fault", action="append", default=[], metavar="SENSOR:KIND:START-END",
+                        help="with --sim: the simulated Trigno injects an electrode fault, KIND lift_off, hum, "
+                        "saturation or flat, on sensor SENSOR from START to END s after it starts streaming "
+                        "(repeatable; e.g. 5:hum:20-30; docs/live.md)")
     parser.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: Ctrl-C)")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="output folder: DIR/session.mcap, DIR/summary.json (default: the file's session.out, else out/live)")
@@ -56,8 +60,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give a session file (docs/live.md), or --sim to run on the simulators", field="SESSION.toml")
     if args.out is not None:
         session.out = args.out
+    from drivers.trigno.simulator import SensorFault
+
+    faults = tuple(SensorFault.parse(text) for text in args.sim_fault)
     summary = live.main(session, sim=args.sim, duration_s=args.duration, view=not args.no_view, listen=args.listen,
-                        pki=args.pki)
+                        pki=args.pki, sim_faults=faults)
     failures = node_failures(summary, session.out / "logs")
     for failure in failures:
         print(f"msk live: error: {failure.text()}", file=sys.stderr)

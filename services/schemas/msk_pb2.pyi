@@ -210,7 +210,7 @@ class EmgEnvelope(_message.Message):
     def __init__(self, time_s: _Optional[float] = ..., groups: _Optional[_Iterable[str]] = ..., envelope: _Optional[_Iterable[float]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class DeviceStatus(_message.Message):
-    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks")
+    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks", "electrodes")
     DEVICE_ID_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     CONNECTED_FIELD_NUMBER: _ClassVar[int]
@@ -221,6 +221,7 @@ class DeviceStatus(_message.Message):
     HOST_TIME_NS_FIELD_NUMBER: _ClassVar[int]
     DROPPED_FIELD_NUMBER: _ClassVar[int]
     CLOCKS_FIELD_NUMBER: _ClassVar[int]
+    ELECTRODES_FIELD_NUMBER: _ClassVar[int]
     device_id: str
     kind: str
     connected: bool
@@ -231,7 +232,55 @@ class DeviceStatus(_message.Message):
     host_time_ns: int
     dropped: _containers.RepeatedCompositeFieldContainer[InputDrop]
     clocks: _containers.RepeatedCompositeFieldContainer[ClockOffset]
-    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ...) -> None: ...
+    electrodes: _containers.RepeatedCompositeFieldContainer[ElectrodeQuality]
+    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ..., electrodes: _Optional[_Iterable[_Union[ElectrodeQuality, _Mapping]]] = ...) -> None: ...
+
+class ElectrodeQuality(_message.Message):
+    __slots__ = ("source", "channel", "group", "state", "reasons", "detail", "since_s", "check_s", "bad_s", "episodes", "episode_reasons", "recent")
+    class EpisodeReasonsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    CHANNEL_FIELD_NUMBER: _ClassVar[int]
+    GROUP_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    REASONS_FIELD_NUMBER: _ClassVar[int]
+    DETAIL_FIELD_NUMBER: _ClassVar[int]
+    SINCE_S_FIELD_NUMBER: _ClassVar[int]
+    CHECK_S_FIELD_NUMBER: _ClassVar[int]
+    BAD_S_FIELD_NUMBER: _ClassVar[int]
+    EPISODES_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_REASONS_FIELD_NUMBER: _ClassVar[int]
+    RECENT_FIELD_NUMBER: _ClassVar[int]
+    source: str
+    channel: str
+    group: str
+    state: str
+    reasons: _containers.RepeatedScalarFieldContainer[str]
+    detail: str
+    since_s: float
+    check_s: float
+    bad_s: float
+    episodes: int
+    episode_reasons: _containers.ScalarMap[str, int]
+    recent: _containers.RepeatedCompositeFieldContainer[FaultEpisode]
+    def __init__(self, source: _Optional[str] = ..., channel: _Optional[str] = ..., group: _Optional[str] = ..., state: _Optional[str] = ..., reasons: _Optional[_Iterable[str]] = ..., detail: _Optional[str] = ..., since_s: _Optional[float] = ..., check_s: _Optional[float] = ..., bad_s: _Optional[float] = ..., episodes: _Optional[int] = ..., episode_reasons: _Optional[_Mapping[str, int]] = ..., recent: _Optional[_Iterable[_Union[FaultEpisode, _Mapping]]] = ...) -> None: ...
+
+class FaultEpisode(_message.Message):
+    __slots__ = ("start_s", "end_s", "worst", "reasons")
+    START_S_FIELD_NUMBER: _ClassVar[int]
+    END_S_FIELD_NUMBER: _ClassVar[int]
+    WORST_FIELD_NUMBER: _ClassVar[int]
+    REASONS_FIELD_NUMBER: _ClassVar[int]
+    start_s: float
+    end_s: float
+    worst: str
+    reasons: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, start_s: _Optional[float] = ..., end_s: _Optional[float] = ..., worst: _Optional[str] = ..., reasons: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class ClockOffset(_message.Message):
     __slots__ = ("source", "offset_ms", "spread_ms", "latency_ms", "method", "samples", "arrival_offset_ms", "reason", "alignments")
