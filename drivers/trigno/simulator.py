@@ -166,7 +166,7 @@ class _FaultSignals:
             rng = np.random.default_rng([seed, i])
             self.spans.append((fault, k0, k1, self._signal(fault, k1 - k0, rng)))
 
-    def _signal(self, fault: SensorFault, n: int, rng: np.random.Generator) -> np.ndarray | None:
+    def _signal(self, fault: SensorFault, n: int, rng: np.random.Generator) -> np.ndarray:
         rate, t = self.rate_hz, np.arange(n) / self.rate_hz
         if fault.kind is FaultKind.HUM:
             phase = rng.uniform(0, 2 * np.pi)
@@ -191,7 +191,7 @@ class _FaultSignals:
                 artefact[k : k + m] += rng.choice([-1.0, 1.0]) * fault.amplitude * impact[:m]
                 onset += (1 + rng.uniform(-IMPACT_JITTER, IMPACT_JITTER)) / IMPACT_RATE_HZ
             return artefact
-        return None  # flat: the held value is the run's own sample
+        return np.empty(0)  # flat: the held value is the run's own sample
 
     def apply(self, emg: np.ndarray, first: int, held: Callable[[int, int], float]) -> None:
         """Inject into ``emg`` (the frame's rows, run samples ``first``...) in place; ``held(k, column)``: the clean
