@@ -2,7 +2,8 @@
 
 Per muscle group, by its display name (the pack's, or the session file's ``[names]`` carried by ``LoadEvent.names``;
 the model names with a legend when the terminal is too narrow): the estimated activation in % as a bar with its
-uncertainty (+- one Laplace std) and, where an electrode is, the measured EMG envelope in % beside it; torque tracking
+uncertainty (+- one Laplace std) and, where an electrode is, the measured EMG envelope in % beside it and the
+electrode's signal quality (good, check or bad with the reason, from the estimator's status); torque tracking
 per joint (inverse dynamics vs muscle model, with the joint's unit); repetition counter and phase; the time in the
 set; exercise, load and set (the operator's ``LoadEvent``; the exercise else from the frames); device health
 (connected, samples received and lost, estimator latency); the inputs the view dropped as unusable.
@@ -44,6 +45,8 @@ BAR_WIDTH = 30
 MAX_SET_S = 6 * 3600.0
 #: How long the view's input thread waits for a message before looking at its stop flag again.
 POLL_S = 0.1
+#: An electrode's state as the muscle table colours it (ElectrodeQuality.state).
+ELECTRODE_STYLES = {"good": "green", "check": "bold yellow", "bad": "bold red", "unknown": "grey50"}
 
 
 @dataclass
@@ -148,16 +151,43 @@ def set_time_text(set_number: int, start_s: float | None, time_s: float) -> str:
     return f"{time_s - start_s:.1f} s " + (f"in set {set_number}" if set_number else "since the first frame")
 
 
-def muscle_labels(names: DisplayNames, groups: list[str], methods: int, width: int | None) -> tuple[list[str], str]:
+def muscle_labels(names: DisplayNames, groups: list[str], methods: int, width: int | None,
+                  extra: int = 0) -> tuple[list[str], str]:
     """The group labels of the muscle table: display names, or the model names (abbreviations) when the table would
-    not fit ``width`` columns with them, and then the legend that explains them."""
+    not fit ``width`` columns with them (and ``extra`` more, e.g. the electrode column), and then the legend that
+    explains them."""
     full = [names.group(g) for g in groups]
     # label, bar, activation % and EMG envelope % columns, one per other method; rich draws 3 characters per column
     needed = max(map(len, full), default=0) + BAR_WIDTH + len("activation %") + len("EMG envelope %") \
-        + 10 * max(methods - 1, 0) + 3 * (3 + methods) + 1
+        + 10 * max(methods - 1, 0) + 3 * (3 + methods) + 1 + extra
     if width is None or needed <= width or full == groups:
         return full, ""
     return list(groups), names.legend(groups)
+
+
+def electrodes_by_group(status: dict[str, messages.DeviceStatus]) -> dict[str, list[messages.ElectrodeQuality]]:
+    """Per muscle group, the quality of its electrodes (``DeviceStatus.electrodes`` of the estimator's status)."""
+    out: dict[str, list[messages.ElectrodeQuality]] = {}
+    for s in status.values():
+        for electrode in s.electrodes:
+            if electrode.group:
+                out.setdefault(electrode.group, []).append(electrode)
+    return out
+
+
+def electrode_text(electrodes: list[messages.ElectrodeQuality]) -> Text:
+    """``bad: flat line``: each electrode's state, coloured, with its reasons (its sensor first when a muscle has
+    several electrodes); "" for a muscle without one."""
+    text = Text()
+    for k, electrode in enumerate(electrodes):
+        if k:
+            text.append("; ")
+        if len(electrodes) > 1:
+            text.append(electrode.channel.split(".", 1)[0] + " ")
+        text.append(electrode.state, style=ELECTRODE_STYLES.get(electrode.state, ""))
+        if electrode.reasons:
+            text.append(": " + ", ".join(electrode.reasons), style=ELECTRODE_STYLES.get(electrode.state, ""))
+    return text
 
 
 def render(state: ViewState, session: str, primary: str | None = None, width: int | None = None) -> Group:
@@ -179,7 +209,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     groups = list(frame.groups)
     exercise = frame.exercise or (load.exercise if load is not None else "")  # the names of the frame's pack
     names = names_for(exercise, groups, overrides)
-    labels, legend = muscle_labels(names, groups, len(methods), width)
+    quality = electrodes_by_group(status)  # the electrodes' signal quality, once the estimator has said it
+    labels, legend = muscle_labels(names, groups, len(methods), width, extra=len("electrode") + 3 if quality else 0)
     std = list(frame.activation_std) if len(frame.activation_std) == len(groups) else [None] * len(groups)
     envelope = list(frame.measured_envelope) if len(frame.measured_envelope) == len(groups) else [math.nan] * len(groups)
     muscles = Table(title=f"activations · {method} (█ estimate, ░ ±1 sd, ┃ EMG envelope)", expand=False)
@@ -190,6 +221,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     for other in methods:
         if other != method:
             muscles.add_column(f"{other} %", justify="right")
+    if quality:
+        muscles.add_column("electrode")
     for i, g in enumerate(groups):
         a = frame.activations[i] if i < len(frame.activations) else math.nan
         env = envelope[i]
@@ -198,6 +231,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
             if other != method:
                 of = frames[other]
                 row.append(percent(of.activations[list(of.groups).index(g)]) if g in of.groups else "")
+        if quality:
+            row.append(electrode_text(quality.get(g, [])))
         muscles.add_row(*row)
     torques = Table(title="torque tracking")
     for column in ("joint", "inverse dynamics", "muscles", "residual", "unit"):

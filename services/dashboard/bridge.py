@@ -12,7 +12,9 @@ Topics (``msk/<session>/...``): ``activations/<method>``, ``joints``, ``load``, 
 (when the estimator publishes EMG envelopes), and ``emg/<source>`` / ``imu/<tracker>`` for device health (counted,
 not forwarded). Each device is one row under its own id, the one its ``DeviceStatus`` uses: the Trigno base by
 ``EmgChunk.source_id``, each Xsens tracker by ``ImuSample.tracker_id``. A ``DeviceStatus`` of kind ``node`` is a
-node's own status (its dropped inputs), shown apart from the devices.
+node's own status (its dropped inputs), shown apart from the devices; the estimator's carries each EMG electrode's
+signal quality (``DeviceStatus.electrodes``), forwarded as the ``electrodes`` entry: per electrode its muscle group,
+state (unknown, good, check, bad), reasons and the verdict in words.
 
 The page's header comes from the ``session`` entry: exercise, load and athlete, and the display names of the frames'
 muscle groups and joints with their units (the pack's, with the session file's ``[names]`` that ``LoadEvent.names``
@@ -141,6 +143,12 @@ def node_dict(status: messages.DeviceStatus) -> dict:
     }
 
 
+def electrode_dict(electrode: messages.ElectrodeQuality) -> dict:
+    """One electrode's signal quality as the page shows it (``ElectrodeQuality``)."""
+    return {"source": electrode.source, "channel": electrode.channel, "group": electrode.group,
+            "state": electrode.state, "reasons": list(electrode.reasons), "detail": electrode.detail}
+
+
 def counts_dict(counts: InputCounts, errors: int) -> dict:
     """The bridge's own inputs, in the shape of :func:`node_dict`."""
     drops = counts.drops()
@@ -175,6 +183,7 @@ class DashboardState:
         self._devices: dict[str, DeviceHealth] = {}
         self._devices_seq = 0
         self._nodes: dict[str, dict] = {}  # node -> node_dict of its newest status
+        self._electrodes: dict[str, list[dict]] = {}  # node -> its electrodes' quality (the estimator's status)
         self._load: messages.LoadEvent | None = None
         self._frame_exercise = ""  # ActivationFrame.exercise of the newest frame: the exercise when no LoadEvent came
         self._frame_groups: tuple[str, ...] = ()  # the newest frame's groups: whose display names the page shows
@@ -265,6 +274,9 @@ class DashboardState:
         if status.kind == "node":
             self._nodes[status.device_id or name] = node_dict(status)
             self._devices_seq = self._next()
+            if status.electrodes or (status.device_id or name) in self._electrodes:
+                self._electrodes[status.device_id or name] = [electrode_dict(e) for e in status.electrodes]
+                self._put("electrodes", [e for node in sorted(self._electrodes) for e in self._electrodes[node]])
             return
         device = self._device(status.device_id or name, status.kind)
         device.connected = bool(status.connected)

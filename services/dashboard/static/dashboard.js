@@ -7,6 +7,7 @@ const RECONNECT_MIN_MS = 500, RECONNECT_MAX_MS = 3000;
 const state = {
   config: null, socket: null, lastMessageMs: 0, reconnectMs: RECONNECT_MIN_MS, connection: "connecting",
   activations: {}, joints: null, load: null, session: null, reps: null, devices: {}, nodes: {}, envelopes: null,
+  electrodes: [], // each EMG electrode's signal quality (the estimator's status)
   dataAge: null, activationAge: null,
   method: localStorage.getItem("msk-method") || null, pack: null, packGroupsKey: null, updates: 0,
   torqueHistory: {}, // method -> coordinate -> {t: [], id: [], model: []}
@@ -76,6 +77,7 @@ function merge(update) {
     else if (topic === "session") state.session = value;
     else if (topic === "reps") state.reps = value;
     else if (topic === "envelopes") state.envelopes = value;
+    else if (topic === "electrodes") state.electrodes = value;
   }
 }
 
@@ -146,6 +148,7 @@ function render() {
   if (frame) { renderBars(frame); renderBodyMap(frame); renderTorques(method); }
   renderDevices(frame);
   renderNodes();
+  renderElectrodes(frame);
 }
 
 // Exercise, load and athlete from the operator's load event (the exercise falls back to the activation frames').
@@ -321,6 +324,27 @@ function renderNodes() {
     return tr;
   });
   document.querySelector("#nodes tbody").replaceChildren(...rows);
+}
+
+// Each electrode's signal quality under its muscle's name, in the frame's muscle order: good, check or bad with the
+// reason (the verdict with its numbers as the row's tooltip).
+function renderElectrodes(frame) {
+  const order = frame ? frame.groups : [];
+  const rank = (e) => (order.includes(e.group) ? order.indexOf(e.group) : order.length);
+  const rows = [...state.electrodes].sort((a, b) => rank(a) - rank(b) || a.channel.localeCompare(b.channel)).map((e) => {
+    const tr = document.createElement("tr");
+    tr.dataset.channel = e.channel;
+    tr.dataset.state = e.state;
+    tr.title = e.detail;
+    const reasons = e.reasons.length ? ": " + e.reasons.join(", ") : "";
+    const muscle = e.group ? groupName(e.group) : "(no muscle)";
+    tr.innerHTML = `<td title="${escapeHtml(muscle)}">${escapeHtml(muscle)}</td>`
+      + `<td class="hint">${escapeHtml(e.channel.split(".")[0])}</td>`
+      + `<td class="q-${escapeHtml(e.state)}">${escapeHtml(e.state + reasons)}</td>`;
+    return tr;
+  });
+  document.querySelector("#electrodes tbody").replaceChildren(...rows);
+  document.getElementById("electrodes-title").hidden = rows.length === 0;
 }
 
 // The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.
