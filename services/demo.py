@@ -63,31 +63,35 @@ def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, di
     def median(mask: np.ndarray) -> float | None:
         return float(np.median(error[mask])) if np.any(mask) else None
 
+    seconds = time.perf_counter() - started
+    error_all, error_emg, error_identified = float(np.median(error)), median(measured), median(identified)
+    identified_groups = [g for g, ok in zip(pack.groups, identified) if ok]
+    reference_error = float(np.median(np.abs(np.asarray(pack.f_max_ref) / true_f - 1.0)))
     report = {
         "trials": {"lift": training.name, "isometric": len(isometric)},
         "groups": {
             g: {"f_max_n": float(f), "truth_n": float(t), "reference_n": float(r), "status": st}
             for g, f, t, r, st in zip(pack.groups, profile.f_max, true_f, pack.f_max_ref, result.status)
         },
-        "seconds": time.perf_counter() - started,
+        "seconds": seconds,
         "converged": bool(result.report().get("converged", True)),
-        "strength_error_median": float(np.median(error)),
-        "strength_error_median_emg": median(measured),
-        "strength_error_median_identified": median(identified),
-        "identified_groups": [g for g, ok in zip(pack.groups, identified) if ok],
+        "strength_error_median": error_all,
+        "strength_error_median_emg": error_emg,
+        "strength_error_median_identified": error_identified,
+        "identified_groups": identified_groups,
         "status": dict(zip(pack.groups, result.status)),
-        "reference_error_median": float(np.median(np.abs(np.asarray(pack.f_max_ref) / true_f - 1.0))),
+        "reference_error_median": reference_error,
     }
 
     def pct(x: float | None) -> str:
         return "n/a" if x is None else f"{100 * x:.0f} %"
 
     log(
-        f"[{exercise}] calibrated in {report['seconds']:.1f} s; median |F_max error| vs truth: all groups "
-        f"{pct(report['strength_error_median'])}, EMG-measured ({int(measured.sum())}) "
-        f"{pct(report['strength_error_median_emg'])}, identified ({int(identified.sum())}: "
-        f"{', '.join(report['identified_groups']) or 'none'}) {pct(report['strength_error_median_identified'])} "
-        f"(model reference: {pct(report['reference_error_median'])})"
+        f"[{exercise}] calibrated in {seconds:.1f} s; median |F_max error| vs truth: all groups "
+        f"{pct(error_all)}, EMG-measured ({int(measured.sum())}) "
+        f"{pct(error_emg)}, identified ({int(identified.sum())}: "
+        f"{', '.join(identified_groups) or 'none'}) {pct(error_identified)} "
+        f"(model reference: {pct(reference_error)})"
     )
     return path, report
 
@@ -104,15 +108,15 @@ def run_live_graph(
     ``joints_from="imu"``: the recording's joint angles are left out and kinematics nodes compute them from the IMU
     streams, as on a real rig; ``"recorded"``: the recorded joint angles are replayed as they are.
     """
-    counts = {"imu": 0, "joints": {ex: 0 for ex in subjects}}
+    imu_samples, recorded_joints = 0, {ex: 0 for ex in subjects}
     current = ""
     for recorded in read_messages(recording):
         if recorded.type_name == "msk.LoadEvent":
             current = recorded.decode().exercise or current
         elif recorded.type_name == "msk.ImuSample":
-            counts["imu"] += 1
-        elif recorded.type_name == "msk.JointAngles" and current in counts["joints"]:
-            counts["joints"][current] += 1
+            imu_samples += 1
+        elif recorded.type_name == "msk.JointAngles" and current in recorded_joints:
+            recorded_joints[current] += 1
     rec_stats = recorder.RecorderStats()
     est_stats = {ex: estimator.EstimatorStats() for ex in subjects}
     kin_stats = {ex: kinematics_node.KinematicsStats() for ex in subjects} if joints_from == "imu" else {}
@@ -154,15 +158,15 @@ def run_live_graph(
 
         if kin_stats:
             wait_for(
-                f"the kinematics nodes to process all {counts['imu']} IMU samples",
-                lambda: all(k.samples_done >= counts["imu"] for k in kin_stats.values()),
+                f"the kinematics nodes to process all {imu_samples} IMU samples",
+                lambda: all(k.samples_done >= imu_samples for k in kin_stats.values()),
                 lambda: ", ".join(f"{ex} {k.samples_done}" for ex, k in kin_stats.items()), left(),
             )
             joints_total = sum(k.frames_out for k in kin_stats.values())
             joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
         else:
-            joints_total = sum(counts["joints"].values())
-            joints_per_exercise = counts["joints"]
+            joints_total = sum(recorded_joints.values())
+            joints_per_exercise = recorded_joints
         wait_for(
             f"every estimator to process all {joints_total} joint frames",
             lambda: all(e.frames_done >= joints_total for e in est_stats.values()),
