@@ -228,8 +228,8 @@ def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: 
         rng = np.random.default_rng(stream)
         emg = []
         for g, k in ARM26_STRENGTH.items():
-            n = sosfiltfilt(sos, rng.normal(size=so.time.size))
-            emg.append(np.clip(act[:, so.groups.index(g)] / k * (1.0 + noise * n / n.std()), 0.0, None))
+            wobble = sosfiltfilt(sos, rng.normal(size=so.time.size))  # low-passed noise, scaled to ``noise`` RMS
+            emg.append(np.clip(act[:, so.groups.index(g)] / k * (1.0 + noise * wobble / wobble.std()), 0.0, None))
         write_sto(folder / f"emg_{name}.sto", so.time, [f"ch_{g}" for g in ARM26_STRENGTH], np.column_stack(emg))
         toml.write_text(toml.read_text() + f'emg = "emg_{name}.sto"\nemg_is_envelope = true\n[emg_map]\n'
                         + "".join(f'ch_{g} = "{g}"\n' for g in ARM26_STRENGTH))
