@@ -103,17 +103,16 @@ class _Electrode:
 
 
 class _SourceQuality:
-    def __init__(self, labels: tuple[str, ...], rate_hz: float, channel_group: dict[str, str],
-                 volts_per_unit: float | None) -> None:
+    def __init__(self, labels: tuple[str, ...], rate_hz: float, units: str, channel_group: dict[str, str]) -> None:
         self.labels = labels
         self.rate_hz = rate_hz
-        self.volts_per_unit = volts_per_unit  # None: units not judged
+        self.units = units
+        self.volts_per_unit = VOLTS_PER_UNIT.get(units)  # None: units not judged
         self.monitor = ElectrodeQualityMonitor(QualityConfig(rate_hz), len(labels))
         self.electrodes = [_Electrode(ch, channel_group.get(ch, "")) for ch in labels]
         self.next_index: int | None = None
         self.origin_ns = 0  # device time of the monitor's sample 0
         self.latest: QualityVerdict | None = None
-        self.units = ""
 
     def restart(self, device_time_ns: int) -> None:
         self.monitor.reset()
@@ -137,9 +136,7 @@ class LiveQuality:
         labels = tuple(labels)
         state = self.sources.get(source)
         if state is None or state.labels != labels or state.rate_hz != float(rate_hz) or state.units != units:
-            state = self.sources[source] = _SourceQuality(labels, float(rate_hz), self.channel_group,
-                                                          VOLTS_PER_UNIT.get(units))
-            state.units = units
+            state = self.sources[source] = _SourceQuality(labels, float(rate_hz), units, self.channel_group)
         if state.volts_per_unit is None:
             return False
         x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
