@@ -33,7 +33,7 @@ electrode does to its EMG, as the stream shows it, at physical amplitudes (the q
 
 Times are on the base's device clock: seconds after START (the EMG sample index / rate), the clock the EMG chunks
 carry; a new START plays the faults again from 0. Every frame is clipped to the sensors' input range
-(+-:data:`msk_core.signal.quality.TRIGNO_EMG_RANGE_V`), as the converter does.
+(+-:data:`msk_core.units.TRIGNO_EMG_RANGE_V`), as the converter does.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ from drivers.trigno import protocol as tp
 from drivers.trial_clock import TrialClock
 from drivers.trigno.source import EmgSource, resample
 from msk_core.errors import ConfigError
-from msk_core.signal.quality import TRIGNO_EMG_RANGE_V
+from msk_core.units import TRIGNO_EMG_RANGE_V
 
 AUX_SAMPLES_PER_FRAME = 2
 

@@ -42,12 +42,11 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
 from msk_core.errors import ConfigError, InputError
+from msk_core.units import TRIGNO_EMG_RANGE_V
 
 # --- device and analysis window ---------------------------------------------------------------------------------------
 
-# Delsys Trigno EMG input range: about +-11 mV in volts on the SDK stream (+-5.5 mV in the low range):
-# shared/protocols/trigno-tcp.md; the Trigno sensors' user guides (MAN-039) list an 11 mV input range, 16 bits.
-TRIGNO_EMG_RANGE_V = 0.011
+# Delsys Trigno EMG input range (+-11 mV): msk_core.units, where the simulated Trigno reads it too.
 # The EMG band: the Trigno's own hardware band-pass (2-pole high-pass at 20 Hz, 4-pole low-pass at 450 Hz, MAN-039)
 # and the band the envelope chain keeps (msk_core.signal.emg.EmgFilterConfig.bandpass_hz).
 EMG_BAND_HZ = (20.0, 450.0)
