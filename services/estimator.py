@@ -276,7 +276,7 @@ class EstimatorNode:
         self.own_exercises = (self.exercise, first.pack.name)
 
     def handle_emg(self, chunk: messages.EmgChunk | bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
-        chunk = messages.as_message("msk.EmgChunk", chunk)
+        chunk = messages.as_message(messages.EmgChunk, chunk)
         self.stats.emg_chunks += 1
         live_emg, quality = self.live_emg, self.quality
         if live_emg is None or quality is None:
@@ -300,7 +300,7 @@ class EstimatorNode:
         """The accelerometers on an EMG source's clock (Trigno AUX): to the clock alignment (ignored without one)."""
         if self.alignment is None:
             return
-        chunk = messages.as_message("msk.AccChunk", chunk)
+        chunk = messages.as_message(messages.AccChunk, chunk)
         self.stats.acc_chunks += 1
         n = chunk.n_samples
         times = chunk.device_time_ns + np.round(np.arange(n) * 1e9 / chunk.sample_rate_hz).astype(np.int64)
@@ -312,7 +312,7 @@ class EstimatorNode:
         clock mapping and acceleration to the clock alignment (ignored without one)."""
         if self.alignment is None:
             return
-        sample = messages.as_message("msk.ImuSample", sample)
+        sample = messages.as_message(messages.ImuSample, sample)
         self.stats.imu_samples += 1
         a = sample.acceleration
         self.alignment.add_tracker_sample(key.rsplit("/", 1)[1], sample.device_time_ns, sample.host_time_ns,
@@ -320,7 +320,7 @@ class EstimatorNode:
 
     def offer_joints(self, joints: messages.JointAngles | bytes, arrival_ns: int) -> None:
         """A joint frame to estimate once its EMG is here (:meth:`release`), in arrival order."""
-        self._held.append(_Held(messages.as_message("msk.JointAngles", joints), int(arrival_ns)))
+        self._held.append(_Held(messages.as_message(messages.JointAngles, joints), int(arrival_ns)))
 
     def release(self, now_ns: int, *, flush: bool = False) -> list[tuple[messages.JointAngles, int]]:
         """The held joint frames (with their arrival times) to estimate now, oldest first: each once the EMG of its
@@ -341,7 +341,7 @@ class EstimatorNode:
     def handle_load(self, event: messages.LoadEvent | bytes) -> None:
         """Apply a load event; one naming an exercise no pack has is refused (:class:`ConfigError`), since it would
         stop the estimates of this pack while nothing is estimated for that exercise."""
-        event = messages.as_message("msk.LoadEvent", event)
+        event = messages.as_message(messages.LoadEvent, event)
         if event.exercise and not is_known_exercise(event.exercise, self.own_exercises):
             raise ConfigError(f"load event names an exercise that is not a model pack (known: "
                               f"{', '.join(available_packs())})", field="LoadEvent.exercise", value=event.exercise)
@@ -357,7 +357,7 @@ class EstimatorNode:
         """:meth:`handle_joints` one method at a time, so each frame can be published as soon as it is solved."""
         stats = self.stats
         stats.frames_in += 1
-        joints = messages.as_message("msk.JointAngles", joints)
+        joints = messages.as_message(messages.JointAngles, joints)
         load_kg, current_exercise = self.loads.at(joints.device_time_ns)
         if current_exercise and current_exercise != self.exercise:
             stats.other_exercise += 1

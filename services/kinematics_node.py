@@ -153,7 +153,7 @@ class KinematicsNode:
         stats = self.stats
         stats.samples_in += 1
         try:
-            imu = messages.as_message("msk.ImuSample", payload)
+            imu = messages.as_message(messages.ImuSample, payload)
         except messages.MessageDecodeError as exc:
             stats.undecodable += 1
             stats.last_error = f"{key}: {exc}"

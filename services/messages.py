@@ -7,7 +7,7 @@ committed (``tests/test_schemas.py`` regenerates it and checks that both agree).
 from __future__ import annotations
 
 import time
-from typing import TypeAlias
+from typing import TypeAlias, TypeVar, overload
 
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError, Message
@@ -33,6 +33,7 @@ Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion
 
 AnyMessage: TypeAlias = Message
+M = TypeVar("M", bound=Message)
 
 #: Top-level message types that travel on topics, by protobuf full name (e.g. ``"msk.EmgChunk"``).
 MESSAGE_TYPES: dict[str, type[Message]] = {
@@ -60,20 +61,39 @@ def encode(message: Message) -> bytes:
     return message.SerializeToString()
 
 
-def decode(name: str, payload: bytes) -> Message:
-    cls = message_class(name)
+def _known_class(kind: str | type[Message]) -> type[Message]:
+    """The message class of a type name, or the class itself when it is one of :data:`MESSAGE_TYPES`."""
+    return message_class(kind if isinstance(kind, str) else kind.DESCRIPTOR.full_name)
+
+
+@overload
+def decode(kind: type[M], payload: bytes) -> M: ...
+@overload
+def decode(kind: str, payload: bytes) -> Message: ...
+def decode(kind: str | type[Message], payload: bytes) -> Message:
+    """``payload`` parsed as the message type ``kind``: a class (``messages.EmgChunk``, the result typed as it) or
+    its protobuf full name (``"msk.EmgChunk"``, for callers that learn the type at run time)."""
+    cls = _known_class(kind)
     message = cls()
     try:
         message.ParseFromString(bytes(payload))
     except DecodeError as error:
-        raise MessageDecodeError(f"{len(payload)} bytes are not a valid {name}: {error}") from error
+        raise MessageDecodeError(f"{len(payload)} bytes are not a valid {type_name(message)}: {error}") from error
     return message
 
 
-def as_message(name: str, message_or_payload: Message | bytes) -> Message:
-    """Handlers take decoded messages (the node runtime decodes); bytes are decoded here (tests, tools)."""
+@overload
+def as_message(kind: type[M], message_or_payload: Message | bytes) -> M: ...
+@overload
+def as_message(kind: str, message_or_payload: Message | bytes) -> Message: ...
+def as_message(kind: str | type[Message], message_or_payload: Message | bytes) -> Message:
+    """Handlers take decoded messages (the node runtime decodes); bytes are decoded here (tests, tools). A message
+    of another type than ``kind`` is a :class:`MessageDecodeError`."""
     if isinstance(message_or_payload, (bytes, bytearray, memoryview)):
-        return decode(name, bytes(message_or_payload))
+        return decode(kind, bytes(message_or_payload))
+    cls = _known_class(kind)
+    if not isinstance(message_or_payload, cls):
+        raise MessageDecodeError(f"expected a {cls.DESCRIPTOR.full_name}, got a {type_name(message_or_payload)}")
     return message_or_payload
 
 

@@ -63,13 +63,13 @@ def run_node(subject: Path, methods: tuple[str, ...], emg: bool, inputs: list, r
         node = graph.add_process("estimator", argv)
 
         def on_frame(sample) -> None:
-            frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
+            frame = messages.decode(messages.ActivationFrame, sample.payload.to_bytes())
             with lock:
                 frames.append((frame.input_arrival_ns, frame.publish_ns))
 
         def on_envelope(sample) -> None:
             now = messages.now_ns()
-            envelope = messages.decode("msk.EmgEnvelope", sample.payload.to_bytes())
+            envelope = messages.decode(messages.EmgEnvelope, sample.payload.to_bytes())
             with lock:
                 envelope_delays.append(now - envelope.host_time_ns)
 

@@ -79,20 +79,20 @@ def _observe(zsession, observed: _Observed) -> list:
         session, kind = parts[1], parts[2]
         with observed.lock:
             if kind == "activations":
-                frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
+                frame = messages.decode(messages.ActivationFrame, sample.payload.to_bytes())
                 if observed.measuring:
                     observed.latencies_ns.append(frame.publish_ns - frame.input_arrival_ns)
                     observed.activations[session] = observed.activations.get(session, 0) + 1
             elif kind == "joints" and observed.measuring:
                 observed.joints[session] = observed.joints.get(session, 0) + 1
             elif kind == "emg":
-                chunk = messages.decode("msk.EmgChunk", sample.payload.to_bytes())
+                chunk = messages.decode(messages.EmgChunk, sample.payload.to_bytes())
                 expected = observed.emg_next.get(session)
                 if observed.measuring and expected is not None and chunk.first_sample_index != expected:
                     observed.emg_jumps += 1
                 observed.emg_next[session] = chunk.first_sample_index + chunk.n_samples
             elif kind == "status":
-                status = messages.decode("msk.DeviceStatus", sample.payload.to_bytes())
+                status = messages.decode(messages.DeviceStatus, sample.payload.to_bytes())
                 observed.status_lost[session] = int(status.samples_lost)
 
     return [zsession.declare_subscriber(f"msk/{kind}", on_sample)
