@@ -165,8 +165,8 @@ def trigno_loop(
             report.messages += 1
             report.samples += len(event.samples)
         elif isinstance(event, AuxBlock):
-            chunk = acc_chunk(event, source_id=source_id, sensors=sensors, layout=layout)
-            sink(acc_key, chunk, event.host_time_ns, chunk.device_time_ns)
+            accelerations = acc_chunk(event, source_id=source_id, sensors=sensors, layout=layout)
+            sink(acc_key, accelerations, event.host_time_ns, accelerations.device_time_ns)
             report.messages += 1
         elif isinstance(event, GapEvent):
             report.gaps.append(event)

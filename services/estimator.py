@@ -506,7 +506,7 @@ def main(
                 elif item.key.startswith(emg_prefix):
                     changes = stats.quality_changes
                     envelope = node.handle_emg(item.message, item.arrival_ns)
-                    if envelope is not None:
+                    if envelope is not None and envelope_publisher is not None:  # both only with live EMG
                         publish(envelope_publisher, envelope)
                     if stats.quality_changes != changes:  # an electrode's state changed: said now, not within 1 s
                         reporter.tick(force=True)

@@ -66,23 +66,22 @@ class ViewState:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_message(self, key: str, message: Message) -> None:
-        """One checked message of ``key`` (its topic's type, :func:`services.node_runtime.check_payload`)."""
-        _, rest = topics.split_key(key)
-        kind = rest.split("/", 1)[0]
+        """One checked message of ``key`` (its topic's type, :func:`services.node_runtime.check_payload`: so the type
+        says the topic)."""
         with self.lock:
             self.received += 1
-            if kind == "activations":
+            if isinstance(message, messages.ActivationFrame):
                 if not self.frames or message.method == next(iter(self.frames)):  # reps from the first method only
                     self.reps.update(message.time_s, message.phase if message.HasField("phase") else None)
                     start = self.set_start_s
                     if start is None or abs(message.time_s - start) > MAX_SET_S:  # no start on the frames' clock
                         self.set_start_s = message.time_s
                 self.frames[message.method] = message
-            elif kind == "status":
+            elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
-            elif kind == "load":
+            elif isinstance(message, messages.LoadEvent):
                 self._on_load(message)
-            elif kind == "envelopes":
+            elif isinstance(message, messages.EmgEnvelope):
                 self.envelope = message
 
     def _on_load(self, load: messages.LoadEvent) -> None:
@@ -226,7 +225,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     for i, g in enumerate(groups):
         a = frame.activations[i] if i < len(frame.activations) else math.nan
         env = envelope[i]
-        row = [Text(labels[i]), bar(a, std[i], marker=env), percent(a), percent(env)]
+        row: list[Text | str] = [Text(labels[i]), bar(a, std[i], marker=env), percent(a), percent(env)]
         for other in methods:
             if other != method:
                 of = frames[other]
