@@ -195,25 +195,26 @@ class DashboardState:
 
     # ---- input (the bridge's thread) ---------------------------------------------------------------------------
     def on_message(self, key: str, message: Message, arrival_ns: int | None = None) -> None:
-        """One checked message of ``key`` (its topic's type, :func:`services.node_runtime.check_payload`)."""
+        """One checked message of ``key`` (its topic's type, :func:`services.node_runtime.check_payload`: so the type
+        says the topic)."""
         if not key.startswith(self.prefix):
             return
         rest = key[len(self.prefix):]
-        kind, _, name = rest.partition("/")
+        name = rest.partition("/")[2]
         arrival_ns = arrival_ns or time.time_ns()
         with self._lock:
             self.received += 1
-            if kind == "activations":
+            if isinstance(message, messages.ActivationFrame):
                 self._on_activations(rest, message, arrival_ns)
-            elif kind == "joints":
+            elif isinstance(message, messages.JointAngles):
                 self._on_joints(message, arrival_ns)
-            elif kind == "load":
+            elif isinstance(message, messages.LoadEvent):
                 self._on_load(message)
-            elif kind == "status":
+            elif isinstance(message, messages.DeviceStatus):
                 self._on_status(name, message)
-            elif kind in ("emg", "imu"):
-                self._count_device_sample(kind, message, arrival_ns)
-            elif kind == "envelopes":  # the estimator's EMG envelopes: shown as a stream in the health table
+            elif isinstance(message, (messages.EmgChunk, messages.ImuSample)):
+                self._count_device_sample(message, arrival_ns)
+            elif isinstance(message, messages.EmgEnvelope):  # the estimator's envelopes: a stream in the health table
                 device = self._device("EMG envelopes", "estimator")
                 device.messages += 1
                 device.samples += 1
@@ -284,10 +285,10 @@ class DashboardState:
         device.errors, device.last_error = int(status.errors), status.last_error
         self._devices_seq = self._next()
 
-    def _count_device_sample(self, kind: str, message: messages.EmgChunk | messages.ImuSample, arrival_ns: int) -> None:
+    def _count_device_sample(self, message: messages.EmgChunk | messages.ImuSample, arrival_ns: int) -> None:
         """A sample of the device that sent it: the Trigno base by ``source_id``, each tracker by ``tracker_id`` (the
         ids their DeviceStatus use; :func:`messages.problems` guarantees both are set)."""
-        if kind == "emg":
+        if isinstance(message, messages.EmgChunk):
             device = self._device(message.source_id, "trigno")
             n = int(message.n_samples)
             if device._next_index is not None and message.first_sample_index > device._next_index:
