@@ -26,6 +26,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -244,7 +245,7 @@ def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np
     """Left/right pairs of groups and, per joint, the moment of the groups pulling each way (reference strengths)."""
     out: dict = {"left_right": [], "joints": []}
     placements = bodymap.place_groups(pack).placements
-    side_of = {}
+    side_of: dict[str, set[tuple[str, str]]] = {}
     for p in placements:
         side_of.setdefault(p.group, set()).add((p.region, p.side))
     for g in groups:
@@ -266,26 +267,26 @@ def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np
             positive, negative = np.flatnonzero(big & (r > 0)), np.flatnonzero(big & (r < 0))
             if not len(positive) or not len(negative):
                 continue
-            per_rep = []
+            moments: list[tuple[float, float, float]] = []  # per rep: positive, negative, their ratio
             for m in rep_masks:
                 if not m.any():
                     continue
                 a = np.nanmean(activations[m], axis=0)
                 pos, neg = float(np.sum(a[positive] * f_ref[positive] * r[positive])), float(np.sum(a[negative] * f_ref[negative] * -r[negative]))
-                per_rep.append((pos, neg, min(pos, neg) / max(pos, neg) if max(pos, neg) > 0 else 0.0))
+                moments.append((pos, neg, min(pos, neg) / max(pos, neg) if max(pos, neg) > 0 else 0.0))
             out["joints"].append({
                 "coordinate": coordinate, "positive": [groups[i] for i in positive], "negative": [groups[i] for i in negative],
-                "per_rep": per_rep,
+                "per_rep": moments,
             })
     return out
 
 
 def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     in_set = {}
-    for (method, groups), series in data.frames.items():
+    for (method, frame_groups), series in data.frames.items():
         t = np.asarray(series.time)
         m = (t >= window.start_s) & (t <= window.end_s)
-        if m.sum() >= 3 and (window.exercise == "" or _pack_name_matches(groups, window.exercise)):
+        if m.sum() >= 3 and (window.exercise == "" or _pack_name_matches(frame_groups, window.exercise)):
             in_set[method] = (series, m)
     if not in_set:
         return None
@@ -295,13 +296,14 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     pack = _pack_for(series.groups)
     reps, rep_source = reps_in_set(data, window, series, pack)
     names = names_for(pack.name if pack is not None else window.exercise, groups, data.names)
+    methods: dict[str, dict[str, Any]] = {}  # per method: its figures, and "_t", "_a" (times, activations) for below
     result = {"name": window.name, "index": window.index, "set_number": window.number, "exercise": window.exercise,
               "load_kg": window.load_kg, "start_s": window.start_s,
               "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
               "pack": pack.name if pack else None, "groups": groups, "names": names.as_dict(), "_names": names,
               "primary": primary, "rep_source": rep_source,
               "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
-              "time_under_tension_s": float(sum(b - a for a, b in reps)), "methods": {}}
+              "time_under_tension_s": float(sum(b - a for a, b in reps)), "methods": methods}
     for method, (s, m) in in_set.items():
         t = np.asarray(s.time)[m]
         a = np.asarray(s.activations, dtype=float)[m]
@@ -316,20 +318,20 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
                 "time_active_s": float(np.sum(a[:, i] > ACTIVE_THRESHOLD) * dt),
             }
         residual = np.asarray(s.residual, dtype=float)[m]
-        result["methods"][method] = {
+        methods[method] = {
             "frames": int(m.sum()), "flagged": int(np.asarray(s.flagged)[m].sum()), "groups": per_group,
             "torque_residual_rms_nm": float(np.sqrt(np.nanmean(residual ** 2))) if residual.size else None,
             "solve_ms_median": float(np.median(np.asarray(s.solve_s)[m]) * 1e3),
             "_t": t, "_a": a,
         }
     # methods against the primary, on the frames both estimated (same input times)
-    ref_t, ref_a = result["methods"][primary]["_t"], result["methods"][primary]["_a"]
-    for method, info in result["methods"].items():
+    ref_t, ref_a = methods[primary]["_t"], methods[primary]["_a"]
+    for method, info in methods.items():
         common, ia, ib = np.intersect1d(ref_t, info["_t"], return_indices=True)
         diff = info["_a"][ib] - ref_a[ia]
         info["rms_difference_to_primary"] = float(np.sqrt(np.nanmean(diff ** 2))) if common.size else None
     if pack is not None:
-        t, a = result["methods"][primary]["_t"], result["methods"][primary]["_a"]
+        t, a = methods[primary]["_t"], methods[primary]["_a"]
         rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
         result["balance"] = balance(pack, groups, a, rep_masks, median_pose(data, pack, window))
     return result
@@ -341,7 +343,7 @@ def _pack_name_matches(groups: tuple[str, ...], exercise: str) -> bool:
 
 
 def device_health(data: SessionData) -> dict:
-    devices = {}
+    devices: dict[str, dict[str, Any]] = {}  # per device, its row of the health table (JSON values)
     for source, chunks in data.emg.items():
         lost, gaps, restarts, expected = 0, 0, 0, None
         for _, first, n in chunks:
@@ -356,11 +358,11 @@ def device_health(data: SessionData) -> dict:
     for tracker, samples in data.imu.items():
         counters = np.array([s[1] for s in samples], dtype=np.int64)
         steps = np.diff(counters) % 65536 if len(counters) > 1 else np.array([], dtype=np.int64)  # 16-bit counter
-        restarts = steps >= 32768  # the counter went back: the tracker restarted its measurement, nothing was lost
+        restarted = steps >= 32768  # the counter went back: the tracker restarted its measurement, nothing was lost
         # under the tracker's own id, the id its DeviceStatus carries: one row per device
         devices[tracker] = {"kind": "IMU", "messages": len(samples), "samples": len(samples),
-                                     "samples_lost": int(np.sum(np.maximum(steps[~restarts] - 1, 0))) if steps.size else 0,
-                                     "gaps": int(np.sum((steps > 1) & ~restarts)), "restarts": int(np.sum(restarts)),
+                                     "samples_lost": int(np.sum(np.maximum(steps[~restarted] - 1, 0))) if steps.size else 0,
+                                     "gaps": int(np.sum((steps > 1) & ~restarted)), "restarts": int(np.sum(restarted)),
                                      "times": [s[0] for s in samples], "weights": [1] * len(samples)}
     for device, statuses in data.status.items():
         entry = devices.setdefault(device, {"kind": "status", "messages": 0, "samples": 0, "samples_lost": 0, "times": [], "weights": []})
