@@ -25,7 +25,7 @@ from msk_core.errors import InputError
 from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
-from services import estimator, kinematics_node, recorder, replayer, session_graph
+from services import estimator, kinematics_node, messages, recorder, replayer, session_graph
 from services.reports.strength import plot_strength, strength_markdown
 from services.live_scoring import (  # noqa: F401 - re-exported: imported from services.demo before
     METHODS, MethodScore, TrialWindow, _trial_folders, markdown, plot, score, trial_windows,
@@ -112,7 +112,7 @@ def run_live_graph(
     current = ""
     for recorded in read_messages(recording):
         if recorded.type_name == "msk.LoadEvent":
-            current = recorded.decode().exercise or current
+            current = recorded.decode(messages.LoadEvent).exercise or current
         elif recorded.type_name == "msk.ImuSample":
             imu_samples += 1
         elif recorded.type_name == "msk.JointAngles" and current in recorded_joints:

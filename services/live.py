@@ -31,8 +31,11 @@ import subprocess
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -41,6 +44,13 @@ from services import messages, session_graph, topics
 from services.graph import Graph, GraphTimeout, python_module, wait_for, zenoh_flags
 from services.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.mcap_io import read_messages
+
+if TYPE_CHECKING:  # imported where used: a session without --sim needs no simulator
+    from drivers.trial_clock import TrialClock
+    from drivers.trigno.simulator import SensorFault, TrignoSimulator
+    from drivers.trigno.source import EmgSource
+    from drivers.xsens.simulator import XsensSimulator
+    from drivers.xsens.source import ImuSource
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RECORDINGS = REPO_ROOT / "recordings"
@@ -59,8 +69,8 @@ EMG_WAIT_MS = 150.0
 class SimSources:
     """What the simulators stream: the bundled session's held-out trial of one pack."""
 
-    emg: object  # drivers.trigno.source.EmgSource
-    imu: dict[str, tuple[str, object]]  # tracker id -> (segment, ImuSource)
+    emg: EmgSource
+    imu: dict[str, tuple[str, ImuSource]]  # tracker id -> (segment, source)
     electrodes: dict[str, str]  # Trigno channel label (sensorNN.EMG) -> electrode name of the profile
     load_kg: float
     trial: str
@@ -96,7 +106,7 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     windows, start = [], None
     for m in read_messages(recording):
         if m.type_name == "msk.LoadEvent":
-            e = m.decode()
+            e = m.decode(messages.LoadEvent)
             if e.exercise != pack:
                 continue
             if e.barbell_mass_kg > 0:
@@ -107,25 +117,31 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     if not windows:
         raise InputError(f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack)
     t0, t1, load = windows[-1]
-    emg_rows, labels, rate, imu, emg_start, joints = [], None, None, {}, None, []
+    emg_rows: list[np.ndarray] = []
+    labels: list[str] | None = None
+    rate: float | None = None
+    emg_start: int | None = None
+    # tracker id -> (segment, [(device time, quaternion, acceleration, rate of turn, magnetic field)])
+    imu: dict[str, tuple[str, list[tuple[int, list[float], list[float], list[float], list[float]]]]] = {}
+    joints: list[messages.JointAngles] = []
     for m in read_messages(recording):
         if m.type_name == "msk.JointAngles":
-            j = m.decode()
+            j = m.decode(messages.JointAngles)
             if t0 <= j.device_time_ns < t1:
                 joints.append(j)
         elif m.type_name == "msk.EmgChunk":
-            c = m.decode()
+            c = m.decode(messages.EmgChunk)
             if t0 <= c.device_time_ns < t1:
                 emg_rows.append(np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels))
                 labels, rate = list(c.channel_labels), c.sample_rate_hz
                 emg_start = c.device_time_ns if emg_start is None else min(emg_start, c.device_time_ns)
         elif m.type_name == "msk.ImuSample":
-            s = m.decode()
+            s = m.decode(messages.ImuSample)
             if t0 <= s.device_time_ns < t1:
                 o, a, g, b = s.orientation, s.acceleration, s.rate_of_turn, s.magnetic_field
                 imu.setdefault(s.tracker_id, (s.segment, []))[1].append(
                     (s.device_time_ns, [o.w, o.x, o.y, o.z], [a.x, a.y, a.z], [g.x, g.y, g.z], [b.x, b.y, b.z]))
-    if not emg_rows or not imu:
+    if not emg_rows or not imu or labels is None or rate is None or emg_start is None:  # all set with the EMG
         raise InputError(f"no EMG or IMU samples in the {pack} trial of the bundled session", path=recording)
     starts = {"emg": emg_start, **{t: min(r[0] for r in rows) for t, (_, rows) in imu.items()}}
     if max(starts.values()) - min(starts.values()) > 1e9 / (2 * rate):
@@ -200,9 +216,9 @@ class Simulators:
     streaming at t streams the trial from the instant t, whatever the others did; each keeps its own device clock and
     counters."""
 
-    trigno: object  # drivers.trigno.simulator.TrignoSimulator
-    xsens: dict[str, object]  # tracker id -> XsensSimulator
-    clock: object  # drivers.trial_clock.TrialClock
+    trigno: TrignoSimulator
+    xsens: dict[str, XsensSimulator]  # by tracker id
+    clock: TrialClock
 
     def hold(self) -> None:
         self.trigno.hold()
@@ -227,8 +243,9 @@ class Simulators:
 
 
 def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
-                     xsens_latency_s: float | dict[str, float] = 0.0, clock: object | None = None,
-                     trackers_after_trigno_s: float | None = None, trigno_faults: tuple = ()) -> Simulators:
+                     xsens_latency_s: float | dict[str, float] = 0.0, clock: TrialClock | None = None,
+                     trackers_after_trigno_s: float | None = None,
+                     trigno_faults: tuple[SensorFault, ...] = ()) -> Simulators:
     """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
     that starts when the first device starts streaming, so the set begins with its static pose as the first device
     is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
@@ -248,9 +265,11 @@ def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
                                                           trial_clock=clock, latency_s=trigno_latency_s,
                                                           faults=tuple(trigno_faults))).start()
 
-    def after_trigno() -> float | None:
+    def after_trigno() -> float | None:  # passed on only with trackers_after_trigno_s
         start = trigno.stats.start_index
-        return None if start is None else clock.instant(start, trigno.rate_hz) + trackers_after_trigno_s
+        if start is None or trackers_after_trigno_s is None:
+            return None
+        return clock.instant(start, trigno.rate_hz) + trackers_after_trigno_s
 
     xsens = {}
     try:
@@ -311,21 +330,25 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     final state of each device (its last DeviceStatus), frames and flags per method, per node of the graph what
     it received, dropped as unusable (per topic and reason) and could not use (its last status), and per stream the
     clock mapping the node that maps it reported last (offset, spread, latency, method)."""
-    emg, imu, lost, status_seen = Counter(), Counter(), {}, {}
-    frames, flags = Counter(), {}
+    emg: Counter[str] = Counter()  # samples per source
+    imu: Counter[str] = Counter()  # samples per tracker
+    lost: dict[str, int] = {}
+    status_seen: dict[str, dict[str, object]] = {}
+    frames: Counter[str] = Counter()  # per method
+    flags: dict[str, Counter[str]] = {}  # per method, per flag
     envelopes = joints = chunks = 0
     nodes: dict[str, messages.DeviceStatus] = {}
     for part in [mcap] if isinstance(mcap, Path) else mcap:
         for m in read_messages(part):
             t = m.type_name
             if t == "msk.EmgChunk":
-                c = m.decode()
+                c = m.decode(messages.EmgChunk)
                 emg[c.source_id] += c.n_samples
                 chunks += 1
             elif t == "msk.ImuSample":
-                imu[m.decode().tracker_id] += 1
+                imu[m.decode(messages.ImuSample).tracker_id] += 1
             elif t == "msk.DeviceStatus":
-                s = m.decode()
+                s = m.decode(messages.DeviceStatus)
                 if s.kind == "node":
                     nodes[s.device_id] = s
                     continue
@@ -333,7 +356,7 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                 status_seen[s.device_id] = {"kind": s.kind, "connected": s.connected, "errors": int(s.errors),
                                             "last_error": s.last_error}
             elif t == "msk.ActivationFrame":
-                f = m.decode()
+                f = m.decode(messages.ActivationFrame)
                 frames[f.method] += 1
                 for flag in f.flags:
                     flags.setdefault(f.method, Counter())[flag] += 1
@@ -458,6 +481,8 @@ def driver_argv(plan: LivePlan, kind: str) -> list[str]:
     s = plan.session
     argv = python_module("services.cli", "drivers", "--session", s.name)
     if kind == "trigno":
+        if plan.trigno is None:
+            raise ConfigError("the Trigno driver needs the Trigno's address: the session plan has none", field="trigno")
         host, emg_port = plan.trigno
         argv += ["--trigno", host, "--trigno-emg-port", str(emg_port), "--trigno-id", s.trigno_id]
         if plan.trigno_aux_port is not None:
@@ -520,7 +545,8 @@ def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, st
 
     def on_load(sample) -> None:  # its own facts and an operator's (`msk load`): the session's current ones
         try:
-            event = check_payload(str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.LoadEvent")
+            event = messages.as_message(messages.LoadEvent, check_payload(
+                str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.LoadEvent"))
         except Rejected:
             return  # the estimator and recorder count bad inputs; here only the facts matter
         if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
@@ -545,13 +571,17 @@ def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, st
             subscriber.undeclare()
 
 
+# what signal.signal takes and returns: a function, SIG_DFL or SIG_IGN, or None (a handler not set from Python)
+_SignalHandler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
+
+
 class _Stopper:
     """SIGINT/SIGTERM set an event (the main thread then stops the graph in order) instead of raising mid-way."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
         self.signal: str | None = None
-        self._previous = {}
+        self._previous: dict[int, _SignalHandler] = {}
 
     def __enter__(self) -> "_Stopper":
         for signum in (signal.SIGINT, signal.SIGTERM):
@@ -629,7 +659,7 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
                     graph.add_process(decl.name, node_argv(plan, decl.name, mcap), after=after, role=decl.role,
                                       log_path=logs / f"{decl.name}.log", own_session=True)
             # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
-            pids = {n: graph.process(n).pid for n in graph.nodes if graph.process(n)}
+            pids = {n: node_process.pid for n in graph.nodes if (node_process := graph.process(n)) is not None}
             (logs / "pids.json").write_text(json.dumps({**pids, **({"router": router.pid} if router else {})}) + "\n")
             _wait_ready(graph, stopper)
             facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", ""),
@@ -694,9 +724,9 @@ def router_host(pki: Path) -> str:
     certificate = x509.load_pem_x509_certificate(path.read_bytes())
     try:
         names = certificate.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        hosts = [str(getattr(n, "value", "")) for n in names]
     except x509.ExtensionNotFound:
-        names = []
-    hosts = [str(getattr(n, "value", "")) for n in names]
+        hosts = []
     for host in ("127.0.0.1", "localhost"):
         if host in hosts:
             return host
@@ -775,7 +805,7 @@ def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | Non
         time.sleep(DRAIN_S)
     # Xsens before Trigno: the last joint frames still find EMG (no ``emg_stalled`` flags at the end of a session)
     order = sorted(drivers, key=lambda d: d != "drivers-xsens") + ["kinematics", "estimator", "recorder"]
-    codes = {}
+    codes: dict[str, int | None] = {}  # None: killed after the stop timeout
     for name in order:
         process = graph.process(name)
         if process is None:

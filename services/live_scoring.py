@@ -13,6 +13,7 @@ import numpy as np
 
 from msk_core.errors import InputError
 from msk_core.io import read_sto
+from services import messages
 from services.mcap_io import read_messages
 
 METHODS = ("proposed", "so", "hybrid")
@@ -73,10 +74,10 @@ def score(recorded_mcap: Path, recordings: Path) -> tuple[list[MethodScore], dic
     load_events = []
     for recorded in read_messages(recorded_mcap):  # one pass over the recording for frames and load events
         if recorded.type_name == "msk.ActivationFrame":
-            frame = recorded.decode()
+            frame = recorded.decode(messages.ActivationFrame)
             frames[frame.method].append(frame)
         elif recorded.type_name == "msk.LoadEvent":
-            load_events.append(recorded.decode())
+            load_events.append(recorded.decode(messages.LoadEvent))
     scores, curves = [], {}
     for window in trial_windows(load_events):
         folders = _trial_folders(recordings, window.exercise)

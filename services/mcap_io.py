@@ -21,6 +21,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import overload
 
 from mcap.exceptions import McapError
 from mcap.records import Channel, DataEnd, Footer, Message, Schema
@@ -53,10 +54,20 @@ class RecordedMessage:
     #: why the recorder refused this payload ("" for a message of its topic's type; ``type_name`` is then "")
     rejected: str = ""
 
-    def decode(self):
+    @overload
+    def decode(self) -> messages.AnyMessage: ...
+    @overload
+    def decode(self, kind: type[messages.M]) -> messages.M: ...
+    def decode(self, kind: type[messages.AnyMessage] | None = None) -> messages.AnyMessage:
+        """The message; with ``kind`` (``messages.EmgChunk``), typed as it, and a :class:`MessageDecodeError` when the
+        recorded message is of another type."""
         if self.rejected:
             raise messages.MessageDecodeError(f"{self.topic}: a payload the recorder rejected ({self.rejected}), not a message")
-        return messages.decode(self.type_name, self.data)
+        if kind is None:
+            return messages.decode(self.type_name, self.data)
+        if kind.DESCRIPTOR.full_name != self.type_name:
+            raise messages.MessageDecodeError(f"{self.topic}: a {self.type_name}, not a {kind.DESCRIPTOR.full_name}")
+        return messages.decode(kind, self.data)
 
 
 class McapRecorderWriter:

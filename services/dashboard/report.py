@@ -36,6 +36,7 @@ from msk_core.model import OutOfRange, load_pack
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import phase_rep_spans
+from services import messages
 from services.dashboard import bodymap
 from services.mcap_io import ReadReport, read_messages
 
@@ -93,7 +94,7 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
         log_s = (recorded.log_time_ns - data.start_log_ns) / 1e9
         kind = recorded.type_name
         if kind == "msk.ActivationFrame":
-            f = recorded.decode()
+            f = recorded.decode(messages.ActivationFrame)
             key = (f.method, tuple(f.groups))
             series = data.frames.get(key) or data.frames.setdefault(key, MethodSeries(tuple(f.groups)))
             series.time.append(f.time_s)
@@ -105,27 +106,28 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             if f.exercise and f.exercise not in data.frame_exercises:
                 data.frame_exercises.append(f.exercise)
         elif kind == "msk.JointAngles":
-            j = recorded.decode()
+            j = recorded.decode(messages.JointAngles)
             t = j.device_time_ns / 1e9
             data.joint_time.append(t)
             data.joint_phase.append(j.phase if j.HasField("phase") else math.nan)
             data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
         elif kind == "msk.LoadEvent":
-            e = recorded.decode()
+            e = recorded.decode(messages.LoadEvent)
             data.loads.append(Load(e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise, int(e.set_number), e.athlete))
             data.names = dict(e.names) or data.names  # an event without names leaves them in effect
         elif kind == "msk.EmgChunk":
-            c = recorded.decode()
+            c = recorded.decode(messages.EmgChunk)
             data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, c.first_sample_index, c.n_samples))
         elif kind == "msk.ImuSample":
-            s = recorded.decode()
+            s = recorded.decode(messages.ImuSample)
             data.imu.setdefault(s.tracker_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, s.packet_counter))
         elif kind == "msk.DeviceStatus":
-            s = recorded.decode()
-            if s.kind == "node":  # a node's own status: its dropped inputs, not a device
-                data.node_drops[s.device_id] = sum(int(d.count) for d in s.dropped)
+            status = recorded.decode(messages.DeviceStatus)
+            if status.kind == "node":  # a node's own status: its dropped inputs, not a device
+                data.node_drops[status.device_id] = sum(int(d.count) for d in status.dropped)
             else:
-                data.status.setdefault(s.device_id, []).append((log_s, s.connected, s.samples_lost, s.errors))
+                data.status.setdefault(status.device_id, []).append(
+                    (log_s, status.connected, status.samples_lost, status.errors))
     data.truncated = report.truncated
     if data.start_log_ns == 0:
         raise InputError("the recording holds no messages", path=path)
