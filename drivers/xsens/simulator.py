@@ -418,7 +418,7 @@ class XsensSimulator:
             else:
                 spec = xbus.FLOAT_QUANTITIES.get(data_id & 0xFFF0)
                 array = self.source.arrays.get(spec[0]) if spec else None
-                if array is None:
+                if spec is None or array is None:
                     continue  # the recording does not have it: the device would not output it either
                 values = array[k]
                 if spec[0] == "quaternion":
