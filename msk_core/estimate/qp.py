@@ -58,7 +58,7 @@ class LeastSquaresQP:
         self.g, self.m = n_groups, n_coordinates
         self.backend = backend
         self.eps, self.max_iter = eps, max_iter
-        self.solver = None
+        self.solver: piqp.SparseSolver | piqp.DenseSolver | None = None  # set up on the first solve
         if backend is Backend.SPARSE:
             g, m = n_groups, n_coordinates
             n = g + m
@@ -73,7 +73,9 @@ class LeastSquaresQP:
         else:
             self.x_l, self.x_u = lb, ub
 
-    def solve(self, at: np.ndarray, tt: np.ndarray, w: float, d: np.ndarray, c_a: np.ndarray | None):
+    def solve(self, at: np.ndarray, tt: np.ndarray, w: float, d: np.ndarray, c_a: np.ndarray | None
+              ) -> tuple[piqp.Status, np.ndarray, int, float]:
+        """(PIQP status, activations, iterations, seconds) of the least-squares QP."""
         if self.backend is Backend.SPARSE:
             g = self.g
             self.p.data[:g] = d
@@ -112,15 +114,18 @@ class EqualityQP:
         self.backend = backend
         self.eps, self.max_iter = eps, max_iter
         self.lb, self.ub = lb, ub
-        self.solver = None
+        self.solver: piqp.SparseSolver | piqp.DenseSolver | None = None  # set up on the first solve
         self.c = np.zeros(n_groups)
+        self.p: sp.csc_matrix | np.ndarray
         if backend is Backend.SPARSE:
             self.p = sp.identity(n_groups, format="csc") * 2.0
             self.a = _full_csc(n_coordinates, n_groups)
         else:
             self.p = np.asfortranarray(2.0 * np.eye(n_groups))
 
-    def solve(self, at: np.ndarray, tt: np.ndarray):
+    def solve(self, at: np.ndarray, tt: np.ndarray) -> tuple[piqp.Status, np.ndarray, int, float]:
+        """(PIQP status, activations, iterations, seconds) of the equality-constrained QP."""
+        a: sp.csc_matrix | np.ndarray
         if self.backend is Backend.SPARSE:
             self.a.data[:] = at.T.ravel()
             a = self.a
