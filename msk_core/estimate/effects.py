@@ -41,6 +41,20 @@ def fibre_length(lengths: np.ndarray, optimal: np.ndarray, slack: np.ndarray) ->
     return np.clip((np.asarray(lengths) - slack) / optimal, 0.3, 2.0)
 
 
+def _needed(value: np.ndarray | None, what: str, effect: str) -> np.ndarray:
+    """``value``, without which ``effect`` cannot be evaluated (:class:`EstimationError` naming both when missing)."""
+    if value is None:
+        raise EstimationError(f"effect {effect} needs the {what}, which were not given (a pack without them?)")
+    return value
+
+
+def _fibre_length_for(effect: str, lengths: np.ndarray | None, optimal: np.ndarray | None,
+                      slack: np.ndarray | None) -> np.ndarray:
+    """:func:`fibre_length` for ``effect``, which needs the muscle lengths and the pack's fibre data."""
+    return fibre_length(_needed(lengths, "muscle-tendon lengths", effect),
+                        _needed(optimal, "optimal fibre lengths", effect), _needed(slack, "tendon slack lengths", effect))
+
+
 def shortening_speed(arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray, v_max: float) -> np.ndarray:
     """Shortening speed in units of v_max (optimal fibre lengths per second); arms (..., n_c, G), qd (..., n_c)."""
     lengthening = -np.einsum("...ng,...n->...g", arms, qd)  # dL/dt = -R^T qd
@@ -67,15 +81,17 @@ def force_velocity(v: np.ndarray, eccentric: float) -> np.ndarray:
     return np.where(v >= 0.0, shortening, lengthening)
 
 
-def muscle_force_factor(lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray,
-                        slack: np.ndarray, *, fl_active: dict | None = None, fv: dict | None = None) -> np.ndarray | None:
+def muscle_force_factor(lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray | None,
+                        slack: np.ndarray | None, *, fl_active: dict | None = None, fv: dict | None = None
+                        ) -> np.ndarray | None:
     """Factor on each group's active force, active force-length x force-velocity, for one frame ((G,); arms (n_c, G),
     qd (n_c,)) or many ((T, G)); ``fl_active`` {"width"}, ``fv`` {"v_max", "eccentric"}; None when neither is on."""
     scale = None
     if fl_active:
-        scale = active_force_length(fibre_length(lengths, optimal, slack), fl_active["width"])
+        scale = active_force_length(_fibre_length_for("fl_active", lengths, optimal, slack), fl_active["width"])
     if fv:
-        f = force_velocity(shortening_speed(arms, qd, optimal, fv["v_max"]), fv["eccentric"])
+        speed = shortening_speed(arms, qd, _needed(optimal, "optimal fibre lengths", "fv"), fv["v_max"])
+        f = force_velocity(speed, fv["eccentric"])
         scale = f if scale is None else scale * f
     return scale
 
@@ -112,10 +128,13 @@ def torque_term_columns(model: dict, q: np.ndarray, qd: np.ndarray, lengths: np.
     eye = np.eye(n_c)
     cols = []
     if "fl_passive" in model:
-        pas = passive_force_length(fibre_length(lengths, optimal, slack), model["fl_passive"]["strain"])
+        pas = passive_force_length(_fibre_length_for("fl_passive", lengths, optimal, slack),
+                                   model["fl_passive"]["strain"])
         cols.append(np.einsum("...ng,...g->...n", arms, f_max * pas))
     if "passive_joint" in model:
-        up, low = passive_joint_basis(q, lo, hi, model["passive_joint"]["decay_rad"])
+        up, low = passive_joint_basis(q, _needed(lo, "coordinate ranges", "passive_joint"),
+                                      _needed(hi, "coordinate ranges", "passive_joint"),
+                                      model["passive_joint"]["decay_rad"])
         for c in range(n_c):
             cols += [low * eye[c], -up * eye[c]]
     if "damping" in model:
@@ -254,7 +273,11 @@ class ModelEffects:
         """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping
         (:func:`torque_term_columns` times the fitted coefficients; ID = muscle - b qd: the muscles also overcome the
         damping). None when the profile has none of them."""
-        model = {name: self.params(name) for name in TORQUE_TERMS if self.params(name)}
+        model: dict[str, dict] = {}
+        for name in TORQUE_TERMS:
+            params = self.params(name)
+            if params:
+                model[name] = params
         if not model:
             return None
         coef = [model["fl_passive"]["scale"]] if "fl_passive" in model else []
