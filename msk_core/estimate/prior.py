@@ -58,7 +58,7 @@ class PhasePrior:
             raise EstimationError("prior means must be finite and standard deviations positive")
         if (self.rest_mean is None) != (self.rest_std is None):
             raise EstimationError("rest prior needs both mean and std")
-        if self.rest_mean is not None and (
+        if self.rest_mean is not None and self.rest_std is not None and (  # both or neither (checked above)
             self.rest_mean.shape != (len(self.groups),)
             or self.rest_std.shape != (len(self.groups),)
             or not np.all(self.rest_std > 0)
@@ -112,7 +112,8 @@ class PhasePrior:
         cache = self.__dict__.get("_cache")
         if cache is None:
             mu_p, sd_p = self.pooled()
-            rest_mu, rest_sd = (mu_p, sd_p) if self.rest_mean is None else (self.rest_mean, self.rest_std)
+            rest_mu, rest_sd = ((mu_p, sd_p) if self.rest_mean is None or self.rest_std is None
+                                else (self.rest_mean, self.rest_std))
             mean = np.vstack([self.mean, mu_p, rest_mu])
             prec = np.vstack([1.0 / self.std**2, 1.0 / sd_p**2, 1.0 / rest_sd**2])
             cache = (mean, prec, np.diff(mean, axis=0), np.diff(prec, axis=0))

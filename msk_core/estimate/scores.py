@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from msk_core.errors import EstimationError
 from msk_core.estimate.metrics import activation_rmse, torque_tracking
 from msk_core.estimate.pipeline import TrialEstimate, estimate_trial, trial_phase
 from msk_core.estimate.profile import SubjectProfile
@@ -54,5 +55,8 @@ def evaluate(
 def prior_band(trial: TrialData, subject: SubjectProfile) -> tuple[np.ndarray, np.ndarray]:
     """(T, G) mean and standard deviation of the subject's phase prior at each frame of the trial (groups in the
     profile's order): what the ``prior`` method assumes before any torque."""
-    at = [subject.prior.at(trial_phase(trial, i)) for i in range(trial.n_frames)]
+    prior = subject.prior
+    if prior is None:
+        raise EstimationError("the subject profile has no phase prior (a profile written by a calibration has one)")
+    at = [prior.at(trial_phase(trial, i)) for i in range(trial.n_frames)]
     return np.array([mean for mean, _ in at]), np.array([std for _, std in at])
