@@ -1,5 +1,6 @@
-"""One function per concept (issue 28): the repetition segmenter and the rest phase, the phase prior and its fitter
-and the trial loader each live in one module, and every consumer uses that one. A second segmenter, prior fitter or trial loader written anywhere in msk_core/, services/ or drivers/
+"""One function per concept (issue 28): the repetition segmenter and the rest phase, the phase prior and its fitter,
+the trial loader, the moment-arm clamp rule and the force factor each live in one module, and every consumer uses
+that one. A second segmenter, prior fitter or trial loader written anywhere in msk_core/, services/ or drivers/
 fails here."""
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ OWNERS = {
                              r"phase_?tracker"),
     "phase prior and its fitter": ("msk_core/estimate/prior.py", r"fit\w*prior|prior\w*_from|phase_?priors?$"),
     "trial loader": ("msk_core/estimate/trial.py", r"load\w*_trial$"),
+    "force factor": ("msk_core/discrepancy/model.py", r"^force_factor$"),
+    "moment-arm clamp rule": ("msk_core/estimate/pack.py", r"clamp_to_ranges"),
 }
 # a class of that name elsewhere that only delegates to the owner (checked below by behaviour)
 DELEGATES = {("services/dashboard/bridge.py", "RepCounter")}
@@ -46,15 +49,19 @@ def test_each_concept_is_defined_in_one_module(concept):
     assert not elsewhere, f"a second {concept} beside {owner}: {elsewhere}"
 
 
-def test_rest_phase_is_written_once():
-    """The rest phase is defined only in msk_core.signal.reps."""
-    rest = []
+def test_rest_phase_and_clamp_tolerance_are_written_once():
+    """The rest phase is defined only in msk_core.signal.reps, and the clamp tolerance is read only by the clamp
+    rule (a second place applying the tolerance would be a second rule)."""
+    rest, tolerance = [], []
     for where, tree in _sources():
         for node in ast.walk(tree):
             if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and "REST" in t.id and "PHASE" in t.id
                                                     for t in node.targets):
                 rest.append(f"{where}:{node.lineno}")
+            if isinstance(node, ast.Name) and node.id == "CLAMP_TOLERANCE" and where != "msk_core/estimate/pack.py":
+                tolerance.append(f"{where}:{node.lineno}")
     assert [r.split(":")[0] for r in rest] == ["msk_core/signal/reps.py"], rest
+    assert not tolerance, f"the clamp tolerance applied outside msk_core.estimate.pack.clamp_to_ranges: {tolerance}"
 
 
 def test_consumers_use_the_one_segmenter_rest_phase_and_loader():

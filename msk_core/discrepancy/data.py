@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from msk_core.errors import EstimationError, InputError
-from msk_core.estimate.frame import CLAMP_TOLERANCE, MIN_TORQUE_SCALE
+from msk_core.estimate.frame import MIN_TORQUE_SCALE
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -112,9 +112,9 @@ def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: 
 def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_groups: list[str]) -> TrialArrays:
     groups = list(pack.groups)
     n_c, g = len(pack.coordinates), len(groups)
-    q = trial.q
-    ranges = getattr(pack, "coordinate_ranges", None)
-    keep = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(trial.torques), axis=1)
+    mech = trial.mechanics(pack)  # moment arms and static optimisation, as calibration reads them
+    q = mech.q_clamped
+    keep = np.all(np.isfinite(trial.q), axis=1) & np.all(np.isfinite(trial.torques), axis=1)
     left_out = {"non-finite kinematics or torques": int((~keep).sum())}
 
     def drop(reason: str, ok: np.ndarray) -> None:
@@ -122,19 +122,8 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
         left_out[reason] = int((keep & ~ok).sum())
         keep &= ok
 
-    if ranges is not None:
-        r = np.asarray(ranges, dtype=float).reshape(n_c, 2)
-        qc = np.clip(q, r[:, 0], r[:, 1])
-        drop("outside the pack's coordinate ranges", np.all(np.abs(np.nan_to_num(qc - q)) <= CLAMP_TOLERANCE, axis=1))
-        q = qc
-    many = getattr(pack, "lengths_and_moment_arms_many", None)
-    lengths = None
-    if many is not None:
-        from msk_core.model.pack import OutOfRange
-
-        lengths, arms = many(np.nan_to_num(q), out_of_range=OutOfRange.CLAMP)
-    else:
-        arms = np.array([pack.moment_arms(x) for x in np.nan_to_num(q)]).reshape(-1, n_c, g)
+    drop("outside the pack's coordinate ranges", mech.usable)
+    lengths, arms = mech.lengths, mech.moment_arms
     scale = np.maximum(np.abs(arms * profile.f_max).sum(axis=2), MIN_TORQUE_SCALE)
     # frames beyond the muscles' capacity (a torque outside [sum of negative, sum of positive] moment capacities at
     # some coordinate): no activation explains them (the estimator flags them `reserve`); they stay out of the fit
@@ -161,9 +150,7 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
                              for a, b, c in zip(q, trial.qd, trial.qdd)])
     else:
         tau_load = np.zeros((trial.n_frames, n_c))
-    from msk_core.estimate.pipeline import min_effort_activations
-
-    so = np.nan_to_num(min_effort_activations(pack, trial)) if len(emg_groups) < g else np.zeros((trial.n_frames, g))
+    so = np.nan_to_num(mech.min_effort) if len(emg_groups) < g else np.zeros((trial.n_frames, g))
     sel = keep
     return TrialArrays(
         name=trial.name, path=str(trial.path), time=trial.time[sel], q=q[sel], qd=trial.qd[sel], tau=trial.torques[sel],

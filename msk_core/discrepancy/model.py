@@ -145,10 +145,13 @@ def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict
     return x
 
 
-def force_factor(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
-    phi = muscle_force_factor(trial.lengths, trial.arms, trial.qd, data.optimal, data.slack,
-                              fl_active=model.get("fl_active"), fv=model.get("fv"))
-    return np.ones((trial.n, len(data.groups))) if phi is None else phi
+def force_factor(lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray | None,
+                 slack: np.ndarray | None, model: dict[str, dict]) -> np.ndarray:
+    """(T, G) the force-factor effects of ``model`` (active force-length, force-velocity) on every frame of lengths
+    (T, G), moment arms (T, n_c, G) and velocities (T, n_c); 1 where none is on. The discrepancy fit and the
+    re-calibration both take it from here."""
+    phi = muscle_force_factor(lengths, arms, qd, optimal, slack, fl_active=model.get("fl_active"), fv=model.get("fv"))
+    return np.ones((arms.shape[0], arms.shape[2])) if phi is None else phi
 
 
 def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> Design:
@@ -156,7 +159,7 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     e_idx, o_idx = data.emg_index, data.other_index
     a = trial.arms * data.f_max / trial.scale[:, :, None]  # (T, n_c, G)
     x = effective_emg(data, trial, model)
-    phi = force_factor(data, trial, model)
+    phi = force_factor(trial.lengths, trial.arms, trial.qd, data.optimal, data.slack, model)
     contrib = a[:, :, e_idx] * (phi[:, e_idx] * x)[:, None, :]  # (T, n_c, G_E)
     fixed = contrib.sum(axis=2)
     if o_idx.size:

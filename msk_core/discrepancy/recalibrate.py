@@ -19,8 +19,9 @@ import json
 
 import numpy as np
 
+from msk_core.discrepancy.model import force_factor
 from msk_core.estimate.calibrate import CalibrationSettings
-from msk_core.estimate.effects import TORQUE_TERMS, muscle_force_factor, torque_term_columns, torque_term_names
+from msk_core.estimate.effects import TORQUE_TERMS, torque_term_columns, torque_term_names
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -53,29 +54,17 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_m
     """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient
     (effects.torque_term_columns, as the discrepancy model writes them; names: effects.torque_term_names), with the
     profile's F_max."""
-    from msk_core.model.pack import OutOfRange
-
     n_c = len(pack.coordinates)
     q = np.nan_to_num(trial.q)
     lengths = arms = None
     if "fl_passive" in model:
-        lengths, arms = pack.lengths_and_moment_arms_many(q, out_of_range=OutOfRange.CLAMP)
+        mech = trial.mechanics(pack)
+        lengths, arms = mech.lengths, mech.moment_arms
     r = getattr(pack, "coordinate_ranges", None)
     r = None if r is None else np.asarray(r, dtype=float).reshape(n_c, 2)
     return torque_term_columns(model, q, np.nan_to_num(trial.qd), lengths, arms, f_max,
                                np.asarray(pack.optimal_fiber_lengths), np.asarray(pack.tendon_slack_lengths),
                                None if r is None else r[:, 0], None if r is None else r[:, 1])
-
-
-def force_factor(pack: PackLike, trial: TrialData, model: dict[str, dict]) -> np.ndarray:
-    """(T, G) the force-factor effects of ``model`` on every frame of ``trial`` (1 where none is on)."""
-    from msk_core.model.pack import OutOfRange
-
-    lengths, arms = pack.lengths_and_moment_arms_many(np.nan_to_num(trial.q), out_of_range=OutOfRange.CLAMP)
-    phi = muscle_force_factor(lengths, arms, np.nan_to_num(trial.qd), np.asarray(pack.optimal_fiber_lengths),
-                              np.asarray(pack.tendon_slack_lengths), fl_active=model.get("fl_active"),
-                              fv=model.get("fv"))
-    return np.ones((trial.n_frames, len(pack.groups))) if phi is None else phi
 
 
 class Recalibrator:
@@ -107,7 +96,7 @@ class Recalibrator:
         if key not in self._cache:
             terms = {k: v for k, v in model.items() if k in TORQUE_EFFECTS}
             forces = {k: v for k, v in model.items() if k in FORCE_EFFECTS}
-            scale = (lambda t: force_factor(self.pack, t, forces)) if forces else None
+            scale = (lambda t: self._force_scale(t, forces)) if forces else None
             basis = None
             if terms:
                 names = torque_term_names(terms, list(self.pack.coordinates))
@@ -126,6 +115,12 @@ class Recalibrator:
             self._cache[key] = np.asarray(profile.f_max, dtype=float)
             self.reports[key] = profile.calibration
         return self._cache[key]
+
+    def _force_scale(self, trial: TrialData, forces: dict[str, dict]) -> np.ndarray:
+        """(T, G) the force factor of ``forces`` on every frame of ``trial`` (:func:`model.force_factor`)."""
+        mech, pack = trial.mechanics(self.pack), self.pack
+        return force_factor(mech.lengths, mech.moment_arms, np.nan_to_num(trial.qd),
+                            np.asarray(pack.optimal_fiber_lengths), np.asarray(pack.tendon_slack_lengths), forces)
 
     def report(self, model: dict[str, dict]) -> dict | None:
         return self.reports.get(json.dumps(model, sort_keys=True))

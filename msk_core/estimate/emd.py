@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from msk_core.errors import EstimationError
-from msk_core.estimate.pack import PackLike, pack_moment_arms
+from msk_core.estimate.pack import PackLike
 from msk_core.estimate.trial import TrialData
 
 MAX_DELAY_S = 0.15  # beyond the physiological range (Cavanagh & Komi 1979: 30-100 ms)
@@ -72,7 +72,7 @@ def estimate_emd(pack: PackLike, trials: list[TrialData], *, max_delay_s: float 
     # the finest frame interval (isometric trials are 50 Hz, lifts 100 Hz)
     dt = min(float(np.median(np.diff(t.time))) for t in trials if t.n_frames >= 2)
     candidates = np.arange(0, int(round(max_delay_s / dt)) + 1) * dt
-    arms = [np.array([pack_moment_arms(pack, q) for q in t.q]) for t in trials]
+    arms = [t.mechanics(pack).moment_arms for t in trials]
     residual = np.empty(candidates.size)
     for i, d in enumerate(candidates):
         x, y = _design(pack, trials, d, arms)

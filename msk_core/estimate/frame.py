@@ -55,7 +55,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate import active_set
 from msk_core.estimate.effects import ModelEffects
 from msk_core.estimate.laplace import laplace_std
-from msk_core.estimate.pack import CLAMP_TOLERANCE, PackLike, resolve_pack
+from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges, resolve_pack
 from msk_core.estimate.prior import PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
@@ -219,11 +219,10 @@ class FrameEstimator:
             self._qp = EqualityQP(n, len(self.coordinates), self._lb, self._ub, self.backend, eps, max_iter)
         else:
             self._qp = self._new_lsq()
-        ranges = getattr(self.pack, "coordinate_ranges", None)
-        self._ranges = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
+        self._fitted = fitted_ranges(self.pack)
         n_c = len(self.coordinates)
-        self._lo = self._ranges[:, 0].copy() if self._ranges is not None else np.full(n_c, -np.inf)
-        self._hi = self._ranges[:, 1].copy() if self._ranges is not None else np.full(n_c, np.inf)
+        self._lo = self._fitted[0] if self._fitted is not None else np.full(n_c, -np.inf)
+        self._hi = self._fitted[1] if self._fitted is not None else np.full(n_c, np.inf)
         self._lo_list, self._hi_list = self._lo.tolist(), self._hi.tolist()
         self._fallback: LeastSquaresQP | None = None
         # hot start: the active-set method's cost per working-set change is O(m^2 G) (Woodbury), so it pays at any size
@@ -268,13 +267,10 @@ class FrameEstimator:
             # plain floats: a few comparisons on <= 10 numbers cost less than numpy calls; NaN fails every test
             values = q.tolist()
             if not all(lo <= v <= hi for v, lo, hi in zip(values, self._lo_list, self._hi_list)):
-                if not all(math.isfinite(v) for v in values):
-                    return self._invalid(np.full(n_c, np.nan), phase)
-                qc = np.minimum(np.maximum(q, self._lo), self._hi)
-                if (np.abs(qc - q) > CLAMP_TOLERANCE).any():
-                    return self._invalid(np.full(n_c, np.nan), phase)  # far outside: never extrapolate
+                q, usable = clamp_to_ranges(q, self._fitted)
+                if not usable:
+                    return self._invalid(np.full(n_c, np.nan), phase)  # non-finite, or far outside: never extrapolate
                 clamped = True
-                q = qc
             lengths = None
             if self.effects is not None:
                 qd = np.zeros(n_c) if qd is None else np.asarray(qd, dtype=float)
@@ -313,18 +309,25 @@ class FrameEstimator:
                 log.warning("model evaluation failed, frame flagged invalid_input: %s: %s", type(exc).__name__, exc)
                 self._model_error_logged = True
             return self._invalid(np.full(n_c, np.nan), phase)
-        if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
-            return self._invalid(np.full(n_c, np.nan), phase)
-        # NaN/inf anywhere in tau or R makes the sum non-finite (q was checked above)
-        if not math.isfinite(float(tau.sum()) + float(r.sum())):
-            return self._invalid(tau, phase)
-        if phase is not None and not math.isfinite(phase):
-            phase = None
-        result = self._solve(r, tau, phase)
+        result = self.solve(r, tau, phase)
         if clamped:
             result.clamped = True
             self._count_key("out_of_range_clamped")
         return result
+
+    def solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None = None) -> FrameResult:
+        """Estimate one frame from its moment arms ``r`` (n_c, G) and torques ``tau`` (n_c,) already at hand (what
+        :meth:`step` does once the pack has given them; offline work that has the trial's moment arms reuses them).
+        Flags instead of raising, as :meth:`step`."""
+        n_c = len(self.coordinates)
+        if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
+            return self._invalid(np.full(n_c, np.nan), phase)
+        # NaN/inf anywhere in tau or R makes the sum non-finite
+        if not math.isfinite(float(tau.sum()) + float(r.sum())):
+            return self._invalid(tau, phase)
+        if phase is not None and not math.isfinite(phase):
+            phase = None
+        return self._solve(r, tau, phase)
 
     def warm_up(self) -> None:
         """One throw-away frame at the pack's reference pose (mid-range when it has none), at rest and unloaded: the
@@ -333,7 +336,7 @@ class FrameEstimator:
         n_c = len(self.coordinates)
         pose = getattr(self.pack, "reference_pose", None)
         if pose is None:
-            pose = np.zeros(n_c) if self._ranges is None else self._ranges.mean(axis=1)
+            pose = np.zeros(n_c) if self._fitted is None else (self._fitted[0] + self._fitted[1]) / 2
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)
         self.reset_counts()
         self._reset_hot_start()

@@ -41,13 +41,23 @@ def resolve_pack(pack: "PackLike | str") -> PackLike:
     return pack
 
 
-def pack_moment_arms(pack: PackLike, q: np.ndarray) -> np.ndarray:
-    """Moment arms at q, clamped into the pack's fitted range by at most CLAMP_TOLERANCE (else NaN)."""
+def fitted_ranges(pack: PackLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lower, upper) of the pack's fitted coordinate ranges (rad), or None when it declares none."""
     ranges = getattr(pack, "coordinate_ranges", None)
-    if ranges is not None:
-        ranges = np.asarray(ranges, dtype=float).reshape(len(q), 2)
-        qc = np.minimum(np.maximum(q, ranges[:, 0]), ranges[:, 1])
-        if np.any(np.abs(qc - q) > CLAMP_TOLERANCE):
-            return np.full((len(pack.coordinates), len(pack.groups)), np.nan)
-        q = qc
-    return np.asarray(pack.moment_arms(q), dtype=float)
+    if ranges is None:
+        return None
+    r = np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
+    return r[:, 0].copy(), r[:, 1].copy()
+
+
+def clamp_to_ranges(q: np.ndarray, ranges: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """The one rule for poses outside a pack's fitted ranges: clamped into them when every coordinate is within
+    ``CLAMP_TOLERANCE``, refused further out (never extrapolated). ``q`` is one pose (n_c,) or many (T, n_c); returns
+    (q clamped, usable) with ``usable`` a bool per pose (False also for a non-finite pose)."""
+    q = np.asarray(q, dtype=float)
+    finite = np.all(np.isfinite(q), axis=-1)
+    if ranges is None:
+        return q, finite
+    qc = np.minimum(np.maximum(q, ranges[0]), ranges[1])
+    with np.errstate(invalid="ignore"):
+        return qc, finite & np.all(np.abs(qc - q) <= CLAMP_TOLERANCE, axis=-1)

@@ -12,8 +12,8 @@ import numpy as np
 from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
 from msk_core.estimate.emd import estimate_emd, shift_emg
-from msk_core.estimate.frame import FrameEstimator, FrameStatus, Method
-from msk_core.estimate.pack import PackLike, pack_moment_arms  # noqa: F401 (re-exported: imported from here before)
+from msk_core.estimate.frame import FrameEstimator, Method
+from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
 from msk_core.estimate.prior import PhasePrior, fit_phase_prior
 from msk_core.estimate.profile import SubjectProfile
@@ -82,7 +82,7 @@ def build_prior(
         for g in emg_groups:
             emg[g].append(t.emg.get(g, np.full(t.n_frames, np.nan)))
         if effort:
-            so = min_effort_activations(pack, t)
+            so = t.mechanics(pack).min_effort
             for g in effort:
                 emg[g].append(so[:, groups.index(g)])
     prior = fit_phase_prior(
@@ -118,25 +118,14 @@ def build_prior(
     )
 
 
-def min_effort_activations(pack: PackLike, trial: TrialData) -> np.ndarray:
-    """(T, G) static-optimisation activations (reference F_max) of a trial's frames; NaN where not solved."""
-    est = FrameEstimator(pack, None, Method.SO)
-    out = np.full((trial.n_frames, len(est.groups)), np.nan)
-    for i in range(trial.n_frames):
-        res = est.step(trial.q[i], torques=trial.torques[i])
-        if res.status is FrameStatus.SOLVED:  # reserve frames would put the torque deficit on the prior
-            out[i] = res.activations
-    return out
-
-
 def pick_synergists(
     pack: PackLike, trials: list[TrialData], unmeasured: list[str], measured: list[str]
 ) -> dict[str, str]:
     """Unmeasured group -> the measured group whose moment arms over the trials' frames are the most similar
     (cosine of the stacked (frames x coordinates) columns, at least ``SYNERGIST_MIN_COSINE``); ties go to the first."""
     groups = list(pack.groups)
-    arms = [pack_moment_arms(pack, q) for t in trials for q in t.q]
-    r = np.array([m for m in arms if np.all(np.isfinite(m))])  # (T, n_c, G)
+    arms = np.concatenate([t.mechanics(pack).moment_arms for t in trials])
+    r = arms[np.all(np.isfinite(arms), axis=(1, 2))]  # (T, n_c, G)
     cols = r.transpose(2, 0, 1).reshape(len(groups), -1)
     norm = np.linalg.norm(cols, axis=1)
     picked = {}
@@ -162,7 +151,7 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
     for t in trials:
         if not t.emg or t.isometric:
             continue
-        so = min_effort_activations(pack, t)
+        so = t.mechanics(pack).min_effort
         inside = t.rep_index >= 0
         for g, e in t.emg.items():
             d = (e - so[:, groups.index(g)])[inside]
@@ -187,8 +176,9 @@ def calibration_frames(
         target = isometric_target(t) if t.isometric else None
         z = None if torque_basis is None else torque_basis.columns(t)
         phi = None if force_scale is None else force_scale(t)
+        arms = t.mechanics(pack).moment_arms
         for i in range(t.n_frames):
-            m = pack_moment_arms(pack, t.q[i])
+            m = arms[i]
             if not (np.all(np.isfinite(m)) and np.all(np.isfinite(t.torques[i]))):
                 continue  # frames the model cannot represent do not enter the fit
             if phi is not None:

@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import ConfigError, EstimationError, InputError
+from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
@@ -95,6 +96,16 @@ class TrialData:
     phase_coordinate: str | None = None  # the pack coordinate the phase comes from (kinematic phase; live-trackable)
     isometric: bool = False  # static-pose trial: no reps, no phase (``isometric = true``)
     extra: dict = field(default_factory=dict)
+    # moment arms, lengths and static optimisation of the frames, kept by :meth:`mechanics` (a copy made with
+    # dataclasses.replace shares it while its coordinates and torques are the same arrays)
+    mechanics_cache: TrialMechanics | None = field(default=None, repr=False, compare=False)
+
+    def mechanics(self, pack: PackLike) -> TrialMechanics:
+        """This trial's moment arms, lengths and static-optimisation activations with ``pack``
+        (:mod:`msk_core.estimate.mechanics`), computed on first use and kept: every consumer reads the same ones."""
+        if self.mechanics_cache is None or not self.mechanics_cache.serves(pack, self.q, self.torques):
+            self.mechanics_cache = mechanics_of(pack, self.q, self.torques)
+        return self.mechanics_cache
 
     @property
     def hand_load_newton(self) -> float:

@@ -129,8 +129,8 @@ def detect_reps(time: np.ndarray, values: np.ndarray, config: RepDetectionConfig
     p = (config.excursion.sign * v - rest) / depth
     above = p > config.start_fraction
     edges = np.diff(above.astype(np.int8))
-    rises = list(np.flatnonzero(edges == 1) + 1)
-    falls = list(np.flatnonzero(edges == -1) + 1)
+    rises = [int(i) for i in np.flatnonzero(edges == 1) + 1]
+    falls = [int(i) for i in np.flatnonzero(edges == -1) + 1]
     if above[0]:
         rises.insert(0, 0)
     runs = [(r, f) for r, f in zip(rises, falls) if f > r]  # an unfinished last run has no fall: dropped
@@ -375,15 +375,16 @@ class PhaseRepCounter:
 
     def update(self, t: float, phase: float | None) -> tuple[float, float] | None:
         """The sample at time ``t`` (s); returns the (first, last sample time) of the rep it completed, if any."""
-        inside = phase is not None and phase >= 0.0  # NaN compares False
+        p = float("nan") if phase is None else float(phase)
+        inside = p >= 0.0  # NaN (unknown) compares False
         done = None
         last = self._last
-        if last is not None and (not inside or phase < last[1] - 0.5 or t - last[0] > MAX_SAMPLE_GAP_S):
+        if last is not None and (not inside or p < last[1] - 0.5 or t - last[0] > MAX_SAMPLE_GAP_S):
             done = self.finish()
         if inside:
             if self._start is None:
                 self._start = t
-            self._last = (t, float(phase))
+            self._last = (t, p)
         return done
 
     def finish(self) -> tuple[float, float] | None:
