@@ -162,10 +162,11 @@ class CalibrationResult:
     method: str
     settings: CalibrationSettings = field(default_factory=CalibrationSettings)
     # per group: Laplace std of k from the curvature of J (activations marginalised), with the strength prior and
-    # from the data alone (NaN: not a calibrated factor), and the group's status (see StrengthStatus)
+    # from the data alone (NaN: not a calibrated factor), and the group's status (see StrengthStatus; empty until the
+    # identifiability pass, which every calibration ends with)
     strength_std: np.ndarray | None = None
     strength_std_data: np.ndarray | None = None
-    status: list[str] | None = None
+    status: list[str] = field(default_factory=list)
     identified_share: np.ndarray | None = None  # diag of the projector on the identified directions
     torque_coefficients: np.ndarray | None = None  # (p,) the torque basis' fitted coefficients (None: no basis)
     torque_basis_names: tuple[str, ...] = ()  # their names (CalibrationFrames.torque_basis_names; may be empty)
@@ -173,7 +174,7 @@ class CalibrationResult:
     @property
     def identified(self) -> np.ndarray:
         """Groups whose strength the data determined (free, data std within the threshold, not at a bound)."""
-        return np.array([s == StrengthStatus.IDENTIFIED.value for s in (self.status or [])], dtype=bool)
+        return np.array([s == StrengthStatus.IDENTIFIED.value for s in self.status], dtype=bool)
 
     def identifiability(self, groups: list[str] | tuple[str, ...]) -> dict[str, dict]:
         """Per group: scale, Laplace std (posterior and data only) and status, JSON-ready."""
@@ -185,7 +186,7 @@ class CalibrationResult:
                 "scale": float(self.scale[j]),
                 "std": None if std is None or not np.isfinite(std) else float(std),
                 "std_data": None if std_d is None or not np.isfinite(std_d) else float(std_d),
-                "status": None if self.status is None else self.status[j],
+                "status": self.status[j] if self.status else None,
                 "identified_share": None if self.identified_share is None or not np.isfinite(self.identified_share[j])
                 else float(self.identified_share[j]),
             }
@@ -194,11 +195,11 @@ class CalibrationResult:
     def report(self, groups: list[str] | tuple[str, ...] | None = None) -> dict:
         """JSON-ready convergence report (stored in the subject profile); with ``groups`` also the per-group
         identifiability (``strength``)."""
-        extra = {} if groups is None or self.status is None else {"strength": self.identifiability(groups)}
+        extra = {} if groups is None or not self.status else {"strength": self.identifiability(groups)}
         return {**self._convergence(), **extra}
 
     def _convergence(self) -> dict:
-        out = {
+        out: dict[str, object] = {
             "method": self.method,
             "converged": bool(self.converged),
             "iterations": int(self.iterations),
@@ -209,9 +210,10 @@ class CalibrationResult:
             "settings": asdict(self.settings),
         }
         if self.torque_coefficients is not None:
-            out["torque_coefficients"] = [float(x) for x in self.torque_coefficients]
+            coefficients = [float(x) for x in self.torque_coefficients]
+            out["torque_coefficients"] = coefficients
             if self.torque_basis_names:  # by name as well, for whoever reads the report
-                out["torque_basis"] = dict(zip(self.torque_basis_names, out["torque_coefficients"]))
+                out["torque_basis"] = dict(zip(self.torque_basis_names, coefficients))
         return out
 
 
@@ -267,7 +269,8 @@ class _Problem:
         n = self.g + self.t * self.g
         return z[: self.g], z[self.g : n].reshape(self.t, self.g), z[n:]
 
-    def offset(self, beta: np.ndarray) -> np.ndarray:
+    def offset(self, beta: np.ndarray) -> np.ndarray | float:
+        """(T, n) torque of the basis at coefficients ``beta``; 0.0 without a basis."""
         return np.einsum("tnp,p->tn", self.basis, beta) if self.p else 0.0
 
     def terms(self, k: np.ndarray, a: np.ndarray, beta: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
@@ -482,7 +485,7 @@ def _solve_identified(prob: "_Problem", s: CalibrationSettings, f_ref: np.ndarra
         if known.shape[1] < int(free.sum()):
             k = k_hat.copy()
             k[free] = np.clip(np.exp(proj @ np.log(k_hat[free])), lo_b, hi_b)
-            for j in np.flatnonzero(free):
+            for j in np.flatnonzero(free).tolist():
                 prob.k_bounds[j] = (float(k[j]), float(k[j]))
             z[: prob.g] = k
             z, converged, more, message = solve(z)

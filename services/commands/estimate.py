@@ -118,7 +118,7 @@ def _trial_files(paths: list[Path]) -> list[Path]:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    from msk_core.estimate.calibrate import CalibrationSettings
+    from msk_core.estimate.calibrate import CalibrationSettings, IdentifyMode
     from msk_core.estimate.pipeline import calibrate_subject
     from msk_core.estimate.trial import load_trial
 
@@ -172,7 +172,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     print("strength: " + ", ".join(f"{n} {s}" for s, n in counts.items())
           + ("" if result.settings.identify_max_std is None else
              f" (identified: data-only relative Laplace std <= {result.settings.identify_max_std}; "
-             f"unidentified directions: {result.settings.identify.value})"))
+             f"unidentified directions: {IdentifyMode(result.settings.identify).value})"))
     vague = [g for g, st in zip(pack.groups, result.status) if st in ("unidentified", "combination")]
     if vague and not any(t.isometric for t in trials):
         print(f"hint: the lifts do not separate the strength of {', '.join(vague)} from their synergists'; isometric "
