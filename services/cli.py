@@ -10,7 +10,6 @@ from collections.abc import Sequence
 
 from msk_core import __version__
 from msk_core.errors import MskError
-
 from services import commands
 
 

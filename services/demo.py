@@ -26,12 +26,19 @@ from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
 from services import estimator, kinematics_node, messages, recorder, replayer, session_graph
-from services.reports.strength import plot_strength, strength_markdown
+from services.graph import Graph, wait_for
 from services.live_scoring import (  # noqa: F401 - re-exported: imported from services.demo before
-    METHODS, MethodScore, TrialWindow, _trial_folders, markdown, plot, score, trial_windows,
+    METHODS,
+    MethodScore,
+    TrialWindow,
+    _trial_folders,
+    markdown,
+    plot,
+    score,
+    trial_windows,
 )
 from services.mcap_io import read_messages
-from services.graph import Graph, wait_for
+from services.reports.strength import plot_strength, strength_markdown
 from services.zenoh_session import ZenohOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -41,14 +48,19 @@ SESSION = "demo"
 
 def calibration_trial_files(recordings: Path, exercise: str) -> tuple[Path, list[Path]]:
     """The demo's calibration input for an exercise: the lighter lift's folder and the isometric MVC trial files."""
-    return _trial_folders(recordings, exercise)[0], sorted((recordings / "demo" / exercise / "mvc").glob("*/trial.toml"))
+    return _trial_folders(recordings, exercise)[0], sorted(
+        (recordings / "demo" / exercise / "mvc").glob("*/trial.toml")
+    )
 
 
 def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, dict]:
     pack = load_pack(exercise)
     training, isometric = calibration_trial_files(recordings, exercise)
-    log(f"[{exercise}] calibrating on {training.name}" + (f" + {len(isometric)} isometric MVC trials" if isometric else "")
-        + " ...")
+    log(
+        f"[{exercise}] calibrating on {training.name}"
+        + (f" + {len(isometric)} isometric MVC trials" if isometric else "")
+        + " ..."
+    )
     started = time.perf_counter()
     trials = [load_trial(training / "trial.toml", pack)] + [load_trial(p, pack) for p in isometric]
     profile, result = calibrate_subject(pack, trials)
@@ -101,7 +113,14 @@ DRAIN_S = 600.0  # the whole replay at rate max on a loaded 2-core machine takes
 
 
 def run_live_graph(
-    recording: Path, out_mcap: Path, subjects: dict[str, Path], endpoint: str, rate: float | None, log, *, joints_from: str = "imu"
+    recording: Path,
+    out_mcap: Path,
+    subjects: dict[str, Path],
+    endpoint: str,
+    rate: float | None,
+    log,
+    *,
+    joints_from: str = "imu",
 ) -> dict:
     """Recorder + (kinematics +) estimator nodes as Zenoh peers, the replayer publishing the recording.
 
@@ -132,24 +151,41 @@ def run_live_graph(
         for exercise, subject in subjects.items():
             node = declared[1 + list(subjects).index(exercise)]
             graph.add_thread(
-                node.name, estimator.main, pack=exercise, session=SESSION, methods=list(METHODS),
-                subject_path=subject, exercise=exercise, stats=est_stats[exercise],
+                node.name,
+                estimator.main,
+                pack=exercise,
+                session=SESSION,
+                methods=list(METHODS),
+                subject_path=subject,
+                exercise=exercise,
+                stats=est_stats[exercise],
                 after=session_graph.readers_of(node, declared),
             )
         for exercise in kin_stats:
             node = declared[1 + len(subjects) + list(kin_stats).index(exercise)]
             graph.add_thread(
-                node.name, kinematics_node.main, pack=exercise, session=SESSION, stats=kin_stats[exercise],
+                node.name,
+                kinematics_node.main,
+                pack=exercise,
+                session=SESSION,
+                stats=kin_stats[exercise],
                 after=session_graph.readers_of(node, declared),
             )
         graph.wait_ready(GRAPH_READY_S)
-        nodes = f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"
+        nodes = (
+            f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"
+        )
         log(f"live graph up: {nodes}; replaying {recording.name} at rate {rate or 'max'} (joints from {joints_from})")
         started = time.perf_counter()
         replay_stats = replayer.main(
-            ZenohOptions(connect=(endpoint,)), recording, rate=rate, session_name=SESSION,
-            progress=sys.stderr.isatty(), exclude=(f"msk/{SESSION}/joints",) if joints_from == "imu" else (),
-            wait_nodes=tuple(graph.nodes), wait_nodes_s=GRAPH_READY_S,
+            ZenohOptions(connect=(endpoint,)),
+            recording,
+            rate=rate,
+            session_name=SESSION,
+            progress=sys.stderr.isatty(),
+            exclude=(f"msk/{SESSION}/joints",) if joints_from == "imu" else (),
+            wait_nodes=tuple(graph.nodes),
+            wait_nodes_s=GRAPH_READY_S,
         )
         deadline = time.monotonic() + DRAIN_S
 
@@ -160,7 +196,8 @@ def run_live_graph(
             wait_for(
                 f"the kinematics nodes to process all {imu_samples} IMU samples",
                 lambda: all(k.samples_done >= imu_samples for k in kin_stats.values()),
-                lambda: ", ".join(f"{ex} {k.samples_done}" for ex, k in kin_stats.items()), left(),
+                lambda: ", ".join(f"{ex} {k.samples_done}" for ex, k in kin_stats.items()),
+                left(),
             )
             joints_total = sum(k.frames_out for k in kin_stats.values())
             joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
@@ -170,30 +207,45 @@ def run_live_graph(
         wait_for(
             f"every estimator to process all {joints_total} joint frames",
             lambda: all(e.frames_done >= joints_total for e in est_stats.values()),
-            lambda: ", ".join(f"{ex} {e.frames_done}" for ex, e in est_stats.items()), left(),
+            lambda: ", ".join(f"{ex} {e.frames_done}" for ex, e in est_stats.items()),
+            left(),
         )
         activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
         expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames
         # the data messages; the nodes' own status (one a second each) is recorded beside them and not counted here
-        wait_for(f"the recorder to write all {expected_messages} messages",
-                 lambda: rec_stats.written - rec_stats.node_status >= expected_messages,
-                 lambda: f"{rec_stats.written - rec_stats.node_status} written", left())
+        wait_for(
+            f"the recorder to write all {expected_messages} messages",
+            lambda: rec_stats.written - rec_stats.node_status >= expected_messages,
+            lambda: f"{rec_stats.written - rec_stats.node_status} written",
+            left(),
+        )
         elapsed = time.perf_counter() - started
     log(
         f"replayed {replay_stats.published} messages"
-        + (f" (left out {replay_stats.excluded} recorded joint frames); kinematics nodes published "
-           + ", ".join(f"{n} {ex}" for ex, n in joints_per_exercise.items()) + " joint frames" if kin_stats else "")
-        + "; estimated " + ", ".join(f"{est_stats[ex].frames_out} {ex}" for ex in est_stats)
+        + (
+            f" (left out {replay_stats.excluded} recorded joint frames); kinematics nodes published "
+            + ", ".join(f"{n} {ex}" for ex, n in joints_per_exercise.items())
+            + " joint frames"
+            if kin_stats
+            else ""
+        )
+        + "; estimated "
+        + ", ".join(f"{est_stats[ex].frames_out} {ex}" for ex in est_stats)
         + f" frames x {len(METHODS)} methods in {elapsed:.1f} s; recorded {rec_stats.written - rec_stats.node_status}/{expected_messages} messages"
         + f" (and {rec_stats.node_status} node status)"
     )
     return {
-        "joints_from": joints_from, "replayed": replay_stats.published, "recorded": rec_stats.written - rec_stats.node_status,
-        "expected_messages": expected_messages, "joint_frames": joints_per_exercise,
+        "joints_from": joints_from,
+        "replayed": replay_stats.published,
+        "recorded": rec_stats.written - rec_stats.node_status,
+        "expected_messages": expected_messages,
+        "joint_frames": joints_per_exercise,
         "estimated_frames": {ex: s.frames_out for ex, s in est_stats.items()},
         "flagged": {ex: s.flagged for ex, s in est_stats.items()},
-        "kinematics": {ex: {"frames_out": k.frames_out, "incomplete": k.frames_incomplete, "calibrations": k.calibrations}
-                       for ex, k in kin_stats.items()},
+        "kinematics": {
+            ex: {"frames_out": k.frames_out, "incomplete": k.frames_incomplete, "calibrations": k.calibrations}
+            for ex, k in kin_stats.items()
+        },
         "seconds": elapsed,
     }
 
@@ -219,7 +271,11 @@ def main(
     available = sorted(p.name for p in (recordings / "demo").iterdir() if p.is_dir())
     unknown = sorted(set(exercises or []) - set(available))
     if unknown:
-        raise InputError(f"no such exercise in the demo session; available: {', '.join(available)}", field="--exercise", value=unknown)
+        raise InputError(
+            f"no such exercise in the demo session; available: {', '.join(available)}",
+            field="--exercise",
+            value=unknown,
+        )
     exercises = exercises or available
     subjects, calibration = {}, {}
     for exercise in exercises:
@@ -234,31 +290,56 @@ def main(
     (out / "report.md").write_text(
         "# msk-live demo\n\nLive estimates (Zenoh graph fed by the replayed session) scored against the synthetic truth.\n"
         f"Replay rate: {rate or 'max'}. Latency = estimator publish time - input arrival time"
-        + (" (at rate max it includes the queue behind the replay burst; run with --rate 1 for live latency)" if rate is None else "")
+        + (
+            " (at rate max it includes the queue behind the replay burst; run with --rate 1 for live latency)"
+            if rate is None
+            else ""
+        )
         + ".\n\n"
-        + table + "\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in plots) + "\n\n"
-        + "## Calibrated strength vs the generator's truth\n\n" + strength_markdown(calibration)
+        + table
+        + "\n\n"
+        + "\n".join(f"![{p.stem}]({p.name})" for p in plots)
+        + "\n\n"
+        + "## Calibrated strength vs the generator's truth\n\n"
+        + strength_markdown(calibration)
     )
     log("")
     log(table)
     log("")
-    log(f"report: {out / 'report.md'}; recording of the live graph: {live_mcap} (open it in Foxglove); plots: "
-        + ", ".join(str(p) for p in plots))
+    log(
+        f"report: {out / 'report.md'}; recording of the live graph: {live_mcap} (open it in Foxglove); plots: "
+        + ", ".join(str(p) for p in plots)
+    )
     return summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
-    parser.add_argument("--recordings", type=Path, default=DEFAULT_RECORDINGS, help="folder with demo_session.mcap and demo/ (default: the embedded one)")
-    parser.add_argument("--rate", default="max", help="replay speed: 'max' (default) or a factor, 1 = real time")
-    parser.add_argument("--exercise", action="append", default=None, help="only this exercise (repeatable; default: all)")
     parser.add_argument(
-        "--joints-from", choices=["imu", "recorded"], default="imu",
+        "--recordings",
+        type=Path,
+        default=DEFAULT_RECORDINGS,
+        help="folder with demo_session.mcap and demo/ (default: the embedded one)",
+    )
+    parser.add_argument("--rate", default="max", help="replay speed: 'max' (default) or a factor, 1 = real time")
+    parser.add_argument(
+        "--exercise", action="append", default=None, help="only this exercise (repeatable; default: all)"
+    )
+    parser.add_argument(
+        "--joints-from",
+        choices=["imu", "recorded"],
+        default="imu",
         help="imu (default): kinematics nodes compute joint angles from the replayed IMU streams, as on a real rig; "
         "recorded: replay the session's joint angles",
     )
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    main(recordings=args.recordings, out=args.out, rate=replayer.parse_rate(args.rate), exercises=args.exercise, joints_from=args.joints_from)
+    main(
+        recordings=args.recordings,
+        out=args.out,
+        rate=replayer.parse_rate(args.rate),
+        exercises=args.exercise,
+        joints_from=args.joints_from,
+    )
     return 0

@@ -78,26 +78,41 @@ PACK = "--pack ${MSK_PACK:-bench_press}"
 #: command the graph declares needs an entry; an entry for a command the graph no longer declares is an error too
 #: (:func:`graph_services`).
 DEPLOYMENTS: dict[str, Deployment] = {
-    "drivers": Deployment("drivers", (SESSION, "--trigno ${TRIGNO_HOST:-trigno-sim}",
-                                      "--xsens ${XSENS_DEVICE:-/dev/ttyUSB0}"), (
-        Field("devices", ("${XSENS_DEVICE:-/dev/ttyUSB0}:${XSENS_DEVICE:-/dev/ttyUSB0}",)),
-    )),
+    "drivers": Deployment(
+        "drivers",
+        (SESSION, "--trigno ${TRIGNO_HOST:-trigno-sim}", "--xsens ${XSENS_DEVICE:-/dev/ttyUSB0}"),
+        (Field("devices", ("${XSENS_DEVICE:-/dev/ttyUSB0}:${XSENS_DEVICE:-/dev/ttyUSB0}",)),),
+    ),
     "kinematics": Deployment("kinematics", (f"{SESSION} {PACK}",)),
     "estimator": Deployment("estimator", (f"{SESSION} {PACK}", "--method so --method hybrid")),
-    "recorder": Deployment("recorder", ("--out /data/${MSK_SESSION:-lab}.mcap",), (
-        Field("volumes", ("./data:/data",)),
-        Field("stop_signal", "SIGINT"),
-    )),
-    "dashboard": Deployment("dashboard", (f"{SESSION} --host 0.0.0.0 --port 8080",), (
-        Field("ports", ("${MSK_DASHBOARD_BIND:-127.0.0.1}:${MSK_DASHBOARD_PORT:-8080}:8080",),
-              comment="this host only by default, as `msk dashboard`; MSK_DASHBOARD_BIND=0.0.0.0 serves the tablets "
-                      "on the gym network"),
-    )),
-    "replay": Deployment("replayer", (
-        f"recordings/demo_session.mcap {SESSION} --rate 1 --exclude msk/*/joints",), (
-        Field("profiles", ("replay",)),
-        Field("restart", "no"),
-    )),
+    "recorder": Deployment(
+        "recorder",
+        ("--out /data/${MSK_SESSION:-lab}.mcap",),
+        (
+            Field("volumes", ("./data:/data",)),
+            Field("stop_signal", "SIGINT"),
+        ),
+    ),
+    "dashboard": Deployment(
+        "dashboard",
+        (f"{SESSION} --host 0.0.0.0 --port 8080",),
+        (
+            Field(
+                "ports",
+                ("${MSK_DASHBOARD_BIND:-127.0.0.1}:${MSK_DASHBOARD_PORT:-8080}:8080",),
+                comment="this host only by default, as `msk dashboard`; MSK_DASHBOARD_BIND=0.0.0.0 serves the tablets "
+                "on the gym network",
+            ),
+        ),
+    ),
+    "replay": Deployment(
+        "replayer",
+        (f"recordings/demo_session.mcap {SESSION} --rate 1 --exclude msk/*/joints",),
+        (
+            Field("profiles", ("replay",)),
+            Field("restart", "no"),
+        ),
+    ),
 }
 
 #: the parts of every msk service of the plain file (``<<: *msk-node``)
@@ -108,23 +123,34 @@ MSK_NODE = (
     Field("depends_on", ("zenohd",)),
     Field("environment", {"RUST_LOG": "warn"}),
 )
-ROUTER = Service("zenohd", fields=(
-    Field("image", "eclipse/zenoh:1.10.2"),
-    Field("restart", "unless-stopped"),
-    Field("ports", ("7447:7447",)),
-))
-TRIGNO_SIM = Service("trigno-sim", merge="msk-node", command=("sim trigno --from synthetic:3600:7 --host 0.0.0.0",),
-                     fields=(
-    Field("profiles", ("sim",)),
-    Field("depends_on", ()),
-    Field("expose", ("50040", "50041", "50043", "50044")),
-))
-SECURE_ROUTER = Service("zenohd", command=(f"router --zenoh-config {PKI_CONFIGS}/router.json5",), fields=(
-    Field("image", "msk-live:0.1.0"),
-    Field("build", "."),
-    Field("stop_signal", "SIGINT"),
-    Field("volumes", (PKI_MOUNT,)),
-))
+ROUTER = Service(
+    "zenohd",
+    fields=(
+        Field("image", "eclipse/zenoh:1.10.2"),
+        Field("restart", "unless-stopped"),
+        Field("ports", ("7447:7447",)),
+    ),
+)
+TRIGNO_SIM = Service(
+    "trigno-sim",
+    merge="msk-node",
+    command=("sim trigno --from synthetic:3600:7 --host 0.0.0.0",),
+    fields=(
+        Field("profiles", ("sim",)),
+        Field("depends_on", ()),
+        Field("expose", ("50040", "50041", "50043", "50044")),
+    ),
+)
+SECURE_ROUTER = Service(
+    "zenohd",
+    command=(f"router --zenoh-config {PKI_CONFIGS}/router.json5",),
+    fields=(
+        Field("image", "msk-live:0.1.0"),
+        Field("build", "."),
+        Field("stop_signal", "SIGINT"),
+        Field("volumes", (PKI_MOUNT,)),
+    ),
+)
 
 COMPOSE_HEADER = """\
 # msk-live on one host: a Zenoh router, the device drivers, the kinematics node (IMU -> joint angles), the estimator
@@ -145,8 +171,9 @@ SECURE_HEADER = """\
 # the certificate's common name (msk-<role>) decides what the node may publish and subscribe to: each service uses
 # the config of the role its participants declare in services/session_graph.py.
 """
-GENERATED_NOTE = (f"# Generated from services/session_graph.py by services/deploy_files.py: edit those, then run\n"
-                  f"#   {WRITE_HINT}\n")
+GENERATED_NOTE = (
+    f"# Generated from services/session_graph.py by services/deploy_files.py: edit those, then run\n#   {WRITE_HINT}\n"
+)
 
 
 # --- the graph's services ---------------------------------------------------------------------------------------
@@ -170,22 +197,34 @@ def graph_services(deployments: dict[str, Deployment] = DEPLOYMENTS) -> list[Gra
             by_command.setdefault(decl.command, []).append(decl)
     stale = sorted(set(deployments) - set(by_command))
     if stale:
-        raise ConfigError(f"services/deploy_files.py deploys commands no participant of services/session_graph.py "
-                          f"declares (declared: {sorted(by_command)})", field="DEPLOYMENTS", value=stale)
+        raise ConfigError(
+            f"services/deploy_files.py deploys commands no participant of services/session_graph.py "
+            f"declares (declared: {sorted(by_command)})",
+            field="DEPLOYMENTS",
+            value=stale,
+        )
     services = []
     for command, decls in by_command.items():
         names = tuple(d.name for d in decls)
         roles = sorted({d.role for d in decls})
         if len(roles) != 1:
-            raise ConfigError(f"participants {list(names)} run as one service (msk {command}), so they need one role",
-                              field="role", value=roles)
+            raise ConfigError(
+                f"participants {list(names)} run as one service (msk {command}), so they need one role",
+                field="role",
+                value=roles,
+            )
         if command not in deployments:
-            raise ConfigError(f"participants {list(names)} run as `msk {command}`, which services/deploy_files.py "
-                              f"does not deploy: add it to DEPLOYMENTS", field="command", value=command)
+            raise ConfigError(
+                f"participants {list(names)} run as `msk {command}`, which services/deploy_files.py "
+                f"does not deploy: add it to DEPLOYMENTS",
+                field="command",
+                value=command,
+            )
         services.append(GraphService(command, roles[0], names, deployments[command]))
     service_names = [s.deployment.service for s in services]
-    clashes = sorted({n for n in service_names if service_names.count(n) > 1}
-                     | (set(service_names) & {ROUTER.name, TRIGNO_SIM.name}))
+    clashes = sorted(
+        {n for n in service_names if service_names.count(n) > 1} | (set(service_names) & {ROUTER.name, TRIGNO_SIM.name})
+    )
     if clashes:
         raise ConfigError("two compose services would have the same name", field="service", value=clashes)
     order = list(deployments)
@@ -204,16 +243,20 @@ def _command(service: GraphService, network: str) -> tuple[str, ...]:
 
 def compose_services() -> list[Service]:
     """The plain file's services: the router, one per graph command, the Trigno simulator."""
-    graph = [Service(s.deployment.service, merge="msk-node", command=_command(s, PLAIN_NETWORK),
-                     fields=s.deployment.fields) for s in graph_services()]
+    graph = [
+        Service(s.deployment.service, merge="msk-node", command=_command(s, PLAIN_NETWORK), fields=s.deployment.fields)
+        for s in graph_services()
+    ]
     return [ROUTER, *graph, TRIGNO_SIM]
 
 
 def secure_compose_services() -> list[Service]:
     """The secured override: the router on TLS with the access control, and every graph service with its role's
     config and the certificates mounted (ports, volumes and the rest come from the plain file)."""
-    graph = [Service(s.deployment.service, merge="pki", command=_command(s, f"--zenoh-config {role_config(s.role)}"))
-             for s in graph_services()]
+    graph = [
+        Service(s.deployment.service, merge="pki", command=_command(s, f"--zenoh-config {role_config(s.role)}"))
+        for s in graph_services()
+    ]
     return [SECURE_ROUTER, *graph]
 
 
@@ -243,8 +286,9 @@ def _field(field: Field, indent: str) -> list[str]:
 def _command_lines(command: tuple[str, ...], indent: str) -> list[str]:
     for line in command:
         if not line or line != line.strip() or "#" in line or ": " in line:
-            raise ConfigError("a command line of a compose service must be folded text without comments",
-                              field="command", value=line)
+            raise ConfigError(
+                "a command line of a compose service must be folded text without comments", field="command", value=line
+            )
     if len(command) == 1:
         return [f"{indent}command: {command[0]}"]
     return [f"{indent}command: >", *(f"{indent}  {line}" for line in command)]
@@ -297,8 +341,14 @@ def stale_files(root: Path = REPO_ROOT) -> dict[str, list[str]]:
         path = root / name
         current = path.read_text() if path.is_file() else ""
         if current != text:
-            stale[name] = list(difflib.unified_diff(current.splitlines(keepends=True), text.splitlines(keepends=True),
-                                                    f"{name} (committed)", f"{name} (from the session graph)"))
+            stale[name] = list(
+                difflib.unified_diff(
+                    current.splitlines(keepends=True),
+                    text.splitlines(keepends=True),
+                    f"{name} (committed)",
+                    f"{name} (from the session graph)",
+                )
+            )
     return stale
 
 
@@ -315,8 +365,13 @@ def write_files(root: Path = REPO_ROOT) -> list[Path]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--write", action="store_true", help="rewrite the files (default: only check them)")
-    parser.add_argument("--root", type=Path, default=REPO_ROOT, metavar="DIR",
-                        help="folder holding the compose files (default: the repository)")
+    parser.add_argument(
+        "--root",
+        type=Path,
+        default=REPO_ROOT,
+        metavar="DIR",
+        help="folder holding the compose files (default: the repository)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -336,8 +391,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m services.deploy_files", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m services.deploy_files",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:

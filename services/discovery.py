@@ -52,14 +52,22 @@ def registry_dir() -> Path:
     if os.environ.get(REGISTRY_ENV):
         return Path(os.environ[REGISTRY_ENV])
     runtime = os.environ.get("XDG_RUNTIME_DIR")
-    base = Path(runtime) / "msk-live" if runtime else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "msk-live"
+    base = (
+        Path(runtime) / "msk-live"
+        if runtime
+        else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "msk-live"
+    )
     return base / "sessions"
 
 
 def attach_commands(info: SessionInfo) -> list[str]:
     """What to type in a second terminal (no flags needed while it is the only session; else ``--session``)."""
-    return [f"msk dashboard --session {info.session}", f"msk view --session {info.session}",
-            f"msk subscribe 'msk/{info.session}/activations/*'", f"msk load --session {info.session} KG"]
+    return [
+        f"msk dashboard --session {info.session}",
+        f"msk view --session {info.session}",
+        f"msk subscribe 'msk/{info.session}/activations/*'",
+        f"msk load --session {info.session} KG",
+    ]
 
 
 def announce(info: SessionInfo, out: Path) -> list[Path]:
@@ -150,9 +158,12 @@ def find_session(session: str | None) -> SessionInfo | None:
             return None
         return named[-1]
     if len(running) > 1:
-        raise ConfigError("several sessions are running; name one with --session (running: "
-                          + ", ".join(f"{s.session} on {', '.join(s.connect)}" for s in running) + ")",
-                          field="--session")
+        raise ConfigError(
+            "several sessions are running; name one with --session (running: "
+            + ", ".join(f"{s.session} on {', '.join(s.connect)}" for s in running)
+            + ")",
+            field="--session",
+        )
     return running[0] if running else None
 
 
@@ -168,23 +179,40 @@ def attach_options(explicit: ZenohOptions, session: str | None) -> tuple[ZenohOp
     return info.options(), info
 
 
-def client_options(explicit: ZenohOptions, session: str | None, default_session: str, tool: str
-                   ) -> tuple[ZenohOptions, str]:
+def client_options(
+    explicit: ZenohOptions, session: str | None, default_session: str, tool: str
+) -> tuple[ZenohOptions, str]:
     """A second terminal's tool (``msk dashboard``, ``msk view``, ``msk subscribe``): its Zenoh options and session
     name, from its flags or the running session (:func:`attach_options`); says on stderr where it attaches."""
     options, info = attach_options(explicit, session)
     name = session or (info.session if info is not None else default_session)
     if info is not None:
-        print(f"{tool}: attached to the running session {name!r} on {', '.join(info.connect)} "
-              f"(announced in {info.out}/{SESSION_FILE})", file=sys.stderr, flush=True)
+        print(
+            f"{tool}: attached to the running session {name!r} on {', '.join(info.connect)} "
+            f"(announced in {info.out}/{SESSION_FILE})",
+            file=sys.stderr,
+            flush=True,
+        )
     elif not (explicit.connect or explicit.listen or explicit.config_file is not None):
-        print(f"{tool}: no running msk live announced in {registry_dir()}; looking for session {name!r} on "
-              f"{where(options)}", file=sys.stderr, flush=True)
+        print(
+            f"{tool}: no running msk live announced in {registry_dir()}; looking for session {name!r} on "
+            f"{where(options)}",
+            file=sys.stderr,
+            flush=True,
+        )
     return options, name
 
 
-def silence_notice(tool: str, what: str, options: ZenohOptions, received, *, first_s: float = 3.0,
-                   every_s: float = 15.0, stop: threading.Event | None = None) -> threading.Thread:
+def silence_notice(
+    tool: str,
+    what: str,
+    options: ZenohOptions,
+    received,
+    *,
+    first_s: float = 3.0,
+    every_s: float = 15.0,
+    stop: threading.Event | None = None,
+) -> threading.Thread:
     """A thread that says on stderr, ``first_s`` after start and then every ``every_s`` while ``received()`` stays 0,
     what ``tool`` waits for and where (a wait that says nothing looks like a hang)."""
     stop = stop or threading.Event()
@@ -195,9 +223,12 @@ def silence_notice(tool: str, what: str, options: ZenohOptions, received, *, fir
         while not stop.wait(wait):
             if received():
                 return
-            print(f"{tool}: waited {time.monotonic() - started:.0f} s for {what} on {where(options)}: "
-                  "0 messages so far (is `msk live` running? `msk live` prints the session and its endpoint)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{tool}: waited {time.monotonic() - started:.0f} s for {what} on {where(options)}: "
+                "0 messages so far (is `msk live` running? `msk live` prints the session and its endpoint)",
+                file=sys.stderr,
+                flush=True,
+            )
             wait = every_s
 
     thread = threading.Thread(target=watch, name=f"{tool}-silence", daemon=True)

@@ -58,8 +58,9 @@ def acc_sensors(client: TrignoClient) -> list[tuple[str, int]]:
     return [(f"sensor{n:02d}", n) for n in numbers]
 
 
-def acc_chunk(block: AuxBlock, *, source_id: str, sensors: list[tuple[str, int]],
-              layout: tp.AuxLayout) -> messages.AccChunk:
+def acc_chunk(
+    block: AuxBlock, *, source_id: str, sensors: list[tuple[str, int]], layout: tp.AuxLayout
+) -> messages.AccChunk:
     """An AccChunk of the given (label, sensor number) sensors: each sensor's ACC x, y, z in g, the first three of
     its slots on the AUX port (9 per sensor, Avanti) or its three on the legacy ACC port. Row k is AUX sample
     ``first_sample_index + k``, measured at EMG device time ``(first_sample_index + k) / rate`` (both counts start
@@ -93,13 +94,19 @@ def imu_sample(reading: ImuReading, *, segment: str = "") -> messages.ImuSample:
     if reading.quaternion is not None:
         w, x, y, z = reading.quaternion
         sample.orientation.CopyFrom(messages.Quaternion(w=w, x=x, y=y, z=z))
-    for name, value in (("acceleration", reading.acceleration), ("rate_of_turn", reading.rate_of_turn), ("magnetic_field", reading.magnetic_field)):
+    for name, value in (
+        ("acceleration", reading.acceleration),
+        ("rate_of_turn", reading.rate_of_turn),
+        ("magnetic_field", reading.magnetic_field),
+    ):
         if value is not None:
             getattr(sample, name).CopyFrom(messages.Vector3(x=value[0], y=value[1], z=value[2]))
     return sample
 
 
-def device_status(*, device_id: str, kind: str, connected: bool, received: int, lost: int, errors: int, last_error: str) -> messages.DeviceStatus:
+def device_status(
+    *, device_id: str, kind: str, connected: bool, received: int, lost: int, errors: int, last_error: str
+) -> messages.DeviceStatus:
     return messages.DeviceStatus(
         device_id=device_id,
         kind=kind,
@@ -148,8 +155,13 @@ def trigno_loop(
     def publish_status(*, final: bool = False) -> None:
         stats = client.stats
         status = device_status(
-            device_id=source_id, kind="trigno", connected=client.connected and not final, received=stats.samples_received,
-            lost=stats.samples_lost, errors=stats.errors, last_error=stats.last_error,
+            device_id=source_id,
+            kind="trigno",
+            connected=client.connected and not final,
+            received=stats.samples_received,
+            lost=stats.samples_lost,
+            errors=stats.errors,
+            last_error=stats.last_error,
         )
         sink(status_key, status, status.host_time_ns, 0)
         report.messages += 1
@@ -158,6 +170,7 @@ def trigno_loop(
     client.start()
     publish_status()
     next_status = time.monotonic() + status_interval_s
+
     def publish_data(event) -> None:
         if isinstance(event, EmgBlock):
             chunk = emg_chunk(event, source_id=source_id, columns=columns)
@@ -210,8 +223,11 @@ def xsens_loop(
         for tracker_id, device in known.items():
             stats = device.stats
             status = device_status(
-                device_id=tracker_id, kind="xsens", connected=tracker_id in trackers.devices and not final,
-                received=stats.readings, lost=stats.packets_lost,
+                device_id=tracker_id,
+                kind="xsens",
+                connected=tracker_id in trackers.devices and not final,
+                received=stats.readings,
+                lost=stats.packets_lost,
                 errors=stats.decode_errors + stats.device_errors + device.parser.stats.errors,
                 last_error=trackers.disconnected.get(tracker_id, stats.last_error),
             )
@@ -325,28 +341,68 @@ def add_device_arguments(parser) -> None:
     from drivers.xsens import xbus
 
     group = parser.add_argument_group("Delsys Trigno")
-    group.add_argument("--trigno", metavar="HOST[:PORT]", default=None, help="Trigno Control Utility address (command port, default 50040)")
-    group.add_argument("--trigno-emg-port", type=int, default=int(tp.EmgPort.AVANTI), metavar="PORT", help="EMG data port: 50043 (default) or legacy 50041")
-    group.add_argument("--trigno-aux-port", type=int, default=None, metavar="PORT",
-                       help="also read the sensors' accelerometers from this port (50044 AUX, or legacy ACC 50042) and "
-                       "publish them on msk/<session>/acc/<id> (default: not read)")
-    group.add_argument("--trigno-stop", choices=[m.value for m in tp.StopMode], default=tp.StopMode.STOP_THEN_QUIT.value, help="how to end acquisition")
+    group.add_argument(
+        "--trigno",
+        metavar="HOST[:PORT]",
+        default=None,
+        help="Trigno Control Utility address (command port, default 50040)",
+    )
+    group.add_argument(
+        "--trigno-emg-port",
+        type=int,
+        default=int(tp.EmgPort.AVANTI),
+        metavar="PORT",
+        help="EMG data port: 50043 (default) or legacy 50041",
+    )
+    group.add_argument(
+        "--trigno-aux-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="also read the sensors' accelerometers from this port (50044 AUX, or legacy ACC 50042) and "
+        "publish them on msk/<session>/acc/<id> (default: not read)",
+    )
+    group.add_argument(
+        "--trigno-stop",
+        choices=[m.value for m in tp.StopMode],
+        default=tp.StopMode.STOP_THEN_QUIT.value,
+        help="how to end acquisition",
+    )
     group.add_argument("--trigno-id", default="trigno", help="source id used in topics and messages (default: trigno)")
     group = parser.add_argument_group("Xsens")
-    group.add_argument("--xsens", action="append", default=[], metavar="SERIAL_PORT|usb", help="tracker serial port, or 'usb' for every Xsens USB device (repeatable)")
+    group.add_argument(
+        "--xsens",
+        action="append",
+        default=[],
+        metavar="SERIAL_PORT|usb",
+        help="tracker serial port, or 'usb' for every Xsens USB device (repeatable)",
+    )
     group.add_argument("--xsens-baud", type=int, default=115200, help="serial baud rate (default 115200)")
     group.add_argument("--imu-rate", type=int, default=100, help="IMU output rate in Hz (default 100)")
     group.add_argument("--imu-precision", choices=[p.name.lower() for p in xbus.Precision], default="float32")
     group.add_argument("--imu-frame", choices=[f.name for f in xbus.CoordinateFrame], default="ENU")
-    group.add_argument("--segment", action="append", default=[], metavar="TRACKER=SEGMENT", help="body segment of a tracker id, e.g. 03700ABC=upper_arm_r")
+    group.add_argument(
+        "--segment",
+        action="append",
+        default=[],
+        metavar="TRACKER=SEGMENT",
+        help="body segment of a tracker id, e.g. 03700ABC=upper_arm_r",
+    )
 
 
 def open_trigno(args) -> TrignoClient:
     from drivers.trigno.client import TrignoConfig, parse_address
 
     host, port = parse_address(args.trigno)
-    client = TrignoClient(TrignoConfig(host=host, command_port=port, emg_port=args.trigno_emg_port,
-                                       aux_port=args.trigno_aux_port, stop_mode=tp.StopMode(args.trigno_stop)))
+    client = TrignoClient(
+        TrignoConfig(
+            host=host,
+            command_port=port,
+            emg_port=args.trigno_emg_port,
+            aux_port=args.trigno_aux_port,
+            stop_mode=tp.StopMode(args.trigno_stop),
+        )
+    )
     try:
         client.connect()
     except OSError as error:
@@ -372,7 +428,11 @@ def open_xsens(args) -> TrackerSet:
     try:
         for port in ports:
             device = XsensDevice(SerialTransport(port, baudrate=args.xsens_baud))
-            device.configure(args.imu_rate, precision=xbus.Precision[args.imu_precision.upper()], frame=xbus.CoordinateFrame[args.imu_frame])
+            device.configure(
+                args.imu_rate,
+                precision=xbus.Precision[args.imu_precision.upper()],
+                frame=xbus.CoordinateFrame[args.imu_frame],
+            )
             trackers.add(device)
     except BaseException:
         trackers.close()
@@ -403,10 +463,18 @@ def run_devices(args, sink: Sink, *, session: str, duration_s: float | None, sto
     trackers = None
     if args.trigno:
         client = open_trigno(args)
-        targets.append(lambda: trigno_loop(client, session=session, source_id=args.trigno_id, sink=sink, stop=stop, duration_s=duration_s))
+        targets.append(
+            lambda: trigno_loop(
+                client, session=session, source_id=args.trigno_id, sink=sink, stop=stop, duration_s=duration_s
+            )
+        )
     if args.xsens:
         trackers = open_xsens(args)
-        targets.append(lambda: xsens_loop(trackers, session=session, sink=sink, stop=stop, segments=segments, duration_s=duration_s))
+        targets.append(
+            lambda: xsens_loop(
+                trackers, session=session, sink=sink, stop=stop, segments=segments, duration_s=duration_s
+            )
+        )
     try:
         results = run_threads(targets, stop)
     finally:

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
@@ -50,10 +51,10 @@ from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsC
 from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.model.pack import available_packs, is_known_exercise
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
 from msk_core.units import GRAVITY
 from services import messages, session_graph, topics
-from msk_core.model.pack import available_packs, is_known_exercise
 from services.graph import ReadySpec, declare_ready
 from services.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
 from services.zenoh_session import (
@@ -149,7 +150,9 @@ class CoordinateMapper:
         return values[self.indices(tuple(message.coordinates))]
 
 
-def to_message(result: FrameResult, *, method: str, groups, coordinates, time_s: float, arrival_ns: int) -> messages.ActivationFrame:
+def to_message(
+    result: FrameResult, *, method: str, groups, coordinates, time_s: float, arrival_ns: int
+) -> messages.ActivationFrame:
     frame = messages.ActivationFrame(
         time_s=time_s,
         method=method,
@@ -170,44 +173,86 @@ def to_message(result: FrameResult, *, method: str, groups, coordinates, time_s:
     else:
         frame.flags.append(result.status.value)
     for name, tau_id, tau_model, residual in zip(coordinates, result.torques, result.model_torques, result.residual):
-        frame.torques.add(coordinate=name, inverse_dynamics_nm=float(tau_id), model_nm=float(tau_model), residual_nm=float(residual))
+        frame.torques.add(
+            coordinate=name, inverse_dynamics_nm=float(tau_id), model_nm=float(tau_model), residual_nm=float(residual)
+        )
     return frame
 
 
 def emg_to_envelope(block, arrival_ns: int) -> messages.EmgEnvelope:
     """The envelope at the chunk's last sample (the topic's documented decimation: one message per chunk)."""
     t = int(block.device_time_ns[-1])
-    return messages.EmgEnvelope(time_s=t / 1e9, groups=block.groups, envelope=block.envelope[-1].tolist(),
-                                device_time_ns=t, host_time_ns=arrival_ns, flags=block.flags)
+    return messages.EmgEnvelope(
+        time_s=t / 1e9,
+        groups=block.groups,
+        envelope=block.envelope[-1].tolist(),
+        device_time_ns=t,
+        host_time_ns=arrival_ns,
+        flags=block.flags,
+    )
 
 
 def electrode_quality(report: ElectrodeReport) -> messages.ElectrodeQuality:
     """One electrode's quality as the status carries it (times in s on the EMG device clock)."""
     return messages.ElectrodeQuality(
-        source=report.source, channel=report.channel, group=report.group, state=report.state.value,
-        reasons=[f.value for f in report.faults], detail=report.detail, since_s=report.since_ns / 1e9,
-        check_s=report.check_s, bad_s=report.bad_s, episodes=report.episodes,
+        source=report.source,
+        channel=report.channel,
+        group=report.group,
+        state=report.state.value,
+        reasons=[f.value for f in report.faults],
+        detail=report.detail,
+        since_s=report.since_ns / 1e9,
+        check_s=report.check_s,
+        bad_s=report.bad_s,
+        episodes=report.episodes,
         episode_reasons={f.value: n for f, n in report.episode_faults.items()},
-        recent=[messages.FaultEpisode(start_s=e.start_ns / 1e9, worst=e.worst.value, reasons=[f.value for f in e.faults],
-                                      **({} if e.end_ns is None else {"end_s": e.end_ns / 1e9})) for e in report.recent],
+        recent=[
+            messages.FaultEpisode(
+                start_s=e.start_ns / 1e9,
+                worst=e.worst.value,
+                reasons=[f.value for f in e.faults],
+                **({} if e.end_ns is None else {"end_s": e.end_ns / 1e9}),
+            )
+            for e in report.recent
+        ],
     )
 
 
-def make_live_emg(subject: SubjectProfile | None, groups: list[str], *, emg: bool | None,
-                  electrode_map: dict[str, str] | None, clock: ClockMode | str, stall_s: float = 0.25,
-                  joints_clock: JointsClock | str = JointsClock.ARRIVAL, latency_ns: dict[str, int] | None = None,
-                  default_latency_ns: int = 0) -> LiveEmg | None:
+def make_live_emg(
+    subject: SubjectProfile | None,
+    groups: list[str],
+    *,
+    emg: bool | None,
+    electrode_map: dict[str, str] | None,
+    clock: ClockMode | str,
+    stall_s: float = 0.25,
+    joints_clock: JointsClock | str = JointsClock.ARRIVAL,
+    latency_ns: dict[str, int] | None = None,
+    default_latency_ns: int = 0,
+) -> LiveEmg | None:
     """The EMG path: on with ``emg=True``; with None, on when the profile or ``electrode_map`` maps electrodes."""
-    setup = EmgSetup.from_profile(subject, electrode_map) if subject is not None else EmgSetup(dict(electrode_map or {}), {})
+    setup = (
+        EmgSetup.from_profile(subject, electrode_map)
+        if subject is not None
+        else EmgSetup(dict(electrode_map or {}), {})
+    )
     if emg is None:
         emg = bool(setup.channel_group)
     if not emg:
         return None
     if not setup.channel_group:
-        raise ConfigError("the EMG path needs an electrode -> group map (from the subject profile or --emg-map)",
-                          field="emg_map")
-    return LiveEmg(groups, setup, clock=clock, stall_s=stall_s, joints_clock=joints_clock, latency_ns=latency_ns,
-                   default_latency_ns=default_latency_ns)
+        raise ConfigError(
+            "the EMG path needs an electrode -> group map (from the subject profile or --emg-map)", field="emg_map"
+        )
+    return LiveEmg(
+        groups,
+        setup,
+        clock=clock,
+        stall_s=stall_s,
+        joints_clock=joints_clock,
+        latency_ns=latency_ns,
+        default_latency_ns=default_latency_ns,
+    )
 
 
 @dataclass
@@ -221,13 +266,28 @@ class EstimatorNode:
     """The node's state between Zenoh and the estimators: load timeline, coordinate order, phase tracking, the EMG
     path; one ``handle_*`` per input kind, each returning the messages to publish (no Zenoh in here)."""
 
-    def __init__(self, pack: str, methods: list[str], subject: SubjectProfile | None, stats: EstimatorStats, *,
-                 emg: bool | None, electrode_map: dict[str, str] | None, emg_clock: ClockMode | str,
-                 emg_stall_s: float, initial_load_kg: float, exercise: str | None, solver: str,
-                 joints_clock: JointsClock | str = JointsClock.ARRIVAL, emg_latency_ns: dict[str, int] | None = None,
-                 default_emg_latency_ns: int = 0, emg_align: str = ALIGN_ARRIVAL,
-                 imu_latency_ns: dict[str, int] | None = None, default_imu_latency_ns: int = 0,
-                 emg_wait_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        pack: str,
+        methods: list[str],
+        subject: SubjectProfile | None,
+        stats: EstimatorStats,
+        *,
+        emg: bool | None,
+        electrode_map: dict[str, str] | None,
+        emg_clock: ClockMode | str,
+        emg_stall_s: float,
+        initial_load_kg: float,
+        exercise: str | None,
+        solver: str,
+        joints_clock: JointsClock | str = JointsClock.ARRIVAL,
+        emg_latency_ns: dict[str, int] | None = None,
+        default_emg_latency_ns: int = 0,
+        emg_align: str = ALIGN_ARRIVAL,
+        imu_latency_ns: dict[str, int] | None = None,
+        default_imu_latency_ns: int = 0,
+        emg_wait_s: float = 0.0,
+    ) -> None:
         """``emg_align``: with ``emg_clock`` "host", ``"acceleration"`` measures each EMG clock against the
         trackers' from the accelerations (the trackers mapped with ``imu_latency_ns`` / ``default_imu_latency_ns``
         as the kinematics node maps them); ``emg_wait_s``: how long a joint frame (:meth:`offer_joints`) may wait
@@ -235,20 +295,32 @@ class EstimatorNode:
         if solver not in SOLVERS:
             raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
         self.stats = stats
-        self.estimators = {m: FrameEstimator(pack, subject=subject, method=m, hot_start=solver == "active-set")
-                           for m in methods}
+        self.estimators = {
+            m: FrameEstimator(pack, subject=subject, method=m, hot_start=solver == "active-set") for m in methods
+        }
         for estimator in self.estimators.values():  # compiled kernels and solvers ready before the first live frame
             estimator.warm_up()
         first = next(iter(self.estimators.values()))
         self.mapper = CoordinateMapper(list(first.coordinates))
         # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
         self.live_phase = LivePhase.from_profile(subject, first.coordinates) if subject is not None else None
-        self.live_emg = make_live_emg(subject, list(first.groups), emg=emg, electrode_map=electrode_map,
-                                      clock=emg_clock, stall_s=emg_stall_s, joints_clock=joints_clock,
-                                      latency_ns=emg_latency_ns, default_latency_ns=default_emg_latency_ns)
+        self.live_emg = make_live_emg(
+            subject,
+            list(first.groups),
+            emg=emg,
+            electrode_map=electrode_map,
+            clock=emg_clock,
+            stall_s=emg_stall_s,
+            joints_clock=joints_clock,
+            latency_ns=emg_latency_ns,
+            default_latency_ns=default_emg_latency_ns,
+        )
         if "assisted" in self.estimators and self.live_emg is None:
-            raise ConfigError("method 'assisted' needs EMG: a subject profile with MVC normalisation or an electrode "
-                              "map", field="method", value="assisted")
+            raise ConfigError(
+                "method 'assisted' needs EMG: a subject profile with MVC normalisation or an electrode map",
+                field="method",
+                value="assisted",
+            )
         if self.live_emg is not None:
             stats.emg = self.live_emg.counters
         # each electrode judged from its raw EMG; a bad one is left out of its group's envelope
@@ -258,13 +330,20 @@ class EstimatorNode:
         # the EMG clock measured against the trackers': only where device clocks are mapped onto the host clock
         self.alignment = None
         if self.live_emg is not None and self.live_emg.clock is ClockMode.HOST and emg_align == ALIGN_ACCELERATION:
-            trackers = DeviceClocks("imu", latency_ns=imu_latency_ns, default_latency_ns=default_imu_latency_ns,
-                                    window_s=self.live_emg.clock_window_s)
+            trackers = DeviceClocks(
+                "imu",
+                latency_ns=imu_latency_ns,
+                default_latency_ns=default_imu_latency_ns,
+                window_s=self.live_emg.clock_window_s,
+            )
             self.alignment = AccelerationAlignment(self.live_emg, trackers)
         elif self.live_emg is not None and (imu_latency_ns or default_imu_latency_ns):
-            raise ConfigError("a tracker latency is used to measure the EMG clock against the trackers' (--emg-clock "
-                              "host --emg-align acceleration)", field="--imu-latency-ms",
-                              value={**(imu_latency_ns or {}), "default": default_imu_latency_ns})
+            raise ConfigError(
+                "a tracker latency is used to measure the EMG clock against the trackers' (--emg-clock "
+                "host --emg-align acceleration)",
+                field="--imu-latency-ms",
+                value={**(imu_latency_ns or {}), "default": default_imu_latency_ns},
+            )
         if not (np.isfinite(emg_wait_s) and 0 <= emg_wait_s <= 1.0):
             raise ConfigError("the wait for the EMG is 0..1000 ms", field="--emg-wait-ms", value=emg_wait_s * 1e3)
         self.emg_wait_ns = int(round(emg_wait_s * 1e9))
@@ -280,16 +359,30 @@ class EstimatorNode:
         self.stats.emg_chunks += 1
         live_emg, quality = self.live_emg, self.quality
         if live_emg is None or quality is None:
-            raise ConfigError("EMG reached an estimator running without its EMG path (--emg)", field="emg",
-                              value=chunk.source_id)
+            raise ConfigError(
+                "EMG reached an estimator running without its EMG path (--emg)", field="emg", value=chunk.source_id
+            )
         samples = np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels)
-        if quality.add_chunk(chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
-                             chunk.device_time_ns, samples, chunk.units):
+        if quality.add_chunk(
+            chunk.source_id,
+            chunk.channel_labels,
+            chunk.sample_rate_hz,
+            chunk.first_sample_index,
+            chunk.device_time_ns,
+            samples,
+            chunk.units,
+        ):
             self.stats.quality_changes += 1
         live_emg.exclude_channels(chunk.source_id, quality.bad_channels(chunk.source_id))
         block = live_emg.add_chunk(
-            chunk.source_id, chunk.channel_labels, chunk.sample_rate_hz, chunk.first_sample_index,
-            chunk.device_time_ns, samples, arrival_ns, chunk.host_time_ns or arrival_ns,  # the driver's receipt, else ours
+            chunk.source_id,
+            chunk.channel_labels,
+            chunk.sample_rate_hz,
+            chunk.first_sample_index,
+            chunk.device_time_ns,
+            samples,
+            arrival_ns,
+            chunk.host_time_ns or arrival_ns,  # the driver's receipt, else ours
         )
         if block is None or not block.groups:
             return None
@@ -315,8 +408,12 @@ class EstimatorNode:
         sample = messages.as_message(messages.ImuSample, sample)
         self.stats.imu_samples += 1
         a = sample.acceleration
-        self.alignment.add_tracker_sample(key.rsplit("/", 1)[1], sample.device_time_ns, sample.host_time_ns,
-                                          (a.x, a.y, a.z) if sample.HasField("acceleration") else None)
+        self.alignment.add_tracker_sample(
+            key.rsplit("/", 1)[1],
+            sample.device_time_ns,
+            sample.host_time_ns,
+            (a.x, a.y, a.z) if sample.HasField("acceleration") else None,
+        )
 
     def offer_joints(self, joints: messages.JointAngles | bytes, arrival_ns: int) -> None:
         """A joint frame to estimate once its EMG is here (:meth:`release`), in arrival order."""
@@ -328,8 +425,12 @@ class EstimatorNode:
         out = []
         while self._held:
             head = self._held[0]
-            if (not flush and self.live_emg is not None and now_ns - head.arrival_ns < self.emg_wait_ns
-                    and self.live_emg.awaits(head.joints.device_time_ns, now_ns)):
+            if (
+                not flush
+                and self.live_emg is not None
+                and now_ns - head.arrival_ns < self.emg_wait_ns
+                and self.live_emg.awaits(head.joints.device_time_ns, now_ns)
+            ):
                 for held in self._held:  # the frames behind it wait with it
                     held.waited = True
                 break
@@ -343,17 +444,23 @@ class EstimatorNode:
         stop the estimates of this pack while nothing is estimated for that exercise."""
         event = messages.as_message(messages.LoadEvent, event)
         if event.exercise and not is_known_exercise(event.exercise, self.own_exercises):
-            raise ConfigError(f"load event names an exercise that is not a model pack (known: "
-                              f"{', '.join(available_packs())})", field="LoadEvent.exercise", value=event.exercise)
+            raise ConfigError(
+                f"load event names an exercise that is not a model pack (known: {', '.join(available_packs())})",
+                field="LoadEvent.exercise",
+                value=event.exercise,
+            )
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
 
-    def handle_joints(self, payload: messages.JointAngles | bytes, arrival_ns: int) -> list[tuple[str, messages.ActivationFrame]]:
+    def handle_joints(
+        self, payload: messages.JointAngles | bytes, arrival_ns: int
+    ) -> list[tuple[str, messages.ActivationFrame]]:
         """(method, frame) for every method; empty when the frame is skipped (other exercise, wrong coordinates)."""
         return list(self.frames_for_joints(payload, arrival_ns))
 
-    def frames_for_joints(self, joints: messages.JointAngles | bytes, arrival_ns: int
-                          ) -> Iterator[tuple[str, messages.ActivationFrame]]:
+    def frames_for_joints(
+        self, joints: messages.JointAngles | bytes, arrival_ns: int
+    ) -> Iterator[tuple[str, messages.ActivationFrame]]:
         """:meth:`handle_joints` one method at a time, so each frame can be published as soon as it is solved."""
         stats = self.stats
         stats.frames_in += 1
@@ -362,8 +469,12 @@ class EstimatorNode:
         if current_exercise and current_exercise != self.exercise:
             stats.other_exercise += 1
             if stats.other_exercise == 1:
-                log.info("load events say %r is under way: frames are not estimated with pack %r until the "
-                         "exercise changes back", current_exercise, self.exercise)
+                log.info(
+                    "load events say %r is under way: frames are not estimated with pack %r until the "
+                    "exercise changes back",
+                    current_exercise,
+                    self.exercise,
+                )
             return
         try:
             q, qd, qdd = (self.mapper.take(joints, f) for f in ("q", "qd", "qdd"))
@@ -375,14 +486,23 @@ class EstimatorNode:
             return
         time_s = joints.device_time_ns / 1e9
         phase = self._phase(joints, time_s, q)
-        envelope, emg_flags = (None, []) if self.live_emg is None else self.live_emg.at(
-            joints.device_time_ns, arrival_ns, joints.host_time_ns or arrival_ns)
+        envelope, emg_flags = (
+            (None, [])
+            if self.live_emg is None
+            else self.live_emg.at(joints.device_time_ns, arrival_ns, joints.host_time_ns or arrival_ns)
+        )
         for flag in emg_flags:
             stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
         for method, estimator in self.estimators.items():
             result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
-            frame = to_message(result, method=method, groups=estimator.groups, coordinates=estimator.coordinates,
-                               time_s=time_s, arrival_ns=arrival_ns)
+            frame = to_message(
+                result,
+                method=method,
+                groups=estimator.groups,
+                coordinates=estimator.coordinates,
+                time_s=time_s,
+                arrival_ns=arrival_ns,
+            )
             frame.exercise = self.exercise
             if envelope is not None:
                 frame.measured_envelope.extend(envelope.tolist())
@@ -442,23 +562,39 @@ def main(
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else EstimatorStats()
     subject = SubjectProfile.load(subject_path) if subject_path is not None else None
-    node = EstimatorNode(pack, methods, subject, stats, emg=emg, electrode_map=electrode_map, emg_clock=emg_clock,
-                         emg_stall_s=emg_stall_s, initial_load_kg=initial_load_kg, exercise=exercise, solver=solver,
-                         joints_clock=joints_clock, emg_latency_ns=emg_latency_ns,
-                         default_emg_latency_ns=default_emg_latency_ns, emg_align=emg_align,
-                         imu_latency_ns=imu_latency_ns, default_imu_latency_ns=default_imu_latency_ns,
-                         emg_wait_s=emg_wait_s)
+    node = EstimatorNode(
+        pack,
+        methods,
+        subject,
+        stats,
+        emg=emg,
+        electrode_map=electrode_map,
+        emg_clock=emg_clock,
+        emg_stall_s=emg_stall_s,
+        initial_load_kg=initial_load_kg,
+        exercise=exercise,
+        solver=solver,
+        joints_clock=joints_clock,
+        emg_latency_ns=emg_latency_ns,
+        default_emg_latency_ns=default_emg_latency_ns,
+        emg_align=emg_align,
+        imu_latency_ns=imu_latency_ns,
+        default_imu_latency_ns=default_imu_latency_ns,
+        emg_wait_s=emg_wait_s,
+    )
     joints_key, load_key = topics.joints_key(session), topics.load_key(session)
     prefix = topics.session_prefix(session)
     emg_prefix, acc_prefix, imu_prefix = f"{prefix}/emg/", f"{prefix}/acc/", f"{prefix}/imu/"
 
     with open_session(config) as zsession:
         publishers = {
-            m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
+            m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame")
+            for m in methods
         }
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
-        reporter = StatusReporter(zsession, session, NODE_NAME, inputs, clocks=node.clock_report,
-                                  electrodes=node.electrode_report)
+        reporter = StatusReporter(
+            zsession, session, NODE_NAME, inputs, clocks=node.clock_report, electrodes=node.electrode_report
+        )
         stats.inputs = inputs.counts
         # One subscription for joints and load keeps a load event and the frames after it in publication order
         # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
@@ -483,8 +619,13 @@ def main(
             kind = (key, type(error).__name__)
             if kind not in said:
                 said.add(kind)
-                log.error("input on %s not used: %s (further ones counted in msk/%s/status/%s)", key, error,
-                          session, NODE_NAME)
+                log.error(
+                    "input on %s not used: %s (further ones counted in msk/%s/status/%s)",
+                    key,
+                    error,
+                    session,
+                    NODE_NAME,
+                )
 
         def estimate(final: bool = False) -> None:
             """The joint frames whose EMG is here (or that waited long enough), each method out when solved."""
@@ -527,43 +668,86 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pack", required=True, help="model pack name (e.g. bench_press, deadlift) or path")
     parser.add_argument("--session", required=True, help="session name: topics msk/<session>/...")
     parser.add_argument(
-        "--method", action="append", choices=["proposed", "so", "hybrid", "assisted"], default=None,
+        "--method",
+        action="append",
+        choices=["proposed", "so", "hybrid", "assisted"],
+        default=None,
         help="estimation method (repeatable; default: proposed with --subject, else so)",
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
-    parser.add_argument("--emg", action=argparse.BooleanOptionalAction, default=None,
-                        help="use the EMG on msk/<session>/emg/** (default: when the profile maps electrodes)")
-    parser.add_argument("--emg-map", action="append", default=[], metavar="CHANNEL=GROUP",
-                        help="electrode -> group (repeatable; default: the subject profile's map)")
-    parser.add_argument("--emg-clock", choices=[c.value for c in ClockMode], default=ClockMode.DEVICE.value,
-                        help="device: EMG and kinematics share one clock (recordings); host: align separate device "
-                        "clocks by host arrival (docs/topics.md)")
-    parser.add_argument("--joints-clock", choices=[c.value for c in JointsClock], default=JointsClock.ARRIVAL.value,
-                        help="with --emg-clock host: the joint frames' times are on the host clock already (host: "
-                        "the kinematics node ran with --imu-clock host) or on a device clock, mapped by their "
-                        "arrival (default)")
-    parser.add_argument("--emg-latency-ms", action="append", default=[], metavar="[SOURCE=]MS",
-                        help="with --emg-clock host: the stated latency of EMG source SOURCE (without SOURCE=: of "
-                        "every source not named), taken off before its clock is mapped (repeatable; default 0)")
-    parser.add_argument("--emg-align", choices=[ALIGN_ACCELERATION, ALIGN_ARRIVAL], default=ALIGN_ACCELERATION,
-                        help="with --emg-clock host: acceleration (default) measures each EMG clock against the "
-                        "trackers' from the accelerations (msk/<s>/acc/*, msk/<s>/imu/*) and maps the EMG through "
-                        "them once an EMG sensor moves with a tracker, the arrival mapping until then; arrival: the "
-                        "arrival mapping alone (docs/live.md, Clocks)")
-    parser.add_argument("--imu-latency-ms", action="append", default=[], metavar="[TRACKER=]MS",
-                        help="with --emg-align acceleration: the trackers' stated latencies, as the kinematics node "
-                        "is given them (repeatable; default 0)")
-    parser.add_argument("--emg-wait-ms", type=float, default=0.0,
-                        help="a joint frame waits up to this long for the EMG of its instant before it is estimated "
-                        "with the newest EMG there is (default 0: never waits)")
+    parser.add_argument(
+        "--emg",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="use the EMG on msk/<session>/emg/** (default: when the profile maps electrodes)",
+    )
+    parser.add_argument(
+        "--emg-map",
+        action="append",
+        default=[],
+        metavar="CHANNEL=GROUP",
+        help="electrode -> group (repeatable; default: the subject profile's map)",
+    )
+    parser.add_argument(
+        "--emg-clock",
+        choices=[c.value for c in ClockMode],
+        default=ClockMode.DEVICE.value,
+        help="device: EMG and kinematics share one clock (recordings); host: align separate device "
+        "clocks by host arrival (docs/topics.md)",
+    )
+    parser.add_argument(
+        "--joints-clock",
+        choices=[c.value for c in JointsClock],
+        default=JointsClock.ARRIVAL.value,
+        help="with --emg-clock host: the joint frames' times are on the host clock already (host: "
+        "the kinematics node ran with --imu-clock host) or on a device clock, mapped by their "
+        "arrival (default)",
+    )
+    parser.add_argument(
+        "--emg-latency-ms",
+        action="append",
+        default=[],
+        metavar="[SOURCE=]MS",
+        help="with --emg-clock host: the stated latency of EMG source SOURCE (without SOURCE=: of "
+        "every source not named), taken off before its clock is mapped (repeatable; default 0)",
+    )
+    parser.add_argument(
+        "--emg-align",
+        choices=[ALIGN_ACCELERATION, ALIGN_ARRIVAL],
+        default=ALIGN_ACCELERATION,
+        help="with --emg-clock host: acceleration (default) measures each EMG clock against the "
+        "trackers' from the accelerations (msk/<s>/acc/*, msk/<s>/imu/*) and maps the EMG through "
+        "them once an EMG sensor moves with a tracker, the arrival mapping until then; arrival: the "
+        "arrival mapping alone (docs/live.md, Clocks)",
+    )
+    parser.add_argument(
+        "--imu-latency-ms",
+        action="append",
+        default=[],
+        metavar="[TRACKER=]MS",
+        help="with --emg-align acceleration: the trackers' stated latencies, as the kinematics node "
+        "is given them (repeatable; default 0)",
+    )
+    parser.add_argument(
+        "--emg-wait-ms",
+        type=float,
+        default=0.0,
+        help="a joint frame waits up to this long for the EMG of its instant before it is estimated "
+        "with the newest EMG there is (default 0: never waits)",
+    )
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
-    parser.add_argument("--solver", choices=SOLVERS, default="active-set",
-                        help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
-                        "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')")
+    parser.add_argument(
+        "--solver",
+        choices=SOLVERS,
+        default="active-set",
+        help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
+        "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')",
+    )
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
     parser.add_argument(
-        "--exercise", default=None,
+        "--exercise",
+        default=None,
         help="estimate only while load events name this exercise (default: the pack's name, e.g. bench_press)",
     )
     add_zenoh_arguments(parser)
@@ -573,12 +757,19 @@ def run_from_args(args: argparse.Namespace) -> int:
     methods = args.method or (["proposed"] if args.subject else ["so"])
     for needs_prior in ("proposed", "assisted"):
         if needs_prior in methods and args.subject is None:
-            raise ConfigError(f"method {needs_prior!r} needs --subject (a calibrated profile with its prior)",
-                              field="--method", value=needs_prior)
+            raise ConfigError(
+                f"method {needs_prior!r} needs --subject (a calibrated profile with its prior)",
+                field="--method",
+                value=needs_prior,
+            )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    print(f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}", file=sys.stderr, flush=True)
+    print(
+        f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}",
+        file=sys.stderr,
+        flush=True,
+    )
     electrode_map = None
     if args.emg_map:
         electrode_map = {}
@@ -595,21 +786,44 @@ def run_from_args(args: argparse.Namespace) -> int:
         node = args.ready_key.rsplit("/", 1)[-1]
         ready = ReadySpec(args.session, node, tuple(args.ready_after))
     stats = main(
-        options_from_args(args), pack=args.pack, session=args.session, methods=methods,
-        subject_path=args.subject, initial_load_kg=args.load_kg, exercise=args.exercise, stop_event=stop,
-        emg=args.emg, electrode_map=electrode_map, emg_clock=args.emg_clock, ready_key=ready, solver=args.solver,
-        joints_clock=args.joints_clock, emg_latency_ns=latency_ns, default_emg_latency_ns=default_latency_ns,
-        emg_align=emg_align, imu_latency_ns=imu_latency_ns, default_imu_latency_ns=default_imu_latency_ns,
+        options_from_args(args),
+        pack=args.pack,
+        session=args.session,
+        methods=methods,
+        subject_path=args.subject,
+        initial_load_kg=args.load_kg,
+        exercise=args.exercise,
+        stop_event=stop,
+        emg=args.emg,
+        electrode_map=electrode_map,
+        emg_clock=args.emg_clock,
+        ready_key=ready,
+        solver=args.solver,
+        joints_clock=args.joints_clock,
+        emg_latency_ns=latency_ns,
+        default_emg_latency_ns=default_latency_ns,
+        emg_align=emg_align,
+        imu_latency_ns=imu_latency_ns,
+        default_imu_latency_ns=default_imu_latency_ns,
         emg_wait_s=args.emg_wait_ms / 1e3,
     )
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
-    print(f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
-          f"; inputs dropped {dropped or 'none'}"
-          + (f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
-             f"frames flagged {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
-             if stats.emg is not None else "")
-          + (f"; accelerations: {stats.acc_chunks} EMG-clock chunks, {stats.imu_samples} tracker samples"
-             if stats.acc_chunks or stats.imu_samples else ""), file=sys.stderr)
+    print(
+        f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
+        f"; inputs dropped {dropped or 'none'}"
+        + (
+            f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
+            f"frames flagged {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
+            if stats.emg is not None
+            else ""
+        )
+        + (
+            f"; accelerations: {stats.acc_chunks} EMG-clock chunks, {stats.imu_samples} tracker samples"
+            if stats.acc_chunks or stats.imu_samples
+            else ""
+        ),
+        file=sys.stderr,
+    )
     return 0
 
 

@@ -114,8 +114,9 @@ def wait_for_nodes(zsession: zenoh.Session, session: str, nodes: Sequence[str], 
     return time.monotonic() - started
 
 
-def wait_for(what: str, condition: Callable[[], bool], progress: Callable[[], str], timeout_s: float,
-             poll_s: float = 0.05) -> float:
+def wait_for(
+    what: str, condition: Callable[[], bool], progress: Callable[[], str], timeout_s: float, poll_s: float = 0.05
+) -> float:
     """Poll ``condition`` until true; on expiry raise :class:`GraphTimeout` with ``what`` and ``progress()``."""
     started = time.monotonic()
     deadline = started + timeout_s
@@ -148,8 +149,15 @@ class Graph:
     joins them (bounded), so a recorder closes its MCAP.
     """
 
-    def __init__(self, session: str, endpoint: str, *, external_listener: bool = False,
-                 role_configs: Callable[[str], Path] | None = None, observer_role: str = "operator") -> None:
+    def __init__(
+        self,
+        session: str,
+        endpoint: str,
+        *,
+        external_listener: bool = False,
+        role_configs: Callable[[str], Path] | None = None,
+        observer_role: str = "operator",
+    ) -> None:
         """``external_listener``: someone else (e.g. the caller's own session, a router) listens on ``endpoint``;
         every node connects to it. ``role_configs``: the secured mode; each member joins with the Zenoh config file
         of its role (TLS client of the router, ``services.security``), ``observer_role``'s for the readiness check."""
@@ -180,8 +188,9 @@ class Graph:
             return ZenohOptions(listen=(self.endpoint,))
         return ZenohOptions(connect=(self.endpoint,))
 
-    def add_thread(self, name: str, target: Callable, *args, after: Sequence[str] = (), role: str | None = None,
-                   **kwargs) -> None:
+    def add_thread(
+        self, name: str, target: Callable, *args, after: Sequence[str] = (), role: str | None = None, **kwargs
+    ) -> None:
         """Run ``target(options, *args, **kwargs, stop_event=, ready_event=, ready_key=)`` in a thread.
 
         ``after``: the nodes this one publishes to (see :class:`ReadySpec`)."""
@@ -191,8 +200,14 @@ class Graph:
 
         def run() -> None:
             try:
-                target(options, *args, **kwargs, stop_event=self.stop_event, ready_event=ready,
-                       ready_key=ReadySpec(self.session, name, tuple(after)))
+                target(
+                    options,
+                    *args,
+                    **kwargs,
+                    stop_event=self.stop_event,
+                    ready_event=ready,
+                    ready_key=ReadySpec(self.session, name, tuple(after)),
+                )
             except BaseException as error:  # reported by wait_ready/stop, not lost in a thread
                 node.error.append(error)
                 log.exception("node %s failed", name)
@@ -202,9 +217,17 @@ class Graph:
         node.thread.start()
         self._threads.append(node)
 
-    def add_process(self, name: str, argv: Sequence[str], *, after: Sequence[str] = (), log_path: Path | None = None,
-                    env: dict[str, str] | None = None, own_session: bool = False,
-                    role: str | None = None) -> subprocess.Popen:
+    def add_process(
+        self,
+        name: str,
+        argv: Sequence[str],
+        *,
+        after: Sequence[str] = (),
+        log_path: Path | None = None,
+        env: dict[str, str] | None = None,
+        own_session: bool = False,
+        role: str | None = None,
+    ) -> subprocess.Popen:
         """Start ``argv`` (its Zenoh flags, ``--ready-key`` and ``--ready-after`` appended) as a separate process.
 
         ``own_session``: in its own process group, so a Ctrl-C in the terminal reaches only the caller, which then
@@ -214,8 +237,11 @@ class Graph:
         flags += [f"--ready-after={n}" for n in after]
         out = open(log_path, "wb") if log_path is not None else subprocess.DEVNULL
         process = subprocess.Popen(
-            [*argv, *flags, "--ready-key", ready_key(self.session, name)], stdout=out, stderr=subprocess.STDOUT,
-            env={**os.environ, **(env or {})}, start_new_session=own_session,
+            [*argv, *flags, "--ready-key", ready_key(self.session, name)],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, **(env or {})},
+            start_new_session=own_session,
         )
         self._processes.append(_ProcessNode(name, process, log_path))
         return process
@@ -234,13 +260,17 @@ class Graph:
             self._raise_failed()
         for node in self._processes:
             if node.process.poll() is not None:
-                raise GraphTimeout(f"node {node.name} exited with code {node.process.returncode} before it was ready"
-                                   + self._log_tail(node))
+                raise GraphTimeout(
+                    f"node {node.name} exited with code {node.process.returncode} before it was ready"
+                    + self._log_tail(node)
+                )
         with open_session(self.observer_options()) as zsession:
             try:
                 wait_for_nodes(zsession, self.session, self.nodes, max(0.1, started + timeout_s - time.monotonic()))
             except GraphTimeout as error:
-                dead = [f"{n.name} (exit {n.process.returncode})" for n in self._processes if n.process.poll() is not None]
+                dead = [
+                    f"{n.name} (exit {n.process.returncode})" for n in self._processes if n.process.poll() is not None
+                ]
                 raise GraphTimeout(f"{error}" + (f"; exited: {dead}" if dead else "")) from None
         return time.monotonic() - started
 
@@ -291,7 +321,7 @@ class Graph:
                 log.error("node %s did not stop within %g s", thread_node.name, timeout_s)
         return codes
 
-    def __enter__(self) -> "Graph":
+    def __enter__(self) -> Graph:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -85,8 +85,11 @@ def load_template(path: Path) -> RepTemplate:
         raise FileFormatError("expected a JSON object", path=str(path))
     if "phase_model" in doc:
         if not isinstance(doc["phase_model"], dict):
-            raise FileFormatError("the subject profile has no rep template (calibrated without a kinematic phase "
-                                  "coordinate)", path=str(path), field="phase_model")
+            raise FileFormatError(
+                "the subject profile has no rep template (calibrated without a kinematic phase coordinate)",
+                path=str(path),
+                field="phase_model",
+            )
         doc = doc["phase_model"].get("template", {})
     return RepTemplate.from_dict(doc)
 
@@ -99,41 +102,71 @@ class KinematicsNode:
     """The node's state between Zenoh and the IMU kinematics: segment synchroniser, streaming kinematics, counters.
     :meth:`handle` takes one IMU message and returns the JointAngles to publish (no Zenoh in here)."""
 
-    def __init__(self, pack: str, session: str, stats: KinematicsStats, *, facing_deg: float,
-                 static_pose_deg: dict[str, float] | None, static_s: float, gap_s: float, sync_tolerance_s: float,
-                 max_wait_s: float, filter_config: KinematicsFilterConfig | None, phase_template: RepTemplate | None,
-                 phase_coordinate: str | None, clock: str = "device", latency_ns: dict[str, int] | None = None,
-                 default_latency_ns: int = 0, clock_window_s: float = WINDOW_S) -> None:
+    def __init__(
+        self,
+        pack: str,
+        session: str,
+        stats: KinematicsStats,
+        *,
+        facing_deg: float,
+        static_pose_deg: dict[str, float] | None,
+        static_s: float,
+        gap_s: float,
+        sync_tolerance_s: float,
+        max_wait_s: float,
+        filter_config: KinematicsFilterConfig | None,
+        phase_template: RepTemplate | None,
+        phase_coordinate: str | None,
+        clock: str = "device",
+        latency_ns: dict[str, int] | None = None,
+        default_latency_ns: int = 0,
+        clock_window_s: float = WINDOW_S,
+    ) -> None:
         """``latency_ns``: per tracker id (its topic's last chunk), its stated latency; trackers not named have
         ``default_latency_ns`` (``clock="host"`` only: with one device clock nothing is mapped)."""
         if clock not in ("device", "host"):
             raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
         self.clock = clock
         # per tracker: its device clock -> the host clock (the estimator maps the trackers with the same rule)
-        self.host_clocks = DeviceClocks("imu", latency_ns=latency_ns, default_latency_ns=default_latency_ns,
-                                        window_s=clock_window_s)
+        self.host_clocks = DeviceClocks(
+            "imu", latency_ns=latency_ns, default_latency_ns=default_latency_ns, window_s=clock_window_s
+        )
         if clock == "device" and (self.host_clocks.default_latency_ns or any(self.host_clocks.latency_ns.values())):
-            raise ConfigError("a tracker latency is applied when the trackers' clocks are mapped onto the host clock "
-                              "(--imu-clock host); with one device clock nothing is mapped", field="latency",
-                              value={**self.host_clocks.latency_ns, "default": self.host_clocks.default_latency_ns})
+            raise ConfigError(
+                "a tracker latency is applied when the trackers' clocks are mapped onto the host clock "
+                "(--imu-clock host); with one device clock nothing is mapped",
+                field="latency",
+                value={**self.host_clocks.latency_ns, "default": self.host_clocks.default_latency_ns},
+            )
         self.device_trackers: set[str] = set()  # trackers seen on the shared device clock
         self.stats = stats
         self.model = load_pack(pack)
         # ENU: x east, y north; the mapping's heading is counter-clockwise from x
         self.mapper = ImuJointMapper.for_pack(self.model, heading_rad=math.radians(90.0 - facing_deg))
         if (phase_template is None) != (phase_coordinate is None):
-            raise ConfigError("phase tracking needs both a rep template and a coordinate", field="phase_coordinate",
-                              value=phase_coordinate)
+            raise ConfigError(
+                "phase tracking needs both a rep template and a coordinate",
+                field="phase_coordinate",
+                value=phase_coordinate,
+            )
         if phase_coordinate is not None and phase_coordinate not in self.mapper.coordinates:
-            raise ConfigError(f"not a coordinate of pack {self.model.name!r} ({self.mapper.coordinates})",
-                              field="phase_coordinate", value=phase_coordinate)
+            raise ConfigError(
+                f"not a coordinate of pack {self.model.name!r} ({self.mapper.coordinates})",
+                field="phase_coordinate",
+                value=phase_coordinate,
+            )
         self.kinematics = StreamingJointKinematics(
-            self.mapper, static_pose_rad=self.mapper.static_pose(static_pose_deg), static_s=static_s, gap_s=gap_s,
+            self.mapper,
+            static_pose_rad=self.mapper.static_pose(static_pose_deg),
+            static_s=static_s,
+            gap_s=gap_s,
             filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
-            phase_template=phase_template, phase_coordinate=phase_coordinate,
+            phase_template=phase_template,
+            phase_coordinate=phase_coordinate,
         )
-        self.sync = SegmentSynchroniser(self.mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9),
-                                        max_wait_ns=int(max_wait_s * 1e9))
+        self.sync = SegmentSynchroniser(
+            self.mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9), max_wait_ns=int(max_wait_s * 1e9)
+        )
         self.needed = set(self.mapper.segments)
         self.coordinates = list(self.mapper.coordinates)
         self.prefix = f"{topics.session_prefix(session)}/imu/"
@@ -193,9 +226,11 @@ class KinematicsNode:
             stats.samples_discarded += event.samples
             for s in event.missing:
                 stats.missing[s] = stats.missing.get(s, 0) + 1
-            stats.last_error = (f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
-                                f"(topics {self.prefix}<tracker>; pack {self.model.name!r} needs "
-                                f"{self.mapper.segments})")
+            stats.last_error = (
+                f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
+                f"(topics {self.prefix}<tracker>; pack {self.model.name!r} needs "
+                f"{self.mapper.segments})"
+            )
             if stats.frames_incomplete == 1:
                 log.error("%s", stats.last_error)
             return None
@@ -205,8 +240,12 @@ class KinematicsNode:
         if out is None:
             return None
         joints = messages.JointAngles(
-            coordinates=self.coordinates, q=out.q.tolist(), qd=out.qd.tolist(), qdd=out.qdd.tolist(),
-            device_time_ns=out.time_ns, host_time_ns=messages.now_ns(),
+            coordinates=self.coordinates,
+            q=out.q.tolist(),
+            qd=out.qd.tolist(),
+            qdd=out.qdd.tolist(),
+            device_time_ns=out.time_ns,
+            host_time_ns=messages.now_ns(),
         )
         if np.isfinite(out.phase):  # left unset = unknown (no rep template); -1 = between reps
             joints.phase = out.phase
@@ -247,11 +286,23 @@ def main(
     ``default_latency_ns`` for the others)."""
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else KinematicsStats()
-    node = KinematicsNode(pack, session, stats, facing_deg=facing_deg, static_pose_deg=static_pose_deg,
-                          static_s=static_s, gap_s=gap_s, sync_tolerance_s=sync_tolerance_s, max_wait_s=max_wait_s,
-                          filter_config=filter_config, phase_template=phase_template,
-                          phase_coordinate=phase_coordinate, clock=clock, latency_ns=latency_ns,
-                          default_latency_ns=default_latency_ns)
+    node = KinematicsNode(
+        pack,
+        session,
+        stats,
+        facing_deg=facing_deg,
+        static_pose_deg=static_pose_deg,
+        static_s=static_s,
+        gap_s=gap_s,
+        sync_tolerance_s=sync_tolerance_s,
+        max_wait_s=max_wait_s,
+        filter_config=filter_config,
+        phase_template=phase_template,
+        phase_coordinate=phase_coordinate,
+        clock=clock,
+        latency_ns=latency_ns,
+        default_latency_ns=default_latency_ns,
+    )
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
         inputs = NodeInputs(zsession, NODE_NAME, expected_type="msk.ImuSample", role=config.role)
@@ -289,10 +340,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--pack", required=True, help="model pack with an IMU table: bench_press or deadlift")
     add("--session", required=True, help="session name: reads msk/<session>/imu/*")
     add("--out-session", default=None, help="publish on msk/<OUT>/joints (default: --session)")
-    add("--facing-deg", type=float, default=0.0,
-        help="compass direction the subject faces during calibration, degrees (0 north, 90 east; default 0)")
-    add("--static-pose", default="", metavar="NAME=DEG,...",
-        help="pose held during calibration, degrees (default: the pack table's, see docs/kinematics.md)")
+    add(
+        "--facing-deg",
+        type=float,
+        default=0.0,
+        help="compass direction the subject faces during calibration, degrees (0 north, 90 east; default 0)",
+    )
+    add(
+        "--static-pose",
+        default="",
+        metavar="NAME=DEG,...",
+        help="pose held during calibration, degrees (default: the pack table's, see docs/kinematics.md)",
+    )
     add("--static-s", type=float, default=0.5, help="seconds of static pose at the start of a set (default 0.5)")
     add("--gap", type=float, default=1.0, help="an IMU gap longer than this (s) starts a new set (default 1)")
     add("--sync-tolerance-ms", type=float, default=8.0, help="trackers' samples this close are one instant (default 8)")
@@ -300,14 +359,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--angle-std-deg", type=float, default=1.0, help="Kalman measurement noise, degrees (default 1)")
     add("--imu-rate", type=float, default=60.0, help="nominal IMU rate, Hz (default 60; dt comes from timestamps)")
     add("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
-    add("--phase-template", type=Path, default=None,
-        help="rep template JSON (a subject profile from msk calibrate, or a RepTemplate dict) learnt in radians")
-    add("--imu-clock", choices=["device", "host"], default="device",
+    add(
+        "--phase-template",
+        type=Path,
+        default=None,
+        help="rep template JSON (a subject profile from msk calibrate, or a RepTemplate dict) learnt in radians",
+    )
+    add(
+        "--imu-clock",
+        choices=["device", "host"],
+        default="device",
         help="device: the trackers share one clock (recordings); host: separate trackers, each device clock mapped "
-        "to the host clock (docs/kinematics.md)")
-    add("--imu-latency-ms", action="append", default=[], metavar="[TRACKER=]MS",
+        "to the host clock (docs/kinematics.md)",
+    )
+    add(
+        "--imu-latency-ms",
+        action="append",
+        default=[],
+        metavar="[TRACKER=]MS",
         help="with --imu-clock host: the stated latency of tracker TRACKER (without TRACKER=: of every tracker not "
-        "named), taken off before its clock is mapped (repeatable; default 0)")
+        "named), taken off before its clock is mapped (repeatable; default 0)",
+    )
     add("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
     add("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     add_zenoh_arguments(parser)
@@ -323,26 +395,43 @@ def run_from_args(args: argparse.Namespace) -> int:
     pose = parse_pose(args.static_pose, list(model.coordinates))
     template = load_template(args.phase_template) if args.phase_template is not None else None
     filter_config = KinematicsFilterConfig(
-        dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg))
+        dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg)
+    )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     latency_ns, default_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
     out = args.out_session or args.session
-    print(f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}",
-          file=sys.stderr, flush=True)
+    print(
+        f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}", file=sys.stderr, flush=True
+    )
     stats = main(
-        options_from_args(args), pack=args.pack, session=args.session, output_session=args.out_session,
-        facing_deg=args.facing_deg, static_pose_deg=pose, static_s=args.static_s, gap_s=args.gap,
-        sync_tolerance_s=args.sync_tolerance_ms / 1e3, filter_config=filter_config, phase_template=template,
-        phase_coordinate=args.phase_coordinate, stop_event=stop, clock=args.imu_clock, latency_ns=latency_ns,
+        options_from_args(args),
+        pack=args.pack,
+        session=args.session,
+        output_session=args.out_session,
+        facing_deg=args.facing_deg,
+        static_pose_deg=pose,
+        static_s=args.static_s,
+        gap_s=args.gap,
+        sync_tolerance_s=args.sync_tolerance_ms / 1e3,
+        filter_config=filter_config,
+        phase_template=template,
+        phase_coordinate=args.phase_coordinate,
+        stop_event=stop,
+        clock=args.imu_clock,
+        latency_ns=latency_ns,
         default_latency_ns=default_latency_ns,
         ready_key=ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
-        if args.ready_key else None,
+        if args.ready_key
+        else None,
     )
-    print(f"published {stats.frames_out} frames; calibrations {stats.calibrations}; incomplete instants "
-          f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"
-          + (f"; last error: {stats.last_error}" if stats.last_error else ""), file=sys.stderr)
+    print(
+        f"published {stats.frames_out} frames; calibrations {stats.calibrations}; incomplete instants "
+        f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"
+        + (f"; last error: {stats.last_error}" if stats.last_error else ""),
+        file=sys.stderr,
+    )
     return 0
 
 

@@ -97,12 +97,17 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
             counts = {name: m / rate_slow * rate for name, (_, rate) in streams.items()}
             if all(abs(c - round(c)) < 1e-6 and round(c) <= streams[name][0] for name, c in counts.items()):
                 return {name: int(round(c)) for name, c in counts.items()}
-        raise InputError(f"the {pack} trial's streams have no common duration within its shorter half, so the "
-                         "simulators could not loop together", path=recording,
-                         value={name: rate for name, (_, rate) in streams.items()})
+        raise InputError(
+            f"the {pack} trial's streams have no common duration within its shorter half, so the "
+            "simulators could not loop together",
+            path=recording,
+            value={name: rate for name, (_, rate) in streams.items()},
+        )
 
     if not recording.is_file():
-        raise InputError("bundled session not found (generate it with `msk synth`, recordings/README.md)", path=recording)
+        raise InputError(
+            "bundled session not found (generate it with `msk synth`, recordings/README.md)", path=recording
+        )
     windows, start = [], None
     for m in read_messages(recording):
         if m.type_name == "msk.LoadEvent":
@@ -115,7 +120,9 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
                 windows.append((start[0], e.device_time_ns, start[1]))
                 start = None
     if not windows:
-        raise InputError(f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack)
+        raise InputError(
+            f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack
+        )
     t0, t1, load = windows[-1]
     emg_rows: list[np.ndarray] = []
     labels: list[str] | None = None
@@ -140,13 +147,17 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
             if t0 <= s.device_time_ns < t1:
                 o, a, g, b = s.orientation, s.acceleration, s.rate_of_turn, s.magnetic_field
                 imu.setdefault(s.tracker_id, (s.segment, []))[1].append(
-                    (s.device_time_ns, [o.w, o.x, o.y, o.z], [a.x, a.y, a.z], [g.x, g.y, g.z], [b.x, b.y, b.z]))
+                    (s.device_time_ns, [o.w, o.x, o.y, o.z], [a.x, a.y, a.z], [g.x, g.y, g.z], [b.x, b.y, b.z])
+                )
     if not emg_rows or not imu or labels is None or rate is None or emg_start is None:  # all set with the EMG
         raise InputError(f"no EMG or IMU samples in the {pack} trial of the bundled session", path=recording)
     starts = {"emg": emg_start, **{t: min(r[0] for r in rows) for t, (_, rows) in imu.items()}}
     if max(starts.values()) - min(starts.values()) > 1e9 / (2 * rate):
-        raise InputError(f"the {pack} trial's streams do not start at one instant (first samples at device times "
-                         f"{starts} ns): the simulators could not sample one world", path=recording)
+        raise InputError(
+            f"the {pack} trial's streams do not start at one instant (first samples at device times "
+            f"{starts} ns): the simulators could not sample one world",
+            path=recording,
+        )
     emg = np.concatenate(emg_rows)
     if emg.shape[1] > N_SENSORS:
         raise InputError(f"{emg.shape[1]} EMG channels exceed the Trigno's {N_SENSORS} sensors", path=recording)
@@ -154,28 +165,39 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     for tracker, (_, rows) in imu.items():
         rows.sort(key=lambda r: r[0])
         imu_rates[tracker] = float(round(1.0 / np.median(np.diff(np.array([r[0] for r in rows], dtype=float) / 1e9))))
-    counts = _common_loop({"emg": (emg.shape[0], float(rate)),
-                          **{t: (len(rows), imu_rates[t]) for t, (_, rows) in imu.items()}})
+    counts = _common_loop(
+        {"emg": (emg.shape[0], float(rate)), **{t: (len(rows), imu_rates[t]) for t, (_, rows) in imu.items()}}
+    )
     samples = np.zeros((counts["emg"], N_SENSORS), dtype=np.float32)
     samples[:, : emg.shape[1]] = emg[: counts["emg"]]
     names = tuple(labels) + ("",) * (N_SENSORS - len(labels))
     acc_rate, acc = electrode_accelerations(joints, labels, pack, emg_start, recording)
     slot_acc = np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
     slot_acc[:, : len(labels)] = acc
-    source = EmgSource(samples, float(rate), names, tuple(k < len(labels) for k in range(N_SENSORS)),
-                       f"{recording.name}:{pack}", slot_acc, acc_rate)
+    source = EmgSource(
+        samples,
+        float(rate),
+        names,
+        tuple(k < len(labels) for k in range(N_SENSORS)),
+        f"{recording.name}:{pack}",
+        slot_acc,
+        acc_rate,
+    )
     trackers = {}
     for tracker, (segment, rows) in imu.items():
         rows = rows[: counts[tracker]]
-        arrays = {name: np.array([r[k] for r in rows], dtype=float)
-                  for k, name in enumerate(("quaternion", "acceleration", "rate_of_turn", "magnetic_field"), start=1)}
+        arrays = {
+            name: np.array([r[k] for r in rows], dtype=float)
+            for k, name in enumerate(("quaternion", "acceleration", "rate_of_turn", "magnetic_field"), start=1)
+        }
         trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
     electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(labels)}
     return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg")
 
 
-def electrode_accelerations(joints: list, channels: list[str], pack: str, start_ns: int, recording: Path
-                            ) -> tuple[float, np.ndarray]:
+def electrode_accelerations(
+    joints: list, channels: list[str], pack: str, start_ns: int, recording: Path
+) -> tuple[float, np.ndarray]:
     """(rate in Hz, (n, channels, 3) in g): what each EMG sensor's accelerometer measures during the recorded trial,
     at the recorded joint frames' instants from ``start_ns`` (the trial's first EMG sample) on. The synthetic
     generator's own model (:func:`msk_core.synth.imu.simulate_electrode_acc`): each channel's site on the pack body
@@ -190,9 +212,12 @@ def electrode_accelerations(joints: list, channels: list[str], pack: str, start_
     model = load_pack(pack)
     specs = [spec for spec in SPECS.values() if spec.pack == model.name]
     if not joints or not specs:
-        raise InputError(f"the {pack} trial of the bundled session has no joint frames, or no synthetic exercise "
-                         "uses the pack: the simulated Trigno sensors' accelerations cannot be computed",
-                         path=recording, value=(len(joints), model.name))
+        raise InputError(
+            f"the {pack} trial of the bundled session has no joint frames, or no synthetic exercise "
+            "uses the pack: the simulated Trigno sensors' accelerations cannot be computed",
+            path=recording,
+            value=(len(joints), model.name),
+        )
     names = list(joints[0].coordinates)
     missing = [c for c in model.coordinates if c not in names]
     if missing:
@@ -202,11 +227,15 @@ def electrode_accelerations(joints: list, channels: list[str], pack: str, start_
     times = np.array([j.device_time_ns for j in joints], dtype=np.int64)
     step_ns = float(np.median(np.diff(times)))
     if abs(times[0] - start_ns) > 1000 or np.any(np.abs(np.diff(times) - step_ns) > 1000):  # 1 µs: rounding
-        raise InputError("the recorded joint frames do not start with the EMG or are not evenly spaced",
-                         path=recording, value=(int(times[0]), int(start_ns)))
+        raise InputError(
+            "the recorded joint frames do not start with the EMG or are not evenly spaced",
+            path=recording,
+            value=(int(times[0]), int(start_ns)),
+        )
     time_s = np.arange(len(joints)) * step_ns / 1e9
-    stream = simulate_electrode_acc(model, specs[0].electrode_sites, list(channels), time_s, q, qd, qdd, seed=0,
-                                    key=("live-sim", model.name))
+    stream = simulate_electrode_acc(
+        model, specs[0].electrode_sites, list(channels), time_s, q, qd, qdd, seed=0, key=("live-sim", model.name)
+    )
     return 1e9 / step_ns, (stream.acceleration / STANDARD_GRAVITY).astype(np.float32)
 
 
@@ -233,19 +262,36 @@ class Simulators:
     def sent(self) -> dict:
         """Per device: what it sent, its stated latency and the trial sample it started streaming at."""
         t = self.trigno.stats
-        return {"trigno": {"samples": t.samples_sent, "frames": t.frames_sent, "latency_s": t.latency_s,
-                           "start_index": t.start_index,
-                           **({"faults": [f.describe() for f in self.trigno.config.faults]}
-                              if self.trigno.config.faults else {})},
-                **{tracker: {"samples": s.stats.messages_sent, "bytes_dropped": s.stats.bytes_dropped,
-                             "latency_s": s.stats.latency_s, "start_index": s.stats.start_index,
-                             "samples_skipped": s.stats.samples_skipped} for tracker, s in self.xsens.items()}}
+        return {
+            "trigno": {
+                "samples": t.samples_sent,
+                "frames": t.frames_sent,
+                "latency_s": t.latency_s,
+                "start_index": t.start_index,
+                **({"faults": [f.describe() for f in self.trigno.config.faults]} if self.trigno.config.faults else {}),
+            },
+            **{
+                tracker: {
+                    "samples": s.stats.messages_sent,
+                    "bytes_dropped": s.stats.bytes_dropped,
+                    "latency_s": s.stats.latency_s,
+                    "start_index": s.stats.start_index,
+                    "samples_skipped": s.stats.samples_skipped,
+                }
+                for tracker, s in self.xsens.items()
+            },
+        }
 
 
-def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
-                     xsens_latency_s: float | dict[str, float] = 0.0, clock: TrialClock | None = None,
-                     trackers_after_trigno_s: float | None = None,
-                     trigno_faults: tuple[SensorFault, ...] = ()) -> Simulators:
+def start_simulators(
+    sources: SimSources,
+    *,
+    trigno_latency_s: float = 0.0,
+    xsens_latency_s: float | dict[str, float] = 0.0,
+    clock: TrialClock | None = None,
+    trackers_after_trigno_s: float | None = None,
+    trigno_faults: tuple[SensorFault, ...] = (),
+) -> Simulators:
     """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
     that starts when the first device starts streaming, so the set begins with its static pose as the first device
     is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
@@ -261,9 +307,18 @@ def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
     clock = TrialClock() if clock is None else clock
     # free ports: several sessions (tests, users) may run side by side; the AUX port carries the sensors'
     # accelerometers, no legacy listeners needed
-    trigno = TrignoSimulator(sources.emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=0,
-                                                          trial_clock=clock, latency_s=trigno_latency_s,
-                                                          faults=tuple(trigno_faults))).start()
+    trigno = TrignoSimulator(
+        sources.emg,
+        SimulatorConfig(
+            command_port=0,
+            emg_port=0,
+            legacy_emg_port=None,
+            aux_port=0,
+            trial_clock=clock,
+            latency_s=trigno_latency_s,
+            faults=tuple(trigno_faults),
+        ),
+    ).start()
 
     def after_trigno() -> float | None:  # passed on only with trackers_after_trigno_s
         start = trigno.stats.start_index
@@ -278,8 +333,13 @@ def start_simulators(sources: SimSources, *, trigno_latency_s: float = 0.0,
             # nobody has opened yet (a real MTi would, and those messages would never be read)
             latency_s = xsens_latency_s.get(tracker, 0.0) if isinstance(xsens_latency_s, dict) else xsens_latency_s
             xsens[tracker] = XsensSimulator(
-                source, device_id=int(tracker, 16), wakeup_window_s=3600.0, trial_clock=clock, latency_s=latency_s,
-                measure_not_before=None if trackers_after_trigno_s is None else after_trigno).start()
+                source,
+                device_id=int(tracker, 16),
+                wakeup_window_s=3600.0,
+                trial_clock=clock,
+                latency_s=latency_s,
+                measure_not_before=None if trackers_after_trigno_s is None else after_trigno,
+            ).start()
     except BaseException:
         trigno.close()
         for sim in xsens.values():
@@ -353,8 +413,12 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                     nodes[s.device_id] = s
                     continue
                 lost[s.device_id] = int(s.samples_lost)
-                status_seen[s.device_id] = {"kind": s.kind, "connected": s.connected, "errors": int(s.errors),
-                                            "last_error": s.last_error}
+                status_seen[s.device_id] = {
+                    "kind": s.kind,
+                    "connected": s.connected,
+                    "errors": int(s.errors),
+                    "last_error": s.last_error,
+                }
             elif t == "msk.ActivationFrame":
                 f = m.decode(messages.ActivationFrame)
                 frames[f.method] += 1
@@ -392,12 +456,22 @@ def electrode_summary(electrode: messages.ElectrodeQuality) -> dict:
     group, the state at the end, the time spent in check and bad, the fault episodes (how many, per fault how many
     it was raised in, and the last ones with their device times)."""
     return {
-        "group": electrode.group, "state": electrode.state, "reasons": list(electrode.reasons),
-        "check_s": round(electrode.check_s, 3), "bad_s": round(electrode.bad_s, 3), "episodes": int(electrode.episodes),
+        "group": electrode.group,
+        "state": electrode.state,
+        "reasons": list(electrode.reasons),
+        "check_s": round(electrode.check_s, 3),
+        "bad_s": round(electrode.bad_s, 3),
+        "episodes": int(electrode.episodes),
         "episode_reasons": dict(sorted(electrode.episode_reasons.items())),
-        "recent_episodes": [{"start_s": round(e.start_s, 4),
-                             "end_s": round(e.end_s, 4) if e.HasField("end_s") else None,
-                             "worst": e.worst, "reasons": list(e.reasons)} for e in electrode.recent],
+        "recent_episodes": [
+            {
+                "start_s": round(e.start_s, 4),
+                "end_s": round(e.end_s, 4) if e.HasField("end_s") else None,
+                "worst": e.worst,
+                "reasons": list(e.reasons),
+            }
+            for e in electrode.recent
+        ],
     }
 
 
@@ -406,24 +480,42 @@ def clock_summary(clock: messages.ClockOffset, node: str) -> dict:
     the latency taken off, the method and why, and, with an offset measured another way, the arrival mapping it
     replaces and that mapping's error (arrival minus applied: how much later it would have put every sample); per
     tracker the acceleration alignment's estimate (``device_offset_ms``: tracker device time minus EMG device time)."""
-    out = {"offset_ms": clock.offset_ms, "spread_ms": round(clock.spread_ms, 3), "latency_ms": round(clock.latency_ms, 3),
-           "method": clock.method, "samples": int(clock.samples), "node": node}
+    out = {
+        "offset_ms": clock.offset_ms,
+        "spread_ms": round(clock.spread_ms, 3),
+        "latency_ms": round(clock.latency_ms, 3),
+        "method": clock.method,
+        "samples": int(clock.samples),
+        "node": node,
+    }
     if clock.reason:
         out["reason"] = clock.reason
     if clock.HasField("arrival_offset_ms"):
         out["arrival_offset_ms"] = clock.arrival_offset_ms
         out["arrival_error_ms"] = round(clock.arrival_offset_ms - clock.offset_ms, 3)
     if clock.alignments:
-        out["alignments"] = {a.reference: {
-            "status": a.status, "reason": a.reason, "device_offset_ms": a.device_offset_ms,
-            "spread_ms": round(a.spread_ms, 3), "drift_ppm": round(a.drift_ppm, 3),
-            "peak_correlation": round(a.peak_correlation, 4), "sensor": a.sensor, "windows": int(a.windows),
-            "host_offset_ms": a.host_offset_ms} for a in clock.alignments}
+        out["alignments"] = {
+            a.reference: {
+                "status": a.status,
+                "reason": a.reason,
+                "device_offset_ms": a.device_offset_ms,
+                "spread_ms": round(a.spread_ms, 3),
+                "drift_ppm": round(a.drift_ppm, 3),
+                "peak_correlation": round(a.peak_correlation, 4),
+                "sensor": a.sensor,
+                "windows": int(a.windows),
+                "host_offset_ms": a.host_offset_ms,
+            }
+            for a in clock.alignments
+        }
     return out
 
 
 def summary_text(summary: dict) -> str:
-    lines = [f"session of {summary['duration_s']:.1f} s" + (f", stopped by {summary['stopped_by']}" if "stopped_by" in summary else "")]
+    lines = [
+        f"session of {summary['duration_s']:.1f} s"
+        + (f", stopped by {summary['stopped_by']}" if "stopped_by" in summary else "")
+    ]
     for device, n in summary["samples"].items():
         name = device.split("/", 1)[1]
         lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost")
@@ -433,27 +525,39 @@ def summary_text(summary: dict) -> str:
         lines.append(f"  {method}: {n} frames estimated; flags {', '.join(f'{k} {v}' for k, v in f.items()) or 'none'}")
     for node, per_key in summary.get("inputs_dropped", {}).items():
         if per_key:
-            lines.append(f"  {node} dropped unusable inputs: " + ", ".join(
-                f"{key} {reason} {n}" for key, reasons in per_key.items() for reason, n in reasons.items()))
+            lines.append(
+                f"  {node} dropped unusable inputs: "
+                + ", ".join(f"{key} {reason} {n}" for key, reasons in per_key.items() for reason, n in reasons.items())
+            )
     for node, text in summary.get("node_last_error", {}).items():
         lines.append(f"  {node}: {summary['node_errors'][node]} inputs not used, last: {text}")
     for source, clock in summary.get("clocks", {}).items():
-        lines.append(f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "
-                     f"{clock['latency_ms']:g} ms ({clock['node']})"
-                     + (f"; the arrival mapping was {clock['arrival_error_ms']:+.1f} ms off"
-                        if "arrival_error_ms" in clock else "")
-                     + (f"; {clock['reason']}" if clock.get("method") == "arrival" and clock.get("reason") else ""))
+        lines.append(
+            f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "
+            f"{clock['latency_ms']:g} ms ({clock['node']})"
+            + (
+                f"; the arrival mapping was {clock['arrival_error_ms']:+.1f} ms off"
+                if "arrival_error_ms" in clock
+                else ""
+            )
+            + (f"; {clock['reason']}" if clock.get("method") == "arrival" and clock.get("reason") else "")
+        )
     electrodes = summary.get("electrodes", {})
     faulty = {name: e for name, e in electrodes.items() if e["episodes"]}
     if electrodes:
         lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
     for name, e in faulty.items():
-        lines.append(f"  electrode {name}" + (f" ({e['group']})" if e["group"] else "")
-                     + f": {e['episodes']} fault episode{'s' if e['episodes'] != 1 else ''} ("
-                     + ", ".join(f"{reason} {n}" for reason, n in e["episode_reasons"].items())
-                     + f"), {e['check_s']:.1f} s check, {e['bad_s']:.1f} s bad; now {e['state']}")
+        lines.append(
+            f"  electrode {name}"
+            + (f" ({e['group']})" if e["group"] else "")
+            + f": {e['episodes']} fault episode{'s' if e['episodes'] != 1 else ''} ("
+            + ", ".join(f"{reason} {n}" for reason, n in e["episode_reasons"].items())
+            + f"), {e['check_s']:.1f} s check, {e['bad_s']:.1f} s bad; now {e['state']}"
+        )
     if "simulators_sent" in summary:
-        lines.append("  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items()))
+        lines.append(
+            "  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items())
+        )
     return "\n".join(lines)
 
 
@@ -472,7 +576,9 @@ class LivePlan:
     xsens_ports: list[str] = field(default_factory=list)
     trackers: dict[str, str] = field(default_factory=dict)
     exercise: str = ""  # the pack's name (session.pack may be a path)
-    trigno_latency_ms: float = 0.0  # stated device latencies the clock mappings take off (live_session.stated_latencies)
+    trigno_latency_ms: float = (
+        0.0  # stated device latencies the clock mappings take off (live_session.stated_latencies)
+    )
     tracker_latency_ms: dict[str, float] = field(default_factory=dict)
     names: dict[str, str] = field(default_factory=dict)  # the session file's display names (over the pack's)
 
@@ -504,7 +610,8 @@ class FlowCounts:
 
     def text(self) -> str:
         return f"{self.joints} joint frames; activation frames " + (
-            ", ".join(f"{m} {n}" for m, n in self.activations.items()) or "none")
+            ", ".join(f"{m} {n}" for m, n in self.activations.items()) or "none"
+        )
 
 
 @dataclass
@@ -520,13 +627,29 @@ class SessionFacts:
 
     def message(self) -> messages.LoadEvent:
         now = messages.now_ns()  # msk live maps every device clock onto the host clock: its device time is now
-        return messages.LoadEvent(barbell_mass_kg=float(self.load_kg), exercise=self.exercise,
-                                  set_number=int(self.set_number), athlete=self.athlete, names=self.names,
-                                  device_time_ns=now, host_time_ns=now)
+        return messages.LoadEvent(
+            barbell_mass_kg=float(self.load_kg),
+            exercise=self.exercise,
+            set_number=int(self.set_number),
+            athlete=self.athlete,
+            names=self.names,
+            device_time_ns=now,
+            host_time_ns=now,
+        )
 
 
-def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, stop_event: threading.Event,
-            ready_event: threading.Event, ready_key, on_facts=None, exercise: str = "") -> None:
+def monitor(
+    options,
+    *,
+    session: str,
+    counts: FlowCounts,
+    facts: queue.Queue,
+    stop_event: threading.Event,
+    ready_event: threading.Event,
+    ready_key,
+    on_facts=None,
+    exercise: str = "",
+) -> None:
     """The graph node of ``msk live`` itself (``monitor`` in services.session_graph): counts joints and activation
     frames, so the stop can wait (bounded) until the estimator has answered every joint frame, and publishes the
     session facts put on ``facts`` (a history publisher: a late ``msk load`` or a restarted recorder fetches them)."""
@@ -545,21 +668,31 @@ def monitor(options, *, session: str, counts: FlowCounts, facts: queue.Queue, st
 
     def on_load(sample) -> None:  # its own facts and an operator's (`msk load`): the session's current ones
         try:
-            event = messages.as_message(messages.LoadEvent, check_payload(
-                str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.LoadEvent"))
+            event = messages.as_message(
+                messages.LoadEvent,
+                check_payload(str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.LoadEvent"),
+            )
         except Rejected:
             return  # the estimator and recorder count bad inputs; here only the facts matter
         if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
             return  # as the estimator refuses it: not a fact of this session
         if on_facts is not None:
-            on_facts({"exercise": event.exercise, "load_kg": event.barbell_mass_kg, "set_number": event.set_number,
-                      "athlete": event.athlete})
+            on_facts(
+                {
+                    "exercise": event.exercise,
+                    "load_kg": event.barbell_mass_kg,
+                    "set_number": event.set_number,
+                    "athlete": event.athlete,
+                }
+            )
 
     with open_session(options) as zsession:
         load = declare_history_publisher(zsession, topics.load_key(session), "msk.LoadEvent", history_samples=100)
-        subscribers = [zsession.declare_subscriber(f"{prefix}/joints", on_joints),
-                       zsession.declare_subscriber(f"{prefix}/activations/*", on_activation),
-                       zsession.declare_subscriber(topics.load_key(session), on_load)]
+        subscribers = [
+            zsession.declare_subscriber(f"{prefix}/joints", on_joints),
+            zsession.declare_subscriber(f"{prefix}/activations/*", on_activation),
+            zsession.declare_subscriber(topics.load_key(session), on_load),
+        ]
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs
         ready_event.set()
         while not stop_event.is_set():
@@ -583,7 +716,7 @@ class _Stopper:
         self.signal: str | None = None
         self._previous: dict[int, _SignalHandler] = {}
 
-    def __enter__(self) -> "_Stopper":
+    def __enter__(self) -> _Stopper:
         for signum in (signal.SIGINT, signal.SIGTERM):
             self._previous[signum] = signal.signal(signum, self._handle)
         return self
@@ -606,24 +739,62 @@ def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
         # the joints are on the host clock already: the kinematics node maps each tracker's clock. The EMG clock is
         # measured against the trackers' from the accelerations, the trackers mapped as the kinematics node maps
         # them; each joint frame waits (bounded) for the EMG of its instant.
-        argv = python_module("services.estimator", "--pack", s.pack, "--session", s.name, "--subject", str(plan.subject),
-                             "--emg-clock", "host", "--joints-clock", "host", "--load-kg", str(s.load_kg),
-                             "--emg-latency-ms", f"{s.trigno_id}={plan.trigno_latency_ms:g}")
+        argv = python_module(
+            "services.estimator",
+            "--pack",
+            s.pack,
+            "--session",
+            s.name,
+            "--subject",
+            str(plan.subject),
+            "--emg-clock",
+            "host",
+            "--joints-clock",
+            "host",
+            "--load-kg",
+            str(s.load_kg),
+            "--emg-latency-ms",
+            f"{s.trigno_id}={plan.trigno_latency_ms:g}",
+        )
         if plan.trigno is not None:
-            argv += ["--emg-align", "acceleration", "--emg-wait-ms", f"{EMG_WAIT_MS:g}",
-                     *(a for tracker, ms in plan.tracker_latency_ms.items() for a in ("--imu-latency-ms", f"{tracker}={ms:g}"))]
+            argv += [
+                "--emg-align",
+                "acceleration",
+                "--emg-wait-ms",
+                f"{EMG_WAIT_MS:g}",
+                *(
+                    a
+                    for tracker, ms in plan.tracker_latency_ms.items()
+                    for a in ("--imu-latency-ms", f"{tracker}={ms:g}")
+                ),
+            ]
         return argv + [a for method in plan.methods for a in ("--method", method)]
     if name == "kinematics":
-        return python_module("services.kinematics_node", "--pack", s.pack, "--session", s.name, "--imu-clock", "host",
-                             *(a for tracker, ms in plan.tracker_latency_ms.items()
-                               for a in ("--imu-latency-ms", f"{tracker}={ms:g}")))
+        return python_module(
+            "services.kinematics_node",
+            "--pack",
+            s.pack,
+            "--session",
+            s.name,
+            "--imu-clock",
+            "host",
+            *(a for tracker, ms in plan.tracker_latency_ms.items() for a in ("--imu-latency-ms", f"{tracker}={ms:g}")),
+        )
     if name in ("drivers-trigno", "drivers-xsens"):
         return driver_argv(plan, name.split("-", 1)[1])
     raise ConfigError("not a process node of msk live's graph", field="node", value=name)
 
 
-def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint: str, log,
-              simulators: Simulators | None = None, pki: Path | None = None) -> dict:
+def run_graph(
+    plan: LivePlan,
+    *,
+    duration_s: float | None,
+    view: bool,
+    endpoint: str,
+    log,
+    simulators: Simulators | None = None,
+    pki: Path | None = None,
+) -> dict:
     """Start the declared graph (services.session_graph.live_nodes), announce it (OUT/session.json, the registry of
     services.discovery), publish the session facts, run until the duration, a signal or a failed node, then stop in
     order. ``pki``: the secured mode (a TLS router with access control, each node with its role's certificate)."""
@@ -653,31 +824,63 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
             for decl in nodes:
                 after = session_graph.readers_of(decl, nodes)
                 if decl.name == "monitor":
-                    graph.add_thread("monitor", monitor, session=s.name, counts=counts, facts=facts, after=after,
-                                     role=decl.role, on_facts=announcement.update_facts, exercise=plan.exercise)
+                    graph.add_thread(
+                        "monitor",
+                        monitor,
+                        session=s.name,
+                        counts=counts,
+                        facts=facts,
+                        after=after,
+                        role=decl.role,
+                        on_facts=announcement.update_facts,
+                        exercise=plan.exercise,
+                    )
                 else:
-                    graph.add_process(decl.name, node_argv(plan, decl.name, mcap), after=after, role=decl.role,
-                                      log_path=logs / f"{decl.name}.log", own_session=True)
+                    graph.add_process(
+                        decl.name,
+                        node_argv(plan, decl.name, mcap),
+                        after=after,
+                        role=decl.role,
+                        log_path=logs / f"{decl.name}.log",
+                        own_session=True,
+                    )
             # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
             pids = {n: node_process.pid for n in graph.nodes if (node_process := graph.process(n)) is not None}
             (logs / "pids.json").write_text(json.dumps({**pids, **({"router": router.pid} if router else {})}) + "\n")
             _wait_ready(graph, stopper)
-            facts.put(SessionFacts(exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", ""),
-                                   names=plan.names))
+            facts.put(
+                SessionFacts(
+                    exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", ""), names=plan.names
+                )
+            )
             observer = graph.observer_options()
             info = discovery.SessionInfo(
-                session=s.name, connect=[endpoint], pid=os.getpid(), out=str(out.resolve()), pack=plan.exercise,
-                zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "")
+                session=s.name,
+                connect=[endpoint],
+                pid=os.getpid(),
+                out=str(out.resolve()),
+                pack=plan.exercise,
+                zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "",
+            )
             info = dataclasses.replace(info, attach=discovery.attach_commands(info))
             announced = announcement.announce(info, out)
             viewer = None
             if view and not stopper.event.is_set():
-                viewer = subprocess.Popen(python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
-                                          start_new_session=True)  # Ctrl-C reaches msk live only: it stops in order
-            log(f"live session {s.name!r} running on {endpoint}" + (" (TLS, access control)" if pki is not None else "")
-                + f"; attach: {'; '.join(info.attach)}")
-            log(f"running: {', '.join(graph.nodes)}" + (" + view" if viewer else "")
-                + f"; recording to {mcap}" + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops"))
+                viewer = subprocess.Popen(
+                    python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
+                    start_new_session=True,
+                )  # Ctrl-C reaches msk live only: it stops in order
+            log(
+                f"live session {s.name!r} running on {endpoint}"
+                + (" (TLS, access control)" if pki is not None else "")
+                + f"; attach: {'; '.join(info.attach)}"
+            )
+            log(
+                f"running: {', '.join(graph.nodes)}"
+                + (" + view" if viewer else "")
+                + f"; recording to {mcap}"
+                + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops")
+            )
             started = time.monotonic()
             deadline = None if duration_s is None else started + duration_s
             reason = "duration"
@@ -697,8 +900,9 @@ def run_graph(plan: LivePlan, *, duration_s: float | None, view: bool, endpoint:
                 discovery.withdraw(path)
             codes = {}
             if "graph" in locals():
-                codes = stop_in_order(graph, locals().get("drivers", []), simulators, locals().get("viewer"), counts,
-                                      plan.methods, log)
+                codes = stop_in_order(
+                    graph, locals().get("drivers", []), simulators, locals().get("viewer"), counts, plan.methods, log
+                )
             if router is not None:
                 codes["router"] = stop_process(router)
     # the parts this session's recorder wrote (it continues into session-001.mcap ... when OUT holds older ones)
@@ -730,8 +934,11 @@ def router_host(pki: Path) -> str:
     for host in ("127.0.0.1", "localhost"):
         if host in hosts:
             return host
-    raise ConfigError(f"the router certificate is for {hosts or 'no host'}, not for this machine's loopback "
-                      "(127.0.0.1 or localhost): make it with `msk certs` (its default hosts)", path=path)
+    raise ConfigError(
+        f"the router certificate is for {hosts or 'no host'}, not for this machine's loopback "
+        "(127.0.0.1 or localhost): make it with `msk certs` (its default hosts)",
+        path=path,
+    )
 
 
 def start_secured_router(pki: Path, out: Path, log):
@@ -745,12 +952,17 @@ def start_secured_router(pki: Path, out: Path, log):
     host = router_host(pki)
     port = int(free_loopback_endpoint().rsplit(":", 1)[1])
     endpoint = f"tls/{host}:{port}"
-    configs = security.write_configs(out / "zenoh", pki, router_listen=(f"tls/127.0.0.1:{port}",),
-                                     client_connect=(endpoint,))
+    configs = security.write_configs(
+        out / "zenoh", pki, router_listen=(f"tls/127.0.0.1:{port}",), client_connect=(endpoint,)
+    )
     log_path = out / "logs" / "router.log"
-    process = subprocess.Popen(python_module("services.cli", "router", f"--zenoh-config={configs['router']}"),
-                               stdout=open(log_path, "wb"), stderr=subprocess.STDOUT, start_new_session=True,
-                               env={**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")})
+    process = subprocess.Popen(
+        python_module("services.cli", "router", f"--zenoh-config={configs['router']}"),
+        stdout=open(log_path, "wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env={**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")},
+    )
     try:
         router_node.wait_until_listening(process, port)
     except RuntimeError as error:
@@ -797,8 +1009,9 @@ def _settle(what: str, done, counts: FlowCounts, timeout_s: float, log) -> None:
         log(f"warning: {error}")
 
 
-def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | None, viewer, counts: FlowCounts,
-                  methods, log) -> dict:
+def stop_in_order(
+    graph: Graph, drivers: list[str], simulators: Simulators | None, viewer, counts: FlowCounts, methods, log
+) -> dict:
     """Sources first, the recorder last, so what the devices sent flows through and is recorded."""
     if simulators is not None:
         simulators.hold()
@@ -813,15 +1026,20 @@ def stop_in_order(graph: Graph, drivers: list[str], simulators: Simulators | Non
         if name == "kinematics":  # joints stop changing: the drivers' last samples went through
             last = [counts.joints, time.monotonic()]
 
-            def quiet() -> bool:
+            def quiet(last: list = last) -> bool:
                 if counts.joints != last[0]:
                     last[:] = [counts.joints, time.monotonic()]
                 return time.monotonic() - last[1] >= DRAIN_S
 
             _settle("the kinematics node to publish its last joint frames", quiet, counts, STOP_TIMEOUT_S, log)
         elif name == "estimator":  # every joint frame answered by every method
-            _settle(f"the estimator to answer all joint frames ({', '.join(methods)})",
-                    lambda: all(counts.activations[m] >= counts.joints for m in methods), counts, STOP_TIMEOUT_S, log)
+            _settle(
+                f"the estimator to answer all joint frames ({', '.join(methods)})",
+                lambda: all(counts.activations[m] >= counts.joints for m in methods),
+                counts,
+                STOP_TIMEOUT_S,
+                log,
+            )
         if process.poll() is None:
             process.send_signal(signal.SIGINT)
         try:
@@ -850,8 +1068,11 @@ def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) ->
     from msk_core.model import load_pack
 
     if sim_faults and not sim:
-        raise ConfigError("electrode faults are injected by the simulated Trigno: add --sim", field="--sim-fault",
-                          value=[f"{f.sensor}:{f.kind.value}:{f.start_s:g}-{f.end_s:g}" for f in sim_faults])
+        raise ConfigError(
+            "electrode faults are injected by the simulated Trigno: add --sim",
+            field="--sim-fault",
+            value=[f"{f.sensor}:{f.kind.value}:{f.start_s:g}-{f.end_s:g}" for f in sim_faults],
+        )
     session.out.mkdir(parents=True, exist_ok=True)
     model = load_pack(session.pack)
     segments = list(mapping_for(model.name).segments)
@@ -866,36 +1087,60 @@ def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) ->
         methods = session.methods or SIM_METHODS
     else:
         if session.subject is None:
-            raise ConfigError("missing: the subject profile (`msk calibrate`)", path=session.path, field="session.subject")
+            raise ConfigError(
+                "missing: the subject profile (`msk calibrate`)", path=session.path, field="session.subject"
+            )
         subject, electrodes, trackers = session.subject, session.electrodes, session.trackers
         methods = session.methods or (("proposed", "assisted") if session.trigno_host else ("proposed",))
     profile = json.loads(Path(subject).read_text())
-    check_against_pack(LiveSession(session.path, trackers=trackers, electrodes=electrodes), list(model.groups),
-                       segments, profile.get("emg_normalisation", {}))
+    check_against_pack(
+        LiveSession(session.path, trackers=trackers, electrodes=electrodes),
+        list(model.groups),
+        segments,
+        profile.get("emg_normalisation", {}),
+    )
     if "assisted" in methods and not electrodes:
-        raise ConfigError("method 'assisted' needs EMG: a [trigno] device and an [electrodes] map", path=session.path,
-                          field="session.methods", value="assisted")
+        raise ConfigError(
+            "method 'assisted' needs EMG: a [trigno] device and an [electrodes] map",
+            path=session.path,
+            field="session.methods",
+            value="assisted",
+        )
     profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
     trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
-    plan = LivePlan(session, tuple(methods), profile_path, trackers=trackers, exercise=model.name,
-                    trigno_latency_ms=trigno_latency_ms, tracker_latency_ms=tracker_latency_ms,
-                    names=session_names(session, model.display_names))
+    plan = LivePlan(
+        session,
+        tuple(methods),
+        profile_path,
+        trackers=trackers,
+        exercise=model.name,
+        trigno_latency_ms=trigno_latency_ms,
+        tracker_latency_ms=tracker_latency_ms,
+        names=session_names(session, model.display_names),
+    )
     if sim:  # the simulated devices have the latencies the session states (0 unless it says)
-        simulators = start_simulators(sources, trigno_latency_s=trigno_latency_ms / 1e3,
-                                      xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()},
-                                      trigno_faults=sim_faults)
+        simulators = start_simulators(
+            sources,
+            trigno_latency_s=trigno_latency_ms / 1e3,
+            xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()},
+            trigno_faults=sim_faults,
+        )
         plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
         plan.trigno_aux_port = simulators.trigno.ports["aux"]
         plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
         session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))
-        log(f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
-            f"{sum(sources.emg.paired)} sensors), Xsens " + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}"
-                                                                      for t, seg in trackers.items())
-            + f"; streaming the bundled {sources.trial} trial")
+        log(
+            f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
+            f"{sum(sources.emg.paired)} sensors), Xsens "
+            + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}" for t, seg in trackers.items())
+            + f"; streaming the bundled {sources.trial} trial"
+        )
         for fault in sim_faults:
             label = f"sensor{fault.sensor:02d}.EMG"
-            log(f"injecting {fault.kind.value} on {label} ({electrodes.get(label, 'not in the electrode map')}) "
-                f"from {fault.start_s:g} to {fault.end_s:g} s after the Trigno starts streaming")
+            log(
+                f"injecting {fault.kind.value} on {label} ({electrodes.get(label, 'not in the electrode map')}) "
+                f"from {fault.start_s:g} to {fault.end_s:g} s after the Trigno starts streaming"
+            )
         for tracker in set(sources.imu) - set(trackers):
             simulators.xsens.pop(tracker).close()  # trackers of segments the pack does not use
     else:
@@ -904,7 +1149,9 @@ def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) ->
 
             plan.trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
             # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
-            plan.trigno_aux_port = int(tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
+            plan.trigno_aux_port = int(
+                tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX
+            )
         plan.xsens_ports = list(session.xsens_ports)
     return plan, simulators
 
@@ -918,18 +1165,37 @@ def default_live_endpoint() -> str:
     return DEFAULT_ENDPOINT if endpoint_is_free(DEFAULT_ENDPOINT) else free_loopback_endpoint()
 
 
-def main(session: LiveSession, *, sim: bool, duration_s: float | None, view: bool, log=print,
-         listen: str | None = None, pki: Path | None = None, sim_faults: tuple = ()) -> dict:
+def main(
+    session: LiveSession,
+    *,
+    sim: bool,
+    duration_s: float | None,
+    view: bool,
+    log=print,
+    listen: str | None = None,
+    pki: Path | None = None,
+    sim_faults: tuple = (),
+) -> dict:
     """``listen``: the loopback endpoint of the graph (default :func:`default_live_endpoint`); ``pki``: a folder
     written by ``msk certs``, for the secured mode; ``sim_faults``: electrode faults the simulated Trigno injects
     (:class:`drivers.trigno.simulator.SensorFault`, with ``sim``)."""
     if pki is not None and listen is not None:
-        raise ConfigError("the secured mode picks its own TLS endpoint; give --pki or --listen, not both",
-                          field="--listen", value=listen)
+        raise ConfigError(
+            "the secured mode picks its own TLS endpoint; give --pki or --listen, not both",
+            field="--listen",
+            value=listen,
+        )
     plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults))
     try:
-        summary = run_graph(plan, duration_s=duration_s, view=view, endpoint=listen or default_live_endpoint(),
-                            log=log, simulators=simulators, pki=pki)
+        summary = run_graph(
+            plan,
+            duration_s=duration_s,
+            view=view,
+            endpoint=listen or default_live_endpoint(),
+            log=log,
+            simulators=simulators,
+            pki=pki,
+        )
     except BaseException:
         if simulators is not None:
             simulators.close()

@@ -51,7 +51,9 @@ class MethodScore:
 def _trial_folders(recordings: Path, exercise: str) -> list[Path]:
     folders = sorted(p for p in (recordings / "demo" / exercise).iterdir() if (p / "trial.toml").is_file())
     if len(folders) < 2:
-        raise InputError("the demo needs two trials per exercise (calibration + held out)", path=recordings / "demo" / exercise)
+        raise InputError(
+            "the demo needs two trials per exercise (calibration + held out)", path=recordings / "demo" / exercise
+        )
     return sorted(folders, key=lambda p: float(p.name.rsplit("_", 1)[1].removesuffix("kg")))
 
 
@@ -87,7 +89,11 @@ def score(recorded_mcap: Path, recordings: Path) -> tuple[list[MethodScore], dic
         role = "calibration" if folder == folders[0] else "held out"
         truth = read_sto(folder / "truth_activations.sto")
         for method in METHODS:
-            inside = [f for f in frames[method] if window.start_s - 1e-6 <= f.time_s <= window.end_s + 1e-6 and set(f.groups) == set(truth.columns)]
+            inside = [
+                f
+                for f in frames[method]
+                if window.start_s - 1e-6 <= f.time_s <= window.end_s + 1e-6 and set(f.groups) == set(truth.columns)
+            ]
             if not inside:
                 continue
             groups = list(inside[0].groups)
@@ -98,16 +104,26 @@ def score(recorded_mcap: Path, recordings: Path) -> tuple[list[MethodScore], dic
             residual = np.array([[c.residual_nm for c in f.torques] for f in inside])
             solve = np.array([f.solve_time_s for f in inside]) * 1e6
             latency = np.array([(f.publish_ns - f.input_arrival_ns) / 1e6 for f in inside])
-            per_group = {g: float(np.sqrt(np.mean((estimated[ok, i] - true[ok, i]) ** 2))) for i, g in enumerate(groups)}
-            scores.append(MethodScore(
-                exercise=window.exercise, trial=window.name, role=role, method=method, frames=len(inside),
-                activation_rmse=float(np.sqrt(np.mean((estimated[ok] - true[ok]) ** 2))),
-                torque_rmse_nm=float(np.sqrt(np.mean(residual[ok] ** 2))),
-                flagged=int(sum(1 for f in inside if f.flags)),
-                solve_us_median=float(np.median(solve)), solve_us_p99=float(np.percentile(solve, 99)),
-                latency_ms_median=float(np.median(latency)), latency_ms_p99=float(np.percentile(latency, 99)),
-                per_group_rmse=per_group,
-            ))
+            per_group = {
+                g: float(np.sqrt(np.mean((estimated[ok, i] - true[ok, i]) ** 2))) for i, g in enumerate(groups)
+            }
+            scores.append(
+                MethodScore(
+                    exercise=window.exercise,
+                    trial=window.name,
+                    role=role,
+                    method=method,
+                    frames=len(inside),
+                    activation_rmse=float(np.sqrt(np.mean((estimated[ok] - true[ok]) ** 2))),
+                    torque_rmse_nm=float(np.sqrt(np.mean(residual[ok] ** 2))),
+                    flagged=int(sum(1 for f in inside if f.flags)),
+                    solve_us_median=float(np.median(solve)),
+                    solve_us_p99=float(np.percentile(solve, 99)),
+                    latency_ms_median=float(np.median(latency)),
+                    latency_ms_p99=float(np.percentile(latency, 99)),
+                    per_group_rmse=per_group,
+                )
+            )
             curves[(window.name, method)] = (t, estimated, true, groups)
     return scores, curves
 

@@ -63,8 +63,11 @@ def tracker_latency_ms(baud: int, rate_hz: int) -> float:
 def is_trigno_channel(label: str) -> bool:
     """Whether ``label`` is a channel label the Trigno driver can publish (:data:`TRIGNO_CHANNEL_FORM`)."""
     match = _TRIGNO_CHANNEL.fullmatch(label)
-    return (match is not None and 1 <= int(match.group(1)) <= N_SENSORS
-            and (match.group(2) is None or int(match.group(2)) <= N_SENSORS))
+    return (
+        match is not None
+        and 1 <= int(match.group(1)) <= N_SENSORS
+        and (match.group(2) is None or int(match.group(2)) <= N_SENSORS)
+    )
 
 
 @dataclass
@@ -94,15 +97,21 @@ class LiveSession:
     given: set[str] = field(default_factory=set)  # dotted keys present in the file
 
 
-def stated_latencies(session: LiveSession, trackers: dict[str, str], *, simulated: bool) -> tuple[float, dict[str, float]]:
+def stated_latencies(
+    session: LiveSession, trackers: dict[str, str], *, simulated: bool
+) -> tuple[float, dict[str, float]]:
     """(Trigno latency, {tracker id: latency}) in ms as the session states them, each defaulting to the documented
     value (:data:`TRIGNO_LATENCY_MS`, :func:`tracker_latency_ms` at the session's baud and rate) on real devices, to
     0 (the simulators' own latency, which the stated one replaces) under ``--sim``. A tracker named in
     ``xsens.tracker_latency_ms`` that is not one of ``trackers`` is an error (file, key, value)."""
     for tracker in session.tracker_latency_ms:
         if tracker not in trackers:
-            raise _error(session.path, f"xsens.tracker_latency_ms.{tracker}",
-                         f"not a tracker of this session ({', '.join(trackers) or 'none'})", tracker)
+            raise _error(
+                session.path,
+                f"xsens.tracker_latency_ms.{tracker}",
+                f"not a tracker of this session ({', '.join(trackers) or 'none'})",
+                tracker,
+            )
     trigno = session.trigno_latency_ms
     every_tracker = session.xsens_latency_ms
     if trigno is None:
@@ -165,13 +174,17 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             raise _error(path, "session.athlete", "must be one line of printable text", athlete)
         session.athlete = athlete
     if "pack" in s:
-        session.pack = _pack(path, base, _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path"))
+        session.pack = _pack(
+            path, base, _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path")
+        )
     elif require_devices:
-        raise _error(path, "session.pack", "missing: the model pack (e.g. \"bench_press\")")
+        raise _error(path, "session.pack", 'missing: the model pack (e.g. "bench_press")')
     if "subject" in s:
         subject = base / _type(path, "session.subject", s["subject"], str, "a path to a subject profile JSON")
         if not subject.is_file():
-            raise _error(path, "session.subject", "subject profile not found (make one with `msk calibrate`)", str(subject))
+            raise _error(
+                path, "session.subject", "subject profile not found (make one with `msk calibrate`)", str(subject)
+            )
         session.subject = subject
     if "load_kg" in s:
         load = _type(path, "session.load_kg", s["load_kg"], (int, float), "a number of kilograms")
@@ -195,8 +208,9 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
             raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
         if "emg_port" in t:
-            session.trigno_emg_port = _int_within(path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number",
-                                                  "must be a TCP port 1..65535")
+            session.trigno_emg_port = _int_within(
+                path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
+            )
         if "id" in t:
             session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
         if "latency_ms" in t:
@@ -208,13 +222,14 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             if isinstance(ports, str):
                 ports = [ports]
             if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
-                raise _error(path, "xsens.ports", "must be a list of serial ports or \"usb\"", x["ports"])
+                raise _error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
             session.xsens_ports = tuple(ports)
         elif require_devices:
-            raise _error(path, "xsens.ports", "missing: the trackers' serial ports, or [\"usb\"]")
+            raise _error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
         if "rate_hz" in x:
-            session.imu_rate_hz = _int_within(path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz",
-                                              "must be within 1..2000 Hz")
+            session.imu_rate_hz = _int_within(
+                path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
+            )
         if "baud" in x:
             session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
             if session.xsens_baud <= 0:
@@ -232,20 +247,28 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         session.trackers[_tracker_id(path, key, tracker)] = _type(path, key, segment, str, "a body segment name")
     for tracker in session.tracker_latency_ms:
         if session.trackers and tracker not in session.trackers:
-            raise _error(path, f"xsens.tracker_latency_ms.{tracker}", "not a tracker of [trackers] "
-                         f"({', '.join(session.trackers)})", tracker)
+            raise _error(
+                path,
+                f"xsens.tracker_latency_ms.{tracker}",
+                f"not a tracker of [trackers] ({', '.join(session.trackers)})",
+                tracker,
+            )
     session.names = dict(doc.get("names", {}))
     for label, target in doc.get("electrodes", {}).items():
         if not is_trigno_channel(label):
-            raise _error(path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label)
+            raise _error(
+                path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label
+            )
         session.electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
     if require_devices:
         if session.trigno_host is None and not session.xsens_ports:
             raise _error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
         if session.xsens_ports and not session.trackers:
-            raise _error(path, "trackers", "missing: the tracker -> segment map ([trackers] \"00B4EB80\" = \"upper_arm_r\")")
+            raise _error(
+                path, "trackers", 'missing: the tracker -> segment map ([trackers] "00B4EB80" = "upper_arm_r")'
+            )
         if session.trigno_host is not None and not session.electrodes:
-            raise _error(path, "electrodes", "missing: the electrode -> group map ([electrodes] \"sensor01.EMG\" = ...)")
+            raise _error(path, "electrodes", 'missing: the electrode -> group map ([electrodes] "sensor01.EMG" = ...)')
     return session
 
 
@@ -273,7 +296,9 @@ def _pack(path: Path | None, base: Path, value: str) -> str:
         if not candidate.is_file():
             raise _error(path, "session.pack", "pack file not found", str(candidate))
         return str(candidate)
-    raise _error(path, "session.pack", f"unknown pack (shipped: {', '.join(packs)}; or the path of a pack JSON file)", value)
+    raise _error(
+        path, "session.pack", f"unknown pack (shipped: {', '.join(packs)}; or the path of a pack JSON file)", value
+    )
 
 
 def load_session_file(path: Path, *, require_devices: bool = True) -> LiveSession:
@@ -287,16 +312,27 @@ def load_session_file(path: Path, *, require_devices: bool = True) -> LiveSessio
     return parse_session(doc, path, require_devices=require_devices)
 
 
-def check_against_pack(session: LiveSession, groups: list[str], segments: list[str], profile_electrodes: dict[str, dict]) -> None:
+def check_against_pack(
+    session: LiveSession, groups: list[str], segments: list[str], profile_electrodes: dict[str, dict]
+) -> None:
     """Maps that name things the pack or the profile do not have are errors (file, key, value)."""
     for tracker, segment in session.trackers.items():
         if segment not in segments:
-            raise _error(session.path, f"trackers.{tracker}", f"not a segment the pack's IMU table uses ({', '.join(segments)})", segment)
+            raise _error(
+                session.path,
+                f"trackers.{tracker}",
+                f"not a segment the pack's IMU table uses ({', '.join(segments)})",
+                segment,
+            )
     for label, target in session.electrodes.items():
         if target not in profile_electrodes and target not in groups:
-            raise _error(session.path, f"electrodes.{label}",
-                         "neither an electrode of the subject profile "
-                         f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack", target)
+            raise _error(
+                session.path,
+                f"electrodes.{label}",
+                "neither an electrode of the subject profile "
+                f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack",
+                target,
+            )
 
 
 def session_names(session: LiveSession, pack_names: DisplayNames) -> dict[str, str]:
@@ -304,5 +340,9 @@ def session_names(session: LiveSession, pack_names: DisplayNames) -> dict[str, s
     coordinates (errors name the file, field and value): the names that replace the pack's on every surface."""
     from msk_core.model.names import parse_names
 
-    return parse_names(session.names, [*pack_names.groups, *pack_names.coordinates], path=session.path,
-                       what="a muscle group or coordinate of the session's pack")
+    return parse_names(
+        session.names,
+        [*pack_names.groups, *pack_names.coordinates],
+        path=session.path,
+        what="a muscle group or coordinate of the session's pack",
+    )

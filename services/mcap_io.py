@@ -62,7 +62,9 @@ class RecordedMessage:
         """The message; with ``kind`` (``messages.EmgChunk``), typed as it, and a :class:`MessageDecodeError` when the
         recorded message is of another type."""
         if self.rejected:
-            raise messages.MessageDecodeError(f"{self.topic}: a payload the recorder rejected ({self.rejected}), not a message")
+            raise messages.MessageDecodeError(
+                f"{self.topic}: a payload the recorder rejected ({self.rejected}), not a message"
+            )
         if kind is None:
             return messages.decode(self.type_name, self.data)
         if kind.DESCRIPTOR.full_name != self.type_name:
@@ -117,7 +119,9 @@ class McapRecorderWriter:
         channel_id = self._rejected_channel_ids.get((topic, reason))
         if channel_id is None:
             channel_id = self._writer.register_channel(
-                topic=topic, message_encoding=REJECTED_ENCODING, schema_id=0,
+                topic=topic,
+                message_encoding=REJECTED_ENCODING,
+                schema_id=0,
                 metadata={REJECTED_REASON: reason, REJECTED_DETAIL: detail[:MAX_DETAIL_CHARS]},
             )
             self._rejected_channel_ids[(topic, reason)] = channel_id
@@ -152,7 +156,9 @@ class McapRecorderWriter:
     def write_message(self, topic: str, message, log_time_ns: int | None = None) -> None:
         """Convenience: serialise a protobuf message; publish time from its device clock."""
         log_time = messages.now_ns() if log_time_ns is None else log_time_ns
-        self.write(topic, messages.type_name(message), messages.encode(message), log_time, device_time_ns(message, log_time))
+        self.write(
+            topic, messages.type_name(message), messages.encode(message), log_time, device_time_ns(message, log_time)
+        )
 
     def flush(self) -> None:
         self._writer.flush()
@@ -179,9 +185,9 @@ class McapRecorderWriter:
 
 def device_time_ns(message, fallback_ns: int) -> int:
     """The device-clock time of a message (MCAP publish_time), or ``fallback_ns`` when it carries none."""
-    for field in ("device_time_ns", "host_time_ns"):
-        if hasattr(message, field):
-            value = int(getattr(message, field))
+    for name in ("device_time_ns", "host_time_ns"):
+        if hasattr(message, name):
+            value = int(getattr(message, name))
             if value:
                 return value
     if hasattr(message, "time_s") and message.time_s:
@@ -217,8 +223,13 @@ def check_mcap_magic(path: Path, *, allow_cut_header: bool = False) -> None:
         raise FileFormatError(f"not an MCAP recording ({shown}; MCAP files start with {MCAP_MAGIC!r})", path=path)
 
 
-def read_messages(path: str | Path, *, report: ReadReport | None = None, tolerate_truncation: bool = True,
-                  include_rejected: bool = False) -> Iterator[RecordedMessage]:
+def read_messages(
+    path: str | Path,
+    *,
+    report: ReadReport | None = None,
+    tolerate_truncation: bool = True,
+    include_rejected: bool = False,
+) -> Iterator[RecordedMessage]:
     """Every message of an MCAP file in file order (which is recording order for files this project writes).
 
     A file cut short (recorder killed) yields every message of its completed chunks; ``report.truncated`` tells.

@@ -133,8 +133,9 @@ def problems(message: Message) -> list[str]:
         if message.n_samples == 0 or message.n_sensors == 0:
             found.append(f"no samples ({message.n_samples} x {message.n_sensors})")
         elif len(message.samples) != message.n_samples * message.n_sensors * 3:
-            found.append(f"{len(message.samples)} values for {message.n_samples} rows x {message.n_sensors} sensors "
-                         "x 3 axes")
+            found.append(
+                f"{len(message.samples)} values for {message.n_samples} rows x {message.n_sensors} sensors x 3 axes"
+            )
         if len(message.sensor_labels) != message.n_sensors:
             found.append(f"{len(message.sensor_labels)} sensor labels for {message.n_sensors} sensors")
         if not (_finite(message.sample_rate_hz) and message.sample_rate_hz > 0):

@@ -67,8 +67,14 @@ class Rejected(messages.MessageDecodeError):
         super().__init__(f"{key}: {reason.value}: {detail}")
 
 
-def check_payload(key: str, payload: bytes, *, encoding_type: str | None = None, expected_type: str | None = None,
-                  max_bytes: int = MAX_PAYLOAD_BYTES) -> Message:
+def check_payload(
+    key: str,
+    payload: bytes,
+    *,
+    encoding_type: str | None = None,
+    expected_type: str | None = None,
+    max_bytes: int = MAX_PAYLOAD_BYTES,
+) -> Message:
     """The message ``payload`` carries on ``key``, or :class:`Rejected` saying why it cannot be used.
 
     ``expected_type``: the type the reader wants (default: the topic table's for ``key``); ``encoding_type``: the type
@@ -166,9 +172,17 @@ class NodeInputs:
     channel of their own rather than losing them).
     """
 
-    def __init__(self, zsession: zenoh.Session, node: str, *, max_payload_bytes: int = MAX_PAYLOAD_BYTES,
-                 max_queue: int = MAX_QUEUE, expected_type: str | None = None, keep_rejected: bool = False,
-                 role: str | None = None) -> None:
+    def __init__(
+        self,
+        zsession: zenoh.Session,
+        node: str,
+        *,
+        max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+        max_queue: int = MAX_QUEUE,
+        expected_type: str | None = None,
+        keep_rejected: bool = False,
+        role: str | None = None,
+    ) -> None:
         """``role``: the access-control role the node joined with (``ZenohOptions.role``); a subscription the
         router would refuse to it is said at once (log and :attr:`refusals`), as the router says it only in its
         trace log."""
@@ -240,8 +254,13 @@ class NodeInputs:
 
     def _dropped(self, key: str, reason: DropReason, detail: str) -> None:
         if self.counts.count_dropped(key, reason) == 1:
-            log.warning("%s: dropped a message on %s: %s: %s (further ones are counted in its status)",
-                        self.node, key, reason.value, detail)
+            log.warning(
+                "%s: dropped a message on %s: %s: %s (further ones are counted in its status)",
+                self.node,
+                key,
+                reason.value,
+                detail,
+            )
 
     def get(self, timeout_s: float) -> Inbound | None:
         """The next usable message in arrival order, or None when none arrived within ``timeout_s``."""
@@ -255,11 +274,13 @@ class NodeInputs:
             if inbound is not None:
                 return inbound
 
-    def _checked(self, key: str, encoding_type: str | None, payload: bytes, arrival_ns: int,
-                 source: tuple[str, int, int] | None) -> Inbound | None:
+    def _checked(
+        self, key: str, encoding_type: str | None, payload: bytes, arrival_ns: int, source: tuple[str, int, int] | None
+    ) -> Inbound | None:
         try:
-            message = check_payload(key, payload, encoding_type=encoding_type, expected_type=self._expected_type,
-                                    max_bytes=self._max_bytes)
+            message = check_payload(
+                key, payload, encoding_type=encoding_type, expected_type=self._expected_type, max_bytes=self._max_bytes
+            )
         except Rejected as error:
             self._dropped(key, error.reason, error.detail)
             return Inbound(key, "", None, payload, arrival_ns, error, source) if self._keep_rejected else None
@@ -286,8 +307,14 @@ class NodeInputs:
                 yield inbound
 
 
-def serve(inputs: NodeInputs, handle, stop_event: threading.Event, reporter: StatusReporter | None = None,
-          poll_s: float = 0.05, tick: Callable[[bool], None] | None = None) -> None:
+def serve(
+    inputs: NodeInputs,
+    handle,
+    stop_event: threading.Event,
+    reporter: StatusReporter | None = None,
+    poll_s: float = 0.05,
+    tick: Callable[[bool], None] | None = None,
+) -> None:
     """The node loop: every usable input to ``handle(inbound)`` in arrival order, the status when due, until
     ``stop_event``; then the subscriptions closed, what had arrived still handled (nothing received is lost) and
     the last status published. ``tick(final)``: called after every input or ``poll_s`` without one (``False``),
@@ -316,9 +343,16 @@ def clock_offsets(reports: Iterable[ClockReport]) -> list[messages.ClockOffset]:
     from (msk_core.estimate.clock_alignment)."""
     out = []
     for r in reports:
-        message = messages.ClockOffset(source=r.source, offset_ms=r.offset_ns / 1e6, spread_ms=r.spread_ns / 1e6,
-                                       latency_ms=r.latency_ns / 1e6, method=r.method, samples=r.samples,
-                                       reason=r.reason, alignments=[_alignment(a) for a in r.alignments])
+        message = messages.ClockOffset(
+            source=r.source,
+            offset_ms=r.offset_ns / 1e6,
+            spread_ms=r.spread_ns / 1e6,
+            latency_ms=r.latency_ns / 1e6,
+            method=r.method,
+            samples=r.samples,
+            reason=r.reason,
+            alignments=[_alignment(a) for a in r.alignments],
+        )
         if r.arrival_offset_ns is not None:
             message.arrival_offset_ms = r.arrival_offset_ns / 1e6
         out.append(message)
@@ -329,10 +363,17 @@ def _alignment(alignment) -> messages.ClockAlignment:
     """An ``Alignment`` (msk_core.estimate.clock_alignment): a ClockSync answer against one reference stream."""
     answer = alignment.offset
     return messages.ClockAlignment(
-        reference=alignment.reference, status=answer.status.value, reason=answer.reason,
-        device_offset_ms=(answer.offset_ns or 0) / 1e6, spread_ms=(answer.spread_ns or 0) / 1e6,
-        drift_ppm=answer.drift_ppm or 0.0, peak_correlation=answer.peak_correlation or 0.0, sensor=answer.sensor or "",
-        windows=answer.windows, host_offset_ms=(alignment.host_offset_ns or 0) / 1e6)
+        reference=alignment.reference,
+        status=answer.status.value,
+        reason=answer.reason,
+        device_offset_ms=(answer.offset_ns or 0) / 1e6,
+        spread_ms=(answer.spread_ns or 0) / 1e6,
+        drift_ppm=answer.drift_ppm or 0.0,
+        peak_correlation=answer.peak_correlation or 0.0,
+        sensor=answer.sensor or "",
+        windows=answer.windows,
+        host_offset_ms=(alignment.host_offset_ns or 0) / 1e6,
+    )
 
 
 class StatusReporter:
@@ -340,9 +381,15 @@ class StatusReporter:
     ``clocks``, the clock mappings it applies; with ``electrodes``, the EMG electrodes' quality), at start, every
     :data:`STATUS_PERIOD_S`, and once more (``connected`` False) at stop."""
 
-    def __init__(self, zsession: zenoh.Session, session: str, node: str, inputs: NodeInputs,
-                 clocks: Callable[[], Iterable[ClockReport]] | None = None,
-                 electrodes: Callable[[], Iterable[messages.ElectrodeQuality]] | None = None) -> None:
+    def __init__(
+        self,
+        zsession: zenoh.Session,
+        session: str,
+        node: str,
+        inputs: NodeInputs,
+        clocks: Callable[[], Iterable[ClockReport]] | None = None,
+        electrodes: Callable[[], Iterable[messages.ElectrodeQuality]] | None = None,
+    ) -> None:
         self.node = node
         self._clocks = clocks
         self._electrodes = electrodes
@@ -361,9 +408,13 @@ class StatusReporter:
     def message(self, connected: bool = True) -> messages.DeviceStatus:
         refusals = self._inputs.refusals
         return messages.DeviceStatus(
-            device_id=self.node, kind="node", connected=connected,
-            samples_received=sum(self.counts.received.values()), samples_lost=self.counts.total_dropped,
-            errors=self.errors + len(refusals), last_error=self.last_error or (refusals[-1] if refusals else ""),
+            device_id=self.node,
+            kind="node",
+            connected=connected,
+            samples_received=sum(self.counts.received.values()),
+            samples_lost=self.counts.total_dropped,
+            errors=self.errors + len(refusals),
+            last_error=self.last_error or (refusals[-1] if refusals else ""),
             host_time_ns=messages.now_ns(),
             dropped=self.counts.drops(),
             clocks=clock_offsets(self._clocks()) if self._clocks is not None else [],

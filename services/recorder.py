@@ -63,7 +63,6 @@ from services import messages, topics
 from services.graph import ReadySpec, declare_ready
 from services.mcap_io import REJECTED_REASON, McapRecorderWriter, device_time_ns, read_messages
 from services.node_runtime import (
-    publication_id,
     MAX_PAYLOAD_BYTES,
     DropReason,
     Inbound,
@@ -72,6 +71,7 @@ from services.node_runtime import (
     Rejected,
     StatusReporter,
     check_payload,
+    publication_id,
 )
 from services.zenoh_session import (
     DEVICE_HISTORY_SAMPLES,
@@ -150,10 +150,12 @@ def main(
     with open_session(config) as zsession, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
         inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
         stats.inputs = inputs.counts
-        reporter = (StatusReporter(zsession, reporting_session, NODE_NAME, inputs)
-                    if reporting_session is not None else None)
-        merge = HistoryMerge(lambda item: _write(writer, item, stats, inputs.counts), stats,
-                             already_recorded=already_recorded)
+        reporter = (
+            StatusReporter(zsession, reporting_session, NODE_NAME, inputs) if reporting_session is not None else None
+        )
+        merge = HistoryMerge(
+            lambda item: _write(writer, item, stats, inputs.counts), stats, already_recorded=already_recorded
+        )
 
         def fetch(scope: str) -> None:  # on its own thread: the main loop goes on writing the other keys
             try:
@@ -161,8 +163,11 @@ def main(
             except Exception as error:  # a closed session at shutdown, an access-control refusal...
                 samples, errors = [], [f"{type(error).__name__}: {error}"]
             finished_ns = messages.now_ns()
-            items = [item for sample in samples
-                     if (item := _history_item(sample, finished_ns, inputs.counts, max_payload_bytes)) is not None]
+            items = [
+                item
+                for sample in samples
+                if (item := _history_item(sample, finished_ns, inputs.counts, max_payload_bytes)) is not None
+            ]
             fetched.put(_Fetched(scope, tuple(items), errors, finished_ns))
 
         def start_fetches(scopes: list[str]) -> None:
@@ -201,8 +206,9 @@ def main(
     return stats
 
 
-def _take_fetched(fetched: queue.SimpleQueue, inputs: NodeInputs, merge: HistoryMerge, *,
-                  fetch_new_keys: bool) -> list[str]:
+def _take_fetched(
+    fetched: queue.SimpleQueue, inputs: NodeInputs, merge: HistoryMerge, *, fetch_new_keys: bool
+) -> list[str]:
     """Hand the fetches that came back to ``merge``, each after the live samples received before it returned (those
     are the ones its history can hold too). Returns the keys to fetch next."""
     scopes: list[str] = []
@@ -222,8 +228,13 @@ def _record_final_status(writer: McapRecorderWriter, reporter: StatusReporter, s
     """Publish the last status and write it into the file too (the subscription is closed: it would not come back)."""
     reporter.final()
     status = reporter.message(connected=False)
-    writer.write(topics.status_key(session, NODE_NAME), "msk.DeviceStatus", messages.encode(status),
-                 status.host_time_ns, status.host_time_ns)
+    writer.write(
+        topics.status_key(session, NODE_NAME),
+        "msk.DeviceStatus",
+        messages.encode(status),
+        status.host_time_ns,
+        status.host_time_ns,
+    )
 
 
 LIVE, HISTORY = "live", "history"
@@ -251,8 +262,9 @@ class _Fetched:
 
 
 def _live_item(inbound: Inbound) -> _Item:
-    return _Item(LIVE, inbound.arrival_ns, inbound.key, inbound.payload, inbound.message, inbound.rejected,
-                 inbound.source)
+    return _Item(
+        LIVE, inbound.arrival_ns, inbound.key, inbound.payload, inbound.message, inbound.rejected, inbound.source
+    )
 
 
 def _history_item(sample: zenoh.Sample, received_ns: int, counts: InputCounts, max_bytes: int) -> _Item | None:
@@ -284,9 +296,14 @@ class HistoryMerge:
     already hold (the module docstring's rule), then the waiting samples. Live samples are never left out.
     """
 
-    def __init__(self, write: Callable[[_Item], None], stats: RecorderStats, *,
-                 already_recorded: Mapping[str, Iterable[bytes]] | None = None,
-                 keeps_history: Callable[[str], bool] = keeps_history) -> None:
+    def __init__(
+        self,
+        write: Callable[[_Item], None],
+        stats: RecorderStats,
+        *,
+        already_recorded: Mapping[str, Iterable[bytes]] | None = None,
+        keeps_history: Callable[[str], bool] = keeps_history,
+    ) -> None:
         self._write = write
         self._keeps_history = keeps_history  # asked once per new key, not per message
         self._stats = stats
@@ -318,8 +335,13 @@ class HistoryMerge:
         if item.source is not None and item.source in self._from_history_set.get(item.key, ()):
             self._stats.already_recorded += 1  # this very publication came with a history fetch, written then
             return []
-        if (fetch_new_keys and not self._initial_pending and item.key not in self._known_keys
-                and item.key not in self._pending_keys and self._keeps_history(item.key)):
+        if (
+            fetch_new_keys
+            and not self._initial_pending
+            and item.key not in self._known_keys
+            and item.key not in self._pending_keys
+            and self._keeps_history(item.key)
+        ):
             # a publisher that appeared after the start: it may have published before our subscription reached it
             self._pending_keys.add(item.key)
             self._waiting.append(item)
@@ -341,7 +363,9 @@ class HistoryMerge:
         self._stats.history_errors += len(done.errors)
         self._stats.history_fetched += len(done.items)
         if done.errors:
-            log.warning("history of %s: %d error replies (%s)", done.scope, len(done.errors), "; ".join(done.errors[:3]))
+            log.warning(
+                "history of %s: %d error replies (%s)", done.scope, len(done.errors), "; ".join(done.errors[:3])
+            )
         for item in self._new_history(done):
             self._known_keys.add(item.key)
             self._write(item)
@@ -372,8 +396,11 @@ class HistoryMerge:
                     keep[index] = False
             # without an identity (a publisher without source info), by digest: only what arrived before the fetch
             # returned can be in its history
-            live = collections.Counter(_digest(item.payload) for item in self._waiting if item.key == key
-                                       and item.source is None and item.receive_ns <= done.finished_ns)
+            live = collections.Counter(
+                _digest(item.payload)
+                for item in self._waiting
+                if item.key == key and item.source is None and item.receive_ns <= done.finished_ns
+            )
             for index in reversed(indices):  # newest first: the live samples begin where the cache ends
                 if keep[index] and done.items[index].source is None and live[digests[index]] > 0:
                     live[digests[index]] -= 1
@@ -465,21 +492,40 @@ def recorded_tail_in(paths: list[Path], per_topic: int = DEVICE_HISTORY_SAMPLES)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--out", type=Path, required=True,
+        "--out",
+        type=Path,
+        required=True,
         help="MCAP file to write; if it exists (a previous run), continue into FILE-001.mcap, FILE-002.mcap...",
     )
-    parser.add_argument("--flush-interval", type=float, default=1.0, metavar="S",
-                        help="complete a chunk at least this often: the most a crash can lose (default 1 s)")
-    parser.add_argument("--history", action=argparse.BooleanOptionalAction, default=True,
-                        help="on start (and for each device key that appears later) fetch what the device publishers "
-                             "keep, the last 1000 messages per key, leaving out what earlier parts hold (default: on)")
-    parser.add_argument("--history-timeout", type=float, default=DEFAULT_HISTORY_TIMEOUT_S, metavar="S",
-                        help="longest wait for a history fetch; that key's live messages wait with it (default 10 s)")
+    parser.add_argument(
+        "--flush-interval",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="complete a chunk at least this often: the most a crash can lose (default 1 s)",
+    )
+    parser.add_argument(
+        "--history",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="on start (and for each device key that appears later) fetch what the device publishers "
+        "keep, the last 1000 messages per key, leaving out what earlier parts hold (default: on)",
+    )
+    parser.add_argument(
+        "--history-timeout",
+        type=float,
+        default=DEFAULT_HISTORY_TIMEOUT_S,
+        metavar="S",
+        help="longest wait for a history fetch; that key's live messages wait with it (default 10 s)",
+    )
     parser.add_argument("--key", default=topics.ALL_TOPICS, help="key expression to record (default: msk/**)")
     parser.add_argument("--duration", type=float, default=None, help="seconds to record (default: until Ctrl-C)")
-    parser.add_argument("--session", default=None,
-                        help="report the recorder's status (inputs received and dropped) on msk/SESSION/status/recorder "
-                             "(default: the session --key names; with msk/** and no --session, no status)")
+    parser.add_argument(
+        "--session",
+        default=None,
+        help="report the recorder's status (inputs received and dropped) on msk/SESSION/status/recorder "
+        "(default: the session --key names; with msk/** and no --session, no status)",
+    )
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.graph)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     add_zenoh_arguments(parser)
@@ -496,15 +542,28 @@ def run_from_args(args: argparse.Namespace) -> int:
     previous = part_paths(args.out)
     out = next_part_path(args.out)
     already_recorded = recorded_tail_in(previous) if previous else None
-    print(f"recording {args.key} to {out}" + (f" (continuing {len(previous)} earlier part(s))" if previous else ""),
-          file=sys.stderr, flush=True)
+    print(
+        f"recording {args.key} to {out}" + (f" (continuing {len(previous)} earlier part(s))" if previous else ""),
+        file=sys.stderr,
+        flush=True,
+    )
     ready = None
     if args.ready_key:
         session, node = topics.split_key(args.ready_key)[0], args.ready_key.rsplit("/", 1)[-1]
         ready = ReadySpec(session, node, tuple(args.ready_after))
-    stats = main(options_from_args(args), out, key_expr=args.key, duration_s=args.duration, stop_event=stop,
-                 flush_interval_s=args.flush_interval, history=args.history, history_timeout_s=args.history_timeout,
-                 already_recorded=already_recorded, ready_key=ready, session=args.session)
+    stats = main(
+        options_from_args(args),
+        out,
+        key_expr=args.key,
+        duration_s=args.duration,
+        stop_event=stop,
+        flush_interval_s=args.flush_interval,
+        history=args.history,
+        history_timeout_s=args.history_timeout,
+        already_recorded=already_recorded,
+        ready_key=ready,
+        session=args.session,
+    )
     print(summary_line(stats, out), file=sys.stderr)
     return 0
 
@@ -516,8 +575,11 @@ def summary_line(stats: RecorderStats, out: Path) -> str:
     queue_full = sum(reasons.get(DropReason.QUEUE_FULL.value, 0) for reasons in dropped.values())
     return (
         f"recorded {stats.written} messages to {out}"
-        + (f"; kept {stats.rejected} rejected payloads apart, in channels labelled {REJECTED_REASON}"
-           if stats.rejected else "")
+        + (
+            f"; kept {stats.rejected} rejected payloads apart, in channels labelled {REJECTED_REASON}"
+            if stats.rejected
+            else ""
+        )
         + (f"; dropped {oversized} oversized payloads" if oversized else "")
         + (f"; dropped {queue_full} on a full queue" if queue_full else "")
         + (f"; history: {stats.history_fetched} messages from the publishers' caches" if stats.history_fetched else "")

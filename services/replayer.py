@@ -124,17 +124,28 @@ def main(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mcap", type=Path, help="MCAP recording to play")
     parser.add_argument("--rate", default="1", help="speed factor (1 = original timing) or 'max' (default: 1)")
-    parser.add_argument("--session", default=None, help="republish under msk/<SESSION>/... instead of the recorded session")
     parser.add_argument(
-        "--exclude", action="append", default=[], metavar="KEYEXPR",
+        "--session", default=None, help="republish under msk/<SESSION>/... instead of the recorded session"
+    )
+    parser.add_argument(
+        "--exclude",
+        action="append",
+        default=[],
+        metavar="KEYEXPR",
         help="do not publish keys matching this key expression, e.g. 'msk/*/joints' to recompute joints live (repeatable)",
     )
     parser.add_argument(
-        "--wait-subscribers", type=float, default=2.0, metavar="S",
+        "--wait-subscribers",
+        type=float,
+        default=2.0,
+        metavar="S",
         help="wait up to S seconds for a subscriber on each new key before publishing on it (default 2)",
     )
     parser.add_argument(
-        "--wait-node", action="append", default=[], metavar="NAME",
+        "--wait-node",
+        action="append",
+        default=[],
+        metavar="NAME",
         help="publish nothing before graph node NAME of --session has its subscribers up (services.graph; repeatable; "
         "an error naming the missing nodes after --wait-nodes-timeout)",
     )
@@ -158,8 +169,11 @@ def run_from_args(args: argparse.Namespace) -> int:
     note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
     skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""
     if stats.left_out:
-        skipped += f", left out {sum(stats.left_out.values())} rejected payloads (" + ", ".join(
-            f"{topic}: {n} {reason}" for (topic, reason), n in sorted(stats.left_out.items())) + ")"
+        skipped += (
+            f", left out {sum(stats.left_out.values())} rejected payloads ("
+            + ", ".join(f"{topic}: {n} {reason}" for (topic, reason), n in sorted(stats.left_out.items()))
+            + ")"
+        )
     print(f"published {stats.published} messages from {args.mcap}{skipped}{note}", file=sys.stderr)
     return 0
 

@@ -45,8 +45,10 @@ def wait_until_listening(process: subprocess.Popen, port: int, *, timeout_s: flo
         if process.poll() is None:
             process.kill()
         _, err = process.communicate(timeout=10)
-        raise RuntimeError(f"msk router did not listen on 127.0.0.1:{port} within {timeout_s:g} s "
-                           f"(exit {process.returncode}): {(err or '')[-2000:]}")
+        raise RuntimeError(
+            f"msk router did not listen on 127.0.0.1:{port} within {timeout_s:g} s "
+            f"(exit {process.returncode}): {(err or '')[-2000:]}"
+        )
 
 
 def main(

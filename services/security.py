@@ -33,6 +33,7 @@ CN_PREFIX = "msk-"
 ROUTER_ROLE = "router"
 DEFAULT_TLS_PORT = 7447
 
+
 @dataclass(frozen=True)
 class RolePolicy:
     """What a role may publish (``put``) and subscribe to (``declare_subscriber``), as Zenoh key expressions, and
@@ -63,6 +64,7 @@ def _policies_from_graph() -> dict[str, RolePolicy]:
 
 ROLE_POLICIES: dict[str, RolePolicy] = _policies_from_graph()
 
+
 def refused(role: str, action: str, key: str) -> str | None:
     """Why the router refuses ``role`` to ``action`` ("publish" or "subscribe") on ``key``; None when allowed. The
     router itself says so only in its trace log: nodes ask here first, so a refusal is said plainly where it happens."""
@@ -88,7 +90,7 @@ def role_of_config(config_file: Path | str) -> str | None:
         return None
     names = subject.get_attributes_for_oid(NameOID.COMMON_NAME)
     name = str(names[0].value) if names else ""
-    return name[len(CN_PREFIX):] if name.startswith(CN_PREFIX) else None
+    return name[len(CN_PREFIX) :] if name.startswith(CN_PREFIX) else None
 
 
 VALIDITY_DAYS = 825  # browsers' and rustls' comfort limit for leaf certificates
@@ -133,16 +135,20 @@ def _new_key() -> ec.EllipticCurvePrivateKey:
 
 
 def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
-    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    return key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
 
 
 def _name(cn: str) -> x509.Name:
-    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "msk-live"), x509.NameAttribute(NameOID.COMMON_NAME, cn)])
+    return x509.Name(
+        [x509.NameAttribute(NameOID.ORGANIZATION_NAME, "msk-live"), x509.NameAttribute(NameOID.COMMON_NAME, cn)]
+    )
 
 
 def make_ca(cn: str = "msk-live CA", *, days: int = 3650) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     key = _new_key()
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     cert = (
         x509.CertificateBuilder()
         .subject_name(_name(cn))
@@ -154,8 +160,15 @@ def make_ca(cn: str = "msk-live CA", *, days: int = 3650) -> tuple[ec.EllipticCu
         .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
         .add_extension(
             x509.KeyUsage(
-                digital_signature=True, content_commitment=False, key_encipherment=False, data_encipherment=False,
-                key_agreement=False, key_cert_sign=True, crl_sign=True, encipher_only=False, decipher_only=False,
+                digital_signature=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=True,
+                encipher_only=False,
+                decipher_only=False,
             ),
             critical=True,
         )
@@ -175,7 +188,7 @@ def make_leaf(
 ) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     """A certificate for one node. ``hosts`` (DNS names or IP addresses) make it usable by a TLS server."""
     key = _new_key()
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     builder = (
         x509.CertificateBuilder()
         .subject_name(_name(cn))
@@ -187,8 +200,15 @@ def make_leaf(
         .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
         .add_extension(
             x509.KeyUsage(
-                digital_signature=True, content_commitment=False, key_encipherment=False, data_encipherment=False,
-                key_agreement=False, key_cert_sign=False, crl_sign=False, encipher_only=False, decipher_only=False,
+                digital_signature=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=False,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
             ),
             critical=True,
         )
@@ -218,7 +238,9 @@ def write_pki(
 ) -> Pki:
     """A CA (unless given), the router's certificate for ``router_hosts`` and one client certificate per role."""
     if not router_hosts:
-        raise ConfigError("the router certificate needs at least one host name or address", field="router_hosts", value=router_hosts)
+        raise ConfigError(
+            "the router certificate needs at least one host name or address", field="router_hosts", value=router_hosts
+        )
     for role in roles:
         check_role(role)
     directory = Path(directory)
@@ -255,42 +277,116 @@ def access_control(roles: dict[str, RolePolicy] = ROLE_POLICIES) -> dict:
         subjects.append({"id": role, "cert_common_names": [common_name(role)]})
         role_rules = []
         if policy.publish:
-            role_rules.append({"id": f"{role}-publish", "permission": "allow", "flows": ["ingress"],
-                               "messages": ["put", "delete"], "key_exprs": list(policy.publish)})
+            role_rules.append(
+                {
+                    "id": f"{role}-publish",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["put", "delete"],
+                    "key_exprs": list(policy.publish),
+                }
+            )
             # Subscribers declare broad expressions (the recorder's msk/**): the publisher must see them to send.
-            role_rules.append({"id": f"{role}-publish-interest", "permission": "allow", "flows": ["egress"],
-                               "messages": ["declare_subscriber"], "key_exprs": ["msk/**"]})
+            role_rules.append(
+                {
+                    "id": f"{role}-publish-interest",
+                    "permission": "allow",
+                    "flows": ["egress"],
+                    "messages": ["declare_subscriber"],
+                    "key_exprs": ["msk/**"],
+                }
+            )
         if policy.subscribe:
-            role_rules.append({"id": f"{role}-subscribe", "permission": "allow", "flows": ["ingress"],
-                               "messages": ["declare_subscriber"], "key_exprs": list(policy.subscribe)})
-            role_rules.append({"id": f"{role}-receive", "permission": "allow", "flows": ["egress"],
-                               "messages": ["put", "delete"], "key_exprs": list(policy.subscribe)})
+            role_rules.append(
+                {
+                    "id": f"{role}-subscribe",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["declare_subscriber"],
+                    "key_exprs": list(policy.subscribe),
+                }
+            )
+            role_rules.append(
+                {
+                    "id": f"{role}-receive",
+                    "permission": "allow",
+                    "flows": ["egress"],
+                    "messages": ["put", "delete"],
+                    "key_exprs": list(policy.subscribe),
+                }
+            )
         # History (a restarted recorder fetching what device publishers kept, services.zenoh_session
         # .declare_history_publisher): the publisher's cache is a queryable announced by a liveliness token under
         # <key>/@adv/**, a verbatim chunk that msk/** does not cover.
         if policy.publish:
             history_keys = _with_history(policy.publish)
-            role_rules.append({"id": f"{role}-history-serve", "permission": "allow", "flows": ["ingress"],
-                               "messages": ["declare_queryable", "reply", "liveliness_token"], "key_exprs": history_keys})
-            role_rules.append({"id": f"{role}-history-asked", "permission": "allow", "flows": ["egress"],
-                               "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
-                               "key_exprs": history_keys})
+            role_rules.append(
+                {
+                    "id": f"{role}-history-serve",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["declare_queryable", "reply", "liveliness_token"],
+                    "key_exprs": history_keys,
+                }
+            )
+            role_rules.append(
+                {
+                    "id": f"{role}-history-asked",
+                    "permission": "allow",
+                    "flows": ["egress"],
+                    "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
+                    "key_exprs": history_keys,
+                }
+            )
         if policy.subscribe:
             history_keys = _with_history(policy.subscribe)
-            role_rules.append({"id": f"{role}-history-fetch", "permission": "allow", "flows": ["ingress"],
-                               "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
-                               "key_exprs": history_keys})
-            role_rules.append({"id": f"{role}-history-receive", "permission": "allow", "flows": ["egress"],
-                               "messages": ["reply", "liveliness_token", "declare_queryable"], "key_exprs": history_keys})
+            role_rules.append(
+                {
+                    "id": f"{role}-history-fetch",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
+                    "key_exprs": history_keys,
+                }
+            )
+            role_rules.append(
+                {
+                    "id": f"{role}-history-receive",
+                    "permission": "allow",
+                    "flows": ["egress"],
+                    "messages": ["reply", "liveliness_token", "declare_queryable"],
+                    "key_exprs": history_keys,
+                }
+            )
         if policy.tokens:  # "I am ready": services.graph.declare_ready
-            role_rules.append({"id": f"{role}-ready", "permission": "allow", "flows": ["ingress"],
-                               "messages": ["liveliness_token"], "key_exprs": list(policy.tokens)})
+            role_rules.append(
+                {
+                    "id": f"{role}-ready",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["liveliness_token"],
+                    "key_exprs": list(policy.tokens),
+                }
+            )
         if policy.watch_tokens:  # wait for the readers: services.graph.wait_for_nodes
-            role_rules.append({"id": f"{role}-watch-ready", "permission": "allow", "flows": ["ingress"],
-                               "messages": ["declare_liveliness_subscriber", "liveliness_query"],
-                               "key_exprs": list(policy.watch_tokens)})
-            role_rules.append({"id": f"{role}-see-ready", "permission": "allow", "flows": ["egress"],
-                               "messages": ["liveliness_token", "reply"], "key_exprs": list(policy.watch_tokens)})
+            role_rules.append(
+                {
+                    "id": f"{role}-watch-ready",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["declare_liveliness_subscriber", "liveliness_query"],
+                    "key_exprs": list(policy.watch_tokens),
+                }
+            )
+            role_rules.append(
+                {
+                    "id": f"{role}-see-ready",
+                    "permission": "allow",
+                    "flows": ["egress"],
+                    "messages": ["liveliness_token", "reply"],
+                    "key_exprs": list(policy.watch_tokens),
+                }
+            )
         rules.extend(role_rules)
         policies.append({"id": role, "rules": [r["id"] for r in role_rules], "subjects": [role]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
@@ -300,7 +396,9 @@ def _with_history(keys: tuple[str, ...]) -> list[str]:
     return [*keys, *(history_selector(key) for key in keys)]
 
 
-def router_config(pki_dir: Path | str, *, listen: tuple[str, ...] = (f"tls/0.0.0.0:{DEFAULT_TLS_PORT}",), acl: bool = True) -> dict:
+def router_config(
+    pki_dir: Path | str, *, listen: tuple[str, ...] = (f"tls/0.0.0.0:{DEFAULT_TLS_PORT}",), acl: bool = True
+) -> dict:
     """The router's Zenoh config: TLS listener(s) demanding a CA-signed client certificate, and the ACL."""
     pki = Pki(Path(pki_dir))
     for endpoint in listen:
@@ -352,7 +450,11 @@ def client_config(pki_dir: Path | str, role: str, *, connect: tuple[str, ...]) -
 
 
 def write_configs(
-    out_dir: Path, pki_dir_as_seen_by_nodes: Path | str, *, router_listen: tuple[str, ...], client_connect: tuple[str, ...]
+    out_dir: Path,
+    pki_dir_as_seen_by_nodes: Path | str,
+    *,
+    router_listen: tuple[str, ...],
+    client_connect: tuple[str, ...],
 ) -> dict[str, Path]:
     """``router.json5`` and ``<role>.json5`` for every role, referencing the PKI by ``pki_dir_as_seen_by_nodes``."""
     out_dir = Path(out_dir)

@@ -61,8 +61,9 @@ def _key(template: str, own_name: str) -> str:
         return f"status/{own_name}"
     known = {t for t, _ in topics.TOPIC_TABLE}
     if template not in known:
-        raise ConfigError(f"not a topic template of services/topics.py (known: {sorted(known)})", field="template",
-                          value=template)
+        raise ConfigError(
+            f"not a topic template of services/topics.py (known: {sorted(known)})", field="template", value=template
+        )
     # a trailing <name> chunk as **: a reader may subscribe to emg/* or emg/** alike and the access control lets
     # both through (every key actually published is one chunk deep: services.topics.check_chunk)
     parts = template.split("/")
@@ -71,32 +72,56 @@ def _key(template: str, own_name: str) -> str:
 
 #: The nodes of a live session. ``monitor`` is ``msk live`` itself: it publishes the session facts (exercise, load,
 #: set) and watches the flow so that the stop waits until every joint frame is answered.
-NODES: dict[str, NodeDecl] = {n.name: n for n in (
-    NodeDecl("recorder", "recorder", publishes=(OWN_STATUS,), subscribes=(EVERY_TOPIC,), command="recorder"),
-    # the estimator reads the trackers' and the EMG sensors' accelerations to measure the EMG clock against each
-    # tracker's (msk_core/estimate/clock_alignment.py)
-    NodeDecl("estimator", "estimator", publishes=("activations/<method>", "envelopes", OWN_STATUS),
-             subscribes=(SESSION_TOPICS, "emg/<source>", "acc/<source>", "imu/<tracker>"), command="estimator"),
-    NodeDecl("kinematics", "kinematics", publishes=("joints", OWN_STATUS), subscribes=("imu/<tracker>",),
-             command="kinematics"),
-    NodeDecl("drivers-trigno", "driver", publishes=("emg/<source>", "acc/<source>", DEVICE_STATUS), command="drivers"),
-    NodeDecl("drivers-xsens", "driver", publishes=("imu/<tracker>", DEVICE_STATUS), command="drivers"),
-    NodeDecl("monitor", "operator", publishes=("load",),
-             subscribes=("joints", "activations/<method>", DEVICE_STATUS)),
-)}
+NODES: dict[str, NodeDecl] = {
+    n.name: n
+    for n in (
+        NodeDecl("recorder", "recorder", publishes=(OWN_STATUS,), subscribes=(EVERY_TOPIC,), command="recorder"),
+        # the estimator reads the trackers' and the EMG sensors' accelerations to measure the EMG clock against each
+        # tracker's (msk_core/estimate/clock_alignment.py)
+        NodeDecl(
+            "estimator",
+            "estimator",
+            publishes=("activations/<method>", "envelopes", OWN_STATUS),
+            subscribes=(SESSION_TOPICS, "emg/<source>", "acc/<source>", "imu/<tracker>"),
+            command="estimator",
+        ),
+        NodeDecl(
+            "kinematics",
+            "kinematics",
+            publishes=("joints", OWN_STATUS),
+            subscribes=("imu/<tracker>",),
+            command="kinematics",
+        ),
+        NodeDecl(
+            "drivers-trigno", "driver", publishes=("emg/<source>", "acc/<source>", DEVICE_STATUS), command="drivers"
+        ),
+        NodeDecl("drivers-xsens", "driver", publishes=("imu/<tracker>", DEVICE_STATUS), command="drivers"),
+        NodeDecl(
+            "monitor", "operator", publishes=("load",), subscribes=("joints", "activations/<method>", DEVICE_STATUS)
+        ),
+    )
+}
 
 #: Participants that join a session without being one of its nodes.
-CLIENTS: dict[str, NodeDecl] = {n.name: n for n in (
-    # a second terminal's view, dashboard, `msk subscribe` and `msk load` on the rack PC
-    NodeDecl("operator", "operator", publishes=("load",), subscribes=(EVERY_TOPIC,), is_node=False),
-    # a coach's tablet: what the estimator says and whether the devices deliver, nothing else
-    NodeDecl("tablet", "tablet", subscribes=("activations/<method>", DEVICE_STATUS), command="dashboard",
-             is_node=False),
-    # `msk replay`: a recording's device data, load and joints back on the wire
-    NodeDecl("replayer", "replayer", publishes=("emg/<source>", "acc/<source>", "imu/<tracker>", DEVICE_STATUS, "load",
-                                                "joints"),
-             command="replay", is_node=False),
-)}
+CLIENTS: dict[str, NodeDecl] = {
+    n.name: n
+    for n in (
+        # a second terminal's view, dashboard, `msk subscribe` and `msk load` on the rack PC
+        NodeDecl("operator", "operator", publishes=("load",), subscribes=(EVERY_TOPIC,), is_node=False),
+        # a coach's tablet: what the estimator says and whether the devices deliver, nothing else
+        NodeDecl(
+            "tablet", "tablet", subscribes=("activations/<method>", DEVICE_STATUS), command="dashboard", is_node=False
+        ),
+        # `msk replay`: a recording's device data, load and joints back on the wire
+        NodeDecl(
+            "replayer",
+            "replayer",
+            publishes=("emg/<source>", "acc/<source>", "imu/<tracker>", DEVICE_STATUS, "load", "joints"),
+            command="replay",
+            is_node=False,
+        ),
+    )
+}
 
 
 def live_nodes(*, trigno: bool, xsens: bool) -> list[NodeDecl]:
@@ -125,8 +150,11 @@ def readers_of(node: NodeDecl, graph: list[NodeDecl]) -> tuple[str, ...]:
     form a cycle; a node started later that reads from an earlier one (the estimator reading msk live's load)
     is covered by the start order: ``msk live`` publishes the session facts once the whole graph is ready."""
     earlier = graph[: graph.index(node)]
-    return tuple(other.name for other in earlier if other.is_node and any(
-        _matches(p, s) for p in node.publish_keys() for s in other.subscribe_keys()))
+    return tuple(
+        other.name
+        for other in earlier
+        if other.is_node and any(_matches(p, s) for p in node.publish_keys() for s in other.subscribe_keys())
+    )
 
 
 @dataclass(frozen=True)

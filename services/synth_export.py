@@ -43,39 +43,91 @@ def _ns(t: float) -> int:
 def trial_messages(trial: Trial, session: str, t0_ns: int, emg_rate_hz: float) -> list[tuple[int, int, str, object]]:
     """(log_time_ns, tie-break, topic, message) for one trial."""
     out: list[tuple[int, int, str, object]] = []
-    load_key, joints_key, emg_key = topics.load_key(session), topics.joints_key(session), topics.emg_key(session, EMG_SOURCE)
+    load_key, joints_key, emg_key = (
+        topics.load_key(session),
+        topics.joints_key(session),
+        topics.emg_key(session, EMG_SOURCE),
+    )
     end_ns = t0_ns + _ns(float(trial.time[-1]))
     for when, mass in ((t0_ns, trial.reported_load_kg), (end_ns, 0.0)):
-        out.append((when, 0, load_key, messages.LoadEvent(barbell_mass_kg=mass, exercise=trial.exercise.value,
-                                                          device_time_ns=when, host_time_ns=when)))
+        out.append(
+            (
+                when,
+                0,
+                load_key,
+                messages.LoadEvent(
+                    barbell_mass_kg=mass, exercise=trial.exercise.value, device_time_ns=when, host_time_ns=when
+                ),
+            )
+        )
     for k, t in enumerate(trial.time):
         when = t0_ns + _ns(float(t))
-        out.append((when, 1, joints_key, messages.JointAngles(
-            coordinates=trial.coordinates, q=trial.q[k].tolist(), qd=trial.qd[k].tolist(), qdd=trial.qdd[k].tolist(),
-            phase=float(trial.phase[k]), device_time_ns=when, host_time_ns=when)))
+        out.append(
+            (
+                when,
+                1,
+                joints_key,
+                messages.JointAngles(
+                    coordinates=trial.coordinates,
+                    q=trial.q[k].tolist(),
+                    qd=trial.qd[k].tolist(),
+                    qdd=trial.qdd[k].tolist(),
+                    phase=float(trial.phase[k]),
+                    device_time_ns=when,
+                    host_time_ns=when,
+                ),
+            )
+        )
     first_index = int(round(t0_ns * 1e-9 * emg_rate_hz)) - int(round(EPOCH_NS * 1e-9 * emg_rate_hz))
     samples = trial.emg.astype(np.float32)
     for start in range(0, samples.shape[0] - EMG_CHUNK + 1, EMG_CHUNK):
         block = samples[start : start + EMG_CHUNK]
         device = t0_ns + _ns(start / emg_rate_hz)
         host = t0_ns + _ns((start + EMG_CHUNK) / emg_rate_hz)  # the frame is complete after its last sample
-        out.append((host, 2, emg_key, messages.EmgChunk(
-            source_id=EMG_SOURCE, channel_labels=trial.channels, sample_rate_hz=emg_rate_hz,
-            first_sample_index=first_index + start, device_time_ns=device, host_time_ns=host,
-            n_samples=EMG_CHUNK, n_channels=block.shape[1], samples=block.reshape(-1).tolist(), units="V")))
+        out.append(
+            (
+                host,
+                2,
+                emg_key,
+                messages.EmgChunk(
+                    source_id=EMG_SOURCE,
+                    channel_labels=trial.channels,
+                    sample_rate_hz=emg_rate_hz,
+                    first_sample_index=first_index + start,
+                    device_time_ns=device,
+                    host_time_ns=host,
+                    n_samples=EMG_CHUNK,
+                    n_channels=block.shape[1],
+                    samples=block.reshape(-1).tolist(),
+                    units="V",
+                ),
+            )
+        )
     for s, imu in enumerate(trial.imu):
         key = topics.imu_key(session, imu.segment)
         for k, t in enumerate(imu.time):
             when = t0_ns + _ns(float(t))
             q, a, w, m = imu.orientation[k], imu.acceleration[k], imu.rate_of_turn[k], imu.magnetic_field[k]
-            out.append((when, 3 + s, key, messages.ImuSample(
-                tracker_id=imu.tracker_id, segment=imu.segment, packet_counter=k & 0xFFFF,
-                sample_time_fine=int(round((when - EPOCH_NS) * 1e-5)) & 0xFFFFFFFF,
-                orientation=messages.Quaternion(w=q[0], x=q[1], y=q[2], z=q[3]),
-                acceleration=messages.Vector3(x=a[0], y=a[1], z=a[2]),
-                rate_of_turn=messages.Vector3(x=w[0], y=w[1], z=w[2]),
-                magnetic_field=messages.Vector3(x=m[0], y=m[1], z=m[2]),
-                device_time_ns=when, host_time_ns=when, coordinate_frame="ENU")))
+            out.append(
+                (
+                    when,
+                    3 + s,
+                    key,
+                    messages.ImuSample(
+                        tracker_id=imu.tracker_id,
+                        segment=imu.segment,
+                        packet_counter=k & 0xFFFF,
+                        sample_time_fine=int(round((when - EPOCH_NS) * 1e-5)) & 0xFFFFFFFF,
+                        orientation=messages.Quaternion(w=q[0], x=q[1], y=q[2], z=q[3]),
+                        acceleration=messages.Vector3(x=a[0], y=a[1], z=a[2]),
+                        rate_of_turn=messages.Vector3(x=w[0], y=w[1], z=w[2]),
+                        magnetic_field=messages.Vector3(x=m[0], y=m[1], z=m[2]),
+                        device_time_ns=when,
+                        host_time_ns=when,
+                        coordinate_frame="ENU",
+                    ),
+                )
+            )
     return out
 
 
@@ -97,8 +149,9 @@ def write_mcap(session: Session, path: str | Path, *, session_name: str = "synth
     with McapRecorderWriter(path, flush_interval_s=float("inf")) as writer:
         for ex in session.exercises:
             for trial in ex.trials:
-                batch = trial_messages(trial, session_name, EPOCH_NS + _ns(offsets[trial.name]),
-                                       session.config.emg_rate_hz)
+                batch = trial_messages(
+                    trial, session_name, EPOCH_NS + _ns(offsets[trial.name]), session.config.emg_rate_hz
+                )
                 batch.sort(key=lambda m: (m[0], m[1]))
                 for log_time, _, topic, message in batch:
                     writer.write_message(topic, message, log_time)
@@ -137,8 +190,12 @@ def write_device_streams(session: Session, out: str | Path) -> list[Path]:
     written: list[Path] = []
     for ex in session.exercises:
         for trial in ex.trials:
-            written += write_trial_device_streams(trial, out / "raw" / trial.name, emg_rate_hz=session.config.emg_rate_hz,
-                                                  imu_rate_hz=session.config.imu_rate_hz)
+            written += write_trial_device_streams(
+                trial,
+                out / "raw" / trial.name,
+                emg_rate_hz=session.config.emg_rate_hz,
+                imu_rate_hz=session.config.imu_rate_hz,
+            )
     return written
 
 
@@ -153,20 +210,37 @@ def write_trial_device_streams(trial: Trial, folder: Path, *, emg_rate_hz: float
     if trial.emg_acc is not None:
         rate = 1.0 / float(np.median(np.diff(trial.emg_acc.time)))
         acc = {"acc": (trial.emg_acc.acceleration / STANDARD_GRAVITY).astype(np.float32), "acc_rate_hz": rate}
-    savez_deterministic(folder / "trigno.npz", emg=trial.emg.astype(np.float32), rate_hz=emg_rate_hz,
-                        labels=np.asarray(trial.channels), sensors=np.arange(1, n_ch + 1), **acc)
+    savez_deterministic(
+        folder / "trigno.npz",
+        emg=trial.emg.astype(np.float32),
+        rate_hz=emg_rate_hz,
+        labels=np.asarray(trial.channels),
+        sensors=np.arange(1, n_ch + 1),
+        **acc,
+    )
     rows = np.zeros((trial.emg.shape[0], N_SENSORS), dtype=np.float32)
     rows[:, :n_ch] = trial.emg
     (folder / "trigno_emg.bin").write_bytes(encode_samples(rows))
     written = [folder / "trigno.npz", folder / "trigno_emg.bin"]
     for imu in trial.imu:
         npz = folder / f"xsens_{imu.segment}.npz"
-        savez_deterministic(npz, rate_hz=imu_rate_hz, quaternion=imu.orientation,
-                            acceleration=imu.acceleration, rate_of_turn=imu.rate_of_turn,
-                            magnetic_field=imu.magnetic_field)
+        savez_deterministic(
+            npz,
+            rate_hz=imu_rate_hz,
+            quaternion=imu.orientation,
+            acceleration=imu.acceleration,
+            rate_of_turn=imu.rate_of_turn,
+            magnetic_field=imu.magnetic_field,
+        )
         frames = [
-            _mtdata2(k, int(round(t * 1e4)), imu.orientation[k], imu.acceleration[k], imu.rate_of_turn[k],
-                     imu.magnetic_field[k])
+            _mtdata2(
+                k,
+                int(round(t * 1e4)),
+                imu.orientation[k],
+                imu.acceleration[k],
+                imu.rate_of_turn[k],
+                imu.magnetic_field[k],
+            )
             for k, t in enumerate(imu.time)
         ]
         binary = folder / f"xsens_{imu.segment}.bin"

@@ -55,9 +55,7 @@ DELIVERY: dict[str, Delivery] = {
 
 def check_chunk(value: str, what: str) -> str:
     if not _CHUNK.match(value):
-        raise ConfigError(
-            "must be a single key chunk of letters, digits, '-', '_' or '.'", field=what, value=value
-        )
+        raise ConfigError("must be a single key chunk of letters, digits, '-', '_' or '.'", field=what, value=value)
     return value
 
 

@@ -99,10 +99,12 @@ class ViewState:
 def session_facts(load: messages.LoadEvent | None, frame: messages.ActivationFrame | None, sets: int) -> str:
     """``exercise bench press · load 60 kg · set 2``: the load event's, the exercise else the frame's."""
     exercise = (load.exercise if load is not None else "") or (frame.exercise if frame is not None else "")
-    return (f"exercise {exercise.replace('_', ' ') if exercise else 'unknown'}"
-            + f" · load {f'{load.barbell_mass_kg:g} kg' if load is not None else 'unknown'}"
-            + f" · set {sets if sets else '–'}"
-            + (f" · {load.athlete}" if load is not None and load.athlete else ""))
+    return (
+        f"exercise {exercise.replace('_', ' ') if exercise else 'unknown'}"
+        + f" · load {f'{load.barbell_mass_kg:g} kg' if load is not None else 'unknown'}"
+        + f" · set {sets if sets else '–'}"
+        + (f" · {load.athlete}" if load is not None and load.athlete else "")
+    )
 
 
 def dropped_text(inputs: InputCounts) -> str:
@@ -150,15 +152,24 @@ def set_time_text(set_number: int, start_s: float | None, time_s: float) -> str:
     return f"{time_s - start_s:.1f} s " + (f"in set {set_number}" if set_number else "since the first frame")
 
 
-def muscle_labels(names: DisplayNames, groups: list[str], methods: int, width: int | None,
-                  extra: int = 0) -> tuple[list[str], str]:
+def muscle_labels(
+    names: DisplayNames, groups: list[str], methods: int, width: int | None, extra: int = 0
+) -> tuple[list[str], str]:
     """The group labels of the muscle table: display names, or the model names (abbreviations) when the table would
     not fit ``width`` columns with them (and ``extra`` more, e.g. the electrode column), and then the legend that
     explains them."""
     full = [names.group(g) for g in groups]
     # label, bar, activation % and EMG envelope % columns, one per other method; rich draws 3 characters per column
-    needed = max(map(len, full), default=0) + BAR_WIDTH + len("activation %") + len("EMG envelope %") \
-        + 10 * max(methods - 1, 0) + 3 * (3 + methods) + 1 + extra
+    needed = (
+        max(map(len, full), default=0)
+        + BAR_WIDTH
+        + len("activation %")
+        + len("EMG envelope %")
+        + 10 * max(methods - 1, 0)
+        + 3 * (3 + methods)
+        + 1
+        + extra
+    )
     if width is None or needed <= width or full == groups:
         return full, ""
     return list(groups), names.legend(groups)
@@ -200,10 +211,15 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     methods = list(frames)
     method = primary if primary in frames else (methods[0] if methods else None)
     dropped = dropped_text(state.inputs)
-    header = Text(f"msk view · session {session} · {received} messages" + (f" · {dropped}" if dropped else ""), style="bold")
+    header = Text(
+        f"msk view · session {session} · {received} messages" + (f" · {dropped}" if dropped else ""), style="bold"
+    )
     if method is None:
-        return Group(header, Text(session_facts(load, None, sets)),
-                     Text("waiting for activations on " + f"msk/{session}/activations/* ..."))
+        return Group(
+            header,
+            Text(session_facts(load, None, sets)),
+            Text("waiting for activations on " + f"msk/{session}/activations/* ..."),
+        )
     frame = frames[method]
     groups = list(frame.groups)
     exercise = frame.exercise or (load.exercise if load is not None else "")  # the names of the frame's pack
@@ -211,7 +227,9 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     quality = electrodes_by_group(status)  # the electrodes' signal quality, once the estimator has said it
     labels, legend = muscle_labels(names, groups, len(methods), width, extra=len("electrode") + 3 if quality else 0)
     std = list(frame.activation_std) if len(frame.activation_std) == len(groups) else [None] * len(groups)
-    envelope = list(frame.measured_envelope) if len(frame.measured_envelope) == len(groups) else [math.nan] * len(groups)
+    envelope = (
+        list(frame.measured_envelope) if len(frame.measured_envelope) == len(groups) else [math.nan] * len(groups)
+    )
     muscles = Table(title=f"activations · {method} (█ estimate, ░ ±1 sd, ┃ EMG envelope)", expand=False)
     muscles.add_column("muscle")
     muscles.add_column("estimate")
@@ -237,15 +255,23 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     for column in ("joint", "inverse dynamics", "muscles", "residual", "unit"):
         torques.add_column(column, justify="right" if column not in ("joint", "unit") else "left")
     for c in frame.torques:
-        torques.add_row(Text(names.coordinate(c.coordinate)), f"{c.inverse_dynamics_nm:.1f}", f"{c.model_nm:.1f}",
-                        f"{c.residual_nm:.1f}", names.torque_unit(c.coordinate) or "N·m")  # *_nm fields: N·m
+        torques.add_row(
+            Text(names.coordinate(c.coordinate)),
+            f"{c.inverse_dynamics_nm:.1f}",
+            f"{c.model_nm:.1f}",
+            f"{c.residual_nm:.1f}",
+            names.torque_unit(c.coordinate) or "N·m",
+        )  # *_nm fields: N·m
     if legend:
         muscles.caption, muscles.caption_justify = legend, "left"
     phase = frame.phase if frame.HasField("phase") else None
     phase_text = "unknown" if phase is None else ("rest" if phase < 0 else f"{phase:.2f}")
-    latency_ms = (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
+    latency_ms = (
+        (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
+    )
     session_line = Text(
-        session_facts(load, frame, sets) + f" · rep {reps} · phase {phase_text}"
+        session_facts(load, frame, sets)
+        + f" · rep {reps} · phase {phase_text}"
         + f" · {set_time_text(sets, set_start_s, frame.time_s)} · latency {latency_ms:.2f} ms"
         + f" · solver {frame.solver_status}"
         + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
@@ -255,7 +281,9 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     for column in ("device", "kind", "connected", "samples", "lost", "errors"):
         health.add_column(column)
     for name, s in devices.items():
-        health.add_row(name, s.kind, "yes" if s.connected else "NO", str(s.samples_received), str(s.samples_lost), str(s.errors))
+        health.add_row(
+            name, s.kind, "yes" if s.connected else "NO", str(s.samples_received), str(s.samples_lost), str(s.errors)
+        )
     if not devices:
         health.add_row("(no device status on this session)", "", "", "", "", "")
     nodes = {name: s for name, s in status.items() if s.kind == "node"}
@@ -265,14 +293,22 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     for column in ("node", "running", "received", "dropped"):
         node_table.add_column(column)
     for name, s in nodes.items():
-        node_table.add_row(name, "yes" if s.connected else "stopped", str(s.samples_received),
-                           str(sum(d.count for d in s.dropped)))
+        node_table.add_row(
+            name, "yes" if s.connected else "stopped", str(s.samples_received), str(sum(d.count for d in s.dropped))
+        )
     return Group(header, session_line, muscles, torques, health, node_table)
 
 
-def main(config: ZenohOptions, *, session: str, method: str | None = None, refresh_hz: float = 10.0,
-         duration_s: float | None = None, stop_event: threading.Event | None = None,
-         console: Console | None = None) -> ViewState:
+def main(
+    config: ZenohOptions,
+    *,
+    session: str,
+    method: str | None = None,
+    refresh_hz: float = 10.0,
+    duration_s: float | None = None,
+    stop_event: threading.Event | None = None,
+    console: Console | None = None,
+) -> ViewState:
     stop_event = stop_event or threading.Event()
     state = ViewState()
     deadline = None if duration_s is None else time.monotonic() + duration_s
@@ -285,8 +321,13 @@ def main(config: ZenohOptions, *, session: str, method: str | None = None, refre
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()
         try:
-            with Live(render(state, session, method), console=console, refresh_per_second=refresh_hz,
-                      screen=False, transient=False) as live:
+            with Live(
+                render(state, session, method),
+                console=console,
+                refresh_per_second=refresh_hz,
+                screen=False,
+                transient=False,
+            ) as live:
                 while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
                     live.update(Panel(render(state, session, method, width=live.console.width - 4)))  # the panel
                     stop_event.wait(1.0 / refresh_hz)
@@ -310,8 +351,7 @@ def take_inputs(inputs: NodeInputs, state: ViewState, stop: threading.Event) -> 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--session", default=None,
-                        help="session name (default: the running msk live's, else live)")
+    parser.add_argument("--session", default=None, help="session name (default: the running msk live's, else live)")
     parser.add_argument("--method", default=None, help="method drawn as bars (default: the first seen)")
     parser.add_argument("--refresh-hz", type=float, default=10.0, help="redraws per second (default 10)")
     parser.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="stop after this long")
@@ -326,6 +366,12 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     options, session = discovery.client_options(options_from_args(args), args.session, "live", "msk view")
     topics.check_chunk(session, "session")
-    main(options, session=session, method=args.method, refresh_hz=args.refresh_hz,
-         duration_s=args.duration, stop_event=stop)
+    main(
+        options,
+        session=session,
+        method=args.method,
+        refresh_hz=args.refresh_hz,
+        duration_s=args.duration,
+        stop_event=stop,
+    )
     return 0

@@ -98,16 +98,28 @@ def endpoint_is_free(endpoint: str) -> bool:
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("Zenoh")
     group.add_argument(
-        "--mode", choices=["peer", "client", "router"], default=None,
+        "--mode",
+        choices=["peer", "client", "router"],
+        default=None,
         help="Zenoh mode (default: the --zenoh-config file's, else peer)",
     )
     group.add_argument(
-        "--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)"
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)",
     )
     group.add_argument(
-        "--listen", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)"
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)",
     )
-    group.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5", help="Zenoh JSON5 configuration file")
+    group.add_argument(
+        "--zenoh-config", type=Path, default=None, metavar="FILE.json5", help="Zenoh JSON5 configuration file"
+    )
 
 
 def options_from_args(args: argparse.Namespace) -> ZenohOptions:
@@ -212,9 +224,13 @@ def fetch_history(session: zenoh.Session, key_expr: str, *, timeout_s: float) ->
         elif reply.err is not None:
             errors.append(reply.err.payload.to_string())
     pending = [  # asked at once, read one after the other: the caches answer in parallel
-        session.get(cache, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                    accept_replies=zenoh.ReplyKeyExpr.ANY,  # a cache answers with the data key, not the one asked
-                    timeout=max(0.1, deadline - time.monotonic()))
+        session.get(
+            cache,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            accept_replies=zenoh.ReplyKeyExpr.ANY,  # a cache answers with the data key, not the one asked
+            timeout=max(0.1, deadline - time.monotonic()),
+        )
         for cache in caches
     ]
     key = zenoh.KeyExpr(key_expr)

@@ -13,8 +13,17 @@ SHARED_DIR = Path(os.environ.get("MSK_SHARED_DIR", REPO_ROOT.parent / "shared"))
 # Modules whose tests run a whole `msk live` session (real-time simulators, the well-known Zenoh port 7447 when free,
 # the machine's calibration cache): under pytest-xdist (`python3 dev.py test` runs two workers) they share one worker,
 # one after another, so two sessions never race for the port or the cache, and the other worker runs the rest.
-LIVE_SESSION_MODULES = frozenset({"test_live", "test_live_session", "test_live_together", "test_live_dashboard",
-                                  "test_sim_clock", "test_live_clock_acc", "test_live_electrode_quality"})
+LIVE_SESSION_MODULES = frozenset(
+    {
+        "test_live",
+        "test_live_session",
+        "test_live_together",
+        "test_live_dashboard",
+        "test_sim_clock",
+        "test_live_clock_acc",
+        "test_live_electrode_quality",
+    }
+)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

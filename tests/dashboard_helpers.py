@@ -20,8 +20,14 @@ DEMO_MCAP = REPO_ROOT / "recordings" / "demo_session.mcap"
 ARTIFACTS = REPO_ROOT / "out" / "test-artifacts"
 CHROMIUM = os.environ.get("MSK_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
 ]
 
 
@@ -46,14 +52,19 @@ def trimmed_recording(source: Path, out: Path, start_s: float, end_s: float) -> 
             first = recorded.log_time_ns if first is None else first
             t = (recorded.log_time_ns - first) / 1e9
             if start_s <= t < end_s:
-                writer.write(recorded.topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns)
+                writer.write(
+                    recorded.topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns
+                )
     return out
 
 
-def start_estimator(endpoint: str, stop: threading.Event, *, pack: str, session: str, methods: list[str]) -> estimator.EstimatorStats:
+def start_estimator(
+    endpoint: str, stop: threading.Event, *, pack: str, session: str, methods: list[str]
+) -> estimator.EstimatorStats:
     stats, ready = estimator.EstimatorStats(), threading.Event()
     threading.Thread(
-        target=estimator.main, args=(ZenohOptions(connect=(endpoint,)),),
+        target=estimator.main,
+        args=(ZenohOptions(connect=(endpoint,)),),
         kwargs=dict(pack=pack, session=session, methods=methods, stop_event=stop, ready_event=ready, stats=stats),
         daemon=True,
     ).start()
@@ -61,7 +72,9 @@ def start_estimator(endpoint: str, stop: threading.Event, *, pack: str, session:
     return stats
 
 
-def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict[str, list[str]], session: str = "rep") -> dict:
+def record_with_estimates(
+    source: Path, out: Path, endpoint: str, *, packs: dict[str, list[str]], session: str = "rep"
+) -> dict:
     """Replay ``source`` at full speed through one estimator per pack (``{pack: methods}``) and record everything."""
     import time
 
@@ -70,12 +83,21 @@ def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict
     joints = sum(1 for r in read_messages(source) if r.type_name == "msk.JointAngles")
     stop, ready = threading.Event(), threading.Event()
     rec_stats = recorder.RecorderStats()
-    rec = threading.Thread(target=recorder.main, args=(ZenohOptions(listen=(endpoint,)), out),
-                           kwargs=dict(stats=rec_stats, stop_event=stop, ready_event=ready), daemon=True)
+    rec = threading.Thread(
+        target=recorder.main,
+        args=(ZenohOptions(listen=(endpoint,)), out),
+        kwargs=dict(stats=rec_stats, stop_event=stop, ready_event=ready),
+        daemon=True,
+    )
     rec.start()
     assert ready.wait(30), "recorder did not start within 30 s"
-    stats = {pack: start_estimator(endpoint, stop, pack=pack, session=session, methods=methods) for pack, methods in packs.items()}
-    replayed = replayer.main(ZenohOptions(connect=(endpoint,)), source, rate=None, session_name=session, wait_subscribers_s=5.0)
+    stats = {
+        pack: start_estimator(endpoint, stop, pack=pack, session=session, methods=methods)
+        for pack, methods in packs.items()
+    }
+    replayed = replayer.main(
+        ZenohOptions(connect=(endpoint,)), source, rate=None, session_name=session, wait_subscribers_s=5.0
+    )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not all(s.frames_done >= joints for s in stats.values()):
         time.sleep(0.1)
@@ -86,8 +108,14 @@ def record_with_estimates(source: Path, out: Path, endpoint: str, *, packs: dict
     rec.join(30)
     # the replayed data and the estimates, every one; the nodes' status messages (kind "node") come on top
     data = sum(1 for r in read_messages(out) if not (r.type_name == "msk.DeviceStatus" and r.decode().kind == "node"))
-    counts = {"replayed": replayed.published, "recorded": data, "expected": expected, "joints": joints,
-              "estimated": {p: s.frames_out for p, s in stats.items()}, "frames_in": {p: s.frames_in for p, s in stats.items()}}
+    counts = {
+        "replayed": replayed.published,
+        "recorded": data,
+        "expected": expected,
+        "joints": joints,
+        "estimated": {p: s.frames_out for p, s in stats.items()},
+        "frames_in": {p: s.frames_in for p, s in stats.items()},
+    }
     assert data == expected, f"recorded {data} of {expected} messages: {counts}"
     return counts
 
@@ -113,7 +141,8 @@ class BadInputs:
         key = f"msk/{self.session}/{rest}"
         if key not in self._publishers:
             self._publishers[key] = self.zsession.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
+            )
         return self._publishers[key]
 
     def wait_matched(self, rests: list[str], timeout_s: float = 30.0) -> None:
@@ -124,7 +153,8 @@ class BadInputs:
         deadline = time.monotonic() + timeout_s
         while not all(p.matching_status.matching for p in publishers.values()):
             assert time.monotonic() < deadline, (
-                f"no subscriber within {timeout_s} s on {[r for r, p in publishers.items() if not p.matching_status.matching]}")
+                f"no subscriber within {timeout_s} s on {[r for r, p in publishers.items() if not p.matching_status.matching]}"
+            )
             time.sleep(0.05)
 
     def bad(self, rest: str, payload: bytes, reason: str, *, encoding_type: str | None = None) -> None:
@@ -150,8 +180,9 @@ class BadInputs:
         """Garbage bytes, an empty payload, a message of the wrong type and a 50 MB payload, on several topics."""
         from services import messages
 
-        chunk = messages.EmgChunk(source_id="trigno", n_samples=1, n_channels=1, samples=[0.0], channel_labels=["a"],
-                                  sample_rate_hz=2000.0)
+        chunk = messages.EmgChunk(
+            source_id="trigno", n_samples=1, n_channels=1, samples=[0.0], channel_labels=["a"], sample_rate_hz=2000.0
+        )
         self.bad("activations/so", b"\xff\xff not protobuf", "undecodable")
         self.bad("activations/so", b"", "invalid")  # decodes to a frame without method or groups
         self.bad("status/trigno", messages.encode(chunk), "wrong_type", encoding_type="msk.EmgChunk")

@@ -30,25 +30,51 @@ def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, z
     with Graph(SESSION, zenoh_endpoint) as graph:
         graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=["so"])
         graph.wait_ready(60)
-        doc = subprocess.Popen([sys.executable, str(script)], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        doc = subprocess.Popen(
+            [sys.executable, str(script)], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
         cli = None
         try:
             with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
                 # the doc subscriber is the only one on activations: a publisher there matches once it is declared
                 probe = declare_data_publisher(zsession, f"msk/{SESSION}/activations/probe", "msk.ActivationFrame")
-                wait_for("the doc subscriber to subscribe", lambda: probe.matching_status.matching,
-                         lambda: "no subscriber on activations yet", 60)
+                wait_for(
+                    "the doc subscriber to subscribe",
+                    lambda: probe.matching_status.matching,
+                    lambda: "no subscriber on activations yet",
+                    60,
+                )
                 probe.undeclare()
             cli = subprocess.Popen(
-                [sys.executable, "-m", "services.cli", "subscribe", f"msk/{SESSION}/activations/*", "--json", "--count", "5",
-                 "--connect", zenoh_endpoint], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                [
+                    sys.executable,
+                    "-m",
+                    "services.cli",
+                    "subscribe",
+                    f"msk/{SESSION}/activations/*",
+                    "--json",
+                    "--count",
+                    "5",
+                    "--connect",
+                    zenoh_endpoint,
+                ],
+                cwd=repo_root,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
             first_line: list[str] = []
             reader = threading.Thread(target=lambda: first_line.append(cli.stderr.readline()), daemon=True)
             reader.start()
             reader.join(60)
             assert first_line and "subscribed to" in first_line[0], first_line
-            stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), repo_root / "recordings" / "demo_session.mcap",
-                                  rate=None, session_name=SESSION, exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"))
+            stats = replayer.main(
+                ZenohOptions(connect=(zenoh_endpoint,)),
+                repo_root / "recordings" / "demo_session.mcap",
+                rate=None,
+                session_name=SESSION,
+                exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"),
+            )
             assert stats.published > 5000
             out, err = doc.communicate(timeout=120)
             cli_out, cli_err = cli.communicate(timeout=60)
@@ -63,6 +89,8 @@ def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, z
     assert "'TriLong':" in lines[-1]
     assert cli.returncode == 0, cli_err
     decoded = [json.loads(line) for line in cli_out.splitlines()]
-    assert len(decoded) == 5 and all(d["type"] == "msk.ActivationFrame" and d["message"]["method"] == "so" for d in decoded)
+    assert len(decoded) == 5 and all(
+        d["type"] == "msk.ActivationFrame" and d["message"]["method"] == "so" for d in decoded
+    )
     assert len(decoded[0]["message"]["activations"]) == 13 and "5 messages" in cli_err
     assert graph.failed() == []

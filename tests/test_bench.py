@@ -15,7 +15,10 @@ def test_bench_quick_reports_figures_with_same_run_baselines(name, tmp_path, rep
     out = tmp_path / "bench.json"
     run = subprocess.run(
         [sys.executable, "-m", "services.cli", "bench", "--quick", name, "--json", str(out)],
-        cwd=repo_root, capture_output=True, text=True, timeout=300,
+        cwd=repo_root,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert run.returncode in (0, 1), run.stderr  # 1 = a target missed on this (shared, noisy) machine
     results = json.loads(out.read_text())
@@ -33,5 +36,7 @@ def test_bench_quick_reports_figures_with_same_run_baselines(name, tmp_path, rep
 
 
 def test_bench_rejects_unknown_names(repo_root):
-    run = subprocess.run([sys.executable, "-m", "services.cli", "bench", "nope"], cwd=repo_root, capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "services.cli", "bench", "nope"], cwd=repo_root, capture_output=True, text=True
+    )
     assert run.returncode == 2 and "unknown benchmark" in run.stderr and "emg" in run.stderr

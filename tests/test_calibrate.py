@@ -34,8 +34,13 @@ def _synthetic(seed=0, t=60, n_c=2, g=5, emg_groups=4, noise=0.0):
 @pytest.mark.parametrize("strength_prior_std,emg_relative_std", [(None, None), (0.3, None), (0.3, 0.1)])
 def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std, emg_relative_std, precondition):
     f_ref, _, _, frames = _synthetic(seed=1, t=40, noise=0.03)
-    s = CalibrationSettings(torque_tolerance=0.02, strength_prior_std=strength_prior_std, precondition=precondition,
-                            emg_relative_std=emg_relative_std, identify_max_std=None)  # the NLP optimum itself
+    s = CalibrationSettings(
+        torque_tolerance=0.02,
+        strength_prior_std=strength_prior_std,
+        precondition=precondition,
+        emg_relative_std=emg_relative_std,
+        identify_max_std=None,
+    )  # the NLP optimum itself
     joint = calibrate(f_ref, frames, s)
     alt = calibrate_alternating(f_ref, frames, s)
     assert joint.converged, joint.message
@@ -77,9 +82,16 @@ def _with_passive_moment(seed: int, t: int = 80):
     beta_true = np.array([0.6, 0.4]) * np.abs(frames.torques).max(axis=0)
     torques = frames.torques + np.einsum("tnp,p->tn", basis, beta_true)
     plain = CalibrationFrames(frames.moment_arms, torques, frames.prior_mean, frames.prior_std, frames.emg)
-    with_basis = CalibrationFrames(frames.moment_arms, torques, frames.prior_mean, frames.prior_std, frames.emg,
-                                   torque_basis=basis, torque_basis_lower=np.zeros(2),
-                                   torque_basis_names=("passive:0", "passive:1"))
+    with_basis = CalibrationFrames(
+        frames.moment_arms,
+        torques,
+        frames.prior_mean,
+        frames.prior_std,
+        frames.emg,
+        torque_basis=basis,
+        torque_basis_lower=np.zeros(2),
+        torque_basis_names=("passive:0", "passive:1"),
+    )
     return f_ref, k_true, beta_true, plain, with_basis
 
 
@@ -96,8 +108,9 @@ def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
     np.testing.assert_allclose(fitted.torque_coefficients, beta_true, rtol=0.15)
     assert absorbed.torque_coefficients is None and "torque_coefficients" not in absorbed.report()
     assert fitted.report()["torque_coefficients"] == pytest.approx(list(fitted.torque_coefficients))
-    assert fitted.report()["torque_basis"] == pytest.approx(dict(zip(("passive:0", "passive:1"),
-                                                                     fitted.torque_coefficients)))
+    assert fitted.report()["torque_basis"] == pytest.approx(
+        dict(zip(("passive:0", "passive:1"), fitted.torque_coefficients))
+    )
     assert fitted.projected_gradient < 1e-4 and alt.projected_gradient < 1e-4
     np.testing.assert_allclose(fitted.objective, alt.objective, rtol=1e-5)
     np.testing.assert_allclose(fitted.torque_coefficients, alt.torque_coefficients, rtol=1e-3)
@@ -106,16 +119,36 @@ def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
 
 def test_a_torque_basis_respects_its_lower_bound_and_is_checked():
     f_ref, _, beta_true, plain, with_basis = _with_passive_moment(seed=7)
-    flipped = CalibrationFrames(plain.moment_arms, plain.torques, plain.prior_mean, plain.prior_std, plain.emg,
-                                torque_basis=-with_basis.torque_basis, torque_basis_lower=np.zeros(2))
+    flipped = CalibrationFrames(
+        plain.moment_arms,
+        plain.torques,
+        plain.prior_mean,
+        plain.prior_std,
+        plain.emg,
+        torque_basis=-with_basis.torque_basis,
+        torque_basis_lower=np.zeros(2),
+    )
     res = calibrate(f_ref, flipped, CalibrationSettings(identify_max_std=None))
     assert np.all(res.torque_coefficients >= 0.0) and np.any(res.torque_coefficients <= 1e-9)
     with pytest.raises(EstimationError, match=r"torque_basis must be \(80, 2, p\)"):
-        CalibrationFrames(plain.moment_arms, plain.torques, plain.prior_mean, plain.prior_std, plain.emg,
-                          torque_basis=np.zeros((79, 2, 1)))
+        CalibrationFrames(
+            plain.moment_arms,
+            plain.torques,
+            plain.prior_mean,
+            plain.prior_std,
+            plain.emg,
+            torque_basis=np.zeros((79, 2, 1)),
+        )
     with pytest.raises(EstimationError, match="torque_basis_lower must be"):
-        CalibrationFrames(plain.moment_arms, plain.torques, plain.prior_mean, plain.prior_std, plain.emg,
-                          torque_basis=np.zeros((80, 2, 2)), torque_basis_lower=np.zeros(3))
+        CalibrationFrames(
+            plain.moment_arms,
+            plain.torques,
+            plain.prior_mean,
+            plain.prior_std,
+            plain.emg,
+            torque_basis=np.zeros((80, 2, 2)),
+            torque_basis_lower=np.zeros(3),
+        )
 
 
 def test_strength_std_marginalises_the_torque_basis_coefficients():
@@ -137,11 +170,11 @@ def test_strength_std_marginalises_the_torque_basis_coefficients():
         for n in range(n_c):
             d_a = np.zeros((t, g))
             d_a[i] = m[i, n] * res.scale * inv_s[i, n]
-            rows.append(np.concatenate([m[i, n] * res.activations[i] * inv_s[i, n], d_a.ravel(),
-                                        basis[i, n] * inv_s[i, n]]))
+            rows.append(
+                np.concatenate([m[i, n] * res.activations[i] * inv_s[i, n], d_a.ravel(), basis[i, n] * inv_s[i, n]])
+            )
     jac = np.array(rows)
-    hess = jac.T @ jac + np.diag(np.concatenate([np.zeros(g), (prob.w_p + prob.w_e).ravel(),
-                                                 np.zeros(basis.shape[2])]))
+    hess = jac.T @ jac + np.diag(np.concatenate([np.zeros(g), (prob.w_p + prob.w_e).ravel(), np.zeros(basis.shape[2])]))
     a = res.activations.ravel()
     free_k = np.array([lo < hi for lo, hi in prob.k_bounds])
     keep = np.concatenate([free_k, (a > prob.a_min + 1e-9) & (a < 1.0 - 1e-9), res.torque_coefficients > 1e-9])
@@ -149,7 +182,7 @@ def test_strength_std_marginalises_the_torque_basis_coefficients():
     tau = prob.correlation_frames(z)
     dense = np.sqrt(tau * np.diag(cov)[: int(free_k.sum())])
     np.testing.assert_allclose(res.strength_std_data[free_k], dense, rtol=1e-4)
-    keep[g + a.size:] = False  # the coefficients held
+    keep[g + a.size :] = False  # the coefficients held
     held = np.sqrt(tau * np.diag(np.linalg.inv(hess[np.ix_(keep, keep)]))[: int(free_k.sum())])
     assert np.all(dense >= held * (1 - 1e-9)) and np.max(dense / held) > 1.1, (dense, held)  # 1.15 here
 
@@ -175,8 +208,9 @@ def test_prior_on_emg_groups_counts_their_emg_twice_and_biases_strength():
     base = CalibrationSettings(strength_prior_std=None, identify_max_std=None)
     default = calibrate(f_ref, frames, base)
     np.testing.assert_allclose(default.scale, k_true, rtol=2e-3)
-    doubled = calibrate(f_ref, frames, CalibrationSettings(strength_prior_std=None, identify_max_std=None,
-                                                           emg_group_prior_weight=1.0))
+    doubled = calibrate(
+        f_ref, frames, CalibrationSettings(strength_prior_std=None, identify_max_std=None, emg_group_prior_weight=1.0)
+    )
     assert np.median(np.abs(doubled.scale / k_true - 1.0)) > 0.05
 
 
@@ -211,8 +245,13 @@ def test_laplace_strength_std_matches_the_spread_of_repeated_calibrations():
     rng = np.random.default_rng(0)
     draws, stds = [], []
     for _ in range(30):
-        f = CalibrationFrames(frames.moment_arms, frames.torques, frames.prior_mean, np.full_like(a_true, np.inf),
-                              np.clip(a_true + 0.05 * rng.normal(size=a_true.shape), 0, 1))
+        f = CalibrationFrames(
+            frames.moment_arms,
+            frames.torques,
+            frames.prior_mean,
+            np.full_like(a_true, np.inf),
+            np.clip(a_true + 0.05 * rng.normal(size=a_true.shape), 0, 1),
+        )
         r = calibrate(f_ref, f, s)
         draws.append(r.scale)
         stds.append(r.strength_std_data)

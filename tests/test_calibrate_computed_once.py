@@ -57,8 +57,12 @@ def _frame_by_frame(pack, trial: TrialData) -> TrialMechanics:
     lo, hi = np.asarray(pack.coordinate_ranges, dtype=float).T
     q_clamped = np.minimum(np.maximum(trial.q, lo), hi)
     usable = np.all(np.abs(q_clamped - trial.q) <= CLAMP_TOLERANCE, axis=1)
-    arms = np.array([pack.moment_arms(q) if ok else np.full((len(pack.coordinates), len(pack.groups)), np.nan)
-                     for q, ok in zip(q_clamped, usable)])
+    arms = np.array(
+        [
+            pack.moment_arms(q) if ok else np.full((len(pack.coordinates), len(pack.groups)), np.nan)
+            for q, ok in zip(q_clamped, usable)
+        ]
+    )
     est = FrameEstimator(pack, None, Method.SO)
     so = np.full((trial.n_frames, len(pack.groups)), np.nan)
     for i in range(trial.n_frames):
@@ -119,5 +123,6 @@ def test_strengths_equal_those_from_frame_by_frame_moment_arms_and_static_optimi
     before, _ = calibrate_subject(plain, reference)
     np.testing.assert_allclose(profile.f_max, before.f_max, rtol=1e-9, atol=0)
     assert profile.calibration["emd"]["delay_s"] == before.calibration["emd"]["delay_s"]
-    assert profile.calibration["min_effort_error_rms"] == pytest.approx(before.calibration["min_effort_error_rms"],
-                                                                         rel=1e-12)
+    assert profile.calibration["min_effort_error_rms"] == pytest.approx(
+        before.calibration["min_effort_error_rms"], rel=1e-12
+    )

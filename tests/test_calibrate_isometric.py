@@ -82,8 +82,12 @@ def test_unmeasured_groups_cocontract_like_the_measured_ones():
     others = np.array([trial.emg[g][i] for g in trial.emg if g != "PMSte"])
     spread = 1.4826 * np.median(np.abs(others - np.median(others)))
     for j, g in enumerate(groups):
-        cosine = arms[:, j] @ arms[:, groups.index("PMSte")] / np.linalg.norm(arms[:, j]) / np.linalg.norm(
-            arms[:, groups.index("PMSte")])
+        cosine = (
+            arms[:, j]
+            @ arms[:, groups.index("PMSte")]
+            / np.linalg.norm(arms[:, j])
+            / np.linalg.norm(arms[:, groups.index("PMSte")])
+        )
         if g in trial.emg:
             assert mean[j] == 0 and np.isinf(std[j])  # the group's own EMG decides
         elif cosine >= 0.9:  # a synergist of the target (PMCos, the sternal head's twin) may push maximally too
@@ -146,14 +150,27 @@ def test_msk_calibrate_takes_a_folder_of_isometric_trials(tmp_path, capsys):
     from services.cli import main
 
     out = tmp_path / "subject.json"
-    rc = main(["calibrate", "--pack", "bench_press", "--trial", str(DEMO / "bench_press" / "bench_press_40kg" / "trial.toml"),
-               "--trial", str(DEMO / "bench_press" / "mvc"), "--out", str(out)])
+    rc = main(
+        [
+            "calibrate",
+            "--pack",
+            "bench_press",
+            "--trial",
+            str(DEMO / "bench_press" / "bench_press_40kg" / "trial.toml"),
+            "--trial",
+            str(DEMO / "bench_press" / "mvc"),
+            "--out",
+            str(out),
+        ]
+    )
     printed = capsys.readouterr().out
     assert rc == 0 and "of 11 trial(s) (10 isometric)" in printed and "hint:" not in printed, printed
     profile = json.loads(out.read_text())
     assert sum("/mvc/" in p for p in profile["provenance"]["trials"]) == 10
-    assert sorted(profile["calibration"]["isometric_trials"]) == sorted(f"mvc_{c}" for c in (
-        "BRD", "BicLong", "DelAnt", "DelMed", "DelPos", "LD", "PMCla", "PMSte", "TriLat", "TriLong"))
+    assert sorted(profile["calibration"]["isometric_trials"]) == sorted(
+        f"mvc_{c}"
+        for c in ("BRD", "BicLong", "DelAnt", "DelMed", "DelPos", "LD", "PMCla", "PMSte", "TriLat", "TriLong")
+    )
     (tmp_path / "empty").mkdir()
     rc = main(["calibrate", "--pack", "bench_press", "--trial", str(tmp_path / "empty"), "--out", str(out)])
     err = capsys.readouterr().err

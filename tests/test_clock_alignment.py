@@ -21,7 +21,7 @@ from msk_core.signal.clock_sync import STANDARD_GRAVITY, SyncStatus
 from msk_core.signal.host_clock import METHOD_ARRIVAL, DeviceClocks
 from services import messages
 from services.node_runtime import clock_offsets
-from tests.test_clock_sync import motion, measured
+from tests.test_clock_sync import measured, motion
 
 HOST0_NS = 1_790_000_000_000_000_000  # host clock (ns) at trial time 0
 EMG_START_S = 0.25  # the Trigno's START, trial time
@@ -61,8 +61,14 @@ def _events(trackers: dict[str, np.ndarray]) -> list[tuple[int, int, str, tuple]
     for seed, (tracker, world) in enumerate(trackers.items(), start=20):
         ts, acc = measured(t, world, 100.0, seed, start_s=EMG_START_S + 0.3)
         for time_s, a in zip(ts, acc):
-            events.append((HOST0_NS + int(_ns(time_s + TRACKER_LATENCY_S)), 2, "imu",
-                           (tracker, int(_ns(time_s - TRACKER_CLOCK_S)), a)))
+            events.append(
+                (
+                    HOST0_NS + int(_ns(time_s + TRACKER_LATENCY_S)),
+                    2,
+                    "imu",
+                    (tracker, int(_ns(time_s - TRACKER_CLOCK_S)), a),
+                )
+            )
     return sorted(events, key=lambda e: (e[0], e[1]))
 
 
@@ -87,8 +93,10 @@ def test_the_emg_is_mapped_through_the_tracker_it_moves_with_and_the_arrival_err
     live, alignment = _run({"arm": arm, "leg": leg})
     report = {r.source: r for r in alignment.report(live.clock_report())}["emg/trigno"]
     truth_ns = HOST0_NS + int(_ns(EMG_START_S))  # host instant of EMG device time 0
-    print(f"\napplied {(report.offset_ns - truth_ns) / 1e6:+.3f} ms, arrival {(report.arrival_offset_ns - truth_ns) / 1e6:+.3f}"
-          f" ms from the truth; {report.reason}")
+    print(
+        f"\napplied {(report.offset_ns - truth_ns) / 1e6:+.3f} ms, arrival {(report.arrival_offset_ns - truth_ns) / 1e6:+.3f}"
+        f" ms from the truth; {report.reason}"
+    )
     assert report.method == METHOD_ACCELERATION
     assert abs(report.offset_ns - truth_ns) < 1_000_000  # within 1 ms
     # the arrival mapping would have put it the unstated latency later: reported beside it
@@ -103,8 +111,9 @@ def test_the_emg_is_mapped_through_the_tracker_it_moves_with_and_the_arrival_err
     # as the status carries it
     status = clock_offsets([report])[0]
     assert status.method == METHOD_ACCELERATION and status.HasField("arrival_offset_ms")
-    assert status.arrival_offset_ms - status.offset_ms == pytest.approx((report.arrival_offset_ns - report.offset_ns)
-                                                                        / 1e6, abs=1e-3)
+    assert status.arrival_offset_ms - status.offset_ms == pytest.approx(
+        (report.arrival_offset_ns - report.offset_ns) / 1e6, abs=1e-3
+    )
     assert {a.reference: a.status for a in status.alignments} == {"imu/arm": "locked", "imu/leg": "not_together"}
     assert messages.decode("msk.DeviceStatus", messages.encode(messages.DeviceStatus(device_id="e", clocks=[status])))
 
@@ -161,25 +170,55 @@ def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waite
 
     pack = load_pack("bench_press")
     group = pack.groups[0]
-    profile = SubjectProfile(pack.name, str(pack.version), list(pack.groups), pack.f_max_ref.copy(),
-                             pack.f_max_ref.copy(), emg_normalisation={"sensor01.EMG": {"group": group, "divisor": 1.0}})
+    profile = SubjectProfile(
+        pack.name,
+        str(pack.version),
+        list(pack.groups),
+        pack.f_max_ref.copy(),
+        pack.f_max_ref.copy(),
+        emg_normalisation={"sensor01.EMG": {"group": group, "divisor": 1.0}},
+    )
     stats = EstimatorStats()
-    node = EstimatorNode("bench_press", ["so"], profile, stats, emg=True, electrode_map=None, emg_clock="host",
-                         emg_stall_s=0.25, initial_load_kg=0.0, exercise=None, solver="active-set", joints_clock="host",
-                         emg_wait_s=0.1)
+    node = EstimatorNode(
+        "bench_press",
+        ["so"],
+        profile,
+        stats,
+        emg=True,
+        electrode_map=None,
+        emg_clock="host",
+        emg_stall_s=0.25,
+        initial_load_kg=0.0,
+        exercise=None,
+        solver="active-set",
+        joints_clock="host",
+        emg_wait_s=0.1,
+    )
     per_frame = 27
 
     def chunk(frame: int) -> messages.EmgChunk:  # device time = host time: measured at t, received at its last sample
         first = frame * per_frame
         received = HOST0_NS + int(_ns((first + per_frame - 1) / EMG_HZ))
-        return messages.EmgChunk(source_id="trigno", channel_labels=["sensor01.EMG"], sample_rate_hz=EMG_HZ,
-                                 first_sample_index=first, device_time_ns=int(_ns(first / EMG_HZ)),
-                                 host_time_ns=received, n_samples=per_frame, n_channels=1,
-                                 samples=[0.001] * per_frame, units="V")
+        return messages.EmgChunk(
+            source_id="trigno",
+            channel_labels=["sensor01.EMG"],
+            sample_rate_hz=EMG_HZ,
+            first_sample_index=first,
+            device_time_ns=int(_ns(first / EMG_HZ)),
+            host_time_ns=received,
+            n_samples=per_frame,
+            n_channels=1,
+            samples=[0.001] * per_frame,
+            units="V",
+        )
 
     def joints(host_ns: int) -> messages.JointAngles:
-        return messages.JointAngles(coordinates=list(pack.coordinates), q=list(pack.reference_pose),
-                                    device_time_ns=host_ns, host_time_ns=host_ns)
+        return messages.JointAngles(
+            coordinates=list(pack.coordinates),
+            q=list(pack.reference_pose),
+            device_time_ns=host_ns,
+            host_time_ns=host_ns,
+        )
 
     first = chunk(0)
     node.handle_emg(first, first.host_time_ns)

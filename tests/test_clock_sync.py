@@ -38,8 +38,9 @@ def motion(seconds: float, seed: int, *, rest_s: float = 2.0) -> tuple[np.ndarra
     return t, a
 
 
-def measured(t: np.ndarray, a: np.ndarray, rate: float, seed: int, *, start_s: float = 0.0,
-             noise: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+def measured(
+    t: np.ndarray, a: np.ndarray, rate: float, seed: int, *, start_s: float = 0.0, noise: float = 0.02
+) -> tuple[np.ndarray, np.ndarray]:
     """What an accelerometer fixed on the segment in a random orientation reads at ``rate`` from ``start_s``: the
     specific force (a + up) in its axes, with white noise (m/s²). Returns (trial times, readings)."""
     rng = np.random.default_rng(seed)
@@ -49,8 +50,15 @@ def measured(t: np.ndarray, a: np.ndarray, rate: float, seed: int, *, start_s: f
     return ts, world @ mount + rng.normal(0.0, noise, (ts.size, 3))
 
 
-def feed(sync: ClockSync, emg: dict[str, tuple[np.ndarray, np.ndarray]], tracker: tuple[np.ndarray, np.ndarray], *,
-         emg_clock_s: float, tracker_clock_s, block_s: float = 0.0135):
+def feed(
+    sync: ClockSync,
+    emg: dict[str, tuple[np.ndarray, np.ndarray]],
+    tracker: tuple[np.ndarray, np.ndarray],
+    *,
+    emg_clock_s: float,
+    tracker_clock_s,
+    block_s: float = 0.0135,
+):
     """Feed in arrival order, one block per ``block_s`` of trial time, calling update after each; the device times
     are trial time minus the clock's start (``tracker_clock_s``: a function of trial time for a drifting clock).
     Returns the answers."""
@@ -61,8 +69,12 @@ def feed(sync: ClockSync, emg: dict[str, tuple[np.ndarray, np.ndarray]], tracker
         for name, (ts, acc) in emg.items():
             sel = (ts >= lo) & (ts < hi)
             if sel.any():
-                sync.add_emg_sensor(name, np.round((ts[sel] - emg_clock_s) * 1e9).astype(np.int64),
-                                    acc[sel] / STANDARD_GRAVITY, AccUnit.G)
+                sync.add_emg_sensor(
+                    name,
+                    np.round((ts[sel] - emg_clock_s) * 1e9).astype(np.int64),
+                    acc[sel] / STANDARD_GRAVITY,
+                    AccUnit.G,
+                )
         ts, acc = tracker
         sel = (ts >= lo) & (ts < hi)
         if sel.any():
@@ -84,9 +96,11 @@ def test_known_offset_found_to_a_millisecond_from_the_sensor_on_the_trackers_seg
     assert statuses[0] is SyncStatus.WAITING and statuses[-1] is SyncStatus.LOCKED
     final = answers[-1]
     errors_ms = [(w.offset_ns - truth_ns) / 1e6 for w in sync.windows if w.status is SyncStatus.LOCKED]
-    print(f"offset error {(final.offset_ns - truth_ns) / 1e6:+.3f} ms over {final.windows} windows "
-          f"(each {min(errors_ms):+.2f}..{max(errors_ms):+.2f} ms), spread {final.spread_ns / 1e6:.3f} ms, "
-          f"r {final.peak_correlation:.3f}, width {final.peak_width_ms:.0f} ms")
+    print(
+        f"offset error {(final.offset_ns - truth_ns) / 1e6:+.3f} ms over {final.windows} windows "
+        f"(each {min(errors_ms):+.2f}..{max(errors_ms):+.2f} ms), spread {final.spread_ns / 1e6:.3f} ms, "
+        f"r {final.peak_correlation:.3f}, width {final.peak_width_ms:.0f} ms"
+    )
     assert abs(final.offset_ns - truth_ns) < 1_000_000
     assert max(abs(e) for e in errors_ms) < 2.0
     assert final.sensor == "arm" and all(w.sensor == "arm" for w in sync.windows if w.status is SyncStatus.LOCKED)
@@ -98,8 +112,13 @@ def test_rest_only_cannot_and_says_so():
     t = np.arange(0.0, 20.0, 1e-3)
     still = np.zeros((t.size, 3))
     sync = ClockSync(0)
-    answers = feed(sync, {"s1": measured(t, still, AUX_HZ, 1)}, measured(t, still, TRACKER_HZ, 2),
-                   emg_clock_s=0.0, tracker_clock_s=lambda ts: ts)
+    answers = feed(
+        sync,
+        {"s1": measured(t, still, AUX_HZ, 1)},
+        measured(t, still, TRACKER_HZ, 2),
+        emg_clock_s=0.0,
+        tracker_clock_s=lambda ts: ts,
+    )
     final = answers[-1]
     assert final.status is SyncStatus.NO_MOVEMENT and not final.locked and final.offset_ns is None
     assert final.windows_seen >= 3 and "rest" in final.reason and "did not move" in final.reason, final.reason
@@ -111,8 +130,13 @@ def test_movement_that_is_not_the_trackers_is_not_taken_for_it():
     t, arm = motion(30.0, seed=3)
     _, other = motion(30.0, seed=4)
     sync = ClockSync(0)
-    final = feed(sync, {"other": measured(t, other, AUX_HZ, 1)}, measured(t, arm, TRACKER_HZ, 2),
-                 emg_clock_s=0.0, tracker_clock_s=lambda ts: ts)[-1]
+    final = feed(
+        sync,
+        {"other": measured(t, other, AUX_HZ, 1)},
+        measured(t, arm, TRACKER_HZ, 2),
+        emg_clock_s=0.0,
+        tracker_clock_s=lambda ts: ts,
+    )[-1]
     assert final.status is SyncStatus.NOT_TOGETHER and final.offset_ns is None, final
     assert final.peak_correlation < 0.8 and "below 0.8" in final.reason, final.reason
 
@@ -120,8 +144,13 @@ def test_movement_that_is_not_the_trackers_is_not_taken_for_it():
 def test_an_offset_beyond_the_search_range_is_refused_not_guessed():
     t, arm = motion(30.0, seed=5)
     sync = ClockSync(-900_000_000)  # the prior is 0.9 s off, the search spans ±0.5 s
-    final = feed(sync, {"arm": measured(t, arm, AUX_HZ, 1)}, measured(t, arm, TRACKER_HZ, 2),
-                 emg_clock_s=0.0, tracker_clock_s=lambda ts: ts)[-1]
+    final = feed(
+        sync,
+        {"arm": measured(t, arm, AUX_HZ, 1)},
+        measured(t, arm, TRACKER_HZ, 2),
+        emg_clock_s=0.0,
+        tracker_clock_s=lambda ts: ts,
+    )[-1]
     assert final.status is SyncStatus.NOT_TOGETHER and final.offset_ns is None, final
     assert "edge of the search range" in final.reason or "below" in final.reason, final.reason
 
@@ -130,14 +159,22 @@ def test_a_drifting_tracker_clock_is_followed():
     t, arm = motion(150.0, seed=6)
     drift = 80e-6  # the tracker's crystal runs 80 ppm fast
     sync = ClockSync(40_000_000)
-    answers = feed(sync, {"arm": measured(t, arm, AUX_HZ, 1)}, measured(t, arm, TRACKER_HZ, 2, start_s=0.5),
-                   emg_clock_s=0.0, tracker_clock_s=lambda ts: ts * (1 + drift), block_s=0.1)
+    answers = feed(
+        sync,
+        {"arm": measured(t, arm, AUX_HZ, 1)},
+        measured(t, arm, TRACKER_HZ, 2, start_s=0.5),
+        emg_clock_s=0.0,
+        tracker_clock_s=lambda ts: ts * (1 + drift),
+        block_s=0.1,
+    )
     final = answers[-1]
     newest = sync.windows[-1]
     centre_s = (newest.start_ns + newest.end_ns) / 2e9  # EMG device time = trial time here
     truth_ns = centre_s * drift * 1e9
-    print(f"drift {final.drift_ppm:.1f} ppm (truth 80), offset at {centre_s:.0f} s {final.offset_ns / 1e6:.3f} ms "
-          f"(truth {truth_ns / 1e6:.3f} ms), spread {final.spread_ns / 1e6:.3f} ms")
+    print(
+        f"drift {final.drift_ppm:.1f} ppm (truth 80), offset at {centre_s:.0f} s {final.offset_ns / 1e6:.3f} ms "
+        f"(truth {truth_ns / 1e6:.3f} ms), spread {final.spread_ns / 1e6:.3f} ms"
+    )
     assert final.locked and final.drift_ppm == pytest.approx(80.0, abs=10.0)
     assert abs(final.offset_ns - truth_ns) < 1_000_000
     assert final.windows <= round(ClockSyncConfig().history_s / ClockSyncConfig().step_s) + 1  # old windows forgotten

@@ -49,8 +49,9 @@ class Received:
 
 
 def _read_trigno(sim: TrignoSimulator, got: Received, start_at: float, stop: threading.Event) -> None:
-    client = TrignoClient(TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"],
-                                       aux_port=sim.ports["aux"]))
+    client = TrignoClient(
+        TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=sim.ports["aux"])
+    )
     client.connect()
     time.sleep(max(0.0, start_at - time.monotonic()))
     client.start()
@@ -81,6 +82,7 @@ def _reader(target, errors: list[BaseException]):
             target(*args)
         except BaseException as error:  # raised in the test's thread after the join
             errors.append(error)
+
     return run
 
 
@@ -117,14 +119,19 @@ def test_offset_between_trigno_and_tracker_clocks_from_accelerations_within_10_m
     imu_rate = int(round(imu_source.rate_hz))
     trial_start = time.monotonic()
     clock = TrialClock(trial_start)
-    trigno = TrignoSimulator(emg_source, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=0,
-                                                         trial_clock=clock, latency_s=TRIGNO_LATENCY_S)).start()
+    trigno = TrignoSimulator(
+        emg_source,
+        SimulatorConfig(
+            command_port=0, emg_port=0, legacy_emg_port=None, aux_port=0, trial_clock=clock, latency_s=TRIGNO_LATENCY_S
+        ),
+    ).start()
     got = Received()
     stop = threading.Event()
     errors: list[BaseException] = []
     xsens = None
-    trigno_thread = threading.Thread(target=_reader(_read_trigno, errors),
-                                     args=(trigno, got, trial_start + TRIGNO_START_S, stop))
+    trigno_thread = threading.Thread(
+        target=_reader(_read_trigno, errors), args=(trigno, got, trial_start + TRIGNO_START_S, stop)
+    )
     threads = [trigno_thread]
     try:
         trigno_thread.start()
@@ -134,8 +141,9 @@ def test_offset_between_trigno_and_tracker_clocks_from_accelerations_within_10_m
         assert trigno.stats.start_index is not None, "the Trigno driver did not START within 5 s"
         started = clock.instant(trigno.stats.start_index, trigno.rate_hz)
         time.sleep(max(0.0, started + TRACKER_AFTER_S - time.monotonic()))
-        xsens = XsensSimulator(imu_source, device_id=0x03700A01, wakeup_window_s=3600.0, trial_clock=clock,
-                               latency_s=XSENS_LATENCY_S).start()
+        xsens = XsensSimulator(
+            imu_source, device_id=0x03700A01, wakeup_window_s=3600.0, trial_clock=clock, latency_s=XSENS_LATENCY_S
+        ).start()
         threads.append(threading.Thread(target=_reader(_read_xsens, errors), args=(xsens, got, imu_rate, stop)))
         threads[-1].start()
         time.sleep(READ_S)
@@ -149,7 +157,10 @@ def test_offset_between_trigno_and_tracker_clocks_from_accelerations_within_10_m
     if errors:
         raise errors[0]
     n_aux = sum(len(b.samples) for b in got.aux)
-    assert n_aux > 148 * (READ_S - 1) and len(got.imu_time_ns) > imu_rate * (READ_S - 1.5), (n_aux, len(got.imu_time_ns))
+    assert n_aux > 148 * (READ_S - 1) and len(got.imu_time_ns) > imu_rate * (READ_S - 1.5), (
+        n_aux,
+        len(got.imu_time_ns),
+    )
 
     # the truth from the trial clock: trial instant of the Trigno's sample 0 and of the tracker's clock origin
     emg_origin_s = trigno.stats.start_index / trigno.rate_hz
@@ -190,12 +201,14 @@ def test_offset_between_trigno_and_tracker_clocks_from_accelerations_within_10_m
             fed = upto
         answer = sync.update()
     error_ms = (answer.offset_ns - truth_ns) / 1e6 if answer.offset_ns is not None else None
-    print(f"truth {truth_ns / 1e6:.2f} ms; arrival-time mapping {prior_ns / 1e6:.2f} ms (error "
-          f"{(prior_ns - truth_ns) / 1e6:+.2f} ms); accelerations: {answer.status.value}, error "
-          f"{error_ms if error_ms is None else f'{error_ms:+.2f}'} ms, {answer.windows} window(s), "
-          f"r {answer.peak_correlation}, sensor {answer.sensor}, spread {answer.spread_ns}")
+    print(
+        f"truth {truth_ns / 1e6:.2f} ms; arrival-time mapping {prior_ns / 1e6:.2f} ms (error "
+        f"{(prior_ns - truth_ns) / 1e6:+.2f} ms); accelerations: {answer.status.value}, error "
+        f"{error_ms if error_ms is None else f'{error_ms:+.2f}'} ms, {answer.windows} window(s), "
+        f"r {answer.peak_correlation}, sensor {answer.sensor}, spread {answer.spread_ns}"
+    )
     assert answer.status is SyncStatus.LOCKED, answer.reason
     assert abs(answer.offset_ns - truth_ns) <= 10_000_000, (answer.offset_ns, truth_ns)
     assert trial.emg_acc.bodies[trial.emg_acc.channels.index(answer.sensor)] == "humerus_r", answer.sensor
     # the arrival-time mapping alone misses by about the Trigno's latency (its AUX blocks end mid-frame: +6.75 ms)
-    assert 0.5 * TRIGNO_LATENCY_S < (prior_ns - truth_ns) / 1e9 < TRIGNO_LATENCY_S + 0.03, (prior_ns - truth_ns)
+    assert 0.5 * TRIGNO_LATENCY_S < (prior_ns - truth_ns) / 1e9 < TRIGNO_LATENCY_S + 0.03, prior_ns - truth_ns

@@ -55,8 +55,20 @@ def test_compose_references_existing_files(compose, repo_root):
 
 # --- structure, and the secured variant (docker-compose.secure.yml layered on docker-compose.yml) --------------
 
-_SERVICE_KEYS = {"image", "build", "restart", "depends_on", "environment", "command", "ports", "expose", "volumes",
-                 "devices", "profiles", "stop_signal"}
+_SERVICE_KEYS = {
+    "image",
+    "build",
+    "restart",
+    "depends_on",
+    "environment",
+    "command",
+    "ports",
+    "expose",
+    "volumes",
+    "devices",
+    "profiles",
+    "stop_signal",
+}
 
 
 def _graph_roles() -> dict[str, str]:
@@ -126,7 +138,9 @@ def test_secured_variant_runs_every_node_with_its_role_certificate(compose, secu
     for name, role in _graph_roles().items():
         service = merged["services"][name]
         args = parser.parse_args(shlex.split(_expand(service["command"])))
-        assert args.mode is None and args.connect == [] and args.listen == [], f"{name}: flags would override the TLS config"
+        assert args.mode is None and args.connect == [] and args.listen == [], (
+            f"{name}: flags would override the TLS config"
+        )
         assert str(args.zenoh_config) == f"/pki/zenoh/{role}.json5", name
         assert f"{role}.json5" in written, f"msk certs writes no config for role {role!r}"
         assert "./deploy/pki:/pki:ro" in service["volumes"], f"{name} does not mount the certificates"
@@ -195,8 +209,10 @@ def _secured_roles_mismatches(compose: dict, secure_compose: dict) -> list[str]:
         if args.command != commands[name]:
             problems.append(f"{name}: runs `msk {args.command}`, its declarations `msk {commands[name]}`")
         if str(args.zenoh_config) != deploy_files.role_config(expected[name]):
-            problems.append(f"{name}: uses {args.zenoh_config}, its declarations run as role {expected[name]!r} "
-                            f"({deploy_files.role_config(expected[name])})")
+            problems.append(
+                f"{name}: uses {args.zenoh_config}, its declarations run as role {expected[name]!r} "
+                f"({deploy_files.role_config(expected[name])})"
+            )
     return problems
 
 
@@ -264,8 +280,12 @@ def _acl_mismatches(acl: dict, graph: dict[str, session_graph.RoleKeys]) -> list
     if subjects != set(graph):
         problems.append(f"access control subjects {sorted(subjects)}, graph roles {sorted(graph)}")
     for role, keys in graph.items():
-        expected = {"publish": full(keys.publish), "subscribe": full(keys.subscribe),
-                    "receive": full(keys.subscribe), "ready": full(keys.tokens)}
+        expected = {
+            "publish": full(keys.publish),
+            "subscribe": full(keys.subscribe),
+            "receive": full(keys.subscribe),
+            "ready": full(keys.tokens),
+        }
         for rule, key_exprs in expected.items():
             actual = rules.get(f"{role}-{rule}")
             if actual != key_exprs:
@@ -281,7 +301,8 @@ def test_access_control_is_derived_from_the_graph():
 def test_deploy_files_check_fails_on_a_stale_file_and_write_fixes_it(tmp_path, capsys):
     (tmp_path / deploy_files.COMPOSE_FILE).write_text(deploy_files.compose_text())
     (tmp_path / deploy_files.SECURE_COMPOSE_FILE).write_text(
-        deploy_files.secure_compose_text().replace("/pki/zenoh/driver.json5", "/pki/zenoh/tablet.json5"))
+        deploy_files.secure_compose_text().replace("/pki/zenoh/driver.json5", "/pki/zenoh/tablet.json5")
+    )
     assert deploy_files.main(["--root", str(tmp_path)]) == 1
     out = capsys.readouterr().out
     assert "-      --zenoh-config /pki/zenoh/tablet.json5" in out

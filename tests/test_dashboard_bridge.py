@@ -23,10 +23,19 @@ from tests.conftest import free_tcp_port
 PREFIX = "msk/t/"
 
 
-def activation_frame(method: str, a: list[float], *, t: float, phase: float | None = None, envelope=None,
-                     exercise: str = "") -> messages.ActivationFrame:
-    frame = messages.ActivationFrame(time_s=t, method=method, groups=["A", "B"], activations=a, activation_std=[0.1, float("nan")],
-                                     publish_ns=2_000_000, input_arrival_ns=1_000_000, exercise=exercise)
+def activation_frame(
+    method: str, a: list[float], *, t: float, phase: float | None = None, envelope=None, exercise: str = ""
+) -> messages.ActivationFrame:
+    frame = messages.ActivationFrame(
+        time_s=t,
+        method=method,
+        groups=["A", "B"],
+        activations=a,
+        activation_std=[0.1, float("nan")],
+        publish_ns=2_000_000,
+        input_arrival_ns=1_000_000,
+        exercise=exercise,
+    )
     frame.torques.add(coordinate="elbow", inverse_dynamics_nm=3.0, model_nm=2.5, residual_nm=0.5)
     if phase is not None:
         frame.phase = phase
@@ -97,10 +106,19 @@ def test_reps_from_joints_phase_and_device_health_from_samples():
         state.on_message(PREFIX + "joints", joints(p, 0.4 * k))
     now = time.time_ns()
     for first in (0, 100, 300):  # samples 200..299 never arrived
-        chunk = messages.EmgChunk(source_id="trigno-1", first_sample_index=first, n_samples=100, n_channels=1,
-                                  samples=[0.0] * 100, host_time_ns=now)
+        chunk = messages.EmgChunk(
+            source_id="trigno-1",
+            first_sample_index=first,
+            n_samples=100,
+            n_channels=1,
+            samples=[0.0] * 100,
+            host_time_ns=now,
+        )
         state.on_message(PREFIX + "emg/trigno-1", chunk, arrival_ns=now + 3_000_000)
-    state.on_message(PREFIX + "status/xsens-1", messages.DeviceStatus(device_id="xsens-1", kind="xsens", connected=False, samples_lost=7))
+    state.on_message(
+        PREFIX + "status/xsens-1",
+        messages.DeviceStatus(device_id="xsens-1", kind="xsens", connected=False, samples_lost=7),
+    )
     update = state.changes(0, now_ns=now + 4_000_000)[1]
     assert update["topics"]["reps"] == {"in_set": 1, "total": 1, "set": 1, "phase": -1.0}
     assert update["topics"]["load"] == {"mass_kg": 60, "exercise": "deadlift", "set_number": 0, "athlete": ""}
@@ -126,7 +144,9 @@ def test_body_map_sides_and_colours():
     sides = {(p.group, p.side) for p in bodymap.place_groups(load_pack("lumbar_lift")).placements}
     assert ("latdorsi_r", "r") in sides and ("latdorsi_l", "l") in sides and ("latdorsi_r", "l") not in sides
     bench = {p.group: p for p in bodymap.place_groups(load_pack("bench_press")).placements}
-    assert bench["DelAnt"].region == "deltoid_anterior" and bench["DelAnt"].side == "r"  # DELT1 has no suffix: the pack's side
+    assert (
+        bench["DelAnt"].region == "deltoid_anterior" and bench["DelAnt"].side == "r"
+    )  # DELT1 has no suffix: the pack's side
     assert bench["TriLong"].region == "triceps_long" and bodymap.REGIONS["triceps_long"].view == "back"
     assert bodymap.activation_colour(0.0) == "#fff5c8" and bodymap.activation_colour(1.0) == "#8c0a14"
     assert bodymap.activation_colour(math.nan) == bodymap.activation_colour(None) == "#b8bec7"
@@ -135,8 +155,20 @@ def test_body_map_sides_and_colours():
 def test_msk_dashboard_command_serves_the_page_and_stops_on_sigint(zenoh_endpoint):
     port = free_tcp_port()
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "dashboard", "--session", "gym", "--port", str(port), "--listen", zenoh_endpoint],
-        stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "dashboard",
+            "--session",
+            "gym",
+            "--port",
+            str(port),
+            "--listen",
+            zenoh_endpoint,
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         deadline, body = time.monotonic() + 30, None
@@ -150,7 +182,9 @@ def test_msk_dashboard_command_serves_the_page_and_stops_on_sigint(zenoh_endpoin
         assert config["session"] == "gym" and config["packs"]["bench_press"][0] == "BRA"
         page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read().decode()
         assert "chart-4.6.1.umd.min.js" in page and 'id="nodata"' in page
-        request = urllib.request.Request(f"http://127.0.0.1:{port}/static/vendor/chart-4.6.1.umd.min.js", headers={"Accept-Encoding": "gzip"})
+        request = urllib.request.Request(
+            f"http://127.0.0.1:{port}/static/vendor/chart-4.6.1.umd.min.js", headers={"Accept-Encoding": "gzip"}
+        )
         with urllib.request.urlopen(request, timeout=5) as response:  # compressed for the tablet
             assert response.status == 200 and response.headers["Content-Encoding"] == "gzip"
             assert len(response.read()) < 100_000
@@ -177,8 +211,12 @@ def test_port_in_use_is_a_clear_error():
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        result = subprocess.run([sys.executable, "-m", "services.cli", "dashboard", "--port", str(port)],
-                                capture_output=True, text=True, timeout=60)
+        result = subprocess.run(
+            [sys.executable, "-m", "services.cli", "dashboard", "--port", str(port)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
     assert result.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in result.stderr
 
 
@@ -219,17 +257,42 @@ def test_every_tracker_and_the_trigno_base_are_rows_of_their_own():
     for k in range(20, 320):  # then only the forearm tracker, for 3 s more
         state.on_message(PREFIX + "imu/forearm_r", imu("00B497B2", k, t0, "forearm_r"), arrival_ns=t0 + k * 10_000_000)
     for tracker in ("00B4EB80", "00B497B2"):
-        state.on_message(PREFIX + f"status/{tracker}", messages.DeviceStatus(device_id=tracker, kind="xsens", connected=True))
-    chunk = messages.EmgChunk(source_id="trigno", first_sample_index=0, n_samples=27, n_channels=1, samples=[0.0] * 27,
-                              channel_labels=["sensor01.EMG"], sample_rate_hz=2000.0, host_time_ns=t0)
+        state.on_message(
+            PREFIX + f"status/{tracker}", messages.DeviceStatus(device_id=tracker, kind="xsens", connected=True)
+        )
+    chunk = messages.EmgChunk(
+        source_id="trigno",
+        first_sample_index=0,
+        n_samples=27,
+        n_channels=1,
+        samples=[0.0] * 27,
+        channel_labels=["sensor01.EMG"],
+        sample_rate_hz=2000.0,
+        host_time_ns=t0,
+    )
     state.on_message(PREFIX + "emg/trigno", chunk, arrival_ns=t0 + 3_190_000_000)
-    state.on_message(PREFIX + "status/trigno", messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True, samples_lost=3))
+    state.on_message(
+        PREFIX + "status/trigno",
+        messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True, samples_lost=3),
+    )
     devices = state.changes(0, now_ns=t0 + 3_200_000_000)[1]["devices"]
     assert sorted(devices) == ["00B497B2", "00B4EB80", "trigno"]  # no phantom "xsens" row, one row per device
     upper, forearm, trigno = devices["00B4EB80"], devices["00B497B2"], devices["trigno"]
-    assert (upper["kind"], upper["segment"], upper["samples"], upper["delivering"]) == ("xsens", "upper_arm_r", 20, False)
-    assert (forearm["kind"], forearm["segment"], forearm["samples"], forearm["delivering"]) == ("xsens", "forearm_r", 320, True)
-    assert upper["connected"] is True and upper["age_s"] == pytest.approx(3.01)  # its status says connected: silent still
+    assert (upper["kind"], upper["segment"], upper["samples"], upper["delivering"]) == (
+        "xsens",
+        "upper_arm_r",
+        20,
+        False,
+    )
+    assert (forearm["kind"], forearm["segment"], forearm["samples"], forearm["delivering"]) == (
+        "xsens",
+        "forearm_r",
+        320,
+        True,
+    )
+    assert upper["connected"] is True and upper["age_s"] == pytest.approx(
+        3.01
+    )  # its status says connected: silent still
     assert (trigno["kind"], trigno["samples"], trigno["samples_lost"], trigno["delivering"]) == ("trigno", 27, 3, True)
 
 
@@ -242,33 +305,50 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     for k, p in enumerate((-1.0, 0.2, 0.8, -1.0)):
         state.on_message(PREFIX + "joints", joints(p, 0.4 * k))
     seq, _ = state.changes(0)
-    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
+    state.on_message(
+        PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana")
+    )
     update = state.changes(seq)[1]["topics"]
-    assert update["session"] | {"names": None} == {"exercise": "bench_press", "load_kg": 60, "athlete": "Ana",
-                                                   "names": None}
+    assert update["session"] | {"names": None} == {
+        "exercise": "bench_press",
+        "load_kg": 60,
+        "athlete": "Ana",
+        "names": None,
+    }
     assert update["reps"]["set"] == 2 and update["reps"]["in_set"] == 0
     for k, p in enumerate((0.2, 0.8, -1.0)):
         state.on_message(PREFIX + "joints", joints(p, 2.0 + 0.4 * k))
     # the operator corrects the load within set 2: same set, the reps of the set are kept
-    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2, athlete="Ana"))
+    state.on_message(
+        PREFIX + "load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2, athlete="Ana")
+    )
     topics_now = state.changes(0)[1]["topics"]
-    assert topics_now["reps"]["set"] == 2 and topics_now["reps"]["in_set"] == 1 and topics_now["session"]["load_kg"] == 62.5
-    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, athlete="Ana"))
+    assert (
+        topics_now["reps"]["set"] == 2
+        and topics_now["reps"]["in_set"] == 1
+        and topics_now["session"]["load_kg"] == 62.5
+    )
+    state.on_message(
+        PREFIX + "load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, athlete="Ana")
+    )
     assert state.changes(0)[1]["topics"]["reps"] | {"phase": None} == {"in_set": 0, "total": 2, "set": 3, "phase": None}
 
 
 def test_display_names_of_the_frames_pack_and_the_sessions_reach_the_page():
     state = DashboardState("t")
     groups = list(load_pack("bench_press").groups)
-    frame = messages.ActivationFrame(time_s=1.0, method="so", groups=groups, activations=[0.1] * len(groups),
-                                     exercise="bench_press")
+    frame = messages.ActivationFrame(
+        time_s=1.0, method="so", groups=groups, activations=[0.1] * len(groups), exercise="bench_press"
+    )
     state.on_message(PREFIX + "activations/so", frame)
     names = state.changes(0)[1]["topics"]["session"]["names"]
     assert names["groups"]["TriLat"] == "Triceps brachii, lateral and medial heads" and list(names["groups"]) == groups
     assert names["coordinates"]["elv_angle_r"] == {"name": "Shoulder flexion", "unit": "deg", "torque_unit": "N·m"}
     # the session file's names (msk live's first load event) replace the pack's and stay through an operator's event
-    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
-                                                         names={"PMCla": "Upper chest"}))
+    state.on_message(
+        PREFIX + "load",
+        messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, names={"PMCla": "Upper chest"}),
+    )
     seq, update = state.changes(0)
     assert update["topics"]["session"]["names"]["groups"]["PMCla"] == "Upper chest"
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2))
@@ -278,15 +358,24 @@ def test_display_names_of_the_frames_pack_and_the_sessions_reach_the_page():
     svg = bodymap.place_groups(load_pack("bench_press")).svg(names=load_pack("bench_press").display_names.groups)
     titles = [e.text for e in ET.fromstring(svg).iter("{http://www.w3.org/2000/svg}title")]
     assert "Pectoralis major, clavicular part (right)" in titles, titles
-    assert "PMCla (pectoralis major, clavicular, right)" in ET.tostring(ET.fromstring(bodymap.place_groups(
-        load_pack("bench_press")).svg()), encoding="unicode")  # without names: model name and region
+    assert "PMCla (pectoralis major, clavicular, right)" in ET.tostring(
+        ET.fromstring(bodymap.place_groups(load_pack("bench_press")).svg()), encoding="unicode"
+    )  # without names: model name and region
 
 
 def test_node_statuses_are_nodes_with_their_dropped_inputs_not_devices():
     state = DashboardState("t")
-    status = messages.DeviceStatus(device_id="estimator-bench_press", kind="node", connected=True, samples_received=900,
-                                   samples_lost=4, dropped=[messages.InputDrop(key="msk/t/joints", reason="undecodable", count=3),
-                                                            messages.InputDrop(key="msk/t/load", reason="invalid", count=1)])
+    status = messages.DeviceStatus(
+        device_id="estimator-bench_press",
+        kind="node",
+        connected=True,
+        samples_received=900,
+        samples_lost=4,
+        dropped=[
+            messages.InputDrop(key="msk/t/joints", reason="undecodable", count=3),
+            messages.InputDrop(key="msk/t/load", reason="invalid", count=1),
+        ],
+    )
     state.on_message(PREFIX + "status/estimator-bench_press", status)
     update = state.changes(0)[1]
     assert "estimator-bench_press" not in update.get("devices", {})
@@ -309,16 +398,23 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     try:
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             inputs = BadInputs(zsession, "t")
-            inputs.every_kind_then({
-                "activations/so": activation_frame("so", [0.25, 0.5], t=7.0, exercise="deadlift"),
-                "load": messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1),
-                "status/trigno": messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True)})
+            inputs.every_kind_then(
+                {
+                    "activations/so": activation_frame("so", [0.25, 0.5], t=7.0, exercise="deadlift"),
+                    "load": messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1),
+                    "status/trigno": messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True),
+                }
+            )
             deadline = time.monotonic() + 30
             expected_dropped = sum(inputs.expected.values())
             while time.monotonic() < deadline:
                 update = state.changes(0)[1]
-                if update["nodes"]["dashboard"]["dropped"] >= expected_dropped and "load" in update["topics"] \
-                        and "activations/so" in update["topics"] and "trigno" in update.get("devices", {}):
+                if (
+                    update["nodes"]["dashboard"]["dropped"] >= expected_dropped
+                    and "load" in update["topics"]
+                    and "activations/so" in update["topics"]
+                    and "trigno" in update.get("devices", {})
+                ):
                     break
                 time.sleep(0.05)
             inputs.close()

@@ -15,8 +15,14 @@ from services import replayer
 from services.dashboard.app import DashboardConfig, DashboardServer
 from services.zenoh_session import ZenohOptions
 from tests.conftest import free_tcp_port
-from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, require_chromium, start_estimator, trimmed_recording
-
+from tests.dashboard_helpers import (
+    ARTIFACTS,
+    DEMO_MCAP,
+    launch_chromium,
+    require_chromium,
+    start_estimator,
+    trimmed_recording,
+)
 
 SESSION = "dash"
 PROBE = """() => {
@@ -53,8 +59,10 @@ def wait_for(page, predicate, timeout_s: float, what: str) -> dict:
 
 def replay_in_background(endpoint: str, recording, rate: float) -> threading.Thread:
     thread = threading.Thread(
-        target=replayer.main, args=(ZenohOptions(connect=(endpoint,)), recording),
-        kwargs=dict(rate=rate, session_name=SESSION, wait_subscribers_s=2.0), daemon=True,
+        target=replayer.main,
+        args=(ZenohOptions(connect=(endpoint,)), recording),
+        kwargs=dict(rate=rate, session_name=SESSION, wait_subscribers_s=2.0),
+        daemon=True,
     )
     thread.start()
     return thread
@@ -64,6 +72,7 @@ def replay_in_background(endpoint: str, recording, rate: float) -> threading.Thr
 def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoint):
     require_chromium()
     from playwright import sync_api
+
     # Two pieces of the bench press: reps end at 4.9 s and 8.6 s of the first set, 23.8 s and 28.0 s of the second.
     first_set = trimmed_recording(DEMO_MCAP, tmp_path / "set1.mcap", 0.0, 9.5)
     second_set = trimmed_recording(DEMO_MCAP, tmp_path / "set2.mcap", 18.0, 28.5)
@@ -72,7 +81,9 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
     dashboard = DashboardServer(ZenohOptions(listen=(zenoh_endpoint,)), config, port=port)
     dashboard.start()
     stop = threading.Event()
-    estimator_stats = start_estimator(zenoh_endpoint, stop, pack="bench_press", session=SESSION, methods=["so", "hybrid"])
+    estimator_stats = start_estimator(
+        zenoh_endpoint, stop, pack="bench_press", session=SESSION, methods=["so", "hybrid"]
+    )
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     try:
         with sync_api.sync_playwright() as playwright:
@@ -94,20 +105,36 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             assert "Triceps brachii, lateral and medial heads" in named["labels"] and "BicLong" not in named["labels"]
             assert sorted(named["torqueTitles"]) == ["Elbow flexion (N·m)", "Shoulder flexion (N·m)"]
             # every tracker under its own id (ImuSample.tracker_id), the Trigno base under its source id
-            wait_for(page, lambda p: {"trigno-synth", "00B4EB80", "00B497B2"} <= set(p["devices"]), 10, "a row per device")
+            wait_for(
+                page, lambda p: {"trigno-synth", "00B4EB80", "00B497B2"} <= set(p["devices"]), 10, "a row per device"
+            )
             assert "xsens" not in page.evaluate(PROBE)["devices"]
             # The bars show what the selected method estimated, and they move with the lift.
-            later = wait_for(page, lambda p: p["bars"] != first["bars"] and p["fills"] != first["fills"], 10,
-                             "bars and body-map colours to change")
-            wait_for(page, lambda p: p["bars"] == [a if a is not None else 0 for a in p["frame"]], 5,
-                     "the bars to show the newest frame of the selected method")
-            counted = wait_for(page, lambda p: p["reps"] == "2", 15, "the rep counter to reach 2 (two reps in the first set)")
+            wait_for(
+                page,
+                lambda p: p["bars"] != first["bars"] and p["fills"] != first["fills"],
+                10,
+                "bars and body-map colours to change",
+            )
+            wait_for(
+                page,
+                lambda p: p["bars"] == [a if a is not None else 0 for a in p["frame"]],
+                5,
+                "the bars to show the newest frame of the selected method",
+            )
+            counted = wait_for(
+                page, lambda p: p["reps"] == "2", 15, "the rep counter to reach 2 (two reps in the first set)"
+            )
             page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
             # Method switch: the bars follow the other method.
             other = "so" if counted["method"] == "hybrid" else "hybrid"
             page.select_option("#method", other)
-            switched = wait_for(page, lambda p: p["method"] == other and p["bars"] == [a if a is not None else 0 for a in p["frame"]],
-                                5, f"the bars of method {other}")
+            switched = wait_for(
+                page,
+                lambda p: p["method"] == other and p["bars"] == [a if a is not None else 0 for a in p["frame"]],
+                5,
+                f"the bars of method {other}",
+            )
             replay.join(30)
             assert not replay.is_alive(), "the replay of the first set did not finish within 30 s"
             stopped = wait_for(page, lambda p: p["status"] == "nodata", 10, "'no data' after the replay stopped")
@@ -117,12 +144,17 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             # Where a frame carries measured EMG envelopes (estimator with EMG), they are drawn beside the estimate (checked
             # while the replay is stopped, so that no newer frame replaces the one given to the page).
             envelope = [0.5] + [None] * (len(switched["frame"]) - 1)
-            page.evaluate("""([method, envelope]) => {
+            page.evaluate(
+                """([method, envelope]) => {
                 const frame = {...window.mskDashboard.state.activations[method], envelope};
                 const s = window.mskDashboard.state;
                 window.mskDashboard.merge({topics: {['activations/' + method]: frame}, data_age_s: s.dataAge, activation_age_s: s.activationAge});
-            }""", [other, envelope])
-            page.wait_for_function("() => window.mskDashboard.charts.bars.data.datasets[2].data[0] !== null", timeout=5000)
+            }""",
+                [other, envelope],
+            )
+            page.wait_for_function(
+                "() => window.mskDashboard.charts.bars.data.datasets[2].data[0] !== null", timeout=5000
+            )
             envelope_bars = page.evaluate("window.mskDashboard.charts.bars.data.datasets[2].data")
             assert envelope_bars[0] == pytest.approx([0.492, 0.508]) and all(v is None for v in envelope_bars[1:])
 
@@ -160,7 +192,7 @@ class LiveStreams:
         self._zsession, self._session = zsession, session
         self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def start(self) -> "LiveStreams":
+    def start(self) -> LiveStreams:
         self._thread.start()
         return self
 
@@ -170,7 +202,9 @@ class LiveStreams:
 
         s = self._session
         publishers = {
-            "activations": declare_data_publisher(self._zsession, topics.activations_key(s, "so"), "msk.ActivationFrame"),
+            "activations": declare_data_publisher(
+                self._zsession, topics.activations_key(s, "so"), "msk.ActivationFrame"
+            ),
             "00B4EB80": declare_data_publisher(self._zsession, topics.imu_key(s, "upper_arm_r"), "msk.ImuSample"),
             "00B497B2": declare_data_publisher(self._zsession, topics.imu_key(s, "forearm_r"), "msk.ImuSample"),
             "trigno": declare_data_publisher(self._zsession, topics.emg_key(s, "trigno"), "msk.EmgChunk"),
@@ -181,18 +215,39 @@ class LiveStreams:
             now = time.time_ns()
             if self.running["activations"]:
                 a = [0.2 + 0.6 * ((i * 7 + k) % 10) / 10 for i in range(len(self.groups))]
-                publish(publishers["activations"], messages.ActivationFrame(
-                    time_s=k * 0.05, method="so", groups=self.groups, activations=a, activation_std=[0.05] * len(a),
-                    exercise="bench_press", solver_status="ok", publish_ns=now, input_arrival_ns=now - 500_000))
+                publish(
+                    publishers["activations"],
+                    messages.ActivationFrame(
+                        time_s=k * 0.05,
+                        method="so",
+                        groups=self.groups,
+                        activations=a,
+                        activation_std=[0.05] * len(a),
+                        exercise="bench_press",
+                        solver_status="ok",
+                        publish_ns=now,
+                        input_arrival_ns=now - 500_000,
+                    ),
+                )
             for tracker, segment in (("00B4EB80", "upper_arm_r"), ("00B497B2", "forearm_r")):
                 if self.running[tracker]:
                     sample = messages.ImuSample(tracker_id=tracker, segment=segment, packet_counter=k, host_time_ns=now)
                     sample.orientation.w = 1.0
                     publish(publishers[tracker], sample)
             if self.running["trigno"]:
-                publish(publishers["trigno"], messages.EmgChunk(
-                    source_id="trigno", first_sample_index=27 * k, n_samples=27, n_channels=1, samples=[0.0] * 27,
-                    channel_labels=["sensor01.EMG"], sample_rate_hz=2000.0, host_time_ns=now))
+                publish(
+                    publishers["trigno"],
+                    messages.EmgChunk(
+                        source_id="trigno",
+                        first_sample_index=27 * k,
+                        n_samples=27,
+                        n_channels=1,
+                        samples=[0.0] * 27,
+                        channel_labels=["sensor01.EMG"],
+                        sample_rate_hz=2000.0,
+                        host_time_ns=now,
+                    ),
+                )
         for publisher in publishers.values():
             publisher.undeclare()
 
@@ -233,12 +288,18 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
     from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
 
     session = "floor"
-    dashboard = DashboardServer(ZenohOptions(listen=(zenoh_endpoint,)), DashboardConfig(session=session, no_data_after_s=1.5),
-                                port=free_tcp_port())
+    dashboard = DashboardServer(
+        ZenohOptions(listen=(zenoh_endpoint,)),
+        DashboardConfig(session=session, no_data_after_s=1.5),
+        port=free_tcp_port(),
+    )
     dashboard.start()
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     try:
-        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession, sync_api.sync_playwright() as playwright:
+        with (
+            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession,
+            sync_api.sync_playwright() as playwright,
+        ):
             browser = launch_chromium(playwright)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             errors: list[str] = []
@@ -248,27 +309,57 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
             bad.wait_matched(BAD_INPUT_TOPICS)
             bad.publish_every_kind()
             load = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
-            publish(load, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana",
-                                             names={"PMCla": "Upper chest"}))  # the session file's name
+            publish(
+                load,
+                messages.LoadEvent(
+                    barbell_mass_kg=60,
+                    exercise="bench_press",
+                    set_number=2,
+                    athlete="Ana",
+                    names={"PMCla": "Upper chest"},
+                ),
+            )  # the session file's name
             node = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
-            publish(node, messages.DeviceStatus(device_id="estimator", kind="node", connected=True, samples_received=50,
-                                                dropped=[messages.InputDrop(key=f"msk/{session}/joints", reason="invalid", count=2)]))
+            publish(
+                node,
+                messages.DeviceStatus(
+                    device_id="estimator",
+                    kind="node",
+                    connected=True,
+                    samples_received=50,
+                    dropped=[messages.InputDrop(key=f"msk/{session}/joints", reason="invalid", count=2)],
+                ),
+            )
             streams = LiveStreams(zsession, session).start()
             try:
-                page.wait_for_function("() => document.getElementById('status').dataset.state === 'live'", timeout=15000)
-                page.wait_for_function("() => document.querySelectorAll('#devices tbody tr').length === 3", timeout=10000)
+                page.wait_for_function(
+                    "() => document.getElementById('status').dataset.state === 'live'", timeout=15000
+                )
+                page.wait_for_function(
+                    "() => document.querySelectorAll('#devices tbody tr').length === 3", timeout=10000
+                )
                 rows = page.evaluate(ROWS)
-                assert sorted(rows) == ["00B497B2", "00B4EB80", "trigno"] and {r[0] for r in rows.values()} == {"delivering"}
-                assert [page.inner_text(f"#{k}") for k in ("exercise", "load", "set")] == ["bench press", "60.0 kg", "2"]
+                assert sorted(rows) == ["00B497B2", "00B4EB80", "trigno"] and {r[0] for r in rows.values()} == {
+                    "delivering"
+                }
+                assert [page.inner_text(f"#{k}") for k in ("exercise", "load", "set")] == [
+                    "bench press",
+                    "60.0 kg",
+                    "2",
+                ]
                 assert "Ana" in page.inner_text("#athlete")
                 labels = page.evaluate(PROBE)["labels"]
                 assert "Upper chest" in labels and "Brachialis" in labels and "PMCla" not in labels, labels
-                page.wait_for_function("() => document.querySelector('#nodes tr[data-node=\"dashboard\"] td:nth-child(4)').textContent === '5'",
-                                       timeout=10000)
+                page.wait_for_function(
+                    "() => document.querySelector('#nodes tr[data-node=\"dashboard\"] td:nth-child(4)').textContent === '5'",
+                    timeout=10000,
+                )
                 assert page.inner_text('#nodes tr[data-node="estimator"]').split("\t")[1:] == ["running", "50", "2"]
                 streams.running["00B4EB80"] = False  # the upper-arm tracker stops; the others go on
-                page.wait_for_function("() => document.querySelector('#devices tr[data-device=\"00B4EB80\"] td:nth-child(2)').textContent === 'silent'",
-                                       timeout=10000)
+                page.wait_for_function(
+                    "() => document.querySelector('#devices tr[data-device=\"00B4EB80\"] td:nth-child(2)').textContent === 'silent'",
+                    timeout=10000,
+                )
                 rows = page.evaluate(ROWS)
                 assert rows["00B497B2"][0] == rows["trigno"][0] == "delivering" and int(rows["00B4EB80"][1]) > 0
                 page.locator(".panel.side").screenshot(path=str(ARTIFACTS / "dashboard-devices.png"))
@@ -288,7 +379,13 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
     # the badge stays a badge in the header
     assert stale["pill"]["h"] < 60 and stale["pill"]["w"] < 300 and stale["pill"]["y"] < stale["main"]["y"]
     # a notice of its own size, opaque and readable, not a veil over the page
-    assert stale["noticeVisible"] and stale["noticeTitle"] == "No data" and stale["noticeBackground"] == "rgb(255, 255, 255)"
+    assert (
+        stale["noticeVisible"]
+        and stale["noticeTitle"] == "No data"
+        and stale["noticeBackground"] == "rgb(255, 255, 255)"
+    )
     assert stale["notice"]["w"] * stale["notice"]["h"] < 0.3 * stale["main"]["w"] * stale["main"]["h"]
     # the last values are still there, greyed out, and not covered
-    assert "grayscale(1)" in stale["panelFilter"] and 0.3 < stale["panelOpacity"] < 1 and stale["mapVisibleBesideNotice"]
+    assert (
+        "grayscale(1)" in stale["panelFilter"] and 0.3 < stale["panelOpacity"] < 1 and stale["mapVisibleBesideNotice"]
+    )

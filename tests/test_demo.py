@@ -26,11 +26,17 @@ def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
     assert graph["estimated_frames"] == graph["joint_frames"] and graph["joint_frames"]["bench_press"] > 1000
     # Every replayed message, every computed joint frame and every activation frame reached the recorder.
     # the nodes' own status (kind "node": inputs taken and dropped) is recorded too; the count is of the data
-    recorded = [r for r in read_messages(out / "live.mcap")
-                if not (r.type_name == "msk.DeviceStatus" and r.decode().kind == "node")]
+    recorded = [
+        r
+        for r in read_messages(out / "live.mcap")
+        if not (r.type_name == "msk.DeviceStatus" and r.decode().kind == "node")
+    ]
     activations = [r for r in recorded if r.type_name == "msk.ActivationFrame"]
     joints = [r for r in recorded if r.type_name == "msk.JointAngles"]
-    assert len(activations) == 3 * graph["joint_frames"]["bench_press"] and len(joints) == graph["joint_frames"]["bench_press"]
+    assert (
+        len(activations) == 3 * graph["joint_frames"]["bench_press"]
+        and len(joints) == graph["joint_frames"]["bench_press"]
+    )
     assert len(recorded) == graph["replayed"] + len(joints) + len(activations) == graph["expected_messages"]
     scores = {(s["trial"], s["method"]): s for s in summary["scores"]}
     assert {m for _, m in scores} == {"proposed", "so", "hybrid"}
@@ -71,10 +77,19 @@ def test_demo_rejects_unknown_exercise(tmp_path):
 
 
 def test_cli_help_and_version(repo_root):
-    version = subprocess.run([sys.executable, "-m", "services.cli", "--version"], cwd=repo_root, capture_output=True, text=True, check=True)
+    version = subprocess.run(
+        [sys.executable, "-m", "services.cli", "--version"], cwd=repo_root, capture_output=True, text=True, check=True
+    )
     assert version.stdout.startswith("msk-live ")
-    helptext = subprocess.run([sys.executable, "-m", "services.cli", "--help"], cwd=repo_root, capture_output=True, text=True, check=True).stdout
+    helptext = subprocess.run(
+        [sys.executable, "-m", "services.cli", "--help"], cwd=repo_root, capture_output=True, text=True, check=True
+    ).stdout
     for command in ("demo", "recorder", "replay", "estimator", "bench"):
         assert command in helptext
-    bad = subprocess.run([sys.executable, "-m", "services.cli", "replay", "missing.mcap", "--rate", "max"], cwd=repo_root, capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "services.cli", "replay", "missing.mcap", "--rate", "max"],
+        cwd=repo_root,
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and "missing.mcap" in bad.stderr and "not found" in bad.stderr

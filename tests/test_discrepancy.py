@@ -32,9 +32,16 @@ LOADS = {"bench_press": (40.0, 60.0), "deadlift": (45.0, 75.0)}
 
 # -- synthetic sessions (cached per process: the generator and the prior are the slow part) -------------------------
 
-@functools.lru_cache(maxsize=None)
-def synthetic(exercise: str, effects: str, seed: int, loads: tuple[float, ...] | None = None, reps: int = 3,
-              calibrated: bool = True):
+
+@functools.cache
+def synthetic(
+    exercise: str,
+    effects: str,
+    seed: int,
+    loads: tuple[float, ...] | None = None,
+    reps: int = 3,
+    calibrated: bool = True,
+):
     """(folder, pack, trials, profile, truth): the last load is held out, the others train (default: the lighter
     load trains, the heavier is held out). The profile is calibrated on the training trials as a user would
     (``msk calibrate --emd 0``: the paper's model without a delay; 1-7 s per session), as in `msk bench discrepancy`;
@@ -68,6 +75,7 @@ def discrepancy(exercise: str, effects: str, seed: int, max_effects: int = 1, lo
 
 # -- effects inside the estimator: exact equivalences --------------------------------------------------------------
 
+
 def _arm26_profile(effects: dict | None) -> tuple:
     pack = load_pack("arm26")
     groups = list(pack.groups)
@@ -75,16 +83,26 @@ def _arm26_profile(effects: dict | None) -> tuple:
     from msk_core.estimate import PhasePrior
 
     bins = 10
-    prior = PhasePrior(tuple(groups), np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
-                       np.full((bins, len(groups)), 0.05), np.ones(len(groups), dtype=bool),
-                       rest_mean=np.full(len(groups), 0.01), rest_std=np.full(len(groups), 0.02))
-    return pack, SubjectProfile(pack.name, str(pack.version), groups, f_ref.copy(), f_ref.copy(), prior,
-                                effects=effects)
+    prior = PhasePrior(
+        tuple(groups),
+        np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
+        np.full((bins, len(groups)), 0.05),
+        np.ones(len(groups), dtype=bool),
+        rest_mean=np.full(len(groups), 0.01),
+        rest_std=np.full(len(groups), 0.02),
+    )
+    return pack, SubjectProfile(
+        pack.name, str(pack.version), groups, f_ref.copy(), f_ref.copy(), prior, effects=effects
+    )
 
 
 def _effects(*items, gain=None) -> dict:
-    return {"format_version": EFFECTS_FORMAT_VERSION, "effects": [{"name": n, "parameters": p} for n, p in items],
-            "strength_gain": gain or {}, "evidence": {}}
+    return {
+        "format_version": EFFECTS_FORMAT_VERSION,
+        "effects": [{"name": n, "parameters": p} for n, p in items],
+        "strength_gain": gain or {},
+        "evidence": {},
+    }
 
 
 def _poses(pack, n=30, seed=1):
@@ -114,8 +132,14 @@ def test_torque_offsets_and_force_scales_equal_the_plain_estimator_on_transforme
     b = np.array([1.5, 0.8])
     pj = {"decay_rad": 0.2, "k_lower_nm": [2.0, 1.0], "k_upper_nm": [0.5, 3.0]}
     gain = {"TRIlong": 1.3, "BIClong": 0.8}
-    pack, profile = _arm26_profile(_effects(("damping", {"b_nms_per_rad": b.tolist()}), ("passive_joint", pj),
-                                            ("load_scale", {"true_over_reported": 1.2}), gain=gain))
+    pack, profile = _arm26_profile(
+        _effects(
+            ("damping", {"b_nms_per_rad": b.tolist()}),
+            ("passive_joint", pj),
+            ("load_scale", {"true_over_reported": 1.2}),
+            gain=gain,
+        )
+    )
     _, plain_profile = _arm26_profile(None)
     g = np.array([gain.get(x, 1.0) for x in pack.groups])
     with_eff = FrameEstimator(pack, profile, method)
@@ -128,7 +152,9 @@ def test_torque_offsets_and_force_scales_equal_the_plain_estimator_on_transforme
         # from inverse dynamics (the live node's path): the true load is 1.2 x the reported one
         res = with_eff.step(q, qd, qdd, hand_load_newton=hand, phase=0.1 * (k % 10))
         tau = np.asarray(pack.inverse_dynamics(q, qd, qdd, 1.2 * hand))
-        passive = np.array(pj["k_lower_nm"]) * np.exp((lo - q) / 0.2) - np.array(pj["k_upper_nm"]) * np.exp((q - hi) / 0.2)
+        passive = np.array(pj["k_lower_nm"]) * np.exp((lo - q) / 0.2) - np.array(pj["k_upper_nm"]) * np.exp(
+            (q - hi) / 0.2
+        )
         ref = plain.step(q, torques=tau + b * qd - passive, phase=0.1 * (k % 10))
         np.testing.assert_allclose(res.activations, ref.activations, atol=2e-6)
         # from measured torques (msk estimate's path): the reported load's torques, the rest of the load added
@@ -139,8 +165,9 @@ def test_torque_offsets_and_force_scales_equal_the_plain_estimator_on_transforme
 
 
 def test_force_length_scales_each_groups_moment_arms_and_delay_looks_up_the_earlier_phase():
-    pack, profile = _arm26_profile(_effects(("fl_active", {"width": 0.4}),
-                                            ("emd", {"delay_s": 0.03, "frame_interval_s": 0.01})))
+    pack, profile = _arm26_profile(
+        _effects(("fl_active", {"width": 0.4}), ("emd", {"delay_s": 0.03, "frame_interval_s": 0.01}))
+    )
     est = FrameEstimator(pack, profile, "proposed")
     poses, rng = _poses(pack, 25)
     from msk_core.estimate.effects import active_force_length, fibre_length
@@ -161,31 +188,50 @@ def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_pa
     from services import estimator, messages, topics
     from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
-    pack, profile = _arm26_profile(_effects(("fl_active", {"width": 0.4}),
-                                            ("passive_joint", {"decay_rad": 0.2, "k_lower_nm": [3.0, 2.0],
-                                                               "k_upper_nm": [1.0, 4.0]}), gain={"BIClong": 1.4}))
+    pack, profile = _arm26_profile(
+        _effects(
+            ("fl_active", {"width": 0.4}),
+            ("passive_joint", {"decay_rad": 0.2, "k_lower_nm": [3.0, 2.0], "k_upper_nm": [1.0, 4.0]}),
+            gain={"BIClong": 1.4},
+        )
+    )
     path = tmp_path / "subject.json"
     profile.save(path)
     poses, _ = _poses(pack, 20)
     coords = list(pack.coordinates)
     stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
-    thread = threading.Thread(target=estimator.main, args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-                              kwargs=dict(pack="arm26", exercise="arm_curl", session="e", methods=["hybrid"],
-                                          subject_path=path, stop_event=stop, ready_event=ready, stats=stats),
-                              daemon=True)
+    thread = threading.Thread(
+        target=estimator.main,
+        args=(ZenohOptions(listen=(zenoh_endpoint,)),),
+        kwargs=dict(
+            pack="arm26",
+            exercise="arm_curl",
+            session="e",
+            methods=["hybrid"],
+            subject_path=path,
+            stop_event=stop,
+            ready_event=ready,
+            stats=stats,
+        ),
+        daemon=True,
+    )
     thread.start()
     assert ready.wait(20)
     received: list = []
     with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
-        session.declare_subscriber("msk/e/activations/*", lambda s: received.append(
-            messages.decode("msk.ActivationFrame", s.payload.to_bytes())))
+        session.declare_subscriber(
+            "msk/e/activations/*",
+            lambda s: received.append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())),
+        )
         pub = declare_data_publisher(session, topics.joints_key("e"), "msk.JointAngles")
         deadline = time.monotonic() + 10
         while not pub.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.01)
         for i, q in enumerate(poses):
-            publish(pub, messages.JointAngles(coordinates=coords, q=q.tolist(), phase=-1.0,
-                                              device_time_ns=(i + 1) * 10_000_000))
+            publish(
+                pub,
+                messages.JointAngles(coordinates=coords, q=q.tolist(), phase=-1.0, device_time_ns=(i + 1) * 10_000_000),
+            )
         deadline = time.monotonic() + 30
         while len(received) < len(poses) and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -205,6 +251,7 @@ def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_pa
 
 # -- input errors ----------------------------------------------------------------------------------------------
 
+
 def test_input_errors_name_the_file_and_field(tmp_path):
     from msk_core.discrepancy import check_inputs
 
@@ -212,8 +259,11 @@ def test_input_errors_name_the_file_and_field(tmp_path):
     train, held = trials
     src = Path(held.path)
     no_torque = tmp_path / "held_no_torques.toml"
-    no_torque.write_text("\n".join(line for line in src.read_text().splitlines() if not line.startswith("torques"))
-                         .replace('"ik.sto"', f'"{src.parent / "ik.sto"}"').replace('"emg.sto"', f'"{src.parent / "emg.sto"}"'))
+    no_torque.write_text(
+        "\n".join(line for line in src.read_text().splitlines() if not line.startswith("torques"))
+        .replace('"ik.sto"', f'"{src.parent / "ik.sto"}"')
+        .replace('"emg.sto"', f'"{src.parent / "emg.sto"}"')
+    )
     held_id = load_trial(no_torque, pack)
     with pytest.raises(InputError, match=r"held_no_torques\.toml.*'torques'"):
         check_inputs([train], [held_id])
@@ -239,12 +289,16 @@ def test_input_errors_name_the_file_and_field(tmp_path):
     assert not session_arrays(pack, reference, [train]).trials[0].left_out.get("non-finite EMG")
     overloaded = replace(held, torques=50.0 * held.torques)
     n = held.n_frames
-    with pytest.raises(InputError, match=rf"bench_press_60kg.*'torques'.*only 0 of {n} .* {n} \(torque beyond 95% of the "
-                                         r"muscles' capacity\)"):
+    with pytest.raises(
+        InputError,
+        match=rf"bench_press_60kg.*'torques'.*only 0 of {n} .* {n} \(torque beyond 95% of the "
+        r"muscles' capacity\)",
+    ):
         session_arrays(pack, reference, [train, overloaded])
 
 
 # -- detection on synthetic sessions ------------------------------------------------------------------------------
+
 
 def _shrink(result) -> float:
     s = result.summary
@@ -313,8 +367,9 @@ def test_strength_refit_stays_in_the_range_the_profile_is_written_in(monkeypatch
     narrow = fit(data, train, {"fl_active": {"width": 0.25}})
     phi = narrow.phi_typical
     assert phi is not None and np.all(phi <= 1.0) and phi.min() < 0.95, phi
-    effective = {g: (1.0 + narrow.coef[narrow.names.index(f"gain:{g}")]) * phi[k]
-                 for k, g in enumerate(data.emg_groups)}
+    effective = {
+        g: (1.0 + narrow.coef[narrow.names.index(f"gain:{g}")]) * phi[k] for k, g in enumerate(data.emg_groups)
+    }
     assert all(lo - 1e-9 <= v <= hi + 1e-9 for v in effective.values()), effective
     assert effective[data.emg_groups[0]] == pytest.approx(lo, abs=1e-6), effective
 
@@ -374,6 +429,7 @@ def test_electromechanical_delay_is_named_and_the_profile_improves_estimation(tm
     assert reps["reps"] == 3 and reps["improved"] == 3 and reps["min_reduction"] > 0.1, reps
     assert [r["rep"] for r in reps["per_rep"]] == [-1, 0, 1, 2]  # -1: the frames between reps
     from msk_core.discrepancy.select import rep_reductions
+
     held_arrays = result.data.trials[1:]
     none = result.selection.none_fit
     assert [x for _, _, x in rep_reductions(result.data, held_arrays, none, none)] == [0.0] * 4
@@ -466,8 +522,10 @@ def test_two_hidden_effects_are_both_named_with_max_effects_2():
     assert sorted(result.summary["effect"]) == ["emd", "fl_passive"], result.summary["greedy_steps"]
     step = next(s for s in result.summary["greedy_steps"] if s[0]["effect"] == "fl_passive")
     scores = {c["effect"]: c for c in step}
-    assert scores["passive_joint"]["accepted"] and scores["passive_joint"]["holdout_mse_reduction"] > \
-        scores["fl_passive"]["holdout_mse_reduction"], step
+    assert (
+        scores["passive_joint"]["accepted"]
+        and scores["passive_joint"]["holdout_mse_reduction"] > scores["fl_passive"]["holdout_mse_reduction"]
+    ), step
     # the calibration without the passive force pinned the back extensors at the upper bound and the abdominals at
     # the lower one (the passive extension moment of the flexed trunk taken for extensor strength): the report says so
     pinned = {b["group"]: b for b in result.summary["calibration_at_bounds"]}
@@ -482,15 +540,35 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     subject = tmp_path / "subject.json"
     profile.save(subject)
     report, out = tmp_path / "report", tmp_path / "with_effect.json"
-    assert main(["discrepancy", "--pack", "bench_press", "--subject", str(subject), "--trial", str(trials[0].path),
-                 "--holdout", str(trials[1].path), "--report", str(report), "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "discrepancy",
+                "--pack",
+                "bench_press",
+                "--subject",
+                str(subject),
+                "--trial",
+                str(trials[0].path),
+                "--holdout",
+                str(trials[1].path),
+                "--report",
+                str(report),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     summary = json.loads((report / "summary.json").read_text())
     assert summary["effect"] == "emd" and summary["gap_after"] < summary["gap_before"]
     assert [c["effect"] for c in summary["candidates"]][0] == "emd"
     assert {"parameters", "gap_before", "gap_after", "candidates"} <= set(summary)
     reps = summary["candidates"][0]["holdout_reps"]
-    assert f"How consistent: emd lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps" \
+    assert (
+        f"How consistent: emd lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps"
         in (report / "report.md").read_text()
+    )
     for png in ("gap_vs_angle", "gap_vs_velocity", "gap_vs_phase", "xcorr_vs_lag", "gap_rms"):
         assert (report / f"{png}.png").stat().st_size > 1000
     text = (report / "report.md").read_text()
@@ -511,25 +589,59 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
         assert f"{b['group']} {b['scale']:.2f} ({b['side']}" in printed
     loaded = SubjectProfile.load(out)
     assert loaded.effects["effects"][0]["name"] == "emd"
-    assert main(["estimate", "--pack", "bench_press", "--subject", str(out), "--trial", str(trials[1].path),
-                 "--out", str(tmp_path / "act.sto")]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                "--pack",
+                "bench_press",
+                "--subject",
+                str(out),
+                "--trial",
+                str(trials[1].path),
+                "--out",
+                str(tmp_path / "act.sto"),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["discrepancy", "--pack", "bench_press", "--subject", str(subject), "--trial", str(trials[0].path),
-                 "--holdout", str(trials[0].path), "--report", str(report)]) == 2
+    assert (
+        main(
+            [
+                "discrepancy",
+                "--pack",
+                "bench_press",
+                "--subject",
+                str(subject),
+                "--trial",
+                str(trials[0].path),
+                "--holdout",
+                str(trials[0].path),
+                "--report",
+                str(report),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--holdout" in err and "bench_press_40kg" in err, err
 
 
 # -- sessions not made by msk synth: arm26, static-optimisation EMG, effects built on the muscle side ---------------
 
-@pytest.mark.parametrize("effect, noise, seed, expected", [
-    (None, 0.3, 4, {"none"}),  # unbounded, the re-fit switched the electrodes off and `fl_active` was named (36 %)
-    ("damping", 0.1, 1, {"damping"}),
-    ("fl_active", 0.1, 2, {"fl_active"}),  # a parabola, not the candidate's Gaussian
-    # taken into the calibration (docs/discrepancy.md): not found, but never named as something else (with a wider
-    # strength range for cross-talk, unmixing undid the calibration and `crosstalk` was named, 8 of 10 sessions)
-    ("passive_joint", 0.2, 1, {"none", "passive_joint", "fl_passive"}),
-])
+
+@pytest.mark.parametrize(
+    "effect, noise, seed, expected",
+    [
+        (None, 0.3, 4, {"none"}),  # unbounded, the re-fit switched the electrodes off and `fl_active` was named (36 %)
+        ("damping", 0.1, 1, {"damping"}),
+        ("fl_active", 0.1, 2, {"fl_active"}),  # a parabola, not the candidate's Gaussian
+        # taken into the calibration (docs/discrepancy.md): not found, but never named as something else (with a wider
+        # strength range for cross-talk, unmixing undid the calibration and `crosstalk` was named, 8 of 10 sessions)
+        ("passive_joint", 0.2, 1, {"none", "passive_joint", "fl_passive"}),
+    ],
+)
 def test_arm26_sessions_outside_the_generator(shared_dir, tmp_path, effect, noise, seed, expected):
     from msk_core.discrepancy import run_discrepancy
     from services.bench.discrepancy import arm26_session
@@ -579,8 +691,17 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
     pack, train, holdout, profile = arm26_session(tmp_path, 0.1, 2, effect="passive_joint")
     subject, out = tmp_path / "subject.json", tmp_path / "with_effect.json"
     profile.save(subject)
-    args = ["discrepancy", "--pack", "arm26", "--subject", str(subject), "--trial", str(train[0].path),
-            "--holdout", str(holdout[0].path)]
+    args = [
+        "discrepancy",
+        "--pack",
+        "arm26",
+        "--subject",
+        str(subject),
+        "--trial",
+        str(train[0].path),
+        "--holdout",
+        str(holdout[0].path),
+    ]
     assert main(args + ["--report", str(tmp_path / "plain")]) == 0
     plain = json.loads((tmp_path / "plain" / "summary.json").read_text())
     assert plain["effect"] == "none"
@@ -607,15 +728,33 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
     groups, ref = list(pack.groups), np.asarray(pack.f_max_ref)
 
     def error(f_max):  # median |log(calibrated / true strength)| over the measured groups
-        return float(np.median([abs(np.log(f_max[groups.index(g)] / ref[groups.index(g)] / k))
-                                for g, k in ARM26_STRENGTH.items()]))
+        return float(
+            np.median(
+                [abs(np.log(f_max[groups.index(g)] / ref[groups.index(g)] / k)) for g, k in ARM26_STRENGTH.items()]
+            )
+        )
 
     assert error(written.f_max) < 0.1 < 0.3 < error(profile.f_max), (written.f_max, profile.f_max)
     recal = written.effects["evidence"]["recalibrated"]
     assert recal["f_max_before"] == pytest.approx(list(profile.f_max), rel=1e-3)
     assert len(recal["calibration"]["torque_coefficients"]) == 2 * len(pack.coordinates)
-    assert set(recal["calibration"]["torque_basis"]) == {f"passive_joint:k_{side}:{c}" for c in pack.coordinates
-                                                         for side in ("lower", "upper")}
+    assert set(recal["calibration"]["torque_basis"]) == {
+        f"passive_joint:k_{side}:{c}" for c in pack.coordinates for side in ("lower", "upper")
+    }
     # the profile with the effect and the re-calibrated strengths is what the estimator uses from then on
-    assert main(["estimate", "--pack", "arm26", "--subject", str(out), "--trial", str(holdout[0].path),
-                 "--out", str(tmp_path / "act.sto")]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                "--pack",
+                "arm26",
+                "--subject",
+                str(out),
+                "--trial",
+                str(holdout[0].path),
+                "--out",
+                str(tmp_path / "act.sto"),
+            ]
+        )
+        == 0
+    )

@@ -42,9 +42,8 @@ def _command_lines(block: str) -> list[str]:
 
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
 def test_shell_toml_and_json_blocks(doc: Path) -> None:
-    from services.cli import build_parser
-
     import dev
+    from services.cli import build_parser
 
     parser = build_parser()
     for language, block, line_no in _blocks(doc):
@@ -72,8 +71,9 @@ def test_shell_toml_and_json_blocks(doc: Path) -> None:
             json.loads(block)
 
 
-@pytest.mark.parametrize("doc", [d for d in DOCS if any(lang == "python" for lang, _, _ in _blocks(d))],
-                         ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "doc", [d for d in DOCS if any(lang == "python" for lang, _, _ in _blocks(d))], ids=lambda p: p.name
+)
 def test_python_blocks_run(doc: Path, shared_dir: Path, tmp_path: Path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
     namespace: dict[str, object] = {"REPO": REPO, "SHARED": shared_dir, "TMP": tmp_path, "__name__": "__docs__"}
@@ -102,10 +102,15 @@ def test_the_role_table_of_deployment_md_is_the_access_control_the_graph_gives()
 
     text = (REPO / "docs" / "deployment.md").read_text()
     rows = re.findall(r"^\| (\w+) \| (.*?) \| (.*?) \| (.*?) \|$", text, re.M)
-    documented = {role: (re.findall(r"`([^`]+)`", publish), re.findall(r"`([^`]+)`", subscribe),
-                         re.findall(r"`([^`]+)`", tokens)) for role, publish, subscribe, tokens in rows
-                  if role in security.ROLE_POLICIES}
+    documented = {
+        role: (re.findall(r"`([^`]+)`", publish), re.findall(r"`([^`]+)`", subscribe), re.findall(r"`([^`]+)`", tokens))
+        for role, publish, subscribe, tokens in rows
+        if role in security.ROLE_POLICIES
+    }
     assert set(documented) == set(security.ROLE_POLICIES)
     for role, policy in security.ROLE_POLICIES.items():
-        assert documented[role] == (list(policy.publish), list(policy.subscribe),
-                                    [t.rsplit("/", 1)[1] for t in policy.tokens]), role
+        assert documented[role] == (
+            list(policy.publish),
+            list(policy.subscribe),
+            [t.rsplit("/", 1)[1] for t in policy.tokens],
+        ), role

@@ -90,7 +90,7 @@ class FakeTcu:
         while not self._stop.is_set():
             try:
                 conn, _ = listener.accept()
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             if name == "command":
                 # no Nagle: the split replies go out as two segments at once instead of waiting for delayed ACKs
@@ -213,9 +213,15 @@ def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
         assert client.paired_sensors == [1, 5, 9] and client.active_sensors == [1, 5]
         assert [s.start_index for s in client.sensors if s.active] == [0, 4]
         assert client.emg_columns == [
-            ("sensor01.EMG1", 0), ("sensor01.EMG2", 1), ("sensor01.EMG3", 2), ("sensor01.EMG4", 3), ("sensor05.EMG", 4),
+            ("sensor01.EMG1", 0),
+            ("sensor01.EMG2", 1),
+            ("sensor01.EMG3", 2),
+            ("sensor01.EMG4", 3),
+            ("sensor05.EMG", 4),
         ]
-        assert not any(c.startswith("SENSOR 9 ") and c != "SENSOR 9 PAIRED?" and c != "SENSOR 9 ACTIVE?" for c in server.commands)
+        assert not any(
+            c.startswith("SENSOR 9 ") and c != "SENSOR 9 PAIRED?" and c != "SENSOR 9 ACTIVE?" for c in server.commands
+        )
         client.start()
         events = run_until(client, len(rows))
         received = stack(events, EmgBlock)
@@ -233,8 +239,11 @@ def test_refused_start_is_retried_after_stop_and_stopped_racing_the_stop_reply_i
     rows = known_rows(300, 16, paired=(2,))
     answers = {"MASTER?": "YES", "UPSAMPLING?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({2: 2})}
     server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers,
-        emg=tp.encode_samples(rows), refuse_first_start=True, stopped_before_stop_reply=True,
+        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
+        answers=answers,
+        emg=tp.encode_samples(rows),
+        refuse_first_start=True,
+        stopped_before_stop_reply=True,
     )
     server.acquiring = True  # a previous client left the server acquiring: START answers CANNOT COMPLETE
     client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"]))
@@ -259,11 +268,16 @@ def test_legacy_acc_port_carries_three_axes_per_sensor():
     acc = known_rows(4, 48, paired=(1, 2, 3))  # sensor 1: x, y, z
     answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({1: 1})}
     server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.1.0" + TERM, answers=answers,
-        emg=tp.encode_samples(emg), aux=tp.encode_samples(acc), chunk_sizes=(11, 100),
+        banner=b"Delsys Trigno System Digital Protocol Version 3.1.0" + TERM,
+        answers=answers,
+        emg=tp.encode_samples(emg),
+        aux=tp.encode_samples(acc),
+        chunk_sizes=(11, 100),
     )
     config = TrignoConfig(
-        command_port=server.ports["command"], emg_port=server.ports["emg"], aux_port=server.ports["aux"],
+        command_port=server.ports["command"],
+        emg_port=server.ports["emg"],
+        aux_port=server.ports["aux"],
         aux_layout=tp.AuxLayout.LEGACY_ACC,  # an ephemeral port: the layout cannot come from the number 50042
     )
     client = TrignoClient(config)
@@ -283,12 +297,18 @@ def test_legacy_acc_port_carries_three_axes_per_sensor():
 
 def test_our_simulator_serves_the_legacy_acc_port():
     source = synthetic_source(seconds=1.0)
-    config = SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None, legacy_acc_port=0, speed=4.0)
+    config = SimulatorConfig(
+        command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None, legacy_acc_port=0, speed=4.0
+    )
     with TrignoSimulator(source, config) as sim:
-        client = TrignoClient(TrignoConfig(
-            command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=sim.ports["legacy_acc"],
-            aux_layout=tp.AuxLayout.LEGACY_ACC,
-        ))
+        client = TrignoClient(
+            TrignoConfig(
+                command_port=sim.ports["command"],
+                emg_port=sim.ports["emg"],
+                aux_port=sim.ports["legacy_acc"],
+                aux_layout=tp.AuxLayout.LEGACY_ACC,
+            )
+        )
         with client:
             # one public client asks MAX SAMPLES EMG without the "?"
             assert client.command("MAX SAMPLES EMG") == client.command("MAX SAMPLES EMG?") == "27"
@@ -306,7 +326,11 @@ def test_emg_port_falls_back_when_the_configured_one_refuses():
 
     rows = known_rows(100, 16, paired=(3,))
     answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({3: 3})}
-    server = FakeTcu(banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers, emg=tp.encode_samples(rows))
+    server = FakeTcu(
+        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
+        answers=answers,
+        emg=tp.encode_samples(rows),
+    )
     closed = free_tcp_port()  # nobody listens there: connection refused
     config = TrignoConfig(command_port=server.ports["command"], emg_port=closed, emg_port_fallback=server.ports["emg"])
     client = TrignoClient(config)
@@ -327,12 +351,22 @@ def test_emg_port_falls_back_when_the_configured_one_refuses():
 
 
 def test_a_reply_arriving_after_its_timeout_is_not_taken_for_the_next_one():
-    answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", "BASE SERIAL?": "SP-W01D-1771", "BASE FIRMWARE?": "MA2919", **sensor_answers({1: 1})}
+    answers = {
+        "MASTER?": "YES",
+        "MAX SAMPLES EMG?": "27",
+        "BASE SERIAL?": "SP-W01D-1771",
+        "BASE FIRMWARE?": "MA2919",
+        **sensor_answers({1: 1}),
+    }
     server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers, emg=b"",
+        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
+        answers=answers,
+        emg=b"",
         delays={"BASE SERIAL?": 0.45},  # answered while the next command waits
     )
-    client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], reply_timeout_s=0.3))
+    client = TrignoClient(
+        TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], reply_timeout_s=0.3)
+    )
     try:
         client.connect()
         with pytest.raises(ProtocolError, match="no reply to 'BASE SERIAL\\?'"):
@@ -374,21 +408,32 @@ def test_raw_capture_cut_inside_its_last_sample_loads_the_whole_samples(tmp_path
     upsampling_reply=st.sampled_from(["UPSAMPLING ON", "UPSAMPLING OFF", "YES", "NO"]),
     sensors=st.sets(st.integers(1, 16), min_size=1, max_size=5),
 )
-def test_any_conformant_server_variant(version, banner_end, pad, split, chunks, endianness, base, per_frame, upsampling_reply, sensors):
+def test_any_conformant_server_variant(
+    version, banner_end, pad, split, chunks, endianness, base, per_frame, upsampling_reply, sensors
+):
     """Every combination of what the facts leave open: the client gets the version, rate, sensors and every sample."""
     rows = known_rows(120, 16, paired=tuple(sorted(sensors)))
     answers = {
-        "MASTER?": "YES", "ENDIANNESS?": endianness.value, "UPSAMPLING?": upsampling_reply, "FRAME INTERVAL?": "0.0135",
+        "MASTER?": "YES",
+        "ENDIANNESS?": endianness.value,
+        "UPSAMPLING?": upsampling_reply,
+        "FRAME INTERVAL?": "0.0135",
         **sensor_answers({n: n - 1 + base for n in sensors}),
     }
     if per_frame is not None:
         answers["MAX SAMPLES EMG?"] = str(per_frame)
     upsampled = upsampling_reply in ("UPSAMPLING ON", "YES")
     server = FakeTcu(
-        banner=f"Delsys Trigno System Digital Protocol Version {version}".encode() + banner_end, answers=answers,
-        emg=tp.encode_samples(rows, endianness), chunk_sizes=tuple(chunks), reply_pad=pad, split_fraction=split,
+        banner=f"Delsys Trigno System Digital Protocol Version {version}".encode() + banner_end,
+        answers=answers,
+        emg=tp.encode_samples(rows, endianness),
+        chunk_sizes=tuple(chunks),
+        reply_pad=pad,
+        split_fraction=split,
     )
-    client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], banner_line_grace_s=0.1))
+    client = TrignoClient(
+        TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], banner_line_grace_s=0.1)
+    )
     try:
         client.connect()
         client.start()

@@ -77,7 +77,12 @@ class FakeMti:
     after GoToMeasurement streams ``count`` messages with a restart (WakeUp, counter from 0) after ``restart_at``."""
 
     def __init__(
-        self, *, count: int = 40, restart_at: int | None = 20, stf0: int = 0, pieces=(1, 7, 3, 64, 17, 250),
+        self,
+        *,
+        count: int = 40,
+        restart_at: int | None = 20,
+        stf0: int = 0,
+        pieces=(1, 7, 3, 64, 17, 250),
         device_id: bytes = struct.pack(">I", DEVICE_ID),
     ) -> None:
         self.device_id = device_id
@@ -340,7 +345,10 @@ def test_line_load_estimate_matches_the_real_captures(shared_dir, set_number):
 
 
 def test_configure_warns_when_the_outputs_exceed_the_baud_rate(caplog):
-    with XsensSimulator(synthetic_imu(seconds=2.0)) as sim, caplog.at_level(logging.WARNING, logger="drivers.xsens.device"):
+    with (
+        XsensSimulator(synthetic_imu(seconds=2.0)) as sim,
+        caplog.at_level(logging.WARNING, logger="drivers.xsens.device"),
+    ):
         slow = XsensDevice(SerialTransport(sim.path, baudrate=115200))
         slow.configure(100, precision=xbus.Precision.FLOAT64)  # about 135 kbit/s
         assert "line carries 115 kbit/s" in slow.stats.last_error and "135 kbit/s" in caplog.text

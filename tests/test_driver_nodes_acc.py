@@ -32,8 +32,14 @@ def _source():
 @pytest.mark.parametrize("port", ["aux", "legacy_acc"])
 def test_the_trigno_loop_publishes_each_aux_block_as_an_acc_chunk_on_the_emg_clock(port):
     source, t = _source()
-    config = SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=0,
-                             legacy_acc_port=0 if port == "legacy_acc" else None, speed=2.0)
+    config = SimulatorConfig(
+        command_port=0,
+        emg_port=0,
+        legacy_emg_port=None,
+        aux_port=0,
+        legacy_acc_port=0 if port == "legacy_acc" else None,
+        speed=2.0,
+    )
     published: list[tuple[str, object, int]] = []
     lock = threading.Lock()
 
@@ -44,8 +50,14 @@ def test_the_trigno_loop_publishes_each_aux_block_as_an_acc_chunk_on_the_emg_clo
     stop = threading.Event()
     with TrignoSimulator(source, config) as sim:
         layout = tp.AuxLayout.LEGACY_ACC if port == "legacy_acc" else tp.AuxLayout.AVANTI
-        client = TrignoClient(TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"],
-                                           aux_port=sim.ports[port], aux_layout=layout))
+        client = TrignoClient(
+            TrignoConfig(
+                command_port=sim.ports["command"],
+                emg_port=sim.ports["emg"],
+                aux_port=sim.ports[port],
+                aux_layout=layout,
+            )
+        )
         try:
             client.connect()
             threading.Timer(1.0, stop.set).start()

@@ -23,27 +23,46 @@ from tests.test_driver_conformance_trigno import TERM, FakeTcu, known_rows, sens
 def test_trigno_node_publishes_each_emg_channel_of_active_sensors_only():
     rows = known_rows(400, 16, paired=(1, 2, 3, 4, 5, 9))
     answers = {
-        "MASTER?": "YES", "UPSAMPLING?": "NO", "MAX SAMPLES EMG?": "27",
+        "MASTER?": "YES",
+        "UPSAMPLING?": "NO",
+        "MAX SAMPLES EMG?": "27",
         **sensor_answers({1: 1, 5: 5, 9: 9}),  # 1-based start indices
-        "SENSOR 1 ACTIVE?": "YES", "SENSOR 5 ACTIVE?": "YES", "SENSOR 9 ACTIVE?": "NO",
-        "SENSOR 1 EMGCHANNELCOUNT?": "4", "SENSOR 5 EMGCHANNELCOUNT?": "1",
+        "SENSOR 1 ACTIVE?": "YES",
+        "SENSOR 5 ACTIVE?": "YES",
+        "SENSOR 9 ACTIVE?": "NO",
+        "SENSOR 1 EMGCHANNELCOUNT?": "4",
+        "SENSOR 5 EMGCHANNELCOUNT?": "1",
     }
-    server = FakeTcu(banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM, answers=answers,
-                     emg=tp.encode_samples(rows))
+    server = FakeTcu(
+        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
+        answers=answers,
+        emg=tp.encode_samples(rows),
+    )
     client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"]))
     published: list = []
     try:
         client.connect()
         report = driver_nodes.trigno_loop(
-            client, session="lab", source_id="trigno", sink=lambda key, msg, log_ns, pub_ns: published.append((key, msg)),
-            stop=threading.Event(), duration_s=1.0, status_interval_s=10.0)
+            client,
+            session="lab",
+            source_id="trigno",
+            sink=lambda key, msg, log_ns, pub_ns: published.append((key, msg)),
+            stop=threading.Event(),
+            duration_s=1.0,
+            status_interval_s=10.0,
+        )
     finally:
         client.close()
         server.close()
     chunks = [m for k, m in published if k == topics.emg_key("lab", "trigno")]
     assert chunks and report.samples == sum(c.n_samples for c in chunks) > 100
-    assert chunks[0].channel_labels == ["sensor01.EMG1", "sensor01.EMG2", "sensor01.EMG3", "sensor01.EMG4",
-                                        "sensor05.EMG"]
+    assert chunks[0].channel_labels == [
+        "sensor01.EMG1",
+        "sensor01.EMG2",
+        "sensor01.EMG3",
+        "sensor01.EMG4",
+        "sensor05.EMG",
+    ]
     got = np.concatenate([np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in chunks])
     assert np.array_equal(got, rows[: len(got), :5])  # slots 1-5 bit for bit; sensor 9 (slot 9) left out
 
@@ -60,9 +79,17 @@ def test_xsens_node_reports_an_unplugged_tracker_and_its_return(tmp_path):
         device = XsensDevice(SerialTransport(str(link)))
         device.configure(100)
         trackers.add(device)
-        loop = threading.Thread(target=lambda: published.append(driver_nodes.xsens_loop(
-            trackers, session="lab", sink=lambda key, msg, log_ns, pub_ns: published.append((key, msg)), stop=stop,
-            status_interval_s=0.2)))
+        loop = threading.Thread(
+            target=lambda: published.append(
+                driver_nodes.xsens_loop(
+                    trackers,
+                    session="lab",
+                    sink=lambda key, msg, log_ns, pub_ns: published.append((key, msg)),
+                    stop=stop,
+                    status_interval_s=0.2,
+                )
+            )
+        )
         loop.start()
         time.sleep(0.5)
         sim.unplug()

@@ -40,17 +40,22 @@ def test_last_status_of_every_device_at_a_clean_stop_is_disconnected_with_final_
                 device.configure(100)
                 trackers.add(device)
             threading.Timer(1.0, stop.set).start()  # what SIGINT does in `msk drivers`
-            reports = driver_nodes.run_threads([
-                lambda: driver_nodes.trigno_loop(client, session="s", source_id="trigno", sink=sink, stop=stop),
-                lambda: driver_nodes.xsens_loop(trackers, session="s", sink=sink, stop=stop, status_interval_s=0.2),
-            ], stop)
+            reports = driver_nodes.run_threads(
+                [
+                    lambda: driver_nodes.trigno_loop(client, session="s", source_id="trigno", sink=sink, stop=stop),
+                    lambda: driver_nodes.xsens_loop(trackers, session="s", sink=sink, stop=stop, status_interval_s=0.2),
+                ],
+                stop,
+            )
         finally:
             trackers.close()
             client.close()
             for simulator in simulators:
                 simulator.close()
     assert all(isinstance(r, driver_nodes.LoopReport) for r in reports), reports
-    statuses = {device: [m for k, m in published if k == topics.status_key("s", device)] for device in ["trigno", *TRACKERS]}
+    statuses = {
+        device: [m for k, m in published if k == topics.status_key("s", device)] for device in ["trigno", *TRACKERS]
+    }
     emg_samples = sum(m.n_samples for k, m in published if k == topics.emg_key("s", "trigno"))
     assert emg_samples == reports[0].samples > 1000
     last = statuses["trigno"][-1]

@@ -16,24 +16,46 @@ GROUPS = ["TriLat", "PMCla", "DelAnt"]
 
 def estimator_status(states: dict[str, tuple[str, list[str]]]) -> messages.DeviceStatus:
     """The estimator's status with one electrode per group: group -> (state, reasons)."""
-    return messages.DeviceStatus(device_id="estimator", kind="node", connected=True, electrodes=[
-        messages.ElectrodeQuality(source="trigno", channel=f"sensor{k + 1:02d}.EMG", group=group, state=state,
-                                  reasons=reasons, detail=f"{state}: {', '.join(reasons)} (numbers)" if reasons else state)
-        for k, (group, (state, reasons)) in enumerate(states.items())])
+    return messages.DeviceStatus(
+        device_id="estimator",
+        kind="node",
+        connected=True,
+        electrodes=[
+            messages.ElectrodeQuality(
+                source="trigno",
+                channel=f"sensor{k + 1:02d}.EMG",
+                group=group,
+                state=state,
+                reasons=reasons,
+                detail=f"{state}: {', '.join(reasons)} (numbers)" if reasons else state,
+            )
+            for k, (group, (state, reasons)) in enumerate(states.items())
+        ],
+    )
 
 
 def frame(k: int = 0) -> messages.ActivationFrame:
-    return messages.ActivationFrame(method="assisted", time_s=10.0 + k * 0.05, groups=GROUPS, activations=[0.4, 0.2, 0.3],
-                                    measured_envelope=[0.35, float("nan"), 0.25], exercise="bench_press",
-                                    flags=["electrode_bad"])
+    return messages.ActivationFrame(
+        method="assisted",
+        time_s=10.0 + k * 0.05,
+        groups=GROUPS,
+        activations=[0.4, 0.2, 0.3],
+        measured_envelope=[0.35, float("nan"), 0.25],
+        exercise="bench_press",
+        flags=["electrode_bad"],
+    )
 
 
 def test_the_view_shows_each_electrode_state_with_its_reason_in_its_muscle_row():
     state = ViewState()
     state.on_message("msk/s/activations/assisted", frame())
     assert "┃ electrode" not in screen_text(state)  # no column before the estimator says anything
-    state.on_message("msk/s/status/estimator", estimator_status(
-        {"TriLat": ("good", []), "PMCla": ("bad", ["flat line"]), "DelAnt": ("check", ["mains interference"])}))
+    state.on_message(
+        "msk/s/status/estimator",
+        estimator_status(
+            {"TriLat": ("good", []), "PMCla": ("bad", ["flat line"]), "DelAnt": ("check", ["mains interference"])}
+        ),
+    )
     text = screen_text(state)
     assert "┃ electrode" in text
     rows = {line.split("│")[1].strip(): line for line in text.splitlines() if line.count("│") > 4}
@@ -47,9 +69,16 @@ def test_the_bridge_forwards_the_electrodes_and_drops_them_with_the_node():
     dashboard = DashboardState("s")
     dashboard.on_message("msk/s/status/estimator", estimator_status({"TriLat": ("bad", ["saturation"])}))
     _, update = dashboard.changes(0)
-    assert update["topics"]["electrodes"] == [{"source": "trigno", "channel": "sensor01.EMG", "group": "TriLat",
-                                               "state": "bad", "reasons": ["saturation"],
-                                               "detail": "bad: saturation (numbers)"}]
+    assert update["topics"]["electrodes"] == [
+        {
+            "source": "trigno",
+            "channel": "sensor01.EMG",
+            "group": "TriLat",
+            "state": "bad",
+            "reasons": ["saturation"],
+            "detail": "bad: saturation (numbers)",
+        }
+    ]
     seq, _ = dashboard.changes(0)
     dashboard.on_message("msk/s/status/estimator", messages.DeviceStatus(device_id="estimator", kind="node"))
     seq, update = dashboard.changes(seq)
@@ -71,22 +100,34 @@ def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_pa
     from tests.conftest import free_tcp_port
 
     session = "quality"
-    dashboard = DashboardServer(ZenohOptions(listen=(zenoh_endpoint,)), DashboardConfig(session=session),
-                                port=free_tcp_port())
+    dashboard = DashboardServer(
+        ZenohOptions(listen=(zenoh_endpoint,)), DashboardConfig(session=session), port=free_tcp_port()
+    )
     dashboard.start()
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    rows = "() => [...document.querySelectorAll('#electrodes tbody tr')].map(tr => [tr.dataset.channel, " \
-           "tr.dataset.state, tr.cells[0].textContent, tr.cells[2].textContent, tr.cells[2].className, tr.title])"
+    rows = (
+        "() => [...document.querySelectorAll('#electrodes tbody tr')].map(tr => [tr.dataset.channel, "
+        "tr.dataset.state, tr.cells[0].textContent, tr.cells[2].textContent, tr.cells[2].className, tr.title])"
+    )
     try:
-        with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession, sync_api.sync_playwright() as playwright:
+        with (
+            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession,
+            sync_api.sync_playwright() as playwright,
+        ):
             browser = launch_chromium(playwright)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             errors: list[str] = []
             page.on("pageerror", lambda error: errors.append(str(error)))
             page.goto(dashboard.url)
-            frames = declare_data_publisher(zsession, topics.activations_key(session, "assisted"), "msk.ActivationFrame")
+            frames = declare_data_publisher(
+                zsession, topics.activations_key(session, "assisted"), "msk.ActivationFrame"
+            )
             status = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
-            states = {"TriLat": ("good", []), "PMCla": ("bad", ["flat line"]), "DelAnt": ("check", ["mains interference"])}
+            states = {
+                "TriLat": ("good", []),
+                "PMCla": ("bad", ["flat line"]),
+                "DelAnt": ("check", ["mains interference"]),
+            }
             deadline, shown = time.monotonic() + 15, []
             while time.monotonic() < deadline and len(shown) < 3:  # until the page has subscribed and drawn them
                 publish(frames, frame())
@@ -95,19 +136,29 @@ def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_pa
                 shown = page.evaluate(rows)
             assert len(shown) == 3, f"waited 15 s for 3 electrode rows; the page shows {shown}"
             page.locator(".panel.map").screenshot(path=str(ARTIFACTS / "dashboard-electrodes.png"))
-            assert [r[2] for r in shown] == ["Triceps brachii, lateral and medial heads",
-                                             "Pectoralis major, clavicular part", "Deltoid, anterior part"]
+            assert [r[2] for r in shown] == [
+                "Triceps brachii, lateral and medial heads",
+                "Pectoralis major, clavicular part",
+                "Deltoid, anterior part",
+            ]
             assert [(r[1], r[3], r[4]) for r in shown] == [
-                ("good", "good", "q-good"), ("bad", "bad: flat line", "q-bad"),
-                ("check", "check: mains interference", "q-check")]
+                ("good", "good", "q-good"),
+                ("bad", "bad: flat line", "q-bad"),
+                ("check", "check: mains interference", "q-check"),
+            ]
             assert shown[1][5] == "bad: flat line (numbers)"
-            colours = page.evaluate("() => [...document.querySelectorAll('#electrodes td[class^=q-]')]"
-                                    ".map(td => getComputedStyle(td).color)")
+            colours = page.evaluate(
+                "() => [...document.querySelectorAll('#electrodes td[class^=q-]')]"
+                ".map(td => getComputedStyle(td).color)"
+            )
             assert len(set(colours)) == 3, colours  # three states, three colours
             states["PMCla"] = ("good", [])  # the electrode recovers
             publish(status, estimator_status(states))
-            page.wait_for_function("() => document.querySelector('#electrodes tr[data-channel=\"sensor02.EMG\"]')"
-                                   ".dataset.state === 'good'", timeout=10000)
+            page.wait_for_function(
+                "() => document.querySelector('#electrodes tr[data-channel=\"sensor02.EMG\"]')"
+                ".dataset.state === 'good'",
+                timeout=10000,
+            )
             assert not errors, errors
             browser.close()
     finally:

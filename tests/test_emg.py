@@ -10,6 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
 
+from msk_core.errors import ConfigError, InputError
+from msk_core.io import read_anc, read_c3d_analogs
 from msk_core.signal.emg import (
     DelayLine,
     EmgEnvelopeFilter,
@@ -23,8 +25,6 @@ from msk_core.signal.emg import (
     envelope_zero_phase_noncausal,
     normalisation_reference,
 )
-from msk_core.errors import ConfigError, InputError
-from msk_core.io import read_anc, read_c3d_analogs
 
 RAJAGOPAL_EMG = ["SOL", "GAS", "TA", "MH", "BF", "VL", "VM", "RF", "GMAX", "GMED"]
 
@@ -36,8 +36,13 @@ def _reference_envelope(x: np.ndarray, fs: float, *, zero_phase: bool = False) -
     out = np.empty_like(x, dtype=float)
     for j in range(x.shape[1]):
         if zero_phase:
-            out[:, j] = signal.filtfilt(b_lp, a_lp, np.abs(signal.filtfilt(b_bp, a_bp, x[:, j], padtype="odd",
-                                        padlen=3 * (max(len(a_bp), len(b_bp)) - 1) * 2)))
+            out[:, j] = signal.filtfilt(
+                b_lp,
+                a_lp,
+                np.abs(
+                    signal.filtfilt(b_bp, a_bp, x[:, j], padtype="odd", padlen=3 * (max(len(a_bp), len(b_bp)) - 1) * 2)
+                ),
+            )
         else:
             out[:, j] = signal.lfilter(b_lp, a_lp, np.abs(signal.lfilter(b_bp, a_bp, x[:, j])))
     return out

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_zero_phase_noncausal
 from msk_core.io import read_anc, read_sto
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_zero_phase_noncausal
 from services.cli import main
 
 
@@ -22,8 +22,10 @@ def test_envelope_command_matches_library(shared_dir: Path, tmp_path: Path, caps
     np.testing.assert_allclose(s.data, envelope_causal(raw.data, EmgFilterConfig(rate_hz=2000.0)), rtol=1e-12, atol=0)
     # offline zero-phase, normalised by an "MVC" trial (here the same file: peak exactly 1)
     out2 = tmp_path / "env_norm.sto"
-    assert main(["emg", "envelope", str(anc), "--channels", "SOL,TA", "--zero-phase", "--mvc", str(anc),
-                 "-o", str(out2)]) == 0
+    assert (
+        main(["emg", "envelope", str(anc), "--channels", "SOL,TA", "--zero-phase", "--mvc", str(anc), "-o", str(out2)])
+        == 0
+    )
     s2 = read_sto(out2)
     np.testing.assert_allclose(s2.data.max(axis=0), 1.0)
     zp = envelope_zero_phase_noncausal(raw.data, EmgFilterConfig(rate_hz=2000.0))
@@ -34,8 +36,22 @@ def test_envelope_command_matches_library(shared_dir: Path, tmp_path: Path, caps
 def test_reps_command(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     ik = shared_dir / "data/backmodel-lift/stoop5kg/ik.sto"
     phase_file = tmp_path / "phase.sto"
-    assert main(["emg", "reps", str(ik), "--coordinate", "pelvis_ty", "--excursion", "decrease",
-                 "--phase-out", str(phase_file)]) == 0
+    assert (
+        main(
+            [
+                "emg",
+                "reps",
+                str(ik),
+                "--coordinate",
+                "pelvis_ty",
+                "--excursion",
+                "decrease",
+                "--phase-out",
+                str(phase_file),
+            ]
+        )
+        == 0
+    )
     assert "4 repetitions" in capsys.readouterr().out
     ph = read_sto(phase_file)
     assert ph.columns == ["phase", "rep"] and set(np.unique(ph.column("rep"))) == {-1.0, 0.0, 1.0, 2.0, 3.0}

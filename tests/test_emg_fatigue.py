@@ -98,8 +98,9 @@ def test_a_known_spectral_shift_is_recovered_within_10_percent() -> None:
         # MNF reads a little low (5-9 %): as the spectrum compresses, its lowest part leaves through the 20 Hz edge
         for name, t in (("MDF", trend.median), ("MNF", trend.mean)):
             error = t.slope_pct_per_rep[0] / known - 1
-            results.append((seed, name, round(t.slope_hz_per_rep[0], 3), round(t.slope_pct_per_rep[0], 3),
-                            round(100 * error, 1)))
+            results.append(
+                (seed, name, round(t.slope_hz_per_rep[0], 3), round(t.slope_pct_per_rep[0], 3), round(100 * error, 1))
+            )
             assert abs(error) < 0.10, (seed, name, t.slope_pct_per_rep[0], known)
             assert t.change_pct[0] == pytest.approx(100 * (scales[-3:].mean() / scales[:3].mean() - 1), abs=2.0)
     print(f"known {known_slope_pct(scales):.3f} %/rep; (seed, value, Hz/rep, %/rep, error %):", results)
@@ -117,8 +118,10 @@ def test_rep_to_rep_scatter_is_reported_as_the_slopes_standard_error() -> None:
         z.append((t.slope_hz_per_rep[0] - known_hz) / t.slope_se_hz_per_rep[0])
         errors.append(t.slope_hz_per_rep[0] / known_hz - 1)
     z, errors = np.array(z), np.array(errors)
-    print(f"16 sets of {N_REPS} reps, {BURST_S} s bursts: MDF slope error mean {100 * errors.mean():+.0f} %, "
-          f"SD {100 * errors.std():.0f} %; z mean {z.mean():+.2f} SD {z.std():.2f}")
+    print(
+        f"16 sets of {N_REPS} reps, {BURST_S} s bursts: MDF slope error mean {100 * errors.mean():+.0f} %, "
+        f"SD {100 * errors.std():.0f} %; z mean {z.mean():+.2f} SD {z.std():.2f}"
+    )
     assert np.all(np.abs(z) < 3.5)
     assert 0.6 < z.std() < 1.5 and abs(z.mean()) < 0.7
     assert np.mean(np.sign(errors + 1)) == 1.0  # the sign of the trend is right in every set
@@ -185,7 +188,7 @@ def test_real_trigno_emg_values_agree_with_scipy_welch_on_the_same_windows(share
     spectra = rep_spectra(x, stretches, cfg)
     worst_mdf = worst_mnf = worst_centre = 0.0
     for s in spectra:
-        for c, label in enumerate(labels):
+        for c in range(len(labels)):
             a, b = s.active_start[c], s.active_end[c]
             assert int(round(s.t_start * RATE)) <= a < b <= int(round(s.t_end * RATE))
             f, p = signal.welch(x[a:b, c], rec.rate_hz, nperseg=256)  # scipy's defaults: Hann, half overlap
@@ -205,9 +208,11 @@ def test_real_trigno_emg_values_agree_with_scipy_welch_on_the_same_windows(share
     assert worst_centre < bin_hz  # the bin-centre convention sits up to half a bin lower
     trend = fatigue_trend(spectra)
     table = {label: [round(float(s.median_hz[c]), 1) for s in spectra] for c, label in enumerate(labels)}
-    print(f"MDF per 0.75 s stretch (Hz): {table}; MNF of the first: "
-          f"{dict(zip(labels, np.round(spectra[0].mean_hz, 1)))}; MDF slope Hz/stretch "
-          f"{dict(zip(labels, np.round(trend.median.slope_hz_per_rep, 2)))}; largest difference from scipy.welch: "
-          f"MDF {worst_mdf:.3f} Hz ({worst_centre:.2f} Hz with bin-centre interpolation; bin {bin_hz:.2f} Hz), "
-          f"MNF {worst_mnf:.3f} Hz")
+    print(
+        f"MDF per 0.75 s stretch (Hz): {table}; MNF of the first: "
+        f"{dict(zip(labels, np.round(spectra[0].mean_hz, 1)))}; MDF slope Hz/stretch "
+        f"{dict(zip(labels, np.round(trend.median.slope_hz_per_rep, 2)))}; largest difference from scipy.welch: "
+        f"MDF {worst_mdf:.3f} Hz ({worst_centre:.2f} Hz with bin-centre interpolation; bin {bin_hz:.2f} Hz), "
+        f"MNF {worst_mnf:.3f} Hz"
+    )
     assert all(40 < v < 200 for row in table.values() for v in row)  # surface EMG medians (De Luca 1997: 50-150 Hz)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference, windowed_peak
 from msk_core.errors import ConfigError, InputError
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference, windowed_peak
 
 
 def _sustained_contraction(rate=2000.0, seconds=3.0, level=1.0, seed=0):

@@ -32,8 +32,16 @@ pytestmark = pytest.mark.needs_shared
 RATE = 2000.0
 DURATION_S = 60.0
 # Real Trigno channels (pyomeca-upper) whose levels and spectra the synthetic channels copy, one each.
-MODEL_CHANNELS = ("Delt_ant.EMG1", "Delt_med.EMG2", "Delt_post.EMG3", "Biceps.EMG4", "Triceps.EMG5",
-                  "Trap_sup.EMG6", "Gd_dent.EMG8", "Pec.IM EMG12")
+MODEL_CHANNELS = (
+    "Delt_ant.EMG1",
+    "Delt_med.EMG2",
+    "Delt_post.EMG3",
+    "Biceps.EMG4",
+    "Triceps.EMG5",
+    "Trap_sup.EMG6",
+    "Gd_dent.EMG8",
+    "Pec.IM EMG12",
+)
 DETECT_WITHIN_S = 1.0  # flagged within 1 s of a fault's onset ...
 CLEAR_WITHIN_S = 1.0  # ... and cleared within 1 s of its end
 
@@ -178,8 +186,10 @@ def test_each_fault_is_flagged_on_its_channel_within_1_s_and_cleared_after(sessi
     assert not flagged[times >= cleared_at].any(), f"{injected.what}: flagged again after clearing"
     state = session_verdicts[int(np.argmax(during))].channels[injected.channel].state
     assert state in (ElectrodeState.CHECK, ElectrodeState.BAD)
-    print(f"{injected.fault.value}: flagged {detected_after:.3f} s after onset, cleared {cleared_after:.3f} s "
-          f"after the end ({state.value})")
+    print(
+        f"{injected.fault.value}: flagged {detected_after:.3f} s after onset, cleared {cleared_after:.3f} s "
+        f"after the end ({state.value})"
+    )
 
 
 def test_no_false_alarm_in_60_s(session_verdicts) -> None:
@@ -191,8 +201,10 @@ def test_no_false_alarm_in_60_s(session_verdicts) -> None:
             if not inside:
                 false_alarms.append((c, round(t, 3), fault.value))
     clean_states = {v.channels[c].state for v in session_verdicts[RAISE_HOPS:] for c in CLEAN_CHANNELS}
-    print(f"{len(session_verdicts)} verdicts x {len(MODEL_CHANNELS)} electrodes over {DURATION_S:.0f} s: "
-          f"{len(false_alarms)} false alarms {false_alarms}")
+    print(
+        f"{len(session_verdicts)} verdicts x {len(MODEL_CHANNELS)} electrodes over {DURATION_S:.0f} s: "
+        f"{len(false_alarms)} false alarms {false_alarms}"
+    )
     assert false_alarms == []
     assert clean_states == {ElectrodeState.GOOD}
 
@@ -240,8 +252,10 @@ def test_a_hum_weaker_than_the_contractions_is_held_through_the_reps(real_statis
     assert flagged[(times >= first) & (times < t_off)].all()
     assert times[flagged][-1] < t_off + CLEAR_WITHIN_S
     assert raise_events(verdicts, channel) == [(first, Fault.MAINS)]
-    print(f"hum under contractions: flagged at {first:.3f} s (onset {t_on} s, rep until {burst_end:.2f} s), held to "
-          f"{times[flagged][-1]:.3f} s (hum ends {t_off} s)")
+    print(
+        f"hum under contractions: flagged at {first:.3f} s (onset {t_on} s, rep until {burst_end:.2f} s), held to "
+        f"{times[flagged][-1]:.3f} s (hum ends {t_off} s)"
+    )
 
 
 def test_streaming_in_any_chunks_equals_batch(real_statistics) -> None:
@@ -311,5 +325,8 @@ def test_the_real_trigno_recording_is_good_where_electrodes_are_on_muscles(real_
             assert faults <= {Fault.NO_SIGNAL}, (label, faults)
         else:
             assert faults == set(), (label, faults)
-    print(f"{len(settled)} verdicts per slot:", {k: v for k, v in report.items() if not k.startswith("Sensor")},
-          f"{sum(k.startswith('Sensor') for k in report)} unpaired slots all bad (flat line)")
+    print(
+        f"{len(settled)} verdicts per slot:",
+        {k: v for k, v in report.items() if not k.startswith("Sensor")},
+        f"{sum(k.startswith('Sensor') for k in report)} unpaired slots all bad (flat line)",
+    )

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
 
-from msk_core.estimate import FrameEstimator, PhasePrior
-from msk_core.estimate import active_set
+from msk_core.estimate import FrameEstimator, PhasePrior, active_set
 from msk_core.estimate.frame import MIN_TORQUE_SCALE
 from msk_core.signal.reps import REST_PHASE
 
@@ -50,7 +49,8 @@ def test_cold_solve_is_certified_and_matches_bounded_least_squares(m, g):
         r, f_max, tau, w, mean, prec = _random_problem(rng, m, g)
         x, state = active_set.new_state(g)
         code, changes, out, torques = active_set.solve_box_lsq(
-            r, f_max, tau, w, mean, prec, 0, 0, 0.0, lb, ub, MIN_TORQUE_SCALE, x, state, 4 * g + 10)
+            r, f_max, tau, w, mean, prec, 0, 0, 0.0, lb, ub, MIN_TORQUE_SCALE, x, state, 4 * g + 10
+        )
         assert code == active_set.CERTIFIED
         at, tt = _scaled(r, f_max, tau)
         np.testing.assert_allclose(out[:m], at, rtol=1e-14)
@@ -58,8 +58,13 @@ def test_cold_solve_is_certified_and_matches_bounded_least_squares(m, g):
         assert np.all((x >= 0.0) & (x <= 1.0))
         assert _kkt_violation(at, tt, w, prec[0], mean[0], x) < 1e-9
         sd = 1.0 / np.sqrt(prec[0])
-        ref = lsq_linear(np.vstack([np.sqrt(w) * at, np.diag(1.0 / sd)]), np.r_[np.sqrt(w) * tt, mean[0] / sd],
-                         bounds=(0, 1), tol=1e-13, lsq_solver="exact")
+        ref = lsq_linear(
+            np.vstack([np.sqrt(w) * at, np.diag(1.0 / sd)]),
+            np.r_[np.sqrt(w) * tt, mean[0] / sd],
+            bounds=(0, 1),
+            tol=1e-13,
+            lsq_solver="exact",
+        )
         np.testing.assert_allclose(x, ref.x, atol=1e-6)
         np.testing.assert_allclose(torques[0], r @ (f_max * x), rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(torques[1], torques[0] - tau, rtol=1e-12, atol=1e-9)
@@ -112,8 +117,14 @@ def _prior(groups, rng):
     n_bins = 20
     mean = rng.uniform(0.0, 0.5, (n_bins, len(groups)))
     std = rng.uniform(0.03, 0.3, (n_bins, len(groups)))
-    return PhasePrior(tuple(groups), mean, std, np.ones(len(groups), dtype=bool),
-                      rest_mean=np.full(len(groups), 0.02), rest_std=np.full(len(groups), 0.05))
+    return PhasePrior(
+        tuple(groups),
+        mean,
+        std,
+        np.ones(len(groups), dtype=bool),
+        rest_mean=np.full(len(groups), 0.02),
+        rest_std=np.full(len(groups), 0.05),
+    )
 
 
 @pytest.mark.parametrize("method", ["proposed", "hybrid"])

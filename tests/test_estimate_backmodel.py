@@ -32,18 +32,46 @@ def _toml(tmp_path, shared_dir, name):
 @pytest.mark.parametrize("train,test", [("squat5kg", "stoop5kg"), ("stoop5kg", "squat5kg")])
 def test_proposed_beats_so_and_prior_alone_on_held_out_technique(shared_dir, tmp_path, train, test, capsys):
     subject = tmp_path / "subject.json"
-    assert main(["calibrate", "--pack", "lumbar_lift", "--trial", str(_toml(tmp_path, shared_dir, train)),
-                 "--out", str(subject)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--pack",
+                "lumbar_lift",
+                "--trial",
+                str(_toml(tmp_path, shared_dir, train)),
+                "--out",
+                str(subject),
+            ]
+        )
+        == 0
+    )
     profile = json.loads(subject.read_text())
     assert profile["calibration"]["converged"] and profile["calibration"]["projected_gradient_inf_norm"] < 1e-3
     report = tmp_path / "report"
-    assert main(["evaluate", "--pack", "lumbar_lift", "--subject", str(subject),
-                 "--trial", str(_toml(tmp_path, shared_dir, test)), "--report", str(report)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--pack",
+                "lumbar_lift",
+                "--subject",
+                str(subject),
+                "--trial",
+                str(_toml(tmp_path, shared_dir, test)),
+                "--report",
+                str(report),
+            ]
+        )
+        == 0
+    )
     scores = {s["method"]: s for s in json.loads((report / "metrics.json").read_text())["scores"]}
     rmse = {m: s["activation_rmse"]["mean"] for m, s in scores.items()}
     torque = scores["proposed"]["torque"]["L5_S1_Flex_Ext"]
-    print(f"{train}->{test}: activation RMSE {rmse}; proposed L5/S1 R {torque['r']:.3f}, "
-          f"RMSE {torque['rmse_nm_per_kg']:.3f} N·m/kg")
+    print(
+        f"{train}->{test}: activation RMSE {rmse}; proposed L5/S1 R {torque['r']:.3f}, "
+        f"RMSE {torque['rmse_nm_per_kg']:.3f} N·m/kg"
+    )
     assert rmse["proposed"] < rmse["so"]
     assert rmse["proposed"] < rmse["prior"]
     assert torque["r"] >= 0.95

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from msk_core.errors import ConfigError, InputError
 from msk_core.estimate import SubjectProfile
 from msk_core.estimate.pipeline import estimate_trial
 from msk_core.estimate.trial import load_trial
-from msk_core.errors import ConfigError, InputError
 from msk_core.io import read_sto, write_sto
 from services.cli import main
 
@@ -84,9 +84,13 @@ def test_msk_estimate_so_writes_activations_and_torques(arm26_trials, tmp_path, 
     assert np.abs(tq.column("r_elbow_flex_residual")).max() < 1e-3  # so matches the torques
     std = read_sto(out.with_name("act_std.sto"))
     assert std.columns == act.columns and np.all(std.data >= 0) and np.any(std.data > 0)
-    np.testing.assert_allclose(tq.column("r_elbow_flex_id"), read_sto(
-        arm26_trials["trial"].path.parent / _rel_path(arm26_trials["plain"], "torques")).column("r_elbow_flex_moment"),
-        atol=1e-4)  # the ID time stamps sit 2e-7 s before the kinematics ones: values are interpolated
+    np.testing.assert_allclose(
+        tq.column("r_elbow_flex_id"),
+        read_sto(arm26_trials["trial"].path.parent / _rel_path(arm26_trials["plain"], "torques")).column(
+            "r_elbow_flex_moment"
+        ),
+        atol=1e-4,
+    )  # the ID time stamps sit 2e-7 s before the kinematics ones: values are interpolated
 
 
 def _rel_path(toml: Path, key: str) -> str:
@@ -112,8 +116,19 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert len(hint) == 1 and "TRIlat" in hint[0] and "TRImed" in hint[0] and "isometric = true" in hint[0], hint
     # without the identifiability pass every factor stays free (same common factor here)
     off = tmp_path / "subject_free.json"
-    rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(off),
-               "--identify-max-std", "0"])
+    rc = main(
+        [
+            "calibrate",
+            "--pack",
+            "arm26",
+            "--trial",
+            str(arm26_trials["emg"]),
+            "--out",
+            str(off),
+            "--identify-max-std",
+            "0",
+        ]
+    )
     assert rc == 0, capsys.readouterr().out
     assert json.loads(off.read_text())["calibration"]["settings"]["identify_max_std"] is None
     doc = json.loads(profile_path.read_text())
@@ -128,14 +143,38 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert scale["BRA"] == 1.0  # no EMG -> reference strength
 
     out = tmp_path / "prop.sto"
-    rc = main(["estimate", "--pack", "arm26", "--subject", str(profile_path), "--trial", str(arm26_trials["emg"]),
-               "--method", "proposed", "--out", str(out)])
+    rc = main(
+        [
+            "estimate",
+            "--pack",
+            "arm26",
+            "--subject",
+            str(profile_path),
+            "--trial",
+            str(arm26_trials["emg"]),
+            "--method",
+            "proposed",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     assert read_sto(out).n_rows == load_trial(arm26_trials["emg"], arm26_trials["pack"]).n_frames
 
     report = tmp_path / "report"
-    rc = main(["evaluate", "--pack", "arm26", "--subject", str(profile_path), "--trial", str(arm26_trials["emg"]),
-               "--report", str(report)])
+    rc = main(
+        [
+            "evaluate",
+            "--pack",
+            "arm26",
+            "--subject",
+            str(profile_path),
+            "--trial",
+            str(arm26_trials["emg"]),
+            "--report",
+            str(report),
+        ]
+    )
     assert rc == 0
     md = (report / "report.md").read_text()
     for method in ("proposed", "so", "hybrid", "prior"):
@@ -193,8 +232,21 @@ def test_trial_without_torques_uses_pack_inverse_dynamics_and_start_end(arm26_tr
 def test_msk_calibrate_prior_options_for_groups_without_emg(arm26_trials, tmp_path, capsys):
     pack = arm26_trials["pack"]
     out = tmp_path / "syn.json"
-    rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(out),
-               "--synergist", "BRA=BIClong", "--strength-prior-std", "0.3"])
+    rc = main(
+        [
+            "calibrate",
+            "--pack",
+            "arm26",
+            "--trial",
+            str(arm26_trials["emg"]),
+            "--out",
+            str(out),
+            "--synergist",
+            "BRA=BIClong",
+            "--strength-prior-std",
+            "0.3",
+        ]
+    )
     assert rc == 0, capsys.readouterr().out
     doc = json.loads(out.read_text())
     sources = dict(zip(pack.groups, doc["prior"]["sources"]))
@@ -204,11 +256,39 @@ def test_msk_calibrate_prior_options_for_groups_without_emg(arm26_trials, tmp_pa
     j, k = list(pack.groups).index("BRA"), list(pack.groups).index("BIClong")
     np.testing.assert_allclose(prior.mean[:, j], prior.mean[:, k])
     capsys.readouterr()
-    assert main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(out),
-                 "--synergist", "BRA=TRIlong"]) != 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--pack",
+                "arm26",
+                "--trial",
+                str(arm26_trials["emg"]),
+                "--out",
+                str(out),
+                "--synergist",
+                "BRA=TRIlong",
+            ]
+        )
+        != 0
+    )
     assert "a group with EMG" in capsys.readouterr().err
-    assert main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(out),
-                 "--synergist", "BRA"]) != 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--pack",
+                "arm26",
+                "--trial",
+                str(arm26_trials["emg"]),
+                "--out",
+                str(out),
+                "--synergist",
+                "BRA",
+            ]
+        )
+        != 0
+    )
     assert "GROUP=MEASURED" in capsys.readouterr().err
 
 
@@ -227,8 +307,24 @@ def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_d
         train, held = folder / "train.toml", folder / "held.toml"
         subject, report = folder / "subject.json", folder / "report"
         assert main(["calibrate", "--pack", "arm26", "--trial", str(train), "--emd", "0", "--out", str(subject)]) == 0
-        assert main(["discrepancy", "--pack", "arm26", "--subject", str(subject), "--trial", str(train),
-                     "--holdout", str(held), "--report", str(report)]) == 0
+        assert (
+            main(
+                [
+                    "discrepancy",
+                    "--pack",
+                    "arm26",
+                    "--subject",
+                    str(subject),
+                    "--trial",
+                    str(train),
+                    "--holdout",
+                    str(held),
+                    "--report",
+                    str(report),
+                ]
+            )
+            == 0
+        )
         assert load_trial(held, pack).torque_source == "file"
         summary = json.loads((report / "summary.json").read_text())
         assert summary["effect"] == expected, summary["candidates"][:3]

@@ -86,8 +86,9 @@ def test_hybrid_and_proposed_match_bounded_least_squares(backend, hot_start):
     rng = np.random.default_rng(4)
     prior = _prior(pack.groups, rng)
     hyb = FrameEstimator(pack, method="hybrid", backend=backend, hot_start=hot_start)
-    prop = FrameEstimator(pack, method="proposed", prior=prior, torque_tolerance=0.02, backend=backend,
-                          hot_start=hot_start)
+    prop = FrameEstimator(
+        pack, method="proposed", prior=prior, torque_tolerance=0.02, backend=backend, hot_start=hot_start
+    )
     for k in range(15):
         q = rng.uniform(-0.5, 0.5, 2)
         tau = pack.moment_arms(q) @ (pack.f_max_ref * rng.uniform(0, 0.8, 6)) + rng.normal(0, 5, 2)

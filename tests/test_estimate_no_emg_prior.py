@@ -50,10 +50,22 @@ def _trial(n_reps: int = 4) -> TrialData:
     tau = np.array(tau)[:, None]
     a = np.clip(tau[:, 0] / 60.0, 0.0, 1.0)
     return TrialData(
-        name="toy", path=Path("toy.toml"), time=np.arange(n) / rate, q=np.zeros((n, 1)), qd=np.zeros((n, 1)),
-        qdd=np.zeros((n, 1)), torques=tau, torque_source="file", emg={"g0": a, "g2": 0.02 + 0 * a},
-        emg_channels={"g0": "g0", "g2": "g2"}, emg_normalisation={}, load_kg=0.0, body_mass_kg=None,
-        phase=np.array(phase), rep_index=np.array(index), phase_signal="torque:c0",
+        name="toy",
+        path=Path("toy.toml"),
+        time=np.arange(n) / rate,
+        q=np.zeros((n, 1)),
+        qd=np.zeros((n, 1)),
+        qdd=np.zeros((n, 1)),
+        torques=tau,
+        torque_source="file",
+        emg={"g0": a, "g2": 0.02 + 0 * a},
+        emg_channels={"g0": "g0", "g2": "g2"},
+        emg_normalisation={},
+        load_kg=0.0,
+        body_mass_kg=None,
+        phase=np.array(phase),
+        rep_index=np.array(index),
+        phase_signal="torque:c0",
     )
 
 
@@ -93,8 +105,14 @@ def test_wide_prior_is_the_old_default_and_sources_survive_the_profile(tmp_path)
     prior = build_prior(ConstantPack(), [_trial()], n_bins=10, no_emg="wide")
     assert prior.sources == ("emg", "default", "emg", "default")
     np.testing.assert_allclose(prior.std[:, 1], NO_EMG_STD)
-    prof = SubjectProfile("toy", "1", list(ConstantPack.groups), F_REF.copy(), F_REF.copy(),
-                          build_prior(ConstantPack(), [_trial()], n_bins=10))
+    prof = SubjectProfile(
+        "toy",
+        "1",
+        list(ConstantPack.groups),
+        F_REF.copy(),
+        F_REF.copy(),
+        build_prior(ConstantPack(), [_trial()], n_bins=10),
+    )
     prof.save(tmp_path / "s.json")
     back = SubjectProfile.load(tmp_path / "s.json")
     assert back.prior.sources == ("emg", "min_effort", "emg", "min_effort")

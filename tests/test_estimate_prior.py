@@ -117,8 +117,10 @@ def test_phase_prior_of_a_real_lift_has_the_back_extensors_working_mid_lift(shar
     groups = ["iliocost_r", "iliocost_l", "longthor_r", "rectabd_r"]
     toml = tmp_path / "squat.toml"
     rel = lambda f: os.path.relpath(data / f, tmp_path)  # noqa: E731
-    toml.write_text(f'kinematics = "{rel("ik.sto")}"\ntorques = "{rel("id.sto")}"\nemg = "{rel("emgFilt.sto")}"\n'
-                    'phase_signal = "pelvis_ty"\nload_kg = 5.0\n[emg_map]\n' + "".join(f'{g} = "{g}"\n' for g in groups))
+    toml.write_text(
+        f'kinematics = "{rel("ik.sto")}"\ntorques = "{rel("id.sto")}"\nemg = "{rel("emgFilt.sto")}"\n'
+        'phase_signal = "pelvis_ty"\nload_kg = 5.0\n[emg_map]\n' + "".join(f'{g} = "{g}"\n' for g in groups)
+    )
     trial = load_trial(toml, load_pack("lumbar_lift"))
     assert trial.rep_index.max() + 1 == 4  # the pelvis drops in each of the four lifts, squat or stoop
     prior = build_prior(load_pack("lumbar_lift"), [trial], n_bins=10, no_emg="wide")
@@ -140,8 +142,17 @@ def test_phase_prior_interpolates_between_bin_centres_and_clamps():
 
 def test_subject_profile_round_trip_and_errors(tmp_path):
     prior = PhasePrior(("g1", "g2"), np.full((3, 2), 0.2), np.full((3, 2), 0.1), np.array([True, False]))
-    prof = SubjectProfile("toy", "2", ["g1", "g2"], np.array([600.0, 900.0]), np.array([500.0, 1000.0]), prior,
-                          {"ch1": {"group": "g1", "divisor": 1.0}}, {"converged": True}, {"trials": ["a.toml"]})
+    prof = SubjectProfile(
+        "toy",
+        "2",
+        ["g1", "g2"],
+        np.array([600.0, 900.0]),
+        np.array([500.0, 1000.0]),
+        prior,
+        {"ch1": {"group": "g1", "divisor": 1.0}},
+        {"converged": True},
+        {"trials": ["a.toml"]},
+    )
     path = tmp_path / "s.json"
     prof.save(path)
     back = SubjectProfile.load(path)

@@ -39,8 +39,12 @@ def test_the_papers_protocol_on_the_walk(shared_dir, tmp_path):
     assert main(["calibrate", "--pack", "gait2392", "--trial", str(train), "--out", str(subject)]) == 0
     calibration = json.loads(subject.read_text())["calibration"]
     assert calibration["converged"] and calibration["projected_gradient_inf_norm"] < 1e-2
-    assert main(["evaluate", "--pack", "gait2392", "--subject", str(subject), "--trial", str(held),
-                 "--report", str(report)]) == 0
+    assert (
+        main(
+            ["evaluate", "--pack", "gait2392", "--subject", str(subject), "--trial", str(held), "--report", str(report)]
+        )
+        == 0
+    )
     scores = {s["method"]: s for s in json.loads((report / "metrics.json").read_text())["scores"]}
     rmse = {m: s["activation_rmse"]["mean"] for m, s in scores.items()}
     torque_r = {c: t["r"] for c, t in scores["proposed"]["torque"].items()}
@@ -51,8 +55,24 @@ def test_the_papers_protocol_on_the_walk(shared_dir, tmp_path):
     assert all(not s["flag_counts"].get("solver_failed") for s in scores.values())
     # msk estimate writes every group of the pack, the 9 measured and the 34 without EMG
     out = tmp_path / "walk_proposed.sto"
-    assert main(["estimate", "--pack", "gait2392", "--subject", str(subject), "--trial", str(held),
-                 "--method", "proposed", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                "--pack",
+                "gait2392",
+                "--subject",
+                str(subject),
+                "--trial",
+                str(held),
+                "--method",
+                "proposed",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     activations = read_sto(out)
     assert len(activations.columns) == 43 and "glut_med1_r" in activations.columns
     assert np.all(np.isfinite(activations.data)) and activations.data.min() >= 0.0

@@ -49,11 +49,16 @@ def session_messages(until_s: float | None = None):
 def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(zenoh_endpoint, profile_path, tmp_path):
     profile = SubjectProfile.load(profile_path)
     setup = EmgSetup.from_profile(profile)
-    inputs = [r for r in session_messages(NODE_SECONDS) if r.type_name in ("msk.EmgChunk", "msk.JointAngles", "msk.LoadEvent")]
+    inputs = [
+        r for r in session_messages(NODE_SECONDS) if r.type_name in ("msk.EmgChunk", "msk.JointAngles", "msk.LoadEvent")
+    ]
     chunks = [r.decode() for r in inputs if r.type_name == "msk.EmgChunk"]
     # then the EMG source goes silent while the kinematics go on for STALL_S + 1 s: those frames must say so
-    inputs += [r for r in session_messages(NODE_SECONDS + STALL_S + 1.0)
-               if r.type_name == "msk.JointAngles" and r.log_time_ns > inputs[-1].log_time_ns]
+    inputs += [
+        r
+        for r in session_messages(NODE_SECONDS + STALL_S + 1.0)
+        if r.type_name == "msk.JointAngles" and r.log_time_ns > inputs[-1].log_time_ns
+    ]
     n_joints = sum(r.type_name == "msk.JointAngles" for r in inputs)
     assert len(chunks) > 500 and n_joints > 300
     indices = [(c.first_sample_index, c.n_samples) for c in chunks]
@@ -62,8 +67,17 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
     envelopes, frames = [], {m: [] for m in ("assisted", "proposed")}
     stats = estimator.EstimatorStats()
     with Graph(SESSION, zenoh_endpoint) as graph:
-        graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=list(frames),
-                         subject_path=profile_path, emg=True, emg_stall_s=STALL_S, stats=stats)
+        graph.add_thread(
+            "estimator",
+            estimator.main,
+            pack="bench_press",
+            session=SESSION,
+            methods=list(frames),
+            subject_path=profile_path,
+            emg=True,
+            emg_stall_s=STALL_S,
+            stats=stats,
+        )
         graph.wait_ready(60)
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             lock = threading.Lock()
@@ -77,8 +91,10 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
                 with lock:
                     frames[frame.method].append(frame)
 
-            subs = [zsession.declare_subscriber(topics.envelopes_key(SESSION), on_envelope),
-                    zsession.declare_subscriber(f"{topics.session_prefix(SESSION)}/activations/*", on_frame)]
+            subs = [
+                zsession.declare_subscriber(topics.envelopes_key(SESSION), on_envelope),
+                zsession.declare_subscriber(f"{topics.session_prefix(SESSION)}/activations/*", on_frame),
+            ]
             from services.graph import wait_for_nodes
 
             wait_for_nodes(zsession, SESSION, graph.nodes, 30)
@@ -92,10 +108,15 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
                 if key not in publishers:
                     publishers[key] = declare_data_publisher(zsession, key, recorded.type_name)
                 publishers[key].put(recorded.data)
-            wait_for("every envelope and frame", lambda: len(envelopes) == len(chunks)
-                     and all(len(f) == n_joints for f in frames.values()),
-                     lambda: f"{len(envelopes)}/{len(chunks)} envelopes, "
-                     + ", ".join(f"{m} {len(f)}/{n_joints}" for m, f in frames.items()), 120)
+            wait_for(
+                "every envelope and frame",
+                lambda: len(envelopes) == len(chunks) and all(len(f) == n_joints for f in frames.values()),
+                lambda: (
+                    f"{len(envelopes)}/{len(chunks)} envelopes, "
+                    + ", ".join(f"{m} {len(f)}/{n_joints}" for m, f in frames.items())
+                ),
+                120,
+            )
             for sub in subs:
                 sub.undeclare()
     assert stats.emg.gaps == 0 and stats.emg.samples_lost == 0 and stats.emg_chunks == len(chunks)
@@ -106,23 +127,47 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
     rate = chunks[0].sample_rate_hz
     time = chunks[0].device_time_ns / 1e9 + np.arange(raw.shape[0]) / rate
     write_sto(tmp_path / "raw.sto", time, labels, raw, name="raw EMG")
-    subprocess.run([sys.executable, "-m", "services.cli", "emg", "envelope", str(tmp_path / "raw.sto"), "-o",
-                    str(tmp_path / "env.sto")], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "emg",
+            "envelope",
+            str(tmp_path / "raw.sto"),
+            "-o",
+            str(tmp_path / "env.sto"),
+        ],
+        check=True,
+        capture_output=True,
+    )
     offline = read_sto(tmp_path / "env.sto")
     ends = np.cumsum([c.n_samples for c in chunks]) - 1  # each message carries the envelope at its chunk's last row
     groups = list(envelopes[0].groups)
-    expected = np.column_stack([
-        np.mean([offline.column(ch)[ends] / setup.mvc[ch] for ch, g in setup.channel_group.items() if g == group], axis=0)
-        for group in groups])
+    expected = np.column_stack(
+        [
+            np.mean(
+                [offline.column(ch)[ends] / setup.mvc[ch] for ch, g in setup.channel_group.items() if g == group],
+                axis=0,
+            )
+            for group in groups
+        ]
+    )
     live = np.array([e.envelope for e in envelopes])
     assert live.shape == expected.shape
     # the .sto text keeps ~8 significant digits of the raw input and the envelope: equal to that precision
     np.testing.assert_allclose(live, expected, rtol=1e-6, atol=1e-12)
     # and to float precision against the same offline chain in memory (the CLI's function, no text round trip)
     in_memory = envelope_causal(raw, EmgFilterConfig(rate_hz=rate))[ends]
-    expected = np.column_stack([
-        np.mean([in_memory[:, labels.index(ch)] / setup.mvc[ch] for ch, g in setup.channel_group.items() if g == group], axis=0)
-        for group in groups])
+    expected = np.column_stack(
+        [
+            np.mean(
+                [in_memory[:, labels.index(ch)] / setup.mvc[ch] for ch, g in setup.channel_group.items() if g == group],
+                axis=0,
+            )
+            for group in groups
+        ]
+    )
     np.testing.assert_allclose(live, expected, rtol=1e-10, atol=1e-15)
     assert np.allclose([e.time_s for e in envelopes], time[ends])
 
@@ -137,7 +182,13 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
         env = np.array(frame.measured_envelope)
         assert env.shape == (len(pack_groups),)
         assert all(np.isnan(env[pack_groups.index(g)]) for g in no_electrode)
-        assert np.all(np.isfinite(np.delete(env, [pack_groups.index(g) for g in no_electrode]))), (frame.flags, frame.time_s, time[0], emg_end_s, covered.index(frame))
+        assert np.all(np.isfinite(np.delete(env, [pack_groups.index(g) for g in no_electrode]))), (
+            frame.flags,
+            frame.time_s,
+            time[0],
+            emg_end_s,
+            covered.index(frame),
+        )
         assert not frame.flags and len(frame.activation_std) == len(pack_groups)
     # after the EMG's end the frames say so (stalled), and carry no stale envelope
     after = [f for f in frames["assisted"] if f.time_s > emg_end_s + STALL_S + 0.01]
@@ -154,7 +205,7 @@ def test_live_emg_flags_gaps_and_stalls_and_counts_lost_samples():
     env, flags = live.at(0, 0)
     assert FLAG_STALLED in flags and np.all(np.isnan(env))  # configured electrodes, no EMG yet
     index = 0
-    for k in range(200):
+    for _ in range(200):
         block = live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index))
         index += n
     assert block.groups == ["G1", "G2"] and "no_mvc" in block.flags  # channel c has no MVC: left out, said so
@@ -182,8 +233,11 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
     groups = estimators["proposed"].groups
     live = LiveEmg(groups, EmgSetup.from_profile(profile))
     loads = estimator.LoadTimeline()
-    window = next(w for w in demo.trial_windows([r.decode() for r in read_messages(MCAP) if r.type_name == "msk.LoadEvent"])
-                  if w.name == "bench_press_50kg")
+    window = next(
+        w
+        for w in demo.trial_windows([r.decode() for r in read_messages(MCAP) if r.type_name == "msk.LoadEvent"])
+        if w.name == "bench_press_50kg"
+    )
     mapper = estimator.CoordinateMapper(estimators["proposed"].coordinates)
     times, estimates = [], {m: [] for m in estimators}
     for recorded in read_messages(MCAP):
@@ -192,8 +246,15 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
             loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         elif recorded.type_name == "msk.EmgChunk":
             c = recorded.decode()
-            live.add_chunk(c.source_id, c.channel_labels, c.sample_rate_hz, c.first_sample_index, c.device_time_ns,
-                           np.asarray(c.samples).reshape(c.n_samples, c.n_channels), recorded.log_time_ns)
+            live.add_chunk(
+                c.source_id,
+                c.channel_labels,
+                c.sample_rate_hz,
+                c.first_sample_index,
+                c.device_time_ns,
+                np.asarray(c.samples).reshape(c.n_samples, c.n_channels),
+                recorded.log_time_ns,
+            )
         elif recorded.type_name == "msk.JointAngles":
             joints = recorded.decode()
             t = joints.device_time_ns / 1e9
@@ -204,8 +265,9 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
             q, qd, qdd = (mapper.take(joints, f) for f in ("q", "qd", "qdd"))
             phase = float(joints.phase) if joints.HasField("phase") else None
             for m, est in estimators.items():
-                estimates[m].append(est.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase,
-                                             emg=envelope).activations)
+                estimates[m].append(
+                    est.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope).activations
+                )
             times.append(t - window.start_s)
     truth = read_sto(RECORDINGS / "demo" / "bench_press" / "bench_press_50kg" / "truth_activations.sto")
     true = np.column_stack([np.interp(times, truth.time, truth.column(g)) for g in groups])
@@ -214,8 +276,10 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
     for m, a in estimates.items():
         a = np.array(a)
         ok = np.all(np.isfinite(a), axis=1)
-        rmse[m] = {"no_electrode": float(np.sqrt(np.mean((a[ok][:, no_electrode] - true[ok][:, no_electrode]) ** 2))),
-                   "all": float(np.sqrt(np.mean((a[ok] - true[ok]) ** 2)))}
+        rmse[m] = {
+            "no_electrode": float(np.sqrt(np.mean((a[ok][:, no_electrode] - true[ok][:, no_electrode]) ** 2))),
+            "all": float(np.sqrt(np.mean((a[ok] - true[ok]) ** 2))),
+        }
     print(f"held-out bench_press_50kg, {len(times)} frames, activation RMSE: {rmse}")
     assert len(times) > 500
     assert rmse["assisted"]["no_electrode"] < rmse["proposed"]["no_electrode"], rmse

@@ -26,7 +26,15 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
     thread = threading.Thread(
         target=estimator.main,
         args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-        kwargs=dict(pack="arm26", exercise="arm_curl", session="t", methods=["so", "hybrid"], stop_event=stop, ready_event=ready, stats=stats),
+        kwargs=dict(
+            pack="arm26",
+            exercise="arm_curl",
+            session="t",
+            methods=["so", "hybrid"],
+            stop_event=stop,
+            ready_event=ready,
+            stats=stats,
+        ),
         daemon=True,
     )
     thread.start()
@@ -35,22 +43,40 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
     with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
         session.declare_subscriber(
             "msk/t/activations/*",
-            lambda s: received[str(s.key_expr).rsplit("/", 1)[1]].append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())),
+            lambda s: received[str(s.key_expr).rsplit("/", 1)[1]].append(
+                messages.decode("msk.ActivationFrame", s.payload.to_bytes())
+            ),
         )
         joints_pub = declare_data_publisher(session, topics.joints_key("t"), "msk.JointAngles")
         load_pub = declare_data_publisher(session, topics.load_key("t"), "msk.LoadEvent")
         deadline = time.monotonic() + 10
-        while not (joints_pub.matching_status.matching and load_pub.matching_status.matching) and time.monotonic() < deadline:
+        while (
+            not (joints_pub.matching_status.matching and load_pub.matching_status.matching)
+            and time.monotonic() < deadline
+        ):
             time.sleep(0.01)
         publish(load_pub, messages.LoadEvent(barbell_mass_kg=2.0, exercise="arm_curl"))
         # Coordinates deliberately in reverse order: the node maps them by name.
         for i, q in enumerate(poses):
-            publish(joints_pub, messages.JointAngles(coordinates=coords[::-1], q=q[::-1].tolist(), phase=-1.0, device_time_ns=(i + 1) * 10_000_000))
-        publish(joints_pub, messages.JointAngles(coordinates=coords, q=[float("nan")] * len(coords), device_time_ns=999_000_000_000))
+            publish(
+                joints_pub,
+                messages.JointAngles(
+                    coordinates=coords[::-1], q=q[::-1].tolist(), phase=-1.0, device_time_ns=(i + 1) * 10_000_000
+                ),
+            )
+        publish(
+            joints_pub,
+            messages.JointAngles(coordinates=coords, q=[float("nan")] * len(coords), device_time_ns=999_000_000_000),
+        )
         publish(joints_pub, messages.JointAngles(coordinates=["not_a_coordinate"], q=[0.0], device_time_ns=1))
         # Another exercise under way: its frames are skipped, not rejected as errors.
-        publish(load_pub, messages.LoadEvent(barbell_mass_kg=60.0, exercise="deadlift", device_time_ns=1_000_000_000_000))
-        publish(joints_pub, messages.JointAngles(coordinates=["lumbar_extension"], q=[0.0], device_time_ns=1_000_000_000_001))
+        publish(
+            load_pub, messages.LoadEvent(barbell_mass_kg=60.0, exercise="deadlift", device_time_ns=1_000_000_000_000)
+        )
+        publish(
+            joints_pub,
+            messages.JointAngles(coordinates=["lumbar_extension"], q=[0.0], device_time_ns=1_000_000_000_001),
+        )
         deadline = time.monotonic() + 30
         while min(len(v) for v in received.values()) < len(poses) + 1 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -109,35 +135,64 @@ def test_node_fills_the_phase_from_the_profiles_rep_template(zenoh_endpoint, tmp
     t, q = _curl_reps()
     phase_model = learn_phase_model("r_elbow_flex", [(t, q[:, 1])])
     bins = 10  # a prior that differs per phase bin and at rest, so a wrong phase gives other activations
-    prior = PhasePrior(tuple(groups), np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
-                       np.full((bins, len(groups)), 0.05), np.ones(len(groups), dtype=bool),
-                       rest_mean=np.full(len(groups), 0.01), rest_std=np.full(len(groups), 0.02))
-    profile = SubjectProfile(pack.name, str(pack.version), groups, np.asarray(pack.f_max_ref, dtype=float),
-                             np.asarray(pack.f_max_ref, dtype=float), prior, phase_model=phase_model)
+    prior = PhasePrior(
+        tuple(groups),
+        np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
+        np.full((bins, len(groups)), 0.05),
+        np.ones(len(groups), dtype=bool),
+        rest_mean=np.full(len(groups), 0.01),
+        rest_std=np.full(len(groups), 0.02),
+    )
+    profile = SubjectProfile(
+        pack.name,
+        str(pack.version),
+        groups,
+        np.asarray(pack.f_max_ref, dtype=float),
+        np.asarray(pack.f_max_ref, dtype=float),
+        prior,
+        phase_model=phase_model,
+    )
     path = tmp_path / "subject.json"
     profile.save(path)
     stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
     thread = threading.Thread(
-        target=estimator.main, args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-        kwargs=dict(pack="arm26", exercise="arm_curl", session="p", methods=["proposed"], subject_path=path,
-                    stop_event=stop, ready_event=ready, stats=stats),
+        target=estimator.main,
+        args=(ZenohOptions(listen=(zenoh_endpoint,)),),
+        kwargs=dict(
+            pack="arm26",
+            exercise="arm_curl",
+            session="p",
+            methods=["proposed"],
+            subject_path=path,
+            stop_event=stop,
+            ready_event=ready,
+            stats=stats,
+        ),
         daemon=True,
     )
     thread.start()
     assert ready.wait(20)
     received: list = []
     with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
-        session.declare_subscriber("msk/p/activations/*",
-                                   lambda s: received.append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())))
+        session.declare_subscriber(
+            "msk/p/activations/*",
+            lambda s: received.append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())),
+        )
         joints_pub = declare_data_publisher(session, topics.joints_key("p"), "msk.JointAngles")
         deadline = time.monotonic() + 10
         while not joints_pub.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.01)
         for ti, qi in zip(t, q):  # no phase field: the node must track it
-            publish(joints_pub, messages.JointAngles(coordinates=coords, q=qi.tolist(), device_time_ns=int(round(ti * 1e9))))
+            publish(
+                joints_pub, messages.JointAngles(coordinates=coords, q=qi.tolist(), device_time_ns=int(round(ti * 1e9)))
+            )
         # a message that carries its phase keeps it
-        publish(joints_pub, messages.JointAngles(coordinates=coords, q=q[0].tolist(), phase=0.25,
-                                                 device_time_ns=int(round((t[-1] + 1.0) * 1e9))))
+        publish(
+            joints_pub,
+            messages.JointAngles(
+                coordinates=coords, q=q[0].tolist(), phase=0.25, device_time_ns=int(round((t[-1] + 1.0) * 1e9))
+            ),
+        )
         deadline = time.monotonic() + 60
         while len(received) < t.size + 1 and time.monotonic() < deadline:
             time.sleep(0.05)

@@ -14,8 +14,19 @@ from services.estimator import EstimatorNode, EstimatorStats, main
 
 
 def _node(solver: str) -> EstimatorNode:
-    return EstimatorNode("bench_press", ["hybrid", "so"], None, EstimatorStats(), emg=False, electrode_map=None,
-                         emg_clock="device", emg_stall_s=0.25, initial_load_kg=50.0, exercise=None, solver=solver)
+    return EstimatorNode(
+        "bench_press",
+        ["hybrid", "so"],
+        None,
+        EstimatorStats(),
+        emg=False,
+        electrode_map=None,
+        emg_clock="device",
+        emg_stall_s=0.25,
+        initial_load_kg=50.0,
+        exercise=None,
+        solver=solver,
+    )
 
 
 def test_piqp_every_frame_equals_the_hot_start_in_the_node(repo_root):
@@ -23,9 +34,13 @@ def test_piqp_every_frame_equals_the_hot_start_in_the_node(repo_root):
     trial = load_trial(repo_root / "recordings/demo/bench_press/bench_press_50kg/trial.toml", pack)
     hot, piqp = _node("active-set"), _node("piqp")
     for i in range(0, trial.n_frames, 5):
-        payload = messages.JointAngles(coordinates=list(pack.coordinates), q=trial.q[i].tolist(),
-                                       qd=trial.qd[i].tolist(), qdd=trial.qdd[i].tolist(),
-                                       device_time_ns=int(trial.time[i] * 1e9)).SerializeToString()
+        payload = messages.JointAngles(
+            coordinates=list(pack.coordinates),
+            q=trial.q[i].tolist(),
+            qd=trial.qd[i].tolist(),
+            qdd=trial.qdd[i].tolist(),
+            device_time_ns=int(trial.time[i] * 1e9),
+        ).SerializeToString()
         a, b = hot.handle_joints(payload, 0), piqp.handle_joints(payload, 0)
         assert [m for m, _ in a] == [m for m, _ in b] == ["hybrid", "so"]
         for (_, fa), (_, fb) in zip(a, b):

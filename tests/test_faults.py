@@ -16,8 +16,8 @@ import pytest
 import zenoh
 
 from services import messages, topics
-from services.router import wait_until_listening
 from services.mcap_io import ReadReport, read_messages
+from services.router import wait_until_listening
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 from tests.conftest import free_tcp_port
 
@@ -27,8 +27,15 @@ SESSION = "fault"
 
 CHUNKS_PER_S = 50  # a lower bound on the simulated Trigno's EMG chunks per second (2 kHz in 27-sample chunks: 74)
 
+
 def _msk(*argv: str, **popen) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **popen,
+    )
 
 
 def _stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 15) -> str:
@@ -73,6 +80,7 @@ def _start_recorder(out: Path, endpoint: str, session: zenoh.Session, *flags: st
     process = _msk("recorder", "--out", str(out), "--mode", "client", "--connect", endpoint, *flags)
     probe = session.declare_publisher(f"msk/{SESSION}/probe-{os.getpid()}-{time.monotonic_ns()}")
     try:
+
         def matched() -> bool:
             if process.poll() is not None:
                 raise AssertionError(f"msk recorder exited {process.returncode}: {process.communicate()[1][-2000:]}")
@@ -86,15 +94,25 @@ def _start_recorder(out: Path, endpoint: str, session: zenoh.Session, *flags: st
 
 def _activation(index: int, n_groups: int = 60) -> messages.ActivationFrame:
     return messages.ActivationFrame(
-        time_s=index * 0.01, method="so", groups=[f"muscle_{g:02d}" for g in range(n_groups)],
-        activations=[0.5] * n_groups, forces_n=[100.0] * n_groups, solver_status="solved",
+        time_s=index * 0.01,
+        method="so",
+        groups=[f"muscle_{g:02d}" for g in range(n_groups)],
+        activations=[0.5] * n_groups,
+        forces_n=[100.0] * n_groups,
+        solver_status="solved",
     )
 
 
 def _emg(index: int) -> messages.EmgChunk:
     return messages.EmgChunk(
-        source_id="trigno", channel_labels=[f"ch{c}" for c in range(16)], sample_rate_hz=2000.0,
-        first_sample_index=27 * index, n_samples=27, n_channels=16, samples=[0.001] * (27 * 16), units="V",
+        source_id="trigno",
+        channel_labels=[f"ch{c}" for c in range(16)],
+        sample_rate_hz=2000.0,
+        first_sample_index=27 * index,
+        n_samples=27,
+        n_channels=16,
+        samples=[0.001] * (27 * 16),
+        units="V",
     )
 
 
@@ -128,11 +146,17 @@ def test_hung_app_stalls_no_publisher_and_the_recorder_loses_nothing(router, tmp
     out = tmp_path / "hung.mcap"
     publisher_session = _client(router)
     recorder = _start_recorder(out, router, publisher_session)
-    app = subprocess.Popen([sys.executable, "-c", HUNG_APP, router, f"msk/{SESSION}/activations/**"],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    app = subprocess.Popen(
+        [sys.executable, "-c", HUNG_APP, router, f"msk/{SESSION}/activations/**"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert app.stdout.readline().strip() == "ready", app.stderr.read()[-2000:]
-        activations = declare_data_publisher(publisher_session, topics.activations_key(SESSION, "so"), "msk.ActivationFrame")
+        activations = declare_data_publisher(
+            publisher_session, topics.activations_key(SESSION, "so"), "msk.ActivationFrame"
+        )
         emg = declare_data_publisher(publisher_session, topics.emg_key(SESSION, "trigno"), "msk.EmgChunk")
         time.sleep(0.3)  # the app's subscription reaches the router
         os.kill(app.pid, signal.SIGSTOP)  # the app hangs: it reads nothing from now on
@@ -161,8 +185,10 @@ def test_hung_app_stalls_no_publisher_and_the_recorder_loses_nothing(router, tmp
                 process.kill()
                 process.wait(10)
         publisher_session.close()
-    print(f"hung app received {app_received} of {n_frames}; longest put {longest_put * 1e3:.1f} ms; "
-          f"published in {publish_time:.2f} s")
+    print(
+        f"hung app received {app_received} of {n_frames}; longest put {longest_put * 1e3:.1f} ms; "
+        f"published in {publish_time:.2f} s"
+    )
     by_key = {}
     for message in recorded:
         by_key.setdefault(message.topic, []).append(message)
@@ -180,8 +206,22 @@ def test_hung_app_stalls_no_publisher_and_the_recorder_loses_nothing(router, tmp
 
 def _start_trigno_simulator() -> tuple[subprocess.Popen, dict[str, int]]:
     """``msk sim trigno`` on free loopback ports (real TCP); returns the process and its ports."""
-    process = _msk("sim", "trigno", "--from", "synthetic:60:7", "--port", "0", "--emg-port", "0",
-                   "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1")
+    process = _msk(
+        "sim",
+        "trigno",
+        "--from",
+        "synthetic:60:7",
+        "--port",
+        "0",
+        "--emg-port",
+        "0",
+        "--legacy-emg-port",
+        "0",
+        "--aux-port",
+        "0",
+        "--legacy-acc-port",
+        "-1",
+    )
     line = process.stdout.readline()
     if "command" not in line:
         _stop(process)
@@ -211,8 +251,19 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
         recorder = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
         processes.append(recorder)
         # no --duration: the driver runs until the restarted recorder is seen recording, however slow the machine
-        drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
-                       "--trigno-emg-port", str(ports["emg"]), "--mode", "client", "--connect", router)
+        drivers = _msk(
+            "drivers",
+            "--session",
+            SESSION,
+            "--trigno",
+            f"127.0.0.1:{ports['command']}",
+            "--trigno-emg-port",
+            str(ports["emg"]),
+            "--mode",
+            "client",
+            "--connect",
+            router,
+        )
         processes.append(drivers)
 
         def emg_recorded(path: Path = out) -> int:
@@ -233,9 +284,12 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
         recorded_before = len(_emg_chunks([out], emg_key))
         # the history (what the driver published while the recorder was down) and then 2 s of live chunks
         expected = recorded_before + int((down_s + 2.0) * CHUNKS_PER_S)
-        _wait(lambda: emg_recorded(out) + emg_recorded(continuation) >= expected, 40,
-              f"{expected} EMG chunks in the two files ({down_s:.1f} s down)",
-              lambda: f"{emg_recorded(out)} + {emg_recorded(continuation)}")
+        _wait(
+            lambda: emg_recorded(out) + emg_recorded(continuation) >= expected,
+            40,
+            f"{expected} EMG chunks in the two files ({down_s:.1f} s down)",
+            lambda: f"{emg_recorded(out)} + {emg_recorded(continuation)}",
+        )
         drivers.send_signal(signal.SIGINT)  # it stops the device and prints its summary
         try:
             drivers_out, drivers_err = drivers.communicate(timeout=40)
@@ -258,8 +312,11 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
     chunks = _emg_chunks([out, continuation], emg_key)
     starts = [c.first_sample_index for c in chunks]
     assert len(starts) == len(set(starts)), f"{len(starts) - len(set(starts))} chunks recorded twice"
-    gaps = [(a.first_sample_index, b.first_sample_index) for a, b in zip(chunks, chunks[1:])
-            if b.first_sample_index != a.first_sample_index + a.n_samples]
+    gaps = [
+        (a.first_sample_index, b.first_sample_index)
+        for a, b in zip(chunks, chunks[1:])
+        if b.first_sample_index != a.first_sample_index + a.n_samples
+    ]
     assert not gaps, f"gaps in the joined recording (previous start, next start): {gaps[:5]}; {restarted_err[-600:]}"
     import re
 
@@ -268,10 +325,14 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
     sent = int(summary.group(1))
     recorded = sum(c.n_samples for c in chunks)
     assert chunks[0].first_sample_index == 0
-    assert recorded == sent, (f"msk drivers published {sent} EMG samples, the two files hold {recorded}; "
-                              f"restarted recorder: {restarted_err[-600:]}")
-    print(f"killed file: {len(first_part)} messages, ends {lost_window_s:.2f} s before the kill; "
-          f"joined: {len(chunks)} EMG chunks, {recorded} samples of {sent} published")
+    assert recorded == sent, (
+        f"msk drivers published {sent} EMG samples, the two files hold {recorded}; "
+        f"restarted recorder: {restarted_err[-600:]}"
+    )
+    print(
+        f"killed file: {len(first_part)} messages, ends {lost_window_s:.2f} s before the kill; "
+        f"joined: {len(chunks)} EMG chunks, {recorded} samples of {sent} published"
+    )
 
 
 class _RealTimeReplay(threading.Thread):
@@ -314,31 +375,53 @@ def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(r
     out = tmp_path / "session.mcap"
     session = _client(router)
     recorder = _start_recorder(out, router, session)
-    estimator_argv = ("estimator", "--pack", "bench_press", "--session", SESSION, "--method", "so",
-                      "--mode", "client", "--connect", router)
+    estimator_argv = (
+        "estimator",
+        "--pack",
+        "bench_press",
+        "--session",
+        SESSION,
+        "--method",
+        "so",
+        "--mode",
+        "client",
+        "--connect",
+        router,
+    )
     arrivals: list[tuple[float, messages.ActivationFrame]] = []
-    session.declare_subscriber(f"msk/{SESSION}/activations/**",
-                               lambda s: arrivals.append((time.monotonic(), messages.decode("msk.ActivationFrame", s.payload.to_bytes()))))
+    session.declare_subscriber(
+        f"msk/{SESSION}/activations/**",
+        lambda s: arrivals.append((time.monotonic(), messages.decode("msk.ActivationFrame", s.payload.to_bytes()))),
+    )
     estimator = _msk(*estimator_argv)
     restarted = None
     source = _RealTimeReplay(session, repo_root / "recordings" / "demo_session.mcap")
     source.start()
     try:
+
         def alive(process):
             if process.poll() is not None:
                 raise AssertionError(f"msk estimator exited {process.returncode}: {process.communicate()[1][-2000:]}")
             return True
 
-        _wait(lambda: alive(estimator) and len(arrivals) > 0, resume_bound_s + 30, "the first activation frame",
-              lambda: f"{len(arrivals)} frames; sent {source.sent}")
+        _wait(
+            lambda: alive(estimator) and len(arrivals) > 0,
+            resume_bound_s + 30,
+            "the first activation frame",
+            lambda: f"{len(arrivals)} frames; sent {source.sent}",
+        )
         time.sleep(1.5)
         estimator.kill()  # SIGKILL, mid-session
         estimator.wait(10)
         before_kill = len(arrivals)
         restart_at = time.monotonic()
         restarted = _msk(*estimator_argv)
-        _wait(lambda: alive(restarted) and any(t > restart_at for t, _ in arrivals), resume_bound_s,
-              "the restarted estimator's first activation frame", lambda: f"{len(arrivals)} frames in all")
+        _wait(
+            lambda: alive(restarted) and any(t > restart_at for t, _ in arrivals),
+            resume_bound_s,
+            "the restarted estimator's first activation frame",
+            lambda: f"{len(arrivals)} frames in all",
+        )
         resume_s = next(t for t, _ in arrivals if t > restart_at) - restart_at
         time.sleep(1.5)
         source.stop.set()
@@ -367,8 +450,10 @@ def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(r
     assert all(0.0 <= a <= 1.0 for frame in after for a in frame.activations)
     times = [frame.time_s for frame in after]
     assert times == sorted(times), "the restarted estimator publishes frames out of order"
-    print(f"estimator resumed {resume_s:.1f} s after the restart; {before_kill} frames before the kill, "
-          f"{len(after)} after; device messages sent = recorded = {sum(device.values())}")
+    print(
+        f"estimator resumed {resume_s:.1f} s after the restart; {before_kill} frames before the kill, "
+        f"{len(after)} after; device messages sent = recorded = {sum(device.values())}"
+    )
 
 
 def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router, tmp_path):
@@ -379,31 +464,67 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     session = _client(router)
     statuses: list[messages.DeviceStatus] = []
     chunks: list[tuple[float, messages.EmgChunk]] = []
-    session.declare_subscriber(topics.status_key(SESSION, "trigno"),
-                               lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
-    session.declare_subscriber(topics.emg_key(SESSION, "trigno"),
-                               lambda s: chunks.append((time.monotonic(), messages.decode("msk.EmgChunk", s.payload.to_bytes()))))
+    session.declare_subscriber(
+        topics.status_key(SESSION, "trigno"),
+        lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())),
+    )
+    session.declare_subscriber(
+        topics.emg_key(SESSION, "trigno"),
+        lambda s: chunks.append((time.monotonic(), messages.decode("msk.EmgChunk", s.payload.to_bytes()))),
+    )
     simulator, ports = _start_trigno_simulator()  # the second simulator takes the same ports
     processes = [simulator]
     try:
-        drivers = _msk("drivers", "--session", SESSION, "--trigno", f"127.0.0.1:{ports['command']}",
-                       "--trigno-emg-port", str(ports["emg"]), "--mode", "client", "--connect", router)
+        drivers = _msk(
+            "drivers",
+            "--session",
+            SESSION,
+            "--trigno",
+            f"127.0.0.1:{ports['command']}",
+            "--trigno-emg-port",
+            str(ports["emg"]),
+            "--mode",
+            "client",
+            "--connect",
+            router,
+        )
         processes.append(drivers)
         _wait(lambda: len(chunks) > 30, 40, "EMG chunks from msk drivers", lambda: f"{len(chunks)} chunks")
         simulator.kill()
         simulator.wait(10)
         gone_at = time.monotonic()
-        _wait(lambda: any(not s.connected for s in statuses), 15, "a DeviceStatus saying the Trigno is disconnected",
-              lambda: [s.connected for s in statuses])
+        _wait(
+            lambda: any(not s.connected for s in statuses),
+            15,
+            "a DeviceStatus saying the Trigno is disconnected",
+            lambda: [s.connected for s in statuses],
+        )
         time.sleep(1.0)
-        back = _msk("sim", "trigno", "--from", "synthetic:60:7", "--port", str(ports["command"]),
-                    "--emg-port", str(ports["emg"]), "--legacy-emg-port", str(ports["legacy emg"]),
-                    "--aux-port", str(ports["aux"]), "--legacy-acc-port", "-1")
+        back = _msk(
+            "sim",
+            "trigno",
+            "--from",
+            "synthetic:60:7",
+            "--port",
+            str(ports["command"]),
+            "--emg-port",
+            str(ports["emg"]),
+            "--legacy-emg-port",
+            str(ports["legacy emg"]),
+            "--aux-port",
+            str(ports["aux"]),
+            "--legacy-acc-port",
+            "-1",
+        )
         processes.append(back)
         assert "command" in back.stdout.readline(), back.stderr.read()[-2000:]
         back_at = time.monotonic()
-        _wait(lambda: sum(1 for t, _ in chunks if t > back_at) > 30, 30, "EMG chunks after the Trigno came back",
-              lambda: f"{len(chunks)} chunks in all; statuses {[s.connected for s in statuses]}")
+        _wait(
+            lambda: sum(1 for t, _ in chunks if t > back_at) > 30,
+            30,
+            "EMG chunks after the Trigno came back",
+            lambda: f"{len(chunks)} chunks in all; statuses {[s.connected for s in statuses]}",
+        )
         time.sleep(1.5)  # a periodic status after the resumption
         _stop(drivers)
     finally:
@@ -414,13 +535,18 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     after = [c for t, c in chunks if t > back_at]
     indices = [c.first_sample_index for _, c in chunks]
     assert indices == sorted(indices) and len(set(indices)) == len(indices), "EMG indices repeat or go back"
-    jumps = [(a.first_sample_index + a.n_samples, b.first_sample_index) for (_, a), (_, b) in zip(chunks, chunks[1:])
-             if b.first_sample_index != a.first_sample_index + a.n_samples]
+    jumps = [
+        (a.first_sample_index + a.n_samples, b.first_sample_index)
+        for (_, a), (_, b) in zip(chunks, chunks[1:])
+        if b.first_sample_index != a.first_sample_index + a.n_samples
+    ]
     lost = max(s.samples_lost for s in statuses)
     assert len(jumps) == 1 and jumps[0][1] - jumps[0][0] == lost > 0, f"jumps {jumps}; status reports {lost} lost"
     assert len(before) > 30 and len(after) > 30
-    print(f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
-          f"(= the index jump), {len(after)} chunks after it came back")
+    print(
+        f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
+        f"(= the index jump), {len(after)} chunks after it came back"
+    )
 
 
 def _kill_all(processes: list[subprocess.Popen]) -> None:
@@ -457,10 +583,14 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
     session = _client(router)
     statuses: list[messages.DeviceStatus] = []
     imu: list[tuple[float, messages.ImuSample]] = []
-    session.declare_subscriber(topics.status_key(SESSION, device_id),
-                               lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
-    session.declare_subscriber(topics.imu_key(SESSION, device_id),
-                               lambda s: imu.append((time.monotonic(), messages.decode("msk.ImuSample", s.payload.to_bytes()))))
+    session.declare_subscriber(
+        topics.status_key(SESSION, device_id),
+        lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())),
+    )
+    session.declare_subscriber(
+        topics.imu_key(SESSION, device_id),
+        lambda s: imu.append((time.monotonic(), messages.decode("msk.ImuSample", s.payload.to_bytes()))),
+    )
     simulator, pty_path = _start_xsens_simulator(device_id)
     link.symlink_to(pty_path)
     processes = [simulator]
@@ -477,16 +607,24 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
         simulator.kill()  # the pty goes with the process: the cable is pulled
         simulator.wait(10)
         gone_at = time.monotonic()
-        _wait(lambda: any(not s.connected for s in statuses), 15, "a DeviceStatus saying the tracker is disconnected",
-              lambda: [s.connected for s in statuses])
+        _wait(
+            lambda: any(not s.connected for s in statuses),
+            15,
+            "a DeviceStatus saying the tracker is disconnected",
+            lambda: [s.connected for s in statuses],
+        )
         time.sleep(1.0)
         back, pty_path = _start_xsens_simulator(device_id)  # plugged in again: a new tty behind the same name
         processes.append(back)
         link.unlink()
         link.symlink_to(pty_path)
         back_at = time.monotonic()
-        _wait(lambda: sum(1 for t, _ in imu if t > back_at) > 100, 30, "IMU samples after the tracker came back",
-              lambda: f"{len(imu)} samples in all; statuses {[s.connected for s in statuses]}")
+        _wait(
+            lambda: sum(1 for t, _ in imu if t > back_at) > 100,
+            30,
+            "IMU samples after the tracker came back",
+            lambda: f"{len(imu)} samples in all; statuses {[s.connected for s in statuses]}",
+        )
         time.sleep(1.5)  # a periodic status after the resumption
         drivers.send_signal(signal.SIGINT)  # it closes the tracker and prints its summary
         try:
@@ -504,6 +642,10 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
 
     summary = re.search(r"published (\d+) samples in (\d+) messages", drivers_out + drivers_err)
     assert summary, f"msk drivers printed no summary: {drivers_out!r} {drivers_err[-1000:]}"
-    assert len(imu) == int(summary.group(1)), f"msk drivers published {summary.group(1)} IMU samples, {len(imu)} arrived"
-    print(f"Xsens gone {back_at - gone_at:.1f} s: status said disconnected, {len(after)} samples after it came back, "
-          f"{len(imu)} of {summary.group(1)} published arrived")
+    assert len(imu) == int(summary.group(1)), (
+        f"msk drivers published {summary.group(1)} IMU samples, {len(imu)} arrived"
+    )
+    print(
+        f"Xsens gone {back_at - gone_at:.1f} s: status said disconnected, {len(after)} samples after it came back, "
+        f"{len(imu)} of {summary.group(1)} published arrived"
+    )

@@ -7,16 +7,17 @@ import time
 
 import pytest
 
-from services import topics
+from services import messages, topics
 from services.graph import Graph, GraphTimeout, declare_ready, wait_for, wait_for_nodes
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
-from services import messages
 
 SESSION = "graphtest"
 N_MESSAGES = 300
 
 
-def counting_node(options: ZenohOptions, *, counts: dict, label: str, delay_s: float, stop_event, ready_event, ready_key):
+def counting_node(
+    options: ZenohOptions, *, counts: dict, label: str, delay_s: float, stop_event, ready_event, ready_key
+):
     """Joins the network at once but declares its subscriber only after ``delay_s`` (a slow-starting node)."""
     with open_session(options) as zsession:
         time.sleep(delay_s)
@@ -48,8 +49,12 @@ def test_publisher_waits_for_every_node_even_one_that_subscribes_late(zenoh_endp
             assert waited > 0.5  # it did wait for the late node
             for i in range(N_MESSAGES):
                 publish(publisher, messages.LoadEvent(barbell_mass_kg=float(i)))
-            wait_for("both nodes to count every message", lambda: all(counts.get(n) == N_MESSAGES for n in ("early", "late")),
-                     lambda: str(counts), timeout_s=20)
+            wait_for(
+                "both nodes to count every message",
+                lambda: all(counts.get(n) == N_MESSAGES for n in ("early", "late")),
+                lambda: str(counts),
+                timeout_s=20,
+            )
     assert counts == {"early": N_MESSAGES, "late": N_MESSAGES}
 
 
@@ -88,15 +93,56 @@ def test_msk_replay_waits_for_named_graph_nodes(zenoh_endpoint, repo_root):
     with Graph(SESSION, zenoh_endpoint) as graph:
         graph.add_thread("late", counting_node, counts=counts, label="late", delay_s=1.5)
         replay = subprocess.run(
-            [sys.executable, "-m", "services.cli", "replay", str(repo_root / "recordings" / "demo_session.mcap"),
-             "--rate", "max", "--session", SESSION, "--wait-node", "late", "--connect", zenoh_endpoint,
-             "--exclude", f"msk/{SESSION}/imu/*", "--exclude", f"msk/{SESSION}/emg/*", "--exclude", f"msk/{SESSION}/joints"],
-            cwd=repo_root, capture_output=True, text=True, timeout=120)
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "replay",
+                str(repo_root / "recordings" / "demo_session.mcap"),
+                "--rate",
+                "max",
+                "--session",
+                SESSION,
+                "--wait-node",
+                "late",
+                "--connect",
+                zenoh_endpoint,
+                "--exclude",
+                f"msk/{SESSION}/imu/*",
+                "--exclude",
+                f"msk/{SESSION}/emg/*",
+                "--exclude",
+                f"msk/{SESSION}/joints",
+            ],
+            cwd=repo_root,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert replay.returncode == 0, replay.stderr
         assert "published 8 messages" in replay.stderr
         wait_for("the late node to count the 8 load events", lambda: counts.get("late") == 8, lambda: str(counts), 20)
         missing = subprocess.run(
-            [sys.executable, "-m", "services.cli", "replay", str(repo_root / "recordings" / "demo_session.mcap"),
-             "--session", SESSION, "--wait-node", "late", "--wait-node", "ghost", "--wait-nodes-timeout", "1",
-             "--connect", zenoh_endpoint], cwd=repo_root, capture_output=True, text=True, timeout=120)
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "replay",
+                str(repo_root / "recordings" / "demo_session.mcap"),
+                "--session",
+                SESSION,
+                "--wait-node",
+                "late",
+                "--wait-node",
+                "ghost",
+                "--wait-nodes-timeout",
+                "1",
+                "--connect",
+                zenoh_endpoint,
+            ],
+            cwd=repo_root,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     assert missing.returncode == 2 and "1 ready, missing ['ghost']" in missing.stderr, missing.stderr

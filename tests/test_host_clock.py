@@ -14,8 +14,15 @@ RATE = 2000.0
 BLOCK = 27  # a Trigno frame
 
 
-def delivered_blocks(seconds: float, *, clock_ns: int, latency_ns: int, seed: int, drift_ppm: float = 0.0,
-                     restart_at_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def delivered_blocks(
+    seconds: float,
+    *,
+    clock_ns: int,
+    latency_ns: int,
+    seed: int,
+    drift_ppm: float = 0.0,
+    restart_at_s: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """(device time of each block's last sample, host receipt) of a device sending 27-sample blocks: measured at
     host instant T (device time T - clock, the device clock running ``drift_ppm`` fast; from ``restart_at_s`` on,
     counting again from 0 as after a power cycle), received at T + latency + a random delay (exponential, mean 2 ms;
@@ -33,8 +40,9 @@ def delivered_blocks(seconds: float, *, clock_ns: int, latency_ns: int, seed: in
 
 
 def test_streaming_mapping_equals_the_batch_one_sample_after_sample():
-    device, receipt = delivered_blocks(20.0, clock_ns=-7_000_000_000, latency_ns=30_000_000, seed=1,
-                                       drift_ppm=80.0, restart_at_s=9.0)
+    device, receipt = delivered_blocks(
+        20.0, clock_ns=-7_000_000_000, latency_ns=30_000_000, seed=1, drift_ppm=80.0, restart_at_s=9.0
+    )
     clock = HostClock("emg/x", latency_ns=30_000_000, window_s=5.0)
     streamed = []
     for d, r in zip(device, receipt):
@@ -44,7 +52,7 @@ def test_streaming_mapping_equals_the_batch_one_sample_after_sample():
     np.testing.assert_array_equal(np.array(streamed), batch)
     # the batch one is a plain minimum over the samples received within the window before each one
     for i in (0, 1, 100, 500, len(device) - 1):
-        inside = (receipt[: i + 1] >= receipt[i] - 5_000_000_000)
+        inside = receipt[: i + 1] >= receipt[i] - 5_000_000_000
         assert batch[i] == (receipt[: i + 1] - device[: i + 1])[inside].min() - 30_000_000
 
 
@@ -113,8 +121,16 @@ def _feed(live: LiveEmg, device, receipt, arrival_ns=None) -> None:
     rng = np.random.default_rng(0)
     for k, (d, r) in enumerate(zip(device, receipt)):
         first = k * BLOCK
-        live.add_chunk("trigno", ("c",), RATE, first, int(d) - round((BLOCK - 1) * 1e9 / RATE),
-                       rng.standard_normal((BLOCK, 1)), int(r) if arrival_ns is None else arrival_ns, int(r))
+        live.add_chunk(
+            "trigno",
+            ("c",),
+            RATE,
+            first,
+            int(d) - round((BLOCK - 1) * 1e9 / RATE),
+            rng.standard_normal((BLOCK, 1)),
+            int(r) if arrival_ns is None else arrival_ns,
+            int(r),
+        )
 
 
 def test_live_emg_maps_each_source_by_its_receipts_less_its_latency_and_reports_it():
@@ -162,8 +178,12 @@ def test_an_offset_measured_another_way_replaces_the_arrival_mapping_until_clear
     live.set_offset("trigno", 42_000_000, 1_500_000, "acceleration")  # before the source is seen: kept for it
     _feed(live, device, receipt)
     report = {r.source: r for r in live.clock_report()}["emg/trigno"]
-    assert (report.offset_ns, report.spread_ns, report.method, report.samples) == (42_000_000, 1_500_000,
-                                                                                  "acceleration", 0)
+    assert (report.offset_ns, report.spread_ns, report.method, report.samples) == (
+        42_000_000,
+        1_500_000,
+        "acceleration",
+        0,
+    )
     assert live.sources["trigno"].offset_ns == 42_000_000
     live.set_offset("trigno", None)
     assert {r.source: r for r in live.clock_report()}["emg/trigno"].method == "arrival"
@@ -177,8 +197,10 @@ def test_an_offset_measured_another_way_replaces_the_arrival_mapping_until_clear
 def test_one_clock_maps_nothing_and_refuses_latencies_and_offsets():
     live = LiveEmg(["g"], EmgSetup({"c": "g"}, {"c": 1.0}))
     live.add_chunk("trigno", ("c",), RATE, 0, 0, np.zeros((BLOCK, 1)), 10**9)
-    assert [(r.source, r.method, r.offset_ns) for r in live.clock_report()] == [("emg/trigno", "device", 0),
-                                                                                ("joints", "device", 0)]
+    assert [(r.source, r.method, r.offset_ns) for r in live.clock_report()] == [
+        ("emg/trigno", "device", 0),
+        ("joints", "device", 0),
+    ]
     with pytest.raises(ConfigError, match="clock"):
         live.set_offset("trigno", 0, 0, "acceleration")
     with pytest.raises(ConfigError, match="latency"):

@@ -169,8 +169,7 @@ def test_sensor_calibration_for_several_joints_round_trips_json() -> None:
 
     t, q_upper, q_fore, flex = _session(0.7, seed=5)
     static = t < 1.0
-    cal = SensorCalibration.from_static_pose({"upper_arm": q_upper[static], "forearm": q_fore[static]},
-                                             heading_rad=0.7)
+    cal = SensorCalibration.from_static_pose({"upper_arm": q_upper[static], "forearm": q_fore[static]}, heading_rad=0.7)
     back = SensorCalibration.from_dict(json.loads(json.dumps(cal.to_dict())))
     joints = [Joint("elbow", "upper_arm", "forearm")]
     angles = back.joint_angles({"upper_arm": q_upper, "forearm": q_fore}, joints)

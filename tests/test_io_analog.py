@@ -14,7 +14,17 @@ from msk_core.io import read_anc, read_c3d_analogs
 def test_rajagopal_anc(shared_dir: Path) -> None:
     rec = read_anc(shared_dir / "data/rajagopal-walk/emg_walk_raw.anc")
     assert rec.labels[:3] == ["F1X", "F1Y", "F1Z"] and rec.labels[-10:] == [
-        "SOL", "GAS", "TA", "MH", "BF", "VL", "VM", "RF", "GMAX", "GMED"]
+        "SOL",
+        "GAS",
+        "TA",
+        "MH",
+        "BF",
+        "VL",
+        "VM",
+        "RF",
+        "GMAX",
+        "GMED",
+    ]
     assert rec.rate_hz == 2000.0 and rec.data.shape == (4780, 28)
     assert rec.header["Board_Type"] == "NI USB-6225" and rec.header["#Channels"] == "28"
     assert rec.channel_info["Range"][rec.index("MH")] == "1000"

@@ -20,8 +20,15 @@ EMG = ["TA", "SOL", "GAS", "VL"]
 RATE = 1000.0
 
 
-def _gait_c3d(path: Path, *, labels: list[str], units: list[str] | None, plates_used: int,
-              channel_numbers: list[list[int]] | None, seconds: float = 2.0) -> Path:
+def _gait_c3d(
+    path: Path,
+    *,
+    labels: list[str],
+    units: list[str] | None,
+    plates_used: int,
+    channel_numbers: list[list[int]] | None,
+    seconds: float = 2.0,
+) -> Path:
     """Markers at 100 Hz, the analog block at 1 kHz: force-plate channels ~ hundreds of N, EMG ~ mV bursts."""
     c3d = ezc3d.c3d()
     n_frames = int(seconds * 100)
@@ -58,8 +65,9 @@ def _plate_channels(first: int, plates: int) -> list[list[int]]:
 def test_force_plate_channels_and_non_voltage_units_are_not_emg(tmp_path):
     labels = PLATES + EMG + ["Acc_x"]
     units = ["N", "N", "N", "Nmm", "Nmm", "Nmm"] * 2 + ["V"] * len(EMG) + ["g"]
-    path = _gait_c3d(tmp_path / "walk.c3d", labels=labels, units=units, plates_used=2,
-                     channel_numbers=_plate_channels(1, 2))
+    path = _gait_c3d(
+        tmp_path / "walk.c3d", labels=labels, units=units, plates_used=2, channel_numbers=_plate_channels(1, 2)
+    )
     rec = read_c3d_analogs(path)
     assert rec.labels == labels and rec.rate_hz == RATE
     assert set(rec.not_emg) == set(PLATES) | {"Acc_x"}
@@ -73,8 +81,13 @@ def test_force_plate_channels_and_non_voltage_units_are_not_emg(tmp_path):
 def test_plates_in_volts_are_found_by_their_channel_numbers(tmp_path):
     """Uncalibrated amplifier outputs in V: only FORCE_PLATFORM:CHANNEL tells them from EMG (here after the EMG)."""
     labels = EMG + PLATES[:6]
-    path = _gait_c3d(tmp_path / "volts.c3d", labels=labels, units=["V"] * len(labels), plates_used=1,
-                     channel_numbers=_plate_channels(len(EMG) + 1, 1))
+    path = _gait_c3d(
+        tmp_path / "volts.c3d",
+        labels=labels,
+        units=["V"] * len(labels),
+        plates_used=1,
+        channel_numbers=_plate_channels(len(EMG) + 1, 1),
+    )
     rec = read_c3d_analogs(path)
     assert list(rec.not_emg) == PLATES[:6]
     assert rec.emg_only().labels == EMG
@@ -89,13 +102,19 @@ def test_unused_plates_and_missing_units_leave_every_channel(tmp_path):
 
 def test_inconsistent_plate_channels_are_refused(tmp_path):
     labels = PLATES[:6] + EMG
-    path = _gait_c3d(tmp_path / "bad.c3d", labels=labels, units=["V"] * len(labels), plates_used=2,
-                     channel_numbers=_plate_channels(1, 2))  # plate 2 names channels 7..12; there are 10
+    path = _gait_c3d(
+        tmp_path / "bad.c3d",
+        labels=labels,
+        units=["V"] * len(labels),
+        plates_used=2,
+        channel_numbers=_plate_channels(1, 2),
+    )  # plate 2 names channels 7..12; there are 10
     with pytest.raises(FileFormatError, match="force plate 2 names analog channel 11, but there are 10") as err:
         read_c3d_analogs(path)
     assert err.value.field == "FORCE_PLATFORM:CHANNEL" and "bad.c3d" in str(err.value)
-    only_plates = _gait_c3d(tmp_path / "plates.c3d", labels=PLATES, units=["N"] * 12, plates_used=2,
-                            channel_numbers=_plate_channels(1, 2))
+    only_plates = _gait_c3d(
+        tmp_path / "plates.c3d", labels=PLATES, units=["N"] * 12, plates_used=2, channel_numbers=_plate_channels(1, 2)
+    )
     with pytest.raises(InputError, match="no EMG channel: all 12 analog channels are not EMG"):
         read_c3d_analogs(only_plates).emg_only()
 
@@ -103,8 +122,9 @@ def test_inconsistent_plate_channels_are_refused(tmp_path):
 def test_msk_emg_envelope_leaves_the_force_plates_out_and_says_so(tmp_path, capsys):
     labels = PLATES + EMG
     units = ["N", "N", "N", "Nmm", "Nmm", "Nmm"] * 2 + ["V"] * len(EMG)
-    path = _gait_c3d(tmp_path / "gait.c3d", labels=labels, units=units, plates_used=2,
-                     channel_numbers=_plate_channels(1, 2))
+    path = _gait_c3d(
+        tmp_path / "gait.c3d", labels=labels, units=units, plates_used=2, channel_numbers=_plate_channels(1, 2)
+    )
     out = tmp_path / "env.sto"
     assert msk(["emg", "envelope", str(path), "-o", str(out)]) == 0
     printed = capsys.readouterr().out

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.errors import FileFormatError, InputError
 from msk_core.io import read_delsys_csv, read_emgworks_csv, read_trigno_discover_csv
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 
 EMG_DT = 0.0005192308  # 1925.926 Hz
 ACC_DT = 0.00675  # 148.148 Hz

@@ -31,12 +31,15 @@ def _opensim_table(path: Path):
         return str(exc)
 
 
-@pytest.mark.parametrize("label_line", [
-    "\ttime\t\thip_flexion_r_moment\t\tknee_angle_r_moment",  # the real file: indented, two tabs between labels
-    "time\t\thip_flexion_r_moment\t\tknee_angle_r_moment\t\t",
-    "  time\t  hip_flexion_r_moment\t knee_angle_r_moment",  # labels padded with spaces
-    "\t\ttime\thip_flexion_r_moment\tknee_angle_r_moment\t",
-])
+@pytest.mark.parametrize(
+    "label_line",
+    [
+        "\ttime\t\thip_flexion_r_moment\t\tknee_angle_r_moment",  # the real file: indented, two tabs between labels
+        "time\t\thip_flexion_r_moment\t\tknee_angle_r_moment\t\t",
+        "  time\t  hip_flexion_r_moment\t knee_angle_r_moment",  # labels padded with spaces
+        "\t\ttime\thip_flexion_r_moment\tknee_angle_r_moment\t",
+    ],
+)
 def test_label_lines_opensim_reads_are_read(tmp_path, label_line):
     path = tmp_path / "id.sto"
     path.write_text(HEADER + label_line + "\n" + ROWS)
@@ -51,12 +54,15 @@ def test_label_lines_opensim_reads_are_read(tmp_path, label_line):
         assert np.asarray(table.getDependentColumn("knee_angle_r_moment").to_numpy()).tolist() == [-2.0, -2.1, -2.2]
 
 
-@pytest.mark.parametrize(("rows", "line", "message"), [
-    ("0.00\t\t1.5\t-2.0\n", 8, "expected 3 values, found 4"),  # an empty cell between two tabs in a row
-    ("\t0.00\t1.5\t-2.0\n", 8, "expected 3 values, found 4"),  # a row that starts with a tab
-    ("0.00\t1.5\n", 8, "expected 3 values, found 2"),
-    ("0.00\t1.5\t-2.0\t7\n", 8, "expected 3 values, found 4"),
-])
+@pytest.mark.parametrize(
+    ("rows", "line", "message"),
+    [
+        ("0.00\t\t1.5\t-2.0\n", 8, "expected 3 values, found 4"),  # an empty cell between two tabs in a row
+        ("\t0.00\t1.5\t-2.0\n", 8, "expected 3 values, found 4"),  # a row that starts with a tab
+        ("0.00\t1.5\n", 8, "expected 3 values, found 2"),
+        ("0.00\t1.5\t-2.0\t7\n", 8, "expected 3 values, found 4"),
+    ],
+)
 def test_rows_opensim_refuses_are_refused_naming_the_line(tmp_path, rows, line, message):
     path = tmp_path / "bad.sto"
     path.write_text(HEADER + "time\tq1\tq2\n" + rows)
@@ -82,6 +88,15 @@ def test_a_label_line_that_is_not_time_first_is_refused_like_opensim(tmp_path):
 def test_the_walk_emg_header_with_space_padded_labels(shared_dir):
     """The real walk envelopes: 'time\\t  soleus_r\\t med_gas_r ...' (labels padded with spaces)."""
     s = read_sto(shared_dir / "data" / "lowerlimb-walk" / "walk45_emgFilt.sto")
-    assert s.columns == ["soleus_r", "med_gas_r", "lat_gas_r", "tib_ant_r", "semimem_r", "bifemlh_r", "vas_lat_r",
-                         "rect_fem_r", "vas_med_r"]
+    assert s.columns == [
+        "soleus_r",
+        "med_gas_r",
+        "lat_gas_r",
+        "tib_ant_r",
+        "semimem_r",
+        "bifemlh_r",
+        "vas_lat_r",
+        "rect_fem_r",
+        "vas_med_r",
+    ]
     assert s.n_rows == 5904 and s.rate == pytest.approx(100.0)

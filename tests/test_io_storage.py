@@ -127,8 +127,11 @@ _LABEL = st.text(alphabet="abcdefghijklmnopqrstuvwxyzABCXYZ_0123456789.:()[]-", 
 )
 def test_round_trip_property(tmp_path_factory, labels, n_rows, data, in_degrees) -> None:
     finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
-    values = np.array(data.draw(st.lists(st.lists(finite, min_size=len(labels), max_size=len(labels)),
-                                          min_size=n_rows, max_size=n_rows)))
+    values = np.array(
+        data.draw(
+            st.lists(st.lists(finite, min_size=len(labels), max_size=len(labels)), min_size=n_rows, max_size=n_rows)
+        )
+    )
     time = np.cumsum(np.abs(np.array(data.draw(st.lists(st.floats(0.001, 1e6), min_size=n_rows, max_size=n_rows)))))
     path = tmp_path_factory.mktemp("prop") / "x.sto"
     write_sto(path, time, labels, values, in_degrees=in_degrees, name="prop")

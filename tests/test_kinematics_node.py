@@ -33,6 +33,7 @@ DEMO = REPO / "recordings" / "demo_session.mcap"
 
 # --- msk_core.imu.kinematics additions --------------------------------------------------------------------------
 
+
 def test_twist_angle_is_exact_for_a_tilted_hinge_and_ignores_swing():
     axis = np.array([0.226, 0.022, 0.974]) / np.linalg.norm([0.226, 0.022, 0.974])
     parent = Rotation.from_euler("xyz", [10, -30, 50], degrees=True)
@@ -52,12 +53,15 @@ def test_model_ground_orientation_matches_the_synthetic_global_frame():
     assert np.allclose(model_ground_orientation(upright, 0.3).as_matrix(), npose_segment_orientation(0.3).as_matrix())
     for gravity in (upright, np.array([-9.80665, 0.0, 0.0])):  # deadlift, supine bench press
         # the synth's subjects face north in ENU: heading 90 deg from east
-        np.testing.assert_allclose(model_ground_orientation(gravity, np.pi / 2).as_matrix(), global_frame(gravity), atol=1e-12)
+        np.testing.assert_allclose(
+            model_ground_orientation(gravity, np.pi / 2).as_matrix(), global_frame(gravity), atol=1e-12
+        )
         r = model_ground_orientation(gravity, 1.0)
         np.testing.assert_allclose(r.apply(gravity / np.linalg.norm(gravity)), [0.0, 0.0, -1.0], atol=1e-12)
 
 
 # --- the tables ---------------------------------------------------------------------------------------------------
+
 
 def _body_rotations(pack, segments: dict[str, str], q: np.ndarray) -> dict[str, np.ndarray]:
     """Model-ground rotations of the bodies the synth straps each tracker to, by pinocchio forward kinematics."""
@@ -106,11 +110,15 @@ def test_mapping_errors_are_clear():
         parse_pose("elbow=10", ["elbow_flex_r"])
     with pytest.raises(ConfigError, match="NAME=DEGREES"):
         parse_pose("elbow_flex_r", ["elbow_flex_r"])
-    assert parse_pose("elbow_flex_r=20, elv_angle_r=80", ["elv_angle_r", "elbow_flex_r"]) == {"elbow_flex_r": 20.0, "elv_angle_r": 80.0}
+    assert parse_pose("elbow_flex_r=20, elv_angle_r=80", ["elv_angle_r", "elbow_flex_r"]) == {
+        "elbow_flex_r": 20.0,
+        "elv_angle_r": 80.0,
+    }
     assert set(MAPPINGS) == {"bench_press", "deadlift"}
 
 
 # --- synchroniser -------------------------------------------------------------------------------------------------
+
 
 def test_synchroniser_groups_jittered_interleaved_samples_and_names_missing_segments():
     sync = SegmentSynchroniser(["a", "b", "c"], tolerance_ns=3_000_000, max_wait_ns=100_000_000)
@@ -140,6 +148,7 @@ def test_synchroniser_groups_jittered_interleaved_samples_and_names_missing_segm
 
 # --- the node over Zenoh on the demo recording -------------------------------------------------------------------
 
+
 def _recording():
     imu, joints = defaultdict(list), []
     for m in read_messages(DEMO):
@@ -154,8 +163,10 @@ def _recording():
 def _start_node(endpoint: str, **kwargs):
     stop, ready, stats = threading.Event(), threading.Event(), kinematics_node.KinematicsStats()
     thread = threading.Thread(
-        target=kinematics_node.main, args=(ZenohOptions(connect=(endpoint,)),),
-        kwargs=dict(session="synth", stop_event=stop, ready_event=ready, stats=stats, **kwargs), daemon=True,
+        target=kinematics_node.main,
+        args=(ZenohOptions(connect=(endpoint,)),),
+        kwargs=dict(session="synth", stop_event=stop, ready_event=ready, stats=stats, **kwargs),
+        daemon=True,
     )
     thread.start()
     assert ready.wait(20)
@@ -182,15 +193,24 @@ def test_node_on_demo_recording_recovers_true_joints(zenoh_endpoint, tmp_path):
     first = slice(0, int(np.flatnonzero(np.diff(tb) > 1.0)[0]) + 1)
     template = learn_template(tb[first], qb[first, 1], RepDetectionConfig(excursion=Excursion.INCREASE))
     template_path = tmp_path / "subject.json"  # the template a calibration stores in the subject profile
-    template_path.write_text(json.dumps({"phase_model": {"coordinate": "elbow_flex_r", "template": template.to_dict()}}))
+    template_path.write_text(
+        json.dumps({"phase_model": {"coordinate": "elbow_flex_r", "template": template.to_dict()}})
+    )
 
     received = []
     with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
         session.declare_subscriber(
-            topics.joints_key("kin"), lambda s: received.append(messages.decode("msk.JointAngles", s.payload.to_bytes())))
+            topics.joints_key("kin"),
+            lambda s: received.append(messages.decode("msk.JointAngles", s.payload.to_bytes())),
+        )
         nodes = [
-            _start_node(zenoh_endpoint, pack="bench_press", output_session="kin",
-                        phase_template=kinematics_node.load_template(template_path), phase_coordinate="elbow_flex_r"),
+            _start_node(
+                zenoh_endpoint,
+                pack="bench_press",
+                output_session="kin",
+                phase_template=kinematics_node.load_template(template_path),
+                phase_coordinate="elbow_flex_r",
+            ),
             _start_node(zenoh_endpoint, pack="deadlift", output_session="kin"),
         ]
         replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), DEMO, rate=None, wait_subscribers_s=1.0)
@@ -243,9 +263,11 @@ def test_node_on_demo_recording_recovers_true_joints(zenoh_endpoint, tmp_path):
     tracker = PhaseTracker(template)
     offline = np.nan_to_num(tracker.process(t, true_elbow), nan=-1.0)
     in_rep = phase >= 0
-    print(f"phase: in a rep {in_rep.mean():.2f} of frames (true elbow: {(offline >= 0).mean():.2f}), agreement of "
-          f"in/out {np.mean(in_rep == (offline >= 0)):.3f}, median |diff| "
-          f"{np.median(np.abs(phase - offline)[in_rep & (offline >= 0)]):.4f}; true-elbow reps {tracker.rep_count}")
+    print(
+        f"phase: in a rep {in_rep.mean():.2f} of frames (true elbow: {(offline >= 0).mean():.2f}), agreement of "
+        f"in/out {np.mean(in_rep == (offline >= 0)):.3f}, median |diff| "
+        f"{np.median(np.abs(phase - offline)[in_rep & (offline >= 0)]):.4f}; true-elbow reps {tracker.rep_count}"
+    )
     assert tracker.rep_count == 6 and np.all(phase[in_rep] < 1.0) and np.all(phase[~in_rep] == -1.0)
     assert np.mean(in_rep == (offline >= 0)) > 0.97
     assert np.median(np.abs(phase - offline)[in_rep & (offline >= 0)]) < 0.02
@@ -262,12 +284,23 @@ def test_node_counts_and_names_a_missing_segment(zenoh_endpoint):
         deadline = time.monotonic() + 10
         while not pub.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.01)
-        publish(pub, messages.ImuSample(segment="upper_arm_r", orientation=messages.Quaternion(w=1.0),
-                                        device_time_ns=1, coordinate_frame="XYZ"))
+        publish(
+            pub,
+            messages.ImuSample(
+                segment="upper_arm_r", orientation=messages.Quaternion(w=1.0), device_time_ns=1, coordinate_frame="XYZ"
+            ),
+        )
         for k in range(60):  # one second of the upper arm only: the forearm tracker is off
-            publish(pub, messages.ImuSample(
-                tracker_id="00B40001", segment="upper_arm_r", orientation=messages.Quaternion(w=1.0),
-                device_time_ns=1_000_000_000 + k * 16_666_667, coordinate_frame="ENU"))
+            publish(
+                pub,
+                messages.ImuSample(
+                    tracker_id="00B40001",
+                    segment="upper_arm_r",
+                    orientation=messages.Quaternion(w=1.0),
+                    device_time_ns=1_000_000_000 + k * 16_666_667,
+                    coordinate_frame="ENU",
+                ),
+            )
         deadline = time.monotonic() + 10
         while stats.samples_in < 61 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -312,21 +345,42 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
 
     def ned(q):
         body = mapper.segment_orientations(q)
-        return {s: from_enu((body[s] * Rotation.from_rotvec(m)).as_quat(scalar_first=True), CoordinateFrame.NED)
-                for s, m in mount.items()}
+        return {
+            s: from_enu((body[s] * Rotation.from_rotvec(m)).as_quat(scalar_first=True), CoordinateFrame.NED)
+            for s, m in mount.items()
+        }
 
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.kinematics_node", "--pack", "bench_press", "--session", "cli",
-         "--facing-deg", "90", "--static-pose", "elv_angle_r=60,elbow_flex_r=30", "--listen", zenoh_endpoint],
-        cwd=REPO, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "services.kinematics_node",
+            "--pack",
+            "bench_press",
+            "--session",
+            "cli",
+            "--facing-deg",
+            "90",
+            "--static-pose",
+            "elv_angle_r=60,elbow_flex_r=30",
+            "--listen",
+            zenoh_endpoint,
+        ],
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     received = []
     try:
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
-            session.declare_subscriber(topics.joints_key("cli"),
-                                       lambda s: received.append(messages.decode("msk.JointAngles", s.payload.to_bytes())))
-            pubs = {s: declare_data_publisher(session, topics.imu_key("cli", f"00B4000{i}"), "msk.ImuSample")
-                    for i, s in enumerate(mount)}
+            session.declare_subscriber(
+                topics.joints_key("cli"),
+                lambda s: received.append(messages.decode("msk.JointAngles", s.payload.to_bytes())),
+            )
+            pubs = {
+                s: declare_data_publisher(session, topics.imu_key("cli", f"00B4000{i}"), "msk.ImuSample")
+                for i, s in enumerate(mount)
+            }
             deadline = time.monotonic() + 30
             while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
                 time.sleep(0.05)
@@ -334,8 +388,15 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
                 quats = ned(q0 if k < 31 else q1)
                 for s, pub in pubs.items():
                     w, x, y, z = quats[s]
-                    publish(pub, messages.ImuSample(segment=s, orientation=messages.Quaternion(w=w, x=x, y=y, z=z),
-                                                    device_time_ns=10**9 + k * 16_666_667, coordinate_frame="NED"))
+                    publish(
+                        pub,
+                        messages.ImuSample(
+                            segment=s,
+                            orientation=messages.Quaternion(w=w, x=x, y=y, z=z),
+                            device_time_ns=10**9 + k * 16_666_667,
+                            coordinate_frame="NED",
+                        ),
+                    )
             deadline = time.monotonic() + 20
             while len(received) < 89 and time.monotonic() < deadline:
                 time.sleep(0.05)
@@ -357,14 +418,17 @@ def test_streaming_recalibrates_after_a_gap_and_counts_bad_and_moving_static_fra
     pack = load_pack("deadlift")
     mapper = ImuJointMapper.for_pack(pack, heading_rad=np.pi / 2)
     q0 = mapper.static_pose()
-    live = StreamingJointKinematics(mapper, static_pose_rad=q0, static_s=0.2, gap_s=1.0,
-                                    filter_config=KinematicsFilterConfig(dt=1 / 60))
+    live = StreamingJointKinematics(
+        mapper, static_pose_rad=q0, static_s=0.2, gap_s=1.0, filter_config=KinematicsFilterConfig(dt=1 / 60)
+    )
 
     def frame(k, q, mount_seed, t0=0):
         body = mapper.segment_orientations(q)
         mounts = Rotation.from_rotvec(np.random.default_rng(mount_seed).normal(0.0, 0.3, (len(mapper.segments), 3)))
-        return SyncedFrame(t0 + k * 16_666_667, {s: (body[s] * mounts[i]).as_quat(scalar_first=True)
-                                                 for i, s in enumerate(mapper.segments)})
+        return SyncedFrame(
+            t0 + k * 16_666_667,
+            {s: (body[s] * mounts[i]).as_quat(scalar_first=True) for i, s in enumerate(mapper.segments)},
+        )
 
     bent = q0 + np.radians([-2.0, 40.0, 10.0, 3.0])
     # the subject moves through the first static window: calibration fails, is counted, and retried
@@ -394,8 +458,10 @@ def test_host_clock_syncs_trackers_whose_device_clocks_differ(zenoh_endpoint, cl
     rng = np.random.default_rng(3)
     with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
         thread, stop, stats = _start_node(zenoh_endpoint, pack="bench_press", clock=clock)
-        pubs = {seg: declare_data_publisher(session, topics.imu_key("synth", seg), "msk.ImuSample")
-                for seg in ("upper_arm_r", "forearm_r")}
+        pubs = {
+            seg: declare_data_publisher(session, topics.imu_key("synth", seg), "msk.ImuSample")
+            for seg in ("upper_arm_r", "forearm_r")
+        }
         deadline = time.monotonic() + 10
         while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -404,9 +470,17 @@ def test_host_clock_syncs_trackers_whose_device_clocks_differ(zenoh_endpoint, cl
         for k in range(n):
             for seg, pub in pubs.items():
                 host = host0 + k * period + int(rng.integers(0, 3_000_000))  # delivery jitter up to 3 ms
-                publish(pub, messages.ImuSample(
-                    tracker_id=seg, segment=seg, orientation=messages.Quaternion(w=1.0), coordinate_frame="ENU",
-                    device_time_ns=power_up[seg] + k * period, host_time_ns=host))
+                publish(
+                    pub,
+                    messages.ImuSample(
+                        tracker_id=seg,
+                        segment=seg,
+                        orientation=messages.Quaternion(w=1.0),
+                        coordinate_frame="ENU",
+                        device_time_ns=power_up[seg] + k * period,
+                        host_time_ns=host,
+                    ),
+                )
         deadline = time.monotonic() + 10
         while stats.samples_in < 2 * n and time.monotonic() < deadline:
             time.sleep(0.05)

@@ -49,7 +49,7 @@ def test_msk_core_has_no_import_cycles():
         state[node] = 1
         for dep in sorted(graph[node]):
             if state.get(dep) == 1:
-                cycles.append(stack[stack.index(dep):] + [dep])
+                cycles.append(stack[stack.index(dep) :] + [dep])
             elif dep not in state:
                 visit(dep, stack + [dep])
         state[node] = 2
@@ -66,8 +66,11 @@ def test_msk_core_imports_no_io_or_presentation_framework_and_drivers_stand_alon
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
     for path in (ROOT / "drivers").rglob("*.py"):
         # the shared exception hierarchy and physical constants (two leaf modules) are what drivers take from msk_core
-        bad = {m for m in _imports(path) if m.split(".")[0] in ("services", "msk_core")
-               and not m.startswith(DRIVERS_MAY_IMPORT)}
+        bad = {
+            m
+            for m in _imports(path)
+            if m.split(".")[0] in ("services", "msk_core") and not m.startswith(DRIVERS_MAY_IMPORT)
+        }
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 
@@ -86,8 +89,9 @@ def test_one_gravity():
         for path in (ROOT / package).rglob("*.py"):
             where = str(path.relative_to(ROOT))
             for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-                if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "GRAVITY"
-                                                        for t in node.targets):
+                if isinstance(node, ast.Assign) and any(
+                    isinstance(t, ast.Name) and t.id == "GRAVITY" for t in node.targets
+                ):
                     definitions.append(f"{where}:{node.lineno}")
                 elif isinstance(node, ast.Constant) and node.value == 9.81 and where != "msk_core/units.py":
                     literals.append(f"{where}:{node.lineno}")

@@ -23,8 +23,10 @@ ACTIVATION_RMS_DIFF = 1e-4
 
 
 def _heavier_trial(repo_root, exercise):
-    folders = sorted((repo_root / "recordings" / "demo" / exercise).glob(f"{exercise}_*kg"),
-                     key=lambda p: float(p.name.rsplit("_", 1)[1].removesuffix("kg")))
+    folders = sorted(
+        (repo_root / "recordings" / "demo" / exercise).glob(f"{exercise}_*kg"),
+        key=lambda p: float(p.name.rsplit("_", 1)[1].removesuffix("kg")),
+    )
     return folders[-1] / "trial.toml"
 
 
@@ -39,8 +41,9 @@ def test_compiled_dynamics_equal_pinocchio_on_the_demo_session(demo):
     compiled = load_pack(pack.name, evaluator=Evaluator.COMPILED)
     hand = trial.hand_load_newton
     tau_pin = np.array([pack.inverse_dynamics(q, qd, qdd, hand) for q, qd, qdd in zip(trial.q, trial.qd, trial.qdd)])
-    tau_numba = np.array([compiled.inverse_dynamics(q, qd, qdd, hand)
-                          for q, qd, qdd in zip(trial.q, trial.qd, trial.qdd)])
+    tau_numba = np.array(
+        [compiled.inverse_dynamics(q, qd, qdd, hand) for q, qd, qdd in zip(trial.q, trial.qd, trial.qdd)]
+    )
     scale = np.abs(tau_pin).max()
     assert scale > 10.0  # a real lift, not a resting pose
     assert np.abs(tau_numba - tau_pin).max() <= TORQUE_RTOL * scale
@@ -51,7 +54,9 @@ def test_compiled_dynamics_equal_pinocchio_on_the_demo_session(demo):
 
 def _run(pack, trial, method, prior, hot_start):
     est = FrameEstimator(pack, method=method, prior=prior, hot_start=hot_start)
-    results = [est.step(trial.q[i], torques=trial.torques[i], phase=trial_phase(trial, i)) for i in range(trial.n_frames)]
+    results = [
+        est.step(trial.q[i], torques=trial.torques[i], phase=trial_phase(trial, i)) for i in range(trial.n_frames)
+    ]
     return np.array([r.activations for r in results]), [r.status for r in results], est.solver_counts
 
 

@@ -20,7 +20,13 @@ from services.live_session import check_against_pack, load_session_file, parse_s
 
 REPO = Path(__file__).resolve().parents[1]
 GOOD = {
-    "session": {"name": "gym", "pack": "bench_press", "load_kg": 60, "subject": "subject.json", "methods": ["proposed", "so"]},
+    "session": {
+        "name": "gym",
+        "pack": "bench_press",
+        "load_kg": 60,
+        "subject": "subject.json",
+        "methods": ["proposed", "so"],
+    },
     "trigno": {"host": "192.168.1.20"},
     "xsens": {"ports": ["usb"], "rate_hz": 100},
     "trackers": {"00B4EB80": "upper_arm_r", "00B497B2": "forearm_r"},
@@ -52,7 +58,10 @@ def _toml(doc: dict) -> str:
             return "[" + ", ".join(value(x) for x in v) + "]"
         return str(v)
 
-    return "\n".join(f"[{s}]\n" + "\n".join(f"{json.dumps(k)} = {value(v)}" for k, v in t.items()) for s, t in doc.items()) + "\n"
+    return (
+        "\n".join(f"[{s}]\n" + "\n".join(f"{json.dumps(k)} = {value(v)}" for k, v in t.items()) for s, t in doc.items())
+        + "\n"
+    )
 
 
 def test_a_good_session_file_parses_with_paths_resolved(tmp_path):
@@ -60,7 +69,12 @@ def test_a_good_session_file_parses_with_paths_resolved(tmp_path):
     path = tmp_path / "session.toml"
     path.write_text(_toml(GOOD))
     session = load_session_file(path)
-    assert (session.name, session.pack, session.load_kg, session.methods) == ("gym", "bench_press", 60.0, ("proposed", "so"))
+    assert (session.name, session.pack, session.load_kg, session.methods) == (
+        "gym",
+        "bench_press",
+        60.0,
+        ("proposed", "so"),
+    )
     assert session.subject == tmp_path / "subject.json" and session.out == Path("out/live")  # default: cwd-relative
     assert session.trigno_host == "192.168.1.20" and session.xsens_ports == ("usb",) and session.imu_rate_hz == 100
     assert session.trackers == {"00B4EB80": "upper_arm_r", "00B497B2": "forearm_r"}
@@ -112,9 +126,14 @@ def test_maps_must_name_the_packs_segments_and_the_profiles_electrodes():
 
 def test_cli_reports_a_bad_session_file_without_a_traceback(tmp_path):
     path = tmp_path / "session.toml"
-    path.write_text("[session]\npack = \"bench_press\"\nload_kg = \"heavy\"\n")
-    result = subprocess.run([sys.executable, "-m", "services.cli", "live", str(path), "--no-view"], cwd=REPO,
-                            capture_output=True, text=True, timeout=60)
+    path.write_text('[session]\npack = "bench_press"\nload_kg = "heavy"\n')
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "live", str(path), "--no-view"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert "session.load_kg" in result.stderr and "heavy" in result.stderr and str(path) in result.stderr
 
@@ -129,14 +148,21 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "120", "--out", str(out)],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
     )
     lines: list[str] = []
     try:
         deadline = time.monotonic() + STARTUP_S
         while not any("live session" in line and "running" in line for line in lines):
             left = deadline - time.monotonic()
-            assert left > 0 and process.poll() is None, f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines)
+            assert left > 0 and process.poll() is None, (
+                f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines)
+            )
             ready, _, _ = select.select([process.stdout], [], [], min(left, 1.0))
             if ready:
                 lines.append(process.stdout.readline())
@@ -154,7 +180,7 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
     pids = json.loads((out / "logs" / "pids.json").read_text())
     assert set(pids) == {"recorder", "estimator", "kinematics", "drivers-trigno", "drivers-xsens"}
-    for node, pid in pids.items():  # every node process ended with msk live
+    for pid in pids.values():  # every node process ended with msk live
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
 
@@ -208,15 +234,21 @@ def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp
 
     profile = {"f_max": [], "emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}
     (tmp_path / "subject.json").write_text(json.dumps(profile))
-    doc = _doc(session__out="rec", trigno={"host": "10.0.0.5:50040", "emg_port": 50041},
-               xsens={"ports": ["/dev/ttyUSB0", "usb"], "rate_hz": 60},
-               electrodes={"sensor01.EMG": "PMCla", "sensor02.EMG": "BRA"})  # BRA: a group
+    doc = _doc(
+        session__out="rec",
+        trigno={"host": "10.0.0.5:50040", "emg_port": 50041},
+        xsens={"ports": ["/dev/ttyUSB0", "usb"], "rate_hz": 60},
+        electrodes={"sensor01.EMG": "PMCla", "sensor02.EMG": "BRA"},
+    )  # BRA: a group
     path = tmp_path / "session.toml"
     path.write_text(_toml(doc))
     plan, simulators = live.plan_for(load_session_file(path), sim=False, log=lambda *_: None)
     assert simulators is None and plan.methods == ("proposed", "so")
     trigno = live.driver_argv(plan, "trigno")
-    assert trigno[trigno.index("--trigno") + 1] == "10.0.0.5:50040" and trigno[trigno.index("--trigno-emg-port") + 1] == "50041"
+    assert (
+        trigno[trigno.index("--trigno") + 1] == "10.0.0.5:50040"
+        and trigno[trigno.index("--trigno-emg-port") + 1] == "50041"
+    )
     xsens = live.driver_argv(plan, "xsens")
     assert [xsens[i + 1] for i, a in enumerate(xsens) if a == "--xsens"] == ["/dev/ttyUSB0", "usb"]
     assert xsens[xsens.index("--imu-rate") + 1] == "60"

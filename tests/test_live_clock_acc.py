@@ -63,8 +63,9 @@ def live_run(tmp_path_factory):
 
         real_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
         try:
-            summary = live.run_graph(plan, duration_s=RUN_S, view=False, endpoint=free_loopback_endpoint(), log=print,
-                                     simulators=simulators)
+            summary = live.run_graph(
+                plan, duration_s=RUN_S, view=False, endpoint=free_loopback_endpoint(), log=print, simulators=simulators
+            )
         finally:
             simulators.close()
     assert plan.trigno_latency_ms == 0.0 and simulators.trigno.stats.latency_s == TRIGNO_LATENCY_S
@@ -88,15 +89,19 @@ def test_the_estimator_maps_the_emg_by_the_accelerations_and_reports_the_arrival
     for tracker in plan.trackers:
         alignment = emg["alignments"][f"imu/{tracker}"]
         error_ms = alignment["device_offset_ms"] - truth[f"offset/{tracker}"] / 1e6
-        print(f"imu/{tracker}: {alignment['status']}, EMG-vs-tracker offset {error_ms:+.3f} ms from the truth, r "
-              f"{alignment['peak_correlation']}, sensor {alignment['sensor']}, {alignment['windows']} window(s)")
+        print(
+            f"imu/{tracker}: {alignment['status']}, EMG-vs-tracker offset {error_ms:+.3f} ms from the truth, r "
+            f"{alignment['peak_correlation']}, sensor {alignment['sensor']}, {alignment['windows']} window(s)"
+        )
         assert alignment["status"] == "locked" and abs(error_ms) <= TOLERANCE_MS, alignment
     # the applied mapping puts an EMG sample where it was measured; the arrival mapping it replaced would have put
     # it the unstated latency later (plus up to the fastest delivery's excess), and the summary says by how much
     applied_error_ms = emg["offset_ms"] - truth["emg/trigno"] / 1e6
     arrival_error_ms = emg["arrival_offset_ms"] - truth["emg/trigno"] / 1e6
-    print(f"EMG mapping error: applied {applied_error_ms:+.2f} ms, arrival {arrival_error_ms:+.2f} ms (reported "
-          f"{emg['arrival_error_ms']:+.2f} ms beside it)")
+    print(
+        f"EMG mapping error: applied {applied_error_ms:+.2f} ms, arrival {arrival_error_ms:+.2f} ms (reported "
+        f"{emg['arrival_error_ms']:+.2f} ms beside it)"
+    )
     assert abs(applied_error_ms) <= TOLERANCE_MS, applied_error_ms
     assert TRIGNO_LATENCY_S * 1e3 - 2 < arrival_error_ms < TRIGNO_LATENCY_S * 1e3 + 15, arrival_error_ms
     assert emg["arrival_error_ms"] == pytest.approx(arrival_error_ms - applied_error_ms, abs=0.01)
@@ -110,15 +115,20 @@ def test_the_live_measured_envelope_lines_up_with_the_motion_once_aligned(live_r
     summary, plan, _ = live_run
     recordings = [Path(p) for p in summary["recordings"]]
     statuses = _statuses(summary)
-    locked_ns = min(s.host_time_ns for s in statuses for c in s.clocks
-                    if c.source == "emg/trigno" and c.method == "acceleration")
+    locked_ns = min(
+        s.host_time_ns for s in statuses for c in s.clocks if c.source == "emg/trigno" and c.method == "acceleration"
+    )
     sources = live.sim_sources(live.RECORDINGS / "demo_session.mcap", plan.exercise)
     rate = sources.emg.rate_hz
     emg, raw, labels = emg_stream(recordings, sources.emg.samples, rate)
     loop_s = sources.emg.n_samples / rate
     trackers = {t: unwrap_to(s, emg, loop_s) for t, s in imu_streams(recordings, sources.imu, loop_s).items()}
-    frames = [f for part in recordings for m in read_messages(part) if m.type_name == "msk.ActivationFrame"
-              and (f := m.decode()).input_arrival_ns > locked_ns + AFTER_LOCK_S * 1e9]
+    frames = [
+        f
+        for part in recordings
+        for m in read_messages(part)
+        if m.type_name == "msk.ActivationFrame" and (f := m.decode()).input_arrival_ns > locked_ns + AFTER_LOCK_S * 1e9
+    ]
     frames_ns = np.array([round(f.time_s * 1e9) for f in frames], np.int64)
     frame_trial_s, _ = frame_trial_instants(frames_ns, trackers)
     inside = (frame_trial_s - MAX_LAG_S > emg.trial_s[0]) & (frame_trial_s + MAX_LAG_S < emg.trial_s[-1])
@@ -129,14 +139,17 @@ def test_the_live_measured_envelope_lines_up_with_the_motion_once_aligned(live_r
     results = {}
     for group, envelope in offline.items():
         measured = np.array([f.measured_envelope[groups.index(group)] for f in frames])
-        usable = inside & np.isfinite(measured) & np.array([not {FLAG_GAP, FLAG_STALLED} & set(f.flags)
-                                                            for f in frames])
+        usable = (
+            inside & np.isfinite(measured) & np.array([not {FLAG_GAP, FLAG_STALLED} & set(f.flags) for f in frames])
+        )
         assert usable.sum() > 0.9 * inside.sum(), (group, usable.sum(), inside.sum())
         lag_s, correlation = peak_lag(measured[usable], frame_trial_s[usable], emg.trial_s, envelope)
         results[group] = (lag_s + setup.emd_s, correlation)
     report = "; ".join(f"{g} {lag * 1e3:+.1f} ms (r {r:.4f})" for g, (lag, r) in results.items())
-    print(f"\nlocked {(locked_ns - statuses[0].host_time_ns) / 1e9:.1f} s after the estimator's first status; "
-          f"{inside.sum()} frames after the lock; EMG read minus the frame's instant, per group: {report}")
+    print(
+        f"\nlocked {(locked_ns - statuses[0].host_time_ns) / 1e9:.1f} s after the estimator's first status; "
+        f"{inside.sum()} frames after the lock; EMG read minus the frame's instant, per group: {report}"
+    )
     assert results and all(abs(lag) <= FRAME_S for lag, _ in results.values()), report
     assert all(r > 0.98 for _, r in results.values()), report
 
@@ -145,10 +158,22 @@ def test_the_recording_replayed_through_an_estimator_gives_the_live_alignment(li
     """The accelerations, the trackers' samples and the EMG are recorded with their receipt times: an estimator fed
     the recording in its order measures the offsets the live one reported last."""
     summary, plan, _ = live_run
-    node = EstimatorNode(plan.session.pack, ["so"], SubjectProfile.load(plan.subject), EstimatorStats(), emg=True,
-                         electrode_map=None, emg_clock="host", emg_stall_s=3600.0, initial_load_kg=0.0, exercise=None,
-                         solver="active-set", joints_clock="host", emg_latency_ns={"trigno": 0},
-                         emg_align="acceleration")
+    node = EstimatorNode(
+        plan.session.pack,
+        ["so"],
+        SubjectProfile.load(plan.subject),
+        EstimatorStats(),
+        emg=True,
+        electrode_map=None,
+        emg_clock="host",
+        emg_stall_s=3600.0,
+        initial_load_kg=0.0,
+        exercise=None,
+        solver="active-set",
+        joints_clock="host",
+        emg_latency_ns={"trigno": 0},
+        emg_align="acceleration",
+    )
     for part in summary["recordings"]:
         for m in read_messages(Path(part)):
             if m.type_name == "msk.EmgChunk":
@@ -169,5 +194,9 @@ def test_the_recording_replayed_through_an_estimator_gives_the_live_alignment(li
 
 def _statuses(summary) -> list:
     """The estimator's status messages of the session, in order."""
-    return [s for part in summary["recordings"] for m in read_messages(Path(part))
-            if m.type_name == "msk.DeviceStatus" and (s := m.decode()).kind == "node" and s.device_id == "estimator"]
+    return [
+        s
+        for part in summary["recordings"]
+        for m in read_messages(Path(part))
+        if m.type_name == "msk.DeviceStatus" and (s := m.decode()).kind == "node" and s.device_id == "estimator"
+    ]

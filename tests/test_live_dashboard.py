@@ -20,8 +20,15 @@ FACTS = "() => ['exercise', 'load', 'set'].map(id => document.getElementById(id)
 
 
 def _dashboard(port: int, env: dict) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", "dashboard", "--port", str(port)], cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "dashboard", "--port", str(port)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
 
 
 def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
@@ -61,8 +68,9 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
                 time.sleep(0.2)
                 rows = page.evaluate(ROWS)
             first_reps = int(page.inner_text("#reps"))
-            page.wait_for_function(f"() => Number(document.getElementById('reps').textContent) > {first_reps}",
-                                   timeout=30000)  # the rep counter moves
+            page.wait_for_function(
+                f"() => Number(document.getElementById('reps').textContent) > {first_reps}", timeout=30000
+            )  # the rep counter moves
             page.screenshot(path=str(ARTIFACTS / "live-dashboard.png"))
             printed = _msk("subscribe", "msk/sim/activations/*", "--count", "2", env=env)
             assert printed.returncode == 0 and printed.stdout.count("msk.ActivationFrame") == 2, printed.stderr

@@ -22,12 +22,19 @@ from services import live
 from services.live_session import load_session_file
 from services.mcap_io import read_messages
 
-FAULTS = (SensorFault(2, FaultKind.LIFT_OFF, 2.0, 4.5), SensorFault(5, FaultKind.HUM, 3.0, 5.5),
-          SensorFault(9, FaultKind.SATURATION, 4.0, 6.5), SensorFault(4, FaultKind.FLAT, 5.0, 7.5))
+FAULTS = (
+    SensorFault(2, FaultKind.LIFT_OFF, 2.0, 4.5),
+    SensorFault(5, FaultKind.HUM, 3.0, 5.5),
+    SensorFault(9, FaultKind.SATURATION, 4.0, 6.5),
+    SensorFault(4, FaultKind.FLAT, 5.0, 7.5),
+)
 RUN_S = 11.0  # the EMG streams from ~0.3 s after the start: every fault has ended and cleared before the stop
-REASONS = {FaultKind.LIFT_OFF: {"contact: low-frequency artefact", "contact: no signal above the noise floor"},
-           FaultKind.HUM: {"mains interference"}, FaultKind.SATURATION: {"saturation"},
-           FaultKind.FLAT: {"flat line"}}
+REASONS = {
+    FaultKind.LIFT_OFF: {"contact: low-frequency artefact", "contact: no signal above the noise floor"},
+    FaultKind.HUM: {"mains interference"},
+    FaultKind.SATURATION: {"saturation"},
+    FaultKind.FLAT: {"flat line"},
+}
 WITHIN_S = 1.0
 MARGIN_S = 0.1  # a frame's EMG instant this far inside (outside) a bad stretch: chunks, the clock mapping, the wait
 
@@ -47,8 +54,9 @@ def live_run(tmp_path_factory):
     session = load_session_file(path, require_devices=False)
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("MSK_SESSIONS_DIR", str(tmp / "sessions"))
-        summary = live.main(session, sim=True, duration_s=RUN_S, view=False, listen=free_loopback_endpoint(),
-                            sim_faults=FAULTS)
+        summary = live.main(
+            session, sim=True, duration_s=RUN_S, view=False, listen=free_loopback_endpoint(), sim_faults=FAULTS
+        )
     assert json.loads((session.out / "summary.json").read_text())["electrodes"] == summary["electrodes"]
     statuses, frames = [], []
     for part in summary["recordings"]:
@@ -67,14 +75,19 @@ def test_each_fault_is_flagged_on_its_electrode_and_no_clean_one_is(live_run):
     assert len(electrodes) == 10, list(electrodes)
     assert summary["simulators_sent"]["trigno"]["faults"] == [f.describe() for f in FAULTS]
     faulty = {channel(f): f for f in FAULTS}
-    false_alarms = {name: e["recent_episodes"] for name, e in electrodes.items() if name not in faulty and e["episodes"]}
+    false_alarms = {
+        name: e["recent_episodes"] for name, e in electrodes.items() if name not in faulty and e["episodes"]
+    }
     assert not false_alarms, f"{len(false_alarms)} clean electrodes flagged: {false_alarms}"
     for name, fault in faulty.items():
         e = electrodes[name]
         assert e["episodes"] == 1, (name, e["recent_episodes"])
         episode = e["recent_episodes"][0]
         assert fault.start_s < episode["start_s"] <= fault.start_s + WITHIN_S, (name, episode)
-        assert episode["end_s"] is not None and fault.end_s < episode["end_s"] <= fault.end_s + WITHIN_S, (name, episode)
+        assert episode["end_s"] is not None and fault.end_s < episode["end_s"] <= fault.end_s + WITHIN_S, (
+            name,
+            episode,
+        )
         assert episode["worst"] == "bad" and set(episode["reasons"]) <= REASONS[fault.kind], (name, episode)
         assert e["state"] == "good" and e["bad_s"] > 0.5 * (fault.end_s - fault.start_s), (name, e)
     text = live.summary_text(summary)
@@ -103,12 +116,16 @@ def test_the_status_says_each_change_as_it_happens(live_run):
     assert set(stretches) == {channel(f) for f in FAULTS}, stretches
     offset_s = summary["clocks"]["emg/trigno"]["offset_ms"] / 1e3  # EMG device time + offset = host instant
     for fault in FAULTS:
-        (start, end), = stretches[channel(fault)]
+        ((start, end),) = stretches[channel(fault)]
         assert fault.start_s < start <= fault.start_s + WITHIN_S and fault.end_s < end <= fault.end_s + WITHIN_S
         # the first status that names the fault is recorded soon after the verdict (published at once, not with
         # the next periodic status, 1 s apart)
-        first = min(t for t, status in statuses for e in status.electrodes
-                    if f"{e.source}/{e.channel}" == channel(fault) and e.reasons)
+        first = min(
+            t
+            for t, status in statuses
+            for e in status.electrodes
+            if f"{e.source}/{e.channel}" == channel(fault) and e.reasons
+        )
         episode_start = summary["electrodes"][channel(fault)]["recent_episodes"][0]["start_s"]
         delay = first / 1e9 - (episode_start + offset_s)
         assert -0.05 < delay < 0.5, (channel(fault), delay)
@@ -140,8 +157,9 @@ def test_assisted_frames_leave_a_bad_electrode_out_and_say_so(live_run):
             continue
         emg_s = frame.time_s - emd_s - offsets[k]  # the EMG instant the frame read, on the EMG device clock
         envelope = dict(zip(groups, frame.measured_envelope))
-        bad_now = [name for name, spans in stretches.items()
-                   if any(a + MARGIN_S <= emg_s <= b - MARGIN_S for a, b in spans)]
+        bad_now = [
+            name for name, spans in stretches.items() if any(a + MARGIN_S <= emg_s <= b - MARGIN_S for a, b in spans)
+        ]
         near_bad = any(a - MARGIN_S <= emg_s <= b + MARGIN_S for spans in stretches.values() for a, b in spans)
         for name in bad_now:
             group = summary["electrodes"][name]["group"]

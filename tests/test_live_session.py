@@ -80,8 +80,13 @@ def test_a_pack_file_is_resolved_against_the_session_file_and_a_missing_one_refu
 
 def test_the_cli_refuses_an_unknown_pack_before_starting_anything(tmp_path):
     path = _write(tmp_path, GOOD.replace('pack = "bench_press"', 'pack = "squat"'))
-    result = subprocess.run([sys.executable, "-m", "services.cli", "live", str(path), "--no-view"], cwd=REPO,
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "live", str(path), "--no-view"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert str(path) in result.stderr and "session.pack" in result.stderr and "deadlift" in result.stderr, result.stderr
     assert not (tmp_path / "out").exists() and "running" not in result.stdout
@@ -90,9 +95,23 @@ def test_the_cli_refuses_an_unknown_pack_before_starting_anything(tmp_path):
 # ------------------------------------------------------------------------------------------------ electrodes.<label>
 
 
-@pytest.mark.parametrize("label", ["sensor1.EMG", "sensor17.EMG", "sensor00.EMG", "sensor01.emg", "Sensor01.EMG",
-                                   "sensor01.EMG0", "sensor01.EMG17", "sensor01.ACC", "sensor01.AUX", "sensor01",
-                                   "PMCla", "sensor01.EMG "])
+@pytest.mark.parametrize(
+    "label",
+    [
+        "sensor1.EMG",
+        "sensor17.EMG",
+        "sensor00.EMG",
+        "sensor01.emg",
+        "Sensor01.EMG",
+        "sensor01.EMG0",
+        "sensor01.EMG17",
+        "sensor01.ACC",
+        "sensor01.AUX",
+        "sensor01",
+        "PMCla",
+        "sensor01.EMG ",
+    ],
+)
 def test_an_electrode_key_the_trigno_does_not_publish_is_refused_with_the_valid_form(tmp_path, label):
     path = _write(tmp_path, GOOD + f'"{label}" = "DelAnt"\n')
     message = _refusal(path)
@@ -116,19 +135,31 @@ def test_every_label_the_trigno_driver_publishes_is_accepted(tmp_path):
     from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
     from drivers.trigno.source import EmgSource
 
-    source = EmgSource(np.zeros((400, 16), dtype=np.float32), 2000.0, tuple(f"m{k}" for k in range(16)), (True,) * 16, "test")
-    simulator = TrignoSimulator(source, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None)).start()
+    source = EmgSource(
+        np.zeros((400, 16), dtype=np.float32), 2000.0, tuple(f"m{k}" for k in range(16)), (True,) * 16, "test"
+    )
+    simulator = TrignoSimulator(
+        source, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None)
+    ).start()
     try:
-        client = TrignoClient(TrignoConfig(host="127.0.0.1", command_port=simulator.ports["command"],
-                                           emg_port=simulator.ports["emg"], emg_port_fallback=0))
+        client = TrignoClient(
+            TrignoConfig(
+                host="127.0.0.1",
+                command_port=simulator.ports["command"],
+                emg_port=simulator.ports["emg"],
+                emg_port_fallback=0,
+            )
+        )
         with client:
             from_simulator = _published_labels(client)
     finally:
         simulator.close()
     assert len(from_simulator) == 16 and from_simulator[0] == "sensor01.EMG", from_simulator
     multi = TrignoClient(TrignoConfig())
-    multi.sensors = (SensorInfo(3, True, start_index=2, active=True, emg_channels=4),
-                     SensorInfo(16, True, start_index=15, active=True))
+    multi.sensors = (
+        SensorInfo(3, True, start_index=2, active=True, emg_channels=4),
+        SensorInfo(16, True, start_index=15, active=True),
+    )
     from_multi = _published_labels(multi)
     assert from_multi == ["sensor03.EMG1", "sensor03.EMG2", "sensor03.EMG3", "sensor03.EMG4", "sensor16.EMG"]
     fallback = _published_labels(TrignoClient(TrignoConfig()))
@@ -161,15 +192,17 @@ def test_the_session_files_names_override_the_packs_and_reach_the_session_facts(
     from services.live_session import session_names
 
     names = '\n[names]\nPMCla = "Upper chest"\nelbow_flex_r = "Elbow bend"\n'
-    path = _write(tmp_path, GOOD.replace('load_kg = 60', 'load_kg = 60\nout = "out"') + names)
+    path = _write(tmp_path, GOOD.replace("load_kg = 60", 'load_kg = 60\nout = "out"') + names)
     plan, _ = plan_for(load_session_file(path), sim=False, log=lambda *_: None)
     assert plan.names == {"PMCla": "Upper chest", "elbow_flex_r": "Elbow bend"}
     event = SessionFacts(exercise=plan.exercise, load_kg=60, names=plan.names).message()
     assert dict(event.names) == plan.names  # on the wire: every surface shows them
     bench = pack_display_names("bench_press")
-    for table, field, message in (('PMCl = "Upper chest"', "names.PMCl", "closest: PMCla"),
-                                  ("PMCla = 3", "names.PMCla", "must be a display name"),
-                                  ('PMCla = "Upper\\nchest"', "names.PMCla", "one line of printable text")):
+    for table, field, message in (
+        ('PMCl = "Upper chest"', "names.PMCl", "closest: PMCla"),
+        ("PMCla = 3", "names.PMCla", "must be a display name"),
+        ('PMCla = "Upper\\nchest"', "names.PMCla", "one line of printable text"),
+    ):
         path.write_text(GOOD + "\n[names]\n" + table + "\n")
         with pytest.raises(ConfigError) as error:
             session_names(load_session_file(path), bench)
@@ -246,11 +279,20 @@ def test_msk_live_exits_3_naming_the_node_that_failed_and_why(tmp_path, calibrat
     (tmp_path / "subject.json").write_text(subject.read_text())
     port = _closed_port()
     path = tmp_path / "session.toml"
-    path.write_text(GOOD.replace('host = "192.168.1.20"', f'host = "127.0.0.1:{port}"')
-                    .replace('name = "gym"', 'name = "gym-fail"\nout = "out"\nmethods = ["proposed"]'))
+    path.write_text(
+        GOOD.replace('host = "192.168.1.20"', f'host = "127.0.0.1:{port}"').replace(
+            'name = "gym"', 'name = "gym-fail"\nout = "out"\nmethods = ["proposed"]'
+        )
+    )
     started = time.monotonic()
-    result = subprocess.run([sys.executable, "-m", "services.cli", "live", str(path), "--no-view", "--duration", "100"],
-                            cwd=REPO, env=env, capture_output=True, text=True, timeout=150)
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "live", str(path), "--no-view", "--duration", "100"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
     elapsed = time.monotonic() - started
     out = tmp_path / "out"
     assert result.returncode == EXIT_NODE_FAILED, result.stdout + result.stderr
@@ -258,8 +300,11 @@ def test_msk_live_exits_3_naming_the_node_that_failed_and_why(tmp_path, calibrat
     summary = json.loads((out / "summary.json").read_text())
     assert summary["exit_codes"]["drivers-trigno"] == 2, summary
     # the nodes msk live stopped itself (SIGINT) exit 0: they are not reported
-    assert {n: c for n, c in summary["exit_codes"].items() if n != "drivers-trigno"} == \
-        {"kinematics": 0, "estimator": 0, "recorder": 0}, summary
+    assert {n: c for n, c in summary["exit_codes"].items() if n != "drivers-trigno"} == {
+        "kinematics": 0,
+        "estimator": 0,
+        "recorder": 0,
+    }, summary
     errors = [line for line in result.stderr.splitlines() if line.startswith("msk live: error:")]
     assert len(errors) == 1 and "node drivers-trigno failed" in errors[0], result.stderr
     assert "exited with code 2" in errors[0] and str(out / "logs" / "drivers-trigno.log") in errors[0], result.stderr
@@ -270,16 +315,26 @@ def test_msk_live_exits_3_naming_the_node_that_failed_and_why(tmp_path, calibrat
 def test_msk_live_exits_0_after_a_clean_stop_by_sigterm(tmp_path, calibrated):
     _, env = calibrated
     out = tmp_path / "live"
-    process = subprocess.Popen([sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "100",
-                                "--out", str(out)], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                               text=True, start_new_session=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "100", "--out", str(out)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(process.stdout), daemon=True)  # every line as it comes
     reader.start()
     try:
         deadline = time.monotonic() + 120
-        while not any("running" in line and "recording to" in line for line in list(lines)):  # the stop handlers are set
-            assert time.monotonic() < deadline and process.poll() is None, "msk live --sim did not start:\n" + "".join(lines)
+        while not any(
+            "running" in line and "recording to" in line for line in list(lines)
+        ):  # the stop handlers are set
+            assert time.monotonic() < deadline and process.poll() is None, "msk live --sim did not start:\n" + "".join(
+                lines
+            )
             time.sleep(0.1)
         time.sleep(2.0)
         process.send_signal(signal.SIGTERM)  # to msk live alone, as a service manager does

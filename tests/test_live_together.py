@@ -25,8 +25,14 @@ SESSION = "sim"
 
 
 def _msk(*argv: str, env: dict, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 class LiveProcess:
@@ -36,16 +42,34 @@ class LiveProcess:
         self.out = out
         self.lines: list[str] = []
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "150", "--out", str(out),
-             *extra],
-            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "live",
+                "--sim",
+                "--no-view",
+                "--duration",
+                "150",
+                "--out",
+                str(out),
+                *extra,
+            ],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
 
     def wait_running(self) -> str:
         deadline = time.monotonic() + STARTUP_S
         while not any("live session" in line and "running" in line for line in self.lines):
             left = deadline - time.monotonic()
             assert left > 0 and self.process.poll() is None, (
-                f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(self.lines))
+                f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(self.lines)
+            )
             ready, _, _ = select.select([self.process.stdout], [], [], min(left, 1.0))
             if ready:
                 self.lines.append(self.process.stdout.readline())
@@ -72,8 +96,12 @@ class LiveProcess:
 
 def _environment(tmp_path: Path) -> dict:
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")  # the calibrated bundled subject
-    return {**os.environ, "XDG_CACHE_HOME": str(cache), "MSK_SESSIONS_DIR": str(tmp_path / "sessions"),
-            "PYTHONUNBUFFERED": "1"}
+    return {
+        **os.environ,
+        "XDG_CACHE_HOME": str(cache),
+        "MSK_SESSIONS_DIR": str(tmp_path / "sessions"),
+        "PYTHONUNBUFFERED": "1",
+    }
 
 
 def _bad_payloads() -> list[tuple[str, bytes, str | None]]:
@@ -172,9 +200,10 @@ def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
         tablet = security.client_config(pki, "tablet", connect=tuple(info["connect"]))
         (tmp_path / "tablet.json5").write_text(json.dumps(tablet))
         with open_session(ZenohOptions(mode=None, config_file=tmp_path / "tablet.json5")) as session:
-            subscribers = [session.declare_subscriber(f"msk/{SESSION}/{topic}",
-                                                      lambda s, t=topic: received.update([t]))
-                           for topic in ("activations/*", "status/*", "emg/*", "imu/*", "joints", "envelopes", "load")]
+            subscribers = [
+                session.declare_subscriber(f"msk/{SESSION}/{topic}", lambda s, t=topic: received.update([t]))
+                for topic in ("activations/*", "status/*", "emg/*", "imu/*", "joints", "envelopes", "load")
+            ]
             time.sleep(5.0)
             for subscriber in subscribers:
                 subscriber.undeclare()
@@ -189,7 +218,8 @@ def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
     sent = summary["simulators_sent"]
     assert summary["samples"]["emg/trigno"] == sent["trigno"]["samples"] > 2000 * 5, summary
     assert {k: v for k, v in summary["samples"].items() if k.startswith("imu/")} == {
-        f"imu/{k}": v["samples"] for k, v in sent.items() if k != "trigno"}
+        f"imu/{k}": v["samples"] for k, v in sent.items() if k != "trigno"
+    }
     joints = summary["joint_frames"]
     assert joints > 200 and all(n == joints for n in summary["frames_estimated"].values()), summary
     assert summary["envelopes"] > 0 and summary["envelopes"] == summary["emg_chunks"], summary

@@ -22,7 +22,9 @@ def test_rejected_channels_are_left_out_and_counted_unless_asked_for(tmp_path):
     path = tmp_path / "mixed.mcap"
     with McapRecorderWriter(path) as writer:
         writer.write(JOINTS, "msk.JointAngles", _joints(0.1), 1, 1)
-        writer.write_rejected(JOINTS, "undecodable", "5 bytes are not a valid msk.JointAngles", b"\xff\xff\xff\xff\x0f", 2)
+        writer.write_rejected(
+            JOINTS, "undecodable", "5 bytes are not a valid msk.JointAngles", b"\xff\xff\xff\xff\x0f", 2
+        )
         writer.write_rejected(JOINTS, "invalid", "msk.JointAngles: no coordinates", b"", 3)
         writer.write_rejected(JOINTS, "undecodable", "(a second one)", b"\xff", 4)
         writer.write(JOINTS, "msk.JointAngles", _joints(0.2), 5, 5)
@@ -33,7 +35,10 @@ def test_rejected_channels_are_left_out_and_counted_unless_asked_for(tmp_path):
     assert report.left_out == {(JOINTS, "undecodable"): 2, (JOINTS, "invalid"): 1}
     everything = list(read_messages(path, include_rejected=True))
     assert [(m.rejected, m.data) for m in everything] == [
-        ("", _joints(0.1)), ("undecodable", b"\xff\xff\xff\xff\x0f"), ("invalid", b""), ("undecodable", b"\xff"),
+        ("", _joints(0.1)),
+        ("undecodable", b"\xff\xff\xff\xff\x0f"),
+        ("invalid", b""),
+        ("undecodable", b"\xff"),
         ("", _joints(0.2)),
     ]
     with pytest.raises(messages.MessageDecodeError, match=f"{JOINTS}: a payload the recorder rejected \\(invalid\\)"):

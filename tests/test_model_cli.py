@@ -24,10 +24,37 @@ def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
     spec = spec.replace("samples = 400", "samples = 100")
     (tmp_path / "a.toml").write_text(spec)
     osim = shared_dir / "models" / "arm26.osim"
-    assert cli.main(["model", "compile", "--osim", str(osim), "--spec", str(tmp_path / "a.toml"),
-                     "--out", str(tmp_path / "a.json")]) == 0
-    assert cli.main(["model", "check", str(tmp_path / "a.json"), "--osim", str(osim), "--poses", "6",
-                     "--json", str(tmp_path / "r.json")]) == 0
+    assert (
+        cli.main(
+            [
+                "model",
+                "compile",
+                "--osim",
+                str(osim),
+                "--spec",
+                str(tmp_path / "a.toml"),
+                "--out",
+                str(tmp_path / "a.json"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        cli.main(
+            [
+                "model",
+                "check",
+                str(tmp_path / "a.json"),
+                "--osim",
+                str(osim),
+                "--poses",
+                "6",
+                "--json",
+                str(tmp_path / "r.json"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "moment arms over 6 fresh poses" in out and "% of peak" in out
     report = json.loads((tmp_path / "r.json").read_text())
@@ -35,17 +62,45 @@ def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
     assert set(report["muscles"]["groups"]) == {"TRIlong", "TRIlat", "TRImed", "BIClong", "BICshort", "BRA"}
     assert max(report["dynamics"]["max_error_percent_of_peak"].values()) < 1e-3
     # bad spec -> exit code 2 and a message naming the file and field
-    (tmp_path / "bad.toml").write_text(spec.replace('name = "arm26"', 'name = 5'))
-    assert cli.main(["model", "compile", "--osim", str(osim), "--spec", str(tmp_path / "bad.toml"),
-                     "--out", str(tmp_path / "b.json")]) == 2
+    (tmp_path / "bad.toml").write_text(spec.replace('name = "arm26"', "name = 5"))
+    assert (
+        cli.main(
+            [
+                "model",
+                "compile",
+                "--osim",
+                str(osim),
+                "--spec",
+                str(tmp_path / "bad.toml"),
+                "--out",
+                str(tmp_path / "b.json"),
+            ]
+        )
+        == 2
+    )
     assert "bad.toml" in capsys.readouterr().err
 
 
 def test_model_check_with_recorded_lift(shared_dir, tmp_path, capsys):
     lift = shared_dir / "data" / "backmodel-lift" / "stoop5kg"
-    code = cli.main(["model", "check", "lumbar_lift", "--osim", str(shared_dir / "models" / "lumbar_scaled.osim"),
-                     "--poses", "4", "--recorded", str(lift / "ik.sto"), str(lift / "id.sto"),
-                     "--recorded-load", "49.03", "--json", str(tmp_path / "r.json")])
+    code = cli.main(
+        [
+            "model",
+            "check",
+            "lumbar_lift",
+            "--osim",
+            str(shared_dir / "models" / "lumbar_scaled.osim"),
+            "--poses",
+            "4",
+            "--recorded",
+            str(lift / "ik.sto"),
+            str(lift / "id.sto"),
+            "--recorded-load",
+            "49.03",
+            "--json",
+            str(tmp_path / "r.json"),
+        ]
+    )
     assert code == 0
     assert "correlation" in capsys.readouterr().out
     recorded = json.loads((tmp_path / "r.json").read_text())["recorded"][0]

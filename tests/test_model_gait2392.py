@@ -15,8 +15,17 @@ from msk_core.model import load_pack
 
 pytestmark = [pytest.mark.needs_shared]
 
-EMG_MUSCLES = ["soleus_r", "med_gas_r", "lat_gas_r", "tib_ant_r", "semimem_r", "bifemlh_r", "vas_lat_r", "rect_fem_r",
-               "vas_med_r"]
+EMG_MUSCLES = [
+    "soleus_r",
+    "med_gas_r",
+    "lat_gas_r",
+    "tib_ant_r",
+    "semimem_r",
+    "bifemlh_r",
+    "vas_lat_r",
+    "rect_fem_r",
+    "vas_med_r",
+]
 COORDS = ["hip_flexion_r", "hip_adduction_r", "hip_rotation_r", "knee_angle_r", "ankle_angle_r"]
 
 
@@ -53,8 +62,10 @@ def test_moment_arms_vs_opensim_over_the_walks_range_of_motion(shared_dir):
     osim = shared_dir / "models" / "gait2392.osim"
     report = check_muscles(pack, osim, n_poses=12, seed=29)
     worst_group = max(report["groups"], key=lambda g: max(report["groups"][g]["moment_arm_rms_mm"].values()))
-    print(f"random poses: moment arms RMS {report['moment_arm_rms_mm']:.3f} mm, max {report['moment_arm_max_mm']:.3f} "
-          f"mm (worst group {worst_group})")
+    print(
+        f"random poses: moment arms RMS {report['moment_arm_rms_mm']:.3f} mm, max {report['moment_arm_max_mm']:.3f} "
+        f"mm (worst group {worst_group})"
+    )
     assert report["moment_arm_rms_mm"] < 0.5
     assert report["opensim_glitch_poses_excluded"] <= 2
     for group, stats in report["groups"].items():

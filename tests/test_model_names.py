@@ -30,8 +30,10 @@ RF = ["recfem_r"]
 def test_every_shipped_pack_names_every_group_and_coordinate(name):
     names = pack_display_names(name)
     pack = load_pack(name)
-    assert names.missing == (), f"{name}: no display name for {', '.join(names.missing)} (add them to [names] of " \
-                                f"msk_core/model/specs/{name}.toml and refresh the pack with with_names)"
+    assert names.missing == (), (
+        f"{name}: no display name for {', '.join(names.missing)} (add them to [names] of "
+        f"msk_core/model/specs/{name}.toml and refresh the pack with with_names)"
+    )
     assert list(names.groups) == pack.groups and list(names.coordinates) == pack.coordinates
     assert pack.display_names == names
     for model_name, display in (names.groups | names.coordinates).items():
@@ -49,8 +51,11 @@ def test_a_few_names_people_use():
     assert bench.group("PMCla") == "Pectoralis major, clavicular part"
     assert bench.coordinate("elv_angle_r") == "Shoulder flexion" and bench.unit("elv_angle_r") == "deg"
     assert deadlift.group("VL") == "Vastus lateralis" and deadlift.coordinate("knee_angle_r") == "Knee flexion"
-    assert bench.as_dict()["coordinates"]["elbow_flex_r"] == {"name": "Elbow flexion", "unit": "deg",
-                                                              "torque_unit": "N·m"}
+    assert bench.as_dict()["coordinates"]["elbow_flex_r"] == {
+        "name": "Elbow flexion",
+        "unit": "deg",
+        "torque_unit": "N·m",
+    }
 
 
 def test_a_pack_without_names_shows_its_model_names():
@@ -72,14 +77,17 @@ def test_partial_names_and_the_legend_of_abbreviations():
     assert names.legend(["VL", "RF"]) == "VL: Vastus lateralis"  # RF has no other name to explain
 
 
-@pytest.mark.parametrize(("table", "field", "message", "line"), [
-    ('VLL = "Vastus lateralis"', "names.VLL", "not a muscle group or coordinate of the pack (closest: VL)", 8),
-    ("VL = 3", "names.VL", "must be a display name", 8),
-    ('VL = ""', "names.VL", "must be a display name", 8),
-    ('VL = "Vastus\\nlateralis"', "names.VL", "one line of printable text", 8),
-    ('VL = " Vastus lateralis"', "names.VL", "without surrounding spaces", 8),
-    (f'VL = "{"V" * (MAX_NAME_CHARS + 1)}"', "names.VL", f"at most {MAX_NAME_CHARS} characters", 8),
-])
+@pytest.mark.parametrize(
+    ("table", "field", "message", "line"),
+    [
+        ('VLL = "Vastus lateralis"', "names.VLL", "not a muscle group or coordinate of the pack (closest: VL)", 8),
+        ("VL = 3", "names.VL", "must be a display name", 8),
+        ('VL = ""', "names.VL", "must be a display name", 8),
+        ('VL = "Vastus\\nlateralis"', "names.VL", "one line of printable text", 8),
+        ('VL = " Vastus lateralis"', "names.VL", "without surrounding spaces", 8),
+        (f'VL = "{"V" * (MAX_NAME_CHARS + 1)}"', "names.VL", f"at most {MAX_NAME_CHARS} characters", 8),
+    ],
+)
 def test_bad_names_are_refused_naming_file_line_field_and_value(table, field, message, line):
     with pytest.raises(ConfigError, match="t.toml") as error:
         parse_spec(SPEC + "[names]\n" + table + "\n", Path("t.toml"))
@@ -95,8 +103,9 @@ def test_names_must_be_a_table():
 
 def test_a_sessions_names_override_the_packs():
     bench = pack_display_names("bench_press")
-    overrides = parse_names({"PMCla": "Upper chest", "elbow_flex_r": "Elbow"}, [*bench.groups, *bench.coordinates],
-                            path=Path("monday.toml"))
+    overrides = parse_names(
+        {"PMCla": "Upper chest", "elbow_flex_r": "Elbow"}, [*bench.groups, *bench.coordinates], path=Path("monday.toml")
+    )
     named = bench.with_overrides(overrides | {"VL": "a group of another pack"})
     assert named.group("PMCla") == "Upper chest" and named.coordinate("elbow_flex_r") == "Elbow"
     assert named.group("BRA") == "Brachialis" and named.overridden == ("PMCla", "elbow_flex_r")

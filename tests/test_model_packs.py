@@ -15,10 +15,42 @@ pytest.importorskip("opensim")
 from msk_core.model.check import check_dynamics, check_hanging_static, check_muscles  # noqa: E402
 from msk_core.model.reference_id import compare_with_recorded_id  # noqa: E402
 
-DEADLIFT_GROUPS = ["ESL", "ESI", "MUL", "RA", "IO", "EO", "TFL", "AddLong", "Gmax", "PM", "RF", "ST", "BF", "Gmed",
-                   "TA", "GL", "GM", "VL", "VM"]
-BENCH_GROUPS = ["BRA", "BRD", "TriLat", "BicLong", "BicSho", "TriLong", "DelAnt", "DelMed", "DelPos", "PMCla", "PMSte",
-                "PMCos", "LD"]
+DEADLIFT_GROUPS = [
+    "ESL",
+    "ESI",
+    "MUL",
+    "RA",
+    "IO",
+    "EO",
+    "TFL",
+    "AddLong",
+    "Gmax",
+    "PM",
+    "RF",
+    "ST",
+    "BF",
+    "Gmed",
+    "TA",
+    "GL",
+    "GM",
+    "VL",
+    "VM",
+]
+BENCH_GROUPS = [
+    "BRA",
+    "BRD",
+    "TriLat",
+    "BicLong",
+    "BicSho",
+    "TriLong",
+    "DelAnt",
+    "DelMed",
+    "DelPos",
+    "PMCla",
+    "PMSte",
+    "PMCos",
+    "LD",
+]
 # groups whose OpenSim path switches wrap objects inside the range (moment arm jumps): documented in docs/models.md
 WRAP_JUMP_GROUPS = {"RA", "EO", "GL", "GM", "BRA", "TriLat", "TriLong"}
 
@@ -28,8 +60,16 @@ def test_pack_group_names():
     assert load_pack("bench_press").groups == BENCH_GROUPS
     lumbar = load_pack("lumbar_lift")
     assert lumbar.coordinates == ["L5_S1_Flex_Ext"]
-    assert lumbar.groups[:8] == ["rectabd_r", "rectabd_l", "iliocost_r", "iliocost_l", "longlumb_r", "longlumb_l",
-                                 "longthor_r", "longthor_l"]
+    assert lumbar.groups[:8] == [
+        "rectabd_r",
+        "rectabd_l",
+        "iliocost_r",
+        "iliocost_l",
+        "longlumb_r",
+        "longlumb_l",
+        "longthor_r",
+        "longthor_l",
+    ]
 
 
 def test_lumbar_groups_are_the_ceinms_channels(shared_dir):
@@ -42,9 +82,10 @@ def test_lumbar_groups_are_the_ceinms_channels(shared_dir):
     assert sum(len(v) for v in pack.members.values()) == 166  # every muscle of the model, once
 
 
-@pytest.mark.parametrize(("name", "model", "poses"), [("lumbar_lift", "lumbar_scaled.osim", 20),
-                                                       ("bench_press", "fullbody.osim", 10),
-                                                       ("deadlift", "fullbody.osim", 5)])
+@pytest.mark.parametrize(
+    ("name", "model", "poses"),
+    [("lumbar_lift", "lumbar_scaled.osim", 20), ("bench_press", "fullbody.osim", 10), ("deadlift", "fullbody.osim", 5)],
+)
 def test_moment_arms_vs_opensim(shared_dir, name, model, poses):
     pack = load_pack(name)
     report = check_muscles(pack, shared_dir / "models" / model, n_poses=poses, seed=99)
@@ -58,11 +99,15 @@ def test_moment_arms_vs_opensim(shared_dir, name, model, poses):
         # against the derivative of OpenSim's own path length the groups without path switches meet the issue's
         # 2 mm max; RA/EO (deadlift: sums over six lumbar levels of ~400-950 mm) stay within ~1 % of their size
         assert max(stats["path_derivative_max_mm"].values()) < (10.0 if group in WRAP_JUMP_GROUPS else 2.0), (
-            group, stats)
+            group,
+            stats,
+        )
 
 
-@pytest.mark.parametrize(("name", "model"), [("lumbar_lift", "lumbar_scaled.osim"), ("bench_press", "fullbody.osim"),
-                                             ("deadlift", "fullbody.osim")])
+@pytest.mark.parametrize(
+    ("name", "model"),
+    [("lumbar_lift", "lumbar_scaled.osim"), ("bench_press", "fullbody.osim"), ("deadlift", "fullbody.osim")],
+)
 def test_inverse_dynamics_vs_opensim(shared_dir, name, model):
     pack = load_pack(name)
     report = check_dynamics(pack, shared_dir / "models" / model, n_poses=12, seed=3, hand_load=300.0)
@@ -87,8 +132,10 @@ def test_deadlift_foot_rooted_dynamics():
     val = pack.validation_rigid.inverse_dynamics(q - pack.reference_pose, zeros, zeros, 1000.0, None)
     # the bar loads every joint of the leg (half of it per leg), unlike a pelvis-rooted model
     assert np.all(np.abs(loaded[1:] - free[1:]) > 5.0)
-    assert np.all(np.abs(val[1:] - pack.validation_rigid.inverse_dynamics(q - pack.reference_pose, zeros, zeros,
-                                                                          0.0, None)[1:]) < 1e-9)
+    assert np.all(
+        np.abs(val[1:] - pack.validation_rigid.inverse_dynamics(q - pack.reference_pose, zeros, zeros, 0.0, None)[1:])
+        < 1e-9
+    )
     # the modelled side carries the right leg plus half of everything from the pelvis up
     masses, full = pack.rigid.body_masses(), pack.validation_rigid.body_masses()
     assert masses["femur_r"] == pytest.approx(full["femur_r"])
@@ -104,13 +151,19 @@ def test_deadlift_arms_hang_plumb(shared_dir):
     # (1) the bar's lever about the hip changes with the trunk angle exactly as the shoulder's horizontal position
     #     does: leaning the trunk forward moves the bar forward (with arms locked to the thorax it moved backward)
     upright, leaning = np.radians([0.0, 75.0, 60.0, 15.0]), np.radians([-3.5, 75.0, 60.0, 15.0])
-    bar = [pack.inverse_dynamics(q, zeros, zeros, 1000.0) - pack.inverse_dynamics(q, zeros, zeros, 0.0)
-           for q in (upright, leaning)]
+    bar = [
+        pack.inverse_dynamics(q, zeros, zeros, 1000.0) - pack.inverse_dynamics(q, zeros, zeros, 0.0)
+        for q in (upright, leaning)
+    ]
     assert bar[1][1] < bar[0][1] < 0.0  # more hip extension moment from the bar when leaning further forward
     # (2) OpenSim with the real arm bodies, the shoulder flexion solved so the hand hangs plumb (static poses)
-    report = check_hanging_static(pack, shared_dir / "models" / "fullbody.osim",
-                                  swing={"humerus_r": "elv_angle_r", "humerus_l": "elv_angle_l"}, n_poses=8,
-                                  hand_load=735.0)
+    report = check_hanging_static(
+        pack,
+        shared_dir / "models" / "fullbody.osim",
+        swing={"humerus_r": "elv_angle_r", "humerus_l": "elv_angle_l"},
+        n_poses=8,
+        hand_load=735.0,
+    )
     for coord, pct in report["max_error_percent_of_peak"].items():
         assert pct < 0.5, (coord, report)
 
@@ -120,8 +173,13 @@ def test_lumbar_lift_vs_recorded_id(shared_dir):
     pack = load_pack("lumbar_lift")
     lift = shared_dir / "data" / "backmodel-lift"
     for trial in ("squat5kg", "stoop5kg"):
-        report = compare_with_recorded_id(pack, shared_dir / "models" / "lumbar_scaled.osim", lift / trial / "ik.sto",
-                                          lift / trial / "id.sto", hand_load_newton=5 * 9.80665)
+        report = compare_with_recorded_id(
+            pack,
+            shared_dir / "models" / "lumbar_scaled.osim",
+            lift / trial / "ik.sto",
+            lift / trial / "id.sto",
+            hand_load_newton=5 * 9.80665,
+        )
         assert report["correlation"]["L5_S1_Flex_Ext"] > 0.75, report["correlation"]
         assert report["rms_error_percent_of_peak"]["L5_S1_Flex_Ext"] < 30.0, report["rms_error_percent_of_peak"]
 

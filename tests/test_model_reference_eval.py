@@ -37,8 +37,12 @@ def reference_muscles(pack, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     coef = np.asarray(pack.raw["length_coefficients"], dtype=float).reshape(len(pack.groups), -1)
     x = ((q - centre) / half)[None, :]
     lengths = coef @ np.hstack([monomials(x, exps), hinge_values(x, hinges)])[0]
-    arms = np.stack([-(coef @ np.hstack([monomial_derivatives(x, exps, j), hinge_derivatives(x, hinges, j)])[0])
-                     / half[j] for j in range(n)])
+    arms = np.stack(
+        [
+            -(coef @ np.hstack([monomial_derivatives(x, exps, j), hinge_derivatives(x, hinges, j)])[0]) / half[j]
+            for j in range(n)
+        ]
+    )
     return lengths, arms
 
 
@@ -64,7 +68,8 @@ def reference_inverse_dynamics(rigid, dq, qd, qdd, load: float, gravity=None) ->
     tau = pin.rnea(model, model.createData(), qp, vp, ap)
     if load and rigid.n_load_points:
         tau = tau + load * rigid.load_share / rigid.n_load_points / np.linalg.norm(g) * pin.computeGeneralizedGravity(
-            load_model, load_model.createData(), qp)
+            load_model, load_model.createData(), qp
+        )
     out = np.zeros(len(dq))
     for i in range(len(tau)):
         for k in range(len(dq)):
@@ -96,9 +101,12 @@ def test_fast_frame_matches_reference(name, evaluator):
         assert np.array_equal(pack.inverse_dynamics(q, qd, qdd, load), tau)
         g = rng.normal(size=3)
         g *= 9.80665 / np.linalg.norm(g)
-        np.testing.assert_allclose(pack.inverse_dynamics(q, qd, qdd, load, gravity=g),
-                                   reference_inverse_dynamics(pack.rigid, q - pack.reference_pose, qd, qdd, load, g),
-                                   rtol=1e-12, atol=1e-12 * max(1.0, np.abs(ref_tau).max()))
+        np.testing.assert_allclose(
+            pack.inverse_dynamics(q, qd, qdd, load, gravity=g),
+            reference_inverse_dynamics(pack.rigid, q - pack.reference_pose, qd, qdd, load, g),
+            rtol=1e-12,
+            atol=1e-12 * max(1.0, np.abs(ref_tau).max()),
+        )
     # results are fresh arrays: a later frame never changes an earlier one
     first = pack.frame(lo + 0.25 * (hi - lo), np.zeros(len(lo)), np.zeros(len(lo)), 100.0)
     kept = [a.copy() for a in first]
@@ -122,8 +130,9 @@ def test_feature_evaluator_blocks_and_fallback():
         assert fe.fallback == (len(exps) == len(total_degree_exponents(5, 3)) and n == 5)
         for _ in range(20):
             x = rng.uniform(-1, 1, n)
-            ref = np.concatenate([monomials(x[None], exps)[0], hinge_values(x[None], hinges)[0],
-                                  [float(x[v] > k) for v, k in hinges]])
+            ref = np.concatenate(
+                [monomials(x[None], exps)[0], hinge_values(x[None], hinges)[0], [float(x[v] > k) for v, k in hinges]]
+            )
             np.testing.assert_allclose(fe(x), ref, rtol=1e-13, atol=1e-15)
 
 
@@ -139,24 +148,35 @@ def test_compiled_evaluator_matches_numpy_everywhere(name):
     for _ in range(10):
         q = rng.uniform(lo - 0.3, hi + 0.3)  # some coordinates outside their range
         qd, qdd = rng.uniform(-2, 2, n), rng.uniform(-10, 10, n)
-        for a, b in zip(fast.frame(q, qd, qdd, 300.0, out_of_range=OutOfRange.CLAMP),
-                        slow.frame(q, qd, qdd, 300.0, out_of_range=OutOfRange.CLAMP)):
+        for a, b in zip(
+            fast.frame(q, qd, qdd, 300.0, out_of_range=OutOfRange.CLAMP),
+            slow.frame(q, qd, qdd, 300.0, out_of_range=OutOfRange.CLAMP),
+        ):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(b).max()))
         inside = np.clip(q, lo, hi)
-        np.testing.assert_allclose(fast.mtu_lengths(q, out_of_range=OutOfRange.CLAMP), slow.mtu_lengths(inside),
-                                   rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(
+            fast.mtu_lengths(q, out_of_range=OutOfRange.CLAMP), slow.mtu_lengths(inside), rtol=1e-12, atol=1e-15
+        )
         ft, st = fast.joint_torques(inside, qd, qdd, 300.0), slow.joint_torques(inside, qd, qdd, 300.0)
         assert list(ft) == list(st)
-        np.testing.assert_allclose(list(ft.values()), list(st.values()), rtol=1e-12,
-                                   atol=1e-12 * max(1.0, np.abs(list(st.values())).max()))
+        np.testing.assert_allclose(
+            list(ft.values()), list(st.values()), rtol=1e-12, atol=1e-12 * max(1.0, np.abs(list(st.values())).max())
+        )
         dq = inside - fast.reference_pose
         ref = slow.validation_rigid.inverse_dynamics(dq, qd, qdd, 300.0, None)
-        np.testing.assert_allclose(fast.validation_rigid.inverse_dynamics(dq, qd, qdd, 300.0, None), ref,
-                                   rtol=1e-12, atol=1e-12 * max(1.0, np.abs(ref).max()))
+        np.testing.assert_allclose(
+            fast.validation_rigid.inverse_dynamics(dq, qd, qdd, 300.0, None),
+            ref,
+            rtol=1e-12,
+            atol=1e-12 * max(1.0, np.abs(ref).max()),
+        )
         if not fast.in_range(q).all():
             bad = fast.coordinates[int(np.flatnonzero(~fast.in_range(q))[0])]
-            for call in (lambda: fast.frame(q, qd, qdd), lambda: fast.moment_arms(q),
-                         lambda: fast.inverse_dynamics(q, qd, qdd)):
+            for call in (
+                lambda q=q, qd=qd, qdd=qdd: fast.frame(q, qd, qdd),
+                lambda q=q: fast.moment_arms(q),
+                lambda q=q, qd=qd, qdd=qdd: fast.inverse_dynamics(q, qd, qdd),
+            ):
                 with pytest.raises(ModelError, match=bad):
                     call()
     q = (lo + hi) / 2
@@ -186,18 +206,23 @@ def test_kernels_compile_in_memory_where_nothing_is_writable(tmp_path):
     home.mkdir()
     (module_dir / "__pycache__").write_text("not a directory")
     (home / ".cache").write_text("not a directory")
-    (module_dir / "ro_kernel.py").write_text(textwrap.dedent("""
+    (module_dir / "ro_kernel.py").write_text(
+        textwrap.dedent("""
         from msk_core.model.kernels import _jit
 
         @_jit
         def twice(x):
             return 2.0 * x
-    """))
+    """)
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
-    env.update(HOME=str(home), PYTHONPATH=os.pathsep.join([str(module_dir), *sys.path]),
-               PYTHONDONTWRITEBYTECODE="1")
-    done = subprocess.run([sys.executable, "-c", "import ro_kernel; print(ro_kernel.twice(21.0), "
-                           "type(ro_kernel.twice._cache).__name__)"],
-                          env=env, capture_output=True, text=True, timeout=120)
+    env.update(HOME=str(home), PYTHONPATH=os.pathsep.join([str(module_dir), *sys.path]), PYTHONDONTWRITEBYTECODE="1")
+    done = subprocess.run(
+        [sys.executable, "-c", "import ro_kernel; print(ro_kernel.twice(21.0), type(ro_kernel.twice._cache).__name__)"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["42.0", "NullCache"]

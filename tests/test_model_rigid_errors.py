@@ -28,7 +28,9 @@ def test_the_compiled_evaluator_names_the_input_of_the_wrong_shape():
     n = len(pack.coordinates)
     ok = np.zeros(n)
     assert rigid.inverse_dynamics(ok, ok, ok, 0.0, None).shape == (n,)
-    with pytest.raises(ModelError, match=rf"qdd must have shape \({n},\) \(one value per coordinate\), got \({n + 1},\)"):
+    with pytest.raises(
+        ModelError, match=rf"qdd must have shape \({n},\) \(one value per coordinate\), got \({n + 1},\)"
+    ):
         rigid.inverse_dynamics(ok, ok, np.zeros(n + 1), 0.0, None)
     with pytest.raises(ModelError, match=r"gravity must be a 3-vector \(m/s²\), got shape \(2,\)"):
         rigid.inverse_dynamics(ok, ok, ok, 0.0, np.array([0.0, -9.8]))

@@ -19,8 +19,15 @@ from services import cli  # noqa: E402
 
 def test_scale_arm26_matches_measurements(shared_dir, tmp_path):
     osim = shared_dir / "models" / "arm26.osim"
-    out, summary = scale_pack("arm26", osim, mass_kg=90.0, height_m=1.95, segments={"upper_arm": 0.34},
-                              out=tmp_path / "arm26_subject.json", samples=120)
+    out, summary = scale_pack(
+        "arm26",
+        osim,
+        mass_kg=90.0,
+        height_m=1.95,
+        segments={"upper_arm": 0.34},
+        out=tmp_path / "arm26_subject.json",
+        samples=120,
+    )
     scaled = load_pack(out)
     generic = load_pack("arm26")
     # the scaled OpenSim model has the measured upper-arm length and the person's mass share
@@ -30,8 +37,9 @@ def test_scale_arm26_matches_measurements(shared_dir, tmp_path):
     masses, generic_masses = scaled.rigid.body_masses(), generic.rigid.body_masses()
     for body, mass in masses.items():
         assert mass == pytest.approx(generic_masses[body] * 90.0 / 75.0, rel=1e-9)
-    assert summary["segment_factors"]["upper_arm"] == pytest.approx(0.34 / summary["generic_segment_lengths_m"]
-                                                                    ["upper_arm"])
+    assert summary["segment_factors"]["upper_arm"] == pytest.approx(
+        0.34 / summary["generic_segment_lengths_m"]["upper_arm"]
+    )
     # a bigger arm: longer moment arms and fibres, larger gravity torques
     q, z = np.array([0.3, 1.0]), np.zeros(2)
     ratio = scaled.moment_arms(q)[1] / generic.moment_arms(q)[1]
@@ -44,8 +52,26 @@ def test_scale_arm26_matches_measurements(shared_dir, tmp_path):
 
 def test_scale_cli_and_bad_input(shared_dir, tmp_path, capsys):
     osim = shared_dir / "models" / "arm26.osim"
-    code = cli.main(["model", "scale", "--pack", "arm26", "--osim", str(osim), "--mass-kg", "70", "--height-m",
-                     "1.7", "--segment", "upper_arm=0.28", "--out", str(tmp_path / "p.json"), "--samples", "60"])
+    code = cli.main(
+        [
+            "model",
+            "scale",
+            "--pack",
+            "arm26",
+            "--osim",
+            str(osim),
+            "--mass-kg",
+            "70",
+            "--height-m",
+            "1.7",
+            "--segment",
+            "upper_arm=0.28",
+            "--out",
+            str(tmp_path / "p.json"),
+            "--samples",
+            "60",
+        ]
+    )
     assert code == 0
     printed = re.search(r"scaled_segment_lengths_m: \{'upper_arm': ([0-9.]+)\}", capsys.readouterr().out)
     assert printed and float(printed.group(1)) == pytest.approx(0.28, abs=1e-9)

@@ -19,14 +19,20 @@ def _joints(q: float) -> messages.JointAngles:
     return messages.JointAngles(coordinates=["elbow"], q=[q], device_time_ns=int(q * 1e9) + 1)
 
 
-@pytest.mark.parametrize("payload, encoding, reason", [
-    (bytes(range(256)) * 8, None, DropReason.UNDECODABLE),
-    (b"", None, DropReason.INVALID),
-    (messages.encode(messages.JointAngles(coordinates=["a", "b"], q=[1.0])), None, DropReason.INVALID),
-    (messages.encode(messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press")), "msk.LoadEvent",
-     DropReason.WRONG_TYPE),
-    (b"\x00" * 100, None, DropReason.OVERSIZED),
-])
+@pytest.mark.parametrize(
+    "payload, encoding, reason",
+    [
+        (bytes(range(256)) * 8, None, DropReason.UNDECODABLE),
+        (b"", None, DropReason.INVALID),
+        (messages.encode(messages.JointAngles(coordinates=["a", "b"], q=[1.0])), None, DropReason.INVALID),
+        (
+            messages.encode(messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press")),
+            "msk.LoadEvent",
+            DropReason.WRONG_TYPE,
+        ),
+        (b"\x00" * 100, None, DropReason.OVERSIZED),
+    ],
+)
 def test_check_payload_says_why_it_refuses(payload, encoding, reason):
     with pytest.raises(Rejected) as refused:
         check_payload(KEY, payload, encoding_type=encoding, max_bytes=99 if reason is DropReason.OVERSIZED else 1 << 20)
@@ -45,14 +51,18 @@ def test_check_payload_refuses_other_types_bytes_and_unknown_keys():
 
 
 def test_inputs_drop_and_count_bad_messages_keep_order_and_drain_at_close(zenoh_endpoint):
-    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as node_session, \
-            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as sender:
+    with (
+        open_session(ZenohOptions(listen=(zenoh_endpoint,))) as node_session,
+        open_session(ZenohOptions(connect=(zenoh_endpoint,))) as sender,
+    ):
         inputs = NodeInputs(node_session, "probe", max_payload_bytes=1 << 20)
         inputs.subscribe(KEY)
         reporter = StatusReporter(node_session, "rt", "probe", inputs)
         status: list[messages.DeviceStatus] = []
-        watcher = sender.declare_subscriber(topics.status_key("rt", "probe"),
-                                            lambda s: status.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
+        watcher = sender.declare_subscriber(
+            topics.status_key("rt", "probe"),
+            lambda s: status.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())),
+        )
         publisher = sender.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
         deadline = time.monotonic() + 10
         while not publisher.matching_status.matching and time.monotonic() < deadline:
@@ -61,8 +71,10 @@ def test_inputs_drop_and_count_bad_messages_keep_order_and_drain_at_close(zenoh_
         for k in range(5):
             publisher.put(messages.encode(_joints(float(k))), encoding=encoding_for("msk.JointAngles"))
             publisher.put(bad[k % len(bad)])
-        publisher.put(messages.encode(messages.LoadEvent(barbell_mass_kg=1.0, exercise="bench_press")),
-                      encoding=encoding_for("msk.LoadEvent"))
+        publisher.put(
+            messages.encode(messages.LoadEvent(barbell_mass_kg=1.0, exercise="bench_press")),
+            encoding=encoding_for("msk.LoadEvent"),
+        )
         time.sleep(1.0)
         first = inputs.get(2.0)
         inputs.close()
@@ -75,8 +87,12 @@ def test_inputs_drop_and_count_bad_messages_keep_order_and_drain_at_close(zenoh_
     dropped = inputs.counts.as_dict()["dropped"][KEY]
     assert dropped == {"invalid": 2, "undecodable": 2, "oversized": 1, "wrong_type": 1}, dropped
     assert status and status[-1].connected is False and status[-1].samples_lost == 6
-    assert {(d.reason, d.count) for d in status[-1].dropped} == {("invalid", 2), ("undecodable", 2), ("oversized", 1),
-                                                               ("wrong_type", 1)}
+    assert {(d.reason, d.count) for d in status[-1].dropped} == {
+        ("invalid", 2),
+        ("undecodable", 2),
+        ("oversized", 1),
+        ("wrong_type", 1),
+    }
 
 
 def test_a_subscription_the_role_may_not_make_is_said_and_counted(zenoh_endpoint, caplog):

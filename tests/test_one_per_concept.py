@@ -17,9 +17,11 @@ PACKAGES = ("msk_core", "services", "drivers")
 
 # concept -> (the module that owns it, pattern of the names a definition of it would carry)
 OWNERS = {
-    "repetition segmenter": ("msk_core/signal/reps.py",
-                             r"detect_reps|find_reps|segment\w*rep|reps?_from|rep_spans|rep_phase|rep_?counter|"
-                             r"phase_?tracker"),
+    "repetition segmenter": (
+        "msk_core/signal/reps.py",
+        r"detect_reps|find_reps|segment\w*rep|reps?_from|rep_spans|rep_phase|rep_?counter|"
+        r"phase_?tracker",
+    ),
     "phase prior and its fitter": ("msk_core/estimate/prior.py", r"fit\w*prior|prior\w*_from|phase_?priors?$"),
     "trial loader": ("msk_core/estimate/trial.py", r"load\w*_trial$"),
     "force factor": ("msk_core/discrepancy/model.py", r"^force_factor$"),
@@ -44,7 +46,11 @@ def test_each_concept_is_defined_in_one_module(concept):
     for where, tree in _sources():
         for node in ast.walk(tree):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-                if re.search(pattern, node.name, re.IGNORECASE) and where != owner and (where, node.name) not in DELEGATES:
+                if (
+                    re.search(pattern, node.name, re.IGNORECASE)
+                    and where != owner
+                    and (where, node.name) not in DELEGATES
+                ):
                     elsewhere.append(f"{where}:{node.lineno} {node.name}")
     assert not elsewhere, f"a second {concept} beside {owner}: {elsewhere}"
 
@@ -55,8 +61,9 @@ def test_rest_phase_and_clamp_tolerance_are_written_once():
     rest, tolerance = [], []
     for where, tree in _sources():
         for node in ast.walk(tree):
-            if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and "REST" in t.id and "PHASE" in t.id
-                                                    for t in node.targets):
+            if isinstance(node, ast.Assign) and any(
+                isinstance(t, ast.Name) and "REST" in t.id and "PHASE" in t.id for t in node.targets
+            ):
                 rest.append(f"{where}:{node.lineno}")
             if isinstance(node, ast.Name) and node.id == "CLAMP_TOLERANCE" and where != "msk_core/estimate/pack.py":
                 tolerance.append(f"{where}:{node.lineno}")

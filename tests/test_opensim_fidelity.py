@@ -23,8 +23,11 @@ COORDS = ["r_shoulder_elev", "r_elbow_flex"]
 def arm26(shared_dir, tmp_path_factory):
     data = shared_dir / "data" / "opensim-arm26"
     ref = run_opensim_static_optimization(
-        data / "arm26_Setup_StaticOptimization.xml", shared_dir / "models" / "arm26.osim",
-        data / "arm26_InverseKinematics.mot", tmp_path_factory.mktemp("opensim_so"), use_muscle_physiology=False,
+        data / "arm26_Setup_StaticOptimization.xml",
+        shared_dir / "models" / "arm26.osim",
+        data / "arm26_InverseKinematics.mot",
+        tmp_path_factory.mktemp("opensim_so"),
+        use_muscle_physiology=False,
     )
     return {"ref": ref, "data": data, "model": shared_dir / "models" / "arm26.osim"}
 
@@ -32,9 +35,11 @@ def arm26(shared_dir, tmp_path_factory):
 def _trial(tmp_path, data, lowpass: float | None) -> str:
     # the recipe: coordinates_file -> kinematics, the ID of the same motion -> torques,
     # lowpass_cutoff_frequency_for_coordinates -> lowpass_coordinates_hz
-    lines = [f'kinematics = "{data / "arm26_InverseKinematics.mot"}"',
-             f'torques = "{data / "arm26_InverseDynamics.sto"}"',
-             'phase_signal = "r_elbow_flex"']
+    lines = [
+        f'kinematics = "{data / "arm26_InverseKinematics.mot"}"',
+        f'torques = "{data / "arm26_InverseDynamics.sto"}"',
+        'phase_signal = "r_elbow_flex"',
+    ]
     if lowpass is not None:
         lines.append(f"lowpass_coordinates_hz = {lowpass}")
     path = tmp_path / ("trial_lowpass.toml" if lowpass else "trial.toml")
@@ -54,13 +59,40 @@ def _rms_against_opensim(arm26, out) -> float:
 def test_msk_estimate_with_the_recipe_matches_opensim_static_optimization(arm26, tmp_path, capsys):
     out = tmp_path / "so.sto"
     trial = _trial(tmp_path, arm26["data"], 6.0)
-    code = msk(["estimate", "--pack", "arm26", "--trial", trial, "--method", "so", "--activation-bounds", "model",
-                "--out", str(out)])
+    code = msk(
+        [
+            "estimate",
+            "--pack",
+            "arm26",
+            "--trial",
+            trial,
+            "--method",
+            "so",
+            "--activation-bounds",
+            "model",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     recipe = _rms_against_opensim(arm26, out)
     plain_out = tmp_path / "so_plain.sto"
-    assert msk(["estimate", "--pack", "arm26", "--trial", _trial(tmp_path, arm26["data"], None), "--method", "so",
-                "--out", str(plain_out)]) == 0
+    assert (
+        msk(
+            [
+                "estimate",
+                "--pack",
+                "arm26",
+                "--trial",
+                _trial(tmp_path, arm26["data"], None),
+                "--method",
+                "so",
+                "--out",
+                str(plain_out),
+            ]
+        )
+        == 0
+    )
     plain = _rms_against_opensim(arm26, plain_out)
     print(f"RMS activation against OpenSim SO: recipe {recipe:.4f}, without it {plain:.4f}")
     assert recipe <= 0.01
@@ -69,8 +101,9 @@ def test_msk_estimate_with_the_recipe_matches_opensim_static_optimization(arm26,
 
 def test_coordinate_lowpass_equals_opensims_preparation(arm26):
     mot = read_sto(arm26["data"] / "arm26_InverseKinematics.mot")
-    ref = opensim_filtered_kinematics(arm26["model"], arm26["data"] / "arm26_InverseKinematics.mot", COORDS, mot.time,
-                                      6.0)
+    ref = opensim_filtered_kinematics(
+        arm26["model"], arm26["data"] / "arm26_InverseKinematics.mot", COORDS, mot.time, 6.0
+    )
     mine = lowpass_coordinates(mot.time, np.deg2rad(mot.select(COORDS)), 6.0)
     for derivative, (r, m) in enumerate(zip(ref, mine)):
         assert np.abs(m - r).max() <= 0.005 * np.abs(r).max(), derivative
@@ -97,8 +130,10 @@ def test_lowpass_key_errors_name_the_field(tmp_path, shared_dir):
     from msk_core.model import load_pack
 
     bad = tmp_path / "bad.toml"
-    bad.write_text(f'kinematics = "{shared_dir / "data" / "opensim-arm26" / "arm26_InverseKinematics.mot"}"\n'
-                   "lowpass_coordinates_hz = -6\n")
+    bad.write_text(
+        f'kinematics = "{shared_dir / "data" / "opensim-arm26" / "arm26_InverseKinematics.mot"}"\n'
+        "lowpass_coordinates_hz = -6\n"
+    )
     with pytest.raises(ConfigError) as err:
         load_trial(bad, load_pack("arm26"))
     assert err.value.field == "lowpass_coordinates_hz" and "bad.toml" in str(err.value)

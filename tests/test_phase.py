@@ -120,7 +120,13 @@ def test_reps_and_phase_on_backmodel_lifts(shared_dir: Path, trial: str) -> None
 
 def test_reps_of_a_phase_stream_split_on_wrap_rest_and_gaps() -> None:
     t = [0.1 * i for i in range(40)]
-    phase = [-1.0] * 5 + [i / 10 for i in range(10)] + [i / 10 for i in range(10)] + [-1.0] * 5 + [i / 10 for i in range(10)]
+    phase = (
+        [-1.0] * 5
+        + [i / 10 for i in range(10)]
+        + [i / 10 for i in range(10)]
+        + [-1.0] * 5
+        + [i / 10 for i in range(10)]
+    )
     assert [(round(a, 1), round(b, 1)) for a, b in phase_rep_spans(t, phase)] == [(0.5, 1.4), (1.5, 2.4), (3.0, 3.9)]
     assert phase_rep_spans(t, [math.nan] * 40) == []
     gap = [0.0, 0.1, 0.2, 0.3, 1.0, 1.1, 1.2, 1.3]  # the stream paused 0.7 s inside what looked like one rep

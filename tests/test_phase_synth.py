@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from msk_core.estimate.prior import fit_phase_prior
-from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference
 from msk_core.io import resample_linear
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, normalisation_reference
 from msk_core.signal.reps import (
     Excursion,
     PhaseTracker,
@@ -61,8 +61,13 @@ def test_priors_from_raw_synthetic_emg_follow_true_activation(session) -> None:
     ok = np.all(np.isfinite(normalised), axis=1)
     columns = lambda x: {c: x[:, j] for j, c in enumerate(trial.channels)}  # noqa: E731
     priors = fit_phase_prior(trial.channels, columns(normalised[ok]), phase[ok], index[ok], n_bins=10)
-    truth = fit_phase_prior(trial.channels, columns(trial.activation[:, [trial.groups.index(c) for c in trial.channels]]),
-                            phase, index, n_bins=10)
+    truth = fit_phase_prior(
+        trial.channels,
+        columns(trial.activation[:, [trial.groups.index(c) for c in trial.channels]]),
+        phase,
+        index,
+        n_bins=10,
+    )
     # the most active muscles: the prior's phase profile follows the true activation's
     main = np.argsort(truth.mean.mean(axis=0))[-3:]
     for g in main:

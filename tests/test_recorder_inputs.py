@@ -12,9 +12,9 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from services.graph import wait_for
 from services import live, messages, recorder, replayer, topics
 from services.dashboard import report as session_report
+from services.graph import wait_for
 from services.mcap_io import REJECTED_ENCODING, REJECTED_REASON, McapRecorderWriter, ReadReport, read_messages
 from services.zenoh_session import (
     ZenohOptions,
@@ -37,14 +37,19 @@ def _wait(condition: Callable[[], bool], timeout_s: float, what: str, have: Call
 
 
 @contextlib.contextmanager
-def _recording(endpoint: str, out: Path, *, connect: bool = False, **kwargs
-               ) -> Iterator[tuple[recorder.RecorderStats, threading.Event]]:
+def _recording(
+    endpoint: str, out: Path, *, connect: bool = False, **kwargs
+) -> Iterator[tuple[recorder.RecorderStats, threading.Event]]:
     """``recorder.main`` in a thread listening on ``endpoint`` (``connect``: connecting to it) until its first history
     fetch is in; stopped (and joined) on exit."""
     stop, ready, stats = threading.Event(), threading.Event(), recorder.RecorderStats()
     options = ZenohOptions(connect=(endpoint,)) if connect else ZenohOptions(listen=(endpoint,))
-    thread = threading.Thread(target=recorder.main, args=(options, out),
-                              kwargs={"stop_event": stop, "ready_event": ready, "stats": stats, **kwargs}, daemon=True)
+    thread = threading.Thread(
+        target=recorder.main,
+        args=(options, out),
+        kwargs={"stop_event": stop, "ready_event": ready, "stats": stats, **kwargs},
+        daemon=True,
+    )
     thread.start()
     try:
         assert ready.wait(20), "the recorder did not start"
@@ -74,9 +79,17 @@ def _joints(value: float) -> messages.JointAngles:
 
 
 def _emg(index: int) -> messages.EmgChunk:
-    return messages.EmgChunk(source_id="trigno", channel_labels=["s1.EMG"], sample_rate_hz=2000.0, n_samples=27,
-                             n_channels=1, samples=[1e-3] * 27, first_sample_index=27 * index, units="V",
-                             host_time_ns=1_700_000_000_000_000_000 + index)
+    return messages.EmgChunk(
+        source_id="trigno",
+        channel_labels=["s1.EMG"],
+        sample_rate_hz=2000.0,
+        n_samples=27,
+        n_channels=1,
+        samples=[1e-3] * 27,
+        first_sample_index=27 * index,
+        units="V",
+        host_time_ns=1_700_000_000_000_000_000 + index,
+    )
 
 
 def _typed(path: Path, key: str) -> list[bytes]:
@@ -86,10 +99,18 @@ def _typed(path: Path, key: str) -> list[bytes]:
 BAD = [  # (key, type named by the publisher's encoding, payload, reasons check_payload may give)
     (JOINTS, "msk.JointAngles", b"\xff\xff\xff\xff\x0f", {"undecodable"}),
     (JOINTS, "msk.JointAngles", b"", {"invalid"}),  # decodes to a JointAngles without coordinates
-    (JOINTS, "msk.JointAngles", messages.encode(messages.DeviceStatus(device_id="trigno", kind="trigno", errors=3)),
-     {"wrong_type", "undecodable"}),  # another type's bytes under this topic's encoding
-    (JOINTS, "msk.ImuSample", messages.encode(messages.ImuSample(tracker_id="00B4", orientation=messages.Quaternion(w=1.0))),
-     {"wrong_type"}),  # a valid message of another type, saying so
+    (
+        JOINTS,
+        "msk.JointAngles",
+        messages.encode(messages.DeviceStatus(device_id="trigno", kind="trigno", errors=3)),
+        {"wrong_type", "undecodable"},
+    ),  # another type's bytes under this topic's encoding
+    (
+        JOINTS,
+        "msk.ImuSample",
+        messages.encode(messages.ImuSample(tracker_id="00B4", orientation=messages.Quaternion(w=1.0))),
+        {"wrong_type"},
+    ),  # a valid message of another type, saying so
     (OUTSIDE, "msk.JointAngles", messages.encode(_joints(9.0)), {"unknown_key"}),  # a key outside the topic table
 ]
 
@@ -103,12 +124,21 @@ def test_payloads_that_are_not_their_topics_messages_stay_out_of_the_typed_chann
     out = tmp_path / "session.mcap"
     valid = [messages.encode(_joints(float(i))) for i in range(6)]
     statuses: list[messages.DeviceStatus] = []
-    with _recording(zenoh_endpoint, out, flush_interval_s=0.2, session=SESSION) as (stats, _), \
-            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
-        session.declare_subscriber(STATUS, lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())))
-        publishers = {(key, type_name): declare_data_publisher(session, key, type_name)
-                      for key, type_name in {(JOINTS, "msk.JointAngles"), (EMG, "msk.EmgChunk"),
-                                             *((key, type_name) for key, type_name, _, _ in BAD)}}
+    with (
+        _recording(zenoh_endpoint, out, flush_interval_s=0.2, session=SESSION) as (stats, _),
+        open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session,
+    ):
+        session.declare_subscriber(
+            STATUS, lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes()))
+        )
+        publishers = {
+            (key, type_name): declare_data_publisher(session, key, type_name)
+            for key, type_name in {
+                (JOINTS, "msk.JointAngles"),
+                (EMG, "msk.EmgChunk"),
+                *((key, type_name) for key, type_name, _, _ in BAD),
+            }
+        }
         for publisher in publishers.values():
             _matched(publisher)
         for payload in valid[:3]:
@@ -118,10 +148,22 @@ def test_payloads_that_are_not_their_topics_messages_stay_out_of_the_typed_chann
         publishers[(EMG, "msk.EmgChunk")].put(bytes(50 * 1024 * 1024))  # 50 MB
         for payload in valid[3:]:
             publishers[(JOINTS, "msk.JointAngles")].put(payload)
-        _wait(lambda: stats.written >= len(valid) and stats.rejected >= len(BAD) and stats.inputs.total_dropped >= len(BAD) + 1,
-              20, "every payload at the recorder", lambda: stats)
-        _wait(lambda: any(sum(d.count for d in s.dropped) == len(BAD) + 1 for s in statuses), 10,
-              "the recorder's status counting them", lambda: statuses[-1:])
+        _wait(
+            lambda: (
+                stats.written >= len(valid)
+                and stats.rejected >= len(BAD)
+                and stats.inputs.total_dropped >= len(BAD) + 1
+            ),
+            20,
+            "every payload at the recorder",
+            lambda: stats,
+        )
+        _wait(
+            lambda: any(sum(d.count for d in s.dropped) == len(BAD) + 1 for s in statuses),
+            10,
+            "the recorder's status counting them",
+            lambda: statuses[-1:],
+        )
     assert out.stat().st_size < 1024 * 1024, "the 50 MB payload went into the file"
 
     # the typed channels: the valid messages only, in order, each of its topic's type
@@ -136,7 +178,9 @@ def test_payloads_that_are_not_their_topics_messages_stay_out_of_the_typed_chann
     assert [(m.topic, m.data) for m in rejected] == [(key, payload) for key, _, payload, _ in BAD]
     for m, (_, _, _, reasons) in zip(rejected, BAD):
         assert m.rejected in reasons and m.type_name == ""
-    assert sum(report.left_out.values()) == len(BAD) and set(report.left_out) == {(m.topic, m.rejected) for m in rejected}
+    assert sum(report.left_out.values()) == len(BAD) and set(report.left_out) == {
+        (m.topic, m.rejected) for m in rejected
+    }
     with open(out, "rb") as stream:
         channels = make_reader(stream).get_summary().channels.values()
     labelled = [c for c in channels if c.message_encoding == REJECTED_ENCODING]
@@ -153,13 +197,18 @@ def test_payloads_that_are_not_their_topics_messages_stay_out_of_the_typed_chann
 
     # what reads recordings: msk live's summary, the session report, a replay
     summary = live.summarise(out, 1.0)
-    assert summary["joint_frames"] == len(valid) and sum(sum(reasons.values()) for reasons in summary["inputs_dropped"][recorder.NODE_NAME].values()) == len(BAD) + 1
+    assert (
+        summary["joint_frames"] == len(valid)
+        and sum(sum(reasons.values()) for reasons in summary["inputs_dropped"][recorder.NODE_NAME].values())
+        == len(BAD) + 1
+    )
     session_report.write_report(out, tmp_path / "report")
     received: list[tuple[str, bytes]] = []
     with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
         session.declare_subscriber("msk/**", lambda s: received.append((str(s.key_expr), s.payload.to_bytes())))
-        replayed = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), out, rate=None, session_name="again",
-                                 wait_subscribers_s=5.0)
+        replayed = replayer.main(
+            ZenohOptions(connect=(zenoh_endpoint,)), out, rate=None, session_name="again", wait_subscribers_s=5.0
+        )
         _wait(lambda: len(received) >= replayed.published, 10, "the replayed messages", lambda: len(received))
         time.sleep(0.2)
     assert replayed.published == len(typed) and replayed.left_out == dict(report.left_out)
@@ -172,7 +221,10 @@ def test_identical_valid_messages_are_each_recorded(tmp_path, zenoh_endpoint):
     history (its cache answers the recorder's fetch with copies of what also arrives live): 20 of each are written."""
     out = tmp_path / "same.mcap"
     joints, load = messages.encode(_joints(1.0)), messages.encode(messages.LoadEvent(barbell_mass_kg=60.0))
-    with _recording(zenoh_endpoint, out) as (stats, _), open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+    with (
+        _recording(zenoh_endpoint, out) as (stats, _),
+        open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session,
+    ):
         plain = declare_data_publisher(session, JOINTS, "msk.JointAngles")
         cached = declare_history_publisher(session, LOAD, "msk.LoadEvent")
         _matched(plain)
@@ -200,8 +252,10 @@ def test_what_is_received_before_the_stop_is_all_written(tmp_path, zenoh_endpoin
     monkeypatch.setattr(recorder, "McapRecorderWriter", _SlowWriter)
     out, sent = tmp_path / "drained.mcap", 300
     arrived: list[int] = []
-    with _recording(zenoh_endpoint, out, history=False) as (stats, stop), \
-            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+    with (
+        _recording(zenoh_endpoint, out, history=False) as (stats, stop),
+        open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session,
+    ):
         session.declare_subscriber(EMG, lambda s: arrived.append(1))
         publisher = declare_data_publisher(session, EMG, "msk.EmgChunk")
         _matched(publisher)
@@ -212,7 +266,9 @@ def test_what_is_received_before_the_stop_is_all_written(tmp_path, zenoh_endpoin
         written_at_stop = stats.written
         stop.set()
     assert written_at_stop < sent / 2, f"the recorder had written {written_at_stop} at the stop: nothing to drain"
-    assert [messages.decode("msk.EmgChunk", data).first_sample_index // 27 for data in _typed(out, EMG)] == list(range(sent))
+    assert [messages.decode("msk.EmgChunk", data).first_sample_index // 27 for data in _typed(out, EMG)] == list(
+        range(sent)
+    )
 
 
 def test_a_restarted_recorder_continues_into_the_next_part_and_the_parts_join_once_each(tmp_path, zenoh_endpoint):
@@ -227,15 +283,27 @@ def test_a_restarted_recorder_continues_into_the_next_part_and_the_parts_join_on
             publish(driver, _emg(index))
         continuation = recorder.next_part_path(out)
         assert continuation == tmp_path / "rec-001.mcap"
-        second = _run_part(zenoh_endpoint, continuation, driver_session, driver, range(50, 60), expected=30,
-                           already_recorded=recorder.recorded_tail_in(recorder.part_paths(out)))
+        second = _run_part(
+            zenoh_endpoint,
+            continuation,
+            driver_session,
+            driver,
+            range(50, 60),
+            expected=30,
+            already_recorded=recorder.recorded_tail_in(recorder.part_paths(out)),
+        )
     assert first.written == 30 and second.history_fetched == 50 and second.already_recorded == 30
-    chunks = [messages.decode("msk.EmgChunk", data).first_sample_index // 27
-              for path in recorder.part_paths(out) for data in _typed(path, EMG)]
+    chunks = [
+        messages.decode("msk.EmgChunk", data).first_sample_index // 27
+        for path in recorder.part_paths(out)
+        for data in _typed(path, EMG)
+    ]
     assert chunks == list(range(60))
 
 
-def _run_part(endpoint: str, out: Path, driver_session, driver, indices: range, *, expected: int, **kwargs) -> recorder.RecorderStats:
+def _run_part(
+    endpoint: str, out: Path, driver_session, driver, indices: range, *, expected: int, **kwargs
+) -> recorder.RecorderStats:
     """A recorder connected to the driver's session, recording while ``indices`` are published, until it has written
     ``expected`` chunks."""
     with _recording(endpoint, out, connect=True, **kwargs) as (stats, _):

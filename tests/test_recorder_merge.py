@@ -10,8 +10,15 @@ ACTIVATIONS = "msk/s1/activations/so"
 
 
 def _message(index: int) -> messages.EmgChunk:
-    return messages.EmgChunk(source_id="trigno", channel_labels=["c1"], sample_rate_hz=2000.0, n_samples=1,
-                             n_channels=1, samples=[0.0], first_sample_index=27 * index)
+    return messages.EmgChunk(
+        source_id="trigno",
+        channel_labels=["c1"],
+        sample_rate_hz=2000.0,
+        n_samples=1,
+        n_channels=1,
+        samples=[0.0],
+        first_sample_index=27 * index,
+    )
 
 
 def _chunk(index: int) -> bytes:
@@ -27,7 +34,9 @@ def _fetched(scope: str, items: list[_Item], errors: list[str] | None = None, fi
 
 
 def _written_indices(written: list[_Item], key: str = EMG) -> list[int]:
-    return [messages.decode("msk.EmgChunk", item.payload).first_sample_index // 27 for item in written if item.key == key]
+    return [
+        messages.decode("msk.EmgChunk", item.payload).first_sample_index // 27 for item in written if item.key == key
+    ]
 
 
 def test_live_samples_wait_for_the_first_fetch_and_what_both_delivered_is_written_once():

@@ -42,8 +42,14 @@ def _write_source_recording(path: Path, *, burst: int) -> list[tuple[str, bytes]
             written.append((key, messages.encode(message)))
         for i in range(burst):
             chunk = messages.EmgChunk(
-                source_id="trigno", n_samples=27, n_channels=16, sample_rate_hz=2000.0, channel_labels=LABELS,
-                first_sample_index=27 * i, samples=[float(i % 1000)] * (27 * 16), units="V",
+                source_id="trigno",
+                n_samples=27,
+                n_channels=16,
+                sample_rate_hz=2000.0,
+                channel_labels=LABELS,
+                first_sample_index=27 * i,
+                samples=[float(i % 1000)] * (27 * 16),
+                units="V",
             )
             payload = messages.encode(chunk)
             writer.write(topics.emg_key("lab", "trigno"), "msk.EmgChunk", payload, t0 + 10_000_000 + i, t0 + i)
@@ -87,14 +93,24 @@ def test_replay_in_original_timing_under_a_new_session(tmp_path, zenoh_endpoint)
     t0 = 1_000_000_000
     with McapRecorderWriter(source) as writer:
         for i in range(11):
-            writer.write_message(topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=20.0 + i), log_time_ns=t0 + i * 100_000_000)
+            writer.write_message(
+                topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=20.0 + i), log_time_ns=t0 + i * 100_000_000
+            )
     received: list[tuple[float, str, float]] = []
     with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
         session.declare_subscriber(
             "msk/**",
-            lambda s: received.append((time.monotonic(), str(s.key_expr), messages.decode("msk.LoadEvent", s.payload.to_bytes()).barbell_mass_kg)),
+            lambda s: received.append(
+                (
+                    time.monotonic(),
+                    str(s.key_expr),
+                    messages.decode("msk.LoadEvent", s.payload.to_bytes()).barbell_mass_kg,
+                )
+            ),
         )
-        stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), source, rate=1.0, session_name="new", wait_subscribers_s=5.0)
+        stats = replayer.main(
+            ZenohOptions(connect=(zenoh_endpoint,)), source, rate=1.0, session_name="new", wait_subscribers_s=5.0
+        )
         deadline = time.monotonic() + 5
         while len(received) < 11 and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -132,9 +148,18 @@ def test_recorder_killed_with_sigkill_leaves_readable_completed_chunks(tmp_path,
                 time.sleep(0.01)
             start = time.monotonic()
             while time.monotonic() - start < 3.0:  # > 2 flush intervals of the recorder
-                publish(publisher, messages.EmgChunk(source_id="trigno", first_sample_index=sent, samples=[1.0] * 432,
-                                                     n_samples=27, n_channels=16, channel_labels=LABELS,
-                                                     sample_rate_hz=2000.0))
+                publish(
+                    publisher,
+                    messages.EmgChunk(
+                        source_id="trigno",
+                        first_sample_index=sent,
+                        samples=[1.0] * 432,
+                        n_samples=27,
+                        n_channels=16,
+                        channel_labels=LABELS,
+                        sample_rate_hz=2000.0,
+                    ),
+                )
                 sent += 1
                 time.sleep(0.001)
         os.kill(process.pid, signal.SIGKILL)
@@ -154,13 +179,23 @@ def test_replay_can_leave_out_keys(tmp_path, zenoh_endpoint):
     source = tmp_path / "mixed.mcap"
     with McapRecorderWriter(source) as writer:
         for i in range(5):
-            writer.write_message(topics.joints_key("old"), messages.JointAngles(coordinates=["a"], q=[float(i)]), log_time_ns=i + 1)
-            writer.write_message(topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=float(i)), log_time_ns=i + 1)
+            writer.write_message(
+                topics.joints_key("old"), messages.JointAngles(coordinates=["a"], q=[float(i)]), log_time_ns=i + 1
+            )
+            writer.write_message(
+                topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=float(i)), log_time_ns=i + 1
+            )
     received = []
     with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
         session.declare_subscriber("msk/**", lambda s: received.append(str(s.key_expr)))
-        stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), source, rate=None, session_name="new",
-                              wait_subscribers_s=5.0, exclude=("msk/*/joints",))
+        stats = replayer.main(
+            ZenohOptions(connect=(zenoh_endpoint,)),
+            source,
+            rate=None,
+            session_name="new",
+            wait_subscribers_s=5.0,
+            exclude=("msk/*/joints",),
+        )
         deadline = time.monotonic() + 5
         while len(received) < 5 and time.monotonic() < deadline:
             time.sleep(0.01)

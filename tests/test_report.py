@@ -30,8 +30,12 @@ def demo_with_estimates(tmp_path_factory):
 def demo_report(demo_with_estimates, tmp_path_factory):
     recording, _ = demo_with_estimates
     out = tmp_path_factory.mktemp("report") / "out"
-    result = subprocess.run([sys.executable, "-m", "services.cli", "report", str(recording), "--out", str(out)],
-                            capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "report", str(recording), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 0, result.stderr
     assert "4 sets, 12 reps, methods hybrid, so" in result.stderr
     return recording, out
@@ -44,7 +48,12 @@ def test_report_of_the_demo_session(demo_report):
     assert summary["methods"] == ["hybrid", "so"]
     sets = summary["sets"]
     # The demo session: bench press 40 and 50 kg, deadlift 45 and 75 kg, three reps each (load events + joint phase).
-    assert [(s["exercise"], s["load_kg"]) for s in sets] == [("bench_press", 40), ("bench_press", 50), ("deadlift", 45), ("deadlift", 75)]
+    assert [(s["exercise"], s["load_kg"]) for s in sets] == [
+        ("bench_press", 40),
+        ("bench_press", 50),
+        ("deadlift", 45),
+        ("deadlift", 75),
+    ]
     for s in sets:
         assert len(s["reps"]) == 3 and s["rep_source"] == "phase of the joint angles"
         assert s["time_under_tension_s"] == pytest.approx(sum(r["duration_s"] for r in s["reps"]))
@@ -68,11 +77,20 @@ def test_report_of_the_demo_session(demo_report):
     frames = [r.decode() for r in read_messages(recording) if r.topic.endswith("/activations/so")]
     inside = [f for f in frames if first_rep["start_s"] <= f.time_s <= first_rep["end_s"] and f.groups[0] == "BRA"]
     tri = list(inside[0].groups).index("TriLat")
-    assert sets[0]["methods"]["so"]["groups"]["TriLat"]["peak"][0] == pytest.approx(max(f.activations[tri] for f in inside))
+    assert sets[0]["methods"]["so"]["groups"]["TriLat"]["peak"][0] == pytest.approx(
+        max(f.activations[tri] for f in inside)
+    )
     devices = summary["devices"]
-    assert devices["trigno-synth"]["samples"] > 100_000 and devices["trigno-synth"]["gaps"] == 3  # the pauses between trials
+    assert (
+        devices["trigno-synth"]["samples"] > 100_000 and devices["trigno-synth"]["gaps"] == 3
+    )  # the pauses between trials
     assert sum(1 for d in devices.values() if d["kind"] == "IMU") == 6  # each tracker under its own id
-    assert {p.name for p in out.glob("*.png")} >= {"set1_activation.png", "set1_peaks.png", "set1_methods.png", "devices.png"}
+    assert {p.name for p in out.glob("*.png")} >= {
+        "set1_activation.png",
+        "set1_peaks.png",
+        "set1_methods.png",
+        "devices.png",
+    }
 
 
 @pytest.mark.slow
@@ -106,7 +124,9 @@ def test_report_without_activations_says_so(tmp_path):
         for k, recorded in enumerate(read_messages(DEMO_MCAP)):
             if k > 3000:
                 break
-            writer.write(recorded.topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns)
+            writer.write(
+                recorded.topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns
+            )
     summary = report.write_report(short, tmp_path / "out")
     assert summary["methods"] == [] and summary["sets"] == []
     assert "No activation frames" in (tmp_path / "out" / "report.html").read_text()
@@ -142,13 +162,15 @@ def test_reps_without_any_phase_come_from_msk_core_rep_detection():
     assert len(reps) == 3 and all(1.0 < b - a < 6.0 for a, b in reps)
 
 
-def write_small_session(path, *, loads: list, start_ns: int = 1_773_480_600_000_000_000,
-                        groups: tuple[str, str] = ("A", "B")) -> None:
+def write_small_session(
+    path, *, loads: list, start_ns: int = 1_773_480_600_000_000_000, groups: tuple[str, str] = ("A", "B")
+) -> None:
     """Two sets of three reps (phase of the joint angles), frames of the bench press with ``exercise`` set (two
     ``groups``), and the given load events as (seconds after the start, LoadEvent)."""
     from services import messages
 
     with McapRecorderWriter(path) as writer:
+
         def write(message, t_s: float, topic: str) -> None:
             ns = start_ns + int(t_s * 1e9)
             writer.write(f"msk/s/{topic}", messages.type_name(message), messages.encode(message), ns, ns)
@@ -157,18 +179,34 @@ def write_small_session(path, *, loads: list, start_ns: int = 1_773_480_600_000_
             event.device_time_ns = start_ns + int(t_s * 1e9)
             write(event, t_s, "load")
         for t_s, connected in ((0.0, True), (5.0, False), (6.0, True), (19.9, False)):  # lost once, then the stop
-            write(messages.DeviceStatus(device_id="00B4EB80", kind="xsens", connected=connected), t_s, "status/00B4EB80")
-        write(messages.DeviceStatus(device_id="estimator", kind="node", connected=False, dropped=[
-            messages.InputDrop(key="msk/s/joints", reason="undecodable", count=2)]), 19.9, "status/estimator")
+            write(
+                messages.DeviceStatus(device_id="00B4EB80", kind="xsens", connected=connected), t_s, "status/00B4EB80"
+            )
+        write(
+            messages.DeviceStatus(
+                device_id="estimator",
+                kind="node",
+                connected=False,
+                dropped=[messages.InputDrop(key="msk/s/joints", reason="undecodable", count=2)],
+            ),
+            19.9,
+            "status/estimator",
+        )
         for k in range(400):  # 20 s at 20 Hz: reps of 2 s at 1-3, 4-6, 7-9 s of each 10 s set
             t_s = k * 0.05
             in_set = t_s % 10.0
             phase = ((in_set - 1.0) % 3.0) / 2.0 if 1.0 <= in_set < 10.0 and (in_set - 1.0) % 3.0 < 2.0 else -1.0
-            joints = messages.JointAngles(coordinates=["elbow_flex_r"], q=[1.0], phase=phase,
-                                          device_time_ns=start_ns + int(t_s * 1e9))
+            joints = messages.JointAngles(
+                coordinates=["elbow_flex_r"], q=[1.0], phase=phase, device_time_ns=start_ns + int(t_s * 1e9)
+            )
             write(joints, t_s, "joints")
-            frame = messages.ActivationFrame(time_s=start_ns / 1e9 + t_s, method="so", groups=list(groups),
-                                             activations=[0.5 + 0.4 * max(phase, 0.0), 0.1], exercise="bench_press")
+            frame = messages.ActivationFrame(
+                time_s=start_ns / 1e9 + t_s,
+                method="so",
+                groups=list(groups),
+                activations=[0.5 + 0.4 * max(phase, 0.0), 0.1],
+                exercise="bench_press",
+            )
             write(frame, t_s, "activations/so")
 
 
@@ -178,19 +216,27 @@ def test_report_header_names_athlete_date_exercise_and_load(tmp_path):
     from services import messages
 
     recording = tmp_path / "session.mcap"
-    write_small_session(recording, loads=[
-        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, athlete="Ana Lima")),
-        (0.5, messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=1, athlete="Ana Lima")),  # corrected
-        (10.0, messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=2, athlete="Ana Lima")),
-    ])
+    write_small_session(
+        recording,
+        loads=[
+            (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, athlete="Ana Lima")),
+            (
+                0.5,
+                messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=1, athlete="Ana Lima"),
+            ),  # corrected
+            (10.0, messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=2, athlete="Ana Lima")),
+        ],
+    )
     summary = report.write_report(recording, tmp_path / "out")
     started = datetime.datetime.fromtimestamp(1_773_480_600).astimezone()
     assert summary["athlete"] == "Ana Lima" and summary["exercises"] == ["bench_press"]
     assert summary["loads_kg"] == [60, 62.5, 70] and summary["date"].startswith(started.strftime("%Y-%m-%d %H:%M"))
-    assert [(s["name"], len(s["reps"])) for s in summary["sets"]] == [("set 1: bench press, 62.5 kg", 3),
-                                                                      ("set 2: bench press, 70 kg", 3)]
+    assert [(s["name"], len(s["reps"])) for s in summary["sets"]] == [
+        ("set 1: bench press, 62.5 kg", 3),
+        ("set 2: bench press, 70 kg", 3),
+    ]
     page = (tmp_path / "out" / "report.html").read_text()
-    header = page[page.index("<header>"):page.index("</header>")]
+    header = page[page.index("<header>") : page.index("</header>")]
     assert f"Session report: Ana Lima, {summary['date']}" in header and "bench press · 60, 62.5, 70 kg" in header
     assert "1773480600" not in header
     assert summary["devices"]["00B4EB80"]["disconnected_reports"] == 1  # the loss, not the driver's final status
@@ -211,11 +257,22 @@ def test_report_names_muscles_by_their_display_names_and_the_sessions(tmp_path):
     from services import messages
 
     recording = tmp_path / "session.mcap"
-    write_small_session(recording, groups=("TriLat", "PMCla"), loads=[
-        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
-                                 names={"PMCla": "Upper chest"})),  # the session file's name, from msk live
-        (10.0, messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=2)),  # msk load: names stay
-    ])
+    write_small_session(
+        recording,
+        groups=("TriLat", "PMCla"),
+        loads=[
+            (
+                0.0,
+                messages.LoadEvent(
+                    barbell_mass_kg=60, exercise="bench_press", set_number=1, names={"PMCla": "Upper chest"}
+                ),
+            ),  # the session file's name, from msk live
+            (
+                10.0,
+                messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=2),
+            ),  # msk load: names stay
+        ],
+    )
     summary = report.write_report(recording, tmp_path / "out")
     for s in summary["sets"]:
         assert s["names"]["groups"]["TriLat"] == "Triceps brachii, lateral and medial heads"

@@ -17,33 +17,79 @@ SCHEMA_DIR = Path(msk_pb2.__file__).parent
 
 def sample_messages():
     yield messages.EmgChunk(
-        source_id="trigno-1", channel_labels=["s1.EMG", "s2.EMG"], sample_rate_hz=2000.0, first_sample_index=27,
-        device_time_ns=13_500_000, host_time_ns=1_700_000_000_000_000_000, n_samples=2, n_channels=2,
-        samples=[0.5, -0.25, 1e-3, 2e-3], units="V",
+        source_id="trigno-1",
+        channel_labels=["s1.EMG", "s2.EMG"],
+        sample_rate_hz=2000.0,
+        first_sample_index=27,
+        device_time_ns=13_500_000,
+        host_time_ns=1_700_000_000_000_000_000,
+        n_samples=2,
+        n_channels=2,
+        samples=[0.5, -0.25, 1e-3, 2e-3],
+        units="V",
     )
     yield messages.AccChunk(
-        source_id="trigno-1", sensor_labels=["sensor01", "sensor03"], sample_rate_hz=2 / 0.0135, first_sample_index=2,
-        device_time_ns=13_500_000, host_time_ns=1_700_000_000_000_000_000, n_samples=1, n_sensors=2,
-        samples=[0.0, 0.0, 1.0, 0.5, -0.25, 0.75], units="g",
+        source_id="trigno-1",
+        sensor_labels=["sensor01", "sensor03"],
+        sample_rate_hz=2 / 0.0135,
+        first_sample_index=2,
+        device_time_ns=13_500_000,
+        host_time_ns=1_700_000_000_000_000_000,
+        n_samples=1,
+        n_sensors=2,
+        samples=[0.0, 0.0, 1.0, 0.5, -0.25, 0.75],
+        units="g",
     )
     yield messages.ImuSample(
-        tracker_id="0343A1B2", segment="upper_arm_r", packet_counter=65535, sample_time_fine=864_000_000 - 1,
-        orientation=messages.Quaternion(w=0.5, x=0.5, y=-0.5, z=0.5), acceleration=messages.Vector3(x=0.0, y=-7.26, z=-1.2),
-        rate_of_turn=messages.Vector3(x=0.1, y=0.2, z=0.3), magnetic_field=messages.Vector3(x=1.0, y=0.0, z=0.0),
-        device_time_ns=10, host_time_ns=11, coordinate_frame="ENU",
+        tracker_id="0343A1B2",
+        segment="upper_arm_r",
+        packet_counter=65535,
+        sample_time_fine=864_000_000 - 1,
+        orientation=messages.Quaternion(w=0.5, x=0.5, y=-0.5, z=0.5),
+        acceleration=messages.Vector3(x=0.0, y=-7.26, z=-1.2),
+        rate_of_turn=messages.Vector3(x=0.1, y=0.2, z=0.3),
+        magnetic_field=messages.Vector3(x=1.0, y=0.0, z=0.0),
+        device_time_ns=10,
+        host_time_ns=11,
+        coordinate_frame="ENU",
     )
-    yield messages.JointAngles(coordinates=["hip_flexion_r", "knee_angle_r"], q=[0.1, -0.2], qd=[1.0, 2.0], qdd=[3.0, 4.0], phase=0.25)
+    yield messages.JointAngles(
+        coordinates=["hip_flexion_r", "knee_angle_r"], q=[0.1, -0.2], qd=[1.0, 2.0], qdd=[3.0, 4.0], phase=0.25
+    )
     yield messages.LoadEvent(barbell_mass_kg=60.0, exercise="bench_press", device_time_ns=5)
     yield messages.ActivationFrame(
-        time_s=1.25, method="proposed", groups=["BRA", "BRD"], activations=[0.2, 0.3], forces_n=[200.0, 90.0],
+        time_s=1.25,
+        method="proposed",
+        groups=["BRA", "BRD"],
+        activations=[0.2, 0.3],
+        forces_n=[200.0, 90.0],
         activation_std=[0.01, 0.02],
-        torques=[messages.CoordinateTorque(coordinate="elbow_flexion", inverse_dynamics_nm=10.0, model_nm=9.5, residual_nm=0.5)],
-        solver_status="solved", iterations=7, solve_time_s=3e-5, input_arrival_ns=1, publish_ns=2, flags=["nan_input"], phase=0.4,
+        torques=[
+            messages.CoordinateTorque(
+                coordinate="elbow_flexion", inverse_dynamics_nm=10.0, model_nm=9.5, residual_nm=0.5
+            )
+        ],
+        solver_status="solved",
+        iterations=7,
+        solve_time_s=3e-5,
+        input_arrival_ns=1,
+        publish_ns=2,
+        flags=["nan_input"],
+        phase=0.4,
         measured_envelope=[float("nan"), 0.31],
     )
-    yield messages.EmgEnvelope(time_s=1.25, groups=["BRD"], envelope=[0.31], device_time_ns=1_250_000_000,
-                               host_time_ns=3, flags=["emg_gap"])
-    yield messages.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True, samples_received=10, samples_lost=2, errors=1, last_error="gap")
+    yield messages.EmgEnvelope(
+        time_s=1.25, groups=["BRD"], envelope=[0.31], device_time_ns=1_250_000_000, host_time_ns=3, flags=["emg_gap"]
+    )
+    yield messages.DeviceStatus(
+        device_id="trigno-1",
+        kind="trigno",
+        connected=True,
+        samples_received=10,
+        samples_lost=2,
+        errors=1,
+        last_error="gap",
+    )
 
 
 @pytest.mark.parametrize("message", list(sample_messages()), ids=lambda m: m.DESCRIPTOR.name)
@@ -69,12 +115,22 @@ def test_committed_generated_code_matches_proto(tmp_path):
     """Regenerate msk_pb2.py from msk.proto with the pinned protoc and compare with the committed file."""
     pytest.importorskip("grpc_tools")
     subprocess.run(
-        [sys.executable, "-m", "grpc_tools.protoc", f"-I{SCHEMA_DIR}", f"--python_out={tmp_path}", f"--pyi_out={tmp_path}", "msk.proto"],
+        [
+            sys.executable,
+            "-m",
+            "grpc_tools.protoc",
+            f"-I{SCHEMA_DIR}",
+            f"--python_out={tmp_path}",
+            f"--pyi_out={tmp_path}",
+            "msk.proto",
+        ],
         check=True,
         cwd=SCHEMA_DIR,
     )
     for name in ("msk_pb2.py", "msk_pb2.pyi"):
-        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), f"{name} is stale: regenerate it from msk.proto"
+        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), (
+            f"{name} is stale: regenerate it from msk.proto"
+        )
 
 
 def test_file_descriptor_set_describes_every_type():

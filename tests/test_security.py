@@ -55,13 +55,26 @@ def rogue_pki(tmp_path_factory):
 def router(pki, tmp_path_factory):
     """``msk router`` as its own process, from the JSON5 config ``msk certs`` would write; yields its TLS endpoint."""
     configs = security.write_configs(
-        tmp_path_factory.mktemp("zenoh"), pki.directory, router_listen=("tls/0.0.0.0:7447",), client_connect=("tls/localhost:7447",)
+        tmp_path_factory.mktemp("zenoh"),
+        pki.directory,
+        router_listen=("tls/0.0.0.0:7447",),
+        client_connect=("tls/localhost:7447",),
     )
     port = free_tcp_port()
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "router", "--zenoh-config", str(configs["router"]),
-         "--listen", f"tls/127.0.0.1:{port}"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "router",
+            "--zenoh-config",
+            str(configs["router"]),
+            "--listen",
+            f"tls/127.0.0.1:{port}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         try:
@@ -105,8 +118,16 @@ def _wait_matched(publisher: zenoh.Publisher, what: str) -> None:
 
 
 def _emg(source_tag: str, index: int) -> msk_pb2.EmgChunk:
-    return msk_pb2.EmgChunk(source_id=source_tag, channel_labels=["ch1"], sample_rate_hz=2000.0, first_sample_index=index * 27,
-                            n_samples=27, n_channels=1, samples=[0.001] * 27, units="V")
+    return msk_pb2.EmgChunk(
+        source_id=source_tag,
+        channel_labels=["ch1"],
+        sample_rate_hz=2000.0,
+        first_sample_index=index * 27,
+        n_samples=27,
+        n_channels=1,
+        samples=[0.001] * 27,
+        units="V",
+    )
 
 
 # --- loopback by default --------------------------------------------------------------------------------------
@@ -136,7 +157,7 @@ def _listening_addresses(pid: int) -> list[tuple[str, int]]:
                 if family == 4:
                     address = socket.inet_ntop(socket.AF_INET, raw[::-1])
                 else:
-                    address = socket.inet_ntop(socket.AF_INET6, b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4)))
+                    address = socket.inet_ntop(socket.AF_INET6, b"".join(raw[i : i + 4][::-1] for i in range(0, 16, 4)))
                 found.append((address, int(port_hex, 16)))
     return found
 
@@ -245,12 +266,23 @@ def test_subscribe_only_client_cannot_inject_load_or_emg(pki, router):
             publish(real_load, msk_pb2.LoadEvent(barbell_mass_kg=20.0 + index))
             publish(real_emg, _emg("trigno", index))
         for name, inbox in (("estimator", estimator_inbox), ("recorder", recorder_inbox)):
-            _wait_for(lambda: inbox.count(load_key) >= N and inbox.count(emg_key) >= N, 20,
-                      f"{N} real LoadEvents and EMG chunks at the {name}", lambda: dict(inbox.keys))
+            _wait_for(
+                lambda inbox=inbox: inbox.count(load_key) >= N and inbox.count(emg_key) >= N,
+                20,
+                f"{N} real LoadEvents and EMG chunks at the {name}",
+                lambda inbox=inbox: dict(inbox.keys),
+            )
         time.sleep(0.5)  # any fake still in flight would land now
         for name, inbox in (("estimator", estimator_inbox), ("recorder", recorder_inbox)):
-            decoded = [(key, messages.decode("msk.LoadEvent" if key == load_key else "msk.EmgChunk", data)) for key, data in inbox.payloads]
-            fakes = [m for key, m in decoded if (key == load_key and m.barbell_mass_kg == 999.0) or (key == emg_key and m.source_id == "fake")]
+            decoded = [
+                (key, messages.decode("msk.LoadEvent" if key == load_key else "msk.EmgChunk", data))
+                for key, data in inbox.payloads
+            ]
+            fakes = [
+                m
+                for key, m in decoded
+                if (key == load_key and m.barbell_mass_kg == 999.0) or (key == emg_key and m.source_id == "fake")
+            ]
             assert not fakes, f"the {name} received {len(fakes)} injected messages"
             assert inbox.count(load_key) == N and inbox.count(emg_key) == N, f"{name}: {dict(inbox.keys)}"
             masses = sorted(m.barbell_mass_kg for key, m in decoded if key == load_key)
@@ -281,12 +313,19 @@ def test_allowed_flows_deliver_every_message_and_tablets_see_only_theirs(pki, ro
         _wait_matched(status, status_key)
         for index in range(N):
             publish(activations, msk_pb2.ActivationFrame(method="so", time_s=index * 0.01))
-            publish(status, msk_pb2.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True, samples_received=index))
+            publish(
+                status,
+                msk_pb2.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True, samples_received=index),
+            )
             publish(emg, _emg("trigno", index))
             publish(joints, msk_pb2.JointAngles(coordinates=["elbow"], q=[index * 0.01]))
             publish(forged, msk_pb2.ActivationFrame(method="forged", time_s=index * 0.01))
-        _wait_for(lambda: tablet.count(activations_key) >= N and tablet.count(status_key) >= N, 20,
-                  f"{N} activation frames and {N} statuses at the tablet", lambda: dict(tablet.keys))
+        _wait_for(
+            lambda: tablet.count(activations_key) >= N and tablet.count(status_key) >= N,
+            20,
+            f"{N} activation frames and {N} statuses at the tablet",
+            lambda: dict(tablet.keys),
+        )
         time.sleep(0.5)
         assert tablet.keys == Counter({activations_key: N, status_key: N}), dict(tablet.keys)
         frames = [messages.decode("msk.ActivationFrame", d) for k, d in tablet.payloads if k == activations_key]
@@ -299,11 +338,27 @@ def test_allowed_flows_deliver_every_message_and_tablets_see_only_theirs(pki, ro
 def test_certs_command_writes_a_usable_pki_and_configs(tmp_path):
     from services.cli import main
 
-    assert main(["certs", "--out", str(tmp_path / "pki"), "--router-host", "gym-router.local", "--router-host", "10.0.0.2",
-                 "--pki-path", "/pki"]) == 0
+    assert (
+        main(
+            [
+                "certs",
+                "--out",
+                str(tmp_path / "pki"),
+                "--router-host",
+                "gym-router.local",
+                "--router-host",
+                "10.0.0.2",
+                "--pki-path",
+                "/pki",
+            ]
+        )
+        == 0
+    )
     names = sorted(p.name for p in (tmp_path / "pki").iterdir() if p.is_file())
     roles = list(security.ROLE_POLICIES)
-    assert names == sorted(["ca.key", "ca.pem", "router.key", "router.pem"] + [f"{r}.{e}" for r in roles for e in ("key", "pem")])
+    assert names == sorted(
+        ["ca.key", "ca.pem", "router.key", "router.pem"] + [f"{r}.{e}" for r in roles for e in ("key", "pem")]
+    )
     from cryptography import x509
 
     router_cert = x509.load_pem_x509_certificate((tmp_path / "pki" / "router.pem").read_bytes())
@@ -332,8 +387,11 @@ def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(
     config.write_text(json.dumps(security.client_config(pki.directory, "recorder", connect=(router,))))
     out = tmp_path / "late.mcap"
     stats, stop, ready = recorder_node.RecorderStats(), threading.Event(), threading.Event()
-    thread = threading.Thread(target=recorder_node.main, args=(ZenohOptions(mode=None, config_file=config), out),
-                              kwargs=dict(stop_event=stop, ready_event=ready, stats=stats, flush_interval_s=0.2))
+    thread = threading.Thread(
+        target=recorder_node.main,
+        args=(ZenohOptions(mode=None, config_file=config), out),
+        kwargs=dict(stop_event=stop, ready_event=ready, stats=stats, flush_interval_s=0.2),
+    )
     try:
         publisher = declare_history_publisher(sessions["driver"], key, "msk.EmgChunk")
         for index in range(50):
@@ -355,7 +413,9 @@ def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(
     indices = [messages.decode("msk.EmgChunk", m.data).first_sample_index for m in read_messages(out) if m.topic == key]
     assert indices == [27 * i for i in range(60)]
     assert stats.history_fetched == 50 and stats.history_errors == 0, stats
-    assert tablet_history == [], f"the tablet read {len(tablet_history)} device messages from the history ({tablet_errors})"
+    assert tablet_history == [], (
+        f"the tablet read {len(tablet_history)} device messages from the history ({tablet_errors})"
+    )
 
 
 def test_the_dashboard_joins_the_secured_network_as_a_tablet(pki, router, tmp_path):
@@ -378,13 +438,21 @@ def test_the_dashboard_joins_the_secured_network_as_a_tablet(pki, router, tmp_pa
         _wait_matched(activations, activations_key)
         _wait_matched(status, status_key)
         for index in range(N):
-            publish(activations, msk_pb2.ActivationFrame(method="so", time_s=index * 0.01, groups=["BicLong"],
-                                                         activations=[0.5]))
-            publish(status, msk_pb2.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True,
-                                                 samples_received=index))
+            publish(
+                activations,
+                msk_pb2.ActivationFrame(method="so", time_s=index * 0.01, groups=["BicLong"], activations=[0.5]),
+            )
+            publish(
+                status,
+                msk_pb2.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True, samples_received=index),
+            )
             publish(emg, _emg("trigno", index))
-        _wait_for(lambda: state.changes(0)[1]["topics"].get("activations/so") is not None, 20,
-                  "the dashboard state to hold an activation frame", lambda: list(state.changes(0)[1]["topics"]))
+        _wait_for(
+            lambda: state.changes(0)[1]["topics"].get("activations/so") is not None,
+            20,
+            "the dashboard state to hold an activation frame",
+            lambda: list(state.changes(0)[1]["topics"]),
+        )
         time.sleep(0.5)
         update = state.changes(0)[1]
         assert "activations/so" in update["topics"]

@@ -75,9 +75,11 @@ def test_the_walk_trials_split_at_a_heel_strike_and_its_reps_are_gait_cycles(sha
         inside = strikes[(strikes >= trial.time[0] - 0.02) & (strikes <= trial.time[-1] + 0.02)]
         timed = starts[starts > strikes[0] - 0.2]  # the walk's first cycle starts before the first detected strike
         lag = np.array([s - strikes[np.argmin(np.abs(strikes - s))] for s in timed])
-        print(f"{name}: {n_reps} reps, {inside.size} heel strikes; rep start - heel strike median "
-              f"{np.median(lag):+.3f} s, 90th percentile |lag| {np.percentile(np.abs(lag), 90):.3f} s, "
-              f"max {np.abs(lag).max():.3f} s; {np.mean(trial.rep_index >= 0):.0%} of frames in a rep")
+        print(
+            f"{name}: {n_reps} reps, {inside.size} heel strikes; rep start - heel strike median "
+            f"{np.median(lag):+.3f} s, 90th percentile |lag| {np.percentile(np.abs(lag), 90):.3f} s, "
+            f"max {np.abs(lag).max():.3f} s; {np.mean(trial.rep_index >= 0):.0%} of frames in a rep"
+        )
         assert inside.size - 1 <= n_reps <= inside.size + 1  # one rep per gait cycle
         # a hip-flexion rep starts when the hip leaves its flexed heel-strike level: a tenth of a cycle after the
         # strike, never before it (docs/estimation.md, "The walk")

@@ -68,9 +68,25 @@ class Stream:
 def run_live(out: Path, env: dict) -> dict:
     """``msk live --sim --no-view --duration RUN_S`` as a user runs it; its summary."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", str(RUN_S), "--out",
-         str(out)], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "live",
+            "--sim",
+            "--no-view",
+            "--duration",
+            str(RUN_S),
+            "--out",
+            str(out),
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     try:
         output, _ = process.communicate(timeout=STARTUP_S + RUN_S + 120)
     finally:
@@ -107,14 +123,16 @@ def first_trial_sample(rows: np.ndarray, trial: np.ndarray, *, exact: bool, step
 
 def emg_stream(recordings: list[Path], trial: np.ndarray, rate_hz: float) -> tuple[Stream, np.ndarray, list[str]]:
     """The recorded EMG (one contiguous stream, checked) on the trial's time axis; its raw samples; channel labels."""
-    chunks = sorted((m.decode() for part in recordings for m in read_messages(part) if m.type_name == "msk.EmgChunk"),
-                    key=lambda c: c.first_sample_index)
+    chunks = sorted(
+        (m.decode() for part in recordings for m in read_messages(part) if m.type_name == "msk.EmgChunk"),
+        key=lambda c: c.first_sample_index,
+    )
     assert chunks, "no EMG recorded"
     labels = list(chunks[0].channel_labels)
     index = [(c.first_sample_index, c.n_samples) for c in chunks]
     assert all(a + n == b for (a, n), (b, _) in zip(index, index[1:])), "the recorded EMG has gaps"
     rows = np.concatenate([np.asarray(c.samples, np.float32).reshape(c.n_samples, c.n_channels) for c in chunks])
-    slots = [int(label[len("sensor"):len("sensor") + 2]) - 1 for label in labels]  # sensorNN.EMG -> slot NN - 1
+    slots = [int(label[len("sensor") : len("sensor") + 2]) - 1 for label in labels]  # sensorNN.EMG -> slot NN - 1
     k0 = first_trial_sample(rows, trial[:, slots], exact=True)
     sample = np.arange(len(rows))
     device_ns = np.round((chunks[0].first_sample_index + sample) * 1e9 / rate_hz).astype(np.int64)
@@ -133,19 +151,20 @@ def imu_streams(recordings: list[Path], sources: dict[str, tuple[str, object]], 
                 s = m.decode()
                 o = s.orientation
                 quaternion = to_enu((o.w, o.x, o.y, o.z), CoordinateFrame[(s.coordinate_frame or "ENU").upper()])
-                samples.setdefault(s.tracker_id, []).append((s.packet_counter, s.device_time_ns, s.host_time_ns,
-                                                             quaternion))
+                samples.setdefault(s.tracker_id, []).append(
+                    (s.packet_counter, s.device_time_ns, s.host_time_ns, quaternion)
+                )
     streams = {}
     for tracker, rows in samples.items():
         source = sources[tracker][1]
         counters = np.array([r[0] for r in rows], np.int64)
         number = np.concatenate([[0], np.cumsum(np.diff(counters) % 65536)])  # unwrapped 16-bit PacketCounter
-        k0 = first_trial_sample(np.array([r[3] for r in rows]), source.arrays["quaternion"], exact=False,
-                                steps=number)
+        k0 = first_trial_sample(np.array([r[3] for r in rows]), source.arrays["quaternion"], exact=False, steps=number)
         sample = k0 + number
         trial_s = sample // source.n_samples * loop_s + sample % source.n_samples / source.rate_hz
-        streams[tracker] = Stream(trial_s, np.array([r[1] for r in rows], np.int64),
-                                  np.array([r[2] for r in rows], np.int64))
+        streams[tracker] = Stream(
+            trial_s, np.array([r[1] for r in rows], np.int64), np.array([r[2] for r in rows], np.int64)
+        )
     return streams
 
 
@@ -180,8 +199,9 @@ def group_envelopes(raw: np.ndarray, labels: list[str], rate_hz: float, setup: E
     return {g: np.mean(columns, axis=0) for g, columns in groups.items()}
 
 
-def peak_lag(measured: np.ndarray, frame_trial_s: np.ndarray, emg_trial_s: np.ndarray, offline: np.ndarray
-             ) -> tuple[float, float]:
+def peak_lag(
+    measured: np.ndarray, frame_trial_s: np.ndarray, emg_trial_s: np.ndarray, offline: np.ndarray
+) -> tuple[float, float]:
     """(lag in s, correlation) maximising the correlation of ``measured`` with the offline envelope at the frames'
     trial instants + lag."""
     lags = np.arange(-MAX_LAG_S, MAX_LAG_S + LAG_STEP_S / 2, LAG_STEP_S)
@@ -231,21 +251,31 @@ def check_one_world(out: Path, summary: dict) -> None:
     for group, envelope in offline.items():
         g = groups.index(group)
         measured = np.array([f.measured_envelope[g] for f in frames])
-        usable = inside & np.isfinite(measured) & np.array(
-            [not {FLAG_GAP, FLAG_STALLED} & set(f.flags) for f in frames])
+        usable = (
+            inside & np.isfinite(measured) & np.array([not {FLAG_GAP, FLAG_STALLED} & set(f.flags) for f in frames])
+        )
         assert usable.sum() > 0.9 * inside.sum(), (group, usable.sum(), inside.sum())
         lag_s, correlation = peak_lag(measured[usable], frame_trial_s[usable], emg.trial_s, envelope)
-        per_window = [peak_lag(measured[usable & (window == w)], frame_trial_s[usable & (window == w)], emg.trial_s,
-                               envelope)[0] + setup.emd_s
-                      for w in np.unique(window[usable]) if np.sum(usable & (window == w)) >= 60]
+        per_window = [
+            peak_lag(measured[usable & (window == w)], frame_trial_s[usable & (window == w)], emg.trial_s, envelope)[0]
+            + setup.emd_s
+            for w in np.unique(window[usable])
+            if np.sum(usable & (window == w)) >= 60
+        ]
         results[group] = (lag_s + setup.emd_s, correlation, min(per_window), max(per_window))
-    report = "; ".join(f"{g} {lag * 1e3:+.1f} ms ({lag / FRAME_S:+.2f} frames, r {r:.4f}; per {WINDOW_S:g} s window "
-                       f"{low * 1e3:+.1f}..{high * 1e3:+.1f} ms)" for g, (lag, r, low, high) in results.items())
-    print(f"\nEMD {setup.emd_s * 1e3:g} ms; trial time of the EMG each frame's measured envelope was read at, minus "
-          f"the frame's own trial instant minus the EMD (peak of the cross-correlation with the offline envelope; "
-          f"+: later EMG), per group: {report}; trackers' spread within a frame: max "
-          f"{spread_s[inside].max() * 1e3:.1f} ms; {inside.sum()} frames")
+    report = "; ".join(
+        f"{g} {lag * 1e3:+.1f} ms ({lag / FRAME_S:+.2f} frames, r {r:.4f}; per {WINDOW_S:g} s window "
+        f"{low * 1e3:+.1f}..{high * 1e3:+.1f} ms)"
+        for g, (lag, r, low, high) in results.items()
+    )
+    print(
+        f"\nEMD {setup.emd_s * 1e3:g} ms; trial time of the EMG each frame's measured envelope was read at, minus "
+        f"the frame's own trial instant minus the EMD (peak of the cross-correlation with the offline envelope; "
+        f"+: later EMG), per group: {report}; trackers' spread within a frame: max "
+        f"{spread_s[inside].max() * 1e3:.1f} ms; {inside.sum()} frames"
+    )
     assert spread_s[inside].max() <= FRAME_S + 1e-9, f"the trackers of a frame are not one instant: {spread_s.max()}"
-    assert all(abs(lag) <= FRAME_S and abs(low) <= FRAME_S and abs(high) <= FRAME_S
-               for lag, _, low, high in results.values()), report
+    assert all(
+        abs(lag) <= FRAME_S and abs(low) <= FRAME_S and abs(high) <= FRAME_S for lag, _, low, high in results.values()
+    ), report
     assert all(r > 0.98 for _, r, _, _ in results.values()), report

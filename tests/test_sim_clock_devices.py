@@ -62,11 +62,13 @@ class OneWorld:
 
 def _reader(target, errors: list[BaseException]):
     """A reader thread's body that keeps its exception for the fixture to raise."""
+
     def run(*args) -> None:
         try:
             target(*args)
         except BaseException as error:
             errors.append(error)
+
     return run
 
 
@@ -81,8 +83,15 @@ def _read_trigno(sim: TrignoSimulator, stream: Stream, live: LiveEmg, start_at: 
                 if not isinstance(block, EmgBlock):
                     continue
                 n = len(block.samples)
-                live.add_chunk("trigno", ("s1", "s2", "s3", "s4"), block.rate_hz, block.first_sample_index,
-                               block.device_time_ns, block.samples[:, :4], block.host_time_ns)
+                live.add_chunk(
+                    "trigno",
+                    ("s1", "s2", "s3", "s4"),
+                    block.rate_hz,
+                    block.first_sample_index,
+                    block.device_time_ns,
+                    block.samples[:, :4],
+                    block.host_time_ns,
+                )
                 for k in range(n):
                     stream.rows.append(block.samples[k, :4])
                     stream.index.append(block.first_sample_index + k)
@@ -121,22 +130,43 @@ def one_world() -> OneWorld:
     trial_start = time.monotonic()
     clock = TrialClock(trial_start)
     real_minus_mono_ns = time.time_ns() - time.monotonic_ns()
-    trigno = TrignoSimulator(emg, SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None,
-                                                  trial_clock=clock, latency_s=TRIGNO_LATENCY_S)).start()
+    trigno = TrignoSimulator(
+        emg,
+        SimulatorConfig(
+            command_port=0,
+            emg_port=0,
+            legacy_emg_port=None,
+            aux_port=None,
+            trial_clock=clock,
+            latency_s=TRIGNO_LATENCY_S,
+        ),
+    ).start()
     xsens = {}
     for name in ("A", "B"):  # powered up 0.2 s apart: their SampleTimeFine clocks differ by that
-        xsens[name] = XsensSimulator(imu, device_id=0x03700A00 + len(xsens), wakeup_window_s=3600.0,
-                                     trial_clock=clock, latency_s=XSENS_LATENCY_S).start()
+        xsens[name] = XsensSimulator(
+            imu, device_id=0x03700A00 + len(xsens), wakeup_window_s=3600.0, trial_clock=clock, latency_s=XSENS_LATENCY_S
+        ).start()
         time.sleep(0.2)
-    live = LiveEmg(["g1", "g2", "g3", "g4"], EmgSetup({f"s{k}": f"g{k}" for k in range(1, 5)},
-                                                      {f"s{k}": 1e-3 for k in range(1, 5)}), clock=ClockMode.HOST)
+    live = LiveEmg(
+        ["g1", "g2", "g3", "g4"],
+        EmgSetup({f"s{k}": f"g{k}" for k in range(1, 5)}, {f"s{k}": 1e-3 for k in range(1, 5)}),
+        clock=ClockMode.HOST,
+    )
     streams = {"trigno": Stream(), "A": Stream(), "B": Stream()}
     stop = threading.Event()
     errors: list[BaseException] = []
-    threads = [threading.Thread(target=_reader(_read_trigno, errors), args=(trigno, streams["trigno"], live,
-                                                           trial_start + STARTS_S["trigno"], stop))]
-    threads += [threading.Thread(target=_reader(_read_xsens, errors), args=(xsens[n], streams[n], trial_start + STARTS_S[n], stop))
-                for n in ("A", "B")]
+    threads = [
+        threading.Thread(
+            target=_reader(_read_trigno, errors),
+            args=(trigno, streams["trigno"], live, trial_start + STARTS_S["trigno"], stop),
+        )
+    ]
+    threads += [
+        threading.Thread(
+            target=_reader(_read_xsens, errors), args=(xsens[n], streams[n], trial_start + STARTS_S[n], stop)
+        )
+        for n in ("A", "B")
+    ]
     try:
         for thread in threads:
             thread.start()
@@ -150,10 +180,17 @@ def one_world() -> OneWorld:
             sim.close()
     if errors:
         raise errors[0]
-    return OneWorld(trial_start, real_minus_mono_ns, emg.samples[:, :4], imu.arrays["quaternion"], streams["trigno"],
-                    {n: streams[n] for n in ("A", "B")}, {n: s._powered_at for n, s in xsens.items()},
-                    {"trigno": trigno.stats.start_index, **{n: s.stats.start_index for n, s in xsens.items()}},
-                    live.sources["trigno"].offset_ns)
+    return OneWorld(
+        trial_start,
+        real_minus_mono_ns,
+        emg.samples[:, :4],
+        imu.arrays["quaternion"],
+        streams["trigno"],
+        {n: streams[n] for n in ("A", "B")},
+        {n: s._powered_at for n, s in xsens.items()},
+        {"trigno": trigno.stats.start_index, **{n: s.stats.start_index for n, s in xsens.items()}},
+        live.sources["trigno"].offset_ns,
+    )
 
 
 def _trial_index_of_first_row(rows: np.ndarray, source: np.ndarray, *, exact: bool) -> int:
@@ -185,11 +222,14 @@ def _delivery_s(world: OneWorld, stream: Stream, source: np.ndarray, rate: float
 
 def test_each_device_streams_the_trial_from_the_instant_it_starts_on_its_own_clock(one_world):
     world = one_world
-    assert len(world.trigno.rows) > 2000 * (READ_S - 0.5) and all(len(s.rows) > IMU_RATE * (READ_S - 0.5)
-                                                                  for s in world.xsens.values())
+    assert len(world.trigno.rows) > 2000 * (READ_S - 0.5) and all(
+        len(s.rows) > IMU_RATE * (READ_S - 0.5) for s in world.xsens.values()
+    )
     # the content: each stream is the trial from the sample of the instant its device started (stated in its stats)
     k0 = {"trigno": _trial_index_of_first_row(np.array(world.trigno.rows), world.emg_source, exact=True)}
-    k0 |= {n: _trial_index_of_first_row(np.array(s.rows), world.imu_source, exact=False) for n, s in world.xsens.items()}
+    k0 |= {
+        n: _trial_index_of_first_row(np.array(s.rows), world.imu_source, exact=False) for n, s in world.xsens.items()
+    }
     assert k0 == world.start_index, (k0, world.start_index)
     for name, rate in (("trigno", 2000.0), ("A", IMU_RATE), ("B", IMU_RATE)):
         started_s = k0[name] / rate
@@ -228,8 +268,10 @@ def test_host_mapping_leaves_the_difference_of_the_delivery_latencies_not_the_bl
         imu_host_ns = stream.device_ns[0] + imu_offset_ns
         residual_s = (imu_host_ns - emg_host_ns) / 1e9
         expected_s = XSENS_LATENCY_S - TRIGNO_LATENCY_S
-        print(f"tracker {name}: IMU minus EMG host-mapped time of one trial instant {residual_s * 1e3:+.2f} ms "
-              f"(latencies say {expected_s * 1e3:+.1f} ms)")
+        print(
+            f"tracker {name}: IMU minus EMG host-mapped time of one trial instant {residual_s * 1e3:+.2f} ms "
+            f"(latencies say {expected_s * 1e3:+.1f} ms)"
+        )
         assert abs(residual_s - expected_s) < 0.003, (name, residual_s, expected_s)
 
 
@@ -245,8 +287,15 @@ def test_live_emg_host_offset_uses_the_last_sample_of_each_block_whatever_the_bl
             first = b * block
             last_ns = int(round((first + block - 1) * 1e9 / rate))
             late_ns = 0 if b == 17 else int(rng.integers(1, 3_000_000))  # one block delivered at the fastest
-            live.add_chunk("emg", ("c",), rate, first, int(round(first * 1e9 / rate)), rng.standard_normal((block, 1)),
-                           clock_offset_ns + last_ns + latency_ns + late_ns)
+            live.add_chunk(
+                "emg",
+                ("c",),
+                rate,
+                first,
+                int(round(first * 1e9 / rate)),
+                rng.standard_normal((block, 1)),
+                clock_offset_ns + last_ns + latency_ns + late_ns,
+            )
         assert live.sources["emg"].offset_ns == clock_offset_ns + latency_ns, block
 
 

@@ -31,8 +31,25 @@ def test_expected_type_of_a_key_expression():
 
 def test_msk_subscribe_prints_valid_messages_and_counts_the_unusable_ones(repo_root, zenoh_endpoint):
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "subscribe", "msk/bad/**", "--json", "--count", "2", "--duration", "60",
-         "--listen", zenoh_endpoint], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "subscribe",
+            "msk/bad/**",
+            "--json",
+            "--count",
+            "2",
+            "--duration",
+            "60",
+            "--listen",
+            zenoh_endpoint,
+        ],
+        cwd=repo_root,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         first_line: list[str] = []
         reader = threading.Thread(target=lambda: first_line.append(process.stderr.readline()), daemon=True)

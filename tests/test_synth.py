@@ -10,10 +10,10 @@ import numpy as np
 import piqp
 import pytest
 
-from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_group_delay_s
 from msk_core.errors import ConfigError
 from msk_core.model import load_pack
 from msk_core.model.pack import available_packs
+from msk_core.signal.emg import EmgFilterConfig, envelope_causal, envelope_group_delay_s
 from msk_core.signal.reps import REST_PHASE
 from msk_core.synth import Exercise, SynthConfig, generate_exercise, generate_session, parse_effects
 from msk_core.synth.files import EmgOutput, write_session
@@ -91,8 +91,14 @@ def test_truth_torques_reproduced_by_true_activations_and_not_static_optimisatio
         solver = piqp.DenseSolver()
         solver.settings.verbose = False
         n = a_mat.shape[1]
-        solver.setup(np.asfortranarray(2 * np.eye(n)), np.zeros(n), A=np.asfortranarray(a_mat), b=trial.torque_id[k],
-                     x_l=np.zeros(n), x_u=np.ones(n))
+        solver.setup(
+            np.asfortranarray(2 * np.eye(n)),
+            np.zeros(n),
+            A=np.asfortranarray(a_mat),
+            b=trial.torque_id[k],
+            x_l=np.zeros(n),
+            x_u=np.ones(n),
+        )
         assert solver.solve() == piqp.PIQP_SOLVED
         diffs.append(solver.result.x - trial.activation[k])
     assert np.sqrt(np.mean(np.square(diffs))) > 0.01
@@ -143,11 +149,21 @@ def test_emg_generator_through_project_chain_recovers_activation(emd):
     burst = np.clip(np.sin(2 * np.pi * t / 4.0), 0.0, None) ** 2  # one lift every 4 s
     truth = np.column_stack([0.03 + 0.6 * burst, 0.05 + 0.4 * np.roll(burst, 800)])
     drive = np.column_stack([np.interp(t + emd, t, truth[:, k]) for k in range(2)])  # EMG leads force by the EMD
-    emg = raw_emg(t, drive, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=rate, seed=7, key=("t",),
-                  artefact_times=np.array([4.0, 8.0]))
+    emg = raw_emg(
+        t,
+        drive,
+        channels,
+        subject.emg_gain_uv,
+        subject.noise_floor_uv,
+        rate_hz=rate,
+        seed=7,
+        key=("t",),
+        artefact_times=np.array([4.0, 8.0]),
+    )
     mvc_t, mvc = mvc_drive(channels, rate, seed=7)
-    mvc_emg = raw_emg(mvc_t, mvc, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=rate, seed=7,
-                      key=("mvc",))
+    mvc_emg = raw_emg(
+        mvc_t, mvc, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=rate, seed=7, key=("mvc",)
+    )
     peak = envelope_causal(mvc_emg, chain).max(axis=0)
     env = envelope_causal(emg, chain) / peak
     expected = envelope_group_delay_s(chain, modulation_hz=0.25) - emd
@@ -216,11 +232,18 @@ def test_hidden_effects_in_truth_and_trial_files(tmp_path):
     assert trial.fallback_frames <= 0.1 * trial.time.size
     truth_path = write_session(session, tmp_path, emg_output=EmgOutput.RAW)
     truth = json.loads(truth_path.read_text())
-    assert truth["effects_active"] == {"load_misreport": 1.2, "damping": 2.0, "fl_active": True, "fl_passive": True,
-                                      "fv": True, "crosstalk": 0.2}
+    assert truth["effects_active"] == {
+        "load_misreport": 1.2,
+        "damping": 2.0,
+        "fl_active": True,
+        "fl_passive": True,
+        "fv": True,
+        "crosstalk": 0.2,
+    }
     entry = truth["exercises"]["bench_press"]
-    assert entry["f_max_n"] == {g: pytest.approx(f) for g, f in zip(session.exercises[0].subject.groups,
-                                                                    session.exercises[0].f_max)}
+    assert entry["f_max_n"] == {
+        g: pytest.approx(f) for g, f in zip(session.exercises[0].subject.groups, session.exercises[0].f_max)
+    }
     data = load_trial(tmp_path / entry["trials"][0]["trial"], load_pack(PACKS[Exercise.BENCH_PRESS]))
     assert data.load_kg == pytest.approx(trial.reported_load_kg)
     assert np.allclose(data.q, trial.q[: data.q.shape[0]])
@@ -286,8 +309,22 @@ def test_cli_writes_session_and_reports_bad_input(tmp_path, capsys):
     from services.cli import main
 
     out = tmp_path / "cli"
-    args = ["synth", "--exercise", "deadlift", "--reps", "1", "--loads", "35", "--quiet", "--out", str(out),
-            "--effects", "emd=0.05", "--pack", f"deadlift={PACKS[Exercise.DEADLIFT]}"]
+    args = [
+        "synth",
+        "--exercise",
+        "deadlift",
+        "--reps",
+        "1",
+        "--loads",
+        "35",
+        "--quiet",
+        "--out",
+        str(out),
+        "--effects",
+        "emd=0.05",
+        "--pack",
+        f"deadlift={PACKS[Exercise.DEADLIFT]}",
+    ]
     assert main(args) == 0
     truth = json.loads((out / "truth.json").read_text())
     assert truth["effects_active"] == {"emd": 0.05}
@@ -301,18 +338,22 @@ def test_muscle_effects_and_crosstalk_change_the_truth_in_the_expected_direction
 
     # curve sanity: optimum at l̃ = 1, no passive force below slack, fv = 1 isometric, < 1 shortening, > 1 lengthening
     assert active_force_length(np.array([1.0]))[0] == 1.0 and active_force_length(np.array([0.6]))[0] < 0.5
-    assert passive_force_length(np.array([0.9]))[0] == 0.0 and passive_force_length(np.array([1.6]))[0] == pytest.approx(1.0)
+    assert passive_force_length(np.array([0.9]))[0] == 0.0 and passive_force_length(np.array([1.6]))[
+        0
+    ] == pytest.approx(1.0)
     fv = force_velocity(np.array([0.0, 0.2, -0.2]))
     assert fv[0] == 1.0 and fv[1] < 1.0 < fv[2] < 1.8
     base = generate_exercise(Exercise.BENCH_PRESS, small_config(), pack=PACKS[Exercise.BENCH_PRESS])
-    weak = generate_exercise(Exercise.BENCH_PRESS, small_config(effects=parse_effects("fl_active")),
-                             pack=PACKS[Exercise.BENCH_PRESS])
+    weak = generate_exercise(
+        Exercise.BENCH_PRESS, small_config(effects=parse_effects("fl_active")), pack=PACKS[Exercise.BENCH_PRESS]
+    )
     a0, a1 = base.trials[0].activation, weak.trials[0].activation
     # same torques from force-length-scaled muscles need more activation overall
     assert a1.sum() > 1.02 * a0.sum()
     assert np.array_equal(base.trials[0].torque_id, weak.trials[0].torque_id)
-    mixed = generate_exercise(Exercise.BENCH_PRESS, small_config(effects=parse_effects("crosstalk=0.3")),
-                              pack=PACKS[Exercise.BENCH_PRESS])
+    mixed = generate_exercise(
+        Exercise.BENCH_PRESS, small_config(effects=parse_effects("crosstalk=0.3")), pack=PACKS[Exercise.BENCH_PRESS]
+    )
 
     def neighbour_corr(ex):
         env = envelope_causal(ex.trials[0].emg, EmgFilterConfig(rate_hz=2000.0))
@@ -324,8 +365,9 @@ def test_muscle_effects_and_crosstalk_change_the_truth_in_the_expected_direction
 def test_mvc_blocks_are_isometric_trials_with_dynamometer_torques(bench, tmp_path):
     """Each MVC block is one site's maximal contraction in its test position; the torques are the muscles' (true
     F_max, true activations of every group) and the written isometric trial loads as such."""
-    from msk_core.estimate.trial import load_trial
     import itertools
+
+    from msk_core.estimate.trial import load_trial
 
     pack = load_pack(PACKS[Exercise.BENCH_PRESS])
     mvc = bench.mvc
@@ -340,14 +382,23 @@ def test_mvc_blocks_are_isometric_trials_with_dynamometer_torques(bench, tmp_pat
         assert peak[g] > 0.95 and np.all(np.delete(peak, g) < 0.3)
         torque = mvc.activation[sl] @ (pack.moment_arms(mvc.poses[k]) * bench.f_max[None, :]).T
         assert np.allclose(torque, mvc.torque[sl], atol=1e-9)
+
         # the test position: no pose of the 5-per-coordinate grid over the inner 80 % of the ranges gives the target
         # a larger share of a coordinate's reference capacity (brute force over the grid)
-        share = lambda q: np.max(np.abs(pack.moment_arms(q)[:, g]) * pack.f_max_ref[g]  # noqa: E731
-                                 / (np.abs(pack.moment_arms(q)) @ pack.f_max_ref))
+        def share(q: np.ndarray, g: int = g) -> float:
+            return float(
+                np.max(
+                    np.abs(pack.moment_arms(q)[:, g])
+                    * pack.f_max_ref[g]
+                    / (np.abs(pack.moment_arms(q)) @ pack.f_max_ref)
+                )
+            )
+
         grid = itertools.product(*[np.linspace(a + 0.1 * (b - a), b - 0.1 * (b - a), 5) for a, b in zip(lo, hi)])
         assert share(mvc.poses[k]) >= max(share(np.array(q)) for q in grid) - 1e-12
-    truth = json.loads(write_session(generate_session([Exercise.BENCH_PRESS], small_config(), packs=PACKS),
-                                     tmp_path).read_text())
+    truth = json.loads(
+        write_session(generate_session([Exercise.BENCH_PRESS], small_config(), packs=PACKS), tmp_path).read_text()
+    )
     entries = truth["exercises"]["bench_press"]["isometric_trials"]
     assert [e["channel"] for e in entries] == mvc.channels
     trial = load_trial(tmp_path / entries[0]["trial"], pack)

@@ -16,8 +16,10 @@ from msk_core.synth import Exercise, SynthConfig, generate_session
 from msk_core.synth.files import write_session
 
 ROOT = Path(__file__).resolve().parents[1] / "recordings"
-REGENERATE = ("msk synth --exercise both --subject-seed 7 --reps 3 --loads bench_press=40,50 --loads deadlift=45,75 "
-              "--out recordings/demo --mcap recordings/demo_session.mcap --quiet")
+REGENERATE = (
+    "msk synth --exercise both --subject-seed 7 --reps 3 --loads bench_press=40,50 --loads deadlift=45,75 "
+    "--out recordings/demo --mcap recordings/demo_session.mcap --quiet"
+)
 
 
 REL_TOL, ABS_TOL = 1e-4, 1e-5  # see _assert_same_numbers
@@ -58,7 +60,9 @@ def _assert_same_recording(shipped: Path, fresh: Path) -> None:
     from services.mcap_io import read_messages
 
     a, b = list(read_messages(shipped)), list(read_messages(fresh))
-    assert len(a) == len(b), f"demo_session.mcap: {len(a)} messages shipped, {len(b)} generated; regenerate: {REGENERATE}"
+    assert len(a) == len(b), (
+        f"demo_session.mcap: {len(a)} messages shipped, {len(b)} generated; regenerate: {REGENERATE}"
+    )
     for x, y in zip(a, b):
         assert (x.topic, x.type_name, x.log_time_ns) == (y.topic, y.type_name, y.log_time_ns), REGENERATE
         if x.data == y.data:
@@ -67,7 +71,9 @@ def _assert_same_recording(shipped: Path, fresh: Path) -> None:
         assert len(nx) == len(ny), f"{x.topic} at {x.log_time_ns}: fields differ; regenerate: {REGENERATE}"
         for u, v in zip(nx, ny):
             if isinstance(u, float):
-                assert abs(u - v) <= REL_TOL * abs(u) + ABS_TOL, f"{x.topic} at {x.log_time_ns}: {u} != {v}; {REGENERATE}"
+                assert abs(u - v) <= REL_TOL * abs(u) + ABS_TOL, (
+                    f"{x.topic} at {x.log_time_ns}: {u} != {v}; {REGENERATE}"
+                )
             else:
                 assert u == v, f"{x.topic} at {x.log_time_ns}: {u!r} != {v!r}; regenerate: {REGENERATE}"
 
@@ -77,8 +83,9 @@ def test_demo_session_is_reproducible(tmp_path):
     CPU but not on another: numpy's vectorised sums depend on the CPU's instruction set)."""
     from services.synth_export import write_mcap
 
-    cfg = SynthConfig(subject_seed=7, n_reps=3,
-                      loads_kg={Exercise.BENCH_PRESS: (40.0, 50.0), Exercise.DEADLIFT: (45.0, 75.0)})
+    cfg = SynthConfig(
+        subject_seed=7, n_reps=3, loads_kg={Exercise.BENCH_PRESS: (40.0, 50.0), Exercise.DEADLIFT: (45.0, 75.0)}
+    )
     session = generate_session(list(Exercise), cfg)
     write_session(session, tmp_path / "demo")
     write_mcap(session, tmp_path / "demo_session.mcap")

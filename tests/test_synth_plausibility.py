@@ -51,8 +51,12 @@ def test_deadlift_75kg_joint_moments_in_literature_range():
     # the pack's lumbar torque is the virtual-work sum over six coupled levels: read the L5/S1 level alone, as the
     # literature reports it (whole trunk, whole bar). Flexion is negative in the pack, so extension is positive.
     rep = trial.rep >= 0
-    l5s1 = np.array([pack.joint_torques(q, qd, qdd, 75.0 * 9.80665)["L5_S1_IVDjnt:L5_S1_FE"]
-                     for q, qd, qdd in zip(trial.q[rep][::5], trial.qd[rep][::5], trial.qdd[rep][::5])])
+    l5s1 = np.array(
+        [
+            pack.joint_torques(q, qd, qdd, 75.0 * 9.80665)["L5_S1_IVDjnt:L5_S1_FE"]
+            for q, qd, qdd in zip(trial.q[rep][::5], trial.qd[rep][::5], trial.qdd[rep][::5])
+        ]
+    )
     assert 150.0 <= l5s1.max() <= 450.0, ("L5/S1 extension moment", l5s1.min(), l5s1.max())
     lo, hi = _peak(ex, "hip")
     assert 80.0 <= -lo <= 300.0, ("hip extension moment", lo, hi)  # flexion positive: extension negative

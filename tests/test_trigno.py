@@ -65,7 +65,9 @@ def assert_bit_exact(received: np.ndarray, expected: np.ndarray) -> None:
 
 def test_reply_reader_handles_fragments_banner_space_and_packed_replies():
     reader = tp.ReplyReader()
-    stream = b"Delsys Trigno System Digital Protocol Version 3.6.0 \r\n\r\nOK\r\n\r\nUPSAMPLING ON\r\n\r\nSTOPPED\r\n\r\n"
+    stream = (
+        b"Delsys Trigno System Digital Protocol Version 3.6.0 \r\n\r\nOK\r\n\r\nUPSAMPLING ON\r\n\r\nSTOPPED\r\n\r\n"
+    )
     replies = []
     for k in range(len(stream)):
         replies += reader.feed(stream[k : k + 1])
@@ -84,7 +86,11 @@ def test_yes_no_variants(reply, value):
 
 def test_wordier_replies():
     assert tp.parse_yes_no("YES MASTER") is True and tp.parse_yes_no("No.") is False
-    assert tp.is_error("INVALID COMMAND") and tp.is_error("cannot complete ") and tp.is_error("CANNOT COMPLETE: NOT PAIRED")
+    assert (
+        tp.is_error("INVALID COMMAND")
+        and tp.is_error("cannot complete ")
+        and tp.is_error("CANNOT COMPLETE: NOT PAIRED")
+    )
     assert not tp.is_error("OK") and not tp.is_error("INVALID") and not tp.is_error("CANNOT COMPLETED")
 
 
@@ -133,7 +139,9 @@ def test_sample_decoder_reassembles_any_split_in_both_byte_orders():
 
 
 def test_encode_commands_packs_several_in_one_packet():
-    assert tp.encode_commands(["SENSOR 1 PAIRED?", "SENSOR 2 PAIRED?"]) == b"SENSOR 1 PAIRED?\r\nSENSOR 2 PAIRED?\r\n\r\n"
+    assert (
+        tp.encode_commands(["SENSOR 1 PAIRED?", "SENSOR 2 PAIRED?"]) == b"SENSOR 1 PAIRED?\r\nSENSOR 2 PAIRED?\r\n\r\n"
+    )
     assert tp.split_packet("SENSOR 1 PAIRED?\r\nSENSOR 2 PAIRED?") == ["SENSOR 1 PAIRED?", "SENSOR 2 PAIRED?"]
     with pytest.raises(ProtocolError):
         tp.encode_command("START\r\nSTOP")
@@ -191,9 +199,10 @@ def test_real_c3d_emg_arrives_bit_exact_through_random_fragmentation(shared_dir)
 def test_big_endian_legacy_port_and_aux_stream():
     source = synthetic_source(seconds=2.0, seed=5)
     config = SimulatorConfig(**EPHEMERAL, speed=8.0, fragment_max=13, upsampling=False)
-    with TrignoSimulator(source, config) as sim, client_for(
-        sim, legacy=True, aux=True, endianness=tp.Endianness.BIG, upsampling=True
-    ) as client:
+    with (
+        TrignoSimulator(source, config) as sim,
+        client_for(sim, legacy=True, aux=True, endianness=tp.Endianness.BIG, upsampling=True) as client,
+    ):
         assert client.endianness is tp.Endianness.BIG and client.upsampling is True
         client.start()
         events = collect(client, samples=1000, seconds=10)
@@ -203,16 +212,18 @@ def test_big_endian_legacy_port_and_aux_stream():
     assert aux[0].samples[0, 2] == 1.0 and aux[0].samples[0, 0] == 0.0  # sensor 1 ACC z = 1 g
 
 
-
 def test_refused_aux_port_leaves_emg_streaming_and_says_why():
     """Sensors or a server without an AUX stream: the accelerations only check the clocks, the EMG is the session."""
     from tests.conftest import free_tcp_port
 
     source = synthetic_source(seconds=2.0, seed=6)
     closed = free_tcp_port()
-    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=8.0)) as sim, TrignoClient(
-        TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=closed)
-    ) as client:
+    with (
+        TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=8.0)) as sim,
+        TrignoClient(
+            TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=closed)
+        ) as client,
+    ):
         client.start()
         events = collect(client, samples=1000, seconds=10)
     assert_bit_exact(emg_rows(events)[:1000], source.samples[:1000])
@@ -253,9 +264,16 @@ def test_protocol_variants(quirks, stop_mode):
 def test_unsolicited_stopped_ends_acquisition_without_reconnecting():
     source = synthetic_source(seconds=2.0)
     quirks = TrignoQuirks(stop_trigger_after_s=0.3)
-    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0, quirks=quirks)) as sim, client_for(sim) as client:
+    with (
+        TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0, quirks=quirks)) as sim,
+        client_for(sim) as client,
+    ):
         client.start()
-        events = collect(client, seconds=5, until=lambda ev: any(isinstance(e, StatusEvent) and e.state is ClientState.STOPPED for e in ev))
+        events = collect(
+            client,
+            seconds=5,
+            until=lambda ev: any(isinstance(e, StatusEvent) and e.state is ClientState.STOPPED for e in ev),
+        )
         stopped_at = len(events)
         events += collect(client, seconds=0.2)
     states = [e.state for e in events if isinstance(e, StatusEvent)]
@@ -295,8 +313,13 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
         sim.kill()
         down = collect(client, seconds=0.6)  # reconnection attempts fail while the server is down
         restarted_config = SimulatorConfig(
-            command_port=ports["command"], emg_port=ports["emg"], legacy_emg_port=ports["legacy_emg"],
-            aux_port=ports["aux"], speed=2.0, fragment_max=300, seed=2,
+            command_port=ports["command"],
+            emg_port=ports["emg"],
+            legacy_emg_port=ports["legacy_emg"],
+            aux_port=ports["aux"],
+            speed=2.0,
+            fragment_max=300,
+            seed=2,
         )
         sim = TrignoSimulator(source, restarted_config).start()
         after = collect(client, seconds=10, until=lambda ev: len(emg_rows(ev)) >= 1000)
@@ -304,7 +327,9 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
         client.close()
         sim.close()
     events = before + down + after
-    lost_at = next(i for i, e in enumerate(events) if isinstance(e, StatusEvent) and e.state is ClientState.RECONNECTING)
+    lost_at = next(
+        i for i, e in enumerate(events) if isinstance(e, StatusEvent) and e.state is ClientState.RECONNECTING
+    )
     gap_at = next(i for i, e in enumerate(events) if isinstance(e, GapEvent))
     received_before = emg_rows(events[:lost_at])
     # everything received before the kill is intact, bit for bit, and nothing arrived between loss and gap

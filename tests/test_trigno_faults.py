@@ -30,15 +30,20 @@ from msk_core.signal.quality import TRIGNO_EMG_RANGE_V, Fault
 EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None)
 RATE = 2000.0
 #: what the monitor may call each injected fault
-EXPECTED = {FaultKind.LIFT_OFF: {Fault.CONTACT_ARTEFACT, Fault.NO_SIGNAL}, FaultKind.HUM: {Fault.MAINS},
-            FaultKind.SATURATION: {Fault.SATURATION}, FaultKind.FLAT: {Fault.FLAT_LINE}}
+EXPECTED = {
+    FaultKind.LIFT_OFF: {Fault.CONTACT_ARTEFACT, Fault.NO_SIGNAL},
+    FaultKind.HUM: {Fault.MAINS},
+    FaultKind.SATURATION: {Fault.SATURATION},
+    FaultKind.FLAT: {Fault.FLAT_LINE},
+}
 
 
 def stream(source: EmgSource, faults: tuple[SensorFault, ...], seconds: float, speed: float) -> tuple[np.ndarray, list]:
     """``seconds`` of the simulator's EMG (all 16 slots) through the real client, and the blocks as they came."""
-    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=speed, faults=faults)) as sim, TrignoClient(
-        TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"])
-    ) as client:
+    with (
+        TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=speed, faults=faults)) as sim,
+        TrignoClient(TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"])) as client,
+    ):
         assert client.rate_hz == pytest.approx(RATE)
         client.start()
         blocks, got = [], 0
@@ -70,8 +75,12 @@ def test_fault_options_are_checked_and_parsed():
 
 def test_each_fault_changes_its_sensor_in_its_span_only_at_its_physical_size():
     source = synthetic_source(seconds=8.0, seed=4, sensors=5)
-    faults = (SensorFault(1, FaultKind.HUM, 1.0, 3.0), SensorFault(2, FaultKind.LIFT_OFF, 2.0, 4.0),
-              SensorFault(3, FaultKind.SATURATION, 3.0, 5.0), SensorFault(4, FaultKind.FLAT, 4.0, 6.0))
+    faults = (
+        SensorFault(1, FaultKind.HUM, 1.0, 3.0),
+        SensorFault(2, FaultKind.LIFT_OFF, 2.0, 4.0),
+        SensorFault(3, FaultKind.SATURATION, 3.0, 5.0),
+        SensorFault(4, FaultKind.FLAT, 4.0, 6.0),
+    )
     got, _ = stream(source, faults, 7.0, speed=10.0)
     clean = source.samples[: len(got)]
     changed = got != clean
@@ -117,13 +126,23 @@ def test_monitor_flags_each_fault_on_its_electrode_and_no_clean_one_over_60_s():
     from services.live import RECORDINGS, sim_sources
 
     source = sim_sources(RECORDINGS / "demo_session.mcap", "bench_press").emg
-    faults = (SensorFault(2, FaultKind.LIFT_OFF, 10.0, 15.0), SensorFault(5, FaultKind.HUM, 22.0, 27.0),
-              SensorFault(9, FaultKind.SATURATION, 34.0, 39.0), SensorFault(4, FaultKind.FLAT, 46.0, 51.0))
+    faults = (
+        SensorFault(2, FaultKind.LIFT_OFF, 10.0, 15.0),
+        SensorFault(5, FaultKind.HUM, 22.0, 27.0),
+        SensorFault(9, FaultKind.SATURATION, 34.0, 39.0),
+        SensorFault(4, FaultKind.FLAT, 46.0, 51.0),
+    )
     _, (blocks, columns) = stream(source, faults, 60.0, speed=20.0)
     quality = LiveQuality({label: source.labels[slot] for label, slot in columns})
     for block in blocks:
-        quality.add_chunk("trigno", [label for label, _ in columns], block.rate_hz, block.first_sample_index,
-                          block.device_time_ns, block.samples[:, [slot for _, slot in columns]])
+        quality.add_chunk(
+            "trigno",
+            [label for label, _ in columns],
+            block.rate_hz,
+            block.first_sample_index,
+            block.device_time_ns,
+            block.samples[:, [slot for _, slot in columns]],
+        )
     reports = {r.channel: r for r in quality.report()}
     assert len(reports) == 10
     by_channel = {f"sensor{f.sensor:02d}.EMG": f for f in faults}

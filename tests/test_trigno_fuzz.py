@@ -11,7 +11,11 @@ from msk_core.errors import ProtocolError
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.binary(max_size=2000), st.lists(st.integers(1, 300), min_size=1, max_size=10), st.sampled_from(list(tp.Endianness)))
+@given(
+    st.binary(max_size=2000),
+    st.lists(st.integers(1, 300), min_size=1, max_size=10),
+    st.sampled_from(list(tp.Endianness)),
+)
 def test_sample_decoder_any_bytes_any_split(data, cuts, endianness):
     decoder = tp.SampleDecoder(16, endianness)
     rows, position, k = [], 0, 0

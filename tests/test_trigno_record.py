@@ -37,13 +37,20 @@ def test_nodes_publish_emg_imu_and_status_on_zenoh():
     imu_source = synthetic_imu(seconds=3.0, seed=4)
     options = zenoh_session.ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",))
     received: list = []
-    with TrignoSimulator(emg_source, SimulatorConfig(**EPHEMERAL, speed=4.0)) as trigno_sim, XsensSimulator(imu_source, speed=4.0, device_id=0x00B40001) as xsens_sim:
+    with (
+        TrignoSimulator(emg_source, SimulatorConfig(**EPHEMERAL, speed=4.0)) as trigno_sim,
+        XsensSimulator(imu_source, speed=4.0, device_id=0x00B40001) as xsens_sim,
+    ):
         with zenoh_session.open_session(options) as session:
             subscriber = session.declare_subscriber(
                 "msk/nodetest/**",
-                lambda sample: received.append((str(sample.key_expr), zenoh_session.type_name_of_sample(sample), bytes(sample.payload.to_bytes()))),
+                lambda sample: received.append(
+                    (str(sample.key_expr), zenoh_session.type_name_of_sample(sample), bytes(sample.payload.to_bytes()))
+                ),
             )
-            client = TrignoClient(TrignoConfig(command_port=trigno_sim.ports["command"], emg_port=trigno_sim.ports["emg"]))
+            client = TrignoClient(
+                TrignoConfig(command_port=trigno_sim.ports["command"], emg_port=trigno_sim.ports["emg"])
+            )
             client.connect()
             trackers = TrackerSet()
             device = XsensDevice(SerialTransport(xsens_sim.path))
@@ -53,8 +60,17 @@ def test_nodes_publish_emg_imu_and_status_on_zenoh():
             stop = threading.Event()
             reports = driver_nodes.run_threads(
                 [
-                    lambda: driver_nodes.trigno_loop(client, session="nodetest", source_id="trigno", sink=sink, stop=stop, duration_s=0.6),
-                    lambda: driver_nodes.xsens_loop(trackers, session="nodetest", sink=sink, stop=stop, segments={"00B40001": "upper_arm_r"}, duration_s=0.6),
+                    lambda: driver_nodes.trigno_loop(
+                        client, session="nodetest", source_id="trigno", sink=sink, stop=stop, duration_s=0.6
+                    ),
+                    lambda: driver_nodes.xsens_loop(
+                        trackers,
+                        session="nodetest",
+                        sink=sink,
+                        stop=stop,
+                        segments={"00B40001": "upper_arm_r"},
+                        duration_s=0.6,
+                    ),
                 ],
                 stop,
             )
@@ -68,14 +84,18 @@ def test_nodes_publish_emg_imu_and_status_on_zenoh():
         assert topics.message_type_for_key(key) == type_name
         by_key.setdefault(key, []).append(messages.decode(type_name, payload))
     chunks = by_key[topics.emg_key("nodetest", "trigno")]
-    samples = np.concatenate([np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in chunks])
+    samples = np.concatenate(
+        [np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in chunks]
+    )
     assert chunks[0].channel_labels == ["sensor01.EMG", "sensor02.EMG", "sensor03.EMG", "sensor04.EMG"]
     assert samples.shape[0] == reports[0].samples and samples.shape[0] > 500
     assert np.array_equal(samples, emg_source.samples[: len(samples), :4])  # float32, bit for bit
     imu = by_key[topics.imu_key("nodetest", "00B40001")]
     assert len(imu) == reports[1].samples > 50 and imu[0].segment == "upper_arm_r" and imu[0].coordinate_frame == "ENU"
     k = imu[5].packet_counter
-    assert (imu[5].orientation.w, imu[5].orientation.z) == pytest.approx((imu_source.arrays["quaternion"][k][0], imu_source.arrays["quaternion"][k][3]), abs=1e-6)
+    assert (imu[5].orientation.w, imu[5].orientation.z) == pytest.approx(
+        (imu_source.arrays["quaternion"][k][0], imu_source.arrays["quaternion"][k][3]), abs=1e-6
+    )
     statuses = by_key[topics.status_key("nodetest", "trigno")] + by_key[topics.status_key("nodetest", "00B40001")]
     assert {s.kind for s in statuses} == {"trigno", "xsens"}
     assert any(s.kind == "trigno" and s.samples_received == reports[0].samples for s in statuses)
@@ -84,12 +104,31 @@ def test_nodes_publish_emg_imu_and_status_on_zenoh():
 def test_msk_record_writes_samples_exactly_as_received(tmp_path, shared_dir, capsys):
     emg_source = load_source(shared_dir / "data/pyomeca-upper/markers_analogs.c3d")
     out = tmp_path / "session.mcap"
-    with TrignoSimulator(emg_source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as trigno_sim, XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0) as xsens_sim:
+    with (
+        TrignoSimulator(emg_source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as trigno_sim,
+        XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0) as xsens_sim,
+    ):
         code = main(
             [
-                "record", "--trigno", f"127.0.0.1:{trigno_sim.ports['command']}", "--trigno-emg-port", str(trigno_sim.ports["emg"]),
-                "--xsens", xsens_sim.path, "--imu-precision", "fp1632", "--imu-frame", "NED",
-                "--segment", "03700abc=thorax", "--duration", "0.8", "--out", str(out), "--session", "rec1",
+                "record",
+                "--trigno",
+                f"127.0.0.1:{trigno_sim.ports['command']}",
+                "--trigno-emg-port",
+                str(trigno_sim.ports["emg"]),
+                "--xsens",
+                xsens_sim.path,
+                "--imu-precision",
+                "fp1632",
+                "--imu-frame",
+                "NED",
+                "--segment",
+                "03700abc=thorax",
+                "--duration",
+                "0.8",
+                "--out",
+                str(out),
+                "--session",
+                "rec1",
             ]
         )
     assert code == 0
@@ -114,8 +153,22 @@ def test_msk_record_needs_a_device(tmp_path):
 
 def test_msk_sim_xsens_prints_a_pty_a_driver_can_open():
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "sim", "xsens", "--from", "synthetic:5", "--speed", "2", "--duration", "8"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "sim",
+            "xsens",
+            "--from",
+            "synthetic:5",
+            "--speed",
+            "2",
+            "--duration",
+            "8",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         path = process.stdout.readline().strip()
@@ -136,17 +189,44 @@ def test_msk_sim_xsens_prints_a_pty_a_driver_can_open():
 def test_msk_sim_trigno_serves_a_client():
     ports = [free_port() for _ in range(5)]
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "sim", "trigno", "--from", "synthetic:5", "--port", str(ports[0]), "--emg-port", str(ports[1]),
-         "--legacy-emg-port", str(ports[2]), "--aux-port", str(ports[3]), "--legacy-acc-port", str(ports[4]),
-         "--speed", "4", "--duration", "8", "--start-index-base", "0", "--banner-space"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "sim",
+            "trigno",
+            "--from",
+            "synthetic:5",
+            "--port",
+            str(ports[0]),
+            "--emg-port",
+            str(ports[1]),
+            "--legacy-emg-port",
+            str(ports[2]),
+            "--aux-port",
+            str(ports[3]),
+            "--legacy-acc-port",
+            str(ports[4]),
+            "--speed",
+            "4",
+            "--duration",
+            "8",
+            "--start-index-base",
+            "0",
+            "--banner-space",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         line = process.stdout.readline()
         assert "Trigno simulator" in line, process.stderr.read() if not line else line
         assert f"legacy acc {ports[4]}" in line
-        with TrignoClient(TrignoConfig(command_port=ports[0], emg_port=ports[2])) as client, \
-                socket.create_connection(("127.0.0.1", ports[4]), timeout=5) as acc:
+        with (
+            TrignoClient(TrignoConfig(command_port=ports[0], emg_port=ports[2])) as client,
+            socket.create_connection(("127.0.0.1", ports[4]), timeout=5) as acc,
+        ):
             client.start()
             got = 0
             deadline = time.monotonic() + 5
@@ -167,13 +247,27 @@ def test_msk_drivers_publishes_to_a_connected_peer():
     received: list = []
     source = synthetic_source(seconds=3.0, seed=6)
     listen = zenoh_session.ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",))
-    with zenoh_session.open_session(listen) as session, TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as sim:
-        subscriber = session.declare_subscriber("msk/drv/**", lambda s: received.append((str(s.key_expr), bytes(s.payload.to_bytes()))))
+    with (
+        zenoh_session.open_session(listen) as session,
+        TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as sim,
+    ):
+        subscriber = session.declare_subscriber(
+            "msk/drv/**", lambda s: received.append((str(s.key_expr), bytes(s.payload.to_bytes())))
+        )
         time.sleep(0.2)
         code = main(
             [
-                "drivers", "--trigno", f"127.0.0.1:{sim.ports['command']}", "--trigno-emg-port", str(sim.ports["emg"]),
-                "--session", "drv", "--duration", "0.8", "--connect", f"tcp/127.0.0.1:{port}",
+                "drivers",
+                "--trigno",
+                f"127.0.0.1:{sim.ports['command']}",
+                "--trigno-emg-port",
+                str(sim.ports["emg"]),
+                "--session",
+                "drv",
+                "--duration",
+                "0.8",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
             ]
         )
         time.sleep(0.3)

@@ -32,17 +32,29 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
         graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=["so", "hybrid"])
         graph.wait_ready(60)
         # COLUMNS/LINES: the pane size as rich should see it even when a tmux server with another default size runs
-        command = (f"env COLUMNS=160 LINES=60 {sys.executable} -m services.cli view --session {SESSION} --method so --connect {zenoh_endpoint} "
-                   "--duration 120 --refresh-hz 20")
-        subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "160", "-y", "60", "-c", str(repo_root), command],
-                       check=True)
+        command = (
+            f"env COLUMNS=160 LINES=60 {sys.executable} -m services.cli view --session {SESSION} --method so --connect {zenoh_endpoint} "
+            "--duration 120 --refresh-hz 20"
+        )
+        subprocess.run(
+            ["tmux", "new-session", "-d", "-s", name, "-x", "160", "-y", "60", "-c", str(repo_root), command],
+            check=True,
+        )
         try:
             with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
                 probe = declare_data_publisher(zsession, topics.status_key(SESSION, "trigno-test"), "msk.DeviceStatus")
-                wait_for("the view to subscribe", lambda: probe.matching_status.matching,
-                         lambda: "no subscriber on the status key; screen:\n" + capture(name), 60)
-                publish(probe, messages.DeviceStatus(device_id="trigno-test", kind="trigno", connected=True,
-                                                     samples_received=123456, samples_lost=27))
+                wait_for(
+                    "the view to subscribe",
+                    lambda: probe.matching_status.matching,
+                    lambda: "no subscriber on the status key; screen:\n" + capture(name),
+                    60,
+                )
+                publish(
+                    probe,
+                    messages.DeviceStatus(
+                        device_id="trigno-test", kind="trigno", connected=True, samples_received=123456, samples_lost=27
+                    ),
+                )
                 lock = threading.Lock()
 
                 set_start: list[float] = []  # device times of the load events that start a set (a mass)
@@ -59,31 +71,61 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
 
                 sub = zsession.declare_subscriber(f"msk/{SESSION}/activations/*", keep_last)
                 loads = zsession.declare_subscriber(topics.load_key(SESSION), keep_set_start)
-                stats = replayer.main(ZenohOptions(connect=(zenoh_endpoint,)), repo_root / "recordings" / "demo_session.mcap",
-                                      rate=None, session_name=SESSION,
-                                      exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"))
+                stats = replayer.main(
+                    ZenohOptions(connect=(zenoh_endpoint,)),
+                    repo_root / "recordings" / "demo_session.mcap",
+                    rate=None,
+                    session_name=SESSION,
+                    exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"),
+                )
                 assert stats.published > 5000
                 est = graph._threads[0]  # noqa: SLF001 - the node's thread is idle once its inbox is empty
 
                 def settled() -> bool:  # the newest frame's time from its set's start
                     with lock:
                         frame = last.get("so")
-                    return frame is not None and bool(set_start) \
+                    return (
+                        frame is not None
+                        and bool(set_start)
                         and f"{frame.time_s - set_start[-1]:.1f} s in set " in capture(name)
+                    )
 
                 # the screen reaches the newest frame soon after the estimator does: it never replays a backlog
-                wait_for("the view to show the newest frame", settled,
-                         lambda: f"newest so frame t={last.get('so').time_s if 'so' in last else None}; screen:\n"
-                         + capture(name), 120)
+                wait_for(
+                    "the view to show the newest frame",
+                    settled,
+                    lambda: (
+                        f"newest so frame t={last.get('so').time_s if 'so' in last else None}; screen:\n"
+                        + capture(name)
+                    ),
+                    120,
+                )
                 sub.undeclare()
                 loads.undeclare()
             screen = capture(name)
         finally:
             subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
     assert est.error == []
-    for expected in ("activations · so", "Biceps brachii, long head", "Triceps brachii, long head", "hybrid %",
-                     "activation %", "EMG envelope %", "torque tracking", "Elbow flexion", "Shoulder flexion", "N·m",
-                     "inverse dynamics", "trigno-test", "123456", "27", "load ", " kg", "rep ", "phase "):
+    for expected in (
+        "activations · so",
+        "Biceps brachii, long head",
+        "Triceps brachii, long head",
+        "hybrid %",
+        "activation %",
+        "EMG envelope %",
+        "torque tracking",
+        "Elbow flexion",
+        "Shoulder flexion",
+        "N·m",
+        "inverse dynamics",
+        "trigno-test",
+        "123456",
+        "27",
+        "load ",
+        " kg",
+        "rep ",
+        "phase ",
+    ):
         assert expected in screen, (expected, screen)
     assert "BicLong" not in screen and "elbow_flex_r" not in screen  # 160 columns: no abbreviation needed
     assert "█" in screen or "▓" in screen
@@ -111,33 +153,65 @@ def screen_text(state: ViewState, session: str = "s", width: int = 200) -> str:
 
 def test_display_names_units_and_the_time_in_the_set():
     state = ViewState()
-    torque = messages.CoordinateTorque(coordinate="elbow_flex_r", inverse_dynamics_nm=12.5, model_nm=12.0,
-                                       residual_nm=0.5)
+    torque = messages.CoordinateTorque(
+        coordinate="elbow_flex_r", inverse_dynamics_nm=12.5, model_nm=12.0, residual_nm=0.5
+    )
     groups = ["TriLat", "PMCla"]
-    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
-                                                      device_time_ns=100_000_000_000))
-    state.on_message("msk/s/activations/so", messages.ActivationFrame(
-        method="so", time_s=112.34, groups=groups, activations=[0.42, 0.071], measured_envelope=[0.38, float("nan")],
-        torques=[torque], exercise="bench_press"))
+    state.on_message(
+        "msk/s/load",
+        messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, device_time_ns=100_000_000_000),
+    )
+    state.on_message(
+        "msk/s/activations/so",
+        messages.ActivationFrame(
+            method="so",
+            time_s=112.34,
+            groups=groups,
+            activations=[0.42, 0.071],
+            measured_envelope=[0.38, float("nan")],
+            torques=[torque],
+            exercise="bench_press",
+        ),
+    )
     text = screen_text(state)
-    for expected in ("muscle", "activation %", "EMG envelope %", "Triceps brachii, lateral and medial heads",
-                     "Pectoralis major, clavicular part", " 42 ", " 38 ", " 7 ", "Elbow flexion", "12.5", "N·m",
-                     "12.3 s in set 1"):
+    for expected in (
+        "muscle",
+        "activation %",
+        "EMG envelope %",
+        "Triceps brachii, lateral and medial heads",
+        "Pectoralis major, clavicular part",
+        " 42 ",
+        " 38 ",
+        " 7 ",
+        "Elbow flexion",
+        "12.5",
+        "N·m",
+        "12.3 s in set 1",
+    ):
         assert expected in text, (expected, text)
     assert "TriLat" not in text and "elbow_flex_r" not in text and "1795" not in text
     # too narrow for the display names: the model names, explained by a legend
     narrow = screen_text(state, width=80)
     assert "│ TriLat " in narrow and "TriLat: Triceps brachii, lateral and medial heads" in narrow.replace("\n", " ")
     # the session file's names (LoadEvent.names) replace the pack's, and stay when a later event carries none
-    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1,
-                                                      names={"PMCla": "Upper chest", "elbow_flex_r": "Elbow"}))
+    state.on_message(
+        "msk/s/load",
+        messages.LoadEvent(
+            barbell_mass_kg=60,
+            exercise="bench_press",
+            set_number=1,
+            names={"PMCla": "Upper chest", "elbow_flex_r": "Elbow"},
+        ),
+    )
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=1))
     text = screen_text(state)
     assert "Upper chest" in text and "Elbow " in text and "Pectoralis major" not in text
     assert "Triceps brachii, lateral and medial heads" in text
     # frames of a pack the view does not know: their model names
-    state.on_message("msk/s/activations/so", messages.ActivationFrame(
-        method="so", time_s=113.0, groups=["X1"], activations=[0.5], exercise="my_pack"))
+    state.on_message(
+        "msk/s/activations/so",
+        messages.ActivationFrame(method="so", time_s=113.0, groups=["X1"], activations=[0.5], exercise="my_pack"),
+    )
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="my_pack", set_number=2))
     assert "│ X1 " in screen_text(state)
 
@@ -151,11 +225,15 @@ def test_session_facts_come_from_the_load_event_else_the_frames():
     state.on_message("msk/s/activations/so", frame())
     text = screen_text(state)
     assert "exercise bench press · load unknown · set –" in text  # no load event: the frame's exercise
-    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana"))
+    state.on_message(
+        "msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana")
+    )
     assert "exercise bench press · load 60 kg · set 2 · Ana" in screen_text(state)
     for k, phase in enumerate((-1.0, 0.1, 0.7, -1.0)):
-        state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", phase=phase, time_s=2.0 + 0.4 * k,
-                                                                           exercise="bench_press"))
+        state.on_message(
+            "msk/s/activations/so",
+            messages.ActivationFrame(method="so", phase=phase, time_s=2.0 + 0.4 * k, exercise="bench_press"),
+        )
     assert state.reps.count == 1
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2))
     assert state.reps.count == 1 and "load 62.5 kg · set 2" in screen_text(state)  # a correction within the set
@@ -175,16 +253,28 @@ def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endp
     stop = threading.Event()
     result: list[ViewState] = []
     console = Console(file=StringIO(), width=200, height=60, color_system=None, force_terminal=True)  # Live redraws
-    view = threading.Thread(target=lambda: result.append(main(
-        ZenohOptions(listen=(zenoh_endpoint,)), session="bad", refresh_hz=20, stop_event=stop, console=console)), daemon=True)
+    view = threading.Thread(
+        target=lambda: result.append(
+            main(ZenohOptions(listen=(zenoh_endpoint,)), session="bad", refresh_hz=20, stop_event=stop, console=console)
+        ),
+        daemon=True,
+    )
     view.start()
     try:
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             inputs = BadInputs(zsession, "bad")
-            inputs.every_kind_then({"activations/so": frame("deadlift"),
-                                    "load": messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1)})
-            wait_for("the view to show the valid frame and load", lambda: "load 80 kg" in console.file.getvalue()
-                     and "5 dropped" in console.file.getvalue(), lambda: console.file.getvalue()[-3000:], 30)
+            inputs.every_kind_then(
+                {
+                    "activations/so": frame("deadlift"),
+                    "load": messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=1),
+                }
+            )
+            wait_for(
+                "the view to show the valid frame and load",
+                lambda: "load 80 kg" in console.file.getvalue() and "5 dropped" in console.file.getvalue(),
+                lambda: console.file.getvalue()[-3000:],
+                30,
+            )
             inputs.close()
     finally:
         stop.set()

@@ -14,7 +14,12 @@ from hypothesis import strategies as st
 from drivers.xsens import frames, xbus
 from msk_core.errors import ProtocolError
 
-SET_PRECISION = {1: xbus.Precision.FLOAT32, 2: xbus.Precision.FP1220, 3: xbus.Precision.FP1632, 4: xbus.Precision.FLOAT64}
+SET_PRECISION = {
+    1: xbus.Precision.FLOAT32,
+    2: xbus.Precision.FP1220,
+    3: xbus.Precision.FP1632,
+    4: xbus.Precision.FLOAT64,
+}
 REAL_QUANTITIES = ("acceleration", "rate_of_turn", "delta_v", "delta_q")
 
 
@@ -58,7 +63,9 @@ def test_set_output_configuration_example_frame():
         xbus.OutputSetting(0xC020, 100),
     ]
     frame = xbus.encode_message(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings_))
-    assert frame == bytes.fromhex("FA FF C0 18 10 20 FF FF 10 60 FF FF 20 10 00 64 40 20 00 64 80 20 00 64 C0 20 00 64 ED")
+    assert frame == bytes.fromhex(
+        "FA FF C0 18 10 20 FF FF 10 60 FF FF 20 10 00 64 40 20 00 64 80 20 00 64 C0 20 00 64 ED"
+    )
     assert xbus.decode_output_configuration(frame[4:-1]) == settings_
 
 
@@ -96,8 +103,12 @@ def test_real_capture_decodes_in_its_precision_and_reencodes_bit_exact(shared_di
     precision = SET_PRECISION[set_number]
     _, messages = load_set(shared_dir, set_number)
     assert len(messages) == 100 and all(m.mid == xbus.Mid.MT_DATA2 and m.bid == 0xFF for m in messages)
-    config = xbus.decode_output_configuration((shared_dir / f"data/xsens-captures/mtig710_set{set_number}_outputconfig.bin").read_bytes())
-    assert {xbus.precision_of(s.data_id) for s in config if (s.data_id & 0xFFF0) in xbus.FLOAT_QUANTITIES} == {precision}
+    config = xbus.decode_output_configuration(
+        (shared_dir / f"data/xsens-captures/mtig710_set{set_number}_outputconfig.bin").read_bytes()
+    )
+    assert {xbus.precision_of(s.data_id) for s in config if (s.data_id & 0xFFF0) in xbus.FLOAT_QUANTITIES} == {
+        precision
+    }
     counters = []
     for message in messages:
         decoded = xbus.decode_mtdata2(message.data)
@@ -107,9 +118,16 @@ def test_real_capture_decodes_in_its_precision_and_reencodes_bit_exact(shared_di
                 assert xbus.precision_of(data_id) is precision
                 name = xbus.FLOAT_QUANTITIES[data_id & 0xFFF0][0]
                 # decoding then encoding at the same precision gives the device's bytes back
-                assert xbus.encode_item(data_id, decoded.get(name)) == bytes([data_id >> 8, data_id & 0xFF, len(raw)]) + raw
+                assert (
+                    xbus.encode_item(data_id, decoded.get(name))
+                    == bytes([data_id >> 8, data_id & 0xFF, len(raw)]) + raw
+                )
     assert np.all(np.diff(counters) == 1)  # 100 consecutive packets, none lost
-    acc = next(xbus.decode_mtdata2(m.data).get("acceleration") for m in messages if "acceleration" in xbus.decode_mtdata2(m.data).values)
+    acc = next(
+        xbus.decode_mtdata2(m.data).get("acceleration")
+        for m in messages
+        if "acceleration" in xbus.decode_mtdata2(m.data).values
+    )
     assert acc == pytest.approx((0.0, -7.26, -1.2), abs=0.06)  # the facts sheet's first sample
 
 
@@ -117,7 +135,9 @@ def _means(shared_dir, set_number):
     _, messages = load_set(shared_dir, set_number)
     out = {}
     for name in REAL_QUANTITIES:
-        rows = np.array([xbus.decode_mtdata2(m.data).get(name) for m in messages if name in xbus.decode_mtdata2(m.data).values])
+        rows = np.array(
+            [xbus.decode_mtdata2(m.data).get(name) for m in messages if name in xbus.decode_mtdata2(m.data).values]
+        )
         rows = rows[1:]  # the first sample after configuration is a start-up transient in every set
         out[name] = (rows.mean(axis=0), rows.std(axis=0, ddof=1) / math.sqrt(len(rows)))
     return out
@@ -130,7 +150,11 @@ def test_real_sets_1_to_4_agree_within_precision_and_noise(shared_dir):
     for a, b in itertools.combinations(SET_PRECISION, 2):
         for name in REAL_QUANTITIES:
             (mean_a, se_a), (mean_b, se_b) = means[a][name], means[b][name]
-            tolerance = 5 * np.hypot(se_a, se_b) + xbus.PRECISION_RESOLUTION[SET_PRECISION[a]] + xbus.PRECISION_RESOLUTION[SET_PRECISION[b]]
+            tolerance = (
+                5 * np.hypot(se_a, se_b)
+                + xbus.PRECISION_RESOLUTION[SET_PRECISION[a]]
+                + xbus.PRECISION_RESOLUTION[SET_PRECISION[b]]
+            )
             assert np.all(np.abs(mean_a - mean_b) <= tolerance), (a, b, name, mean_a, mean_b, tolerance)
     assert means[1]["acceleration"][0] == pytest.approx((0.027, -9.674, -1.64), abs=0.01)
 
@@ -138,7 +162,13 @@ def test_real_sets_1_to_4_agree_within_precision_and_noise(shared_dir):
 def test_fixed_point_values_sit_on_their_grid(shared_dir):
     for set_number, step in ((2, 2.0**-20), (3, 2.0**-32)):
         _, messages = load_set(shared_dir, set_number)
-        values = np.array([xbus.decode_mtdata2(m.data).get("acceleration") for m in messages[:20] if "acceleration" in xbus.decode_mtdata2(m.data).values])
+        values = np.array(
+            [
+                xbus.decode_mtdata2(m.data).get("acceleration")
+                for m in messages[:20]
+                if "acceleration" in xbus.decode_mtdata2(m.data).values
+            ]
+        )
         assert np.all(np.abs(values / step - np.round(values / step)) < 1e-6)
 
 
@@ -163,12 +193,19 @@ def test_mtdata2_round_trip_every_precision_and_frame(precision, frame):
         (0x7010, b"\x01\x02\x03"),  # unknown to the decoder: skipped by size, kept raw
     ]
     decoded = xbus.decode_mtdata2(xbus.encode_mtdata2(items))
-    tolerance = {xbus.Precision.FLOAT32: 1e-6, xbus.Precision.FP1220: 2.0**-20, xbus.Precision.FP1632: 2.0**-32, xbus.Precision.FLOAT64: 1e-15}[precision]
+    tolerance = {
+        xbus.Precision.FLOAT32: 1e-6,
+        xbus.Precision.FP1220: 2.0**-20,
+        xbus.Precision.FP1632: 2.0**-32,
+        xbus.Precision.FLOAT64: 1e-15,
+    }[precision]
     assert decoded.get("quaternion") == pytest.approx(q, abs=tolerance)
     assert decoded.get("acceleration") == pytest.approx(acc, abs=tolerance * 10)
     assert decoded.frame() is frame
     assert xbus.precision_of(decoded.ids["acceleration"]) is precision
-    assert xbus.frame_of(decoded.ids["acceleration"]) is xbus.CoordinateFrame.ENU  # frame bits only on orientation/velocity
+    assert (
+        xbus.frame_of(decoded.ids["acceleration"]) is xbus.CoordinateFrame.ENU
+    )  # frame bits only on orientation/velocity
     assert frames.to_enu(decoded.get("quaternion"), frame) == pytest.approx(q_enu, abs=tolerance * 4)
     assert decoded.first("packet_counter") == 65535 and decoded.first("sample_time_fine") == 863_999_999
     assert decoded.unknown == [(0x7010, b"\x01\x02\x03")]
@@ -178,9 +215,13 @@ def test_frames_map_axes_as_documented():
     east, north, up = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
     ned = frames.ENU_TO[xbus.CoordinateFrame.NED]
     nwu = frames.ENU_TO[xbus.CoordinateFrame.NWU]
-    assert frames.rotate(ned, north) == pytest.approx((1, 0, 0)) and frames.rotate(ned, east) == pytest.approx((0, 1, 0))
+    assert frames.rotate(ned, north) == pytest.approx((1, 0, 0)) and frames.rotate(ned, east) == pytest.approx(
+        (0, 1, 0)
+    )
     assert frames.rotate(ned, up) == pytest.approx((0, 0, -1))
-    assert frames.rotate(nwu, north) == pytest.approx((1, 0, 0)) and frames.rotate(nwu, east) == pytest.approx((0, -1, 0))
+    assert frames.rotate(nwu, north) == pytest.approx((1, 0, 0)) and frames.rotate(nwu, east) == pytest.approx(
+        (0, -1, 0)
+    )
 
 
 def test_fixed_point_range_errors():

@@ -40,10 +40,17 @@ def test_configure_and_measure_every_precision_and_frame(precision, frame):
             readings = read_for(device, count=40)
         finally:
             device.close()
-    assert info["device_id"] == "03700123" and info["product_code"].startswith("MTi-G-710") and info["firmware"] == "1.8.2"
+    assert (
+        info["device_id"] == "03700123" and info["product_code"].startswith("MTi-G-710") and info["firmware"] == "1.8.2"
+    )
     assert info["outputs"] == output_settings(100, precision=precision, frame=frame)
     assert len(readings) >= 40 and device.stats.packets_lost == 0 and device.stats.decode_errors == 0
-    step = {xbus.Precision.FLOAT32: 1e-6, xbus.Precision.FP1220: 2.0**-20, xbus.Precision.FP1632: 2.0**-32, xbus.Precision.FLOAT64: 1e-12}[precision]
+    step = {
+        xbus.Precision.FLOAT32: 1e-6,
+        xbus.Precision.FP1220: 2.0**-20,
+        xbus.Precision.FP1632: 2.0**-32,
+        xbus.Precision.FLOAT64: 1e-12,
+    }[precision]
     for reading in readings:
         k = reading.packet_counter  # the simulator's counter is the recording's sample index here
         assert reading.tracker_id == "03700123" and reading.frame is frame
@@ -115,7 +122,10 @@ def test_injected_faults_every_intact_message_recovered_and_corrupted_counted():
 
 def test_tracker_set_keys_devices_by_id_and_survives_an_unplug():
     source = synthetic_imu(seconds=5.0)
-    with XsensSimulator(source, speed=4.0, device_id=0x00B41001) as sim_a, XsensSimulator(source, speed=4.0, device_id=0x00B41002) as sim_b:
+    with (
+        XsensSimulator(source, speed=4.0, device_id=0x00B41001) as sim_a,
+        XsensSimulator(source, speed=4.0, device_id=0x00B41002) as sim_b,
+    ):
         trackers = TrackerSet()
         for sim in (sim_a, sim_b):
             device = open_device(sim)
@@ -164,7 +174,11 @@ def test_usb_identities_and_port_matching():
         usb.PortInfo("/dev/ttyS0", None, None),
     ]
     matched = usb.match_ports(devices, ports)
-    assert [(d.serial_number, d.port) for d in matched] == [("A1", "/dev/ttyUSB0"), ("B2", "/dev/ttyUSB1"), ("X", "/dev/ttyUSB2")]
+    assert [(d.serial_number, d.port) for d in matched] == [
+        ("A1", "/dev/ttyUSB0"),
+        ("B2", "/dev/ttyUSB1"),
+        ("X", "/dev/ttyUSB2"),
+    ]
     assert isinstance(usb.list_devices(), list)  # real enumeration runs (no Xsens hardware on CI)
 
 

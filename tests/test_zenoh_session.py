@@ -22,8 +22,10 @@ from services.zenoh_session import (
 
 def test_json5_config_file_and_flags_connect_two_peers(tmp_path, zenoh_endpoint):
     config = tmp_path / "zenoh.json5"
-    config.write_text(f'{{ // a comment, as JSON5 allows\n mode: "peer", listen: {{ endpoints: ["{zenoh_endpoint}"] }},\n'
-                      f' scouting: {{ multicast: {{ enabled: false }} }} }}\n')
+    config.write_text(
+        f'{{ // a comment, as JSON5 allows\n mode: "peer", listen: {{ endpoints: ["{zenoh_endpoint}"] }},\n'
+        f" scouting: {{ multicast: {{ enabled: false }} }} }}\n"
+    )
     parser = argparse.ArgumentParser()
     add_zenoh_arguments(parser)
     listener = options_from_args(parser.parse_args(["--zenoh-config", str(config)]))

@@ -38,7 +38,9 @@ class TrignoConfig:
     reply_timeout_s: float = 3.0
     banner_line_grace_s: float = 0.5  # accept a banner ending in a single CRLF after this long without the blank line
     reconnect: bool = True
-    stall_timeout_s: float | None = 5.0  # no EMG bytes this long while streaming = lost link (a pulled cable sends no FIN)
+    stall_timeout_s: float | None = (
+        5.0  # no EMG bytes this long while streaming = lost link (a pulled cable sends no FIN)
+    )
     backoff_initial_s: float = 0.05
     backoff_max_s: float = 2.0
     recv_bytes: int = 65536
@@ -202,7 +204,7 @@ class TrignoClient:
         self._want_streaming = False
 
     # ------------------------------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "TrignoClient":
+    def __enter__(self) -> TrignoClient:
         self.connect()
         return self
 
@@ -333,7 +335,11 @@ class TrignoClient:
             reply = self._query(link, query)
             if reply is None:
                 raise
-            current = tp.parse_endianness(reply) if isinstance(wanted, tp.Endianness) else tp.parse_yes_no(reply, command=query)
+            current = (
+                tp.parse_endianness(reply)
+                if isinstance(wanted, tp.Endianness)
+                else tp.parse_yes_no(reply, command=query)
+            )
             if current != wanted:
                 raise
 
@@ -372,7 +378,7 @@ class TrignoClient:
         link.command.settimeout(timeout_s)
         try:
             chunk = link.command.recv(4096)
-        except socket.timeout:
+        except TimeoutError:
             return
         finally:
             link.command.settimeout(None)
@@ -420,8 +426,11 @@ class TrignoClient:
             if now >= deadline:
                 raise ProtocolError(f"no banner from the Trigno server within {self.config.reply_timeout_s} s")
             grace_end = start + self.config.banner_line_grace_s
-            self._receive(link, max(0.01, (grace_end if now < grace_end else deadline) - now),
-                          "Trigno server closed the command connection before its banner")
+            self._receive(
+                link,
+                max(0.01, (grace_end if now < grace_end else deadline) - now),
+                "Trigno server closed the command connection before its banner",
+            )
 
     def _open_emg(self) -> socket.socket:
         cfg = self.config
@@ -512,13 +521,19 @@ class TrignoClient:
             count_reply = self._query(link, f"SENSOR {n} EMGCHANNELCOUNT?")
             if count_reply is not None:
                 try:
-                    channels[n] = max(0, min(tp.N_SENSORS, tp.parse_int(count_reply, command=f"SENSOR {n} EMGCHANNELCOUNT?")))
+                    channels[n] = max(
+                        0, min(tp.N_SENSORS, tp.parse_int(count_reply, command=f"SENSOR {n} EMGCHANNELCOUNT?"))
+                    )
                 except ProtocolError as error:
                     self._note_error(str(error))
         slots = tp.normalise_start_indices(starts)
         return tuple(
             SensorInfo(
-                n, n in paired, paired.get(n, ""), slots.get(n, n - 1 if n in paired else -1), n in active,
+                n,
+                n in paired,
+                paired.get(n, ""),
+                slots.get(n, n - 1 if n in paired else -1),
+                n in active,
                 channels.get(n, 1),
             )
             for n in range(1, tp.N_SENSORS + 1)

@@ -66,7 +66,7 @@ class AuxLayout(enum.Enum):
         return N_SENSORS * self.slots_per_sensor
 
     @classmethod
-    def for_port(cls, port: int) -> "AuxLayout":
+    def for_port(cls, port: int) -> AuxLayout:
         """The layout of a default port number (ports are configurable: pass the layout explicitly otherwise)."""
         return cls.LEGACY_ACC if int(port) == DataPort.LEGACY_ACC else cls.AVANTI
 

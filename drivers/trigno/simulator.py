@@ -50,8 +50,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal as sp_signal
 
-from drivers.trigno import protocol as tp
 from drivers.trial_clock import TrialClock
+from drivers.trigno import protocol as tp
 from drivers.trigno.source import EmgSource, resample
 from msk_core.errors import ConfigError
 from msk_core.units import TRIGNO_EMG_RANGE_V
@@ -120,8 +120,9 @@ class SensorFault:
         if not (isinstance(self.sensor, int) and 1 <= self.sensor <= tp.N_SENSORS):
             raise ConfigError(f"a sensor is numbered 1..{tp.N_SENSORS}", field="sensor", value=self.sensor)
         if not (math.isfinite(self.start_s) and math.isfinite(self.end_s) and 0 <= self.start_s < self.end_s):
-            raise ConfigError("need 0 <= start_s < end_s (seconds after START)", field="start_s",
-                              value=(self.start_s, self.end_s))
+            raise ConfigError(
+                "need 0 <= start_s < end_s (seconds after START)", field="start_s", value=(self.start_s, self.end_s)
+            )
         if self.amplitude_v is not None and not (math.isfinite(self.amplitude_v) and self.amplitude_v > 0):
             raise ConfigError("an amplitude is a positive number of volts", field="amplitude_v", value=self.amplitude_v)
         if not (math.isfinite(self.mains_hz) and 40.0 <= self.mains_hz <= 70.0):
@@ -137,21 +138,30 @@ class SensorFault:
         parts = text.split(":")
         kinds = ", ".join(k.value for k in FaultKind)
         if len(parts) != 3 or "-" not in parts[2]:
-            raise ConfigError(f"expected SENSOR:KIND:START-END, e.g. 5:hum:10-15 (kinds: {kinds})", field="fault",
-                              value=text)
+            raise ConfigError(
+                f"expected SENSOR:KIND:START-END, e.g. 5:hum:10-15 (kinds: {kinds})", field="fault", value=text
+            )
         sensor, kind, span = parts
         start, _, end = span.partition("-")
         try:
             return cls(int(sensor), FaultKind(kind.strip().lower().replace("-", "_")), float(start), float(end))
         except ValueError:
-            raise ConfigError(f"expected SENSOR:KIND:START-END with a sensor number, one of {kinds} and times in "
-                              "seconds", field="fault", value=text) from None
+            raise ConfigError(
+                f"expected SENSOR:KIND:START-END with a sensor number, one of {kinds} and times in seconds",
+                field="fault",
+                value=text,
+            ) from None
 
     def describe(self) -> dict:
         """As ``summary.json`` records it."""
-        return {"sensor": self.sensor, "kind": self.kind.value, "start_s": self.start_s, "end_s": self.end_s,
-                "amplitude_v": self.amplitude if self.kind is not FaultKind.FLAT else None,
-                **({"mains_hz": self.mains_hz} if self.kind is FaultKind.HUM else {})}
+        return {
+            "sensor": self.sensor,
+            "kind": self.kind.value,
+            "start_s": self.start_s,
+            "end_s": self.end_s,
+            "amplitude_v": self.amplitude if self.kind is not FaultKind.FLAT else None,
+            **({"mains_hz": self.mains_hz} if self.kind is FaultKind.HUM else {}),
+        }
 
 
 class _FaultSignals:
@@ -240,8 +250,9 @@ class SimulatorConfig:
         if not (math.isfinite(self.speed) and self.speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=self.speed)
         if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
-            raise ConfigError("device latency must be a finite number of seconds >= 0", field="latency_s",
-                              value=self.latency_s)
+            raise ConfigError(
+                "device latency must be a finite number of seconds >= 0", field="latency_s", value=self.latency_s
+            )
 
 
 @dataclass
@@ -273,9 +284,12 @@ class TrignoSimulator:
         self.config = config or SimulatorConfig()
         for fault in self.config.faults:
             if not source.paired[fault.sensor - 1]:
-                raise ConfigError(f"sensor {fault.sensor} is not paired in {source.name} (paired: "
-                                  f"{[k + 1 for k, p in enumerate(source.paired) if p]}): no EMG to inject a fault in",
-                                  field="faults", value=fault.sensor)
+                raise ConfigError(
+                    f"sensor {fault.sensor} is not paired in {source.name} (paired: "
+                    f"{[k + 1 for k, p in enumerate(source.paired) if p]}): no EMG to inject a fault in",
+                    field="faults",
+                    value=fault.sensor,
+                )
         self.stats = SimulatorStats(latency_s=self.config.latency_s)
         self._stop = threading.Event()
         self._lock = threading.RLock()
@@ -302,7 +316,7 @@ class TrignoSimulator:
         self.ports: dict[str, int] = {}
 
     # ------------------------------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "TrignoSimulator":
+    def __enter__(self) -> TrignoSimulator:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -313,12 +327,15 @@ class TrignoSimulator:
         simulated session, after which ``stats.samples_sent`` is final and a reading client can receive all of it."""
         self._held = True
 
-    def start(self) -> "TrignoSimulator":
+    def start(self) -> TrignoSimulator:
         if self._listeners:
             return self  # already serving (start() then ``with sim:``)
         cfg = self.config
         wanted = {
-            "command": cfg.command_port, "emg": cfg.emg_port, "legacy_emg": cfg.legacy_emg_port, "aux": cfg.aux_port,
+            "command": cfg.command_port,
+            "emg": cfg.emg_port,
+            "legacy_emg": cfg.legacy_emg_port,
+            "aux": cfg.aux_port,
             "legacy_acc": cfg.legacy_acc_port,
         }
         for name, port in wanted.items():
@@ -416,7 +433,7 @@ class TrignoSimulator:
                 if not select.select([listener], [], [], 0)[0]:
                     return False
                 sock, _ = listener.accept()
-            except (socket.timeout, BlockingIOError):
+            except (TimeoutError, BlockingIOError):
                 return False
             except (OSError, ValueError):
                 return None
@@ -459,7 +476,7 @@ class TrignoSimulator:
             while not self._stop.is_set():
                 try:
                     chunk = conn.sock.recv(4096)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 if not chunk:
                     break
@@ -677,7 +694,9 @@ class TrignoSimulator:
         np.clip(emg, -TRIGNO_EMG_RANGE_V, TRIGNO_EMG_RANGE_V, out=emg)  # the converter's range
         aux = self._aux_rows(start)
         # legacy ACC port: the same accelerations, x,y,z per sensor (the first 3 of each sensor's 9 AUX slots)
-        acc = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)[:, :, :3].reshape(AUX_SAMPLES_PER_FRAME, -1)
+        acc = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)[:, :, :3].reshape(
+            AUX_SAMPLES_PER_FRAME, -1
+        )
         payloads = {
             "emg": tp.encode_samples(emg, self._endianness),
             "aux": tp.encode_samples(aux, self._endianness),
@@ -714,7 +733,7 @@ class TrignoSimulator:
             times = np.append(times[: len(acc)], period)
             self._acc_grid = (times, np.concatenate([acc, acc[:1]]))  # the loop closes on its first sample
         times, values = self._acc_grid
-        t = (start / self.rate_hz + np.arange(AUX_SAMPLES_PER_FRAME) * tp.FRAME_INTERVAL_S / AUX_SAMPLES_PER_FRAME)
+        t = start / self.rate_hz + np.arange(AUX_SAMPLES_PER_FRAME) * tp.FRAME_INTERVAL_S / AUX_SAMPLES_PER_FRAME
         t = np.clip(t % times[-1], 0.0, times[-1])
         i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
         w = ((t - times[i]) / (times[i + 1] - times[i]))[:, None, None]

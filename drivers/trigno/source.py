@@ -63,7 +63,9 @@ def load_source(spec: str | Path, *, rate_hz: float | None = None) -> EmgSource:
         return load_npz(path)
     if suffix == ".bin":
         return load_raw_stream(path, rate_hz=2000.0 if rate_hz is None else rate_hz)
-    raise FileFormatError("unsupported EMG source (expected .c3d, .npz, .bin or synthetic[:SECONDS])", path=path, value=suffix)
+    raise FileFormatError(
+        "unsupported EMG source (expected .c3d, .npz, .bin or synthetic[:SECONDS])", path=path, value=suffix
+    )
 
 
 def load_raw_stream(path: Path, *, rate_hz: float) -> EmgSource:
@@ -74,8 +76,11 @@ def load_raw_stream(path: Path, *, rate_hz: float) -> EmgSource:
     if len(data) < row_bytes:
         raise FileFormatError(f"{len(data)} bytes is less than one {row_bytes}-byte sample (16 float32)", path=path)
     if len(data) % row_bytes:
-        log.warning("%s: %d trailing bytes are an incomplete sample (capture cut mid-sample); dropped",
-                    path, len(data) % row_bytes)
+        log.warning(
+            "%s: %d trailing bytes are an incomplete sample (capture cut mid-sample); dropped",
+            path,
+            len(data) % row_bytes,
+        )
         data = data[: len(data) - len(data) % row_bytes]
     if not 100.0 <= rate_hz <= 10000.0:
         raise InputError("rate must be within 100..10000 Hz", field="--rate", value=rate_hz)
@@ -113,7 +118,9 @@ def load_c3d(path: Path) -> EmgSource:
         if not np.any(values):
             continue  # an unpaired slot exported as zeros; an IM sensor may own the slot instead
         if paired[slot - 1]:
-            raise FileFormatError("two EMG channels claim the same sensor slot", path=path, field="ANALOG:LABELS", value=label)
+            raise FileFormatError(
+                "two EMG channels claim the same sensor slot", path=path, field="ANALOG:LABELS", value=label
+            )
         scale = 1e-3 if column < len(units) and units[column].strip().lower() == "mv" else 1.0
         samples[:, slot - 1] = values * scale
         names[slot - 1] = match.group("name")
@@ -143,13 +150,19 @@ def load_npz(path: Path) -> EmgSource:
         if not 100.0 <= rate <= 10000.0:
             raise FileFormatError("rate_hz must be within 100..10000 Hz", path=path, field="rate_hz", value=rate)
         n_channels = emg.shape[1]
-        labels = [str(x) for x in archive["labels"]] if "labels" in archive.files else [f"sensor{k + 1:02d}" for k in range(n_channels)]
+        labels = (
+            [str(x) for x in archive["labels"]]
+            if "labels" in archive.files
+            else [f"sensor{k + 1:02d}" for k in range(n_channels)]
+        )
         sensors = [int(x) for x in archive["sensors"]] if "sensors" in archive.files else list(range(1, n_channels + 1))
         acc, acc_rate = _npz_acc(archive, path, emg.shape[0] / rate, n_channels)
     if len(labels) != n_channels:
         raise FileFormatError("one label per emg column expected", path=path, field="labels", value=len(labels))
     if len(sensors) != n_channels or len(set(sensors)) != n_channels or not all(1 <= s <= N_SENSORS for s in sensors):
-        raise FileFormatError("sensors must be distinct slots 1..16, one per column", path=path, field="sensors", value=sensors)
+        raise FileFormatError(
+            "sensors must be distinct slots 1..16, one per column", path=path, field="sensors", value=sensors
+        )
     samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
     slot_acc = None
     if acc is not None:
@@ -176,8 +189,9 @@ def _npz_acc(archive, path: Path, emg_s: float, n_channels: int) -> tuple[np.nda
     if not 1.0 <= rate <= 10000.0:
         raise FileFormatError("acc_rate_hz must be within 1..10000 Hz", path=path, field="acc_rate_hz", value=rate)
     if acc.ndim != 3 or acc.shape[1:] != (n_channels, 3) or acc.shape[0] < 2:
-        raise FileFormatError(f"acc must be (m >= 2, {n_channels} channels, 3 axes)", path=path, field="acc",
-                              value=acc.shape)
+        raise FileFormatError(
+            f"acc must be (m >= 2, {n_channels} channels, 3 axes)", path=path, field="acc", value=acc.shape
+        )
     if not np.all(np.isfinite(acc)):
         raise FileFormatError("acc holds NaN or infinite values", path=path, field="acc")
     if abs(acc.shape[0] / rate - emg_s) > 2.0 / rate:

@@ -121,7 +121,9 @@ class XsensDevice:
     def _read_messages(self) -> list[xbus.XbusMessage]:
         return self.parser.feed(self.transport.read(4096))
 
-    def request(self, mid: int, data: bytes = b"", *, reply_mid: int | None = None, timeout: float | None = None) -> xbus.XbusMessage:
+    def request(
+        self, mid: int, data: bytes = b"", *, reply_mid: int | None = None, timeout: float | None = None
+    ) -> xbus.XbusMessage:
         """Send ``mid`` and wait for ``reply_mid`` (default mid + 1); MTData2 frames in between are kept for read()."""
         expected = mid + 1 if reply_mid is None else reply_mid
         self.send(mid, data)
@@ -242,7 +244,9 @@ class XsensDevice:
         self.request(xbus.Mid.GO_TO_MEASUREMENT)
         self._last_counter.clear()
 
-    def configure(self, rate_hz: int = 100, *, precision=xbus.Precision.FLOAT32, frame=xbus.CoordinateFrame.ENU) -> dict:
+    def configure(
+        self, rate_hz: int = 100, *, precision=xbus.Precision.FLOAT32, frame=xbus.CoordinateFrame.ENU
+    ) -> dict:
         """The usual sequence: GoToConfig, identify, set outputs, GoToMeasurement. Returns the device's identity."""
         self._configured = {"rate_hz": rate_hz, "precision": precision, "frame": frame}
         self.go_to_config()
@@ -347,7 +351,9 @@ class XsensDevice:
         back without its device (a USB-serial converter whose sensor is off) must not block the caller for the
         full configure() timeouts."""
         if not self.can_reconnect:
-            raise ProtocolError(f"{self.transport.name}: cannot reconnect (never configured, or the transport cannot reopen)")
+            raise ProtocolError(
+                f"{self.transport.name}: cannot reconnect (never configured, or the transport cannot reopen)"
+            )
         previous = self.device_id
         transport = self.transport.reopen()  # type: ignore[attr-defined]
         self.transport = transport
@@ -373,6 +379,7 @@ class XsensDevice:
 
 def configuration_differences(requested: list[xbus.OutputSetting], applied: list[xbus.OutputSetting]) -> list[str]:
     """What the device applied differently from the request (0 and 0xFFFF, "every message", are the same)."""
+
     def normal(frequency: int) -> int:
         return 0xFFFF if frequency in EVERY_MESSAGE else frequency
 

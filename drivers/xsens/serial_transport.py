@@ -74,7 +74,7 @@ class SerialTransport:
             raise DeviceDisconnected(f"{self.name}: {error}") from error
         self.baudrate = baudrate
 
-    def reopen(self) -> "SerialTransport":
+    def reopen(self) -> SerialTransport:
         """The same port opened again: after an unplug, a stable path (/dev/serial/by-id/...) names the replugged
         device. Raises DeviceDisconnected while it is still absent."""
         return SerialTransport(self.name, baudrate=self.baudrate, timeout=self.timeout)

@@ -96,8 +96,9 @@ class XsensSimulator:
         if not (math.isfinite(speed) and speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=speed)
         if not (math.isfinite(latency_s) and latency_s >= 0):
-            raise ConfigError("device latency must be a finite number of seconds >= 0", field="latency_s",
-                              value=latency_s)
+            raise ConfigError(
+                "device latency must be a finite number of seconds >= 0", field="latency_s", value=latency_s
+            )
         self.source = source
         self.device_id = device_id
         self.product_code = product_code
@@ -134,13 +135,13 @@ class XsensSimulator:
         self._wake_deadline = 0.0
 
     # ------------------------------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "XsensSimulator":
+    def __enter__(self) -> XsensSimulator:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def start(self) -> "XsensSimulator":
+    def start(self) -> XsensSimulator:
         if self._thread is not None:
             return self
         self._master, self._slave = os.openpty()

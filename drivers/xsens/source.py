@@ -65,7 +65,9 @@ def load_imu_source(spec: str | Path) -> ImuSource:
         return load_capture(path)
     if path.suffix.lower() == ".npz":
         return load_imu_npz(path)
-    raise FileFormatError("unsupported IMU source (expected .bin, .npz or synthetic[:SECONDS])", path=path, value=path.suffix)
+    raise FileFormatError(
+        "unsupported IMU source (expected .bin, .npz or synthetic[:SECONDS])", path=path, value=path.suffix
+    )
 
 
 def load_capture(path: Path) -> ImuSource:
@@ -75,8 +77,12 @@ def load_capture(path: Path) -> ImuSource:
     if not messages:
         raise FileFormatError(f"no valid MTData2 frame in {len(data)} bytes", path=path)
     if parser.stats.bytes_skipped or parser.pending:
-        log.warning("%s: %d bytes outside valid frames skipped, %d trailing bytes of an incomplete frame dropped",
-                    path, parser.stats.bytes_skipped, parser.pending)
+        log.warning(
+            "%s: %d bytes outside valid frames skipped, %d trailing bytes of an incomplete frame dropped",
+            path,
+            parser.stats.bytes_skipped,
+            parser.pending,
+        )
     bus_ids = Counter(m.bid for m in messages)
     if len(bus_ids) > 1:  # several trackers in one stream (bus ids): one source is one tracker
         bid = xbus.BID_MASTER if xbus.BID_MASTER in bus_ids else bus_ids.most_common(1)[0][0]
@@ -111,8 +117,13 @@ def load_capture(path: Path) -> ImuSource:
         rate = _rate_from_configuration(recorded)
     if rate is None:
         rate = DEFAULT_RATE_HZ
-        log.warning("%s: no SampleTimeFine in the capture and no output configuration beside it (%s); "
-                    "assuming the factory default of %.0f Hz", path, config_path.name, rate)
+        log.warning(
+            "%s: no SampleTimeFine in the capture and no output configuration beside it (%s); "
+            "assuming the factory default of %.0f Hz",
+            path,
+            config_path.name,
+            rate,
+        )
     return ImuSource(rate, arrays, path.name, [m.data for m in messages], recorded)
 
 
@@ -177,7 +188,12 @@ def synthetic_imu(*, seconds: float = 30.0, seed: int = 0, rate_hz: float = 100.
     half_r, half_y = roll / 2, yaw / 2
     # q = qz(yaw) * qx(roll)
     quaternion = np.stack(
-        [np.cos(half_y) * np.cos(half_r), np.cos(half_y) * np.sin(half_r), np.sin(half_y) * np.sin(half_r), np.sin(half_y) * np.cos(half_r)],
+        [
+            np.cos(half_y) * np.cos(half_r),
+            np.cos(half_y) * np.sin(half_r),
+            np.sin(half_y) * np.sin(half_r),
+            np.sin(half_y) * np.cos(half_r),
+        ],
         axis=1,
     )
     gyro = np.stack([np.gradient(roll, t), np.zeros(n), np.gradient(yaw, t)], axis=1)
@@ -186,4 +202,8 @@ def synthetic_imu(*, seconds: float = 30.0, seed: int = 0, rate_hz: float = 100.
     acc = np.stack([np.zeros(n), GRAVITY * np.sin(roll), GRAVITY * np.cos(roll)], axis=1)
     acc += rng.normal(0.0, 0.02, acc.shape)
     mag = np.stack([np.cos(-yaw), np.sin(-yaw) * np.cos(roll), -np.sin(-yaw) * np.sin(roll)], axis=1)
-    return ImuSource(rate_hz, {"quaternion": quaternion, "acceleration": acc, "rate_of_turn": gyro, "magnetic_field": mag}, f"synthetic:{seconds:g}:{seed}")
+    return ImuSource(
+        rate_hz,
+        {"quaternion": quaternion, "acceleration": acc, "rate_of_turn": gyro, "magnetic_field": mag},
+        f"synthetic:{seconds:g}:{seed}",
+    )

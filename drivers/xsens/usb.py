@@ -82,10 +82,22 @@ def match_ports(devices: list[UsbDevice], ports: list[PortInfo]) -> list[UsbDevi
         if port is not None:
             remaining.remove(port)
         out.append(
-            UsbDevice(device.vendor_id, device.product_id, device.name, device.serial_number, device.bus, device.address, port.device if port else "")
+            UsbDevice(
+                device.vendor_id,
+                device.product_id,
+                device.name,
+                device.serial_number,
+                device.bus,
+                device.address,
+                port.device if port else "",
+            )
         )
     for port in remaining:
-        out.append(UsbDevice(port.vid or 0, port.pid or 0, classify(port.vid, port.pid) or "", port.serial_number, port=port.device))
+        out.append(
+            UsbDevice(
+                port.vid or 0, port.pid or 0, classify(port.vid, port.pid) or "", port.serial_number, port=port.device
+            )
+        )
     return out
 
 
@@ -105,7 +117,16 @@ def usb_devices() -> list[UsbDevice]:
             serial = usb.util.get_string(dev, dev.iSerialNumber) if dev.iSerialNumber else ""
         except (usb.core.USBError, ValueError, NotImplementedError):
             serial = ""  # reading strings needs permissions on the device node
-        out.append(UsbDevice(dev.idVendor, dev.idProduct, classify(dev.idVendor, dev.idProduct) or "", serial or "", dev.bus, dev.address))
+        out.append(
+            UsbDevice(
+                dev.idVendor,
+                dev.idProduct,
+                classify(dev.idVendor, dev.idProduct) or "",
+                serial or "",
+                dev.bus,
+                dev.address,
+            )
+        )
     return out
 
 
@@ -127,4 +148,8 @@ def find_port() -> str:
     for device in list_devices():
         if device.port:
             return device.port
-    raise ConfigError("no Xsens device with a serial port found on USB (vendor 0x2639 or FTDI 0x0403:D388-D38F)", field="--xsens", value="usb")
+    raise ConfigError(
+        "no Xsens device with a serial port found on USB (vendor 0x2639 or FTDI 0x0403:D388-D38F)",
+        field="--xsens",
+        value="usb",
+    )

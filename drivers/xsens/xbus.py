@@ -143,7 +143,9 @@ def frame_of(data_id: int) -> CoordinateFrame:
     return CoordinateFrame(bits) if bits != 0xC else CoordinateFrame.ENU
 
 
-def make_data_id(quantity: int, precision: Precision = Precision.FLOAT32, frame: CoordinateFrame = CoordinateFrame.ENU) -> int:
+def make_data_id(
+    quantity: int, precision: Precision = Precision.FLOAT32, frame: CoordinateFrame = CoordinateFrame.ENU
+) -> int:
     frame_bits = int(frame) if (quantity & 0xF800) in FRAME_GROUPS else 0
     return (quantity & 0xFFF0) | frame_bits | int(precision)
 
@@ -214,21 +216,61 @@ VALID_BIDS = frozenset({BID_MASTER, *range(0x01, 0x21)})
 #: Heading 0x82, LocationID 0x84, ExtOutputMode 0x86, StringOutputTypes 0x8E, GPSStatus 0xA6, AdjustUTCTime 0xA8,
 #: OutputMode 0xD0, OutputSettings 0xD2, OutputSkipFactor 0xD4, SyncIn/Out 0xD6/0xD8, TransmitDelay 0xDC,
 #: ObjectAlignment 0xE0, AlignmentRotation 0xEC; and the wireless (Awinda/MTw) range 0xB0-0xCF.
-OTHER_PUBLIC_MIDS = frozenset({
-    0x02, 0x04, 0x0A, 0x20, 0x22, 0x62, 0x66, 0x68, 0x6A, 0x6E, 0x82, 0x84, 0x86, 0x8E,
-    0xA6, 0xA8, 0xD0, 0xD2, 0xD4, 0xD6, 0xD8, 0xDC, 0xE0, 0xEC,
-})
+OTHER_PUBLIC_MIDS = frozenset(
+    {
+        0x02,
+        0x04,
+        0x0A,
+        0x20,
+        0x22,
+        0x62,
+        0x66,
+        0x68,
+        0x6A,
+        0x6E,
+        0x82,
+        0x84,
+        0x86,
+        0x8E,
+        0xA6,
+        0xA8,
+        0xD0,
+        0xD2,
+        0xD4,
+        0xD6,
+        0xD8,
+        0xDC,
+        0xE0,
+        0xEC,
+    }
+)
 #: Message ids a frame may carry (requests, set messages, replies and acks). A device may send any of them (e.g.
 #: a Warning, or the answer to another program's request on a shared port): they must parse, not count as errors.
 VALID_MIDS = frozenset(
-    {int(m) for m in Mid} | {int(m) + 1 for m in Mid}
-    | OTHER_PUBLIC_MIDS | {m + 1 for m in OTHER_PUBLIC_MIDS} | set(range(0xB0, 0xD0))
+    {int(m) for m in Mid}
+    | {int(m) + 1 for m in Mid}
+    | OTHER_PUBLIC_MIDS
+    | {m + 1 for m in OTHER_PUBLIC_MIDS}
+    | set(range(0xB0, 0xD0))
 )
 
 #: Xbus baud-rate codes (SetBaudrate 0x18 payload) -> bits per second; 0x80 and 0x0A both mean 921600.
 BAUD_CODES = {
-    0x80: 921600, 0x0A: 921600, 0x00: 460800, 0x01: 230400, 0x02: 115200, 0x03: 76800, 0x04: 57600, 0x05: 38400,
-    0x06: 28800, 0x07: 19200, 0x08: 14400, 0x09: 9600, 0x0B: 4800, 0x0C: 2000000, 0x0D: 4000000,
+    0x80: 921600,
+    0x0A: 921600,
+    0x00: 460800,
+    0x01: 230400,
+    0x02: 115200,
+    0x03: 76800,
+    0x04: 57600,
+    0x05: 38400,
+    0x06: 28800,
+    0x07: 19200,
+    0x08: 14400,
+    0x09: 9600,
+    0x0B: 4800,
+    0x0C: 2000000,
+    0x0D: 4000000,
 }
 
 
@@ -480,7 +522,7 @@ def _compile_layout(items: list[tuple[int, int, int]]) -> _Layout:
     names, slices, conversions = [], [], []
     ids: dict[str, int] = {}
     position = 0
-    for offset, data_id, size in items:
+    for _offset, data_id, size in items:
         header_fmt.append(f"HB{size}x" if size else "HB")  # the header, then skip the item's data
         headers += [data_id, size]
         data_fmt.append("3x")
@@ -524,9 +566,17 @@ def _compile_layout(items: list[tuple[int, int, int]]) -> _Layout:
             targets.append((name, 1, slice(next32, next32 + count)))
             next32 += count
     return _Layout(
-        header_struct.unpack_from, tuple(headers), struct.Struct("".join(data_fmt)).unpack_from,
-        tuple(names), tuple(slices), ids, tuple(conversions), not any(conversions),
-        tuple(fx20), tuple(fx32), tuple(targets),
+        header_struct.unpack_from,
+        tuple(headers),
+        struct.Struct("".join(data_fmt)).unpack_from,
+        tuple(names),
+        tuple(slices),
+        ids,
+        tuple(conversions),
+        not any(conversions),
+        tuple(fx20),
+        tuple(fx32),
+        tuple(targets),
     )
 
 
@@ -547,7 +597,9 @@ def decode_mtdata2(payload: bytes | bytearray | memoryview) -> MtData2:
     flat = layout.unpack_from(payload)
     if layout.plain:
         return MtData2(dict(zip(layout.names, map(flat.__getitem__, layout.slices))), dict(layout.ids), [])
-    converted = [flat[k] * _FP1220_SCALE for k in layout.fx20] + [flat[k + 1] + flat[k] * _FP1632_SCALE for k in layout.fx32]
+    converted = [flat[k] * _FP1220_SCALE for k in layout.fx20] + [
+        flat[k + 1] + flat[k] * _FP1632_SCALE for k in layout.fx32
+    ]
     sources = (flat, converted)
     values = {name: tuple(sources[source][part]) for name, source, part in layout.targets}
     unknown = [
@@ -649,8 +701,10 @@ def output_bits_per_second(settings: list[OutputSetting]) -> float:
     rate, each item at its own rate (0/0xFFFF: in every message). Unknown DataIDs count their 3-byte header only."""
     rates = [s.frequency for s in settings if s.frequency not in (0, 0xFFFF)]
     message_rate = float(max(rates)) if rates else 100.0
-    payload = sum((3 + (item_size(s.data_id) or 0)) * (message_rate if s.frequency in (0, 0xFFFF) else s.frequency)
-                  for s in settings)
+    payload = sum(
+        (3 + (item_size(s.data_id) or 0)) * (message_rate if s.frequency in (0, 0xFFFF) else s.frequency)
+        for s in settings
+    )
     overhead = message_rate * (6 + 1)  # FA BID MID LEN [LENext] ... CS (extended header counted: worst case)
     return 10.0 * (payload + overhead)
 

@@ -8,6 +8,16 @@ from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, se
 from msk_core.discrepancy.workflow import DiscrepancyResult, run_discrepancy
 
 __all__ = [
-    "BIC_MARGIN", "Candidate", "DiscrepancyResult", "MAX_DELAY_S", "MIN_REDUCTION", "SessionArrays", "Selection",
-    "candidate_library", "check_inputs", "run_discrepancy", "select_effects", "session_arrays",
+    "BIC_MARGIN",
+    "Candidate",
+    "DiscrepancyResult",
+    "MAX_DELAY_S",
+    "MIN_REDUCTION",
+    "SessionArrays",
+    "Selection",
+    "candidate_library",
+    "check_inputs",
+    "run_discrepancy",
+    "select_effects",
+    "session_arrays",
 ]

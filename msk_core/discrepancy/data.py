@@ -86,27 +86,47 @@ def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: 
     for t in holdout:
         key = str(t.path.resolve()) if t.path else t.name
         if key in seen:
-            raise InputError("a held-out trial must not also be a training trial (the score would not be held out)",
-                             path=t.path, field="--holdout", value=str(t.path))
+            raise InputError(
+                "a held-out trial must not also be a training trial (the score would not be held out)",
+                path=t.path,
+                field="--holdout",
+                value=str(t.path),
+            )
     for label, trials in (("--trial", train), ("--holdout", holdout)):
         if all(t.isometric for t in trials):
-            raise InputError("every trial here is isometric (`isometric = true`); the effects are searched in movement, "
-                             "so at least one trial with reps is needed", path=trials[0].path, field=label,
-                             value=", ".join(t.name for t in trials))
+            raise InputError(
+                "every trial here is isometric (`isometric = true`); the effects are searched in movement, "
+                "so at least one trial with reps is needed",
+                path=trials[0].path,
+                field=label,
+                value=", ".join(t.name for t in trials),
+            )
     for t in holdout:
         if t.torque_source != "file":
-            raise InputError("a held-out trial needs measured torques (`torques = ...`, an inverse-dynamics file): the "
-                             "gap is measured against them", path=t.path, field="torques")
+            raise InputError(
+                "a held-out trial needs measured torques (`torques = ...`, an inverse-dynamics file): the "
+                "gap is measured against them",
+                path=t.path,
+                field="torques",
+            )
     if not any(t.emg for t in train + holdout):
-        raise InputError("no trial has EMG (`emg = ...` with an [emg_map]): the gap between what the EMG implies and "
-                         "the torques needs it", path=train[0].path, field="emg")
+        raise InputError(
+            "no trial has EMG (`emg = ...` with an [emg_map]): the gap between what the EMG implies and "
+            "the torques needs it",
+            path=train[0].path,
+            field="emg",
+        )
     for t in train + holdout:
         if t.isometric:
             continue
         span = float(t.time[-1] - t.time[0])
         if span <= 2 * max_delay_s:
-            raise InputError(f"trial lasts {span:.3f} s, not longer than twice the longest delay searched "
-                             f"({max_delay_s:g} s)", path=t.path, field="kinematics", value=round(span, 3))
+            raise InputError(
+                f"trial lasts {span:.3f} s, not longer than twice the longest delay searched ({max_delay_s:g} s)",
+                path=t.path,
+                field="kinematics",
+                value=round(span, 3),
+            )
 
 
 def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_groups: list[str]) -> TrialArrays:
@@ -130,8 +150,10 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     a = arms * profile.f_max
     reach_hi, reach_lo = np.clip(a, 0, None).sum(axis=2), np.clip(a, None, 0).sum(axis=2)
     tau0 = np.nan_to_num(trial.torques)
-    drop(f"torque beyond {CAPACITY_MARGIN:.0%} of the muscles' capacity",
-         np.all((tau0 <= CAPACITY_MARGIN * reach_hi) & (tau0 >= CAPACITY_MARGIN * reach_lo), axis=1))
+    drop(
+        f"torque beyond {CAPACITY_MARGIN:.0%} of the muscles' capacity",
+        np.all((tau0 <= CAPACITY_MARGIN * reach_hi) & (tau0 >= CAPACITY_MARGIN * reach_lo), axis=1),
+    )
     prior = profile.prior
     if prior is not None:
         mean = np.array([prior.mean_precision(float(p))[0] for p in trial.phase])
@@ -140,23 +162,42 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     emg = np.column_stack([trial.emg[x] for x in emg_groups]) if emg_groups else np.zeros((trial.n_frames, 0))
     drop("non-finite EMG", np.all(np.isfinite(emg), axis=1))
     if keep.sum() < MIN_FRAMES:
-        raise InputError(f"only {int(keep.sum())} of {trial.n_frames} frames are left for the discrepancy analysis "
-                         f"(at least {MIN_FRAMES} needed); left out: {describe_left_out(left_out)}"
-                         " - for torques beyond the capacity, check the load and the profile's strengths",
-                         path=trial.path, field="torques" if trial.torque_source == "file" else "kinematics")
+        raise InputError(
+            f"only {int(keep.sum())} of {trial.n_frames} frames are left for the discrepancy analysis "
+            f"(at least {MIN_FRAMES} needed); left out: {describe_left_out(left_out)}"
+            " - for torques beyond the capacity, check the load and the profile's strengths",
+            path=trial.path,
+            field="torques" if trial.torque_source == "file" else "kinematics",
+        )
     hand = trial.hand_load_newton
     if hand > 0:
-        tau_load = np.array([np.asarray(pack.inverse_dynamics(a, b, c, hand)) - np.asarray(pack.inverse_dynamics(a, b, c, 0.0))
-                             for a, b, c in zip(q, trial.qd, trial.qdd)])
+        tau_load = np.array(
+            [
+                np.asarray(pack.inverse_dynamics(a, b, c, hand)) - np.asarray(pack.inverse_dynamics(a, b, c, 0.0))
+                for a, b, c in zip(q, trial.qd, trial.qdd)
+            ]
+        )
     else:
         tau_load = np.zeros((trial.n_frames, n_c))
     so = np.nan_to_num(mech.min_effort) if len(emg_groups) < g else np.zeros((trial.n_frames, g))
     sel = keep
     return TrialArrays(
-        name=trial.name, path=str(trial.path), time=trial.time[sel], q=q[sel], qd=trial.qd[sel], tau=trial.torques[sel],
-        arms=arms[sel], lengths=None if lengths is None else lengths[sel], scale=scale[sel], emg=emg[sel],
-        prior_mean=mean[sel], min_effort=so[sel], tau_load=tau_load[sel], phase=trial.phase[sel],
-        rep_index=np.asarray(trial.rep_index)[sel], load_kg=trial.load_kg,
+        name=trial.name,
+        path=str(trial.path),
+        time=trial.time[sel],
+        q=q[sel],
+        qd=trial.qd[sel],
+        tau=trial.torques[sel],
+        arms=arms[sel],
+        lengths=None if lengths is None else lengths[sel],
+        scale=scale[sel],
+        emg=emg[sel],
+        prior_mean=mean[sel],
+        min_effort=so[sel],
+        tau_load=tau_load[sel],
+        phase=trial.phase[sel],
+        rep_index=np.asarray(trial.rep_index)[sel],
+        load_kg=trial.load_kg,
         left_out={k: v for k, v in left_out.items() if v},
     )
 
@@ -168,8 +209,11 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
     groups = list(pack.groups)
     emg_groups = [g for g in groups if all(g in t.emg for t in trials)]
     if not emg_groups:
-        raise InputError("no group has EMG in every trial; the EMG-implied torque needs the same electrodes throughout",
-                         path=trials[0].path if trials else None, field="emg_map")
+        raise InputError(
+            "no group has EMG in every trial; the EMG-implied torque needs the same electrodes throughout",
+            path=trials[0].path if trials else None,
+            field="emg_map",
+        )
     first = trials[0]
     order = [first.emg_channels[ch] for ch in first.emg_channels if first.emg_channels[ch] in emg_groups]
     order = list(dict.fromkeys(order))
@@ -177,9 +221,15 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
     ranges = getattr(pack, "coordinate_ranges", None)
     r = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
     return SessionArrays(
-        groups=groups, coordinates=list(pack.coordinates), emg_groups=emg_groups, electrode_order=order,
-        f_max=np.asarray(profile.f_max, dtype=float), base_delay_s=float(emd.get("delay_s", 0.0) or 0.0),
-        optimal=getattr(pack, "optimal_fiber_lengths", None), slack=getattr(pack, "tendon_slack_lengths", None),
-        lo=None if r is None else r[:, 0], hi=None if r is None else r[:, 1],
+        groups=groups,
+        coordinates=list(pack.coordinates),
+        emg_groups=emg_groups,
+        electrode_order=order,
+        f_max=np.asarray(profile.f_max, dtype=float),
+        base_delay_s=float(emd.get("delay_s", 0.0) or 0.0),
+        optimal=getattr(pack, "optimal_fiber_lengths", None),
+        slack=getattr(pack, "tendon_slack_lengths", None),
+        lo=None if r is None else r[:, 0],
+        hi=None if r is None else r[:, 1],
         trials=[_arrays(pack, profile, t, emg_groups) for t in trials],
     )

@@ -62,33 +62,65 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     dt = min(t.frame_interval_s for t in data.trials)
     delays = np.arange(0, int(round(MAX_DELAY_S / dt)) + 1) * dt
     out = [
-        Candidate("emd", tuple({"delay_total_s": float(d)} for d in delays),
-                  "x_g(t) = e_g(t - d): EMG leads the force by the electromechanical delay d"),
+        Candidate(
+            "emd",
+            tuple({"delay_total_s": float(d)} for d in delays),
+            "x_g(t) = e_g(t - d): EMG leads the force by the electromechanical delay d",
+        ),
     ]
     if len(data.emg_groups) >= 2:
-        out.append(Candidate("crosstalk", tuple({"fraction": c} for c in (0.05, 0.1, 0.15, 0.2, 0.3, 0.4)),
-                             "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's",
-                             remixes_emg=True))
+        out.append(
+            Candidate(
+                "crosstalk",
+                tuple({"fraction": c} for c in (0.05, 0.1, 0.15, 0.2, 0.3, 0.4)),
+                "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's",
+                remixes_emg=True,
+            )
+        )
     if data.optimal is not None and data.trials[0].lengths is not None:
         out += [
-            Candidate("fl_active", tuple({"width": w} for w in (0.25, 0.35, 0.45, 0.6, 0.8)),
-                      "phi_g = exp(-((l_g - 1)/w)^2), l_g normalised fibre length"),
-            Candidate("fl_passive", tuple({"strain": s} for s in (0.3, 0.45, 0.6, 0.8, 1.0)),
-                      "Z = sum_g A_g (exp(4 (l_g - 1)/s) - 1)/(e^4 - 1) for l_g > 1, one scale"),
-            Candidate("fv", tuple({"v_max": v, "eccentric": e} for v in (5.0, 10.0, 15.0, 20.0) for e in (1.4, 1.8)),
-                      "phi_g = Hill force-velocity(shortening speed / v_max l_opt), eccentric plateau"),
+            Candidate(
+                "fl_active",
+                tuple({"width": w} for w in (0.25, 0.35, 0.45, 0.6, 0.8)),
+                "phi_g = exp(-((l_g - 1)/w)^2), l_g normalised fibre length",
+            ),
+            Candidate(
+                "fl_passive",
+                tuple({"strain": s} for s in (0.3, 0.45, 0.6, 0.8, 1.0)),
+                "Z = sum_g A_g (exp(4 (l_g - 1)/s) - 1)/(e^4 - 1) for l_g > 1, one scale",
+            ),
+            Candidate(
+                "fv",
+                tuple({"v_max": v, "eccentric": e} for v in (5.0, 10.0, 15.0, 20.0) for e in (1.4, 1.8)),
+                "phi_g = Hill force-velocity(shortening speed / v_max l_opt), eccentric plateau",
+            ),
         ]
     if data.lo is not None:
-        out.append(Candidate("passive_joint", tuple({"decay_rad": d} for d in (0.05, 0.1, 0.2, 0.35)),
-                             "Z_n = k_lo,n exp((lo_n - q_n)/d) - k_hi,n exp((q_n - hi_n)/d) / c_n"))
+        out.append(
+            Candidate(
+                "passive_joint",
+                tuple({"decay_rad": d} for d in (0.05, 0.1, 0.2, 0.35)),
+                "Z_n = k_lo,n exp((lo_n - q_n)/d) - k_hi,n exp((q_n - hi_n)/d) / c_n",
+            )
+        )
     out.append(Candidate("damping", ({},), "Z_n = -b_n qd_n / c_n (muscles also overcome joint damping)"))
     if len({t.load_kg for t in train}) >= 2:  # with one load a load scale is a strength scale (not separable)
-        out.append(Candidate("load_scale", tuple({"true_over_reported": r} for r in LOAD_RATIOS),
-                             "y = (tau - (1 - r) tau_load) / c: the bar's true load is r x the reported one"))
+        out.append(
+            Candidate(
+                "load_scale",
+                tuple({"true_over_reported": r} for r in LOAD_RATIOS),
+                "y = (tau - (1 - r) tau_load) / c: the bar's true load is r x the reported one",
+            )
+        )
     multi = [g for g in data.emg_groups if _crosses(data, g) > 1]
     if multi:
-        out.append(Candidate("moment_arm_scale", ({},),
-                             "per (group, coordinate) scale of R_ng for groups with EMG crossing several coordinates"))
+        out.append(
+            Candidate(
+                "moment_arm_scale",
+                ({},),
+                "per (group, coordinate) scale of R_ng for groups with EMG crossing several coordinates",
+            )
+        )
     return out
 
 
@@ -145,8 +177,14 @@ def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict
     return x
 
 
-def force_factor(lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray | None,
-                 slack: np.ndarray | None, model: dict[str, dict]) -> np.ndarray:
+def force_factor(
+    lengths: np.ndarray | None,
+    arms: np.ndarray,
+    qd: np.ndarray,
+    optimal: np.ndarray | None,
+    slack: np.ndarray | None,
+    model: dict[str, dict],
+) -> np.ndarray:
     """(T, G) the force-factor effects of ``model`` (active force-length, force-velocity) on every frame of lengths
     (T, G), moment arms (T, n_c, G) and velocities (T, n_c); 1 where none is on. The discrepancy fit and the
     re-calibration both take it from here."""
@@ -182,28 +220,45 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
             if len(crossed) > 1:
                 multi.add(k)
                 for c in crossed:
-                    add(contrib[:, :, k] * onehot[data.coordinates.index(c)], f"arm:{g}:{c}", MEASURED_RIDGE,
-                        MEASURED_RIDGE_ABS)
+                    add(
+                        contrib[:, :, k] * onehot[data.coordinates.index(c)],
+                        f"arm:{g}:{c}",
+                        MEASURED_RIDGE,
+                        MEASURED_RIDGE_ABS,
+                    )
     for k, g in enumerate(data.emg_groups):
         if k not in multi:
             add(contrib[:, :, k], f"gain:{g}", MEASURED_RIDGE, MEASURED_RIDGE_ABS)
     for j in o_idx:  # the unmeasured groups' prior-mean contribution, re-scaled like the measured groups' strength
-        add(a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None], f"prior:{data.groups[j]}", GAIN_RIDGE,
-            GAIN_RIDGE_ABS)
+        add(
+            a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None],
+            f"prior:{data.groups[j]}",
+            GAIN_RIDGE,
+            GAIN_RIDGE_ABS,
+        )
         base = a[:, :, j] * (phi[:, j] * trial.min_effort[:, j])[:, None]  # follows the frame's demand (load)
         for k, w in enumerate(phase_basis(trial.phase)):  # ... with a free share per phase of the rep
             add(base * w[:, None], f"demand:{data.groups[j]}:{k}", GAIN_RIDGE, GAIN_RIDGE_ABS)
     inv_c = 1.0 / trial.scale
     for c in range(n_c):
         add(inv_c * onehot[c], f"offset:{data.coordinates[c]}")
-    terms = torque_term_columns(model, trial.q, trial.qd, trial.lengths, trial.arms, data.f_max, data.optimal,
-                                data.slack, data.lo, data.hi)  # (T, n_c, p) N·m per unit coefficient
+    terms = torque_term_columns(
+        model, trial.q, trial.qd, trial.lengths, trial.arms, data.f_max, data.optimal, data.slack, data.lo, data.hi
+    )  # (T, n_c, p) N·m per unit coefficient
     for j, name in enumerate(torque_term_names(model, data.coordinates)):
         add(terms[:, :, j] * inv_c, name)
-    return Design(y=(target_torque(trial, model) * inv_c).ravel(), fixed=fixed.ravel(), columns=np.column_stack(cols),
-                  names=names,
-                  ridge=np.asarray(ridge), ridge_abs=np.asarray(ridge_abs), n_frames=n, n_coordinates=n_c,
-                  emg_sum=x.sum(axis=0), phi_emg_sum=(phi[:, e_idx] * x).sum(axis=0))
+    return Design(
+        y=(target_torque(trial, model) * inv_c).ravel(),
+        fixed=fixed.ravel(),
+        columns=np.column_stack(cols),
+        names=names,
+        ridge=np.asarray(ridge),
+        ridge_abs=np.asarray(ridge_abs),
+        n_frames=n,
+        n_coordinates=n_c,
+        emg_sum=x.sum(axis=0),
+        phi_emg_sum=(phi[:, e_idx] * x).sum(axis=0),
+    )
 
 
 def typical_force_factor(designs: list[Design]) -> np.ndarray:
@@ -286,8 +341,17 @@ def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) 
         coef = _bounded_quadratic_minimum(g, x.T @ r, lower, upper)
     res = r - x @ coef
     n_nonlinear = sum(len(p) for p in model.values())
-    return Fit(model=model, names=designs[0].names, coef=coef, train_mse=float(np.mean(res**2)),
-               n_params=len(coef) + n_nonlinear, phi_typical=phi_typical, lower=lower, upper=upper, f_max=data.f_max)
+    return Fit(
+        model=model,
+        names=designs[0].names,
+        coef=coef,
+        train_mse=float(np.mean(res**2)),
+        n_params=len(coef) + n_nonlinear,
+        phi_typical=phi_typical,
+        lower=lower,
+        upper=upper,
+        f_max=data.f_max,
+    )
 
 
 def gaps(data: SessionArrays, trial: TrialArrays, f: Fit) -> np.ndarray:

@@ -62,9 +62,18 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_m
         lengths, arms = mech.lengths, mech.moment_arms
     r = getattr(pack, "coordinate_ranges", None)
     r = None if r is None else np.asarray(r, dtype=float).reshape(n_c, 2)
-    return torque_term_columns(model, q, np.nan_to_num(trial.qd), lengths, arms, f_max,
-                               np.asarray(pack.optimal_fiber_lengths), np.asarray(pack.tendon_slack_lengths),
-                               None if r is None else r[:, 0], None if r is None else r[:, 1])
+    return torque_term_columns(
+        model,
+        q,
+        np.nan_to_num(trial.qd),
+        lengths,
+        arms,
+        f_max,
+        np.asarray(pack.optimal_fiber_lengths),
+        np.asarray(pack.tendon_slack_lengths),
+        None if r is None else r[:, 0],
+        None if r is None else r[:, 1],
+    )
 
 
 class Recalibrator:
@@ -100,16 +109,25 @@ class Recalibrator:
             basis = None
             if terms:
                 names = torque_term_names(terms, list(self.pack.coordinates))
-                basis = TorqueBasis(columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile),
-                                    lower=np.zeros(len(names)), names=tuple(names))
+                basis = TorqueBasis(
+                    columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile),
+                    lower=np.zeros(len(names)),
+                    names=tuple(names),
+                )
             delay = float(model.get("emd", {}).get("delay_total_s", self.base_delay_s))
             plain = basis is None and scale is None
             if not plain and delay not in self._plain:
                 self.f_max({k: v for k, v in model.items() if k not in RECALIBRATED})
             if delay not in self._inputs:
                 self._inputs[delay] = calibration_inputs(self.pack, self.train, emd_s=delay)
-            profile, result = calibrate_inputs(self.pack, self._inputs[delay], settings=self.settings,
-                                               torque_basis=basis, force_scale=scale, start=self._plain.get(delay))
+            profile, result = calibrate_inputs(
+                self.pack,
+                self._inputs[delay],
+                settings=self.settings,
+                torque_basis=basis,
+                force_scale=scale,
+                start=self._plain.get(delay),
+            )
             if plain:
                 self._plain[delay] = result
             self._cache[key] = np.asarray(profile.f_max, dtype=float)
@@ -119,8 +137,14 @@ class Recalibrator:
     def _force_scale(self, trial: TrialData, forces: dict[str, dict]) -> np.ndarray:
         """(T, G) the force factor of ``forces`` on every frame of ``trial`` (:func:`model.force_factor`)."""
         mech, pack = trial.mechanics(self.pack), self.pack
-        return force_factor(mech.lengths, mech.moment_arms, np.nan_to_num(trial.qd),
-                            np.asarray(pack.optimal_fiber_lengths), np.asarray(pack.tendon_slack_lengths), forces)
+        return force_factor(
+            mech.lengths,
+            mech.moment_arms,
+            np.nan_to_num(trial.qd),
+            np.asarray(pack.optimal_fiber_lengths),
+            np.asarray(pack.tendon_slack_lengths),
+            forces,
+        )
 
     def report(self, model: dict[str, dict]) -> dict | None:
         return self.reports.get(json.dumps(model, sort_keys=True))

@@ -37,8 +37,20 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from msk_core.discrepancy.data import SessionArrays, TrialArrays
-from msk_core.discrepancy.model import (Candidate, Fit, Score, candidate_library, fit, gaps, integrated_autocorrelation,
-                                        mean_square, mse, on, target_ms, target_torque)
+from msk_core.discrepancy.model import (
+    Candidate,
+    Fit,
+    Score,
+    candidate_library,
+    fit,
+    gaps,
+    integrated_autocorrelation,
+    mean_square,
+    mse,
+    on,
+    target_ms,
+    target_torque,
+)
 from msk_core.discrepancy.recalibrate import RECALIBRATED, Recalibrator
 from msk_core.progress import Progress, counted
 
@@ -65,6 +77,7 @@ def _unexplained(data: SessionArrays, trials: list[TrialArrays], f: Fit, ms: flo
 @dataclass(frozen=True)
 class LeftOut:
     """One training trial left out of the fit: the base model fitted on the others, once per greedy step."""
+
     trial: TrialArrays
     rest: list[TrialArrays]
     base_fit: Fit
@@ -78,16 +91,20 @@ def left_out_bases(data: SessionArrays, train: list[TrialArrays], base: Fit) -> 
         return []
     out = []
     for k, trial in enumerate(train):
-        rest = train[:k] + train[k + 1:]
+        rest = train[:k] + train[k + 1 :]
         b = fit(data, rest, base.model)
-        out.append(LeftOut(trial, rest, b, _unexplained(data, [trial], b),
-                           frozenset(c.name for c in candidate_library(data, rest))))
+        out.append(
+            LeftOut(
+                trial, rest, b, _unexplained(data, [trial], b), frozenset(c.name for c in candidate_library(data, rest))
+            )
+        )
     return out
 
 
 @dataclass
 class Base:
     """The model a candidate is compared with in one greedy step: its fit, its held-out gaps and its left-out fits."""
+
     fit: Fit
     hold_gaps: list[np.ndarray]
     left_out: list[LeftOut]
@@ -97,8 +114,9 @@ def base_state(data: SessionArrays, train: list[TrialArrays], holdout: list[Tria
     return Base(f, [gaps(data, t, f) for t in holdout], left_out_bases(on(data, f), train, f))
 
 
-def score_candidate(data, train, holdout, current: Base, cand: Candidate,
-                    recalibrated: tuple[Recalibrator, Base] | None = None) -> Score:
+def score_candidate(
+    data, train, holdout, current: Base, cand: Candidate, recalibrated: tuple[Recalibrator, Base] | None = None
+) -> Score:
     """``current``: the model of this greedy step (the same for every candidate of the step). ``recalibrated``: for a
     muscle- or joint-state candidate, the re-calibrator and the current model re-calibrated the same way; the
     candidate is then fitted with the strengths of a calibration that has it in it, and compared with that
@@ -137,24 +155,40 @@ def score_candidate(data, train, holdout, current: Base, cand: Candidate,
         reasons.append(f"held-out reduction {reduction:.1%} < {MIN_REDUCTION:.0%}")
     for label, (r, lr) in left_out_scores.items():
         if lr > BIC_MARGIN:
-            reasons.append(f"training trial {label}, left out of the fit, contradicts it ({r:+.1%}, -2 ln LR {lr:+.1f} "
-                           f"> {BIC_MARGIN:g})")
+            reasons.append(
+                f"training trial {label}, left out of the fit, contradicts it ({r:+.1%}, -2 ln LR {lr:+.1f} "
+                f"> {BIC_MARGIN:g})"
+            )
     if dbic_train > -BIC_MARGIN:
         reasons.append(f"training dBIC {dbic_train:.1f} > -{BIC_MARGIN:g}")
     if lr_hold > -BIC_MARGIN:
         reasons.append(f"held-out -2 ln LR {lr_hold:.1f} > -{BIC_MARGIN:g}")
     per_rep = rep_reductions(data, holdout, best, base, hold_gaps, base_hold_gaps)
-    return Score(name=cand.name, parameters=dict(best.model[cand.name]), fit=best, holdout_mse=hold,
-                 reduction=reduction, delta_bic_train=dbic_train, minus2_ln_lr_holdout=lr_hold, holdout_bic=bic_hold,
-                 accepted=not reasons, reason="; ".join(reasons) or "passes",
-                 extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold,
-                        "recalibrated": recalibrated is not None},
-                 left_out_reductions=left_out_scores, rep_reductions=per_rep)
+    return Score(
+        name=cand.name,
+        parameters=dict(best.model[cand.name]),
+        fit=best,
+        holdout_mse=hold,
+        reduction=reduction,
+        delta_bic_train=dbic_train,
+        minus2_ln_lr_holdout=lr_hold,
+        holdout_bic=bic_hold,
+        accepted=not reasons,
+        reason="; ".join(reasons) or "passes",
+        extra={"tau_train_frames": tau_train, "tau_holdout_frames": tau_hold, "recalibrated": recalibrated is not None},
+        left_out_reductions=left_out_scores,
+        rep_reductions=per_rep,
+    )
 
 
-def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit, base: Fit,
-                   cand_gaps: list[np.ndarray] | None = None,
-                   base_gaps: list[np.ndarray] | None = None) -> list[tuple[str, int, float]]:
+def rep_reductions(
+    data: SessionArrays,
+    holdout: list[TrialArrays],
+    cand: Fit,
+    base: Fit,
+    cand_gaps: list[np.ndarray] | None = None,
+    base_gaps: list[np.ndarray] | None = None,
+) -> list[tuple[str, int, float]]:
     """Each held-out rep's reduction of the unexplained fraction by the candidate (how sure: an effect of the body
     helps rep after rep; one that wins on the pooled gap through a rep or two does not), and the frames between reps
     as rep -1 (set-up and rests: a passive moment can show there alone). [(trial, rep, reduction)]. The models' gaps
@@ -174,8 +208,9 @@ def rep_reductions(data: SessionArrays, holdout: list[TrialArrays], cand: Fit, b
     return out
 
 
-def _left_out_reductions(data: SessionArrays, left_out: list[LeftOut], base: Fit, cand: Candidate,
-                         setting: dict) -> dict[str, tuple[float, float]]:
+def _left_out_reductions(
+    data: SessionArrays, left_out: list[LeftOut], base: Fit, cand: Candidate, setting: dict
+) -> dict[str, tuple[float, float]]:
     """With several training trials: for each one, the candidate (at its chosen setting) and the base model fitted on
     the *other* training trials; returns the candidate's reduction of that trial's unexplained fraction and its
     -2 ln LR there (N_eff ln ratio, > 0 when the trial favours the base model). An effect of the body holds on every
@@ -205,9 +240,15 @@ class Selection:
     autocorrelation_frames: float
 
 
-def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[TrialArrays], *,
-                   max_effects: int = 1, progress: Progress | None = None,
-                   recalibrator: Recalibrator | None = None) -> Selection:
+def select_effects(
+    data: SessionArrays,
+    train: list[TrialArrays],
+    holdout: list[TrialArrays],
+    *,
+    max_effects: int = 1,
+    progress: Progress | None = None,
+    recalibrator: Recalibrator | None = None,
+) -> Selection:
     """Greedy forward selection. With a ``recalibrator``, the muscle- and joint-state candidates
     (recalibrate.RECALIBRATED) are fitted with a calibration that has them in it, against the base model calibrated
     the same way."""
@@ -224,18 +265,24 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
         plain = base_state(data, train, holdout, base)
         rbase = None
 
-        def recalibrated(c: Candidate) -> tuple[Recalibrator, Base] | None:
+        def recalibrated(c: Candidate, base: Base = base) -> tuple[Recalibrator, Base] | None:  # this step's base
             nonlocal rbase
-            if recalibrator is None or c.name not in RECALIBRATED or not recalibrator.supports(
-                    {**base.model, c.name: {}}):
+            if (
+                recalibrator is None
+                or c.name not in RECALIBRATED
+                or not recalibrator.supports({**base.model, c.name: {}})
+            ):
                 return None
             if rbase is None:  # the base model re-calibrated with its own torque terms (none at the first step)
-                rbase = base_state(data, train, holdout,
-                                   fit(replace(data, f_max=recalibrator.f_max(base.model)), train, base.model))
+                rbase = base_state(
+                    data, train, holdout, fit(replace(data, f_max=recalibrator.f_max(base.model)), train, base.model)
+                )
             return recalibrator, rbase
 
-        scores = [score_candidate(data, train, holdout, plain, c, recalibrated(c))
-                  for c in counted(remaining, progress, f"discrepancy step {step + 1} (candidates)")]
+        scores = [
+            score_candidate(data, train, holdout, plain, c, recalibrated(c))
+            for c in counted(remaining, progress, f"discrepancy step {step + 1} (candidates)")
+        ]
         scores.sort(key=lambda s: s.holdout_bic)
         steps.append(scores)
         winner = next((s for s in scores if s.accepted), None)
@@ -243,5 +290,12 @@ def select_effects(data: SessionArrays, train: list[TrialArrays], holdout: list[
             break
         named.append(winner.name)
         base, base_hold = winner.fit, winner.holdout_mse
-    return Selection(none_fit=none, final_fit=base, named=named, steps=steps, gap_before_mse=before,
-                     gap_after_mse=base_hold, autocorrelation_frames=tau)
+    return Selection(
+        none_fit=none,
+        final_fit=base,
+        named=named,
+        steps=steps,
+        gap_before_mse=before,
+        gap_after_mse=base_hold,
+        autocorrelation_frames=tau,
+    )

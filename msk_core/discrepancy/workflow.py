@@ -30,14 +30,19 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
     arm_groups = {k.split(":")[1] for k in coef if k.startswith("arm:")}
     # the re-fitted strengths, within the bounds the fit kept them in (the clip only removes round-off)
     bounds = {n: (lo, hi) for n, lo, hi in zip(f.names, f.lower, f.upper)}
-    gain = {g: (1.0 if g in arm_groups else 1.0 + float(np.clip(coef[f"gain:{g}"], *bounds[f"gain:{g}"])))
-            for g in data.emg_groups}
+    gain = {
+        g: (1.0 if g in arm_groups else 1.0 + float(np.clip(coef[f"gain:{g}"], *bounds[f"gain:{g}"])))
+        for g in data.emg_groups
+    }
     effects = []
     for name, setting in f.model.items():
         if name == "emd":
             extra = setting["delay_total_s"] - data.base_delay_s
-            params = {"delay_s": round(max(extra, 0.0), 6), "delay_total_s": round(setting["delay_total_s"], 6),
-                      "frame_interval_s": round(min(t.frame_interval_s for t in data.trials), 9)}
+            params = {
+                "delay_s": round(max(extra, 0.0), 6),
+                "delay_total_s": round(setting["delay_total_s"], 6),
+                "frame_interval_s": round(min(t.frame_interval_s for t in data.trials), 9),
+            }
         elif name == "crosstalk":
             params = {"fraction": setting["fraction"], "electrode_order": list(data.electrode_order)}
         elif name in ("fl_active", "fv"):
@@ -45,9 +50,11 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
         elif name == "fl_passive":
             params = {"strain": setting["strain"], "scale": coef["fl_passive:scale"]}
         elif name == "passive_joint":
-            params = {"decay_rad": setting["decay_rad"],
-                      "k_lower_nm": [coef[f"passive_joint:k_lower:{c}"] for c in data.coordinates],
-                      "k_upper_nm": [coef[f"passive_joint:k_upper:{c}"] for c in data.coordinates]}
+            params = {
+                "decay_rad": setting["decay_rad"],
+                "k_lower_nm": [coef[f"passive_joint:k_lower:{c}"] for c in data.coordinates],
+                "k_upper_nm": [coef[f"passive_joint:k_upper:{c}"] for c in data.coordinates],
+            }
         elif name == "damping":
             params = {"b_nms_per_rad": [coef[f"damping:b:{c}"] for c in data.coordinates]}
         elif name == "load_scale":
@@ -62,8 +69,12 @@ def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
         else:  # pragma: no cover - the library and this table are kept in step
             raise ValueError(name)
         effects.append({"name": name, "parameters": params})
-    return {"format_version": EFFECTS_FORMAT_VERSION, "effects": effects,
-            "strength_gain": {g: round(k, 6) for g, k in gain.items()}, "evidence": evidence}
+    return {
+        "format_version": EFFECTS_FORMAT_VERSION,
+        "effects": effects,
+        "strength_gain": {g: round(k, 6) for g, k in gain.items()},
+        "evidence": evidence,
+    }
 
 
 def calibration_at_bounds(data: SessionArrays, profile: SubjectProfile) -> list[dict]:
@@ -80,8 +91,14 @@ def calibration_at_bounds(data: SessionArrays, profile: SubjectProfile) -> list[
             continue
         j = data.groups.index(g)
         scale = float(info.get("scale", profile.f_max[j] / profile.f_max_ref[j]))
-        out.append({"group": g, "scale": round(scale, 4), "side": "upper" if scale >= 1.0 else "lower",
-                    "coordinates": crossed_coordinates(data, g)})
+        out.append(
+            {
+                "group": g,
+                "scale": round(scale, 4),
+                "side": "upper" if scale >= 1.0 else "lower",
+                "coordinates": crossed_coordinates(data, g),
+            }
+        )
     return out
 
 
@@ -119,7 +136,8 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
             "angle": dict(zip(("x", "gap"), _binned(q[:, n], g[:, n]))),
             "velocity": dict(zip(("x", "gap"), _binned(qd[:, n], g[:, n]))),
             "phase": dict(zip(("x", "gap"), _binned(phase[inside], g[inside, n]))),
-            "corr_angle": _corr(q[:, n], g[:, n]), "corr_velocity": _corr(qd[:, n], g[:, n]),
+            "corr_angle": _corr(q[:, n], g[:, n]),
+            "corr_velocity": _corr(qd[:, n], g[:, n]),
             "corr_load": _corr(load, g[:, n]),
         }
     if data.optimal is not None and trials[0].lengths is not None:
@@ -129,8 +147,10 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
         for j in data.emg_index:
             a = arms[:, :, j]
             along = (a * g).sum(axis=1) / np.maximum((a * a).sum(axis=1), 1e-12)
-            out["groups"][data.groups[j]] = {"corr_fibre_length": _corr(lengths[:, j], along),
-                                             "corr_lengthening_velocity": _corr(vel[:, j], along)}
+            out["groups"][data.groups[j]] = {
+                "corr_fibre_length": _corr(lengths[:, j], along),
+                "corr_lengthening_velocity": _corr(vel[:, j], along),
+            }
     dt = min(t.frame_interval_s for t in trials)
     lags = np.arange(-int(round(XCORR_MAX_LAG_S / dt)), int(round(XCORR_MAX_LAG_S / dt)) + 1)
     xc = np.zeros((lags.size, len(data.coordinates)))
@@ -142,8 +162,11 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
             a, b = (y[lag:], m[: t.n - lag]) if lag >= 0 else (y[: t.n + lag], m[-lag:])
             for n in range(y.shape[1]):
                 xc[k, n] += _corr(a[:, n], b[:, n]) / len(trials)
-    out["xcorr"] = {"lag_s": (lags * dt).tolist(), "corr": xc.T.tolist(),
-                    "peak_lag_s": [float(lags[int(np.argmax(xc[:, n]))] * dt) for n in range(xc.shape[1])]}
+    out["xcorr"] = {
+        "lag_s": (lags * dt).tolist(),
+        "corr": xc.T.tolist(),
+        "peak_lag_s": [float(lags[int(np.argmax(xc[:, n]))] * dt) for n in range(xc.shape[1])],
+    }
     return out
 
 
@@ -152,8 +175,14 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
 
 
-def activation_gaps(pack, profile: SubjectProfile, trials: list[TrialData], groups: list[str], delay_s: float,
-                    progress: Progress | None = None) -> dict:
+def activation_gaps(
+    pack,
+    profile: SubjectProfile,
+    trials: list[TrialData],
+    groups: list[str],
+    delay_s: float,
+    progress: Progress | None = None,
+) -> dict:
     """RMS of (estimated activation (``proposed``) - EMG envelope delayed by ``delay_s``) per EMG group, pooled over
     the trials, plus the activations themselves for plots."""
     from msk_core.estimate.pipeline import estimate_trial
@@ -180,16 +209,24 @@ class DiscrepancyResult:
 
 
 def _score_dict(s) -> dict:
-    return {"effect": s.name, "parameters": s.parameters, "holdout_mse_reduction": round(s.reduction, 5),
-            "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6), "delta_bic_train": round(s.delta_bic_train, 2),
-            "minus2_ln_lr_holdout": round(s.minus2_ln_lr_holdout, 2), "holdout_bic": round(s.holdout_bic, 2),
-            "n_params": s.fit.n_params,
-            "accepted": s.accepted, "reason": s.reason,
-            "tau_frames": {k: round(v, 2) for k, v in s.extra.items() if k.startswith("tau_")},
-            "recalibrated": bool(s.extra.get("recalibrated", False)),
-            "left_out_training_trials": {k: {"reduction": round(r, 5), "minus2_ln_lr": round(lr, 2)}
-                                         for k, (r, lr) in s.left_out_reductions.items()},
-            "holdout_reps": _rep_summary(s.rep_reductions)}
+    return {
+        "effect": s.name,
+        "parameters": s.parameters,
+        "holdout_mse_reduction": round(s.reduction, 5),
+        "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6),
+        "delta_bic_train": round(s.delta_bic_train, 2),
+        "minus2_ln_lr_holdout": round(s.minus2_ln_lr_holdout, 2),
+        "holdout_bic": round(s.holdout_bic, 2),
+        "n_params": s.fit.n_params,
+        "accepted": s.accepted,
+        "reason": s.reason,
+        "tau_frames": {k: round(v, 2) for k, v in s.extra.items() if k.startswith("tau_")},
+        "recalibrated": bool(s.extra.get("recalibrated", False)),
+        "left_out_training_trials": {
+            k: {"reduction": round(r, 5), "minus2_ln_lr": round(lr, 2)} for k, (r, lr) in s.left_out_reductions.items()
+        },
+        "holdout_reps": _rep_summary(s.rep_reductions),
+    }
 
 
 def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
@@ -198,16 +235,27 @@ def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
     the trials' set-up and rests), and each rep's (rep -1: between reps)."""
     red = np.array([x for _, r, x in per_rep if r >= 0])
     between = [x for _, r, x in per_rep if r < 0]
-    return {"reps": int(red.size), "improved": int(np.sum(red > 0)),
-            "median_reduction": round(float(np.median(red)), 5) if red.size else None,
-            "min_reduction": round(float(red.min()), 5) if red.size else None,
-            "between_reps_reduction": round(float(np.median(between)), 5) if between else None,
-            "per_rep": [{"trial": t, "rep": r, "reduction": round(x, 5)} for t, r, x in per_rep]}
+    return {
+        "reps": int(red.size),
+        "improved": int(np.sum(red > 0)),
+        "median_reduction": round(float(np.median(red)), 5) if red.size else None,
+        "min_reduction": round(float(red.min()), 5) if red.size else None,
+        "between_reps_reduction": round(float(np.median(between)), 5) if between else None,
+        "per_rep": [{"trial": t, "rep": r, "reduction": round(x, 5)} for t, r, x in per_rep],
+    }
 
 
-def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialData], holdout: list[TrialData], *,
-                    max_effects: int = 1, activation: bool = True, progress: Progress | None = None,
-                    recalibrate: bool = False) -> DiscrepancyResult:
+def run_discrepancy(
+    pack: PackLike,
+    profile: SubjectProfile,
+    train: list[TrialData],
+    holdout: list[TrialData],
+    *,
+    max_effects: int = 1,
+    activation: bool = True,
+    progress: Progress | None = None,
+    recalibrate: bool = False,
+) -> DiscrepancyResult:
     """``recalibrate``: fit the torque-term candidates with a calibration of the training trials that has their torque
     in it (recalibrate.py); False: every candidate with the profile's strengths."""
     check_inputs(train, holdout, MAX_DELAY_S)
@@ -222,14 +270,19 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
     named = sel.named
     candidates = [_score_dict(s) for s in sel.steps[0]] if sel.steps else []
     evidence = {
-        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "training_trials": [t.path for t in tr], "holdout_trials": [t.path for t in ho],
-        "criterion": {"min_holdout_mse_reduction": MIN_REDUCTION, "bic_margin": BIC_MARGIN,
-                      "minus2_ln_lr_holdout": "-2 ln LR on the held-out trials (no parameter penalty), < -bic_margin",
-                      "left_out_training_trials": "with several training trials, none left out of the fit may "
-                                                  "favour the base model by -2 ln LR > bic_margin",
-                      "rank": "of those that pass, the lowest held-out BIC (-2 ln LR + extra parameters x ln N_eff)"},
-        "gap_before_rms": float(np.sqrt(sel.gap_before_mse)), "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
+        "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "training_trials": [t.path for t in tr],
+        "holdout_trials": [t.path for t in ho],
+        "criterion": {
+            "min_holdout_mse_reduction": MIN_REDUCTION,
+            "bic_margin": BIC_MARGIN,
+            "minus2_ln_lr_holdout": "-2 ln LR on the held-out trials (no parameter penalty), < -bic_margin",
+            "left_out_training_trials": "with several training trials, none left out of the fit may "
+            "favour the base model by -2 ln LR > bic_margin",
+            "rank": "of those that pass, the lowest held-out BIC (-2 ln LR + extra parameters x ln N_eff)",
+        },
+        "gap_before_rms": float(np.sqrt(sel.gap_before_mse)),
+        "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
         "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
     }
     profile_out = None
@@ -239,24 +292,31 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         if recalibrated:  # the strengths of the calibration with the named torque terms in it
             evidence["recalibrated"] = {
                 "f_max_before": [round(float(x), 4) for x in data.f_max],
-                "calibration": recalibrator.report(after_fit.model) if recalibrator else None}
+                "calibration": recalibrator.report(after_fit.model) if recalibrator else None,
+            }
             profile_out.f_max = np.asarray(after_fit.f_max, dtype=float).copy()
         profile_out.effects = effects_section(data, after_fit, evidence)
     summary = {
         "effect": "none" if not named else (named[0] if len(named) == 1 else named),
-        "parameters": {} if not named else (
-            profile_out.effects["effects"][0]["parameters"] if len(named) == 1
-            else {e["name"]: e["parameters"] for e in profile_out.effects["effects"]}),
+        "parameters": {}
+        if not named
+        else (
+            profile_out.effects["effects"][0]["parameters"]
+            if len(named) == 1
+            else {e["name"]: e["parameters"] for e in profile_out.effects["effects"]}
+        ),
         "gap_before": float(np.sqrt(sel.gap_before_mse)),
         "gap_after": float(np.sqrt(sel.gap_after_mse)),
         "gap_units": "RMS held-out torque gap, fraction of each coordinate's muscle torque capacity at the pose",
-        "gap_per_coordinate": {c: {"before": float(b), "after": float(a)}
-                               for c, b, a in zip(data.coordinates, per_c_before, per_c_after)},
+        "gap_per_coordinate": {
+            c: {"before": float(b), "after": float(a)} for c, b, a in zip(data.coordinates, per_c_before, per_c_after)
+        },
         "candidates": candidates,
         "greedy_steps": [[_score_dict(s) for s in step] for step in sel.steps],
         "criterion": evidence["criterion"],
         "autocorrelation_frames": sel.autocorrelation_frames,
-        "training_trials": evidence["training_trials"], "holdout_trials": evidence["holdout_trials"],
+        "training_trials": evidence["training_trials"],
+        "holdout_trials": evidence["holdout_trials"],
         "emg_groups": data.emg_groups,
         "calibration_at_bounds": calibration_at_bounds(data, profile),
         "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
@@ -268,7 +328,9 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         if recalibrated:  # the groups whose calibrated strength moved by more than 1 %
             summary["recalibrated_strengths"] = {
                 g: {"before": float(b), "after": float(a)}
-                for g, b, a in zip(data.groups, data.f_max, profile_out.f_max) if abs(a / b - 1.0) > 0.01}
+                for g, b, a in zip(data.groups, data.f_max, profile_out.f_max)
+                if abs(a / b - 1.0) > 0.01
+            }
             terms = ((evidence["recalibrated"].get("calibration") or {}).get("torque_basis")) or {}
             if terms:  # what that calibration fitted alongside the strengths (N·m per unit of each term)
                 summary["recalibrated_torque_terms"] = {k: float(v) for k, v in terms.items()}
@@ -280,8 +342,14 @@ def run_discrepancy(pack: PackLike, profile: SubjectProfile, train: list[TrialDa
         after = activation_gaps(pack, profile_out, held, data.emg_groups, d1, progress) if profile_out else before
         summary["activation_gap_before"] = before["rms"]
         summary["activation_gap_after"] = after["rms"]
-        summary["activation_gap_per_group"] = {g: {"before": before["per_group"][g], "after": after["per_group"][g]}
-                                               for g in data.emg_groups}
-    return DiscrepancyResult(data=data, selection=sel, profile_with_effects=profile_out, summary=summary,
-                             relations_before=relations(data, ho, before_fit),
-                             relations_after=relations(data, ho, after_fit))
+        summary["activation_gap_per_group"] = {
+            g: {"before": before["per_group"][g], "after": after["per_group"][g]} for g in data.emg_groups
+        }
+    return DiscrepancyResult(
+        data=data,
+        selection=sel,
+        profile_with_effects=profile_out,
+        summary=summary,
+        relations_before=relations(data, ho, before_fit),
+        relations_after=relations(data, ho, after_fit),
+    )

@@ -89,8 +89,7 @@ def _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
 
 
 @_jit
-def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb, ub, min_scale, x, state,
-                  max_iter):
+def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb, ub, min_scale, x, state, max_iter):
     """Solve the frame's QP from the working set in ``state`` and the point ``x`` (both updated in place).
 
     r: moment arms (m, G); tau: (m,); f_max, lb, ub, x: (G,); state: int8 (G,) LOWER/FREE/UPPER. The prior

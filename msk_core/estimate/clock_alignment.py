@@ -84,9 +84,12 @@ class AccelerationAlignment:
 
     def __init__(self, live_emg: LiveEmg, trackers: DeviceClocks, config: ClockSyncConfig | None = None) -> None:
         if live_emg.clock is not ClockMode.HOST:
-            raise ConfigError("the EMG clock is measured against the trackers' when device clocks are mapped onto "
-                              "the host clock (clock 'host'); with one clock there is nothing to measure",
-                              field="clock", value=live_emg.clock.value)
+            raise ConfigError(
+                "the EMG clock is measured against the trackers' when device clocks are mapped onto "
+                "the host clock (clock 'host'); with one clock there is nothing to measure",
+                field="clock",
+                value=live_emg.clock.value,
+            )
         self.live_emg = live_emg
         self.trackers = trackers
         self.config = config or ClockSyncConfig()
@@ -122,8 +125,11 @@ class AccelerationAlignment:
         acc = np.asarray(acc_g, dtype=float)
         labels = tuple(labels)
         if acc.shape != (times.size, len(labels), 3):
-            raise InputError("accelerations must be (samples, sensors, 3)", field=f"acc/{source}",
-                             value=(acc.shape, times.size, len(labels)))
+            raise InputError(
+                "accelerations must be (samples, sensors, 3)",
+                field=f"acc/{source}",
+                value=(acc.shape, times.size, len(labels)),
+            )
         if times.size == 0:
             return
         state = self._sources.setdefault(source, _Source())
@@ -178,8 +184,11 @@ class AccelerationAlignment:
                 if found is None:
                     continue
                 tracker_offset = self.trackers.offset_ns(name)  # mapped before its pair was made: never None
-                host = (found.answer.emg_host_offset_ns(tracker_offset)
-                        if found.answer.locked and tracker_offset is not None else None)
+                host = (
+                    found.answer.emg_host_offset_ns(tracker_offset)
+                    if found.answer.locked and tracker_offset is not None
+                    else None
+                )
                 alignments.append(Alignment(f"imu/{name}", found.answer, host))
                 if host is not None:
                     hosts.append((host, found.answer.spread_ns or 0))
@@ -190,9 +199,9 @@ class AccelerationAlignment:
                 if state.applied != (applied, spread):
                     self.live_emg.set_offset(source, applied, spread, METHOD_ACCELERATION)
                     state.applied = (applied, spread)
-                state.reason = (f"{len(hosts)} of {len(alignments)} tracker(s) moved with an EMG sensor: "
-                                + "; ".join(f"{a.reference} {a.offset.reason}" for a in alignments
-                                            if a.host_offset_ns is not None))
+                state.reason = f"{len(hosts)} of {len(alignments)} tracker(s) moved with an EMG sensor: " + "; ".join(
+                    f"{a.reference} {a.offset.reason}" for a in alignments if a.host_offset_ns is not None
+                )
             else:
                 if state.applied is not None:
                     self.live_emg.set_offset(source, None)
@@ -205,7 +214,8 @@ class AccelerationAlignment:
         if not alignments:
             return "arrival mapping: the EMG and tracker streams are not both mapped by their arrival yet"
         return "arrival mapping: no tracker moved with an EMG sensor yet: " + "; ".join(
-            f"{a.reference} {a.offset.status.value} ({a.offset.reason})" for a in alignments)
+            f"{a.reference} {a.offset.status.value} ({a.offset.reason})" for a in alignments
+        )
 
     # ------------------------------------------------------------------------------------------ report
     def alignments(self, source: str) -> tuple[Alignment, ...]:
@@ -223,13 +233,18 @@ class AccelerationAlignment:
                 continue
             found = by_stream.get(report.source)
             if found is None:
-                out.append(dataclasses.replace(report, reason=(
-                    f"arrival mapping: no accelerations on this EMG clock (acc/{report.source[4:]})")))
+                out.append(
+                    dataclasses.replace(
+                        report,
+                        reason=(f"arrival mapping: no accelerations on this EMG clock (acc/{report.source[4:]})"),
+                    )
+                )
                 continue
             source, state = found
             arrival = self.live_emg.arrival_offset_ns(source) if report.method == METHOD_ACCELERATION else None
-            out.append(dataclasses.replace(report, arrival_offset_ns=arrival, reason=state.reason,
-                                           alignments=state.alignments))
+            out.append(
+                dataclasses.replace(report, arrival_offset_ns=arrival, reason=state.reason, alignments=state.alignments)
+            )
         return out
 
 

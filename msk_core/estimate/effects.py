@@ -28,8 +28,17 @@ from msk_core.errors import EstimationError
 EFFECTS_FORMAT_VERSION = 1
 
 #: every effect name the profile may carry
-EFFECT_NAMES = ("emd", "fl_active", "fl_passive", "passive_joint", "fv", "damping", "load_scale", "moment_arm_scale",
-                "crosstalk")
+EFFECT_NAMES = (
+    "emd",
+    "fl_active",
+    "fl_passive",
+    "passive_joint",
+    "fv",
+    "damping",
+    "load_scale",
+    "moment_arm_scale",
+    "crosstalk",
+)
 MUSCLE_STATE_EFFECTS = ("fl_active", "fl_passive", "fv")
 PASSIVE_SHAPE = 4.0  # exponential shape of the passive force-length curve (Thelen 2003: k^PE = 4)
 FV_CURVATURE = 0.25  # Hill's a/F0 (shortening branch)
@@ -48,11 +57,15 @@ def _needed(value: np.ndarray | None, what: str, effect: str) -> np.ndarray:
     return value
 
 
-def _fibre_length_for(effect: str, lengths: np.ndarray | None, optimal: np.ndarray | None,
-                      slack: np.ndarray | None) -> np.ndarray:
+def _fibre_length_for(
+    effect: str, lengths: np.ndarray | None, optimal: np.ndarray | None, slack: np.ndarray | None
+) -> np.ndarray:
     """:func:`fibre_length` for ``effect``, which needs the muscle lengths and the pack's fibre data."""
-    return fibre_length(_needed(lengths, "muscle-tendon lengths", effect),
-                        _needed(optimal, "optimal fibre lengths", effect), _needed(slack, "tendon slack lengths", effect))
+    return fibre_length(
+        _needed(lengths, "muscle-tendon lengths", effect),
+        _needed(optimal, "optimal fibre lengths", effect),
+        _needed(slack, "tendon slack lengths", effect),
+    )
 
 
 def shortening_speed(arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray, v_max: float) -> np.ndarray:
@@ -81,9 +94,16 @@ def force_velocity(v: np.ndarray, eccentric: float) -> np.ndarray:
     return np.where(v >= 0.0, shortening, lengthening)
 
 
-def muscle_force_factor(lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray, optimal: np.ndarray | None,
-                        slack: np.ndarray | None, *, fl_active: dict | None = None, fv: dict | None = None
-                        ) -> np.ndarray | None:
+def muscle_force_factor(
+    lengths: np.ndarray | None,
+    arms: np.ndarray,
+    qd: np.ndarray,
+    optimal: np.ndarray | None,
+    slack: np.ndarray | None,
+    *,
+    fl_active: dict | None = None,
+    fv: dict | None = None,
+) -> np.ndarray | None:
     """Factor on each group's active force, active force-length x force-velocity, for one frame ((G,); arms (n_c, G),
     qd (n_c,)) or many ((T, G)); ``fl_active`` {"width"}, ``fv`` {"v_max", "eccentric"}; None when neither is on."""
     scale = None
@@ -116,9 +136,18 @@ def torque_term_names(model: dict, coordinates: list[str]) -> list[str]:
     return names
 
 
-def torque_term_columns(model: dict, q: np.ndarray, qd: np.ndarray, lengths: np.ndarray | None, arms: np.ndarray,
-                        f_max: np.ndarray, optimal: np.ndarray | None, slack: np.ndarray | None,
-                        lo: np.ndarray | None, hi: np.ndarray | None) -> np.ndarray:
+def torque_term_columns(
+    model: dict,
+    q: np.ndarray,
+    qd: np.ndarray,
+    lengths: np.ndarray | None,
+    arms: np.ndarray,
+    f_max: np.ndarray,
+    optimal: np.ndarray | None,
+    slack: np.ndarray | None,
+    lo: np.ndarray | None,
+    hi: np.ndarray | None,
+) -> np.ndarray:
     """(..., n_c, p) the torque terms of ``model`` (its ``TORQUE_TERMS``, each with its nonlinear setting) per unit
     coefficient, N·m: passive muscle force Σ_g R_g F_max,g p_g(l) (one scale); the joint's elastic moment at each range
     limit (k_lower, k_upper per coordinate); damping −q̇ (b per coordinate). Every coefficient is >= 0 physically.
@@ -128,13 +157,17 @@ def torque_term_columns(model: dict, q: np.ndarray, qd: np.ndarray, lengths: np.
     eye = np.eye(n_c)
     cols = []
     if "fl_passive" in model:
-        pas = passive_force_length(_fibre_length_for("fl_passive", lengths, optimal, slack),
-                                   model["fl_passive"]["strain"])
+        pas = passive_force_length(
+            _fibre_length_for("fl_passive", lengths, optimal, slack), model["fl_passive"]["strain"]
+        )
         cols.append(np.einsum("...ng,...g->...n", arms, f_max * pas))
     if "passive_joint" in model:
-        up, low = passive_joint_basis(q, _needed(lo, "coordinate ranges", "passive_joint"),
-                                      _needed(hi, "coordinate ranges", "passive_joint"),
-                                      model["passive_joint"]["decay_rad"])
+        up, low = passive_joint_basis(
+            q,
+            _needed(lo, "coordinate ranges", "passive_joint"),
+            _needed(hi, "coordinate ranges", "passive_joint"),
+            model["passive_joint"]["decay_rad"],
+        )
         for c in range(n_c):
             cols += [low * eye[c], -up * eye[c]]
     if "damping" in model:
@@ -216,18 +249,24 @@ class ModelEffects:
         }
 
     @classmethod
-    def from_dict(cls, data: dict, groups: list[str], coordinates: list[str]) -> "ModelEffects":
+    def from_dict(cls, data: dict, groups: list[str], coordinates: list[str]) -> ModelEffects:
         if not isinstance(data, dict):
             raise EstimationError("effects: must be a table")
         version = data.get("format_version")
         if version != EFFECTS_FORMAT_VERSION:
-            raise EstimationError(f"effects.format_version: {version!r} is not supported (this software reads "
-                                  f"{EFFECTS_FORMAT_VERSION})")
+            raise EstimationError(
+                f"effects.format_version: {version!r} is not supported (this software reads {EFFECTS_FORMAT_VERSION})"
+            )
         effects = data.get("effects", [])
         for e in effects:
-            if not isinstance(e, dict) or e.get("name") not in EFFECT_NAMES or not isinstance(e.get("parameters"), dict):
-                raise EstimationError(f"effects.effects: unknown or malformed effect {e!r}; known: "
-                                      f"{', '.join(EFFECT_NAMES)}")
+            if (
+                not isinstance(e, dict)
+                or e.get("name") not in EFFECT_NAMES
+                or not isinstance(e.get("parameters"), dict)
+            ):
+                raise EstimationError(
+                    f"effects.effects: unknown or malformed effect {e!r}; known: {', '.join(EFFECT_NAMES)}"
+                )
         gains = data.get("strength_gain", {})
         unknown = sorted(set(gains) - set(groups))
         if unknown:
@@ -237,7 +276,7 @@ class ModelEffects:
             raise EstimationError(f"effects.strength_gain: gains must be positive, got {gain}")
         return cls(list(effects), list(groups), list(coordinates), gain, dict(data.get("evidence", {})))
 
-    def bind(self, pack) -> "ModelEffects":
+    def bind(self, pack) -> ModelEffects:
         """Pack-dependent constants (fibre lengths, ranges, the moment-arm scale matrix)."""
         out = replace(self)
         if self.needs_lengths:
@@ -248,8 +287,9 @@ class ModelEffects:
         ranges = getattr(pack, "coordinate_ranges", None)
         if "passive_joint" in self.names:
             if ranges is None:
-                raise EstimationError(f"effect passive_joint needs the coordinate ranges, which pack {pack.name!r} "
-                                      "lacks")
+                raise EstimationError(
+                    f"effect passive_joint needs the coordinate ranges, which pack {pack.name!r} lacks"
+                )
             r = np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
             out._lo, out._hi = r[:, 0].copy(), r[:, 1].copy()
         scale = np.ones((len(self.coordinates), len(self.groups)))
@@ -266,8 +306,9 @@ class ModelEffects:
     # -- per frame ---------------------------------------------------------------------------------------------
     def force_scale(self, lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
         """(G,) per-frame multiplier of each group's active force (fl * fv), None when no such effect is on."""
-        return muscle_force_factor(lengths, arms, qd, self._optimal, self._slack, fl_active=self.params("fl_active"),
-                                   fv=self.params("fv"))
+        return muscle_force_factor(
+            lengths, arms, qd, self._optimal, self._slack, fl_active=self.params("fl_active"), fv=self.params("fv")
+        )
 
     def torque_offset(self, q, qd, lengths, arms, f_max_profile) -> np.ndarray | None:
         """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping
@@ -286,8 +327,18 @@ class ModelEffects:
             coef += [x for pair in zip(p["k_lower_nm"], p["k_upper_nm"]) for x in pair]
         if "damping" in model:
             coef += list(model["damping"]["b_nms_per_rad"])
-        cols = torque_term_columns(model, np.asarray(q, dtype=float), np.asarray(qd, dtype=float), lengths, arms,
-                                   f_max_profile, self._optimal, self._slack, self._lo, self._hi)
+        cols = torque_term_columns(
+            model,
+            np.asarray(q, dtype=float),
+            np.asarray(qd, dtype=float),
+            lengths,
+            arms,
+            f_max_profile,
+            self._optimal,
+            self._slack,
+            self._lo,
+            self._hi,
+        )
         return cols @ np.asarray(coef, dtype=float)
 
     def new_phase_history(self) -> deque | None:

@@ -142,7 +142,7 @@ class FrameEstimator:
     def __init__(
         self,
         pack: PackLike | str,
-        subject: "SubjectProfile | None" = None,
+        subject: SubjectProfile | None = None,
         method: Method | str = Method.PROPOSED,
         *,
         prior: PhasePrior | None = None,
@@ -299,8 +299,9 @@ class FrameEstimator:
                     r = np.asarray(self.pack.moment_arms(q), dtype=float)
                 if self.effects is not None and self.effects.load_ratio != 1.0 and hand_load_newton:
                     # measured torques hold the reported load: add the rest of the true load's moment
-                    load = (np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
-                            - np.asarray(self.pack.inverse_dynamics(q, qd, qdd, 0.0), dtype=float))
+                    load = np.asarray(
+                        self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float
+                    ) - np.asarray(self.pack.inverse_dynamics(q, qd, qdd, 0.0), dtype=float)
                     tau = tau + (self.effects.load_ratio - 1.0) * load
             if self.effects is not None:
                 r, tau, phase = self._apply_effects(q, qd, lengths, r, tau, phase)
@@ -428,8 +429,22 @@ class FrameEstimator:
             row0, row1, frac = self.prior.rows(phase)
         t0 = time.perf_counter()
         code, changes, out, torques = active_set.solve_box_lsq(
-            r, self.f_max, tau, w, self._prior_mean, self._prior_prec, row0, row1, frac, self._lb, self._ub,
-            MIN_TORQUE_SCALE, self._hot_x, self._hot_state, self._hot_max_changes)
+            r,
+            self.f_max,
+            tau,
+            w,
+            self._prior_mean,
+            self._prior_prec,
+            row0,
+            row1,
+            frac,
+            self._lb,
+            self._ub,
+            MIN_TORQUE_SCALE,
+            self._hot_x,
+            self._hot_state,
+            self._hot_max_changes,
+        )
         dt = time.perf_counter() - t0
         if code != active_set.CERTIFIED:
             return None
@@ -497,8 +512,9 @@ class FrameEstimator:
         return result
 
     def _new_lsq(self) -> LeastSquaresQP:
-        return LeastSquaresQP(len(self.groups), len(self.coordinates), self._lb, self._ub, self.backend, self.eps,
-                              self.max_iter)
+        return LeastSquaresQP(
+            len(self.groups), len(self.coordinates), self._lb, self._ub, self.backend, self.eps, self.max_iter
+        )
 
     def _result(self, x, a_mat, tau, status, it, dt, phase, hess_parts, equality) -> FrameResult:
         forces = self.f_max * x

@@ -130,8 +130,16 @@ class LiveQuality:
         self.channel_group = dict(channel_group or {})
         self.sources: dict[str, _SourceQuality] = {}
 
-    def add_chunk(self, source: str, labels, rate_hz: float, first_sample_index: int, device_time_ns: int,
-                  samples: np.ndarray, units: str = "V") -> bool:
+    def add_chunk(
+        self,
+        source: str,
+        labels,
+        rate_hz: float,
+        first_sample_index: int,
+        device_time_ns: int,
+        samples: np.ndarray,
+        units: str = "V",
+    ) -> bool:
         """Judge one chunk ``samples`` (n, channels) of raw EMG; True when some electrode's state or reasons changed."""
         labels = tuple(labels)
         state = self.sources.get(source)
@@ -178,7 +186,20 @@ class LiveQuality:
                     detail = e.state.value
                 else:
                     detail = state.latest.describe(c)
-                out.append(ElectrodeReport(source, e.channel, e.group, e.state, e.faults, detail, e.since_ns,
-                                           round(e.check_s, 3), round(e.bad_s, 3), e.episodes,
-                                           dict(e.episode_faults), list(e.recent)))
+                out.append(
+                    ElectrodeReport(
+                        source,
+                        e.channel,
+                        e.group,
+                        e.state,
+                        e.faults,
+                        detail,
+                        e.since_ns,
+                        round(e.check_s, 3),
+                        round(e.bad_s, 3),
+                        e.episodes,
+                        dict(e.episode_faults),
+                        list(e.recent),
+                    )
+                )
         return out

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Protocol, Sequence, runtime_checkable
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -28,7 +29,7 @@ class PackLike(Protocol):
         ...
 
 
-def resolve_pack(pack: "PackLike | str") -> PackLike:
+def resolve_pack(pack: PackLike | str) -> PackLike:
     """A pack object as given, or loaded by name/path through :func:`msk_core.model.load_pack`.
 
     Packs loaded here use the compiled evaluator: the per-frame loop is where its ~3x faster frames matter (results

@@ -10,8 +10,8 @@ from it. Between reps the phase is ``REST_PHASE``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import numpy as np
 
@@ -65,8 +65,9 @@ def torque_phase(time: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.n
     return _offline_phase(time, values, rep_config(time, values, torque=True), "phase torque")
 
 
-def _offline_phase(time: np.ndarray, values: np.ndarray, config: RepDetectionConfig,
-                   what: str) -> tuple[np.ndarray, np.ndarray]:
+def _offline_phase(
+    time: np.ndarray, values: np.ndarray, config: RepDetectionConfig, what: str
+) -> tuple[np.ndarray, np.ndarray]:
     try:
         reps = detect_reps(time, values, config)
     except InputError as exc:
@@ -87,7 +88,7 @@ class PhaseModel:
         return {"coordinate": self.coordinate, "template": self.template.to_dict()}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "PhaseModel":
+    def from_dict(cls, data: dict) -> PhaseModel:
         return cls(coordinate=str(data["coordinate"]), template=RepTemplate.from_dict(data["template"]))
 
 
@@ -124,7 +125,7 @@ class LivePhase:
         self.tracker = PhaseTracker(model.template)
 
     @classmethod
-    def from_profile(cls, profile, coordinates: Sequence[str]) -> "LivePhase | None":
+    def from_profile(cls, profile, coordinates: Sequence[str]) -> LivePhase | None:
         """The profile's live phase, or ``None`` when it was calibrated without a kinematic phase coordinate."""
         model = getattr(profile, "phase_model", None)
         return None if model is None else cls(model, coordinates)

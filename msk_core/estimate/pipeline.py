@@ -55,12 +55,15 @@ def build_prior(
     if not emg_groups:
         raise EstimationError(
             f"the trials with reps ({', '.join(t.name for t in trials) or 'none'}) have no EMG: the prior needs EMG of at "
-            "least one group in a trial with reps" + (f" (isometric trials have no phase: {', '.join(isometric)})"
-                                                      if isometric else "")
+            "least one group in a trial with reps"
+            + (f" (isometric trials have no phase: {', '.join(isometric)})" if isometric else "")
         )
     if not any(np.any(t.rep_index >= 0) for t in trials):
-        raise EstimationError("no trial has a complete repetition: the prior is learned per phase of the reps ("
-                              + "; ".join(f"{t.name}: {t.extra.get('no_reps', 'no reps')}" for t in trials) + ")")
+        raise EstimationError(
+            "no trial has a complete repetition: the prior is learned per phase of the reps ("
+            + "; ".join(f"{t.name}: {t.extra.get('no_reps', 'no reps')}" for t in trials)
+            + ")"
+        )
     synergists = dict(synergists or {})
     for g, h in synergists.items():
         if g not in groups or h not in emg_groups:
@@ -161,8 +164,13 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
 
 
 def calibration_frames(
-    pack: PackLike, trials: list[TrialData], prior: PhasePrior, *, min_effort_std: float = 0.0,
-    torque_basis: TorqueBasis | None = None, force_scale: Callable[[TrialData], np.ndarray] | None = None,
+    pack: PackLike,
+    trials: list[TrialData],
+    prior: PhasePrior,
+    *,
+    min_effort_std: float = 0.0,
+    torque_basis: TorqueBasis | None = None,
+    force_scale: Callable[[TrialData], np.ndarray] | None = None,
 ) -> CalibrationFrames:
     """Stacked training frames; frames outside any rep carry no prior term (std = inf). ``min_effort_std`` widens
     the prior of groups whose prior is the minimal-effort share (their activation nobody measured) by the error
@@ -199,10 +207,18 @@ def calibration_frames(
             emg.append([t.emg[g][i] if g in t.emg else np.nan for g in groups])
     if not r:
         raise EstimationError("no usable calibration frame")
-    extra = {} if torque_basis is None else {"torque_basis": np.array(basis), "torque_basis_lower": torque_basis.lower,
-                                             "torque_basis_names": tuple(torque_basis.names)}
-    return CalibrationFrames(np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float),
-                             **extra)
+    extra = (
+        {}
+        if torque_basis is None
+        else {
+            "torque_basis": np.array(basis),
+            "torque_basis_lower": torque_basis.lower,
+            "torque_basis_names": tuple(torque_basis.names),
+        }
+    )
+    return CalibrationFrames(
+        np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float), **extra
+    )
 
 
 @dataclass(frozen=True)
@@ -215,7 +231,9 @@ class TorqueBasis:
     names: tuple[str, ...]
 
 
-ISOMETRIC_COCONTRACTION_STD = 0.05  # added in quadrature to the measured groups' spread (an unmeasured group is not one of them)
+ISOMETRIC_COCONTRACTION_STD = (
+    0.05  # added in quadrature to the measured groups' spread (an unmeasured group is not one of them)
+)
 ISOMETRIC_MIN_SITES = 3  # non-target sites with EMG needed to say how the others co-contract
 
 
@@ -322,8 +340,9 @@ def calibrate_subject(
     a per-frame factor on each group's active force (:func:`calibration_frames`); ``start``: a
     calibration of the same trials to start the solve from (:func:`msk_core.estimate.calibrate.calibrate`)."""
     inputs = calibration_inputs(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists, emd_s=emd_s)
-    return calibrate_inputs(pack, inputs, settings=settings, torque_basis=torque_basis, force_scale=force_scale,
-                            start=start)
+    return calibrate_inputs(
+        pack, inputs, settings=settings, torque_basis=torque_basis, force_scale=force_scale, start=start
+    )
 
 
 def calibrate_inputs(
@@ -337,8 +356,14 @@ def calibrate_inputs(
 ) -> tuple[SubjectProfile, CalibrationResult]:
     """The calibration NLP on prepared inputs (:func:`calibration_inputs`); the rest as :func:`calibrate_subject`."""
     trials, prior, me_error, emd = inputs.trials, inputs.prior, inputs.min_effort_error, inputs.emd
-    frames = calibration_frames(pack, trials, prior, min_effort_std=0.0 if np.isnan(me_error) else me_error,
-                                torque_basis=torque_basis, force_scale=force_scale)
+    frames = calibration_frames(
+        pack,
+        trials,
+        prior,
+        min_effort_std=0.0 if np.isnan(me_error) else me_error,
+        torque_basis=torque_basis,
+        force_scale=force_scale,
+    )
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
     phase_model = learn_trials_phase_model(pack, trials)
     norm = {}
@@ -355,11 +380,15 @@ def calibrate_inputs(
         f_max_ref=np.asarray(pack.f_max_ref, dtype=float),
         prior=prior,
         emg_normalisation=norm,
-        calibration={**result.report(list(pack.groups)), "frames": int(frames.torques.shape[0]),
-                     "min_effort_error_rms": None if np.isnan(me_error) else me_error, "emd": emd,
-                     "isometric_trials": [t.name for t in trials if t.isometric]},
+        calibration={
+            **result.report(list(pack.groups)),
+            "frames": int(frames.torques.shape[0]),
+            "min_effort_error_rms": None if np.isnan(me_error) else me_error,
+            "emd": emd,
+            "isometric_trials": [t.name for t in trials if t.isometric],
+        },
         provenance={
-            "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "trials": [str(t.path) for t in trials],
             "software": f"msk-live {getattr(msk_core, '__version__', 'dev')}",
             "phase_signals": sorted({t.phase_signal for t in trials}),
@@ -440,8 +469,9 @@ def estimate_trial(
     for i in counted(range(n), progress, f"{trial.name} [{est.method.value}] (frames)"):
         phase = float(trial.phase[i] if phases is None else phases[i])
         # qd, qdd and the load only matter to a profile's effects (with torques given, no inverse dynamics runs)
-        res = est.step(trial.q[i], trial.qd[i], trial.qdd[i], trial.hand_load_newton, torques=trial.torques[i],
-                       phase=phase)
+        res = est.step(
+            trial.q[i], trial.qd[i], trial.qdd[i], trial.hand_load_newton, torques=trial.torques[i], phase=phase
+        )
         out.activations[i] = res.activations
         out.activation_std[i] = res.activation_std
         out.model_torques[i] = res.model_torques

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -58,10 +58,14 @@ class PhasePrior:
             raise EstimationError("prior means must be finite and standard deviations positive")
         if (self.rest_mean is None) != (self.rest_std is None):
             raise EstimationError("rest prior needs both mean and std")
-        if self.rest_mean is not None and self.rest_std is not None and (  # both or neither (checked above)
-            self.rest_mean.shape != (len(self.groups),)
-            or self.rest_std.shape != (len(self.groups),)
-            or not np.all(self.rest_std > 0)
+        if (
+            self.rest_mean is not None
+            and self.rest_std is not None
+            and (  # both or neither (checked above)
+                self.rest_mean.shape != (len(self.groups),)
+                or self.rest_std.shape != (len(self.groups),)
+                or not np.all(self.rest_std > 0)
+            )
         ):
             raise EstimationError(f"rest prior must be {len(self.groups)} means and positive stds")
 
@@ -112,8 +116,9 @@ class PhasePrior:
         cache = self.__dict__.get("_cache")
         if cache is None:
             mu_p, sd_p = self.pooled()
-            rest_mu, rest_sd = ((mu_p, sd_p) if self.rest_mean is None or self.rest_std is None
-                                else (self.rest_mean, self.rest_std))
+            rest_mu, rest_sd = (
+                (mu_p, sd_p) if self.rest_mean is None or self.rest_std is None else (self.rest_mean, self.rest_std)
+            )
             mean = np.vstack([self.mean, mu_p, rest_mu])
             prec = np.vstack([1.0 / self.std**2, 1.0 / sd_p**2, 1.0 / rest_sd**2])
             cache = (mean, prec, np.diff(mean, axis=0), np.diff(prec, axis=0))
@@ -139,7 +144,7 @@ class PhasePrior:
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "PhasePrior":
+    def from_dict(cls, data: dict) -> PhasePrior:
         return cls(
             groups=tuple(data["groups"]),
             mean=np.asarray(data["mean"], dtype=float),

@@ -75,7 +75,7 @@ class SubjectProfile:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load(cls, path: str | Path) -> "SubjectProfile":
+    def load(cls, path: str | Path) -> SubjectProfile:
         path = Path(path)
         try:
             data = json.loads(path.read_text())

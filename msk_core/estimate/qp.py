@@ -64,8 +64,9 @@ class LeastSquaresQP:
             n = g + m
             self.x_l = np.r_[lb, np.full(m, -np.inf)]
             self.x_u = np.r_[ub, np.full(m, np.inf)]
-            self.p = sp.csc_matrix((np.ones(n), np.arange(n, dtype=np.int32), np.arange(n + 1, dtype=np.int32)),
-                                   shape=(n, n))
+            self.p = sp.csc_matrix(
+                (np.ones(n), np.arange(n, dtype=np.int32), np.arange(n + 1, dtype=np.int32)), shape=(n, n)
+            )
             indices = np.r_[np.tile(np.arange(m, dtype=np.int32), g), np.arange(m, dtype=np.int32)]
             indptr = np.r_[np.arange(0, m * (g + 1), m), m * g + np.arange(1, m + 1)].astype(np.int32)
             self.a = sp.csc_matrix((np.r_[np.zeros(m * g), -np.ones(m)], indices, indptr), shape=(m, n))
@@ -73,8 +74,9 @@ class LeastSquaresQP:
         else:
             self.x_l, self.x_u = lb, ub
 
-    def solve(self, at: np.ndarray, tt: np.ndarray, w: float, d: np.ndarray, c_a: np.ndarray | None
-              ) -> tuple[piqp.Status, np.ndarray, int, float]:
+    def solve(
+        self, at: np.ndarray, tt: np.ndarray, w: float, d: np.ndarray, c_a: np.ndarray | None
+    ) -> tuple[piqp.Status, np.ndarray, int, float]:
         """(PIQP status, activations, iterations, seconds) of the least-squares QP."""
         if self.backend is Backend.SPARSE:
             g = self.g

@@ -30,7 +30,12 @@ class MethodScore:
 
 
 def evaluate(
-    pack, subject: SubjectProfile, trials: list[TrialData], *, methods=METHODS, progress: Progress | None = None,
+    pack,
+    subject: SubjectProfile,
+    trials: list[TrialData],
+    *,
+    methods=METHODS,
+    progress: Progress | None = None,
     **options,
 ) -> tuple[list[MethodScore], dict[tuple[str, str], TrialEstimate]]:
     """Every method over every trial; ``options`` go to each :class:`FrameEstimator` (solver, activation bounds)."""

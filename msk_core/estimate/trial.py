@@ -145,7 +145,7 @@ class _TrialFile:
     spec: dict
 
     @classmethod
-    def read(cls, path: str | Path) -> "_TrialFile":
+    def read(cls, path: str | Path) -> _TrialFile:
         path = Path(path)
         try:
             text = path.read_text()
@@ -210,7 +210,9 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
     if isometric and "torques" not in spec:
         raise trial.err(
             "an isometric trial needs the measured joint torques (`torques = ...`): inverse dynamics of a static pose "
-            "knows nothing of the push against the dynamometer", "isometric", isometric,
+            "knows nothing of the push against the dynamometer",
+            "isometric",
+            isometric,
         )
     cutoff = trial.number("lowpass_coordinates_hz", None)
     if cutoff is not None and cutoff <= 0:
@@ -251,8 +253,9 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, coords: list[str
         try:
             filtered = lowpass_coordinates(kin.time, q_all, options.lowpass_coordinates_hz)
         except InputError as exc:
-            raise trial.err(f"{exc} (kinematics {kin.path})", "lowpass_coordinates_hz",
-                            options.lowpass_coordinates_hz) from None
+            raise trial.err(
+                f"{exc} (kinematics {kin.path})", "lowpass_coordinates_hz", options.lowpass_coordinates_hz
+            ) from None
         q, qd, qdd = (x[sel] for x in filtered)
     else:
         q = q_all[sel]
@@ -279,7 +282,9 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
         cols.append(name)
     raw = tq.select(cols)
     at = _within(kin.time, tq.time)
-    torques = np.column_stack([np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))])
+    torques = np.column_stack(
+        [np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
+    )
     keep = np.all(np.isfinite(torques), axis=1)
     kin.time, kin.q, kin.qd, kin.qdd = kin.time[keep], kin.q[keep], kin.qd[keep], kin.qdd[keep]
     return torques[keep], keep, "file", int((~keep).sum())
@@ -293,7 +298,9 @@ def _check_held_pose(kin: _Kinematics, coords: list[str]) -> None:
         raise InputError(
             f"an isometric trial holds one pose, but {coords[worst]!r} moves by {motion[worst]:.1f} deg "
             f"(> {ISOMETRIC_MAX_MOTION_DEG:g}); drop `isometric = true` or trim with start/end",
-            path=kin.storage.path, field=coords[worst], value=round(float(motion[worst]), 1),
+            path=kin.storage.path,
+            field=coords[worst],
+            value=round(float(motion[worst]), 1),
         )
 
 
@@ -306,8 +313,14 @@ class _Phase:
     extra: dict
 
 
-def _trial_phase(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin: _Kinematics, torques: np.ndarray,
-                 kin_keep: np.ndarray) -> _Phase:
+def _trial_phase(
+    trial: _TrialFile,
+    options: _TrialOptions,
+    pack: PackLike,
+    kin: _Kinematics,
+    torques: np.ndarray,
+    kin_keep: np.ndarray,
+) -> _Phase:
     """Reps and phase from the trial's phase signal (``phase_signal``, else the pack's default)."""
     coords = list(pack.coordinates)
     default_signal = DEFAULT_PHASE_COORDINATES.get(pack.name)
@@ -332,8 +345,9 @@ def _trial_phase(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin:
         coordinate, signal = None, kin.storage.column(phase_signal)[kin.selected][kin_keep]
         phase_of = kinematic_phase
     else:
-        raise trial.err(f"no such kinematics column{_closest(phase_signal, kin.storage.columns)}", "phase_signal",
-                        phase_signal)
+        raise trial.err(
+            f"no such kinematics column{_closest(phase_signal, kin.storage.columns)}", "phase_signal", phase_signal
+        )
     if not np.all(np.isfinite(signal)):
         bad = int(np.flatnonzero(~np.isfinite(signal))[0])
         raise trial.err(f"the phase signal is not finite at t = {kin.time[bad]:g} s", "phase_signal", phase_signal)
@@ -354,8 +368,11 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     kin = _read_kinematics(trial, options, coords)
     torques, kin_keep, source, dropped = _attach_torques(trial, options, pack, kin)
     if kin.time.size < 3:
-        raise InputError(f"fewer than 3 frames left where the torque file covers the kinematics ({kin.time.size})",
-                         path=trial.path, field="torques")
+        raise InputError(
+            f"fewer than 3 frames left where the torque file covers the kinematics ({kin.time.size})",
+            path=trial.path,
+            field="torques",
+        )
     if options.isometric:
         _check_held_pose(kin, coords)
     if "emg" in trial.spec:

@@ -47,8 +47,9 @@ def npose_segment_orientation(heading_rad: float = 0.0) -> Rotation:
     return Rotation.from_euler("z", heading_rad) * _NPOSE
 
 
-def sensor_to_segment(static_quats: np.ndarray, *, heading_rad: float = 0.0,
-                      segment_orientation: Rotation | None = None) -> Rotation:
+def sensor_to_segment(
+    static_quats: np.ndarray, *, heading_rad: float = 0.0, segment_orientation: Rotation | None = None
+) -> Rotation:
     """Fixed sensor-to-segment rotation ``R_SB`` from samples of one sensor during the static pose.
 
     ``segment_orientation`` is the segment's known static ``R_GB`` (default: N-pose at ``heading_rad``)."""
@@ -59,8 +60,9 @@ def sensor_to_segment(static_quats: np.ndarray, *, heading_rad: float = 0.0,
         mean = r_gs.mean()
         spread = np.degrees((mean.inv() * r_gs).magnitude()).max()
         if spread > 10.0:
-            raise InputError("the sensor moved during the static pose", field="static_quats",
-                             value=f"{spread:.1f} deg from its mean")
+            raise InputError(
+                "the sensor moved during the static pose", field="static_quats", value=f"{spread:.1f} deg from its mean"
+            )
     r_gb = segment_orientation if segment_orientation is not None else npose_segment_orientation(heading_rad)
     return mean.inv() * r_gb
 
@@ -241,8 +243,10 @@ class SensorCalibration:
             for s in (j.parent, j.child):
                 if s not in seg:
                     if s not in self.sensor_to_segment or s not in quats:
-                        raise InputError(f"joint {j.name!r} needs segment {s!r}, which is not calibrated or has no "
-                                         "sensor data", field=s)
+                        raise InputError(
+                            f"joint {j.name!r} needs segment {s!r}, which is not calibrated or has no sensor data",
+                            field=s,
+                        )
                     seg[s] = segment_orientation(quats[s], self.sensor_to_segment[s])
             out[j.name] = joint_angles(seg[j.parent], seg[j.child])
         return out
@@ -250,14 +254,18 @@ class SensorCalibration:
     def to_dict(self) -> dict[str, object]:
         return {
             "heading_rad": self.heading_rad,
-            "sensor_to_segment_wxyz": {k: r.as_quat(scalar_first=True).tolist() for k, r in self.sensor_to_segment.items()},
+            "sensor_to_segment_wxyz": {
+                k: r.as_quat(scalar_first=True).tolist() for k, r in self.sensor_to_segment.items()
+            },
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, object]) -> SensorCalibration:
         try:
-            rots = {str(k): quats_to_rotation(np.asarray(v, dtype=float))
-                    for k, v in dict(d["sensor_to_segment_wxyz"]).items()}  # type: ignore[call-overload]
+            rots = {
+                str(k): quats_to_rotation(np.asarray(v, dtype=float))
+                for k, v in dict(d["sensor_to_segment_wxyz"]).items()
+            }  # type: ignore[call-overload]
             return cls(rots, float(d.get("heading_rad", 0.0)))  # type: ignore[arg-type]
         except KeyError as exc:
             raise ConfigError("sensor calibration misses a field", field=str(exc.args[0])) from None

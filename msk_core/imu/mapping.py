@@ -114,8 +114,9 @@ MAPPINGS: dict[str, PackMapping] = {
 def mapping_for(pack_name: str) -> PackMapping:
     mapping = MAPPINGS.get(pack_name)
     if mapping is None:
-        raise ConfigError(f"no IMU mapping for pack {pack_name!r}; tables exist for {sorted(MAPPINGS)}",
-                          field="pack", value=pack_name)
+        raise ConfigError(
+            f"no IMU mapping for pack {pack_name!r}; tables exist for {sorted(MAPPINGS)}", field="pack", value=pack_name
+        )
     return mapping
 
 
@@ -140,13 +141,23 @@ class ImuJointMapper:
 
     State: the :class:`SensorCalibration` (``None`` until :meth:`calibrate`)."""
 
-    def __init__(self, mapping: PackMapping, *, coordinates: list[str], reference_pose: np.ndarray,
-                 gravity: np.ndarray, heading_rad: float) -> None:
+    def __init__(
+        self,
+        mapping: PackMapping,
+        *,
+        coordinates: list[str],
+        reference_pose: np.ndarray,
+        gravity: np.ndarray,
+        heading_rad: float,
+    ) -> None:
         missing = [c for c in coordinates if c not in mapping.coordinates]
         extra = [c for c in mapping.coordinates if c not in coordinates]
         if missing or extra:
-            raise ConfigError(f"IMU mapping {mapping.pack!r} does not match the pack: missing {missing}, "
-                              f"unknown {extra}", field="pack", value=mapping.pack)
+            raise ConfigError(
+                f"IMU mapping {mapping.pack!r} does not match the pack: missing {missing}, unknown {extra}",
+                field="pack",
+                value=mapping.pack,
+            )
         by_name = {h.coordinate: h for h in mapping.hinges}
         self.mapping = mapping
         self.coordinates = list(coordinates)
@@ -160,8 +171,13 @@ class ImuJointMapper:
 
     @classmethod
     def for_pack(cls, pack, *, heading_rad: float, mapping: PackMapping | None = None) -> ImuJointMapper:
-        return cls(mapping or mapping_for(pack.name), coordinates=list(pack.coordinates),
-                   reference_pose=pack.reference_pose, gravity=pack.rigid.gravity, heading_rad=heading_rad)
+        return cls(
+            mapping or mapping_for(pack.name),
+            coordinates=list(pack.coordinates),
+            reference_pose=pack.reference_pose,
+            gravity=pack.rigid.gravity,
+            heading_rad=heading_rad,
+        )
 
     def static_pose(self, pose_deg: Mapping[str, float] | None = None) -> np.ndarray:
         """The calibration pose (rad, pack order): the table's, overridden by ``pose_deg``; all coordinates needed."""

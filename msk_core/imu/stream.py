@@ -75,8 +75,12 @@ class SegmentSynchroniser:
                 continue
             # a segment whose stream is already past t0 (or silent for too long) has no sample for this instant
             newest = max(b[-1][0] for b in self.buffers.values() if b)
-            missing = [s for s in self.segments if s not in at_t0 and (
-                s in heads or self.last_time.get(s, t0) > t0 + tol or newest - t0 > self.max_wait_ns)]
+            missing = [
+                s
+                for s in self.segments
+                if s not in at_t0
+                and (s in heads or self.last_time.get(s, t0) > t0 + tol or newest - t0 > self.max_wait_ns)
+            ]
             waiting = [s for s in self.segments if s not in at_t0 and s not in missing]
             if not missing or waiting:
                 return out  # some segment may still deliver a sample for t0
@@ -115,9 +119,17 @@ class JointOutput:
 class StreamingJointKinematics:
     """Synchronised frames -> calibrated, filtered pack coordinates (+ phase). Explicit state, one frame at a time."""
 
-    def __init__(self, mapper: ImuJointMapper, *, static_pose_rad: np.ndarray, static_s: float = 0.5,
-                 gap_s: float = 1.0, filter_config: KinematicsFilterConfig,
-                 phase_template: RepTemplate | None = None, phase_coordinate: str | None = None) -> None:
+    def __init__(
+        self,
+        mapper: ImuJointMapper,
+        *,
+        static_pose_rad: np.ndarray,
+        static_s: float = 0.5,
+        gap_s: float = 1.0,
+        filter_config: KinematicsFilterConfig,
+        phase_template: RepTemplate | None = None,
+        phase_coordinate: str | None = None,
+    ) -> None:
         self.mapper = mapper
         self.static_pose = np.asarray(static_pose_rad, dtype=float)
         self.static_ns = int(round(static_s * 1e9))
@@ -178,4 +190,3 @@ class StreamingJointKinematics:
             phase = self.tracker.update(frame.time_ns / 1e9, float(q[self.phase_index]))
         c.published += 1
         return JointOutput(frame.time_ns, q, qd, qdd, phase)
-

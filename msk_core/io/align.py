@@ -80,8 +80,15 @@ class AlignedTrial:
 
 
 def _rows(s: Storage, keep: np.ndarray) -> Storage:
-    return Storage(time=s.time[keep], columns=list(s.columns), data=s.data[keep], in_degrees=s.in_degrees,
-                   header=dict(s.header), name=s.name, path=s.path)
+    return Storage(
+        time=s.time[keep],
+        columns=list(s.columns),
+        data=s.data[keep],
+        in_degrees=s.in_degrees,
+        header=dict(s.header),
+        name=s.name,
+        path=s.path,
+    )
 
 
 def align_to_kinematics(
@@ -107,8 +114,12 @@ def align_to_kinematics(
         id_rows = nearest[keep]
     t = ik.time[keep]
     if t.shape[0] < 2:
-        raise InputError("EMG and kinematics do not overlap in time", path=ik.path, field="time",
-                         value=(float(emg.time[0]), float(ik.time[0])))
+        raise InputError(
+            "EMG and kinematics do not overlap in time",
+            path=ik.path,
+            field="time",
+            value=(float(emg.time[0]), float(ik.time[0])),
+        )
     res = resample_linear(emg.time, values, t, max_gap_s=max_gap_s)
     ok = np.all(np.isfinite(res), axis=1)
     t, res = t[ok], res[ok]

@@ -31,7 +31,9 @@ class AnalogRecording:
         if not keep:
             raise InputError(
                 f"no EMG channel: all {len(self.labels)} analog channels are not EMG ("
-                + "; ".join(f"{c}: {why}" for c, why in self.not_emg.items()) + ")", path=self.path,
+                + "; ".join(f"{c}: {why}" for c, why in self.not_emg.items())
+                + ")",
+                path=self.path,
             )
         return self.select(keep)
 
@@ -100,8 +102,13 @@ def read_anc(path: str | Path) -> AnalogRecording:
             raise FileFormatError(f"{len(cells)} entries for {n} channels", path=path, line=line_no + 1, field=key)
     rates = {float(r) for r in rows["Rate"][1]}
     if len(rates) != 1:
-        raise FileFormatError("channels with different rates are not supported", path=path,
-                              line=rows["Rate"][0] + 1, field="Rate", value=sorted(rates))
+        raise FileFormatError(
+            "channels with different rates are not supported",
+            path=path,
+            line=rows["Rate"][0] + 1,
+            field="Rate",
+            value=sorted(rates),
+        )
     rate = rates.pop()
 
     table: list[list[float]] = []
@@ -197,14 +204,21 @@ def _force_plate_channels(parameters, labels: list[str], path: Path) -> dict[str
     if used <= 0:
         return {}
     if "CHANNEL" not in group:
-        raise FileFormatError(f"FORCE_PLATFORM:USED is {used} but there is no FORCE_PLATFORM:CHANNEL", path=path,
-                              field="FORCE_PLATFORM:CHANNEL")
+        raise FileFormatError(
+            f"FORCE_PLATFORM:USED is {used} but there is no FORCE_PLATFORM:CHANNEL",
+            path=path,
+            field="FORCE_PLATFORM:CHANNEL",
+        )
     channels = np.asarray(group["CHANNEL"]["value"], dtype=float)
     if channels.ndim == 1:
         channels = channels[:, None]
     if channels.shape[1] < used or not np.all(channels == np.round(channels)):
-        raise FileFormatError(f"expected integer channel numbers for {used} plates, got shape {channels.shape}",
-                              path=path, field="FORCE_PLATFORM:CHANNEL", value=channels.tolist())
+        raise FileFormatError(
+            f"expected integer channel numbers for {used} plates, got shape {channels.shape}",
+            path=path,
+            field="FORCE_PLATFORM:CHANNEL",
+            value=channels.tolist(),
+        )
     found: dict[str, str] = {}
     for plate in range(used):
         for number in channels[:, plate].astype(int).tolist():
@@ -213,7 +227,9 @@ def _force_plate_channels(parameters, labels: list[str], path: Path) -> dict[str
             if not 1 <= number <= len(labels):
                 raise FileFormatError(
                     f"force plate {plate + 1} names analog channel {number}, but there are {len(labels)} channels",
-                    path=path, field="FORCE_PLATFORM:CHANNEL", value=number,
+                    path=path,
+                    field="FORCE_PLATFORM:CHANNEL",
+                    value=number,
                 )
             found[labels[number - 1]] = f"force plate {plate + 1} (FORCE_PLATFORM:CHANNEL)"
     return found

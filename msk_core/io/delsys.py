@@ -57,8 +57,12 @@ class DelsysExport:
             raise InputError("no EMG channel in the export" if emg_only else "no channel", path=self.path)
         rates = sorted({round(c.rate_hz, 3) for c in chans})
         if len(rates) > 1:
-            raise InputError("channels have different rates; select channels of one rate", path=self.path,
-                             field="rate_hz", value=rates)
+            raise InputError(
+                "channels have different rates; select channels of one rate",
+                path=self.path,
+                field="rate_hz",
+                value=rates,
+            )
         n = min(c.values.shape[0] for c in chans)
         data = np.column_stack([c.values[:n] for c in chans])
         units = [c.unit for c in chans]
@@ -176,8 +180,9 @@ def read_trigno_discover_csv(path: str | Path) -> DelsysExport:
         rate_cell = rows[rate_row][j] if j < len(rows[rate_row]) else ""
         rm = _RATE.match(rate_cell)
         if not rm:
-            raise FileFormatError("no rate for this channel", path=path, line=rate_row + 1, field=label,
-                                  value=rate_cell)
+            raise FileFormatError(
+                "no rate for this channel", path=path, line=rate_row + 1, field=label, value=rate_cell
+            )
         if "time series" not in names[j - 1].lower():
             raise FileFormatError("channel without its time column", path=path, line=name_row + 1, field=label)
         t = _column(rows, first, j - 1, path, names[j - 1])

@@ -139,7 +139,11 @@ def read_sto(path: str | Path) -> Storage:
     labels = _split_labels(lines[col_index], delimiter)
     if not labels or labels[0].lower() != "time":
         raise FileFormatError(
-            "first column must be 'time'", path=path, line=col_index + 1, field="time", value=labels[0] if labels else ""
+            "first column must be 'time'",
+            path=path,
+            line=col_index + 1,
+            field="time",
+            value=labels[0] if labels else "",
         )
     duplicates = sorted({c for c in labels if labels.count(c) > 1})
     if duplicates:
@@ -155,7 +159,9 @@ def read_sto(path: str | Path) -> Storage:
         if len(cells) != n_cols:
             raise FileFormatError(
                 f"expected {n_cols} values, found {len(cells)} (one value per column label on line "
-                f"{col_index + 1}; an empty cell between two delimiters counts)", path=path, line=i + 1,
+                f"{col_index + 1}; an empty cell between two delimiters counts)",
+                path=path,
+                line=i + 1,
                 value=raw[:80],
             )
         try:
@@ -206,8 +212,12 @@ def write_sto(
         )
     for c in columns:
         if not c or any(ch in c for ch in "\t\n\r,") or c != c.strip():
-            raise InputError("column labels must be non-empty, without tabs, commas or line breaks", path=path,
-                             field="columns", value=c)
+            raise InputError(
+                "column labels must be non-empty, without tabs, commas or line breaks",
+                path=path,
+                field="columns",
+                value=c,
+            )
     if len(set(columns)) != len(columns) or "time" in columns:
         raise InputError("column labels must be unique and not 'time'", path=path, field="columns", value=columns)
     if not np.all(np.isfinite(time)):

@@ -20,8 +20,9 @@ def random_poses(pack: ModelPack, n: int, seed: int) -> np.ndarray:
     return rng.uniform(lo, hi, size=(n, len(lo)))
 
 
-def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0,
-                  progress: Progress | None = None) -> dict:
+def check_muscles(
+    pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0, progress: Progress | None = None
+) -> dict:
     """Group moment arms (vs OpenSim computeMomentArm, F_max-weighted like the pack) and lengths."""
     spec = parse_spec(pack.raw["spec"])
     model, state = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity)
@@ -62,12 +63,14 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
     per_group = {}
     for gi, g in enumerate(pack.groups):
         per_group[g] = {
-            "moment_arm_rms_mm": {c: float(np.sqrt(mean(err_r[:, gi, j] ** 2)))
-                                  for j, c in enumerate(pack.coordinates)},
+            "moment_arm_rms_mm": {
+                c: float(np.sqrt(mean(err_r[:, gi, j] ** 2))) for j, c in enumerate(pack.coordinates)
+            },
             "moment_arm_max_mm": {c: float(peak(np.abs(err_r[:, gi, j]))) for j, c in enumerate(pack.coordinates)},
             "length_rms_mm": float(np.sqrt(mean(err_l[:, gi] ** 2))),
-            "path_derivative_max_mm": {c: float(peak(np.abs(err_fd[:, gi, j])))
-                                       for j, c in enumerate(pack.coordinates)},
+            "path_derivative_max_mm": {
+                c: float(peak(np.abs(err_fd[:, gi, j]))) for j, c in enumerate(pack.coordinates)
+            },
             "length_max_mm": float(peak(np.abs(err_l[:, gi]))),
         }
     return {
@@ -85,8 +88,15 @@ def check_muscles(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, 
     }
 
 
-def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30, seed: int = 0,
-                   hand_load: float = 200.0, progress: Progress | None = None) -> dict:
+def check_dynamics(
+    pack: ModelPack,
+    osim_path: str | Path,
+    *,
+    n_poses: int = 30,
+    seed: int = 0,
+    hand_load: float = 200.0,
+    progress: Progress | None = None,
+) -> dict:
     """Reduced inverse dynamics (the pack's ground-rooted validation model) vs OpenSim's InverseDynamicsSolver.
 
     Same locked coordinates, couplings, gravity and hand load; random q, qd (±1 rad/s), qdd (±10 rad/s²).
@@ -126,8 +136,15 @@ def check_dynamics(pack: ModelPack, osim_path: str | Path, *, n_poses: int = 30,
     }
 
 
-def check_hanging_static(pack: ModelPack, osim_path: str | Path, *, swing: dict[str, str], n_poses: int = 20,
-                         seed: int = 0, hand_load: float = 600.0) -> dict:
+def check_hanging_static(
+    pack: ModelPack,
+    osim_path: str | Path,
+    *,
+    swing: dict[str, str],
+    n_poses: int = 20,
+    seed: int = 0,
+    hand_load: float = 600.0,
+) -> dict:
     """How good is the pendulum assumption (``[dynamics] hanging``)? Static OpenSim ID with the real arm bodies.
 
     At random static poses (qd = qdd = 0) each hanging subtree keeps its own bodies and masses in OpenSim, and its
@@ -164,10 +181,12 @@ def check_hanging_static(pack: ModelPack, osim_path: str | Path, *, swing: dict[
             def offset(value: float, coord: str = coord, pivot: str = pivot, lp=lp) -> float:
                 poser.coords[coord].setValue(poser.state, value, False)
                 model.realizePosition(poser.state)
-                hand = bodies.get(lp.body).findStationLocationInGround(
-                    poser.state, poser._osim.Vec3(*lp.point)).to_numpy()
-                return float(horizontal @ (np.array(hand) - bodies.get(pivot).getPositionInGround(poser.state)
-                                           .to_numpy()))
+                hand = (
+                    bodies.get(lp.body).findStationLocationInGround(poser.state, poser._osim.Vec3(*lp.point)).to_numpy()
+                )
+                return float(
+                    horizontal @ (np.array(hand) - bodies.get(pivot).getPositionInGround(poser.state).to_numpy())
+                )
 
             solved[coord] = brentq(offset, -1.5, 1.5, xtol=1e-10)
         poser.base.update(solved)

@@ -50,8 +50,13 @@ def _fit_muscle(x_fit, l_fit, d_fit, x_test, l_test, d_test, max_degree: int, hi
         if math.comb(k + degree, degree) + 3 * len(hinges) > 0.5 * len(x_fit) * (k + 1):
             break
         exps, coef = fit_length(x_fit, l_fit, d_fit, degree, derivative_weight=DERIVATIVE_WEIGHT, hinges=hinges)
-        dl = np.stack([np.hstack([monomial_derivatives(x_test, exps, v), hinge_derivatives(x_test, hinges, v)]) @ coef
-                       for v in range(k)], axis=1)
+        dl = np.stack(
+            [
+                np.hstack([monomial_derivatives(x_test, exps, v), hinge_derivatives(x_test, hinges, v)]) @ coef
+                for v in range(k)
+            ],
+            axis=1,
+        )
         err_r = dl - d_test
         err_l = np.nan_to_num(np.hstack([monomials(x_test, exps), hinge_values(x_test, hinges)]) @ coef - l_test)
         score = float(np.sqrt(np.nanmean(err_r**2)))
@@ -65,8 +70,9 @@ KNOT_STEP_DEG = 0.25
 MAX_KNOTS = 3  # per bundle and coordinate
 
 
-def detect_knots(poser, names: list[str], spec: PackSpec,
-                 progress: Progress | None) -> dict[str, list[tuple[int, float]]]:
+def detect_knots(
+    poser, names: list[str], spec: PackSpec, progress: Progress | None
+) -> dict[str, list[tuple[int, float]]]:
     """Per bundle, (coordinate index, normalised x) where its moment arm jumps: a scan of each coordinate alone
     (others at their reference) on a fine grid. Isolated glitches (a jump straight back) are ignored."""
     q0 = np.array([c.reference for c in spec.coordinates])
@@ -76,8 +82,15 @@ def detect_knots(poser, names: list[str], spec: PackSpec,
         values = np.linspace(c.lower, c.upper, count)
         poses = np.repeat(q0[None, :], count, axis=0)
         poses[:, j] = values
-        _, derivs = osim_tools.sample_lengths(poser, names, poses, delta=1e-5, only=j, progress=progress,
-                                              task=f"{spec.name}: path-switch scan {c.name} (poses)")
+        _, derivs = osim_tools.sample_lengths(
+            poser,
+            names,
+            poses,
+            delta=1e-5,
+            only=j,
+            progress=progress,
+            task=f"{spec.name}: path-switch scan {c.name} (poses)",
+        )
         r = derivs[:, :, j]  # (count, m) dl/dq (NaN where the slopes disagree: right at a switch)
         for i, name in enumerate(names):
             series = r[:, i]
@@ -88,8 +101,9 @@ def detect_knots(poser, names: list[str], spec: PackSpec,
             size = np.abs(steps)
             # a switch is a step far above the smooth variation around it (median of its +-5 neighbours)
             local = np.array([np.median(np.delete(size[max(0, a - 5) : a + 6], min(a, 5))) for a in range(len(size))])
-            jumps = sorted(np.flatnonzero((size > KNOT_JUMP) & (size > 8 * local)).tolist(),
-                           key=lambda a: -size[a])[:MAX_KNOTS]
+            jumps = sorted(np.flatnonzero((size > KNOT_JUMP) & (size > 8 * local)).tolist(), key=lambda a: -size[a])[
+                :MAX_KNOTS
+            ]
             for a in jumps:
                 back = [b for b in jumps if 0 < abs(b - a) <= 3 and np.sign(steps[b]) != np.sign(steps[a])]
                 if back:
@@ -127,8 +141,12 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: Progress | 
         "member_f_max": {m: table[m]["f_max"] for m in names},
         "member_optimal_fiber_length": {m: table[m]["l_opt"] for m in names},
         **_group_parameters(spec, table),
-        "basis": {"exponents": [list(e) for e in fits.basis], "centre": fits.centre.tolist(),
-                  "half_width": fits.half.tolist(), "hinges": [[j, xk] for j, xk in fits.hinges]},
+        "basis": {
+            "exponents": [list(e) for e in fits.basis],
+            "centre": fits.centre.tolist(),
+            "half_width": fits.half.tolist(),
+            "hinges": [[j, xk] for j, xk in fits.hinges],
+        },
         "length_coefficients": _group_coefficients(spec, table, fits).tolist(),
         "dynamics": rigid,
         "validation_dynamics": validation,
@@ -142,8 +160,13 @@ def _member_names(spec: PackSpec) -> list[str]:
     names = [m for g_ in spec.groups.values() for m in g_]
     if len(set(names)) != len(names):
         dup = sorted({m for m in names if names.count(m) > 1})
-        raise ConfigError("a muscle belongs to more than one group", path=spec.path, line=spec.line_of(dup[0]),
-                          field="groups", value=dup)
+        raise ConfigError(
+            "a muscle belongs to more than one group",
+            path=spec.path,
+            line=spec.line_of(dup[0]),
+            field="groups",
+            value=dup,
+        )
     return names
 
 
@@ -174,8 +197,9 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | N
     rng = np.random.default_rng(spec.fit.seed)
     poses = latin_hypercube(spec.fit.samples, lo, hi, rng)
     n_test = max(1, int(round(spec.fit.holdout * len(poses))))
-    lengths, derivs = osim_tools.sample_lengths(poser, names, poses, progress=progress,
-                                                task=f"{spec.name}: OpenSim lengths (poses)")
+    lengths, derivs = osim_tools.sample_lengths(
+        poser, names, poses, progress=progress, task=f"{spec.name}: OpenSim lengths (poses)"
+    )
     knots = detect_knots(poser, names, spec, progress)
     x = (poses - centre) / half
     dx = derivs * half[None, None, :]  # dl/dx
@@ -186,16 +210,25 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | N
     for i, name in enumerate(names):
         spanned = [j for j in range(n) if np.nanmax(np.abs(derivs[:, i, j])) > SPAN_THRESHOLD]
         if not spanned:
-            muscle_fits[name] = (np.zeros((1, n), dtype=np.int64), np.array([np.nanmean(lengths[:, i])]), [],
-                                 np.zeros(0))
-            report[name] = {"spans": [], "degree": 0,
-                            "length_rms_mm": float(1e3 * np.nanstd(lengths[:, i]))}
+            muscle_fits[name] = (
+                np.zeros((1, n), dtype=np.int64),
+                np.array([np.nanmean(lengths[:, i])]),
+                [],
+                np.zeros(0),
+            )
+            report[name] = {"spans": [], "degree": 0, "length_rms_mm": float(1e3 * np.nanstd(lengths[:, i]))}
             continue
         xs = x[:, spanned]
         local_hinges = [(spanned.index(j), xk) for j, xk in knots[name] if j in spanned]
         exps, coef, info = _fit_muscle(
-            xs[fit_idx], lengths[fit_idx, i], dx[fit_idx, i][:, spanned],
-            xs[test_idx], lengths[test_idx, i], dx[test_idx, i][:, spanned], spec.fit.max_degree, local_hinges,
+            xs[fit_idx],
+            lengths[fit_idx, i],
+            dx[fit_idx, i][:, spanned],
+            xs[test_idx],
+            lengths[test_idx, i],
+            dx[test_idx, i][:, spanned],
+            spec.fit.max_degree,
+            local_hinges,
         )
         full = np.zeros((len(exps), n), dtype=np.int64)
         full[:, spanned] = exps
@@ -205,8 +238,9 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | N
         report[name] = {
             "spans": [spec.coordinates[j].name for j in spanned],
             "degree": info["degree"],
-            "knots_deg": [[spec.coordinates[j].name, float(np.degrees(centre[j] + xk * half[j]))]
-                          for j, xk in global_hinges],
+            "knots_deg": [
+                [spec.coordinates[j].name, float(np.degrees(centre[j] + xk * half[j]))] for j, xk in global_hinges
+            ],
             "holdout_moment_arm_rms_mm": float(1e3 * np.sqrt(np.nanmean(r_err**2))),
             "holdout_moment_arm_max_mm": float(1e3 * np.nanmax(np.abs(r_err))),
             "derivative_samples_dropped_at_path_jumps": int(np.isnan(derivs[:, i, spanned]).any(axis=1).sum()),
@@ -267,13 +301,27 @@ def group_activation_bounds(groups: dict[str, list[str]], table: dict) -> dict:
 def _dynamics(poser, spec: PackSpec, g: np.ndarray) -> tuple[dict, dict | None]:
     """(live rigid-body description, ground-rooted validation description or None)."""
     dyn = spec.dynamics
-    rigid = extract_rigid(poser, spec, root=dyn.root, exclude=dyn.exclude_bodies, shared_from=dyn.shared_from,
-                          gravity=g, load_share=dyn.load_share)
+    rigid = extract_rigid(
+        poser,
+        spec,
+        root=dyn.root,
+        exclude=dyn.exclude_bodies,
+        shared_from=dyn.shared_from,
+        gravity=g,
+        load_share=dyn.load_share,
+    )
     validation = None
     if dyn.root != "ground" or dyn.shared_from or dyn.exclude_bodies:
         # the whole model as OpenSim has it (pelvis-rooted, nothing shared: the full bar on this model)
-        validation = extract_rigid(poser, spec, root="ground", exclude=(), shared_from="", gravity=g,
-                                   load_share=1.0 if dyn.shared_from else dyn.load_share)
+        validation = extract_rigid(
+            poser,
+            spec,
+            root="ground",
+            exclude=(),
+            shared_from="",
+            gravity=g,
+            load_share=1.0 if dyn.shared_from else dyn.load_share,
+        )
     return rigid, validation
 
 
@@ -292,9 +340,14 @@ def recompile_dynamics(pack: dict, osim_path: str | Path, spec: PackSpec) -> dic
     rigid, validation = _dynamics(poser, spec, g)
     source = Path(osim_path)
     out = dict(pack)
-    out.update(dynamics=rigid, validation_dynamics=validation, spec=spec.text, version=spec.version,
-               description=spec.description,
-               source_sha256=hashlib.sha256(source.read_bytes()).hexdigest())
+    out.update(
+        dynamics=rigid,
+        validation_dynamics=validation,
+        spec=spec.text,
+        version=spec.version,
+        description=spec.description,
+        source_sha256=hashlib.sha256(source.read_bytes()).hexdigest(),
+    )
     if out["source_sha256"] != pack["source_sha256"]:
         raise ConfigError("a different OpenSim model than the pack was compiled from", path=source)
     return out

@@ -152,13 +152,26 @@ def _chain(poser: OsimPoser, spec: PackSpec, k: int, fixed: str, moving: str) ->
     for j in range(6):
         coef, *_ = np.linalg.lstsq(vander, dofs[:, j], rcond=None)
         coef[0] -= np.polynomial.polynomial.polyval(-centre / half, coef)  # exactly the reference pose at q_ref
-        functions.append({"coordinate": k, "centre": centre, "half_width": half, "coefficients": coef.tolist(),
-                          "fit_max_error": float(np.max(np.abs(vander @ coef - dofs[:, j])))})
+        functions.append(
+            {
+                "coordinate": k,
+                "centre": centre,
+                "half_width": half,
+                "coefficients": coef.tolist(),
+                "fit_max_error": float(np.max(np.abs(vander @ coef - dofs[:, j]))),
+            }
+        )
     return t0[moving][1], functions
 
 
 def extract_rigid(
-    poser: OsimPoser, spec: PackSpec, *, root: str, exclude: tuple[str, ...], shared_from: str, gravity: np.ndarray,
+    poser: OsimPoser,
+    spec: PackSpec,
+    *,
+    root: str,
+    exclude: tuple[str, ...],
+    shared_from: str,
+    gravity: np.ndarray,
     load_share: float,
 ) -> dict:
     """Rigid-body description (see :class:`msk_core.model.rigid.RigidModel`) rooted at ``root``."""
@@ -166,16 +179,28 @@ def extract_rigid(
     graph = joint_graph(model)
     bodies = {"ground"} | {b for _, p, c in graph for b in (p, c)}
     hanging = tuple(spec.dynamics.hanging)
-    for name, field in [(root, "dynamics.root"), (shared_from, "dynamics.shared_from")] + [
-        (b, "dynamics.exclude_bodies") for b in exclude
-    ] + [(b, "dynamics.hanging") for b in hanging]:
+    for name, field in (
+        [(root, "dynamics.root"), (shared_from, "dynamics.shared_from")]
+        + [(b, "dynamics.exclude_bodies") for b in exclude]
+        + [(b, "dynamics.hanging") for b in hanging]
+    ):
         if name and name not in bodies:
-            raise ConfigError(f"unknown body {name!r} ({closest(name, sorted(bodies))})", path=spec.path,
-                              line=spec.line_of(name), field=field, value=name)
+            raise ConfigError(
+                f"unknown body {name!r} ({closest(name, sorted(bodies))})",
+                path=spec.path,
+                line=spec.line_of(name),
+                field=field,
+                value=name,
+            )
     for lp in spec.dynamics.load_points:
         if lp.body not in bodies:
-            raise ConfigError(f"unknown body {lp.body!r} ({closest(lp.body, sorted(bodies))})", path=spec.path,
-                              line=spec.line_of(lp.body), field="dynamics.load_points", value=lp.body)
+            raise ConfigError(
+                f"unknown body {lp.body!r} ({closest(lp.body, sorted(bodies))})",
+                path=spec.path,
+                line=spec.line_of(lp.body),
+                field="dynamics.load_points",
+                value=lp.body,
+            )
     screws = _screws(poser, graph)
     q0 = np.array([c.reference for c in spec.coordinates])
     poser.set(q0)
@@ -214,16 +239,27 @@ def extract_rigid(
                     movers = [spec.coordinates[kk].name for kk in range(len(spec.coordinates)) if (jname, kk) in screws]
                     if len(movers) > 1:
                         # the polynomial chain replays one coordinate's path; two would need a 2-D surface
-                        raise ConfigError(f"joint {jname!r} has a moving axis and is driven by several pack "
-                                          f"coordinates {movers}; lock all but one", path=spec.path,
-                                          field="coordinates", value=movers)
+                        raise ConfigError(
+                            f"joint {jname!r} has a moving axis and is driven by several pack "
+                            f"coordinates {movers}; lock all but one",
+                            path=spec.path,
+                            field="coordinates",
+                            value=movers,
+                        )
                     origin, functions = _chain(poser, spec, k, body, other)
                     axes = np.eye(3)
                     for j, function in enumerate(functions):
-                        joints.append({"name": f"{jname}:{coord.name}:{'xyzXYZ'[j]}", "parent": current,
-                                       "position": origin.tolist(), "axis": axes[j % 3].tolist(),
-                                       "kind": "prismatic" if j < 3 else "revolute",
-                                       "gains_row": [0.0] * len(spec.coordinates), "function": function})
+                        joints.append(
+                            {
+                                "name": f"{jname}:{coord.name}:{'xyzXYZ'[j]}",
+                                "parent": current,
+                                "position": origin.tolist(),
+                                "axis": axes[j % 3].tolist(),
+                                "kind": "prismatic" if j < 3 else "revolute",
+                                "gains_row": [0.0] * len(spec.coordinates),
+                                "function": function,
+                            }
+                        )
                         joint_distal_shared.append(in_shared[body])
                         current = len(joints) - 1
                     continue
@@ -236,8 +272,16 @@ def extract_rigid(
                 else:  # pure translation: the axis line may pass anywhere, use the child's origin
                     point = child_origin
                     axis, kind, gains[k] = sign * v / np.linalg.norm(v), "prismatic", np.linalg.norm(v)
-                joints.append({"name": f"{jname}:{coord.name}", "parent": current, "position": point.tolist(),
-                               "axis": axis.tolist(), "kind": kind, "gains_row": gains.tolist()})
+                joints.append(
+                    {
+                        "name": f"{jname}:{coord.name}",
+                        "parent": current,
+                        "position": point.tolist(),
+                        "axis": axis.tolist(),
+                        "kind": kind,
+                        "gains_row": gains.tolist(),
+                    }
+                )
                 joint_distal_shared.append(in_shared[body])
                 current = len(joints) - 1
             attach[other] = current
@@ -264,8 +308,9 @@ def extract_rigid(
             "inertia": (scale * r0 @ i_body @ r0.T).tolist(),
         }
         if name in pivot_of:  # hanging plumb: its weight acts through the pivot (point mass, no rotary inertia)
-            entry.update(com=t0[pivot_of[name]][1].tolist(), inertia=np.zeros((3, 3)).tolist(),
-                         hanging_from=pivot_of[name])
+            entry.update(
+                com=t0[pivot_of[name]][1].tolist(), inertia=np.zeros((3, 3)).tolist(), hanging_from=pivot_of[name]
+            )
         body_list.append(entry)
     loads = []
     for lp in spec.dynamics.load_points:
@@ -280,13 +325,20 @@ def extract_rigid(
     torque_scale = np.ones(n)
     if shared_from:
         for k in range(n):
-            sides = {joint_distal_shared[i] for i, j in enumerate(joints)
-                     if j["gains_row"][k] != 0 or j.get("function", {}).get("coordinate") == k}
+            sides = {
+                joint_distal_shared[i]
+                for i, j in enumerate(joints)
+                if j["gains_row"][k] != 0 or j.get("function", {}).get("coordinate") == k
+            }
             if sides == {True}:
                 torque_scale[k] = 1.0 / share
             elif len(sides) > 1:
-                raise ConfigError(f"coordinate {spec.coordinates[k].name!r} moves joints on both sides of "
-                                  f"shared_from={shared_from!r}", path=spec.path, field="dynamics.shared_from")
+                raise ConfigError(
+                    f"coordinate {spec.coordinates[k].name!r} moves joints on both sides of "
+                    f"shared_from={shared_from!r}",
+                    path=spec.path,
+                    field="dynamics.shared_from",
+                )
     gain_matrix = np.array([j.pop("gains_row") for j in joints]).reshape(len(joints), n)
     return {
         "root": root,

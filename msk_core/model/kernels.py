@@ -24,7 +24,17 @@ import numpy as np
 REVOLUTE, PRISMATIC = 0, 1
 # joint_float columns
 OFFSET, AXIS, MASS, LEVER, INERTIA, LOAD_MASS, LOAD_LEVER, POLY_CENTRE, POLY_HALF, POLY_SCALE = (
-    0, 3, 6, 7, 10, 19, 20, 23, 24, 25)
+    0,
+    3,
+    6,
+    7,
+    10,
+    19,
+    20,
+    23,
+    24,
+    25,
+)
 JOINT_FLOAT_COLUMNS = 26
 # joint_int columns
 PARENT, KIND, POLY_COORD = 0, 1, 2
@@ -58,8 +68,9 @@ class MuscleTables:
     n_groups: int
 
     @classmethod
-    def build(cls, *, lo, hi, centre, half, half_range, reference, exponents, hinge_var, hinge_knot, stacked,
-              n_groups: int) -> MuscleTables:
+    def build(
+        cls, *, lo, hi, centre, half, half_range, reference, exponents, hinge_var, hinge_knot, stacked, n_groups: int
+    ) -> MuscleTables:
         cols, rows = np.nonzero(stacked.T)  # column-major order: CSC
         indptr = np.searchsorted(cols, np.arange(stacked.shape[1] + 1))
         exponents = np.asarray(exponents, dtype=np.int64)
@@ -93,8 +104,16 @@ class RigidTables:
     def build(cls, *, joint_int, joint_float, poly_coef, gains, projection, load_per_point: float) -> RigidTables:
         n_joints, n = gains.shape
         ints = np.concatenate([[n_joints, n, poly_coef.shape[1]], np.asarray(joint_int).ravel()]).astype(np.int64)
-        floats = np.concatenate([[load_per_point], joint_float.ravel(), poly_coef.ravel(), gains.ravel(),
-                                 projection.ravel(), np.zeros(n_joints * RIGID_WORK)])
+        floats = np.concatenate(
+            [
+                [load_per_point],
+                joint_float.ravel(),
+                poly_coef.ravel(),
+                gains.ravel(),
+                projection.ravel(),
+                np.zeros(n_joints * RIGID_WORK),
+            ]
+        )
         return cls(ints=ints, floats=floats.astype(float), n=n, n_joints=n_joints)
 
 
@@ -269,12 +288,21 @@ def rigid_torques(dq, qd, qdd, hand_load, gravity, ints, floats, tau, tau_joint)
             j00, j01, j02 = cq + cc * ax * ax, cc * ax * ay - sq * az, cc * ax * az + sq * ay
             j10, j11, j12 = cc * ay * ax + sq * az, cq + cc * ay * ay, cc * ay * az - sq * ax
             j20, j21, j22 = cc * az * ax - sq * ay, cc * az * ay + sq * ax, cq + cc * az * az
-            r00, r01, r02 = p00 * j00 + p01 * j10 + p02 * j20, p00 * j01 + p01 * j11 + p02 * j21, \
-                p00 * j02 + p01 * j12 + p02 * j22
-            r10, r11, r12 = p10 * j00 + p11 * j10 + p12 * j20, p10 * j01 + p11 * j11 + p12 * j21, \
-                p10 * j02 + p11 * j12 + p12 * j22
-            r20, r21, r22 = p20 * j00 + p21 * j10 + p22 * j20, p20 * j01 + p21 * j11 + p22 * j21, \
-                p20 * j02 + p21 * j12 + p22 * j22
+            r00, r01, r02 = (
+                p00 * j00 + p01 * j10 + p02 * j20,
+                p00 * j01 + p01 * j11 + p02 * j21,
+                p00 * j02 + p01 * j12 + p02 * j22,
+            )
+            r10, r11, r12 = (
+                p10 * j00 + p11 * j10 + p12 * j20,
+                p10 * j01 + p11 * j11 + p12 * j21,
+                p10 * j02 + p11 * j12 + p12 * j22,
+            )
+            r20, r21, r22 = (
+                p20 * j00 + p21 * j10 + p22 * j20,
+                p20 * j01 + p21 * j11 + p22 * j21,
+                p20 * j02 + p21 * j12 + p22 * j22,
+            )
             s0, s1, s2 = ux, uy, uz
             s3, s4, s5 = oy * uz - oz * uy, oz * ux - ox * uz, ox * uy - oy * ux
         else:
@@ -390,7 +418,8 @@ def frame(q, qd, qdd, hand_load, gravity, mode, muscle_ints, muscle_floats, rigi
     if mode & DYNAMICS. Returns False (nothing evaluated) when mode has no CLAMP and q is outside the fitted ranges.
     """
     n_groups, n_rows, factors, hinge_var, indptr, rows, pose, hinge_knot, vals, powers, phi, work = _muscle_views(
-        muscle_ints, muscle_floats)
+        muscle_ints, muscle_floats
+    )
     n = q.shape[0]
     x = work[:n]
     qc = work[n : 2 * n]
@@ -414,8 +443,17 @@ def frame(q, qd, qdd, hand_load, gravity, mode, muscle_ints, muscle_floats, rigi
         for j in range(n):
             dq[j] = qc[j] - pose[REFERENCE, j]
         nj = rigid_ints[0]
-        rigid_torques(dq, qd, qdd, hand_load, gravity, rigid_ints, rigid_floats, out[base : base + n],
-                      out[base + n : base + n + nj])
+        rigid_torques(
+            dq,
+            qd,
+            qdd,
+            hand_load,
+            gravity,
+            rigid_ints,
+            rigid_floats,
+            out[base : base + n],
+            out[base + n : base + n + nj],
+        )
     return True
 
 

@@ -45,8 +45,12 @@ class DisplayNames:
         """The display names of a pack with ``groups`` and coordinates ``units`` (coordinate -> unit) from a checked
         ``names`` table (:func:`parse_names`); the groups and coordinates it leaves out keep their model names."""
         groups, coordinates = list(groups), list(units)
-        return cls(groups={g: names.get(g, g) for g in groups}, coordinates={c: names.get(c, c) for c in coordinates},
-                   units=dict(units), missing=tuple(n for n in groups + coordinates if n not in names))
+        return cls(
+            groups={g: names.get(g, g) for g in groups},
+            coordinates={c: names.get(c, c) for c in coordinates},
+            units=dict(units),
+            missing=tuple(n for n in groups + coordinates if n not in names),
+        )
 
     def group(self, group: str) -> str:
         return self.groups.get(group, group)
@@ -68,10 +72,13 @@ class DisplayNames:
         own = {n: v for n, v in overrides.items() if n in self.groups or n in self.coordinates}
         if not own:
             return self
-        return DisplayNames(groups={g: own.get(g, v) for g, v in self.groups.items()},
-                            coordinates={c: own.get(c, v) for c, v in self.coordinates.items()}, units=self.units,
-                            missing=tuple(n for n in self.missing if n not in own),
-                            overridden=tuple(dict.fromkeys(self.overridden + tuple(own))))
+        return DisplayNames(
+            groups={g: own.get(g, v) for g, v in self.groups.items()},
+            coordinates={c: own.get(c, v) for c, v in self.coordinates.items()},
+            units=self.units,
+            missing=tuple(n for n in self.missing if n not in own),
+            overridden=tuple(dict.fromkeys(self.overridden + tuple(own))),
+        )
 
     def legend(self, names: Iterable[str]) -> str:
         """``BRA: Brachialis · TriLat: Triceps brachii, lateral and medial heads``: the abbreviations (model names)
@@ -81,9 +88,13 @@ class DisplayNames:
 
     def as_dict(self) -> dict:
         """JSON-ready: ``{"groups": {g: name}, "coordinates": {c: {"name", "unit", "torque_unit"}}}``."""
-        return {"groups": dict(self.groups),
-                "coordinates": {c: {"name": name, "unit": self.unit(c), "torque_unit": self.torque_unit(c)}
-                                for c, name in self.coordinates.items()}}
+        return {
+            "groups": dict(self.groups),
+            "coordinates": {
+                c: {"name": name, "unit": self.unit(c), "torque_unit": self.torque_unit(c)}
+                for c, name in self.coordinates.items()
+            },
+        }
 
 
 def fallback_names(groups: Iterable[str], coordinates: Iterable[str] = ()) -> DisplayNames:
@@ -91,14 +102,26 @@ def fallback_names(groups: Iterable[str], coordinates: Iterable[str] = ()) -> Di
     return DisplayNames.of(groups, {c: ROTATION_UNIT for c in coordinates}, {})
 
 
-def parse_names(table: object, known: Iterable[str], *, path: Path | None, text: str = "", where: str = "names",
-                what: str = "a muscle group or coordinate of the pack") -> dict[str, str]:
+def parse_names(
+    table: object,
+    known: Iterable[str],
+    *,
+    path: Path | None,
+    text: str = "",
+    where: str = "names",
+    what: str = "a muscle group or coordinate of the pack",
+) -> dict[str, str]:
     """A ``[names]`` table (``model name = "display name"``) checked against the ``known`` model names: a table of
     one-line strings of at most :data:`MAX_NAME_CHARS` characters, every key known. Errors name the file, line,
     field and value."""
     if not isinstance(table, dict):
-        raise ConfigError('must be a table of model name = "display name"', path=path, field=where, value=table,
-                          line=_line(text, f"[{where}]"))
+        raise ConfigError(
+            'must be a table of model name = "display name"',
+            path=path,
+            field=where,
+            value=table,
+            line=_line(text, f"[{where}]"),
+        )
     known = list(known)
     names = {}
     for key, value in table.items():
@@ -106,14 +129,25 @@ def parse_names(table: object, known: Iterable[str], *, path: Path | None, text:
         line = _line(text, key, after=f"[{where}]")
         if key not in known:
             hits = difflib.get_close_matches(key, known, n=3, cutoff=0.4)
-            raise ConfigError(f"not {what} ({'closest: ' + ', '.join(hits) if hits else 'no similar name'})",
-                              path=path, field=fieldname, value=key, line=line)
+            raise ConfigError(
+                f"not {what} ({'closest: ' + ', '.join(hits) if hits else 'no similar name'})",
+                path=path,
+                field=fieldname,
+                value=key,
+                line=line,
+            )
         if not isinstance(value, str) or not value.strip():
-            raise ConfigError("must be a display name (a non-empty string)", path=path, field=fieldname, value=value,
-                              line=line)
+            raise ConfigError(
+                "must be a display name (a non-empty string)", path=path, field=fieldname, value=value, line=line
+            )
         if not value.isprintable() or value != value.strip() or len(value) > MAX_NAME_CHARS:
-            raise ConfigError(f"must be one line of printable text without surrounding spaces, at most "
-                              f"{MAX_NAME_CHARS} characters", path=path, field=fieldname, value=value, line=line)
+            raise ConfigError(
+                f"must be one line of printable text without surrounding spaces, at most {MAX_NAME_CHARS} characters",
+                path=path,
+                field=fieldname,
+                value=value,
+                line=line,
+            )
         names[key] = value
     return names
 

@@ -78,7 +78,10 @@ class OsimPoser:
             if name not in self.coords:
                 raise ConfigError(
                     f"unknown coordinate {name!r} ({closest(name, self.all_names)})",
-                    path=spec.path, line=spec.line_of(name), field="coordinates", value=name,
+                    path=spec.path,
+                    line=spec.line_of(name),
+                    field="coordinates",
+                    value=name,
                 )
         self.couplers = []
         cset = model.getConstraintSet()
@@ -147,7 +150,10 @@ def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str,
         if name not in all_names:
             raise ConfigError(
                 f"unknown muscle {name!r} ({closest(name, all_names)})",
-                path=spec.path, line=spec.line_of(f'"{name}"'), field="groups", value=name,
+                path=spec.path,
+                line=spec.line_of(f'"{name}"'),
+                field="groups",
+                value=name,
             )
         m = muscles.get(name)
         table[name] = {
@@ -164,8 +170,15 @@ JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
 GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbours 2e-4 rad apart is an OpenSim glitch
 
 
-def sample_lengths(poser: OsimPoser, names: list[str], poses: np.ndarray, delta: float = 1e-4,
-                   only: int | None = None, progress: Progress | None = None, task: str = "OpenSim lengths (poses)"):
+def sample_lengths(
+    poser: OsimPoser,
+    names: list[str],
+    poses: np.ndarray,
+    delta: float = 1e-4,
+    only: int | None = None,
+    progress: Progress | None = None,
+    task: str = "OpenSim lengths (poses)",
+):
     """Muscle-tendon lengths (S, m) and dl/dq (S, m, n): central differences of OpenSim path lengths (NaN at jumps)."""
     muscles = [poser.model.getMuscles().get(n) for n in names]
     s, n = poses.shape
@@ -231,7 +244,8 @@ def _subtree(model, top: str) -> list[str]:
     for i in range(js.getSize()):
         j = js.get(i)
         children.setdefault(j.getParentFrame().findBaseFrame().getName(), []).append(
-            j.getChildFrame().findBaseFrame().getName())
+            j.getChildFrame().findBaseFrame().getName()
+        )
     out, stack = [], [top]
     while stack:
         body = stack.pop()
@@ -257,8 +271,11 @@ def hang_subtrees(model, state, spec: PackSpec) -> dict[str, str]:
     for pivot in spec.dynamics.hanging:
         members = _subtree(model, pivot)
         mass = sum(bodies.get(b).getMass() for b in members)
-        joint = next(model.getJointSet().get(i) for i in range(model.getJointSet().getSize())
-                     if model.getJointSet().get(i).getChildFrame().findBaseFrame().getName() == pivot)
+        joint = next(
+            model.getJointSet().get(i)
+            for i in range(model.getJointSet().getSize())
+            if model.getJointSet().get(i).getChildFrame().findBaseFrame().getName() == pivot
+        )
         parent = bodies.get(joint.getParentFrame().findBaseFrame().getName())
         ground_point = bodies.get(pivot).getPositionInGround(state)
         local = model.getGround().findStationLocationInAnotherFrame(state, ground_point, parent).to_numpy()
@@ -271,14 +288,18 @@ def hang_subtrees(model, state, spec: PackSpec) -> dict[str, str]:
         name = f"msk_pendulum_{pivot}"
         point_mass = osim.Body(name, mass, osim.Vec3(0.0), osim.Inertia(0.0, 0.0, 0.0))
         model.addBody(point_mass)
-        model.addJoint(osim.WeldJoint(f"{name}_weld", parent, osim.Vec3(*local), osim.Vec3(0.0), point_mass,
-                                      osim.Vec3(0.0), osim.Vec3(0.0)))
+        model.addJoint(
+            osim.WeldJoint(
+                f"{name}_weld", parent, osim.Vec3(*local), osim.Vec3(0.0), point_mass, osim.Vec3(0.0), osim.Vec3(0.0)
+            )
+        )
         redirect.update({b: name for b in members})
     return redirect
 
 
-def add_hand_loads(model, spec: PackSpec, total_load: float, gravity: np.ndarray, share: float,
-                   redirect: dict[str, str] | None = None) -> None:
+def add_hand_loads(
+    model, spec: PackSpec, total_load: float, gravity: np.ndarray, share: float, redirect: dict[str, str] | None = None
+) -> None:
     """Constant forces along gravity at the spec's load points (before initSystem), as the pack applies them.
 
     ``redirect`` (from :func:`hang_subtrees`): load points on hanging bodies act at the pendulum's pivot instead

@@ -49,8 +49,12 @@ class ModelPack:
 
     def __init__(self, data: dict, *, path: Path | None = None, evaluator: Evaluator = Evaluator.NUMPY) -> None:
         if data.get("format") != PACK_FORMAT:
-            raise FileFormatError(f"not a model pack (expected format {PACK_FORMAT!r})", path=path, field="format",
-                                  value=data.get("format"))
+            raise FileFormatError(
+                f"not a model pack (expected format {PACK_FORMAT!r})",
+                path=path,
+                field="format",
+                value=data.get("format"),
+            )
         self.path = path
         self.raw = data
         self.name: str = data["name"]
@@ -115,8 +119,9 @@ class ModelPack:
         if not self._flat_cols:
             self._flat_cols = [np.ascontiguousarray(flat[:, 0])]
         self._hinge_powers = np.array([1.0, 2.0, 3.0])
-        self._features = FeatureEvaluator(self._exponents, list(zip(self._hinge_var.tolist(),
-                                                                    self._hinge_knot.tolist())))
+        self._features = FeatureEvaluator(
+            self._exponents, list(zip(self._hinge_var.tolist(), self._hinge_knot.tolist()))
+        )
         self._half_range_list = self._half_range.tolist()
         self.evaluator = Evaluator(evaluator)
         compiled = self.evaluator is Evaluator.COMPILED
@@ -127,9 +132,18 @@ class ModelPack:
         if compiled:
             kernels = self._kernels = compiled_kernels()
             muscle_tables: MuscleTables = kernels.MuscleTables.build(
-                lo=self._lo, hi=self._hi, centre=self._centre, half=self._half, half_range=self._half_range,
-                reference=self.reference_pose, exponents=self._exponents, hinge_var=self._hinge_var,
-                hinge_knot=self._hinge_knot, stacked=self._stacked, n_groups=g)
+                lo=self._lo,
+                hi=self._hi,
+                centre=self._centre,
+                half=self._half,
+                half_range=self._half_range,
+                reference=self.reference_pose,
+                exponents=self._exponents,
+                hinge_var=self._hinge_var,
+                hinge_knot=self._hinge_knot,
+                stacked=self._stacked,
+                n_groups=g,
+            )
             self.muscle_tables = muscle_tables
             self._frame_kernel = kernels.frame
             self._both = kernels.MUSCLES | kernels.DYNAMICS
@@ -164,8 +178,9 @@ class ModelPack:
         """(q checked or clamped, q - centre): one subtraction serves the range check and the normalisation."""
         q = np.asarray(q, dtype=float)
         if q.shape != self._shape:
-            raise ModelError(f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, "
-                             f"got {q.shape}")
+            raise ModelError(
+                f"pack {self.name!r}: q must have shape ({self._n},) for {self.coordinates}, got {q.shape}"
+            )
         if out_of_range is OutOfRange.CLAMP:
             q = np.minimum(np.maximum(q, self._lo), self._hi)
             return q, q - self._centre
@@ -178,13 +193,17 @@ class ModelPack:
 
     def _vectors(self, q, qd, qdd) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Contiguous float64 vectors of the pack's n coordinates (the compiled kernels read exactly n values)."""
-        q, qd, qdd = np.ascontiguousarray(q, np.float64), np.ascontiguousarray(qd, np.float64), \
-            np.ascontiguousarray(qdd, np.float64)
+        q, qd, qdd = (
+            np.ascontiguousarray(q, np.float64),
+            np.ascontiguousarray(qd, np.float64),
+            np.ascontiguousarray(qdd, np.float64),
+        )
         shape = self._shape
         if q.shape != shape or qd.shape != shape or qdd.shape != shape:
             bad, value = next((name, a) for name, a in zip(("q", "qd", "qdd"), (q, qd, qdd)) if a.shape != shape)
-            raise ModelError(f"pack {self.name!r}: {bad} must have shape ({self._n},) for {self.coordinates}, "
-                             f"got {value.shape}")
+            raise ModelError(
+                f"pack {self.name!r}: {bad} must have shape ({self._n},) for {self.coordinates}, got {value.shape}"
+            )
         return q, qd, qdd
 
     def _compiled(self, q, qd, qdd, hand_load: float, gravity, out_of_range: OutOfRange, dynamics: bool) -> np.ndarray:
@@ -291,7 +310,12 @@ class ModelPack:
         return self._compiled(q, qd, qdd, hand_load_newton, gravity, out_of_range, True)[: self._n]
 
     def joint_torques(
-        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        qdd: np.ndarray,
+        hand_load_newton: float = 0.0,
+        *,
         out_of_range: OutOfRange = OutOfRange.RAISE,
     ) -> dict[str, float]:
         """Net moment (N·m) about every joint of the reduced model, by joint name (``"<OpenSim joint>:<coordinate>"``).
@@ -303,7 +327,12 @@ class ModelPack:
         return dict(zip(self.rigid.joint_names, tau.tolist()))
 
     def frame(
-        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        qdd: np.ndarray,
+        hand_load_newton: float = 0.0,
+        *,
         out_of_range: OutOfRange = OutOfRange.RAISE,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Everything a live frame needs in one call: (mtu lengths, moment arms, joint torques).
@@ -319,7 +348,12 @@ class ModelPack:
         return out[self._lengths_at], out[self._arms_at].reshape(self._n, self._g), out[self._tau_at]
 
     def frame_numpy(
-        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float = 0.0, *,
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        qdd: np.ndarray,
+        hand_load_newton: float = 0.0,
+        *,
         out_of_range: OutOfRange = OutOfRange.RAISE,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`frame` in numpy + pinocchio (the numpy evaluator; the baseline ``msk bench model`` shows)."""
@@ -423,8 +457,10 @@ def with_names(data: dict, spec: PackSpec) -> dict:
     new.pop("names", None)
     changed = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     if changed:
-        raise ModelError(f"{spec.path or 'the spec'}: differs from the spec pack {data.get('name')!r} was compiled "
-                         f"from in [{changed[0]}], not only in [names]: recompile the pack (msk model compile)")
+        raise ModelError(
+            f"{spec.path or 'the spec'}: differs from the spec pack {data.get('name')!r} was compiled "
+            f"from in [{changed[0]}], not only in [names]: recompile the pack (msk model compile)"
+        )
     out = dict(data, spec=spec.text)
     names_of(out)  # the names fit the pack's groups and coordinates
     return out

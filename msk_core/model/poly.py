@@ -73,7 +73,11 @@ def hinge_derivatives(x: np.ndarray, hinges: list[tuple[int, float]], var: int) 
 
 
 def fit_length(
-    x: np.ndarray, length: np.ndarray, dl_dx: np.ndarray, degree: int, derivative_weight: float = 1.0,
+    x: np.ndarray,
+    length: np.ndarray,
+    dl_dx: np.ndarray,
+    degree: int,
+    derivative_weight: float = 1.0,
     hinges: Sequence[tuple[int, float]] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares fit of l(x) to lengths and their derivatives jointly (Hermite-style).
@@ -86,8 +90,10 @@ def fit_length(
     blocks = [np.hstack([monomials(x, exponents), hinge_values(x, list(hinges))])]
     targets = [length]
     for var in range(k):
-        blocks.append(derivative_weight * np.hstack([monomial_derivatives(x, exponents, var),
-                                                     hinge_derivatives(x, list(hinges), var)]))
+        blocks.append(
+            derivative_weight
+            * np.hstack([monomial_derivatives(x, exponents, var), hinge_derivatives(x, list(hinges), var)])
+        )
         targets.append(derivative_weight * dl_dx[:, var])
     a = np.vstack(blocks)
     b = np.concatenate(targets)
@@ -147,8 +153,13 @@ class FeatureEvaluator:
         for k, (a, b) in enumerate(pairs):
             pos = offset + k * width * width
             # table[e_b, e_a] = T[b, e_b] * T[a, e_a]
-            self._steps.append((self.buffer[pos : pos + width * width].reshape(width, width),
-                                power[b].reshape(-1, 1), power[a].reshape(1, -1)))
+            self._steps.append(
+                (
+                    self.buffer[pos : pos + width * width].reshape(width, width),
+                    power[b].reshape(-1, 1),
+                    power[a].reshape(1, -1),
+                )
+            )
             pair_offset[(a, b)] = pos
         self._hinge_base = offset + len(pairs) * width * width
 
@@ -173,9 +184,13 @@ class FeatureEvaluator:
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Features (M + 4H,) at normalised pose x (n,): a new array."""
         if self.fallback:
-            return np.concatenate([monomials(x[None, :], self.exponents)[0],
-                                   hinge_values(x[None, :], self.hinges)[0],
-                                   [float(x[v] > k) for v, k in self.hinges]])
+            return np.concatenate(
+                [
+                    monomials(x[None, :], self.exponents)[0],
+                    hinge_values(x[None, :], self.hinges)[0],
+                    [float(x[v] > k) for v, k in self.hinges],
+                ]
+            )
         buf = self.buffer
         if self.degree:
             self._repeat[...] = x[:, None]

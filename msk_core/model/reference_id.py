@@ -42,8 +42,14 @@ def read_sto(path: str | Path) -> tuple[list[str], np.ndarray, bool]:
 
 
 def compare_with_recorded_id(
-    pack: ModelPack, osim_path: str | Path, ik_path: str | Path, id_path: str | Path, *, hand_load_newton: float,
-    root_body: str = "pelvis", include_root_acceleration: bool = True,
+    pack: ModelPack,
+    osim_path: str | Path,
+    ik_path: str | Path,
+    id_path: str | Path,
+    *,
+    hand_load_newton: float,
+    root_body: str = "pelvis",
+    include_root_acceleration: bool = True,
 ) -> dict:
     """Pack torques vs the recorded ID column of each pack coordinate, frame by frame."""
     ik_names, ik, ik_deg = read_sto(ik_path)
@@ -80,8 +86,9 @@ def compare_with_recorded_id(
         r = rotations[k]
         g = r.T @ (g_world - (accel[k] if include_root_acceleration else 0.0))
         gravities.append(g)
-        pack_rows.append(pack.inverse_dynamics(q[k], qd[k], qdd[k], hand_load_newton, gravity=g,
-                                               out_of_range=OutOfRange.CLAMP))
+        pack_rows.append(
+            pack.inverse_dynamics(q[k], qd[k], qdd[k], hand_load_newton, gravity=g, out_of_range=OutOfRange.CLAMP)
+        )
     pack_tau = np.array(pack_rows)
     id_t = idd[:, 0] - ik[0, 0]
     recorded = np.stack([np.interp(t, id_t, idd[:, id_names.index(c)]) for c in pack.coordinates], axis=1)
@@ -92,10 +99,15 @@ def compare_with_recorded_id(
         "peak_nm": dict(zip(pack.coordinates, peak.tolist())),
         "rms_error_nm": dict(zip(pack.coordinates, np.sqrt(np.mean(err**2, axis=0)).tolist())),
         "max_error_nm": dict(zip(pack.coordinates, np.max(np.abs(err), axis=0).tolist())),
-        "rms_error_percent_of_peak": dict(zip(pack.coordinates,
-                                              (100 * np.sqrt(np.mean(err**2, axis=0)) / peak).tolist())),
-        "correlation": dict(zip(pack.coordinates, [float(np.corrcoef(pack_tau[:, j], recorded[:, j])[0, 1])
-                                                    for j in range(len(pack.coordinates))])),
+        "rms_error_percent_of_peak": dict(
+            zip(pack.coordinates, (100 * np.sqrt(np.mean(err**2, axis=0)) / peak).tolist())
+        ),
+        "correlation": dict(
+            zip(
+                pack.coordinates,
+                [float(np.corrcoef(pack_tau[:, j], recorded[:, j])[0, 1]) for j in range(len(pack.coordinates))],
+            )
+        ),
         "time": t,
         "pack": pack_tau,
         "recorded": recorded,

@@ -26,8 +26,9 @@ def compiled_kernels() -> ModuleType:
     try:
         kernels = importlib.import_module("msk_core.model.kernels")
     except ImportError as exc:
-        raise ModelError(f"the compiled model evaluator needs numba ({exc}); install numba or use the numpy "
-                         "evaluator") from exc
+        raise ModelError(
+            f"the compiled model evaluator needs numba ({exc}); install numba or use the numpy evaluator"
+        ) from exc
     return kernels
 
 
@@ -49,8 +50,10 @@ class RigidModel:
             elif j["kind"] == "prismatic":
                 jm = pin.JointModelPrismaticUnaligned(axis)
             else:
-                raise ModelError(f"rigid model: joint {j['name']!r} (dynamics.joints[{i}].kind) is {j['kind']!r}; "
-                                 "expected 'revolute' or 'prismatic'")
+                raise ModelError(
+                    f"rigid model: joint {j['name']!r} (dynamics.joints[{i}].kind) is {j['kind']!r}; "
+                    "expected 'revolute' or 'prismatic'"
+                )
             model.addJoint(parent + 1, jm, pin.SE3(np.eye(3), pos - parent_pos), j["name"])
         for body in description["bodies"]:
             joint = int(body["joint"])
@@ -112,17 +115,31 @@ class RigidModel:
             mix[0, 0] = 1.0
             values = np.empty(4 * m)  # preallocated product: its views below need no per-frame slicing
             # a tuple, unpacked once per frame (cheaper than dict look-ups on the hot path)
-            self._nl_groups.append((
-                k, sel, m, centre, 1.0 / half, stacked, np.arange(degree).astype(float),
-                np.empty(degree), mix, self._motion[:, sel] if contiguous else None,
-                self._frame_projection[k, sel] if contiguous else None,
-                values, values[: 3 * m].reshape(3, m), values[3 * m :],
-            ))
+            self._nl_groups.append(
+                (
+                    k,
+                    sel,
+                    m,
+                    centre,
+                    1.0 / half,
+                    stacked,
+                    np.arange(degree).astype(float),
+                    np.empty(degree),
+                    mix,
+                    self._motion[:, sel] if contiguous else None,
+                    self._frame_projection[k, sel] if contiguous else None,
+                    values,
+                    values[: 3 * m].reshape(3, m),
+                    values[3 * m :],
+                )
+            )
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
         self._scaled_load: float | None = None  # hand load the load model's gravity is currently scaled for
         self.joint_names = [j["name"] for j in joints]
-        moved_by = [j["function"]["coordinate"] if "function" in j else int(np.argmax(np.abs(self.gains[i])))
-                    for i, j in enumerate(joints)]
+        moved_by = [
+            j["function"]["coordinate"] if "function" in j else int(np.argmax(np.abs(self.gains[i])))
+            for i, j in enumerate(joints)
+        ]
         self._joint_scale = self.torque_scale[moved_by]
         self._kernels = compiled_kernels() if compiled else None
         self.tables: RigidTables | None = None if self._kernels is None else self._tables(self._kernels, joints)
@@ -146,9 +163,11 @@ class RigidModel:
             placement = self.model.jointPlacements[i + 1]
             if not np.array_equal(placement.rotation, np.eye(3)) or int(self.model.parents[i + 1]) >= i + 1:
                 parent = int(self.model.parents[i + 1]) - 1
-                raise ModelError(f"rigid model: joint {joint['name']!r} (dynamics.joints[{i}]) needs an unrotated "
-                                 f"placement and a parent listed before it (parent {parent}); the compiled evaluator "
-                                 "reads the tree in that order")
+                raise ModelError(
+                    f"rigid model: joint {joint['name']!r} (dynamics.joints[{i}]) needs an unrotated "
+                    f"placement and a parent listed before it (parent {parent}); the compiled evaluator "
+                    "reads the tree in that order"
+                )
             joint_int[i, kernels.PARENT] = int(joint["parent"])
             joint_int[i, kernels.KIND] = kernels.REVOLUTE if joint["kind"] == "revolute" else kernels.PRISMATIC
             row = joint_float[i]
@@ -172,8 +191,11 @@ class RigidModel:
             coef = np.asarray(function["coefficients"], dtype=float)
             poly_coef[i, : len(coef)] = coef
         return kernels.RigidTables.build(
-            joint_int=joint_int, joint_float=joint_float, poly_coef=poly_coef,
-            gains=np.ascontiguousarray(self.gains), projection=np.ascontiguousarray(self._projection),
+            joint_int=joint_int,
+            joint_float=joint_float,
+            poly_coef=poly_coef,
+            gains=np.ascontiguousarray(self.gains),
+            projection=np.ascontiguousarray(self._projection),
             load_per_point=self.load_share / self.n_load_points if self.n_load_points else 0.0,
         )
 
@@ -200,8 +222,22 @@ class RigidModel:
         motion_in[1] = qd
         motion_in[2] = qdd
         motion = np.dot(motion_in, self._gains_t, out=self._motion)
-        for k, idx, _m, centre, inv_half, stacked, powers, power_buf, mix, motion_view, \
-                projection_view, values, f_rows, slope in self._nl_groups:
+        for (
+            k,
+            idx,
+            _m,
+            centre,
+            inv_half,
+            stacked,
+            powers,
+            power_buf,
+            mix,
+            motion_view,
+            projection_view,
+            values,
+            f_rows,
+            slope,
+        ) in self._nl_groups:
             dq_k, v, a = motion_in[:, k].tolist()
             np.dot(stacked, np.power((dq_k - centre) * inv_half, powers, out=power_buf), out=values)
             mix[1, 1] = v

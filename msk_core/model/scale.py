@@ -62,8 +62,16 @@ def model_mass(model) -> float:
     return float(sum(bodies.get(i).getMass() for i in range(bodies.getSize())))
 
 
-def scale_model(osim_path: str | Path, spec_text: str, *, mass_kg: float, height_m: float,
-                segments: dict[str, float], out_osim: Path, spec_path: Path | None = None) -> dict:
+def scale_model(
+    osim_path: str | Path,
+    spec_text: str,
+    *,
+    mass_kg: float,
+    height_m: float,
+    segments: dict[str, float],
+    out_osim: Path,
+    spec_path: Path | None = None,
+) -> dict:
     """Write the scaled .osim; returns the factors and the generic/scaled segment lengths."""
     osim = osim_tools.import_opensim()
     if not 20.0 <= mass_kg <= 250.0:
@@ -74,8 +82,11 @@ def scale_model(osim_path: str | Path, spec_text: str, *, mass_kg: float, height
     defined = table.get("segments", {})
     for name in segments:
         if name not in defined:
-            raise ConfigError(f"unknown segment {name!r} ({closest(name, list(defined))}); defined: "
-                              f"{', '.join(defined)}", field="--segment", value=name)
+            raise ConfigError(
+                f"unknown segment {name!r} ({closest(name, list(defined))}); defined: {', '.join(defined)}",
+                field="--segment",
+                value=name,
+            )
     model, state = osim_tools.load_model(osim_path)
     generic = segment_lengths(model, state, defined)
     base = height_m / float(table["reference_height_m"])
@@ -110,16 +121,25 @@ def scale_model(osim_path: str | Path, spec_text: str, *, mass_kg: float, height
     }
 
 
-def scale_pack(pack_name_or_path: str, osim_path: str | Path, *, mass_kg: float, height_m: float,
-               segments: dict[str, float], out: str | Path, samples: int | None = None,
-               progress: Progress | None = None) -> tuple[Path, dict]:
+def scale_pack(
+    pack_name_or_path: str,
+    osim_path: str | Path,
+    *,
+    mass_kg: float,
+    height_m: float,
+    segments: dict[str, float],
+    out: str | Path,
+    samples: int | None = None,
+    progress: Progress | None = None,
+) -> tuple[Path, dict]:
     """Scale the pack's source model to the person and recompile the pack from it (same spec)."""
     pack = load_pack(pack_name_or_path)
     spec_text = pack.raw["spec"]
     out = Path(out)
     out_osim = out.with_suffix(".osim")
-    summary = scale_model(osim_path, spec_text, mass_kg=mass_kg, height_m=height_m, segments=segments,
-                          out_osim=out_osim)
+    summary = scale_model(
+        osim_path, spec_text, mass_kg=mass_kg, height_m=height_m, segments=segments, out_osim=out_osim
+    )
     spec = parse_spec(spec_text, pack.path)
     if samples is not None:
         from dataclasses import replace  # noqa: PLC0415
@@ -127,8 +147,12 @@ def scale_pack(pack_name_or_path: str, osim_path: str | Path, *, mass_kg: float,
         spec = replace(spec, fit=replace(spec.fit, samples=samples))
     data = compile_pack(out_osim, spec, progress=progress)
     data["name"] = f"{pack.name}"
-    data["scaling"] = {"mass_kg": mass_kg, "height_m": height_m, "segments_m": segments,
-                       **{k: v for k, v in summary.items() if k != "scaled_osim"}}
+    data["scaling"] = {
+        "mass_kg": mass_kg,
+        "height_m": height_m,
+        "segments_m": segments,
+        **{k: v for k, v in summary.items() if k != "scaled_osim"},
+    }
     data["source_model"] = f"{spec.source_model} scaled to {mass_kg} kg, {height_m} m"
     written = write_pack(data, out)
     return written, summary

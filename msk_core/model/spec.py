@@ -111,8 +111,9 @@ def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where
         raise ConfigError(f"missing required key in [{where}]", path=path, field=key)
     value = table[key]
     if not isinstance(value, kind):
-        raise ConfigError(f"must be {kind.__name__}", path=path, field=f"{where}.{key}", value=value,
-                          line=_line(text, key))
+        raise ConfigError(
+            f"must be {kind.__name__}", path=path, field=f"{where}.{key}", value=value, line=_line(text, key)
+        )
     return value
 
 
@@ -130,10 +131,17 @@ def _vector3(values: list[float]) -> tuple[float, float, float]:
 
 
 def _deg_pair(value: object, path: Path | None, text: str, fieldname: str) -> tuple[float, float]:
-    if not (isinstance(value, list) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value)
-            and value[0] < value[1]):
+    if not (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(v, (int, float)) for v in value)
+        and value[0] < value[1]
+    ):
         raise ConfigError(
-            "must be [lower, upper] in degrees with lower < upper", path=path, field=fieldname, value=value,
+            "must be [lower, upper] in degrees with lower < upper",
+            path=path,
+            field=fieldname,
+            value=value,
             line=_line(text, fieldname.split(".")[-2] if "." in fieldname else fieldname),
         )
     return math.radians(value[0]), math.radians(value[1])
@@ -157,14 +165,20 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         ref = math.radians(float(entry.get("reference_deg", 0.0)))
         if not lo <= ref <= hi:
             raise ConfigError(
-                "reference_deg outside range_deg", path=path, field=f"coordinates.{cname}.reference_deg",
-                value=entry.get("reference_deg"), line=_line(text, cname),
+                "reference_deg outside range_deg",
+                path=path,
+                field=f"coordinates.{cname}.reference_deg",
+                value=entry.get("reference_deg"),
+                line=_line(text, cname),
             )
         coupled = entry.get("coupled", {})
         if not isinstance(coupled, dict) or not all(isinstance(v, (int, float)) for v in coupled.values()):
             raise ConfigError(
-                "coupled must map coordinate names to ratios", path=path, field=f"coordinates.{cname}.coupled",
-                value=coupled, line=_line(text, cname),
+                "coupled must map coordinate names to ratios",
+                path=path,
+                field=f"coordinates.{cname}.coupled",
+                value=coupled,
+                line=_line(text, cname),
             )
         coordinates.append(CoordinateSpec(cname, lo, hi, ref, {k: float(v) for k, v in coupled.items()}))
     locked_raw = raw.get("locked", {})
@@ -176,7 +190,10 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
             locked[lname] = float(value["m"])
         else:
             raise ConfigError(
-                "locked values are { deg = .. } or { m = .. }", path=path, field=f"locked.{lname}", value=value,
+                "locked values are { deg = .. } or { m = .. }",
+                path=path,
+                field=f"locked.{lname}",
+                value=value,
                 line=_line(text, lname),
             )
     groups_raw = _need(raw, "groups", dict, path, text, "top level")
@@ -184,7 +201,10 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
     for gname, members in groups_raw.items():
         if not isinstance(members, list) or not members or not all(isinstance(m, str) for m in members):
             raise ConfigError(
-                "a group is a non-empty list of muscle names", path=path, field=f"groups.{gname}", value=members,
+                "a group is a non-empty list of muscle names",
+                path=path,
+                field=f"groups.{gname}",
+                value=members,
                 line=_line(text, gname),
             )
         groups[gname] = list(members)
@@ -222,21 +242,37 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
         raise ConfigError("must be a table", path=path, field="dynamics", line=_line(text, "[dynamics]"))
     unknown = sorted(set(dyn_raw) - set(DYNAMICS_KEYS))
     if unknown:
-        raise ConfigError(f"unknown key ({closest(unknown[0], list(DYNAMICS_KEYS))})", path=path,
-                          field=f"dynamics.{unknown[0]}", line=_line(text, unknown[0]))
+        raise ConfigError(
+            f"unknown key ({closest(unknown[0], list(DYNAMICS_KEYS))})",
+            path=path,
+            field=f"dynamics.{unknown[0]}",
+            line=_line(text, unknown[0]),
+        )
     points = dyn_raw.get("load_points", [])
     if not isinstance(points, list):
-        raise ConfigError("must be a list of { body = \"..\", point = [x, y, z] } (leave it out for a pack without "
-                          "a hand load)", path=path, field="dynamics.load_points", value=points,
-                          line=_line(text, "load_points"))
+        raise ConfigError(
+            'must be a list of { body = "..", point = [x, y, z] } (leave it out for a pack without a hand load)',
+            path=path,
+            field="dynamics.load_points",
+            value=points,
+            line=_line(text, "load_points"),
+        )
     loads = []
     for item in points:
         point = item.get("point") if isinstance(item, dict) else None
-        if not (isinstance(item, dict) and isinstance(item.get("body"), str) and isinstance(point, list)
-                and len(point) == 3 and all(_is_number(v) for v in point)):
+        if not (
+            isinstance(item, dict)
+            and isinstance(item.get("body"), str)
+            and isinstance(point, list)
+            and len(point) == 3
+            and all(_is_number(v) for v in point)
+        ):
             raise ConfigError(
-                "load_points entries are { body = \"..\", point = [x, y, z] }", path=path,
-                field="dynamics.load_points", value=item, line=_line(text, "load_points"),
+                'load_points entries are { body = "..", point = [x, y, z] }',
+                path=path,
+                field="dynamics.load_points",
+                value=item,
+                line=_line(text, "load_points"),
             )
         loads.append(LoadPoint(item["body"], _vector3(point)))
     shared_from = str(dyn_raw.get("shared_from", ""))
@@ -247,17 +283,27 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
             raise ConfigError(
                 "must be a number in (0, 1]: the share of the hand load (and of the shared_from bodies' mass) this "
                 "side carries; a pack without a hand load leaves load_points and load_share out",
-                path=path, field="dynamics.load_share", value=share, line=line)
+                path=path,
+                field="dynamics.load_share",
+                value=share,
+                line=line,
+            )
         if not loads and not shared_from:
             raise ConfigError(
                 "load_share without load_points or shared_from shares nothing: this pack has no hand load (no "
-                "load_points) and no shared bodies; leave load_share out", path=path, field="dynamics.load_share",
-                value=share, line=line)
+                "load_points) and no shared bodies; leave load_share out",
+                path=path,
+                field="dynamics.load_share",
+                value=share,
+                line=line,
+            )
     gravity = dyn_raw.get("gravity")
-    if gravity is not None and not (isinstance(gravity, list) and len(gravity) == 3
-                                    and all(_is_number(v) for v in gravity)):
-        raise ConfigError("must be [x, y, z] in m/s²", path=path, field="dynamics.gravity", value=gravity,
-                          line=_line(text, "gravity"))
+    if gravity is not None and not (
+        isinstance(gravity, list) and len(gravity) == 3 and all(_is_number(v) for v in gravity)
+    ):
+        raise ConfigError(
+            "must be [x, y, z] in m/s²", path=path, field="dynamics.gravity", value=gravity, line=_line(text, "gravity")
+        )
     return DynamicsSpec(
         root=str(dyn_raw.get("root", "ground")),
         gravity=None if gravity is None else _vector3(gravity),

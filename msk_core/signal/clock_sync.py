@@ -92,8 +92,11 @@ class ClockSyncConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError("must be a positive number", field=name, value=value)
         if self.lowpass_hz >= self.grid_hz / 2:
-            raise ConfigError("the low-pass must lie below the grid's Nyquist frequency", field="lowpass_hz",
-                              value=(self.lowpass_hz, self.grid_hz))
+            raise ConfigError(
+                "the low-pass must lie below the grid's Nyquist frequency",
+                field="lowpass_hz",
+                value=(self.lowpass_hz, self.grid_hz),
+            )
         if not 0 < self.min_correlation < 1:
             raise ConfigError("must lie in (0, 1)", field="min_correlation", value=self.min_correlation)
         if not self.min_motion_m_s2 >= 0:
@@ -141,8 +144,9 @@ class ClockOffset:
         """The EMG clock's host mapping (host time - EMG device time) implied by the tracker's (host time - tracker
         device time): the EMG then lands on the host clock where the tracker's samples of the same instant do."""
         if self.offset_ns is None:
-            raise InputError("no offset measured yet: keep the arrival-time mapping", field="status",
-                             value=self.status.value)
+            raise InputError(
+                "no offset measured yet: keep the arrival-time mapping", field="status", value=self.status.value
+            )
         return int(tracker_host_offset_ns + self.offset_ns)
 
 
@@ -158,8 +162,11 @@ class _Stream:
         if time_ns.size == 0:
             return
         if np.any(np.diff(time_ns) <= 0) or (self.last_ns is not None and time_ns[0] <= self.last_ns):
-            raise InputError("device times must increase from sample to sample and block to block", field=name,
-                             value=(self.last_ns, int(time_ns[0])))
+            raise InputError(
+                "device times must increase from sample to sample and block to block",
+                field=name,
+                value=(self.last_ns, int(time_ns[0])),
+            )
         self.time_ns.append(time_ns)
         self.feature.append(feature)
         self.last_ns = int(time_ns[-1])
@@ -250,8 +257,9 @@ class ClockSync:
         data of the tracker and of at least one EMG sensor."""
         cfg = self.config
         pad_ns, lag_ns = int(round(cfg.pad_s * 1e9)), int(round(cfg.max_lag_s * 1e9))
-        spans = [(s.first_ns, s.last_ns) for s in self._emg.values()
-                 if s.first_ns is not None and s.last_ns is not None]
+        spans = [
+            (s.first_ns, s.last_ns) for s in self._emg.values() if s.first_ns is not None and s.last_ns is not None
+        ]
         tracker_first, tracker_last = self._tracker.first_ns, self._tracker.last_ns
         if not spans or tracker_first is None or tracker_last is None:
             return None
@@ -267,12 +275,12 @@ class ClockSync:
         t, f = stream.arrays()
         if t.size < 2:
             return None
-        grid_s = (np.arange(-pad, n + pad) / cfg.grid_hz)
+        grid_s = np.arange(-pad, n + pad) / cfg.grid_hz
         local_s = (t - shift_ns - t0_ns) / 1e9
         if local_s[0] > grid_s[0] or local_s[-1] < grid_s[-1]:
             return None
         resampled = np.interp(grid_s, local_s, f)
-        return signal.sosfiltfilt(self._sos, resampled)[pad:pad + n]
+        return signal.sosfiltfilt(self._sos, resampled)[pad : pad + n]
 
     def _evaluate(self, start_ns: int, end_ns: int) -> None:
         cfg = self.config
@@ -282,10 +290,20 @@ class ClockSync:
         lag_ns = int(round(lags * 1e9 / cfg.grid_hz))
         tracker = self._grid_feature(self._tracker, self._center_ns, start_ns - lag_ns, n + 2 * lags)
         if tracker is None:
-            self.windows.append(WindowEstimate(start_ns, end_ns, SyncStatus.WAITING, None, None, None, None,
-                                               "the tracker does not cover the window"))
+            self.windows.append(
+                WindowEstimate(
+                    start_ns,
+                    end_ns,
+                    SyncStatus.WAITING,
+                    None,
+                    None,
+                    None,
+                    None,
+                    "the tracker does not cover the window",
+                )
+            )
             return
-        tracker_rms = float(np.std(tracker[lags:lags + n]))
+        tracker_rms = float(np.std(tracker[lags : lags + n]))
         rows = sliding_window_view(tracker, n)  # (2 lags + 1, n): the tracker at each lag
         centred = rows - rows.mean(axis=1, keepdims=True)
         centred_norm = np.linalg.norm(centred, axis=1)
@@ -310,8 +328,9 @@ class ClockSync:
             rest.append("the tracker did not move")
         if best is None:  # rest on one side at least
             reason = " and ".join(rest) + f" (feature RMS below {cfg.min_motion_m_s2:g} m/s²)"
-            self.windows.append(WindowEstimate(start_ns, end_ns, SyncStatus.NO_MOVEMENT, None, None, None, None,
-                                               reason))
+            self.windows.append(
+                WindowEstimate(start_ns, end_ns, SyncStatus.NO_MOVEMENT, None, None, None, None, reason)
+            )
             return
         k, r, sensor = best
         peak, width, refined = float(r[k]), None, float(k)
@@ -325,14 +344,22 @@ class ClockSync:
                 width = 1e3 * math.sqrt(peak / (-curvature * cfg.grid_hz**2)) if peak > 0 else None
         offset_ns = self._center_ns + int(round((refined - lags) * 1e9 / cfg.grid_hz))
         if k in (0, len(r) - 1):
-            status, reason = SyncStatus.NOT_TOGETHER, (
-                f"the best correlation (r = {peak:.2f}, {sensor}) lies on the edge of the search range "
-                f"(±{cfg.max_lag_s:g} s around {self._center_ns / 1e6:.1f} ms): the offset is outside it or no sensor "
-                "moved with the tracker")
+            status, reason = (
+                SyncStatus.NOT_TOGETHER,
+                (
+                    f"the best correlation (r = {peak:.2f}, {sensor}) lies on the edge of the search range "
+                    f"(±{cfg.max_lag_s:g} s around {self._center_ns / 1e6:.1f} ms): the offset is outside it or no sensor "
+                    "moved with the tracker"
+                ),
+            )
         elif peak < cfg.min_correlation:
-            status, reason = SyncStatus.NOT_TOGETHER, (
-                f"no EMG-clock sensor moved with the tracker: best peak r = {peak:.2f} ({sensor}) is below "
-                f"{cfg.min_correlation:g}")
+            status, reason = (
+                SyncStatus.NOT_TOGETHER,
+                (
+                    f"no EMG-clock sensor moved with the tracker: best peak r = {peak:.2f} ({sensor}) is below "
+                    f"{cfg.min_correlation:g}"
+                ),
+            )
         else:
             status, reason = SyncStatus.LOCKED, f"r = {peak:.3f} ({sensor})"
         self.windows.append(WindowEstimate(start_ns, end_ns, status, offset_ns, peak, width, sensor, reason))
@@ -379,22 +406,40 @@ class ClockSync:
         if accepted:
             offset, spread, drift = self._combined()
             last = accepted[-1]
-            return ClockOffset(SyncStatus.LOCKED, f"{len(accepted)} window(s) agree; newest {last.reason}", offset,
-                               spread, drift, len(accepted), last.peak_correlation, last.peak_width_ms, last.sensor,
-                               seen)
+            return ClockOffset(
+                SyncStatus.LOCKED,
+                f"{len(accepted)} window(s) agree; newest {last.reason}",
+                offset,
+                spread,
+                drift,
+                len(accepted),
+                last.peak_correlation,
+                last.peak_width_ms,
+                last.sensor,
+                seen,
+            )
         if not self._emg or self._tracker.last_ns is None:
             missing = "EMG-clock accelerations" if not self._emg else "tracker accelerations"
             return ClockOffset(SyncStatus.WAITING, f"no {missing} yet", windows_seen=seen)
         evaluated = [w for w in self.windows if w.status is not SyncStatus.WAITING]
         if not evaluated:
-            return ClockOffset(SyncStatus.WAITING, f"not yet a {cfg.window_s:g} s window of both streams (plus "
-                               f"±{cfg.max_lag_s:g} s search and {cfg.pad_s:g} s filter margins)", windows_seen=seen)
+            return ClockOffset(
+                SyncStatus.WAITING,
+                f"not yet a {cfg.window_s:g} s window of both streams (plus "
+                f"±{cfg.max_lag_s:g} s search and {cfg.pad_s:g} s filter margins)",
+                windows_seen=seen,
+            )
         together = [w for w in evaluated if w.status is SyncStatus.NOT_TOGETHER]
         if together:
             # a window with movement has a peak correlation (None is for rest only)
             best = max(together, key=lambda w: -math.inf if w.peak_correlation is None else w.peak_correlation)
-            return ClockOffset(SyncStatus.NOT_TOGETHER, f"{len(together)} window(s) with movement, none accepted: "
-                               f"{best.reason}", peak_correlation=best.peak_correlation, sensor=best.sensor,
-                               windows_seen=seen)
-        return ClockOffset(SyncStatus.NO_MOVEMENT, f"{len(evaluated)} window(s), all rest: {evaluated[-1].reason}",
-                           windows_seen=seen)
+            return ClockOffset(
+                SyncStatus.NOT_TOGETHER,
+                f"{len(together)} window(s) with movement, none accepted: {best.reason}",
+                peak_correlation=best.peak_correlation,
+                sensor=best.sensor,
+                windows_seen=seen,
+            )
+        return ClockOffset(
+            SyncStatus.NO_MOVEMENT, f"{len(evaluated)} window(s), all rest: {evaluated[-1].reason}", windows_seen=seen
+        )

@@ -46,7 +46,9 @@ class EmgFilterConfig:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise ConfigError("sample rate must be positive", field="rate_hz", value=self.rate_hz)
         if not 0 < self.lowpass_hz < nyquist:
-            raise ConfigError(f"low-pass cut-off must be in (0, {nyquist}) Hz", field="lowpass_hz", value=self.lowpass_hz)
+            raise ConfigError(
+                f"low-pass cut-off must be in (0, {nyquist}) Hz", field="lowpass_hz", value=self.lowpass_hz
+            )
         if self.lowpass_order < 1:
             raise ConfigError("order must be >= 1", field="lowpass_order", value=self.lowpass_order)
         if self.bandpass_hz is not None:
@@ -292,9 +294,15 @@ def windowed_peak(envelope: np.ndarray, window_samples: int = 1) -> np.ndarray:
     """
     a = _as_samples(envelope)
     if not (isinstance(window_samples, (int, np.integer)) and 1 <= window_samples):
-        raise ConfigError("the MVC window must be a whole number of samples >= 1", field="window_samples", value=window_samples)
+        raise ConfigError(
+            "the MVC window must be a whole number of samples >= 1", field="window_samples", value=window_samples
+        )
     if window_samples > a.shape[0]:
-        raise InputError(f"the MVC trial ({a.shape[0]} samples) is shorter than the window", field="window_samples", value=window_samples)
+        raise InputError(
+            f"the MVC trial ({a.shape[0]} samples) is shorter than the window",
+            field="window_samples",
+            value=window_samples,
+        )
     if window_samples == 1:
         return a.max(axis=0)
     csum = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a, axis=0)])
@@ -385,8 +393,9 @@ class StreamingEmgChain:
         self.delay = DelayLine(self.delay.n_delay, self.delay.buffer.shape[1])
 
 
-def emg_chain_batch(emg: np.ndarray, config: EmgFilterConfig, reference: NormalisationReference, *,
-                    delay_s: float = 0.0) -> np.ndarray:
+def emg_chain_batch(
+    emg: np.ndarray, config: EmgFilterConfig, reference: NormalisationReference, *, delay_s: float = 0.0
+) -> np.ndarray:
     """Batch causal equivalent of :class:`StreamingEmgChain`."""
     env = reference.normalise(envelope_causal(emg, config))
     return delay_batch(env, delay_samples(delay_s, config.rate_hz))

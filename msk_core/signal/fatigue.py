@@ -55,17 +55,23 @@ class FatigueConfig:
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 2 * EMG_BAND_HZ[1]):
-            raise ConfigError(f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
-                              field="rate_hz", value=self.rate_hz)
+            raise ConfigError(
+                f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
+                field="rate_hz",
+                value=self.rate_hz,
+            )
         if not 0 < self.active_fraction < 1:
-            raise ConfigError("the active fraction of the peak must be in (0, 1)", field="active_fraction",
-                              value=self.active_fraction)
+            raise ConfigError(
+                "the active fraction of the peak must be in (0, 1)", field="active_fraction", value=self.active_fraction
+            )
         if self.segment_samples < 32:
-            raise ConfigError("a Welch segment must hold at least 32 samples", field="welch_segment_s",
-                              value=self.welch_segment_s)
+            raise ConfigError(
+                "a Welch segment must hold at least 32 samples", field="welch_segment_s", value=self.welch_segment_s
+            )
         if self.min_active_samples < self.segment_samples:
-            raise ConfigError("the shortest active part must hold a Welch segment", field="min_active_s",
-                              value=self.min_active_s)
+            raise ConfigError(
+                "the shortest active part must hold a Welch segment", field="min_active_s", value=self.min_active_s
+            )
         if self.baseline_reps < 1:
             raise ConfigError("need at least one baseline rep", field="baseline_reps", value=self.baseline_reps)
 
@@ -78,8 +84,9 @@ class FatigueConfig:
         return int(round(self.min_active_s * self.rate_hz))
 
 
-def median_and_mean_frequency(freqs: np.ndarray, psd: np.ndarray, band_hz: tuple[float, float] = EMG_BAND_HZ
-                              ) -> tuple[np.ndarray, np.ndarray]:
+def median_and_mean_frequency(
+    freqs: np.ndarray, psd: np.ndarray, band_hz: tuple[float, float] = EMG_BAND_HZ
+) -> tuple[np.ndarray, np.ndarray]:
     """MDF and MNF (Hz) of a one-sided spectrum ``psd[..., f]`` sampled at ``freqs`` (uniform), over ``band_hz``.
 
     Each bin holds the power of ``[f - df/2, f + df/2]`` spread evenly (cut at the band's edges); MDF is where the
@@ -109,8 +116,16 @@ def median_and_mean_frequency(freqs: np.ndarray, psd: np.ndarray, band_hz: tuple
 def welch_psd(emg: np.ndarray, config: FatigueConfig) -> tuple[np.ndarray, np.ndarray]:
     """Welch spectrum of raw EMG ``(n_samples, ...)`` (at least one segment long): ``(freqs, psd[..., f])``."""
     n = config.segment_samples
-    return signal.welch(np.asarray(emg, dtype=float), config.rate_hz, window="hann", nperseg=n, noverlap=n // 2,
-                        detrend="constant", scaling="density", axis=0)
+    return signal.welch(
+        np.asarray(emg, dtype=float),
+        config.rate_hz,
+        window="hann",
+        nperseg=n,
+        noverlap=n // 2,
+        detrend="constant",
+        scaling="density",
+        axis=0,
+    )
 
 
 @dataclass(frozen=True)
@@ -147,8 +162,9 @@ def active_part(rep_emg: np.ndarray, config: FatigueConfig) -> tuple[np.ndarray,
     return start.astype(np.int64), end.astype(np.int64)
 
 
-def rep_spectrum(rep_emg: np.ndarray, config: FatigueConfig, *, rep: int, t_start: float, t_end: float,
-                 first_sample: int) -> RepSpectrum:
+def rep_spectrum(
+    rep_emg: np.ndarray, config: FatigueConfig, *, rep: int, t_start: float, t_end: float, first_sample: int
+) -> RepSpectrum:
     """Spectral values of one rep from its raw EMG ``(n_samples, n_channels)`` (sample 0 = ``first_sample``)."""
     x = np.asarray(rep_emg, dtype=float)
     n_channels = x.shape[1]
@@ -194,8 +210,11 @@ def rep_spectra(emg: np.ndarray, reps: list, config: FatigueConfig, *, t0: float
         t_start, t_end = _rep_times(rep)
         i0, i1 = _rep_samples(t_start, t_end, t0, config.rate_hz)
         if i0 < 0 or i1 > x.shape[0]:
-            raise InputError(f"rep {number} ({t_start:.3f}-{t_end:.3f} s) is outside the recording "
-                             f"({t0:.3f}-{t0 + x.shape[0] / config.rate_hz:.3f} s)", field="reps")
+            raise InputError(
+                f"rep {number} ({t_start:.3f}-{t_end:.3f} s) is outside the recording "
+                f"({t0:.3f}-{t0 + x.shape[0] / config.rate_hz:.3f} s)",
+                field="reps",
+            )
         out.append(rep_spectrum(x[i0:i1], config, rep=number, t_start=t_start, t_end=t_end, first_sample=i0))
     return out
 
@@ -223,8 +242,18 @@ class FatigueTrend:
 
 def _trend(rep_numbers: np.ndarray, values: np.ndarray, baseline_reps: int) -> SpectralTrend:
     n_channels = values.shape[1]
-    fields = {k: np.full(n_channels, np.nan) for k in ("slope_hz_per_rep", "slope_se_hz_per_rep", "slope_pct_per_rep",
-                                                          "first_hz", "last_hz", "change_hz", "change_pct")}
+    fields = {
+        k: np.full(n_channels, np.nan)
+        for k in (
+            "slope_hz_per_rep",
+            "slope_se_hz_per_rep",
+            "slope_pct_per_rep",
+            "first_hz",
+            "last_hz",
+            "change_hz",
+            "change_pct",
+        )
+    }
     counts = np.zeros(n_channels, dtype=np.int64)
     for c in range(n_channels):
         ok = np.isfinite(values[:, c])
@@ -253,8 +282,10 @@ def fatigue_trend(spectra: list[RepSpectrum], *, baseline_reps: int = BASELINE_R
     if not spectra:
         raise InputError("no reps to take a trend over", field="spectra")
     numbers = np.array([s.rep for s in spectra])
-    return FatigueTrend(median=_trend(numbers, np.stack([s.median_hz for s in spectra]), baseline_reps),
-                        mean=_trend(numbers, np.stack([s.mean_hz for s in spectra]), baseline_reps))
+    return FatigueTrend(
+        median=_trend(numbers, np.stack([s.median_hz for s in spectra]), baseline_reps),
+        mean=_trend(numbers, np.stack([s.mean_hz for s in spectra]), baseline_reps),
+    )
 
 
 class FatigueTracker:
@@ -324,10 +355,19 @@ class FatigueTracker:
             self._pending.pop(0)
             first_kept = self.samples_seen - self._filled
             if i0 < first_kept:
-                raise InputError(f"rep {t_start:.3f}-{t_end:.3f} s starts before the EMG the tracker keeps "
-                                 f"({self.config.max_history_s:g} s)", field="rep")
-            spectrum = rep_spectrum(self._buffer[i0 - first_kept : i1 - first_kept], self.config,
-                                    rep=len(self.spectra) + 1, t_start=t_start, t_end=t_end, first_sample=i0)
+                raise InputError(
+                    f"rep {t_start:.3f}-{t_end:.3f} s starts before the EMG the tracker keeps "
+                    f"({self.config.max_history_s:g} s)",
+                    field="rep",
+                )
+            spectrum = rep_spectrum(
+                self._buffer[i0 - first_kept : i1 - first_kept],
+                self.config,
+                rep=len(self.spectra) + 1,
+                t_start=t_start,
+                t_end=t_end,
+                first_sample=i0,
+            )
             self.spectra.append(spectrum)
             done.append(spectrum)
         return done

@@ -19,23 +19,31 @@ MIN_SWING_S = 0.1  # off the ground at least this long before a heel strike coun
 # flicker around the threshold (a few samples), shorter than any swing (a walking swing lasts ~0.4 s)
 
 
-def heel_strikes(time: np.ndarray, vertical_force: np.ndarray, *, threshold_n: float = CONTACT_THRESHOLD_N,
-                 min_swing_s: float = MIN_SWING_S) -> np.ndarray:
+def heel_strikes(
+    time: np.ndarray,
+    vertical_force: np.ndarray,
+    *,
+    threshold_n: float = CONTACT_THRESHOLD_N,
+    min_swing_s: float = MIN_SWING_S,
+) -> np.ndarray:
     """Times (s) at which the foot lands: the force rises through ``threshold_n`` (interpolated between samples)
     after at least ``min_swing_s`` below it. Flickers around the threshold inside a stance or a swing do not count."""
     t = np.asarray(time, dtype=float)
     f = np.asarray(vertical_force, dtype=float)
     if t.ndim != 1 or t.shape != f.shape or t.size < 3:
-        raise InputError(f"time and vertical force must be 1-D arrays of the same length >= 3, got {t.shape} and "
-                         f"{f.shape}", field="vertical_force")
+        raise InputError(
+            f"time and vertical force must be 1-D arrays of the same length >= 3, got {t.shape} and {f.shape}",
+            field="vertical_force",
+        )
     if not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
         raise InputError("time must be finite and increasing", field="time")
     if not np.all(np.isfinite(f)):
         bad = int(np.flatnonzero(~np.isfinite(f))[0])
         raise InputError(f"vertical force is not finite at t = {t[bad]:g} s", field="vertical_force", value=f[bad])
     if not threshold_n > 0 or not min_swing_s >= 0:
-        raise ConfigError("need threshold_n > 0 and min_swing_s >= 0", field="threshold_n",
-                          value=(threshold_n, min_swing_s))
+        raise ConfigError(
+            "need threshold_n > 0 and min_swing_s >= 0", field="threshold_n", value=(threshold_n, min_swing_s)
+        )
     contact = f > threshold_n
     rises = np.flatnonzero(contact[1:] & ~contact[:-1]) + 1
     falls = np.flatnonzero(~contact[1:] & contact[:-1]) + 1

@@ -68,15 +68,19 @@ class ClockReport:
 def check_latency_ns(latency_ns: int, field: str = "latency") -> int:
     """A stated device latency: a whole number of ns in [0, 1 s]; else :class:`ConfigError` naming ``field``."""
     if isinstance(latency_ns, bool) or not isinstance(latency_ns, (int, np.integer)) or not 0 <= latency_ns <= 10**9:
-        raise ConfigError("a device latency must be a whole number of ns within 0..1e9 (0..1000 ms)", field=field,
-                          value=latency_ns)
+        raise ConfigError(
+            "a device latency must be a whole number of ns within 0..1e9 (0..1000 ms)", field=field, value=latency_ns
+        )
     return int(latency_ns)
 
 
 def latency_ns_from_ms(ms, field: str) -> int:
     """A latency stated in milliseconds (a number within 0..1000) in ns; else :class:`ConfigError` naming ``field``."""
-    if isinstance(ms, bool) or not isinstance(ms, (int, float, np.integer, np.floating)) or not (
-            np.isfinite(ms) and 0 <= ms <= 1000):
+    if (
+        isinstance(ms, bool)
+        or not isinstance(ms, (int, float, np.integer, np.floating))
+        or not (np.isfinite(ms) and 0 <= ms <= 1000)
+    ):
         raise ConfigError("a device latency is a number of milliseconds within 0..1000", field=field, value=ms)
     return int(round(float(ms) * 1e6))
 
@@ -107,8 +111,7 @@ class HostClock:
 
     def __init__(self, source: str, *, latency_ns: int = 0, window_s: float = WINDOW_S) -> None:
         if not (np.isfinite(window_s) and window_s > 0):
-            raise ConfigError("the clock window must be a positive number of seconds", field="window_s",
-                              value=window_s)
+            raise ConfigError("the clock window must be a positive number of seconds", field="window_s", value=window_s)
         self.source = source
         self.latency_ns = check_latency_ns(latency_ns, f"latency of {source}")
         self.window_ns = int(round(window_s * 1e9))
@@ -158,11 +161,18 @@ class DeviceClocks:
     from the same samples, to the same host instants. ``prefix``: the streams' names in reports (``imu`` ->
     ``imu/<name>``)."""
 
-    def __init__(self, prefix: str, *, latency_ns: dict[str, int] | None = None, default_latency_ns: int = 0,
-                 window_s: float = WINDOW_S) -> None:
+    def __init__(
+        self,
+        prefix: str,
+        *,
+        latency_ns: dict[str, int] | None = None,
+        default_latency_ns: int = 0,
+        window_s: float = WINDOW_S,
+    ) -> None:
         self.prefix = prefix
-        self.latency_ns = {name: check_latency_ns(value, f"latency of {prefix}/{name}")
-                           for name, value in (latency_ns or {}).items()}
+        self.latency_ns = {
+            name: check_latency_ns(value, f"latency of {prefix}/{name}") for name, value in (latency_ns or {}).items()
+        }
         self.default_latency_ns = check_latency_ns(default_latency_ns, f"default latency of {prefix}")
         self.window_s = window_s
         self.clocks: dict[str, HostClock] = {}
@@ -172,8 +182,11 @@ class DeviceClocks:
         measured at, by the mapping after it."""
         clock = self.clocks.get(name)
         if clock is None:
-            clock = self.clocks[name] = HostClock(f"{self.prefix}/{name}", window_s=self.window_s,
-                                                  latency_ns=self.latency_ns.get(name, self.default_latency_ns))
+            clock = self.clocks[name] = HostClock(
+                f"{self.prefix}/{name}",
+                window_s=self.window_s,
+                latency_ns=self.latency_ns.get(name, self.default_latency_ns),
+            )
         clock.add(device_ns, receipt_ns)
         offset = clock.offset_ns
         assert offset is not None  # a clock with a sample has an offset
@@ -196,11 +209,15 @@ def windowed_offsets(device_ns, receipt_ns, *, latency_ns: int = 0, window_s: fl
     device = np.asarray(device_ns, dtype=np.int64)
     receipt = np.asarray(receipt_ns, dtype=np.int64)
     if device.shape != receipt.shape or device.ndim != 1:
-        raise ConfigError("device and receipt times must be two 1-d arrays of one length", field="receipt_ns",
-                          value=(device.shape, receipt.shape))
+        raise ConfigError(
+            "device and receipt times must be two 1-d arrays of one length",
+            field="receipt_ns",
+            value=(device.shape, receipt.shape),
+        )
     if np.any(np.diff(receipt) < 0):
-        raise ConfigError("receipt times must not decrease (one device's samples, in the order they came)",
-                          field="receipt_ns")
+        raise ConfigError(
+            "receipt times must not decrease (one device's samples, in the order they came)", field="receipt_ns"
+        )
     latency_ns = check_latency_ns(latency_ns)
     delay = receipt - device
     first = np.searchsorted(receipt, receipt - int(round(window_s * 1e9)), side="left")
@@ -215,5 +232,5 @@ def windowed_offsets(device_ns, receipt_ns, *, latency_ns: int = 0, window_s: fl
     out = np.empty(len(delay), dtype=np.int64)
     for k in np.unique(level):
         rows = level == k
-        out[rows] = np.minimum(table[k][first[rows]], table[k][index[rows] - 2 ** k + 1])
+        out[rows] = np.minimum(table[k][first[rows]], table[k][index[rows] - 2**k + 1])
     return out - latency_ns

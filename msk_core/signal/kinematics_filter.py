@@ -36,8 +36,9 @@ def lowpass_coordinates(time: np.ndarray, q: np.ndarray, cutoff_hz: float) -> tu
     dt = np.diff(time)
     step = float(np.median(dt))
     if step <= 0 or np.max(np.abs(dt - step)) > MAX_INTERVAL_SPREAD * step:
-        raise InputError(f"the coordinate low-pass needs a uniform sample rate; intervals range "
-                         f"{dt.min():g} .. {dt.max():g} s")
+        raise InputError(
+            f"the coordinate low-pass needs a uniform sample rate; intervals range {dt.min():g} .. {dt.max():g} s"
+        )
     nyquist = 0.5 / step
     if not 0 < cutoff_hz < nyquist:
         raise InputError(f"low-pass cut-off {cutoff_hz:g} Hz must be below the Nyquist frequency {nyquist:g} Hz")

@@ -134,13 +134,17 @@ class QualityConfig:
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 2 * EMG_BAND_HZ[1]):
-            raise ConfigError(f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
-                              field="rate_hz", value=self.rate_hz)
+            raise ConfigError(
+                f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
+                field="rate_hz",
+                value=self.rate_hz,
+            )
         if not (np.isfinite(self.range_v) and self.range_v > 0):
             raise ConfigError("the input range must be a positive voltage", field="range_v", value=self.range_v)
         if not self.mains_hz or not all(0 < f < MAINS_MAX_HZ for f in self.mains_hz):
-            raise ConfigError(f"mains frequencies must lie in (0, {MAINS_MAX_HZ:.0f}) Hz", field="mains_hz",
-                              value=self.mains_hz)
+            raise ConfigError(
+                f"mains frequencies must lie in (0, {MAINS_MAX_HZ:.0f}) Hz", field="mains_hz", value=self.mains_hz
+            )
         if not 0 < self.hop_s <= self.window_s:
             raise ConfigError("need 0 < hop_s <= window_s", field="hop_s", value=(self.hop_s, self.window_s))
         if self.window_samples < 64:
@@ -182,8 +186,15 @@ class WindowMetrics:
         return WindowMetrics(*(np.asarray(getattr(self, f))[k] for f in _METRIC_FIELDS))
 
 
-_METRIC_FIELDS = ("band_rms_v", "low_freq_rms_v", "mains_fraction", "mains_hz", "rail_fraction", "repeat_fraction",
-                  "std_v")
+_METRIC_FIELDS = (
+    "band_rms_v",
+    "low_freq_rms_v",
+    "mains_fraction",
+    "mains_hz",
+    "rail_fraction",
+    "repeat_fraction",
+    "std_v",
+)
 
 
 LineMasks = list[list[tuple[np.ndarray, np.ndarray]]]
@@ -215,8 +226,9 @@ def window_metrics(windows: np.ndarray, config: QualityConfig) -> WindowMetrics:
     """Metrics of raw EMG windows ``(n_windows, n_channels, window_samples)`` in volts."""
     w = np.asarray(windows, dtype=np.float64)
     if w.ndim != 3 or w.shape[2] != config.window_samples:
-        raise InputError(f"windows must be shaped (n_windows, n_channels, {config.window_samples})", field="windows",
-                         value=w.shape)
+        raise InputError(
+            f"windows must be shaped (n_windows, n_channels, {config.window_samples})", field="windows", value=w.shape
+        )
     freqs, psd = signal.periodogram(w, config.rate_hz, window="hann", detrend="constant", axis=-1)
     df = freqs[1] - freqs[0]
     families, band = _line_masks(freqs, config)
@@ -453,8 +465,9 @@ def _window_ends(lowest: int, highest: int, config: QualityConfig) -> np.ndarray
     return w + h * np.arange(start, stop + 1, dtype=np.int64)
 
 
-def _decide(ends: np.ndarray, metrics: WindowMetrics, decisions: _Hysteresis,
-            config: QualityConfig) -> list[QualityVerdict]:
+def _decide(
+    ends: np.ndarray, metrics: WindowMetrics, decisions: _Hysteresis, config: QualityConfig
+) -> list[QualityVerdict]:
     verdicts = []
     for k, end in enumerate(ends):
         row = metrics.row(k)

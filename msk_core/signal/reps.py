@@ -61,11 +61,17 @@ class RepDetectionConfig:
 
     def __post_init__(self) -> None:
         if not 0.0 < self.start_fraction < self.min_depth_fraction <= 1.0:
-            raise ConfigError("need 0 < start_fraction < min_depth_fraction <= 1", field="start_fraction",
-                              value=(self.start_fraction, self.min_depth_fraction))
+            raise ConfigError(
+                "need 0 < start_fraction < min_depth_fraction <= 1",
+                field="start_fraction",
+                value=(self.start_fraction, self.min_depth_fraction),
+            )
         if not 0.0 <= self.rest_percentile < self.peak_percentile <= 100.0:
-            raise ConfigError("need rest_percentile < peak_percentile", field="rest_percentile",
-                              value=(self.rest_percentile, self.peak_percentile))
+            raise ConfigError(
+                "need rest_percentile < peak_percentile",
+                field="rest_percentile",
+                value=(self.rest_percentile, self.peak_percentile),
+            )
 
 
 @dataclass(frozen=True)
@@ -150,7 +156,9 @@ def detect_reps(time: np.ndarray, values: np.ndarray, config: RepDetectionConfig
     return reps
 
 
-def rep_phase(time: np.ndarray, reps: list[Rep], mode: PhaseMode = PhaseMode.TURNING_POINT) -> tuple[np.ndarray, np.ndarray]:
+def rep_phase(
+    time: np.ndarray, reps: list[Rep], mode: PhaseMode = PhaseMode.TURNING_POINT
+) -> tuple[np.ndarray, np.ndarray]:
     """Phase in [0, 1) of every sample inside a rep (:data:`REST_PHASE` outside) and the rep index (-1 outside)."""
     t = np.asarray(time, dtype=float).reshape(-1)
     phase = np.full(t.shape, REST_PHASE)

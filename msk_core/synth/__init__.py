@@ -21,7 +21,21 @@ from msk_core.synth.session import (
 from msk_core.synth.subject import Subject, make_subject
 
 __all__ = [
-    "Effects", "Exercise", "ExerciseSession", "ExerciseSpec", "MvcTrial", "SPECS", "Session", "Subject",
-    "SynthConfig", "Trial", "generate_exercise", "generate_mvc", "generate_session", "generate_trial",
-    "make_subject", "parse_effects", "parse_exercise",
+    "Effects",
+    "Exercise",
+    "ExerciseSession",
+    "ExerciseSpec",
+    "MvcTrial",
+    "SPECS",
+    "Session",
+    "Subject",
+    "SynthConfig",
+    "Trial",
+    "generate_exercise",
+    "generate_mvc",
+    "generate_session",
+    "generate_trial",
+    "make_subject",
+    "parse_effects",
+    "parse_exercise",
 ]

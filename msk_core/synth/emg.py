@@ -89,7 +89,9 @@ def raw_emg(
 MVC_BLOCK_S = 4.0  # one maximal contraction: rest, ramp, plateau, ramp down, rest
 
 
-def mvc_drive(channels: list[str], rate_hz: float, *, seed: int, block_s: float = MVC_BLOCK_S) -> tuple[np.ndarray, np.ndarray]:
+def mvc_drive(
+    channels: list[str], rate_hz: float, *, seed: int, block_s: float = MVC_BLOCK_S
+) -> tuple[np.ndarray, np.ndarray]:
     """Activation of a block of maximal voluntary contractions, one channel after another: rest, 0.8 s ramp, 1.6 s
     plateau at a ≈ 1 (3 % tremor), ramp down; the other sites co-activate at 5-15 %. Returns (time, drive)."""
     n_block = int(round(block_s * rate_hz))

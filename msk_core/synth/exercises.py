@@ -72,7 +72,8 @@ class ExerciseSpec:
                     break
         if not used:
             raise ConfigError(
-                f"no coordinate of the pack matches the {self.exercise.value} roles", field="coordinates",
+                f"no coordinate of the pack matches the {self.exercise.value} roles",
+                field="coordinates",
                 value=coordinates,
             )
         # keep a small margin inside the fitted range so depth jitter never leaves it
@@ -135,7 +136,9 @@ DEADLIFT = ExerciseSpec(
     # erector spinae and multifidus over the lumbar vertebrae, the abdominal wall at mid-lumbar level, gluteals and
     # TFL on the pelvis, thigh and shank muscles at the middle of their segments
     electrode_sites={
-        "ESL": ElectrodeSite(r"lumbar1", 0.6), "ESI": ElectrodeSite(r"lumbar2"), "MUL": ElectrodeSite(r"lumbar5"),
+        "ESL": ElectrodeSite(r"lumbar1", 0.6),
+        "ESI": ElectrodeSite(r"lumbar2"),
+        "MUL": ElectrodeSite(r"lumbar5"),
         **{g: ElectrodeSite(r"lumbar3") for g in ("RA", "EO", "IO")},
         **{g: ElectrodeSite(r"pelvis", 0.7) for g in ("Gmax", "Gmed", "TFL")},
         **{g: ElectrodeSite(r"femur|thigh", 0.8) for g in ("BF", "ST", "RF", "VL", "VM")},

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, windowed_peak
 from msk_core.io import write_sto
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, windowed_peak
 from msk_core.synth.session import ExerciseSession, Session, Trial
 
 TRUTH_FORMAT = "msk-synth-truth/1"
@@ -66,23 +66,38 @@ def _downsample(time_hi: np.ndarray, x: np.ndarray, time_lo: np.ndarray) -> np.n
     return np.column_stack([np.interp(time_lo, time_hi, x[:, k]) for k in range(x.shape[1])])
 
 
-def write_trial(trial: Trial, folder: Path, *, emg_max: dict[str, float], body_mass_kg: float,
-                emg_rate_hz: float, emg_output: EmgOutput) -> dict:
+def write_trial(
+    trial: Trial,
+    folder: Path,
+    *,
+    emg_max: dict[str, float],
+    body_mass_kg: float,
+    emg_rate_hz: float,
+    emg_output: EmgOutput,
+) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     name = f"msk-synth {trial.name}"
     write_sto(folder / "ik.sto", trial.time, trial.coordinates, _r(trial.q, "angle"), name=name)
-    write_sto(folder / "id.sto", trial.time, [f"{c}_moment" for c in trial.coordinates],
-              _r(trial.torque_reported, "torque"), name=name)
+    write_sto(
+        folder / "id.sto",
+        trial.time,
+        [f"{c}_moment" for c in trial.coordinates],
+        _r(trial.torque_reported, "torque"),
+        name=name,
+    )
     if emg_output is EmgOutput.RAW:
         write_sto(folder / "emg.sto", trial.emg_time, trial.channels, _r(trial.emg, "emg"), name=name)
     else:
         env = _downsample(trial.emg_time, _envelope(trial.emg, emg_rate_hz), trial.time)
         write_sto(folder / "emg.sto", trial.time, trial.channels, _r(env, "emg"), name=name)
-    write_sto(folder / "truth_activations.sto", trial.time, trial.groups, _r(trial.activation, "activation"),
-              name=name)
-    write_sto(folder / "truth_torques.sto", trial.time,
-              [f"{c}_id" for c in trial.coordinates] + [f"{c}_muscle" for c in trial.coordinates],
-              _r(np.column_stack([trial.torque_id, trial.torque_muscle]), "torque"), name=name)
+    write_sto(folder / "truth_activations.sto", trial.time, trial.groups, _r(trial.activation, "activation"), name=name)
+    write_sto(
+        folder / "truth_torques.sto",
+        trial.time,
+        [f"{c}_id" for c in trial.coordinates] + [f"{c}_muscle" for c in trial.coordinates],
+        _r(np.column_stack([trial.torque_id, trial.torque_muscle]), "torque"),
+        name=name,
+    )
     spec = {
         "name": trial.name,
         "kinematics": "ik.sto",
@@ -114,8 +129,9 @@ def write_trial(trial: Trial, folder: Path, *, emg_max: dict[str, float], body_m
 ISOMETRIC_RATE_HZ = 50.0  # isometric trials: a static pose and 6 Hz envelopes need no more
 
 
-def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[str, float], envelope: np.ndarray,
-                           emg_output: EmgOutput) -> list[dict]:
+def write_isometric_trials(
+    ex: ExerciseSession, folder: Path, *, emg_max: dict[str, float], envelope: np.ndarray, emg_output: EmgOutput
+) -> list[dict]:
     """One isometric trial per MVC block (the contraction of one site, the EMG of all), under ``folder/mvc``;
     ``envelope`` is the whole MVC recording's (sliced per block, so no block starts with a filter transient)."""
     mvc = ex.mvc
@@ -132,8 +148,13 @@ def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[s
         name = f"msk-synth mvc {ch}"
         coords = mvc.coordinates
         write_sto(sub / "ik.sto", t_lo, coords, _r(np.repeat(poses[k][None], t_lo.size, 0), "angle"), name=name)
-        write_sto(sub / "id.sto", t_lo, [f"{c}_moment" for c in coords], _r(_downsample(t_hi, torque[sl], t_lo),
-                  "torque"), name=name)
+        write_sto(
+            sub / "id.sto",
+            t_lo,
+            [f"{c}_moment" for c in coords],
+            _r(_downsample(t_hi, torque[sl], t_lo), "torque"),
+            name=name,
+        )
         if emg_output is EmgOutput.RAW:
             write_sto(sub / "emg.sto", t_hi, mvc.channels, _r(mvc.emg[sl], "emg"), name=name)
         else:
@@ -150,12 +171,14 @@ def write_isometric_trials(ex: ExerciseSession, folder: Path, *, emg_max: dict[s
             "emg_max": {c: emg_max[c] for c in mvc.channels},
         }
         (sub / "trial.toml").write_bytes(tomli_w.dumps(spec).encode())
-        out.append({
-            "channel": ch,
-            "trial": str(Path("mvc") / ch / "trial.toml"),
-            "pose_deg": dict(zip(coords, np.degrees(poses[k]).round(3).tolist())),
-            "peak_abs_torque_nm": dict(zip(coords, map(float, np.abs(torque[sl]).max(axis=0)))),
-        })
+        out.append(
+            {
+                "channel": ch,
+                "trial": str(Path("mvc") / ch / "trial.toml"),
+                "pose_deg": dict(zip(coords, np.degrees(poses[k]).round(3).tolist())),
+                "peak_abs_torque_nm": dict(zip(coords, map(float, np.abs(torque[sl]).max(axis=0)))),
+            }
+        )
     return out
 
 
@@ -187,8 +210,14 @@ def write_session(session: Session, out: str | Path, *, emg_output: EmgOutput = 
             write_sto(folder / "mvc_emg.sto", t_lo, ex.mvc.channels, _r(env, "emg"), name="msk-synth mvc envelope")
         isometric = write_isometric_trials(ex, folder, emg_max=maxima, envelope=mvc_envelope, emg_output=emg_output)
         trials = [
-            write_trial(t, folder / t.name, emg_max=maxima, body_mass_kg=ex.subject.mass_kg,
-                        emg_rate_hz=cfg.emg_rate_hz, emg_output=emg_output)
+            write_trial(
+                t,
+                folder / t.name,
+                emg_max=maxima,
+                body_mass_kg=ex.subject.mass_kg,
+                emg_rate_hz=cfg.emg_rate_hz,
+                emg_output=emg_output,
+            )
             for t in ex.trials
         ]
         truth["exercises"][ex.spec.exercise.value] = {

@@ -79,8 +79,9 @@ def joint_motion(rigid, dq: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> tupl
     return qp, vp, ap
 
 
-def body_point_motion(pack, points: list[tuple[dict, float]], q: np.ndarray, qd: np.ndarray,
-                      qdd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def body_point_motion(
+    pack, points: list[tuple[dict, float]], q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Motion of points fixed on pack bodies, from pinocchio's forward kinematics of the rigid model. ``points``: per
     point, (pack body, where on it: 0 at the body's joint centre, 1 at its centre of mass, on the line between).
     Returns, per point and sample, the body's rotation (P, n, 3, 3: body -> model ground), its angular velocity

@@ -134,7 +134,7 @@ def evaluate(plan: RepPlan, time: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
         qd[sel] = dq * ds * dtw
         qdd[sel] = dq * (dds * dtw**2 + ds * ddtw)
         rep_index[sel] = move.rep
-    for r, (a, b) in enumerate(zip(plan.rep_starts, plan.rep_ends)):
+    for a, b in zip(plan.rep_starts, plan.rep_ends):
         sel = (time >= a) & (time < b)
         phase[sel] = (time[sel] - a) / (b - a)
     return q, qd, qdd, phase, rep_index

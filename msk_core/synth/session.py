@@ -20,7 +20,6 @@ from msk_core.synth.subject import Subject, make_subject
 from msk_core.units import GRAVITY
 
 
-
 @dataclass(frozen=True)
 class SynthConfig:
     subject_seed: int = 7
@@ -127,8 +126,17 @@ def generate_trial(
     key = (spec.exercise.value, float(load_kg))
     eff = config.effects
     top, bottom, warp = spec.poses(pack.coordinates, pack.reference_pose, pack.coordinate_ranges)
-    plan = plan_reps(top, bottom, config.n_reps, seed=seed, key=key, tempo=config.tempo, warp=warp,
-                     lo=pack.coordinate_ranges[:, 0], hi=pack.coordinate_ranges[:, 1])
+    plan = plan_reps(
+        top,
+        bottom,
+        config.n_reps,
+        seed=seed,
+        key=key,
+        tempo=config.tempo,
+        warp=warp,
+        lo=pack.coordinate_ranges[:, 0],
+        hi=pack.coordinate_ranges[:, 1],
+    )
     time = np.arange(0.0, plan.duration, 1.0 / config.kinematics_rate_hz)
     q, qd, qdd, phase, rep = evaluate(plan, time)
     n, n_c, n_g = time.size, len(pack.coordinates), len(pack.groups)
@@ -139,17 +147,30 @@ def generate_trial(
     lengths = np.empty((n, n_g))
     for k in range(n):
         tau_id[k] = pack.inverse_dynamics(q[k], qd[k], qdd[k], load_kg * GRAVITY)
-        tau_rep[k] = tau_id[k] if reported == load_kg else pack.inverse_dynamics(q[k], qd[k], qdd[k], reported * GRAVITY)
+        tau_rep[k] = (
+            tau_id[k] if reported == load_kg else pack.inverse_dynamics(q[k], qd[k], qdd[k], reported * GRAVITY)
+        )
         lengths[k], arms[k] = pack.lengths_and_moment_arms(q[k])
     tau_muscle = tau_id + eff.damping * qd  # muscles also overcome the joint damping (absent from ID)
     f_max = pack.f_max_ref * subject.f_max_factor
     active = passive = None
     if eff.needs_muscle_state:
         velocity = -np.einsum("tng,tn->tg", arms, qd)  # dl/dt = −r·qd
-        active, passive, _ = muscle_factors(eff, lengths, velocity, pack.optimal_fiber_lengths,
-                                            pack.tendon_slack_lengths)
-    rec = recruit(arms, tau_muscle, f_max, subject.effort_weight, subject.cocontraction,
-                  rate_hz=config.kinematics_rate_hz, seed=seed, key=key, active_factor=active, passive_factor=passive)
+        active, passive, _ = muscle_factors(
+            eff, lengths, velocity, pack.optimal_fiber_lengths, pack.tendon_slack_lengths
+        )
+    rec = recruit(
+        arms,
+        tau_muscle,
+        f_max,
+        subject.effort_weight,
+        subject.cocontraction,
+        rate_hz=config.kinematics_rate_hz,
+        seed=seed,
+        key=key,
+        active_factor=active,
+        passive_factor=passive,
+    )
     force = f_max * rec.activation * (1.0 if active is None else active) + (0.0 if passive is None else f_max * passive)
     # EMG follows the neural drive, which leads the force by the electromechanical delay
     emg_time = np.arange(0.0, plan.duration, 1.0 / config.emg_rate_hz)
@@ -157,8 +178,18 @@ def generate_trial(
     drive_k = _shift(time, rec.activation[:, index], eff.emd)
     drive = np.column_stack([np.interp(emg_time, time, drive_k[:, j]) for j in range(len(channels))])
     touches = np.asarray([m.t0 for m in plan.moves if m.kind == "bottom"])
-    emg = raw_emg(emg_time, drive, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=config.emg_rate_hz,
-                  seed=seed, key=key, crosstalk=eff.crosstalk, artefact_times=touches)
+    emg = raw_emg(
+        emg_time,
+        drive,
+        channels,
+        subject.emg_gain_uv,
+        subject.noise_floor_uv,
+        rate_hz=config.emg_rate_hz,
+        seed=seed,
+        key=key,
+        crosstalk=eff.crosstalk,
+        artefact_times=touches,
+    )
     imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
     qi, qdi, qddi, _, _ = evaluate(plan, imu_time)
     imu = simulate_imu(pack, spec.segments, imu_time, qi, qdi, qddi, seed=seed, key=key)
@@ -174,10 +205,25 @@ def generate_trial(
         coordinates=list(pack.coordinates),
         groups=list(pack.groups),
         channels=list(channels),
-        time=time, q=q, qd=qd, qdd=qdd, phase=phase, rep=rep,
-        torque_id=tau_id, torque_reported=tau_rep, torque_muscle=tau_muscle,
-        activation=rec.activation, force=force, residual=rec.residual, fallback_frames=rec.fallback_frames,
-        emg_time=emg_time, emg=emg, imu=imu, rep_starts=plan.rep_starts, rep_ends=plan.rep_ends, emg_acc=emg_acc,
+        time=time,
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        phase=phase,
+        rep=rep,
+        torque_id=tau_id,
+        torque_reported=tau_rep,
+        torque_muscle=tau_muscle,
+        activation=rec.activation,
+        force=force,
+        residual=rec.residual,
+        fallback_frames=rec.fallback_frames,
+        emg_time=emg_time,
+        emg=emg,
+        imu=imu,
+        rep_starts=plan.rep_starts,
+        rep_ends=plan.rep_ends,
+        emg_acc=emg_acc,
     )
 
 
@@ -187,8 +233,12 @@ def muscle_test_positions(pack, groups: list[int], *, points: int = 5) -> np.nda
     contraction of it against a dynamometer is least masked by its synergists (manual-muscle-test positions follow the
     same idea). The grid's moment arms are evaluated once for all groups. Returns (len(groups), n_c)."""
     ranges = np.asarray(pack.coordinate_ranges, dtype=float)
-    grid = [np.asarray(p) for p in itertools.product(
-        *[np.linspace(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), points) for lo, hi in ranges])]
+    grid = [
+        np.asarray(p)
+        for p in itertools.product(
+            *[np.linspace(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), points) for lo, hi in ranges]
+        )
+    ]
     f_ref = np.asarray(pack.f_max_ref, dtype=float)
     shares = []  # (poses, G): each group's largest capacity share at each pose
     for pose in grid:
@@ -210,8 +260,17 @@ def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], conf
     electrode co-contract as the measured non-target sites do (5-15 % of the effort; an electrode does not change a
     muscle's activation), and the force follows the drive by the EMD."""
     time, drive = mvc_drive(channels, config.emg_rate_hz, seed=subject.seed, block_s=MVC_BLOCK_S)
-    emg = raw_emg(time, drive, channels, subject.emg_gain_uv, subject.noise_floor_uv, rate_hz=config.emg_rate_hz,
-                  seed=subject.seed, key=(spec.exercise.value, "mvc"), crosstalk=config.effects.crosstalk)
+    emg = raw_emg(
+        time,
+        drive,
+        channels,
+        subject.emg_gain_uv,
+        subject.noise_floor_uv,
+        rate_hz=config.emg_rate_hz,
+        seed=subject.seed,
+        key=(spec.exercise.value, "mvc"),
+        crosstalk=config.effects.crosstalk,
+    )
     mvc = MvcTrial(spec.exercise, list(channels), time, drive, emg)
     if pack is None:
         return mvc
@@ -234,8 +293,9 @@ def generate_mvc(spec: ExerciseSpec, subject: Subject, channels: list[str], conf
         lengths, arms = pack.lengths_and_moment_arms(poses[k])
         active, passive = np.ones(len(groups)), np.zeros(len(groups))
         if eff.needs_muscle_state:  # isometric: force-velocity at zero speed is 1
-            active, passive, _ = muscle_factors(eff, lengths[None], np.zeros((1, len(groups))),
-                                                pack.optimal_fiber_lengths, pack.tendon_slack_lengths)
+            active, passive, _ = muscle_factors(
+                eff, lengths[None], np.zeros((1, len(groups))), pack.optimal_fiber_lengths, pack.tendon_slack_lengths
+            )
             active, passive = active[0], passive[0]
         torque[sl] = (activation[sl] * active + passive) @ (np.asarray(arms) * f_max[None, :]).T
     mvc.coordinates, mvc.poses, mvc.activation, mvc.torque = list(pack.coordinates), poses, activation, torque
@@ -259,7 +319,10 @@ def generate_exercise(
 
 
 def generate_session(
-    exercises: list[Exercise], config: SynthConfig, *, packs: dict[Exercise, object] | None = None,
+    exercises: list[Exercise],
+    config: SynthConfig,
+    *,
+    packs: dict[Exercise, object] | None = None,
     progress: Progress | None = None,
 ) -> Session:
     packs = packs or {}

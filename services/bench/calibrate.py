@@ -41,14 +41,21 @@ def run(quick: bool) -> list[BenchResult]:
             res = calibrate(pack.f_max_ref, frames, CalibrationSettings(precondition=precondition))
             runs[precondition] = (time.perf_counter() - started, res)
         (t_pre, pre), (t_raw, raw) = runs[True], runs[False]
-        results.append(BenchResult(
-            name=f"{exercise} calibration ({frames.torques.shape[0]} frames, preconditioned)",
-            value=t_pre, unit="s", baseline_name="as written", baseline_value=t_raw,
-            details={
-                "iterations": pre.iterations, "baseline_iterations": raw.iterations,
-                "max_abs_strength_difference": float(np.max(np.abs(pre.scale - raw.scale))),
-                "objective": pre.objective, "baseline_objective": raw.objective,
-                "strength_error_median": float(np.median(np.abs(pre.f_max / f_true - 1.0))),
-            },
-        ))
+        results.append(
+            BenchResult(
+                name=f"{exercise} calibration ({frames.torques.shape[0]} frames, preconditioned)",
+                value=t_pre,
+                unit="s",
+                baseline_name="as written",
+                baseline_value=t_raw,
+                details={
+                    "iterations": pre.iterations,
+                    "baseline_iterations": raw.iterations,
+                    "max_abs_strength_difference": float(np.max(np.abs(pre.scale - raw.scale))),
+                    "objective": pre.objective,
+                    "baseline_objective": raw.objective,
+                    "strength_error_median": float(np.median(np.abs(pre.f_max / f_true - 1.0))),
+                },
+            )
+        )
     return results

@@ -55,8 +55,9 @@ LOADS = {"bench_press": (40.0, 60.0), "deadlift": (45.0, 75.0)}
 LOADS_3 = {"bench_press": (40.0, 60.0, 50.0), "deadlift": (45.0, 75.0, 65.0)}  # load scale: train on two loads
 
 
-def session(exercise: str, effects: str, seed: int, *, reps: int = 3, three_loads: bool = False,
-            heavier_trains: bool = False):
+def session(
+    exercise: str, effects: str, seed: int, *, reps: int = 3, three_loads: bool = False, heavier_trains: bool = False
+):
     """Generate, write and load a synthetic session and calibrate the subject on its training trials as a user would
     (``msk calibrate --emd 0``: the paper's model, no delay); returns (folder, pack, train, holdout, profile).
     ``heavier_trains``: the heavier load trains and the lighter is held out (one training load only)."""
@@ -83,22 +84,38 @@ def session(exercise: str, effects: str, seed: int, *, reps: int = 3, three_load
     return folder, pack, train, holdout, profile
 
 
-def detection_case(exercise: str, effects: str, seed: int, *, max_effects: int = 1, three_loads: bool = False,
-                   heavier_trains: bool = False) -> dict:
+def detection_case(
+    exercise: str,
+    effects: str,
+    seed: int,
+    *,
+    max_effects: int = 1,
+    three_loads: bool = False,
+    heavier_trains: bool = False,
+) -> dict:
     from msk_core.discrepancy import run_discrepancy
 
-    folder, pack, train, holdout, profile = session(exercise, effects, seed, three_loads=three_loads,
-                                                    heavier_trains=heavier_trains)
+    folder, pack, train, holdout, profile = session(
+        exercise, effects, seed, three_loads=three_loads, heavier_trains=heavier_trains
+    )
     try:
         result = run_discrepancy(pack, profile, train, holdout, max_effects=max_effects, activation=False)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     s = result.summary
     named = s["effect"] if isinstance(s["effect"], list) else ([] if s["effect"] == "none" else [s["effect"]])
-    out = {"named": named, "shrink": 1.0 - s["gap_after"] / s["gap_before"], "gap_before": s["gap_before"],
-           "gap_after": s["gap_after"], "top": s["candidates"][0]["effect"] if s["candidates"] else "none"}
-    print(f"    {exercise} {effects} seed {seed}: named {'+'.join(named) or 'none'}, held-out gap {s['gap_before']:.4f} "
-          f"-> {s['gap_after']:.4f} ({out['shrink']:.0%})", flush=True)  # the matrix takes long: show each case
+    out = {
+        "named": named,
+        "shrink": 1.0 - s["gap_after"] / s["gap_before"],
+        "gap_before": s["gap_before"],
+        "gap_after": s["gap_after"],
+        "top": s["candidates"][0]["effect"] if s["candidates"] else "none",
+    }
+    print(
+        f"    {exercise} {effects} seed {seed}: named {'+'.join(named) or 'none'}, held-out gap {s['gap_before']:.4f} "
+        f"-> {s['gap_after']:.4f} ({out['shrink']:.0%})",
+        flush=True,
+    )  # the matrix takes long: show each case
     return out
 
 
@@ -116,7 +133,7 @@ def _timing() -> list[BenchResult]:
         recal = run_discrepancy(pack, profile, train, holdout, max_effects=2, activation=False, recalibrate=True)
         elapsed_recal = time.perf_counter() - started
         started = time.perf_counter()
-        plain = run_discrepancy(pack, profile, train, holdout, max_effects=2, activation=False)
+        run_discrepancy(pack, profile, train, holdout, max_effects=2, activation=False)
         elapsed_plain = time.perf_counter() - started
         started = time.perf_counter()
         estimate_trial(pack, holdout[0], "proposed", subject=profile)
@@ -124,19 +141,34 @@ def _timing() -> list[BenchResult]:
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     size = f"deadlift, 2 trials ({seconds[0]:.0f} s + {seconds[1]:.0f} s), {len(pack.groups)} groups, max 2 effects"
-    return [BenchResult(
-        name=f"msk discrepancy, {size}, incl. held-out estimation before/after",
-        value=elapsed, unit="s", baseline_name="one proposed estimation pass over the held-out trial",
-        baseline_value=baseline, target="< 60 s", passed=elapsed < 60.0,
-        details={"cpu_s": cpu, "named": json.dumps(result.summary["effect"]), "gap_before": result.summary["gap_before"],
-                 "gap_after": result.summary["gap_after"]},
-    ), BenchResult(
-        name=f"msk discrepancy --recalibrate, {size}, without the activation gaps (one calibration per muscle- or "
-             "joint-state candidate and step)",
-        value=elapsed_recal, unit="s", baseline_name="the same run without --recalibrate", baseline_value=elapsed_plain,
-        target="reported (opt-in)", passed=None,
-        details={"named": json.dumps(recal.summary["effect"]), "gap_after": recal.summary["gap_after"]},
-    )]
+    return [
+        BenchResult(
+            name=f"msk discrepancy, {size}, incl. held-out estimation before/after",
+            value=elapsed,
+            unit="s",
+            baseline_name="one proposed estimation pass over the held-out trial",
+            baseline_value=baseline,
+            target="< 60 s",
+            passed=elapsed < 60.0,
+            details={
+                "cpu_s": cpu,
+                "named": json.dumps(result.summary["effect"]),
+                "gap_before": result.summary["gap_before"],
+                "gap_after": result.summary["gap_after"],
+            },
+        ),
+        BenchResult(
+            name=f"msk discrepancy --recalibrate, {size}, without the activation gaps (one calibration per muscle- or "
+            "joint-state candidate and step)",
+            value=elapsed_recal,
+            unit="s",
+            baseline_name="the same run without --recalibrate",
+            baseline_value=elapsed_plain,
+            target="reported (opt-in)",
+            passed=None,
+            details={"named": json.dumps(recal.summary["effect"]), "gap_after": recal.summary["gap_after"]},
+        ),
+    ]
 
 
 SHARED = Path(os.environ.get("MSK_SHARED_DIR", Path(__file__).resolve().parents[2].parent / "shared"))
@@ -162,8 +194,9 @@ ARM26_EFFECTS = (
 ARM26_EMD_S = 0.06
 
 
-def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: str | None = None,
-                  calibrate: bool = True):
+def arm26_session(
+    folder: Path, noise: float, seed: int, reps: int = 4, effect: str | None = None, calibrate: bool = True
+):
     """(pack, train, holdout, profile): the arm26 tutorial motion forward and back, ``reps`` times, with the tutorial's
     inverse-dynamics torques x5 (training) and x7 (held out), EMG as above (with ``effect`` hidden as in
     ARM26_EFFECTS), calibrated with ``--emd 0`` (``calibrate=False``: profile None). The files stay in ``folder``:
@@ -200,8 +233,9 @@ def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: 
     for name, factor, stream in (("train", 5.0, seed), ("held", 7.0, 1000 + seed)):
         write_sto(folder / f"id_{name}.sto", t, tau.columns, factor * torques)
         toml = folder / f"{name}.toml"
-        toml.write_text(f'kinematics = "ik.mot"\ntorques = "id_{name}.sto"\nphase_signal = "r_elbow_flex"\n'
-                        "body_mass_kg = 70.0\n")
+        toml.write_text(
+            f'kinematics = "ik.mot"\ntorques = "id_{name}.sto"\nphase_signal = "r_elbow_flex"\nbody_mass_kg = 70.0\n'
+        )
         muscle = factor * torques.copy()  # what the muscles must produce
         if effect == "damping":
             b = 0.15 * rms(tau_c) / np.maximum(rms(qd), 1e-9)
@@ -231,8 +265,11 @@ def arm26_session(folder: Path, noise: float, seed: int, reps: int = 4, effect: 
             wobble = sosfiltfilt(sos, rng.normal(size=so.time.size))  # low-passed noise, scaled to ``noise`` RMS
             emg.append(np.clip(act[:, so.groups.index(g)] / k * (1.0 + noise * wobble / wobble.std()), 0.0, None))
         write_sto(folder / f"emg_{name}.sto", so.time, [f"ch_{g}" for g in ARM26_STRENGTH], np.column_stack(emg))
-        toml.write_text(toml.read_text() + f'emg = "emg_{name}.sto"\nemg_is_envelope = true\n[emg_map]\n'
-                        + "".join(f'ch_{g} = "{g}"\n' for g in ARM26_STRENGTH))
+        toml.write_text(
+            toml.read_text()
+            + f'emg = "emg_{name}.sto"\nemg_is_envelope = true\n[emg_map]\n'
+            + "".join(f'ch_{g} = "{g}"\n' for g in ARM26_STRENGTH)
+        )
         trials.append(load_trial(toml, pack))
     profile = calibrate_subject(pack, trials[:1], emd_s=0.0)[0] if calibrate else None
     return pack, trials[:1], trials[1:], profile
@@ -249,8 +286,11 @@ def _arm26_named(noise: float, seeds: range, effect: str | None, label: str, *, 
         try:
             with contextlib.redirect_stderr(io.StringIO()):  # per-frame estimator flags
                 pack, train, holdout, profile = arm26_session(folder, noise, seed, effect=effect)
-                named.append(run_discrepancy(pack, profile, train, holdout, activation=False,
-                                             recalibrate=recalibrate).summary["effect"])
+                named.append(
+                    run_discrepancy(pack, profile, train, holdout, activation=False, recalibrate=recalibrate).summary[
+                        "effect"
+                    ]
+                )
         finally:
             shutil.rmtree(folder, ignore_errors=True)
     print(f"    arm26, {label}: {_counts(named)}", flush=True)
@@ -292,23 +332,48 @@ def _arm26(quick: bool) -> list[BenchResult]:
         recal[label] = _counts(named)
         recal_hits += [e == "passive_joint" for e in named]
     for noise in (0.1, 0.3):
-        named = _arm26_named(noise, range(1, 3 if quick else 11), None,
-                             f"no effect, EMG noise {noise:.0%}, --recalibrate", recalibrate=True)
+        named = _arm26_named(
+            noise,
+            range(1, 3 if quick else 11),
+            None,
+            f"no effect, EMG noise {noise:.0%}, --recalibrate",
+            recalibrate=True,
+        )
         recal[f"no effect, EMG noise {noise:.0%}, --recalibrate"] = _counts(named)
         recal_clean += [e == "none" for e in named]
     return [
-        BenchResult(name="hidden passive joint moment on arm26, msk discrepancy --recalibrate: right effect named",
-                    value=float(np.mean(recal_hits)), unit="fraction of cases", target=">= 0.9",
-                    passed=bool(np.mean(recal_hits) >= 0.9), details=recal),
-        BenchResult(name="no hidden effect on arm26, msk discrepancy --recalibrate: 'none' named",
-                    value=float(np.mean(recal_clean)), unit="fraction of cases", target="1.0", passed=all(recal_clean),
-                    details=recal),
-        BenchResult(name="no hidden effect, arm26 with static-optimisation EMG (not msk synth): 'none' named",
-                    value=float(np.mean(clean)), unit="fraction of cases", target="1.0", passed=all(clean),
-                    details=nulls),
-        BenchResult(name="hidden effect on arm26 sessions (not msk synth): right effect named",
-                    value=float(np.mean(hits)), unit="fraction of cases", target=">= 0.9",
-                    passed=bool(np.mean(hits) >= 0.9), details=effects),
+        BenchResult(
+            name="hidden passive joint moment on arm26, msk discrepancy --recalibrate: right effect named",
+            value=float(np.mean(recal_hits)),
+            unit="fraction of cases",
+            target=">= 0.9",
+            passed=bool(np.mean(recal_hits) >= 0.9),
+            details=recal,
+        ),
+        BenchResult(
+            name="no hidden effect on arm26, msk discrepancy --recalibrate: 'none' named",
+            value=float(np.mean(recal_clean)),
+            unit="fraction of cases",
+            target="1.0",
+            passed=all(recal_clean),
+            details=recal,
+        ),
+        BenchResult(
+            name="no hidden effect, arm26 with static-optimisation EMG (not msk synth): 'none' named",
+            value=float(np.mean(clean)),
+            unit="fraction of cases",
+            target="1.0",
+            passed=all(clean),
+            details=nulls,
+        ),
+        BenchResult(
+            name="hidden effect on arm26 sessions (not msk synth): right effect named",
+            value=float(np.mean(hits)),
+            unit="fraction of cases",
+            target=">= 0.9",
+            passed=bool(np.mean(hits) >= 0.9),
+            details=effects,
+        ),
     ]
 
 
@@ -329,7 +394,7 @@ def run(quick: bool) -> list[BenchResult]:
     none_cases = []
     for three in (False, True):  # one training load, and two (the held-out load between them)
         for exercise in ("bench_press", "deadlift"):
-            for seed in ((1,) if quick else NONE_SEEDS):
+            for seed in (1,) if quick else NONE_SEEDS:
                 c = detection_case(exercise, "none", seed, three_loads=three)
                 c["case"] = f"{exercise}/{seed}{' (two training loads)' if three else ''}"
                 none_cases.append(c)
@@ -338,24 +403,30 @@ def run(quick: bool) -> list[BenchResult]:
     def attainable(exercise: str, seed: int, three_loads: bool, before: float, heavier_trains: bool = False) -> float:
         key = _key(exercise, seed, three_loads, heavier_trains)
         if key not in none_gap:
-            none_gap[key] = detection_case(exercise, "none", seed, three_loads=three_loads,
-                                           heavier_trains=heavier_trains)["gap_before"]
+            none_gap[key] = detection_case(
+                exercise, "none", seed, three_loads=three_loads, heavier_trains=heavier_trains
+            )["gap_before"]
         return 1.0 - none_gap[key] / before
 
     # the direction reversed (the heavier load trains, the lighter is held out): effect-free sessions first
     for exercise in ("bench_press", "deadlift"):
-        for seed in ((1,) if quick else NONE_SEEDS):
+        for seed in (1,) if quick else NONE_SEEDS:
             c = detection_case(exercise, "none", seed, heavier_trains=True)
             c["case"] = f"{exercise}/{seed} (heavier load trains)"
             none_cases.append(c)
             none_gap[_key(exercise, seed, False, True)] = c["gap_before"]
 
     matrix = [(key, setting, expected, "", False) for key, (setting, expected) in CASES.items()]
-    matrix += [(key, setting, expected, " (generator default size)", False)
-               for key, (setting, expected) in DEFAULT_CASES.items()]
+    matrix += [
+        (key, setting, expected, " (generator default size)", False)
+        for key, (setting, expected) in DEFAULT_CASES.items()
+    ]
     matrix += [(key, setting, expected, " (large size)", False) for key, (setting, expected) in LARGE_CASES.items()]
-    matrix += [(key, setting, expected, " (heavier load trains)", True) for key, (setting, expected) in CASES.items()
-               if key != "load_misreport"]  # a load scale needs two training loads
+    matrix += [
+        (key, setting, expected, " (heavier load trains)", True)
+        for key, (setting, expected) in CASES.items()
+        if key != "load_misreport"
+    ]  # a load scale needs two training loads
     for key, setting, expected, label, heavier in matrix:
         cases = []
         for exercise in ("bench_press", "deadlift"):
@@ -367,22 +438,36 @@ def run(quick: bool) -> list[BenchResult]:
                 cases.append(c)
         hits = [expected in c["named"][:1] for c in cases]
         shrink = float(np.median([c["shrink"] for c in cases]))
-        results.append(BenchResult(
-            name=f"hidden {setting}{label}: right effect named", value=float(np.mean(hits)), unit="fraction of cases",
-            target=">= 0.9 named, median held-out gap shrink >= 0.5",
-            passed=bool(np.mean(hits) >= 0.9 and shrink >= 0.5),
-            details={"median_shrink": shrink,
-                     "median_attainable_shrink": float(np.median([c["attainable"] for c in cases])),
-                     "wrong": sum(bool(c["named"]) and c["named"][0] != expected for c in cases),
-                     **{c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} "
-                                   "attainable)" for c in cases}},
-        ))
+        results.append(
+            BenchResult(
+                name=f"hidden {setting}{label}: right effect named",
+                value=float(np.mean(hits)),
+                unit="fraction of cases",
+                target=">= 0.9 named, median held-out gap shrink >= 0.5",
+                passed=bool(np.mean(hits) >= 0.9 and shrink >= 0.5),
+                details={
+                    "median_shrink": shrink,
+                    "median_attainable_shrink": float(np.median([c["attainable"] for c in cases])),
+                    "wrong": sum(bool(c["named"]) and c["named"][0] != expected for c in cases),
+                    **{
+                        c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} "
+                        "attainable)"
+                        for c in cases
+                    },
+                },
+            )
+        )
     clean = [not c["named"] for c in none_cases]
-    results.append(BenchResult(
-        name="no hidden effect: 'none' named", value=float(np.mean(clean)), unit="fraction of cases",
-        target="1.0", passed=all(clean),
-        details={c["case"]: f"{'+'.join(c['named']) or 'none'} (gap {c['gap_before']:.4f})" for c in none_cases},
-    ))
+    results.append(
+        BenchResult(
+            name="no hidden effect: 'none' named",
+            value=float(np.mean(clean)),
+            unit="fraction of cases",
+            target="1.0",
+            passed=all(clean),
+            details={c["case"]: f"{'+'.join(c['named']) or 'none'} (gap {c['gap_before']:.4f})" for c in none_cases},
+        )
+    )
     pair = []
     for exercise in ("bench_press", "deadlift"):
         for seed in seeds:
@@ -391,10 +476,17 @@ def run(quick: bool) -> list[BenchResult]:
             c["attainable"] = attainable(exercise, seed, False, c["gap_before"])
             pair.append(c)
     both = [set(c["named"]) == {"emd", "fl_passive"} for c in pair]
-    results.append(BenchResult(
-        name="two hidden effects (emd=0.15 + fl_passive), --max-effects 2: both named", value=float(np.mean(both)),
-        unit="fraction of cases", target=">= 0.9", passed=bool(np.mean(both) >= 0.9),
-        details={c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} attainable)"
-                 for c in pair},
-    ))
+    results.append(
+        BenchResult(
+            name="two hidden effects (emd=0.15 + fl_passive), --max-effects 2: both named",
+            value=float(np.mean(both)),
+            unit="fraction of cases",
+            target=">= 0.9",
+            passed=bool(np.mean(both) >= 0.9),
+            details={
+                c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} attainable)"
+                for c in pair
+            },
+        )
+    )
     return results

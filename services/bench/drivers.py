@@ -101,7 +101,7 @@ def _bare_run(ports: dict):
         while time.monotonic() < deadline:
             try:
                 total += len(data.recv(65536))
-            except socket.timeout:
+            except TimeoutError:
                 pass
         ask("STOP")
         command.close()
@@ -124,13 +124,34 @@ def trigno_results(quick: bool) -> list[BenchResult]:
         manager.shutdown()
     expected = 2000.0 * seconds
     sustained = client_samples >= 0.95 * expected and node_samples >= 0.95 * expected
-    details: dict[str, float | str] = {"seconds": seconds, "client_samples": client_samples, "node_samples": node_samples, "bare_samples": bare_samples,
-               "expected_samples": expected}
+    details: dict[str, float | str] = {
+        "seconds": seconds,
+        "client_samples": client_samples,
+        "node_samples": node_samples,
+        "bare_samples": bare_samples,
+        "expected_samples": expected,
+    }
     return [
-        BenchResult("trigno client CPU share (16 ch x 2000 Hz)", client, "core", "bare recv loop", bare, "< 0.05",
-                    bool(client < 0.05 and sustained), details),
-        BenchResult("trigno client + EmgChunk encoding CPU share", node, "core", "bare recv loop", bare, "< 0.05",
-                    bool(node < 0.05 and sustained), details),
+        BenchResult(
+            "trigno client CPU share (16 ch x 2000 Hz)",
+            client,
+            "core",
+            "bare recv loop",
+            bare,
+            "< 0.05",
+            bool(client < 0.05 and sustained),
+            details,
+        ),
+        BenchResult(
+            "trigno client + EmgChunk encoding CPU share",
+            node,
+            "core",
+            "bare recv loop",
+            bare,
+            "< 0.05",
+            bool(node < 0.05 and sustained),
+            details,
+        ),
     ]
 
 
@@ -148,7 +169,15 @@ def _capture_bytes() -> bytes:
     out = bytearray()
     for k in range(source.n_samples):
         items = [(0x1020, (k & 0xFFFF,)), (0x1060, (k * 100,))]
-        items += [(xbus.make_data_id(q), tuple(source.arrays[n][k])) for q, n in ((0x2010, "quaternion"), (0x4020, "acceleration"), (0x8020, "rate_of_turn"), (0xC020, "magnetic_field"))]
+        items += [
+            (xbus.make_data_id(q), tuple(source.arrays[n][k]))
+            for q, n in (
+                (0x2010, "quaternion"),
+                (0x4020, "acceleration"),
+                (0x8020, "rate_of_turn"),
+                (0xC020, "magnetic_field"),
+            )
+        ]
         out += xbus.encode_message(xbus.Mid.MT_DATA2, xbus.encode_mtdata2(items))
     return bytes(out)
 
@@ -207,9 +236,16 @@ def xbus_results(quick: bool) -> list[BenchResult]:
     baseline_us = baseline_elapsed / baseline_messages * 1e6
     rate = messages / elapsed
     return [
-        BenchResult("xbus parse + MTData2 decode", per_message_us, "us/msg", "byte-at-a-time parser", baseline_us,
-                    "<= 20 us/msg (>= 50,000 msg/s)", bool(rate >= 50_000),
-                    {"messages_per_s": round(rate), "messages": messages, "bytes": len(data), "errors": parser.stats.errors}),
+        BenchResult(
+            "xbus parse + MTData2 decode",
+            per_message_us,
+            "us/msg",
+            "byte-at-a-time parser",
+            baseline_us,
+            "<= 20 us/msg (>= 50,000 msg/s)",
+            bool(rate >= 50_000),
+            {"messages_per_s": round(rate), "messages": messages, "bytes": len(data), "errors": parser.stats.errors},
+        ),
     ]
 
 

@@ -47,8 +47,11 @@ def run(quick: bool) -> list[BenchResult]:
 
     bp, lp = cfg.bandpass_sos(), cfg.lowpass_sos()
     if bp is None:
-        raise ConfigError("the EMG filter benchmark times the band-pass too: the default filter must have one",
-                          field="bandpass_hz", value=cfg.bandpass_hz)
+        raise ConfigError(
+            "the EMG filter benchmark times the band-pass too: the default filter must have one",
+            field="bandpass_hz",
+            value=cfg.bandpass_hz,
+        )
 
     def batch() -> None:
         signal.sosfilt(lp, np.abs(signal.sosfilt(bp, emg, axis=0)), axis=0)
@@ -84,8 +87,9 @@ def run(quick: bool) -> list[BenchResult]:
                 "max_rel_diff_vs_batch": max_rel,
             },
         ),
-        BenchResult(name="streaming real-time factor", value=rtf, unit="x real time", target=">= 1000",
-                    passed=rtf >= 1000.0),
+        BenchResult(
+            name="streaming real-time factor", value=rtf, unit="x real time", target=">= 1000", passed=rtf >= 1000.0
+        ),
         BenchResult(
             name="naive streaming (scipy sosfilt per chunk, zi carried)",
             value=t_naive,

@@ -52,7 +52,7 @@ def _trajectory(pack, n: int):
     from msk_core.synth.exercises import SPECS
     from msk_core.synth.kinematics import evaluate, plan_reps
 
-    ranges = np.asarray(getattr(pack, "coordinate_ranges"), dtype=float)
+    ranges = np.asarray(pack.coordinate_ranges, dtype=float)
     spec = next((s for s in SPECS.values() if s.pack == pack.name), None)
     if spec is not None:
         top, bottom, warp = spec.poses(list(pack.coordinates), pack.reference_pose, ranges)
@@ -114,8 +114,11 @@ def _opensim_so_per_frame_us(workdir: Path) -> float:
     from msk_core.estimate.reference import run_opensim_static_optimization
 
     data = SHARED / "data" / "opensim-arm26"
-    args = (data / "arm26_Setup_StaticOptimization.xml", SHARED / "models" / "arm26.osim",
-            data / "arm26_InverseKinematics.mot")
+    args = (
+        data / "arm26_Setup_StaticOptimization.xml",
+        SHARED / "models" / "arm26.osim",
+        data / "arm26_InverseKinematics.mot",
+    )
     full = run_opensim_static_optimization(*args, workdir / "full")
     half = run_opensim_static_optimization(*args, workdir / "half", final_time=0.5)
     frames = full.activations.n_rows - half.activations.n_rows
@@ -142,12 +145,23 @@ def run(quick: bool) -> list[BenchResult]:
     results = []
 
     pack, note = _deadlift_or_largest()
-    (t, t_piqp), (info, _) = _time_pair(pack, "proposed", n, 600.0,  # 60 kg bar
-                                                configs=({"hot_start": True}, {"hot_start": False}))
-    details = {"pack": pack.name, "groups": len(pack.groups), "coordinates": len(pack.coordinates), "frames": n,
-               "flags": info["flags"], "solver": info["solver"],
-               "piqp_every_frame_p99_us": round(float(np.percentile(t_piqp, 99)), 1),
-               "opensim_so_arm26_per_frame_us": round(opensim_us, 1)}
+    (t, t_piqp), (info, _) = _time_pair(
+        pack,
+        "proposed",
+        n,
+        600.0,  # 60 kg bar
+        configs=({"hot_start": True}, {"hot_start": False}),
+    )
+    details = {
+        "pack": pack.name,
+        "groups": len(pack.groups),
+        "coordinates": len(pack.coordinates),
+        "frames": n,
+        "flags": info["flags"],
+        "solver": info["solver"],
+        "piqp_every_frame_p99_us": round(float(np.percentile(t_piqp, 99)), 1),
+        "opensim_so_arm26_per_frame_us": round(opensim_us, 1),
+    }
     if note:
         details["note"] = note
     for method in ("so", "hybrid"):
@@ -155,25 +169,66 @@ def run(quick: bool) -> list[BenchResult]:
         details[f"{method}_median_us"] = round(float(np.median(tm)), 1)
         details[f"{method}_flags"] = fl["flags"]
     baseline = "same step, PIQP every frame (hot_start=False)"
-    results.append(BenchResult(f"{pack.name} proposed step, median", float(np.median(t)), "µs",
-                               baseline, float(np.median(t_piqp)), "<= 50 µs",
-                               bool(np.median(t) <= 50.0) and not note, details))
-    results.append(BenchResult(f"{pack.name} proposed step, p99", float(np.percentile(t, 99)), "µs",
-                               baseline, float(np.percentile(t_piqp, 99)), "<= 150 µs",
-                               bool(np.percentile(t, 99) <= 150.0) and not note, {"pack": pack.name}))
+    results.append(
+        BenchResult(
+            f"{pack.name} proposed step, median",
+            float(np.median(t)),
+            "µs",
+            baseline,
+            float(np.median(t_piqp)),
+            "<= 50 µs",
+            bool(np.median(t) <= 50.0) and not note,
+            details,
+        )
+    )
+    results.append(
+        BenchResult(
+            f"{pack.name} proposed step, p99",
+            float(np.percentile(t, 99)),
+            "µs",
+            baseline,
+            float(np.percentile(t_piqp, 99)),
+            "<= 150 µs",
+            bool(np.percentile(t, 99) <= 150.0) and not note,
+            {"pack": pack.name},
+        )
+    )
 
     syn = SyntheticPack(150)
-    (ts, ts_piqp), (info, _) = _time_pair(syn, "proposed", max(n // 10, 100), 0.0,
-                                                  configs=({"hot_start": True}, {"hot_start": False}))
-    results.append(BenchResult("synthetic 150 groups proposed step, median", float(np.median(ts)), "µs",
-                               baseline, float(np.median(ts_piqp)), "<= 1000 µs",
-                               bool(np.median(ts) <= 1000.0),
-                               {"coordinates": 6, "flags": info["flags"], "solver": info["solver"],
-                                "p99_us": round(float(np.percentile(ts, 99)), 1)}))
+    (ts, ts_piqp), (info, _) = _time_pair(
+        syn, "proposed", max(n // 10, 100), 0.0, configs=({"hot_start": True}, {"hot_start": False})
+    )
+    results.append(
+        BenchResult(
+            "synthetic 150 groups proposed step, median",
+            float(np.median(ts)),
+            "µs",
+            baseline,
+            float(np.median(ts_piqp)),
+            "<= 1000 µs",
+            bool(np.median(ts) <= 1000.0),
+            {
+                "coordinates": 6,
+                "flags": info["flags"],
+                "solver": info["solver"],
+                "p99_us": round(float(np.percentile(ts, 99)), 1),
+            },
+        )
+    )
 
     ta, fl = _arm26_so_steps(load_pack("arm26", evaluator=Evaluator.COMPILED), n)
-    results.append(BenchResult("arm26 so step (tutorial motion), median", float(np.median(ta)), "µs",
-                               "OpenSim SO per frame (arm26)", opensim_us, "", None, {"flags": str(fl)}))
+    results.append(
+        BenchResult(
+            "arm26 so step (tutorial motion), median",
+            float(np.median(ta)),
+            "µs",
+            "OpenSim SO per frame (arm26)",
+            opensim_us,
+            "",
+            None,
+            {"flags": str(fl)},
+        )
+    )
     return results
 
 

@@ -62,10 +62,13 @@ def _interleaved(steps: dict, repeats: int) -> dict[str, tuple[float, float]]:
 def _frame_times(pack, poses, qd, qdd, repeats: int) -> dict[str, tuple[float, float]]:
     """Compiled ModelPack.frame vs the numpy + pinocchio ModelPack.frame_numpy, interleaved."""
     n = len(poses)
-    return _interleaved({
-        "compiled": lambda k: pack.frame(poses[k % n], qd, qdd, 600.0),
-        "numpy": lambda k: pack.frame_numpy(poses[k % n], qd, qdd, 600.0),
-    }, repeats)
+    return _interleaved(
+        {
+            "compiled": lambda k: pack.frame(poses[k % n], qd, qdd, 600.0),
+            "numpy": lambda k: pack.frame_numpy(poses[k % n], qd, qdd, 600.0),
+        },
+        repeats,
+    )
 
 
 def _numpy_op_time(repeats: int) -> float:

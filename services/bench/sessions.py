@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.router import wait_until_listening
 from services.bench import BenchResult
+from services.router import wait_until_listening
 
 NAME = "sessions"
 DESCRIPTION = "live sessions one machine serves (Trigno + IMU/joints + estimator each): p99 <= 2 ms, no sample lost"
@@ -40,8 +40,9 @@ DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
 
 
 def _msk(*argv: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -95,8 +96,10 @@ def _observe(zsession, observed: _Observed) -> list:
                 status = messages.decode(messages.DeviceStatus, sample.payload.to_bytes())
                 observed.status_lost[session] = int(status.samples_lost)
 
-    return [zsession.declare_subscriber(f"msk/{kind}", on_sample)
-            for kind in ("*/activations/**", "*/joints", "*/emg/**", "*/status/**")]
+    return [
+        zsession.declare_subscriber(f"msk/{kind}", on_sample)
+        for kind in ("*/activations/**", "*/joints", "*/emg/**", "*/status/**")
+    ]
 
 
 def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0) -> dict[str, float]:
@@ -116,8 +119,22 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
             subscribers = _observe(zsession, observed)
             for index in range(n_sessions):
                 name = f"bench{index}"
-                sim = _msk("sim", "trigno", "--from", "synthetic:120:7", "--port", "0", "--emg-port", "0",
-                           "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1")
+                sim = _msk(
+                    "sim",
+                    "trigno",
+                    "--from",
+                    "synthetic:120:7",
+                    "--port",
+                    "0",
+                    "--emg-port",
+                    "0",
+                    "--legacy-emg-port",
+                    "0",
+                    "--aux-port",
+                    "0",
+                    "--legacy-acc-port",
+                    "-1",
+                )
                 processes.append(sim)
                 ports_line = sim.stdout.readline() if sim.stdout is not None else ""  # _msk pipes stdout
                 ports = dict(re.findall(r"(command|emg) (\d+)", ports_line))
@@ -125,8 +142,16 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
                     raise RuntimeError("msk sim trigno did not report its ports")
                 client = ("--mode", "client", "--connect", endpoint)
                 estimator = _msk("estimator", "--pack", "bench_press", "--session", name, "--method", "so", *client)
-                drivers = _msk("drivers", "--session", name, "--trigno", f"127.0.0.1:{ports['command']}",
-                               "--trigno-emg-port", ports["emg"], *client)
+                drivers = _msk(
+                    "drivers",
+                    "--session",
+                    name,
+                    "--trigno",
+                    f"127.0.0.1:{ports['command']}",
+                    "--trigno-emg-port",
+                    ports["emg"],
+                    *client,
+                )
                 processes += [estimator, drivers]
                 per_session[name] = [sim, drivers, estimator]
             deadline = time.monotonic() + warm_up_timeout_s
@@ -141,14 +166,28 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
                     if streaming == n_sessions and not waiting:
                         break
                     if time.monotonic() > deadline:
-                        raise RuntimeError(f"after {warm_up_timeout_s:.0f} s {streaming} of {n_sessions} sessions stream "
-                                           f"EMG; estimators not subscribed yet: {waiting}")
+                        raise RuntimeError(
+                            f"after {warm_up_timeout_s:.0f} s {streaming} of {n_sessions} sessions stream "
+                            f"EMG; estimators not subscribed yet: {waiting}"
+                        )
                     time.sleep(0.1)
                 for probe in probes.values():
                     probe.undeclare()
             for name in per_session:
-                replay = _msk("replay", str(DEMO), "--session", name, "--rate", "1", "--exclude", "msk/*/emg/**",
-                              "--mode", "client", "--connect", endpoint)
+                replay = _msk(
+                    "replay",
+                    str(DEMO),
+                    "--session",
+                    name,
+                    "--rate",
+                    "1",
+                    "--exclude",
+                    "msk/*/emg/**",
+                    "--mode",
+                    "client",
+                    "--connect",
+                    endpoint,
+                )
                 processes.append(replay)
                 per_session[name].append(replay)
                 replays[name] = replay
@@ -182,7 +221,9 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
             with observed.lock:
                 observed.measuring = False
                 latencies = np.asarray(observed.latencies_ns, dtype=float) / 1e6
-                joints_without_frame = sum(max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items())
+                joints_without_frame = sum(
+                    max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items()
+                )
                 emg_lost = sum(observed.status_lost.values()) - lost_before
                 jumps = observed.emg_jumps
             for subscriber in subscribers:
@@ -213,8 +254,13 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
 
 
 def _ok(figures: dict) -> bool:
-    return (figures["frames"] > 0 and figures["p99_ms"] <= P99_TARGET_MS and figures["joint_frames_lost"] == 0
-            and figures["emg_samples_lost"] == 0 and figures["emg_index_jumps"] == 0)
+    return (
+        figures["frames"] > 0
+        and figures["p99_ms"] <= P99_TARGET_MS
+        and figures["joint_frames_lost"] == 0
+        and figures["emg_samples_lost"] == 0
+        and figures["emg_index_jumps"] == 0
+    )
 
 
 def run(*, quick: bool = False) -> list[BenchResult]:
@@ -224,8 +270,10 @@ def run(*, quick: bool = False) -> list[BenchResult]:
     for n in range(1, max_sessions + 1):
         figures = measure(n, seconds=seconds)
         runs.append(figures)
-        print("    " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()),
-              flush=True)
+        print(
+            "    " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()),
+            flush=True,
+        )
         if not _ok(figures):
             break
     served = max((f["sessions"] for f in runs if _ok(f)), default=0)
@@ -233,18 +281,28 @@ def run(*, quick: bool = False) -> list[BenchResult]:
     last_ok = next((f for f in reversed(runs) if _ok(f)), one)
     return [
         BenchResult(
-            name="sessions served (p99 <= 2 ms, nothing lost)", value=float(served), unit="sessions",
-            target=f">= 1 (tried up to {runs[-1]['sessions']})", passed=served >= 1,
+            name="sessions served (p99 <= 2 ms, nothing lost)",
+            value=float(served),
+            unit="sessions",
+            target=f">= 1 (tried up to {runs[-1]['sessions']})",
+            passed=served >= 1,
             details={f"p99_ms@{f['sessions']}": f["p99_ms"] for f in runs},
         ),
         BenchResult(
-            name=f"p99 latency at {last_ok['sessions']} session(s)", value=last_ok["p99_ms"], unit="ms",
-            baseline_name="1 session", baseline_value=one["p99_ms"], target=f"<= {P99_TARGET_MS} ms",
+            name=f"p99 latency at {last_ok['sessions']} session(s)",
+            value=last_ok["p99_ms"],
+            unit="ms",
+            baseline_name="1 session",
+            baseline_value=one["p99_ms"],
+            target=f"<= {P99_TARGET_MS} ms",
             passed=last_ok["p99_ms"] <= P99_TARGET_MS,
         ),
         BenchResult(
-            name="CPU per session", value=last_ok["cpu_cores_per_session"], unit="cores",
-            baseline_name="1 session", baseline_value=one["cpu_cores_per_session"],
+            name="CPU per session",
+            value=last_ok["cpu_cores_per_session"],
+            unit="cores",
+            baseline_name="1 session",
+            baseline_value=one["cpu_cores_per_session"],
             details={f"cpu@{f['sessions']}": f["cpu_cores_per_session"] for f in runs},
         ),
     ]

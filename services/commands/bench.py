@@ -58,8 +58,13 @@ def run(args: argparse.Namespace) -> int:
             target = f"  target {result.target}" if result.target else ""
             print(f"  {result.name}: {result.value:.4g} {result.unit}{baseline}{target}{verdict}", flush=True)
             if result.details:
-                print("    " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                                       for k, v in result.details.items()), flush=True)
+                print(
+                    "    "
+                    + ", ".join(
+                        f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in result.details.items()
+                    ),
+                    flush=True,
+                )
             failed |= result.passed is False
     if args.json is not None:
         args.json.write_text(json.dumps(all_results, indent=2, default=str))

@@ -18,16 +18,38 @@ from services import security
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("certs", help="make TLS certificates (CA, router, one per role) and secured Zenoh configs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = subparsers.add_parser(
+        "certs",
+        help="make TLS certificates (CA, router, one per role) and secured Zenoh configs",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the certificates and keys")
     parser.add_argument(
-        "--router-host", action="append", default=[], metavar="NAME_OR_IP",
+        "--router-host",
+        action="append",
+        default=[],
+        metavar="NAME_OR_IP",
         help="a name or address the nodes use to reach the router (repeatable; default: localhost and 127.0.0.1)",
     )
-    parser.add_argument("--role", action="append", default=[], choices=list(security.ROLE_POLICIES), help="client roles to issue (default: all)")
-    parser.add_argument("--configs", type=Path, default=None, metavar="DIR", help="where to write the Zenoh JSON5 configs (default: OUT/zenoh)")
     parser.add_argument(
-        "--pki-path", default=None, metavar="PATH",
+        "--role",
+        action="append",
+        default=[],
+        choices=list(security.ROLE_POLICIES),
+        help="client roles to issue (default: all)",
+    )
+    parser.add_argument(
+        "--configs",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="where to write the Zenoh JSON5 configs (default: OUT/zenoh)",
+    )
+    parser.add_argument(
+        "--pki-path",
+        default=None,
+        metavar="PATH",
         help="the certificate folder as the nodes see it, written into the configs (default: OUT, absolute; e.g. /pki in containers)",
     )
     parser.add_argument("--port", type=int, default=security.DEFAULT_TLS_PORT, help="router TLS port (default: 7447)")

@@ -16,7 +16,11 @@ import argparse
 def register(subparsers: argparse._SubParsersAction) -> None:
     from services import deploy_files
 
-    parser = subparsers.add_parser("compose", help="check or --write the compose files from the session graph",
-                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = subparsers.add_parser(
+        "compose",
+        help="check or --write the compose files from the session graph",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     deploy_files.add_arguments(parser)
     parser.set_defaults(handler=deploy_files.run)

@@ -8,6 +8,8 @@ import argparse
 def register(subparsers: argparse._SubParsersAction) -> None:
     from services.dashboard import app
 
-    parser = subparsers.add_parser("dashboard", help="serve the live coaches' page of a session (browser)", description=app.__doc__)
+    parser = subparsers.add_parser(
+        "dashboard", help="serve the live coaches' page of a session (browser)", description=app.__doc__
+    )
     app.add_arguments(parser)
     parser.set_defaults(handler=app.run_from_args)

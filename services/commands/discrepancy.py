@@ -15,24 +15,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "discrepancy",
         help="find what the model is missing (candidate effects scored on held-out trials), add it to the profile",
         description="Torque and activation gaps per sample, where they concentrate, a library of candidate effects "
-                    "fitted on the training trials and scored on the held-out trials; writes DIR/summary.json, "
-                    "DIR/report.md with plots and, with --out, the subject profile with the named effect(s).",
+        "fitted on the training trials and scored on the held-out trials; writes DIR/summary.json, "
+        "DIR/report.md with plots and, with --out, the subject profile with the named effect(s).",
     )
     p.add_argument("--pack", required=True, help="model pack name or path")
     p.add_argument("--subject", required=True, type=Path, help="calibrated subject profile JSON")
     p.add_argument("--trial", action="append", required=True, type=Path, help="training trial TOML (repeatable)")
-    p.add_argument("--holdout", action="append", required=True, type=Path,
-                   help="held-out trial TOML (repeatable; needs measured torques)")
+    p.add_argument(
+        "--holdout",
+        action="append",
+        required=True,
+        type=Path,
+        help="held-out trial TOML (repeatable; needs measured torques)",
+    )
     p.add_argument("--report", required=True, type=Path, help="output directory (summary.json, report.md, PNGs)")
     p.add_argument("--out", type=Path, default=None, help="write the profile with the named effect(s) here")
-    p.add_argument("--max-effects", type=int, default=1,
-                   help="greedy forward selection: up to this many effects (default 1)")
-    p.add_argument("--recalibrate", action="store_true",
-                   help="fit the muscle- and joint-state candidates (passive force, passive joint moment, damping, "
-                        "active force-length, force-velocity) with a re-calibration of the training trials that has "
-                        "them in it, against the model without them re-calibrated the same way: for profiles whose "
-                        "calibration took such an effect into the strengths (groups at their bounds); costs one "
-                        "calibration per such candidate and step")
+    p.add_argument(
+        "--max-effects", type=int, default=1, help="greedy forward selection: up to this many effects (default 1)"
+    )
+    p.add_argument(
+        "--recalibrate",
+        action="store_true",
+        help="fit the muscle- and joint-state candidates (passive force, passive joint moment, damping, "
+        "active force-length, force-velocity) with a re-calibration of the training trials that has "
+        "them in it, against the model without them re-calibrated the same way: for profiles whose "
+        "calibration took such an effect into the strengths (groups at their bounds); costs one "
+        "calibration per such candidate and step",
+    )
     p.set_defaults(handler=run_discrepancy_command)
 
 
@@ -49,39 +58,60 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     train_paths = [p.resolve() for p in args.trial]
     for p in args.holdout:
         if p.resolve() in train_paths:
-            raise InputError("a held-out trial must not also be a training trial (the score would not be held out)",
-                             path=p, field="--holdout", value=str(p))
+            raise InputError(
+                "a held-out trial must not also be a training trial (the score would not be held out)",
+                path=p,
+                field="--holdout",
+                value=str(p),
+            )
     pack = load_pack(args.pack)
     profile = SubjectProfile.load(args.subject)
     train = [load_trial(p, pack) for p in args.trial]
     holdout = [load_trial(p, pack) for p in args.holdout]
-    result = run_discrepancy(pack, profile, train, holdout, max_effects=args.max_effects, progress=ProgressBar(),
-                             recalibrate=args.recalibrate)
+    result = run_discrepancy(
+        pack,
+        profile,
+        train,
+        holdout,
+        max_effects=args.max_effects,
+        progress=ProgressBar(),
+        recalibrate=args.recalibrate,
+    )
     report = write_report(result, args.report)
     s = result.summary
     effect = s["effect"] if isinstance(s["effect"], str) else ", ".join(s["effect"])
     print(f"named effect: {effect}")
     print(f"held-out RMS torque gap (fraction of capacity): before {s['gap_before']:.4f}, after {s['gap_after']:.4f}")
     if "activation_gap_before" in s:
-        print(f"held-out RMS activation gap: before {s['activation_gap_before']:.4f}, "
-              f"after {s['activation_gap_after']:.4f}")
+        print(
+            f"held-out RMS activation gap: before {s['activation_gap_before']:.4f}, "
+            f"after {s['activation_gap_after']:.4f}"
+        )
     for sentence in consistency_sentences(s):  # how sure, rep by rep (docs/discrepancy.md, Outputs)
         print(sentence)
     for c in s["candidates"][:5]:
         reps = c.get("holdout_reps") or {}
-        print(f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  "
-              f"reps improved {reps.get('improved', 0)}/{reps.get('reps', 0)}  dBIC train "
-              f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  BIC {c['holdout_bic']:8.1f}  "
-              f"{c['reason']}")
+        print(
+            f"  {c['effect']:16s} held-out reduction {c['holdout_mse_reduction']:+7.1%}  "
+            f"reps improved {reps.get('improved', 0)}/{reps.get('reps', 0)}  dBIC train "
+            f"{c['delta_bic_train']:8.1f}  held-out -2lnLR {c['minus2_ln_lr_holdout']:8.1f}  BIC {c['holdout_bic']:8.1f}  "
+            f"{c['reason']}"
+        )
     for trial, why in (s.get("frames_left_out") or {}).items():
         print(f"frames left out of {trial}: {describe_left_out(why)}")
     if s["calibration_at_bounds"]:
-        print("calibration strengths at their bounds (look at these coordinates first): "
-              + ", ".join(f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
-                          for b in s["calibration_at_bounds"]))
+        print(
+            "calibration strengths at their bounds (look at these coordinates first): "
+            + ", ".join(
+                f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
+                for b in s["calibration_at_bounds"]
+            )
+        )
         if not args.recalibrate and s["effect"] == "none":
-            print("  the calibration may have taken a passive moment, damping or a force-length/velocity effect into "
-                  "these strengths: --recalibrate fits those candidates with a calibration that has them in it")
+            print(
+                "  the calibration may have taken a passive moment, damping or a force-length/velocity effect into "
+                "these strengths: --recalibrate fits those candidates with a calibration that has them in it"
+            )
     if args.out is not None:
         if result.profile_with_effects is None:
             print(f"no effect named: {args.out} not written (the profile stays as it is)")

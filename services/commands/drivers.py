@@ -17,7 +17,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("drivers", help="publish live Trigno/Xsens data on Zenoh", description=__doc__)
     driver_nodes.add_device_arguments(parser)
     parser.add_argument("--session", default="live", help="session name used in the topic keys (default: live)")
-    parser.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: until Ctrl-C)")
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: until Ctrl-C)"
+    )
     # graph readiness (services.graph): wait for these nodes before acquiring, then declare the token
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
@@ -42,6 +44,9 @@ def run(args: argparse.Namespace) -> int:
             sink.close()
     for report in reports:
         gaps = sum(g.n_missing for g in report.gaps)
-        print(f"published {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps "
-              f"({gaps} samples)", flush=True)
+        print(
+            f"published {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps "
+            f"({gaps} samples)",
+            flush=True,
+        )
     return 0

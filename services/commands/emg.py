@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msk_core.errors import InputError
+from msk_core.io import AnalogRecording, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
 from msk_core.signal.emg import (
     EmgFilterConfig,
     NormalisationMode,
@@ -21,8 +23,6 @@ from msk_core.signal.emg import (
     envelope_zero_phase_noncausal,
     normalisation_reference,
 )
-from msk_core.errors import InputError
-from msk_core.io import AnalogRecording, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
 from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, rep_phase
 
 
@@ -37,15 +37,18 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
         rec = read_delsys_csv(path).recording()
     elif suffix in (".sto", ".mot"):
         s = read_sto(path)
-        rec = AnalogRecording(time=s.time, labels=list(s.columns), data=s.data, rate_hz=s.rate,
-                              units=[""] * len(s.columns), path=path)
+        rec = AnalogRecording(
+            time=s.time, labels=list(s.columns), data=s.data, rate_hz=s.rate, units=[""] * len(s.columns), path=path
+        )
     else:
         raise InputError("unknown EMG file type; expected .anc, .c3d, .csv, .sto or .mot", path=path, value=suffix)
     if channels:
         return rec.select(channels)  # asked for by name: taken as they are
     if rec.not_emg:  # e.g. the force-plate channels of a gait C3D
-        print(f"left out {len(rec.not_emg)} channels that are not EMG: "
-              + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items()))
+        print(
+            f"left out {len(rec.not_emg)} channels that are not EMG: "
+            + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items())
+        )
     return rec.emg_only()
 
 
@@ -57,19 +60,26 @@ def _envelope(args: argparse.Namespace) -> int:
     channels = _channels(args.channels)
     rec = read_emg_file(args.input, channels)
     band = None if args.no_bandpass else tuple(args.bandpass_hz)
-    cfg = EmgFilterConfig(rate_hz=rec.rate_hz, bandpass_hz=band, lowpass_hz=args.lowpass_hz,
-                          lowpass_order=args.lowpass_order)
+    cfg = EmgFilterConfig(
+        rate_hz=rec.rate_hz, bandpass_hz=band, lowpass_hz=args.lowpass_hz, lowpass_order=args.lowpass_order
+    )
     chain = envelope_zero_phase_noncausal if args.zero_phase else envelope_causal
     env = chain(rec.data, cfg)
     if args.mvc:
         mvc = [chain(read_emg_file(p, rec.labels).data, cfg) for p in args.mvc]
         mode = NormalisationMode(args.normalise)
-        ref = normalisation_reference(mvc, task_envelopes=[env] if mode is NormalisationMode.MAX_ALL_TRIALS else None,
-                                      mode=mode, channels=tuple(rec.labels))
+        ref = normalisation_reference(
+            mvc,
+            task_envelopes=[env] if mode is NormalisationMode.MAX_ALL_TRIALS else None,
+            mode=mode,
+            channels=tuple(rec.labels),
+        )
         env = ref.normalise(env)
         above = np.max(env, axis=0)
-        print("normalised peak per channel (values > 1 kept): "
-              + ", ".join(f"{c}={v:.2f}" for c, v in zip(rec.labels, above)))
+        print(
+            "normalised peak per channel (values > 1 kept): "
+            + ", ".join(f"{c}={v:.2f}" for c, v in zip(rec.labels, above))
+        )
     labels = [lab.replace(",", "_").replace("\t", "_") for lab in rec.labels]
     kind = "zero-phase (non-causal)" if args.zero_phase else "causal"
     write_sto(args.output, rec.time, labels, env, name=f"EMG envelopes, {kind}")
@@ -80,14 +90,19 @@ def _envelope(args: argparse.Namespace) -> int:
 def _reps(args: argparse.Namespace) -> int:
     s = read_sto(args.input)
     values = s.column(args.coordinate)
-    cfg = RepDetectionConfig(excursion=Excursion(args.excursion), start_fraction=args.start_fraction,
-                             min_depth_fraction=args.min_depth_fraction)
+    cfg = RepDetectionConfig(
+        excursion=Excursion(args.excursion),
+        start_fraction=args.start_fraction,
+        min_depth_fraction=args.min_depth_fraction,
+    )
     reps = detect_reps(s.time, values, cfg)
     print(f"{len(reps)} repetitions in {args.input} ({args.coordinate}, {args.excursion})")
     print(f"{'rep':>3} {'start s':>10} {'turn s':>10} {'end s':>10} {'duration s':>10}")
     for k, r in enumerate(reps):
-        print(f"{k + 1:>3} {r.t_start - s.time[0]:>10.3f} {r.t_turn - s.time[0]:>10.3f} "
-              f"{r.t_end - s.time[0]:>10.3f} {r.duration:>10.3f}")
+        print(
+            f"{k + 1:>3} {r.t_start - s.time[0]:>10.3f} {r.t_turn - s.time[0]:>10.3f} "
+            f"{r.t_end - s.time[0]:>10.3f} {r.duration:>10.3f}"
+        )
     if args.phase_out:
         phase, index = rep_phase(s.time, reps, PhaseMode(args.mode))
         write_sto(args.phase_out, s.time, ["phase", "rep"], np.column_stack([phase, index]), name="Repetition phase")
@@ -96,8 +111,12 @@ def _reps(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("emg", help="EMG envelopes from raw files; repetitions and phase of kinematics",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "emg",
+        help="EMG envelopes from raw files; repetitions and phase of kinematics",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = p.add_subparsers(dest="emg_command", required=True)
 
     e = sub.add_parser("envelope", help="raw EMG (.anc/.c3d/Delsys .csv/.sto) -> envelope .sto")
@@ -110,18 +129,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--lowpass-order", type=int, default=3)
     e.add_argument("--zero-phase", action="store_true", help="offline forward-backward filtering (non-causal)")
     e.add_argument("--mvc", type=Path, action="append", default=[], help="MVC trial file(s) for normalisation")
-    e.add_argument("--normalise", choices=[m.value for m in NormalisationMode], default="mvc",
-                   help="divide by the MVC peak, or by the max over MVC and this trial")
+    e.add_argument(
+        "--normalise",
+        choices=[m.value for m in NormalisationMode],
+        default="mvc",
+        help="divide by the MVC peak, or by the max over MVC and this trial",
+    )
     e.set_defaults(handler=_envelope)
 
     r = sub.add_parser("reps", help="repetitions and phase from one coordinate of a .sto/.mot")
     r.add_argument("input", type=Path)
     r.add_argument("--coordinate", required=True)
-    r.add_argument("--excursion", choices=[x.value for x in Excursion], required=True,
-                   help="direction the coordinate moves away from rest during a rep")
+    r.add_argument(
+        "--excursion",
+        choices=[x.value for x in Excursion],
+        required=True,
+        help="direction the coordinate moves away from rest during a rep",
+    )
     r.add_argument("--start-fraction", type=float, default=0.2)
     r.add_argument("--min-depth-fraction", type=float, default=0.5)
     r.add_argument("--mode", choices=[m.value for m in PhaseMode], default=PhaseMode.TURNING_POINT.value)
     r.add_argument("--phase-out", type=Path, help="write time, phase and rep index as .sto")
     r.set_defaults(handler=_reps)
-

@@ -8,6 +8,8 @@ from services import estimator
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("estimator", help="run the live activation estimator node", description=estimator.__doc__)
+    parser = subparsers.add_parser(
+        "estimator", help="run the live activation estimator node", description=estimator.__doc__
+    )
     estimator.add_arguments(parser)
     parser.set_defaults(handler=estimator.run_from_args)

@@ -9,7 +9,9 @@ from services import kinematics_node
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "kinematics", help="run the live IMU-to-joint-angles node", description=kinematics_node.__doc__,
+        "kinematics",
+        help="run the live IMU-to-joint-angles node",
+        description=kinematics_node.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     kinematics_node.add_arguments(parser)

@@ -23,26 +23,57 @@ _NODE_FAILED = "node failed: "  # services.live.run_graph: stopped_by = "node fa
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("live", help="run a live session (devices or --sim) with recording and live view",
-                                   description=__doc__)
-    parser.add_argument("session_file", nargs="?", type=Path, default=None, metavar="SESSION.toml",
-                        help="session file (docs/live.md); optional with --sim")
-    parser.add_argument("--sim", action="store_true",
-                        help="simulated Trigno (TCP) and Xsens (pty) devices streaming the bundled synthetic session")
-    parser.add_argument("--sim-fault", action="append", default=[], metavar="SENSOR:KIND:START-END",
-                        help="with --sim: the simulated Trigno injects an electrode fault, KIND lift_off, hum, "
-                        "saturation or flat, on sensor SENSOR from START to END s after it starts streaming "
-                        "(repeatable; e.g. 5:hum:20-30; docs/live.md)")
-    parser.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: Ctrl-C)")
-    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
-                        help="output folder: DIR/session.mcap, DIR/summary.json (default: the file's session.out, else out/live)")
+    parser = subparsers.add_parser(
+        "live", help="run a live session (devices or --sim) with recording and live view", description=__doc__
+    )
+    parser.add_argument(
+        "session_file",
+        nargs="?",
+        type=Path,
+        default=None,
+        metavar="SESSION.toml",
+        help="session file (docs/live.md); optional with --sim",
+    )
+    parser.add_argument(
+        "--sim",
+        action="store_true",
+        help="simulated Trigno (TCP) and Xsens (pty) devices streaming the bundled synthetic session",
+    )
+    parser.add_argument(
+        "--sim-fault",
+        action="append",
+        default=[],
+        metavar="SENSOR:KIND:START-END",
+        help="with --sim: the simulated Trigno injects an electrode fault, KIND lift_off, hum, "
+        "saturation or flat, on sensor SENSOR from START to END s after it starts streaming "
+        "(repeatable; e.g. 5:hum:20-30; docs/live.md)",
+    )
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: Ctrl-C)"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="output folder: DIR/session.mcap, DIR/summary.json (default: the file's session.out, else out/live)",
+    )
     parser.add_argument("--no-view", action="store_true", help="no live terminal view (scripts, CI)")
-    parser.add_argument("--listen", default=None, metavar="ENDPOINT",
-                        help="the graph's Zenoh endpoint (default: tcp/127.0.0.1:7447 when free, else a free loopback "
-                        "port; printed at start and written to OUT/session.json)")
-    parser.add_argument("--pki", type=Path, default=None, metavar="DIR",
-                        help="secured mode: a TLS router with access control, every node with its role's certificate "
-                        "from DIR (written by `msk certs --out DIR`)")
+    parser.add_argument(
+        "--listen",
+        default=None,
+        metavar="ENDPOINT",
+        help="the graph's Zenoh endpoint (default: tcp/127.0.0.1:7447 when free, else a free loopback "
+        "port; printed at start and written to OUT/session.json)",
+    )
+    parser.add_argument(
+        "--pki",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="secured mode: a TLS router with access control, every node with its role's certificate "
+        "from DIR (written by `msk certs --out DIR`)",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -63,8 +94,15 @@ def run(args: argparse.Namespace) -> int:
     from drivers.trigno.simulator import SensorFault
 
     faults = tuple(SensorFault.parse(text) for text in args.sim_fault)
-    summary = live.main(session, sim=args.sim, duration_s=args.duration, view=not args.no_view, listen=args.listen,
-                        pki=args.pki, sim_faults=faults)
+    summary = live.main(
+        session,
+        sim=args.sim,
+        duration_s=args.duration,
+        view=not args.no_view,
+        listen=args.listen,
+        pki=args.pki,
+        sim_faults=faults,
+    )
     failures = node_failures(summary, session.out / "logs")
     for failure in failures:
         print(f"msk live: error: {failure.text()}", file=sys.stderr)
@@ -85,11 +123,16 @@ class NodeFailure:
     def text(self) -> str:
         code = self.exit_code
         if code is None:
-            how = f"ended while the session ran ({self.detail})" if self.during_session else \
-                "did not stop when asked (SIGINT) and was killed"
+            how = (
+                f"ended while the session ran ({self.detail})"
+                if self.during_session
+                else "did not stop when asked (SIGINT) and was killed"
+            )
         else:
             if code < 0:
-                how = f"was killed by signal {-code}" + (f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else "")
+                how = f"was killed by signal {-code}" + (
+                    f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else ""
+                )
             else:
                 how = f"exited with code {code}"
             how += " while the session ran, which stopped the session" if self.during_session else " when stopped"
@@ -114,15 +157,20 @@ def node_failures(summary: dict, logs: Path) -> list[NodeFailure]:
     ended: dict[str, str] = {}  # node -> detail, for the nodes that ended by themselves
     if stopped_by.startswith(_NODE_FAILED):
         try:
-            entries = ast.literal_eval(stopped_by[len(_NODE_FAILED):])
+            entries = ast.literal_eval(stopped_by[len(_NODE_FAILED) :])
         except (ValueError, SyntaxError):
             entries = None
         if not isinstance(entries, list) or not all(isinstance(e, str) for e in entries):
-            entries = [stopped_by[len(_NODE_FAILED):]]
+            entries = [stopped_by[len(_NODE_FAILED) :]]
         for entry in entries:
             node, _, detail = entry.partition(": ")
             ended[node] = detail
-    failures = [NodeFailure(node, codes.get(node), True, detail, logs / f"{node}.log") for node, detail in ended.items()]
-    failures += [NodeFailure(node, code, False, "", logs / f"{node}.log")
-                 for node, code in codes.items() if node not in ended and code != 0]
+    failures = [
+        NodeFailure(node, codes.get(node), True, detail, logs / f"{node}.log") for node, detail in ended.items()
+    ]
+    failures += [
+        NodeFailure(node, code, False, "", logs / f"{node}.log")
+        for node, code in codes.items()
+        if node not in ended and code != 0
+    ]
     return failures

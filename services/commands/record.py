@@ -16,7 +16,9 @@ from services.mcap_io import McapRecorderWriter
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("record", help="acquire Trigno/Xsens data straight to an MCAP file", description=__doc__)
+    parser = subparsers.add_parser(
+        "record", help="acquire Trigno/Xsens data straight to an MCAP file", description=__doc__
+    )
     driver_nodes.add_device_arguments(parser)
     parser.add_argument("--duration", type=float, required=True, metavar="SECONDS", help="how long to record")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.mcap", help="MCAP file to write")
@@ -36,6 +38,8 @@ def run(args: argparse.Namespace) -> int:
         reports = driver_nodes.run_devices(args, sink, session=args.session, duration_s=args.duration, stop=stop)
     for name, report in zip([n for n in ("trigno", "xsens") if getattr(args, n)], reports):
         gaps = sum(g.n_missing for g in report.gaps)
-        print(f"{name}: {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps ({gaps} samples)")
+        print(
+            f"{name}: {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps ({gaps} samples)"
+        )
     print(f"wrote {sink.count} messages to {args.out}")
     return 0

@@ -8,6 +8,8 @@ import argparse
 def register(subparsers: argparse._SubParsersAction) -> None:
     from services.dashboard import report
 
-    parser = subparsers.add_parser("report", help="write the HTML report of a recorded session", description=report.__doc__)
+    parser = subparsers.add_parser(
+        "report", help="write the HTML report of a recorded session", description=report.__doc__
+    )
     report.add_arguments(parser)
     parser.set_defaults(handler=report.run_from_args)

@@ -19,37 +19,71 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     devices = parser.add_subparsers(dest="device", metavar="DEVICE", required=True)
 
     trigno = devices.add_parser("trigno", help="Trigno Control Utility simulator (TCP)")
-    trigno.add_argument("--from", dest="source", required=True, metavar="FILE", help=".c3d, .npz, .bin or synthetic[:SECONDS[:SEED]]")
+    trigno.add_argument(
+        "--from", dest="source", required=True, metavar="FILE", help=".c3d, .npz, .bin or synthetic[:SECONDS[:SEED]]"
+    )
     trigno.add_argument("--rate", type=float, default=None, help="sample rate of a raw .bin source (default 2000 Hz)")
     trigno.add_argument("--host", default="127.0.0.1")
     trigno.add_argument("--port", type=int, default=50040, help="command port (default 50040)")
     trigno.add_argument("--emg-port", type=int, default=50043)
     trigno.add_argument("--legacy-emg-port", type=int, default=50041, help="legacy EMG port; 0 picks a free one")
     trigno.add_argument("--aux-port", type=int, default=50044)
-    trigno.add_argument("--legacy-acc-port", type=int, default=50042,
-                        help="legacy ACC port, as a real TCU listens on it (48 floats per sample); -1: off, 0: free port")
+    trigno.add_argument(
+        "--legacy-acc-port",
+        type=int,
+        default=50042,
+        help="legacy ACC port, as a real TCU listens on it (48 floats per sample); -1: off, 0: free port",
+    )
     trigno.add_argument("--speed", type=float, default=1.0, help="time scale (>1 faster than real time)")
     trigno.add_argument("--no-loop", action="store_true", help="stop streaming at the end of the recording")
-    trigno.add_argument("--fragment-max", type=int, default=None, metavar="BYTES", help="split frames into random TCP pieces")
-    trigno.add_argument("--upsampling", choices=["on", "off"], default=None, help="initial upsampling (default: match the source rate)")
+    trigno.add_argument(
+        "--fragment-max", type=int, default=None, metavar="BYTES", help="split frames into random TCP pieces"
+    )
+    trigno.add_argument(
+        "--upsampling", choices=["on", "off"], default=None, help="initial upsampling (default: match the source rate)"
+    )
     trigno.add_argument("--banner-space", action="store_true", help="quirk: a space before the banner's CRLFs")
     trigno.add_argument("--start-index-base", type=int, choices=[0, 1], default=1, help="quirk: STARTINDEX? base")
-    trigno.add_argument("--upsampling-reply", choices=["on_off", "yes_no"], default="on_off", help="quirk: UPSAMPLING? reply style")
-    trigno.add_argument("--no-auto-master", action="store_true", help="quirk: the first connection is not master until MASTER")
-    trigno.add_argument("--stop-trigger-after", type=float, default=None, metavar="S", help="quirk: send STOPPED after S s of streaming")
-    trigno.add_argument("--start-delay", type=float, default=0.0, metavar="S", help="quirk: first data S s after START (real: ~2)")
-    trigno.add_argument("--quit-keeps-streaming", action="store_true", help="quirk: QUIT alone does not stop acquisition")
-    trigno.add_argument("--duration", type=float, default=None, metavar="S", help="exit after S seconds (default: until Ctrl-C)")
+    trigno.add_argument(
+        "--upsampling-reply", choices=["on_off", "yes_no"], default="on_off", help="quirk: UPSAMPLING? reply style"
+    )
+    trigno.add_argument(
+        "--no-auto-master", action="store_true", help="quirk: the first connection is not master until MASTER"
+    )
+    trigno.add_argument(
+        "--stop-trigger-after", type=float, default=None, metavar="S", help="quirk: send STOPPED after S s of streaming"
+    )
+    trigno.add_argument(
+        "--start-delay", type=float, default=0.0, metavar="S", help="quirk: first data S s after START (real: ~2)"
+    )
+    trigno.add_argument(
+        "--quit-keeps-streaming", action="store_true", help="quirk: QUIT alone does not stop acquisition"
+    )
+    trigno.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="exit after S seconds (default: until Ctrl-C)"
+    )
     trigno.set_defaults(handler=run_trigno)
 
     xsens = devices.add_parser("xsens", help="Xsens MTi simulator on a pseudo-terminal")
-    xsens.add_argument("--from", dest="source", required=True, metavar="FILE", help=".bin Xbus capture, .npz or synthetic[:SECONDS[:SEED]]")
+    xsens.add_argument(
+        "--from",
+        dest="source",
+        required=True,
+        metavar="FILE",
+        help=".bin Xbus capture, .npz or synthetic[:SECONDS[:SEED]]",
+    )
     xsens.add_argument("--speed", type=float, default=1.0)
     xsens.add_argument("--no-loop", action="store_true")
     xsens.add_argument("--device-id", default="03700ABC", help="device id, 8 hex digits")
-    xsens.add_argument("--bit-flip", type=float, default=0.0, metavar="P", help="probability of a flipped bit per message")
-    xsens.add_argument("--drop-byte", type=float, default=0.0, metavar="P", help="probability of a dropped byte per message")
-    xsens.add_argument("--garbage", type=float, default=0.0, metavar="P", help="probability of garbage before a message")
+    xsens.add_argument(
+        "--bit-flip", type=float, default=0.0, metavar="P", help="probability of a flipped bit per message"
+    )
+    xsens.add_argument(
+        "--drop-byte", type=float, default=0.0, metavar="P", help="probability of a dropped byte per message"
+    )
+    xsens.add_argument(
+        "--garbage", type=float, default=0.0, metavar="P", help="probability of garbage before a message"
+    )
     xsens.add_argument("--unplug-after", type=int, default=None, metavar="N", help="close the pty after N messages")
     xsens.add_argument("--seed", type=int, default=0)
     xsens.add_argument("--duration", type=float, default=None, metavar="S")
@@ -79,10 +113,17 @@ def run_trigno(args: argparse.Namespace) -> int:
         start_delay_s=args.start_delay,
     )
     config = SimulatorConfig(
-        host=args.host, command_port=args.port, emg_port=args.emg_port, legacy_emg_port=args.legacy_emg_port,
-        aux_port=args.aux_port, legacy_acc_port=None if args.legacy_acc_port < 0 else args.legacy_acc_port,
+        host=args.host,
+        command_port=args.port,
+        emg_port=args.emg_port,
+        legacy_emg_port=args.legacy_emg_port,
+        aux_port=args.aux_port,
+        legacy_acc_port=None if args.legacy_acc_port < 0 else args.legacy_acc_port,
         upsampling=None if args.upsampling is None else args.upsampling == "on",
-        speed=args.speed, loop=not args.no_loop, fragment_max=args.fragment_max, quirks=quirks,
+        speed=args.speed,
+        loop=not args.no_loop,
+        fragment_max=args.fragment_max,
+        quirks=quirks,
     )
     try:
         sim = TrignoSimulator(source, config).start()
@@ -110,13 +151,25 @@ def run_xsens(args: argparse.Namespace) -> int:
         raise ConfigError("must be hexadecimal", field="--device-id", value=args.device_id) from None
     for name in ("bit_flip", "drop_byte", "garbage"):
         if not 0.0 <= getattr(args, name) <= 1.0:
-            raise ConfigError("probability must be within 0..1", field=f"--{name.replace('_', '-')}", value=getattr(args, name))
+            raise ConfigError(
+                "probability must be within 0..1", field=f"--{name.replace('_', '-')}", value=getattr(args, name)
+            )
     source = load_imu_source(args.source)
-    faults = FaultConfig(bit_flip=args.bit_flip, drop_byte=args.drop_byte, garbage=args.garbage, unplug_after_messages=args.unplug_after, seed=args.seed)
+    faults = FaultConfig(
+        bit_flip=args.bit_flip,
+        drop_byte=args.drop_byte,
+        garbage=args.garbage,
+        unplug_after_messages=args.unplug_after,
+        seed=args.seed,
+    )
     with XsensSimulator(source, device_id=device_id, faults=faults, speed=args.speed, loop=not args.no_loop) as sim:
         print(sim.path, flush=True)
         print(f"Xsens simulator {device_id:08X}: {source.name} at {source.rate_hz:g} Hz", file=sys.stderr, flush=True)
         _wait(args.duration, alive=lambda: not sim.unplugged)
         stats = sim.stats
-        print(f"sent {stats.messages_sent} messages, corrupted {len(stats.corrupted_counters)}", file=sys.stderr, flush=True)
+        print(
+            f"sent {stats.messages_sent} messages, corrupted {len(stats.corrupted_counters)}",
+            file=sys.stderr,
+            flush=True,
+        )
     return 0

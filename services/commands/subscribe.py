@@ -66,7 +66,9 @@ def dropped_summary(counts: InputCounts) -> str:
     drops = counts.drops()
     if not drops:
         return ""
-    return f"; dropped {sum(d.count for d in drops)} (" + ", ".join(f"{d.key}: {d.reason} {d.count}" for d in drops) + ")"
+    return (
+        f"; dropped {sum(d.count for d in drops)} (" + ", ".join(f"{d.key}: {d.reason} {d.count}" for d in drops) + ")"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -42,23 +42,46 @@ def _loads(values: list[str], exercises: list[Exercise]) -> dict[Exercise, tuple
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("synth", help="generate a synthetic bench-press/deadlift session with known truth",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "synth",
+        help="generate a synthetic bench-press/deadlift session with known truth",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--exercise", default="both", choices=["bench_press", "deadlift", "both"])
     p.add_argument("--subject-seed", type=int, default=7, help="seed of the synthetic subject and every noise stream")
-    p.add_argument("--effects", default="", help="comma list of hidden effects, NAME or NAME=VALUE; known: "
-                   + ", ".join(f"{k} (default {v:g})" for k, v in DEFAULTS.items()) + "; all off by default")
+    p.add_argument(
+        "--effects",
+        default="",
+        help="comma list of hidden effects, NAME or NAME=VALUE; known: "
+        + ", ".join(f"{k} (default {v:g})" for k, v in DEFAULTS.items())
+        + "; all off by default",
+    )
     p.add_argument("--reps", type=int, default=8, help="repetitions per load (default 8)")
-    p.add_argument("--loads", action="append", default=[], metavar="[EXERCISE=]KG,KG",
-                   help="barbell loads (default bench_press 20,40,50,60; deadlift 35,45,65,75)")
-    p.add_argument("--emg-output", choices=[e.value for e in EmgOutput], default=EmgOutput.ENVELOPE.value,
-                   help="emg.sto content: MVC-ready zero-phase envelope at the kinematics rate (default) or raw 2 kHz")
+    p.add_argument(
+        "--loads",
+        action="append",
+        default=[],
+        metavar="[EXERCISE=]KG,KG",
+        help="barbell loads (default bench_press 20,40,50,60; deadlift 35,45,65,75)",
+    )
+    p.add_argument(
+        "--emg-output",
+        choices=[e.value for e in EmgOutput],
+        default=EmgOutput.ENVELOPE.value,
+        help="emg.sto content: MVC-ready zero-phase envelope at the kinematics rate (default) or raw 2 kHz",
+    )
     p.add_argument("--no-mcap", action="store_true", help="skip the MCAP recording")
     p.add_argument("--mcap", type=Path, default=None, help="MCAP path (default OUT/session.mcap)")
     p.add_argument("--device-streams", action="store_true", help="also write Trigno/Xsens replay files under raw/")
     p.add_argument("--session", default="synth", help="session name in the MCAP topics (msk/<session>/...)")
-    p.add_argument("--pack", action="append", default=[], metavar="EXERCISE=PACK",
-                   help="model pack (name or JSON path, e.g. a subject-scaled pack) for an exercise")
+    p.add_argument(
+        "--pack",
+        action="append",
+        default=[],
+        metavar="EXERCISE=PACK",
+        help="model pack (name or JSON path, e.g. a subject-scaled pack) for an exercise",
+    )
     p.add_argument("--out", required=True, type=Path, help="output directory")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(handler=run)
@@ -74,8 +97,12 @@ def run(args: argparse.Namespace) -> int:
         if not sep or not pack:
             raise ConfigError("write --pack EXERCISE=PACK", field="--pack", value=text)
         packs[parse_exercise(name.strip())] = pack.strip()
-    config = SynthConfig(subject_seed=args.subject_seed, n_reps=args.reps, effects=parse_effects(args.effects),
-                         loads_kg=_loads(args.loads, exercises) or None)
+    config = SynthConfig(
+        subject_seed=args.subject_seed,
+        n_reps=args.reps,
+        effects=parse_effects(args.effects),
+        loads_kg=_loads(args.loads, exercises) or None,
+    )
     session = generate_session(exercises, config, packs=packs, progress=None if args.quiet else ProgressBar())
     truth = write_session(session, args.out, emg_output=EmgOutput(args.emg_output))
     written = [truth]
@@ -88,9 +115,14 @@ def run(args: argparse.Namespace) -> int:
         write_device_streams(session, args.out)
     for ex in session.exercises:
         for t in ex.trials:
-            print(f"{t.name}: {len(t.rep_starts)} reps, {t.time[-1]:.1f} s, peak |torque| "
-                  + ", ".join(f"{c} {abs(t.torque_id[:, i]).max():.0f}" for i, c in enumerate(t.coordinates))
-                  + " N·m" + (f", {t.fallback_frames} frames beyond capacity" if t.fallback_frames else ""))
-    print("wrote " + ", ".join(str(p) for p in written) + f" and trial folders under {args.out} (the lifts, and each "
-          "MVC contraction as an isometric trial under <exercise>/mvc/<channel>)")
+            print(
+                f"{t.name}: {len(t.rep_starts)} reps, {t.time[-1]:.1f} s, peak |torque| "
+                + ", ".join(f"{c} {abs(t.torque_id[:, i]).max():.0f}" for i, c in enumerate(t.coordinates))
+                + " N·m"
+                + (f", {t.fallback_frames} frames beyond capacity" if t.fallback_frames else "")
+            )
+    print(
+        "wrote " + ", ".join(str(p) for p in written) + f" and trial folders under {args.out} (the lifts, and each "
+        "MVC contraction as an isometric trial under <exercise>/mvc/<channel>)"
+    )
     return 0

@@ -8,7 +8,8 @@ from services import view
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("view", help="live terminal view of a session (activations, EMG, torques, devices)",
-                                   description=view.__doc__)
+    parser = subparsers.add_parser(
+        "view", help="live terminal view of a session (activations, EMG, torques, devices)", description=view.__doc__
+    )
     view.add_arguments(parser)
     parser.set_defaults(handler=view.run_from_args)

@@ -67,10 +67,14 @@ def create_app(config: DashboardConfig, state: DashboardState, *, on_startup=(),
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
 
     async def config_json(request):
-        return JSONResponse({
-            "session": config.session, "no_data_after_s": config.no_data_after_s, "heartbeat_s": config.heartbeat_s,
-            "packs": {name: list(groups) for groups, name in pack_index.items()},
-        })
+        return JSONResponse(
+            {
+                "session": config.session,
+                "no_data_after_s": config.no_data_after_s,
+                "heartbeat_s": config.heartbeat_s,
+                "packs": {name: list(groups) for groups, name in pack_index.items()},
+            }
+        )
 
     async def body_map(request):
         name = request.path_params["pack"]
@@ -124,7 +128,9 @@ def create_app(config: DashboardConfig, state: DashboardState, *, on_startup=(),
 class DashboardServer:
     """Bridge + web server; ``start()`` runs it in a thread (tests, embedding), ``run()`` in the caller's."""
 
-    def __init__(self, zenoh_options: ZenohOptions, config: DashboardConfig, *, host: str = "127.0.0.1", port: int = 8080) -> None:
+    def __init__(
+        self, zenoh_options: ZenohOptions, config: DashboardConfig, *, host: str = "127.0.0.1", port: int = 8080
+    ) -> None:
         topics.check_chunk(config.session, "--session")
         if not 0 < port < 65536:
             raise ConfigError("port must be in 1..65535", field="--port", value=port)
@@ -132,7 +138,9 @@ class DashboardServer:
         self.state = DashboardState(config.session)
         self.bridge = Bridge(zenoh_options, self.state)
         app = create_app(config, self.state, on_startup=(self.bridge.start,), on_shutdown=(self.bridge.stop,))
-        self.server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", ws="websockets-sansio"))
+        self.server = uvicorn.Server(
+            uvicorn.Config(app, host=host, port=port, log_level="warning", ws="websockets-sansio")
+        )
         self.host, self.port = host, port
         self._thread: threading.Thread | None = None
 
@@ -150,7 +158,9 @@ class DashboardServer:
         while not self.server.started and self._thread.is_alive() and time.monotonic() < deadline:
             time.sleep(0.02)
         if not self.server.started:
-            raise RuntimeError(f"dashboard did not start on {self.url} within {timeout_s} s (thread alive: {self._thread.is_alive()})")
+            raise RuntimeError(
+                f"dashboard did not start on {self.url} within {timeout_s} s (thread alive: {self._thread.is_alive()})"
+            )
 
     def stop(self, timeout_s: float = 10.0) -> None:
         self.server.should_exit = True
@@ -159,11 +169,15 @@ class DashboardServer:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--session", default=None,
-                        help="session name: topics msk/<session>/... (default: the running msk live's, else lab)")
+    parser.add_argument(
+        "--session",
+        default=None,
+        help="session name: topics msk/<session>/... (default: the running msk live's, else lab)",
+    )
     parser.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     parser.add_argument(
-        "--host", default="127.0.0.1",
+        "--host",
+        default="127.0.0.1",
         help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 for tablets on the gym network)",
     )
     add_zenoh_arguments(parser)
@@ -178,8 +192,11 @@ def _check_port_free(host: str, port: int) -> None:
         try:
             probe.bind((host, port))
         except OSError as error:
-            raise ConfigError(f"cannot listen on {host}:{port} ({error.strerror}); choose another --port or --host",
-                              field="--port", value=port) from None
+            raise ConfigError(
+                f"cannot listen on {host}:{port} ({error.strerror}); choose another --port or --host",
+                field="--port",
+                value=port,
+            ) from None
 
 
 def _drops_text(state: DashboardState) -> str:
@@ -194,7 +211,11 @@ def run_from_args(args: argparse.Namespace) -> int:
     server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port)
     quiet = threading.Event()
     discovery.silence_notice("msk dashboard", f"msk/{session}/**", options, lambda: server.state.received, stop=quiet)
-    where = server.url if args.host not in ("0.0.0.0", "::") else f"port {args.port} of every network interface of this machine"
+    where = (
+        server.url
+        if args.host not in ("0.0.0.0", "::")
+        else f"port {args.port} of every network interface of this machine"
+    )
     print(f"dashboard of session {session!r} on {where} (Ctrl-C stops)", file=sys.stderr, flush=True)
     try:
         server.run()  # uvicorn handles SIGINT/SIGTERM: closes the sockets, then the lifespan stops the bridge
@@ -202,8 +223,11 @@ def run_from_args(args: argparse.Namespace) -> int:
         pass
     quiet.set()
     dropped = server.state.input_counts.total_dropped
-    print(f"dashboard stopped; the bridge received {server.state.received} messages"
-          + (f" and dropped {dropped} it could not use ({_drops_text(server.state)})" if dropped else ""), file=sys.stderr)
+    print(
+        f"dashboard stopped; the bridge received {server.state.received} messages"
+        + (f" and dropped {dropped} it could not use ({_drops_text(server.state)})" if dropped else ""),
+        file=sys.stderr,
+    )
     return 0
 
 

@@ -80,25 +80,62 @@ REGIONS: dict[str, Region] = {
 
 #: Lower-case OpenSim muscle names (side suffix removed) -> region; first match wins.
 MUSCLE_RULES: tuple[tuple[str, str], ...] = (
-    (r"delt1", "deltoid_anterior"), (r"delt2", "deltoid_middle"), (r"delt3", "deltoid_posterior"),
-    (r"pecm1", "pec_clavicular"), (r"pecm2", "pec_sternal"), (r"pecm3", "pec_costal"),
-    (r"biclong", "biceps_long"), (r"bicshort", "biceps_short"), (r"bra$", "brachialis"), (r"brd$", "brachioradialis"),
-    (r"trilong", "triceps_long"), (r"trilat", "triceps_lateral"), (r"trimed", "triceps_medial"),
-    (r"ld_|latdorsi", "latissimus"), (r"ltp[tl]_", "erector_longissimus"), (r"il_", "erector_iliocostalis"),
-    (r"mf_", "multifidus"), (r"ql_", "quadratus_lumborum"), (r"rect_abd", "rectus_abdominis"),
-    (r"io\d", "internal_oblique"), (r"e[o0]\d|e[o0]_", "external_oblique"), (r"psoas|ps_", "psoas"),
-    (r"tfl", "tfl"), (r"addlong", "adductor_longus"), (r"recfem", "rectus_femoris"), (r"vaslat", "vastus_lateralis"),
-    (r"vasmed|vasint", "vastus_medialis"), (r"tibant", "tibialis_anterior"), (r"glmax", "gluteus_maximus"),
-    (r"glmed", "gluteus_medius"), (r"bf[ls]h", "biceps_femoris"), (r"semiten|semimem", "semitendinosus"),
-    (r"gaslat", "gastroc_lateral"), (r"gasmed", "gastroc_medial"),
+    (r"delt1", "deltoid_anterior"),
+    (r"delt2", "deltoid_middle"),
+    (r"delt3", "deltoid_posterior"),
+    (r"pecm1", "pec_clavicular"),
+    (r"pecm2", "pec_sternal"),
+    (r"pecm3", "pec_costal"),
+    (r"biclong", "biceps_long"),
+    (r"bicshort", "biceps_short"),
+    (r"bra$", "brachialis"),
+    (r"brd$", "brachioradialis"),
+    (r"trilong", "triceps_long"),
+    (r"trilat", "triceps_lateral"),
+    (r"trimed", "triceps_medial"),
+    (r"ld_|latdorsi", "latissimus"),
+    (r"ltp[tl]_", "erector_longissimus"),
+    (r"il_", "erector_iliocostalis"),
+    (r"mf_", "multifidus"),
+    (r"ql_", "quadratus_lumborum"),
+    (r"rect_abd", "rectus_abdominis"),
+    (r"io\d", "internal_oblique"),
+    (r"e[o0]\d|e[o0]_", "external_oblique"),
+    (r"psoas|ps_", "psoas"),
+    (r"tfl", "tfl"),
+    (r"addlong", "adductor_longus"),
+    (r"recfem", "rectus_femoris"),
+    (r"vaslat", "vastus_lateralis"),
+    (r"vasmed|vasint", "vastus_medialis"),
+    (r"tibant", "tibialis_anterior"),
+    (r"glmax", "gluteus_maximus"),
+    (r"glmed", "gluteus_medius"),
+    (r"bf[ls]h", "biceps_femoris"),
+    (r"semiten|semimem", "semitendinosus"),
+    (r"gaslat", "gastroc_lateral"),
+    (r"gasmed", "gastroc_medial"),
     # gait2392's names
-    (r"glut_max", "gluteus_maximus"), (r"glut_med", "gluteus_medius"), (r"glut_min", "gluteus_minimus"),
-    (r"quad_fem|gem$|peri$", "deep_hip_rotators"), (r"iliacus", "psoas"), (r"add_long", "adductor_longus"),
-    (r"add_brev|pect$", "pectineus_adductor_brevis"), (r"add_mag", "adductor_magnus"), (r"grac$", "gracilis"),
-    (r"sar$", "sartorius"), (r"rect_fem", "rectus_femoris"), (r"vas_lat", "vastus_lateralis"),
-    (r"vas_med|vas_int", "vastus_medialis"), (r"bifem", "biceps_femoris"), (r"lat_gas", "gastroc_lateral"),
-    (r"med_gas", "gastroc_medial"), (r"soleus", "soleus"), (r"tib_post|flex_dig|flex_hal", "deep_posterior_calf"),
-    (r"tib_ant", "tibialis_anterior"), (r"per_", "peroneals"), (r"ext_dig|ext_hal", "toe_extensors"),
+    (r"glut_max", "gluteus_maximus"),
+    (r"glut_med", "gluteus_medius"),
+    (r"glut_min", "gluteus_minimus"),
+    (r"quad_fem|gem$|peri$", "deep_hip_rotators"),
+    (r"iliacus", "psoas"),
+    (r"add_long", "adductor_longus"),
+    (r"add_brev|pect$", "pectineus_adductor_brevis"),
+    (r"add_mag", "adductor_magnus"),
+    (r"grac$", "gracilis"),
+    (r"sar$", "sartorius"),
+    (r"rect_fem", "rectus_femoris"),
+    (r"vas_lat", "vastus_lateralis"),
+    (r"vas_med|vas_int", "vastus_medialis"),
+    (r"bifem", "biceps_femoris"),
+    (r"lat_gas", "gastroc_lateral"),
+    (r"med_gas", "gastroc_medial"),
+    (r"soleus", "soleus"),
+    (r"tib_post|flex_dig|flex_hal", "deep_posterior_calf"),
+    (r"tib_ant", "tibialis_anterior"),
+    (r"per_", "peroneals"),
+    (r"ext_dig|ext_hal", "toe_extensors"),
 )
 _RULES = tuple((re.compile(pattern), region) for pattern, region in MUSCLE_RULES)
 _SIDE = re.compile(r"_([rl])$")
@@ -131,8 +168,9 @@ class BodyMap:
     placements: list[Placement] = field(default_factory=list)
     unmapped: list[str] = field(default_factory=list)
 
-    def svg(self, *, fills: dict[str, str] | None = None, width: int | None = None,
-            names: dict[str, str] | None = None) -> str:
+    def svg(
+        self, *, fills: dict[str, str] | None = None, width: int | None = None, names: dict[str, str] | None = None
+    ) -> str:
         return render_svg(self, fills=fills, width=width, names=names)
 
 
@@ -163,8 +201,13 @@ def place_groups(pack) -> BodyMap:
 
 # The figure: (view-independent) ellipses (cx offset from midline, cy, rx, ry, tilt) for one side, mirrored.
 _SILHOUETTE_SIDE = (
-    (42, 84, 14, 16, -20), (53, 122, 10, 32, 5), (60, 185, 8, 32, 4), (63, 228, 7, 10, 0),  # shoulder, arm, hand
-    (21, 268, 15, 50, 3), (23, 365, 10, 45, 0), (25, 420, 9, 6, 0),  # thigh, shank, foot
+    (42, 84, 14, 16, -20),
+    (53, 122, 10, 32, 5),
+    (60, 185, 8, 32, 4),
+    (63, 228, 7, 10, 0),  # shoulder, arm, hand
+    (21, 268, 15, 50, 3),
+    (23, 365, 10, 45, 0),
+    (25, 420, 9, 6, 0),  # thigh, shank, foot
 )
 
 
@@ -194,13 +237,16 @@ def _silhouette(offset_x: float) -> list[str]:
     ]
     for side in ("r", "l"):
         for dx, cy, rx, ry, tilt in _SILHOUETTE_SIDE:
-            parts.append(_ellipse(MIDLINE + (dx if side == "l" else -dx), cy, rx, ry, tilt if side == "l" else -tilt, body))
+            parts.append(
+                _ellipse(MIDLINE + (dx if side == "l" else -dx), cy, rx, ry, tilt if side == "l" else -tilt, body)
+            )
     parts.append("</g>")
     return parts
 
 
-def render_svg(body: BodyMap, *, fills: dict[str, str] | None = None, width: int | None = None,
-               names: dict[str, str] | None = None) -> str:
+def render_svg(
+    body: BodyMap, *, fills: dict[str, str] | None = None, width: int | None = None, names: dict[str, str] | None = None
+) -> str:
     """Both views side by side; each muscle shape has ``class="muscle"`` and ``data-group``; ``fills`` colours them;
     its tooltip names the group and side ("Brachialis (right)") by ``names`` (display names, msk_core.model.names),
     else by its model name and region ("BRA (brachialis, right)")."""
@@ -232,13 +278,16 @@ def render_svg(body: BodyMap, *, fills: dict[str, str] | None = None, width: int
                 )
                 clip = f' clip-path="url(#{clip_id})"'
             fill = fills.get(group, "#b8bec7")
-            attrs = (f'class="muscle" data-group="{escape(group)}" data-side="{side}" fill="{fill}" stroke="#5b6470" '
-                     f'stroke-width="0.8"{clip}')
+            attrs = (
+                f'class="muscle" data-group="{escape(group)}" data-side="{side}" fill="{fill}" stroke="#5b6470" '
+                f'stroke-width="0.8"{clip}'
+            )
             side_word = "right" if side == "r" else "left"
             title = f"{names[group]} ({side_word})" if group in names else f"{group} ({region.label}, {side_word})"
             shapes.append(
                 f"<g><title>{escape(title)}</title>"
-                + _ellipse(cx, region.cy, region.rx, region.ry, tilt, attrs) + "</g>"
+                + _ellipse(cx, region.cy, region.rx, region.ry, tilt, attrs)
+                + "</g>"
             )
     out.append("</defs>")
     out += _silhouette(0) + _silhouette(VIEW_WIDTH + 20)

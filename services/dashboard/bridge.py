@@ -73,7 +73,9 @@ def activation_dict(frame: messages.ActivationFrame, arrival_ns: int) -> dict:
         "phase": frame.phase if frame.HasField("phase") else None,
         "flags": list(frame.flags),
         "solver_status": frame.solver_status,
-        "estimator_latency_ms": (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else None,
+        "estimator_latency_ms": (frame.publish_ns - frame.input_arrival_ns) / 1e6
+        if frame.publish_ns and frame.input_arrival_ns
+        else None,
         "transport_latency_ms": (arrival_ns - frame.publish_ns) / 1e6 if frame.publish_ns else None,
     }
 
@@ -127,34 +129,55 @@ class DeviceHealth:
     def as_dict(self, now_ns: int) -> dict:
         age = (now_ns - self.last_arrival_ns) / 1e9 if self.last_arrival_ns else None
         return {
-            "kind": self.kind, "segment": self.segment, "messages": self.messages, "samples": self.samples, "samples_lost": self.samples_lost,
-            "connected": self.connected, "delivering": age is not None and age < DEVICE_SILENT_AFTER_S,
-            "age_s": age, "errors": self.errors, "last_error": self.last_error, "latency_ms": self.latency_ms,
+            "kind": self.kind,
+            "segment": self.segment,
+            "messages": self.messages,
+            "samples": self.samples,
+            "samples_lost": self.samples_lost,
+            "connected": self.connected,
+            "delivering": age is not None and age < DEVICE_SILENT_AFTER_S,
+            "age_s": age,
+            "errors": self.errors,
+            "last_error": self.last_error,
+            "latency_ms": self.latency_ms,
         }
 
 
 def node_dict(status: messages.DeviceStatus) -> dict:
     """A node's own status (``kind = "node"``): running or stopped, inputs taken, inputs dropped (per topic, reason)."""
     return {
-        "running": bool(status.connected), "received": int(status.samples_received),
+        "running": bool(status.connected),
+        "received": int(status.samples_received),
         "dropped": sum(int(d.count) for d in status.dropped),
         "drops": [[d.key, d.reason, int(d.count)] for d in status.dropped],
-        "errors": int(status.errors), "last_error": status.last_error,
+        "errors": int(status.errors),
+        "last_error": status.last_error,
     }
 
 
 def electrode_dict(electrode: messages.ElectrodeQuality) -> dict:
     """One electrode's signal quality as the page shows it (``ElectrodeQuality``)."""
-    return {"source": electrode.source, "channel": electrode.channel, "group": electrode.group,
-            "state": electrode.state, "reasons": list(electrode.reasons), "detail": electrode.detail}
+    return {
+        "source": electrode.source,
+        "channel": electrode.channel,
+        "group": electrode.group,
+        "state": electrode.state,
+        "reasons": list(electrode.reasons),
+        "detail": electrode.detail,
+    }
 
 
 def counts_dict(counts: InputCounts, errors: int) -> dict:
     """The bridge's own inputs, in the shape of :func:`node_dict`."""
     drops = counts.drops()
-    return {"running": True, "received": sum(counts.as_dict()["received"].values()),
-            "dropped": sum(int(d.count) for d in drops), "drops": [[d.key, d.reason, int(d.count)] for d in drops],
-            "errors": errors, "last_error": ""}
+    return {
+        "running": True,
+        "received": sum(counts.as_dict()["received"].values()),
+        "dropped": sum(int(d.count) for d in drops),
+        "drops": [[d.key, d.reason, int(d.count)] for d in drops],
+        "errors": errors,
+        "last_error": "",
+    }
 
 
 def _latency_ms(arrival_ns: int, host_time_ns: int) -> float | None:
@@ -199,7 +222,7 @@ class DashboardState:
         says the topic)."""
         if not key.startswith(self.prefix):
             return
-        rest = key[len(self.prefix):]
+        rest = key[len(self.prefix) :]
         name = rest.partition("/")[2]
         arrival_ns = arrival_ns or time.time_ns()
         with self._lock:
@@ -241,8 +264,14 @@ class DashboardState:
         if has_phase:
             self._reps.update(joints.device_time_ns / 1e9, joints.phase)
             self._put("reps", self._reps.as_dict())
-        self._put("joints", {"coordinates": list(joints.coordinates), "q": _finite(joints.q),
-                             "phase": joints.phase if has_phase else None})
+        self._put(
+            "joints",
+            {
+                "coordinates": list(joints.coordinates),
+                "q": _finite(joints.q),
+                "phase": joints.phase if has_phase else None,
+            },
+        )
 
     def _on_load(self, load: messages.LoadEvent) -> None:
         """A set starts when the operator's set number changes; without set numbers, with every load event that
@@ -254,8 +283,10 @@ class DashboardState:
         if load.names:  # a load event without names (msk load) leaves the session's names in effect
             self._names = dict(load.names)
         self._load = load
-        self._put("load", {"mass_kg": load.barbell_mass_kg, "exercise": load.exercise, "set_number": number,
-                           "athlete": load.athlete})
+        self._put(
+            "load",
+            {"mass_kg": load.barbell_mass_kg, "exercise": load.exercise, "set_number": number, "athlete": load.athlete},
+        )
         self._put_session()
 
     def _put_session(self) -> None:
@@ -264,12 +295,15 @@ class DashboardState:
         load = self._load
         exercise = (load.exercise if load is not None else "") or self._frame_exercise
         names = names_for(self._frame_exercise or exercise, self._frame_groups, self._names)
-        self._put("session", {
-            "exercise": exercise or None,
-            "load_kg": load.barbell_mass_kg if load is not None else None,
-            "athlete": load.athlete if load is not None and load.athlete else None,
-            "names": names.as_dict(),
-        })
+        self._put(
+            "session",
+            {
+                "exercise": exercise or None,
+                "load_kg": load.barbell_mass_kg if load is not None else None,
+                "athlete": load.athlete if load is not None and load.athlete else None,
+                "names": names.as_dict(),
+            },
+        )
 
     def _on_status(self, name: str, status: messages.DeviceStatus) -> None:
         if status.kind == "node":
@@ -369,8 +403,12 @@ class Bridge:
         self._thread.start()
 
     def _run(self, inputs: NodeInputs) -> None:
-        serve(inputs, lambda inbound: self._take(inbound.key, inbound.message, inbound.arrival_ns), self._stop,
-              poll_s=POLL_S)
+        serve(
+            inputs,
+            lambda inbound: self._take(inbound.key, inbound.message, inbound.arrival_ns),
+            self._stop,
+            poll_s=POLL_S,
+        )
 
     def _take(self, key: str, message: Message, arrival_ns: int) -> None:
         try:

@@ -78,7 +78,9 @@ class SessionData:
     emg: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)  # source -> (log s, first index, n)
     imu: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # tracker -> (log s, packet counter)
     status: dict[str, list[tuple[float, bool, int, int]]] = field(default_factory=dict)
-    node_drops: dict[str, int] = field(default_factory=dict)  # node -> inputs dropped (its last DeviceStatus of kind "node")
+    node_drops: dict[str, int] = field(
+        default_factory=dict
+    )  # node -> inputs dropped (its last DeviceStatus of kind "node")
     start_log_ns: int = 0
     end_log_ns: int = 0
     truncated: bool = False
@@ -88,7 +90,9 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
     if not Path(path).is_file():
         raise InputError("recording not found", path=path)
     data, report = SessionData(), ReadReport()
-    for recorded in tqdm(read_messages(path, report=report), desc=f"read {Path(path).name}", unit="msg", disable=not progress):
+    for recorded in tqdm(
+        read_messages(path, report=report), desc=f"read {Path(path).name}", unit="msg", disable=not progress
+    ):
         data.start_log_ns = data.start_log_ns or recorded.log_time_ns
         data.end_log_ns = recorded.log_time_ns
         log_s = (recorded.log_time_ns - data.start_log_ns) / 1e9
@@ -117,7 +121,9 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             data.names = dict(e.names) or data.names  # an event without names leaves them in effect
         elif kind == "msk.EmgChunk":
             c = recorded.decode(messages.EmgChunk)
-            data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, c.first_sample_index, c.n_samples))
+            data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append(
+                (log_s, c.first_sample_index, c.n_samples)
+            )
         elif kind == "msk.ImuSample":
             s = recorded.decode(messages.ImuSample)
             data.imu.setdefault(s.tracker_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, s.packet_counter))
@@ -127,7 +133,8 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
                 data.node_drops[status.device_id] = sum(int(d.count) for d in status.dropped)
             else:
                 data.status.setdefault(status.device_id, []).append(
-                    (log_s, status.connected, status.samples_lost, status.errors))
+                    (log_s, status.connected, status.samples_lost, status.errors)
+                )
     data.truncated = report.truncated
     if data.start_log_ns == 0:
         raise InputError("the recording holds no messages", path=path)
@@ -177,11 +184,18 @@ def set_windows(data: SessionData) -> list[SetWindow]:
 def session_facts(data: SessionData) -> dict:
     """Athlete, date (the first message's, local time of this machine), exercises and loads of the session."""
     athletes = list(dict.fromkeys(load.athlete for load in sorted(data.loads) if load.athlete))
-    exercises = list(dict.fromkeys(load.exercise for load in sorted(data.loads) if load.exercise)) or data.frame_exercises
+    exercises = (
+        list(dict.fromkeys(load.exercise for load in sorted(data.loads) if load.exercise)) or data.frame_exercises
+    )
     loads = list(dict.fromkeys(load.mass_kg for load in sorted(data.loads) if load.mass_kg > 0))
     started = datetime.datetime.fromtimestamp(data.start_log_ns / 1e9).astimezone()
-    return {"athlete": ", ".join(athletes) or None, "date": started.strftime("%Y-%m-%d %H:%M %Z").strip(),
-            "started_at": started.isoformat(timespec="seconds"), "exercises": list(exercises), "loads_kg": loads}
+    return {
+        "athlete": ", ".join(athletes) or None,
+        "date": started.strftime("%Y-%m-%d %H:%M %Z").strip(),
+        "started_at": started.isoformat(timespec="seconds"),
+        "exercises": list(exercises),
+        "loads_kg": loads,
+    }
 
 
 def facts_line(facts: dict) -> str:
@@ -191,7 +205,9 @@ def facts_line(facts: dict) -> str:
     return f"{exercises} · {loads}"
 
 
-def reps_in_set(data: SessionData, window: SetWindow, series: MethodSeries, pack) -> tuple[list[tuple[float, float]], str]:
+def reps_in_set(
+    data: SessionData, window: SetWindow, series: MethodSeries, pack
+) -> tuple[list[tuple[float, float]], str]:
     jt, jp = np.asarray(data.joint_time), np.asarray(data.joint_phase)
     inside = (jt >= window.start_s) & (jt <= window.end_s)
     if np.any(np.isfinite(jp[inside])):
@@ -214,8 +230,9 @@ def reps_in_set(data: SessionData, window: SetWindow, series: MethodSeries, pack
         except EstimationError:
             return [], f"no repetition found on {coordinate}"
         tk = t[keep]
-        return [(float(tk[rep_index == k][0]), float(tk[rep_index == k][-1])) for k in range(rep_index.max() + 1)], \
-            f"rep detection on {coordinate} (msk_core.signal.reps)"
+        return [
+            (float(tk[rep_index == k][0]), float(tk[rep_index == k][-1])) for k in range(rep_index.max() + 1)
+        ], f"rep detection on {coordinate} (msk_core.signal.reps)"
     return [], "no phase and no joint angles of the pack's phase coordinate"
 
 
@@ -227,7 +244,7 @@ def _packs_by_groups() -> dict[tuple[str, ...], str]:
     return packs_by_groups()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _pack_for(groups: tuple[str, ...]):
     name = _packs_by_groups().get(groups)
     return load_pack(name) if name else None
@@ -243,7 +260,9 @@ def median_pose(data: SessionData, pack, window: SetWindow) -> np.ndarray | None
     return None
 
 
-def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np.ndarray], pose: np.ndarray | None) -> dict:
+def balance(
+    pack, groups: list[str], activations: np.ndarray, rep_masks: list[np.ndarray], pose: np.ndarray | None
+) -> dict:
     """Left/right pairs of groups and, per joint, the moment of the groups pulling each way (reference strengths)."""
     out: dict = {"left_right": [], "joints": []}
     placements = bodymap.place_groups(pack).placements
@@ -254,10 +273,16 @@ def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np
         for region, side in side_of.get(g, ()):
             if side != "r":
                 continue
-            partners = [h for h in groups if h != g and (region, "l") in side_of.get(h, ()) and (region, "r") not in side_of.get(h, ())]
+            partners = [
+                h
+                for h in groups
+                if h != g and (region, "l") in side_of.get(h, ()) and (region, "r") not in side_of.get(h, ())
+            ]
             if len(side_of.get(g, ())) == 1 and partners:
                 i, j = groups.index(g), groups.index(partners[0])
-                per_rep = [(float(np.mean(activations[m, i])), float(np.mean(activations[m, j]))) for m in rep_masks if m.any()]
+                per_rep = [
+                    (float(np.mean(activations[m, i])), float(np.mean(activations[m, j]))) for m in rep_masks if m.any()
+                ]
                 out["left_right"].append({"right": g, "left": partners[0], "per_rep": per_rep})
     if pose is not None:
         arms = pack.moment_arms(np.asarray(pose), out_of_range=OutOfRange.CLAMP)  # (n_coordinates, n_groups)
@@ -274,12 +299,19 @@ def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np
                 if not m.any():
                     continue
                 a = np.nanmean(activations[m], axis=0)
-                pos, neg = float(np.sum(a[positive] * f_ref[positive] * r[positive])), float(np.sum(a[negative] * f_ref[negative] * -r[negative]))
+                pos, neg = (
+                    float(np.sum(a[positive] * f_ref[positive] * r[positive])),
+                    float(np.sum(a[negative] * f_ref[negative] * -r[negative])),
+                )
                 moments.append((pos, neg, min(pos, neg) / max(pos, neg) if max(pos, neg) > 0 else 0.0))
-            out["joints"].append({
-                "coordinate": coordinate, "positive": [groups[i] for i in positive], "negative": [groups[i] for i in negative],
-                "per_rep": moments,
-            })
+            out["joints"].append(
+                {
+                    "coordinate": coordinate,
+                    "positive": [groups[i] for i in positive],
+                    "negative": [groups[i] for i in negative],
+                    "per_rep": moments,
+                }
+            )
     return out
 
 
@@ -299,13 +331,24 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     reps, rep_source = reps_in_set(data, window, series, pack)
     names = names_for(pack.name if pack is not None else window.exercise, groups, data.names)
     methods: dict[str, dict[str, Any]] = {}  # per method: its figures, and "_t", "_a" (times, activations) for below
-    result = {"name": window.name, "index": window.index, "set_number": window.number, "exercise": window.exercise,
-              "load_kg": window.load_kg, "start_s": window.start_s,
-              "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
-              "pack": pack.name if pack else None, "groups": groups, "names": names.as_dict(), "_names": names,
-              "primary": primary, "rep_source": rep_source,
-              "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
-              "time_under_tension_s": float(sum(b - a for a, b in reps)), "methods": methods}
+    result = {
+        "name": window.name,
+        "index": window.index,
+        "set_number": window.number,
+        "exercise": window.exercise,
+        "load_kg": window.load_kg,
+        "start_s": window.start_s,
+        "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
+        "pack": pack.name if pack else None,
+        "groups": groups,
+        "names": names.as_dict(),
+        "_names": names,
+        "primary": primary,
+        "rep_source": rep_source,
+        "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
+        "time_under_tension_s": float(sum(b - a for a, b in reps)),
+        "methods": methods,
+    }
     for method, (s, m) in in_set.items():
         t = np.asarray(s.time)[m]
         a = np.asarray(s.activations, dtype=float)[m]
@@ -316,22 +359,26 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
             per_group[g] = {
                 "peak": [float(np.nanmax(a[rm, i])) if rm.any() else None for rm in rep_masks],
                 "mean": [float(np.nanmean(a[rm, i])) if rm.any() else None for rm in rep_masks],
-                "set_peak": float(np.nanmax(a[:, i])), "set_mean": float(np.nanmean(a[:, i])),
+                "set_peak": float(np.nanmax(a[:, i])),
+                "set_mean": float(np.nanmean(a[:, i])),
                 "time_active_s": float(np.sum(a[:, i] > ACTIVE_THRESHOLD) * dt),
             }
         residual = np.asarray(s.residual, dtype=float)[m]
         methods[method] = {
-            "frames": int(m.sum()), "flagged": int(np.asarray(s.flagged)[m].sum()), "groups": per_group,
-            "torque_residual_rms_nm": float(np.sqrt(np.nanmean(residual ** 2))) if residual.size else None,
+            "frames": int(m.sum()),
+            "flagged": int(np.asarray(s.flagged)[m].sum()),
+            "groups": per_group,
+            "torque_residual_rms_nm": float(np.sqrt(np.nanmean(residual**2))) if residual.size else None,
             "solve_ms_median": float(np.median(np.asarray(s.solve_s)[m]) * 1e3),
-            "_t": t, "_a": a,
+            "_t": t,
+            "_a": a,
         }
     # methods against the primary, on the frames both estimated (same input times)
     ref_t, ref_a = methods[primary]["_t"], methods[primary]["_a"]
-    for method, info in methods.items():
+    for info in methods.values():
         common, ia, ib = np.intersect1d(ref_t, info["_t"], return_indices=True)
         diff = info["_a"][ib] - ref_a[ia]
-        info["rms_difference_to_primary"] = float(np.sqrt(np.nanmean(diff ** 2))) if common.size else None
+        info["rms_difference_to_primary"] = float(np.sqrt(np.nanmean(diff**2))) if common.size else None
     if pack is not None:
         t, a = methods[primary]["_t"], methods[primary]["_a"]
         rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
@@ -354,20 +401,35 @@ def device_health(data: SessionData) -> dict:
             elif expected is not None and first < expected:
                 restarts += 1
             expected = first + n
-        devices[source] = {"kind": "EMG", "messages": len(chunks), "samples": int(sum(c[2] for c in chunks)), "samples_lost": int(lost),
-                           "gaps": gaps, "restarts": restarts,
-                           "times": [c[0] for c in chunks], "weights": [c[2] for c in chunks]}
+        devices[source] = {
+            "kind": "EMG",
+            "messages": len(chunks),
+            "samples": int(sum(c[2] for c in chunks)),
+            "samples_lost": int(lost),
+            "gaps": gaps,
+            "restarts": restarts,
+            "times": [c[0] for c in chunks],
+            "weights": [c[2] for c in chunks],
+        }
     for tracker, samples in data.imu.items():
         counters = np.array([s[1] for s in samples], dtype=np.int64)
         steps = np.diff(counters) % 65536 if len(counters) > 1 else np.array([], dtype=np.int64)  # 16-bit counter
         restarted = steps >= 32768  # the counter went back: the tracker restarted its measurement, nothing was lost
         # under the tracker's own id, the id its DeviceStatus carries: one row per device
-        devices[tracker] = {"kind": "IMU", "messages": len(samples), "samples": len(samples),
-                                     "samples_lost": int(np.sum(np.maximum(steps[~restarted] - 1, 0))) if steps.size else 0,
-                                     "gaps": int(np.sum((steps > 1) & ~restarted)), "restarts": int(np.sum(restarted)),
-                                     "times": [s[0] for s in samples], "weights": [1] * len(samples)}
+        devices[tracker] = {
+            "kind": "IMU",
+            "messages": len(samples),
+            "samples": len(samples),
+            "samples_lost": int(np.sum(np.maximum(steps[~restarted] - 1, 0))) if steps.size else 0,
+            "gaps": int(np.sum((steps > 1) & ~restarted)),
+            "restarts": int(np.sum(restarted)),
+            "times": [s[0] for s in samples],
+            "weights": [1] * len(samples),
+        }
     for device, statuses in data.status.items():
-        entry = devices.setdefault(device, {"kind": "status", "messages": 0, "samples": 0, "samples_lost": 0, "times": [], "weights": []})
+        entry = devices.setdefault(
+            device, {"kind": "status", "messages": 0, "samples": 0, "samples_lost": 0, "times": [], "weights": []}
+        )
         entry["status_messages"] = len(statuses)
         # the last status of a driver that stopped cleanly says disconnected: the stop, not a loss of the device
         entry["disconnected_reports"] = int(sum(1 for s in statuses[:-1] if not s[1]))
@@ -399,7 +461,9 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
     fig.subplots_adjust(left=0.07, right=0.86, bottom=0.14, top=0.93)
     for k, rep in enumerate(result["reps"]):
         ax.axvspan(rep["start_s"] - t0, rep["end_s"] - t0, color="tab:blue", alpha=0.08)
-        ax.text((rep["start_s"] + rep["end_s"]) / 2 - t0, 1.02, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue")
+        ax.text(
+            (rep["start_s"] + rep["end_s"]) / 2 - t0, 1.02, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue"
+        )
     for i in top:
         ax.plot(t - t0, a[:, i], lw=1.4, label=names.group(groups[i]))
     ax.set_ylim(0, 1.08)
@@ -413,11 +477,15 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
     if result["reps"]:
         peak = np.array([[v if v is not None else np.nan for v in primary["groups"][g]["peak"]] for g in groups])
         fig, ax = plt.subplots(figsize=(2.4 + 0.7 * len(result["reps"]), 0.3 * len(groups) + 1.0))
-        fig.subplots_adjust(left=0.2, right=0.88, bottom=0.3 / (0.3 * len(groups) + 1.0), top=1 - 0.35 / (0.3 * len(groups) + 1.0))
+        fig.subplots_adjust(
+            left=0.2, right=0.88, bottom=0.3 / (0.3 * len(groups) + 1.0), top=1 - 0.35 / (0.3 * len(groups) + 1.0)
+        )
         image = ax.imshow(peak, vmin=0, vmax=1, cmap="YlOrRd", aspect="auto")
         for (i, j), v in np.ndenumerate(peak):
             if np.isfinite(v):
-                ax.text(j, i, f"{100 * v:.0f}", ha="center", va="center", fontsize=7, color="white" if v > 0.6 else "black")
+                ax.text(
+                    j, i, f"{100 * v:.0f}", ha="center", va="center", fontsize=7, color="white" if v > 0.6 else "black"
+                )
         ax.set_xticks(range(len(result["reps"])), [f"rep {k + 1}" for k in range(len(result["reps"]))], fontsize=8)
         ax.set_yticks(range(len(groups)), [names.group(g) for g in groups], fontsize=8)
         ax.set_title("peak activation per rep (%)", fontsize=9)
@@ -497,7 +565,8 @@ def set_html(result: dict, plots: list[str]) -> str:
         f'<div class="kpi"><b>{result["end_s"] - result["start_s"]:.1f} s</b>set duration</div>'
         f'<div class="kpi"><b>{html.escape(result["primary"])}</b>method shown</div>'
         f'<p class="note">Repetitions from the {html.escape(result["rep_source"])}; rep durations: '
-        + (", ".join(f"{r['duration_s']:.1f} s" for r in reps) or "none") + ".</p>"
+        + (", ".join(f"{r['duration_s']:.1f} s" for r in reps) or "none")
+        + ".</p>"
     )
     body_svg = ""
     if result["pack"]:
@@ -509,43 +578,82 @@ def set_html(result: dict, plots: list[str]) -> str:
     if legend:  # the method comparison's axis names the muscles by their model names
         images += f'<p class="note">Abbreviations: {html.escape(legend)}.</p>'
     parts.append(f'<div class="row">{body_svg}<div style="flex:1;min-width:300px">{images}</div></div>')
-    headers = ["muscle"] + [f"rep {k + 1} peak / mean %" for k in range(len(reps))] + ["set peak %", f"time > {ACTIVE_THRESHOLD:.0%} (s)"]
+    headers = (
+        ["muscle"]
+        + [f"rep {k + 1} peak / mean %" for k in range(len(reps))]
+        + ["set peak %", f"time > {ACTIVE_THRESHOLD:.0%} (s)"]
+    )
     rows = []
     for g in groups:
         v = primary["groups"][g]
-        rows.append([html.escape(names.group(g))] + [f"{_pct(p)} / {_pct(m)}" for p, m in zip(v["peak"], v["mean"])]
-                    + [_pct(v["set_peak"]), f"{v['time_active_s']:.1f}"])
+        rows.append(
+            [html.escape(names.group(g))]
+            + [f"{_pct(p)} / {_pct(m)}" for p, m in zip(v["peak"], v["mean"])]
+            + [_pct(v["set_peak"]), f"{v['time_active_s']:.1f}"]
+        )
     parts.append(f"<h3>Per muscle and rep ({html.escape(result['primary'])})</h3>" + _table(headers, rows))
     bal = result.get("balance")
     if bal:
         if bal["left_right"]:
-            rows = [[f"{html.escape(names.group(p['right']))} / {html.escape(names.group(p['left']))}"]
-                    + [f"{_pct(right)} / {_pct(left)}" for right, left in p["per_rep"]] for p in bal["left_right"]]
-            parts.append("<h3>Left / right balance (mean activation per rep, right / left %)</h3>"
-                         + _table(["pair"] + [f"rep {k + 1}" for k in range(len(reps))], rows))
+            rows = [
+                [f"{html.escape(names.group(p['right']))} / {html.escape(names.group(p['left']))}"]
+                + [f"{_pct(right)} / {_pct(left)}" for right, left in p["per_rep"]]
+                for p in bal["left_right"]
+            ]
+            parts.append(
+                "<h3>Left / right balance (mean activation per rep, right / left %)</h3>"
+                + _table(["pair"] + [f"rep {k + 1}" for k in range(len(reps))], rows)
+            )
         else:
             parts.append('<p class="note">Left / right balance: this model pack has muscles of one side only.</p>')
         if bal["joints"]:
             rows = []
             for j in bal["joints"]:
                 unit = names.torque_unit(j["coordinate"]) or "N·m"
-                rows.append([html.escape(names.coordinate(j["coordinate"])),
-                             html.escape(", ".join(map(names.group, j["positive"]))),
-                             html.escape(", ".join(map(names.group, j["negative"])))]
-                            + [f"{p:.0f} / {n:.0f} {unit} ({100 * c:.0f} %)" for p, n, c in j["per_rep"]])
-            parts.append("<h3>Agonist / antagonist balance</h3><p class='note'>Per joint, mean moment of the groups pulling the "
-                         "coordinate positive / negative over each rep (activation × reference strength × moment arm at the "
-                         "set's median pose); in brackets the co-contraction, smaller / larger.</p>"
-                         + _table(["joint", "positive", "negative"] + [f"rep {k + 1}" for k in range(len(reps))], rows))
+                rows.append(
+                    [
+                        html.escape(names.coordinate(j["coordinate"])),
+                        html.escape(", ".join(map(names.group, j["positive"]))),
+                        html.escape(", ".join(map(names.group, j["negative"]))),
+                    ]
+                    + [f"{p:.0f} / {n:.0f} {unit} ({100 * c:.0f} %)" for p, n, c in j["per_rep"]]
+                )
+            parts.append(
+                "<h3>Agonist / antagonist balance</h3><p class='note'>Per joint, mean moment of the groups pulling the "
+                "coordinate positive / negative over each rep (activation × reference strength × moment arm at the "
+                "set's median pose); in brackets the co-contraction, smaller / larger.</p>"
+                + _table(["joint", "positive", "negative"] + [f"rep {k + 1}" for k in range(len(reps))], rows)
+            )
     if len(result["methods"]) > 1:
         rows = []
         for method in sorted(result["methods"]):
             info = result["methods"][method]
-            rows.append([html.escape(method), str(info["frames"]), f"{info['rms_difference_to_primary']:.3f}" if info["rms_difference_to_primary"] is not None else "–",
-                         f"{info['torque_residual_rms_nm']:.2f}" if info["torque_residual_rms_nm"] is not None else "–", str(info["flagged"]),
-                         f"{info['solve_ms_median']:.2f}"])
-        parts.append("<h3>Methods compared</h3>" + _table(
-            ["method", "frames", f"RMS difference to {result['primary']}", "torque residual RMS (N·m)", "flagged frames", "solve time median (ms)"], rows))
+            rows.append(
+                [
+                    html.escape(method),
+                    str(info["frames"]),
+                    f"{info['rms_difference_to_primary']:.3f}"
+                    if info["rms_difference_to_primary"] is not None
+                    else "–",
+                    f"{info['torque_residual_rms_nm']:.2f}" if info["torque_residual_rms_nm"] is not None else "–",
+                    str(info["flagged"]),
+                    f"{info['solve_ms_median']:.2f}",
+                ]
+            )
+        parts.append(
+            "<h3>Methods compared</h3>"
+            + _table(
+                [
+                    "method",
+                    "frames",
+                    f"RMS difference to {result['primary']}",
+                    "torque residual RMS (N·m)",
+                    "flagged frames",
+                    "solve time median (ms)",
+                ],
+                rows,
+            )
+        )
     parts.append("</section>")
     return "".join(parts)
 
@@ -554,7 +662,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     data = read_session(recording, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     sets = []
-    for k, window in enumerate(set_windows(data)):
+    for window in set_windows(data):
         result = summarise_set(data, window)
         if result is not None:
             result["plots"] = plot_set(result, out, f"set{window.index}")
@@ -562,44 +670,96 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     devices = device_health(data)
     # Session length on the devices' clock (a recording of a fast replay is shorter in log time than the session).
     device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
-    duration = max((data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0)
+    duration = max(
+        (data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0
+    )
     device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
     methods = sorted({m for m, _ in data.frames})
     facts = session_facts(data)
     title = f"Session report: {facts['athlete'] or 'athlete not named'}, {facts['date']}"
     sections = [set_html(s, s["plots"]) for s in sets]
     if not data.frames:
-        sections.insert(0, '<section><h2>No activation frames</h2><p>This recording holds no <code>activations/&lt;method&gt;</code> '
-                        "topic: record while an estimator runs (e.g. <code>msk demo</code> writes <code>out/demo/live.mcap</code>) "
-                        "and report on that recording. Sets, repetitions and device health below come from the raw data.</p></section>")
-    rows = [[html.escape(name), d["kind"], str(d["messages"]), str(d["samples"]), str(d["samples_lost"]), str(d.get("gaps", "–")),
-             str(d.get("restarts", "–")), str(d.get("disconnected_reports", "–")), str(d.get("errors", "–"))]
-            for name, d in sorted(devices.items())]
-    health = ("<section><h2>Device health over the session</h2>"
-              + _table(["device", "kind", "messages", "samples", "samples missing", "gaps", "restarts", "disconnected reports", "errors"], rows)
-              + "<p class='note'>Samples missing: jumps of the EMG sample index or of the IMU packet counter (a pause between "
-              "trials of a recording shows as one gap); restarts: the counter went back to an earlier value; disconnected "
-              "reports: status messages saying the device was not connected, the last one (the driver's stop) left out.</p>"
-              + (f'<img src="{device_plot}" alt="samples per second">' if device_plot else "")
-              + ("<p class='note'>Inputs the nodes dropped as unusable: "
-                 + html.escape(", ".join(f"{node} {n}" for node, n in sorted(data.node_drops.items()))) + ".</p>"
-                 if data.node_drops else "")
-              + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
-              + "</section>")
-    overview = (f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
-                f"<div class='kpi'><b>{len(sets)}</b>sets with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
-                f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div></section>")
-    page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
-            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><header><h1>{html.escape(title)}</h1>"
-            f"<div class='facts'>{html.escape(facts_line(facts))}</div>"
-            f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} sets · methods: "
-            f"{html.escape(', '.join(methods) or 'none')}</div></header><main>"
-            + overview + "".join(sections) + health + "</main></body></html>")
+        sections.insert(
+            0,
+            "<section><h2>No activation frames</h2><p>This recording holds no <code>activations/&lt;method&gt;</code> "
+            "topic: record while an estimator runs (e.g. <code>msk demo</code> writes <code>out/demo/live.mcap</code>) "
+            "and report on that recording. Sets, repetitions and device health below come from the raw data.</p></section>",
+        )
+    rows = [
+        [
+            html.escape(name),
+            d["kind"],
+            str(d["messages"]),
+            str(d["samples"]),
+            str(d["samples_lost"]),
+            str(d.get("gaps", "–")),
+            str(d.get("restarts", "–")),
+            str(d.get("disconnected_reports", "–")),
+            str(d.get("errors", "–")),
+        ]
+        for name, d in sorted(devices.items())
+    ]
+    health = (
+        "<section><h2>Device health over the session</h2>"
+        + _table(
+            [
+                "device",
+                "kind",
+                "messages",
+                "samples",
+                "samples missing",
+                "gaps",
+                "restarts",
+                "disconnected reports",
+                "errors",
+            ],
+            rows,
+        )
+        + "<p class='note'>Samples missing: jumps of the EMG sample index or of the IMU packet counter (a pause between "
+        "trials of a recording shows as one gap); restarts: the counter went back to an earlier value; disconnected "
+        "reports: status messages saying the device was not connected, the last one (the driver's stop) left out.</p>"
+        + (f'<img src="{device_plot}" alt="samples per second">' if device_plot else "")
+        + (
+            "<p class='note'>Inputs the nodes dropped as unusable: "
+            + html.escape(", ".join(f"{node} {n}" for node, n in sorted(data.node_drops.items())))
+            + ".</p>"
+            if data.node_drops
+            else ""
+        )
+        + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
+        + "</section>"
+    )
+    overview = (
+        f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
+        f"<div class='kpi'><b>{len(sets)}</b>sets with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
+        f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div></section>"
+    )
+    page = (
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><header><h1>{html.escape(title)}</h1>"
+        f"<div class='facts'>{html.escape(facts_line(facts))}</div>"
+        f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} sets · methods: "
+        f"{html.escape(', '.join(methods) or 'none')}</div></header><main>"
+        + overview
+        + "".join(sections)
+        + health
+        + "</main></body></html>"
+    )
     (out / "report.html").write_text(page)
     summary = {
-        "recording": str(recording), **facts, "duration_s": duration, "methods": methods,
-        "sets": [{k: v for k, v in s.items() if k != "methods" and not k.startswith("_")} | {"methods": {m: {k: v for k, v in info.items() if not k.startswith("_")}
-                 for m, info in s["methods"].items()}} for s in sets],
+        "recording": str(recording),
+        **facts,
+        "duration_s": duration,
+        "methods": methods,
+        "sets": [
+            {k: v for k, v in s.items() if k != "methods" and not k.startswith("_")}
+            | {
+                "methods": {
+                    m: {k: v for k, v in info.items() if not k.startswith("_")} for m, info in s["methods"].items()
+                }
+            }
+            for s in sets
+        ],
         "devices": {name: {k: v for k, v in d.items() if k not in ("times", "weights")} for name, d in devices.items()},
         "node_inputs_dropped": dict(sorted(data.node_drops.items())),
     }
@@ -614,8 +774,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     summary = write_report(args.recording, args.out, progress=sys.stderr.isatty())
-    print(f"report of {args.recording}: {len(summary['sets'])} sets, {sum(len(s['reps']) for s in summary['sets'])} reps, "
-          f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}", file=sys.stderr)
+    print(
+        f"report of {args.recording}: {len(summary['sets'])} sets, {sum(len(s['reps']) for s in summary['sets'])} reps, "
+        f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}",
+        file=sys.stderr,
+    )
     return 0
 
 

@@ -82,8 +82,10 @@ def consistency_sentences(summary: dict) -> list[str]:
         if not reps.get("reps"):
             continue
         between = reps.get("between_reps_reduction")
-        text = (f"{win['effect']} lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps "
-                f"(median {reps['median_reduction']:.0%}, lowest {reps['min_reduction']:.0%})")
+        text = (
+            f"{win['effect']} lowers the unexplained torque in {reps['improved']} of {reps['reps']} held-out reps "
+            f"(median {reps['median_reduction']:.0%}, lowest {reps['min_reduction']:.0%})"
+        )
         text += "." if between is None else f"; between reps (set-up, rests): {between:.0%}."
         if between is not None and between > 0 and reps["improved"] * 2 <= reps["reps"]:
             text += " Most of its evidence is outside the reps: check what the athlete did there."
@@ -104,30 +106,42 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     _rms_plot(folder / "gap_rms.png", s)
     effect = s["effect"] if isinstance(s["effect"], str) else ", ".join(s["effect"])
     lines = [
-        "# Discrepancy report", "",
-        f"**Named effect: {effect}**", "",
+        "# Discrepancy report",
+        "",
+        f"**Named effect: {effect}**",
+        "",
         f"Held-out RMS torque gap ({s['gap_units']}): before {s['gap_before']:.4f}, after {s['gap_after']:.4f} "
-        f"({1 - s['gap_after'] / s['gap_before']:.0%} smaller)." if s["gap_before"] > 0 else "",
+        f"({1 - s['gap_after'] / s['gap_before']:.0%} smaller)."
+        if s["gap_before"] > 0
+        else "",
         "",
     ]
     lines += [x for sentence in consistency_sentences(s) for x in (f"How consistent: {sentence}", "")]
     left_out = s.get("frames_left_out") or {}
     if left_out:
-        lines += ["Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "
-                  + "; ".join(f"{t}: {describe_left_out(v)}" for t, v in left_out.items())
-                  + f" (of {s['frames']['training']} training and {s['frames']['holdout']} held-out frames kept).", ""]
+        lines += [
+            "Frames left out of the analysis (no activation explains them, or the inputs are incomplete): "
+            + "; ".join(f"{t}: {describe_left_out(v)}" for t, v in left_out.items())
+            + f" (of {s['frames']['training']} training and {s['frames']['holdout']} held-out frames kept).",
+            "",
+        ]
     if "activation_gap_before" in s:
-        lines += [f"Held-out RMS activation gap (proposed estimate - EMG, groups with EMG): before "
-                  f"{s['activation_gap_before']:.4f}, after {s['activation_gap_after']:.4f}.", ""]
+        lines += [
+            f"Held-out RMS activation gap (proposed estimate - EMG, groups with EMG): before "
+            f"{s['activation_gap_before']:.4f}, after {s['activation_gap_after']:.4f}.",
+            "",
+        ]
     lines += [
         f"Criterion: held-out MSE reduction >= {s['criterion']['min_holdout_mse_reduction']:.0%}, dBIC < "
         f"-{s['criterion']['bic_margin']:g} on the training trials and -2 ln LR < -{s['criterion']['bic_margin']:g} on "
         f"the held-out trials; with several training trials, none left out of the fit may favour the model without "
         f"the candidate by -2 ln LR > {s['criterion']['bic_margin']:g} "
         f"(N_eff = N / tau_int, tau_int the autocorrelation time of the candidate's gaps in frames; "
-        f"{s['autocorrelation_frames']:.1f} for the \"none\" model). Of those that pass, the one with the lowest "
-        f"held-out BIC (-2 ln LR + its extra parameters x ln N_eff) is named. Docs: docs/discrepancy.md.", "",
-        "## Candidates (first step, ranked by held-out BIC)", "",
+        f'{s["autocorrelation_frames"]:.1f} for the "none" model). Of those that pass, the one with the lowest '
+        f"held-out BIC (-2 ln LR + its extra parameters x ln N_eff) is named. Docs: docs/discrepancy.md.",
+        "",
+        "## Candidates (first step, ranked by held-out BIC)",
+        "",
         "| candidate | held-out MSE reduction | held-out reps improved | dBIC train | -2 ln LR held-out | held-out BIC "
         "| parameters | verdict |",
         "|---|---|---|---|---|---|---|---|",
@@ -135,46 +149,87 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     for c in s["candidates"]:
         params = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}=…" for k, v in c["parameters"].items())
         reps = c.get("holdout_reps") or {}
-        lines.append(f"| {c['effect']} | {c['holdout_mse_reduction']:.1%} | "
-                     f"{reps.get('improved', 0)}/{reps.get('reps', 0)} | {c['delta_bic_train']:.1f} | "
-                     f"{c['minus2_ln_lr_holdout']:.1f} | {c['holdout_bic']:.1f} | {params} | {c['reason']} |")
+        lines.append(
+            f"| {c['effect']} | {c['holdout_mse_reduction']:.1%} | "
+            f"{reps.get('improved', 0)}/{reps.get('reps', 0)} | {c['delta_bic_train']:.1f} | "
+            f"{c['minus2_ln_lr_holdout']:.1f} | {c['holdout_bic']:.1f} | {params} | {c['reason']} |"
+        )
     lines += ["", "## Gap per coordinate (held-out RMS)", "", "| coordinate | before | after |", "|---|---|---|"]
     lines += [f"| {c} | {v['before']:.4f} | {v['after']:.4f} |" for c, v in s["gap_per_coordinate"].items()]
     rel = result.relations_before["coordinates"]
-    lines += ["", "## Where the gaps concentrate (before; correlation of the gap with ...)", "",
-              "| coordinate | angle | velocity | load | xcorr peak lag (ms) |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Where the gaps concentrate (before; correlation of the gap with ...)",
+        "",
+        "| coordinate | angle | velocity | load | xcorr peak lag (ms) |",
+        "|---|---|---|---|---|",
+    ]
     for c, lag in zip(result.data.coordinates, result.relations_before["xcorr"]["peak_lag_s"]):
-        lines.append(f"| {c} | {rel[c]['corr_angle']:+.2f} | {rel[c]['corr_velocity']:+.2f} | "
-                     f"{rel[c]['corr_load']:+.2f} | {lag * 1000:.0f} |")
+        lines.append(
+            f"| {c} | {rel[c]['corr_angle']:+.2f} | {rel[c]['corr_velocity']:+.2f} | "
+            f"{rel[c]['corr_load']:+.2f} | {lag * 1000:.0f} |"
+        )
     groups = result.relations_before.get("groups", {})
     if groups:
         lines += ["", "| group (gap along its moment arms) | fibre length | lengthening velocity |", "|---|---|---|"]
-        lines += [f"| {g} | {v['corr_fibre_length']:+.2f} | {v['corr_lengthening_velocity']:+.2f} |"
-                  for g, v in groups.items()]
+        lines += [
+            f"| {g} | {v['corr_fibre_length']:+.2f} | {v['corr_lengthening_velocity']:+.2f} |"
+            for g, v in groups.items()
+        ]
     pinned = s.get("calibration_at_bounds") or []
     if pinned:
-        lines += ["", "## Calibration strengths at their bounds", "",
-                  "The calibration pushed these strengths to the edge of their range: it absorbed torque it could not "
-                  "explain with activations (a missing effect, or groups whose strength the data cannot separate): "
-                  "look at the coordinates they cross first.", "",
-                  "| group | strength scale | bound | coordinates |", "|---|---|---|---|"]
+        lines += [
+            "",
+            "## Calibration strengths at their bounds",
+            "",
+            "The calibration pushed these strengths to the edge of their range: it absorbed torque it could not "
+            "explain with activations (a missing effect, or groups whose strength the data cannot separate): "
+            "look at the coordinates they cross first.",
+            "",
+            "| group | strength scale | bound | coordinates |",
+            "|---|---|---|---|",
+        ]
         lines += [f"| {b['group']} | {b['scale']:.2f} | {b['side']} | {', '.join(b['coordinates'])} |" for b in pinned]
     recal = s.get("recalibrated_strengths")
     if recal:
-        lines += ["", "## Strengths re-calibrated with the named effect (--recalibrate)", "",
-                  "The written profile carries the strengths of a calibration of the training trials that had the "
-                  "named effect in it (docs/discrepancy.md, Re-calibration).", "",
-                  "| group | F_max before (N) | F_max after (N) | ratio |", "|---|---|---|---|"]
-        lines += [f"| {g} | {v['before']:.0f} | {v['after']:.0f} | {v['after'] / v['before']:.2f} |"
-                  for g, v in recal.items()]
+        lines += [
+            "",
+            "## Strengths re-calibrated with the named effect (--recalibrate)",
+            "",
+            "The written profile carries the strengths of a calibration of the training trials that had the "
+            "named effect in it (docs/discrepancy.md, Re-calibration).",
+            "",
+            "| group | F_max before (N) | F_max after (N) | ratio |",
+            "|---|---|---|---|",
+        ]
+        lines += [
+            f"| {g} | {v['before']:.0f} | {v['after']:.0f} | {v['after'] / v['before']:.2f} |" for g, v in recal.items()
+        ]
         terms = s.get("recalibrated_torque_terms") or {}
         if terms:
-            lines += ["", "Fitted with them, the torque terms' coefficients (N·m per unit of each term, as in the "
-                      "effect's parameters):", "", "| term | coefficient |", "|---|---|"]
+            lines += [
+                "",
+                "Fitted with them, the torque terms' coefficients (N·m per unit of each term, as in the "
+                "effect's parameters):",
+                "",
+                "| term | coefficient |",
+                "|---|---|",
+            ]
             lines += [f"| {k} | {v:.4g} |" for k, v in terms.items()]
-    lines += ["", "## Plots", "",
-              "![gap vs angle](gap_vs_angle.png)", "", "![gap vs velocity](gap_vs_velocity.png)", "",
-              "![gap vs phase](gap_vs_phase.png)", "", "![cross-correlation vs lag](xcorr_vs_lag.png)", "",
-              "![RMS gaps before and after](gap_rms.png)", ""]
+    lines += [
+        "",
+        "## Plots",
+        "",
+        "![gap vs angle](gap_vs_angle.png)",
+        "",
+        "![gap vs velocity](gap_vs_velocity.png)",
+        "",
+        "![gap vs phase](gap_vs_phase.png)",
+        "",
+        "![cross-correlation vs lag](xcorr_vs_lag.png)",
+        "",
+        "![RMS gaps before and after](gap_rms.png)",
+        "",
+    ]
     (folder / "report.md").write_text("\n".join(lines))
     return folder / "report.md"

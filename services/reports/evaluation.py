@@ -43,8 +43,9 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
     for g in trial.emg:
         j = groups.index(g)
         fig, ax = plt.subplots(figsize=(10, 3.2))
-        ax.fill_between(t, prior_mu[:, j] - prior_sd[:, j], prior_mu[:, j] + prior_sd[:, j], color="0.85",
-                        label="prior μ ± σ")
+        ax.fill_between(
+            t, prior_mu[:, j] - prior_sd[:, j], prior_mu[:, j] + prior_sd[:, j], color="0.85", label="prior μ ± σ"
+        )
         ax.plot(t, trial.emg[g], color="k", lw=1.5, label="measured (EMG)")
         if (trial.name, "proposed") in runs:
             run = runs[(trial.name, "proposed")]
@@ -80,8 +81,9 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
     return written
 
 
-def write_report(pack, subject: SubjectProfile, trials: list[TrialData], out: Path, *,
-                 progress: Progress | None = None, **options) -> dict:
+def write_report(
+    pack, subject: SubjectProfile, trials: list[TrialData], out: Path, *, progress: Progress | None = None, **options
+) -> dict:
     """Score every method over every trial and write out/report.md, out/metrics.json and the plots."""
     out.mkdir(parents=True, exist_ok=True)
     scores, runs = evaluate(pack, subject, trials, progress=progress, **options)

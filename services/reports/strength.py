@@ -54,14 +54,19 @@ def plot_strength(calibration: dict, out: Path) -> Path:
         ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)
         ax.set_ylim(0.0, max(1.5, 1.05 * max(cal + ref)))
         ax.set_ylabel("F_max / truth")
-        ax.set_title(f"{exercise}: median error {100 * rep['strength_error_median']:.0f} % "
-                     f"(reference {100 * rep['reference_error_median']:.0f} %)", fontsize=10)
+        ax.set_title(
+            f"{exercise}: median error {100 * rep['strength_error_median']:.0f} % "
+            f"(reference {100 * rep['reference_error_median']:.0f} %)",
+            fontsize=10,
+        )
     from matplotlib.patches import Patch
 
-    handles = [Patch(color="lightgrey", label="model reference"),
-               Patch(color=STRENGTH_COLOURS["identified"], label="calibrated: identified"),
-               Patch(color="tab:orange", label="calibrated: combination / unidentified / at bound"),
-               Patch(color=STRENGTH_COLOURS["not_calibrated"], label="no EMG: kept at reference")]
+    handles = [
+        Patch(color="lightgrey", label="model reference"),
+        Patch(color=STRENGTH_COLOURS["identified"], label="calibrated: identified"),
+        Patch(color="tab:orange", label="calibrated: combination / unidentified / at bound"),
+        Patch(color=STRENGTH_COLOURS["not_calibrated"], label="no EMG: kept at reference"),
+    ]
     axes[0, 0].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
     path = out / "strength.png"
