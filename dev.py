@@ -4,6 +4,7 @@
     python3 dev.py demo   # create .venv (first time), install msk-live, run the demo on the embedded default
     python3 dev.py test   # same install, then the whole test suite
     python3 dev.py bench  # the benchmarks (`msk bench`)
+    python3 dev.py lint   # ruff (lint and format check) and mypy, as CI runs them
 
 Extra arguments after the command go to the tool (e.g. ``python3 dev.py test -k emg``).
 """
@@ -50,12 +51,18 @@ def _parallel(args: list[str]) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    if not argv or argv[0] not in ("demo", "test", "bench"):
+    if not argv or argv[0] not in ("demo", "test", "bench", "lint"):
         print(__doc__)
         return 2
     command, rest = argv[0], argv[1:]
     _install()
     os.chdir(ROOT)
+    if command == "lint":
+        checks = [["ruff", "check", "."], ["ruff", "format", "--check", "."], ["mypy"]]
+        failed = [" ".join(c) for c in checks if subprocess.call([str(BIN / c[0]), *c[1:]]) != 0]
+        if failed:
+            print(f"lint: failed: {', '.join(failed)}", file=sys.stderr)
+        return 1 if failed else 0
     if command == "test":
         return subprocess.call([str(PYTHON), "-m", "pytest", *_parallel(rest), *rest])
     return subprocess.call([str(BIN / "msk"), command, *rest])
