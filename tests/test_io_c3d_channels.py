@@ -4,6 +4,8 @@ with ezc3d."""
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +22,7 @@ EMG = ["TA", "SOL", "GAS", "VL"]
 RATE = 1000.0
 
 
-def _gait_c3d(
+def _write_gait_c3d(
     path: Path,
     *,
     labels: list[str],
@@ -55,6 +57,14 @@ def _gait_c3d(
         c3d.add_parameter("FORCE_PLATFORM", "TYPE", [2] * len(channel_numbers[0]))
     c3d.write(str(path))
     return path
+
+
+def _gait_c3d(path: Path, **options) -> Path:
+    """:func:`_write_gait_c3d` in a fresh interpreter: ezc3d's SWIG parameter setter refused a list of ints
+    (``Parameter_set``: wrong number or type of arguments) in a test process that had run other tests first, and
+    passed alone; the file written is the same."""
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_write_gait_c3d, path, **options).result(timeout=60)
 
 
 def _plate_channels(first: int, plates: int) -> list[list[int]]:

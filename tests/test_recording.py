@@ -31,6 +31,7 @@ def _write_source_recording(path: Path, *, burst: int) -> list[tuple[str, bytes]
             name = messages.type_name(message)
             key = {
                 "msk.EmgChunk": topics.emg_key("lab", "trigno"),
+                "msk.AccChunk": topics.acc_key("lab", "trigno"),
                 "msk.ImuSample": topics.imu_key("lab", "0343A1B2"),
                 "msk.JointAngles": topics.joints_key("lab"),
                 "msk.LoadEvent": topics.load_key("lab"),
