@@ -10,7 +10,7 @@ import numpy as np
 
 from msk_core.errors import EstimationError, InputError
 from msk_core.estimate.frame import MIN_TORQUE_SCALE
-from msk_core.estimate.pack import PackLike
+from msk_core.estimate.pack import PackLike, fibre_lengths
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
@@ -220,6 +220,7 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
     emd = (profile.calibration or {}).get("emd") or {}
     ranges = getattr(pack, "coordinate_ranges", None)
     r = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
+    optimal, slack = fibre_lengths(pack)
     return SessionArrays(
         groups=groups,
         coordinates=list(pack.coordinates),
@@ -227,8 +228,8 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
         electrode_order=order,
         f_max=np.asarray(profile.f_max, dtype=float),
         base_delay_s=float(emd.get("delay_s", 0.0) or 0.0),
-        optimal=getattr(pack, "optimal_fiber_lengths", None),
-        slack=getattr(pack, "tendon_slack_lengths", None),
+        optimal=optimal,
+        slack=slack,
         lo=None if r is None else r[:, 0],
         hi=None if r is None else r[:, 1],
         trials=[_arrays(pack, profile, t, emg_groups) for t in trials],

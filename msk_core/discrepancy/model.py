@@ -205,7 +205,10 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     cols, names, ridge, ridge_abs = [], [], [], []
 
     def add(column: np.ndarray, name: str, rel: float = TINY_RIDGE, absolute: float = 0.0) -> None:
-        cols.append(column.ravel()), names.append(name), ridge.append(rel), ridge_abs.append(absolute)
+        cols.append(column.ravel())
+        names.append(name)
+        ridge.append(rel)
+        ridge_abs.append(absolute)
 
     onehot = np.eye(n_c)
     # The columns are the same for every trial of the session (a fit on the training trials is applied to the held-out
@@ -219,10 +222,10 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
             crossed = crossed_coordinates(data, g)
             if len(crossed) > 1:
                 multi.add(k)
-                for c in crossed:
+                for coordinate in crossed:
                     add(
-                        contrib[:, :, k] * onehot[data.coordinates.index(c)],
-                        f"arm:{g}:{c}",
+                        contrib[:, :, k] * onehot[data.coordinates.index(coordinate)],
+                        f"arm:{g}:{coordinate}",
                         MEASURED_RIDGE,
                         MEASURED_RIDGE_ABS,
                     )

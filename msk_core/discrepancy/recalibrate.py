@@ -16,15 +16,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from msk_core.discrepancy.model import force_factor
-from msk_core.estimate.calibrate import CalibrationSettings
+from msk_core.estimate.calibrate import CalibrationResult, CalibrationSettings
 from msk_core.estimate.effects import TORQUE_TERMS, torque_term_columns, torque_term_names
-from msk_core.estimate.pack import PackLike
+from msk_core.estimate.pack import PackLike, fibre_lengths
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
+
+if TYPE_CHECKING:  # imported where used (msk_core.estimate.pipeline imports more than this module needs at load)
+    from msk_core.estimate.pipeline import CalibrationInputs
 
 TORQUE_EFFECTS = TORQUE_TERMS  # re-calibrated with their torque as a basis
 FORCE_EFFECTS = ("fl_active", "fv")  # ... with their per-frame force factor on the moment arms
@@ -69,8 +73,7 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_m
         lengths,
         arms,
         f_max,
-        np.asarray(pack.optimal_fiber_lengths),
-        np.asarray(pack.tendon_slack_lengths),
+        *fibre_lengths(pack),
         None if r is None else r[:, 0],
         None if r is None else r[:, 1],
     )
@@ -87,8 +90,8 @@ class Recalibrator:
         self.f_max_profile = np.asarray(profile.f_max, dtype=float)
         self.reports: dict[str, dict] = {}
         self._cache: dict[str, np.ndarray] = {}
-        self._plain: dict[float, object] = {}  # delay -> the calibration without a torque basis (the warm start)
-        self._inputs: dict[float, object] = {}  # delay -> the shifted trials, prior and min-effort error (shared)
+        self._plain: dict[float, CalibrationResult] = {}  # delay -> the calibration without a torque basis (warm start)
+        self._inputs: dict[float, CalibrationInputs] = {}  # delay -> the shifted trials, prior, min-effort error
 
     @staticmethod
     def supports(model: dict[str, dict]) -> bool:
@@ -141,8 +144,7 @@ class Recalibrator:
             mech.lengths,
             mech.moment_arms,
             np.nan_to_num(trial.qd),
-            np.asarray(pack.optimal_fiber_lengths),
-            np.asarray(pack.tendon_slack_lengths),
+            *fibre_lengths(pack),
             forces,
         )
 

@@ -52,6 +52,7 @@ from msk_core.discrepancy.model import (
     target_torque,
 )
 from msk_core.discrepancy.recalibrate import RECALIBRATED, Recalibrator
+from msk_core.errors import EstimationError
 from msk_core.progress import Progress, counted
 
 MIN_REDUCTION = 0.15
@@ -129,6 +130,8 @@ def score_candidate(
         fraction = _unexplained(data, train, f, f.train_mse)
         if best is None or fraction < best_fraction:
             best, best_fraction = f, fraction
+    if best is None:
+        raise EstimationError(f"discrepancy candidate {cand.name!r} has no parameter setting to fit (an empty grid)")
     if recalibrated is not None:
         recal, rbase = recalibrated
         best = fit(replace(data, f_max=recal.f_max(best.model)), train, best.model)
@@ -265,7 +268,7 @@ def select_effects(
         plain = base_state(data, train, holdout, base)
         rbase = None
 
-        def recalibrated(c: Candidate, base: Base = base) -> tuple[Recalibrator, Base] | None:  # this step's base
+        def recalibrated(c: Candidate, base: Fit = base) -> tuple[Recalibrator, Base] | None:  # this step's base
             nonlocal rbase
             if (
                 recalibrator is None

@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import datetime as _dt
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -140,7 +141,7 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
             "corr_velocity": _corr(qd[:, n], g[:, n]),
             "corr_load": _corr(load, g[:, n]),
         }
-    if data.optimal is not None and trials[0].lengths is not None:
+    if data.optimal is not None and data.slack is not None and trials[0].lengths is not None:
         arms = np.vstack([t.arms * on(data, f).f_max / t.scale[:, :, None] for t in trials])
         lengths = np.vstack([fibre_length(t.lengths, data.optimal, data.slack) for t in trials])
         vel = -np.einsum("tng,tn->tg", np.vstack([t.arms for t in trials]), qd)
@@ -269,7 +270,7 @@ def run_discrepancy(
     per_c_after = np.sqrt(np.mean(np.vstack([gaps(data, t, after_fit) for t in ho]) ** 2, axis=0))
     named = sel.named
     candidates = [_score_dict(s) for s in sel.steps[0]] if sel.steps else []
-    evidence = {
+    evidence: dict[str, Any] = {  # JSON: the profile's record of how the effects were found
         "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "training_trials": [t.path for t in tr],
         "holdout_trials": [t.path for t in ho],
@@ -286,6 +287,7 @@ def run_discrepancy(
         "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
     }
     profile_out = None
+    effects: dict = {}  # the profile's effects section, when an effect is named
     recalibrated = after_fit.f_max is not None and not np.array_equal(after_fit.f_max, data.f_max)
     if named:
         profile_out = copy.deepcopy(profile)
@@ -295,15 +297,16 @@ def run_discrepancy(
                 "calibration": recalibrator.report(after_fit.model) if recalibrator else None,
             }
             profile_out.f_max = np.asarray(after_fit.f_max, dtype=float).copy()
-        profile_out.effects = effects_section(data, after_fit, evidence)
+        effects = effects_section(data, after_fit, evidence)
+        profile_out.effects = effects
     summary = {
         "effect": "none" if not named else (named[0] if len(named) == 1 else named),
         "parameters": {}
         if not named
         else (
-            profile_out.effects["effects"][0]["parameters"]
+            effects["effects"][0]["parameters"]
             if len(named) == 1
-            else {e["name"]: e["parameters"] for e in profile_out.effects["effects"]}
+            else {e["name"]: e["parameters"] for e in effects["effects"]}
         ),
         "gap_before": float(np.sqrt(sel.gap_before_mse)),
         "gap_after": float(np.sqrt(sel.gap_after_mse)),
@@ -324,7 +327,7 @@ def run_discrepancy(
     }
     summary["recalibrate"] = bool(recalibrate)
     if profile_out is not None:
-        summary["strength_gain"] = profile_out.effects["strength_gain"]
+        summary["strength_gain"] = effects["strength_gain"]
         if recalibrated:  # the groups whose calibrated strength moved by more than 1 %
             summary["recalibrated_strengths"] = {
                 g: {"before": float(b), "after": float(a)}

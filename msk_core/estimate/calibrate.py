@@ -97,11 +97,13 @@ class CalibrationFrames:
             if not np.all(np.isfinite(z)):
                 raise EstimationError("calibration torque_basis has non-finite values")
             if self.torque_basis_lower is not None and np.shape(self.torque_basis_lower) != (z.shape[2],):
-                raise EstimationError(f"calibration torque_basis_lower must be ({z.shape[2]},), got "
-                                      f"{np.shape(self.torque_basis_lower)}")
+                raise EstimationError(
+                    f"calibration torque_basis_lower must be ({z.shape[2]},), got {np.shape(self.torque_basis_lower)}"
+                )
             if self.torque_basis_names and len(self.torque_basis_names) != z.shape[2]:
-                raise EstimationError(f"calibration torque_basis_names: {len(self.torque_basis_names)} names for "
-                                      f"{z.shape[2]} columns")
+                raise EstimationError(
+                    f"calibration torque_basis_names: {len(self.torque_basis_names)} names for {z.shape[2]} columns"
+                )
         for name, arr, shape in (
             ("torques", self.torques, (t, n_c)),
             ("prior_mean", self.prior_mean, (t, g)),
@@ -141,6 +143,7 @@ class CalibrationSettings:
 
     def __post_init__(self) -> None:
         self.identify = IdentifyMode(self.identify)
+
     a_min: float = 0.0
     max_iter: int = 20000
     gtol: float = 1e-7
@@ -187,7 +190,8 @@ class CalibrationResult:
                 "std": None if std is None or not np.isfinite(std) else float(std),
                 "std_data": None if std_d is None or not np.isfinite(std_d) else float(std_d),
                 "status": self.status[j] if self.status else None,
-                "identified_share": None if self.identified_share is None or not np.isfinite(self.identified_share[j])
+                "identified_share": None
+                if self.identified_share is None or not np.isfinite(self.identified_share[j])
                 else float(self.identified_share[j]),
             }
         return out
@@ -257,8 +261,11 @@ class _Problem:
         self.w_k_obj = self.w_k  # the strength prior's weight in the objective (x tau_int in IdentifyMode.SHRINK)
         self.a_min = s.a_min
         # the torque basis' coefficients beta, the last p variables: z = (k, a, beta)
-        self.basis = (np.zeros((self.t, self.m.shape[1], 0)) if frames.torque_basis is None
-                      else np.asarray(frames.torque_basis, dtype=float))
+        self.basis = (
+            np.zeros((self.t, self.m.shape[1], 0))
+            if frames.torque_basis is None
+            else np.asarray(frames.torque_basis, dtype=float)
+        )
         self.p = self.basis.shape[2]
         self.basis_names = tuple(frames.torque_basis_names or ())
         lower = frames.torque_basis_lower
@@ -308,8 +315,10 @@ class _Problem:
         """(lower, upper) of every variable (k, a, beta)."""
         k_lo, k_hi = np.array(self.k_bounds, dtype=float).reshape(self.g, 2).T
         n_a = self.t * self.g
-        return (np.concatenate([k_lo, np.full(n_a, self.a_min), self.beta_lower]),
-                np.concatenate([k_hi, np.ones(n_a), np.full(self.p, np.inf)]))
+        return (
+            np.concatenate([k_lo, np.full(n_a, self.a_min), self.beta_lower]),
+            np.concatenate([k_hi, np.ones(n_a), np.full(self.p, np.inf)]),
+        )
 
     def strength_std(self, z: np.ndarray, *, with_prior: bool, return_cov: bool = False):
         """Laplace std of each free k: the inverse of the Gauss-Newton curvature of J in k after marginalising the
@@ -407,7 +416,10 @@ class _Problem:
 
 
 def calibrate(
-    f_max_ref: np.ndarray, frames: CalibrationFrames, settings: CalibrationSettings | None = None, *,
+    f_max_ref: np.ndarray,
+    frames: CalibrationFrames,
+    settings: CalibrationSettings | None = None,
+    *,
     start: CalibrationResult | None = None,
 ) -> CalibrationResult:
     """Joint bound-constrained solve (L-BFGS-B, analytic gradient) of the calibration problem, with the
@@ -444,8 +456,15 @@ def calibrate(
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)", start=start)
 
 
-def _solve_identified(prob: "_Problem", s: CalibrationSettings, f_ref: np.ndarray, solve, method: str, *,
-                      start: CalibrationResult | None = None) -> CalibrationResult:
+def _solve_identified(
+    prob: "_Problem",
+    s: CalibrationSettings,
+    f_ref: np.ndarray,
+    solve,
+    method: str,
+    *,
+    start: CalibrationResult | None = None,
+) -> CalibrationResult:
     """Solve with every factor free, then per ``s.identify``: REPORT keeps that optimum; SHRINK re-solves with the
     strength prior weighed by the residuals' autocorrelation time; TRUNCATE sets the eigen-directions of the
     data-only covariance of log k whose std exceeds ``identify_max_std`` back to the reference (log k = P log k_hat,
@@ -456,8 +475,9 @@ def _solve_identified(prob: "_Problem", s: CalibrationSettings, f_ref: np.ndarra
     z0 = prob.start()
     if start is not None:
         if start.activations.shape != (prob.t, prob.g):
-            raise EstimationError(f"calibration start: activations {start.activations.shape} for "
-                                  f"{(prob.t, prob.g)} frames x groups")
+            raise EstimationError(
+                f"calibration start: activations {start.activations.shape} for {(prob.t, prob.g)} frames x groups"
+            )
         lo, hi = np.array(prob.k_bounds).T
         z0[: prob.g] = np.clip(start.scale, lo, hi)
         z0[prob.g : prob.g * (1 + prob.t)] = np.clip(start.activations, prob.a_min, 1.0).ravel()
@@ -571,8 +591,12 @@ def calibrate_alternating(
                     prior_rows = np.hstack([np.sqrt(prob.w_k_obj) * np.eye(n_free), np.zeros((n_free, prob.p))])
                     mat = np.vstack([mat, prior_rows])
                     rhs = np.concatenate([rhs, np.full(n_free, np.sqrt(prob.w_k_obj))])
-                sol = lsq_linear(mat, rhs, bounds=(np.r_[lo[~fixed], prob.beta_lower], np.r_[hi[~fixed],
-                                 np.full(prob.p, np.inf)]), tol=1e-14).x
+                sol = lsq_linear(
+                    mat,
+                    rhs,
+                    bounds=(np.r_[lo[~fixed], prob.beta_lower], np.r_[hi[~fixed], np.full(prob.p, np.inf)]),
+                    tol=1e-14,
+                ).x
                 kk[~fixed], beta = sol[:n_free], sol[n_free:]
             z = np.concatenate([kk, a.ravel(), beta])
             value, _ = prob.value_grad(z)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from msk_core.errors import EstimationError
+from msk_core.estimate.pack import MusclePackLike, PackLike
 
 EFFECTS_FORMAT_VERSION = 1
 
@@ -141,7 +142,7 @@ def torque_term_columns(
     q: np.ndarray,
     qd: np.ndarray,
     lengths: np.ndarray | None,
-    arms: np.ndarray,
+    arms: np.ndarray | None,
     f_max: np.ndarray,
     optimal: np.ndarray | None,
     slack: np.ndarray | None,
@@ -160,7 +161,7 @@ def torque_term_columns(
         pas = passive_force_length(
             _fibre_length_for("fl_passive", lengths, optimal, slack), model["fl_passive"]["strain"]
         )
-        cols.append(np.einsum("...ng,...g->...n", arms, f_max * pas))
+        cols.append(np.einsum("...ng,...g->...n", _needed(arms, "moment arms", "fl_passive"), f_max * pas))
     if "passive_joint" in model:
         up, low = passive_joint_basis(
             q,
@@ -276,11 +277,11 @@ class ModelEffects:
             raise EstimationError(f"effects.strength_gain: gains must be positive, got {gain}")
         return cls(list(effects), list(groups), list(coordinates), gain, dict(data.get("evidence", {})))
 
-    def bind(self, pack) -> ModelEffects:
+    def bind(self, pack: PackLike) -> ModelEffects:
         """Pack-dependent constants (fibre lengths, ranges, the moment-arm scale matrix)."""
         out = replace(self)
         if self.needs_lengths:
-            if not hasattr(pack, "optimal_fiber_lengths") or not hasattr(pack, "lengths_and_moment_arms"):
+            if not isinstance(pack, MusclePackLike):
                 raise EstimationError(f"effects {self.names} need muscle lengths, which pack {pack.name!r} lacks")
             out._optimal = np.asarray(pack.optimal_fiber_lengths, dtype=float)
             out._slack = np.asarray(pack.tendon_slack_lengths, dtype=float)

@@ -55,7 +55,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate import active_set
 from msk_core.estimate.effects import ModelEffects
 from msk_core.estimate.laplace import laplace_std
-from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges, resolve_pack
+from msk_core.estimate.pack import MusclePackLike, PackLike, clamp_to_ranges, fitted_ranges, resolve_pack
 from msk_core.estimate.prior import PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
@@ -129,10 +129,11 @@ class FrameResult:
     def activation_std(self) -> np.ndarray:
         """Laplace std of each activation (0 at a bound; NaN when the frame has no valid optimum). Lazy."""
         if self._std is None:
-            if self._hess_parts is None or not np.all(np.isfinite(self.activations)):
+            hessian = self.hessian
+            if hessian is None or not np.all(np.isfinite(self.activations)):
                 self._std = np.full(self.activations.shape, np.nan)
             else:
-                self._std = laplace_std(self.hessian, ~self.at_bound, self._equality)
+                self._std = laplace_std(hessian, ~self.at_bound, self._equality)
         return self._std
 
 
@@ -172,8 +173,12 @@ class FrameEstimator:
             subject.check_pack(self.pack)
         # the profile's model effects (msk_core.estimate.effects): force scales, torque offsets, a prior delay
         self.effects: ModelEffects | None = None
-        if subject is not None and getattr(subject, "effects", None):
+        if subject is not None and subject.effects:
             self.effects = ModelEffects.from_dict(subject.effects, self.groups, self.coordinates).bind(self.pack)
+        # the pack whose muscle lengths the effects read every frame (bind checked that it has them); None: not read
+        self._lengths_pack: MusclePackLike | None = None
+        if self.effects is not None and self.effects.needs_lengths and isinstance(self.pack, MusclePackLike):
+            self._lengths_pack = self.pack
         self._f_max_profile = None if subject is None else np.asarray(subject.f_max, dtype=float)
         if f_max is None:
             f_max = subject.f_max if subject is not None else np.asarray(self.pack.f_max_ref, dtype=float)
@@ -215,6 +220,8 @@ class FrameEstimator:
         self._two = np.full(n, 2.0)
         self._hybrid_d = np.full(n, 2.0 * self.hybrid_weight)
         self._torque_weight = 1.0 / self.torque_tolerance**2
+        # the method's warm QP: SO's equality-constrained one, the others' least-squares one
+        self._qp: EqualityQP | LeastSquaresQP
         if self.method is Method.SO:
             self._qp = EqualityQP(n, len(self.coordinates), self._lb, self._ub, self.backend, eps, max_iter)
         else:
@@ -233,7 +240,7 @@ class FrameEstimator:
         # prior as one table for the compiled solve: phase bins, then the pooled row, then the rest row (hybrid: one
         # row, mean 0, precision 2 * hybrid_weight)
         if self.method in (Method.PROPOSED, Method.ASSISTED):
-            self._prior_mean, self._prior_prec = self.prior.table()
+            self._prior_mean, self._prior_prec = self._phase_prior.table()
         else:
             self._prior_mean, self._prior_prec = np.zeros((1, n)), self._hybrid_d[None, :].copy()
         self.solver_counts: dict[str, int] = {"active_set": 0, "piqp": 0}
@@ -285,19 +292,17 @@ class FrameEstimator:
                     lengths, r, tau = self._fused_frame(q, qd, qdd, hand_load_newton)
                 else:
                     tau = np.asarray(self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float)
-                    if self.effects is not None and self.effects.needs_lengths:
-                        lengths, r = self.pack.lengths_and_moment_arms(q)
-                        r = np.asarray(r, dtype=float)
-                    else:
-                        r = np.asarray(self.pack.moment_arms(q), dtype=float)
+                    lengths, r = self._lengths_and_arms(q)
             else:
                 tau = np.asarray(torques, dtype=float)
-                if self.effects is not None and self.effects.needs_lengths:
-                    lengths, r = self.pack.lengths_and_moment_arms(q)
-                    r = np.asarray(r, dtype=float)
-                else:
-                    r = np.asarray(self.pack.moment_arms(q), dtype=float)
-                if self.effects is not None and self.effects.load_ratio != 1.0 and hand_load_newton:
+                lengths, r = self._lengths_and_arms(q)
+                if (
+                    self.effects is not None  # which set qd and qdd above
+                    and qd is not None
+                    and qdd is not None
+                    and self.effects.load_ratio != 1.0
+                    and hand_load_newton
+                ):
                     # measured torques hold the reported load: add the rest of the true load's moment
                     load = np.asarray(
                         self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float
@@ -381,7 +386,7 @@ class FrameEstimator:
         at = a_mat / scale[:, None]
         tt = tau / scale
         if method is Method.PRIOR:
-            mu, prec = self.prior.mean_precision(phase)
+            mu, prec = self._phase_prior.mean_precision(phase)
             x = np.clip(mu, self._lb, self._ub)
             # curvature of the prior alone: the std reported is the prior's sigma
             result = self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, (at, 0.0, prec), None)
@@ -390,6 +395,7 @@ class FrameEstimator:
         if method is Method.SO:
             if self._so_certainly_infeasible(at, tt):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
+            assert isinstance(self._qp, EqualityQP)  # SO's, made with the method
             status, x, it, dt = self._qp.solve(at, tt)
             if status in (piqp.PIQP_PRIMAL_INFEASIBLE, piqp.PIQP_DUAL_INFEASIBLE):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
@@ -399,14 +405,29 @@ class FrameEstimator:
         if method is Method.HYBRID:
             w, d, c_a = 2.0, self._hybrid_d, None
         else:
-            mu, d = self.prior.mean_precision(phase)
+            mu, d = self._phase_prior.mean_precision(phase)
             if method is Method.ASSISTED and self._emg is not None:
                 mu, d = self._emg_term(mu, d)
             w, c_a = self._torque_weight, -(d * mu)
+        assert isinstance(self._qp, LeastSquaresQP)  # the other methods', made with the method
         status, x, it, dt = self._qp.solve(at, tt, w, d, c_a)
         result = self._finish(status, x, it, dt, a_mat, tau, phase, (at, w, d), None)
         self._after_piqp(result)
         return result
+
+    @property
+    def _phase_prior(self) -> PhasePrior:
+        """The prior of a method that reads one (construction refused those methods without it)."""
+        if self.prior is None:
+            raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
+        return self.prior
+
+    def _lengths_and_arms(self, q: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """(muscle-tendon lengths, or None when the effects do not read them; moment arms) at q."""
+        if self._lengths_pack is not None:
+            lengths, r = self._lengths_pack.lengths_and_moment_arms(q)
+            return lengths, np.asarray(r, dtype=float)
+        return None, np.asarray(self.pack.moment_arms(q), dtype=float)
 
     def _emg_term(self, mu: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Prior (mean, precision) with the measured groups' N(e_g, sigma_e^2) in place of the phase prior."""
@@ -426,7 +447,7 @@ class FrameEstimator:
             w, row0, row1, frac = 2.0, 0, 0, 0.0
         else:
             w = self._torque_weight
-            row0, row1, frac = self.prior.rows(phase)
+            row0, row1, frac = self._phase_prior.rows(phase)
         t0 = time.perf_counter()
         code, changes, out, torques = active_set.solve_box_lsq(
             r,

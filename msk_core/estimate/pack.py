@@ -12,13 +12,27 @@ CLAMP_TOLERANCE = np.deg2rad(5.0)  # poses this far outside a pack's fitted rang
 
 @runtime_checkable
 class PackLike(Protocol):
-    """Moment arms and inverse dynamics of a compiled model pack (see ``msk_core.model.ModelPack``)."""
+    """What the estimator reads of every model pack: names, reference strengths, moment arms and inverse dynamics
+    (``msk_core.model.ModelPack``; tests use smaller ones). Read-only members, so a pack's lists satisfy the
+    sequences. A pack may have more, read where present: ``coordinate_ranges`` (:func:`fitted_ranges`),
+    ``reference_pose``, the fused ``frame``, and the muscle lengths of :class:`MusclePackLike`."""
 
-    name: str
-    version: str
-    coordinates: Sequence[str]
-    groups: Sequence[str]
-    f_max_ref: np.ndarray
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def version(self) -> str: ...
+
+    @property
+    def coordinates(self) -> Sequence[str]: ...
+
+    @property
+    def groups(self) -> Sequence[str]: ...
+
+    @property
+    def f_max_ref(self) -> np.ndarray:
+        """(n_groups,) reference maximum isometric forces, N."""
+        ...
 
     def moment_arms(self, q: np.ndarray) -> np.ndarray:
         """(n_coordinates, n_groups) moment arms in metres at q (radians)."""
@@ -26,6 +40,26 @@ class PackLike(Protocol):
 
     def inverse_dynamics(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float) -> np.ndarray:
         """(n_coordinates,) generalised forces in N·m."""
+        ...
+
+
+@runtime_checkable
+class MusclePackLike(PackLike, Protocol):
+    """A pack with muscle-tendon lengths and fibre data (``ModelPack`` has them): what the muscle-state effects
+    (active and passive force-length, force-velocity) and the discrepancy data need."""
+
+    @property
+    def optimal_fiber_lengths(self) -> np.ndarray:
+        """(n_groups,) optimal fibre lengths, m."""
+        ...
+
+    @property
+    def tendon_slack_lengths(self) -> np.ndarray:
+        """(n_groups,) tendon slack lengths, m."""
+        ...
+
+    def lengths_and_moment_arms(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((n_groups,) muscle-tendon lengths in metres, (n_coordinates, n_groups) moment arms) at q, in one call."""
         ...
 
 
@@ -49,6 +83,14 @@ def fitted_ranges(pack: PackLike) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     r = np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
     return r[:, 0].copy(), r[:, 1].copy()
+
+
+def fibre_lengths(pack: PackLike) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(optimal fibre lengths, tendon slack lengths) of a pack with muscle data (:class:`MusclePackLike`), or
+    (None, None): the effects that need them say so when evaluated."""
+    if not isinstance(pack, MusclePackLike):
+        return None, None
+    return np.asarray(pack.optimal_fiber_lengths, dtype=float), np.asarray(pack.tendon_slack_lengths, dtype=float)
 
 
 def clamp_to_ranges(q: np.ndarray, ranges: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:

@@ -76,7 +76,9 @@ def build_prior(
         synergists.update(pick_synergists(pack, trials, missing, emg_groups))
         missing = [g for g in missing if g not in synergists]
     effort = missing if no_emg is not NoEmgPrior.WIDE else []
-    phases, reps, emg = [], [], {g: [] for g in emg_groups + effort}
+    phases: list[np.ndarray] = []
+    reps: list[np.ndarray] = []
+    emg: dict[str, list[np.ndarray]] = {g: [] for g in emg_groups + effort}
     offset = 0
     for t in trials:
         phases.append(t.phase)
@@ -103,10 +105,10 @@ def build_prior(
         if g in emg_groups:
             sources.append("emg")
         elif g in synergists:
-            h = groups.index(synergists[g])
-            mean[:, j], std[:, j] = mean[:, h], std[:, h]
-            if rest_mean is not None:
-                rest_mean[j], rest_std[j] = rest_mean[h], rest_std[h]
+            k = groups.index(synergists[g])
+            mean[:, j], std[:, j] = mean[:, k], std[:, k]
+            if rest_mean is not None and rest_std is not None:  # both or neither
+                rest_mean[j], rest_std[j] = rest_mean[k], rest_std[k]
             sources.append(f"synergist:{synergists[g]}")
         else:
             sources.append("min_effort" if g in effort else "default")
@@ -207,17 +209,14 @@ def calibration_frames(
             emg.append([t.emg[g][i] if g in t.emg else np.nan for g in groups])
     if not r:
         raise EstimationError("no usable calibration frame")
-    extra = (
-        {}
-        if torque_basis is None
-        else {
-            "torque_basis": np.array(basis),
-            "torque_basis_lower": torque_basis.lower,
-            "torque_basis_names": tuple(torque_basis.names),
-        }
-    )
+    stacked = (np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float))
+    if torque_basis is None:
+        return CalibrationFrames(*stacked)
     return CalibrationFrames(
-        np.array(r), np.array(tau), np.array(mu), np.array(sd), np.array(emg, dtype=float), **extra
+        *stacked,
+        torque_basis=np.array(basis),
+        torque_basis_lower=torque_basis.lower,
+        torque_basis_names=tuple(torque_basis.names),
     )
 
 
@@ -240,7 +239,7 @@ ISOMETRIC_MIN_SITES = 3  # non-target sites with EMG needed to say how the other
 def isometric_target(trial: TrialData) -> str | None:
     """The group an isometric trial contracts maximally: the one whose EMG peaks highest (None without EMG)."""
     peaks = {g: float(np.nanmax(e)) for g, e in trial.emg.items() if np.any(np.isfinite(e))}
-    return max(peaks, key=peaks.get) if peaks else None
+    return max(peaks, key=peaks.__getitem__) if peaks else None
 
 
 def isometric_cocontraction_prior(
@@ -366,7 +365,7 @@ def calibrate_inputs(
     )
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
     phase_model = learn_trials_phase_model(pack, trials)
-    norm = {}
+    norm: dict[str, dict] = {}  # per EMG channel: its normalisation and the trials it was measured in
     for t in trials:
         for ch, info in t.emg_normalisation.items():
             norm.setdefault(ch, {**info, "trials": []})["trials"].append(t.name)
@@ -402,8 +401,9 @@ def learn_trials_phase_model(pack: PackLike, trials: list[TrialData]) -> PhaseMo
     """Rep template on the trials' phase coordinate (None when their phase is not kinematic: nothing to track live).
     Isometric trials have no reps and are left out."""
     trials = [t for t in trials if not t.isometric]
-    coordinates = {t.phase_coordinate for t in trials}
-    if None in coordinates:
+    found = {t.phase_coordinate for t in trials}
+    coordinates = {c for c in found if c is not None}
+    if len(coordinates) < len(found):  # a trial whose phase is not a coordinate
         return None
     if len(coordinates) > 1:
         raise EstimationError(

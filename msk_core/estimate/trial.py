@@ -43,6 +43,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -161,7 +162,12 @@ class _TrialFile:
     def err(self, message: str, key: str, value: object = None) -> ConfigError:
         return ConfigError(message, path=self.path, line=_line_of(self.text, key.split(".")[0]), field=key, value=value)
 
+    @overload
+    def number(self, key: str, default: float) -> float: ...
+    @overload
+    def number(self, key: str, default: None) -> float | None: ...
     def number(self, key: str, default: float | None) -> float | None:
+        """The key's number, ``default`` when absent (TOML has no null: a default number gives a number)."""
         value = self.spec.get(key, default)
         if value is None:
             return None

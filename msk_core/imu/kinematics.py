@@ -267,8 +267,9 @@ class SensorCalibration:
             raise ConfigError("sensor calibration misses a field", field=str(exc.args[0])) from None
         heading = d.get("heading_rad", 0.0)
         if not isinstance(table, dict):
-            raise ConfigError("must map each segment to a quaternion [w, x, y, z]", field="sensor_to_segment_wxyz",
-                              value=table)
+            raise ConfigError(
+                "must map each segment to a quaternion [w, x, y, z]", field="sensor_to_segment_wxyz", value=table
+            )
         if isinstance(heading, bool) or not isinstance(heading, (int, float)):
             raise ConfigError("must be a number (radians)", field="heading_rad", value=heading)
         rots = {str(k): quats_to_rotation(np.asarray(v, dtype=float)) for k, v in table.items()}

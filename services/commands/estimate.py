@@ -18,35 +18,72 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Calibrate per-group strength and the phase prior from training trials (TOML) with EMG.",
     )
     cal.add_argument("--pack", required=True, help="model pack name or path")
-    cal.add_argument("--trial", action="append", required=True, type=Path,
-                     help="training trial TOML (repeatable), or a folder: every trial.toml under it (e.g. the "
-                          "isometric MVC trials of msk synth's <exercise>/mvc)")
+    cal.add_argument(
+        "--trial",
+        action="append",
+        required=True,
+        type=Path,
+        help="training trial TOML (repeatable), or a folder: every trial.toml under it (e.g. the "
+        "isometric MVC trials of msk synth's <exercise>/mvc)",
+    )
     cal.add_argument("--out", required=True, type=Path, help="subject profile JSON to write")
     cal.add_argument("--alpha", type=float, default=0.5, help="lower bound of the strength factors (default 0.5)")
     cal.add_argument("--beta", type=float, default=2.5, help="upper bound of the strength factors (default 2.5)")
     cal.add_argument("--bins", type=int, default=20, help="phase bins of the prior (default 20)")
-    cal.add_argument("--calibrate", choices=["emg", "all"], default="emg",
-                     help="which groups get a strength factor (default: those with EMG)")
-    cal.add_argument("--strength-prior-std", type=float, default=0.3,
-                     help="N(1, s^2) prior on each calibrated strength factor (default 0.3; 0 = off)")
-    cal.add_argument("--identify-max-std", type=float, default=0.15,
-                     help="a strength factor whose data-only relative Laplace std exceeds this is reported "
-                          "unidentified (default 0.15; 0 = off)")
-    cal.add_argument("--emd", default="auto", metavar="auto|SECONDS",
-                     help="electromechanical delay applied to the EMG: estimated from the trials (auto, default) or "
-                          "given in seconds (0 = none)")
-    cal.add_argument("--identify", choices=["report", "shrink", "truncate"], default="report",
-                     help="strength directions the data do not determine: report only (plain MAP, default), shrink "
-                          "to the reference (strength prior weighed by the residuals' autocorrelation time) or "
-                          "truncate (set to the reference); see docs/estimation.md")
-    cal.add_argument("--emg-relative-std", type=float, default=0.1,
-                     help="EMG noise grows with the envelope: std = sqrt(0.05^2 + (r e)^2) (default r = 0.1; 0 = "
-                          "constant 0.05)")
-    cal.add_argument("--no-emg-prior", choices=["min_effort", "synergist", "wide"], default="min_effort",
-                     help="prior of groups without EMG: static optimisation's share over the reps (default), the "
-                          "measured group with the most similar moment arms, or the wide N(0, 0.5^2)")
-    cal.add_argument("--synergist", action="append", default=[], metavar="GROUP=MEASURED",
-                     help="explicit prior source for a group without EMG (repeatable; overrides --no-emg-prior)")
+    cal.add_argument(
+        "--calibrate",
+        choices=["emg", "all"],
+        default="emg",
+        help="which groups get a strength factor (default: those with EMG)",
+    )
+    cal.add_argument(
+        "--strength-prior-std",
+        type=float,
+        default=0.3,
+        help="N(1, s^2) prior on each calibrated strength factor (default 0.3; 0 = off)",
+    )
+    cal.add_argument(
+        "--identify-max-std",
+        type=float,
+        default=0.15,
+        help="a strength factor whose data-only relative Laplace std exceeds this is reported "
+        "unidentified (default 0.15; 0 = off)",
+    )
+    cal.add_argument(
+        "--emd",
+        default="auto",
+        metavar="auto|SECONDS",
+        help="electromechanical delay applied to the EMG: estimated from the trials (auto, default) or "
+        "given in seconds (0 = none)",
+    )
+    cal.add_argument(
+        "--identify",
+        choices=["report", "shrink", "truncate"],
+        default="report",
+        help="strength directions the data do not determine: report only (plain MAP, default), shrink "
+        "to the reference (strength prior weighed by the residuals' autocorrelation time) or "
+        "truncate (set to the reference); see docs/estimation.md",
+    )
+    cal.add_argument(
+        "--emg-relative-std",
+        type=float,
+        default=0.1,
+        help="EMG noise grows with the envelope: std = sqrt(0.05^2 + (r e)^2) (default r = 0.1; 0 = constant 0.05)",
+    )
+    cal.add_argument(
+        "--no-emg-prior",
+        choices=["min_effort", "synergist", "wide"],
+        default="min_effort",
+        help="prior of groups without EMG: static optimisation's share over the reps (default), the "
+        "measured group with the most similar moment arms, or the wide N(0, 0.5^2)",
+    )
+    cal.add_argument(
+        "--synergist",
+        action="append",
+        default=[],
+        metavar="GROUP=MEASURED",
+        help="explicit prior source for a group without EMG (repeatable; overrides --no-emg-prior)",
+    )
     cal.set_defaults(handler=run_calibrate)
 
     est = subparsers.add_parser(
@@ -58,8 +95,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     est.add_argument("--subject", type=Path, default=None, help="subject profile JSON (needed for proposed/prior)")
     est.add_argument("--trial", required=True, type=Path, help="trial TOML")
     est.add_argument("--method", choices=["proposed", "so", "hybrid", "prior"], default="proposed")
-    est.add_argument("--out", required=True, type=Path,
-                     help="activations .sto (torques go to <stem>_torques.sto, Laplace std to <stem>_std.sto)")
+    est.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        help="activations .sto (torques go to <stem>_torques.sto, Laplace std to <stem>_std.sto)",
+    )
     add_solver_arguments(est)
     est.set_defaults(handler=run_estimate)
 
@@ -78,15 +119,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """The numerical paths of the per-frame estimate (docs/estimation.md, "Solvers and dynamics")."""
-    parser.add_argument("--solver", choices=["active-set", "piqp"], default="active-set",
-                        help="per-frame QP: the compiled active-set hot start, certified by its KKT conditions, with "
-                             "PIQP when it cannot certify (default), or the warm PIQP on every frame")
-    parser.add_argument("--dynamics", choices=["compiled", "pinocchio"], default="pinocchio",
-                        help="moment arms and inverse dynamics: numpy + pinocchio (default offline) or the compiled "
-                             "numba kernels (the live node's default); they agree to ~1e-13")
-    parser.add_argument("--activation-bounds", choices=["unit", "model"], default="unit",
-                        help="activations within [0, 1] (default), or within each group's OpenSim min_control / "
-                             "max_control from the pack, as OpenSim's StaticOptimization bounds them")
+    parser.add_argument(
+        "--solver",
+        choices=["active-set", "piqp"],
+        default="active-set",
+        help="per-frame QP: the compiled active-set hot start, certified by its KKT conditions, with "
+        "PIQP when it cannot certify (default), or the warm PIQP on every frame",
+    )
+    parser.add_argument(
+        "--dynamics",
+        choices=["compiled", "pinocchio"],
+        default="pinocchio",
+        help="moment arms and inverse dynamics: numpy + pinocchio (default offline) or the compiled "
+        "numba kernels (the live node's default); they agree to ~1e-13",
+    )
+    parser.add_argument(
+        "--activation-bounds",
+        choices=["unit", "model"],
+        default="unit",
+        help="activations within [0, 1] (default), or within each group's OpenSim min_control / "
+        "max_control from the pack, as OpenSim's StaticOptimization bounds them",
+    )
 
 
 def estimator_options(args: argparse.Namespace, pack) -> dict:
@@ -137,12 +190,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if not args.identify_max_std >= 0:
         raise ConfigError("must be >= 0 (0 = off)", field="--identify-max-std", value=args.identify_max_std)
     if not args.emg_relative_std >= 0:
-        raise ConfigError("must be >= 0 (0 = constant EMG noise)", field="--emg-relative-std",
-                          value=args.emg_relative_std)
-    settings = CalibrationSettings(strength_bounds=(args.alpha, args.beta), calibrate=args.calibrate,
-                                   strength_prior_std=args.strength_prior_std or None,
-                                   identify_max_std=args.identify_max_std or None, identify=args.identify,
-                                   emg_relative_std=args.emg_relative_std or None)
+        raise ConfigError(
+            "must be >= 0 (0 = constant EMG noise)", field="--emg-relative-std", value=args.emg_relative_std
+        )
+    settings = CalibrationSettings(
+        strength_bounds=(args.alpha, args.beta),
+        calibrate=args.calibrate,
+        strength_prior_std=args.strength_prior_std or None,
+        identify_max_std=args.identify_max_std or None,
+        identify=args.identify,
+        emg_relative_std=args.emg_relative_std or None,
+    )
     if args.emd == "auto":
         emd_s: float | str = "auto"
     else:
@@ -152,31 +210,47 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError("expected 'auto' or a delay in seconds", field="--emd", value=args.emd) from None
         if not 0 <= emd_s <= 0.5:
             raise ConfigError("must be in [0, 0.5] s", field="--emd", value=args.emd)
-    print(f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
-          f"of {len(trials)} trial(s)"
-          + (f" ({sum(t.isometric for t in trials)} isometric)" if any(t.isometric for t in trials) else "")
-          + "...", flush=True)
-    profile, result = calibrate_subject(pack, trials, settings=settings, n_bins=args.bins,
-                                        no_emg=args.no_emg_prior, synergists=synergists, emd_s=emd_s)
+    print(
+        f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
+        f"of {len(trials)} trial(s)"
+        + (f" ({sum(t.isometric for t in trials)} isometric)" if any(t.isometric for t in trials) else "")
+        + "...",
+        flush=True,
+    )
+    profile, result = calibrate_subject(
+        pack, trials, settings=settings, n_bins=args.bins, no_emg=args.no_emg_prior, synergists=synergists, emd_s=emd_s
+    )
     profile.save(args.out)
-    print(f"{result.method}: converged={result.converged} after {result.iterations} iterations "
-          f"({result.message}); projected gradient {result.projected_gradient:.2e}; objective {result.objective:.4g} "
-          f"(" + ", ".join(f"{k} {v:.4g}" for k, v in result.terms.items()) + ")")
+    print(
+        f"{result.method}: converged={result.converged} after {result.iterations} iterations "
+        f"({result.message}); projected gradient {result.projected_gradient:.2e}; objective {result.objective:.4g} "
+        f"(" + ", ".join(f"{k} {v:.4g}" for k, v in result.terms.items()) + ")"
+    )
     emd = profile.calibration["emd"]
     print(f"electromechanical delay: {1000 * emd['delay_s']:.0f} ms ({emd['source']})")
     for g, info in result.identifiability(pack.groups).items():
         std = "" if info["std_data"] is None else f"  std (data) {info['std_data']:7.3f}"
-        print(f"  {g:16s} scale {info['scale']:6.3f}  F_max {info['scale'] * pack.f_max_ref[pack.groups.index(g)]:9.1f} N"
-              f"{std:21s}  {info['status']}")
+        print(
+            f"  {g:16s} scale {info['scale']:6.3f}  F_max {info['scale'] * pack.f_max_ref[pack.groups.index(g)]:9.1f} N"
+            f"{std:21s}  {info['status']}"
+        )
     counts = {s: result.status.count(s) for s in dict.fromkeys(result.status)}
-    print("strength: " + ", ".join(f"{n} {s}" for s, n in counts.items())
-          + ("" if result.settings.identify_max_std is None else
-             f" (identified: data-only relative Laplace std <= {result.settings.identify_max_std}; "
-             f"unidentified directions: {IdentifyMode(result.settings.identify).value})"))
+    print(
+        "strength: "
+        + ", ".join(f"{n} {s}" for s, n in counts.items())
+        + (
+            ""
+            if result.settings.identify_max_std is None
+            else f" (identified: data-only relative Laplace std <= {result.settings.identify_max_std}; "
+            f"unidentified directions: {IdentifyMode(result.settings.identify).value})"
+        )
+    )
     vague = [g for g, st in zip(pack.groups, result.status) if st in ("unidentified", "combination")]
     if vague and not any(t.isometric for t in trials):
-        print(f"hint: the lifts do not separate the strength of {', '.join(vague)} from their synergists'; isometric "
-              "MVC trials with measured torque (trial key `isometric = true`, docs/estimation.md) do")
+        print(
+            f"hint: the lifts do not separate the strength of {', '.join(vague)} from their synergists'; isometric "
+            "MVC trials with measured torque (trial key `isometric = true`, docs/estimation.md) do"
+        )
     print(f"wrote {args.out}")
     return 0 if result.converged else 1
 
@@ -192,8 +266,9 @@ def run_estimate(args: argparse.Namespace) -> int:
     if subject is None and args.method in ("proposed", "prior"):
         raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
     trial = load_trial(args.trial, pack)
-    run = estimate_trial(pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False),
-                         **estimator_options(args, pack))
+    run = estimate_trial(
+        pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False), **estimator_options(args, pack)
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_sto(args.out, run.time, run.groups, run.activations, name=f"activations_{run.method}")
     torque_path = args.out.with_name(f"{args.out.stem}_torques.sto")
@@ -205,8 +280,10 @@ def run_estimate(args: argparse.Namespace) -> int:
     std_path = args.out.with_name(f"{args.out.stem}_std.sto")
     write_sto(std_path, run.time, run.groups, run.activation_std, name=f"activation_std_{run.method}")
     flagged = sum(s != "solved" for s in run.status)
-    print(f"{trial.n_frames} frames, {flagged} flagged {run.flag_counts or ''}; median solve "
-          f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations")
+    print(
+        f"{trial.n_frames} frames, {flagged} flagged {run.flag_counts or ''}; median solve "
+        f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations"
+    )
     print(f"wrote {args.out}, {torque_path} and {std_path} (Laplace std per activation)")
     return 0
 
