@@ -32,12 +32,13 @@ from __future__ import annotations
 
 import bisect
 import enum
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.errors import ConfigError
+from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.signal.host_clock import (
     METHOD_ARRIVAL,
     METHOD_DEVICE,
@@ -49,7 +50,9 @@ from msk_core.signal.host_clock import (
 )
 
 GAP_SETTLE_S = 0.5  # the 6 Hz low-pass restarts from rest after a gap: ~3 time constants before it is trusted
-HISTORY_S = 10.0  # envelope kept per source for the lookup at t - emd (kinematics may lag the EMG by seconds in a replay)
+HISTORY_S = (
+    10.0  # envelope kept per source for the lookup at t - emd (kinematics may lag the EMG by seconds in a replay)
+)
 
 FLAG_GAP = "emg_gap"
 FLAG_STALLED = "emg_stalled"
@@ -68,6 +71,7 @@ class JointsClock(str, enum.Enum):
     HOST = "host"  # on the host clock already (the kinematics node mapped each tracker): used as they are
     ARRIVAL = "arrival"  # on a device clock: mapped onto the host clock by their receipt times, as an EMG source
 
+
 JOINTS_STREAM = "joints"
 
 
@@ -85,7 +89,7 @@ class EmgSetup:
     emd_s: float = 0.0
 
     @classmethod
-    def from_profile(cls, profile, channel_group: dict[str, str] | None = None) -> "EmgSetup":
+    def from_profile(cls, profile, channel_group: dict[str, str] | None = None) -> EmgSetup:
         """From a subject profile's ``emg_normalisation`` (channel -> group, divisor) and calibrated EMD;
         ``channel_group`` (a session file's electrode map) overrides the profile's map."""
         norm = dict(getattr(profile, "emg_normalisation", {}) or {})
@@ -118,8 +122,16 @@ class EnvelopeBlock:
 
 
 class _Source:
-    def __init__(self, name: str, labels: tuple[str, ...], rate_hz: float, setup: EmgSetup, config: EmgFilterConfig,
-                 counters: EmgCounters, clock: HostClock) -> None:
+    def __init__(
+        self,
+        name: str,
+        labels: tuple[str, ...],
+        rate_hz: float,
+        setup: EmgSetup,
+        config: EmgFilterConfig,
+        counters: EmgCounters,
+        clock: HostClock,
+    ) -> None:
         self.name = name
         self.labels = labels
         self.rate_hz = rate_hz
@@ -208,36 +220,55 @@ class LiveEmg:
     """Explicit state: per source the envelope filter state, the next expected sample index, the clock offset and a
     short envelope history; counters for gaps, lost and duplicate samples and channels without MVC."""
 
-    def __init__(self, groups: list[str], setup: EmgSetup, *, clock: ClockMode | str = ClockMode.DEVICE,
-                 stall_s: float = 0.25, bandpass_hz: tuple[float, float] | None = (20.0, 450.0),
-                 lowpass_hz: float = 6.0, lowpass_order: int = 3, joints_clock: JointsClock | str = JointsClock.ARRIVAL,
-                 latency_ns: dict[str, int] | None = None, default_latency_ns: int = 0,
-                 clock_window_s: float = WINDOW_S) -> None:
+    def __init__(
+        self,
+        groups: list[str],
+        setup: EmgSetup,
+        *,
+        clock: ClockMode | str = ClockMode.DEVICE,
+        stall_s: float = 0.25,
+        bandpass_hz: tuple[float, float] | None = (20.0, 450.0),
+        lowpass_hz: float = 6.0,
+        lowpass_order: int = 3,
+        joints_clock: JointsClock | str = JointsClock.ARRIVAL,
+        latency_ns: dict[str, int] | None = None,
+        default_latency_ns: int = 0,
+        clock_window_s: float = WINDOW_S,
+    ) -> None:
         """``latency_ns``: per EMG source id, its stated device latency (a sample measured at host instant T is
         received at T + latency at the soonest); sources not named have ``default_latency_ns``. Only with
         ``ClockMode.HOST`` (with one clock nothing is mapped)."""
         self.groups = list(groups)
         unknown = sorted({g for g in setup.channel_group.values() if g not in self.groups})
         if unknown:
-            raise ConfigError(f"electrode map names groups that are not in the pack {self.groups}", field="emg_map",
-                              value=unknown)
+            raise ConfigError(
+                f"electrode map names groups that are not in the pack {self.groups}", field="emg_map", value=unknown
+            )
         if not 0 <= setup.emd_s <= 0.5:
             raise ConfigError("electromechanical delay must be in [0, 0.5] s", field="emd_s", value=setup.emd_s)
         self.setup = setup
         self.clock = ClockMode(clock)
         self.joints_clock = JointsClock(joints_clock)
-        self.latency_ns = {source: check_latency_ns(value, f"latency of EMG source {source}")
-                           for source, value in (latency_ns or {}).items()}
+        self.latency_ns = {
+            source: check_latency_ns(value, f"latency of EMG source {source}")
+            for source, value in (latency_ns or {}).items()
+        }
         self.default_latency_ns = check_latency_ns(default_latency_ns, "default EMG latency")
         if self.clock is ClockMode.DEVICE and (self.default_latency_ns or any(self.latency_ns.values())):
-            raise ConfigError("a device latency is applied when device clocks are mapped onto the host clock "
-                              "(clock 'host'); with one clock (clock 'device') nothing is mapped", field="latency",
-                              value={**self.latency_ns, "default": self.default_latency_ns})
+            raise ConfigError(
+                "a device latency is applied when device clocks are mapped onto the host clock "
+                "(clock 'host'); with one clock (clock 'device') nothing is mapped",
+                field="latency",
+                value={**self.latency_ns, "default": self.default_latency_ns},
+            )
         self.clock_window_s = float(clock_window_s)
         self._joints_clock = HostClock(JOINTS_STREAM, window_s=self.clock_window_s)
         self._measured: dict[str, ClockReport] = {}  # offsets set from outside, per EMG source id
         self.stall_ns = int(stall_s * 1e9)
-        self._filter_args = {"bandpass_hz": bandpass_hz, "lowpass_hz": lowpass_hz, "lowpass_order": lowpass_order}
+        # a source's envelope filter at its rate (known with its first chunk)
+        self._filter_config = functools.partial(
+            EmgFilterConfig, bandpass_hz=bandpass_hz, lowpass_hz=lowpass_hz, lowpass_order=lowpass_order
+        )
         self.sources: dict[str, _Source] = {}
         self._excluded: dict[str, frozenset[str]] = {}  # per EMG source id, the electrodes left out (exclude_channels)
         self.counters = EmgCounters()
@@ -249,8 +280,17 @@ class LiveEmg:
         mapped = set(self.setup.channel_group.values())
         return [g for g in self.groups if g in mapped]
 
-    def add_chunk(self, source: str, labels, rate_hz: float, first_sample_index: int, device_time_ns: int,
-                  samples: np.ndarray, arrival_ns: int, receipt_ns: int | None = None) -> EnvelopeBlock | None:
+    def add_chunk(
+        self,
+        source: str,
+        labels,
+        rate_hz: float,
+        first_sample_index: int,
+        device_time_ns: int,
+        samples: np.ndarray,
+        arrival_ns: int,
+        receipt_ns: int | None = None,
+    ) -> EnvelopeBlock | None:
         """Filter one chunk ``samples`` (n, channels). Returns the normalised group envelope of its new samples.
 
         ``arrival_ns``: when this node got the chunk (host clock; stalls are judged on it); ``receipt_ns``: when the
@@ -259,11 +299,15 @@ class LiveEmg:
         labels = tuple(labels)
         state = self.sources.get(source)
         if state is None or state.labels != labels or state.rate_hz != rate_hz:
-            config = EmgFilterConfig(rate_hz=float(rate_hz), **self._filter_args)
-            clock = HostClock(emg_stream(source), latency_ns=self.latency_ns.get(source, self.default_latency_ns),
-                              window_s=self.clock_window_s)
-            state = self.sources[source] = _Source(source, labels, float(rate_hz), self.setup, config, self.counters,
-                                                   clock)
+            config = self._filter_config(rate_hz=float(rate_hz))
+            clock = HostClock(
+                emg_stream(source),
+                latency_ns=self.latency_ns.get(source, self.default_latency_ns),
+                window_s=self.clock_window_s,
+            )
+            state = self.sources[source] = _Source(
+                source, labels, float(rate_hz), self.setup, config, self.counters, clock
+            )
             state.measured = self._measured.get(source)
             state.exclude(self._excluded.get(source, frozenset()))
         x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
@@ -319,18 +363,29 @@ class LiveEmg:
         measured; ``spread_ns`` how sure; ``method`` names the way, e.g. "acceleration") instead of its arrival
         mapping, from now on; ``offset_ns`` None goes back to the arrival mapping. Only with ``ClockMode.HOST``."""
         if self.clock is not ClockMode.HOST:
-            raise ConfigError("an offset is set only when device clocks are mapped onto the host clock (clock "
-                              "'host')", field="clock", value=self.clock.value)
+            raise ConfigError(
+                "an offset is set only when device clocks are mapped onto the host clock (clock 'host')",
+                field="clock",
+                value=self.clock.value,
+            )
         if offset_ns is None:
             self._measured.pop(source, None)
         else:
             if not method or method in (METHOD_ARRIVAL, METHOD_DEVICE, METHOD_HOST):
-                raise ConfigError("name the way the offset was measured (not arrival, device or host, which are "
-                                  "this module's own)", field="method", value=method)
+                raise ConfigError(
+                    "name the way the offset was measured (not arrival, device or host, which are this module's own)",
+                    field="method",
+                    value=method,
+                )
             if int(spread_ns) < 0:
                 raise ConfigError("a spread is >= 0 ns", field="spread_ns", value=spread_ns)
-            self._measured[source] = ClockReport(emg_stream(source), int(offset_ns), int(spread_ns),
-                                                 self.latency_ns.get(source, self.default_latency_ns), method)
+            self._measured[source] = ClockReport(
+                emg_stream(source),
+                int(offset_ns),
+                int(spread_ns),
+                self.latency_ns.get(source, self.default_latency_ns),
+                method,
+            )
         if source in self.sources:
             self.sources[source].measured = self._measured.get(source)
 
@@ -366,8 +421,9 @@ class LiveEmg:
         """Per stream (each EMG source seen, ``emg/<source>``, then ``joints``): the offset applied onto the host
         clock, its spread, the latency assumed and the method; a stream not mapped yet is left out."""
         if self.clock is ClockMode.DEVICE:
-            return [ClockReport(name, 0, 0, 0, METHOD_DEVICE)
-                    for name in [*map(emg_stream, self.sources), JOINTS_STREAM]]
+            return [
+                ClockReport(name, 0, 0, 0, METHOD_DEVICE) for name in [*map(emg_stream, self.sources), JOINTS_STREAM]
+            ]
         reports = [r for r in (state.clock_report() for state in self.sources.values()) if r is not None]
         if self.joints_clock is JointsClock.HOST:
             reports.append(ClockReport(JOINTS_STREAM, 0, 0, 0, METHOD_HOST))
@@ -385,7 +441,9 @@ class LiveEmg:
         frame_ns = int(device_time_ns)  # the frame's instant on the clock the EMG is mapped onto
         if self.clock is ClockMode.HOST and self.joints_clock is JointsClock.ARRIVAL:
             self._joints_clock.add(frame_ns, int(arrival_ns if receipt_ns is None else receipt_ns))
-            frame_ns += self._joints_clock.offset_ns
+            offset = self._joints_clock.offset_ns
+            assert offset is not None  # a clock with a sample has an offset (as DeviceClocks.to_host says)
+            frame_ns += offset
         wanted_groups = set(self.setup.channel_group.values())
         served: set[str] = set()
         for state in self.sources.values():
