@@ -480,7 +480,9 @@ def run_devices(args, sink: Sink, *, session: str, duration_s: float | None, sto
     finally:
         if trackers is not None:
             trackers.close()
+    reports: list[LoopReport] = []
     for result in results:
         if isinstance(result, BaseException):
             raise result
-    return results  # type: ignore[return-value]
+        reports.append(result)
+    return reports

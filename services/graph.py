@@ -195,7 +195,7 @@ class Graph:
 
         ``after``: the nodes this one publishes to (see :class:`ReadySpec`)."""
         ready = threading.Event()
-        node = _ThreadNode(name, None, ready)  # type: ignore[arg-type]
+        errors: list[BaseException] = []  # the node's, read by wait_ready and stop
         options = self.options(role)
 
         def run() -> None:
@@ -209,11 +209,11 @@ class Graph:
                     ready_key=ReadySpec(self.session, name, tuple(after)),
                 )
             except BaseException as error:  # reported by wait_ready/stop, not lost in a thread
-                node.error.append(error)
+                errors.append(error)
                 log.exception("node %s failed", name)
                 ready.set()
 
-        node.thread = threading.Thread(target=run, name=f"node-{name}", daemon=True)
+        node = _ThreadNode(name, threading.Thread(target=run, name=f"node-{name}", daemon=True), ready, errors)
         node.thread.start()
         self._threads.append(node)
 

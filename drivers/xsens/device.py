@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass, field
 
 from drivers.xsens import frames, xbus
-from drivers.xsens.serial_transport import DeviceDisconnected, Transport
+from drivers.xsens.serial_transport import DeviceDisconnected, ReopenableTransport, Transport
 from msk_core.errors import ProtocolError
 
 #: What the project asks a tracker for (PacketCounter and SampleTimeFine with every message).
@@ -108,7 +108,8 @@ class XsensDevice:
         self._last_counter: dict[int, int] = {}
         self._last_time: dict[int, int] = {}  # last SampleTimeFine per bus id
         self._time_offset: dict[int, int] = {}  # unwrapping offset per bus id
-        self._configured: dict | None = None  # configure() arguments, replayed by reconnect()
+        # configure()'s arguments (rate, precision, frame), replayed by reconnect()
+        self._configured: tuple[int, xbus.Precision, xbus.CoordinateFrame] | None = None
 
     @property
     def tracker_id(self) -> str:
@@ -248,7 +249,7 @@ class XsensDevice:
         self, rate_hz: int = 100, *, precision=xbus.Precision.FLOAT32, frame=xbus.CoordinateFrame.ENU
     ) -> dict:
         """The usual sequence: GoToConfig, identify, set outputs, GoToMeasurement. Returns the device's identity."""
-        self._configured = {"rate_hz": rate_hz, "precision": precision, "frame": frame}
+        self._configured = (rate_hz, precision, frame)
         self.go_to_config()
         self.request_device_id()
         product = self.request_product_code()
@@ -342,7 +343,7 @@ class XsensDevice:
 
     @property
     def can_reconnect(self) -> bool:
-        return self._configured is not None and hasattr(self.transport, "reopen")
+        return self._configured is not None and isinstance(self.transport, ReopenableTransport)
 
     def reconnect(self, *, probe_timeout_s: float = 0.3) -> None:
         """Open the port again and redo configure() with the same arguments (after an unplug). The device must
@@ -350,12 +351,13 @@ class XsensDevice:
         answer or is another device; statistics carry on. A single short GoToConfig probes first: a port that is
         back without its device (a USB-serial converter whose sensor is off) must not block the caller for the
         full configure() timeouts."""
-        if not self.can_reconnect:
+        configured = self._configured
+        if configured is None or not isinstance(self.transport, ReopenableTransport):  # as can_reconnect says
             raise ProtocolError(
                 f"{self.transport.name}: cannot reconnect (never configured, or the transport cannot reopen)"
             )
         previous = self.device_id
-        transport = self.transport.reopen()  # type: ignore[attr-defined]
+        transport = self.transport.reopen()
         self.transport = transport
         self.parser = xbus.XbusParser()
         self._queue.clear()
@@ -365,7 +367,8 @@ class XsensDevice:
         size = self.device_id_size
         try:
             self.request(xbus.Mid.GO_TO_CONFIG, timeout=probe_timeout_s)
-            self.configure(**self._configured)  # type: ignore[arg-type]
+            rate_hz, precision, frame = configured
+            self.configure(rate_hz, precision=precision, frame=frame)
         except BaseException:
             transport.close()
             raise

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from msk_core.errors import ConfigError, MskError
 
@@ -22,6 +22,14 @@ class Transport(Protocol):
     def write(self, data: bytes) -> None: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class ReopenableTransport(Transport, Protocol):
+    """A transport that can open its port again (same path, same settings) after the device came back: what
+    :meth:`drivers.xsens.device.XsensDevice.reconnect` needs."""
+
+    def reopen(self) -> Transport: ...
 
 
 class SerialTransport:

@@ -192,7 +192,8 @@ class JointKinematicsFilter:
     def filter(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``step`` over a series ``(n_samples, n_angles)`` at the config rate."""
         out = [self.step(a) for a in np.atleast_2d(np.asarray(angles, dtype=float))]
-        return tuple(np.array([o[k] for o in out]) for k in range(3))  # type: ignore[return-value]
+        q, qd, qdd = (np.array([o[k] for o in out]) for k in range(3))
+        return q, qd, qdd
 
 
 def smooth_kinematics(angles: np.ndarray, config: KinematicsFilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -270,7 +270,10 @@ class NormalisationReference:
             scale = np.asarray(d["scale"], dtype=float).reshape(-1)
         except (KeyError, ValueError, TypeError) as exc:
             raise ConfigError(f"invalid normalisation scale: {exc}", field="scale") from exc
-        return cls(scale=_check_scale(scale), mode=mode, channels=tuple(d.get("channels", ())))  # type: ignore[arg-type]
+        channels = d.get("channels", ())
+        if not isinstance(channels, (list, tuple)) or not all(isinstance(c, str) for c in channels):
+            raise ConfigError("must be a list of channel labels", field="channels", value=channels)
+        return cls(scale=_check_scale(scale), mode=mode, channels=tuple(channels))
 
 
 def _check_scale(scale: np.ndarray) -> np.ndarray:

@@ -24,7 +24,9 @@ Causal at the rep's scale: a rep's values exist when the rep ends, the trend upd
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from scipy import signal
@@ -183,12 +185,23 @@ def rep_spectrum(
     return RepSpectrum(rep, t_start, t_end, median, mean, rms, start + first_sample, end + first_sample)
 
 
-def _rep_times(rep: object) -> tuple[float, float]:
+@runtime_checkable
+class _Span(Protocol):
+    """Anything with a start and an end time, such as a :class:`~.reps.Rep`."""
+
+    @property
+    def t_start(self) -> float: ...
+
+    @property
+    def t_end(self) -> float: ...
+
+
+def _rep_times(rep: _Span | Iterable[float]) -> tuple[float, float]:
     """``(t_start, t_end)`` of a pair or of anything with ``t_start``/``t_end`` (a :class:`~.reps.Rep`)."""
-    if hasattr(rep, "t_start") and hasattr(rep, "t_end"):
+    if isinstance(rep, _Span):
         t0, t1 = float(rep.t_start), float(rep.t_end)
     else:
-        t0, t1 = (float(v) for v in rep)  # type: ignore[attr-defined]
+        t0, t1 = (float(v) for v in rep)
     if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0):
         raise InputError("a rep must end after it starts", field="rep", value=(t0, t1))
     return t0, t1

@@ -177,6 +177,14 @@ def rep_phase(
     return phase, index
 
 
+def _number(d: dict[str, object], key: str) -> float:
+    """``d[key]`` of a JSON document, which must be a number (KeyError when missing, as ``d[key]``)."""
+    value = d[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError("must be a number", field=key, value=value)
+    return float(value)
+
+
 @dataclass(frozen=True)
 class RepTemplate:
     """Mean progress curve of calibration reps, ``progress[i]`` at ``phase_grid[i]``, with the scale it used."""
@@ -214,19 +222,20 @@ class RepTemplate:
 
     @classmethod
     def from_dict(cls, d: dict[str, object]) -> RepTemplate:
+        """The template :meth:`to_dict` wrote; ConfigError naming the field that is missing or not a number."""
         try:
             return cls(
                 excursion=Excursion(d["excursion"]),
                 mode=PhaseMode(d["mode"]),
-                rest=float(d["rest"]),  # type: ignore[arg-type]
-                depth=float(d["depth"]),  # type: ignore[arg-type]
-                start_fraction=float(d["start_fraction"]),  # type: ignore[arg-type]
-                min_depth_fraction=float(d["min_depth_fraction"]),  # type: ignore[arg-type]
+                rest=_number(d, "rest"),
+                depth=_number(d, "depth"),
+                start_fraction=_number(d, "start_fraction"),
+                min_depth_fraction=_number(d, "min_depth_fraction"),
                 phase_grid=np.asarray(d["phase_grid"], dtype=float),
                 progress=np.asarray(d["progress"], dtype=float),
                 progress_std=np.asarray(d["progress_std"], dtype=float),
-                mean_duration_s=float(d["mean_duration_s"]),  # type: ignore[arg-type]
-                n_reps=int(d["n_reps"]),  # type: ignore[call-overload]
+                mean_duration_s=_number(d, "mean_duration_s"),
+                n_reps=int(_number(d, "n_reps")),
             )
         except KeyError as exc:
             raise ConfigError("rep template misses a field", field=str(exc.args[0])) from None
