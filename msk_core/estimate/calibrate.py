@@ -457,7 +457,7 @@ def calibrate(
 
 
 def _solve_identified(
-    prob: "_Problem",
+    prob: _Problem,
     s: CalibrationSettings,
     f_ref: np.ndarray,
     solve,
@@ -562,7 +562,7 @@ def calibrate_alternating(
         hi = np.array([b[1] for b in prob.k_bounds])
         previous = np.inf
         sweeps = 0
-        for sweeps in range(1, max_sweeps + 1):
+        for sweeps in range(1, max_sweeps + 1):  # noqa: B007 - the count of sweeps done is returned after the loop
             k, a, beta = prob.split(z)
             a = a.copy()
             tau = prob.tau - prob.offset(beta)  # the torque the activations must produce
