@@ -33,7 +33,7 @@ from scipy import signal
 
 from msk_core.errors import ConfigError, InputError
 from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal
-from msk_core.signal.quality import EMG_BAND_HZ, NOISE_FLOOR_RMS_V
+from msk_core.signal.quality import EMG_BAND_HZ, NOISE_FLOOR_RMS_V, check_emg_rate
 
 # 0.128 s segments (256 samples at 2 kHz): 7.8 Hz resolution, and a 1 s burst still gives ~14 half-overlapping
 # segments to average (EMG spectral estimates for fatigue use 0.25-1 s epochs: Merletti et al. 1990).
@@ -56,12 +56,7 @@ class FatigueConfig:
     max_history_s: float = MAX_HISTORY_S
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.rate_hz) and self.rate_hz > 2 * EMG_BAND_HZ[1]):
-            raise ConfigError(
-                f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
-                field="rate_hz",
-                value=self.rate_hz,
-            )
+        check_emg_rate(self.rate_hz)
         if not 0 < self.active_fraction < 1:
             raise ConfigError(
                 "the active fraction of the peak must be in (0, 1)", field="active_fraction", value=self.active_fraction

@@ -56,6 +56,17 @@ HOP_S = 0.125  # a verdict 8 times a second
 RAISE_HOPS = 2  # a fault shows in 2 windows in a row before it is raised: no single-window blip raises it
 CLEAR_HOPS = 3  # ... and is gone from 3 in a row before it clears: worst case 0.5 + 3 * 0.125 s after it ends
 
+
+def check_emg_rate(rate_hz: float) -> None:
+    """Refuse an EMG rate that cannot carry the 20-450 Hz band (the quality monitor's and the fatigue index's)."""
+    if not (np.isfinite(rate_hz) and rate_hz > 2 * EMG_BAND_HZ[1]):
+        raise ConfigError(
+            f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
+            field="rate_hz",
+            value=rate_hz,
+        )
+
+
 # --- thresholds -------------------------------------------------------------------------------------------------------
 
 # Saturation. A sample "at the rail" is within 5 % of the range: the Trigno's range is "about" 11 mV, so its exact
@@ -133,12 +144,7 @@ class QualityConfig:
     hop_s: float = HOP_S
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.rate_hz) and self.rate_hz > 2 * EMG_BAND_HZ[1]):
-            raise ConfigError(
-                f"the EMG rate must exceed {2 * EMG_BAND_HZ[1]:.0f} Hz (twice the band's top)",
-                field="rate_hz",
-                value=self.rate_hz,
-            )
+        check_emg_rate(self.rate_hz)
         if not (np.isfinite(self.range_v) and self.range_v > 0):
             raise ConfigError("the input range must be a positive voltage", field="range_v", value=self.range_v)
         if not self.mains_hz or not all(0 < f < MAINS_MAX_HZ for f in self.mains_hz):
