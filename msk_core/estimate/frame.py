@@ -240,7 +240,7 @@ class FrameEstimator:
         # prior as one table for the compiled solve: phase bins, then the pooled row, then the rest row (hybrid: one
         # row, mean 0, precision 2 * hybrid_weight)
         if self.method in (Method.PROPOSED, Method.ASSISTED):
-            self._prior_mean, self._prior_prec = self._phase_prior.table()
+            self._prior_mean, self._prior_prec = self._required_prior.table()
         else:
             self._prior_mean, self._prior_prec = np.zeros((1, n)), self._hybrid_d[None, :].copy()
         self.solver_counts: dict[str, int] = {"active_set": 0, "piqp": 0}
@@ -386,7 +386,7 @@ class FrameEstimator:
         at = a_mat / scale[:, None]
         tt = tau / scale
         if method is Method.PRIOR:
-            mu, prec = self._phase_prior.mean_precision(phase)
+            mu, prec = self._required_prior.mean_precision(phase)
             x = np.clip(mu, self._lb, self._ub)
             # curvature of the prior alone: the std reported is the prior's sigma
             result = self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, (at, 0.0, prec), None)
@@ -405,7 +405,7 @@ class FrameEstimator:
         if method is Method.HYBRID:
             w, d, c_a = 2.0, self._hybrid_d, None
         else:
-            mu, d = self._phase_prior.mean_precision(phase)
+            mu, d = self._required_prior.mean_precision(phase)
             if method is Method.ASSISTED and self._emg is not None:
                 mu, d = self._emg_term(mu, d)
             w, c_a = self._torque_weight, -(d * mu)
@@ -416,7 +416,7 @@ class FrameEstimator:
         return result
 
     @property
-    def _phase_prior(self) -> PhasePrior:
+    def _required_prior(self) -> PhasePrior:
         """The prior of a method that reads one (construction refused those methods without it)."""
         if self.prior is None:
             raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
@@ -447,7 +447,7 @@ class FrameEstimator:
             w, row0, row1, frac = 2.0, 0, 0, 0.0
         else:
             w = self._torque_weight
-            row0, row1, frac = self._phase_prior.rows(phase)
+            row0, row1, frac = self._required_prior.rows(phase)
         t0 = time.perf_counter()
         code, changes, out, torques = active_set.solve_box_lsq(
             r,
