@@ -390,6 +390,11 @@ class PhaseRepCounter:
         """A rep is under way (not yet counted)."""
         return self._start is not None
 
+    @property
+    def rep_start_s(self) -> float | None:
+        """Time of the first sample of the rep under way (None between reps)."""
+        return self._start
+
     def update(self, t: float, phase: float | None) -> tuple[float, float] | None:
         """The sample at time ``t`` (s); returns the (first, last sample time) of the rep it completed, if any."""
         p = float("nan") if phase is None else float(phase)

@@ -1,0 +1,254 @@
+"""Sets of a session: when each starts and ends, its reps, time under tension, and peak and mean activation per
+muscle group. The one set logic of the project: the terminal view, the dashboard bridge and the session report each
+feed a :class:`SetTracker` the same inputs and show what it says.
+
+A set starts
+  - when the operator starts one (``msk set start``, the view's key, the dashboard's button: a session fact with
+    ``set_mark = "start"``; or a session fact naming another set number, as ``msk load --next-set`` does), or
+  - without an operator, with the first rep after a rest: the set opens when that rep starts (shown at once) and is
+    dropped again when the rep does not count (shorter than ``msk_core.signal.reps.MIN_REP_S``).
+
+A set ends
+  - when the operator ends it (``set_mark = "stop"``; a fact with no mass and no set number: the bar is off), when
+    the next set starts, or at the end of the data, or
+  - by rest detection: once it has a rep, no rep for ``rest_s`` (default :data:`DEFAULT_REST_S`, the session file's
+    ``session.rest_s``). The set then ends where its last rep ended.
+
+Reps are counted by the one segmenter (:class:`msk_core.signal.reps.PhaseRepCounter`) from the phase stream; after
+the operator starts or ends a set, a rep under way is not counted (the count waits for the next rest sample).
+Time under tension is the sum of the set's rep durations; peak and mean activation per group are taken over the
+activation frames inside the set's reps (under tension), or over the whole set when the phase is unknown.
+Explicit state, one sample at a time; no clock of its own (every time is the caller's, in seconds).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from msk_core.errors import ConfigError
+from msk_core.signal.reps import PhaseRepCounter
+
+#: Rest detection: a set with reps ends after this long without one (s), unless the session says otherwise.
+DEFAULT_REST_S = 20.0
+#: The marks a session fact (``LoadEvent.set_mark``) may carry: none, the operator starts a set, ends it.
+SET_MARKS = ("", "start", "stop")
+
+
+def check_rest_s(rest_s: float, field_name: str = "rest_s") -> float:
+    """A rest-detection time: finite and > 0 s."""
+    if isinstance(rest_s, bool) or not isinstance(rest_s, (int, float)) or not (math.isfinite(rest_s) and rest_s > 0):
+        raise ConfigError("must be a time > 0 s", field=field_name, value=rest_s)
+    return float(rest_s)
+
+
+@dataclass
+class SetRecord:
+    """One set: its number, start and end (None while under way), reps and activation figures."""
+
+    number: int
+    start_s: float
+    started_by: str  # "operator" or "rep" (rest detection: the first rep after a rest)
+    end_s: float | None = None
+    ended_by: str = ""  # "operator", "rest", "next set" or "end of data"; "" while under way
+    reps: list[tuple[float, float]] = field(default_factory=list)  # (first, last sample time) of each rep
+    groups: tuple[str, ...] = ()  # the groups of the activation figures (the first frame's)
+    peak: list[float] = field(default_factory=list)  # per group, NaN until a frame counted
+    _sum: list[float] = field(default_factory=list)
+    _n: list[int] = field(default_factory=list)
+
+    @property
+    def time_under_tension_s(self) -> float:
+        return float(sum(b - a for a, b in self.reps))
+
+    @property
+    def mean(self) -> list[float]:
+        """Mean activation per group over the frames counted (NaN where none)."""
+        return [s / n if n else math.nan for s, n in zip(self._sum, self._n)]
+
+    def add(self, groups: Sequence[str], values: Sequence[float]) -> None:
+        """One activation frame of the set (frames of other groups than the first one's are not mixed in)."""
+        if not self.groups:
+            self.groups = tuple(groups)
+            self.peak, self._sum, self._n = [math.nan] * len(groups), [0.0] * len(groups), [0] * len(groups)
+        if tuple(groups) != self.groups or len(values) != len(groups):
+            return
+        for i, v in enumerate(values):
+            v = float(v)
+            if math.isfinite(v):
+                self.peak[i] = v if math.isnan(self.peak[i]) else max(self.peak[i], v)
+                self._sum[i] += v
+                self._n[i] += 1
+
+    def as_dict(self) -> dict:
+        """JSON-ready: number, times, reps, time under tension and per group peak and mean (None where unknown)."""
+        return {
+            "number": self.number,
+            "start_s": self.start_s,
+            "end_s": self.end_s,
+            "started_by": self.started_by,
+            "ended_by": self.ended_by,
+            "reps": len(self.reps),
+            "rep_spans": [list(r) for r in self.reps],
+            "time_under_tension_s": self.time_under_tension_s,
+            "groups": list(self.groups),
+            "peak": [v if math.isfinite(v) else None for v in self.peak],
+            "mean": [v if math.isfinite(v) else None for v in self.mean],
+        }
+
+
+class SetTracker:
+    """Sets from operator marks and the phase stream (module doc). Feed in time order: :meth:`on_facts` (or
+    :meth:`start` / :meth:`stop`), :meth:`update` per phase sample, :meth:`add_activations` per frame; :meth:`finish`
+    at the end of the data. ``sets`` holds every set, the one under way last."""
+
+    def __init__(self, rest_s: float = DEFAULT_REST_S) -> None:
+        self.rest_s = check_rest_s(rest_s)
+        self.sets: list[SetRecord] = []
+        self._counter = PhaseRepCounter()
+        self._wait_rest = False  # after an operator mark: the rep under way is not counted
+        self._tentative = False  # the set under way was opened by a rep that has not counted yet
+        self._last_t = -math.inf
+        self._phase: float | None = None
+
+    # ---- what the surfaces show ------------------------------------------------------------------------------------
+    @property
+    def current(self) -> SetRecord | None:
+        """The set under way, None at rest."""
+        return self.sets[-1] if self.sets and self.sets[-1].end_s is None else None
+
+    @property
+    def number(self) -> int:
+        """The set under way, else the last one (0 before the first)."""
+        return self.sets[-1].number if self.sets else 0
+
+    @property
+    def rep(self) -> int:
+        """Rep n of the set: the rep under way, else the last one done (0 at rest or before the first)."""
+        current = self.current
+        if current is None:
+            return 0
+        return len(current.reps) + (1 if self._counter.in_rep and not self._wait_rest else 0)
+
+    @property
+    def resting(self) -> bool:
+        return self.current is None
+
+    def status(self, time_s: float | None = None) -> dict:
+        """JSON-ready: set number, rep of the set, resting, time in the set (s, at ``time_s``), the set under way and
+        every set done."""
+        current = self.current
+        return {
+            "set": self.number,
+            "rep": self.rep,
+            "resting": current is None,
+            "time_in_set_s": None if current is None or time_s is None else time_s - current.start_s,
+            "rest_s": self.rest_s,
+            "sets": [s.as_dict() for s in self.sets],
+        }
+
+    # ---- operator --------------------------------------------------------------------------------------------------
+    def start(self, t: float, number: int = 0) -> None:
+        """A set starts at ``t``: set ``number`` when it is after the last one, else the next; the set under way
+        ends there."""
+        self._close(t, "next set")
+        last = self.number
+        self.sets.append(SetRecord(number if number > last else last + 1, t, "operator"))
+        self._tentative = False
+        self._reset_reps()
+
+    def stop(self, t: float) -> None:
+        """The operator ends the set under way at ``t`` (nothing when at rest)."""
+        self._close(t, "operator")
+        self._reset_reps()
+
+    def on_facts(self, t: float, *, set_number: int, set_mark: str, mass_kg: float, rest_s: float = 0.0) -> None:
+        """A session fact at ``t`` (``LoadEvent``: its set number, mark, barbell mass and rest-detection time, 0 for
+        the one in effect): "start" starts set ``set_number`` (or the next), "stop" ends the set; without a mark a
+        new set number starts that set (``msk load --next-set``), a mass without a number the next set (a load
+        change of an operator who does not number sets), and neither mass nor number ends the set (the bar is
+        off); the same set number changes nothing."""
+        if set_mark not in SET_MARKS:
+            raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
+        if rest_s:
+            self.rest_s = check_rest_s(rest_s, "set_rest_s")
+        if set_mark == "start":
+            self.start(t, set_number)
+        elif set_mark == "stop":
+            self.stop(t)
+        elif set_number > 0 and set_number != self.number:
+            self.start(t, set_number)
+        elif set_number == 0 and mass_kg > 0:
+            self.start(t)
+        elif set_number == 0 and mass_kg <= 0:
+            self.stop(t)
+
+    # ---- data ------------------------------------------------------------------------------------------------------
+    def update(self, t: float, phase: float | None) -> None:
+        """The phase of the sample at ``t`` ([0, 1) inside a rep, negative at rest, None or NaN unknown)."""
+        self._last_t, self._phase = t, phase
+        inside = phase is not None and phase >= 0.0  # NaN compares False
+        if self._wait_rest:
+            if inside:
+                return
+            self._wait_rest = False
+        done = self._counter.update(t, phase)
+        current = self.current
+        if done is not None:
+            if current is None:  # (a rep opens its set when it starts: only for a set closed during the rep)
+                current = SetRecord(self.number + 1, done[0], "rep")
+                self.sets.append(current)
+            current.reps.append(done)
+            self._tentative = False
+        elif current is not None and self._tentative and not self._counter.in_rep:
+            self.sets.pop()  # the rep that opened it did not count
+            self._tentative = False
+            current = None
+        if current is None and self._counter.in_rep:
+            start = self._counter.rep_start_s
+            self.sets.append(SetRecord(self.number + 1, t if start is None else start, "rep"))
+            self._tentative = True
+        elif (
+            current is not None and current.reps and not self._counter.in_rep and t - current.reps[-1][1] >= self.rest_s
+        ):
+            self._close(current.reps[-1][1], "rest")
+
+    def add_activations(self, t: float, phase: float | None, groups: Sequence[str], values: Sequence[float]) -> None:
+        """An activation frame at ``t`` with its phase: counted in the set under way when inside a rep (or when the
+        phase is unknown)."""
+        current = self.current
+        if current is None or t < current.start_s:
+            return
+        if phase is None or math.isnan(phase) or phase >= 0.0:
+            current.add(groups, values)
+
+    def finish(self, t: float | None = None) -> None:
+        """End of the data: the rep under way counts if long enough, the set under way ends at ``t`` (default the
+        last sample's time; its last rep's end when it has reps and rested since)."""
+        done = None if self._wait_rest else self._counter.finish()
+        current = self.current
+        if current is not None and done is not None:
+            current.reps.append(done)
+            self._tentative = False
+        if current is not None and self._tentative and not current.reps:
+            self.sets.pop()
+            current = None
+        if current is not None:
+            end = self._last_t if t is None else t
+            self._close(max(end, current.start_s), "end of data")
+
+    # ---- inside ----------------------------------------------------------------------------------------------------
+    def _close(self, t: float, by: str) -> None:
+        current = self.current
+        if current is None:
+            return
+        if self._tentative and not current.reps:
+            self.sets.pop()  # opened by a rep under way that never counted
+        else:
+            current.end_s, current.ended_by = t, by
+        self._tentative = False
+
+    def _reset_reps(self) -> None:
+        self._counter = PhaseRepCounter()
+        self._wait_rest = self._phase is not None and self._phase >= 0.0

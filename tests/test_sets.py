@@ -1,0 +1,155 @@
+"""The set logic (msk_core.signal.sets.SetTracker): rest detection, operator marks, per-set figures."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from msk_core.errors import ConfigError
+from msk_core.signal.reps import REST_PHASE, PhaseRepCounter
+from msk_core.signal.sets import DEFAULT_REST_S, SetTracker
+
+RATE_HZ = 50.0
+
+
+def stream(pattern: list[tuple[str, float]], t0: float = 0.0) -> list[tuple[float, float]]:
+    """(time, phase) samples at RATE_HZ: ("rest", seconds) or ("rep", seconds) pieces, in order."""
+    out, t = [], t0
+    for kind, seconds in pattern:
+        n = int(round(seconds * RATE_HZ))
+        for k in range(n):
+            out.append((t, k / n if kind == "rep" else REST_PHASE))
+            t += 1.0 / RATE_HZ
+    return out
+
+
+def feed(tracker: SetTracker, samples: list[tuple[float, float]]) -> None:
+    for t, p in samples:
+        tracker.update(t, p)
+
+
+def test_rest_detection_splits_sets_at_the_stated_rest_and_counts_reps_per_set():
+    samples = stream(
+        [("rest", 2), ("rep", 2), ("rep", 2), ("rep", 2), ("rest", 25), ("rep", 2), ("rep", 2), ("rest", 5)]
+    )
+    tracker = SetTracker(rest_s=DEFAULT_REST_S)
+    reps_seen = []
+    for t, p in samples:
+        tracker.update(t, p)
+        reps_seen.append((tracker.number, tracker.rep, tracker.resting))
+    assert (1, 1, False) in reps_seen and (1, 3, False) in reps_seen and (2, 2, False) in reps_seen
+    # 20 s after the third rep ended the set is over, before the next rep: resting, set 1 shown
+    rest_t = next(i for i, (t, _) in enumerate(samples) if t > 8.0 + DEFAULT_REST_S + 0.1)
+    assert reps_seen[rest_t] == (1, 0, True)
+    tracker.finish()
+    first, second = tracker.sets
+    assert (first.number, len(first.reps), first.started_by, first.ended_by) == (1, 3, "rep", "rest")
+    assert first.start_s == pytest.approx(2.0) and first.end_s == pytest.approx(8.0, abs=0.05)
+    assert first.time_under_tension_s == pytest.approx(6.0, abs=0.1)
+    assert (second.number, len(second.reps), second.ended_by) == (2, 2, "end of data")
+    assert second.start_s == pytest.approx(33.0)
+
+
+def test_a_shorter_rest_than_stated_keeps_one_set():
+    samples = stream([("rep", 2), ("rest", 10), ("rep", 2), ("rest", 1)])
+    tracker = SetTracker(rest_s=12.0)
+    feed(tracker, samples)
+    tracker.finish()
+    assert [len(s.reps) for s in tracker.sets] == [2]
+    tracker = SetTracker(rest_s=8.0)
+    feed(tracker, samples)
+    tracker.finish()
+    assert [len(s.reps) for s in tracker.sets] == [1, 1]
+
+
+def test_a_rep_that_does_not_count_opens_no_set():
+    tracker = SetTracker()
+    blip = stream([("rest", 1), ("rep", 0.1)])
+    feed(tracker, blip)
+    assert tracker.number == 1 and tracker.rep == 1  # shown at once, as the rep starts
+    feed(tracker, stream([("rest", 1)], t0=1.1))
+    assert tracker.sets == [] and tracker.number == 0 and tracker.rep == 0
+    tracker.finish()
+    assert tracker.sets == []
+
+
+def test_operator_start_and_stop_mark_the_set_and_a_rep_under_way_is_not_counted():
+    tracker = SetTracker(rest_s=5.0)
+    samples = stream([("rest", 1), ("rep", 2), ("rep", 2), ("rest", 2)])
+    tracker.start(0.5, 3)  # the operator numbers it
+    feed(tracker, samples[:160])  # 3.2 s: the first rep done, the second under way
+    assert (tracker.number, tracker.rep) == (3, 2)
+    tracker.stop(3.2)  # stopped during the second rep: it is not counted and opens no set when it ends
+    assert tracker.resting and tracker.rep == 0
+    feed(tracker, samples[160:])
+    tracker.finish()
+    (only,) = tracker.sets
+    assert (only.number, only.start_s, only.end_s, only.started_by, only.ended_by) == (
+        3,
+        0.5,
+        3.2,
+        "operator",
+        "operator",
+    )
+    assert len(only.reps) == 1
+    # an operator's set without reps is not ended by rest detection (the athlete gets ready)
+    tracker = SetTracker(rest_s=5.0)
+    tracker.start(0.0)
+    feed(tracker, stream([("rest", 30)]))
+    assert not tracker.resting and tracker.number == 1
+
+
+def test_session_facts_map_onto_marks():
+    tracker = SetTracker()
+    tracker.on_facts(0.0, set_number=1, set_mark="", mass_kg=60.0)  # msk live's facts at start: set 1
+    assert tracker.number == 1 and not tracker.resting
+    tracker.on_facts(1.0, set_number=1, set_mark="", mass_kg=62.5)  # a load correction: same set
+    assert len(tracker.sets) == 1
+    tracker.on_facts(2.0, set_number=2, set_mark="", mass_kg=62.5)  # msk load --next-set
+    assert [s.number for s in tracker.sets] == [1, 2] and tracker.sets[0].ended_by == "next set"
+    tracker.on_facts(3.0, set_number=2, set_mark="stop", mass_kg=62.5, rest_s=30.0)
+    assert tracker.resting and tracker.rest_s == 30.0
+    tracker.on_facts(4.0, set_number=2, set_mark="start", mass_kg=62.5)  # a stale number: the next set
+    assert tracker.number == 3
+    tracker.on_facts(5.0, set_number=0, set_mark="", mass_kg=0.0)  # the bar is off
+    assert tracker.resting
+    with pytest.raises(ConfigError, match="set_mark"):
+        tracker.on_facts(6.0, set_number=0, set_mark="begin", mass_kg=0.0)
+    with pytest.raises(ConfigError, match="rest_s"):
+        SetTracker(rest_s=0.0)
+
+
+def test_peak_and_mean_are_over_the_frames_inside_the_sets_reps():
+    tracker = SetTracker(rest_s=3.0)
+    groups = ("A", "B")
+    for t, p in stream([("rest", 1), ("rep", 2), ("rest", 1)]):
+        tracker.update(t, p)
+        inside = p >= 0
+        tracker.add_activations(t, p, groups, [0.5 + 0.2 * p if inside else 0.9, 0.1 if inside else math.nan])
+    tracker.finish()
+    (only,) = tracker.sets
+    assert only.peak[0] == pytest.approx(0.5 + 0.2 * 0.99) and only.peak[1] == 0.1  # the 0.9 at rest is not counted
+    assert only.mean[0] == pytest.approx(0.5 + 0.2 * np.mean(np.arange(100) / 100)) and only.mean[1] == pytest.approx(0.1)
+    figures = only.as_dict()
+    assert figures["reps"] == 1 and figures["groups"] == ["A", "B"] and figures["time_under_tension_s"] > 1.9
+
+
+def test_reps_over_all_sets_are_the_segmenters():
+    """Without operator marks the sets' reps add up to what msk_core.signal.reps.PhaseRepCounter counts."""
+    rng = np.random.default_rng(30)
+    pattern = []
+    for _ in range(60):
+        pattern.append(("rep", float(rng.uniform(0.1, 3.0))))
+        pattern.append(("rest", float(rng.choice([0.02, 0.5, 4.0, 12.0]))))
+    samples = stream(pattern)
+    tracker, counter = SetTracker(rest_s=10.0), PhaseRepCounter()
+    for t, p in samples:
+        tracker.update(t, p)
+        counter.update(t, p)
+    tracker.finish()
+    counter.finish()
+    assert sum(len(s.reps) for s in tracker.sets) == counter.count > 30
+    assert len(tracker.sets) > 3 and all(s.reps for s in tracker.sets)
+    assert all(a.end_s is not None and a.end_s <= b.start_s for a, b in zip(tracker.sets, tracker.sets[1:]))
