@@ -121,7 +121,7 @@ class JointAngles(_message.Message):
     def __init__(self, coordinates: _Optional[_Iterable[str]] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., qdd: _Optional[_Iterable[float]] = ..., phase: _Optional[float] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
 
 class LoadEvent(_message.Message):
-    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete", "names")
+    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete", "names", "set_mark", "set_rest_s")
     class NamesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -136,6 +136,8 @@ class LoadEvent(_message.Message):
     SET_NUMBER_FIELD_NUMBER: _ClassVar[int]
     ATHLETE_FIELD_NUMBER: _ClassVar[int]
     NAMES_FIELD_NUMBER: _ClassVar[int]
+    SET_MARK_FIELD_NUMBER: _ClassVar[int]
+    SET_REST_S_FIELD_NUMBER: _ClassVar[int]
     barbell_mass_kg: float
     exercise: str
     device_time_ns: int
@@ -143,7 +145,9 @@ class LoadEvent(_message.Message):
     set_number: int
     athlete: str
     names: _containers.ScalarMap[str, str]
-    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ..., names: _Optional[_Mapping[str, str]] = ...) -> None: ...
+    set_mark: str
+    set_rest_s: float
+    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ..., names: _Optional[_Mapping[str, str]] = ..., set_mark: _Optional[str] = ..., set_rest_s: _Optional[float] = ...) -> None: ...
 
 class CoordinateTorque(_message.Message):
     __slots__ = ("coordinate", "inverse_dynamics_nm", "model_nm", "residual_nm")
