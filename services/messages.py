@@ -155,6 +155,10 @@ def problems(message: Message) -> list[str]:
     elif isinstance(message, LoadEvent):
         if not (_finite(message.barbell_mass_kg) and message.barbell_mass_kg >= 0):
             found.append(f"barbell_mass_kg {message.barbell_mass_kg} is not a mass >= 0")
+        if message.set_mark not in ("", "start", "stop"):  # msk_core.signal.sets.SET_MARKS
+            found.append(f"set_mark {message.set_mark!r} is not start, stop or empty")
+        if not (_finite(message.set_rest_s) and message.set_rest_s >= 0):
+            found.append(f"set_rest_s {message.set_rest_s} is not a time >= 0 s")
     elif isinstance(message, ActivationFrame):
         if not message.method:
             found.append("method is empty")
