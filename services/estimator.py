@@ -24,7 +24,9 @@ every tracker's estimate (``DeviceStatus.clocks``). Electrode quality: one monit
 electrode from the raw chunks (:mod:`msk_core.estimate.live_quality`); the status carries per electrode its channel,
 group, state (unknown, good, check, bad), reasons, time in check and bad and its fault episodes
 (``DeviceStatus.electrodes``), published at once when a state changes; a bad electrode is left out of its group's
-envelope, and the frames that read such an envelope carry ``electrode_bad``.
+envelope, and the frames that read such an envelope carry ``electrode_bad``. Fatigue: per electrode the median and
+mean frequency of each rep's raw EMG and their trend over the set (:mod:`msk_core.estimate.live_fatigue`, reps from
+the frames' phase, sets from ``LoadEvent.set_number``), in the status (``DeviceStatus.fatigue``).
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -48,6 +50,7 @@ from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
 from msk_core.estimate.frame import FrameResult
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
+from msk_core.estimate.live_fatigue import ElectrodeFatigueReport, LiveFatigue
 from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
@@ -94,6 +97,7 @@ class EstimatorStats:
     imu_samples: int = 0
     frames_waited: int = 0  # joint frames held back for the EMG of their instant (--emg-wait-ms)
     quality_changes: int = 0  # EMG chunks after which an electrode's state or reasons changed
+    fatigue_reps: int = 0  # reps whose spectral fatigue values are in (per EMG source)
 
 
 class LoadTimeline:
@@ -218,6 +222,25 @@ def electrode_quality(report: ElectrodeReport) -> messages.ElectrodeQuality:
     )
 
 
+def electrode_fatigue(report: ElectrodeFatigueReport) -> messages.ElectrodeFatigue:
+    """One electrode's fatigue index over the set as the status carries it."""
+    return messages.ElectrodeFatigue(
+        source=report.source,
+        channel=report.channel,
+        group=report.group,
+        set_number=report.set_number,
+        median_hz=report.median_hz,
+        mean_hz=report.mean_hz,
+        rep_end_s=report.rep_end_s,
+        median_slope_hz_per_rep=report.median_slope_hz_per_rep,
+        median_slope_se_hz_per_rep=report.median_slope_se_hz_per_rep,
+        median_slope_pct_per_rep=report.median_slope_pct_per_rep,
+        median_change_pct=report.median_change_pct,
+        mean_slope_pct_per_rep=report.mean_slope_pct_per_rep,
+        mean_change_pct=report.mean_change_pct,
+    )
+
+
 def make_live_emg(
     subject: SubjectProfile | None,
     groups: list[str],
@@ -325,6 +348,8 @@ class EstimatorNode:
             stats.emg = self.live_emg.counters
         # each electrode judged from its raw EMG; a bad one is left out of its group's envelope
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
+        # each electrode's median and mean frequency per rep, and their trend over the set
+        self.fatigue = LiveFatigue(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
             raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
         # the EMG clock measured against the trackers': only where device clocks are mapped onto the host clock
@@ -374,6 +399,18 @@ class EstimatorNode:
         ):
             self.stats.quality_changes += 1
         live_emg.exclude_channels(chunk.source_id, quality.bad_channels(chunk.source_id))
+        if self.fatigue is not None:
+            self.stats.fatigue_reps += len(
+                self.fatigue.add_chunk(
+                    chunk.source_id,
+                    chunk.channel_labels,
+                    chunk.sample_rate_hz,
+                    chunk.first_sample_index,
+                    chunk.device_time_ns,
+                    samples,
+                    chunk.units,
+                )
+            )
         block = live_emg.add_chunk(
             chunk.source_id,
             chunk.channel_labels,
@@ -451,6 +488,13 @@ class EstimatorNode:
             )
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
+        # a set starts when the operator's set number changes; without numbers, with every load that has a mass
+        # (the rule of the dashboard's rep counter, services/dashboard/bridge.py)
+        number = int(event.set_number)
+        if self.fatigue is not None and (
+            (number > 0 and number != self.fatigue.set_number) or (number == 0 and event.barbell_mass_kg > 0)
+        ):
+            self.fatigue.start_set(number)
 
     def handle_joints(
         self, payload: messages.JointAngles | bytes, arrival_ns: int
@@ -493,6 +537,8 @@ class EstimatorNode:
         )
         for flag in emg_flags:
             stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
+        if self.fatigue is not None and self.live_emg is not None:
+            stats.fatigue_reps += len(self.fatigue.add_frame(self.live_emg.read_at_ns, phase))
         for method, estimator in self.estimators.items():
             result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
             frame = to_message(
@@ -515,6 +561,11 @@ class EstimatorNode:
     def electrode_report(self) -> list[messages.ElectrodeQuality]:
         """Each electrode's quality (:class:`msk_core.estimate.live_quality.LiveQuality`); empty without EMG."""
         return [] if self.quality is None else [electrode_quality(r) for r in self.quality.report()]
+
+    def fatigue_report(self) -> list[messages.ElectrodeFatigue]:
+        """Each electrode's fatigue index over the set (:class:`msk_core.estimate.live_fatigue.LiveFatigue`); empty
+        without EMG."""
+        return [] if self.fatigue is None else [electrode_fatigue(r) for r in self.fatigue.report()]
 
     def clock_report(self) -> list[ClockReport]:
         """The EMG path's clock mappings per stream (:meth:`LiveEmg.clock_report`), with the acceleration alignment's
@@ -593,7 +644,13 @@ def main(
         }
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
         reporter = StatusReporter(
-            zsession, session, NODE_NAME, inputs, clocks=node.clock_report, electrodes=node.electrode_report
+            zsession,
+            session,
+            NODE_NAME,
+            inputs,
+            clocks=node.clock_report,
+            electrodes=node.electrode_report,
+            fatigue=node.fatigue_report,
         )
         stats.inputs = inputs.counts
         # One subscription for joints and load keeps a load event and the frames after it in publication order
@@ -645,11 +702,12 @@ def main(
                 elif item.key == joints_key:
                     node.offer_joints(item.message, item.arrival_ns)
                 elif item.key.startswith(emg_prefix):
-                    changes = stats.quality_changes
+                    changes, reps = stats.quality_changes, stats.fatigue_reps
                     envelope = node.handle_emg(item.message, item.arrival_ns)
                     if envelope is not None and envelope_publisher is not None:  # both only with live EMG
                         publish(envelope_publisher, envelope)
-                    if stats.quality_changes != changes:  # an electrode's state changed: said now, not within 1 s
+                    # an electrode's state changed, or a rep's fatigue values are in: said now, not within 1 s
+                    if stats.quality_changes != changes or stats.fatigue_reps != reps:
                         reporter.tick(force=True)
                 elif item.key.startswith(acc_prefix):
                     node.handle_acc(item.message)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import queue
 import signal
@@ -398,6 +399,7 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     flags: dict[str, Counter[str]] = {}  # per method, per flag
     envelopes = joints = chunks = 0
     nodes: dict[str, messages.DeviceStatus] = {}
+    fatigue: dict[str, list[messages.ElectrodeFatigue]] = {}  # per electrode, its newest values of each set
     for part in [mcap] if isinstance(mcap, Path) else mcap:
         for m in read_messages(part):
             t = m.type_name
@@ -411,6 +413,8 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                 s = m.decode(messages.DeviceStatus)
                 if s.kind == "node":
                     nodes[s.device_id] = s
+                    for e in s.fatigue:
+                        keep_fatigue(fatigue.setdefault(f"{e.source}/{e.channel}", []), e)
                     continue
                 lost[s.device_id] = int(s.samples_lost)
                 status_seen[s.device_id] = {
@@ -448,6 +452,39 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
         "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
         "clocks": {c.source: clock_summary(c, name) for name, s in nodes.items() for c in s.clocks},
         "electrodes": {f"{e.source}/{e.channel}": electrode_summary(e) for s in nodes.values() for e in s.electrodes},
+        "fatigue": {name: [fatigue_summary(e) for e in sets] for name, sets in fatigue.items()},
+    }
+
+
+def keep_fatigue(sets: list[messages.ElectrodeFatigue], electrode: messages.ElectrodeFatigue) -> None:
+    """One status's fatigue values of an electrode: the newest of its set (a new set when the set number changes or
+    the reps start again)."""
+    if sets and sets[-1].set_number == electrode.set_number and len(electrode.median_hz) >= len(sets[-1].median_hz):
+        sets[-1] = electrode
+    elif electrode.median_hz or not sets:
+        sets.append(electrode)
+
+
+def fatigue_summary(electrode: messages.ElectrodeFatigue) -> dict:
+    """One electrode's fatigue index over one set as ``summary.json`` says it: per rep the median and mean
+    frequency (Hz), the median frequency's slope per rep (Hz and % of the first reps) with its standard error, and
+    the change of both from the set's first reps (%); null where there is no value."""
+
+    def value(x: float, digits: int = 3) -> float | None:
+        return round(x, digits) if math.isfinite(x) else None
+
+    return {
+        "group": electrode.group,
+        "set_number": int(electrode.set_number),
+        "reps": len(electrode.median_hz),
+        "median_hz": [value(v, 2) for v in electrode.median_hz],
+        "mean_hz": [value(v, 2) for v in electrode.mean_hz],
+        "median_slope_hz_per_rep": value(electrode.median_slope_hz_per_rep),
+        "median_slope_se_hz_per_rep": value(electrode.median_slope_se_hz_per_rep),
+        "median_slope_pct_per_rep": value(electrode.median_slope_pct_per_rep),
+        "median_change_pct": value(electrode.median_change_pct, 2),
+        "mean_slope_pct_per_rep": value(electrode.mean_slope_pct_per_rep),
+        "mean_change_pct": value(electrode.mean_change_pct, 2),
     }
 
 

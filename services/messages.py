@@ -28,6 +28,7 @@ InputDrop = msk_pb2.InputDrop
 ClockOffset = msk_pb2.ClockOffset
 ClockAlignment = msk_pb2.ClockAlignment
 ElectrodeQuality = msk_pb2.ElectrodeQuality
+ElectrodeFatigue = msk_pb2.ElectrodeFatigue
 FaultEpisode = msk_pb2.FaultEpisode
 Vector3 = msk_pb2.Vector3
 Quaternion = msk_pb2.Quaternion

@@ -378,7 +378,8 @@ def _alignment(alignment) -> messages.ClockAlignment:
 
 class StatusReporter:
     """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: its inputs' counts (and, with
-    ``clocks``, the clock mappings it applies; with ``electrodes``, the EMG electrodes' quality), at start, every
+    ``clocks``, the clock mappings it applies; with ``electrodes``, the EMG electrodes' quality; with ``fatigue``, their
+    fatigue index over the set), at start, every
     :data:`STATUS_PERIOD_S`, and once more (``connected`` False) at stop."""
 
     def __init__(
@@ -389,10 +390,12 @@ class StatusReporter:
         inputs: NodeInputs,
         clocks: Callable[[], Iterable[ClockReport]] | None = None,
         electrodes: Callable[[], Iterable[messages.ElectrodeQuality]] | None = None,
+        fatigue: Callable[[], Iterable[messages.ElectrodeFatigue]] | None = None,
     ) -> None:
         self.node = node
         self._clocks = clocks
         self._electrodes = electrodes
+        self._fatigue = fatigue
         self.counts = inputs.counts
         self.errors = 0
         self.last_error = ""
@@ -419,6 +422,7 @@ class StatusReporter:
             dropped=self.counts.drops(),
             clocks=clock_offsets(self._clocks()) if self._clocks is not None else [],
             electrodes=list(self._electrodes()) if self._electrodes is not None else [],
+            fatigue=list(self._fatigue()) if self._fatigue is not None else [],
         )
 
     def tick(self, *, force: bool = False) -> None:

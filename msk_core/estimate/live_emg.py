@@ -273,6 +273,9 @@ class LiveEmg:
         self._excluded: dict[str, frozenset[str]] = {}  # per EMG source id, the electrodes left out (exclude_channels)
         self.counters = EmgCounters()
         self._group_index = {g: i for i, g in enumerate(self.groups)}
+        # per EMG source, the device time of the EMG the latest frame read (its instant on the source's clock less
+        # the EMD): where the fatigue index cuts a rep (msk_core.estimate.live_fatigue); sources not mapped yet absent
+        self.read_at_ns: dict[str, int] = {}
 
     @property
     def electrode_groups(self) -> list[str]:
@@ -446,7 +449,8 @@ class LiveEmg:
             frame_ns += offset
         wanted_groups = set(self.setup.channel_group.values())
         served: set[str] = set()
-        for state in self.sources.values():
+        self.read_at_ns = {}
+        for name, state in self.sources.items():
             if state.groups_without_mvc:
                 flags.add(FLAG_NO_MVC)
             if not state.groups:
@@ -456,6 +460,7 @@ class LiveEmg:
                 if state.offset_ns is None:
                     continue
                 t -= state.offset_ns  # the frame's host instant -> this source's device time
+            self.read_at_ns[name] = t
             stalled = arrival_ns - state.last_arrival_ns > self.stall_ns or t - state.last_device_ns > self.stall_ns
             if stalled:
                 flags.add(FLAG_STALLED)

@@ -23,6 +23,9 @@ DEFAULTS = {
     "damping": 0.5,  # N·m·s/rad at every coordinate
     "load_misreport": 1.1,  # reported / true barbell mass
     "crosstalk": 0.15,  # fraction of each neighbour's source in an electrode's signal
+    # per rep, the EMG spectrum compresses by this fraction: the median and mean frequency of rep k are
+    # (1 - f (k - 1)) x rep 1's (slower fibre conduction as the muscle tires), a known shift for the fatigue index
+    "fatigue": 0.015,
 }
 
 
@@ -35,6 +38,7 @@ class Effects:
     damping: float = 0.0
     load_misreport: float = 1.0
     crosstalk: float = 0.0
+    fatigue: float = 0.0  # spectral compression per rep (msk_core.synth.emg.spectral_scale)
 
     def active(self) -> dict[str, float | bool]:
         """Only the effects that are switched on (for the truth file and logs)."""
@@ -72,7 +76,13 @@ def parse_effects(text: str | None) -> Effects:
             number = float(value) if value else DEFAULTS[name]
         except ValueError:
             raise ConfigError("effect value must be a number", field="effects", value=token) from None
-        limits = {"emd": (0.0, 0.2), "damping": (0.0, 20.0), "load_misreport": (0.5, 2.0), "crosstalk": (0.0, 0.5)}
+        limits = {
+            "emd": (0.0, 0.2),
+            "damping": (0.0, 20.0),
+            "load_misreport": (0.5, 2.0),
+            "crosstalk": (0.0, 0.5),
+            "fatigue": (0.0, 0.05),
+        }
         lo, hi = limits[name]
         if not lo <= number <= hi:
             raise ConfigError(f"effect value must be in [{lo}, {hi}]", field="effects", value=token)

@@ -5,6 +5,11 @@ surface-EMG power spectrum, e.g. De Luca 1997, J Appl Biomech 13:135); optional 
 the electrode multiplies by its gain (RMS volts at a = 1) and adds a white noise floor and occasional motion
 artefacts (damped 2–8 Hz transients, mostly removed by a 20 Hz high-pass as in real recordings); the result is
 quantised to the sensor's ADC step.
+
+Fatigue (``spectral_scale``): the carrier of sample t is read at the warped time tau(t) = integral of s(t') dt', so
+its spectrum is the fresh one compressed by s(t) (P(f / s) / s: every frequency, the median and mean frequency too,
+times s), as slowing muscle-fibre conduction stretches the action potentials (Lindstrom & Magnusson 1977).
+:func:`spectral_scale` makes the per-rep steps ``1 - f (k - 1)`` of the ``fatigue`` effect.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
+from msk_core.errors import ConfigError
 from msk_core.synth.rng import stream
 
 CARRIER_BAND_HZ = (30.0, 300.0)
@@ -31,6 +37,42 @@ def carrier(n: int, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
     sos, gain = _carrier_sos(rate_hz)
     warm = int(0.1 * rate_hz)  # drop the filter's start-up transient
     return signal.sosfilt(sos, rng.normal(size=n + warm))[warm:] / gain
+
+
+#: The warped carrier is read from one made at this multiple of the EMG rate (linear interpolation loses < 0.5 % of
+#: the power at 300 Hz) and is not otherwise filtered; without fatigue the carrier is the one at the EMG rate.
+WARP_OVERSAMPLING = 4
+
+
+def warped_carrier(scale: np.ndarray, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
+    """Unit-RMS carrier whose spectrum at sample i is the fresh one compressed by ``scale[i]`` (0 < scale <= 1)."""
+    s = np.asarray(scale, dtype=float)
+    if s.ndim != 1 or not np.all((s > 0) & (s <= 1)):
+        raise ConfigError("a spectral scale is in (0, 1] per sample", field="spectral_scale")
+    tau = np.concatenate([[0.0], np.cumsum(s[:-1])]) * WARP_OVERSAMPLING  # in samples of the oversampled carrier
+    fine = carrier(int(np.ceil(tau[-1])) + 2, rate_hz * WARP_OVERSAMPLING, rng)
+    return np.interp(tau, np.arange(fine.size), fine)
+
+
+def carrier_spectrum(freqs: np.ndarray, rate_hz: float, scale: float = 1.0) -> np.ndarray:
+    """The (relative) power spectrum at ``freqs`` of :func:`warped_carrier` at a constant ``scale``: the truth a
+    fatigue index is checked against (the 20-450 Hz median frequency falls a little less than the scale, as power
+    from above 450 Hz moves into the band)."""
+    sos, _ = _carrier_sos(rate_hz * WARP_OVERSAMPLING)
+    _, h = signal.sosfreqz(sos, worN=np.asarray(freqs, dtype=float) / scale, fs=rate_hz * WARP_OVERSAMPLING)
+    return np.abs(h) ** 2
+
+
+def spectral_scale(time: np.ndarray, rep_starts: np.ndarray, per_rep: float) -> np.ndarray:
+    """Per sample, the spectral compression of the ``fatigue`` effect: ``1 - per_rep (k - 1)`` from the start of rep k
+    (1-based) to the start of rep k + 1; 1 before the first rep."""
+    k = np.searchsorted(np.asarray(rep_starts, dtype=float), np.asarray(time, dtype=float), side="right")
+    scale = 1.0 - per_rep * np.maximum(k - 1, 0)
+    if not np.all(scale > 0):
+        raise ConfigError(
+            "the spectral shift per rep leaves no spectrum by the last rep", field="fatigue", value=per_rep
+        )
+    return scale
 
 
 def crosstalk_matrix(n_channels: int, fraction: float) -> np.ndarray:
@@ -67,13 +109,17 @@ def raw_emg(
     crosstalk: float = 0.0,
     artefact_times: np.ndarray | None = None,
     artefact_probability: float = 0.15,
+    spectral_scale: np.ndarray | None = None,
 ) -> np.ndarray:
     """Raw EMG in volts, shape (n_samples, n_channels). ``drive`` (n_samples, n_channels) is the activation that
-    modulates each site (already time-shifted for EMD); ``artefact_times`` are candidate moments (e.g. bar touches)."""
+    modulates each site (already time-shifted for EMD); ``artefact_times`` are candidate moments (e.g. bar touches);
+    ``spectral_scale`` (n_samples,): every site's spectrum compressed by it (fatigue), None: fresh throughout."""
     n, n_ch = drive.shape
     sources = np.empty((n, n_ch))
     for k, ch in enumerate(channels):
-        sources[:, k] = np.clip(drive[:, k], 0.0, None) * carrier(n, rate_hz, stream(seed, "emg", *key, ch))
+        rng = stream(seed, "emg", *key, ch)
+        noise = carrier(n, rate_hz, rng) if spectral_scale is None else warped_carrier(spectral_scale, rate_hz, rng)
+        sources[:, k] = np.clip(drive[:, k], 0.0, None) * noise
     sources = sources @ crosstalk_matrix(n_ch, crosstalk).T
     out = np.empty_like(sources)
     for k, ch in enumerate(channels):

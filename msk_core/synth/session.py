@@ -10,7 +10,7 @@ import numpy as np
 from msk_core.model import load_pack
 from msk_core.progress import Progress, counted
 from msk_core.synth.effects import Effects, muscle_factors
-from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg
+from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg, spectral_scale
 from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
 from msk_core.synth.imu import ElectrodeAccStream, ImuStream, simulate_electrode_acc, simulate_imu
 from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
@@ -189,6 +189,7 @@ def generate_trial(
         key=key,
         crosstalk=eff.crosstalk,
         artefact_times=touches,
+        spectral_scale=spectral_scale(emg_time, plan.rep_starts, eff.fatigue) if eff.fatigue else None,
     )
     imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
     qi, qdi, qddi, _, _ = evaluate(plan, imu_time)

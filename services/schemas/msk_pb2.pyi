@@ -214,7 +214,7 @@ class EmgEnvelope(_message.Message):
     def __init__(self, time_s: _Optional[float] = ..., groups: _Optional[_Iterable[str]] = ..., envelope: _Optional[_Iterable[float]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class DeviceStatus(_message.Message):
-    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks", "electrodes")
+    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks", "electrodes", "fatigue")
     DEVICE_ID_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     CONNECTED_FIELD_NUMBER: _ClassVar[int]
@@ -226,6 +226,7 @@ class DeviceStatus(_message.Message):
     DROPPED_FIELD_NUMBER: _ClassVar[int]
     CLOCKS_FIELD_NUMBER: _ClassVar[int]
     ELECTRODES_FIELD_NUMBER: _ClassVar[int]
+    FATIGUE_FIELD_NUMBER: _ClassVar[int]
     device_id: str
     kind: str
     connected: bool
@@ -237,7 +238,38 @@ class DeviceStatus(_message.Message):
     dropped: _containers.RepeatedCompositeFieldContainer[InputDrop]
     clocks: _containers.RepeatedCompositeFieldContainer[ClockOffset]
     electrodes: _containers.RepeatedCompositeFieldContainer[ElectrodeQuality]
-    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ..., electrodes: _Optional[_Iterable[_Union[ElectrodeQuality, _Mapping]]] = ...) -> None: ...
+    fatigue: _containers.RepeatedCompositeFieldContainer[ElectrodeFatigue]
+    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ..., electrodes: _Optional[_Iterable[_Union[ElectrodeQuality, _Mapping]]] = ..., fatigue: _Optional[_Iterable[_Union[ElectrodeFatigue, _Mapping]]] = ...) -> None: ...
+
+class ElectrodeFatigue(_message.Message):
+    __slots__ = ("source", "channel", "group", "set_number", "median_hz", "mean_hz", "rep_end_s", "median_slope_hz_per_rep", "median_slope_se_hz_per_rep", "median_slope_pct_per_rep", "median_change_pct", "mean_slope_pct_per_rep", "mean_change_pct")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    CHANNEL_FIELD_NUMBER: _ClassVar[int]
+    GROUP_FIELD_NUMBER: _ClassVar[int]
+    SET_NUMBER_FIELD_NUMBER: _ClassVar[int]
+    MEDIAN_HZ_FIELD_NUMBER: _ClassVar[int]
+    MEAN_HZ_FIELD_NUMBER: _ClassVar[int]
+    REP_END_S_FIELD_NUMBER: _ClassVar[int]
+    MEDIAN_SLOPE_HZ_PER_REP_FIELD_NUMBER: _ClassVar[int]
+    MEDIAN_SLOPE_SE_HZ_PER_REP_FIELD_NUMBER: _ClassVar[int]
+    MEDIAN_SLOPE_PCT_PER_REP_FIELD_NUMBER: _ClassVar[int]
+    MEDIAN_CHANGE_PCT_FIELD_NUMBER: _ClassVar[int]
+    MEAN_SLOPE_PCT_PER_REP_FIELD_NUMBER: _ClassVar[int]
+    MEAN_CHANGE_PCT_FIELD_NUMBER: _ClassVar[int]
+    source: str
+    channel: str
+    group: str
+    set_number: int
+    median_hz: _containers.RepeatedScalarFieldContainer[float]
+    mean_hz: _containers.RepeatedScalarFieldContainer[float]
+    rep_end_s: _containers.RepeatedScalarFieldContainer[float]
+    median_slope_hz_per_rep: float
+    median_slope_se_hz_per_rep: float
+    median_slope_pct_per_rep: float
+    median_change_pct: float
+    mean_slope_pct_per_rep: float
+    mean_change_pct: float
+    def __init__(self, source: _Optional[str] = ..., channel: _Optional[str] = ..., group: _Optional[str] = ..., set_number: _Optional[int] = ..., median_hz: _Optional[_Iterable[float]] = ..., mean_hz: _Optional[_Iterable[float]] = ..., rep_end_s: _Optional[_Iterable[float]] = ..., median_slope_hz_per_rep: _Optional[float] = ..., median_slope_se_hz_per_rep: _Optional[float] = ..., median_slope_pct_per_rep: _Optional[float] = ..., median_change_pct: _Optional[float] = ..., mean_slope_pct_per_rep: _Optional[float] = ..., mean_change_pct: _Optional[float] = ...) -> None: ...
 
 class ElectrodeQuality(_message.Message):
     __slots__ = ("source", "channel", "group", "state", "reasons", "detail", "since_s", "check_s", "bad_s", "episodes", "episode_reasons", "recent")

@@ -1,0 +1,172 @@
+"""Live fatigue index for the estimator: per EMG source a :class:`msk_core.signal.fatigue.FatigueTracker` on the raw
+chunks as they arrive, reps from the phase of the frames, and per electrode the median and mean frequency of each
+rep of the set under way with their trend (slope per rep, change from the set's first reps).
+
+Reps. Every estimated frame brings its phase and, per EMG source, the device time of the EMG sample it reads (the
+frame's instant on that source's clock less the electromechanical delay, :attr:`LiveEmg.read_at_ns`). A
+:class:`msk_core.signal.reps.PhaseRepCounter` per source, fed those times, gives each rep's span on the source's
+own clock, so the rep's raw EMG is cut on the clock it was sampled with. A rep's values exist once the EMG up to its
+end has arrived (the tracker waits for it).
+
+Sets: :meth:`LiveFatigue.start_set` (the operator's ``LoadEvent.set_number``) starts the trend again. Samples lost (a
+jump in ``first_sample_index``) start the source's tracker again from the chunk after the gap, keeping the set's
+values; a rep that began before the gap has no values (counted in ``reps_skipped``). Re-sent rows are taken once.
+Samples arrive in the chunk's ``units`` (:data:`msk_core.estimate.live_quality.VOLTS_PER_UNIT`, since the noise
+floor below which a rep has no value is in volts); a source in other units has no values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from msk_core.errors import InputError
+from msk_core.estimate.live_quality import VOLTS_PER_UNIT
+from msk_core.signal.fatigue import FatigueConfig, FatigueTracker, FatigueTrend, RepSpectrum
+from msk_core.signal.reps import PhaseRepCounter
+
+
+@dataclass
+class ElectrodeFatigueReport:
+    """One electrode's fatigue index over the set under way (per rep lists in rep order; trend values NaN when
+    there are too few reps)."""
+
+    source: str
+    channel: str
+    group: str
+    set_number: int
+    median_hz: list[float]
+    mean_hz: list[float]
+    rep_end_s: list[float]  # each rep's end on the EMG device clock
+    median_slope_hz_per_rep: float
+    median_slope_se_hz_per_rep: float
+    median_slope_pct_per_rep: float
+    median_change_pct: float
+    mean_slope_pct_per_rep: float
+    mean_change_pct: float
+
+
+class _SourceFatigue:
+    def __init__(self, labels: tuple[str, ...], rate_hz: float, units: str) -> None:
+        self.labels = labels
+        self.rate_hz = rate_hz
+        self.units = units
+        self.volts_per_unit = VOLTS_PER_UNIT.get(units)  # None: no values
+        self.config = FatigueConfig(rate_hz=rate_hz)
+        self.tracker: FatigueTracker | None = None  # made at the first chunk (its sample 0 is that chunk's row 0)
+        self.next_index: int | None = None
+        self.reps = PhaseRepCounter()
+        self.spectra: list[RepSpectrum] = []  # the set's reps, kept across a restart of the tracker
+
+    def restart(self, device_time_ns: int) -> None:
+        """A tracker whose sample 0 is at ``device_time_ns``, holding the set's values so far."""
+        self.tracker = FatigueTracker(self.config, len(self.labels), t0=device_time_ns / 1e9)
+        self.tracker.spectra = self.spectra
+
+
+class LiveFatigue:
+    """Per EMG source a fatigue tracker, per electrode its values over the set. ``channel_group``: the electrode
+    map (channel label -> muscle group); with one, only its electrodes are reported."""
+
+    def __init__(self, channel_group: dict[str, str] | None = None) -> None:
+        self.channel_group = dict(channel_group or {})
+        self.sources: dict[str, _SourceFatigue] = {}
+        self.set_number = 0
+        self.reps_done = 0  # reps with values, over the session
+        self.reps_skipped = 0  # reps whose EMG the tracker did not hold whole (a gap, the start of the stream)
+
+    def add_chunk(
+        self,
+        source: str,
+        labels,
+        rate_hz: float,
+        first_sample_index: int,
+        device_time_ns: int,
+        samples: np.ndarray,
+        units: str = "V",
+    ) -> list[RepSpectrum]:
+        """One chunk ``samples`` (n, channels) of raw EMG; returns the reps it completed."""
+        labels = tuple(labels)
+        state = self.sources.get(source)
+        if state is None or state.labels != labels or state.rate_hz != float(rate_hz) or state.units != units:
+            state = self.sources[source] = _SourceFatigue(labels, float(rate_hz), units)
+        if state.volts_per_unit is None:
+            return []
+        x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
+        first = int(first_sample_index)
+        if state.next_index is None or first > state.next_index:  # the start, or samples lost: start again
+            state.restart(int(device_time_ns))
+        elif first < state.next_index:  # re-sent rows: taken once
+            skip = min(x.shape[0], state.next_index - first)
+            x, first = x[skip:], first + skip
+        if x.shape[0] == 0:
+            return []
+        state.next_index = first + x.shape[0]
+        assert state.tracker is not None  # made by restart() at the first chunk
+        done = state.tracker.process(x * state.volts_per_unit)
+        self.reps_done += len(done)
+        return done
+
+    def add_frame(self, read_at_ns: dict[str, int], phase: float | None) -> list[RepSpectrum]:
+        """One estimated frame: its ``phase`` and, per source, the device time of the EMG it reads; returns the reps
+        whose EMG had all arrived when they ended."""
+        done: list[RepSpectrum] = []
+        for source, t_ns in read_at_ns.items():
+            state = self.sources.get(source)
+            if state is None or state.tracker is None:
+                continue
+            span = state.reps.update(t_ns / 1e9, phase)
+            if span is None:
+                continue
+            try:
+                done += state.tracker.end_rep(*span)
+            except InputError:  # the rep began before the EMG the tracker holds (its start, a gap)
+                self.reps_skipped += 1
+        self.reps_done += len(done)
+        return done
+
+    def start_set(self, number: int = 0) -> None:
+        """The reps from now on belong to set ``number`` (0: not counted): its trend starts again."""
+        self.set_number = int(number)
+        for state in self.sources.values():
+            state.spectra = []
+            if state.tracker is not None:
+                state.tracker.start_set()
+                state.tracker.spectra = state.spectra
+
+    def report(self) -> list[ElectrodeFatigueReport]:
+        """Every electrode (of the electrode map, when there is one), per source in arrival order and channel order."""
+        out = []
+        for source, state in self.sources.items():
+            trend = state.tracker.trend if state.tracker is not None and state.volts_per_unit is not None else None
+            for c, channel in enumerate(state.labels):
+                if self.channel_group and channel not in self.channel_group:
+                    continue
+                out.append(self._electrode(source, c, channel, state.spectra, trend))
+        return out
+
+    def _electrode(
+        self, source: str, c: int, channel: str, spectra: list[RepSpectrum], trend: FatigueTrend | None
+    ) -> ElectrodeFatigueReport:
+        nan = float("nan")
+
+        def of(values: np.ndarray | None) -> float:
+            return nan if values is None else float(values[c])
+
+        median, mean = (trend.median, trend.mean) if trend is not None else (None, None)
+        return ElectrodeFatigueReport(
+            source=source,
+            channel=channel,
+            group=self.channel_group.get(channel, ""),
+            set_number=self.set_number,
+            median_hz=[float(s.median_hz[c]) for s in spectra],
+            mean_hz=[float(s.mean_hz[c]) for s in spectra],
+            rep_end_s=[float(s.t_end) for s in spectra],
+            median_slope_hz_per_rep=of(median.slope_hz_per_rep if median else None),
+            median_slope_se_hz_per_rep=of(median.slope_se_hz_per_rep if median else None),
+            median_slope_pct_per_rep=of(median.slope_pct_per_rep if median else None),
+            median_change_pct=of(median.change_pct if median else None),
+            mean_slope_pct_per_rep=of(mean.slope_pct_per_rep if mean else None),
+            mean_change_pct=of(mean.change_pct if mean else None),
+        )
