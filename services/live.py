@@ -74,7 +74,8 @@ class SimSources:
     imu: dict[str, tuple[str, ImuSource]]  # tracker id -> (segment, source)
     electrodes: dict[str, str]  # Trigno channel label (sensorNN.EMG) -> electrode name of the profile
     load_kg: float
-    trial: str
+    trial: str  # its name, as the bundled recordings' folder (``<exercise>_<load>kg``) holding its truth
+    exercise: str = ""  # the pack
 
 
 def sim_sources(recording: Path, pack: str) -> SimSources:
@@ -193,7 +194,7 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
         }
         trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
     electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(labels)}
-    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg")
+    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg", pack)
 
 
 def electrode_accelerations(
@@ -249,6 +250,24 @@ class Simulators:
     trigno: TrignoSimulator
     xsens: dict[str, XsensSimulator]  # by tracker id
     clock: TrialClock
+    trial: str = ""  # SimSources.trial
+    exercise: str = ""  # SimSources.exercise
+
+    def world(self) -> dict:
+        """The trial clock as ``summary.json`` states it (``trial_clock``), so that a frame's host time says which
+        instant of the trial it is: the trial's sample 0 was measured at ``origin_ns`` (host time, ns since the
+        epoch, as every mapped time of the session) and the trial loops every ``loop_s``: trial time = (host time -
+        origin) x speed, modulo the loop. Empty while no device has started streaming."""
+        if self.clock.start is None:
+            return {}
+        realtime_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
+        return {
+            "exercise": self.exercise,
+            "trial": self.trial,
+            "origin_ns": round(self.clock.start * 1e9) + realtime_minus_monotonic_ns,
+            "loop_s": self.trigno.source.n_samples / self.trigno.source.rate_hz,
+            "speed": self.trigno.config.speed,  # trial seconds per host second
+        }
 
     def hold(self) -> None:
         self.trigno.hold()
@@ -346,7 +365,7 @@ def start_simulators(
         for sim in xsens.values():
             sim.close()
         raise
-    return Simulators(trigno, xsens, clock)
+    return Simulators(trigno, xsens, clock, sources.trial, sources.exercise)
 
 
 # ------------------------------------------------------------------------------------------------ subject
@@ -950,6 +969,7 @@ def run_graph(
     summary["exit_codes"] = codes
     if simulators is not None:
         summary["simulators_sent"] = simulators.sent()
+        summary["trial_clock"] = simulators.world()
     return summary
 
 

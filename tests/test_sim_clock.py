@@ -21,6 +21,9 @@ simulators shared one trial clock, each device played the trial from its own sta
 lengths 17 ms apart): the lags were the differences of the devices' start moments, plus 13 ms for the Trigno
 sending each frame at its first sample's instant, plus 17 ms per round of the loop (measured: +18.5 ms in the
 first window, +55 ms in the last, in one run; hundreds of ms in the issue's runs).
+
+The same run is then scored against the generator's truth on the trial clock ``summary.json`` states
+(``trial_clock``; services.live_scoring.score_live_run): ``assisted`` against ``proposed`` where there is no electrode.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.signal.host_clock import windowed_offsets
 from services.live import RECORDINGS, sim_sources
+from services.live_scoring import SimWorld, live_markdown, score_live_run
 from services.mcap_io import read_messages
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,6 +58,10 @@ MAX_LAG_S = 0.5
 LAG_STEP_S = 0.0005
 WINDOW_S = 5.0  # the lag is also found per window of frames: it must hold throughout the run, round after round
 FRAME_S = 1.0 / 60.0  # the joint frame period (IMU at 60 Hz)
+#: assisted's pooled RMSE over the groups without an electrode may exceed proposed's by this fraction: measured
+#: +0.75 % to +1.07 % (five runs), as much with the true activations as the EMG (docs/live.md, "Accuracy against the
+#: truth"); twice the largest seen
+POOLED_TOLERANCE = 0.02
 
 
 @dataclass
@@ -213,11 +221,71 @@ def peak_lag(
     return float(lags[best]), float(correlation[best])
 
 
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory) -> tuple[Path, dict]:
+    """One ``msk live --sim`` run for the module's tests: (output folder, summary)."""
+    tmp = tmp_path_factory.mktemp("simclock")
+    env = {**os.environ, "MSK_SESSIONS_DIR": str(tmp / "sessions"), "PYTHONUNBUFFERED": "1"}
+    out = tmp / "live"
+    return out, run_live(out, env)
+
+
 @pytest.mark.slow
-def test_live_measured_envelope_is_the_offline_envelope_at_the_trial_instant_of_each_frame(tmp_path):
-    env = {**os.environ, "MSK_SESSIONS_DIR": str(tmp_path / "sessions"), "PYTHONUNBUFFERED": "1"}
-    out = tmp_path / "live"
-    check_one_world(out, run_live(out, env))
+def test_live_measured_envelope_is_the_offline_envelope_at_the_trial_instant_of_each_frame(sim_run):
+    check_one_world(*sim_run)
+
+
+@pytest.mark.slow
+def test_assisted_against_the_generators_truth_on_the_trial_clock(sim_run):
+    """The run scored against the truth (services.live_scoring.score_live_run). The trial instant of each frame
+    comes from the trial clock ``summary.json`` states; two independent checks say it is the frame's: the live
+    joint angles against the trial's (cross-correlation peak at 0 ± 1 frame), and the trial instant the recording's
+    own content gives each frame (the IMU samples it was made of, as check_one_world identifies them), within a
+    frame of the clock's. Then per group RMSE against the truth: ``assisted`` is clearly better where it has an
+    electrode, and on the groups without one no worse than ``proposed`` by the median over them. Pooled over those
+    groups it IS worse, by 0.75-1.07 % in four 50 s runs (0.8 % in one of this test's), a spread of ±0.16 % around
+    a real difference: the one group that gets worse, PMCos, does so with the true activations as the EMG as well
+    (docs/live.md, "Accuracy against the truth", says why). So the pooled figure is held to POOLED_TOLERANCE of
+    ``proposed``'s: a guard against a regression, not the issue's "no worse", which it does not meet."""
+    out, summary = sim_run
+    world = SimWorld.from_summary(summary)
+    assert (world.exercise, world.trial, world.speed) == (PACK, "bench_press_50kg", 1.0), world
+    sources = sim_sources(RECORDINGS / "demo_session.mcap", PACK)
+    assert world.loop_s == pytest.approx(sources.emg.n_samples / sources.emg.rate_hz), world
+    scored = score_live_run(out, RECORDINGS)
+    # the clock's trial instant of each proposed frame against the one the recording's content gives it
+    recordings = [Path(p) for p in summary["recordings"]]
+    emg, _, _ = emg_stream(recordings, sources.emg.samples, sources.emg.rate_hz)
+    trackers = {
+        t: unwrap_to(s, emg, world.loop_s) for t, s in imu_streams(recordings, sources.imu, world.loop_s).items()
+    }
+    frames_ns = np.array(
+        sorted(
+            round(f.time_s * 1e9)
+            for part in recordings
+            for m in read_messages(part)
+            if m.type_name == "msk.ActivationFrame" and (f := m.decode()).method == "proposed"
+        ),
+        np.int64,
+    )
+    content_s, _ = frame_trial_instants(frames_ns, trackers)
+    difference_s = (world.trial_s(frames_ns) - content_s + world.loop_s / 2) % world.loop_s - world.loop_s / 2
+    print(
+        f"\ntrial clock minus content: median {np.median(difference_s) * 1e3:+.2f} ms, max |.| "
+        f"{np.abs(difference_s).max() * 1e3:.2f} ms over {len(frames_ns)} frames; joint angles' lag against the "
+        f"trial's {scored.angle_lag_s * 1e3:+.1f} ms (r {scored.angle_r:.5f}); {scored.frames} frames scored\n"
+        + live_markdown(scored)
+    )
+    assert np.abs(difference_s).max() <= FRAME_S, np.abs(difference_s).max()
+    assert abs(scored.angle_lag_s) <= FRAME_S and scored.angle_r > 0.99, (scored.angle_lag_s, scored.angle_r)
+    assert scored.frames >= 60 * (RUN_S - 10), scored.frames
+    assert scored.no_electrode_groups == ["BRA", "BicSho", "PMCos"], scored.no_electrode_groups
+    pooled = {m: scored.pooled[m] for m in ("proposed", "assisted")}
+    assert pooled["assisted"]["electrode"] < 0.8 * pooled["proposed"]["electrode"], pooled
+    median = {m: scored.median_rmse(m, scored.no_electrode_groups) for m in ("proposed", "assisted")}
+    assert median["assisted"] <= median["proposed"], median
+    ratio = pooled["assisted"]["no_electrode"] / pooled["proposed"]["no_electrode"]
+    assert ratio <= 1.0 + POOLED_TOLERANCE, (ratio, pooled)
 
 
 def check_one_world(out: Path, summary: dict) -> None:
