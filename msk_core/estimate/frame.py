@@ -315,16 +315,19 @@ class FrameEstimator:
                 log.warning("model evaluation failed, frame flagged invalid_input: %s: %s", type(exc).__name__, exc)
                 self._model_error_logged = True
             return self._invalid(np.full(n_c, np.nan), phase)
-        result = self.solve(r, tau, phase)
+        result = self.solve(r, tau, phase, emg)
         if clamped:
             result.clamped = True
             self._count_key("out_of_range_clamped")
         return result
 
-    def solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None = None) -> FrameResult:
+    def solve(
+        self, r: np.ndarray, tau: np.ndarray, phase: float | None = None, emg: np.ndarray | None = None
+    ) -> FrameResult:
         """Estimate one frame from its moment arms ``r`` (n_c, G) and torques ``tau`` (n_c,) already at hand (what
         :meth:`step` does once the pack has given them; offline work that has the trial's moment arms reuses them).
-        Flags instead of raising, as :meth:`step`."""
+        ``emg`` as in :meth:`step`. Flags instead of raising, as :meth:`step`."""
+        self._emg = emg
         n_c = len(self.coordinates)
         if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
             return self._invalid(np.full(n_c, np.nan), phase)

@@ -39,3 +39,48 @@ def torque_tracking(
             "rmse_nm_per_kg": e / body_mass_kg if body_mass_kg else float("nan"),
         }
     return out
+
+
+def cross_correlation_lag(
+    estimated: list[np.ndarray], measured: list[np.ndarray], dt: float, max_lag_s: float
+) -> float:
+    """Lag (s) at which the Pearson correlation of the estimate, shifted back by the lag, with the measurement peaks,
+    over lags within ``max_lag_s``; positive: the estimate comes later than the measurement. Each pair of arrays is
+    one trial (pairs are formed within a trial only and pooled across trials); parabolic refinement around the best
+    lag. NaN when no lag has three finite pairs with spread in both."""
+    n_lag = max(int(round(max_lag_s / dt)), 0)
+    lags = np.arange(-n_lag, n_lag + 1)
+    corr = np.full(lags.size, np.nan)
+    for k, lag in enumerate(lags):
+        est, ref = [], []
+        for e, m in zip(estimated, measured):
+            n = min(e.size, m.size)
+            if abs(lag) >= n:
+                continue
+            if lag >= 0:  # estimate at t + lag against measurement at t
+                est.append(e[lag:n])
+                ref.append(m[: n - lag])
+            else:
+                est.append(e[: n + lag])
+                ref.append(m[-lag:n])
+        if est:
+            corr[k] = pearson_r(np.concatenate(est), np.concatenate(ref))
+    if not np.any(np.isfinite(corr)):
+        return float("nan")
+    best = int(np.nanargmax(corr))
+    shift = 0.0
+    if 0 < best < lags.size - 1 and np.all(np.isfinite(corr[best - 1 : best + 2])):
+        y0, y1, y2 = corr[best - 1 : best + 2]
+        curvature = y0 - 2.0 * y1 + y2
+        if curvature < 0:
+            shift = float(0.5 * (y0 - y2) / curvature)
+    return float((lags[best] + shift) * dt)
+
+
+def on_off_agreement(estimated: np.ndarray, measured: np.ndarray, threshold: float) -> float:
+    """Share of the frames (both finite) on which estimate and measurement agree about the muscle being on (above
+    ``threshold``) or off (NaN when none)."""
+    ok = np.isfinite(estimated) & np.isfinite(measured)
+    if not np.any(ok):
+        return float("nan")
+    return float(np.mean((estimated[ok] > threshold) == (measured[ok] > threshold)))
