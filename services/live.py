@@ -680,6 +680,7 @@ class SessionFacts:
     set_number: int = 1
     athlete: str = ""
     names: dict[str, str] = field(default_factory=dict)  # display names the session file gives (LoadEvent.names)
+    rest_s: float = 0.0  # rest detection (session.rest_s, LoadEvent.set_rest_s); 0: the default
 
     def message(self) -> messages.LoadEvent:
         now = messages.now_ns()  # msk live maps every device clock onto the host clock: its device time is now
@@ -689,6 +690,7 @@ class SessionFacts:
             set_number=int(self.set_number),
             athlete=self.athlete,
             names=self.names,
+            set_rest_s=float(self.rest_s),
             device_time_ns=now,
             host_time_ns=now,
         )
@@ -906,7 +908,11 @@ def run_graph(
             _wait_ready(graph, stopper)
             facts.put(
                 SessionFacts(
-                    exercise=plan.exercise, load_kg=s.load_kg, athlete=getattr(s, "athlete", ""), names=plan.names
+                    exercise=plan.exercise,
+                    load_kg=s.load_kg,
+                    athlete=getattr(s, "athlete", ""),
+                    names=plan.names,
+                    rest_s=s.rest_s,
                 )
             )
             observer = graph.observer_options()

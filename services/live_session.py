@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import ConfigError
+from msk_core.signal.sets import DEFAULT_REST_S
 from services import topics
 
 if TYPE_CHECKING:
@@ -24,7 +25,7 @@ METHODS = ("proposed", "assisted", "so", "hybrid")
 SIM_METHODS = ("proposed", "assisted", "so")
 
 _SECTIONS = {
-    "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete"},
+    "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete", "rest_s"},
     "trigno": {"host", "emg_port", "id", "latency_ms"},
     "xsens": {"ports", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
     "trackers": None,  # free keys: tracker ids
@@ -81,6 +82,7 @@ class LiveSession:
     pack: str = "bench_press"  # a shipped pack name, or the resolved path of a pack JSON file
     subject: Path | None = None
     load_kg: float = 0.0
+    rest_s: float = DEFAULT_REST_S  # rest detection: a set ends after this long without a rep (msk_core.signal.sets)
     methods: tuple[str, ...] = ()
     trigno_host: str | None = None  # HOST[:PORT]
     trigno_emg_port: int | None = None
@@ -193,6 +195,13 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         session.load_kg = float(load)
     elif require_devices:
         raise _error(path, "session.load_kg", "missing: the barbell mass in kg (0 for none)")
+    if "rest_s" in s:
+        rest = _type(path, "session.rest_s", s["rest_s"], (int, float), "a number of seconds")
+        if not (math.isfinite(rest) and rest > 0):
+            raise _error(
+                path, "session.rest_s", "must be a time > 0 s (a set ends after this long without a rep)", rest
+            )
+        session.rest_s = float(rest)
     if "methods" in s:
         methods = _type(path, "session.methods", s["methods"], list, f"a list of methods ({', '.join(METHODS)})")
         if not methods:

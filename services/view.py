@@ -4,9 +4,13 @@ Per muscle group, by its display name (the pack's, or the session file's ``[name
 the model names with a legend when the terminal is too narrow): the estimated activation in % as a bar with its
 uncertainty (+- one Laplace std) and, where an electrode is, the measured EMG envelope in % beside it and the
 electrode's signal quality (good, check or bad with the reason, from the estimator's status); torque tracking
-per joint (inverse dynamics vs muscle model, with the joint's unit); repetition counter and phase; the time in the
-set; exercise, load and set (the operator's ``LoadEvent``; the exercise else from the frames); device health
-(connected, samples received and lost, estimator latency); the inputs the view dropped as unusable.
+per joint (inverse dynamics vs muscle model, with the joint's unit); "set N · rep n" and the phase; the time in the
+set; exercise and load (the operator's ``LoadEvent``; the exercise else from the frames); per set its reps, time
+under tension and, in the muscle table, the peak and mean activation of the set under way (or the last); device
+health (connected, samples received and lost, estimator latency); the inputs the view dropped as unusable. Sets come
+from :class:`msk_core.signal.sets.SetTracker` (the operator's marks, rest detection), fed with the first method's
+frames. In a terminal, the key ``s`` starts the next set and ``e`` ends the set under way (the session fact ``msk set
+start|stop`` publishes).
 
 Inputs come through :class:`services.node_runtime.NodeInputs` (a malformed message is dropped and counted, never shown
 and never fatal); the view's thread takes them in order and overwrites one slot per topic, and the screen is redrawn
@@ -18,11 +22,14 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import zenoh
 from google.protobuf.message import Message
 from rich.console import Console, Group
 from rich.live import Live
@@ -32,7 +39,7 @@ from rich.text import Text
 
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
-from msk_core.signal.reps import PhaseRepCounter
+from msk_core.signal.sets import SetTracker
 from services import messages, topics
 from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
@@ -40,11 +47,10 @@ from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_sessi
 log = logging.getLogger(__name__)
 
 BAR_WIDTH = 30
-#: A set's start further than this from a frame is not on the frames' clock (a load event of another clock): the
-#: set's time then counts from the frame.
-MAX_SET_S = 6 * 3600.0
 #: How long the view's input thread waits for a message before looking at its stop flag again.
 POLL_S = 0.1
+#: Sets shown in the view's table of sets (the newest).
+SETS_SHOWN = 5
 #: An electrode's state as the muscle table colours it (ElectrodeQuality.state).
 ELECTRODE_STYLES = {"good": "green", "check": "bold yellow", "bad": "bold red", "unknown": "grey50"}
 
@@ -58,10 +64,10 @@ class ViewState:
     load: messages.LoadEvent | None = None
     envelope: messages.EmgEnvelope | None = None
     received: int = 0
-    sets: int = 0  # the operator's set number, else load events with a mass counted
-    reps: PhaseRepCounter = field(default_factory=PhaseRepCounter)  # in the current set
+    sets: SetTracker = field(default_factory=SetTracker)  # sets and reps per set (msk_core.signal.sets)
     names: dict[str, str] = field(default_factory=dict)  # the session's display names (LoadEvent.names), kept
-    set_start_s: float | None = None  # the current set's start on the frames' clock (s)
+    first_frame_s: float | None = None  # the first frame's time (the time shown when no set has started)
+    last_frame_s: float | None = None  # the newest frame's time: the frames' clock
     inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -71,11 +77,13 @@ class ViewState:
         with self.lock:
             self.received += 1
             if isinstance(message, messages.ActivationFrame):
-                if not self.frames or message.method == next(iter(self.frames)):  # reps from the first method only
-                    self.reps.update(message.time_s, message.phase if message.HasField("phase") else None)
-                    start = self.set_start_s
-                    if start is None or abs(message.time_s - start) > MAX_SET_S:  # no start on the frames' clock
-                        self.set_start_s = message.time_s
+                if not self.frames or message.method == next(iter(self.frames)):  # sets from the first method only
+                    phase = message.phase if message.HasField("phase") else None
+                    self.sets.update(message.time_s, phase)
+                    self.sets.add_activations(message.time_s, phase, message.groups, message.activations)
+                    if self.first_frame_s is None:
+                        self.first_frame_s = message.time_s
+                    self.last_frame_s = message.time_s
                 self.frames[message.method] = message
             elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
@@ -85,26 +93,55 @@ class ViewState:
                 self.envelope = message
 
     def _on_load(self, load: messages.LoadEvent) -> None:
-        """A new set (the operator's set number changed; without numbers, a load event with a mass) restarts the reps."""
-        number = int(load.set_number)
-        if (number > 0 and number != self.sets) or (number == 0 and load.barbell_mass_kg > 0):
-            self.sets = number if number > 0 else self.sets + 1
-            self.reps = PhaseRepCounter()
-            self.set_start_s = load.device_time_ns / 1e9 if load.device_time_ns else None
+        """The operator's marks and set numbers, as :meth:`SetTracker.on_facts` reads them, at the event's time on the
+        frames' clock (the newest frame's when the event carries none or one of another clock)."""
+        self.sets.on_facts(
+            load.device_time_ns / 1e9 if load.device_time_ns else None,
+            set_number=int(load.set_number),
+            set_mark=load.set_mark,
+            mass_kg=load.barbell_mass_kg,
+            rest_s=load.set_rest_s,
+        )
         if load.names:  # a load event without names (msk load) leaves the session's names in effect
             self.names = dict(load.names)
         self.load = load
 
 
-def session_facts(load: messages.LoadEvent | None, frame: messages.ActivationFrame | None, sets: int) -> str:
-    """``exercise bench press · load 60 kg · set 2``: the load event's, the exercise else the frame's."""
+def set_text(number: int, rep: int, resting: bool) -> str:
+    """``set 2 · rep 3`` (the rep under way, else the last done), ``set 2 done · resting``, or ``set –``."""
+    if not number:
+        return "set –"
+    return f"set {number} done · resting" if resting else f"set {number} · rep {rep}"
+
+
+def session_facts(load: messages.LoadEvent | None, frame: messages.ActivationFrame | None, sets: str) -> str:
+    """``exercise bench press · load 60 kg · set 2 · rep 3``: the load event's, the exercise else the frame's;
+    ``sets``: :func:`set_text`."""
     exercise = (load.exercise if load is not None else "") or (frame.exercise if frame is not None else "")
     return (
         f"exercise {exercise.replace('_', ' ') if exercise else 'unknown'}"
         + f" · load {f'{load.barbell_mass_kg:g} kg' if load is not None else 'unknown'}"
-        + f" · set {sets if sets else '–'}"
+        + f" · {sets}"
         + (f" · {load.athlete}" if load is not None and load.athlete else "")
     )
+
+
+def sets_table(sets: list[dict]) -> Table:
+    """The newest :data:`SETS_SHOWN` sets (:meth:`SetRecord.as_dict`): reps, time under tension, duration, how the
+    set ended."""
+    table = Table(title="sets")
+    for column in ("set", "reps", "under tension (s)", "duration (s)", "ended"):
+        table.add_column(column, justify="left" if column == "ended" else "right")
+    for record in sets[-SETS_SHOWN:]:
+        end = record["end_s"]
+        table.add_row(
+            str(record["number"]),
+            str(record["reps"]),
+            f"{record['time_under_tension_s']:.1f}",
+            f"{end - record['start_s']:.1f}" if end is not None else "under way",
+            record["ended_by"] or "–",
+        )
+    return table
 
 
 def dropped_text(inputs: InputCounts) -> str:
@@ -145,11 +182,26 @@ def bar(value: float, std: float | None, width: int = BAR_WIDTH, marker: float =
     return text
 
 
-def set_time_text(set_number: int, start_s: float | None, time_s: float) -> str:
-    """``12.3 s in set 2``: the frame's time from its set's start (from the first frame when no set is counted)."""
+def set_time_text(set_number: int, start_s: float | None, time_s: float, rest: tuple[int, float] | None = None) -> str:
+    """``12.3 s in set 2``: the frame's time from its set's start; at rest after set N (``rest``: N and the set's
+    end) ``40.2 s resting after set N``; before any set, from the first frame."""
+    if rest is not None:
+        return f"{time_s - rest[1]:.1f} s resting after set {rest[0]}"
     if start_s is None:
         return "time in set unknown"
     return f"{time_s - start_s:.1f} s " + (f"in set {set_number}" if set_number else "since the first frame")
+
+
+def set_columns(record: dict | None, groups: list[str]) -> list[str]:
+    """Per group, ``peak / mean`` % of the set (:meth:`SetRecord.as_dict`), "" where unknown."""
+    if record is None:
+        return [""] * len(groups)
+    by_group = dict(zip(record["groups"], zip(record["peak"], record["mean"])))
+    out = []
+    for g in groups:
+        peak, mean = by_group.get(g, (None, None))
+        out.append("" if peak is None else f"{percent(peak)} / {percent(mean if mean is not None else math.nan)}")
+    return out
 
 
 def muscle_labels(
@@ -205,14 +257,23 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     with state.lock:
         frames = dict(state.frames)
         status = dict(state.status)
-        overrides, set_start_s = dict(state.names), state.set_start_s
-        # the rep under way, else the last one done
-        load, received, reps, sets = state.load, state.received, state.reps.count + state.reps.in_rep, state.sets
+        overrides, tracker = dict(state.names), state.sets
+        load, received = state.load, state.received
+        current = tracker.current
+        sets = set_text(tracker.number, tracker.rep, current is None)
+        set_start_s = current.start_s if current is not None else state.first_frame_s
+        set_number = current.number if current is not None else 0
+        done = tracker.sets[-1] if tracker.sets and current is None else None
+        rest = (done.number, done.end_s) if done is not None and done.end_s is not None else None
+        records = [r.as_dict() for r in tracker.sets]  # the set under way (or the last) in the muscle table
     methods = list(frames)
     method = primary if primary in frames else (methods[0] if methods else None)
     dropped = dropped_text(state.inputs)
     header = Text(
-        f"msk view · session {session} · {received} messages" + (f" · {dropped}" if dropped else ""), style="bold"
+        f"msk view · session {session} · {received} messages"
+        + (f" · {dropped}" if dropped else "")
+        + " · keys: s start set, e end set",
+        style="bold",
     )
     if method is None:
         return Group(
@@ -225,7 +286,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     exercise = frame.exercise or (load.exercise if load is not None else "")  # the names of the frame's pack
     names = names_for(exercise, groups, overrides)
     quality = electrodes_by_group(status)  # the electrodes' signal quality, once the estimator has said it
-    labels, legend = muscle_labels(names, groups, len(methods), width, extra=len("electrode") + 3 if quality else 0)
+    extra_width = (len("electrode") + 3 if quality else 0) + (len("set 1 peak / mean %") + 3 if state.sets.sets else 0)
+    labels, legend = muscle_labels(names, groups, len(methods), width, extra=extra_width)
     std = list(frame.activation_std) if len(frame.activation_std) == len(groups) else [None] * len(groups)
     envelope = (
         list(frame.measured_envelope) if len(frame.measured_envelope) == len(groups) else [math.nan] * len(groups)
@@ -238,8 +300,11 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     for other in methods:
         if other != method:
             muscles.add_column(f"{other} %", justify="right")
+    if records:
+        muscles.add_column(f"set {records[-1]['number']} peak / mean %", justify="right")
     if quality:
         muscles.add_column("electrode")
+    set_figures = set_columns(records[-1] if records else None, groups)
     for i, g in enumerate(groups):
         a = frame.activations[i] if i < len(frame.activations) else math.nan
         env = envelope[i]
@@ -248,6 +313,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
             if other != method:
                 of = frames[other]
                 row.append(percent(of.activations[list(of.groups).index(g)]) if g in of.groups else "")
+        if records:
+            row.append(set_figures[i])
         if quality:
             row.append(electrode_text(quality.get(g, [])))
         muscles.add_row(*row)
@@ -271,11 +338,12 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     )
     session_line = Text(
         session_facts(load, frame, sets)
-        + f" · rep {reps} · phase {phase_text}"
-        + f" · {set_time_text(sets, set_start_s, frame.time_s)} · latency {latency_ms:.2f} ms"
+        + f" · phase {phase_text}"
+        + f" · {set_time_text(set_number, set_start_s, frame.time_s, rest)} · latency {latency_ms:.2f} ms"
         + f" · solver {frame.solver_status}"
         + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
     )
+    extra = [sets_table(records)] if records else []
     devices = {name: s for name, s in status.items() if s.kind != "node"}
     health = Table(title="devices")
     for column in ("device", "kind", "connected", "samples", "lost", "errors"):
@@ -288,7 +356,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         health.add_row("(no device status on this session)", "", "", "", "", "")
     nodes = {name: s for name, s in status.items() if s.kind == "node"}
     if not nodes:
-        return Group(header, session_line, muscles, torques, health)
+        return Group(header, session_line, muscles, *extra, torques, health)
     node_table = Table(title="nodes (inputs dropped as unusable)")
     for column in ("node", "running", "received", "dropped"):
         node_table.add_column(column)
@@ -296,7 +364,60 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         node_table.add_row(
             name, "yes" if s.connected else "stopped", str(s.samples_received), str(sum(d.count for d in s.dropped))
         )
-    return Group(header, session_line, muscles, torques, health, node_table)
+    return Group(header, session_line, muscles, *extra, torques, health, node_table)
+
+
+#: The view's keys: the session fact each publishes (``msk set start|stop``).
+KEYS = {"s": "start", "e": "stop"}
+
+
+def set_mark_event(state: ViewState, mark: str) -> messages.LoadEvent:
+    """The session fact of the operator's ``mark`` ("start": the next set, "stop"), with the facts in effect."""
+    from services.commands.load import set_mark_event as event
+
+    with state.lock:
+        return event(state.load, state.sets.number, mark)
+
+
+def read_keys(on_key: Callable[[str], None], stop: threading.Event) -> None:
+    """Keys typed in the terminal (no Enter needed) to ``on_key`` until ``stop``; the terminal's mode is restored."""
+    import select
+    import sys
+    import termios
+    import tty
+
+    fd = sys.stdin.fileno()
+    saved = termios.tcgetattr(fd)
+    try:
+        tty.setcbreak(fd)
+        while not stop.is_set():
+            if select.select([fd], [], [], POLL_S)[0]:
+                key = os.read(fd, 1).decode(errors="ignore").lower()
+                if key:
+                    on_key(key)
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+def start_keys(
+    zsession: zenoh.Session, session: str, state: ViewState, stop: threading.Event
+) -> threading.Thread | None:
+    """In a terminal: a thread publishing the set mark of each key of :data:`KEYS` on ``msk/<session>/load``."""
+    import sys
+
+    if not sys.stdin.isatty():
+        return None
+    from services.zenoh_session import declare_data_publisher, publish
+
+    publisher = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
+
+    def on_key(key: str) -> None:
+        if key in KEYS:
+            publish(publisher, set_mark_event(state, KEYS[key]))
+
+    thread = threading.Thread(target=read_keys, args=(on_key, stop), name="view-keys", daemon=True)
+    thread.start()
+    return thread
 
 
 def main(
@@ -320,6 +441,7 @@ def main(
         taking = threading.Event()
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()
+        keys = start_keys(zsession, session, state, taking)  # s: start a set, e: end it (in a terminal)
         try:
             with Live(
                 render(state, session, method),
@@ -335,6 +457,8 @@ def main(
             taking.set()
             inputs.close()
             taker.join(5.0)
+            if keys is not None:
+                keys.join(1.0)
     return state
 
 

@@ -57,7 +57,7 @@ def test_state_keeps_only_the_newest_frame_per_topic():
     seq, update = state.changes(seq0)
     # no joint angles with a phase: the reps follow the first method's frames (phase unset here: unknown)
     # and the session entry: the names of the frames' groups
-    assert sorted(update["topics"]) == ["activations/so", "reps", "session"]
+    assert sorted(update["topics"]) == ["activations/so", "reps", "session", "sets"]
     assert update["topics"]["reps"]["phase"] is None
     frame = update["topics"]["activations/so"]
     assert frame["time_s"] == 49 and frame["activations"] == [0.98, 0.5]
@@ -87,7 +87,7 @@ def test_rep_counter_counts_rest_transitions_and_wraps_and_restarts_per_set():
     reps.new_set()
     for k, p in enumerate([-1, 0.0, 0.3, 0.6, 0.9, -1, -1, 0.1, 0.5, 0.95, 0.05, 0.5, 0.9, -1]):
         reps.update(0.2 * k, p)  # 5 Hz
-    assert (reps.in_set, reps.total, reps.sets) == (3, 3, 1)
+    assert (reps.in_set, reps.total, reps.sets.number) == (3, 3, 1)
     reps.update(3.0, None)  # unknown phase: no rep invented
     reps.update(3.2, 0.1)  # a flicker into a rep, shorter than MIN_REP_S: not a rep
     reps.update(3.2 + 0.9 * MIN_REP_S, 0.6)
@@ -96,7 +96,7 @@ def test_rep_counter_counts_rest_transitions_and_wraps_and_restarts_per_set():
     reps.new_set()
     for t, p in ((4.0, 0.2), (4.4, 0.7), (4.8, -1)):
         reps.update(t, p)
-    assert (reps.in_set, reps.total, reps.sets) == (1, 4, 2)
+    assert (reps.in_set, reps.total, reps.sets.number) == (1, 4, 2)
 
 
 def test_reps_from_joints_phase_and_device_health_from_samples():
@@ -120,7 +120,17 @@ def test_reps_from_joints_phase_and_device_health_from_samples():
         messages.DeviceStatus(device_id="xsens-1", kind="xsens", connected=False, samples_lost=7),
     )
     update = state.changes(0, now_ns=now + 4_000_000)[1]
-    assert update["topics"]["reps"] == {"in_set": 1, "total": 1, "set": 1, "phase": -1.0}
+    assert update["topics"]["reps"] == {
+        "in_set": 1,
+        "rep": 1,
+        "total": 1,
+        "set": 1,
+        "resting": False,
+        "time_in_set_s": pytest.approx(1.2),
+        "phase": -1.0,
+    }
+    (only,) = update["topics"]["sets"]  # the table of sets: msk_core.signal.sets.SetRecord.as_dict
+    assert (only["number"], only["reps"], only["ended_by"]) == (1, 1, "")
     assert update["topics"]["load"] == {"mass_kg": 60, "exercise": "deadlift", "set_number": 0, "athlete": ""}
     trigno = update["devices"]["trigno-1"]
     assert trigno["samples"] == 300 and trigno["samples_lost"] == 100 and trigno["delivering"]
@@ -331,7 +341,14 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     state.on_message(
         PREFIX + "load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, athlete="Ana")
     )
-    assert state.changes(0)[1]["topics"]["reps"] | {"phase": None} == {"in_set": 0, "total": 2, "set": 3, "phase": None}
+    now = state.changes(0)[1]["topics"]
+    assert (now["reps"]["in_set"], now["reps"]["total"], now["reps"]["set"]) == (0, 2, 3)
+    # the rep before any load event opened set 1 (rest detection's rule); the operator's numbers follow
+    assert [(s["number"], s["reps"], s["ended_by"]) for s in now["sets"]] == [
+        (1, 1, "next set"),
+        (2, 1, "next set"),
+        (3, 0, ""),
+    ]
 
 
 def test_display_names_of_the_frames_pack_and_the_sessions_reach_the_page():

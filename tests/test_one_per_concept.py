@@ -85,7 +85,12 @@ def test_consumers_use_the_one_segmenter_rest_phase_and_loader():
     assert trial.kinematic_phase is phase.kinematic_phase and trial.torque_phase is phase.torque_phase
     assert phase.PhaseTracker is reps.PhaseTracker and stream.PhaseTracker is reps.PhaseTracker  # live phase
     assert report.phase_rep_spans is reps.phase_rep_spans  # the session report's reps
-    assert bridge.PhaseRepCounter is reps.PhaseRepCounter and view.PhaseRepCounter is reps.PhaseRepCounter  # live
+    assert bridge.PhaseRepCounter is reps.PhaseRepCounter  # live
+    import msk_core.signal.sets as sets
+
+    assert sets.PhaseRepCounter is reps.PhaseRepCounter  # the set logic counts reps with the one segmenter
+    assert view.SetTracker is sets.SetTracker and bridge.SetTracker is sets.SetTracker  # one set logic
+    assert report.SetTracker is sets.SetTracker
     assert estimate.REST_PHASE is reps.REST_PHASE
     import msk_core.io as io
 

@@ -57,7 +57,8 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
                 )
                 lock = threading.Lock()
 
-                set_start: list[float] = []  # device times of the load events that start a set (a mass)
+                # device times of the load events: a mass starts a set, none ends it (msk_core.signal.sets)
+                set_marks: list[tuple[float, bool]] = []
 
                 def keep_last(sample):
                     frame = messages.decode("msk.ActivationFrame", sample.payload.to_bytes())
@@ -66,8 +67,7 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
 
                 def keep_set_start(sample):
                     load = messages.decode("msk.LoadEvent", sample.payload.to_bytes())
-                    if load.barbell_mass_kg > 0:
-                        set_start.append(load.device_time_ns / 1e9)
+                    set_marks.append((load.device_time_ns / 1e9, load.barbell_mass_kg > 0))
 
                 sub = zsession.declare_subscriber(f"msk/{SESSION}/activations/*", keep_last)
                 loads = zsession.declare_subscriber(topics.load_key(SESSION), keep_set_start)
@@ -81,14 +81,13 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
                 assert stats.published > 5000
                 est = graph._threads[0]  # noqa: SLF001 - the node's thread is idle once its inbox is empty
 
-                def settled() -> bool:  # the newest frame's time from its set's start
+                def settled() -> bool:  # the newest frame's time from its set's start, or from its end at rest
                     with lock:
                         frame = last.get("so")
-                    return (
-                        frame is not None
-                        and bool(set_start)
-                        and f"{frame.time_s - set_start[-1]:.1f} s in set " in capture(name)
-                    )
+                    if frame is None or not set_marks:
+                        return False
+                    mark_s, starts = set_marks[-1]
+                    return f"{frame.time_s - mark_s:.1f} s {'in set ' if starts else 'resting'}" in capture(name)
 
                 # the screen reaches the newest frame soon after the estimator does: it never replays a backlog
                 wait_for(
@@ -123,7 +122,7 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
         "27",
         "load ",
         " kg",
-        "rep ",
+        "set ",  # "set N · rep n", or "set N done · resting" after the replay's last set
         "phase ",
     ):
         assert expected in screen, (expected, screen)
@@ -137,8 +136,8 @@ def test_render_without_frames_and_rep_counter():
     assert "waiting for activations" in text
     for k, phase in enumerate((-1, -1, 0.0, 0.3, 0.7, 0.95, 0.1, 0.6, 0.9, -1, -1, 0.05, 0.5, 0.8)):
         state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", time_s=0.2 * k, phase=phase))
-    assert (state.reps.count, state.reps.in_rep) == (2, True)  # the third rep is under way
-    assert "rep 3 · phase 0.80" in screen_text(state)
+    assert (state.sets.number, state.sets.rep) == (1, 3)  # the third rep is under way: a set opened by the first
+    assert "set 1 · rep 3 · phase 0.80" in screen_text(state)
 
 
 def screen_text(state: ViewState, session: str = "s", width: int = 200) -> str:
@@ -228,17 +227,24 @@ def test_session_facts_come_from_the_load_event_else_the_frames():
     state.on_message(
         "msk/s/load", messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=2, athlete="Ana")
     )
-    assert "exercise bench press · load 60 kg · set 2 · Ana" in screen_text(state)
+    assert "exercise bench press · load 60 kg · set 2 · rep 0 · Ana" in screen_text(state)
     for k, phase in enumerate((-1.0, 0.1, 0.7, -1.0)):
         state.on_message(
             "msk/s/activations/so",
             messages.ActivationFrame(method="so", phase=phase, time_s=2.0 + 0.4 * k, exercise="bench_press"),
         )
-    assert state.reps.count == 1
+    assert state.sets.rep == 1
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=2))
-    assert state.reps.count == 1 and "load 62.5 kg · set 2" in screen_text(state)  # a correction within the set
+    text = screen_text(state)
+    assert state.sets.rep == 1 and "load 62.5 kg · set 2 · rep 1" in text  # a correction within the set
+    assert "set 2 peak / mean %" in text and "under tension" in text  # the set's figures and the table of sets
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3))
-    assert state.reps.count == 0 and "load 70 kg · set 3" in screen_text(state)  # the next set starts at rep 0
+    assert state.sets.rep == 0 and "load 70 kg · set 3 · rep 0" in screen_text(state)  # the next set at rep 0
+    # the operator ends it (msk set stop, the key e): resting
+    state.on_message(
+        "msk/s/load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, set_mark="stop")
+    )
+    assert "set 3 done · resting" in screen_text(state)
 
 
 def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):

@@ -15,7 +15,9 @@ A set ends
     ``session.rest_s``). The set then ends where its last rep ended.
 
 Reps are counted by the one segmenter (:class:`msk_core.signal.reps.PhaseRepCounter`) from the phase stream; after
-the operator starts or ends a set, a rep under way is not counted (the count waits for the next rest sample).
+the operator starts or ends a set, a rep under way is not counted (the count waits for the next rest sample). Marks
+may arrive before the phase stream reaches their instant (a lagging estimator, a fast replay): a rep whose data comes
+after a mark belongs to the set that held its start, and one inside a rest the marks declared opens no set.
 Time under tension is the sum of the set's rep durations; peak and mean activation per group are taken over the
 activation frames inside the set's reps (under tension), or over the whole set when the phase is unknown.
 Explicit state, one sample at a time; no clock of its own (every time is the caller's, in seconds).
@@ -32,6 +34,9 @@ from msk_core.signal.reps import PhaseRepCounter
 
 #: Rest detection: a set with reps ends after this long without one (s), unless the session says otherwise.
 DEFAULT_REST_S = 20.0
+#: A session fact further than this from the phase samples' times is not on their clock (a load event of another
+#: clock, or none): it takes the newest sample's time.
+MAX_FACT_GAP_S = 6 * 3600.0
 #: The marks a session fact (``LoadEvent.set_mark``) may carry: none, the operator starts a set, ends it.
 SET_MARKS = ("", "start", "stop")
 
@@ -163,9 +168,10 @@ class SetTracker:
         self._close(t, "operator")
         self._reset_reps()
 
-    def on_facts(self, t: float, *, set_number: int, set_mark: str, mass_kg: float, rest_s: float = 0.0) -> None:
-        """A session fact at ``t`` (``LoadEvent``: its set number, mark, barbell mass and rest-detection time, 0 for
-        the one in effect): "start" starts set ``set_number`` (or the next), "stop" ends the set; without a mark a
+    def on_facts(self, t: float | None, *, set_number: int, set_mark: str, mass_kg: float, rest_s: float = 0.0) -> None:
+        """A session fact at ``t`` (``LoadEvent``: its time, None when it has none, set number, mark, barbell mass
+        and rest-detection time, 0 for the one in effect; a time more than :data:`MAX_FACT_GAP_S` from the newest
+        phase sample takes that sample's): "start" starts set ``set_number`` (or the next), "stop" ends the set; without a mark a
         new set number starts that set (``msk load --next-set``), a mass without a number the next set (a load
         change of an operator who does not number sets), and neither mass nor number ends the set (the bar is
         off); the same set number changes nothing."""
@@ -173,6 +179,9 @@ class SetTracker:
             raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
         if rest_s:
             self.rest_s = check_rest_s(rest_s, "set_rest_s")
+        last = self._last_t if math.isfinite(self._last_t) else None
+        if t is None or (last is not None and abs(t - last) > MAX_FACT_GAP_S):
+            t = last if last is not None else 0.0
         if set_mark == "start":
             self.start(t, set_number)
         elif set_mark == "stop":
@@ -196,18 +205,24 @@ class SetTracker:
         done = self._counter.update(t, phase)
         current = self.current
         if done is not None:
-            if current is None:  # (a rep opens its set when it starts: only for a set closed during the rep)
-                current = SetRecord(self.number + 1, done[0], "rep")
-                self.sets.append(current)
-            current.reps.append(done)
+            # a rep belongs to the set under way, else (data that came after the operator's mark) to the set that
+            # held its start; one that starts after every set opens the next; one in a rest the marks declared is
+            # dropped
+            owner = current if current is not None and done[0] >= current.start_s else self._closed_set_at(done[0])
+            if owner is None and current is None and not self._past(done[0]):
+                owner = SetRecord(self.number + 1, done[0], "rep")
+                self.sets.append(owner)
+                current = owner
+            if owner is not None:
+                owner.reps.append(done)
             self._tentative = False
         elif current is not None and self._tentative and not self._counter.in_rep:
             self.sets.pop()  # the rep that opened it did not count
             self._tentative = False
             current = None
-        if current is None and self._counter.in_rep:
-            start = self._counter.rep_start_s
-            self.sets.append(SetRecord(self.number + 1, t if start is None else start, "rep"))
+        start = self._counter.rep_start_s
+        if current is None and start is not None and not self._past(start):
+            self.sets.append(SetRecord(self.number + 1, start, "rep"))
             self._tentative = True
         elif (
             current is not None and current.reps and not self._counter.in_rep and t - current.reps[-1][1] >= self.rest_s
@@ -239,6 +254,18 @@ class SetTracker:
             self._close(max(end, current.start_s), "end of data")
 
     # ---- inside ----------------------------------------------------------------------------------------------------
+    def _past(self, t: float) -> bool:
+        """``t`` is before the end of the last set (data older than the operator's last mark)."""
+        last = self.sets[-1] if self.sets else None
+        return last is not None and last.end_s is not None and t < last.end_s
+
+    def _closed_set_at(self, t: float) -> SetRecord | None:
+        """The set that ended and held the instant ``t``."""
+        for record in reversed(self.sets):
+            if record.end_s is not None and record.start_s <= t < record.end_s:
+                return record
+        return None
+
     def _close(self, t: float, by: str) -> None:
         current = self.current
         if current is None:

@@ -13,6 +13,7 @@ import argparse
 import math
 import sys
 import time
+from collections.abc import Callable
 
 from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs, is_known_exercise
@@ -40,8 +41,10 @@ def new_facts(
     next_set: bool,
     exercise: str | None,
     athlete: str | None,
+    set_mark: str = "",
 ) -> messages.LoadEvent:
-    """The LoadEvent that changes ``current`` (a session's facts: exercise, load_kg, set_number, athlete)."""
+    """The LoadEvent that changes ``current`` (a session's facts: exercise, load_kg, set_number, athlete);
+    ``set_mark``: "start" (the next set starts: ``next_set``) or "stop" (the set under way ends), "" none."""
     if load_kg is not None and not (math.isfinite(load_kg) and load_kg >= 0):
         raise ConfigError("must be a finite mass >= 0 kg", field="KG", value=load_kg)
     if set_number is not None and set_number < 1:
@@ -57,9 +60,22 @@ def new_facts(
         exercise=exercise if exercise is not None else str(current.get("exercise", "")),
         set_number=number,
         athlete=athlete if athlete is not None else str(current.get("athlete", "")),
+        set_mark=set_mark,
         device_time_ns=now,
         host_time_ns=now,
     )  # msk live maps the device clocks onto the host clock
+
+
+def set_mark_event(load: messages.LoadEvent | None, set_number: int, mark: str) -> messages.LoadEvent:
+    """The session fact of the operator's set ``mark`` ("start": the next set; "stop") from a surface that holds the
+    newest LoadEvent (``load``: the facts in effect) and shows set ``set_number`` (the view's key, the dashboard's
+    button)."""
+    facts: dict = {"set_number": max(set_number, int(load.set_number) if load is not None else 0)}
+    if load is not None:
+        facts |= {"load_kg": load.barbell_mass_kg, "exercise": load.exercise, "athlete": load.athlete}
+    return new_facts(
+        facts, load_kg=None, set_number=None, next_set=mark == "start", exercise=None, athlete=None, set_mark=mark
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,6 +87,34 @@ def run(args: argparse.Namespace) -> int:
         and args.athlete is None
     ):
         raise ConfigError("nothing to change: give KG, --set N, --next-set, --exercise or --athlete", field="KG")
+    if args.exercise is not None and not is_known_exercise(args.exercise):
+        raise ConfigError(
+            f"not a model pack (known: {', '.join(available_packs())})", field="--exercise", value=args.exercise
+        )
+    session, event, key = publish_facts(
+        args,
+        lambda facts: new_facts(
+            facts,
+            load_kg=args.load_kg,
+            set_number=args.set,
+            next_set=args.next_set,
+            exercise=args.exercise,
+            athlete=args.athlete,
+        ),
+        "msk load",
+    )
+    print(
+        f"msk load: {session}: {event.exercise or 'exercise unchanged'}, {event.barbell_mass_kg:g} kg, "
+        f"set {event.set_number}" + (f", athlete {event.athlete}" if event.athlete else "") + f" -> {key}"
+    )
+    return 0
+
+
+def publish_facts(
+    args: argparse.Namespace, make_event: Callable[[dict], messages.LoadEvent], command: str
+) -> tuple[str, messages.LoadEvent, str]:
+    """Find the session (``--session``, ``--connect``: as every attach command), make the LoadEvent from the facts in
+    effect and publish it on ``msk/<session>/load``, waiting (bounded) for a reader; (session, event, key)."""
     options, info = discovery.attach_options(options_from_args(args), args.session)
     session = args.session or (info.session if info is not None else None)
     if session is None:
@@ -79,18 +123,7 @@ def run(args: argparse.Namespace) -> int:
             f"{discovery.registry_dir()}); name the session and its endpoint with --session and --connect",
             field="--session",
         )
-    if args.exercise is not None and not is_known_exercise(args.exercise):
-        raise ConfigError(
-            f"not a model pack (known: {', '.join(available_packs())})", field="--exercise", value=args.exercise
-        )
-    event = new_facts(
-        info.facts if info is not None else {},
-        load_kg=args.load_kg,
-        set_number=args.set,
-        next_set=args.next_set,
-        exercise=args.exercise,
-        athlete=args.athlete,
-    )
+    event = make_event(info.facts if info is not None else {})
     key = topics.load_key(session)
     with open_session(options) as zsession:
         publisher = declare_data_publisher(zsession, key, "msk.LoadEvent")
@@ -99,17 +132,13 @@ def run(args: argparse.Namespace) -> int:
             time.sleep(0.02)
         if not has_subscribers(publisher):
             print(
-                f"msk load: waited {READERS_TIMEOUT_S:g} s for a reader of {key} at {discovery.where(options)}: "
+                f"{command}: waited {READERS_TIMEOUT_S:g} s for a reader of {key} at {discovery.where(options)}: "
                 "0 readers; publishing anyway (is the session running?)",
                 file=sys.stderr,
             )
         publish(publisher, event)
         time.sleep(FLUSH_S)
-    print(
-        f"msk load: {session}: {event.exercise or 'exercise unchanged'}, {event.barbell_mass_kg:g} kg, "
-        f"set {event.set_number}" + (f", athlete {event.athlete}" if event.athlete else "") + f" -> {key}"
-    )
-    return 0
+    return session, event, key
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

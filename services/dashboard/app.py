@@ -17,6 +17,7 @@ import logging
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from msk_core.errors import ConfigError, ModelError
 from msk_core.model import available_packs, load_pack
-from services import topics
+from services import messages, topics
 from services.dashboard import bodymap
 from services.dashboard.bridge import Bridge, DashboardState
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args
@@ -59,7 +60,16 @@ def packs_by_groups() -> dict[tuple[str, ...], str]:
     return found
 
 
-def create_app(config: DashboardConfig, state: DashboardState, *, on_startup=(), on_shutdown=()) -> Starlette:
+def create_app(
+    config: DashboardConfig,
+    state: DashboardState,
+    *,
+    on_startup=(),
+    on_shutdown=(),
+    on_set_mark: Callable[[str], messages.LoadEvent] | None = None,
+) -> Starlette:
+    """``on_set_mark(mark)``: publishes the operator's set mark ("start", "stop") and returns its LoadEvent (the
+    page's buttons, ``POST /set/start`` and ``/set/stop``); None: the page has no buttons to press."""
     pack_index = packs_by_groups()
     svg_cache: dict[str, str] = {}
 
@@ -84,6 +94,19 @@ def create_app(config: DashboardConfig, state: DashboardState, *, on_startup=(),
             pack = load_pack(name)
             svg_cache[name] = bodymap.place_groups(pack).svg(names=pack.display_names.groups)
         return Response(svg_cache[name], media_type="image/svg+xml")
+
+    async def set_mark(request):
+        mark = request.path_params["mark"]
+        if mark not in ("start", "stop"):
+            return JSONResponse({"error": f"no set mark {mark!r}: start or stop"}, status_code=404)
+        if on_set_mark is None:
+            return JSONResponse({"error": "this dashboard publishes no set marks"}, status_code=503)
+        try:
+            event = await asyncio.to_thread(on_set_mark, mark)
+        except Exception as error:  # the session refused it (secured network) or the bridge is down: say so
+            log.warning("set %s: %s", mark, error)
+            return JSONResponse({"error": f"set {mark} not published: {error}"}, status_code=503)
+        return JSONResponse({"mark": mark, "set_number": int(event.set_number)})
 
     async def frames(websocket: WebSocket):
         await websocket.accept()
@@ -117,6 +140,7 @@ def create_app(config: DashboardConfig, state: DashboardState, *, on_startup=(),
             Route("/", page),
             Route("/config.json", config_json),
             Route("/bodymap/{pack}.svg", body_map),
+            Route("/set/{mark}", set_mark, methods=["POST"]),
             WebSocketRoute("/ws", frames),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
@@ -137,7 +161,13 @@ class DashboardServer:
         self.config = config
         self.state = DashboardState(config.session)
         self.bridge = Bridge(zenoh_options, self.state)
-        app = create_app(config, self.state, on_startup=(self.bridge.start,), on_shutdown=(self.bridge.stop,))
+        app = create_app(
+            config,
+            self.state,
+            on_startup=(self.bridge.start,),
+            on_shutdown=(self.bridge.stop,),
+            on_set_mark=self.bridge.publish_set_mark,
+        )
         self.server = uvicorn.Server(
             uvicorn.Config(app, host=host, port=port, log_level="warning", ws="websockets-sansio")
         )

@@ -33,11 +33,13 @@ import zenoh
 from google.protobuf import json_format
 from google.protobuf.message import Message
 
+from msk_core.errors import ConfigError
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter
+from msk_core.signal.sets import SetTracker
 from services import messages, topics
 from services.node_runtime import InputCounts, NodeInputs, serve
-from services.zenoh_session import ZenohOptions, open_session
+from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +50,8 @@ MAX_PLAUSIBLE_LATENCY_S = 60.0
 DEVICE_SILENT_AFTER_S = 1.0
 #: The row of the bridge's own inputs among the nodes.
 BRIDGE_NODE = "dashboard"
+#: The figures of the set under way go to the page at most this often (s) when no set or rep changed.
+SETS_EVERY_S = 0.5
 #: How long the bridge's thread waits for a message before looking at its stop flag again.
 POLL_S = 0.1
 
@@ -81,33 +85,48 @@ def activation_dict(frame: messages.ActivationFrame, arrival_ns: int) -> dict:
 
 
 class RepCounter:
-    """Repetitions in the current set and over the session, from a phase stream ([0, 1) inside a rep, negative at
-    rest, None unknown), counted by :class:`msk_core.signal.reps.PhaseRepCounter` (the rule the session report uses).
-    A new set starts the count again (a rep under way at the change is not counted); the total is kept.
+    """Repetitions over the session, from a phase stream ([0, 1) inside a rep, negative at rest, None unknown),
+    counted by :class:`msk_core.signal.reps.PhaseRepCounter` (the rule the session report uses), and the sets with
+    their reps by :class:`msk_core.signal.sets.SetTracker` (operator marks, rest detection; the report's sets).
     """
 
     def __init__(self) -> None:
-        self.in_set = 0
         self.total = 0
-        self.sets = 0
         self.phase: float | None = None
+        self.time_s: float | None = None  # the newest sample's time
+        self.sets = SetTracker()
         self._reps = PhaseRepCounter()
 
+    @property
+    def in_set(self) -> int:
+        """Reps done in the set under way (0 at rest)."""
+        current = self.sets.current
+        return len(current.reps) if current is not None else 0
+
     def new_set(self, number: int = 0) -> None:
-        """Start set ``number`` (the operator's ``LoadEvent.set_number``), or the next one when 0 (not counted)."""
-        self.sets = number if number > 0 else self.sets + 1
-        self.in_set = 0
-        self._reps = PhaseRepCounter()
+        """The operator starts set ``number`` (or the next when 0) now: a rep under way is not counted in it."""
+        self.sets.start(self.time_s if self.time_s is not None else 0.0, number)
 
     def update(self, t: float, phase: float | None) -> None:
         """The phase of the sample at time ``t`` (s, the stream's own clock)."""
-        self.phase = phase
+        self.phase, self.time_s = phase, t
+        self.sets.update(t, phase)
         if self._reps.update(t, phase) is not None:
-            self.in_set += 1
             self.total += 1
 
     def as_dict(self) -> dict:
-        return {"in_set": self.in_set, "total": self.total, "set": self.sets, "phase": self.phase}
+        """What the page's header shows: set N and rep n of the set (the rep under way, else the last done), reps
+        done in the set and in the session, resting, the time in the set (s) and the phase."""
+        status = self.sets.status(self.time_s)
+        return {
+            "in_set": self.in_set,
+            "rep": status["rep"],
+            "total": self.total,
+            "set": status["set"],
+            "resting": status["resting"],
+            "time_in_set_s": status["time_in_set_s"],
+            "phase": self.phase,
+        }
 
 
 @dataclass
@@ -201,6 +220,8 @@ class DashboardState:
         self._seq = 0
         self._latest: dict[str, tuple[int, object]] = {}  # topic (after the prefix) -> (seq, JSON-ready value)
         self._reps = RepCounter()
+        self._sets_key: tuple[int, int, int] | None = None  # what the last ``sets`` entry showed
+        self._sets_put_ns = 0
         self._joints_have_phase = False
         self._phase_method: str | None = None  # activation stream counted when the joints carry no phase
         self._devices: dict[str, DeviceHealth] = {}
@@ -251,11 +272,14 @@ class DashboardState:
         if frame.exercise != self._frame_exercise or tuple(frame.groups) != self._frame_groups:
             self._frame_exercise, self._frame_groups = frame.exercise, tuple(frame.groups)
             self._put_session()
-        if not self._joints_have_phase:
-            self._phase_method = self._phase_method or frame.method
-            if frame.method == self._phase_method:
-                self._reps.update(frame.time_s, frame.phase if frame.HasField("phase") else None)
+        self._phase_method = self._phase_method or frame.method
+        if frame.method == self._phase_method:  # the first method's frames: the sets' reps and figures
+            phase = frame.phase if frame.HasField("phase") else None
+            if not self._joints_have_phase:
+                self._reps.update(frame.time_s, phase)
                 self._put("reps", self._reps.as_dict())
+            self._reps.sets.add_activations(frame.time_s, phase, frame.groups, frame.activations)
+            self._put_sets(arrival_ns)
 
     def _on_joints(self, joints: messages.JointAngles, arrival_ns: int) -> None:
         self.last_data_ns = arrival_ns
@@ -264,6 +288,7 @@ class DashboardState:
         if has_phase:
             self._reps.update(joints.device_time_ns / 1e9, joints.phase)
             self._put("reps", self._reps.as_dict())
+            self._put_sets(arrival_ns)
         self._put(
             "joints",
             {
@@ -274,12 +299,18 @@ class DashboardState:
         )
 
     def _on_load(self, load: messages.LoadEvent) -> None:
-        """A set starts when the operator's set number changes; without set numbers, with every load event that
-        carries a mass (the operator changing only the load within a set does not restart the rep count)."""
+        """The operator's set marks and set numbers, as :meth:`SetTracker.on_facts` reads them (a new set number or
+        a start mark starts a set, a stop mark ends it; a load change within a set does not restart the count)."""
         number = int(load.set_number)
-        if (number > 0 and number != self._reps.sets) or (number == 0 and load.barbell_mass_kg > 0):
-            self._reps.new_set(number)
-            self._put("reps", self._reps.as_dict())
+        self._reps.sets.on_facts(
+            load.device_time_ns / 1e9 if load.device_time_ns else None,
+            set_number=number,
+            set_mark=load.set_mark,
+            mass_kg=load.barbell_mass_kg,
+            rest_s=load.set_rest_s,
+        )
+        self._put("reps", self._reps.as_dict())
+        self._put_sets(0)
         if load.names:  # a load event without names (msk load) leaves the session's names in effect
             self._names = dict(load.names)
         self._load = load
@@ -288,6 +319,18 @@ class DashboardState:
             {"mass_kg": load.barbell_mass_kg, "exercise": load.exercise, "set_number": number, "athlete": load.athlete},
         )
         self._put_session()
+
+    def _put_sets(self, arrival_ns: int) -> None:
+        """The ``sets`` entry (every set: number, reps, time under tension, peak and mean per group; the page's table
+        of sets) when a set or rep changed, else at most every :data:`SETS_EVERY_S` (the figures of the set under way
+        move with every frame); ``arrival_ns`` 0: now."""
+        tracker = self._reps.sets
+        current = tracker.current
+        key = (len(tracker.sets), tracker.number, len(current.reps) if current is not None else -1)
+        if key == self._sets_key and arrival_ns and arrival_ns - self._sets_put_ns < SETS_EVERY_S * 1e9:
+            return
+        self._sets_key, self._sets_put_ns = key, arrival_ns or time.time_ns()
+        self._put("sets", [record.as_dict() for record in tracker.sets])
 
     def _put_session(self) -> None:
         """Exercise (the load event's, else the activation frames'), load and athlete, for the page's header, and the
@@ -352,6 +395,15 @@ class DashboardState:
     def _put(self, topic: str, value: object) -> None:
         self._latest[topic] = (self._next(), value)
 
+    def set_mark_event(self, mark: str) -> messages.LoadEvent:
+        """The session fact of the operator's set ``mark`` (the page's buttons), with the facts in effect."""
+        from services.commands.load import set_mark_event
+
+        if mark not in ("start", "stop"):
+            raise ConfigError("must be start or stop", field="mark", value=mark)
+        with self._lock:
+            return set_mark_event(self._load, self._reps.sets.number, mark)
+
     def count_error(self) -> None:
         with self._lock:
             self.errors += 1
@@ -387,6 +439,8 @@ class Bridge:
     _inputs: NodeInputs | None = None
     _thread: threading.Thread | None = None
     _stop: threading.Event = field(default_factory=threading.Event)
+    _load_publisher: zenoh.Publisher | None = None  # the operator's set marks (the page's buttons), once used
+    _publisher_lock: threading.Lock = field(default_factory=threading.Lock)
 
     def start(self) -> None:
         self._session = open_session(self.options)
@@ -417,8 +471,25 @@ class Bridge:
             self.state.count_error()
             log.exception("dashboard bridge: message on %s", key)
 
+    def publish_set_mark(self, mark: str) -> messages.LoadEvent:
+        """Publish the operator's set ``mark`` on ``msk/<session>/load`` (the page's buttons, as ``msk set``); the
+        bridge reads it back like any session fact. RuntimeError when the bridge is not running."""
+        event = self.state.set_mark_event(mark)
+        if self._session is None:
+            raise RuntimeError("the dashboard's bridge is not running")
+        with self._publisher_lock:
+            if self._load_publisher is None:
+                key = topics.load_key(self.state.session)
+                self._load_publisher = declare_data_publisher(self._session, key, "msk.LoadEvent")
+            publish(self._load_publisher, event)
+        return event
+
     def stop(self) -> None:
         self._stop.set()
+        with self._publisher_lock:
+            if self._load_publisher is not None:
+                self._load_publisher.undeclare()
+                self._load_publisher = None
         if self._inputs is not None:
             self._inputs.close()
         if self._thread is not None:

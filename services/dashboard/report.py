@@ -2,12 +2,14 @@
 maps beside it, ``DIR/report.json`` with the numbers).
 
 The header names the athlete (``LoadEvent.athlete``), the date of the recording's first message, the exercises
-(the load events', else the activation frames' ``exercise``) and the loads. Sets come from the load events (a mass
-opens a set, the next load event closes it unless it carries the same ``set_number``, which corrects the running
-set's load); repetitions from the phase the frames
-carry (``JointAngles.phase``, else ``ActivationFrame.phase``; counted as the live dashboards count them,
-``msk_core.signal.reps.phase_rep_spans``), else from msk_core's kinematic rep detection on the pack's phase
-coordinate. Per set and method: peak and mean activation of every muscle group in every rep, time under tension,
+(the load events', else the activation frames' ``exercise``) and the loads. Sets and their reps come from
+:class:`msk_core.signal.sets.SetTracker`, the one set logic the view and the dashboard run live, fed in time order
+with the load events (the operator's marks: ``set_mark`` start/stop, a new ``set_number``, a mass without a number,
+no mass: the bar is off) and the phase the frames carry (``JointAngles.phase``, else ``ActivationFrame.phase``):
+without marks, rest detection (no rep for the session's ``set_rest_s``, default 20 s) ends a set and the next rep
+opens one. Without any phase, sets come from the load events alone and reps from msk_core's kinematic rep detection
+on the pack's phase coordinate. A table of sets, one row per set: reps, time under tension, duration, and peak and
+mean activation per muscle group over the set's reps (the SetTracker's figures). Per set and method: peak and mean activation of every muscle group in every rep, time under tension,
 the balance between the left and right groups (packs with both sides) and between the muscles pulling each joint one
 way and the other (sign of the pack's moment arms at the set's median pose), the comparison of the methods
 when several ran, and the health of every device over the session. Muscles and joints are named by their display
@@ -36,6 +38,7 @@ from msk_core.model import OutOfRange, load_pack
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import phase_rep_spans
+from msk_core.signal.sets import SetRecord, SetTracker
 from services import messages
 from services.dashboard import bodymap
 from services.mcap_io import ReadReport, read_messages
@@ -64,6 +67,8 @@ class Load:
     exercise: str
     set_number: int = 0  # 0: not counted
     athlete: str = ""
+    set_mark: str = ""  # "start", "stop" or "" (LoadEvent.set_mark)
+    rest_s: float = 0.0  # LoadEvent.set_rest_s; 0: the one in effect
 
 
 @dataclass
@@ -117,7 +122,17 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
         elif kind == "msk.LoadEvent":
             e = recorded.decode(messages.LoadEvent)
-            data.loads.append(Load(e.device_time_ns / 1e9, e.barbell_mass_kg, e.exercise, int(e.set_number), e.athlete))
+            data.loads.append(
+                Load(
+                    e.device_time_ns / 1e9,
+                    e.barbell_mass_kg,
+                    e.exercise,
+                    int(e.set_number),
+                    e.athlete,
+                    e.set_mark,
+                    e.set_rest_s,
+                )
+            )
             data.names = dict(e.names) or data.names  # an event without names leaves them in effect
         elif kind == "msk.EmgChunk":
             c = recorded.decode(messages.EmgChunk)
@@ -150,6 +165,8 @@ class SetWindow:
     start_s: float
     end_s: float
     number: int = 0  # the operator's set number; 0: not counted (``index`` is shown)
+    record: SetRecord | None = None  # the SetTracker's set: its reps and figures; None without a phase stream
+    rep_source: str = ""  # what the record's reps were counted on
 
     @property
     def name(self) -> str:
@@ -159,20 +176,104 @@ class SetWindow:
 
 
 def set_windows(data: SessionData) -> list[SetWindow]:
+    """The session's sets (module doc): from the SetTracker when there is a phase stream, else from the load events
+    alone; without either, the whole session is one set."""
+    phase_t, phase_p, source = _phase_stream(data)
+    if phase_t.size == 0:
+        return _fact_windows(data)
+    tracker = SetTracker()
+    loads = sorted(data.loads)
+    frames = _frames_with_phase(data, phase_t, phase_p)
+    # in time order; at one instant a fact first, then the phase, then the frame
+    events: list[tuple[float, int, int]] = [(load.time_s, 0, k) for k, load in enumerate(loads)]
+    events += [(float(t), 1, k) for k, t in enumerate(phase_t)] + [(f[0], 2, k) for k, f in enumerate(frames)]
+    for t, kind, k in sorted(events):
+        if kind == 0:
+            load = loads[k]
+            tracker.on_facts(
+                t, set_number=load.set_number, set_mark=load.set_mark, mass_kg=load.mass_kg, rest_s=load.rest_s
+            )
+        elif kind == 1:
+            tracker.update(t, float(phase_p[k]))
+        else:
+            tracker.add_activations(t, frames[k][1], frames[k][2], frames[k][3])
+    tracker.finish()
+    windows = []
+    for index, record in enumerate(tracker.sets, start=1):
+        end = record.end_s if record.end_s is not None else math.inf
+        fact = _fact_of(loads, record.start_s, end)
+        exercise = (fact.exercise if fact is not None else "") or (
+            data.frame_exercises[0] if len(data.frame_exercises) == 1 else ""
+        )
+        mass = fact.mass_kg if fact is not None else 0.0
+        windows.append(SetWindow(index, exercise, mass, record.start_s, end, record.number, record, source))
+    return windows
+
+
+def _fact_of(loads: list[Load], start_s: float, end_s: float) -> Load | None:
+    """The load event in effect for a set: the last one before its end (a correction within it counts), else none."""
+    before = [load for load in loads if load.time_s < end_s or load.time_s <= start_s]
+    return before[-1] if before else None
+
+
+def _frames_with_phase(
+    data: SessionData, phase_t: np.ndarray, phase_p: np.ndarray
+) -> list[tuple[float, float, tuple[str, ...], list[float]]]:
+    """The primary method's frames as (time, phase, groups, activations): their own phase, else the phase stream's
+    newest sample at the frame (NaN before it)."""
+    key = _primary_series(data)
+    if key is None:
+        return []
+    series = data.frames[key]
+    t = np.asarray(series.time, dtype=float)
+    own = np.asarray(series.phase, dtype=float)
+    at = np.clip(np.searchsorted(phase_t, t, side="right") - 1, 0, phase_t.size - 1)
+    phase = np.where(np.isfinite(own), own, np.where(t >= phase_t[0], phase_p[at], np.nan))
+    return [(float(a), float(b), series.groups, row) for a, b, row in zip(t, phase, series.activations)]
+
+
+def _phase_stream(data: SessionData) -> tuple[np.ndarray, np.ndarray, str]:
+    """(times, phases) the reps are counted on: the joint angles' phase, else the primary method's frames'; empty
+    when neither carries one."""
+    jt, jp = np.asarray(data.joint_time, dtype=float), np.asarray(data.joint_phase, dtype=float)
+    if jp.size and np.any(np.isfinite(jp)):
+        order = np.argsort(jt, kind="stable")
+        return jt[order], jp[order], "phase of the joint angles"
+    key = _primary_series(data)
+    if key is not None:
+        series = data.frames[key]
+        ft, fp = np.asarray(series.time, dtype=float), np.asarray(series.phase, dtype=float)
+        if np.any(np.isfinite(fp)):
+            order = np.argsort(ft, kind="stable")
+            return ft[order], fp[order], "phase of the activation frames"
+    return np.array([]), np.array([]), ""
+
+
+def _primary_series(data: SessionData) -> tuple[str, tuple[str, ...]] | None:
+    """The frames' series the sets' figures come from: of the first of PRIMARY_METHODS present, the one with the
+    most frames (a method may have run with several packs)."""
+    keys = sorted(data.frames, key=lambda key: -len(data.frames[key].time))
+    for method in PRIMARY_METHODS:
+        for key in keys:
+            if key[0] == method:
+                return key
+    return keys[0] if keys else None
+
+
+def _fact_windows(data: SessionData) -> list[SetWindow]:
+    """Sets of a session without any phase: from the load events alone (the SetTracker's reading of them)."""
+    tracker = SetTracker()
+    loads = sorted(data.loads)
+    for load in loads:
+        tracker.on_facts(
+            load.time_s, set_number=load.set_number, set_mark=load.set_mark, mass_kg=load.mass_kg, rest_s=load.rest_s
+        )
     windows: list[SetWindow] = []
-    current: SetWindow | None = None
-    for load in sorted(data.loads):
-        if current is not None and load.mass_kg > 0 and load.set_number > 0 and load.set_number == current.number:
-            current.load_kg, current.exercise = load.mass_kg, load.exercise or current.exercise  # a correction
-            continue
-        if current is not None:
-            current.end_s = load.time_s
-            windows.append(current)
-            current = None
-        if load.mass_kg > 0:
-            current = SetWindow(len(windows) + 1, load.exercise, load.mass_kg, load.time_s, math.inf, load.set_number)
-    if current is not None:
-        windows.append(current)
+    for record in tracker.sets:
+        end = record.end_s if record.end_s is not None else math.inf
+        fact = _fact_of(loads, record.start_s, end)
+        assert fact is not None  # every set here opened at a load event
+        windows.append(SetWindow(len(windows) + 1, fact.exercise, fact.mass_kg, record.start_s, end, record.number))
     if not windows:  # no load events: the whole session is one set, of the frames' exercise when they name one
         times = [t for s in data.frames.values() for t in s.time] or data.joint_time
         if times:
@@ -328,7 +429,10 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     series, mask = in_set[primary]
     groups = list(series.groups)
     pack = _pack_for(series.groups)
-    reps, rep_source = reps_in_set(data, window, series, pack)
+    if window.record is not None:  # the SetTracker's reps (the ones the view and the dashboard counted)
+        reps, rep_source = list(window.record.reps), window.rep_source
+    else:
+        reps, rep_source = reps_in_set(data, window, series, pack)
     names = names_for(pack.name if pack is not None else window.exercise, groups, data.names)
     methods: dict[str, dict[str, Any]] = {}  # per method: its figures, and "_t", "_a" (times, activations) for below
     result = {
@@ -347,6 +451,7 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
         "rep_source": rep_source,
         "reps": [{"start_s": a, "end_s": b, "duration_s": b - a} for a, b in reps],
         "time_under_tension_s": float(sum(b - a for a, b in reps)),
+        "set": window.record.as_dict() if window.record is not None else None,  # the SetTracker's figures
         "methods": methods,
     }
     for method, (s, m) in in_set.items():
@@ -555,6 +660,42 @@ def _table(headers: list[str], rows: list[list[str]]) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
+def sets_html(sets: list[dict]) -> str:
+    """The table of sets, one row per set (one table per muscle set of the sets' packs): reps, time under tension,
+    duration, how the set ended, and per muscle group its peak / mean activation % over the set's reps."""
+    by_groups: dict[tuple[str, ...], list[dict]] = {}
+    for result in sets:
+        by_groups.setdefault(tuple(result["groups"]), []).append(result)
+    parts = ["<section class='sets'><h2>Sets</h2>"]
+    for groups, results in by_groups.items():
+        names: DisplayNames = results[0]["_names"]
+        headers = ["set", "reps", "under tension (s)", "duration (s)", "ended"]
+        headers += [f"{names.group(g)}: peak / mean %" for g in groups]
+        rows = []
+        for r in results:
+            figures = r.get("set")
+            if figures is not None and figures["groups"]:
+                by = dict(zip(figures["groups"], zip(figures["peak"], figures["mean"])))
+            else:  # no phase: the primary method's figures over the whole set
+                by = {g: (v["set_peak"], v["set_mean"]) for g, v in r["methods"][r["primary"]]["groups"].items()}
+            cells = [
+                html.escape(r["name"]),
+                str(len(r["reps"])),
+                f"{r['time_under_tension_s']:.1f}",
+                f"{r['end_s'] - r['start_s']:.1f}",
+                html.escape(figures["ended_by"] if figures is not None else "load event"),
+            ]
+            cells += [f"{_pct(by.get(g, (None, None))[0])} / {_pct(by.get(g, (None, None))[1])}" for g in groups]
+            rows.append(cells)
+        parts.append(_table(headers, rows))
+    parts.append(
+        "<p class='note'>Peak / mean: activation of each muscle group over the frames inside the set's reps (under "
+        "tension), of the method the report details. A set ends by the operator (ended: operator), when the next starts, "
+        "by rest detection (rest: no rep for the session's rest time) or at the end of the recording.</p></section>"
+    )
+    return "".join(parts)
+
+
 def set_html(result: dict, plots: list[str]) -> str:
     primary = result["methods"][result["primary"]]
     groups, reps = result["groups"], result["reps"]
@@ -741,6 +882,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
         f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} sets · methods: "
         f"{html.escape(', '.join(methods) or 'none')}</div></header><main>"
         + overview
+        + (sets_html(sets) if sets else "")
         + "".join(sections)
         + health
         + "</main></body></html>"

@@ -76,6 +76,7 @@ function merge(update) {
     else if (topic === "load") state.load = value;
     else if (topic === "session") state.session = value;
     else if (topic === "reps") state.reps = value;
+    else if (topic === "sets") state.sets = value; // every set: msk_core.signal.sets.SetRecord.as_dict
     else if (topic === "envelopes") state.envelopes = value;
     else if (topic === "electrodes") state.electrodes = value;
   }
@@ -160,8 +161,12 @@ function renderHeader() {
     document.getElementById("athlete").textContent = facts.athlete ? `· ${facts.athlete}` : "";
   }
   const reps = state.reps;
-  document.getElementById("reps").textContent = reps ? reps.in_set : 0;
-  document.getElementById("set").textContent = reps && reps.set ? reps.set : "–";
+  // set N and rep n of the set (the rep under way, else the last done); "N done" while resting after it
+  document.getElementById("reps").textContent = reps ? (reps.rep ?? reps.in_set) : 0;
+  document.getElementById("set").textContent = reps && reps.set ? (reps.resting ? `${reps.set} done` : reps.set) : "–";
+  document.getElementById("set-time").textContent = reps && !reps.resting && reps.time_in_set_s != null
+    ? `· ${reps.time_in_set_s.toFixed(0)} s` : (reps && reps.resting && reps.set ? "· resting" : "");
+  renderSets();
   const phase = reps ? reps.phase : null;
   const fill = document.getElementById("phase-fill");
   const text = document.getElementById("phase-text");
@@ -346,6 +351,39 @@ function renderElectrodes(frame) {
   document.querySelector("#electrodes tbody").replaceChildren(...rows);
   document.getElementById("electrodes-title").hidden = rows.length === 0;
 }
+
+// Sets: one column per set (the newest 3), rows: reps, time under tension, then peak / mean % per muscle group.
+function renderSets() {
+  const sets = (state.sets || []).slice(-3);
+  const head = document.querySelector("#sets thead"), body = document.querySelector("#sets tbody");
+  const pct = (v) => (v === null || v === undefined ? "–" : (100 * v).toFixed(0));
+  head.replaceChildren(...(sets.length ? [tableRow("th", ["", ...sets.map((s) => `set ${s.number}`)])] : []));
+  if (!sets.length) { body.replaceChildren(); return; }
+  const groups = sets[sets.length - 1].groups;
+  const rows = [
+    tableRow("td", ["reps", ...sets.map((s) => String(s.reps))]),
+    tableRow("td", ["under tension", ...sets.map((s) => `${s.time_under_tension_s.toFixed(1)} s`)]),
+    ...groups.map((g) => tableRow("td", [groupName(g), ...sets.map((s) => {
+      const i = s.groups.indexOf(g);
+      return i < 0 ? "–" : `${pct(s.peak[i])} / ${pct(s.mean[i])}`;
+    })])),
+  ];
+  body.replaceChildren(...rows);
+}
+function tableRow(cell, texts) {
+  const row = document.createElement("tr");
+  row.replaceChildren(...texts.map((text) => { const c = document.createElement(cell); c.textContent = text; return c; }));
+  return row;
+}
+// The operator's buttons: POST /set/start or /set/stop publishes the session fact (as `msk set start|stop`).
+function setMark(mark) {
+  const reply = document.getElementById("set-reply");
+  fetch(`/set/${mark}`, { method: "POST" }).then((r) => r.json()).then((answer) => {
+    reply.textContent = answer.error ? answer.error : (mark === "start" ? `set ${answer.set_number} started` : "set ended");
+  }).catch((error) => { reply.textContent = `not sent: ${error}`; });
+}
+document.getElementById("set-start").addEventListener("click", () => setMark("start"));
+document.getElementById("set-stop").addEventListener("click", () => setMark("stop"));
 
 // The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.
 function start() {

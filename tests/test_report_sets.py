@@ -1,0 +1,91 @@
+"""`msk report` on a recording with sets: rest detection and the operator's marks split it as the view and the
+dashboard do (msk_core.signal.sets), and the report has one row per set with reps, time under tension and peak and
+mean activation per muscle group."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from services import messages
+from services.dashboard import report
+from services.mcap_io import McapRecorderWriter
+
+START_NS = 1_773_480_600_000_000_000
+RATE_HZ = 20.0
+# (start, end) s of each rep: three, a 25 s rest (longer than the session's 20 s), two, the operator's stop at 37 s,
+# his start at 40 s, one more
+REPS = [(1, 3), (3, 5), (5, 7), (32, 34), (34, 36), (41, 43)]
+END_S = 45.0
+
+
+def phase_at(t: float) -> float:
+    for a, b in REPS:
+        if a <= t < b:
+            return (t - a) / (b - a)
+    return -1.0
+
+
+def write_session(path) -> None:
+    facts = [
+        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, set_rest_s=20.0)),
+        (37.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, set_mark="stop")),
+        (40.0, messages.LoadEvent(barbell_mass_kg=65, exercise="bench_press", set_number=2, set_mark="start")),
+    ]
+    with McapRecorderWriter(path) as writer:
+
+        def write(message, t_s: float, topic: str) -> None:
+            ns = START_NS + int(t_s * 1e9)
+            writer.write(f"msk/s/{topic}", messages.type_name(message), messages.encode(message), ns, ns)
+
+        for t_s, event in facts:
+            event.device_time_ns = START_NS + int(t_s * 1e9)
+            write(event, t_s, "load")
+        for k in range(int(END_S * RATE_HZ)):
+            t_s = k / RATE_HZ
+            phase = phase_at(t_s)
+            joints = messages.JointAngles(
+                coordinates=["elbow_flex_r"], q=[1.0], phase=phase, device_time_ns=START_NS + int(t_s * 1e9)
+            )
+            write(joints, t_s, "joints")
+            frame = messages.ActivationFrame(
+                time_s=START_NS / 1e9 + t_s,
+                method="so",
+                groups=["A", "B"],
+                activations=[0.2 + 0.6 * max(phase, 0.0), 0.9 if phase < 0 else 0.1],  # B high only at rest
+                exercise="bench_press",
+            )
+            write(frame, t_s, "activations/so")
+
+
+def test_report_of_a_recording_with_sets(tmp_path):
+    recording = tmp_path / "session.mcap"
+    write_session(recording)
+    summary = report.write_report(recording, tmp_path / "out")
+    sets = summary["sets"]
+    assert [(s["set"]["number"], len(s["reps"]), s["set"]["ended_by"]) for s in sets] == [
+        (1, 3, "rest"),
+        (2, 2, "operator"),
+        (3, 1, "end of data"),
+    ]
+    assert [s["name"] for s in sets] == [
+        "set 1: bench press, 60 kg",
+        "set 2: bench press, 60 kg",
+        "set 3: bench press, 65 kg",
+    ]
+    first = sets[0]
+    assert first["start_s"] == pytest.approx(START_NS / 1e9)  # msk live's facts started set 1
+    assert first["end_s"] - first["start_s"] == pytest.approx(7.0, abs=0.1)  # at its last rep's end
+    assert sets[1]["start_s"] - START_NS / 1e9 == pytest.approx(32.0, abs=0.1)  # the first rep after the rest
+    assert sets[1]["end_s"] - START_NS / 1e9 == pytest.approx(37.0)  # the operator's stop
+    assert [s["time_under_tension_s"] for s in sets] == pytest.approx([6.0, 4.0, 2.0], abs=0.2)
+    figures = first["set"]
+    assert figures["groups"] == ["A", "B"]
+    assert figures["peak"] == pytest.approx([0.8, 0.1], abs=0.02)  # over the reps: B's 0.9 at rest not counted
+    assert figures["mean"][0] == pytest.approx(0.5, abs=0.02) and figures["mean"][1] == pytest.approx(0.1)
+    page = (tmp_path / "out" / "report.html").read_text()
+    table = page[page.index("<section class='sets'>") :].split("</section>")[0]
+    assert table.count("<tr>") == 1 + 3  # the header and one row per set
+    assert "A: peak / mean %" in table and "<td>79 / 49</td>" in table and "<td>rest</td>" in table
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["sets"][2]["set"]["reps"] == 1
