@@ -59,7 +59,7 @@ LAG_STEP_S = 0.0005
 WINDOW_S = 5.0  # the lag is also found per window of frames: it must hold throughout the run, round after round
 FRAME_S = 1.0 / 60.0  # the joint frame period (IMU at 60 Hz)
 #: assisted's pooled RMSE over the groups without an electrode may exceed proposed's by this fraction: measured
-#: +0.75 % to +1.07 % (five runs), as much with the true activations as the EMG (docs/live.md, "Accuracy against the
+#: +0.75 % to +1.1 % (six runs), as much with the true activations as the EMG (docs/live.md, "Accuracy against the
 #: truth"); twice the largest seen
 POOLED_TOLERANCE = 0.02
 
@@ -243,7 +243,7 @@ def test_assisted_against_the_generators_truth_on_the_trial_clock(sim_run):
     own content gives each frame (the IMU samples it was made of, as check_one_world identifies them), within a
     frame of the clock's. Then per group RMSE against the truth: ``assisted`` is clearly better where it has an
     electrode, and on the groups without one no worse than ``proposed`` by the median over them. Pooled over those
-    groups it IS worse, by 0.75-1.07 % in four 50 s runs (0.8 % in one of this test's), a spread of ±0.16 % around
+    groups it IS worse, by 0.75-1.1 % in five 50 s runs (0.8 % in one of this test's), a spread of ±0.16 % around
     a real difference: the one group that gets worse, PMCos, does so with the true activations as the EMG as well
     (docs/live.md, "Accuracy against the truth", says why). So the pooled figure is held to POOLED_TOLERANCE of
     ``proposed``'s: a guard against a regression, not the issue's "no worse", which it does not meet."""
