@@ -57,6 +57,22 @@ class ModelPack:
             )
         self.path = path
         self.raw = data
+        self._read_description(data, path)
+        self._read_length_basis(data)
+        self._prepare_numpy()
+        self.evaluator = Evaluator(evaluator)
+        compiled = self.evaluator is Evaluator.COMPILED
+        self.rigid = RigidModel(data["dynamics"], n_coordinates=self._n, compiled=compiled)
+        validation = data.get("validation_dynamics")
+        self.validation_rigid = (
+            RigidModel(validation, n_coordinates=self._n, compiled=compiled) if validation else self.rigid
+        )
+        self.muscle_tables: MuscleTables | None = None
+        if compiled:
+            self._prepare_compiled()
+
+    def _read_description(self, data: dict, path: Path | None) -> None:
+        """Names, coordinates and their ranges, groups and the muscle parameters."""
         self.name: str = data["name"]
         self.version: str = data["version"]
         self.description: str = data.get("description", "")
@@ -77,35 +93,23 @@ class ModelPack:
         self.max_control = np.asarray(data.get("max_control", np.ones(len(self.groups))), dtype=float)
         self.fit_report: dict = data.get("fit_report", {})
         self.display_names: DisplayNames = names_of(data, path)
+
+    def _read_length_basis(self, data: dict) -> None:
+        """The length surrogates' basis (monomials and hinges) and coefficients, lengths and moment arms stacked."""
         basis = data["basis"]
         self._exponents = np.asarray(basis["exponents"], dtype=np.int64).reshape(-1, len(self.coordinates))
         self._centre = np.asarray(basis["centre"], dtype=float)
         self._half = np.asarray(basis["half_width"], dtype=float)
         self._coef = np.asarray(data["length_coefficients"], dtype=float).reshape(len(self.groups), -1)
-        n, g = len(self.coordinates), len(self.groups)
         hinges = basis.get("hinges", [])
         self._hinge_var = np.array([int(h[0]) for h in hinges], dtype=np.int64)
         self._hinge_knot = np.array([float(h[1]) for h in hinges], dtype=float)
-        n_mono, n_h = len(self._exponents), len(hinges)
-        poly, hcoef = self._coef[:, :n_mono], self._coef[:, n_mono:]
-        # feature vector: [monomials (M), h1, h1², h1³, h2, ... (3H), step1 .. stepH (H)]; lengths use M + 3H
-        lengths = np.zeros((g, n_mono + 4 * n_h))
-        lengths[:, :n_mono] = poly
-        lengths[:, n_mono : n_mono + 3 * n_h] = hcoef
-        rows = [lengths]
-        for j in range(n):
-            r = np.zeros((g, n_mono + 4 * n_h))
-            r[:, :n_mono] = poly @ derivative_matrix(self._exponents, j)
-            for i in range(n_h):
-                if self._hinge_var[i] != j:
-                    continue
-                a1, a2, a3 = hcoef[:, 3 * i], hcoef[:, 3 * i + 1], hcoef[:, 3 * i + 2]
-                r[:, n_mono + 3 * n_h + i] += a1  # d h / dx = step
-                r[:, n_mono + 3 * i] += 2 * a2  # d h² / dx = 2h
-                r[:, n_mono + 3 * i + 1] += 3 * a3  # d h³ / dx = 3h²
-            rows.append(-r / self._half[j])
-        self._stacked = np.ascontiguousarray(np.vstack(rows))  # (g*(n+1), M + 4H)
-        self._has_hinges = n_h > 0
+        self._stacked = _stacked_lengths_and_arms(self._coef, self._exponents, self._hinge_var, self._half)
+        self._has_hinges = len(hinges) > 0
+
+    def _prepare_numpy(self) -> None:
+        """What the numpy evaluator reuses every call: range limits, power tables, monomial columns."""
+        n, g = len(self.coordinates), len(self.groups)
         self._powers = np.arange(int(self._exponents.max(initial=0)) + 1)
         self._lo = self.coordinate_ranges[:, 0].copy()
         self._hi = self.coordinate_ranges[:, 1].copy()
@@ -123,41 +127,38 @@ class ModelPack:
             self._exponents, list(zip(self._hinge_var.tolist(), self._hinge_knot.tolist()))
         )
         self._half_range_list = self._half_range.tolist()
-        self.evaluator = Evaluator(evaluator)
-        compiled = self.evaluator is Evaluator.COMPILED
-        self.rigid = RigidModel(data["dynamics"], n_coordinates=n, compiled=compiled)
-        validation = data.get("validation_dynamics")
-        self.validation_rigid = RigidModel(validation, n_coordinates=n, compiled=compiled) if validation else self.rigid
-        self.muscle_tables: MuscleTables | None = None
-        if compiled:
-            kernels = self._kernels = compiled_kernels()
-            muscle_tables: MuscleTables = kernels.MuscleTables.build(
-                lo=self._lo,
-                hi=self._hi,
-                centre=self._centre,
-                half=self._half,
-                half_range=self._half_range,
-                reference=self.reference_pose,
-                exponents=self._exponents,
-                hinge_var=self._hinge_var,
-                hinge_knot=self._hinge_knot,
-                stacked=self._stacked,
-                n_groups=g,
-            )
-            self.muscle_tables = muscle_tables
-            self._frame_kernel = kernels.frame
-            self._both = kernels.MUSCLES | kernels.DYNAMICS
-            self._modes = {  # (out_of_range, parts) -> kernels.frame mode bits
-                (out_of_range, part): (kernels.CLAMP if out_of_range is OutOfRange.CLAMP else 0) | part
-                for out_of_range in OutOfRange
-                for part in (kernels.MUSCLES, kernels.DYNAMICS, kernels.MUSCLES | kernels.DYNAMICS)
-            }
-            # the compiled frame's output layout: lengths (G), moment arms (n × G), tau (n), tau per joint (J)
-            rigid_tables = self.rigid.compiled_tables
-            self._frame_size = g * (n + 1) + n + rigid_tables.n_joints
-            self._lengths_at, self._arms_at = slice(0, g), slice(g, g * (n + 1))
-            self._tau_at = slice(g * (n + 1), g * (n + 1) + n)
-            self._tables = (muscle_tables.ints, muscle_tables.floats, rigid_tables.ints, rigid_tables.floats)
+
+    def _prepare_compiled(self) -> None:
+        """The compiled evaluator's tables, mode bits and output layout."""
+        n, g = self._n, self._g
+        kernels = self._kernels = compiled_kernels()
+        muscle_tables: MuscleTables = kernels.MuscleTables.build(
+            lo=self._lo,
+            hi=self._hi,
+            centre=self._centre,
+            half=self._half,
+            half_range=self._half_range,
+            reference=self.reference_pose,
+            exponents=self._exponents,
+            hinge_var=self._hinge_var,
+            hinge_knot=self._hinge_knot,
+            stacked=self._stacked,
+            n_groups=g,
+        )
+        self.muscle_tables = muscle_tables
+        self._frame_kernel = kernels.frame
+        self._both = kernels.MUSCLES | kernels.DYNAMICS
+        self._modes = {  # (out_of_range, parts) -> kernels.frame mode bits
+            (out_of_range, part): (kernels.CLAMP if out_of_range is OutOfRange.CLAMP else 0) | part
+            for out_of_range in OutOfRange
+            for part in (kernels.MUSCLES, kernels.DYNAMICS, kernels.MUSCLES | kernels.DYNAMICS)
+        }
+        # the compiled frame's output layout: lengths (G), moment arms (n × G), tau (n), tau per joint (J)
+        rigid_tables = self.rigid.compiled_tables
+        self._frame_size = g * (n + 1) + n + rigid_tables.n_joints
+        self._lengths_at, self._arms_at = slice(0, g), slice(g, g * (n + 1))
+        self._tau_at = slice(g * (n + 1), g * (n + 1) + n)
+        self._tables = (muscle_tables.ints, muscle_tables.floats, rigid_tables.ints, rigid_tables.floats)
 
     # ---- poses -------------------------------------------------------------------------------------------------
     def in_range(self, q: np.ndarray) -> np.ndarray:
@@ -370,6 +371,32 @@ class ModelPack:
             "ranges_deg": np.degrees(self.coordinate_ranges).round(1).tolist(),
             "groups": {g: self.members[g] for g in self.groups},
         }
+
+
+def _stacked_lengths_and_arms(
+    coef: np.ndarray, exponents: np.ndarray, hinge_var: np.ndarray, half: np.ndarray
+) -> np.ndarray:
+    """Group lengths, then moment arms r = -dl/dq per coordinate, as one matrix over the feature vector
+    [monomials (M), h1, h1², h1³, h2, ... (3H), step1 .. stepH (H)] (lengths use M + 3H): (g*(n+1), M + 4H)."""
+    g, n = coef.shape[0], exponents.shape[1]
+    n_mono, n_h = len(exponents), len(hinge_var)
+    poly, hcoef = coef[:, :n_mono], coef[:, n_mono:]
+    lengths = np.zeros((g, n_mono + 4 * n_h))
+    lengths[:, :n_mono] = poly
+    lengths[:, n_mono : n_mono + 3 * n_h] = hcoef
+    rows = [lengths]
+    for j in range(n):
+        r = np.zeros((g, n_mono + 4 * n_h))
+        r[:, :n_mono] = poly @ derivative_matrix(exponents, j)
+        for i in range(n_h):
+            if hinge_var[i] != j:
+                continue
+            a1, a2, a3 = hcoef[:, 3 * i], hcoef[:, 3 * i + 1], hcoef[:, 3 * i + 2]
+            r[:, n_mono + 3 * n_h + i] += a1  # d h / dx = step
+            r[:, n_mono + 3 * i] += 2 * a2  # d h² / dx = 2h
+            r[:, n_mono + 3 * i + 1] += 3 * a3  # d h³ / dx = 3h²
+        rows.append(-r / half[j])
+    return np.ascontiguousarray(np.vstack(rows))
 
 
 def _packs_dir():

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pinocchio as pin
@@ -32,48 +32,60 @@ def compiled_kernels() -> ModuleType:
     return kernels
 
 
+def _pinocchio_model(joints: list[dict], bodies: list[dict]) -> tuple[pin.Model, list[np.ndarray]]:
+    """The joint tree (every joint frame aligned with ground, at its stored point) carrying the bodies' inertias;
+    also the joints' points."""
+    model = pin.Model()
+    positions = [np.asarray(j["position"], dtype=float) for j in joints]
+    for i, (j, pos) in enumerate(zip(joints, positions)):
+        parent = int(j["parent"])
+        parent_pos = positions[parent] if parent >= 0 else np.zeros(3)
+        axis = np.asarray(j["axis"], dtype=float)
+        if j["kind"] == "revolute":
+            jm = pin.JointModelRevoluteUnaligned(axis)
+        elif j["kind"] == "prismatic":
+            jm = pin.JointModelPrismaticUnaligned(axis)
+        else:
+            raise ModelError(
+                f"rigid model: joint {j['name']!r} (dynamics.joints[{i}].kind) is {j['kind']!r}; "
+                "expected 'revolute' or 'prismatic'"
+            )
+        model.addJoint(parent + 1, jm, pin.SE3(np.eye(3), pos - parent_pos), j["name"])
+    for body in bodies:
+        joint = int(body["joint"])
+        origin = positions[joint]
+        inertia = pin.Inertia(
+            float(body["mass"]),
+            np.asarray(body["com"], dtype=float) - origin,
+            np.asarray(body["inertia"], dtype=float).reshape(3, 3),
+        )
+        model.appendBodyToJoint(joint + 1, inertia, pin.SE3.Identity())
+    return model, positions
+
+
+def _load_model(model: pin.Model, load_points: list[dict], positions: list[np.ndarray]) -> pin.Model:
+    """Hand load: the same tree carrying only unit point masses at the load points; its generalized gravity is the
+    torque that holds 1 kg at every load point (one cheap call instead of a Jacobian per point)."""
+    load_model = pin.Model(model)
+    for k in range(1, load_model.njoints):
+        load_model.inertias[k] = pin.Inertia.Zero()
+    for load in load_points:
+        joint = int(load["joint"])
+        point = np.asarray(load["point"], dtype=float) - positions[joint]
+        load_model.appendBodyToJoint(joint + 1, pin.Inertia(1.0, point, np.zeros((3, 3))), pin.SE3.Identity())
+    return load_model
+
+
 class RigidModel:
     """Pinocchio model + projection between pack coordinates and pinocchio joints."""
 
     def __init__(self, description: dict, *, n_coordinates: int, compiled: bool = False) -> None:
         """compiled: evaluate with the numba kernels (:mod:`msk_core.model.kernels`) instead of numpy + pinocchio."""
         self.description = description
-        model = pin.Model()
         joints = description["joints"]
-        positions = [np.asarray(j["position"], dtype=float) for j in joints]
-        for i, (j, pos) in enumerate(zip(joints, positions)):
-            parent = int(j["parent"])
-            parent_pos = positions[parent] if parent >= 0 else np.zeros(3)
-            axis = np.asarray(j["axis"], dtype=float)
-            if j["kind"] == "revolute":
-                jm = pin.JointModelRevoluteUnaligned(axis)
-            elif j["kind"] == "prismatic":
-                jm = pin.JointModelPrismaticUnaligned(axis)
-            else:
-                raise ModelError(
-                    f"rigid model: joint {j['name']!r} (dynamics.joints[{i}].kind) is {j['kind']!r}; "
-                    "expected 'revolute' or 'prismatic'"
-                )
-            model.addJoint(parent + 1, jm, pin.SE3(np.eye(3), pos - parent_pos), j["name"])
-        for body in description["bodies"]:
-            joint = int(body["joint"])
-            origin = positions[joint]
-            inertia = pin.Inertia(
-                float(body["mass"]),
-                np.asarray(body["com"], dtype=float) - origin,
-                np.asarray(body["inertia"], dtype=float).reshape(3, 3),
-            )
-            model.appendBodyToJoint(joint + 1, inertia, pin.SE3.Identity())
-        # Hand load: the same tree carrying only unit point masses at the load points; its generalized gravity is
-        # the torque that holds 1 kg at every load point (one cheap call instead of a Jacobian per point).
-        load_model = pin.Model(model)
-        for k in range(1, load_model.njoints):
-            load_model.inertias[k] = pin.Inertia.Zero()
+        model, positions = _pinocchio_model(joints, description["bodies"])
+        load_model = _load_model(model, description["load_points"], positions)
         self.n_load_points = len(description["load_points"])
-        for load in description["load_points"]:
-            joint = int(load["joint"])
-            point = np.asarray(load["point"], dtype=float) - positions[joint]
-            load_model.appendBodyToJoint(joint + 1, pin.Inertia(1.0, point, np.zeros((3, 3))), pin.SE3.Identity())
         self.gravity = np.asarray(description["gravity"], dtype=float)
         self._g_norm = float(np.linalg.norm(self.gravity))
         model.gravity.linear = self.gravity
@@ -84,55 +96,18 @@ class RigidModel:
         self.torque_scale = np.asarray(description["torque_scale"], dtype=float)
         self.load_share = float(description["load_share"])
         self._projection = self.gains.T * self.torque_scale[:, None]  # (n_coordinates, n_joints)
-        # joints whose value is a polynomial of one coordinate (rolling knee, patella): q_j = f(dq_k), grouped by
-        # coordinate so each group costs one power vector and one small matrix product per call
         n_joints = len(joints)
         self._gains_t = np.ascontiguousarray(self.gains.T)  # (n_coordinates, n_joints)
         self._motion_in = np.zeros((3, n_coordinates))  # rows dq, qd, qdd (preallocated: one matmul per frame)
         self._motion = np.zeros((3, n_joints))  # rows: pinocchio q, v, a (contiguous rows for pinocchio)
         # projection back to the coordinates; the columns of polynomial joints are refreshed with f'(q) each frame
         self._frame_projection = self._projection.copy()
-        self._nl_groups = []
-        for k in sorted({j["function"]["coordinate"] for j in joints if "function" in j}):
-            idx = [i for i, j in enumerate(joints) if j.get("function", {}).get("coordinate") == k]
-            funcs = [joints[i]["function"] for i in idx]
-            coef = np.array([f["coefficients"] for f in funcs], dtype=float)
-            degree = coef.shape[1]
-            d1 = coef[:, 1:] * np.arange(1, degree)[None, :]
-            d2 = d1[:, 1:] * np.arange(1, degree - 1)[None, :]
-            half, centre = float(funcs[0]["half_width"]), float(funcs[0]["centre"])
-            m = len(idx)
-            scale = float(self.torque_scale[k])
-            # rows: f, f', f'' and scale * f' (the projection column) over the same power vector
-            stacked = np.zeros((4 * m, degree))
-            stacked[:m] = coef
-            stacked[m : 2 * m, : degree - 1] = d1 / half
-            stacked[2 * m : 3 * m, : degree - 2] = d2 / half**2
-            stacked[3 * m :, : degree - 1] = scale * d1 / half
-            contiguous = idx == list(range(idx[0], idx[0] + m))
-            sel = slice(idx[0], idx[0] + m) if contiguous else np.array(idx)
-            mix = np.zeros((3, 3))  # [f, f'v, f'a + f''v²] = mix @ [f, f', f'']: one product per frame
-            mix[0, 0] = 1.0
-            values = np.empty(4 * m)  # preallocated product: its views below need no per-frame slicing
-            # a tuple, unpacked once per frame (cheaper than dict look-ups on the hot path)
-            self._nl_groups.append(
-                (
-                    k,
-                    sel,
-                    m,
-                    centre,
-                    1.0 / half,
-                    stacked,
-                    np.arange(degree).astype(float),
-                    np.empty(degree),
-                    mix,
-                    self._motion[:, sel] if contiguous else None,
-                    self._frame_projection[k, sel] if contiguous else None,
-                    values,
-                    values[: 3 * m].reshape(3, m),
-                    values[3 * m :],
-                )
-            )
+        # joints whose value is a polynomial of one coordinate (rolling knee, patella): q_j = f(dq_k), grouped by
+        # coordinate so each group costs one power vector and one small matrix product per call
+        self._nl_groups = [
+            self._polynomial_group(k, joints)
+            for k in sorted({j["function"]["coordinate"] for j in joints if "function" in j})
+        ]
         self._load_factor = self.load_share / max(self.n_load_points, 1) / (self._g_norm or 1.0)
         self._scaled_load: float | None = None  # hand load the load model's gravity is currently scaled for
         self.joint_names = [j["name"] for j in joints]
@@ -143,6 +118,46 @@ class RigidModel:
         self._joint_scale = self.torque_scale[moved_by]
         self._kernels = compiled_kernels() if compiled else None
         self.tables: RigidTables | None = None if self._kernels is None else self._tables(self._kernels, joints)
+
+    def _polynomial_group(self, k: int, joints: list[dict]) -> tuple[Any, ...]:
+        """The per-frame state of coordinate k's polynomial joints, as the tuple :meth:`_joint_motion` unpacks
+        (a tuple, unpacked once per frame, is cheaper than dict look-ups on the hot path)."""
+        idx = [i for i, j in enumerate(joints) if j.get("function", {}).get("coordinate") == k]
+        funcs = [joints[i]["function"] for i in idx]
+        coef = np.array([f["coefficients"] for f in funcs], dtype=float)
+        degree = coef.shape[1]
+        d1 = coef[:, 1:] * np.arange(1, degree)[None, :]
+        d2 = d1[:, 1:] * np.arange(1, degree - 1)[None, :]
+        half, centre = float(funcs[0]["half_width"]), float(funcs[0]["centre"])
+        m = len(idx)
+        scale = float(self.torque_scale[k])
+        # rows: f, f', f'' and scale * f' (the projection column) over the same power vector
+        stacked = np.zeros((4 * m, degree))
+        stacked[:m] = coef
+        stacked[m : 2 * m, : degree - 1] = d1 / half
+        stacked[2 * m : 3 * m, : degree - 2] = d2 / half**2
+        stacked[3 * m :, : degree - 1] = scale * d1 / half
+        contiguous = idx == list(range(idx[0], idx[0] + m))
+        sel = slice(idx[0], idx[0] + m) if contiguous else np.array(idx)
+        mix = np.zeros((3, 3))  # [f, f'v, f'a + f''v²] = mix @ [f, f', f'']: one product per frame
+        mix[0, 0] = 1.0
+        values = np.empty(4 * m)  # preallocated product: its views below need no per-frame slicing
+        return (
+            k,
+            sel,
+            m,
+            centre,
+            1.0 / half,
+            stacked,
+            np.arange(degree).astype(float),
+            np.empty(degree),
+            mix,
+            self._motion[:, sel] if contiguous else None,
+            self._frame_projection[k, sel] if contiguous else None,
+            values,
+            values[: 3 * m].reshape(3, m),
+            values[3 * m :],
+        )
 
     @property
     def compiled_tables(self) -> RigidTables:

@@ -10,6 +10,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, TypeGuard
 
 from msk_core.errors import ConfigError
 from msk_core.model.names import ROTATION_UNIT, DisplayNames, parse_names
@@ -94,10 +95,7 @@ class PackSpec:
 
     def line_of(self, token: str) -> int | None:
         """1-based line of the first occurrence of ``token`` in the spec text (for error messages)."""
-        for number, line in enumerate(self.text.splitlines(), start=1):
-            if token in line:
-                return number
-        return None
+        return _line(self.text, token)
 
 
 def closest(name: str, choices: list[str], n: int = 3) -> str:
@@ -106,22 +104,26 @@ def closest(name: str, choices: list[str], n: int = 3) -> str:
     return f"closest: {', '.join(hits)}" if hits else "no similar name"
 
 
-def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where: str):
+def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where: str) -> Any:
     if key not in table:
         raise ConfigError(f"missing required key in [{where}]", path=path, field=key)
     value = table[key]
     if not isinstance(value, kind):
-        raise ConfigError(
-            f"must be {kind.__name__}", path=path, field=f"{where}.{key}", value=value, line=_line(text, key)
-        )
+        raise _invalid(f"must be {kind.__name__}", path, text, f"{where}.{key}", value, key)
     return value
 
 
 def _line(text: str, token: str) -> int | None:
+    """1-based line of the first occurrence of ``token`` in ``text``."""
     for number, line in enumerate(text.splitlines(), start=1):
         if token in line:
             return number
     return None
+
+
+def _invalid(message: str, path: Path | None, text: str, fieldname: str, value: object, token: str) -> ConfigError:
+    """The error for a bad value of ``fieldname``, at the spec's first line holding ``token``."""
+    return ConfigError(message, path=path, field=fieldname, value=value, line=_line(text, token))
 
 
 def _vector3(values: list[float]) -> tuple[float, float, float]:
@@ -137,13 +139,8 @@ def _deg_pair(value: object, path: Path | None, text: str, fieldname: str) -> tu
         and all(isinstance(v, (int, float)) for v in value)
         and value[0] < value[1]
     ):
-        raise ConfigError(
-            "must be [lower, upper] in degrees with lower < upper",
-            path=path,
-            field=fieldname,
-            value=value,
-            line=_line(text, fieldname.split(".")[-2] if "." in fieldname else fieldname),
-        )
+        token = fieldname.split(".")[-2] if "." in fieldname else fieldname
+        raise _invalid("must be [lower, upper] in degrees with lower < upper", path, text, fieldname, value, token)
     return math.radians(value[0]), math.radians(value[1])
 
 
@@ -154,60 +151,9 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"not valid TOML: {exc}", path=path) from exc
     name = _need(raw, "name", str, path, text, "top level")
-    coords_raw = _need(raw, "coordinates", dict, path, text, "top level")
-    if not coords_raw:
-        raise ConfigError("needs at least one coordinate", path=path, field="coordinates")
-    coordinates = []
-    for cname, entry in coords_raw.items():
-        if not isinstance(entry, dict):
-            raise ConfigError("must be a table", path=path, field=f"coordinates.{cname}", line=_line(text, cname))
-        lo, hi = _deg_pair(entry.get("range_deg"), path, text, f"coordinates.{cname}.range_deg")
-        ref = math.radians(float(entry.get("reference_deg", 0.0)))
-        if not lo <= ref <= hi:
-            raise ConfigError(
-                "reference_deg outside range_deg",
-                path=path,
-                field=f"coordinates.{cname}.reference_deg",
-                value=entry.get("reference_deg"),
-                line=_line(text, cname),
-            )
-        coupled = entry.get("coupled", {})
-        if not isinstance(coupled, dict) or not all(isinstance(v, (int, float)) for v in coupled.values()):
-            raise ConfigError(
-                "coupled must map coordinate names to ratios",
-                path=path,
-                field=f"coordinates.{cname}.coupled",
-                value=coupled,
-                line=_line(text, cname),
-            )
-        coordinates.append(CoordinateSpec(cname, lo, hi, ref, {k: float(v) for k, v in coupled.items()}))
-    locked_raw = raw.get("locked", {})
-    locked = {}
-    for lname, value in locked_raw.items():
-        if isinstance(value, dict) and "deg" in value:
-            locked[lname] = math.radians(float(value["deg"]))
-        elif isinstance(value, dict) and "m" in value:
-            locked[lname] = float(value["m"])
-        else:
-            raise ConfigError(
-                "locked values are { deg = .. } or { m = .. }",
-                path=path,
-                field=f"locked.{lname}",
-                value=value,
-                line=_line(text, lname),
-            )
-    groups_raw = _need(raw, "groups", dict, path, text, "top level")
-    groups = {}
-    for gname, members in groups_raw.items():
-        if not isinstance(members, list) or not members or not all(isinstance(m, str) for m in members):
-            raise ConfigError(
-                "a group is a non-empty list of muscle names",
-                path=path,
-                field=f"groups.{gname}",
-                value=members,
-                line=_line(text, gname),
-            )
-        groups[gname] = list(members)
+    coordinates = _parse_coordinates(_need(raw, "coordinates", dict, path, text, "top level"), path, text)
+    locked = _parse_locked(raw.get("locked", {}), path, text)
+    groups = _parse_groups(_need(raw, "groups", dict, path, text, "top level"), path, text)
     dynamics = _parse_dynamics(raw.get("dynamics", {}), path, text)
     fit_raw = raw.get("fit", {})
     fit = FitSpec(
@@ -221,7 +167,7 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         version=str(raw.get("version", "1")),
         description=str(raw.get("description", "")),
         source_model=str(raw.get("source_model", "")),
-        coordinates=tuple(coordinates),
+        coordinates=coordinates,
         locked=locked,
         groups=groups,
         dynamics=dynamics,
@@ -230,6 +176,52 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         text=text,
         names=parse_names(raw.get("names", {}), [*groups, *(c.name for c in coordinates)], path=path, text=text),
     )
+
+
+def _parse_coordinates(coords_raw: dict, path: Path | None, text: str) -> tuple[CoordinateSpec, ...]:
+    """The [coordinates] table: at least one, each with range_deg, optional reference_deg and coupled ratios."""
+    if not coords_raw:
+        raise ConfigError("needs at least one coordinate", path=path, field="coordinates")
+    coordinates = []
+    for cname, entry in coords_raw.items():
+        where = f"coordinates.{cname}"
+        if not isinstance(entry, dict):
+            raise ConfigError("must be a table", path=path, field=where, line=_line(text, cname))
+        lo, hi = _deg_pair(entry.get("range_deg"), path, text, f"{where}.range_deg")
+        ref = math.radians(float(entry.get("reference_deg", 0.0)))
+        if not lo <= ref <= hi:
+            value = entry.get("reference_deg")
+            raise _invalid("reference_deg outside range_deg", path, text, f"{where}.reference_deg", value, cname)
+        coupled = entry.get("coupled", {})
+        if not isinstance(coupled, dict) or not all(isinstance(v, (int, float)) for v in coupled.values()):
+            message = "coupled must map coordinate names to ratios"
+            raise _invalid(message, path, text, f"{where}.coupled", coupled, cname)
+        coordinates.append(CoordinateSpec(cname, lo, hi, ref, {k: float(v) for k, v in coupled.items()}))
+    return tuple(coordinates)
+
+
+def _parse_locked(locked_raw: dict, path: Path | None, text: str) -> dict[str, float]:
+    """The [locked] table: model coordinate -> value (``{ deg = .. }`` in rad, ``{ m = .. }`` in m)."""
+    locked = {}
+    for lname, value in locked_raw.items():
+        if isinstance(value, dict) and "deg" in value:
+            locked[lname] = math.radians(float(value["deg"]))
+        elif isinstance(value, dict) and "m" in value:
+            locked[lname] = float(value["m"])
+        else:
+            raise _invalid("locked values are { deg = .. } or { m = .. }", path, text, f"locked.{lname}", value, lname)
+    return locked
+
+
+def _parse_groups(groups_raw: dict, path: Path | None, text: str) -> dict[str, list[str]]:
+    """The [groups] table: group name -> non-empty list of muscle names."""
+    groups = {}
+    for gname, members in groups_raw.items():
+        if not isinstance(members, list) or not members or not all(isinstance(m, str) for m in members):
+            message = "a group is a non-empty list of muscle names"
+            raise _invalid(message, path, text, f"groups.{gname}", members, gname)
+        groups[gname] = list(members)
+    return groups
 
 
 DYNAMICS_KEYS = ("root", "gravity", "load_points", "load_share", "shared_from", "exclude_bodies", "hanging")
@@ -242,68 +234,18 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
         raise ConfigError("must be a table", path=path, field="dynamics", line=_line(text, "[dynamics]"))
     unknown = sorted(set(dyn_raw) - set(DYNAMICS_KEYS))
     if unknown:
-        raise ConfigError(
-            f"unknown key ({closest(unknown[0], list(DYNAMICS_KEYS))})",
-            path=path,
-            field=f"dynamics.{unknown[0]}",
-            line=_line(text, unknown[0]),
-        )
-    points = dyn_raw.get("load_points", [])
-    if not isinstance(points, list):
-        raise ConfigError(
-            'must be a list of { body = "..", point = [x, y, z] } (leave it out for a pack without a hand load)',
-            path=path,
-            field="dynamics.load_points",
-            value=points,
-            line=_line(text, "load_points"),
-        )
-    loads = []
-    for item in points:
-        point = item.get("point") if isinstance(item, dict) else None
-        if not (
-            isinstance(item, dict)
-            and isinstance(item.get("body"), str)
-            and isinstance(point, list)
-            and len(point) == 3
-            and all(_is_number(v) for v in point)
-        ):
-            raise ConfigError(
-                'load_points entries are { body = "..", point = [x, y, z] }',
-                path=path,
-                field="dynamics.load_points",
-                value=item,
-                line=_line(text, "load_points"),
-            )
-        loads.append(LoadPoint(item["body"], _vector3(point)))
+        message = f"unknown key ({closest(unknown[0], list(DYNAMICS_KEYS))})"
+        raise _invalid(message, path, text, f"dynamics.{unknown[0]}", None, unknown[0])
+    loads = _parse_load_points(dyn_raw.get("load_points", []), path, text)
     shared_from = str(dyn_raw.get("shared_from", ""))
     share = dyn_raw.get("load_share", 1.0)
     if "load_share" in dyn_raw:
-        line = _line(text, "load_share")
-        if not _is_number(share) or not 0.0 < share <= 1.0:
-            raise ConfigError(
-                "must be a number in (0, 1]: the share of the hand load (and of the shared_from bodies' mass) this "
-                "side carries; a pack without a hand load leaves load_points and load_share out",
-                path=path,
-                field="dynamics.load_share",
-                value=share,
-                line=line,
-            )
-        if not loads and not shared_from:
-            raise ConfigError(
-                "load_share without load_points or shared_from shares nothing: this pack has no hand load (no "
-                "load_points) and no shared bodies; leave load_share out",
-                path=path,
-                field="dynamics.load_share",
-                value=share,
-                line=line,
-            )
+        _check_load_share(share, bool(loads) or bool(shared_from), path, text)
     gravity = dyn_raw.get("gravity")
     if gravity is not None and not (
         isinstance(gravity, list) and len(gravity) == 3 and all(_is_number(v) for v in gravity)
     ):
-        raise ConfigError(
-            "must be [x, y, z] in m/s²", path=path, field="dynamics.gravity", value=gravity, line=_line(text, "gravity")
-        )
+        raise _invalid("must be [x, y, z] in m/s²", path, text, "dynamics.gravity", gravity, "gravity")
     return DynamicsSpec(
         root=str(dyn_raw.get("root", "ground")),
         gravity=None if gravity is None else _vector3(gravity),
@@ -315,7 +257,44 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
     )
 
 
-def _is_number(value: object) -> bool:
+def _parse_load_points(points: object, path: Path | None, text: str) -> list[LoadPoint]:
+    """``dynamics.load_points``: a list of ``{ body = "..", point = [x, y, z] }``."""
+    if not isinstance(points, list):
+        message = 'must be a list of { body = "..", point = [x, y, z] } (leave it out for a pack without a hand load)'
+        raise _invalid(message, path, text, "dynamics.load_points", points, "load_points")
+    loads = []
+    for item in points:
+        point = item.get("point") if isinstance(item, dict) else None
+        if not (
+            isinstance(item, dict)
+            and isinstance(item.get("body"), str)
+            and isinstance(point, list)
+            and len(point) == 3
+            and all(_is_number(v) for v in point)
+        ):
+            message = 'load_points entries are { body = "..", point = [x, y, z] }'
+            raise _invalid(message, path, text, "dynamics.load_points", item, "load_points")
+        loads.append(LoadPoint(item["body"], _vector3(point)))
+    return loads
+
+
+def _check_load_share(share: object, shares_something: bool, path: Path | None, text: str) -> None:
+    """``dynamics.load_share`` is in (0, 1] and has something to share (load points or shared bodies)."""
+    if not _is_number(share) or not 0.0 < share <= 1.0:
+        message = (
+            "must be a number in (0, 1]: the share of the hand load (and of the shared_from bodies' mass) this "
+            "side carries; a pack without a hand load leaves load_points and load_share out"
+        )
+        raise _invalid(message, path, text, "dynamics.load_share", share, "load_share")
+    if not shares_something:
+        message = (
+            "load_share without load_points or shared_from shares nothing: this pack has no hand load (no "
+            "load_points) and no shared bodies; leave load_share out"
+        )
+        raise _invalid(message, path, text, "dynamics.load_share", share, "load_share")
+
+
+def _is_number(value: object) -> TypeGuard[int | float]:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
