@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+import services  # noqa: F401 - first, before numpy loads: one BLAS thread per process (services/__init__.py)
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = Path(os.environ.get("MSK_SHARED_DIR", REPO_ROOT.parent / "shared"))
 
