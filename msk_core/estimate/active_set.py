@@ -20,8 +20,12 @@ Why this exists: PIQP (interior point) takes no starting point, and on a 19-grou
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numba
 import numpy as np
+
+Array = np.ndarray
 
 #: result codes of :func:`solve_box_lsq`
 CERTIFIED, NOT_CONVERGED, FACTORISATION_FAILED = 0, 1, 2
@@ -31,11 +35,19 @@ LOWER, FREE, UPPER = -1, 0, 1
 MULTIPLIER_TOL = 1e-10
 
 
-def _jit(fn):
+def _jit(fn: Callable) -> Callable:
     try:
         return numba.njit(cache=True)(fn)
     except RuntimeError:  # no writable cache location: compile in memory at first call
         return numba.njit(fn)
+
+
+def _part(fn: Callable) -> Callable:
+    """A step of :func:`solve_box_lsq`, inlined into it by numba (the kernel stays one call: no per-step call cost)."""
+    try:
+        return numba.njit(cache=True, inline="always")(fn)
+    except RuntimeError:
+        return numba.njit(inline="always")(fn)
 
 
 @_jit
@@ -103,37 +115,21 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
     at = out[:m]
     d = out[m + 2]
     mu = np.empty(g)
-    for j in range(g):
-        mu[j] = mean_table[row0, j] + frac * (mean_table[row1, j] - mean_table[row0, j])
-        d[j] = prec_table[row0, j] + frac * (prec_table[row1, j] - prec_table[row0, j])
+    _interpolate_prior(mean_table, prec_table, row0, row1, frac, mu, d)
     tt = np.empty(m)
-    for n in range(m):
-        s = 0.0
-        for j in range(g):
-            at[n, j] = r[n, j] * f_max[j]
-            s += abs(at[n, j])
-        if s < min_scale:
-            s = min_scale
-        for j in range(g):
-            at[n, j] /= s
-        tt[n] = tau[n] / s
-    # gradient of 1/2 w |A~ a - t~|^2 + 1/2 sum d (a - mu)^2 is  w A~'(A~ a - t~) + d (a - mu); its scale sets the
-    # multiplier tolerance
-    grad_scale = 0.0
-    for j in range(g):
-        s = 0.0
-        for n in range(m):
-            s += abs(at[n, j]) * (abs(tt[n]) + abs(at[n, j]))
-        grad_scale = max(grad_scale, w * s + d[j] * (1.0 + abs(mu[j])))
-    tol = MULTIPLIER_TOL * grad_scale
-    # feasible start consistent with the working set
-    for i in range(g):
-        if state[i] == LOWER:
-            x[i] = lb[i]
-        elif state[i] == UPPER:
-            x[i] = ub[i]
-        else:
-            x[i] = min(max(x[i], lb[i]), ub[i])
+    _scale_rows(r, f_max, tau, min_scale, at, tt)
+    _feasible_start(state, lb, ub, x)
+    code, changes = _iterate(at, tt, w, d, mu, lb, ub, x, state, max_iter)
+    return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
+
+
+@_part
+def _iterate(
+    at: Array, tt: Array, w: float, d: Array, mu: Array, lb: Array, ub: Array, x: Array, state: Array, max_iter: int
+) -> tuple[int, int]:
+    """The active-set iterations from the working set in ``state`` and the feasible ``x``: (code, changes)."""
+    m, g = at.shape
+    tol = _multiplier_tolerance(at, tt, w, d, mu)
     free_idx = np.empty(g, dtype=np.int64)
     rhs = np.empty(g)
     y = np.empty(g)
@@ -166,22 +162,7 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
             code = FACTORISATION_FAILED
             break
         # step towards it, stopped by the first bound in the way
-        alpha = 1.0
-        block = -1
-        for a in range(nf):
-            fi = free_idx[a]
-            p = y[a] - x[fi]
-            if p < 0.0 and x[fi] + p < lb[fi]:
-                t = (lb[fi] - x[fi]) / p
-                if t < alpha:
-                    alpha, block = t, fi
-            elif p > 0.0 and x[fi] + p > ub[fi]:
-                t = (ub[fi] - x[fi]) / p
-                if t < alpha:
-                    alpha, block = t, fi
-        for a in range(nf):
-            fi = free_idx[a]
-            x[fi] += alpha * (y[a] - x[fi])
+        block = _step(free_idx, nf, y, lb, ub, x)
         if block >= 0:
             if changes >= max_iter:
                 break
@@ -217,6 +198,89 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
             break
         changes += 1
         state[worst_i] = FREE  # the most violated bound is released
+    return code, changes
+
+
+@_part
+def _interpolate_prior(
+    mean_table: Array, prec_table: Array, row0: int, row1: int, frac: float, mu: Array, d: Array
+) -> None:
+    """mu, d: the prior's mean and precision between table rows row0 and row1 (fraction frac of the way)."""
+    for j in range(mu.shape[0]):
+        mu[j] = mean_table[row0, j] + frac * (mean_table[row1, j] - mean_table[row0, j])
+        d[j] = prec_table[row0, j] + frac * (prec_table[row1, j] - prec_table[row0, j])
+
+
+@_part
+def _scale_rows(r: Array, f_max: Array, tau: Array, min_scale: float, at: Array, tt: Array) -> None:
+    """at = A~ = diag(1/c) R diag(F_max), tt = t~ = tau / c, with c_n = max(sum_g |A_ng|, min_scale)."""
+    m, g = r.shape
+    for n in range(m):
+        s = 0.0
+        for j in range(g):
+            at[n, j] = r[n, j] * f_max[j]
+            s += abs(at[n, j])
+        if s < min_scale:
+            s = min_scale
+        for j in range(g):
+            at[n, j] /= s
+        tt[n] = tau[n] / s
+
+
+@_part
+def _multiplier_tolerance(at: Array, tt: Array, w: float, d: Array, mu: Array) -> float:
+    """The multipliers' sign tolerance: MULTIPLIER_TOL times the scale of the gradient
+    w A~'(A~ a - t~) + d (a - mu) of 1/2 w |A~ a - t~|^2 + 1/2 sum d (a - mu)^2."""
+    m, g = at.shape
+    grad_scale = 0.0
+    for j in range(g):
+        s = 0.0
+        for n in range(m):
+            s += abs(at[n, j]) * (abs(tt[n]) + abs(at[n, j]))
+        grad_scale = max(grad_scale, w * s + d[j] * (1.0 + abs(mu[j])))
+    return MULTIPLIER_TOL * grad_scale
+
+
+@_part
+def _feasible_start(state: Array, lb: Array, ub: Array, x: Array) -> None:
+    """x moved to a feasible point consistent with the working set: held variables at their bound, free ones
+    clipped into the box."""
+    for i in range(x.shape[0]):
+        if state[i] == LOWER:
+            x[i] = lb[i]
+        elif state[i] == UPPER:
+            x[i] = ub[i]
+        else:
+            x[i] = min(max(x[i], lb[i]), ub[i])
+
+
+@_part
+def _step(free_idx: Array, nf: int, y: Array, lb: Array, ub: Array, x: Array) -> int:
+    """Step the free variables of x towards y, stopped by the first bound in the way; returns the blocking
+    variable (-1: the full step was taken)."""
+    alpha = 1.0
+    block = -1
+    for a in range(nf):
+        fi = free_idx[a]
+        p = y[a] - x[fi]
+        if p < 0.0 and x[fi] + p < lb[fi]:
+            t = (lb[fi] - x[fi]) / p
+            if t < alpha:
+                alpha, block = t, fi
+        elif p > 0.0 and x[fi] + p > ub[fi]:
+            t = (ub[fi] - x[fi]) / p
+            if t < alpha:
+                alpha, block = t, fi
+    for a in range(nf):
+        fi = free_idx[a]
+        x[fi] += alpha * (y[a] - x[fi])
+    return block
+
+
+@_part
+def _forces_and_torques(r: Array, f_max: Array, tau: Array, x: Array, out: Array) -> Array:
+    """Rows x and forces of ``out``; returns torques (2, m): the model's (R F) and the residual (R F - tau)."""
+    m, g = r.shape
     torques = np.empty((2, m))
     for j in range(g):
         out[m, j] = x[j]
@@ -227,7 +291,7 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
             s += r[n, j] * out[m + 1, j]
         torques[0, n] = s
         torques[1, n] = s - tau[n]
-    return code, changes, out, torques
+    return torques
 
 
 @_jit
