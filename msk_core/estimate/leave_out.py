@@ -36,7 +36,7 @@ from msk_core.estimate.emd import shift_emg
 from msk_core.estimate.frame import FrameEstimator, Method
 from msk_core.estimate.metrics import cross_correlation_lag, on_off_agreement, pearson_r, rmse
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.pipeline import NoEmgPrior, calibrate_inputs, calibration_inputs
+from msk_core.estimate.pipeline import NoEmgPrior, NoEmgStrength, calibrate_inputs, calibration_inputs
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
@@ -178,6 +178,7 @@ def leave_one_out(
     no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
     synergists: dict[str, str] | None = None,
     emd_s: float | str | None = "auto",
+    no_emg_strength: NoEmgStrength | str = NoEmgStrength.REFERENCE,
     progress: Progress | None = None,
     **options: Any,
 ) -> LeaveOutResult:
@@ -204,7 +205,13 @@ def leave_one_out(
     total = len(chosen) + 1
     if progress is not None:
         progress(0, total, "leave-one-out (calibrations)")
-    kwargs = {"settings": settings, "n_bins": n_bins, "no_emg": no_emg, "emd_s": emd_s}
+    kwargs = {
+        "settings": settings,
+        "n_bins": n_bins,
+        "no_emg": no_emg,
+        "emd_s": emd_s,
+        "no_emg_strength": no_emg_strength,
+    }
     profile, run = _calibrate(pack, train, None, synergists, kwargs)
     if progress is not None:
         progress(1, total, "leave-one-out (calibrations)")
@@ -255,7 +262,9 @@ def _calibrate(
     inputs = calibration_inputs(
         pack, trials, n_bins=kwargs["n_bins"], no_emg=kwargs["no_emg"], synergists=synergists, emd_s=kwargs["emd_s"]
     )
-    profile, result = calibrate_inputs(pack, inputs, settings=kwargs["settings"])
+    profile, result = calibrate_inputs(
+        pack, inputs, settings=kwargs["settings"], no_emg_strength=kwargs["no_emg_strength"]
+    )
     emg_groups = sorted({g for t in trials for g in t.emg})
     run = CalibrationRun(
         left_out=left_out,

@@ -60,10 +60,12 @@ def mechanics_of(pack: PackLike, q: np.ndarray, torques: np.ndarray) -> TrialMec
     return TrialMechanics(pack, q, torques, q_clamped, usable, arms, lengths)
 
 
-def min_effort_of(pack: PackLike, moment_arms: np.ndarray, torques: np.ndarray) -> np.ndarray:
-    """(T, G) static optimisation (``so``, reference F_max) of each frame's torques with its moment arms; NaN where
-    not solved."""
-    est = FrameEstimator(pack, None, Method.SO)
+def min_effort_of(
+    pack: PackLike, moment_arms: np.ndarray, torques: np.ndarray, f_max: np.ndarray | None = None
+) -> np.ndarray:
+    """(T, G) static optimisation (``so``, at ``f_max``; default the reference F_max) of each frame's torques with
+    its moment arms; NaN where not solved."""
+    est = FrameEstimator(pack, None, Method.SO, f_max=f_max)
     out = np.full((torques.shape[0], len(est.groups)), np.nan)
     for i in range(torques.shape[0]):
         res = est.solve(moment_arms[i], np.asarray(torques[i], dtype=float))

@@ -13,6 +13,7 @@ from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationFrames, CalibrationResult, CalibrationSettings, calibrate
 from msk_core.estimate.emd import estimate_emd, shift_emg
 from msk_core.estimate.frame import FrameEstimator, Method
+from msk_core.estimate.mechanics import min_effort_of
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
 from msk_core.estimate.prior import PhasePrior, fit_phase_prior
@@ -27,6 +28,15 @@ class NoEmgPrior(str, Enum):
     MIN_EFFORT = "min_effort"  # static optimisation's share of the calibration torques, binned like EMG (default)
     SYNERGIST = "synergist"  # the prior of the measured group with the most similar moment arms; else min effort
     WIDE = "wide"  # N(0, 0.5^2): nearly free (the first version; lets unmeasured groups soak up the torque)
+
+
+class NoEmgStrength(str, Enum):
+    """Strength of a group without EMG in the profile (see docs/estimation.md, "Groups without EMG")."""
+
+    REFERENCE = "reference"  # the pack's reference F_max (default)
+    # the measured groups' common calibrated factor (geometric median): the envelopes of one recording share their
+    # normalisation, which the calibrated factors carry; the minimal-effort prior re-derived at those strengths
+    MEASURED = "measured"
 
 
 SYNERGIST_MIN_COSINE = 0.9  # moment-arm similarity a measured group needs to stand in for an unmeasured one
@@ -163,6 +173,62 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
             diffs.append(d[np.isfinite(d)])
     d = np.concatenate(diffs) if diffs else np.zeros(0)
     return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+
+def unmeasured_from_measured(
+    pack: PackLike, trials: list[TrialData], prior: PhasePrior, result: CalibrationResult
+) -> tuple[np.ndarray, PhasePrior]:
+    """(F_max, prior) of the profile with ``NoEmgStrength.MEASURED``: every group without EMG gets the measured
+    groups' common calibrated factor (geometric median of their scale factors) and the groups whose prior is the
+    minimal-effort share get it re-derived by static optimisation at these strengths (binned as before). The envelopes
+    of one recording are normalised alike and the calibrated factors carry that normalisation (docs/estimation.md:
+    envelopes peaking near 0.35 of the recording's maximum give extensor factors at 2.5); a group without EMG at the
+    reference strength is then estimated on another scale than the envelopes it is compared with."""
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    measured = np.asarray(prior.has_emg, dtype=bool)
+    f_max = np.asarray(result.f_max, dtype=float).copy()
+    if not np.any(measured) or np.all(measured):
+        return f_max, prior
+    common = float(np.exp(np.median(np.log(result.scale[measured]))))
+    f_max[~measured] = common * f_ref[~measured]
+    groups = list(pack.groups)
+    effort = [g for g, src in zip(groups, prior.sources or ()) if src == "min_effort"]
+    if not effort:
+        return f_max, prior
+    series: dict[str, list[np.ndarray]] = {g: [] for g in effort}
+    phases, reps, offset = [], [], 0
+    for t in trials:
+        if t.isometric:
+            continue
+        so = min_effort_of(pack, t.mechanics(pack).moment_arms, t.torques, f_max=f_max)
+        for g in effort:
+            series[g].append(so[:, groups.index(g)])
+        phases.append(t.phase)
+        reps.append(np.where(t.rep_index >= 0, t.rep_index + offset, -1))
+        offset += int(t.rep_index.max()) + 1
+    refit = fit_phase_prior(
+        groups,
+        {g: np.concatenate(v) for g, v in series.items()},
+        np.concatenate(phases),
+        np.concatenate(reps),
+        n_bins=prior.n_bins,
+    )
+    cols = [groups.index(g) for g in effort]
+    mean, std = prior.mean.copy(), prior.std.copy()
+    mean[:, cols], std[:, cols] = refit.mean[:, cols], refit.std[:, cols]
+    rest_mean, rest_std = prior.rest_mean, prior.rest_std
+    if rest_mean is not None and rest_std is not None and refit.rest_mean is not None and refit.rest_std is not None:
+        rest_mean, rest_std = rest_mean.copy(), rest_std.copy()
+        rest_mean[cols], rest_std[cols] = refit.rest_mean[cols], refit.rest_std[cols]
+    return f_max, PhasePrior(
+        groups=prior.groups,
+        mean=mean,
+        std=std,
+        has_emg=prior.has_emg,
+        rest_mean=rest_mean,
+        rest_std=rest_std,
+        sources=prior.sources,
+    )
 
 
 def calibration_frames(
@@ -330,6 +396,7 @@ def calibrate_subject(
     torque_basis: TorqueBasis | None = None,
     force_scale: Callable[[TrialData], np.ndarray] | None = None,
     start: CalibrationResult | None = None,
+    no_emg_strength: NoEmgStrength | str = NoEmgStrength.REFERENCE,
 ) -> tuple[SubjectProfile, CalibrationResult]:
     """Prior from the trials' EMG, then the calibration NLP; returns the profile (not yet saved) and the result.
 
@@ -340,7 +407,13 @@ def calibrate_subject(
     calibration of the same trials to start the solve from (:func:`msk_core.estimate.calibrate.calibrate`)."""
     inputs = calibration_inputs(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists, emd_s=emd_s)
     return calibrate_inputs(
-        pack, inputs, settings=settings, torque_basis=torque_basis, force_scale=force_scale, start=start
+        pack,
+        inputs,
+        settings=settings,
+        torque_basis=torque_basis,
+        force_scale=force_scale,
+        start=start,
+        no_emg_strength=no_emg_strength,
     )
 
 
@@ -352,8 +425,11 @@ def calibrate_inputs(
     torque_basis: TorqueBasis | None = None,
     force_scale: Callable[[TrialData], np.ndarray] | None = None,
     start: CalibrationResult | None = None,
+    no_emg_strength: NoEmgStrength | str = NoEmgStrength.REFERENCE,
 ) -> tuple[SubjectProfile, CalibrationResult]:
-    """The calibration NLP on prepared inputs (:func:`calibration_inputs`); the rest as :func:`calibrate_subject`."""
+    """The calibration NLP on prepared inputs (:func:`calibration_inputs`); the rest as :func:`calibrate_subject`.
+    ``no_emg_strength``: F_max (and minimal-effort prior) of the groups without EMG in the profile
+    (:class:`NoEmgStrength`, :func:`unmeasured_from_measured`); the NLP is the same either way."""
     trials, prior, me_error, emd = inputs.trials, inputs.prior, inputs.min_effort_error, inputs.emd
     frames = calibration_frames(
         pack,
@@ -364,6 +440,9 @@ def calibrate_inputs(
         force_scale=force_scale,
     )
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
+    f_max, profile_prior = np.asarray(result.f_max, dtype=float), prior
+    if NoEmgStrength(no_emg_strength) is NoEmgStrength.MEASURED:
+        f_max, profile_prior = unmeasured_from_measured(pack, trials, prior, result)
     phase_model = learn_trials_phase_model(pack, trials)
     norm: dict[str, dict] = {}  # per EMG channel: its normalisation and the trials it was measured in
     for t in trials:
@@ -375,9 +454,9 @@ def calibrate_inputs(
         pack_name=pack.name,
         pack_version=str(pack.version),
         groups=list(pack.groups),
-        f_max=result.f_max,
+        f_max=f_max,
         f_max_ref=np.asarray(pack.f_max_ref, dtype=float),
-        prior=prior,
+        prior=profile_prior,
         emg_normalisation=norm,
         calibration={
             **result.report(list(pack.groups)),
@@ -385,6 +464,7 @@ def calibrate_inputs(
             "min_effort_error_rms": None if np.isnan(me_error) else me_error,
             "emd": emd,
             "isometric_trials": [t.name for t in trials if t.isometric],
+            "no_emg_strength": NoEmgStrength(no_emg_strength).value,
         },
         provenance={
             "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

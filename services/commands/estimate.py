@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,63 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "isometric MVC trials of msk synth's <exercise>/mvc)",
     )
     cal.add_argument("--out", required=True, type=Path, help="subject profile JSON to write")
-    cal.add_argument("--alpha", type=float, default=0.5, help="lower bound of the strength factors (default 0.5)")
-    cal.add_argument("--beta", type=float, default=2.5, help="upper bound of the strength factors (default 2.5)")
-    cal.add_argument("--bins", type=int, default=20, help="phase bins of the prior (default 20)")
-    cal.add_argument(
-        "--calibrate",
-        choices=["emg", "all"],
-        default="emg",
-        help="which groups get a strength factor (default: those with EMG)",
-    )
-    cal.add_argument(
-        "--strength-prior-std",
-        type=float,
-        default=0.3,
-        help="N(1, s^2) prior on each calibrated strength factor (default 0.3; 0 = off)",
-    )
-    cal.add_argument(
-        "--identify-max-std",
-        type=float,
-        default=0.15,
-        help="a strength factor whose data-only relative Laplace std exceeds this is reported "
-        "unidentified (default 0.15; 0 = off)",
-    )
-    cal.add_argument(
-        "--emd",
-        default="auto",
-        metavar="auto|SECONDS",
-        help="electromechanical delay applied to the EMG: estimated from the trials (auto, default) or "
-        "given in seconds (0 = none)",
-    )
-    cal.add_argument(
-        "--identify",
-        choices=["report", "shrink", "truncate"],
-        default="report",
-        help="strength directions the data do not determine: report only (plain MAP, default), shrink "
-        "to the reference (strength prior weighed by the residuals' autocorrelation time) or "
-        "truncate (set to the reference); see docs/estimation.md",
-    )
-    cal.add_argument(
-        "--emg-relative-std",
-        type=float,
-        default=0.1,
-        help="EMG noise grows with the envelope: std = sqrt(0.05^2 + (r e)^2) (default r = 0.1; 0 = constant 0.05)",
-    )
-    cal.add_argument(
-        "--no-emg-prior",
-        choices=["min_effort", "synergist", "wide"],
-        default="min_effort",
-        help="prior of groups without EMG: static optimisation's share over the reps (default), the "
-        "measured group with the most similar moment arms, or the wide N(0, 0.5^2)",
-    )
-    cal.add_argument(
-        "--synergist",
-        action="append",
-        default=[],
-        metavar="GROUP=MEASURED",
-        help="explicit prior source for a group without EMG (repeatable; overrides --no-emg-prior)",
-    )
+    add_calibration_arguments(cal)
     cal.set_defaults(handler=run_calibrate)
 
     est = subparsers.add_parser(
@@ -107,14 +52,151 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev = subparsers.add_parser(
         "evaluate",
         help="compare methods against measured EMG and torques; write a report with plots",
-        description="Activation RMSE per method and trial, torque tracking, plots; markdown + PNG + JSON.",
+        description="Activation RMSE per method and trial, torque tracking, plots; markdown + PNG + JSON. With "
+        "--leave-out: for each group with an electrode, calibrate without it (--train trials, calibration settings "
+        "as msk calibrate's) and score its estimate on the held-out trials (summary.json, report.md, a plot per "
+        "group), beside the paper's protocol (every electrode in calibration, none at estimation).",
     )
     ev.add_argument("--pack", required=True, help="model pack name or path")
-    ev.add_argument("--subject", required=True, type=Path, help="subject profile JSON")
-    ev.add_argument("--trial", action="append", required=True, type=Path, help="evaluation trial TOML (repeatable)")
+    ev.add_argument("--subject", type=Path, default=None, help="subject profile JSON (not with --leave-out)")
+    ev.add_argument(
+        "--trial", action="append", required=True, type=Path, help="evaluation (held-out) trial TOML (repeatable)"
+    )
     ev.add_argument("--report", required=True, type=Path, help="output directory")
+    ev.add_argument(
+        "--leave-out",
+        action="append",
+        default=[],
+        metavar="all|GROUP",
+        help="leave-one-electrode-out: every group with an electrode (all) or the named ones (repeatable, or "
+        "comma-separated); needs --train",
+    )
+    ev.add_argument(
+        "--train",
+        action="append",
+        default=[],
+        type=Path,
+        help="training trial TOML or folder for the leave-out calibrations (repeatable)",
+    )
     add_solver_arguments(ev)
+    add_calibration_arguments(ev)
     ev.set_defaults(handler=run_evaluate)
+
+
+def add_calibration_arguments(parser: argparse.ArgumentParser) -> None:
+    """The calibration settings (``msk calibrate``; ``msk evaluate --leave-out`` calibrates with the same ones)."""
+    parser.add_argument("--alpha", type=float, default=0.5, help="lower bound of the strength factors (default 0.5)")
+    parser.add_argument("--beta", type=float, default=2.5, help="upper bound of the strength factors (default 2.5)")
+    parser.add_argument("--bins", type=int, default=20, help="phase bins of the prior (default 20)")
+    parser.add_argument(
+        "--calibrate",
+        choices=["emg", "all"],
+        default="emg",
+        help="which groups get a strength factor (default: those with EMG)",
+    )
+    parser.add_argument(
+        "--strength-prior-std",
+        type=float,
+        default=0.3,
+        help="N(1, s^2) prior on each calibrated strength factor (default 0.3; 0 = off)",
+    )
+    parser.add_argument(
+        "--identify-max-std",
+        type=float,
+        default=0.15,
+        help="a strength factor whose data-only relative Laplace std exceeds this is reported "
+        "unidentified (default 0.15; 0 = off)",
+    )
+    parser.add_argument(
+        "--emd",
+        default="auto",
+        metavar="auto|SECONDS",
+        help="electromechanical delay applied to the EMG: estimated from the trials (auto, default) or "
+        "given in seconds (0 = none)",
+    )
+    parser.add_argument(
+        "--identify",
+        choices=["report", "shrink", "truncate"],
+        default="report",
+        help="strength directions the data do not determine: report only (plain MAP, default), shrink "
+        "to the reference (strength prior weighed by the residuals' autocorrelation time) or "
+        "truncate (set to the reference); see docs/estimation.md",
+    )
+    parser.add_argument(
+        "--emg-relative-std",
+        type=float,
+        default=0.1,
+        help="EMG noise grows with the envelope: std = sqrt(0.05^2 + (r e)^2) (default r = 0.1; 0 = constant 0.05)",
+    )
+    parser.add_argument(
+        "--no-emg-prior",
+        choices=["min_effort", "synergist", "wide"],
+        default="min_effort",
+        help="prior of groups without EMG: static optimisation's share over the reps (default), the "
+        "measured group with the most similar moment arms, or the wide N(0, 0.5^2)",
+    )
+    parser.add_argument(
+        "--synergist",
+        action="append",
+        default=[],
+        metavar="GROUP=MEASURED",
+        help="explicit prior source for a group without EMG (repeatable; overrides --no-emg-prior)",
+    )
+    parser.add_argument(
+        "--no-emg-strength",
+        choices=["reference", "measured"],
+        default="reference",
+        help="strength of groups without EMG in the profile: the pack's reference (default), or the measured "
+        "groups' common calibrated factor, with the minimal-effort prior re-derived at those strengths",
+    )
+
+
+def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The calibration settings of :func:`add_calibration_arguments`, checked, as keyword arguments of
+    :func:`msk_core.estimate.pipeline.calibrate_subject` (and :func:`msk_core.estimate.leave_out.leave_one_out`)."""
+    from msk_core.estimate.calibrate import CalibrationSettings
+
+    if args.bins < 2:
+        raise ConfigError("need at least 2 phase bins", field="--bins", value=args.bins)
+    synergists = {}
+    for item in args.synergist:
+        group, sep, measured = item.partition("=")
+        if not sep or not group or not measured:
+            raise ConfigError("expected GROUP=MEASURED_GROUP", field="--synergist", value=item)
+        synergists[group.strip()] = measured.strip()
+    if not args.strength_prior_std >= 0:
+        raise ConfigError("must be >= 0 (0 = off)", field="--strength-prior-std", value=args.strength_prior_std)
+    if not args.identify_max_std >= 0:
+        raise ConfigError("must be >= 0 (0 = off)", field="--identify-max-std", value=args.identify_max_std)
+    if not args.emg_relative_std >= 0:
+        raise ConfigError(
+            "must be >= 0 (0 = constant EMG noise)", field="--emg-relative-std", value=args.emg_relative_std
+        )
+    settings = CalibrationSettings(
+        strength_bounds=(args.alpha, args.beta),
+        calibrate=args.calibrate,
+        strength_prior_std=args.strength_prior_std or None,
+        identify_max_std=args.identify_max_std or None,
+        identify=args.identify,
+        emg_relative_std=args.emg_relative_std or None,
+    )
+    if args.emd == "auto":
+        emd_s: float | str = "auto"
+    else:
+        try:
+            emd_s = float(args.emd)
+        except ValueError:
+            raise ConfigError("expected 'auto' or a delay in seconds", field="--emd", value=args.emd) from None
+        if not 0 <= emd_s <= 0.5:
+            raise ConfigError("must be in [0, 0.5] s", field="--emd", value=args.emd)
+    return {
+        "settings": settings,
+        "n_bins": args.bins,
+        "no_emg": args.no_emg_prior,
+        "synergists": synergists,
+        "emd_s": emd_s,
+        "no_emg_strength": args.no_emg_strength,
+    }
 
 
 def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
@@ -171,45 +253,13 @@ def _trial_files(paths: list[Path]) -> list[Path]:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    from msk_core.estimate.calibrate import CalibrationSettings, IdentifyMode
+    from msk_core.estimate.calibrate import IdentifyMode
     from msk_core.estimate.pipeline import calibrate_subject
     from msk_core.estimate.trial import load_trial
 
-    if args.bins < 2:
-        raise ConfigError("need at least 2 phase bins", field="--bins", value=args.bins)
-    synergists = {}
-    for item in args.synergist:
-        group, sep, measured = item.partition("=")
-        if not sep or not group or not measured:
-            raise ConfigError("expected GROUP=MEASURED_GROUP", field="--synergist", value=item)
-        synergists[group.strip()] = measured.strip()
+    options = calibration_options(args)
     pack = _pack(args.pack)
     trials = [load_trial(p, pack) for p in _trial_files(args.trial)]
-    if not args.strength_prior_std >= 0:
-        raise ConfigError("must be >= 0 (0 = off)", field="--strength-prior-std", value=args.strength_prior_std)
-    if not args.identify_max_std >= 0:
-        raise ConfigError("must be >= 0 (0 = off)", field="--identify-max-std", value=args.identify_max_std)
-    if not args.emg_relative_std >= 0:
-        raise ConfigError(
-            "must be >= 0 (0 = constant EMG noise)", field="--emg-relative-std", value=args.emg_relative_std
-        )
-    settings = CalibrationSettings(
-        strength_bounds=(args.alpha, args.beta),
-        calibrate=args.calibrate,
-        strength_prior_std=args.strength_prior_std or None,
-        identify_max_std=args.identify_max_std or None,
-        identify=args.identify,
-        emg_relative_std=args.emg_relative_std or None,
-    )
-    if args.emd == "auto":
-        emd_s: float | str = "auto"
-    else:
-        try:
-            emd_s = float(args.emd)
-        except ValueError:
-            raise ConfigError("expected 'auto' or a delay in seconds", field="--emd", value=args.emd) from None
-        if not 0 <= emd_s <= 0.5:
-            raise ConfigError("must be in [0, 0.5] s", field="--emd", value=args.emd)
     print(
         f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
         f"of {len(trials)} trial(s)"
@@ -217,9 +267,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         + "...",
         flush=True,
     )
-    profile, result = calibrate_subject(
-        pack, trials, settings=settings, n_bins=args.bins, no_emg=args.no_emg_prior, synergists=synergists, emd_s=emd_s
-    )
+    profile, result = calibrate_subject(pack, trials, **options)
     profile.save(args.out)
     print(
         f"{result.method}: converged={result.converged} after {result.iterations} iterations "
@@ -293,6 +341,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from msk_core.estimate.trial import load_trial
     from services.reports.evaluation import write_report
 
+    if args.leave_out:
+        return run_leave_out(args)
+    if args.train:
+        raise ConfigError("training trials are for --leave-out (a profile is given by --subject)", field="--train")
+    if args.subject is None:
+        raise ConfigError("needs --subject (a calibrated profile), or --leave-out with --train", field="--subject")
     pack = _pack(args.pack, args.dynamics)
     subject = SubjectProfile.load(args.subject)
     trials = [load_trial(p, pack) for p in args.trial]
@@ -301,4 +355,41 @@ def run_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
     write_report(pack, subject, trials, args.report, progress=ProgressBar(leave=False), **estimator_options(args, pack))
     print((args.report / "report.md").read_text())
+    return 0
+
+
+def run_leave_out(args: argparse.Namespace) -> int:
+    """``msk evaluate --leave-out``: calibrations without each electrode in turn, scored on the held-out trials."""
+    from msk_core.estimate.leave_out import leave_one_out
+    from msk_core.estimate.trial import load_trial
+    from services.reports.evaluation import write_leave_out_report
+
+    if args.subject is not None:
+        raise ConfigError(
+            "--leave-out calibrates its own profiles from --train; leave --subject out", field="--subject"
+        )
+    if not args.train:
+        raise ConfigError("--leave-out needs training trials (--train)", field="--train")
+    names = [n.strip() for item in args.leave_out for n in item.split(",") if n.strip()]
+    if not names:
+        raise ConfigError("expected all or group names", field="--leave-out", value=args.leave_out)
+    options = calibration_options(args)
+    pack = _pack(args.pack, args.dynamics)
+    train = [load_trial(p, pack) for p in _trial_files(args.train)]
+    held = [load_trial(p, pack) for p in _trial_files(args.trial)]
+    missing = [t.path for t in held if not t.emg]
+    if missing:
+        raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
+    groups = None if "all" in names else names
+    print(
+        f"leave-one-electrode-out on {pack.name}: {sum(t.n_frames for t in train)} training frames of {len(train)} "
+        f"trial(s), {sum(t.n_frames for t in held)} held-out frames of {len(held)} trial(s)",
+        flush=True,
+    )
+    result = leave_one_out(
+        pack, train, held, groups=groups, progress=ProgressBar(), **options, **estimator_options(args, pack)
+    )
+    write_leave_out_report(pack, result, args.report)
+    print((args.report / "report.md").read_text())
+    print(f"wrote {args.report / 'summary.json'} ({result.seconds:.0f} s)")
     return 0
