@@ -93,6 +93,7 @@ def role_of_config(config_file: Path | str) -> str | None:
     return name[len(CN_PREFIX) :] if name.startswith(CN_PREFIX) else None
 
 
+DASHBOARD = "dashboard"
 VALIDITY_DAYS = 825  # browsers' and rustls' comfort limit for leaf certificates
 
 
@@ -128,6 +129,15 @@ class Pki:
 
     def key(self, role: str) -> Path:
         return self.directory / f"{check_role(role)}.key"
+
+    @property
+    def dashboard_cert(self) -> Path:
+        """The HTTPS certificate of ``msk dashboard --pki`` (not a Zenoh role: it serves browsers)."""
+        return self.directory / f"{DASHBOARD}.pem"
+
+    @property
+    def dashboard_key(self) -> Path:
+        return self.directory / f"{DASHBOARD}.key"
 
 
 def _new_key() -> ec.EllipticCurvePrivateKey:
@@ -253,6 +263,29 @@ def write_pki(
         key, cert = make_leaf(ca_key, ca_cert, common_name(role), hosts=hosts)
         _write(pki.key(role), _key_pem(key), private=True)
         _write(pki.cert(role), cert.public_bytes(serialization.Encoding.PEM))
+    return pki
+
+
+def write_dashboard_certificate(directory: Path, hosts: tuple[str, ...]) -> Pki:
+    """The dashboard's HTTPS certificate for ``hosts`` (the names and addresses tablets open), signed by the CA of
+    ``directory`` (made by :func:`write_pki`: its ``ca.key`` must be there)."""
+    if not hosts:
+        raise ConfigError(
+            "the dashboard certificate needs at least one host name or address", field="hosts", value=hosts
+        )
+    pki = Pki(Path(directory))
+    try:
+        ca_key = serialization.load_pem_private_key(pki.ca_key.read_bytes(), password=None)
+        ca_cert = x509.load_pem_x509_certificate(pki.ca_cert.read_bytes())
+    except (OSError, ValueError) as error:
+        raise ConfigError(
+            f"no usable CA to sign with ({error}): make it with `msk certs --out DIR`", path=pki.ca_key
+        ) from None
+    if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
+        raise ConfigError("the CA key is not an EC key of msk certs", path=pki.ca_key)
+    key, cert = make_leaf(ca_key, ca_cert, common_name(DASHBOARD), hosts=tuple(hosts))
+    _write(pki.dashboard_key, _key_pem(key), private=True)
+    _write(pki.dashboard_cert, cert.public_bytes(serialization.Encoding.PEM))
     return pki
 
 

@@ -357,7 +357,8 @@ def test_certs_command_writes_a_usable_pki_and_configs(tmp_path):
     names = sorted(p.name for p in (tmp_path / "pki").iterdir() if p.is_file())
     roles = list(security.ROLE_POLICIES)
     assert names == sorted(
-        ["ca.key", "ca.pem", "router.key", "router.pem"] + [f"{r}.{e}" for r in roles for e in ("key", "pem")]
+        ["ca.key", "ca.pem", "router.key", "router.pem", "dashboard.key", "dashboard.pem"]
+        + [f"{r}.{e}" for r in roles for e in ("key", "pem")]
     )
     from cryptography import x509
 
@@ -365,6 +366,11 @@ def test_certs_command_writes_a_usable_pki_and_configs(tmp_path):
     sans = router_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     assert sans.get_values_for_type(x509.DNSName) == ["gym-router.local"]
     assert [str(a) for a in sans.get_values_for_type(x509.IPAddress)] == ["10.0.0.2"]
+    # the dashboard's HTTPS certificate: from the same CA, for the router's hosts unless --dashboard-host says
+    dashboard_cert = x509.load_pem_x509_certificate((tmp_path / "pki" / "dashboard.pem").read_bytes())
+    assert dashboard_cert.issuer == router_cert.issuer
+    dashboard_sans = dashboard_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert dashboard_sans.get_values_for_type(x509.DNSName) == ["gym-router.local"]
     tablet = json.loads((tmp_path / "pki" / "zenoh" / "tablet.json5").read_text())
     assert tablet["connect"]["endpoints"] == ["tls/gym-router.local:7447"]
     assert tablet["transport"]["link"]["tls"]["connect_certificate"] == "/pki/tablet.pem"

@@ -34,6 +34,7 @@ from msk_core.errors import ConfigError, ModelError
 from msk_core.model import available_packs, load_pack
 from services import messages, topics
 from services.dashboard import bodymap
+from services.dashboard.access import TokenGate, TokenStore
 from services.dashboard.bridge import Bridge, DashboardState
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args
 
@@ -153,8 +154,16 @@ class DashboardServer:
     """Bridge + web server; ``start()`` runs it in a thread (tests, embedding), ``run()`` in the caller's."""
 
     def __init__(
-        self, zenoh_options: ZenohOptions, config: DashboardConfig, *, host: str = "127.0.0.1", port: int = 8080
+        self,
+        zenoh_options: ZenohOptions,
+        config: DashboardConfig,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        pki: Path | None = None,
     ) -> None:
+        """``pki``: HTTPS with the deployment's dashboard certificate, and only tablets with a token get in
+        (services/dashboard/access.py)."""
         topics.check_chunk(config.session, "--session")
         if not 0 < port < 65536:
             raise ConfigError("port must be in 1..65535", field="--port", value=port)
@@ -168,15 +177,25 @@ class DashboardServer:
             on_shutdown=(self.bridge.stop,),
             on_set_mark=self.bridge.publish_set_mark,
         )
+        certificate, key = (None, None) if pki is None else secured(pki)
+        served = app if pki is None else TokenGate(app, TokenStore(pki))
         self.server = uvicorn.Server(
-            uvicorn.Config(app, host=host, port=port, log_level="warning", ws="websockets-sansio")
+            uvicorn.Config(
+                served,
+                host=host,
+                port=port,
+                log_level="warning",
+                ws="websockets-sansio",
+                ssl_certfile=certificate,
+                ssl_keyfile=key,
+            )
         )
-        self.host, self.port = host, port
+        self.host, self.port, self.scheme = host, port, "http" if pki is None else "https"
         self._thread: threading.Thread | None = None
 
     @property
     def url(self) -> str:
-        return f"http://{self.host}:{self.port}/"
+        return f"{self.scheme}://{self.host}:{self.port}/"
 
     def run(self) -> None:
         self.server.run()
@@ -210,7 +229,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="127.0.0.1",
         help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 for tablets on the gym network)",
     )
+    parser.add_argument(
+        "--pki",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="secured: HTTPS with DIR/dashboard.pem and a tablet token per tablet (`msk certs tablet-token`); joins "
+        "Zenoh as the tablet role (DIR/zenoh/tablet.json5) unless Zenoh flags say otherwise",
+    )
     add_zenoh_arguments(parser)
+
+
+def secured(pki: Path) -> tuple[str, str]:
+    """uvicorn's TLS files (certificate, key): the dashboard certificate ``msk certs`` made in ``pki``."""
+    from services.security import Pki
+
+    files = Pki(Path(pki))
+    for path in (files.dashboard_cert, files.dashboard_key):
+        if not path.is_file():
+            raise ConfigError("no dashboard certificate: make the folder with `msk certs --out DIR`", path=path)
+    return str(files.dashboard_cert), str(files.dashboard_key)
 
 
 def _check_port_free(host: str, port: int) -> None:
@@ -237,8 +275,10 @@ def run_from_args(args: argparse.Namespace) -> int:
     _check_port_free(args.host, args.port)
     from services import discovery
 
+    if args.pki is not None and args.zenoh_config is None and not args.connect:
+        args.zenoh_config = args.pki / "zenoh" / "tablet.json5"
     options, session = discovery.client_options(options_from_args(args), args.session, "lab", "msk dashboard")
-    server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port)
+    server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port, pki=args.pki)
     quiet = threading.Event()
     discovery.silence_notice("msk dashboard", f"msk/{session}/**", options, lambda: server.state.received, stop=quiet)
     where = (
