@@ -111,15 +111,33 @@ def read_sto(path: str | Path) -> Storage:
     except OSError as exc:
         raise InputError(f"cannot read storage file: {exc.strerror}", path=path) from exc
     lines = text.splitlines()
-
     end = next((i for i, raw in enumerate(lines) if _strip_cell(raw).lower() == "endheader"), None)
     if end is None:
         raise FileFormatError("no 'endheader' line: not an OpenSim storage file", path=path)
+    header, name, in_degrees = _read_header(lines[:end], path)
+    col_index, delimiter, labels = _read_labels(lines, end, path)
+    table = _read_rows(lines, col_index, delimiter, labels, path)
+    time = np.ascontiguousarray(table[:, 0])
+    bad = np.flatnonzero(~np.isfinite(time))
+    if bad.size:
+        raise FileFormatError("time is not finite", path=path, field="time", value=float(time[bad[0]]))
+    return Storage(
+        time=time,
+        columns=labels[1:],
+        data=np.ascontiguousarray(table[:, 1:]),
+        in_degrees=in_degrees,
+        header=header,
+        name=name,
+        path=path,
+    )
 
+
+def _read_header(lines: list[str], path: Path) -> tuple[dict[str, str], str, bool]:
+    """(key = value pairs, name: a first line that is not one, inDegrees) of the lines before ``endheader``."""
     header: dict[str, str] = {}
     name = ""
     in_degrees = False
-    for i, raw in enumerate(lines[:end]):
+    for i, raw in enumerate(lines):
         cell = _strip_cell(raw)
         if not cell:
             continue
@@ -131,7 +149,12 @@ def read_sto(path: str | Path) -> Storage:
                 in_degrees = _parse_bool(value, path, i + 1, key)
         elif i == 0:
             name = cell
+    return header, name, in_degrees
 
+
+def _read_labels(lines: list[str], end: int, path: Path) -> tuple[int, str | None, list[str]]:
+    """(index of the column-label line, the delimiter, the labels): the first non-empty line after ``endheader``,
+    starting with time, no label twice."""
     col_index = next((i for i in range(end + 1, len(lines)) if lines[i].strip(" ,\t")), None)
     if col_index is None:
         raise FileFormatError("no column-label line after 'endheader'", path=path, line=end + 1)
@@ -148,7 +171,12 @@ def read_sto(path: str | Path) -> Storage:
     duplicates = sorted({c for c in labels if labels.count(c) > 1})
     if duplicates:
         raise FileFormatError(f"duplicate column labels {duplicates}", path=path, line=col_index + 1)
+    return col_index, delimiter, labels
 
+
+def _read_rows(lines: list[str], col_index: int, delimiter: str | None, labels: list[str], path: Path) -> np.ndarray:
+    """The data rows after the label line as a (rows, columns) table; a row with another number of cells or a cell
+    that is not a number is an error naming its line (and column)."""
     n_cols = len(labels)
     rows: list[list[float]] = []
     for i in range(col_index + 1, len(lines)):
@@ -173,20 +201,7 @@ def read_sto(path: str | Path) -> Storage:
                 except ValueError:
                     raise FileFormatError("not a number", path=path, line=i + 1, field=labels[j], value=c) from None
             raise  # pragma: no cover - float() failed above, so a cell must fail here
-    table = np.array(rows, dtype=float).reshape(len(rows), n_cols)
-    time = np.ascontiguousarray(table[:, 0])
-    bad = np.flatnonzero(~np.isfinite(time))
-    if bad.size:
-        raise FileFormatError("time is not finite", path=path, field="time", value=float(time[bad[0]]))
-    return Storage(
-        time=time,
-        columns=labels[1:],
-        data=np.ascontiguousarray(table[:, 1:]),
-        in_degrees=in_degrees,
-        header=header,
-        name=name,
-        path=path,
-    )
+    return np.array(rows, dtype=float).reshape(len(rows), n_cols)
 
 
 def write_sto(

@@ -203,6 +203,21 @@ def _times(device_time_ns, n: int, name: str) -> np.ndarray:
     return t
 
 
+def _refined_peak(r: np.ndarray, k: int, grid_hz: float) -> tuple[float, float | None, float]:
+    """(peak r, lobe width in ms or None, lag index) of the correlation r's maximum at index k, refined by the
+    parabola through its three grid lags (at the edge of the range: the grid value)."""
+    peak, width, refined = float(r[k]), None, float(k)
+    if 0 < k < len(r) - 1:
+        left, right = float(r[k - 1]), float(r[k + 1])
+        curvature = left - 2 * peak + right  # < 0 at a maximum
+        delta = 0.5 * (left - right) / curvature if curvature < 0 else 0.0
+        refined = k + delta
+        peak = peak - 0.25 * (left - right) * delta
+        if curvature < 0:
+            width = 1e3 * math.sqrt(peak / (-curvature * grid_hz**2)) if peak > 0 else None
+    return peak, width, refined
+
+
 class ClockSync:
     """Streaming estimate of one tracker's clock against the EMG clock (module docstring). ``prior_offset_ns``: the
     offset the arrival-time mappings imply (EMG host offset - tracker host offset, each the smallest arrival minus
@@ -283,6 +298,8 @@ class ClockSync:
         return signal.sosfiltfilt(self._sos, resampled)[pad : pad + n]
 
     def _evaluate(self, start_ns: int, end_ns: int) -> None:
+        """One window: the best EMG-clock sensor's correlation peak with the tracker gives its offset, recorded with
+        whether it is accepted (or why not); an accepted window moves the search centre."""
         cfg = self.config
         self._windows_seen += 1
         n = int(round((end_ns - start_ns) * 1e-9 * cfg.grid_hz))
@@ -290,24 +307,39 @@ class ClockSync:
         lag_ns = int(round(lags * 1e9 / cfg.grid_hz))
         tracker = self._grid_feature(self._tracker, self._center_ns, start_ns - lag_ns, n + 2 * lags)
         if tracker is None:
-            self.windows.append(
-                WindowEstimate(
-                    start_ns,
-                    end_ns,
-                    SyncStatus.WAITING,
-                    None,
-                    None,
-                    None,
-                    None,
-                    "the tracker does not cover the window",
-                )
-            )
+            reason = "the tracker does not cover the window"
+            self.windows.append(WindowEstimate(start_ns, end_ns, SyncStatus.WAITING, None, None, None, None, reason))
             return
         tracker_rms = float(np.std(tracker[lags : lags + n]))
+        best, moving_emg = self._best_sensor(tracker, tracker_rms, start_ns, n)
+        if best is None:  # rest on one side at least
+            rest = [] if moving_emg else ["no EMG-clock sensor moved"]
+            if tracker_rms < cfg.min_motion_m_s2:
+                rest.append("the tracker did not move")
+            reason = " and ".join(rest) + f" (feature RMS below {cfg.min_motion_m_s2:g} m/s²)"
+            self.windows.append(
+                WindowEstimate(start_ns, end_ns, SyncStatus.NO_MOVEMENT, None, None, None, None, reason)
+            )
+            return
+        k, r, sensor = best
+        peak, width, refined = _refined_peak(r, k, cfg.grid_hz)
+        offset_ns = self._center_ns + int(round((refined - lags) * 1e9 / cfg.grid_hz))
+        status, reason = self._verdict(k, len(r), peak, sensor)
+        self.windows.append(WindowEstimate(start_ns, end_ns, status, offset_ns, peak, width, sensor, reason))
+        if status is SyncStatus.LOCKED:
+            self._center_ns = self._combined()[0]
+
+    def _best_sensor(
+        self, tracker: np.ndarray, tracker_rms: float, start_ns: int, n: int
+    ) -> tuple[tuple[int, np.ndarray, str] | None, int]:
+        """((best lag index, r at every lag, sensor) of the EMG-clock sensor whose correlation with the tracker
+        peaks highest, None when no sensor or the tracker moved; how many EMG-clock sensors moved)."""
+        cfg = self.config
         rows = sliding_window_view(tracker, n)  # (2 lags + 1, n): the tracker at each lag
         centred = rows - rows.mean(axis=1, keepdims=True)
         centred_norm = np.linalg.norm(centred, axis=1)
-        moving_emg, best = 0, None
+        moving_emg = 0
+        best: tuple[int, np.ndarray, str] | None = None
         for sensor, stream in self._emg.items():
             x = self._grid_feature(stream, 0, start_ns, n)
             if x is None:
@@ -323,48 +355,23 @@ class ClockSync:
             k = int(np.argmax(r))
             if best is None or r[k] > best[1][best[0]]:
                 best = (k, r, sensor)
-        rest = [] if moving_emg else ["no EMG-clock sensor moved"]
-        if tracker_rms < cfg.min_motion_m_s2:
-            rest.append("the tracker did not move")
-        if best is None:  # rest on one side at least
-            reason = " and ".join(rest) + f" (feature RMS below {cfg.min_motion_m_s2:g} m/s²)"
-            self.windows.append(
-                WindowEstimate(start_ns, end_ns, SyncStatus.NO_MOVEMENT, None, None, None, None, reason)
+        return best, moving_emg
+
+    def _verdict(self, k: int, n_lags: int, peak: float, sensor: str) -> tuple[SyncStatus, str]:
+        """A window's status and reason from its correlation peak at lag index k of n_lags."""
+        cfg = self.config
+        if k in (0, n_lags - 1):
+            return SyncStatus.NOT_TOGETHER, (
+                f"the best correlation (r = {peak:.2f}, {sensor}) lies on the edge of the search range "
+                f"(±{cfg.max_lag_s:g} s around {self._center_ns / 1e6:.1f} ms): the offset is outside it or no sensor "
+                "moved with the tracker"
             )
-            return
-        k, r, sensor = best
-        peak, width, refined = float(r[k]), None, float(k)
-        if 0 < k < len(r) - 1:
-            left, right = float(r[k - 1]), float(r[k + 1])
-            curvature = left - 2 * peak + right  # < 0 at a maximum
-            delta = 0.5 * (left - right) / curvature if curvature < 0 else 0.0
-            refined = k + delta
-            peak = peak - 0.25 * (left - right) * delta
-            if curvature < 0:
-                width = 1e3 * math.sqrt(peak / (-curvature * cfg.grid_hz**2)) if peak > 0 else None
-        offset_ns = self._center_ns + int(round((refined - lags) * 1e9 / cfg.grid_hz))
-        if k in (0, len(r) - 1):
-            status, reason = (
-                SyncStatus.NOT_TOGETHER,
-                (
-                    f"the best correlation (r = {peak:.2f}, {sensor}) lies on the edge of the search range "
-                    f"(±{cfg.max_lag_s:g} s around {self._center_ns / 1e6:.1f} ms): the offset is outside it or no sensor "
-                    "moved with the tracker"
-                ),
+        if peak < cfg.min_correlation:
+            return SyncStatus.NOT_TOGETHER, (
+                f"no EMG-clock sensor moved with the tracker: best peak r = {peak:.2f} ({sensor}) is below "
+                f"{cfg.min_correlation:g}"
             )
-        elif peak < cfg.min_correlation:
-            status, reason = (
-                SyncStatus.NOT_TOGETHER,
-                (
-                    f"no EMG-clock sensor moved with the tracker: best peak r = {peak:.2f} ({sensor}) is below "
-                    f"{cfg.min_correlation:g}"
-                ),
-            )
-        else:
-            status, reason = SyncStatus.LOCKED, f"r = {peak:.3f} ({sensor})"
-        self.windows.append(WindowEstimate(start_ns, end_ns, status, offset_ns, peak, width, sensor, reason))
-        if status is SyncStatus.LOCKED:
-            self._center_ns = self._combined()[0]
+        return SyncStatus.LOCKED, f"r = {peak:.3f} ({sensor})"
 
     def _accepted(self) -> list[WindowEstimate]:
         return [w for w in self.windows if w.status is SyncStatus.LOCKED]
