@@ -123,14 +123,10 @@ def check_dynamics(
         opensim_tau.append(osim_tools.opensim_inverse_dynamics(poser, q, qd, qdd))
         pack_tau.append(rigid.inverse_dynamics(q - pack.reference_pose, qd, qdd, hand_load, None))
     ref, fit = np.array(opensim_tau), np.array(pack_tau)
-    peak = np.max(np.abs(ref), axis=0)
-    err = np.abs(fit - ref)
     return {
         "poses": n_poses,
         "hand_load_newton": hand_load,
-        "peak_nm": dict(zip(pack.coordinates, peak.tolist())),
-        "max_error_nm": dict(zip(pack.coordinates, err.max(axis=0).tolist())),
-        "max_error_percent_of_peak": dict(zip(pack.coordinates, (100 * err.max(axis=0) / peak).tolist())),
+        **_torque_errors(pack, ref, fit),
         "opensim": ref,
         "pack": fit,
     }
@@ -193,13 +189,20 @@ def check_hanging_static(
         opensim_tau.append(osim_tools.opensim_inverse_dynamics(poser, q, zeros, zeros))
         pack_tau.append(pack.validation_rigid.inverse_dynamics(q - pack.reference_pose, zeros, zeros, hand_load, None))
         angles.append([np.degrees(v) for v in solved.values()])
-    ref, fit = np.array(opensim_tau), np.array(pack_tau)
-    peak = np.max(np.abs(ref), axis=0)
-    err = np.abs(fit - ref)
     return {
         "poses": n_poses,
         "hand_load_newton": hand_load,
         "swing_deg_range": [float(np.min(angles)), float(np.max(angles))],
+        **_torque_errors(pack, np.array(opensim_tau), np.array(pack_tau)),
+    }
+
+
+def _torque_errors(pack: ModelPack, ref: np.ndarray, fit: np.ndarray) -> dict[str, dict[str, float]]:
+    """Per coordinate: OpenSim's peak torque over the poses (rows of ``ref``), the pack's largest error (``fit``)
+    in N·m and in % of that peak."""
+    peak = np.max(np.abs(ref), axis=0)
+    err = np.abs(fit - ref)
+    return {
         "peak_nm": dict(zip(pack.coordinates, peak.tolist())),
         "max_error_nm": dict(zip(pack.coordinates, err.max(axis=0).tolist())),
         "max_error_percent_of_peak": dict(zip(pack.coordinates, (100 * err.max(axis=0) / peak).tolist())),

@@ -187,7 +187,7 @@ def extract_rigid(
     graph = joint_graph(model)
     bodies = {"ground"} | {b for _, p, c in graph for b in (p, c)}
     hanging = tuple(spec.dynamics.hanging)
-    _check_bodies(spec, bodies, root=root, exclude=exclude, shared_from=shared_from, hanging=hanging)
+    _check_bodies(spec, bodies, root, shared_from, exclude)
     screws = _screws(poser, graph)
     q0 = np.array([c.reference for c in spec.coordinates])
     poser.set(q0)
@@ -221,20 +221,12 @@ def _unknown_body(spec: PackSpec, name: str, bodies: set[str], field: str) -> Co
     )
 
 
-def _check_bodies(
-    spec: PackSpec,
-    bodies: set[str],
-    *,
-    root: str,
-    exclude: tuple[str, ...],
-    shared_from: str,
-    hanging: tuple[str, ...],
-) -> None:
+def _check_bodies(spec: PackSpec, bodies: set[str], root: str, shared_from: str, exclude: tuple[str, ...]) -> None:
     """Every body the spec names (root, shared_from, excluded, hanging, load points) is one of the model's."""
     for name, field in (
         [(root, "dynamics.root"), (shared_from, "dynamics.shared_from")]
         + [(b, "dynamics.exclude_bodies") for b in exclude]
-        + [(b, "dynamics.hanging") for b in hanging]
+        + [(b, "dynamics.hanging") for b in spec.dynamics.hanging]
     ):
         if name and name not in bodies:
             raise _unknown_body(spec, name, bodies, field)
