@@ -10,7 +10,7 @@ import sys
 import pytest
 
 
-@pytest.mark.parametrize("name", ["emg", "estimate", "calibrate", "live"])
+@pytest.mark.parametrize("name", ["emg", "estimate", "calibrate", "live", "leave-out"])
 def test_bench_quick_reports_figures_with_same_run_baselines(name, tmp_path, repo_root):
     out = tmp_path / "bench.json"
     run = subprocess.run(
