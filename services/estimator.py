@@ -26,7 +26,7 @@ group, state (unknown, good, check, bad), reasons, time in check and bad and its
 (``DeviceStatus.electrodes``), published at once when a state changes; a bad electrode is left out of its group's
 envelope, and the frames that read such an envelope carry ``electrode_bad``. Fatigue: per electrode the median and
 mean frequency of each rep's raw EMG and their trend over the set (:mod:`msk_core.estimate.live_fatigue`, reps from
-the frames' phase, sets from ``LoadEvent.set_number``), in the status (``DeviceStatus.fatigue``).
+the frames' phase, sets by :class:`msk_core.signal.sets.SetTracker` from the operator's marks and rest detection), in the status (``DeviceStatus.fatigue``).
 Run ``python -m services.estimator --pack bench_press --session lab`` or ``msk estimator``.
 """
 
@@ -56,6 +56,7 @@ from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.model.pack import available_packs, is_known_exercise
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
+from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
 from services import messages, session_graph, topics
 from services.graph import ReadySpec, declare_ready
@@ -350,6 +351,7 @@ class EstimatorNode:
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         # each electrode's median and mean frequency per rep, and their trend over the set
         self.fatigue = LiveFatigue(self.live_emg.setup.channel_group) if self.live_emg is not None else None
+        self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
         if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
             raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
         # the EMG clock measured against the trackers': only where device clocks are mapped onto the host clock
@@ -488,13 +490,20 @@ class EstimatorNode:
             )
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
-        # a set starts when the operator's set number changes; without numbers, with every load that has a mass
-        # (the rule of the dashboard's rep counter, services/dashboard/bridge.py)
-        number = int(event.set_number)
-        if self.fatigue is not None and (
-            (number > 0 and number != self.fatigue.set_number) or (number == 0 and event.barbell_mass_kg > 0)
-        ):
-            self.fatigue.start_set(number)
+        # the one set logic (msk_core.signal.sets), as the view, the dashboard and the report run it
+        self.sets.on_facts(
+            event.device_time_ns / 1e9 if event.device_time_ns else None,
+            set_number=int(event.set_number),
+            set_mark=event.set_mark,
+            mass_kg=event.barbell_mass_kg,
+            rest_s=event.set_rest_s,
+        )
+        self._follow_set()
+
+    def _follow_set(self) -> None:
+        """The fatigue index follows the set under way (or the last one, at rest)."""
+        if self.fatigue is not None and self.sets.number != self.fatigue.set_number:
+            self.fatigue.start_set(self.sets.number)
 
     def handle_joints(
         self, payload: messages.JointAngles | bytes, arrival_ns: int
@@ -530,6 +539,8 @@ class EstimatorNode:
             return
         time_s = joints.device_time_ns / 1e9
         phase = self._phase(joints, time_s, q)
+        self.sets.update(time_s, phase)
+        self._follow_set()
         envelope, emg_flags = (
             (None, [])
             if self.live_emg is None

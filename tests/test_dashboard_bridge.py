@@ -158,8 +158,33 @@ def test_body_map_sides_and_colours():
         bench["DelAnt"].region == "deltoid_anterior" and bench["DelAnt"].side == "r"
     )  # DELT1 has no suffix: the pack's side
     assert bench["TriLong"].region == "triceps_long" and bodymap.REGIONS["triceps_long"].view == "back"
-    assert bodymap.activation_colour(0.0) == "#fff5c8" and bodymap.activation_colour(1.0) == "#8c0a14"
+    assert bodymap.activation_colour(0.0) == "#ffde3c" and bodymap.activation_colour(1.0) == "#640014"
     assert bodymap.activation_colour(math.nan) == bodymap.activation_colour(None) == "#b8bec7"
+
+
+def _lab(colour: str) -> list[float]:
+    """CIE L*a*b* (D65) of an sRGB colour "#rrggbb"."""
+    rgb = [int(colour[i : i + 2], 16) / 255 for i in (1, 3, 5)]
+    lin = [c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4 for c in rgb]
+    rows = ((0.4124, 0.3576, 0.1805), (0.2126, 0.7152, 0.0722), (0.0193, 0.1192, 0.9505))
+    white = (0.95047, 1.0, 1.08883)
+    x, y, z = (sum(m * c for m, c in zip(row, lin)) / w for row, w in zip(rows, white))
+    f = [v ** (1 / 3) if v > (6 / 29) ** 3 else v / (3 * (6 / 29) ** 2) + 4 / 29 for v in (x, y, z)]
+    return [116 * f[1] - 16, 500 * (f[0] - f[1]), 200 * (f[1] - f[2])]
+
+
+def test_low_activations_stand_out_from_the_grey_body_and_the_map_shows_the_exercises_part():
+    """0-25 % is far from the grey body (CIE76 difference; 2.3 is a just-noticeable one) and from unknown; an arm
+    exercise's map is the upper body, a leg one's the lower body, a lift's the whole figure."""
+    body = _lab("#e4e7eb")
+    differences = [math.dist(_lab(bodymap.activation_colour(v)), body) for v in (0.0, 0.05, 0.1, 0.25)]
+    print("CIE76 from the grey body at 0, 5, 10, 25 %:", [round(d, 1) for d in differences])
+    assert min(differences) > 50 and math.dist(_lab("#fff5c8"), body) < 30  # the former 0 % colour did not
+    assert math.dist(_lab(bodymap.activation_colour(0.0)), _lab(bodymap.activation_colour(0.25))) > 20
+    parts = {name: bodymap.extent(bodymap.place_groups(load_pack(name))) for name in available_packs()}
+    assert parts["bench_press"] == bodymap.UPPER_BODY and parts["deadlift"] == bodymap.WHOLE_BODY, parts
+    svg = ET.fromstring(bodymap.place_groups(load_pack("bench_press")).svg())
+    assert svg.get("data-part") == "upper" and svg.get("viewBox").split()[1:4:2] == ["4", "236"]
 
 
 def test_msk_dashboard_command_serves_the_page_and_stops_on_sigint(zenoh_endpoint):
@@ -445,3 +470,34 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     node = update["nodes"]["dashboard"]
     assert {(key, reason): n for key, reason, n in node["drops"]} == inputs.expected
     assert node["dropped"] == 5 and state.received == 3
+
+
+def test_the_bridge_forwards_each_electrodes_fatigue_with_no_value_as_null():
+    state = DashboardState("s")
+    nan = float("nan")
+    fatigue = messages.ElectrodeFatigue(
+        source="trigno",
+        channel="sensor03.EMG",
+        group="TriLat",
+        set_number=2,
+        median_hz=[120.0, nan, 110.0],
+        mean_hz=[130.0, nan, 121.0],
+        rep_end_s=[3.0, 6.0, 9.0],
+        median_slope_hz_per_rep=-5.0,
+        median_slope_se_hz_per_rep=nan,
+        median_slope_pct_per_rep=-4.17,
+        median_change_pct=-8.33,
+        mean_slope_pct_per_rep=-3.5,
+        mean_change_pct=-6.9,
+    )
+    state.on_message(
+        "msk/s/status/estimator", messages.DeviceStatus(device_id="estimator", kind="node", fatigue=[fatigue])
+    )
+    seq, update = state.changes(0)
+    (row,) = update["topics"]["fatigue"]
+    assert row["group"] == "TriLat" and row["set_number"] == 2 and row["median_hz"] == [120.0, None, 110.0]
+    assert row["median_change_pct"] == -8.33 and row["median_slope_pct_per_rep"] == -4.17
+    json.dumps(update, allow_nan=False)  # what the page is sent
+    state.on_message("msk/s/status/estimator", messages.DeviceStatus(device_id="estimator", kind="node"))
+    _, update = state.changes(seq)
+    assert update["topics"]["fatigue"] == []  # an estimator restarted without EMG: no stale rows

@@ -17,5 +17,5 @@ def test_dashboard_doc_commands_parse(repo_root):
     for command in commands:
         args = parser.parse_args(command[1:])
         assert args.handler is not None, command
-    assert (repo_root / "docs" / "img" / "dashboard.png").stat().st_size > 20_000
+    assert (repo_root / "docs" / "img" / "dashboard-live.png").stat().st_size > 20_000  # tests/test_live_dashboard.py
     assert (repo_root / "docs" / "img" / "report.png").stat().st_size > 20_000

@@ -107,7 +107,8 @@ def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_pa
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     rows = (
         "() => [...document.querySelectorAll('#electrodes tbody tr')].map(tr => [tr.dataset.channel, "
-        "tr.dataset.state, tr.cells[0].textContent, tr.cells[2].textContent, tr.cells[2].className, tr.title])"
+        "tr.dataset.state, tr.cells[0].textContent, tr.cells[2].textContent, tr.cells[2].className, tr.title, "
+        "tr.cells[0].title])"
     )
     try:
         with (
@@ -136,7 +137,9 @@ def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_pa
                 shown = page.evaluate(rows)
             assert len(shown) == 3, f"waited 15 s for 3 electrode rows; the page shows {shown}"
             page.locator(".panel.map").screenshot(path=str(ARTIFACTS / "dashboard-electrodes.png"))
-            assert [r[2] for r in shown] == [
+            # the muscle in few words (the column is narrow), its whole display name in the tooltip
+            assert [r[2] for r in shown] == ["Triceps lateral", "Pectoralis clavicular", "Deltoid anterior"]
+            assert [r[6] for r in shown] == [
                 "Triceps brachii, lateral and medial heads",
                 "Pectoralis major, clavicular part",
                 "Deltoid, anterior part",

@@ -18,6 +18,7 @@ from msk_core.signal.fatigue import (
     fatigue_trend,
     median_and_mean_frequency,
     rep_spectra,
+    welch_psd,
 )
 from msk_core.signal.quality import EMG_BAND_HZ
 from msk_core.signal.reps import Rep
@@ -85,6 +86,20 @@ def test_median_and_mean_frequency_of_known_spectra() -> None:
     # several spectra at once, and an empty band
     both = median_and_mean_frequency(f, np.stack([flat, np.where((f >= 20) & (f <= 450), 0.0, 1.0)]))
     assert both[0][0] == pytest.approx(235.0) and np.isnan(both[0][1]) and np.isnan(both[1][1])
+
+
+def test_welch_psd_is_scipys_welch() -> None:
+    """The vectorised Welch spectrum equals scipy.signal.welch with the same settings, odd and even lengths."""
+    cfg = FatigueConfig(rate_hz=RATE)
+    rng = np.random.default_rng(4)
+    for n in (cfg.segment_samples, 600, 3001, 6000):
+        x = 1e-4 * rng.standard_normal(n) + 1e-3
+        f, p = welch_psd(x, cfg)
+        f_ref, p_ref = signal.welch(x, RATE, window="hann", nperseg=256, noverlap=128, detrend="constant")
+        np.testing.assert_array_equal(f, f_ref)
+        np.testing.assert_allclose(p, p_ref, rtol=1e-10, atol=0)
+    with pytest.raises(InputError, match="Welch segment"):
+        welch_psd(np.zeros(100), cfg)
 
 
 def test_a_known_spectral_shift_is_recovered_within_10_percent() -> None:

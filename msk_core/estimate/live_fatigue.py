@@ -48,8 +48,10 @@ class ElectrodeFatigueReport:
 
 
 class _SourceFatigue:
-    def __init__(self, labels: tuple[str, ...], rate_hz: float, units: str) -> None:
+    def __init__(self, labels: tuple[str, ...], rate_hz: float, units: str, channel_group: dict[str, str]) -> None:
         self.labels = labels
+        # the electrodes tracked: those of the electrode map (every channel without one)
+        self.columns = [c for c, ch in enumerate(labels) if ch in channel_group or not channel_group]
         self.rate_hz = rate_hz
         self.units = units
         self.volts_per_unit = VOLTS_PER_UNIT.get(units)  # None: no values
@@ -61,13 +63,13 @@ class _SourceFatigue:
 
     def restart(self, device_time_ns: int) -> None:
         """A tracker whose sample 0 is at ``device_time_ns``, holding the set's values so far."""
-        self.tracker = FatigueTracker(self.config, len(self.labels), t0=device_time_ns / 1e9)
+        self.tracker = FatigueTracker(self.config, max(len(self.columns), 1), t0=device_time_ns / 1e9)
         self.tracker.spectra = self.spectra
 
 
 class LiveFatigue:
     """Per EMG source a fatigue tracker, per electrode its values over the set. ``channel_group``: the electrode
-    map (channel label -> muscle group); with one, only its electrodes are reported."""
+    map (channel label -> muscle group); with one, only its electrodes are tracked and reported."""
 
     def __init__(self, channel_group: dict[str, str] | None = None) -> None:
         self.channel_group = dict(channel_group or {})
@@ -90,8 +92,8 @@ class LiveFatigue:
         labels = tuple(labels)
         state = self.sources.get(source)
         if state is None or state.labels != labels or state.rate_hz != float(rate_hz) or state.units != units:
-            state = self.sources[source] = _SourceFatigue(labels, float(rate_hz), units)
-        if state.volts_per_unit is None:
+            state = self.sources[source] = _SourceFatigue(labels, float(rate_hz), units, self.channel_group)
+        if state.volts_per_unit is None or not state.columns:
             return []
         x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
         first = int(first_sample_index)
@@ -104,7 +106,7 @@ class LiveFatigue:
             return []
         state.next_index = first + x.shape[0]
         assert state.tracker is not None  # made by restart() at the first chunk
-        done = state.tracker.process(x * state.volts_per_unit)
+        done = state.tracker.process(x[:, state.columns] * state.volts_per_unit)
         self.reps_done += len(done)
         return done
 
@@ -140,10 +142,8 @@ class LiveFatigue:
         out = []
         for source, state in self.sources.items():
             trend = state.tracker.trend if state.tracker is not None and state.volts_per_unit is not None else None
-            for c, channel in enumerate(state.labels):
-                if self.channel_group and channel not in self.channel_group:
-                    continue
-                out.append(self._electrode(source, c, channel, state.spectra, trend))
+            for c, column in enumerate(state.columns):
+                out.append(self._electrode(source, c, state.labels[column], state.spectra, trend))
         return out
 
     def _electrode(

@@ -6,6 +6,9 @@ strength, and its side from the members' ``_r``/``_l`` suffixes (else from the p
 Groups that land on the same region and side share it in stripes. Groups whose muscles are not in the atlas are
 returned in :attr:`BodyMap.unmapped` (the dashboard lists them) rather than drawn somewhere arbitrary.
 
+The map shows only the part of the body the pack's muscles are on (:func:`extent`): the upper body (head to hands) for
+an arm exercise, the lower body (hips to feet) for a leg one, else the whole figure.
+
 Coordinates: each view is 200 x 440 units, midline at x = 100. Regions are given for the subject's right side as
 (distance from the midline, height, radii, tilt); the front view shows the subject's right on the viewer's left.
 """
@@ -244,6 +247,24 @@ def _silhouette(offset_x: float) -> list[str]:
     return parts
 
 
+#: The parts of the figure a map may be limited to: (top, bottom) in view units.
+UPPER_BODY = (4.0, 240.0)  # head to hands
+LOWER_BODY = (186.0, VIEW_HEIGHT + 4.0)  # hips to feet
+WHOLE_BODY = (4.0, VIEW_HEIGHT + 4.0)
+
+
+def extent(body: BodyMap) -> tuple[float, float]:
+    """(top, bottom) of the figure to draw: the upper or lower body when every placed muscle is on it, else all."""
+    tops = [REGIONS[p.region].cy - REGIONS[p.region].ry for p in body.placements]
+    bottoms = [REGIONS[p.region].cy + REGIONS[p.region].ry for p in body.placements]
+    if not tops:
+        return WHOLE_BODY
+    for part in (UPPER_BODY, LOWER_BODY):
+        if part[0] <= min(tops) and max(bottoms) <= part[1] - 4:
+            return part
+    return WHOLE_BODY
+
+
 def render_svg(
     body: BodyMap, *, fills: dict[str, str] | None = None, width: int | None = None, names: dict[str, str] | None = None
 ) -> str:
@@ -251,12 +272,17 @@ def render_svg(
     its tooltip names the group and side ("Brachialis (right)") by ``names`` (display names, msk_core.model.names),
     else by its model name and region ("BRA (brachialis, right)")."""
     fills, names = fills or {}, names or {}
-    # The figures span x = 30..170 of each view: the margins outside them are cut off.
+    # The figures span x = 30..170 of each view: the margins outside them are cut off; so is the part of the body
+    # the pack has no muscle on (extent).
     left, total_w = 26, 2 * VIEW_WIDTH + 20 - 52
-    size = f' width="{width}" height="{round(width * (VIEW_HEIGHT + 24) / total_w)}"' if width else ""
+    top, bottom = extent(body)
+    height = bottom - top
+    size = f' width="{width}" height="{round(width * (height + 4) / total_w)}"' if width else ""
+    part = {UPPER_BODY: "upper", LOWER_BODY: "lower"}.get((top, bottom), "whole")
     out = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="{left} 4 {total_w} {VIEW_HEIGHT + 20}"{size} '
-        f'class="bodymap" data-pack="{escape(body.pack)}" role="img" aria-label="body map of {escape(body.pack)}">',
+        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="{left} {top:g} {total_w} {height:g}"{size} '
+        f'class="bodymap" data-pack="{escape(body.pack)}" data-part="{part}" role="img" '
+        f'aria-label="body map of {escape(body.pack)}">',
         "<defs>",
     ]
     shared: dict[tuple[str, str], list[str]] = {}
@@ -292,22 +318,35 @@ def render_svg(
     out.append("</defs>")
     out += _silhouette(0) + _silhouette(VIEW_WIDTH + 20)
     out += shapes
-    text = 'font-family="sans-serif" font-size="13" fill="#5b6470" text-anchor="middle"'
-    out.append(f'<text x="{MIDLINE}" y="{VIEW_HEIGHT + 18}" {text}>front</text>')
-    out.append(f'<text x="{VIEW_WIDTH + 20 + MIDLINE}" y="{VIEW_HEIGHT + 18}" {text}>back</text>')
+    # each view named in its top left corner, beside the head (nothing is drawn there)
+    text = 'font-family="sans-serif" font-size="15" fill="#1d2630"'
+    out.append(f'<text x="{MIDLINE - 68}" y="{top + 16:g}" {text}>front</text>')
+    out.append(f'<text x="{VIEW_WIDTH + 20 + MIDLINE - 68}" y="{top + 16:g}" {text}>back</text>')
     out.append("</svg>")
     return "\n".join(out)
 
 
+#: The activation colour scale: saturated yellow (0) -> orange (25 %) -> red -> dark red (100 %), so that low
+#: activations stand out from the grey body (#e4e7eb, CIE76 colour difference > 75 over 0-25 %, where the former pale
+#: yellow #fff5c8 at 0 % was 26). The page's copy: static/dashboard.js STOPS.
+COLOUR_STOPS = (
+    (0.0, (255, 222, 60)),
+    (0.25, (253, 160, 40)),
+    (0.5, (234, 85, 35)),
+    (0.75, (180, 20, 30)),
+    (1.0, (100, 0, 20)),
+)
+
+
 def activation_colour(value: float | None) -> str:
-    """Grey for unknown, else pale yellow (0) -> orange -> dark red (1): one scale for the page and the report."""
+    """Grey for unknown, else yellow (0) -> orange -> dark red (1): one scale for the page and the report."""
     if value is None or value != value:
         return "#b8bec7"
     v = min(max(float(value), 0.0), 1.0)
-    stops = ((0.0, (255, 245, 200)), (0.35, (253, 174, 97)), (0.7, (230, 60, 40)), (1.0, (140, 10, 20)))
+    stops = COLOUR_STOPS
     for (v0, c0), (v1, c1) in zip(stops, stops[1:]):
         if v <= v1:
             f = (v - v0) / (v1 - v0)
             r, g, b = (round(a + (b - a) * f) for a, b in zip(c0, c1))
             return f"#{r:02x}{g:02x}{b:02x}"
-    return "#8c0a14"
+    return "#640014"

@@ -14,7 +14,9 @@ not forwarded). Each device is one row under its own id, the one its ``DeviceSta
 ``EmgChunk.source_id``, each Xsens tracker by ``ImuSample.tracker_id``. A ``DeviceStatus`` of kind ``node`` is a
 node's own status (its dropped inputs), shown apart from the devices; the estimator's carries each EMG electrode's
 signal quality (``DeviceStatus.electrodes``), forwarded as the ``electrodes`` entry: per electrode its muscle group,
-state (unknown, good, check, bad), reasons and the verdict in words.
+state (unknown, good, check, bad), reasons and the verdict in words; and each electrode's fatigue index over the set
+(``DeviceStatus.fatigue``), forwarded as the ``fatigue`` entry: median and mean frequency per rep, the median
+frequency's slope and the change since the set's first reps.
 
 The page's header comes from the ``session`` entry: exercise, load and athlete, and the display names of the frames'
 muscle groups and joints with their units (the pack's, with the session file's ``[names]`` that ``LoadEvent.names``
@@ -186,6 +188,22 @@ def electrode_dict(electrode: messages.ElectrodeQuality) -> dict:
     }
 
 
+def fatigue_dict(electrode: messages.ElectrodeFatigue) -> dict:
+    """One electrode's fatigue index over the set as the page shows it (``ElectrodeFatigue``; null for no value)."""
+    return {
+        "source": electrode.source,
+        "channel": electrode.channel,
+        "group": electrode.group,
+        "set_number": int(electrode.set_number),
+        "median_hz": _finite(electrode.median_hz),
+        "mean_hz": _finite(electrode.mean_hz),
+        "median_slope_hz_per_rep": _finite([electrode.median_slope_hz_per_rep])[0],
+        "median_slope_pct_per_rep": _finite([electrode.median_slope_pct_per_rep])[0],
+        "median_change_pct": _finite([electrode.median_change_pct])[0],
+        "mean_change_pct": _finite([electrode.mean_change_pct])[0],
+    }
+
+
 def counts_dict(counts: InputCounts, errors: int) -> dict:
     """The bridge's own inputs, in the shape of :func:`node_dict`."""
     drops = counts.drops()
@@ -228,6 +246,7 @@ class DashboardState:
         self._devices_seq = 0
         self._nodes: dict[str, dict] = {}  # node -> node_dict of its newest status
         self._electrodes: dict[str, list[dict]] = {}  # node -> its electrodes' quality (the estimator's status)
+        self._fatigue: dict[str, list[dict]] = {}  # node -> its electrodes' fatigue index over the set
         self._load: messages.LoadEvent | None = None
         self._frame_exercise = ""  # ActivationFrame.exercise of the newest frame: the exercise when no LoadEvent came
         self._frame_groups: tuple[str, ...] = ()  # the newest frame's groups: whose display names the page shows
@@ -355,6 +374,9 @@ class DashboardState:
             if status.electrodes or (status.device_id or name) in self._electrodes:
                 self._electrodes[status.device_id or name] = [electrode_dict(e) for e in status.electrodes]
                 self._put("electrodes", [e for node in sorted(self._electrodes) for e in self._electrodes[node]])
+            if status.fatigue or (status.device_id or name) in self._fatigue:
+                self._fatigue[status.device_id or name] = [fatigue_dict(f) for f in status.fatigue]
+                self._put("fatigue", [f for node in sorted(self._fatigue) for f in self._fatigue[node]])
             return
         device = self._device(status.device_id or name, status.kind)
         device.connected = bool(status.connected)

@@ -15,8 +15,15 @@ const state = {
 const charts = { bars: null, torques: {} };
 window.mskDashboard = { state, charts, merge: (update) => { merge(update); scheduleRender(); } };
 
-// Same colour scale as services/dashboard/bodymap.py: pale yellow (0) -> orange -> red -> dark red (1).
-const STOPS = [[0, [255, 245, 200]], [0.35, [253, 174, 97]], [0.7, [230, 60, 40]], [1, [140, 10, 20]]];
+// Same colour scale as services/dashboard/bodymap.py COLOUR_STOPS: yellow (0) -> orange (25 %) -> red -> dark red (1),
+// so that low activations stand out from the grey body.
+const STOPS = [[0, [255, 222, 60]], [0.25, [253, 160, 40]], [0.5, [234, 85, 35]], [0.75, [180, 20, 30]], [1, [100, 0, 20]]];
+// Traces: the last TRACE_WINDOW_S of the chosen muscles (estimate with its band, measured envelope where an electrode is).
+const TRACE_WINDOW_S = 10, TRACE_DEFAULT_COUNT = 3;
+const TRACE_COLOURS = ["#1f5fbf", "#d9480f", "#2b8a3e", "#862e9c", "#c2255c", "#495057"];
+state.traces = {}; // method -> group -> {t: [], a: [], lo: [], hi: [], e: []}
+state.traceGroups = null; // the muscles traced (null: the default, those with an electrode)
+state.fatigue = []; // each EMG electrode's fatigue index over the set (the estimator's status)
 function activationColour(v) {
   if (v === null || v === undefined || Number.isNaN(v)) return "#b8bec7";
   v = Math.min(Math.max(v, 0), 1);
@@ -28,7 +35,7 @@ function activationColour(v) {
       return "#" + c.map((x) => x.toString(16).padStart(2, "0")).join("");
     }
   }
-  return "#8c0a14";
+  return "#640014";
 }
 
 function connect() {
@@ -72,6 +79,7 @@ function merge(update) {
       const method = topic.slice("activations/".length);
       state.activations[method] = value;
       recordTorques(method, value);
+      recordTraces(method, value);
     } else if (topic === "joints") state.joints = value;
     else if (topic === "load") state.load = value;
     else if (topic === "session") state.session = value;
@@ -79,6 +87,7 @@ function merge(update) {
     else if (topic === "sets") state.sets = value; // every set: msk_core.signal.sets.SetRecord.as_dict
     else if (topic === "envelopes") state.envelopes = value;
     else if (topic === "electrodes") state.electrodes = value;
+    else if (topic === "fatigue") state.fatigue = value;
   }
 }
 
@@ -150,6 +159,8 @@ function render() {
   renderDevices(frame);
   renderNodes();
   renderElectrodes(frame);
+  if (frame) renderTraces(method, frame);
+  renderFatigue(frame);
 }
 
 // Exercise, load and athlete from the operator's load event (the exercise falls back to the activation frames').
@@ -210,7 +221,7 @@ function renderBars(frame) {
       ] },
       options: {
         indexAxis: "y", animation: false, responsive: true, maintainAspectRatio: false,
-        scales: { x: { min: 0, max: 1, ticks: { callback: (v) => `${Math.round(v * 100)}%` } }, y: { ticks: { font: { size: 13 } } } },
+        scales: { x: { min: 0, max: 1, ticks: { font: { size: 15 }, color: "#1d2630", callback: (v) => `${Math.round(v * 100)}%` } }, y: { ticks: { font: { size: 18 }, color: "#1d2630" } } },
         plugins: { legend: { display: false }, tooltip: { enabled: true } },
       },
     });
@@ -293,6 +304,129 @@ function renderTorques(method) {
   for (const [coordinate, chart] of Object.entries(charts.torques)) chart.wrap.hidden = !(coordinate in history);
 }
 
+// ---- traces: the last 10 s of the chosen muscles -----------------------------------------------------------------
+function recordTraces(method, frame) {
+  const byGroup = (state.traces[method] = state.traces[method] || {});
+  frame.groups.forEach((g, i) => {
+    let h = byGroup[g];
+    if (!h || (h.t.length && frame.time_s < h.t[h.t.length - 1])) h = byGroup[g] = { t: [], a: [], lo: [], hi: [], e: [] };
+    const a = frame.activations[i], s = frame.std.length === frame.groups.length ? frame.std[i] : null;
+    h.t.push(frame.time_s);
+    h.a.push(a);
+    h.lo.push(a === null || s === null ? null : Math.max(0, a - s));
+    h.hi.push(a === null || s === null ? null : Math.min(1, a + s));
+    h.e.push(frame.envelope && frame.envelope.length === frame.groups.length ? frame.envelope[i] : null);
+    while (h.t.length && h.t[0] < frame.time_s - TRACE_WINDOW_S) for (const k of ["t", "a", "lo", "hi", "e"]) h[k].shift();
+  });
+}
+
+// The default muscles: the first ones with a measured envelope (an electrode), else the first of the pack.
+function tracedGroups(frame) {
+  if (state.traceGroups) return state.traceGroups.filter((g) => frame.groups.includes(g));
+  const measured = frame.groups.filter((g, i) => frame.envelope && frame.envelope[i] !== null && frame.envelope[i] !== undefined);
+  return (measured.length ? measured : frame.groups).slice(0, TRACE_DEFAULT_COUNT);
+}
+// A muscle in few words: "Deltoid, anterior part" -> "Deltoid anterior" (the full name in the tooltip).
+function shortName(group) {
+  const name = groupName(group), comma = name.indexOf(", ");
+  return comma > 0 ? `${name.slice(0, comma).split(" ")[0]} ${name.slice(comma + 2).split(" ")[0]}` : name;
+}
+
+function renderTraceChips(frame, chosen) {
+  const box = document.getElementById("trace-groups");
+  const key = frame.groups.join(",") + "|" + chosen.join(",") + "|" + (state.session ? JSON.stringify(state.session.names) : "");
+  if (box.dataset.key === key) return;
+  box.dataset.key = key;
+  box.replaceChildren(...frame.groups.map((g) => {
+    const chip = document.createElement("button");
+    chip.type = "button";
+    chip.className = "chip";
+    chip.dataset.group = g;
+    const k = chosen.indexOf(g);
+    if (k >= 0) { chip.classList.add("on"); chip.style.borderColor = chip.style.background = TRACE_COLOURS[k % TRACE_COLOURS.length]; }
+    chip.textContent = shortName(g);
+    chip.title = groupName(g);
+    chip.addEventListener("click", () => {
+      const now = tracedGroups(frame);
+      state.traceGroups = now.includes(g) ? now.filter((x) => x !== g) : [...now, g].slice(-TRACE_COLOURS.length);
+      scheduleRender();
+    });
+    return chip;
+  }));
+}
+
+function renderTraces(method, frame) {
+  const chosen = tracedGroups(frame);
+  renderTraceChips(frame, chosen);
+  const history = state.traces[method] || {};
+  let latest = -Infinity;
+  for (const g of chosen) { const h = history[g]; if (h && h.t.length) latest = Math.max(latest, h.t[h.t.length - 1]); }
+  const datasets = [];
+  chosen.forEach((g, k) => {
+    const h = history[g];
+    if (!h) return;
+    const colour = TRACE_COLOURS[k % TRACE_COLOURS.length];
+    const points = (values) => h.t.map((t, i) => ({ x: t - latest, y: values[i] === null ? null : 100 * values[i] }));
+    datasets.push(
+      { label: `${shortName(g)} −σ`, data: points(h.lo), borderWidth: 0, pointRadius: 0, fill: false, group: g },
+      { label: `${shortName(g)} ±σ`, data: points(h.hi), borderWidth: 0, pointRadius: 0, fill: "-1", backgroundColor: colour + "33", group: g },
+      { label: shortName(g), data: points(h.a), borderColor: colour, borderWidth: 2.5, pointRadius: 0, fill: false, group: g },
+    );
+    if (h.e.some((v) => v !== null)) {
+      datasets.push({ label: `${shortName(g)} EMG`, data: points(h.e), borderColor: colour, borderWidth: 2, borderDash: [6, 4], pointRadius: 0, fill: false, spanGaps: false, group: g });
+    }
+  });
+  if (!charts.traces) {
+    charts.traces = new Chart(document.getElementById("traces"), {
+      type: "line",
+      data: { datasets },
+      options: {
+        animation: false, responsive: true, maintainAspectRatio: false, parsing: false, normalized: true,
+        scales: {
+          x: { type: "linear", min: -TRACE_WINDOW_S, max: 0, ticks: { stepSize: 2, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v.toFixed(0)} s` } },
+          y: { min: 0, max: 100, ticks: { stepSize: 25, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v}%` } },
+        },
+        plugins: { legend: { display: false }, tooltip: { enabled: false } },
+      },
+    });
+    return;
+  }
+  charts.traces.data.datasets = datasets;
+  charts.traces.update("none");
+}
+
+// ---- fatigue: per electrode the median frequency of each rep and its trend over the set -------------------------
+function renderFatigue(frame) {
+  const order = frame ? frame.groups : [];
+  const rank = (e) => (order.includes(e.group) ? order.indexOf(e.group) : order.length);
+  const rows = [...state.fatigue].sort((a, b) => rank(a) - rank(b) || a.channel.localeCompare(b.channel)).map((e) => {
+    const tr = document.createElement("tr");
+    tr.dataset.channel = e.channel;
+    const reps = e.median_hz.length;
+    const last = reps ? e.median_hz[reps - 1] : null;
+    const change = e.median_change_pct;
+    tr.dataset.reps = reps;
+    tr.className = change !== null && change <= -10 ? "tiring" : "";
+    tr.title = `median frequency per rep (Hz): ${e.median_hz.map((v) => (v === null ? "–" : v.toFixed(0))).join(", ")}`
+      + (e.mean_change_pct === null ? "" : `; mean frequency ${e.mean_change_pct.toFixed(1)} % since the set's first reps`);
+    tr.innerHTML = `<td title="${escapeHtml(e.group ? groupName(e.group) : e.channel)}">${escapeHtml(e.group ? shortName(e.group) : e.channel)}</td><td>${reps}</td>`
+      + `<td>${fmt(last, 0, " Hz")}</td><td>${signedPercent(e.median_slope_pct_per_rep, 1)}</td>`
+      + `<td class="change">${signedPercent(change)}</td>`;
+    return tr;
+  });
+  document.querySelector("#fatigue tbody").replaceChildren(...rows);
+  const set = state.fatigue.length ? state.fatigue[0].set_number : 0;
+  document.getElementById("fatigue-set").textContent = set ? `set ${set}` : "";
+  document.getElementById("fatigue-panel").hidden = rows.length === 0;
+}
+
+// "+1.2 %", "−3 %", "0 %" (no "-0"); "–" for no value.
+function signedPercent(v, digits = 0) {
+  if (v === null || v === undefined) return "–";
+  const text = Math.abs(v).toFixed(digits);
+  return Number(text) === 0 ? `${text} %` : `${v > 0 ? "+" : "−"}${text} %`;
+}
+
 function fmt(v, digits = 1, unit = "") { return v === null || v === undefined ? "–" : `${v.toFixed(digits)}${unit}`; }
 
 function renderDevices(frame) {
@@ -342,8 +476,8 @@ function renderElectrodes(frame) {
     tr.dataset.state = e.state;
     tr.title = e.detail;
     const reasons = e.reasons.length ? ": " + e.reasons.join(", ") : "";
-    const muscle = e.group ? groupName(e.group) : "(no muscle)";
-    tr.innerHTML = `<td title="${escapeHtml(muscle)}">${escapeHtml(muscle)}</td>`
+    const muscle = e.group ? groupName(e.group) : "(no muscle)"; // in few words, the whole name in the tooltip
+    tr.innerHTML = `<td title="${escapeHtml(muscle)}">${escapeHtml(e.group ? shortName(e.group) : muscle)}</td>`
       + `<td class="hint">${escapeHtml(e.channel.split(".")[0])}</td>`
       + `<td class="q-${escapeHtml(e.state)}">${escapeHtml(e.state + reasons)}</td>`;
     return tr;
