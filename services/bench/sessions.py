@@ -12,10 +12,17 @@ the joints. All sessions join one ``msk router``. This process subscribes to eve
 * CPU per session: user + system time of the session's processes (/proc) over the measured window, in cores.
 
 Baseline: the same figures with one session, from the same run. N grows until a target fails (quick: N <= 2).
+
+Across hosts (as root, where ``ip netns`` works; said and skipped otherwise): one secured session on three network
+namespaces (services/bench/hosts.py: rack PC with the simulated devices, drivers, recorder and router; server with
+kinematics and estimator; tablet), its latencies and CPU per host in a steady window, then the faults between hosts
+(server's link down 3 s, tablet's link down 3 s, router restarted) with what the rack's recorder lost and how soon the
+estimator published again after each.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -26,6 +33,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -102,155 +110,240 @@ def _observe(zsession, observed: _Observed) -> list:
     ]
 
 
-def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0) -> dict[str, float]:
-    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures."""
+def _start_session(name: str, endpoint: str) -> list[subprocess.Popen]:
+    """One rack's processes: the Trigno simulator, ``msk drivers`` reading it, ``msk estimator`` (SO)."""
+    sim = _msk(
+        "sim", "trigno", "--from", "synthetic:120:7", "--port", "0", "--emg-port", "0", "--legacy-emg-port", "0",
+        "--aux-port", "0", "--legacy-acc-port", "-1",
+    )  # fmt: skip
+    ports_line = sim.stdout.readline() if sim.stdout is not None else ""  # _msk pipes stdout
+    ports = dict(re.findall(r"(command|emg) (\d+)", ports_line))
+    if "command" not in ports:
+        sim.kill()
+        raise RuntimeError("msk sim trigno did not report its ports")
+    client = ("--mode", "client", "--connect", endpoint)
+    estimator = _msk("estimator", "--pack", "bench_press", "--session", name, "--method", "so", *client)
+    drivers = _msk(
+        "drivers", "--session", name, "--trigno", f"127.0.0.1:{ports['command']}", "--trigno-emg-port", ports["emg"],
+        *client,
+    )  # fmt: skip
+    return [sim, drivers, estimator]
+
+
+def _wait_streaming(endpoint: str, observed: _Observed, names: list[str], timeout_s: float) -> None:
+    """Until every session streams EMG and every estimator has subscribed to its joints (it does once warmed up)."""
     from services.zenoh_session import ZenohOptions, has_subscribers, open_session
 
-    port = _free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    processes: list[subprocess.Popen] = []
-    per_session: dict[str, list[subprocess.Popen]] = {}
-    router = _msk("router", "--listen", endpoint)
-    processes.append(router)
-    try:
-        wait_until_listening(router, port)
-        observed = _Observed()
-        with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as zsession:
-            subscribers = _observe(zsession, observed)
-            for index in range(n_sessions):
-                name = f"bench{index}"
-                sim = _msk(
-                    "sim",
-                    "trigno",
-                    "--from",
-                    "synthetic:120:7",
-                    "--port",
-                    "0",
-                    "--emg-port",
-                    "0",
-                    "--legacy-emg-port",
-                    "0",
-                    "--aux-port",
-                    "0",
-                    "--legacy-acc-port",
-                    "-1",
-                )
-                processes.append(sim)
-                ports_line = sim.stdout.readline() if sim.stdout is not None else ""  # _msk pipes stdout
-                ports = dict(re.findall(r"(command|emg) (\d+)", ports_line))
-                if "command" not in ports:
-                    raise RuntimeError("msk sim trigno did not report its ports")
-                client = ("--mode", "client", "--connect", endpoint)
-                estimator = _msk("estimator", "--pack", "bench_press", "--session", name, "--method", "so", *client)
-                drivers = _msk(
-                    "drivers",
-                    "--session",
-                    name,
-                    "--trigno",
-                    f"127.0.0.1:{ports['command']}",
-                    "--trigno-emg-port",
-                    ports["emg"],
-                    *client,
-                )
-                processes += [estimator, drivers]
-                per_session[name] = [sim, drivers, estimator]
-            deadline = time.monotonic() + warm_up_timeout_s
-            replays = {}
-            with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as probe_session:
-                # an estimator subscribes once warmed up; our own subscribers are in the other session
-                probes = {name: probe_session.declare_publisher(f"msk/{name}/joints") for name in per_session}
-                while True:
-                    with observed.lock:
-                        streaming = len(observed.emg_next)
-                    waiting = [name for name, probe in probes.items() if not has_subscribers(probe)]
-                    if streaming == n_sessions and not waiting:
-                        break
-                    if time.monotonic() > deadline:
-                        raise RuntimeError(
-                            f"after {warm_up_timeout_s:.0f} s {streaming} of {n_sessions} sessions stream "
-                            f"EMG; estimators not subscribed yet: {waiting}"
-                        )
-                    time.sleep(0.1)
-                for probe in probes.values():
-                    probe.undeclare()
-            for name in per_session:
-                replay = _msk(
-                    "replay",
-                    str(DEMO),
-                    "--session",
-                    name,
-                    "--rate",
-                    "1",
-                    "--exclude",
-                    "msk/*/emg/**",
-                    "--mode",
-                    "client",
-                    "--connect",
-                    endpoint,
-                )
-                processes.append(replay)
-                per_session[name].append(replay)
-                replays[name] = replay
-            deadline = time.monotonic() + warm_up_timeout_s
+    deadline = time.monotonic() + timeout_s
+    with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as probe_session:
+        # our own subscribers are in the other session
+        probes = {name: probe_session.declare_publisher(f"msk/{name}/joints") for name in names}
+        while True:
             with observed.lock:
-                observed.measuring = True
-            while True:
-                with observed.lock:
-                    publishing = set(observed.activations)
-                    n_frames = len(observed.latencies_ns)
-                if len(publishing) == n_sessions and n_frames > 10 * n_sessions:
-                    break
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"after {warm_up_timeout_s:.0f} s only {sorted(publishing)} publish activations")
-                time.sleep(0.2)
-            time.sleep(2.0)  # first solves of each estimator (lazy caches) are not the steady state
-            with observed.lock:  # the measured window starts now
-                observed.latencies_ns.clear()
-                observed.joints.clear()
-                observed.activations.clear()
-                observed.emg_jumps = 0
-                lost_before = sum(observed.status_lost.values())
-            cpu0 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
-            wall0 = time.monotonic()
-            time.sleep(seconds)
-            for replay in replays.values():
-                replay.send_signal(signal.SIGINT)
-            cpu1 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
-            wall = time.monotonic() - wall0
-            time.sleep(1.5)  # frames in flight reach us
-            with observed.lock:
-                observed.measuring = False
-                latencies = np.asarray(observed.latencies_ns, dtype=float) / 1e6
-                joints_without_frame = sum(
-                    max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items()
+                streaming = len(observed.emg_next)
+            waiting = [name for name, probe in probes.items() if not has_subscribers(probe)]
+            if streaming == len(names) and not waiting:
+                break
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"after {timeout_s:.0f} s {streaming} of {len(names)} sessions stream "
+                    f"EMG; estimators not subscribed yet: {waiting}"
                 )
-                emg_lost = sum(observed.status_lost.values()) - lost_before
-                jumps = observed.emg_jumps
-            for subscriber in subscribers:
-                subscriber.undeclare()
-    finally:
-        for process in reversed(processes):
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        for process in reversed(processes):
-            try:
-                process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(10)
+            time.sleep(0.1)
+        for probe in probes.values():
+            probe.undeclare()
+
+
+def _replay(name: str, endpoint: str) -> subprocess.Popen:
+    """The demo's IMU, joint angles and load for session ``name`` at real time (its EMG comes from the Trigno)."""
+    return _msk(
+        "replay", str(DEMO), "--session", name, "--rate", "1", "--exclude", "msk/*/emg/**", "--mode", "client",
+        "--connect", endpoint,
+    )  # fmt: skip
+
+
+def _wait_publishing(observed: _Observed, n_sessions: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    with observed.lock:
+        observed.measuring = True
+    while True:
+        with observed.lock:
+            publishing = set(observed.activations)
+            n_frames = len(observed.latencies_ns)
+        if len(publishing) == n_sessions and n_frames > 10 * n_sessions:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"after {timeout_s:.0f} s only {sorted(publishing)} publish activations")
+        time.sleep(0.2)
+
+
+def _measure_window(
+    observed: _Observed, per_session: dict[str, list[subprocess.Popen]], seconds: float
+) -> dict[str, float]:
+    """``seconds`` of steady state: every latency, the joint frames without their activation frame, the EMG lost
+    (status and index jumps), CPU of each session's processes. Stops the replays at its end."""
+    time.sleep(2.0)  # first solves of each estimator (lazy caches) are not the steady state
+    with observed.lock:  # the measured window starts now
+        observed.latencies_ns.clear()
+        observed.joints.clear()
+        observed.activations.clear()
+        observed.emg_jumps = 0
+        lost_before = sum(observed.status_lost.values())
+    cpu0 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
+    wall0 = time.monotonic()
+    time.sleep(seconds)
+    for group in per_session.values():
+        group[-1].send_signal(signal.SIGINT)  # the replay
+    cpu1 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
+    wall = time.monotonic() - wall0
+    time.sleep(1.5)  # frames in flight reach us
+    with observed.lock:
+        observed.measuring = False
+        latencies = np.asarray(observed.latencies_ns, dtype=float) / 1e6
+        joints_without_frame = sum(max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items())
+        emg_lost = sum(observed.status_lost.values()) - lost_before
+        jumps = observed.emg_jumps
     cpu = [(cpu1[name] - cpu0[name]) / wall for name in per_session]
     return {
-        "sessions": n_sessions,
+        "sessions": len(per_session),
         "frames": int(latencies.size),
-        "p50_ms": float(np.percentile(latencies, 50)) if latencies.size else float("nan"),
-        "p99_ms": float(np.percentile(latencies, 99)) if latencies.size else float("nan"),
-        "max_ms": float(latencies.max()) if latencies.size else float("nan"),
+        **latency_figures(latencies),
         "frames_over_2ms": int((latencies > P99_TARGET_MS).sum()),
         "joint_frames_lost": int(joints_without_frame),
         "emg_samples_lost": int(emg_lost),
         "emg_index_jumps": int(jumps),
         "cpu_cores_per_session": float(np.mean(cpu)),
     }
+
+
+def latency_figures(latencies_ms: np.ndarray) -> dict[str, float]:
+    """p50, p99 and max of latencies in ms (NaN when there are none)."""
+    if not latencies_ms.size:
+        return {"p50_ms": float("nan"), "p99_ms": float("nan"), "max_ms": float("nan")}
+    return {
+        "p50_ms": float(np.percentile(latencies_ms, 50)),
+        "p99_ms": float(np.percentile(latencies_ms, 99)),
+        "max_ms": float(latencies_ms.max()),
+    }
+
+
+def _stop_all(processes: list[subprocess.Popen]) -> None:
+    for process in reversed(processes):
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in reversed(processes):
+        try:
+            process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(10)
+
+
+def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0) -> dict[str, float]:
+    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures."""
+    from services.zenoh_session import ZenohOptions, open_session
+
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = _msk("router", "--listen", endpoint)
+    processes: list[subprocess.Popen] = [router]
+    per_session: dict[str, list[subprocess.Popen]] = {}
+    try:
+        wait_until_listening(router, port)
+        observed = _Observed()
+        with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as zsession:
+            subscribers = _observe(zsession, observed)
+            for index in range(n_sessions):
+                group = _start_session(f"bench{index}", endpoint)
+                processes += group
+                per_session[f"bench{index}"] = group
+            _wait_streaming(endpoint, observed, list(per_session), warm_up_timeout_s)
+            for name, group in per_session.items():
+                group.append(_replay(name, endpoint))
+                processes.append(group[-1])
+            _wait_publishing(observed, n_sessions, warm_up_timeout_s)
+            figures = _measure_window(observed, per_session, seconds)
+            for subscriber in subscribers:
+                subscriber.undeclare()
+    finally:
+        _stop_all(processes)
+    return figures
+
+
+def measure_across_hosts(*, seconds: float, work: Path | None = None) -> dict[str, Any]:
+    """One secured session across three hosts (network namespaces, services/bench/hosts.py): ``seconds`` of steady
+    state (the estimator's input-to-output latency and the estimator-to-tablet delivery across the switch, frames,
+    CPU per host), then the faults between hosts (``hosts.run_faults``) and the counts after them."""
+    import tempfile
+
+    from services.bench import hosts
+
+    with tempfile.TemporaryDirectory(prefix="msk-hosts-") as scratch, hosts.Hosts() as made:
+        deployment = hosts.Deployment(made, Path(work or scratch))
+        try:
+            deployment.start()
+            time.sleep(2.0)  # first solves (lazy caches) are not the steady state
+            steady_from = time.time_ns()
+            cpu0 = _cpu_by_host(deployment)
+            wall0 = time.monotonic()
+            time.sleep(seconds)
+            cpu1 = _cpu_by_host(deployment)
+            wall = time.monotonic() - wall0
+            steady_to = time.time_ns()
+            faults = hosts.run_faults(deployment)
+        finally:
+            logs = deployment.stop()
+        figures = hosts.outcome(deployment, faults, logs)
+        frames = [m for t, m in deployment.tablet.frames(steady_from) if t <= steady_to]
+    latencies = np.asarray([int(m["publish_ns"]) - int(m["input_arrival_ns"]) for m in frames], dtype=float) / 1e6
+    figures["steady"] = {
+        "seconds": seconds,
+        "frames_at_tablet": len(frames),
+        **latency_figures(latencies),
+        **{f"cpu_{host}_cores": (cpu1[host] - cpu0[host]) / wall for host in cpu0},
+    }
+    return figures
+
+
+def _cpu_by_host(deployment: Any) -> dict[str, float]:
+    used: dict[str, float] = {}
+    for process in deployment.processes.values():
+        used[process.host] = used.get(process.host, 0.0) + _cpu_seconds(process.popen.pid)
+    return used
+
+
+def _hosts_results(figures: dict[str, Any]) -> list[BenchResult]:
+    steady = figures["steady"]
+    faults = {f["fault"].split(" ")[0]: f for f in figures["faults"]}
+    return [
+        BenchResult(
+            name="across hosts: p99 estimator latency (secured, 3 namespaces)",
+            value=steady["p99_ms"],
+            unit="ms",
+            target=f"<= {P99_TARGET_MS} ms",
+            passed=steady["p99_ms"] <= P99_TARGET_MS,
+            details={k: v for k, v in steady.items() if isinstance(v, float)}
+            | {f"network_{k}": v for k, v in figures["network_latency"].items()},
+        ),
+        BenchResult(
+            name="across hosts: estimator resumed after the server's link came back",
+            value=faults["server"]["resume_s"],
+            unit="s",
+            target="<= 2 s, and the rack's recorder lost nothing",
+            passed=faults["server"]["resume_s"] <= 2.0 and faults["server"]["emg_samples_missing"] == 0,
+            details={
+                f"{name}_{k}": v for name, f in faults.items() for k, v in f.items() if isinstance(v, (int, float))
+            },
+        ),
+        BenchResult(
+            name="across hosts: EMG samples the rack's recorder holds of those published",
+            value=float(figures["emg_samples"]),
+            unit="samples",
+            baseline_name="published",
+            baseline_value=float(figures["emg_published"]),
+            details={"missing_after_router_restart": faults["router"]["emg_samples_missing"]},
+        ),
+    ]
 
 
 def _ok(figures: dict) -> bool:
@@ -305,4 +398,18 @@ def run(*, quick: bool = False) -> list[BenchResult]:
             baseline_value=one["cpu_cores_per_session"],
             details={f"cpu@{f['sessions']}": f["cpu_cores_per_session"] for f in runs},
         ),
+        *_across_hosts(seconds),
     ]
+
+
+def _across_hosts(seconds: float) -> list[BenchResult]:
+    """The across-hosts figures, or none (said why) where network namespaces cannot be made."""
+    from services.bench import hosts
+
+    reason = hosts.unavailable()
+    if reason is not None:
+        print(f"    across hosts: not run ({reason})", flush=True)
+        return []
+    figures = measure_across_hosts(seconds=seconds)
+    print("    across hosts: " + json.dumps(figures, default=str), flush=True)
+    return _hosts_results(figures)
