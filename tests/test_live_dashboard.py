@@ -20,6 +20,9 @@ from tests.test_live_together import REPO, LiveProcess, _environment, _msk
 
 FACTS = "() => ['exercise', 'load', 'set'].map(id => document.getElementById(id).textContent)"
 BOX = "(s) => { const r = document.querySelector(s).getBoundingClientRect(); return {x: r.x, y: r.y, width: r.width, height: r.height}; }"
+OVERLAY = """() => { const d = window.mskDashboard.charts.traces.data.datasets, xs = d.flatMap((s) => s.data.map((p) => p.x));
+  return {reps: d.length, x: [Math.min(...xs), Math.max(...xs)], scale: window.mskDashboard.charts.traces.options.scales.x.max}; }"""
+OVERLAID = f"() => {{ const o = ({OVERLAY})(); return o.scale === 100 && o.reps >= 1; }}"
 #: What a coach reads from the rack: bar labels, traces, electrodes, fatigue, and the sizes they are drawn at.
 COACH = """() => {
   const c = window.mskDashboard.charts, s = window.mskDashboard.state;
@@ -86,6 +89,13 @@ def _coach_view(page, screenshots: Path) -> None:
     assert page.screenshot(clip=traces) != first, "the traces did not move in 1 s"
     assert [t[2] for t in later["traces"]] != [t[2] for t in view["traces"]], (view["traces"], later["traces"])
     page.screenshot(path=str(screenshots / "dashboard-traces-fatigue.png"), clip=page.evaluate(BOX, ".panel.side"))
+    # the other mode: the set's reps overlaid on rep time (0-100 %), each chosen muscle in its colour
+    page.click("#trace-reps")
+    page.wait_for_function(OVERLAID, timeout=10000)
+    overlay = page.evaluate(OVERLAY)
+    assert overlay["x"][0] >= 0 and overlay["x"][1] <= 100 and overlay["reps"] >= 1, overlay
+    page.screenshot(path=str(screenshots / "dashboard-rep-overlay.png"), clip=page.evaluate(BOX, "#traces"))
+    page.click("#trace-time")
     print("coach view:", json.dumps({k: later[k] for k in ("labels", "chips", "electrodes", "fatigue")}))
 
 

@@ -24,6 +24,10 @@ const TRACE_COLOURS = ["#1f5fbf", "#d9480f", "#2b8a3e", "#862e9c", "#c2255c", "#
 state.traces = {}; // method -> group -> {t: [], a: [], lo: [], hi: [], e: []}
 state.traceGroups = null; // the muscles traced (null: the default, those with an electrode)
 state.fatigue = []; // each EMG electrode's fatigue index over the set (the estimator's status)
+// The traces' other mode: the set's last REP_OVERLAY_COUNT reps overlaid on normalised rep time (the phase, 0-100 %).
+const REP_OVERLAY_COUNT = 6;
+state.traceMode = "time"; // "time": the last 10 s; "reps": the reps overlaid
+state.repOverlay = {}; // method -> {set, lastPhase, reps: [{group: [{x: phase %, y: activation %}]}]}
 function activationColour(v) {
   if (v === null || v === undefined || Number.isNaN(v)) return "#b8bec7";
   v = Math.min(Math.max(v, 0), 1);
@@ -80,6 +84,7 @@ function merge(update) {
       state.activations[method] = value;
       recordTorques(method, value);
       recordTraces(method, value);
+      recordRepOverlay(method, value);
     } else if (topic === "joints") state.joints = value;
     else if (topic === "load") state.load = value;
     else if (topic === "session") state.session = value;
@@ -320,6 +325,41 @@ function recordTraces(method, frame) {
   });
 }
 
+// A rep starts where the phase enters [0, 1) or wraps (the rule of msk_core.signal.reps.PhaseRepCounter); a new set
+// (the set number of the reps entry) starts the overlay again.
+function recordRepOverlay(method, frame) {
+  const o = (state.repOverlay[method] = state.repOverlay[method] || { set: null, lastPhase: null, reps: [] });
+  const set = state.reps ? state.reps.set : null;
+  if (set !== o.set) { o.set = set; o.reps = []; o.lastPhase = null; }
+  const p = frame.phase;
+  if (p === null || p === undefined || p < 0) { o.lastPhase = null; return; }
+  if (o.lastPhase === null || p < o.lastPhase - 0.5) {
+    o.reps.push({});
+    if (o.reps.length > REP_OVERLAY_COUNT) o.reps.shift();
+  }
+  o.lastPhase = p;
+  const rep = o.reps[o.reps.length - 1];
+  frame.groups.forEach((g, i) => {
+    if (frame.activations[i] !== null) (rep[g] = rep[g] || []).push({ x: 100 * p, y: 100 * frame.activations[i] });
+  });
+}
+
+// The chosen muscles' reps, each in its muscle's colour, older reps fainter and thinner.
+function repOverlayDatasets(method, chosen) {
+  const o = state.repOverlay[method];
+  if (!o) return [];
+  const n = o.reps.length, out = [];
+  chosen.forEach((g, k) => {
+    const colour = TRACE_COLOURS[k % TRACE_COLOURS.length];
+    o.reps.forEach((rep, r) => {
+      if (!rep[g]) return;
+      const alpha = Math.round(255 * (0.2 + 0.8 * (r + 1) / n)).toString(16).padStart(2, "0");
+      out.push({ label: `${shortName(g)} rep ${r + 1 - n}`, data: rep[g], borderColor: colour + alpha, borderWidth: r === n - 1 ? 3 : 1.5, pointRadius: 0, fill: false, group: g });
+    });
+  });
+  return out;
+}
+
 // The default muscles: the first ones with a measured envelope (an electrode), else the first of the pack.
 function tracedGroups(frame) {
   if (state.traceGroups) return state.traceGroups.filter((g) => frame.groups.includes(g));
@@ -358,6 +398,7 @@ function renderTraceChips(frame, chosen) {
 function renderTraces(method, frame) {
   const chosen = tracedGroups(frame);
   renderTraceChips(frame, chosen);
+  if (state.traceMode === "reps") { drawTraces(repOverlayDatasets(method, chosen)); return; }
   const history = state.traces[method] || {};
   let latest = -Infinity;
   for (const g of chosen) { const h = history[g]; if (h && h.t.length) latest = Math.max(latest, h.t[h.t.length - 1]); }
@@ -376,23 +417,40 @@ function renderTraces(method, frame) {
       datasets.push({ label: `${shortName(g)} EMG`, data: points(h.e), borderColor: colour, borderWidth: 2, borderDash: [6, 4], pointRadius: 0, fill: false, spanGaps: false, group: g });
     }
   });
+  drawTraces(datasets);
+}
+
+// The one chart of both modes: x in s before the newest frame, or in % of the rep.
+function drawTraces(datasets) {
+  const reps = state.traceMode === "reps";
+  const x = reps
+    ? { type: "linear", min: 0, max: 100, ticks: { stepSize: 25, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v}%` } }
+    : { type: "linear", min: -TRACE_WINDOW_S, max: 0, ticks: { stepSize: 2, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v.toFixed(0)} s` } };
   if (!charts.traces) {
     charts.traces = new Chart(document.getElementById("traces"), {
       type: "line",
       data: { datasets },
       options: {
         animation: false, responsive: true, maintainAspectRatio: false, parsing: false, normalized: true,
-        scales: {
-          x: { type: "linear", min: -TRACE_WINDOW_S, max: 0, ticks: { stepSize: 2, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v.toFixed(0)} s` } },
-          y: { min: 0, max: 100, ticks: { stepSize: 25, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v}%` } },
-        },
+        scales: { x, y: { min: 0, max: 100, ticks: { stepSize: 25, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v}%` } } },
         plugins: { legend: { display: false }, tooltip: { enabled: false } },
       },
     });
     return;
   }
+  if (charts.traces.mode !== state.traceMode) { charts.traces.options.scales.x = x; charts.traces.mode = state.traceMode; }
   charts.traces.data.datasets = datasets;
   charts.traces.update("none");
+}
+for (const mode of ["time", "reps"]) {
+  document.getElementById(`trace-${mode}`).addEventListener("click", () => {
+    state.traceMode = mode;
+    for (const other of ["time", "reps"]) document.getElementById(`trace-${other}`).classList.toggle("on", other === mode);
+    document.getElementById("trace-hint").textContent = mode === "reps"
+      ? `the set's last ${REP_OVERLAY_COUNT} reps on rep time, the newest bold`
+      : "line estimate, shade ± uncertainty, dashed measured EMG envelope";
+    scheduleRender();
+  });
 }
 
 // ---- fatigue: per electrode the median frequency of each rep and its trend over the set -------------------------
