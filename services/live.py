@@ -52,6 +52,7 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
     from drivers.trigno.source import EmgSource
     from drivers.xsens.simulator import XsensSimulator
     from drivers.xsens.source import ImuSource
+    from services.sim_sets import SimSets
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RECORDINGS = REPO_ROOT / "recordings"
@@ -76,6 +77,11 @@ class SimSources:
     load_kg: float
     trial: str  # its name, as the bundled recordings' folder (``<exercise>_<load>kg``) holding its truth
     exercise: str = ""  # the pack
+    rep_ends_s: tuple[float, ...] = ()  # the end of each of the trial's reps (s from its start; its joint phase)
+    lead_s: float = 0.0  # the trial's static start, before its first rep (s)
+    schedule: tuple[tuple[float, float], ...] = ()  # sets: one cycle as (trial start, duration); () the trial loops
+    sets: SimSets | None = None  # what the cycle plays (services.sim_sets.with_sets); None: the trial loops
+    trial_loop_s: float = 0.0  # with sets: the trial's own length (s), which the cycle's segments cut
 
 
 def sim_sources(recording: Path, pack: str) -> SimSources:
@@ -194,7 +200,26 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
         }
         trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
     electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(labels)}
-    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg", pack)
+    rep_ends, lead = trial_reps(joints, emg_start)
+    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg", pack, rep_ends, lead)
+
+
+def trial_reps(joints: list, start_ns: int) -> tuple[tuple[float, ...], float]:
+    """(the end of each rep, the static start before the first) in s from ``start_ns``, from the recorded joint
+    frames' phase, counted by the one segmenter (msk_core.signal.reps.phase_rep_spans); a rep ends at the next
+    one's first sample (the trial's reps follow each other without rest) or one frame after its last."""
+    from msk_core.signal.reps import phase_rep_spans
+
+    t = np.array([(j.device_time_ns - start_ns) / 1e9 for j in joints])
+    phase = np.array([j.phase if j.HasField("phase") else math.nan for j in joints])
+    if t.size < 3 or not np.any(np.isfinite(phase)):
+        return (), 0.0
+    spans = phase_rep_spans(t, phase)
+    if not spans:
+        return (), 0.0
+    step = float(np.median(np.diff(t)))
+    ends = [a for a, _ in spans[1:]] + [spans[-1][1] + step]
+    return tuple(ends), spans[0][0]
 
 
 def electrode_accelerations(
@@ -252,12 +277,16 @@ class Simulators:
     clock: TrialClock
     trial: str = ""  # SimSources.trial
     exercise: str = ""  # SimSources.exercise
+    schedule: tuple[tuple[float, float], ...] = ()  # SimSources.schedule: sets with rests; () the trial loops
+    trial_loop_s: float = 0.0  # SimSources.trial_loop_s
 
     def world(self) -> dict:
         """The trial clock as ``summary.json`` states it (``trial_clock``), so that a frame's host time says which
         instant of the trial it is: the trial's sample 0 was measured at ``origin_ns`` (host time, ns since the
         epoch, as every mapped time of the session) and the trial loops every ``loop_s``: trial time = (host time -
-        origin) x speed, modulo the loop. Empty while no device has started streaming."""
+        origin) x speed, modulo the loop. With sets (``schedule``: one cycle of set and rest as [trial start,
+        duration] segments, ``cycle_s`` long) the cycle repeats instead, and a moment of it is the trial instant of
+        its segment (services.live_scoring.SimWorld). Empty while no device has started streaming."""
         if self.clock.start is None:
             return {}
         realtime_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
@@ -265,9 +294,16 @@ class Simulators:
             "exercise": self.exercise,
             "trial": self.trial,
             "origin_ns": round(self.clock.start * 1e9) + realtime_minus_monotonic_ns,
-            "loop_s": self.trigno.source.n_samples / self.trigno.source.rate_hz,
+            "loop_s": self.trial_loop_s or self.trigno.source.n_samples / self.trigno.source.rate_hz,
             "speed": self.trigno.config.speed,  # trial seconds per host second
-        }
+        } | (
+            {
+                "schedule": [list(segment) for segment in self.schedule],
+                "cycle_s": self.trigno.source.n_samples / self.trigno.source.rate_hz,
+            }
+            if self.schedule
+            else {}
+        )
 
     def hold(self) -> None:
         self.trigno.hold()
@@ -365,7 +401,7 @@ def start_simulators(
         for sim in xsens.values():
             sim.close()
         raise
-    return Simulators(trigno, xsens, clock, sources.trial, sources.exercise)
+    return Simulators(trigno, xsens, clock, sources.trial, sources.exercise, sources.schedule, sources.trial_loop_s)
 
 
 # ------------------------------------------------------------------------------------------------ subject
@@ -1125,10 +1161,14 @@ def stop_in_order(
     return codes
 
 
-def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) -> tuple[LivePlan, Simulators | None]:
-    """The graph's plan and, with ``sim``, the started simulators (the Trigno injecting ``sim_faults``)."""
+def plan_for(
+    session: LiveSession, *, sim: bool, log, sim_faults: tuple = (), sim_sets: SimSets | None = None
+) -> tuple[LivePlan, Simulators | None]:
+    """The graph's plan and, with ``sim``, the started simulators (the Trigno injecting ``sim_faults``), playing
+    ``sim_sets`` (default :class:`services.sim_sets.SimSets`: sets of 9 reps with 30 s rests)."""
     from msk_core.imu.mapping import mapping_for
     from msk_core.model import load_pack
+    from services.sim_sets import SimSets, with_sets
 
     if sim_faults and not sim:
         raise ConfigError(
@@ -1141,7 +1181,7 @@ def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) ->
     segments = list(mapping_for(model.name).segments)
     simulators = None
     if sim:
-        sources = sim_sources(RECORDINGS / "demo_session.mcap", model.name)
+        sources = with_sets(sim_sources(RECORDINGS / "demo_session.mcap", model.name), sim_sets or SimSets())
         subject = session.subject or sim_subject(model.name, log)
         if "session.load_kg" not in session.given:
             session.load_kg = sources.load_kg
@@ -1197,6 +1237,12 @@ def plan_for(session: LiveSession, *, sim: bool, log, sim_faults: tuple = ()) ->
             f"{sum(sources.emg.paired)} sensors), Xsens "
             + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}" for t, seg in trackers.items())
             + f"; streaming the bundled {sources.trial} trial"
+            + (
+                f" as sets of {sources.sets.reps} rep{'s' if sources.sets.reps != 1 else ''} with "
+                f"{sources.sets.rest_s:g} s rests"
+                if sources.sets is not None
+                else " in a loop"
+            )
         )
         for fault in sim_faults:
             label = f"sensor{fault.sensor:02d}.EMG"
@@ -1238,17 +1284,18 @@ def main(
     listen: str | None = None,
     pki: Path | None = None,
     sim_faults: tuple = (),
+    sim_sets: SimSets | None = None,
 ) -> dict:
     """``listen``: the loopback endpoint of the graph (default :func:`default_live_endpoint`); ``pki``: a folder
     written by ``msk certs``, for the secured mode; ``sim_faults``: electrode faults the simulated Trigno injects
-    (:class:`drivers.trigno.simulator.SensorFault`, with ``sim``)."""
+    (:class:`drivers.trigno.simulator.SensorFault`, with ``sim``); ``sim_sets``: the sets the simulators play."""
     if pki is not None and listen is not None:
         raise ConfigError(
             "the secured mode picks its own TLS endpoint; give --pki or --listen, not both",
             field="--listen",
             value=listen,
         )
-    plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults))
+    plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
     try:
         summary = run_graph(
             plan,

@@ -192,13 +192,16 @@ LAG_STEP_S = 0.001
 class SimWorld:
     """The trial clock of a ``msk live --sim`` run as ``summary.json`` states it (``trial_clock``, written by
     :meth:`services.live.Simulators.world`): the trial's sample 0 was measured at host time ``origin_ns``, and the
-    trial loops every ``loop_s``."""
+    trial loops every ``loop_s``; with sets (``msk live --sim`` plays sets with rests, services.sim_sets) a cycle of
+    ``cycle_s`` repeats instead, ``schedule`` its (trial start, duration) segments."""
 
     exercise: str
     trial: str
     origin_ns: int
     loop_s: float
     speed: float = 1.0
+    schedule: tuple[tuple[float, float], ...] = ()
+    cycle_s: float = 0.0
 
     @classmethod
     def from_summary(cls, summary: dict, path: Path | None = None) -> SimWorld:
@@ -214,11 +217,15 @@ class SimWorld:
                 int(world["origin_ns"]),
                 float(world["loop_s"]),
                 float(world.get("speed", 1.0)),
+                tuple((float(a), float(d)) for a, d in world.get("schedule", ())),
+                float(world.get("cycle_s", 0.0)),
             )
         except (KeyError, TypeError, ValueError) as error:
             raise InputError(f"malformed trial clock ({error})", path=path, field="trial_clock", value=world) from None
         if not (made.loop_s > 0 and made.speed > 0):
             raise InputError("loop and speed must be positive", path=path, field="trial_clock", value=world)
+        if made.schedule and abs(sum(d for _, d in made.schedule) - made.cycle_s) > 1e-6:
+            raise InputError("the schedule's segments do not fill the cycle", path=path, field="trial_clock")
         return made
 
     def trial_s(self, host_ns) -> np.ndarray:
@@ -226,7 +233,14 @@ class SimWorld:
         clock): (host - origin) x speed, modulo the loop. The devices' stated latencies are already off (the clock
         mappings take them off), so nothing else is subtracted."""
         elapsed_ns = np.asarray(host_ns, dtype=np.int64) - np.int64(self.origin_ns)
-        return np.mod(elapsed_ns / 1e9 * self.speed, self.loop_s)
+        if not self.schedule:
+            return np.mod(elapsed_ns / 1e9 * self.speed, self.loop_s)
+        # sets: the moment of the cycle, then the trial instant its segment plays
+        moment = np.mod(elapsed_ns / 1e9 * self.speed, self.cycle_s)
+        starts = np.cumsum([0.0] + [d for _, d in self.schedule[:-1]])
+        k = np.clip(np.searchsorted(starts, moment, side="right") - 1, 0, len(self.schedule) - 1)
+        trial_starts = np.array([a for a, _ in self.schedule])
+        return np.mod(trial_starts[k] + (moment - starts[k]), self.loop_s)
 
 
 def looped(truth: Storage, columns: list[str], trial_s: np.ndarray, loop_s: float) -> np.ndarray:

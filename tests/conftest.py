@@ -24,6 +24,7 @@ LIVE_SESSION_MODULES = frozenset(
         "test_sim_clock",
         "test_live_clock_acc",
         "test_live_electrode_quality",
+        "test_live_sets",
     }
 )
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from msk_core.errors import ConfigError
+from services.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
 
 #: ``msk live``'s exit code when a node of the session failed (2: a bad session file or option, before the start)
 EXIT_NODE_FAILED = 3
@@ -47,6 +48,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="with --sim: the simulated Trigno injects an electrode fault, KIND lift_off, hum, "
         "saturation or flat, on sensor SENSOR from START to END s after it starts streaming "
         "(repeatable; e.g. 5:hum:20-30; docs/live.md)",
+    )
+    parser.add_argument(
+        "--sim-reps",
+        type=int,
+        default=DEFAULT_REPS,
+        metavar="N",
+        help=f"with --sim: reps per set (default {DEFAULT_REPS}; 0: the trial loops without rests)",
+    )
+    parser.add_argument(
+        "--sim-rest",
+        type=float,
+        default=DEFAULT_REST_S,
+        metavar="SECONDS",
+        help=f"with --sim: rest between sets, the athlete still at the start pose (default {DEFAULT_REST_S:g})",
     )
     parser.add_argument(
         "--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: Ctrl-C)"
@@ -94,6 +109,9 @@ def run(args: argparse.Namespace) -> int:
     from drivers.trigno.simulator import SensorFault
 
     faults = tuple(SensorFault.parse(text) for text in args.sim_fault)
+    from services.sim_sets import SimSets
+
+    sets = SimSets(reps=args.sim_reps, rest_s=args.sim_rest)
     summary = live.main(
         session,
         sim=args.sim,
@@ -102,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
         listen=args.listen,
         pki=args.pki,
         sim_faults=faults,
+        sim_sets=sets,
     )
     failures = node_failures(summary, session.out / "logs")
     for failure in failures:
