@@ -85,7 +85,9 @@ def test_report_of_a_recording_with_sets(tmp_path):
     assert figures["peak"] == pytest.approx([0.8, 0.1], abs=0.02)  # over the reps: B's 0.9 at rest not counted
     assert figures["mean"][0] == pytest.approx(0.5, abs=0.02) and figures["mean"][1] == pytest.approx(0.1)
     page = (tmp_path / "out" / "report.html").read_text()
-    table = page[page.index("<section class='sets'>") :].split("</section>")[0]
-    assert table.count("<tr>") == 1 + 3  # the header and one row per set
-    assert "A: peak / mean %" in table and "<td>79 / 49</td>" in table and "<td>rest</td>" in table
+    section = page[page.index("<section class='sets'>") :].split("</section>")[0]
+    table, muscles = section.split("</table>")[:2]
+    assert table.count("<tr>") == 1 + 3 and "<td>rest</td>" in table  # the header and one row per set
+    assert "<th>set 1</th><th>set 2</th><th>set 3</th>" in muscles  # per muscle (rows), the sets side by side
+    assert "<tr><td>A</td><td>79 / 49</td>" in muscles
     assert json.loads((tmp_path / "out" / "report.json").read_text())["sets"][2]["set"]["reps"] == 1

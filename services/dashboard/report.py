@@ -660,40 +660,61 @@ def _table(headers: list[str], rows: list[list[str]]) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
+#: Sets side by side in one table of the per-set muscle figures (more: the table is split), so it fits 1200 px.
+SETS_PER_TABLE = 8
+
+
 def sets_html(sets: list[dict]) -> str:
-    """The table of sets, one row per set (one table per muscle set of the sets' packs): reps, time under tension,
-    duration, how the set ended, and per muscle group its peak / mean activation % over the set's reps."""
+    """The table of sets, one row per set: reps, time under tension, duration and how the set ended; then, per
+    exercise's muscle groups, the peak / mean activation % of each group (rows) in each set (columns, at most
+    :data:`SETS_PER_TABLE` a table) over the set's reps."""
+    rows = [
+        [
+            html.escape(r["name"]),
+            str(len(r["reps"])),
+            f"{r['time_under_tension_s']:.1f}",
+            f"{r['end_s'] - r['start_s']:.1f}",
+            html.escape(r["set"]["ended_by"] if r.get("set") is not None else "load event"),
+        ]
+        for r in sets
+    ]
+    parts = [
+        "<section class='sets'><h2>Sets</h2>",
+        _table(["set", "reps", "time under tension (s)", "duration (s)", "ended by"], rows),
+    ]
     by_groups: dict[tuple[str, ...], list[dict]] = {}
     for result in sets:
         by_groups.setdefault(tuple(result["groups"]), []).append(result)
-    parts = ["<section class='sets'><h2>Sets</h2>"]
     for groups, results in by_groups.items():
         names: DisplayNames = results[0]["_names"]
-        headers = ["set", "reps", "under tension (s)", "duration (s)", "ended"]
-        headers += [f"{names.group(g)}: peak / mean %" for g in groups]
-        rows = []
-        for r in results:
-            figures = r.get("set")
-            if figures is not None and figures["groups"]:
-                by = dict(zip(figures["groups"], zip(figures["peak"], figures["mean"])))
-            else:  # no phase: the primary method's figures over the whole set
-                by = {g: (v["set_peak"], v["set_mean"]) for g, v in r["methods"][r["primary"]]["groups"].items()}
-            cells = [
-                html.escape(r["name"]),
-                str(len(r["reps"])),
-                f"{r['time_under_tension_s']:.1f}",
-                f"{r['end_s'] - r['start_s']:.1f}",
-                html.escape(figures["ended_by"] if figures is not None else "load event"),
+        figures = [_set_figures(r) for r in results]
+        for k in range(0, len(results), SETS_PER_TABLE):
+            chunk = range(k, min(k + SETS_PER_TABLE, len(results)))
+            headers = ["muscle"] + [f"set {results[i]['set_number'] or results[i]['index']}" for i in chunk]
+            table = [
+                [html.escape(names.group(g))]
+                + [
+                    f"{_pct(figures[i].get(g, (None, None))[0])} / {_pct(figures[i].get(g, (None, None))[1])}"
+                    for i in chunk
+                ]
+                for g in groups
             ]
-            cells += [f"{_pct(by.get(g, (None, None))[0])} / {_pct(by.get(g, (None, None))[1])}" for g in groups]
-            rows.append(cells)
-        parts.append(_table(headers, rows))
+            parts.append("<h3>Peak / mean activation per set (%)</h3>" + _table(headers, table))
     parts.append(
         "<p class='note'>Peak / mean: activation of each muscle group over the frames inside the set's reps (under "
-        "tension), of the method the report details. A set ends by the operator (ended: operator), when the next starts, "
-        "by rest detection (rest: no rep for the session's rest time) or at the end of the recording.</p></section>"
+        "tension), of the method the report details. A set ends by the operator, when the next starts, by rest "
+        "detection (rest: no rep for the session's rest time) or at the end of the recording.</p></section>"
     )
     return "".join(parts)
+
+
+def _set_figures(result: dict) -> dict[str, tuple[float | None, float | None]]:
+    """Per group, (peak, mean) activation of a set: the SetTracker's over its reps, else (no phase) the primary
+    method's over the whole set."""
+    figures = result.get("set")
+    if figures is not None and figures["groups"]:
+        return dict(zip(figures["groups"], zip(figures["peak"], figures["mean"])))
+    return {g: (v["set_peak"], v["set_mean"]) for g, v in result["methods"][result["primary"]]["groups"].items()}
 
 
 def set_html(result: dict, plots: list[str]) -> str:
