@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -204,3 +205,20 @@ class BadInputs:
 
 
 BAD_INPUT_TOPICS = ["activations/so", "status/trigno", "load", "joints"]
+
+
+def chromium_trusting(ca: Path, home: Path) -> dict[str, str] | None:
+    """An environment whose HOME holds an NSS store trusting ``ca`` (Chromium on Linux reads $HOME/.pki/nssdb);
+    None when NSS's certutil is missing."""
+    certutil = shutil.which("certutil")
+    if certutil is None:
+        return None
+    store = home / ".pki" / "nssdb"
+    store.mkdir(parents=True)
+    subprocess.run([certutil, "-d", f"sql:{store}", "-N", "--empty-password"], check=True, capture_output=True)
+    subprocess.run(
+        [certutil, "-d", f"sql:{store}", "-A", "-t", "C,,", "-n", "msk-live CA", "-i", str(ca)],
+        check=True,
+        capture_output=True,
+    )
+    return {**os.environ, "HOME": str(home)}

@@ -12,8 +12,6 @@ import contextlib
 import http.client
 import io
 import json
-import os
-import shutil
 import ssl
 import subprocess
 import sys
@@ -208,29 +206,12 @@ def test_a_tablet_token_opens_the_page_and_live_data_until_revoked(secured):
     assert _get(pki, port, url.split(str(port), 1)[1])[0] == 401  # the URL itself no longer logs in
 
 
-def _chromium_trusting(ca: Path, home: Path) -> dict[str, str] | None:
-    """An environment whose HOME holds an NSS store trusting ``ca`` (Chromium on Linux reads $HOME/.pki/nssdb);
-    None when NSS's certutil is missing."""
-    certutil = shutil.which("certutil")
-    if certutil is None:
-        return None
-    store = home / ".pki" / "nssdb"
-    store.mkdir(parents=True)
-    subprocess.run([certutil, "-d", f"sql:{store}", "-N", "--empty-password"], check=True, capture_output=True)
-    subprocess.run(
-        [certutil, "-d", f"sql:{store}", "-A", "-t", "C,,", "-n", "msk-live CA", "-i", str(ca)],
-        check=True,
-        capture_output=True,
-    )
-    return {**os.environ, "HOME": str(home)}
-
-
 def test_chromium_sees_the_session_only_with_a_token(secured, tmp_path):
-    from tests.dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, require_chromium
+    from tests.dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, chromium_trusting, require_chromium
 
     require_chromium()
     pki, port = secured
-    environment = _chromium_trusting(pki / "ca.pem", tmp_path / "home")
+    environment = chromium_trusting(pki / "ca.pem", tmp_path / "home")
     if environment is None:
         pytest.skip(
             "NSS's certutil is missing (apt-get install libnss3-tools): Chromium cannot be made to trust the CA"

@@ -7,13 +7,18 @@ what the estimator got and published after each fault, what the tablet received.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import re
+import time
+from pathlib import Path
 
 import pytest
 
 from services.bench import hosts
+from services.cli import main
 
 pytestmark = pytest.mark.slow
 
@@ -32,13 +37,15 @@ def deployment(tmp_path):
     assert not left, f"namespaces left behind: {left}"
 
 
-def test_secured_deployment_across_hosts_survives_link_and_router_faults(deployment):
+def test_secured_deployment_across_hosts_survives_link_and_router_faults(deployment, tmp_path):
     try:
         deployment.start()
         faults = hosts.run_faults(deployment, down_s=3.0, settle_s=2.0, timeout_s=RESUME_BOUND_S)
+        browser_from = time.time_ns()  # Chromium's start takes the cores: latencies are reported before it
+        browser = _tablet_browser(deployment, tmp_path)
     finally:
         logs = deployment.stop()
-    result = hosts.outcome(deployment, faults, logs)
+    result = hosts.outcome(deployment, faults, logs, until_ns=browser_from)
     print(json.dumps(result, indent=1))
     server, tablet, router = result["faults"]
     assert result["emg_published"] > 0 and result["imu_published"] > 0, logs.get("drivers")
@@ -66,3 +73,48 @@ def test_secured_deployment_across_hosts_survives_link_and_router_faults(deploym
     assert int(counted.group(3)) >= router["emg_samples_missing"] and int(counted.group(1)) > 0, result
     # the tablet's role reads activations and status only, and got them across the switch
     assert result["frames_at_tablet"] > 0 and result["statuses_at_tablet"] > 0
+    # the dashboard on the rack PC, from the tablet's browser: nothing without a token, the live session with one
+    print(f"browser on the tablet: {browser}")
+    if "skipped" not in browser:
+        assert browser["without_token"] == 401 and browser["websockets_without_token"] == 0, browser
+        assert not browser["session_data_without_token"], browser
+        assert browser["with_token"] == 200 and browser["groups_shown"] > 0, browser
+
+
+def _tablet_browser(deployment: hosts.Deployment, work: Path) -> dict:
+    """Debian's Chromium on the tablet (its network namespace), trusting the deployment's CA (certificate errors not
+    ignored), against ``msk dashboard --pki`` on the rack PC: what it got without a token and with one."""
+    from tests.dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, chromium_trusting
+
+    environment = chromium_trusting(deployment.pki / "ca.pem", work / "home")
+    if not Path(CHROMIUM).is_file() or environment is None:
+        return {"skipped": f"needs {CHROMIUM} and NSS's certutil (apt-get install chromium libnss3-tools)"}
+    sync_api = pytest.importorskip("playwright.sync_api")
+    url = deployment.start_dashboard()
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        main(["certs", "tablet-token", "tablet-1", "--out", str(deployment.pki), "--dashboard-url", url])
+    login = next(line for line in out.getvalue().splitlines() if line.startswith("https://"))
+    browser_on_tablet = deployment.hosts.executable("tablet", CHROMIUM, work / "chromium-on-tablet")
+    seen: dict = {}
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=str(browser_on_tablet), headless=True, args=CHROMIUM_ARGS, env=environment
+        )
+        try:
+            page = browser.new_context(ignore_https_errors=False).new_page()
+            sockets: list[str] = []
+            page.on("websocket", lambda ws: sockets.append(ws.url))
+            refused = page.goto(f"{url}/")
+            seen["without_token"] = refused.status if refused is not None else None
+            seen["session_data_without_token"] = deployment.session in page.content() or "PMCla" in page.content()
+            seen["websockets_without_token"] = len(sockets)
+            opened = page.goto(login)
+            seen["with_token"] = opened.status if opened is not None else None
+            page.wait_for_function(
+                "() => window.mskDashboard && window.mskDashboard.state.activations.so", timeout=60_000
+            )
+            seen["groups_shown"] = page.evaluate("() => window.mskDashboard.state.activations.so.groups.length")
+        finally:
+            browser.close()
+    return seen

@@ -32,7 +32,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -40,6 +40,7 @@ from typing import IO, Any
 SUBNET = "10.77.0"
 HOST_NUMBERS = {"rack": 1, "server": 2, "tablet": 3}
 ROUTER_PORT = 7447
+DASHBOARD_PORT = 8443
 PACK = "bench_press"
 DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
 _CLONE_NEWNET = 0x40000000
@@ -189,6 +190,13 @@ class Hosts:
             raise outcome["error"]
         return outcome.get("value")
 
+    def executable(self, host: str, program: str, path: Path) -> Path:
+        """A script at ``path`` that runs ``program`` (with its arguments) on ``host``: for a tool that starts a
+        program itself, such as Playwright a browser."""
+        path.write_text(f'#!/bin/sh\nexec ip netns exec {self.names[host]} {program} "$@"\n')
+        path.chmod(0o755)
+        return path
+
     def accepts(self, host: str, address: str, port: int) -> bool:
         """Whether a TCP connection from ``host`` to ``address:port`` is accepted now."""
 
@@ -242,7 +250,8 @@ class Process:
 
 class Deployment:
     """The secured session across the three hosts (see the module's doc). ``start()`` returns once the tablet
-    receives activation frames; ``stop()`` stops in order and returns the drivers' and the estimator's summaries."""
+    receives activation frames; ``stop()`` stops in order and returns each process's log (the drivers' and the
+    estimator's summaries are there)."""
 
     def __init__(self, hosts: Hosts, work: Path, *, session: str = "gym", methods: tuple[str, ...] = ("so",)) -> None:
         self.hosts, self.work, self.session, self.methods = hosts, Path(work), session, methods
@@ -414,6 +423,23 @@ class Deployment:
             have=lambda: f"{len(self.tablet.frames())} frames, {len(self.tablet.statuses())} statuses",
         )
 
+    def start_dashboard(self, timeout_s: float = 90.0) -> str:
+        """``msk dashboard --pki`` on the rack PC at the rack's address (the dashboard certificate of ``msk certs``
+        names it), joined to the router as the tablet role; returns its URL once a tablet can connect to it."""
+        address = self.router_address
+        dashboard = self._spawn(
+            "rack", "dashboard",
+            msk_argv("dashboard", "--pki", str(self.pki), "--host", address, "--port", str(DASHBOARD_PORT),
+                     "--session", self.session),
+        )  # fmt: skip
+        self.wait(
+            lambda: self.hosts.accepts("tablet", address, DASHBOARD_PORT),
+            timeout_s,
+            f"msk dashboard --pki listening on {address}:{DASHBOARD_PORT}, seen from the tablet",
+            watch=(dashboard,),
+        )
+        return f"https://{address}:{DASHBOARD_PORT}"
+
     # --- faults -----------------------------------------------------------------------------------------------
 
     def restart_router(self, down_s: float = 1.0) -> dict[str, float]:
@@ -432,11 +458,6 @@ class Deployment:
         return {"router_stop_s": stopped - began, "router_start_s": time.monotonic() - stopped - down_s}
 
     # --- waiting and stopping ---------------------------------------------------------------------------------
-
-    def failed(self) -> str:
-        """The processes that exited by themselves, with their logs' tails ("" when none did)."""
-        gone = [p for p in self.processes.values() if p.popen.poll() is not None]
-        return "; ".join(f"{p.name} exited {p.popen.returncode}: {_tail(p.log)}" for p in gone)
 
     def wait(
         self,
@@ -463,7 +484,7 @@ class Deployment:
     def stop(self) -> dict[str, str]:
         """Stop in order (drivers, then the readers, then the router) and return each process's log."""
         order = ["drivers", *(n for n in self.processes if n.startswith("sim-")), "kinematics", "estimator",
-                 "recorder", "tablet-activations", "tablet-status", "router"]  # fmt: skip
+                 "recorder", "dashboard", "tablet-activations", "tablet-status", "router"]  # fmt: skip
         for name in order:
             process = self.processes.get(name)
             if process is not None:
@@ -490,18 +511,6 @@ def _tail(path: Path, chars: int = 1500) -> str:
         return path.read_text(errors="replace")[-chars:]
     except OSError:
         return "(no log)"
-
-
-@contextlib.contextmanager
-def deployed(work: Path, **kwargs: Any) -> Iterator[Deployment]:
-    """Hosts, a started deployment on them, and everything stopped and deleted afterwards, even on failure."""
-    with Hosts() as hosts:
-        deployment = Deployment(hosts, work, **kwargs)
-        try:
-            deployment.start()
-            yield deployment
-        finally:
-            deployment.stop()
 
 
 # --- the faults between hosts, and what each host got -------------------------------------------------------------
@@ -557,7 +566,7 @@ def _published(log: str, kind: str) -> int:
     return int(found[index]) if len(found) > index else -1
 
 
-def _recorded(path: Path, session: str) -> dict[str, Any]:
+def _recorded(path: Path) -> dict[str, Any]:
     """What the rack's recorder holds: EMG chunks and samples, index gaps and repeats, IMU samples, joint frames,
     activation frames (with their publish times), and the last status of each node."""
     from services import messages
@@ -593,16 +602,18 @@ def _recorded(path: Path, session: str) -> dict[str, Any]:
     return got
 
 
-def outcome(deployment: Deployment, faults: list[Fault], logs: dict[str, str]) -> dict[str, Any]:
+def outcome(
+    deployment: Deployment, faults: list[Fault], logs: dict[str, str], *, until_ns: int | None = None
+) -> dict[str, Any]:
     """Counts per host after a stopped run: what the drivers published and the rack's recorder holds, what reached
     the estimator and what it published, what the tablet received; per fault the estimator's frames during it and
     how soon after its end the estimator published again (``resume_s``) and the tablet received again; latencies
-    outside the faults (estimator input to output; estimator to tablet across the network)."""
+    outside the faults and before ``until_ns`` (estimator input to output; estimator to tablet across the network)."""
     import numpy as np
 
     from services.bench.sessions import latency_figures
 
-    recorded = _recorded(deployment.recording, deployment.session)
+    recorded = _recorded(deployment.recording)
     published_ns = recorded.pop("frames_publish_ns")
     tablet = deployment.tablet.frames()
     per_fault = []
@@ -628,7 +639,7 @@ def outcome(deployment: Deployment, faults: list[Fault], logs: dict[str, str]) -
     def outside(t: int) -> bool:
         return not any(f.begin_ns - 10**9 <= t <= f.end_ns + 3 * 10**9 for f in faults)
 
-    steady = [(t, m) for t, m in tablet if outside(int(m["publish_ns"]))]
+    steady = [(t, m) for t, m in tablet if outside(int(m["publish_ns"])) and (until_ns is None or t < until_ns)]
     estimator_ms = [(int(m["publish_ns"]) - int(m["input_arrival_ns"])) / 1e6 for _, m in steady]
     network_ms = [(t - int(m["publish_ns"])) / 1e6 for t, m in steady]
     return {
