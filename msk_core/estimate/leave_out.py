@@ -149,8 +149,8 @@ class LeaveOutResult:
 
 
 def measured_groups(train: Sequence[TrialData], held_out: Sequence[TrialData]) -> list[str]:
-    """Groups with an electrode in a training trial with reps and in a held-out trial (in pack order is the
-    caller's choice; here sorted by first appearance in the training trials)."""
+    """Groups with an electrode in a training trial with reps and in a held-out trial, in the order the training
+    trials first name them."""
     trained = [g for t in train if not t.isometric for g in t.emg]
     held = {g for t in held_out for g in t.emg}
     return [g for g in dict.fromkeys(trained) if g in held]
