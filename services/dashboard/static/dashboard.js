@@ -181,7 +181,7 @@ function renderHeader() {
   document.getElementById("reps").textContent = reps ? (reps.rep ?? reps.in_set) : 0;
   document.getElementById("set").textContent = reps && reps.set ? (reps.resting ? `${reps.set} done` : reps.set) : "–";
   document.getElementById("set-time").textContent = reps && !reps.resting && reps.time_in_set_s != null
-    ? `· ${reps.time_in_set_s.toFixed(0)} s` : (reps && reps.resting && reps.set ? "· resting" : "");
+    ? `· ${Math.max(0, reps.time_in_set_s).toFixed(0)} s` : (reps && reps.resting && reps.set ? "· resting" : "");
   renderSets();
   const phase = reps ? reps.phase : null;
   const fill = document.getElementById("phase-fill");
@@ -551,7 +551,8 @@ function renderSets() {
   const pct = (v) => (v === null || v === undefined ? "–" : (100 * v).toFixed(0));
   head.replaceChildren(...(sets.length ? [tableRow("th", ["", ...sets.map((s) => `set ${s.number}`)])] : []));
   if (!sets.length) { body.replaceChildren(); return; }
-  const groups = sets[sets.length - 1].groups;
+  const withFrames = sets.filter((s) => s.groups.length); // a set just started has no frames yet
+  const groups = withFrames.length ? withFrames[withFrames.length - 1].groups : [];
   const rows = [
     tableRow("td", ["reps", ...sets.map((s) => String(s.reps))]),
     tableRow("td", ["under tension", ...sets.map((s) => `${s.time_under_tension_s.toFixed(1)} s`)]),
