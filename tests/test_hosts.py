@@ -66,11 +66,12 @@ def test_secured_deployment_across_hosts_survives_link_and_router_faults(deploym
     # every joint frame (the kinematics node's, on the server) that reached the rack was estimated; activation frames
     # are newest-wins (docs/topics.md, "Delivery"): a burst after an outage may drop some on the way, counted here
     assert result["estimator_inputs"] > 0 and abs(result["frames_estimated"] - result["joints"]) <= 5, result
-    # the estimator counts the EMG it missed while the router was away (in its summary): at least what the recorder
-    # misses (it may miss a chunk more: each client's subscription comes back on its own)
+    # the estimator counts the EMG it missed while the router was away (in its summary): what the recorder misses,
+    # within a few 27-sample chunks (each client's subscription comes back on its own: seen one chunk either way)
     counted = re.search(r"EMG: (\d+) chunks, (\d+) gaps \((\d+) samples lost\)", result["estimator_summary"])
     assert counted is not None, result["estimator_summary"]
-    assert int(counted.group(3)) >= router["emg_samples_missing"] and int(counted.group(1)) > 0, result
+    assert abs(int(counted.group(3)) - router["emg_samples_missing"]) <= 3 * 27 and int(counted.group(1)) > 0, result
+    assert (int(counted.group(3)) > 0) == (router["emg_samples_missing"] > 0), result
     # the tablet's role reads activations and status only, and got them across the switch
     assert result["frames_at_tablet"] > 0 and result["statuses_at_tablet"] > 0
     # the dashboard on the rack PC, from the tablet's browser: nothing without a token, the live session with one

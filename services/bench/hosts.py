@@ -44,8 +44,8 @@ DASHBOARD_PORT = 8443
 PACK = "bench_press"
 DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
 _CLONE_NEWNET = 0x40000000
-#: frames an estimator publishes this soon after a fault began were in flight (its queue) when it began
-IN_FLIGHT_NS = 500_000_000
+#: an input that reached the estimator this soon after a fault began was on its way before it
+IN_FLIGHT_NS = 200_000_000
 _NAME = re.compile(r"^msk(\d+)x[0-9a-f]+-(rack|server|tablet)$")
 
 
@@ -575,7 +575,7 @@ def _recorded(path: Path) -> dict[str, Any]:
     emg_next: int | None = None
     last_ns = 0  # host time of the chunk before
     got: dict[str, Any] = {"emg_chunks": 0, "emg_samples": 0, "emg_gaps": [], "emg_repeats": 0, "imu": 0, "joints": 0}
-    frames: list[int] = []
+    frames: list[tuple[int, int]] = []  # (publish, input arrival) host times
     statuses: dict[str, Any] = {}
     for message in read_messages(path):
         kind = message.topic.split("/")[2]
@@ -594,7 +594,8 @@ def _recorded(path: Path) -> dict[str, Any]:
         elif kind == "joints":
             got["joints"] += 1
         elif kind == "activations":
-            frames.append(int(message.decode(messages.ActivationFrame).publish_ns))
+            frame = message.decode(messages.ActivationFrame)
+            frames.append((int(frame.publish_ns), int(frame.input_arrival_ns)))
         elif kind == "status":
             statuses[message.topic.rsplit("/", 1)[1]] = message.decode(messages.DeviceStatus)
     got["frames_publish_ns"] = sorted(frames)
@@ -614,7 +615,8 @@ def outcome(
     from services.bench.sessions import latency_figures
 
     recorded = _recorded(deployment.recording)
-    published_ns = recorded.pop("frames_publish_ns")
+    frames = recorded.pop("frames_publish_ns")
+    published_ns = [p for p, _ in frames]
     tablet = deployment.tablet.frames()
     per_fault = []
     for fault in faults:
@@ -625,8 +627,9 @@ def outcome(
                 "fault": fault.name,
                 "down_s": (fault.end_ns - fault.begin_ns) / 1e9,
                 **fault.detail,
-                # from IN_FLIGHT_S after the fault began: what the estimator held then is not what reached it
-                "frames_during": sum(1 for t in published_ns if fault.begin_ns + IN_FLIGHT_NS <= t <= fault.end_ns),
+                # frames of inputs that reached the estimator during the fault (what it still held or what was on
+                # its way when the fault began is not counted: an estimator that lags publishes those later)
+                "frames_during": sum(1 for _, a in frames if fault.begin_ns + IN_FLIGHT_NS <= a <= fault.end_ns),
                 "resume_s": (after[0] - fault.end_ns) / 1e9 if after else float("nan"),
                 "tablet_resume_s": (tablet_after[0] - fault.end_ns) / 1e9 if tablet_after else float("nan"),
                 # the gaps that began during the fault (the last chunk before them is at most a second older)
