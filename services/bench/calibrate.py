@@ -15,7 +15,10 @@ NAME = "calibrate"
 DESCRIPTION = "calibration NLP on the demo lift + isometric MVC trials: preconditioned vs as written (same run)"
 
 
-def _frames(exercise: str):
+QUICK_ISOMETRIC = 2  # --quick: the lift and the first two MVC blocks (1761 frames: ~2 s + ~8 s CPU; all ten: ~56 s)
+
+
+def _frames(exercise: str, n_isometric: int | None = None):
     from msk_core.estimate.pipeline import build_prior, calibration_frames
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
@@ -24,7 +27,7 @@ def _frames(exercise: str):
     pack = load_pack(exercise)
     truth = json.loads((DEFAULT_RECORDINGS / "demo" / "truth.json").read_text())["exercises"][exercise]
     lift, isometric = calibration_trial_files(DEFAULT_RECORDINGS, exercise)
-    trials = [load_trial(lift / "trial.toml", pack)] + [load_trial(p, pack) for p in isometric]
+    trials = [load_trial(lift / "trial.toml", pack)] + [load_trial(p, pack) for p in isometric[:n_isometric]]
     frames = calibration_frames(pack, trials, build_prior(pack, trials))
     return pack, frames, np.array([truth["f_max_n"][g] for g in pack.groups])
 
@@ -34,7 +37,7 @@ def run(quick: bool) -> list[BenchResult]:
 
     results = []
     for exercise in ("bench_press",) if quick else ("bench_press", "deadlift"):
-        pack, frames, f_true = _frames(exercise)
+        pack, frames, f_true = _frames(exercise, QUICK_ISOMETRIC if quick else None)
         runs = {}
         for precondition in (True, False):
             started = time.perf_counter()
