@@ -182,6 +182,19 @@ def bar(value: float, std: float | None, width: int = BAR_WIDTH, marker: float =
     return text
 
 
+def set_line(tracker: SetTracker, first_frame_s: float | None) -> tuple[str, int, float | None, tuple | None]:
+    """What the session line says of the sets: :func:`set_text`, the set under way (0: none), its start (the first
+    frame's time when none) and, at rest after a set, (its number, its end)."""
+    current = tracker.current
+    done = tracker.sets[-1] if tracker.sets and current is None else None
+    return (
+        set_text(tracker.number, tracker.rep, current is None),
+        current.number if current is not None else 0,
+        current.start_s if current is not None else first_frame_s,
+        (done.number, done.end_s) if done is not None and done.end_s is not None else None,
+    )
+
+
 def set_time_text(set_number: int, start_s: float | None, time_s: float, rest: tuple[int, float] | None = None) -> str:
     """``12.3 s in set 2``: the frame's time from its set's start; at rest after set N (``rest``: N and the set's
     end) ``40.2 s resting after set N``; before any set, from the first frame."""
@@ -257,15 +270,9 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     with state.lock:
         frames = dict(state.frames)
         status = dict(state.status)
-        overrides, tracker = dict(state.names), state.sets
-        load, received = state.load, state.received
-        current = tracker.current
-        sets = set_text(tracker.number, tracker.rep, current is None)
-        set_start_s = current.start_s if current is not None else state.first_frame_s
-        set_number = current.number if current is not None else 0
-        done = tracker.sets[-1] if tracker.sets and current is None else None
-        rest = (done.number, done.end_s) if done is not None and done.end_s is not None else None
-        records = [r.as_dict() for r in tracker.sets]  # the set under way (or the last) in the muscle table
+        overrides, load, received = dict(state.names), state.load, state.received
+        sets, set_number, set_start_s, rest = set_line(state.sets, state.first_frame_s)
+        records = [r.as_dict() for r in state.sets.sets]  # the set under way (or the last) in the muscle table
     methods = list(frames)
     method = primary if primary in frames else (methods[0] if methods else None)
     dropped = dropped_text(state.inputs)
@@ -318,17 +325,6 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         if quality:
             row.append(electrode_text(quality.get(g, [])))
         muscles.add_row(*row)
-    torques = Table(title="torque tracking")
-    for column in ("joint", "inverse dynamics", "muscles", "residual", "unit"):
-        torques.add_column(column, justify="right" if column not in ("joint", "unit") else "left")
-    for c in frame.torques:
-        torques.add_row(
-            Text(names.coordinate(c.coordinate)),
-            f"{c.inverse_dynamics_nm:.1f}",
-            f"{c.model_nm:.1f}",
-            f"{c.residual_nm:.1f}",
-            names.torque_unit(c.coordinate) or "N·m",
-        )  # *_nm fields: N·m
     if legend:
         muscles.caption, muscles.caption_justify = legend, "left"
     phase = frame.phase if frame.HasField("phase") else None
@@ -344,6 +340,27 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
     )
     extra = [sets_table(records)] if records else []
+    return Group(header, session_line, muscles, *extra, torque_table(frame, names), *health_tables(status))
+
+
+def torque_table(frame: messages.ActivationFrame, names: DisplayNames) -> Table:
+    """Torque tracking per joint: inverse dynamics, the muscles' model torque and their difference, with the unit."""
+    torques = Table(title="torque tracking")
+    for column in ("joint", "inverse dynamics", "muscles", "residual", "unit"):
+        torques.add_column(column, justify="right" if column not in ("joint", "unit") else "left")
+    for c in frame.torques:
+        torques.add_row(
+            Text(names.coordinate(c.coordinate)),
+            f"{c.inverse_dynamics_nm:.1f}",
+            f"{c.model_nm:.1f}",
+            f"{c.residual_nm:.1f}",
+            names.torque_unit(c.coordinate) or "N·m",
+        )  # *_nm fields: N·m
+    return torques
+
+
+def health_tables(status: dict[str, messages.DeviceStatus]) -> list[Table]:
+    """The devices (connected, samples, lost, errors) and, when any node reported, the nodes' dropped inputs."""
     devices = {name: s for name, s in status.items() if s.kind != "node"}
     health = Table(title="devices")
     for column in ("device", "kind", "connected", "samples", "lost", "errors"):
@@ -356,7 +373,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         health.add_row("(no device status on this session)", "", "", "", "", "")
     nodes = {name: s for name, s in status.items() if s.kind == "node"}
     if not nodes:
-        return Group(header, session_line, muscles, *extra, torques, health)
+        return [health]
     node_table = Table(title="nodes (inputs dropped as unusable)")
     for column in ("node", "running", "received", "dropped"):
         node_table.add_column(column)
@@ -364,7 +381,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         node_table.add_row(
             name, "yes" if s.connected else "stopped", str(s.samples_received), str(sum(d.count for d in s.dropped))
         )
-    return Group(header, session_line, muscles, *extra, torques, health, node_table)
+    return [health, node_table]
 
 
 #: The view's keys: the session fact each publishes (``msk set start|stop``).
