@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import bisect
 import logging
+import queue
 import signal
 import sys
 import threading
@@ -223,6 +224,60 @@ def electrode_quality(report: ElectrodeReport) -> messages.ElectrodeQuality:
     )
 
 
+class FatigueWorker:
+    """The live fatigue index off the estimator's thread: EMG chunks, the frames' EMG read times and phases, and set
+    changes go through a queue to one thread that runs :class:`LiveFatigue` (a rep's spectra take 30 ms, several
+    times that on a busy machine, which must not hold up the frames). :meth:`report` is the newest snapshot of the
+    values, made by that thread whenever they change; ``stats.fatigue_reps`` counts the reps whose values are in."""
+
+    def __init__(self, fatigue: LiveFatigue, stats: EstimatorStats) -> None:
+        self.fatigue = fatigue
+        self.set_number = 0  # the set last asked for (the worker may not have started it yet)
+        self._stats = stats
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._report: list[ElectrodeFatigueReport] = []
+        self._thread = threading.Thread(target=self._run, name="estimator-fatigue", daemon=True)
+        self._thread.start()
+
+    def add_chunk(self, *args) -> None:
+        self._queue.put(("chunk", args))
+
+    def add_frame(self, read_at_ns: dict[str, int], phase: float | None) -> None:
+        self._queue.put(("frame", (dict(read_at_ns), phase)))
+
+    def start_set(self, number: int) -> None:
+        self.set_number = number
+        self._queue.put(("set", (number,)))
+
+    def report(self) -> list[ElectrodeFatigueReport]:
+        return self._report
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Take what is queued, then stop."""
+        self._queue.put(None)
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        sources = 0
+        while (item := self._queue.get()) is not None:
+            kind, args = item
+            try:
+                if kind == "chunk":
+                    done = self.fatigue.add_chunk(*args)
+                elif kind == "frame":
+                    done = self.fatigue.add_frame(*args)
+                else:
+                    self.fatigue.start_set(*args)
+                    done = []
+            except MskError as error:  # a chunk the EMG path took but the index cannot: said, the node goes on
+                log.warning("fatigue index: %s", error)
+                continue
+            if done or kind == "set" or len(self.fatigue.sources) != sources:
+                sources = len(self.fatigue.sources)
+                self._report = self.fatigue.report()
+                self._stats.fatigue_reps += len(done)
+
+
 def electrode_fatigue(report: ElectrodeFatigueReport) -> messages.ElectrodeFatigue:
     """One electrode's fatigue index over the set as the status carries it."""
     return messages.ElectrodeFatigue(
@@ -350,7 +405,9 @@ class EstimatorNode:
         # each electrode judged from its raw EMG; a bad one is left out of its group's envelope
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         # each electrode's median and mean frequency per rep, and their trend over the set
-        self.fatigue = LiveFatigue(self.live_emg.setup.channel_group) if self.live_emg is not None else None
+        self.fatigue = (
+            FatigueWorker(LiveFatigue(self.live_emg.setup.channel_group), stats) if self.live_emg is not None else None
+        )
         self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
         if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
             raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
@@ -402,16 +459,14 @@ class EstimatorNode:
             self.stats.quality_changes += 1
         live_emg.exclude_channels(chunk.source_id, quality.bad_channels(chunk.source_id))
         if self.fatigue is not None:
-            self.stats.fatigue_reps += len(
-                self.fatigue.add_chunk(
-                    chunk.source_id,
-                    chunk.channel_labels,
-                    chunk.sample_rate_hz,
-                    chunk.first_sample_index,
-                    chunk.device_time_ns,
-                    samples,
-                    chunk.units,
-                )
+            self.fatigue.add_chunk(
+                chunk.source_id,
+                tuple(chunk.channel_labels),
+                chunk.sample_rate_hz,
+                chunk.first_sample_index,
+                chunk.device_time_ns,
+                samples,
+                chunk.units,
             )
         block = live_emg.add_chunk(
             chunk.source_id,
@@ -549,7 +604,7 @@ class EstimatorNode:
         for flag in emg_flags:
             stats.emg_flags[flag] = stats.emg_flags.get(flag, 0) + 1
         if self.fatigue is not None and self.live_emg is not None:
-            stats.fatigue_reps += len(self.fatigue.add_frame(self.live_emg.read_at_ns, phase))
+            self.fatigue.add_frame(self.live_emg.read_at_ns, phase)
         for method, estimator in self.estimators.items():
             result = estimator.step(q, qd, qdd, hand_load_newton=load_kg * GRAVITY, phase=phase, emg=envelope)
             frame = to_message(
