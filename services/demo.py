@@ -26,7 +26,7 @@ from msk_core.estimate.pipeline import calibrate_subject
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
 from services import estimator, kinematics_node, messages, recorder, replayer, session_graph
-from services.graph import Graph, wait_for
+from services.graph import NODE_READY_TIMEOUT_S, Graph, wait_for
 from services.live_scoring import (  # noqa: F401 - re-exported: imported from services.demo before
     METHODS,
     MethodScore,
@@ -108,7 +108,7 @@ def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, di
     return path, report
 
 
-GRAPH_READY_S = 60.0
+GRAPH_READY_S = NODE_READY_TIMEOUT_S
 DRAIN_S = 600.0  # the whole replay at rate max on a loaded 2-core machine takes ~1-2 min; generous, and bounded
 
 

@@ -47,6 +47,11 @@ def ready_key(session: str, node: str) -> str:
     return f"{topics.session_prefix(session)}/{GRAPH_CHUNK}/{topics.check_chunk(node, 'node')}"
 
 
+#: How long a graph waits for its nodes to be ready: a cold start (numba compiling the model kernels in each node, the
+#: first time after install) took over 60 s on 2 busy cores; a bound that expires still names the nodes missing.
+NODE_READY_TIMEOUT_S = 180.0
+
+
 @dataclass(frozen=True)
 class ReadySpec:
     """How a node says it is ready: its token key and the nodes it publishes to (``after``), which its own session
@@ -55,7 +60,7 @@ class ReadySpec:
     session: str
     node: str
     after: tuple[str, ...] = ()
-    timeout_s: float = 60.0
+    timeout_s: float = NODE_READY_TIMEOUT_S
 
     @property
     def key(self) -> str:
@@ -252,7 +257,7 @@ class Graph:
 
     # -- readiness ----------------------------------------------------------------------------------------------
 
-    def wait_ready(self, timeout_s: float = 60.0) -> float:
+    def wait_ready(self, timeout_s: float = NODE_READY_TIMEOUT_S) -> float:
         """Every node up with its subscribers declared, as seen from a fresh session on the graph's endpoint."""
         started = time.monotonic()
         for thread_node in self._threads:
