@@ -125,7 +125,6 @@ LONG_FUNCTIONS = {
     "services/live_session.py:parse_session": 132,
     "services/security.py:access_control": 125,
     "services/live.py:sim_sources": 118,
-    "services/view.py:render": 113,
     "msk_core/synth/session.py:generate_trial": 113,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
     "services/bench/discrepancy.py:run": 109,
