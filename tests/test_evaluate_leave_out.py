@@ -4,8 +4,8 @@ real data sets are `msk bench leave-out`'s).
 
 What is asserted is the structure of summary.json and that the numbers are finite and sensible (RMSE within the
 envelope's scale, r and agreements in range, the lag within the searched window), that each left-out run calibrated
-without the left-out electrode and the paper's run with it, and that the plots and report exist. No accuracy target
-is asserted here: the measured ones are in docs/estimation.md.
+without the left-out electrode and the paper's run with it, and that the plots and report exist; of the accuracy, only
+what was measured to hold on these two groups (the full tables: docs/estimation.md).
 """
 
 from __future__ import annotations
@@ -60,6 +60,10 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
                     assert method == "hybrid", (table, group, method, scores)
         # the trunk extensors follow the lift with or without their electrode: proposed correlates
         assert all(summary[table][g]["proposed"]["r"] > 0.5 for g in LEFT_OUT), summary[table]
+    # what was measured to hold (docs/estimation.md): without its electrode the right iliocostalis is estimated with
+    # less than 0.8x so's RMSE (0.026 vs 0.077)
+    loo = summary["leave_one_out"]
+    assert loo["iliocost_r"]["proposed"]["rmse"] < 0.8 * loo["iliocost_r"]["so"]["rmse"], loo["iliocost_r"]
     runs = summary["calibrations"]
     assert [r["left_out"] for r in runs] == [None] + LEFT_OUT and all(r["converged"] for r in runs)
     assert set(runs[0]["strength"]) == set(CHANNELS)  # the paper's run calibrates every electrode's group
