@@ -285,3 +285,27 @@ def test_live_fatigue_recovers_the_synthetic_trials_known_shift() -> None:
     )
     assert abs(pooled / known_pct - 1) < 0.10
     assert np.all(np.abs(z) < 3.5)
+
+
+def test_the_estimators_fatigue_worker_gives_the_values_of_the_stream_off_its_thread() -> None:
+    """services.estimator.FatigueWorker: chunks and frames queued as the estimator's thread meets them, the values
+    computed on the worker's thread; once drained, every rep of the set is in, with the known downward trend."""
+    from msk_core.estimate.live_fatigue import LiveFatigue
+    from services.estimator import EstimatorStats, FatigueWorker
+
+    x, reps, _ = simulated_set(6, same_waveform=True)
+    stats = EstimatorStats()
+    worker = FatigueWorker(LiveFatigue({"sensor01.EMG": "TriLat"}), stats)
+    worker.start_set(1)
+    frames = np.arange(0.0, x.shape[0] / RATE, 0.01)
+    i = 0
+    for t in frames:
+        while i < x.shape[0] and i / RATE <= t:
+            worker.add_chunk("trigno", ("sensor01.EMG",), RATE, i, int(round(i / RATE * 1e9)), x[i : i + 27], "V")
+            i += 27
+        phase = next(((t - a) / (b - a) for a, b in reps if a <= t < b), -1.0)
+        worker.add_frame({"trigno": int(round(t * 1e9))}, phase)
+    worker.close(timeout_s=60.0)
+    (electrode,) = worker.report()
+    assert electrode.group == "TriLat" and electrode.set_number == 1 and stats.fatigue_reps == N_REPS
+    assert len(electrode.median_hz) == N_REPS and electrode.median_slope_pct_per_rep < -1.0, electrode
