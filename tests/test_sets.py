@@ -49,7 +49,7 @@ def test_rest_detection_splits_sets_at_the_stated_rest_and_counts_reps_per_set()
     assert first.start_s == pytest.approx(2.0) and first.end_s == pytest.approx(8.0, abs=0.05)
     assert first.time_under_tension_s == pytest.approx(6.0, abs=0.1)
     assert (second.number, len(second.reps), second.ended_by) == (2, 2, "end of data")
-    assert second.start_s == pytest.approx(33.0)
+    assert second.start_s == pytest.approx(33.0) and second.end_s == pytest.approx(37.0, abs=0.05)  # its last rep
 
 
 def test_a_shorter_rest_than_stated_keeps_one_set():

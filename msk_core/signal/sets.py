@@ -239,8 +239,9 @@ class SetTracker:
             current.add(groups, values)
 
     def finish(self, t: float | None = None) -> None:
-        """End of the data: the rep under way counts if long enough, the set under way ends at ``t`` (default the
-        last sample's time; its last rep's end when it has reps and rested since)."""
+        """End of the data: the rep under way counts if long enough, the set under way ends at its last rep's end
+        when the data end at rest after it, else at ``t`` (default the last sample's time)."""
+        under_way = self._counter.in_rep and not self._wait_rest
         done = None if self._wait_rest else self._counter.finish()
         current = self.current
         if current is not None and done is not None:
@@ -251,6 +252,8 @@ class SetTracker:
             current = None
         if current is not None:
             end = self._last_t if t is None else t
+            if current.reps and not under_way:
+                end = min(end, current.reps[-1][1])  # at rest since its last rep
             self._close(max(end, current.start_s), "end of data")
 
     # ---- inside ----------------------------------------------------------------------------------------------------
