@@ -14,6 +14,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from msk_core.estimate.leave_out import LEAVE_OUT_METHODS, MAX_LAG_S, PAPER_METHODS
@@ -85,3 +86,28 @@ def test_leave_out_refuses_a_group_without_an_electrode(shared_dir, tmp_path, ca
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "psoas_r" in err and "iliocost_r" in err  # names the group and the ones that can be left out
+
+
+def test_no_emg_strength_measured_puts_unmeasured_groups_on_the_measured_scale(shared_dir, tmp_path):
+    """``--no-emg-strength measured``: the groups without EMG take the geometric median of the measured groups'
+    calibrated factors, and their minimal-effort prior is re-derived at those strengths (lower here: the extensors'
+    factors are above 1, so each unit of activation carries more force); the NLP, hence the measured factors, is the
+    same as with the default."""
+    from msk_core.estimate.pipeline import calibrate_subject
+    from msk_core.estimate.trial import load_trial
+    from msk_core.model import load_pack
+
+    pack = load_pack("lumbar_lift")
+    trial = load_trial(_trial("squat5kg", shared_dir, tmp_path), pack)
+    reference, result = calibrate_subject(pack, [trial])
+    measured, result_m = calibrate_subject(pack, [trial], no_emg_strength="measured")
+    assert np.allclose(result.scale, result_m.scale) and measured.calibration["no_emg_strength"] == "measured"
+    has_emg = np.asarray(reference.prior.has_emg, dtype=bool)
+    common = float(np.exp(np.median(np.log(result.scale[has_emg]))))
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    assert common > 1.0
+    assert np.allclose(np.asarray(measured.f_max)[~has_emg], common * f_ref[~has_emg])
+    assert np.allclose(np.asarray(measured.f_max)[has_emg], np.asarray(reference.f_max)[has_emg])
+    effort = [j for j, s in enumerate(reference.prior.sources) if s == "min_effort"]
+    assert effort and np.allclose(measured.prior.mean[:, has_emg], reference.prior.mean[:, has_emg])
+    assert measured.prior.mean[:, effort].mean() < reference.prior.mean[:, effort].mean()
