@@ -278,6 +278,11 @@ class FatigueWorker:
                 self._stats.fatigue_reps += len(done)
 
 
+def make_fatigue(live_emg: LiveEmg | None, stats: EstimatorStats) -> FatigueWorker | None:
+    """The fatigue index of the EMG path's electrodes (None without EMG)."""
+    return None if live_emg is None else FatigueWorker(LiveFatigue(live_emg.setup.channel_group), stats)
+
+
 def electrode_fatigue(report: ElectrodeFatigueReport) -> messages.ElectrodeFatigue:
     """One electrode's fatigue index over the set as the status carries it."""
     return messages.ElectrodeFatigue(
@@ -404,10 +409,7 @@ class EstimatorNode:
             stats.emg = self.live_emg.counters
         # each electrode judged from its raw EMG; a bad one is left out of its group's envelope
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
-        # each electrode's median and mean frequency per rep, and their trend over the set
-        self.fatigue = (
-            FatigueWorker(LiveFatigue(self.live_emg.setup.channel_group), stats) if self.live_emg is not None else None
-        )
+        self.fatigue = make_fatigue(self.live_emg, stats)  # per electrode and rep: median/mean frequency, their trend
         self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
         if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
             raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
