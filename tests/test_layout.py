@@ -128,7 +128,6 @@ LONG_FUNCTIONS = {
     "msk_core/synth/session.py:generate_trial": 113,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
     "services/bench/discrepancy.py:run": 109,
-    "services/dashboard/report.py:write_report": 108,
     "msk_core/estimate/frame.py:FrameEstimator.__init__": 107,
     "services/live.py:plan_for": 102,
     "services/dashboard/report.py:set_html": 101,

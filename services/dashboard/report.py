@@ -41,6 +41,7 @@ from msk_core.signal.reps import phase_rep_spans
 from msk_core.signal.sets import SetRecord, SetTracker
 from services import messages
 from services.dashboard import bodymap
+from services.live import electrode_summary, fatigue_summary, keep_fatigue
 from services.mcap_io import ReadReport, read_messages
 
 PRIMARY_METHODS = ("assisted", "proposed", "so", "hybrid")  # the first present is the one the report details
@@ -86,6 +87,10 @@ class SessionData:
     node_drops: dict[str, int] = field(
         default_factory=dict
     )  # node -> inputs dropped (its last DeviceStatus of kind "node")
+    # the estimator's EMG electrodes (DeviceStatus of kind "node"): per "source/channel" its newest quality, and its
+    # fatigue index per set (services.live.keep_fatigue: the newest values of each set)
+    electrodes: dict[str, messages.ElectrodeQuality] = field(default_factory=dict)
+    fatigue: dict[str, list[messages.ElectrodeFatigue]] = field(default_factory=dict)
     start_log_ns: int = 0
     end_log_ns: int = 0
     truncated: bool = False
@@ -146,6 +151,9 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             status = recorded.decode(messages.DeviceStatus)
             if status.kind == "node":  # a node's own status: its dropped inputs, not a device
                 data.node_drops[status.device_id] = sum(int(d.count) for d in status.dropped)
+                data.electrodes.update((f"{e.source}/{e.channel}", e) for e in status.electrodes)
+                for fatigue in status.fatigue:
+                    keep_fatigue(data.fatigue.setdefault(f"{fatigue.source}/{fatigue.channel}", []), fatigue)
             else:
                 data.status.setdefault(status.device_id, []).append(
                     (log_s, status.connected, status.samples_lost, status.errors)
@@ -820,33 +828,103 @@ def set_html(result: dict, plots: list[str]) -> str:
     return "".join(parts)
 
 
-def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
-    data = read_session(recording, progress=progress)
-    out.mkdir(parents=True, exist_ok=True)
-    sets = []
-    for window in set_windows(data):
-        result = summarise_set(data, window)
-        if result is not None:
-            result["plots"] = plot_set(result, out, f"set{window.index}")
-            sets.append(result)
-    devices = device_health(data)
-    # Session length on the devices' clock (a recording of a fast replay is shorter in log time than the session).
-    device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
-    duration = max(
-        (data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0
-    )
-    device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
-    methods = sorted({m for m, _ in data.frames})
-    facts = session_facts(data)
-    title = f"Session report: {facts['athlete'] or 'athlete not named'}, {facts['date']}"
-    sections = [set_html(s, s["plots"]) for s in sets]
-    if not data.frames:
-        sections.insert(
-            0,
-            "<section><h2>No activation frames</h2><p>This recording holds no <code>activations/&lt;method&gt;</code> "
-            "topic: record while an estimator runs (e.g. <code>msk demo</code> writes <code>out/demo/live.mcap</code>) "
-            "and report on that recording. Sets, repetitions and device health below come from the raw data.</p></section>",
+def emg_summary(data: SessionData) -> dict:
+    """``report.json``'s electrodes and fatigue, as ``msk live``'s ``summary.json`` says them (services.live)."""
+    return {
+        "electrodes": {name: electrode_summary(e) for name, e in sorted(data.electrodes.items())},
+        "fatigue": {name: [fatigue_summary(e) for e in sets] for name, sets in sorted(data.fatigue.items())},
+    }
+
+
+def _session_names(data: SessionData, facts: dict) -> DisplayNames:
+    """Display names of the session's muscle groups for its session-wide tables: the first exercise's pack's, with
+    the session file's names."""
+    return names_for(facts["exercises"][0] if facts["exercises"] else "", (), data.names)
+
+
+def electrodes_html(data: SessionData, facts: dict) -> str:
+    """The estimator's verdict on every EMG electrode over the session (its last status): the state at the end, the
+    time spent in check and bad, and the fault episodes with their reasons; empty when no estimator judged any."""
+    if not data.electrodes:
+        return ""
+    names = _session_names(data, facts)
+    rows = []
+    for name, e in sorted(data.electrodes.items()):
+        episodes = "; ".join(
+            f"{p.worst} {p.start_s:.1f}-{f'{p.end_s:.1f}' if p.HasField('end_s') else 'end'} s: {', '.join(p.reasons)}"
+            for p in e.recent
         )
+        rows.append(
+            [
+                html.escape(name),
+                html.escape(names.group(e.group) if e.group else "–"),
+                html.escape(e.state + (f" ({', '.join(e.reasons)})" if e.reasons else "")),
+                f"{e.check_s:.1f}",
+                f"{e.bad_s:.1f}",
+                str(e.episodes),
+                html.escape(episodes or "none"),
+            ]
+        )
+    return (
+        "<section class='electrodes'><h2>EMG electrodes: signal quality</h2>"
+        + _table(["electrode", "muscle", "state at the end", "check (s)", "bad (s)", "episodes", "reasons"], rows)
+        + "<p class='note'>Judged live by the estimator from the raw EMG (contact, mains interference, saturation, "
+        "flat line); its last status. Episodes (the last 16): worst state, start-end on the EMG device clock, the "
+        "faults raised. A bad electrode is left out of its muscle's envelope.</p></section>"
+    )
+
+
+def fatigue_html(data: SessionData, facts: dict) -> str:
+    """Per electrode and set, the estimator's spectral fatigue index: the median frequency of the first and the last
+    rep, its slope per rep (Hz and % of the first reps) and its change over the set; empty without any."""
+    names = _session_names(data, facts)
+    rows = []
+    for name, sets in sorted(data.fatigue.items()):
+        for e in sets:
+            if not e.median_hz:
+                continue
+            slope = e.median_slope_hz_per_rep
+            rows.append(
+                [
+                    html.escape(name),
+                    html.escape(names.group(e.group) if e.group else "–"),
+                    str(e.set_number or "–"),
+                    str(len(e.median_hz)),
+                    _hz(e.median_hz[0]),
+                    _hz(e.median_hz[-1]),
+                    "–" if not math.isfinite(slope) else f"{slope:+.1f} ({e.median_slope_pct_per_rep:+.1f} %)",
+                    "–" if not math.isfinite(e.median_change_pct) else f"{e.median_change_pct:+.1f}",
+                ]
+            )
+    if not rows:
+        return ""
+    headers = [
+        "electrode",
+        "muscle",
+        "set",
+        "reps",
+        "first rep (Hz)",
+        "last rep (Hz)",
+        "slope per rep (Hz)",
+        "change (%)",
+    ]
+    return (
+        "<section class='fatigue'><h2>Fatigue: median frequency of the EMG per rep</h2>"
+        + _table(headers, rows)
+        + "<p class='note'>Computed live by the estimator from the raw EMG of each rep's active part (20-450 Hz, "
+        "Welch): the median frequency of the set's first and last rep, its least-squares slope per rep (in brackets, "
+        "in % of the first reps' mean) and the change from the first to the last reps (up to 3 each). A falling median "
+        "frequency is the standard EMG sign of fatigue.</p></section>"
+    )
+
+
+def _hz(v: float) -> str:
+    return f"{v:.1f}" if math.isfinite(v) else "–"
+
+
+def health_html(data: SessionData, devices: dict, device_plot: str | None) -> str:
+    """The section on the health of every device over the session (its table, the samples-per-second plot, the
+    nodes' dropped inputs)."""
     rows = [
         [
             html.escape(name),
@@ -861,7 +939,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
         ]
         for name, d in sorted(devices.items())
     ]
-    health = (
+    return (
         "<section><h2>Device health over the session</h2>"
         + _table(
             [
@@ -891,6 +969,36 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
         + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
         + "</section>"
     )
+
+
+def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
+    data = read_session(recording, progress=progress)
+    out.mkdir(parents=True, exist_ok=True)
+    sets = []
+    for window in set_windows(data):
+        result = summarise_set(data, window)
+        if result is not None:
+            result["plots"] = plot_set(result, out, f"set{window.index}")
+            sets.append(result)
+    devices = device_health(data)
+    # Session length on the devices' clock (a recording of a fast replay is shorter in log time than the session).
+    device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
+    duration = max(
+        (data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0
+    )
+    device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
+    methods = sorted({m for m, _ in data.frames})
+    facts = session_facts(data)
+    title = f"Session report: {facts['athlete'] or 'athlete not named'}, {facts['date']}"
+    sections = [set_html(s, s["plots"]) for s in sets]
+    if not data.frames:
+        sections.insert(
+            0,
+            "<section><h2>No activation frames</h2><p>This recording holds no <code>activations/&lt;method&gt;</code> "
+            "topic: record while an estimator runs (e.g. <code>msk demo</code> writes <code>out/demo/live.mcap</code>) "
+            "and report on that recording. Sets, repetitions and device health below come from the raw data.</p></section>",
+        )
+    health = health_html(data, devices, device_plot) + electrodes_html(data, facts) + fatigue_html(data, facts)
     overview = (
         f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
         f"<div class='kpi'><b>{len(sets)}</b>sets with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
@@ -925,6 +1033,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
         ],
         "devices": {name: {k: v for k, v in d.items() if k not in ("times", "weights")} for name, d in devices.items()},
         "node_inputs_dropped": dict(sorted(data.node_drops.items())),
+        **emg_summary(data),
     }
     (out / "report.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
     return summary
