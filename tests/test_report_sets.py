@@ -91,3 +91,30 @@ def test_report_of_a_recording_with_sets(tmp_path):
     assert "<th>set 1</th><th>set 2</th><th>set 3</th>" in muscles  # per muscle (rows), the sets side by side
     assert "<tr><td>A</td><td>79 / 49</td>" in muscles
     assert json.loads((tmp_path / "out" / "report.json").read_text())["sets"][2]["set"]["reps"] == 1
+
+
+def test_report_plots_activation_in_percent(tmp_path, monkeypatch):
+    """One unit in the report: its plots' activation axes in % (0-100), as its tables."""
+    from matplotlib.figure import Figure
+
+    axes: list[tuple[str, tuple[float, float], list[float]]] = []
+    save = Figure.savefig
+
+    def record(fig, *args, **kwargs):
+        for ax in fig.axes:
+            data = [float(y) for line in ax.get_lines() for y in line.get_ydata()]
+            data += [float(v) for image in ax.get_images() for v in image.get_array().compressed()]
+            axes.append((ax.get_ylabel() or ax.get_title(), ax.get_ylim(), data))
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", record)
+    recording = tmp_path / "session.mcap"
+    write_session(recording)
+    report.write_report(recording, tmp_path / "out")
+    activation = [a for a in axes if a[0].startswith("activation")]
+    assert activation and all(label == "activation (%, so)" and ylim == (0, 108) for label, ylim, _ in activation)
+    assert max(max(d) for _, _, d in activation) == pytest.approx(90.0)  # B at rest, 0.9: 90 %
+    heat = [a for a in axes if a[0] == "peak activation per rep (%)"]
+    assert heat and max(max(d) for _, _, d in heat) == pytest.approx(
+        80.0, abs=2.0
+    )  # A: 0.2 + 0.6 x phase, sampled at 20 Hz

@@ -575,34 +575,32 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
     for k, rep in enumerate(result["reps"]):
         ax.axvspan(rep["start_s"] - t0, rep["end_s"] - t0, color="tab:blue", alpha=0.08)
         ax.text(
-            (rep["start_s"] + rep["end_s"]) / 2 - t0, 1.02, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue"
+            (rep["start_s"] + rep["end_s"]) / 2 - t0, 102, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue"
         )
     for i in top:
-        ax.plot(t - t0, a[:, i], lw=1.4, label=names.group(groups[i]))
-    ax.set_ylim(0, 1.08)
+        ax.plot(t - t0, 100 * a[:, i], lw=1.4, label=names.group(groups[i]))
+    ax.set_ylim(0, 108)
     ax.set_xlabel("time in set (s)")
-    ax.set_ylabel(f"activation ({result['primary']})")
+    ax.set_ylabel(f"activation (%, {result['primary']})")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     files.append(f"{stem}_activation.png")
     fig.savefig(out / files[-1], dpi=90, bbox_inches="tight")  # the legend's display names beside the plot
     plt.close(fig)
     # 2. peak per rep and muscle (heat map)
     if result["reps"]:
-        peak = np.array([[v if v is not None else np.nan for v in primary["groups"][g]["peak"]] for g in groups])
+        peak = np.array([[100 * v if v is not None else np.nan for v in primary["groups"][g]["peak"]] for g in groups])
         fig, ax = plt.subplots(figsize=(2.4 + 0.7 * len(result["reps"]), 0.3 * len(groups) + 1.0))
         fig.subplots_adjust(
             left=0.2, right=0.88, bottom=0.3 / (0.3 * len(groups) + 1.0), top=1 - 0.35 / (0.3 * len(groups) + 1.0)
         )
-        image = ax.imshow(peak, vmin=0, vmax=1, cmap="YlOrRd", aspect="auto")
+        image = ax.imshow(peak, vmin=0, vmax=100, cmap="YlOrRd", aspect="auto")
         for (i, j), v in np.ndenumerate(peak):
             if np.isfinite(v):
-                ax.text(
-                    j, i, f"{100 * v:.0f}", ha="center", va="center", fontsize=7, color="white" if v > 0.6 else "black"
-                )
+                ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=7, color="white" if v > 60 else "black")
         ax.set_xticks(range(len(result["reps"])), [f"rep {k + 1}" for k in range(len(result["reps"]))], fontsize=8)
         ax.set_yticks(range(len(groups)), [names.group(g) for g in groups], fontsize=8)
         ax.set_title("peak activation per rep (%)", fontsize=9)
-        fig.colorbar(image, ax=ax, fraction=0.05)
+        fig.colorbar(image, ax=ax, fraction=0.05, label="%")
         files.append(f"{stem}_peaks.png")
         fig.savefig(out / files[-1], dpi=90, bbox_inches="tight")  # the display names left of the map
         plt.close(fig)
@@ -614,10 +612,10 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
         x = np.arange(len(groups))
         width = 0.8 / len(methods)
         for k, method in enumerate(methods):
-            means = [result["methods"][method]["groups"][g]["set_mean"] for g in groups]
+            means = [100 * result["methods"][method]["groups"][g]["set_mean"] for g in groups]
             ax.bar(x + (k - (len(methods) - 1) / 2) * width, means, width, label=method)
         ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)  # abbreviations: the legend is under the plot
-        ax.set_ylabel("mean activation in the set")
+        ax.set_ylabel("mean activation in the set (%)")
         ax.legend(fontsize=8)
         files.append(f"{stem}_methods.png")
         fig.savefig(out / files[-1], dpi=90)
@@ -802,7 +800,7 @@ def set_html(result: dict, plots: list[str]) -> str:
                 [
                     html.escape(method),
                     str(info["frames"]),
-                    f"{info['rms_difference_to_primary']:.3f}"
+                    f"{100 * info['rms_difference_to_primary']:.1f}"
                     if info["rms_difference_to_primary"] is not None
                     else "–",
                     f"{info['torque_residual_rms_nm']:.2f}" if info["torque_residual_rms_nm"] is not None else "–",
@@ -816,7 +814,7 @@ def set_html(result: dict, plots: list[str]) -> str:
                 [
                     "method",
                     "frames",
-                    f"RMS difference to {result['primary']}",
+                    f"RMS difference to {result['primary']} (%)",
                     "torque residual RMS (N·m)",
                     "flagged frames",
                     "solve time median (ms)",
