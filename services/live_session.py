@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,6 +24,17 @@ if TYPE_CHECKING:
 
 METHODS = ("proposed", "assisted", "so", "hybrid")
 SIM_METHODS = ("proposed", "assisted", "so")
+#: The method every surface (view, dashboard, report) shows by default: the first of these that ran. ``assisted`` runs
+#: only where EMG is live (its frames carry the measured envelope), so it is the default there, ``proposed`` elsewhere.
+PREFERRED_METHODS = ("assisted", "proposed", "so", "hybrid")
+
+
+def default_method(methods: Iterable[str]) -> str | None:
+    """The method a surface shows by default among those that ran: the first of :data:`PREFERRED_METHODS`, else the
+    first in ``methods``' order; None without any."""
+    methods = list(methods)
+    return next((m for m in PREFERRED_METHODS if m in methods), methods[0] if methods else None)
+
 
 _SECTIONS = {
     "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete", "rest_s"},

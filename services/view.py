@@ -41,6 +41,7 @@ from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
 from services import messages, topics
+from services.live_session import default_method
 from services.node_runtime import InputCounts, NodeInputs, serve
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
 
@@ -274,7 +275,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         sets, set_number, set_start_s, rest = set_line(state.sets, state.first_frame_s)
         records = [r.as_dict() for r in state.sets.sets]  # the set under way (or the last) in the muscle table
     methods = list(frames)
-    method = primary if primary in frames else (methods[0] if methods else None)
+    method = primary if primary in frames else default_method(methods)  # named in the muscle table's title
     dropped = dropped_text(state.inputs)
     header = Text(
         f"msk view · session {session} · {received} messages"

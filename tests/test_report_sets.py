@@ -118,3 +118,13 @@ def test_report_plots_activation_in_percent(tmp_path, monkeypatch):
     assert heat and max(max(d) for _, _, d in heat) == pytest.approx(
         80.0, abs=2.0
     )  # A: 0.2 + 0.6 x phase, sampled at 20 Hz
+
+
+def test_report_header_names_the_method_shown(tmp_path):
+    """The report details the method every surface shows by default (services.live_session.default_method) and says
+    which in its header."""
+    recording = tmp_path / "session.mcap"
+    write_session(recording)
+    report.write_report(recording, tmp_path / "out")
+    header = (tmp_path / "out" / "report.html").read_text().split("</header>")[0]
+    assert "methods: so · method shown: so" in header

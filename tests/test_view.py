@@ -292,3 +292,22 @@ def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endp
     text = screen_text(state, "bad")
     assert "5 dropped (msk/bad/activations/so: invalid 1, msk/bad/activations/so: undecodable 1" in text
     assert "msk/bad/joints: oversized 1" in text and "exercise deadlift · load 80 kg · set 1" in text
+
+
+def test_the_view_shows_assisted_where_it_ran_else_proposed_and_names_it():
+    """One default method on every surface (services.live_session.default_method): ``assisted`` where EMG is live,
+    else ``proposed``, whatever order the frames arrive in; the muscle table's title names it."""
+    state = ViewState()
+    for method in ("so", "proposed"):
+        state.on_message(
+            f"msk/s/activations/{method}",
+            messages.ActivationFrame(method=method, time_s=1.0, groups=["BicLong"], activations=[0.4]),
+        )
+    assert "activations · proposed" in screen_text(state)
+    state.on_message(
+        "msk/s/activations/assisted",
+        messages.ActivationFrame(
+            method="assisted", time_s=1.0, groups=["BicLong"], activations=[0.4], measured_envelope=[0.3]
+        ),
+    )
+    assert "activations · assisted" in screen_text(state)

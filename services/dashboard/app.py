@@ -36,6 +36,7 @@ from services import messages, topics
 from services.dashboard import bodymap
 from services.dashboard.access import TokenGate, TokenStore
 from services.dashboard.bridge import Bridge, DashboardState
+from services.live_session import PREFERRED_METHODS
 from services.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args
 
 log = logging.getLogger(__name__)
@@ -61,6 +62,18 @@ def packs_by_groups() -> dict[tuple[str, ...], str]:
     return found
 
 
+def page_config(config: DashboardConfig, pack_index: dict[tuple[str, ...], str]) -> dict:
+    """What the page reads at /config.json: the session, its timings, the method shown by default (the first of
+    ``default_methods`` that ran, as in the view and the report) and each pack's groups."""
+    return {
+        "session": config.session,
+        "no_data_after_s": config.no_data_after_s,
+        "heartbeat_s": config.heartbeat_s,
+        "default_methods": list(PREFERRED_METHODS),
+        "packs": {name: list(groups) for groups, name in pack_index.items()},
+    }
+
+
 def create_app(
     config: DashboardConfig,
     state: DashboardState,
@@ -78,14 +91,7 @@ def create_app(
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
 
     async def config_json(request):
-        return JSONResponse(
-            {
-                "session": config.session,
-                "no_data_after_s": config.no_data_after_s,
-                "heartbeat_s": config.heartbeat_s,
-                "packs": {name: list(groups) for groups, name in pack_index.items()},
-            }
-        )
+        return JSONResponse(page_config(config, pack_index))
 
     async def body_map(request):
         name = request.path_params["pack"]

@@ -42,9 +42,10 @@ from msk_core.signal.sets import SetRecord, SetTracker
 from services import messages
 from services.dashboard import bodymap
 from services.live import electrode_summary, fatigue_summary, keep_fatigue
+from services.live_session import PREFERRED_METHODS, default_method
 from services.mcap_io import ReadReport, read_messages
 
-PRIMARY_METHODS = ("assisted", "proposed", "so", "hybrid")  # the first present is the one the report details
+PRIMARY_METHODS = PREFERRED_METHODS  # the first present is the one the report details (as every surface)
 ACTIVE_THRESHOLD = 0.2  # "time active" of a muscle: activation above this
 
 
@@ -1007,7 +1008,8 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
         f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><header><h1>{html.escape(title)}</h1>"
         f"<div class='facts'>{html.escape(facts_line(facts))}</div>"
         f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} sets · methods: "
-        f"{html.escape(', '.join(methods) or 'none')}</div></header><main>"
+        f"{html.escape(', '.join(methods) or 'none')} · method shown: {html.escape(default_method(methods) or 'none')}"
+        "</div></header><main>"
         + overview
         + (sets_html(sets) if sets else "")
         + "".join(sections)

@@ -131,7 +131,10 @@ function scheduleRender() {
 function currentMethod() {
   const methods = Object.keys(state.activations).sort();
   if (!methods.length) return null;
-  if (!state.method || !methods.includes(state.method)) state.method = methods.includes("proposed") ? "proposed" : methods[0];
+  if (!state.method || !methods.includes(state.method)) {
+    const preferred = (state.config && state.config.default_methods) || [];  // as view and report: assisted where EMG is live
+    state.method = preferred.find((m) => methods.includes(m)) || methods[0];
+  }
   return state.method;
 }
 
