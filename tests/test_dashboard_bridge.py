@@ -215,6 +215,7 @@ def test_msk_dashboard_command_serves_the_page_and_stops_on_sigint(zenoh_endpoin
         assert body is not None, f"no answer on port {port} within 30 s (exit code {process.poll()})"
         config = json.loads(body)
         assert config["session"] == "gym" and config["packs"]["bench_press"][0] == "BRA"
+        assert config["default_methods"][:2] == ["assisted", "proposed"]  # the method shown first, as view and report
         page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read().decode()
         assert "chart-4.6.1.umd.min.js" in page and 'id="nodata"' in page
         request = urllib.request.Request(
