@@ -98,7 +98,8 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
 
             replay = replay_in_background(zenoh_endpoint, first_set, rate=2.0)
             first = wait_for(page, lambda p: p["status"] == "live" and p["bars"] and p["fills"], 15, "live frames")
-            assert first["reps"] == "0" and first["set"] == "1"
+            # the first rep ends 2.45 s into the replay at rate 2: on busy cores the page may first be seen after it
+            assert first["set"] == "1" and first["reps"] in ("0", "1"), first
             assert set(first["torqueCharts"]) == {"elv_angle_r", "elbow_flex_r"}
             # muscles and joints by their display names, torques with their unit
             named = wait_for(page, lambda p: "Biceps brachii, long head" in p["labels"], 5, "display names on the bars")
