@@ -24,7 +24,7 @@ from tests.test_live_together import LiveProcess, _environment
 SESSION = "setslive"
 REST_S = 4.0  # the session's rest detection
 METHOD = "assisted"  # the method the report details (its frames' phase: the reps it counts)
-WAIT_S = 40.0  # for a rep, or for the rest after one (a cycle: about 6 s of set and 8 s of rest)
+WAIT_S = 50.0  # for a rep, or for the rest after one (a cycle: about 6 s of set and 8 s of rest)
 
 
 class Reps:
@@ -40,14 +40,20 @@ class Reps:
 
     def wait(self, what: str, done) -> None:
         deadline = time.monotonic() + WAIT_S
-        seen = 0
+        seen, phases = 0, []
         while not done(self):
-            assert time.monotonic() < deadline, f"waited {WAIT_S:g} s for {what}: {seen} frames, reps {self.spans}"
+            assert time.monotonic() < deadline, (
+                f"waited {WAIT_S:g} s for {what}: {seen} frames, reps {self.spans}; phases of those frames: "
+                f"{len(phases)} set, {sum(p < 0 for p in phases)} between reps, "
+                f"range {min(phases, default=float('nan')):.2f}-{max(phases, default=float('nan')):.2f}"
+            )
             try:
                 frame = self.frames.get(timeout=0.5)
             except queue.Empty:
                 continue
             seen += 1
+            if frame.HasField("phase"):
+                phases.append(frame.phase)
             self.last_t = frame.time_s
             span = self.counter.update(self.last_t, frame.phase if frame.HasField("phase") else None)
             if span is not None:
