@@ -76,7 +76,9 @@ def live_run(tmp_path_factory):
         truth[f"imu/{tracker}"] = sim._powered_at * 1e9 + real_minus_monotonic_ns
         truth[f"offset/{tracker}"] = (emg_origin_s - sim._powered_at) * 1e9
         started_s = sim.stats.start_index / sim.source.rate_hz - trigno.stats.start_index / trigno.rate_hz
-        assert TRACKERS_AFTER_S - 0.02 < started_s < TRACKERS_AFTER_S + 0.05, (tracker, started_s)
+        # the scenario: each tracker streams at least TRACKERS_AFTER_S after the Trigno (on busy cores its driver's
+        # start can add a few hundred ms: 0.55 s seen in a clean-clone suite); the truth above uses the real start
+        assert TRACKERS_AFTER_S - 0.02 < started_s < TRACKERS_AFTER_S + 2.0, (tracker, started_s)
     return summary, plan, truth
 
 
