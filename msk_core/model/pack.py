@@ -25,7 +25,7 @@ from msk_core.model.rigid import RigidModel, compiled_kernels
 
 if TYPE_CHECKING:
     from msk_core.model.kernels import MuscleTables
-    from msk_core.model.spec import PackSpec
+    from msk_core.model.spec import BalanceSpec, PackSpec
 
 PACK_FORMAT = "msk-model-pack/1"
 
@@ -93,6 +93,7 @@ class ModelPack:
         self.max_control = np.asarray(data.get("max_control", np.ones(len(self.groups))), dtype=float)
         self.fit_report: dict = data.get("fit_report", {})
         self.display_names: DisplayNames = names_of(data, path)
+        self.balance: BalanceSpec = balance_of(data, path)  # the pairs its spec declares for balance metrics
 
     def _read_length_basis(self, data: dict) -> None:
         """The length surrogates' basis (monomials and hinges) and coefficients, lengths and moment arms stacked."""
@@ -444,13 +445,27 @@ def load_pack(name_or_path: str | Path, *, evaluator: Evaluator = Evaluator.NUMP
     return ModelPack(data, path=path, evaluator=evaluator)
 
 
+def _spec_table(data: dict, table: str, path: Path | None) -> object:
+    """Table ``table`` of the spec embedded in pack ``data`` (``{}`` when it has none)."""
+    try:
+        return tomllib.loads(data.get("spec", "")).get(table, {})
+    except tomllib.TOMLDecodeError as exc:
+        raise FileFormatError(f"the pack's embedded spec is not valid TOML: {exc}", path=path, field="spec") from exc
+
+
+def balance_of(data: dict, path: Path | None = None) -> BalanceSpec:
+    """The pairs a pack declares for balance metrics: its embedded spec's ``[balance]`` table
+    (:func:`msk_core.model.spec.parse_balance`), checked against its groups and coordinates; none without one."""
+    from msk_core.model.spec import parse_balance
+
+    table = _spec_table(data, "balance", path)
+    return parse_balance(table, list(data["groups"]), list(data["coordinates"]), path=path, text=data.get("spec", ""))
+
+
 def names_of(data: dict, path: Path | None = None) -> DisplayNames:
     """The display names of a pack's groups and coordinates: its spec's ``[names]`` table (msk_core.model.names),
     the model names where it gives none. The spec the pack was compiled from is embedded in the pack (``spec``)."""
-    try:
-        table = tomllib.loads(data.get("spec", "")).get("names", {})
-    except tomllib.TOMLDecodeError as exc:
-        raise FileFormatError(f"the pack's embedded spec is not valid TOML: {exc}", path=path, field="spec") from exc
+    table = _spec_table(data, "names", path)
     groups, coordinates = list(data["groups"]), list(data["coordinates"])
     names = parse_names(table, [*groups, *coordinates], path=path, text=data.get("spec", ""))
     return DisplayNames.of(groups, {c: ROTATION_UNIT for c in coordinates}, names)  # pack coordinates: rotations
@@ -475,19 +490,26 @@ def names_for(exercise: str, groups: Sequence[str] = (), overrides: Mapping[str,
     return names.with_overrides(overrides or {})
 
 
+#: Spec tables that declare things about a pack without entering its fit: changing them needs no recompile.
+DECLARATIVE_TABLES = ("names", "balance")
+
+
 def with_names(data: dict, spec: PackSpec) -> dict:
-    """A copy of pack ``data`` carrying ``spec`` as its embedded spec, when the two differ only in their ``[names]``
-    tables (and comments): a change of display names needs no recompile. Any other difference is refused, naming the
-    spec file and the first differing key."""
+    """A copy of pack ``data`` carrying ``spec`` as its embedded spec, when the two differ only in their
+    :data:`DECLARATIVE_TABLES` (``[names]``, ``[balance]``) and comments: a change of display names or balance pairs
+    needs no recompile. Any other difference is refused, naming the spec file and the first differing key."""
     old, new = tomllib.loads(data.get("spec", "")), tomllib.loads(spec.text)
-    old.pop("names", None)
-    new.pop("names", None)
+    for table in DECLARATIVE_TABLES:
+        old.pop(table, None)
+        new.pop(table, None)
     changed = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     if changed:
         raise ModelError(
             f"{spec.path or 'the spec'}: differs from the spec pack {data.get('name')!r} was compiled "
-            f"from in [{changed[0]}], not only in [names]: recompile the pack (msk model compile)"
+            f"from in [{changed[0]}], not only in [names]: recompile the pack (msk model compile; a change of "
+            f"[{'] or ['.join(DECLARATIVE_TABLES)}] alone needs none)"
         )
     out = dict(data, spec=spec.text)
     names_of(out)  # the names fit the pack's groups and coordinates
+    balance_of(out)  # and so do the balance pairs
     return out

@@ -1,6 +1,10 @@
 """Pack specifications (TOML): which coordinates, muscle groups, locked pose, couplings and load a pack compiles.
 
 Angles in a spec are in degrees (``*_deg`` keys), everything else SI. See docs/models.md for the format.
+
+Two tables are declarations about the pack, not inputs of its fit (a change needs no recompile, see
+:func:`msk_core.model.pack.with_names`): ``[names]`` (display names, msk_core.model.names) and ``[balance]`` (the
+pairs the report compares: left/right groups, agonists/antagonists of a coordinate; :func:`parse_balance`).
 """
 
 from __future__ import annotations
@@ -71,6 +75,30 @@ class FitSpec:
 
 
 @dataclass(frozen=True)
+class JointBalance:
+    """The groups pulling one coordinate in its positive direction (the direction its display name says, e.g.
+    "Elbow flexion": the flexors) against those pulling it back, under a label people read ("Elbow flexors /
+    extensors")."""
+
+    coordinate: str
+    agonists: tuple[str, ...]
+    antagonists: tuple[str, ...]
+    label: str
+
+
+@dataclass(frozen=True)
+class BalanceSpec:
+    """The pairs a pack declares for balance metrics (``[balance]``); none declared: no balance is reported."""
+
+    left_right: tuple[tuple[str, str], ...] = ()  # (left group, right group)
+    agonist_antagonist: tuple[JointBalance, ...] = ()
+
+    @property
+    def empty(self) -> bool:
+        return not self.left_right and not self.agonist_antagonist
+
+
+@dataclass(frozen=True)
 class PackSpec:
     name: str
     version: str
@@ -84,6 +112,7 @@ class PackSpec:
     path: Path | None = None
     text: str = ""
     names: dict[str, str] = field(default_factory=dict)  # group or coordinate -> display name ([names])
+    balance: BalanceSpec = field(default_factory=BalanceSpec)  # the pairs balance metrics compare ([balance])
 
     @property
     def coordinate_names(self) -> list[str]:
@@ -113,9 +142,12 @@ def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where
     return value
 
 
-def _line(text: str, token: str) -> int | None:
-    """1-based line of the first occurrence of ``token`` in ``text``."""
-    for number, line in enumerate(text.splitlines(), start=1):
+def _line(text: str, token: str, after: str = "") -> int | None:
+    """1-based line of the first occurrence of ``token`` in ``text`` (at or after the line ``after``, a table's
+    header, when given and present)."""
+    lines = text.splitlines()
+    start = next((i for i, line in enumerate(lines) if after and line.strip() == after), 0)
+    for number, line in enumerate(lines[start:], start=start + 1):
         if token in line:
             return number
     return None
@@ -175,6 +207,7 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         path=path,
         text=text,
         names=parse_names(raw.get("names", {}), [*groups, *(c.name for c in coordinates)], path=path, text=text),
+        balance=parse_balance(raw.get("balance", {}), groups, [c.name for c in coordinates], path=path, text=text),
     )
 
 
@@ -296,6 +329,112 @@ def _check_load_share(share: object, shares_something: bool, path: Path | None, 
 
 def _is_number(value: object) -> TypeGuard[int | float]:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+BALANCE_KEYS = ("left_right", "agonist_antagonist")
+JOINT_BALANCE_KEYS = ("coordinate", "agonists", "antagonists", "label")
+
+
+def parse_balance(
+    table: object,
+    groups: list[str] | dict[str, list[str]],
+    coordinates: list[str],
+    *,
+    path: Path | None,
+    text: str = "",
+) -> BalanceSpec:
+    """The ``[balance]`` table, checked against the pack's ``groups`` and ``coordinates``::
+
+        [balance]
+        left_right = [["psoas_l", "psoas_r"]]  # [left, right]
+        agonist_antagonist = [
+          { coordinate = "r_elbow_flex", agonists = ["BRA"], antagonists = ["TRIlat"], label = "Elbow flexors / extensors" },
+        ]
+
+    Errors name the file, line, field and value: an unknown key, group or coordinate, a group on both sides of a
+    pair, a pair or list of the wrong shape, an empty label."""
+    if not isinstance(table, dict):
+        raise ConfigError("must be a table", path=path, field="balance", value=table, line=_line(text, "[balance]"))
+    unknown = sorted(set(table) - set(BALANCE_KEYS))
+    if unknown:
+        message = f"unknown key ({closest(unknown[0], list(BALANCE_KEYS))})"
+        raise _bad(message, path, text, f"balance.{unknown[0]}", unknown[0], unknown[0])
+    known = list(groups)
+    pairs_raw = table.get("left_right", [])
+    if not isinstance(pairs_raw, list):
+        raise _bad(
+            "must be a list of [left group, right group]", path, text, "balance.left_right", pairs_raw, "left_right"
+        )
+    pairs: list[tuple[str, str]] = []
+    for k, pair in enumerate(pairs_raw):
+        where = f"balance.left_right[{k}]"
+        if not (isinstance(pair, list) and len(pair) == 2 and all(isinstance(g, str) for g in pair)):
+            raise _bad("must be [left group, right group]", path, text, where, pair, "left_right")
+        for g in pair:
+            _known_group(g, known, path, text, where)
+        if pair[0] == pair[1]:
+            raise _bad("a group on both sides of the pair", path, text, where, pair[0], pair[0])
+        paired = [g for g in pair if any(g in p for p in pairs)]
+        if paired:
+            raise _bad("a group already in another left/right pair", path, text, where, paired[0], paired[0])
+        pairs.append((pair[0], pair[1]))
+    joints_raw = table.get("agonist_antagonist", [])
+    if not isinstance(joints_raw, list):
+        message = "must be a list of { coordinate, agonists, antagonists, label }"
+        raise _bad(message, path, text, "balance.agonist_antagonist", joints_raw, "agonist_antagonist")
+    joints = [
+        _joint_balance(entry, f"balance.agonist_antagonist[{k}]", known, coordinates, path, text)
+        for k, entry in enumerate(joints_raw)
+    ]
+    return BalanceSpec(tuple(pairs), tuple(joints))
+
+
+def _joint_balance(
+    entry: object, where: str, groups: list[str], coordinates: list[str], path: Path | None, text: str
+) -> JointBalance:
+    """One ``agonist_antagonist`` entry of ``[balance]`` (:func:`parse_balance`)."""
+    if not isinstance(entry, dict):
+        message = "must be { coordinate = .., agonists = [..], antagonists = [..], label = .. }"
+        raise _bad(message, path, text, where, entry, "agonist_antagonist")
+    unknown = sorted(set(entry) - set(JOINT_BALANCE_KEYS))
+    if unknown:
+        message = f"unknown key ({closest(unknown[0], list(JOINT_BALANCE_KEYS))})"
+        raise _bad(message, path, text, f"{where}.{unknown[0]}", unknown[0], unknown[0])
+    for key in JOINT_BALANCE_KEYS:
+        if key not in entry:
+            raise _bad("missing required key", path, text, f"{where}.{key}", None, "agonist_antagonist")
+    coordinate = entry["coordinate"]
+    if coordinate not in coordinates:
+        message = f"not a coordinate of the pack ({closest(str(coordinate), coordinates)})"
+        raise _bad(message, path, text, f"{where}.coordinate", coordinate, str(coordinate))
+    sides: dict[str, tuple[str, ...]] = {}
+    for key in ("agonists", "antagonists"):
+        members = entry[key]
+        if not isinstance(members, list) or not members or not all(isinstance(g, str) for g in members):
+            raise _bad("must be a non-empty list of group names", path, text, f"{where}.{key}", members, key)
+        for g in members:
+            _known_group(g, groups, path, text, f"{where}.{key}")
+        sides[key] = tuple(members)
+    both = [g for g in sides["agonists"] if g in sides["antagonists"]]
+    if both:
+        message = "a group on both sides (agonists and antagonists)"
+        raise _bad(message, path, text, f"{where}.antagonists", both[0], both[0])
+    label = entry["label"]
+    if not isinstance(label, str) or not label.strip() or "\n" in label:
+        raise _bad("must be a one-line label", path, text, f"{where}.label", label, "label")
+    return JointBalance(coordinate, sides["agonists"], sides["antagonists"], label.strip())
+
+
+def _known_group(group: str, groups: list[str], path: Path | None, text: str, where: str) -> None:
+    if group not in groups:
+        message = f"not a muscle group of the pack ({closest(group, groups)})"
+        raise _bad(message, path, text, where, group, group)
+
+
+def _bad(message: str, path: Path | None, text: str, fieldname: str, value: object, token: str) -> ConfigError:
+    """The error for a bad value in ``[balance]``, at the table's first line holding ``token``."""
+    line = _line(text, token, after="[balance]") or _line(text, "[balance]")
+    return ConfigError(message, path=path, field=fieldname, value=value, line=line)
 
 
 def load_spec(path: str | Path) -> PackSpec:
