@@ -14,6 +14,10 @@ of coordinates) with the certificate in hand. When it does not within
 ``max_iter`` working-set changes (a cycle, a degenerate frame, a failed factorisation) it says so and the caller
 solves the frame with PIQP instead: the answer is always either certified here or PIQP's.
 
+``so`` (min a'a s.t. A~ a = t~, lb <= a <= ub) has its own kernel, :func:`solve_min_norm_eq`: the same method on
+the same working-set steps, each working set's minimiser from the m x m system (A~_F A~_F') lam = -2 (t~ - A~_B a_B),
+a_F = -A~_F' lam / 2, certified by the signs of the bound multipliers 2 a_i + A~_i' lam and by the equality's residual.
+
 Why this exists: PIQP (interior point) takes no starting point, and on a 19-group frame its ~8 iterations cost
 ~40 µs; this method reuses what the last frame learned and typically costs a few µs.
 """
@@ -33,6 +37,11 @@ CERTIFIED, NOT_CONVERGED, FACTORISATION_FAILED = 0, 1, 2
 LOWER, FREE, UPPER = -1, 0, 1
 #: sign tolerance of the multipliers, relative to the problem's gradient scale (see the kernel)
 MULTIPLIER_TOL = 1e-10
+#: ``so``: a working set's A~_F A~_F' counts as singular when a squared Cholesky pivot falls below this times its
+#: largest diagonal entry (A~'s rows have unit 1-norm)
+SINGULAR_TOL = 1e-12
+#: ``so``: largest scaled torque residual |A~ a - t~| (fraction of the coordinate's capacity) of a certified optimum
+EQUALITY_TOL = 1e-9
 
 
 def _jit(fn: Callable) -> Callable:
@@ -70,27 +79,8 @@ def _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
         for a in range(nf):
             acc += at[i, free_idx[a]] * y[a]
         z[i] = acc
-    for i in range(m):  # Cholesky S = L L' in place (lower triangle)
-        for j in range(i + 1):
-            acc = s_mat[i, j]
-            for k in range(j):
-                acc -= s_mat[i, k] * s_mat[j, k]
-            if i == j:
-                if not acc > 0.0:
-                    return False
-                s_mat[i, i] = np.sqrt(acc)
-            else:
-                s_mat[i, j] = acc / s_mat[j, j]
-    for i in range(m):  # z <- S^-1 z
-        acc = z[i]
-        for k in range(i):
-            acc -= s_mat[i, k] * z[k]
-        z[i] = acc / s_mat[i, i]
-    for i in range(m - 1, -1, -1):
-        acc = z[i]
-        for k in range(i + 1, m):
-            acc -= s_mat[k, i] * z[k]
-        z[i] = acc / s_mat[i, i]
+    if not _cholesky_solve(s_mat, z, m, 0.0):
+        return False
     for a in range(nf):  # y = u - D^-1 A_F' z
         fi = free_idx[a]
         acc = 0.0
@@ -123,6 +113,112 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
     return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
 
 
+@_jit
+def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
+    """Solve ``so``'s QP, min a'a s.t. A~ a = t~, lb <= a <= ub, from the working set in ``state`` and the point
+    ``x`` (both updated in place), as :func:`solve_box_lsq` does the least-squares one.
+
+    Returns (code, working-set changes, out (m + 3, G): rows A~ | x | forces | 2 (the Hessian's diagonal), torques
+    (2, m): model | residual). code is FACTORISATION_FAILED when a working set leaves A~_F A~_F' singular (fewer free
+    groups than coordinates, a coordinate all of whose groups are held: its torque is then met only by the held
+    values, if at all) even after one restart with every group free, NOT_CONVERGED after ``max_iter`` changes; the
+    caller then asks PIQP, which also tells an infeasible frame (the reserve fallback) apart.
+    """
+    m, g = r.shape
+    out = np.empty((m + 3, g))
+    at = out[:m]
+    out[m + 2] = 2.0
+    tt = np.empty(m)
+    _scale_rows(r, f_max, tau, min_scale, at, tt)
+    _feasible_start(state, lb, ub, x)
+    code, changes = _iterate_equality(at, tt, lb, ub, x, state, max_iter)
+    return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
+
+
+@_part
+def _iterate_equality(
+    at: Array, tt: Array, lb: Array, ub: Array, x: Array, state: Array, max_iter: int
+) -> tuple[int, int]:
+    """The active-set iterations of :func:`solve_min_norm_eq`: (code, changes).
+
+    Working set W (held groups B at their bounds, free F): its minimiser is a_F = -A_F' lam / 2 with
+    (A_F A_F') lam = -2 (t - A_B a_B), i.e. a_F = A_F' v, (A_F A_F') v = t - A_B a_B, lam = -2 v. The start x need not
+    meet the equality (the last frame's optimum): a blocked step shrinks its residual by (1 - alpha), the first full
+    step removes it, and from there every step stays on the equality (the textbook method). Certified when the full
+    step's x is in the box, meets the equality to ``EQUALITY_TOL`` and every bound multiplier g_i = 2 a_i + A_i' lam
+    has its sign (>= 0 at a lower bound, <= 0 at an upper one)."""
+    m, g = at.shape
+    free_idx = np.empty(g, dtype=np.int64)
+    y = np.empty(g)
+    v = np.empty(m)
+    s_mat = np.empty((m, m))
+    grad = np.empty(g)
+    code = NOT_CONVERGED
+    changes = 0
+    restarted = False
+    while True:
+        nf = _collect_free(state, free_idx)
+        big = 0.0
+        for i in range(m):  # v = t - A_B a_B; S = A_F A_F' (lower triangle)
+            acc = tt[i]
+            for j in range(g):
+                if state[j] != FREE:
+                    acc -= at[i, j] * x[j]
+            v[i] = acc
+            for k in range(i + 1):
+                acc = 0.0
+                for a in range(nf):
+                    acc += at[i, free_idx[a]] * at[k, free_idx[a]]
+                s_mat[i, k] = acc
+            big = max(big, s_mat[i, i])
+        if not _cholesky_solve(s_mat, v, m, SINGULAR_TOL * big):
+            if restarted or nf == g or changes >= max_iter:
+                code = FACTORISATION_FAILED
+                break
+            changes += 1  # one restart from the whole set free (x stays where it is, in the box)
+            restarted = True
+            state[:] = FREE
+            continue
+        for a in range(nf):  # y = A_F' v
+            acc = 0.0
+            for i in range(m):
+                acc += at[i, free_idx[a]] * v[i]
+            y[a] = acc
+        block = _step(free_idx, nf, y, lb, ub, x)
+        if block >= 0:
+            if changes >= max_iter:
+                break
+            changes += 1
+            _hold(block, lb, ub, x, state)
+            continue
+        worst_residual = 0.0
+        for i in range(m):
+            acc = -tt[i]
+            for j in range(g):
+                acc += at[i, j] * x[j]
+            worst_residual = max(worst_residual, abs(acc))
+        if worst_residual > EQUALITY_TOL:
+            break  # numerically no solution of the equality in this working set: not certified
+        scale = 2.0
+        for j in range(g):  # g_j = 2 a_j + A_j' lam = 2 (a_j - A_j' v), held groups only
+            acc = 0.0
+            size = 0.0
+            for i in range(m):
+                acc += at[i, j] * v[i]
+                size += abs(at[i, j] * v[i])
+            grad[j] = 2.0 * (x[j] - acc)
+            scale = max(scale, 2.0 * size)
+        worst_i = _most_violated(state, grad, MULTIPLIER_TOL * scale)
+        if worst_i < 0:
+            code = CERTIFIED
+            break
+        if changes >= max_iter:
+            break
+        changes += 1
+        state[worst_i] = FREE
+    return code, changes
+
+
 @_part
 def _iterate(
     at: Array, tt: Array, w: float, d: Array, mu: Array, lb: Array, ub: Array, x: Array, state: Array, max_iter: int
@@ -136,14 +232,11 @@ def _iterate(
     e = np.empty(m)
     s_mat = np.empty((m, m))
     z = np.empty(m)
+    grad = np.empty(g)
     code = NOT_CONVERGED
     changes = 0
     while True:
-        nf = 0
-        for i in range(g):
-            if state[i] == FREE:
-                free_idx[nf] = i
-                nf += 1
+        nf = _collect_free(state, free_idx)
         # equality-constrained minimiser over the free set, the others fixed at their bounds:
         # H_FF y = w A~_F'(t~ - A~_B x_B) + d_F mu_F
         for n in range(m):
@@ -167,11 +260,7 @@ def _iterate(
             if changes >= max_iter:
                 break
             changes += 1
-            # the blocking variable joins the working set at the bound it hit
-            if x[block] - lb[block] <= ub[block] - x[block]:
-                state[block], x[block] = LOWER, lb[block]
-            else:
-                state[block], x[block] = UPPER, ub[block]
+            _hold(block, lb, ub, x, state)
             continue
         # full step: x is the working set's minimiser; the multipliers of its bounds decide
         for n in range(m):
@@ -179,18 +268,13 @@ def _iterate(
             for j in range(g):
                 s += at[n, j] * x[j]
             e[n] = s
-        worst = tol
-        worst_i = -1
         for i in range(g):
-            if state[i] == FREE:
-                continue
-            s = 0.0
-            for n in range(m):
-                s += at[n, i] * e[n]
-            grad = w * s + d[i] * (x[i] - mu[i])
-            violation = -grad if state[i] == LOWER else grad  # lower bound needs grad >= 0, upper <= 0
-            if violation > worst:
-                worst, worst_i = violation, i
+            if state[i] != FREE:
+                s = 0.0
+                for n in range(m):
+                    s += at[n, i] * e[n]
+                grad[i] = w * s + d[i] * (x[i] - mu[i])
+        worst_i = _most_violated(state, grad, tol)
         if worst_i < 0:
             code = CERTIFIED
             break
@@ -199,6 +283,69 @@ def _iterate(
         changes += 1
         state[worst_i] = FREE  # the most violated bound is released
     return code, changes
+
+
+@_part
+def _collect_free(state: Array, free_idx: Array) -> int:
+    """free_idx[:nf] = the free variables of the working set; returns nf."""
+    nf = 0
+    for i in range(state.shape[0]):
+        if state[i] == FREE:
+            free_idx[nf] = i
+            nf += 1
+    return nf
+
+
+@_part
+def _hold(block: int, lb: Array, ub: Array, x: Array, state: Array) -> None:
+    """The blocking variable of a step joins the working set at the bound it hit."""
+    if x[block] - lb[block] <= ub[block] - x[block]:
+        state[block], x[block] = LOWER, lb[block]
+    else:
+        state[block], x[block] = UPPER, ub[block]
+
+
+@_part
+def _most_violated(state: Array, grad: Array, tol: float) -> int:
+    """The held variable whose bound multiplier (the objective's gradient ``grad``, read where held) has the wrong
+    sign by more than ``tol`` - most of all; -1: none (a lower bound needs grad >= 0, an upper one grad <= 0)."""
+    worst = tol
+    worst_i = -1
+    for i in range(state.shape[0]):
+        if state[i] == FREE:
+            continue
+        violation = -grad[i] if state[i] == LOWER else grad[i]
+        if violation > worst:
+            worst, worst_i = violation, i
+    return worst_i
+
+
+@_part
+def _cholesky_solve(s_mat: Array, z: Array, m: int, floor: float) -> bool:
+    """z <- S^-1 z for the symmetric S in the lower triangle of s_mat[:m, :m], factorised in place (S = L L');
+    False when a squared pivot is not above ``floor`` (S not numerically positive definite)."""
+    for i in range(m):
+        for j in range(i + 1):
+            acc = s_mat[i, j]
+            for k in range(j):
+                acc -= s_mat[i, k] * s_mat[j, k]
+            if i == j:
+                if not acc > floor:
+                    return False
+                s_mat[i, i] = np.sqrt(acc)
+            else:
+                s_mat[i, j] = acc / s_mat[j, j]
+    for i in range(m):  # forward: L u = z
+        acc = z[i]
+        for k in range(i):
+            acc -= s_mat[i, k] * z[k]
+        z[i] = acc / s_mat[i, i]
+    for i in range(m - 1, -1, -1):  # back: L' v = u
+        acc = z[i]
+        for k in range(i + 1, m):
+            acc -= s_mat[k, i] * z[k]
+        z[i] = acc / s_mat[i, i]
+    return True
 
 
 @_part

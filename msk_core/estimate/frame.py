@@ -27,8 +27,9 @@ One PIQP solver per estimator (dense, or sparse from 40 groups up: :mod:`msk_cor
 first frame and then only ``update()``-d with the new matrices, so its workspace and preconditioner
 (``preconditioner_reuse_on_update``) are reused frame after frame.
 (PIQP is an interior-point method: it takes no primal starting point, so "warm" means the reused workspace and
-scaling.) For ``proposed`` and ``hybrid`` each frame is first tried by a compiled primal active-set method
-hot-started from the previous frame's solution and working set (:mod:`msk_core.estimate.active_set`); its answer is
+scaling.) For ``proposed``, ``hybrid`` and ``so`` each frame is first tried by a compiled primal active-set method
+hot-started from the previous frame's solution and working set (:mod:`msk_core.estimate.active_set`; ``so`` by its
+equality-constrained kernel, whose frames PIQP finds infeasible still end in the reserve fallback); its answer is
 used only when the KKT conditions certify it as the optimum (usually after one m x m solve, a few µs), and PIQP
 solves the frame otherwise (after ``hot_start_max_changes`` working-set changes; ``hot_start=False``: PIQP always).
 ``FrameResult.solver`` says which one answered, ``FrameEstimator.solver_counts`` how often.
@@ -379,7 +380,7 @@ class FrameEstimator:
 
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         method = self.method
-        if self.hot_start and (method is Method.PROPOSED or method is Method.HYBRID):
+        if self.hot_start and (method is Method.PROPOSED or method is Method.HYBRID or method is Method.SO):
             hot = self._hot_solve(r, tau, phase)
             if hot is not None:
                 return hot
@@ -402,9 +403,9 @@ class FrameEstimator:
             status, x, it, dt = self._qp.solve(at, tt)
             if status in (piqp.PIQP_PRIMAL_INFEASIBLE, piqp.PIQP_DUAL_INFEASIBLE):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
-            parts = (at, 0.0, self._two)
-            self.solver_counts["piqp"] += 1
-            return self._finish(status, x, it, dt, a_mat, tau, phase, parts, at)
+            result = self._finish(status, x, it, dt, a_mat, tau, phase, (at, 0.0, self._two), at)
+            self._after_piqp(result)
+            return result
         if method is Method.HYBRID:
             w, d, c_a = 2.0, self._hybrid_d, None
         else:
@@ -446,29 +447,23 @@ class FrameEstimator:
 
     def _hot_solve(self, r, tau, phase) -> FrameResult | None:
         """The frame from the hot-started active-set method when it certifies the optimum, else None (-> PIQP)."""
-        if self.method is Method.HYBRID:
-            w, row0, row1, frac = 2.0, 0, 0, 0.0
-        else:
-            w = self._torque_weight
-            row0, row1, frac = self._required_prior.rows(phase)
         t0 = time.perf_counter()
-        code, changes, out, torques = active_set.solve_box_lsq(
-            r,
-            self.f_max,
-            tau,
-            w,
-            self._prior_mean,
-            self._prior_prec,
-            row0,
-            row1,
-            frac,
-            self._lb,
-            self._ub,
-            MIN_TORQUE_SCALE,
-            self._hot_x,
-            self._hot_state,
-            self._hot_max_changes,
-        )
+        if self.method is Method.SO:
+            code, changes, out, torques = active_set.solve_min_norm_eq(
+                r,
+                self.f_max,
+                tau,
+                self._lb,
+                self._ub,
+                MIN_TORQUE_SCALE,
+                self._hot_x,
+                self._hot_state,
+                self._hot_max_changes,
+            )
+            w, equality = 0.0, True
+        else:
+            code, changes, out, torques, w = self._hot_box_lsq(r, tau, phase)
+            equality = False
         dt = time.perf_counter() - t0
         if code != active_set.CERTIFIED:
             return None
@@ -486,8 +481,35 @@ class FrameEstimator:
             phase=phase,
             solver="active_set",
             _hess_parts=(out[:m], w, out[m + 2]),
+            _equality=out[:m] if equality else None,
             _bounds=(self._lb, self._ub),
         )
+
+    def _hot_box_lsq(self, r, tau, phase):
+        """:func:`active_set.solve_box_lsq` on the frame of ``proposed`` / ``hybrid``: (code, changes, out, torques, w)."""
+        if self.method is Method.HYBRID:
+            w, row0, row1, frac = 2.0, 0, 0, 0.0
+        else:
+            w = self._torque_weight
+            row0, row1, frac = self._required_prior.rows(phase)
+        code, changes, out, torques = active_set.solve_box_lsq(
+            r,
+            self.f_max,
+            tau,
+            w,
+            self._prior_mean,
+            self._prior_prec,
+            row0,
+            row1,
+            frac,
+            self._lb,
+            self._ub,
+            MIN_TORQUE_SCALE,
+            self._hot_x,
+            self._hot_state,
+            self._hot_max_changes,
+        )
+        return code, changes, out, torques, w
 
     def _after_piqp(self, result: FrameResult) -> None:
         """Count a PIQP frame and seed the next hot start with its solution (or restart from scratch)."""
@@ -529,7 +551,7 @@ class FrameEstimator:
         w = 2.0 * RESERVE_WEIGHT
         status, x, it, dt = self._fallback.solve(at, tt, w, self._two, None)
         result = self._finish(status, x, it, dt, a_mat, tau, phase, (at, w, self._two), None)
-        self.solver_counts["piqp"] += 1
+        self._after_piqp(result)  # the reserve optimum, near the bounds the torque pushes at, seeds the next frame
         if result.status is FrameStatus.SOLVED:
             result.status = FrameStatus.RESERVE
             self._count(FrameStatus.RESERVE)
