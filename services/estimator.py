@@ -61,7 +61,7 @@ from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
 from services import messages, session_graph, topics
 from services.graph import ReadySpec, declare_ready
-from services.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
+from services.node_runtime import InputContinuity, InputCounts, NodeInputs, StatusReporter, outages_text, serve
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -91,6 +91,7 @@ class EstimatorStats:
     other_exercise: int = 0  # frames skipped while a LoadEvent says another exercise is under way
     last_error: str = ""
     inputs: InputCounts | None = None  # received and dropped inputs per key (services.node_runtime)
+    continuity: InputContinuity | None = None  # its inputs' outages and missed publications (services.node_runtime)
     emg_chunks: int = 0
     envelopes_out: int = 0
     emg_flags: dict[str, int] = field(default_factory=dict)  # frames carrying each EMG flag
@@ -720,7 +721,7 @@ def main(
             electrodes=node.electrode_report,
             fatigue=node.fatigue_report,
         )
-        stats.inputs = inputs.counts
+        stats.inputs, stats.continuity = inputs.counts, inputs.continuity
         # One subscription for joints and load keeps a load event and the frames after it in publication order
         # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
         # for it (services.session_graph). Envelopes, the other one-chunk topic, are its own output: ignored.
@@ -937,6 +938,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     print(
         f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
         f"; inputs dropped {dropped or 'none'}"
+        + (f"; {outages_text(stats.continuity.report(messages.now_ns()))}" if stats.continuity is not None else "")
         + (
             f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
             f"frames flagged {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"

@@ -45,6 +45,7 @@ from services import messages, session_graph, topics
 from services.graph import Graph, GraphTimeout, python_module, wait_for, zenoh_flags
 from services.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.mcap_io import read_messages
+from services.node_runtime import outages_summary, outages_text
 
 if TYPE_CHECKING:  # imported where used: a session without --sim needs no simulator
     from drivers.trial_clock import TrialClock
@@ -505,10 +506,15 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
         "inputs_dropped": dropped,
         "node_errors": {name: int(s.errors) for name, s in nodes.items()},
         "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
+        # per node, its input streams' silences longer than the threshold, and publications it missed (node_runtime)
+        "input_outages": {name: outages_summary(s.outages) for name, s in nodes.items() if s.HasField("outages")},
         "clocks": {c.source: clock_summary(c, name) for name, s in nodes.items() for c in s.clocks},
         "electrodes": {f"{e.source}/{e.channel}": electrode_summary(e) for s in nodes.values() for e in s.electrodes},
         "fatigue": {name: [fatigue_summary(e) for e in sets] for name, sets in fatigue.items()},
     }
+
+
+_COUNTS = ("count", "total_s", "longest_s", "missed", "recovered")
 
 
 def keep_fatigue(sets: list[messages.ElectrodeFatigue], electrode: messages.ElectrodeFatigue) -> None:
@@ -623,6 +629,12 @@ def summary_text(summary: dict) -> str:
             )
     for node, text in summary.get("node_last_error", {}).items():
         lines.append(f"  {node}: {summary['node_errors'][node]} inputs not used, last: {text}")
+    for node, outages in summary.get("input_outages", {}).items():
+        if outages["count"] or outages["missed"]:
+            lines.append(
+                f"  {node}: {outages_text(messages.InputOutages(**{k: v for k, v in outages.items() if k in _COUNTS}))}"
+                + (f", the last {outages['last_start']} to {outages['last_end']}" if outages["count"] else "")
+            )
     for source, clock in summary.get("clocks", {}).items():
         lines.append(
             f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "

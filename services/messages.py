@@ -25,6 +25,7 @@ CoordinateTorque = msk_pb2.CoordinateTorque
 DeviceStatus = msk_pb2.DeviceStatus
 EmgEnvelope = msk_pb2.EmgEnvelope
 InputDrop = msk_pb2.InputDrop
+InputOutages = msk_pb2.InputOutages
 ClockOffset = msk_pb2.ClockOffset
 ClockAlignment = msk_pb2.ClockAlignment
 ElectrodeQuality = msk_pb2.ElectrodeQuality

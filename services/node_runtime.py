@@ -16,6 +16,11 @@ The counts travel in the node's :class:`DeviceStatus` (``kind = "node"``, ``drop
 (:class:`StatusReporter`: at start, every second, and a last one at stop), which the recorder
 logs and ``msk live`` sums up in ``summary.json``; so do, for a node that maps device clocks onto the host clock, its
 mappings per stream (``clocks``, :func:`clock_offsets`).
+
+Outages of the inputs are counted there too (``outages``, :class:`InputContinuity`): a stream the node reads silent
+for longer than :data:`OUTAGE_MIN_S` (or :data:`OUTAGE_PERIODS` of its own period, when longer) between two of its
+messages, e.g. the network between the node and the router down; and the publications of history publishers that
+never arrived, by their sequence numbers (:attr:`Inbound.missed`: the recorder fetches those again).
 """
 
 from __future__ import annotations
@@ -44,6 +49,13 @@ MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 MAX_QUEUE = 20_000
 QUEUE_WAIT_S = 1.0
 STATUS_PERIOD_S = 1.0
+#: the shortest silence of an input stream counted as an outage (s); a stream slower than 1/20 s needs 10 periods
+OUTAGE_MIN_S = 0.5
+OUTAGE_PERIODS = 10
+#: a key's first messages, from which its period is known (its silences count from then on)
+STREAM_MESSAGES = 20
+#: topics that carry events or a heartbeat, not a stream: their silences are no outage (docs/topics.md)
+NOT_STREAMS = ("load", "status")
 
 
 class DropReason(str, Enum):
@@ -126,6 +138,8 @@ class Inbound:
     #: the publication's identity (publisher's session, entity, sequence number) when Zenoh carries it (history
     #: publishers: their cache replies carry the same, so a reader knows a publication it got both ways)
     source: tuple[str, int, int] | None = None
+    #: publications of the same publisher that never arrived just before this one (sequence numbers skipped)
+    missed: int = 0
 
 
 @dataclass
@@ -163,6 +177,166 @@ class InputCounts:
             return {"received": dict(self.received), "dropped": dropped}
 
 
+@dataclass
+class _Stream:
+    """One input key's arrivals: the last one, its first intervals (whose median is its period), then its period."""
+
+    last_ns: int
+    intervals: list[int] = field(default_factory=list)
+    period_ns: float | None = None  # None until STREAM_MESSAGES arrived: silences do not count before
+
+
+@dataclass
+class Outage:
+    """Input streams silent together: from the arrival of the last message before to that of the first after."""
+
+    start_ns: int
+    end_ns: int
+    keys: set[str]
+
+    @property
+    def seconds(self) -> float:
+        return (self.end_ns - self.start_ns) / 1e9
+
+
+class InputContinuity:
+    """A node's input outages (the module docstring) and the publications it missed; thread-safe.
+
+    Per key, the period is the median of its first :data:`STREAM_MESSAGES` intervals, then follows the intervals
+    shorter than the threshold (mean over the last ~100); a silence longer than ``max(min_s, OUTAGE_PERIODS *
+    period)`` ends as an outage when the key's next message arrives. Silences of several keys that overlap in time
+    are one outage (a network cut silences every stream at once). :attr:`recovered` is for a node that fetches
+    missed publications again (the recorder)."""
+
+    def __init__(self, min_s: float = OUTAGE_MIN_S, stream_messages: int = STREAM_MESSAGES) -> None:
+        self.min_ns = int(min_s * 1e9)
+        self._stream_messages = stream_messages
+        self._streams: dict[str, _Stream | None] = {}  # None: not a stream (NOT_STREAMS)
+        self._sequence: dict[tuple[str, int], int] = {}  # publisher -> newest sequence number
+        self._lock = threading.Lock()
+        self.recent: list[Outage] = []  # the last outages (merging looks back over these)
+        self.count = 0
+        self._earlier_ns = 0  # total of the outages no longer in ``recent``
+        self.longest_ns = 0
+        self.missed = 0
+        self.recovered = 0
+
+    def arrived(self, key: str, arrival_ns: int, source: tuple[str, int, int] | None = None) -> int:
+        """Note one message's arrival; returns how many publications of its publisher were skipped just before it."""
+        with self._lock:
+            missed = self._skipped(source) if source is not None else 0
+            stream = self._streams.get(key, _NO_STREAM)
+            if stream is _NO_STREAM:
+                self._streams[key] = _Stream(arrival_ns) if _is_stream(key) else None
+            elif stream is not None:
+                self._arrival(key, stream, arrival_ns)
+            return missed
+
+    def _skipped(self, source: tuple[str, int, int]) -> int:
+        publisher, number = (source[0], source[1]), source[2]
+        newest = self._sequence.get(publisher)
+        if newest is not None and number <= newest:
+            return 0  # a repeat, or a late one (from a history fetch)
+        self._sequence[publisher] = number
+        if newest is None or number == newest + 1:
+            return 0
+        self.missed += number - newest - 1
+        return number - newest - 1
+
+    def _threshold_ns(self, stream: _Stream) -> float:
+        return max(self.min_ns, OUTAGE_PERIODS * (stream.period_ns or 0.0))
+
+    def _arrival(self, key: str, stream: _Stream, arrival_ns: int) -> None:
+        gap = arrival_ns - stream.last_ns
+        if gap < 0:  # stamped on another Zenoh thread a moment earlier
+            return
+        stream.last_ns = arrival_ns
+        if stream.period_ns is None:
+            stream.intervals.append(gap)
+            if len(stream.intervals) >= self._stream_messages:
+                stream.period_ns = float(sorted(stream.intervals)[len(stream.intervals) // 2])
+                stream.intervals = []
+        elif gap > self._threshold_ns(stream):
+            self._outage(Outage(arrival_ns - gap, arrival_ns, {key}))
+        else:
+            stream.period_ns += (gap - stream.period_ns) / 100
+
+    def _outage(self, new: Outage) -> None:
+        """Count a silence, merged with the recent outages it overlaps."""
+        while self.recent and new.start_ns <= self.recent[-1].end_ns and new.end_ns >= self.recent[-1].start_ns:
+            old = self.recent.pop()
+            self.count -= 1
+            new = Outage(min(new.start_ns, old.start_ns), max(new.end_ns, old.end_ns), new.keys | old.keys)
+        self.recent.append(new)
+        self.count += 1
+        self.longest_ns = max(self.longest_ns, new.end_ns - new.start_ns)
+        while len(self.recent) > 16:
+            old = self.recent.pop(0)
+            self._earlier_ns += old.end_ns - old.start_ns
+
+    def report(self, now_ns: int) -> messages.InputOutages:
+        """The counts as the node's status carries them; ``silent_*``: the streams silent now beyond the threshold."""
+        with self._lock:
+            silent = {
+                key: s.last_ns
+                for key, s in self._streams.items()
+                if s is not None and s.period_ns is not None and now_ns - s.last_ns > self._threshold_ns(s)
+            }
+            last = self.recent[-1] if self.recent else None
+            return messages.InputOutages(
+                count=self.count,
+                total_s=(self._earlier_ns + sum(o.end_ns - o.start_ns for o in self.recent)) / 1e9,
+                longest_s=self.longest_ns / 1e9,
+                last_start_ns=last.start_ns if last else 0,
+                last_end_ns=last.end_ns if last else 0,
+                last_keys=sorted(last.keys) if last else [],
+                silent_s=(now_ns - min(silent.values())) / 1e9 if silent else 0.0,
+                silent_keys=sorted(silent),
+                threshold_s=self.min_ns / 1e9,
+                missed=self.missed,
+                recovered=self.recovered,
+            )
+
+
+_NO_STREAM = _Stream(-1)  # a key not seen yet
+
+
+def _is_stream(key: str) -> bool:
+    parts = key.split("/")
+    return len(parts) >= 3 and parts[2] not in NOT_STREAMS
+
+
+def outages_summary(outages: messages.InputOutages) -> dict:
+    """A node's input outages as ``summary.json`` says them (times in s; the last one's start and end host times
+    as ISO 8601 UTC)."""
+    from datetime import UTC, datetime
+
+    def when(ns: int) -> str | None:
+        return datetime.fromtimestamp(ns / 1e9, tz=UTC).isoformat(timespec="milliseconds") if ns else None
+
+    return {
+        "count": int(outages.count),
+        "total_s": round(outages.total_s, 3),
+        "longest_s": round(outages.longest_s, 3),
+        "last_start": when(outages.last_start_ns),
+        "last_end": when(outages.last_end_ns),
+        "last_keys": list(outages.last_keys),
+        "threshold_s": outages.threshold_s,
+        "missed": int(outages.missed),
+        "recovered": int(outages.recovered),
+    }
+
+
+def outages_text(outages: messages.InputOutages) -> str:
+    """One line: ``2 input outages (10.3 s, longest 7.1 s); 310 publications missed, 310 recovered``."""
+    text = f"{outages.count} input outage{'s' if outages.count != 1 else ''}" + (
+        f" ({outages.total_s:.1f} s, longest {outages.longest_s:.1f} s)" if outages.count else ""
+    )
+    if outages.missed:
+        text += f"; {outages.missed} publications missed, {outages.recovered} recovered"
+    return text
+
+
 class NodeInputs:
     """A node's subscriptions with one ordered, bounded queue; see the module docstring.
 
@@ -191,6 +365,7 @@ class NodeInputs:
         self.refusals: list[str] = []
         self._keep_rejected = keep_rejected
         self.counts = InputCounts()
+        self.continuity = InputContinuity()
         self._zsession = zsession
         self._max_bytes = max_payload_bytes
         self._expected_type = expected_type
@@ -246,7 +421,9 @@ class NodeInputs:
         if size > self._max_bytes:  # never copied, never queued
             self._dropped(key, DropReason.OVERSIZED, f"{size} bytes (at most {self._max_bytes})")
             return
-        item = (key, type_name_of_sample(sample), sample.payload.to_bytes(), arrival_ns, publication_id(sample))
+        source = publication_id(sample)
+        missed = self.continuity.arrived(key, arrival_ns, source)
+        item = (key, type_name_of_sample(sample), sample.payload.to_bytes(), arrival_ns, source, missed)
         try:
             self._queue.put(item, timeout=QUEUE_WAIT_S)
         except queue.Full:
@@ -275,7 +452,13 @@ class NodeInputs:
                 return inbound
 
     def _checked(
-        self, key: str, encoding_type: str | None, payload: bytes, arrival_ns: int, source: tuple[str, int, int] | None
+        self,
+        key: str,
+        encoding_type: str | None,
+        payload: bytes,
+        arrival_ns: int,
+        source: tuple[str, int, int] | None,
+        missed: int = 0,
     ) -> Inbound | None:
         try:
             message = check_payload(
@@ -283,9 +466,9 @@ class NodeInputs:
             )
         except Rejected as error:
             self._dropped(key, error.reason, error.detail)
-            return Inbound(key, "", None, payload, arrival_ns, error, source) if self._keep_rejected else None
+            return Inbound(key, "", None, payload, arrival_ns, error, source, missed) if self._keep_rejected else None
         self.counts.count_received(key)
-        return Inbound(key, messages.type_name(message), message, payload, arrival_ns, source=source)
+        return Inbound(key, messages.type_name(message), message, payload, arrival_ns, source=source, missed=missed)
 
     def close(self) -> None:
         """Undeclare the subscribers (nothing new arrives; :meth:`drain` then empties the queue)."""
@@ -423,6 +606,7 @@ class StatusReporter:
             clocks=clock_offsets(self._clocks()) if self._clocks is not None else [],
             electrodes=list(self._electrodes()) if self._electrodes is not None else [],
             fatigue=list(self._fatigue()) if self._fatigue is not None else [],
+            outages=self._inputs.continuity.report(messages.now_ns()),
         )
 
     def tick(self, *, force: bool = False) -> None:

@@ -375,12 +375,18 @@ def health_tables(status: dict[str, messages.DeviceStatus]) -> list[Table]:
     nodes = {name: s for name, s in status.items() if s.kind == "node"}
     if not nodes:
         return [health]
-    node_table = Table(title="nodes (inputs dropped as unusable)")
-    for column in ("node", "running", "received", "dropped"):
+    node_table = Table(title="nodes (inputs dropped as unusable; input outages)")
+    for column in ("node", "running", "received", "dropped", "outages"):
         node_table.add_column(column)
     for name, s in nodes.items():
+        o = s.outages
         node_table.add_row(
-            name, "yes" if s.connected else "stopped", str(s.samples_received), str(sum(d.count for d in s.dropped))
+            name,
+            "yes" if s.connected else "stopped",
+            str(s.samples_received),
+            str(sum(d.count for d in s.dropped)),
+            (f"{o.count} ({o.total_s:.1f} s)" if o.count else "0")
+            + (f", silent {o.silent_s:.1f} s" if o.silent_s and s.connected else ""),
         )
     return [health, node_table]
 

@@ -214,7 +214,7 @@ class EmgEnvelope(_message.Message):
     def __init__(self, time_s: _Optional[float] = ..., groups: _Optional[_Iterable[str]] = ..., envelope: _Optional[_Iterable[float]] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., flags: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class DeviceStatus(_message.Message):
-    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks", "electrodes", "fatigue")
+    __slots__ = ("device_id", "kind", "connected", "samples_received", "samples_lost", "errors", "last_error", "host_time_ns", "dropped", "clocks", "electrodes", "fatigue", "outages")
     DEVICE_ID_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     CONNECTED_FIELD_NUMBER: _ClassVar[int]
@@ -227,6 +227,7 @@ class DeviceStatus(_message.Message):
     CLOCKS_FIELD_NUMBER: _ClassVar[int]
     ELECTRODES_FIELD_NUMBER: _ClassVar[int]
     FATIGUE_FIELD_NUMBER: _ClassVar[int]
+    OUTAGES_FIELD_NUMBER: _ClassVar[int]
     device_id: str
     kind: str
     connected: bool
@@ -239,7 +240,34 @@ class DeviceStatus(_message.Message):
     clocks: _containers.RepeatedCompositeFieldContainer[ClockOffset]
     electrodes: _containers.RepeatedCompositeFieldContainer[ElectrodeQuality]
     fatigue: _containers.RepeatedCompositeFieldContainer[ElectrodeFatigue]
-    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ..., electrodes: _Optional[_Iterable[_Union[ElectrodeQuality, _Mapping]]] = ..., fatigue: _Optional[_Iterable[_Union[ElectrodeFatigue, _Mapping]]] = ...) -> None: ...
+    outages: InputOutages
+    def __init__(self, device_id: _Optional[str] = ..., kind: _Optional[str] = ..., connected: _Optional[bool] = ..., samples_received: _Optional[int] = ..., samples_lost: _Optional[int] = ..., errors: _Optional[int] = ..., last_error: _Optional[str] = ..., host_time_ns: _Optional[int] = ..., dropped: _Optional[_Iterable[_Union[InputDrop, _Mapping]]] = ..., clocks: _Optional[_Iterable[_Union[ClockOffset, _Mapping]]] = ..., electrodes: _Optional[_Iterable[_Union[ElectrodeQuality, _Mapping]]] = ..., fatigue: _Optional[_Iterable[_Union[ElectrodeFatigue, _Mapping]]] = ..., outages: _Optional[_Union[InputOutages, _Mapping]] = ...) -> None: ...
+
+class InputOutages(_message.Message):
+    __slots__ = ("count", "total_s", "longest_s", "last_start_ns", "last_end_ns", "last_keys", "silent_s", "silent_keys", "threshold_s", "missed", "recovered")
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_S_FIELD_NUMBER: _ClassVar[int]
+    LONGEST_S_FIELD_NUMBER: _ClassVar[int]
+    LAST_START_NS_FIELD_NUMBER: _ClassVar[int]
+    LAST_END_NS_FIELD_NUMBER: _ClassVar[int]
+    LAST_KEYS_FIELD_NUMBER: _ClassVar[int]
+    SILENT_S_FIELD_NUMBER: _ClassVar[int]
+    SILENT_KEYS_FIELD_NUMBER: _ClassVar[int]
+    THRESHOLD_S_FIELD_NUMBER: _ClassVar[int]
+    MISSED_FIELD_NUMBER: _ClassVar[int]
+    RECOVERED_FIELD_NUMBER: _ClassVar[int]
+    count: int
+    total_s: float
+    longest_s: float
+    last_start_ns: int
+    last_end_ns: int
+    last_keys: _containers.RepeatedScalarFieldContainer[str]
+    silent_s: float
+    silent_keys: _containers.RepeatedScalarFieldContainer[str]
+    threshold_s: float
+    missed: int
+    recovered: int
+    def __init__(self, count: _Optional[int] = ..., total_s: _Optional[float] = ..., longest_s: _Optional[float] = ..., last_start_ns: _Optional[int] = ..., last_end_ns: _Optional[int] = ..., last_keys: _Optional[_Iterable[str]] = ..., silent_s: _Optional[float] = ..., silent_keys: _Optional[_Iterable[str]] = ..., threshold_s: _Optional[float] = ..., missed: _Optional[int] = ..., recovered: _Optional[int] = ...) -> None: ...
 
 class ElectrodeFatigue(_message.Message):
     __slots__ = ("source", "channel", "group", "set_number", "median_hz", "mean_hz", "rep_end_s", "median_slope_hz_per_rep", "median_slope_se_hz_per_rep", "median_slope_pct_per_rep", "median_change_pct", "mean_slope_pct_per_rep", "mean_change_pct")
