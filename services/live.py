@@ -874,7 +874,7 @@ def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
                     for a in ("--imu-latency-ms", f"{tracker}={ms:g}")
                 ),
             ]
-        return argv + [a for method in plan.methods for a in ("--method", method)]
+        return argv + ["--solver", s.solver] + [a for method in plan.methods for a in ("--method", method)]
     if name == "kinematics":
         return python_module(
             "services.kinematics_node",

@@ -54,3 +54,26 @@ def test_unknown_solver_is_named():
     with pytest.raises(ConfigError) as err:
         main(None, pack="bench_press", session="s", methods=["so"], solver="fast")
     assert err.value.field == "--solver"
+
+
+def test_msk_live_solver_reaches_the_estimator_node():
+    """``msk live --solver piqp`` (the session's typed setting) gives the estimator node its ``--solver piqp``; the
+    default keeps the hot start."""
+    import argparse
+    from pathlib import Path
+
+    from services import live
+    from services.commands import live as live_command
+    from services.live_session import LiveSession
+
+    parser = argparse.ArgumentParser()
+    live_command.register(parser.add_subparsers())
+    for given, expected in ((["--solver", "piqp"], "piqp"), ([], "active-set")):
+        args = parser.parse_args(["live", "--sim", *given])
+        session = LiveSession(None, name="sim", methods=("so",))
+        if args.solver is not None:
+            session.solver = args.solver
+        argv = live.node_argv(live.LivePlan(session, ("so",), Path("subject.json")), "estimator", Path("x.mcap"))
+        assert argv[argv.index("--solver") + 1] == expected
+    with pytest.raises(SystemExit):
+        parser.parse_args(["live", "--sim", "--solver", "fast"])

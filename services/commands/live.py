@@ -89,6 +89,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="secured mode: a TLS router with access control, every node with its role's certificate "
         "from DIR (written by `msk certs --out DIR`)",
     )
+    parser.add_argument(
+        "--solver",
+        choices=["active-set", "piqp"],
+        default=None,
+        help="the estimator's per-frame QP: the certified active-set hot start with PIQP as fallback (default), "
+        "or PIQP on every frame (as `msk estimator --solver`)",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -106,6 +113,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give a session file (docs/live.md), or --sim to run on the simulators", field="SESSION.toml")
     if args.out is not None:
         session.out = args.out
+    if args.solver is not None:
+        session.solver = args.solver
     from drivers.trigno.simulator import SensorFault
 
     faults = tuple(SensorFault.parse(text) for text in args.sim_fault)
