@@ -24,6 +24,13 @@ History and live samples are merged per key by :class:`HistoryMerge`: the live s
 key's history is in (the first fetch at start, or a fetch on the first live sample of a key that appears later),
 then the history is written, then the live samples, in publishing order.
 
+Reconnection (the router restarted, the network between the recorder and the router down): the device publishers
+number their publications, so a live sample that skips numbers (:attr:`services.node_runtime.Inbound.missed`) says
+which ones this recorder missed; their cache is asked for exactly those (:func:`services.zenoh_session.fetch_missed`)
+while the key's live samples wait, and they are written before them. What the cache no longer holds (it keeps the
+last :data:`DEVICE_HISTORY_SAMPLES` per key: an outage longer than that) is lost, counted per key
+(``RecorderStats.unrecovered``), in the summary line and in the status (``outages.missed``/``recovered``).
+
 What is left out as recorded already. Zenoh delivers each publication once to a subscription, so live samples are
 never compared with one another: identical messages (a publisher that leaves ``host_time_ns`` unset) are as many
 messages, and each is written. A copy can only come from a history fetch, compared by payload digest and occurrence
@@ -52,7 +59,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
@@ -78,6 +85,7 @@ from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
     fetch_history,
+    fetch_missed,
     keeps_history,
     open_session,
     options_from_args,
@@ -101,6 +109,9 @@ class RecorderStats:
     history_fetches: int = 0
     history_errors: int = 0
     inputs: InputCounts | None = None  # received and dropped per key and reason (the recorder's status)
+    missed: int = 0  # publications of history publishers that never arrived live (skipped sequence numbers)
+    recovered: int = 0  # of those, fetched again from the publishers' caches and written
+    unrecovered: collections.Counter = field(default_factory=collections.Counter)  # key -> missed, not in the cache
 
 
 def status_session(key_expr: str, ready_key: ReadySpec | None, session: str | None = None) -> str | None:
@@ -157,22 +168,31 @@ def main(
             lambda item: _write(writer, item, stats, inputs.counts), stats, already_recorded=already_recorded
         )
 
-        def fetch(scope: str) -> None:  # on its own thread: the main loop goes on writing the other keys
+        def fetch(scope: str, missing: list[Missing]) -> None:  # on its own thread: the main loop goes on writing
+            samples: list[zenoh.Sample] = []
+            errors: list[str] = []
             try:
-                samples, errors = fetch_history(zsession, scope, timeout_s=history_timeout_s)
+                if not missing:
+                    samples, errors = fetch_history(zsession, scope, timeout_s=history_timeout_s)
+                for gap in missing:  # publications skipped live: those of their cache
+                    got, failed = fetch_missed(
+                        zsession, scope, gap.publisher, gap.first, gap.last, timeout_s=history_timeout_s
+                    )
+                    samples, errors = samples + got, errors + failed
             except Exception as error:  # a closed session at shutdown, an access-control refusal...
-                samples, errors = [], [f"{type(error).__name__}: {error}"]
+                errors.append(f"{type(error).__name__}: {error}")
             finished_ns = messages.now_ns()
             items = [
                 item
                 for sample in samples
                 if (item := _history_item(sample, finished_ns, inputs.counts, max_payload_bytes)) is not None
             ]
-            fetched.put(_Fetched(scope, tuple(items), errors, finished_ns))
+            fetched.put(_Fetched(scope, tuple(items), errors, finished_ns, tuple(missing)))
 
         def start_fetches(scopes: list[str]) -> None:
             for scope in scopes:
-                threading.Thread(target=fetch, args=(scope,), name=f"history {scope}", daemon=True).start()
+                missing = merge.take_missing(scope)
+                threading.Thread(target=fetch, args=(scope, missing), name=f"history {scope}", daemon=True).start()
 
         inputs.subscribe(key_expr)
         if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
@@ -193,6 +213,7 @@ def main(
                 else:
                     start_fetches(merge.accept(_live_item(inbound), fetch_new_keys=history))
                 if reporter is not None:
+                    inputs.continuity.recovered = stats.recovered
                     reporter.tick()
         finally:
             inputs.close()
@@ -201,6 +222,7 @@ def main(
             for inbound in inputs.drain():
                 merge.accept(_live_item(inbound), fetch_new_keys=False)
             merge.release_all()  # live samples still waiting for a history that did not come in time
+            inputs.continuity.recovered = stats.recovered
             if reporter is not None and reporting_session is not None:  # a reporter exists for a session only
                 _record_final_status(writer, reporter, reporting_session)
     return stats
@@ -249,6 +271,19 @@ class _Item:
     message: Message | None  # None when rejected
     rejected: Rejected | None = None
     source: tuple[str, int, int] | None = None  # the publication's identity, when Zenoh carries it
+    missed: int = 0  # publications of its publisher skipped just before it (services.node_runtime.Inbound.missed)
+
+
+@dataclass(frozen=True)
+class Missing:
+    """Publications a live sample showed this recorder missed: one publisher's sequence numbers first..last."""
+
+    publisher: tuple[str, int]  # Zenoh id, entity id
+    first: int
+    last: int
+
+    def holds(self, source: tuple[str, int, int] | None) -> bool:
+        return source is not None and source[:2] == self.publisher and self.first <= source[2] <= self.last
 
 
 @dataclass(frozen=True)
@@ -259,11 +294,19 @@ class _Fetched:
     items: tuple[_Item, ...]
     errors: list[str]
     finished_ns: int  # when the fetch returned: a live sample received later cannot be in its history
+    missing: tuple[Missing, ...] = ()  # a recovery: the publications asked for (none: the whole history)
 
 
 def _live_item(inbound: Inbound) -> _Item:
     return _Item(
-        LIVE, inbound.arrival_ns, inbound.key, inbound.payload, inbound.message, inbound.rejected, inbound.source
+        LIVE,
+        inbound.arrival_ns,
+        inbound.key,
+        inbound.payload,
+        inbound.message,
+        inbound.rejected,
+        inbound.source,
+        inbound.missed,
     )
 
 
@@ -319,6 +362,7 @@ class HistoryMerge:
         # of one may still arrive after the fetch returned (replies and data take different paths through a router)
         self._from_history: dict[str, collections.deque] = {}
         self._from_history_set: dict[str, set] = {}
+        self._missing: dict[str, list[Missing]] = {}  # per key, publications skipped live, not asked for yet
 
     def begin_fetch(self, scope: str, *, initial: bool = False) -> None:
         if initial:
@@ -330,11 +374,16 @@ class HistoryMerge:
         """Take a live sample or a fetch that came back; returns the keys whose history should be fetched now
         (``fetch_new_keys``: for a key first seen live whose publishers keep a history)."""
         if isinstance(item, _Fetched):
-            self._fetched(item)
-            return []
+            return self._fetched(item)
         if item.source is not None and item.source in self._from_history_set.get(item.key, ()):
             self._stats.already_recorded += 1  # this very publication came with a history fetch, written then
             return []
+        if item.missed and item.source is not None and self._keeps_history(item.key):
+            gap = Missing(item.source[:2], item.source[2] - item.missed, item.source[2] - 1)
+            self._stats.missed += item.missed
+            if fetch_new_keys:
+                return self._recover(item, gap)
+            self._stats.unrecovered[item.key] += item.missed  # stopping: no more fetches
         if (
             fetch_new_keys
             and not self._initial_pending
@@ -353,12 +402,25 @@ class HistoryMerge:
         self._write(item)
         return []
 
+    def _recover(self, item: _Item, gap: Missing) -> list[str]:
+        """Hold ``item`` (and every live sample after it) until the publications it shows missing are fetched."""
+        self._missing.setdefault(item.key, []).append(gap)
+        self._waiting.append(item)
+        if item.key in self._pending_keys:
+            return []  # asked for when the fetch out now returns
+        self._pending_keys.add(item.key)
+        return [item.key]
+
+    def take_missing(self, scope: str) -> list[Missing]:
+        """The publications of ``scope`` to ask its publishers' caches for (empty: fetch its whole history)."""
+        return self._missing.pop(scope, [])
+
     def release_all(self) -> None:
         self._initial_pending = False
         self._pending_keys.clear()
         self._release()
 
-    def _fetched(self, done: _Fetched) -> None:
+    def _fetched(self, done: _Fetched) -> list[str]:
         self._stats.history_fetches += 1
         self._stats.history_errors += len(done.errors)
         self._stats.history_fetched += len(done.items)
@@ -366,15 +428,53 @@ class HistoryMerge:
             log.warning(
                 "history of %s: %d error replies (%s)", done.scope, len(done.errors), "; ".join(done.errors[:3])
             )
-        for item in self._new_history(done):
+        for item in self._recovered(done) if done.missing else self._new_history(done):
             self._known_keys.add(item.key)
             self._write(item)
         if done.scope in self._pending_keys:
+            if self._missing.get(done.scope):
+                return [done.scope]  # more were skipped while this fetch was out: asked for now, the key still held
             self._pending_keys.discard(done.scope)
             self._known_keys.add(done.scope)
         else:
             self._initial_pending = False
         self._release()  # keys live during a fetch that no cache answered for have no history publisher
+        return []
+
+    def _recovered(self, done: _Fetched) -> list[_Item]:
+        """The publications a recovery asked for that its caches still held, once each, in publishing order; those
+        they no longer held are counted lost."""
+        live = {item.source for item in self._waiting if item.key == done.scope and item.source is not None}
+        written = self._from_history_set.get(done.scope, set())
+        kept: dict[tuple[str, int, int], _Item] = {}
+        for item in done.items:
+            source = item.source
+            if source is None or source in live or source in written or source in kept:
+                continue
+            if any(gap.holds(source) for gap in done.missing):
+                kept[source] = item
+        for gap in done.missing:  # written already (a whole-history fetch of the key), live or fetched now: not lost
+            present = sum(
+                1
+                for n in range(gap.first, gap.last + 1)
+                if (s := (*gap.publisher, n)) in kept or s in written or s in live
+            )
+            lost = gap.last - gap.first + 1 - present
+            if lost:
+                self._stats.unrecovered[done.scope] += lost
+                log.warning(
+                    "%s: %d of the %d publications missed (numbers %d..%d) are no longer in their publisher's cache: "
+                    "lost",
+                    done.scope,
+                    lost,
+                    gap.last - gap.first + 1,
+                    gap.first,
+                    gap.last,
+                )
+        self._stats.recovered += len(kept)
+        for source in kept:
+            self._remember_history(done.scope, source)
+        return [kept[source] for source in sorted(kept, key=lambda s: s[2])]
 
     def _new_history(self, done: _Fetched) -> list[_Item]:
         """The fetch's samples less those the previous parts or the live samples hold (one for one, by digest)."""
@@ -585,6 +685,17 @@ def summary_line(stats: RecorderStats, out: Path) -> str:
         + (f"; history: {stats.history_fetched} messages from the publishers' caches" if stats.history_fetched else "")
         + (f" ({stats.history_errors} error replies)" if stats.history_errors else "")
         + (f"; left out {stats.already_recorded} already recorded" if stats.already_recorded else "")
+        + (
+            f"; missed {stats.missed} publications live, fetched {stats.recovered} of them again from the "
+            f"publishers' caches, lost {sum(stats.unrecovered.values())}"
+            + (
+                " (" + ", ".join(f"{k} {n}" for k, n in sorted(stats.unrecovered.items())) + ")"
+                if stats.unrecovered
+                else ""
+            )
+            if stats.missed
+            else ""
+        )
     )
 
 

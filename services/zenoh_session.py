@@ -245,6 +245,41 @@ def fetch_history(session: zenoh.Session, key_expr: str, *, timeout_s: float) ->
     return samples, errors
 
 
+def fetch_missed(
+    session: zenoh.Session, key: str, publisher: tuple[str, int], first: int, last: int, *, timeout_s: float
+) -> tuple[list[zenoh.Sample], list[str]]:
+    """The publications ``first``..``last`` (sequence numbers, both included) of one history publisher
+    (:func:`declare_history_publisher`; ``publisher`` = its Zenoh id and entity id) on ``key``, as far as its cache
+    still holds them, and the error replies. Its cache answers the ``_sn`` range itself (zenoh-ext's AdvancedCache).
+    The publication after ``last`` (the one that showed the gap) is asked too, so that a running cache always answers
+    (with that one at least, left out here); until it answers (a publisher whose declarations have not reached the
+    router again yet) it is asked again, up to ``timeout_s``."""
+    zid, eid = publisher
+    selector = zenoh.Selector(f"{key}/@adv/pub/{zid}/{eid}/**", {"_sn": f"{first}..{last + 1}"})
+    deadline = time.monotonic() + float(timeout_s)
+    while True:
+        samples: list[zenoh.Sample] = []
+        errors: list[str] = []
+        answered = False
+        for reply in session.get(
+            selector,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            accept_replies=zenoh.ReplyKeyExpr.ANY,  # a cache answers with the data key
+            timeout=max(0.1, deadline - time.monotonic()),
+        ):
+            answered = True
+            if reply.ok is not None:
+                info = reply.ok.source_info
+                if info is None or int(info.source_sn) <= last:
+                    samples.append(reply.ok)
+            elif reply.err is not None:
+                errors.append(reply.err.payload.to_string())
+        if answered or time.monotonic() > deadline - 0.3:
+            return samples, errors
+        time.sleep(0.3)
+
+
 def encoding_for(type_name: str) -> zenoh.Encoding:
     return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(type_name)
 
