@@ -7,9 +7,13 @@ import json
 import math
 import subprocess
 import sys
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
+from msk_core.model import load_pack
+from msk_core.model.spec import BalanceSpec
 from services.dashboard import report
 from services.mcap_io import McapRecorderWriter, read_messages
 from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, record_with_estimates, require_chromium
@@ -66,11 +70,18 @@ def test_report_of_the_demo_session(demo_report):
             assert len(v["peak"]) == len(v["mean"]) == 3
             for peak, mean in zip(v["peak"], v["mean"]):
                 assert 0.0 <= mean <= peak <= 1.0 + 1e-9, g
-        # agonist/antagonist balance on every joint with muscles pulling both ways
-        assert s["balance"]["joints"] and all(len(j["per_rep"]) == 3 for j in s["balance"]["joints"])
-        assert s["balance"]["left_right"] == []  # both packs model one side
-    # heavier set, larger extensor moment at the lumbar joint (set mean over reps)
-    lumbar = [next(j for j in s["balance"]["joints"] if j["coordinate"] == "L5_S1_FE") for s in sets[2:]]
+        # balance: exactly the pairs the pack declares, one row per rep
+        declared = load_pack(s["exercise"]).balance
+        joints = s["balance"]["agonist_antagonist"]
+        assert [j["label"] for j in joints] == [j.label for j in declared.agonist_antagonist]
+        assert all(len(j["per_rep"]) == 3 for j in joints)
+        assert s["balance"]["left_right"] == []  # both packs model one side and declare no pair
+    assert [j["label"] for j in sets[0]["balance"]["agonist_antagonist"]] == [
+        "Elbow flexors / extensors",
+        "Shoulder flexors / extensors",
+    ]
+    # heavier set, larger back extensor activation (set mean over reps)
+    lumbar = [next(j for j in s["balance"]["agonist_antagonist"] if j["coordinate"] == "L5_S1_FE") for s in sets[2:]]
     assert sum(p for p, _, _ in lumbar[1]["per_rep"]) > sum(p for p, _, _ in lumbar[0]["per_rep"])
     # per-rep peaks agree with the recorded frames of the first rep
     first_rep = sets[0]["reps"][0]
@@ -110,8 +121,11 @@ def test_report_renders_in_chromium(demo_report):
         assert page.locator("section.set svg.bodymap .muscle").count() > 20
         text = page.inner_text("body")
         assert "Agonist / antagonist balance" in text and "Methods compared" in text
-        # muscles and joints by their display names; the model names only where the method plot needs them, explained
-        assert "Triceps brachii, lateral and medial heads" in text and "Lumbar extension, per level" in text
+        assert "Left / right balance" not in text  # no pack of the session declares left/right pairs
+        # muscles by their display names, joints by the labels of the pairs the packs declare; the model names only
+        # where the method plot needs them, explained
+        assert "Triceps brachii, lateral and medial heads" in text and "Back extensors / abdominals" in text
+        assert "Elbow flexors / extensors" in text and "L5_S1_FE" not in text and "elbow_flex_r" not in text
         assert "Abbreviations: BRA: Brachialis · BRD: Brachioradialis" in text
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "report.png"), full_page=False)
@@ -282,3 +296,33 @@ def test_report_names_muscles_by_their_display_names_and_the_sessions(tmp_path):
     # one per set's table and one in the peak / mean per set
     assert rows.count("Triceps brachii, lateral and medial heads") == rows.count("Upper chest") == 3
     assert "TriLat" not in rows and "PMCla" not in rows
+
+
+def test_balance_only_of_the_declared_pairs():
+    """lumbar_lift declares 7 left/right pairs and back extensors / abdominals: the balance has those and nothing
+    else, with per-rep means; a pack declaring none has none, and the report says so in one note."""
+    pack = load_pack("lumbar_lift")
+    groups = list(pack.groups)
+    t = np.arange(100) / 100
+    activations = np.full((100, len(groups)), 0.1)
+    activations[:, groups.index("iliocost_l")] = 0.2
+    activations[:, groups.index("iliocost_r")] = np.where(t < 0.5, 0.4, 0.6)
+    masks = [t < 0.5, t >= 0.5, t > 2]  # the last rep holds no frame: left out
+    bal = report.balance(pack, groups, activations, masks)
+    assert [(p["left"], p["right"]) for p in bal["left_right"]] == list(pack.balance.left_right)
+    ilio = next(p for p in bal["left_right"] if p["left"] == "iliocost_l")
+    assert ilio["per_rep"] == [pytest.approx((0.2, 0.4)), pytest.approx((0.2, 0.6))]
+    (back,) = bal["agonist_antagonist"]
+    assert back["label"] == "Back extensors / abdominals" and back["antagonists"] == ["rectabd_l", "rectabd_r"]
+    assert back["per_rep"][0][1] == pytest.approx(0.1) and back["per_rep"][0][0] > 0.1
+    assert back["per_rep"][0][2] == pytest.approx(0.1 / back["per_rep"][0][0])
+    names = pack.display_names
+    rendered = report._balance_html(bal, names, 2)
+    assert "Iliocostalis lumborum, left / Iliocostalis lumborum, right" in rendered and "20 / 40" in rendered
+    # frames lacking a declared group: its pairs are left out
+    assert len(report.balance(pack, groups[:2], activations[:, :2], masks)["left_right"]) == 1
+    undeclared = SimpleNamespace(balance=BalanceSpec(), groups=groups, f_max_ref=pack.f_max_ref)
+    empty = report.balance(undeclared, groups, activations, masks)
+    assert empty == {"left_right": [], "agonist_antagonist": []}
+    note = report._balance_html(empty, names, 2)
+    assert "declares no left/right or agonist/antagonist pairs" in note and "<table" not in note

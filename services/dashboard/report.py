@@ -10,8 +10,8 @@ without marks, rest detection (no rep for the session's ``set_rest_s``, default 
 opens one. Without any phase, sets come from the load events alone and reps from msk_core's kinematic rep detection
 on the pack's phase coordinate. A table of sets, one row per set: reps, time under tension, duration, and peak and
 mean activation per muscle group over the set's reps (the SetTracker's figures). Per set and method: peak and mean activation of every muscle group in every rep, time under tension,
-the balance between the left and right groups (packs with both sides) and between the muscles pulling each joint one
-way and the other (sign of the pack's moment arms at the set's median pose), the comparison of the methods
+the balance of the pairs the pack declares (its spec's ``[balance]``: left and right groups, the agonists and
+antagonists of a joint; none declared, none shown), the comparison of the methods
 when several ran, and the health of every device over the session. Muscles and joints are named by their display
 names (the pack's, with the session file's ``[names]`` from ``LoadEvent.names``; msk_core.model.names); the model
 names (abbreviations) only on the method comparison's axis, explained beside it.
@@ -34,7 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msk_core.errors import EstimationError, InputError
-from msk_core.model import OutOfRange, load_pack
+from msk_core.model import load_pack
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import phase_rep_spans
@@ -360,69 +360,44 @@ def _pack_for(groups: tuple[str, ...]):
     return load_pack(name) if name else None
 
 
-def median_pose(data: SessionData, pack, window: SetWindow) -> np.ndarray | None:
-    for coordinates, samples in data.joint_q.items():
-        if all(c in coordinates for c in pack.coordinates):
-            rows = [q for t, q in samples if window.start_s <= t <= window.end_s]
-            if rows:
-                idx = [coordinates.index(c) for c in pack.coordinates]
-                return np.median(np.asarray(rows)[:, idx], axis=0)
-    return None
-
-
-def balance(
-    pack, groups: list[str], activations: np.ndarray, rep_masks: list[np.ndarray], pose: np.ndarray | None
-) -> dict:
-    """Left/right pairs of groups and, per joint, the moment of the groups pulling each way (reference strengths)."""
-    out: dict = {"left_right": [], "joints": []}
-    placements = bodymap.place_groups(pack).placements
-    side_of: dict[str, set[tuple[str, str]]] = {}
-    for p in placements:
-        side_of.setdefault(p.group, set()).add((p.region, p.side))
-    for g in groups:
-        for region, side in side_of.get(g, ()):
-            if side != "r":
-                continue
-            partners = [
-                h
-                for h in groups
-                if h != g and (region, "l") in side_of.get(h, ()) and (region, "r") not in side_of.get(h, ())
-            ]
-            if len(side_of.get(g, ())) == 1 and partners:
-                i, j = groups.index(g), groups.index(partners[0])
-                per_rep = [
-                    (float(np.mean(activations[m, i])), float(np.mean(activations[m, j]))) for m in rep_masks if m.any()
-                ]
-                out["left_right"].append({"right": g, "left": partners[0], "per_rep": per_rep})
-    if pose is not None:
-        arms = pack.moment_arms(np.asarray(pose), out_of_range=OutOfRange.CLAMP)  # (n_coordinates, n_groups)
-        order = [list(pack.groups).index(g) for g in groups]
-        f_ref = np.asarray(pack.f_max_ref)[order]
-        for c, coordinate in enumerate(pack.coordinates):
-            r = arms[c, order]
-            big = np.abs(r) > 1e-3  # 1 mm: groups that barely act on the joint are left out
-            positive, negative = np.flatnonzero(big & (r > 0)), np.flatnonzero(big & (r < 0))
-            if not len(positive) or not len(negative):
-                continue
-            moments: list[tuple[float, float, float]] = []  # per rep: positive, negative, their ratio
-            for m in rep_masks:
-                if not m.any():
-                    continue
-                a = np.nanmean(activations[m], axis=0)
-                pos, neg = (
-                    float(np.sum(a[positive] * f_ref[positive] * r[positive])),
-                    float(np.sum(a[negative] * f_ref[negative] * -r[negative])),
-                )
-                moments.append((pos, neg, min(pos, neg) / max(pos, neg) if max(pos, neg) > 0 else 0.0))
-            out["joints"].append(
-                {
-                    "coordinate": coordinate,
-                    "positive": [groups[i] for i in positive],
-                    "negative": [groups[i] for i in negative],
-                    "per_rep": moments,
-                }
-            )
+def balance(pack, groups: list[str], activations: np.ndarray, rep_masks: list[np.ndarray]) -> dict:
+    """The balance of the pairs the pack declares (its spec's ``[balance]``, msk_core.model.spec.parse_balance), per
+    rep: each left/right pair's mean activation, and per declared joint the mean activation of its agonists and of
+    its antagonists (weighted by the groups' reference strengths: a big muscle counts more) with the co-contraction
+    (smaller / larger). Pairs whose groups the frames lack are left out; a pack declaring none gives empty lists."""
+    index = {g: k for k, g in enumerate(groups)}
+    means = [np.nanmean(activations[m], axis=0) for m in rep_masks if m.any()]  # per rep, per group
+    out: dict = {"left_right": [], "agonist_antagonist": []}
+    for left, right in pack.balance.left_right:
+        if left in index and right in index:
+            per_rep = [(float(a[index[left]]), float(a[index[right]])) for a in means]
+            out["left_right"].append({"left": left, "right": right, "per_rep": per_rep})
+    strength = dict(zip(pack.groups, np.asarray(pack.f_max_ref, dtype=float)))
+    for joint in pack.balance.agonist_antagonist:
+        agonists = [g for g in joint.agonists if g in index]
+        antagonists = [g for g in joint.antagonists if g in index]
+        if not agonists or not antagonists:
+            continue
+        rows = []
+        for a in means:
+            ag, ant = _weighted(a, agonists, index, strength), _weighted(a, antagonists, index, strength)
+            rows.append((ag, ant, min(ag, ant) / max(ag, ant) if max(ag, ant) > 0 else 0.0))
+        out["agonist_antagonist"].append(
+            {
+                "coordinate": joint.coordinate,
+                "label": joint.label,
+                "agonists": agonists,
+                "antagonists": antagonists,
+                "per_rep": rows,
+            }
+        )
     return out
+
+
+def _weighted(a: np.ndarray, groups: list[str], index: dict[str, int], strength: dict[str, float]) -> float:
+    """Mean of the activations ``a`` of ``groups`` weighted by their reference strengths."""
+    w = np.array([strength[g] for g in groups])
+    return float(np.sum(a[[index[g] for g in groups]] * w) / np.sum(w))
 
 
 def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
@@ -496,7 +471,7 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     if pack is not None:
         t, a = methods[primary]["_t"], methods[primary]["_a"]
         rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
-        result["balance"] = balance(pack, groups, a, rep_masks, median_pose(data, pack, window))
+        result["balance"] = balance(pack, groups, a, rep_masks)
     return result
 
 
@@ -724,6 +699,40 @@ def _set_figures(result: dict) -> dict[str, tuple[float | None, float | None]]:
     return {g: (v["set_peak"], v["set_mean"]) for g, v in result["methods"][result["primary"]]["groups"].items()}
 
 
+def _balance_html(bal: dict | None, names: DisplayNames, n_reps: int) -> str:
+    """The balance tables of a set: only the pairs its pack declares (:func:`balance`); one short note when it
+    declares none."""
+    if not bal or not (bal["left_right"] or bal["agonist_antagonist"]):
+        return "<p class='note'>Balance: the model pack declares no left/right or agonist/antagonist pairs.</p>"
+    reps = [f"rep {k + 1}" for k in range(n_reps)]
+    parts = []
+    if bal["left_right"]:
+        rows = [
+            [f"{html.escape(names.group(p['left']))} / {html.escape(names.group(p['right']))}"]
+            + [f"{_pct(left)} / {_pct(right)}" for left, right in p["per_rep"]]
+            for p in bal["left_right"]
+        ]
+        parts.append(
+            "<h3>Left / right balance (mean activation per rep, left / right %)</h3>" + _table(["pair"] + reps, rows)
+        )
+    if bal["agonist_antagonist"]:
+        rows = [
+            [
+                html.escape(j["label"]),
+                html.escape(", ".join(map(names.group, j["agonists"]))),
+                html.escape(", ".join(map(names.group, j["antagonists"]))),
+            ]
+            + [f"{_pct(ag)} / {_pct(ant)} ({100 * c:.0f} %)" for ag, ant, c in j["per_rep"]]
+            for j in bal["agonist_antagonist"]
+        ]
+        parts.append(
+            "<h3>Agonist / antagonist balance</h3><p class='note'>Per joint the model pack declares: mean activation of "
+            "the first muscles / of the second over each rep, in % (weighted by the muscles' reference strengths); in "
+            "brackets the co-contraction, smaller / larger.</p>" + _table(["muscles", "first", "second"] + reps, rows)
+        )
+    return "".join(parts)
+
+
 def set_html(result: dict, plots: list[str]) -> str:
     primary = result["methods"][result["primary"]]
     groups, reps = result["groups"], result["reps"]
@@ -761,38 +770,7 @@ def set_html(result: dict, plots: list[str]) -> str:
             + [_pct(v["set_peak"]), f"{v['time_active_s']:.1f}"]
         )
     parts.append(f"<h3>Per muscle and rep ({html.escape(result['primary'])})</h3>" + _table(headers, rows))
-    bal = result.get("balance")
-    if bal:
-        if bal["left_right"]:
-            rows = [
-                [f"{html.escape(names.group(p['right']))} / {html.escape(names.group(p['left']))}"]
-                + [f"{_pct(right)} / {_pct(left)}" for right, left in p["per_rep"]]
-                for p in bal["left_right"]
-            ]
-            parts.append(
-                "<h3>Left / right balance (mean activation per rep, right / left %)</h3>"
-                + _table(["pair"] + [f"rep {k + 1}" for k in range(len(reps))], rows)
-            )
-        else:
-            parts.append('<p class="note">Left / right balance: this model pack has muscles of one side only.</p>')
-        if bal["joints"]:
-            rows = []
-            for j in bal["joints"]:
-                unit = names.torque_unit(j["coordinate"]) or "N·m"
-                rows.append(
-                    [
-                        html.escape(names.coordinate(j["coordinate"])),
-                        html.escape(", ".join(map(names.group, j["positive"]))),
-                        html.escape(", ".join(map(names.group, j["negative"]))),
-                    ]
-                    + [f"{p:.0f} / {n:.0f} {unit} ({100 * c:.0f} %)" for p, n, c in j["per_rep"]]
-                )
-            parts.append(
-                "<h3>Agonist / antagonist balance</h3><p class='note'>Per joint, mean moment of the groups pulling the "
-                "coordinate positive / negative over each rep (activation × reference strength × moment arm at the "
-                "set's median pose); in brackets the co-contraction, smaller / larger.</p>"
-                + _table(["joint", "positive", "negative"] + [f"rep {k + 1}" for k in range(len(reps))], rows)
-            )
+    parts.append(_balance_html(result.get("balance"), names, len(reps)))
     if len(result["methods"]) > 1:
         rows = []
         for method in sorted(result["methods"]):
