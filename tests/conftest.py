@@ -29,10 +29,35 @@ LIVE_SESSION_MODULES = frozenset(
 )
 
 
+# Wider-than-test fixtures: a module split over the two workers would build them once on each.
+_SHARED_SCOPES = frozenset({"module", "class", "package"})
+
+
+def _uses_a_shared_fixture(item: pytest.Item) -> bool:
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(d.scope in _SHARED_SCOPES for defs in info.name2fixturedefs.values() for d in defs)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """xdist groups (``python3 dev.py test`` runs ``--dist loadgroup``, which otherwise sends each test on its own):
+    the live-session modules share one group; a module whose tests share a module- or class-scoped fixture is one
+    group, so the fixture is built once (not once per worker, nor again after another module's test came between).
+    The live-session group is queued first and the module groups next, so the longest units start first and the
+    single tests fill the gaps at the end (xdist queues the groups in the order their first test is collected)."""
+    rank: dict[int, int] = {}
     for item in items:
         if item.path.stem in LIVE_SESSION_MODULES:
             item.add_marker(pytest.mark.xdist_group("live-session"))
+            rank[id(item)] = 0
+        elif _uses_a_shared_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(f"module-{item.path.stem}"))
+            rank[id(item)] = 1
+        else:
+            rank[id(item)] = 2
+    if config.getoption("dist", "no") == "loadgroup":
+        items.sort(key=lambda item: rank[id(item)])  # stable: collection order within each rank
 
 
 @pytest.fixture(autouse=True, scope="session")
