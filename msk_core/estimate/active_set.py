@@ -199,16 +199,7 @@ def _iterate_equality(
             worst_residual = max(worst_residual, abs(acc))
         if worst_residual > EQUALITY_TOL:
             break  # numerically no solution of the equality in this working set: not certified
-        scale = 2.0
-        for j in range(g):  # g_j = 2 a_j + A_j' lam = 2 (a_j - A_j' v), held groups only
-            acc = 0.0
-            size = 0.0
-            for i in range(m):
-                acc += at[i, j] * v[i]
-                size += abs(at[i, j] * v[i])
-            grad[j] = 2.0 * (x[j] - acc)
-            scale = max(scale, 2.0 * size)
-        worst_i = _most_violated(state, grad, MULTIPLIER_TOL * scale)
+        worst_i = _most_violated(state, grad, MULTIPLIER_TOL * _so_gradient(at, x, v, grad))
         if worst_i < 0:
             code = CERTIFIED
             break
@@ -217,6 +208,23 @@ def _iterate_equality(
         changes += 1
         state[worst_i] = FREE
     return code, changes
+
+
+@_part
+def _so_gradient(at: Array, x: Array, v: Array, grad: Array) -> float:
+    """grad = 2 a + A~' lam = 2 (a - A~' v) (so's gradient of the Lagrangian: the bound multipliers where held);
+    returns its scale, max(2, max_j 2 sum_i |A~_ij v_i|)."""
+    m, g = at.shape
+    scale = 2.0
+    for j in range(g):
+        acc = 0.0
+        size = 0.0
+        for i in range(m):
+            acc += at[i, j] * v[i]
+            size += abs(at[i, j] * v[i])
+        grad[j] = 2.0 * (x[j] - acc)
+        scale = max(scale, 2.0 * size)
+    return scale
 
 
 @_part

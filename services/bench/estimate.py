@@ -4,7 +4,8 @@ Figures: time of one ``FrameEstimator.step`` (moment arms + inverse dynamics of 
 deadlift pack on the synthetic generator's lift (the largest shipped pack when deadlift is not built) and a synthetic
 150-group problem, each next to the same step with PIQP solving every frame (``hot_start=False``), timed frame by
 frame interleaved; and arm26 `so` next to OpenSim's own StaticOptimization per frame on the arm26 tutorial motion,
-all measured in the same run.
+all measured in the same run; and on the held-out deadlift trial (deadlift_75kg, its measured torques) `so`
+hot-started and `so` with PIQP every frame beside `proposed`, interleaved, as ratios of their medians per step.
 OpenSim's per-frame cost is the slope between a full and a half-length run (tool set-up cancels out).
 """
 
@@ -21,7 +22,8 @@ from services.bench import BenchResult
 NAME = "estimate"
 DESCRIPTION = "per-frame estimation (pack model + hot-started QP) vs PIQP every frame and OpenSim StaticOptimization"
 
-SHARED = Path(__file__).resolve().parents[2].parent / "shared"
+REPO = Path(__file__).resolve().parents[2]
+SHARED = REPO.parent / "shared"
 
 
 class SyntheticPack:
@@ -94,20 +96,86 @@ def _time_pair(pack, method: str, n: int, load_n: float, configs) -> tuple[list[
     prior = _prior(pack) if method == "proposed" else None
     ests = [FrameEstimator(pack, method=method, prior=prior, **cfg) for cfg in configs]
     q, qd, qdd, phase = _trajectory(pack, n)
+    frames = [((q[i], qd[i], qdd[i], load_n), {"phase": _ph(phase[i])}) for i in range(n)]
+    times, _ = _time_interleaved(ests, frames)
+    info = [{"flags": str(est.flag_counts), "solver": str(est.solver_counts)} for est in ests]
+    return list(times), info
+
+
+def _time_interleaved(ests: list, frames: list[tuple[tuple, dict]]) -> tuple[np.ndarray, list[list]]:
+    """Step times (µs, one row per estimator) of ``est.step(*args, **kwargs)`` for every frame, the estimators taking
+    turns frame by frame (machine noise hits them alike), after a 50-frame warm-up (solver set-up, caches) and
+    reset counters; with every estimator's results."""
     for est in ests:
-        for i in range(min(50, n)):  # warm-up: solver set-up, caches
-            est.step(q[i], qd[i], qdd[i], load_n, phase=_ph(phase[i]))
+        for args, kwargs in frames[:50]:
+            est.step(*args, **kwargs)
         est.reset_counts()
-    times = np.empty((len(ests), n))
+    times = np.empty((len(ests), len(frames)))
+    results: list[list] = [[] for _ in ests]
     clock = time.perf_counter
-    for i in range(n):
-        ph = _ph(phase[i])
+    for i, (args, kwargs) in enumerate(frames):
         for k, est in enumerate(ests):
             t0 = clock()
-            est.step(q[i], qd[i], qdd[i], load_n, phase=ph)
+            result = est.step(*args, **kwargs)
             times[k, i] = clock() - t0
-    info = [{"flags": str(est.flag_counts), "solver": str(est.solver_counts)} for est in ests]
-    return list(times * 1e6), info
+            results[k].append(result)
+    return times * 1e6, results
+
+
+def _held_out_so_vs_proposed(pack, n: int) -> list[BenchResult]:
+    """`so` hot-started, `so` with PIQP every frame and `proposed` on the held-out deadlift (deadlift_75kg, its
+    measured torques; phase from the trial, the bench's prior), interleaved frame by frame, the trial cycled to at
+    least n frames: medians per step and their ratios to `proposed`'s, so's agreement with PIQP every frame."""
+    from msk_core.estimate import FrameEstimator
+    from msk_core.estimate.trial import load_trial
+
+    trial = load_trial(REPO / "recordings/demo/deadlift/deadlift_75kg/trial.toml", pack)
+    idx = np.arange(max(n, trial.n_frames)) % trial.n_frames
+    frames = [
+        ((trial.q[i], trial.qd[i], trial.qdd[i]), {"torques": trial.torques[i], "phase": _ph(trial.phase[i])})
+        for i in idx
+    ]
+    ests = [
+        FrameEstimator(pack, method="proposed", prior=_prior(pack)),
+        FrameEstimator(pack, method="so"),
+        FrameEstimator(pack, method="so", hot_start=False),
+    ]
+    times, results = _time_interleaved(ests, frames)
+    proposed, so_hot, so_piqp = (float(np.median(t)) for t in times)
+    gap = max(float(np.abs(a.activations - b.activations).max()) for a, b in zip(results[1], results[2]))
+    details: dict[str, float | str] = {
+        "trial": "deadlift_75kg (held out)",
+        "frames": len(frames),
+        "so_over_proposed": round(so_hot / proposed, 2),
+        "so_piqp_over_proposed": round(so_piqp / proposed, 2),
+        "so_piqp_median_us": round(so_piqp, 1),
+        "so_solver": str(ests[1].solver_counts),
+        "so_flags": str(ests[1].flag_counts),
+        "so_max_abs_diff_vs_piqp": f"{gap:.1e}",
+        "proposed_solver": str(ests[0].solver_counts),
+    }
+    return [
+        BenchResult(
+            "held-out deadlift so step (hot start), median",
+            so_hot,
+            "µs",
+            "proposed step, same frames and run",
+            proposed,
+            "so <= 1.5x proposed",
+            so_hot <= 1.5 * proposed,
+            details,
+        ),
+        BenchResult(
+            "held-out deadlift so step (PIQP every frame, --solver piqp), median",
+            so_piqp,
+            "µs",
+            "proposed step, same frames and run",
+            proposed,
+            "",
+            None,
+            {"so_piqp_over_proposed": round(so_piqp / proposed, 2)},
+        ),
+    ]
 
 
 def _opensim_so_per_frame_us(workdir: Path) -> float:
@@ -229,7 +297,7 @@ def run(quick: bool) -> list[BenchResult]:
             {"flags": str(fl)},
         )
     )
-    return results
+    return results + ([] if note else _held_out_so_vs_proposed(pack, n))
 
 
 def _arm26_so_steps(pack, n: int) -> tuple[np.ndarray, dict]:
