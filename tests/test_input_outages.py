@@ -118,3 +118,21 @@ def test_a_paused_publisher_over_zenoh_is_one_outage_in_the_nodes_status(zenoh_e
     # the silence spans the publisher's pause: its last chunk before, its first after
     assert outages.last_start_ns <= paused_ns + 10**8 and outages.last_end_ns >= resumed_ns, outages
     assert outages.longest_s >= pause_s - 0.1 and outages.missed == 0, outages
+
+
+def test_msk_live_summary_carries_each_nodes_outages(tmp_path):
+    from services.live import summarise, summary_text
+    from services.mcap_io import McapRecorderWriter
+
+    outages = messages.InputOutages(count=1, total_s=3.2, longest_s=3.2, last_start_ns=5 * S, last_end_ns=8 * S + 2 * 10**8,
+                                    last_keys=[EMG, IMU], threshold_s=OUTAGE_MIN_S, missed=40, recovered=40)  # fmt: skip
+    status = messages.DeviceStatus(device_id="estimator", kind="node", connected=False, outages=outages)
+    with McapRecorderWriter(tmp_path / "s.mcap") as writer:
+        writer.write(topics.status_key("o", "estimator"), "msk.DeviceStatus", messages.encode(status), 9 * S, 9 * S)
+    summary = summarise(tmp_path / "s.mcap", 10.0)
+    said = summary["input_outages"]["estimator"]
+    assert said["count"] == 1 and said["longest_s"] == 3.2 and said["last_keys"] == [EMG, IMU]
+    assert said["last_start"] == "1970-01-01T00:00:05.000+00:00" and said["missed"] == said["recovered"] == 40
+    assert "estimator: 1 input outage (3.2 s, longest 3.2 s); 40 publications missed, 40 recovered" in summary_text(
+        summary
+    )
