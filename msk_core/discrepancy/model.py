@@ -24,7 +24,15 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays
-from msk_core.estimate.effects import muscle_force_factor, torque_term_columns, torque_term_names, unmix_envelopes
+from msk_core.estimate.effects import (
+    CoefKey,
+    Effect,
+    Nuisance,
+    muscle_force_factor,
+    torque_term_columns,
+    torque_term_names,
+    unmix_envelopes,
+)
 from msk_core.signal.reps import in_rep
 
 GAIN_RIDGE = 0.05  # ridge on the unmeasured groups' re-fit, relative to each column's own sum of squares
@@ -41,15 +49,15 @@ TINY_RIDGE = 1e-9
 # which held-out trials at another load then showed as a pose-following gap that any candidate could "explain"
 # (docs/discrepancy.md, "Noisy EMG").
 STRENGTH_GAIN_RANGE = (0.5, 2.0)
-# true / reported bar load searched by ``load_scale`` (a grid point, not a linear coefficient: fitted by least squares
-# the ratio only follows the strengths down to their bound - shrinking the target shrinks every gap - and came out
-# at 0.54 on effect-free sessions as on sessions whose load was over-reported by 1.8; docs/discrepancy.md, Limits)
+# true / reported bar load searched by ``load_misreport`` (a grid point, not a linear coefficient: fitted by least
+# squares the ratio only follows the strengths down to their bound - shrinking the target shrinks every gap - and came
+# out at 0.54 on effect-free sessions as on sessions whose load was over-reported by 1.8; docs/discrepancy.md, Limits)
 LOAD_RATIOS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.1, 1.25, 1.4, 1.6, 1.8, 2.0)
 
 
 @dataclass(frozen=True)
 class Candidate:
-    name: str
+    name: Effect
     grid: tuple[dict, ...]  # settings of the nonlinear parameters ({} when there are none)
     formula: str
     # re-mixes the EMG channels (cross-talk unmixing adds the neighbours' envelope noise to each channel): its
@@ -63,7 +71,7 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     delays = np.arange(0, int(round(MAX_DELAY_S / dt)) + 1) * dt
     out = [
         Candidate(
-            "emd",
+            Effect.EMD,
             tuple({"delay_total_s": float(d)} for d in delays),
             "x_g(t) = e_g(t - d): EMG leads the force by the electromechanical delay d",
         ),
@@ -71,7 +79,7 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     if len(data.emg_groups) >= 2:
         out.append(
             Candidate(
-                "crosstalk",
+                Effect.CROSSTALK,
                 tuple({"fraction": c} for c in (0.05, 0.1, 0.15, 0.2, 0.3, 0.4)),
                 "x^2 = (M o M)^-1 e^2: electrode k holds (1 - c) of its muscle's signal and c/2 of each neighbour's",
                 remixes_emg=True,
@@ -80,17 +88,17 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     if data.optimal is not None and data.trials[0].lengths is not None:
         out += [
             Candidate(
-                "fl_active",
+                Effect.FL_ACTIVE,
                 tuple({"width": w} for w in (0.25, 0.35, 0.45, 0.6, 0.8)),
                 "phi_g = exp(-((l_g - 1)/w)^2), l_g normalised fibre length",
             ),
             Candidate(
-                "fl_passive",
+                Effect.FL_PASSIVE,
                 tuple({"strain": s} for s in (0.3, 0.45, 0.6, 0.8, 1.0)),
                 "Z = sum_g A_g (exp(4 (l_g - 1)/s) - 1)/(e^4 - 1) for l_g > 1, one scale",
             ),
             Candidate(
-                "fv",
+                Effect.FV,
                 tuple({"v_max": v, "eccentric": e} for v in (5.0, 10.0, 15.0, 20.0) for e in (1.4, 1.8)),
                 "phi_g = Hill force-velocity(shortening speed / v_max l_opt), eccentric plateau",
             ),
@@ -98,16 +106,16 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     if data.lo is not None:
         out.append(
             Candidate(
-                "passive_joint",
+                Effect.PASSIVE_JOINT,
                 tuple({"decay_rad": d} for d in (0.05, 0.1, 0.2, 0.35)),
                 "Z_n = k_lo,n exp((lo_n - q_n)/d) - k_hi,n exp((q_n - hi_n)/d) / c_n",
             )
         )
-    out.append(Candidate("damping", ({},), "Z_n = -b_n qd_n / c_n (muscles also overcome joint damping)"))
+    out.append(Candidate(Effect.DAMPING, ({},), "Z_n = -b_n qd_n / c_n (muscles also overcome joint damping)"))
     if len({t.load_kg for t in train}) >= 2:  # with one load a load scale is a strength scale (not separable)
         out.append(
             Candidate(
-                "load_scale",
+                Effect.LOAD_MISREPORT,
                 tuple({"true_over_reported": r} for r in LOAD_RATIOS),
                 "y = (tau - (1 - r) tau_load) / c: the bar's true load is r x the reported one",
             )
@@ -116,7 +124,7 @@ def candidate_library(data: SessionArrays, train: list[TrialArrays]) -> list[Can
     if multi:
         out.append(
             Candidate(
-                "moment_arm_scale",
+                Effect.MOMENT_ARM_SCALE,
                 ({},),
                 "per (group, coordinate) scale of R_ng for groups with EMG crossing several coordinates",
             )
@@ -155,7 +163,7 @@ class Design:
     y: np.ndarray  # (N,)
     fixed: np.ndarray  # (N,) the model with every linear coefficient at 0
     columns: np.ndarray  # (N, p)
-    names: list[str]
+    names: list[CoefKey]
     ridge: np.ndarray  # (p,) relative ridge
     ridge_abs: np.ndarray  # (p,) absolute ridge
     n_frames: int
@@ -164,16 +172,16 @@ class Design:
     phi_emg_sum: np.ndarray  # (G_E,) ... of phi x (typical_force_factor)
 
 
-def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
+def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[Effect, dict]) -> np.ndarray:
     """(T, G_E) activations the EMG stands for under the model: delayed, unmixed."""
-    delay = model.get("emd", {}).get("delay_total_s", data.base_delay_s)
+    delay = model.get(Effect.EMD, {}).get("delay_total_s", data.base_delay_s)
     x = trial.emg
     if delay > 0:
         x = np.column_stack([np.interp(trial.time - delay, trial.time, x[:, k]) for k in range(x.shape[1])])
-    if "crosstalk" in model:
+    if Effect.CROSSTALK in model:
         idx = [data.emg_groups.index(g) for g in data.electrode_order]
         x = x.copy()
-        x[:, idx] = unmix_envelopes(x[:, idx], model["crosstalk"]["fraction"])
+        x[:, idx] = unmix_envelopes(x[:, idx], model[Effect.CROSSTALK]["fraction"])
     return x
 
 
@@ -183,16 +191,18 @@ def force_factor(
     qd: np.ndarray,
     optimal: np.ndarray | None,
     slack: np.ndarray | None,
-    model: dict[str, dict],
+    model: dict[Effect, dict],
 ) -> np.ndarray:
     """(T, G) the force-factor effects of ``model`` (active force-length, force-velocity) on every frame of lengths
     (T, G), moment arms (T, n_c, G) and velocities (T, n_c); 1 where none is on. The discrepancy fit and the
     re-calibration both take it from here."""
-    phi = muscle_force_factor(lengths, arms, qd, optimal, slack, fl_active=model.get("fl_active"), fv=model.get("fv"))
+    phi = muscle_force_factor(
+        lengths, arms, qd, optimal, slack, fl_active=model.get(Effect.FL_ACTIVE), fv=model.get(Effect.FV)
+    )
     return np.ones((arms.shape[0], arms.shape[2])) if phi is None else phi
 
 
-def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> Design:
+def design(data: SessionArrays, trial: TrialArrays, model: dict[Effect, dict]) -> Design:
     n, n_c = trial.n, len(data.coordinates)
     e_idx, o_idx = data.emg_index, data.other_index
     a = trial.arms * data.f_max / trial.scale[:, :, None]  # (T, n_c, G)
@@ -204,7 +214,7 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
         fixed = fixed + (a[:, :, o_idx] * (phi[:, o_idx] * trial.prior_mean[:, o_idx])[:, None, :]).sum(axis=2)
     cols, names, ridge, ridge_abs = [], [], [], []
 
-    def add(column: np.ndarray, name: str, rel: float = TINY_RIDGE, absolute: float = 0.0) -> None:
+    def add(column: np.ndarray, name: CoefKey, rel: float = TINY_RIDGE, absolute: float = 0.0) -> None:
         cols.append(column.ravel())
         names.append(name)
         ridge.append(rel)
@@ -217,7 +227,7 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
     # Strength re-fit per measured group (ridge toward the calibrated strength); with moment_arm_scale one per group
     # and coordinate crossed, for the groups crossing several coordinates
     multi = set()
-    if "moment_arm_scale" in model:
+    if Effect.MOMENT_ARM_SCALE in model:
         for k, g in enumerate(data.emg_groups):
             crossed = crossed_coordinates(data, g)
             if len(crossed) > 1:
@@ -225,26 +235,31 @@ def design(data: SessionArrays, trial: TrialArrays, model: dict[str, dict]) -> D
                 for coordinate in crossed:
                     add(
                         contrib[:, :, k] * onehot[data.coordinates.index(coordinate)],
-                        f"arm:{g}:{coordinate}",
+                        CoefKey(Effect.MOMENT_ARM_SCALE, "scale", group=g, coordinate=coordinate),
                         MEASURED_RIDGE,
                         MEASURED_RIDGE_ABS,
                     )
     for k, g in enumerate(data.emg_groups):
         if k not in multi:
-            add(contrib[:, :, k], f"gain:{g}", MEASURED_RIDGE, MEASURED_RIDGE_ABS)
+            add(contrib[:, :, k], CoefKey(Nuisance.GAIN, group=g), MEASURED_RIDGE, MEASURED_RIDGE_ABS)
     for j in o_idx:  # the unmeasured groups' prior-mean contribution, re-scaled like the measured groups' strength
         add(
             a[:, :, j] * (phi[:, j] * trial.prior_mean[:, j])[:, None],
-            f"prior:{data.groups[j]}",
+            CoefKey(Nuisance.PRIOR, group=data.groups[j]),
             GAIN_RIDGE,
             GAIN_RIDGE_ABS,
         )
         base = a[:, :, j] * (phi[:, j] * trial.min_effort[:, j])[:, None]  # follows the frame's demand (load)
         for k, w in enumerate(phase_basis(trial.phase)):  # ... with a free share per phase of the rep
-            add(base * w[:, None], f"demand:{data.groups[j]}:{k}", GAIN_RIDGE, GAIN_RIDGE_ABS)
+            add(
+                base * w[:, None],
+                CoefKey(Nuisance.DEMAND, group=data.groups[j], phase_bin=k),
+                GAIN_RIDGE,
+                GAIN_RIDGE_ABS,
+            )
     inv_c = 1.0 / trial.scale
     for c in range(n_c):
-        add(inv_c * onehot[c], f"offset:{data.coordinates[c]}")
+        add(inv_c * onehot[c], CoefKey(Nuisance.OFFSET, coordinate=data.coordinates[c]))
     terms = torque_term_columns(
         model, trial.q, trial.qd, trial.lengths, trial.arms, data.f_max, data.optimal, data.slack, data.lo, data.hi
     )  # (T, n_c, p) N·m per unit coefficient
@@ -274,21 +289,32 @@ def typical_force_factor(designs: list[Design]) -> np.ndarray:
     return np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
 
 
-# passive force is tensile, an elastic joint moment pushes away from its limit, damping dissipates
-NON_NEGATIVE = ("fl_passive:scale", "passive_joint:k_lower:", "passive_joint:k_upper:", "damping:b:")
+# passive force is tensile, an elastic joint moment pushes away from its limit, damping dissipates: these
+# (effect, parameter) coefficients are >= 0
+NON_NEGATIVE = frozenset(
+    {
+        (Effect.FL_PASSIVE, "scale"),
+        (Effect.PASSIVE_JOINT, "k_lower"),
+        (Effect.PASSIVE_JOINT, "k_upper"),
+        (Effect.DAMPING, "b"),
+    }
+)
+STRENGTH_TERMS = (Nuisance.GAIN, Effect.MOMENT_ARM_SCALE)  # scales of a measured group's strength (per coordinate)
 
 
-def coefficient_bounds(data: SessionArrays, names: list[str], phi_typical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def coefficient_bounds(
+    data: SessionArrays, names: list[CoefKey], phi_typical: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Bounds on the coefficients: the strength (and moment-arm) scales of the measured groups, times their typical
     force factor, in STRENGTH_GAIN_RANGE; the passive and damping terms >= 0 (NON_NEGATIVE: free in sign, they fitted
     unphysical negative moments - a negative passive force for an active force-length effect, a joint moment pulling
     toward its limit for a passive force - and were named for them); the other coefficients free."""
     lower, upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
-    for j, name in enumerate(names):
-        if name.startswith(("gain:", "arm:")):
-            phi = max(float(phi_typical[data.emg_groups.index(name.split(":")[1])]), 1e-3)
+    for j, key in enumerate(names):
+        if key.term in STRENGTH_TERMS:
+            phi = max(float(phi_typical[data.emg_groups.index(key.group)]), 1e-3)
             lower[j], upper[j] = STRENGTH_GAIN_RANGE[0] / phi - 1.0, STRENGTH_GAIN_RANGE[1] / phi - 1.0
-        elif name.startswith(NON_NEGATIVE):
+        elif (key.term, key.parameter) in NON_NEGATIVE:
             lower[j] = 0.0
     return lower, upper
 
@@ -308,8 +334,8 @@ def _bounded_quadratic_minimum(g: np.ndarray, h: np.ndarray, lower: np.ndarray, 
 
 @dataclass
 class Fit:
-    model: dict[str, dict]
-    names: list[str]
+    model: dict[Effect, dict]
+    names: list[CoefKey]
     coef: np.ndarray
     train_mse: float
     n_params: int  # linear coefficients + nonlinear parameters
@@ -328,7 +354,7 @@ def on(data: SessionArrays, f: Fit) -> SessionArrays:
     return replace(data, f_max=f.f_max)
 
 
-def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[str, dict]) -> Fit:
+def fit(data: SessionArrays, trials: list[TrialArrays], model: dict[Effect, dict]) -> Fit:
     """Least squares (normal equations, relative ridge) of the linear coefficients over the trials."""
     designs = [design(data, t, model) for t in trials]
     x = np.vstack([d.columns for d in designs])
@@ -384,7 +410,7 @@ def integrated_autocorrelation(res: list[np.ndarray], max_lag: int = 400) -> flo
 
 @dataclass
 class Score:
-    name: str
+    name: Effect
     parameters: dict
     fit: Fit
     holdout_mse: float
@@ -408,12 +434,12 @@ def mean_square(res: list[np.ndarray]) -> float:
     return float(np.mean(np.concatenate([r.ravel() for r in res]) ** 2))
 
 
-def target_torque(trial: TrialArrays, model: dict[str, dict]) -> np.ndarray:
-    """(T, n_c) the torque the muscles must explain: the inverse-dynamics torque, with ``load_scale`` corrected to the
-    true load, tau - (1 - r) tau_load (tau_load: the reported load's share)."""
-    if "load_scale" not in model:
+def target_torque(trial: TrialArrays, model: dict[Effect, dict]) -> np.ndarray:
+    """(T, n_c) the torque the muscles must explain: the inverse-dynamics torque, with ``load_misreport`` corrected to
+    the true load, tau - (1 - r) tau_load (tau_load: the reported load's share, r = true / reported)."""
+    if Effect.LOAD_MISREPORT not in model:
         return trial.tau
-    return trial.tau - (1.0 - model["load_scale"]["true_over_reported"]) * trial.tau_load
+    return trial.tau - (1.0 - model[Effect.LOAD_MISREPORT]["true_over_reported"]) * trial.tau_load
 
 
 def target_ms(data: SessionArrays, trials: list[TrialArrays], f: Fit) -> float:

@@ -22,7 +22,7 @@ import numpy as np
 
 from msk_core.discrepancy.model import force_factor
 from msk_core.estimate.calibrate import CalibrationResult, CalibrationSettings
-from msk_core.estimate.effects import TORQUE_TERMS, torque_term_columns, torque_term_names
+from msk_core.estimate.effects import TORQUE_TERMS, Effect, torque_term_columns, torque_term_names
 from msk_core.estimate.pack import PackLike, fibre_lengths
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -31,11 +31,11 @@ if TYPE_CHECKING:  # imported where used (msk_core.estimate.pipeline imports mor
     from msk_core.estimate.pipeline import CalibrationInputs
 
 TORQUE_EFFECTS = TORQUE_TERMS  # re-calibrated with their torque as a basis
-FORCE_EFFECTS = ("fl_active", "fv")  # ... with their per-frame force factor on the moment arms
+FORCE_EFFECTS = (Effect.FL_ACTIVE, Effect.FV)  # ... with their per-frame force factor on the moment arms
 RECALIBRATED = TORQUE_EFFECTS + FORCE_EFFECTS  # the candidates fitted with a re-calibration (muscle and joint state)
 # the effects a re-calibration can carry: those, and the delay as the calibration's own EMG delay; a model with any
 # other (cross-talk, load scale, moment-arm scales) is not re-calibrated
-HONOURED = RECALIBRATED + ("emd",)
+HONOURED = RECALIBRATED + (Effect.EMD,)
 # L-BFGS-B's relative-reduction stop for a re-calibration: it compares models by the strengths it returns, which at
 # 1e-12 differ from the profile's 1e-15 solve by ~2e-5 (relative) and take ~40 % fewer iterations (docs, Re-calibration)
 RECALIBRATION_FTOL = 1e-12
@@ -54,14 +54,14 @@ def calibration_settings(profile: SubjectProfile) -> CalibrationSettings:
         return CalibrationSettings()
 
 
-def torque_columns(pack: PackLike, trial: TrialData, model: dict[str, dict], f_max: np.ndarray) -> np.ndarray:
+def torque_columns(pack: PackLike, trial: TrialData, model: dict[Effect, dict], f_max: np.ndarray) -> np.ndarray:
     """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient
     (effects.torque_term_columns, as the discrepancy model writes them; names: effects.torque_term_names), with the
     profile's F_max."""
     n_c = len(pack.coordinates)
     q = np.nan_to_num(trial.q)
     lengths = arms = None
-    if "fl_passive" in model:
+    if Effect.FL_PASSIVE in model:
         mech = trial.mechanics(pack)
         lengths, arms = mech.lengths, mech.moment_arms
     r = getattr(pack, "coordinate_ranges", None)
@@ -88,16 +88,16 @@ class Recalibrator:
         self.settings = dataclasses.replace(settings, ftol=max(settings.ftol, RECALIBRATION_FTOL))
         self.base_delay_s = base_delay_s
         self.f_max_profile = np.asarray(profile.f_max, dtype=float)
-        self.reports: dict[str, dict] = {}
+        self.reports: dict[str, dict] = {}  # by json.dumps(model, sort_keys=True)
         self._cache: dict[str, np.ndarray] = {}
         self._plain: dict[float, CalibrationResult] = {}  # delay -> the calibration without a torque basis (warm start)
         self._inputs: dict[float, CalibrationInputs] = {}  # delay -> the shifted trials, prior, min-effort error
 
     @staticmethod
-    def supports(model: dict[str, dict]) -> bool:
+    def supports(model: dict[Effect, dict]) -> bool:
         return all(name in HONOURED for name in model)
 
-    def f_max(self, model: dict[str, dict]) -> np.ndarray:
+    def f_max(self, model: dict[Effect, dict]) -> np.ndarray:
         """The strengths of a calibration with ``model``'s torque terms fitted alongside (its delay applied to the
         EMG); ``{}``: the plain calibration of these trials with the profile's settings."""
         from msk_core.estimate.pipeline import TorqueBasis, calibrate_inputs, calibration_inputs
@@ -115,9 +115,9 @@ class Recalibrator:
                 basis = TorqueBasis(
                     columns=lambda t: torque_columns(self.pack, t, terms, self.f_max_profile),
                     lower=np.zeros(len(names)),
-                    names=tuple(names),
+                    names=tuple(str(k) for k in names),  # the calibration report's table is keyed by text
                 )
-            delay = float(model.get("emd", {}).get("delay_total_s", self.base_delay_s))
+            delay = float(model.get(Effect.EMD, {}).get("delay_total_s", self.base_delay_s))
             plain = basis is None and scale is None
             if not plain and delay not in self._plain:
                 self.f_max({k: v for k, v in model.items() if k not in RECALIBRATED})
@@ -137,7 +137,7 @@ class Recalibrator:
             self.reports[key] = profile.calibration
         return self._cache[key]
 
-    def _force_scale(self, trial: TrialData, forces: dict[str, dict]) -> np.ndarray:
+    def _force_scale(self, trial: TrialData, forces: dict[Effect, dict]) -> np.ndarray:
         """(T, G) the force factor of ``forces`` on every frame of ``trial`` (:func:`model.force_factor`)."""
         mech, pack = trial.mechanics(self.pack), self.pack
         return force_factor(
@@ -148,5 +148,5 @@ class Recalibrator:
             forces,
         )
 
-    def report(self, model: dict[str, dict]) -> dict | None:
+    def report(self, model: dict[Effect, dict]) -> dict | None:
         return self.reports.get(json.dumps(model, sort_keys=True))

@@ -53,6 +53,7 @@ from msk_core.discrepancy.model import (
 )
 from msk_core.discrepancy.recalibrate import RECALIBRATED, Recalibrator
 from msk_core.errors import EstimationError
+from msk_core.estimate.effects import Effect
 from msk_core.progress import Progress, counted
 
 MIN_REDUCTION = 0.15
@@ -83,7 +84,7 @@ class LeftOut:
     rest: list[TrialArrays]
     base_fit: Fit
     base_unexplained: float  # on the left-out trial
-    offered: frozenset[str]  # the candidates the other trials still define (a load scale needs two loads)
+    offered: frozenset[Effect]  # the candidates the other trials still define (a load scale needs two loads)
 
 
 def left_out_bases(data: SessionArrays, train: list[TrialArrays], base: Fit) -> list[LeftOut]:
@@ -236,7 +237,7 @@ def _left_out_reductions(
 class Selection:
     none_fit: Fit
     final_fit: Fit
-    named: list[str]
+    named: list[Effect]
     steps: list[list[Score]]  # per greedy step, the candidates ranked by held-out BIC
     gap_before_mse: float
     gap_after_mse: float
@@ -259,7 +260,9 @@ def select_effects(
     none = fit(data, train, {})
     base, base_hold = none, mse(data, holdout, none)
     before = base_hold
-    named, steps, tau = [], [], 1.0
+    named: list[Effect] = []
+    steps: list[list[Score]] = []
+    tau = 1.0
     for step in range(max_effects):
         _, tau = _n_eff(data, train, base)
         remaining = [c for c in library if c.name not in base.model]

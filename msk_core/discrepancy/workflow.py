@@ -14,7 +14,7 @@ from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, 
 from msk_core.discrepancy.model import Fit, crossed_coordinates, design, gaps, on
 from msk_core.discrepancy.recalibrate import Recalibrator
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
-from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION, fibre_length
+from msk_core.estimate.effects import EFFECTS_FORMAT_VERSION, CoefKey, Effect, Nuisance, fibre_length
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -28,54 +28,60 @@ XCORR_MAX_LAG_S = 0.2
 def effects_section(data: SessionArrays, f: Fit, evidence: dict) -> dict:
     """The profile's ``effects`` section for a fitted model (the per-coordinate offsets are nuisance, left out)."""
     coef = dict(zip(f.names, f.coef.tolist()))
-    arm_groups = {k.split(":")[1] for k in coef if k.startswith("arm:")}
+    arm_groups = {k.group for k in coef if k.term is Effect.MOMENT_ARM_SCALE}
     # the re-fitted strengths, within the bounds the fit kept them in (the clip only removes round-off)
     bounds = {n: (lo, hi) for n, lo, hi in zip(f.names, f.lower, f.upper)}
     gain = {
-        g: (1.0 if g in arm_groups else 1.0 + float(np.clip(coef[f"gain:{g}"], *bounds[f"gain:{g}"])))
+        g: 1.0 if g in arm_groups else 1.0 + float(np.clip(coef[gain_key(g)], *bounds[gain_key(g)]))
         for g in data.emg_groups
     }
-    effects = []
-    for name, setting in f.model.items():
-        if name == "emd":
-            extra = setting["delay_total_s"] - data.base_delay_s
-            params = {
-                "delay_s": round(max(extra, 0.0), 6),
-                "delay_total_s": round(setting["delay_total_s"], 6),
-                "frame_interval_s": round(min(t.frame_interval_s for t in data.trials), 9),
-            }
-        elif name == "crosstalk":
-            params = {"fraction": setting["fraction"], "electrode_order": list(data.electrode_order)}
-        elif name in ("fl_active", "fv"):
-            params = dict(setting)
-        elif name == "fl_passive":
-            params = {"strain": setting["strain"], "scale": coef["fl_passive:scale"]}
-        elif name == "passive_joint":
-            params = {
-                "decay_rad": setting["decay_rad"],
-                "k_lower_nm": [coef[f"passive_joint:k_lower:{c}"] for c in data.coordinates],
-                "k_upper_nm": [coef[f"passive_joint:k_upper:{c}"] for c in data.coordinates],
-            }
-        elif name == "damping":
-            params = {"b_nms_per_rad": [coef[f"damping:b:{c}"] for c in data.coordinates]}
-        elif name == "load_scale":
-            params = {"true_over_reported": setting["true_over_reported"]}
-        elif name == "moment_arm_scale":
-            scales: dict[str, dict[str, float]] = {}
-            for key, value in coef.items():
-                if key.startswith("arm:"):
-                    _, g, c = key.split(":", 2)
-                    scales.setdefault(g, {})[c] = 1.0 + value
-            params = {"scales": scales}
-        else:  # pragma: no cover - the library and this table are kept in step
-            raise ValueError(name)
-        effects.append({"name": name, "parameters": params})
+    effects = [
+        {"name": name.value, "parameters": effect_parameters(data, name, setting, coef)}
+        for name, setting in f.model.items()
+    ]
     return {
         "format_version": EFFECTS_FORMAT_VERSION,
         "effects": effects,
         "strength_gain": {g: round(k, 6) for g, k in gain.items()},
         "evidence": evidence,
     }
+
+
+def gain_key(group: str) -> CoefKey:
+    """The key of a measured group's strength re-fit."""
+    return CoefKey(Nuisance.GAIN, group=group)
+
+
+def effect_parameters(data: SessionArrays, name: Effect, setting: dict, coef: dict[CoefKey, float]) -> dict:
+    """One effect's ``parameters`` in the profile: its grid setting and its fitted coefficients, by name."""
+    if name is Effect.EMD:
+        extra = setting["delay_total_s"] - data.base_delay_s
+        return {
+            "delay_s": round(max(extra, 0.0), 6),
+            "delay_total_s": round(setting["delay_total_s"], 6),
+            "frame_interval_s": round(min(t.frame_interval_s for t in data.trials), 9),
+        }
+    if name is Effect.CROSSTALK:
+        return {"fraction": setting["fraction"], "electrode_order": list(data.electrode_order)}
+    if name in (Effect.FL_ACTIVE, Effect.FV, Effect.LOAD_MISREPORT):  # grid settings only
+        return dict(setting)
+    if name is Effect.FL_PASSIVE:
+        return {"strain": setting["strain"], "scale": coef[CoefKey(name, "scale")]}
+    if name is Effect.PASSIVE_JOINT:
+        return {
+            "decay_rad": setting["decay_rad"],
+            "k_lower_nm": [coef[CoefKey(name, "k_lower", coordinate=c)] for c in data.coordinates],
+            "k_upper_nm": [coef[CoefKey(name, "k_upper", coordinate=c)] for c in data.coordinates],
+        }
+    if name is Effect.DAMPING:
+        return {"b_nms_per_rad": [coef[CoefKey(name, "b", coordinate=c)] for c in data.coordinates]}
+    if name is Effect.MOMENT_ARM_SCALE:
+        scales: dict[str, dict[str, float]] = {}
+        for key, value in coef.items():
+            if key.term is name:
+                scales.setdefault(key.group, {})[key.coordinate] = 1.0 + value
+        return {"scales": scales}
+    raise ValueError(f"no profile parameters for effect {name!r}")  # pragma: no cover - the library is kept in step
 
 
 def calibration_at_bounds(data: SessionArrays, profile: SubjectProfile) -> list[dict]:
@@ -156,7 +162,7 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
     lags = np.arange(-int(round(XCORR_MAX_LAG_S / dt)), int(round(XCORR_MAX_LAG_S / dt)) + 1)
     xc = np.zeros((lags.size, len(data.coordinates)))
     for t in trials:
-        d = design(data, t, {"emd": {"delay_total_s": 0.0}})
+        d = design(data, t, {Effect.EMD: {"delay_total_s": 0.0}})
         y = d.y.reshape(t.n, -1)
         m = d.fixed.reshape(t.n, -1)
         for k, lag in enumerate(lags):  # torque at t against the EMG-implied torque at t - lag
@@ -211,7 +217,7 @@ class DiscrepancyResult:
 
 def _score_dict(s) -> dict:
     return {
-        "effect": s.name,
+        "effect": s.name.value,
         "parameters": s.parameters,
         "holdout_mse_reduction": round(s.reduction, 5),
         "holdout_gap_rms": round(float(np.sqrt(s.holdout_mse)), 6),
@@ -268,7 +274,7 @@ def run_discrepancy(
     before_fit, after_fit = sel.none_fit, sel.final_fit
     per_c_before = np.sqrt(np.mean(np.vstack([gaps(data, t, before_fit) for t in ho]) ** 2, axis=0))
     per_c_after = np.sqrt(np.mean(np.vstack([gaps(data, t, after_fit) for t in ho]) ** 2, axis=0))
-    named = sel.named
+    named = [e.value for e in sel.named]
     candidates = [_score_dict(s) for s in sel.steps[0]] if sel.steps else []
     evidence: dict[str, Any] = {  # JSON: the profile's record of how the effects were found
         "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -340,7 +346,7 @@ def run_discrepancy(
     if activation:
         held = [t for t in holdout if not t.isometric]
         d0 = data.base_delay_s
-        d1 = after_fit.model.get("emd", {}).get("delay_total_s", d0)
+        d1 = after_fit.model.get(Effect.EMD, {}).get("delay_total_s", d0)
         before = activation_gaps(pack, profile, held, data.emg_groups, d0, progress)
         after = activation_gaps(pack, profile_out, held, data.emg_groups, d1, progress) if profile_out else before
         summary["activation_gap_before"] = before["rms"]

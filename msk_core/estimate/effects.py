@@ -6,7 +6,7 @@ enters the per-frame QP without changing it (see docs/discrepancy.md for the for
 
 - per-frame force scales (``fl_active``, ``fv``; ``moment_arm_scale`` per group and coordinate; the strength re-fit
   ``strength_gain``): the moment-arm matrix is scaled column by column, R~ = R * s(q, qd);
-- known torque offsets (``fl_passive``, ``passive_joint``, ``damping``, ``load_scale``): the torque the active
+- known torque offsets (``fl_passive``, ``passive_joint``, ``damping``, ``load_misreport``): the torque the active
   muscles must produce is tau - offset(q, qd, load);
 - time shifts (``emd``): the prior is looked up at the phase ``delay`` seconds ago (frame history kept here);
 - EMG unmixing (``crosstalk``): the prior's means of the measured groups are unmixed once, at construction
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -28,30 +29,85 @@ from msk_core.estimate.pack import MusclePackLike, PackLike
 
 EFFECTS_FORMAT_VERSION = 1
 
+
+class Effect(StrEnum):
+    """Every effect a profile may carry and the discrepancy workflow may name. The synthetic generator's hidden
+    effects (:class:`msk_core.synth.effects.Effects`) use the same names for the same physics."""
+
+    EMD = "emd"
+    FL_ACTIVE = "fl_active"
+    FL_PASSIVE = "fl_passive"
+    PASSIVE_JOINT = "passive_joint"
+    FV = "fv"
+    DAMPING = "damping"
+    # the bar's true load differs from the reported (logged) one; parameter ``true_over_reported`` = true / reported
+    # (the generator's ``load_misreport`` setting is the inverse, reported / true)
+    LOAD_MISREPORT = "load_misreport"
+    MOMENT_ARM_SCALE = "moment_arm_scale"
+    CROSSTALK = "crosstalk"
+
+
+#: names profiles were written with before an effect was renamed -> the effect (read, never written)
+FORMER_EFFECT_NAMES = {"load_scale": Effect.LOAD_MISREPORT}
 #: every effect name the profile may carry
-EFFECT_NAMES = (
-    "emd",
-    "fl_active",
-    "fl_passive",
-    "passive_joint",
-    "fv",
-    "damping",
-    "load_scale",
-    "moment_arm_scale",
-    "crosstalk",
-)
-MUSCLE_STATE_EFFECTS = ("fl_active", "fl_passive", "fv")
+EFFECT_NAMES = tuple(e.value for e in Effect)
+MUSCLE_STATE_EFFECTS = (Effect.FL_ACTIVE, Effect.FL_PASSIVE, Effect.FV)
 PASSIVE_SHAPE = 4.0  # exponential shape of the passive force-length curve (Thelen 2003: k^PE = 4)
 FV_CURVATURE = 0.25  # Hill's a/F0 (shortening branch)
 FV_ECCENTRIC_HALF = 0.17  # eccentric plateau reached half-way at this lengthening speed (fraction of v_max)
 
 
+def effect_named(name: object, where: str) -> Effect:
+    """The :class:`Effect` called ``name`` in a file or setting (a former name too); :class:`EstimationError` naming
+    ``where`` and the known names otherwise. The one place names are read."""
+    if isinstance(name, str):
+        if name in FORMER_EFFECT_NAMES:
+            return FORMER_EFFECT_NAMES[name]
+        if name in EFFECT_NAMES:
+            return Effect(name)
+    raise EstimationError(f"{where}: unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+
+
+class Nuisance(StrEnum):
+    """The discrepancy model's coefficients that belong to no effect (docs/discrepancy.md, "Model")."""
+
+    GAIN = "gain"  # a measured group's strength re-fit (per group)
+    PRIOR = "prior"  # an unmeasured group's prior-mean scale (per group)
+    DEMAND = "demand"  # an unmeasured group's share of the frame's demand in one phase bin (per group and bin)
+    OFFSET = "offset"  # a coordinate's torque offset (per coordinate)
+
+
+@dataclass(frozen=True)
+class CoefKey:
+    """One linear coefficient of the discrepancy model or a calibration's torque basis: what it belongs to, which of
+    its parameters, and for which group / phase bin / coordinate. ``str()`` is the one written form (reports, the
+    calibration's ``torque_basis`` table): the non-empty parts joined by ":", e.g. ``damping:b:elbow_flexion``."""
+
+    term: Effect | Nuisance
+    parameter: str = ""  # the effect's parameter ("scale", "k_lower", "k_upper", "b"); "" for a nuisance term
+    group: str = ""
+    phase_bin: int | None = None
+    coordinate: str = ""
+
+    def __str__(self) -> str:
+        bin_ = "" if self.phase_bin is None else str(self.phase_bin)
+        return ":".join(x for x in (self.term.value, self.parameter, self.group, bin_, self.coordinate) if x)
+
+
+# The model's muscle curves. The synthetic generator (msk_core.synth.effects) has its own on purpose: its are the
+# simulated subject's truth (Thelen's constants, fibres held to [0.4, 1.8] l_opt), these the model msk discrepancy
+# fits to it (width, strain, v_max and eccentric plateau free; the [0.3, 2.0] clip only a numerical guard, which the
+# demo sessions never reach). Shared, a change of the model would move the truth with it and the discrepancy tests
+# would test the model against itself; msk_core.synth.effects gives the numbers where the two differ.
+
+
 def fibre_length(lengths: np.ndarray, optimal: np.ndarray, slack: np.ndarray) -> np.ndarray:
-    """Normalised fibre length, rigid tendon, no pennation: (L_mtu - L_slack) / L_opt, clipped to [0.3, 2.0]."""
+    """Normalised fibre length, rigid tendon, no pennation: (L_mtu - L_slack) / L_opt, clipped to [0.3, 2.0] (a
+    numerical guard, not the generator's [0.4, 1.8]: see above)."""
     return np.clip((np.asarray(lengths) - slack) / optimal, 0.3, 2.0)
 
 
-def _needed(value: np.ndarray | None, what: str, effect: str) -> np.ndarray:
+def _needed(value: np.ndarray | None, what: str, effect: Effect) -> np.ndarray:
     """``value``, without which ``effect`` cannot be evaluated (:class:`EstimationError` naming both when missing)."""
     if value is None:
         raise EstimationError(f"effect {effect} needs the {what}, which were not given (a pack without them?)")
@@ -59,7 +115,7 @@ def _needed(value: np.ndarray | None, what: str, effect: str) -> np.ndarray:
 
 
 def _fibre_length_for(
-    effect: str, lengths: np.ndarray | None, optimal: np.ndarray | None, slack: np.ndarray | None
+    effect: Effect, lengths: np.ndarray | None, optimal: np.ndarray | None, slack: np.ndarray | None
 ) -> np.ndarray:
     """:func:`fibre_length` for ``effect``, which needs the muscle lengths and the pack's fibre data."""
     return fibre_length(
@@ -109,9 +165,9 @@ def muscle_force_factor(
     qd (n_c,)) or many ((T, G)); ``fl_active`` {"width"}, ``fv`` {"v_max", "eccentric"}; None when neither is on."""
     scale = None
     if fl_active:
-        scale = active_force_length(_fibre_length_for("fl_active", lengths, optimal, slack), fl_active["width"])
+        scale = active_force_length(_fibre_length_for(Effect.FL_ACTIVE, lengths, optimal, slack), fl_active["width"])
     if fv:
-        speed = shortening_speed(arms, qd, _needed(optimal, "optimal fibre lengths", "fv"), fv["v_max"])
+        speed = shortening_speed(arms, qd, _needed(optimal, "optimal fibre lengths", Effect.FV), fv["v_max"])
         f = force_velocity(speed, fv["eccentric"])
         scale = f if scale is None else scale * f
     return scale
@@ -123,22 +179,26 @@ def passive_joint_basis(q: np.ndarray, lo: np.ndarray, hi: np.ndarray, decay: fl
     return np.exp((q - hi) / decay), np.exp((lo - q) / decay)
 
 
-TORQUE_TERMS = ("fl_passive", "passive_joint", "damping")  # the effects that are torque linear in coefficients
+#: the effects that are torque linear in coefficients
+TORQUE_TERMS = (Effect.FL_PASSIVE, Effect.PASSIVE_JOINT, Effect.DAMPING)
 
 
-def torque_term_names(model: dict, coordinates: list[str]) -> list[str]:
-    """Names of :func:`torque_term_columns`' coefficients, in order."""
-    names = ["fl_passive:scale"] if "fl_passive" in model else []
-    if "passive_joint" in model:
+def torque_term_names(model: dict[Effect, dict], coordinates: list[str]) -> list[CoefKey]:
+    """The keys of :func:`torque_term_columns`' coefficients, in order."""
+    names = [CoefKey(Effect.FL_PASSIVE, "scale")] if Effect.FL_PASSIVE in model else []
+    if Effect.PASSIVE_JOINT in model:
         for c in coordinates:
-            names += [f"passive_joint:k_lower:{c}", f"passive_joint:k_upper:{c}"]
-    if "damping" in model:
-        names += [f"damping:b:{c}" for c in coordinates]
+            names += [
+                CoefKey(Effect.PASSIVE_JOINT, "k_lower", coordinate=c),
+                CoefKey(Effect.PASSIVE_JOINT, "k_upper", coordinate=c),
+            ]
+    if Effect.DAMPING in model:
+        names += [CoefKey(Effect.DAMPING, "b", coordinate=c) for c in coordinates]
     return names
 
 
 def torque_term_columns(
-    model: dict,
+    model: dict[Effect, dict],
     q: np.ndarray,
     qd: np.ndarray,
     lengths: np.ndarray | None,
@@ -157,21 +217,21 @@ def torque_term_columns(
     n_c = q.shape[-1]
     eye = np.eye(n_c)
     cols = []
-    if "fl_passive" in model:
+    if Effect.FL_PASSIVE in model:
         pas = passive_force_length(
-            _fibre_length_for("fl_passive", lengths, optimal, slack), model["fl_passive"]["strain"]
+            _fibre_length_for(Effect.FL_PASSIVE, lengths, optimal, slack), model[Effect.FL_PASSIVE]["strain"]
         )
-        cols.append(np.einsum("...ng,...g->...n", _needed(arms, "moment arms", "fl_passive"), f_max * pas))
-    if "passive_joint" in model:
+        cols.append(np.einsum("...ng,...g->...n", _needed(arms, "moment arms", Effect.FL_PASSIVE), f_max * pas))
+    if Effect.PASSIVE_JOINT in model:
         up, low = passive_joint_basis(
             q,
-            _needed(lo, "coordinate ranges", "passive_joint"),
-            _needed(hi, "coordinate ranges", "passive_joint"),
-            model["passive_joint"]["decay_rad"],
+            _needed(lo, "coordinate ranges", Effect.PASSIVE_JOINT),
+            _needed(hi, "coordinate ranges", Effect.PASSIVE_JOINT),
+            model[Effect.PASSIVE_JOINT]["decay_rad"],
         )
         for c in range(n_c):
             cols += [low * eye[c], -up * eye[c]]
-    if "damping" in model:
+    if Effect.DAMPING in model:
         cols += [-qd * eye[c] for c in range(n_c)]
     return np.stack(cols, axis=-1) if cols else np.zeros(np.shape(q) + (0,))
 
@@ -201,7 +261,7 @@ def unmix_envelopes(e: np.ndarray, fraction: float) -> np.ndarray:
 class ModelEffects:
     """The profile's effects, ready for per-frame use. ``from_dict`` checks names, versions and the pack."""
 
-    effects: list[dict]  # [{"name": ..., "parameters": {...}}]
+    effects: list[dict]  # [{"name": Effect, "parameters": {...}}] (from_dict reads the names)
     groups: list[str]
     coordinates: list[str]
     strength_gain: np.ndarray  # (G,) multiplies F_max (the re-fit that goes with the effects; 1 = unchanged)
@@ -214,12 +274,12 @@ class ModelEffects:
     _hi: np.ndarray | None = None
 
     @property
-    def names(self) -> list[str]:
+    def names(self) -> list[Effect]:
         return [e["name"] for e in self.effects]
 
-    def params(self, name: str) -> dict | None:
+    def params(self, effect: Effect) -> dict | None:
         for e in self.effects:
-            if e["name"] == name:
+            if e["name"] == effect:
                 return e["parameters"]
         return None
 
@@ -229,15 +289,15 @@ class ModelEffects:
 
     @property
     def delay_frames(self) -> int:
-        p = self.params("emd")
+        p = self.params(Effect.EMD)
         if not p or p["delay_s"] <= 0:
             return 0
         return int(round(p["delay_s"] / p["frame_interval_s"]))
 
     @property
     def load_ratio(self) -> float:
-        """true / reported external load (1 without ``load_scale``)."""
-        p = self.params("load_scale")
+        """true / reported external load (1 without ``load_misreport``)."""
+        p = self.params(Effect.LOAD_MISREPORT)
         return 1.0 if p is None else float(p["true_over_reported"])
 
     # -- (de)serialisation -------------------------------------------------------------------------------------
@@ -258,16 +318,11 @@ class ModelEffects:
             raise EstimationError(
                 f"effects.format_version: {version!r} is not supported (this software reads {EFFECTS_FORMAT_VERSION})"
             )
-        effects = data.get("effects", [])
-        for e in effects:
-            if (
-                not isinstance(e, dict)
-                or e.get("name") not in EFFECT_NAMES
-                or not isinstance(e.get("parameters"), dict)
-            ):
-                raise EstimationError(
-                    f"effects.effects: unknown or malformed effect {e!r}; known: {', '.join(EFFECT_NAMES)}"
-                )
+        effects = []
+        for e in data.get("effects", []):
+            if not isinstance(e, dict) or not isinstance(e.get("parameters"), dict):
+                raise EstimationError(f"effects.effects: malformed effect {e!r} (a table with name and parameters)")
+            effects.append({**e, "name": effect_named(e.get("name"), "effects.effects")})
         gains = data.get("strength_gain", {})
         unknown = sorted(set(gains) - set(groups))
         if unknown:
@@ -275,7 +330,7 @@ class ModelEffects:
         gain = np.array([float(gains.get(g, 1.0)) for g in groups])
         if not np.all(gain > 0):
             raise EstimationError(f"effects.strength_gain: gains must be positive, got {gain}")
-        return cls(list(effects), list(groups), list(coordinates), gain, dict(data.get("evidence", {})))
+        return cls(effects, list(groups), list(coordinates), gain, dict(data.get("evidence", {})))
 
     def bind(self, pack: PackLike) -> ModelEffects:
         """Pack-dependent constants (fibre lengths, ranges, the moment-arm scale matrix)."""
@@ -286,7 +341,7 @@ class ModelEffects:
             out._optimal = np.asarray(pack.optimal_fiber_lengths, dtype=float)
             out._slack = np.asarray(pack.tendon_slack_lengths, dtype=float)
         ranges = getattr(pack, "coordinate_ranges", None)
-        if "passive_joint" in self.names:
+        if Effect.PASSIVE_JOINT in self.names:
             if ranges is None:
                 raise EstimationError(
                     f"effect passive_joint needs the coordinate ranges, which pack {pack.name!r} lacks"
@@ -294,7 +349,7 @@ class ModelEffects:
             r = np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
             out._lo, out._hi = r[:, 0].copy(), r[:, 1].copy()
         scale = np.ones((len(self.coordinates), len(self.groups)))
-        p = self.params("moment_arm_scale")
+        p = self.params(Effect.MOMENT_ARM_SCALE)
         if p:
             for g, per in p["scales"].items():
                 for c, s in per.items():
@@ -308,26 +363,32 @@ class ModelEffects:
     def force_scale(self, lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
         """(G,) per-frame multiplier of each group's active force (fl * fv), None when no such effect is on."""
         return muscle_force_factor(
-            lengths, arms, qd, self._optimal, self._slack, fl_active=self.params("fl_active"), fv=self.params("fv")
+            lengths,
+            arms,
+            qd,
+            self._optimal,
+            self._slack,
+            fl_active=self.params(Effect.FL_ACTIVE),
+            fv=self.params(Effect.FV),
         )
 
     def torque_offset(self, q, qd, lengths, arms, f_max_profile) -> np.ndarray | None:
         """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping
         (:func:`torque_term_columns` times the fitted coefficients; ID = muscle - b qd: the muscles also overcome the
         damping). None when the profile has none of them."""
-        model: dict[str, dict] = {}
+        model: dict[Effect, dict] = {}
         for name in TORQUE_TERMS:
             params = self.params(name)
             if params:
                 model[name] = params
         if not model:
             return None
-        coef = [model["fl_passive"]["scale"]] if "fl_passive" in model else []
-        if "passive_joint" in model:
-            p = model["passive_joint"]
+        coef = [model[Effect.FL_PASSIVE]["scale"]] if Effect.FL_PASSIVE in model else []
+        if Effect.PASSIVE_JOINT in model:
+            p = model[Effect.PASSIVE_JOINT]
             coef += [x for pair in zip(p["k_lower_nm"], p["k_upper_nm"]) for x in pair]
-        if "damping" in model:
-            coef += list(model["damping"]["b_nms_per_rad"])
+        if Effect.DAMPING in model:
+            coef += list(model[Effect.DAMPING]["b_nms_per_rad"])
         cols = torque_term_columns(
             model,
             np.asarray(q, dtype=float),
@@ -348,7 +409,7 @@ class ModelEffects:
 
     def unmix_prior(self, prior):
         """The prior with the measured groups' means unmixed (``crosstalk``); as given otherwise."""
-        p = self.params("crosstalk")
+        p = self.params(Effect.CROSSTALK)
         if not p or prior is None:
             return prior
         order = [g for g in p["electrode_order"] if g in self.groups]

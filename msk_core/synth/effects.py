@@ -4,6 +4,11 @@ All are off by default. ``parse_effects("emd=0.06,fv,damping=0.8")`` switches so
 parameter. Muscle curves follow Thelen (2003, J Biomech Eng 125:70) in simplified rigid-tendon form:
 active force-length exp(−((l̃−1)/0.45)²), passive (exp(4(l̃−1)/0.6) − 1)/(exp(4) − 1) for l̃ > 1, force-velocity
 Hill-type with v_max = 10 l_opt/s, curvature 0.25 when shortening and an eccentric plateau of 1.8.
+
+Each effect has the name the estimator's model gives the same physics (:class:`msk_core.estimate.effects.Effect`,
+which ``msk discrepancy`` names and profiles carry), except ``fatigue``, which changes the EMG spectrum and no torque.
+This module does not import that one: the generator's truth stays independent of the model (see
+:func:`muscle_factors`); ``tests/test_effects.py`` checks the names agree.
 """
 
 from __future__ import annotations
@@ -21,7 +26,9 @@ DEFAULTS = {
     "fl_passive": 1.0,
     "fv": 1.0,
     "damping": 0.5,  # N·m·s/rad at every coordinate
-    "load_misreport": 1.1,  # reported / true barbell mass
+    # the trial files log reported = this x the true barbell mass (the estimator's load_misreport fits the inverse,
+    # true_over_reported)
+    "load_misreport": 1.1,
     "crosstalk": 0.15,  # fraction of each neighbour's source in an electrode's signal
     # per rep, the EMG spectrum compresses by this fraction: the median and mean frequency of rep k are
     # (1 - f (k - 1)) x rep 1's (slower fibre conduction as the muscle tires), a known shift for the fatigue index
@@ -36,7 +43,7 @@ class Effects:
     fl_passive: bool = False
     fv: bool = False
     damping: float = 0.0
-    load_misreport: float = 1.0
+    load_misreport: float = 1.0  # reported / true barbell mass (the trial files log the reported one)
     crosstalk: float = 0.0
     fatigue: float = 0.0  # spectral compression per rep (msk_core.synth.emg.spectral_scale)
 
@@ -91,6 +98,15 @@ def parse_effects(text: str | None) -> Effects:
     return effects
 
 
+# The muscle curves of the truth. They are not msk_core.estimate.effects' curves on purpose: those are the estimator's
+# model, with parameters msk discrepancy fits (width, strain, v_max, eccentric plateau) and a fibre-length clip of
+# [0.3, 2.0] that is only a numerical guard; these are the simulated subject's, with Thelen's constants and its
+# fibres held to [0.4, 1.8] l_opt. One shared definition would move the truth whenever the model changes, and the
+# discrepancy tests would then test the model against itself. The two differ where it matters: on the demo deadlift
+# (recordings/demo) 0.5-0.9 % of the (frame, group) fibre lengths lie outside [0.4, 1.8] (0.36-1.81 l_opt), which the
+# truth holds at the edge and the model does not; the demo bench press stays inside both (0.49-1.45).
+
+
 def active_force_length(l_norm: np.ndarray) -> np.ndarray:
     return np.exp(-(((l_norm - 1.0) / 0.45) ** 2))
 
@@ -116,7 +132,8 @@ def muscle_factors(
     optimal_fiber_length: np.ndarray,
     tendon_slack_length: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(active multiplier fl·fv, passive fraction of F_max, normalised fibre length), rigid tendon, no pennation."""
+    """(active multiplier fl·fv, passive fraction of F_max, normalised fibre length), rigid tendon, no pennation; the
+    fibre length clipped to the subject's [0.4, 1.8] l_opt (independent of the estimator's model, see above)."""
     l_norm = np.clip((mtu_length - tendon_slack_length) / optimal_fiber_length, 0.4, 1.8)
     active = np.ones_like(l_norm)
     if effects.fl_active:

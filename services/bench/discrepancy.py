@@ -32,7 +32,7 @@ CASES = {
     "fl_passive": ("fl_passive", "fl_passive"),
     "fv": ("fv", "fv"),
     "damping": ("damping=5", "damping"),
-    "load_misreport": ("load_misreport=1.3", "load_scale"),
+    "load_misreport": ("load_misreport=1.3", "load_misreport"),
     "crosstalk": ("crosstalk=0.4", "crosstalk"),
 }
 #: the same at the generator's default sizes (``msk synth --effects NAME``: emd 0.05 s, damping 0.5 N·m·s/rad, load
@@ -40,14 +40,14 @@ CASES = {
 DEFAULT_CASES = {
     "emd": ("emd", "emd"),
     "damping": ("damping", "damping"),
-    "load_misreport": ("load_misreport", "load_scale"),
+    "load_misreport": ("load_misreport", "load_misreport"),
     "crosstalk": ("crosstalk", "crosstalk"),
 }
 #: the sized effects near the top of the generator's ranges, where their gap stands above the floor
 LARGE_CASES = {
     "emd": ("emd=0.2", "emd"),
     "damping": ("damping=15", "damping"),
-    "load_misreport": ("load_misreport=1.8", "load_scale"),
+    "load_misreport": ("load_misreport=1.8", "load_misreport"),
     "crosstalk": ("crosstalk=0.5", "crosstalk"),
 }
 NONE_SEEDS = (1, 2, 3, 4, 5, 6, 7, 8)
@@ -426,7 +426,7 @@ def run(quick: bool) -> list[BenchResult]:
         (key, setting, expected, " (heavier load trains)", True)
         for key, (setting, expected) in CASES.items()
         if key != "load_misreport"
-    ]  # a load scale needs two training loads
+    ]  # a load misreport needs two training loads
     for key, setting, expected, label, heavier in matrix:
         cases = []
         for exercise in ("bench_press", "deadlift"):
