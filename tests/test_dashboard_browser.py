@@ -127,6 +127,7 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
                 page, lambda p: p["reps"] == "2", 15, "the rep counter to reach 2 (two reps in the first set)"
             )
             page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
+            assert_readable(page, fits_height=True)
             # Method switch: the bars follow the other method.
             other = "so" if counted["method"] == "hybrid" else "hybrid"
             page.select_option("#method", other)
@@ -275,6 +276,44 @@ LAYOUT = """() => {
     bodyState: document.body.dataset.state,
   };
 }"""
+
+
+#: Readable from the rack: the drawn size of every visible text of the page (its computed font size; an SVG text's
+#: times the SVG's scale on screen), the smallest ones, the colour of the labels and whether the page fits the window.
+TEXT_SIZES = """() => {
+  const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT), sizes = [];
+  for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+    const text = node.textContent.trim(), e = node.parentElement;
+    if (!text || !e || e.closest('script, style, [hidden]') || getComputedStyle(e).visibility === 'hidden') continue;
+    const range = document.createRange();
+    range.selectNodeContents(node);
+    const r = range.getBoundingClientRect();
+    if (r.width === 0 || r.height === 0) continue;  // not rendered (display: none somewhere above)
+    let px = parseFloat(getComputedStyle(e).fontSize);
+    if (e instanceof SVGElement && e.ownerSVGElement) px *= e.getScreenCTM().a;
+    sizes.push([Math.round(px * 10) / 10, text.slice(0, 30), e.tagName.toLowerCase() + (e.id ? '#' + e.id : '')]);
+  }
+  sizes.sort((a, b) => a[0] - b[0]);
+  const colours = (s) => [...new Set([...document.querySelectorAll(s)].map((e) => getComputedStyle(e).color))];
+  const html = document.documentElement;
+  return {
+    min: sizes.length ? sizes[0][0] : null, count: sizes.length, smallest: sizes.slice(0, 5),
+    panelLabels: colours('main h2, main .hint, main th, .scale, .torque-title'), headerLabels: colours('header .label'),
+    overflowX: html.scrollWidth - window.innerWidth, overflowY: html.scrollHeight - window.innerHeight,
+  };
+}"""
+MIN_TEXT_PX = 18
+FOREGROUND = "rgb(29, 38, 48)"  # the panels' text colour (#1d2630); the header's is white
+
+
+def assert_readable(page, *, fits_height: bool) -> dict:
+    """Every visible text at least MIN_TEXT_PX, the labels in the foreground colour, nothing wider than the window
+    (and, ``fits_height``, nothing below it: the landscape layout is one screen)."""
+    seen = page.evaluate(TEXT_SIZES)
+    assert seen["count"] > 50 and seen["min"] >= MIN_TEXT_PX, seen
+    assert seen["panelLabels"] == [FOREGROUND] and seen["headerLabels"] == ["rgb(255, 255, 255)"], seen
+    assert seen["overflowX"] <= 0 and (seen["overflowY"] <= 0 or not fits_height), seen
+    return seen
 
 
 def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path, zenoh_endpoint):

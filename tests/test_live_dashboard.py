@@ -15,9 +15,10 @@ from pathlib import Path
 
 from tests.conftest import free_tcp_port
 from tests.dashboard_helpers import ARTIFACTS, launch_chromium, require_chromium
-from tests.test_dashboard_browser import LAYOUT, ROWS
+from tests.test_dashboard_browser import LAYOUT, MIN_TEXT_PX, ROWS, assert_readable
 from tests.test_live_together import REPO, LiveProcess, _environment, _msk
 
+LIVE = "() => document.getElementById('status').dataset.state === 'live'"
 FACTS = "() => ['exercise', 'load', 'set'].map(id => document.getElementById(id).textContent)"
 BOX = "(s) => { const r = document.querySelector(s).getBoundingClientRect(); return {x: r.x, y: r.y, width: r.width, height: r.height}; }"
 OVERLAY = """() => { const d = window.mskDashboard.charts.traces.data.datasets, xs = d.flatMap((s) => s.data.map((p) => p.x));
@@ -69,7 +70,7 @@ def _coach_view(page, screenshots: Path) -> None:
         view = page.evaluate(COACH)
     assert any("Triceps brachii" in label for label in view["labels"]) and "TriLat" not in view["labels"], view
     assert view["barLabelPx"] >= 18 and view["barLabelColour"] == "#1d2630", view
-    assert view["electrodePx"] >= 16 and view["devicePx"] >= 16 and view["mapPart"] == "upper", view
+    assert view["electrodePx"] >= MIN_TEXT_PX and view["devicePx"] >= MIN_TEXT_PX and view["mapPart"] == "upper", view
     assert re.fullmatch(r"\d+( done)?", view["set"]) and view["rep"].isdigit(), view  # set N (done), rep n of it
     assert view["electrodes"] and {state for _, state in view["electrodes"]} <= {"good", "check", "bad", "unknown"}
     assert "good" in {state for _, state in view["electrodes"]}, view["electrodes"]
@@ -96,6 +97,18 @@ def _coach_view(page, screenshots: Path) -> None:
     assert overlay["x"][0] >= 0 and overlay["x"][1] <= 100 and overlay["reps"] >= 1, overlay
     page.screenshot(path=str(screenshots / "dashboard-rep-overlay.png"), clip=page.evaluate(BOX, "#traces"))
     page.click("#trace-time")
+    readable = assert_readable(page, fits_height=True)  # 1280x800: every text >= 18 px, one screen
+    # the tablet held upright: body map and bars side by side, the side panel below them (the page scrolls)
+    page.set_viewport_size({"width": 800, "height": 1280})
+    page.wait_for_function(LIVE, timeout=15000)  # the picture of a live page, not one waiting for data
+    page.wait_for_timeout(500)
+    upright = assert_readable(page, fits_height=False)
+    panels = {name: page.evaluate(BOX, f".panel.{name}") for name in ("map", "bars", "side")}
+    assert panels["map"]["x"] < panels["bars"]["x"] and abs(panels["map"]["y"] - panels["bars"]["y"]) < 1, panels
+    assert panels["side"]["y"] >= panels["bars"]["y"] + panels["bars"]["height"], panels
+    page.screenshot(path=str(screenshots / "dashboard-portrait.png"))
+    page.set_viewport_size({"width": 1280, "height": 800})
+    print(f"smallest text: {readable['min']} px at 1280x800, {upright['min']} px at 800x1280 (>= {MIN_TEXT_PX})")
     print("coach view:", json.dumps({k: later[k] for k in ("labels", "chips", "electrodes", "fatigue")}))
 
 

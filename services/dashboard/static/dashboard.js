@@ -14,6 +14,9 @@ const state = {
 };
 const charts = { bars: null, torques: {} };
 window.mskDashboard = { state, charts, merge: (update) => { merge(update); scheduleRender(); } };
+// Read from the rack: chart text at 18 px at least, in the foreground colour (the page's CSS does the same for text).
+const MIN_TEXT_PX = 18;
+if (window.Chart) { Chart.defaults.font.size = MIN_TEXT_PX; Chart.defaults.color = "#1d2630"; }
 
 // Same colour scale as services/dashboard/bodymap.py COLOUR_STOPS: yellow (0) -> orange (25 %) -> red -> dark red (1),
 // so that low activations stand out from the grey body.
@@ -229,7 +232,11 @@ function renderBars(frame) {
       ] },
       options: {
         indexAxis: "y", animation: false, responsive: true, maintainAspectRatio: false,
-        scales: { x: { min: 0, max: 1, ticks: { font: { size: 15 }, color: "#1d2630", callback: (v) => `${Math.round(v * 100)}%` } }, y: { ticks: { font: { size: 18 }, color: "#1d2630" } } },
+        scales: {
+          // grid every 25 %, labelled every 50 %: 18 px labels side by side, not turned
+          x: { min: 0, max: 1, ticks: { stepSize: 0.25, maxRotation: 0, autoSkip: false, font: { size: 18 }, color: "#1d2630", callback: (v) => (Math.round(v * 100) % 50 === 0 ? `${Math.round(v * 100)}%` : "") } },
+          y: { ticks: { autoSkip: false, font: { size: 18 }, color: "#1d2630" } }, // every muscle named
+        },
         plugins: { legend: { display: false }, tooltip: { enabled: true } },
       },
     });
@@ -251,6 +258,15 @@ function packFor(groups) {
   return null;
 }
 
+// The body map's own text ("front", "back") is drawn at the map's scale: set it so it shows at MIN_TEXT_PX on screen.
+function readableMapText() {
+  for (const text of document.querySelectorAll("#bodymap svg text")) {
+    const scale = text.getScreenCTM() ? text.getScreenCTM().a : 1;
+    if (scale > 0) text.setAttribute("font-size", (MIN_TEXT_PX / scale).toFixed(1));
+  }
+}
+window.addEventListener("resize", readableMapText);
+
 function renderBodyMap(frame) {
   const key = frame.groups.join(",");
   const box = document.getElementById("bodymap");
@@ -263,6 +279,7 @@ function renderBodyMap(frame) {
     fetch(`/bodymap/${pack}.svg`).then((r) => r.text()).then((svg) => {
       if (state.pack !== pack) return;
       box.innerHTML = svg;
+      readableMapText();
       const mapped = new Set([...box.querySelectorAll(".muscle")].map((e) => e.dataset.group));
       const missing = frame.groups.filter((g) => !mapped.has(g));
       document.getElementById("unmapped").textContent = missing.length ? `not on the map: ${missing.map(groupName).join(", ")}` : "";
@@ -294,7 +311,7 @@ function renderTorques(method) {
         options: {
           animation: false, responsive: true, maintainAspectRatio: false, parsing: false, normalized: true,
           scales: { x: { type: "linear", min: -TORQUE_WINDOW_S, max: 0, ticks: { maxTicksLimit: 6, callback: (v) => `${v.toFixed(0)} s` } }, y: { ticks: { maxTicksLimit: 4 } } },
-          plugins: { legend: { display: Object.keys(charts.torques).length === 0, position: "top", labels: { boxWidth: 14, font: { size: 11 } } } },
+          plugins: { legend: { display: Object.keys(charts.torques).length === 0, position: "top", labels: { boxWidth: 18, font: { size: 18 }, color: "#1d2630" } } },
         },
       });
       chart.wrap = wrap;
@@ -427,15 +444,15 @@ function renderTraces(method, frame) {
 function drawTraces(datasets) {
   const reps = state.traceMode === "reps";
   const x = reps
-    ? { type: "linear", min: 0, max: 100, ticks: { stepSize: 25, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v}%` } }
-    : { type: "linear", min: -TRACE_WINDOW_S, max: 0, ticks: { stepSize: 2, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v.toFixed(0)} s` } };
+    ? { type: "linear", min: 0, max: 100, ticks: { stepSize: 25, font: { size: 18 }, color: "#1d2630", callback: (v) => `${v}%` } }
+    : { type: "linear", min: -TRACE_WINDOW_S, max: 0, ticks: { stepSize: 2, font: { size: 18 }, color: "#1d2630", callback: (v) => `${v.toFixed(0)} s` } };
   if (!charts.traces) {
     charts.traces = new Chart(document.getElementById("traces"), {
       type: "line",
       data: { datasets },
       options: {
         animation: false, responsive: true, maintainAspectRatio: false, parsing: false, normalized: true,
-        scales: { x, y: { min: 0, max: 100, ticks: { stepSize: 25, font: { size: 15 }, color: "#1d2630", callback: (v) => `${v}%` } } },
+        scales: { x, y: { min: 0, max: 100, ticks: { stepSize: 25, font: { size: 18 }, color: "#1d2630", callback: (v) => `${v}%` } } },
         plugins: { legend: { display: false }, tooltip: { enabled: false } },
       },
     });
