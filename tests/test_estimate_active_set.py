@@ -243,19 +243,20 @@ def test_so_kernel_cold_and_hot_is_certified_on_feasible_frames(m, g):
     assert certified >= 36, f"{certified} of 40 feasible frames certified from a cold start"
 
 
-def test_so_kernel_degenerate_working_sets_restart_once_then_give_up():
-    """Every group held: A_F A_F' is empty (singular). With no torque the one restart (everything free) certifies
-    a = 0; at exactly full capacity (the only feasible point has every group at its upper bound) no working set
-    with a free group solves the equality and the kernel says so instead of answering; no changes: not converged."""
+def test_so_kernel_degenerate_working_sets_hand_the_frame_over():
+    """Every group held: A_F A_F' is empty (singular). With no torque every bound is weakly active (a = 0, all
+    multipliers 0) and the penalty problem's working set is again all held: the kernel says so instead of answering.
+    At exactly full capacity (the only feasible point has every group at its upper bound) no working set with a free
+    group solves the equality: not certified either; no changes allowed: not converged. The estimator then answers
+    with PIQP, and the hot start resumes on the next ordinary frame."""
     rng = np.random.default_rng(3)
     m, g = 3, 8
     r = rng.uniform(0.01, 0.05, (m, g))  # every group pulls every coordinate the same way
     f_max = rng.uniform(200.0, 2000.0, g)
     lb, ub = np.zeros(g), np.ones(g)
     x, state = np.zeros(g), np.full(g, active_set.LOWER, dtype=np.int8)
-    code, changes, _, _ = active_set.solve_min_norm_eq(r, f_max, np.zeros(m), lb, ub, 1.0, x, state, 20)
-    assert code == active_set.CERTIFIED and changes == 1
-    np.testing.assert_array_equal(x, 0.0)
+    code, _, _, _ = active_set.solve_min_norm_eq(r, f_max, np.zeros(m), lb, ub, 1.0, x, state, 20)
+    assert code == active_set.FACTORISATION_FAILED
     full = (r * f_max).sum(axis=1)
     for start in (active_set.FREE, active_set.UPPER):
         x, state = np.full(g, 0.5), np.full(g, start, dtype=np.int8)
@@ -270,6 +271,11 @@ def test_so_kernel_degenerate_working_sets_restart_once_then_give_up():
     result = est.step(np.zeros(m), torques=full)
     assert result.solver == "piqp" and est.solver_counts == {"active_set": 0, "piqp": 1}
     assert result.status.value in ("solved", "reserve") and np.all(result.activations > 0.99)
+    rest = est.step(np.zeros(m), torques=np.zeros(m))
+    assert rest.solver == "piqp" and np.abs(rest.activations).max() < 1e-6
+    half = est.step(np.zeros(m), torques=0.5 * full)
+    assert half.solver == "active_set" and half.status.value == "solved"
+    np.testing.assert_allclose(half.model_torques, 0.5 * full, rtol=1e-9)
 
 
 #: |a_hot - a_piqp| bound on every frame the hot start answers. PIQP (interior point, eps 1e-8) stops short of a bound
@@ -310,7 +316,8 @@ def test_so_hot_start_equals_piqp_every_frame_on_the_held_out_deadlift(repo_root
     reserve = by_status.get(("reserve", "piqp"), 0)
     assert set(by_status) <= {("solved", "active_set"), ("solved", "piqp"), ("reserve", "piqp")}, by_status
     assert reserve > 0 and hot.flag_counts == piqp_only.flag_counts == {"reserve": reserve}
-    assert certified >= 0.95 * (n - reserve), f"{certified} of {n - reserve} feasible frames certified: {by_status}"
+    # measured: every one of the 1366 feasible frames certified
+    assert certified >= 0.99 * (n - reserve), f"{certified} of {n - reserve} feasible frames certified: {by_status}"
     assert close >= 0.95 * n, f"{close} of {n} frames within 1e-6"
     assert hot.solver_counts == {"active_set": certified, "piqp": n - certified}
     assert piqp_only.solver_counts == {"active_set": 0, "piqp": n}

@@ -40,6 +40,8 @@ MULTIPLIER_TOL = 1e-10
 #: ``so``: a working set's A~_F A~_F' counts as singular when a squared Cholesky pivot falls below this times its
 #: largest diagonal entry (A~'s rows have unit 1-norm)
 SINGULAR_TOL = 1e-12
+#: ``so``: weight of the scaled residual in the penalty problem whose working set restarts a failed path
+PENALTY_WEIGHT = 1e6
 #: ``so``: largest scaled torque residual |A~ a - t~| (fraction of the coordinate's capacity) of a certified optimum
 EQUALITY_TOL = 1e-9
 
@@ -121,8 +123,9 @@ def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
     Returns (code, working-set changes, out (m + 3, G): rows A~ | x | forces | 2 (the Hessian's diagonal), torques
     (2, m): model | residual). code is FACTORISATION_FAILED when a working set leaves A~_F A~_F' singular (fewer free
     groups than coordinates, a coordinate all of whose groups are held: its torque is then met only by the held
-    values, if at all) even after one restart with every group free, NOT_CONVERGED after ``max_iter`` changes; the
-    caller then asks PIQP, which also tells an infeasible frame (the reserve fallback) apart.
+    values, if at all) even after one restart from the working set of the penalty problem (below), NOT_CONVERGED
+    after ``max_iter`` changes; the caller then asks PIQP, which also tells an infeasible frame (the reserve
+    fallback) apart.
     """
     m, g = r.shape
     out = np.empty((m + 3, g))
@@ -132,6 +135,17 @@ def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
     _scale_rows(r, f_max, tau, min_scale, at, tt)
     _feasible_start(state, lb, ub, x)
     code, changes = _iterate_equality(at, tt, lb, ub, x, state, max_iter)
+    if code == FACTORISATION_FAILED and changes < max_iter:
+        # the path from a start off the equality ran into a singular working set: take the working set of the
+        # penalty problem min a'a + PENALTY_WEIGHT |A~ a - t~|^2 (strictly convex: always found), start again there
+        d = out[m + 2]
+        code, more = _iterate(at, tt, 2.0 * PENALTY_WEIGHT, d, np.zeros(g), lb, ub, x, state, max_iter - changes)
+        changes += more
+        if code == CERTIFIED:
+            code, more = _iterate_equality(at, tt, lb, ub, x, state, max_iter - changes)
+            changes += more
+        elif code == NOT_CONVERGED:
+            code = FACTORISATION_FAILED
     return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
 
 
@@ -155,7 +169,6 @@ def _iterate_equality(
     grad = np.empty(g)
     code = NOT_CONVERGED
     changes = 0
-    restarted = False
     while True:
         nf = _collect_free(state, free_idx)
         big = 0.0
@@ -172,13 +185,8 @@ def _iterate_equality(
                 s_mat[i, k] = acc
             big = max(big, s_mat[i, i])
         if not _cholesky_solve(s_mat, v, m, SINGULAR_TOL * big):
-            if restarted or nf == g or changes >= max_iter:
-                code = FACTORISATION_FAILED
-                break
-            changes += 1  # one restart from the whole set free (x stays where it is, in the box)
-            restarted = True
-            state[:] = FREE
-            continue
+            code = FACTORISATION_FAILED
+            break
         for a in range(nf):  # y = A_F' v
             acc = 0.0
             for i in range(m):
