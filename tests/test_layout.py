@@ -130,7 +130,6 @@ LONG_FUNCTIONS = {
     "services/bench/discrepancy.py:run": 109,
     "msk_core/estimate/frame.py:FrameEstimator.__init__": 107,
     "services/live.py:plan_for": 102,
-    "services/dashboard/report.py:set_html": 101,
     "services/bench/estimate.py:run": 94,
     "services/estimator.py:EstimatorNode.__init__": 90,
     "services/synth_export.py:trial_messages": 89,

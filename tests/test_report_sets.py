@@ -74,6 +74,9 @@ def test_report_of_a_recording_with_sets(tmp_path):
         "set 2: bench press, 60 kg",
         "set 3: bench press, 65 kg",
     ]
+    # set 1 by msk live's opening facts (not the operator), set 2 by its first rep after the rest, set 3 by the
+    # operator's start mark
+    assert [s["set"]["started_by"] for s in sets] == ["session", "rep", "operator"]
     first = sets[0]
     assert first["start_s"] == pytest.approx(START_NS / 1e9)  # msk live's facts started set 1
     assert first["end_s"] - first["start_s"] == pytest.approx(7.0, abs=0.1)  # at its last rep's end
@@ -88,6 +91,7 @@ def test_report_of_a_recording_with_sets(tmp_path):
     section = page[page.index("<section class='sets'>") :].split("</section>")[0]
     table, muscles = section.split("</table>")[:2]
     assert table.count("<tr>") == 1 + 3 and "<td>rest</td>" in table  # the header and one row per set
+    assert "<td>session</td><td>rest</td>" in table and "<td>operator</td><td>end of data</td>" in table
     assert "<th>set 1</th><th>set 2</th><th>set 3</th>" in muscles  # per muscle (rows), the sets side by side
     assert "<tr><td>A</td><td>79 / 49</td>" in muscles
     assert json.loads((tmp_path / "out" / "report.json").read_text())["sets"][2]["set"]["reps"] == 1

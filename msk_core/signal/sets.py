@@ -54,7 +54,10 @@ class SetRecord:
 
     number: int
     start_s: float
-    started_by: str  # "operator" or "rep" (rest detection: the first rep after a rest)
+    # who started it: "operator" (a start mark: msk set start, the view's key, the dashboard's button), "session" (the
+    # session's opening facts, e.g. msk live's set 1), "load event" (facts without a mark: msk load --next-set, a new
+    # load) or "rep" (rest detection: the first rep after a rest)
+    started_by: str
     end_s: float | None = None
     ended_by: str = ""  # "operator", "rest", "next set" or "end of data"; "" while under way
     reps: list[tuple[float, float]] = field(default_factory=list)  # (first, last sample time) of each rep
@@ -154,12 +157,12 @@ class SetTracker:
         }
 
     # ---- operator --------------------------------------------------------------------------------------------------
-    def start(self, t: float, number: int = 0) -> None:
+    def start(self, t: float, number: int = 0, by: str = "operator") -> None:
         """A set starts at ``t``: set ``number`` when it is after the last one, else the next; the set under way
-        ends there."""
+        ends there. ``by``: who started it (:attr:`SetRecord.started_by`)."""
         self._close(t, "next set")
         last = self.number
-        self.sets.append(SetRecord(number if number > last else last + 1, t, "operator"))
+        self.sets.append(SetRecord(number if number > last else last + 1, t, by))
         self._tentative = False
         self._reset_reps()
 
@@ -182,14 +185,16 @@ class SetTracker:
         last = self._last_t if math.isfinite(self._last_t) else None
         if t is None or (last is not None and abs(t - last) > MAX_FACT_GAP_S):
             t = last if last is not None else 0.0
+        # facts without a mark start a set as the session's opening facts (before any set) or as a load event
+        by = "load event" if self.sets else "session"
         if set_mark == "start":
             self.start(t, set_number)
         elif set_mark == "stop":
             self.stop(t)
         elif set_number > 0 and set_number != self.number:
-            self.start(t, set_number)
+            self.start(t, set_number, by)
         elif set_number == 0 and mass_kg > 0:
-            self.start(t)
+            self.start(t, by=by)
         elif set_number == 0 and mass_kg <= 0:
             self.stop(t)
 

@@ -656,13 +656,14 @@ def sets_html(sets: list[dict]) -> str:
             str(len(r["reps"])),
             f"{r['time_under_tension_s']:.1f}",
             f"{r['end_s'] - r['start_s']:.1f}",
+            html.escape(r["set"]["started_by"] if r.get("set") is not None else "load event"),
             html.escape(r["set"]["ended_by"] if r.get("set") is not None else "load event"),
         ]
         for r in sets
     ]
     parts = [
         "<section class='sets'><h2>Sets</h2>",
-        _table(["set", "reps", "time under tension (s)", "duration (s)", "ended by"], rows),
+        _table(["set", "reps", "time under tension (s)", "duration (s)", "started by", "ended by"], rows),
     ]
     by_groups: dict[tuple[str, ...], list[dict]] = {}
     for result in sets:
@@ -684,8 +685,10 @@ def sets_html(sets: list[dict]) -> str:
             parts.append("<h3>Peak / mean activation per set (%)</h3>" + _table(headers, table))
     parts.append(
         "<p class='note'>Peak / mean: activation of each muscle group over the frames inside the set's reps (under "
-        "tension), of the method the report details. A set ends by the operator, when the next starts, by rest "
-        "detection (rest: no rep for the session's rest time) or at the end of the recording.</p></section>"
+        "tension), of the method the report details. A set starts by the operator (a start mark), with the "
+        "session (its opening facts), at a load event (a new set number or load) or at the first rep after a rest; it "
+        "ends by the operator, when the next starts, by rest detection (rest: no rep for the session's rest time) or "
+        "at the end of the recording.</p></section>"
     )
     return "".join(parts)
 
