@@ -578,17 +578,8 @@ class TrignoClient:
     def _wait_and_read(self, timeout: float) -> None:
         link = self._link
         assert link is not None
-        for sock in (link.command, link.emg, link.aux):
-            if sock is not None and sock.fileno() >= 0:
-                try:
-                    self._selector.register(sock, selectors.EVENT_READ)
-                except KeyError:
-                    pass
-        try:
-            ready = self._selector.select(timeout)
-        finally:
-            for key in list(self._selector.get_map().values()):
-                self._selector.unregister(key.fileobj)
+        self._watch(link)
+        ready = self._selector.select(timeout)
         try:
             for key, _ in ready:
                 if key.fileobj is link.emg:
@@ -599,6 +590,18 @@ class TrignoClient:
                     self._read_command(link)
         except (OSError, ProtocolError) as error:
             self._on_connection_lost(str(error) or type(error).__name__)
+
+    def _watch(self, link: _Link) -> None:
+        """Keep the selector's registrations the link's open sockets, changed only when they change (a poll per
+        frame re-registering every socket cost three epoll calls and their bookkeeping each time)."""
+        wanted = {sock for sock in (link.command, link.emg, link.aux) if sock is not None and sock.fileno() >= 0}
+        registered = {key.fileobj for key in self._selector.get_map().values()}
+        if wanted == registered:
+            return
+        for sock in registered - wanted:  # closed or replaced: the old object is found by identity
+            self._selector.unregister(sock)
+        for sock in wanted - registered:
+            self._selector.register(sock, selectors.EVENT_READ)
 
     def _recv(self, sock: socket.socket) -> bytes:
         try:
