@@ -43,8 +43,9 @@ def _install() -> None:
 
 
 def _parallel(args: list[str]) -> list[str]:
-    """pytest-xdist options: one worker per core, the tests that run whole live sessions kept on one worker
-    (tests/conftest.py); none when the caller chose (``-n``, ``-p no:xdist``)."""
+    """pytest-xdist options: one worker per core, the tests that run whole live sessions kept on one worker and each
+    module's tests that share a module-scoped fixture on one worker, these groups queued first (tests/conftest.py);
+    none when the caller chose (``-n``, ``-p no:xdist``)."""
     if any(a.startswith(("-n", "--numprocesses", "--dist")) or a == "no:xdist" for a in args):
         return []
     return ["-n", "auto", "--dist", "loadgroup"]
