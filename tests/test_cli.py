@@ -52,7 +52,7 @@ def test_help_lists_every_command_as_the_full_parser_does():
 
 
 @pytest.mark.parametrize("command", _all_commands())
-def test_every_commands_help_works_when_only_it_is_imported(command):
+def test_every_commands_help_from_the_parser_built_for_that_command(command):
     parser = cli.build_parser([command, "--help"])
     out = io.StringIO()
     with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as stop:
