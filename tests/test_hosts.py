@@ -24,6 +24,10 @@ pytestmark = pytest.mark.slow
 
 #: a bound on every wait for the estimator to publish again, not a speed goal (docs/deployment.md has the figures)
 RESUME_BOUND_S = 30.0
+DOWN_S = 3.0
+#: the server's outage as the estimator counts it: from its last input before the cable went to its first after it
+#: came back; at least the time the cable was out less one threshold, at most that plus the issue's resume bound (2 s)
+OUTAGE_BOUNDS_S = (DOWN_S - 0.5, DOWN_S + 2.0)
 
 
 @pytest.fixture
@@ -40,7 +44,7 @@ def deployment(tmp_path):
 def test_secured_deployment_across_hosts_survives_link_and_router_faults(deployment, tmp_path):
     try:
         deployment.start()
-        faults = hosts.run_faults(deployment, down_s=3.0, settle_s=2.0, timeout_s=RESUME_BOUND_S)
+        faults = hosts.run_faults(deployment, down_s=DOWN_S, settle_s=2.0, timeout_s=RESUME_BOUND_S)
         browser_from = time.time_ns()  # Chromium's start takes the cores: latencies are reported before it
         browser = _tablet_browser(deployment, tmp_path)
     finally:
@@ -58,6 +62,17 @@ def test_secured_deployment_across_hosts_survives_link_and_router_faults(deploym
     # again after it came back
     assert server["frames_during"] == 0, server
     assert math.isfinite(server["resume_s"]) and server["resume_s"] < RESUME_BOUND_S, server
+    # the estimator counted the server's outage in its status: one outage of about the 3 s the cable was out, every
+    # input stream silent in it (the EMG and the joint angles: what crosses the server's link to it)
+    assert len(server["estimator_outages"]) == 1, server
+    outage = server["estimator_outages"][0]
+    assert OUTAGE_BOUNDS_S[0] <= outage["s"] <= OUTAGE_BOUNDS_S[1], server
+    assert "joints" in outage["keys"] and any(key.startswith("emg/") for key in outage["keys"]), server
+    # and in its summary: that one and the router's (and any other silence it had, each in the final status too)
+    counted_outages = re.search(r"(\d+) input outages? \(([\d.]+) s, longest ([\d.]+) s\)", result["estimator_summary"])
+    assert counted_outages is not None, result["estimator_summary"]
+    assert int(counted_outages.group(1)) == result["estimator_outages"]["count"] >= 2, result
+    assert float(counted_outages.group(3)) >= outage["s"] - 0.05, result
     # the tablet's outage does not stop the estimator; the tablet receives again when its cable is back
     assert tablet["frames_during"] > 50, tablet
     assert math.isfinite(tablet["tablet_resume_s"]), tablet
@@ -66,12 +81,22 @@ def test_secured_deployment_across_hosts_survives_link_and_router_faults(deploym
     # every joint frame (the kinematics node's, on the server) that reached the rack was estimated; activation frames
     # are newest-wins (docs/topics.md, "Delivery"): a burst after an outage may drop some on the way, counted here
     assert result["estimator_inputs"] > 0 and abs(result["frames_estimated"] - result["joints"]) <= 5, result
-    # the estimator counts the EMG it missed while the router was away (in its summary): what the recorder misses,
-    # within a few 27-sample chunks (each client's subscription comes back on its own: seen one chunk either way)
+    # the router's restart: the estimator counts the EMG it missed while the router was away (in its summary) and
+    # the outage (status); the recorder fetches again what it missed from the drivers' caches (1000 messages per key,
+    # 13 s of EMG) and counts what they no longer held, exactly: the file's EMG gap in chunks is the count it gives
     counted = re.search(r"EMG: (\d+) chunks, (\d+) gaps \((\d+) samples lost\)", result["estimator_summary"])
     assert counted is not None, result["estimator_summary"]
-    assert abs(int(counted.group(3)) - router["emg_samples_missing"]) <= 3 * 27 and int(counted.group(1)) > 0, result
-    assert (int(counted.group(3)) > 0) == (router["emg_samples_missing"] > 0), result
+    assert int(counted.group(1)) > 0 and int(counted.group(3)) > 0, result
+    assert router["estimator_outages"], router
+    recorder = result["recorder_outages"]
+    assert recorder["missed"] > 0 and recorder["recovered"] <= recorder["missed"], result
+    emg_lost = sum(n for key, n in result["recorder_lost"].items() if "/emg/" in key)
+    if emg_lost == 0:  # everything fetched again: the file has every EMG sample
+        assert result["emg_samples_missing"] == 0, result
+    else:  # the file misses exactly those chunks' samples
+        smallest, largest = result["emg_chunk_sizes"]
+        assert emg_lost * smallest <= result["emg_samples_missing"] <= emg_lost * largest, result
+    assert recorder["missed"] - recorder["recovered"] == sum(result["recorder_lost"].values()), result
     # the tablet's role reads activations and status only, and got them across the switch
     assert result["frames_at_tablet"] > 0 and result["statuses_at_tablet"] > 0
     # the dashboard on the rack PC, from the tablet's browser: nothing without a token, the live session with one

@@ -376,8 +376,9 @@ class Deployment:
         self.make_pki()
         self.start_router()
         s = ("--session", self.session)
+        # with its session, the recorder reports its status (what it missed live and fetched again) on status/recorder
         self._spawn("rack", "recorder", msk_argv("recorder", "--out", str(self.recording), "--flush-interval", "0.5",
-                                                 "--zenoh-config", self.config("recorder")))  # fmt: skip
+                                                 *s, "--zenoh-config", self.config("recorder")))  # fmt: skip
         self._spawn("server", "kinematics", msk_argv("kinematics", "--pack", PACK, *s, "--imu-clock", "host",
                                                      "--zenoh-config", self.config("kinematics")))  # fmt: skip
         for what in ("activations", "status"):
@@ -559,11 +560,20 @@ def run_faults(
     return faults
 
 
-def _published(log: str, kind: str) -> int:
-    """Samples ``msk drivers`` says it published for the Trigno (its first summary line) or the trackers (second)."""
-    found = re.findall(r"published (\d+) samples in \d+ messages", log)
+def _published(log: str, kind: str, what: str = "samples") -> int:
+    """Samples (or ``what="messages"``) ``msk drivers`` says it published for the Trigno (its first summary line) or
+    the trackers (second)."""
+    found = re.findall(r"published (\d+) samples in (\d+) messages", log)
     index = 0 if kind == "trigno" else 1
-    return int(found[index]) if len(found) > index else -1
+    return int(found[index][0 if what == "samples" else 1]) if len(found) > index else -1
+
+
+def _recorder_lost(log: str) -> dict[str, int]:
+    """Per key, the publications the recorder's summary line says it missed live and could not fetch again."""
+    found = re.search(r"lost \d+ \(([^)]*)\)", log)
+    if found is None:
+        return {}
+    return {key: int(n) for key, n in (part.rsplit(" ", 1) for part in found.group(1).split(", "))}
 
 
 def _recorded(path: Path) -> dict[str, Any]:
@@ -577,12 +587,15 @@ def _recorded(path: Path) -> dict[str, Any]:
     got: dict[str, Any] = {"emg_chunks": 0, "emg_samples": 0, "emg_gaps": [], "emg_repeats": 0, "imu": 0, "joints": 0}
     frames: list[tuple[int, int]] = []  # (publish, input arrival) host times
     statuses: dict[str, Any] = {}
+    outages: dict[tuple[int, int], tuple[float, list[str]]] = {}  # the estimator's last outage, as each status said
+    sizes: set[int] = set()  # EMG chunk sizes
     for message in read_messages(path):
         kind = message.topic.split("/")[2]
         if kind == "emg":
             chunk = message.decode(messages.EmgChunk)
             got["emg_chunks"] += 1
             got["emg_samples"] += chunk.n_samples
+            sizes.add(chunk.n_samples)
             if emg_next is not None and chunk.first_sample_index < emg_next:
                 got["emg_repeats"] += 1
             elif emg_next is not None and chunk.first_sample_index > emg_next:
@@ -597,10 +610,40 @@ def _recorded(path: Path) -> dict[str, Any]:
             frame = message.decode(messages.ActivationFrame)
             frames.append((int(frame.publish_ns), int(frame.input_arrival_ns)))
         elif kind == "status":
-            statuses[message.topic.rsplit("/", 1)[1]] = message.decode(messages.DeviceStatus)
+            status = message.decode(messages.DeviceStatus)
+            statuses[message.topic.rsplit("/", 1)[1]] = status
+            last = status.outages
+            if status.device_id == "estimator" and last.count:
+                outages[(last.last_start_ns, last.last_end_ns)] = (
+                    (last.last_end_ns - last.last_start_ns) / 1e9,
+                    [key.split("/", 2)[-1] for key in last.last_keys],
+                )
     got["frames_publish_ns"] = sorted(frames)
+    got["emg_chunk_sizes"] = [min(sizes), max(sizes)] if sizes else []
     got["estimator_inputs"] = int(statuses["estimator"].samples_received) if "estimator" in statuses else -1
+    got["estimator_status_outages"] = _union(outages)
+    for node in ("estimator", "recorder"):
+        if node in statuses:
+            got[f"{node}_outages"] = {
+                "count": int(statuses[node].outages.count),
+                "total_s": round(statuses[node].outages.total_s, 3),
+                "missed": int(statuses[node].outages.missed),
+                "recovered": int(statuses[node].outages.recovered),
+            }
     return got
+
+
+def _union(said: dict[tuple[int, int], tuple[float, list[str]]]) -> list[tuple[int, int, float, list[str]]]:
+    """The outages the estimator's statuses reported as their last one, each once: a status sent while a silence's
+    streams come back one by one shows it growing (one key's silence, then merged with the next), so overlapping
+    reports are one outage. (begin ns, end ns, seconds, streams)."""
+    merged: list[tuple[int, int, float, list[str]]] = []
+    for (start, end), (_, keys) in sorted(said.items()):
+        if merged and start <= merged[-1][1]:
+            begin, until, _, known = merged.pop()
+            start, end, keys = begin, max(end, until), sorted(set(known) | set(keys))
+        merged.append((start, end, (end - start) / 1e9, keys))
+    return merged
 
 
 def outcome(
@@ -616,6 +659,7 @@ def outcome(
 
     recorded = _recorded(deployment.recording)
     frames = recorded.pop("frames_publish_ns")
+    status_outages = recorded.pop("estimator_status_outages")
     published_ns = [p for p, _ in frames]
     tablet = deployment.tablet.frames()
     per_fault = []
@@ -636,6 +680,13 @@ def outcome(
                 "emg_samples_missing": sum(
                     n for t, n in recorded["emg_gaps"] if fault.begin_ns - 10**9 <= t <= fault.end_ns
                 ),
+                # the input outages the estimator's status reported that overlap the fault (start, end: s from the
+                # fault's begin; the streams silent): the link's outage as the estimator counted it
+                "estimator_outages": [
+                    {"from_s": (a - fault.begin_ns) / 1e9, "to_s": (b - fault.begin_ns) / 1e9, "s": d, "keys": k}
+                    for a, b, d, k in status_outages
+                    if a <= fault.end_ns and b >= fault.begin_ns
+                ],
             }
         )
 
@@ -647,6 +698,11 @@ def outcome(
     network_ms = [(t - int(m["publish_ns"])) / 1e6 for t, m in steady]
     return {
         "emg_published": _published(logs.get("drivers", ""), "trigno"),
+        "emg_messages_published": _published(logs.get("drivers", ""), "trigno", "messages"),
+        "recorder_summary": next(
+            (line for line in logs.get("recorder", "").splitlines() if line.startswith("recorded ")), ""
+        ),
+        "recorder_lost": _recorder_lost(logs.get("recorder", "")),
         "imu_published": _published(logs.get("drivers", ""), "xsens"),
         **{k: v for k, v in recorded.items() if k != "emg_gaps"},
         "emg_gaps": len(recorded["emg_gaps"]),
@@ -659,6 +715,12 @@ def outcome(
             (line for line in logs.get("estimator", "").splitlines() if line.startswith("estimated ")), ""
         ),
         "faults": per_fault,
+        # every outage the estimator's status reported: begin (s after the first fault began), length (s), streams
+        "estimator_outage_list": [
+            (round((a - faults[0].begin_ns) / 1e9, 2), round(d, 3), k) for a, _, d, k in status_outages
+        ]
+        if faults
+        else [],
         "estimator_latency": latency_figures(np.asarray(estimator_ms)),
         "network_latency": latency_figures(np.asarray(network_ms)),
     }
