@@ -136,3 +136,17 @@ def test_msk_live_summary_carries_each_nodes_outages(tmp_path):
     assert "estimator: 1 input outage (3.2 s, longest 3.2 s); 40 publications missed, 40 recovered" in summary_text(
         summary
     )
+
+
+def test_msk_view_shows_each_nodes_outages():
+    from rich.console import Console
+
+    from services.view import health_tables
+
+    outages = messages.InputOutages(count=2, total_s=7.5, longest_s=4.0, silent_s=1.5, silent_keys=[EMG])
+    status = {"estimator": messages.DeviceStatus(device_id="estimator", kind="node", connected=True, outages=outages)}
+    console = Console(width=160, record=True)
+    for table in health_tables(status):
+        console.print(table)
+    text = console.export_text()
+    assert "outages" in text and "2 (7.5 s), silent 1.5 s" in text, text
