@@ -82,6 +82,7 @@ def main(
     stats = ReplayStats()
     excluded_keys = [zenoh.KeyExpr(pattern) for pattern in exclude]
     keep: dict[str, bool] = {}
+    renamed: dict[str, str] = {}  # recorded topic -> key published
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
     with open_session(config) as session:
@@ -92,8 +93,11 @@ def main(
         start: tuple[float, int] | None = None  # (wall clock, log time) of the first message replayed at a rate
         iterator = read_messages(mcap_path, report=report)
         for recorded in tqdm(iterator, desc=f"replay {Path(mcap_path).name}", unit="msg", disable=not progress):
-            key = topics.rename_session(recorded.topic, session_name) if session_name else recorded.topic
-            if key not in keep:
+            key = renamed.get(recorded.topic)
+            if key is None:  # once per topic, not per message
+                key = renamed[recorded.topic] = (
+                    topics.rename_session(recorded.topic, session_name) if session_name else recorded.topic
+                )
                 keep[key] = not any(pattern.intersects(zenoh.KeyExpr(key)) for pattern in excluded_keys)
             if not keep[key]:
                 stats.excluded += 1

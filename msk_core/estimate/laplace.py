@@ -12,33 +12,39 @@ import numpy as np
 
 
 def laplace_std(hessian: np.ndarray, free: np.ndarray, equality: np.ndarray | None = None) -> np.ndarray:
-    """Standard deviation per variable; 0 for variables at a bound or fixed by the equality constraints."""
+    """Standard deviation per variable; 0 for variables at a bound or fixed by the equality constraints.
+
+    Only the diagonal of the covariance is formed (sums of squares of the inverse Cholesky factor's columns), not
+    the covariance itself: the live estimator asks for it every frame."""
     n = hessian.shape[0]
     std = np.zeros(n)
     idx = np.flatnonzero(free)
     if idx.size == 0:
         return std
-    h = hessian[np.ix_(idx, idx)]
+    h = hessian.take(idx, axis=0).take(idx, axis=1)
     if equality is None or equality.size == 0:
-        cov = _inv_psd(h)
+        variance = _inverse_diagonal(h, None)
     else:
-        e = equality[:, idx]
+        e = equality.take(idx, axis=1)
         # Null space of the active equality rows via SVD (rank-revealing, robust to redundant rows).
         _, s, vt = np.linalg.svd(e, full_matrices=True)
         rank = int(np.sum(s > s.max(initial=0.0) * 1e-10)) if s.size else 0
         z = vt[rank:].T
         if z.shape[1] == 0:
             return std
-        cov = z @ _inv_psd(z.T @ h @ z) @ z.T
-    std[idx] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        variance = _inverse_diagonal(z.T @ h @ z, z)
+    std[idx] = np.sqrt(np.maximum(variance, 0.0))
     return std
 
 
-def _inv_psd(h: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive (semi)definite matrix; pseudo-inverse when singular (flat directions)."""
+def _inverse_diagonal(h: np.ndarray, z: np.ndarray | None) -> np.ndarray:
+    """The diagonal of ``z inv(h) z'`` (``z`` None: of ``inv(h)``) for a symmetric positive (semi)definite ``h``;
+    with the pseudo-inverse when ``h`` is singular (flat directions)."""
     try:
-        c = np.linalg.cholesky(h)
-        ci = np.linalg.inv(c)
-        return ci.T @ ci
+        w = np.linalg.inv(np.linalg.cholesky(h))  # inv(h) = w' w
     except np.linalg.LinAlgError:
-        return np.linalg.pinv(h, hermitian=True)
+        p = np.linalg.pinv(h, hermitian=True)
+        return np.diagonal(p).copy() if z is None else np.einsum("ij,jk,ik->i", z, p, z)
+    if z is not None:
+        w = w @ z.T  # z inv(h) z' = (w z')' (w z')
+    return np.einsum("ij,ij->j", w, w)
