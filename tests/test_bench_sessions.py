@@ -17,3 +17,8 @@ def test_one_live_session_is_measured_without_loss():
     assert figures["joint_frames_lost"] == 0 and figures["emg_samples_lost"] == 0 and figures["emg_index_jumps"] == 0
     assert 0 < figures["p50_ms"] <= figures["p99_ms"] <= figures["max_ms"]
     assert 0 < figures["cpu_cores_per_session"] < 2.0
+    # per process: every role of the session used CPU, and they add up to the session's figure
+    roles = [figures[f"cpu_{role}_cores"] for role in sessions.ROLES]
+    assert all(value > 0 for value in roles), figures
+    assert sum(roles) == pytest.approx(figures["cpu_cores_per_session"])
+    assert figures["cpu_router_share_cores"] >= 0

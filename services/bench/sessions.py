@@ -44,12 +44,24 @@ NAME = "sessions"
 DESCRIPTION = "live sessions one machine serves (Trigno + IMU/joints + estimator each): p99 <= 2 ms, no sample lost"
 
 P99_TARGET_MS = 2.0
-DEMO = Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
+#: The processes of one session, in the order _start_session and _replay start them.
+ROLES = ("simulator", "drivers", "estimator", "replay")
+REPO = Path(__file__).resolve().parents[2]
+DEMO = REPO / "recordings" / "demo_session.mcap"
+#: The commit before the CPU work of issue 31 ("Find where the CPU goes"): CPU per session is measured at it too, in
+#: the same run, from a git worktree of it (docs/deployment.md "Where the CPU goes").
+BASELINE_COMMIT = "4142b45632d7540e7d4fdc38c8b44df546649dea"
 
 
-def _msk(*argv: str) -> subprocess.Popen[str]:
+def _msk(*argv: str, root: Path | None = None) -> subprocess.Popen[str]:
+    """``msk argv`` with this interpreter, from the source tree ``root`` (``python -m`` imports from its working
+    directory first: a worktree of :data:`BASELINE_COMMIT` runs that commit's code), default this one."""
     return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        [sys.executable, "-m", "services.cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        cwd=root or REPO,
     )
 
 
@@ -110,11 +122,11 @@ def _observe(zsession, observed: _Observed) -> list:
     ]
 
 
-def _start_session(name: str, endpoint: str) -> list[subprocess.Popen]:
+def _start_session(name: str, endpoint: str, root: Path | None = None) -> list[subprocess.Popen]:
     """One rack's processes: the Trigno simulator, ``msk drivers`` reading it, ``msk estimator`` (SO)."""
     sim = _msk(
         "sim", "trigno", "--from", "synthetic:120:7", "--port", "0", "--emg-port", "0", "--legacy-emg-port", "0",
-        "--aux-port", "0", "--legacy-acc-port", "-1",
+        "--aux-port", "0", "--legacy-acc-port", "-1", root=root,
     )  # fmt: skip
     ports_line = sim.stdout.readline() if sim.stdout is not None else ""  # _msk pipes stdout
     ports = dict(re.findall(r"(command|emg) (\d+)", ports_line))
@@ -122,10 +134,10 @@ def _start_session(name: str, endpoint: str) -> list[subprocess.Popen]:
         sim.kill()
         raise RuntimeError("msk sim trigno did not report its ports")
     client = ("--mode", "client", "--connect", endpoint)
-    estimator = _msk("estimator", "--pack", "bench_press", "--session", name, "--method", "so", *client)
+    estimator = _msk("estimator", "--pack", "bench_press", "--session", name, "--method", "so", *client, root=root)
     drivers = _msk(
         "drivers", "--session", name, "--trigno", f"127.0.0.1:{ports['command']}", "--trigno-emg-port", ports["emg"],
-        *client,
+        *client, root=root,
     )  # fmt: skip
     return [sim, drivers, estimator]
 
@@ -154,11 +166,11 @@ def _wait_streaming(endpoint: str, observed: _Observed, names: list[str], timeou
             probe.undeclare()
 
 
-def _replay(name: str, endpoint: str) -> subprocess.Popen:
+def _replay(name: str, endpoint: str, root: Path | None = None) -> subprocess.Popen:
     """The demo's IMU, joint angles and load for session ``name`` at real time (its EMG comes from the Trigno)."""
     return _msk(
         "replay", str(DEMO), "--session", name, "--rate", "1", "--exclude", "msk/*/emg/**", "--mode", "client",
-        "--connect", endpoint,
+        "--connect", endpoint, root=root,
     )  # fmt: skip
 
 
@@ -177,11 +189,23 @@ def _wait_publishing(observed: _Observed, n_sessions: int, timeout_s: float) -> 
         time.sleep(0.2)
 
 
+def _cpu_by_role(
+    per_session: dict[str, list[subprocess.Popen]], shared: dict[str, subprocess.Popen]
+) -> dict[tuple[str, str], float]:
+    """CPU seconds used so far by each (session, role) of :data:`ROLES` and by each shared ("", role) process."""
+    used = {(name, role): _cpu_seconds(p.pid) for name, group in per_session.items() for role, p in zip(ROLES, group)}
+    return used | {("", role): _cpu_seconds(p.pid) for role, p in shared.items()}
+
+
 def _measure_window(
-    observed: _Observed, per_session: dict[str, list[subprocess.Popen]], seconds: float
+    observed: _Observed,
+    per_session: dict[str, list[subprocess.Popen]],
+    shared: dict[str, subprocess.Popen],
+    seconds: float,
 ) -> dict[str, float]:
     """``seconds`` of steady state: every latency, the joint frames without their activation frame, the EMG lost
-    (status and index jumps), CPU of each session's processes. Stops the replays at its end."""
+    (status and index jumps), CPU of each session's processes by role (:data:`ROLES`) and its share of the
+    router's (``shared``). Stops the replays at its end."""
     time.sleep(2.0)  # first solves of each estimator (lazy caches) are not the steady state
     with observed.lock:  # the measured window starts now
         observed.latencies_ns.clear()
@@ -189,13 +213,13 @@ def _measure_window(
         observed.activations.clear()
         observed.emg_jumps = 0
         lost_before = sum(observed.status_lost.values())
-    cpu0 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
+    cpu0 = _cpu_by_role(per_session, shared)
     wall0 = time.monotonic()
     time.sleep(seconds)
+    cpu1 = _cpu_by_role(per_session, shared)
+    wall = time.monotonic() - wall0
     for group in per_session.values():
         group[-1].send_signal(signal.SIGINT)  # the replay
-    cpu1 = {name: sum(_cpu_seconds(p.pid) for p in group) for name, group in per_session.items()}
-    wall = time.monotonic() - wall0
     time.sleep(1.5)  # frames in flight reach us
     with observed.lock:
         observed.measuring = False
@@ -203,7 +227,9 @@ def _measure_window(
         joints_without_frame = sum(max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items())
         emg_lost = sum(observed.status_lost.values()) - lost_before
         jumps = observed.emg_jumps
-    cpu = [(cpu1[name] - cpu0[name]) / wall for name in per_session]
+    cores = {key: (cpu1[key] - cpu0[key]) / wall for key in cpu0}
+    per_role = {role: float(np.mean([cores[(name, role)] for name in per_session])) for role in ROLES}
+    router_share = cores[("", "router")] / len(per_session)
     return {
         "sessions": len(per_session),
         "frames": int(latencies.size),
@@ -212,7 +238,9 @@ def _measure_window(
         "joint_frames_lost": int(joints_without_frame),
         "emg_samples_lost": int(emg_lost),
         "emg_index_jumps": int(jumps),
-        "cpu_cores_per_session": float(np.mean(cpu)),
+        "cpu_cores_per_session": sum(per_role.values()),  # the session's own processes, as in docs/deployment.md
+        **{f"cpu_{role}_cores": value for role, value in per_role.items()},
+        "cpu_router_share_cores": router_share,
     }
 
 
@@ -239,13 +267,16 @@ def _stop_all(processes: list[subprocess.Popen]) -> None:
             process.wait(10)
 
 
-def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0) -> dict[str, float]:
-    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures."""
+def measure(
+    n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0, root: Path | None = None
+) -> dict[str, float]:
+    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures.
+    ``root``: the source tree whose ``msk`` runs the router and the sessions (default this one)."""
     from services.zenoh_session import ZenohOptions, open_session
 
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    router = _msk("router", "--listen", endpoint)
+    router = _msk("router", "--listen", endpoint, root=root)
     processes: list[subprocess.Popen] = [router]
     per_session: dict[str, list[subprocess.Popen]] = {}
     try:
@@ -254,15 +285,15 @@ def measure(n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0
         with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as zsession:
             subscribers = _observe(zsession, observed)
             for index in range(n_sessions):
-                group = _start_session(f"bench{index}", endpoint)
+                group = _start_session(f"bench{index}", endpoint, root)
                 processes += group
                 per_session[f"bench{index}"] = group
             _wait_streaming(endpoint, observed, list(per_session), warm_up_timeout_s)
             for name, group in per_session.items():
-                group.append(_replay(name, endpoint))
+                group.append(_replay(name, endpoint, root))
                 processes.append(group[-1])
             _wait_publishing(observed, n_sessions, warm_up_timeout_s)
-            figures = _measure_window(observed, per_session, seconds)
+            figures = _measure_window(observed, per_session, {"router": router}, seconds)
             for subscriber in subscribers:
                 subscriber.undeclare()
     finally:
@@ -374,6 +405,7 @@ def run(*, quick: bool = False) -> list[BenchResult]:
             break
     served = max((f["sessions"] for f in runs if _ok(f)), default=0)
     one = runs[0]
+    baseline = _baseline(seconds)
     last_ok = next((f for f in reversed(runs) if _ok(f)), one)
     return [
         BenchResult(
@@ -399,9 +431,58 @@ def run(*, quick: bool = False) -> list[BenchResult]:
             unit="cores",
             baseline_name="1 session",
             baseline_value=one["cpu_cores_per_session"],
-            details={f"cpu@{f['sessions']}": f["cpu_cores_per_session"] for f in runs},
+            details=_details({f"cpu@{f['sessions']}": f["cpu_cores_per_session"] for f in runs})
+            | {k: v for k, v in last_ok.items() if k.startswith("cpu_") and k != "cpu_cores_per_session"},
         ),
+        *_against_baseline(one, baseline),
         *_across_hosts(seconds),
+    ]
+
+
+def _details(figures: dict[str, float]) -> dict[str, float | str]:
+    return dict(figures)
+
+
+def _baseline(seconds: float) -> dict[str, float] | None:
+    """One session as :data:`BASELINE_COMMIT` runs it (a git worktree of it, removed after), or None (said why)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="msk-baseline-") as scratch:
+        tree = Path(scratch) / "tree"
+        added = subprocess.run(
+            ["git", "-C", str(REPO), "worktree", "add", "--detach", str(tree), BASELINE_COMMIT],
+            capture_output=True,
+            text=True,
+        )
+        if added.returncode != 0:
+            print(f"    baseline {BASELINE_COMMIT[:9]}: not run ({added.stderr.strip() or 'git worktree failed'})")
+            return None
+        try:
+            figures = measure(1, seconds=seconds, root=tree)
+        finally:
+            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
+    print(f"    baseline {BASELINE_COMMIT[:9]}: " + ", ".join(f"{k} {v:.3g}" for k, v in figures.items()), flush=True)
+    return figures
+
+
+def _against_baseline(one: dict[str, float], baseline: dict[str, float] | None) -> list[BenchResult]:
+    """CPU of one session now against one session of :data:`BASELINE_COMMIT` in the same run, per process too."""
+    if baseline is None:
+        return []
+    roles = [*ROLES, "router_share"]
+    return [
+        BenchResult(
+            name="CPU of one session against the commit before the CPU work",
+            value=one["cpu_cores_per_session"],
+            unit="cores",
+            baseline_name=f"commit {BASELINE_COMMIT[:9]}",
+            baseline_value=baseline["cpu_cores_per_session"],
+            target="<= 1/3 of the baseline",
+            passed=one["cpu_cores_per_session"] <= baseline["cpu_cores_per_session"] / 3,
+            details=_details({f"{role}_now": one[f"cpu_{role}_cores"] for role in roles})
+            | {f"{role}_before": baseline[f"cpu_{role}_cores"] for role in roles}
+            | {"p99_ms_now": one["p99_ms"], "p99_ms_before": baseline["p99_ms"]},
+        )
     ]
 
 
