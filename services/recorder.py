@@ -168,31 +168,12 @@ def main(
             lambda item: _write(writer, item, stats, inputs.counts), stats, already_recorded=already_recorded
         )
 
-        def fetch(scope: str, missing: list[Missing]) -> None:  # on its own thread: the main loop goes on writing
-            samples: list[zenoh.Sample] = []
-            errors: list[str] = []
-            try:
-                if not missing:
-                    samples, errors = fetch_history(zsession, scope, timeout_s=history_timeout_s)
-                for gap in missing:  # publications skipped live: those of their cache
-                    got, failed = fetch_missed(
-                        zsession, scope, gap.publisher, gap.first, gap.last, timeout_s=history_timeout_s
-                    )
-                    samples, errors = samples + got, errors + failed
-            except Exception as error:  # a closed session at shutdown, an access-control refusal...
-                errors.append(f"{type(error).__name__}: {error}")
-            finished_ns = messages.now_ns()
-            items = [
-                item
-                for sample in samples
-                if (item := _history_item(sample, finished_ns, inputs.counts, max_payload_bytes)) is not None
-            ]
-            fetched.put(_Fetched(scope, tuple(items), errors, finished_ns, tuple(missing)))
-
-        def start_fetches(scopes: list[str]) -> None:
+        def start_fetches(scopes: list[str]) -> None:  # each on its own thread: the loop goes on writing
             for scope in scopes:
-                missing = merge.take_missing(scope)
-                threading.Thread(target=fetch, args=(scope, missing), name=f"history {scope}", daemon=True).start()
+                job = (zsession, scope, merge.take_missing(scope), fetched, inputs.counts, history_timeout_s)
+                threading.Thread(
+                    target=_fetch, args=(*job, max_payload_bytes), name=f"history {scope}", daemon=True
+                ).start()
 
         inputs.subscribe(key_expr)
         if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
@@ -226,6 +207,31 @@ def main(
             if reporter is not None and reporting_session is not None:  # a reporter exists for a session only
                 _record_final_status(writer, reporter, reporting_session)
     return stats
+
+
+def _fetch(
+    zsession: zenoh.Session,
+    scope: str,
+    missing: list[Missing],
+    fetched: queue.SimpleQueue,
+    counts: InputCounts,
+    timeout_s: float,
+    max_bytes: int,
+) -> None:
+    """Fetch ``scope``'s history (with ``missing``: those publications only) and hand it to ``fetched``."""
+    samples: list[zenoh.Sample] = []
+    errors: list[str] = []
+    try:
+        if not missing:
+            samples, errors = fetch_history(zsession, scope, timeout_s=timeout_s)
+        for gap in missing:  # publications skipped live: those of their cache
+            got, failed = fetch_missed(zsession, scope, gap.publisher, gap.first, gap.last, timeout_s=timeout_s)
+            samples, errors = samples + got, errors + failed
+    except Exception as error:  # a closed session at shutdown, an access-control refusal...
+        errors.append(f"{type(error).__name__}: {error}")
+    finished_ns = messages.now_ns()
+    items = [item for sample in samples if (item := _history_item(sample, finished_ns, counts, max_bytes)) is not None]
+    fetched.put(_Fetched(scope, tuple(items), errors, finished_ns, tuple(missing)))
 
 
 def _take_fetched(

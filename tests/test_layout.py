@@ -135,7 +135,6 @@ LONG_FUNCTIONS = {
     "services/synth_export.py:trial_messages": 89,
     "msk_core/estimate/pipeline.py:build_prior": 89,
     "services/estimator.py:add_arguments": 87,
-    "services/recorder.py:main": 85,
     "msk_core/estimate/leave_out.py:leave_one_out": 82,
 }
 
