@@ -692,19 +692,10 @@ class TrignoSimulator:
                 self._fault_signals = _FaultSignals(self.config.faults, self.rate_hz, self.config.seed)
             self._fault_signals.apply(emg, frame * spf, lambda k, column: samples[(self._first_index + k) % n, column])
         np.clip(emg, -TRIGNO_EMG_RANGE_V, TRIGNO_EMG_RANGE_V, out=emg)  # the converter's range
-        aux = self._aux_rows(start)
-        # legacy ACC port: the same accelerations, x,y,z per sensor (the first 3 of each sensor's 9 AUX slots)
-        acc = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)[:, :, :3].reshape(
-            AUX_SAMPLES_PER_FRAME, -1
-        )
-        payloads = {
-            "emg": tp.encode_samples(emg, self._endianness),
-            "aux": tp.encode_samples(aux, self._endianness),
-            "legacy_acc": tp.encode_samples(acc, self._endianness),
-        }
-        for kind, payload in payloads.items():
-            with self._lock:
-                conns = list(self._data_conns[kind])
+        with self._lock:
+            listening = {kind: list(conns) for kind, conns in self._data_conns.items() if conns}
+        for kind, conns in listening.items():  # a port nobody reads costs nothing (the AUX rows are interpolated)
+            payload = tp.encode_samples(emg if kind == "emg" else self._aux_payload(kind, start), self._endianness)
             for sock in conns:
                 try:
                     self._send_fragmented(sock, payload)
@@ -716,6 +707,15 @@ class TrignoSimulator:
         self.stats.frames_sent += 1
         self.stats.samples_sent += spf
         return True
+
+    def _aux_payload(self, kind: str, start: int) -> np.ndarray:
+        """The AUX port's rows (``kind`` "aux") or the legacy ACC port's: the same accelerations, x,y,z per sensor
+        (the first 3 of each sensor's 9 AUX slots)."""
+        aux = self._aux_rows(start)
+        if kind == "aux":
+            return aux
+        shaped = aux.reshape(AUX_SAMPLES_PER_FRAME, tp.N_SENSORS, tp.AUX_SLOTS_PER_SENSOR)
+        return shaped[:, :, :3].reshape(AUX_SAMPLES_PER_FRAME, -1)
 
     def _aux_rows(self, start: int) -> np.ndarray:
         """The AUX port's samples of the frame whose first EMG sample is stream sample ``start``: ACC x, y, z (g) of
