@@ -602,7 +602,9 @@ document.getElementById("set-stop").addEventListener("click", () => setMark("sto
 function start() {
   fetch("/config.json", { cache: "no-store" }).then((r) => r.json()).then((config) => {
     state.config = config;
-    document.getElementById("session").textContent = `session ${config.session}`;
+    const session = document.getElementById("session"); // the name alone (room in the header), "session" on hover
+    session.textContent = config.session;
+    session.title = `session ${config.session} (msk/${config.session}/...)`;
     connect();
   }).catch(() => {
     state.connection = state.connection === "connecting" ? "connecting" : "reconnecting";
