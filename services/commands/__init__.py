@@ -3,7 +3,9 @@
 Modules are discovered at start-up so that adding a command never means editing a shared list. Which commands a
 module adds is read from its source (:func:`declared_commands`, no import), so ``msk X`` imports only the module that
 registers ``X`` and ``msk --help`` imports none: several modules pull in the whole estimation stack (scipy, numba,
-pinocchio: ~2 s), and every ``msk`` subprocess (a live session starts several) would pay for all of them.
+pinocchio: ~2 s), and every ``msk`` subprocess (a live session starts several) would pay for all of them. So
+``register`` names its commands with literals, ``subparsers.add_parser("name", help="...", aliases=[...])``
+(tests/test_cli.py checks that what is read equals what ``register`` adds).
 """
 
 from __future__ import annotations
