@@ -62,6 +62,26 @@ def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std,
         np.testing.assert_allclose(rep["terms"]["emg"], expected_emg, rtol=1e-10)
 
 
+@pytest.mark.parametrize("strength_prior_std", [None, 0.3])
+def test_reduced_solver_reaches_the_joint_optimum(strength_prior_std):
+    """solver="reduced" (L-BFGS-B on the strengths, each frame's activations its exact box-QP optimum) and the joint
+    L-BFGS-B reach the same strengths, activations and objective; with a group without EMG and frames outside reps
+    (prior std inf: those activations only the torque sees, held by the tiny ridge)."""
+    f_ref, _, _, frames = _synthetic(seed=3, t=50, noise=0.03)
+    frames.prior_std[:10, 4] = np.inf  # "between reps": the group without EMG has no prior there
+    base = {"torque_tolerance": 0.02, "strength_prior_std": strength_prior_std, "identify_max_std": None}
+    joint = calibrate(f_ref, frames, CalibrationSettings(**base))
+    reduced = calibrate(f_ref, frames, CalibrationSettings(**base, solver="reduced"))
+    assert joint.converged and reduced.converged, (joint.message, reduced.message)
+    assert reduced.method.startswith("L-BFGS-B (strengths")
+    np.testing.assert_allclose(reduced.objective, joint.objective, rtol=1e-6)
+    np.testing.assert_allclose(reduced.scale, joint.scale, atol=1e-4)
+    np.testing.assert_allclose(reduced.activations, joint.activations, atol=2e-3)
+    assert reduced.projected_gradient < 1e-4 and reduced.scale[4] == 1.0
+    with pytest.raises(EstimationError, match="solver"):
+        CalibrationSettings(solver="newton")
+
+
 def test_calibration_recovers_true_strength_from_clean_emg():
     f_ref, k_true, _, frames = _synthetic(seed=2, t=80, noise=0.01)
     res = calibrate(f_ref, frames)

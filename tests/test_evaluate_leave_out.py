@@ -111,3 +111,78 @@ def test_no_emg_strength_measured_puts_unmeasured_groups_on_the_measured_scale(s
     effort = [j for j, s in enumerate(reference.prior.sources) if s == "min_effort"]
     assert effort and np.allclose(measured.prior.mean[:, has_emg], reference.prior.mean[:, has_emg])
     assert measured.prior.mean[:, effort].mean() < reference.prior.mean[:, effort].mean()
+
+
+WALK = Path(__file__).resolve().parents[1] / "recordings" / "lowerlimb-walk"
+
+
+def _walk_excerpt(shared_dir: Path, tmp_path: Path, name: str, start: float, end: float, *, grf: bool) -> Path:
+    """A window of the walk's trial file, its reps the gait cycles from the force plate (``grf``) or from the
+    kinematics (the committed files' hip-flexion reps)."""
+    data = (shared_dir / "data" / "lowerlimb-walk").resolve()
+    text = (WALK / "walk_train.toml").read_text().replace("../../../shared/data/lowerlimb-walk", str(data))
+    text = "\n".join(line for line in text.splitlines() if not line.startswith(("end =", "name =")))
+    text = f'name = "{name}"\nstart = {start}\nend = {end}\n' + text
+    if grf:
+        text = text.replace('phase_signal = "hip_flexion_r"', f'grf = "{data / "walk45_XLD.mot"}"')
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def test_gait_cycles_from_the_force_plate(shared_dir, tmp_path):
+    """``grf = ...``: the reps are the right foot's gait cycles, heel strike (vertical force rising through 20 N)
+    to heel strike, its column found by name; the kinematic reps start a tenth of a cycle later and leave more
+    frames between reps."""
+    from msk_core.errors import ConfigError, InputError
+    from msk_core.estimate.trial import load_trial, vertical_grf_column
+    from msk_core.io import read_sto
+    from msk_core.model import load_pack
+    from msk_core.signal.gait import heel_strikes
+
+    pack = load_pack("gait2392")
+    trial = load_trial(_walk_excerpt(shared_dir, tmp_path, "w", 10.0, 16.0, grf=True), pack)
+    kin = load_trial(_walk_excerpt(shared_dir, tmp_path, "k", 10.0, 16.0, grf=False), pack)
+    grf = read_sto(shared_dir / "data" / "lowerlimb-walk" / "walk45_XLD.mot")
+    strikes = heel_strikes(grf.time, grf.column("ground_force_vy"))
+    inside = strikes[(strikes >= 10.0) & (strikes <= 16.0)]
+    assert trial.phase_signal == "grf:ground_force_vy" and trial.phase_coordinate is None
+    assert int(trial.rep_index.max()) + 1 == inside.size - 1 >= 4  # one rep per complete cycle
+    starts = [trial.time[np.flatnonzero(trial.rep_index == k)[0]] for k in range(inside.size - 1)]
+    assert np.allclose(starts, inside[:-1], atol=0.011)  # each rep starts at the first frame of its cycle
+    assert np.mean(trial.rep_index >= 0) > np.mean(kin.rep_index >= 0)
+    # the columns by name: the side in the name, else the unprefixed one beside the other foot's
+    cols = list(grf.columns)
+    assert vertical_grf_column(cols, "r") == "ground_force_vy" and vertical_grf_column(cols, "l") == "l_ground_force_vy"
+    assert vertical_grf_column(["time", "r_ground_force_vy", "ground_force_vy"], "r") == "r_ground_force_vy"
+    assert vertical_grf_column(["time", "ground_force_right_vy", "ground_force_left_vy"], "l") == "ground_force_left_vy"
+    with pytest.raises(InputError, match="no vertical ground-reaction-force column of foot 'r'.*ground_force_vy"):
+        vertical_grf_column(["time", "ground_force_vy", "1_ground_force_vy"], "r")
+    with pytest.raises(ConfigError, match="grf_foot"):
+        vertical_grf_column(cols, "x")
+    both = _walk_excerpt(shared_dir, tmp_path, "both", 10.0, 16.0, grf=True)
+    both.write_text('phase_signal = "hip_flexion_r"\n' + both.read_text())
+    with pytest.raises(ConfigError, match="grf and phase_signal both define the reps"):
+        load_trial(both, pack)
+
+
+def test_leave_out_on_a_walk_excerpt_with_force_plate_cycles(shared_dir, tmp_path):
+    """The leave-one-out on a short real walk (15 s calibrates, 8 s held out, gait cycles from the force plate):
+    every calibration converges with the reduced solver, the soleus without its electrode is scored, and its
+    calibration has no factor of its own."""
+    from msk_core.estimate.leave_out import leave_one_out
+    from msk_core.estimate.trial import load_trial
+    from msk_core.model import load_pack
+
+    pack = load_pack("gait2392")
+    train = load_trial(_walk_excerpt(shared_dir, tmp_path, "train", 5.0, 20.0, grf=True), pack)
+    held = load_trial(_walk_excerpt(shared_dir, tmp_path, "held", 35.0, 43.0, grf=True), pack)
+    result = leave_one_out(pack, [train], [held], groups=["soleus_r"])
+    assert all(run.converged for run in result.calibrations), [r.to_dict() for r in result.calibrations]
+    assert "soleus_r" not in result.calibrations[1].strength and "soleus_r" in result.calibrations[0].strength
+    scores = result.leave_one_out["soleus_r"]
+    assert set(scores) == set(LEAVE_OUT_METHODS)
+    assert all(0 < s.rmse < 0.5 for s in scores.values()), scores
+    # the soleus follows the ankle's plantarflexion demand without its electrode (0.6-0.7 on the full walk)
+    assert scores["proposed"].r > 0.4, scores["proposed"]
+    assert result.cpu_seconds > 0 and all(run.cpu_seconds > 0 for run in result.calibrations)

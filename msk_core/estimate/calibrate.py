@@ -45,11 +45,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 
+import numba
 import numpy as np
 import piqp
 from scipy.optimize import Bounds, lsq_linear, minimize
 
 from msk_core.errors import EstimationError
+from msk_core.estimate.active_set import CERTIFIED, seed_state, solve_box_lsq
 
 
 class IdentifyMode(str, Enum):
@@ -143,11 +145,21 @@ class CalibrationSettings:
 
     def __post_init__(self) -> None:
         self.identify = IdentifyMode(self.identify)
+        if self.solver not in ("joint", "reduced"):
+            raise EstimationError(f"calibration solver must be 'joint' or 'reduced', got {self.solver!r}")
 
     a_min: float = 0.0
     max_iter: int = 20000
     gtol: float = 1e-7
     precondition: bool = True  # Jacobi-scaled variables in the joint solve (False: as written; msk bench calibrate)
+    # "joint": L-BFGS-B on (k, a, beta) together; "reduced": L-BFGS-B on the free strengths only, every frame's
+    # activations the exact optimum of its box QP at those strengths (compiled active set, warm from the last
+    # evaluation), the gradient in k by the envelope theorem (:func:`calibrate`; same optimum, ~20x less CPU on the
+    # walk; a calibration with a torque basis is solved jointly either way)
+    solver: str = "joint"
+    # "reduced": activations that no term but the torque pins down (groups without EMG between reps) get this tiny
+    # pull to 0 (the joint solve's start), so that each frame's QP has one optimum
+    reduced_ridge: float = 1e-3
     ftol: float = 1e-15  # L-BFGS-B stops when an iteration lowers the objective by less than ftol (relative)
 
 
@@ -453,7 +465,113 @@ def calibrate(
         z = np.clip(res.x * d, lower, upper)
         return z, bool(res.success), int(res.nit), str(res.message)
 
+    if s.solver == "reduced" and prob.p == 0:
+        reduced = _ReducedSolve(prob, s)
+        return _solve_identified(prob, s, f_ref, reduced.solve, "L-BFGS-B (strengths, exact activations)", start=start)
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)", start=start)
+
+
+def _jit(fn):  # type: ignore[no-untyped-def]
+    try:
+        return numba.njit(cache=True)(fn)
+    except RuntimeError:  # no writable cache location: compile in memory at first call
+        return numba.njit(fn)
+
+
+@_jit
+def _frames_box_lsq(r, k, tau, w, mean, prec, lb, ub, scale, x, state, max_iter):  # type: ignore[no-untyped-def]
+    """Every frame's activation QP at strengths k (:func:`msk_core.estimate.active_set.solve_box_lsq`, warm from x and
+    state, both (T, G), updated in place); returns each frame's result code."""
+    codes = np.empty(r.shape[0], dtype=np.int64)
+    for t in range(r.shape[0]):
+        code, _, _, _ = solve_box_lsq(
+            r[t], k, tau[t], w, mean, prec, t, t, 0.0, lb, ub, scale, x[t], state[t], max_iter
+        )
+        codes[t] = code
+    return codes
+
+
+class _ReducedSolve:
+    """The calibration as a problem in the free strength factors alone: J(k) = min_a J(k, a) (+ the strength prior).
+    At fixed k the frames decouple into box-constrained least squares in their activations,
+
+        1/2 |diag(inv_s) (m diag(k) a - tau)|^2 + 1/2 sum_g d_g (a_g - nu_g)^2,   d = w_p + w_e,
+        nu = (w_p mu + w_e e) / d,   a_min <= a <= 1,
+
+    strictly convex (d > 0: activations only the torque sees get ``reduced_ridge``), solved exactly and certified by
+    the compiled active-set kernel, each from its last working set. By the envelope theorem dJ/dk is the partial
+    derivative at the optimal activations, so L-BFGS-B on <= G variables sees J's exact value and gradient. The
+    kernel scales each torque row by c_n = max(sum_g |A_ng|, min_scale); a min_scale above every row sum (the rows
+    are divided by eps c_tn beforehand, so sum_g |A_ng| <= max k / eps) makes c constant, and w = min_scale^2
+    restores the calibration's weighting."""
+
+    def __init__(self, prob: _Problem, s: CalibrationSettings) -> None:
+        self.prob = prob
+        self.rows = np.ascontiguousarray(prob.m * prob.inv_s[:, :, None])  # (T, n_c, G): m / (eps c)
+        self.target = np.ascontiguousarray(prob.tau * prob.inv_s)
+        d = prob.w_p + prob.w_e
+        self.mean = np.ascontiguousarray(
+            np.where(d > 0, (prob.w_p * prob.mu + prob.w_e * prob.e) / np.where(d > 0, d, 1.0), 0.0)
+        )
+        self.prec = np.ascontiguousarray(np.where(d > 0, d, 0.0) + s.reduced_ridge)
+        self.lb = np.full(prob.g, prob.a_min)
+        self.ub = np.ones(prob.g)
+        self.scale = 1.01 * max(s.strength_bounds[1], 1.0) / s.torque_tolerance
+        self.x = np.zeros((prob.t, prob.g))
+        self.state = np.zeros((prob.t, prob.g), dtype=np.int8)
+        self.failed = 0
+        self.max_iter = s.max_iter
+
+    def activations(self, k: np.ndarray) -> np.ndarray:
+        """The frames' optimal activations at strengths k (warm from the last call; a frame whose active set does
+        not certify within its budget starts again from everything free, with a larger budget)."""
+        args = (self.rows, k, self.target, self.scale**2, self.mean, self.prec, self.lb, self.ub, self.scale)
+        codes = _frames_box_lsq(*args, self.x, self.state, 4 * self.prob.g)
+        bad = np.flatnonzero(codes != CERTIFIED)
+        if bad.size:
+            x, state = self.x[bad].copy(), np.zeros((bad.size, self.prob.g), dtype=np.int8)
+            x[:] = np.clip(self.mean[bad], self.lb, self.ub)
+            sub = (self.rows[bad], k, self.target[bad], self.scale**2, self.mean[bad], self.prec[bad])
+            again = _frames_box_lsq(*sub, self.lb, self.ub, self.scale, x, state, 40 * self.prob.g)
+            self.x[bad], self.state[bad] = x, state
+            self.failed += int(np.sum(again != CERTIFIED))
+        return self.x
+
+    def solve(self, z0: np.ndarray) -> tuple[np.ndarray, bool, int, str]:
+        prob = self.prob
+        k0, a0, beta = prob.split(z0)
+        self.x[:] = np.clip(a0, self.lb, self.ub)
+        for t in range(prob.t):
+            seed_state(self.x[t], self.lb, self.ub, 1e-12, self.state[t])
+        lo, hi = np.array(prob.k_bounds, dtype=float).T
+        free = lo < hi
+        k = np.clip(k0, lo, hi)
+        self.failed = 0
+
+        def value_grad(kf: np.ndarray) -> tuple[float, np.ndarray]:
+            k[free] = kf
+            a = self.activations(k)
+            terms, rho = prob.terms(k, a, beta)
+            back = np.einsum("tn,tng->tg", rho * prob.inv_s, prob.m)
+            grad = np.sum(back * a, axis=0) + prob.w_k_obj * (k - 1.0)
+            return sum(terms.values()), grad[free]
+
+        if not np.any(free):
+            value_grad(k[free])
+            z = np.concatenate([k, self.x.ravel(), beta])
+            return z, self.failed == 0, 0, "no free strength: activations solved at the held ones"
+        res = minimize(
+            value_grad,
+            k[free],
+            jac=True,
+            method="L-BFGS-B",
+            bounds=Bounds(lo[free], hi[free]),
+            options={"maxiter": self.max_iter, "gtol": 1e-10, "ftol": 1e-15, "maxcor": 10},
+        )
+        value_grad(res.x)  # the activations at the returned strengths
+        converged = self.failed == 0 and bool(res.success)
+        message = str(res.message) + (f"; {self.failed} frame QPs not certified" if self.failed else "")
+        return np.concatenate([k, self.x.ravel(), beta]), converged, int(res.nit), message
 
 
 def _solve_identified(

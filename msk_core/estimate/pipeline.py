@@ -37,6 +37,10 @@ class NoEmgStrength(str, Enum):
     # the measured groups' common calibrated factor (geometric median): the envelopes of one recording share their
     # normalisation, which the calibrated factors carry; the minimal-effort prior re-derived at those strengths
     MEASURED = "measured"
+    # the calibrated factor of the measured group with the most similar moment arms (cosine >= SYNERGIST_MIN_COSINE,
+    # :func:`pick_synergists`: a muscle of the same function at the same joints, recorded with the same electrodes and
+    # normalisation), else the measured groups' common factor; the minimal-effort prior re-derived at those strengths
+    SYNERGIST = "synergist"
 
 
 SYNERGIST_MIN_COSINE = 0.9  # moment-arm similarity a measured group needs to stand in for an unmeasured one
@@ -176,14 +180,20 @@ def min_effort_error(pack: PackLike, trials: list[TrialData]) -> float:
 
 
 def unmeasured_from_measured(
-    pack: PackLike, trials: list[TrialData], prior: PhasePrior, result: CalibrationResult
+    pack: PackLike,
+    trials: list[TrialData],
+    prior: PhasePrior,
+    result: CalibrationResult,
+    mode: NoEmgStrength | str = NoEmgStrength.MEASURED,
 ) -> tuple[np.ndarray, PhasePrior]:
     """(F_max, prior) of the profile with ``NoEmgStrength.MEASURED``: every group without EMG gets the measured
     groups' common calibrated factor (geometric median of their scale factors) and the groups whose prior is the
     minimal-effort share get it re-derived by static optimisation at these strengths (binned as before). The envelopes
     of one recording are normalised alike and the calibrated factors carry that normalisation (docs/estimation.md:
     envelopes peaking near 0.35 of the recording's maximum give extensor factors at 2.5); a group without EMG at the
-    reference strength is then estimated on another scale than the envelopes it is compared with."""
+    reference strength is then estimated on another scale than the envelopes it is compared with. ``mode``
+    ``NoEmgStrength.SYNERGIST``: a group with a measured synergist (:func:`pick_synergists`) takes that group's factor
+    instead of the common one."""
     f_ref = np.asarray(pack.f_max_ref, dtype=float)
     measured = np.asarray(prior.has_emg, dtype=bool)
     f_max = np.asarray(result.f_max, dtype=float).copy()
@@ -192,6 +202,11 @@ def unmeasured_from_measured(
     common = float(np.exp(np.median(np.log(result.scale[measured]))))
     f_max[~measured] = common * f_ref[~measured]
     groups = list(pack.groups)
+    if NoEmgStrength(mode) is NoEmgStrength.SYNERGIST:
+        unmeasured = [g for g, m in zip(groups, measured) if not m]
+        picked = pick_synergists(pack, trials, unmeasured, [g for g, m in zip(groups, measured) if m])
+        for g, h in picked.items():
+            f_max[groups.index(g)] = result.scale[groups.index(h)] * f_ref[groups.index(g)]
     effort = [g for g, src in zip(groups, prior.sources or ()) if src == "min_effort"]
     if not effort:
         return f_max, prior
@@ -441,8 +456,8 @@ def calibrate_inputs(
     )
     result = calibrate(pack.f_max_ref, frames, settings, start=start)
     f_max, profile_prior = np.asarray(result.f_max, dtype=float), prior
-    if NoEmgStrength(no_emg_strength) is NoEmgStrength.MEASURED:
-        f_max, profile_prior = unmeasured_from_measured(pack, trials, prior, result)
+    if NoEmgStrength(no_emg_strength) is not NoEmgStrength.REFERENCE:
+        f_max, profile_prior = unmeasured_from_measured(pack, trials, prior, result, no_emg_strength)
     phase_model = learn_trials_phase_model(pack, trials)
     norm: dict[str, dict] = {}  # per EMG channel: its normalisation and the trials it was measured in
     for t in trials:

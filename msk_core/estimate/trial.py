@@ -15,6 +15,16 @@ Keys (paths relative to the TOML file)::
                                              # pack's phase coordinate (bench_press elbow_flex_r, deadlift
                                              # hip_flexion_r), else the torque of its first coordinate. A signal
                                              # without a complete rep leaves every frame at rest (``extra["no_reps"]``)
+    grf = "walk_grf.mot"             # optional: ground reaction forces (OpenSim external loads). Given, the reps are
+                                     # gait cycles, heel strike to heel strike of ``grf_foot``: its vertical force
+                                     # rising through ``heel_strike_n`` (msk_core.signal.gait), instead of the
+                                     # phase signal's reps (not both keys). The foot's vertical-force column is found
+                                     # by name (r_ground_force_vy, ground_force_r_vy, ...; an unprefixed
+                                     # ground_force_vy is the right foot when the left one's carries the l_ prefix),
+                                     # or given as grf_column
+    grf_foot = "r"                   # "r" (default) or "l"
+    grf_column = "ground_force_vy"   # optional: the foot's vertical-force column, when its name does not say
+    heel_strike_n = 20.0             # optional: contact threshold (N), default msk_core.signal.gait's
     isometric = true                 # optional: a static-pose trial (isometric MVC against a dynamometer or a fixed
                                      # bar). It needs ``torques``: the net joint moments the muscles produce, i.e. the
                                      # static inverse dynamics with the measured external force (dynamometer torque
@@ -52,6 +62,7 @@ from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
+from msk_core.signal.gait import CONTACT_THRESHOLD_N, gait_cycle_phase, heel_strikes
 from msk_core.signal.kinematics_filter import lowpass_coordinates
 from msk_core.signal.reps import REST_PHASE
 from msk_core.units import GRAVITY
@@ -71,6 +82,10 @@ KNOWN_KEYS = {
     "name",
     "isometric",
     "lowpass_coordinates_hz",
+    "grf",
+    "grf_foot",
+    "grf_column",
+    "heel_strike_n",
 }
 ISOMETRIC_MAX_MOTION_DEG = 10.0  # an isometric trial's coordinates stay within this range (a held test position)
 
@@ -340,6 +355,10 @@ def _trial_phase(
     n = kin.time.size
     if options.isometric:
         return _Phase(np.full(n, REST_PHASE), np.full(n, -1), "none (isometric)", None, {})
+    if "grf" in trial.spec:
+        if "phase_signal" in trial.spec:
+            raise trial.err("grf and phase_signal both define the reps: keep one", "phase_signal", phase_signal)
+        return _gait_cycles(trial, kin.time)
     if phase_signal.startswith("torque:"):
         c = phase_signal.split(":", 1)[1]
         if c not in coords:
@@ -364,6 +383,71 @@ def _trial_phase(
         # (arm26's one flexion) has none; it still serves what needs no phase (static optimisation, inverse dynamics)
         return _Phase(np.full(n, REST_PHASE), np.full(n, -1), phase_signal, None, {"no_reps": str(exc)})
     return _Phase(phase, rep_index, phase_signal, coordinate, {})
+
+
+GRF_FEET = ("r", "l")
+
+
+def vertical_grf_column(columns: list[str], foot: str, path: Path | None = None) -> str:
+    """The vertical ground-reaction-force column of ``foot`` ("r" or "l") among an external-loads file's columns:
+    a name that carries the side (``r_ground_force_vy``, ``ground_force_r_vy``, ``R_ground_force_vy``,
+    ``right_ground_force_vy``, ...), else the unprefixed ``ground_force_vy`` when the other foot's column carries
+    its side (OpenSim's examples name the right foot's force ground_force_* and the left one's l_ground_force_*).
+    :class:`InputError` naming the vertical-force columns there are when none or several match."""
+    if foot not in GRF_FEET:
+        raise ConfigError("must be 'r' or 'l'", field="grf_foot", value=foot)
+    other = "l" if foot == "r" else "r"
+    word = {"r": "right", "l": "left"}
+
+    vertical = [c for c in columns if c.lower().endswith("_vy") and "force" in c.lower()]
+
+    def sided(side: str) -> list[str]:
+        return [c for c in vertical if {side, word[side]} & set(re.split(r"[_\W]+", c.lower()))]
+
+    mine, theirs = sided(foot), sided(other)
+    if len(mine) == 1:
+        return mine[0]
+    if len(mine) > 1:
+        raise InputError(
+            f"several vertical-force columns of foot {foot!r}: {mine}; name one as grf_column", path=path, field="grf"
+        )
+    unsided = [c for c in vertical if c not in theirs]
+    if theirs and len(unsided) == 1:
+        return unsided[0]
+    raise InputError(
+        f"no vertical ground-reaction-force column of foot {foot!r} by name (vertical-force columns: "
+        f"{vertical or 'none'}); name it as grf_column",
+        path=path,
+        field="grf",
+    )
+
+
+def _gait_cycles(trial: _TrialFile, time: np.ndarray) -> _Phase:
+    """Reps = gait cycles from the force plate: heel strikes of ``grf_foot`` within the trial's window."""
+    path = trial.file_of("grf")
+    grf = read_sto(path)
+    foot = trial.spec.get("grf_foot", "r")
+    if foot not in GRF_FEET:
+        raise trial.err("must be 'r' or 'l'", "grf_foot", foot)
+    column = trial.spec.get("grf_column")
+    if column is None:
+        column = vertical_grf_column(list(grf.columns), foot, path)
+    elif not isinstance(column, str) or not grf.has_column(column):
+        raise trial.err(
+            f"no such column in {path.name}{_closest(str(column), list(grf.columns))}", "grf_column", column
+        )
+    threshold = trial.number("heel_strike_n", CONTACT_THRESHOLD_N)
+    if threshold <= 0:
+        raise trial.err("must be > 0", "heel_strike_n", threshold)
+    strikes = heel_strikes(grf.time, grf.column(column), threshold_n=threshold)
+    half = 0.5 * float(np.median(np.diff(time))) if time.size > 1 else 0.0
+    strikes = strikes[(strikes >= time[0] - half) & (strikes <= time[-1] + half)]
+    signal = f"grf:{column}"
+    if strikes.size < 2:
+        no = f"{strikes.size} heel strike(s) of {column} > {threshold:g} N within the trial: no complete gait cycle"
+        return _Phase(np.full(time.size, REST_PHASE), np.full(time.size, -1), signal, None, {"no_reps": no})
+    phase, index = gait_cycle_phase(time, strikes)
+    return _Phase(phase, index, signal, None, {"heel_strikes": strikes})
 
 
 def load_trial(path: str | Path, pack: PackLike) -> TrialData:

@@ -143,6 +143,7 @@ def leave_out_summary(pack: PackLike, result: LeaveOutResult) -> dict[str, Any]:
         "calibrations": [c.to_dict() for c in result.calibrations],
         "flag_counts": result.flag_counts,
         "seconds": result.seconds,
+        "cpu_seconds": result.cpu_seconds,
     }
 
 
@@ -265,11 +266,11 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
         "",
         f"Calibrations: {len(runs)}, "
         + ", ".join(
-            f"{r.left_out or 'all electrodes'} {r.iterations} it. {r.seconds:.0f} s"
+            f"{r.left_out or 'all electrodes'} {r.iterations} it. {r.cpu_seconds:.1f} s CPU"
             + ("" if r.converged else " (not converged)")
             for r in runs
         )
-        + f"; total {result.seconds:.0f} s.",
+        + f"; total {result.cpu_seconds:.0f} s CPU ({result.seconds:.0f} s wall).",
         "",
         "Plots: " + ", ".join(f"[{p.name}]({p.name})" for p in plots),
         "",
