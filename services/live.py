@@ -42,6 +42,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, InputError
 from services import messages, session_graph, topics
+from services.demo_subject import RECORDINGS, sim_subject
 from services.graph import Graph, GraphTimeout, python_module, wait_for, zenoh_flags
 from services.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.mcap_io import read_messages
@@ -55,8 +56,6 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
     from drivers.xsens.source import ImuSource
     from services.sim_sets import SimSets
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RECORDINGS = REPO_ROOT / "recordings"
 READY_TIMEOUT_S = 90.0
 STOP_TIMEOUT_S = 20.0
 DRAIN_S = 0.6  # after the simulators stop sending: bytes in flight reach the drivers, messages the nodes
@@ -406,22 +405,6 @@ def start_simulators(
 
 
 # ------------------------------------------------------------------------------------------------ subject
-
-
-def sim_subject(pack: str, log) -> Path:
-    """The bundled subject calibrated for ``pack`` as ``msk demo`` does, cached under the user cache folder and reused
-    while it is newer than the bundled recordings."""
-    from services import demo
-
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "msk-live" / "live-sim"
-    path = cache / f"subject_{pack}.json"
-    newest = max(p.stat().st_mtime for p in (RECORDINGS / "demo").rglob("*") if p.is_file())
-    if path.is_file() and path.stat().st_mtime >= newest:
-        log(f"reusing the calibrated bundled subject {path}")
-        return path
-    cache.mkdir(parents=True, exist_ok=True)
-    made, _ = demo.calibrate(RECORDINGS, cache, pack, log)
-    return made
 
 
 def session_profile(subject: Path, electrodes: dict[str, str], groups: list[str], out: Path) -> Path:

@@ -18,7 +18,7 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.io import read_sto, write_sto
 from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.units import GRAVITY
-from services import demo, estimator, messages, topics
+from services import demo_subject, estimator, live_scoring, messages, topics
 from services.graph import Graph, wait_for
 from services.mcap_io import read_messages
 from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session
@@ -33,7 +33,7 @@ STALL_S = 1.0  # generous: on a loaded 2-core machine delivery may pause for a f
 @pytest.fixture(scope="module")
 def profile_path(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("subject")
-    path, _ = demo.calibrate(RECORDINGS, out, "bench_press", lambda _: None)
+    path, _ = demo_subject.calibrate(RECORDINGS, out, "bench_press", lambda _: None)
     return path
 
 
@@ -235,7 +235,7 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
     loads = estimator.LoadTimeline()
     window = next(
         w
-        for w in demo.trial_windows([r.decode() for r in read_messages(MCAP) if r.type_name == "msk.LoadEvent"])
+        for w in live_scoring.trial_windows([r.decode() for r in read_messages(MCAP) if r.type_name == "msk.LoadEvent"])
         if w.name == "bench_press_50kg"
     )
     mapper = estimator.CoordinateMapper(estimators["proposed"].coordinates)

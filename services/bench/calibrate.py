@@ -22,11 +22,11 @@ def _frames(exercise: str, n_isometric: int | None = None):
     from msk_core.estimate.pipeline import build_prior, calibration_frames
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
-    from services.demo import DEFAULT_RECORDINGS, calibration_trial_files
+    from services.demo_subject import RECORDINGS, calibration_trial_files
 
     pack = load_pack(exercise)
-    truth = json.loads((DEFAULT_RECORDINGS / "demo" / "truth.json").read_text())["exercises"][exercise]
-    lift, isometric = calibration_trial_files(DEFAULT_RECORDINGS, exercise)
+    truth = json.loads((RECORDINGS / "demo" / "truth.json").read_text())["exercises"][exercise]
+    lift, isometric = calibration_trial_files(RECORDINGS, exercise)
     trials = [load_trial(lift / "trial.toml", pack)] + [load_trial(p, pack) for p in isometric[:n_isometric]]
     frames = calibration_frames(pack, trials, build_prior(pack, trials))
     return pack, frames, np.array([truth["f_max_n"][g] for g in pack.groups])

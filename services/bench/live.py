@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services import demo, live_scoring, messages, topics
+from services import demo_subject, live_scoring, messages, topics
 from services.bench import BenchResult
 from services.graph import Graph, python_module, wait_for, wait_for_nodes
 from services.mcap_io import read_messages
@@ -53,7 +53,7 @@ def cpu_seconds(pid: int) -> float:
 
 def session_slice(seconds: float) -> list:
     out, first = [], None
-    for recorded in read_messages(demo.DEFAULT_RECORDINGS / "demo_session.mcap"):
+    for recorded in read_messages(demo_subject.RECORDINGS / "demo_session.mcap"):
         first = recorded.log_time_ns if first is None else first
         if recorded.log_time_ns - first > seconds * 1e9:
             break
@@ -174,7 +174,7 @@ def truth_results(seconds: float) -> list[BenchResult]:
     """``assisted`` against ``proposed`` on the groups without an electrode, from one ``msk live --sim`` run."""
     with tempfile.TemporaryDirectory() as tmp:
         run_sim_session(Path(tmp) / "live", seconds)
-        scored = live_scoring.score_live_run(Path(tmp) / "live", demo.DEFAULT_RECORDINGS)
+        scored = live_scoring.score_live_run(Path(tmp) / "live", demo_subject.RECORDINGS)
     print(live_scoring.live_markdown(scored), flush=True)
     details: dict[str, float | str] = {
         "no_electrode_groups": " ".join(scored.no_electrode_groups),
@@ -219,7 +219,7 @@ def run(quick: bool = False) -> list[BenchResult]:
     seconds = 4.0 if quick else 20.0
     inputs = session_slice(seconds)
     with tempfile.TemporaryDirectory() as tmp:
-        subject, _ = demo.calibrate(demo.DEFAULT_RECORDINGS, Path(tmp), "bench_press", lambda _: None)
+        subject, _ = demo_subject.calibrate(demo_subject.RECORDINGS, Path(tmp), "bench_press", lambda _: None)
         full = run_node(subject, ALL_METHODS, True, inputs, rate=1.0)
         base = run_node(subject, ("so",), False, inputs, rate=1.0)
         fast = run_node(subject, ALL_METHODS, True, inputs, rate=None)
