@@ -147,8 +147,7 @@ class AccelerationAlignment:
         for tracker in self._trackers.values():
             pair = tracker.pairs.get(source)
             if pair is not None:
-                for k, label in enumerate(labels):
-                    pair.sync.add_emg_sensor(label, times, acc[:, k], AccUnit.G)
+                pair.sync.add_emg_sensors(labels, times, acc, AccUnit.G)
         self.update()
 
     def _restart_source(self, source: str, state: _Source) -> None:

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -158,10 +159,13 @@ class _Stream:
     feature: list[np.ndarray] = field(default_factory=list)
     last_ns: int | None = None
 
-    def add(self, time_ns: np.ndarray, feature: np.ndarray, name: str) -> None:
+    def add(self, time_ns: np.ndarray, feature: np.ndarray, name: str, *, increasing: bool = False) -> None:
+        """``increasing``: the caller checked that ``time_ns`` increase (one check for the sensors of a block)."""
         if time_ns.size == 0:
             return
-        if np.any(np.diff(time_ns) <= 0) or (self.last_ns is not None and time_ns[0] <= self.last_ns):
+        if (not increasing and np.any(np.diff(time_ns) <= 0)) or (
+            self.last_ns is not None and time_ns[0] <= self.last_ns
+        ):
             raise InputError(
                 "device times must increase from sample to sample and block to block",
                 field=name,
@@ -181,19 +185,25 @@ class _Stream:
         return int(self.time_ns[0][0]) if self.time_ns else None
 
     def drop_before(self, time_ns: int) -> None:
-        t, f = self.arrays()
-        keep = max(0, int(np.searchsorted(t, time_ns)) - 1)  # one sample before, for interpolation
-        if keep:
-            self.time_ns, self.feature = [t[keep:]], [f[keep:]]
+        """Forget the samples before ``time_ns`` but the last one (for interpolation). Whole blocks go without
+        joining the others (this runs after every block: joining re-copied the retained window each time)."""
+        while len(self.time_ns) > 1 and self.time_ns[1][0] < time_ns:  # a later block holds the one kept before
+            del self.time_ns[0], self.feature[0]
+        if self.time_ns:
+            keep = max(0, int(np.searchsorted(self.time_ns[0], time_ns)) - 1)
+            if keep:
+                self.time_ns[0], self.feature[0] = self.time_ns[0][keep:], self.feature[0][keep:]
 
 
-def _feature(acc: np.ndarray, unit: AccUnit, name: str) -> np.ndarray:
+def _feature(acc: np.ndarray, unit: AccUnit, name: str, *, sensors: int | None = None) -> np.ndarray:
+    """|a| - g (m/s²) of accelerations (n, 3), or (n, ``sensors``, 3) of several sensors at once (n, sensors)."""
     acc = np.asarray(acc, dtype=float)
-    if acc.ndim != 2 or acc.shape[1] != 3:
-        raise InputError("accelerations must be (n, 3)", field=name, value=acc.shape)
+    shape = (3,) if sensors is None else (sensors, 3)
+    if acc.ndim != 1 + len(shape) or acc.shape[1:] != shape:
+        raise InputError(f"accelerations must be (n, {', '.join(map(str, shape))})", field=name, value=acc.shape)
     if not np.all(np.isfinite(acc)):
         raise InputError("accelerations hold NaN or infinite values", field=name)
-    return np.linalg.norm(acc, axis=1) * unit.to_m_per_s2 - STANDARD_GRAVITY
+    return np.linalg.norm(acc, axis=-1) * unit.to_m_per_s2 - STANDARD_GRAVITY
 
 
 def _times(device_time_ns, n: int, name: str) -> np.ndarray:
@@ -240,6 +250,16 @@ class ClockSync:
         """Accelerations (n, 3) of one sensor on the EMG clock at its device times (n,) ns."""
         feature = _feature(acc, unit, sensor)
         self._emg.setdefault(sensor, _Stream()).add(_times(device_time_ns, len(feature), sensor), feature, sensor)
+
+    def add_emg_sensors(self, sensors: Sequence[str], device_time_ns, acc, unit: AccUnit = AccUnit.G) -> None:
+        """Accelerations (n, sensors, 3) of several sensors sampled together on the EMG clock at device times (n,) ns:
+        :meth:`add_emg_sensor` of each, with the feature and the checks computed once for the block."""
+        name = f"acc/{','.join(sensors)}"
+        feature = _feature(acc, unit, name, sensors=len(sensors))
+        times = _times(device_time_ns, len(feature), name)
+        increasing = not np.any(np.diff(times) <= 0)
+        for k, sensor in enumerate(sensors):
+            self._emg.setdefault(sensor, _Stream()).add(times, feature[:, k], sensor, increasing=increasing)
 
     def add_tracker(self, device_time_ns, acc, unit: AccUnit = AccUnit.M_PER_S2) -> None:
         """Accelerations (n, 3) of the tracker at its device times (n,) ns."""
