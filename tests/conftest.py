@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import os
+import re
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -27,37 +30,54 @@ LIVE_SESSION_MODULES = frozenset(
         "test_live_sets",
     }
 )
+LIVE_SESSION_UNIT = "live-session"
+_SHARED_FIXTURE = re.compile(r"""scope\s*=\s*["'](?:module|class|package)["']""")
 
 
-# Wider-than-test fixtures: a module split over the two workers would build them once on each.
-_SHARED_SCOPES = frozenset({"module", "class", "package"})
+@functools.cache
+def _shares_a_fixture(module_path: str) -> bool:
+    """The test module defines a module-, class- or package-scoped fixture (read from its source: the xdist
+    controller, which schedules, collects no tests)."""
+    path = REPO_ROOT / module_path
+    return path.is_file() and bool(_SHARED_FIXTURE.search(path.read_text(encoding="utf-8")))
 
 
-def _uses_a_shared_fixture(item: pytest.Item) -> bool:
-    info = getattr(item, "_fixtureinfo", None)
-    if info is None:
-        return False
-    return any(d.scope in _SHARED_SCOPES for defs in info.name2fixturedefs.values() for d in defs)
+def work_unit(nodeid: str) -> str:
+    """The xdist work unit of a test: the live-session modules are one unit; a module that defines a fixture wider than
+    a test is one unit (its fixture built once, not once per worker, nor again after another module's test came
+    between); any other test is a unit of its own."""
+    module_path = nodeid.split("::", 1)[0]
+    if Path(module_path).stem in LIVE_SESSION_MODULES:
+        return LIVE_SESSION_UNIT
+    return module_path if _shares_a_fixture(module_path) else nodeid
+
+
+def _rank(nodeid: str) -> int:
+    unit = work_unit(nodeid)
+    return 0 if unit == LIVE_SESSION_UNIT else 1 if unit != nodeid else 2
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook (firstresult)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup`` (``python3 dev.py test``) schedules by :func:`work_unit`. (xdist's own loadgroup reads
+    ``xdist_group`` marks into the test ids, which pytest 9 no longer lets it change: every test went alone, the
+    live sessions on both workers and a module's shared fixture built on each.)"""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class WorkUnitScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return work_unit(nodeid)
+
+    return WorkUnitScheduling(config, log)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """xdist groups (``python3 dev.py test`` runs ``--dist loadgroup``, which otherwise sends each test on its own):
-    the live-session modules share one group; a module whose tests share a module- or class-scoped fixture is one
-    group, so the fixture is built once (not once per worker, nor again after another module's test came between).
-    The live-session group is queued first and the module groups next, so the longest units start first and the
-    single tests fill the gaps at the end (xdist queues the groups in the order their first test is collected)."""
-    rank: dict[int, int] = {}
-    for item in items:
-        if item.path.stem in LIVE_SESSION_MODULES:
-            item.add_marker(pytest.mark.xdist_group("live-session"))
-            rank[id(item)] = 0
-        elif _uses_a_shared_fixture(item):
-            item.add_marker(pytest.mark.xdist_group(f"module-{item.path.stem}"))
-            rank[id(item)] = 1
-        else:
-            rank[id(item)] = 2
-    if config.getoption("dist", "no") == "loadgroup":
-        items.sort(key=lambda item: rank[id(item)])  # stable: collection order within each rank
+    """Under xdist, the live-session unit first and the module units next: xdist queues units in the order of their
+    first test, so the longest start first and the single tests fill the gaps at the end."""
+    if getattr(config.option, "loadgroup", False):  # set on the workers by xdist for --dist loadgroup
+        items.sort(key=lambda item: _rank(item.nodeid))  # stable: collection order within a rank
 
 
 @pytest.fixture(autouse=True, scope="session")
