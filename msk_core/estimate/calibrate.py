@@ -568,8 +568,12 @@ class _ReducedSolve:
             bounds=Bounds(lo[free], hi[free]),
             options={"maxiter": self.max_iter, "gtol": 1e-10, "ftol": 1e-15, "maxcor": 10},
         )
-        value_grad(res.x)  # the activations at the returned strengths
-        converged = self.failed == 0 and bool(res.success)
+        _, grad = value_grad(res.x)  # the activations at the returned strengths
+        # L-BFGS-B may end its line search at the precision of J (ABNORMAL) at a stationary point: converged when
+        # the step the projected gradient implies (over the Gauss-Newton curvature of each factor) is below 1e-6
+        pg = np.clip(res.x - grad, lo[free], hi[free]) - res.x
+        step = np.abs(pg) / prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))[: prob.g][free]
+        converged = self.failed == 0 and (bool(res.success) or float(np.max(step)) < 1e-6)
         message = str(res.message) + (f"; {self.failed} frame QPs not certified" if self.failed else "")
         return np.concatenate([k, self.x.ravel(), beta]), converged, int(res.nit), message
 
