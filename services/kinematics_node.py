@@ -66,6 +66,7 @@ class KinematicsStats:
     calibrations: int = 0
     calibration_failures: int = 0
     restarts: int = 0  # gaps longer than --gap: a new set, recalibrated
+    resumes: int = 0  # gaps longer than --gap of samples lost on their way (the network): calibration kept
     bad_frames: int = 0  # non-finite or zero quaternions
     rejected: int = 0  # samples that raised an input error while being processed
     frames_out: int = 0
@@ -171,10 +172,12 @@ class KinematicsNode:
         self.coordinates = list(self.mapper.coordinates)
         self.prefix = f"{topics.session_prefix(session)}/imu/"
 
-    def handle(self, key: str, payload: messages.ImuSample | bytes) -> list[messages.JointAngles]:
-        """One IMU message in; the joint-angle frames it completes out. A bad sample is counted, never raised."""
+    def handle(self, key: str, payload: messages.ImuSample | bytes, missed: int = 0) -> list[messages.JointAngles]:
+        """One IMU message in; the joint-angle frames it completes out. A bad sample is counted, never raised.
+        ``missed``: publications of its publisher lost on their way just before it (:attr:`Inbound.missed`): a gap
+        they make resumes the set instead of recalibrating (:meth:`StreamingJointKinematics.lost_before`)."""
         try:
-            return self._handle(key, payload)
+            return self._handle(key, payload, missed)
         except MskError as error:  # one bad sample must not stop the node: count it, say why, go on
             self.stats.rejected += 1
             self.stats.last_error = f"{key}: {error}"
@@ -182,7 +185,7 @@ class KinematicsNode:
                 log.error("%s", self.stats.last_error)
             return []
 
-    def _handle(self, key: str, payload: messages.ImuSample | bytes) -> list[messages.JointAngles]:
+    def _handle(self, key: str, payload: messages.ImuSample | bytes, missed: int = 0) -> list[messages.JointAngles]:
         stats = self.stats
         stats.samples_in += 1
         try:
@@ -209,6 +212,8 @@ class KinematicsNode:
             time_ns = self.host_clocks.to_host(key.rsplit("/", 1)[1], time_ns, int(imu.host_time_ns))
         else:
             self.device_trackers.add(key.rsplit("/", 1)[1])
+        if missed:
+            self.kinematics.lost_before(time_ns)
         events = self.sync.push(segment, time_ns, quat)
         stats.out_of_order += self.sync.out_of_order - before
         return [joints for event in events if (joints := self._frame(event)) is not None]
@@ -316,7 +321,7 @@ def main(
 
         def process(item) -> None:
             rejected = stats.rejected
-            for joints in node.handle(item.key, item.message):
+            for joints in node.handle(item.key, item.message, item.missed):
                 publish(publisher, joints)
             if stats.rejected != rejected:
                 reporter.error(stats.last_error)
@@ -330,6 +335,7 @@ def _copy_counters(kinematics: StreamingJointKinematics, stats: KinematicsStats)
     c = kinematics.counters
     stats.calibration_frames, stats.calibrations = c.calibration_frames, c.calibrations
     stats.calibration_failures, stats.restarts, stats.bad_frames = c.calibration_failures, c.restarts, c.bad_frames
+    stats.resumes = c.resumes
     if c.last_error:
         stats.last_error = c.last_error
         c.last_error = ""
@@ -427,7 +433,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         else None,
     )
     print(
-        f"published {stats.frames_out} frames; calibrations {stats.calibrations}; incomplete instants "
+        f"published {stats.frames_out} frames; calibrations {stats.calibrations} (gaps: {stats.restarts} new sets, "
+        f"{stats.resumes} resumed after samples lost on their way); incomplete instants "
         f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"
         + (f"; last error: {stats.last_error}" if stats.last_error else ""),
         file=sys.stderr,

@@ -404,7 +404,10 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
-    assert "published 89 frames; calibrations 1; incomplete instants 0" in err
+    assert (
+        "published 89 frames; calibrations 1 (gaps: 0 new sets, 0 resumed after samples lost on their way); incomplete instants 0"
+        in err
+    )
     assert len(received) == 89 and received[0].coordinates == list(pack.coordinates)
     np.testing.assert_allclose(received[-1].q, q1, atol=np.radians(0.05))
     np.testing.assert_allclose(received[-1].qd, 0.0, atol=0.01)
@@ -448,6 +451,48 @@ def test_streaming_recalibrates_after_a_gap_and_counts_bad_and_moving_static_fra
     np.testing.assert_allclose(outs[-1].q, bent, atol=np.radians(0.05))
     assert live.counters.frames == 221
     assert live.counters.published + live.counters.calibration_frames + live.counters.bad_frames == 221
+
+
+def test_a_gap_of_samples_lost_on_their_way_keeps_the_calibration():
+    """The network to the node down 3 s mid-lift (the router restarted): the trackers kept measuring, their samples
+    were lost on the way. Recalibrating on the pose the lift is in when they come back (as for a new set) put the
+    elbow 90 deg off in the namespace deployment (tests/test_hosts.py) and most frames out of the pack's range."""
+    from msk_core.imu.kinematics import KinematicsFilterConfig
+    from msk_core.imu.stream import StreamingJointKinematics
+
+    pack = load_pack("bench_press")
+    mapper = ImuJointMapper.for_pack(pack, heading_rad=np.pi / 2)
+    q0 = mapper.static_pose()
+    bent = q0 + np.radians([20.0, 60.0])
+    mounts = Rotation.from_rotvec(np.random.default_rng(3).normal(0.0, 0.3, (len(mapper.segments), 3)))
+
+    def frame(time_ns, q):
+        body = mapper.segment_orientations(q)
+        return SyncedFrame(
+            time_ns, {s: (body[s] * mounts[i]).as_quat(scalar_first=True) for i, s in enumerate(mapper.segments)}
+        )
+
+    outcomes = {}
+    for lost in (False, True):
+        live = StreamingJointKinematics(
+            mapper, static_pose_rad=q0, static_s=0.2, gap_s=1.0, filter_config=KinematicsFilterConfig(dt=1 / 60)
+        )
+        for k in range(60):
+            live.step(frame(k * 16_666_667, q0))
+        back_ns = 60 * 16_666_667 + 3 * 10**9
+        if lost:
+            live.lost_before(back_ns + 5_000_000)  # the first sample after the loss: another tracker's, 5 ms later
+        outs = [live.step(frame(back_ns + k * 16_666_667, bent)) for k in range(60)]
+        outcomes[lost] = (live.counters, outs)
+    kept, outs = outcomes[True]
+    assert kept.resumes == 1 and kept.restarts == 0 and kept.calibrations == 1
+    assert outs[0] is not None, "a resumed set publishes at once (no static window)"
+    np.testing.assert_allclose(outs[-1].q, bent, atol=np.radians(0.05))
+    assert np.all(np.isfinite(outs[0].qd)) and np.all(np.abs(outs[0].qd) < 1.0), "the filter restarts: no 3 s step"
+    # without the loss said, the gap is a new set: recalibrated on the bent pose, which then reads as the static one
+    restarted, outs = outcomes[False]
+    assert restarted.restarts == 1 and restarted.resumes == 0 and restarted.calibrations == 2
+    np.testing.assert_allclose(outs[-1].q, q0, atol=np.radians(0.05))
 
 
 @pytest.mark.parametrize("clock", ["device", "host"])

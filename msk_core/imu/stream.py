@@ -103,6 +103,7 @@ class KinematicsCounters:
     published: int = 0
     bad_frames: int = 0  # non-finite or zero quaternions
     restarts: int = 0  # gaps longer than gap_s (or time going backwards): recalibrated
+    resumes: int = 0  # gaps longer than gap_s of samples lost on their way (lost_before): calibration kept
     last_error: str = ""
     errors: dict[str, int] = field(default_factory=dict)
 
@@ -114,6 +115,11 @@ class JointOutput:
     qd: np.ndarray
     qdd: np.ndarray
     phase: float  # [0, 1) inside a rep, REST_PHASE (msk_core.signal.reps) between reps, NaN when unknown (no template)
+
+
+#: a frame up to this long before the first sample after a loss still ends the loss's gap (the other trackers'
+#: samples of that instant are within the synchroniser's tolerance, milliseconds)
+LOST_MARGIN_NS = 100_000_000
 
 
 class StreamingJointKinematics:
@@ -138,6 +144,7 @@ class StreamingJointKinematics:
         self.phase_index = None if phase_coordinate is None else mapper.coordinates.index(phase_coordinate)
         self.phase_template = phase_template
         self.counters = KinematicsCounters()
+        self._lost_ns: int | None = None  # the newest instant just before which samples were lost on their way
         self._restart()
 
     def _restart(self) -> None:
@@ -148,6 +155,13 @@ class StreamingJointKinematics:
         self.tracker = PhaseTracker(self.phase_template) if self.phase_template is not None else None
         self.last_ns: int | None = None
 
+    def lost_before(self, time_ns: int) -> None:
+        """The trackers' samples just before ``time_ns`` were lost on their way (their publications skipped: the
+        network to the node, or the router, was down) while the trackers kept measuring on the body. A gap that
+        ends there is not a new set: the calibration holds (it is not redone on whatever pose the lift is in when
+        the samples come back), the filter and the phase restart (``resumes``)."""
+        self._lost_ns = time_ns if self._lost_ns is None else max(self._lost_ns, time_ns)
+
     def _error(self, kind: str, message: str) -> None:
         self.counters.errors[kind] = self.counters.errors.get(kind, 0) + 1
         self.counters.last_error = message
@@ -156,9 +170,18 @@ class StreamingJointKinematics:
         """One synchronised frame; returns the coordinates, or ``None`` while calibrating or for a bad frame."""
         c = self.counters
         c.frames += 1
+        lost = self._lost_ns
+        if lost is not None and lost <= frame.time_ns:
+            self._lost_ns = None  # this frame is past the loss
         if self.last_ns is not None and not 0 < frame.time_ns - self.last_ns <= self.gap_ns:
-            c.restarts += 1  # a new set (or a clock jump): the trackers may have moved on the body
-            self._restart()
+            if self.calibrated and lost is not None and self.last_ns < lost <= frame.time_ns + LOST_MARGIN_NS:
+                c.resumes += 1  # the samples of the gap were lost on their way: the same set goes on
+                self.filter = JointKinematicsFilter(len(self.mapper.coordinates), self.filter_config)
+                self.tracker = PhaseTracker(self.phase_template) if self.phase_template is not None else None
+                self.last_ns = None
+            else:
+                c.restarts += 1  # a new set (or a clock jump): the trackers may have moved on the body
+                self._restart()
         quats = {s: np.asarray(frame.quats[s], dtype=float) for s in self.mapper.segments}
         if not all(np.all(np.isfinite(q)) and np.linalg.norm(q) > 1e-6 for q in quats.values()):
             c.bad_frames += 1
