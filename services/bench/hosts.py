@@ -299,80 +299,29 @@ class Deployment:
             watch=(router,),
         )
 
-    def _device_files(self) -> tuple[Path, dict[str, tuple[str, Path]], dict[str, str]]:
-        """The held-out bench press of the bundled session as the simulators' files (what ``msk live --sim``
-        streams): the Trigno's EMG and accelerations, each tracker's IMU (it starts in the static pose the
-        kinematics node calibrates on); and the electrode map (Trigno channel -> muscle group)."""
-        import numpy as np
+    def _start_devices(self) -> Process:
+        """The simulators on the rack PC, in one process (:func:`serve_simulators`)."""
+        return self._spawn("rack", "sim-devices", [sys.executable, "-m", "services.bench.hosts", "simulators"],
+                           stdout_pipe=True)  # fmt: skip
 
-        from services.live import sim_sources
-        from services.synth_export import savez_deterministic
-
-        sources = sim_sources(DEMO, PACK)
-        folder = self.work / "devices"
-        folder.mkdir(parents=True, exist_ok=True)
-        emg = sources.emg
-        slots = [k for k, paired in enumerate(emg.paired) if paired]
-        trigno = folder / "trigno.npz"
-        arrays: dict[str, np.ndarray] = {
-            "emg": emg.samples[:, slots],
-            "rate_hz": np.asarray(emg.rate_hz),
-            "labels": np.array([emg.labels[k] for k in slots]),
-            "sensors": np.array([k + 1 for k in slots]),
-        }
-        if emg.acc is not None:
-            arrays |= {"acc": emg.acc[:, slots], "acc_rate_hz": np.asarray(emg.acc_rate_hz)}
-        savez_deterministic(trigno, **arrays)
-        trackers = {}
-        for tracker, (segment, source) in sources.imu.items():
-            path = folder / f"xsens_{segment}.npz"
-            savez_deterministic(path, rate_hz=np.asarray(source.rate_hz), **source.arrays)
-            trackers[tracker] = (segment, path)
-        return trigno, trackers, sources.electrodes
-
-    def _start_devices(
-        self, trigno_file: Path, trackers: dict[str, tuple[str, Path]]
-    ) -> tuple[dict[str, int], dict[str, str], dict[str, str]]:
-        """The simulators on the rack PC: the Trigno's ports on its loopback, each tracker's pseudo-terminal."""
-        trigno = self._spawn(
-            "rack",
-            "sim-trigno",
-            msk_argv(
-                "sim", "trigno", "--from", str(trigno_file), "--host", "127.0.0.1", "--port", "0", "--emg-port", "0",
-                "--legacy-emg-port", "0", "--aux-port", "0", "--legacy-acc-port", "-1",
-            ),
-            stdout_pipe=True,
-        )  # fmt: skip
-        line = trigno.popen.stdout.readline() if trigno.popen.stdout is not None else ""
-        ports = {k: int(v) for k, v in re.findall(r"(command|emg) (\d+)", line)}
-        if "command" not in ports:
-            raise RuntimeError(f"msk sim trigno did not report its ports: {line!r}; log {trigno.log}")
-        ptys, segments = {}, {}
-        for tracker, (segment, path) in trackers.items():
-            sim = self._spawn(
-                "rack", f"sim-xsens-{tracker}", msk_argv("sim", "xsens", "--from", str(path), "--device-id", tracker),
-                stdout_pipe=True,
-            )  # fmt: skip
-            pty = sim.popen.stdout.readline().strip() if sim.popen.stdout is not None else ""
-            if not pty.startswith("/dev/"):
-                raise RuntimeError(f"msk sim xsens {tracker} did not report its port: {pty!r}; log {sim.log}")
-            ptys[tracker], segments[tracker] = pty, segment
-        return ports, ptys, segments
+    @staticmethod
+    def _devices(sims: Process) -> tuple[dict[str, int], dict[str, str], dict[str, str], dict[str, Any]]:
+        """What the simulators said once ready: the Trigno's ports on the rack's loopback, each tracker's
+        pseudo-terminal and segment, and the trial's facts (electrode map, load)."""
+        line = sims.popen.stdout.readline() if sims.popen.stdout is not None else ""
+        try:
+            said = json.loads(line)
+        except json.JSONDecodeError:
+            raise RuntimeError(f"the simulators did not report their ports: {line!r}; {_tail(sims.log)}") from None
+        ptys = {tracker: pty for tracker, (_, pty) in said["trackers"].items()}
+        segments = {tracker: segment for tracker, (segment, _) in said["trackers"].items()}
+        return said["ports"], ptys, segments, said["trial"]
 
     def start(self, timeout_s: float = 120.0) -> None:
         """The router, then the readers (recorder, kinematics, estimator, tablet), then, once the kinematics node and
         the estimator report (their status reaches the tablet), the devices and the drivers, as ``msk live`` waits
         for the readers; returns when the tablet receives activation frames."""
-        made: dict[str, Any] = {}
-
-        def make_files() -> None:
-            try:
-                made["files"] = self._device_files()
-            except BaseException as error:  # raised below, in the caller's thread
-                made["error"] = error
-
-        maker = threading.Thread(target=make_files, name="device-files")
-        maker.start()  # while the processes start
+        sims = self._start_devices()  # while the processes start (reading the trial takes seconds)
         self.make_pki()
         self.start_router()
         s = ("--session", self.session)
@@ -389,17 +338,14 @@ class Deployment:
             )  # fmt: skip
             if tablet.popen.stdout is not None:
                 threading.Thread(target=self.tablet.read, args=(tablet.popen.stdout,), daemon=True).start()
-        maker.join()
-        if "error" in made:
-            raise made["error"]
-        trigno_file, trackers, electrodes = made["files"]
+        # the devices start streaming when the drivers start them (one trial clock, from its static start)
+        ports, ptys, segments, trial = self._devices(sims)
         # the estimator reads the EMG too (its largest input, across the server's link), counting gaps and losses
         methods = [a for m in self.methods for a in ("--method", m)]
-        emg = ["--emg", *(f"--emg-map={c}={g}" for c, g in electrodes.items()), "--emg-clock", "host",
+        emg = ["--emg", *(f"--emg-map={c}={g}" for c, g in trial["electrodes"].items()), "--emg-clock", "host",
                "--joints-clock", "host", "--emg-align", "arrival"]  # fmt: skip
         self._spawn("server", "estimator", msk_argv("estimator", "--pack", PACK, *s, *methods, *emg, "--load-kg",
-                                                    "60", "--zenoh-config", self.config("estimator")))  # fmt: skip
-        ports, ptys, segments = self._start_devices(trigno_file, trackers)
+                                                    str(trial["load_kg"]), "--zenoh-config", self.config("estimator")))  # fmt: skip
 
         def reporting() -> set[str]:
             return {str(m.get("device_id")) for _, m in self.tablet.statuses()}
@@ -724,3 +670,42 @@ def outcome(
         "estimator_latency": latency_figures(np.asarray(estimator_ms)),
         "network_latency": latency_figures(np.asarray(network_ms)),
     }
+
+
+# --- the rack PC's devices -----------------------------------------------------------------------------------------
+
+
+def serve_simulators() -> int:
+    """The rack PC's simulated devices as ``msk live --sim`` runs them (:func:`services.live.start_simulators`): the
+    Trigno and one Xsens simulator per tracker playing the held-out trial of :data:`PACK` on one trial clock, which
+    starts when the drivers start the first device; each tracker waits in Config for its driver. So every device
+    samples the same instant of the trial and the trial's static start is what the kinematics node calibrates on.
+    (Standalone ``msk sim`` processes each play the trial from their own start, streaming before their driver reads:
+    the trackers then sample instants seconds apart, and the kinematics node calibrates on a moving pose: elbow angles
+    off by up to 90 deg, most frames ``invalid_input``.) Prints one JSON line (ports, trackers, the trial's electrode
+    map and load), then runs until SIGINT or SIGTERM."""
+    from services.live import sim_sources, start_simulators
+
+    sources = sim_sources(DEMO, PACK)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    simulators = start_simulators(sources)
+    try:
+        said = {
+            "ports": {"command": simulators.trigno.ports["command"], "emg": simulators.trigno.ports["emg"]},
+            "trackers": {t: (segment, simulators.xsens[t].path) for t, (segment, _) in sources.imu.items()},
+            "trial": {"name": sources.trial, "electrodes": sources.electrodes, "load_kg": sources.load_kg},
+        }
+        print(json.dumps(said), flush=True)
+        while not stop.wait(0.5):
+            pass
+    finally:
+        simulators.close()
+    return 0
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] != ["simulators"]:
+        sys.exit("usage: python -m services.bench.hosts simulators")
+    sys.exit(serve_simulators())
