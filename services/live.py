@@ -92,30 +92,64 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
     sensors: each sensor's (on the Trigno's AUX port) is computed from the recorded joint angles
     (:func:`electrode_accelerations`)."""
     from drivers.trigno.protocol import N_SENSORS
-    from drivers.trigno.source import EmgSource
     from drivers.xsens.source import ImuSource
-
-    def _common_loop(streams: dict[str, tuple[int, float]]) -> dict[str, int]:
-        """Per stream name, (samples, rate in Hz) -> the most samples, no more than it has, such that every stream
-        spans one and the same duration: looping simulators then stay on one world round after round (a 60 Hz and
-        a 2000 Hz stream loop together only on multiples of 50 ms)."""
-        slowest = min(streams, key=lambda name: streams[name][1])
-        n_slow, rate_slow = streams[slowest]
-        for m in range(n_slow, n_slow // 2, -1):
-            counts = {name: m / rate_slow * rate for name, (_, rate) in streams.items()}
-            if all(abs(c - round(c)) < 1e-6 and round(c) <= streams[name][0] for name, c in counts.items()):
-                return {name: int(round(c)) for name, c in counts.items()}
-        raise InputError(
-            f"the {pack} trial's streams have no common duration within its shorter half, so the "
-            "simulators could not loop together",
-            path=recording,
-            value={name: rate for name, (_, rate) in streams.items()},
-        )
 
     if not recording.is_file():
         raise InputError(
             "bundled session not found (generate it with `msk synth`, recordings/README.md)", path=recording
         )
+    t0, t1, load = _last_trial_window(recording, pack)
+    streams = _read_trial(recording, pack, t0, t1)
+    emg = np.concatenate(streams.emg_rows)
+    if emg.shape[1] > N_SENSORS:
+        raise InputError(f"{emg.shape[1]} EMG channels exceed the Trigno's {N_SENSORS} sensors", path=recording)
+    imu_rates = {}
+    for tracker, (_, rows) in streams.imu.items():
+        rows.sort(key=lambda r: r[0])
+        imu_rates[tracker] = float(round(1.0 / np.median(np.diff(np.array([r[0] for r in rows], dtype=float) / 1e9))))
+    counts = _common_loop(
+        {
+            "emg": (emg.shape[0], streams.rate),
+            **{t: (len(rows), imu_rates[t]) for t, (_, rows) in streams.imu.items()},
+        },
+        pack,
+        recording,
+    )
+    source = _emg_source(recording, pack, streams, emg[: counts["emg"]])
+    trackers = {}
+    for tracker, (segment, rows) in streams.imu.items():
+        rows = rows[: counts[tracker]]
+        arrays = {
+            name: np.array([r[k] for r in rows], dtype=float)
+            for k, name in enumerate(("quaternion", "acceleration", "rate_of_turn", "magnetic_field"), start=1)
+        }
+        trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
+    electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(streams.labels)}
+    rep_ends, lead = trial_reps(streams.joints, streams.emg_start)
+    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg", pack, rep_ends, lead)
+
+
+def _common_loop(streams: dict[str, tuple[int, float]], pack: str, recording: Path) -> dict[str, int]:
+    """Per stream name, (samples, rate in Hz) -> the most samples, no more than it has, such that every stream
+    spans one and the same duration: looping simulators then stay on one world round after round (a 60 Hz and
+    a 2000 Hz stream loop together only on multiples of 50 ms)."""
+    slowest = min(streams, key=lambda name: streams[name][1])
+    n_slow, rate_slow = streams[slowest]
+    for m in range(n_slow, n_slow // 2, -1):
+        counts = {name: m / rate_slow * rate for name, (_, rate) in streams.items()}
+        if all(abs(c - round(c)) < 1e-6 and round(c) <= streams[name][0] for name, c in counts.items()):
+            return {name: int(round(c)) for name, c in counts.items()}
+    raise InputError(
+        f"the {pack} trial's streams have no common duration within its shorter half, so the "
+        "simulators could not loop together",
+        path=recording,
+        value={name: rate for name, (_, rate) in streams.items()},
+    )
+
+
+def _last_trial_window(recording: Path, pack: str) -> tuple[int, int, float]:
+    """(start, end device time in ns, load in kg) of the last trial of ``pack``: between its load event with a load
+    and the next one without."""
     windows, start = [], None
     for m in read_messages(recording):
         if m.type_name == "msk.LoadEvent":
@@ -131,13 +165,32 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
         raise InputError(
             f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack
         )
-    t0, t1, load = windows[-1]
+    return windows[-1]
+
+
+# one IMU sample: (device time, quaternion, acceleration, rate of turn, magnetic field)
+_ImuRow = tuple[int, list[float], list[float], list[float], list[float]]
+
+
+@dataclass
+class _TrialStreams:
+    """The recorded streams of one trial window, as read (EMG chunks as rows, IMU samples per tracker)."""
+
+    emg_rows: list[np.ndarray]
+    labels: list[str]
+    rate: float
+    emg_start: int
+    imu: dict[str, tuple[str, list[_ImuRow]]]  # tracker id -> (segment, samples)
+    joints: list[messages.JointAngles]
+
+
+def _read_trial(recording: Path, pack: str, t0: int, t1: int) -> _TrialStreams:
+    """The joint angles, EMG chunks and IMU samples with device times in [t0, t1), checked to start together."""
     emg_rows: list[np.ndarray] = []
     labels: list[str] | None = None
     rate: float | None = None
     emg_start: int | None = None
-    # tracker id -> (segment, [(device time, quaternion, acceleration, rate of turn, magnetic field)])
-    imu: dict[str, tuple[str, list[tuple[int, list[float], list[float], list[float], list[float]]]]] = {}
+    imu: dict[str, tuple[str, list[_ImuRow]]] = {}
     joints: list[messages.JointAngles] = []
     for m in read_messages(recording):
         if m.type_name == "msk.JointAngles":
@@ -166,42 +219,30 @@ def sim_sources(recording: Path, pack: str) -> SimSources:
             f"{starts} ns): the simulators could not sample one world",
             path=recording,
         )
-    emg = np.concatenate(emg_rows)
-    if emg.shape[1] > N_SENSORS:
-        raise InputError(f"{emg.shape[1]} EMG channels exceed the Trigno's {N_SENSORS} sensors", path=recording)
-    imu_rates = {}
-    for tracker, (_, rows) in imu.items():
-        rows.sort(key=lambda r: r[0])
-        imu_rates[tracker] = float(round(1.0 / np.median(np.diff(np.array([r[0] for r in rows], dtype=float) / 1e9))))
-    counts = _common_loop(
-        {"emg": (emg.shape[0], float(rate)), **{t: (len(rows), imu_rates[t]) for t, (_, rows) in imu.items()}}
-    )
-    samples = np.zeros((counts["emg"], N_SENSORS), dtype=np.float32)
-    samples[:, : emg.shape[1]] = emg[: counts["emg"]]
+    return _TrialStreams(emg_rows, labels, float(rate), emg_start, imu, joints)
+
+
+def _emg_source(recording: Path, pack: str, streams: _TrialStreams, emg: np.ndarray) -> EmgSource:
+    """The Trigno source: ``emg`` in the first sensor slots, the rest empty, with each sensor's accelerations."""
+    from drivers.trigno.protocol import N_SENSORS
+    from drivers.trigno.source import EmgSource
+
+    labels = streams.labels
+    samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
+    samples[:, : emg.shape[1]] = emg
     names = tuple(labels) + ("",) * (N_SENSORS - len(labels))
-    acc_rate, acc = electrode_accelerations(joints, labels, pack, emg_start, recording)
+    acc_rate, acc = electrode_accelerations(streams.joints, labels, pack, streams.emg_start, recording)
     slot_acc = np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
     slot_acc[:, : len(labels)] = acc
-    source = EmgSource(
+    return EmgSource(
         samples,
-        float(rate),
+        streams.rate,
         names,
         tuple(k < len(labels) for k in range(N_SENSORS)),
         f"{recording.name}:{pack}",
         slot_acc,
         acc_rate,
     )
-    trackers = {}
-    for tracker, (segment, rows) in imu.items():
-        rows = rows[: counts[tracker]]
-        arrays = {
-            name: np.array([r[k] for r in rows], dtype=float)
-            for k, name in enumerate(("quaternion", "acceleration", "rate_of_turn", "magnetic_field"), start=1)
-        }
-        trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
-    electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(labels)}
-    rep_ends, lead = trial_reps(joints, emg_start)
-    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg", pack, rep_ends, lead)
 
 
 def trial_reps(joints: list, start_ns: int) -> tuple[tuple[float, ...], float]:
@@ -1163,7 +1204,6 @@ def plan_for(
     ``sim_sets`` (default :class:`services.sim_sets.SimSets`: sets of 9 reps with 30 s rests)."""
     from msk_core.imu.mapping import mapping_for
     from msk_core.model import load_pack
-    from services.sim_sets import SimSets, with_sets
 
     if sim_faults and not sim:
         raise ConfigError(
@@ -1174,22 +1214,11 @@ def plan_for(
     session.out.mkdir(parents=True, exist_ok=True)
     model = load_pack(session.pack)
     segments = list(mapping_for(model.name).segments)
-    simulators = None
+    sources = None
     if sim:
-        sources = with_sets(sim_sources(RECORDINGS / "demo_session.mcap", model.name), sim_sets or SimSets())
-        subject = session.subject or sim_subject(model.name, log)
-        if "session.load_kg" not in session.given:
-            session.load_kg = sources.load_kg
-        electrodes = session.electrodes or sources.electrodes
-        trackers = session.trackers or {t: seg for t, (seg, _) in sources.imu.items() if seg in segments}
-        methods = session.methods or SIM_METHODS
+        sources, (subject, electrodes, trackers, methods) = _sim_inputs(session, model.name, segments, sim_sets, log)
     else:
-        if session.subject is None:
-            raise ConfigError(
-                "missing: the subject profile (`msk calibrate`)", path=session.path, field="session.subject"
-            )
-        subject, electrodes, trackers = session.subject, session.electrodes, session.trackers
-        methods = session.methods or (("proposed", "assisted") if session.trigno_host else ("proposed",))
+        subject, electrodes, trackers, methods = _device_inputs(session)
     profile = json.loads(Path(subject).read_text())
     check_against_pack(
         LiveSession(session.path, trackers=trackers, electrodes=electrodes),
@@ -1216,48 +1245,91 @@ def plan_for(
         tracker_latency_ms=tracker_latency_ms,
         names=session_names(session, model.display_names),
     )
-    if sim:  # the simulated devices have the latencies the session states (0 unless it says)
-        simulators = start_simulators(
-            sources,
-            trigno_latency_s=trigno_latency_ms / 1e3,
-            xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()},
-            trigno_faults=sim_faults,
-        )
-        plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
-        plan.trigno_aux_port = simulators.trigno.ports["aux"]
-        plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
-        session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))
-        log(
-            f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
-            f"{sum(sources.emg.paired)} sensors), Xsens "
-            + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}" for t, seg in trackers.items())
-            + f"; streaming the bundled {sources.trial} trial"
-            + (
-                f" as sets of {sources.sets.reps} rep{'s' if sources.sets.reps != 1 else ''} with "
-                f"{sources.sets.rest_s:g} s rests"
-                if sources.sets is not None
-                else " in a loop"
-            )
-        )
-        for fault in sim_faults:
-            label = f"sensor{fault.sensor:02d}.EMG"
-            log(
-                f"injecting {fault.kind.value} on {label} ({electrodes.get(label, 'not in the electrode map')}) "
-                f"from {fault.start_s:g} to {fault.end_s:g} s after the Trigno starts streaming"
-            )
-        for tracker in set(sources.imu) - set(trackers):
-            simulators.xsens.pop(tracker).close()  # trackers of segments the pack does not use
-    else:
-        if session.trigno_host is not None:
-            from drivers.trigno import protocol as tp
+    if sources is not None:
+        return plan, _start_planned_simulators(plan, sources, electrodes, sim_faults, log)
+    _device_ports(plan)
+    return plan, None
 
-            plan.trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
-            # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
-            plan.trigno_aux_port = int(
-                tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX
-            )
-        plan.xsens_ports = list(session.xsens_ports)
-    return plan, simulators
+
+# (subject profile, electrode map, tracker -> segment map, methods) of a session
+_SessionInputs = tuple[Path, dict[str, str], dict[str, str], tuple[str, ...]]
+
+
+def _sim_inputs(
+    session: LiveSession, pack: str, segments: list[str], sim_sets: SimSets | None, log
+) -> tuple[SimSources, _SessionInputs]:
+    """Under --sim: the bundled trial's sources, and what the session file leaves out taken from the bundled session
+    (its subject, calibrated and cached; its load, electrodes and trackers of the pack's segments)."""
+    from services.sim_sets import SimSets, with_sets
+
+    sources = with_sets(sim_sources(RECORDINGS / "demo_session.mcap", pack), sim_sets or SimSets())
+    subject = session.subject or sim_subject(pack, log)
+    if "session.load_kg" not in session.given:
+        session.load_kg = sources.load_kg
+    electrodes = session.electrodes or sources.electrodes
+    trackers = session.trackers or {t: seg for t, (seg, _) in sources.imu.items() if seg in segments}
+    methods = session.methods or SIM_METHODS
+    return sources, (Path(subject), electrodes, trackers, tuple(methods))
+
+
+def _device_inputs(session: LiveSession) -> _SessionInputs:
+    """With devices: the session file's subject (required) and maps; methods by default proposed (+ assisted with
+    a Trigno)."""
+    if session.subject is None:
+        raise ConfigError("missing: the subject profile (`msk calibrate`)", path=session.path, field="session.subject")
+    methods = session.methods or (("proposed", "assisted") if session.trigno_host else ("proposed",))
+    return session.subject, session.electrodes, session.trackers, tuple(methods)
+
+
+def _start_planned_simulators(
+    plan: LivePlan, sources: SimSources, electrodes: dict[str, str], sim_faults: tuple, log
+) -> Simulators:
+    """Start the simulators with the latencies the session states (0 unless it says) and point the plan's drivers at
+    them."""
+    session, trackers = plan.session, plan.trackers
+    simulators = start_simulators(
+        sources,
+        trigno_latency_s=plan.trigno_latency_ms / 1e3,
+        xsens_latency_s={t: ms / 1e3 for t, ms in plan.tracker_latency_ms.items()},
+        trigno_faults=sim_faults,
+    )
+    plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
+    plan.trigno_aux_port = simulators.trigno.ports["aux"]
+    plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
+    session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))
+    log(
+        f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
+        f"{sum(sources.emg.paired)} sensors), Xsens "
+        + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}" for t, seg in trackers.items())
+        + f"; streaming the bundled {sources.trial} trial"
+        + (
+            f" as sets of {sources.sets.reps} rep{'s' if sources.sets.reps != 1 else ''} with "
+            f"{sources.sets.rest_s:g} s rests"
+            if sources.sets is not None
+            else " in a loop"
+        )
+    )
+    for fault in sim_faults:
+        label = f"sensor{fault.sensor:02d}.EMG"
+        log(
+            f"injecting {fault.kind.value} on {label} ({electrodes.get(label, 'not in the electrode map')}) "
+            f"from {fault.start_s:g} to {fault.end_s:g} s after the Trigno starts streaming"
+        )
+    for tracker in set(sources.imu) - set(trackers):
+        simulators.xsens.pop(tracker).close()  # trackers of segments the pack does not use
+    return simulators
+
+
+def _device_ports(plan: LivePlan) -> None:
+    """The plan's Trigno address and ports and Xsens serial ports from the session file."""
+    session = plan.session
+    if session.trigno_host is not None:
+        from drivers.trigno import protocol as tp
+
+        plan.trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
+        # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
+        plan.trigno_aux_port = int(tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
+    plan.xsens_ports = list(session.xsens_ports)
 
 
 def default_live_endpoint() -> str:

@@ -164,6 +164,22 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
     """Check a session document; ``require_devices=False`` (``--sim``): the simulators replace the device keys and
     the bundled session provides pack, subject, maps and load when the file leaves them out."""
     base = path.parent if path is not None else Path.cwd()
+    _check_sections(doc, path)
+    session = LiveSession(path)
+    session.given = {f"{s}.{k}" for s, t in doc.items() for k in t} | set(doc)
+    _parse_session_table(session, doc.get("session", {}), path, base, require_devices)
+    if (trigno := doc.get("trigno")) is not None:
+        _parse_trigno(session, trigno, path, require_devices)
+    if (xsens := doc.get("xsens")) is not None:
+        _parse_xsens(session, xsens, path, require_devices)
+    _parse_maps(session, doc, path)
+    if require_devices:
+        _check_devices(session, path)
+    return session
+
+
+def _check_sections(doc: dict, path: Path | None) -> None:
+    """Every section is a known table, with known keys."""
     for section, value in doc.items():
         if section not in _SECTIONS:
             raise _error(path, section, f"unknown section (expected {', '.join(_SECTIONS)})", section)
@@ -173,9 +189,10 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
         for key in value:
             if allowed is not None and key not in allowed:
                 raise _error(path, f"{section}.{key}", f"unknown key (expected {', '.join(sorted(allowed))})", key)
-    session = LiveSession(path)
-    session.given = {f"{s}.{k}" for s, t in doc.items() for k in t} | set(doc)
-    s = doc.get("session", {})
+
+
+def _parse_session_table(session: LiveSession, s: dict, path: Path | None, base: Path, require_devices: bool) -> None:
+    """[session]: name, out, athlete, pack, subject, load_kg, rest_s, methods."""
     if "name" in s:
         try:
             session.name = topics.check_chunk(_type(path, "session.name", s["name"], str, "a string"), "session")
@@ -223,47 +240,55 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
             if m not in METHODS:
                 raise _error(path, "session.methods", f"unknown method (expected {', '.join(METHODS)})", m)
         session.methods = tuple(dict.fromkeys(methods))
-    t = doc.get("trigno")
-    if t is not None:
-        if "host" in t:
-            session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
-        elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
-            raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
-        if "emg_port" in t:
-            session.trigno_emg_port = _int_within(
-                path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
-            )
-        if "id" in t:
-            session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
-        if "latency_ms" in t:
-            session.trigno_latency_ms = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
-    x = doc.get("xsens")
-    if x is not None:
-        if "ports" in x:
-            ports = x["ports"]
-            if isinstance(ports, str):
-                ports = [ports]
-            if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
-                raise _error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
-            session.xsens_ports = tuple(ports)
-        elif require_devices:
-            raise _error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
-        if "rate_hz" in x:
-            session.imu_rate_hz = _int_within(
-                path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
-            )
-        if "baud" in x:
-            session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
-            if session.xsens_baud <= 0:
-                raise _error(path, "xsens.baud", "must be a positive baud rate", session.xsens_baud)
-        if "latency_ms" in x:
-            session.xsens_latency_ms = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
-        per_tracker = x.get("tracker_latency_ms", {})
-        if not isinstance(per_tracker, dict):
-            raise _error(path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker)
-        for tracker, value in per_tracker.items():
-            key = f"xsens.tracker_latency_ms.{tracker}"
-            session.tracker_latency_ms[_tracker_id(path, key, tracker)] = _latency_ms(path, key, value)
+
+
+def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devices: bool) -> None:
+    """[trigno]: host, emg_port, id, latency_ms."""
+    if "host" in t:
+        session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
+    elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
+        raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
+    if "emg_port" in t:
+        session.trigno_emg_port = _int_within(
+            path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
+        )
+    if "id" in t:
+        session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
+    if "latency_ms" in t:
+        session.trigno_latency_ms = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
+
+
+def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devices: bool) -> None:
+    """[xsens]: ports, rate_hz, baud, latency_ms, tracker_latency_ms."""
+    if "ports" in x:
+        ports = x["ports"]
+        if isinstance(ports, str):
+            ports = [ports]
+        if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
+            raise _error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
+        session.xsens_ports = tuple(ports)
+    elif require_devices:
+        raise _error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
+    if "rate_hz" in x:
+        session.imu_rate_hz = _int_within(
+            path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
+        )
+    if "baud" in x:
+        session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
+        if session.xsens_baud <= 0:
+            raise _error(path, "xsens.baud", "must be a positive baud rate", session.xsens_baud)
+    if "latency_ms" in x:
+        session.xsens_latency_ms = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
+    per_tracker = x.get("tracker_latency_ms", {})
+    if not isinstance(per_tracker, dict):
+        raise _error(path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker)
+    for tracker, value in per_tracker.items():
+        key = f"xsens.tracker_latency_ms.{tracker}"
+        session.tracker_latency_ms[_tracker_id(path, key, tracker)] = _latency_ms(path, key, value)
+
+
+def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> None:
+    """[trackers], [names] and [electrodes]; a tracker latency only for a tracker of [trackers]."""
     for tracker, segment in doc.get("trackers", {}).items():
         key = f"trackers.{tracker}"
         session.trackers[_tracker_id(path, key, tracker)] = _type(path, key, segment, str, "a body segment name")
@@ -282,16 +307,16 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
                 path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label
             )
         session.electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
-    if require_devices:
-        if session.trigno_host is None and not session.xsens_ports:
-            raise _error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
-        if session.xsens_ports and not session.trackers:
-            raise _error(
-                path, "trackers", 'missing: the tracker -> segment map ([trackers] "00B4EB80" = "upper_arm_r")'
-            )
-        if session.trigno_host is not None and not session.electrodes:
-            raise _error(path, "electrodes", 'missing: the electrode -> group map ([electrodes] "sensor01.EMG" = ...)')
-    return session
+
+
+def _check_devices(session: LiveSession, path: Path | None) -> None:
+    """Without --sim: at least one device, and the maps the devices need."""
+    if session.trigno_host is None and not session.xsens_ports:
+        raise _error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
+    if session.xsens_ports and not session.trackers:
+        raise _error(path, "trackers", 'missing: the tracker -> segment map ([trackers] "00B4EB80" = "upper_arm_r")')
+    if session.trigno_host is not None and not session.electrodes:
+        raise _error(path, "electrodes", 'missing: the electrode -> group map ([electrodes] "sensor01.EMG" = ...)')
 
 
 def _tracker_id(path: Path | None, key: str, tracker: str) -> str:

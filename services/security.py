@@ -308,121 +308,53 @@ def access_control(roles: dict[str, RolePolicy] = ROLE_POLICIES) -> dict:
     rules, subjects, policies = [], [], []
     for role, policy in roles.items():
         subjects.append({"id": role, "cert_common_names": [common_name(role)]})
-        role_rules = []
-        if policy.publish:
-            role_rules.append(
-                {
-                    "id": f"{role}-publish",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["put", "delete"],
-                    "key_exprs": list(policy.publish),
-                }
-            )
-            # Subscribers declare broad expressions (the recorder's msk/**): the publisher must see them to send.
-            role_rules.append(
-                {
-                    "id": f"{role}-publish-interest",
-                    "permission": "allow",
-                    "flows": ["egress"],
-                    "messages": ["declare_subscriber"],
-                    "key_exprs": ["msk/**"],
-                }
-            )
-        if policy.subscribe:
-            role_rules.append(
-                {
-                    "id": f"{role}-subscribe",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["declare_subscriber"],
-                    "key_exprs": list(policy.subscribe),
-                }
-            )
-            role_rules.append(
-                {
-                    "id": f"{role}-receive",
-                    "permission": "allow",
-                    "flows": ["egress"],
-                    "messages": ["put", "delete"],
-                    "key_exprs": list(policy.subscribe),
-                }
-            )
-        # History (a restarted recorder fetching what device publishers kept, services.zenoh_session
-        # .declare_history_publisher): the publisher's cache is a queryable announced by a liveliness token under
-        # <key>/@adv/**, a verbatim chunk that msk/** does not cover.
-        if policy.publish:
-            history_keys = _with_history(policy.publish)
-            role_rules.append(
-                {
-                    "id": f"{role}-history-serve",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["declare_queryable", "reply", "liveliness_token"],
-                    "key_exprs": history_keys,
-                }
-            )
-            role_rules.append(
-                {
-                    "id": f"{role}-history-asked",
-                    "permission": "allow",
-                    "flows": ["egress"],
-                    "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
-                    "key_exprs": history_keys,
-                }
-            )
-        if policy.subscribe:
-            history_keys = _with_history(policy.subscribe)
-            role_rules.append(
-                {
-                    "id": f"{role}-history-fetch",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["query", "declare_liveliness_subscriber", "liveliness_query"],
-                    "key_exprs": history_keys,
-                }
-            )
-            role_rules.append(
-                {
-                    "id": f"{role}-history-receive",
-                    "permission": "allow",
-                    "flows": ["egress"],
-                    "messages": ["reply", "liveliness_token", "declare_queryable"],
-                    "key_exprs": history_keys,
-                }
-            )
-        if policy.tokens:  # "I am ready": services.graph.declare_ready
-            role_rules.append(
-                {
-                    "id": f"{role}-ready",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["liveliness_token"],
-                    "key_exprs": list(policy.tokens),
-                }
-            )
-        if policy.watch_tokens:  # wait for the readers: services.graph.wait_for_nodes
-            role_rules.append(
-                {
-                    "id": f"{role}-watch-ready",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["declare_liveliness_subscriber", "liveliness_query"],
-                    "key_exprs": list(policy.watch_tokens),
-                }
-            )
-            role_rules.append(
-                {
-                    "id": f"{role}-see-ready",
-                    "permission": "allow",
-                    "flows": ["egress"],
-                    "messages": ["liveliness_token", "reply"],
-                    "key_exprs": list(policy.watch_tokens),
-                }
-            )
+        role_rules = _role_rules(role, policy)
         rules.extend(role_rules)
         policies.append({"id": role, "rules": [r["id"] for r in role_rules], "subjects": [role]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def _allow(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict:
+    """One ``allow`` rule of the router's access control."""
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": key_exprs}
+
+
+def _role_rules(role: str, policy: RolePolicy) -> list[dict]:
+    """The rules of one role, in the order: publish, subscribe, history (serve, fetch), ready tokens."""
+    rules = []
+    if policy.publish:
+        rules.append(_allow(f"{role}-publish", "ingress", ["put", "delete"], list(policy.publish)))
+        # Subscribers declare broad expressions (the recorder's msk/**): the publisher must see them to send.
+        rules.append(_allow(f"{role}-publish-interest", "egress", ["declare_subscriber"], ["msk/**"]))
+    if policy.subscribe:
+        rules.append(_allow(f"{role}-subscribe", "ingress", ["declare_subscriber"], list(policy.subscribe)))
+        rules.append(_allow(f"{role}-receive", "egress", ["put", "delete"], list(policy.subscribe)))
+    # History (a restarted recorder fetching what device publishers kept, services.zenoh_session
+    # .declare_history_publisher): the publisher's cache is a queryable announced by a liveliness token under
+    # <key>/@adv/**, a verbatim chunk that msk/** does not cover.
+    serve = ["declare_queryable", "reply", "liveliness_token"]
+    ask = ["query", "declare_liveliness_subscriber", "liveliness_query"]
+    if policy.publish:
+        history_keys = _with_history(policy.publish)
+        rules.append(_allow(f"{role}-history-serve", "ingress", serve, history_keys))
+        rules.append(_allow(f"{role}-history-asked", "egress", ask, history_keys))
+    if policy.subscribe:
+        history_keys = _with_history(policy.subscribe)
+        rules.append(_allow(f"{role}-history-fetch", "ingress", ask, history_keys))
+        rules.append(
+            _allow(
+                f"{role}-history-receive", "egress", ["reply", "liveliness_token", "declare_queryable"], history_keys
+            )
+        )
+    if policy.tokens:  # "I am ready": services.graph.declare_ready
+        rules.append(_allow(f"{role}-ready", "ingress", ["liveliness_token"], list(policy.tokens)))
+    if policy.watch_tokens:  # wait for the readers: services.graph.wait_for_nodes
+        watch = list(policy.watch_tokens)
+        rules.append(
+            _allow(f"{role}-watch-ready", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], watch)
+        )
+        rules.append(_allow(f"{role}-see-ready", "egress", ["liveliness_token", "reply"], watch))
+    return rules
 
 
 def _with_history(keys: tuple[str, ...]) -> list[str]:

@@ -40,26 +40,40 @@ def _ns(t: float) -> int:
     return int(round(t * 1e9))
 
 
-def trial_messages(trial: Trial, session: str, t0_ns: int, emg_rate_hz: float) -> list[tuple[int, int, str, object]]:
-    """(log_time_ns, tie-break, topic, message) for one trial."""
-    out: list[tuple[int, int, str, object]] = []
-    load_key, joints_key, emg_key = (
-        topics.load_key(session),
-        topics.joints_key(session),
-        topics.emg_key(session, EMG_SOURCE),
+_Timed = tuple[int, int, str, object]  # (log_time_ns, tie-break, topic, message)
+
+
+def trial_messages(trial: Trial, session: str, t0_ns: int, emg_rate_hz: float) -> list[_Timed]:
+    """(log_time_ns, tie-break, topic, message) for one trial: its load events, joint angles, EMG chunks and IMU
+    samples (tie-breaks 0, 1, 2 and 3 + tracker index)."""
+    return (
+        _load_messages(trial, session, t0_ns)
+        + _joint_messages(trial, session, t0_ns)
+        + _emg_messages(trial, session, t0_ns, emg_rate_hz)
+        + _imu_messages(trial, session, t0_ns)
     )
+
+
+def _load_messages(trial: Trial, session: str, t0_ns: int) -> list[_Timed]:
+    """The trial's load at its start and 0 kg at its end."""
+    load_key = topics.load_key(session)
     end_ns = t0_ns + _ns(float(trial.time[-1]))
-    for when, mass in ((t0_ns, trial.reported_load_kg), (end_ns, 0.0)):
-        out.append(
-            (
-                when,
-                0,
-                load_key,
-                messages.LoadEvent(
-                    barbell_mass_kg=mass, exercise=trial.exercise.value, device_time_ns=when, host_time_ns=when
-                ),
-            )
+    return [
+        (
+            when,
+            0,
+            load_key,
+            messages.LoadEvent(
+                barbell_mass_kg=mass, exercise=trial.exercise.value, device_time_ns=when, host_time_ns=when
+            ),
         )
+        for when, mass in ((t0_ns, trial.reported_load_kg), (end_ns, 0.0))
+    ]
+
+
+def _joint_messages(trial: Trial, session: str, t0_ns: int) -> list[_Timed]:
+    joints_key = topics.joints_key(session)
+    out: list[_Timed] = []
     for k, t in enumerate(trial.time):
         when = t0_ns + _ns(float(t))
         out.append(
@@ -78,6 +92,13 @@ def trial_messages(trial: Trial, session: str, t0_ns: int, emg_rate_hz: float) -
                 ),
             )
         )
+    return out
+
+
+def _emg_messages(trial: Trial, session: str, t0_ns: int, emg_rate_hz: float) -> list[_Timed]:
+    """Whole EMG_CHUNK-sample frames, each logged when its last sample is in."""
+    emg_key = topics.emg_key(session, EMG_SOURCE)
+    out: list[_Timed] = []
     first_index = int(round(t0_ns * 1e-9 * emg_rate_hz)) - int(round(EPOCH_NS * 1e-9 * emg_rate_hz))
     samples = trial.emg.astype(np.float32)
     for start in range(0, samples.shape[0] - EMG_CHUNK + 1, EMG_CHUNK):
@@ -103,6 +124,11 @@ def trial_messages(trial: Trial, session: str, t0_ns: int, emg_rate_hz: float) -
                 ),
             )
         )
+    return out
+
+
+def _imu_messages(trial: Trial, session: str, t0_ns: int) -> list[_Timed]:
+    out: list[_Timed] = []
     for s, imu in enumerate(trial.imu):
         key = topics.imu_key(session, imu.segment)
         for k, t in enumerate(imu.time):

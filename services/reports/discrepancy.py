@@ -104,8 +104,15 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     _relation_plot(folder / "gap_vs_phase.png", result, "phase", "phase of the rep")
     _xcorr_plot(folder / "xcorr_vs_lag.png", result)
     _rms_plot(folder / "gap_rms.png", s)
+    lines = _headline_lines(s) + _candidate_lines(s) + _gap_lines(result) + _calibration_lines(s) + _plot_lines()
+    (folder / "report.md").write_text("\n".join(lines))
+    return folder / "report.md"
+
+
+def _headline_lines(s: dict) -> list[str]:
+    """The named effect, the gaps before and after, how consistent, the frames left out."""
     effect = s["effect"] if isinstance(s["effect"], str) else ", ".join(s["effect"])
-    lines = [
+    lines: list[str] = [
         "# Discrepancy report",
         "",
         f"**Named effect: {effect}**",
@@ -131,7 +138,12 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
             f"{s['activation_gap_before']:.4f}, after {s['activation_gap_after']:.4f}.",
             "",
         ]
-    lines += [
+    return lines
+
+
+def _candidate_lines(s: dict) -> list[str]:
+    """The criterion and the table of candidates."""
+    lines: list[str] = [
         f"Criterion: held-out MSE reduction >= {s['criterion']['min_holdout_mse_reduction']:.0%}, dBIC < "
         f"-{s['criterion']['bic_margin']:g} on the training trials and -2 ln LR < -{s['criterion']['bic_margin']:g} on "
         f"the held-out trials; with several training trials, none left out of the fit may favour the model without "
@@ -154,7 +166,13 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
             f"{reps.get('improved', 0)}/{reps.get('reps', 0)} | {c['delta_bic_train']:.1f} | "
             f"{c['minus2_ln_lr_holdout']:.1f} | {c['holdout_bic']:.1f} | {params} | {c['reason']} |"
         )
-    lines += ["", "## Gap per coordinate (held-out RMS)", "", "| coordinate | before | after |", "|---|---|---|"]
+    return lines
+
+
+def _gap_lines(result: DiscrepancyResult) -> list[str]:
+    """The gap per coordinate and where the gaps concentrate (correlations, cross-correlation lags)."""
+    s = result.summary
+    lines = ["", "## Gap per coordinate (held-out RMS)", "", "| coordinate | before | after |", "|---|---|---|"]
     lines += [f"| {c} | {v['before']:.4f} | {v['after']:.4f} |" for c, v in s["gap_per_coordinate"].items()]
     rel = result.relations_before["coordinates"]
     lines += [
@@ -176,6 +194,12 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
             f"| {g} | {v['corr_fibre_length']:+.2f} | {v['corr_lengthening_velocity']:+.2f} |"
             for g, v in groups.items()
         ]
+    return lines
+
+
+def _calibration_lines(s: dict) -> list[str]:
+    """Calibration strengths at their bounds and the re-calibrated strengths, when there are any."""
+    lines: list[str] = []
     pinned = s.get("calibration_at_bounds") or []
     if pinned:
         lines += [
@@ -216,7 +240,12 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
                 "|---|---|",
             ]
             lines += [f"| {k} | {v:.4g} |" for k, v in terms.items()]
-    lines += [
+    return lines
+
+
+def _plot_lines() -> list[str]:
+    """Links to the plots write_report draws."""
+    lines: list[str] = [
         "",
         "## Plots",
         "",
@@ -231,5 +260,4 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
         "![RMS gaps before and after](gap_rms.png)",
         "",
     ]
-    (folder / "report.md").write_text("\n".join(lines))
-    return folder / "report.md"
+    return lines
