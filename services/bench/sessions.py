@@ -9,9 +9,12 @@ the joints. All sessions join one ``msk router``. This process subscribes to eve
   activations out, one host clock), p99 over all sessions;
 * loss: EMG samples (``first_sample_index`` jumps, DeviceStatus ``samples_lost``) and joint frames without their
   activation frame;
-* CPU per session: user + system time of the session's processes (/proc) over the measured window, in cores.
+* CPU per session: user + system time of the session's processes (/proc) over the measured window, in cores, and
+  per process (:data:`ROLES`; the router's share per session apart).
 
-Baseline: the same figures with one session, from the same run. N grows until a target fails (quick: N <= 2).
+Baselines: the same figures with one session, from the same run; and one session of :data:`BASELINE_COMMIT` (the
+tree before the CPU work of issue 31) run from a git worktree in the same run, its CPU per session and per process
+beside today's (docs/deployment.md "Where the CPU goes"). N grows until a target fails (quick: N <= 2).
 
 Across hosts (as root, where ``ip netns`` works; said and skipped otherwise): one secured session on three network
 namespaces (services/bench/hosts.py: rack PC with the simulated devices, drivers, recorder and router; server with
