@@ -87,6 +87,7 @@ class EstimatorStats:
     frames_out: int = 0
     load_events: int = 0
     flagged: dict[str, int] = field(default_factory=dict)
+    invalid: dict[str, int] = field(default_factory=dict)  # invalid_input frames per reason (FrameResult.reason)
     rejected: int = 0  # input frames whose coordinates do not match the pack
     other_exercise: int = 0  # frames skipped while a LoadEvent says another exercise is under way
     last_error: str = ""
@@ -624,6 +625,8 @@ class EstimatorNode:
                 frame.flags.extend(emg_flags)
             if result.flagged:
                 stats.flagged[result.status.value] = stats.flagged.get(result.status.value, 0) + 1
+                if result.reason:
+                    stats.invalid[result.reason] = stats.invalid.get(result.reason, 0) + 1
             yield method, frame
         stats.frames_out += 1
 
@@ -936,7 +939,9 @@ def run_from_args(args: argparse.Namespace) -> int:
     )
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(
-        f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}; rejected {stats.rejected}"
+        f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}"
+        + (f" (invalid input: {stats.invalid})" if stats.invalid else "")
+        + f"; rejected {stats.rejected}"
         f"; inputs dropped {dropped or 'none'}"
         + (f"; {outages_text(stats.continuity.report(messages.now_ns()))}" if stats.continuity is not None else "")
         + (

@@ -115,6 +115,11 @@ def test_inverse_dynamics_used_when_no_torques_given():
     np.testing.assert_allclose(res.model_torques, res.torques, atol=1e-4)
 
 
+def ok_reason(result) -> bool:
+    """A frame that was not invalid input carries no reason."""
+    return result.status is not FrameStatus.INVALID_INPUT and result.reason == ""
+
+
 @pytest.mark.parametrize("backend", ["dense", "sparse"])
 def test_infeasible_and_nan_frames_are_flagged_and_counted_not_raised(backend):
     pack = LinearPack()
@@ -126,10 +131,12 @@ def test_infeasible_and_nan_frames_are_flagged_and_counted_not_raised(backend):
     assert np.all(np.isfinite(res.activations)) and np.all(np.abs(res.residual) > 0)
     res = est.step(np.array([np.nan, 0.0]), torques=np.zeros(2))
     assert res.status is FrameStatus.INVALID_INPUT and np.all(np.isnan(res.activations))
+    assert res.reason == "q non-finite"
     res = est.step(q, torques=np.array([np.inf, 0.0]))
-    assert res.status is FrameStatus.INVALID_INPUT
+    assert res.status is FrameStatus.INVALID_INPUT and res.reason == "torques or moment arms non-finite"
     res = est.step(q, torques=np.zeros(3))  # wrong shape from a caller
-    assert res.status is FrameStatus.INVALID_INPUT
+    assert res.status is FrameStatus.INVALID_INPUT and res.reason == "torques wrong shape"
+    assert ok_reason(est.step(q, torques=np.zeros(2)))
     ok = est.step(q, torques=0.1 * capacity * np.sign(pack.moment_arms(q).sum(axis=1)))
     assert ok.status in (FrameStatus.SOLVED, FrameStatus.RESERVE)
     assert est.flag_counts["reserve"] >= 1 and est.flag_counts["invalid_input"] == 3
@@ -210,7 +217,7 @@ def test_pose_slightly_outside_pack_range_is_clamped_far_outside_is_flagged():
     assert nudged.clamped and not inside.clamped
     np.testing.assert_allclose(nudged.activations, inside.activations, atol=1e-7)
     far = est.step(np.array([1.0 + np.deg2rad(20.0), 0.0]), torques=tau)
-    assert far.status is FrameStatus.INVALID_INPUT
+    assert far.status is FrameStatus.INVALID_INPUT and far.reason == "q out of range"
     assert est.flag_counts == {"out_of_range_clamped": 1, "invalid_input": 1}
 
 

@@ -98,6 +98,7 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
         assert [f.time_s for f in frames[:-1]] == pytest.approx([(i + 1) * 0.01 for i in range(len(poses))])
         assert frames[-1].flags == ["invalid_input"] and frames[-1].solver_status == "invalid_input"
     assert stats.flagged.get("invalid_input") == 2  # the NaN frame, once per method
+    assert stats.invalid == {"q non-finite": 2}  # and why, as the summary says it
 
 
 def test_load_events_apply_by_device_time_not_arrival_order():

@@ -78,6 +78,17 @@ class Method(str, Enum):
     ASSISTED = "assisted"
 
 
+#: why a frame is ``invalid_input`` (FrameResult.reason; the estimator's summary counts them)
+INVALID_REASONS = (
+    "q wrong shape",
+    "q non-finite",
+    "q out of range",
+    "model error",
+    "torques wrong shape",
+    "torques or moment arms non-finite",
+)
+
+
 class FrameStatus(str, Enum):
     SOLVED = "solved"
     RESERVE = "reserve"  # so: torque beyond capacity, least-squares fallback used
@@ -101,6 +112,7 @@ class FrameResult:
     phase: float | None = None
     clamped: bool = False  # the pose was slightly outside the pack's fitted range and was clamped into it
     solver: str = "piqp"  # "active_set" (hot start, KKT-certified), "piqp" or "none" (prior / invalid input)
+    reason: str = ""  # why the input was invalid (INVALID_REASONS), "" otherwise
     _hess_parts: tuple[np.ndarray, float, np.ndarray] | None = field(default=None, repr=False)
     _equality: np.ndarray | None = field(default=None, repr=False)
     _std: np.ndarray | None = field(default=None, repr=False)
@@ -271,13 +283,15 @@ class FrameEstimator:
         try:
             q = np.asarray(q, dtype=float)
             if q.shape != (n_c,):
-                return self._invalid(np.full(n_c, np.nan), phase)
+                return self._invalid(np.full(n_c, np.nan), phase, "q wrong shape")
             # plain floats: a few comparisons on <= 10 numbers cost less than numpy calls; NaN fails every test
             values = q.tolist()
             if not all(lo <= v <= hi for v, lo, hi in zip(values, self._lo_list, self._hi_list)):
                 q, usable = clamp_to_ranges(q, self._fitted)
                 if not usable:
-                    return self._invalid(np.full(n_c, np.nan), phase)  # non-finite, or far outside: never extrapolate
+                    # non-finite, or far outside: never extrapolate
+                    why = "q out of range" if np.all(np.isfinite(q)) else "q non-finite"
+                    return self._invalid(np.full(n_c, np.nan), phase, why)
                 clamped = True
             lengths = None
             if self.effects is not None:
@@ -315,7 +329,7 @@ class FrameEstimator:
             if not self._model_error_logged:  # say it once, with the reason; later frames are counted as invalid_input
                 log.warning("model evaluation failed, frame flagged invalid_input: %s: %s", type(exc).__name__, exc)
                 self._model_error_logged = True
-            return self._invalid(np.full(n_c, np.nan), phase)
+            return self._invalid(np.full(n_c, np.nan), phase, "model error")
         result = self.solve(r, tau, phase, emg)
         if clamped:
             result.clamped = True
@@ -331,10 +345,10 @@ class FrameEstimator:
         self._emg = emg
         n_c = len(self.coordinates)
         if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
-            return self._invalid(np.full(n_c, np.nan), phase)
+            return self._invalid(np.full(n_c, np.nan), phase, "torques wrong shape")
         # NaN/inf anywhere in tau or R makes the sum non-finite
         if not math.isfinite(float(tau.sum()) + float(r.sum())):
-            return self._invalid(tau, phase)
+            return self._invalid(tau, phase, "torques or moment arms non-finite")
         if phase is not None and not math.isfinite(phase):
             phase = None
         return self._solve(r, tau, phase)
@@ -583,7 +597,7 @@ class FrameEstimator:
             self._count(status)
         return result
 
-    def _invalid(self, tau: np.ndarray, phase: float | None) -> FrameResult:
+    def _invalid(self, tau: np.ndarray, phase: float | None, reason: str) -> FrameResult:
         n = len(self.groups)
         nan = np.full(n, np.nan)
         n_c = len(self.coordinates)
@@ -598,6 +612,7 @@ class FrameEstimator:
             solve_time_s=0.0,
             phase=phase,
             solver="none",
+            reason=reason,
         )
         self._count(FrameStatus.INVALID_INPUT)
         return result
