@@ -556,7 +556,8 @@ function renderElectrodes(frame) {
     const reasons = e.reasons.length ? ": " + e.reasons.join(", ") : "";
     const muscle = e.group ? groupName(e.group) : "(no muscle)"; // in few words, the whole name in the tooltip
     tr.innerHTML = `<td title="${escapeHtml(muscle)}">${escapeHtml(e.group ? shortName(e.group) : muscle)}</td>`
-      + `<td class="hint">${escapeHtml(e.channel.split(".")[0])}</td>`
+      // the sensor by its number ("#9" for sensor09.EMG, the channel in the tooltip): room for the state's reason
+      + `<td class="hint" title="${escapeHtml(e.channel)}">${escapeHtml(e.channel.split(".")[0].replace(/^sensor0*(?=\d)/, "#"))}</td>`
       + `<td class="q-${escapeHtml(e.state)}">${escapeHtml(e.state + reasons)}</td>`;
     return tr;
   });
