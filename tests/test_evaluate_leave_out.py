@@ -186,3 +186,27 @@ def test_leave_out_on_a_walk_excerpt_with_force_plate_cycles(shared_dir, tmp_pat
     # the soleus follows the ankle's plantarflexion demand without its electrode (0.6-0.7 on the full walk)
     assert scores["proposed"].r > 0.4, scores["proposed"]
     assert result.cpu_seconds > 0 and all(run.cpu_seconds > 0 for run in result.calibrations)
+
+
+def test_no_emg_strength_synergist_takes_the_most_similar_measured_groups_factor(shared_dir, tmp_path):
+    """``no_emg_strength="synergist"``: a group without EMG whose moment arms match a measured group's (cosine >= 0.9)
+    takes that group's calibrated factor, the others the measured factors' geometric median; the NLP is unchanged."""
+    from msk_core.estimate.pipeline import SYNERGIST_MIN_COSINE, calibrate_subject, pick_synergists
+    from msk_core.estimate.trial import load_trial
+    from msk_core.model import load_pack
+
+    pack = load_pack("lumbar_lift")
+    trial = load_trial(_trial("squat5kg", shared_dir, tmp_path), pack)
+    measured, result = calibrate_subject(pack, [trial], no_emg_strength="measured")
+    synergist, result_s = calibrate_subject(pack, [trial], no_emg_strength="synergist")
+    assert np.allclose(result.scale, result_s.scale) and synergist.calibration["no_emg_strength"] == "synergist"
+    groups = list(pack.groups)
+    has_emg = np.asarray(synergist.prior.has_emg, dtype=bool)
+    picked = pick_synergists(pack, [trial], [g for g, m in zip(groups, has_emg) if not m], sorted(trial.emg))
+    assert picked and SYNERGIST_MIN_COSINE == 0.9
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    f_s, f_m = np.asarray(synergist.f_max), np.asarray(measured.f_max)
+    for g, h in picked.items():
+        assert f_s[groups.index(g)] == pytest.approx(result.scale[groups.index(h)] * f_ref[groups.index(g)])
+    rest = [j for j, g in enumerate(groups) if not has_emg[j] and g not in picked]
+    assert np.allclose(f_s[rest], f_m[rest]) and np.allclose(f_s[has_emg], f_m[has_emg])
