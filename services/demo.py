@@ -17,6 +17,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from msk_core.errors import InputError
@@ -60,53 +61,19 @@ def run_live_graph(
     ``joints_from="imu"``: the recording's joint angles are left out and kinematics nodes compute them from the IMU
     streams, as on a real rig; ``"recorded"``: the recorded joint angles are replayed as they are.
     """
-    imu_samples, recorded_joints = 0, {ex: 0 for ex in subjects}
-    current = ""
-    for recorded in read_messages(recording):
-        if recorded.type_name == "msk.LoadEvent":
-            current = recorded.decode(messages.LoadEvent).exercise or current
-        elif recorded.type_name == "msk.ImuSample":
-            imu_samples += 1
-        elif recorded.type_name == "msk.JointAngles" and current in recorded_joints:
-            recorded_joints[current] += 1
-    rec_stats = recorder.RecorderStats()
-    est_stats = {ex: estimator.EstimatorStats() for ex in subjects}
-    kin_stats = {ex: kinematics_node.KinematicsStats() for ex in subjects} if joints_from == "imu" else {}
-
-    # the declared graph (services.session_graph) with one estimator (and kinematics node) per exercise; each waits
-    # for the nodes that read what it publishes (the kinematics' joints go to the recorder and every estimator, each
-    # following the exercise the load events name)
-    declared = [session_graph.NODES["recorder"]]
-    declared += [session_graph.instance("estimator", f"estimator-{ex}") for ex in subjects]
-    declared += [session_graph.instance("kinematics", f"kinematics-{ex}") for ex in kin_stats]
+    imu_samples, recorded_joints = _recorded_counts(recording, list(subjects))
+    stats = _DemoStats(
+        recorder.RecorderStats(),
+        {ex: estimator.EstimatorStats() for ex in subjects},
+        {ex: kinematics_node.KinematicsStats() for ex in subjects} if joints_from == "imu" else {},
+    )
     with Graph(SESSION, endpoint) as graph:
-        graph.add_thread("recorder", recorder.main, out_mcap, stats=rec_stats)
-        for exercise, subject in subjects.items():
-            node = declared[1 + list(subjects).index(exercise)]
-            graph.add_thread(
-                node.name,
-                estimator.main,
-                pack=exercise,
-                session=SESSION,
-                methods=list(METHODS),
-                subject_path=subject,
-                exercise=exercise,
-                stats=est_stats[exercise],
-                after=session_graph.readers_of(node, declared),
-            )
-        for exercise in kin_stats:
-            node = declared[1 + len(subjects) + list(kin_stats).index(exercise)]
-            graph.add_thread(
-                node.name,
-                kinematics_node.main,
-                pack=exercise,
-                session=SESSION,
-                stats=kin_stats[exercise],
-                after=session_graph.readers_of(node, declared),
-            )
+        _start_demo_nodes(graph, subjects, out_mcap, stats)
         graph.wait_ready(GRAPH_READY_S)
         nodes = (
-            f"recorder + {len(subjects)} estimator" + (f" + {len(subjects)} kinematics" if kin_stats else "") + " nodes"
+            f"recorder + {len(subjects)} estimator"
+            + (f" + {len(subjects)} kinematics" if stats.kinematics else "")
+            + " nodes"
         )
         log(f"live graph up: {nodes}; replaying {recording.name} at rate {rate or 'max'} (joints from {joints_from})")
         started = time.perf_counter()
@@ -120,39 +87,9 @@ def run_live_graph(
             wait_nodes=tuple(graph.nodes),
             wait_nodes_s=GRAPH_READY_S,
         )
-        deadline = time.monotonic() + DRAIN_S
-
-        def left() -> float:
-            return max(1.0, deadline - time.monotonic())
-
-        if kin_stats:
-            wait_for(
-                f"the kinematics nodes to process all {imu_samples} IMU samples",
-                lambda: all(k.samples_done >= imu_samples for k in kin_stats.values()),
-                lambda: ", ".join(f"{ex} {k.samples_done}" for ex, k in kin_stats.items()),
-                left(),
-            )
-            joints_total = sum(k.frames_out for k in kin_stats.values())
-            joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
-        else:
-            joints_total = sum(recorded_joints.values())
-            joints_per_exercise = recorded_joints
-        wait_for(
-            f"every estimator to process all {joints_total} joint frames",
-            lambda: all(e.frames_done >= joints_total for e in est_stats.values()),
-            lambda: ", ".join(f"{ex} {e.frames_done}" for ex, e in est_stats.items()),
-            left(),
-        )
-        activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
-        expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames
-        # the data messages; the nodes' own status (one a second each) is recorded beside them and not counted here
-        wait_for(
-            f"the recorder to write all {expected_messages} messages",
-            lambda: rec_stats.written - rec_stats.node_status >= expected_messages,
-            lambda: f"{rec_stats.written - rec_stats.node_status} written",
-            left(),
-        )
+        joints_per_exercise, expected_messages = _wait_drained(stats, imu_samples, recorded_joints, replay_stats)
         elapsed = time.perf_counter() - started
+    est_stats, kin_stats, rec_stats = stats.estimators, stats.kinematics, stats.recorder
     log(
         f"replayed {replay_stats.published} messages"
         + (
@@ -181,6 +118,109 @@ def run_live_graph(
         },
         "seconds": elapsed,
     }
+
+
+@dataclass
+class _DemoStats:
+    """The demo graph's thread nodes' live counters: the recorder's, and per exercise the estimator's and (joints
+    from the IMUs) the kinematics node's."""
+
+    recorder: recorder.RecorderStats
+    estimators: dict[str, estimator.EstimatorStats]
+    kinematics: dict[str, kinematics_node.KinematicsStats]
+
+
+def _recorded_counts(recording: Path, exercises: list[str]) -> tuple[int, dict[str, int]]:
+    """The recording's IMU samples, and its joint frames per exercise (of the exercise its load events name)."""
+    imu_samples, recorded_joints = 0, {ex: 0 for ex in exercises}
+    current = ""
+    for recorded in read_messages(recording):
+        if recorded.type_name == "msk.LoadEvent":
+            current = recorded.decode(messages.LoadEvent).exercise or current
+        elif recorded.type_name == "msk.ImuSample":
+            imu_samples += 1
+        elif recorded.type_name == "msk.JointAngles" and current in recorded_joints:
+            recorded_joints[current] += 1
+    return imu_samples, recorded_joints
+
+
+def _start_demo_nodes(graph: Graph, subjects: dict[str, Path], out_mcap: Path, stats: _DemoStats) -> None:
+    """The declared graph (services.session_graph) with one estimator (and kinematics node) per exercise, as thread
+    nodes; each waits for the nodes that read what it publishes (the kinematics' joints go to the recorder and every
+    estimator, each following the exercise the load events name)."""
+    declared = [session_graph.NODES["recorder"]]
+    declared += [session_graph.instance("estimator", f"estimator-{ex}") for ex in subjects]
+    declared += [session_graph.instance("kinematics", f"kinematics-{ex}") for ex in stats.kinematics]
+
+    def start(node: session_graph.NodeDecl, after: tuple[str, ...]) -> None:
+        kind, _, exercise = node.name.partition("-")
+        if kind == "recorder":
+            graph.add_thread(node.name, recorder.main, out_mcap, stats=stats.recorder, after=after)
+        elif kind == "estimator":
+            graph.add_thread(
+                node.name,
+                estimator.main,
+                pack=exercise,
+                session=SESSION,
+                methods=list(METHODS),
+                subject_path=subjects[exercise],
+                exercise=exercise,
+                stats=stats.estimators[exercise],
+                after=after,
+            )
+        else:
+            graph.add_thread(
+                node.name,
+                kinematics_node.main,
+                pack=exercise,
+                session=SESSION,
+                stats=stats.kinematics[exercise],
+                after=after,
+            )
+
+    session_graph.start_declared(declared, start)
+
+
+def _wait_drained(
+    stats: _DemoStats, imu_samples: int, recorded_joints: dict[str, int], replay_stats: replayer.ReplayStats
+) -> tuple[dict[str, int], int]:
+    """Bounded waits (DRAIN_S in all) until the kinematics nodes processed every IMU sample, the estimators every
+    joint frame and the recorder wrote every data message; returns the joint frames per exercise and the number of
+    data messages recorded."""
+    kin_stats, est_stats, rec_stats = stats.kinematics, stats.estimators, stats.recorder
+    deadline = time.monotonic() + DRAIN_S
+
+    def left() -> float:
+        return max(1.0, deadline - time.monotonic())
+
+    if kin_stats:
+        wait_for(
+            f"the kinematics nodes to process all {imu_samples} IMU samples",
+            lambda: all(k.samples_done >= imu_samples for k in kin_stats.values()),
+            lambda: ", ".join(f"{ex} {k.samples_done}" for ex, k in kin_stats.items()),
+            left(),
+        )
+        joints_total = sum(k.frames_out for k in kin_stats.values())
+        joints_per_exercise = {ex: k.frames_out for ex, k in kin_stats.items()}
+    else:
+        joints_total = sum(recorded_joints.values())
+        joints_per_exercise = recorded_joints
+    wait_for(
+        f"every estimator to process all {joints_total} joint frames",
+        lambda: all(e.frames_done >= joints_total for e in est_stats.values()),
+        lambda: ", ".join(f"{ex} {e.frames_done}" for ex, e in est_stats.items()),
+        left(),
+    )
+    activation_frames = sum(e.frames_out for e in est_stats.values()) * len(METHODS)
+    expected_messages = replay_stats.published + (joints_total if kin_stats else 0) + activation_frames
+    # the data messages; the nodes' own status (one a second each) is recorded beside them and not counted here
+    wait_for(
+        f"the recorder to write all {expected_messages} messages",
+        lambda: rec_stats.written - rec_stats.node_status >= expected_messages,
+        lambda: f"{rec_stats.written - rec_stats.node_status} written",
+        left(),
+    )
+    return joints_per_exercise, expected_messages
 
 
 def main(

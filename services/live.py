@@ -54,6 +54,7 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
     from drivers.trigno.source import EmgSource
     from drivers.xsens.simulator import XsensSimulator
     from drivers.xsens.source import ImuSource
+    from services import discovery
     from services.sim_sets import SimSets
 
 READY_TIMEOUT_S = 90.0
@@ -915,6 +916,18 @@ def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
     raise ConfigError("not a process node of msk live's graph", field="node", value=name)
 
 
+@dataclass
+class _Running:
+    """What a running ``msk live`` graph holds, for its stop in order (each part set as it starts)."""
+
+    facts: queue.Queue = field(default_factory=queue.Queue)  # SessionFacts for the monitor node to publish
+    graph: Graph | None = None
+    drivers: list[str] = field(default_factory=list)
+    viewer: subprocess.Popen | None = None
+    router: subprocess.Popen | None = None
+    announced: list[Path] = field(default_factory=list)
+
+
 def run_graph(
     plan: LivePlan,
     *,
@@ -930,115 +943,28 @@ def run_graph(
     order. ``pki``: the secured mode (a TLS router with access control, each node with its role's certificate)."""
     from services import discovery
 
-    s = plan.session
-    out = s.out
-    mcap = out / "session.mcap"
-    logs = out / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
+    out = plan.session.out
+    (out / "logs").mkdir(parents=True, exist_ok=True)
     recorded_before = set(out.glob("session*.mcap"))
     counts = FlowCounts()
-    facts: queue.Queue = queue.Queue()
-    router = None
-    announced: list[Path] = []
+    running = _Running()
     announcement = discovery.Announcement()
-    started = time.monotonic()
     with _Stopper() as stopper:
         try:
-            if pki is not None:
-                router, endpoint, role_configs = start_secured_router(pki, out, log)
-                graph = Graph(s.name, endpoint, external_listener=True, role_configs=role_configs)
-            else:
-                graph = Graph(s.name, endpoint)
-            nodes = session_graph.live_nodes(trigno=plan.trigno is not None, xsens=bool(plan.xsens_ports))
-            drivers = [n.name for n in nodes if n.role == "driver"]
-            for decl in nodes:
-                after = session_graph.readers_of(decl, nodes)
-                if decl.name == "monitor":
-                    graph.add_thread(
-                        "monitor",
-                        monitor,
-                        session=s.name,
-                        counts=counts,
-                        facts=facts,
-                        after=after,
-                        role=decl.role,
-                        on_facts=announcement.update_facts,
-                        exercise=plan.exercise,
-                    )
-                else:
-                    graph.add_process(
-                        decl.name,
-                        node_argv(plan, decl.name, mcap),
-                        after=after,
-                        role=decl.role,
-                        log_path=logs / f"{decl.name}.log",
-                        own_session=True,
-                    )
-            # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
-            pids = {n: node_process.pid for n in graph.nodes if (node_process := graph.process(n)) is not None}
-            (logs / "pids.json").write_text(json.dumps({**pids, **({"router": router.pid} if router else {})}) + "\n")
+            graph, endpoint = _start_live_graph(plan, endpoint, pki, counts, announcement, running, log)
             _wait_ready(graph, stopper)
-            facts.put(
-                SessionFacts(
-                    exercise=plan.exercise,
-                    load_kg=s.load_kg,
-                    athlete=getattr(s, "athlete", ""),
-                    names=plan.names,
-                    rest_s=s.rest_s,
-                )
-            )
-            observer = graph.observer_options()
-            info = discovery.SessionInfo(
-                session=s.name,
-                connect=[endpoint],
-                pid=os.getpid(),
-                out=str(out.resolve()),
-                pack=plan.exercise,
-                zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "",
-            )
-            info = dataclasses.replace(info, attach=discovery.attach_commands(info))
-            announced = announcement.announce(info, out)
-            viewer = None
-            if view and not stopper.event.is_set():
-                viewer = subprocess.Popen(
-                    python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
-                    start_new_session=True,
-                )  # Ctrl-C reaches msk live only: it stops in order
-            log(
-                f"live session {s.name!r} running on {endpoint}"
-                + (" (TLS, access control)" if pki is not None else "")
-                + f"; attach: {'; '.join(info.attach)}"
-            )
-            log(
-                f"running: {', '.join(graph.nodes)}"
-                + (" + view" if viewer else "")
-                + f"; recording to {mcap}"
-                + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops")
-            )
-            started = time.monotonic()
-            deadline = None if duration_s is None else started + duration_s
-            reason = "duration"
-            while not stopper.event.wait(0.1):
-                if deadline is not None and time.monotonic() >= deadline:
-                    break
-                failed = graph.failed()
-                if failed:
-                    reason = f"node failed: {failed}"
-                    log(f"stopping: {reason} (logs in {logs})")
-                    break
-            if stopper.event.is_set():
-                reason = stopper.signal or "signal"
-            elapsed = time.monotonic() - started
+            _announce_live_graph(plan, graph, endpoint, view, duration_s, pki, stopper, announcement, running, log)
+            reason, elapsed = _run_until_stopped(graph, duration_s, stopper, out / "logs", log)
         finally:
-            for path in announced[1:]:  # the registry entry; OUT/session.json stays as a record
+            for path in running.announced[1:]:  # the registry entry; OUT/session.json stays as a record
                 discovery.withdraw(path)
             codes = {}
-            if "graph" in locals():
+            if running.graph is not None:
                 codes = stop_in_order(
-                    graph, locals().get("drivers", []), simulators, locals().get("viewer"), counts, plan.methods, log
+                    running.graph, running.drivers, simulators, running.viewer, counts, plan.methods, log
                 )
-            if router is not None:
-                codes["router"] = stop_process(router)
+            if running.router is not None:
+                codes["router"] = stop_process(running.router)
     # the parts this session's recorder wrote (it continues into session-001.mcap ... when OUT holds older ones)
     parts = sorted(set(out.glob("session*.mcap")) - recorded_before)
     summary = summarise(parts, elapsed)
@@ -1049,6 +975,133 @@ def run_graph(
         summary["simulators_sent"] = simulators.sent()
         summary["trial_clock"] = simulators.world()
     return summary
+
+
+def _start_live_graph(
+    plan: LivePlan,
+    endpoint: str,
+    pki: Path | None,
+    counts: FlowCounts,
+    announcement: discovery.Announcement,
+    running: _Running,
+    log,
+) -> tuple[Graph, str]:
+    """The graph (secured: behind its router, started first) with its nodes started: the monitor a thread of this
+    process, the others processes logging to OUT/logs; their process ids in OUT/logs/pids.json. Returns the graph
+    and its endpoint."""
+    s = plan.session
+    logs = s.out / "logs"
+    if pki is not None:
+        running.router, endpoint, role_configs = start_secured_router(pki, s.out, log)
+        graph = Graph(s.name, endpoint, external_listener=True, role_configs=role_configs)
+    else:
+        graph = Graph(s.name, endpoint)
+    running.graph = graph
+    nodes = session_graph.live_nodes(trigno=plan.trigno is not None, xsens=bool(plan.xsens_ports))
+    running.drivers = [n.name for n in nodes if n.role == "driver"]
+
+    def start(decl: session_graph.NodeDecl, after: tuple[str, ...]) -> None:
+        if decl.name == "monitor":
+            graph.add_thread(
+                "monitor",
+                monitor,
+                session=s.name,
+                counts=counts,
+                facts=running.facts,
+                after=after,
+                role=decl.role,
+                on_facts=announcement.update_facts,
+                exercise=plan.exercise,
+            )
+        else:
+            graph.add_process(
+                decl.name,
+                node_argv(plan, decl.name, s.out / "session.mcap"),
+                after=after,
+                role=decl.role,
+                log_path=logs / f"{decl.name}.log",
+                own_session=True,
+            )
+
+    session_graph.start_declared(nodes, start)
+    # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
+    pids = {n: node_process.pid for n in graph.nodes if (node_process := graph.process(n)) is not None}
+    router = {"router": running.router.pid} if running.router is not None else {}
+    (logs / "pids.json").write_text(json.dumps({**pids, **router}) + "\n")
+    return graph, endpoint
+
+
+def _announce_live_graph(
+    plan: LivePlan,
+    graph: Graph,
+    endpoint: str,
+    view: bool,
+    duration_s: float | None,
+    pki: Path | None,
+    stopper: _Stopper,
+    announcement: discovery.Announcement,
+    running: _Running,
+    log,
+) -> None:
+    """The ready graph's session facts published, the session announced (services.discovery), the viewer started
+    (``view``, unless stopping already) and the operator told how to attach."""
+    from services import discovery
+
+    s = plan.session
+    running.facts.put(
+        SessionFacts(
+            exercise=plan.exercise,
+            load_kg=s.load_kg,
+            athlete=getattr(s, "athlete", ""),
+            names=plan.names,
+            rest_s=s.rest_s,
+        )
+    )
+    observer = graph.observer_options()
+    info = discovery.SessionInfo(
+        session=s.name,
+        connect=[endpoint],
+        pid=os.getpid(),
+        out=str(s.out.resolve()),
+        pack=plan.exercise,
+        zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "",
+    )
+    info = dataclasses.replace(info, attach=discovery.attach_commands(info))
+    running.announced = announcement.announce(info, s.out)
+    if view and not stopper.event.is_set():
+        running.viewer = subprocess.Popen(
+            python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
+            start_new_session=True,
+        )  # Ctrl-C reaches msk live only: it stops in order
+    log(
+        f"live session {s.name!r} running on {endpoint}"
+        + (" (TLS, access control)" if pki is not None else "")
+        + f"; attach: {'; '.join(info.attach)}"
+    )
+    log(
+        f"running: {', '.join(graph.nodes)}"
+        + (" + view" if running.viewer else "")
+        + f"; recording to {s.out / 'session.mcap'}"
+        + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops")
+    )
+
+
+def _run_until_stopped(graph: Graph, duration_s: float | None, stopper: _Stopper, logs: Path, log) -> tuple[str, float]:
+    """Run until the duration, a signal or a failed node; returns why it stopped and how long it ran (s)."""
+    started = time.monotonic()
+    deadline = None if duration_s is None else started + duration_s
+    reason = "duration"
+    while not stopper.event.wait(0.1):
+        if deadline is not None and time.monotonic() >= deadline:
+            break
+        failed = graph.failed()
+        if failed:
+            reason = f"node failed: {failed}"
+            log(f"stopping: {reason} (logs in {logs})")
+            break
+    if stopper.event.is_set():
+        reason = stopper.signal or "signal"
+    return reason, time.monotonic() - started
 
 
 def router_host(pki: Path) -> str:

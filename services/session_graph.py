@@ -17,6 +17,7 @@ all of them and :data:`OWN_STATUS` for ``status/<the node's own name>`` (a node 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import zenoh
@@ -155,6 +156,14 @@ def readers_of(node: NodeDecl, graph: list[NodeDecl]) -> tuple[str, ...]:
         for other in earlier
         if other.is_node and any(_matches(p, s) for p in node.publish_keys() for s in other.subscribe_keys())
     )
+
+
+def start_declared(declared: list[NodeDecl], start: Callable[[NodeDecl, tuple[str, ...]], None]) -> None:
+    """Start the nodes of a declared graph in its order, each told the earlier nodes that read what it publishes
+    (:func:`readers_of`, its ``after``): ``start(node, after)`` adds it to a :class:`services.graph.Graph` as a
+    thread or a process. ``msk live`` and ``msk demo`` start their graphs through it."""
+    for node in declared:
+        start(node, readers_of(node, declared))
 
 
 @dataclass(frozen=True)
