@@ -28,6 +28,9 @@ DOWN_S = 3.0
 #: the server's outage as the estimator counts it: from its last input before the cable went to its first after it
 #: came back; at least the time the cable was out less one threshold, at most that plus the issue's resume bound (2 s)
 OUTAGE_BOUNDS_S = (DOWN_S - 0.5, DOWN_S + 2.0)
+#: frames `so` may flag reserve (torque beyond capacity): 12 of 3569 (0.3 %) offline on the trial's aligned IMU data
+#: at its load, 11 of 3746 in a run; desynchronised trackers gave 5-9 %
+RESERVE_SHARE = 0.02
 
 
 @pytest.fixture
@@ -81,6 +84,13 @@ def test_secured_deployment_across_hosts_survives_link_and_router_faults(deploym
     # every joint frame (the kinematics node's, on the server) that reached the rack was estimated; activation frames
     # are newest-wins (docs/topics.md, "Delivery"): a burst after an outage may drop some on the way, counted here
     assert result["estimator_inputs"] > 0 and abs(result["frames_estimated"] - result["joints"]) <= 5, result
+    # every frame's input is a pose of the lift: the rack's simulators sample one trial on one clock (as msk live's),
+    # and the router restart's gap (IMU publications lost on their way) keeps the kinematics' calibration instead of
+    # redoing it mid-rep. Unsynchronised trackers or a recalibration there made up to 2/3 of the frames invalid_input
+    # (elbow 90 deg off), and 5-9 % reserve; the trial at its own load (50 kg) gives 0.3 % reserve offline
+    assert "calibrations 1 (gaps: 0 new sets" in result["kinematics_summary"], result["kinematics_summary"]
+    assert result["estimator_flagged"].get("invalid_input", 0) == 0, (result["estimator_invalid"], result)
+    assert result["estimator_flagged"].get("reserve", 0) <= RESERVE_SHARE * result["frames_estimated"], result
     # the router's restart: the estimator counts the EMG it missed while the router was away (in its summary) and
     # the outage (status); the recorder fetches again what it missed from the drivers' caches (1000 messages per key,
     # 13 s of EMG) and counts what they no longer held, exactly: the file's EMG gap in chunks is the count it gives

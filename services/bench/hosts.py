@@ -514,6 +514,33 @@ def _published(log: str, kind: str, what: str = "samples") -> int:
     return int(found[index][0 if what == "samples" else 1]) if len(found) > index else -1
 
 
+def _summaries(logs: dict[str, str]) -> dict[str, Any]:
+    """The estimator's and the kinematics node's summary lines; the frames the estimator flagged per status (all
+    methods) and the invalid_input ones per reason, as its summary says."""
+
+    def line(node: str, start: str) -> str:
+        return next((text for text in logs.get(node, "").splitlines() if text.startswith(start)), "")
+
+    return {
+        "estimator_summary": line("estimator", "estimated "),
+        **_flagged(logs.get("estimator", "")),
+        "kinematics_summary": line("kinematics", "published "),
+    }
+
+
+def _flagged(log: str) -> dict[str, dict[str, int]]:
+    """The estimator summary's ``flagged {...}`` and ``(invalid input: {...})``: frames per status and per reason."""
+    import ast
+
+    flagged = re.search(r"^estimated \d+ frames; flagged (\{[^}]*\}|none)( \(invalid input: (\{[^}]*\})\))?", log, re.M)
+    if flagged is None:
+        return {"estimator_flagged": {}, "estimator_invalid": {}}
+    return {
+        "estimator_flagged": {} if flagged.group(1) == "none" else ast.literal_eval(flagged.group(1)),
+        "estimator_invalid": ast.literal_eval(flagged.group(3)) if flagged.group(3) else {},
+    }
+
+
 def _recorder_lost(log: str) -> dict[str, int]:
     """Per key, the publications the recorder's summary line says it missed live and could not fetch again."""
     found = re.search(r"lost \d+ \(([^)]*)\)", log)
@@ -657,9 +684,7 @@ def outcome(
         "frames_at_tablet": len(tablet),
         "statuses_at_tablet": len(deployment.tablet.statuses()),
         "frames_estimated": int(next(iter(re.findall(r"estimated (\d+) frames", logs.get("estimator", ""))), -1)),
-        "estimator_summary": next(
-            (line for line in logs.get("estimator", "").splitlines() if line.startswith("estimated ")), ""
-        ),
+        **_summaries(logs),
         "faults": per_fault,
         # every outage the estimator's status reported: begin (s after the first fault began), length (s), streams
         "estimator_outage_list": [
