@@ -127,7 +127,6 @@ LONG_FUNCTIONS = {
     "services/estimator.py:EstimatorNode.__init__": 90,
     "msk_core/estimate/pipeline.py:build_prior": 89,
     "services/estimator.py:add_arguments": 87,
-    "msk_core/estimate/leave_out.py:leave_one_out": 82,
 }
 
 

@@ -198,16 +198,7 @@ def leave_one_out(
     started, cpu_started = time.perf_counter(), time.process_time()
     settings = replace(settings or CalibrationSettings(), solver=solver)
     train, held_out = list(train), list(held_out)
-    if not train or not held_out:
-        raise EstimationError("leave-one-out needs training trials and held-out trials")
-    measured = measured_groups(train, held_out)
-    chosen = measured if groups is None else list(dict.fromkeys(groups))
-    unknown = [g for g in chosen if g not in measured]
-    if unknown or not chosen:
-        raise EstimationError(
-            f"cannot leave out {unknown or 'no group'}: a left-out group needs an electrode in a training trial with "
-            f"reps and in a held-out trial (groups with both: {measured})"
-        )
+    chosen = _groups_to_leave_out(train, held_out, groups)
     for t in train + held_out:  # once: every left-out run reads the same moment arms
         t.mechanics(pack)
     rest = {g: _rest_level(held_out, g) for g in chosen}
@@ -259,6 +250,22 @@ def leave_one_out(
         seconds=time.perf_counter() - started,
         cpu_seconds=time.process_time() - cpu_started,
     )
+
+
+def _groups_to_leave_out(train: list[TrialData], held_out: list[TrialData], groups: Sequence[str] | None) -> list[str]:
+    """``groups`` (default: every group with an electrode in a training trial with reps and in a held-out trial),
+    checked: each must have both."""
+    if not train or not held_out:
+        raise EstimationError("leave-one-out needs training trials and held-out trials")
+    measured = measured_groups(train, held_out)
+    chosen = measured if groups is None else list(dict.fromkeys(groups))
+    unknown = [g for g in chosen if g not in measured]
+    if unknown or not chosen:
+        raise EstimationError(
+            f"cannot leave out {unknown or 'no group'}: a left-out group needs an electrode in a training trial with "
+            f"reps and in a held-out trial (groups with both: {measured})"
+        )
+    return chosen
 
 
 def _calibrate(
