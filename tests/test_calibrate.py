@@ -77,7 +77,8 @@ def test_reduced_solver_reaches_the_joint_optimum(strength_prior_std):
     np.testing.assert_allclose(reduced.objective, joint.objective, rtol=1e-6)
     np.testing.assert_allclose(reduced.scale, joint.scale, atol=1e-4)
     np.testing.assert_allclose(reduced.activations, joint.activations, atol=2e-3)
-    assert reduced.projected_gradient < 1e-4 and reduced.scale[4] == 1.0
+    # the ridge on activations only the torque sees leaves its own pull there: |dJ/da| <= reduced_ridge * a
+    assert reduced.projected_gradient <= CalibrationSettings().reduced_ridge and reduced.scale[4] == 1.0
     with pytest.raises(EstimationError, match="solver"):
         CalibrationSettings(solver="newton")
 
