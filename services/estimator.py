@@ -49,7 +49,7 @@ import numpy as np
 from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
-from msk_core.estimate.frame import FrameResult
+from msk_core.estimate.frame import FrameResult, Method
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
 from msk_core.estimate.live_fatigue import ElectrodeFatigueReport, LiveFatigue
 from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
@@ -800,11 +800,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--method",
         action="append",
-        choices=["proposed", "so", "hybrid", "assisted"],
+        choices=[m.value for m in Method if m is not Method.PRIOR],
         default=None,
         help="estimation method (repeatable; default: proposed with --subject, else so)",
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
+    add_emg_arguments(parser)
+    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--solver",
+        choices=SOLVERS,
+        default="active-set",
+        help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
+        "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')",
+    )
+    parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
+    parser.add_argument(
+        "--exercise",
+        default=None,
+        help="estimate only while load events name this exercise (default: the pack's name, e.g. bench_press)",
+    )
+    add_zenoh_arguments(parser)
+
+
+def add_emg_arguments(parser: argparse.ArgumentParser) -> None:
+    """The EMG options: whether and which electrodes, and how their clocks meet the kinematics'."""
     parser.add_argument(
         "--emg",
         action=argparse.BooleanOptionalAction,
@@ -865,22 +886,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a joint frame waits up to this long for the EMG of its instant before it is estimated "
         "with the newest EMG there is (default 0: never waits)",
     )
-    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
-    parser.add_argument(
-        "--solver",
-        choices=SOLVERS,
-        default="active-set",
-        help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
-        "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')",
-    )
-    parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
-    parser.add_argument(
-        "--exercise",
-        default=None,
-        help="estimate only while load events name this exercise (default: the pack's name, e.g. bench_press)",
-    )
-    add_zenoh_arguments(parser)
 
 
 def run_from_args(args: argparse.Namespace) -> int:

@@ -126,7 +126,6 @@ LONG_FUNCTIONS = {
     "services/bench/estimate.py:run": 94,
     "services/estimator.py:EstimatorNode.__init__": 90,
     "msk_core/estimate/pipeline.py:build_prior": 89,
-    "services/estimator.py:add_arguments": 87,
 }
 
 
