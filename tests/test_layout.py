@@ -119,7 +119,6 @@ NUMBA_DECORATORS = {"_jit", "njit", "jit", "numba.njit", "numba.jit"}
 # one may not join it, and one that has been split must leave it.
 LONG_FUNCTIONS = {
     "services/estimator.py:main": 136,
-    "msk_core/synth/session.py:generate_trial": 113,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
     "services/bench/discrepancy.py:run": 109,
     "msk_core/estimate/frame.py:FrameEstimator.__init__": 107,

@@ -13,8 +13,8 @@ from msk_core.synth.effects import Effects, muscle_factors
 from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg, spectral_scale
 from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
 from msk_core.synth.imu import ElectrodeAccStream, ImuStream, simulate_electrode_acc, simulate_imu
-from msk_core.synth.kinematics import Tempo, evaluate, plan_reps
-from msk_core.synth.recruitment import TONE, recruit
+from msk_core.synth.kinematics import RepPlan, Tempo, evaluate, plan_reps
+from msk_core.synth.recruitment import TONE, Recruitment, recruit
 from msk_core.synth.rng import stream
 from msk_core.synth.subject import Subject, make_subject
 from msk_core.units import GRAVITY
@@ -113,6 +113,112 @@ def _shift(time: np.ndarray, x: np.ndarray, lead_s: float) -> np.ndarray:
     return np.column_stack([np.interp(time + lead_s, time, x[:, k]) for k in range(x.shape[1])])
 
 
+def _torques_and_geometry(
+    pack, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, load_kg: float, reported: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame: inverse-dynamics torques for the true and the reported load, moment arms and muscle lengths."""
+    n, n_c, n_g = q.shape[0], len(pack.coordinates), len(pack.groups)
+    tau_id = np.empty((n, n_c))
+    tau_rep = np.empty((n, n_c))
+    arms = np.empty((n, n_c, n_g))
+    lengths = np.empty((n, n_g))
+    for k in range(n):
+        tau_id[k] = pack.inverse_dynamics(q[k], qd[k], qdd[k], load_kg * GRAVITY)
+        tau_rep[k] = (
+            tau_id[k] if reported == load_kg else pack.inverse_dynamics(q[k], qd[k], qdd[k], reported * GRAVITY)
+        )
+        lengths[k], arms[k] = pack.lengths_and_moment_arms(q[k])
+    return tau_id, tau_rep, arms, lengths
+
+
+def _recruit_muscles(
+    pack,
+    subject: Subject,
+    config: SynthConfig,
+    arms: np.ndarray,
+    lengths: np.ndarray,
+    qd: np.ndarray,
+    tau_muscle: np.ndarray,
+    key: tuple[str, float],
+) -> tuple[Recruitment, np.ndarray]:
+    """The recruitment that produces ``tau_muscle`` (with the muscle-state effects when configured) and the forces."""
+    eff = config.effects
+    f_max = pack.f_max_ref * subject.f_max_factor
+    active = passive = None
+    if eff.needs_muscle_state:
+        velocity = -np.einsum("tng,tn->tg", arms, qd)  # dl/dt = −r·qd
+        active, passive, _ = muscle_factors(
+            eff, lengths, velocity, pack.optimal_fiber_lengths, pack.tendon_slack_lengths
+        )
+    rec = recruit(
+        arms,
+        tau_muscle,
+        f_max,
+        subject.effort_weight,
+        subject.cocontraction,
+        rate_hz=config.kinematics_rate_hz,
+        seed=subject.seed,
+        key=key,
+        active_factor=active,
+        passive_factor=passive,
+    )
+    force = f_max * rec.activation * (1.0 if active is None else active) + (0.0 if passive is None else f_max * passive)
+    return rec, force
+
+
+def _trial_emg(
+    plan: RepPlan,
+    pack,
+    subject: Subject,
+    config: SynthConfig,
+    channels: list[str],
+    time: np.ndarray,
+    activation: np.ndarray,
+    key: tuple[str, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """EMG time and raw EMG of ``channels``: it follows the neural drive, which leads the force by the
+    electromechanical delay."""
+    eff = config.effects
+    emg_time = np.arange(0.0, plan.duration, 1.0 / config.emg_rate_hz)
+    index = [pack.groups.index(ch) for ch in channels]
+    drive_k = _shift(time, activation[:, index], eff.emd)
+    drive = np.column_stack([np.interp(emg_time, time, drive_k[:, j]) for j in range(len(channels))])
+    touches = np.asarray([m.t0 for m in plan.moves if m.kind == "bottom"])
+    emg = raw_emg(
+        emg_time,
+        drive,
+        channels,
+        subject.emg_gain_uv,
+        subject.noise_floor_uv,
+        rate_hz=config.emg_rate_hz,
+        seed=subject.seed,
+        key=key,
+        crosstalk=eff.crosstalk,
+        artefact_times=touches,
+        spectral_scale=spectral_scale(emg_time, plan.rep_starts, eff.fatigue) if eff.fatigue else None,
+    )
+    return emg_time, emg
+
+
+def _trial_motion_sensors(
+    plan: RepPlan,
+    spec: ExerciseSpec,
+    pack,
+    config: SynthConfig,
+    channels: list[str],
+    seed: int,
+    key: tuple[str, float],
+) -> tuple[list[ImuStream], ElectrodeAccStream]:
+    """The IMU segments' and the EMG electrodes' accelerometers, each at its own rate."""
+    imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
+    qi, qdi, qddi, _, _ = evaluate(plan, imu_time)
+    imu = simulate_imu(pack, spec.segments, imu_time, qi, qdi, qddi, seed=seed, key=key)
+    acc_time = np.arange(0.0, plan.duration, 1.0 / config.emg_acc_rate_hz)
+    qa, qda, qdda, _, _ = evaluate(plan, acc_time)
+    emg_acc = simulate_electrode_acc(pack, spec.electrode_sites, channels, acc_time, qa, qda, qdda, seed=seed, key=key)
+    return imu, emg_acc
+
+
 def generate_trial(
     spec: ExerciseSpec,
     pack,
@@ -139,64 +245,12 @@ def generate_trial(
     )
     time = np.arange(0.0, plan.duration, 1.0 / config.kinematics_rate_hz)
     q, qd, qdd, phase, rep = evaluate(plan, time)
-    n, n_c, n_g = time.size, len(pack.coordinates), len(pack.groups)
     reported = round(load_kg * eff.load_misreport, 3)
-    tau_id = np.empty((n, n_c))
-    tau_rep = np.empty((n, n_c))
-    arms = np.empty((n, n_c, n_g))
-    lengths = np.empty((n, n_g))
-    for k in range(n):
-        tau_id[k] = pack.inverse_dynamics(q[k], qd[k], qdd[k], load_kg * GRAVITY)
-        tau_rep[k] = (
-            tau_id[k] if reported == load_kg else pack.inverse_dynamics(q[k], qd[k], qdd[k], reported * GRAVITY)
-        )
-        lengths[k], arms[k] = pack.lengths_and_moment_arms(q[k])
+    tau_id, tau_rep, arms, lengths = _torques_and_geometry(pack, q, qd, qdd, load_kg, reported)
     tau_muscle = tau_id + eff.damping * qd  # muscles also overcome the joint damping (absent from ID)
-    f_max = pack.f_max_ref * subject.f_max_factor
-    active = passive = None
-    if eff.needs_muscle_state:
-        velocity = -np.einsum("tng,tn->tg", arms, qd)  # dl/dt = −r·qd
-        active, passive, _ = muscle_factors(
-            eff, lengths, velocity, pack.optimal_fiber_lengths, pack.tendon_slack_lengths
-        )
-    rec = recruit(
-        arms,
-        tau_muscle,
-        f_max,
-        subject.effort_weight,
-        subject.cocontraction,
-        rate_hz=config.kinematics_rate_hz,
-        seed=seed,
-        key=key,
-        active_factor=active,
-        passive_factor=passive,
-    )
-    force = f_max * rec.activation * (1.0 if active is None else active) + (0.0 if passive is None else f_max * passive)
-    # EMG follows the neural drive, which leads the force by the electromechanical delay
-    emg_time = np.arange(0.0, plan.duration, 1.0 / config.emg_rate_hz)
-    index = [pack.groups.index(ch) for ch in channels]
-    drive_k = _shift(time, rec.activation[:, index], eff.emd)
-    drive = np.column_stack([np.interp(emg_time, time, drive_k[:, j]) for j in range(len(channels))])
-    touches = np.asarray([m.t0 for m in plan.moves if m.kind == "bottom"])
-    emg = raw_emg(
-        emg_time,
-        drive,
-        channels,
-        subject.emg_gain_uv,
-        subject.noise_floor_uv,
-        rate_hz=config.emg_rate_hz,
-        seed=seed,
-        key=key,
-        crosstalk=eff.crosstalk,
-        artefact_times=touches,
-        spectral_scale=spectral_scale(emg_time, plan.rep_starts, eff.fatigue) if eff.fatigue else None,
-    )
-    imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
-    qi, qdi, qddi, _, _ = evaluate(plan, imu_time)
-    imu = simulate_imu(pack, spec.segments, imu_time, qi, qdi, qddi, seed=seed, key=key)
-    acc_time = np.arange(0.0, plan.duration, 1.0 / config.emg_acc_rate_hz)
-    qa, qda, qdda, _, _ = evaluate(plan, acc_time)
-    emg_acc = simulate_electrode_acc(pack, spec.electrode_sites, channels, acc_time, qa, qda, qdda, seed=seed, key=key)
+    rec, force = _recruit_muscles(pack, subject, config, arms, lengths, qd, tau_muscle, key)
+    emg_time, emg = _trial_emg(plan, pack, subject, config, channels, time, rec.activation, key)
+    imu, emg_acc = _trial_motion_sensors(plan, spec, pack, config, channels, seed, key)
     return Trial(
         name=f"{spec.exercise.value}_{load_kg:g}kg",
         exercise=spec.exercise,
