@@ -121,10 +121,8 @@ LONG_FUNCTIONS = {
     "services/estimator.py:main": 136,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
     "services/bench/discrepancy.py:run": 109,
-    "msk_core/estimate/frame.py:FrameEstimator.__init__": 107,
     "services/bench/estimate.py:run": 94,
     "services/estimator.py:EstimatorNode.__init__": 90,
-    "msk_core/estimate/pipeline.py:build_prior": 89,
 }
 
 

@@ -184,6 +184,28 @@ class FrameEstimator:
         self.coordinates = list(self.pack.coordinates)
         if subject is not None:
             subject.check_pack(self.pack)
+        self._init_effects_and_strength(subject, f_max)
+        self._init_prior(subject, prior)
+        if not torque_tolerance > 0 or not hybrid_weight > 0:
+            raise EstimationError("torque_tolerance and hybrid_weight must be positive")
+        if not emg_std > 0 or not emg_relative_std >= 0:
+            raise EstimationError("emg_std must be positive and emg_relative_std non-negative")
+        self.emg_std, self.emg_relative_std = float(emg_std), float(emg_relative_std)
+        self._emg: np.ndarray | None = None
+        self.torque_tolerance = float(torque_tolerance)
+        self.hybrid_weight = float(hybrid_weight)
+        self.eps = eps
+        self.max_iter = max_iter
+        self.flag_counts: dict[str, int] = {}
+        self.frames = 0
+        self._init_solvers(a_min, a_max, backend, hot_start, hot_start_max_changes)
+        # ModelPack.frame() gives lengths, moment arms and torques in one (compiled) call; other packs need not have it
+        self._fused_frame = getattr(self.pack, "frame", None)
+        self._model_error_logged = False
+
+    def _init_effects_and_strength(self, subject: SubjectProfile | None, f_max: np.ndarray | None) -> None:
+        """The profile's model effects and the F_max the estimate uses (the argument, else the profile's times the
+        effects' strength gain, else the pack's reference)."""
         # the profile's model effects (msk_core.estimate.effects): force scales, torque offsets, a prior delay
         self.effects: ModelEffects | None = None
         if subject is not None and subject.effects:
@@ -200,6 +222,9 @@ class FrameEstimator:
         self.f_max = np.asarray(f_max, dtype=float).copy()
         if self.f_max.shape != (len(self.groups),) or not np.all(self.f_max > 0):
             raise EstimationError(f"F_max must be {len(self.groups)} positive values, got {self.f_max}")
+
+    def _init_prior(self, subject: SubjectProfile | None, prior: PhasePrior | None) -> None:
+        """The prior (the argument, else the profile's, unmixed by its effects), checked against the method."""
         self.prior = prior if prior is not None else (subject.prior if subject is not None else None)
         if self.effects is not None and prior is None:
             self.prior = self.effects.unmix_prior(self.prior)
@@ -209,18 +234,16 @@ class FrameEstimator:
                 raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
             if tuple(self.prior.groups) != tuple(self.groups):
                 raise EstimationError("the prior's groups differ from the pack's groups")
-        if not torque_tolerance > 0 or not hybrid_weight > 0:
-            raise EstimationError("torque_tolerance and hybrid_weight must be positive")
-        if not emg_std > 0 or not emg_relative_std >= 0:
-            raise EstimationError("emg_std must be positive and emg_relative_std non-negative")
-        self.emg_std, self.emg_relative_std = float(emg_std), float(emg_relative_std)
-        self._emg: np.ndarray | None = None
-        self.torque_tolerance = float(torque_tolerance)
-        self.hybrid_weight = float(hybrid_weight)
-        self.eps = eps
-        self.max_iter = max_iter
-        self.flag_counts: dict[str, int] = {}
-        self.frames = 0
+
+    def _init_solvers(
+        self,
+        a_min: float | np.ndarray,
+        a_max: float | np.ndarray,
+        backend: Backend | str,
+        hot_start: bool,
+        hot_start_max_changes: int | None,
+    ) -> None:
+        """Activation bounds, the warm QP, the pack's fitted ranges, the hot-start state and the prior table."""
         n = len(self.groups)
         self._lb = np.broadcast_to(np.asarray(a_min, dtype=float), (n,)).copy()
         self._ub = np.broadcast_to(np.asarray(a_max, dtype=float), (n,)).copy()
@@ -236,7 +259,7 @@ class FrameEstimator:
         # the method's warm QP: SO's equality-constrained one, the others' least-squares one
         self._qp: EqualityQP | LeastSquaresQP
         if self.method is Method.SO:
-            self._qp = EqualityQP(n, len(self.coordinates), self._lb, self._ub, self.backend, eps, max_iter)
+            self._qp = EqualityQP(n, len(self.coordinates), self._lb, self._ub, self.backend, self.eps, self.max_iter)
         else:
             self._qp = self._new_lsq()
         self._fitted = fitted_ranges(self.pack)
@@ -257,9 +280,6 @@ class FrameEstimator:
         else:
             self._prior_mean, self._prior_prec = np.zeros((1, n)), self._hybrid_d[None, :].copy()
         self.solver_counts: dict[str, int] = {"active_set": 0, "piqp": 0}
-        # ModelPack.frame() gives lengths, moment arms and torques in one (compiled) call; other packs need not have it
-        self._fused_frame = getattr(self.pack, "frame", None)
-        self._model_error_logged = False
 
     # -- public -------------------------------------------------------------------------------------------------
 

@@ -65,52 +65,11 @@ def build_prior(
     trials = [t for t in trials if not t.isometric]
     groups = list(pack.groups)
     no_emg = NoEmgPrior(no_emg)
-    emg_groups = sorted({g for t in trials for g in t.emg})
-    if not emg_groups:
-        raise EstimationError(
-            f"the trials with reps ({', '.join(t.name for t in trials) or 'none'}) have no EMG: the prior needs EMG of at "
-            "least one group in a trial with reps"
-            + (f" (isometric trials have no phase: {', '.join(isometric)})" if isometric else "")
-        )
-    if not any(np.any(t.rep_index >= 0) for t in trials):
-        raise EstimationError(
-            "no trial has a complete repetition: the prior is learned per phase of the reps ("
-            + "; ".join(f"{t.name}: {t.extra.get('no_reps', 'no reps')}" for t in trials)
-            + ")"
-        )
-    synergists = dict(synergists or {})
-    for g, h in synergists.items():
-        if g not in groups or h not in emg_groups:
-            raise EstimationError(
-                f"synergist {g!r} -> {h!r}: the first must be a pack group, the second a group with EMG "
-                f"(groups with EMG: {emg_groups})"
-            )
-    missing = [g for g in groups if g not in emg_groups and g not in synergists]
-    if no_emg is NoEmgPrior.SYNERGIST and missing:
-        synergists.update(pick_synergists(pack, trials, missing, emg_groups))
-        missing = [g for g in missing if g not in synergists]
+    emg_groups = _prior_emg_groups(trials, isometric)
+    synergists, missing = _prior_synergists(pack, trials, emg_groups, synergists, no_emg)
     effort = missing if no_emg is not NoEmgPrior.WIDE else []
-    phases: list[np.ndarray] = []
-    reps: list[np.ndarray] = []
-    emg: dict[str, list[np.ndarray]] = {g: [] for g in emg_groups + effort}
-    offset = 0
-    for t in trials:
-        phases.append(t.phase)
-        reps.append(np.where(t.rep_index >= 0, t.rep_index + offset, -1))
-        offset += int(t.rep_index.max()) + 1
-        for g in emg_groups:
-            emg[g].append(t.emg.get(g, np.full(t.n_frames, np.nan)))
-        if effort:
-            so = t.mechanics(pack).min_effort
-            for g in effort:
-                emg[g].append(so[:, groups.index(g)])
-    prior = fit_phase_prior(
-        groups,
-        {g: np.concatenate(v) for g, v in emg.items()},
-        np.concatenate(phases),
-        np.concatenate(reps),
-        n_bins=n_bins,
-    )
+    emg, phases, reps = _prior_samples(pack, trials, emg_groups, effort)
+    prior = fit_phase_prior(groups, emg, phases, reps, n_bins=n_bins)
     mean, std = prior.mean.copy(), prior.std.copy()
     rest_mean = None if prior.rest_mean is None else prior.rest_mean.copy()
     rest_std = None if prior.rest_std is None else prior.rest_std.copy()
@@ -135,6 +94,71 @@ def build_prior(
         rest_std=rest_std,
         sources=tuple(sources),
     )
+
+
+def _prior_emg_groups(trials: list[TrialData], isometric: list[str]) -> list[str]:
+    """The groups with EMG in the trials with reps (sorted); refused when there are none or no trial has a rep."""
+    emg_groups = sorted({g for t in trials for g in t.emg})
+    if not emg_groups:
+        raise EstimationError(
+            f"the trials with reps ({', '.join(t.name for t in trials) or 'none'}) have no EMG: the prior needs EMG of at "
+            "least one group in a trial with reps"
+            + (f" (isometric trials have no phase: {', '.join(isometric)})" if isometric else "")
+        )
+    if not any(np.any(t.rep_index >= 0) for t in trials):
+        raise EstimationError(
+            "no trial has a complete repetition: the prior is learned per phase of the reps ("
+            + "; ".join(f"{t.name}: {t.extra.get('no_reps', 'no reps')}" for t in trials)
+            + ")"
+        )
+    return emg_groups
+
+
+def _prior_synergists(
+    pack: PackLike,
+    trials: list[TrialData],
+    emg_groups: list[str],
+    synergists: dict[str, str] | None,
+    no_emg: NoEmgPrior,
+) -> tuple[dict[str, str], list[str]]:
+    """(unmeasured -> measured group: the given ones checked, then picked ones for ``no_emg=synergist``; the groups
+    still without EMG or synergist)."""
+    groups = list(pack.groups)
+    synergists = dict(synergists or {})
+    for g, h in synergists.items():
+        if g not in groups or h not in emg_groups:
+            raise EstimationError(
+                f"synergist {g!r} -> {h!r}: the first must be a pack group, the second a group with EMG "
+                f"(groups with EMG: {emg_groups})"
+            )
+    missing = [g for g in groups if g not in emg_groups and g not in synergists]
+    if no_emg is NoEmgPrior.SYNERGIST and missing:
+        synergists.update(pick_synergists(pack, trials, missing, emg_groups))
+        missing = [g for g in missing if g not in synergists]
+    return synergists, missing
+
+
+def _prior_samples(
+    pack: PackLike, trials: list[TrialData], emg_groups: list[str], effort: list[str]
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """(group -> activation samples over all trials' frames: EMG (NaN where a trial lacks it), or the minimal-effort
+    activation for the ``effort`` groups; phases; rep numbers made distinct across trials, -1 between reps)."""
+    groups = list(pack.groups)
+    phases: list[np.ndarray] = []
+    reps: list[np.ndarray] = []
+    emg: dict[str, list[np.ndarray]] = {g: [] for g in emg_groups + effort}
+    offset = 0
+    for t in trials:
+        phases.append(t.phase)
+        reps.append(np.where(t.rep_index >= 0, t.rep_index + offset, -1))
+        offset += int(t.rep_index.max()) + 1
+        for g in emg_groups:
+            emg[g].append(t.emg.get(g, np.full(t.n_frames, np.nan)))
+        if effort:
+            so = t.mechanics(pack).min_effort
+            for g in effort:
+                emg[g].append(so[:, groups.index(g)])
+    return {g: np.concatenate(v) for g, v in emg.items()}, np.concatenate(phases), np.concatenate(reps)
 
 
 def pick_synergists(
