@@ -121,7 +121,6 @@ LONG_FUNCTIONS = {
     "services/estimator.py:main": 136,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
     "services/bench/discrepancy.py:run": 109,
-    "services/bench/estimate.py:run": 94,
     "services/estimator.py:EstimatorNode.__init__": 90,
 }
 
