@@ -43,8 +43,10 @@ from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import zenoh
 
 from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
@@ -61,7 +63,15 @@ from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
 from services import messages, session_graph, topics
 from services.graph import ReadySpec, declare_ready
-from services.node_runtime import InputContinuity, InputCounts, NodeInputs, StatusReporter, outages_text, serve
+from services.node_runtime import (
+    Inbound,
+    InputContinuity,
+    InputCounts,
+    NodeInputs,
+    StatusReporter,
+    outages_text,
+    serve,
+)
 from services.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -341,6 +351,53 @@ def make_live_emg(
     )
 
 
+def make_estimators(
+    pack: str, methods: list[str], subject: SubjectProfile | None, solver: str
+) -> dict[str, FrameEstimator]:
+    """One estimator per method, its compiled kernels and solvers warmed up before the first live frame."""
+    if solver not in SOLVERS:
+        raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
+    estimators = {m: FrameEstimator(pack, subject=subject, method=m, hot_start=solver == "active-set") for m in methods}
+    for estimator in estimators.values():
+        estimator.warm_up()
+    return estimators
+
+
+def make_alignment(
+    live_emg: LiveEmg | None,
+    emg_align: str,
+    imu_latency_ns: dict[str, int] | None,
+    default_imu_latency_ns: int,
+) -> AccelerationAlignment | None:
+    """The EMG clock measured against the trackers' (``emg_align`` "acceleration"): only where device clocks are
+    mapped onto the host clock; a tracker latency given for anything else is refused."""
+    if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
+        raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
+    if live_emg is not None and live_emg.clock is ClockMode.HOST and emg_align == ALIGN_ACCELERATION:
+        trackers = DeviceClocks(
+            "imu",
+            latency_ns=imu_latency_ns,
+            default_latency_ns=default_imu_latency_ns,
+            window_s=live_emg.clock_window_s,
+        )
+        return AccelerationAlignment(live_emg, trackers)
+    if live_emg is not None and (imu_latency_ns or default_imu_latency_ns):
+        raise ConfigError(
+            "a tracker latency is used to measure the EMG clock against the trackers' (--emg-clock "
+            "host --emg-align acceleration)",
+            field="--imu-latency-ms",
+            value={**(imu_latency_ns or {}), "default": default_imu_latency_ns},
+        )
+    return None
+
+
+def emg_wait_ns(emg_wait_s: float) -> int:
+    """How long a joint frame may wait for the EMG of its instant, checked (0..1 s), in ns."""
+    if not (np.isfinite(emg_wait_s) and 0 <= emg_wait_s <= 1.0):
+        raise ConfigError("the wait for the EMG is 0..1000 ms", field="--emg-wait-ms", value=emg_wait_s * 1e3)
+    return int(round(emg_wait_s * 1e9))
+
+
 @dataclass
 class _Held:
     joints: messages.JointAngles
@@ -378,14 +435,8 @@ class EstimatorNode:
         trackers' from the accelerations (the trackers mapped with ``imu_latency_ns`` / ``default_imu_latency_ns``
         as the kinematics node maps them); ``emg_wait_s``: how long a joint frame (:meth:`offer_joints`) may wait
         for the EMG of its instant."""
-        if solver not in SOLVERS:
-            raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
         self.stats = stats
-        self.estimators = {
-            m: FrameEstimator(pack, subject=subject, method=m, hot_start=solver == "active-set") for m in methods
-        }
-        for estimator in self.estimators.values():  # compiled kernels and solvers ready before the first live frame
-            estimator.warm_up()
+        self.estimators = make_estimators(pack, methods, subject, solver)
         first = next(iter(self.estimators.values()))
         self.mapper = CoordinateMapper(list(first.coordinates))
         # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
@@ -413,28 +464,8 @@ class EstimatorNode:
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         self.fatigue = make_fatigue(self.live_emg, stats)  # per electrode and rep: median/mean frequency, their trend
         self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
-        if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
-            raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
-        # the EMG clock measured against the trackers': only where device clocks are mapped onto the host clock
-        self.alignment = None
-        if self.live_emg is not None and self.live_emg.clock is ClockMode.HOST and emg_align == ALIGN_ACCELERATION:
-            trackers = DeviceClocks(
-                "imu",
-                latency_ns=imu_latency_ns,
-                default_latency_ns=default_imu_latency_ns,
-                window_s=self.live_emg.clock_window_s,
-            )
-            self.alignment = AccelerationAlignment(self.live_emg, trackers)
-        elif self.live_emg is not None and (imu_latency_ns or default_imu_latency_ns):
-            raise ConfigError(
-                "a tracker latency is used to measure the EMG clock against the trackers' (--emg-clock "
-                "host --emg-align acceleration)",
-                field="--imu-latency-ms",
-                value={**(imu_latency_ns or {}), "default": default_imu_latency_ns},
-            )
-        if not (np.isfinite(emg_wait_s) and 0 <= emg_wait_s <= 1.0):
-            raise ConfigError("the wait for the EMG is 0..1000 ms", field="--emg-wait-ms", value=emg_wait_s * 1e3)
-        self.emg_wait_ns = int(round(emg_wait_s * 1e9))
+        self.alignment = make_alignment(self.live_emg, emg_align, imu_latency_ns, default_imu_latency_ns)
+        self.emg_wait_ns = emg_wait_ns(emg_wait_s)
         self._held: deque[_Held] = deque()  # joint frames waiting for their EMG, oldest first
         self.loads = LoadTimeline(initial_load_kg)
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
@@ -656,6 +687,103 @@ class EstimatorNode:
         return None
 
 
+def declare_outputs(
+    zsession: zenoh.Session, node: EstimatorNode, session: str, methods: list[str]
+) -> tuple[dict[str, zenoh.Publisher], zenoh.Publisher | None]:
+    """A publisher of activation frames per method, and of envelopes with the EMG path."""
+    publishers = {
+        m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame") for m in methods
+    }
+    envelope_publisher = None
+    if node.live_emg is not None:
+        envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
+    return publishers, envelope_publisher
+
+
+def subscribe_inputs(inputs: NodeInputs, node: EstimatorNode, session: str) -> None:
+    """The node's inputs: joints and load; the EMG with the EMG path; the EMG sensors' accelerations and the trackers'
+    samples with the clock alignment."""
+    prefix = topics.session_prefix(session)
+    # One subscription for joints and load keeps a load event and the frames after it in publication order
+    # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
+    # for it (services.session_graph). Envelopes, the other one-chunk topic, are its own output: ignored.
+    inputs.subscribe(f"{prefix}/{session_graph.SESSION_TOPICS}")
+    if node.live_emg is not None:
+        inputs.subscribe(f"{prefix}/emg/*")
+    if node.alignment is not None:  # the EMG clock measured against the trackers'
+        inputs.subscribe(f"{prefix}/acc/*")
+        inputs.subscribe(f"{prefix}/imu/*")
+
+
+class InputDispatch:
+    """Each input to the node's ``handle_*`` by its topic, the frames and envelopes out as they are made; an input
+    the node cannot use is counted in the status and said once per kind."""
+
+    def __init__(
+        self,
+        node: EstimatorNode,
+        session: str,
+        reporter: StatusReporter,
+        publishers: dict[str, zenoh.Publisher],
+        envelope_publisher: zenoh.Publisher | None,
+    ) -> None:
+        self.node, self.stats, self.session, self.reporter = node, node.stats, session, reporter
+        self.publishers, self.envelope_publisher = publishers, envelope_publisher
+        self.joints_key, self.load_key = topics.joints_key(session), topics.load_key(session)
+        prefix = topics.session_prefix(session)
+        self.emg_prefix, self.acc_prefix, self.imu_prefix = f"{prefix}/emg/", f"{prefix}/acc/", f"{prefix}/imu/"
+        self.said: set[tuple[str, str]] = set()
+
+    def not_used(self, key: str, error: MskError) -> None:
+        """An input this node cannot use: counted, said once per kind, the node goes on."""
+        self.reporter.error(f"{key}: {error}")
+        self.stats.last_error = str(error)
+        kind = (key, type(error).__name__)
+        if kind not in self.said:
+            self.said.add(kind)
+            log.error(
+                "input on %s not used: %s (further ones counted in msk/%s/status/%s)",
+                key,
+                error,
+                self.session,
+                NODE_NAME,
+            )
+
+    def estimate(self, final: bool = False) -> None:
+        """The joint frames whose EMG is here (or that waited long enough), each method out when solved."""
+        for joints, arrival_ns in self.node.release(messages.now_ns(), flush=final):
+            try:
+                for method, frame in self.node.frames_for_joints(joints, arrival_ns):
+                    frame.publish_ns = messages.now_ns()
+                    publish(self.publishers[method], frame)
+            except MskError as error:
+                self.not_used(self.joints_key, error)
+            self.stats.frames_done += 1
+
+    def handle(self, item: Inbound) -> None:
+        node, stats = self.node, self.stats
+        message: Any = item.message  # decoded by the runtime by its topic's type; each handle_* checks the type
+        try:
+            if item.key == self.load_key:
+                node.handle_load(message)
+            elif item.key == self.joints_key:
+                node.offer_joints(message, item.arrival_ns)
+            elif item.key.startswith(self.emg_prefix):
+                changes, reps = stats.quality_changes, stats.fatigue_reps
+                envelope = node.handle_emg(message, item.arrival_ns)
+                if envelope is not None and self.envelope_publisher is not None:  # both only with live EMG
+                    publish(self.envelope_publisher, envelope)
+                # an electrode's state changed, or a rep's fatigue values are in: said now, not within 1 s
+                if stats.quality_changes != changes or stats.fatigue_reps != reps:
+                    self.reporter.tick(force=True)
+            elif item.key.startswith(self.acc_prefix):
+                node.handle_acc(message)
+            elif item.key.startswith(self.imu_prefix):
+                node.handle_imu(item.key, message)
+        except MskError as error:
+            self.not_used(item.key, error)
+
+
 def main(
     config: ZenohOptions,
     *,
@@ -705,15 +833,8 @@ def main(
         default_imu_latency_ns=default_imu_latency_ns,
         emg_wait_s=emg_wait_s,
     )
-    joints_key, load_key = topics.joints_key(session), topics.load_key(session)
-    prefix = topics.session_prefix(session)
-    emg_prefix, acc_prefix, imu_prefix = f"{prefix}/emg/", f"{prefix}/acc/", f"{prefix}/imu/"
-
     with open_session(config) as zsession:
-        publishers = {
-            m: declare_data_publisher(zsession, topics.activations_key(session, m), "msk.ActivationFrame")
-            for m in methods
-        }
+        publishers, envelope_publisher = declare_outputs(zsession, node, session, methods)
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
         reporter = StatusReporter(
             zsession,
@@ -725,72 +846,14 @@ def main(
             fatigue=node.fatigue_report,
         )
         stats.inputs, stats.continuity = inputs.counts, inputs.continuity
-        # One subscription for joints and load keeps a load event and the frames after it in publication order
-        # (two subscriptions may hand them over in another order); the role reads the session's one-chunk topics
-        # for it (services.session_graph). Envelopes, the other one-chunk topic, are its own output: ignored.
-        inputs.subscribe(f"{topics.session_prefix(session)}/{session_graph.SESSION_TOPICS}")
-        envelope_publisher = None
-        if node.live_emg is not None:
-            envelope_publisher = declare_data_publisher(zsession, topics.envelopes_key(session), "msk.EmgEnvelope")
-            inputs.subscribe(f"{topics.session_prefix(session)}/emg/*")
-        if node.alignment is not None:  # the EMG clock measured against the trackers'
-            inputs.subscribe(f"{acc_prefix}*")
-            inputs.subscribe(f"{imu_prefix}*")
+        subscribe_inputs(inputs, node, session)
         token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.graph)
         if ready_event is not None:
             ready_event.set()
         reporter.tick(force=True)
-
-        def not_used(key: str, error: MskError) -> None:
-            """An input this node cannot use: counted, said once per kind, the node goes on."""
-            reporter.error(f"{key}: {error}")
-            stats.last_error = str(error)
-            kind = (key, type(error).__name__)
-            if kind not in said:
-                said.add(kind)
-                log.error(
-                    "input on %s not used: %s (further ones counted in msk/%s/status/%s)",
-                    key,
-                    error,
-                    session,
-                    NODE_NAME,
-                )
-
-        def estimate(final: bool = False) -> None:
-            """The joint frames whose EMG is here (or that waited long enough), each method out when solved."""
-            for joints, arrival_ns in node.release(messages.now_ns(), flush=final):
-                try:
-                    for method, frame in node.frames_for_joints(joints, arrival_ns):
-                        frame.publish_ns = messages.now_ns()
-                        publish(publishers[method], frame)
-                except MskError as error:
-                    not_used(joints_key, error)
-                stats.frames_done += 1
-
-        def handle(item) -> None:
-            try:
-                if item.key == load_key:
-                    node.handle_load(item.message)
-                elif item.key == joints_key:
-                    node.offer_joints(item.message, item.arrival_ns)
-                elif item.key.startswith(emg_prefix):
-                    changes, reps = stats.quality_changes, stats.fatigue_reps
-                    envelope = node.handle_emg(item.message, item.arrival_ns)
-                    if envelope is not None and envelope_publisher is not None:  # both only with live EMG
-                        publish(envelope_publisher, envelope)
-                    # an electrode's state changed, or a rep's fatigue values are in: said now, not within 1 s
-                    if stats.quality_changes != changes or stats.fatigue_reps != reps:
-                        reporter.tick(force=True)
-                elif item.key.startswith(acc_prefix):
-                    node.handle_acc(item.message)
-                elif item.key.startswith(imu_prefix):
-                    node.handle_imu(item.key, item.message)
-            except MskError as error:
-                not_used(item.key, error)
-
-        said: set[tuple[str, str]] = set()
+        dispatch = InputDispatch(node, session, reporter, publishers, envelope_publisher)
         # what arrived before the stop is still answered; held frames are estimated at the latest then
-        serve(inputs, handle, stop_event, reporter, tick=estimate)
+        serve(inputs, dispatch.handle, stop_event, reporter, tick=dispatch.estimate)
     return stats
 
 

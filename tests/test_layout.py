@@ -120,7 +120,6 @@ NUMBA_DECORATORS = {"_jit", "njit", "jit", "numba.njit", "numba.jit"}
 LONG_FUNCTIONS = {
     "services/estimator.py:main": 136,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
-    "services/bench/discrepancy.py:run": 109,
     "services/estimator.py:EstimatorNode.__init__": 90,
 }
 

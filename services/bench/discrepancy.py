@@ -381,15 +381,11 @@ def _key(exercise: str, seed: int, three_loads: bool, heavier_trains: bool = Fal
     return exercise, seed, three_loads, heavier_trains
 
 
-def run(quick: bool) -> list[BenchResult]:
-    results = _timing()
-    r = results[0]
-    print(f"    {r.name}: {r.value:.1f} s wall, {r.details['cpu_s']:.1f} s CPU", flush=True)
-    print(f"    {results[1].name}: {results[1].value:.1f} s against {results[1].baseline_value:.1f} s", flush=True)
-    results += _arm26(quick)
-    seeds = (1,) if quick else (1, 2, 3)
-    # the same subjects and noise without any hidden effect: their held-out gap is what is left when an effect's own
-    # gap is removed completely, so 1 - gap(none) / gap_before(effect) is the shrink attainable in that case
+def _effect_free_cases(quick: bool) -> tuple[list[dict], dict[tuple, float]]:
+    """The same subjects and noise without any hidden effect, with one and two training loads and with the direction
+    reversed (the heavier load trains, the lighter is held out): the cases, and each one's held-out gap by
+    :func:`_key`. That gap is what is left when an effect's own gap is removed completely, so 1 - gap(none) /
+    gap_before(effect) is the shrink attainable in that case."""
     none_gap: dict[tuple, float] = {}
     none_cases = []
     for three in (False, True):  # one training load, and two (the held-out load between them)
@@ -399,23 +395,35 @@ def run(quick: bool) -> list[BenchResult]:
                 c["case"] = f"{exercise}/{seed}{' (two training loads)' if three else ''}"
                 none_cases.append(c)
                 none_gap[_key(exercise, seed, three)] = c["gap_before"]
-
-    def attainable(exercise: str, seed: int, three_loads: bool, before: float, heavier_trains: bool = False) -> float:
-        key = _key(exercise, seed, three_loads, heavier_trains)
-        if key not in none_gap:
-            none_gap[key] = detection_case(
-                exercise, "none", seed, three_loads=three_loads, heavier_trains=heavier_trains
-            )["gap_before"]
-        return 1.0 - none_gap[key] / before
-
-    # the direction reversed (the heavier load trains, the lighter is held out): effect-free sessions first
     for exercise in ("bench_press", "deadlift"):
         for seed in (1,) if quick else NONE_SEEDS:
             c = detection_case(exercise, "none", seed, heavier_trains=True)
             c["case"] = f"{exercise}/{seed} (heavier load trains)"
             none_cases.append(c)
             none_gap[_key(exercise, seed, False, True)] = c["gap_before"]
+    return none_cases, none_gap
 
+
+def _attainable(
+    none_gap: dict[tuple, float],
+    exercise: str,
+    seed: int,
+    three_loads: bool,
+    before: float,
+    heavier_trains: bool = False,
+) -> float:
+    """The shrink of a held-out gap ``before`` attainable in this case (see :func:`_effect_free_cases`); an effect-free
+    case not run yet is run and added to ``none_gap``."""
+    key = _key(exercise, seed, three_loads, heavier_trains)
+    if key not in none_gap:
+        none_gap[key] = detection_case(exercise, "none", seed, three_loads=three_loads, heavier_trains=heavier_trains)[
+            "gap_before"
+        ]
+    return 1.0 - none_gap[key] / before
+
+
+def _detection_matrix() -> list[tuple[str, str, str, str, bool]]:
+    """(key, setting, expected effect, label, heavier load trains) for each hidden-effect row of the matrix."""
     matrix = [(key, setting, expected, "", False) for key, (setting, expected) in CASES.items()]
     matrix += [
         (key, setting, expected, " (generator default size)", False)
@@ -427,36 +435,75 @@ def run(quick: bool) -> list[BenchResult]:
         for key, (setting, expected) in CASES.items()
         if key != "load_misreport"
     ]  # a load misreport needs two training loads
-    for key, setting, expected, label, heavier in matrix:
-        cases = []
-        for exercise in ("bench_press", "deadlift"):
-            for seed in seeds:
-                three = key == "load_misreport"
-                c = detection_case(exercise, setting, seed, three_loads=three, heavier_trains=heavier)
-                c["case"] = f"{exercise}/{seed}"
-                c["attainable"] = attainable(exercise, seed, three, c["gap_before"], heavier)
-                cases.append(c)
-        hits = [expected in c["named"][:1] for c in cases]
-        shrink = float(np.median([c["shrink"] for c in cases]))
-        results.append(
-            BenchResult(
-                name=f"hidden {setting}{label}: right effect named",
-                value=float(np.mean(hits)),
-                unit="fraction of cases",
-                target=">= 0.9 named, median held-out gap shrink >= 0.5",
-                passed=bool(np.mean(hits) >= 0.9 and shrink >= 0.5),
-                details={
-                    "median_shrink": shrink,
-                    "median_attainable_shrink": float(np.median([c["attainable"] for c in cases])),
-                    "wrong": sum(bool(c["named"]) and c["named"][0] != expected for c in cases),
-                    **{
-                        c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} "
-                        "attainable)"
-                        for c in cases
-                    },
-                },
-            )
-        )
+    return matrix
+
+
+def _hidden_effect_result(
+    row: tuple[str, str, str, str, bool], seeds: tuple[int, ...], none_gap: dict[tuple, float]
+) -> BenchResult:
+    """One row of the matrix: is the hidden effect named first, and how much of the held-out gap does it remove."""
+    key, setting, expected, label, heavier = row
+    cases = []
+    for exercise in ("bench_press", "deadlift"):
+        for seed in seeds:
+            three = key == "load_misreport"
+            c = detection_case(exercise, setting, seed, three_loads=three, heavier_trains=heavier)
+            c["case"] = f"{exercise}/{seed}"
+            c["attainable"] = _attainable(none_gap, exercise, seed, three, c["gap_before"], heavier)
+            cases.append(c)
+    hits = [expected in c["named"][:1] for c in cases]
+    shrink = float(np.median([c["shrink"] for c in cases]))
+    return BenchResult(
+        name=f"hidden {setting}{label}: right effect named",
+        value=float(np.mean(hits)),
+        unit="fraction of cases",
+        target=">= 0.9 named, median held-out gap shrink >= 0.5",
+        passed=bool(np.mean(hits) >= 0.9 and shrink >= 0.5),
+        details={
+            "median_shrink": shrink,
+            "median_attainable_shrink": float(np.median([c["attainable"] for c in cases])),
+            "wrong": sum(bool(c["named"]) and c["named"][0] != expected for c in cases),
+            **{
+                c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} attainable)"
+                for c in cases
+            },
+        },
+    )
+
+
+def _two_effects_result(seeds: tuple[int, ...], none_gap: dict[tuple, float]) -> BenchResult:
+    """emd=0.15 and fl_passive hidden together, --max-effects 2: are both named."""
+    pair = []
+    for exercise in ("bench_press", "deadlift"):
+        for seed in seeds:
+            c = detection_case(exercise, "emd=0.15,fl_passive", seed, max_effects=2)
+            c["case"] = f"{exercise}/{seed}"
+            c["attainable"] = _attainable(none_gap, exercise, seed, False, c["gap_before"])
+            pair.append(c)
+    both = [set(c["named"]) == {"emd", "fl_passive"} for c in pair]
+    return BenchResult(
+        name="two hidden effects (emd=0.15 + fl_passive), --max-effects 2: both named",
+        value=float(np.mean(both)),
+        unit="fraction of cases",
+        target=">= 0.9",
+        passed=bool(np.mean(both) >= 0.9),
+        details={
+            c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} attainable)"
+            for c in pair
+        },
+    )
+
+
+def run(quick: bool) -> list[BenchResult]:
+    results = _timing()
+    r = results[0]
+    print(f"    {r.name}: {r.value:.1f} s wall, {r.details['cpu_s']:.1f} s CPU", flush=True)
+    print(f"    {results[1].name}: {results[1].value:.1f} s against {results[1].baseline_value:.1f} s", flush=True)
+    results += _arm26(quick)
+    seeds = (1,) if quick else (1, 2, 3)
+    none_cases, none_gap = _effect_free_cases(quick)
+    for row in _detection_matrix():
+        results.append(_hidden_effect_result(row, seeds, none_gap))
     clean = [not c["named"] for c in none_cases]
     results.append(
         BenchResult(
@@ -468,25 +515,5 @@ def run(quick: bool) -> list[BenchResult]:
             details={c["case"]: f"{'+'.join(c['named']) or 'none'} (gap {c['gap_before']:.4f})" for c in none_cases},
         )
     )
-    pair = []
-    for exercise in ("bench_press", "deadlift"):
-        for seed in seeds:
-            c = detection_case(exercise, "emd=0.15,fl_passive", seed, max_effects=2)
-            c["case"] = f"{exercise}/{seed}"
-            c["attainable"] = attainable(exercise, seed, False, c["gap_before"])
-            pair.append(c)
-    both = [set(c["named"]) == {"emd", "fl_passive"} for c in pair]
-    results.append(
-        BenchResult(
-            name="two hidden effects (emd=0.15 + fl_passive), --max-effects 2: both named",
-            value=float(np.mean(both)),
-            unit="fraction of cases",
-            target=">= 0.9",
-            passed=bool(np.mean(both) >= 0.9),
-            details={
-                c["case"]: f"{'+'.join(c['named']) or 'none'} ({c['shrink']:.0%} of {c['attainable']:.0%} attainable)"
-                for c in pair
-            },
-        )
-    )
+    results.append(_two_effects_result(seeds, none_gap))
     return results
