@@ -118,9 +118,7 @@ NUMBA_DECORATORS = {"_jit", "njit", "jit", "numba.njit", "numba.jit"}
 # length when the list was taken (26 Nov, issue 28). The list only shrinks: a listed function may not grow, a new
 # one may not join it, and one that has been split must leave it.
 LONG_FUNCTIONS = {
-    "services/estimator.py:main": 136,
     "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
-    "services/estimator.py:EstimatorNode.__init__": 90,
 }
 
 
