@@ -118,7 +118,6 @@ NUMBA_DECORATORS = {"_jit", "njit", "jit", "numba.njit", "numba.jit"}
 # length when the list was taken (26 Nov, issue 28). The list only shrinks: a listed function may not grow, a new
 # one may not join it, and one that has been split must leave it.
 LONG_FUNCTIONS = {
-    "msk_core/discrepancy/workflow.py:run_discrepancy": 110,
 }
 
 

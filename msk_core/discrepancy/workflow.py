@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
+from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, TrialArrays, check_inputs, session_arrays
 from msk_core.discrepancy.model import Fit, crossed_coordinates, design, gaps, on
 from msk_core.discrepancy.recalibrate import Recalibrator
 from msk_core.discrepancy.select import BIC_MARGIN, MIN_REDUCTION, Selection, select_effects
@@ -252,6 +252,130 @@ def _rep_summary(per_rep: list[tuple[str, int, float]]) -> dict:
     }
 
 
+def _evidence(sel: Selection, tr: list[TrialArrays], ho: list[TrialArrays]) -> dict[str, Any]:
+    """The profile's record (JSON) of how the effects were found: trials, criterion, gaps and the greedy steps."""
+    return {
+        "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "training_trials": [t.path for t in tr],
+        "holdout_trials": [t.path for t in ho],
+        "criterion": {
+            "min_holdout_mse_reduction": MIN_REDUCTION,
+            "bic_margin": BIC_MARGIN,
+            "minus2_ln_lr_holdout": "-2 ln LR on the held-out trials (no parameter penalty), < -bic_margin",
+            "left_out_training_trials": "with several training trials, none left out of the fit may "
+            "favour the base model by -2 ln LR > bic_margin",
+            "rank": "of those that pass, the lowest held-out BIC (-2 ln LR + extra parameters x ln N_eff)",
+        },
+        "gap_before_rms": float(np.sqrt(sel.gap_before_mse)),
+        "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
+        "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
+    }
+
+
+def _profile_with_effects(
+    profile: SubjectProfile,
+    data: SessionArrays,
+    after_fit: Fit,
+    recalibrator: Recalibrator | None,
+    evidence: dict[str, Any],
+    recalibrated: bool,
+) -> tuple[SubjectProfile, dict]:
+    """A copy of ``profile`` with the named effects (and, when ``recalibrated``, the strengths of the calibration with
+    the named torque terms in it, recorded in ``evidence``), and its effects section."""
+    profile_out = copy.deepcopy(profile)
+    if recalibrated:
+        evidence["recalibrated"] = {
+            "f_max_before": [round(float(x), 4) for x in data.f_max],
+            "calibration": recalibrator.report(after_fit.model) if recalibrator else None,
+        }
+        profile_out.f_max = np.asarray(after_fit.f_max, dtype=float).copy()
+    effects = effects_section(data, after_fit, evidence)
+    profile_out.effects = effects
+    return profile_out, effects
+
+
+def _torque_summary(
+    data: SessionArrays,
+    profile: SubjectProfile,
+    sel: Selection,
+    named: list[str],
+    effects: dict,
+    evidence: dict[str, Any],
+    tr: list[TrialArrays],
+    ho: list[TrialArrays],
+) -> dict:
+    """The summary of the torque side: the named effect(s) and parameters, the held-out gaps before and after (in
+    total and per coordinate), the candidates and greedy steps, and what the session held."""
+    per_c_before = np.sqrt(np.mean(np.vstack([gaps(data, t, sel.none_fit) for t in ho]) ** 2, axis=0))
+    per_c_after = np.sqrt(np.mean(np.vstack([gaps(data, t, sel.final_fit) for t in ho]) ** 2, axis=0))
+    return {
+        "effect": "none" if not named else (named[0] if len(named) == 1 else named),
+        "parameters": {}
+        if not named
+        else (
+            effects["effects"][0]["parameters"]
+            if len(named) == 1
+            else {e["name"]: e["parameters"] for e in effects["effects"]}
+        ),
+        "gap_before": float(np.sqrt(sel.gap_before_mse)),
+        "gap_after": float(np.sqrt(sel.gap_after_mse)),
+        "gap_units": "RMS held-out torque gap, fraction of each coordinate's muscle torque capacity at the pose",
+        "gap_per_coordinate": {
+            c: {"before": float(b), "after": float(a)} for c, b, a in zip(data.coordinates, per_c_before, per_c_after)
+        },
+        "candidates": [_score_dict(s) for s in sel.steps[0]] if sel.steps else [],
+        "greedy_steps": [[_score_dict(s) for s in step] for step in sel.steps],
+        "criterion": evidence["criterion"],
+        "autocorrelation_frames": sel.autocorrelation_frames,
+        "training_trials": evidence["training_trials"],
+        "holdout_trials": evidence["holdout_trials"],
+        "emg_groups": data.emg_groups,
+        "calibration_at_bounds": calibration_at_bounds(data, profile),
+        "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
+        "frames_left_out": {t.name: t.left_out for t in tr + ho if t.left_out},
+    }
+
+
+def _recalibrated_summary(data: SessionArrays, profile_out: SubjectProfile, evidence: dict[str, Any]) -> dict:
+    """The groups whose calibrated strength moved by more than 1 %, and the torque terms that calibration fitted
+    alongside the strengths (N·m per unit of each term)."""
+    out: dict[str, Any] = {
+        "recalibrated_strengths": {
+            g: {"before": float(b), "after": float(a)}
+            for g, b, a in zip(data.groups, data.f_max, profile_out.f_max)
+            if abs(a / b - 1.0) > 0.01
+        }
+    }
+    terms = ((evidence["recalibrated"].get("calibration") or {}).get("torque_basis")) or {}
+    if terms:
+        out["recalibrated_torque_terms"] = {k: float(v) for k, v in terms.items()}
+    return out
+
+
+def _activation_summary(
+    pack: PackLike,
+    profile: SubjectProfile,
+    profile_out: SubjectProfile | None,
+    holdout: list[TrialData],
+    data: SessionArrays,
+    after_fit: Fit,
+    progress: Progress | None,
+) -> dict:
+    """The held-out activation gaps (RMS and per EMG group) before and after, with each model's delay."""
+    held = [t for t in holdout if not t.isometric]
+    d0 = data.base_delay_s
+    d1 = after_fit.model.get(Effect.EMD, {}).get("delay_total_s", d0)
+    before = activation_gaps(pack, profile, held, data.emg_groups, d0, progress)
+    after = activation_gaps(pack, profile_out, held, data.emg_groups, d1, progress) if profile_out else before
+    return {
+        "activation_gap_before": before["rms"],
+        "activation_gap_after": after["rms"],
+        "activation_gap_per_group": {
+            g: {"before": before["per_group"][g], "after": after["per_group"][g]} for g in data.emg_groups
+        },
+    }
+
+
 def run_discrepancy(
     pack: PackLike,
     profile: SubjectProfile,
@@ -272,88 +396,21 @@ def run_discrepancy(
     recalibrator = Recalibrator(pack, profile, train, data.base_delay_s) if recalibrate else None
     sel = select_effects(data, tr, ho, max_effects=max_effects, progress=progress, recalibrator=recalibrator)
     before_fit, after_fit = sel.none_fit, sel.final_fit
-    per_c_before = np.sqrt(np.mean(np.vstack([gaps(data, t, before_fit) for t in ho]) ** 2, axis=0))
-    per_c_after = np.sqrt(np.mean(np.vstack([gaps(data, t, after_fit) for t in ho]) ** 2, axis=0))
     named = [e.value for e in sel.named]
-    candidates = [_score_dict(s) for s in sel.steps[0]] if sel.steps else []
-    evidence: dict[str, Any] = {  # JSON: the profile's record of how the effects were found
-        "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "training_trials": [t.path for t in tr],
-        "holdout_trials": [t.path for t in ho],
-        "criterion": {
-            "min_holdout_mse_reduction": MIN_REDUCTION,
-            "bic_margin": BIC_MARGIN,
-            "minus2_ln_lr_holdout": "-2 ln LR on the held-out trials (no parameter penalty), < -bic_margin",
-            "left_out_training_trials": "with several training trials, none left out of the fit may "
-            "favour the base model by -2 ln LR > bic_margin",
-            "rank": "of those that pass, the lowest held-out BIC (-2 ln LR + extra parameters x ln N_eff)",
-        },
-        "gap_before_rms": float(np.sqrt(sel.gap_before_mse)),
-        "gap_after_rms": float(np.sqrt(sel.gap_after_mse)),
-        "steps": [[_score_dict(s) for s in step[:3]] for step in sel.steps],
-    }
+    evidence = _evidence(sel, tr, ho)
     profile_out = None
     effects: dict = {}  # the profile's effects section, when an effect is named
     recalibrated = after_fit.f_max is not None and not np.array_equal(after_fit.f_max, data.f_max)
     if named:
-        profile_out = copy.deepcopy(profile)
-        if recalibrated:  # the strengths of the calibration with the named torque terms in it
-            evidence["recalibrated"] = {
-                "f_max_before": [round(float(x), 4) for x in data.f_max],
-                "calibration": recalibrator.report(after_fit.model) if recalibrator else None,
-            }
-            profile_out.f_max = np.asarray(after_fit.f_max, dtype=float).copy()
-        effects = effects_section(data, after_fit, evidence)
-        profile_out.effects = effects
-    summary = {
-        "effect": "none" if not named else (named[0] if len(named) == 1 else named),
-        "parameters": {}
-        if not named
-        else (
-            effects["effects"][0]["parameters"]
-            if len(named) == 1
-            else {e["name"]: e["parameters"] for e in effects["effects"]}
-        ),
-        "gap_before": float(np.sqrt(sel.gap_before_mse)),
-        "gap_after": float(np.sqrt(sel.gap_after_mse)),
-        "gap_units": "RMS held-out torque gap, fraction of each coordinate's muscle torque capacity at the pose",
-        "gap_per_coordinate": {
-            c: {"before": float(b), "after": float(a)} for c, b, a in zip(data.coordinates, per_c_before, per_c_after)
-        },
-        "candidates": candidates,
-        "greedy_steps": [[_score_dict(s) for s in step] for step in sel.steps],
-        "criterion": evidence["criterion"],
-        "autocorrelation_frames": sel.autocorrelation_frames,
-        "training_trials": evidence["training_trials"],
-        "holdout_trials": evidence["holdout_trials"],
-        "emg_groups": data.emg_groups,
-        "calibration_at_bounds": calibration_at_bounds(data, profile),
-        "frames": {"training": int(sum(t.n for t in tr)), "holdout": int(sum(t.n for t in ho))},
-        "frames_left_out": {t.name: t.left_out for t in tr + ho if t.left_out},
-    }
+        profile_out, effects = _profile_with_effects(profile, data, after_fit, recalibrator, evidence, recalibrated)
+    summary = _torque_summary(data, profile, sel, named, effects, evidence, tr, ho)
     summary["recalibrate"] = bool(recalibrate)
     if profile_out is not None:
         summary["strength_gain"] = effects["strength_gain"]
-        if recalibrated:  # the groups whose calibrated strength moved by more than 1 %
-            summary["recalibrated_strengths"] = {
-                g: {"before": float(b), "after": float(a)}
-                for g, b, a in zip(data.groups, data.f_max, profile_out.f_max)
-                if abs(a / b - 1.0) > 0.01
-            }
-            terms = ((evidence["recalibrated"].get("calibration") or {}).get("torque_basis")) or {}
-            if terms:  # what that calibration fitted alongside the strengths (N·m per unit of each term)
-                summary["recalibrated_torque_terms"] = {k: float(v) for k, v in terms.items()}
+        if recalibrated:
+            summary.update(_recalibrated_summary(data, profile_out, evidence))
     if activation:
-        held = [t for t in holdout if not t.isometric]
-        d0 = data.base_delay_s
-        d1 = after_fit.model.get(Effect.EMD, {}).get("delay_total_s", d0)
-        before = activation_gaps(pack, profile, held, data.emg_groups, d0, progress)
-        after = activation_gaps(pack, profile_out, held, data.emg_groups, d1, progress) if profile_out else before
-        summary["activation_gap_before"] = before["rms"]
-        summary["activation_gap_after"] = after["rms"]
-        summary["activation_gap_per_group"] = {
-            g: {"before": before["per_group"][g], "after": after["per_group"][g]} for g in data.emg_groups
-        }
+        summary.update(_activation_summary(pack, profile, profile_out, holdout, data, after_fit, progress))
     return DiscrepancyResult(
         data=data,
         selection=sel,
