@@ -148,9 +148,14 @@ class StreamingJointKinematics:
         self._restart()
 
     def _restart(self) -> None:
+        """A new set: calibrate again, then filter and track the phase from scratch."""
         self.static: dict[str, list[np.ndarray]] = {s: [] for s in self.mapper.segments}
         self.static_start_ns: int | None = None
         self.calibrated = False
+        self._resume()
+
+    def _resume(self) -> None:
+        """The same set after a gap: the calibration holds, the filter and the phase tracking start from scratch."""
         self.filter = JointKinematicsFilter(len(self.mapper.coordinates), self.filter_config)
         self.tracker = PhaseTracker(self.phase_template) if self.phase_template is not None else None
         self.last_ns: int | None = None
@@ -176,9 +181,7 @@ class StreamingJointKinematics:
         if self.last_ns is not None and not 0 < frame.time_ns - self.last_ns <= self.gap_ns:
             if self.calibrated and lost is not None and self.last_ns < lost <= frame.time_ns + LOST_MARGIN_NS:
                 c.resumes += 1  # the samples of the gap were lost on their way: the same set goes on
-                self.filter = JointKinematicsFilter(len(self.mapper.coordinates), self.filter_config)
-                self.tracker = PhaseTracker(self.phase_template) if self.phase_template is not None else None
-                self.last_ns = None
+                self._resume()
             else:
                 c.restarts += 1  # a new set (or a clock jump): the trackers may have moved on the body
                 self._restart()
