@@ -1,4 +1,6 @@
-"""Zenoh nodes (drivers, estimator, recorder, replayer) and the ``msk`` command line."""
+"""The running system, one folder per kind, in data-flow order: ``transport`` (how nodes talk), ``nodes`` (the
+processes of the data flow), ``sessions`` (whole sessions built from them), ``surfaces`` (what people look at); beside
+them the ``msk`` command line (``cli``, ``commands``) and ``bench``."""
 
 import os
 

@@ -82,7 +82,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 @pytest.fixture(autouse=True, scope="session")
 def _own_session_registry(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Each test process announces and finds `msk live` sessions in its own registry (services/discovery.py), so a
+    """Each test process announces and finds `msk live` sessions in its own registry (services/sessions/discovery.py), so a
     test never attaches to a session of another worker or of the developer's machine."""
     os.environ["MSK_SESSIONS_DIR"] = str(tmp_path_factory.mktemp("sessions"))
 
@@ -111,6 +111,6 @@ def free_tcp_port() -> int:
 @pytest.fixture
 def zenoh_endpoint() -> str:
     """A fresh loopback endpoint so tests never join each other's (or a developer's) Zenoh network."""
-    from services.zenoh_session import free_loopback_endpoint
+    from services.transport.zenoh_session import free_loopback_endpoint
 
     return free_loopback_endpoint()

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from services import estimator
-from services.mcap_io import McapRecorderWriter, read_messages
-from services.zenoh_session import ZenohOptions
+from services.nodes import estimator
+from services.transport.mcap_io import McapRecorderWriter, read_messages
+from services.transport.zenoh_session import ZenohOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEMO_MCAP = REPO_ROOT / "recordings" / "demo_session.mcap"
@@ -82,12 +82,12 @@ def record_with_estimates(
 ) -> dict:
     """Replay ``source`` at 8x real time through one estimator per pack (``{pack: methods}``) and record everything.
 
-    Not at full speed: activation frames and envelopes are newest-wins (services.topics, Delivery), so a publisher
+    Not at full speed: activation frames and envelopes are newest-wins (services.transport.topics, Delivery), so a publisher
     flooded faster than the recorder drains may drop some, by design; once in a clean-clone suite on busy cores 13 of
     32,396 were missing. 8x keeps the graph far from that while the replay takes ~9 s."""
     import time
 
-    from services import recorder, replayer
+    from services.nodes import recorder, replayer
 
     joints = sum(1 for r in read_messages(source) if r.type_name == "msk.JointAngles")
     stop, ready = threading.Event(), threading.Event()
@@ -130,7 +130,7 @@ def record_with_estimates(
 
 
 # ---- unusable inputs over a real Zenoh session (the readers must drop and count them, and go on) ---------------------
-#: A payload far over services.node_runtime.MAX_PAYLOAD_BYTES.
+#: A payload far over services.nodes.node_runtime.MAX_PAYLOAD_BYTES.
 HUGE_PAYLOAD_BYTES = 50 * 1024 * 1024
 
 
@@ -172,12 +172,12 @@ class BadInputs:
         self.expected[(key, reason)] = self.expected.get((key, reason), 0) + 1
 
     def good(self, rest: str, message) -> None:
-        from services import messages
+        from services.transport import messages
 
         self._put(rest, messages.encode(message), messages.type_name(message))
 
     def _put(self, rest: str, payload: bytes, encoding_type: str | None) -> None:
-        from services.zenoh_session import encoding_for
+        from services.transport.zenoh_session import encoding_for
 
         publisher = self.publisher(rest)
         if encoding_type is None:
@@ -187,7 +187,7 @@ class BadInputs:
 
     def publish_every_kind(self) -> None:
         """Garbage bytes, an empty payload, a message of the wrong type and a 50 MB payload, on several topics."""
-        from services import messages
+        from services.transport import messages
 
         chunk = messages.EmgChunk(
             source_id="trigno", n_samples=1, n_channels=1, samples=[0.0], channel_labels=["a"], sample_rate_hz=2000.0

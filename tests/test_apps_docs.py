@@ -9,9 +9,9 @@ import subprocess
 import sys
 import threading
 
-from services import estimator, replayer
-from services.graph import Graph, wait_for
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session
+from services.nodes import estimator, replayer
+from services.sessions.graph import Graph, wait_for
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session
 
 SESSION = "appsdoc"
 

@@ -19,8 +19,8 @@ from msk_core.estimate.clock_alignment import METHOD_ACCELERATION, AccelerationA
 from msk_core.estimate.live_emg import EmgSetup, LiveEmg
 from msk_core.signal.clock_sync import STANDARD_GRAVITY, SyncStatus
 from msk_core.signal.host_clock import METHOD_ARRIVAL, DeviceClocks
-from services import messages
-from services.node_runtime import clock_offsets
+from services.nodes.node_runtime import clock_offsets
+from services.transport import messages
 from tests.test_clock_sync import measured, motion
 
 HOST0_NS = 1_790_000_000_000_000_000  # host clock (ns) at trial time 0
@@ -166,7 +166,7 @@ def test_a_frame_awaits_the_emg_of_its_instant_while_the_source_delivers():
 def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waited_long_enough():
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.model import load_pack
-    from services.estimator import EstimatorNode, EstimatorStats
+    from services.nodes.estimator import EstimatorNode, EstimatorStats
 
     pack = load_pack("bench_press")
     group = pack.groups[0]

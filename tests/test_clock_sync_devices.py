@@ -1,6 +1,6 @@
 """The EMG clock against a tracker's clock from their accelerations, through the real drivers and simulators.
 
-A synthetic bench press (msk_core.synth) is written as device files (services.synth_export) and streamed by a Trigno
+A synthetic bench press (msk_core.synth) is written as device files (services.sessions.synth_export) and streamed by a Trigno
 simulator (real TCP: EMG and AUX ports, 60 ms device latency) and an Xsens simulator (pty) on one trial clock, the
 tracker started 300 ms after the Trigno. The drivers read the Trigno sensors' accelerometers (AUX port, g, EMG clock)
 and the upper-arm tracker's accelerations (m/s², its own SampleTimeFine clock); clock_sync must find the offset
@@ -30,7 +30,7 @@ from drivers.xsens.source import load_imu_source
 from msk_core.model import load_pack
 from msk_core.signal.clock_sync import AccUnit, ClockSync, SyncStatus
 from msk_core.synth import SPECS, Exercise, SynthConfig, generate_trial, make_subject
-from services.synth_export import write_trial_device_streams
+from services.sessions.synth_export import write_trial_device_streams
 
 TRIGNO_LATENCY_S = 0.060  # a base station buffering its frames
 XSENS_LATENCY_S = 0.004  # an MTi over USB

@@ -1,8 +1,8 @@
 """docker-compose.yml stays true to the code: every node's command is a valid ``msk`` command line, every node joins
 the router, and the files it names exist. (No Docker engine runs here, so the file is checked against the code.)
 
-Both compose files and the router's access control are what the declared session graph (services/session_graph.py)
-generates: the committed files equal ``services.deploy_files``' output, every secured service presents the role of
+Both compose files and the router's access control are what the declared session graph (services/transport/session_graph.py)
+generates: the committed files equal ``services.sessions.deploy_files``' output, every secured service presents the role of
 its graph declaration, and every key a participant publishes or reads is one its role may."""
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from services import deploy_files, security, session_graph, topics
 from services.cli import build_parser
+from services.sessions import deploy_files
+from services.transport import security, session_graph, topics
 
 
 def _expand(text: str) -> str:
@@ -188,7 +189,9 @@ def test_committed_compose_file_is_what_the_graph_generates(repo_root, name):
     committed = (repo_root / name).read_text()
     if committed != expected:
         diff = "".join(deploy_files.stale_files(repo_root).get(name, []))
-        pytest.fail(f"{name} is not what services/session_graph.py generates; run {deploy_files.WRITE_HINT}\n{diff}")
+        pytest.fail(
+            f"{name} is not what services/transport/session_graph.py generates; run {deploy_files.WRITE_HINT}\n{diff}"
+        )
 
 
 def _secured_roles_mismatches(compose: dict, secure_compose: dict) -> list[str]:
@@ -248,7 +251,7 @@ def test_every_topic_of_a_participant_is_allowed_to_its_role():
 
 def _token_problems(policies: dict[str, security.RolePolicy]) -> list[str]:
     """A node whose role may not declare its readiness token, or a publishing node whose role may not watch the
-    readers' tokens it waits for (services.graph)."""
+    readers' tokens it waits for (services.nodes.readiness)."""
     problems = []
     for decl in session_graph.NODES.values():
         policy = policies[decl.role]

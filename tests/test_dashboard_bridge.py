@@ -15,9 +15,9 @@ import pytest
 
 from msk_core.model import available_packs, load_pack
 from msk_core.signal.reps import MIN_REP_S
-from services import messages
-from services.dashboard import bodymap
-from services.dashboard.bridge import HAS_MEASURED_ENVELOPE, DashboardState, RepCounter
+from services.surfaces.dashboard import bodymap
+from services.surfaces.dashboard.bridge import HAS_MEASURED_ENVELOPE, DashboardState, RepCounter
+from services.transport import messages
 from tests.conftest import free_tcp_port
 
 PREFIX = "msk/t/"
@@ -258,8 +258,8 @@ def test_port_in_use_is_a_clear_error():
 
 def test_bad_session_name_is_refused():
     from msk_core.errors import ConfigError
-    from services.dashboard.app import DashboardConfig, DashboardServer
-    from services.zenoh_session import ZenohOptions
+    from services.surfaces.dashboard.app import DashboardConfig, DashboardServer
+    from services.transport.zenoh_session import ZenohOptions
 
     with pytest.raises(ConfigError, match="--session"):
         DashboardServer(ZenohOptions(), DashboardConfig(session="a/b"), port=free_tcp_port())
@@ -431,8 +431,8 @@ def test_node_statuses_are_nodes_with_their_dropped_inputs_not_devices():
 def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):
     """Garbage, an empty payload, another type and a 50 MB payload on the session's topics: each is dropped and
     counted per key and reason (shown as the dashboard's node row); the valid messages after them are shown."""
-    from services.dashboard.bridge import Bridge
-    from services.zenoh_session import ZenohOptions, open_session
+    from services.surfaces.dashboard.bridge import Bridge
+    from services.transport.zenoh_session import ZenohOptions, open_session
     from tests.dashboard_helpers import BadInputs
 
     state = DashboardState("t")

@@ -11,9 +11,9 @@ import time
 
 import pytest
 
-from services import replayer
-from services.dashboard.app import DashboardConfig, DashboardServer
-from services.zenoh_session import ZenohOptions
+from services.nodes import replayer
+from services.surfaces.dashboard.app import DashboardConfig, DashboardServer
+from services.transport.zenoh_session import ZenohOptions
 from tests.conftest import free_tcp_port
 from tests.dashboard_helpers import (
     ARTIFACTS,
@@ -199,8 +199,8 @@ class LiveStreams:
         return self
 
     def _run(self) -> None:
-        from services import messages, topics
-        from services.zenoh_session import declare_data_publisher, publish
+        from services.transport import messages, topics
+        from services.transport.zenoh_session import declare_data_publisher, publish
 
         s = self._session
         publishers = {
@@ -323,8 +323,8 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
     require_chromium()
     from playwright import sync_api
 
-    from services import messages, topics
-    from services.zenoh_session import declare_data_publisher, open_session, publish
+    from services.transport import messages, topics
+    from services.transport.zenoh_session import declare_data_publisher, open_session, publish
     from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
 
     session = "floor"

@@ -22,10 +22,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services import security
-from services.router import wait_until_listening
-from services.schemas import msk_pb2
-from services.zenoh_session import declare_data_publisher, publish
+from services.nodes.router import wait_until_listening
+from services.transport import security
+from services.transport.schemas import msk_pb2
+from services.transport.zenoh_session import declare_data_publisher, publish
 from tests.conftest import free_tcp_port
 
 pytestmark = pytest.mark.slow

@@ -10,8 +10,8 @@ import sys
 import pytest
 
 from msk_core.errors import InputError
-from services import demo
-from services.mcap_io import read_messages
+from services.sessions import demo
+from services.transport.mcap_io import read_messages
 
 
 def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):

@@ -185,8 +185,9 @@ def test_force_length_scales_each_groups_moment_arms_and_delay_looks_up_the_earl
 
 
 def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_path):
-    from services import estimator, messages, topics
-    from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+    from services.nodes import estimator
+    from services.transport import messages, topics
+    from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
     pack, profile = _arm26_profile(
         _effects(
@@ -394,7 +395,7 @@ def test_the_report_says_when_an_effect_is_found_between_the_reps(tmp_path):
     """Deadlift with the muscles' passive force, trained on 75 kg, 45 kg held out: the passive force is named, but
     its evidence is the held-out trial's set-up and rests (the gap there falls by > 90 %), while inside the reps it
     helps one of three. The report says so rather than letting the pooled reduction speak for the reps."""
-    from services.reports.discrepancy import write_report
+    from services.surfaces.reports.discrepancy import write_report
 
     result = discrepancy("deadlift", "fl_passive", 1, loads=(75.0, 45.0))
     s = result.summary

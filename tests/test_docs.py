@@ -105,7 +105,7 @@ def test_readme_starts_with_the_two_setup_commands() -> None:
 
 
 def test_the_role_table_of_deployment_md_is_the_access_control_the_graph_gives() -> None:
-    from services import security
+    from services.transport import security
 
     text = (REPO / "docs" / "deployment.md").read_text()
     # the role table only: from its header to the first line that is not a table row (other tables name roles too)

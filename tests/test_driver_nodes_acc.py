@@ -14,7 +14,8 @@ from drivers.trigno import protocol as tp
 from drivers.trigno.client import TrignoClient, TrignoConfig
 from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
 from drivers.trigno.source import synthetic_source
-from services import driver_nodes, messages, topics
+from services.nodes import driver_nodes
+from services.transport import messages, topics
 
 ACC_HZ = 100.0
 

@@ -16,7 +16,8 @@ from drivers.xsens.device import TrackerSet, XsensDevice
 from drivers.xsens.serial_transport import SerialTransport
 from drivers.xsens.simulator import XsensSimulator
 from drivers.xsens.source import synthetic_imu
-from services import driver_nodes, topics
+from services.nodes import driver_nodes
+from services.transport import topics
 from tests.test_driver_conformance_trigno import TERM, FakeTcu, known_rows, sensor_answers
 
 

@@ -13,7 +13,8 @@ from drivers.xsens.device import TrackerSet, XsensDevice
 from drivers.xsens.serial_transport import SerialTransport
 from drivers.xsens.simulator import XsensSimulator
 from drivers.xsens.source import synthetic_imu
-from services import driver_nodes, messages, topics
+from services.nodes import driver_nodes
+from services.transport import messages, topics
 
 EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
 TRACKERS = {"00B4EB80": 0x00B4EB80, "00B497B2": 0x00B497B2}

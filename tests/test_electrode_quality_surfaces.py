@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import time
 
-from services import messages
-from services.dashboard.bridge import DashboardState
-from services.view import ViewState
+from services.surfaces.dashboard.bridge import DashboardState
+from services.surfaces.view import ViewState
+from services.transport import messages
 from tests.test_view import screen_text
 
 GROUPS = ["TriLat", "PMCla", "DelAnt"]
@@ -94,9 +94,9 @@ def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_pa
     require_chromium()
     from playwright import sync_api
 
-    from services import topics
-    from services.dashboard.app import DashboardConfig, DashboardServer
-    from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+    from services.surfaces.dashboard.app import DashboardConfig, DashboardServer
+    from services.transport import topics
+    from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
     from tests.conftest import free_tcp_port
 
     session = "quality"

@@ -288,10 +288,10 @@ def test_live_fatigue_recovers_the_synthetic_trials_known_shift() -> None:
 
 
 def test_the_estimators_fatigue_worker_gives_the_values_of_the_stream_off_its_thread() -> None:
-    """services.estimator.FatigueWorker: chunks and frames queued as the estimator's thread meets them, the values
+    """services.nodes.estimator.FatigueWorker: chunks and frames queued as the estimator's thread meets them, the values
     computed on the worker's thread; once drained, every rep of the set is in, with the known downward trend."""
     from msk_core.estimate.live_fatigue import LiveFatigue
-    from services.estimator import EstimatorStats, FatigueWorker
+    from services.nodes.estimator import EstimatorStats, FatigueWorker
 
     x, reps, _ = simulated_set(6, same_waveform=True)
     stats = EstimatorStats()

@@ -18,10 +18,12 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.io import read_sto, write_sto
 from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.units import GRAVITY
-from services import demo_subject, estimator, live_scoring, messages, topics
-from services.graph import Graph, wait_for
-from services.mcap_io import read_messages
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session
+from services.nodes import estimator
+from services.sessions import demo_subject, live_scoring
+from services.sessions.graph import Graph, wait_for
+from services.transport import messages, topics
+from services.transport.mcap_io import read_messages
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session
 
 RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 MCAP = RECORDINGS / "demo_session.mcap"
@@ -95,7 +97,7 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
                 zsession.declare_subscriber(topics.envelopes_key(SESSION), on_envelope),
                 zsession.declare_subscriber(f"{topics.session_prefix(SESSION)}/activations/*", on_frame),
             ]
-            from services.graph import wait_for_nodes
+            from services.nodes.readiness import wait_for_nodes
 
             wait_for_nodes(zsession, SESSION, graph.nodes, 30)
             publishers = {}

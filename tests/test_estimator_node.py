@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from msk_core.estimate import FrameEstimator
-from services import estimator, messages, topics
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services.nodes import estimator
+from services.transport import messages, topics
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 model = pytest.importorskip("msk_core.model")
 

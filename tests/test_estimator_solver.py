@@ -9,8 +9,8 @@ import pytest
 from msk_core.errors import ConfigError
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
-from services import messages
-from services.estimator import EstimatorNode, EstimatorStats, main
+from services.nodes.estimator import EstimatorNode, EstimatorStats, main
+from services.transport import messages
 
 
 def _node(solver: str) -> EstimatorNode:
@@ -62,9 +62,9 @@ def test_msk_live_solver_reaches_the_estimator_node():
     import argparse
     from pathlib import Path
 
-    from services import live
     from services.commands import live as live_command
-    from services.live_session import LiveSession
+    from services.sessions import live
+    from services.sessions.live_session import LiveSession
 
     parser = argparse.ArgumentParser()
     live_command.register(parser.add_subparsers())

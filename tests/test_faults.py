@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services import messages, topics
-from services.mcap_io import ReadReport, read_messages
-from services.router import wait_until_listening
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services.nodes.router import wait_until_listening
+from services.transport import messages, topics
+from services.transport.mcap_io import ReadReport, read_messages
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 from tests.conftest import free_tcp_port
 
 pytestmark = pytest.mark.slow

@@ -1,4 +1,4 @@
-"""services.graph: readiness over Zenoh liveliness, late subscribers, bounded waits that say what is missing."""
+"""services.sessions.graph and services.nodes.readiness: readiness over Zenoh liveliness, late subscribers, bounded waits that say what is missing."""
 
 from __future__ import annotations
 
@@ -7,9 +7,10 @@ import time
 
 import pytest
 
-from services import messages, topics
-from services.graph import Graph, GraphTimeout, declare_ready, wait_for, wait_for_nodes
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services.nodes.readiness import GraphTimeout, declare_ready, wait_for_nodes
+from services.sessions.graph import Graph, wait_for
+from services.transport import messages, topics
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 SESSION = "graphtest"
 N_MESSAGES = 300

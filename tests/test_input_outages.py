@@ -1,4 +1,4 @@
-"""Input outages (services/node_runtime.py, InputContinuity): a node counts its input streams' silences longer than the
+"""Input outages (services/nodes/node_runtime.py, InputContinuity): a node counts its input streams' silences longer than the
 threshold, overlapping silences as one outage, and the publications its history publishers skipped; the counts travel
 in its DeviceStatus and ``summary.json``. Without network namespaces (tests/test_hosts.py does it across hosts)."""
 
@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import time
 
-from services import messages, topics
-from services.node_runtime import (
+from services.nodes.node_runtime import (
     OUTAGE_MIN_S,
     STREAM_MESSAGES,
     InputContinuity,
@@ -16,7 +15,8 @@ from services.node_runtime import (
     outages_summary,
     outages_text,
 )
-from services.zenoh_session import ZenohOptions, declare_history_publisher, open_session, publish
+from services.transport import messages, topics
+from services.transport.zenoh_session import ZenohOptions, declare_history_publisher, open_session, publish
 
 S = 1_000_000_000
 EMG, IMU, LOAD = topics.emg_key("o", "trigno"), topics.imu_key("o", "T1"), topics.load_key("o")
@@ -121,8 +121,8 @@ def test_a_paused_publisher_over_zenoh_is_one_outage_in_the_nodes_status(zenoh_e
 
 
 def test_msk_live_summary_carries_each_nodes_outages(tmp_path):
-    from services.live import summarise, summary_text
-    from services.mcap_io import McapRecorderWriter
+    from services.sessions.live import summarise, summary_text
+    from services.transport.mcap_io import McapRecorderWriter
 
     outages = messages.InputOutages(count=1, total_s=3.2, longest_s=3.2, last_start_ns=5 * S, last_end_ns=8 * S + 2 * 10**8,
                                     last_keys=[EMG, IMU], threshold_s=OUTAGE_MIN_S, missed=40, recovered=40)  # fmt: skip
@@ -141,7 +141,7 @@ def test_msk_live_summary_carries_each_nodes_outages(tmp_path):
 def test_msk_view_shows_each_nodes_outages():
     from rich.console import Console
 
-    from services.view import health_tables
+    from services.surfaces.view import health_tables
 
     outages = messages.InputOutages(count=2, total_s=7.5, longest_s=4.0, silent_s=1.5, silent_keys=[EMG])
     status = {"estimator": messages.DeviceStatus(device_id="estimator", kind="node", connected=True, outages=outages)}

@@ -22,10 +22,11 @@ from msk_core.model import load_pack
 from msk_core.signal.reps import Excursion, PhaseTracker, RepDetectionConfig, learn_template
 from msk_core.synth.exercises import SPECS, Exercise
 from msk_core.synth.imu import find_body, global_frame, joint_motion
-from services import kinematics_node, messages, replayer, topics
 from services.cli import main as cli_main
-from services.mcap_io import read_messages
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services.nodes import kinematics_node, replayer
+from services.transport import messages, topics
+from services.transport.mcap_io import read_messages
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "recordings" / "demo_session.mcap"
@@ -330,7 +331,7 @@ def test_docs_example_runs():
 
 
 def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoint):
-    """``python -m services.kinematics_node`` as a real process; trackers report in NED, the subject faces east."""
+    """``python -m services.nodes.kinematics_node`` as a real process; trackers report in NED, the subject faces east."""
     import signal
     import subprocess
     import sys
@@ -354,7 +355,7 @@ def test_module_entry_point_converts_ned_and_follows_a_pose_change(zenoh_endpoin
         [
             sys.executable,
             "-m",
-            "services.kinematics_node",
+            "services.nodes.kinematics_node",
             "--pack",
             "bench_press",
             "--session",

@@ -110,6 +110,31 @@ def test_the_tree_has_a_room_per_stage_and_its_root_only_what_every_stage_shares
     assert root == shared, f"msk_core/ root: unexpected {sorted(root - shared)}, missing {sorted(shared - root)}"
 
 
+# services/ in data-flow order: a room imports only from rooms before it (lazy imports inside functions included)
+SERVICE_ROOMS = ("transport", "nodes", "sessions", "surfaces")
+# the one upward edge, on purpose: the demo ends by writing the strength report (a file writer, no live surface)
+SERVICE_UPWARD_ALLOWED = {("services.sessions.demo", "services.surfaces.reports.strength")}
+
+
+def test_services_has_a_room_per_kind_and_each_imports_only_rooms_before_it():
+    for room in SERVICE_ROOMS:
+        assert (ROOT / "services" / room / "__init__.py").is_file(), room
+    # beside the rooms: the command line (cli.py, commands/) and the benchmarks, which may use every room
+    root = {p.name for p in (ROOT / "services").iterdir() if p.name not in ("__pycache__", "py.typed")}
+    expected = {"__init__.py", "cli.py", "commands", "bench", *SERVICE_ROOMS}
+    assert root == expected, f"services/ root: unexpected {sorted(root - expected)}, missing {sorted(expected - root)}"
+    upward = []
+    for rank, room in enumerate(SERVICE_ROOMS):
+        later = tuple(f"services.{r}" for r in SERVICE_ROOMS[rank + 1 :]) + ("services.commands", "services.bench")
+        for path in (ROOT / "services" / room).rglob("*.py"):
+            module = _module_name(path)
+            for imported in _imports(path):
+                allowed = any(module == m and imported.startswith(t) for m, t in SERVICE_UPWARD_ALLOWED)
+                if (imported.startswith(later) or imported == "services.cli") and not allowed:
+                    upward.append((module, imported))
+    assert not upward, f"imports against the data flow (transport < nodes < sessions < surfaces): {sorted(upward)}"
+
+
 MAX_FUNCTION_LINES = 80
 # the compiled per-frame model evaluation: one numba kernel per call, kept whole on purpose (no Python-level calls)
 NUMBA_KERNEL_MODULES = ("msk_core/model/kernels.py",)

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from msk_core.errors import ConfigError
-from services.live_session import check_against_pack, load_session_file, parse_session
+from services.sessions.live_session import check_against_pack, load_session_file, parse_session
 
 REPO = Path(__file__).resolve().parents[1]
 GOOD = {
@@ -142,7 +142,7 @@ STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes import
 
 
 def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_sigint(tmp_path):
-    from services.mcap_io import read_messages
+    from services.transport.mcap_io import read_messages
 
     out = tmp_path / "live"
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
@@ -215,7 +215,7 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
 def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_path):
     import re
 
-    from services.live_session import _SECTIONS
+    from services.sessions.live_session import _SECTIONS
 
     text = (REPO / "docs" / "live.md").read_text()
     block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
@@ -230,7 +230,7 @@ def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_pat
 
 
 def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp_path):
-    from services import live
+    from services.sessions import live
 
     profile = {"f_max": [], "emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}
     (tmp_path / "subject.json").write_text(json.dumps(profile))

@@ -11,10 +11,11 @@ import time
 
 import pytest
 
-from services import live, messages
-from services.estimator import EstimatorNode, EstimatorStats
-from services.live_session import load_session_file
-from services.mcap_io import read_messages
+from services.nodes.estimator import EstimatorNode, EstimatorStats
+from services.sessions import live
+from services.sessions.live_session import load_session_file
+from services.transport import messages
+from services.transport.mcap_io import read_messages
 
 TRIGNO_LATENCY_MS = 60.0  # the simulated base holds each frame this long; the session file states it
 TRACKER_LATENCY_MS = 5.0
@@ -36,7 +37,7 @@ def live_run(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("MSK_SESSIONS_DIR", str(tmp / "sessions"))
         plan, simulators = live.plan_for(session, sim=True, log=print)
-        from services.zenoh_session import free_loopback_endpoint
+        from services.transport.zenoh_session import free_loopback_endpoint
 
         real_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
         try:
@@ -159,7 +160,7 @@ rate_hz = 100
 
 
 def _session(tmp_path, trigno: str = "", xsens: str = ""):
-    from services.live_session import load_session_file
+    from services.sessions.live_session import load_session_file
 
     (tmp_path / "subject.json").write_text('{"emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}')
     path = tmp_path / "session.toml"
@@ -168,7 +169,7 @@ def _session(tmp_path, trigno: str = "", xsens: str = ""):
 
 
 def test_stated_latencies_default_to_the_documented_values_and_reach_the_nodes(tmp_path):
-    from services.live_session import MTI_PROCESSING_MS, TRIGNO_LATENCY_MS
+    from services.sessions.live_session import MTI_PROCESSING_MS, TRIGNO_LATENCY_MS
 
     plan, _ = live.plan_for(_session(tmp_path), sim=False, log=lambda *_: None)
     # an MTi at 115200 baud: its processing plus one 83-byte message (10 bits a byte) on the line
@@ -215,7 +216,7 @@ def test_a_bad_stated_latency_is_refused_naming_the_file_the_key_and_the_value(t
 
 def test_clock_reports_travel_in_the_node_status_in_ms():
     from msk_core.signal.host_clock import ClockReport
-    from services.node_runtime import clock_offsets
+    from services.nodes.node_runtime import clock_offsets
 
     status = messages.DeviceStatus(
         device_id="estimator",
@@ -232,7 +233,7 @@ def test_clock_reports_travel_in_the_node_status_in_ms():
 
 
 def test_the_kinematics_node_maps_each_tracker_less_its_own_latency():
-    from services.kinematics_node import KinematicsNode, KinematicsStats
+    from services.nodes.kinematics_node import KinematicsNode, KinematicsStats
 
     node = KinematicsNode(
         "bench_press",

@@ -18,10 +18,11 @@ import pytest
 
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
-from services import live, messages
-from services.estimator import EstimatorNode, EstimatorStats
-from services.live_session import load_session_file
-from services.mcap_io import read_messages
+from services.nodes.estimator import EstimatorNode, EstimatorStats
+from services.sessions import live
+from services.sessions.live_session import load_session_file
+from services.transport import messages
+from services.transport.mcap_io import read_messages
 from tests.test_sim_clock import (
     FRAME_S,
     MAX_LAG_S,
@@ -59,7 +60,7 @@ def live_run(tmp_path_factory):
         patch.setenv("MSK_SESSIONS_DIR", str(tmp / "sessions"))
         patch.setattr(live, "start_simulators", late_trigno)
         plan, simulators = live.plan_for(session, sim=True, log=print)
-        from services.zenoh_session import free_loopback_endpoint
+        from services.transport.zenoh_session import free_loopback_endpoint
 
         real_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
         try:

@@ -18,9 +18,9 @@ import pytest
 from drivers.trigno.simulator import FaultKind, SensorFault
 from msk_core.estimate.live_emg import FLAG_ELECTRODE_BAD, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
-from services import live
-from services.live_session import load_session_file
-from services.mcap_io import read_messages
+from services.sessions import live
+from services.sessions.live_session import load_session_file
+from services.transport.mcap_io import read_messages
 
 FAULTS = (
     SensorFault(2, FaultKind.LIFT_OFF, 2.0, 4.5),
@@ -46,7 +46,7 @@ def channel(fault: SensorFault) -> str:
 @pytest.fixture(scope="module")
 def live_run(tmp_path_factory):
     """(summary, the recording's estimator statuses and assisted frames, the subject's EMD)."""
-    from services.zenoh_session import free_loopback_endpoint
+    from services.transport.zenoh_session import free_loopback_endpoint
 
     tmp = tmp_path_factory.mktemp("quality")
     path = tmp / "quality.toml"

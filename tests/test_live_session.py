@@ -20,7 +20,7 @@ import pytest
 from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs
 from services.commands.live import EXIT_NODE_FAILED, node_failures
-from services.live_session import TRIGNO_CHANNEL_FORM, is_trigno_channel, load_session_file
+from services.sessions.live_session import TRIGNO_CHANNEL_FORM, is_trigno_channel, load_session_file
 
 REPO = Path(__file__).resolve().parents[1]
 GOOD = """\
@@ -122,7 +122,7 @@ def test_an_electrode_key_the_trigno_does_not_publish_is_refused_with_the_valid_
 def _published_labels(client) -> list[str]:
     """The channel labels the Trigno driver node puts in EmgChunk.channel_labels for this client."""
     from drivers.trigno.client import EmgBlock
-    from services.driver_nodes import emg_chunk, emg_columns
+    from services.nodes.driver_nodes import emg_chunk, emg_columns
 
     block = EmgBlock(np.zeros((2, 16), dtype=np.float32), 0, 2000.0, 0)
     return list(emg_chunk(block, source_id="trigno", columns=emg_columns(client)).channel_labels)
@@ -188,8 +188,8 @@ def test_the_athlete_is_parsed_and_checked(tmp_path):
 
 def test_the_session_files_names_override_the_packs_and_reach_the_session_facts(tmp_path):
     from msk_core.model.pack import pack_display_names
-    from services.live import SessionFacts, plan_for
-    from services.live_session import session_names
+    from services.sessions.live import SessionFacts, plan_for
+    from services.sessions.live_session import session_names
 
     names = '\n[names]\nPMCla = "Upper chest"\nelbow_flex_r = "Elbow bend"\n'
     path = _write(tmp_path, GOOD.replace("load_kg = 60", 'load_kg = 60\nout = "out"') + names)
@@ -259,7 +259,7 @@ def test_failed_nodes_are_named_with_exit_code_and_log_tail(tmp_path):
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory) -> tuple[Path, dict]:
     """A calibrated bench-press subject (as ``msk live --sim`` makes it) and an environment whose cache holds it."""
-    from services import live
+    from services.sessions import live
 
     cache = tmp_path_factory.mktemp("cache")
     with pytest.MonkeyPatch.context() as patch:

@@ -15,10 +15,10 @@ import time
 import numpy as np
 
 from msk_core.signal.reps import PhaseRepCounter, phase_rep_spans
-from services import messages
-from services.dashboard import report
-from services.mcap_io import read_messages
-from services.zenoh_session import ZenohOptions, open_session
+from services.surfaces.dashboard import report
+from services.transport import messages
+from services.transport.mcap_io import read_messages
+from services.transport.zenoh_session import ZenohOptions, open_session
 from tests.test_live_together import LiveProcess, _environment
 
 SESSION = "setslive"

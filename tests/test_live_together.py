@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from services import messages, topics
-from services.mcap_io import read_messages
+from services.transport import messages, topics
+from services.transport.mcap_io import read_messages
 
 REPO = Path(__file__).resolve().parents[1]
 STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
@@ -121,7 +121,7 @@ def _bad_payloads() -> list[tuple[str, bytes, str | None]]:
 def _publish_bad_messages(endpoint: str) -> int:
     import zenoh
 
-    from services.zenoh_session import ZenohOptions, encoding_for, open_session
+    from services.transport.zenoh_session import ZenohOptions, encoding_for, open_session
 
     with open_session(ZenohOptions(connect=(endpoint,))) as session:
         for topic, payload, type_name in _bad_payloads():
@@ -182,8 +182,8 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
 
 @pytest.mark.slow
 def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
-    from services import security
-    from services.zenoh_session import ZenohOptions, open_session
+    from services.transport import security
+    from services.transport.zenoh_session import ZenohOptions, open_session
 
     env = _environment(tmp_path)
     pki = tmp_path / "pki"

@@ -1,4 +1,4 @@
-"""services.mcap_io on real MCAP files: channels without an msk type (the recorder's rejected payloads, a foreign
+"""services.transport.mcap_io on real MCAP files: channels without an msk type (the recorder's rejected payloads, a foreign
 JSON channel) are left out of what read_messages yields and counted, or yielded with their reason on request."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import pytest
 from mcap.writer import Writer
 
-from services import messages, topics
-from services.mcap_io import McapRecorderWriter, ReadReport, read_messages
+from services.transport import messages, topics
+from services.transport.mcap_io import McapRecorderWriter, ReadReport, read_messages
 
 JOINTS = topics.joints_key("lab")
 

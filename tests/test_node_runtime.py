@@ -1,4 +1,4 @@
-"""The one node runtime (services/node_runtime.py): what it refuses and why, over real Zenoh sessions; order, drain at
+"""The one node runtime (services/nodes/node_runtime.py): what it refuses and why, over real Zenoh sessions; order, drain at
 stop, status counts; and a subscription the node's role may not make is said at once."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import time
 import pytest
 import zenoh
 
-from services import messages, topics
-from services.node_runtime import DropReason, NodeInputs, Rejected, StatusReporter, check_payload
-from services.zenoh_session import ZenohOptions, encoding_for, open_session
+from services.nodes.node_runtime import DropReason, NodeInputs, Rejected, StatusReporter, check_payload
+from services.transport import messages, topics
+from services.transport.zenoh_session import ZenohOptions, encoding_for, open_session
 
 KEY = topics.joints_key("rt")
 

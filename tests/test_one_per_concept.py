@@ -28,7 +28,7 @@ OWNERS = {
     "moment-arm clamp rule": ("msk_core/estimate/pack.py", r"clamp_to_ranges"),
 }
 # a class of that name elsewhere that only delegates to the owner (checked below by behaviour)
-DELEGATES = {("services/dashboard/bridge.py", "RepCounter")}
+DELEGATES = {("services/surfaces/dashboard/bridge.py", "RepCounter")}
 
 
 def _sources() -> list[tuple[str, ast.Module]]:
@@ -77,9 +77,9 @@ def test_consumers_use_the_one_segmenter_rest_phase_and_loader():
     import msk_core.estimate.trial as trial
     import msk_core.imu.stream as stream
     import msk_core.signal.reps as reps
-    import services.dashboard.bridge as bridge
-    import services.dashboard.report as report
-    import services.view as view
+    import services.surfaces.dashboard.bridge as bridge
+    import services.surfaces.dashboard.report as report
+    import services.surfaces.view as view
 
     assert phase.detect_reps is reps.detect_reps and phase.rep_phase is reps.rep_phase  # estimator, calibration
     assert trial.kinematic_phase is phase.kinematic_phase and trial.torque_phase is phase.torque_phase
@@ -101,7 +101,7 @@ def test_the_dashboards_rep_count_is_the_segmenters():
     """The bridge's per-set counter only adds sets to msk_core.signal.reps.PhaseRepCounter: on a random phase
     stream (reps of random length, rest, unknown phase, wraps, gaps) it counts exactly what the segmenter counts."""
     from msk_core.signal.reps import REST_PHASE, PhaseRepCounter
-    from services.dashboard.bridge import RepCounter
+    from services.surfaces.dashboard.bridge import RepCounter
 
     rng = np.random.default_rng(28)
     t, samples = 0.0, []

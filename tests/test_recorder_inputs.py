@@ -12,11 +12,13 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from services import live, messages, recorder, replayer, topics
-from services.dashboard import report as session_report
-from services.graph import wait_for
-from services.mcap_io import REJECTED_ENCODING, REJECTED_REASON, McapRecorderWriter, ReadReport, read_messages
-from services.zenoh_session import (
+from services.nodes import recorder, replayer
+from services.sessions import live
+from services.sessions.graph import wait_for
+from services.surfaces.dashboard import report as session_report
+from services.transport import messages, topics
+from services.transport.mcap_io import REJECTED_ENCODING, REJECTED_REASON, McapRecorderWriter, ReadReport, read_messages
+from services.transport.zenoh_session import (
     ZenohOptions,
     declare_data_publisher,
     declare_history_publisher,

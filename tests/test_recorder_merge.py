@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from services import messages
-from services.recorder import HISTORY, LIVE, HistoryMerge, RecorderStats, _digest, _Fetched, _Item
+from services.nodes.recorder import HISTORY, LIVE, HistoryMerge, RecorderStats, _digest, _Fetched, _Item
+from services.transport import messages
 
 EMG = "msk/s1/emg/trigno"
 ACTIVATIONS = "msk/s1/activations/so"

@@ -1,5 +1,5 @@
 """A recorder that loses its router for a while (restarted, or the network between them down) fetches the publications
-it missed from the device publishers' caches when it hears them again (services/recorder.py, "Reconnection"): once
+it missed from the device publishers' caches when it hears them again (services/nodes/recorder.py, "Reconnection"): once
 each, before the live samples after them; what the caches no longer hold is counted lost. The merge without a network,
 then a real router closed and opened again on loopback (tests/test_hosts.py does it across network namespaces)."""
 
@@ -8,10 +8,11 @@ from __future__ import annotations
 import threading
 import time
 
-from services import messages, recorder, topics
-from services.mcap_io import read_messages
-from services.recorder import HISTORY, LIVE, HistoryMerge, Missing, RecorderStats, _Fetched, _Item
-from services.zenoh_session import ZenohOptions, declare_history_publisher, open_session, publish
+from services.nodes import recorder
+from services.nodes.recorder import HISTORY, LIVE, HistoryMerge, Missing, RecorderStats, _Fetched, _Item
+from services.transport import messages, topics
+from services.transport.mcap_io import read_messages
+from services.transport.zenoh_session import ZenohOptions, declare_history_publisher, open_session, publish
 
 EMG = topics.emg_key("rc", "trigno")
 ACTIVATIONS = topics.activations_key("rc", "so")

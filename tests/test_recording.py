@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 
 from msk_core.errors import ConfigError
-from services import messages, recorder, replayer, topics
-from services.mcap_io import McapRecorderWriter, ReadReport, read_messages
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services.nodes import recorder, replayer
+from services.transport import messages, topics
+from services.transport.mcap_io import McapRecorderWriter, ReadReport, read_messages
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 from tests.test_schemas import sample_messages
 
 BURST = 20_000
@@ -134,7 +135,7 @@ def test_replay_rejects_bad_rate():
 def test_recorder_killed_with_sigkill_leaves_readable_completed_chunks(tmp_path, zenoh_endpoint, repo_root):
     out = tmp_path / "killed.mcap"
     process = subprocess.Popen(
-        [sys.executable, "-m", "services.recorder", "--out", str(out), "--listen", zenoh_endpoint],
+        [sys.executable, "-m", "services.nodes.recorder", "--out", str(out), "--listen", zenoh_endpoint],
         cwd=repo_root,
         stderr=subprocess.PIPE,
         text=True,

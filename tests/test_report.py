@@ -14,8 +14,8 @@ import pytest
 
 from msk_core.model import load_pack
 from msk_core.model.spec import BalanceSpec
-from services.dashboard import report
-from services.mcap_io import McapRecorderWriter, read_messages
+from services.surfaces.dashboard import report
+from services.transport.mcap_io import McapRecorderWriter, read_messages
 from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, record_with_estimates, require_chromium
 
 METHODS = {"bench_press": ["so", "hybrid"], "deadlift": ["so", "hybrid"]}
@@ -23,7 +23,7 @@ METHODS = {"bench_press": ["so", "hybrid"], "deadlift": ["so", "hybrid"]}
 
 @pytest.fixture(scope="module")
 def demo_with_estimates(tmp_path_factory):
-    from services.zenoh_session import free_loopback_endpoint
+    from services.transport.zenoh_session import free_loopback_endpoint
 
     out = tmp_path_factory.mktemp("report") / "live.mcap"
     counts = record_with_estimates(DEMO_MCAP, out, free_loopback_endpoint(), packs=METHODS)
@@ -181,7 +181,7 @@ def write_small_session(
 ) -> None:
     """Two sets of three reps (phase of the joint angles), frames of the bench press with ``exercise`` set (two
     ``groups``), and the given load events as (seconds after the start, LoadEvent)."""
-    from services import messages
+    from services.transport import messages
 
     with McapRecorderWriter(path) as writer:
 
@@ -227,7 +227,7 @@ def write_small_session(
 def test_report_header_names_athlete_date_exercise_and_load(tmp_path):
     import datetime
 
-    from services import messages
+    from services.transport import messages
 
     recording = tmp_path / "session.mcap"
     write_small_session(
@@ -268,7 +268,7 @@ def test_report_without_load_events_takes_the_exercise_of_the_frames(tmp_path):
 
 
 def test_report_names_muscles_by_their_display_names_and_the_sessions(tmp_path):
-    from services import messages
+    from services.transport import messages
 
     recording = tmp_path / "session.mcap"
     write_small_session(

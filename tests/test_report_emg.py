@@ -12,10 +12,10 @@ import pytest
 
 from msk_core.estimate.live_fatigue import LiveFatigue
 from msk_core.estimate.live_quality import LiveQuality
-from services import messages
-from services.dashboard import report
-from services.estimator import electrode_fatigue, electrode_quality
-from services.mcap_io import McapRecorderWriter, read_messages
+from services.nodes.estimator import electrode_fatigue, electrode_quality
+from services.surfaces.dashboard import report
+from services.transport import messages
+from services.transport.mcap_io import McapRecorderWriter, read_messages
 from tests.dashboard_helpers import DEMO_MCAP
 
 FLAT = "LD"  # the electrode whose signal is flattened

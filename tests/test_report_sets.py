@@ -8,9 +8,9 @@ import json
 
 import pytest
 
-from services import messages
-from services.dashboard import report
-from services.mcap_io import McapRecorderWriter
+from services.surfaces.dashboard import report
+from services.transport import messages
+from services.transport.mcap_io import McapRecorderWriter
 
 START_NS = 1_773_480_600_000_000_000
 RATE_HZ = 20.0
@@ -125,7 +125,7 @@ def test_report_plots_activation_in_percent(tmp_path, monkeypatch):
 
 
 def test_report_header_names_the_method_shown(tmp_path):
-    """The report details the method every surface shows by default (services.live_session.default_method) and says
+    """The report details the method every surface shows by default (services.sessions.live_session.default_method) and says
     which in its header."""
     recording = tmp_path / "session.mcap"
     write_session(recording)

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from msk_core.errors import ConfigError
-from services import messages, topics
-from services.schemas import msk_pb2
+from services.transport import messages, topics
+from services.transport.schemas import msk_pb2
 
 SCHEMA_DIR = Path(msk_pb2.__file__).parent
 

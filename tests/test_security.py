@@ -1,5 +1,5 @@
 """Security of the network mode, on loopback with certificates made here: a real ``msk router`` process with TLS,
-mutual authentication and access control (services/security.py), and Zenoh clients presenting role certificates.
+mutual authentication and access control (services/transport/security.py), and Zenoh clients presenting role certificates.
 Every check counts messages: what was sent, what each subscriber received."""
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from collections import Counter
 import pytest
 import zenoh
 
-from services import messages, security, zenoh_session
-from services.router import wait_until_listening
-from services.schemas import msk_pb2
-from services.zenoh_session import ZenohOptions, declare_data_publisher, declare_history_publisher, publish
+from services.nodes.router import wait_until_listening
+from services.transport import messages, security, zenoh_session
+from services.transport.schemas import msk_pb2
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, declare_history_publisher, publish
 from tests.conftest import free_tcp_port
 
 SESSION = "gym1"
@@ -164,7 +164,7 @@ def _listening_addresses(pid: int) -> list[tuple[str, int]]:
 
 def test_default_nodes_listen_on_loopback_only(monkeypatch, zenoh_endpoint):
     """With no flags, and with only --connect, nodes (peers) and ``msk router`` listen on 127.0.0.1 and nowhere else."""
-    from services.router import router_options
+    from services.nodes.router import router_options
 
     monkeypatch.setattr(zenoh_session, "DEFAULT_ENDPOINT", zenoh_endpoint)
     before = set(_listening_addresses(os.getpid()))
@@ -381,11 +381,11 @@ def test_certs_command_writes_a_usable_pki_and_configs(tmp_path):
 
 def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(pki, router, tmp_path):
     """What a restarted recorder does (tests/test_faults.py): the driver published 50 EMG chunks before the recorder
-    joined; the recorder (``services.recorder.main`` as role recorder) writes all 50 from the driver's history, then
+    joined; the recorder (``services.nodes.recorder.main`` as role recorder) writes all 50 from the driver's history, then
     the 10 live ones, in order. A tablet asking the same history gets none of it (device data is not its to read)."""
-    from services import recorder as recorder_node
-    from services.mcap_io import read_messages
-    from services.zenoh_session import fetch_history
+    from services.nodes import recorder as recorder_node
+    from services.transport.mcap_io import read_messages
+    from services.transport.zenoh_session import fetch_history
 
     sessions = {role: _client(pki, role, router) for role in ("driver", "tablet")}
     key = f"msk/{SESSION}/emg/history"
@@ -427,8 +427,8 @@ def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(
 def test_the_dashboard_joins_the_secured_network_as_a_tablet(pki, router, tmp_path):
     """`msk dashboard --zenoh-config tablet.json5`: its bridge gets every activation frame and status the tablet may
     read, nothing of the device data it may not, and the page state shows them."""
-    from services.dashboard.bridge import Bridge, DashboardState
-    from services.zenoh_session import ZenohOptions
+    from services.surfaces.dashboard.bridge import Bridge, DashboardState
+    from services.transport.zenoh_session import ZenohOptions
 
     config = tmp_path / "tablet.json5"
     config.write_text(json.dumps(security.client_config(pki.directory, "tablet", connect=(router,))))

@@ -23,7 +23,7 @@ sending each frame at its first sample's instant, plus 17 ms per round of the lo
 first window, +55 ms in the last, in one run; hundreds of ms in the issue's runs).
 
 The same run is then scored against the generator's truth on the trial clock ``summary.json`` states
-(``trial_clock``; services.live_scoring.score_live_run): ``assisted`` against ``proposed`` where there is no electrode.
+(``trial_clock``; services.sessions.live_scoring.score_live_run): ``assisted`` against ``proposed`` where there is no electrode.
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.signal.emg import EmgFilterConfig, envelope_causal
 from msk_core.signal.host_clock import windowed_offsets
-from services.live import RECORDINGS, sim_sources
-from services.live_scoring import SimWorld, live_markdown, score_live_run
-from services.mcap_io import read_messages
+from services.sessions.live import RECORDINGS, sim_sources
+from services.sessions.live_scoring import SimWorld, live_markdown, score_live_run
+from services.transport.mcap_io import read_messages
 
 REPO = Path(__file__).resolve().parents[1]
 PACK = "bench_press"
@@ -237,7 +237,7 @@ def test_live_measured_envelope_is_the_offline_envelope_at_the_trial_instant_of_
 
 @pytest.mark.slow
 def test_assisted_against_the_generators_truth_on_the_trial_clock(sim_run):
-    """The run scored against the truth (services.live_scoring.score_live_run). The trial instant of each frame
+    """The run scored against the truth (services.sessions.live_scoring.score_live_run). The trial instant of each frame
     comes from the trial clock ``summary.json`` states; two independent checks say it is the frame's: the live
     joint angles against the trial's (cross-correlation peak at 0 ± 1 frame), and the trial instant the recording's
     own content gives each frame (the IMU samples it was made of, as check_one_world identifies them), within a

@@ -320,7 +320,7 @@ def test_a_clock_made_without_a_start_begins_with_the_first_device_to_stream():
 
 @pytest.mark.parametrize("pack", ["bench_press", "deadlift"])
 def test_msk_live_sim_sources_span_one_duration_so_the_simulators_loop_together(pack):
-    from services.live import RECORDINGS, sim_sources
+    from services.sessions.live import RECORDINGS, sim_sources
 
     sources = sim_sources(RECORDINGS / "demo_session.mcap", pack)
     durations = {"emg": sources.emg.n_samples / sources.emg.rate_hz}

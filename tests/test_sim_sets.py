@@ -1,6 +1,6 @@
-"""``msk live --sim`` plays sets with rests (services.sim_sets): one cycle spliced per stream on the common sample
+"""``msk live --sim`` plays sets with rests (services.sessions.sim_sets): one cycle spliced per stream on the common sample
 grid, a set's reps exactly the looped trial, the rest the trial's static start, and the trial instant of every
-moment of the cycle (services.live_scoring.SimWorld)."""
+moment of the cycle (services.sessions.live_scoring.SimWorld)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from msk_core.errors import ConfigError
-from services.live import RECORDINGS, sim_sources
-from services.live_scoring import SimWorld
-from services.sim_sets import SimSets, grid_s, schedule, with_sets
+from services.sessions.live import RECORDINGS, sim_sources
+from services.sessions.live_scoring import SimWorld
+from services.sessions.sim_sets import SimSets, grid_s, schedule, with_sets
 
 
 @pytest.fixture(scope="module")

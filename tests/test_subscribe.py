@@ -1,4 +1,4 @@
-"""`msk subscribe` takes its inputs through services.node_runtime.NodeInputs: unusable payloads on any topic are
+"""`msk subscribe` takes its inputs through services.nodes.node_runtime.NodeInputs: unusable payloads on any topic are
 dropped and counted (the counts printed at the end), the valid messages after them are printed; a key expression of
 one topic type expects that type, a broader one each key's type from the topic table."""
 
@@ -12,9 +12,9 @@ import threading
 import pytest
 
 from msk_core.errors import ConfigError
-from services import messages
 from services.commands.subscribe import expected_type
-from services.zenoh_session import ZenohOptions, open_session
+from services.transport import messages
+from services.transport.zenoh_session import ZenohOptions, open_session
 from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
 
 

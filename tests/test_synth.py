@@ -42,7 +42,7 @@ def _all_bytes(folder: Path) -> dict[str, bytes]:
 
 
 def test_same_seed_gives_identical_files_and_other_seed_differs(tmp_path):
-    from services.synth_export import write_device_streams, write_mcap
+    from services.sessions.synth_export import write_device_streams, write_mcap
 
     outputs = []
     for run, seed in (("a", 7), ("b", 7), ("c", 8)):
@@ -255,9 +255,9 @@ def test_hidden_effects_in_truth_and_trial_files(tmp_path):
 
 
 def test_mcap_export_topics_and_emg_chunks(tmp_path):
-    from services import messages
-    from services.mcap_io import read_messages
-    from services.synth_export import EMG_CHUNK, write_mcap
+    from services.sessions.synth_export import EMG_CHUNK, write_mcap
+    from services.transport import messages
+    from services.transport.mcap_io import read_messages
 
     session = generate_session([Exercise.DEADLIFT], small_config(), packs=PACKS)
     trial = session.exercises[0].trials[0]
@@ -288,7 +288,7 @@ def test_mcap_export_topics_and_emg_chunks(tmp_path):
 def test_device_streams_replay_through_driver_sources(tmp_path):
     from drivers.trigno.source import load_source
     from drivers.xsens.source import load_imu_source
-    from services.synth_export import write_device_streams
+    from services.sessions.synth_export import write_device_streams
 
     session = generate_session([Exercise.BENCH_PRESS], small_config(), packs=PACKS)
     trial = session.exercises[0].trials[0]

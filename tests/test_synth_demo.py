@@ -56,8 +56,8 @@ def _numbers(message, out: list) -> list:
 
 
 def _assert_same_recording(shipped: Path, fresh: Path) -> None:
-    from services import messages
-    from services.mcap_io import read_messages
+    from services.transport import messages
+    from services.transport.mcap_io import read_messages
 
     a, b = list(read_messages(shipped)), list(read_messages(fresh))
     assert len(a) == len(b), (
@@ -81,7 +81,7 @@ def _assert_same_recording(shipped: Path, fresh: Path) -> None:
 def test_demo_session_is_reproducible(tmp_path):
     """Generated again, the session equals the shipped files up to floating-point rounding (byte equality held on one
     CPU but not on another: numpy's vectorised sums depend on the CPU's instruction set)."""
-    from services.synth_export import write_mcap
+    from services.sessions.synth_export import write_mcap
 
     cfg = SynthConfig(
         subject_seed=7, n_reps=3, loads_kg={Exercise.BENCH_PRESS: (40.0, 50.0), Exercise.DEADLIFT: (45.0, 75.0)}

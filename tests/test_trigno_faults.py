@@ -123,7 +123,7 @@ def test_each_fault_changes_its_sensor_in_its_span_only_at_its_physical_size():
 def test_monitor_flags_each_fault_on_its_electrode_and_no_clean_one_over_60_s():
     """60 s of the bench press of ``msk live --sim`` (10 sensors) with four faults, through the driver, judged as the
     estimator judges it; false alarms: episodes on a clean electrode, or outside a faulty one's span."""
-    from services.live import RECORDINGS, sim_sources
+    from services.sessions.live import RECORDINGS, sim_sources
 
     source = sim_sources(RECORDINGS / "demo_session.mcap", "bench_press").emg
     faults = (

@@ -19,9 +19,10 @@ from drivers.xsens.device import TrackerSet, XsensDevice
 from drivers.xsens.serial_transport import SerialTransport
 from drivers.xsens.simulator import XsensSimulator
 from drivers.xsens.source import synthetic_imu
-from services import driver_nodes, messages, topics, zenoh_session
 from services.cli import main
-from services.mcap_io import read_messages
+from services.nodes import driver_nodes
+from services.transport import messages, topics, zenoh_session
+from services.transport.mcap_io import read_messages
 
 EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
 

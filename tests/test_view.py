@@ -12,10 +12,11 @@ import uuid
 
 import pytest
 
-from services import estimator, messages, replayer, topics
-from services.graph import Graph, wait_for
-from services.view import ViewState, main, render
-from services.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from services.nodes import estimator, replayer
+from services.sessions.graph import Graph, wait_for
+from services.surfaces.view import ViewState, main, render
+from services.transport import messages, topics
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
 SESSION = "viewtest"
 
@@ -295,7 +296,7 @@ def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endp
 
 
 def test_the_view_shows_assisted_where_it_ran_else_proposed_and_names_it():
-    """One default method on every surface (services.live_session.default_method): ``assisted`` where EMG is live,
+    """One default method on every surface (services.sessions.live_session.default_method): ``assisted`` where EMG is live,
     else ``proposed``, whatever order the frames arrive in; the muscle table's title names it."""
     state = ViewState()
     for method in ("so", "proposed"):

@@ -8,8 +8,8 @@ import time
 import pytest
 
 from msk_core.errors import ConfigError
-from services import messages
-from services.zenoh_session import (
+from services.transport import messages
+from services.transport.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
     declare_data_publisher,

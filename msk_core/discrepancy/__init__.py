@@ -1,6 +1,6 @@
 """Where the model and the measurement disagree, which missing effect explains it, and how much the gap shrinks on
 held-out trials once it is added (docs/discrepancy.md). Pure science: numpy only (the report and its plots:
-:mod:`services.reports.discrepancy`)."""
+:mod:`services.surfaces.reports.discrepancy`)."""
 
 from msk_core.discrepancy.data import MAX_DELAY_S, SessionArrays, check_inputs, session_arrays
 from msk_core.discrepancy.model import Candidate, candidate_library

@@ -1,5 +1,5 @@
 """``msk evaluate`` scores: per trial and method, activation RMSE against measured EMG and torque tracking, and the
-prior band the report plots. The report files and plots: :mod:`services.reports.evaluation`."""
+prior band the report plots. The report files and plots: :mod:`services.surfaces.reports.evaluation`."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 from a recruitment that is not static optimisation, raw EMG, IMU streams, load events and optional hidden effects.
 
 Entry points: :func:`generate_session` / :func:`generate_exercise` build in memory; :mod:`msk_core.synth.files`
-writes trial TOMLs, OpenSim storage files and the truth JSON. MCAP export lives in ``services.synth_export``.
+writes trial TOMLs, OpenSim storage files and the truth JSON. MCAP export lives in ``services.sessions.synth_export``.
 """
 
 from msk_core.synth.effects import Effects, parse_effects

@@ -22,7 +22,7 @@ def _frames(exercise: str, n_isometric: int | None = None):
     from msk_core.estimate.pipeline import build_prior, calibration_frames
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
-    from services.demo_subject import RECORDINGS, calibration_trial_files
+    from services.sessions.demo_subject import RECORDINGS, calibration_trial_files
 
     pack = load_pack(exercise)
     truth = json.loads((RECORDINGS / "demo" / "truth.json").read_text())["exercises"][exercise]

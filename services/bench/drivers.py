@@ -59,7 +59,7 @@ def _cpu_share(run, seconds: float) -> tuple[float, int]:
 
 def _client_run(ports: dict, *, with_messages: bool):
     from drivers.trigno.client import EmgBlock, TrignoClient, TrignoConfig
-    from services import driver_nodes
+    from services.nodes import driver_nodes
 
     def run(deadline: float) -> int:
         samples = 0

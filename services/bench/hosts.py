@@ -552,8 +552,8 @@ def _recorder_lost(log: str) -> dict[str, int]:
 def _recorded(path: Path) -> dict[str, Any]:
     """What the rack's recorder holds: EMG chunks and samples, index gaps and repeats, IMU samples, joint frames,
     activation frames (with their publish times), and the last status of each node."""
-    from services import messages
-    from services.mcap_io import read_messages
+    from services.transport import messages
+    from services.transport.mcap_io import read_messages
 
     emg_next: int | None = None
     last_ns = 0  # host time of the chunk before
@@ -701,7 +701,7 @@ def outcome(
 
 
 def serve_simulators() -> int:
-    """The rack PC's simulated devices as ``msk live --sim`` runs them (:func:`services.live.start_simulators`): the
+    """The rack PC's simulated devices as ``msk live --sim`` runs them (:func:`services.sessions.live.start_simulators`): the
     Trigno and one Xsens simulator per tracker playing the held-out trial of :data:`PACK` on one trial clock, which
     starts when the drivers start the first device; each tracker waits in Config for its driver. So every device
     samples the same instant of the trial and the trial's static start is what the kinematics node calibrates on.
@@ -709,7 +709,7 @@ def serve_simulators() -> int:
     the trackers then sample instants seconds apart, and the kinematics node calibrates on a moving pose: elbow angles
     off by up to 90 deg, most frames ``invalid_input``.) Prints one JSON line (ports, trackers, the trial's electrode
     map and load), then runs until SIGINT or SIGTERM."""
-    from services.live import sim_sources, start_simulators
+    from services.sessions.live import sim_sources, start_simulators
 
     sources = sim_sources(DEMO, PACK)
     stop = threading.Event()

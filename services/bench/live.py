@@ -1,7 +1,7 @@
 """The live estimator over Zenoh: latency from input arrival to activation publication, throughput, CPU per process.
 
 An estimator node runs as its own process (``msk estimator``) on a private loopback endpoint, started and awaited by
-:mod:`services.graph`; this process publishes the bench-press part of the demo session (recorded joint angles, raw EMG
+:mod:`services.sessions.graph`; this process publishes the bench-press part of the demo session (recorded joint angles, raw EMG
 chunks, load events) at real time and then as fast as the network accepts. Latency per frame = the frame's
 ``publish_ns - input_arrival_ns`` (both stamped by the node: joint-angle arrival to ActivationFrame publication), p50
 and p99, with every method (``proposed``, ``assisted``, ``so``, ``hybrid``) and the EMG path on, next to the same node
@@ -10,7 +10,7 @@ chunk's arrival at the node (an upper bound: it includes the delivery back). CPU
 over the run (from /proc) divided by the wall time. Goal: p99 <= 2 ms at real time.
 
 Accuracy live (issue 27): one ``msk live --sim`` session of :data:`SIM_SECONDS` (a subprocess, as a user runs it)
-scored against the generator's truth by :func:`services.live_scoring.score_live_run`: per method and group the
+scored against the generator's truth by :func:`services.sessions.live_scoring.score_live_run`: per method and group the
 activation RMSE and r over the frames after the warm-up, ``assisted`` against ``proposed`` on the groups without an
 electrode (one RMSE over them, and the median of their RMSEs), with the mapping's check (the live joint angles'
 lag against the trial's). ``--quick`` leaves this session out (tests/test_sim_clock.py scores one in the suite).
@@ -30,11 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from services import demo_subject, live_scoring, messages, topics
 from services.bench import BenchResult
-from services.graph import Graph, python_module, wait_for, wait_for_nodes
-from services.mcap_io import read_messages
-from services.zenoh_session import ZenohOptions, declare_data_publisher, free_loopback_endpoint, open_session
+from services.nodes.readiness import wait_for_nodes
+from services.sessions import demo_subject, live_scoring
+from services.sessions.graph import Graph, python_module, wait_for
+from services.transport import messages, topics
+from services.transport.mcap_io import read_messages
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, free_loopback_endpoint, open_session
 
 NAME = "live"
 DESCRIPTION = "live estimator node over Zenoh: input->publication latency p50/p99 (all methods + EMG), throughput, CPU"
@@ -144,7 +146,7 @@ def run_node(subject: Path, methods: tuple[str, ...], emg: bool, inputs: list, r
 def run_sim_session(out: Path, seconds: float) -> None:
     """``msk live --sim --no-view`` for ``seconds`` of streaming into ``out``, in its own process (and session
     registry); on a failure or timeout the error names the output folder and the end of msk live's output."""
-    from services.zenoh_session import free_loopback_endpoint
+    from services.transport.zenoh_session import free_loopback_endpoint
 
     argv = [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", f"{seconds:g}"]
     argv += ["--out", str(out), "--listen", free_loopback_endpoint()]

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from services.bench import BenchResult
-from services.router import wait_until_listening
+from services.nodes.router import wait_until_listening
 
 NAME = "sessions"
 DESCRIPTION = "live sessions one machine serves (Trigno + IMU/joints + estimator each): p99 <= 2 ms, no sample lost"
@@ -95,7 +95,7 @@ class _Observed:
 
 
 def _observe(zsession, observed: _Observed) -> list:
-    from services import messages
+    from services.transport import messages
 
     def on_sample(sample) -> None:
         key = str(sample.key_expr)
@@ -147,7 +147,7 @@ def _start_session(name: str, endpoint: str, root: Path | None = None) -> list[s
 
 def _wait_streaming(endpoint: str, observed: _Observed, names: list[str], timeout_s: float) -> None:
     """Until every session streams EMG and every estimator has subscribed to its joints (it does once warmed up)."""
-    from services.zenoh_session import ZenohOptions, has_subscribers, open_session
+    from services.transport.zenoh_session import ZenohOptions, has_subscribers, open_session
 
     deadline = time.monotonic() + timeout_s
     with open_session(ZenohOptions(mode="client", connect=(endpoint,))) as probe_session:
@@ -275,7 +275,7 @@ def measure(
 ) -> dict[str, float]:
     """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures.
     ``root``: the source tree whose ``msk`` runs the router and the sessions (default this one)."""
-    from services.zenoh_session import ZenohOptions, open_session
+    from services.transport.zenoh_session import ZenohOptions, open_session
 
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"

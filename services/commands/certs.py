@@ -6,10 +6,10 @@ writes ``ca.pem``/``ca.key``, ``router.pem``/``router.key``, ``<role>.pem``/``<r
 certificate ``dashboard.pem``/``dashboard.key`` (for ``--dashboard-host``, default the router's hosts) and, under
 ``--configs`` (default ``<out>/zenoh``), ``router.json5`` (TLS with mutual authentication + access control) and
 ``<role>.json5`` (a TLS client of the router presenting that role's certificate). Roles and their rights:
-services/security.py and docs/deployment.md. Keep ``ca.key`` off the nodes: it is only needed to issue more
+services/transport/security.py and docs/deployment.md. Keep ``ca.key`` off the nodes: it is only needed to issue more
 certificates.
 
-Tablets of ``msk dashboard --pki`` (services/dashboard/access.py):
+Tablets of ``msk dashboard --pki`` (services/surfaces/dashboard/access.py):
 
     msk certs tablet-token coach-ipad --out deploy/pki    # prints the URL to open once on that tablet
     msk certs revoke-token coach-ipad --out deploy/pki    # that tablet is refused from its next request on
@@ -21,7 +21,7 @@ import argparse
 from pathlib import Path
 
 from msk_core.errors import ConfigError
-from services import security
+from services.transport import security
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _tokens(args: argparse.Namespace) -> int:
-    from services.dashboard.access import LOGIN_PATH, TokenStore
+    from services.surfaces.dashboard.access import LOGIN_PATH, TokenStore
 
     store = TokenStore(args.out)
     if args.action == "revoke-token":

@@ -6,7 +6,7 @@ import argparse
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from services.dashboard import app
+    from services.surfaces.dashboard import app
 
     parser = subparsers.add_parser(
         "dashboard", help="serve the live coaches' page of a session (browser)", description=app.__doc__

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services import demo, replayer
+from services.nodes import replayer
+from services.sessions import demo
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

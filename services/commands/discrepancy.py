@@ -51,7 +51,7 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
-    from services.reports.discrepancy import consistency_sentences, write_report
+    from services.surfaces.reports.discrepancy import consistency_sentences, write_report
 
     if args.max_effects < 1:
         raise ConfigError("must be >= 1", field="--max-effects", value=args.max_effects)

@@ -9,8 +9,9 @@ import argparse
 import signal
 import threading
 
-from services import driver_nodes, topics, zenoh_session
-from services.graph import ReadySpec, declare_ready
+from services.nodes import driver_nodes
+from services.nodes.readiness import ReadySpec, declare_ready
+from services.transport import topics, zenoh_session
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: until Ctrl-C)"
     )
-    # graph readiness (services.graph): wait for these nodes before acquiring, then declare the token
+    # graph readiness (services.nodes.readiness): wait for these nodes before acquiring, then declare the token
     parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
     zenoh_session.add_zenoh_arguments(parser)

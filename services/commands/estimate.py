@@ -339,7 +339,7 @@ def run_estimate(args: argparse.Namespace) -> int:
 def run_evaluate(args: argparse.Namespace) -> int:
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.estimate.trial import load_trial
-    from services.reports.evaluation import write_report
+    from services.surfaces.reports.evaluation import write_report
 
     if args.leave_out:
         return run_leave_out(args)
@@ -362,7 +362,7 @@ def run_leave_out(args: argparse.Namespace) -> int:
     """``msk evaluate --leave-out``: calibrations without each electrode in turn, scored on the held-out trials."""
     from msk_core.estimate.leave_out import leave_one_out
     from msk_core.estimate.trial import load_trial
-    from services.reports.evaluation import write_leave_out_report
+    from services.surfaces.reports.evaluation import write_leave_out_report
 
     if args.subject is not None:
         raise ConfigError(

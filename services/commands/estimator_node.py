@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from services import estimator
+from services.nodes import estimator
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from services import kinematics_node
+from services.nodes import kinematics_node
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

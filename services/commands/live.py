@@ -15,12 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from msk_core.errors import ConfigError
-from services.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
+from services.sessions.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
 
 #: ``msk live``'s exit code when a node of the session failed (2: a bad session file or option, before the start)
 EXIT_NODE_FAILED = 3
 LOG_TAIL_LINES = 12
-_NODE_FAILED = "node failed: "  # services.live.run_graph: stopped_by = "node failed: " + repr(graph.failed())
+_NODE_FAILED = "node failed: "  # services.sessions.live.run_graph: stopped_by = "node failed: " + repr(graph.failed())
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -100,8 +100,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services import live
-    from services.live_session import LiveSession, load_session_file
+    from services.sessions import live
+    from services.sessions.live_session import LiveSession, load_session_file
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError("must be a positive number of seconds", field="--duration", value=args.duration)
@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     from drivers.trigno.simulator import SensorFault
 
     faults = tuple(SensorFault.parse(text) for text in args.sim_fault)
-    from services.sim_sets import SimSets
+    from services.sessions.sim_sets import SimSets
 
     sets = SimSets(reps=args.sim_reps, rest_s=args.sim_rest)
     summary = live.main(

@@ -11,8 +11,9 @@ import threading
 from pathlib import Path
 
 from msk_core.errors import ConfigError
-from services import driver_nodes, topics
-from services.mcap_io import McapRecorderWriter
+from services.nodes import driver_nodes
+from services.transport import topics
+from services.transport.mcap_io import McapRecorderWriter
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from services import recorder, replayer
+from services.nodes import recorder, replayer
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

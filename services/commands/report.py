@@ -6,7 +6,7 @@ import argparse
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from services.dashboard import report
+    from services.surfaces.dashboard import report
 
     parser = subparsers.add_parser(
         "report", help="write the HTML report of a recorded session", description=report.__doc__

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from services import router
+from services.nodes import router
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -12,8 +12,9 @@ from __future__ import annotations
 import argparse
 
 from msk_core.errors import ConfigError
-from services.commands.load import new_facts, publish_facts
-from services.zenoh_session import add_zenoh_arguments
+from services.commands.load import publish_facts
+from services.sessions.facts import new_facts
+from services.transport.zenoh_session import add_zenoh_arguments
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,7 +1,7 @@
 """``msk subscribe KEY [--json]``: print the decoded messages of any msk topic (a key expression, e.g.
 ``msk/demo/activations/*`` or ``msk/demo/**``), one line each: the key and the message as protobuf text or JSON.
 
-Inputs come through :class:`services.node_runtime.NodeInputs`, like every node's: a key expression whose topics all
+Inputs come through :class:`services.nodes.node_runtime.NodeInputs`, like every node's: a key expression whose topics all
 carry one type (``msk/demo/activations/*``) expects that type, a broader one (``msk/demo/**``) each key's type from
 the topic table (docs/topics.md). A message that is oversized, does not decode, carries another type or fails its
 type's checks is not printed: it is counted per key and reason (the first of each is logged on stderr) and the
@@ -21,9 +21,10 @@ from google.protobuf import json_format, text_format
 from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
-from services import discovery, messages, topics
-from services.node_runtime import InputCounts, NodeInputs
-from services.zenoh_session import add_zenoh_arguments, open_session, options_from_args
+from services.nodes.node_runtime import InputCounts, NodeInputs
+from services.sessions import discovery
+from services.transport import messages, topics
+from services.transport.zenoh_session import add_zenoh_arguments, open_session, options_from_args
 
 #: How long the loop waits for a message before looking at the deadline again.
 POLL_S = 0.05

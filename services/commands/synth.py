@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     truth = write_session(session, args.out, emg_output=EmgOutput(args.emg_output))
     written = [truth]
     # services-level exports import MCAP and driver code, which msk_core must not
-    from services.synth_export import write_device_streams, write_mcap
+    from services.sessions.synth_export import write_device_streams, write_mcap
 
     if not args.no_mcap:
         written.append(write_mcap(session, args.mcap or args.out / "session.mcap", session_name=args.session))

@@ -1,10 +1,10 @@
-"""``msk view``: the live terminal view of a session (services/view.py)."""
+"""``msk view``: the live terminal view of a session (services/surfaces/view.py)."""
 
 from __future__ import annotations
 
 import argparse
 
-from services import view
+from services.surfaces import view
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -1,0 +1,488 @@
+"""Driver nodes: acquisition loops that turn Trigno/Xsens driver events into EmgChunk, AccChunk, ImuSample and
+DeviceStatus messages and hand them to a sink (Zenoh publishers, or an MCAP file for ``msk record``).
+
+Each loop runs in its own thread until ``stop`` is set or its deadline passes; sinks must be thread-safe. A loop's
+last DeviceStatus of each device, published as it ends, says ``connected = False`` with the final counts: the driver
+no longer delivers, whatever the link's state (``msk live`` records it, and its summary reads it).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import zenoh
+from google.protobuf.message import Message
+
+from drivers.trigno import protocol as tp
+from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, GapEvent, StatusEvent, TrignoClient
+from drivers.xsens.device import ImuReading, TrackerSet
+from services.transport import messages, topics, zenoh_session
+
+#: sink(key, message, host_time_ns, device_time_ns)
+Sink = Callable[[str, Message, int, int], None]
+
+
+# ------------------------------------------------------------------------------------------------ conversions
+
+
+def emg_columns(client: TrignoClient) -> list[tuple[str, int]]:
+    """(label, 0-based slot) of the EMG channels to publish: every EMG channel of the active sensors (multi-channel
+    sensors give one column per channel, ``sensorNN.EMGk``); all 16 slots when the server told us nothing."""
+    return client.emg_columns or [(f"sensor{s:02d}.EMG", s - 1) for s in range(1, 17)]
+
+
+def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]) -> messages.EmgChunk:
+    """An EmgChunk of the given (label, slot) columns (float32 values as received: protobuf floats are float32)."""
+    rows = block.samples[:, [slot for _, slot in columns]]
+    return messages.EmgChunk(
+        source_id=source_id,
+        channel_labels=[label for label, _ in columns],
+        sample_rate_hz=block.rate_hz,
+        first_sample_index=block.first_sample_index,
+        device_time_ns=block.device_time_ns,
+        host_time_ns=block.host_time_ns,
+        n_samples=rows.shape[0],
+        n_channels=rows.shape[1],
+        samples=rows.ravel().tolist(),
+        units="V",
+    )
+
+
+def acc_sensors(client: TrignoClient) -> list[tuple[str, int]]:
+    """(label, sensor number 1..16) of the sensors whose accelerometers to publish: the active sensors (every slot
+    when the server told us nothing), labelled ``sensorNN`` as their EMG channels ``sensorNN.EMG...``."""
+    numbers = client.active_sensors or list(range(1, tp.N_SENSORS + 1))
+    return [(f"sensor{n:02d}", n) for n in numbers]
+
+
+def acc_chunk(
+    block: AuxBlock, *, source_id: str, sensors: list[tuple[str, int]], layout: tp.AuxLayout
+) -> messages.AccChunk:
+    """An AccChunk of the given (label, sensor number) sensors: each sensor's ACC x, y, z in g, the first three of
+    its slots on the AUX port (9 per sensor, Avanti) or its three on the legacy ACC port. Row k is AUX sample
+    ``first_sample_index + k``, measured at EMG device time ``(first_sample_index + k) / rate`` (both counts start
+    with START)."""
+    rows = block.samples.reshape(len(block.samples), tp.N_SENSORS, layout.slots_per_sensor)
+    values = rows[:, [n - 1 for _, n in sensors], :3]
+    return messages.AccChunk(
+        source_id=source_id,
+        sensor_labels=[label for label, _ in sensors],
+        sample_rate_hz=block.rate_hz,
+        first_sample_index=block.first_sample_index,
+        device_time_ns=int(round(block.first_sample_index * 1e9 / block.rate_hz)),
+        host_time_ns=block.host_time_ns,
+        n_samples=values.shape[0],
+        n_sensors=values.shape[1],
+        samples=values.ravel().tolist(),
+        units="g",
+    )
+
+
+def imu_sample(reading: ImuReading, *, segment: str = "") -> messages.ImuSample:
+    sample = messages.ImuSample(
+        tracker_id=reading.tracker_id,
+        segment=segment,
+        packet_counter=reading.packet_counter or 0,
+        sample_time_fine=reading.sample_time_fine or 0,
+        device_time_ns=reading.device_time_ns,
+        host_time_ns=reading.host_time_ns,
+        coordinate_frame=reading.frame.name,
+    )
+    if reading.quaternion is not None:
+        w, x, y, z = reading.quaternion
+        sample.orientation.CopyFrom(messages.Quaternion(w=w, x=x, y=y, z=z))
+    for name, value in (
+        ("acceleration", reading.acceleration),
+        ("rate_of_turn", reading.rate_of_turn),
+        ("magnetic_field", reading.magnetic_field),
+    ):
+        if value is not None:
+            getattr(sample, name).CopyFrom(messages.Vector3(x=value[0], y=value[1], z=value[2]))
+    return sample
+
+
+def device_status(
+    *, device_id: str, kind: str, connected: bool, received: int, lost: int, errors: int, last_error: str
+) -> messages.DeviceStatus:
+    return messages.DeviceStatus(
+        device_id=device_id,
+        kind=kind,
+        connected=connected,
+        samples_received=received,
+        samples_lost=lost,
+        errors=errors,
+        last_error=last_error,
+        host_time_ns=messages.now_ns(),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ loops
+
+
+@dataclass
+class LoopReport:
+    """What a loop did (for the CLI summary and tests)."""
+
+    messages: int = 0
+    samples: int = 0
+    gaps: list[GapEvent] = field(default_factory=list)
+    states: list[str] = field(default_factory=list)
+
+
+def trigno_loop(
+    client: TrignoClient,
+    *,
+    session: str,
+    source_id: str,
+    sink: Sink,
+    stop: threading.Event,
+    duration_s: float | None = None,
+    status_interval_s: float = 1.0,
+) -> LoopReport:
+    """Start acquisition and publish until ``stop``/``duration_s``; then STOP/QUIT. The client must be connected.
+    With an AUX port (``TrignoConfig.aux_port``) the sensors' accelerometers go to ``acc/<source_id>``."""
+    report = LoopReport()
+    emg_key = topics.emg_key(session, source_id)
+    acc_key = topics.acc_key(session, source_id)
+    status_key = topics.status_key(session, source_id)
+    columns = emg_columns(client)
+    sensors = acc_sensors(client)
+    layout = client.config.resolved_aux_layout
+
+    def publish_status(*, final: bool = False) -> None:
+        stats = client.stats
+        status = device_status(
+            device_id=source_id,
+            kind="trigno",
+            connected=client.connected and not final,
+            received=stats.samples_received,
+            lost=stats.samples_lost,
+            errors=stats.errors,
+            last_error=stats.last_error,
+        )
+        sink(status_key, status, status.host_time_ns, 0)
+        report.messages += 1
+
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    client.start()
+    publish_status()
+    next_status = time.monotonic() + status_interval_s
+
+    def publish_data(event) -> None:
+        if isinstance(event, EmgBlock):
+            chunk = emg_chunk(event, source_id=source_id, columns=columns)
+            sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
+            report.messages += 1
+            report.samples += len(event.samples)
+        elif isinstance(event, AuxBlock):
+            accelerations = acc_chunk(event, source_id=source_id, sensors=sensors, layout=layout)
+            sink(acc_key, accelerations, event.host_time_ns, accelerations.device_time_ns)
+            report.messages += 1
+        elif isinstance(event, GapEvent):
+            report.gaps.append(event)
+
+    try:
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            for event in client.poll(0.05):
+                if isinstance(event, StatusEvent):
+                    report.states.append(event.state.value)
+                    publish_status()
+                    if event.state is ClientState.STOPPED:
+                        return report
+                else:
+                    publish_data(event)
+            if time.monotonic() >= next_status:
+                publish_status()
+                next_status += status_interval_s
+    finally:
+        for event in client.stop():  # the frames already on their way when we said STOP
+            publish_data(event)
+        publish_status(final=True)
+    return report
+
+
+def xsens_loop(
+    trackers: TrackerSet,
+    *,
+    session: str,
+    sink: Sink,
+    stop: threading.Event,
+    segments: dict[str, str] | None = None,
+    duration_s: float | None = None,
+    status_interval_s: float = 1.0,
+) -> LoopReport:
+    """Publish every tracker's readings until ``stop``/``duration_s``; an unplugged tracker is reported, not fatal."""
+    report = LoopReport()
+    segments = segments or {}
+    known = dict(trackers.devices)
+
+    def publish_status(*, final: bool = False) -> None:
+        for tracker_id, device in known.items():
+            stats = device.stats
+            status = device_status(
+                device_id=tracker_id,
+                kind="xsens",
+                connected=tracker_id in trackers.devices and not final,
+                received=stats.readings,
+                lost=stats.packets_lost,
+                errors=stats.decode_errors + stats.device_errors + device.parser.stats.errors,
+                last_error=trackers.disconnected.get(tracker_id, stats.last_error),
+            )
+            sink(topics.status_key(session, tracker_id), status, status.host_time_ns, 0)
+            report.messages += 1
+
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    publish_status()
+    next_status = time.monotonic() + status_interval_s
+    lost = set(trackers.disconnected)
+    try:
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            if not trackers.devices:
+                time.sleep(0.05)
+            for reading in trackers.read():
+                message = imu_sample(reading, segment=segments.get(reading.tracker_id, ""))
+                sink(topics.imu_key(session, reading.tracker_id), message, reading.host_time_ns, reading.device_time_ns)
+                report.messages += 1
+                report.samples += 1
+            if set(trackers.disconnected) != lost:  # a tracker went away or came back (TrackerSet reconnects)
+                now_lost = set(trackers.disconnected)
+                report.states.extend(["disconnected"] * len(now_lost - lost) + ["reconnected"] * len(lost - now_lost))
+                lost = now_lost
+                publish_status()
+            if time.monotonic() >= next_status:
+                publish_status()
+                next_status += status_interval_s
+    finally:
+        publish_status(final=True)
+    return report
+
+
+# ------------------------------------------------------------------------------------------------ sinks
+
+
+class ZenohSink:
+    """Publishes each message on its key with a loss-free publisher declared on first use, which keeps the last
+    :data:`~services.transport.zenoh_session.DEVICE_HISTORY_SAMPLES` for a restarted recorder."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._session = session
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, key: str, message: Message, host_time_ns: int, device_time_ns: int) -> None:
+        with self._lock:
+            publisher = self._publishers.get(key)
+            if publisher is None:
+                type_name = messages.type_name(message)
+                if zenoh_session.keeps_history(key):
+                    publisher = zenoh_session.declare_history_publisher(self._session, key, type_name)
+                else:
+                    publisher = zenoh_session.declare_data_publisher(self._session, key, type_name)
+                self._publishers[key] = publisher
+        zenoh_session.publish(publisher, message)
+
+    def close(self) -> None:
+        with self._lock:
+            for publisher in self._publishers.values():
+                publisher.undeclare()
+            self._publishers.clear()
+
+
+class McapSink:
+    """Writes each message to an MCAP file (log time = host receive time, publish time = device time)."""
+
+    def __init__(self, writer) -> None:
+        self._writer = writer
+        self._lock = threading.Lock()
+        self.count = 0
+
+    def __call__(self, key: str, message: Message, host_time_ns: int, device_time_ns: int) -> None:
+        payload = messages.encode(message)
+        with self._lock:
+            self._writer.write(key, messages.type_name(message), payload, host_time_ns, device_time_ns or host_time_ns)
+            self.count += 1
+
+
+def run_threads(targets: list[Callable[[], LoopReport]], stop: threading.Event) -> list[LoopReport | BaseException]:
+    """Run loops side by side; each result is its report or the exception it raised. Ctrl-C sets ``stop`` and
+    lets the loops end cleanly (STOP/QUIT, final status) before re-raising."""
+    results: list[LoopReport | BaseException] = [RuntimeError("did not finish")] * len(targets)
+
+    def runner(index: int, target: Callable[[], LoopReport]) -> None:
+        try:
+            results[index] = target()
+        except BaseException as error:  # reported by the caller; a thread must not die silently
+            results[index] = error
+
+    threads = [threading.Thread(target=runner, args=(k, t), daemon=True) for k, t in enumerate(targets)]
+    for thread in threads:
+        thread.start()
+    interrupted = False
+    for thread in threads:
+        while thread.is_alive():
+            try:
+                thread.join(0.2)
+            except KeyboardInterrupt:
+                stop.set()
+                interrupted = True
+    if interrupted:
+        raise KeyboardInterrupt
+    return results
+
+
+# ------------------------------------------------------------------------------------------------ opening devices (CLI)
+
+
+def add_device_arguments(parser) -> None:
+    """``--trigno HOST[:PORT]`` and ``--xsens PORT|usb`` with their options (shared by ``msk record`` and ``msk drivers``)."""
+    from drivers.xsens import xbus
+
+    group = parser.add_argument_group("Delsys Trigno")
+    group.add_argument(
+        "--trigno",
+        metavar="HOST[:PORT]",
+        default=None,
+        help="Trigno Control Utility address (command port, default 50040)",
+    )
+    group.add_argument(
+        "--trigno-emg-port",
+        type=int,
+        default=int(tp.EmgPort.AVANTI),
+        metavar="PORT",
+        help="EMG data port: 50043 (default) or legacy 50041",
+    )
+    group.add_argument(
+        "--trigno-aux-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="also read the sensors' accelerometers from this port (50044 AUX, or legacy ACC 50042) and "
+        "publish them on msk/<session>/acc/<id> (default: not read)",
+    )
+    group.add_argument(
+        "--trigno-stop",
+        choices=[m.value for m in tp.StopMode],
+        default=tp.StopMode.STOP_THEN_QUIT.value,
+        help="how to end acquisition",
+    )
+    group.add_argument("--trigno-id", default="trigno", help="source id used in topics and messages (default: trigno)")
+    group = parser.add_argument_group("Xsens")
+    group.add_argument(
+        "--xsens",
+        action="append",
+        default=[],
+        metavar="SERIAL_PORT|usb",
+        help="tracker serial port, or 'usb' for every Xsens USB device (repeatable)",
+    )
+    group.add_argument("--xsens-baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    group.add_argument("--imu-rate", type=int, default=100, help="IMU output rate in Hz (default 100)")
+    group.add_argument("--imu-precision", choices=[p.name.lower() for p in xbus.Precision], default="float32")
+    group.add_argument("--imu-frame", choices=[f.name for f in xbus.CoordinateFrame], default="ENU")
+    group.add_argument(
+        "--segment",
+        action="append",
+        default=[],
+        metavar="TRACKER=SEGMENT",
+        help="body segment of a tracker id, e.g. 03700ABC=upper_arm_r",
+    )
+
+
+def open_trigno(args) -> TrignoClient:
+    from drivers.trigno.client import TrignoConfig, parse_address
+
+    host, port = parse_address(args.trigno)
+    client = TrignoClient(
+        TrignoConfig(
+            host=host,
+            command_port=port,
+            emg_port=args.trigno_emg_port,
+            aux_port=args.trigno_aux_port,
+            stop_mode=tp.StopMode(args.trigno_stop),
+        )
+    )
+    try:
+        client.connect()
+    except OSError as error:
+        from msk_core.errors import ConfigError
+
+        raise ConfigError(f"cannot reach the Trigno server: {error}", field="--trigno", value=args.trigno) from error
+    return client
+
+
+def open_xsens(args) -> TrackerSet:
+    from drivers.xsens import usb, xbus
+    from drivers.xsens.device import XsensDevice
+    from drivers.xsens.serial_transport import SerialTransport
+
+    ports: list[str] = []
+    for spec in args.xsens:
+        ports += [d.port for d in usb.list_devices() if d.port] if spec == "usb" else [spec]
+    if not ports:
+        from msk_core.errors import ConfigError
+
+        raise ConfigError("no Xsens serial port found", field="--xsens", value=args.xsens)
+    trackers = TrackerSet()
+    try:
+        for port in ports:
+            device = XsensDevice(SerialTransport(port, baudrate=args.xsens_baud))
+            device.configure(
+                args.imu_rate,
+                precision=xbus.Precision[args.imu_precision.upper()],
+                frame=xbus.CoordinateFrame[args.imu_frame],
+            )
+            trackers.add(device)
+    except BaseException:
+        trackers.close()
+        raise
+    return trackers
+
+
+def parse_segments(items: list[str]) -> dict[str, str]:
+    from msk_core.errors import ConfigError
+
+    out = {}
+    for item in items:
+        tracker, sep, segment = item.partition("=")
+        if not sep or not tracker or not segment:
+            raise ConfigError("expected TRACKER=SEGMENT", field="--segment", value=item)
+        out[tracker.upper()] = segment
+    return out
+
+
+def run_devices(args, sink: Sink, *, session: str, duration_s: float | None, stop: threading.Event) -> list[LoopReport]:
+    """Open the devices named by the arguments and run their loops side by side into ``sink``."""
+    from msk_core.errors import ConfigError
+
+    if not args.trigno and not args.xsens:
+        raise ConfigError("name at least one device: --trigno HOST[:PORT] and/or --xsens PORT|usb", field="devices")
+    segments = parse_segments(args.segment)
+    targets = []
+    trackers = None
+    if args.trigno:
+        client = open_trigno(args)
+        targets.append(
+            lambda: trigno_loop(
+                client, session=session, source_id=args.trigno_id, sink=sink, stop=stop, duration_s=duration_s
+            )
+        )
+    if args.xsens:
+        trackers = open_xsens(args)
+        targets.append(
+            lambda: xsens_loop(
+                trackers, session=session, sink=sink, stop=stop, segments=segments, duration_s=duration_s
+            )
+        )
+    try:
+        results = run_threads(targets, stop)
+    finally:
+        if trackers is not None:
+            trackers.close()
+    reports: list[LoopReport] = []
+    for result in results:
+        if isinstance(result, BaseException):
+            raise result
+        reports.append(result)
+    return reports

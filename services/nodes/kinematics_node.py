@@ -1,0 +1,449 @@
+"""Kinematics node: IMU orientations in, model joint coordinates out.
+
+Subscribes to ``msk/<session>/imu/*`` (:class:`ImuSample`), groups the trackers' samples of the same instant
+(:class:`msk_core.imu.stream.SegmentSynchroniser`), calibrates on the static pose at the start of every set, maps the
+segment orientations to the pack's coordinates through the pack's IMU table (:mod:`msk_core.imu.mapping`), filters
+them causally (angle, velocity, acceleration) and publishes :class:`JointAngles` on ``msk/<out-session>/joints`` at
+the IMU rate. Zenoh callbacks only enqueue; one worker thread does the rest in arrival order. Nothing is dropped
+silently: every sample or frame not published is counted in :class:`KinematicsStats`. With ``--imu-clock host`` each
+tracker's clock is mapped onto the host clock by its receipt times less its stated latency (``--imu-latency-ms``,
+:class:`msk_core.signal.host_clock.HostClock`), and the node's status carries each tracker's mapping
+(``DeviceStatus.clocks``, ``imu/<tracker>``). Docs: docs/kinematics.md.
+Run ``python -m services.nodes.kinematics_node --pack bench_press --session lab`` or ``msk kinematics``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drivers.xsens.frames import to_enu
+from drivers.xsens.xbus import CoordinateFrame
+from msk_core.errors import ConfigError, FileFormatError, MskError
+from msk_core.imu.kinematics import KinematicsFilterConfig
+from msk_core.imu.mapping import ImuJointMapper, mapping_for, parse_pose
+from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
+from msk_core.model import load_pack
+from msk_core.signal.host_clock import METHOD_DEVICE, WINDOW_S, ClockReport, DeviceClocks, parse_latencies
+from msk_core.signal.reps import RepTemplate
+from services.nodes.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
+from services.nodes.readiness import ReadySpec, declare_ready
+from services.transport import messages, topics
+from services.transport.zenoh_session import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    declare_data_publisher,
+    open_session,
+    options_from_args,
+    publish,
+)
+
+log = logging.getLogger(__name__)
+NODE_NAME = "kinematics"
+
+
+@dataclass
+class KinematicsStats:
+    samples_in: int = 0
+    ignored: int = 0  # samples of segments the pack's table does not use (e.g. another exercise's trackers)
+    undecodable: int = 0
+    unknown_frame: int = 0  # samples in a global frame other than ENU/NED/NWU
+    out_of_order: int = 0  # a tracker's sample not newer than its previous one
+    frames_synced: int = 0  # instants at which every needed segment had a sample
+    frames_incomplete: int = 0  # instants some needed segment missed (its samples of others discarded, counted)
+    samples_discarded: int = 0  # samples thrown away with incomplete instants
+    missing: dict[str, int] = field(default_factory=dict)  # segment -> instants it missed
+    calibration_frames: int = 0  # frames spent as the static pose (not published)
+    calibrations: int = 0
+    calibration_failures: int = 0
+    restarts: int = 0  # gaps longer than --gap: a new set, recalibrated
+    resumes: int = 0  # gaps longer than --gap of samples lost on their way (the network): calibration kept
+    bad_frames: int = 0  # non-finite or zero quaternions
+    rejected: int = 0  # samples that raised an input error while being processed
+    frames_out: int = 0
+    samples_done: int = 0  # samples whose joint frames (if any) are published: a waiter's exact end condition
+    last_error: str = ""
+    inputs: InputCounts | None = None  # received and dropped inputs per key (services.nodes.node_runtime)
+
+
+def load_template(path: Path) -> RepTemplate:
+    """The rep template of a subject profile (``msk calibrate``'s ``phase_model``, the one the estimator tracks) or a
+    bare ``RepTemplate.to_dict()``."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise FileFormatError(f"cannot read the rep template: {exc}", path=str(path)) from None
+    if not isinstance(doc, dict):
+        raise FileFormatError("expected a JSON object", path=str(path))
+    if "phase_model" in doc:
+        if not isinstance(doc["phase_model"], dict):
+            raise FileFormatError(
+                "the subject profile has no rep template (calibrated without a kinematic phase coordinate)",
+                path=str(path),
+                field="phase_model",
+            )
+        doc = doc["phase_model"].get("template", {})
+    return RepTemplate.from_dict(doc)
+
+
+def _segment_of(key: str, sample) -> str:
+    return sample.segment or key.rsplit("/", 1)[1]
+
+
+class KinematicsNode:
+    """The node's state between Zenoh and the IMU kinematics: segment synchroniser, streaming kinematics, counters.
+    :meth:`handle` takes one IMU message and returns the JointAngles to publish (no Zenoh in here)."""
+
+    def __init__(
+        self,
+        pack: str,
+        session: str,
+        stats: KinematicsStats,
+        *,
+        facing_deg: float,
+        static_pose_deg: dict[str, float] | None,
+        static_s: float,
+        gap_s: float,
+        sync_tolerance_s: float,
+        max_wait_s: float,
+        filter_config: KinematicsFilterConfig | None,
+        phase_template: RepTemplate | None,
+        phase_coordinate: str | None,
+        clock: str = "device",
+        latency_ns: dict[str, int] | None = None,
+        default_latency_ns: int = 0,
+        clock_window_s: float = WINDOW_S,
+    ) -> None:
+        """``latency_ns``: per tracker id (its topic's last chunk), its stated latency; trackers not named have
+        ``default_latency_ns`` (``clock="host"`` only: with one device clock nothing is mapped)."""
+        if clock not in ("device", "host"):
+            raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
+        self.clock = clock
+        # per tracker: its device clock -> the host clock (the estimator maps the trackers with the same rule)
+        self.host_clocks = DeviceClocks(
+            "imu", latency_ns=latency_ns, default_latency_ns=default_latency_ns, window_s=clock_window_s
+        )
+        if clock == "device" and (self.host_clocks.default_latency_ns or any(self.host_clocks.latency_ns.values())):
+            raise ConfigError(
+                "a tracker latency is applied when the trackers' clocks are mapped onto the host clock "
+                "(--imu-clock host); with one device clock nothing is mapped",
+                field="latency",
+                value={**self.host_clocks.latency_ns, "default": self.host_clocks.default_latency_ns},
+            )
+        self.device_trackers: set[str] = set()  # trackers seen on the shared device clock
+        self.stats = stats
+        self.model = load_pack(pack)
+        # ENU: x east, y north; the mapping's heading is counter-clockwise from x
+        self.mapper = ImuJointMapper.for_pack(self.model, heading_rad=math.radians(90.0 - facing_deg))
+        if (phase_template is None) != (phase_coordinate is None):
+            raise ConfigError(
+                "phase tracking needs both a rep template and a coordinate",
+                field="phase_coordinate",
+                value=phase_coordinate,
+            )
+        if phase_coordinate is not None and phase_coordinate not in self.mapper.coordinates:
+            raise ConfigError(
+                f"not a coordinate of pack {self.model.name!r} ({self.mapper.coordinates})",
+                field="phase_coordinate",
+                value=phase_coordinate,
+            )
+        self.kinematics = StreamingJointKinematics(
+            self.mapper,
+            static_pose_rad=self.mapper.static_pose(static_pose_deg),
+            static_s=static_s,
+            gap_s=gap_s,
+            filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
+            phase_template=phase_template,
+            phase_coordinate=phase_coordinate,
+        )
+        self.sync = SegmentSynchroniser(
+            self.mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9), max_wait_ns=int(max_wait_s * 1e9)
+        )
+        self.needed = set(self.mapper.segments)
+        self.coordinates = list(self.mapper.coordinates)
+        self.prefix = f"{topics.session_prefix(session)}/imu/"
+
+    def handle(self, key: str, payload: messages.ImuSample | bytes, missed: int = 0) -> list[messages.JointAngles]:
+        """One IMU message in; the joint-angle frames it completes out. A bad sample is counted, never raised.
+        ``missed``: publications of its publisher lost on their way just before it (:attr:`Inbound.missed`): a gap
+        they make resumes the set instead of recalibrating (:meth:`StreamingJointKinematics.lost_before`)."""
+        try:
+            return self._handle(key, payload, missed)
+        except MskError as error:  # one bad sample must not stop the node: count it, say why, go on
+            self.stats.rejected += 1
+            self.stats.last_error = f"{key}: {error}"
+            if self.stats.rejected == 1:
+                log.error("%s", self.stats.last_error)
+            return []
+
+    def _handle(self, key: str, payload: messages.ImuSample | bytes, missed: int = 0) -> list[messages.JointAngles]:
+        stats = self.stats
+        stats.samples_in += 1
+        try:
+            imu = messages.as_message(messages.ImuSample, payload)
+        except messages.MessageDecodeError as exc:
+            stats.undecodable += 1
+            stats.last_error = f"{key}: {exc}"
+            return []
+        segment = _segment_of(key, imu)
+        if segment not in self.needed:
+            stats.ignored += 1
+            return []
+        try:
+            frame = CoordinateFrame[(imu.coordinate_frame or "ENU").upper()]  # Xsens' default output is ENU
+        except KeyError:
+            stats.unknown_frame += 1
+            stats.last_error = f"{key}: unknown coordinate_frame {imu.coordinate_frame!r} (ENU, NED or NWU)"
+            return []
+        o = imu.orientation
+        quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
+        before = self.sync.out_of_order
+        time_ns = int(imu.device_time_ns)
+        if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
+            time_ns = self.host_clocks.to_host(key.rsplit("/", 1)[1], time_ns, int(imu.host_time_ns))
+        else:
+            self.device_trackers.add(key.rsplit("/", 1)[1])
+        if missed:
+            self.kinematics.lost_before(time_ns)
+        events = self.sync.push(segment, time_ns, quat)
+        stats.out_of_order += self.sync.out_of_order - before
+        return [joints for event in events if (joints := self._frame(event)) is not None]
+
+    def clock_report(self) -> list[ClockReport]:
+        """Per tracker seen (``imu/<tracker>``): the mapping onto the host clock its samples get (``device``: none)."""
+        if self.clock == "device":
+            return [ClockReport(f"imu/{t}", 0, 0, 0, METHOD_DEVICE) for t in sorted(self.device_trackers)]
+        return self.host_clocks.reports()
+
+    def _frame(self, event) -> messages.JointAngles | None:
+        stats = self.stats
+        if isinstance(event, IncompleteFrame):
+            stats.frames_incomplete += 1
+            stats.samples_discarded += event.samples
+            for s in event.missing:
+                stats.missing[s] = stats.missing.get(s, 0) + 1
+            stats.last_error = (
+                f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
+                f"(topics {self.prefix}<tracker>; pack {self.model.name!r} needs "
+                f"{self.mapper.segments})"
+            )
+            if stats.frames_incomplete == 1:
+                log.error("%s", stats.last_error)
+            return None
+        stats.frames_synced += 1
+        out = self.kinematics.step(event)
+        _copy_counters(self.kinematics, stats)
+        if out is None:
+            return None
+        joints = messages.JointAngles(
+            coordinates=self.coordinates,
+            q=out.q.tolist(),
+            qd=out.qd.tolist(),
+            qdd=out.qdd.tolist(),
+            device_time_ns=out.time_ns,
+            host_time_ns=messages.now_ns(),
+        )
+        if np.isfinite(out.phase):  # left unset = unknown (no rep template); -1 = between reps
+            joints.phase = out.phase
+        stats.frames_out += 1
+        return joints
+
+
+def main(
+    config: ZenohOptions,
+    *,
+    pack: str,
+    session: str,
+    output_session: str | None = None,
+    facing_deg: float = 0.0,
+    static_pose_deg: dict[str, float] | None = None,
+    static_s: float = 0.5,
+    gap_s: float = 1.0,
+    sync_tolerance_s: float = 0.008,
+    max_wait_s: float = 0.5,
+    filter_config: KinematicsFilterConfig | None = None,
+    phase_template: RepTemplate | None = None,
+    phase_coordinate: str | None = None,
+    stop_event: threading.Event | None = None,
+    ready_event: threading.Event | None = None,
+    ready_key: ReadySpec | None = None,
+    stats: KinematicsStats | None = None,
+    clock: str = "device",
+    latency_ns: dict[str, int] | None = None,
+    default_latency_ns: int = 0,
+) -> KinematicsStats:
+    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east).
+
+    ``clock="device"``: the trackers share one device clock (recordings, a Link/Awinda station); ``"host"``: each
+    tracker has its own clock (separate USB/serial MTi's, each counting from its own power-up): a tracker's device
+    time is mapped to the host clock by the smallest (host receive time - device time) seen so far, as the
+    estimator's ``--emg-clock host`` does, so samples of the same instant meet in the synchroniser; over the last
+    seconds only (msk_core.signal.host_clock), less each tracker's stated latency (``latency_ns`` per tracker id,
+    ``default_latency_ns`` for the others)."""
+    stop_event = stop_event or threading.Event()
+    stats = stats if stats is not None else KinematicsStats()
+    node = KinematicsNode(
+        pack,
+        session,
+        stats,
+        facing_deg=facing_deg,
+        static_pose_deg=static_pose_deg,
+        static_s=static_s,
+        gap_s=gap_s,
+        sync_tolerance_s=sync_tolerance_s,
+        max_wait_s=max_wait_s,
+        filter_config=filter_config,
+        phase_template=phase_template,
+        phase_coordinate=phase_coordinate,
+        clock=clock,
+        latency_ns=latency_ns,
+        default_latency_ns=default_latency_ns,
+    )
+    with open_session(config) as zsession:
+        publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
+        inputs = NodeInputs(zsession, NODE_NAME, expected_type="msk.ImuSample", role=config.role)
+        reporter = StatusReporter(zsession, output_session or session, NODE_NAME, inputs, clocks=node.clock_report)
+        stats.inputs = inputs.counts
+        inputs.subscribe(f"{node.prefix}*")
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.nodes.readiness)
+        if ready_event is not None:
+            ready_event.set()
+        reporter.tick(force=True)
+
+        def process(item) -> None:
+            rejected = stats.rejected
+            for joints in node.handle(item.key, item.message, item.missed):
+                publish(publisher, joints)
+            if stats.rejected != rejected:
+                reporter.error(stats.last_error)
+            stats.samples_done += 1
+
+        serve(inputs, process, stop_event, reporter)  # what arrived before the stop is still published
+    return stats
+
+
+def _copy_counters(kinematics: StreamingJointKinematics, stats: KinematicsStats) -> None:
+    c = kinematics.counters
+    stats.calibration_frames, stats.calibrations = c.calibration_frames, c.calibrations
+    stats.calibration_failures, stats.restarts, stats.bad_frames = c.calibration_failures, c.restarts, c.bad_frames
+    stats.resumes = c.resumes
+    if c.last_error:
+        stats.last_error = c.last_error
+        c.last_error = ""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add = parser.add_argument
+    add("--pack", required=True, help="model pack with an IMU table: bench_press or deadlift")
+    add("--session", required=True, help="session name: reads msk/<session>/imu/*")
+    add("--out-session", default=None, help="publish on msk/<OUT>/joints (default: --session)")
+    add(
+        "--facing-deg",
+        type=float,
+        default=0.0,
+        help="compass direction the subject faces during calibration, degrees (0 north, 90 east; default 0)",
+    )
+    add(
+        "--static-pose",
+        default="",
+        metavar="NAME=DEG,...",
+        help="pose held during calibration, degrees (default: the pack table's, see docs/kinematics.md)",
+    )
+    add("--static-s", type=float, default=0.5, help="seconds of static pose at the start of a set (default 0.5)")
+    add("--gap", type=float, default=1.0, help="an IMU gap longer than this (s) starts a new set (default 1)")
+    add("--sync-tolerance-ms", type=float, default=8.0, help="trackers' samples this close are one instant (default 8)")
+    add("--jerk-std", type=float, default=100.0, help="Kalman process noise, rad/s^3 (default 100)")
+    add("--angle-std-deg", type=float, default=1.0, help="Kalman measurement noise, degrees (default 1)")
+    add("--imu-rate", type=float, default=60.0, help="nominal IMU rate, Hz (default 60; dt comes from timestamps)")
+    add("--phase-coordinate", default=None, help="track the rep phase on this coordinate (needs --phase-template)")
+    add(
+        "--phase-template",
+        type=Path,
+        default=None,
+        help="rep template JSON (a subject profile from msk calibrate, or a RepTemplate dict) learnt in radians",
+    )
+    add(
+        "--imu-clock",
+        choices=["device", "host"],
+        default="device",
+        help="device: the trackers share one clock (recordings); host: separate trackers, each device clock mapped "
+        "to the host clock (docs/kinematics.md)",
+    )
+    add(
+        "--imu-latency-ms",
+        action="append",
+        default=[],
+        metavar="[TRACKER=]MS",
+        help="with --imu-clock host: the stated latency of tracker TRACKER (without TRACKER=: of every tracker not "
+        "named), taken off before its clock is mapped (repeatable; default 0)",
+    )
+    add("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.nodes.readiness)
+    add("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    add_zenoh_arguments(parser)
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    for name in ("static_s", "gap", "sync_tolerance_ms", "imu_rate", "jerk_std", "angle_std_deg"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError("must be positive", field="--" + name.replace("_", "-"), value=value)
+    model = load_pack(args.pack)
+    mapping_for(model.name)  # fail before joining the network when the pack has no IMU table
+    pose = parse_pose(args.static_pose, list(model.coordinates))
+    template = load_template(args.phase_template) if args.phase_template is not None else None
+    filter_config = KinematicsFilterConfig(
+        dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg)
+    )
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    latency_ns, default_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
+    out = args.out_session or args.session
+    print(
+        f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}", file=sys.stderr, flush=True
+    )
+    stats = main(
+        options_from_args(args),
+        pack=args.pack,
+        session=args.session,
+        output_session=args.out_session,
+        facing_deg=args.facing_deg,
+        static_pose_deg=pose,
+        static_s=args.static_s,
+        gap_s=args.gap,
+        sync_tolerance_s=args.sync_tolerance_ms / 1e3,
+        filter_config=filter_config,
+        phase_template=template,
+        phase_coordinate=args.phase_coordinate,
+        stop_event=stop,
+        clock=args.imu_clock,
+        latency_ns=latency_ns,
+        default_latency_ns=default_latency_ns,
+        ready_key=ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
+        if args.ready_key
+        else None,
+    )
+    print(
+        f"published {stats.frames_out} frames; calibrations {stats.calibrations} (gaps: {stats.restarts} new sets, "
+        f"{stats.resumes} resumed after samples lost on their way); incomplete instants "
+        f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"
+        + (f"; last error: {stats.last_error}" if stats.last_error else ""),
+        file=sys.stderr,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    _parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(_parser)
+    sys.exit(run_from_args(_parser.parse_args()))

@@ -1,0 +1,244 @@
+"""Finding a running session: ``msk live`` announces itself, a second terminal's tools attach with no flags.
+
+``msk live`` writes ``OUT/session.json`` as soon as its graph is up (:class:`SessionInfo`: the session's name, the
+Zenoh endpoints a client connects to, and in the secured mode the client config of the ``operator`` role) and the
+same document into the registry folder (:func:`registry_dir`, one file per running ``msk live``), which it removes
+at stop. ``msk dashboard``, ``msk subscribe``, ``msk view`` and ``msk load`` without ``--connect`` /
+``--zenoh-config`` look there (:func:`attach_options`): the one running session, or the one named with
+``--session``; several sessions on one machine stay possible, each on its own endpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+from msk_core.errors import ConfigError, InputError
+from services.transport.zenoh_session import ZenohOptions
+
+SESSION_FILE = "session.json"
+REGISTRY_ENV = "MSK_SESSIONS_DIR"
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """What a client needs to attach to a running session (``OUT/session.json``)."""
+
+    session: str
+    connect: list[str]
+    pid: int
+    out: str
+    pack: str = ""
+    #: secured mode: the operator role's Zenoh client config (TLS + certificate); "" in the plain mode
+    zenoh_config: str = ""
+    attach: list[str] = field(default_factory=list)
+    #: the session facts in effect (exercise, load_kg, set_number, athlete): the latest LoadEvent msk live saw
+    facts: dict = field(default_factory=dict)
+
+    def options(self) -> ZenohOptions:
+        if self.zenoh_config:
+            return ZenohOptions(mode=None, config_file=Path(self.zenoh_config))
+        return ZenohOptions(mode="peer", connect=tuple(self.connect))
+
+
+def registry_dir() -> Path:
+    """Where running sessions announce themselves: ``$MSK_SESSIONS_DIR``, else ``$XDG_RUNTIME_DIR/msk-live/sessions``,
+    else ``~/.cache/msk-live/sessions``."""
+    if os.environ.get(REGISTRY_ENV):
+        return Path(os.environ[REGISTRY_ENV])
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    base = (
+        Path(runtime) / "msk-live"
+        if runtime
+        else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "msk-live"
+    )
+    return base / "sessions"
+
+
+def attach_commands(info: SessionInfo) -> list[str]:
+    """What to type in a second terminal (no flags needed while it is the only session; else ``--session``)."""
+    return [
+        f"msk dashboard --session {info.session}",
+        f"msk view --session {info.session}",
+        f"msk subscribe 'msk/{info.session}/activations/*'",
+        f"msk load --session {info.session} KG",
+    ]
+
+
+def announce(info: SessionInfo, out: Path) -> list[Path]:
+    """Write ``OUT/session.json`` and the registry entry; returns both paths (remove the registry one with
+    :func:`withdraw`)."""
+    document = json.dumps(asdict(info), indent=2) + "\n"
+    written = []
+    for path in (Path(out) / SESSION_FILE, registry_dir() / f"{info.session}-{info.pid}.json"):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = path.with_suffix(".tmp")
+        temporary.write_text(document)
+        temporary.replace(path)  # a reader never sees half a file
+        written.append(path)
+    return written
+
+
+class Announcement:
+    """The announcement of one running ``msk live``, re-written when the session facts change (an operator's
+    ``msk load`` then starts from the facts in effect). Thread-safe: the facts come from a Zenoh callback."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._info: SessionInfo | None = None
+        self._out: Path | None = None
+        self._facts: dict = {}
+
+    def announce(self, info: SessionInfo, out: Path) -> list[Path]:
+        with self._lock:
+            self._info, self._out = info, Path(out)
+            return announce(replace(info, facts=self._facts or info.facts), out)
+
+    def update_facts(self, facts: dict) -> None:
+        with self._lock:
+            self._facts = dict(facts)
+            if self._info is not None and self._out is not None:
+                announce(replace(self._info, facts=self._facts), self._out)
+
+
+def withdraw(path: Path) -> None:
+    path.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return True
+
+
+def read_session_file(path: Path) -> SessionInfo:
+    try:
+        document = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise InputError(f"cannot read the session announcement: {error}", path=path) from None
+    try:
+        return SessionInfo(**document)
+    except TypeError as error:
+        raise InputError(f"not a session announcement of msk live: {error}", path=path) from None
+
+
+def running_sessions() -> list[SessionInfo]:
+    """Announced sessions whose ``msk live`` still runs (entries of stopped or killed ones are removed)."""
+    found = []
+    folder = registry_dir()
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            info = read_session_file(path)
+        except InputError:
+            continue
+        if _alive(info.pid):
+            found.append(info)
+        else:
+            withdraw(path)
+    return found
+
+
+def find_session(session: str | None) -> SessionInfo | None:
+    """The running session named ``session`` (or the only one when None); None when no session is announced.
+
+    Raises :class:`ConfigError` when the choice is ambiguous or the named session is not among those running."""
+    running = running_sessions()
+    if session is not None:
+        named = [s for s in running if s.session == session]
+        if not named:
+            return None
+        return named[-1]
+    if len(running) > 1:
+        raise ConfigError(
+            "several sessions are running; name one with --session (running: "
+            + ", ".join(f"{s.session} on {', '.join(s.connect)}" for s in running)
+            + ")",
+            field="--session",
+        )
+    return running[0] if running else None
+
+
+def attach_options(explicit: ZenohOptions, session: str | None) -> tuple[ZenohOptions, SessionInfo | None]:
+    """The Zenoh options of a client: the explicit ones when ``--connect``, ``--listen`` or ``--zenoh-config`` were
+    given, else those of the running session :func:`find_session` finds, else the explicit defaults (the well-known
+    loopback endpoint)."""
+    if explicit.connect or explicit.listen or explicit.config_file is not None:
+        return explicit, None
+    info = find_session(session)
+    if info is None:
+        return explicit, None
+    return info.options(), info
+
+
+def client_options(
+    explicit: ZenohOptions, session: str | None, default_session: str, tool: str
+) -> tuple[ZenohOptions, str]:
+    """A second terminal's tool (``msk dashboard``, ``msk view``, ``msk subscribe``): its Zenoh options and session
+    name, from its flags or the running session (:func:`attach_options`); says on stderr where it attaches."""
+    options, info = attach_options(explicit, session)
+    name = session or (info.session if info is not None else default_session)
+    if info is not None:
+        print(
+            f"{tool}: attached to the running session {name!r} on {', '.join(info.connect)} "
+            f"(announced in {info.out}/{SESSION_FILE})",
+            file=sys.stderr,
+            flush=True,
+        )
+    elif not (explicit.connect or explicit.listen or explicit.config_file is not None):
+        print(
+            f"{tool}: no running msk live announced in {registry_dir()}; looking for session {name!r} on "
+            f"{where(options)}",
+            file=sys.stderr,
+            flush=True,
+        )
+    return options, name
+
+
+def silence_notice(
+    tool: str,
+    what: str,
+    options: ZenohOptions,
+    received,
+    *,
+    first_s: float = 3.0,
+    every_s: float = 15.0,
+    stop: threading.Event | None = None,
+) -> threading.Thread:
+    """A thread that says on stderr, ``first_s`` after start and then every ``every_s`` while ``received()`` stays 0,
+    what ``tool`` waits for and where (a wait that says nothing looks like a hang)."""
+    stop = stop or threading.Event()
+
+    def watch() -> None:
+        started = time.monotonic()
+        wait = first_s
+        while not stop.wait(wait):
+            if received():
+                return
+            print(
+                f"{tool}: waited {time.monotonic() - started:.0f} s for {what} on {where(options)}: "
+                "0 messages so far (is `msk live` running? `msk live` prints the session and its endpoint)",
+                file=sys.stderr,
+                flush=True,
+            )
+            wait = every_s
+
+    thread = threading.Thread(target=watch, name=f"{tool}-silence", daemon=True)
+    thread.start()
+    return thread
+
+
+def where(options: ZenohOptions) -> str:
+    """Where a client looks, for "waiting for ..." messages."""
+    if options.config_file is not None:
+        return f"the endpoints of {options.config_file}"
+    endpoints = options.connect or options.listen
+    return ", ".join(endpoints) if endpoints else "the default loopback endpoint"

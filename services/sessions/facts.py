@@ -1,0 +1,58 @@
+"""The facts of a session that the operator changes while it runs: the barbell load, the set under way, the exercise
+and the athlete, each change one :class:`~services.transport.messages.LoadEvent` on ``msk/<session>/load``.
+
+Built here once for every place that changes them: ``msk load`` and ``msk sets`` (services.commands), the view's keys
+and the dashboard's set button (services.surfaces).
+"""
+
+from __future__ import annotations
+
+import math
+
+from msk_core.errors import ConfigError
+from services.transport import messages
+
+
+def new_facts(
+    current: dict,
+    *,
+    load_kg: float | None,
+    set_number: int | None,
+    next_set: bool,
+    exercise: str | None,
+    athlete: str | None,
+    set_mark: str = "",
+) -> messages.LoadEvent:
+    """The LoadEvent that changes ``current`` (a session's facts: exercise, load_kg, set_number, athlete);
+    ``set_mark``: "start" (the next set starts: ``next_set``) or "stop" (the set under way ends), "" none."""
+    if load_kg is not None and not (math.isfinite(load_kg) and load_kg >= 0):
+        raise ConfigError("must be a finite mass >= 0 kg", field="KG", value=load_kg)
+    if set_number is not None and set_number < 1:
+        raise ConfigError("sets are counted from 1", field="--set", value=set_number)
+    now = messages.now_ns()
+    number = int(current.get("set_number", 0) or 0)
+    if next_set:
+        number += 1
+    elif set_number is not None:
+        number = set_number
+    return messages.LoadEvent(
+        barbell_mass_kg=float(load_kg if load_kg is not None else current.get("load_kg", 0.0)),
+        exercise=exercise if exercise is not None else str(current.get("exercise", "")),
+        set_number=number,
+        athlete=athlete if athlete is not None else str(current.get("athlete", "")),
+        set_mark=set_mark,
+        device_time_ns=now,
+        host_time_ns=now,
+    )  # msk live maps the device clocks onto the host clock
+
+
+def set_mark_event(load: messages.LoadEvent | None, set_number: int, mark: str) -> messages.LoadEvent:
+    """The session fact of the operator's set ``mark`` ("start": the next set; "stop") from a surface that holds the
+    newest LoadEvent (``load``: the facts in effect) and shows set ``set_number`` (the view's key, the dashboard's
+    button)."""
+    facts: dict = {"set_number": max(set_number, int(load.set_number) if load is not None else 0)}
+    if load is not None:
+        facts |= {"load_kg": load.barbell_mass_kg, "exercise": load.exercise, "athlete": load.athlete}
+    return new_facts(
+        facts, load_kg=None, set_number=None, next_set=mark == "start", exercise=None, athlete=None, set_mark=mark
+    )

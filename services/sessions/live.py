@@ -1,0 +1,1438 @@
+"""``msk live``: one command runs a whole session graph on the real devices (or, with ``--sim``, on the simulators).
+
+Processes, each a Zenoh peer on one private loopback endpoint (services.sessions.graph): the recorder (``msk/<session>/**``
+-> ``OUT/session.mcap``), the estimator (methods of the session file, EMG path on), the kinematics node (IMU ->
+joints, each tracker's clock mapped to the host clock), one driver node per device kind (``msk drivers``: Trigno,
+Xsens) and the live view (``msk view``). The drivers start acquiring only once the recorder, kinematics and estimator
+have declared their subscribers, so nothing a device sends is lost at start.
+
+Stop (``--duration``, Ctrl-C or SIGTERM) runs downstream: (simulators stop sending;) drivers end acquisition and
+exit, then kinematics, estimator and last the recorder, which closes the MCAP. The summary (duration, samples per
+device, samples lost, frames estimated, flags) is read back from the MCAP, printed and written to
+``OUT/summary.json``. With ``--sim`` it also holds what each simulator sent, to compare with what was recorded.
+
+``--sim``: a Trigno simulator (TCP) and one Xsens simulator per tracker (pty, own SampleTimeFine clock) stream the
+held-out trial of the bundled synthetic session (``recordings/demo_session.mcap``) of the pack; the subject is
+calibrated on the bundled calibration trials as ``msk demo`` does (cached). ``sim_faults``
+(``msk live --sim --sim-fault SENSOR:KIND:START-END``): electrode faults the Trigno simulator injects
+(:class:`drivers.trigno.simulator.SensorFault`), for a demonstration of the electrode quality the estimator reports;
+the summary then holds, per electrode, its time in check and bad and its fault episodes, beside what was injected.
+Docs: docs/live.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import queue
+import signal
+import subprocess
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from msk_core.errors import ConfigError, InputError
+from services.nodes.node_runtime import outages_summary, outages_text
+from services.nodes.readiness import GraphTimeout
+from services.sessions.demo_subject import RECORDINGS, sim_subject
+from services.sessions.graph import Graph, python_module, wait_for, zenoh_flags
+from services.sessions.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
+from services.transport import messages, session_graph, topics
+from services.transport.mcap_io import read_messages
+
+if TYPE_CHECKING:  # imported where used: a session without --sim needs no simulator
+    from drivers.trial_clock import TrialClock
+    from drivers.trigno.simulator import SensorFault, TrignoSimulator
+    from drivers.trigno.source import EmgSource
+    from drivers.xsens.simulator import XsensSimulator
+    from drivers.xsens.source import ImuSource
+    from services.sessions import discovery
+    from services.sessions.sim_sets import SimSets
+
+READY_TIMEOUT_S = 90.0
+STOP_TIMEOUT_S = 20.0
+DRAIN_S = 0.6  # after the simulators stop sending: bytes in flight reach the drivers, messages the nodes
+#: how long a joint frame may wait in the estimator for the EMG of its instant: a Trigno delivers each 13.5 ms frame
+#: after its last sample, plus the base's own latency; beyond this the frame reads the newest EMG there is
+EMG_WAIT_MS = 150.0
+
+
+# ------------------------------------------------------------------------------------------------ simulator sources
+
+
+@dataclass
+class SimSources:
+    """What the simulators stream: the bundled session's held-out trial of one pack."""
+
+    emg: EmgSource
+    imu: dict[str, tuple[str, ImuSource]]  # tracker id -> (segment, source)
+    electrodes: dict[str, str]  # Trigno channel label (sensorNN.EMG) -> electrode name of the profile
+    load_kg: float
+    trial: str  # its name, as the bundled recordings' folder (``<exercise>_<load>kg``) holding its truth
+    exercise: str = ""  # the pack
+    rep_ends_s: tuple[float, ...] = ()  # the end of each of the trial's reps (s from its start; its joint phase)
+    lead_s: float = 0.0  # the trial's static start, before its first rep (s)
+    schedule: tuple[tuple[float, float], ...] = ()  # sets: one cycle as (trial start, duration); () the trial loops
+    sets: SimSets | None = None  # what the cycle plays (services.sessions.sim_sets.with_sets); None: the trial loops
+    trial_loop_s: float = 0.0  # with sets: the trial's own length (s), which the cycle's segments cut
+
+
+def sim_sources(recording: Path, pack: str) -> SimSources:
+    """Arrays of the last (held-out) trial of ``pack`` in the bundled recording: EMG chunks -> one (n, 16) Trigno
+    source, IMU samples -> one Xsens source per tracker (quaternion, acceleration, rate of turn, magnetic field).
+    Every source starts at the trial's first instant and is cut to one common duration, so sample k of each is the
+    same instant of the trial, in every round of the loop. The recording holds no accelerometer data of the EMG
+    sensors: each sensor's (on the Trigno's AUX port) is computed from the recorded joint angles
+    (:func:`electrode_accelerations`)."""
+    from drivers.trigno.protocol import N_SENSORS
+    from drivers.xsens.source import ImuSource
+
+    if not recording.is_file():
+        raise InputError(
+            "bundled session not found (generate it with `msk synth`, recordings/README.md)", path=recording
+        )
+    t0, t1, load = _last_trial_window(recording, pack)
+    streams = _read_trial(recording, pack, t0, t1)
+    emg = np.concatenate(streams.emg_rows)
+    if emg.shape[1] > N_SENSORS:
+        raise InputError(f"{emg.shape[1]} EMG channels exceed the Trigno's {N_SENSORS} sensors", path=recording)
+    imu_rates = {}
+    for tracker, (_, rows) in streams.imu.items():
+        rows.sort(key=lambda r: r[0])
+        imu_rates[tracker] = float(round(1.0 / np.median(np.diff(np.array([r[0] for r in rows], dtype=float) / 1e9))))
+    counts = _common_loop(
+        {
+            "emg": (emg.shape[0], streams.rate),
+            **{t: (len(rows), imu_rates[t]) for t, (_, rows) in streams.imu.items()},
+        },
+        pack,
+        recording,
+    )
+    source = _emg_source(recording, pack, streams, emg[: counts["emg"]])
+    trackers = {}
+    for tracker, (segment, rows) in streams.imu.items():
+        rows = rows[: counts[tracker]]
+        arrays = {
+            name: np.array([r[k] for r in rows], dtype=float)
+            for k, name in enumerate(("quaternion", "acceleration", "rate_of_turn", "magnetic_field"), start=1)
+        }
+        trackers[tracker] = (segment, ImuSource(imu_rates[tracker], arrays, f"{recording.name}:{segment}"))
+    electrodes = {f"sensor{k + 1:02d}.EMG": label for k, label in enumerate(streams.labels)}
+    rep_ends, lead = trial_reps(streams.joints, streams.emg_start)
+    return SimSources(source, trackers, electrodes, float(load), f"{pack}_{load:g}kg", pack, rep_ends, lead)
+
+
+def _common_loop(streams: dict[str, tuple[int, float]], pack: str, recording: Path) -> dict[str, int]:
+    """Per stream name, (samples, rate in Hz) -> the most samples, no more than it has, such that every stream
+    spans one and the same duration: looping simulators then stay on one world round after round (a 60 Hz and
+    a 2000 Hz stream loop together only on multiples of 50 ms)."""
+    slowest = min(streams, key=lambda name: streams[name][1])
+    n_slow, rate_slow = streams[slowest]
+    for m in range(n_slow, n_slow // 2, -1):
+        counts = {name: m / rate_slow * rate for name, (_, rate) in streams.items()}
+        if all(abs(c - round(c)) < 1e-6 and round(c) <= streams[name][0] for name, c in counts.items()):
+            return {name: int(round(c)) for name, c in counts.items()}
+    raise InputError(
+        f"the {pack} trial's streams have no common duration within its shorter half, so the "
+        "simulators could not loop together",
+        path=recording,
+        value={name: rate for name, (_, rate) in streams.items()},
+    )
+
+
+def _last_trial_window(recording: Path, pack: str) -> tuple[int, int, float]:
+    """(start, end device time in ns, load in kg) of the last trial of ``pack``: between its load event with a load
+    and the next one without."""
+    windows, start = [], None
+    for m in read_messages(recording):
+        if m.type_name == "msk.LoadEvent":
+            e = m.decode(messages.LoadEvent)
+            if e.exercise != pack:
+                continue
+            if e.barbell_mass_kg > 0:
+                start = (e.device_time_ns, e.barbell_mass_kg)
+            elif start is not None:
+                windows.append((start[0], e.device_time_ns, start[1]))
+                start = None
+    if not windows:
+        raise InputError(
+            f"the bundled session has no trial of pack {pack!r}", path=recording, field="session.pack", value=pack
+        )
+    return windows[-1]
+
+
+# one IMU sample: (device time, quaternion, acceleration, rate of turn, magnetic field)
+_ImuRow = tuple[int, list[float], list[float], list[float], list[float]]
+
+
+@dataclass
+class _TrialStreams:
+    """The recorded streams of one trial window, as read (EMG chunks as rows, IMU samples per tracker)."""
+
+    emg_rows: list[np.ndarray]
+    labels: list[str]
+    rate: float
+    emg_start: int
+    imu: dict[str, tuple[str, list[_ImuRow]]]  # tracker id -> (segment, samples)
+    joints: list[messages.JointAngles]
+
+
+def _read_trial(recording: Path, pack: str, t0: int, t1: int) -> _TrialStreams:
+    """The joint angles, EMG chunks and IMU samples with device times in [t0, t1), checked to start together."""
+    emg_rows: list[np.ndarray] = []
+    labels: list[str] | None = None
+    rate: float | None = None
+    emg_start: int | None = None
+    imu: dict[str, tuple[str, list[_ImuRow]]] = {}
+    joints: list[messages.JointAngles] = []
+    for m in read_messages(recording):
+        if m.type_name == "msk.JointAngles":
+            j = m.decode(messages.JointAngles)
+            if t0 <= j.device_time_ns < t1:
+                joints.append(j)
+        elif m.type_name == "msk.EmgChunk":
+            c = m.decode(messages.EmgChunk)
+            if t0 <= c.device_time_ns < t1:
+                emg_rows.append(np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels))
+                labels, rate = list(c.channel_labels), c.sample_rate_hz
+                emg_start = c.device_time_ns if emg_start is None else min(emg_start, c.device_time_ns)
+        elif m.type_name == "msk.ImuSample":
+            s = m.decode(messages.ImuSample)
+            if t0 <= s.device_time_ns < t1:
+                o, a, g, b = s.orientation, s.acceleration, s.rate_of_turn, s.magnetic_field
+                imu.setdefault(s.tracker_id, (s.segment, []))[1].append(
+                    (s.device_time_ns, [o.w, o.x, o.y, o.z], [a.x, a.y, a.z], [g.x, g.y, g.z], [b.x, b.y, b.z])
+                )
+    if not emg_rows or not imu or labels is None or rate is None or emg_start is None:  # all set with the EMG
+        raise InputError(f"no EMG or IMU samples in the {pack} trial of the bundled session", path=recording)
+    starts = {"emg": emg_start, **{t: min(r[0] for r in rows) for t, (_, rows) in imu.items()}}
+    if max(starts.values()) - min(starts.values()) > 1e9 / (2 * rate):
+        raise InputError(
+            f"the {pack} trial's streams do not start at one instant (first samples at device times "
+            f"{starts} ns): the simulators could not sample one world",
+            path=recording,
+        )
+    return _TrialStreams(emg_rows, labels, float(rate), emg_start, imu, joints)
+
+
+def _emg_source(recording: Path, pack: str, streams: _TrialStreams, emg: np.ndarray) -> EmgSource:
+    """The Trigno source: ``emg`` in the first sensor slots, the rest empty, with each sensor's accelerations."""
+    from drivers.trigno.protocol import N_SENSORS
+    from drivers.trigno.source import EmgSource
+
+    labels = streams.labels
+    samples = np.zeros((emg.shape[0], N_SENSORS), dtype=np.float32)
+    samples[:, : emg.shape[1]] = emg
+    names = tuple(labels) + ("",) * (N_SENSORS - len(labels))
+    acc_rate, acc = electrode_accelerations(streams.joints, labels, pack, streams.emg_start, recording)
+    slot_acc = np.zeros((acc.shape[0], N_SENSORS, 3), dtype=np.float32)
+    slot_acc[:, : len(labels)] = acc
+    return EmgSource(
+        samples,
+        streams.rate,
+        names,
+        tuple(k < len(labels) for k in range(N_SENSORS)),
+        f"{recording.name}:{pack}",
+        slot_acc,
+        acc_rate,
+    )
+
+
+def trial_reps(joints: list, start_ns: int) -> tuple[tuple[float, ...], float]:
+    """(the end of each rep, the static start before the first) in s from ``start_ns``, from the recorded joint
+    frames' phase, counted by the one segmenter (msk_core.signal.reps.phase_rep_spans); a rep ends at the next
+    one's first sample (the trial's reps follow each other without rest) or one frame after its last."""
+    from msk_core.signal.reps import phase_rep_spans
+
+    t = np.array([(j.device_time_ns - start_ns) / 1e9 for j in joints])
+    phase = np.array([j.phase if j.HasField("phase") else math.nan for j in joints])
+    if t.size < 3 or not np.any(np.isfinite(phase)):
+        return (), 0.0
+    spans = phase_rep_spans(t, phase)
+    if not spans:
+        return (), 0.0
+    step = float(np.median(np.diff(t)))
+    ends = [a for a, _ in spans[1:]] + [spans[-1][1] + step]
+    return tuple(ends), spans[0][0]
+
+
+def electrode_accelerations(
+    joints: list, channels: list[str], pack: str, start_ns: int, recording: Path
+) -> tuple[float, np.ndarray]:
+    """(rate in Hz, (n, channels, 3) in g): what each EMG sensor's accelerometer measures during the recorded trial,
+    at the recorded joint frames' instants from ``start_ns`` (the trial's first EMG sample) on. The synthetic
+    generator's own model (:func:`msk_core.synth.imu.simulate_electrode_acc`): each channel's site on the pack body
+    of the exercise's electrode sites (a site on a part the pack keeps still measures gravity alone), its specific
+    force from the pack's rigid-body kinematics of the recorded angles, velocities and accelerations, in a random
+    mounting (seeded), plus 0.02 m/s² noise; the trackers' recorded accelerations come from the same kinematics."""
+    from msk_core.model import load_pack
+    from msk_core.signal.clock_sync import STANDARD_GRAVITY
+    from msk_core.synth import SPECS
+    from msk_core.synth.imu import simulate_electrode_acc
+
+    model = load_pack(pack)
+    specs = [spec for spec in SPECS.values() if spec.pack == model.name]
+    if not joints or not specs:
+        raise InputError(
+            f"the {pack} trial of the bundled session has no joint frames, or no synthetic exercise "
+            "uses the pack: the simulated Trigno sensors' accelerations cannot be computed",
+            path=recording,
+            value=(len(joints), model.name),
+        )
+    names = list(joints[0].coordinates)
+    missing = [c for c in model.coordinates if c not in names]
+    if missing:
+        raise InputError(f"the recorded joint frames lack the pack's coordinates {missing}", path=recording)
+    order = [names.index(c) for c in model.coordinates]
+    q, qd, qdd = (np.array([np.asarray(getattr(j, f), dtype=float)[order] for j in joints]) for f in ("q", "qd", "qdd"))
+    times = np.array([j.device_time_ns for j in joints], dtype=np.int64)
+    step_ns = float(np.median(np.diff(times)))
+    if abs(times[0] - start_ns) > 1000 or np.any(np.abs(np.diff(times) - step_ns) > 1000):  # 1 µs: rounding
+        raise InputError(
+            "the recorded joint frames do not start with the EMG or are not evenly spaced",
+            path=recording,
+            value=(int(times[0]), int(start_ns)),
+        )
+    time_s = np.arange(len(joints)) * step_ns / 1e9
+    stream = simulate_electrode_acc(
+        model, specs[0].electrode_sites, list(channels), time_s, q, qd, qdd, seed=0, key=("live-sim", model.name)
+    )
+    return 1e9 / step_ns, (stream.acceleration / STANDARD_GRAVITY).astype(np.float32)
+
+
+@dataclass
+class Simulators:
+    """The session's simulated devices, sampling one world: one trial clock is shared by all, so a device that starts
+    streaming at t streams the trial from the instant t, whatever the others did; each keeps its own device clock and
+    counters."""
+
+    trigno: TrignoSimulator
+    xsens: dict[str, XsensSimulator]  # by tracker id
+    clock: TrialClock
+    trial: str = ""  # SimSources.trial
+    exercise: str = ""  # SimSources.exercise
+    schedule: tuple[tuple[float, float], ...] = ()  # SimSources.schedule: sets with rests; () the trial loops
+    trial_loop_s: float = 0.0  # SimSources.trial_loop_s
+
+    def world(self) -> dict:
+        """The trial clock as ``summary.json`` states it (``trial_clock``), so that a frame's host time says which
+        instant of the trial it is: the trial's sample 0 was measured at ``origin_ns`` (host time, ns since the
+        epoch, as every mapped time of the session) and the trial loops every ``loop_s``: trial time = (host time -
+        origin) x speed, modulo the loop. With sets (``schedule``: one cycle of set and rest as [trial start,
+        duration] segments, ``cycle_s`` long) the cycle repeats instead, and a moment of it is the trial instant of
+        its segment (services.sessions.live_scoring.SimWorld). Empty while no device has started streaming."""
+        if self.clock.start is None:
+            return {}
+        realtime_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
+        return {
+            "exercise": self.exercise,
+            "trial": self.trial,
+            "origin_ns": round(self.clock.start * 1e9) + realtime_minus_monotonic_ns,
+            "loop_s": self.trial_loop_s or self.trigno.source.n_samples / self.trigno.source.rate_hz,
+            "speed": self.trigno.config.speed,  # trial seconds per host second
+        } | (
+            {
+                "schedule": [list(segment) for segment in self.schedule],
+                "cycle_s": self.trigno.source.n_samples / self.trigno.source.rate_hz,
+            }
+            if self.schedule
+            else {}
+        )
+
+    def hold(self) -> None:
+        self.trigno.hold()
+        for sim in self.xsens.values():
+            sim.hold()
+
+    def close(self) -> None:
+        self.trigno.close()
+        for sim in self.xsens.values():
+            sim.close()
+
+    def sent(self) -> dict:
+        """Per device: what it sent, its stated latency and the trial sample it started streaming at."""
+        t = self.trigno.stats
+        return {
+            "trigno": {
+                "samples": t.samples_sent,
+                "frames": t.frames_sent,
+                "latency_s": t.latency_s,
+                "start_index": t.start_index,
+                **({"faults": [f.describe() for f in self.trigno.config.faults]} if self.trigno.config.faults else {}),
+            },
+            **{
+                tracker: {
+                    "samples": s.stats.messages_sent,
+                    "bytes_dropped": s.stats.bytes_dropped,
+                    "latency_s": s.stats.latency_s,
+                    "start_index": s.stats.start_index,
+                    "samples_skipped": s.stats.samples_skipped,
+                }
+                for tracker, s in self.xsens.items()
+            },
+        }
+
+
+def start_simulators(
+    sources: SimSources,
+    *,
+    trigno_latency_s: float = 0.0,
+    xsens_latency_s: float | dict[str, float] = 0.0,
+    clock: TrialClock | None = None,
+    trackers_after_trigno_s: float | None = None,
+    trigno_faults: tuple[SensorFault, ...] = (),
+) -> Simulators:
+    """The Trigno and one Xsens simulator per tracker on one trial clock (``clock``, a ``TrialClock``; default: one
+    that starts when the first device starts streaming, so the set begins with its static pose as the first device
+    is switched on): whenever a driver starts a device streaming, it streams the trial from that instant.
+    ``*_latency_s``: each device's delivery latency (a sample measured at t leaves at t + latency);
+    ``xsens_latency_s`` one for every tracker, or per tracker id (0 for a tracker not named).
+    ``trackers_after_trigno_s``: the trackers measure from that long after the Trigno's first sample on (each waits
+    for the Trigno to start), as trackers switched on after the base; None: as soon as their driver asks.
+    ``trigno_faults``: electrode faults the Trigno injects (:class:`drivers.trigno.simulator.SensorFault`)."""
+    from drivers.trial_clock import TrialClock
+    from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
+    from drivers.xsens.simulator import XsensSimulator
+
+    clock = TrialClock() if clock is None else clock
+    # free ports: several sessions (tests, users) may run side by side; the AUX port carries the sensors'
+    # accelerometers, no legacy listeners needed
+    trigno = TrignoSimulator(
+        sources.emg,
+        SimulatorConfig(
+            command_port=0,
+            emg_port=0,
+            legacy_emg_port=None,
+            aux_port=0,
+            trial_clock=clock,
+            latency_s=trigno_latency_s,
+            faults=tuple(trigno_faults),
+        ),
+    ).start()
+
+    def after_trigno() -> float | None:  # passed on only with trackers_after_trigno_s
+        start = trigno.stats.start_index
+        if start is None or trackers_after_trigno_s is None:
+            return None
+        return clock.instant(start, trigno.rate_hz) + trackers_after_trigno_s
+
+    xsens = {}
+    try:
+        for tracker, (_, source) in sources.imu.items():
+            # a long wake-up window: the simulator waits in Config for the driver instead of streaming into a port
+            # nobody has opened yet (a real MTi would, and those messages would never be read)
+            latency_s = xsens_latency_s.get(tracker, 0.0) if isinstance(xsens_latency_s, dict) else xsens_latency_s
+            xsens[tracker] = XsensSimulator(
+                source,
+                device_id=int(tracker, 16),
+                wakeup_window_s=3600.0,
+                trial_clock=clock,
+                latency_s=latency_s,
+                measure_not_before=None if trackers_after_trigno_s is None else after_trigno,
+            ).start()
+    except BaseException:
+        trigno.close()
+        for sim in xsens.values():
+            sim.close()
+        raise
+    return Simulators(trigno, xsens, clock, sources.trial, sources.exercise, sources.schedule, sources.trial_loop_s)
+
+
+# ------------------------------------------------------------------------------------------------ subject
+
+
+def session_profile(subject: Path, electrodes: dict[str, str], groups: list[str], out: Path) -> Path:
+    """The subject profile with its EMG normalisation keyed by the live channel labels of the session file: a label
+    mapped to a profile electrode takes that electrode's group and MVC amplitude; one mapped to a group has no MVC
+    (flagged ``no_mvc`` by the estimator, never used raw)."""
+    doc = json.loads(subject.read_text())
+    norm = doc.get("emg_normalisation", {})
+    live = {}
+    for label, target in electrodes.items():
+        live[label] = dict(norm[target]) if target in norm else {"group": target}
+    doc["emg_normalisation"] = live
+    path = out / "subject_session.json"
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    return path
+
+
+# ------------------------------------------------------------------------------------------------ summary
+
+
+def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
+    """What the recording (one file, or the parts this session wrote) holds: samples per device, samples lost and the
+    final state of each device (its last DeviceStatus), frames and flags per method, per node of the graph what
+    it received, dropped as unusable (per topic and reason) and could not use (its last status), and per stream the
+    clock mapping the node that maps it reported last (offset, spread, latency, method)."""
+    emg: Counter[str] = Counter()  # samples per source
+    imu: Counter[str] = Counter()  # samples per tracker
+    lost: dict[str, int] = {}
+    status_seen: dict[str, dict[str, object]] = {}
+    frames: Counter[str] = Counter()  # per method
+    flags: dict[str, Counter[str]] = {}  # per method, per flag
+    envelopes = joints = chunks = 0
+    nodes: dict[str, messages.DeviceStatus] = {}
+    fatigue: dict[str, list[messages.ElectrodeFatigue]] = {}  # per electrode, its newest values of each set
+    for part in [mcap] if isinstance(mcap, Path) else mcap:
+        for m in read_messages(part):
+            t = m.type_name
+            if t == "msk.EmgChunk":
+                c = m.decode(messages.EmgChunk)
+                emg[c.source_id] += c.n_samples
+                chunks += 1
+            elif t == "msk.ImuSample":
+                imu[m.decode(messages.ImuSample).tracker_id] += 1
+            elif t == "msk.DeviceStatus":
+                s = m.decode(messages.DeviceStatus)
+                if s.kind == "node":
+                    nodes[s.device_id] = s
+                    for e in s.fatigue:
+                        keep_fatigue(fatigue.setdefault(f"{e.source}/{e.channel}", []), e)
+                    continue
+                lost[s.device_id] = int(s.samples_lost)
+                status_seen[s.device_id] = {
+                    "kind": s.kind,
+                    "connected": s.connected,
+                    "errors": int(s.errors),
+                    "last_error": s.last_error,
+                }
+            elif t == "msk.ActivationFrame":
+                f = m.decode(messages.ActivationFrame)
+                frames[f.method] += 1
+                for flag in f.flags:
+                    flags.setdefault(f.method, Counter())[flag] += 1
+            elif t == "msk.EmgEnvelope":
+                envelopes += 1
+            elif t == "msk.JointAngles":
+                joints += 1
+    dropped: dict[str, dict[str, dict[str, int]]] = {}
+    for name, status in nodes.items():
+        per_key = dropped.setdefault(name, {})
+        for drop in status.dropped:
+            per_key.setdefault(drop.key, {})[drop.reason] = int(drop.count)
+    return {
+        "duration_s": round(duration_s, 3),
+        "samples": {**{f"emg/{k}": v for k, v in emg.items()}, **{f"imu/{k}": v for k, v in imu.items()}},
+        "samples_lost": lost,
+        "devices": status_seen,
+        "joint_frames": joints,
+        "emg_chunks": chunks,
+        "envelopes": envelopes,
+        "frames_estimated": dict(frames),
+        "flags": {m: dict(c) for m, c in flags.items()},
+        "inputs_dropped": dropped,
+        "node_errors": {name: int(s.errors) for name, s in nodes.items()},
+        "node_last_error": {name: s.last_error for name, s in nodes.items() if s.last_error},
+        # per node, its input streams' silences longer than the threshold, and publications it missed (node_runtime)
+        "input_outages": {name: outages_summary(s.outages) for name, s in nodes.items() if s.HasField("outages")},
+        "clocks": {c.source: clock_summary(c, name) for name, s in nodes.items() for c in s.clocks},
+        "electrodes": {f"{e.source}/{e.channel}": electrode_summary(e) for s in nodes.values() for e in s.electrodes},
+        "fatigue": {name: [fatigue_summary(e) for e in sets] for name, sets in fatigue.items()},
+    }
+
+
+_COUNTS = ("count", "total_s", "longest_s", "missed", "recovered")
+
+
+def keep_fatigue(sets: list[messages.ElectrodeFatigue], electrode: messages.ElectrodeFatigue) -> None:
+    """One status's fatigue values of an electrode: the newest of its set (a new set when the set number changes or
+    the reps start again)."""
+    if sets and sets[-1].set_number == electrode.set_number and len(electrode.median_hz) >= len(sets[-1].median_hz):
+        sets[-1] = electrode
+    elif electrode.median_hz or not sets:
+        sets.append(electrode)
+
+
+def fatigue_summary(electrode: messages.ElectrodeFatigue) -> dict:
+    """One electrode's fatigue index over one set as ``summary.json`` says it: per rep the median and mean
+    frequency (Hz), the median frequency's slope per rep (Hz and % of the first reps) with its standard error, and
+    the change of both from the set's first reps (%); null where there is no value."""
+
+    def value(x: float, digits: int = 3) -> float | None:
+        return round(x, digits) if math.isfinite(x) else None
+
+    return {
+        "group": electrode.group,
+        "set_number": int(electrode.set_number),
+        "reps": len(electrode.median_hz),
+        "median_hz": [value(v, 2) for v in electrode.median_hz],
+        "mean_hz": [value(v, 2) for v in electrode.mean_hz],
+        "median_slope_hz_per_rep": value(electrode.median_slope_hz_per_rep),
+        "median_slope_se_hz_per_rep": value(electrode.median_slope_se_hz_per_rep),
+        "median_slope_pct_per_rep": value(electrode.median_slope_pct_per_rep),
+        "median_change_pct": value(electrode.median_change_pct, 2),
+        "mean_slope_pct_per_rep": value(electrode.mean_slope_pct_per_rep),
+        "mean_change_pct": value(electrode.mean_change_pct, 2),
+    }
+
+
+def electrode_summary(electrode: messages.ElectrodeQuality) -> dict:
+    """One electrode's quality over the session as ``summary.json`` says it (the estimator's last status): the muscle
+    group, the state at the end, the time spent in check and bad, the fault episodes (how many, per fault how many
+    it was raised in, and the last ones with their device times)."""
+    return {
+        "group": electrode.group,
+        "state": electrode.state,
+        "reasons": list(electrode.reasons),
+        "check_s": round(electrode.check_s, 3),
+        "bad_s": round(electrode.bad_s, 3),
+        "episodes": int(electrode.episodes),
+        "episode_reasons": dict(sorted(electrode.episode_reasons.items())),
+        "recent_episodes": [
+            {
+                "start_s": round(e.start_s, 4),
+                "end_s": round(e.end_s, 4) if e.HasField("end_s") else None,
+                "worst": e.worst,
+                "reasons": list(e.reasons),
+            }
+            for e in electrode.recent
+        ],
+    }
+
+
+def clock_summary(clock: messages.ClockOffset, node: str) -> dict:
+    """One stream's clock mapping as ``summary.json`` says it: the offset applied (ms since the epoch), its spread,
+    the latency taken off, the method and why, and, with an offset measured another way, the arrival mapping it
+    replaces and that mapping's error (arrival minus applied: how much later it would have put every sample); per
+    tracker the acceleration alignment's estimate (``device_offset_ms``: tracker device time minus EMG device time)."""
+    out = {
+        "offset_ms": clock.offset_ms,
+        "spread_ms": round(clock.spread_ms, 3),
+        "latency_ms": round(clock.latency_ms, 3),
+        "method": clock.method,
+        "samples": int(clock.samples),
+        "node": node,
+    }
+    if clock.reason:
+        out["reason"] = clock.reason
+    if clock.HasField("arrival_offset_ms"):
+        out["arrival_offset_ms"] = clock.arrival_offset_ms
+        out["arrival_error_ms"] = round(clock.arrival_offset_ms - clock.offset_ms, 3)
+    if clock.alignments:
+        out["alignments"] = {
+            a.reference: {
+                "status": a.status,
+                "reason": a.reason,
+                "device_offset_ms": a.device_offset_ms,
+                "spread_ms": round(a.spread_ms, 3),
+                "drift_ppm": round(a.drift_ppm, 3),
+                "peak_correlation": round(a.peak_correlation, 4),
+                "sensor": a.sensor,
+                "windows": int(a.windows),
+                "host_offset_ms": a.host_offset_ms,
+            }
+            for a in clock.alignments
+        }
+    return out
+
+
+def summary_text(summary: dict) -> str:
+    lines = [
+        f"session of {summary['duration_s']:.1f} s"
+        + (f", stopped by {summary['stopped_by']}" if "stopped_by" in summary else "")
+    ]
+    for device, n in summary["samples"].items():
+        name = device.split("/", 1)[1]
+        lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost")
+    lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
+    for method, n in summary["frames_estimated"].items():
+        f = summary["flags"].get(method, {})
+        lines.append(f"  {method}: {n} frames estimated; flags {', '.join(f'{k} {v}' for k, v in f.items()) or 'none'}")
+    for node, per_key in summary.get("inputs_dropped", {}).items():
+        if per_key:
+            lines.append(
+                f"  {node} dropped unusable inputs: "
+                + ", ".join(f"{key} {reason} {n}" for key, reasons in per_key.items() for reason, n in reasons.items())
+            )
+    for node, text in summary.get("node_last_error", {}).items():
+        lines.append(f"  {node}: {summary['node_errors'][node]} inputs not used, last: {text}")
+    for node, outages in summary.get("input_outages", {}).items():
+        if outages["count"] or outages["missed"]:
+            lines.append(
+                f"  {node}: {outages_text(messages.InputOutages(**{k: v for k, v in outages.items() if k in _COUNTS}))}"
+                + (f", the last {outages['last_start']} to {outages['last_end']}" if outages["count"] else "")
+            )
+    for source, clock in summary.get("clocks", {}).items():
+        lines.append(
+            f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "
+            f"{clock['latency_ms']:g} ms ({clock['node']})"
+            + (
+                f"; the arrival mapping was {clock['arrival_error_ms']:+.1f} ms off"
+                if "arrival_error_ms" in clock
+                else ""
+            )
+            + (f"; {clock['reason']}" if clock.get("method") == "arrival" and clock.get("reason") else "")
+        )
+    electrodes = summary.get("electrodes", {})
+    faulty = {name: e for name, e in electrodes.items() if e["episodes"]}
+    if electrodes:
+        lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
+    for name, e in faulty.items():
+        lines.append(
+            f"  electrode {name}"
+            + (f" ({e['group']})" if e["group"] else "")
+            + f": {e['episodes']} fault episode{'s' if e['episodes'] != 1 else ''} ("
+            + ", ".join(f"{reason} {n}" for reason, n in e["episode_reasons"].items())
+            + f"), {e['check_s']:.1f} s check, {e['bad_s']:.1f} s bad; now {e['state']}"
+        )
+    if "simulators_sent" in summary:
+        lines.append(
+            "  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items())
+        )
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------ the graph
+
+
+@dataclass
+class LivePlan:
+    """Everything the graph needs, resolved from the session file (and ``--sim``)."""
+
+    session: LiveSession
+    methods: tuple[str, ...]
+    subject: Path
+    trigno: tuple[str, int] | None = None  # (HOST[:PORT], EMG port)
+    trigno_aux_port: int | None = None  # the sensors' accelerometers (AUX port), for the EMG clock's alignment
+    xsens_ports: list[str] = field(default_factory=list)
+    trackers: dict[str, str] = field(default_factory=dict)
+    exercise: str = ""  # the pack's name (session.pack may be a path)
+    trigno_latency_ms: float = (
+        0.0  # stated device latencies the clock mappings take off (live_session.stated_latencies)
+    )
+    tracker_latency_ms: dict[str, float] = field(default_factory=dict)
+    names: dict[str, str] = field(default_factory=dict)  # the session file's display names (over the pack's)
+
+
+def driver_argv(plan: LivePlan, kind: str) -> list[str]:
+    s = plan.session
+    argv = python_module("services.cli", "drivers", "--session", s.name)
+    if kind == "trigno":
+        if plan.trigno is None:
+            raise ConfigError("the Trigno driver needs the Trigno's address: the session plan has none", field="trigno")
+        host, emg_port = plan.trigno
+        argv += ["--trigno", host, "--trigno-emg-port", str(emg_port), "--trigno-id", s.trigno_id]
+        if plan.trigno_aux_port is not None:
+            argv += ["--trigno-aux-port", str(plan.trigno_aux_port)]
+    else:
+        for port in plan.xsens_ports:
+            argv += ["--xsens", port]
+        argv += ["--imu-rate", str(s.imu_rate_hz), "--xsens-baud", str(s.xsens_baud)]
+        argv += [f"--segment={t}={seg}" for t, seg in plan.trackers.items()]
+    return argv
+
+
+@dataclass
+class FlowCounts:
+    """Messages of the session seen by the graph's monitor node (updated live)."""
+
+    joints: int = 0
+    activations: Counter = field(default_factory=Counter)  # method -> frames
+
+    def text(self) -> str:
+        return f"{self.joints} joint frames; activation frames " + (
+            ", ".join(f"{m} {n}" for m, n in self.activations.items()) or "none"
+        )
+
+
+@dataclass
+class SessionFacts:
+    """What the session is about, published by ``msk live`` on ``msk/<session>/load`` at start and when the operator
+    changes them (``msk load``): the exercise (pack), the barbell load, the set under way and the athlete."""
+
+    exercise: str
+    load_kg: float
+    set_number: int = 1
+    athlete: str = ""
+    names: dict[str, str] = field(default_factory=dict)  # display names the session file gives (LoadEvent.names)
+    rest_s: float = 0.0  # rest detection (session.rest_s, LoadEvent.set_rest_s); 0: the default
+
+    def message(self) -> messages.LoadEvent:
+        now = messages.now_ns()  # msk live maps every device clock onto the host clock: its device time is now
+        return messages.LoadEvent(
+            barbell_mass_kg=float(self.load_kg),
+            exercise=self.exercise,
+            set_number=int(self.set_number),
+            athlete=self.athlete,
+            names=self.names,
+            set_rest_s=float(self.rest_s),
+            device_time_ns=now,
+            host_time_ns=now,
+        )
+
+
+def monitor(
+    options,
+    *,
+    session: str,
+    counts: FlowCounts,
+    facts: queue.Queue,
+    stop_event: threading.Event,
+    ready_event: threading.Event,
+    ready_key,
+    on_facts=None,
+    exercise: str = "",
+) -> None:
+    """The graph node of ``msk live`` itself (``monitor`` in services.transport.session_graph): counts joints and activation
+    frames, so the stop can wait (bounded) until the estimator has answered every joint frame, and publishes the
+    session facts put on ``facts`` (a history publisher: a late ``msk load`` or a restarted recorder fetches them)."""
+    from msk_core.model.pack import is_known_exercise
+    from services.nodes.node_runtime import Rejected, check_payload
+    from services.nodes.readiness import declare_ready
+    from services.transport.zenoh_session import declare_history_publisher, open_session, publish
+
+    prefix = topics.session_prefix(session)
+
+    def on_joints(_sample) -> None:
+        counts.joints += 1
+
+    def on_activation(sample) -> None:
+        counts.activations[str(sample.key_expr).rsplit("/", 1)[1]] += 1
+
+    def on_load(sample) -> None:  # its own facts and an operator's (`msk load`): the session's current ones
+        try:
+            event = messages.as_message(
+                messages.LoadEvent,
+                check_payload(str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.LoadEvent"),
+            )
+        except Rejected:
+            return  # the estimator and recorder count bad inputs; here only the facts matter
+        if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
+            return  # as the estimator refuses it: not a fact of this session
+        if on_facts is not None:
+            on_facts(
+                {
+                    "exercise": event.exercise,
+                    "load_kg": event.barbell_mass_kg,
+                    "set_number": event.set_number,
+                    "athlete": event.athlete,
+                }
+            )
+
+    with open_session(options) as zsession:
+        load = declare_history_publisher(zsession, topics.load_key(session), "msk.LoadEvent", history_samples=100)
+        subscribers = [
+            zsession.declare_subscriber(f"{prefix}/joints", on_joints),
+            zsession.declare_subscriber(f"{prefix}/activations/*", on_activation),
+            zsession.declare_subscriber(topics.load_key(session), on_load),
+        ]
+        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs
+        ready_event.set()
+        while not stop_event.is_set():
+            try:
+                publish(load, facts.get(timeout=0.1).message())
+            except queue.Empty:
+                continue
+        for subscriber in subscribers:
+            subscriber.undeclare()
+
+
+# what signal.signal takes and returns: a function, SIG_DFL or SIG_IGN, or None (a handler not set from Python)
+_SignalHandler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
+
+
+class _Stopper:
+    """SIGINT/SIGTERM set an event (the main thread then stops the graph in order) instead of raising mid-way."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.signal: str | None = None
+        self._previous: dict[int, _SignalHandler] = {}
+
+    def __enter__(self) -> _Stopper:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def _handle(self, signum, _frame) -> None:
+        self.signal = signal.Signals(signum).name
+        self.event.set()
+
+    def __exit__(self, *exc) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+
+def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
+    """The command line of node ``name`` of the declared graph (services.transport.session_graph.NODES)."""
+    s = plan.session
+    if name == "recorder":
+        return python_module("services.nodes.recorder", "--out", str(mcap))
+    if name == "estimator":
+        # the joints are on the host clock already: the kinematics node maps each tracker's clock. The EMG clock is
+        # measured against the trackers' from the accelerations, the trackers mapped as the kinematics node maps
+        # them; each joint frame waits (bounded) for the EMG of its instant.
+        argv = python_module(
+            "services.nodes.estimator",
+            "--pack",
+            s.pack,
+            "--session",
+            s.name,
+            "--subject",
+            str(plan.subject),
+            "--emg-clock",
+            "host",
+            "--joints-clock",
+            "host",
+            "--load-kg",
+            str(s.load_kg),
+            "--emg-latency-ms",
+            f"{s.trigno_id}={plan.trigno_latency_ms:g}",
+        )
+        if plan.trigno is not None:
+            argv += [
+                "--emg-align",
+                "acceleration",
+                "--emg-wait-ms",
+                f"{EMG_WAIT_MS:g}",
+                *(
+                    a
+                    for tracker, ms in plan.tracker_latency_ms.items()
+                    for a in ("--imu-latency-ms", f"{tracker}={ms:g}")
+                ),
+            ]
+        return argv + ["--solver", s.solver] + [a for method in plan.methods for a in ("--method", method)]
+    if name == "kinematics":
+        return python_module(
+            "services.nodes.kinematics_node",
+            "--pack",
+            s.pack,
+            "--session",
+            s.name,
+            "--imu-clock",
+            "host",
+            *(a for tracker, ms in plan.tracker_latency_ms.items() for a in ("--imu-latency-ms", f"{tracker}={ms:g}")),
+        )
+    if name in ("drivers-trigno", "drivers-xsens"):
+        return driver_argv(plan, name.split("-", 1)[1])
+    raise ConfigError("not a process node of msk live's graph", field="node", value=name)
+
+
+@dataclass
+class _Running:
+    """What a running ``msk live`` graph holds, for its stop in order (each part set as it starts)."""
+
+    facts: queue.Queue = field(default_factory=queue.Queue)  # SessionFacts for the monitor node to publish
+    graph: Graph | None = None
+    drivers: list[str] = field(default_factory=list)
+    viewer: subprocess.Popen | None = None
+    router: subprocess.Popen | None = None
+    announced: list[Path] = field(default_factory=list)
+
+
+def run_graph(
+    plan: LivePlan,
+    *,
+    duration_s: float | None,
+    view: bool,
+    endpoint: str,
+    log,
+    simulators: Simulators | None = None,
+    pki: Path | None = None,
+) -> dict:
+    """Start the declared graph (services.transport.session_graph.live_nodes), announce it (OUT/session.json, the registry of
+    services.sessions.discovery), publish the session facts, run until the duration, a signal or a failed node, then stop in
+    order. ``pki``: the secured mode (a TLS router with access control, each node with its role's certificate)."""
+    from services.sessions import discovery
+
+    out = plan.session.out
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    recorded_before = set(out.glob("session*.mcap"))
+    counts = FlowCounts()
+    running = _Running()
+    announcement = discovery.Announcement()
+    with _Stopper() as stopper:
+        try:
+            graph, endpoint = _start_live_graph(plan, endpoint, pki, counts, announcement, running, log)
+            _wait_ready(graph, stopper)
+            _announce_live_graph(plan, graph, endpoint, view, duration_s, pki, stopper, announcement, running, log)
+            reason, elapsed = _run_until_stopped(graph, duration_s, stopper, out / "logs", log)
+        finally:
+            for path in running.announced[1:]:  # the registry entry; OUT/session.json stays as a record
+                discovery.withdraw(path)
+            codes = {}
+            if running.graph is not None:
+                codes = stop_in_order(
+                    running.graph, running.drivers, simulators, running.viewer, counts, plan.methods, log
+                )
+            if running.router is not None:
+                codes["router"] = stop_process(running.router)
+    # the parts this session's recorder wrote (it continues into session-001.mcap ... when OUT holds older ones)
+    parts = sorted(set(out.glob("session*.mcap")) - recorded_before)
+    summary = summarise(parts, elapsed)
+    summary["recordings"] = [str(p) for p in parts]
+    summary["stopped_by"] = reason
+    summary["exit_codes"] = codes
+    if simulators is not None:
+        summary["simulators_sent"] = simulators.sent()
+        summary["trial_clock"] = simulators.world()
+    return summary
+
+
+def _start_live_graph(
+    plan: LivePlan,
+    endpoint: str,
+    pki: Path | None,
+    counts: FlowCounts,
+    announcement: discovery.Announcement,
+    running: _Running,
+    log,
+) -> tuple[Graph, str]:
+    """The graph (secured: behind its router, started first) with its nodes started: the monitor a thread of this
+    process, the others processes logging to OUT/logs; their process ids in OUT/logs/pids.json. Returns the graph
+    and its endpoint."""
+    s = plan.session
+    logs = s.out / "logs"
+    if pki is not None:
+        running.router, endpoint, role_configs = start_secured_router(pki, s.out, log)
+        graph = Graph(s.name, endpoint, external_listener=True, role_configs=role_configs)
+    else:
+        graph = Graph(s.name, endpoint)
+    running.graph = graph
+    nodes = session_graph.live_nodes(trigno=plan.trigno is not None, xsens=bool(plan.xsens_ports))
+    running.drivers = [n.name for n in nodes if n.role == "driver"]
+
+    def start(decl: session_graph.NodeDecl, after: tuple[str, ...]) -> None:
+        if decl.name == "monitor":
+            graph.add_thread(
+                "monitor",
+                monitor,
+                session=s.name,
+                counts=counts,
+                facts=running.facts,
+                after=after,
+                role=decl.role,
+                on_facts=announcement.update_facts,
+                exercise=plan.exercise,
+            )
+        else:
+            graph.add_process(
+                decl.name,
+                node_argv(plan, decl.name, s.out / "session.mcap"),
+                after=after,
+                role=decl.role,
+                log_path=logs / f"{decl.name}.log",
+                own_session=True,
+            )
+
+    session_graph.start_declared(nodes, start)
+    # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
+    pids = {n: node_process.pid for n in graph.nodes if (node_process := graph.process(n)) is not None}
+    router = {"router": running.router.pid} if running.router is not None else {}
+    (logs / "pids.json").write_text(json.dumps({**pids, **router}) + "\n")
+    return graph, endpoint
+
+
+def _announce_live_graph(
+    plan: LivePlan,
+    graph: Graph,
+    endpoint: str,
+    view: bool,
+    duration_s: float | None,
+    pki: Path | None,
+    stopper: _Stopper,
+    announcement: discovery.Announcement,
+    running: _Running,
+    log,
+) -> None:
+    """The ready graph's session facts published, the session announced (services.sessions.discovery), the viewer started
+    (``view``, unless stopping already) and the operator told how to attach."""
+    from services.sessions import discovery
+
+    s = plan.session
+    running.facts.put(
+        SessionFacts(
+            exercise=plan.exercise,
+            load_kg=s.load_kg,
+            athlete=getattr(s, "athlete", ""),
+            names=plan.names,
+            rest_s=s.rest_s,
+        )
+    )
+    observer = graph.observer_options()
+    info = discovery.SessionInfo(
+        session=s.name,
+        connect=[endpoint],
+        pid=os.getpid(),
+        out=str(s.out.resolve()),
+        pack=plan.exercise,
+        zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "",
+    )
+    info = dataclasses.replace(info, attach=discovery.attach_commands(info))
+    running.announced = announcement.announce(info, s.out)
+    if view and not stopper.event.is_set():
+        running.viewer = subprocess.Popen(
+            python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
+            start_new_session=True,
+        )  # Ctrl-C reaches msk live only: it stops in order
+    log(
+        f"live session {s.name!r} running on {endpoint}"
+        + (" (TLS, access control)" if pki is not None else "")
+        + f"; attach: {'; '.join(info.attach)}"
+    )
+    log(
+        f"running: {', '.join(graph.nodes)}"
+        + (" + view" if running.viewer else "")
+        + f"; recording to {s.out / 'session.mcap'}"
+        + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops")
+    )
+
+
+def _run_until_stopped(graph: Graph, duration_s: float | None, stopper: _Stopper, logs: Path, log) -> tuple[str, float]:
+    """Run until the duration, a signal or a failed node; returns why it stopped and how long it ran (s)."""
+    started = time.monotonic()
+    deadline = None if duration_s is None else started + duration_s
+    reason = "duration"
+    while not stopper.event.wait(0.1):
+        if deadline is not None and time.monotonic() >= deadline:
+            break
+        failed = graph.failed()
+        if failed:
+            reason = f"node failed: {failed}"
+            log(f"stopping: {reason} (logs in {logs})")
+            break
+    if stopper.event.is_set():
+        reason = stopper.signal or "signal"
+    return reason, time.monotonic() - started
+
+
+def router_host(pki: Path) -> str:
+    """The loopback name the router certificate of ``pki`` is valid for (the nodes verify it on connect)."""
+    from cryptography import x509
+
+    from services.transport.security import Pki
+
+    path = Pki(pki).cert("router")
+    if not path.is_file():
+        raise ConfigError("no router certificate: make the folder with `msk certs --out DIR`", path=path)
+    certificate = x509.load_pem_x509_certificate(path.read_bytes())
+    try:
+        names = certificate.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        hosts = [str(getattr(n, "value", "")) for n in names]
+    except x509.ExtensionNotFound:
+        hosts = []
+    for host in ("127.0.0.1", "localhost"):
+        if host in hosts:
+            return host
+    raise ConfigError(
+        f"the router certificate is for {hosts or 'no host'}, not for this machine's loopback "
+        "(127.0.0.1 or localhost): make it with `msk certs` (its default hosts)",
+        path=path,
+    )
+
+
+def start_secured_router(pki: Path, out: Path, log):
+    """``msk router`` on a free loopback TLS port with the access control of the declared graph, and one Zenoh client
+    config per role (OUT/zenoh/<role>.json5) connecting to it; returns (process, endpoint, role -> config path)."""
+    from services.nodes import router as router_node
+    from services.transport import security
+    from services.transport.zenoh_session import free_loopback_endpoint
+
+    pki = Path(pki).resolve()
+    host = router_host(pki)
+    port = int(free_loopback_endpoint().rsplit(":", 1)[1])
+    endpoint = f"tls/{host}:{port}"
+    configs = security.write_configs(
+        out / "zenoh", pki, router_listen=(f"tls/127.0.0.1:{port}",), client_connect=(endpoint,)
+    )
+    log_path = out / "logs" / "router.log"
+    process = subprocess.Popen(
+        python_module("services.cli", "router", f"--zenoh-config={configs['router']}"),
+        stdout=open(log_path, "wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env={**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")},
+    )
+    try:
+        router_node.wait_until_listening(process, port)
+    except RuntimeError as error:
+        raise GraphTimeout(f"{error}; router log: {log_path}") from None
+    log(f"secured: router on {endpoint} (TLS, client certificates of {pki}, access control of the session graph)")
+    return process, endpoint, lambda role: configs[role]
+
+
+def stop_process(process: subprocess.Popen, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        return process.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(5)
+        return None
+
+
+def _wait_ready(graph: Graph, stopper: _Stopper) -> None:
+    done = threading.Event()
+    error: list[BaseException] = []
+
+    def wait() -> None:
+        try:
+            graph.wait_ready(READY_TIMEOUT_S)
+        except BaseException as e:  # reported in the main thread
+            error.append(e)
+        done.set()
+
+    threading.Thread(target=wait, daemon=True).start()
+    while not done.wait(0.1):
+        if stopper.event.is_set():
+            return
+    if error:
+        raise error[0]
+
+
+def _settle(what: str, done, counts: FlowCounts, timeout_s: float, log) -> None:
+    """Bounded wait for the downstream nodes to catch up; on expiry say so with the counts, and go on stopping."""
+    try:
+        wait_for(what, done, counts.text, timeout_s)
+    except GraphTimeout as error:
+        log(f"warning: {error}")
+
+
+def stop_in_order(
+    graph: Graph, drivers: list[str], simulators: Simulators | None, viewer, counts: FlowCounts, methods, log
+) -> dict:
+    """Sources first, the recorder last, so what the devices sent flows through and is recorded."""
+    if simulators is not None:
+        simulators.hold()
+        time.sleep(DRAIN_S)
+    # Xsens before Trigno: the last joint frames still find EMG (no ``emg_stalled`` flags at the end of a session)
+    order = sorted(drivers, key=lambda d: d != "drivers-xsens") + ["kinematics", "estimator", "recorder"]
+    codes: dict[str, int | None] = {}  # None: killed after the stop timeout
+    for name in order:
+        process = graph.process(name)
+        if process is None:
+            continue
+        if name == "kinematics":  # joints stop changing: the drivers' last samples went through
+            last = [counts.joints, time.monotonic()]
+
+            def quiet(last: list = last) -> bool:
+                if counts.joints != last[0]:
+                    last[:] = [counts.joints, time.monotonic()]
+                return time.monotonic() - last[1] >= DRAIN_S
+
+            _settle("the kinematics node to publish its last joint frames", quiet, counts, STOP_TIMEOUT_S, log)
+        elif name == "estimator":  # every joint frame answered by every method
+            _settle(
+                f"the estimator to answer all joint frames ({', '.join(methods)})",
+                lambda: all(counts.activations[m] >= counts.joints for m in methods),
+                counts,
+                STOP_TIMEOUT_S,
+                log,
+            )
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+        try:
+            codes[name] = process.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+            codes[name] = None
+        if name != "recorder":
+            time.sleep(DRAIN_S / 2)  # its last messages reach the nodes after it
+    if viewer is not None:
+        viewer.send_signal(signal.SIGINT)
+        try:
+            viewer.wait(5)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
+    graph.stop(5.0)  # anything left (none normally)
+    if simulators is not None:
+        simulators.close()
+    return codes
+
+
+def plan_for(
+    session: LiveSession, *, sim: bool, log, sim_faults: tuple = (), sim_sets: SimSets | None = None
+) -> tuple[LivePlan, Simulators | None]:
+    """The graph's plan and, with ``sim``, the started simulators (the Trigno injecting ``sim_faults``), playing
+    ``sim_sets`` (default :class:`services.sessions.sim_sets.SimSets`: sets of 9 reps with 30 s rests)."""
+    from msk_core.imu.mapping import mapping_for
+    from msk_core.model import load_pack
+
+    if sim_faults and not sim:
+        raise ConfigError(
+            "electrode faults are injected by the simulated Trigno: add --sim",
+            field="--sim-fault",
+            value=[f"{f.sensor}:{f.kind.value}:{f.start_s:g}-{f.end_s:g}" for f in sim_faults],
+        )
+    session.out.mkdir(parents=True, exist_ok=True)
+    model = load_pack(session.pack)
+    segments = list(mapping_for(model.name).segments)
+    sources = None
+    if sim:
+        sources, (subject, electrodes, trackers, methods) = _sim_inputs(session, model.name, segments, sim_sets, log)
+    else:
+        subject, electrodes, trackers, methods = _device_inputs(session)
+    profile = json.loads(Path(subject).read_text())
+    check_against_pack(
+        LiveSession(session.path, trackers=trackers, electrodes=electrodes),
+        list(model.groups),
+        segments,
+        profile.get("emg_normalisation", {}),
+    )
+    if "assisted" in methods and not electrodes:
+        raise ConfigError(
+            "method 'assisted' needs EMG: a [trigno] device and an [electrodes] map",
+            path=session.path,
+            field="session.methods",
+            value="assisted",
+        )
+    profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
+    trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
+    plan = LivePlan(
+        session,
+        tuple(methods),
+        profile_path,
+        trackers=trackers,
+        exercise=model.name,
+        trigno_latency_ms=trigno_latency_ms,
+        tracker_latency_ms=tracker_latency_ms,
+        names=session_names(session, model.display_names),
+    )
+    if sources is not None:
+        return plan, _start_planned_simulators(plan, sources, electrodes, sim_faults, log)
+    _device_ports(plan)
+    return plan, None
+
+
+# (subject profile, electrode map, tracker -> segment map, methods) of a session
+_SessionInputs = tuple[Path, dict[str, str], dict[str, str], tuple[str, ...]]
+
+
+def _sim_inputs(
+    session: LiveSession, pack: str, segments: list[str], sim_sets: SimSets | None, log
+) -> tuple[SimSources, _SessionInputs]:
+    """Under --sim: the bundled trial's sources, and what the session file leaves out taken from the bundled session
+    (its subject, calibrated and cached; its load, electrodes and trackers of the pack's segments)."""
+    from services.sessions.sim_sets import SimSets, with_sets
+
+    sources = with_sets(sim_sources(RECORDINGS / "demo_session.mcap", pack), sim_sets or SimSets())
+    subject = session.subject or sim_subject(pack, log)
+    if "session.load_kg" not in session.given:
+        session.load_kg = sources.load_kg
+    electrodes = session.electrodes or sources.electrodes
+    trackers = session.trackers or {t: seg for t, (seg, _) in sources.imu.items() if seg in segments}
+    methods = session.methods or SIM_METHODS
+    return sources, (Path(subject), electrodes, trackers, tuple(methods))
+
+
+def _device_inputs(session: LiveSession) -> _SessionInputs:
+    """With devices: the session file's subject (required) and maps; methods by default proposed (+ assisted with
+    a Trigno)."""
+    if session.subject is None:
+        raise ConfigError("missing: the subject profile (`msk calibrate`)", path=session.path, field="session.subject")
+    methods = session.methods or (("proposed", "assisted") if session.trigno_host else ("proposed",))
+    return session.subject, session.electrodes, session.trackers, tuple(methods)
+
+
+def _start_planned_simulators(
+    plan: LivePlan, sources: SimSources, electrodes: dict[str, str], sim_faults: tuple, log
+) -> Simulators:
+    """Start the simulators with the latencies the session states (0 unless it says) and point the plan's drivers at
+    them."""
+    session, trackers = plan.session, plan.trackers
+    simulators = start_simulators(
+        sources,
+        trigno_latency_s=plan.trigno_latency_ms / 1e3,
+        xsens_latency_s={t: ms / 1e3 for t, ms in plan.tracker_latency_ms.items()},
+        trigno_faults=sim_faults,
+    )
+    plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
+    plan.trigno_aux_port = simulators.trigno.ports["aux"]
+    plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
+    session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))
+    log(
+        f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
+        f"{sum(sources.emg.paired)} sensors), Xsens "
+        + ", ".join(f"{t} ({seg}) on {simulators.xsens[t].path}" for t, seg in trackers.items())
+        + f"; streaming the bundled {sources.trial} trial"
+        + (
+            f" as sets of {sources.sets.reps} rep{'s' if sources.sets.reps != 1 else ''} with "
+            f"{sources.sets.rest_s:g} s rests"
+            if sources.sets is not None
+            else " in a loop"
+        )
+    )
+    for fault in sim_faults:
+        label = f"sensor{fault.sensor:02d}.EMG"
+        log(
+            f"injecting {fault.kind.value} on {label} ({electrodes.get(label, 'not in the electrode map')}) "
+            f"from {fault.start_s:g} to {fault.end_s:g} s after the Trigno starts streaming"
+        )
+    for tracker in set(sources.imu) - set(trackers):
+        simulators.xsens.pop(tracker).close()  # trackers of segments the pack does not use
+    return simulators
+
+
+def _device_ports(plan: LivePlan) -> None:
+    """The plan's Trigno address and ports and Xsens serial ports from the session file."""
+    session = plan.session
+    if session.trigno_host is not None:
+        from drivers.trigno import protocol as tp
+
+        plan.trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
+        # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
+        plan.trigno_aux_port = int(tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
+    plan.xsens_ports = list(session.xsens_ports)
+
+
+def default_live_endpoint() -> str:
+    """The well-known loopback endpoint when no other session holds it (a client with no flags, or the ten-line
+    subscriber of docs/apps.md, then finds this session there), else a free loopback port (found through
+    services.sessions.discovery)."""
+    from services.transport.zenoh_session import DEFAULT_ENDPOINT, endpoint_is_free, free_loopback_endpoint
+
+    return DEFAULT_ENDPOINT if endpoint_is_free(DEFAULT_ENDPOINT) else free_loopback_endpoint()
+
+
+def main(
+    session: LiveSession,
+    *,
+    sim: bool,
+    duration_s: float | None,
+    view: bool,
+    log=print,
+    listen: str | None = None,
+    pki: Path | None = None,
+    sim_faults: tuple = (),
+    sim_sets: SimSets | None = None,
+) -> dict:
+    """``listen``: the loopback endpoint of the graph (default :func:`default_live_endpoint`); ``pki``: a folder
+    written by ``msk certs``, for the secured mode; ``sim_faults``: electrode faults the simulated Trigno injects
+    (:class:`drivers.trigno.simulator.SensorFault`, with ``sim``); ``sim_sets``: the sets the simulators play."""
+    if pki is not None and listen is not None:
+        raise ConfigError(
+            "the secured mode picks its own TLS endpoint; give --pki or --listen, not both",
+            field="--listen",
+            value=listen,
+        )
+    plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
+    try:
+        summary = run_graph(
+            plan,
+            duration_s=duration_s,
+            view=view,
+            endpoint=listen or default_live_endpoint(),
+            log=log,
+            simulators=simulators,
+            pki=pki,
+        )
+    except BaseException:
+        if simulators is not None:
+            simulators.close()
+        raise
+    summary["methods"] = list(plan.methods)
+    (session.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    log(summary_text(summary))
+    log(f"recording: {', '.join(summary.get('recordings', [])) or 'none'}; summary: {session.out / 'summary.json'}")
+    return summary

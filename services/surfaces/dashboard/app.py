@@ -1,0 +1,313 @@
+"""``msk dashboard``: the coaches' page, served by Starlette + uvicorn, fed by the Zenoh bridge over a WebSocket.
+
+``GET /`` the page; ``GET /static/...`` its script, style and the vendored Chart.js; ``GET /config.json`` the session
+and timings; ``GET /bodymap/<pack>.svg`` the body map of a shipped model pack; ``WS /ws`` the frames. Each page
+connection sends, every ``send_interval_s``, the newest value of every topic that changed since its last send (and a
+heartbeat at least every ``heartbeat_s``): a slow tablet skips frames, nothing queues. The page is read-only (the
+method switch is local to each page), so listening on the gym network (``--host``) exposes no control of the session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import uvicorn
+from starlette.applications import Starlette
+from starlette.middleware import Middleware
+from starlette.middleware.gzip import GZipMiddleware
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from msk_core.errors import ConfigError, ModelError
+from msk_core.model import available_packs, load_pack
+from services.sessions.live_session import PREFERRED_METHODS
+from services.surfaces.dashboard import bodymap
+from services.surfaces.dashboard.access import TokenGate, TokenStore
+from services.surfaces.dashboard.bridge import Bridge, DashboardState
+from services.transport import messages, topics
+from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args
+
+log = logging.getLogger(__name__)
+STATIC = Path(__file__).resolve().parent / "static"
+
+
+@dataclass(frozen=True)
+class DashboardConfig:
+    session: str = "lab"
+    send_interval_s: float = 0.05  # at most 20 updates per second to each page
+    heartbeat_s: float = 0.5
+    no_data_after_s: float = 2.0  # the page shows "no data" when the newest data sample is older than this
+
+
+def packs_by_groups() -> dict[tuple[str, ...], str]:
+    """Group lists of the shipped packs, to recognise the pack behind an ActivationFrame."""
+    found = {}
+    for name in available_packs():
+        try:
+            found[tuple(load_pack(name).groups)] = name
+        except ModelError as error:  # a broken pack must not take the dashboard down
+            log.warning("model pack %s: %s", name, error)
+    return found
+
+
+def page_config(config: DashboardConfig, pack_index: dict[tuple[str, ...], str]) -> dict:
+    """What the page reads at /config.json: the session, its timings, the method shown by default (the first of
+    ``default_methods`` that ran, as in the view and the report) and each pack's groups."""
+    return {
+        "session": config.session,
+        "no_data_after_s": config.no_data_after_s,
+        "heartbeat_s": config.heartbeat_s,
+        "default_methods": list(PREFERRED_METHODS),
+        "packs": {name: list(groups) for groups, name in pack_index.items()},
+    }
+
+
+def create_app(
+    config: DashboardConfig,
+    state: DashboardState,
+    *,
+    on_startup=(),
+    on_shutdown=(),
+    on_set_mark: Callable[[str], messages.LoadEvent] | None = None,
+) -> Starlette:
+    """``on_set_mark(mark)``: publishes the operator's set mark ("start", "stop") and returns its LoadEvent (the
+    page's buttons, ``POST /set/start`` and ``/set/stop``); None: the page has no buttons to press."""
+    pack_index = packs_by_groups()
+    svg_cache: dict[str, str] = {}
+
+    async def page(request):
+        return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
+
+    async def config_json(request):
+        return JSONResponse(page_config(config, pack_index))
+
+    async def body_map(request):
+        name = request.path_params["pack"]
+        if name not in pack_index.values():
+            return Response(f"no shipped model pack {name!r}", status_code=404, media_type="text/plain")
+        if name not in svg_cache:
+            pack = load_pack(name)
+            svg_cache[name] = bodymap.place_groups(pack).svg(names=pack.display_names.groups)
+        return Response(svg_cache[name], media_type="image/svg+xml")
+
+    async def set_mark(request):
+        mark = request.path_params["mark"]
+        if mark not in ("start", "stop"):
+            return JSONResponse({"error": f"no set mark {mark!r}: start or stop"}, status_code=404)
+        if on_set_mark is None:
+            return JSONResponse({"error": "this dashboard publishes no set marks"}, status_code=503)
+        try:
+            event = await asyncio.to_thread(on_set_mark, mark)
+        except Exception as error:  # the session refused it (secured network) or the bridge is down: say so
+            log.warning("set %s: %s", mark, error)
+            return JSONResponse({"error": f"set {mark} not published: {error}"}, status_code=503)
+        return JSONResponse({"mark": mark, "set_number": int(event.set_number)})
+
+    async def frames(websocket: WebSocket):
+        await websocket.accept()
+        since, last_sent = 0, 0.0
+        try:
+            while True:
+                seq, update = state.changes(since)
+                now = time.monotonic()
+                if update["topics"] or now - last_sent >= config.heartbeat_s:
+                    update["type"] = "update"
+                    update["server_time_ns"] = time.time_ns()
+                    # Awaiting the send is the back-pressure: meanwhile newer frames overwrite older ones in the state.
+                    await websocket.send_text(json.dumps(update, allow_nan=False))
+                    since, last_sent = seq, now
+                await asyncio.sleep(config.send_interval_s)
+        except (WebSocketDisconnect, RuntimeError, ConnectionError):
+            return
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app):
+        for hook in on_startup:
+            hook()
+        try:
+            yield
+        finally:
+            for hook in on_shutdown:
+                hook()
+
+    return Starlette(
+        routes=[
+            Route("/", page),
+            Route("/config.json", config_json),
+            Route("/bodymap/{pack}.svg", body_map),
+            Route("/set/{mark}", set_mark, methods=["POST"]),
+            WebSocketRoute("/ws", frames),
+            Mount("/static", StaticFiles(directory=STATIC), name="static"),
+        ],
+        lifespan=lifespan,
+        middleware=[Middleware(GZipMiddleware, minimum_size=1024)],  # Chart.js: 210 kB -> about 70 kB on the wire
+    )
+
+
+class DashboardServer:
+    """Bridge + web server; ``start()`` runs it in a thread (tests, embedding), ``run()`` in the caller's."""
+
+    def __init__(
+        self,
+        zenoh_options: ZenohOptions,
+        config: DashboardConfig,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        pki: Path | None = None,
+    ) -> None:
+        """``pki``: HTTPS with the deployment's dashboard certificate, and only tablets with a token get in
+        (services/surfaces/dashboard/access.py)."""
+        topics.check_chunk(config.session, "--session")
+        if not 0 < port < 65536:
+            raise ConfigError("port must be in 1..65535", field="--port", value=port)
+        self.config = config
+        self.state = DashboardState(config.session)
+        self.bridge = Bridge(zenoh_options, self.state)
+        app = create_app(
+            config,
+            self.state,
+            on_startup=(self.bridge.start,),
+            on_shutdown=(self.bridge.stop,),
+            on_set_mark=self.bridge.publish_set_mark,
+        )
+        certificate, key = (None, None) if pki is None else secured(pki)
+        served = app if pki is None else TokenGate(app, TokenStore(pki))
+        self.server = uvicorn.Server(
+            uvicorn.Config(
+                served,
+                host=host,
+                port=port,
+                log_level="warning",
+                ws="websockets-sansio",
+                ssl_certfile=certificate,
+                ssl_keyfile=key,
+            )
+        )
+        self.host, self.port, self.scheme = host, port, "http" if pki is None else "https"
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        return f"{self.scheme}://{self.host}:{self.port}/"
+
+    def run(self) -> None:
+        self.server.run()
+
+    def start(self, timeout_s: float = 20.0) -> None:
+        self._thread = threading.Thread(target=self.server.run, name="dashboard", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not self.server.started and self._thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if not self.server.started:
+            raise RuntimeError(
+                f"dashboard did not start on {self.url} within {timeout_s} s (thread alive: {self._thread.is_alive()})"
+            )
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        self.server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--session",
+        default=None,
+        help="session name: topics msk/<session>/... (default: the running msk live's, else lab)",
+    )
+    parser.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 for tablets on the gym network)",
+    )
+    parser.add_argument(
+        "--pki",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="secured: HTTPS with DIR/dashboard.pem and a tablet token per tablet (`msk certs tablet-token`); joins "
+        "Zenoh as the tablet role (DIR/zenoh/tablet.json5) unless Zenoh flags say otherwise",
+    )
+    add_zenoh_arguments(parser)
+
+
+def secured(pki: Path) -> tuple[str, str]:
+    """uvicorn's TLS files (certificate, key): the dashboard certificate ``msk certs`` made in ``pki``."""
+    from services.transport.security import Pki
+
+    files = Pki(Path(pki))
+    for path in (files.dashboard_cert, files.dashboard_key):
+        if not path.is_file():
+            raise ConfigError("no dashboard certificate: make the folder with `msk certs --out DIR`", path=path)
+    return str(files.dashboard_cert), str(files.dashboard_key)
+
+
+def _check_port_free(host: str, port: int) -> None:
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as error:
+            raise ConfigError(
+                f"cannot listen on {host}:{port} ({error.strerror}); choose another --port or --host",
+                field="--port",
+                value=port,
+            ) from None
+
+
+def _drops_text(state: DashboardState) -> str:
+    return ", ".join(f"{d.key}: {d.reason} {d.count}" for d in state.input_counts.drops())
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    _check_port_free(args.host, args.port)
+    from services.sessions import discovery
+
+    if args.pki is not None and args.zenoh_config is None and not args.connect:
+        args.zenoh_config = args.pki / "zenoh" / "tablet.json5"
+    options, session = discovery.client_options(options_from_args(args), args.session, "lab", "msk dashboard")
+    server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port, pki=args.pki)
+    quiet = threading.Event()
+    discovery.silence_notice("msk dashboard", f"msk/{session}/**", options, lambda: server.state.received, stop=quiet)
+    where = (
+        server.url
+        if args.host not in ("0.0.0.0", "::")
+        else f"port {args.port} of every network interface of this machine"
+    )
+    print(f"dashboard of session {session!r} on {where} (Ctrl-C stops)", file=sys.stderr, flush=True)
+    try:
+        server.run()  # uvicorn handles SIGINT/SIGTERM: closes the sockets, then the lifespan stops the bridge
+    except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it handled, once shut down
+        pass
+    quiet.set()
+    dropped = server.state.input_counts.total_dropped
+    print(
+        f"dashboard stopped; the bridge received {server.state.received} messages"
+        + (f" and dropped {dropped} it could not use ({_drops_text(server.state)})" if dropped else ""),
+        file=sys.stderr,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(description=__doc__)
+    add_arguments(_parser)
+    sys.exit(run_from_args(_parser.parse_args()))

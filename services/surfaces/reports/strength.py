@@ -1,0 +1,75 @@
+"""Calibrated strength against the synthetic generator's truth, for the demo's report: a Markdown table per exercise
+and one bar plot (F_max / truth per group)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from services.surfaces.reports import pyplot
+
+
+def strength_markdown(calibration: dict) -> str:
+    """Per exercise: calibrated F_max against the generator's truth and the model's reference, with the status."""
+    lines = []
+    for exercise, rep in calibration.items():
+        lines += [
+            f"### {exercise}: calibrated on {rep['trials']['lift']}"
+            + (f" + {rep['trials']['isometric']} isometric MVC trials" if rep["trials"]["isometric"] else "")
+            + f" in {rep['seconds']:.1f} s",
+            "",
+            f"Median |F_max / truth - 1|: {100 * rep['strength_error_median']:.1f} % "
+            f"(model reference {100 * rep['reference_error_median']:.1f} %).",
+            "",
+            "| group | status | calibrated F_max (N) | true F_max (N) | error | reference (N) | reference error |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for g, v in rep["groups"].items():
+            lines.append(
+                f"| {g} | {v['status']} | {v['f_max_n']:.0f} | {v['truth_n']:.0f} | {100 * (v['f_max_n'] / v['truth_n'] - 1):+.0f} % "
+                f"| {v['reference_n']:.0f} | {100 * (v['reference_n'] / v['truth_n'] - 1):+.0f} % |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+STRENGTH_COLOURS = {"identified": "tab:green", "not_calibrated": "dimgrey"}
+
+
+def plot_strength(calibration: dict, out: Path) -> Path:
+    """F_max / truth per group: calibrated and the model's reference (1 = exact)."""
+    plt = pyplot()
+    fig, axes = plt.subplots(len(calibration), 1, figsize=(13, 2.8 * len(calibration)), squeeze=False)
+    for ax, (exercise, rep) in zip(axes[:, 0], calibration.items()):
+        groups = list(rep["groups"])
+        x = np.arange(len(groups))
+        cal = [rep["groups"][g]["f_max_n"] / rep["groups"][g]["truth_n"] for g in groups]
+        ref = [rep["groups"][g]["reference_n"] / rep["groups"][g]["truth_n"] for g in groups]
+        ax.bar(x - 0.2, ref, 0.4, color="lightgrey")
+        status = [rep["groups"][g]["status"] for g in groups]
+        ax.bar(x + 0.2, cal, 0.4, color=[STRENGTH_COLOURS.get(st, "tab:orange") for st in status])
+        ax.axhline(1.0, color="black", lw=1)
+        ax.axhspan(0.9, 1.1, color="tab:green", alpha=0.08)
+        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)
+        ax.set_ylim(0.0, max(1.5, 1.05 * max(cal + ref)))
+        ax.set_ylabel("F_max / truth")
+        ax.set_title(
+            f"{exercise}: median error {100 * rep['strength_error_median']:.0f} % "
+            f"(reference {100 * rep['reference_error_median']:.0f} %)",
+            fontsize=10,
+        )
+    from matplotlib.patches import Patch
+
+    handles = [
+        Patch(color="lightgrey", label="model reference"),
+        Patch(color=STRENGTH_COLOURS["identified"], label="calibrated: identified"),
+        Patch(color="tab:orange", label="calibrated: combination / unidentified / at bound"),
+        Patch(color=STRENGTH_COLOURS["not_calibrated"], label="no EMG: kept at reference"),
+    ]
+    axes[0, 0].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    fig.tight_layout()
+    path = out / "strength.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
