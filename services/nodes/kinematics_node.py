@@ -45,6 +45,7 @@ from services.transport.zenoh_session import (
     open_session,
     options_from_args,
     publish,
+    run_script,
 )
 
 log = logging.getLogger(__name__)
@@ -443,7 +444,4 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO)
-    _parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(_parser)
-    sys.exit(run_from_args(_parser.parse_args()))
+    run_script(__doc__, add_arguments, run_from_args, log_level=logging.INFO)

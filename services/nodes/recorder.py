@@ -89,6 +89,7 @@ from services.transport.zenoh_session import (
     keeps_history,
     open_session,
     options_from_args,
+    run_script,
     type_name_of_sample,
 )
 
@@ -710,6 +711,4 @@ def summary_line(stats: RecorderStats, out: Path) -> str:
 
 
 if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(_parser)
-    sys.exit(run_from_args(_parser.parse_args()))
+    run_script(__doc__, add_arguments, run_from_args)

@@ -30,6 +30,7 @@ from services.transport.zenoh_session import (
     has_subscribers,
     open_session,
     options_from_args,
+    run_script,
 )
 
 
@@ -184,6 +185,4 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(_parser)
-    sys.exit(run_from_args(_parser.parse_args()))
+    run_script(__doc__, add_arguments, run_from_args)

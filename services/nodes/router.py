@@ -24,6 +24,7 @@ from services.transport.zenoh_session import (
     add_zenoh_arguments,
     open_session,
     options_from_args,
+    run_script,
 )
 
 
@@ -94,6 +95,4 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(_parser)
-    sys.exit(run_from_args(_parser.parse_args()))
+    run_script(__doc__, add_arguments, run_from_args)

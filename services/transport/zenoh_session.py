@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import socket
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import zenoh
 from google.protobuf.message import Message
@@ -129,6 +133,22 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
         listen=tuple(args.listen),
         config_file=args.zenoh_config,
     )
+
+
+def run_script(
+    description: str | None,
+    add_arguments: Callable[[argparse.ArgumentParser], None],
+    run_from_args: Callable[[argparse.Namespace], int],
+    *,
+    log_level: int | None = None,
+) -> NoReturn:
+    """The ``python -m services...`` entry of a node or page: its arguments (``add_arguments``) parsed from the
+    command line, ``run_from_args`` run, its result the exit status; ``log_level`` also configures logging."""
+    if log_level is not None:
+        logging.basicConfig(level=log_level)
+    parser = argparse.ArgumentParser(description=description)
+    add_arguments(parser)
+    sys.exit(run_from_args(parser.parse_args()))
 
 
 def open_session(options: ZenohOptions | None = None) -> zenoh.Session:

@@ -37,7 +37,7 @@ from services.surfaces.dashboard import bodymap
 from services.surfaces.dashboard.access import TokenGate, TokenStore
 from services.surfaces.dashboard.bridge import Bridge, DashboardState
 from services.transport import messages, topics
-from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args
+from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args, run_script
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).resolve().parent / "static"
@@ -308,6 +308,4 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(_parser)
-    sys.exit(run_from_args(_parser.parse_args()))
+    run_script(__doc__, add_arguments, run_from_args)

@@ -1036,6 +1036,6 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(_parser)
-    sys.exit(run_from_args(_parser.parse_args()))
+    from services.transport.zenoh_session import run_script
+
+    run_script(__doc__, add_arguments, run_from_args)
