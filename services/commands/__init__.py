@@ -10,11 +10,20 @@ pinocchio: ~2 s), and every ``msk`` subprocess (a live session starts several) w
 
 from __future__ import annotations
 
+import argparse
 import ast
 from dataclasses import dataclass
 from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def described(parser: argparse.ArgumentParser, doc: str | None) -> argparse.ArgumentParser:
+    """``parser`` (a command's, from ``subparsers.add_parser``) with ``doc`` (its module's docstring) as its
+    description, shown as written in ``--help``: line breaks, lists and tables kept rather than re-wrapped."""
+    parser.description = doc
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    return parser
 
 
 @dataclass(frozen=True)

@@ -21,15 +21,16 @@ import argparse
 from pathlib import Path
 
 from msk_core.errors import ConfigError
+from services.commands import described
 from services.transport import security
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "certs",
-        help="make TLS certificates (CA, router, one per role) and secured Zenoh configs",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    parser = described(
+        subparsers.add_parser(
+            "certs", help="make TLS certificates (CA, router, one per role) and secured Zenoh configs"
+        ),
+        __doc__,
     )
     parser.add_argument("--out", type=Path, default=None, metavar="DIR", help="folder for the certificates and keys")
     parser.add_argument(

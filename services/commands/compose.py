@@ -12,15 +12,14 @@ from __future__ import annotations
 
 import argparse
 
+from services.commands import described
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from services.sessions import deploy_files
 
-    parser = subparsers.add_parser(
-        "compose",
-        help="check or --write the compose files from the session graph",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    parser = described(
+        subparsers.add_parser("compose", help="check or --write the compose files from the session graph"), __doc__
     )
     deploy_files.add_arguments(parser)
     parser.set_defaults(handler=deploy_files.run)

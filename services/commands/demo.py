@@ -5,16 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.commands import described
 from services.nodes import replayer
 from services.sessions import demo
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "demo",
-        help="run the demo on the embedded synthetic session",
-        description=demo.__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    parser = described(
+        subparsers.add_parser("demo", help="run the demo on the embedded synthetic session"), demo.__doc__
     )
     add_arguments(parser)
     parser.set_defaults(handler=run_from_args)

@@ -24,6 +24,7 @@ from msk_core.signal.emg import (
     normalisation_reference,
 )
 from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, rep_phase
+from services.commands import described
 
 
 def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
@@ -111,11 +112,8 @@ def _reps(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "emg",
-        help="EMG envelopes from raw files; repetitions and phase of kinematics",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = described(
+        subparsers.add_parser("emg", help="EMG envelopes from raw files; repetitions and phase of kinematics"), __doc__
     )
     sub = p.add_subparsers(dest="emg_command", required=True)
 

@@ -18,6 +18,7 @@ from msk_core.errors import ConfigError
 from msk_core.synth import Exercise, SynthConfig, generate_session, parse_effects, parse_exercise
 from msk_core.synth.effects import DEFAULTS
 from msk_core.synth.files import EmgOutput, write_session
+from services.commands import described
 from services.commands.progress import ProgressBar
 
 
@@ -42,11 +43,9 @@ def _loads(values: list[str], exercises: list[Exercise]) -> dict[Exercise, tuple
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "synth",
-        help="generate a synthetic bench-press/deadlift session with known truth",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = described(
+        subparsers.add_parser("synth", help="generate a synthetic bench-press/deadlift session with known truth"),
+        __doc__,
     )
     p.add_argument("--exercise", default="both", choices=["bench_press", "deadlift", "both"])
     p.add_argument("--subject-seed", type=int, default=7, help="seed of the synthetic subject and every noise stream")
