@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import FileFormatError, InputError
+from msk_core.io.storage import float_cells
 
 
 @dataclass
@@ -118,15 +119,7 @@ def read_anc(path: str | Path) -> AnalogRecording:
             continue
         if len(cells) != n + 1:
             raise FileFormatError(f"expected {n + 1} values, found {len(cells)}", path=path, line=i + 1)
-        try:
-            table.append([float(c) for c in cells])
-        except ValueError:
-            for j, c in enumerate(cells):
-                try:
-                    float(c)
-                except ValueError:
-                    label = "time" if j == 0 else labels[j - 1]
-                    raise FileFormatError("not a number", path=path, line=i + 1, field=label, value=c) from None
+        table.append(float_cells(cells, ["time", *labels], path, i + 1))
     if not table:
         raise FileFormatError("no samples", path=path)
     arr = np.array(table)

@@ -174,6 +174,20 @@ def _read_labels(lines: list[str], end: int, path: Path) -> tuple[int, str | Non
     return col_index, delimiter, labels
 
 
+def float_cells(cells: list[str], labels: list[str], path: Path, line: int) -> list[float]:
+    """One row of a text table as numbers; a cell that is not a number is a FileFormatError naming the file, the
+    line and the cell's column (``labels[j]`` for ``cells[j]``)."""
+    try:
+        return [float(c) for c in cells]
+    except ValueError:
+        for label, cell in zip(labels, cells, strict=False):
+            try:
+                float(cell)
+            except ValueError:
+                raise FileFormatError("not a number", path=path, line=line, field=label, value=cell) from None
+        raise  # pragma: no cover - float() failed above, so a cell must fail here
+
+
 def _read_rows(lines: list[str], col_index: int, delimiter: str | None, labels: list[str], path: Path) -> np.ndarray:
     """The data rows after the label line as a (rows, columns) table; a row with another number of cells or a cell
     that is not a number is an error naming its line (and column)."""
@@ -192,15 +206,7 @@ def _read_rows(lines: list[str], col_index: int, delimiter: str | None, labels: 
                 line=i + 1,
                 value=raw[:80],
             )
-        try:
-            rows.append([float(c) for c in cells])
-        except ValueError:
-            for j, c in enumerate(cells):
-                try:
-                    float(c)
-                except ValueError:
-                    raise FileFormatError("not a number", path=path, line=i + 1, field=labels[j], value=c) from None
-            raise  # pragma: no cover - float() failed above, so a cell must fail here
+        rows.append(float_cells(cells, labels, path, i + 1))
     return np.array(rows, dtype=float).reshape(len(rows), n_cols)
 
 
