@@ -3,7 +3,15 @@
 Drivers turn device bytes into plain Python/numpy records; the Zenoh nodes in ``services`` publish them.
 """
 
-from msk_core.errors import InputError
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TypeVar
+
+from msk_core.errors import FileFormatError, InputError
+
+Source = TypeVar("Source")
 
 
 def parse_synthetic_spec(text: str) -> tuple[float, int] | None:
@@ -17,3 +25,28 @@ def parse_synthetic_spec(text: str) -> tuple[float, int] | None:
     except ValueError:
         raise InputError("synthetic source is synthetic[:SECONDS[:SEED]]", field="--from", value=text) from None
     return seconds, seed
+
+
+def load_source_spec(
+    spec: str | Path,
+    kind: str,
+    synthetic: Callable[[float, int], Source],
+    loaders: Mapping[str, Callable[[Path], Source]],
+) -> Source:
+    """A simulator's source from ``spec``: ``synthetic[:SECONDS[:SEED]]`` -> ``synthetic(seconds, seed)``, else a file
+    read by the loader of its suffix (``loaders``: lower-case suffix -> loader); ``kind`` ("EMG", "IMU") names the
+    source in the errors for a missing file or an unsupported suffix."""
+    text = str(spec)
+    parsed = parse_synthetic_spec(text)
+    if parsed is not None:
+        return synthetic(*parsed)
+    path = Path(text)
+    if not path.is_file():
+        raise InputError(f"{kind} source file not found", path=path)
+    loader = loaders.get(path.suffix.lower())
+    if loader is None:
+        expected = ", ".join(loaders)
+        raise FileFormatError(
+            f"unsupported {kind} source (expected {expected} or synthetic[:SECONDS])", path=path, value=path.suffix
+        )
+    return loader(path)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import parse_synthetic_spec
+from drivers import load_source_spec
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import FileFormatError, InputError
 
@@ -49,22 +49,12 @@ def load_source(spec: str | Path, *, rate_hz: float | None = None) -> EmgSource:
 
     ``rate_hz`` is the rate of a raw ``.bin`` stream (default 2000 Hz); other formats carry their own rate.
     """
-    text = str(spec)
-    synthetic = parse_synthetic_spec(text)
-    if synthetic is not None:
-        return synthetic_source(seconds=synthetic[0], seed=synthetic[1])
-    path = Path(text)
-    if not path.is_file():
-        raise InputError("EMG source file not found", path=path)
-    suffix = path.suffix.lower()
-    if suffix == ".c3d":
-        return load_c3d(path)
-    if suffix == ".npz":
-        return load_npz(path)
-    if suffix == ".bin":
-        return load_raw_stream(path, rate_hz=2000.0 if rate_hz is None else rate_hz)
-    raise FileFormatError(
-        "unsupported EMG source (expected .c3d, .npz, .bin or synthetic[:SECONDS])", path=path, value=suffix
+    raw_rate_hz = 2000.0 if rate_hz is None else rate_hz
+    return load_source_spec(
+        spec,
+        "EMG",
+        lambda seconds, seed: synthetic_source(seconds=seconds, seed=seed),
+        {".c3d": load_c3d, ".npz": load_npz, ".bin": lambda path: load_raw_stream(path, rate_hz=raw_rate_hz)},
     )
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import parse_synthetic_spec
+from drivers import load_source_spec
 from drivers.xsens import xbus
 from msk_core.errors import FileFormatError, InputError, ProtocolError
 from msk_core.units import GRAVITY
@@ -54,19 +54,12 @@ class ImuSource:
 
 
 def load_imu_source(spec: str | Path) -> ImuSource:
-    text = str(spec)
-    synthetic = parse_synthetic_spec(text)
-    if synthetic is not None:
-        return synthetic_imu(seconds=synthetic[0], seed=synthetic[1])
-    path = Path(text)
-    if not path.is_file():
-        raise InputError("IMU source file not found", path=path)
-    if path.suffix.lower() == ".bin":
-        return load_capture(path)
-    if path.suffix.lower() == ".npz":
-        return load_imu_npz(path)
-    raise FileFormatError(
-        "unsupported IMU source (expected .bin, .npz or synthetic[:SECONDS])", path=path, value=path.suffix
+    """Load an IMU source from a path (.bin, .npz) or a ``synthetic[:SECONDS[:SEED]]`` spec."""
+    return load_source_spec(
+        spec,
+        "IMU",
+        lambda seconds, seed: synthetic_imu(seconds=seconds, seed=seed),
+        {".bin": load_capture, ".npz": load_imu_npz},
     )
 
 
