@@ -365,25 +365,9 @@ def router_config(
     pki_dir: Path | str, *, listen: tuple[str, ...] = (f"tls/0.0.0.0:{DEFAULT_TLS_PORT}",), acl: bool = True
 ) -> dict:
     """The router's Zenoh config: TLS listener(s) demanding a CA-signed client certificate, and the ACL."""
-    pki = Pki(Path(pki_dir))
-    for endpoint in listen:
-        if not endpoint.startswith("tls/"):
-            raise ConfigError("a secured router listens on tls/ endpoints only", field="listen", value=endpoint)
-    config = {
-        "mode": "router",
-        "listen": {"endpoints": list(listen)},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "tls": {
-                    "root_ca_certificate": str(pki.ca_cert),
-                    "listen_certificate": str(pki.cert(ROUTER_ROLE)),
-                    "listen_private_key": str(pki.key(ROUTER_ROLE)),
-                    "enable_mtls": True,
-                }
-            }
-        },
-    }
+    config = _tls_config(
+        Pki(Path(pki_dir)), ROUTER_ROLE, "listen", listen, "a secured router listens on tls/ endpoints only"
+    )
     if acl:
         config["access_control"] = access_control()
     return config
@@ -391,26 +375,30 @@ def router_config(
 
 def client_config(pki_dir: Path | str, role: str, *, connect: tuple[str, ...]) -> dict:
     """A node's Zenoh config: client of the router over TLS, presenting the certificate of ``role``."""
-    pki = Pki(Path(pki_dir))
     check_role(role)
-    for endpoint in connect:
+    return _tls_config(Pki(Path(pki_dir)), role, "connect", connect, "a secured node connects over tls/ only")
+
+
+def _tls_config(pki: Pki, role: str, side: str, endpoints: tuple[str, ...], not_tls: str) -> dict:
+    """A Zenoh config over mutual TLS only, no scouting: ``side`` "listen" (the router) or "connect" (a client node,
+    which also checks the router's name) on ``endpoints`` with the certificate of ``role``; an endpoint that is not
+    ``tls/`` is a ConfigError saying ``not_tls``."""
+    for endpoint in endpoints:
         if not endpoint.startswith("tls/"):
-            raise ConfigError("a secured node connects over tls/ only", field="connect", value=endpoint)
+            raise ConfigError(not_tls, field=side, value=endpoint)
+    tls = {
+        "root_ca_certificate": str(pki.ca_cert),
+        f"{side}_certificate": str(pki.cert(role)),
+        f"{side}_private_key": str(pki.key(role)),
+        "enable_mtls": True,
+    }
+    if side == "connect":
+        tls["verify_name_on_connect"] = True
     return {
-        "mode": "client",
-        "connect": {"endpoints": list(connect)},
+        "mode": "router" if side == "listen" else "client",
+        side: {"endpoints": list(endpoints)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "tls": {
-                    "root_ca_certificate": str(pki.ca_cert),
-                    "connect_certificate": str(pki.cert(role)),
-                    "connect_private_key": str(pki.key(role)),
-                    "enable_mtls": True,
-                    "verify_name_on_connect": True,
-                }
-            }
-        },
+        "transport": {"link": {"tls": tls}},
     }
 
 
