@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
 from services.nodes.readiness import GraphTimeout, declare_ready, wait_for_nodes
-from services.sessions.graph import Graph, wait_for
+from services.sessions.graph import Graph, kill_live, pids_path, wait_for
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
@@ -147,3 +150,19 @@ def test_msk_replay_waits_for_named_graph_nodes(zenoh_endpoint, repo_root):
             timeout=120,
         )
     assert missing.returncode == 2 and "1 ready, missing ['ghost']" in missing.stderr, missing.stderr
+
+
+def test_kill_live_kills_msk_live_and_the_nodes_it_listed(tmp_path: Path) -> None:
+    """kill_live: the process group of msk live and those of the nodes in its pids.json (each a group of its own)."""
+    live = subprocess.Popen(["sleep", "60"], start_new_session=True)
+    node = subprocess.Popen(["sleep", "60"], start_new_session=True)
+    try:
+        pids_path(tmp_path).parent.mkdir(parents=True)
+        pids_path(tmp_path).write_text(json.dumps({"estimator": node.pid, "gone": 2**22 + 7}) + "\n")
+        kill_live(live, tmp_path)
+        assert live.wait(10) == -9 and node.wait(10) == -9, (live.returncode, node.returncode)
+    finally:
+        for p in (live, node):
+            if p.poll() is None:
+                p.kill()
+                p.wait(10)

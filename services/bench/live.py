@@ -18,9 +18,7 @@ lag against the trial's). ``--quick`` leaves this session out (tests/test_sim_cl
 
 from __future__ import annotations
 
-import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -33,7 +31,7 @@ import numpy as np
 from services.bench import BenchResult
 from services.nodes.readiness import wait_for_nodes
 from services.sessions import demo_subject, live_scoring
-from services.sessions.graph import Graph, python_module, wait_for
+from services.sessions.graph import Graph, kill_live, python_module, wait_for
 from services.transport import messages, topics
 from services.transport.mcap_io import read_messages
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, free_loopback_endpoint, open_session
@@ -157,14 +155,8 @@ def run_sim_session(out: Path, seconds: float) -> None:
     try:
         output, _ = process.communicate(timeout=SIM_STARTUP_S + seconds + 60)
     except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)  # msk live; its nodes have their own process groups
+        kill_live(process, out)
         output, _ = process.communicate()
-        pids = out / "logs" / "pids.json"
-        for pid in json.loads(pids.read_text()).values() if pids.is_file() else []:
-            try:
-                os.killpg(pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
         raise RuntimeError(
             f"msk live --sim did not end within {SIM_STARTUP_S + seconds + 60:g} s ({out}): {output[-2000:]}"
         ) from None

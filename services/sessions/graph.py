@@ -8,6 +8,7 @@ arrived).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -253,3 +254,20 @@ def zenoh_flags(options: ZenohOptions) -> list[str]:
 def python_module(module: str, *args: str) -> list[str]:
     """argv running ``python -m module args`` with this interpreter."""
     return [sys.executable, "-m", module, *args]
+
+
+def pids_path(out: Path) -> Path:
+    """Where ``msk live --out OUT`` lists the process ids of the nodes it started (node name -> pid, JSON)."""
+    return out / "logs" / "pids.json"
+
+
+def kill_live(process: subprocess.Popen, out: Path) -> None:
+    """Kill ``msk live --out OUT`` by hand (a session that did not end): its process group and those of the nodes it
+    started (each runs in a group of its own), listed in :func:`pids_path`; the caller then reaps ``process``."""
+    pids = pids_path(out)
+    groups = [process.pid, *(json.loads(pids.read_text()).values() if pids.is_file() else [])]
+    for pid in groups:
+        try:
+            os.killpg(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
