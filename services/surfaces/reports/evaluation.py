@@ -165,6 +165,14 @@ def leave_out_table(scores: dict[str, dict[str, Agreement]], groups: list[str]) 
     return "\n".join(lines)
 
 
+def _scores_section(
+    title: str, scores: dict[str, dict[str, Agreement]], groups: list[str], medians: str, label: str = "Medians"
+) -> list[str]:
+    """Markdown lines: the heading ``title``, ``scores`` per group (:func:`leave_out_table`) and, after ``label``,
+    their ``medians`` over the groups (:meth:`LeaveOutResult.medians`)."""
+    return [f"## {title}", "", leave_out_table(scores, groups), "", f"{label}: {medians}", ""]
+
+
 def _medians_line(medians: dict[str, dict[str, float]]) -> str:
     return ", ".join(f"{m} {v['rmse']:.4f} (r {v['r']:.2f})" for m, v in medians.items())
 
@@ -250,20 +258,21 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
         "against the envelope as recorded; lag of the cross-correlation peak (positive: the estimate is later); "
         f"on/off agreement above {ON_FACTOR:g}x the envelope's rest level.",
         "",
-        "## Left out",
-        "",
-        leave_out_table(result.leave_one_out, result.groups),
-        "",
-        "Medians over the left-out groups: " + _medians_line(result.medians("leave_one_out")),
-        "",
+        *_scores_section(
+            "Left out",
+            result.leave_one_out,
+            result.groups,
+            _medians_line(result.medians("leave_one_out")),
+            "Medians over the left-out groups",
+        ),
         *_verdict(result),
         "",
-        "## The paper's protocol (every electrode in calibration, none at estimation)",
-        "",
-        leave_out_table(result.paper, result.groups),
-        "",
-        "Medians: " + _medians_line(result.medians("paper")),
-        "",
+        *_scores_section(
+            "The paper's protocol (every electrode in calibration, none at estimation)",
+            result.paper,
+            result.groups,
+            _medians_line(result.medians("paper")),
+        ),
         f"Calibrations: {len(runs)}, "
         + ", ".join(
             f"{r.left_out or 'all electrodes'} {r.iterations} it. {r.cpu_seconds:.1f} s CPU"
