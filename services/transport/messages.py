@@ -100,12 +100,13 @@ def as_message(kind: str | type[Message], message_or_payload: Message | bytes) -
 
 
 def has_unknown_fields(message: Message) -> bool:
-    """True when the parsed bytes held fields the type does not define (another type's bytes, or garbage)."""
+    """True when the parsed bytes held fields the type does not define (another type's bytes, or garbage).
+
+    Discards them from ``message`` itself (a message that had some is refused by its readers anyway): 2-3 times
+    cheaper than comparing with a copy, and every node asks it for every message."""
     size = message.ByteSize()
-    probe = type(message)()
-    probe.CopyFrom(message)
-    probe.DiscardUnknownFields()
-    return probe.ByteSize() != size
+    message.DiscardUnknownFields()
+    return message.ByteSize() != size
 
 
 def _finite(value: float) -> bool:

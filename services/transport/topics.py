@@ -5,6 +5,7 @@ Every key lives under ``msk/<session>/``. A session name is one key chunk: lette
 
 from __future__ import annotations
 
+import functools
 import re
 from enum import Enum
 
@@ -28,6 +29,7 @@ TOPIC_TABLE: tuple[tuple[str, str], ...] = (
     ("status/<device>", "msk.DeviceStatus"),
     ("envelopes", "msk.EmgEnvelope"),
 )
+_TYPE_OF_TEMPLATE = dict(TOPIC_TABLE)
 
 
 class Delivery(Enum):
@@ -109,7 +111,10 @@ def rename_session(key: str, new_session: str) -> str:
     return f"{session_prefix(new_session)}/{rest}"
 
 
+@functools.lru_cache(maxsize=4096)
 def _template_for_key(key: str) -> str | None:
+    """The table's template ``key`` matches (None: none); cached, since every node asks it for every message (a
+    session has a few dozen keys; a key that is no msk topic raises and is not cached)."""
     _, rest = split_key(key)
     rest_parts = rest.split("/")
     for pattern, _type_name in TOPIC_TABLE:
@@ -124,7 +129,7 @@ def _template_for_key(key: str) -> str | None:
 def message_type_for_key(key: str) -> str | None:
     """The protobuf type carried by ``key``, or None when the key is not in the table."""
     template = _template_for_key(key)
-    return None if template is None else dict(TOPIC_TABLE)[template]
+    return None if template is None else _TYPE_OF_TEMPLATE[template]
 
 
 def delivery_for_key(key: str) -> Delivery:
