@@ -176,12 +176,15 @@ def node_dict(status: messages.DeviceStatus) -> dict:
     }
 
 
+def _electrode_names(electrode: messages.ElectrodeQuality | messages.ElectrodeFatigue) -> dict:
+    """Which electrode a row of the page is about: its device, channel and muscle group."""
+    return {"source": electrode.source, "channel": electrode.channel, "group": electrode.group}
+
+
 def electrode_dict(electrode: messages.ElectrodeQuality) -> dict:
     """One electrode's signal quality as the page shows it (``ElectrodeQuality``)."""
     return {
-        "source": electrode.source,
-        "channel": electrode.channel,
-        "group": electrode.group,
+        **_electrode_names(electrode),
         "state": electrode.state,
         "reasons": list(electrode.reasons),
         "detail": electrode.detail,
@@ -191,9 +194,7 @@ def electrode_dict(electrode: messages.ElectrodeQuality) -> dict:
 def fatigue_dict(electrode: messages.ElectrodeFatigue) -> dict:
     """One electrode's fatigue index over the set as the page shows it (``ElectrodeFatigue``; null for no value)."""
     return {
-        "source": electrode.source,
-        "channel": electrode.channel,
-        "group": electrode.group,
+        **_electrode_names(electrode),
         "set_number": int(electrode.set_number),
         "median_hz": _finite(electrode.median_hz),
         "mean_hz": _finite(electrode.mean_hz),

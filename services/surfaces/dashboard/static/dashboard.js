@@ -473,11 +473,16 @@ for (const mode of ["time", "reps"]) {
   });
 }
 
-// ---- fatigue: per electrode the median frequency of each rep and its trend over the set -------------------------
-function renderFatigue(frame) {
+// Electrode rows in the frame's muscle order (electrodes of no muscle in the frame last), by channel within a muscle.
+function inMuscleOrder(electrodes, frame) {
   const order = frame ? frame.groups : [];
   const rank = (e) => (order.includes(e.group) ? order.indexOf(e.group) : order.length);
-  const rows = [...state.fatigue].sort((a, b) => rank(a) - rank(b) || a.channel.localeCompare(b.channel)).map((e) => {
+  return [...electrodes].sort((a, b) => rank(a) - rank(b) || a.channel.localeCompare(b.channel));
+}
+
+// ---- fatigue: per electrode the median frequency of each rep and its trend over the set -------------------------
+function renderFatigue(frame) {
+  const rows = inMuscleOrder(state.fatigue, frame).map((e) => {
     const tr = document.createElement("tr");
     tr.dataset.channel = e.channel;
     const reps = e.median_hz.length;
@@ -546,9 +551,7 @@ function renderNodes() {
 // Each electrode's signal quality under its muscle's name, in the frame's muscle order: good, check or bad with the
 // reason (the verdict with its numbers as the row's tooltip).
 function renderElectrodes(frame) {
-  const order = frame ? frame.groups : [];
-  const rank = (e) => (order.includes(e.group) ? order.indexOf(e.group) : order.length);
-  const rows = [...state.electrodes].sort((a, b) => rank(a) - rank(b) || a.channel.localeCompare(b.channel)).map((e) => {
+  const rows = inMuscleOrder(state.electrodes, frame).map((e) => {
     const tr = document.createElement("tr");
     tr.dataset.channel = e.channel;
     tr.dataset.state = e.state;
