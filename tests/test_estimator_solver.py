@@ -64,15 +64,12 @@ def test_msk_live_solver_reaches_the_estimator_node():
 
     from services.commands import live as live_command
     from services.sessions import live
-    from services.sessions.live_session import LiveSession
 
     parser = argparse.ArgumentParser()
     live_command.register(parser.add_subparsers())
     for given, expected in ((["--solver", "piqp"], "piqp"), ([], "active-set")):
-        args = parser.parse_args(["live", "--sim", *given])
-        session = LiveSession(None, name="sim", methods=("so",))
-        if args.solver is not None:
-            session.solver = args.solver
+        session = live_command.session_from_args(parser.parse_args(["live", "--sim", *given]))
+        assert session.solver == expected
         argv = live.node_argv(live.LivePlan(session, ("so",), Path("subject.json")), "estimator", Path("x.mcap"))
         assert argv[argv.index("--solver") + 1] == expected
     with pytest.raises(SystemExit):

@@ -11,11 +11,15 @@ import ast
 import math
 import signal
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from msk_core.errors import ConfigError
 from services.sessions.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
+
+if TYPE_CHECKING:
+    from services.sessions.live_session import LiveSession
 
 #: ``msk live``'s exit code when a node of the session failed (2: a bad session file or option, before the start)
 EXIT_NODE_FAILED = 3
@@ -99,22 +103,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from services.sessions import live
+def session_from_args(args: argparse.Namespace) -> LiveSession:
+    """The session of the command line: its file (or, with ``--sim`` alone, the simulators' session) with the
+    options that override the file (``--out``, ``--solver``)."""
     from services.sessions.live_session import LiveSession, load_session_file
 
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError("must be a positive number of seconds", field="--duration", value=args.duration)
     if args.session_file is not None:
         session = load_session_file(args.session_file, require_devices=not args.sim)
     elif args.sim:
         session = LiveSession(None, name="sim")
     else:
         raise ConfigError("give a session file (docs/live.md), or --sim to run on the simulators", field="SESSION.toml")
-    if args.out is not None:
-        session.out = args.out
-    if args.solver is not None:
-        session.solver = args.solver
+    return replace(
+        session,
+        out=session.out if args.out is None else args.out,
+        solver=session.solver if args.solver is None else args.solver,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from services.sessions import live
+
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError("must be a positive number of seconds", field="--duration", value=args.duration)
+    session = session_from_args(args)
     from drivers.trigno.simulator import SensorFault
 
     faults = tuple(SensorFault.parse(text) for text in args.sim_fault)

@@ -694,16 +694,16 @@ def summary_text(summary: dict) -> str:
 # ------------------------------------------------------------------------------------------------ the graph
 
 
-@dataclass
+@dataclass(frozen=True)
 class LivePlan:
-    """Everything the graph needs, resolved from the session file (and ``--sim``)."""
+    """Everything the graph needs, resolved from the session file (and ``--sim``) by :func:`plan_for`."""
 
     session: LiveSession
     methods: tuple[str, ...]
     subject: Path
     trigno: tuple[str, int] | None = None  # (HOST[:PORT], EMG port)
     trigno_aux_port: int | None = None  # the sensors' accelerometers (AUX port), for the EMG clock's alignment
-    xsens_ports: list[str] = field(default_factory=list)
+    xsens_ports: tuple[str, ...] = ()
     trackers: dict[str, str] = field(default_factory=dict)
     exercise: str = ""  # the pack's name (session.pack may be a path)
     trigno_latency_ms: float = (
@@ -1255,7 +1255,9 @@ def plan_for(
     session: LiveSession, *, sim: bool, log, sim_faults: tuple = (), sim_sets: SimSets | None = None
 ) -> tuple[LivePlan, Simulators | None]:
     """The graph's plan and, with ``sim``, the started simulators (the Trigno injecting ``sim_faults``), playing
-    ``sim_sets`` (default :class:`services.sessions.sim_sets.SimSets`: sets of 9 reps with 30 s rests)."""
+    ``sim_sets`` (default :class:`services.sessions.sim_sets.SimSets`: sets of 9 reps with 30 s rests). The plan's
+    session is ``session`` with what ``--sim`` decides (the bundled trial's load unless the file states one, the
+    simulators' IMU rate)."""
     from msk_core.imu.mapping import mapping_for
     from msk_core.model import load_pack
 
@@ -1270,7 +1272,9 @@ def plan_for(
     segments = list(mapping_for(model.name).segments)
     sources = None
     if sim:
-        sources, (subject, electrodes, trackers, methods) = _sim_inputs(session, model.name, segments, sim_sets, log)
+        sources, session, (subject, electrodes, trackers, methods) = _sim_inputs(
+            session, model.name, segments, sim_sets, log
+        )
     else:
         subject, electrodes, trackers, methods = _device_inputs(session)
     profile = json.loads(Path(subject).read_text())
@@ -1289,20 +1293,29 @@ def plan_for(
         )
     profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
     trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
+    names = session_names(session, model.display_names)
+    simulators = None
+    if sources is not None:
+        simulators = _start_planned_simulators(
+            sources, electrodes, trackers, trigno_latency_ms, tracker_latency_ms, sim_faults, log
+        )
+        ports = _simulator_ports(simulators, trackers)
+    else:
+        ports = _device_ports(session)
     plan = LivePlan(
         session,
         tuple(methods),
         profile_path,
+        trigno=ports.trigno,
+        trigno_aux_port=ports.trigno_aux_port,
+        xsens_ports=ports.xsens,
         trackers=trackers,
         exercise=model.name,
         trigno_latency_ms=trigno_latency_ms,
         tracker_latency_ms=tracker_latency_ms,
-        names=session_names(session, model.display_names),
+        names=names,
     )
-    if sources is not None:
-        return plan, _start_planned_simulators(plan, sources, electrodes, sim_faults, log)
-    _device_ports(plan)
-    return plan, None
+    return plan, simulators
 
 
 # (subject profile, electrode map, tracker -> segment map, methods) of a session
@@ -1311,19 +1324,23 @@ _SessionInputs = tuple[Path, dict[str, str], dict[str, str], tuple[str, ...]]
 
 def _sim_inputs(
     session: LiveSession, pack: str, segments: list[str], sim_sets: SimSets | None, log
-) -> tuple[SimSources, _SessionInputs]:
-    """Under --sim: the bundled trial's sources, and what the session file leaves out taken from the bundled session
-    (its subject, calibrated and cached; its load, electrodes and trackers of the pack's segments)."""
+) -> tuple[SimSources, LiveSession, _SessionInputs]:
+    """Under --sim: the bundled trial's sources, the session with what they decide (their IMU rate; their load
+    unless the file states one), and what the session file leaves out taken from the bundled session (its subject,
+    calibrated and cached; its electrodes and trackers of the pack's segments)."""
     from services.sessions.sim_sets import SimSets, with_sets
 
     sources = with_sets(sim_sources(RECORDINGS / "demo_session.mcap", pack), sim_sets or SimSets())
     subject = session.subject or sim_subject(pack, log)
-    if "session.load_kg" not in session.given:
-        session.load_kg = sources.load_kg
+    session = dataclasses.replace(
+        session,
+        load_kg=session.load_kg if "session.load_kg" in session.given else sources.load_kg,
+        imu_rate_hz=int(round(next(iter(sources.imu.values()))[1].rate_hz)),
+    )
     electrodes = session.electrodes or sources.electrodes
     trackers = session.trackers or {t: seg for t, (seg, _) in sources.imu.items() if seg in segments}
     methods = session.methods or SIM_METHODS
-    return sources, (Path(subject), electrodes, trackers, tuple(methods))
+    return sources, session, (Path(subject), electrodes, trackers, tuple(methods))
 
 
 def _device_inputs(session: LiveSession) -> _SessionInputs:
@@ -1336,21 +1353,22 @@ def _device_inputs(session: LiveSession) -> _SessionInputs:
 
 
 def _start_planned_simulators(
-    plan: LivePlan, sources: SimSources, electrodes: dict[str, str], sim_faults: tuple, log
+    sources: SimSources,
+    electrodes: dict[str, str],
+    trackers: dict[str, str],
+    trigno_latency_ms: float,
+    tracker_latency_ms: dict[str, float],
+    sim_faults: tuple,
+    log,
 ) -> Simulators:
-    """Start the simulators with the latencies the session states (0 unless it says) and point the plan's drivers at
-    them."""
-    session, trackers = plan.session, plan.trackers
+    """Start the simulators with the latencies the session states (0 unless it says); the trackers of segments the
+    pack does not use are closed."""
     simulators = start_simulators(
         sources,
-        trigno_latency_s=plan.trigno_latency_ms / 1e3,
-        xsens_latency_s={t: ms / 1e3 for t, ms in plan.tracker_latency_ms.items()},
+        trigno_latency_s=trigno_latency_ms / 1e3,
+        xsens_latency_s={t: ms / 1e3 for t, ms in tracker_latency_ms.items()},
         trigno_faults=sim_faults,
     )
-    plan.trigno = (f"127.0.0.1:{simulators.trigno.ports['command']}", simulators.trigno.ports["emg"])
-    plan.trigno_aux_port = simulators.trigno.ports["aux"]
-    plan.xsens_ports = [simulators.xsens[t].path for t in trackers]
-    session.imu_rate_hz = int(round(next(iter(sources.imu.values()))[1].rate_hz))
     log(
         f"simulators: Trigno on 127.0.0.1:{simulators.trigno.ports['command']} ({sources.emg.rate_hz:g} Hz, "
         f"{sum(sources.emg.paired)} sensors), Xsens "
@@ -1374,16 +1392,36 @@ def _start_planned_simulators(
     return simulators
 
 
-def _device_ports(plan: LivePlan) -> None:
-    """The plan's Trigno address and ports and Xsens serial ports from the session file."""
-    session = plan.session
+@dataclass(frozen=True)
+class _DevicePorts:
+    """Where the drivers find the devices: the Trigno's (HOST[:PORT], EMG port) and AUX port, the Xsens serial
+    ports."""
+
+    trigno: tuple[str, int] | None
+    trigno_aux_port: int | None
+    xsens: tuple[str, ...]
+
+
+def _simulator_ports(simulators: Simulators, trackers: dict[str, str]) -> _DevicePorts:
+    """The started simulators' addresses and ports, one pty per tracker of ``trackers``."""
+    ports = simulators.trigno.ports
+    return _DevicePorts(
+        (f"127.0.0.1:{ports['command']}", ports["emg"]),
+        ports["aux"],
+        tuple(simulators.xsens[t].path for t in trackers),
+    )
+
+
+def _device_ports(session: LiveSession) -> _DevicePorts:
+    """The Trigno address and ports and the Xsens serial ports from the session file."""
+    trigno = aux_port = None
     if session.trigno_host is not None:
         from drivers.trigno import protocol as tp
 
-        plan.trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
+        trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
         # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
-        plan.trigno_aux_port = int(tp.DataPort.LEGACY_ACC if plan.trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
-    plan.xsens_ports = list(session.xsens_ports)
+        aux_port = int(tp.DataPort.LEGACY_ACC if trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
+    return _DevicePorts(trigno, aux_port, session.xsens_ports)
 
 
 def default_live_endpoint() -> str:

@@ -10,7 +10,7 @@ import math
 import re
 import tomllib
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -83,9 +83,10 @@ def is_trigno_channel(label: str) -> bool:
     )
 
 
-@dataclass
+@dataclass(frozen=True)
 class LiveSession:
-    """A parsed session file (paths resolved against the file's folder)."""
+    """A parsed session file (paths resolved against the file's folder). Frozen: a value decided later (a command-line
+    option, what ``--sim`` fills in) makes a changed copy (:func:`dataclasses.replace`) where it is decided."""
 
     path: Path | None
     name: str = "live"
@@ -109,7 +110,7 @@ class LiveSession:
     trackers: dict[str, str] = field(default_factory=dict)  # tracker id (8 hex digits) -> segment
     electrodes: dict[str, str] = field(default_factory=dict)  # Trigno channel label -> profile electrode or group
     names: dict[str, object] = field(default_factory=dict)  # [names] as written: group or coordinate -> display name
-    given: set[str] = field(default_factory=set)  # dotted keys present in the file
+    given: frozenset[str] = frozenset()  # dotted keys present in the file
 
 
 def stated_latencies(
@@ -165,14 +166,13 @@ def parse_session(doc: dict, path: Path | None = None, *, require_devices: bool 
     the bundled session provides pack, subject, maps and load when the file leaves them out."""
     base = path.parent if path is not None else Path.cwd()
     _check_sections(doc, path)
-    session = LiveSession(path)
-    session.given = {f"{s}.{k}" for s, t in doc.items() for k in t} | set(doc)
-    _parse_session_table(session, doc.get("session", {}), path, base, require_devices)
+    session = LiveSession(path, given=frozenset({f"{s}.{k}" for s, t in doc.items() for k in t} | set(doc)))
+    session = _parse_session_table(session, doc.get("session", {}), path, base, require_devices)
     if (trigno := doc.get("trigno")) is not None:
-        _parse_trigno(session, trigno, path, require_devices)
+        session = _parse_trigno(session, trigno, path, require_devices)
     if (xsens := doc.get("xsens")) is not None:
-        _parse_xsens(session, xsens, path, require_devices)
-    _parse_maps(session, doc, path)
+        session = _parse_xsens(session, xsens, path, require_devices)
+    session = _parse_maps(session, doc, path)
     if require_devices:
         _check_devices(session, path)
     return session
@@ -191,22 +191,24 @@ def _check_sections(doc: dict, path: Path | None) -> None:
                 raise _error(path, f"{section}.{key}", f"unknown key (expected {', '.join(sorted(allowed))})", key)
 
 
-def _parse_session_table(session: LiveSession, s: dict, path: Path | None, base: Path, require_devices: bool) -> None:
+def _parse_session_table(
+    session: LiveSession, s: dict, path: Path | None, base: Path, require_devices: bool
+) -> LiveSession:
     """[session]: name, out, athlete, pack, subject, load_kg, rest_s, methods."""
+    name, out, athlete, pack, subject = session.name, session.out, session.athlete, session.pack, session.subject
     if "name" in s:
         try:
-            session.name = topics.check_chunk(_type(path, "session.name", s["name"], str, "a string"), "session")
+            name = topics.check_chunk(_type(path, "session.name", s["name"], str, "a string"), "session")
         except ConfigError as error:
             raise _error(path, "session.name", f"not a valid key chunk ({error})", s["name"]) from None
     if "out" in s:
-        session.out = base / _type(path, "session.out", s["out"], str, "a folder path")
+        out = base / _type(path, "session.out", s["out"], str, "a folder path")
     if "athlete" in s:
         athlete = _type(path, "session.athlete", s["athlete"], str, "a string (who lifts)")
         if not athlete.isprintable():
             raise _error(path, "session.athlete", "must be one line of printable text", athlete)
-        session.athlete = athlete
     if "pack" in s:
-        session.pack = _pack(
+        pack = _pack(
             path, base, _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path")
         )
     elif require_devices:
@@ -217,12 +219,18 @@ def _parse_session_table(session: LiveSession, s: dict, path: Path | None, base:
             raise _error(
                 path, "session.subject", "subject profile not found (make one with `msk calibrate`)", str(subject)
             )
-        session.subject = subject
+    session = replace(session, name=name, out=out, athlete=athlete, pack=pack, subject=subject)
+    return _parse_lift(session, s, path, require_devices)
+
+
+def _parse_lift(session: LiveSession, s: dict, path: Path | None, require_devices: bool) -> LiveSession:
+    """[session]: load_kg, rest_s, methods."""
+    load_kg, rest_s, methods = session.load_kg, session.rest_s, session.methods
     if "load_kg" in s:
         load = _type(path, "session.load_kg", s["load_kg"], (int, float), "a number of kilograms")
         if not (math.isfinite(load) and load >= 0):
             raise _error(path, "session.load_kg", "must be a finite mass >= 0 kg", load)
-        session.load_kg = float(load)
+        load_kg = float(load)
     elif require_devices:
         raise _error(path, "session.load_kg", "missing: the barbell mass in kg (0 for none)")
     if "rest_s" in s:
@@ -231,82 +239,105 @@ def _parse_session_table(session: LiveSession, s: dict, path: Path | None, base:
             raise _error(
                 path, "session.rest_s", "must be a time > 0 s (a set ends after this long without a rep)", rest
             )
-        session.rest_s = float(rest)
+        rest_s = float(rest)
     if "methods" in s:
-        methods = _type(path, "session.methods", s["methods"], list, f"a list of methods ({', '.join(METHODS)})")
-        if not methods:
-            raise _error(path, "session.methods", "must name at least one method", methods)
-        for m in methods:
+        listed = _type(path, "session.methods", s["methods"], list, f"a list of methods ({', '.join(METHODS)})")
+        if not listed:
+            raise _error(path, "session.methods", "must name at least one method", listed)
+        for m in listed:
             if m not in METHODS:
                 raise _error(path, "session.methods", f"unknown method (expected {', '.join(METHODS)})", m)
-        session.methods = tuple(dict.fromkeys(methods))
+        methods = tuple(dict.fromkeys(listed))
+    return replace(session, load_kg=load_kg, rest_s=rest_s, methods=methods)
 
 
-def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devices: bool) -> None:
+def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devices: bool) -> LiveSession:
     """[trigno]: host, emg_port, id, latency_ms."""
+    host, emg_port, trigno_id, latency = (
+        session.trigno_host,
+        session.trigno_emg_port,
+        session.trigno_id,
+        session.trigno_latency_ms,
+    )
     if "host" in t:
-        session.trigno_host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
+        host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
     elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
         raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
     if "emg_port" in t:
-        session.trigno_emg_port = _int_within(
+        emg_port = _int_within(
             path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
         )
     if "id" in t:
-        session.trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
+        trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
     if "latency_ms" in t:
-        session.trigno_latency_ms = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
+        latency = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
+    return replace(session, trigno_host=host, trigno_emg_port=emg_port, trigno_id=trigno_id, trigno_latency_ms=latency)
 
 
-def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devices: bool) -> None:
+def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devices: bool) -> LiveSession:
     """[xsens]: ports, rate_hz, baud, latency_ms, tracker_latency_ms."""
+    ports, rate_hz, baud, latency = (
+        session.xsens_ports,
+        session.imu_rate_hz,
+        session.xsens_baud,
+        session.xsens_latency_ms,
+    )
     if "ports" in x:
-        ports = x["ports"]
-        if isinstance(ports, str):
-            ports = [ports]
-        if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
+        given = [x["ports"]] if isinstance(x["ports"], str) else x["ports"]
+        if not isinstance(given, list) or not given or not all(isinstance(p, str) and p for p in given):
             raise _error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
-        session.xsens_ports = tuple(ports)
+        ports = tuple(given)
     elif require_devices:
         raise _error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
     if "rate_hz" in x:
-        session.imu_rate_hz = _int_within(
+        rate_hz = _int_within(
             path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
         )
     if "baud" in x:
-        session.xsens_baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
-        if session.xsens_baud <= 0:
-            raise _error(path, "xsens.baud", "must be a positive baud rate", session.xsens_baud)
+        baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
+        if baud <= 0:
+            raise _error(path, "xsens.baud", "must be a positive baud rate", baud)
     if "latency_ms" in x:
-        session.xsens_latency_ms = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
+        latency = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
     per_tracker = x.get("tracker_latency_ms", {})
     if not isinstance(per_tracker, dict):
         raise _error(path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker)
+    tracker_latency = dict(session.tracker_latency_ms)
     for tracker, value in per_tracker.items():
         key = f"xsens.tracker_latency_ms.{tracker}"
-        session.tracker_latency_ms[_tracker_id(path, key, tracker)] = _latency_ms(path, key, value)
+        tracker_latency[_tracker_id(path, key, tracker)] = _latency_ms(path, key, value)
+    return replace(
+        session,
+        xsens_ports=ports,
+        imu_rate_hz=rate_hz,
+        xsens_baud=baud,
+        xsens_latency_ms=latency,
+        tracker_latency_ms=tracker_latency,
+    )
 
 
-def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> None:
+def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSession:
     """[trackers], [names] and [electrodes]; a tracker latency only for a tracker of [trackers]."""
+    trackers = dict(session.trackers)
     for tracker, segment in doc.get("trackers", {}).items():
         key = f"trackers.{tracker}"
-        session.trackers[_tracker_id(path, key, tracker)] = _type(path, key, segment, str, "a body segment name")
+        trackers[_tracker_id(path, key, tracker)] = _type(path, key, segment, str, "a body segment name")
     for tracker in session.tracker_latency_ms:
-        if session.trackers and tracker not in session.trackers:
+        if trackers and tracker not in trackers:
             raise _error(
                 path,
                 f"xsens.tracker_latency_ms.{tracker}",
-                f"not a tracker of [trackers] ({', '.join(session.trackers)})",
+                f"not a tracker of [trackers] ({', '.join(trackers)})",
                 tracker,
             )
-    session.names = dict(doc.get("names", {}))
+    electrodes = dict(session.electrodes)
     for label, target in doc.get("electrodes", {}).items():
         if not is_trigno_channel(label):
             raise _error(
                 path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label
             )
-        session.electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
+        electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
+    return replace(session, trackers=trackers, electrodes=electrodes, names=dict(doc.get("names", {})))
 
 
 def _check_devices(session: LiveSession, path: Path | None) -> None:
