@@ -9,8 +9,6 @@ import functools
 import json
 import shutil
 import tempfile
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from msk_core.model import load_pack
 from msk_core.synth import SynthConfig, generate_session, parse_effects
 from msk_core.synth.exercises import Exercise
 from msk_core.synth.files import write_session
+from tests.profile_helpers import phased_profile
 
 _DIRS: list[Path] = []
 LOADS = {"bench_press": (40.0, 60.0), "deadlift": (45.0, 75.0)}
@@ -78,22 +77,7 @@ def discrepancy(exercise: str, effects: str, seed: int, max_effects: int = 1, lo
 
 def _arm26_profile(effects: dict | None) -> tuple:
     pack = load_pack("arm26")
-    groups = list(pack.groups)
-    f_ref = np.asarray(pack.f_max_ref, dtype=float)
-    from msk_core.estimate import PhasePrior
-
-    bins = 10
-    prior = PhasePrior(
-        tuple(groups),
-        np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
-        np.full((bins, len(groups)), 0.05),
-        np.ones(len(groups), dtype=bool),
-        rest_mean=np.full(len(groups), 0.01),
-        rest_std=np.full(len(groups), 0.02),
-    )
-    return pack, SubjectProfile(
-        pack.name, str(pack.version), groups, f_ref.copy(), f_ref.copy(), prior, effects=effects
-    )
+    return pack, phased_profile(pack, effects=effects)
 
 
 def _effects(*items, gain=None) -> dict:
@@ -185,9 +169,9 @@ def test_force_length_scales_each_groups_moment_arms_and_delay_looks_up_the_earl
 
 
 def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_path):
-    from services.nodes import estimator
-    from services.transport import messages, topics
-    from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+    from services.transport import messages
+    from services.transport.zenoh_session import publish
+    from tests.node_helpers import estimator_client
 
     pack, profile = _arm26_profile(
         _effects(
@@ -200,44 +184,17 @@ def test_live_estimator_node_loads_a_profile_with_effects(zenoh_endpoint, tmp_pa
     profile.save(path)
     poses, _ = _poses(pack, 20)
     coords = list(pack.coordinates)
-    stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
-    thread = threading.Thread(
-        target=estimator.main,
-        args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-        kwargs=dict(
-            pack="arm26",
-            exercise="arm_curl",
-            session="e",
-            methods=["hybrid"],
-            subject_path=path,
-            stop_event=stop,
-            ready_event=ready,
-            stats=stats,
-        ),
-        daemon=True,
+    node = estimator_client(
+        zenoh_endpoint, "e", pack="arm26", exercise="arm_curl", methods=["hybrid"], subject_path=path
     )
-    thread.start()
-    assert ready.wait(20)
-    received: list = []
-    with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
-        session.declare_subscriber(
-            "msk/e/activations/*",
-            lambda s: received.append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())),
-        )
-        pub = declare_data_publisher(session, topics.joints_key("e"), "msk.JointAngles")
-        deadline = time.monotonic() + 10
-        while not pub.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.01)
+    with node as client:
         for i, q in enumerate(poses):
             publish(
-                pub,
+                client.joints,
                 messages.JointAngles(coordinates=coords, q=q.tolist(), phase=-1.0, device_time_ns=(i + 1) * 10_000_000),
             )
-        deadline = time.monotonic() + 30
-        while len(received) < len(poses) and time.monotonic() < deadline:
-            time.sleep(0.05)
-    stop.set()
-    thread.join(10)
+        client.wait_frames(len(poses), 30)
+    received = client.frames
     assert len(received) == len(poses), f"waited for {len(poses)} frames, got {len(received)}"
     offline = FrameEstimator(pack, SubjectProfile.load(path), "hybrid")
     plain = FrameEstimator(pack, _arm26_profile(None)[1], "hybrid")
@@ -537,31 +494,14 @@ def test_two_hidden_effects_are_both_named_with_max_effects_2():
 
 def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
     from services.cli import main
+    from tests.cli_helpers import discrepancy_argv
 
     folder, pack, trials, profile, _ = synthetic("bench_press", "emd=0.15", 3)
     subject = tmp_path / "subject.json"
     profile.save(subject)
     report, out = tmp_path / "report", tmp_path / "with_effect.json"
-    assert (
-        main(
-            [
-                "discrepancy",
-                "--pack",
-                "bench_press",
-                "--subject",
-                str(subject),
-                "--trial",
-                str(trials[0].path),
-                "--holdout",
-                str(trials[1].path),
-                "--report",
-                str(report),
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    argv = discrepancy_argv("bench_press", subject, trials[0].path, trials[1].path, "--report", str(report))
+    assert main([*argv, "--out", str(out)]) == 0
     summary = json.loads((report / "summary.json").read_text())
     assert summary["effect"] == "emd" and summary["gap_after"] < summary["gap_before"]
     assert [c["effect"] for c in summary["candidates"]][0] == "emd"
@@ -608,24 +548,7 @@ def test_cli_writes_summary_report_plots_and_the_profile(tmp_path, capsys):
         == 0
     )
     capsys.readouterr()
-    assert (
-        main(
-            [
-                "discrepancy",
-                "--pack",
-                "bench_press",
-                "--subject",
-                str(subject),
-                "--trial",
-                str(trials[0].path),
-                "--holdout",
-                str(trials[0].path),
-                "--report",
-                str(report),
-            ]
-        )
-        == 2
-    )
+    assert main(discrepancy_argv("bench_press", subject, trials[0].path, trials[0].path, "--report", str(report))) == 2
     err = capsys.readouterr().err
     assert "--holdout" in err and "bench_press_40kg" in err, err
 
@@ -693,21 +616,12 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
     and the written profile's strengths are back near the generator's (ARM26_STRENGTH)."""
     from services.bench.discrepancy import ARM26_STRENGTH, arm26_session
     from services.cli import main
+    from tests.cli_helpers import discrepancy_argv
 
     pack, train, holdout, profile = arm26_session(tmp_path, 0.1, 2, effect="passive_joint")
     subject, out = tmp_path / "subject.json", tmp_path / "with_effect.json"
     profile.save(subject)
-    args = [
-        "discrepancy",
-        "--pack",
-        "arm26",
-        "--subject",
-        str(subject),
-        "--trial",
-        str(train[0].path),
-        "--holdout",
-        str(holdout[0].path),
-    ]
+    args = discrepancy_argv("arm26", subject, train[0].path, holdout[0].path)
     assert main(args + ["--report", str(tmp_path / "plain")]) == 0
     plain = json.loads((tmp_path / "plain" / "summary.json").read_text())
     assert plain["effect"] == "none"

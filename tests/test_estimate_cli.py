@@ -22,6 +22,7 @@ from msk_core.estimate.pipeline import estimate_trial
 from msk_core.estimate.trial import load_trial
 from msk_core.io import read_sto, write_sto
 from services.cli import main
+from tests.cli_helpers import discrepancy_argv
 
 # every muscle `so` activates in this motion has EMG (a synergist without EMG would absorb strength); TRIlat and
 # TRImed share their moment arms, so only their common factor is identifiable
@@ -72,10 +73,15 @@ def arm26_trials(shared_dir, tmp_path):
     return {"plain": plain, "emg": with_emg, "pack": pack, "trial": trial}
 
 
+def _msk_arm26(command: str, trial: Path | str, *options: str) -> int:
+    """``msk COMMAND --pack arm26 --trial TRIAL [OPTIONS]``, in this process: its exit code."""
+    return main([command, "--pack", "arm26", "--trial", str(trial), *options])
+
+
 def test_msk_estimate_so_writes_activations_and_torques(arm26_trials, tmp_path, capsys):
     out = tmp_path / "out" / "act.sto"
     trial = str(arm26_trials["plain"])
-    rc = main(["estimate", "--pack", "arm26", "--trial", trial, "--method", "so", "--out", str(out)])
+    rc = _msk_arm26("estimate", trial, "--method", "so", "--out", str(out))
     assert rc == 0
     act = read_sto(out)
     assert act.columns == list(arm26_trials["pack"].groups) and act.n_rows == arm26_trials["trial"].n_frames
@@ -102,7 +108,7 @@ def _rel_path(toml: Path, key: str) -> str:
 def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials, tmp_path, capsys):
     profile_path = tmp_path / "subject.json"
     # TRIlat and TRImed have the same moment arms: each alone is unidentified, their common factor is identified
-    rc = main(["calibrate", "--pack", "arm26", "--trial", str(arm26_trials["emg"]), "--out", str(profile_path)])
+    rc = _msk_arm26("calibrate", arm26_trials["emg"], "--out", str(profile_path))
     printed = capsys.readouterr().out
     assert rc == 0, printed
     strength = json.loads(profile_path.read_text())["calibration"]["strength"]
@@ -116,19 +122,7 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert len(hint) == 1 and "TRIlat" in hint[0] and "TRImed" in hint[0] and "isometric = true" in hint[0], hint
     # without the identifiability pass every factor stays free (same common factor here)
     off = tmp_path / "subject_free.json"
-    rc = main(
-        [
-            "calibrate",
-            "--pack",
-            "arm26",
-            "--trial",
-            str(arm26_trials["emg"]),
-            "--out",
-            str(off),
-            "--identify-max-std",
-            "0",
-        ]
-    )
+    rc = _msk_arm26("calibrate", arm26_trials["emg"], "--out", str(off), "--identify-max-std", "0")
     assert rc == 0, capsys.readouterr().out
     assert json.loads(off.read_text())["calibration"]["settings"]["identify_max_std"] is None
     doc = json.loads(profile_path.read_text())
@@ -143,38 +137,14 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert scale["BRA"] == 1.0  # no EMG -> reference strength
 
     out = tmp_path / "prop.sto"
-    rc = main(
-        [
-            "estimate",
-            "--pack",
-            "arm26",
-            "--subject",
-            str(profile_path),
-            "--trial",
-            str(arm26_trials["emg"]),
-            "--method",
-            "proposed",
-            "--out",
-            str(out),
-        ]
+    rc = _msk_arm26(
+        "estimate", arm26_trials["emg"], "--subject", str(profile_path), "--method", "proposed", "--out", str(out)
     )
     assert rc == 0
     assert read_sto(out).n_rows == load_trial(arm26_trials["emg"], arm26_trials["pack"]).n_frames
 
     report = tmp_path / "report"
-    rc = main(
-        [
-            "evaluate",
-            "--pack",
-            "arm26",
-            "--subject",
-            str(profile_path),
-            "--trial",
-            str(arm26_trials["emg"]),
-            "--report",
-            str(report),
-        ]
-    )
+    rc = _msk_arm26("evaluate", arm26_trials["emg"], "--subject", str(profile_path), "--report", str(report))
     assert rc == 0
     md = (report / "report.md").read_text()
     for method in ("proposed", "so", "hybrid", "prior"):
@@ -232,20 +202,8 @@ def test_trial_without_torques_uses_pack_inverse_dynamics_and_start_end(arm26_tr
 def test_msk_calibrate_prior_options_for_groups_without_emg(arm26_trials, tmp_path, capsys):
     pack = arm26_trials["pack"]
     out = tmp_path / "syn.json"
-    rc = main(
-        [
-            "calibrate",
-            "--pack",
-            "arm26",
-            "--trial",
-            str(arm26_trials["emg"]),
-            "--out",
-            str(out),
-            "--synergist",
-            "BRA=BIClong",
-            "--strength-prior-std",
-            "0.3",
-        ]
+    rc = _msk_arm26(
+        "calibrate", arm26_trials["emg"], "--out", str(out), "--synergist", "BRA=BIClong", "--strength-prior-std", "0.3"
     )
     assert rc == 0, capsys.readouterr().out
     doc = json.loads(out.read_text())
@@ -256,40 +214,9 @@ def test_msk_calibrate_prior_options_for_groups_without_emg(arm26_trials, tmp_pa
     j, k = list(pack.groups).index("BRA"), list(pack.groups).index("BIClong")
     np.testing.assert_allclose(prior.mean[:, j], prior.mean[:, k])
     capsys.readouterr()
-    assert (
-        main(
-            [
-                "calibrate",
-                "--pack",
-                "arm26",
-                "--trial",
-                str(arm26_trials["emg"]),
-                "--out",
-                str(out),
-                "--synergist",
-                "BRA=TRIlong",
-            ]
-        )
-        != 0
-    )
-    assert "a group with EMG" in capsys.readouterr().err
-    assert (
-        main(
-            [
-                "calibrate",
-                "--pack",
-                "arm26",
-                "--trial",
-                str(arm26_trials["emg"]),
-                "--out",
-                str(out),
-                "--synergist",
-                "BRA",
-            ]
-        )
-        != 0
-    )
-    assert "GROUP=MEASURED" in capsys.readouterr().err
+    for synergist, refusal in (("BRA=TRIlong", "a group with EMG"), ("BRA", "GROUP=MEASURED")):
+        assert _msk_arm26("calibrate", arm26_trials["emg"], "--out", str(out), "--synergist", synergist) != 0
+        assert refusal in capsys.readouterr().err
 
 
 def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_delay(shared_dir, tmp_path, capsys):
@@ -306,25 +233,8 @@ def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_d
         pack, _, _, _ = arm26_session(folder, 0.0, 1, reps=1, effect=effect, calibrate=False)
         train, held = folder / "train.toml", folder / "held.toml"
         subject, report = folder / "subject.json", folder / "report"
-        assert main(["calibrate", "--pack", "arm26", "--trial", str(train), "--emd", "0", "--out", str(subject)]) == 0
-        assert (
-            main(
-                [
-                    "discrepancy",
-                    "--pack",
-                    "arm26",
-                    "--subject",
-                    str(subject),
-                    "--trial",
-                    str(train),
-                    "--holdout",
-                    str(held),
-                    "--report",
-                    str(report),
-                ]
-            )
-            == 0
-        )
+        assert _msk_arm26("calibrate", train, "--out", str(subject), "--emd", "0") == 0
+        assert main(discrepancy_argv("arm26", subject, train, held, "--report", str(report))) == 0
         assert load_trial(held, pack).torque_source == "file"
         summary = json.loads((report / "summary.json").read_text())
         assert summary["effect"] == expected, summary["candidates"][:3]

@@ -3,7 +3,6 @@ offline estimator, bad frames are published flagged, and a load event changes th
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -13,6 +12,8 @@ from msk_core.estimate import FrameEstimator
 from services.nodes import estimator
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from tests.node_helpers import estimator_client, estimator_node, wait_matching
+from tests.profile_helpers import phased_profile
 
 model = pytest.importorskip("msk_core.model")
 
@@ -23,25 +24,9 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
     rng = np.random.default_rng(3)
     lo, hi = np.asarray(pack.coordinate_ranges)[:, 0], np.asarray(pack.coordinate_ranges)[:, 1]
     poses = [lo + (hi - lo) * (0.2 + 0.6 * rng.random(len(coords))) for _ in range(40)]
-    stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
-    thread = threading.Thread(
-        target=estimator.main,
-        args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-        kwargs=dict(
-            pack="arm26",
-            exercise="arm_curl",
-            session="t",
-            methods=["so", "hybrid"],
-            stop_event=stop,
-            ready_event=ready,
-            stats=stats,
-        ),
-        daemon=True,
-    )
-    thread.start()
-    assert ready.wait(20)
     received: dict[str, list] = {"so": [], "hybrid": []}
-    with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
+    node = estimator_node(zenoh_endpoint, pack="arm26", exercise="arm_curl", session="t", methods=["so", "hybrid"])
+    with node as stats, open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
         session.declare_subscriber(
             "msk/t/activations/*",
             lambda s: received[str(s.key_expr).rsplit("/", 1)[1]].append(
@@ -50,12 +35,7 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
         )
         joints_pub = declare_data_publisher(session, topics.joints_key("t"), "msk.JointAngles")
         load_pub = declare_data_publisher(session, topics.load_key("t"), "msk.LoadEvent")
-        deadline = time.monotonic() + 10
-        while (
-            not (joints_pub.matching_status.matching and load_pub.matching_status.matching)
-            and time.monotonic() < deadline
-        ):
-            time.sleep(0.01)
+        wait_matching(joints_pub, load_pub)
         publish(load_pub, messages.LoadEvent(barbell_mass_kg=2.0, exercise="arm_curl"))
         # Coordinates deliberately in reverse order: the node maps them by name.
         for i, q in enumerate(poses):
@@ -82,8 +62,6 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
         while min(len(v) for v in received.values()) < len(poses) + 1 and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(0.2)
-    stop.set()
-    thread.join(10)
     assert stats.other_exercise == 1 and stats.load_events == 2
     assert stats.rejected == 1 and "lack" in stats.last_error and "not_a_coordinate" in stats.last_error
     for method in ("so", "hybrid"):
@@ -129,77 +107,34 @@ def _curl_reps(n_reps: int = 3, rate: float = 100.0):
 
 
 def test_node_fills_the_phase_from_the_profiles_rep_template(zenoh_endpoint, tmp_path):
-    from msk_core.estimate import PhasePrior, SubjectProfile
+    from msk_core.estimate import SubjectProfile
     from msk_core.estimate.phase import LivePhase, kinematic_phase, learn_phase_model
 
     pack = model.load_pack("arm26")
-    coords, groups = list(pack.coordinates), list(pack.groups)
+    coords = list(pack.coordinates)
     t, q = _curl_reps()
     phase_model = learn_phase_model("r_elbow_flex", [(t, q[:, 1])])
-    bins = 10  # a prior that differs per phase bin and at rest, so a wrong phase gives other activations
-    prior = PhasePrior(
-        tuple(groups),
-        np.linspace(0.05, 0.5, bins)[:, None] * np.ones((1, len(groups))),
-        np.full((bins, len(groups)), 0.05),
-        np.ones(len(groups), dtype=bool),
-        rest_mean=np.full(len(groups), 0.01),
-        rest_std=np.full(len(groups), 0.02),
-    )
-    profile = SubjectProfile(
-        pack.name,
-        str(pack.version),
-        groups,
-        np.asarray(pack.f_max_ref, dtype=float),
-        np.asarray(pack.f_max_ref, dtype=float),
-        prior,
-        phase_model=phase_model,
-    )
+    profile = phased_profile(pack, phase_model=phase_model)
     path = tmp_path / "subject.json"
     profile.save(path)
-    stop, ready, stats = threading.Event(), threading.Event(), estimator.EstimatorStats()
-    thread = threading.Thread(
-        target=estimator.main,
-        args=(ZenohOptions(listen=(zenoh_endpoint,)),),
-        kwargs=dict(
-            pack="arm26",
-            exercise="arm_curl",
-            session="p",
-            methods=["proposed"],
-            subject_path=path,
-            stop_event=stop,
-            ready_event=ready,
-            stats=stats,
-        ),
-        daemon=True,
+    node = estimator_client(
+        zenoh_endpoint, "p", pack="arm26", exercise="arm_curl", methods=["proposed"], subject_path=path
     )
-    thread.start()
-    assert ready.wait(20)
-    received: list = []
-    with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as session:
-        session.declare_subscriber(
-            "msk/p/activations/*",
-            lambda s: received.append(messages.decode("msk.ActivationFrame", s.payload.to_bytes())),
-        )
-        joints_pub = declare_data_publisher(session, topics.joints_key("p"), "msk.JointAngles")
-        deadline = time.monotonic() + 10
-        while not joints_pub.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.01)
+    with node as client:
         for ti, qi in zip(t, q):  # no phase field: the node must track it
             publish(
-                joints_pub, messages.JointAngles(coordinates=coords, q=qi.tolist(), device_time_ns=int(round(ti * 1e9)))
+                client.joints,
+                messages.JointAngles(coordinates=coords, q=qi.tolist(), device_time_ns=int(round(ti * 1e9))),
             )
         # a message that carries its phase keeps it
         publish(
-            joints_pub,
+            client.joints,
             messages.JointAngles(
                 coordinates=coords, q=q[0].tolist(), phase=0.25, device_time_ns=int(round((t[-1] + 1.0) * 1e9))
             ),
         )
-        deadline = time.monotonic() + 60
-        while len(received) < t.size + 1 and time.monotonic() < deadline:
-            time.sleep(0.05)
-    stop.set()
-    thread.join(10)
+        client.wait_frames(t.size + 1, 60)
+    received = client.frames
     assert len(received) == t.size + 1
     expected = LivePhase(SubjectProfile.load(path).phase_model, coords).process(t, q)
     got = np.array([f.phase for f in received[:-1]])
