@@ -159,3 +159,18 @@ def test_topic_keys_and_types():
     assert topics.rename_session("msk/a/imu/t1", "b") == "msk/b/imu/t1"
     with pytest.raises(ConfigError, match="session"):
         topics.emg_key("bad/session", "x")
+
+
+def test_add_packed_floats_is_the_same_message_as_extend() -> None:
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(27, 16)).astype(np.float32)[:, ::2]  # not contiguous, as a column selection can be
+    for cls, shape in ((messages.EmgChunk, rows), (messages.AccChunk, rng.normal(size=(2, 4, 3)))):
+        fast, slow = cls(source_id="t", n_samples=3), cls(source_id="t", n_samples=3)
+        messages.add_packed_floats(fast, "samples", shape)
+        slow.samples.extend(np.asarray(shape, dtype=np.float32).ravel().tolist())
+        assert fast == slow
+        assert fast.SerializeToString() == slow.SerializeToString()
+    with pytest.raises(TypeError, match="not a packed repeated float"):
+        messages.add_packed_floats(messages.EmgChunk(), "channel_labels", rows)

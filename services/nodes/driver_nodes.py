@@ -36,8 +36,9 @@ def emg_columns(client: TrignoClient) -> list[tuple[str, int]]:
 
 def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]) -> messages.EmgChunk:
     """An EmgChunk of the given (label, slot) columns (float32 values as received: protobuf floats are float32)."""
-    rows = block.samples[:, [slot for _, slot in columns]]
-    return messages.EmgChunk(
+    slots = [slot for _, slot in columns]
+    rows = block.samples if slots == list(range(block.samples.shape[1])) else block.samples[:, slots]
+    chunk = messages.EmgChunk(
         source_id=source_id,
         channel_labels=[label for label, _ in columns],
         sample_rate_hz=block.rate_hz,
@@ -46,11 +47,12 @@ def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]
         host_time_ns=block.host_time_ns,
         n_samples=rows.shape[0],
         n_channels=rows.shape[1],
-        samples=rows.ravel().tolist(),
         units="V",
     )
 
 
+    messages.add_packed_floats(chunk, "samples", rows)
+    return chunk
 def acc_sensors(client: TrignoClient) -> list[tuple[str, int]]:
     """(label, sensor number 1..16) of the sensors whose accelerometers to publish: the active sensors (every slot
     when the server told us nothing), labelled ``sensorNN`` as their EMG channels ``sensorNN.EMG...``."""
@@ -67,7 +69,7 @@ def acc_chunk(
     with START)."""
     rows = block.samples.reshape(len(block.samples), tp.N_SENSORS, layout.slots_per_sensor)
     values = rows[:, [n - 1 for _, n in sensors], :3]
-    return messages.AccChunk(
+    chunk = messages.AccChunk(
         source_id=source_id,
         sensor_labels=[label for label, _ in sensors],
         sample_rate_hz=block.rate_hz,
@@ -76,11 +78,12 @@ def acc_chunk(
         host_time_ns=block.host_time_ns,
         n_samples=values.shape[0],
         n_sensors=values.shape[1],
-        samples=values.ravel().tolist(),
         units="g",
     )
 
 
+    messages.add_packed_floats(chunk, "samples", values)
+    return chunk
 def imu_sample(reading: ImuReading, *, segment: str = "") -> messages.ImuSample:
     sample = messages.ImuSample(
         tracker_id=reading.tracker_id,

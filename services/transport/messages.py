@@ -6,10 +6,13 @@ committed (``tests/test_schemas.py`` regenerates it and checks that both agree).
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import TypeAlias, TypeVar, overload
 
+import numpy as np
 from google.protobuf import descriptor_pb2
+from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 
 from msk_core.errors import MskError
@@ -97,6 +100,32 @@ def as_message(kind: str | type[Message], message_or_payload: Message | bytes) -
     if not isinstance(message_or_payload, cls):
         raise MessageDecodeError(f"expected a {cls.DESCRIPTOR.full_name}, got a {type_name(message_or_payload)}")
     return message_or_payload
+
+
+def add_packed_floats(message: Message, field_name: str, values: np.ndarray) -> None:
+    """Append ``values`` (as float32, in C order) to the packed ``repeated float`` field ``field_name`` of
+    ``message``, merged as the field's wire bytes (tag, length, little-endian floats): the same message as
+    ``extend(values.ravel().tolist())`` and the same encoding, 5 times cheaper for an EMG chunk (no Python float per
+    sample)."""
+    data = np.ascontiguousarray(values, dtype="<f4").tobytes()
+    message.MergeFromString(_packed_float_tag(message.DESCRIPTOR, field_name) + _varint(len(data)) + data)
+
+
+@functools.lru_cache(maxsize=64)
+def _packed_float_tag(descriptor, field_name: str) -> bytes:
+    field = descriptor.fields_by_name[field_name]
+    if field.type != FieldDescriptor.TYPE_FLOAT or not field.is_repeated or not field.is_packed:
+        raise TypeError(f"{descriptor.full_name}.{field_name} is not a packed repeated float")
+    return _varint(field.number << 3 | 2)  # wire type 2: length-delimited
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append(n & 0x7F | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
 
 
 def has_unknown_fields(message: Message) -> bool:
