@@ -67,6 +67,7 @@ from services.nodes.node_runtime import (
     InputCounts,
     NodeInputs,
     StatusReporter,
+    apply_load_event,
     outages_text,
     serve,
 )
@@ -592,13 +593,7 @@ class EstimatorNode:
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
         # the one set logic (msk_core.signal.sets), as the view, the dashboard and the report run it
-        self.sets.on_facts(
-            event.device_time_ns / 1e9 if event.device_time_ns else None,
-            set_number=int(event.set_number),
-            set_mark=event.set_mark,
-            mass_kg=event.barbell_mass_kg,
-            rest_s=event.set_rest_s,
-        )
+        apply_load_event(self.sets, event)
         self._follow_set()
 
     def _follow_set(self) -> None:

@@ -38,6 +38,7 @@ import zenoh
 from google.protobuf.message import Message
 
 from msk_core.signal.host_clock import ClockReport
+from msk_core.signal.sets import SetTracker
 from services.transport import messages, topics
 from services.transport.zenoh_session import declare_data_publisher, fetch_history, publish, type_name_of_sample
 
@@ -519,6 +520,19 @@ def serve(
             tick(True)
         if reporter is not None:
             reporter.final()
+
+
+def apply_load_event(sets: SetTracker, event: messages.LoadEvent) -> None:
+    """The set facts of a load event (set number, start/stop mark, barbell mass, rest time) into ``sets``, at the
+    event's time (none when it carries none: :meth:`SetTracker.on_facts` then takes its newest phase sample's), as
+    every node and page that follows the sets reads them (the estimator, the view, the dashboard)."""
+    sets.on_facts(
+        event.device_time_ns / 1e9 if event.device_time_ns else None,
+        set_number=int(event.set_number),
+        set_mark=event.set_mark,
+        mass_kg=event.barbell_mass_kg,
+        rest_s=event.set_rest_s,
+    )
 
 
 def clock_offsets(reports: Iterable[ClockReport]) -> list[messages.ClockOffset]:

@@ -40,7 +40,7 @@ from rich.text import Text
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
-from services.nodes.node_runtime import InputCounts, NodeInputs, serve
+from services.nodes.node_runtime import InputCounts, NodeInputs, apply_load_event, serve
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
@@ -96,13 +96,7 @@ class ViewState:
     def _on_load(self, load: messages.LoadEvent) -> None:
         """The operator's marks and set numbers, as :meth:`SetTracker.on_facts` reads them, at the event's time on the
         frames' clock (the newest frame's when the event carries none or one of another clock)."""
-        self.sets.on_facts(
-            load.device_time_ns / 1e9 if load.device_time_ns else None,
-            set_number=int(load.set_number),
-            set_mark=load.set_mark,
-            mass_kg=load.barbell_mass_kg,
-            rest_s=load.set_rest_s,
-        )
+        apply_load_event(self.sets, load)
         if load.names:  # a load event without names (msk load) leaves the session's names in effect
             self.names = dict(load.names)
         self.load = load

@@ -39,7 +39,7 @@ from msk_core.errors import ConfigError
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter
 from msk_core.signal.sets import SetTracker
-from services.nodes.node_runtime import InputCounts, NodeInputs, serve
+from services.nodes.node_runtime import InputCounts, NodeInputs, apply_load_event, serve
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
@@ -321,14 +321,7 @@ class DashboardState:
     def _on_load(self, load: messages.LoadEvent) -> None:
         """The operator's set marks and set numbers, as :meth:`SetTracker.on_facts` reads them (a new set number or
         a start mark starts a set, a stop mark ends it; a load change within a set does not restart the count)."""
-        number = int(load.set_number)
-        self._reps.sets.on_facts(
-            load.device_time_ns / 1e9 if load.device_time_ns else None,
-            set_number=number,
-            set_mark=load.set_mark,
-            mass_kg=load.barbell_mass_kg,
-            rest_s=load.set_rest_s,
-        )
+        apply_load_event(self._reps.sets, load)
         self._put("reps", self._reps.as_dict())
         self._put_sets(0)
         if load.names:  # a load event without names (msk load) leaves the session's names in effect
@@ -336,7 +329,12 @@ class DashboardState:
         self._load = load
         self._put(
             "load",
-            {"mass_kg": load.barbell_mass_kg, "exercise": load.exercise, "set_number": number, "athlete": load.athlete},
+            {
+                "mass_kg": load.barbell_mass_kg,
+                "exercise": load.exercise,
+                "set_number": int(load.set_number),
+                "athlete": load.athlete,
+            },
         )
         self._put_session()
 
