@@ -69,6 +69,19 @@ def _full_help(command: str) -> str:
     return out.getvalue()
 
 
+def test_msk_record_is_the_former_name_of_msk_capture(tmp_path, capsys):
+    """``msk record`` was in the docs before it became ``msk capture`` (beside ``msk recorder``): it still runs it."""
+    assert [c.aliases for m in command_modules("record") for c in m.commands or () if c.name == "capture"] == [
+        ("record",)
+    ]
+    args = cli.build_parser(["record"]).parse_args(["record", "--duration", "1", "--out", str(tmp_path / "x.mcap")])
+    from services.commands import capture
+
+    assert args.handler is capture.run
+    assert cli.main(["record", "--duration", "1", "--out", str(tmp_path / "x.mcap")]) == 2
+    assert "name at least one device" in capsys.readouterr().err
+
+
 def test_an_unknown_command_is_refused_with_the_list_of_commands(capsys):
     with pytest.raises(SystemExit) as stop:
         cli.main(["no-such-command"])

@@ -1,4 +1,4 @@
-"""Driver nodes end to end: simulators -> drivers -> Zenoh topics, and ``msk record`` / ``msk sim`` on the CLI."""
+"""Driver nodes end to end: simulators -> drivers -> Zenoh topics, and ``msk capture`` / ``msk sim`` on the CLI."""
 
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def test_nodes_publish_emg_imu_and_status_on_zenoh():
     assert any(s.kind == "trigno" and s.samples_received == reports[0].samples for s in statuses)
 
 
-def test_msk_record_writes_samples_exactly_as_received(tmp_path, shared_dir, capsys):
+def test_msk_capture_writes_samples_exactly_as_received(tmp_path, shared_dir, capsys):
     emg_source = load_source(shared_dir / "data/pyomeca-upper/markers_analogs.c3d")
     out = tmp_path / "session.mcap"
     with (
@@ -111,7 +111,7 @@ def test_msk_record_writes_samples_exactly_as_received(tmp_path, shared_dir, cap
     ):
         code = main(
             [
-                "record",
+                "capture",
                 "--trigno",
                 f"127.0.0.1:{trigno_sim.ports['command']}",
                 "--trigno-emg-port",
@@ -148,8 +148,9 @@ def test_msk_record_writes_samples_exactly_as_received(tmp_path, shared_dir, cap
     assert "wrote" in capsys.readouterr().out
 
 
-def test_msk_record_needs_a_device(tmp_path):
-    assert main(["record", "--duration", "1", "--out", str(tmp_path / "x.mcap")]) == 2
+def test_msk_capture_needs_a_device(tmp_path, capsys):
+    assert main(["capture", "--duration", "1", "--out", str(tmp_path / "x.mcap")]) == 2
+    assert "msk capture: error: field 'devices': name at least one device" in capsys.readouterr().err
 
 
 def test_msk_sim_xsens_prints_a_pty_a_driver_can_open():

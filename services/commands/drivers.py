@@ -30,6 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
+    devices = driver_nodes.device_settings(args)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):  # the loops end cleanly and report, rather than being torn down
         signal.signal(signum, lambda *_: stop.set())
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         token = declare_ready(session, ready)  # noqa: F841 - alive while the node runs
         sink = driver_nodes.ZenohSink(session)
         try:
-            reports = driver_nodes.run_devices(args, sink, session=args.session, duration_s=args.duration, stop=stop)
+            reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
         finally:
             sink.close()
     for report in reports:

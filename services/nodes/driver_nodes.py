@@ -1,5 +1,5 @@
 """Driver nodes: acquisition loops that turn Trigno/Xsens driver events into EmgChunk, AccChunk, ImuSample and
-DeviceStatus messages and hand them to a sink (Zenoh publishers, or an MCAP file for ``msk record``).
+DeviceStatus messages and hand them to a sink (Zenoh publishers, or an MCAP file for ``msk capture``).
 
 Each loop runs in its own thread until ``stop`` is set or its deadline passes; sinks must be thread-safe. A loop's
 last DeviceStatus of each device, published as it ends, says ``connected = False`` with the final counts: the driver
@@ -8,16 +8,18 @@ no longer delivers, whatever the link's state (``msk live`` records it, and its 
 
 from __future__ import annotations
 
+import argparse
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import zenoh
 from google.protobuf.message import Message
 
 from drivers.trigno import protocol as tp
 from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, GapEvent, StatusEvent, TrignoClient
+from drivers.xsens import xbus
 from drivers.xsens.device import ImuReading, TrackerSet
 from services.transport import messages, topics, zenoh_session
 
@@ -49,10 +51,10 @@ def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]
         n_channels=rows.shape[1],
         units="V",
     )
-
-
     messages.add_packed_floats(chunk, "samples", rows)
     return chunk
+
+
 def acc_sensors(client: TrignoClient) -> list[tuple[str, int]]:
     """(label, sensor number 1..16) of the sensors whose accelerometers to publish: the active sensors (every slot
     when the server told us nothing), labelled ``sensorNN`` as their EMG channels ``sensorNN.EMG...``."""
@@ -80,10 +82,10 @@ def acc_chunk(
         n_sensors=values.shape[1],
         units="g",
     )
-
-
     messages.add_packed_floats(chunk, "samples", values)
     return chunk
+
+
 def imu_sample(reading: ImuReading, *, segment: str = "") -> messages.ImuSample:
     sample = messages.ImuSample(
         tracker_id=reading.tracker_id,
@@ -339,10 +341,33 @@ def run_threads(targets: list[Callable[[], LoopReport]], stop: threading.Event) 
 # ------------------------------------------------------------------------------------------------ opening devices (CLI)
 
 
-def add_device_arguments(parser) -> None:
-    """``--trigno HOST[:PORT]`` and ``--xsens PORT|usb`` with their options (shared by ``msk record`` and ``msk drivers``)."""
-    from drivers.xsens import xbus
+@dataclass(frozen=True)
+class DeviceSettings:
+    """The devices a driver process opens and how (``msk capture`` and ``msk drivers``; from their command line by
+    :func:`device_settings`). At least one device."""
 
+    trigno: str | None = None  # Trigno Control Utility HOST[:PORT]
+    trigno_emg_port: int = int(tp.EmgPort.AVANTI)
+    trigno_aux_port: int | None = None  # the sensors' accelerometers; None: not read
+    trigno_stop: tp.StopMode = tp.StopMode.STOP_THEN_QUIT
+    trigno_id: str = "trigno"  # source id in topics and messages
+    xsens: tuple[str, ...] = ()  # tracker serial ports, or "usb" for every Xsens USB device
+    xsens_baud: int = 115200
+    imu_rate_hz: int = 100
+    imu_precision: xbus.Precision = xbus.Precision.FLOAT32
+    imu_frame: xbus.CoordinateFrame = xbus.CoordinateFrame.ENU
+    segments: dict[str, str] = field(default_factory=dict)  # tracker id (upper case) -> body segment
+
+    def __post_init__(self) -> None:
+        if not self.trigno and not self.xsens:
+            from msk_core.errors import ConfigError
+
+            raise ConfigError("name at least one device: --trigno HOST[:PORT] and/or --xsens PORT|usb", field="devices")
+
+
+def add_device_arguments(parser) -> None:
+    """``--trigno HOST[:PORT]`` and ``--xsens PORT|usb`` with their options (shared by ``msk capture`` and ``msk drivers``;
+    :func:`device_settings` reads them)."""
     group = parser.add_argument_group("Delsys Trigno")
     group.add_argument(
         "--trigno",
@@ -393,17 +418,38 @@ def add_device_arguments(parser) -> None:
     )
 
 
-def open_trigno(args) -> TrignoClient:
+def device_settings(args: argparse.Namespace) -> DeviceSettings:
+    """The :class:`DeviceSettings` of a command line parsed with :func:`add_device_arguments`."""
+    devices = DeviceSettings(  # refuses a command line without a device before its --segment values are read
+        trigno=args.trigno,
+        trigno_emg_port=args.trigno_emg_port,
+        trigno_aux_port=args.trigno_aux_port,
+        trigno_stop=tp.StopMode(args.trigno_stop),
+        trigno_id=args.trigno_id,
+        xsens=tuple(args.xsens),
+        xsens_baud=args.xsens_baud,
+        imu_rate_hz=args.imu_rate,
+        imu_precision=xbus.Precision[args.imu_precision.upper()],
+        imu_frame=xbus.CoordinateFrame[args.imu_frame],
+    )
+    return replace(devices, segments=parse_segments(args.segment))
+
+
+def open_trigno(devices: DeviceSettings) -> TrignoClient:
     from drivers.trigno.client import TrignoConfig, parse_address
 
-    host, port = parse_address(args.trigno)
+    if devices.trigno is None:
+        from msk_core.errors import ConfigError
+
+        raise ConfigError("no Trigno address: give --trigno HOST[:PORT]", field="--trigno")
+    host, port = parse_address(devices.trigno)
     client = TrignoClient(
         TrignoConfig(
             host=host,
             command_port=port,
-            emg_port=args.trigno_emg_port,
-            aux_port=args.trigno_aux_port,
-            stop_mode=tp.StopMode(args.trigno_stop),
+            emg_port=devices.trigno_emg_port,
+            aux_port=devices.trigno_aux_port,
+            stop_mode=devices.trigno_stop,
         )
     )
     try:
@@ -411,31 +457,27 @@ def open_trigno(args) -> TrignoClient:
     except OSError as error:
         from msk_core.errors import ConfigError
 
-        raise ConfigError(f"cannot reach the Trigno server: {error}", field="--trigno", value=args.trigno) from error
+        raise ConfigError(f"cannot reach the Trigno server: {error}", field="--trigno", value=devices.trigno) from error
     return client
 
 
-def open_xsens(args) -> TrackerSet:
-    from drivers.xsens import usb, xbus
+def open_xsens(devices: DeviceSettings) -> TrackerSet:
+    from drivers.xsens import usb
     from drivers.xsens.device import XsensDevice
     from drivers.xsens.serial_transport import SerialTransport
 
     ports: list[str] = []
-    for spec in args.xsens:
+    for spec in devices.xsens:
         ports += [d.port for d in usb.list_devices() if d.port] if spec == "usb" else [spec]
     if not ports:
         from msk_core.errors import ConfigError
 
-        raise ConfigError("no Xsens serial port found", field="--xsens", value=args.xsens)
+        raise ConfigError("no Xsens serial port found", field="--xsens", value=list(devices.xsens))
     trackers = TrackerSet()
     try:
         for port in ports:
-            device = XsensDevice(SerialTransport(port, baudrate=args.xsens_baud))
-            device.configure(
-                args.imu_rate,
-                precision=xbus.Precision[args.imu_precision.upper()],
-                frame=xbus.CoordinateFrame[args.imu_frame],
-            )
+            device = XsensDevice(SerialTransport(port, baudrate=devices.xsens_baud))
+            device.configure(devices.imu_rate_hz, precision=devices.imu_precision, frame=devices.imu_frame)
             trackers.add(device)
     except BaseException:
         trackers.close()
@@ -455,27 +497,24 @@ def parse_segments(items: list[str]) -> dict[str, str]:
     return out
 
 
-def run_devices(args, sink: Sink, *, session: str, duration_s: float | None, stop: threading.Event) -> list[LoopReport]:
-    """Open the devices named by the arguments and run their loops side by side into ``sink``."""
-    from msk_core.errors import ConfigError
-
-    if not args.trigno and not args.xsens:
-        raise ConfigError("name at least one device: --trigno HOST[:PORT] and/or --xsens PORT|usb", field="devices")
-    segments = parse_segments(args.segment)
+def run_devices(
+    devices: DeviceSettings, sink: Sink, *, session: str, duration_s: float | None, stop: threading.Event
+) -> list[LoopReport]:
+    """Open ``devices`` and run their loops side by side into ``sink``: one report per device, the Trigno's first."""
     targets = []
     trackers = None
-    if args.trigno:
-        client = open_trigno(args)
+    if devices.trigno:
+        client = open_trigno(devices)
         targets.append(
             lambda: trigno_loop(
-                client, session=session, source_id=args.trigno_id, sink=sink, stop=stop, duration_s=duration_s
+                client, session=session, source_id=devices.trigno_id, sink=sink, stop=stop, duration_s=duration_s
             )
         )
-    if args.xsens:
-        trackers = open_xsens(args)
+    if devices.xsens:
+        trackers = open_xsens(devices)
         targets.append(
             lambda: xsens_loop(
-                trackers, session=session, sink=sink, stop=stop, segments=segments, duration_s=duration_s
+                trackers, session=session, sink=sink, stop=stop, segments=devices.segments, duration_s=duration_s
             )
         )
     try:

@@ -1,4 +1,5 @@
-"""``msk record``: acquire from real devices (or their simulators) straight to an MCAP file in the project's schemas.
+"""``msk capture`` (alias ``msk record``): acquire from real devices (or their simulators) straight to an MCAP file in
+the project's schemas, without Zenoh (``msk recorder`` records what a running session publishes).
 
 EMG chunks hold the samples exactly as received (float32 volts of the paired sensors); IMU samples hold the values
 as decoded from MTData2; DeviceStatus messages report connection, counts, losses and errors.
@@ -18,7 +19,10 @@ from services.transport.mcap_io import McapRecorderWriter
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "record", help="acquire Trigno/Xsens data straight to an MCAP file", description=__doc__
+        "capture",
+        help="acquire Trigno/Xsens data straight to an MCAP file (no Zenoh)",
+        aliases=["record"],
+        description=__doc__,
     )
     driver_nodes.add_device_arguments(parser)
     parser.add_argument("--duration", type=float, required=True, metavar="SECONDS", help="how long to record")
@@ -33,11 +37,12 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() != ".mcap":
         raise ConfigError("output must be a .mcap file", field="--out", value=str(args.out))
     topics.check_chunk(args.session, "session")
+    devices = driver_nodes.device_settings(args)
     stop = threading.Event()
     with McapRecorderWriter(args.out) as writer:
         sink = driver_nodes.McapSink(writer)
-        reports = driver_nodes.run_devices(args, sink, session=args.session, duration_s=args.duration, stop=stop)
-    for name, report in zip([n for n in ("trigno", "xsens") if getattr(args, n)], reports):
+        reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
+    for name, report in zip([n for n in ("trigno", "xsens") if getattr(devices, n)], reports):
         gaps = sum(g.n_missing for g in report.gaps)
         print(
             f"{name}: {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps ({gaps} samples)"
