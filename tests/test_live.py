@@ -5,10 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-import select
 import signal
-import subprocess
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -17,8 +14,8 @@ import pytest
 
 from msk_core.errors import ConfigError
 from services.sessions.live_session import check_against_pack, load_session_file, parse_session
+from tests.live_helpers import REPO, run_msk, start_msk, wait_running
 
-REPO = Path(__file__).resolve().parents[1]
 GOOD = {
     "session": {
         "name": "gym",
@@ -127,18 +124,9 @@ def test_maps_must_name_the_packs_segments_and_the_profiles_electrodes():
 def test_cli_reports_a_bad_session_file_without_a_traceback(tmp_path):
     path = tmp_path / "session.toml"
     path.write_text('[session]\npack = "bench_press"\nload_kg = "heavy"\n')
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "live", str(path), "--no-view"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_msk("live", str(path), "--no-view")
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert "session.load_kg" in result.stderr and "heavy" in result.stderr and str(path) in result.stderr
-
-
-STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
 
 
 def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_sigint(tmp_path):
@@ -146,26 +134,10 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_on_
 
     out = tmp_path / "live"
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "120", "--out", str(out)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
+    process = start_msk("live", "--sim", "--no-view", "--duration", "120", "--out", str(out), env=env)
     lines: list[str] = []
     try:
-        deadline = time.monotonic() + STARTUP_S
-        while not any("live session" in line and "running" in line for line in lines):
-            left = deadline - time.monotonic()
-            assert left > 0 and process.poll() is None, (
-                f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines)
-            )
-            ready, _, _ = select.select([process.stdout], [], [], min(left, 1.0))
-            if ready:
-                lines.append(process.stdout.readline())
+        wait_running(process, lines)
         time.sleep(6.0)  # some seconds of live data
         os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C in a terminal: to the whole foreground process group
         rest, _ = process.communicate(timeout=60)

@@ -9,14 +9,13 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 from tests.conftest import free_tcp_port
 from tests.dashboard_helpers import ARTIFACTS, launch_chromium, require_chromium
+from tests.live_helpers import LiveProcess, live_environment, run_msk, start_msk
 from tests.test_dashboard_browser import LAYOUT, MIN_TEXT_PX, ROWS, assert_readable
-from tests.test_live_together import REPO, LiveProcess, _environment, _msk
 
 LIVE = "() => document.getElementById('status').dataset.state === 'live'"
 FACTS = "() => ['exercise', 'load', 'set'].map(id => document.getElementById(id).textContent)"
@@ -45,18 +44,6 @@ COACH = """() => {
     inRep: s.reps !== null && s.reps.phase !== null && s.reps.phase >= 0,
   };
 }"""
-
-
-def _dashboard(port: int, env: dict) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "dashboard", "--port", str(port)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
 
 
 def _coach_view(page, screenshots: Path) -> None:
@@ -117,7 +104,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
     require_chromium()
     from playwright import sync_api
 
-    env = _environment(tmp_path)
+    env = live_environment(tmp_path)
     out = tmp_path / "live"
     live = LiveProcess(out, env)
     port = free_tcp_port()
@@ -127,7 +114,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
     screenshots = Path(os.environ.get("MSK_SCREENSHOT_DIR") or ARTIFACTS)
     try:
         live.wait_running()
-        dashboard = _dashboard(port, env)
+        dashboard = start_msk("dashboard", "--port", str(port), env=env)
         with sync_api.sync_playwright() as playwright:
             browser = launch_chromium(playwright)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
@@ -157,7 +144,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
             )  # the rep counter moves
             _coach_view(page, screenshots)
             page.screenshot(path=str(ARTIFACTS / "live-dashboard.png"))
-            printed = _msk("subscribe", "msk/sim/activations/*", "--count", "2", env=env)
+            printed = run_msk("subscribe", "msk/sim/activations/*", "--count", "2", env=env)
             assert printed.returncode == 0 and printed.stdout.count("msk.ActivationFrame") == 2, printed.stderr
             facts_before = page.evaluate(FACTS)  # the simulator plays sets with rests: the set number moves on
             code, output, summary = live.stop()
@@ -186,7 +173,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
     assert stale["noticeVisible"] and stale["noticeTitle"] == "No data" and stale["mapVisibleBesideNotice"], stale
     assert "grayscale(1)" in stale["panelFilter"] and facts_after == facts_before, (facts_before, facts_after)
     # the recording's report names exercise, load and date in its header
-    reported = _msk("report", *(summary["recordings"]), "--out", str(tmp_path / "report"), env=env, timeout=180)
+    reported = run_msk("report", *(summary["recordings"]), "--out", str(tmp_path / "report"), env=env, timeout=180)
     assert reported.returncode == 0, reported.stderr
     page_text = re.sub(r"<style.*?</style>|<[^>]+>", " ", (tmp_path / "report" / "report.html").read_text(), flags=re.S)
     header = " ".join(page_text.split())[:300]

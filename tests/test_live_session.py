@@ -8,8 +8,6 @@ import json
 import os
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -21,8 +19,8 @@ from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs
 from services.commands.live import EXIT_NODE_FAILED, node_failures
 from services.sessions.live_session import TRIGNO_CHANNEL_FORM, is_trigno_channel, load_session_file
+from tests.live_helpers import REPO, run_msk, start_msk
 
-REPO = Path(__file__).resolve().parents[1]
 GOOD = """\
 [session]
 name = "gym"
@@ -80,13 +78,7 @@ def test_a_pack_file_is_resolved_against_the_session_file_and_a_missing_one_refu
 
 def test_the_cli_refuses_an_unknown_pack_before_starting_anything(tmp_path):
     path = _write(tmp_path, GOOD.replace('pack = "bench_press"', 'pack = "squat"'))
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "live", str(path), "--no-view"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_msk("live", str(path), "--no-view")
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert str(path) in result.stderr and "session.pack" in result.stderr and "deadlift" in result.stderr, result.stderr
     assert not (tmp_path / "out").exists() and "running" not in result.stdout
@@ -285,14 +277,7 @@ def test_msk_live_exits_3_naming_the_node_that_failed_and_why(tmp_path, calibrat
         )
     )
     started = time.monotonic()
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "live", str(path), "--no-view", "--duration", "100"],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=150,
-    )
+    result = run_msk("live", str(path), "--no-view", "--duration", "100", env=env, timeout=150)
     elapsed = time.monotonic() - started
     out = tmp_path / "out"
     assert result.returncode == EXIT_NODE_FAILED, result.stdout + result.stderr
@@ -315,15 +300,7 @@ def test_msk_live_exits_3_naming_the_node_that_failed_and_why(tmp_path, calibrat
 def test_msk_live_exits_0_after_a_clean_stop_by_sigterm(tmp_path, calibrated):
     _, env = calibrated
     out = tmp_path / "live"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "live", "--sim", "--no-view", "--duration", "100", "--out", str(out)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
+    process = start_msk("live", "--sim", "--no-view", "--duration", "100", "--out", str(out), env=env)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(process.stdout), daemon=True)  # every line as it comes
     reader.start()

@@ -19,7 +19,7 @@ from services.surfaces.dashboard import report
 from services.transport import messages
 from services.transport.mcap_io import read_messages
 from services.transport.zenoh_session import ZenohOptions, open_session
-from tests.test_live_together import LiveProcess, _environment
+from tests.live_helpers import LiveProcess, live_environment
 
 SESSION = "setslive"
 REST_S = 4.0  # the session's rest detection
@@ -69,7 +69,7 @@ def msk_set(action: str, capsys) -> str:
 
 
 def test_msk_set_marks_sets_in_a_live_session_and_its_report(tmp_path, monkeypatch, capsys):
-    env = _environment(tmp_path)
+    env = live_environment(tmp_path)
     monkeypatch.setenv("MSK_SESSIONS_DIR", env["MSK_SESSIONS_DIR"])  # msk set finds the session msk live announced
     session_file = tmp_path / "sets.toml"
     session_file.write_text(f'[session]\nname = "{SESSION}"\npack = "bench_press"\nrest_s = {REST_S:g}\n')

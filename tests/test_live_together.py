@@ -5,103 +5,16 @@ its topics; and the same graph secured (``--pki``): real simulators, real node p
 from __future__ import annotations
 
 import json
-import os
-import select
-import signal
-import subprocess
-import sys
 import time
 from collections import Counter
-from pathlib import Path
 
 import pytest
 
 from services.transport import messages, topics
 from services.transport.mcap_io import read_messages
+from tests.live_helpers import LiveProcess, live_environment, run_msk
 
-REPO = Path(__file__).resolve().parents[1]
-STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
 SESSION = "sim"
-
-
-def _msk(*argv: str, env: dict, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-
-
-class LiveProcess:
-    """``msk live --sim`` in a subprocess; :meth:`wait_running` reads its output until the graph is up."""
-
-    def __init__(self, out: Path, env: dict, *extra: str) -> None:
-        self.out = out
-        self.lines: list[str] = []
-        self.process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "live",
-                "--sim",
-                "--no-view",
-                "--duration",
-                "150",
-                "--out",
-                str(out),
-                *extra,
-            ],
-            cwd=REPO,
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-
-    def wait_running(self) -> str:
-        deadline = time.monotonic() + STARTUP_S
-        while not any("live session" in line and "running" in line for line in self.lines):
-            left = deadline - time.monotonic()
-            assert left > 0 and self.process.poll() is None, (
-                f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(self.lines)
-            )
-            ready, _, _ = select.select([self.process.stdout], [], [], min(left, 1.0))
-            if ready:
-                self.lines.append(self.process.stdout.readline())
-        return next(line for line in self.lines if "live session" in line)
-
-    def stop(self) -> tuple[int, str, dict]:
-        os.killpg(self.process.pid, signal.SIGINT)  # Ctrl-C
-        rest, _ = self.process.communicate(timeout=90)
-        output = "".join(self.lines) + rest
-        return self.process.returncode, output, json.loads((self.out / "summary.json").read_text())
-
-    def kill(self) -> None:
-        """After a failed test: msk live and its nodes (each in a process group of its own, listed in pids.json)."""
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGKILL)
-            self.process.wait(10)
-        pids = self.out / "logs" / "pids.json"
-        for pid in json.loads(pids.read_text()).values() if pids.is_file() else []:
-            try:
-                os.killpg(pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
-
-
-def _environment(tmp_path: Path) -> dict:
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")  # the calibrated bundled subject
-    return {
-        **os.environ,
-        "XDG_CACHE_HOME": str(cache),
-        "MSK_SESSIONS_DIR": str(tmp_path / "sessions"),
-        "PYTHONUNBUFFERED": "1",
-    }
 
 
 def _bad_payloads() -> list[tuple[str, bytes, str | None]]:
@@ -133,7 +46,7 @@ def _publish_bad_messages(endpoint: str) -> int:
 
 
 def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
-    env = _environment(tmp_path)
+    env = live_environment(tmp_path)
     out = tmp_path / "live"
     live = LiveProcess(out, env)
     try:
@@ -142,13 +55,13 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
         assert info["session"] == SESSION and info["connect"] and info["connect"][0] in line, (info, line)
         assert "msk dashboard --session sim" in line
         # a second terminal: no endpoint flags, the running session is found
-        printed = _msk("subscribe", f"msk/{SESSION}/activations/*", "--count", "3", "--json", env=env)
+        printed = run_msk("subscribe", f"msk/{SESSION}/activations/*", "--count", "3", "--json", env=env)
         assert printed.returncode == 0, printed.stderr
         frames = [json.loads(row) for row in printed.stdout.splitlines()]
         assert len(frames) == 3 and all(f["type"] == "msk.ActivationFrame" for f in frames), printed.stdout
         assert all(f["message"]["exercise"] == "bench_press" for f in frames)
         sent = _publish_bad_messages(info["connect"][0])
-        changed = _msk("load", "60", "--next-set", env=env)
+        changed = run_msk("load", "60", "--next-set", env=env)
         assert changed.returncode == 0 and "set 2" in changed.stdout, changed.stdout + changed.stderr
         time.sleep(3.0)  # the nodes go on: seconds of valid input after the bad ones
         code, output, summary = live.stop()
@@ -176,7 +89,7 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
     loads = [m.decode() for m in read_messages(out / "session.mcap") if m.type_name == "msk.LoadEvent"]
     facts = [(e.exercise, e.barbell_mass_kg, e.set_number) for e in loads if e.exercise != "upper_arm_r"]
     assert facts[:2] == [("bench_press", 50.0, 1), ("bench_press", 60.0, 2)], facts
-    report = _msk("report", str(out / "session.mcap"), "--out", str(tmp_path / "report"), env=env, timeout=120)
+    report = run_msk("report", str(out / "session.mcap"), "--out", str(tmp_path / "report"), env=env, timeout=120)
     assert report.returncode == 0, report.stderr
 
 
@@ -185,9 +98,9 @@ def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
     from services.transport import security
     from services.transport.zenoh_session import ZenohOptions, open_session
 
-    env = _environment(tmp_path)
+    env = live_environment(tmp_path)
     pki = tmp_path / "pki"
-    assert _msk("certs", "--out", str(pki), env=env).returncode == 0
+    assert run_msk("certs", "--out", str(pki), env=env).returncode == 0
     out = tmp_path / "secured"
     live = LiveProcess(out, env, "--pki", str(pki))
     received: Counter = Counter()
@@ -208,7 +121,7 @@ def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
             for subscriber in subscribers:
                 subscriber.undeclare()
         # the attach commands work in the secured mode too (the operator's config from session.json)
-        printed = _msk("subscribe", f"msk/{SESSION}/envelopes", "--count", "2", env=env)
+        printed = run_msk("subscribe", f"msk/{SESSION}/envelopes", "--count", "2", env=env)
         assert printed.returncode == 0 and printed.stdout.count("msk.EmgEnvelope") == 2, printed.stderr
         code, output, summary = live.stop()
     finally:

@@ -30,9 +30,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,11 +45,10 @@ from msk_core.signal.host_clock import windowed_offsets
 from services.sessions.live import RECORDINGS, sim_sources
 from services.sessions.live_scoring import SimWorld, live_markdown, score_live_run
 from services.transport.mcap_io import read_messages
+from tests.live_helpers import STARTUP_S, kill_session, start_msk
 
-REPO = Path(__file__).resolve().parents[1]
 PACK = "bench_press"
 RUN_S = 35.0  # of streaming, after the graph is up: two rounds of the 15 s trial
-STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes starting on 2 shared cores
 SETTLE_S = 3.0  # frames of the first seconds are left out: the host mappings' minimums and the filters settle
 MAX_LAG_S = 0.5
 LAG_STEP_S = 0.0005
@@ -75,38 +71,12 @@ class Stream:
 
 def run_live(out: Path, env: dict) -> dict:
     """``msk live --sim --no-view --duration RUN_S`` as a user runs it; its summary."""
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "live",
-            "--sim",
-            "--no-view",
-            "--duration",
-            str(RUN_S),
-            "--out",
-            str(out),
-        ],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
+    process = start_msk("live", "--sim", "--no-view", "--duration", str(RUN_S), "--out", str(out), env=env)
     try:
         output, _ = process.communicate(timeout=STARTUP_S + RUN_S + 120)
     finally:
         if process.poll() is None:  # the test failed on time: msk live and its nodes (own process groups)
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait(10)
-            pids = out / "logs" / "pids.json"
-            for pid in json.loads(pids.read_text()).values() if pids.is_file() else []:
-                try:
-                    os.killpg(pid, signal.SIGKILL)
-                except (ProcessLookupError, PermissionError):
-                    pass
+            kill_session(process, out)
     assert process.returncode == 0, output
     return json.loads((out / "summary.json").read_text())
 

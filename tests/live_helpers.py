@@ -1,0 +1,106 @@
+"""Shared by the tests that run ``msk`` as a user would: the CLI in a subprocess of the repository, a whole
+``msk live --sim`` session (:class:`LiveProcess`), the wait for its graph to be up and the clean-up after a failed test
+(msk live and the node processes it started, each in a process group of its own)."""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import IO
+
+REPO = Path(__file__).resolve().parents[1]
+STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
+
+
+def run_msk(*argv: str, env: dict[str, str] | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    """``msk ARGV`` to the end, its output captured (``env`` None: this process's environment)."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def start_msk(*argv: str, env: dict[str, str]) -> subprocess.Popen[str]:
+    """``msk ARGV`` started in a process group of its own (a Ctrl-C goes to it and its nodes), stderr into stdout."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def wait_running(process: subprocess.Popen[str], lines: list[str]) -> None:
+    """Read ``process``'s output into ``lines`` until msk live says its session is running (at most STARTUP_S)."""
+    stdout: IO[str] | None = process.stdout
+    assert stdout is not None
+    deadline = time.monotonic() + STARTUP_S
+    while not any("live session" in line and "running" in line for line in lines):
+        left = deadline - time.monotonic()
+        assert left > 0 and process.poll() is None, (
+            f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines)
+        )
+        ready, _, _ = select.select([stdout], [], [], min(left, 1.0))
+        if ready:
+            lines.append(stdout.readline())
+
+
+def kill_session(process: subprocess.Popen[str], out: Path) -> None:
+    """After a failed test: msk live and its nodes (each in a process group of its own, listed in pids.json)."""
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait(10)
+    pids = out / "logs" / "pids.json"
+    for pid in json.loads(pids.read_text()).values() if pids.is_file() else []:
+        try:
+            os.killpg(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def live_environment(tmp_path: Path) -> dict[str, str]:
+    """This process's environment with the user's calibration cache (the calibrated bundled subject), a registry of
+    sessions of the test's own and unbuffered output."""
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return {
+        **os.environ,
+        "XDG_CACHE_HOME": str(cache),
+        "MSK_SESSIONS_DIR": str(tmp_path / "sessions"),
+        "PYTHONUNBUFFERED": "1",
+    }
+
+
+class LiveProcess:
+    """``msk live --sim`` in a subprocess; :meth:`wait_running` reads its output until the graph is up."""
+
+    def __init__(self, out: Path, env: dict[str, str], *extra: str) -> None:
+        self.out = out
+        self.lines: list[str] = []
+        self.process = start_msk("live", "--sim", "--no-view", "--duration", "150", "--out", str(out), *extra, env=env)
+
+    def wait_running(self) -> str:
+        wait_running(self.process, self.lines)
+        return next(line for line in self.lines if "live session" in line)
+
+    def stop(self) -> tuple[int, str, dict]:
+        os.killpg(self.process.pid, signal.SIGINT)  # Ctrl-C
+        rest, _ = self.process.communicate(timeout=90)
+        output = "".join(self.lines) + rest
+        return self.process.returncode, output, json.loads((self.out / "summary.json").read_text())
+
+    def kill(self) -> None:
+        """After a failed test: msk live and its nodes."""
+        kill_session(self.process, self.out)
