@@ -16,6 +16,7 @@ import pytest
 
 from msk_core.errors import ConfigError
 from msk_core.estimate.clock_alignment import METHOD_ACCELERATION, AccelerationAlignment
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_emg import EmgSetup, LiveEmg
 from msk_core.signal.clock_sync import STANDARD_GRAVITY, SyncStatus
 from msk_core.signal.host_clock import METHOD_ARRIVAL, DeviceClocks
@@ -78,7 +79,7 @@ def _run(trackers: dict[str, np.ndarray]) -> tuple[LiveEmg, AccelerationAlignmen
     for receipt, _, kind, data in _events(trackers):
         if kind == "emg":
             first, device_ns, samples = data
-            live.add_chunk("trigno", ["sensor01.EMG"], EMG_HZ, first, device_ns, samples, receipt, receipt)
+            live.add_chunk(RawEmgChunk("trigno", ["sensor01.EMG"], EMG_HZ, first, device_ns, samples), receipt, receipt)
         elif kind == "acc":
             alignment.add_acc("trigno", ["sensor01", "sensor02"], *data)
         else:
@@ -130,7 +131,7 @@ def test_without_a_tracker_that_moves_with_an_emg_sensor_the_arrival_mapping_sta
 def test_an_emg_stream_without_accelerations_says_so():
     live = _live_emg()
     alignment = AccelerationAlignment(live, DeviceClocks("imu"))
-    live.add_chunk("trigno", ["sensor01.EMG"], EMG_HZ, 0, 0, np.zeros((27, 1)), HOST0_NS, HOST0_NS)
+    live.add_chunk(RawEmgChunk("trigno", ["sensor01.EMG"], EMG_HZ, 0, 0, np.zeros((27, 1))), HOST0_NS, HOST0_NS)
     (report,) = [r for r in alignment.report(live.clock_report()) if r.source == "emg/trigno"]
     assert report.method == METHOD_ARRIVAL and "no accelerations on this EMG clock (acc/trigno)" in report.reason
 
@@ -155,7 +156,7 @@ def test_a_frame_awaits_the_emg_of_its_instant_while_the_source_delivers():
     live = _live_emg()
     # a chunk of 27 samples measured from host instant 0 (device time 0), received 60 ms after its last sample
     received = 13_000_000 + 60_000_000
-    live.add_chunk("trigno", ["sensor01.EMG"], EMG_HZ, 0, 0, np.ones((27, 1)), received, received)
+    live.add_chunk(RawEmgChunk("trigno", ["sensor01.EMG"], EMG_HZ, 0, 0, np.ones((27, 1))), received, received)
     offset = live.arrival_offset_ns("trigno")  # host instant of device time 0: 60 ms late (unstated latency)
     live.set_offset("trigno", offset - 60_000_000, 0, METHOD_ACCELERATION)  # the true mapping
     assert not live.awaits(10_000_000, received)  # the EMG of instant 10 ms is here

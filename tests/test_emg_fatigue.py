@@ -11,6 +11,7 @@ import pytest
 from scipy import signal
 
 from msk_core.errors import ConfigError, InputError
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.io import read_c3d_analogs
 from msk_core.signal.fatigue import (
     FatigueConfig,
@@ -259,7 +260,7 @@ def test_live_fatigue_recovers_the_synthetic_trials_known_shift() -> None:
     rate, i, n = config.emg_rate_hz, 0, trial.emg.shape[0]
     for t, phase in zip(trial.time, trial.phase):
         while i < n and i / rate <= t:  # the EMG of the frame's instant is in before the frame
-            live.add_chunk("trigno", channels, rate, i, int(round(i / rate * 1e9)), trial.emg[i : i + 27])
+            live.add_chunk(RawEmgChunk("trigno", channels, rate, i, int(round(i / rate * 1e9)), trial.emg[i : i + 27]))
             i += 27
         live.add_frame({"trigno": int(round(t * 1e9))}, float(phase))
     reports = live.report()
@@ -301,7 +302,9 @@ def test_the_estimators_fatigue_worker_gives_the_values_of_the_stream_off_its_th
     i = 0
     for t in frames:
         while i < x.shape[0] and i / RATE <= t:
-            worker.add_chunk("trigno", ("sensor01.EMG",), RATE, i, int(round(i / RATE * 1e9)), x[i : i + 27], "V")
+            worker.add_chunk(
+                RawEmgChunk("trigno", ("sensor01.EMG",), RATE, i, int(round(i / RATE * 1e9)), x[i : i + 27], "V")
+            )
             i += 27
         phase = next(((t - a) / (b - a) for a, b in reps if a <= t < b), -1.0)
         worker.add_frame({"trigno": int(round(t * 1e9))}, phase)

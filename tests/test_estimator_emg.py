@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from msk_core.estimate import FrameEstimator
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup, LiveEmg
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.io import read_sto, write_sto
@@ -208,7 +209,9 @@ def test_live_emg_flags_gaps_and_stalls_and_counts_lost_samples():
     assert FLAG_STALLED in flags and np.all(np.isnan(env))  # configured electrodes, no EMG yet
     index = 0
     for _ in range(200):
-        block = live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index))
+        block = live.add_chunk(
+            RawEmgChunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3))), t_ns(index)
+        )
         index += n
     assert block.groups == ["G1", "G2"] and "no_mvc" in block.flags  # channel c has no MVC: left out, said so
     assert live.counters.no_mvc_channels == ["c"]
@@ -216,12 +219,19 @@ def test_live_emg_flags_gaps_and_stalls_and_counts_lost_samples():
     assert np.all(np.isfinite(env[:2])) and np.isnan(env[2]) and FLAG_GAP not in flags and FLAG_STALLED not in flags
     # 1000 samples never arrive: counted, the chunk flagged, and frames just after it flagged (filter restarting)
     index += 1000
-    block = live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index))
+    block = live.add_chunk(
+        RawEmgChunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3))), t_ns(index)
+    )
     assert FLAG_GAP in block.flags and live.counters.gaps == 1 and live.counters.samples_lost == 1000
     env, flags = live.at(t_ns(index + 10), t_ns(index + 27))
     assert FLAG_GAP in flags and np.all(np.isnan(env))
     # a re-sent chunk: its rows are dropped as duplicates, not filtered twice
-    assert live.add_chunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3)), t_ns(index)) is None
+    assert (
+        live.add_chunk(
+            RawEmgChunk("s", ["a", "b", "c"], rate, index, t_ns(index), rng.normal(size=(n, 3))), t_ns(index)
+        )
+        is None
+    )
     assert live.counters.duplicates == n
     # the source stops: frames 0.3 s later on the host clock are flagged stalled, never given stale EMG
     env, flags = live.at(t_ns(index + 27) + int(0.3e9), t_ns(index + 27) + int(0.3e9))
@@ -249,12 +259,14 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
         elif recorded.type_name == "msk.EmgChunk":
             c = recorded.decode()
             live.add_chunk(
-                c.source_id,
-                c.channel_labels,
-                c.sample_rate_hz,
-                c.first_sample_index,
-                c.device_time_ns,
-                np.asarray(c.samples).reshape(c.n_samples, c.n_channels),
+                RawEmgChunk(
+                    c.source_id,
+                    c.channel_labels,
+                    c.sample_rate_hz,
+                    c.first_sample_index,
+                    c.device_time_ns,
+                    np.asarray(c.samples).reshape(c.n_samples, c.n_channels),
+                ),
                 recorded.log_time_ns,
             )
         elif recorded.type_name == "msk.JointAngles":

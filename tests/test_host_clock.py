@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from msk_core.errors import ConfigError
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_emg import ClockMode, EmgSetup, LiveEmg
 from msk_core.signal.host_clock import HostClock, parse_latencies, windowed_offsets
 
@@ -122,12 +123,9 @@ def _feed(live: LiveEmg, device, receipt, arrival_ns=None) -> None:
     for k, (d, r) in enumerate(zip(device, receipt)):
         first = k * BLOCK
         live.add_chunk(
-            "trigno",
-            ("c",),
-            RATE,
-            first,
-            int(d) - round((BLOCK - 1) * 1e9 / RATE),
-            rng.standard_normal((BLOCK, 1)),
+            RawEmgChunk(
+                "trigno", ("c",), RATE, first, int(d) - round((BLOCK - 1) * 1e9 / RATE), rng.standard_normal((BLOCK, 1))
+            ),
             int(r) if arrival_ns is None else arrival_ns,
             int(r),
         )
@@ -196,7 +194,7 @@ def test_an_offset_measured_another_way_replaces_the_arrival_mapping_until_clear
 
 def test_one_clock_maps_nothing_and_refuses_latencies_and_offsets():
     live = LiveEmg(["g"], EmgSetup({"c": "g"}, {"c": 1.0}))
-    live.add_chunk("trigno", ("c",), RATE, 0, 0, np.zeros((BLOCK, 1)), 10**9)
+    live.add_chunk(RawEmgChunk("trigno", ("c",), RATE, 0, 0, np.zeros((BLOCK, 1))), 10**9)
     assert [(r.source, r.method, r.offset_ns) for r in live.clock_report()] == [
         ("emg/trigno", "device", 0),
         ("joints", "device", 0),

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_emg import FLAG_ELECTRODE_BAD, EmgSetup, LiveEmg
 from msk_core.estimate.live_quality import LiveQuality
 from msk_core.signal.quality import ElectrodeState, Fault
@@ -31,7 +32,7 @@ def emg(n: int, channels: int, rng: np.random.Generator) -> np.ndarray:
 def feed(quality: LiveQuality, samples: np.ndarray, start: int = 0, labels=("a", "b", "c"), units: str = "V") -> int:
     for k in range(0, len(samples), CHUNK):
         block = samples[k : k + CHUNK]
-        quality.add_chunk("s", labels, RATE, start + k, t_ns(start + k), block, units)
+        quality.add_chunk(RawEmgChunk("s", labels, RATE, start + k, t_ns(start + k), block, units))
     return start + len(samples)
 
 
@@ -78,14 +79,14 @@ def test_re_sent_rows_are_judged_once_and_units_are_honoured():
     feed(once, x)
     for k in range(0, len(x), CHUNK):  # every chunk sent twice
         for _ in range(2):
-            twice.add_chunk("s", ("a", "b", "c"), RATE, k, t_ns(k), x[k : k + CHUNK])
+            twice.add_chunk(RawEmgChunk("s", ("a", "b", "c"), RATE, k, t_ns(k), x[k : k + CHUNK]))
     assert [r.detail for r in once.report()] == [r.detail for r in twice.report()]
     assert once.sources["s"].monitor.samples_seen == twice.sources["s"].monitor.samples_seen == len(x)
     millivolts = LiveQuality()
     feed(millivolts, x * 1e3, units="mV")  # the same EMG in mV: the same verdicts
     assert [r.detail for r in millivolts.report()] == [r.detail for r in once.report()]
     normalised = LiveQuality()
-    assert not normalised.add_chunk("s", ("a", "b", "c"), RATE, 0, 0, x[:CHUNK], "normalised")
+    assert not normalised.add_chunk(RawEmgChunk("s", ("a", "b", "c"), RATE, 0, 0, x[:CHUNK], "normalised"))
     assert all(r.state is ElectrodeState.UNKNOWN and "not judged" in r.detail for r in normalised.report())
 
 
@@ -99,8 +100,8 @@ def test_a_bad_electrode_is_left_out_of_its_group_and_the_frames_say_so():
 
     def both(k: int):
         index = k * CHUNK
-        args = ("s", ["a", "b", "c"], RATE, index, t_ns(index), x[index : index + CHUNK], t_ns(index))
-        return every.add_chunk(*args), masked.add_chunk(*args)
+        chunk = RawEmgChunk("s", ["a", "b", "c"], RATE, index, t_ns(index), x[index : index + CHUNK])
+        return every.add_chunk(chunk, t_ns(index)), masked.add_chunk(chunk, t_ns(index))
 
     for k in range(50):
         full, without_b = both(k)
@@ -130,5 +131,5 @@ def test_an_unmapped_bad_channel_changes_nothing():
     setup = EmgSetup({"a": "G1"}, {"a": 1.0}, emd_s=0.0)
     live = LiveEmg(["G1"], setup)
     live.exclude_channels("s", {"z"})  # not an electrode of any group (nor a label of the source)
-    block = live.add_chunk("s", ["a", "z"], RATE, 0, 0, np.ones((CHUNK, 2)), 0)
+    block = live.add_chunk(RawEmgChunk("s", ["a", "z"], RATE, 0, 0, np.ones((CHUNK, 2))), 0)
     assert FLAG_ELECTRODE_BAD not in block.flags and np.all(np.isfinite(block.envelope))

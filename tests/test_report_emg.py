@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_fatigue import LiveFatigue
 from msk_core.estimate.live_quality import LiveQuality
 from services.nodes.estimator import electrode_fatigue, electrode_quality
@@ -59,9 +60,11 @@ def write_first_set_with_emg_status(path) -> float:
                 x[(t >= FLAT_S[0]) & (t < FLAT_S[1]), list(c.channel_labels).index(FLAT)] = 0.0
                 c.samples[:] = x.ravel().tolist()
                 data = messages.encode(c)
-                args = (c.source_id, c.channel_labels, c.sample_rate_hz, c.first_sample_index, c.device_time_ns, x)
-                quality.add_chunk(*args, c.units)
-                fatigue.add_chunk(*args, c.units)
+                raw = RawEmgChunk(
+                    c.source_id, c.channel_labels, c.sample_rate_hz, c.first_sample_index, c.device_time_ns, x, c.units
+                )
+                quality.add_chunk(raw)
+                fatigue.add_chunk(raw)
                 last_emg = (c.source_id, c.device_time_ns + int(c.n_samples / c.sample_rate_hz * 1e9))
             elif recorded.type_name == "msk.JointAngles" and last_emg is not None:
                 j = recorded.decode(messages.JointAngles)

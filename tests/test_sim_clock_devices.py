@@ -26,6 +26,7 @@ from drivers.xsens.serial_transport import SerialTransport
 from drivers.xsens.simulator import XsensSimulator
 from drivers.xsens.source import synthetic_imu
 from msk_core.errors import ConfigError
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_emg import ClockMode, EmgSetup, LiveEmg
 
 TRIGNO_LATENCY_S = 0.030  # a base buffering its frames
@@ -84,12 +85,14 @@ def _read_trigno(sim: TrignoSimulator, stream: Stream, live: LiveEmg, start_at: 
                     continue
                 n = len(block.samples)
                 live.add_chunk(
-                    "trigno",
-                    ("s1", "s2", "s3", "s4"),
-                    block.rate_hz,
-                    block.first_sample_index,
-                    block.device_time_ns,
-                    block.samples[:, :4],
+                    RawEmgChunk(
+                        "trigno",
+                        ("s1", "s2", "s3", "s4"),
+                        block.rate_hz,
+                        block.first_sample_index,
+                        block.device_time_ns,
+                        block.samples[:, :4],
+                    ),
                     block.host_time_ns,
                 )
                 for k in range(n):
@@ -288,12 +291,9 @@ def test_live_emg_host_offset_uses_the_last_sample_of_each_block_whatever_the_bl
             last_ns = int(round((first + block - 1) * 1e9 / rate))
             late_ns = 0 if b == 17 else int(rng.integers(1, 3_000_000))  # one block delivered at the fastest
             live.add_chunk(
-                "emg",
-                ("c",),
-                rate,
-                first,
-                int(round(first * 1e9 / rate)),
-                rng.standard_normal((block, 1)),
+                RawEmgChunk(
+                    "emg", ("c",), rate, first, int(round(first * 1e9 / rate)), rng.standard_normal((block, 1))
+                ),
                 clock_offset_ns + last_ns + latency_ns + late_ns,
             )
         assert live.sources["emg"].offset_ns == clock_offset_ns + latency_ns, block

@@ -24,6 +24,7 @@ from drivers.trigno.simulator import (
 )
 from drivers.trigno.source import EmgSource, synthetic_source
 from msk_core.errors import ConfigError
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_quality import LiveQuality
 from msk_core.signal.quality import TRIGNO_EMG_RANGE_V, Fault
 
@@ -136,12 +137,14 @@ def test_monitor_flags_each_fault_on_its_electrode_and_no_clean_one_over_60_s():
     quality = LiveQuality({label: source.labels[slot] for label, slot in columns})
     for block in blocks:
         quality.add_chunk(
-            "trigno",
-            [label for label, _ in columns],
-            block.rate_hz,
-            block.first_sample_index,
-            block.device_time_ns,
-            block.samples[:, [slot for _, slot in columns]],
+            RawEmgChunk(
+                "trigno",
+                [label for label, _ in columns],
+                block.rate_hz,
+                block.first_sample_index,
+                block.device_time_ns,
+                block.samples[:, [slot for _, slot in columns]],
+            )
         )
     reports = {r.channel: r for r in quality.report()}
     assert len(reports) == 10

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.errors import ConfigError
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.signal.host_clock import (
     METHOD_ARRIVAL,
@@ -283,56 +284,42 @@ class LiveEmg:
         mapped = set(self.setup.channel_group.values())
         return [g for g in self.groups if g in mapped]
 
-    def add_chunk(
-        self,
-        source: str,
-        labels,
-        rate_hz: float,
-        first_sample_index: int,
-        device_time_ns: int,
-        samples: np.ndarray,
-        arrival_ns: int,
-        receipt_ns: int | None = None,
-    ) -> EnvelopeBlock | None:
-        """Filter one chunk ``samples`` (n, channels). Returns the normalised group envelope of its new samples.
+    def add_chunk(self, chunk: RawEmgChunk, arrival_ns: int, receipt_ns: int | None = None) -> EnvelopeBlock | None:
+        """Filter one chunk of raw EMG. Returns the normalised group envelope of its new samples.
 
         ``arrival_ns``: when this node got the chunk (host clock; stalls are judged on it); ``receipt_ns``: when the
         host received the chunk's bytes from the device (the driver's ``host_time_ns``, recorded with the chunk, so a
         replay maps the clock as live did); default ``arrival_ns``."""
-        labels = tuple(labels)
+        source = chunk.source
         state = self.sources.get(source)
-        if state is None or state.labels != labels or state.rate_hz != rate_hz:
-            config = self._filter_config(rate_hz=float(rate_hz))
+        if state is None or state.labels != chunk.labels or state.rate_hz != chunk.rate_hz:
+            config = self._filter_config(rate_hz=chunk.rate_hz)
             clock = HostClock(
                 emg_stream(source),
                 latency_ns=self.latency_ns.get(source, self.default_latency_ns),
                 window_s=self.clock_window_s,
             )
             state = self.sources[source] = _Source(
-                source, labels, float(rate_hz), self.setup, config, self.counters, clock
+                source, chunk.labels, chunk.rate_hz, self.setup, config, self.counters, clock
             )
             state.measured = self._measured.get(source)
             state.exclude(self._excluded.get(source, frozenset()))
-        x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
-        n = x.shape[0]
         self.counters.chunks += 1
         flags: list[str] = []
-        first = int(first_sample_index)
-        period_ns = 1e9 / state.rate_hz
-        if state.next_index is not None and first != state.next_index:
-            if first > state.next_index:  # samples never arrived: restart the filter at rest after the gap
+        if state.next_index is not None and chunk.first_sample_index != state.next_index:
+            if chunk.first_sample_index > state.next_index:  # samples never arrived: restart the filter at rest
                 self.counters.gaps += 1
-                self.counters.samples_lost += first - state.next_index
+                self.counters.samples_lost += chunk.first_sample_index - state.next_index
                 state.filter.reset()
-                state.settled_from_ns = int(device_time_ns + GAP_SETTLE_S * 1e9)
+                state.settled_from_ns = int(chunk.device_time_ns + GAP_SETTLE_S * 1e9)
                 flags.append(FLAG_GAP)
             else:  # repeated rows (a re-sent chunk): keep only the new ones
-                skip = min(n, state.next_index - first)
-                self.counters.duplicates += skip
-                x, first, device_time_ns = x[skip:], first + skip, int(device_time_ns + skip * period_ns)
-                n = x.shape[0]
+                new = chunk.rows_from(state.next_index)
+                self.counters.duplicates += chunk.n_samples - new.n_samples
+                chunk = new
         elif state.next_index is None:
-            state.settled_from_ns = int(device_time_ns)
+            state.settled_from_ns = chunk.device_time_ns
+        x, n, period_ns = chunk.samples, chunk.n_samples, 1e9 / state.rate_hz
         if n == 0:
             return None
         self.counters.samples += n
@@ -340,8 +327,8 @@ class LiveEmg:
         group_env = (envelope * state.scale) @ state.weights
         group_env[:, state.without] = np.nan
         masked = state.masking
-        times = device_time_ns + np.round(np.arange(n) * period_ns).astype(np.int64)
-        state.next_index = first + n
+        times = chunk.device_time_ns + np.round(np.arange(n) * period_ns).astype(np.int64)
+        state.next_index = chunk.first_sample_index + n
         state.last_device_ns = int(times[-1])
         state.last_arrival_ns = int(arrival_ns)
         if self.clock is ClockMode.HOST:  # the block left the device when its last sample was measured

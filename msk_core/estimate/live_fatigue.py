@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from msk_core.errors import InputError
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_quality import VOLTS_PER_UNIT
 from msk_core.signal.fatigue import FatigueConfig, FatigueTracker, FatigueTrend, RepSpectrum
 from msk_core.signal.reps import PhaseRepCounter
@@ -48,7 +49,9 @@ class ElectrodeFatigueReport:
 
 
 class _SourceFatigue:
-    def __init__(self, labels: tuple[str, ...], rate_hz: float, units: str, channel_group: dict[str, str]) -> None:
+    def __init__(self, chunk: RawEmgChunk, channel_group: dict[str, str]) -> None:
+        self.stream = chunk.stream
+        labels, rate_hz, units = chunk.stream
         self.labels = labels
         # the electrodes tracked: those of the electrode map (every channel without one)
         self.columns = [c for c, ch in enumerate(labels) if ch in channel_group or not channel_group]
@@ -78,30 +81,18 @@ class LiveFatigue:
         self.reps_done = 0  # reps with values, over the session
         self.reps_skipped = 0  # reps whose EMG the tracker did not hold whole (a gap, the start of the stream)
 
-    def add_chunk(
-        self,
-        source: str,
-        labels,
-        rate_hz: float,
-        first_sample_index: int,
-        device_time_ns: int,
-        samples: np.ndarray,
-        units: str = "V",
-    ) -> list[RepSpectrum]:
-        """One chunk ``samples`` (n, channels) of raw EMG; returns the reps it completed."""
-        labels = tuple(labels)
-        state = self.sources.get(source)
-        if state is None or state.labels != labels or state.rate_hz != float(rate_hz) or state.units != units:
-            state = self.sources[source] = _SourceFatigue(labels, float(rate_hz), units, self.channel_group)
+    def add_chunk(self, chunk: RawEmgChunk) -> list[RepSpectrum]:
+        """One chunk of raw EMG; returns the reps it completed."""
+        state = self.sources.get(chunk.source)
+        if state is None or state.stream != chunk.stream:
+            state = self.sources[chunk.source] = _SourceFatigue(chunk, self.channel_group)
         if state.volts_per_unit is None or not state.columns:
             return []
-        x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
-        first = int(first_sample_index)
-        if state.next_index is None or first > state.next_index:  # the start, or samples lost: start again
-            state.restart(int(device_time_ns))
-        elif first < state.next_index:  # re-sent rows: taken once
-            skip = min(x.shape[0], state.next_index - first)
-            x, first = x[skip:], first + skip
+        if state.next_index is None or chunk.first_sample_index > state.next_index:  # the start, or samples lost
+            state.restart(chunk.device_time_ns)
+        else:  # re-sent rows: taken once
+            chunk = chunk.rows_from(state.next_index)
+        x, first = chunk.samples, chunk.first_sample_index
         if x.shape[0] == 0:
             return []
         state.next_index = first + x.shape[0]

@@ -17,8 +17,7 @@ from __future__ import annotations
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
-import numpy as np
-
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.signal.quality import (
     ElectrodeQualityMonitor,
     ElectrodeState,
@@ -103,7 +102,9 @@ class _Electrode:
 
 
 class _SourceQuality:
-    def __init__(self, labels: tuple[str, ...], rate_hz: float, units: str, channel_group: dict[str, str]) -> None:
+    def __init__(self, chunk: RawEmgChunk, channel_group: dict[str, str]) -> None:
+        self.stream = chunk.stream
+        labels, rate_hz, units = chunk.stream
         self.labels = labels
         self.rate_hz = rate_hz
         self.units = units
@@ -130,32 +131,20 @@ class LiveQuality:
         self.channel_group = dict(channel_group or {})
         self.sources: dict[str, _SourceQuality] = {}
 
-    def add_chunk(
-        self,
-        source: str,
-        labels,
-        rate_hz: float,
-        first_sample_index: int,
-        device_time_ns: int,
-        samples: np.ndarray,
-        units: str = "V",
-    ) -> bool:
-        """Judge one chunk ``samples`` (n, channels) of raw EMG; True when some electrode's state or reasons changed."""
-        labels = tuple(labels)
-        state = self.sources.get(source)
-        if state is None or state.labels != labels or state.rate_hz != float(rate_hz) or state.units != units:
-            state = self.sources[source] = _SourceQuality(labels, float(rate_hz), units, self.channel_group)
+    def add_chunk(self, chunk: RawEmgChunk) -> bool:
+        """Judge one chunk of raw EMG; True when some electrode's state or reasons changed."""
+        state = self.sources.get(chunk.source)
+        if state is None or state.stream != chunk.stream:
+            state = self.sources[chunk.source] = _SourceQuality(chunk, self.channel_group)
         if state.volts_per_unit is None:
             return False
-        x = np.asarray(samples, dtype=float).reshape(-1, len(labels))
-        first, period_ns = int(first_sample_index), 1e9 / state.rate_hz
         if state.next_index is None:
-            state.origin_ns = int(device_time_ns)
-        elif first > state.next_index:  # samples lost: windows across the gap would mix two signals
-            state.restart(device_time_ns)
-        elif first < state.next_index:  # re-sent rows: judged once
-            skip = min(x.shape[0], state.next_index - first)
-            x, first, device_time_ns = x[skip:], first + skip, int(device_time_ns + skip * period_ns)
+            state.origin_ns = chunk.device_time_ns
+        elif chunk.first_sample_index > state.next_index:  # samples lost: windows across the gap would mix signals
+            state.restart(chunk.device_time_ns)
+        else:  # re-sent rows: judged once
+            chunk = chunk.rows_from(state.next_index)
+        x, first, period_ns = chunk.samples, chunk.first_sample_index, 1e9 / state.rate_hz
         if x.shape[0] == 0:
             return False
         state.next_index = first + x.shape[0]

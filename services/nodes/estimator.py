@@ -51,6 +51,7 @@ import zenoh
 from msk_core.errors import ConfigError, MskError
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
+from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.frame import FrameResult, Method
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
 from msk_core.estimate.live_fatigue import ElectrodeFatigueReport, LiveFatigue
@@ -263,8 +264,8 @@ class FatigueWorker:
         self._thread = threading.Thread(target=self._run, name="estimator-fatigue", daemon=True)
         self._thread.start()
 
-    def add_chunk(self, *args) -> None:
-        self._queue.put(("chunk", args))
+    def add_chunk(self, chunk: RawEmgChunk) -> None:
+        self._queue.put(("chunk", (chunk,)))
 
     def add_frame(self, read_at_ns: dict[str, int], phase: float | None) -> None:
         self._queue.put(("frame", (dict(read_at_ns), phase)))
@@ -493,38 +494,21 @@ class EstimatorNode:
             raise ConfigError(
                 "EMG reached an estimator running without its EMG path (--emg)", field="emg", value=chunk.source_id
             )
-        samples = np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels)
-        if quality.add_chunk(
+        raw = RawEmgChunk(
             chunk.source_id,
             chunk.channel_labels,
             chunk.sample_rate_hz,
             chunk.first_sample_index,
             chunk.device_time_ns,
-            samples,
+            np.asarray(chunk.samples, dtype=float).reshape(chunk.n_samples, chunk.n_channels),
             chunk.units,
-        ):
+        )
+        if quality.add_chunk(raw):
             self.stats.quality_changes += 1
         live_emg.exclude_channels(chunk.source_id, quality.bad_channels(chunk.source_id))
         if self.fatigue is not None:
-            self.fatigue.add_chunk(
-                chunk.source_id,
-                tuple(chunk.channel_labels),
-                chunk.sample_rate_hz,
-                chunk.first_sample_index,
-                chunk.device_time_ns,
-                samples,
-                chunk.units,
-            )
-        block = live_emg.add_chunk(
-            chunk.source_id,
-            chunk.channel_labels,
-            chunk.sample_rate_hz,
-            chunk.first_sample_index,
-            chunk.device_time_ns,
-            samples,
-            arrival_ns,
-            chunk.host_time_ns or arrival_ns,  # the driver's receipt, else ours
-        )
+            self.fatigue.add_chunk(raw)
+        block = live_emg.add_chunk(raw, arrival_ns, chunk.host_time_ns or arrival_ns)  # the driver's receipt, else ours
         if block is None or not block.groups:
             return None
         self.stats.envelopes_out += 1
