@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +107,16 @@ def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
+
+
+def wait_until(
+    condition: Callable[[], bool], timeout_s: float, what: str, have: Callable[[], object] = lambda: ""
+) -> None:
+    """Poll ``condition`` every 20 ms until true; after ``timeout_s`` fail saying what it waited for and what there is
+    (``have()``): the graph's bounded wait, :func:`services.sessions.graph.wait_for`."""
+    from services.sessions.graph import wait_for
+
+    wait_for(what, condition, lambda: str(have()), timeout_s, poll_s=0.02)
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ from services.nodes.router import wait_until_listening
 from services.transport import messages, topics
 from services.transport.mcap_io import ReadReport, read_messages
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
-from tests.conftest import free_tcp_port
+from tests.conftest import free_tcp_port, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -52,14 +52,6 @@ def _stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float 
         return ""
 
 
-def _wait(predicate, timeout_s: float, what: str, have=lambda: "") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"after {timeout_s:.0f} s still waiting for {what}; have: {have()}")
-        time.sleep(0.02)
-
-
 @pytest.fixture
 def router():
     """``msk router`` on a free loopback port; yields its endpoint."""
@@ -86,7 +78,7 @@ def _start_recorder(out: Path, endpoint: str, session: zenoh.Session, *flags: st
                 raise AssertionError(f"msk recorder exited {process.returncode}: {process.communicate()[1][-2000:]}")
             return probe.matching_status.matching
 
-        _wait(matched, 30, f"msk recorder writing {out.name} to subscribe")
+        wait_until(matched, 30, f"msk recorder writing {out.name} to subscribe")
     finally:
         probe.undeclare()
     return process
@@ -204,21 +196,23 @@ def test_hung_app_stalls_no_publisher_and_the_recorder_loses_nothing(router, tmp
     )
 
 
-def _start_trigno_simulator() -> tuple[subprocess.Popen, dict[str, int]]:
-    """``msk sim trigno`` on free loopback ports (real TCP); returns the process and its ports."""
+def _start_trigno_simulator(ports: dict[str, int] | None = None) -> tuple[subprocess.Popen, dict[str, int]]:
+    """``msk sim trigno`` on free loopback ports (real TCP), or on ``ports`` (a restart on the ports of the one before);
+    returns the process and its ports."""
+    on = ports or {"command": 0, "emg": 0, "legacy emg": 0, "aux": 0}
     process = _msk(
         "sim",
         "trigno",
         "--from",
         "synthetic:60:7",
         "--port",
-        "0",
+        str(on["command"]),
         "--emg-port",
-        "0",
+        str(on["emg"]),
         "--legacy-emg-port",
-        "0",
+        str(on["legacy emg"]),
         "--aux-port",
-        "0",
+        str(on["aux"]),
         "--legacy-acc-port",
         "-1",
     )
@@ -230,6 +224,23 @@ def _start_trigno_simulator() -> tuple[subprocess.Popen, dict[str, int]]:
 
     ports = {name: int(port) for name, port in re.findall(r"(command|legacy emg|emg|aux) (\d+)", line)}
     return process, ports
+
+
+def _trigno_drivers(ports: dict[str, int], router: str) -> subprocess.Popen:
+    """``msk drivers`` for the simulated Trigno on ``ports``, a client of the router."""
+    return _msk(
+        "drivers",
+        "--session",
+        SESSION,
+        "--trigno",
+        f"127.0.0.1:{ports['command']}",
+        "--trigno-emg-port",
+        str(ports["emg"]),
+        "--mode",
+        "client",
+        "--connect",
+        router,
+    )
 
 
 def _emg_chunks(paths: list[Path], key: str) -> list[messages.EmgChunk]:
@@ -251,19 +262,7 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
         recorder = _start_recorder(out, router, session, "--flush-interval", str(flush_interval_s))
         processes.append(recorder)
         # no --duration: the driver runs until the restarted recorder is seen recording, however slow the machine
-        drivers = _msk(
-            "drivers",
-            "--session",
-            SESSION,
-            "--trigno",
-            f"127.0.0.1:{ports['command']}",
-            "--trigno-emg-port",
-            str(ports["emg"]),
-            "--mode",
-            "client",
-            "--connect",
-            router,
-        )
+        drivers = _trigno_drivers(ports, router)
         processes.append(drivers)
 
         def emg_recorded(path: Path = out) -> int:
@@ -271,7 +270,7 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
                 raise AssertionError(f"msk drivers exited {drivers.returncode}: {drivers.communicate()[1][-2000:]}")
             return len(_emg_chunks([path], emg_key)) if path.exists() else 0
 
-        _wait(lambda: emg_recorded() > 50, 40, "the first EMG chunks in the recorder's file", emg_recorded)
+        wait_until(lambda: emg_recorded() > 50, 40, "the first EMG chunks in the recorder's file", emg_recorded)
         time.sleep(1.0)
         recorder.kill()  # SIGKILL
         kill_ns = time.time_ns()
@@ -284,7 +283,7 @@ def test_recorder_killed_and_restarted_loses_nothing_a_replay_would_notice(route
         recorded_before = len(_emg_chunks([out], emg_key))
         # the history (what the driver published while the recorder was down) and then 2 s of live chunks
         expected = recorded_before + int((down_s + 2.0) * CHUNKS_PER_S)
-        _wait(
+        wait_until(
             lambda: emg_recorded(out) + emg_recorded(continuation) >= expected,
             40,
             f"{expected} EMG chunks in the two files ({down_s:.1f} s down)",
@@ -404,7 +403,7 @@ def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(r
                 raise AssertionError(f"msk estimator exited {process.returncode}: {process.communicate()[1][-2000:]}")
             return True
 
-        _wait(
+        wait_until(
             lambda: alive(estimator) and len(arrivals) > 0,
             resume_bound_s + 30,
             "the first activation frame",
@@ -416,7 +415,7 @@ def test_estimator_killed_and_restarted_resumes_and_the_recorder_loses_nothing(r
         before_kill = len(arrivals)
         restart_at = time.monotonic()
         restarted = _msk(*estimator_argv)
-        _wait(
+        wait_until(
             lambda: alive(restarted) and any(t > restart_at for t, _ in arrivals),
             resume_bound_s,
             "the restarted estimator's first activation frame",
@@ -475,51 +474,23 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     simulator, ports = _start_trigno_simulator()  # the second simulator takes the same ports
     processes = [simulator]
     try:
-        drivers = _msk(
-            "drivers",
-            "--session",
-            SESSION,
-            "--trigno",
-            f"127.0.0.1:{ports['command']}",
-            "--trigno-emg-port",
-            str(ports["emg"]),
-            "--mode",
-            "client",
-            "--connect",
-            router,
-        )
+        drivers = _trigno_drivers(ports, router)
         processes.append(drivers)
-        _wait(lambda: len(chunks) > 30, 40, "EMG chunks from msk drivers", lambda: f"{len(chunks)} chunks")
+        wait_until(lambda: len(chunks) > 30, 40, "EMG chunks from msk drivers", lambda: f"{len(chunks)} chunks")
         simulator.kill()
         simulator.wait(10)
         gone_at = time.monotonic()
-        _wait(
+        wait_until(
             lambda: any(not s.connected for s in statuses),
             15,
             "a DeviceStatus saying the Trigno is disconnected",
             lambda: [s.connected for s in statuses],
         )
         time.sleep(1.0)
-        back = _msk(
-            "sim",
-            "trigno",
-            "--from",
-            "synthetic:60:7",
-            "--port",
-            str(ports["command"]),
-            "--emg-port",
-            str(ports["emg"]),
-            "--legacy-emg-port",
-            str(ports["legacy emg"]),
-            "--aux-port",
-            str(ports["aux"]),
-            "--legacy-acc-port",
-            "-1",
-        )
+        back, _ = _start_trigno_simulator(ports)
         processes.append(back)
-        assert "command" in back.stdout.readline(), back.stderr.read()[-2000:]
         back_at = time.monotonic()
-        _wait(
+        wait_until(
             lambda: sum(1 for t, _ in chunks if t > back_at) > 30,
             30,
             "EMG chunks after the Trigno came back",
@@ -603,11 +574,11 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
                 raise AssertionError(f"msk drivers exited {drivers.returncode}: {drivers.communicate()[1][-2000:]}")
             return len(imu)
 
-        _wait(lambda: imu_received() > 100, 40, "IMU samples from msk drivers", imu_received)
+        wait_until(lambda: imu_received() > 100, 40, "IMU samples from msk drivers", imu_received)
         simulator.kill()  # the pty goes with the process: the cable is pulled
         simulator.wait(10)
         gone_at = time.monotonic()
-        _wait(
+        wait_until(
             lambda: any(not s.connected for s in statuses),
             15,
             "a DeviceStatus saying the tracker is disconnected",
@@ -619,7 +590,7 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
         link.unlink()
         link.symlink_to(pty_path)
         back_at = time.monotonic()
-        _wait(
+        wait_until(
             lambda: sum(1 for t, _ in imu if t > back_at) > 100,
             30,
             "IMU samples after the tracker came back",

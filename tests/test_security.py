@@ -22,7 +22,7 @@ from services.nodes.router import wait_until_listening
 from services.transport import messages, security, zenoh_session
 from services.transport.schemas import msk_pb2
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, declare_history_publisher, publish
-from tests.conftest import free_tcp_port
+from tests.conftest import free_tcp_port, wait_until
 
 SESSION = "gym1"
 N = 120  # messages per allowed flow
@@ -30,14 +30,6 @@ N = 120  # messages per allowed flow
 
 def _config(document: dict) -> zenoh.Config:
     return zenoh.Config.from_json5(json.dumps(document))
-
-
-def _wait_for(predicate, timeout_s: float, what: str, counts=lambda: "") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"after {timeout_s:.0f} s still waiting for {what}; have {counts()}")
-        time.sleep(0.02)
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +106,7 @@ class Inbox:
 
 
 def _wait_matched(publisher: zenoh.Publisher, what: str) -> None:
-    _wait_for(lambda: publisher.matching_status.matching, 20, f"a subscriber matching {what}")
+    wait_until(lambda: publisher.matching_status.matching, 20, f"a subscriber matching {what}")
 
 
 def _emg(source_tag: str, index: int) -> msk_pb2.EmgChunk:
@@ -228,7 +220,7 @@ def test_client_without_valid_certificate_gets_no_data(pki, rogue_pki, router):
         _wait_matched(publisher, key)
         for index in range(N):
             publish(publisher, _emg("trigno", index))
-        _wait_for(lambda: inbox.count(key) >= N, 20, f"{N} EMG chunks at the recorder", lambda: dict(inbox.keys))
+        wait_until(lambda: inbox.count(key) >= N, 20, f"{N} EMG chunks at the recorder", lambda: dict(inbox.keys))
         time.sleep(0.3)
         assert inbox.count(key) == N
         assert intruder_inbox.keys == Counter(), f"an intruder received data: {dict(intruder_inbox.keys)}"
@@ -266,7 +258,7 @@ def test_subscribe_only_client_cannot_inject_load_or_emg(pki, router):
             publish(real_load, msk_pb2.LoadEvent(barbell_mass_kg=20.0 + index))
             publish(real_emg, _emg("trigno", index))
         for name, inbox in (("estimator", estimator_inbox), ("recorder", recorder_inbox)):
-            _wait_for(
+            wait_until(
                 lambda inbox=inbox: inbox.count(load_key) >= N and inbox.count(emg_key) >= N,
                 20,
                 f"{N} real LoadEvents and EMG chunks at the {name}",
@@ -320,7 +312,7 @@ def test_allowed_flows_deliver_every_message_and_tablets_see_only_theirs(pki, ro
             publish(emg, _emg("trigno", index))
             publish(joints, msk_pb2.JointAngles(coordinates=["elbow"], q=[index * 0.01]))
             publish(forged, msk_pb2.ActivationFrame(method="forged", time_s=index * 0.01))
-        _wait_for(
+        wait_until(
             lambda: tablet.count(activations_key) >= N and tablet.count(status_key) >= N,
             20,
             f"{N} activation frames and {N} statuses at the tablet",
@@ -404,11 +396,11 @@ def test_a_late_recorder_fetches_the_drivers_history_through_the_access_control(
             publish(publisher, _emg("trigno", index))
         time.sleep(0.3)
         thread.start()
-        _wait_for(ready.is_set, 20, "the recorder to subscribe")
-        _wait_for(lambda: stats.history_fetches >= 1, 20, "the recorder's history fetch", lambda: stats)
+        wait_until(ready.is_set, 20, "the recorder to subscribe")
+        wait_until(lambda: stats.history_fetches >= 1, 20, "the recorder's history fetch", lambda: stats)
         for index in range(50, 60):
             publish(publisher, _emg("trigno", index))
-        _wait_for(lambda: stats.written >= 60, 20, "60 chunks written by the recorder", lambda: stats)
+        wait_until(lambda: stats.written >= 60, 20, "60 chunks written by the recorder", lambda: stats)
         tablet_history, tablet_errors = fetch_history(sessions["tablet"], f"msk/{SESSION}/emg/**", timeout_s=3)
     finally:
         stop.set()
@@ -453,7 +445,7 @@ def test_the_dashboard_joins_the_secured_network_as_a_tablet(pki, router, tmp_pa
                 msk_pb2.DeviceStatus(device_id="trigno-1", kind="trigno", connected=True, samples_received=index),
             )
             publish(emg, _emg("trigno", index))
-        _wait_for(
+        wait_until(
             lambda: state.changes(0)[1]["topics"].get("activations/so") is not None,
             20,
             "the dashboard state to hold an activation frame",
