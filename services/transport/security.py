@@ -156,18 +156,21 @@ def _name(cn: str) -> x509.Name:
     )
 
 
-def make_ca(cn: str = "msk-live CA", *, days: int = 3650) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
-    key = _new_key()
+def _certificate(
+    cn: str, issuer: x509.Name, key: ec.EllipticCurvePrivateKey, *, days: int, ca: bool
+) -> x509.CertificateBuilder:
+    """A certificate of ``key`` for ``cn`` issued by ``issuer``, valid from 5 minutes ago for ``days``, its basic
+    constraints and key usage (critical) those of a CA (signs certificates and CRLs) or of a leaf (signs only)."""
     now = _dt.datetime.now(_dt.UTC)
-    cert = (
+    return (
         x509.CertificateBuilder()
         .subject_name(_name(cn))
-        .issuer_name(_name(cn))
+        .issuer_name(issuer)
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - _dt.timedelta(minutes=5))
         .not_valid_after(now + _dt.timedelta(days=days))
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.BasicConstraints(ca=ca, path_length=0 if ca else None), critical=True)
         .add_extension(
             x509.KeyUsage(
                 digital_signature=True,
@@ -175,13 +178,20 @@ def make_ca(cn: str = "msk-live CA", *, days: int = 3650) -> tuple[ec.EllipticCu
                 key_encipherment=False,
                 data_encipherment=False,
                 key_agreement=False,
-                key_cert_sign=True,
-                crl_sign=True,
+                key_cert_sign=ca,
+                crl_sign=ca,
                 encipher_only=False,
                 decipher_only=False,
             ),
             critical=True,
         )
+    )
+
+
+def make_ca(cn: str = "msk-live CA", *, days: int = 3650) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    key = _new_key()
+    cert = (
+        _certificate(cn, _name(cn), key, days=days, ca=True)
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
         .sign(key, hashes.SHA256())
     )
@@ -198,30 +208,8 @@ def make_leaf(
 ) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     """A certificate for one node. ``hosts`` (DNS names or IP addresses) make it usable by a TLS server."""
     key = _new_key()
-    now = _dt.datetime.now(_dt.UTC)
     builder = (
-        x509.CertificateBuilder()
-        .subject_name(_name(cn))
-        .issuer_name(ca_cert.subject)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - _dt.timedelta(minutes=5))
-        .not_valid_after(now + _dt.timedelta(days=days))
-        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        .add_extension(
-            x509.KeyUsage(
-                digital_signature=True,
-                content_commitment=False,
-                key_encipherment=False,
-                data_encipherment=False,
-                key_agreement=False,
-                key_cert_sign=False,
-                crl_sign=False,
-                encipher_only=False,
-                decipher_only=False,
-            ),
-            critical=True,
-        )
+        _certificate(cn, ca_cert.subject, key, days=days, ca=False)
         .add_extension(
             x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False
         )
