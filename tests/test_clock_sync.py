@@ -17,6 +17,7 @@ from msk_core.errors import ConfigError, InputError
 from msk_core.signal.clock_sync import (
     STANDARD_GRAVITY,
     AccUnit,
+    ClockOffset,
     ClockSync,
     ClockSyncConfig,
     SyncStatus,
@@ -83,6 +84,19 @@ def feed(
     return answers
 
 
+def final_on_trial_time(prior_ns: int, t: np.ndarray, emg: tuple[str, np.ndarray], tracker: np.ndarray) -> ClockOffset:
+    """The last answer of ``ClockSync(prior_ns)`` fed one EMG sensor (name, its segment's acceleration) and the
+    tracker (its segment's acceleration), measured from ``t`` with both device clocks at trial time."""
+    name, segment = emg
+    return feed(
+        ClockSync(prior_ns),
+        {name: measured(t, segment, AUX_HZ, 1)},
+        measured(t, tracker, TRACKER_HZ, 2),
+        emg_clock_s=0.0,
+        tracker_clock_s=lambda ts: ts,
+    )[-1]
+
+
 def test_known_offset_found_to_a_millisecond_from_the_sensor_on_the_trackers_segment():
     t, arm = motion(40.0, seed=1)
     _, other = motion(40.0, seed=2)  # another segment moving its own way
@@ -111,15 +125,7 @@ def test_known_offset_found_to_a_millisecond_from_the_sensor_on_the_trackers_seg
 def test_rest_only_cannot_and_says_so():
     t = np.arange(0.0, 20.0, 1e-3)
     still = np.zeros((t.size, 3))
-    sync = ClockSync(0)
-    answers = feed(
-        sync,
-        {"s1": measured(t, still, AUX_HZ, 1)},
-        measured(t, still, TRACKER_HZ, 2),
-        emg_clock_s=0.0,
-        tracker_clock_s=lambda ts: ts,
-    )
-    final = answers[-1]
+    final = final_on_trial_time(0, t, ("s1", still), still)
     assert final.status is SyncStatus.NO_MOVEMENT and not final.locked and final.offset_ns is None
     assert final.windows_seen >= 3 and "rest" in final.reason and "did not move" in final.reason, final.reason
     with pytest.raises(InputError, match="arrival-time"):
@@ -129,28 +135,14 @@ def test_rest_only_cannot_and_says_so():
 def test_movement_that_is_not_the_trackers_is_not_taken_for_it():
     t, arm = motion(30.0, seed=3)
     _, other = motion(30.0, seed=4)
-    sync = ClockSync(0)
-    final = feed(
-        sync,
-        {"other": measured(t, other, AUX_HZ, 1)},
-        measured(t, arm, TRACKER_HZ, 2),
-        emg_clock_s=0.0,
-        tracker_clock_s=lambda ts: ts,
-    )[-1]
+    final = final_on_trial_time(0, t, ("other", other), arm)
     assert final.status is SyncStatus.NOT_TOGETHER and final.offset_ns is None, final
     assert final.peak_correlation < 0.8 and "below 0.8" in final.reason, final.reason
 
 
 def test_an_offset_beyond_the_search_range_is_refused_not_guessed():
     t, arm = motion(30.0, seed=5)
-    sync = ClockSync(-900_000_000)  # the prior is 0.9 s off, the search spans ±0.5 s
-    final = feed(
-        sync,
-        {"arm": measured(t, arm, AUX_HZ, 1)},
-        measured(t, arm, TRACKER_HZ, 2),
-        emg_clock_s=0.0,
-        tracker_clock_s=lambda ts: ts,
-    )[-1]
+    final = final_on_trial_time(-900_000_000, t, ("arm", arm), arm)  # the prior is 0.9 s off, the search spans ±0.5 s
     assert final.status is SyncStatus.NOT_TOGETHER and final.offset_ns is None, final
     assert "edge of the search range" in final.reason or "below" in final.reason, final.reason
 
