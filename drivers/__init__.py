@@ -9,6 +9,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TypeVar
 
+import numpy as np
+
 from msk_core.errors import FileFormatError, InputError
 
 Source = TypeVar("Source")
@@ -50,3 +52,17 @@ def load_source_spec(
             f"unsupported {kind} source (expected {expected} or synthetic[:SECONDS])", path=path, value=path.suffix
         )
     return loader(path)
+
+
+def open_npz(path: Path, required: tuple[str, ...]) -> np.lib.npyio.NpzFile:
+    """A simulator's ``.npz`` source opened (no pickled objects) with the arrays ``required`` in it, else a
+    FileFormatError naming the file (and the first missing array); use as ``with open_npz(path, (...)) as archive``."""
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except Exception as error:
+        raise FileFormatError(f"cannot read .npz: {error}", path=path) from error
+    missing = [key for key in required if key not in archive.files]
+    if missing:
+        archive.close()
+        raise FileFormatError("missing array", path=path, field=missing[0])
+    return archive

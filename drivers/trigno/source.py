@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import load_source_spec
+from drivers import load_source_spec, open_npz
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import FileFormatError, InputError
 
@@ -121,14 +121,7 @@ def load_c3d(path: Path) -> EmgSource:
 
 
 def load_npz(path: Path) -> EmgSource:
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except Exception as error:
-        raise FileFormatError(f"cannot read .npz: {error}", path=path) from error
-    with archive:
-        for key in ("emg", "rate_hz"):
-            if key not in archive.files:
-                raise FileFormatError("missing array", path=path, field=key)
+    with open_npz(path, ("emg", "rate_hz")) as archive:
         emg = np.asarray(archive["emg"], dtype=np.float32)
         if emg.ndim == 1:
             emg = emg[:, None]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import load_source_spec
+from drivers import load_source_spec, open_npz
 from drivers.xsens import xbus
 from msk_core.errors import FileFormatError, InputError, ProtocolError
 from msk_core.units import GRAVITY
@@ -142,13 +142,7 @@ def _rate_from_counters(messages: list[xbus.XbusMessage]) -> float | None:
 
 
 def load_imu_npz(path: Path) -> ImuSource:
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except Exception as error:
-        raise FileFormatError(f"cannot read .npz: {error}", path=path) from error
-    with archive:
-        if "rate_hz" not in archive.files:
-            raise FileFormatError("missing array", path=path, field="rate_hz")
+    with open_npz(path, ("rate_hz",)) as archive:
         rate = float(np.asarray(archive["rate_hz"]).reshape(-1)[0])
         arrays = {}
         for name, width in QUANTITIES.items():
