@@ -14,6 +14,8 @@ import time
 from pathlib import Path
 from typing import IO
 
+from services.sessions.graph import kill_live
+
 REPO = Path(__file__).resolve().parents[1]
 STARTUP_S = 150.0  # calibration (~25 s when not cached) + five processes importing and warming up on 2 shared cores
 
@@ -59,16 +61,10 @@ def wait_running(process: subprocess.Popen[str], lines: list[str]) -> None:
 
 
 def kill_session(process: subprocess.Popen[str], out: Path) -> None:
-    """After a failed test: msk live and its nodes (each in a process group of its own, listed in pids.json)."""
-    if process.poll() is None:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait(10)
-    pids = out / "logs" / "pids.json"
-    for pid in json.loads(pids.read_text()).values() if pids.is_file() else []:
-        try:
-            os.killpg(pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+    """After a failed test: msk live and its nodes killed (:func:`services.sessions.graph.kill_live`), msk live
+    reaped."""
+    kill_live(process, out)
+    process.wait(10)
 
 
 def live_environment(tmp_path: Path) -> dict[str, str]:
