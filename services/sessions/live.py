@@ -44,7 +44,7 @@ from msk_core.errors import ConfigError, InputError
 from services.nodes.node_runtime import outages_summary, outages_text
 from services.nodes.readiness import GraphTimeout
 from services.sessions.demo_subject import RECORDINGS, sim_subject
-from services.sessions.graph import Graph, python_module, wait_for, zenoh_flags
+from services.sessions.graph import Graph, pids_path, python_module, wait_for, zenoh_flags
 from services.sessions.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.transport import messages, session_graph, topics
 from services.transport.mcap_io import read_messages
@@ -1028,7 +1028,7 @@ def _start_live_graph(
     # process ids, to stop the nodes by hand should msk live itself be killed (they have their own groups)
     pids = {n: node_process.pid for n in graph.nodes if (node_process := graph.process(n)) is not None}
     router = {"router": running.router.pid} if running.router is not None else {}
-    (logs / "pids.json").write_text(json.dumps({**pids, **router}) + "\n")
+    pids_path(s.out).write_text(json.dumps({**pids, **router}) + "\n")
     return graph, endpoint
 
 
