@@ -14,8 +14,12 @@ is never copied, only counted. The counts per key and reason travel in the recor
 ``msk/<session>/status/recorder`` (:class:`services.nodes.node_runtime.StatusReporter`; the session of the graph, of
 ``--key`` or ``--session``), and its last status is written into the file at stop.
 
+Batches: the recorder writes what its queue holds, then sleeps :data:`BATCH_S` while the next batch gathers (every
+input is still checked and counted one by one, in arrival order): waking up per batch rather than per message is
+most of its CPU (docs/deployment.md, "Where the CPU goes").
+
 Crashes: a chunk is completed and handed to the OS at least every ``--flush-interval`` seconds (also when data
-pauses), so a recorder killed with SIGKILL loses at most what arrived in that interval. Started again with the same
+pauses), so a recorder killed with SIGKILL loses at most what arrived in that interval (plus one batch). Started again with the same
 ``--out``, it continues into the next free ``FILE-001.mcap``, ``FILE-002.mcap``...: on start it fetches what the
 device publishers keep (:func:`services.transport.zenoh_session.declare_history_publisher`, the last 1000 messages per key) and
 leaves out what the previous files already hold, so the parts join without a gap or a duplicate.
@@ -94,6 +98,10 @@ from services.transport.zenoh_session import (
 )
 
 DEFAULT_HISTORY_TIMEOUT_S = 10.0
+#: Once it has written everything queued, the recorder sleeps this long and then takes what gathered meanwhile, in
+#: arrival order (s): one wake-up per batch instead of one per message (a session sends ~1000 messages a second).
+#: Nothing waits for the file (it is flushed every ``--flush-interval``), so this costs no one latency.
+BATCH_S = 0.05
 NODE_NAME = "recorder"
 
 log = logging.getLogger(__name__)
@@ -149,12 +157,14 @@ def main(
     already_recorded: Mapping[str, Iterable[bytes]] | None = None,
     session: str | None = None,
     max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+    batch_s: float = BATCH_S,
 ) -> RecorderStats:
     """Record until ``duration_s`` elapses or ``stop_event`` is set. ``stats`` (if given) is updated live.
 
     ``history``: first fetch what history publishers keep (each fetch waits at most ``history_timeout_s``);
     ``already_recorded`` (topic -> digests of the last messages of the previous parts, :func:`recorded_tail_in`)
     drops what those parts hold. ``session``: where the recorder's status goes (:func:`status_session`).
+    ``batch_s``: how long the queue gathers inputs once the recorder has written all it had (:data:`BATCH_S`).
     """
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else RecorderStats()
@@ -191,9 +201,10 @@ def main(
         try:
             while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
                 start_fetches(_take_fetched(fetched, inputs, merge, fetch_new_keys=history))
-                inbound = inputs.get(0.05)
-                if inbound is None:
+                inbound = inputs.get(0.0)
+                if inbound is None:  # all written: wake up again when a batch has gathered (module docstring)
                     writer.flush_if_due()
+                    stop_event.wait(batch_s)
                 else:
                     start_fetches(merge.accept(_live_item(inbound), fetch_new_keys=history))
                 if reporter is not None:

@@ -12,7 +12,7 @@ from typing import TypeAlias, TypeVar, overload
 
 import numpy as np
 from google.protobuf import descriptor_pb2
-from google.protobuf.descriptor import FieldDescriptor
+from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 
 from msk_core.errors import MskError
@@ -112,7 +112,7 @@ def add_packed_floats(message: Message, field_name: str, values: np.ndarray) -> 
 
 
 @functools.lru_cache(maxsize=64)
-def _packed_float_tag(descriptor, field_name: str) -> bytes:
+def _packed_float_tag(descriptor: Descriptor, field_name: str) -> bytes:
     field = descriptor.fields_by_name[field_name]
     if field.type != FieldDescriptor.TYPE_FLOAT or not field.is_repeated or not field.is_packed:
         raise TypeError(f"{descriptor.full_name}.{field_name} is not a packed repeated float")
