@@ -3,16 +3,20 @@ replays of the demo recording, and a live graph (estimator + optional recorder) 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from services.nodes import estimator
+from services.transport import messages
 from services.transport.mcap_io import McapRecorderWriter, read_messages
 from services.transport.zenoh_session import ZenohOptions
 
@@ -43,6 +47,56 @@ def launch_chromium(playwright):
     """Debian's Chromium through Playwright; never a downloaded browser."""
     require_chromium()
     return playwright.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+
+
+def trigno_chunk(k: int, host_time_ns: int) -> messages.EmgChunk:
+    """The ``k``-th EMG chunk of a Trigno base with one electrode (sensor01.EMG, 27 samples of zeros at 2 kHz)."""
+    return messages.EmgChunk(
+        source_id="trigno",
+        first_sample_index=27 * k,
+        n_samples=27,
+        n_channels=1,
+        samples=[0.0] * 27,
+        channel_labels=["sensor01.EMG"],
+        sample_rate_hz=2000.0,
+        host_time_ns=host_time_ns,
+    )
+
+
+def chromium_page(playwright, width: int = 1280, height: int = 800) -> tuple[Any, Any, list[str]]:
+    """Debian's Chromium (:func:`launch_chromium`) with one page of ``width`` x ``height``: (browser, page, the page's
+    uncaught script errors, collected as they happen)."""
+    browser = launch_chromium(playwright)
+    page = browser.new_page(viewport={"width": width, "height": height})
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    return browser, page, errors
+
+
+@contextlib.contextmanager
+def dashboard_in_chromium(endpoint: str, config: Any) -> Iterator[tuple[Any, Any, Any, list[str]]]:
+    """A dashboard server (``config``: its DashboardConfig) listening on ``endpoint`` and, inside the block, a Zenoh
+    client session of it and Chromium's page on it: (session, browser, page, the page's script errors). The server
+    stops after the block, also when it fails."""
+    from playwright import sync_api
+
+    from services.surfaces.dashboard.app import DashboardServer
+    from services.transport.zenoh_session import open_session
+    from tests.conftest import free_tcp_port
+
+    dashboard = DashboardServer(ZenohOptions(listen=(endpoint,)), config, port=free_tcp_port())
+    dashboard.start()
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    try:
+        with (
+            open_session(ZenohOptions(connect=(endpoint,))) as zsession,
+            sync_api.sync_playwright() as playwright,
+        ):
+            browser, page, errors = chromium_page(playwright)
+            page.goto(dashboard.url)
+            yield zsession, browser, page, errors
+    finally:
+        dashboard.stop()
 
 
 def trimmed_recording(source: Path, out: Path, start_s: float, end_s: float) -> Path:

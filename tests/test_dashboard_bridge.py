@@ -285,6 +285,8 @@ def imu(tracker: str, counter: int, host_time_ns: int, segment: str = "") -> mes
 def test_every_tracker_and_the_trigno_base_are_rows_of_their_own():
     """Each Xsens tracker under its own id (the one its DeviceStatus uses), with its own samples; one that stops goes
     silent while the other delivers; the Trigno base under its EmgChunk.source_id, merged with its status."""
+    from tests.dashboard_helpers import trigno_chunk
+
     state = DashboardState("t")
     t0 = time.time_ns()
     for k in range(20):  # both trackers stream for 0.2 s
@@ -296,17 +298,7 @@ def test_every_tracker_and_the_trigno_base_are_rows_of_their_own():
         state.on_message(
             PREFIX + f"status/{tracker}", messages.DeviceStatus(device_id=tracker, kind="xsens", connected=True)
         )
-    chunk = messages.EmgChunk(
-        source_id="trigno",
-        first_sample_index=0,
-        n_samples=27,
-        n_channels=1,
-        samples=[0.0] * 27,
-        channel_labels=["sensor01.EMG"],
-        sample_rate_hz=2000.0,
-        host_time_ns=t0,
-    )
-    state.on_message(PREFIX + "emg/trigno", chunk, arrival_ns=t0 + 3_190_000_000)
+    state.on_message(PREFIX + "emg/trigno", trigno_chunk(0, t0), arrival_ns=t0 + 3_190_000_000)
     state.on_message(
         PREFIX + "status/trigno",
         messages.DeviceStatus(device_id="trigno", kind="trigno", connected=True, samples_lost=3),

@@ -18,9 +18,11 @@ from tests.conftest import free_tcp_port
 from tests.dashboard_helpers import (
     ARTIFACTS,
     DEMO_MCAP,
-    launch_chromium,
+    chromium_page,
+    dashboard_in_chromium,
     require_chromium,
     start_estimator,
+    trigno_chunk,
     trimmed_recording,
 )
 
@@ -87,10 +89,7 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     try:
         with sync_api.sync_playwright() as playwright:
-            browser = launch_chromium(playwright)
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
+            browser, page, errors = chromium_page(playwright)
             page.goto(dashboard.url)
             # Before anything is published: the explicit "no data" state.
             wait_for(page, lambda p: p["status"] == "nodata", 10, "the 'no data' state before the replay")
@@ -237,19 +236,7 @@ class LiveStreams:
                     sample.orientation.w = 1.0
                     publish(publishers[tracker], sample)
             if self.running["trigno"]:
-                publish(
-                    publishers["trigno"],
-                    messages.EmgChunk(
-                        source_id="trigno",
-                        first_sample_index=27 * k,
-                        n_samples=27,
-                        n_channels=1,
-                        samples=[0.0] * 27,
-                        channel_labels=["sensor01.EMG"],
-                        sample_rate_hz=2000.0,
-                        host_time_ns=now,
-                    ),
-                )
+                publish(publishers["trigno"], trigno_chunk(k, now))
         for publisher in publishers.values():
             publisher.undeclare()
 
@@ -321,100 +308,78 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
     tracker and the Trigno base are rows of their own, and the tracker that stops goes silent; when the frames stop,
     the badge stays a badge and the last values stay visible, greyed out, beside a readable "No data" notice."""
     require_chromium()
-    from playwright import sync_api
 
     from services.transport import messages, topics
-    from services.transport.zenoh_session import declare_data_publisher, open_session, publish
+    from services.transport.zenoh_session import declare_data_publisher, publish
     from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
 
     session = "floor"
-    dashboard = DashboardServer(
-        ZenohOptions(listen=(zenoh_endpoint,)),
-        DashboardConfig(session=session, no_data_after_s=1.5),
-        port=free_tcp_port(),
-    )
-    dashboard.start()
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    try:
-        with (
-            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession,
-            sync_api.sync_playwright() as playwright,
-        ):
-            browser = launch_chromium(playwright)
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            page.goto(dashboard.url)
-            bad = BadInputs(zsession, session)
-            bad.wait_matched(BAD_INPUT_TOPICS)
-            bad.publish_every_kind()
-            load = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
-            publish(
-                load,
-                messages.LoadEvent(
-                    barbell_mass_kg=60,
-                    exercise="bench_press",
-                    set_number=2,
-                    athlete="Ana",
-                    names={"PMCla": "Upper chest"},
-                ),
-            )  # the session file's name
-            node = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
-            publish(
-                node,
-                messages.DeviceStatus(
-                    device_id="estimator",
-                    kind="node",
-                    connected=True,
-                    samples_received=50,
-                    dropped=[messages.InputDrop(key=f"msk/{session}/joints", reason="invalid", count=2)],
-                ),
+    config = DashboardConfig(session=session, no_data_after_s=1.5)
+    with dashboard_in_chromium(zenoh_endpoint, config) as (zsession, browser, page, errors):
+        bad = BadInputs(zsession, session)
+        bad.wait_matched(BAD_INPUT_TOPICS)
+        bad.publish_every_kind()
+        load = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
+        publish(
+            load,
+            messages.LoadEvent(
+                barbell_mass_kg=60,
+                exercise="bench_press",
+                set_number=2,
+                athlete="Ana",
+                names={"PMCla": "Upper chest"},
+            ),
+        )  # the session file's name
+        node = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
+        publish(
+            node,
+            messages.DeviceStatus(
+                device_id="estimator",
+                kind="node",
+                connected=True,
+                samples_received=50,
+                dropped=[messages.InputDrop(key=f"msk/{session}/joints", reason="invalid", count=2)],
+            ),
+        )
+        streams = LiveStreams(zsession, session).start()
+        try:
+            page.wait_for_function("() => document.getElementById('status').dataset.state === 'live'", timeout=15000)
+            page.wait_for_function("() => document.querySelectorAll('#devices tbody tr').length === 3", timeout=10000)
+            rows = page.evaluate(ROWS)
+            assert sorted(rows) == ["00B497B2", "00B4EB80", "trigno"] and {r[0] for r in rows.values()} == {
+                "delivering"
+            }
+            assert [page.inner_text(f"#{k}") for k in ("exercise", "load", "set")] == [
+                "bench press",
+                "60.0 kg",
+                "2",
+            ]
+            assert "Ana" in page.inner_text("#athlete")
+            labels = page.evaluate(PROBE)["labels"]
+            assert "Upper chest" in labels and "Brachialis" in labels and "PMCla" not in labels, labels
+            page.wait_for_function(
+                "() => document.querySelector('#nodes tr[data-node=\"dashboard\"] td:nth-child(4)').textContent === '5'",
+                timeout=10000,
             )
-            streams = LiveStreams(zsession, session).start()
-            try:
-                page.wait_for_function(
-                    "() => document.getElementById('status').dataset.state === 'live'", timeout=15000
-                )
-                page.wait_for_function(
-                    "() => document.querySelectorAll('#devices tbody tr').length === 3", timeout=10000
-                )
-                rows = page.evaluate(ROWS)
-                assert sorted(rows) == ["00B497B2", "00B4EB80", "trigno"] and {r[0] for r in rows.values()} == {
-                    "delivering"
-                }
-                assert [page.inner_text(f"#{k}") for k in ("exercise", "load", "set")] == [
-                    "bench press",
-                    "60.0 kg",
-                    "2",
-                ]
-                assert "Ana" in page.inner_text("#athlete")
-                labels = page.evaluate(PROBE)["labels"]
-                assert "Upper chest" in labels and "Brachialis" in labels and "PMCla" not in labels, labels
-                page.wait_for_function(
-                    "() => document.querySelector('#nodes tr[data-node=\"dashboard\"] td:nth-child(4)').textContent === '5'",
-                    timeout=10000,
-                )
-                assert page.inner_text('#nodes tr[data-node="estimator"]').split("\t")[1:] == ["running", "50", "2"]
-                streams.running["00B4EB80"] = False  # the upper-arm tracker stops; the others go on
-                page.wait_for_function(
-                    "() => document.querySelector('#devices tr[data-device=\"00B4EB80\"] td:nth-child(2)').textContent === 'silent'",
-                    timeout=10000,
-                )
-                rows = page.evaluate(ROWS)
-                assert rows["00B497B2"][0] == rows["trigno"][0] == "delivering" and int(rows["00B4EB80"][1]) > 0
-                page.locator(".panel.side").screenshot(path=str(ARTIFACTS / "dashboard-devices.png"))
-                live = page.evaluate(LAYOUT)
-            finally:
-                streams.stop()
-            page.wait_for_function("() => document.getElementById('status').dataset.state === 'nodata'", timeout=10000)
-            page.wait_for_timeout(300)
-            page.screenshot(path=str(ARTIFACTS / "dashboard-nodata.png"))
-            stale = page.evaluate(LAYOUT)
-            bad.close()
-            assert not errors, errors
-            browser.close()
-    finally:
-        dashboard.stop()
+            assert page.inner_text('#nodes tr[data-node="estimator"]').split("\t")[1:] == ["running", "50", "2"]
+            streams.running["00B4EB80"] = False  # the upper-arm tracker stops; the others go on
+            page.wait_for_function(
+                "() => document.querySelector('#devices tr[data-device=\"00B4EB80\"] td:nth-child(2)').textContent === 'silent'",
+                timeout=10000,
+            )
+            rows = page.evaluate(ROWS)
+            assert rows["00B497B2"][0] == rows["trigno"][0] == "delivering" and int(rows["00B4EB80"][1]) > 0
+            page.locator(".panel.side").screenshot(path=str(ARTIFACTS / "dashboard-devices.png"))
+            live = page.evaluate(LAYOUT)
+        finally:
+            streams.stop()
+        page.wait_for_function("() => document.getElementById('status').dataset.state === 'nodata'", timeout=10000)
+        page.wait_for_timeout(300)
+        page.screenshot(path=str(ARTIFACTS / "dashboard-nodata.png"))
+        stale = page.evaluate(LAYOUT)
+        bad.close()
+        assert not errors, errors
+        browser.close()
     assert not live["noticeVisible"] and live["panelFilter"] == "none" and live["bodyState"] == "live"
     # the badge stays a badge in the header
     assert stale["pill"]["h"] < 60 and stale["pill"]["w"] < 300 and stale["pill"]["y"] < stale["main"]["y"]

@@ -89,80 +89,58 @@ def test_the_bridge_forwards_the_electrodes_and_drops_them_with_the_node():
 
 
 def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_path, zenoh_endpoint):
-    from tests.dashboard_helpers import ARTIFACTS, launch_chromium, require_chromium
+    from tests.dashboard_helpers import ARTIFACTS, dashboard_in_chromium, require_chromium
 
     require_chromium()
-    from playwright import sync_api
 
-    from services.surfaces.dashboard.app import DashboardConfig, DashboardServer
+    from services.surfaces.dashboard.app import DashboardConfig
     from services.transport import topics
-    from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
-    from tests.conftest import free_tcp_port
+    from services.transport.zenoh_session import declare_data_publisher, publish
 
     session = "quality"
-    dashboard = DashboardServer(
-        ZenohOptions(listen=(zenoh_endpoint,)), DashboardConfig(session=session), port=free_tcp_port()
-    )
-    dashboard.start()
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
     rows = (
         "() => [...document.querySelectorAll('#electrodes tbody tr')].map(tr => [tr.dataset.channel, "
         "tr.dataset.state, tr.cells[0].textContent, tr.cells[2].textContent, tr.cells[2].className, tr.title, "
         "tr.cells[0].title])"
     )
-    try:
-        with (
-            open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession,
-            sync_api.sync_playwright() as playwright,
-        ):
-            browser = launch_chromium(playwright)
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            page.goto(dashboard.url)
-            frames = declare_data_publisher(
-                zsession, topics.activations_key(session, "assisted"), "msk.ActivationFrame"
-            )
-            status = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
-            states = {
-                "TriLat": ("good", []),
-                "PMCla": ("bad", ["flat line"]),
-                "DelAnt": ("check", ["mains interference"]),
-            }
-            deadline, shown = time.monotonic() + 15, []
-            while time.monotonic() < deadline and len(shown) < 3:  # until the page has subscribed and drawn them
-                publish(frames, frame())
-                publish(status, estimator_status(states))
-                time.sleep(0.2)
-                shown = page.evaluate(rows)
-            assert len(shown) == 3, f"waited 15 s for 3 electrode rows; the page shows {shown}"
-            page.locator(".panel.map").screenshot(path=str(ARTIFACTS / "dashboard-electrodes.png"))
-            # the muscle in few words (the column is narrow), its whole display name in the tooltip
-            assert [r[2] for r in shown] == ["Triceps lateral", "Pectoralis clavicular", "Deltoid anterior"]
-            assert [r[6] for r in shown] == [
-                "Triceps brachii, lateral and medial heads",
-                "Pectoralis major, clavicular part",
-                "Deltoid, anterior part",
-            ]
-            assert [(r[1], r[3], r[4]) for r in shown] == [
-                ("good", "good", "q-good"),
-                ("bad", "bad: flat line", "q-bad"),
-                ("check", "check: mains interference", "q-check"),
-            ]
-            assert shown[1][5] == "bad: flat line (numbers)"
-            colours = page.evaluate(
-                "() => [...document.querySelectorAll('#electrodes td[class^=q-]')]"
-                ".map(td => getComputedStyle(td).color)"
-            )
-            assert len(set(colours)) == 3, colours  # three states, three colours
-            states["PMCla"] = ("good", [])  # the electrode recovers
+    with dashboard_in_chromium(zenoh_endpoint, DashboardConfig(session=session)) as (zsession, browser, page, errors):
+        frames = declare_data_publisher(zsession, topics.activations_key(session, "assisted"), "msk.ActivationFrame")
+        status = declare_data_publisher(zsession, topics.status_key(session, "estimator"), "msk.DeviceStatus")
+        states = {
+            "TriLat": ("good", []),
+            "PMCla": ("bad", ["flat line"]),
+            "DelAnt": ("check", ["mains interference"]),
+        }
+        deadline, shown = time.monotonic() + 15, []
+        while time.monotonic() < deadline and len(shown) < 3:  # until the page has subscribed and drawn them
+            publish(frames, frame())
             publish(status, estimator_status(states))
-            page.wait_for_function(
-                "() => document.querySelector('#electrodes tr[data-channel=\"sensor02.EMG\"]')"
-                ".dataset.state === 'good'",
-                timeout=10000,
-            )
-            assert not errors, errors
-            browser.close()
-    finally:
-        dashboard.stop()
+            time.sleep(0.2)
+            shown = page.evaluate(rows)
+        assert len(shown) == 3, f"waited 15 s for 3 electrode rows; the page shows {shown}"
+        page.locator(".panel.map").screenshot(path=str(ARTIFACTS / "dashboard-electrodes.png"))
+        # the muscle in few words (the column is narrow), its whole display name in the tooltip
+        assert [r[2] for r in shown] == ["Triceps lateral", "Pectoralis clavicular", "Deltoid anterior"]
+        assert [r[6] for r in shown] == [
+            "Triceps brachii, lateral and medial heads",
+            "Pectoralis major, clavicular part",
+            "Deltoid, anterior part",
+        ]
+        assert [(r[1], r[3], r[4]) for r in shown] == [
+            ("good", "good", "q-good"),
+            ("bad", "bad: flat line", "q-bad"),
+            ("check", "check: mains interference", "q-check"),
+        ]
+        assert shown[1][5] == "bad: flat line (numbers)"
+        colours = page.evaluate(
+            "() => [...document.querySelectorAll('#electrodes td[class^=q-]')].map(td => getComputedStyle(td).color)"
+        )
+        assert len(set(colours)) == 3, colours  # three states, three colours
+        states["PMCla"] = ("good", [])  # the electrode recovers
+        publish(status, estimator_status(states))
+        page.wait_for_function(
+            "() => document.querySelector('#electrodes tr[data-channel=\"sensor02.EMG\"]').dataset.state === 'good'",
+            timeout=10000,
+        )
+        assert not errors, errors
+        browser.close()

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from tests.conftest import free_tcp_port
-from tests.dashboard_helpers import ARTIFACTS, launch_chromium, require_chromium
+from tests.dashboard_helpers import ARTIFACTS, chromium_page, require_chromium
 from tests.live_helpers import LiveProcess, live_environment, run_msk, start_msk
 from tests.test_dashboard_browser import LAYOUT, MIN_TEXT_PX, ROWS, assert_readable
 
@@ -116,10 +116,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
         live.wait_running()
         dashboard = start_msk("dashboard", "--port", str(port), env=env)
         with sync_api.sync_playwright() as playwright:
-            browser = launch_chromium(playwright)
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
+            browser, page, errors = chromium_page(playwright)
             deadline = time.monotonic() + 60
             while True:  # the server takes a few seconds to import and bind
                 try:
