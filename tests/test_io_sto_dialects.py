@@ -13,6 +13,7 @@ import pytest
 
 from msk_core.errors import FileFormatError
 from msk_core.io import read_sto
+from tests.test_model_gait2392 import EMG_MUSCLES  # the walk envelopes' labels, as the pack names them
 
 HEADER = "Inverse Dynamics Generalized Forces\nversion=1\nnRows=3\nnColumns=3\ninDegrees=no\nendheader\n"
 ROWS = "0.00\t1.5\t-2.0\n0.01\t1.6\t-2.1\n0.02\t1.7\t-2.2\n"
@@ -88,15 +89,5 @@ def test_a_label_line_that_is_not_time_first_is_refused_like_opensim(tmp_path):
 def test_the_walk_emg_header_with_space_padded_labels(shared_dir):
     """The real walk envelopes: 'time\\t  soleus_r\\t med_gas_r ...' (labels padded with spaces)."""
     s = read_sto(shared_dir / "data" / "lowerlimb-walk" / "walk45_emgFilt.sto")
-    assert s.columns == [
-        "soleus_r",
-        "med_gas_r",
-        "lat_gas_r",
-        "tib_ant_r",
-        "semimem_r",
-        "bifemlh_r",
-        "vas_lat_r",
-        "rect_fem_r",
-        "vas_med_r",
-    ]
+    assert s.columns == EMG_MUSCLES
     assert s.n_rows == 5904 and s.rate == pytest.approx(100.0)
