@@ -167,7 +167,7 @@ def test_a_frame_awaits_the_emg_of_its_instant_while_the_source_delivers():
 def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waited_long_enough():
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.model import load_pack
-    from services.nodes.estimator import EstimatorNode, EstimatorStats
+    from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorStats
 
     pack = load_pack("bench_press")
     group = pack.groups[0]
@@ -192,8 +192,7 @@ def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waite
         initial_load_kg=0.0,
         exercise=None,
         solver="active-set",
-        joints_clock="host",
-        emg_wait_s=0.1,
+        timing=EmgTiming(joints_clock="host", emg_wait_s=0.1),
     )
     per_frame = 27
 

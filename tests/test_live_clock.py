@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from services.nodes.estimator import EstimatorNode, EstimatorStats
+from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorStats
 from services.sessions import live
 from services.sessions.live_session import load_session_file
 from services.transport import messages
@@ -119,8 +119,7 @@ def test_the_recording_replayed_through_an_estimator_maps_the_emg_clock_as_live_
         initial_load_kg=plan.session.load_kg,
         exercise=None,
         solver="active-set",
-        joints_clock="host",
-        emg_latency_ns={"trigno": int(TRIGNO_LATENCY_MS * 1e6)},
+        timing=EmgTiming(joints_clock="host", emg_latency_ns={"trigno": int(TRIGNO_LATENCY_MS * 1e6)}),
     )
     recorded = [m for part in summary["recordings"] for m in read_messages(part)]
     for m in recorded:

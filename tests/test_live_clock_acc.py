@@ -18,7 +18,7 @@ import pytest
 
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
-from services.nodes.estimator import EstimatorNode, EstimatorStats
+from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorStats
 from services.sessions import live
 from services.sessions.live_session import load_session_file
 from services.transport import messages
@@ -175,9 +175,7 @@ def test_the_recording_replayed_through_an_estimator_gives_the_live_alignment(li
         initial_load_kg=0.0,
         exercise=None,
         solver="active-set",
-        joints_clock="host",
-        emg_latency_ns={"trigno": 0},
-        emg_align="acceleration",
+        timing=EmgTiming(joints_clock="host", emg_latency_ns={"trigno": 0}, emg_align="acceleration"),
     )
     for part in summary["recordings"]:
         for m in read_messages(Path(part)):

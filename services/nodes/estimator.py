@@ -93,6 +93,42 @@ ALIGN_ACCELERATION = "acceleration"  # measure each EMG clock against the tracke
 ALIGN_ARRIVAL = "arrival"  # the arrival mapping alone
 
 
+@dataclass(frozen=True)
+class EmgTiming:
+    """How the node puts the EMG and the joint frames on one clock, and how long a frame waits for its EMG.
+
+    ``joints_clock``: the joint frames' instant (arrival, or their device time mapped onto the host clock);
+    ``emg_latency_ns`` / ``default_emg_latency_ns``: the stated latency of each EMG source / of the others (host clock
+    mapping); ``emg_align``: with the EMG clock "host", ``"acceleration"`` measures each EMG clock against the
+    trackers' from the accelerations (the trackers mapped with ``imu_latency_ns`` / ``default_imu_latency_ns`` as the
+    kinematics node maps them); ``emg_wait_s``: how long a joint frame (:meth:`EstimatorNode.offer_joints`) may wait
+    for the EMG of its instant."""
+
+    joints_clock: JointsClock | str = JointsClock.ARRIVAL
+    emg_latency_ns: dict[str, int] | None = None
+    default_emg_latency_ns: int = 0
+    emg_align: str = ALIGN_ARRIVAL
+    imu_latency_ns: dict[str, int] | None = None
+    default_imu_latency_ns: int = 0
+    emg_wait_s: float = 0.0
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> EmgTiming:
+        """The timing of the command line (:func:`add_arguments`); ``--emg-align`` counts only with ``--emg-clock
+        host``."""
+        latency_ns, default_latency_ns = parse_latencies(args.emg_latency_ms, "--emg-latency-ms")
+        imu_latency_ns, default_imu_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
+        return cls(
+            joints_clock=args.joints_clock,
+            emg_latency_ns=latency_ns,
+            default_emg_latency_ns=default_latency_ns,
+            emg_align=args.emg_align if args.emg_clock == ClockMode.HOST.value else ALIGN_ARRIVAL,
+            imu_latency_ns=imu_latency_ns,
+            default_imu_latency_ns=default_imu_latency_ns,
+            emg_wait_s=args.emg_wait_ms / 1e3,
+        )
+
+
 @dataclass
 class EstimatorStats:
     frames_in: int = 0
@@ -335,9 +371,7 @@ def make_live_emg(
     electrode_map: dict[str, str] | None,
     clock: ClockMode | str,
     stall_s: float = 0.25,
-    joints_clock: JointsClock | str = JointsClock.ARRIVAL,
-    latency_ns: dict[str, int] | None = None,
-    default_latency_ns: int = 0,
+    timing: EmgTiming = EmgTiming(),
 ) -> LiveEmg | None:
     """The EMG path: on with ``emg=True``; with None, on when the profile or ``electrode_map`` maps electrodes."""
     setup = (
@@ -358,9 +392,9 @@ def make_live_emg(
         setup,
         clock=clock,
         stall_s=stall_s,
-        joints_clock=joints_clock,
-        latency_ns=latency_ns,
-        default_latency_ns=default_latency_ns,
+        joints_clock=timing.joints_clock,
+        latency_ns=timing.emg_latency_ns,
+        default_latency_ns=timing.default_emg_latency_ns,
     )
 
 
@@ -376,30 +410,27 @@ def make_estimators(
     return estimators
 
 
-def make_alignment(
-    live_emg: LiveEmg | None,
-    emg_align: str,
-    imu_latency_ns: dict[str, int] | None,
-    default_imu_latency_ns: int,
-) -> AccelerationAlignment | None:
-    """The EMG clock measured against the trackers' (``emg_align`` "acceleration"): only where device clocks are
-    mapped onto the host clock; a tracker latency given for anything else is refused."""
-    if emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
-        raise ConfigError(f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=emg_align)
-    if live_emg is not None and live_emg.clock is ClockMode.HOST and emg_align == ALIGN_ACCELERATION:
+def make_alignment(live_emg: LiveEmg | None, timing: EmgTiming) -> AccelerationAlignment | None:
+    """The EMG clock measured against the trackers' (``timing.emg_align`` "acceleration"): only where device clocks
+    are mapped onto the host clock; a tracker latency given for anything else is refused."""
+    if timing.emg_align not in (ALIGN_ACCELERATION, ALIGN_ARRIVAL):
+        raise ConfigError(
+            f"choose {ALIGN_ACCELERATION} or {ALIGN_ARRIVAL}", field="--emg-align", value=timing.emg_align
+        )
+    if live_emg is not None and live_emg.clock is ClockMode.HOST and timing.emg_align == ALIGN_ACCELERATION:
         trackers = DeviceClocks(
             "imu",
-            latency_ns=imu_latency_ns,
-            default_latency_ns=default_imu_latency_ns,
+            latency_ns=timing.imu_latency_ns,
+            default_latency_ns=timing.default_imu_latency_ns,
             window_s=live_emg.clock_window_s,
         )
         return AccelerationAlignment(live_emg, trackers)
-    if live_emg is not None and (imu_latency_ns or default_imu_latency_ns):
+    if live_emg is not None and (timing.imu_latency_ns or timing.default_imu_latency_ns):
         raise ConfigError(
             "a tracker latency is used to measure the EMG clock against the trackers' (--emg-clock "
             "host --emg-align acceleration)",
             field="--imu-latency-ms",
-            value={**(imu_latency_ns or {}), "default": default_imu_latency_ns},
+            value={**(timing.imu_latency_ns or {}), "default": timing.default_imu_latency_ns},
         )
     return None
 
@@ -436,18 +467,9 @@ class EstimatorNode:
         initial_load_kg: float,
         exercise: str | None,
         solver: str,
-        joints_clock: JointsClock | str = JointsClock.ARRIVAL,
-        emg_latency_ns: dict[str, int] | None = None,
-        default_emg_latency_ns: int = 0,
-        emg_align: str = ALIGN_ARRIVAL,
-        imu_latency_ns: dict[str, int] | None = None,
-        default_imu_latency_ns: int = 0,
-        emg_wait_s: float = 0.0,
+        timing: EmgTiming = EmgTiming(),
     ) -> None:
-        """``emg_align``: with ``emg_clock`` "host", ``"acceleration"`` measures each EMG clock against the
-        trackers' from the accelerations (the trackers mapped with ``imu_latency_ns`` / ``default_imu_latency_ns``
-        as the kinematics node maps them); ``emg_wait_s``: how long a joint frame (:meth:`offer_joints`) may wait
-        for the EMG of its instant."""
+        """``timing``: the clocks of EMG and joints, the alignment of the EMG clock, the wait for the EMG."""
         self.stats = stats
         self.estimators = make_estimators(pack, methods, subject, solver)
         first = next(iter(self.estimators.values()))
@@ -461,9 +483,7 @@ class EstimatorNode:
             electrode_map=electrode_map,
             clock=emg_clock,
             stall_s=emg_stall_s,
-            joints_clock=joints_clock,
-            latency_ns=emg_latency_ns,
-            default_latency_ns=default_emg_latency_ns,
+            timing=timing,
         )
         if "assisted" in self.estimators and self.live_emg is None:
             raise ConfigError(
@@ -477,8 +497,8 @@ class EstimatorNode:
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         self.fatigue = make_fatigue(self.live_emg, stats)  # per electrode and rep: median/mean frequency, their trend
         self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
-        self.alignment = make_alignment(self.live_emg, emg_align, imu_latency_ns, default_imu_latency_ns)
-        self.emg_wait_ns = emg_wait_ns(emg_wait_s)
+        self.alignment = make_alignment(self.live_emg, timing)
+        self.emg_wait_ns = emg_wait_ns(timing.emg_wait_s)
         self._held: deque[_Held] = deque()  # joint frames waiting for their EMG, oldest first
         self.loads = LoadTimeline(initial_load_kg)
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
@@ -785,13 +805,7 @@ def main(
     electrode_map: dict[str, str] | None = None,
     emg_clock: ClockMode | str = ClockMode.DEVICE,
     emg_stall_s: float = 0.25,
-    joints_clock: JointsClock | str = JointsClock.ARRIVAL,
-    emg_latency_ns: dict[str, int] | None = None,
-    default_emg_latency_ns: int = 0,
-    emg_align: str = ALIGN_ARRIVAL,
-    imu_latency_ns: dict[str, int] | None = None,
-    default_imu_latency_ns: int = 0,
-    emg_wait_s: float = 0.0,
+    timing: EmgTiming = EmgTiming(),
     initial_load_kg: float = 0.0,
     exercise: str | None = None,
     solver: str = "active-set",
@@ -815,13 +829,7 @@ def main(
         initial_load_kg=initial_load_kg,
         exercise=exercise,
         solver=solver,
-        joints_clock=joints_clock,
-        emg_latency_ns=emg_latency_ns,
-        default_emg_latency_ns=default_emg_latency_ns,
-        emg_align=emg_align,
-        imu_latency_ns=imu_latency_ns,
-        default_imu_latency_ns=default_imu_latency_ns,
-        emg_wait_s=emg_wait_s,
+        timing=timing,
     )
     with open_session(config) as zsession:
         publishers, envelope_publisher = declare_outputs(zsession, node, session, methods)
@@ -966,9 +974,6 @@ def run_from_args(args: argparse.Namespace) -> int:
             if not sep or not channel or not group:
                 raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
             electrode_map[channel] = group
-    latency_ns, default_latency_ns = parse_latencies(args.emg_latency_ms, "--emg-latency-ms")
-    imu_latency_ns, default_imu_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
-    emg_align = args.emg_align if args.emg_clock == ClockMode.HOST.value else ALIGN_ARRIVAL
     ready = None
     if args.ready_key:
         node = args.ready_key.rsplit("/", 1)[-1]
@@ -987,13 +992,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         emg_clock=args.emg_clock,
         ready_key=ready,
         solver=args.solver,
-        joints_clock=args.joints_clock,
-        emg_latency_ns=latency_ns,
-        default_emg_latency_ns=default_latency_ns,
-        emg_align=emg_align,
-        imu_latency_ns=imu_latency_ns,
-        default_imu_latency_ns=default_imu_latency_ns,
-        emg_wait_s=args.emg_wait_ms / 1e3,
+        timing=EmgTiming.from_args(args),
     )
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(
