@@ -72,6 +72,32 @@ def test_pack_group_names():
     ]
 
 
+def test_every_shipped_pack_is_every_pack_protocol_the_estimator_reads(repo_root):
+    """msk_core.estimate.pack lists what the estimator and the discrepancy workflow read of a pack (PackLike, and
+    RangedPackLike, PosedPackLike, MusclePackLike read after an isinstance check, so mypy checks the reads): every
+    shipped pack is all of them, and nothing outside msk_core/model reads a pack's member by name (getattr), which
+    mypy cannot check."""
+    from msk_core.estimate.pack import MusclePackLike, PackLike, PosedPackLike, RangedPackLike, fitted_ranges
+    from msk_core.model.pack import available_packs
+
+    for name in available_packs():
+        pack = load_pack(name)
+        for protocol in (PackLike, RangedPackLike, PosedPackLike, MusclePackLike):
+            assert isinstance(pack, protocol), (name, protocol.__name__)
+        ranges = fitted_ranges(pack)
+        assert ranges is not None and np.array_equal(np.column_stack(ranges), pack.coordinate_ranges), name
+    by_name = re.compile(r"getattr\(\s*(self\.)?_?\w*pack\b")
+    readers = [
+        f"{path.relative_to(repo_root)}:{number}"
+        for folder in ("msk_core", "services", "drivers")
+        for path in sorted((repo_root / folder).rglob("*.py"))
+        if path.relative_to(repo_root).parts[:2] != ("msk_core", "model")
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if by_name.search(line)
+    ]
+    assert readers == [], readers
+
+
 def test_lumbar_groups_are_the_ceinms_channels(shared_dir):
     text = (shared_dir / "data" / "backmodel-lift" / "ceinms_uncalibrated.xml").read_text()
     channels = re.findall(r"<Channel>\s*<name>(\w+)</name>\s*<muscleSequence>([^<]+)</muscleSequence>", text)

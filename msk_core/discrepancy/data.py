@@ -10,7 +10,7 @@ import numpy as np
 
 from msk_core.errors import EstimationError, InputError
 from msk_core.estimate.frame import MIN_TORQUE_SCALE
-from msk_core.estimate.pack import PackLike, fibre_lengths
+from msk_core.estimate.pack import PackLike, fibre_lengths, fitted_ranges
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
@@ -218,8 +218,7 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
     order = [first.emg_channels[ch] for ch in first.emg_channels if first.emg_channels[ch] in emg_groups]
     order = list(dict.fromkeys(order))
     emd = (profile.calibration or {}).get("emd") or {}
-    ranges = getattr(pack, "coordinate_ranges", None)
-    r = None if ranges is None else np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
+    lo, hi = fitted_ranges(pack) or (None, None)
     optimal, slack = fibre_lengths(pack)
     return SessionArrays(
         groups=groups,
@@ -230,7 +229,7 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
         base_delay_s=float(emd.get("delay_s", 0.0) or 0.0),
         optimal=optimal,
         slack=slack,
-        lo=None if r is None else r[:, 0],
-        hi=None if r is None else r[:, 1],
+        lo=lo,
+        hi=hi,
         trials=[_arrays(pack, profile, t, emg_groups) for t in trials],
     )

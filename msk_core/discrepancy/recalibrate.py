@@ -23,7 +23,7 @@ import numpy as np
 from msk_core.discrepancy.model import force_factor
 from msk_core.estimate.calibrate import CalibrationResult, CalibrationSettings
 from msk_core.estimate.effects import TORQUE_TERMS, Effect, torque_term_columns, torque_term_names
-from msk_core.estimate.pack import PackLike, fibre_lengths
+from msk_core.estimate.pack import PackLike, fibre_lengths, fitted_ranges
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 
@@ -58,14 +58,12 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[Effect, dict], 
     """(T, n_c, p) the torque terms of ``model`` on every frame of ``trial``, N·m per unit coefficient
     (effects.torque_term_columns, as the discrepancy model writes them; names: effects.torque_term_names), with the
     profile's F_max."""
-    n_c = len(pack.coordinates)
     q = np.nan_to_num(trial.q)
     lengths = arms = None
     if Effect.FL_PASSIVE in model:
         mech = trial.mechanics(pack)
         lengths, arms = mech.lengths, mech.moment_arms
-    r = getattr(pack, "coordinate_ranges", None)
-    r = None if r is None else np.asarray(r, dtype=float).reshape(n_c, 2)
+    lo, hi = fitted_ranges(pack) or (None, None)
     return torque_term_columns(
         model,
         q,
@@ -74,8 +72,8 @@ def torque_columns(pack: PackLike, trial: TrialData, model: dict[Effect, dict], 
         arms,
         f_max,
         *fibre_lengths(pack),
-        None if r is None else r[:, 0],
-        None if r is None else r[:, 1],
+        lo,
+        hi,
     )
 
 

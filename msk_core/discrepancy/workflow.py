@@ -183,7 +183,7 @@ def _rms(x: np.ndarray) -> float:
 
 
 def activation_gaps(
-    pack,
+    pack: PackLike,
     profile: SubjectProfile,
     trials: list[TrialData],
     groups: list[str],

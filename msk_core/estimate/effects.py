@@ -25,7 +25,7 @@ from enum import StrEnum
 import numpy as np
 
 from msk_core.errors import EstimationError
-from msk_core.estimate.pack import MusclePackLike, PackLike
+from msk_core.estimate.pack import MusclePackLike, PackLike, fitted_ranges
 
 EFFECTS_FORMAT_VERSION = 1
 
@@ -340,14 +340,13 @@ class ModelEffects:
                 raise EstimationError(f"effects {self.names} need muscle lengths, which pack {pack.name!r} lacks")
             out._optimal = np.asarray(pack.optimal_fiber_lengths, dtype=float)
             out._slack = np.asarray(pack.tendon_slack_lengths, dtype=float)
-        ranges = getattr(pack, "coordinate_ranges", None)
         if Effect.PASSIVE_JOINT in self.names:
+            ranges = fitted_ranges(pack)
             if ranges is None:
                 raise EstimationError(
                     f"effect passive_joint needs the coordinate ranges, which pack {pack.name!r} lacks"
                 )
-            r = np.asarray(ranges, dtype=float).reshape(len(self.coordinates), 2)
-            out._lo, out._hi = r[:, 0].copy(), r[:, 1].copy()
+            out._lo, out._hi = ranges
         scale = np.ones((len(self.coordinates), len(self.groups)))
         p = self.params(Effect.MOMENT_ARM_SCALE)
         if p:

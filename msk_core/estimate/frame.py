@@ -56,7 +56,14 @@ from msk_core.errors import EstimationError
 from msk_core.estimate import active_set
 from msk_core.estimate.effects import ModelEffects
 from msk_core.estimate.laplace import laplace_std
-from msk_core.estimate.pack import MusclePackLike, PackLike, clamp_to_ranges, fitted_ranges, resolve_pack
+from msk_core.estimate.pack import (
+    MusclePackLike,
+    PackLike,
+    PosedPackLike,
+    clamp_to_ranges,
+    fitted_ranges,
+    resolve_pack,
+)
 from msk_core.estimate.prior import PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
@@ -200,7 +207,7 @@ class FrameEstimator:
         self.frames = 0
         self._init_solvers(a_min, a_max, backend, hot_start, hot_start_max_changes)
         # ModelPack.frame() gives lengths, moment arms and torques in one (compiled) call; other packs need not have it
-        self._fused_frame = getattr(self.pack, "frame", None)
+        self._fused_frame = self.pack.frame if isinstance(self.pack, MusclePackLike) else None
         self._model_error_logged = False
 
     def _init_effects_and_strength(self, subject: SubjectProfile | None, f_max: np.ndarray | None) -> None:
@@ -378,7 +385,7 @@ class FrameEstimator:
         compiled kernels are loaded (or compiled, on a fresh install) and the solvers set up before the first live
         frame, which would otherwise be late by that much. Counters and the hot start are reset afterwards."""
         n_c = len(self.coordinates)
-        pose = getattr(self.pack, "reference_pose", None)
+        pose = self.pack.reference_pose if isinstance(self.pack, PosedPackLike) else None
         if pose is None:
             pose = np.zeros(n_c) if self._fitted is None else (self._fitted[0] + self._fitted[1]) / 2
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)

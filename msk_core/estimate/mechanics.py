@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.estimate.frame import FrameEstimator, FrameStatus, Method
-from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges
+from msk_core.estimate.pack import MusclePackLike, PackLike, clamp_to_ranges, fitted_ranges
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,14 +49,13 @@ def mechanics_of(pack: PackLike, q: np.ndarray, torques: np.ndarray) -> TrialMec
     q_clamped, usable = clamp_to_ranges(q, fitted_ranges(pack))
     n, n_c, g = q.shape[0], len(pack.coordinates), len(pack.groups)
     arms = np.full((n, n_c, g), np.nan)
-    both = getattr(pack, "lengths_and_moment_arms", None)
-    if both is None:
+    if not isinstance(pack, MusclePackLike):
         for i in np.flatnonzero(usable):
             arms[i] = pack.moment_arms(q_clamped[i])
         return TrialMechanics(pack, q, torques, q_clamped, usable, arms, None)
     lengths = np.full((n, g), np.nan)
     for i in np.flatnonzero(usable):
-        lengths[i], arms[i] = both(q_clamped[i])
+        lengths[i], arms[i] = pack.lengths_and_moment_arms(q_clamped[i])
     return TrialMechanics(pack, q, torques, q_clamped, usable, arms, lengths)
 
 

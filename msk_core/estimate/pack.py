@@ -1,4 +1,9 @@
-"""The part of a model pack the estimator uses, as a Protocol (the real packs live in :mod:`msk_core.model`)."""
+"""The part of a model pack the estimator uses, as Protocols (the real packs live in :mod:`msk_core.model`).
+
+:class:`PackLike` is what every pack has; what only some packs have is a Protocol of its own, read after an
+``isinstance`` check so that mypy checks the reads: :class:`RangedPackLike` (fitted coordinate ranges),
+:class:`PosedPackLike` (a reference pose) and :class:`MusclePackLike` (muscle lengths, fibre data, the fused frame).
+``msk_core.model.ModelPack`` is all of them; the small packs of the tests and benchmarks are some."""
 
 from __future__ import annotations
 
@@ -14,8 +19,8 @@ CLAMP_TOLERANCE = np.deg2rad(5.0)  # poses this far outside a pack's fitted rang
 class PackLike(Protocol):
     """What the estimator reads of every model pack: names, reference strengths, moment arms and inverse dynamics
     (``msk_core.model.ModelPack``; tests use smaller ones). Read-only members, so a pack's lists satisfy the
-    sequences. A pack may have more, read where present: ``coordinate_ranges`` (:func:`fitted_ranges`),
-    ``reference_pose``, the fused ``frame``, and the muscle lengths of :class:`MusclePackLike`."""
+    sequences. A pack may have more, read where present: :class:`RangedPackLike`, :class:`PosedPackLike`,
+    :class:`MusclePackLike`."""
 
     @property
     def name(self) -> str: ...
@@ -44,9 +49,31 @@ class PackLike(Protocol):
 
 
 @runtime_checkable
+class RangedPackLike(PackLike, Protocol):
+    """A pack that declares the coordinate ranges its surrogate was fitted over: poses beyond them are clamped or
+    refused (:func:`clamp_to_ranges`), and the passive joint effect reads them."""
+
+    @property
+    def coordinate_ranges(self) -> np.ndarray:
+        """(n_coordinates, 2) fitted (lower, upper) range of each coordinate, rad."""
+        ...
+
+
+@runtime_checkable
+class PosedPackLike(PackLike, Protocol):
+    """A pack with a reference pose (the pose its model is written around): the estimator's warm-up frame."""
+
+    @property
+    def reference_pose(self) -> np.ndarray:
+        """(n_coordinates,) reference pose, rad."""
+        ...
+
+
+@runtime_checkable
 class MusclePackLike(PackLike, Protocol):
     """A pack with muscle-tendon lengths and fibre data (``ModelPack`` has them): what the muscle-state effects
-    (active and passive force-length, force-velocity) and the discrepancy data need."""
+    (active and passive force-length, force-velocity) and the discrepancy data need; its fused :meth:`frame` gives
+    a live frame's lengths, moment arms and torques in one call."""
 
     @property
     def optimal_fiber_lengths(self) -> np.ndarray:
@@ -60,6 +87,13 @@ class MusclePackLike(PackLike, Protocol):
 
     def lengths_and_moment_arms(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """((n_groups,) muscle-tendon lengths in metres, (n_coordinates, n_groups) moment arms) at q, in one call."""
+        ...
+
+    def frame(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """((n_groups,) muscle-tendon lengths, (n_coordinates, n_groups) moment arms, (n_coordinates,) generalised
+        forces) at one state, in one call."""
         ...
 
 
@@ -77,11 +111,11 @@ def resolve_pack(pack: PackLike | str) -> PackLike:
 
 
 def fitted_ranges(pack: PackLike) -> tuple[np.ndarray, np.ndarray] | None:
-    """(lower, upper) of the pack's fitted coordinate ranges (rad), or None when it declares none."""
-    ranges = getattr(pack, "coordinate_ranges", None)
-    if ranges is None:
+    """(lower, upper) of the pack's fitted coordinate ranges (rad), or None when it declares none
+    (not a :class:`RangedPackLike`)."""
+    if not isinstance(pack, RangedPackLike):
         return None
-    r = np.asarray(ranges, dtype=float).reshape(len(pack.coordinates), 2)
+    r = np.asarray(pack.coordinate_ranges, dtype=float).reshape(len(pack.coordinates), 2)
     return r[:, 0].copy(), r[:, 1].copy()
 
 

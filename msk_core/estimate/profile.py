@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from msk_core.errors import EstimationError, FileFormatError, MskError
+from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import PhaseModel
 from msk_core.estimate.prior import PhasePrior
 
@@ -42,7 +43,7 @@ class SubjectProfile:
     def scale_factors(self) -> np.ndarray:
         return self.f_max / self.f_max_ref
 
-    def check_pack(self, pack) -> None:
+    def check_pack(self, pack: PackLike) -> None:
         """The profile only makes sense with the pack it was calibrated on."""
         if pack.name != self.pack_name or list(pack.groups) != list(self.groups):
             raise EstimationError(

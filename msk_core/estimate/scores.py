@@ -9,6 +9,7 @@ import numpy as np
 
 from msk_core.errors import EstimationError
 from msk_core.estimate.metrics import activation_rmse, torque_tracking
+from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate, estimate_trial, trial_phase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -30,7 +31,7 @@ class MethodScore:
 
 
 def evaluate(
-    pack,
+    pack: PackLike,
     subject: SubjectProfile,
     trials: list[TrialData],
     *,

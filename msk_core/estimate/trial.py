@@ -497,7 +497,7 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     )
 
 
-def _load_emg(spec, path, text, file_of, err, pack, time):
+def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
     storage: Storage = read_sto(file_of("emg"))
     mapping = spec.get("emg_map")
     if not isinstance(mapping, dict) or not mapping:
