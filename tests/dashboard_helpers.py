@@ -99,6 +99,20 @@ def dashboard_in_chromium(endpoint: str, config: Any) -> Iterator[tuple[Any, Any
         dashboard.stop()
 
 
+def replay_demo_without_raw(endpoint: str, session: str) -> Any:
+    """The demo recording (DEMO_MCAP) as fast as it goes, renamed to ``session``, through a client of ``endpoint``: every
+    message but the raw IMU and EMG (the joint angles for an estimator, the load, the statuses). Its ReplayStats."""
+    from services.nodes import replayer
+
+    return replayer.main(
+        ZenohOptions(connect=(endpoint,)),
+        DEMO_MCAP,
+        rate=None,
+        session_name=session,
+        exclude=(f"msk/{session}/imu/*", f"msk/{session}/emg/*"),
+    )
+
+
 def trimmed_recording(source: Path, out: Path, start_s: float, end_s: float) -> Path:
     """The messages of ``source`` logged in [start_s, end_s) after its first message, as a new MCAP."""
     first = None

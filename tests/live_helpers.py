@@ -10,6 +10,7 @@ import select
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import IO
@@ -43,6 +44,28 @@ def start_msk(*argv: str, env: dict[str, str]) -> subprocess.Popen[str]:
         text=True,
         start_new_session=True,
     )
+
+
+def start_subscribe(key: str, *options: str) -> subprocess.Popen[str]:
+    """``msk subscribe KEY --json OPTIONS``, stdout and stderr on pipes of their own; returned once it said on stderr
+    that it subscribed to KEY (read in a thread, at most 60 s; else it is killed and the test fails)."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "subscribe", key, "--json", *options],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    stderr = process.stderr
+    assert stderr is not None
+    first_line: list[str] = []
+    reader = threading.Thread(target=lambda: first_line.append(stderr.readline()), daemon=True)
+    reader.start()
+    reader.join(60)
+    if not (first_line and f"subscribed to {key}" in first_line[0]):
+        process.kill()
+        raise AssertionError(f"msk subscribe did not say within 60 s that it subscribed to {key}: {first_line}")
+    return process
 
 
 def wait_running(process: subprocess.Popen[str], lines: list[str]) -> None:

@@ -7,11 +7,12 @@ import json
 import re
 import subprocess
 import sys
-import threading
 
-from services.nodes import estimator, replayer
+from services.nodes import estimator
 from services.sessions.graph import Graph, wait_for
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session
+from tests.dashboard_helpers import replay_demo_without_raw
+from tests.live_helpers import start_subscribe
 
 SESSION = "appsdoc"
 
@@ -45,36 +46,8 @@ def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, z
                     60,
                 )
                 probe.undeclare()
-            cli = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "services.cli",
-                    "subscribe",
-                    f"msk/{SESSION}/activations/*",
-                    "--json",
-                    "--count",
-                    "5",
-                    "--connect",
-                    zenoh_endpoint,
-                ],
-                cwd=repo_root,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-            )
-            first_line: list[str] = []
-            reader = threading.Thread(target=lambda: first_line.append(cli.stderr.readline()), daemon=True)
-            reader.start()
-            reader.join(60)
-            assert first_line and "subscribed to" in first_line[0], first_line
-            stats = replayer.main(
-                ZenohOptions(connect=(zenoh_endpoint,)),
-                repo_root / "recordings" / "demo_session.mcap",
-                rate=None,
-                session_name=SESSION,
-                exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"),
-            )
+            cli = start_subscribe(f"msk/{SESSION}/activations/*", "--count", "5", "--connect", zenoh_endpoint)
+            stats = replay_demo_without_raw(zenoh_endpoint, SESSION)
             assert stats.published > 5000
             out, err = doc.communicate(timeout=120)
             cli_out, cli_err = cli.communicate(timeout=60)

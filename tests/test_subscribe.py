@@ -5,9 +5,6 @@ one topic type expects that type, a broader one each key's type from the topic t
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-import threading
 
 import pytest
 
@@ -16,6 +13,7 @@ from services.commands.subscribe import expected_type
 from services.transport import messages
 from services.transport.zenoh_session import ZenohOptions, open_session
 from tests.dashboard_helpers import BAD_INPUT_TOPICS, BadInputs
+from tests.live_helpers import start_subscribe
 
 
 def test_expected_type_of_a_key_expression():
@@ -30,32 +28,8 @@ def test_expected_type_of_a_key_expression():
 
 
 def test_msk_subscribe_prints_valid_messages_and_counts_the_unusable_ones(repo_root, zenoh_endpoint):
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "subscribe",
-            "msk/bad/**",
-            "--json",
-            "--count",
-            "2",
-            "--duration",
-            "60",
-            "--listen",
-            zenoh_endpoint,
-        ],
-        cwd=repo_root,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    process = start_subscribe("msk/bad/**", "--count", "2", "--duration", "60", "--listen", zenoh_endpoint)
     try:
-        first_line: list[str] = []
-        reader = threading.Thread(target=lambda: first_line.append(process.stderr.readline()), daemon=True)
-        reader.start()
-        reader.join(60)
-        assert first_line and "subscribed to msk/bad/**" in first_line[0], first_line
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             inputs = BadInputs(zsession, "bad")
             inputs.wait_matched(BAD_INPUT_TOPICS)

@@ -12,11 +12,12 @@ import uuid
 
 import pytest
 
-from services.nodes import estimator, replayer
+from services.nodes import estimator
 from services.sessions.graph import Graph, wait_for
 from services.surfaces.view import ViewState, main, render
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
+from tests.dashboard_helpers import replay_demo_without_raw
 
 SESSION = "viewtest"
 
@@ -72,13 +73,7 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
 
                 sub = zsession.declare_subscriber(f"msk/{SESSION}/activations/*", keep_last)
                 loads = zsession.declare_subscriber(topics.load_key(SESSION), keep_set_start)
-                stats = replayer.main(
-                    ZenohOptions(connect=(zenoh_endpoint,)),
-                    repo_root / "recordings" / "demo_session.mcap",
-                    rate=None,
-                    session_name=SESSION,
-                    exclude=(f"msk/{SESSION}/imu/*", f"msk/{SESSION}/emg/*"),
-                )
+                stats = replay_demo_without_raw(zenoh_endpoint, SESSION)
                 assert stats.published > 5000
                 est = graph._threads[0]  # noqa: SLF001 - the node's thread is idle once its inbox is empty
 
