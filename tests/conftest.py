@@ -15,6 +15,14 @@ import services  # noqa: F401 - first, before numpy loads: one BLAS thread per p
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = Path(os.environ.get("MSK_SHARED_DIR", REPO_ROOT.parent / "shared"))
+SPECS_DIR = REPO_ROOT / "msk_core" / "model" / "specs"  # the shipped packs' spec files
+#: The start of a one-coordinate pack spec (the right knee, one group) that spec tests add their tables to.
+KNEE_SPEC = """name = "t"
+[coordinates]
+knee_angle_r = { range_deg = [0, 120], reference_deg = 0 }
+[groups]
+VL = ["vaslat140_r"]
+"""
 
 # Modules whose tests run a whole `msk live` session (real-time simulators, the well-known Zenoh port 7447 when free,
 # the machine's calibration cache): under pytest-xdist (`python3 dev.py test` runs two workers) they share one worker,

@@ -14,24 +14,15 @@ from msk_core.errors import ConfigError
 from msk_core.model import available_packs, load_pack
 from msk_core.model.pack import balance_of, with_names
 from msk_core.model.spec import load_spec, parse_spec
+from tests.conftest import KNEE_SPEC, SPECS_DIR
 
-SPECS = Path(__file__).resolve().parents[1] / "msk_core" / "model" / "specs"
-
-SPEC = """name = "t"
-[coordinates]
-knee_angle_r = { range_deg = [0, 120], reference_deg = 0 }
-[groups]
-VL = ["vaslat140_r"]
-ST = ["semiten_r"]
-VL_l = ["vaslat140_l"]
-[balance]
-"""
+SPEC = KNEE_SPEC + 'ST = ["semiten_r"]\nVL_l = ["vaslat140_l"]\n[balance]\n'
 
 
 @pytest.mark.parametrize("name", available_packs())
 def test_every_shipped_pack_declares_pairs_the_model_agrees_with(name):
     pack = load_pack(name)
-    spec = load_spec(SPECS / f"{name}.toml")
+    spec = load_spec(SPECS_DIR / f"{name}.toml")
     assert pack.balance == spec.balance == balance_of(pack.raw)
     assert pack.balance.agonist_antagonist, f"{name}: no agonist/antagonist pair declared"
     # over poses spread through the pack's ranges, each agonist's moment arm is positive in most of them and each
@@ -113,7 +104,7 @@ def test_bad_balance_tables_are_refused_naming_file_line_field_and_value(table, 
 def test_a_change_of_balance_alone_needs_no_recompile(tmp_path):
     name = "arm26"
     data = json.loads(Path(str(load_pack(name).path)).read_text())
-    text = (SPECS / f"{name}.toml").read_text().replace('label = "Elbow flexors / extensors"', 'label = "Elbow"')
+    text = (SPECS_DIR / f"{name}.toml").read_text().replace('label = "Elbow flexors / extensors"', 'label = "Elbow"')
     changed = tmp_path / f"{name}.toml"
     changed.write_text(text)
     refreshed = with_names(data, load_spec(changed))

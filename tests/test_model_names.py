@@ -14,16 +14,9 @@ from msk_core.model import available_packs, load_pack
 from msk_core.model.names import MAX_NAME_CHARS, fallback_names, parse_names
 from msk_core.model.pack import names_of, pack_display_names, with_names
 from msk_core.model.spec import load_spec, parse_spec
+from tests.conftest import KNEE_SPEC, SPECS_DIR
 
-SPECS = Path(__file__).resolve().parents[1] / "msk_core" / "model" / "specs"
-
-SPEC = """name = "t"
-[coordinates]
-knee_angle_r = { range_deg = [0, 120], reference_deg = 0 }
-[groups]
-VL = ["vaslat140_r"]
-RF = ["recfem_r"]
-"""
+SPEC = KNEE_SPEC + 'RF = ["recfem_r"]\n'
 
 
 @pytest.mark.parametrize("name", available_packs())
@@ -41,7 +34,7 @@ def test_every_shipped_pack_names_every_group_and_coordinate(name):
     assert {names.unit(c) for c in pack.coordinates} == {"deg"}  # every pack coordinate is a rotation
     assert {names.torque_unit(c) for c in pack.coordinates} == {"N·m"}
     # the pack carries the spec it names them from: changing the spec file without refreshing the pack fails here
-    assert pack.raw["spec"] == (SPECS / f"{name}.toml").read_text()
+    assert pack.raw["spec"] == (SPECS_DIR / f"{name}.toml").read_text()
     assert len(set(names.groups.values())) == len(names.groups), f"{name}: two groups share a display name"
 
 
@@ -116,7 +109,7 @@ def test_a_sessions_names_override_the_packs():
 
 def test_with_names_refreshes_only_the_names():
     data = json.loads(json.dumps(load_pack("arm26").raw))
-    spec = load_spec(SPECS / "arm26.toml")
+    spec = load_spec(SPECS_DIR / "arm26.toml")
     renamed = parse_spec(spec.text.replace('BRA = "Brachialis"', 'BRA = "Brachialis muscle"'), Path("arm26.toml"))
     assert names_of(with_names(data, renamed)).group("BRA") == "Brachialis muscle"
     assert names_of(data).group("BRA") == "Brachialis"  # the input is not changed

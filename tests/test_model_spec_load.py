@@ -9,8 +9,7 @@ import pytest
 
 from msk_core.errors import ConfigError
 from msk_core.model.spec import load_spec, parse_spec
-
-SPECS = Path(__file__).resolve().parents[1] / "msk_core" / "model" / "specs"
+from tests.conftest import SPECS_DIR
 
 BASE = """name = "t"
 [coordinates]
@@ -26,7 +25,8 @@ def _spec(dynamics: str):
 
 def test_shipped_specs_keep_their_loads_and_the_walk_has_none():
     shares = {
-        name: load_spec(SPECS / f"{name}.toml").dynamics for name in ("arm26", "lumbar_lift", "bench_press", "deadlift")
+        name: load_spec(SPECS_DIR / f"{name}.toml").dynamics
+        for name in ("arm26", "lumbar_lift", "bench_press", "deadlift")
     }
     assert {n: (d.has_hand_load, d.load_share, len(d.load_points)) for n, d in shares.items()} == {
         "arm26": (True, 1.0, 1),
@@ -34,7 +34,7 @@ def test_shipped_specs_keep_their_loads_and_the_walk_has_none():
         "bench_press": (True, 0.5, 1),
         "deadlift": (True, 0.5, 2),
     }
-    gait = load_spec(SPECS / "gait2392.toml").dynamics
+    gait = load_spec(SPECS_DIR / "gait2392.toml").dynamics
     assert not gait.has_hand_load and gait.load_points == ()
 
 
