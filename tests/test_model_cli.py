@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -24,21 +25,11 @@ def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
     spec = spec.replace("samples = 400", "samples = 100")
     (tmp_path / "a.toml").write_text(spec)
     osim = shared_dir / "models" / "arm26.osim"
-    assert (
-        cli.main(
-            [
-                "model",
-                "compile",
-                "--osim",
-                str(osim),
-                "--spec",
-                str(tmp_path / "a.toml"),
-                "--out",
-                str(tmp_path / "a.json"),
-            ]
-        )
-        == 0
-    )
+
+    def compile_arm26(spec_path: Path, out: Path) -> int:  # msk model compile of arm26.osim with the spec
+        return cli.main(["model", "compile", "--osim", str(osim), "--spec", str(spec_path), "--out", str(out)])
+
+    assert compile_arm26(tmp_path / "a.toml", tmp_path / "a.json") == 0
     assert (
         cli.main(
             [
@@ -63,21 +54,7 @@ def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
     assert max(report["dynamics"]["max_error_percent_of_peak"].values()) < 1e-3
     # bad spec -> exit code 2 and a message naming the file and field
     (tmp_path / "bad.toml").write_text(spec.replace('name = "arm26"', "name = 5"))
-    assert (
-        cli.main(
-            [
-                "model",
-                "compile",
-                "--osim",
-                str(osim),
-                "--spec",
-                str(tmp_path / "bad.toml"),
-                "--out",
-                str(tmp_path / "b.json"),
-            ]
-        )
-        == 2
-    )
+    assert compile_arm26(tmp_path / "bad.toml", tmp_path / "b.json") == 2
     assert "bad.toml" in capsys.readouterr().err
 
 
