@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -140,36 +142,14 @@ def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
 
 def test_a_torque_basis_respects_its_lower_bound_and_is_checked():
     f_ref, _, beta_true, plain, with_basis = _with_passive_moment(seed=7)
-    flipped = CalibrationFrames(
-        plain.moment_arms,
-        plain.torques,
-        plain.prior_mean,
-        plain.prior_std,
-        plain.emg,
-        torque_basis=-with_basis.torque_basis,
-        torque_basis_lower=np.zeros(2),
-    )
+    # plain's frames with another torque basis: the dataclass's own checks run again (replace calls __init__)
+    flipped = dataclasses.replace(plain, torque_basis=-with_basis.torque_basis, torque_basis_lower=np.zeros(2))
     res = calibrate(f_ref, flipped, CalibrationSettings(identify_max_std=None))
     assert np.all(res.torque_coefficients >= 0.0) and np.any(res.torque_coefficients <= 1e-9)
     with pytest.raises(EstimationError, match=r"torque_basis must be \(80, 2, p\)"):
-        CalibrationFrames(
-            plain.moment_arms,
-            plain.torques,
-            plain.prior_mean,
-            plain.prior_std,
-            plain.emg,
-            torque_basis=np.zeros((79, 2, 1)),
-        )
+        dataclasses.replace(plain, torque_basis=np.zeros((79, 2, 1)))
     with pytest.raises(EstimationError, match="torque_basis_lower must be"):
-        CalibrationFrames(
-            plain.moment_arms,
-            plain.torques,
-            plain.prior_mean,
-            plain.prior_std,
-            plain.emg,
-            torque_basis=np.zeros((80, 2, 2)),
-            torque_basis_lower=np.zeros(3),
-        )
+        dataclasses.replace(plain, torque_basis=np.zeros((80, 2, 2)), torque_basis_lower=np.zeros(3))
 
 
 def test_strength_std_marginalises_the_torque_basis_coefficients():
