@@ -201,6 +201,23 @@ def _rigid_views(ints, floats):
 
 
 @_jit
+def _world_inertia_times(body, r, x, y, z):
+    """R I_c Rᵀ v: the body's inertia about its centre of mass (``body[INERTIA:INERTIA + 9]``, body axes, row-major)
+    times the world vector v = (x, y, z), in world axes (``r``: the body's rotation, body to world)."""
+    bx = r[0, 0] * x + r[1, 0] * y + r[2, 0] * z  # Rᵀ v: v in body axes
+    by = r[0, 1] * x + r[1, 1] * y + r[2, 1] * z
+    bz = r[0, 2] * x + r[1, 2] * y + r[2, 2] * z
+    tx = body[INERTIA] * bx + body[INERTIA + 1] * by + body[INERTIA + 2] * bz
+    ty = body[INERTIA + 3] * bx + body[INERTIA + 4] * by + body[INERTIA + 5] * bz
+    tz = body[INERTIA + 6] * bx + body[INERTIA + 7] * by + body[INERTIA + 8] * bz
+    return (
+        r[0, 0] * tx + r[0, 1] * ty + r[0, 2] * tz,
+        r[1, 0] * tx + r[1, 1] * ty + r[1, 2] * tz,
+        r[2, 0] * tx + r[2, 1] * ty + r[2, 2] * tz,
+    )
+
+
+@_jit
 def rigid_torques(dq, qd, qdd, hand_load, gravity, ints, floats, tau, tau_joint):
     """Inverse dynamics: tau (n,) per pack coordinate, tau_joint (J,) per reduced-model joint (incl. the hand load)."""
     load_per_point, joint_int, joint_float, poly_coef, gains, projection, work = _rigid_views(ints, floats)
@@ -340,28 +357,8 @@ def rigid_torques(dq, qd, qdd, hand_load, gravity, ints, floats, tau, tau_joint)
             cx = ox + r00 * lx + r01 * ly + r02 * lz
             cy = oy + r10 * lx + r11 * ly + r12 * lz
             cz = oz + r20 * lx + r21 * ly + r22 * lz
-            # body-frame angular velocity / acceleration (Rᵀ w), inertia about the centre of mass, back to world
-            bwx = r00 * wx + r10 * wy + r20 * wz
-            bwy = r01 * wx + r11 * wy + r21 * wz
-            bwz = r02 * wx + r12 * wy + r22 * wz
-            bax = r00 * alx + r10 * aly + r20 * alz
-            bay = r01 * alx + r11 * aly + r21 * alz
-            baz = r02 * alx + r12 * aly + r22 * alz
-            i00, i01, i02 = joint_float[i, INERTIA], joint_float[i, INERTIA + 1], joint_float[i, INERTIA + 2]
-            i10, i11, i12 = joint_float[i, INERTIA + 3], joint_float[i, INERTIA + 4], joint_float[i, INERTIA + 5]
-            i20, i21, i22 = joint_float[i, INERTIA + 6], joint_float[i, INERTIA + 7], joint_float[i, INERTIA + 8]
-            tx = i00 * bwx + i01 * bwy + i02 * bwz
-            ty = i10 * bwx + i11 * bwy + i12 * bwz
-            tz = i20 * bwx + i21 * bwy + i22 * bwz
-            iwx = r00 * tx + r01 * ty + r02 * tz  # I_c w in world axes
-            iwy = r10 * tx + r11 * ty + r12 * tz
-            iwz = r20 * tx + r21 * ty + r22 * tz
-            tx = i00 * bax + i01 * bay + i02 * baz
-            ty = i10 * bax + i11 * bay + i12 * baz
-            tz = i20 * bax + i21 * bay + i22 * baz
-            iax = r00 * tx + r01 * ty + r02 * tz  # I_c alpha in world axes
-            iay = r10 * tx + r11 * ty + r12 * tz
-            iaz = r20 * tx + r21 * ty + r22 * tz
+            iwx, iwy, iwz = _world_inertia_times(joint_float[i], rot[i], wx, wy, wz)  # I_c w in world axes
+            iax, iay, iaz = _world_inertia_times(joint_float[i], rot[i], alx, aly, alz)  # I_c alpha in world axes
             # momentum h = I v: linear m (v_o + w x c), angular I_c w + c x h_lin; f = I a + v x* h
             hlx = mass * (vx + (wy * cz - wz * cy))
             hly = mass * (vy + (wz * cx - wx * cz))
