@@ -20,7 +20,7 @@ import pytest
 
 from drivers.trial_clock import TrialClock
 from drivers.trigno import protocol as tp
-from drivers.trigno.client import AuxBlock, TrignoClient, TrignoConfig
+from drivers.trigno.client import AuxBlock
 from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
 from drivers.trigno.source import load_source
 from drivers.xsens.device import XsensDevice
@@ -31,6 +31,7 @@ from msk_core.model import load_pack
 from msk_core.signal.clock_sync import AccUnit, ClockSync, SyncStatus
 from msk_core.synth import SPECS, Exercise, SynthConfig, generate_trial, make_subject
 from services.sessions.synth_export import write_trial_device_streams
+from tests.device_helpers import keeping_errors, trigno_streaming
 
 TRIGNO_LATENCY_S = 0.060  # a base station buffering its frames
 XSENS_LATENCY_S = 0.004  # an MTi over USB
@@ -49,18 +50,9 @@ class Received:
 
 
 def _read_trigno(sim: TrignoSimulator, got: Received, start_at: float, stop: threading.Event) -> None:
-    client = TrignoClient(
-        TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"], aux_port=sim.ports["aux"])
-    )
-    client.connect()
-    time.sleep(max(0.0, start_at - time.monotonic()))
-    client.start()
-    try:
+    with trigno_streaming(sim, start_at, aux=True) as client:
         while not stop.is_set():
             got.aux += [e for e in client.poll(0.01) if isinstance(e, AuxBlock)]
-    finally:
-        client.stop()
-        client.close()
 
 
 def _read_xsens(sim: XsensSimulator, got: Received, rate_hz: int, stop: threading.Event) -> None:
@@ -74,16 +66,6 @@ def _read_xsens(sim: XsensSimulator, got: Received, rate_hz: int, stop: threadin
                 got.imu_host_ns.append(reading.host_time_ns)
     finally:
         device.close()
-
-
-def _reader(target, errors: list[BaseException]):
-    def run(*args) -> None:
-        try:
-            target(*args)
-        except BaseException as error:  # raised in the test's thread after the join
-            errors.append(error)
-
-    return run
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +112,7 @@ def test_offset_between_trigno_and_tracker_clocks_from_accelerations_within_10_m
     errors: list[BaseException] = []
     xsens = None
     trigno_thread = threading.Thread(
-        target=_reader(_read_trigno, errors), args=(trigno, got, trial_start + TRIGNO_START_S, stop)
+        target=keeping_errors(_read_trigno, errors), args=(trigno, got, trial_start + TRIGNO_START_S, stop)
     )
     threads = [trigno_thread]
     try:
@@ -144,7 +126,7 @@ def test_offset_between_trigno_and_tracker_clocks_from_accelerations_within_10_m
         xsens = XsensSimulator(
             imu_source, device_id=0x03700A01, wakeup_window_s=3600.0, trial_clock=clock, latency_s=XSENS_LATENCY_S
         ).start()
-        threads.append(threading.Thread(target=_reader(_read_xsens, errors), args=(xsens, got, imu_rate, stop)))
+        threads.append(threading.Thread(target=keeping_errors(_read_xsens, errors), args=(xsens, got, imu_rate, stop)))
         threads[-1].start()
         time.sleep(READ_S)
     finally:

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from drivers.trial_clock import TrialClock
-from drivers.trigno.client import EmgBlock, TrignoClient, TrignoConfig
+from drivers.trigno.client import EmgBlock
 from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
 from drivers.trigno.source import synthetic_source
 from drivers.xsens.device import XsensDevice
@@ -28,6 +28,7 @@ from drivers.xsens.source import synthetic_imu
 from msk_core.errors import ConfigError
 from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.estimate.live_emg import ClockMode, EmgSetup, LiveEmg
+from tests.device_helpers import keeping_errors, trigno_streaming
 
 TRIGNO_LATENCY_S = 0.030  # a base buffering its frames
 XSENS_LATENCY_S = 0.004  # an MTi over USB
@@ -61,24 +62,8 @@ class OneWorld:
     live_emg_offset_ns: int
 
 
-def _reader(target, errors: list[BaseException]):
-    """A reader thread's body that keeps its exception for the fixture to raise."""
-
-    def run(*args) -> None:
-        try:
-            target(*args)
-        except BaseException as error:
-            errors.append(error)
-
-    return run
-
-
 def _read_trigno(sim: TrignoSimulator, stream: Stream, live: LiveEmg, start_at: float, stop: threading.Event) -> None:
-    client = TrignoClient(TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"]))
-    client.connect()
-    time.sleep(max(0.0, start_at - time.monotonic()))
-    client.start()
-    try:
+    with trigno_streaming(sim, start_at) as client:
         while not stop.is_set():
             for block in client.poll(0.01):
                 if not isinstance(block, EmgBlock):
@@ -101,9 +86,6 @@ def _read_trigno(sim: TrignoSimulator, stream: Stream, live: LiveEmg, start_at: 
                     stream.device_ns.append(int(round((block.first_sample_index + k) * 1e9 / block.rate_hz)))
                     stream.host_ns.append(block.host_time_ns)
                     stream.last_in_block.append(k == n - 1)
-    finally:
-        client.stop()
-        client.close()
 
 
 def _read_xsens(sim: XsensSimulator, stream: Stream, start_at: float, stop: threading.Event) -> None:
@@ -160,13 +142,13 @@ def one_world() -> OneWorld:
     errors: list[BaseException] = []
     threads = [
         threading.Thread(
-            target=_reader(_read_trigno, errors),
+            target=keeping_errors(_read_trigno, errors),
             args=(trigno, streams["trigno"], live, trial_start + STARTS_S["trigno"], stop),
         )
     ]
     threads += [
         threading.Thread(
-            target=_reader(_read_xsens, errors), args=(xsens[n], streams[n], trial_start + STARTS_S[n], stop)
+            target=keeping_errors(_read_xsens, errors), args=(xsens[n], streams[n], trial_start + STARTS_S[n], stop)
         )
         for n in ("A", "B")
     ]
