@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -166,3 +167,16 @@ def test_kill_live_kills_msk_live_and_the_nodes_it_listed(tmp_path: Path) -> Non
             if p.poll() is None:
                 p.kill()
                 p.wait(10)
+
+
+def test_a_node_process_that_exits_while_the_graph_waits_is_reported_at_once_with_its_log(zenoh_endpoint, tmp_path):
+    graph = Graph(SESSION, zenoh_endpoint)
+    # exits after the graph has begun waiting on Zenoh (past the check made before it), never declaring its token
+    script = "import sys, time; time.sleep(1.5); print('no device on /dev/ttyUSB0'); sys.exit(2)"
+    graph.add_process("late-fail", [sys.executable, "-c", script], log_path=tmp_path / "late-fail.log")
+    started = time.monotonic()
+    with pytest.raises(GraphTimeout, match=r"late-fail \(exit 2\)[\s\S]*no device on /dev/ttyUSB0") as raised:
+        graph.wait_ready(60)
+    assert time.monotonic() - started < 15, "waited for a node that had exited"
+    assert "missing ['late-fail']" in str(raised.value)
+    graph.stop(5)

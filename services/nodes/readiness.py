@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import zenoh
@@ -67,10 +67,17 @@ def declare_ready(zsession: zenoh.Session, spec: ReadySpec | None):
     return zsession.liveliness().declare_token(spec.key)
 
 
-def wait_for_nodes(zsession: zenoh.Session, session: str, nodes: Sequence[str], timeout_s: float) -> float:
+def wait_for_nodes(
+    zsession: zenoh.Session,
+    session: str,
+    nodes: Sequence[str],
+    timeout_s: float,
+    give_up: Callable[[], str | None] | None = None,
+) -> float:
     """Block until ``zsession`` sees the readiness token of every node in ``nodes``; return the seconds waited.
 
-    Raises :class:`GraphTimeout` naming the nodes still missing when ``timeout_s`` expires.
+    Raises :class:`GraphTimeout` naming the nodes still missing when ``timeout_s`` expires, or at once (checked every
+    0.1 s) when ``give_up`` returns a reason, e.g. a node process that exited: nothing is waited for that cannot come.
     """
     wanted = {ready_key(session, n): n for n in nodes}
     if not wanted:
@@ -101,6 +108,14 @@ def wait_for_nodes(zsession: zenoh.Session, session: str, nodes: Sequence[str], 
                     raise GraphTimeout(
                         f"waited {timeout_s:g} s for {len(wanted)} nodes of session {session!r} to be ready: "
                         f"{len(wanted) - len(missing)} ready, missing {missing}"
+                    )
+                reason = give_up() if give_up is not None else None
+                if reason:
+                    missing = sorted(n for k, n in wanted.items() if k not in seen)
+                    raise GraphTimeout(
+                        f"stopped waiting for {len(wanted)} nodes of session {session!r} to be ready after "
+                        f"{time.monotonic() - started:.1f} s: {reason}; {len(wanted) - len(missing)} ready, "
+                        f"missing {missing}"
                     )
                 changed.wait(min(left, 0.1))
     finally:

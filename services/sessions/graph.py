@@ -178,14 +178,16 @@ class Graph:
                     + self._log_tail(node)
                 )
         with open_session(self.observer_options()) as zsession:
-            try:
-                wait_for_nodes(zsession, self.session, self.nodes, max(0.1, started + timeout_s - time.monotonic()))
-            except GraphTimeout as error:
-                dead = [
-                    f"{n.name} (exit {n.process.returncode})" for n in self._processes if n.process.poll() is not None
-                ]
-                raise GraphTimeout(f"{error}" + (f"; exited: {dead}" if dead else "")) from None
+            left = max(0.1, started + timeout_s - time.monotonic())
+            wait_for_nodes(zsession, self.session, self.nodes, left, give_up=self._exited_before_ready)
         return time.monotonic() - started
+
+    def _exited_before_ready(self) -> str | None:
+        """The node processes that exited while the graph waits for readiness (each with its exit code and log)."""
+        dead = [n for n in self._processes if n.process.poll() is not None]
+        if not dead:
+            return None
+        return "exited: " + ", ".join(f"{n.name} (exit {n.process.returncode}){self._log_tail(n)}" for n in dead)
 
     def observer_options(self) -> ZenohOptions:
         """How a client that watches the graph (readiness, ``msk live``'s view) joins it."""
