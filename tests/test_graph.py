@@ -90,66 +90,24 @@ def test_a_node_that_fails_at_start_is_reported_and_the_graph_stops(zenoh_endpoi
     assert not any(t.name == "node-broken" for t in threading.enumerate())
 
 
-def test_msk_replay_waits_for_named_graph_nodes(zenoh_endpoint, repo_root):
-    import subprocess
-    import sys
+def test_msk_replay_waits_for_named_graph_nodes(zenoh_endpoint):
+    from tests.dashboard_helpers import DEMO_MCAP
+    from tests.live_helpers import run_msk
+
+    def replay_waiting_for(*options: str) -> subprocess.CompletedProcess[str]:
+        """msk replay of the demo session into this graph, waiting for the node "late", then ``options``."""
+        demo = ("replay", str(DEMO_MCAP), "--session", SESSION, "--connect", zenoh_endpoint, "--wait-node", "late")
+        return run_msk(*demo, *options, timeout=120)
 
     counts: dict[str, int] = {}
     with Graph(SESSION, zenoh_endpoint) as graph:
         graph.add_thread("late", counting_node, counts=counts, label="late", delay_s=1.5)
-        replay = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "replay",
-                str(repo_root / "recordings" / "demo_session.mcap"),
-                "--rate",
-                "max",
-                "--session",
-                SESSION,
-                "--wait-node",
-                "late",
-                "--connect",
-                zenoh_endpoint,
-                "--exclude",
-                f"msk/{SESSION}/imu/*",
-                "--exclude",
-                f"msk/{SESSION}/emg/*",
-                "--exclude",
-                f"msk/{SESSION}/joints",
-            ],
-            cwd=repo_root,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        raw = ("--exclude", f"msk/{SESSION}/imu/*", "--exclude", f"msk/{SESSION}/emg/*")
+        replay = replay_waiting_for("--rate", "max", *raw, "--exclude", f"msk/{SESSION}/joints")
         assert replay.returncode == 0, replay.stderr
         assert "published 8 messages" in replay.stderr
         wait_for("the late node to count the 8 load events", lambda: counts.get("late") == 8, lambda: str(counts), 20)
-        missing = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "replay",
-                str(repo_root / "recordings" / "demo_session.mcap"),
-                "--session",
-                SESSION,
-                "--wait-node",
-                "late",
-                "--wait-node",
-                "ghost",
-                "--wait-nodes-timeout",
-                "1",
-                "--connect",
-                zenoh_endpoint,
-            ],
-            cwd=repo_root,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        missing = replay_waiting_for("--wait-node", "ghost", "--wait-nodes-timeout", "1")
     assert missing.returncode == 2 and "1 ready, missing ['ghost']" in missing.stderr, missing.stderr
 
 
