@@ -710,11 +710,10 @@ def serve_simulators() -> int:
     off by up to 90 deg, most frames ``invalid_input``.) Prints one JSON line (ports, trackers, the trial's electrode
     map and load), then runs until SIGINT or SIGTERM."""
     from services.sessions.live import sim_sources, start_simulators
+    from services.transport.zenoh_session import stop_on_signals
 
     sources = sim_sources(DEMO, PACK)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     simulators = start_simulators(sources)
     try:
         said = {

@@ -6,12 +6,11 @@ Ctrl-C or SIGTERM ends acquisition cleanly (STOP/QUIT, final status) and prints 
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 
 from services.nodes import driver_nodes
 from services.nodes.readiness import ReadySpec, declare_ready
 from services.transport import topics, zenoh_session
+from services.transport.zenoh_session import stop_on_signals
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -31,9 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     devices = driver_nodes.device_settings(args)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):  # the loops end cleanly and report, rather than being torn down
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()  # the loops end cleanly and report, rather than being torn down
     ready = None
     if args.ready_key:
         ready = ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))

@@ -36,7 +36,6 @@ import argparse
 import bisect
 import logging
 import queue
-import signal
 import sys
 import threading
 from collections import deque
@@ -82,6 +81,7 @@ from services.transport.zenoh_session import (
     options_from_args,
     publish,
     run_script,
+    stop_on_signals,
 )
 
 log = logging.getLogger(__name__)
@@ -958,9 +958,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                 field="--method",
                 value=needs_prior,
             )
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     print(
         f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}",
         file=sys.stderr,

@@ -18,7 +18,6 @@ import argparse
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 from dataclasses import dataclass, field
@@ -46,6 +45,7 @@ from services.transport.zenoh_session import (
     options_from_args,
     publish,
     run_script,
+    stop_on_signals,
 )
 
 log = logging.getLogger(__name__)
@@ -404,9 +404,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     filter_config = KinematicsFilterConfig(
         dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg)
     )
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     latency_ns, default_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
     out = args.out_session or args.session
     print(

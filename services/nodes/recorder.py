@@ -58,7 +58,6 @@ import collections
 import hashlib
 import logging
 import queue
-import signal
 import sys
 import threading
 import time
@@ -94,6 +93,7 @@ from services.transport.zenoh_session import (
     open_session,
     options_from_args,
     run_script,
+    stop_on_signals,
     type_name_of_sample,
 )
 
@@ -654,9 +654,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     if not args.flush_interval > 0:
         raise ConfigError("must be positive", field="--flush-interval", value=args.flush_interval)
     if not args.history_timeout > 0:

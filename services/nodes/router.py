@@ -8,7 +8,6 @@ every node already uses; the same JSON5 config file works for both. Every other 
 from __future__ import annotations
 
 import argparse
-import signal
 import socket
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from services.transport.zenoh_session import (
     open_session,
     options_from_args,
     run_script,
+    stop_on_signals,
 )
 
 
@@ -87,9 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     main(options_from_args(args), duration_s=args.duration, stop_event=stop)
     return 0
 

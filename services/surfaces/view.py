@@ -23,7 +23,6 @@ import argparse
 import logging
 import math
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -43,7 +42,13 @@ from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, NodeInputs, apply_load_event, serve
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
-from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
+from services.transport.zenoh_session import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    open_session,
+    options_from_args,
+    stop_on_signals,
+)
 
 log = logging.getLogger(__name__)
 
@@ -501,9 +506,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     from services.sessions import discovery
 
     options, session = discovery.client_options(options_from_args(args), args.session, "live", "msk view")
