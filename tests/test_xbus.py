@@ -21,6 +21,13 @@ SET_PRECISION = {
     4: xbus.Precision.FLOAT64,
 }
 REAL_QUANTITIES = ("acceleration", "rate_of_turn", "delta_v", "delta_q")
+#: The tolerance unit of each precision in the Xbus and device tests: a float's round trip, a fixed-point format's step.
+STEP = {
+    xbus.Precision.FLOAT32: 1e-6,
+    xbus.Precision.FP1220: 2.0**-20,
+    xbus.Precision.FP1632: 2.0**-32,
+    xbus.Precision.FLOAT64: 1e-15,
+}
 
 
 def load_set(shared_dir, n: int) -> tuple[bytes, list[xbus.XbusMessage]]:
@@ -193,12 +200,7 @@ def test_mtdata2_round_trip_every_precision_and_frame(precision, frame):
         (0x7010, b"\x01\x02\x03"),  # unknown to the decoder: skipped by size, kept raw
     ]
     decoded = xbus.decode_mtdata2(xbus.encode_mtdata2(items))
-    tolerance = {
-        xbus.Precision.FLOAT32: 1e-6,
-        xbus.Precision.FP1220: 2.0**-20,
-        xbus.Precision.FP1632: 2.0**-32,
-        xbus.Precision.FLOAT64: 1e-15,
-    }[precision]
+    tolerance = STEP[precision]
     assert decoded.get("quaternion") == pytest.approx(q, abs=tolerance)
     assert decoded.get("acceleration") == pytest.approx(acc, abs=tolerance * 10)
     assert decoded.frame() is frame

@@ -14,6 +14,7 @@ from drivers.xsens.serial_transport import DeviceDisconnected, SerialTransport
 from drivers.xsens.simulator import FaultConfig, XsensSimulator
 from drivers.xsens.source import load_imu_source, synthetic_imu
 from msk_core.errors import ConfigError, FileFormatError, InputError
+from tests.test_xbus import STEP
 
 
 def read_for(device: XsensDevice, *, count: int = 0, seconds: float = 5.0) -> list:
@@ -45,12 +46,7 @@ def test_configure_and_measure_every_precision_and_frame(precision, frame):
     )
     assert info["outputs"] == output_settings(100, precision=precision, frame=frame)
     assert len(readings) >= 40 and device.stats.packets_lost == 0 and device.stats.decode_errors == 0
-    step = {
-        xbus.Precision.FLOAT32: 1e-6,
-        xbus.Precision.FP1220: 2.0**-20,
-        xbus.Precision.FP1632: 2.0**-32,
-        xbus.Precision.FLOAT64: 1e-12,
-    }[precision]
+    step = STEP[precision]
     for reading in readings:
         k = reading.packet_counter  # the simulator's counter is the recording's sample index here
         assert reading.tracker_id == "03700123" and reading.frame is frame
