@@ -64,7 +64,7 @@ from msk_core.estimate.pack import (
     fitted_ranges,
     resolve_pack,
 )
-from msk_core.estimate.prior import PhasePrior
+from msk_core.estimate.prior import NO_EMG_STD, PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
 if TYPE_CHECKING:
@@ -74,6 +74,8 @@ log = logging.getLogger(__name__)
 
 MIN_TORQUE_SCALE = 1.0  # N·m; floor of the per-coordinate residual scale (coordinates almost no muscle crosses)
 RESERVE_WEIGHT = 1.0e4  # weight of the scaled residual in the `so` reserve fallback
+# assisted: a measured synergist whose pooled prior mean is below this cannot set another group's level from its envelope
+MIN_SYNERGIST_LEVEL = 1.0e-3
 BOUND_TOL = 1.0e-6  # an activation this close to 0 or 1 counts as at its bound (Laplace free set)
 
 
@@ -179,6 +181,7 @@ class FrameEstimator:
         hot_start_max_changes: int | None = None,
         emg_std: float = 0.05,
         emg_relative_std: float = 0.1,
+        live_synergists: bool = False,
     ) -> None:
         self.pack = resolve_pack(pack)
         try:
@@ -192,6 +195,7 @@ class FrameEstimator:
         if subject is not None:
             subject.check_pack(self.pack)
         self._init_effects_and_strength(subject, f_max)
+        self.live_synergists = bool(live_synergists)
         self._init_prior(subject, prior)
         if not torque_tolerance > 0 or not hybrid_weight > 0:
             raise EstimationError("torque_tolerance and hybrid_weight must be positive")
@@ -241,6 +245,42 @@ class FrameEstimator:
                 raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
             if tuple(self.prior.groups) != tuple(self.groups):
                 raise EstimationError("the prior's groups differ from the pack's groups")
+        self._init_live_synergists(subject)
+
+    def _init_live_synergists(self, subject: SubjectProfile | None) -> None:
+        """``assisted``: for each group without EMG, the measured synergist whose live envelope informs it (index,
+        -1: none), the gain that brings that envelope to the group's own prior level (ratio of their pooled prior
+        means) and the weight of that scaled envelope in the group's prior mean (the rest: its phase prior; the
+        prior's spread is kept, so the torque term moves the group as much as before). A group whose prior *is* its
+        synergist's (source ``synergist:<group>``) takes the live envelope (weight 1). Any other group (the profile's
+        moment-arm ``synergists``) weighs the two hypotheses by the errors each showed on the measured groups:
+        w = e_p^2 / (e_p^2 + e_s^2), e_p the minimal-effort error (``min_effort_error_rms``; the wide default's
+        ``NO_EMG_STD`` for a default prior), e_s the error of "a synergist's envelope at the group's own level"
+        between the measured synergists (``synergist_error_rms``; without it, no measured pair to check it on, the
+        group is left alone)."""
+        n = len(self.groups)
+        self._synergist_of = np.full(n, -1)
+        self._synergist_gain = np.zeros(n)
+        self._synergist_weight = np.zeros(n)
+        if self.prior is None or not self.live_synergists:
+            return
+        calibration = subject.calibration if subject is not None else {}
+        named = {g: (h, False) for g, h in (calibration.get("synergists") or {}).items()}
+        sources = self.prior.sources or ("",) * n
+        for j, src in enumerate(sources):
+            if src.startswith("synergist:"):
+                named[self.groups[j]] = (src.removeprefix("synergist:"), True)
+        syn_err = float(calibration.get("synergist_error_rms") or np.nan)
+        me_err = float(calibration.get("min_effort_error_rms") or np.nan)
+        mu, _ = self.prior.pooled()
+        for g, (h, copied) in named.items():
+            if g not in self.groups or h not in self.groups:
+                continue
+            j, k = self.groups.index(g), self.groups.index(h)
+            prior_err = me_err if sources[j] == "min_effort" else NO_EMG_STD
+            weight = 1.0 if copied else prior_err**2 / (prior_err**2 + syn_err**2)
+            if self.prior.has_emg[k] and not self.prior.has_emg[j] and mu[k] > MIN_SYNERGIST_LEVEL and weight > 0:
+                self._synergist_of[j], self._synergist_gain[j], self._synergist_weight[j] = k, mu[j] / mu[k], weight
 
     def _init_solvers(
         self,
@@ -481,6 +521,16 @@ class FrameEstimator:
         if e.shape != mu.shape or not measured.any():
             return mu, d
         mu, d = mu.copy(), d.copy()
+        # a group without its own envelope with a measured synergist: that synergist's live envelope, brought to the
+        # group's own prior level (same drive, its own gain), weighed into its prior mean; the prior's spread kept
+        src = self._synergist_of
+        lent = (src >= 0) & ~measured
+        if lent.any():
+            live = e[src[lent]]
+            take = np.isfinite(live)
+            idx = np.flatnonzero(lent)[take]
+            w = self._synergist_weight[idx]
+            mu[idx] = w * live[take] * self._synergist_gain[idx] + (1.0 - w) * mu[idx]
         em = e[measured]
         mu[measured] = em
         d[measured] = 1.0 / (self.emg_std**2 + (self.emg_relative_std * em) ** 2)

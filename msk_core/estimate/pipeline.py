@@ -181,6 +181,47 @@ def pick_synergists(
     return picked
 
 
+def profile_synergists(pack: PackLike, trials: list[TrialData], prior: PhasePrior) -> dict[str, str]:
+    """Group without EMG -> its measured synergist (:func:`pick_synergists` over the trials with reps), stored in the
+    profile: ``assisted`` lets such a group follow its synergist's live envelope (docs/estimation.md, "Live EMG and
+    `assisted`")."""
+    groups = list(pack.groups)
+    moving = [t for t in trials if not t.isometric]
+    measured = [g for g, m in zip(groups, prior.has_emg) if m]
+    unmeasured = [g for g, m in zip(groups, prior.has_emg) if not m]
+    if not moving or not measured or not unmeasured:
+        return {}
+    return pick_synergists(pack, moving, unmeasured, measured)
+
+
+def synergist_error(pack: PackLike, trials: list[TrialData]) -> float:
+    """RMS of (EMG - gain x the envelope of its measured synergist) over the measured groups that have one among the
+    other measured groups (:func:`pick_synergists`) and the frames inside reps; gain: the ratio of the two envelopes'
+    means there. How far "a muscle of the same action has the same drive, at its own level" is from the envelopes
+    where it can be checked, as :func:`min_effort_error` is for minimal effort (NaN without a measured pair)."""
+    moving = [t for t in trials if not t.isometric and t.emg]
+    measured = sorted({g for t in moving for g in t.emg})
+    diffs = []
+    for g in measured:
+        picked = pick_synergists(pack, moving, [g], [h for h in measured if h != g]) if len(measured) > 1 else {}
+        if g not in picked:
+            continue
+        h = picked[g]
+        pairs = [(t.emg[g][t.rep_index >= 0], t.emg[h][t.rep_index >= 0]) for t in moving if g in t.emg and h in t.emg]
+        e_g = np.concatenate([p[0] for p in pairs]) if pairs else np.zeros(0)
+        e_h = np.concatenate([p[1] for p in pairs]) if pairs else np.zeros(0)
+        ok = np.isfinite(e_g) & np.isfinite(e_h)
+        if ok.sum() < 2 or not np.mean(e_h[ok]) > 0:
+            continue
+        diffs.append(e_g[ok] - np.mean(e_g[ok]) / np.mean(e_h[ok]) * e_h[ok])
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+
+def _none_if_nan(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
 def trial_phase(trial: TrialData, i: int) -> float:
     """Phase of frame i: in [0, 1) inside a rep, REST_PHASE between reps."""
     return float(trial.phase[i])
@@ -504,6 +545,8 @@ def calibrate_inputs(
             "emd": emd,
             "isometric_trials": [t.name for t in trials if t.isometric],
             "no_emg_strength": NoEmgStrength(no_emg_strength).value,
+            "synergists": profile_synergists(pack, trials, profile_prior),
+            "synergist_error_rms": _none_if_nan(synergist_error(pack, trials)),
         },
         provenance={
             "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

@@ -144,10 +144,11 @@ def add_calibration_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--no-emg-strength",
-        choices=["reference", "measured"],
+        choices=["reference", "measured", "synergist"],
         default="reference",
-        help="strength of groups without EMG in the profile: the pack's reference (default), or the measured "
-        "groups' common calibrated factor, with the minimal-effort prior re-derived at those strengths",
+        help="strength of groups without EMG in the profile: the pack's reference (default), the measured "
+        "groups' common calibrated factor, or the factor of the measured group with the most similar moment arms "
+        "(else the common one); with the minimal-effort prior re-derived at those strengths",
     )
 
 
@@ -222,11 +223,19 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
         help="activations within [0, 1] (default), or within each group's OpenSim min_control / "
         "max_control from the pack, as OpenSim's StaticOptimization bounds them",
     )
+    parser.add_argument(
+        "--live-synergists",
+        choices=["on", "off"],
+        default="off",
+        help="assisted: a group without EMG whose measured synergist (most similar moment arms) has a live envelope "
+        "follows it, scaled to its own prior level and weighted by the error that hypothesis shows between the "
+        "measured synergists (docs/estimation.md, 'Live EMG and assisted'); default off",
+    )
 
 
 def estimator_options(args: argparse.Namespace, pack) -> dict:
     """FrameEstimator keyword arguments for the solver flags."""
-    options: dict = {"hot_start": args.solver == "active-set"}
+    options: dict = {"hot_start": args.solver == "active-set", "live_synergists": args.live_synergists == "on"}
     if args.activation_bounds == "model":
         options["a_min"], options["a_max"] = pack.min_control, pack.max_control
     return options
