@@ -179,3 +179,21 @@ def test_sensor_calibration_for_several_joints_round_trips_json() -> None:
     moving = Rotation.from_euler("z", np.linspace(0, 1.0, 50)[:, None]).as_quat(scalar_first=True)
     with pytest.raises(InputError, match="segment 'forearm'.*moved"):
         SensorCalibration.from_static_pose({"upper_arm": q_upper[static], "forearm": moving})
+
+
+def test_quaternion_twist_equals_the_rotation_one() -> None:
+    """The kinematics node's quaternion path (ImuJointMapper.angles) gives Rotation's composition and twist."""
+    from msk_core.imu.kinematics import quat_product, twist_angle, twist_angle_quats, unit_quats
+
+    rng = np.random.default_rng(5)
+    a, b = Rotation.random(200, random_state=1), Rotation.random(200, random_state=2)
+    qa, qb = a.as_quat(scalar_first=True), b.as_quat(scalar_first=True)
+    composed = quat_product(qa, qb)
+    expected = (a * b).as_quat(scalar_first=True)
+    assert np.allclose(np.abs(np.sum(composed * expected, axis=1)), 1.0, atol=1e-12)  # same rotation (q or -q)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    got = twist_angle_quats(unit_quats(qa * 3.0), qb, axis)
+    assert np.allclose(np.angle(np.exp(1j * (got - twist_angle(a, b, axis)))), 0.0, atol=1e-12)
+    with pytest.raises(InputError, match="finite and non-zero"):
+        unit_quats(np.array([np.nan, 0.0, 0.0, 1.0]))

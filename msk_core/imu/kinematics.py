@@ -42,6 +42,45 @@ def quats_to_rotation(quats: np.ndarray) -> Rotation:
     return Rotation.from_quat(q, scalar_first=True)
 
 
+_CONJUGATE = np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def unit_quats(quats: np.ndarray) -> np.ndarray:
+    """Scalar-first quaternions ``(n, 4)`` or ``(4,)`` scaled to unit norm, as ``(n, 4)``; the same checks as
+    :func:`quats_to_rotation` (which scipy's ``Rotation`` normalises alike)."""
+    q = np.atleast_2d(np.asarray(quats, dtype=float))
+    if q.shape[-1] != 4:
+        raise InputError("quaternions must have 4 components (w, x, y, z)", field="quats", value=q.shape)
+    norms = np.sqrt(np.einsum("ij,ij->i", q, q))
+    if not (np.isfinite(norms).all() and norms.min() >= 1e-6):  # a non-finite component makes its norm non-finite
+        raise InputError("quaternions must be finite and non-zero", field="quats")
+    return q / norms[:, None]
+
+
+def quat_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products ``a b`` of scalar-first quaternions ``(n, 4)`` (either may be one ``(4,)``): the rotation
+    ``a`` after ``b``, as ``Rotation`` composes them (``Rotation(a) * Rotation(b)``), without building Rotation
+    objects (the kinematics node does this for every frame)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = aw * bw - ax * bx - ay * by - az * bz
+    out[..., 1] = aw * bx + ax * bw + ay * bz - az * by
+    out[..., 2] = aw * by - ax * bz + ay * bw + az * bx
+    out[..., 3] = aw * bz + ax * by - ay * bx + az * bw
+    return out
+
+
+def twist_angle_quats(parent: np.ndarray, child: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """:func:`twist_angle` from unit scalar-first quaternions ``(n, 4)`` (either may be one ``(4,)``) and a unit
+    ``axis``: ``2 atan2(v . axis, w)`` of ``conj(parent) child``, wrapped to (-pi, pi]."""
+    conj = np.asarray(parent, dtype=float) * _CONJUGATE
+    rel = np.atleast_2d(quat_product(conj, child))
+    angle = 2.0 * np.arctan2(rel[:, 1:] @ axis, rel[:, 0])
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
 def npose_segment_orientation(heading_rad: float = 0.0) -> Rotation:
     """Orientation ``R_GB`` of every segment in the static N-pose when the subject faces ``heading_rad`` (about Z)."""
     return Rotation.from_euler("z", heading_rad) * _NPOSE

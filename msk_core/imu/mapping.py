@@ -25,9 +25,10 @@ from msk_core.errors import ConfigError, InputError
 from msk_core.imu.kinematics import (
     SensorCalibration,
     model_ground_orientation,
-    quats_to_rotation,
+    quat_product,
     sensor_to_segment,
-    twist_angle,
+    twist_angle_quats,
+    unit_quats,
 )
 
 WORLD = "world"
@@ -168,6 +169,10 @@ class ImuJointMapper:
         self.segments = mapping.segments
         self.calibration: SensorCalibration | None = None
         self._order = _tree_order(mapping.hinges)
+        self._ground_quat = self.ground.as_quat(scalar_first=True).reshape(4)
+        self._axes = [h.unit_axis for h in self.hinges]
+        self._quats: dict[str, np.ndarray] = {}
+        self._quats_of: SensorCalibration | None = None
 
     @classmethod
     def for_pack(cls, pack, *, heading_rad: float, mapping: PackMapping | None = None) -> ImuJointMapper:
@@ -219,18 +224,27 @@ class ImuJointMapper:
         """Pack coordinates (rad) ``(n, n_coordinates)`` from every segment's sensor quaternions ``(n, 4)``."""
         if self.calibration is None:
             raise ConfigError("the IMU mapping is not calibrated yet", field="calibration")
-        seg: dict[str, Rotation] = {}
+        # quaternion arithmetic, not Rotation objects: the same twist angles (within 1e-13 rad), cheaper
+        to_segment = self._calibration_quats()
+        seg = {WORLD: self._ground_quat}
         for segment in self.segments:
             if segment not in quats:
                 raise InputError(f"no sample of segment {segment!r}", field=segment)
-            seg[segment] = quats_to_rotation(quats[segment]) * self.calibration.sensor_to_segment[segment]
+            seg[segment] = quat_product(unit_quats(quats[segment]), to_segment[segment])
         n = len(np.atleast_2d(quats[self.segments[0]]))
         out = np.empty((n, len(self.coordinates)))
-        for i, h in enumerate(self.hinges):
-            parent = seg[h.parent] if h.parent != WORLD else Rotation.concatenate([self.ground] * n)
-            child = seg[h.child] if h.child != WORLD else Rotation.concatenate([self.ground] * n)
-            out[:, i] = self.reference_pose[i] + twist_angle(parent, child, h.unit_axis) / h.gain
+        for i, (h, axis) in enumerate(zip(self.hinges, self._axes)):
+            out[:, i] = self.reference_pose[i] + twist_angle_quats(seg[h.parent], seg[h.child], axis) / h.gain
         return out
+
+    def _calibration_quats(self) -> dict[str, np.ndarray]:
+        """The calibration's sensor-to-segment rotations as scalar-first quaternions (kept until it changes)."""
+        calibration = self.calibration
+        assert calibration is not None
+        if self._quats_of is not calibration:
+            self._quats = {s: r.as_quat(scalar_first=True).reshape(4) for s, r in calibration.sensor_to_segment.items()}
+            self._quats_of = calibration
+        return self._quats
 
 
 def _tree_order(hinges: tuple[HingeMap, ...]) -> list[tuple[int, bool]]:
