@@ -113,6 +113,46 @@ def replay_demo_without_raw(endpoint: str, session: str) -> Any:
     )
 
 
+class TimedRecording:
+    """A recording of the session ``s`` being written: each message at ``t_s`` seconds after ``start_ns`` (log and
+    publish time alike)."""
+
+    def __init__(self, writer: McapRecorderWriter, start_ns: int) -> None:
+        self.writer, self.start_ns = writer, start_ns
+
+    def write(self, message: Any, t_s: float, topic: str) -> None:
+        ns = self.start_ns + int(t_s * 1e9)
+        self.writer.write(f"msk/s/{topic}", messages.type_name(message), messages.encode(message), ns, ns)
+
+    def load_events(self, events: list[tuple[float, Any]]) -> None:
+        """(seconds, LoadEvent) pairs on the load topic, each with its device time."""
+        for t_s, event in events:
+            event.device_time_ns = self.start_ns + int(t_s * 1e9)
+            self.write(event, t_s, "load")
+
+    def joints_and_frame(self, t_s: float, phase: float, groups: list[str], activations: list[float]) -> None:
+        """At ``t_s``: the elbow's joint angles carrying ``phase`` and the bench press's ``so`` frame of ``groups``."""
+        joints = messages.JointAngles(
+            coordinates=["elbow_flex_r"], q=[1.0], phase=phase, device_time_ns=self.start_ns + int(t_s * 1e9)
+        )
+        self.write(joints, t_s, "joints")
+        frame = messages.ActivationFrame(
+            time_s=self.start_ns / 1e9 + t_s,
+            method="so",
+            groups=groups,
+            activations=activations,
+            exercise="bench_press",
+        )
+        self.write(frame, t_s, "activations/so")
+
+
+@contextlib.contextmanager
+def timed_recording(path: Path, start_ns: int) -> Iterator[TimedRecording]:
+    """A new MCAP at ``path`` written through a :class:`TimedRecording`; closed after the block."""
+    with McapRecorderWriter(path) as writer:
+        yield TimedRecording(writer, start_ns)
+
+
 def trimmed_recording(source: Path, out: Path, start_s: float, end_s: float) -> Path:
     """The messages of ``source`` logged in [start_s, end_s) after its first message, as a new MCAP."""
     first = None

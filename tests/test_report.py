@@ -16,7 +16,14 @@ from msk_core.model import load_pack
 from msk_core.model.spec import BalanceSpec
 from services.surfaces.dashboard import report
 from services.transport.mcap_io import McapRecorderWriter, read_messages
-from tests.dashboard_helpers import ARTIFACTS, DEMO_MCAP, launch_chromium, record_with_estimates, require_chromium
+from tests.dashboard_helpers import (
+    ARTIFACTS,
+    DEMO_MCAP,
+    launch_chromium,
+    record_with_estimates,
+    require_chromium,
+    timed_recording,
+)
 
 METHODS = {"bench_press": ["so", "hybrid"], "deadlift": ["so", "hybrid"]}
 
@@ -183,20 +190,13 @@ def write_small_session(
     ``groups``), and the given load events as (seconds after the start, LoadEvent)."""
     from services.transport import messages
 
-    with McapRecorderWriter(path) as writer:
-
-        def write(message, t_s: float, topic: str) -> None:
-            ns = start_ns + int(t_s * 1e9)
-            writer.write(f"msk/s/{topic}", messages.type_name(message), messages.encode(message), ns, ns)
-
-        for t_s, event in loads:
-            event.device_time_ns = start_ns + int(t_s * 1e9)
-            write(event, t_s, "load")
+    with timed_recording(path, start_ns) as recording:
+        recording.load_events(loads)
         for t_s, connected in ((0.0, True), (5.0, False), (6.0, True), (19.9, False)):  # lost once, then the stop
-            write(
+            recording.write(
                 messages.DeviceStatus(device_id="00B4EB80", kind="xsens", connected=connected), t_s, "status/00B4EB80"
             )
-        write(
+        recording.write(
             messages.DeviceStatus(
                 device_id="estimator",
                 kind="node",
@@ -210,18 +210,7 @@ def write_small_session(
             t_s = k * 0.05
             in_set = t_s % 10.0
             phase = ((in_set - 1.0) % 3.0) / 2.0 if 1.0 <= in_set < 10.0 and (in_set - 1.0) % 3.0 < 2.0 else -1.0
-            joints = messages.JointAngles(
-                coordinates=["elbow_flex_r"], q=[1.0], phase=phase, device_time_ns=start_ns + int(t_s * 1e9)
-            )
-            write(joints, t_s, "joints")
-            frame = messages.ActivationFrame(
-                time_s=start_ns / 1e9 + t_s,
-                method="so",
-                groups=list(groups),
-                activations=[0.5 + 0.4 * max(phase, 0.0), 0.1],
-                exercise="bench_press",
-            )
-            write(frame, t_s, "activations/so")
+            recording.joints_and_frame(t_s, phase, list(groups), [0.5 + 0.4 * max(phase, 0.0), 0.1])
 
 
 def test_report_header_names_athlete_date_exercise_and_load(tmp_path):

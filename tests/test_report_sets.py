@@ -10,7 +10,7 @@ import pytest
 
 from services.surfaces.dashboard import report
 from services.transport import messages
-from services.transport.mcap_io import McapRecorderWriter
+from tests.dashboard_helpers import timed_recording
 
 START_NS = 1_773_480_600_000_000_000
 RATE_HZ = 20.0
@@ -33,30 +33,13 @@ def write_session(path) -> None:
         (37.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, set_mark="stop")),
         (40.0, messages.LoadEvent(barbell_mass_kg=65, exercise="bench_press", set_number=2, set_mark="start")),
     ]
-    with McapRecorderWriter(path) as writer:
-
-        def write(message, t_s: float, topic: str) -> None:
-            ns = START_NS + int(t_s * 1e9)
-            writer.write(f"msk/s/{topic}", messages.type_name(message), messages.encode(message), ns, ns)
-
-        for t_s, event in facts:
-            event.device_time_ns = START_NS + int(t_s * 1e9)
-            write(event, t_s, "load")
+    with timed_recording(path, START_NS) as recording:
+        recording.load_events(facts)
         for k in range(int(END_S * RATE_HZ)):
             t_s = k / RATE_HZ
             phase = phase_at(t_s)
-            joints = messages.JointAngles(
-                coordinates=["elbow_flex_r"], q=[1.0], phase=phase, device_time_ns=START_NS + int(t_s * 1e9)
-            )
-            write(joints, t_s, "joints")
-            frame = messages.ActivationFrame(
-                time_s=START_NS / 1e9 + t_s,
-                method="so",
-                groups=["A", "B"],
-                activations=[0.2 + 0.6 * max(phase, 0.0), 0.9 if phase < 0 else 0.1],  # B high only at rest
-                exercise="bench_press",
-            )
-            write(frame, t_s, "activations/so")
+            # B high only at rest
+            recording.joints_and_frame(t_s, phase, ["A", "B"], [0.2 + 0.6 * max(phase, 0.0), 0.9 if phase < 0 else 0.1])
 
 
 def test_report_of_a_recording_with_sets(tmp_path):
