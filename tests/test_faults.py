@@ -11,6 +11,7 @@ import textwrap
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
@@ -461,41 +462,18 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     sample indices jump by exactly the samples the status reports lost, and nothing is repeated."""
 
     session = _client(router)
-    statuses: list[messages.DeviceStatus] = []
-    chunks: list[tuple[float, messages.EmgChunk]] = []
-    session.declare_subscriber(
-        topics.status_key(SESSION, "trigno"),
-        lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())),
-    )
-    session.declare_subscriber(
-        topics.emg_key(SESSION, "trigno"),
-        lambda s: chunks.append((time.monotonic(), messages.decode("msk.EmgChunk", s.payload.to_bytes()))),
-    )
+    statuses, chunks = _device_watch(session, "trigno", topics.emg_key(SESSION, "trigno"), "msk.EmgChunk")
     simulator, ports = _start_trigno_simulator()  # the second simulator takes the same ports
     processes = [simulator]
     try:
         drivers = _trigno_drivers(ports, router)
         processes.append(drivers)
         wait_until(lambda: len(chunks) > 30, 40, "EMG chunks from msk drivers", lambda: f"{len(chunks)} chunks")
-        simulator.kill()
-        simulator.wait(10)
-        gone_at = time.monotonic()
-        wait_until(
-            lambda: any(not s.connected for s in statuses),
-            15,
-            "a DeviceStatus saying the Trigno is disconnected",
-            lambda: [s.connected for s in statuses],
-        )
-        time.sleep(1.0)
+        gone_at = _unplug(simulator, statuses, "the Trigno")
         back, _ = _start_trigno_simulator(ports)
         processes.append(back)
         back_at = time.monotonic()
-        wait_until(
-            lambda: sum(1 for t, _ in chunks if t > back_at) > 30,
-            30,
-            "EMG chunks after the Trigno came back",
-            lambda: f"{len(chunks)} chunks in all; statuses {[s.connected for s in statuses]}",
-        )
+        _wait_resumed(chunks, back_at, 30, "EMG chunks after the Trigno came back", statuses)
         time.sleep(1.5)  # a periodic status after the resumption
         _stop(drivers)
     finally:
@@ -517,6 +495,51 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     print(
         f"Trigno gone {back_at - gone_at:.1f} s: status said disconnected, {lost} samples reported lost "
         f"(= the index jump), {len(after)} chunks after it came back"
+    )
+
+
+def _device_watch(
+    session: zenoh.Session, device_id: str, data_key: str, type_name: str
+) -> tuple[list[messages.DeviceStatus], list[tuple[float, Any]]]:
+    """Subscribe to a device's DeviceStatus and to its data; returns the two lists they fill (the data with the
+    ``time.monotonic()`` of arrival)."""
+    statuses: list[messages.DeviceStatus] = []
+    received: list[tuple[float, Any]] = []
+    session.declare_subscriber(
+        topics.status_key(SESSION, device_id),
+        lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())),
+    )
+    session.declare_subscriber(
+        data_key, lambda s: received.append((time.monotonic(), messages.decode(type_name, s.payload.to_bytes())))
+    )
+    return statuses, received
+
+
+def _unplug(simulator: subprocess.Popen, statuses: list[messages.DeviceStatus], device: str) -> float:
+    """SIGKILL a device's simulator (the cable pulled), wait for a DeviceStatus saying it is disconnected, then 1 s
+    more; returns the instant it went (``time.monotonic()``)."""
+    simulator.kill()
+    simulator.wait(10)
+    gone_at = time.monotonic()
+    wait_until(
+        lambda: any(not s.connected for s in statuses),
+        15,
+        f"a DeviceStatus saying {device} is disconnected",
+        lambda: [s.connected for s in statuses],
+    )
+    time.sleep(1.0)
+    return gone_at
+
+
+def _wait_resumed(
+    received: list[tuple[float, Any]], since: float, n: int, what: str, statuses: list[messages.DeviceStatus]
+) -> None:
+    """Until more than ``n`` messages arrived after ``since`` (at most 30 s)."""
+    wait_until(
+        lambda: sum(1 for t, _ in received if t > since) > n,
+        30,
+        what,
+        lambda: f"{len(received)} in all; statuses {[s.connected for s in statuses]}",
     )
 
 
@@ -552,16 +575,7 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
     device_id = "03700ABC"
     link = tmp_path / "usb-Xsens_MTi-if00"
     session = _client(router)
-    statuses: list[messages.DeviceStatus] = []
-    imu: list[tuple[float, messages.ImuSample]] = []
-    session.declare_subscriber(
-        topics.status_key(SESSION, device_id),
-        lambda s: statuses.append(messages.decode("msk.DeviceStatus", s.payload.to_bytes())),
-    )
-    session.declare_subscriber(
-        topics.imu_key(SESSION, device_id),
-        lambda s: imu.append((time.monotonic(), messages.decode("msk.ImuSample", s.payload.to_bytes()))),
-    )
+    statuses, imu = _device_watch(session, device_id, topics.imu_key(SESSION, device_id), "msk.ImuSample")
     simulator, pty_path = _start_xsens_simulator(device_id)
     link.symlink_to(pty_path)
     processes = [simulator]
@@ -575,27 +589,13 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
             return len(imu)
 
         wait_until(lambda: imu_received() > 100, 40, "IMU samples from msk drivers", imu_received)
-        simulator.kill()  # the pty goes with the process: the cable is pulled
-        simulator.wait(10)
-        gone_at = time.monotonic()
-        wait_until(
-            lambda: any(not s.connected for s in statuses),
-            15,
-            "a DeviceStatus saying the tracker is disconnected",
-            lambda: [s.connected for s in statuses],
-        )
-        time.sleep(1.0)
+        gone_at = _unplug(simulator, statuses, "the tracker")  # the pty goes with the process: the cable is pulled
         back, pty_path = _start_xsens_simulator(device_id)  # plugged in again: a new tty behind the same name
         processes.append(back)
         link.unlink()
         link.symlink_to(pty_path)
         back_at = time.monotonic()
-        wait_until(
-            lambda: sum(1 for t, _ in imu if t > back_at) > 100,
-            30,
-            "IMU samples after the tracker came back",
-            lambda: f"{len(imu)} samples in all; statuses {[s.connected for s in statuses]}",
-        )
+        _wait_resumed(imu, back_at, 100, "IMU samples after the tracker came back", statuses)
         time.sleep(1.5)  # a periodic status after the resumption
         drivers.send_signal(signal.SIGINT)  # it closes the tracker and prints its summary
         try:
