@@ -134,7 +134,7 @@ class LeaveOutResult:
         other groups); ``median_r_unpaired`` is each method's median over all its defined r. ``per_group``: whether
         that group's better method (by RMSE) meets both."""
         med = self.medians()
-        verdicts = {m: self._target(m, med, rmse_reduction) for m in ("proposed", "assisted")}
+        verdicts = {m: self.method_targets(m, rmse_reduction) for m in ("proposed", "assisted")}
         both = [m for m, v in verdicts.items() if v["rmse_met"] and v["r_met"]]
         best = min(both or verdicts, key=lambda m: med[m]["rmse"])
         per_group = {}
@@ -149,8 +149,9 @@ class LeaveOutResult:
             }
         return {"method": best, **verdicts[best], "per_group": per_group}
 
-    def _target(self, method: str, med: dict[str, dict[str, float]], rmse_reduction: float) -> dict[str, Any]:
+    def method_targets(self, method: str, rmse_reduction: float = 0.2) -> dict[str, Any]:
         """One method's medians against so's (RMSE over the left-out groups; r paired, see :meth:`targets`)."""
+        med = self.medians()
         pairs = [(self.leave_one_out[g][method].r, self.leave_one_out[g]["so"].r) for g in self.groups]
         paired = np.array([p for p in pairs if np.isfinite(p[0]) and np.isfinite(p[1])]).reshape(-1, 2)
         r, r_so = np.median(paired, axis=0) if len(paired) else (float("nan"), float("nan"))
