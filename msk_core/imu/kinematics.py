@@ -172,6 +172,10 @@ class KinematicsFilterConfig:
                 raise ConfigError("must be positive", field=name, value=value)
 
 
+#: how many steps' (F, Q) a filter keeps (JointKinematicsFilter._matrices_for)
+MATRICES_KEPT = 64
+
+
 def _matrices(n: int, cfg: KinematicsFilterConfig, dt: float) -> tuple[np.ndarray, np.ndarray]:
     f1 = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
     # discrete white-noise acceleration increments: per step the acceleration changes by N(0, (jerk_std dt)^2)
@@ -197,6 +201,17 @@ class JointKinematicsFilter:
         self.kf = kf
         self.initialised = False
         self._dt = config.dt
+        self._by_dt: dict[float, tuple[np.ndarray, np.ndarray]] = {config.dt: (kf.F, kf.Q)}
+
+    def _matrices_for(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """F and Q for a step of ``dt`` s, kept per dt: the trackers' sample times make a few steps recur (about
+        one frame in three changes dt in the kinematics node, and building them cost as much as the filter step)."""
+        matrices = self._by_dt.get(dt)
+        if matrices is None:
+            if len(self._by_dt) >= MATRICES_KEPT:
+                self._by_dt.clear()
+            matrices = self._by_dt[dt] = _matrices(self.n, self.config, dt)
+        return matrices
 
     def _init(self, z: np.ndarray) -> None:
         x = np.zeros(3 * self.n)
@@ -220,7 +235,7 @@ class JointKinematicsFilter:
         if dt is not None and dt != self._dt:
             if not dt > 0:
                 raise InputError("time must increase", field="dt", value=dt)
-            self.kf.F, self.kf.Q = _matrices(self.n, self.config, dt)
+            self.kf.F, self.kf.Q = self._matrices_for(dt)
             self._dt = dt
         self.kf.predict()
         if np.all(np.isfinite(z)):
