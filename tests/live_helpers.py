@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from services.sessions.graph import kill_live
 
@@ -100,6 +100,36 @@ def live_environment(tmp_path: Path) -> dict[str, str]:
         "MSK_SESSIONS_DIR": str(tmp_path / "sessions"),
         "PYTHONUNBUFFERED": "1",
     }
+
+
+def run_sim_graph(session: Any, tmp: Path, duration_s: float, **patched: Any) -> tuple[dict, Any, Any, int]:
+    """The graph of ``session`` (a LiveSession) on its simulators for ``duration_s``, in this process
+    (``live.plan_for`` and ``live.run_graph`` on a free loopback endpoint), with a session registry under ``tmp`` and
+    the attributes ``patched`` of services.sessions.live replaced meanwhile. Returns (summary, plan, simulators,
+    CLOCK_REALTIME minus the monotonic clock in ns, read just before the graph starts)."""
+    import pytest
+
+    from services.sessions import live
+    from services.transport.zenoh_session import free_loopback_endpoint
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("MSK_SESSIONS_DIR", str(tmp / "sessions"))
+        for name, value in patched.items():
+            patch.setattr(live, name, value)
+        plan, simulators = live.plan_for(session, sim=True, log=print)
+        real_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
+        try:
+            summary = live.run_graph(
+                plan,
+                duration_s=duration_s,
+                view=False,
+                endpoint=free_loopback_endpoint(),
+                log=print,
+                simulators=simulators,
+            )
+        finally:
+            simulators.close()
+    return summary, plan, simulators, real_minus_monotonic_ns
 
 
 class LiveProcess:

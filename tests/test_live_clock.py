@@ -7,15 +7,14 @@ EMG clock exactly as the live session did.
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
-from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorStats
+from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
 from services.sessions import live
 from services.sessions.live_session import load_session_file
 from services.transport import messages
 from services.transport.mcap_io import read_messages
+from tests.live_helpers import run_sim_graph
 
 TRIGNO_LATENCY_MS = 60.0  # the simulated base holds each frame this long; the session file states it
 TRACKER_LATENCY_MS = 5.0
@@ -34,18 +33,7 @@ def live_run(tmp_path_factory):
         f"[trigno]\nlatency_ms = {TRIGNO_LATENCY_MS}\n[xsens]\nlatency_ms = {TRACKER_LATENCY_MS}\n"
     )
     session = load_session_file(path, require_devices=False)
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("MSK_SESSIONS_DIR", str(tmp / "sessions"))
-        plan, simulators = live.plan_for(session, sim=True, log=print)
-        from services.transport.zenoh_session import free_loopback_endpoint
-
-        real_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
-        try:
-            summary = live.run_graph(
-                plan, duration_s=RUN_S, view=False, endpoint=free_loopback_endpoint(), log=print, simulators=simulators
-            )
-        finally:
-            simulators.close()
+    summary, plan, simulators, real_minus_monotonic_ns = run_sim_graph(session, tmp, RUN_S)
     # the truth: device time 0 of each stream is measured at these host instants (CLOCK_REALTIME, ns). The Trigno's
     # sample i (index since START) is trial sample start_index + i, measured on the trial clock; a tracker counts
     # SampleTimeFine from its power-up.
@@ -107,20 +95,11 @@ def test_the_recording_replayed_through_an_estimator_maps_the_emg_clock_as_live_
     """The EMG clock is mapped by the driver's receipt times recorded in each chunk: an estimator fed the recording
     (here at once, arrival times of now) applies the offset and spread the live one reported last, to the ns."""
     summary, plan, _ = live_run
-    node = EstimatorNode(
-        plan.session.pack,
-        ["so"],
-        _profile(plan),
-        EstimatorStats(),
-        emg=True,
-        electrode_map=None,
-        emg_clock="host",
-        emg_stall_s=3600.0,
-        initial_load_kg=plan.session.load_kg,
-        exercise=None,
-        solver="active-set",
-        timing=EmgTiming(joints_clock="host", emg_latency_ns={"trigno": int(TRIGNO_LATENCY_MS * 1e6)}),
+    timing = EmgTiming(joints_clock="host", emg_latency_ns={"trigno": int(TRIGNO_LATENCY_MS * 1e6)})
+    settings = EstimatorSettings(
+        plan.session.pack, "replay", ("so",), emg=True, emg_clock="host", emg_stall_s=3600.0, timing=timing
     )
+    node = EstimatorNode(settings, _profile(plan), EstimatorStats())
     recorded = [m for part in summary["recordings"] for m in read_messages(part)]
     for m in recorded:
         if m.type_name == "msk.EmgChunk":

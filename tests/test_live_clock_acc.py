@@ -10,7 +10,6 @@ estimator, gives the same alignment.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +17,12 @@ import pytest
 
 from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup
 from msk_core.estimate.profile import SubjectProfile
-from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorStats
+from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
 from services.sessions import live
 from services.sessions.live_session import load_session_file
 from services.transport import messages
 from services.transport.mcap_io import read_messages
+from tests.live_helpers import run_sim_graph
 from tests.test_sim_clock import (
     FRAME_S,
     MAX_LAG_S,
@@ -56,19 +56,9 @@ def live_run(tmp_path_factory):
         options["trigno_latency_s"] = TRIGNO_LATENCY_S
         return start_simulators(sources, trackers_after_trigno_s=TRACKERS_AFTER_S, **options)
 
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("MSK_SESSIONS_DIR", str(tmp / "sessions"))
-        patch.setattr(live, "start_simulators", late_trigno)
-        plan, simulators = live.plan_for(session, sim=True, log=print)
-        from services.transport.zenoh_session import free_loopback_endpoint
-
-        real_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
-        try:
-            summary = live.run_graph(
-                plan, duration_s=RUN_S, view=False, endpoint=free_loopback_endpoint(), log=print, simulators=simulators
-            )
-        finally:
-            simulators.close()
+    summary, plan, simulators, real_minus_monotonic_ns = run_sim_graph(
+        session, tmp, RUN_S, start_simulators=late_trigno
+    )
     assert plan.trigno_latency_ms == 0.0 and simulators.trigno.stats.latency_s == TRIGNO_LATENCY_S
     trigno = simulators.trigno
     emg_origin_s = simulators.clock.start + trigno.stats.start_index / trigno.rate_hz
@@ -163,20 +153,11 @@ def test_the_recording_replayed_through_an_estimator_gives_the_live_alignment(li
     """The accelerations, the trackers' samples and the EMG are recorded with their receipt times: an estimator fed
     the recording in its order measures the offsets the live one reported last."""
     summary, plan, _ = live_run
-    node = EstimatorNode(
-        plan.session.pack,
-        ["so"],
-        SubjectProfile.load(plan.subject),
-        EstimatorStats(),
-        emg=True,
-        electrode_map=None,
-        emg_clock="host",
-        emg_stall_s=3600.0,
-        initial_load_kg=0.0,
-        exercise=None,
-        solver="active-set",
-        timing=EmgTiming(joints_clock="host", emg_latency_ns={"trigno": 0}, emg_align="acceleration"),
+    timing = EmgTiming(joints_clock="host", emg_latency_ns={"trigno": 0}, emg_align="acceleration")
+    settings = EstimatorSettings(
+        plan.session.pack, "replay", ("so",), emg=True, emg_clock="host", emg_stall_s=3600.0, timing=timing
     )
+    node = EstimatorNode(settings, SubjectProfile.load(plan.subject), EstimatorStats())
     for part in summary["recordings"]:
         for m in read_messages(Path(part)):
             if m.type_name == "msk.EmgChunk":
