@@ -24,6 +24,7 @@ from drivers.trigno.source import synthetic_source
 from msk_core.errors import ProtocolError
 
 TERM = b"\r\n\r\n"
+BANNER = b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM  # the current protocol's greeting
 
 
 def known_rows(n: int, channels: int, paired: tuple[int, ...]) -> np.ndarray:
@@ -41,9 +42,9 @@ class FakeTcu:
     def __init__(
         self,
         *,
-        banner: bytes,
+        banner: bytes = BANNER,
         answers: dict[str, str],
-        emg: bytes,
+        emg: bytes = b"",
         aux: bytes = b"",
         chunk_sizes: tuple[int, ...] = (7, 1, 13, 64, 3, 250, 5),
         refuse_first_start: bool = False,
@@ -151,6 +152,11 @@ class FakeTcu:
                     pos += size
 
 
+def base_answers(paired: dict[int, int]) -> dict[str, str]:
+    """A master base sending 27 EMG samples a frame, with the sensors of :func:`sensor_answers`."""
+    return {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers(paired)}
+
+
 def sensor_answers(paired: dict[int, int]) -> dict[str, str]:
     """PAIRED?/TYPE?/STARTINDEX? answers for {sensor: reported start index}."""
     answers = {}
@@ -237,9 +243,8 @@ def test_independent_server_big_endian_odd_chunks_and_fallback_queries(banner):
 
 def test_refused_start_is_retried_after_stop_and_stopped_racing_the_stop_reply_is_not_an_error():
     rows = known_rows(300, 16, paired=(2,))
-    answers = {"MASTER?": "YES", "UPSAMPLING?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({2: 2})}
+    answers = {**base_answers({2: 2}), "UPSAMPLING?": "YES"}
     server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
         answers=answers,
         emg=tp.encode_samples(rows),
         refuse_first_start=True,
@@ -266,10 +271,9 @@ def test_refused_start_is_retried_after_stop_and_stopped_racing_the_stop_reply_i
 def test_legacy_acc_port_carries_three_axes_per_sensor():
     emg = known_rows(54, 16, paired=(1,))
     acc = known_rows(4, 48, paired=(1, 2, 3))  # sensor 1: x, y, z
-    answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({1: 1})}
     server = FakeTcu(
         banner=b"Delsys Trigno System Digital Protocol Version 3.1.0" + TERM,
-        answers=answers,
+        answers=base_answers({1: 1}),
         emg=tp.encode_samples(emg),
         aux=tp.encode_samples(acc),
         chunk_sizes=(11, 100),
@@ -325,12 +329,7 @@ def test_emg_port_falls_back_when_the_configured_one_refuses():
     from tests.conftest import free_tcp_port
 
     rows = known_rows(100, 16, paired=(3,))
-    answers = {"MASTER?": "YES", "MAX SAMPLES EMG?": "27", **sensor_answers({3: 3})}
-    server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
-        answers=answers,
-        emg=tp.encode_samples(rows),
-    )
+    server = FakeTcu(answers=base_answers({3: 3}), emg=tp.encode_samples(rows))
     closed = free_tcp_port()  # nobody listens there: connection refused
     config = TrignoConfig(command_port=server.ports["command"], emg_port=closed, emg_port_fallback=server.ports["emg"])
     client = TrignoClient(config)
@@ -351,19 +350,8 @@ def test_emg_port_falls_back_when_the_configured_one_refuses():
 
 
 def test_a_reply_arriving_after_its_timeout_is_not_taken_for_the_next_one():
-    answers = {
-        "MASTER?": "YES",
-        "MAX SAMPLES EMG?": "27",
-        "BASE SERIAL?": "SP-W01D-1771",
-        "BASE FIRMWARE?": "MA2919",
-        **sensor_answers({1: 1}),
-    }
-    server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
-        answers=answers,
-        emg=b"",
-        delays={"BASE SERIAL?": 0.45},  # answered while the next command waits
-    )
+    answers = {**base_answers({1: 1}), "BASE SERIAL?": "SP-W01D-1771", "BASE FIRMWARE?": "MA2919"}
+    server = FakeTcu(answers=answers, delays={"BASE SERIAL?": 0.45})  # answered while the next command waits
     client = TrignoClient(
         TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"], reply_timeout_s=0.3)
     )

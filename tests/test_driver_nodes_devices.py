@@ -18,27 +18,21 @@ from drivers.xsens.simulator import XsensSimulator
 from drivers.xsens.source import synthetic_imu
 from services.nodes import driver_nodes
 from services.transport import topics
-from tests.test_driver_conformance_trigno import TERM, FakeTcu, known_rows, sensor_answers
+from tests.test_driver_conformance_trigno import FakeTcu, base_answers, known_rows
 
 
 def test_trigno_node_publishes_each_emg_channel_of_active_sensors_only():
     rows = known_rows(400, 16, paired=(1, 2, 3, 4, 5, 9))
     answers = {
-        "MASTER?": "YES",
+        **base_answers({1: 1, 5: 5, 9: 9}),  # 1-based start indices
         "UPSAMPLING?": "NO",
-        "MAX SAMPLES EMG?": "27",
-        **sensor_answers({1: 1, 5: 5, 9: 9}),  # 1-based start indices
         "SENSOR 1 ACTIVE?": "YES",
         "SENSOR 5 ACTIVE?": "YES",
         "SENSOR 9 ACTIVE?": "NO",
         "SENSOR 1 EMGCHANNELCOUNT?": "4",
         "SENSOR 5 EMGCHANNELCOUNT?": "1",
     }
-    server = FakeTcu(
-        banner=b"Delsys Trigno System Digital Protocol Version 3.6.0" + TERM,
-        answers=answers,
-        emg=tp.encode_samples(rows),
-    )
+    server = FakeTcu(answers=answers, emg=tp.encode_samples(rows))
     client = TrignoClient(TrignoConfig(command_port=server.ports["command"], emg_port=server.ports["emg"]))
     published: list = []
     try:
