@@ -173,8 +173,8 @@ def start_estimator(
     stats, ready = estimator.EstimatorStats(), threading.Event()
     threading.Thread(
         target=estimator.main,
-        args=(ZenohOptions(connect=(endpoint,)),),
-        kwargs=dict(pack=pack, session=session, methods=methods, stop_event=stop, ready_event=ready, stats=stats),
+        args=(ZenohOptions(connect=(endpoint,)), estimator.EstimatorSettings(pack, session, tuple(methods))),
+        kwargs=dict(stop_event=stop, ready_event=ready, stats=stats),
         daemon=True,
     ).start()
     assert ready.wait(60), "estimator node did not start within 60 s"

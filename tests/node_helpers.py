@@ -19,13 +19,13 @@ from services.transport.zenoh_session import ZenohOptions, declare_data_publishe
 def start_estimator_thread(
     options: ZenohOptions, stop: threading.Event, *, ready_s: float = 60.0, **node: Any
 ) -> tuple[threading.Thread, estimator.EstimatorStats]:
-    """``estimator.main(options, **node)`` in a daemon thread until ``stop`` is set; returns once the node is ready
-    (at most ``ready_s``)."""
+    """``estimator.main`` in a daemon thread until ``stop`` is set (``node``: the fields of its
+    ``estimator.EstimatorSettings``); returns once the node is ready (at most ``ready_s``)."""
     ready, stats = threading.Event(), estimator.EstimatorStats()
     thread = threading.Thread(
         target=estimator.main,
-        args=(options,),
-        kwargs=dict(stop_event=stop, ready_event=ready, stats=stats, **node),
+        args=(options, estimator.EstimatorSettings(**node)),
+        kwargs=dict(stop_event=stop, ready_event=ready, stats=stats),
         daemon=True,
     )
     thread.start()
@@ -35,7 +35,7 @@ def start_estimator_thread(
 
 @contextlib.contextmanager
 def estimator_node(endpoint: str, **node: Any) -> Iterator[estimator.EstimatorStats]:
-    """An estimator node listening on ``endpoint`` (``node``: the keywords of ``estimator.main``), ready inside the
+    """An estimator node listening on ``endpoint`` (``node``: its settings' fields), ready inside the
     block, stopped and joined after it; yields its live stats."""
     stop = threading.Event()
     thread, stats = start_estimator_thread(ZenohOptions(listen=(endpoint,)), stop, ready_s=20.0, **node)

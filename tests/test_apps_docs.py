@@ -29,7 +29,7 @@ def test_docs_subscriber_and_msk_subscribe_print_frames_of_a_replay(repo_root, z
     script = tmp_path / "subscriber.py"
     script.write_text(code)
     with Graph(SESSION, zenoh_endpoint) as graph:
-        graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=["so"])
+        graph.add_thread("estimator", estimator.main, estimator.EstimatorSettings("bench_press", SESSION, ("so",)))
         graph.wait_ready(60)
         doc = subprocess.Popen(
             [sys.executable, str(script)], cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True

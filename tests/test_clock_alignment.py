@@ -167,7 +167,7 @@ def test_a_frame_awaits_the_emg_of_its_instant_while_the_source_delivers():
 def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waited_long_enough():
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.model import load_pack
-    from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorStats
+    from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
 
     pack = load_pack("bench_press")
     group = pack.groups[0]
@@ -180,20 +180,9 @@ def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waite
         emg_normalisation={"sensor01.EMG": {"group": group, "divisor": 1.0}},
     )
     stats = EstimatorStats()
-    node = EstimatorNode(
-        "bench_press",
-        ["so"],
-        profile,
-        stats,
-        emg=True,
-        electrode_map=None,
-        emg_clock="host",
-        emg_stall_s=0.25,
-        initial_load_kg=0.0,
-        exercise=None,
-        solver="active-set",
-        timing=EmgTiming(joints_clock="host", emg_wait_s=0.1),
-    )
+    timing = EmgTiming(joints_clock="host", emg_wait_s=0.1)
+    settings = EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host", timing=timing)
+    node = EstimatorNode(settings, profile, stats)
     per_frame = 27
 
     def chunk(frame: int) -> messages.EmgChunk:  # device time = host time: measured at t, received at its last sample

@@ -70,17 +70,10 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
     envelopes, frames = [], {m: [] for m in ("assisted", "proposed")}
     stats = estimator.EstimatorStats()
     with Graph(SESSION, zenoh_endpoint) as graph:
-        graph.add_thread(
-            "estimator",
-            estimator.main,
-            pack="bench_press",
-            session=SESSION,
-            methods=list(frames),
-            subject_path=profile_path,
-            emg=True,
-            emg_stall_s=STALL_S,
-            stats=stats,
+        settings = estimator.EstimatorSettings(
+            "bench_press", SESSION, tuple(frames), profile_path, emg=True, emg_stall_s=STALL_S
         )
+        graph.add_thread("estimator", estimator.main, settings, stats=stats)
         graph.wait_ready(60)
         with open_session(ZenohOptions(connect=(zenoh_endpoint,))) as zsession:
             lock = threading.Lock()

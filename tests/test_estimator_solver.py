@@ -9,24 +9,13 @@ import pytest
 from msk_core.errors import ConfigError
 from msk_core.estimate.trial import load_trial
 from msk_core.model import load_pack
-from services.nodes.estimator import EstimatorNode, EstimatorStats, main
+from services.nodes.estimator import EstimatorNode, EstimatorSettings, EstimatorStats
 from services.transport import messages
 
 
 def _node(solver: str) -> EstimatorNode:
-    return EstimatorNode(
-        "bench_press",
-        ["hybrid", "so"],
-        None,
-        EstimatorStats(),
-        emg=False,
-        electrode_map=None,
-        emg_clock="device",
-        emg_stall_s=0.25,
-        initial_load_kg=50.0,
-        exercise=None,
-        solver=solver,
-    )
+    settings = EstimatorSettings("bench_press", "t", ("hybrid", "so"), initial_load_kg=50.0, solver=solver)
+    return EstimatorNode(settings, None, EstimatorStats())
 
 
 def test_piqp_every_frame_equals_the_hot_start_in_the_node(repo_root):
@@ -52,7 +41,7 @@ def test_piqp_every_frame_equals_the_hot_start_in_the_node(repo_root):
 
 def test_unknown_solver_is_named():
     with pytest.raises(ConfigError) as err:
-        main(None, pack="bench_press", session="s", methods=["so"], solver="fast")
+        EstimatorSettings("bench_press", "s", ("so",), solver="fast")
     assert err.value.field == "--solver"
 
 

@@ -31,7 +31,9 @@ def test_view_in_a_terminal_during_a_replay(repo_root, zenoh_endpoint):
     name = f"mskview-{uuid.uuid4().hex[:8]}"
     last: dict[str, messages.ActivationFrame] = {}
     with Graph(SESSION, zenoh_endpoint) as graph:
-        graph.add_thread("estimator", estimator.main, pack="bench_press", session=SESSION, methods=["so", "hybrid"])
+        graph.add_thread(
+            "estimator", estimator.main, estimator.EstimatorSettings("bench_press", SESSION, ("so", "hybrid"))
+        )
         graph.wait_ready(60)
         # COLUMNS/LINES: the pane size as rich should see it even when a tmux server with another default size runs
         command = (

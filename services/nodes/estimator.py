@@ -128,6 +128,107 @@ class EmgTiming:
             emg_wait_s=args.emg_wait_ms / 1e3,
         )
 
+    def argv(self) -> list[str]:
+        """These timings as the node's command line (:func:`add_emg_arguments`); :meth:`from_args` reads them back."""
+        return [
+            "--joints-clock",
+            JointsClock(self.joints_clock).value,
+            "--emg-align",
+            self.emg_align,
+            "--emg-wait-ms",
+            f"{self.emg_wait_s * 1e3:.15g}",
+            *_latency_argv("--emg-latency-ms", self.emg_latency_ns, self.default_emg_latency_ns),
+            *_latency_argv("--imu-latency-ms", self.imu_latency_ns, self.default_imu_latency_ns),
+        ]
+
+
+def _latency_argv(flag: str, named_ns: dict[str, int] | None, default_ns: int) -> list[str]:
+    """Latencies in ns as ``flag [NAME=]MS`` items (msk_core.signal.host_clock.parse_latencies reads them back to
+    the ns: 15 significant digits)."""
+    items = [f"{name}={ns / 1e6:.15g}" for name, ns in (named_ns or {}).items()]
+    items += [f"{default_ns / 1e6:.15g}"] if default_ns else []
+    return [a for item in items for a in (flag, item)]
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """What one estimator node estimates and how, checked once where it is built: from the node's command line
+    (:meth:`from_args`), by ``msk live`` from the session file (services.sessions.live.estimator_settings, which starts
+    the node with :meth:`argv`), or by whoever runs the node in a thread (the demo, the tests).
+
+    ``methods``: default proposed with a subject profile, else so; proposed and assisted need the profile's prior.
+    ``emg``: the EMG path on, off, or (None) on when the profile or ``electrode_map`` maps electrodes; ``emg_stall_s``:
+    how long a silent EMG source is waited for before frames are flagged ``emg_stalled`` (not on the command line);
+    ``initial_load_kg``: the barbell until the first load event; ``exercise``: estimate only while load events name it
+    (default the pack's name); ``solver``: one of :data:`SOLVERS`; ``timing``: :class:`EmgTiming`."""
+
+    pack: str
+    session: str
+    methods: tuple[str, ...] = ()
+    subject_path: Path | None = None
+    emg: bool | None = False
+    electrode_map: dict[str, str] | None = None
+    emg_clock: ClockMode | str = ClockMode.DEVICE
+    emg_stall_s: float = 0.25
+    timing: EmgTiming = EmgTiming()
+    initial_load_kg: float = 0.0
+    exercise: str | None = None
+    solver: str = "active-set"
+
+    def __post_init__(self) -> None:
+        methods = tuple(self.methods) or (("proposed",) if self.subject_path is not None else ("so",))
+        object.__setattr__(self, "methods", methods)
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=self.solver)
+        for needs_prior in ("proposed", "assisted"):
+            if needs_prior in methods and self.subject_path is None:
+                raise ConfigError(
+                    f"method {needs_prior!r} needs --subject (a calibrated profile with its prior)",
+                    field="--method",
+                    value=needs_prior,
+                )
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> EstimatorSettings:
+        """The settings of the node's command line (:func:`add_arguments`)."""
+        return cls(
+            args.pack,
+            args.session,
+            tuple(args.method or ()),
+            args.subject,
+            emg=args.emg,
+            electrode_map=parse_electrode_map(args.emg_map) if args.emg_map else None,
+            emg_clock=args.emg_clock,
+            timing=EmgTiming.from_args(args),
+            initial_load_kg=args.load_kg,
+            exercise=args.exercise,
+            solver=args.solver,
+        )
+
+    def argv(self) -> list[str]:
+        """These settings as the node's command line, but ``emg_stall_s`` (:meth:`from_args` reads them back)."""
+        return [
+            *("--pack", self.pack, "--session", self.session, "--solver", self.solver),
+            *("--load-kg", repr(self.initial_load_kg), "--emg-clock", ClockMode(self.emg_clock).value),
+            *(a for method in self.methods for a in ("--method", method)),
+            *(["--subject", str(self.subject_path)] if self.subject_path is not None else []),
+            *(["--exercise", self.exercise] if self.exercise is not None else []),
+            *([] if self.emg is None else ["--emg" if self.emg else "--no-emg"]),
+            *(a for item in (self.electrode_map or {}).items() for a in ("--emg-map", "=".join(item))),
+            *self.timing.argv(),
+        ]
+
+
+def parse_electrode_map(items: list[str]) -> dict[str, str]:
+    """Command-line ``CHANNEL=GROUP`` items -> {channel: group}; a :class:`ConfigError` naming the item otherwise."""
+    electrode_map = {}
+    for item in items:
+        channel, sep, group = item.partition("=")
+        if not sep or not channel or not group:
+            raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
+        electrode_map[channel] = group
+    return electrode_map
+
 
 @dataclass
 class EstimatorStats:
@@ -398,13 +499,12 @@ def make_live_emg(
     )
 
 
-def make_estimators(
-    pack: str, methods: list[str], subject: SubjectProfile | None, solver: str
-) -> dict[str, FrameEstimator]:
+def make_estimators(settings: EstimatorSettings, subject: SubjectProfile | None) -> dict[str, FrameEstimator]:
     """One estimator per method, its compiled kernels and solvers warmed up before the first live frame."""
-    if solver not in SOLVERS:
-        raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=solver)
-    estimators = {m: FrameEstimator(pack, subject=subject, method=m, hot_start=solver == "active-set") for m in methods}
+    hot_start = settings.solver == "active-set"
+    estimators = {
+        m: FrameEstimator(settings.pack, subject=subject, method=m, hot_start=hot_start) for m in settings.methods
+    }
     for estimator in estimators.values():
         estimator.warm_up()
     return estimators
@@ -453,25 +553,11 @@ class EstimatorNode:
     """The node's state between Zenoh and the estimators: load timeline, coordinate order, phase tracking, the EMG
     path; one ``handle_*`` per input kind, each returning the messages to publish (no Zenoh in here)."""
 
-    def __init__(
-        self,
-        pack: str,
-        methods: list[str],
-        subject: SubjectProfile | None,
-        stats: EstimatorStats,
-        *,
-        emg: bool | None,
-        electrode_map: dict[str, str] | None,
-        emg_clock: ClockMode | str,
-        emg_stall_s: float,
-        initial_load_kg: float,
-        exercise: str | None,
-        solver: str,
-        timing: EmgTiming = EmgTiming(),
-    ) -> None:
-        """``timing``: the clocks of EMG and joints, the alignment of the EMG clock, the wait for the EMG."""
+    def __init__(self, settings: EstimatorSettings, subject: SubjectProfile | None, stats: EstimatorStats) -> None:
+        """``subject``: the profile at ``settings.subject_path``, loaded by the caller."""
         self.stats = stats
-        self.estimators = make_estimators(pack, methods, subject, solver)
+        timing = settings.timing
+        self.estimators = make_estimators(settings, subject)
         first = next(iter(self.estimators.values()))
         self.mapper = CoordinateMapper(list(first.coordinates))
         # The subject's rep template (calibration) gives the phase when JointAngles carry none (None: no template).
@@ -479,10 +565,10 @@ class EstimatorNode:
         self.live_emg = make_live_emg(
             subject,
             list(first.groups),
-            emg=emg,
-            electrode_map=electrode_map,
-            clock=emg_clock,
-            stall_s=emg_stall_s,
+            emg=settings.emg,
+            electrode_map=settings.electrode_map,
+            clock=settings.emg_clock,
+            stall_s=settings.emg_stall_s,
             timing=timing,
         )
         if "assisted" in self.estimators and self.live_emg is None:
@@ -500,10 +586,10 @@ class EstimatorNode:
         self.alignment = make_alignment(self.live_emg, timing)
         self.emg_wait_ns = emg_wait_ns(timing.emg_wait_s)
         self._held: deque[_Held] = deque()  # joint frames waiting for their EMG, oldest first
-        self.loads = LoadTimeline(initial_load_kg)
+        self.loads = LoadTimeline(settings.initial_load_kg)
         # Several estimators (one per exercise pack) may share a session: each follows the exercise the load events
         # name.
-        self.exercise = exercise if exercise is not None else first.pack.name
+        self.exercise = settings.exercise if settings.exercise is not None else first.pack.name
         self.own_exercises = (self.exercise, first.pack.name)
 
     def handle_emg(self, chunk: messages.EmgChunk | bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
@@ -796,41 +882,19 @@ class InputDispatch:
 
 def main(
     config: ZenohOptions,
+    settings: EstimatorSettings,
     *,
-    pack: str,
-    session: str,
-    methods: list[str],
-    subject_path: Path | None = None,
-    emg: bool | None = False,
-    electrode_map: dict[str, str] | None = None,
-    emg_clock: ClockMode | str = ClockMode.DEVICE,
-    emg_stall_s: float = 0.25,
-    timing: EmgTiming = EmgTiming(),
-    initial_load_kg: float = 0.0,
-    exercise: str | None = None,
-    solver: str = "active-set",
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
     ready_key: ReadySpec | None = None,
     stats: EstimatorStats | None = None,
 ) -> EstimatorStats:
+    """Run the node of ``settings`` until ``stop_event``; returns its stats (``stats``, filled as it runs)."""
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else EstimatorStats()
-    subject = SubjectProfile.load(subject_path) if subject_path is not None else None
-    node = EstimatorNode(
-        pack,
-        methods,
-        subject,
-        stats,
-        emg=emg,
-        electrode_map=electrode_map,
-        emg_clock=emg_clock,
-        emg_stall_s=emg_stall_s,
-        initial_load_kg=initial_load_kg,
-        exercise=exercise,
-        solver=solver,
-        timing=timing,
-    )
+    subject = SubjectProfile.load(settings.subject_path) if settings.subject_path is not None else None
+    node = EstimatorNode(settings, subject, stats)
+    session, methods = settings.session, list(settings.methods)
     with open_session(config) as zsession:
         publishers, envelope_publisher = declare_outputs(zsession, node, session, methods)
         inputs = NodeInputs(zsession, NODE_NAME, role=config.role)
@@ -950,48 +1014,18 @@ def add_emg_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    methods = args.method or (["proposed"] if args.subject else ["so"])
-    for needs_prior in ("proposed", "assisted"):
-        if needs_prior in methods and args.subject is None:
-            raise ConfigError(
-                f"method {needs_prior!r} needs --subject (a calibrated profile with its prior)",
-                field="--method",
-                value=needs_prior,
-            )
+    settings = EstimatorSettings.from_args(args)
     stop = stop_on_signals()
     print(
-        f"estimating {', '.join(methods)} on msk/{args.session}/joints with pack {args.pack}",
+        f"estimating {', '.join(settings.methods)} on msk/{settings.session}/joints with pack {settings.pack}",
         file=sys.stderr,
         flush=True,
     )
-    electrode_map = None
-    if args.emg_map:
-        electrode_map = {}
-        for item in args.emg_map:
-            channel, sep, group = item.partition("=")
-            if not sep or not channel or not group:
-                raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
-            electrode_map[channel] = group
     ready = None
     if args.ready_key:
         node = args.ready_key.rsplit("/", 1)[-1]
-        ready = ReadySpec(args.session, node, tuple(args.ready_after))
-    stats = main(
-        options_from_args(args),
-        pack=args.pack,
-        session=args.session,
-        methods=methods,
-        subject_path=args.subject,
-        initial_load_kg=args.load_kg,
-        exercise=args.exercise,
-        stop_event=stop,
-        emg=args.emg,
-        electrode_map=electrode_map,
-        emg_clock=args.emg_clock,
-        ready_key=ready,
-        solver=args.solver,
-        timing=EmgTiming.from_args(args),
-    )
+        ready = ReadySpec(settings.session, node, tuple(args.ready_after))
+    stats = main(options_from_args(args), settings, stop_event=stop, ready_key=ready)
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(
         f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}"

@@ -158,17 +158,10 @@ def _start_demo_nodes(graph: Graph, subjects: dict[str, Path], out_mcap: Path, s
         if kind == "recorder":
             graph.add_thread(node.name, recorder.main, out_mcap, stats=stats.recorder, after=after)
         elif kind == "estimator":
-            graph.add_thread(
-                node.name,
-                estimator.main,
-                pack=exercise,
-                session=SESSION,
-                methods=list(METHODS),
-                subject_path=subjects[exercise],
-                exercise=exercise,
-                stats=stats.estimators[exercise],
-                after=after,
+            settings = estimator.EstimatorSettings(
+                exercise, SESSION, tuple(METHODS), subjects[exercise], exercise=exercise
             )
+            graph.add_thread(node.name, estimator.main, settings, stats=stats.estimators[exercise], after=after)
         else:
             graph.add_thread(
                 node.name,

@@ -55,6 +55,7 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
     from drivers.trigno.source import EmgSource
     from drivers.xsens.simulator import XsensSimulator
     from drivers.xsens.source import ImuSource
+    from services.nodes.estimator import EstimatorSettings
     from services.sessions import discovery
     from services.sessions.sim_sets import SimSets
 
@@ -862,45 +863,44 @@ class _Stopper:
             signal.signal(signum, handler)
 
 
+def estimator_settings(plan: LivePlan) -> EstimatorSettings:
+    """The estimator of a live session: the session's pack, methods, solver and load, its subject, the EMG path on when
+    the profile maps electrodes. The joints are on the host clock already: the kinematics node maps each tracker's
+    clock. With a Trigno, the EMG clock is measured against the trackers' from the accelerations, the trackers mapped
+    as the kinematics node maps them, and each joint frame waits (bounded) for the EMG of its instant."""
+    from msk_core.estimate.live_emg import ClockMode, JointsClock  # noqa: PLC0415
+    from msk_core.signal.host_clock import latency_ns_from_ms  # noqa: PLC0415
+    from services.nodes.estimator import ALIGN_ACCELERATION, EmgTiming, EstimatorSettings  # noqa: PLC0415
+
+    s, trigno = plan.session, plan.trigno is not None
+    trackers_ns = {t: latency_ns_from_ms(ms, "tracker latency") for t, ms in plan.tracker_latency_ms.items()}
+    timing = EmgTiming(
+        joints_clock=JointsClock.HOST,
+        emg_latency_ns={s.trigno_id: latency_ns_from_ms(plan.trigno_latency_ms, "trigno latency")},
+        emg_align=ALIGN_ACCELERATION,
+        imu_latency_ns=trackers_ns if trigno else {},
+        emg_wait_s=EMG_WAIT_MS / 1e3 if trigno else 0.0,
+    )
+    return EstimatorSettings(
+        s.pack,
+        s.name,
+        plan.methods,
+        plan.subject,
+        emg=None,
+        emg_clock=ClockMode.HOST,
+        timing=timing,
+        initial_load_kg=s.load_kg,
+        solver=s.solver,
+    )
+
+
 def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
     """The command line of node ``name`` of the declared graph (services.transport.session_graph.NODES)."""
     s = plan.session
     if name == "recorder":
         return python_module("services.nodes.recorder", "--out", str(mcap))
     if name == "estimator":
-        # the joints are on the host clock already: the kinematics node maps each tracker's clock. The EMG clock is
-        # measured against the trackers' from the accelerations, the trackers mapped as the kinematics node maps
-        # them; each joint frame waits (bounded) for the EMG of its instant.
-        argv = python_module(
-            "services.nodes.estimator",
-            "--pack",
-            s.pack,
-            "--session",
-            s.name,
-            "--subject",
-            str(plan.subject),
-            "--emg-clock",
-            "host",
-            "--joints-clock",
-            "host",
-            "--load-kg",
-            str(s.load_kg),
-            "--emg-latency-ms",
-            f"{s.trigno_id}={plan.trigno_latency_ms:g}",
-        )
-        if plan.trigno is not None:
-            argv += [
-                "--emg-align",
-                "acceleration",
-                "--emg-wait-ms",
-                f"{EMG_WAIT_MS:g}",
-                *(
-                    a
-                    for tracker, ms in plan.tracker_latency_ms.items()
-                    for a in ("--imu-latency-ms", f"{tracker}={ms:g}")
-                ),
-            ]
-        return argv + ["--solver", s.solver] + [a for method in plan.methods for a in ("--method", method)]
+        return python_module("services.nodes.estimator", *estimator_settings(plan).argv())
     if name == "kinematics":
         return python_module(
             "services.nodes.kinematics_node",
