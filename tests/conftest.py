@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +125,25 @@ def wait_until(
     from services.sessions.graph import wait_for
 
     wait_for(what, condition, lambda: str(have()), timeout_s, poll_s=0.02)
+
+
+def emg_chunk(
+    index: int, *, n_samples: int = 27, labels: Sequence[str] = ("c1",), value: float = 0.0, **fields: Any
+) -> Any:
+    """The ``index``-th EmgChunk of a Trigno at 2 kHz whose chunks start 27 samples apart: ``n_samples`` samples of
+    each channel of ``labels``, all ``value``; ``fields``: more of the message's (units, host_time_ns, ...)."""
+    from services.transport import messages
+
+    return messages.EmgChunk(
+        source_id="trigno",
+        channel_labels=list(labels),
+        sample_rate_hz=2000.0,
+        n_samples=n_samples,
+        n_channels=len(labels),
+        samples=[value] * (n_samples * len(labels)),
+        first_sample_index=27 * index,
+        **fields,
+    )
 
 
 @pytest.fixture

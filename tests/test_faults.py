@@ -20,7 +20,7 @@ from services.nodes.router import wait_until_listening
 from services.transport import messages, topics
 from services.transport.mcap_io import ReadReport, read_messages
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import emg_chunk, free_tcp_port, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -97,16 +97,7 @@ def _activation(index: int, n_groups: int = 60) -> messages.ActivationFrame:
 
 
 def _emg(index: int) -> messages.EmgChunk:
-    return messages.EmgChunk(
-        source_id="trigno",
-        channel_labels=[f"ch{c}" for c in range(16)],
-        sample_rate_hz=2000.0,
-        first_sample_index=27 * index,
-        n_samples=27,
-        n_channels=16,
-        samples=[0.001] * (27 * 16),
-        units="V",
-    )
+    return emg_chunk(index, labels=[f"ch{c}" for c in range(16)], value=0.001, units="V")
 
 
 HUNG_APP = textwrap.dedent(

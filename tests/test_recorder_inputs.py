@@ -25,6 +25,7 @@ from services.transport.zenoh_session import (
     open_session,
     publish,
 )
+from tests.conftest import emg_chunk
 
 SESSION = "lab"
 JOINTS = topics.joints_key(SESSION)
@@ -81,17 +82,7 @@ def _joints(value: float) -> messages.JointAngles:
 
 
 def _emg(index: int) -> messages.EmgChunk:
-    return messages.EmgChunk(
-        source_id="trigno",
-        channel_labels=["s1.EMG"],
-        sample_rate_hz=2000.0,
-        n_samples=27,
-        n_channels=1,
-        samples=[1e-3] * 27,
-        first_sample_index=27 * index,
-        units="V",
-        host_time_ns=1_700_000_000_000_000_000 + index,
-    )
+    return emg_chunk(index, labels=["s1.EMG"], value=1e-3, units="V", host_time_ns=1_700_000_000_000_000_000 + index)
 
 
 def _typed(path: Path, key: str) -> list[bytes]:

@@ -4,21 +4,14 @@ from __future__ import annotations
 
 from services.nodes.recorder import HISTORY, LIVE, HistoryMerge, RecorderStats, _digest, _Fetched, _Item
 from services.transport import messages
+from tests.conftest import emg_chunk
 
 EMG = "msk/s1/emg/trigno"
 ACTIVATIONS = "msk/s1/activations/so"
 
 
 def _message(index: int) -> messages.EmgChunk:
-    return messages.EmgChunk(
-        source_id="trigno",
-        channel_labels=["c1"],
-        sample_rate_hz=2000.0,
-        n_samples=1,
-        n_channels=1,
-        samples=[0.0],
-        first_sample_index=27 * index,
-    )
+    return emg_chunk(index, n_samples=1)
 
 
 def _chunk(index: int) -> bytes:
