@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 
 from msk_core.errors import ConfigError
+from msk_core.options import parse_pairs
 from msk_core.synth import Exercise, SynthConfig, generate_session, parse_effects, parse_exercise
 from msk_core.synth.effects import DEFAULTS
 from msk_core.synth.files import EmgOutput, write_session
@@ -90,12 +91,8 @@ def run(args: argparse.Namespace) -> int:
     exercises = list(Exercise) if args.exercise == "both" else [parse_exercise(args.exercise)]
     if args.reps < 1 or args.reps > 50:
         raise ConfigError("must be within 1..50", field="--reps", value=args.reps)
-    packs = {}
-    for text in args.pack:
-        name, sep, pack = text.partition("=")
-        if not sep or not pack:
-            raise ConfigError("write --pack EXERCISE=PACK", field="--pack", value=text)
-        packs[parse_exercise(name.strip())] = pack.strip()
+    pairs = parse_pairs(args.pack, field="--pack", form="EXERCISE=PACK")
+    packs: dict[Exercise, object] = {parse_exercise(name.strip()): pack.strip() for name, pack in pairs.items()}
     config = SynthConfig(
         subject_seed=args.subject_seed,
         n_reps=args.reps,

@@ -486,15 +486,11 @@ def open_xsens(devices: DeviceSettings) -> TrackerSet:
 
 
 def parse_segments(items: list[str]) -> dict[str, str]:
-    from msk_core.errors import ConfigError
+    """``--segment TRACKER=SEGMENT`` items -> {tracker id in capitals: segment}."""
+    from msk_core.options import parse_pairs
 
-    out = {}
-    for item in items:
-        tracker, sep, segment = item.partition("=")
-        if not sep or not tracker or not segment:
-            raise ConfigError("expected TRACKER=SEGMENT", field="--segment", value=item)
-        out[tracker.upper()] = segment
-    return out
+    pairs = parse_pairs(items, field="--segment", form="TRACKER=SEGMENT")
+    return {tracker.upper(): segment for tracker, segment in pairs.items()}
 
 
 def run_devices(

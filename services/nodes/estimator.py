@@ -58,6 +58,7 @@ from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.model.pack import available_packs, is_known_exercise
+from msk_core.options import parse_pairs
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
 from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
@@ -197,7 +198,7 @@ class EstimatorSettings:
             tuple(args.method or ()),
             args.subject,
             emg=args.emg,
-            electrode_map=parse_electrode_map(args.emg_map) if args.emg_map else None,
+            electrode_map=parse_pairs(args.emg_map, field="--emg-map", form="CHANNEL=GROUP") if args.emg_map else None,
             emg_clock=args.emg_clock,
             timing=EmgTiming.from_args(args),
             initial_load_kg=args.load_kg,
@@ -217,17 +218,6 @@ class EstimatorSettings:
             *(a for item in (self.electrode_map or {}).items() for a in ("--emg-map", "=".join(item))),
             *self.timing.argv(),
         ]
-
-
-def parse_electrode_map(items: list[str]) -> dict[str, str]:
-    """Command-line ``CHANNEL=GROUP`` items -> {channel: group}; a :class:`ConfigError` naming the item otherwise."""
-    electrode_map = {}
-    for item in items:
-        channel, sep, group = item.partition("=")
-        if not sep or not channel or not group:
-            raise ConfigError("expected CHANNEL=GROUP", field="--emg-map", value=item)
-        electrode_map[channel] = group
-    return electrode_map
 
 
 @dataclass
