@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import select
 from typing import Protocol, runtime_checkable
 
 from msk_core.errors import ConfigError, MskError
@@ -50,14 +52,21 @@ class SerialTransport:
         self._errors = (serial.SerialException, OSError)
 
     def read(self, max_bytes: int = 4096) -> bytes:
+        """What has arrived, waiting up to ``timeout`` s for the first byte: one ``select`` and one ``read`` of the
+        port (pyserial's ``read(1)``, ``in_waiting`` and a second ``read`` cost three system calls and their Python
+        more for every Xbus message). As pyserial's read, a port that is readable but gives no bytes is gone."""
         try:
-            first = self._serial.read(1)  # waits up to the timeout
-            if not first:
+            fd = self._serial.fileno()
+            if not select.select([fd], [], [], self.timeout)[0]:
                 return b""
-            waiting = min(self._serial.in_waiting, max_bytes - 1)
-            return first + self._serial.read(waiting) if waiting > 0 else first
+            data = os.read(fd, max_bytes)
+        except BlockingIOError:  # readable a moment ago, drained meanwhile (pyserial opens the port non-blocking)
+            return b""
         except self._errors as error:
             raise DeviceDisconnected(f"{self.name}: {error}") from error
+        if not data:
+            raise DeviceDisconnected(f"{self.name}: readable but no data (device disconnected?)")
+        return data
 
     def write(self, data: bytes) -> None:
         try:
