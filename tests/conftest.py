@@ -108,6 +108,20 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+def committed_trial(folder: str, name: str, shared_dir: Path, tmp_path: Path) -> Path:
+    """The committed trial file ``recordings/<folder>/<name>.toml`` (its data under ../shared/data/<folder>), or a copy
+    in ``tmp_path`` pointing at ``shared_dir`` when the data are not at ../shared."""
+    trials = REPO_ROOT / "recordings" / folder
+    path = trials / f"{name}.toml"
+    data = (shared_dir / "data" / folder).resolve()
+    relative = f"../../../shared/data/{folder}"
+    if (trials / relative).resolve() == data:
+        return path
+    copy = tmp_path / path.name
+    copy.write_text(path.read_text().replace(relative, str(data)))
+    return copy
+
+
 def free_tcp_port() -> int:
     """A loopback TCP port nobody listens on right now (for Zenoh endpoints and device simulators)."""
     import socket

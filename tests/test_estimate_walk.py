@@ -16,21 +16,13 @@ import pytest
 
 from msk_core.io import read_sto
 from services.cli import main
+from tests.conftest import committed_trial
 
 pytestmark = [pytest.mark.needs_shared, pytest.mark.slow]
 
-WALK_TRIALS = Path(__file__).resolve().parents[1] / "recordings" / "lowerlimb-walk"
-
 
 def _trial(name: str, shared_dir: Path, tmp_path: Path) -> Path:
-    """The committed trial file, or a copy pointing at ``shared_dir`` when the data are not at ../shared."""
-    path = WALK_TRIALS / f"{name}.toml"
-    walk = (shared_dir / "data" / "lowerlimb-walk").resolve()
-    if (WALK_TRIALS / "../../../shared/data/lowerlimb-walk").resolve() == walk:
-        return path
-    copy = tmp_path / path.name
-    copy.write_text(path.read_text().replace("../../../shared/data/lowerlimb-walk", str(walk)))
-    return copy
+    return committed_trial("lowerlimb-walk", name, shared_dir, tmp_path)
 
 
 def test_the_papers_protocol_on_the_walk(shared_dir, tmp_path):

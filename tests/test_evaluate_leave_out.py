@@ -19,23 +19,16 @@ import pytest
 
 from msk_core.estimate.leave_out import LEAVE_OUT_METHODS, MAX_LAG_S, PAPER_METHODS
 from services.cli import main
+from tests.conftest import committed_trial
 
 pytestmark = [pytest.mark.needs_shared, pytest.mark.slow]
 
-LIFTS = Path(__file__).resolve().parents[1] / "recordings" / "backmodel-lift"
 LEFT_OUT = ["iliocost_r", "longthor_l"]
 CHANNELS = [f"{m}_{side}" for m in ("rectabd", "iliocost", "longlumb", "longthor") for side in ("r", "l")]
 
 
 def _trial(name: str, shared_dir: Path, tmp_path: Path) -> Path:
-    """The committed trial file, or a copy pointing at ``shared_dir`` when the data are not at ../shared."""
-    path = LIFTS / f"{name}.toml"
-    data = (shared_dir / "data" / "backmodel-lift").resolve()
-    if (LIFTS / "../../../shared/data/backmodel-lift").resolve() == data:
-        return path
-    copy = tmp_path / path.name
-    copy.write_text(path.read_text().replace("../../../shared/data/backmodel-lift", str(data)))
-    return copy
+    return committed_trial("backmodel-lift", name, shared_dir, tmp_path)
 
 
 def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
