@@ -1,7 +1,9 @@
-"""Typed exceptions of msk-live. Every message names the file, line, field and value involved where there is one."""
+"""Typed exceptions of msk-live. Every message names the file, line, field and value involved where there is one; and
+the one check of ``KEY=VALUE`` option items (:func:`parse_pairs`), whose error names the option and the item."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 
@@ -58,3 +60,15 @@ class EstimationError(MskError):
 
 class ProtocolError(MskError):
     """A device spoke something the protocol does not allow."""
+
+
+def parse_pairs(items: Iterable[str], *, field: str, form: str) -> dict[str, str]:
+    """``KEY=VALUE`` items (``form`` spells them for the user, e.g. ``CHANNEL=GROUP``) -> {key: value}, split at the
+    first ``=``; an item without a key or a value is a :class:`ConfigError` naming ``field`` and the item."""
+    pairs = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise ConfigError(f"expected {form}", field=field, value=item)
+        pairs[key] = value
+    return pairs

@@ -1,12 +1,11 @@
-"""``KEY=VALUE`` command-line items, parsed in one place (msk_core.options.parse_pairs) for the estimator's
+"""``KEY=VALUE`` command-line items, parsed in one place (msk_core.errors.parse_pairs) for the estimator's
 ``--emg-map``, the drivers' ``--segment`` and ``msk synth --pack``."""
 
 from __future__ import annotations
 
 import pytest
 
-from msk_core.errors import ConfigError
-from msk_core.options import parse_pairs
+from msk_core.errors import ConfigError, parse_pairs
 from services.nodes.driver_nodes import parse_segments
 
 

@@ -14,8 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from msk_core.errors import ConfigError
-from msk_core.options import parse_pairs
+from msk_core.errors import ConfigError, parse_pairs
 from msk_core.synth import Exercise, SynthConfig, generate_session, parse_effects, parse_exercise
 from msk_core.synth.effects import DEFAULTS
 from msk_core.synth.files import EmgOutput, write_session

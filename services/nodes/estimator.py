@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from msk_core.errors import ConfigError, MskError
+from msk_core.errors import ConfigError, MskError, parse_pairs
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
 from msk_core.estimate.emg_chunk import RawEmgChunk
@@ -58,7 +58,6 @@ from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.model.pack import available_packs, is_known_exercise
-from msk_core.options import parse_pairs
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
 from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
