@@ -470,9 +470,7 @@ def test_trigno_disappears_and_comes_back_status_says_so_and_data_resumes(router
     finally:
         _kill_all(processes)
         session.close()
-    _assert_connected_then_down_then_up(statuses)
-    before = [c for t, c in chunks if t < gone_at]
-    after = [c for t, c in chunks if t > back_at]
+    before, after = _before_and_after(chunks, gone_at, back_at, statuses)
     indices = [c.first_sample_index for _, c in chunks]
     assert indices == sorted(indices) and len(set(indices)) == len(indices), "EMG indices repeat or go back"
     jumps = [
@@ -541,11 +539,16 @@ def _kill_all(processes: list[subprocess.Popen]) -> None:
             process.wait(10)
 
 
-def _assert_connected_then_down_then_up(statuses: list[messages.DeviceStatus]) -> None:
+def _before_and_after(
+    received: list[tuple[float, Any]], gone_at: float, back_at: float, statuses: list[messages.DeviceStatus]
+) -> tuple[list[Any], list[Any]]:
+    """Checks that the device's statuses said connected, then disconnected, then connected again; returns what
+    arrived before it went and after it came back."""
     states = [s.connected for s in statuses]
     assert False in states, f"no DeviceStatus said disconnected: {states}"
     first_down = states.index(False)
     assert True in states[:first_down] and True in states[first_down:], f"connected states in order: {states}"
+    return [m for t, m in received if t < gone_at], [m for t, m in received if t > back_at]
 
 
 def _start_xsens_simulator(device_id: str) -> tuple[subprocess.Popen, str]:
@@ -596,9 +599,7 @@ def test_xsens_disappears_and_comes_back_status_says_so_and_data_resumes(router,
     finally:
         _kill_all(processes)
         session.close()
-    _assert_connected_then_down_then_up(statuses)
-    before = [sample for t, sample in imu if t < gone_at]
-    after = [sample for t, sample in imu if t > back_at]
+    before, after = _before_and_after(imu, gone_at, back_at, statuses)
     assert len(before) > 100 and len(after) > 100
     import re
 
