@@ -78,3 +78,14 @@ def test_without_a_measured_synergist_error_only_the_copied_prior_follows():
     profile = _profile({"synergists": {"effort": "measured"}, "min_effort_error_rms": 0.1})
     on = _assisted(profile, True, 0.6)
     assert on[1:] == pytest.approx([0.10, 0.6, 0.05], abs=1e-4)
+
+
+def test_the_sources_own_synergist_error_outweighs_the_pooled_one():
+    """``synergist_error_by_source``: how well the source stood for its own measured synergists; a source that stood
+    badly (error 0.2 against the minimal-effort error 0.1) moves the group less than the pooled error would."""
+    calibration = {"synergists": {"effort": "measured"}, "synergist_error_rms": 0.05, "min_effort_error_rms": 0.1}
+    pooled = _assisted(_profile(calibration), True, 0.6)
+    own = _assisted(_profile(calibration | {"synergist_error_by_source": {"measured": 0.2}}), True, 0.6)
+    w = 0.1**2 / (0.1**2 + 0.2**2)
+    assert own[1] == pytest.approx(w * (0.10 / 0.30) * 0.6 + (1 - w) * 0.10, abs=1e-4)
+    assert abs(own[1] - 0.10) < abs(pooled[1] - 0.10)

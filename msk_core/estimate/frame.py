@@ -255,9 +255,10 @@ class FrameEstimator:
         synergist's (source ``synergist:<group>``) takes the live envelope (weight 1). Any other group (the profile's
         moment-arm ``synergists``) weighs the two hypotheses by the errors each showed on the measured groups:
         w = e_p^2 / (e_p^2 + e_s^2), e_p the minimal-effort error (``min_effort_error_rms``; the wide default's
-        ``NO_EMG_STD`` for a default prior), e_s the error of "a synergist's envelope at the group's own level"
-        between the measured synergists (``synergist_error_rms``; without it, no measured pair to check it on, the
-        group is left alone)."""
+        ``NO_EMG_STD`` for a default prior), e_s the error of "a synergist's envelope at the group's own level": how
+        well this source stood for its own measured synergists (``synergist_error_by_source``), else between all the
+        measured synergist pairs (``synergist_error_rms``); without either (no measured pair to check it on) the
+        group is left alone."""
         n = len(self.groups)
         self._synergist_of = np.full(n, -1)
         self._synergist_gain = np.zeros(n)
@@ -270,7 +271,8 @@ class FrameEstimator:
         for j, src in enumerate(sources):
             if src.startswith("synergist:"):
                 named[self.groups[j]] = (src.removeprefix("synergist:"), True)
-        syn_err = float(calibration.get("synergist_error_rms") or np.nan)
+        pooled_err = float(calibration.get("synergist_error_rms") or np.nan)
+        by_source = calibration.get("synergist_error_by_source") or {}
         me_err = float(calibration.get("min_effort_error_rms") or np.nan)
         mu, _ = self.prior.pooled()
         for g, (h, copied) in named.items():
@@ -278,6 +280,7 @@ class FrameEstimator:
                 continue
             j, k = self.groups.index(g), self.groups.index(h)
             prior_err = me_err if sources[j] == "min_effort" else NO_EMG_STD
+            syn_err = float(by_source.get(h, pooled_err))
             weight = 1.0 if copied else prior_err**2 / (prior_err**2 + syn_err**2)
             if self.prior.has_emg[k] and not self.prior.has_emg[j] and mu[k] > MIN_SYNERGIST_LEVEL and weight > 0:
                 self._synergist_of[j], self._synergist_gain[j], self._synergist_weight[j] = k, mu[j] / mu[k], weight

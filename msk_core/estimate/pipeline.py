@@ -167,18 +167,24 @@ def pick_synergists(
     """Unmeasured group -> the measured group whose moment arms over the trials' frames are the most similar
     (cosine of the stacked (frames x coordinates) columns, at least ``SYNERGIST_MIN_COSINE``); ties go to the first."""
     groups = list(pack.groups)
-    arms = np.concatenate([t.mechanics(pack).moment_arms for t in trials])
-    r = arms[np.all(np.isfinite(arms), axis=(1, 2))]  # (T, n_c, G)
-    cols = r.transpose(2, 0, 1).reshape(len(groups), -1)
-    norm = np.linalg.norm(cols, axis=1)
+    cos = moment_arm_cosines(pack, trials)
     picked = {}
     for g in unmeasured:
-        i = groups.index(g)
-        cos = [float(cols[i] @ cols[groups.index(h)]) / max(norm[i] * norm[groups.index(h)], 1e-300) for h in measured]
-        best = int(np.argmax(cos))  # first of equals
-        if cos[best] >= SYNERGIST_MIN_COSINE:
+        row = [float(cos[groups.index(g), groups.index(h)]) for h in measured]
+        best = int(np.argmax(row))  # first of equals
+        if row[best] >= SYNERGIST_MIN_COSINE:
             picked[g] = measured[best]
     return picked
+
+
+def moment_arm_cosines(pack: PackLike, trials: list[TrialData]) -> np.ndarray:
+    """(G, G) cosines between the groups' moment arms stacked over the trials' frames and coordinates (frames with a
+    non-finite moment arm left out)."""
+    arms = np.concatenate([t.mechanics(pack).moment_arms for t in trials])
+    r = arms[np.all(np.isfinite(arms), axis=(1, 2))]  # (T, n_c, G)
+    cols = r.transpose(2, 0, 1).reshape(len(pack.groups), -1)
+    norm = np.linalg.norm(cols, axis=1)
+    return (cols @ cols.T) / np.maximum(np.outer(norm, norm), 1e-300)
 
 
 def profile_synergists(pack: PackLike, trials: list[TrialData], prior: PhasePrior) -> dict[str, str]:
@@ -206,16 +212,41 @@ def synergist_error(pack: PackLike, trials: list[TrialData]) -> float:
         picked = pick_synergists(pack, moving, [g], [h for h in measured if h != g]) if len(measured) > 1 else {}
         if g not in picked:
             continue
-        h = picked[g]
-        pairs = [(t.emg[g][t.rep_index >= 0], t.emg[h][t.rep_index >= 0]) for t in moving if g in t.emg and h in t.emg]
-        e_g = np.concatenate([p[0] for p in pairs]) if pairs else np.zeros(0)
-        e_h = np.concatenate([p[1] for p in pairs]) if pairs else np.zeros(0)
-        ok = np.isfinite(e_g) & np.isfinite(e_h)
-        if ok.sum() < 2 or not np.mean(e_h[ok]) > 0:
-            continue
-        diffs.append(e_g[ok] - np.mean(e_g[ok]) / np.mean(e_h[ok]) * e_h[ok])
+        diffs.append(_scaled_difference(moving, g, picked[g]))
     d = np.concatenate(diffs) if diffs else np.zeros(0)
     return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+
+def synergist_errors(pack: PackLike, trials: list[TrialData]) -> dict[str, float]:
+    """Per measured group h with measured synergists (the other measured groups whose moment arms have a cosine of at
+    least ``SYNERGIST_MIN_COSINE`` with h's): the RMS of (their EMG - gain x h's envelope) inside reps, gain the ratio
+    of the envelopes' means. How well h's envelope stands for the muscles of its action in these trials, the error
+    ``assisted`` with live synergists gives h as the source of a group without EMG (else :func:`synergist_error`)."""
+    moving = [t for t in trials if not t.isometric and t.emg]
+    measured = sorted({g for t in moving for g in t.emg})
+    if len(measured) < 2:
+        return {}
+    groups = list(pack.groups)
+    cos = moment_arm_cosines(pack, moving)
+    out = {}
+    for h in measured:
+        partners = [g for g in measured if g != h and cos[groups.index(g), groups.index(h)] >= SYNERGIST_MIN_COSINE]
+        d = np.concatenate([_scaled_difference(moving, g, h) for g in partners]) if partners else np.zeros(0)
+        if d.size:
+            out[h] = float(np.sqrt(np.mean(d**2)))
+    return out
+
+
+def _scaled_difference(trials: list[TrialData], g: str, h: str) -> np.ndarray:
+    """EMG of g - (mean g / mean h) x EMG of h over the frames inside reps where both are finite."""
+    pairs = [(t.emg[g][t.rep_index >= 0], t.emg[h][t.rep_index >= 0]) for t in trials if g in t.emg and h in t.emg]
+    if not pairs:
+        return np.zeros(0)
+    e_g, e_h = np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs])
+    ok = np.isfinite(e_g) & np.isfinite(e_h)
+    if ok.sum() < 2 or not np.mean(e_h[ok]) > 0:
+        return np.zeros(0)
+    return e_g[ok] - np.mean(e_g[ok]) / np.mean(e_h[ok]) * e_h[ok]
 
 
 def _none_if_nan(x: float) -> float | None:
@@ -547,6 +578,7 @@ def calibrate_inputs(
             "no_emg_strength": NoEmgStrength(no_emg_strength).value,
             "synergists": profile_synergists(pack, trials, profile_prior),
             "synergist_error_rms": _none_if_nan(synergist_error(pack, trials)),
+            "synergist_error_by_source": synergist_errors(pack, trials),
         },
         provenance={
             "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
