@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 
 from services.nodes import driver_nodes
-from services.nodes.readiness import ReadySpec, declare_ready
+from services.nodes.readiness import add_ready_arguments, declare_ready, ready_from_args
 from services.transport import topics, zenoh_session
 from services.transport.zenoh_session import stop_on_signals
 
@@ -20,9 +20,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: until Ctrl-C)"
     )
-    # graph readiness (services.nodes.readiness): wait for these nodes before acquiring, then declare the token
-    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    add_ready_arguments(parser)  # wait for the nodes it publishes to before acquiring, then declare the token
     zenoh_session.add_zenoh_arguments(parser)
     parser.set_defaults(handler=run)
 
@@ -31,11 +29,8 @@ def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     devices = driver_nodes.device_settings(args)
     stop = stop_on_signals()  # the loops end cleanly and report, rather than being torn down
-    ready = None
-    if args.ready_key:
-        ready = ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
     with zenoh_session.open_session(zenoh_session.options_from_args(args)) as session:
-        token = declare_ready(session, ready)  # noqa: F841 - alive while the node runs
+        token = declare_ready(session, ready_from_args(args))  # noqa: F841 - alive while the node runs
         sink = driver_nodes.ZenohSink(session)
         try:
             reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)

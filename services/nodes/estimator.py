@@ -71,7 +71,7 @@ from services.nodes.node_runtime import (
     outages_text,
     serve,
 )
-from services.nodes.readiness import ReadySpec, declare_ready
+from services.nodes.readiness import ReadySpec, add_ready_arguments, declare_ready, ready_from_args
 from services.transport import messages, session_graph, topics
 from services.transport.zenoh_session import (
     ZenohOptions,
@@ -920,8 +920,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
     add_emg_arguments(parser)
-    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    add_ready_arguments(parser)
     parser.add_argument(
         "--solver",
         choices=SOLVERS,
@@ -1010,11 +1009,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    ready = None
-    if args.ready_key:
-        node = args.ready_key.rsplit("/", 1)[-1]
-        ready = ReadySpec(settings.session, node, tuple(args.ready_after))
-    stats = main(options_from_args(args), settings, stop_event=stop, ready_key=ready)
+    stats = main(options_from_args(args), settings, stop_event=stop, ready_key=ready_from_args(args))
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(
         f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}"

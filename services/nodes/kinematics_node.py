@@ -35,7 +35,7 @@ from msk_core.model import load_pack
 from msk_core.signal.host_clock import METHOD_DEVICE, WINDOW_S, ClockReport, DeviceClocks, parse_latencies
 from msk_core.signal.reps import RepTemplate
 from services.nodes.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
-from services.nodes.readiness import ReadySpec, declare_ready
+from services.nodes.readiness import ReadySpec, add_ready_arguments, declare_ready, ready_from_args
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
     ZenohOptions,
@@ -387,8 +387,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --imu-clock host: the stated latency of tracker TRACKER (without TRACKER=: of every tracker not "
         "named), taken off before its clock is mapped (repeatable; default 0)",
     )
-    add("--ready-key", default=None, help=argparse.SUPPRESS)  # graph readiness (services.nodes.readiness)
-    add("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    add_ready_arguments(parser)
     add_zenoh_arguments(parser)
 
 
@@ -427,9 +426,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         clock=args.imu_clock,
         latency_ns=latency_ns,
         default_latency_ns=default_latency_ns,
-        ready_key=ReadySpec(args.session, args.ready_key.rsplit("/", 1)[-1], tuple(args.ready_after))
-        if args.ready_key
-        else None,
+        ready_key=ready_from_args(args),
     )
     print(
         f"published {stats.frames_out} frames; calibrations {stats.calibrations} (gaps: {stats.restarts} new sets, "

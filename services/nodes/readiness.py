@@ -15,6 +15,7 @@ Every wait is bounded and, when it expires, raises :class:`GraphTimeout` saying 
 
 from __future__ import annotations
 
+import argparse
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -54,6 +55,22 @@ class ReadySpec:
     @property
     def key(self) -> str:
         return ready_key(self.session, self.node)
+
+
+def add_ready_arguments(parser: argparse.ArgumentParser) -> None:
+    """A node process's readiness flags, hidden: :meth:`services.sessions.graph.Graph.add_process` appends them (its
+    token key ``msk/<session>/graph/<node>`` and, repeated, the nodes it publishes to); :func:`ready_from_args`."""
+    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+
+
+def ready_from_args(args: argparse.Namespace) -> ReadySpec | None:
+    """The :class:`ReadySpec` of :func:`add_ready_arguments`' flags (session and node from the token key); None
+    without ``--ready-key`` (a node started by hand declares no token)."""
+    if not args.ready_key:
+        return None
+    session, rest = topics.split_key(args.ready_key)
+    return ReadySpec(session, rest.rsplit("/", 1)[-1], tuple(args.ready_after))
 
 
 def declare_ready(zsession: zenoh.Session, spec: ReadySpec | None):

@@ -80,7 +80,7 @@ from services.nodes.node_runtime import (
     check_payload,
     publication_id,
 )
-from services.nodes.readiness import ReadySpec, declare_ready
+from services.nodes.readiness import ReadySpec, add_ready_arguments, declare_ready, ready_from_args
 from services.transport import messages, topics
 from services.transport.mcap_io import REJECTED_REASON, McapRecorderWriter, device_time_ns, read_messages
 from services.transport.zenoh_session import (
@@ -646,10 +646,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="report the recorder's status (inputs received and dropped) on msk/SESSION/status/recorder "
         "(default: the session --key names; with msk/** and no --session, no status)",
     )
-    parser.add_argument(
-        "--ready-key", default=None, help=argparse.SUPPRESS
-    )  # graph readiness (services.nodes.readiness)
-    parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
+    add_ready_arguments(parser)
     add_zenoh_arguments(parser)
 
 
@@ -667,10 +664,6 @@ def run_from_args(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    ready = None
-    if args.ready_key:
-        session, node = topics.split_key(args.ready_key)[0], args.ready_key.rsplit("/", 1)[-1]
-        ready = ReadySpec(session, node, tuple(args.ready_after))
     stats = main(
         options_from_args(args),
         out,
@@ -681,7 +674,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         history=args.history,
         history_timeout_s=args.history_timeout,
         already_recorded=already_recorded,
-        ready_key=ready,
+        ready_key=ready_from_args(args),
         session=args.session,
     )
     print(summary_line(stats, out), file=sys.stderr)
