@@ -24,7 +24,7 @@ OWNERS = {
     ),
     "phase prior and its fitter": ("msk_core/estimate/prior.py", r"fit\w*prior|prior\w*_from|phase_?priors?$"),
     "trial loader": ("msk_core/estimate/trial.py", r"load\w*_trial$"),
-    "force factor": ("msk_core/discrepancy/model.py", r"^force_factor$"),
+    "force factor": ("msk_core/estimate/effects.py", r"^force_factor$"),
     "moment-arm clamp rule": ("msk_core/estimate/pack.py", r"clamp_to_ranges"),
 }
 # a class of that name elsewhere that only delegates to the owner (checked below by behaviour)

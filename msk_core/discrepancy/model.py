@@ -28,7 +28,7 @@ from msk_core.estimate.effects import (
     CoefKey,
     Effect,
     Nuisance,
-    muscle_force_factor,
+    force_factor,
     torque_term_columns,
     torque_term_names,
     unmix_envelopes,
@@ -183,23 +183,6 @@ def effective_emg(data: SessionArrays, trial: TrialArrays, model: dict[Effect, d
         x = x.copy()
         x[:, idx] = unmix_envelopes(x[:, idx], model[Effect.CROSSTALK]["fraction"])
     return x
-
-
-def force_factor(
-    lengths: np.ndarray | None,
-    arms: np.ndarray,
-    qd: np.ndarray,
-    optimal: np.ndarray | None,
-    slack: np.ndarray | None,
-    model: dict[Effect, dict],
-) -> np.ndarray:
-    """(T, G) the force-factor effects of ``model`` (active force-length, force-velocity) on every frame of lengths
-    (T, G), moment arms (T, n_c, G) and velocities (T, n_c); 1 where none is on. The discrepancy fit and the
-    re-calibration both take it from here."""
-    phi = muscle_force_factor(
-        lengths, arms, qd, optimal, slack, fl_active=model.get(Effect.FL_ACTIVE), fv=model.get(Effect.FV)
-    )
-    return np.ones((arms.shape[0], arms.shape[2])) if phi is None else phi
 
 
 def design(data: SessionArrays, trial: TrialArrays, model: dict[Effect, dict]) -> Design:

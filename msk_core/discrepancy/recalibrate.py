@@ -20,9 +20,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from msk_core.discrepancy.model import force_factor
 from msk_core.estimate.calibrate import CalibrationResult, CalibrationSettings
-from msk_core.estimate.effects import TORQUE_TERMS, Effect, torque_term_columns, torque_term_names
+from msk_core.estimate.effects import TORQUE_TERMS, Effect, force_factor, torque_term_columns, torque_term_names
 from msk_core.estimate.pack import PackLike, fibre_lengths, fitted_ranges
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
@@ -136,7 +135,7 @@ class Recalibrator:
         return self._cache[key]
 
     def _force_scale(self, trial: TrialData, forces: dict[Effect, dict]) -> np.ndarray:
-        """(T, G) the force factor of ``forces`` on every frame of ``trial`` (:func:`model.force_factor`)."""
+        """(T, G) the force factor of ``forces`` on every frame of ``trial`` (:func:`effects.force_factor`)."""
         mech, pack = trial.mechanics(self.pack), self.pack
         return force_factor(
             mech.lengths,

@@ -19,6 +19,7 @@ negative shortening; moment arm r = -dL/dq, so dL/dt = -R^T qd.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -151,25 +152,25 @@ def force_velocity(v: np.ndarray, eccentric: float) -> np.ndarray:
     return np.where(v >= 0.0, shortening, lengthening)
 
 
-def muscle_force_factor(
+def force_factor(
     lengths: np.ndarray | None,
     arms: np.ndarray,
     qd: np.ndarray,
     optimal: np.ndarray | None,
     slack: np.ndarray | None,
-    *,
-    fl_active: dict | None = None,
-    fv: dict | None = None,
-) -> np.ndarray | None:
-    """Factor on each group's active force, active force-length x force-velocity, for one frame ((G,); arms (n_c, G),
-    qd (n_c,)) or many ((T, G)); ``fl_active`` {"width"}, ``fv`` {"v_max", "eccentric"}; None when neither is on."""
-    scale = None
+    effects: Mapping[Effect, dict | None],
+) -> np.ndarray:
+    """The one force factor: on each group's active force, active force-length x force-velocity, for one frame ((G,);
+    arms (n_c, G), qd (n_c,)) or many ((T, G)). ``effects``: the parameters of those on, FL_ACTIVE {"width"} and FV
+    {"v_max", "eccentric"} (any other effect is not a force factor; None is off); 1 where neither is on. The live
+    estimator (:meth:`EffectsProfile.force_scale`), the discrepancy fit and the re-calibration all take it from here."""
+    scale = np.ones(arms.shape[:-2] + arms.shape[-1:])
+    fl_active, fv = effects.get(Effect.FL_ACTIVE), effects.get(Effect.FV)
     if fl_active:
         scale = active_force_length(_fibre_length_for(Effect.FL_ACTIVE, lengths, optimal, slack), fl_active["width"])
     if fv:
         speed = shortening_speed(arms, qd, _needed(optimal, "optimal fibre lengths", Effect.FV), fv["v_max"])
-        f = force_velocity(speed, fv["eccentric"])
-        scale = f if scale is None else scale * f
+        scale = scale * force_velocity(speed, fv["eccentric"])
     return scale
 
 
@@ -360,16 +361,12 @@ class ModelEffects:
 
     # -- per frame ---------------------------------------------------------------------------------------------
     def force_scale(self, lengths: np.ndarray | None, arms: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
-        """(G,) per-frame multiplier of each group's active force (fl * fv), None when no such effect is on."""
-        return muscle_force_factor(
-            lengths,
-            arms,
-            qd,
-            self._optimal,
-            self._slack,
-            fl_active=self.params(Effect.FL_ACTIVE),
-            fv=self.params(Effect.FV),
-        )
+        """(G,) per-frame multiplier of each group's active force (:func:`force_factor`), None when no such effect is
+        on (the estimator then leaves the forces as they are)."""
+        effects = {e: self.params(e) for e in (Effect.FL_ACTIVE, Effect.FV)}
+        if not any(effects.values()):
+            return None
+        return force_factor(lengths, arms, qd, self._optimal, self._slack, effects)
 
     def torque_offset(self, q, qd, lengths, arms, f_max_profile) -> np.ndarray | None:
         """Torque not produced by the active muscles (N·m, per coordinate): passive muscle, passive joint, damping
