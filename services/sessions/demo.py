@@ -30,11 +30,10 @@ from services.sessions.live_scoring import (  # noqa: F401 - re-exported: import
     TrialWindow,
     _trial_folders,
     markdown,
-    plot,
     score,
     trial_windows,
 )
-from services.surfaces.reports.strength import plot_strength, strength_markdown
+from services.surfaces.reports.demo import plot_activations, plot_strength, strength_markdown
 from services.transport import messages, session_graph
 from services.transport.mcap_io import read_messages
 from services.transport.zenoh_session import ZenohOptions
@@ -251,7 +250,7 @@ def main(
     graph = run_live_graph(recording, live_mcap, subjects, endpoint, rate, log, joints_from=joints_from)
     scores, curves = score(live_mcap, recordings)
     table = markdown(scores)
-    plots = plot(curves, scores, out) + [plot_strength(calibration, out)]
+    plots = plot_activations(curves, scores, out) + [plot_strength(calibration, out)]
     summary = {"calibration": calibration, "graph": graph, "scores": [s.__dict__ for s in scores]}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     (out / "report.md").write_text(

@@ -149,36 +149,6 @@ def markdown(scores: list[MethodScore]) -> str:
     return "\n".join(lines)
 
 
-def plot(curves: dict, scores: list[MethodScore], out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    written = []
-    for trial in sorted({s.trial for s in scores if s.role == "held out"}):
-        truth_t, _, truth, groups = curves[(trial, "proposed")]
-        # The four groups that work hardest in the truth: where people look first.
-        top = np.argsort(truth.max(axis=0))[::-1][:4]
-        fig, axes = plt.subplots(len(top), 1, figsize=(10, 2.2 * len(top)), sharex=True)
-        for ax, gi in zip(np.atleast_1d(axes), top):
-            ax.plot(truth_t, truth[:, gi], color="black", lw=2, label="truth")
-            for method, colour in zip(METHODS, ("tab:green", "tab:red", "tab:blue")):
-                t, est, _, _ = curves[(trial, method)]
-                ax.plot(t, est[:, gi], color=colour, lw=1, label=method)
-            ax.set_ylabel(groups[gi])
-            ax.set_ylim(0, 1)
-        np.atleast_1d(axes)[0].legend(loc="upper right", ncol=4, fontsize=8)
-        np.atleast_1d(axes)[-1].set_xlabel("time in trial (s)")
-        fig.suptitle(f"{trial} (held out from calibration): live activations vs truth")
-        fig.tight_layout()
-        path = out / f"{trial}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
-    return written
-
-
 # ------------------------------------------------------------------------------------------------ msk live --sim
 
 #: frames of a live run's first seconds are not scored: the host clock mappings' minimums, the EMG filters, the

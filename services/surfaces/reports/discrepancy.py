@@ -10,7 +10,7 @@ import numpy as np
 
 from msk_core.discrepancy.data import describe_left_out
 from msk_core.discrepancy.workflow import DiscrepancyResult
-from services.surfaces.reports import pyplot
+from services.surfaces.reports import pyplot, save_figure
 
 
 def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str) -> None:
@@ -27,9 +27,7 @@ def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str)
         ax.set_xlabel(xlabel)
     axes[0][0].set_ylabel("mean torque gap (fraction of capacity)")
     axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def _xcorr_plot(path: Path, result: DiscrepancyResult) -> None:
@@ -42,9 +40,7 @@ def _xcorr_plot(path: Path, result: DiscrepancyResult) -> None:
     ax.set_xlabel("lag of the EMG-implied torque (ms; > 0: EMG leads)")
     ax.set_ylabel("correlation")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def _before_after_bars(ax, per_name: dict, ylabel: str, rotation: int) -> None:
@@ -65,9 +61,7 @@ def _rms_plot(path: Path, summary: dict) -> None:
     _before_after_bars(axes[0][0], per_c, "held-out RMS torque gap (fraction of capacity)", 30)
     if per_g:
         _before_after_bars(axes[0][1], per_g, "held-out RMS activation gap (estimate - EMG)", 60)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def consistency_sentences(summary: dict) -> list[str]:

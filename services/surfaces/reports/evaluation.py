@@ -17,7 +17,7 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, evaluate, prior_band
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
-from services.surfaces.reports import pyplot
+from services.surfaces.reports import pyplot, save_figure
 
 
 def markdown_table(scores: list[MethodScore]) -> str:
@@ -65,11 +65,7 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
         ax.set_ylabel("activation")
         ax.set_ylim(bottom=0)
         ax.legend(loc="upper right", fontsize=8, ncol=5)
-        fig.tight_layout()
-        path = out / f"{trial.name}_{g}.png"
-        fig.savefig(path, dpi=80)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, out / f"{trial.name}_{g}.png", dpi=80))
     # torque tracking plot
     fig, ax = plt.subplots(len(trial.torques[0]), 1, figsize=(10, 3 * len(trial.torques[0])), squeeze=False)
     for k, c in enumerate(runs[next(iter(k for k in runs if k[0] == trial.name))].coordinates):
@@ -79,11 +75,7 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
                 ax[k, 0].plot(t, runs[(trial.name, method)].model_torques[:, k], style, label=method)
         ax[k, 0].set_title(f"{trial.name}: {c} torque (N·m)")
         ax[k, 0].legend(fontsize=8)
-    fig.tight_layout()
-    path = out / f"{trial.name}_torque.png"
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    written.append(path)
+    written.append(save_figure(fig, out / f"{trial.name}_torque.png", dpi=80))
     return written
 
 
@@ -235,11 +227,7 @@ def plot_leave_out_group(result: LeaveOutResult, group: str, out: Path) -> Path:
     ax.set_ylabel("activation (mean ± sd over reps)")
     ax.set_ylim(bottom=0)
     ax.legend(fontsize=7, ncol=2, loc="upper right")
-    fig.tight_layout()
-    path = out / f"leave_out_{group}.png"
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / f"leave_out_{group}.png", dpi=80)
 
 
 def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) -> dict[str, Any]:

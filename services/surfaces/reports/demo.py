@@ -1,5 +1,5 @@
-"""Calibrated strength against the synthetic generator's truth, for the demo's report: a Markdown table per exercise
-and one bar plot (F_max / truth per group)."""
+"""The demo's report against the synthetic generator's truth: the calibrated strength (a Markdown table per exercise
+and one bar plot, F_max / truth per group) and the held-out trials' live activations (one plot per trial)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.surfaces.reports import pyplot
+from services.sessions.live_scoring import METHODS, MethodScore
+from services.surfaces.reports import pyplot, save_figure
 
 
 def strength_markdown(calibration: dict) -> str:
@@ -68,8 +69,28 @@ def plot_strength(calibration: dict, out: Path) -> Path:
         Patch(color=STRENGTH_COLOURS["not_calibrated"], label="no EMG: kept at reference"),
     ]
     axes[0, 0].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    fig.tight_layout()
-    path = out / "strength.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "strength.png", dpi=100)
+
+
+def plot_activations(curves: dict, scores: list[MethodScore], out: Path) -> list[Path]:
+    """Per held-out trial: the live activations of each method against the truth, for the four groups that work
+    hardest in the truth (where people look first); ``curves`` and ``scores`` from
+    :func:`services.sessions.live_scoring.score`."""
+    plt = pyplot()
+    written = []
+    for trial in sorted({s.trial for s in scores if s.role == "held out"}):
+        truth_t, _, truth, groups = curves[(trial, "proposed")]
+        top = np.argsort(truth.max(axis=0))[::-1][:4]
+        fig, axes = plt.subplots(len(top), 1, figsize=(10, 2.2 * len(top)), sharex=True)
+        for ax, gi in zip(np.atleast_1d(axes), top):
+            ax.plot(truth_t, truth[:, gi], color="black", lw=2, label="truth")
+            for method, colour in zip(METHODS, ("tab:green", "tab:red", "tab:blue")):
+                t, est, _, _ = curves[(trial, method)]
+                ax.plot(t, est[:, gi], color=colour, lw=1, label=method)
+            ax.set_ylabel(groups[gi])
+            ax.set_ylim(0, 1)
+        np.atleast_1d(axes)[0].legend(loc="upper right", ncol=4, fontsize=8)
+        np.atleast_1d(axes)[-1].set_xlabel("time in trial (s)")
+        fig.suptitle(f"{trial} (held out from calibration): live activations vs truth")
+        written.append(save_figure(fig, out / f"{trial}.png", dpi=100))
+    return written
