@@ -161,12 +161,13 @@ def _recording():
     return imu, joints
 
 
-def _start_node(endpoint: str, **kwargs):
+def _start_node(endpoint: str, **settings):
+    """A kinematics node on session "synth" in a thread (``settings``: the other fields of its KinematicsSettings)."""
     stop, ready, stats = threading.Event(), threading.Event(), kinematics_node.KinematicsStats()
     thread = threading.Thread(
         target=kinematics_node.main,
-        args=(ZenohOptions(connect=(endpoint,)),),
-        kwargs=dict(session="synth", stop_event=stop, ready_event=ready, stats=stats, **kwargs),
+        args=(ZenohOptions(connect=(endpoint,)), kinematics_node.KinematicsSettings(session="synth", **settings)),
+        kwargs=dict(stop_event=stop, ready_event=ready, stats=stats),
         daemon=True,
     )
     thread.start()
@@ -209,7 +210,7 @@ def test_node_on_demo_recording_recovers_true_joints(zenoh_endpoint, tmp_path):
                 zenoh_endpoint,
                 pack="bench_press",
                 output_session="kin",
-                phase_template=kinematics_node.load_template(template_path),
+                phase_template=template_path,
                 phase_coordinate="elbow_flex_r",
             ),
             _start_node(zenoh_endpoint, pack="deadlift", output_session="kin"),

@@ -211,25 +211,12 @@ def test_clock_reports_travel_in_the_node_status_in_ms():
 
 
 def test_the_kinematics_node_maps_each_tracker_less_its_own_latency():
-    from services.nodes.kinematics_node import KinematicsNode, KinematicsStats
+    from services.nodes.kinematics_node import KinematicsNode, KinematicsSettings, KinematicsStats
 
-    node = KinematicsNode(
-        "bench_press",
-        "s",
-        KinematicsStats(),
-        facing_deg=0.0,
-        static_pose_deg=None,
-        static_s=0.5,
-        gap_s=1.0,
-        sync_tolerance_s=0.008,
-        max_wait_s=0.5,
-        filter_config=None,
-        phase_template=None,
-        phase_coordinate=None,
-        clock="host",
-        latency_ns={"00B4EB80": 9_000_000},
-        default_latency_ns=2_000_000,
+    settings = KinematicsSettings(
+        "bench_press", "s", clock="host", latency_ns={"00B4EB80": 9_000_000}, default_latency_ns=2_000_000
     )
+    node = KinematicsNode(settings, KinematicsStats())
     for k in range(30):
         for tracker, segment, power_up_ns in (
             ("00B4EB80", "upper_arm_r", 7_000_000_000),

@@ -50,6 +50,115 @@ from services.transport.zenoh_session import (
 
 log = logging.getLogger(__name__)
 NODE_NAME = "kinematics"
+CLOCKS = ("device", "host")
+
+
+@dataclass(frozen=True)
+class KinematicsSettings:
+    """What one kinematics node computes and how, checked once where it is built: from the node's command line
+    (:meth:`from_args`), by ``msk live`` from the session plan (services.sessions.live.kinematics_settings, which starts
+    the node with :meth:`argv`), or by whoever runs the node in a thread (the demo, the tests).
+
+    ``output_session``: publish the joints there (default ``session``); ``facing_deg``: compass direction the subject
+    faces (0 north, 90 east); ``static_pose_deg``: the calibration pose over the pack table's; ``static_s``: seconds of
+    static pose at the start of a set; ``gap_s``: an IMU gap that starts a new set; ``sync_tolerance_s``: trackers'
+    samples this close are one instant, ``max_wait_s`` the longest wait for an instant's last tracker; ``imu_rate_hz``,
+    ``jerk_std`` (rad/s^3) and ``angle_std_deg``: the Kalman filter (:attr:`filter_config`); ``phase_template`` (a
+    subject profile or RepTemplate JSON) and ``phase_coordinate``: the rep phase, both or neither. ``clock="device"``:
+    the trackers share one device clock (recordings, a Link/Awinda station); ``"host"``: each tracker's device time is
+    mapped onto the host clock (msk_core.signal.host_clock, over the last ``clock_window_s``), less its stated latency
+    (``latency_ns`` per tracker id, ``default_latency_ns`` for the others)."""
+
+    pack: str
+    session: str
+    output_session: str | None = None
+    facing_deg: float = 0.0
+    static_pose_deg: dict[str, float] | None = None
+    static_s: float = 0.5
+    gap_s: float = 1.0
+    sync_tolerance_s: float = 0.008
+    max_wait_s: float = 0.5
+    imu_rate_hz: float = 60.0
+    jerk_std: float = 100.0
+    angle_std_deg: float = 1.0
+    phase_template: Path | None = None
+    phase_coordinate: str | None = None
+    clock: str = "device"
+    latency_ns: dict[str, int] | None = None
+    default_latency_ns: int = 0
+    clock_window_s: float = WINDOW_S
+
+    def __post_init__(self) -> None:
+        for name, flag in (
+            ("static_s", "--static-s"),
+            ("gap_s", "--gap"),
+            ("sync_tolerance_s", "--sync-tolerance-ms"),
+            ("max_wait_s", "max_wait_s"),
+            ("imu_rate_hz", "--imu-rate"),
+            ("jerk_std", "--jerk-std"),
+            ("angle_std_deg", "--angle-std-deg"),
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError("must be positive", field=flag, value=value)
+        if self.clock not in CLOCKS:
+            raise ConfigError(f"expected {' or '.join(CLOCKS)}", field="--imu-clock", value=self.clock)
+        if (self.phase_template is None) != (self.phase_coordinate is None):
+            raise ConfigError(
+                "phase tracking needs both a rep template and a coordinate",
+                field="--phase-coordinate",
+                value=self.phase_coordinate,
+            )
+
+    @property
+    def filter_config(self) -> KinematicsFilterConfig:
+        return KinematicsFilterConfig(
+            dt=1.0 / self.imu_rate_hz, jerk_std=self.jerk_std, angle_std=math.radians(self.angle_std_deg)
+        )
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> KinematicsSettings:
+        """The settings of the node's command line (:func:`add_arguments`); the pack must have an IMU table."""
+        model = load_pack(args.pack)
+        mapping_for(model.name)  # fail before joining the network when the pack has no IMU table
+        latency_ns, default_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
+        return cls(
+            args.pack,
+            args.session,
+            output_session=args.out_session,
+            facing_deg=args.facing_deg,
+            static_pose_deg=parse_pose(args.static_pose, list(model.coordinates)) or None,
+            static_s=args.static_s,
+            gap_s=args.gap,
+            sync_tolerance_s=args.sync_tolerance_ms / 1e3,
+            imu_rate_hz=args.imu_rate,
+            jerk_std=args.jerk_std,
+            angle_std_deg=args.angle_std_deg,
+            phase_template=args.phase_template,
+            phase_coordinate=args.phase_coordinate,
+            clock=args.imu_clock,
+            latency_ns=latency_ns,
+            default_latency_ns=default_latency_ns,
+        )
+
+    def argv(self) -> list[str]:
+        """These settings as the node's command line, but ``max_wait_s`` and ``clock_window_s`` (:meth:`from_args`
+        reads them back)."""
+        pose = ",".join(f"{name}={deg!r}" for name, deg in (self.static_pose_deg or {}).items())
+        latencies = [f"{name}={ns / 1e6:.15g}" for name, ns in (self.latency_ns or {}).items()]
+        latencies += [f"{self.default_latency_ns / 1e6:.15g}"] if self.default_latency_ns else []
+        return [
+            *("--pack", self.pack, "--session", self.session, "--facing-deg", repr(self.facing_deg)),
+            *(["--out-session", self.output_session] if self.output_session is not None else []),
+            *(["--static-pose", pose] if pose else []),
+            *("--static-s", repr(self.static_s), "--gap", repr(self.gap_s)),
+            *("--sync-tolerance-ms", f"{self.sync_tolerance_s * 1e3:.15g}", "--imu-rate", repr(self.imu_rate_hz)),
+            *("--jerk-std", repr(self.jerk_std), "--angle-std-deg", repr(self.angle_std_deg)),
+            *(["--phase-template", str(self.phase_template)] if self.phase_template is not None else []),
+            *(["--phase-coordinate", self.phase_coordinate] if self.phase_coordinate is not None else []),
+            *("--imu-clock", self.clock),
+            *(a for item in latencies for a in ("--imu-latency-ms", item)),
+        ]
 
 
 @dataclass
@@ -104,34 +213,14 @@ class KinematicsNode:
     """The node's state between Zenoh and the IMU kinematics: segment synchroniser, streaming kinematics, counters.
     :meth:`handle` takes one IMU message and returns the JointAngles to publish (no Zenoh in here)."""
 
-    def __init__(
-        self,
-        pack: str,
-        session: str,
-        stats: KinematicsStats,
-        *,
-        facing_deg: float,
-        static_pose_deg: dict[str, float] | None,
-        static_s: float,
-        gap_s: float,
-        sync_tolerance_s: float,
-        max_wait_s: float,
-        filter_config: KinematicsFilterConfig | None,
-        phase_template: RepTemplate | None,
-        phase_coordinate: str | None,
-        clock: str = "device",
-        latency_ns: dict[str, int] | None = None,
-        default_latency_ns: int = 0,
-        clock_window_s: float = WINDOW_S,
-    ) -> None:
-        """``latency_ns``: per tracker id (its topic's last chunk), its stated latency; trackers not named have
-        ``default_latency_ns`` (``clock="host"`` only: with one device clock nothing is mapped)."""
-        if clock not in ("device", "host"):
-            raise ConfigError("expected 'device' or 'host'", field="clock", value=clock)
-        self.clock = clock
+    def __init__(self, settings: KinematicsSettings, stats: KinematicsStats) -> None:
+        """A tracker's latency (``settings.latency_ns``, by tracker id, the last chunk of its topic) applies with
+        ``settings.clock`` "host" only: with one device clock nothing is mapped."""
+        s = settings
+        self.clock = clock = s.clock
         # per tracker: its device clock -> the host clock (the estimator maps the trackers with the same rule)
         self.host_clocks = DeviceClocks(
-            "imu", latency_ns=latency_ns, default_latency_ns=default_latency_ns, window_s=clock_window_s
+            "imu", latency_ns=s.latency_ns, default_latency_ns=s.default_latency_ns, window_s=s.clock_window_s
         )
         if clock == "device" and (self.host_clocks.default_latency_ns or any(self.host_clocks.latency_ns.values())):
             raise ConfigError(
@@ -142,36 +231,30 @@ class KinematicsNode:
             )
         self.device_trackers: set[str] = set()  # trackers seen on the shared device clock
         self.stats = stats
-        self.model = load_pack(pack)
+        self.model = load_pack(s.pack)
         # ENU: x east, y north; the mapping's heading is counter-clockwise from x
-        self.mapper = ImuJointMapper.for_pack(self.model, heading_rad=math.radians(90.0 - facing_deg))
-        if (phase_template is None) != (phase_coordinate is None):
-            raise ConfigError(
-                "phase tracking needs both a rep template and a coordinate",
-                field="phase_coordinate",
-                value=phase_coordinate,
-            )
-        if phase_coordinate is not None and phase_coordinate not in self.mapper.coordinates:
+        self.mapper = ImuJointMapper.for_pack(self.model, heading_rad=math.radians(90.0 - s.facing_deg))
+        if s.phase_coordinate is not None and s.phase_coordinate not in self.mapper.coordinates:
             raise ConfigError(
                 f"not a coordinate of pack {self.model.name!r} ({self.mapper.coordinates})",
                 field="phase_coordinate",
-                value=phase_coordinate,
+                value=s.phase_coordinate,
             )
         self.kinematics = StreamingJointKinematics(
             self.mapper,
-            static_pose_rad=self.mapper.static_pose(static_pose_deg),
-            static_s=static_s,
-            gap_s=gap_s,
-            filter_config=filter_config or KinematicsFilterConfig(dt=1.0 / 60.0, jerk_std=100.0),
-            phase_template=phase_template,
-            phase_coordinate=phase_coordinate,
+            static_pose_rad=self.mapper.static_pose(s.static_pose_deg),
+            static_s=s.static_s,
+            gap_s=s.gap_s,
+            filter_config=s.filter_config,
+            phase_template=load_template(s.phase_template) if s.phase_template is not None else None,
+            phase_coordinate=s.phase_coordinate,
         )
         self.sync = SegmentSynchroniser(
-            self.mapper.segments, tolerance_ns=int(sync_tolerance_s * 1e9), max_wait_ns=int(max_wait_s * 1e9)
+            self.mapper.segments, tolerance_ns=int(s.sync_tolerance_s * 1e9), max_wait_ns=int(s.max_wait_s * 1e9)
         )
         self.needed = set(self.mapper.segments)
         self.coordinates = list(self.mapper.coordinates)
-        self.prefix = f"{topics.session_prefix(session)}/imu/"
+        self.prefix = f"{topics.session_prefix(s.session)}/imu/"
 
     def handle(self, key: str, payload: messages.ImuSample | bytes, missed: int = 0) -> list[messages.JointAngles]:
         """One IMU message in; the joint-angle frames it completes out. A bad sample is counted, never raised.
@@ -261,54 +344,18 @@ class KinematicsNode:
 
 def main(
     config: ZenohOptions,
+    settings: KinematicsSettings,
     *,
-    pack: str,
-    session: str,
-    output_session: str | None = None,
-    facing_deg: float = 0.0,
-    static_pose_deg: dict[str, float] | None = None,
-    static_s: float = 0.5,
-    gap_s: float = 1.0,
-    sync_tolerance_s: float = 0.008,
-    max_wait_s: float = 0.5,
-    filter_config: KinematicsFilterConfig | None = None,
-    phase_template: RepTemplate | None = None,
-    phase_coordinate: str | None = None,
     stop_event: threading.Event | None = None,
     ready_event: threading.Event | None = None,
     ready_key: ReadySpec | None = None,
     stats: KinematicsStats | None = None,
-    clock: str = "device",
-    latency_ns: dict[str, int] | None = None,
-    default_latency_ns: int = 0,
 ) -> KinematicsStats:
-    """Run until ``stop_event``. ``facing_deg``: compass direction the subject faces (0 north, 90 east).
-
-    ``clock="device"``: the trackers share one device clock (recordings, a Link/Awinda station); ``"host"``: each
-    tracker has its own clock (separate USB/serial MTi's, each counting from its own power-up): a tracker's device
-    time is mapped to the host clock by the smallest (host receive time - device time) seen so far, as the
-    estimator's ``--emg-clock host`` does, so samples of the same instant meet in the synchroniser; over the last
-    seconds only (msk_core.signal.host_clock), less each tracker's stated latency (``latency_ns`` per tracker id,
-    ``default_latency_ns`` for the others)."""
+    """Run the node of ``settings`` until ``stop_event``; returns its stats (``stats``, filled as it runs)."""
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else KinematicsStats()
-    node = KinematicsNode(
-        pack,
-        session,
-        stats,
-        facing_deg=facing_deg,
-        static_pose_deg=static_pose_deg,
-        static_s=static_s,
-        gap_s=gap_s,
-        sync_tolerance_s=sync_tolerance_s,
-        max_wait_s=max_wait_s,
-        filter_config=filter_config,
-        phase_template=phase_template,
-        phase_coordinate=phase_coordinate,
-        clock=clock,
-        latency_ns=latency_ns,
-        default_latency_ns=default_latency_ns,
-    )
+    node = KinematicsNode(settings, stats)
+    session, output_session = settings.session, settings.output_session
     with open_session(config) as zsession:
         publisher = declare_data_publisher(zsession, topics.joints_key(output_session or session), "msk.JointAngles")
         inputs = NodeInputs(zsession, NODE_NAME, expected_type="msk.ImuSample", role=config.role)
@@ -392,42 +439,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    for name in ("static_s", "gap", "sync_tolerance_ms", "imu_rate", "jerk_std", "angle_std_deg"):
-        value = getattr(args, name)
-        if not (math.isfinite(value) and value > 0):
-            raise ConfigError("must be positive", field="--" + name.replace("_", "-"), value=value)
-    model = load_pack(args.pack)
-    mapping_for(model.name)  # fail before joining the network when the pack has no IMU table
-    pose = parse_pose(args.static_pose, list(model.coordinates))
-    template = load_template(args.phase_template) if args.phase_template is not None else None
-    filter_config = KinematicsFilterConfig(
-        dt=1.0 / args.imu_rate, jerk_std=args.jerk_std, angle_std=math.radians(args.angle_std_deg)
-    )
+    settings = KinematicsSettings.from_args(args)
     stop = stop_on_signals()
-    latency_ns, default_latency_ns = parse_latencies(args.imu_latency_ms, "--imu-latency-ms")
-    out = args.out_session or args.session
+    out = settings.output_session or settings.session
     print(
-        f"kinematics: msk/{args.session}/imu/* -> msk/{out}/joints with pack {args.pack}", file=sys.stderr, flush=True
+        f"kinematics: msk/{settings.session}/imu/* -> msk/{out}/joints with pack {settings.pack}",
+        file=sys.stderr,
+        flush=True,
     )
-    stats = main(
-        options_from_args(args),
-        pack=args.pack,
-        session=args.session,
-        output_session=args.out_session,
-        facing_deg=args.facing_deg,
-        static_pose_deg=pose,
-        static_s=args.static_s,
-        gap_s=args.gap,
-        sync_tolerance_s=args.sync_tolerance_ms / 1e3,
-        filter_config=filter_config,
-        phase_template=template,
-        phase_coordinate=args.phase_coordinate,
-        stop_event=stop,
-        clock=args.imu_clock,
-        latency_ns=latency_ns,
-        default_latency_ns=default_latency_ns,
-        ready_key=ready_from_args(args),
-    )
+    stats = main(options_from_args(args), settings, stop_event=stop, ready_key=ready_from_args(args))
     print(
         f"published {stats.frames_out} frames; calibrations {stats.calibrations} (gaps: {stats.restarts} new sets, "
         f"{stats.resumes} resumed after samples lost on their way); incomplete instants "

@@ -162,14 +162,8 @@ def _start_demo_nodes(graph: Graph, subjects: dict[str, Path], out_mcap: Path, s
             )
             graph.add_thread(node.name, estimator.main, settings, stats=stats.estimators[exercise], after=after)
         else:
-            graph.add_thread(
-                node.name,
-                kinematics_node.main,
-                pack=exercise,
-                session=SESSION,
-                stats=stats.kinematics[exercise],
-                after=after,
-            )
+            kinematics = kinematics_node.KinematicsSettings(exercise, SESSION)
+            graph.add_thread(node.name, kinematics_node.main, kinematics, stats=stats.kinematics[exercise], after=after)
 
     session_graph.start_declared(declared, start)
 

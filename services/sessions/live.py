@@ -56,6 +56,7 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
     from drivers.xsens.simulator import XsensSimulator
     from drivers.xsens.source import ImuSource
     from services.nodes.estimator import EstimatorSettings
+    from services.nodes.kinematics_node import KinematicsSettings
     from services.sessions import discovery
     from services.sessions.sim_sets import SimSets
 
@@ -894,24 +895,24 @@ def estimator_settings(plan: LivePlan) -> EstimatorSettings:
     )
 
 
+def kinematics_settings(plan: LivePlan) -> KinematicsSettings:
+    """The kinematics node of a live session: the session's pack, each tracker's own clock mapped onto the host clock
+    less its stated latency."""
+    from msk_core.signal.host_clock import latency_ns_from_ms  # noqa: PLC0415
+    from services.nodes.kinematics_node import KinematicsSettings  # noqa: PLC0415
+
+    latency_ns = {t: latency_ns_from_ms(ms, "tracker latency") for t, ms in plan.tracker_latency_ms.items()}
+    return KinematicsSettings(plan.session.pack, plan.session.name, clock="host", latency_ns=latency_ns)
+
+
 def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
     """The command line of node ``name`` of the declared graph (services.transport.session_graph.NODES)."""
-    s = plan.session
     if name == "recorder":
         return python_module("services.nodes.recorder", "--out", str(mcap))
     if name == "estimator":
         return python_module("services.nodes.estimator", *estimator_settings(plan).argv())
     if name == "kinematics":
-        return python_module(
-            "services.nodes.kinematics_node",
-            "--pack",
-            s.pack,
-            "--session",
-            s.name,
-            "--imu-clock",
-            "host",
-            *(a for tracker, ms in plan.tracker_latency_ms.items() for a in ("--imu-latency-ms", f"{tracker}={ms:g}")),
-        )
+        return python_module("services.nodes.kinematics_node", *kinematics_settings(plan).argv())
     if name in ("drivers-trigno", "drivers-xsens"):
         return driver_argv(plan, name.split("-", 1)[1])
     raise ConfigError("not a process node of msk live's graph", field="node", value=name)
