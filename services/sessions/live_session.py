@@ -12,7 +12,7 @@ import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import ConfigError
@@ -252,53 +252,43 @@ def _parse_lift(session: LiveSession, s: dict, path: Path | None, require_device
 
 
 def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devices: bool) -> LiveSession:
-    """[trigno]: host, emg_port, id, latency_ms."""
-    host, emg_port, trigno_id, latency = (
-        session.trigno_host,
-        session.trigno_emg_port,
-        session.trigno_id,
-        session.trigno_latency_ms,
-    )
+    """[trigno]: host, emg_port, id, latency_ms; the session's values where the file states none."""
+    given: dict[str, Any] = {}
     if "host" in t:
-        host = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
+        given["trigno_host"] = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
     elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
         raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
     if "emg_port" in t:
-        emg_port = _int_within(
+        given["trigno_emg_port"] = _int_within(
             path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
         )
     if "id" in t:
-        trigno_id = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
+        given["trigno_id"] = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
     if "latency_ms" in t:
-        latency = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
-    return replace(session, trigno_host=host, trigno_emg_port=emg_port, trigno_id=trigno_id, trigno_latency_ms=latency)
+        given["trigno_latency_ms"] = _latency_ms(path, "trigno.latency_ms", t["latency_ms"])
+    return replace(session, **given)
 
 
 def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devices: bool) -> LiveSession:
-    """[xsens]: ports, rate_hz, baud, latency_ms, tracker_latency_ms."""
-    ports, rate_hz, baud, latency = (
-        session.xsens_ports,
-        session.imu_rate_hz,
-        session.xsens_baud,
-        session.xsens_latency_ms,
-    )
+    """[xsens]: ports, rate_hz, baud, latency_ms, tracker_latency_ms; the session's values where the file states none."""
+    given: dict[str, Any] = {}
     if "ports" in x:
-        given = [x["ports"]] if isinstance(x["ports"], str) else x["ports"]
-        if not isinstance(given, list) or not given or not all(isinstance(p, str) and p for p in given):
+        ports = [x["ports"]] if isinstance(x["ports"], str) else x["ports"]
+        if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
             raise _error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
-        ports = tuple(given)
+        given["xsens_ports"] = tuple(ports)
     elif require_devices:
         raise _error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
     if "rate_hz" in x:
-        rate_hz = _int_within(
+        given["imu_rate_hz"] = _int_within(
             path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
         )
     if "baud" in x:
-        baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
+        given["xsens_baud"] = baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
         if baud <= 0:
             raise _error(path, "xsens.baud", "must be a positive baud rate", baud)
     if "latency_ms" in x:
-        latency = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
+        given["xsens_latency_ms"] = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
     per_tracker = x.get("tracker_latency_ms", {})
     if not isinstance(per_tracker, dict):
         raise _error(path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker)
@@ -306,14 +296,7 @@ def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devic
     for tracker, value in per_tracker.items():
         key = f"xsens.tracker_latency_ms.{tracker}"
         tracker_latency[_tracker_id(path, key, tracker)] = _latency_ms(path, key, value)
-    return replace(
-        session,
-        xsens_ports=ports,
-        imu_rate_hz=rate_hz,
-        xsens_baud=baud,
-        xsens_latency_ms=latency,
-        tracker_latency_ms=tracker_latency,
-    )
+    return replace(session, **given, tracker_latency_ms=tracker_latency)
 
 
 def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSession:
