@@ -8,9 +8,9 @@ from __future__ import annotations
 import argparse
 
 from services.nodes import driver_nodes
-from services.nodes.readiness import add_ready_arguments, declare_ready, ready_from_args
+from services.nodes.node_runtime import NodeProcess, add_process_arguments
+from services.nodes.readiness import declare_ready
 from services.transport import topics, zenoh_session
-from services.transport.zenoh_session import stop_on_signals
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,20 +20,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, metavar="SECONDS", help="stop after this long (default: until Ctrl-C)"
     )
-    add_ready_arguments(parser)  # wait for the nodes it publishes to before acquiring, then declare the token
-    zenoh_session.add_zenoh_arguments(parser)
+    add_process_arguments(parser)  # readiness: wait for the nodes it publishes to before acquiring
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     devices = driver_nodes.device_settings(args)
-    stop = stop_on_signals()  # the loops end cleanly and report, rather than being torn down
-    with zenoh_session.open_session(zenoh_session.options_from_args(args)) as session:
-        token = declare_ready(session, ready_from_args(args))  # noqa: F841 - alive while the node runs
+    process = NodeProcess.from_args(args)  # the loops end cleanly and report on a signal, rather than being torn down
+    with zenoh_session.open_session(process.options) as session:
+        token = declare_ready(session, process.ready)  # noqa: F841 - alive while the node runs
         sink = driver_nodes.ZenohSink(session)
         try:
-            reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
+            reports = driver_nodes.run_devices(
+                devices, sink, session=args.session, duration_s=args.duration, stop=process.stop
+            )
         finally:
             sink.close()
     for report in reports:

@@ -66,22 +66,21 @@ from services.nodes.node_runtime import (
     InputContinuity,
     InputCounts,
     NodeInputs,
+    NodeProcess,
     StatusReporter,
+    add_process_arguments,
     apply_load_event,
     outages_text,
     serve,
 )
-from services.nodes.readiness import ReadySpec, add_ready_arguments, declare_ready, ready_from_args
+from services.nodes.readiness import ReadySpec, declare_ready
 from services.transport import messages, session_graph, topics
 from services.transport.zenoh_session import (
     ZenohOptions,
-    add_zenoh_arguments,
     declare_data_publisher,
     open_session,
-    options_from_args,
     publish,
     run_script,
-    stop_on_signals,
 )
 
 log = logging.getLogger(__name__)
@@ -920,7 +919,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
     add_emg_arguments(parser)
-    add_ready_arguments(parser)
     parser.add_argument(
         "--solver",
         choices=SOLVERS,
@@ -934,7 +932,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="estimate only while load events name this exercise (default: the pack's name, e.g. bench_press)",
     )
-    add_zenoh_arguments(parser)
+    add_process_arguments(parser)
 
 
 def add_emg_arguments(parser: argparse.ArgumentParser) -> None:
@@ -1002,14 +1000,13 @@ def add_emg_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    settings = EstimatorSettings.from_args(args)
-    stop = stop_on_signals()
+    settings, process = EstimatorSettings.from_args(args), NodeProcess.from_args(args)
     print(
         f"estimating {', '.join(settings.methods)} on msk/{settings.session}/joints with pack {settings.pack}",
         file=sys.stderr,
         flush=True,
     )
-    stats = main(options_from_args(args), settings, stop_event=stop, ready_key=ready_from_args(args))
+    stats = main(process.options, settings, stop_event=process.stop, ready_key=process.ready)
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(
         f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}"

@@ -34,18 +34,22 @@ from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJ
 from msk_core.model import load_pack
 from msk_core.signal.host_clock import METHOD_DEVICE, WINDOW_S, ClockReport, DeviceClocks, parse_latencies
 from msk_core.signal.reps import RepTemplate
-from services.nodes.node_runtime import InputCounts, NodeInputs, StatusReporter, serve
-from services.nodes.readiness import ReadySpec, add_ready_arguments, declare_ready, ready_from_args
+from services.nodes.node_runtime import (
+    InputCounts,
+    NodeInputs,
+    NodeProcess,
+    StatusReporter,
+    add_process_arguments,
+    serve,
+)
+from services.nodes.readiness import ReadySpec, declare_ready
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
     ZenohOptions,
-    add_zenoh_arguments,
     declare_data_publisher,
     open_session,
-    options_from_args,
     publish,
     run_script,
-    stop_on_signals,
 )
 
 log = logging.getLogger(__name__)
@@ -434,20 +438,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --imu-clock host: the stated latency of tracker TRACKER (without TRACKER=: of every tracker not "
         "named), taken off before its clock is mapped (repeatable; default 0)",
     )
-    add_ready_arguments(parser)
-    add_zenoh_arguments(parser)
+    add_process_arguments(parser)
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    settings = KinematicsSettings.from_args(args)
-    stop = stop_on_signals()
+    settings, process = KinematicsSettings.from_args(args), NodeProcess.from_args(args)
     out = settings.output_session or settings.session
     print(
         f"kinematics: msk/{settings.session}/imu/* -> msk/{out}/joints with pack {settings.pack}",
         file=sys.stderr,
         flush=True,
     )
-    stats = main(options_from_args(args), settings, stop_event=stop, ready_key=ready_from_args(args))
+    stats = main(process.options, settings, stop_event=process.stop, ready_key=process.ready)
     print(
         f"published {stats.frames_out} frames; calibrations {stats.calibrations} (gaps: {stats.restarts} new sets, "
         f"{stats.resumes} resumed after samples lost on their way); incomplete instants "

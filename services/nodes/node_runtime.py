@@ -25,6 +25,7 @@ never arrived, by their sequence numbers (:attr:`Inbound.missed`: the recorder f
 
 from __future__ import annotations
 
+import argparse
 import logging
 import queue
 import threading
@@ -39,8 +40,18 @@ from google.protobuf.message import Message
 
 from msk_core.signal.host_clock import ClockReport
 from msk_core.signal.sets import SetTracker
+from services.nodes.readiness import ReadySpec, add_ready_arguments, ready_from_args
 from services.transport import messages, topics
-from services.transport.zenoh_session import declare_data_publisher, fetch_history, publish, type_name_of_sample
+from services.transport.zenoh_session import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    declare_data_publisher,
+    fetch_history,
+    options_from_args,
+    publish,
+    stop_on_signals,
+    type_name_of_sample,
+)
 
 log = logging.getLogger(__name__)
 
@@ -634,3 +645,26 @@ class StatusReporter:
 
     def final(self) -> None:
         publish(self._publisher, self.message(connected=False))
+
+
+def add_process_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags every node process takes from the graph that starts it (services.sessions.graph.Graph.add_process):
+    its Zenoh connection and its readiness (hidden)."""
+    add_ready_arguments(parser)
+    add_zenoh_arguments(parser)
+
+
+@dataclass(frozen=True)
+class NodeProcess:
+    """What a node started as a process runs with: its Zenoh options and readiness (:func:`add_process_arguments`;
+    ``ready`` None when started by hand) and the stop flag that SIGINT/SIGTERM set, so it ends cleanly and reports."""
+
+    options: ZenohOptions
+    ready: ReadySpec | None
+    stop: threading.Event
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> NodeProcess:
+        """From the flags of :func:`add_process_arguments`; installs the signal handlers (call it once, in the process's
+        main thread)."""
+        return cls(options_from_args(args), ready_from_args(args), stop_on_signals())

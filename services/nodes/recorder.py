@@ -75,25 +75,24 @@ from services.nodes.node_runtime import (
     Inbound,
     InputCounts,
     NodeInputs,
+    NodeProcess,
     Rejected,
     StatusReporter,
+    add_process_arguments,
     check_payload,
     publication_id,
 )
-from services.nodes.readiness import ReadySpec, add_ready_arguments, declare_ready, ready_from_args
+from services.nodes.readiness import ReadySpec, declare_ready
 from services.transport import messages, topics
 from services.transport.mcap_io import REJECTED_REASON, McapRecorderWriter, device_time_ns, read_messages
 from services.transport.zenoh_session import (
     DEVICE_HISTORY_SAMPLES,
     ZenohOptions,
-    add_zenoh_arguments,
     fetch_history,
     fetch_missed,
     keeps_history,
     open_session,
-    options_from_args,
     run_script,
-    stop_on_signals,
     type_name_of_sample,
 )
 
@@ -646,12 +645,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="report the recorder's status (inputs received and dropped) on msk/SESSION/status/recorder "
         "(default: the session --key names; with msk/** and no --session, no status)",
     )
-    add_ready_arguments(parser)
-    add_zenoh_arguments(parser)
+    add_process_arguments(parser)
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    stop = stop_on_signals()
+    process = NodeProcess.from_args(args)
     if not args.flush_interval > 0:
         raise ConfigError("must be positive", field="--flush-interval", value=args.flush_interval)
     if not args.history_timeout > 0:
@@ -665,16 +663,16 @@ def run_from_args(args: argparse.Namespace) -> int:
         flush=True,
     )
     stats = main(
-        options_from_args(args),
+        process.options,
         out,
         key_expr=args.key,
         duration_s=args.duration,
-        stop_event=stop,
+        stop_event=process.stop,
         flush_interval_s=args.flush_interval,
         history=args.history,
         history_timeout_s=args.history_timeout,
         already_recorded=already_recorded,
-        ready_key=ready_from_args(args),
+        ready_key=process.ready,
         session=args.session,
     )
     print(summary_line(stats, out), file=sys.stderr)
