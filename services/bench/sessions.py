@@ -47,6 +47,9 @@ NAME = "sessions"
 DESCRIPTION = "live sessions one machine serves (Trigno + IMU/joints + estimator each): p99 <= 2 ms, no sample lost"
 
 P99_TARGET_MS = 2.0
+#: A squad on one machine (issue 31): at least SQUAD_SESSIONS sessions with nothing lost and p99 <= SQUAD_P99_MS.
+SQUAD_P99_MS = 5.0
+SQUAD_SESSIONS = 8
 #: The processes of one session, in the order _start_session and _replay start them.
 ROLES = ("simulator", "drivers", "estimator", "replay")
 REPO = Path(__file__).resolve().parents[2]
@@ -383,10 +386,11 @@ def _hosts_results(figures: dict[str, Any]) -> list[BenchResult]:
     ]
 
 
-def _ok(figures: dict) -> bool:
+def _ok(figures: dict, p99_ms: float = P99_TARGET_MS) -> bool:
+    """Every frame and sample arrived and the p99 input-to-output latency is within ``p99_ms``."""
     return (
         figures["frames"] > 0
-        and figures["p99_ms"] <= P99_TARGET_MS
+        and figures["p99_ms"] <= p99_ms
         and figures["joint_frames_lost"] == 0
         and figures["emg_samples_lost"] == 0
         and figures["emg_index_jumps"] == 0
@@ -404,9 +408,10 @@ def run(*, quick: bool = False) -> list[BenchResult]:
             "    " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()),
             flush=True,
         )
-        if not _ok(figures):
+        if not _ok(figures, SQUAD_P99_MS):  # beyond the squad's bound more sessions only lose more
             break
     served = max((f["sessions"] for f in runs if _ok(f)), default=0)
+    squad = max((f["sessions"] for f in runs if _ok(f, SQUAD_P99_MS)), default=0)
     one = runs[0]
     baseline = _baseline(seconds)
     last_ok = next((f for f in reversed(runs) if _ok(f)), one)
@@ -418,6 +423,14 @@ def run(*, quick: bool = False) -> list[BenchResult]:
             target=f">= 1 (tried up to {runs[-1]['sessions']})",
             passed=served >= 1,
             details={f"p99_ms@{f['sessions']}": f["p99_ms"] for f in runs},
+        ),
+        BenchResult(
+            name=f"sessions served (p99 <= {SQUAD_P99_MS:g} ms, nothing lost)",
+            value=float(squad),
+            unit="sessions",
+            target=f">= {SQUAD_SESSIONS} (tried up to {runs[-1]['sessions']})",
+            passed=squad >= SQUAD_SESSIONS,
+            details={f"lost@{f['sessions']}": f["joint_frames_lost"] + f["emg_samples_lost"] for f in runs},
         ),
         BenchResult(
             name=f"p99 latency at {last_ok['sessions']} session(s)",
