@@ -70,6 +70,8 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
         assert (report / f"leave_out_{group}.png").stat().st_size > 1000
     text = (report / "report.md").read_text()
     assert "## Left out" in text and "paper's protocol" in text and all(g in text for g in LEFT_OUT)
+    r_groups = summary["targets"]["r_groups"]
+    assert f"paired over the {r_groups} groups where both have an r" in text  # the r target's comparison, said
 
 
 def test_leave_out_refuses_a_group_without_an_electrode(shared_dir, tmp_path, capsys):

@@ -175,7 +175,9 @@ def _verdict(result: LeaveOutResult) -> list[str]:
         f"- median RMSE of {t['method']} {t['median_rmse']:.4f} vs so {t['median_rmse_so']:.4f} "
         f"({100 * (t['median_rmse'] / t['median_rmse_so'] - 1):+.0f} %; target at least -20 %): "
         + ("**met**" if t["rmse_met"] else "**not met**"),
-        f"- median r of {t['method']} {t['median_r']:.2f} vs so {t['median_r_so']:.2f}: "
+        f"- median r of {t['method']} {t['median_r']:.2f} vs so {t['median_r_so']:.2f}, paired over the "
+        f"{t['r_groups']} groups where both have an r (a constant estimate has none; over all its groups "
+        f"{t['median_r_unpaired']:.2f} vs so {t['median_r_so_unpaired']:.2f}): "
         + ("**met**" if t["r_met"] else "**not met**"),
         "",
         "Per left-out group (the better of proposed and assisted against so):",
