@@ -88,11 +88,33 @@ def test_the_bridge_forwards_the_electrodes_and_drops_them_with_the_node():
     assert "electrodes" not in update["topics"]  # other nodes' statuses leave the entry alone
 
 
+# The words of the cells matched by a selector that the page draws on more than one line (split inside the word; a
+# hyphenated word may break after its hyphen, "low-/frequency"), and the cells whose text runs past their edge.
+WORDS_SPLIT_OR_OVERFLOWING = """(selector) => {
+    const split = [], overflowing = [];
+    for (const cell of document.querySelectorAll(selector)) {
+        if (cell.scrollWidth > cell.clientWidth) overflowing.push(cell.textContent);
+        const walker = document.createTreeWalker(cell, NodeFilter.SHOW_TEXT);
+        for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+            for (const word of node.data.matchAll(/[^\\s-]+-?/g)) {
+                const range = document.createRange();
+                range.setStart(node, word.index);
+                range.setEnd(node, word.index + word[0].length);
+                const lines = new Set([...range.getClientRects()].map((r) => Math.round(r.top)));
+                if (lines.size > 1) split.push(word[0]);
+            }
+        }
+    }
+    return [split, overflowing];
+}"""
+
+
 def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_path, zenoh_endpoint):
     from tests.dashboard_helpers import ARTIFACTS, dashboard_in_chromium, require_chromium
 
     require_chromium()
 
+    from msk_core.signal.quality import Fault
     from services.surfaces.dashboard.app import DashboardConfig
     from services.transport import topics
     from services.transport.zenoh_session import declare_data_publisher, publish
@@ -136,6 +158,22 @@ def test_the_page_lists_each_electrode_under_its_muscle_coloured_by_state(tmp_pa
             "() => [...document.querySelectorAll('#electrodes td[class^=q-]')].map(td => getComputedStyle(td).color)"
         )
         assert len(set(colours)) == 3, colours  # three states, three colours
+        # read from the rack: a state's words wrap whole ("check: mains / interference"), none split inside a word,
+        # and the cell holds them (nothing cut off at its edge)
+        for fault in Fault:  # every reason the estimator can give, on the check row
+            states["DelAnt"] = ("check", [fault.value])
+            publish(status, estimator_status(states))
+            page.wait_for_function(
+                "(text) => document.querySelector('#electrodes tr[data-channel=\"sensor03.EMG\"]').cells[2]"
+                ".textContent === text",
+                arg=f"check: {fault.value}",
+                timeout=10000,
+            )
+            for width, height in ((1280, 800), (800, 1280)):  # the rack's landscape screen and a tablet upright
+                page.set_viewport_size({"width": width, "height": height})
+                page.wait_for_timeout(200)
+                split, overflowing = page.evaluate(WORDS_SPLIT_OR_OVERFLOWING, "#electrodes td[class^=q-]")
+                assert split == [] and overflowing == [], (fault, width, height, split, overflowing)
         states["PMCla"] = ("good", [])  # the electrode recovers
         publish(status, estimator_status(states))
         page.wait_for_function(
