@@ -18,6 +18,7 @@ import pytest
 from services.nodes import estimator
 from services.transport import messages
 from services.transport.mcap_io import McapRecorderWriter, read_messages
+from services.transport.topics import Delivery, delivery_for_key
 from services.transport.zenoh_session import ZenohOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -190,9 +191,10 @@ def record_with_estimates(
 ) -> dict:
     """Replay ``source`` at 8x real time through one estimator per pack (``{pack: methods}``) and record everything.
 
-    Not at full speed: activation frames and envelopes are newest-wins (services.transport.topics, Delivery), so a publisher
-    flooded faster than the recorder drains may drop some, by design; once in a clean-clone suite on busy cores 13 of
-    32,396 were missing. 8x keeps the graph far from that while the replay takes ~9 s."""
+    Every lossless message (the replayed data) must be recorded. Activation frames, envelopes and statuses are
+    newest-wins (services.transport.topics, Delivery): a publisher flooded faster than the recorder drains drops some,
+    by design (in clean-clone suites on busy cores 13 and 138 of 32,396 were missing, all newest-wins); at most 1 % of
+    them may be missing. Not at full speed: 8x keeps the graph far from that while the replay takes ~9 s."""
     import time
 
     from services.nodes import recorder, replayer
@@ -223,17 +225,22 @@ def record_with_estimates(
         time.sleep(0.1)
     stop.set()
     rec.join(30)
-    # the replayed data and the estimates, every one; the nodes' status messages (kind "node") come on top
-    data = sum(1 for r in read_messages(out) if not (r.type_name == "msk.DeviceStatus" and r.decode().kind == "node"))
+    # the replayed data and the estimates; the nodes' status messages (kind "node") come on top
+    recorded = [r for r in read_messages(out) if not (r.type_name == "msk.DeviceStatus" and r.decode().kind == "node")]
+    lossless = sum(1 for r in read_messages(source) if delivery_for_key(r.topic) is Delivery.LOSSLESS)
     counts = {
         "replayed": replayed.published,
-        "recorded": data,
+        "recorded": len(recorded),
         "expected": expected,
+        "lossless_expected": lossless,
+        "lossless_recorded": sum(1 for r in recorded if delivery_for_key(r.topic) is Delivery.LOSSLESS),
         "joints": joints,
         "estimated": {p: s.frames_out for p, s in stats.items()},
         "frames_in": {p: s.frames_in for p, s in stats.items()},
     }
-    assert data == expected, f"recorded {data} of {expected} messages: {counts}"
+    assert counts["lossless_recorded"] == lossless, f"lost lossless messages: {counts}"
+    newest_wins_missing = expected - len(recorded)
+    assert 0 <= newest_wins_missing <= 0.01 * (expected - lossless), f"recorded {len(recorded)} of {expected}: {counts}"
     return counts
 
 
