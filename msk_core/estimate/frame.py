@@ -323,6 +323,9 @@ class FrameEstimator:
         self._hot_x, self._hot_state = active_set.new_state(n)
         # working-set changes allowed before the frame goes to PIQP (a cold start needs up to ~G)
         self._hot_max_changes = 2 * n + 10 if hot_start_max_changes is None else int(hot_start_max_changes)
+        # the trailing arguments of both compiled solves: bounds, residual-scale floor and the hot state (updated in
+        # place, so the tuple stays valid)
+        self._hot_tail = (self._lb, self._ub, MIN_TORQUE_SCALE, self._hot_x, self._hot_state, self._hot_max_changes)
         # prior as one table for the compiled solve: phase bins, then the pooled row, then the rest row (hybrid: one
         # row, mean 0, precision 2 * hybrid_weight)
         if self.method in (Method.PROPOSED, Method.ASSISTED):
@@ -543,17 +546,7 @@ class FrameEstimator:
         """The frame from the hot-started active-set method when it certifies the optimum, else None (-> PIQP)."""
         t0 = time.perf_counter()
         if self.method is Method.SO:
-            code, changes, out, torques = active_set.solve_min_norm_eq(
-                r,
-                self.f_max,
-                tau,
-                self._lb,
-                self._ub,
-                MIN_TORQUE_SCALE,
-                self._hot_x,
-                self._hot_state,
-                self._hot_max_changes,
-            )
+            code, changes, out, torques = active_set.solve_min_norm_eq(r, self.f_max, tau, *self._hot_tail)
             w, equality = 0.0, True
         else:
             code, changes, out, torques, w = self._hot_box_lsq(r, tau, phase)
@@ -596,12 +589,7 @@ class FrameEstimator:
             row0,
             row1,
             frac,
-            self._lb,
-            self._ub,
-            MIN_TORQUE_SCALE,
-            self._hot_x,
-            self._hot_state,
-            self._hot_max_changes,
+            *self._hot_tail,
         )
         return code, changes, out, torques, w
 

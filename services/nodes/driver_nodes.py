@@ -13,7 +13,9 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import TypeVar
 
+import numpy as np
 import zenoh
 from google.protobuf.message import Message
 
@@ -25,6 +27,7 @@ from services.transport import messages, topics, zenoh_session
 
 #: sink(key, message, host_time_ns, device_time_ns)
 Sink = Callable[[str, Message, int, int], None]
+Chunk = TypeVar("Chunk", messages.EmgChunk, messages.AccChunk)
 
 
 # ------------------------------------------------------------------------------------------------ conversions
@@ -40,18 +43,28 @@ def emg_chunk(block: EmgBlock, *, source_id: str, columns: list[tuple[str, int]]
     """An EmgChunk of the given (label, slot) columns (float32 values as received: protobuf floats are float32)."""
     slots = [slot for _, slot in columns]
     rows = block.samples if slots == list(range(block.samples.shape[1])) else block.samples[:, slots]
-    chunk = messages.EmgChunk(
-        source_id=source_id,
-        channel_labels=[label for label, _ in columns],
-        sample_rate_hz=block.rate_hz,
-        first_sample_index=block.first_sample_index,
+    return _timed_chunk(
+        messages.EmgChunk(source_id=source_id, channel_labels=[label for label, _ in columns], units="V"),
+        block,
+        rows,
         device_time_ns=block.device_time_ns,
-        host_time_ns=block.host_time_ns,
-        n_samples=rows.shape[0],
         n_channels=rows.shape[1],
-        units="V",
     )
-    messages.add_packed_floats(chunk, "samples", rows)
+
+
+def _timed_chunk(
+    chunk: Chunk, block: EmgBlock | AuxBlock, values: np.ndarray, *, device_time_ns: int, **counts: int
+) -> Chunk:
+    """``chunk`` with the block's timing (rate, first sample index, device and host times), the sample count, the
+    other ``counts`` (channels or sensors) and ``values`` as its packed samples."""
+    chunk.sample_rate_hz = block.rate_hz
+    chunk.first_sample_index = block.first_sample_index
+    chunk.device_time_ns = device_time_ns
+    chunk.host_time_ns = block.host_time_ns
+    chunk.n_samples = values.shape[0]
+    for name, count in counts.items():
+        setattr(chunk, name, count)
+    messages.add_packed_floats(chunk, "samples", values)
     return chunk
 
 
@@ -71,19 +84,13 @@ def acc_chunk(
     with START)."""
     rows = block.samples.reshape(len(block.samples), tp.N_SENSORS, layout.slots_per_sensor)
     values = rows[:, [n - 1 for _, n in sensors], :3]
-    chunk = messages.AccChunk(
-        source_id=source_id,
-        sensor_labels=[label for label, _ in sensors],
-        sample_rate_hz=block.rate_hz,
-        first_sample_index=block.first_sample_index,
+    return _timed_chunk(
+        messages.AccChunk(source_id=source_id, sensor_labels=[label for label, _ in sensors], units="g"),
+        block,
+        values,
         device_time_ns=int(round(block.first_sample_index * 1e9 / block.rate_hz)),
-        host_time_ns=block.host_time_ns,
-        n_samples=values.shape[0],
         n_sensors=values.shape[1],
-        units="g",
     )
-    messages.add_packed_floats(chunk, "samples", values)
-    return chunk
 
 
 def imu_sample(reading: ImuReading, *, segment: str = "") -> messages.ImuSample:
