@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
@@ -23,6 +24,15 @@ from msk_core.synth.rng import stream
 
 _MODEL_TO_ENU = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 _FIELD_ENU = np.array([0.0, np.cos(np.radians(65.0)), -np.sin(np.radians(65.0))])  # normalised, 65° inclination
+
+
+class Motion(NamedTuple):
+    """The pack's coordinates over time, from which the simulated sensors' signals follow."""
+
+    time: np.ndarray  # (n,) s
+    q: np.ndarray  # (n, n_c) rad or m
+    qd: np.ndarray  # (n, n_c) per s
+    qdd: np.ndarray  # (n, n_c) per s²
 
 
 @dataclass(frozen=True)
@@ -125,15 +135,13 @@ def body_point_motion(
 def simulate_imu(
     pack,
     segments: dict[str, str],
-    time: np.ndarray,
-    q: np.ndarray,
-    qd: np.ndarray,
-    qdd: np.ndarray,
+    motion: Motion,
     *,
     seed: int,
     key: tuple,
 ) -> list[ImuStream]:
     """IMU streams for every segment label whose body regex matches a body of the pack (others are skipped)."""
+    time = motion.time
     rigid = pack.rigid
     to_global = global_frame(rigid.gravity)
     streams: list[ImuStream] = []
@@ -142,7 +150,9 @@ def simulate_imu(
     if not chosen:
         raise ModelError(f"pack {pack.name!r}: no body matches the IMU segments {list(segments)}")
     n = time.size
-    rot, omega, spec_force = body_point_motion(pack, [(body, 1.0) for _, body in chosen], q, qd, qdd)
+    rot, omega, spec_force = body_point_motion(
+        pack, [(body, 1.0) for _, body in chosen], motion.q, motion.qd, motion.qdd
+    )
     for s, (label, body) in enumerate(chosen):
         rng = stream(seed, "imu", *key, label)
         tracker_id = f"{int(stream(seed, 'tracker-id', label).integers(0x00B40000, 0x00B4FFFF)):08X}"
@@ -179,10 +189,7 @@ def simulate_electrode_acc(
     pack,
     sites: dict,
     channels: list[str],
-    time: np.ndarray,
-    q: np.ndarray,
-    qd: np.ndarray,
-    qdd: np.ndarray,
+    motion: Motion,
     *,
     seed: int,
     key: tuple,
@@ -199,9 +206,9 @@ def simulate_electrode_acc(
         site = sites.get(channel)
         bodies.append(None if site is None or site.body is None else find_body(rigid.description, site.body))
     moving = [(b, sites[ch].along) for ch, b in zip(channels, bodies) if b is not None]
-    n = time.size
+    time, n = motion.time, motion.time.size
     gravity = np.asarray(rigid.gravity, dtype=float)
-    spec_force = body_point_motion(pack, moving, q, qd, qdd)[2] if moving else np.empty((0, n, 3))
+    spec_force = body_point_motion(pack, moving, motion.q, motion.qd, motion.qdd)[2] if moving else np.empty((0, n, 3))
     acc = np.empty((n, len(channels), 3))
     m = 0
     for k, (channel, body) in enumerate(zip(channels, bodies)):

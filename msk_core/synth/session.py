@@ -12,7 +12,7 @@ from msk_core.progress import Progress, counted
 from msk_core.synth.effects import Effects, muscle_factors
 from msk_core.synth.emg import MVC_BLOCK_S, mvc_drive, raw_emg, spectral_scale
 from msk_core.synth.exercises import SPECS, Exercise, ExerciseSpec
-from msk_core.synth.imu import ElectrodeAccStream, ImuStream, simulate_electrode_acc, simulate_imu
+from msk_core.synth.imu import ElectrodeAccStream, ImuStream, Motion, simulate_electrode_acc, simulate_imu
 from msk_core.synth.kinematics import RepPlan, Tempo, evaluate, plan_reps
 from msk_core.synth.recruitment import TONE, Recruitment, recruit
 from msk_core.synth.rng import stream
@@ -200,6 +200,13 @@ def _trial_emg(
     return emg_time, emg
 
 
+def _motion(plan: RepPlan, rate_hz: float) -> Motion:
+    """The plan's motion sampled at ``rate_hz`` over its duration."""
+    time = np.arange(0.0, plan.duration, 1.0 / rate_hz)
+    q, qd, qdd, _, _ = evaluate(plan, time)
+    return Motion(time, q, qd, qdd)
+
+
 def _trial_motion_sensors(
     plan: RepPlan,
     spec: ExerciseSpec,
@@ -210,12 +217,9 @@ def _trial_motion_sensors(
     key: tuple[str, float],
 ) -> tuple[list[ImuStream], ElectrodeAccStream]:
     """The IMU segments' and the EMG electrodes' accelerometers, each at its own rate."""
-    imu_time = np.arange(0.0, plan.duration, 1.0 / config.imu_rate_hz)
-    qi, qdi, qddi, _, _ = evaluate(plan, imu_time)
-    imu = simulate_imu(pack, spec.segments, imu_time, qi, qdi, qddi, seed=seed, key=key)
-    acc_time = np.arange(0.0, plan.duration, 1.0 / config.emg_acc_rate_hz)
-    qa, qda, qdda, _, _ = evaluate(plan, acc_time)
-    emg_acc = simulate_electrode_acc(pack, spec.electrode_sites, channels, acc_time, qa, qda, qdda, seed=seed, key=key)
+    imu = simulate_imu(pack, spec.segments, _motion(plan, config.imu_rate_hz), seed=seed, key=key)
+    acc_motion = _motion(plan, config.emg_acc_rate_hz)
+    emg_acc = simulate_electrode_acc(pack, spec.electrode_sites, channels, acc_motion, seed=seed, key=key)
     return imu, emg_acc
 
 

@@ -75,13 +75,7 @@ from services.nodes.node_runtime import (
 )
 from services.nodes.readiness import ReadySpec, declare_ready
 from services.transport import messages, session_graph, topics
-from services.transport.zenoh_session import (
-    ZenohOptions,
-    declare_data_publisher,
-    open_session,
-    publish,
-    run_script,
-)
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish, run_script
 
 log = logging.getLogger(__name__)
 

@@ -44,13 +44,7 @@ from services.nodes.node_runtime import (
 )
 from services.nodes.readiness import ReadySpec, declare_ready
 from services.transport import messages, topics
-from services.transport.zenoh_session import (
-    ZenohOptions,
-    declare_data_publisher,
-    open_session,
-    publish,
-    run_script,
-)
+from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish, run_script
 
 log = logging.getLogger(__name__)
 NODE_NAME = "kinematics"

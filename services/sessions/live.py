@@ -279,7 +279,7 @@ def electrode_accelerations(
     from msk_core.model import load_pack
     from msk_core.signal.clock_sync import STANDARD_GRAVITY
     from msk_core.synth import SPECS
-    from msk_core.synth.imu import simulate_electrode_acc
+    from msk_core.synth.imu import Motion, simulate_electrode_acc
 
     model = load_pack(pack)
     specs = [spec for spec in SPECS.values() if spec.pack == model.name]
@@ -305,8 +305,9 @@ def electrode_accelerations(
             value=(int(times[0]), int(start_ns)),
         )
     time_s = np.arange(len(joints)) * step_ns / 1e9
+    motion = Motion(time_s, q, qd, qdd)
     stream = simulate_electrode_acc(
-        model, specs[0].electrode_sites, list(channels), time_s, q, qd, qdd, seed=0, key=("live-sim", model.name)
+        model, specs[0].electrode_sites, list(channels), motion, seed=0, key=("live-sim", model.name)
     )
     return 1e9 / step_ns, (stream.acceleration / STANDARD_GRAVITY).astype(np.float32)
 
