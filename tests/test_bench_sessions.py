@@ -3,6 +3,7 @@ is judged by `msk bench sessions` on a quiet machine, never here)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from services.bench import sessions
@@ -22,3 +23,31 @@ def test_one_live_session_is_measured_without_loss():
     assert all(value > 0 for value in roles), figures
     assert sum(roles) == pytest.approx(figures["cpu_cores_per_session"])
     assert figures["cpu_router_share_cores"] >= 0
+
+
+def _observed_with(latencies_ms: dict[str, list[float]]) -> sessions._Observed:
+    """An observer whose sessions each had these latencies, spread over the last 0.9 s."""
+    import time
+    from collections import deque
+
+    observed = sessions._Observed()
+    now = time.monotonic()
+    for name, values in latencies_ms.items():
+        times = now - 0.9 + 0.9 * (1 + np.arange(len(values))) / len(values)
+        observed.recent[name] = deque(zip(times.tolist(), values))
+    return observed
+
+
+def test_the_window_waits_for_the_start_up_backlog_to_drain():
+    steady = [1.0] * 60
+    settled = sessions._wait_settled(_observed_with({"a": steady, "b": steady}), ["a", "b"], timeout_s=5.0)
+    assert settled["settled"] == 1.0 and settled["settle_s"] < 1.0
+    # one session still draining a backlog (a frame 300 ms late within the last second), one with too few frames, one
+    # never seen: each keeps the window from starting until the bound, which says so
+    for case, names in (
+        ({"a": steady, "b": [1.0] * 59 + [300.0]}, ["a", "b"]),
+        ({"a": [1.0] * 10}, ["a"]),
+        ({}, ["a"]),
+    ):
+        waited = sessions._wait_settled(_observed_with(case), names, timeout_s=0.5)
+        assert waited["settled"] == 0.0 and waited["settle_s"] >= 0.5, (case.keys(), waited)
