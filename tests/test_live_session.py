@@ -5,7 +5,6 @@ clean stop (SIGTERM) of a ``--sim`` session exits 0."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import threading
@@ -19,7 +18,7 @@ from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs
 from services.commands.live import EXIT_NODE_FAILED, node_failures
 from services.sessions.live_session import TRIGNO_CHANNEL_FORM, is_trigno_channel, load_session_file
-from tests.live_helpers import REPO, run_msk, start_msk
+from tests.live_helpers import REPO, live_environment, run_msk, start_msk
 
 GOOD = """\
 [session]
@@ -250,14 +249,13 @@ def test_failed_nodes_are_named_with_exit_code_and_log_tail(tmp_path):
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory) -> tuple[Path, dict]:
-    """A calibrated bench-press subject (as ``msk live --sim`` makes it) and an environment whose cache holds it."""
+    """A calibrated bench-press subject (as ``msk live --sim`` makes it) and an environment whose cache holds it: the
+    user's cache, as the other live-session tests use it (calibrated there if it is not yet; test_live calibrates one
+    in a fresh cache)."""
     from services.sessions import live
 
-    cache = tmp_path_factory.mktemp("cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("XDG_CACHE_HOME", str(cache))
-        subject = live.sim_subject("bench_press", lambda *_: None)
-    return subject, {**os.environ, "XDG_CACHE_HOME": str(cache), "PYTHONUNBUFFERED": "1"}
+    env = live_environment(tmp_path_factory.mktemp("live_session"))
+    return live.sim_subject("bench_press", lambda *_: None), env
 
 
 def _closed_port() -> int:
