@@ -6,6 +6,7 @@ fails here."""
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -31,12 +32,14 @@ OWNERS = {
 DELEGATES = {("services/surfaces/dashboard/bridge.py", "RepCounter")}
 
 
-def _sources() -> list[tuple[str, ast.Module]]:
+@functools.cache
+def _sources() -> tuple[tuple[str, ast.Module], ...]:
+    """Every module of PACKAGES parsed, once per test process (the tests only read the trees)."""
     out = []
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
             out.append((str(path.relative_to(ROOT)), ast.parse(path.read_text(), filename=str(path))))
-    return out
+    return tuple(out)
 
 
 @pytest.mark.parametrize("concept", sorted(OWNERS))
