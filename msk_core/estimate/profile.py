@@ -18,6 +18,7 @@ from msk_core.errors import EstimationError, FileFormatError, MskError
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import PhaseModel
 from msk_core.estimate.prior import PhasePrior
+from msk_core.io.files import write_text_atomic
 
 FORMAT = "msk-subject-profile"
 FORMAT_VERSION = 1
@@ -73,7 +74,7 @@ class SubjectProfile:
         } | ({} if self.effects is None else {"effects": self.effects})
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        write_text_atomic(path, json.dumps(self.to_dict(), indent=2) + "\n")  # live sessions may be reading it
 
     @classmethod
     def load(cls, path: str | Path) -> SubjectProfile:

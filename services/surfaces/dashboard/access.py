@@ -25,6 +25,7 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from msk_core.errors import ConfigError, InputError
+from msk_core.io.files import write_text_atomic
 
 TOKENS_FILE = "tablet-tokens.json"
 COOKIE = "msk_tablet"
@@ -68,10 +69,7 @@ class TokenStore:
         return document
 
     def _write(self, document: dict[str, dict[str, Any]]) -> None:
-        temporary = self.path.with_suffix(".tmp")
-        temporary.write_text(json.dumps(document, indent=2) + "\n")
-        temporary.chmod(0o600)
-        temporary.replace(self.path)  # the dashboard never reads half a file
+        write_text_atomic(self.path, json.dumps(document, indent=2) + "\n", mode=0o600)  # never half a file
 
     def issue(self, name: str) -> str:
         """A new token for tablet ``name`` (a previous one of that name stops working); returns the token."""
