@@ -235,17 +235,35 @@ def _wait_settled(observed: _Observed, names: list[str], timeout_s: float) -> di
         time.sleep(0.2)
 
 
+#: After the window: how long the joint frames still in flight may take to be answered by their activation frame
+#: (one under load can take seconds); what is unanswered then counts as lost.
+IN_FLIGHT_TIMEOUT_S = 10.0
+
+
+def _wait_answered(observed: _Observed, timeout_s: float) -> None:
+    """Until every joint frame counted in the window has its activation frame, at most ``timeout_s`` (after 0.5 s for
+    the last joint frames to arrive)."""
+    time.sleep(0.5)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with observed.lock:
+            if all(observed.activations.get(s, 0) >= n for s, n in observed.joints.items()):
+                return
+        time.sleep(0.1)
+
+
 def _measure_window(
     observed: _Observed,
     per_session: dict[str, list[subprocess.Popen]],
     shared: dict[str, subprocess.Popen],
     seconds: float,
+    settle_timeout_s: float = SETTLE_TIMEOUT_S,
 ) -> dict[str, float]:
     """``seconds`` of steady state: every latency, the joint frames without their activation frame, the EMG lost
     (status and index jumps), CPU of each session's processes by role (:data:`ROLES`) and its share of the
     router's (``shared``). Stops the replays at its end."""
     time.sleep(2.0)  # first solves of each estimator (lazy caches) are not the steady state
-    settling = _wait_settled(observed, list(per_session), SETTLE_TIMEOUT_S)
+    settling = _wait_settled(observed, list(per_session), settle_timeout_s)
     with observed.lock:  # the measured window starts now
         observed.latencies_ns.clear()
         observed.joints.clear()
@@ -259,7 +277,7 @@ def _measure_window(
     wall = time.monotonic() - wall0
     for group in per_session.values():
         group[-1].send_signal(signal.SIGINT)  # the replay
-    time.sleep(1.5)  # frames in flight reach us
+    _wait_answered(observed, IN_FLIGHT_TIMEOUT_S)
     with observed.lock:
         observed.measuring = False
         latencies = np.asarray(observed.latencies_ns, dtype=float) / 1e6
@@ -308,9 +326,15 @@ def _stop_all(processes: list[subprocess.Popen]) -> None:
 
 
 def measure(
-    n_sessions: int, *, seconds: float, warm_up_timeout_s: float = 120.0, root: Path | None = None
+    n_sessions: int,
+    *,
+    seconds: float,
+    warm_up_timeout_s: float = 120.0,
+    settle_timeout_s: float = SETTLE_TIMEOUT_S,
+    root: Path | None = None,
 ) -> dict[str, float]:
-    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes; return the figures.
+    """Run ``n_sessions`` live sessions, measure ``seconds`` after every estimator publishes and the start has
+    settled (at most ``settle_timeout_s``, :func:`_wait_settled`); return the figures.
     ``root``: the source tree whose ``msk`` runs the router and the sessions (default this one)."""
     from services.transport.zenoh_session import ZenohOptions, open_session
 
@@ -333,7 +357,7 @@ def measure(
                 group.append(_replay(name, endpoint, root))
                 processes.append(group[-1])
             _wait_publishing(observed, n_sessions, warm_up_timeout_s)
-            figures = _measure_window(observed, per_session, {"router": router}, seconds)
+            figures = _measure_window(observed, per_session, {"router": router}, seconds, settle_timeout_s)
             for subscriber in subscribers:
                 subscriber.undeclare()
     finally:
