@@ -106,6 +106,14 @@ def parse_latencies(items: list[str], field: str) -> tuple[dict[str, int], int]:
     return named, default
 
 
+def latency_argv(flag: str, named_ns: dict[str, int] | None, default_ns: int) -> list[str]:
+    """The inverse of :func:`parse_latencies`: latencies in ns as ``flag [NAME=]MS`` items (15 significant digits,
+    so that they read back to the same ns), the default one only when it is not 0."""
+    items = [f"{name}={ns / 1e6:.15g}" for name, ns in (named_ns or {}).items()]
+    items += [f"{default_ns / 1e6:.15g}"] if default_ns else []
+    return [a for item in items for a in (flag, item)]
+
+
 class HostClock:
     """The sliding-window host mapping of one stream (explicit state: the window's samples and their minimum)."""
 

@@ -58,7 +58,7 @@ from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
 from msk_core.estimate.phase import LivePhase
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.model.pack import available_packs, is_known_exercise
-from msk_core.signal.host_clock import ClockReport, DeviceClocks, parse_latencies
+from msk_core.signal.host_clock import ClockReport, DeviceClocks, latency_argv, parse_latencies
 from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
 from services.nodes.node_runtime import (
@@ -130,17 +130,9 @@ class EmgTiming:
             self.emg_align,
             "--emg-wait-ms",
             f"{self.emg_wait_s * 1e3:.15g}",
-            *_latency_argv("--emg-latency-ms", self.emg_latency_ns, self.default_emg_latency_ns),
-            *_latency_argv("--imu-latency-ms", self.imu_latency_ns, self.default_imu_latency_ns),
+            *latency_argv("--emg-latency-ms", self.emg_latency_ns, self.default_emg_latency_ns),
+            *latency_argv("--imu-latency-ms", self.imu_latency_ns, self.default_imu_latency_ns),
         ]
-
-
-def _latency_argv(flag: str, named_ns: dict[str, int] | None, default_ns: int) -> list[str]:
-    """Latencies in ns as ``flag [NAME=]MS`` items (msk_core.signal.host_clock.parse_latencies reads them back to
-    the ns: 15 significant digits)."""
-    items = [f"{name}={ns / 1e6:.15g}" for name, ns in (named_ns or {}).items()]
-    items += [f"{default_ns / 1e6:.15g}"] if default_ns else []
-    return [a for item in items for a in (flag, item)]
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,14 @@ from msk_core.imu.kinematics import KinematicsFilterConfig
 from msk_core.imu.mapping import ImuJointMapper, mapping_for, parse_pose
 from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJointKinematics
 from msk_core.model import load_pack
-from msk_core.signal.host_clock import METHOD_DEVICE, WINDOW_S, ClockReport, DeviceClocks, parse_latencies
+from msk_core.signal.host_clock import (
+    METHOD_DEVICE,
+    WINDOW_S,
+    ClockReport,
+    DeviceClocks,
+    latency_argv,
+    parse_latencies,
+)
 from msk_core.signal.reps import RepTemplate
 from services.nodes.node_runtime import (
     InputCounts,
@@ -143,8 +150,6 @@ class KinematicsSettings:
         """These settings as the node's command line, but ``max_wait_s`` and ``clock_window_s`` (:meth:`from_args`
         reads them back)."""
         pose = ",".join(f"{name}={deg!r}" for name, deg in (self.static_pose_deg or {}).items())
-        latencies = [f"{name}={ns / 1e6:.15g}" for name, ns in (self.latency_ns or {}).items()]
-        latencies += [f"{self.default_latency_ns / 1e6:.15g}"] if self.default_latency_ns else []
         return [
             *("--pack", self.pack, "--session", self.session, "--facing-deg", repr(self.facing_deg)),
             *(["--out-session", self.output_session] if self.output_session is not None else []),
@@ -155,7 +160,7 @@ class KinematicsSettings:
             *(["--phase-template", str(self.phase_template)] if self.phase_template is not None else []),
             *(["--phase-coordinate", self.phase_coordinate] if self.phase_coordinate is not None else []),
             *("--imu-clock", self.clock),
-            *(a for item in latencies for a in ("--imu-latency-ms", item)),
+            *latency_argv("--imu-latency-ms", self.latency_ns, self.default_latency_ns),
         ]
 
 
