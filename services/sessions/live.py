@@ -875,12 +875,11 @@ def estimator_settings(plan: LivePlan) -> EstimatorSettings:
     from services.nodes.estimator import ALIGN_ACCELERATION, EmgTiming, EstimatorSettings  # noqa: PLC0415
 
     s, trigno = plan.session, plan.trigno is not None
-    trackers_ns = {t: latency_ns_from_ms(ms, "tracker latency") for t, ms in plan.tracker_latency_ms.items()}
     timing = EmgTiming(
         joints_clock=JointsClock.HOST,
         emg_latency_ns={s.trigno_id: latency_ns_from_ms(plan.trigno_latency_ms, "trigno latency")},
         emg_align=ALIGN_ACCELERATION,
-        imu_latency_ns=trackers_ns if trigno else {},
+        imu_latency_ns=kinematics_settings(plan).latency_ns if trigno else {},
         emg_wait_s=EMG_WAIT_MS / 1e3 if trigno else 0.0,
     )
     return EstimatorSettings(
