@@ -166,8 +166,11 @@ def pick_synergists(
 ) -> dict[str, str]:
     """Unmeasured group -> the measured group whose moment arms over the trials' frames are the most similar
     (cosine of the stacked (frames x coordinates) columns, at least ``SYNERGIST_MIN_COSINE``); ties go to the first."""
-    groups = list(pack.groups)
-    cos = moment_arm_cosines(pack, trials)
+    return _most_similar(moment_arm_cosines(pack, trials), list(pack.groups), unmeasured, measured)
+
+
+def _most_similar(cos: np.ndarray, groups: list[str], unmeasured: list[str], measured: list[str]) -> dict[str, str]:
+    """:func:`pick_synergists` from the groups' moment-arm cosines (:func:`moment_arm_cosines`)."""
     picked = {}
     for g in unmeasured:
         row = [float(cos[groups.index(g), groups.index(h)]) for h in measured]
@@ -207,9 +210,12 @@ def synergist_error(pack: PackLike, trials: list[TrialData]) -> float:
     where it can be checked, as :func:`min_effort_error` is for minimal effort (NaN without a measured pair)."""
     moving = [t for t in trials if not t.isometric and t.emg]
     measured = sorted({g for t in moving for g in t.emg})
+    if len(measured) < 2:
+        return float("nan")
+    groups, cos = list(pack.groups), moment_arm_cosines(pack, moving)  # once for every measured group
     diffs = []
     for g in measured:
-        picked = pick_synergists(pack, moving, [g], [h for h in measured if h != g]) if len(measured) > 1 else {}
+        picked = _most_similar(cos, groups, [g], [h for h in measured if h != g])
         if g not in picked:
             continue
         diffs.append(_scaled_difference(moving, g, picked[g]))
