@@ -29,11 +29,11 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
-from scipy import signal
 
 from msk_core.errors import ConfigError, InputError
 from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal
 from msk_core.signal.quality import EMG_BAND_HZ, NOISE_FLOOR_RMS_V, check_emg_rate
+from msk_core.signal.spectrum import hann_welch
 
 # 0.128 s segments (256 samples at 2 kHz): 7.8 Hz resolution, and a 1 s burst still gives ~14 half-overlapping
 # segments to average (EMG spectral estimates for fatigue use 0.25-1 s epochs: Merletti et al. 1990).
@@ -111,21 +111,13 @@ def median_and_mean_frequency(
 
 
 def welch_psd(emg: np.ndarray, config: FatigueConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Welch spectrum of raw EMG ``(n_samples, ...)`` (at least one segment long): ``(freqs, psd[..., f])``.
-
-    The numbers of ``scipy.signal.welch(emg, rate, window="hann", nperseg=n, noverlap=n // 2, detrend="constant",
-    scaling="density", axis=0)`` (tests/test_emg_fatigue.py compares them), computed for every segment at once:
-    scipy's loop over segments took ~60 ms per channel and rep, too slow for the estimator's thread."""
+    """Welch spectrum of raw EMG ``(n_samples, ...)`` (at least one segment long): ``(freqs, psd[..., f])``, by
+    :func:`msk_core.signal.spectrum.hann_welch` (scipy's ``welch`` numbers, every segment at once)."""
     x = np.moveaxis(np.asarray(emg, dtype=float), 0, -1)
     n = config.segment_samples
     if x.shape[-1] < n:
         raise InputError(f"need at least one Welch segment of {n} samples", field="emg", value=x.shape[-1])
-    segments = np.lib.stride_tricks.sliding_window_view(x, n, axis=-1)[..., :: n - n // 2, :]
-    window = signal.get_window("hann", n)
-    spectra = np.fft.rfft((segments - segments.mean(axis=-1, keepdims=True)) * window, axis=-1)
-    psd = (spectra.real**2 + spectra.imag**2).mean(axis=-2) / (config.rate_hz * (window**2).sum())
-    psd[..., 1 : None if n % 2 else -1] *= 2.0  # one-sided: every bin but DC (and Nyquist for even n) twice
-    return np.fft.rfftfreq(n, 1.0 / config.rate_hz), psd
+    return hann_welch(x, config.rate_hz, n)
 
 
 @dataclass(frozen=True)
