@@ -127,10 +127,23 @@ def _prior(groups, rng):
     )
 
 
-@pytest.mark.parametrize("method", ["proposed", "hybrid"])
+def _envelopes(n_frames: int, n_groups: int) -> list[np.ndarray | None]:
+    """``assisted``'s live EMG: two measured groups (one of them switching off and on), none every 50th frame."""
+    out: list[np.ndarray | None] = []
+    for i in range(n_frames):
+        e = np.full(n_groups, np.nan)
+        e[0] = 0.3 + 0.25 * np.sin(i / 20.0)
+        if (i // 80) % 2 == 0:
+            e[2] = 0.05 + 0.04 * np.cos(i / 13.0)
+        out.append(None if i % 50 == 0 else e)
+    return out
+
+
+@pytest.mark.parametrize("method", ["proposed", "hybrid", "assisted"])
 def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
     pack = SmoothPack()
-    prior = _prior(pack.groups, np.random.default_rng(1)) if method == "proposed" else None
+    prior = _prior(pack.groups, np.random.default_rng(1)) if method != "hybrid" else None
+    emg = _envelopes(600, len(pack.groups)) if method == "assisted" else [None] * 600
     hot = FrameEstimator(pack, method=method, prior=prior)
     piqp_only = FrameEstimator(pack, method=method, prior=prior, hot_start=False)
     limited = FrameEstimator(pack, method=method, prior=prior, hot_start_max_changes=1)
@@ -141,9 +154,9 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
     sources = {"active_set": 0, "piqp": 0}
     bound_disagreements = 0
     for i in range(600):
-        a = hot.step(q[i], None, qdd[i], phase=phases[i])
-        b = piqp_only.step(q[i], None, qdd[i], phase=phases[i])
-        c = limited.step(q[i], None, qdd[i], phase=phases[i])
+        a = hot.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
+        b = piqp_only.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
+        c = limited.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
         assert a.status.value == b.status.value == c.status.value == "solved"
         np.testing.assert_allclose(a.activations, b.activations, atol=2e-4)
         np.testing.assert_allclose(c.activations, a.activations, atol=2e-4)
@@ -157,7 +170,7 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
             assert np.all(np.minimum(b.activations[~same], 1.0 - b.activations[~same]) < 2e-4)
             bound_disagreements += 1
         sources[c.solver] += 1
-    if method == "proposed":  # hybrid sends many groups to 0, where PIQP stops ~1e-5 above it in most frames
+    if method != "hybrid":  # hybrid sends many groups to 0, where PIQP stops ~1e-5 above it in most frames
         assert bound_disagreements < 60  # measured 33 of 600 (PIQP eps 1e-8)
     assert hot.solver_counts == {"active_set": 600, "piqp": 0}
     assert piqp_only.solver_counts == {"active_set": 0, "piqp": 600}

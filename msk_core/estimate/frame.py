@@ -27,8 +27,9 @@ One PIQP solver per estimator (dense, or sparse from 40 groups up: :mod:`msk_cor
 first frame and then only ``update()``-d with the new matrices, so its workspace and preconditioner
 (``preconditioner_reuse_on_update``) are reused frame after frame.
 (PIQP is an interior-point method: it takes no primal starting point, so "warm" means the reused workspace and
-scaling.) For ``proposed``, ``hybrid`` and ``so`` each frame is first tried by a compiled primal active-set method
-hot-started from the previous frame's solution and working set (:mod:`msk_core.estimate.active_set`; ``so`` by its
+scaling.) For every method but the prior alone each frame is first tried by a compiled primal active-set method
+hot-started from the previous frame's solution and working set (:mod:`msk_core.estimate.active_set`; ``assisted``
+with the live EMG folded into its prior's row of the frame; ``so`` by its
 equality-constrained kernel, whose frames PIQP finds infeasible still end in the reserve fallback); its answer is
 used only when the KKT conditions certify it as the optimum (usually after one m x m solve, a few µs), and PIQP
 solves the frame otherwise (after ``hot_start_max_changes`` working-set changes; ``hot_start=False``: PIQP always).
@@ -467,7 +468,7 @@ class FrameEstimator:
 
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         method = self.method
-        if self.hot_start and (method is Method.PROPOSED or method is Method.HYBRID or method is Method.SO):
+        if self.hot_start and method is not Method.PRIOR:
             hot = self._hot_solve(r, tau, phase)
             if hot is not None:
                 return hot
@@ -574,22 +575,18 @@ class FrameEstimator:
 
     def _hot_box_lsq(self, r, tau, phase):
         """:func:`active_set.solve_box_lsq` on the frame of ``proposed`` / ``hybrid``: (code, changes, out, torques, w)."""
+        mean, prec = self._prior_mean, self._prior_prec
         if self.method is Method.HYBRID:
             w, row0, row1, frac = 2.0, 0, 0, 0.0
+        elif self.method is Method.ASSISTED and self._emg is not None:  # the prior with the live EMG in it: one row
+            w, row0, row1, frac = self._torque_weight, 0, 0, 0.0
+            mu, d = self._emg_term(*self._required_prior.mean_precision(phase))
+            mean, prec = mu[None, :], d[None, :]
         else:
             w = self._torque_weight
             row0, row1, frac = self._required_prior.rows(phase)
         code, changes, out, torques = active_set.solve_box_lsq(
-            r,
-            self.f_max,
-            tau,
-            w,
-            self._prior_mean,
-            self._prior_prec,
-            row0,
-            row1,
-            frac,
-            *self._hot_tail,
+            r, self.f_max, tau, w, mean, prec, row0, row1, frac, *self._hot_tail
         )
         return code, changes, out, torques, w
 
