@@ -10,7 +10,8 @@ import pytest
 from scipy.optimize import lsq_linear
 
 from msk_core.estimate import FrameEstimator, PhasePrior, active_set
-from msk_core.estimate.frame import MIN_TORQUE_SCALE
+from msk_core.estimate.frame import MIN_TORQUE_SCALE, FrameResult
+from msk_core.estimate.laplace import laplace_std
 from msk_core.signal.reps import REST_PHASE
 
 
@@ -152,12 +153,13 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
     qdd = -0.6 * np.sin(np.outer(t, [1.0, 1.3, 0.7, 2.1])) * np.array([1.0, 1.69, 0.49, 4.41])
     phases = [None if i % 97 == 0 else (REST_PHASE if (i // 150) % 2 else (i % 150) / 150) for i in range(600)]
     sources = {"active_set": 0, "piqp": 0}
-    bound_disagreements = 0
+    bound_disagreements = kernel_std = 0
     for i in range(600):
         a = hot.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
         b = piqp_only.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
         c = limited.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
         assert a.status.value == b.status.value == c.status.value == "solved"
+        kernel_std += _kernel_std_is_laplace_std(a)
         np.testing.assert_allclose(a.activations, b.activations, atol=2e-4)
         np.testing.assert_allclose(c.activations, a.activations, atol=2e-4)
         np.testing.assert_allclose(a.model_torques, b.model_torques, rtol=1e-3, atol=0.05)
@@ -172,7 +174,7 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
         sources[c.solver] += 1
     if method != "hybrid":  # hybrid sends many groups to 0, where PIQP stops ~1e-5 above it in most frames
         assert bound_disagreements < 60  # measured 33 of 600 (PIQP eps 1e-8)
-    assert hot.solver_counts == {"active_set": 600, "piqp": 0}
+    assert hot.solver_counts == {"active_set": 600, "piqp": 0} and kernel_std == 600
     assert piqp_only.solver_counts == {"active_set": 0, "piqp": 600}
     # one change allowed: frames needing more go to PIQP, which then seeds the next frame's working set
     assert limited.solver_counts == sources and sources["piqp"] > 0 and sources["active_set"] > 300
@@ -291,6 +293,16 @@ def test_so_kernel_degenerate_working_sets_hand_the_frame_over():
     np.testing.assert_allclose(half.model_torques, 0.5 * full, rtol=1e-9)
 
 
+def _kernel_std_is_laplace_std(result: FrameResult) -> bool:
+    """The Laplace std the compiled kernel computed with a hot-started frame equals laplace_std of the frame's Hessian
+    (1e-9 relative + 1e-7: a variance that rounding leaves at ~1e-16 instead of 0 has a std of ~1e-8); False when the kernel left it to be computed when read (its m x m system singular)."""
+    if result._std is None:
+        return False
+    general = laplace_std(result.hessian, ~result.at_bound, result._equality)
+    np.testing.assert_allclose(result._std, general, rtol=1e-9, atol=1e-7)
+    return True
+
+
 #: |a_hot - a_piqp| bound on every frame the hot start answers. PIQP (interior point, eps 1e-8) stops short of a bound
 #: whose multiplier is ~0 by up to ~sqrt of its tolerance: measured max 1.8e-5 on deadlift_75kg, where the active set
 #: sits exactly on the bound with an objective never above PIQP's; 98 % of the frames agree within 1e-6.
@@ -309,7 +321,7 @@ def test_so_hot_start_equals_piqp_every_frame_on_the_held_out_deadlift(repo_root
     trial = load_trial(repo_root / "recordings/demo/deadlift/deadlift_75kg/trial.toml", pack)
     hot, piqp_only = FrameEstimator(pack, method="so"), FrameEstimator(pack, method="so", hot_start=False)
     lb, ub = np.zeros(len(pack.groups)), np.ones(len(pack.groups))
-    close, by_status = 0, {}
+    close, by_status, kernel_std = 0, {}, 0
     for i in range(trial.n_frames):
         args = (trial.q[i], trial.qd[i], trial.qdd[i])
         a = hot.step(*args, torques=trial.torques[i])
@@ -320,6 +332,7 @@ def test_so_hot_start_equals_piqp_every_frame_on_the_held_out_deadlift(repo_root
         assert err <= SO_AGREEMENT_ATOL, f"frame {i}: |a_hot - a_piqp| = {err:.2e} ({a.solver})"
         close += err <= 1e-6
         if a.solver == "active_set":
+            kernel_std += _kernel_std_is_laplace_std(a)
             at, tt = _scaled(np.asarray(pack.moment_arms(trial.q[i])), hot.f_max, trial.torques[i])
             np.testing.assert_allclose(a._hess_parts[0], at, rtol=1e-12, atol=1e-15)  # the kernel's A~
             assert _so_kkt_violation(at, tt, a.activations, lb, ub) < 1e-9, f"frame {i}"
@@ -332,6 +345,7 @@ def test_so_hot_start_equals_piqp_every_frame_on_the_held_out_deadlift(repo_root
     # measured: every one of the 1366 feasible frames certified
     assert certified >= 0.99 * (n - reserve), f"{certified} of {n - reserve} feasible frames certified: {by_status}"
     assert close >= 0.95 * n, f"{close} of {n} frames within 1e-6"
+    assert kernel_std >= 0.99 * certified, f"the kernel's std on {kernel_std} of {certified} certified frames"
     assert hot.solver_counts == {"active_set": certified, "piqp": n - certified}
     assert piqp_only.solver_counts == {"active_set": 0, "piqp": n}
     i = int(np.argmax(np.abs(trial.torques).sum(axis=1) > 0))  # a frame far beyond capacity, then a normal one

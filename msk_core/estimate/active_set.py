@@ -44,6 +44,8 @@ SINGULAR_TOL = 1e-12
 PENALTY_WEIGHT = 1e6
 #: ``so``: largest scaled torque residual |A~ a - t~| (fraction of the coordinate's capacity) of a certified optimum
 EQUALITY_TOL = 1e-9
+#: an activation this close to its lower or upper bound counts as at it (the Laplace std's free set)
+BOUND_TOL = 1.0e-6
 
 
 def _jit(fn: Callable) -> Callable:
@@ -99,11 +101,12 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
     r: moment arms (m, G); tau: (m,); f_max, lb, ub, x: (G,); state: int8 (G,) LOWER/FREE/UPPER. The prior
     (mu, d) is interpolated here, mu = (1 - frac) mean_table[row0] + frac mean_table[row1] (d from prec_table alike),
     to spare the per-frame array operations in Python.
-    Returns (code, working-set changes, out (m + 3, G): rows A~ | x | forces | d, torques (2, m): model | residual).
+    Returns (code, working-set changes, out (m + 4, G): rows A~ | x | forces | d | Laplace std (when certified:
+    :func:`_laplace_std`), torques (2, m): model | residual).
     ``x`` holds the certified optimum when code == CERTIFIED; otherwise its content is unspecified (re-seed it).
     """
     m, g = r.shape
-    out = np.empty((m + 3, g))
+    out = np.empty((m + 4, g))
     at = out[:m]
     d = out[m + 2]
     mu = np.empty(g)
@@ -112,6 +115,8 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
     _scale_rows(r, f_max, tau, min_scale, at, tt)
     _feasible_start(state, lb, ub, x)
     code, changes = _iterate(at, tt, w, d, mu, lb, ub, x, state, max_iter)
+    if code == CERTIFIED:
+        _laplace_std(at, w, d, False, x, lb, ub, out[m + 3])
     return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
 
 
@@ -120,15 +125,15 @@ def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
     """Solve ``so``'s QP, min a'a s.t. A~ a = t~, lb <= a <= ub, from the working set in ``state`` and the point
     ``x`` (both updated in place), as :func:`solve_box_lsq` does the least-squares one.
 
-    Returns (code, working-set changes, out (m + 3, G): rows A~ | x | forces | 2 (the Hessian's diagonal), torques
-    (2, m): model | residual). code is FACTORISATION_FAILED when a working set leaves A~_F A~_F' singular (fewer free
+    Returns (code, working-set changes, out (m + 4, G): rows A~ | x | forces | 2 (the Hessian's diagonal) | Laplace
+    std (when certified), torques (2, m): model | residual). code is FACTORISATION_FAILED when a working set leaves A~_F A~_F' singular (fewer free
     groups than coordinates, a coordinate all of whose groups are held: its torque is then met only by the held
     values, if at all) even after one restart from the working set of the penalty problem (below), NOT_CONVERGED
     after ``max_iter`` changes; the caller then asks PIQP, which also tells an infeasible frame (the reserve
     fallback) apart.
     """
     m, g = r.shape
-    out = np.empty((m + 3, g))
+    out = np.empty((m + 4, g))
     at = out[:m]
     out[m + 2] = 2.0
     tt = np.empty(m)
@@ -146,6 +151,8 @@ def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
             changes += more
         elif code == NOT_CONVERGED:
             code = FACTORISATION_FAILED
+    if code == CERTIFIED:
+        _laplace_std(at, 0.0, out[m + 2], True, x, lb, ub, out[m + 3])
     return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
 
 
@@ -438,6 +445,49 @@ def _step(free_idx: Array, nf: int, y: Array, lb: Array, ub: Array, x: Array) ->
         fi = free_idx[a]
         x[fi] += alpha * (y[a] - x[fi])
     return block
+
+
+@_part
+def _laplace_std(at: Array, w: float, d: Array, equality: bool, x: Array, lb: Array, ub: Array, std: Array) -> None:
+    """std: the Laplace std of each activation at the optimum ``x``, what :func:`msk_core.estimate.laplace.laplace_std`
+    gives from the frame's Hessian H = w A~'A~ + diag(d) (``equality``: with the rows A~ as equality constraints).
+
+    0 at a bound (within ``BOUND_TOL``); on the free set F the diagonal of H_FF^-1 by the Woodbury identity,
+    1/d_j - a_j' S^-1 a_j / d_j^2 with S = I/w + A~_F D^-1 A~_F' (a_j: column j of A~), an m x m system; with the
+    equality the covariance on its null space, H^-1 - H^-1 A' (A H^-1 A')^-1 A H^-1, whose diagonal is the same
+    expression with S = A~_F D^-1 A~_F'. NaN everywhere when S is not numerically positive definite (redundant
+    rows): the caller then computes it the general way."""
+    m, g = at.shape
+    s_mat = np.zeros((m, m))
+    u = np.zeros(m)
+    big = 0.0
+    for j in range(g):
+        std[j] = 0.0
+    for i in range(m):
+        for k in range(i + 1):
+            acc = 0.0
+            for j in range(g):
+                if lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
+                    acc += at[i, j] * at[k, j] / d[j]
+            s_mat[i, k] = acc
+        big = max(big, s_mat[i, i])
+        if not equality:
+            s_mat[i, i] += 1.0 / w if w > 0.0 else np.inf
+    if not _cholesky_solve(s_mat, u, m, SINGULAR_TOL * big if equality else 0.0):
+        for j in range(g):
+            std[j] = np.nan
+        return
+    for j in range(g):
+        if not lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
+            continue
+        quad = 0.0
+        for i in range(m):  # L u = a_j, a_j' S^-1 a_j = |u|^2
+            acc = at[i, j]
+            for k in range(i):
+                acc -= s_mat[i, k] * u[k]
+            u[i] = acc / s_mat[i, i]
+            quad += u[i] * u[i]
+        std[j] = np.sqrt(max(1.0 / d[j] - quad / (d[j] * d[j]), 0.0))
 
 
 @_part

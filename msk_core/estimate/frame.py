@@ -77,7 +77,7 @@ MIN_TORQUE_SCALE = 1.0  # N·m; floor of the per-coordinate residual scale (coor
 RESERVE_WEIGHT = 1.0e4  # weight of the scaled residual in the `so` reserve fallback
 # assisted: a measured synergist whose pooled prior mean is below this cannot set another group's level from its envelope
 MIN_SYNERGIST_LEVEL = 1.0e-3
-BOUND_TOL = 1.0e-6  # an activation this close to 0 or 1 counts as at its bound (Laplace free set)
+BOUND_TOL = active_set.BOUND_TOL  # an activation this close to a bound counts as at it (Laplace free set)
 
 
 class Method(str, Enum):
@@ -570,6 +570,7 @@ class FrameEstimator:
             solver="active_set",
             _hess_parts=(out[:m], w, out[m + 2]),
             _equality=out[:m] if equality else None,
+            _std=out[m + 3] if not math.isnan(out[m + 3, 0]) else None,  # the kernel's, else computed when read
             _bounds=(self._lb, self._ub),
         )
 
