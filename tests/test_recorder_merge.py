@@ -110,3 +110,26 @@ def test_identical_copies_are_matched_one_for_one_with_the_earlier_parts_and_the
     merge.accept(_fetched("msk/**", [_item(HISTORY, EMG, 0) for _ in range(8)], finished_ns=10), fetch_new_keys=False)
     assert [item.origin for item in written] == [HISTORY] * 3 + [LIVE] * 4
     assert stats.already_recorded == 2 + 3 and stats.history_fetched == 8
+
+
+def test_a_live_copy_held_takes_its_history_samples_place_so_the_file_keeps_publishing_order():
+    """The cache's answer overtook the data: it holds 0..3 while only 2 arrived live before it returned (3 arrives
+    after). The file holds 0, 1, 2 (its live copy, in place), 3 (from the cache), then 4: each once, in order."""
+    publisher = ("zid-1", 7)
+
+    def sourced(origin: str, index: int, receive_ns: int = 0) -> _Item:
+        return _Item(origin, receive_ns, EMG, _chunk(index), _message(index), source=(*publisher, index))
+
+    written: list[_Item] = []
+    stats = RecorderStats()
+    merge = HistoryMerge(written.append, stats)
+    merge.begin_fetch("msk/**", initial=True)
+    merge.accept(sourced(LIVE, 2, receive_ns=5), fetch_new_keys=True)
+    merge.accept(_item(LIVE, ACTIVATIONS, 0), fetch_new_keys=True)
+    merge.accept(_fetched("msk/**", [sourced(HISTORY, i) for i in range(4)], finished_ns=10), fetch_new_keys=False)
+    for index in (3, 4):  # 3 came with the cache's answer already: not written twice
+        merge.accept(sourced(LIVE, index, receive_ns=20), fetch_new_keys=True)
+    assert _written_indices(written) == [0, 1, 2, 3, 4]
+    assert [item.origin for item in written if item.key == EMG] == [HISTORY, HISTORY, LIVE, HISTORY, LIVE]
+    assert _written_indices(written, ACTIVATIONS) == [0]
+    assert stats.already_recorded == 2  # the cache's copy of 2 and the live copy of 3

@@ -45,7 +45,9 @@ messages, and each is written. A copy can only come from a history fetch, compar
   (:func:`recorded_tail_in`) are left out;
 * against the live stream: a sample published between the subscription and the cache's answer comes both ways, so
   per key the newest history samples that match a live sample held for this fetch and received before the fetch
-  returned are left out (the live copy is written, with its true arrival time).
+  returned are left out (the live copy is written, with its true arrival time). A publication whose identity is
+  known (Zenoh's source info) is matched exactly, and its live copy is written in the history sample's place: the
+  cache's answer can hold publications whose live copies have not arrived yet, and the file keeps publishing order.
 
 Messages that carry their host time or a sample index (every driver node's) are therefore never confused. Identical
 bytes can be: a cache holding more copies than the file tail or the overlap holds loses as many as those hold.
@@ -501,11 +503,14 @@ class HistoryMerge:
         for index, item in enumerate(done.items):
             per_key.setdefault(item.key, []).append(index)
         keep = [True] * len(done.items)
+        in_place: dict[int, _Item] = {}  # history index -> the live copy of that publication, written in its place
         for key, indices in per_key.items():
-            live_sources = {item.source for item in self._waiting if item.key == key and item.source is not None}
+            live_copies = {item.source: item for item in self._waiting if item.key == key and item.source is not None}
             for index in indices:  # exact: the same publication, already held live
-                if done.items[index].source is not None and done.items[index].source in live_sources:
+                source = done.items[index].source
+                if source is not None and source in live_copies:
                     keep[index] = False
+                    in_place[index] = live_copies[source]
             indices = [index for index in indices if keep[index]]
             digests = {index: _digest(done.items[index].payload) for index in indices}
             earlier = self._earlier.pop(key, collections.Counter())
@@ -525,11 +530,17 @@ class HistoryMerge:
                     live[digests[index]] -= 1
                     keep[index] = False
         self._stats.already_recorded += keep.count(False)
-        kept = [item for item, kept in zip(done.items, keep) if kept]
-        for item in kept:
-            if item.source is not None:
+        for index, item in enumerate(done.items):
+            if keep[index] and item.source is not None:
                 self._remember_history(item.key, item.source)
-        return kept
+        if in_place:  # the cache may hold publications newer than a live copy held (its reply overtook the data)
+            moved = {id(item) for item in in_place.values()}
+            self._waiting = [item for item in self._waiting if id(item) not in moved]
+        return [
+            item if keep[index] else in_place[index]
+            for index, item in enumerate(done.items)
+            if keep[index] or index in in_place
+        ]
 
     def _remember_history(self, key: str, source: tuple[str, int, int]) -> None:
         recent = self._from_history.setdefault(key, collections.deque())
