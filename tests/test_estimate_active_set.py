@@ -10,7 +10,7 @@ import pytest
 from scipy.optimize import lsq_linear
 
 from msk_core.estimate import FrameEstimator, PhasePrior, active_set
-from msk_core.estimate.frame import MIN_TORQUE_SCALE, FrameResult
+from msk_core.estimate.frame import BOUND_TOL, MIN_TORQUE_SCALE, FrameResult
 from msk_core.estimate.laplace import laplace_std
 from msk_core.signal.reps import REST_PHASE
 
@@ -355,3 +355,45 @@ def test_so_hot_start_equals_piqp_every_frame_on_the_held_out_deadlift(repo_root
     for k in range(n - 20, n):
         hot.step(trial.q[k], trial.qd[k], trial.qdd[k], torques=trial.torques[k])
     assert hot.solver_counts["active_set"] >= certified_before + 15
+
+
+def _general_std(at: np.ndarray, w: float, d: np.ndarray, equality: bool, x: np.ndarray) -> np.ndarray:
+    free = (x > BOUND_TOL) & (x < 1.0 - BOUND_TOL)
+    return laplace_std(w * at.T @ at + np.diag(d), free, at if equality else None)
+
+
+def _kernel_std(at: np.ndarray, w: float, d: np.ndarray, equality: bool, x: np.ndarray) -> np.ndarray:
+    std = np.empty(at.shape[1])
+    active_set._laplace_std(at, w, d, equality, x, np.zeros(at.shape[1]), np.ones(at.shape[1]), std)
+    return std
+
+
+@pytest.mark.parametrize("equality", [False, True])
+def test_kernel_std_equals_laplace_std_or_leaves_it_to_it(equality: bool) -> None:
+    """The kernel's Laplace std against laplace_std (SVD null space, Cholesky) on random frames: equal where the m x m
+    system is well conditioned; exactly 0 when the equality leaves no free direction (as many free groups as rows:
+    the cancelling expression would say ~1e-4); NaN, i.e. computed the general way, for nearly parallel rows."""
+    rng = np.random.default_rng(11)
+    m, g = 3, 9
+    d = 2.0 * np.ones(g) if equality else rng.uniform(0.5, 50.0, g)
+    w = 0.0 if equality else 1e3
+    for _ in range(200):
+        at = rng.normal(size=(m, g))
+        x = np.where(rng.random(g) < 0.3, 0.0, rng.uniform(0.05, 0.95, g))
+        general, kernel = _general_std(at, w, d, equality, x), _kernel_std(at, w, d, equality, x)
+        if np.isnan(kernel).all():
+            assert equality and np.sum(x > 0) < m  # too few free groups for a full-rank A~_F
+            continue
+        np.testing.assert_allclose(kernel, general, rtol=1e-9, atol=1e-7)
+    at = rng.normal(size=(m, g))
+    exactly_m_free = np.r_[np.full(m, 0.5), np.zeros(g - m)]
+    kernel = _kernel_std(at, w, d, equality, exactly_m_free)
+    assert np.all(kernel[m:] == 0.0)
+    if equality:
+        assert np.all(kernel == 0.0) and np.all(_general_std(at, w, d, equality, exactly_m_free) == 0.0)
+        nearly_parallel = np.vstack([at[0], at[0] + 1e-5 * rng.normal(size=g), at[2]])
+        x = np.full(g, 0.5)
+        kernel = _kernel_std(nearly_parallel, w, d, equality, x)
+        assert np.isnan(kernel).all()  # the general way: the SVD finds the rank
+    nothing_free = _kernel_std(at, w, d, equality, np.zeros(g))
+    assert np.isnan(nothing_free).all() if equality else np.all(nothing_free == 0.0)

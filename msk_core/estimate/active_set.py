@@ -46,6 +46,9 @@ PENALTY_WEIGHT = 1e6
 EQUALITY_TOL = 1e-9
 #: an activation this close to its lower or upper bound counts as at it (the Laplace std's free set)
 BOUND_TOL = 1.0e-6
+#: ``so``'s Laplace std from the m x m system: the squared Cholesky pivots of A~_F D^-1 A~_F' must stay above this
+#: times its largest diagonal entry (cond <~ 1e6, so the cancelling variance is off by <~ 1e-10), else the SVD path
+STD_PIVOT_TOL = 1e-6
 
 
 def _jit(fn: Callable) -> Callable:
@@ -455,14 +458,19 @@ def _laplace_std(at: Array, w: float, d: Array, equality: bool, x: Array, lb: Ar
     0 at a bound (within ``BOUND_TOL``); on the free set F the diagonal of H_FF^-1 by the Woodbury identity,
     1/d_j - a_j' S^-1 a_j / d_j^2 with S = I/w + A~_F D^-1 A~_F' (a_j: column j of A~), an m x m system; with the
     equality the covariance on its null space, H^-1 - H^-1 A' (A H^-1 A')^-1 A H^-1, whose diagonal is the same
-    expression with S = A~_F D^-1 A~_F'. NaN everywhere when S is not numerically positive definite (redundant
-    rows): the caller then computes it the general way."""
+    expression with S = A~_F D^-1 A~_F'. With the equality, no more free groups than rows leave no null space (all
+    0), and the expression cancels (its error grows as eps cond(S)), so S must be conditioned within
+    ``STD_PIVOT_TOL``. NaN everywhere when S fails that or is not numerically positive definite (redundant rows):
+    the caller then computes it the general way."""
     m, g = at.shape
     s_mat = np.zeros((m, m))
     u = np.zeros(m)
     big = 0.0
+    n_free = 0
     for j in range(g):
         std[j] = 0.0
+        if lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
+            n_free += 1
     for i in range(m):
         for k in range(i + 1):
             acc = 0.0
@@ -473,10 +481,12 @@ def _laplace_std(at: Array, w: float, d: Array, equality: bool, x: Array, lb: Ar
         big = max(big, s_mat[i, i])
         if not equality:
             s_mat[i, i] += 1.0 / w if w > 0.0 else np.inf
-    if not _cholesky_solve(s_mat, u, m, SINGULAR_TOL * big if equality else 0.0):
+    if not _cholesky_solve(s_mat, u, m, STD_PIVOT_TOL * big if equality else 0.0):
         for j in range(g):
             std[j] = np.nan
         return
+    if equality and n_free <= m:
+        return  # the equality fixes every free group: no spread
     for j in range(g):
         if not lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
             continue

@@ -575,7 +575,8 @@ class FrameEstimator:
         )
 
     def _hot_box_lsq(self, r, tau, phase):
-        """:func:`active_set.solve_box_lsq` on the frame of ``proposed`` / ``hybrid``: (code, changes, out, torques, w)."""
+        """:func:`active_set.solve_box_lsq` on the frame of ``proposed``, ``assisted`` or ``hybrid``: (code, changes,
+        out, torques, w)."""
         mean, prec = self._prior_mean, self._prior_prec
         if self.method is Method.HYBRID:
             w, row0, row1, frac = 2.0, 0, 0, 0.0
