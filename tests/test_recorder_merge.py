@@ -133,3 +133,22 @@ def test_a_live_copy_held_takes_its_history_samples_place_so_the_file_keeps_publ
     assert [item.origin for item in written if item.key == EMG] == [HISTORY, HISTORY, LIVE, HISTORY, LIVE]
     assert _written_indices(written, ACTIVATIONS) == [0]
     assert stats.already_recorded == 2  # the cache's copy of 2 and the live copy of 3
+
+
+def test_a_publication_a_fetch_returns_twice_is_written_once():
+    """Two caches (or one asked twice) answer with the same publications 0..2, of which 2 is also held live."""
+    publisher = ("zid-1", 7)
+
+    def sourced(origin: str, index: int) -> _Item:
+        return _Item(origin, 0, EMG, _chunk(index), _message(index), source=(*publisher, index))
+
+    written: list[_Item] = []
+    stats = RecorderStats()
+    merge = HistoryMerge(written.append, stats)
+    merge.begin_fetch("msk/**", initial=True)
+    merge.accept(sourced(LIVE, 2), fetch_new_keys=True)
+    twice = [sourced(HISTORY, i) for i in range(3)] * 2
+    merge.accept(_fetched("msk/**", twice), fetch_new_keys=False)
+    assert _written_indices(written) == [0, 1, 2]
+    assert [item.origin for item in written] == [HISTORY, HISTORY, LIVE]
+    assert stats.already_recorded == 4 and stats.history_fetched == 6

@@ -506,11 +506,17 @@ class HistoryMerge:
         in_place: dict[int, _Item] = {}  # history index -> the live copy of that publication, written in its place
         for key, indices in per_key.items():
             live_copies = {item.source: item for item in self._waiting if item.key == key and item.source is not None}
-            for index in indices:  # exact: the same publication, already held live
+            seen: set[tuple[str, int, int]] = set()
+            for index in indices:
                 source = done.items[index].source
-                if source is not None and source in live_copies:
+                if source is None:
+                    continue
+                if source in seen:  # one publication twice in a fetch (two caches, or one answering twice): once
+                    keep[index] = False
+                elif source in live_copies:  # exact: the same publication, already held live
                     keep[index] = False
                     in_place[index] = live_copies[source]
+                seen.add(source)
             indices = [index for index in indices if keep[index]]
             digests = {index: _digest(done.items[index].payload) for index in indices}
             earlier = self._earlier.pop(key, collections.Counter())
