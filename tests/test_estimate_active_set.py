@@ -50,10 +50,11 @@ def test_cold_solve_is_certified_and_matches_bounded_least_squares(m, g):
         r, f_max, tau, w, mean, prec = _random_problem(rng, m, g)
         x, state = active_set.new_state(g)
         code, changes, out, torques = active_set.solve_box_lsq(
-            r, f_max, tau, w, mean, prec, 0, 0, 0.0, lb, ub, MIN_TORQUE_SCALE, x, state, 4 * g + 10
+            r, f_max, tau, w, mean, prec, 0, 0, 0.0, lb, ub, MIN_TORQUE_SCALE, x, state, 4 * g + 10, True
         )
         assert code == active_set.CERTIFIED
         at, tt = _scaled(r, f_max, tau)
+        np.testing.assert_allclose(out[m + 3], _general_std(at, w, prec[0], False, x), rtol=1e-9, atol=1e-7)
         np.testing.assert_allclose(out[:m], at, rtol=1e-14)
         np.testing.assert_array_equal(out[m], x)
         assert np.all((x >= 0.0) & (x <= 1.0))
@@ -78,19 +79,19 @@ def test_hot_start_reuses_the_working_set_and_cannot_be_fooled_by_a_stale_one():
     lb, ub = np.zeros(g), np.ones(g)
     x, state = active_set.new_state(g)
     args = (lb, ub, MIN_TORQUE_SCALE)
-    cold = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x, state, 100)
+    cold = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x, state, 100, False)
     assert cold[0] == active_set.CERTIFIED
-    again = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x, state, 100)
+    again = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x, state, 100, False)
     assert again[0] == active_set.CERTIFIED and again[1] == 0  # same frame: one solve, no working-set change
     # a working set that is wrong everywhere: still the same optimum, after changes
     wrong = np.where(state == active_set.FREE, active_set.UPPER, active_set.FREE).astype(np.int8)
     x2 = np.full(g, 0.5)
-    flipped = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x2, wrong, 200)
+    flipped = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, x2, wrong, 200, False)
     assert flipped[0] == active_set.CERTIFIED and flipped[1] > 0
     np.testing.assert_allclose(x2, x, atol=1e-10)
     # too few changes allowed: no certificate (the caller then asks PIQP)
     wrong = np.where(state == active_set.FREE, active_set.UPPER, active_set.FREE).astype(np.int8)
-    short = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, np.full(g, 0.5), wrong, 0)
+    short = active_set.solve_box_lsq(r, f_max, tau, w, mean, prec, 0, 0, 0.0, *args, np.full(g, 0.5), wrong, 0, False)
     assert short[0] == active_set.NOT_CONVERGED
 
 

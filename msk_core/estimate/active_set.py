@@ -98,14 +98,16 @@ def _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
 
 
 @_jit
-def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb, ub, min_scale, x, state, max_iter):
+def solve_box_lsq(
+    r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb, ub, min_scale, x, state, max_iter, with_std
+):
     """Solve the frame's QP from the working set in ``state`` and the point ``x`` (both updated in place).
 
     r: moment arms (m, G); tau: (m,); f_max, lb, ub, x: (G,); state: int8 (G,) LOWER/FREE/UPPER. The prior
     (mu, d) is interpolated here, mu = (1 - frac) mean_table[row0] + frac mean_table[row1] (d from prec_table alike),
     to spare the per-frame array operations in Python.
-    Returns (code, working-set changes, out (m + 4, G): rows A~ | x | forces | d | Laplace std (when certified:
-    :func:`_laplace_std`), torques (2, m): model | residual).
+    Returns (code, working-set changes, out (m + 4, G): rows A~ | x | forces | d | Laplace std (when certified and
+    ``with_std``: :func:`_laplace_std`; the calibration's solves do not read it), torques (2, m): model | residual).
     ``x`` holds the certified optimum when code == CERTIFIED; otherwise its content is unspecified (re-seed it).
     """
     m, g = r.shape
@@ -118,7 +120,7 @@ def solve_box_lsq(r, f_max, tau, w, mean_table, prec_table, row0, row1, frac, lb
     _scale_rows(r, f_max, tau, min_scale, at, tt)
     _feasible_start(state, lb, ub, x)
     code, changes = _iterate(at, tt, w, d, mu, lb, ub, x, state, max_iter)
-    if code == CERTIFIED:
+    if with_std and code == CERTIFIED:
         _laplace_std(at, w, d, False, x, lb, ub, out[m + 3])
     return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
 
@@ -466,17 +468,19 @@ def _laplace_std(at: Array, w: float, d: Array, equality: bool, x: Array, lb: Ar
     s_mat = np.zeros((m, m))
     u = np.zeros(m)
     big = 0.0
+    free = np.empty(g, dtype=np.int64)
     n_free = 0
     for j in range(g):
         std[j] = 0.0
         if lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
+            free[n_free] = j
             n_free += 1
     for i in range(m):
         for k in range(i + 1):
             acc = 0.0
-            for j in range(g):
-                if lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
-                    acc += at[i, j] * at[k, j] / d[j]
+            for a in range(n_free):
+                j = free[a]
+                acc += at[i, j] * at[k, j] / d[j]
             s_mat[i, k] = acc
         big = max(big, s_mat[i, i])
         if not equality:
@@ -487,9 +491,8 @@ def _laplace_std(at: Array, w: float, d: Array, equality: bool, x: Array, lb: Ar
         return
     if equality and n_free <= m:
         return  # the equality fixes every free group: no spread
-    for j in range(g):
-        if not lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
-            continue
+    for a in range(n_free):
+        j = free[a]
         quad = 0.0
         for i in range(m):  # L u = a_j, a_j' S^-1 a_j = |u|^2
             acc = at[i, j]

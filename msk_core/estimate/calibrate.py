@@ -485,7 +485,7 @@ def _frames_box_lsq(r, k, tau, w, mean, prec, lb, ub, scale, x, state, max_iter)
     codes = np.empty(r.shape[0], dtype=np.int64)
     for t in range(r.shape[0]):
         code, _, _, _ = solve_box_lsq(
-            r[t], k, tau[t], w, mean, prec, t, t, 0.0, lb, ub, scale, x[t], state[t], max_iter
+            r[t], k, tau[t], w, mean, prec, t, t, 0.0, lb, ub, scale, x[t], state[t], max_iter, False
         )
         codes[t] = code
     return codes

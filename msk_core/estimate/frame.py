@@ -588,7 +588,7 @@ class FrameEstimator:
             w = self._torque_weight
             row0, row1, frac = self._required_prior.rows(phase)
         code, changes, out, torques = active_set.solve_box_lsq(
-            r, self.f_max, tau, w, mean, prec, row0, row1, frac, *self._hot_tail
+            r, self.f_max, tau, w, mean, prec, row0, row1, frac, *self._hot_tail, True
         )
         return code, changes, out, torques, w
 
