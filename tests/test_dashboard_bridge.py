@@ -367,6 +367,26 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
         (2, 1, "next set"),
         (3, 0, ""),
     ]
+    # a load event the estimator refuses (an exercise no pack has and no frame named): not shown, counted
+    seq = state.changes(0)[0]
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=5, exercise="upper_arm_r", set_number=4))
+    update = state.changes(seq)[1]
+    assert "session" not in update["topics"] and "reps" not in update["topics"], update["topics"]
+    assert update["nodes"]["dashboard"]["drops"] == [[PREFIX + "load", "invalid", 1]], update["nodes"]
+
+
+def test_a_subject_pack_named_before_its_frames_is_applied_when_they_come():
+    """A session of a subject's own pack: its opening facts arrive before any frame; they are shown once the first
+    frame names that pack, and another unknown exercise held beside them is refused."""
+    state = DashboardState("t")
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=40, exercise="ana_bench", set_number=1))
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=99, exercise="squat", set_number=7))
+    assert "session" not in state.changes(0)[1]["topics"]
+    state.on_message(PREFIX + "activations/so", activation_frame("so", [0.1, 0.2], t=1, exercise="ana_bench"))
+    now = state.changes(0)[1]
+    assert now["topics"]["session"]["exercise"] == "ana_bench" and now["topics"]["session"]["load_kg"] == 40
+    assert now["topics"]["reps"]["set"] == 1
+    assert now["nodes"]["dashboard"]["drops"] == [[PREFIX + "load", "invalid", 1]]
 
 
 def test_display_names_of_the_frames_pack_and_the_sessions_reach_the_page():

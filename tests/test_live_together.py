@@ -91,6 +91,10 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
     assert facts[:2] == [("bench_press", 50.0, 1), ("bench_press", 60.0, 2)], facts
     report = run_msk("report", str(out / "session.mcap"), "--out", str(tmp_path / "report"), env=env, timeout=120)
     assert report.returncode == 0, report.stderr
+    # the report takes the load events the estimator took: the one naming no pack is left out, and said so
+    written = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert written["load_events_refused"] == 1, written["load_events_refused"]
+    assert "1 load event(s) named an exercise" in (tmp_path / "report" / "report.html").read_text()
 
 
 @pytest.mark.slow

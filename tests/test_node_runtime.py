@@ -106,3 +106,35 @@ def test_a_subscription_the_role_may_not_make_is_said_and_counted(zenoh_endpoint
     assert len(inputs.refusals) == 1 and "role 'tablet'" in inputs.refusals[0] and "msk/rt/emg/*" in inputs.refusals[0]
     assert "refused by the router's access control" in caplog.text
     assert reporter.message().errors == 1 and "msk/rt/emg/*" in reporter.message().last_error
+
+
+def test_load_event_gate_takes_load_events_as_the_estimator_does():
+    """Known packs pass; an unknown exercise waits for the frames before any, and is refused once frames name
+    others; a frame naming it releases its held events in order; refusals are counted once in a page's inputs."""
+    from services.nodes.node_runtime import HELD_LOAD_EVENTS, InputCounts, LoadEventGate
+
+    def event(exercise: str, kg: float = 60.0) -> messages.LoadEvent:
+        return messages.LoadEvent(barbell_mass_kg=kg, exercise=exercise)
+
+    gate = LoadEventGate()
+    assert gate.offer(event("bench_press")) == [event("bench_press")]
+    assert gate.offer(event("")) == [event("")]  # no exercise: the facts of whatever is under way
+    # a subject's own pack before its frames: held, in order, until a frame names it
+    assert gate.offer(event("ana_bench", 40)) == [] and gate.offer(event("ana_bench", 45)) == []
+    assert gate.offer(event("squat")) == []
+    assert gate.on_frame("ana_bench") == [event("ana_bench", 40), event("ana_bench", 45)]
+    assert gate.refused == 1 and gate.held == []  # "squat": no frame named it before the session's did
+    assert gate.on_frame("ana_bench") == []
+    assert gate.offer(event("ana_bench", 50)) == [event("ana_bench", 50)]  # named by frames: known
+    assert gate.offer(event("deadlift")) == [event("deadlift")]  # a shipped pack: another estimator may run it
+    assert gate.offer(event("upper_arm_r")) == [] and gate.refused == 2  # frames came and none named it
+    counts = InputCounts()
+    gate.count_refused(counts, "msk/s/load")
+    gate.count_refused(counts, "msk/s/load")
+    assert counts.as_dict()["dropped"] == {"msk/s/load": {"invalid": 2}}
+    # held events are bounded: a flood of unknown exercises before the first frame is refused beyond the bound
+    flood = LoadEventGate()
+    for k in range(HELD_LOAD_EVENTS + 5):
+        flood.offer(event(f"x{k}"))
+    assert len(flood.held) == HELD_LOAD_EVENTS and flood.refused == 5
+    assert flood.on_frame("bench_press") == [] and flood.refused == HELD_LOAD_EVENTS + 5

@@ -243,6 +243,14 @@ def test_session_facts_come_from_the_load_event_else_the_frames():
         "msk/s/load", messages.LoadEvent(barbell_mass_kg=70, exercise="bench_press", set_number=3, set_mark="stop")
     )
     assert "set 3 done · resting" in screen_text(state)
+    # a load event the estimator refuses (an exercise no pack has and no frame named) is no fact of the session
+    state.on_message(
+        "msk/s/load", messages.LoadEvent(barbell_mass_kg=5, exercise="upper_arm_r", set_number=4, athlete="Bob")
+    )
+    text = screen_text(state)
+    assert "exercise bench press · load 70 kg · set 3 done · resting" in text and "Bob" not in text, text
+    assert "upper" not in text
+    assert state.sets.number == 3 and state.inputs.as_dict()["dropped"] == {"msk/s/load": {"invalid": 1}}
 
 
 def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):

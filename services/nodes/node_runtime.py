@@ -38,6 +38,7 @@ from enum import Enum
 import zenoh
 from google.protobuf.message import Message
 
+from msk_core.model.pack import is_known_exercise
 from msk_core.signal.host_clock import ClockReport
 from msk_core.signal.sets import SetTracker
 from services.nodes.readiness import ReadySpec, add_ready_arguments, ready_from_args
@@ -544,6 +545,54 @@ def apply_load_event(sets: SetTracker, event: messages.LoadEvent) -> None:
         mass_kg=event.barbell_mass_kg,
         rest_s=event.set_rest_s,
     )
+
+
+#: Load events a page holds while no frame has said whether their exercise is the session's (bounded: a publisher
+#: that floods unknown exercises before the first frame cannot grow a page's memory).
+HELD_LOAD_EVENTS = 100
+
+
+@dataclass
+class LoadEventGate:
+    """The load events a page or report applies, as the estimator takes them (``EstimatorNode.handle_load``): one
+    naming an exercise that no shipped pack has and no activation frame has named is refused, set facts and names
+    included, so the page never shows as current an exercise the estimator does not estimate.
+
+    Before the first frame names it, such an exercise may still be the session's own pack (a subject-scaled JSON):
+    its events are held, in order, applied when a frame names that exercise and refused when frames name another."""
+
+    frame_exercises: set[str] = field(default_factory=set)
+    held: list[messages.LoadEvent] = field(default_factory=list)
+    refused: int = 0
+    _counted: int = 0  # of the refused, those already in an InputCounts
+
+    def count_refused(self, counts: InputCounts, key: str) -> None:
+        """The events refused since the last call, as ``counts``' invalid inputs of ``key`` (the page's input row)."""
+        while self._counted < self.refused:
+            self._counted += 1
+            counts.count_dropped(key, DropReason.INVALID)
+
+    def offer(self, event: messages.LoadEvent) -> list[messages.LoadEvent]:
+        """The events to apply now: ``event`` when its exercise is known, else none (it waits or is refused)."""
+        if not event.exercise or is_known_exercise(event.exercise, tuple(self.frame_exercises)):
+            return [event]
+        if self.frame_exercises or len(self.held) >= HELD_LOAD_EVENTS:
+            self.refused += 1  # frames already say which exercises the session estimates, and this is none of them
+        else:
+            self.held.append(event)
+        return []
+
+    def on_frame(self, exercise: str) -> list[messages.LoadEvent]:
+        """A frame of ``exercise`` arrived: the held events it makes known, in order (the others are refused)."""
+        if not exercise or exercise in self.frame_exercises:
+            return []
+        self.frame_exercises.add(exercise)
+        if not self.held:
+            return []
+        released = [e for e in self.held if e.exercise == exercise]
+        self.refused += len(self.held) - len(released)
+        self.held.clear()
+        return released
 
 
 def clock_offsets(reports: Iterable[ClockReport]) -> list[messages.ClockOffset]:

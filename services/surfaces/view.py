@@ -39,7 +39,7 @@ from rich.text import Text
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
-from services.nodes.node_runtime import InputCounts, NodeInputs, apply_load_event, serve
+from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
@@ -75,6 +75,7 @@ class ViewState:
     first_frame_s: float | None = None  # the first frame's time (the time shown when no set has started)
     last_frame_s: float | None = None  # the newest frame's time: the frames' clock
     inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
+    loads: LoadEventGate = field(default_factory=LoadEventGate)  # load events as the estimator takes them
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_message(self, key: str, message: Message) -> None:
@@ -83,6 +84,7 @@ class ViewState:
         with self.lock:
             self.received += 1
             if isinstance(message, messages.ActivationFrame):
+                self._apply_loads(key, self.loads.on_frame(message.exercise))
                 if not self.frames or message.method == next(iter(self.frames)):  # sets from the first method only
                     phase = message.phase if message.HasField("phase") else None
                     self.sets.update(message.time_s, phase)
@@ -94,9 +96,16 @@ class ViewState:
             elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
             elif isinstance(message, messages.LoadEvent):
-                self._on_load(message)
+                self._apply_loads(key, self.loads.offer(message))
             elif isinstance(message, messages.EmgEnvelope):
                 self.envelope = message
+
+    def _apply_loads(self, key: str, loads: list[messages.LoadEvent]) -> None:
+        """The load events the gate lets through; those it refused count as the view's invalid inputs of the load
+        topic of ``key``'s session (``key``: the frame's or the event's)."""
+        for load in loads:
+            self._on_load(load)
+        self.loads.count_refused(self.inputs, topics.load_key(topics.split_key(key)[0]))
 
     def _on_load(self, load: messages.LoadEvent) -> None:
         """The operator's marks and set numbers, as :meth:`SetTracker.on_facts` reads them, at the event's time on the

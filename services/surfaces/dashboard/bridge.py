@@ -39,7 +39,7 @@ from msk_core.errors import ConfigError
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter
 from msk_core.signal.sets import SetTracker
-from services.nodes.node_runtime import InputCounts, NodeInputs, apply_load_event, serve
+from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
@@ -249,6 +249,7 @@ class DashboardState:
         self._electrodes: dict[str, list[dict]] = {}  # node -> its electrodes' quality (the estimator's status)
         self._fatigue: dict[str, list[dict]] = {}  # node -> its electrodes' fatigue index over the set
         self._load: messages.LoadEvent | None = None
+        self._loads = LoadEventGate()  # load events as the estimator takes them
         self._frame_exercise = ""  # ActivationFrame.exercise of the newest frame: the exercise when no LoadEvent came
         self._frame_groups: tuple[str, ...] = ()  # the newest frame's groups: whose display names the page shows
         self._names: dict[str, str] = {}  # the session file's display names (LoadEvent.names), kept until others come
@@ -273,7 +274,7 @@ class DashboardState:
             elif isinstance(message, messages.JointAngles):
                 self._on_joints(message, arrival_ns)
             elif isinstance(message, messages.LoadEvent):
-                self._on_load(message)
+                self._apply_loads(key, self._loads.offer(message))
             elif isinstance(message, messages.DeviceStatus):
                 self._on_status(name, message)
             elif isinstance(message, (messages.EmgChunk, messages.ImuSample)):
@@ -287,6 +288,7 @@ class DashboardState:
                 self._put("envelopes", json_format.MessageToDict(message))
 
     def _on_activations(self, topic: str, frame: messages.ActivationFrame, arrival_ns: int) -> None:
+        self._apply_loads(self.prefix + "load", self._loads.on_frame(frame.exercise))
         self._put(topic, activation_dict(frame, arrival_ns))
         self.last_data_ns = self.last_activation_ns = arrival_ns
         if frame.exercise != self._frame_exercise or tuple(frame.groups) != self._frame_groups:
@@ -317,6 +319,12 @@ class DashboardState:
                 "phase": joints.phase if has_phase else None,
             },
         )
+
+    def _apply_loads(self, key: str, loads: list[messages.LoadEvent]) -> None:
+        """The load events the gate lets through; those it refused are counted as the bridge's invalid inputs."""
+        for load in loads:
+            self._on_load(load)
+        self._loads.count_refused(self.input_counts, key)
 
     def _on_load(self, load: messages.LoadEvent) -> None:
         """The operator's set marks and set numbers, as :meth:`SetTracker.on_facts` reads them (a new set number or

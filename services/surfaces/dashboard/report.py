@@ -39,6 +39,7 @@ from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import phase_rep_spans
 from msk_core.signal.sets import SetRecord, SetTracker
+from services.nodes.node_runtime import LoadEventGate
 from services.sessions.live import electrode_summary, fatigue_summary, keep_fatigue
 from services.sessions.live_session import PREFERRED_METHODS, default_method
 from services.surfaces.dashboard import bodymap
@@ -95,12 +96,14 @@ class SessionData:
     start_log_ns: int = 0
     end_log_ns: int = 0
     truncated: bool = False
+    refused_loads: int = 0  # load events naming an exercise that no pack has and no frame named (not applied)
 
 
 def read_session(path: Path, *, progress: bool = False) -> SessionData:
     if not Path(path).is_file():
         raise InputError("recording not found", path=path)
     data, report = SessionData(), ReadReport()
+    gate = LoadEventGate()  # the load events the estimator took: one naming no pack and no frame's is not a fact
     for recorded in tqdm(
         read_messages(path, report=report), desc=f"read {Path(path).name}", unit="msg", disable=not progress
     ):
@@ -120,6 +123,8 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             series.flagged.append(bool(f.flags))
             if f.exercise and f.exercise not in data.frame_exercises:
                 data.frame_exercises.append(f.exercise)
+                for e in gate.on_frame(f.exercise):
+                    _add_load(data, e)
         elif kind == "msk.JointAngles":
             j = recorded.decode(messages.JointAngles)
             t = j.device_time_ns / 1e9
@@ -127,19 +132,8 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
             data.joint_phase.append(j.phase if j.HasField("phase") else math.nan)
             data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
         elif kind == "msk.LoadEvent":
-            e = recorded.decode(messages.LoadEvent)
-            data.loads.append(
-                Load(
-                    e.device_time_ns / 1e9,
-                    e.barbell_mass_kg,
-                    e.exercise,
-                    int(e.set_number),
-                    e.athlete,
-                    e.set_mark,
-                    e.set_rest_s,
-                )
-            )
-            data.names = dict(e.names) or data.names  # an event without names leaves them in effect
+            for e in gate.offer(recorded.decode(messages.LoadEvent)):
+                _add_load(data, e)
         elif kind == "msk.EmgChunk":
             c = recorded.decode(messages.EmgChunk)
             data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append(
@@ -160,9 +154,25 @@ def read_session(path: Path, *, progress: bool = False) -> SessionData:
                     (log_s, status.connected, status.samples_lost, status.errors)
                 )
     data.truncated = report.truncated
+    data.refused_loads = gate.refused + len(gate.held)
     if data.start_log_ns == 0:
         raise InputError("the recording holds no messages", path=path)
     return data
+
+
+def _add_load(data: SessionData, e: messages.LoadEvent) -> None:
+    data.loads.append(
+        Load(
+            e.device_time_ns / 1e9,
+            e.barbell_mass_kg,
+            e.exercise,
+            int(e.set_number),
+            e.athlete,
+            e.set_mark,
+            e.set_rest_s,
+        )
+    )
+    data.names = dict(e.names) or data.names  # an event without names leaves them in effect
 
 
 # ---- sets and repetitions -----------------------------------------------------------------------------------------
@@ -946,6 +956,12 @@ def health_html(data: SessionData, devices: dict, device_plot: str | None) -> st
             if data.node_drops
             else ""
         )
+        + (
+            f"<p class='note'>{data.refused_loads} load event(s) named an exercise that no model pack has and no "
+            "activation frame named; as the estimator refused them, the report leaves them out.</p>"
+            if data.refused_loads
+            else ""
+        )
         + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
         + "</section>"
     )
@@ -1014,6 +1030,7 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
         ],
         "devices": {name: {k: v for k, v in d.items() if k not in ("times", "weights")} for name, d in devices.items()},
         "node_inputs_dropped": dict(sorted(data.node_drops.items())),
+        "load_events_refused": data.refused_loads,
         **emg_summary(data),
     }
     (out / "report.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
