@@ -65,7 +65,7 @@ from msk_core.estimate.pack import (
     fitted_ranges,
     resolve_pack,
 )
-from msk_core.estimate.prior import NO_EMG_STD, PhasePrior
+from msk_core.estimate.prior import NO_EMG_STD, LoadScale, PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
 if TYPE_CHECKING:
@@ -238,6 +238,9 @@ class FrameEstimator:
     def _init_prior(self, subject: SubjectProfile | None, prior: PhasePrior | None) -> None:
         """The prior (the argument, else the profile's, unmixed by its effects), checked against the method."""
         self.prior = prior if prior is not None else (subject.prior if subject is not None else None)
+        # the prior at another load than its training's: scaled by the torque the lift needs (prior.LoadScale)
+        self._load_scale: LoadScale | None = None
+        self._scale: np.ndarray | None = None  # this frame's load scale per group; None: the prior as learned
         if self.effects is not None and prior is None:
             self.prior = self.effects.unmix_prior(self.prior)
         self._phase_history = None if self.effects is None else self.effects.new_phase_history()
@@ -246,6 +249,13 @@ class FrameEstimator:
                 raise EstimationError(f"method {self.method.value!r} needs a subject profile with a prior")
             if tuple(self.prior.groups) != tuple(self.groups):
                 raise EstimationError("the prior's groups differ from the pack's groups")
+            if self.prior.torque is not None:
+                if self.prior.torque.shape[1] != len(self.coordinates):
+                    raise EstimationError(
+                        f"the prior's training torque has {self.prior.torque.shape[1]} coordinates, the pack "
+                        f"{len(self.coordinates)}"
+                    )
+                self._load_scale = LoadScale(self.prior)
         self._init_live_synergists(subject)
 
     def _init_live_synergists(self, subject: SubjectProfile | None) -> None:
@@ -349,8 +359,12 @@ class FrameEstimator:
     ) -> FrameResult:
         """Estimate one frame. Never raises on bad numbers: the result is flagged instead.
 
-        ``emg``: normalised envelope per group (NaN where not measured), used by ``assisted`` only."""
+        ``emg``: normalised envelope per group (NaN where not measured), used by ``assisted`` only.
+        ``hand_load_newton``: the load declared for this frame, also when ``torques`` are given (what the prior's
+        load scale compares with the prior's training load)."""
         self.frames += 1
+        if self._load_scale is not None:
+            self._load_scale.set_load(float(hand_load_newton))
         self._emg = emg
         n_c = len(self.coordinates)
         clamped = False
@@ -411,12 +425,20 @@ class FrameEstimator:
         return result
 
     def solve(
-        self, r: np.ndarray, tau: np.ndarray, phase: float | None = None, emg: np.ndarray | None = None
+        self,
+        r: np.ndarray,
+        tau: np.ndarray,
+        phase: float | None = None,
+        emg: np.ndarray | None = None,
+        load_newton: float | None = None,
     ) -> FrameResult:
         """Estimate one frame from its moment arms ``r`` (n_c, G) and torques ``tau`` (n_c,) already at hand (what
         :meth:`step` does once the pack has given them; offline work that has the trial's moment arms reuses them).
-        ``emg`` as in :meth:`step`. Flags instead of raising, as :meth:`step`."""
+        ``emg`` as in :meth:`step`; ``load_newton``: the frame's declared load (None: as before, :meth:`step`'s
+        ``hand_load_newton``). Flags instead of raising, as :meth:`step`."""
         self._emg = emg
+        if load_newton is not None and self._load_scale is not None:
+            self._load_scale.set_load(float(load_newton))
         n_c = len(self.coordinates)
         if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
             return self._invalid(np.full(n_c, np.nan), phase, "torques wrong shape")
@@ -438,6 +460,8 @@ class FrameEstimator:
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)
         self.reset_counts()
         self._reset_hot_start()
+        if self._load_scale is not None:  # the throw-away frame's load is not the session's
+            self._load_scale.set_load(None)
         if self._phase_history is not None:  # the throw-away frame is no part of the delay's look-back
             self._phase_history.clear()
 
@@ -468,6 +492,8 @@ class FrameEstimator:
 
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         method = self.method
+        if self._load_scale is not None:
+            self._scale = self._load_scale.update(r, tau, phase)
         if self.hot_start and method is not Method.PRIOR:
             hot = self._hot_solve(r, tau, phase)
             if hot is not None:
@@ -478,7 +504,7 @@ class FrameEstimator:
         at = a_mat / scale[:, None]
         tt = tau / scale
         if method is Method.PRIOR:
-            mu, prec = self._required_prior.mean_precision(phase)
+            mu, prec = self._prior_terms(phase)
             x = np.clip(mu, self._lb, self._ub)
             # curvature of the prior alone: the std reported is the prior's sigma
             result = self._result(x, a_mat, tau, FrameStatus.SOLVED, 0, 0.0, phase, (at, 0.0, prec), None)
@@ -497,7 +523,7 @@ class FrameEstimator:
         if method is Method.HYBRID:
             w, d, c_a = 2.0, self._hybrid_d, None
         else:
-            mu, d = self._required_prior.mean_precision(phase)
+            mu, d = self._prior_terms(phase)
             if method is Method.ASSISTED and self._emg is not None:
                 mu, d = self._emg_term(mu, d)
             w, c_a = self._torque_weight, -(d * mu)
@@ -506,6 +532,13 @@ class FrameEstimator:
         result = self._finish(status, x, it, dt, a_mat, tau, phase, (at, w, d), None)
         self._after_piqp(result)
         return result
+
+    def _prior_terms(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """The prior's (mean, precision) at ``phase``, at this frame's load (N(s mu, (s sigma)^2) when scaled)."""
+        mu, prec = self._required_prior.mean_precision(phase)
+        if self._scale is None:
+            return mu, prec
+        return mu * self._scale, prec / self._scale**2
 
     @property
     def _required_prior(self) -> PhasePrior:
@@ -580,9 +613,12 @@ class FrameEstimator:
         mean, prec = self._prior_mean, self._prior_prec
         if self.method is Method.HYBRID:
             w, row0, row1, frac = 2.0, 0, 0, 0.0
-        elif self.method is Method.ASSISTED and self._emg is not None:  # the prior with the live EMG in it: one row
+        elif (self.method is Method.ASSISTED and self._emg is not None) or self._scale is not None:
+            # the prior with the live EMG in it, or at another load: one row
             w, row0, row1, frac = self._torque_weight, 0, 0, 0.0
-            mu, d = self._emg_term(*self._required_prior.mean_precision(phase))
+            mu, d = self._prior_terms(phase)
+            if self.method is Method.ASSISTED and self._emg is not None:
+                mu, d = self._emg_term(mu, d)
             mean, prec = mu[None, :], d[None, :]
         else:
             w = self._torque_weight

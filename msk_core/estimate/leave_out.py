@@ -332,7 +332,13 @@ def _estimate(
                 emg[:, groups.index(g)] = e
         a = np.full((t.n_frames, len(groups)), np.nan)
         for i in range(t.n_frames):
-            res = est.solve(arms[i], t.torques[i], float(t.phase[i]), None if emg is None else emg[i])
+            res = est.solve(
+                arms[i],
+                t.torques[i],
+                float(t.phase[i]),
+                None if emg is None else emg[i],
+                load_newton=t.hand_load_newton,
+            )
             a[i] = res.activations
         out.append(a)
     return out, dict(est.flag_counts)

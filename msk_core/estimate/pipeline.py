@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import datetime as _dt
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
@@ -16,7 +16,7 @@ from msk_core.estimate.frame import FrameEstimator, Method
 from msk_core.estimate.mechanics import min_effort_of
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
-from msk_core.estimate.prior import PhasePrior, fit_phase_prior
+from msk_core.estimate.prior import PhasePrior, fill_empty_bins, fit_phase_prior
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress, counted
@@ -85,6 +85,7 @@ def build_prior(
             sources.append(f"synergist:{synergists[g]}")
         else:
             sources.append("min_effort" if g in effort else "default")
+    torque, load_newton = training_torque(trials, n_bins)
     return PhasePrior(
         groups=tuple(groups),
         mean=mean,
@@ -93,7 +94,30 @@ def build_prior(
         rest_mean=rest_mean,
         rest_std=rest_std,
         sources=tuple(sources),
+        torque=torque,
+        load_newton=load_newton,
     )
+
+
+def training_torque(trials: list[TrialData], n_bins: int) -> tuple[np.ndarray | None, float | None]:
+    """(mean |torque| per phase bin and coordinate over the reps of ``trials``, their mean hand load in N) that the
+    prior was learned at (:class:`msk_core.estimate.prior.LoadScale`); (None, None) without a rep. The bins are the
+    prior's; a bin no rep reached takes its neighbours' value."""
+    in_reps = [(t, t.rep_index >= 0) for t in trials]
+    frames = sum(int(m.sum()) for _, m in in_reps)
+    if not frames:
+        return None, None
+    tau = np.concatenate([np.abs(t.torques[m]) for t, m in in_reps])
+    phase = np.concatenate([t.phase[m] for t, m in in_reps])
+    bins = np.minimum((np.clip(np.nan_to_num(phase, nan=0.0), 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
+    count = np.bincount(bins, minlength=n_bins).astype(float)
+    torque = np.full((n_bins, tau.shape[1]), np.nan)
+    filled = count > 0
+    for n in range(tau.shape[1]):
+        torque[filled, n] = np.bincount(bins, weights=tau[:, n], minlength=n_bins)[filled] / count[filled]
+        torque[:, n] = fill_empty_bins(torque[:, n])
+    load = sum(t.hand_load_newton * int(m.sum()) for t, m in in_reps) / frames
+    return torque, float(load)
 
 
 def _prior_emg_groups(trials: list[TrialData], isometric: list[str]) -> list[str]:
@@ -337,15 +361,7 @@ def unmeasured_from_measured(
     if rest_mean is not None and rest_std is not None and refit.rest_mean is not None and refit.rest_std is not None:
         rest_mean, rest_std = rest_mean.copy(), rest_std.copy()
         rest_mean[cols], rest_std[cols] = refit.rest_mean[cols], refit.rest_std[cols]
-    return f_max, PhasePrior(
-        groups=prior.groups,
-        mean=mean,
-        std=std,
-        has_emg=prior.has_emg,
-        rest_mean=rest_mean,
-        rest_std=rest_std,
-        sources=prior.sources,
-    )
+    return f_max, replace(prior, mean=mean, std=std, rest_mean=rest_mean, rest_std=rest_std)
 
 
 def calibration_frames(

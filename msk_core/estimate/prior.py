@@ -10,6 +10,11 @@ Between repetitions the subject rests, which no phase bin describes: the prior t
 the EMG outside the calibration reps), selected by ``REST_PHASE`` (msk_core.signal.reps: any negative phase).
 ``None``/NaN means the phase is unknown and selects the prior pooled over the rep phases.
 
+A prior is learned at the load of its training trials. It may carry that load (``load_newton``) and the torques the
+training reps needed per phase bin (``torque``, mean |tau| per coordinate): at another load the estimator then scales
+the prior by the torque this lift needs against the training's at the same phase (:class:`LoadScale`; force is
+F_max · a, so the activation a muscle needs grows with the torque it must make).
+
 :func:`fit_phase_prior` fits it from reps (statistics across reps: each rep contributes one value per bin, so a slow rep
 does not weigh more than a fast one, and sigma is the rep-to-rep variability).
 """
@@ -32,6 +37,13 @@ NO_EMG_STD = 0.5
 # Floor on sigma: a phase bin in which every rep happened to give the same EMG must not become a hard constraint.
 MIN_STD = 0.02
 MIN_REST_SAMPLES = 5
+#: Loads closer than this (N) to the prior's are the same load: its prior stands unscaled.
+SAME_LOAD_N = 1.0
+#: Repetitions of movement over which the load scale averages this lift's torque against the training's (an
+#: exponential average weighted by phase progress, so it needs no clock and no frame rate).
+LOAD_SCALE_REPS = 3.0
+#: Bounds of the load scale: a prior is not stretched beyond what a few-fold load change could mean.
+LOAD_SCALE_RANGE = (0.25, 4.0)
 
 
 @dataclass(frozen=True)
@@ -46,6 +58,10 @@ class PhasePrior:
     rest_std: np.ndarray | None = None
     # where each group's prior comes from: "emg", "min_effort", "synergist:<group>" or "default" (N(0, 0.5^2))
     sources: tuple[str, ...] | None = None
+    # (n_bins, n_coordinates) mean |torque| of the training reps per phase bin, and their hand load (N): what the
+    # load scale compares a lift at another load with; None: the prior is used as learned at every load
+    torque: np.ndarray | None = None
+    load_newton: float | None = None
 
     def __post_init__(self) -> None:
         if self.sources is not None and len(self.sources) != len(self.groups):
@@ -68,6 +84,16 @@ class PhasePrior:
             )
         ):
             raise EstimationError(f"rest prior must be {len(self.groups)} means and positive stds")
+        if (self.torque is None) != (self.load_newton is None):
+            raise EstimationError("the prior's training torque and load go together: both or neither")
+        if self.torque is not None and (
+            self.torque.ndim != 2 or self.torque.shape[0] != self.n_bins or not np.all(np.isfinite(self.torque))
+        ):
+            raise EstimationError(
+                f"prior torque must be finite, (n_bins={self.n_bins}, n_coordinates); got {self.torque.shape}"
+            )
+        if self.load_newton is not None and not (math.isfinite(self.load_newton) and self.load_newton >= 0.0):
+            raise EstimationError(f"prior load_newton must be finite and >= 0, got {self.load_newton}")
 
     @property
     def n_bins(self) -> int:
@@ -141,6 +167,8 @@ class PhasePrior:
             "rest_mean": None if self.rest_mean is None else self.rest_mean.round(6).tolist(),
             "rest_std": None if self.rest_std is None else self.rest_std.round(6).tolist(),
             "sources": None if self.sources is None else list(self.sources),
+            "torque": None if self.torque is None else self.torque.round(4).tolist(),
+            "load_newton": self.load_newton,
         }
 
     @classmethod
@@ -153,7 +181,76 @@ class PhasePrior:
             rest_mean=None if data.get("rest_mean") is None else np.asarray(data["rest_mean"], dtype=float),
             rest_std=None if data.get("rest_std") is None else np.asarray(data["rest_std"], dtype=float),
             sources=None if data.get("sources") is None else tuple(data["sources"]),
+            torque=None if data.get("torque") is None else np.asarray(data["torque"], dtype=float),
+            load_newton=None if data.get("load_newton") is None else float(data["load_newton"]),
         )
+
+    def torque_at(self, phase: float) -> np.ndarray | None:
+        """The training reps' mean |torque| per coordinate at a rep phase in [0, 1] (interpolated as the prior);
+        None without a training torque."""
+        if self.torque is None:
+            return None
+        i0, i1, frac = self.rows(phase)
+        return self.torque[i0] if i0 == i1 else self.torque[i0] + frac * (self.torque[i1] - self.torque[i0])
+
+
+@dataclass
+class LoadScale:
+    """Explicit state of the load-scaled prior: per group, how much more (or less) torque this lift needs than the
+    training reps at the same phase, averaged over the last ``LOAD_SCALE_REPS`` repetitions of movement.
+
+    s_g = sum_n |R_ng| |tau_n| / sum_n |R_ng| |tau_train,n(phase)| (its coordinates weighted by the group's moment
+    arms), each sum an exponential average over rep frames weighted by phase progress. The prior of group g is then
+    N(s_g mu_g, (s_g sigma_g)^2): the same relative spread at the level the load asks for. Only at a load other
+    than the prior's (a different load is what the torques then differ by; at the same load they differ by technique,
+    which the prior learned as it is) and only inside reps (the rest prior stands)."""
+
+    prior: PhasePrior
+    load_newton: float | None = None  # the load of the frames (N); None: not known, no scaling
+    _num: np.ndarray | None = None
+    _den: np.ndarray | None = None
+    _last_phase: float | None = None
+
+    @property
+    def active(self) -> bool:
+        """Whether the load differs from the prior's (and the prior knows its training torque)."""
+        return (
+            self.prior.load_newton is not None
+            and self.load_newton is not None
+            and abs(self.load_newton - self.prior.load_newton) > SAME_LOAD_N
+        )
+
+    def set_load(self, load_newton: float | None) -> None:
+        """The frames' load; a change restarts the average (the torque ratio of the old load says nothing now)."""
+        if load_newton != self.load_newton:
+            self.load_newton = load_newton
+            self.reset()
+
+    def reset(self) -> None:
+        self._num = self._den = self._last_phase = None
+
+    def update(self, arms: np.ndarray, tau: np.ndarray, phase: float | None) -> np.ndarray | None:
+        """The scale per group for this frame (moment arms (n, G), torques (n,)); None where the prior stands as
+        learned (same or unknown load, no training torque, outside reps)."""
+        if not self.active or phase is None or not (0.0 <= phase <= 1.0):
+            return None
+        train = self.prior.torque_at(phase)
+        if train is None or train.shape != tau.shape:
+            return None
+        weights = np.abs(arms).T
+        num, den = weights @ np.abs(tau), weights @ train
+        if self._num is None or self._den is None or self._last_phase is None:
+            self._num, self._den = num, den
+        else:
+            step = phase - self._last_phase
+            step = step + 1.0 if step < -0.5 else step  # the next rep began
+            k = min(1.0, max(step, 0.0) / LOAD_SCALE_REPS)
+            self._num = (1.0 - k) * self._num + k * num
+            self._den = (1.0 - k) * self._den + k * den
+        self._last_phase = phase
+        lo, hi = LOAD_SCALE_RANGE
+        ratio = np.divide(self._num, self._den, out=np.ones_like(self._num), where=self._den > 0.0)
+        return np.clip(ratio, lo, hi)
 
 
 def fit_phase_prior(
@@ -198,9 +295,9 @@ def fit_phase_prior(
                     within[k, b] = x[sel].std()
         with warnings.catch_warnings():  # a bin no rep reached (short reps) is NaN here and filled from its neighbours
             warnings.simplefilter("ignore", RuntimeWarning)
-            mean[:, g] = _fill_nan(np.nanmean(per_rep, axis=0))
+            mean[:, g] = fill_empty_bins(np.nanmean(per_rep, axis=0))
             spread = np.nanstd(per_rep, axis=0, ddof=1) if len(reps) > 1 else within[0]
-        std[:, g] = np.maximum(_fill_nan(spread), MIN_STD)
+        std[:, g] = np.maximum(fill_empty_bins(spread), MIN_STD)
         rest = x[~in_rep & np.isfinite(x)]
         if rest.size >= MIN_REST_SAMPLES:
             rest_mean[g], rest_std[g] = rest.mean(), max(rest.std(), MIN_STD)
@@ -214,7 +311,7 @@ def fit_phase_prior(
     )
 
 
-def _fill_nan(x: np.ndarray) -> np.ndarray:
+def fill_empty_bins(x: np.ndarray) -> np.ndarray:
     """Empty bins take the value of the nearest filled bin (interpolated)."""
     ok = np.isfinite(x)
     if not np.any(ok):
