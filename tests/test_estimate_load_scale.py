@@ -72,20 +72,30 @@ def test_load_scale_is_the_torque_ratio_at_another_load_only_inside_reps_average
     scale.set_load(600.0)
     assert scale.update(arms, np.array([150.0]), -1.0) is None  # between reps: the rest prior stands
     assert scale.update(arms, np.array([150.0]), None) is None
-    np.testing.assert_allclose(scale.update(arms, np.array([150.0]), 0.3), [1.5, 1.5])  # one coordinate: one ratio
-    # a lift that needs twice the training's torque: the average moves by phase progress, not by frames
+    assert scale.update(arms, np.array([150.0]), 0.3) is None  # no progress yet: nothing to average
+    np.testing.assert_allclose(scale.update(arms, np.array([150.0]), 0.35), [1.5, 1.5])  # one coordinate: one ratio
+    # a lift that needs twice the training's torque: the average forgets the 1.5 over LOAD_SCALE_REPS reps of frames
+    k = 0.05 / LOAD_SCALE_REPS  # 20 frames per rep
     s = None
-    for k in range(1, 11):
-        s = scale.update(arms, np.array([200.0]), 0.3 + 0.05 * k)
+    for i in range(1, 11):
+        s = scale.update(arms, np.array([200.0]), 0.35 + 0.05 * i)
+    old = (1.0 - k) ** 10
+    expected = (k * 150.0 * old + 200.0 * (1.0 - old)) / (k * 100.0 * old + 100.0 * (1.0 - old))
     assert s is not None
-    weight_old = (1.0 - 0.05 / LOAD_SCALE_REPS) ** 10  # ten frames, 0.05 of a rep each
-    expected = (weight_old * 150.0 + (1 - weight_old) * 200.0) / 100.0
     np.testing.assert_allclose(s, [expected, expected])
-    # the next rep starts (phase wraps): its progress counts, and a new load restarts the average
+    # each frame weighs the same, however far the phase moved in it (a tracker holding, then jumping)
+    held = LoadScale(_prior(torque=100.0, load=400.0), load_newton=600.0)
+    for i in range(21):
+        held.update(arms, np.array([100.0]), 0.05 * i)
+    jumped = held.update(arms, np.array([300.0]), 1.0)  # one frame that jumped 0.45 of a rep, at 3x the torque
+    # weighted by its phase progress it would count 9 normal frames (ratio 1.77); as one frame, about 1.2
+    assert jumped is not None and 1.1 < jumped[0] < 1.3, jumped
+    # the next rep starts (phase wraps): it goes on; a new load restarts the average
     wrapped = scale.update(arms, np.array([200.0]), 0.02)
     assert wrapped is not None and wrapped[0] > s[0]
     scale.set_load(700.0)
-    np.testing.assert_allclose(scale.update(arms, np.array([1000.0]), 0.5), [LOAD_SCALE_RANGE[1]] * 2)  # bounded
+    assert scale.update(arms, np.array([1000.0]), 0.5) is None
+    np.testing.assert_allclose(scale.update(arms, np.array([1000.0]), 0.55), [LOAD_SCALE_RANGE[1]] * 2)  # bounded
 
 
 def test_the_estimator_scales_the_prior_at_another_load_and_the_hot_start_equals_piqp():
@@ -106,9 +116,17 @@ def test_the_estimator_scales_the_prior_at_another_load_and_the_hot_start_equals
 
     # at the prior's load the profile's torque changes nothing
     np.testing.assert_array_equal(run("proposed", 400.0), run("proposed", 400.0, plain))
-    # at twice the load: the prior alone is the prior scaled by the torque ratio, and proposed moves with it
+    # at twice the load: the prior alone is the prior scaled by its group's torque ratio above the rest level
+    replica, expected = LoadScale(profile.prior, load_newton=800.0), []
+    for q, p in frames:
+        tau = np.asarray(pack.inverse_dynamics(q, np.zeros(n_c), np.zeros(n_c), 800.0))
+        s = replica.update(np.asarray(pack.moment_arms(q)), tau, p)
+        mu = profile.prior.mean_precision(p)[0]
+        base = np.minimum(mu, profile.prior.rest_mean)
+        expected.append(np.clip(mu if s is None else base + s * (mu - base), 0.0, 1.0))
     scaled, unscaled = run("prior", 800.0), run("prior", 800.0, plain)
-    assert np.all(scaled >= unscaled - 1e-12) and scaled.mean() > 1.2 * unscaled.mean()
+    np.testing.assert_allclose(scaled, expected, atol=1e-12)
+    assert np.abs(scaled - unscaled).max() > 0.05
     hot, cold = run("proposed", 800.0), run("proposed", 800.0, hot=False)
     np.testing.assert_allclose(hot, cold, atol=2e-4)
     assert hot.mean() > run("proposed", 800.0, plain).mean()

@@ -534,11 +534,14 @@ class FrameEstimator:
         return result
 
     def _prior_terms(self, phase: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """The prior's (mean, precision) at ``phase``, at this frame's load (N(s mu, (s sigma)^2) when scaled)."""
-        mu, prec = self._required_prior.mean_precision(phase)
+        """The prior's (mean, precision) at ``phase``, at this frame's load: when scaled, the mean's part above the
+        rest level times s (the tone at rest does not grow with the load) and the spread times s."""
+        prior = self._required_prior
+        mu, prec = prior.mean_precision(phase)
         if self._scale is None:
             return mu, prec
-        return mu * self._scale, prec / self._scale**2
+        base = np.minimum(mu, prior.rest_mean) if prior.rest_mean is not None else 0.0
+        return base + self._scale * (mu - base), prec / self._scale**2
 
     @property
     def _required_prior(self) -> PhasePrior:

@@ -39,8 +39,8 @@ MIN_STD = 0.02
 MIN_REST_SAMPLES = 5
 #: Loads closer than this (N) to the prior's are the same load: its prior stands unscaled.
 SAME_LOAD_N = 1.0
-#: Repetitions of movement over which the load scale averages this lift's torque against the training's (an
-#: exponential average weighted by phase progress, so it needs no clock and no frame rate).
+#: Repetitions over which the load scale averages this lift's torque against the training's (an exponential average
+#: over rep frames whose length in frames comes from the phase's progress per frame: no clock, no frame rate).
 LOAD_SCALE_REPS = 3.0
 #: Bounds of the load scale: a prior is not stretched beyond what a few-fold load change could mean.
 LOAD_SCALE_RANGE = (0.25, 4.0)
@@ -197,19 +197,23 @@ class PhasePrior:
 @dataclass
 class LoadScale:
     """Explicit state of the load-scaled prior: per group, how much more (or less) torque this lift needs than the
-    training reps at the same phase, averaged over the last ``LOAD_SCALE_REPS`` repetitions of movement.
+    training reps needed at the same phases, over the last ``LOAD_SCALE_REPS`` repetitions.
 
-    s_g = sum_n |R_ng| |tau_n| / sum_n |R_ng| |tau_train,n(phase)| (its coordinates weighted by the group's moment
-    arms), each sum an exponential average over rep frames weighted by phase progress. The prior of group g is then
-    N(s_g mu_g, (s_g sigma_g)^2): the same relative spread at the level the load asks for. Only at a load other
-    than the prior's (a different load is what the torques then differ by; at the same load they differ by technique,
-    which the prior learned as it is) and only inside reps (the rest prior stands)."""
+    s_g = sum_t sum_n |R_ng| |tau_n(t)| / sum_t sum_n |R_ng| |tau_train,n(phase(t))| over the rep frames t (its
+    coordinates weighted by the group's moment arms; each frame weighs the same, older frames forgotten
+    exponentially over ``LOAD_SCALE_REPS`` reps, counted in frames from the phase's mean progress per frame). The
+    prior of group g is then N(b_g + s_g (mu_g - b_g), (s_g sigma_g)^2), b_g = min(mu_g, its rest mean): what the
+    muscle does above its tone at rest grows with the load, the tone does not.
+    Only at a load other than the prior's (a different load is what the torques then differ by; at the same load they
+    differ by technique, which the prior learned as it is) and only inside reps (the rest prior stands). The sums
+    start at zero, so the first frames weigh no more than later ones; until the phase has moved, the prior stands."""
 
     prior: PhasePrior
     load_newton: float | None = None  # the load of the frames (N); None: not known, no scaling
-    _num: np.ndarray | None = None
+    _num: np.ndarray | None = None  # forgetting sums of this lift's and the training's torque demand per group
     _den: np.ndarray | None = None
     _last_phase: float | None = None
+    _step: float | None = None  # mean phase progress per rep frame (1 / frames per rep)
 
     @property
     def active(self) -> bool:
@@ -227,27 +231,31 @@ class LoadScale:
             self.reset()
 
     def reset(self) -> None:
-        self._num = self._den = self._last_phase = None
+        self._num = self._den = self._last_phase = self._step = None
 
     def update(self, arms: np.ndarray, tau: np.ndarray, phase: float | None) -> np.ndarray | None:
         """The scale per group for this frame (moment arms (n, G), torques (n,)); None where the prior stands as
-        learned (same or unknown load, no training torque, outside reps)."""
+        learned (same or unknown load, no training torque, outside reps, no progress yet)."""
         if not self.active or phase is None or not (0.0 <= phase <= 1.0):
             return None
         train = self.prior.torque_at(phase)
         if train is None or train.shape != tau.shape:
             return None
-        weights = np.abs(arms).T
-        num, den = weights @ np.abs(tau), weights @ train
-        if self._num is None or self._den is None or self._last_phase is None:
-            self._num, self._den = num, den
-        else:
+        if self._last_phase is not None:
             step = phase - self._last_phase
             step = step + 1.0 if step < -0.5 else step  # the next rep began
-            k = min(1.0, max(step, 0.0) / LOAD_SCALE_REPS)
-            self._num = (1.0 - k) * self._num + k * num
-            self._den = (1.0 - k) * self._den + k * den
+            if step > 0.0:
+                self._step = step if self._step is None else 0.9 * self._step + 0.1 * step
         self._last_phase = phase
+        weights = np.abs(arms).T
+        num, den = weights @ np.abs(tau), weights @ train
+        if self._num is None or self._den is None:
+            self._num, self._den = np.zeros_like(num), np.zeros_like(den)
+        k = 0.0 if self._step is None else min(1.0, self._step / LOAD_SCALE_REPS)
+        self._num = (1.0 - k) * self._num + k * num
+        self._den = (1.0 - k) * self._den + k * den
+        if not np.any(self._den > 0.0):
+            return None
         lo, hi = LOAD_SCALE_RANGE
         ratio = np.divide(self._num, self._den, out=np.ones_like(self._num), where=self._den > 0.0)
         return np.clip(ratio, lo, hi)
