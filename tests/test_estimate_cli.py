@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -142,6 +143,17 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     )
     assert rc == 0
     assert read_sto(out).n_rows == load_trial(arm26_trials["emg"], arm26_trials["pack"]).n_frames
+    assert "prior learned at" not in capsys.readouterr().out  # the calibration's own load: the prior as learned
+    # the same lift declared at another load: the prior is scaled by the torques, which are the calibration's here
+    declared = arm26_trials["emg"].with_name("declared_10kg.toml")
+    declared.write_text(
+        arm26_trials["emg"].read_text().replace("body_mass_kg = 70.0\n", "body_mass_kg = 70.0\nload_kg = 10.0\n")
+    )
+    assert _msk_arm26("estimate", declared, "--subject", str(profile_path), "--out", str(tmp_path / "d.sto")) == 0
+    printed = capsys.readouterr().out
+    assert "prior learned at 0 kg, trial at 10 kg: scaled to the load on" in printed, printed
+    low, high = map(float, re.search(r"mean scale per group ([\d.]+)-([\d.]+)", printed).groups())
+    assert 0.97 <= low <= high <= 1.03, printed  # the same torques as the calibration's: about 1
 
     report = tmp_path / "report"
     rc = _msk_arm26("evaluate", arm26_trials["emg"], "--subject", str(profile_path), "--report", str(report))

@@ -544,6 +544,11 @@ class FrameEstimator:
         return base + self._scale * (mu - base), prec / self._scale**2
 
     @property
+    def load_scale(self) -> dict | None:
+        """What the prior's load scale did so far (:meth:`LoadScale.summary`); None when it scaled no frame."""
+        return None if self._load_scale is None else self._load_scale.summary()
+
+    @property
     def _required_prior(self) -> PhasePrior:
         """The prior of a method that reads one (construction refused those methods without it)."""
         if self.prior is None:

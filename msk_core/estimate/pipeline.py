@@ -647,6 +647,7 @@ class TrialEstimate:
     iterations: np.ndarray
     solve_time_s: np.ndarray
     flag_counts: dict[str, int] = field(default_factory=dict)
+    load_scale: dict | None = None  # the prior scaled to the trial's load (FrameEstimator.load_scale); None: not
 
 
 def estimate_trial(
@@ -684,7 +685,8 @@ def estimate_trial(
     )
     for i in counted(range(n), progress, f"{trial.name} [{est.method.value}] (frames)"):
         phase = float(trial.phase[i] if phases is None else phases[i])
-        # qd, qdd and the load only matter to a profile's effects (with torques given, no inverse dynamics runs)
+        # with torques given no inverse dynamics runs: qd and qdd matter to a profile's effects, the load to them and
+        # to the prior's load scale
         res = est.step(
             trial.q[i], trial.qd[i], trial.qdd[i], trial.hand_load_newton, torques=trial.torques[i], phase=phase
         )
@@ -697,4 +699,5 @@ def estimate_trial(
         out.iterations[i] = res.iterations
         out.solve_time_s[i] = res.solve_time_s
     out.flag_counts = dict(est.flag_counts)
+    out.load_scale = est.load_scale
     return out

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from msk_core.errors import EstimationError
+from msk_core.units import GRAVITY
 
 # Groups without EMG: the prior must not pretend to know them. A zero mean with sigma 0.5 is a weak pull towards
 # rest, weaker than any EMG-derived prior (typical sigma 0.02-0.2), so the torque term decides their activation.
@@ -214,6 +215,8 @@ class LoadScale:
     _den: np.ndarray | None = None
     _last_phase: float | None = None
     _step: float | None = None  # mean phase progress per rep frame (1 / frames per rep)
+    frames: int = 0  # frames whose prior was scaled, since the estimator began
+    scale_sum: np.ndarray | None = None  # their scales summed per group (for the mean a report shows)
 
     @property
     def active(self) -> bool:
@@ -257,8 +260,22 @@ class LoadScale:
         if not np.any(self._den > 0.0):
             return None
         lo, hi = LOAD_SCALE_RANGE
-        ratio = np.divide(self._num, self._den, out=np.ones_like(self._num), where=self._den > 0.0)
-        return np.clip(ratio, lo, hi)
+        ratio = np.clip(np.divide(self._num, self._den, out=np.ones_like(self._num), where=self._den > 0.0), lo, hi)
+        self.frames += 1
+        self.scale_sum = ratio.copy() if self.scale_sum is None else self.scale_sum + ratio
+        return ratio
+
+    def summary(self) -> dict | None:
+        """What the scale did, for reports: the prior's load and the last frames' (kg), the frames scaled and the
+        mean scale per group; None when no frame was scaled."""
+        if not self.frames or self.scale_sum is None or self.prior.load_newton is None:
+            return None
+        return {
+            "prior_load_kg": self.prior.load_newton / GRAVITY,
+            "load_kg": None if self.load_newton is None else self.load_newton / GRAVITY,
+            "frames": self.frames,
+            "mean_scale": dict(zip(self.prior.groups, (self.scale_sum / self.frames).round(3).tolist())),
+        }
 
 
 def fit_phase_prior(

@@ -341,6 +341,13 @@ def run_estimate(args: argparse.Namespace) -> int:
         f"{trial.n_frames} frames, {flagged} flagged {run.flag_counts or ''}; median solve "
         f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations"
     )
+    if run.load_scale is not None:
+        scales = sorted(run.load_scale["mean_scale"].values())
+        print(
+            f"prior learned at {run.load_scale['prior_load_kg']:g} kg, trial at {run.load_scale['load_kg']:g} kg: "
+            f"scaled to the load on {run.load_scale['frames']} rep frames (mean scale per group "
+            f"{scales[0]:.2f}-{scales[-1]:.2f}; docs/estimation.md, \"The prior at another load\")"
+        )
     print(f"wrote {args.out}, {torque_path} and {std_path} (Laplace std per activation)")
     return 0
 
