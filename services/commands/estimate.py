@@ -346,7 +346,7 @@ def run_estimate(args: argparse.Namespace) -> int:
         print(
             f"prior learned at {run.load_scale['prior_load_kg']:g} kg, trial at {run.load_scale['load_kg']:g} kg: "
             f"scaled to the load on {run.load_scale['frames']} rep frames (mean scale per group "
-            f"{scales[0]:.2f}-{scales[-1]:.2f}; docs/estimation.md, \"The prior at another load\")"
+            f'{scales[0]:.2f}-{scales[-1]:.2f}; docs/estimation.md, "The prior at another load")'
         )
     print(f"wrote {args.out}, {torque_path} and {std_path} (Laplace std per activation)")
     return 0
