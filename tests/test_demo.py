@@ -93,3 +93,26 @@ def test_cli_help_and_version(repo_root):
         text=True,
     )
     assert bad.returncode == 2 and "missing.mcap" in bad.stderr and "not found" in bad.stderr
+
+
+def test_the_sim_subject_is_calibrated_again_when_the_science_code_changes(tmp_path, monkeypatch):
+    """``msk live --sim`` caches the bundled subject; a cache written by other science code (a new prior, a new
+    calibration) must not be reused, and is removed."""
+    from msk_core.estimate import SubjectProfile
+    from services.sessions import demo_subject
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    cache = tmp_path / "msk-live" / "live-sim"
+    cache.mkdir(parents=True)
+    (cache / "subject_bench_press.json").write_text("{}")  # the name an older version wrote
+    logged: list[str] = []
+    first = demo_subject.sim_subject("bench_press", logged.append)
+    assert first.name == f"subject_bench_press_{demo_subject.science_digest()}.json"
+    assert SubjectProfile.load(first).prior.load_newton is not None  # written by this code: the prior knows its load
+    assert not (cache / "subject_bench_press.json").exists()
+    assert demo_subject.sim_subject("bench_press", logged.append) == first
+    assert logged[-1] == f"reusing the calibrated bundled subject {first}"
+    monkeypatch.setattr(demo_subject, "science_digest", lambda: "0123456789ab")
+    second = demo_subject.sim_subject("bench_press", logged.append)
+    assert second.name == "subject_bench_press_0123456789ab.json" and not first.exists()
+    assert [p.name for p in cache.iterdir()] == [second.name]

@@ -87,15 +87,33 @@ def calibrate(recordings: Path, out: Path, exercise: str, log) -> tuple[Path, di
     return path, report
 
 
+def science_digest() -> str:
+    """A digest of what a calibrated profile depends on besides the recordings: the science code and the model packs
+    (every ``.py`` and ``.json`` under ``msk_core``). A profile calibrated by other code is calibrated again."""
+    import hashlib
+
+    import msk_core
+
+    root = Path(msk_core.__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".json") and "__pycache__" not in p.parts):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
 def sim_subject(pack: str, log) -> Path:
     """The bundled subject calibrated for ``pack`` as ``msk demo`` does, cached under the user cache folder and reused
-    while it is newer than the bundled recordings."""
+    while it is newer than the bundled recordings and was calibrated by this science code (:func:`science_digest`
+    names the file); profiles of other code are removed."""
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "msk-live" / "live-sim"
-    path = cache / f"subject_{pack}.json"
+    path = cache / f"subject_{pack}_{science_digest()}.json"
     newest = max(p.stat().st_mtime for p in (RECORDINGS / "demo").rglob("*") if p.is_file())
     if path.is_file() and path.stat().st_mtime >= newest:
         log(f"reusing the calibrated bundled subject {path}")
         return path
     cache.mkdir(parents=True, exist_ok=True)
+    for stale in [*cache.glob(f"subject_{pack}.json"), *cache.glob(f"subject_{pack}_{'?' * 12}.json")]:
+        stale.unlink(missing_ok=True)  # calibrated by other code, or before the recordings changed
     made, _ = calibrate(RECORDINGS, cache, pack, log)
-    return made
+    return made.rename(path)
