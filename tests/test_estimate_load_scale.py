@@ -127,6 +127,15 @@ def test_the_estimator_scales_the_prior_at_another_load_and_the_hot_start_equals
     scaled, unscaled = run("prior", 800.0), run("prior", 800.0, plain)
     np.testing.assert_allclose(scaled, expected, atol=1e-12)
     assert np.abs(scaled - unscaled).max() > 0.05
+    # another recording (offline: the next trial) starts its own average: its first frame has no progress yet
+    est, zero = FrameEstimator(pack, profile, "prior"), np.zeros(n_c)
+    for q, p in frames:
+        est.step(q, zero, zero, 800.0, phase=p)
+    q, p = frames[5]
+    assert not np.allclose(est.step(q, zero, zero, 800.0, phase=p).activations, unscaled[5])
+    est.new_recording()
+    np.testing.assert_array_equal(est.step(q, zero, zero, 800.0, phase=p).activations, unscaled[5])
+    assert est.load_scale is not None and est.load_scale["frames"] > 0  # the summary counts the whole run
     hot, cold = run("proposed", 800.0), run("proposed", 800.0, hot=False)
     np.testing.assert_allclose(hot, cold, atol=2e-4)
     assert hot.mean() > run("proposed", 800.0, plain).mean()

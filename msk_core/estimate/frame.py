@@ -459,10 +459,15 @@ class FrameEstimator:
             pose = np.zeros(n_c) if self._fitted is None else (self._fitted[0] + self._fitted[1]) / 2
         self.step(np.asarray(pose, dtype=float), np.zeros(n_c), np.zeros(n_c), 0.0, phase=None)
         self.reset_counts()
+        self.new_recording()
+
+    def new_recording(self) -> None:
+        """The next frames are another recording's (offline: the next trial): what the estimator carried over frames
+        starts again (the hot start, the load scale's average, the delay's look-back at the phase); counters stay."""
         self._reset_hot_start()
-        if self._load_scale is not None:  # the throw-away frame's load is not the session's
+        if self._load_scale is not None:
             self._load_scale.set_load(None)
-        if self._phase_history is not None:  # the throw-away frame is no part of the delay's look-back
+        if self._phase_history is not None:
             self._phase_history.clear()
 
     def reset_counts(self) -> None:

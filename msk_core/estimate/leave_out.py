@@ -324,6 +324,7 @@ def _estimate(
     groups = list(est.groups)
     out = []
     for k, t in enumerate(trials):
+        est.new_recording()  # no average or look-back runs on from the previous trial
         arms = t.mechanics(pack).moment_arms
         emg = None
         if live is not None:
