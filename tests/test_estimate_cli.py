@@ -154,6 +154,14 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert "prior learned at 0 kg, trial at 10 kg: scaled to the load on" in printed, printed
     low, high = map(float, re.search(r"mean scale per group ([\d.]+)-([\d.]+)", printed).groups())
     assert 0.97 <= low <= high <= 1.03, printed  # the same torques as the calibration's: about 1
+    declared_report = tmp_path / "declared_report"
+    assert _msk_arm26("evaluate", declared, "--subject", str(profile_path), "--report", str(declared_report)) == 0
+    scaled = json.loads((declared_report / "metrics.json").read_text())["load_scale"]
+    assert list(scaled) == ["declared_10kg"] and scaled["declared_10kg"]["load_kg"] == pytest.approx(10.0)
+    assert (
+        "declared_10kg: the prior, learned at 0 kg, was scaled to the trial's 10 kg"
+        in (declared_report / "report.md").read_text()
+    )
 
     report = tmp_path / "report"
     rc = _msk_arm26("evaluate", arm26_trials["emg"], "--subject", str(profile_path), "--report", str(report))
@@ -164,6 +172,7 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     assert (report / "arm26_emg_TRIlat.png").stat().st_size > 1000
     assert (report / "arm26_emg_torque.png").is_file()
     metrics = json.loads((report / "metrics.json").read_text())
+    assert metrics["load_scale"] == {}  # the calibration's own load
     by_method = {s["method"]: s for s in metrics["scores"]}
     assert by_method["so"]["torque"]["r_elbow_flex"]["r"] > 0.999
     assert by_method["proposed"]["torque"]["r_elbow_flex"]["r"] > 0.95

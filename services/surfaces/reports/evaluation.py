@@ -89,6 +89,10 @@ def write_report(
     for trial in trials:
         plots += plot_trial(trial, runs, subject, out)
     table = markdown_table(scores)
+    # the prior at the trial's load (docs/estimation.md, "The prior at another load"): the same for every method
+    # that reads the prior, so the prior-alone run says it
+    scaled = {t.name: runs[(t.name, "prior")].load_scale for t in trials if (t.name, "prior") in runs}
+    scaled = {name: summary for name, summary in scaled.items() if summary is not None}
     lo_r, hi_r = PUBLISHED_EMG_DRIVEN["r"]
     lo_e, hi_e = PUBLISHED_EMG_DRIVEN["rmse_nm_per_kg"]
     md = [
@@ -101,6 +105,13 @@ def write_report(
         "",
         table,
         "",
+        *(
+            f"{name}: the prior, learned at {v['prior_load_kg']:g} kg, was scaled to the trial's {v['load_kg']:g} kg on "
+            f"{v['frames']} rep frames (mean scale per group {min(v['mean_scale'].values()):.2f}-"
+            f'{max(v["mean_scale"].values()):.2f}; docs/estimation.md, "The prior at another load").'
+            for name, v in scaled.items()
+        ),
+        "",
         "Plots: " + ", ".join(f"[{p.name}]({p.name})" for p in plots),
         "",
     ]
@@ -109,6 +120,7 @@ def write_report(
         "pack": {"name": pack.name, "version": str(pack.version)},
         "scores": [s.__dict__ for s in scores],
         "published_emg_driven": PUBLISHED_EMG_DRIVEN,
+        "load_scale": scaled,
     }
     (out / "metrics.json").write_text(json.dumps(data, indent=2, default=float))
     return data
