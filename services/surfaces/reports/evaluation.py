@@ -91,8 +91,11 @@ def write_report(
     table = markdown_table(scores)
     # the prior at the trial's load (docs/estimation.md, "The prior at another load"): the same for every method
     # that reads the prior, so the prior-alone run says it
-    scaled = {t.name: runs[(t.name, "prior")].load_scale for t in trials if (t.name, "prior") in runs}
-    scaled = {name: summary for name, summary in scaled.items() if summary is not None}
+    scaled: dict[str, dict] = {}
+    for t in trials:
+        summary = runs[(t.name, "prior")].load_scale if (t.name, "prior") in runs else None
+        if summary is not None:
+            scaled[t.name] = summary
     lo_r, hi_r = PUBLISHED_EMG_DRIVEN["r"]
     lo_e, hi_e = PUBLISHED_EMG_DRIVEN["rmse_nm_per_kg"]
     md = [
