@@ -382,6 +382,9 @@ def test_a_subject_pack_named_before_its_frames_is_applied_when_they_come():
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=40, exercise="ana_bench", set_number=1))
     state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=99, exercise="squat", set_number=7))
     assert "session" not in state.changes(0)[1]["topics"]
+    # the operator starts a set before the first frame: the mark carries the facts that wait, not 0 kg
+    mark = state.set_mark_event("start")
+    assert (mark.barbell_mass_kg, mark.exercise, mark.set_mark) == (99, "squat", "start")
     state.on_message(PREFIX + "activations/so", activation_frame("so", [0.1, 0.2], t=1, exercise="ana_bench"))
     now = state.changes(0)[1]
     assert now["topics"]["session"]["exercise"] == "ana_bench" and now["topics"]["session"]["load_kg"] == 40

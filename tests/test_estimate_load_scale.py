@@ -13,7 +13,7 @@ import pytest
 from msk_core.errors import EstimationError, FileFormatError
 from msk_core.estimate import FrameEstimator, PhasePrior, SubjectProfile
 from msk_core.estimate.pipeline import build_prior, calibrate_subject, training_torque
-from msk_core.estimate.prior import LOAD_SCALE_RANGE, LOAD_SCALE_REPS, SAME_LOAD_N, LoadScale
+from msk_core.estimate.prior import LOAD_SCALE_RANGE, LOAD_SCALE_REPS, MIN_STD, SAME_LOAD_N, LoadScale
 from msk_core.estimate.trial import load_trial
 from msk_core.io import read_sto
 from msk_core.model import load_pack
@@ -136,6 +136,10 @@ def test_the_estimator_scales_the_prior_at_another_load_and_the_hot_start_equals
     est.new_recording()
     np.testing.assert_array_equal(est.step(q, zero, zero, 800.0, phase=p).activations, unscaled[5])
     assert est.load_scale is not None and est.load_scale["frames"] > 0  # the summary counts the whole run
+    # a quarter of the load: the spread shrinks with the scale, but not below the prior's floor
+    light, zero = FrameEstimator(pack, profile, "prior"), np.zeros(n_c)
+    stds = np.array([light.step(q, zero, zero, 100.0, phase=p).activation_std for q, p in frames])
+    assert stds.min() >= MIN_STD - 1e-12 and stds.min() < 0.05, stds.min()  # the profile's sigma is 0.05
     hot, cold = run("proposed", 800.0), run("proposed", 800.0, hot=False)
     np.testing.assert_allclose(hot, cold, atol=2e-4)
     assert hot.mean() > run("proposed", 800.0, plain).mean()

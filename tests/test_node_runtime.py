@@ -122,8 +122,16 @@ def test_load_event_gate_takes_load_events_as_the_estimator_does():
     # a subject's own pack before its frames: held, in order, until a frame names it
     assert gate.offer(event("ana_bench", 40)) == [] and gate.offer(event("ana_bench", 45)) == []
     assert gate.offer(event("squat")) == []
-    assert gate.on_frame("ana_bench") == [event("ana_bench", 40), event("ana_bench", 45)]
-    assert gate.refused == 1 and gate.held == []  # "squat": no frame named it before the session's did
+    # what comes after a held event waits behind it, known or not: the facts keep the estimator's order
+    assert gate.offer(event("", 50)) == [] and gate.offer(event("bench_press", 55)) == []
+    assert gate.pending == event("bench_press", 55)  # the newest facts, for an operator's mark meanwhile
+    assert gate.on_frame("ana_bench") == [
+        event("ana_bench", 40),
+        event("ana_bench", 45),
+        event("", 50),
+        event("bench_press", 55),
+    ]
+    assert gate.refused == 1 and gate.held == [] and gate.pending is None  # "squat": still unknown
     assert gate.on_frame("ana_bench") == []
     assert gate.offer(event("ana_bench", 50)) == [event("ana_bench", 50)]  # named by frames: known
     assert gate.offer(event("deadlift")) == [event("deadlift")]  # a shipped pack: another estimator may run it

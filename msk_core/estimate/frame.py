@@ -65,7 +65,7 @@ from msk_core.estimate.pack import (
     fitted_ranges,
     resolve_pack,
 )
-from msk_core.estimate.prior import NO_EMG_STD, LoadScale, PhasePrior
+from msk_core.estimate.prior import MIN_STD, NO_EMG_STD, LoadScale, PhasePrior
 from msk_core.estimate.qp import Backend, EqualityQP, LeastSquaresQP, resolve_backend
 
 if TYPE_CHECKING:
@@ -411,6 +411,8 @@ class FrameEstimator:
                         self.pack.inverse_dynamics(q, qd, qdd, hand_load_newton), dtype=float
                     ) - np.asarray(self.pack.inverse_dynamics(q, qd, qdd, 0.0), dtype=float)
                     tau = tau + (self.effects.load_ratio - 1.0) * load
+            # the load scale compares the torque with the training's at the training's phase: before the effects
+            self._update_load_scale(r, tau, phase)
             if self.effects is not None:
                 r, tau, phase = self._apply_effects(q, qd, lengths, r, tau, phase)
         except Exception as exc:  # the model pack rejected the pose (or failed): the live loop must go on, flagged
@@ -418,7 +420,7 @@ class FrameEstimator:
                 log.warning("model evaluation failed, frame flagged invalid_input: %s: %s", type(exc).__name__, exc)
                 self._model_error_logged = True
             return self._invalid(np.full(n_c, np.nan), phase, "model error")
-        result = self.solve(r, tau, phase, emg)
+        result = self._checked_solve(r, tau, phase, emg)
         if clamped:
             result.clamped = True
             self._count_key("out_of_range_clamped")
@@ -436,9 +438,27 @@ class FrameEstimator:
         :meth:`step` does once the pack has given them; offline work that has the trial's moment arms reuses them).
         ``emg`` as in :meth:`step`; ``load_newton``: the frame's declared load (None: as before, :meth:`step`'s
         ``hand_load_newton``). Flags instead of raising, as :meth:`step`."""
-        self._emg = emg
         if load_newton is not None and self._load_scale is not None:
             self._load_scale.set_load(float(load_newton))
+        self._update_load_scale(r, tau, phase)
+        return self._checked_solve(r, tau, phase, emg)
+
+    def _update_load_scale(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> None:
+        """This frame's load scale (None: the prior as learned) from its moment arms, torques and phase; a frame
+        with unusable numbers neither moves the average nor is scaled."""
+        self._scale = None
+        if self._load_scale is None:
+            return
+        r, tau = np.asarray(r, dtype=float), np.asarray(tau, dtype=float)
+        usable = tau.shape == (len(self.coordinates),) and r.shape == (len(self.coordinates), len(self.groups))
+        if usable and math.isfinite(float(tau.sum()) + float(r.sum())) and phase is not None and math.isfinite(phase):
+            self._scale = self._load_scale.update(r, tau, phase)
+
+    def _checked_solve(
+        self, r: np.ndarray, tau: np.ndarray, phase: float | None, emg: np.ndarray | None
+    ) -> FrameResult:
+        """:meth:`solve` once the load scale is known: the frame's numbers checked, then solved."""
+        self._emg = emg
         n_c = len(self.coordinates)
         if tau.shape != (n_c,) or r.shape != (n_c, len(self.groups)):
             return self._invalid(np.full(n_c, np.nan), phase, "torques wrong shape")
@@ -497,8 +517,6 @@ class FrameEstimator:
 
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         method = self.method
-        if self._load_scale is not None:
-            self._scale = self._load_scale.update(r, tau, phase)
         if self.hot_start and method is not Method.PRIOR:
             hot = self._hot_solve(r, tau, phase)
             if hot is not None:
@@ -546,7 +564,8 @@ class FrameEstimator:
         if self._scale is None:
             return mu, prec
         base = np.minimum(mu, prior.rest_mean) if prior.rest_mean is not None else 0.0
-        return base + self._scale * (mu - base), prec / self._scale**2
+        # a spread scaled down keeps the prior's floor (MIN_STD: no bin becomes a hard constraint)
+        return base + self._scale * (mu - base), np.minimum(prec / self._scale**2, np.maximum(prec, 1.0 / MIN_STD**2))
 
     @property
     def load_scale(self) -> dict | None:

@@ -559,7 +559,9 @@ class LoadEventGate:
     included, so the page never shows as current an exercise the estimator does not estimate.
 
     Before the first frame names it, such an exercise may still be the session's own pack (a subject-scaled JSON):
-    its events are held, in order, applied when a frame names that exercise and refused when frames name another."""
+    its events are held, and every event after them too, so that the facts are applied in the order the estimator
+    applied them. When a frame names an exercise, the held events are released in order, those naming an exercise
+    still unknown refused."""
 
     frame_exercises: set[str] = field(default_factory=set)
     held: list[messages.LoadEvent] = field(default_factory=list)
@@ -572,24 +574,34 @@ class LoadEventGate:
             self._counted += 1
             counts.count_dropped(key, DropReason.INVALID)
 
+    @property
+    def pending(self) -> messages.LoadEvent | None:
+        """The newest held event: the facts in effect as far as the page can tell while they wait (what an
+        operator's set mark carries on, rather than no load at all)."""
+        return self.held[-1] if self.held else None
+
+    def _known(self, event: messages.LoadEvent) -> bool:
+        return not event.exercise or is_known_exercise(event.exercise, tuple(self.frame_exercises))
+
     def offer(self, event: messages.LoadEvent) -> list[messages.LoadEvent]:
-        """The events to apply now: ``event`` when its exercise is known, else none (it waits or is refused)."""
-        if not event.exercise or is_known_exercise(event.exercise, tuple(self.frame_exercises)):
+        """The events to apply now: ``event`` when its exercise is known and nothing waits before it, else none (it
+        waits, or is refused)."""
+        if self._known(event) and not self.held:
             return [event]
-        if self.frame_exercises or len(self.held) >= HELD_LOAD_EVENTS:
+        if not self._known(event) and self.frame_exercises:
             self.refused += 1  # frames already say which exercises the session estimates, and this is none of them
+        elif len(self.held) >= HELD_LOAD_EVENTS:
+            self.refused += 1
         else:
             self.held.append(event)
         return []
 
     def on_frame(self, exercise: str) -> list[messages.LoadEvent]:
-        """A frame of ``exercise`` arrived: the held events it makes known, in order (the others are refused)."""
+        """A frame of ``exercise`` arrived: the held events, in order, that are now known (the others are refused)."""
         if not exercise or exercise in self.frame_exercises:
             return []
         self.frame_exercises.add(exercise)
-        if not self.held:
-            return []
-        released = [e for e in self.held if e.exercise == exercise]
+        released = [e for e in self.held if self._known(e)]
         self.refused += len(self.held) - len(released)
         self.held.clear()
         return released

@@ -431,7 +431,8 @@ class DashboardState:
         if mark not in ("start", "stop"):
             raise ConfigError("must be start or stop", field="mark", value=mark)
         with self._lock:
-            return set_mark_event(self._load, self._reps.sets.number, mark)
+            load = self._load if self._load is not None else self._loads.pending
+            return set_mark_event(load, self._reps.sets.number, mark)
 
     def count_error(self) -> None:
         with self._lock:
