@@ -447,7 +447,7 @@ class FrameEstimator:
         """This frame's load scale (None: the prior as learned) from its moment arms, torques and phase; a frame
         with unusable numbers neither moves the average nor is scaled."""
         self._scale = None
-        if self._load_scale is None:
+        if self._load_scale is None or not self._load_scale.active:  # the prior's own load: nothing to do per frame
             return
         r, tau = np.asarray(r, dtype=float), np.asarray(tau, dtype=float)
         usable = tau.shape == (len(self.coordinates),) and r.shape == (len(self.coordinates), len(self.groups))
