@@ -72,6 +72,26 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
     assert "## Left out" in text and "paper's protocol" in text and all(g in text for g in LEFT_OUT)
     r_groups = summary["targets"]["r_groups"]
     assert f"paired over the {r_groups} groups where both have an r" in text  # the r target's comparison, said
+    assert summary["load_scale"] == {}  # both lifts at 5 kg: the prior as learned
+
+
+def test_a_held_out_trial_at_another_load_says_how_the_prior_was_scaled(shared_dir, tmp_path):
+    """The stoop declared at 15 kg (its torques are the 5 kg lift's): the prior is scaled by the torques, so about
+    by the stoop's torque against the squat's, and the summary and report say so."""
+    committed = _trial("stoop5kg", shared_dir, tmp_path)
+    heavier = tmp_path / "stoop_declared_15kg.toml"
+    text = committed.read_text().replace("load_kg = 5.0", "load_kg = 15.0")
+    heavier.write_text(text.replace('"../../../shared', f'"{committed.parent.resolve() / "../../../shared"}'))
+    report = tmp_path / "report"
+    argv = ["evaluate", "--pack", "lumbar_lift", "--report", str(report), "--leave-out", "iliocost_r"]
+    argv += ["--train", str(_trial("squat5kg", shared_dir, tmp_path)), "--trial", str(heavier)]
+    assert main(argv) == 0
+    scale = json.loads((report / "summary.json").read_text())["load_scale"]
+    assert list(scale) == ["stoop5kg"], scale  # the trial's name, from its file
+    assert scale["stoop5kg"]["prior_load_kg"] == pytest.approx(5.0) and scale["stoop5kg"]["load_kg"] == 15.0
+    values = list(scale["stoop5kg"]["mean_scale"].values())
+    assert scale["stoop5kg"]["frames"] > 100 and 0.9 < min(values) <= max(values) < 1.4, scale
+    assert "stoop5kg: the prior, learned at 5 kg, was scaled to the trial's 15 kg" in (report / "report.md").read_text()
 
 
 def test_leave_out_refuses_a_group_without_an_electrode(shared_dir, tmp_path, capsys):

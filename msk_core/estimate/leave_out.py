@@ -110,6 +110,9 @@ class LeaveOutResult:
     rest_level: dict[str, float]  # group -> the envelope's rest level (on/off threshold = ON_FACTOR x it)
     calibrations: list[CalibrationRun]
     flag_counts: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)  # group|"all" -> method -> flags
+    # held-out trial -> how the calibration's prior was scaled to its load (FrameEstimator.load_scale); only trials
+    # at another load than the calibration's
+    load_scale: dict[str, dict] = field(default_factory=dict)
     seconds: float = 0.0  # wall
     cpu_seconds: float = 0.0  # this process' CPU time (time.process_time): the machine may be shared
 
@@ -262,6 +265,7 @@ def leave_one_out(
         rest_level=rest,
         calibrations=runs,
         flag_counts=flags,
+        load_scale=_load_scales(pack, held_out, profile, options),
         seconds=time.perf_counter() - started,
         cpu_seconds=time.process_time() - cpu_started,
     )
@@ -343,6 +347,23 @@ def _estimate(
             a[i] = res.activations
         out.append(a)
     return out, dict(est.flag_counts)
+
+
+def _load_scales(
+    pack: PackLike, trials: list[TrialData], profile: SubjectProfile, options: dict[str, Any]
+) -> dict[str, dict]:
+    """Per trial, how the profile's prior was scaled to the trial's load: the same for every method that reads the
+    prior (it depends on the torques, moment arms, phase and load only), so the prior alone, which solves no QP,
+    says it."""
+    scales = {}
+    for t in trials:
+        est = FrameEstimator(pack, profile, Method.PRIOR, **options)
+        arms = t.mechanics(pack).moment_arms
+        for i in range(t.n_frames):
+            est.solve(arms[i], t.torques[i], float(t.phase[i]), load_newton=t.hand_load_newton)
+        if est.load_scale is not None:
+            scales[t.name] = est.load_scale
+    return scales
 
 
 def _rest_level(trials: list[TrialData], group: str) -> float:

@@ -79,6 +79,16 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
     return written
 
 
+def load_scale_line(trial: str, scale: dict) -> str:
+    """One report line: how the prior was scaled to ``trial``'s load (:meth:`LoadScale.summary`)."""
+    values = scale["mean_scale"].values()
+    return (
+        f"{trial}: the prior, learned at {scale['prior_load_kg']:g} kg, was scaled to the trial's {scale['load_kg']:g} kg "
+        f"on {scale['frames']} rep frames (mean scale per group {min(values):.2f}-{max(values):.2f}; "
+        'docs/estimation.md, "The prior at another load").'
+    )
+
+
 def write_report(
     pack, subject: SubjectProfile, trials: list[TrialData], out: Path, *, progress: Progress | None = None, **options
 ) -> dict:
@@ -108,12 +118,7 @@ def write_report(
         "",
         table,
         "",
-        *(
-            f"{name}: the prior, learned at {v['prior_load_kg']:g} kg, was scaled to the trial's {v['load_kg']:g} kg on "
-            f"{v['frames']} rep frames (mean scale per group {min(v['mean_scale'].values()):.2f}-"
-            f'{max(v["mean_scale"].values()):.2f}; docs/estimation.md, "The prior at another load").'
-            for name, v in scaled.items()
-        ),
+        *(load_scale_line(name, v) for name, v in scaled.items()),
         "",
         "Plots: " + ", ".join(f"[{p.name}]({p.name})" for p in plots),
         "",
@@ -149,6 +154,7 @@ def leave_out_summary(pack: PackLike, result: LeaveOutResult) -> dict[str, Any]:
         "on_factor": ON_FACTOR,
         "calibrations": [c.to_dict() for c in result.calibrations],
         "flag_counts": result.flag_counts,
+        "load_scale": result.load_scale,
         "seconds": result.seconds,
         "cpu_seconds": result.cpu_seconds,
     }
@@ -278,6 +284,7 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
             result.groups,
             _medians_line(result.medians("paper")),
         ),
+        *(f"{load_scale_line(name, v)}\n" for name, v in result.load_scale.items()),
         f"Calibrations: {len(runs)}, "
         + ", ".join(
             f"{r.left_out or 'all electrodes'} {r.iterations} it. {r.cpu_seconds:.1f} s CPU"
