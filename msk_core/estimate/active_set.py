@@ -74,13 +74,8 @@ def _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
     m = at.shape[0]
     for a in range(nf):  # u = D^-1 rhs
         y[a] = rhs[a] / d[free_idx[a]]
+    _free_gram(at, d, free_idx, nf, s_mat)
     for i in range(m):  # S = I/w + A_F D^-1 A_F' (lower triangle), z = A_F u
-        for j in range(i + 1):
-            acc = 0.0
-            for a in range(nf):
-                fi = free_idx[a]
-                acc += at[i, fi] * at[j, fi] / d[fi]
-            s_mat[i, j] = acc
         s_mat[i, i] += 1.0 / w
         acc = 0.0
         for a in range(nf):
@@ -349,6 +344,20 @@ def _most_violated(state: Array, grad: Array, tol: float) -> int:
 
 
 @_part
+def _free_gram(at: Array, d: Array, free_idx: Array, nf: int, s_mat: Array) -> None:
+    """The lower triangle of A~_F D^-1 A~_F' (F: the first ``nf`` groups of ``free_idx``) into ``s_mat``: the m x m
+    system of the Woodbury solve and of the Laplace std."""
+    m = at.shape[0]
+    for i in range(m):
+        for k in range(i + 1):
+            acc = 0.0
+            for a in range(nf):
+                j = free_idx[a]
+                acc += at[i, j] * at[k, j] / d[j]
+            s_mat[i, k] = acc
+
+
+@_part
 def _cholesky_solve(s_mat: Array, z: Array, m: int, floor: float) -> bool:
     """z <- S^-1 z for the symmetric S in the lower triangle of s_mat[:m, :m], factorised in place (S = L L');
     False when a squared pivot is not above ``floor`` (S not numerically positive definite)."""
@@ -475,13 +484,8 @@ def _laplace_std(at: Array, w: float, d: Array, equality: bool, x: Array, lb: Ar
         if lb[j] + BOUND_TOL < x[j] < ub[j] - BOUND_TOL:
             free[n_free] = j
             n_free += 1
+    _free_gram(at, d, free, n_free, s_mat)
     for i in range(m):
-        for k in range(i + 1):
-            acc = 0.0
-            for a in range(n_free):
-                j = free[a]
-                acc += at[i, j] * at[k, j] / d[j]
-            s_mat[i, k] = acc
         big = max(big, s_mat[i, i])
         if not equality:
             s_mat[i, i] += 1.0 / w if w > 0.0 else np.inf
