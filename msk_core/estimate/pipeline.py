@@ -16,7 +16,7 @@ from msk_core.estimate.frame import FrameEstimator, Method
 from msk_core.estimate.mechanics import min_effort_of
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.phase import LivePhase, PhaseModel, learn_phase_model
-from msk_core.estimate.prior import PhasePrior, fill_empty_bins, fit_phase_prior
+from msk_core.estimate.prior import PhasePrior, fill_empty_bins, fit_phase_prior, phase_bins
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress, counted
@@ -109,7 +109,7 @@ def training_torque(trials: list[TrialData], n_bins: int) -> tuple[np.ndarray | 
         return None, None
     tau = np.concatenate([np.abs(t.torques[m]) for t, m in in_reps])
     phase = np.concatenate([t.phase[m] for t, m in in_reps])
-    bins = np.minimum((np.clip(np.nan_to_num(phase, nan=0.0), 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
+    bins = phase_bins(phase, n_bins)
     count = np.bincount(bins, minlength=n_bins).astype(float)
     torque = np.full((n_bins, tau.shape[1]), np.nan)
     filled = count > 0

@@ -278,6 +278,12 @@ class LoadScale:
         }
 
 
+def phase_bins(phases: np.ndarray, n_bins: int) -> np.ndarray:
+    """The prior's bin of each phase in [0, 1] (unknown phases in the first; what the prior and its training torque
+    are binned by)."""
+    return np.minimum((np.clip(np.nan_to_num(phases, nan=0.0), 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
+
+
 def fit_phase_prior(
     groups: Sequence[str],
     emg: dict[str, np.ndarray],
@@ -303,7 +309,7 @@ def fit_phase_prior(
     rest_std = np.full(n_groups, NO_EMG_STD)
     if not np.any(in_rep):
         raise EstimationError("no repetition found: cannot build a phase prior")
-    bins = np.minimum((np.clip(np.nan_to_num(phases, nan=0.0), 0.0, 1.0) * n_bins).astype(int), n_bins - 1)
+    bins = phase_bins(phases, n_bins)
     reps = np.unique(rep_index[in_rep])
     for g, name in enumerate(groups):
         if name not in emg:
