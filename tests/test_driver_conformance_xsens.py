@@ -241,8 +241,7 @@ def test_tracker_reconnects_after_unplug_through_a_stable_port_name(tmp_path):
     """/dev/serial/by-id names survive a replug while /dev/ttyUSBn may not: a symlink plays that stable name."""
     link = tmp_path / "usb-Xsens_MTi-G-710-if00"
     source = synthetic_imu(seconds=20.0)
-    sim = XsensSimulator(source, speed=2.0, device_id=0x03700ABC).start()
-    link.symlink_to(sim.path)
+    sim = XsensSimulator(source, speed=2.0, device_id=0x03700ABC, stable_link=link).start()
     trackers = TrackerSet(retry_interval_s=0.05)
     try:
         device = XsensDevice(SerialTransport(str(link), baudrate=921600))
@@ -257,9 +256,8 @@ def test_tracker_reconnects_after_unplug_through_a_stable_port_name(tmp_path):
             assert trackers.read() == []
             time.sleep(0.02)
         assert "03700ABC" in trackers.disconnected and "reconnect failed" in device.stats.last_error
-        sim = XsensSimulator(source, speed=2.0, device_id=0x03700ABC).start()  # replugged: a new tty
-        link.unlink()
-        link.symlink_to(sim.path)
+        assert not link.exists()  # unplugged: udev removed the stable name
+        sim = XsensSimulator(source, speed=2.0, device_id=0x03700ABC, stable_link=link).start()  # replugged
         after = read_until(trackers, lambda r: len(r) >= 20, seconds=8)
         connected = list(trackers.devices)
     finally:
@@ -277,14 +275,11 @@ def test_tracker_reconnects_after_unplug_through_a_stable_port_name(tmp_path):
 def test_reconnect_refuses_another_device_on_the_same_port(tmp_path):
     link = tmp_path / "tracker"
     source = synthetic_imu(seconds=5.0)
-    sim = XsensSimulator(source, speed=2.0, device_id=0x03700001).start()
-    link.symlink_to(sim.path)
+    sim = XsensSimulator(source, speed=2.0, device_id=0x03700001, stable_link=link).start()
     device = XsensDevice(SerialTransport(str(link)))
     device.configure(100)
     sim.unplug()
-    other = XsensSimulator(source, speed=2.0, device_id=0x03700002).start()
-    link.unlink()
-    link.symlink_to(other.path)
+    other = XsensSimulator(source, speed=2.0, device_id=0x03700002, stable_link=link).start()
     try:
         with pytest.raises(ProtocolError, match="device 03700002 answered where 03700001 was"):
             device.reconnect()
@@ -379,8 +374,7 @@ def test_switching_the_baud_rate_through_a_reset():
 def test_a_port_back_without_its_device_is_probed_once_and_retried_ever_more_slowly(tmp_path):
     """A USB-serial converter can come back while the sensor behind it is off: a silent tty."""
     link = tmp_path / "tracker"
-    sim = XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0, device_id=0x03700001).start()
-    link.symlink_to(sim.path)
+    sim = XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0, device_id=0x03700001, stable_link=link).start()
     trackers = TrackerSet(retry_interval_s=0.01, retry_max_s=0.04)
     device = XsensDevice(SerialTransport(str(link)))
     device.configure(100)
@@ -390,7 +384,6 @@ def test_a_port_back_without_its_device_is_probed_once_and_retried_ever_more_slo
     read_until(trackers, lambda r: "03700001" in trackers.disconnected)
     master, slave = os.openpty()  # the silent port
     tty.setraw(slave)
-    link.unlink()
     link.symlink_to(os.ttyname(slave))
     try:
         delays = []

@@ -65,8 +65,7 @@ def test_trigno_node_publishes_each_emg_channel_of_active_sensors_only():
 def test_xsens_node_reports_an_unplugged_tracker_and_its_return(tmp_path):
     link = tmp_path / "usb-Xsens_MTi-if00"  # a stable port name, as /dev/serial/by-id gives
     source = synthetic_imu(seconds=30.0)
-    sim = XsensSimulator(source, speed=1.0, device_id=0x03700ABC).start()
-    link.symlink_to(sim.path)
+    sim = XsensSimulator(source, speed=1.0, device_id=0x03700ABE, stable_link=link).start()
     trackers = TrackerSet(retry_interval_s=0.05)
     published: list = []
     stop = threading.Event()
@@ -89,15 +88,13 @@ def test_xsens_node_reports_an_unplugged_tracker_and_its_return(tmp_path):
         time.sleep(0.5)
         sim.unplug()
         deadline = time.monotonic() + 3.0
-        while "03700ABC" not in trackers.disconnected and time.monotonic() < deadline:
+        while "03700ABE" not in trackers.disconnected and time.monotonic() < deadline:
             time.sleep(0.02)
         time.sleep(0.3)
         sim.close()
-        sim = XsensSimulator(source, speed=1.0, device_id=0x03700ABC).start()  # replugged: a new tty
-        link.unlink()
-        link.symlink_to(sim.path)
+        sim = XsensSimulator(source, speed=1.0, device_id=0x03700ABE, stable_link=link).start()  # replugged
         deadline = time.monotonic() + 8.0
-        while "03700ABC" in trackers.disconnected and time.monotonic() < deadline:
+        while "03700ABE" in trackers.disconnected and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(0.5)
     finally:
@@ -107,8 +104,8 @@ def test_xsens_node_reports_an_unplugged_tracker_and_its_return(tmp_path):
         sim.close()
     report = published.pop()
     assert report.states == ["disconnected", "reconnected"]
-    connected = [m.connected for k, m in published if k == topics.status_key("lab", "03700ABC")]
+    connected = [m.connected for k, m in published if k == topics.status_key("lab", "03700ABE")]
     # up, down for a while, up again; the last status, at the driver's stop, says disconnected
     assert connected[0] and not all(connected) and connected[-2] and not connected[-1]
-    imu = [m for k, m in published if k == topics.imu_key("lab", "03700ABC")]
+    imu = [m for k, m in published if k == topics.imu_key("lab", "03700ABE")]
     assert len(imu) == report.samples > 50

@@ -87,12 +87,16 @@ class XsensSimulator:
         trial_clock: TrialClock | None = None,
         latency_s: float = 0.0,
         measure_not_before: Callable[[], float | None] | None = None,
+        stable_link: str | os.PathLike[str] | None = None,
     ) -> None:
         """``trial_clock``: the one world a session's simulators sample (None: each entry into Measurement continues
         the trial from where it stopped); ``latency_s``: device seconds between measuring a sample and its bytes
         leaving; ``measure_not_before``: the earliest wall instant (``time.monotonic()``) the tracker measures from
         after entering Measurement, None while it is not known yet (it waits): a tracker switched on after another
-        device, e.g. a given time after the Trigno starts."""
+        device, e.g. a given time after the Trigno starts; ``stable_link``: a path that names this tracker while it
+        is plugged in, as udev's ``/dev/serial/by-id`` link does: created at :meth:`start`, removed at
+        :meth:`unplug` and :meth:`close`. A host reconnecting through it finds nothing while the tracker is away,
+        even when the freed pseudo-terminal goes to another device meanwhile."""
         if not (math.isfinite(speed) and speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=speed)
         if not (math.isfinite(latency_s) and latency_s >= 0):
@@ -114,6 +118,7 @@ class XsensSimulator:
         self.stats = SimulatorStats(latency_s=latency_s)
         self.baudrate = DEFAULT_BAUDRATE
         self.path = ""
+        self.stable_link = os.fspath(stable_link) if stable_link is not None else None
         self.measuring = False
         self.unplugged = False
         self._held = False
@@ -149,6 +154,10 @@ class XsensSimulator:
         tty.setraw(self._master)
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
+        if self.stable_link is not None:
+            staged = f"{self.stable_link}.{os.getpid()}.{threading.get_ident()}"
+            os.symlink(self.path, staged)
+            os.replace(staged, self.stable_link)  # atomic, as udev replaces a link
         self._powered_at = time.monotonic()
         self._thread = threading.Thread(target=self._run, daemon=True, name="xsens-sim")
         self._thread.start()
@@ -174,6 +183,9 @@ class XsensSimulator:
         self._close_fds()
 
     def _close_fds(self) -> None:
+        link = self.stable_link
+        if link is not None and os.path.islink(link) and os.readlink(link) == self.path:
+            os.unlink(link)  # the device is gone: so is its name
         with self._lock:
             for fd in (self._master, self._slave):
                 if fd >= 0:
