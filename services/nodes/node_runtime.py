@@ -62,6 +62,7 @@ MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 MAX_QUEUE = 20_000
 QUEUE_WAIT_S = 1.0
 STATUS_PERIOD_S = 1.0
+FACTS_JOIN_S = 3.0  # close() waits this long for fetch_session_facts (its history query times out after 2 s)
 #: the shortest silence of an input stream counted as an outage (s); a stream slower than 1/20 s needs 10 periods
 OUTAGE_MIN_S = 0.5
 OUTAGE_PERIODS = 10
@@ -385,6 +386,7 @@ class NodeInputs:
         self._queue: queue.Queue = queue.Queue(max_queue)
         self._subscribers: list[zenoh.Subscriber] = []
         self._closed = False
+        self._facts: threading.Thread | None = None  # fetch_session_facts' thread, joined by close()
 
     def subscribe(self, key_expr: str) -> None:
         if self.role is not None:
@@ -414,10 +416,14 @@ class NodeInputs:
         from services.nodes.readiness import GraphTimeout, wait_for_nodes
         from services.transport.session_graph import NODES
 
+        def closed() -> str | None:
+            return "the reader closed" if self._closed else None
+
         def fetch() -> None:
             try:
-                wait_for_nodes(self._zsession, session, (NODES["monitor"].name,), timeout_s)
-                self.fetch_history(topics.load_key(session))
+                wait_for_nodes(self._zsession, session, (NODES["monitor"].name,), timeout_s, give_up=closed)
+                if not self._closed:
+                    self.fetch_history(topics.load_key(session))
             except GraphTimeout:
                 return
             except Exception as error:  # a session closed meanwhile: the facts come with the next change
@@ -425,6 +431,7 @@ class NodeInputs:
 
         thread = threading.Thread(target=fetch, name=f"{self.node}-facts", daemon=True)
         thread.start()
+        self._facts = thread
         return thread
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -488,6 +495,12 @@ class NodeInputs:
         if self._closed:
             return
         self._closed = True
+        if self._facts is not None:
+            # A thread still inside Zenoh when the interpreter exits aborts the process ("FATAL: exception not
+            # rethrown"): the fetch gives up within 0.1 s of the close, or its history query within its timeout.
+            self._facts.join(FACTS_JOIN_S)
+            if self._facts.is_alive():
+                log.warning("%s: the session facts' fetch did not stop within %g s", self.node, FACTS_JOIN_S)
         for subscriber in self._subscribers:
             subscriber.undeclare()
 
