@@ -45,8 +45,8 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
         for group in LEFT_OUT:
             assert list(summary[table][group]) == list(methods)
             for method, scores in summary[table][group].items():
-                assert set(scores) == {"rmse", "r", "lag_ms", "on_off_agreement"}, (group, method)
-                assert 0 < scores["rmse"] < 0.5, (table, group, method, scores)
+                assert set(scores) == {"rmse", "r", "lag_ms", "on_off_agreement", "rmse_aligned", "r_aligned"}
+                assert 0 < scores["rmse"] < 0.5 and 0 < scores["rmse_aligned"] < 0.5, (table, group, method, scores)
                 assert 0 <= scores["on_off_agreement"] <= 1, (table, group, method, scores)
                 if math.isfinite(scores["r"]):  # hybrid may sit at a constant (its r is then undefined)
                     assert -1 <= scores["r"] <= 1 and abs(scores["lag_ms"]) <= 1000 * MAX_LAG_S + 1
@@ -66,10 +66,13 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
     medians = summary["medians"]["leave_one_out"]
     assert set(medians) == set(LEAVE_OUT_METHODS) and all(math.isfinite(v["rmse"]) for v in medians.values())
     assert set(summary["targets"]["per_group"]) == set(LEFT_OUT)
+    assert set(summary["targets_aligned"]["per_group"]) == set(LEFT_OUT)
+    assert set(summary["medians_aligned"]["paper_protocol"]) == set(PAPER_METHODS)
     for group in LEFT_OUT:
         assert (report / f"leave_out_{group}.png").stat().st_size > 1000
     text = (report / "report.md").read_text()
     assert "## Left out" in text and "paper's protocol" in text and all(g in text for g in LEFT_OUT)
+    assert "## Against the delay-aligned envelope" in text
     r_groups = summary["targets"]["r_groups"]
     assert f"paired over the {r_groups} groups where both have an r" in text  # the r target's comparison, said
     assert summary["load_scale"] == {}  # both lifts at 5 kg: the prior as learned
@@ -198,8 +201,10 @@ def test_leave_out_on_a_walk_excerpt_with_force_plate_cycles(shared_dir, tmp_pat
     scores = result.leave_one_out["soleus_r"]
     assert set(scores) == set(LEAVE_OUT_METHODS)
     assert all(0 < s.rmse < 0.5 for s in scores.values()), scores
-    # the soleus follows the ankle's plantarflexion demand without its electrode (0.6-0.7 on the full walk)
+    # the soleus follows the ankle's plantarflexion demand without its electrode (0.6-0.7 on the full walk), later
+    # than its envelope by about the calibrated delay: against the delayed envelope it correlates better (0.94)
     assert scores["proposed"].r > 0.4, scores["proposed"]
+    assert scores["proposed"].lag_ms > 0 and scores["proposed"].r_aligned > scores["proposed"].r, scores["proposed"]
     assert result.cpu_seconds > 0 and all(run.cpu_seconds > 0 for run in result.calibrations)
 
 
@@ -245,3 +250,28 @@ def test_live_synergists_meet_both_targets_on_the_lifts(shared_dir, tmp_path):
     assert live["r_groups"] == 6  # so gives both rectus abdominis a constant (their r undefined)
     assisted = leave_one_out(pack, [train], [held], live_synergists=False, **options).method_targets("assisted")
     assert assisted["rmse_met"] and not assisted["r_met"], assisted
+
+
+def test_aligned_scores_compare_with_the_envelope_delayed_by_the_calibrated_delay():
+    """An estimate that is exactly the envelope delayed by d (a(t) = e(t - d), the calibration's model) scores RMSE 0
+    and r 1 against the aligned envelope, and less against the envelope as recorded; delayed the other way, worse."""
+    from msk_core.estimate.leave_out import _agreement
+    from tests.test_estimate_no_emg_prior import ConstantPack, _trial
+
+    trial = _trial()
+    d = 0.08
+    envelope = trial.emg["g0"]
+    delayed = np.interp(trial.time - d, trial.time, envelope)
+    early = np.interp(trial.time + d, trial.time, envelope)
+    pack = ConstantPack()
+    j = list(pack.groups).index("g0")
+
+    def scores(signal):
+        est = np.zeros((trial.n_frames, len(pack.groups)))
+        est[:, j] = signal
+        return _agreement([trial], [est], pack, "g0", 0.01, d)
+
+    right, wrong = scores(delayed), scores(early)
+    assert right.rmse_aligned < 1e-12 and right.r_aligned > 1 - 1e-12
+    assert right.rmse > 0.01 and right.r < right.r_aligned and right.lag_ms > 0
+    assert wrong.rmse_aligned > right.rmse and wrong.lag_ms < 0
