@@ -40,8 +40,12 @@ def test_the_papers_protocol_on_the_walk(shared_dir, tmp_path):
     scores = {s["method"]: s for s in json.loads((report / "metrics.json").read_text())["scores"]}
     rmse = {m: s["activation_rmse"]["mean"] for m, s in scores.items()}
     torque_r = {c: t["r"] for c, t in scores["proposed"]["torque"].items()}
-    print(f"walk, held-out half: activation RMSE {rmse}; proposed torque R {torque_r}")
+    aligned = {m: s["activation_rmse_aligned"]["mean"] for m, s in scores.items()}
+    print(f"walk, held-out half: activation RMSE {rmse}, aligned {aligned}; proposed torque R {torque_r}")
     assert rmse["proposed"] < 0.85 * rmse["so"]
+    # against the envelopes delayed by the calibrated delay (96 ms): proposed below so and below the prior alone
+    # (measured 0.0295 / 0.0692 / 0.0311; as recorded the prior alone ties, 0.0603 / 0.0599)
+    assert aligned["proposed"] < 0.5 * aligned["so"] and aligned["proposed"] < aligned["prior"], aligned
     assert min(torque_r[c] for c in ("hip_adduction_r", "hip_rotation_r", "ankle_angle_r")) >= 0.95
     assert min(torque_r[c] for c in ("hip_flexion_r", "knee_angle_r")) >= 0.9
     assert all(not s["flag_counts"].get("solver_failed") for s in scores.values())

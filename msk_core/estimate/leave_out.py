@@ -42,6 +42,7 @@ from msk_core.estimate.metrics import cross_correlation_lag, on_off_agreement, p
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import NoEmgPrior, NoEmgStrength, calibrate_inputs, calibration_inputs
 from msk_core.estimate.profile import SubjectProfile
+from msk_core.estimate.scores import calibrated_delay
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
 
@@ -270,7 +271,7 @@ def leave_one_out(
         syn = {u: h for u, h in (synergists or {}).items() if h != g}
         profile_g, run_g = _calibrate(pack, trials_g, g, syn, kwargs)
         runs.append(run_g)
-        delay = float(profile_g.calibration["emd"]["delay_s"])
+        delay = calibrated_delay(profile_g)
         live = [shift_emg(without_electrode(t, g), delay) for t in held_out]
         estimates = {
             m: _estimate(pack, held_out, profile_g, m, live if m == "assisted" else None, options)

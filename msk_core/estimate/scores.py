@@ -3,11 +3,12 @@ prior band the report plots. The report files and plots: :mod:`services.surfaces
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from msk_core.errors import EstimationError
+from msk_core.estimate.emd import shift_emg
 from msk_core.estimate.metrics import activation_rmse, torque_tracking
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate, estimate_trial, trial_phase
@@ -28,6 +29,9 @@ class MethodScore:
     torque: dict[str, dict[str, float]]
     flag_counts: dict[str, int]
     frames: int
+    # against the envelopes delayed by the subject's calibrated electromechanical delay (a(t) = e(t - d), the
+    # calibration's model of activation; docs/estimation.md "Leave one electrode out")
+    activation_rmse_aligned: dict[str, float] = field(default_factory=dict)
 
 
 def evaluate(
@@ -41,7 +45,9 @@ def evaluate(
 ) -> tuple[list[MethodScore], dict[tuple[str, str], TrialEstimate]]:
     """Every method over every trial; ``options`` go to each :class:`FrameEstimator` (solver, activation bounds)."""
     scores, runs = [], {}
+    delay_s = calibrated_delay(subject)
     for trial in trials:
+        aligned = shift_emg(trial, delay_s).emg
         for method in methods:
             run = estimate_trial(pack, trial, method, subject=subject, progress=progress, **options)
             runs[(trial.name, method)] = run
@@ -53,9 +59,16 @@ def evaluate(
                     torque=torque_tracking(run.model_torques, run.torques, run.coordinates, trial.body_mass_kg),
                     flag_counts=run.flag_counts,
                     frames=trial.n_frames,
+                    activation_rmse_aligned=activation_rmse(run.activations, run.groups, aligned),
                 )
             )
     return scores, runs
+
+
+def calibrated_delay(subject: SubjectProfile) -> float:
+    """The subject's calibrated electromechanical delay in seconds (0 for a profile without one)."""
+    delay = (subject.calibration.get("emd") or {}).get("delay_s", 0.0)
+    return float(delay) if delay is not None and np.isfinite(delay) else 0.0
 
 
 def prior_band(trial: TrialData, subject: SubjectProfile) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from msk_core.estimate.leave_out import ON_FACTOR, Agreement, LeaveOutResult
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate
 from msk_core.estimate.profile import SubjectProfile
-from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, evaluate, prior_band
+from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, calibrated_delay, evaluate, prior_band
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
 from services.surfaces.reports import pyplot, save_figure
@@ -23,13 +23,14 @@ from services.surfaces.reports import pyplot, save_figure
 def markdown_table(scores: list[MethodScore]) -> str:
     groups = [g for g in scores[0].activation_rmse if g != "mean"] if scores else []
     coords = list(scores[0].torque) if scores else []
-    head = ["trial", "method", "act. RMSE (mean)"] + groups
+    head = ["trial", "method", "act. RMSE (mean)", "aligned (mean)"] + groups
     for c in coords:
         head += [f"{c} R", f"{c} RMSE N·m", f"{c} RMSE N·m/kg"]
     head += ["flagged frames"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in scores:
-        row = [s.trial, s.method, f"{s.activation_rmse['mean']:.4f}"] + [f"{s.activation_rmse[g]:.4f}" for g in groups]
+        row = [s.trial, s.method, f"{s.activation_rmse['mean']:.4f}", f"{s.activation_rmse_aligned['mean']:.4f}"]
+        row += [f"{s.activation_rmse[g]:.4f}" for g in groups]
         for c in coords:
             t = s.torque[c]
             row += [f"{t['r']:.3f}", f"{t['rmse_nm']:.2f}", f"{t['rmse_nm_per_kg']:.3f}"]
@@ -112,7 +113,9 @@ def write_report(
         f"# Evaluation: pack {pack.name} v{pack.version}, subject calibrated on "
         f"{', '.join(Path(p).name for p in subject.provenance.get('trials', []))}",
         "",
-        "Activation RMSE: estimated vs measured (normalised EMG envelope) activation, per group with EMG.",
+        "Activation RMSE: estimated vs measured (normalised EMG envelope) activation, per group with EMG; "
+        f"'aligned': against the envelopes delayed by the calibrated electromechanical delay "
+        f"({1000 * calibrated_delay(subject):.0f} ms), the activation they imply under the calibration's model.",
         "Torque: model torque vs inverse dynamics (Pearson R, RMSE).",
         f"Published EMG-driven range for such lifts: R {lo_r}-{hi_r}, RMSE {lo_e}-{hi_e} N·m/kg.",
         "",
