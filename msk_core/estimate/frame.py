@@ -182,7 +182,7 @@ class FrameEstimator:
         hot_start_max_changes: int | None = None,
         emg_std: float = 0.05,
         emg_relative_std: float = 0.1,
-        live_synergists: bool = False,
+        live_synergists: bool = True,
     ) -> None:
         self.pack = resolve_pack(pack)
         try:

@@ -260,11 +260,8 @@ def leave_one_out(
     runs, paper, flags, curves = [run], {}, {}, {}
     paper_estimates = {m: _estimate(pack, held_out, profile, m, None, options) for m in PAPER_METHODS}
     flags["all"] = {m: counts for m, (_, counts) in paper_estimates.items()}
-    paper_delay = run.emd_ms / 1000.0
     for g in chosen:
-        paper[g] = {
-            m: _agreement(held_out, est, pack, g, rest[g], paper_delay) for m, (est, _) in paper_estimates.items()
-        }
+        paper[g] = _agreements(held_out, paper_estimates, pack, g, rest[g], calibrated_delay(profile))
     loo = {}
     for done, g in enumerate(chosen, start=2):
         trials_g = [without_electrode(t, g) for t in train]
@@ -278,7 +275,7 @@ def leave_one_out(
             for m in LEAVE_OUT_METHODS
         }
         flags[g] = {m: counts for m, (_, counts) in estimates.items()}
-        loo[g] = {m: _agreement(held_out, est, pack, g, rest[g], delay) for m, (est, _) in estimates.items()}
+        loo[g] = _agreements(held_out, estimates, pack, g, rest[g], delay)
         curves[g] = _curves(held_out, pack, g, estimates, paper_estimates["proposed"][0], delay)
         if progress is not None:
             progress(done, total, "leave-one-out (calibrations)")
@@ -397,6 +394,18 @@ def _rest_level(trials: list[TrialData], group: str) -> float:
     e = np.concatenate([t.emg[group] for t in trials if group in t.emg])
     e = e[np.isfinite(e)]
     return max(float(np.percentile(e, REST_PERCENTILE)), MIN_ON_LEVEL) if e.size else MIN_ON_LEVEL
+
+
+def _agreements(
+    trials: list[TrialData],
+    estimates: dict[str, tuple[list[np.ndarray], dict[str, int]]],
+    pack: PackLike,
+    group: str,
+    rest: float,
+    delay_s: float,
+) -> dict[str, Agreement]:
+    """:func:`_agreement` of each method's estimates."""
+    return {m: _agreement(trials, est, pack, group, rest, delay_s) for m, (est, _) in estimates.items()}
 
 
 def _agreement(

@@ -226,10 +226,10 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--live-synergists",
         choices=["on", "off"],
-        default="off",
+        default="on",
         help="assisted: a group without EMG whose measured synergist (most similar moment arms) has a live envelope "
         "follows it, scaled to its own prior level and weighted by the error that hypothesis shows between the "
-        "measured synergists (docs/estimation.md, 'Live EMG and assisted'); default off",
+        "measured synergists (docs/estimation.md, 'Live EMG and assisted'); default on",
     )
 
 
