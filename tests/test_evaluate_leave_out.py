@@ -134,13 +134,13 @@ def test_no_emg_strength_measured_puts_unmeasured_groups_on_the_measured_scale(s
 WALK = Path(__file__).resolve().parents[1] / "recordings" / "lowerlimb-walk"
 
 
-def _walk_excerpt(shared_dir: Path, tmp_path: Path, name: str, start: float, end: float, *, grf: bool) -> Path:
-    """A window of the walk's trial file, its reps the gait cycles from the force plate (``grf``) or from the
-    kinematics (the committed files' hip-flexion reps)."""
+def _walk_excerpt(shared_dir: Path, tmp_path: Path, name: str, start: float, end: float | None, *, grf: bool) -> Path:
+    """A window of the walk's trial file (``end`` None: to the end), its reps the gait cycles from the force plate
+    (``grf``) or from the kinematics (the committed files' hip-flexion reps)."""
     data = (shared_dir / "data" / "lowerlimb-walk").resolve()
     text = (WALK / "walk_train.toml").read_text().replace("../../../shared/data/lowerlimb-walk", str(data))
     text = "\n".join(line for line in text.splitlines() if not line.startswith(("end =", "name =")))
-    text = f'name = "{name}"\nstart = {start}\nend = {end}\n' + text
+    text = f'name = "{name}"\nstart = {start}\n' + ("" if end is None else f"end = {end}\n") + text
     if grf:
         text = text.replace('phase_signal = "hip_flexion_r"', f'grf = "{data / "walk45_XLD.mot"}"')
     path = tmp_path / f"{name}.toml"
@@ -184,20 +184,33 @@ def test_gait_cycles_from_the_force_plate(shared_dir, tmp_path):
         load_trial(both, pack)
 
 
-def test_leave_out_on_a_walk_excerpt_with_force_plate_cycles(shared_dir, tmp_path):
-    """The leave-one-out on a short real walk (15 s calibrates, 8 s held out, gait cycles from the force plate):
-    every calibration converges with the reduced solver, the soleus without its electrode is scored, and its
-    calibration has no factor of its own."""
+HALF_WALK_S = 29.268  # the right heel strike nearest the middle of the walk (the committed trial files)
+
+
+def test_leave_out_on_the_walk_with_force_plate_cycles_meets_the_targets_against_the_aligned_envelope(
+    shared_dir, tmp_path
+):
+    """The full leave-one-out on the real walk (first half calibrates, second half held out, gait cycles from the
+    force plate), defaults: every calibration converges with the reduced solver and has no factor for the group it
+    leaves out. Against the envelope delayed by the calibrated delay (docs/estimation.md, "Leave one electrode out";
+    measured 27 Nov: assisted 0.0467 vs so 0.0594, r 0.88 vs 0.71) the three walk targets are met; against the
+    envelope as recorded only the r above so's (0.55 vs 0.33; RMSE -14 %)."""
     from msk_core.estimate.leave_out import leave_one_out
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
 
     pack = load_pack("gait2392")
-    train = load_trial(_walk_excerpt(shared_dir, tmp_path, "train", 5.0, 20.0, grf=True), pack)
-    held = load_trial(_walk_excerpt(shared_dir, tmp_path, "held", 35.0, 43.0, grf=True), pack)
-    result = leave_one_out(pack, [train], [held], groups=["soleus_r"])
+    train = load_trial(_walk_excerpt(shared_dir, tmp_path, "train", 0.0, HALF_WALK_S, grf=True), pack)
+    held = load_trial(_walk_excerpt(shared_dir, tmp_path, "held", HALF_WALK_S, None, grf=True), pack)
+    result = leave_one_out(pack, [train], [held])
+    assert len(result.groups) == 9
     assert all(run.converged for run in result.calibrations), [r.to_dict() for r in result.calibrations]
-    assert "soleus_r" not in result.calibrations[1].strength and "soleus_r" in result.calibrations[0].strength
+    for run in result.calibrations[1:]:
+        assert run.left_out not in run.strength and run.left_out in result.calibrations[0].strength
+    aligned = result.targets(aligned=True)
+    assert aligned["rmse_met"] and aligned["r_met"] and aligned["median_r"] >= 0.6, aligned
+    recorded = result.targets()
+    assert recorded["r_met"], recorded
     scores = result.leave_one_out["soleus_r"]
     assert set(scores) == set(LEAVE_OUT_METHODS)
     assert all(0 < s.rmse < 0.5 for s in scores.values()), scores
