@@ -103,6 +103,7 @@ DEFAULT_HISTORY_TIMEOUT_S = 10.0
 #: arrival order (s): one wake-up per batch instead of one per message (a session sends ~1000 messages a second).
 #: Nothing waits for the file (it is flushed every ``--flush-interval``), so this costs no one latency.
 BATCH_S = 0.05
+FETCH_JOIN_S = 2.0  # at the end, how long each history fetch may take to return once the session is closed
 NODE_NAME = "recorder"
 
 log = logging.getLogger(__name__)
@@ -172,6 +173,7 @@ def main(
     reporting_session = status_session(key_expr, ready_key, session)
     fetched: queue.SimpleQueue[_Fetched] = queue.SimpleQueue()
 
+    fetchers: list[threading.Thread] = []
     with open_session(config) as zsession, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
         inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
         stats.inputs = inputs.counts
@@ -185,9 +187,11 @@ def main(
         def start_fetches(scopes: list[str]) -> None:  # each on its own thread: the loop goes on writing
             for scope in scopes:
                 job = (zsession, scope, merge.take_missing(scope), fetched, inputs.counts, history_timeout_s)
-                threading.Thread(
+                thread = threading.Thread(
                     target=_fetch, args=(*job, max_payload_bytes), name=f"history {scope}", daemon=True
-                ).start()
+                )
+                thread.start()
+                fetchers.append(thread)
 
         inputs.subscribe(key_expr)
         if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
@@ -221,6 +225,10 @@ def main(
             inputs.continuity.recovered = stats.recovered
             if reporter is not None and reporting_session is not None:  # a reporter exists for a session only
                 _record_final_status(writer, reporter, reporting_session)
+    # The session is closed: a fetch still running returns at once. A thread still inside Zenoh when the interpreter
+    # exits aborts the process ("FATAL: exception not rethrown").
+    for thread in fetchers:
+        thread.join(FETCH_JOIN_S)
     return stats
 
 
