@@ -103,7 +103,7 @@ DEFAULT_HISTORY_TIMEOUT_S = 10.0
 #: arrival order (s): one wake-up per batch instead of one per message (a session sends ~1000 messages a second).
 #: Nothing waits for the file (it is flushed every ``--flush-interval``), so this costs no one latency.
 BATCH_S = 0.05
-FETCH_JOIN_S = 2.0  # at the end, how long each history fetch may take to return once the session is closed
+FETCH_JOIN_S = 2.0  # at the end, how long the history fetches may take in all to return once the session is closed
 NODE_NAME = "recorder"
 
 log = logging.getLogger(__name__)
@@ -173,63 +173,100 @@ def main(
     reporting_session = status_session(key_expr, ready_key, session)
     fetched: queue.SimpleQueue[_Fetched] = queue.SimpleQueue()
 
-    fetchers: list[threading.Thread] = []
-    with open_session(config) as zsession, McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer:
-        inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
-        stats.inputs = inputs.counts
-        reporter = (
-            StatusReporter(zsession, reporting_session, NODE_NAME, inputs) if reporting_session is not None else None
-        )
-        merge = HistoryMerge(
-            lambda item: _write(writer, item, stats, inputs.counts), stats, already_recorded=already_recorded
-        )
+    fetchers = _Fetchers()
+    try:
+        with (
+            open_session(config) as zsession,
+            McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer,
+        ):
+            inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
+            stats.inputs = inputs.counts
+            reporter = (
+                StatusReporter(zsession, reporting_session, NODE_NAME, inputs)
+                if reporting_session is not None
+                else None
+            )
+            merge = HistoryMerge(
+                lambda item: _write(writer, item, stats, inputs.counts), stats, already_recorded=already_recorded
+            )
 
-        def start_fetches(scopes: list[str]) -> None:  # each on its own thread: the loop goes on writing
-            for scope in scopes:
-                job = (zsession, scope, merge.take_missing(scope), fetched, inputs.counts, history_timeout_s)
-                thread = threading.Thread(
-                    target=_fetch, args=(*job, max_payload_bytes), name=f"history {scope}", daemon=True
-                )
-                thread.start()
-                fetchers.append(thread)
+            def start_fetches(scopes: list[str]) -> None:  # each on its own thread: the loop goes on writing
+                for scope in scopes:
+                    job = (zsession, scope, merge.take_missing(scope), fetched, inputs.counts, history_timeout_s)
+                    fetchers.start(_fetch, (*job, max_payload_bytes), f"history {scope}")
 
-        inputs.subscribe(key_expr)
-        if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
-            merge.begin_fetch(key_expr, initial=True)
-            start_fetches([key_expr])
-        token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (services.nodes.readiness)
-        if ready_event is not None:
-            ready_event.set()
-        if reporter is not None:
-            reporter.tick(force=True)
-        deadline = None if duration_s is None else time.monotonic() + duration_s
-        try:
-            while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
-                start_fetches(_take_fetched(fetched, inputs, merge, fetch_new_keys=history))
-                inbound = inputs.get(0.0)
-                if inbound is None:  # all written: wake up again when a batch has gathered (module docstring)
-                    writer.flush_if_due()
-                    stop_event.wait(batch_s)
-                else:
-                    start_fetches(merge.accept(_live_item(inbound), fetch_new_keys=history))
-                if reporter is not None:
-                    inputs.continuity.recovered = stats.recovered
-                    reporter.tick()
-        finally:
-            inputs.close()
-            # nothing received is lost on a clean stop: what is queued, and the fetches that came back meanwhile
-            _take_fetched(fetched, inputs, merge, fetch_new_keys=False)
-            for inbound in inputs.drain():
-                merge.accept(_live_item(inbound), fetch_new_keys=False)
-            merge.release_all()  # live samples still waiting for a history that did not come in time
-            inputs.continuity.recovered = stats.recovered
-            if reporter is not None and reporting_session is not None:  # a reporter exists for a session only
-                _record_final_status(writer, reporter, reporting_session)
-    # The session is closed: a fetch still running returns at once. A thread still inside Zenoh when the interpreter
-    # exits aborts the process ("FATAL: exception not rethrown").
-    for thread in fetchers:
-        thread.join(FETCH_JOIN_S)
+            inputs.subscribe(key_expr)
+            if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
+                merge.begin_fetch(key_expr, initial=True)
+                start_fetches([key_expr])
+            token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (readiness)
+            if ready_event is not None:
+                ready_event.set()
+            if reporter is not None:
+                reporter.tick(force=True)
+            deadline = None if duration_s is None else time.monotonic() + duration_s
+            try:
+                while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
+                    start_fetches(_take_fetched(fetched, inputs, merge, fetch_new_keys=history))
+                    inbound = inputs.get(0.0)
+                    if inbound is None:  # all written: wake up again when a batch has gathered (module docstring)
+                        writer.flush_if_due()
+                        stop_event.wait(batch_s)
+                    else:
+                        start_fetches(merge.accept(_live_item(inbound), fetch_new_keys=history))
+                    if reporter is not None:
+                        inputs.continuity.recovered = stats.recovered
+                        reporter.tick()
+            finally:
+                _finish(inputs, fetched, merge, stats, writer, reporter, reporting_session)
+    finally:  # the session is closed: a fetch still running returns
+        fetchers.join(FETCH_JOIN_S)
     return stats
+
+
+class _Fetchers:
+    """The history fetches' threads. :meth:`join` waits, once the session is closed, for those still running: a
+    thread still inside Zenoh when the interpreter exits aborts the process ("FATAL: exception not rethrown")."""
+
+    def __init__(self) -> None:
+        self._threads: list[threading.Thread] = []
+
+    def start(self, target: Callable[..., None], args: tuple, name: str) -> None:
+        self._threads = [t for t in self._threads if t.is_alive()]
+        thread = threading.Thread(target=target, args=args, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def join(self, timeout_s: float) -> None:
+        """Join every fetch within ``timeout_s`` in all; log those still running."""
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+        stuck = [t.name for t in self._threads if t.is_alive()]
+        if stuck:
+            log.warning(
+                "recorder: %d history fetches still running %g s after the end: %s", len(stuck), timeout_s, stuck
+            )
+
+
+def _finish(
+    inputs: NodeInputs,
+    fetched: queue.SimpleQueue,
+    merge: HistoryMerge,
+    stats: RecorderStats,
+    writer: McapRecorderWriter,
+    reporter: StatusReporter | None,
+    reporting_session: str | None,
+) -> None:
+    """A stop: nothing received is lost, what is queued and the fetches that came back meanwhile are written."""
+    inputs.close()
+    _take_fetched(fetched, inputs, merge, fetch_new_keys=False)
+    for inbound in inputs.drain():
+        merge.accept(_live_item(inbound), fetch_new_keys=False)
+    merge.release_all()  # live samples still waiting for a history that did not come in time
+    inputs.continuity.recovered = stats.recovered
+    if reporter is not None and reporting_session is not None:  # a reporter exists for a session only
+        _record_final_status(writer, reporter, reporting_session)
 
 
 def _fetch(
