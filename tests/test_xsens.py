@@ -3,6 +3,7 @@ real capture, injected faults, unplugging, several trackers; USB discovery helpe
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -207,3 +208,26 @@ def test_capture_rate_from_time_else_output_configuration_else_default_with_warn
         source = load_imu_source(path)
     assert source.rate_hz == 60.0 and caplog.text == ""
     assert source.arrays["quaternion"].shape == (20, 4)
+
+
+def test_stable_link_names_the_plugged_tracker_only(tmp_path):
+    """``stable_link`` plays udev's /dev/serial/by-id name: there while plugged in, gone at unplug. A replugged
+    successor that gets the freed pty number keeps its name when the old simulator is closed later; a path that is
+    not a link is refused, not overwritten."""
+    link = tmp_path / "usb-Xsens_MTi-if00"
+    source = synthetic_imu(seconds=2.0)
+    old = XsensSimulator(source, stable_link=link).start()
+    assert os.readlink(link) == old.path
+    old.unplug()
+    assert not os.path.lexists(link)
+    new = XsensSimulator(source, stable_link=link).start()
+    try:
+        old.close()  # after the replug, possibly on the same pty number
+        assert os.readlink(link) == new.path
+    finally:
+        new.close()
+    assert not os.path.lexists(link)
+    link.write_text("not a tty")
+    with pytest.raises(ConfigError, match="not a symbolic link"):
+        XsensSimulator(source, stable_link=link).start()
+    assert link.read_text() == "not a tty" and sorted(p.name for p in tmp_path.iterdir()) == [link.name]

@@ -119,6 +119,7 @@ class XsensSimulator:
         self.baudrate = DEFAULT_BAUDRATE
         self.path = ""
         self.stable_link = os.fspath(stable_link) if stable_link is not None else None
+        self._linked = False  # stable_link names this simulator's pty (until unplug/close)
         self.measuring = False
         self.unplugged = False
         self._held = False
@@ -155,9 +156,11 @@ class XsensSimulator:
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
         if self.stable_link is not None:
-            staged = f"{self.stable_link}.{os.getpid()}.{threading.get_ident()}"
-            os.symlink(self.path, staged)
-            os.replace(staged, self.stable_link)  # atomic, as udev replaces a link
+            try:
+                self._link()
+            except BaseException:
+                self._close_fds()
+                raise
         self._powered_at = time.monotonic()
         self._thread = threading.Thread(target=self._run, daemon=True, name="xsens-sim")
         self._thread.start()
@@ -182,11 +185,31 @@ class XsensSimulator:
             self._thread.join(timeout=2.0)
         self._close_fds()
 
+    def _link(self) -> None:
+        """Name the pty by ``stable_link``, replacing a link left from before (atomically, as udev does)."""
+        link = str(self.stable_link)
+        if os.path.lexists(link) and not os.path.islink(link):
+            raise ConfigError(
+                "is not a symbolic link: the simulator replaces only a link", field="stable_link", value=link
+            )
+        staged = f"{link}.{os.getpid()}.{threading.get_ident()}"
+        os.symlink(self.path, staged)
+        try:
+            os.replace(staged, link)
+        except OSError:
+            os.unlink(staged)
+            raise
+        self._linked = True
+
     def _close_fds(self) -> None:
-        link = self.stable_link
-        if link is not None and os.path.islink(link) and os.readlink(link) == self.path:
-            os.unlink(link)  # the device is gone: so is its name
         with self._lock:
+            if self._linked:  # this simulator's name, not one a replugged successor on the same pty number made
+                self._linked = False
+                try:
+                    if os.readlink(str(self.stable_link)) == self.path:
+                        os.unlink(str(self.stable_link))  # the device is gone: so is its name
+                except OSError:  # removed meanwhile
+                    pass
             for fd in (self._master, self._slave):
                 if fd >= 0:
                     try:
