@@ -9,8 +9,10 @@ electrodes live: their envelopes, shifted by the calibrated electromechanical de
 protocol: one calibration with every electrode, estimation without any EMG, every group scored.
 
 Scores per group and method (:class:`Agreement`): RMSE and Pearson r against the envelope as recorded and against
-the envelope delayed by the calibrated electromechanical delay d ("aligned": the activation the electrode implies
-under the calibration's own model, a(t) = e(t - d), which is the quantity every method estimates), the lag of the
+the envelope delayed by the electromechanical delay d of the calibration with every electrode ("aligned": the
+activation the electrode implies under the calibration's own model, a(t) = e(t - d), which is the quantity every
+method estimates; one reference for every table and run, while each left-out run shifts ``assisted``'s live
+envelopes by its own calibrated delay), the lag of the
 cross-correlation peak against the recorded envelope (positive: the estimate comes later; the calibration aligns
 activations with the torque, the envelope leads it by d), and on/off agreement: the share of frames on which estimate
 and envelope agree about the muscle being above ``ON_FACTOR`` x its rest level (the envelope's
@@ -260,8 +262,9 @@ def leave_one_out(
     runs, paper, flags, curves = [run], {}, {}, {}
     paper_estimates = {m: _estimate(pack, held_out, profile, m, None, options) for m in PAPER_METHODS}
     flags["all"] = {m: counts for m, (_, counts) in paper_estimates.items()}
+    reference_delay = calibrated_delay(profile)  # every electrode's: the aligned envelope of every table and run
     for g in chosen:
-        paper[g] = _agreements(held_out, paper_estimates, pack, g, rest[g], calibrated_delay(profile))
+        paper[g] = _agreements(held_out, paper_estimates, pack, g, rest[g], reference_delay)
     loo = {}
     for done, g in enumerate(chosen, start=2):
         trials_g = [without_electrode(t, g) for t in train]
@@ -275,8 +278,8 @@ def leave_one_out(
             for m in LEAVE_OUT_METHODS
         }
         flags[g] = {m: counts for m, (_, counts) in estimates.items()}
-        loo[g] = _agreements(held_out, estimates, pack, g, rest[g], delay)
-        curves[g] = _curves(held_out, pack, g, estimates, paper_estimates["proposed"][0], delay)
+        loo[g] = _agreements(held_out, estimates, pack, g, rest[g], reference_delay)
+        curves[g] = _curves(held_out, pack, g, estimates, paper_estimates["proposed"][0], reference_delay)
         if progress is not None:
             progress(done, total, "leave-one-out (calibrations)")
     return LeaveOutResult(

@@ -303,10 +303,11 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
         "## Against the delay-aligned envelope",
         "",
         "Every method estimates activation, which the calibration models as the envelope delayed by the "
-        "electromechanical delay (a(t) = e(t - d); d per calibration: "
-        + ", ".join(f"{r.left_out or 'all electrodes'} {r.emd_ms:.0f} ms" for r in runs)
-        + "). The same scores against that delayed envelope (per group: `rmse_aligned`, `r_aligned` in "
-        "summary.json; the plots show it dashed):",
+        f"electromechanical delay: a(t) = e(t - d), d = {runs[0].emd_ms:.0f} ms from the calibration with every "
+        "electrode, the reference of every run (the left-out calibrations found "
+        + ", ".join(f"{r.left_out} {r.emd_ms:.0f} ms" for r in runs[1:])
+        + ", by which `assisted`'s live envelopes were shifted). The same scores against that delayed envelope (per "
+        "group: `rmse_aligned`, `r_aligned` in summary.json; the plots show it dashed):",
         "",
         f"Medians over the left-out groups: {_medians_line(result.medians('leave_one_out', aligned=True))}",
         "",
