@@ -30,7 +30,9 @@ def test_the_command_line_defaults():
 
 @pytest.mark.parametrize("trigno", [("127.0.0.1", 50043), None])
 def test_msk_live_settings_read_back_from_the_node_command_line(trigno):
-    session = LiveSession(Path("lab.toml"), name="lab", pack="deadlift", load_kg=62.5, solver="piqp")
+    session = LiveSession(
+        Path("lab.toml"), name="lab", pack="deadlift", load_kg=62.5, solver="piqp", live_synergists=False
+    )
     plan = live.LivePlan(
         session,
         ("so", "proposed"),
@@ -40,6 +42,7 @@ def test_msk_live_settings_read_back_from_the_node_command_line(trigno):
         tracker_latency_ms={"t1": 5.0, "t2": 0.25},
     )
     settings = live.estimator_settings(plan)
+    assert not settings.live_synergists  # `msk live --live-synergists off` reaches the node
     assert settings.emg_clock is ClockMode.HOST and settings.timing.joints_clock is JointsClock.HOST
     assert settings.timing.emg_latency_ns == {session.trigno_id: 13_500_000}
     assert (settings.timing.emg_wait_s > 0) == (trigno is not None)
@@ -67,6 +70,7 @@ def test_settings_given_in_full_read_back():
         ),
         initial_load_kg=41.25,
         exercise="bench_press",
+        live_synergists=False,
     )
     assert _parse(settings.argv()) == settings
 

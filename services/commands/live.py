@@ -100,12 +100,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the estimator's per-frame QP: the certified active-set hot start with PIQP as fallback (default), "
         "or PIQP on every frame (as `msk estimator --solver`)",
     )
+    parser.add_argument(
+        "--live-synergists",
+        choices=["on", "off"],
+        default="on",
+        help="assisted: a group without EMG follows its measured synergist's live envelope (default on; "
+        "docs/estimation.md, 'Live EMG and assisted')",
+    )
     parser.set_defaults(handler=run)
 
 
 def session_from_args(args: argparse.Namespace) -> LiveSession:
     """The session of the command line: its file (or, with ``--sim`` alone, the simulators' session) with the
-    options that override the file (``--out``, ``--solver``)."""
+    options that override the file (``--out``, ``--solver``, ``--live-synergists``)."""
     from services.sessions.live_session import LiveSession, load_session_file
 
     if args.session_file is not None:
@@ -118,6 +125,7 @@ def session_from_args(args: argparse.Namespace) -> LiveSession:
         session,
         out=session.out if args.out is None else args.out,
         solver=session.solver if args.solver is None else args.solver,
+        live_synergists=args.live_synergists == "on",
     )
 
 

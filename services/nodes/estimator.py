@@ -159,6 +159,7 @@ class EstimatorSettings:
     initial_load_kg: float = 0.0
     exercise: str | None = None
     solver: str = "active-set"
+    live_synergists: bool = True  # assisted: groups without EMG follow their measured synergist's live envelope
 
     def __post_init__(self) -> None:
         methods = tuple(self.methods) or (("proposed",) if self.subject_path is not None else ("so",))
@@ -188,12 +189,14 @@ class EstimatorSettings:
             initial_load_kg=args.load_kg,
             exercise=args.exercise,
             solver=args.solver,
+            live_synergists=args.live_synergists == "on",
         )
 
     def argv(self) -> list[str]:
         """These settings as the node's command line, but ``emg_stall_s`` (:meth:`from_args` reads them back)."""
         return [
             *("--pack", self.pack, "--session", self.session, "--solver", self.solver),
+            *("--live-synergists", "on" if self.live_synergists else "off"),
             *("--load-kg", repr(self.initial_load_kg), "--emg-clock", ClockMode(self.emg_clock).value),
             *(a for method in self.methods for a in ("--method", method)),
             *(["--subject", str(self.subject_path)] if self.subject_path is not None else []),
@@ -477,7 +480,10 @@ def make_estimators(settings: EstimatorSettings, subject: SubjectProfile | None)
     """One estimator per method, its compiled kernels and solvers warmed up before the first live frame."""
     hot_start = settings.solver == "active-set"
     estimators = {
-        m: FrameEstimator(settings.pack, subject=subject, method=m, hot_start=hot_start) for m in settings.methods
+        m: FrameEstimator(
+            settings.pack, subject=subject, method=m, hot_start=hot_start, live_synergists=settings.live_synergists
+        )
+        for m in settings.methods
     }
     for estimator in estimators.values():
         estimator.warm_up()
@@ -911,6 +917,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="active-set",
         help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
         "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')",
+    )
+    parser.add_argument(
+        "--live-synergists",
+        choices=["on", "off"],
+        default="on",
+        help="assisted: a group without EMG follows its measured synergist's live envelope (default on; as "
+        "`msk estimate --live-synergists`, docs/estimation.md 'Live EMG and assisted')",
     )
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
     parser.add_argument(

@@ -892,6 +892,7 @@ def estimator_settings(plan: LivePlan) -> EstimatorSettings:
         timing=timing,
         initial_load_kg=s.load_kg,
         solver=s.solver,
+        live_synergists=s.live_synergists,
     )
 
 

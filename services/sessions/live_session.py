@@ -98,6 +98,7 @@ class LiveSession:
     rest_s: float = DEFAULT_REST_S  # rest detection: a set ends after this long without a rep (msk_core.signal.sets)
     methods: tuple[str, ...] = ()
     solver: str = "active-set"  # the estimator's per-frame QP: "active-set" (hot start, PIQP fallback) or "piqp"
+    live_synergists: bool = True  # assisted: groups without EMG follow their measured synergist's live envelope
     trigno_host: str | None = None  # HOST[:PORT]
     trigno_emg_port: int | None = None
     trigno_id: str = "trigno"
