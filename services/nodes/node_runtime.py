@@ -387,6 +387,7 @@ class NodeInputs:
         self._subscribers: list[zenoh.Subscriber] = []
         self._closed = False
         self._facts: threading.Thread | None = None  # fetch_session_facts' thread, joined by close()
+        self._close_lock = threading.Lock()
 
     def subscribe(self, key_expr: str) -> None:
         if self.role is not None:
@@ -430,8 +431,8 @@ class NodeInputs:
                 log.info("%s: session facts not fetched: %s", self.node, error)
 
         thread = threading.Thread(target=fetch, name=f"{self.node}-facts", daemon=True)
-        thread.start()
         self._facts = thread
+        thread.start()
         return thread
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -491,18 +492,20 @@ class NodeInputs:
         return Inbound(key, messages.type_name(message), message, payload, arrival_ns, source=source, missed=missed)
 
     def close(self) -> None:
-        """Undeclare the subscribers (nothing new arrives; :meth:`drain` then empties the queue)."""
-        if self._closed:
-            return
-        self._closed = True
-        if self._facts is not None:
-            # A thread still inside Zenoh when the interpreter exits aborts the process ("FATAL: exception not
-            # rethrown"): the fetch gives up within 0.1 s of the close, or its history query within its timeout.
-            self._facts.join(FACTS_JOIN_S)
-            if self._facts.is_alive():
-                log.warning("%s: the session facts' fetch did not stop within %g s", self.node, FACTS_JOIN_S)
-        for subscriber in self._subscribers:
-            subscriber.undeclare()
+        """Undeclare the subscribers (nothing new arrives; :meth:`drain` then empties the queue). A second caller
+        returns once the first one's close is done."""
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True  # the facts' fetch reads it and gives up
+            if self._facts is not None:
+                # A thread still inside Zenoh when the interpreter exits aborts the process ("FATAL: exception not
+                # rethrown"): the fetch gives up within 0.1 s of the close, or its history query within its timeout.
+                self._facts.join(FACTS_JOIN_S)
+                if self._facts.is_alive():
+                    log.warning("%s: the session facts' fetch did not stop within %g s", self.node, FACTS_JOIN_S)
+            for subscriber in self._subscribers:
+                subscriber.undeclare()
 
     def drain(self) -> Iterator[Inbound]:
         """What arrived and was not taken yet, in order (call after :meth:`close`)."""
