@@ -93,6 +93,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="secured mode: a TLS router with access control, every node with its role's certificate "
         "from DIR (written by `msk certs --out DIR`)",
     )
+    _add_estimator_arguments(parser)
+    parser.set_defaults(handler=run)
+
+
+def _add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
+    """How the session's estimator estimates (as the estimator node's options of the same names)."""
     parser.add_argument(
         "--solver",
         choices=["active-set", "piqp"],
@@ -107,7 +113,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="assisted: a group without EMG follows its measured synergist's live envelope (default on; "
         "docs/estimation.md, 'Live EMG and assisted')",
     )
-    parser.set_defaults(handler=run)
 
 
 def session_from_args(args: argparse.Namespace) -> LiveSession:
