@@ -36,12 +36,13 @@ class EmdEstimate:
         }
 
 
-def shift_emg(trial: TrialData, delay_s: float) -> TrialData:
+def shift_emg(trial: TrialData, delay_s: float, *, hold_first: bool = True) -> TrialData:
     """The trial with each EMG envelope delayed by ``delay_s`` (e(t - d): aligned with the force it causes); the
-    first ``d`` of the trial holds the first sample."""
+    first ``d`` of the trial holds the first sample, or (``hold_first`` False, for scoring) is NaN: not measured."""
     if delay_s == 0 or not trial.emg:
         return trial
-    emg = {g: np.interp(trial.time - delay_s, trial.time, e) for g, e in trial.emg.items()}
+    before = None if hold_first else np.nan
+    emg = {g: np.interp(trial.time - delay_s, trial.time, e, left=before) for g, e in trial.emg.items()}
     return replace(trial, emg=emg, extra={**trial.extra, "emg_delay_s": float(delay_s)})
 
 

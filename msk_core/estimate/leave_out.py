@@ -418,7 +418,9 @@ def _agreement(
     electromechanical delay, as the calibration aligned the envelopes with the torque."""
     j = list(pack.groups).index(group)
     pairs = [
-        (a[:, j], t.emg[group], shift_emg(t, delay_s).emg[group]) for t, a in zip(trials, estimates) if group in t.emg
+        (a[:, j], t.emg[group], shift_emg(t, delay_s, hold_first=False).emg[group])
+        for t, a in zip(trials, estimates)
+        if group in t.emg
     ]
     est = np.concatenate([a for a, _, _ in pairs])
     ref = np.concatenate([m for _, m, _ in pairs])
@@ -469,7 +471,7 @@ def _curves(
     keep = [k for k, t in enumerate(trials) if group in t.emg]
     out = {
         "envelope": cycle_curve(held, [t.emg[group] for t in held]),
-        "envelope_aligned": cycle_curve(held, [shift_emg(t, delay_s).emg[group] for t in held]),
+        "envelope_aligned": cycle_curve(held, [shift_emg(t, delay_s, hold_first=False).emg[group] for t in held]),
     }
     for m, (est, _) in estimates.items():
         out[m] = cycle_curve(held, [est[k][:, j] for k in keep])

@@ -47,7 +47,7 @@ def evaluate(
     scores, runs = [], {}
     delay_s = calibrated_delay(subject)
     for trial in trials:
-        aligned = shift_emg(trial, delay_s).emg
+        aligned = shift_emg(trial, delay_s, hold_first=False).emg
         for method in methods:
             run = estimate_trial(pack, trial, method, subject=subject, progress=progress, **options)
             runs[(trial.name, method)] = run
