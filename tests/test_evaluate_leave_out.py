@@ -193,7 +193,7 @@ def test_leave_out_on_the_walk_with_force_plate_cycles_meets_the_targets_against
     """The full leave-one-out on the real walk (first half calibrates, second half held out, gait cycles from the
     force plate), defaults: every calibration converges with the reduced solver and has no factor for the group it
     leaves out. Against the envelope delayed by the calibrated delay (docs/estimation.md, "Leave one electrode out";
-    measured 27 Nov: assisted 0.0467 vs so 0.0594, r 0.88 vs 0.71) the three walk targets are met; against the
+    measured 27 Nov: assisted 0.0463 vs so 0.0593, r 0.88 vs 0.71) the three walk targets are met; against the
     envelope as recorded only the r above so's (0.55 vs 0.33; RMSE -14 %)."""
     from msk_core.estimate.leave_out import leave_one_out
     from msk_core.estimate.trial import load_trial
