@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from msk_core.errors import EstimationError, InputError
+from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.frame import MIN_TORQUE_SCALE
 from msk_core.estimate.pack import PackLike, fibre_lengths, fitted_ranges
 from msk_core.estimate.profile import SubjectProfile
@@ -217,7 +218,6 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
     first = trials[0]
     order = [first.emg_channels[ch] for ch in first.emg_channels if first.emg_channels[ch] in emg_groups]
     order = list(dict.fromkeys(order))
-    emd = (profile.calibration or {}).get("emd") or {}
     lo, hi = fitted_ranges(pack) or (None, None)
     optimal, slack = fibre_lengths(pack)
     return SessionArrays(
@@ -226,7 +226,7 @@ def session_arrays(pack: PackLike, profile: SubjectProfile, trials: list[TrialDa
         emg_groups=emg_groups,
         electrode_order=order,
         f_max=np.asarray(profile.f_max, dtype=float),
-        base_delay_s=float(emd.get("delay_s", 0.0) or 0.0),
+        base_delay_s=calibrated_delay(profile),
         optimal=optimal,
         slack=slack,
         lo=lo,

@@ -12,12 +12,16 @@ smallest residual wins (parabolic refinement between frames). The strength facto
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from msk_core.errors import EstimationError
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.trial import TrialData
+
+if TYPE_CHECKING:
+    from msk_core.estimate.profile import SubjectProfile
 
 MAX_DELAY_S = 0.15  # beyond the physiological range (Cavanagh & Komi 1979: 30-100 ms)
 
@@ -34,6 +38,11 @@ class EmdEstimate:
             "candidates_s": [round(float(x), 6) for x in self.candidates_s],
             "relative_residual": [round(float(x), 6) for x in self.residual],
         }
+
+
+def calibrated_delay(profile: SubjectProfile) -> float:
+    """A subject profile's calibrated electromechanical delay in seconds (0 for a profile calibrated without one)."""
+    return float(((profile.calibration or {}).get("emd") or {}).get("delay_s") or 0.0)
 
 
 def shift_emg(trial: TrialData, delay_s: float, *, hold_first: bool = True) -> TrialData:

@@ -38,13 +38,12 @@ import numpy as np
 
 from msk_core.errors import EstimationError
 from msk_core.estimate.calibrate import CalibrationSettings
-from msk_core.estimate.emd import shift_emg
+from msk_core.estimate.emd import calibrated_delay, shift_emg
 from msk_core.estimate.frame import FrameEstimator, Method
 from msk_core.estimate.metrics import cross_correlation_lag, on_off_agreement, pearson_r, rmse
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import NoEmgPrior, NoEmgStrength, calibrate_inputs, calibration_inputs
 from msk_core.estimate.profile import SubjectProfile
-from msk_core.estimate.scores import calibrated_delay
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.errors import ConfigError
+from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.signal.host_clock import (
@@ -96,8 +97,7 @@ class EmgSetup:
         norm = dict(getattr(profile, "emg_normalisation", {}) or {})
         mapping = dict(channel_group) if channel_group is not None else {ch: info["group"] for ch, info in norm.items()}
         mvc = {ch: float(info["divisor"]) for ch, info in norm.items() if "divisor" in info}
-        emd = (getattr(profile, "calibration", {}) or {}).get("emd", {}) or {}
-        return cls(channel_group=mapping, mvc=mvc, emd_s=float(emd.get("delay_s", 0.0)))
+        return cls(channel_group=mapping, mvc=mvc, emd_s=calibrated_delay(profile))
 
 
 @dataclass

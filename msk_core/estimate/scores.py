@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msk_core.errors import EstimationError
-from msk_core.estimate.emd import shift_emg
+from msk_core.estimate.emd import calibrated_delay, shift_emg
 from msk_core.estimate.metrics import activation_rmse, torque_tracking
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate, estimate_trial, trial_phase
@@ -63,12 +63,6 @@ def evaluate(
                 )
             )
     return scores, runs
-
-
-def calibrated_delay(subject: SubjectProfile) -> float:
-    """The subject's calibrated electromechanical delay in seconds (0 for a profile without one)."""
-    delay = (subject.calibration.get("emd") or {}).get("delay_s", 0.0)
-    return float(delay) if delay is not None and np.isfinite(delay) else 0.0
 
 
 def prior_band(trial: TrialData, subject: SubjectProfile) -> tuple[np.ndarray, np.ndarray]:

@@ -10,11 +10,12 @@ from typing import Any
 
 import numpy as np
 
+from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.leave_out import ON_FACTOR, Agreement, LeaveOutResult
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate
 from msk_core.estimate.profile import SubjectProfile
-from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, calibrated_delay, evaluate, prior_band
+from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, evaluate, prior_band
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
 from services.surfaces.reports import pyplot, save_figure
