@@ -268,6 +268,7 @@ def test_live_synergists_meet_both_targets_on_the_lifts(shared_dir, tmp_path):
 def test_aligned_scores_compare_with_the_envelope_delayed_by_the_calibrated_delay():
     """An estimate that is exactly the envelope delayed by d (a(t) = e(t - d), the calibration's model) scores RMSE 0
     and r 1 against the aligned envelope, and less against the envelope as recorded; delayed the other way, worse."""
+    from msk_core.estimate.emd import shift_emg
     from msk_core.estimate.leave_out import _agreement
     from tests.test_estimate_no_emg_prior import ConstantPack, _trial
 
@@ -282,7 +283,7 @@ def test_aligned_scores_compare_with_the_envelope_delayed_by_the_calibrated_dela
     def scores(signal):
         est = np.zeros((trial.n_frames, len(pack.groups)))
         est[:, j] = signal
-        return _agreement([trial], [est], pack, "g0", 0.01, d)
+        return _agreement([trial], [shift_emg(trial, d, hold_first=False)], [est], pack, "g0", 0.01)
 
     right, wrong = scores(delayed), scores(early)
     assert right.rmse_aligned < 1e-12 and right.r_aligned > 1 - 1e-12

@@ -80,6 +80,10 @@ class Agreement:
             "r_aligned": self.r_aligned,
         }
 
+    def scores(self, aligned: bool) -> tuple[float, float]:
+        """(RMSE, r) against the envelope as recorded or delay-aligned."""
+        return (self.rmse_aligned, self.r_aligned) if aligned else (self.rmse, self.r)
+
 
 @dataclass(frozen=True)
 class CycleCurve:
@@ -139,8 +143,8 @@ class LeaveOutResult:
         methods = list(dict.fromkeys(m for g in self.groups for m in scores[g]))
         return {
             m: {
-                "rmse": float(np.nanmedian([_scores(scores[g][m], aligned)[0] for g in self.groups])),
-                "r": float(np.nanmedian([_scores(scores[g][m], aligned)[1] for g in self.groups])),
+                "rmse": float(np.nanmedian([scores[g][m].scores(aligned)[0] for g in self.groups])),
+                "r": float(np.nanmedian([scores[g][m].scores(aligned)[1] for g in self.groups])),
             }
             for m in methods
         }
@@ -159,7 +163,7 @@ class LeaveOutResult:
         best = min(both or verdicts, key=lambda m: med[m]["rmse"])
         per_group = {}
         for g in self.groups:
-            s = {m: _scores(a, aligned) for m, a in self.leave_one_out[g].items()}
+            s = {m: a.scores(aligned) for m, a in self.leave_one_out[g].items()}
             m = min(("proposed", "assisted"), key=lambda k: s[k][0])
             per_group[g] = {
                 "method": m,
@@ -173,7 +177,7 @@ class LeaveOutResult:
         """One method's medians against so's (RMSE over the left-out groups; r paired, see :meth:`targets`)."""
         med = self.medians(aligned=aligned)
         scores = self.leave_one_out
-        pairs = [(_scores(scores[g][method], aligned)[1], _scores(scores[g]["so"], aligned)[1]) for g in self.groups]
+        pairs = [(scores[g][method].scores(aligned)[1], scores[g]["so"].scores(aligned)[1]) for g in self.groups]
         paired = np.array([p for p in pairs if np.isfinite(p[0]) and np.isfinite(p[1])]).reshape(-1, 2)
         r, r_so = np.median(paired, axis=0) if len(paired) else (float("nan"), float("nan"))
         return {
@@ -187,13 +191,6 @@ class LeaveOutResult:
             "median_r_so_unpaired": med["so"]["r"],
             "r_met": bool(r > r_so),
         }
-
-
-def _scores(agreement: Agreement, aligned: bool) -> tuple[float, float]:
-    """(RMSE, r) against the envelope as recorded or delay-aligned."""
-    if aligned:
-        return agreement.rmse_aligned, agreement.r_aligned
-    return agreement.rmse, agreement.r
 
 
 def measured_groups(train: Sequence[TrialData], held_out: Sequence[TrialData]) -> list[str]:
@@ -261,9 +258,10 @@ def leave_one_out(
     runs, paper, flags, curves = [run], {}, {}, {}
     paper_estimates = {m: _estimate(pack, held_out, profile, m, None, options) for m in PAPER_METHODS}
     flags["all"] = {m: counts for m, (_, counts) in paper_estimates.items()}
-    reference_delay = calibrated_delay(profile)  # every electrode's: the aligned envelope of every table and run
+    # the envelopes delayed by every electrode's calibrated delay: the aligned reference of every table and run
+    aligned = [shift_emg(t, calibrated_delay(profile), hold_first=False) for t in held_out]
     for g in chosen:
-        paper[g] = _agreements(held_out, paper_estimates, pack, g, rest[g], reference_delay)
+        paper[g] = _agreements(held_out, aligned, paper_estimates, pack, g, rest[g])
     loo = {}
     for done, g in enumerate(chosen, start=2):
         trials_g = [without_electrode(t, g) for t in train]
@@ -277,8 +275,8 @@ def leave_one_out(
             for m in LEAVE_OUT_METHODS
         }
         flags[g] = {m: counts for m, (_, counts) in estimates.items()}
-        loo[g] = _agreements(held_out, estimates, pack, g, rest[g], reference_delay)
-        curves[g] = _curves(held_out, pack, g, estimates, paper_estimates["proposed"][0], reference_delay)
+        loo[g] = _agreements(held_out, aligned, estimates, pack, g, rest[g])
+        curves[g] = _curves(held_out, aligned, pack, g, estimates, paper_estimates["proposed"][0])
         if progress is not None:
             progress(done, total, "leave-one-out (calibrations)")
     return LeaveOutResult(
@@ -400,25 +398,30 @@ def _rest_level(trials: list[TrialData], group: str) -> float:
 
 def _agreements(
     trials: list[TrialData],
+    aligned: list[TrialData],
     estimates: dict[str, tuple[list[np.ndarray], dict[str, int]]],
     pack: PackLike,
     group: str,
     rest: float,
-    delay_s: float,
 ) -> dict[str, Agreement]:
     """:func:`_agreement` of each method's estimates."""
-    return {m: _agreement(trials, est, pack, group, rest, delay_s) for m, (est, _) in estimates.items()}
+    return {m: _agreement(trials, aligned, est, pack, group, rest) for m, (est, _) in estimates.items()}
 
 
 def _agreement(
-    trials: list[TrialData], estimates: list[np.ndarray], pack: PackLike, group: str, rest: float, delay_s: float
+    trials: list[TrialData],
+    aligned: list[TrialData],
+    estimates: list[np.ndarray],
+    pack: PackLike,
+    group: str,
+    rest: float,
 ) -> Agreement:
-    """Scores of ``group``'s estimate; the aligned ones against its envelope delayed by ``delay_s``, the calibrated
-    electromechanical delay, as the calibration aligned the envelopes with the torque."""
+    """Scores of ``group``'s estimate; the aligned ones against ``aligned``, the trials with their envelopes delayed
+    by the calibrated electromechanical delay, as the calibration aligned the envelopes with the torque."""
     j = list(pack.groups).index(group)
     pairs = [
-        (a[:, j], t.emg[group], shift_emg(t, delay_s, hold_first=False).emg[group])
-        for t, a in zip(trials, estimates)
+        (a[:, j], t.emg[group], delayed.emg[group])
+        for t, delayed, a in zip(trials, aligned, estimates)
         if group in t.emg
     ]
     est = np.concatenate([a for a, _, _ in pairs])
@@ -459,18 +462,18 @@ def cycle_curve(trials: Sequence[TrialData], values: Sequence[np.ndarray]) -> Cy
 
 def _curves(
     trials: list[TrialData],
+    aligned: list[TrialData],
     pack: PackLike,
     group: str,
     estimates: dict[str, tuple[list[np.ndarray], dict[str, int]]],
     paper_proposed: list[np.ndarray],
-    delay_s: float,
 ) -> dict[str, CycleCurve]:
     j = list(pack.groups).index(group)
     held = [t for t in trials if group in t.emg]
     keep = [k for k, t in enumerate(trials) if group in t.emg]
     out = {
         "envelope": cycle_curve(held, [t.emg[group] for t in held]),
-        "envelope_aligned": cycle_curve(held, [shift_emg(t, delay_s, hold_first=False).emg[group] for t in held]),
+        "envelope_aligned": cycle_curve(held, [aligned[k].emg[group] for k in keep]),
     }
     for m, (est, _) in estimates.items():
         out[m] = cycle_curve(held, [est[k][:, j] for k in keep])

@@ -154,7 +154,7 @@ def leave_out_summary(pack: PackLike, result: LeaveOutResult) -> dict[str, Any]:
         "paper_protocol": table(result.paper),
         "medians": {"leave_one_out": result.medians("leave_one_out"), "paper_protocol": result.medians("paper")},
         "targets": result.targets(),
-        # the same against the envelope delayed by each calibration's electromechanical delay (Agreement)
+        # the same against the envelope delayed by the all-electrode calibration's electromechanical delay (Agreement)
         "medians_aligned": {
             "leave_one_out": result.medians("leave_one_out", aligned=True),
             "paper_protocol": result.medians("paper", aligned=True),
@@ -217,9 +217,9 @@ def _verdict(result: LeaveOutResult, aligned: bool = False) -> list[str]:
     for g, v in t["per_group"].items():
         s = result.leave_one_out[g]
         rmse_prior, r_best, r_so = (
-            (s["prior"].rmse_aligned, s[v["method"]].r_aligned, s["so"].r_aligned)
-            if aligned
-            else (s["prior"].rmse, s[v["method"]].r, s["so"].r)
+            s["prior"].scores(aligned)[0],
+            s[v["method"]].scores(aligned)[1],
+            s["so"].scores(aligned)[1],
         )
         why = []
         if v["rmse_vs_so"] > -0.2:
