@@ -10,6 +10,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, InputError
 from services.commands.progress import ProgressBar
+from services.nodes.estimator_options import add_live_synergists_argument
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -223,14 +224,7 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
         help="activations within [0, 1] (default), or within each group's OpenSim min_control / "
         "max_control from the pack, as OpenSim's StaticOptimization bounds them",
     )
-    parser.add_argument(
-        "--live-synergists",
-        choices=["on", "off"],
-        default="on",
-        help="assisted: a group without EMG whose measured synergist (most similar moment arms) has a live envelope "
-        "follows it, scaled to its own prior level and weighted by the error that hypothesis shows between the "
-        "measured synergists (docs/estimation.md, 'Live EMG and assisted'); default on",
-    )
+    add_live_synergists_argument(parser)
 
 
 def estimator_options(args: argparse.Namespace, pack) -> dict:

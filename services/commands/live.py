@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from msk_core.errors import ConfigError
+from services.nodes.estimator_options import add_live_synergists_argument
 from services.sessions.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
 
 if TYPE_CHECKING:
@@ -106,13 +107,7 @@ def _add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
         help="the estimator's per-frame QP: the certified active-set hot start with PIQP as fallback (default), "
         "or PIQP on every frame (as `msk estimator --solver`)",
     )
-    parser.add_argument(
-        "--live-synergists",
-        choices=["on", "off"],
-        default="on",
-        help="assisted: a group without EMG follows its measured synergist's live envelope (default on; "
-        "docs/estimation.md, 'Live EMG and assisted')",
-    )
+    add_live_synergists_argument(parser)
 
 
 def session_from_args(args: argparse.Namespace) -> LiveSession:

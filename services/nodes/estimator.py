@@ -61,6 +61,7 @@ from msk_core.model.pack import available_packs, is_known_exercise
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, latency_argv, parse_latencies
 from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
+from services.nodes.estimator_options import add_live_synergists_argument
 from services.nodes.node_runtime import (
     Inbound,
     InputContinuity,
@@ -918,13 +919,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
         "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')",
     )
-    parser.add_argument(
-        "--live-synergists",
-        choices=["on", "off"],
-        default="on",
-        help="assisted: a group without EMG follows its measured synergist's live envelope (default on; as "
-        "`msk estimate --live-synergists`, docs/estimation.md 'Live EMG and assisted')",
-    )
+    add_live_synergists_argument(parser)
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
     parser.add_argument(
         "--exercise",
