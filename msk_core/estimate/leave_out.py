@@ -258,8 +258,7 @@ def leave_one_out(
     runs, paper, flags, curves = [run], {}, {}, {}
     paper_estimates = {m: _estimate(pack, held_out, profile, m, None, options) for m in PAPER_METHODS}
     flags["all"] = {m: counts for m, (_, counts) in paper_estimates.items()}
-    # the envelopes delayed by every electrode's calibrated delay: the aligned reference of every table and run
-    aligned = [shift_emg(t, calibrated_delay(profile), hold_first=False) for t in held_out]
+    aligned = [shift_emg(t, calibrated_delay(profile), hold_first=False) for t in held_out]  # every run's reference
     for g in chosen:
         paper[g] = _agreements(held_out, aligned, paper_estimates, pack, g, rest[g])
     loo = {}
