@@ -329,7 +329,8 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     state.on_message(PREFIX + "activations/so", activation_frame("so", [0.1, 0.2], t=1, exercise="bench_press"))
     facts = state.changes(0)[1]["topics"]["session"]
     assert facts.pop("names")["groups"] == {"A": "A", "B": "B"}  # not the groups of the pack: by their model names
-    assert facts == {"exercise": "bench_press", "load_kg": None, "athlete": None}  # no load event yet: the frames'
+    # no load event yet: the frames'
+    assert facts == {"exercise": "bench_press", "load_kg": None, "athlete": None, "paused": None}
     for k, p in enumerate((-1.0, 0.2, 0.8, -1.0)):
         state.on_message(PREFIX + "joints", joints(p, 0.4 * k))
     seq, _ = state.changes(0)
@@ -342,6 +343,7 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
         "load_kg": 60,
         "athlete": "Ana",
         "names": None,
+        "paused": None,
     }
     assert update["reps"]["set"] == 2 and update["reps"]["in_set"] == 0
     for k, p in enumerate((0.2, 0.8, -1.0)):
@@ -373,6 +375,13 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     update = state.changes(seq)[1]
     assert "session" not in update["topics"] and "reps" not in update["topics"], update["topics"]
     assert update["nodes"]["dashboard"]["drops"] == [[PREFIX + "load", "invalid", 1]], update["nodes"]
+    # another shipped pack declared: the bench estimator pauses; the page is told why, and no longer once it resumes
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=4))
+    paused = state.changes(0)[1]["topics"]["session"]["paused"]
+    assert paused.startswith("The operator's load event declares deadlift, and this session estimates bench press")
+    assert paused.endswith("(msk load --exercise bench_press)."), paused
+    state.on_message(PREFIX + "load", messages.LoadEvent(barbell_mass_kg=80, exercise="bench_press", set_number=4))
+    assert state.changes(0)[1]["topics"]["session"]["paused"] is None
 
 
 def test_a_subject_pack_named_before_its_frames_is_applied_when_they_come():
@@ -481,7 +490,8 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     update = state.changes(0)[1]
     assert update["topics"]["activations/so"]["activations"] == [0.25, 0.5]
     session = update["topics"]["session"]
-    assert session | {"names": None} == {"exercise": "deadlift", "load_kg": 80, "athlete": None, "names": None}
+    expected = {"exercise": "deadlift", "load_kg": 80, "athlete": None, "names": None, "paused": None}
+    assert session | {"names": None} == expected
     assert update["devices"]["trigno"]["connected"] is True
     node = update["nodes"]["dashboard"]
     assert {(key, reason): n for key, reason, n in node["drops"]} == inputs.expected

@@ -1,6 +1,7 @@
 """As a user would, together: ``msk live --sim``, then ``msk dashboard`` started afterwards in another process with no
 endpoint flags, looked at in Chromium (Playwright with Debian's chromium); after the session stops, the last values
-stay greyed beside a readable "No data" notice; ``msk report`` on the recording names exercise, load and date."""
+stay greyed beside a readable "No data" notice; a declared exercise the session does not estimate is named as the
+cause of the pause; ``msk report`` on the recording names exercise, load and date."""
 
 from __future__ import annotations
 
@@ -100,6 +101,23 @@ def _coach_view(page, screenshots: Path) -> None:
     print("coach view:", json.dumps({k: later[k] for k in ("labels", "chips", "electrodes", "fatigue")}))
 
 
+def _declared_another_exercise(page, env: dict[str, str]) -> None:
+    """The operator declares the deadlift in the bench session: the estimator pauses (it estimates bench press only),
+    and the page says so, not "is the estimator running?"; declaring the bench press again resumes the estimates."""
+    declared = run_msk("load", "--exercise", "deadlift", env=env)
+    assert declared.returncode == 0, declared.stderr
+    page.wait_for_function("() => document.getElementById('status').dataset.state === 'nodata'", timeout=15000)
+    notice = page.inner_text("#nodata-detail")
+    assert page.inner_text(".nodata-title") == "Estimates paused", page.inner_text("#nodata")
+    assert "declares deadlift" in notice and "this session estimates bench press" in notice, notice
+    assert "msk load --exercise bench_press" in notice and "is the estimator running" not in notice, notice
+    page.screenshot(path=str(ARTIFACTS / "live-dashboard-paused.png"))
+    resumed = run_msk("load", "--exercise", "bench_press", env=env)
+    assert resumed.returncode == 0, resumed.stderr
+    page.wait_for_function(LIVE, timeout=15000)
+    assert page.evaluate(FACTS)[0] == "bench press"
+
+
 def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
     require_chromium()
     from playwright import sync_api
@@ -140,6 +158,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
                 f"() => Number(document.getElementById('reps').textContent) > {first_reps}", timeout=30000
             )  # the rep counter moves
             _coach_view(page, screenshots)
+            _declared_another_exercise(page, env)
             page.screenshot(path=str(ARTIFACTS / "live-dashboard.png"))
             printed = run_msk("subscribe", "msk/sim/activations/*", "--count", "2", env=env)
             assert printed.returncode == 0 and printed.stdout.count("msk.ActivationFrame") == 2, printed.stderr

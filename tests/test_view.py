@@ -251,6 +251,16 @@ def test_session_facts_come_from_the_load_event_else_the_frames():
     assert "exercise bench press · load 70 kg · set 3 done · resting" in text and "Bob" not in text, text
     assert "upper" not in text
     assert state.sets.number == 3 and state.inputs.as_dict()["dropped"] == {"msk/s/load": {"invalid": 1}}
+    assert "paused" not in text
+    # another shipped pack declared: the estimator of this bench session pauses, and the view says why
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=4))
+    text = " ".join(screen_text(state).split())
+    assert (
+        "Estimates paused. The operator's load event declares deadlift, and this session estimates bench press" in text
+    )
+    assert "(msk load --exercise bench_press)" in text, text
+    state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=80, exercise="bench_press", set_number=4))
+    assert "paused" not in screen_text(state)
 
 
 def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):

@@ -71,7 +71,7 @@ def publish_facts(
 ) -> tuple[str, messages.LoadEvent, str]:
     """Find the session (``--session``, ``--connect``: as every attach command), make the LoadEvent from the facts in
     effect and publish it on ``msk/<session>/load``, waiting (bounded) for a reader; (session, event, key)."""
-    options, info = discovery.attach_options(options_from_args(args), args.session)
+    options, info = discovery.attach_options(options_from_args(args), args.session, one_shot=True)
     session = args.session or (info.session if info is not None else None)
     if session is None:
         raise ConfigError(

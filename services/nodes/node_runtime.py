@@ -612,6 +612,20 @@ class LoadEventGate:
             self.held.append(event)
         return []
 
+    def paused_notice(self, declared: str) -> str:
+        """Why estimates stop while the operator's load events declare ``declared``: the estimator skips the frames
+        of an exercise other than its pack's (``EstimatorNode.frames_for_joints``), so a page that sees no estimates
+        says that rather than asking whether the estimator runs; "" while ``declared`` is one the frames named."""
+        estimated = sorted(self.frame_exercises)
+        if not declared or not estimated or declared in estimated:
+            return ""
+        names = " or ".join(e.replace("_", " ") for e in estimated)
+        return (
+            f"The operator's load event declares {declared.replace('_', ' ')}, and this session "
+            f"estimates {names}. They resume when a load event names it again "
+            f"(msk load --exercise {estimated[0]})."
+        )
+
     def on_frame(self, exercise: str) -> list[messages.LoadEvent]:
         """A frame of ``exercise`` arrived: the held events, in order, that are now known (the others are refused)."""
         if not exercise or exercise in self.frame_exercises:

@@ -40,10 +40,12 @@ class SessionInfo:
     #: the session facts in effect (exercise, load_kg, set_number, athlete): the latest LoadEvent msk live saw
     facts: dict = field(default_factory=dict)
 
-    def options(self) -> ZenohOptions:
+    def options(self, mode: str = "peer") -> ZenohOptions:
+        """The Zenoh options to attach with: the secured mode's client config, else ``mode`` on msk live's endpoint
+        (``"client"`` for a one-shot publisher, :func:`attach_options`)."""
         if self.zenoh_config:
             return ZenohOptions(mode=None, config_file=Path(self.zenoh_config))
-        return ZenohOptions(mode="peer", connect=tuple(self.connect))
+        return ZenohOptions(mode=mode, connect=tuple(self.connect))
 
 
 def registry_dir() -> Path:
@@ -167,16 +169,23 @@ def find_session(session: str | None) -> SessionInfo | None:
     return running[0] if running else None
 
 
-def attach_options(explicit: ZenohOptions, session: str | None) -> tuple[ZenohOptions, SessionInfo | None]:
+def attach_options(
+    explicit: ZenohOptions, session: str | None, *, one_shot: bool = False
+) -> tuple[ZenohOptions, SessionInfo | None]:
     """The Zenoh options of a client: the explicit ones when ``--connect``, ``--listen`` or ``--zenoh-config`` were
     given, else those of the running session :func:`find_session` finds, else the explicit defaults (the well-known
-    loopback endpoint)."""
+    loopback endpoint).
+
+    ``one_shot``: a command that publishes once and leaves (``msk load``, ``msk set``) attaches as a Zenoh client of
+    msk live's own node, which routes its sample to every node of the session. As a peer it would reach only the
+    peers it had connected to by then (they find each other by gossip, a moment after joining): the recorder got
+    the operator's load event and the estimator did not."""
     if explicit.connect or explicit.listen or explicit.config_file is not None:
         return explicit, None
     info = find_session(session)
     if info is None:
         return explicit, None
-    return info.options(), info
+    return info.options("client" if one_shot else "peer"), info
 
 
 def client_options(

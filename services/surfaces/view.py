@@ -280,6 +280,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         frames = dict(state.frames)
         status = dict(state.status)
         overrides, load, received = dict(state.names), state.load, state.received
+        paused = state.loads.paused_notice(load.exercise if load is not None else "")
         sets, set_number, set_start_s, rest = set_line(state.sets, state.first_frame_s)
         records = [r.as_dict() for r in state.sets.sets]  # the set under way (or the last) in the muscle table
     methods = list(frames)
@@ -349,7 +350,9 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
     )
     extra = [sets_table(records)] if records else []
-    return Group(header, session_line, muscles, *extra, torque_table(frame, names), *health_tables(status))
+    notice = [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]
+    notice = notice if paused else []
+    return Group(header, session_line, *notice, muscles, *extra, torque_table(frame, names), *health_tables(status))
 
 
 def torque_table(frame: messages.ActivationFrame, names: DisplayNames) -> Table:

@@ -371,6 +371,8 @@ class DashboardState:
                 "load_kg": load.barbell_mass_kg if load is not None else None,
                 "athlete": load.athlete if load is not None and load.athlete else None,
                 "names": names.as_dict(),
+                # shown when no estimates arrive: the declared exercise is not the one the estimator estimates
+                "paused": self._loads.paused_notice(load.exercise if load is not None else "") or None,
             },
         )
 

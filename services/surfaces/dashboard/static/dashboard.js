@@ -155,10 +155,14 @@ function render() {
   const overlay = document.getElementById("nodata");
   overlay.hidden = pill === "live";
   const session = state.config ? state.config.session : "?";
+  const paused = state.connection === "open" && state.session && state.session.paused && state.dataAge <= noDataAfter;
+  document.querySelector(".nodata-title").textContent = paused ? "Estimates paused" : "No data";
   document.getElementById("nodata-detail").textContent = state.connection !== "open"
     ? "The dashboard server is not answering; reconnecting by itself."
     : state.dataAge === null || state.dataAge === undefined
       ? `Nothing received yet on msk/${session}/…: are the estimator and the devices running for session "${session}"?`
+      : paused
+        ? state.session.paused
       : age === null || age === undefined || (state.dataAge <= noDataAfter && age > noDataAfter)
         ? `The devices deliver but no muscle estimates arrive on msk/${session}/activations/…: is the estimator running?`
         : `Nothing new on msk/${session}/… for ${age.toFixed(0)} s. The last values are shown greyed out.`;
