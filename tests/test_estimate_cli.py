@@ -143,7 +143,7 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     )
     assert rc == 0
     assert read_sto(out).n_rows == load_trial(arm26_trials["emg"], arm26_trials["pack"]).n_frames
-    assert "prior learned at" not in capsys.readouterr().out  # the calibration's own load: the prior as learned
+    assert "the prior, learned at" not in capsys.readouterr().out  # the calibration's own load: the prior as learned
     # the same lift declared at another load: the prior is scaled by the torques, which are the calibration's here
     declared = arm26_trials["emg"].with_name("declared_10kg.toml")
     declared.write_text(
@@ -151,7 +151,7 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     )
     assert _msk_arm26("estimate", declared, "--subject", str(profile_path), "--out", str(tmp_path / "d.sto")) == 0
     printed = capsys.readouterr().out
-    assert "prior learned at 0 kg, trial at 10 kg: scaled to the load on" in printed, printed
+    assert "declared_10kg: the prior, learned at 0 kg, was scaled to the trial's 10 kg on" in printed, printed
     low, high = map(float, re.search(r"mean scale per group ([\d.]+)-([\d.]+)", printed).groups())
     assert 0.97 <= low <= high <= 1.03, printed  # the same torques as the calibration's: about 1
     declared_report = tmp_path / "declared_report"

@@ -278,6 +278,17 @@ class LoadScale:
         }
 
 
+def load_scale_line(trial: str, summary: dict) -> str:
+    """One line for a person: how the prior was scaled to ``trial``'s load (:meth:`LoadScale.summary`), as
+    ``msk estimate`` prints it and ``msk evaluate``'s report writes it."""
+    values = summary["mean_scale"].values()
+    return (
+        f"{trial}: the prior, learned at {summary['prior_load_kg']:g} kg, was scaled to the trial's "
+        f"{summary['load_kg']:g} kg on {summary['frames']} rep frames (mean scale per group "
+        f'{min(values):.2f}-{max(values):.2f}; docs/estimation.md, "The prior at another load").'
+    )
+
+
 def phase_bins(phases: np.ndarray, n_bins: int) -> np.ndarray:
     """The prior's bin of each phase in [0, 1] (unknown phases in the first; what the prior and its training torque
     are binned by)."""

@@ -308,6 +308,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 def run_estimate(args: argparse.Namespace) -> int:
     from msk_core.estimate.pipeline import estimate_trial
+    from msk_core.estimate.prior import load_scale_line
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.estimate.trial import load_trial
     from msk_core.io import write_sto
@@ -336,12 +337,7 @@ def run_estimate(args: argparse.Namespace) -> int:
         f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations"
     )
     if run.load_scale is not None:
-        scales = sorted(run.load_scale["mean_scale"].values())
-        print(
-            f"prior learned at {run.load_scale['prior_load_kg']:g} kg, trial at {run.load_scale['load_kg']:g} kg: "
-            f"scaled to the load on {run.load_scale['frames']} rep frames (mean scale per group "
-            f'{scales[0]:.2f}-{scales[-1]:.2f}; docs/estimation.md, "The prior at another load")'
-        )
+        print(load_scale_line(trial.name, run.load_scale))
     print(f"wrote {args.out}, {torque_path} and {std_path} (Laplace std per activation)")
     return 0
 

@@ -14,6 +14,7 @@ from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.leave_out import ON_FACTOR, Agreement, LeaveOutResult
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate
+from msk_core.estimate.prior import load_scale_line
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, evaluate, prior_band
 from msk_core.estimate.trial import TrialData
@@ -79,16 +80,6 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
         ax[k, 0].legend(fontsize=8)
     written.append(save_figure(fig, out / f"{trial.name}_torque.png", dpi=80))
     return written
-
-
-def load_scale_line(trial: str, scale: dict) -> str:
-    """One report line: how the prior was scaled to ``trial``'s load (:meth:`LoadScale.summary`)."""
-    values = scale["mean_scale"].values()
-    return (
-        f"{trial}: the prior, learned at {scale['prior_load_kg']:g} kg, was scaled to the trial's {scale['load_kg']:g} kg "
-        f"on {scale['frames']} rep frames (mean scale per group {min(values):.2f}-{max(values):.2f}; "
-        'docs/estimation.md, "The prior at another load").'
-    )
 
 
 def write_report(
