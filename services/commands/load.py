@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
             athlete=args.athlete,
         ),
         "msk load",
+        complete=args.load_kg is not None and args.set is not None and args.exercise is not None,
     )
     print(
         f"msk load: {session}: {event.exercise or 'exercise unchanged'}, {event.barbell_mass_kg:g} kg, "
@@ -67,10 +68,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 def publish_facts(
-    args: argparse.Namespace, make_event: Callable[[dict], messages.LoadEvent], command: str
+    args: argparse.Namespace,
+    make_event: Callable[[dict], messages.LoadEvent],
+    command: str,
+    *,
+    complete: bool = False,
 ) -> tuple[str, messages.LoadEvent, str]:
     """Find the session (``--session``, ``--connect``: as every attach command), make the LoadEvent from the facts in
-    effect and publish it on ``msk/<session>/load``, waiting (bounded) for a reader; (session, event, key)."""
+    effect and publish it on ``msk/<session>/load``, waiting (bounded) for a reader; (session, event, key).
+
+    ``complete``: the command gives every fact itself, so it may go where the facts in effect are unknown (a session
+    that msk live does not announce on this machine); otherwise that is refused, since the event made from no facts
+    would say no load and set 0 (the bar off, the set ended)."""
     options, info = discovery.attach_options(options_from_args(args), args.session, one_shot=True)
     session = args.session or (info.session if info is not None else None)
     if session is None:
@@ -79,7 +88,16 @@ def publish_facts(
             f"{discovery.registry_dir()}); name the session and its endpoint with --session and --connect",
             field="--session",
         )
-    event = make_event(info.facts if info is not None else {})
+    facts = info.facts if info is not None else discovery.announced_facts(session)
+    if facts is None and not complete:
+        raise ConfigError(
+            f"{command} starts from the facts in effect (load, set, exercise, athlete), and session {session!r} does "
+            f"not announce them on this machine (msk live writes them to OUT/session.json where it runs): run "
+            f"{command} there, or give every fact: msk load KG --set N --exercise PACK",
+            field="--session",
+            value=session,
+        )
+    event = make_event(facts or {})
     key = topics.load_key(session)
     with open_session(options) as zsession:
         publisher = declare_data_publisher(zsession, key, "msk.LoadEvent")

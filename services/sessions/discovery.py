@@ -149,16 +149,31 @@ def running_sessions() -> list[SessionInfo]:
     return found
 
 
+def announced_facts(session: str) -> dict | None:
+    """The facts in effect of the running session named ``session`` as it announces them here; None when no session
+    of that name is announced on this machine."""
+    named = [s for s in running_sessions() if s.session == session]
+    return named[-1].facts if named else None
+
+
 def find_session(session: str | None) -> SessionInfo | None:
     """The running session named ``session`` (or the only one when None); None when no session is announced.
 
-    Raises :class:`ConfigError` when the choice is ambiguous or the named session is not among those running."""
+    Raises :class:`ConfigError` when the choice is ambiguous or the named session is not among those running (a
+    misspelt name would otherwise reach for a session on the well-known endpoint, and a one-shot command such as
+    ``msk load`` would publish to nobody's topic and succeed)."""
     running = running_sessions()
     if session is not None:
         named = [s for s in running if s.session == session]
-        if not named:
-            return None
-        return named[-1]
+        if not named and running:
+            raise ConfigError(
+                "no running session of this name (running: "
+                + ", ".join(f"{s.session} on {', '.join(s.connect)}" for s in running)
+                + "); a session msk live does not announce here is reached with --connect",
+                field="--session",
+                value=session,
+            )
+        return named[-1] if named else None
     if len(running) > 1:
         raise ConfigError(
             "several sessions are running; name one with --session (running: "

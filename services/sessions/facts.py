@@ -8,8 +8,12 @@ and the dashboard's set button (services.surfaces).
 from __future__ import annotations
 
 import math
+import threading
+from collections.abc import Callable
 
 from msk_core.errors import ConfigError
+from msk_core.signal.sets import SetTracker
+from services.nodes.node_runtime import apply_load_event
 from services.transport import messages
 
 
@@ -56,3 +60,52 @@ def set_mark_event(load: messages.LoadEvent | None, set_number: int, mark: str) 
     return new_facts(
         facts, load_kg=None, set_number=None, next_set=mark == "start", exercise=None, athlete=None, set_mark=mark
     )
+
+
+class FactsFollower:
+    """The session facts in effect as ``msk live`` announces them (``OUT/session.json``, which ``msk load`` and
+    ``msk set`` start from): the operator's load events, and the set number the sets have reached, rest detection's
+    sets included (:class:`~msk_core.signal.sets.SetTracker` on the first method's activation frames, as the view and
+    the dashboard count them). Without the sets, ``msk load 60`` in a set that rest detection had opened carried
+    the previous set's number, and every consumer started a new set at it.
+
+    ``on_facts`` gets the facts dict (exercise, load_kg, set_number, athlete) at every change. Thread-safe: Zenoh calls
+    from its threads."""
+
+    def __init__(self, on_facts: Callable[[dict], None]) -> None:
+        self._on_facts = on_facts
+        self._sets = SetTracker()
+        self._facts: dict = {}
+        self._method = ""  # the activation stream whose phase counts the reps (the first seen)
+        self._lock = threading.Lock()
+
+    def on_event(self, event: messages.LoadEvent) -> None:
+        """A load event every node applies (the caller checked it as the estimator does)."""
+        with self._lock:
+            apply_load_event(self._sets, event)
+            self._facts = {
+                "exercise": event.exercise or self._facts.get("exercise", ""),  # none named: the one in effect
+                "load_kg": event.barbell_mass_kg,
+                "set_number": int(event.set_number),
+                "athlete": event.athlete,
+            }
+            self._announce()
+
+    def on_frame(self, method: str, frame: messages.ActivationFrame) -> None:
+        """An activation frame of ``method``: the first method's move the sets on."""
+        with self._lock:
+            self._method = self._method or method
+            if method != self._method:
+                return
+            number = self._sets.number
+            self._sets.update(frame.time_s, frame.phase if frame.HasField("phase") else None)
+            if self._sets.number != number:
+                self._announce()
+
+    def wants(self, method: str) -> bool:
+        """Whether a frame of ``method`` counts (so a caller decodes only those)."""
+        return not self._method or method == self._method
+
+    def _announce(self) -> None:
+        if self._facts:
+            self._on_facts({**self._facts, "set_number": self._sets.number or self._facts["set_number"]})

@@ -787,10 +787,12 @@ def monitor(
 ) -> None:
     """The graph node of ``msk live`` itself (``monitor`` in services.transport.session_graph): counts joints and activation
     frames, so the stop can wait (bounded) until the estimator has answered every joint frame, and publishes the
-    session facts put on ``facts`` (a history publisher: a late ``msk load`` or a restarted recorder fetches them)."""
+    session facts put on ``facts`` (a history publisher: a late ``msk load`` or a restarted recorder fetches them);
+    ``on_facts`` gets the facts in effect as they change (:class:`services.sessions.facts.FactsFollower`)."""
     from msk_core.model.pack import is_known_exercise
     from services.nodes.node_runtime import Rejected, check_payload
     from services.nodes.readiness import declare_ready
+    from services.sessions.facts import FactsFollower
     from services.transport.zenoh_session import declare_history_publisher, open_session, publish
 
     prefix = topics.session_prefix(session)
@@ -798,8 +800,16 @@ def monitor(
     def on_joints(_sample) -> None:
         counts.joints += 1
 
+    follower = FactsFollower(on_facts) if on_facts is not None else None
+
     def on_activation(sample) -> None:
-        counts.activations[str(sample.key_expr).rsplit("/", 1)[1]] += 1
+        method = str(sample.key_expr).rsplit("/", 1)[1]
+        counts.activations[method] += 1
+        if follower is not None and follower.wants(method):
+            try:
+                follower.on_frame(method, messages.decode(messages.ActivationFrame, sample.payload.to_bytes()))
+            except messages.MessageDecodeError:  # counted by the nodes that use the frames; here only the sets matter
+                return
 
     def on_load(sample) -> None:  # its own facts and an operator's (`msk load`): the session's current ones
         try:
@@ -811,15 +821,8 @@ def monitor(
             return  # the estimator and recorder count bad inputs; here only the facts matter
         if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
             return  # as the estimator refuses it: not a fact of this session
-        if on_facts is not None:
-            on_facts(
-                {
-                    "exercise": event.exercise,
-                    "load_kg": event.barbell_mass_kg,
-                    "set_number": event.set_number,
-                    "athlete": event.athlete,
-                }
-            )
+        if follower is not None:
+            follower.on_event(event)
 
     with open_session(options) as zsession:
         load = declare_history_publisher(zsession, topics.load_key(session), "msk.LoadEvent", history_samples=100)

@@ -1,0 +1,89 @@
+"""The facts ``msk live`` announces follow the sets every consumer counts: an operator's ``msk load`` made from them
+keeps the set under way, where it used to start a new one after rest detection had opened a set."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from msk_core.signal.sets import SetTracker
+from services.nodes.node_runtime import apply_load_event
+from services.sessions.facts import FactsFollower, new_facts, set_mark_event
+from services.transport import messages
+
+RATE_HZ = 50.0
+
+
+def frames(start_s: float, reps: int, rest_after_s: float) -> list[messages.ActivationFrame]:
+    """``reps`` reps of 2 s (phase 0 -> 1) with 1 s rests between them, then ``rest_after_s`` of rest."""
+    out = []
+    t = start_s
+    for _ in range(reps):
+        for phase in np.linspace(0.0, 0.99, int(2 * RATE_HZ)):
+            out.append(messages.ActivationFrame(method="so", time_s=t, phase=float(phase)))
+            t += 1 / RATE_HZ
+        for _ in range(int(RATE_HZ)):
+            out.append(messages.ActivationFrame(method="so", time_s=t, phase=-1.0))
+            t += 1 / RATE_HZ
+    for _ in range(int(rest_after_s * RATE_HZ)):
+        out.append(messages.ActivationFrame(method="so", time_s=t, phase=-1.0))
+        t += 1 / RATE_HZ
+    return out
+
+
+def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_opened():
+    announced: list[dict] = []
+    follower = FactsFollower(announced.append)
+    consumer = SetTracker()  # what the estimator, the view and the dashboard count
+    start = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
+    for tracker_event in (follower.on_event, lambda e: apply_load_event(consumer, e)):
+        tracker_event(start)
+    assert announced[-1] == {"exercise": "bench_press", "load_kg": 50, "set_number": 1, "athlete": "Ana"}
+    # set 1, a rest longer than rest detection's 20 s, and the first rep of the next set
+    for frame in frames(0.0, 3, 25.0) + frames(34.0, 1, 0.5):
+        follower.on_frame("so", frame)
+        follower.on_frame("proposed", messages.ActivationFrame(method="proposed", time_s=frame.time_s, phase=-1.0))
+        consumer.update(frame.time_s, frame.phase)
+    assert consumer.number == 2 and [len(s.reps) for s in consumer.sets] == [3, 1]
+    assert announced[-1]["set_number"] == 2 and not follower.wants("proposed")  # the first method's frames count
+    # msk load 60: the load changes within set 2, the athlete stays
+    load = new_facts(announced[-1], load_kg=60, set_number=None, next_set=False, exercise=None, athlete=None)
+    follower.on_event(load)
+    apply_load_event(consumer, load)
+    assert consumer.number == 2 and len(consumer.sets) == 2, [s.as_dict() for s in consumer.sets]
+    assert announced[-1] == {"exercise": "bench_press", "load_kg": 60, "set_number": 2, "athlete": "Ana"}
+    # msk load --next-set and msk set start from the announced facts: the set after the one under way
+    nxt = new_facts(announced[-1], load_kg=None, set_number=None, next_set=True, exercise=None, athlete=None)
+    assert nxt.set_number == 3
+    follower.on_event(nxt)
+    apply_load_event(consumer, nxt)
+    assert consumer.number == 3 and announced[-1]["set_number"] == 3
+    # the dashboard's button and the view's key: the set after the one they show
+    assert set_mark_event(nxt, consumer.number, "start").set_number == 4
+    # an event that names no exercise keeps the one in effect in the facts (as the estimator does)
+    follower.on_event(messages.LoadEvent(barbell_mass_kg=62.5, set_number=2, athlete="Ana"))
+    assert announced[-1]["exercise"] == "bench_press"
+
+
+def test_one_shot_commands_refuse_a_misspelt_session_and_unknown_facts(tmp_path, monkeypatch, capsys):
+    """``msk load --session Sim`` while ``sim`` runs names the running sessions (it used to publish on msk/Sim/load and
+    succeed); ``--connect`` to a session not announced here refuses to publish facts made from none (the bar off,
+    set 0) unless every fact is given."""
+    import os
+
+    from services import cli
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    facts = {"exercise": "bench_press", "load_kg": 50.0, "set_number": 2, "athlete": "Ana"}
+    info = discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(tmp_path / "out"), facts=facts)
+    discovery.announce(info, tmp_path / "out")
+    assert discovery.announced_facts("sim") == facts and discovery.announced_facts("other") is None
+    for argv in (["load", "60", "--session", "Sim"], ["set", "start", "--session", "Sim"]):
+        assert cli.main(argv) != 0
+        error = capsys.readouterr().err
+        assert "--session" in error and "Sim" in error and "running: sim on tcp/127.0.0.1:1" in error, error
+    elsewhere = ["--session", "gym2", "--connect", "tcp/127.0.0.1:1"]
+    for argv in (["load", "60", *elsewhere], ["set", "stop", *elsewhere]):
+        assert cli.main(argv) != 0
+        error = capsys.readouterr().err
+        assert "'gym2' does not announce them on this machine" in error and "--set N --exercise PACK" in error, error
