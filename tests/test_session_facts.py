@@ -87,3 +87,27 @@ def test_one_shot_commands_refuse_a_misspelt_session_and_unknown_facts(tmp_path,
         assert cli.main(argv) != 0
         error = capsys.readouterr().err
         assert "'gym2' does not announce them on this machine" in error and "--set N --exercise PACK" in error, error
+
+
+def test_bad_values_are_named_before_anything_starts(tmp_path, monkeypatch, capsys):
+    """Each refused at once with its flag and value (they used to end in a traceback, name an inner field, or say
+    "no running msk live" instead of the bad value)."""
+    from services import cli
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "empty"))
+    cases = {
+        ("load", "--", "-5"): "field 'KG': must be a finite mass >= 0 kg (got -5.0)",
+        ("load", "nan"): "field 'KG': must be a finite mass >= 0 kg (got nan)",
+        ("load", "--set", "0"): "field '--set': sets are counted from 1 (got 0)",
+        ("set", "start", "--set", "0"): "field '--set': sets are counted from 1 (got 0)",
+        ("live", "--sim", "--listen", "foo"): "field '--listen': not a Zenoh endpoint",
+        ("subscribe", "msk/s/joints", "--connect", "tcp/localhost"): "field '--connect': not a Zenoh endpoint",
+        ("live", "--sim", "--sim-fault", "99:hum:1-2"): "field '--sim-fault': field 'sensor': a sensor is numbered",
+        ("view", "--refresh-hz", "0"): "field '--refresh-hz': redraws per second must be in (0, 100]",
+        ("dashboard", "--port", "99999"): "field '--port': port must be in 1..65535 (got 99999)",
+    }
+    for argv, said in cases.items():
+        assert cli.main(list(argv)) == 2, argv
+        error = capsys.readouterr().err
+        assert said in error, (argv, error)

@@ -129,15 +129,27 @@ def session_from_args(args: argparse.Namespace) -> LiveSession:
     )
 
 
+def _sim_fault(kind, text: str):
+    """``--sim-fault TEXT`` as a :class:`SensorFault`, its errors naming the flag and the text given."""
+    try:
+        return kind.parse(text)
+    except ConfigError as error:
+        raise ConfigError(str(error), field="--sim-fault", value=text) from None
+
+
 def run(args: argparse.Namespace) -> int:
     from services.sessions import live
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError("must be a positive number of seconds", field="--duration", value=args.duration)
+    if args.listen is not None:
+        from services.transport.zenoh_session import check_endpoint
+
+        check_endpoint(args.listen, "--listen")
     session = session_from_args(args)
     from drivers.trigno.simulator import SensorFault
 
-    faults = tuple(SensorFault.parse(text) for text in args.sim_fault)
+    faults = tuple(_sim_fault(SensorFault, text) for text in args.sim_fault)
     from services.sessions.sim_sets import SimSets
 
     sets = SimSets(reps=args.sim_reps, rest_s=args.sim_rest)

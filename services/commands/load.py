@@ -17,7 +17,7 @@ from collections.abc import Callable
 from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs, is_known_exercise
 from services.sessions import discovery
-from services.sessions.facts import new_facts
+from services.sessions.facts import check_facts, new_facts
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
     add_zenoh_arguments,
@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
         and args.athlete is None
     ):
         raise ConfigError("nothing to change: give KG, --set N, --next-set, --exercise or --athlete", field="KG")
+    check_facts(args.load_kg, args.set)  # before looking for the session: a bad value is said as such
     if args.exercise is not None and not is_known_exercise(args.exercise):
         raise ConfigError(
             f"not a model pack (known: {', '.join(available_packs())})", field="--exercise", value=args.exercise

@@ -13,7 +13,7 @@ import argparse
 
 from msk_core.errors import ConfigError
 from services.commands.load import publish_facts
-from services.sessions.facts import new_facts
+from services.sessions.facts import check_facts, new_facts
 from services.transport.zenoh_session import add_zenoh_arguments
 
 
@@ -21,6 +21,7 @@ def run(args: argparse.Namespace) -> int:
     if args.set is not None and args.action != "start":
         raise ConfigError("a set number goes with start", field="--set", value=args.set)
     start = args.action == "start"
+    check_facts(None, args.set)
     session, event, key = publish_facts(
         args,
         lambda facts: new_facts(

@@ -17,6 +17,14 @@ from services.nodes.node_runtime import apply_load_event
 from services.transport import messages
 
 
+def check_facts(load_kg: float | None, set_number: int | None) -> None:
+    """The operator's load (finite, >= 0 kg) and set number (from 1), each when given."""
+    if load_kg is not None and not (math.isfinite(load_kg) and load_kg >= 0):
+        raise ConfigError("must be a finite mass >= 0 kg", field="KG", value=load_kg)
+    if set_number is not None and set_number < 1:
+        raise ConfigError("sets are counted from 1", field="--set", value=set_number)
+
+
 def new_facts(
     current: dict,
     *,
@@ -29,10 +37,7 @@ def new_facts(
 ) -> messages.LoadEvent:
     """The LoadEvent that changes ``current`` (a session's facts: exercise, load_kg, set_number, athlete);
     ``set_mark``: "start" (the next set starts: ``next_set``) or "stop" (the set under way ends), "" none."""
-    if load_kg is not None and not (math.isfinite(load_kg) and load_kg >= 0):
-        raise ConfigError("must be a finite mass >= 0 kg", field="KG", value=load_kg)
-    if set_number is not None and set_number < 1:
-        raise ConfigError("sets are counted from 1", field="--set", value=set_number)
+    check_facts(load_kg, set_number)
     now = messages.now_ns()
     number = int(current.get("set_number", 0) or 0)
     if next_set:

@@ -36,6 +36,7 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from msk_core.errors import ConfigError
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
@@ -518,6 +519,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.refresh_hz) and 0 < args.refresh_hz <= 100):
+        raise ConfigError("redraws per second must be in (0, 100]", field="--refresh-hz", value=args.refresh_hz)
     stop = stop_on_signals()
     from services.sessions import discovery
 

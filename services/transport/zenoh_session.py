@@ -128,11 +128,28 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: Zenoh's link protocols whose address is HOST:PORT (others, e.g. unixsock-stream/PATH, are passed on as given).
+HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_endpoint(endpoint: str, field: str) -> str:
+    """``endpoint`` when it has Zenoh's form ``PROTOCOL/ADDRESS`` (``tcp/127.0.0.1:7447``), else a
+    :class:`ConfigError` naming ``field``: Zenoh itself refuses a bad one only when a node opens its session, after a
+    whole graph has been started."""
+    protocol, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if protocol in HOST_PORT_PROTOCOLS and host and port.isdigit() and int(port) < 65536:
+        return endpoint
+    if protocol and address and protocol not in HOST_PORT_PROTOCOLS:
+        return endpoint
+    raise ConfigError("not a Zenoh endpoint: PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447", field=field, value=endpoint)
+
+
 def options_from_args(args: argparse.Namespace) -> ZenohOptions:
     return ZenohOptions(
         mode=args.mode,
-        connect=tuple(args.connect),
-        listen=tuple(args.listen),
+        connect=tuple(check_endpoint(e, "--connect") for e in args.connect),
+        listen=tuple(check_endpoint(e, "--listen") for e in args.listen),
         config_file=args.zenoh_config,
     )
 

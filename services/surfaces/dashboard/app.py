@@ -260,6 +260,8 @@ def secured(pki: Path) -> tuple[str, str]:
 def _check_port_free(host: str, port: int) -> None:
     import socket
 
+    if not 0 < port < 65536:
+        raise ConfigError("port must be in 1..65535", field="--port", value=port)
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
