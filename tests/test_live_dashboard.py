@@ -165,6 +165,9 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
             facts_before = page.evaluate(FACTS)  # the simulator plays sets with rests: the set number moves on
             code, output, summary = live.stop()
             assert code == 0, output
+            # the frames the estimator left while the deadlift was declared: counted, and said in the summary
+            paused = summary["inputs_dropped"]["estimator"]["msk/sim/joints"]["other_exercise"]
+            assert paused > 0 and "msk/sim/joints other_exercise" in output, summary["inputs_dropped"]
             # the estimator's fatigue values are in the summary, per electrode and set
             sets = [s for per_electrode in summary["fatigue"].values() for s in per_electrode]
             assert sets and max(s["reps"] for s in sets) >= 2, summary["fatigue"]

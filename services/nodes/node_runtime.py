@@ -81,6 +81,7 @@ class DropReason(str, Enum):
     INVALID = "invalid"
     UNKNOWN_KEY = "unknown_key"
     QUEUE_FULL = "queue_full"
+    OTHER_EXERCISE = "other_exercise"  # the estimator: a joint frame while load events declare another pack's exercise
 
 
 class Rejected(messages.MessageDecodeError):

@@ -62,6 +62,8 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
 
 READY_TIMEOUT_S = 90.0
 STOP_TIMEOUT_S = 20.0
+#: At the stop, an estimator that published nothing for this long answers no more (paused for another exercise)
+ESTIMATOR_IDLE_S = 3.0
 DRAIN_S = 0.6  # after the simulators stop sending: bytes in flight reach the drivers, messages the nodes
 #: how long a joint frame may wait in the estimator for the EMG of its instant: a Trigno delivers each 13.5 ms frame
 #: after its last sample, plus the base's own latency; beyond this the frame reads the newest EMG there is
@@ -1227,13 +1229,17 @@ def stop_in_order(
                 return time.monotonic() - last[1] >= DRAIN_S
 
             _settle("the kinematics node to publish its last joint frames", quiet, counts, STOP_TIMEOUT_S, log)
-        elif name == "estimator":  # every joint frame answered by every method
+        elif name == "estimator":  # every joint frame answered by every method, or none answered for a while
+            answered = [sum(counts.activations.values()), time.monotonic()]
+
+            def done(answered: list = answered) -> bool:  # a paused estimator (another exercise) answers no more
+                if sum(counts.activations.values()) != answered[0]:
+                    answered[:] = [sum(counts.activations.values()), time.monotonic()]
+                idle = time.monotonic() - answered[1] >= ESTIMATOR_IDLE_S
+                return idle or all(counts.activations[m] >= counts.joints for m in methods)
+
             _settle(
-                f"the estimator to answer all joint frames ({', '.join(methods)})",
-                lambda: all(counts.activations[m] >= counts.joints for m in methods),
-                counts,
-                STOP_TIMEOUT_S,
-                log,
+                f"the estimator to answer all joint frames ({', '.join(methods)})", done, counts, STOP_TIMEOUT_S, log
             )
         if process.poll() is None:
             process.send_signal(signal.SIGINT)
