@@ -63,7 +63,11 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
         sent = _publish_bad_messages(info["connect"][0])
         changed = run_msk("load", "60", "--next-set", env=env)
         assert changed.returncode == 0 and "set 2" in changed.stdout, changed.stdout + changed.stderr
-        time.sleep(3.0)  # the nodes go on: seconds of valid input after the bad ones
+        # the nodes go on: seconds of valid input after the bad ones, while a view started now shows the facts in
+        # effect (the 60 kg of set 2), not the session's opening ones that msk live's load publisher keeps
+        late = run_msk("view", "--duration", "4", env={**env, "COLUMNS": "200"})
+        assert late.returncode == 0, late.stderr
+        assert "load 60 kg · set 2" in late.stdout and "load 50 kg" not in late.stdout, late.stdout[-3000:]
         code, output, summary = live.stop()
     finally:
         live.kill()

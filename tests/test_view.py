@@ -261,6 +261,13 @@ def test_session_facts_come_from_the_load_event_else_the_frames():
     assert "(msk load --exercise bench_press)" in text, text
     state.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=80, exercise="bench_press", set_number=4))
     assert "paused" not in screen_text(state)
+    # a view started while the estimator is paused has no frame: the exercise msk live announces tells it
+    late = ViewState()
+    late.on_message("msk/s/load", messages.LoadEvent(barbell_mass_kg=80, exercise="deadlift", set_number=4))
+    assert "waiting for activations" in screen_text(late)
+    late.loads.session_exercise = "bench_press"
+    text = " ".join(screen_text(late).split())
+    assert "Estimates paused. The operator's load event declares deadlift, and this session estimates bench" in text
 
 
 def test_view_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_endpoint):

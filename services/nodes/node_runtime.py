@@ -410,11 +410,21 @@ class NodeInputs:
             self._on_sample(sample)
         return len(samples)
 
-    def fetch_session_facts(self, session: str, timeout_s: float = 5.0) -> threading.Thread:
+    def fetch_session_facts(
+        self,
+        session: str,
+        timeout_s: float = 5.0,
+        current: Callable[[], messages.LoadEvent | None] | None = None,
+    ) -> threading.Thread:
         """In the background: once this Zenoh session knows ``msk live``'s own node (its readiness token; a peer
         learns another's declarations only once connected to it, a moment after joining), queue the session facts
         (exercise, load, set) its load publisher keeps, published before this reader started. Without an ``msk live``
-        (a replay) or with a role that may not see readiness tokens, nothing is fetched."""
+        (a replay) or with a role that may not see readiness tokens, nothing is fetched.
+
+        That cache holds the session's opening facts only (the operator's later ones came from commands that have
+        left); ``current``, when it gives one, is the facts in effect now (what msk live announces on this machine,
+        :func:`services.sessions.facts.announced_event`), queued after them as if it had arrived on the load key, so
+        a page that starts late neither shows nor, with its set buttons, publishes the opening load again."""
         from services.nodes.readiness import GraphTimeout, wait_for_nodes
         from services.transport.session_graph import NODES
 
@@ -426,6 +436,19 @@ class NodeInputs:
                 wait_for_nodes(self._zsession, session, (NODES["monitor"].name,), timeout_s, give_up=closed)
                 if not self._closed:
                     self.fetch_history(topics.load_key(session))
+                event = current() if current is not None and not self._closed else None
+                if event is not None:
+                    self._queue.put(
+                        (
+                            topics.load_key(session),
+                            messages.type_name(event),
+                            event.SerializeToString(),
+                            messages.now_ns(),
+                            None,
+                            0,
+                        ),
+                        timeout=QUEUE_WAIT_S,
+                    )
             except GraphTimeout:
                 return
             except Exception as error:  # a session closed meanwhile: the facts come with the next change
@@ -581,6 +604,9 @@ class LoadEventGate:
     still unknown refused."""
 
     frame_exercises: set[str] = field(default_factory=set)
+    #: the exercise (pack) the session announces it estimates: what a page that starts while the estimator is paused,
+    #: before any frame, knows of it (:meth:`paused_notice`)
+    session_exercise: str = ""
     held: list[messages.LoadEvent] = field(default_factory=list)
     refused: int = 0
     _counted: int = 0  # of the refused, those already in an InputCounts
@@ -617,7 +643,7 @@ class LoadEventGate:
         """Why estimates stop while the operator's load events declare ``declared``: the estimator skips the frames
         of an exercise other than its pack's (``EstimatorNode.frames_for_joints``), so a page that sees no estimates
         says that rather than asking whether the estimator runs; "" while ``declared`` is one the frames named."""
-        estimated = sorted(self.frame_exercises)
+        estimated = sorted(self.frame_exercises or ({self.session_exercise} - {""}))
         if not declared or not estimated or declared in estimated:
             return ""
         names = " or ".join(e.replace("_", " ") for e in estimated)

@@ -149,11 +149,17 @@ def running_sessions() -> list[SessionInfo]:
     return found
 
 
+def announced(session: str) -> SessionInfo | None:
+    """The running session named ``session`` as it announces itself on this machine; None when it does not."""
+    named = [s for s in running_sessions() if s.session == session]
+    return named[-1] if named else None
+
+
 def announced_facts(session: str) -> dict | None:
     """The facts in effect of the running session named ``session`` as it announces them here; None when no session
     of that name is announced on this machine."""
-    named = [s for s in running_sessions() if s.session == session]
-    return named[-1].facts if named else None
+    info = announced(session)
+    return info.facts if info is not None else None
 
 
 def find_session(session: str | None) -> SessionInfo | None:

@@ -114,3 +114,15 @@ class FactsFollower:
     def _announce(self) -> None:
         if self._facts:
             self._on_facts({**self._facts, "set_number": self._sets.number or self._facts["set_number"]})
+
+
+def announced_event(session: str) -> messages.LoadEvent | None:
+    """The facts in effect of ``session`` as ``msk live`` announces them on this machine (``OUT/session.json``,
+    following every operator change and the set under way), as a LoadEvent made now without a set mark; None when
+    the session announces none here (a page on another machine keeps the opening facts until the next change)."""
+    from services.sessions.discovery import announced_facts
+
+    facts = announced_facts(session)
+    if not facts:
+        return None
+    return new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)

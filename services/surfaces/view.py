@@ -41,6 +41,8 @@ from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
+from services.sessions.discovery import announced
+from services.sessions.facts import announced_event
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
@@ -275,6 +277,24 @@ def electrode_text(electrodes: list[messages.ElectrodeQuality]) -> Text:
     return text
 
 
+def view_header(session: str, received: int, inputs: InputCounts) -> Text:
+    """The view's first line: the session, the messages taken and dropped, the keys."""
+    dropped = dropped_text(inputs)
+    return Text(
+        f"msk view · session {session} · {received} messages"
+        + (f" · {dropped}" if dropped else "")
+        + " · keys: s start set, e end set",
+        style="bold",
+    )
+
+
+def waiting_text(session: str, paused: str) -> Text:
+    """What the view says before its first activation frame: why the estimator is paused, or what it waits for."""
+    if paused:
+        return Text(f"Estimates paused. {paused}", style="bold yellow")
+    return Text(f"waiting for activations on msk/{session}/activations/* ...")
+
+
 def render(state: ViewState, session: str, primary: str | None = None, width: int | None = None) -> Group:
     """The screen; ``width`` (the terminal's columns) decides whether muscles show by display name or abbreviation."""
     with state.lock:
@@ -286,19 +306,9 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         records = [r.as_dict() for r in state.sets.sets]  # the set under way (or the last) in the muscle table
     methods = list(frames)
     method = primary if primary in frames else default_method(methods)  # named in the muscle table's title
-    dropped = dropped_text(state.inputs)
-    header = Text(
-        f"msk view · session {session} · {received} messages"
-        + (f" · {dropped}" if dropped else "")
-        + " · keys: s start set, e end set",
-        style="bold",
-    )
+    header = view_header(session, received, state.inputs)
     if method is None:
-        return Group(
-            header,
-            Text(session_facts(load, None, sets)),
-            Text("waiting for activations on " + f"msk/{session}/activations/* ..."),
-        )
+        return Group(header, Text(session_facts(load, None, sets)), waiting_text(session, paused))
     frame = frames[method]
     groups = list(frame.groups)
     exercise = frame.exercise or (load.exercise if load is not None else "")  # the names of the frame's pack
@@ -352,8 +362,15 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     )
     extra = [sets_table(records)] if records else []
     notice = [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]
-    notice = notice if paused else []
-    return Group(header, session_line, *notice, muscles, *extra, torque_table(frame, names), *health_tables(status))
+    return Group(
+        header,
+        session_line,
+        *(notice if paused else []),
+        muscles,
+        *extra,
+        torque_table(frame, names),
+        *health_tables(status),
+    )
 
 
 def torque_table(frame: messages.ActivationFrame, names: DisplayNames) -> Table:
@@ -473,7 +490,10 @@ def main(
         inputs = NodeInputs(zsession, "view")
         state.inputs = inputs.counts
         inputs.subscribe(f"{topics.session_prefix(session)}/**")
-        inputs.fetch_session_facts(session)  # the facts msk live published before this view started
+        # the facts msk live published before this view started, then those in effect now (announced here)
+        inputs.fetch_session_facts(session, current=lambda: announced_event(session))
+        info = announced(session)
+        state.loads.session_exercise = info.pack if info is not None else ""
         taking = threading.Event()
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()
