@@ -111,3 +111,25 @@ def test_bad_values_are_named_before_anything_starts(tmp_path, monkeypatch, caps
         assert cli.main(list(argv)) == 2, argv
         error = capsys.readouterr().err
         assert said in error, (argv, error)
+
+
+def test_a_second_msk_live_of_the_same_name_or_folder_is_refused(tmp_path, monkeypatch, capsys):
+    """Two sessions called "sim" could not be told apart by the attach commands, and a second recorder in the same
+    folder would truncate the first one's recording: both refused before anything starts."""
+    import os
+
+    from services import cli
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    running = tmp_path / "running"
+    discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(running)), running)
+    assert cli.main(["live", "--sim", "--no-view", "--out", str(tmp_path / "other")]) == 2
+    error = capsys.readouterr().err
+    assert "field 'session'" in error and "a session of this name runs now" in error and str(running) in error, error
+    for path in (tmp_path / "registry").glob("*.json"):
+        discovery.withdraw(path)
+    discovery.announce(discovery.SessionInfo("monday", ["tcp/127.0.0.1:1"], os.getpid(), str(running)), running)
+    assert cli.main(["live", "--sim", "--no-view", "--out", str(running)]) == 2
+    error = capsys.readouterr().err
+    assert "'monday'" in error and "is recording there now; choose another --out" in error, error

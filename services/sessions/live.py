@@ -1445,6 +1445,26 @@ def default_live_endpoint() -> str:
     return DEFAULT_ENDPOINT if endpoint_is_free(DEFAULT_ENDPOINT) else free_loopback_endpoint()
 
 
+def check_not_running(name: str, out: Path) -> None:
+    """Refuse a session whose name or output folder a running ``msk live`` announces: the attach commands could not
+    tell two sessions of one name apart, and a second recorder would truncate the first one's recording."""
+    from services.sessions import discovery
+
+    for info in discovery.running_sessions():
+        if Path(info.out).resolve() == Path(out).resolve():
+            raise ConfigError(
+                f"session {info.session!r} (pid {info.pid}) is recording there now; choose another --out",
+                path=Path(out),
+            )
+        if info.session == name:
+            raise ConfigError(
+                f"a session of this name runs now (pid {info.pid}, recording to {info.out}); stop it or give this one "
+                "another name (the session file's name)",
+                field="session",
+                value=name,
+            )
+
+
 def main(
     session: LiveSession,
     *,
@@ -1466,6 +1486,7 @@ def main(
             field="--listen",
             value=listen,
         )
+    check_not_running(session.name, session.out)
     plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
     try:
         summary = run_graph(
