@@ -63,7 +63,6 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
             time.sleep(0.05)
         time.sleep(0.2)
     assert stats.other_exercise == 1 and stats.load_events == 2
-    assert stats.inputs is not None and stats.inputs.as_dict()["dropped"]["msk/t/joints"] == {"other_exercise": 1}
     assert stats.rejected == 1 and "lack" in stats.last_error and "not_a_coordinate" in stats.last_error
     for method in ("so", "hybrid"):
         frames = received[method]

@@ -166,8 +166,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
             code, output, summary = live.stop()
             assert code == 0, output
             # the frames the estimator left while the deadlift was declared: counted, and said in the summary
-            paused = summary["inputs_dropped"]["estimator"]["msk/sim/joints"]["other_exercise"]
-            assert paused > 0 and "msk/sim/joints other_exercise" in output, summary["inputs_dropped"]
+            assert summary["joint_frames_paused"] > 0 and "estimates paused for about" in output, output[-2000:]
             # the estimator's fatigue values are in the summary, per electrode and set
             sets = [s for per_electrode in summary["fatigue"].values() for s in per_electrode]
             assert sets and max(s["reps"] for s in sets) >= 2, summary["fatigue"]

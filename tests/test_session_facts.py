@@ -7,7 +7,7 @@ import numpy as np
 
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import apply_load_event
-from services.sessions.facts import FactsFollower, new_facts, set_mark_event
+from services.sessions.facts import FactsFollower, announced_events, new_facts, set_mark_event
 from services.transport import messages
 
 RATE_HZ = 50.0
@@ -30,14 +30,15 @@ def frames(start_s: float, reps: int, rest_after_s: float) -> list[messages.Acti
     return out
 
 
-def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_opened():
+def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_opened(monkeypatch):
     announced: list[dict] = []
     follower = FactsFollower(announced.append)
     consumer = SetTracker()  # what the estimator, the view and the dashboard count
     start = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
     for tracker_event in (follower.on_event, lambda e: apply_load_event(consumer, e)):
         tracker_event(start)
-    assert announced[-1] == {"exercise": "bench_press", "load_kg": 50, "set_number": 1, "athlete": "Ana"}
+    opening = {"exercise": "bench_press", "load_kg": 50, "set_number": 1, "athlete": "Ana", "resting": False}
+    assert announced[-1] == opening
     # set 1, a rest longer than rest detection's 20 s, and the first rep of the next set
     for frame in frames(0.0, 3, 25.0) + frames(34.0, 1, 0.5):
         follower.on_frame("so", frame)
@@ -50,7 +51,7 @@ def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_ope
     follower.on_event(load)
     apply_load_event(consumer, load)
     assert consumer.number == 2 and len(consumer.sets) == 2, [s.as_dict() for s in consumer.sets]
-    assert announced[-1] == {"exercise": "bench_press", "load_kg": 60, "set_number": 2, "athlete": "Ana"}
+    assert announced[-1] == opening | {"load_kg": 60, "set_number": 2}
     # msk load --next-set and msk set start from the announced facts: the set after the one under way
     nxt = new_facts(announced[-1], load_kg=None, set_number=None, next_set=True, exercise=None, athlete=None)
     assert nxt.set_number == 3
@@ -59,6 +60,26 @@ def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_ope
     assert consumer.number == 3 and announced[-1]["set_number"] == 3
     # the dashboard's button and the view's key: the set after the one they show
     assert set_mark_event(nxt, consumer.number, "start").set_number == 4
+    # the operator ends set 3: the facts say the session rests, and a page that starts now is told both
+    stop = new_facts(announced[-1], load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)
+    stop.set_mark = "stop"
+    follower.on_event(stop)
+    apply_load_event(consumer, stop)
+    assert consumer.resting and announced[-1]["resting"] and announced[-1]["set_number"] == 3
+    late = SetTracker()
+    apply_load_event(late, start)  # the opening facts msk live's load publisher keeps
+    monkeypatch.setattr("services.sessions.discovery.announced_facts", lambda session: announced[-1])
+    for event in announced_events("sim"):
+        apply_load_event(late, event)
+    assert (late.number, late.resting) == (3, True)
+    # a rep that opens set 4 but does not count (too short) is not announced as set 4
+    count = len(announced)
+    t = consumer._last_t
+    for k in range(5):
+        follower.on_frame("so", messages.ActivationFrame(method="so", time_s=t + 0.02 * (k + 1), phase=0.1 * k))
+    for k in range(60):
+        follower.on_frame("so", messages.ActivationFrame(method="so", time_s=t + 0.2 + 0.02 * k, phase=-1.0))
+    assert all(a["set_number"] == 3 for a in announced[count:]), announced[count:]
     # an event that names no exercise keeps the one in effect in the facts (as the estimator does)
     follower.on_event(messages.LoadEvent(barbell_mass_kg=62.5, set_number=2, athlete="Ana"))
     assert announced[-1]["exercise"] == "bench_press"
@@ -78,6 +99,8 @@ def test_one_shot_commands_refuse_a_misspelt_session_and_unknown_facts(tmp_path,
     info = discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(tmp_path / "out"), facts=facts)
     discovery.announce(info, tmp_path / "out")
     assert discovery.announced_facts("sim") == facts and discovery.announced_facts("other") is None
+    # a view, dashboard or subscriber may look for a graph msk live did not start (a replay) on the usual endpoint
+    assert discovery.find_session("replay") is None
     for argv in (["load", "60", "--session", "Sim"], ["set", "start", "--session", "Sim"]):
         assert cli.main(argv) != 0
         error = capsys.readouterr().err
@@ -102,10 +125,19 @@ def test_bad_values_are_named_before_anything_starts(tmp_path, monkeypatch, caps
         ("load", "--set", "0"): "field '--set': sets are counted from 1 (got 0)",
         ("set", "start", "--set", "0"): "field '--set': sets are counted from 1 (got 0)",
         ("live", "--sim", "--listen", "foo"): "field '--listen': not a Zenoh endpoint",
-        ("subscribe", "msk/s/joints", "--connect", "tcp/localhost"): "field '--connect': not a Zenoh endpoint",
+        (
+            "subscribe",
+            "msk/s/joints",
+            "--connect",
+            "tcp/localhost",
+        ): "field '--connect': a tcp endpoint is tcp/HOST:PORT",
         ("live", "--sim", "--sim-fault", "99:hum:1-2"): "field '--sim-fault': field 'sensor': a sensor is numbered",
         ("view", "--refresh-hz", "0"): "field '--refresh-hz': redraws per second must be in (0, 100]",
         ("dashboard", "--port", "99999"): "field '--port': port must be in 1..65535 (got 99999)",
+        # every fact given, to a session whose endpoint nobody answers (a one-shot Zenoh client fails at once)
+        ("load", "60", "--set", "2", "--exercise", "bench_press", "--session", "x", "--connect", "tcp/127.0.0.1:1"): (
+            "cannot reach session 'x' at tcp/127.0.0.1:1 (Unable to connect to any of"
+        ),
     }
     for argv, said in cases.items():
         assert cli.main(list(argv)) == 2, argv
@@ -133,3 +165,27 @@ def test_a_second_msk_live_of_the_same_name_or_folder_is_refused(tmp_path, monke
     assert cli.main(["live", "--sim", "--no-view", "--out", str(running)]) == 2
     error = capsys.readouterr().err
     assert "'monday'" in error and "is recording there now; choose another --out" in error, error
+
+
+def test_zenoh_endpoints_as_zenoh_reads_them():
+    """What Zenoh accepts passes (metadata, interface config, IPv6, Unix sockets); what it refuses, and a HOST:PORT
+    protocol without a port in range, is a ConfigError naming the flag."""
+    import pytest
+
+    from msk_core.errors import ConfigError
+    from services.transport.zenoh_session import check_endpoint
+
+    for good in (
+        "tcp/127.0.0.1:7447",
+        "tcp/[::1]:7447",
+        "tcp/localhost:7447#iface=lo",
+        "tcp/127.0.0.1:7447?prio=1-7;rel=1",
+        "udp/224.0.0.224:7446#iface=eth0",
+        "tls/gym-router.local:7447",
+        "unixsock-stream//tmp/msk.sock",
+        "tcp/127.0.0.1:0",
+    ):
+        assert check_endpoint(good, "--connect") == good
+    for bad in ("foo", "tcp/localhost", "tcp/127.0.0.1:99999", "tcp/:7447"):
+        with pytest.raises(ConfigError, match="--listen"):
+            check_endpoint(bad, "--listen")

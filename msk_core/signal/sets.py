@@ -132,6 +132,14 @@ class SetTracker:
         return self.sets[-1].number if self.sets else 0
 
     @property
+    def settled(self) -> tuple[int, bool]:
+        """(set number, resting) leaving out a set that a rep opened and that has not counted yet (it may go again:
+        what an announcement that others start from should say)."""
+        if self._tentative and self.sets and not self.sets[-1].reps:
+            return (self.sets[-2].number if len(self.sets) > 1 else 0), True
+        return self.number, self.resting
+
+    @property
     def rep(self) -> int:
         """Rep n of the set: the rep under way, else the last one done (0 at rest or before the first)."""
         current = self.current

@@ -90,7 +90,7 @@ def publish_facts(
             field="--session",
         )
     facts = info.facts if info is not None else discovery.announced_facts(session)
-    if facts is None and not complete:
+    if not facts and not complete:
         raise ConfigError(
             f"{command} starts from the facts in effect (load, set, exercise, athlete), and session {session!r} does "
             f"not announce them on this machine (msk live writes them to OUT/session.json where it runs): run "
@@ -100,7 +100,17 @@ def publish_facts(
         )
     event = make_event(facts or {})
     key = topics.load_key(session)
-    with open_session(options) as zsession:
+    try:
+        opened = open_session(options)
+    except Exception as error:  # zenoh's ZError: a client whose endpoint nobody answers
+        where = ", ".join(options.connect) or (str(options.config_file) if options.config_file else "the default")
+        raise ConfigError(
+            f"cannot reach session {session!r} at {where} ({str(error).split(' at /')[0].strip()}); is it running? "
+            f"(running sessions are announced in {discovery.registry_dir()})",
+            field="--session",
+            value=session,
+        ) from None
+    with opened as zsession:
         publisher = declare_data_publisher(zsession, key, "msk.LoadEvent")
         deadline = time.monotonic() + READERS_TIMEOUT_S
         while not has_subscribers(publisher) and time.monotonic() < deadline:

@@ -63,7 +63,6 @@ from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
 from services.nodes.estimator_options import add_live_synergists_argument
 from services.nodes.node_runtime import (
-    DropReason,
     Inbound,
     InputContinuity,
     InputCounts,
@@ -573,7 +572,6 @@ class EstimatorNode:
         # name.
         self.exercise = settings.exercise if settings.exercise is not None else first.pack.name
         self.own_exercises = (self.exercise, first.pack.name)
-        self.joints_key = topics.joints_key(settings.session)
 
     def handle_emg(self, chunk: messages.EmgChunk | bytes, arrival_ns: int) -> messages.EmgEnvelope | None:
         chunk = messages.as_message(messages.EmgChunk, chunk)
@@ -690,8 +688,6 @@ class EstimatorNode:
         load_kg, current_exercise = self.loads.at(joints.device_time_ns)
         if current_exercise and current_exercise != self.exercise:
             stats.other_exercise += 1
-            if stats.inputs is not None:  # in the status and the session's summary: why frames went unanswered
-                stats.inputs.count_dropped(self.joints_key, DropReason.OTHER_EXERCISE)
             if stats.other_exercise == 1:
                 log.info(
                     "load events say %r is under way: frames are not estimated with pack %r until the "

@@ -81,7 +81,6 @@ class DropReason(str, Enum):
     INVALID = "invalid"
     UNKNOWN_KEY = "unknown_key"
     QUEUE_FULL = "queue_full"
-    OTHER_EXERCISE = "other_exercise"  # the estimator: a joint frame while load events declare another pack's exercise
 
 
 class Rejected(messages.MessageDecodeError):
@@ -414,7 +413,7 @@ class NodeInputs:
         self,
         session: str,
         timeout_s: float = 5.0,
-        current: Callable[[], messages.LoadEvent | None] | None = None,
+        current: Callable[[], list[messages.LoadEvent]] | None = None,
     ) -> threading.Thread:
         """In the background: once this Zenoh session knows ``msk live``'s own node (its readiness token; a peer
         learns another's declarations only once connected to it, a moment after joining), queue the session facts
@@ -422,9 +421,10 @@ class NodeInputs:
         (a replay) or with a role that may not see readiness tokens, nothing is fetched.
 
         That cache holds the session's opening facts only (the operator's later ones came from commands that have
-        left); ``current``, when it gives one, is the facts in effect now (what msk live announces on this machine,
-        :func:`services.sessions.facts.announced_event`), queued after them as if it had arrived on the load key, so
-        a page that starts late neither shows nor, with its set buttons, publishes the opening load again."""
+        left); ``current`` gives the facts in effect now (what msk live announces on this machine,
+        :func:`services.sessions.facts.announced_events`), queued after them as if they had arrived on the load key
+        (also when msk live's node was not seen), so a page that starts late neither shows nor, with its set buttons,
+        publishes the opening load again."""
         from services.nodes.readiness import GraphTimeout, wait_for_nodes
         from services.transport.session_graph import NODES
 
@@ -436,23 +436,17 @@ class NodeInputs:
                 wait_for_nodes(self._zsession, session, (NODES["monitor"].name,), timeout_s, give_up=closed)
                 if not self._closed:
                     self.fetch_history(topics.load_key(session))
-                event = current() if current is not None and not self._closed else None
-                if event is not None:
-                    self._queue.put(
-                        (
-                            topics.load_key(session),
-                            messages.type_name(event),
-                            event.SerializeToString(),
-                            messages.now_ns(),
-                            None,
-                            0,
-                        ),
-                        timeout=QUEUE_WAIT_S,
-                    )
             except GraphTimeout:
-                return
+                pass
             except Exception as error:  # a session closed meanwhile: the facts come with the next change
                 log.info("%s: session facts not fetched: %s", self.node, error)
+                return
+            for event in current() if current is not None and not self._closed else []:
+                item = (topics.load_key(session), messages.type_name(event), event.SerializeToString())
+                try:
+                    self._queue.put((*item, messages.now_ns(), None, 0), timeout=QUEUE_WAIT_S)
+                except queue.Full:
+                    self._dropped(item[0], DropReason.QUEUE_FULL, f"the node is {self._queue.maxsize} messages behind")
 
         thread = threading.Thread(target=fetch, name=f"{self.node}-facts", daemon=True)
         self._facts = thread

@@ -162,16 +162,17 @@ def announced_facts(session: str) -> dict | None:
     return info.facts if info is not None else None
 
 
-def find_session(session: str | None) -> SessionInfo | None:
-    """The running session named ``session`` (or the only one when None); None when no session is announced.
+def find_session(session: str | None, *, strict: bool = False) -> SessionInfo | None:
+    """The running session named ``session`` (or the only one when None); None when no session of that name is
+    announced (a graph msk live did not start, e.g. a replay, is looked for on the well-known endpoint).
 
-    Raises :class:`ConfigError` when the choice is ambiguous or the named session is not among those running (a
-    misspelt name would otherwise reach for a session on the well-known endpoint, and a one-shot command such as
-    ``msk load`` would publish to nobody's topic and succeed)."""
+    Raises :class:`ConfigError` when the choice is ambiguous, or with ``strict`` (a one-shot command such as
+    ``msk load``, which would otherwise publish to nobody's topic and succeed) when sessions are announced and none
+    has that name."""
     running = running_sessions()
     if session is not None:
         named = [s for s in running if s.session == session]
-        if not named and running:
+        if not named and running and strict:
             raise ConfigError(
                 "no running session of this name (running: "
                 + ", ".join(f"{s.session} on {', '.join(s.connect)}" for s in running)
@@ -198,12 +199,14 @@ def attach_options(
     loopback endpoint).
 
     ``one_shot``: a command that publishes once and leaves (``msk load``, ``msk set``) attaches as a Zenoh client of
-    msk live's own node, which routes its sample to every node of the session. As a peer it would reach only the
+    the node that holds the session's endpoint, which routes its sample to every node of the session. As a peer it would reach only the
     peers it had connected to by then (they find each other by gossip, a moment after joining): the recorder got
     the operator's load event and the estimator did not."""
+    if one_shot and explicit.connect and explicit.config_file is None and explicit.mode is None:
+        explicit = replace(explicit, mode="client")  # also with --connect: the endpoint's node passes it on
     if explicit.connect or explicit.listen or explicit.config_file is not None:
         return explicit, None
-    info = find_session(session)
+    info = find_session(session, strict=one_shot)
     if info is None:
         return explicit, None
     return info.options("client" if one_shot else "peer"), info
@@ -224,9 +227,11 @@ def client_options(
             flush=True,
         )
     elif not (explicit.connect or explicit.listen or explicit.config_file is not None):
+        running = ", ".join(s.session for s in running_sessions())
         print(
-            f"{tool}: no running msk live announced in {registry_dir()}; looking for session {name!r} on "
-            f"{where(options)}",
+            f"{tool}: no running msk live announced in {registry_dir()}"
+            + (f" is named {name!r} (running: {running})" if running else "")
+            + f"; looking for session {name!r} on {where(options)}",
             file=sys.stderr,
             flush=True,
         )

@@ -102,9 +102,9 @@ class FactsFollower:
             self._method = self._method or method
             if method != self._method:
                 return
-            number = self._sets.number
+            settled = self._sets.settled
             self._sets.update(frame.time_s, frame.phase if frame.HasField("phase") else None)
-            if self._sets.number != number:
+            if self._sets.settled != settled:
                 self._announce()
 
     def wants(self, method: str) -> bool:
@@ -113,16 +113,22 @@ class FactsFollower:
 
     def _announce(self) -> None:
         if self._facts:
-            self._on_facts({**self._facts, "set_number": self._sets.number or self._facts["set_number"]})
+            number, resting = self._sets.settled
+            self._on_facts({**self._facts, "set_number": number or self._facts["set_number"], "resting": resting})
 
 
-def announced_event(session: str) -> messages.LoadEvent | None:
+def announced_events(session: str) -> list[messages.LoadEvent]:
     """The facts in effect of ``session`` as ``msk live`` announces them on this machine (``OUT/session.json``,
-    following every operator change and the set under way), as a LoadEvent made now without a set mark; None when
-    the session announces none here (a page on another machine keeps the opening facts until the next change)."""
+    following every operator change and the set under way) as LoadEvents made now: the facts without a set mark,
+    then a stop mark when the session rests between sets (so a page that starts then shows the rest, and its set
+    button starts the next set); none when the session announces nothing here (a page on another machine keeps the
+    opening facts until the next change)."""
     from services.sessions.discovery import announced_facts
 
     facts = announced_facts(session)
     if not facts:
-        return None
-    return new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)
+        return []
+    events = [new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)]
+    if facts.get("resting"):
+        events.append(set_mark_event(events[0], int(events[0].set_number), "stop"))
+    return events

@@ -649,6 +649,11 @@ def summary_text(summary: dict) -> str:
         name = device.split("/", 1)[1]
         lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost")
     lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
+    if summary.get("joint_frames_paused"):
+        lines.append(
+            f"  estimates paused for about {summary['joint_frames_paused']} joint frames: load events declared "
+            "another exercise than the session's"
+        )
     for method, n in summary["frames_estimated"].items():
         f = summary["flags"].get(method, {})
         lines.append(f"  {method}: {n} frames estimated; flags {', '.join(f'{k} {v}' for k, v in f.items()) or 'none'}")
@@ -742,6 +747,9 @@ class FlowCounts:
 
     joints: int = 0
     activations: Counter = field(default_factory=Counter)  # method -> frames
+    # load events declare another exercise than the session's: the estimator leaves the joint frames unanswered
+    paused: bool = False
+    paused_joints: int = 0  # joint frames that arrived meanwhile
 
     def text(self) -> str:
         return f"{self.joints} joint frames; activation frames " + (
@@ -801,6 +809,7 @@ def monitor(
 
     def on_joints(_sample) -> None:
         counts.joints += 1
+        counts.paused_joints += counts.paused
 
     follower = FactsFollower(on_facts) if on_facts is not None else None
 
@@ -808,10 +817,13 @@ def monitor(
         method = str(sample.key_expr).rsplit("/", 1)[1]
         counts.activations[method] += 1
         if follower is not None and follower.wants(method):
-            try:
-                follower.on_frame(method, messages.decode(messages.ActivationFrame, sample.payload.to_bytes()))
-            except messages.MessageDecodeError:  # counted by the nodes that use the frames; here only the sets matter
+            try:  # checked as every node checks it: a stray payload must not move the sets
+                frame = check_payload(
+                    str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.ActivationFrame"
+                )
+            except Rejected:  # counted by the nodes that use the frames; here only the sets matter
                 return
+            follower.on_frame(method, messages.as_message(messages.ActivationFrame, frame))
 
     def on_load(sample) -> None:  # its own facts and an operator's (`msk load`): the session's current ones
         try:
@@ -823,6 +835,8 @@ def monitor(
             return  # the estimator and recorder count bad inputs; here only the facts matter
         if event.exercise and not is_known_exercise(event.exercise, (exercise,)):
             return  # as the estimator refuses it: not a fact of this session
+        if event.exercise:
+            counts.paused = event.exercise != exercise
         if follower is not None:
             follower.on_event(event)
 
@@ -979,6 +993,7 @@ def run_graph(
     summary["recordings"] = [str(p) for p in parts]
     summary["stopped_by"] = reason
     summary["exit_codes"] = codes
+    summary["joint_frames_paused"] = counts.paused_joints  # while load events declared another exercise
     if simulators is not None:
         summary["simulators_sent"] = simulators.sent()
         summary["trial_clock"] = simulators.world()
@@ -1235,7 +1250,7 @@ def stop_in_order(
             def done(answered: list = answered) -> bool:  # a paused estimator (another exercise) answers no more
                 if sum(counts.activations.values()) != answered[0]:
                     answered[:] = [sum(counts.activations.values()), time.monotonic()]
-                idle = time.monotonic() - answered[1] >= ESTIMATOR_IDLE_S
+                idle = counts.paused_joints > 0 and time.monotonic() - answered[1] >= ESTIMATOR_IDLE_S
                 return idle or all(counts.activations[m] >= counts.joints for m in methods)
 
             _settle(

@@ -42,7 +42,7 @@ from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.discovery import announced
-from services.sessions.facts import announced_event
+from services.sessions.facts import announced_events
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
@@ -491,7 +491,7 @@ def main(
         state.inputs = inputs.counts
         inputs.subscribe(f"{topics.session_prefix(session)}/**")
         # the facts msk live published before this view started, then those in effect now (announced here)
-        inputs.fetch_session_facts(session, current=lambda: announced_event(session))
+        inputs.fetch_session_facts(session, current=lambda: announced_events(session))
         info = announced(session)
         state.loads.session_exercise = info.pack if info is not None else ""
         taking = threading.Event()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import signal
 import socket
 import sys
@@ -133,16 +134,24 @@ HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 
 
 def check_endpoint(endpoint: str, field: str) -> str:
-    """``endpoint`` when it has Zenoh's form ``PROTOCOL/ADDRESS`` (``tcp/127.0.0.1:7447``), else a
-    :class:`ConfigError` naming ``field``: Zenoh itself refuses a bad one only when a node opens its session, after a
-    whole graph has been started."""
+    """``endpoint`` when Zenoh reads it (``PROTOCOL/ADDRESS[?METADATA][#CONFIG]``) and, for the protocols whose
+    address is HOST:PORT, it has a host and a port in 0..65535; else a :class:`ConfigError` naming ``field``. Zenoh
+    itself refuses a bad one only when a node opens its session, after a whole graph has been started."""
+    try:
+        zenoh.Config().insert_json5("connect/endpoints", json.dumps([endpoint]))
+    except Exception:  # zenoh's ZError, with a parser's trace
+        raise ConfigError(
+            "not a Zenoh endpoint: PROTOCOL/ADDRESS[?METADATA][#CONFIG], e.g. tcp/127.0.0.1:7447",
+            field=field,
+            value=endpoint,
+        ) from None
     protocol, _, address = endpoint.partition("/")
-    host, _, port = address.rpartition(":")
-    if protocol in HOST_PORT_PROTOCOLS and host and port.isdigit() and int(port) < 65536:
-        return endpoint
-    if protocol and address and protocol not in HOST_PORT_PROTOCOLS:
-        return endpoint
-    raise ConfigError("not a Zenoh endpoint: PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447", field=field, value=endpoint)
+    host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
+    if protocol in HOST_PORT_PROTOCOLS and not (host and port.isdigit() and int(port) < 65536):
+        raise ConfigError(
+            f"a {protocol} endpoint is {protocol}/HOST:PORT, e.g. tcp/127.0.0.1:7447", field=field, value=endpoint
+        )
+    return endpoint
 
 
 def options_from_args(args: argparse.Namespace) -> ZenohOptions:

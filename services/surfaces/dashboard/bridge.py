@@ -41,7 +41,7 @@ from msk_core.signal.reps import PhaseRepCounter
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.discovery import SessionInfo, announced
-from services.sessions.facts import announced_event
+from services.sessions.facts import announced_events
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
@@ -493,7 +493,7 @@ class Bridge:
         # the session facts msk live published before this page started (its load publisher keeps them), then those
         # in effect now (announced on this machine)
         session = self.state.session
-        self._inputs.fetch_session_facts(session, current=lambda: announced_event(session))
+        self._inputs.fetch_session_facts(session, current=lambda: announced_events(session))
         self.state.announce_exercise(announced(session))
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, args=(self._inputs,), name="dashboard-bridge", daemon=True)

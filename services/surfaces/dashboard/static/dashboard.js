@@ -155,7 +155,8 @@ function render() {
   const overlay = document.getElementById("nodata");
   overlay.hidden = pill === "live";
   const session = state.config ? state.config.session : "?";
-  const paused = state.connection === "open" && state.session && state.session.paused && state.dataAge <= noDataAfter;
+  const delivering = state.dataAge !== null && state.dataAge !== undefined && state.dataAge <= noDataAfter;
+  const paused = state.connection === "open" && state.session && state.session.paused && delivering;
   document.querySelector(".nodata-title").textContent = paused ? "Estimates paused" : "No data";
   document.getElementById("nodata-detail").textContent = state.connection !== "open"
     ? "The dashboard server is not answering; reconnecting by itself."
