@@ -177,3 +177,31 @@ def test_a_rep_whose_data_comes_after_the_operators_stop_belongs_to_the_set_it_s
     feed(tracker, samples)
     tracker.finish()
     assert [(s.number, len(s.reps)) for s in tracker.sets] == [(1, 1), (2, 1)]
+
+
+def test_a_start_mark_as_the_first_rep_begins_takes_the_place_of_the_set_that_rep_opened():
+    """After a rest, the first rep opens the next set (not counted yet); the operator presses start just then: that
+    set is the one meant (it was 4 after set 2, with no set 3 anywhere), and the button's number says the same."""
+    from services.sessions.facts import set_mark_event
+    from services.transport import messages
+
+    tracker = SetTracker()
+    tracker.on_facts(0.0, set_number=1, set_mark="", mass_kg=50)
+    t = 0.0
+    for _rep in range(2):  # set 1: two reps
+        for k in range(50):
+            tracker.update(t, k / 50)
+            t += 0.04
+        tracker.update(t, -1.0)
+        t += 0.5
+    tracker.on_facts(t, set_number=1, set_mark="stop", mass_kg=50)
+    for k in range(30):  # the rest, then the first rep of set 2 begins
+        tracker.update(t + 0.1 * k, -1.0)
+    t += 3.0
+    for k in range(3):
+        tracker.update(t + 0.04 * k, k / 50)
+    assert tracker.number == 2 and tracker.settled == (1, True)  # opened by the rep, not counted yet
+    mark = set_mark_event(messages.LoadEvent(barbell_mass_kg=50, set_number=1), tracker.settled[0], "start")
+    assert mark.set_number == 2
+    tracker.on_facts(t + 0.1, set_number=int(mark.set_number), set_mark="start", mass_kg=50)
+    assert [s.number for s in tracker.sets] == [1, 2] and tracker.sets[-1].started_by == "operator"

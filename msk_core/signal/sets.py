@@ -167,7 +167,11 @@ class SetTracker:
     # ---- operator --------------------------------------------------------------------------------------------------
     def start(self, t: float, number: int = 0, by: str = "operator") -> None:
         """A set starts at ``t``: set ``number`` when it is after the last one, else the next; the set under way
-        ends there. ``by``: who started it (:attr:`SetRecord.started_by`)."""
+        ends there; a set that a rep opened and that has not counted yet is replaced (the operator who presses start
+        as the first rep begins means that set, not the one after it). ``by``: who started it
+        (:attr:`SetRecord.started_by`)."""
+        if self._tentative and self.sets and not self.sets[-1].reps:
+            self.sets.pop()
         self._close(t, "next set")
         last = self.number
         self.sets.append(SetRecord(number if number > last else last + 1, t, by))

@@ -429,7 +429,7 @@ def set_mark_event(state: ViewState, mark: str) -> messages.LoadEvent:
     from services.sessions.facts import set_mark_event as event
 
     with state.lock:
-        return event(state.load if state.load is not None else state.loads.pending, state.sets.number, mark)
+        return event(state.load if state.load is not None else state.loads.pending, state.sets.settled[0], mark)
 
 
 def read_keys(on_key: Callable[[str], None], stop: threading.Event) -> None:

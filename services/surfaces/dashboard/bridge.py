@@ -442,7 +442,7 @@ class DashboardState:
             raise ConfigError("must be start or stop", field="mark", value=mark)
         with self._lock:
             load = self._load if self._load is not None else self._loads.pending
-            return set_mark_event(load, self._reps.sets.number, mark)
+            return set_mark_event(load, self._reps.sets.settled[0], mark)
 
     def count_error(self) -> None:
         with self._lock:
