@@ -109,6 +109,7 @@ def _declared_another_exercise(page, env: dict[str, str]) -> None:
     page.wait_for_function("() => document.getElementById('status').dataset.state === 'nodata'", timeout=15000)
     notice = page.inner_text("#nodata-detail")
     assert page.inner_text(".nodata-title") == "Estimates paused", page.inner_text("#nodata")
+    assert page.inner_text("#status").lower() == "paused", page.inner_text("#status")
     assert "declares deadlift" in notice and "this session estimates bench press" in notice, notice
     assert "msk load --exercise bench_press" in notice and "is the estimator running" not in notice, notice
     page.screenshot(path=str(ARTIFACTS / "live-dashboard-paused.png"))

@@ -151,12 +151,13 @@ function render() {
   status.className = "pill pill-" + pill;
   status.dataset.state = pill;
   document.body.dataset.state = pill; // greys the last values out (dashboard.css) while not live
-  status.textContent = { live: "live", nodata: "no data", connecting: "connecting", reconnecting: "reconnecting" }[pill];
+  const delivering = state.dataAge !== null && state.dataAge !== undefined && state.dataAge <= noDataAfter;
+  const paused = !live && state.connection === "open" && state.session && state.session.paused && delivering;
+  status.textContent = paused ? "paused"
+    : { live: "live", nodata: "no data", connecting: "connecting", reconnecting: "reconnecting" }[pill];
   const overlay = document.getElementById("nodata");
   overlay.hidden = pill === "live";
   const session = state.config ? state.config.session : "?";
-  const delivering = state.dataAge !== null && state.dataAge !== undefined && state.dataAge <= noDataAfter;
-  const paused = state.connection === "open" && state.session && state.session.paused && delivering;
   document.querySelector(".nodata-title").textContent = paused ? "Estimates paused" : "No data";
   document.getElementById("nodata-detail").textContent = state.connection !== "open"
     ? "The dashboard server is not answering; reconnecting by itself."
