@@ -9,6 +9,7 @@ no longer delivers, whatever the link's state (``msk live`` records it, and its 
 from __future__ import annotations
 
 import argparse
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -24,6 +25,8 @@ from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, GapEvent, Sta
 from drivers.xsens import xbus
 from drivers.xsens.device import ImuReading, TrackerSet
 from services.transport import messages, topics, zenoh_session
+
+log = logging.getLogger(__name__)
 
 #: sink(key, message, host_time_ns, device_time_ns)
 Sink = Callable[[str, Message, int, int], None]
@@ -252,11 +255,15 @@ def xsens_loop(
     publish_status()
     next_status = time.monotonic() + status_interval_s
     lost = set(trackers.disconnected)
+    without_orientation: set[str] = set()
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             if not trackers.devices:
                 time.sleep(0.05)
             for reading in trackers.read():
+                if reading.quaternion is None and reading.tracker_id not in without_orientation:
+                    without_orientation.add(reading.tracker_id)
+                    _say_no_orientation(reading.tracker_id, trackers.devices.get(reading.tracker_id))
                 message = imu_sample(reading, segment=segments.get(reading.tracker_id, ""))
                 sink(topics.imu_key(session, reading.tracker_id), message, reading.host_time_ns, reading.device_time_ns)
                 report.messages += 1
@@ -272,6 +279,19 @@ def xsens_loop(
     finally:
         publish_status(final=True)
     return report
+
+
+def _say_no_orientation(tracker_id: str, device) -> None:
+    """Once per tracker: its samples carry no orientation (a device that kept outputs of its own, e.g. inertial data
+    and orientation increments only), so every reader that needs one refuses them; said in its log and status."""
+    text = (
+        f"tracker {tracker_id}: its samples carry no orientation (the device kept an output configuration without "
+        "one); the kinematics and the recorder refuse them: give it an orientation output (quaternion) in MT Manager, "
+        "or let the driver configure it (docs/devices.md)"
+    )
+    log.warning("%s", text)
+    if device is not None:
+        device.stats.last_error = text
 
 
 # ------------------------------------------------------------------------------------------------ sinks
