@@ -189,3 +189,54 @@ def test_zenoh_endpoints_as_zenoh_reads_them():
     for bad in ("foo", "tcp/localhost", "tcp/127.0.0.1:99999", "tcp/:7447"):
         with pytest.raises(ConfigError, match="--listen"):
             check_endpoint(bad, "--listen")
+
+
+def test_a_subject_profile_that_does_not_fit_stops_msk_live_before_anything_starts(tmp_path, monkeypatch, capsys):
+    """A bench-press subject in a deadlift session, and a file that is no subject profile: refused with the session
+    file's subject (it used to start the whole graph, then fail in the estimator naming its session copy, and a
+    non-JSON file was a traceback)."""
+    import numpy as np
+
+    from msk_core.estimate.profile import SubjectProfile
+    from msk_core.model import load_pack
+    from services import cli
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    bench = load_pack("bench_press")
+    groups = list(bench.groups)
+    subject = tmp_path / "ana_bench.json"
+    SubjectProfile("bench_press", str(bench.version), groups, np.ones(len(groups)), np.ones(len(groups))).save(subject)
+    session_file = tmp_path / "monday.toml"
+    for pack, subject_file, said in (
+        ("deadlift", subject, "subject profile was calibrated for pack 'bench_press'"),
+        ("bench_press", session_file, "not valid JSON"),
+    ):
+        session_file.write_text(
+            f'[session]\nname = "monday"\npack = "{pack}"\nsubject = "{subject_file}"\nload_kg = 60\n'
+            f'out = "{tmp_path / "out"}"\n'
+        )
+        assert cli.main(["live", str(session_file), "--sim", "--no-view", "--duration", "1"]) == 2
+        error = capsys.readouterr().err
+        assert said in error and str(subject_file) in error, error
+    assert not (tmp_path / "out" / "logs").exists()  # no node was started
+
+
+def test_sim_plays_a_session_files_own_trackers_by_segment_and_says_which_electrodes_differ(tmp_path):
+    """Under --sim a session file naming the ids printed on its own trackers is played by the simulated tracker of
+    each segment (it was a KeyError traceback), a segment the simulator has no tracker for is refused, and an
+    electrode map that differs from the simulated sensors is said."""
+    import pytest
+
+    from msk_core.errors import ConfigError
+    from services.sessions import live
+    from services.sessions.live_session import LiveSession
+
+    sources = live.sim_sources(live.RECORDINGS / "demo_session.mcap", "bench_press")
+    said: list[str] = []
+    own = LiveSession(tmp_path / "s.toml", trackers={"00B40001": "upper_arm_r", "00B497B2": "forearm_r"})
+    trackers = live._sim_trackers(own, sources, ["upper_arm_r", "forearm_r"], said.append)
+    assert trackers == {"00B4EB80": "upper_arm_r", "00B497B2": "forearm_r"}
+    assert said == ["--sim: 00B40001 (upper_arm_r) is played by the simulated 00B4EB80"]
+    with pytest.raises(ConfigError, match="--sim plays trackers on forearm_r, upper_arm_r only"):
+        live._sim_trackers(LiveSession(tmp_path / "s.toml", trackers={"00B40002": "pelvis"}), sources, [], said.append)

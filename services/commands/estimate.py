@@ -263,6 +263,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     options = calibration_options(args)
     pack = _pack(args.pack)
     trials = [load_trial(p, pack) for p in _trial_files(args.trial)]
+    args.out.parent.mkdir(parents=True, exist_ok=True)  # before the calibration's minutes, as msk estimate does
     print(
         f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
         f"of {len(trials)} trial(s)"

@@ -1003,14 +1003,14 @@ def run_from_args(args: argparse.Namespace) -> int:
     stats = main(process.options, settings, stop_event=process.stop, ready_key=process.ready)
     dropped = stats.inputs.as_dict()["dropped"] if stats.inputs is not None else {}
     print(
-        f"estimated {stats.frames_out} frames; flagged {stats.flagged or 'none'}"
+        f"estimated {stats.frames_out} frames; solver flags {stats.flagged or 'none'}"
         + (f" (invalid input: {stats.invalid})" if stats.invalid else "")
         + f"; rejected {stats.rejected}"
         f"; inputs dropped {dropped or 'none'}"
         + (f"; {outages_text(stats.continuity.report(messages.now_ns()))}" if stats.continuity is not None else "")
         + (
             f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
-            f"frames flagged {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
+            f"EMG flags on frames {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
             if stats.emg is not None
             else ""
         )

@@ -129,7 +129,13 @@ def main(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mcap", type=Path, help="MCAP recording to play")
-    parser.add_argument("--rate", default="1", help="speed factor (1 = original timing) or 'max' (default: 1)")
+    parser.add_argument(
+        "--rate",
+        default="1",
+        help="speed factor (1 = original timing) or 'max' (default: 1). Faster than the recording, a live estimator "
+        "waits for EMG by the wall clock, so 'assisted' can differ from the original (frames flagged emg_stalled); "
+        "to reproduce a session, replay at 1",
+    )
     parser.add_argument(
         "--session", default=None, help="republish under msk/<SESSION>/... instead of the recorded session"
     )

@@ -1278,6 +1278,20 @@ def stop_in_order(
     return codes
 
 
+def checked_subject(path: Path, pack, session_path: Path | None):
+    """The subject profile at ``path``, read and checked against ``pack`` before anything starts (the estimator
+    would otherwise refuse it once the whole graph runs, and name the session copy it reads, not this file)."""
+    from msk_core.errors import EstimationError
+    from msk_core.estimate.profile import SubjectProfile
+
+    profile = SubjectProfile.load(path)  # a missing, unreadable or malformed file: named with its field
+    try:
+        profile.check_pack(pack)
+    except EstimationError as error:
+        raise ConfigError(str(error), path=session_path, field="session.subject", value=str(path)) from None
+    return profile
+
+
 def plan_for(
     session: LiveSession, *, sim: bool, log, sim_faults: tuple = (), sim_sets: SimSets | None = None
 ) -> tuple[LivePlan, Simulators | None]:
@@ -1304,12 +1318,11 @@ def plan_for(
         )
     else:
         subject, electrodes, trackers, methods = _device_inputs(session)
-    profile = json.loads(Path(subject).read_text())
     check_against_pack(
         LiveSession(session.path, trackers=trackers, electrodes=electrodes),
         list(model.groups),
         segments,
-        profile.get("emg_normalisation", {}),
+        checked_subject(Path(subject), model, session.path).emg_normalisation,
     )
     if "assisted" in methods and not electrodes:
         raise ConfigError(
@@ -1365,9 +1378,45 @@ def _sim_inputs(
         imu_rate_hz=int(round(next(iter(sources.imu.values()))[1].rate_hz)),
     )
     electrodes = session.electrodes or sources.electrodes
-    trackers = session.trackers or {t: seg for t, (seg, _) in sources.imu.items() if seg in segments}
+    wrong = {ch: g for ch, g in session.electrodes.items() if sources.electrodes.get(ch) != g}
+    if wrong:  # allowed (a rehearsal of the real placement), but the envelopes are then another muscle's
+        log(
+            "--sim: the simulated Trigno plays "
+            + ", ".join(
+                f"{sources.electrodes.get(ch) or 'nothing'} on {ch} (the file maps {g})" for ch, g in wrong.items()
+            )
+            + f"; its sensors: {', '.join(f'{ch} {g}' for ch, g in sources.electrodes.items())}"
+        )
+    trackers = _sim_trackers(session, sources, segments, log)
     methods = session.methods or SIM_METHODS
     return sources, session, (Path(subject), electrodes, trackers, tuple(methods))
+
+
+def _sim_trackers(session: LiveSession, sources: SimSources, segments: list[str], log) -> dict[str, str]:
+    """The simulated trackers (by id) of the segments the session file's trackers are on (its own ids, printed on
+    the real trackers, are played by the simulated tracker of the same segment), else of the pack's segments."""
+    simulated = {seg: t for t, (seg, _) in sources.imu.items()}
+    if not session.trackers:
+        return {t: seg for seg, t in simulated.items() if seg in segments}
+    missing = sorted(set(session.trackers.values()) - set(simulated))
+    if missing:
+        raise ConfigError(
+            f"--sim plays trackers on {', '.join(sorted(simulated))} only",
+            path=session.path,
+            field="trackers",
+            value=missing,
+        )
+    trackers = {simulated[seg]: seg for seg in session.trackers.values()}
+    if set(trackers) != set(session.trackers):
+        log(
+            "--sim: "
+            + ", ".join(
+                f"{t} ({seg}) is played by the simulated {simulated[seg]}"
+                for t, seg in session.trackers.items()
+                if simulated[seg] != t
+            )
+        )
+    return trackers
 
 
 def _device_inputs(session: LiveSession) -> _SessionInputs:
