@@ -290,3 +290,23 @@ def test_assisted_beats_proposed_on_groups_without_an_electrode_held_out(profile
     print(f"held-out bench_press_50kg, {len(times)} frames, activation RMSE: {rmse}")
     assert len(times) > 500
     assert rmse["assisted"]["no_electrode"] < rmse["proposed"]["no_electrode"], rmse
+
+
+def test_a_live_channel_mapped_to_a_profile_electrode_takes_its_group_and_mvc():
+    """A hand-started estimator (`--emg-map sensor01.EMG=PMCla`) with a profile calibrated on trial columns: the
+    channel takes that electrode's group and MVC (it used to be a bare group without MVC, every frame `no_mvc`); a
+    channel mapped to a group the profile has no electrode for has none; the profile's own map is unchanged."""
+    import numpy as np
+
+    profile = SubjectProfile(
+        "bench_press",
+        "1",
+        ["PMCla", "DelAnt"],
+        np.ones(2),
+        np.ones(2),
+        emg_normalisation={"PMCla": {"group": "PMCla", "divisor": 0.21}, "delt_a": {"group": "DelAnt", "divisor": 0.3}},
+    )
+    setup = EmgSetup.from_profile(profile, {"sensor01.EMG": "PMCla", "sensor03.EMG": "delt_a", "sensor09.EMG": "LD"})
+    assert setup.channel_group == {"sensor01.EMG": "PMCla", "sensor03.EMG": "DelAnt", "sensor09.EMG": "LD"}
+    assert setup.mvc["sensor01.EMG"] == 0.21 and setup.mvc["sensor03.EMG"] == 0.3 and "sensor09.EMG" not in setup.mvc
+    assert EmgSetup.from_profile(profile).channel_group == {"PMCla": "PMCla", "delt_a": "DelAnt"}

@@ -92,11 +92,20 @@ class EmgSetup:
 
     @classmethod
     def from_profile(cls, profile, channel_group: dict[str, str] | None = None) -> EmgSetup:
-        """From a subject profile's ``emg_normalisation`` (channel -> group, divisor) and calibrated EMD;
-        ``channel_group`` (a session file's electrode map) overrides the profile's map."""
+        """From a subject profile's ``emg_normalisation`` (electrode -> group, divisor) and calibrated EMD;
+        ``channel_group`` (a session file's electrode map, the estimator's ``--emg-map``) overrides the profile's map:
+        a live channel to a muscle group, or to one of the profile's electrodes (the calibration trials' EMG column
+        it was on), whose group and MVC the channel then takes."""
         norm = dict(getattr(profile, "emg_normalisation", {}) or {})
-        mapping = dict(channel_group) if channel_group is not None else {ch: info["group"] for ch, info in norm.items()}
         mvc = {ch: float(info["divisor"]) for ch, info in norm.items() if "divisor" in info}
+        if channel_group is None:
+            return cls({ch: info["group"] for ch, info in norm.items()}, mvc, emd_s=calibrated_delay(profile))
+        mapping = {}
+        for channel, target in channel_group.items():
+            electrode = norm.get(target) if channel not in norm else None
+            mapping[channel] = electrode["group"] if electrode is not None else target
+            if electrode is not None and "divisor" in electrode:
+                mvc[channel] = float(electrode["divisor"])
         return cls(channel_group=mapping, mvc=mvc, emd_s=calibrated_delay(profile))
 
 

@@ -184,7 +184,9 @@ class EstimatorSettings:
             tuple(args.method or ()),
             args.subject,
             emg=args.emg,
-            electrode_map=parse_pairs(args.emg_map, field="--emg-map", form="CHANNEL=GROUP") if args.emg_map else None,
+            electrode_map=parse_pairs(args.emg_map, field="--emg-map", form="CHANNEL=GROUP|ELECTRODE")
+            if args.emg_map
+            else None,
             emg_clock=args.emg_clock,
             timing=EmgTiming.from_args(args),
             initial_load_kg=args.load_kg,
@@ -941,8 +943,9 @@ def add_emg_arguments(parser: argparse.ArgumentParser) -> None:
         "--emg-map",
         action="append",
         default=[],
-        metavar="CHANNEL=GROUP",
-        help="electrode -> group (repeatable; default: the subject profile's map)",
+        metavar="CHANNEL=GROUP|ELECTRODE",
+        help="live channel -> muscle group, or -> one of the subject profile's electrodes (its calibration EMG "
+        "column: the channel takes its group and MVC), e.g. sensor01.EMG=PMCla (repeatable; default: the profile's map)",
     )
     parser.add_argument(
         "--emg-clock",
