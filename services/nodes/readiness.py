@@ -58,9 +58,15 @@ class ReadySpec:
 
 
 def add_ready_arguments(parser: argparse.ArgumentParser) -> None:
-    """A node process's readiness flags, hidden: :meth:`services.sessions.graph.Graph.add_process` appends them (its
+    """A node process's readiness flags: :meth:`services.sessions.graph.Graph.add_process` appends them (its
     token key ``msk/<session>/graph/<node>`` and, repeated, the nodes it publishes to); :func:`ready_from_args`."""
-    parser.add_argument("--ready-key", default=None, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--ready-key",
+        default=None,
+        metavar="KEY",
+        help="declare this node ready on msk/<session>/graph/<name> once its subscribers are up (msk live sets it; "
+        "for a node started by hand, what `msk replay --wait-node <name>` waits for)",
+    )
     parser.add_argument("--ready-after", action="append", default=[], help=argparse.SUPPRESS)
 
 

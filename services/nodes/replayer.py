@@ -159,7 +159,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="NAME",
         help="publish nothing before graph node NAME of --session has its subscribers up (services.nodes.readiness; repeatable; "
-        "an error naming the missing nodes after --wait-nodes-timeout)",
+        "an error naming the missing nodes after --wait-nodes-timeout); a node started by hand says so with "
+        "--ready-key msk/<session>/graph/NAME",
     )
     parser.add_argument("--wait-nodes-timeout", type=float, default=60.0, metavar="S", help="default 60")
     add_zenoh_arguments(parser)
