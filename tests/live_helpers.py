@@ -153,3 +153,19 @@ class LiveProcess:
     def kill(self) -> None:
         """After a failed test: msk live and its nodes."""
         kill_session(self.process, self.out)
+
+
+def write_subject(path: Path, emg_normalisation: dict | None = None, pack: str = "bench_press") -> Path:
+    """A subject profile of ``pack`` at its reference strengths, with ``emg_normalisation``: what ``msk live``
+    checks before it starts (a session file's subject must be a profile of the session's pack)."""
+    import numpy as np
+
+    from msk_core.estimate.profile import SubjectProfile
+    from msk_core.model import load_pack
+
+    model = load_pack(pack)
+    ones = np.ones(len(model.groups))
+    profile = SubjectProfile(model.name, str(model.version), list(model.groups), ones, ones)
+    profile.emg_normalisation = dict(emg_normalisation or {})
+    profile.save(path)
+    return path

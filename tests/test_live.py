@@ -14,7 +14,7 @@ import pytest
 
 from msk_core.errors import ConfigError
 from services.sessions.live_session import check_against_pack, load_session_file, parse_session
-from tests.live_helpers import REPO, run_msk, start_msk, wait_running
+from tests.live_helpers import REPO, run_msk, start_msk, wait_running, write_subject
 
 GOOD = {
     "session": {
@@ -204,8 +204,7 @@ def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_pat
 def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp_path):
     from services.sessions import live
 
-    profile = {"f_max": [], "emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}
-    (tmp_path / "subject.json").write_text(json.dumps(profile))
+    write_subject(tmp_path / "subject.json", {"PMCla": {"group": "pec_clav", "divisor": 0.2}})
     doc = _doc(
         session__out="rec",
         trigno={"host": "10.0.0.5:50040", "emg_port": 50041},

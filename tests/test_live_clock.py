@@ -14,7 +14,7 @@ from services.sessions import live
 from services.sessions.live_session import load_session_file
 from services.transport import messages
 from services.transport.mcap_io import read_messages
-from tests.live_helpers import run_sim_graph
+from tests.live_helpers import run_sim_graph, write_subject
 
 TRIGNO_LATENCY_MS = 60.0  # the simulated base holds each frame this long; the session file states it
 TRACKER_LATENCY_MS = 5.0
@@ -140,7 +140,7 @@ rate_hz = 100
 def _session(tmp_path, trigno: str = "", xsens: str = ""):
     from services.sessions.live_session import load_session_file
 
-    (tmp_path / "subject.json").write_text('{"emg_normalisation": {"PMCla": {"group": "pec_clav", "divisor": 0.2}}}')
+    write_subject(tmp_path / "subject.json", {"PMCla": {"group": "pec_clav", "divisor": 0.2}})
     path = tmp_path / "session.toml"
     path.write_text(SESSION_FILE.format(trigno=trigno, xsens=xsens))
     return load_session_file(path)

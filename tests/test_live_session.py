@@ -18,7 +18,7 @@ from msk_core.errors import ConfigError
 from msk_core.model.pack import available_packs
 from services.commands.live import EXIT_NODE_FAILED, node_failures
 from services.sessions.live_session import TRIGNO_CHANNEL_FORM, is_trigno_channel, load_session_file
-from tests.live_helpers import REPO, live_environment, run_msk, start_msk
+from tests.live_helpers import REPO, live_environment, run_msk, start_msk, write_subject
 
 GOOD = """\
 [session]
@@ -36,7 +36,7 @@ host = "192.168.1.20"
 
 
 def _write(tmp_path: Path, text: str) -> Path:
-    (tmp_path / "subject.json").write_text("{}")
+    write_subject(tmp_path / "subject.json")
     path = tmp_path / "session.toml"
     path.write_text(text)
     return path
