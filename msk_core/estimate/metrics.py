@@ -29,16 +29,26 @@ def activation_rmse(estimated: np.ndarray, groups: list[str], measured: dict[str
 def torque_tracking(
     model: np.ndarray, reference: np.ndarray, coordinates: list[str], body_mass_kg: float | None
 ) -> dict[str, dict[str, float]]:
-    """Per coordinate: Pearson R, RMSE in N·m and (with a body mass) N·m/kg, of model vs inverse-dynamics torque."""
+    """Per coordinate: Pearson R, RMSE in N·m and (with a body mass) N·m/kg, of model vs inverse-dynamics torque,
+    and the gain: the least-squares factor from the inverse-dynamics torque to the model's (1: all of it; R alone is
+    blind to scale, so a model that gives half the torque at every instant has R 1)."""
     out = {}
     for j, c in enumerate(coordinates):
         e = rmse(model[:, j], reference[:, j])
         out[c] = {
             "r": pearson_r(model[:, j], reference[:, j]),
+            "gain": torque_gain(model[:, j], reference[:, j]),
             "rmse_nm": e,
             "rmse_nm_per_kg": e / body_mass_kg if body_mass_kg else float("nan"),
         }
     return out
+
+
+def torque_gain(model: np.ndarray, reference: np.ndarray) -> float:
+    """The factor k minimising |model - k reference| over the finite samples (NaN without a reference torque)."""
+    ok = np.isfinite(model) & np.isfinite(reference)
+    denominator = float(np.sum(reference[ok] ** 2))
+    return float(np.sum(model[ok] * reference[ok]) / denominator) if denominator > 0 else float("nan")
 
 
 def cross_correlation_lag(

@@ -27,7 +27,7 @@ def markdown_table(scores: list[MethodScore]) -> str:
     coords = list(scores[0].torque) if scores else []
     head = ["trial", "method", "act. RMSE (mean)", "aligned (mean)"] + groups
     for c in coords:
-        head += [f"{c} R", f"{c} RMSE N·m", f"{c} RMSE N·m/kg"]
+        head += [f"{c} R", f"{c} gain", f"{c} RMSE N·m", f"{c} RMSE N·m/kg"]
     head += ["flagged frames"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in scores:
@@ -35,7 +35,7 @@ def markdown_table(scores: list[MethodScore]) -> str:
         row += [f"{s.activation_rmse[g]:.4f}" for g in groups]
         for c in coords:
             t = s.torque[c]
-            row += [f"{t['r']:.3f}", f"{t['rmse_nm']:.2f}", f"{t['rmse_nm_per_kg']:.3f}"]
+            row += [f"{t['r']:.3f}", f"{t['gain']:.2f}", f"{t['rmse_nm']:.2f}", f"{t['rmse_nm_per_kg']:.3f}"]
         flagged = {k: v for k, v in s.flag_counts.items()}
         row.append(", ".join(f"{k}: {v}" for k, v in flagged.items()) or "0")
         lines.append("| " + " | ".join(row) + " |")
@@ -108,7 +108,8 @@ def write_report(
         "Activation RMSE: estimated vs measured (normalised EMG envelope) activation, per group with EMG; "
         f"'aligned': against the envelopes delayed by the calibrated electromechanical delay "
         f"({1000 * calibrated_delay(subject):.0f} ms), the activation they imply under the calibration's model.",
-        "Torque: model torque vs inverse dynamics (Pearson R, RMSE).",
+        "Torque: model torque vs inverse dynamics (Pearson R; gain, the least-squares factor from the inverse-dynamics "
+        "torque to the model's, 1 when the muscles produce all of it, which R alone does not show; RMSE).",
         f"Published EMG-driven range for such lifts: R {lo_r}-{hi_r}, RMSE {lo_e}-{hi_e} N·m/kg.",
         "",
         table,
