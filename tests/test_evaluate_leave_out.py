@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,11 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
     assert "## Against the delay-aligned envelope" in text
     r_groups = summary["targets"]["r_groups"]
     assert f"paired over the {r_groups} groups where both have an r" in text  # the r target's comparison, said
+    # a lag is said only where the curves correlate and not at the edge of the lags searched; a constant so has no r
+    assert "vs so nan" not in text
+    for g, method, _ in re.findall(r"^- (\w+) \((\w+)\): not met: .*its estimate is (\d+) ms", text, re.M):
+        scores = summary["leave_one_out"][g][method]
+        assert scores["r"] >= 0.3 and abs(scores["lag_ms"]) < 0.95 * 1000 * MAX_LAG_S, (g, method, scores)
     assert summary["load_scale"] == {}  # both lifts at 5 kg: the prior as learned
 
 

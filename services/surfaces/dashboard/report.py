@@ -997,14 +997,14 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
     health = health_html(data, devices, device_plot) + electrodes_html(data, facts) + fatigue_html(data, facts)
     overview = (
         f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
-        f"<div class='kpi'><b>{len(sets)}</b>sets with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
+        f"<div class='kpi'><b>{len(sets)}</b>{'set' if len(sets) == 1 else 'sets'} with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
         f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div></section>"
     )
     page = (
         f"<!doctype html><html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
         f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><header><h1>{html.escape(title)}</h1>"
         f"<div class='facts'>{html.escape(facts_line(facts))}</div>"
-        f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} sets · methods: "
+        f"<div>msk-live · {html.escape(Path(recording).name)} · {len(sets)} set{'' if len(sets) == 1 else 's'} · methods: "
         f"{html.escape(', '.join(methods) or 'none')} · method shown: {html.escape(default_method(methods) or 'none')}"
         "</div></header><main>"
         + overview
@@ -1045,7 +1045,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run_from_args(args: argparse.Namespace) -> int:
     summary = write_report(args.recording, args.out, progress=sys.stderr.isatty())
     print(
-        f"report of {args.recording}: {len(summary['sets'])} sets, {sum(len(s['reps']) for s in summary['sets'])} reps, "
+        f"report of {args.recording}: {len(summary['sets'])} set{'' if len(summary['sets']) == 1 else 's'}, {sum(len(s['reps']) for s in summary['sets'])} reps, "
         f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}",
         file=sys.stderr,
     )

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from msk_core.estimate.emd import calibrated_delay
-from msk_core.estimate.leave_out import ON_FACTOR, Agreement, LeaveOutResult
+from msk_core.estimate.leave_out import MAX_LAG_S, ON_FACTOR, Agreement, LeaveOutResult
 from msk_core.estimate.pack import PackLike
 from msk_core.estimate.pipeline import TrialEstimate
 from msk_core.estimate.prior import load_scale_line
@@ -217,12 +217,19 @@ def _verdict(result: LeaveOutResult, aligned: bool = False) -> list[str]:
         if v["rmse_vs_so"] > -0.2:
             why.append(f"RMSE {100 * v['rmse_vs_so']:+.0f} % vs so (prior alone {rmse_prior:.3f})")
         if not v["r_minus_so"] > 0:
-            why.append(f"r {r_best:.2f} vs so {r_so:.2f}")
+            so_r = f"{r_so:.2f}" if np.isfinite(r_so) else "none (its estimate does not vary)"
+            why.append(f"r {r_best:.2f} vs so {so_r}")
         lag = s[v["method"]].lag_ms
-        if not aligned and np.isfinite(lag) and abs(lag) >= 100:
+        # a lag is a delay only where the two curves correlate, and not at the edge of the lags searched
+        meaningful = np.isfinite(lag) and r_best >= LAG_MIN_R and abs(lag) < 0.95 * 1000 * MAX_LAG_S
+        if not aligned and meaningful and abs(lag) >= 100:
             why.append(f"its estimate is {abs(lag):.0f} ms {'late' if lag > 0 else 'early'}")
         lines.append(f"- {g} ({v['method']}): " + ("met" if v["met"] else "not met: " + "; ".join(why)))
     return lines
+
+
+#: below this r, the lag of the cross-correlation peak says nothing about a delay (the report leaves it out)
+LAG_MIN_R = 0.3
 
 
 def plot_leave_out_group(result: LeaveOutResult, group: str, out: Path) -> Path:
