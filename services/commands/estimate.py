@@ -10,7 +10,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, InputError
 from services.commands.progress import ProgressBar
-from services.nodes.estimator_options import add_live_synergists_argument
+from services.nodes.estimator_options import add_live_synergists_argument, add_solver_argument
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -203,13 +203,7 @@ def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
 
 def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """The numerical paths of the per-frame estimate (docs/estimation.md, "Solvers and dynamics")."""
-    parser.add_argument(
-        "--solver",
-        choices=["active-set", "piqp"],
-        default="active-set",
-        help="per-frame QP: the compiled active-set hot start, certified by its KKT conditions, with "
-        "PIQP when it cannot certify (default), or the warm PIQP on every frame",
-    )
+    add_solver_argument(parser)
     parser.add_argument(
         "--dynamics",
         choices=["compiled", "pinocchio"],

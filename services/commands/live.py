@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from msk_core.errors import ConfigError
-from services.nodes.estimator_options import add_live_synergists_argument
+from services.nodes.estimator_options import add_live_synergists_argument, add_solver_argument
 from services.sessions.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
 
 if TYPE_CHECKING:
@@ -100,13 +100,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """How the session's estimator estimates (as the estimator node's options of the same names)."""
-    parser.add_argument(
-        "--solver",
-        choices=["active-set", "piqp"],
-        default=None,
-        help="the estimator's per-frame QP: the certified active-set hot start with PIQP as fallback (default), "
-        "or PIQP on every frame (as `msk estimator --solver`)",
-    )
+    add_solver_argument(parser, default=None)  # None: the session file's
     add_live_synergists_argument(parser)
 
 

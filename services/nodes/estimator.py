@@ -61,7 +61,7 @@ from msk_core.model.pack import available_packs, is_known_exercise
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, latency_argv, parse_latencies
 from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
-from services.nodes.estimator_options import add_live_synergists_argument
+from services.nodes.estimator_options import SOLVERS, add_live_synergists_argument, add_solver_argument
 from services.nodes.node_runtime import (
     Inbound,
     InputContinuity,
@@ -81,7 +81,6 @@ from services.transport.zenoh_session import ZenohOptions, declare_data_publishe
 log = logging.getLogger(__name__)
 
 
-SOLVERS = ("active-set", "piqp")
 NODE_NAME = "estimator"
 ALIGN_ACCELERATION = "acceleration"  # measure each EMG clock against the trackers' (msk_core.estimate.clock_alignment)
 ALIGN_ARRIVAL = "arrival"  # the arrival mapping alone
@@ -914,13 +913,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--subject", type=Path, default=None, help="subject profile JSON from `msk calibrate`")
     add_emg_arguments(parser)
-    parser.add_argument(
-        "--solver",
-        choices=SOLVERS,
-        default="active-set",
-        help="per-frame QP: the certified active-set hot start with PIQP as fallback (default), or the "
-        "warm PIQP on every frame (docs/estimation.md, 'Solvers and dynamics')",
-    )
+    add_solver_argument(parser)
     add_live_synergists_argument(parser)
     parser.add_argument("--load-kg", type=float, default=0.0, help="barbell mass until the first LoadEvent (default 0)")
     parser.add_argument(
