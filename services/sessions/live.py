@@ -1221,6 +1221,19 @@ def _settle(what: str, done, counts: FlowCounts, timeout_s: float, log) -> None:
         log(f"warning: {error}")
 
 
+def _unchanged_for(value: Callable[[], int], seconds: float) -> Callable[[], bool]:
+    """A check, polled by :func:`_settle`, that is true once ``value()`` has not changed for ``seconds``."""
+    last = [value(), time.monotonic()]
+
+    def unchanged() -> bool:
+        now = value()
+        if now != last[0]:
+            last[:] = [now, time.monotonic()]
+        return time.monotonic() - last[1] >= seconds
+
+    return unchanged
+
+
 def stop_in_order(
     graph: Graph, drivers: list[str], simulators: Simulators | None, viewer, counts: FlowCounts, methods, log
 ) -> dict:
@@ -1236,22 +1249,16 @@ def stop_in_order(
         if process is None:
             continue
         if name == "kinematics":  # joints stop changing: the drivers' last samples went through
-            last = [counts.joints, time.monotonic()]
-
-            def quiet(last: list = last) -> bool:
-                if counts.joints != last[0]:
-                    last[:] = [counts.joints, time.monotonic()]
-                return time.monotonic() - last[1] >= DRAIN_S
-
+            quiet = _unchanged_for(lambda: counts.joints, DRAIN_S)
             _settle("the kinematics node to publish its last joint frames", quiet, counts, STOP_TIMEOUT_S, log)
         elif name == "estimator":  # every joint frame answered by every method, or none answered for a while
-            answered = [sum(counts.activations.values()), time.monotonic()]
+            idle = _unchanged_for(lambda: sum(counts.activations.values()), ESTIMATOR_IDLE_S)
 
-            def done(answered: list = answered) -> bool:  # a paused estimator (another exercise) answers no more
-                if sum(counts.activations.values()) != answered[0]:
-                    answered[:] = [sum(counts.activations.values()), time.monotonic()]
-                idle = counts.paused_joints > 0 and time.monotonic() - answered[1] >= ESTIMATOR_IDLE_S
-                return idle or all(counts.activations[m] >= counts.joints for m in methods)
+            def done(idle: Callable[[], bool] = idle) -> bool:  # a paused estimator answers no more
+                still = idle()  # called every time, so it sees every change
+                return (counts.paused_joints > 0 and still) or all(
+                    counts.activations[m] >= counts.joints for m in methods
+                )
 
             _settle(
                 f"the estimator to answer all joint frames ({', '.join(methods)})", done, counts, STOP_TIMEOUT_S, log
