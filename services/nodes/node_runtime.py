@@ -442,11 +442,8 @@ class NodeInputs:
                 log.info("%s: session facts not fetched: %s", self.node, error)
                 return
             for event in current() if current is not None and not self._closed else []:
-                item = (topics.load_key(session), messages.type_name(event), event.SerializeToString())
-                try:
-                    self._queue.put((*item, messages.now_ns(), None, 0), timeout=QUEUE_WAIT_S)
-                except queue.Full:
-                    self._dropped(item[0], DropReason.QUEUE_FULL, f"the node is {self._queue.maxsize} messages behind")
+                key = topics.load_key(session)
+                self._enqueue((key, messages.type_name(event), event.SerializeToString(), messages.now_ns(), None, 0))
 
         thread = threading.Thread(target=fetch, name=f"{self.node}-facts", daemon=True)
         self._facts = thread
@@ -462,11 +459,15 @@ class NodeInputs:
             return
         source = publication_id(sample)
         missed = self.continuity.arrived(key, arrival_ns, source)
-        item = (key, type_name_of_sample(sample), sample.payload.to_bytes(), arrival_ns, source, missed)
+        self._enqueue((key, type_name_of_sample(sample), sample.payload.to_bytes(), arrival_ns, source, missed))
+
+    def _enqueue(self, item: tuple) -> None:
+        """One input (key, type name, payload, arrival, source, missed) for the node's thread, or counted as
+        dropped when the node is too far behind."""
         try:
             self._queue.put(item, timeout=QUEUE_WAIT_S)
         except queue.Full:
-            self._dropped(key, DropReason.QUEUE_FULL, f"the node is {self._queue.maxsize} messages behind")
+            self._dropped(item[0], DropReason.QUEUE_FULL, f"the node is {self._queue.maxsize} messages behind")
 
     def _dropped(self, key: str, reason: DropReason, detail: str) -> None:
         if self.counts.count_dropped(key, reason) == 1:

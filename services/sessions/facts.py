@@ -13,7 +13,8 @@ from collections.abc import Callable
 
 from msk_core.errors import ConfigError
 from msk_core.signal.sets import SetTracker
-from services.nodes.node_runtime import apply_load_event
+from services.nodes.node_runtime import NodeInputs, apply_load_event
+from services.sessions import discovery
 from services.transport import messages
 
 
@@ -123,12 +124,20 @@ def announced_events(session: str) -> list[messages.LoadEvent]:
     then a stop mark when the session rests between sets (so a page that starts then shows the rest, and its set
     button starts the next set); none when the session announces nothing here (a page on another machine keeps the
     opening facts until the next change)."""
-    from services.sessions.discovery import announced_facts
-
-    facts = announced_facts(session)
+    facts = discovery.announced_facts(session)
     if not facts:
         return []
     events = [new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)]
     if facts.get("resting"):
         events.append(set_mark_event(events[0], int(events[0].set_number), "stop"))
     return events
+
+
+def join_late(inputs: NodeInputs, session: str) -> str:
+    """A page that starts while ``session`` runs (the view, the dashboard): the facts msk live published before it,
+    then those in effect now as announced here (:func:`announced_events`), queued on ``inputs``; returns the
+    exercise the session announces it estimates ("" when it announces none here), for
+    :attr:`LoadEventGate.session_exercise`."""
+    inputs.fetch_session_facts(session, current=lambda: announced_events(session))
+    info = discovery.announced(session)
+    return info.pack if info is not None else ""

@@ -41,8 +41,7 @@ from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
-from services.sessions.discovery import announced
-from services.sessions.facts import announced_events
+from services.sessions.facts import join_late
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
@@ -490,10 +489,7 @@ def main(
         inputs = NodeInputs(zsession, "view")
         state.inputs = inputs.counts
         inputs.subscribe(f"{topics.session_prefix(session)}/**")
-        # the facts msk live published before this view started, then those in effect now (announced here)
-        inputs.fetch_session_facts(session, current=lambda: announced_events(session))
-        info = announced(session)
-        state.loads.session_exercise = info.pack if info is not None else ""
+        state.loads.session_exercise = join_late(inputs, session)  # the facts msk live had before this view
         taking = threading.Event()
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()

@@ -40,8 +40,7 @@ from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
-from services.sessions.discovery import SessionInfo, announced
-from services.sessions.facts import announced_events
+from services.sessions.facts import join_late
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
@@ -260,11 +259,11 @@ class DashboardState:
         self.received = 0
         self.errors = 0  # messages that passed the checks but could not be shown (logged by the bridge)
 
-    def announce_exercise(self, info: SessionInfo | None) -> None:
+    def announce_exercise(self, exercise: str) -> None:
         """The exercise the session announces it estimates (``msk live``'s pack), for the notice of a page that starts
         while the estimator is paused (:meth:`LoadEventGate.paused_notice`)."""
         with self._lock:
-            self._loads.session_exercise = info.pack if info is not None else ""
+            self._loads.session_exercise = exercise
 
     # ---- input (the bridge's thread) ---------------------------------------------------------------------------
     def on_message(self, key: str, message: Message, arrival_ns: int | None = None) -> None:
@@ -490,11 +489,7 @@ class Bridge:
         # activations and status, and the router refuses a subscription it cannot grant whole.
         for family in TOPIC_FAMILIES:
             self._inputs.subscribe(f"{self.state.prefix}{family}")
-        # the session facts msk live published before this page started (its load publisher keeps them), then those
-        # in effect now (announced on this machine)
-        session = self.state.session
-        self._inputs.fetch_session_facts(session, current=lambda: announced_events(session))
-        self.state.announce_exercise(announced(session))
+        self.state.announce_exercise(join_late(self._inputs, self.state.session))  # the facts before this page
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, args=(self._inputs,), name="dashboard-bridge", daemon=True)
         self._thread.start()
