@@ -20,6 +20,7 @@ from services.nodes.estimator_options import add_live_synergists_argument, add_s
 from services.sessions.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
 
 if TYPE_CHECKING:
+    from drivers.trigno.simulator import SensorFault
     from services.sessions.live_session import LiveSession
 
 #: ``msk live``'s exit code when a node of the session failed (2: a bad session file or option, before the start)
@@ -123,10 +124,12 @@ def session_from_args(args: argparse.Namespace) -> LiveSession:
     )
 
 
-def _sim_fault(kind, text: str):
+def _sim_fault(text: str) -> SensorFault:
     """``--sim-fault TEXT`` as a :class:`SensorFault`, its errors naming the flag and the text given."""
+    from drivers.trigno.simulator import SensorFault
+
     try:
-        return kind.parse(text)
+        return SensorFault.parse(text)
     except ConfigError as error:
         raise ConfigError(str(error), field="--sim-fault", value=text) from None
 
@@ -141,9 +144,7 @@ def run(args: argparse.Namespace) -> int:
 
         check_endpoint(args.listen, "--listen")
     session = session_from_args(args)
-    from drivers.trigno.simulator import SensorFault
-
-    faults = tuple(_sim_fault(SensorFault, text) for text in args.sim_fault)
+    faults = tuple(_sim_fault(text) for text in args.sim_fault)
     from services.sessions.sim_sets import SimSets
 
     sets = SimSets(reps=args.sim_reps, rest_s=args.sim_rest)
