@@ -6,6 +6,8 @@ OpenSim runs in the test; `msk estimate` runs without it (the recipe needs no Op
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -137,3 +139,44 @@ def test_lowpass_key_errors_name_the_field(tmp_path, shared_dir):
     with pytest.raises(ConfigError) as err:
         load_trial(bad, load_pack("arm26"))
     assert err.value.field == "lowpass_coordinates_hz" and "bad.toml" in str(err.value)
+
+
+def test_lowpass_torques_filters_the_torque_file_and_names_its_errors(tmp_path, shared_dir):
+    from msk_core.errors import ConfigError
+    from msk_core.estimate.trial import load_trial
+    from msk_core.model import load_pack
+
+    data, pack = shared_dir / "data" / "opensim-arm26", load_pack("arm26")
+    # the recorded ID with an impact-like spike added: 2 frames of +5 N·m on the elbow
+    torques = read_sto(data / "arm26_InverseDynamics.sto")
+    column = torques.columns.index("r_elbow_flex_moment")
+    spiked = torques.data.copy()
+    middle = torques.n_rows // 2
+    spiked[middle : middle + 2, column] += 5.0
+    header = torques.path.read_text().split("endheader")[0] + "endheader\n"
+    rows = "\n".join("\t".join(f"{v:.9g}" for v in (t, *row)) for t, row in zip(torques.time, spiked))
+    spiked_file = tmp_path / "id_spiked.sto"
+    spiked_file.write_text(header + "\t".join(["time", *torques.columns]) + "\n" + rows + "\n")
+
+    def trial(extra: str) -> Path:
+        path = tmp_path / "t.toml"
+        path.write_text(
+            f'kinematics = "{data / "arm26_InverseKinematics.mot"}"\ntorques = "{spiked_file}"\n'
+            f'phase_signal = "r_elbow_flex"\n{extra}'
+        )
+        return path
+
+    raw, filtered = load_trial(trial(""), pack), load_trial(trial("lowpass_torques_hz = 6.0\n"), pack)
+    elbow = list(pack.coordinates).index("r_elbow_flex")
+    expected = lowpass_coordinates(torques.time, spiked[:, column], 6.0)[0][:, 0]
+    expected = np.interp(filtered.time, torques.time, expected)
+    assert np.allclose(filtered.torques[:, elbow], expected, atol=1e-9)
+    assert raw.torques[:, elbow].max() - filtered.torques[:, elbow].max() > 2.0  # the spike is spread, not kept
+    with pytest.raises(ConfigError) as err:
+        load_trial(trial("lowpass_torques_hz = 0\n"), pack)
+    assert err.value.field == "lowpass_torques_hz" and "t.toml" in str(err.value)
+    no_torques = tmp_path / "no_torques.toml"
+    no_torques.write_text(f'kinematics = "{data / "arm26_InverseKinematics.mot"}"\nlowpass_torques_hz = 6.0\n')
+    with pytest.raises(ConfigError) as err:
+        load_trial(no_torques, pack)
+    assert err.value.field == "lowpass_torques_hz" and "without `torques`" in str(err.value)

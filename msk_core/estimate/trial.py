@@ -38,6 +38,10 @@ Keys (paths relative to the TOML file)::
                                      # Butterworth, velocities and accelerations from a quintic spline); the whole
                                      # file is filtered, then [start, end] taken. Default: no filter, finite
                                      # differences
+    lowpass_torques_hz = 6.0         # optional: low-pass the torque file the same way (whole file, zero phase), e.g.
+                                     # an inverse dynamics whose ground reaction forces were not filtered like the
+                                     # kinematics: its heel-strike spikes are no muscle torque (docs/estimation.md,
+                                     # "The walk")
     [emg_map]                        # EMG column -> pack group
     rectabd_r = "rectabd_r"
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
@@ -82,6 +86,7 @@ KNOWN_KEYS = {
     "name",
     "isometric",
     "lowpass_coordinates_hz",
+    "lowpass_torques_hz",
     "grf",
     "grf_foot",
     "grf_column",
@@ -210,6 +215,7 @@ class _TrialOptions:
     end: float | None
     isometric: bool
     lowpass_coordinates_hz: float | None
+    lowpass_torques_hz: float | None = None
 
 
 def _parse_options(trial: _TrialFile) -> _TrialOptions:
@@ -235,10 +241,27 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
             "isometric",
             isometric,
         )
-    cutoff = trial.number("lowpass_coordinates_hz", None)
-    if cutoff is not None and cutoff <= 0:
-        raise trial.err("must be > 0 (leave the key out for no filtering)", "lowpass_coordinates_hz", cutoff)
-    return _TrialOptions(load_kg, body_mass, trial.number("start", None), trial.number("end", None), isometric, cutoff)
+    cutoffs = {}
+    for key in ("lowpass_coordinates_hz", "lowpass_torques_hz"):
+        cutoffs[key] = trial.number(key, None)
+        if cutoffs[key] is not None and cutoffs[key] <= 0:
+            raise trial.err("must be > 0 (leave the key out for no filtering)", key, cutoffs[key])
+    if cutoffs["lowpass_torques_hz"] is not None and "torques" not in spec:
+        raise trial.err(
+            "filters the torque file; without `torques` the torques come from the pack's inverse dynamics of the "
+            "(filtered) coordinates",
+            "lowpass_torques_hz",
+            cutoffs["lowpass_torques_hz"],
+        )
+    return _TrialOptions(
+        load_kg,
+        body_mass,
+        trial.number("start", None),
+        trial.number("end", None),
+        isometric,
+        cutoffs["lowpass_coordinates_hz"],
+        cutoffs["lowpass_torques_hz"],
+    )
 
 
 @dataclass
@@ -302,6 +325,12 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
             )
         cols.append(name)
     raw = tq.select(cols)
+    if options.lowpass_torques_hz is not None:
+        # the same zero-phase filter as the coordinates' (whole file, then the window), without the spline's derivatives
+        try:
+            raw = lowpass_coordinates(tq.time, raw, options.lowpass_torques_hz)[0]
+        except InputError as exc:
+            raise trial.err(f"{exc} (torques {tq.path})", "lowpass_torques_hz", options.lowpass_torques_hz) from None
     at = _within(kin.time, tq.time)
     torques = np.column_stack(
         [np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
