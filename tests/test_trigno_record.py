@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import socket
 import subprocess
 import sys
@@ -281,3 +282,49 @@ def test_msk_drivers_publishes_to_a_connected_peer():
     rows = np.concatenate([np.asarray(c.samples, dtype=np.float32).reshape(c.n_samples, c.n_channels) for c in chunks])
     assert np.array_equal(rows, source.samples[first : first + len(rows), :4])
     assert any(k == "msk/drv/status/trigno" for k, _ in received)
+
+
+def _sim_trigno(*argv: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "sim", "trigno", "--from", "synthetic:5", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_two_msk_sim_trigno_with_port_0_take_free_data_ports_too():
+    """``--port 0`` alone: every port free, so a second simulator (a second rack on one machine) does not collide
+    with the first on the TCU's fixed data ports; a data port given stays as given."""
+    given = free_port()
+    first, second = (
+        _sim_trigno("--port", "0", "--duration", "8"),
+        _sim_trigno("--port", "0", "--emg-port", str(given), "--duration", "8"),
+    )
+    try:
+        lines = [p.stdout.readline() for p in (first, second)]
+        for process, line in zip((first, second), lines):
+            assert "Trigno simulator" in line, process.stderr.read() if not line else line
+        ports = [dict(re.findall(r"(command|emg|legacy emg|aux|legacy acc) (\d+)", line)) for line in lines]
+        assert set(ports[0]) == set(ports[1]) == {"command", "emg", "legacy emg", "aux", "legacy acc"}
+        tcu = {50040, 50041, 50042, 50043, 50044}
+        assert not {int(p) for p in ports[0].values()} & tcu and int(ports[1]["emg"]) == given
+        assert not {int(p) for p in ports[0].values()} & {int(p) for p in ports[1].values()}
+        with TrignoClient(TrignoConfig(command_port=int(ports[1]["command"]), emg_port=given)) as client:
+            client.start()
+            got, deadline = 0, time.monotonic() + 5
+            while got < 100 and time.monotonic() < deadline:
+                got += sum(len(e.samples) for e in client.poll(0.05) if hasattr(e, "samples"))
+        assert got >= 100, f"the second simulator sent {got} EMG samples in 5 s"
+    finally:
+        for process in (first, second):
+            process.terminate()
+            process.wait(timeout=10)
+            process.stdout.close()
+            process.stderr.close()
+
+
+def test_msk_sim_trigno_refuses_a_bad_data_port():
+    process = _sim_trigno("--port", "0", "--aux-port", "-1", "--duration", "1")
+    _, err = process.communicate(timeout=30)
+    assert process.returncode != 0 and "--aux-port" in err and "-1" in err, err

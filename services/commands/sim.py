@@ -11,7 +11,15 @@ import argparse
 import sys
 import time
 
+from drivers.trigno.protocol import COMMAND_PORT, DataPort
 from msk_core.errors import ConfigError
+
+#: the data ports' flags and the TCU's port each defaults to (with ``--port 0``: a free one unless given)
+DATA_PORT_FLAGS = {
+    "emg_port": ("--emg-port", "EMG data port", DataPort.EMG),
+    "legacy_emg_port": ("--legacy-emg-port", "legacy EMG port", DataPort.LEGACY_EMG),
+    "aux_port": ("--aux-port", "AUX data port", DataPort.AUX),
+}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,15 +32,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     trigno.add_argument("--rate", type=float, default=None, help="sample rate of a raw .bin source (default 2000 Hz)")
     trigno.add_argument("--host", default="127.0.0.1")
-    trigno.add_argument("--port", type=int, default=50040, help="command port (default 50040)")
-    trigno.add_argument("--emg-port", type=int, default=50043)
-    trigno.add_argument("--legacy-emg-port", type=int, default=50041, help="legacy EMG port; 0 picks a free one")
-    trigno.add_argument("--aux-port", type=int, default=50044)
+    trigno.add_argument(
+        "--port",
+        type=int,
+        default=COMMAND_PORT,
+        help=f"command port (default {COMMAND_PORT}, the TCU's); 0: a free one, and free data ports unless given",
+    )
+    for flag, what, tcu in DATA_PORT_FLAGS.values():
+        trigno.add_argument(flag, type=int, default=None, help=f"{what} (default {tcu:d}); 0: a free one")
     trigno.add_argument(
         "--legacy-acc-port",
         type=int,
-        default=50042,
-        help="legacy ACC port, as a real TCU listens on it (48 floats per sample); -1: off, 0: free port",
+        default=None,
+        help=f"legacy ACC port, as a real TCU listens on it (48 floats per sample; default {DataPort.LEGACY_ACC:d}); "
+        "-1: off, 0: a free one",
     )
     trigno.add_argument("--speed", type=float, default=1.0, help="time scale (>1 faster than real time)")
     trigno.add_argument("--no-loop", action="store_true", help="stop streaming at the end of the recording")
@@ -96,6 +109,20 @@ def _wait(duration: float | None, alive=lambda: True) -> None:
         time.sleep(0.05)
 
 
+def _data_ports(args: argparse.Namespace) -> dict[str, int]:
+    """Each data port: as given, else the TCU's, or a free one (0) when the command port is free too: a second
+    simulator with ``--port 0`` must not collide with the first on the fixed data ports."""
+    defaults = {name: tcu for name, (_, _, tcu) in DATA_PORT_FLAGS.items()} | {"legacy_acc_port": DataPort.LEGACY_ACC}
+    chosen = {}
+    for name, tcu in defaults.items():
+        given = getattr(args, name)
+        chosen[name] = int(given if given is not None else (0 if args.port == 0 else tcu))
+        if not -1 <= chosen[name] <= 65535 or (chosen[name] == -1 and name != "legacy_acc_port"):
+            flag = DATA_PORT_FLAGS[name][0] if name in DATA_PORT_FLAGS else "--legacy-acc-port"
+            raise ConfigError("must be a port number, 0 for a free one", field=flag, value=given)
+    return chosen
+
+
 def run_trigno(args: argparse.Namespace) -> int:
     from drivers.trigno.simulator import SimulatorConfig, TrignoQuirks, TrignoSimulator, UpsamplingReply
     from drivers.trigno.source import load_source
@@ -112,13 +139,14 @@ def run_trigno(args: argparse.Namespace) -> int:
         quit_stops_acquisition=not args.quit_keeps_streaming,
         start_delay_s=args.start_delay,
     )
+    ports = _data_ports(args)
     config = SimulatorConfig(
         host=args.host,
         command_port=args.port,
-        emg_port=args.emg_port,
-        legacy_emg_port=args.legacy_emg_port,
-        aux_port=args.aux_port,
-        legacy_acc_port=None if args.legacy_acc_port < 0 else args.legacy_acc_port,
+        emg_port=ports["emg_port"],
+        legacy_emg_port=ports["legacy_emg_port"],
+        aux_port=ports["aux_port"],
+        legacy_acc_port=None if ports["legacy_acc_port"] < 0 else ports["legacy_acc_port"],
         upsampling=None if args.upsampling is None else args.upsampling == "on",
         speed=args.speed,
         loop=not args.no_loop,
