@@ -3,8 +3,12 @@ keeps the set under way, where it used to start a new one after rest detection h
 
 from __future__ import annotations
 
-import numpy as np
+import os
 
+import numpy as np
+import pytest
+
+from msk_core.errors import ConfigError
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import apply_load_event
 from services.sessions.facts import FactsFollower, announced_events, new_facts, set_mark_event
@@ -165,6 +169,56 @@ def test_a_second_msk_live_of_the_same_name_or_folder_is_refused(tmp_path, monke
     assert cli.main(["live", "--sim", "--no-view", "--out", str(running)]) == 2
     error = capsys.readouterr().err
     assert "'monday'" in error and "is recording there now; choose another --out" in error, error
+
+
+def test_two_msk_live_starting_together_cannot_share_a_name_or_folder(tmp_path, monkeypatch, capsys):
+    """Neither has announced itself yet when both start: the claim on the name and on the folder decides, and the
+    kernel releases it however its holder ends (killed: no stale claim)."""
+    import signal
+    import subprocess
+    import sys
+
+    from services import cli
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    first = tmp_path / "first"
+    with discovery.claimed("sim", first):
+        assert cli.main(["live", "--sim", "--no-view", "--out", str(tmp_path / "second")]) == 2
+        error = capsys.readouterr().err
+        assert "field 'session'" in error and "a session named 'sim' starts or runs now" in error, error
+        assert f"(pid {os.getpid()})" in error, error
+        with pytest.raises(ConfigError, match="an msk live writes to .*first now"):
+            with discovery.claimed("monday", first):
+                pass
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; from services.sessions import discovery\n"
+            f"with discovery.claimed('sim', Path({str(first)!r})):\n    print('held', flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, discovery.REGISTRY_ENV: str(tmp_path / "registry")},
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(ConfigError, match=f"pid {holder.pid}"):
+            with discovery.claimed("sim", tmp_path / "third"):
+                pass
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=10)
+        holder.stdout.close()
+    with discovery.claimed("sim", first):  # released with its holder
+        pass
+    # its announcement outlived it, and its pid now belongs to another program (here: this one): stale, not running
+    discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(first)), first)
+    assert [s.session for s in discovery.running_sessions()] == []  # and its entry withdrawn
+    with discovery.claimed("sim", first):
+        discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(first)), first)
+        assert [s.session for s in discovery.running_sessions()] == ["sim"]
 
 
 def test_zenoh_endpoints_as_zenoh_reads_them():

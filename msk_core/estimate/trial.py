@@ -241,11 +241,11 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
             "isometric",
             isometric,
         )
-    cutoffs = {}
+    cutoffs: dict[str, float | None] = {}
     for key in ("lowpass_coordinates_hz", "lowpass_torques_hz"):
-        cutoffs[key] = trial.number(key, None)
-        if cutoffs[key] is not None and cutoffs[key] <= 0:
-            raise trial.err("must be > 0 (leave the key out for no filtering)", key, cutoffs[key])
+        cutoff = cutoffs[key] = trial.number(key, None)
+        if cutoff is not None and cutoff <= 0:
+            raise trial.err("must be > 0 (leave the key out for no filtering)", key, cutoff)
     if cutoffs["lowpass_torques_hz"] is not None and "torques" not in spec:
         raise trial.err(
             "filters the torque file; without `torques` the torques come from the pack's inverse dynamics of the "

@@ -10,11 +10,14 @@ at stop. ``msk dashboard``, ``msk subscribe``, ``msk view`` and ``msk load`` wit
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -133,6 +136,56 @@ def read_session_file(path: Path) -> SessionInfo:
         raise InputError(f"not a session announcement of msk live: {error}", path=path) from None
 
 
+@contextlib.contextmanager
+def claimed(session: str, out: Path) -> Iterator[None]:
+    """Hold the session's name and output folder for one ``msk live`` while it runs: an exclusive lock on a file per
+    name in the registry folder and one in the output folder, released by the kernel however the process ends.
+    Raises :class:`ConfigError` when another process holds either, so two ``msk live`` started at the same moment
+    (neither announced yet) cannot both take one name or one folder."""
+    held = (
+        (_claim_path(session), "session", f"a session named {session!r} starts or runs now"),
+        (Path(out) / ".msk-live.lock", "out", f"an msk live writes to {out} now"),
+    )
+    with contextlib.ExitStack() as stack:
+        for path, field_name, what in held:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            handle = stack.enter_context(open(path, "a+"))
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.seek(0)
+                holder = handle.read().strip() or "?"
+                raise ConfigError(
+                    f"{what} (pid {holder}); stop it, or give this one another name and --out",
+                    path=path,
+                    field=field_name,
+                    value=session if field_name == "session" else str(out),
+                ) from None
+            handle.truncate(0)
+            handle.write(f"{os.getpid()}\n")
+            handle.flush()
+        yield
+
+
+def _claim_path(session: str) -> Path:
+    return registry_dir() / "claims" / f"{session}.lock"
+
+
+def _claim_held(session: str) -> bool | None:
+    """Whether a process holds ``session``'s claim (:func:`claimed`); None when it was never claimed here. An
+    announcement whose pid lives but whose claim nobody holds is stale: its pid was reused by another program."""
+    path = _claim_path(session)
+    try:
+        with open(path) as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            return False
+    except FileNotFoundError:
+        return None
+
+
 def running_sessions() -> list[SessionInfo]:
     """Announced sessions whose ``msk live`` still runs (entries of stopped or killed ones are removed)."""
     found = []
@@ -142,7 +195,7 @@ def running_sessions() -> list[SessionInfo]:
             info = read_session_file(path)
         except InputError:
             continue
-        if _alive(info.pid):
+        if _alive(info.pid) and _claim_held(info.session) is not False:
             found.append(info)
         else:
             withdraw(path)

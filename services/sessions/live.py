@@ -1557,22 +1557,25 @@ def main(
             field="--listen",
             value=listen,
         )
-    check_not_running(session.name, session.out)
-    plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
-    try:
-        summary = run_graph(
-            plan,
-            duration_s=duration_s,
-            view=view,
-            endpoint=listen or default_live_endpoint(),
-            log=log,
-            simulators=simulators,
-            pki=pki,
-        )
-    except BaseException:
-        if simulators is not None:
-            simulators.close()
-        raise
+    from services.sessions import discovery
+
+    with discovery.claimed(session.name, session.out):
+        check_not_running(session.name, session.out)
+        plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
+        try:
+            summary = run_graph(
+                plan,
+                duration_s=duration_s,
+                view=view,
+                endpoint=listen or default_live_endpoint(),
+                log=log,
+                simulators=simulators,
+                pki=pki,
+            )
+        except BaseException:
+            if simulators is not None:
+                simulators.close()
+            raise
     summary["methods"] = list(plan.methods)
     (session.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     log(summary_text(summary))
