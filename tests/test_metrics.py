@@ -18,3 +18,29 @@ def test_torque_tracking_reports_a_gain_that_r_cannot_show():
     assert tracking["shoulder"]["rmse_nm"] > 10.0  # what the gain explains
     assert abs(tracking["elbow"]["gain"] - 1.0) < 0.01 and tracking["elbow"]["rmse_nm"] < 0.6
     assert np.isnan(torque_tracking(model, np.zeros_like(reference), ["a", "b"], None)["a"]["gain"])
+
+
+def test_every_flag_a_frame_can_carry_has_words_and_the_summary_says_them():
+    from msk_core.estimate import live_emg
+    from msk_core.estimate.flags import MEANINGS, flag_counts_text
+    from msk_core.estimate.frame import FrameStatus
+    from services.sessions.live import summary_text
+
+    codes = {s.value for s in FrameStatus if s is not FrameStatus.SOLVED}
+    codes |= {getattr(live_emg, name) for name in dir(live_emg) if name.startswith("FLAG_")}
+    assert codes == set(MEANINGS)
+    assert flag_counts_text({}) == "none"
+    summary = {
+        "duration_s": 12.0,
+        "samples": {},
+        "samples_lost": {},
+        "joint_frames": 600,
+        "envelopes": 0,
+        "frames_estimated": {"so": 600},
+        "flags": {"so": {"reserve": 12, "emg_gap": 3}},
+    }
+    text = summary_text(summary)
+    assert (
+        "so: 600 frames estimated; flagged frames: 12 torque beyond the muscles' capacity (reserve), 3 EMG gap "
+        "(emg_gap)" in text
+    ), text

@@ -40,6 +40,7 @@ import numpy as np
 from msk_core.errors import ConfigError
 from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.emg_chunk import RawEmgChunk
+from msk_core.estimate.flags import FLAG_ELECTRODE_BAD, FLAG_GAP, FLAG_NO_MVC, FLAG_STALLED
 from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.signal.host_clock import (
     METHOD_ARRIVAL,
@@ -55,11 +56,6 @@ GAP_SETTLE_S = 0.5  # the 6 Hz low-pass restarts from rest after a gap: ~3 time 
 HISTORY_S = (
     10.0  # envelope kept per source for the lookup at t - emd (kinematics may lag the EMG by seconds in a replay)
 )
-
-FLAG_GAP = "emg_gap"
-FLAG_STALLED = "emg_stalled"
-FLAG_NO_MVC = "no_mvc"
-FLAG_ELECTRODE_BAD = "electrode_bad"
 
 
 class ClockMode(str, enum.Enum):

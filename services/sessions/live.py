@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msk_core.errors import ConfigError, InputError
+from msk_core.estimate.flags import flag_counts_text
 from services.nodes.node_runtime import outages_summary, outages_text
 from services.nodes.readiness import GraphTimeout
 from services.sessions.demo_subject import RECORDINGS, sim_subject
@@ -656,7 +657,7 @@ def summary_text(summary: dict) -> str:
         )
     for method, n in summary["frames_estimated"].items():
         f = summary["flags"].get(method, {})
-        lines.append(f"  {method}: {n} frames estimated; flags {', '.join(f'{k} {v}' for k, v in f.items()) or 'none'}")
+        lines.append(f"  {method}: {n} frames estimated; flagged frames: {flag_counts_text(f)}")
     for node, per_key in summary.get("inputs_dropped", {}).items():
         if per_key:
             lines.append(

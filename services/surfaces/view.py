@@ -37,6 +37,7 @@ from rich.table import Table
 from rich.text import Text
 
 from msk_core.errors import ConfigError
+from msk_core.estimate.flags import flag_text
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.sets import SetTracker
@@ -357,7 +358,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         + f" · phase {phase_text}"
         + f" · {set_time_text(set_number, set_start_s, frame.time_s, rest)} · latency {latency_ms:.2f} ms"
         + f" · solver {frame.solver_status}"
-        + (f" · flags {', '.join(frame.flags)}" if frame.flags else "")
+        + (f" · {', '.join(flag_text(flag) for flag in frame.flags)}" if frame.flags else "")
     )
     extra = [sets_table(records)] if records else []
     notice = [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]

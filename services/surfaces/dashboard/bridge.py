@@ -36,6 +36,7 @@ from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
+from msk_core.estimate.flags import flag_text
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter
 from msk_core.signal.sets import SetTracker
@@ -78,7 +79,7 @@ def activation_dict(frame: messages.ActivationFrame, arrival_ns: int) -> dict:
             for t in frame.torques
         ],
         "phase": frame.phase if frame.HasField("phase") else None,
-        "flags": list(frame.flags),
+        "flags": [flag_text(flag) for flag in frame.flags],
         "solver_status": frame.solver_status,
         "estimator_latency_ms": (frame.publish_ns - frame.input_arrival_ns) / 1e6
         if frame.publish_ns and frame.input_arrival_ns
