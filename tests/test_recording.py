@@ -204,3 +204,44 @@ def test_replay_can_leave_out_keys(tmp_path, zenoh_endpoint):
         time.sleep(0.2)
     assert stats.published == 5 and stats.excluded == 5
     assert received == ["msk/new/load"] * 5
+
+
+def test_replay_renames_one_recorded_session_of_several_and_refuses_to_merge_them(tmp_path, zenoh_endpoint, capsys):
+    """A recording of two racks replayed under one new name would merge two athletes into one session: refused,
+    naming the recorded sessions; ``--from-session`` plays one of them."""
+    from services import cli
+
+    source = tmp_path / "two_racks.mcap"
+    with McapRecorderWriter(source) as writer:
+        for i in range(4):
+            for rack in ("rack1", "rack2"):
+                mass = float(i) + (100.0 if rack == "rack2" else 0.0)
+                writer.write_message(topics.load_key(rack), messages.LoadEvent(barbell_mass_kg=mass), log_time_ns=i + 1)
+    argv = ["replay", str(source), "--rate", "max", "--session", "new", "--connect", zenoh_endpoint]
+    assert cli.main(argv) == 2
+    said = capsys.readouterr().err
+    assert "2 sessions: 'rack1' (4 messages), 'rack2' (4 messages); name one with --from-session" in said, said
+    assert cli.main([*argv, "--from-session", "rack3"]) == 2
+    assert "holds no session 'rack3'" in capsys.readouterr().err
+    received = []
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        session.declare_subscriber(
+            "msk/**",
+            lambda s: received.append(
+                (str(s.key_expr), messages.decode("msk.LoadEvent", s.payload.to_bytes()).barbell_mass_kg)
+            ),
+        )
+        stats = replayer.main(
+            ZenohOptions(connect=(zenoh_endpoint,)),
+            source,
+            rate=None,
+            session_name="new",
+            wait_subscribers_s=5.0,
+            recorded_session="rack2",
+        )
+        deadline = time.monotonic() + 5
+        while len(received) < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)
+    assert stats.published == 4 and stats.other_sessions == 4 and stats.excluded == 0
+    assert received == [("msk/new/load", 100.0 + i) for i in range(4)]

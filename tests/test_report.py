@@ -315,3 +315,50 @@ def test_balance_only_of_the_declared_pairs():
     assert empty == {"left_right": [], "agonist_antagonist": []}
     note = report._balance_html(empty, names, 2)
     assert "declares no left/right or agonist/antagonist pairs" in note and "<table" not in note
+
+
+def _two_racks(path, n: int = 3000) -> int:
+    """The demo's first ``n`` messages as recorded session "synth" and again as "rack2", interleaved (one recorder
+    of ``msk/**`` on a machine with two racks); returns how many each has."""
+    from services.transport import topics
+
+    with McapRecorderWriter(path) as writer:
+        for k, recorded in enumerate(read_messages(DEMO_MCAP)):
+            if k >= n:
+                break
+            for topic in (recorded.topic, topics.rename_session(recorded.topic, "rack2")):
+                writer.write(topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns)
+    return n
+
+
+def test_a_recording_of_two_sessions_is_reported_one_session_at_a_time(tmp_path):
+    from msk_core.errors import InputError
+    from services.transport.mcap_io import recorded_sessions
+
+    both = tmp_path / "both.mcap"
+    n = _two_racks(both)
+    assert recorded_sessions(both) == {"synth": n, "rack2": n}
+    with pytest.raises(InputError) as error:
+        report.write_report(both, tmp_path / "out")
+    said = str(error.value)
+    assert "2 sessions: 'synth' (3000 messages), 'rack2' (3000 messages); name one with --session" in said, said
+    assert "field '--session'" in said and "both.mcap" in said, said
+    with pytest.raises(InputError, match="holds no session 'rack3'"):
+        report.read_session(both, session="rack3")
+    one = report.read_session(both, session="rack2")
+    alone = tmp_path / "alone.mcap"
+    with McapRecorderWriter(alone) as writer:
+        for k, recorded in enumerate(read_messages(DEMO_MCAP)):
+            if k >= n:
+                break
+            writer.write(
+                recorded.topic, recorded.type_name, recorded.data, recorded.log_time_ns, recorded.publish_time_ns
+            )
+    single = report.read_session(alone)
+    assert {k: len(v) for k, v in one.imu.items()} == {k: len(v) for k, v in single.imu.items()} != {}
+    assert len(one.joint_time) == len(single.joint_time) and len(one.loads) == len(single.loads)
+    # a recording cut short has no summary: its sessions are read through
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(both.read_bytes()[: both.stat().st_size * 2 // 3])
+    sessions = recorded_sessions(cut)
+    assert set(sessions) == {"synth", "rack2"} and 0 < sum(sessions.values()) < 2 * n

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from msk_core.errors import ConfigError
 from services.nodes.readiness import wait_for_nodes
 from services.transport import topics
-from services.transport.mcap_io import ReadReport, check_mcap_magic, read_messages
+from services.transport.mcap_io import ReadReport, check_mcap_magic, chosen_session, read_messages
 from services.transport.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -38,6 +38,7 @@ from services.transport.zenoh_session import (
 class ReplayStats:
     published: int = 0
     excluded: int = 0
+    other_sessions: int = 0  # messages of recorded sessions other than the one played
     truncated: bool = False
     left_out: dict[tuple[str, str], int] = field(default_factory=dict)  # (topic, reason) -> rejected payloads
 
@@ -75,8 +76,10 @@ def main(
     exclude: tuple[str, ...] = (),
     wait_nodes: tuple[str, ...] = (),
     wait_nodes_s: float = 60.0,
+    recorded_session: str | None = None,
 ) -> ReplayStats:
-    """Publish every message of ``mcap_path`` except those whose (renamed) key matches an ``exclude`` key expression.
+    """Publish every message of ``mcap_path`` (only recorded session ``recorded_session``'s when given) except those
+    whose (renamed) key matches an ``exclude`` key expression.
 
     ``wait_nodes``: names of graph nodes (:mod:`services.nodes.readiness`) of session ``session_name`` whose subscribers this
     session must know before the first message goes out (:class:`services.nodes.readiness.GraphTimeout` after ``wait_nodes_s``).
@@ -85,6 +88,7 @@ def main(
     excluded_keys = [zenoh.KeyExpr(pattern) for pattern in exclude]
     keep: dict[str, bool] = {}
     renamed: dict[str, str] = {}  # recorded topic -> key published
+    foreign: set[str] = set()  # recorded topics of other sessions than ``recorded_session``
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
     with open_session(config) as session:
@@ -101,6 +105,13 @@ def main(
                     topics.rename_session(recorded.topic, session_name) if session_name else recorded.topic
                 )
                 keep[key] = not any(pattern.intersects(zenoh.KeyExpr(key)) for pattern in excluded_keys)
+                if recorded_session is not None and not recorded.topic.startswith(
+                    f"{topics.session_prefix(recorded_session)}/"
+                ):
+                    foreign.add(recorded.topic)
+            if recorded.topic in foreign:
+                stats.other_sessions += 1
+                continue
             if not keep[key]:
                 stats.excluded += 1
                 continue
@@ -140,6 +151,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--session", default=None, help="republish under msk/<SESSION>/... instead of the recorded session"
     )
     parser.add_argument(
+        "--from-session",
+        default=None,
+        metavar="NAME",
+        help="play only recorded session NAME (needed with --session when the recording holds several)",
+    )
+    parser.add_argument(
         "--exclude",
         action="append",
         default=[],
@@ -168,6 +185,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     check_mcap_magic(args.mcap)  # an empty or foreign file is no recording, not one cut short
+    # renamed, several recorded sessions would be merged into one: one of them, named, or the only one
+    recorded = args.from_session
+    if args.session is not None or recorded is not None:
+        recorded = chosen_session(args.mcap, recorded, "--from-session")
     stats = main(
         options_from_args(args),
         args.mcap,
@@ -178,9 +199,12 @@ def run_from_args(args: argparse.Namespace) -> int:
         exclude=tuple(args.exclude),
         wait_nodes=tuple(args.wait_node),
         wait_nodes_s=args.wait_nodes_timeout,
+        recorded_session=recorded,
     )
     note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
     skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""
+    if stats.other_sessions:
+        skipped += f", left out {stats.other_sessions} of other recorded sessions than {recorded!r}"
     if stats.left_out:
         skipped += (
             f", left out {sum(stats.left_out.values())} rejected payloads ("

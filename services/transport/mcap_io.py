@@ -24,12 +24,13 @@ from pathlib import Path
 from typing import overload
 
 from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from mcap.records import Channel, DataEnd, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from msk_core.errors import FileFormatError, InputError
-from services.transport import messages
+from services.transport import messages, topics
 
 PROFILE = ""  # protobuf over MCAP has no profile; "ros1"/"ros2" would be wrong
 LIBRARY = "msk-live"
@@ -286,6 +287,58 @@ def read_messages(
                     sequence=record.sequence,
                     rejected=rejected,
                 )
+
+
+def recorded_sessions(path: str | Path) -> dict[str, int]:
+    """The sessions whose ``msk/<session>/...`` topics a recording holds, with their message counts, in the order
+    their channels appear. From the file's summary; a file cut short (no summary) is read through."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("MCAP file not found", path=path)
+    counts: Counter[str] = Counter()
+    summary = None
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+    except (McapError, EOFError, ValueError):
+        summary = None
+    if summary is not None and summary.statistics is not None:
+        per_channel = summary.statistics.channel_message_counts
+        for channel in sorted(summary.channels.values(), key=lambda c: c.id):
+            if channel.topic.startswith(f"{topics.ROOT}/"):
+                counts[topics.split_key(channel.topic)[0]] += per_channel.get(channel.id, 0)
+        return dict(counts)
+    for recorded in read_messages(path, include_rejected=True):
+        if recorded.topic.startswith(f"{topics.ROOT}/"):
+            counts[topics.split_key(recorded.topic)[0]] += 1
+    return dict(counts)
+
+
+def sessions_text(sessions: dict[str, int]) -> str:
+    """e.g. ``"'rack1' (5210 messages), 'rack2' (5188 messages)"``."""
+    return ", ".join(f"{name!r} ({n} messages)" for name, n in sessions.items())
+
+
+def chosen_session(path: str | Path, session: str | None, flag: str = "--session") -> str | None:
+    """The recorded session to report or replay: ``session``, or the only one the recording holds (None: it holds no
+    msk topic). Raises :class:`InputError` naming them, and ``flag`` as the field, when ``session`` is not among them,
+    or when there are several and none is named (two racks recorded into one file would otherwise be mixed into one
+    athlete's sets)."""
+    sessions = recorded_sessions(path)
+    if session is not None and session not in sessions:
+        raise InputError(
+            f"the recording holds no session {session!r}; it holds {sessions_text(sessions) or 'no msk topic'}",
+            path=path,
+            field=flag,
+            value=session,
+        )
+    if session is None and len(sessions) > 1:
+        raise InputError(
+            f"the recording holds {len(sessions)} sessions: {sessions_text(sessions)}; name one with {flag}",
+            path=path,
+            field=flag,
+        )
+    return session if session is not None else next(iter(sessions), None)
 
 
 def channel_kind(channel: Channel, schema: Schema | None) -> tuple[str, str]:

@@ -43,8 +43,8 @@ from services.nodes.node_runtime import LoadEventGate
 from services.sessions.live import electrode_summary, fatigue_summary, keep_fatigue
 from services.sessions.live_session import PREFERRED_METHODS, default_method
 from services.surfaces.dashboard import bodymap
-from services.transport import messages
-from services.transport.mcap_io import ReadReport, read_messages
+from services.transport import messages, topics
+from services.transport.mcap_io import ReadReport, chosen_session, read_messages
 
 PRIMARY_METHODS = PREFERRED_METHODS  # the first present is the one the report details (as every surface)
 ACTIVE_THRESHOLD = 0.2  # "time active" of a muscle: activation above this
@@ -99,14 +99,18 @@ class SessionData:
     refused_loads: int = 0  # load events naming an exercise that no pack has and no frame named (not applied)
 
 
-def read_session(path: Path, *, progress: bool = False) -> SessionData:
+def read_session(path: Path, *, session: str | None = None, progress: bool = False) -> SessionData:
+    """The recorded session ``session`` (default: the only one; :func:`chosen_session`)."""
     if not Path(path).is_file():
         raise InputError("recording not found", path=path)
+    prefix = None if (name := chosen_session(path, session)) is None else f"{topics.session_prefix(name)}/"
     data, report = SessionData(), ReadReport()
     gate = LoadEventGate()  # the load events the estimator took: one naming no pack and no frame's is not a fact
     for recorded in tqdm(
         read_messages(path, report=report), desc=f"read {Path(path).name}", unit="msg", disable=not progress
     ):
+        if prefix is not None and not recorded.topic.startswith(prefix):
+            continue
         data.start_log_ns = data.start_log_ns or recorded.log_time_ns
         data.end_log_ns = recorded.log_time_ns
         log_s = (recorded.log_time_ns - data.start_log_ns) / 1e9
@@ -967,8 +971,8 @@ def health_html(data: SessionData, devices: dict, device_plot: str | None) -> st
     )
 
 
-def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
-    data = read_session(recording, progress=progress)
+def write_report(recording: Path, out: Path, *, session: str | None = None, progress: bool = False) -> dict:
+    data = read_session(recording, session=session, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     sets = []
     for window in set_windows(data):
@@ -1040,10 +1044,13 @@ def write_report(recording: Path, out: Path, *, progress: bool = False) -> dict:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", type=Path, help="MCAP recording of a session (with activations/<method> topics)")
     parser.add_argument("--out", type=Path, required=True, help="output folder: report.html, report.json and the plots")
+    parser.add_argument(
+        "--session", default=None, help="the recorded session to report (needed when the recording holds several)"
+    )
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    summary = write_report(args.recording, args.out, progress=sys.stderr.isatty())
+    summary = write_report(args.recording, args.out, session=args.session, progress=sys.stderr.isatty())
     print(
         f"report of {args.recording}: {len(summary['sets'])} set{'' if len(summary['sets']) == 1 else 's'}, {sum(len(s['reps']) for s in summary['sets'])} reps, "
         f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}",
