@@ -246,6 +246,27 @@ def test_report_header_names_athlete_date_exercise_and_load(tmp_path):
     assert "estimator" not in summary["devices"] and summary["node_inputs_dropped"] == {"estimator": 2}  # a node
 
 
+def test_report_header_names_the_estimated_exercise_and_its_loads_only(tmp_path):
+    """A replay of a bench press and deadlift recording into a bench-press estimator declares both; the header says
+    what was estimated, and the other exercise in a note (it listed "bench press, deadlift · 60, 100 kg")."""
+    from services.transport import messages
+
+    recording = tmp_path / "session.mcap"
+    write_small_session(
+        recording,
+        loads=[
+            (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1)),
+            (19.95, messages.LoadEvent(barbell_mass_kg=100, exercise="deadlift", set_number=3)),
+        ],
+    )
+    summary = report.write_report(recording, tmp_path / "out")
+    assert summary["exercises"] == ["bench_press"] and summary["loads_kg"] == [60]
+    assert summary["declared_not_estimated"] == ["deadlift"]
+    page = (tmp_path / "out" / "report.html").read_text()
+    assert "bench press · 60 kg" in page.split("</header>")[0]
+    assert "Also declared, without estimates (the estimator ran another exercise's model): deadlift." in page
+
+
 def test_report_without_load_events_takes_the_exercise_of_the_frames(tmp_path):
     recording = tmp_path / "session.mcap"
     write_small_session(recording, loads=[])

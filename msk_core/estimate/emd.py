@@ -63,10 +63,12 @@ def _design(pack: PackLike, trials: list[TrialData], delay_s: float, moment_arms
     rows, target = [], []
     n_c = len(pack.coordinates)
     for t, arms in zip(trials, moment_arms):
-        ok = np.all(np.isfinite(arms), axis=(1, 2)) & np.all(np.isfinite(t.torques), axis=1)
         e = np.column_stack(
             [np.interp(t.time - delay_s, t.time, t.emg[g]) if g in t.emg else np.zeros(t.n_frames) for g in emg_groups]
         )
+        # frames with a gap in any EMG (NaN: not measured, or the EMG file ends first) tell nothing about the delay
+        ok = np.all(np.isfinite(arms), axis=(1, 2)) & np.all(np.isfinite(t.torques), axis=1)
+        ok &= np.all(np.isfinite(e), axis=1)
         m = arms[ok] * f_ref[None, None, :]
         scale = 1.0 / np.maximum(np.abs(m).sum(axis=2), 1.0)  # per-coordinate capacity, as in the calibration
         x = m[:, :, cols] * e[ok][:, None, :] * scale[:, :, None]  # (T, n_c, G_emg)

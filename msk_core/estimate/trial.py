@@ -63,9 +63,10 @@ import numpy as np
 
 from msk_core.errors import ConfigError, EstimationError, InputError
 from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
-from msk_core.estimate.pack import PackLike
+from msk_core.estimate.pack import CLAMP_TOLERANCE, PackLike, clamp_to_ranges, fitted_ranges
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
+from msk_core.io.storage import uniform_step
 from msk_core.signal.gait import CONTACT_THRESHOLD_N, gait_cycle_phase, heel_strikes
 from msk_core.signal.kinematics_filter import lowpass_coordinates
 from msk_core.signal.reps import REST_PHASE
@@ -274,8 +275,10 @@ class _Kinematics:
     qdd: np.ndarray
 
 
-def _read_kinematics(trial: _TrialFile, options: _TrialOptions, coords: list[str]) -> _Kinematics:
+def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) -> _Kinematics:
+    coords = list(pack.coordinates)
     kin = read_sto(trial.file_of("kinematics"))
+    kin.check_increasing("kinematics")
     for c in coords:
         if not kin.has_column(c):
             raise InputError(
@@ -305,7 +308,41 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, coords: list[str
         q = q_all[sel]
         qd = np.gradient(q, time, axis=0)
         qdd = np.gradient(qd, time, axis=0)
+    _check_within_ranges(kin, q, coords, pack)
     return _Kinematics(kin, sel, time, q, qd, qdd)
+
+
+MOSTLY_OUT_OF_RANGE = 0.5  # a trial this much outside the pack's ranges is refused: wrong units or the wrong model
+
+
+def _check_within_ranges(kin: Storage, q: np.ndarray, coords: list[str], pack: PackLike) -> None:
+    """:class:`InputError` when most frames lie outside the pack's fitted ranges (every such frame would be refused,
+    so the estimate would be NaN throughout), naming the coordinate that is out most often, its values against the
+    range, and a likely cause."""
+    ranges = fitted_ranges(pack)
+    if ranges is None or q.size == 0:
+        return
+    _, usable = clamp_to_ranges(q, ranges)
+    finite = np.all(np.isfinite(q), axis=1)
+    if np.count_nonzero(finite & ~usable) <= MOSTLY_OUT_OF_RANGE * max(int(finite.sum()), 1):
+        return
+    with np.errstate(invalid="ignore"):
+        outside = (q < ranges[0] - CLAMP_TOLERANCE) | (q > ranges[1] + CLAMP_TOLERANCE)
+    j = int(np.argmax(outside.sum(axis=0)))
+    values = np.degrees(q[finite, j])
+    looks_like_degrees = not kin.in_degrees and np.nanmax(np.abs(q[finite])) > 2 * np.pi
+    raise InputError(
+        f"{np.count_nonzero(finite & ~usable)} of {int(finite.sum())} frames lie outside the fitted ranges of pack "
+        f"{pack.name!r}, e.g. {coords[j]} at {values.min():.1f} .. {values.max():.1f} deg against "
+        f"[{np.degrees(ranges[0][j]):.1f}, {np.degrees(ranges[1][j]):.1f}] deg"
+        + (
+            "; the angles look like degrees in a file whose header says inDegrees=no"
+            if looks_like_degrees
+            else "; is this the pack's model and sign convention?"
+        ),
+        path=kin.path,
+        field=coords[j],
+    )
 
 
 def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin: _Kinematics):
@@ -316,6 +353,7 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
         torques = np.array([pack.inverse_dynamics(kin.q[i], kin.qd[i], kin.qdd[i], hand) for i in range(len(kin.time))])
         return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", 0
     tq = read_sto(trial.file_of("torques"))
+    tq.check_increasing("torque")
     cols = []
     for c in coords:
         name = c if tq.has_column(c) else f"{c}_moment"
@@ -479,12 +517,30 @@ def _gait_cycles(trial: _TrialFile, time: np.ndarray) -> _Phase:
     return _Phase(phase, index, signal, None, {"heel_strikes": strikes})
 
 
+def trial_notes(trial: TrialData) -> list[str]:
+    """What loading left out of a trial, in words for the commands to print (nothing when it used everything)."""
+    notes = []
+    if trial.dropped_frames:
+        notes.append(
+            f"{trial.dropped_frames} kinematics frames outside the torque file's time span left out "
+            f"({trial.n_frames} kept)"
+        )
+    for group, envelope in trial.emg.items():
+        missing = int(np.count_nonzero(~np.isfinite(envelope)))
+        if missing:
+            notes.append(
+                f"EMG of {group}: {missing} of {envelope.size} frames not measured (NaN, or outside the EMG file's "
+                "time span); those frames carry no EMG term for it"
+            )
+    return notes
+
+
 def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     """Read a trial TOML and everything it points to, checked against the pack."""
     trial = _TrialFile.read(path)
     options = _parse_options(trial)
     coords = list(pack.coordinates)
-    kin = _read_kinematics(trial, options, coords)
+    kin = _read_kinematics(trial, options, pack)
     torques, kin_keep, source, dropped = _attach_torques(trial, options, pack, kin)
     if kin.time.size < 3:
         raise InputError(
@@ -528,6 +584,7 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
 
 def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
     storage: Storage = read_sto(file_of("emg"))
+    storage.check_increasing("EMG")
     mapping = spec.get("emg_map")
     if not isinstance(mapping, dict) or not mapping:
         raise err("an [emg_map] table (EMG column -> group) is required with emg", "emg_map", mapping)
@@ -544,11 +601,18 @@ def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
             raise err(f"EMG file has no column {ch!r}{_closest(ch, storage.columns)}", f"emg_map.{ch}", ch)
         if group not in groups:
             raise err(f"not a group of pack {pack.name!r}{_closest(str(group), groups)}", f"emg_map.{ch}", group)
+    for ch in maxima:
+        if ch not in mapping:  # a misspelt channel would be left unnormalised without a word
+            raise err(f"not a channel of [emg_map]{_closest(str(ch), channels)}", f"emg_max.{ch}", ch)
     raw = storage.select(channels)
     if not is_envelope:
         from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal
 
-        raw = envelope_zero_phase_noncausal(raw, EmgFilterConfig(rate_hz=storage.rate))
+        try:
+            step = uniform_step(storage.time)
+        except InputError as exc:
+            raise InputError(f"raw EMG (emg_is_envelope = false) {exc}", path=storage.path, field="time") from None
+        raw = envelope_zero_phase_noncausal(raw, EmgFilterConfig(rate_hz=1.0 / step))
     emg: dict[str, np.ndarray] = {}
     norm: dict[str, dict] = {}
     for j, ch in enumerate(channels):

@@ -1,10 +1,16 @@
-"""Writing a file so that no reader ever sees half of it."""
+"""Writing files: never half of one (:func:`write_text_atomic`), and JSON that every parser reads
+(:func:`json_text`)."""
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import threading
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 def write_text_atomic(path: str | Path, text: str, *, mode: int | None = None) -> None:
@@ -22,3 +28,26 @@ def write_text_atomic(path: str | Path, text: str, *, mode: int | None = None) -
         temporary.replace(path)
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def json_ready(value: Any) -> Any:
+    """``value`` with numpy scalars and arrays as Python numbers and lists, tuples as lists, and every NaN or
+    infinity as None: ``NaN`` is not JSON, and strict parsers (a browser's ``JSON.parse``) refuse the whole file."""
+    if isinstance(value, dict):
+        return {str(k) if not isinstance(k, str) else k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_ready(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
+def json_text(value: Any, *, indent: int | None = 2, default: Any = None) -> str:
+    """``value`` as strict JSON text (:func:`json_ready`), ending in a newline; ``default`` as json.dumps's."""
+    return json.dumps(json_ready(value), indent=indent, allow_nan=False, default=default) + "\n"

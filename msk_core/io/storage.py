@@ -24,6 +24,23 @@ import numpy as np
 from msk_core.errors import FileFormatError, InputError
 
 _KEY_VALUE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_ ]*?)\s*=\s*(.*?)\s*$")
+MAX_INTERVAL_SPREAD = 0.01  # sample intervals may differ by 1 % at most where a filter assumes a uniform rate
+
+
+def uniform_step(time: np.ndarray) -> float:
+    """The sample interval of uniformly sampled ``time``; :class:`InputError` saying where it is not (the interval
+    furthest from the median, and when it starts): a filter designed for one rate is wrong across a gap."""
+    dt = np.diff(np.asarray(time, dtype=float))
+    if dt.size == 0:
+        raise InputError("needs a uniform sample rate, so at least two samples")
+    step = float(np.median(dt))
+    worst = int(np.argmax(np.abs(dt - step)))
+    if step <= 0 or abs(dt[worst] - step) > MAX_INTERVAL_SPREAD * step:
+        raise InputError(
+            f"needs a uniform sample rate: samples {step:g} s apart (median), but {dt[worst]:g} s from t = "
+            f"{time[worst]:g} s (intervals range {dt.min():g} .. {dt.max():g} s)"
+        )
+    return step
 
 
 @dataclass
@@ -61,6 +78,21 @@ class Storage:
         if self.n_rows < 2:
             return float("nan")
         return float((self.n_rows - 1) / (self.time[-1] - self.time[0]))
+
+    def check_increasing(self, what: str) -> None:
+        """:class:`InputError` naming the file and the first row whose time does not increase (``what``: what the
+        file is for, e.g. "kinematics"): interpolation onto another time base would silently mix up its rows."""
+        if self.n_rows == 0:
+            raise InputError(f"{what} file has a header but no data rows", path=self.path)
+        back = np.flatnonzero(np.diff(self.time) <= 0)
+        if back.size:
+            k = int(back[0]) + 1
+            raise InputError(
+                f"{what} time must increase: data row {k + 1} has t = {self.time[k]:g} s after {self.time[k - 1]:g} s "
+                f"({back.size} such row{'s' if back.size != 1 else ''})",
+                path=self.path,
+                field="time",
+            )
 
     def select(self, names: list[str]) -> np.ndarray:
         """Columns ``names`` as an ``(n_rows, len(names))`` array."""

@@ -14,10 +14,10 @@ import numpy as np
 from scipy import interpolate, signal
 
 from msk_core.errors import InputError
+from msk_core.io.storage import uniform_step
 
 BUTTERWORTH_ORDER = 3  # OpenSim's Signal::LowpassIIR
 SPLINE_DEGREE = 5  # OpenSim's GCVSplineSet(5, ...)
-MAX_INTERVAL_SPREAD = 0.01  # sample intervals may differ by 1 % at most (the filter assumes a uniform rate)
 
 
 def lowpass_coordinates(time: np.ndarray, q: np.ndarray, cutoff_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -33,12 +33,10 @@ def lowpass_coordinates(time: np.ndarray, q: np.ndarray, cutoff_hz: float) -> tu
     if not np.all(np.isfinite(q)):
         bad = int(np.argmax(~np.all(np.isfinite(q), axis=1)))
         raise InputError(f"the coordinate low-pass needs finite coordinates; frame {bad} (t = {time[bad]:g} s) is not")
-    dt = np.diff(time)
-    step = float(np.median(dt))
-    if step <= 0 or np.max(np.abs(dt - step)) > MAX_INTERVAL_SPREAD * step:
-        raise InputError(
-            f"the coordinate low-pass needs a uniform sample rate; intervals range {dt.min():g} .. {dt.max():g} s"
-        )
+    try:
+        step = uniform_step(time)
+    except InputError as exc:
+        raise InputError(f"the coordinate low-pass {exc}") from None
     nyquist = 0.5 / step
     if not 0 < cutoff_hz < nyquist:
         raise InputError(f"low-pass cut-off {cutoff_hz:g} Hz must be below the Nyquist frequency {nyquist:g} Hz")

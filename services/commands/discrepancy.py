@@ -49,8 +49,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     from msk_core.discrepancy.data import describe_left_out
     from msk_core.discrepancy.workflow import run_discrepancy
     from msk_core.estimate.profile import SubjectProfile
-    from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
+    from services.commands.estimate import load_trials, output_folder
     from services.surfaces.reports.discrepancy import consistency_sentences, write_report
 
     if args.max_effects < 1:
@@ -66,8 +66,8 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
             )
     pack = load_pack(args.pack)
     profile = SubjectProfile.load(args.subject)
-    train = [load_trial(p, pack) for p in args.trial]
-    holdout = [load_trial(p, pack) for p in args.holdout]
+    train, holdout = load_trials(args.trial, pack), load_trials(args.holdout, pack)
+    output_folder(args.report, "--report")
     result = run_discrepancy(
         pack,
         profile,

@@ -249,14 +249,41 @@ def _trial_files(paths: list[Path]) -> list[Path]:
     return files
 
 
+def output_folder(path: Path, flag: str) -> Path:
+    """``path`` made as a folder before the work that fills it (minutes of calibration): a :class:`ConfigError`
+    naming ``flag`` when it is a file, or cannot be made."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ConfigError(
+            "is a file, not a folder: name a folder for the report", field=flag, value=str(path)
+        ) from None
+    except OSError as error:
+        raise ConfigError(f"cannot make the folder: {error.strerror}", field=flag, value=str(path)) from None
+    return path
+
+
+def load_trials(paths: list[Path], pack) -> list:
+    """The trials of ``paths`` (a folder: every ``trial.toml`` under it), saying on stderr what loading left out of
+    each (frames beyond the torque file, EMG not measured): a user should not find it only in the numbers."""
+    import sys
+
+    from msk_core.estimate.trial import load_trial, trial_notes
+
+    trials = [load_trial(path, pack) for path in _trial_files(paths)]
+    for trial in trials:
+        for note in trial_notes(trial):
+            print(f"trial {trial.name} ({trial.path}): {note}", file=sys.stderr)
+    return trials
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     from msk_core.estimate.calibrate import IdentifyMode
     from msk_core.estimate.pipeline import calibrate_subject
-    from msk_core.estimate.trial import load_trial
 
     options = calibration_options(args)
     pack = _pack(args.pack)
-    trials = [load_trial(p, pack) for p in _trial_files(args.trial)]
+    trials = load_trials(args.trial, pack)
     args.out.parent.mkdir(parents=True, exist_ok=True)  # before the calibration's minutes, as msk estimate does
     print(
         f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
@@ -305,14 +332,13 @@ def run_estimate(args: argparse.Namespace) -> int:
     from msk_core.estimate.pipeline import estimate_trial
     from msk_core.estimate.prior import load_scale_line
     from msk_core.estimate.profile import SubjectProfile
-    from msk_core.estimate.trial import load_trial
     from msk_core.io import write_sto
 
     pack = _pack(args.pack, args.dynamics)
     subject = SubjectProfile.load(args.subject) if args.subject else None
     if subject is None and args.method in ("proposed", "prior"):
         raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
-    trial = load_trial(args.trial, pack)
+    (trial,) = load_trials([args.trial], pack)
     run = estimate_trial(
         pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False), **estimator_options(args, pack)
     )
@@ -339,7 +365,6 @@ def run_estimate(args: argparse.Namespace) -> int:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     from msk_core.estimate.profile import SubjectProfile
-    from msk_core.estimate.trial import load_trial
     from services.surfaces.reports.evaluation import write_report
 
     if args.leave_out:
@@ -350,10 +375,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError("needs --subject (a calibrated profile), or --leave-out with --train", field="--subject")
     pack = _pack(args.pack, args.dynamics)
     subject = SubjectProfile.load(args.subject)
-    trials = [load_trial(p, pack) for p in args.trial]
+    trials = load_trials(args.trial, pack)
     missing = [t.path for t in trials if not t.emg]
     if missing:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
+    output_folder(args.report, "--report")
     write_report(pack, subject, trials, args.report, progress=ProgressBar(leave=False), **estimator_options(args, pack))
     print((args.report / "report.md").read_text())
     return 0
@@ -362,7 +388,6 @@ def run_evaluate(args: argparse.Namespace) -> int:
 def run_leave_out(args: argparse.Namespace) -> int:
     """``msk evaluate --leave-out``: calibrations without each electrode in turn, scored on the held-out trials."""
     from msk_core.estimate.leave_out import leave_one_out
-    from msk_core.estimate.trial import load_trial
     from services.surfaces.reports.evaluation import write_leave_out_report
 
     if args.subject is not None:
@@ -376,11 +401,11 @@ def run_leave_out(args: argparse.Namespace) -> int:
         raise ConfigError("expected all or group names", field="--leave-out", value=args.leave_out)
     options = calibration_options(args)
     pack = _pack(args.pack, args.dynamics)
-    train = [load_trial(p, pack) for p in _trial_files(args.train)]
-    held = [load_trial(p, pack) for p in _trial_files(args.trial)]
+    train, held = load_trials(args.train, pack), load_trials(args.trial, pack)
     missing = [t.path for t in held if not t.emg]
     if missing:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
+    output_folder(args.report, "--report")
     groups = None if "all" in names else names
     print(
         f"leave-one-electrode-out on {pack.name}: {sum(t.n_frames for t in train)} training frames of {len(train)} "

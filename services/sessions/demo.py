@@ -13,13 +13,13 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from msk_core.errors import InputError
+from msk_core.io.files import json_text
 from services.nodes import estimator, kinematics_node, recorder, replayer
 from services.nodes.readiness import NODE_READY_TIMEOUT_S
 from services.sessions.demo_subject import RECORDINGS, calibrate
@@ -246,7 +246,7 @@ def main(
     table = markdown(scores)
     plots = plot_activations(curves, scores, out) + [plot_strength(calibration, out)]
     summary = {"calibration": calibration, "graph": graph, "scores": [s.__dict__ for s in scores]}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    (out / "summary.json").write_text(json_text(summary, default=str))
     (out / "report.md").write_text(
         "# msk-live demo\n\nLive estimates (Zenoh graph fed by the replayed session) scored against the synthetic truth.\n"
         f"Replay rate: {rate or 'max'}. Latency = estimator publish time - input arrival time"

@@ -42,6 +42,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, InputError
 from msk_core.estimate.flags import flag_counts_text
+from msk_core.io.files import json_text
 from services.nodes.node_runtime import outages_summary, outages_text
 from services.nodes.readiness import GraphTimeout
 from services.sessions.demo_subject import RECORDINGS, sim_subject
@@ -1578,7 +1579,7 @@ def main(
                 simulators.close()
             raise
     summary["methods"] = list(plan.methods)
-    (session.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (session.out / "summary.json").write_text(json_text(summary))
     log(summary_text(summary))
     log(f"recording: {', '.join(summary.get('recordings', [])) or 'none'}; summary: {session.out / 'summary.json'}")
     return summary

@@ -23,7 +23,6 @@ import argparse
 import datetime
 import functools
 import html
-import json
 import math
 import sys
 from dataclasses import dataclass, field
@@ -34,6 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msk_core.errors import EstimationError, InputError
+from msk_core.io.files import json_text
 from msk_core.model import load_pack
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
@@ -308,10 +308,18 @@ def _fact_windows(data: SessionData) -> list[SetWindow]:
 def session_facts(data: SessionData) -> dict:
     """Athlete, date (the first message's, local time of this machine), exercises and loads of the session."""
     athletes = list(dict.fromkeys(load.athlete for load in sorted(data.loads) if load.athlete))
-    exercises = (
-        list(dict.fromkeys(load.exercise for load in sorted(data.loads) if load.exercise)) or data.frame_exercises
+    declared = list(dict.fromkeys(load.exercise for load in sorted(data.loads) if load.exercise))
+    # with estimates, the exercises they are of (a replay of a two-exercise recording into one pack's estimator
+    # declares both); their loads alone
+    exercises = [e for e in declared if e in data.frame_exercises] if data.frame_exercises else declared
+    exercises = exercises or data.frame_exercises
+    loads = list(
+        dict.fromkeys(
+            load.mass_kg
+            for load in sorted(data.loads)
+            if load.mass_kg > 0 and (not load.exercise or load.exercise in exercises)
+        )
     )
-    loads = list(dict.fromkeys(load.mass_kg for load in sorted(data.loads) if load.mass_kg > 0))
     started = datetime.datetime.fromtimestamp(data.start_log_ns / 1e9).astimezone()
     return {
         "athlete": ", ".join(athletes) or None,
@@ -319,6 +327,7 @@ def session_facts(data: SessionData) -> dict:
         "started_at": started.isoformat(timespec="seconds"),
         "exercises": list(exercises),
         "loads_kg": loads,
+        "declared_not_estimated": [e for e in declared if e not in exercises],
     }
 
 
@@ -1002,7 +1011,14 @@ def write_report(recording: Path, out: Path, *, session: str | None = None, prog
     overview = (
         f"<section><h2>Overview</h2><div class='kpi'><b>{duration:.0f} s</b>recorded</div>"
         f"<div class='kpi'><b>{len(sets)}</b>{'set' if len(sets) == 1 else 'sets'} with estimates</div><div class='kpi'><b>{sum(len(s['reps']) for s in sets)}</b>reps</div>"
-        f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div></section>"
+        f"<div class='kpi'><b>{html.escape(', '.join(methods) or 'none')}</b>methods</div>"
+        + (
+            f"<p class='note'>Also declared, without estimates (the estimator ran another exercise's model): "
+            f"{html.escape(', '.join(e.replace('_', ' ') for e in facts['declared_not_estimated']))}.</p>"
+            if facts["declared_not_estimated"]
+            else ""
+        )
+        + "</section>"
     )
     page = (
         f"<!doctype html><html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
@@ -1037,7 +1053,7 @@ def write_report(recording: Path, out: Path, *, session: str | None = None, prog
         "load_events_refused": data.refused_loads,
         **emg_summary(data),
     }
-    (out / "report.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    (out / "report.json").write_text(json_text(summary, indent=1, default=float))
     return summary
 
 

@@ -3,13 +3,13 @@ sentences saying how consistently the named effect helps, rep by rep (printed by
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from msk_core.discrepancy.data import describe_left_out
 from msk_core.discrepancy.workflow import DiscrepancyResult
+from msk_core.io.files import json_text
 from services.surfaces.reports import pyplot, save_figure
 
 
@@ -92,7 +92,7 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     s = result.summary
-    (folder / "summary.json").write_text(json.dumps(s, indent=2, default=float) + "\n")
+    (folder / "summary.json").write_text(json_text(s, default=float))
     _relation_plot(folder / "gap_vs_angle.png", result, "angle", "joint angle (rad)")
     _relation_plot(folder / "gap_vs_velocity.png", result, "velocity", "joint velocity (rad/s)")
     _relation_plot(folder / "gap_vs_phase.png", result, "phase", "phase of the rep")

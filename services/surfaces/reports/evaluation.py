@@ -4,7 +4,6 @@ plot per left-out group from :mod:`msk_core.estimate.leave_out`."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +17,7 @@ from msk_core.estimate.prior import load_scale_line
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.scores import PUBLISHED_EMG_DRIVEN, MethodScore, evaluate, prior_band
 from msk_core.estimate.trial import TrialData
+from msk_core.io.files import json_text
 from msk_core.progress import Progress
 from services.surfaces.reports import pyplot, save_figure
 
@@ -126,7 +126,7 @@ def write_report(
         "published_emg_driven": PUBLISHED_EMG_DRIVEN,
         "load_scale": scaled,
     }
-    (out / "metrics.json").write_text(json.dumps(data, indent=2, default=float))
+    (out / "metrics.json").write_text(json_text(data, default=float))
     return data
 
 
@@ -273,7 +273,7 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
     """out/summary.json, out/report.md (the tables, the targets per group) and one plot per left-out group."""
     out.mkdir(parents=True, exist_ok=True)
     summary = leave_out_summary(pack, result)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    (out / "summary.json").write_text(json_text(summary, default=float))
     plots = [plot_leave_out_group(result, g, out) for g in result.groups]
     runs = result.calibrations
     md = [

@@ -1,0 +1,137 @@
+"""Real trial files go wrong in ordinary ways: a channel with a gap, a misspelt divisor, angles in degrees under an
+``inDegrees=no`` header, a file with a header only, raw EMG with a gap, a repeated time stamp, a torque file that
+ends early. Each is either used with what it lacks said out loud, or refused naming the file, the field and the value.
+(Found by using the offline commands on the demo trial as a new user would.)"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msk_core.errors import ConfigError, InputError
+from msk_core.estimate.emd import estimate_emd
+from msk_core.estimate.trial import load_trial, trial_notes
+from msk_core.io import read_sto, write_sto
+from msk_core.io.files import json_text
+from msk_core.model import load_pack
+from services import cli
+
+DEMO = Path(__file__).resolve().parents[1] / "recordings" / "demo" / "bench_press" / "bench_press_40kg"
+
+
+@pytest.fixture(scope="module")
+def pack():
+    return load_pack("bench_press")
+
+
+def _trial(tmp_path: Path, swap: tuple[tuple[str, str], ...] = (), **files: Path) -> Path:
+    """The demo's bench press trial with absolute paths: its files, or those of ``files`` (kinematics=..., emg=...),
+    and the text pairs of ``swap`` replaced."""
+    text = (DEMO / "trial.toml").read_text()
+    for key, default in (("kinematics", "ik.sto"), ("torques", "id.sto"), ("emg", "emg.sto")):
+        text = text.replace(f'{key} = "{default}"', f'{key} = "{files.get(key, DEMO / default)}"')
+    for old, new in swap:
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp_path / "trial.toml"
+    path.write_text(text)
+    return path
+
+
+def _write_like(source: Path, out: Path, time: np.ndarray, data: np.ndarray, in_degrees: bool = False) -> Path:
+    storage = read_sto(source)
+    write_sto(out, time, list(storage.columns), data, name="edited", in_degrees=in_degrees)
+    return out
+
+
+def test_a_gap_in_one_emg_channel_is_said_and_does_not_stop_the_delay_estimate(tmp_path, pack):
+    emg = read_sto(DEMO / "emg.sto")
+    data = emg.data.copy()
+    data[(emg.time >= 5.0) & (emg.time < 6.0), emg.columns.index("PMCla")] = np.nan  # the electrode came off
+    gap = _write_like(DEMO / "emg.sto", tmp_path / "emg_gap.sto", emg.time, data)
+    trial = load_trial(_trial(tmp_path, emg=gap), pack)
+    assert trial_notes(trial) == [
+        "EMG of PMCla: 100 of 1361 frames not measured (NaN, or outside the EMG file's time span); those frames carry "
+        "no EMG term for it"
+    ]
+    delay = estimate_emd(pack, [trial]).delay_s  # was: LinAlgError "SVD did not converge"
+    assert 0.0 <= delay <= 0.15
+
+
+def test_a_misspelt_emg_max_channel_is_refused_not_left_unnormalised(tmp_path, pack):
+    path = _trial(tmp_path, swap=(("PMCla = 0.000364", "PMCLa = 0.000364"),))
+    with pytest.raises(ConfigError) as error:
+        load_trial(path, pack)
+    assert error.value.field == "emg_max.PMCLa" and "did you mean PMCla?" in str(error.value), error.value
+
+
+def test_angles_in_degrees_under_an_in_degrees_no_header_are_refused_naming_the_cause(tmp_path, pack):
+    ik = read_sto(DEMO / "ik.sto")
+    degrees = _write_like(DEMO / "ik.sto", tmp_path / "ik_deg.sto", ik.time, np.degrees(ik.data))
+    with pytest.raises(InputError) as error:
+        load_trial(_trial(tmp_path, kinematics=degrees), pack)
+    said = str(error.value)
+    assert "1361 of 1361 frames lie outside the fitted ranges of pack 'bench_press'" in said, said
+    assert "look like degrees in a file whose header says inDegrees=no" in said and "ik_deg.sto" in said, said
+
+
+def test_files_with_a_header_only_or_time_that_does_not_increase_are_refused_naming_the_row(tmp_path, pack):
+    emg = read_sto(DEMO / "emg.sto")
+    empty = _write_like(DEMO / "emg.sto", tmp_path / "empty.sto", emg.time[:0], emg.data[:0])
+    with pytest.raises(InputError, match="EMG file has a header but no data rows"):
+        load_trial(_trial(tmp_path, emg=empty), pack)
+    ik = read_sto(DEMO / "ik.sto")
+    time = ik.time.copy()
+    time[500] = time[499]
+    repeated = _write_like(DEMO / "ik.sto", tmp_path / "ik_dup.sto", time, ik.data)
+    with pytest.raises(InputError) as error:
+        load_trial(_trial(tmp_path, kinematics=repeated), pack)
+    assert "kinematics time must increase: data row 501 has t = 4.99 s after 4.99 s" in str(error.value)
+    assert "ik_dup.sto" in str(error.value) and error.value.field == "time"
+
+
+def test_raw_emg_with_a_gap_is_refused_naming_where(tmp_path, pack):
+    rate = 1000.0
+    time = np.arange(0.0, 13.6, 1.0 / rate)
+    time = np.r_[time[time < 5.0], time[time >= 7.0]]  # 2 s missing
+    raw = np.random.default_rng(1).normal(0.0, 1e-4, (time.size, 10))
+    path = _write_like(DEMO / "emg.sto", tmp_path / "raw_gap.sto", time, raw)
+    trial = _trial(tmp_path, swap=(("emg_is_envelope = true", "emg_is_envelope = false"),), emg=path)
+    with pytest.raises(InputError) as error:
+        load_trial(trial, pack)
+    said = str(error.value)
+    assert "raw EMG (emg_is_envelope = false) needs a uniform sample rate" in said, said
+    assert "2.001 s from t = 4.999 s" in said and "raw_gap.sto" in said, said
+
+
+def test_frames_beyond_a_short_torque_file_are_said_by_the_commands(tmp_path, pack, capsys):
+    torques = read_sto(DEMO / "id.sto")
+    keep = torques.time <= 6.0
+    short = _write_like(DEMO / "id.sto", tmp_path / "id_short.sto", torques.time[keep], torques.data[keep])
+    path = _trial(tmp_path, torques=short)
+    from services.commands.estimate import load_trials
+
+    (trial,) = load_trials([path], pack)
+    assert trial.n_frames == 601 and trial.dropped_frames == 760
+    said = capsys.readouterr().err
+    assert (
+        f"trial bench_press_40kg ({path}): 760 kinematics frames outside the torque file's time span left out" in said
+    )
+
+
+def test_a_report_folder_that_is_a_file_is_refused_before_the_work(tmp_path, capsys):
+    taken = tmp_path / "report"
+    taken.write_text("not a folder")
+    argv = ["evaluate", "--pack", "bench_press", "--train", str(_trial(tmp_path)), "--trial", str(_trial(tmp_path))]
+    assert cli.main([*argv, "--leave-out", "all", "--report", str(taken)]) == 2
+    assert "field '--report': is a file, not a folder" in capsys.readouterr().err
+
+
+def test_json_outputs_write_null_where_a_number_is_undefined():
+    text = json_text({"r": math.nan, "lag": np.float64(np.inf), "per_rep": np.array([0.5, np.nan]), "n": np.int64(3)})
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"r": None, "lag": None, "per_rep": [0.5, None], "n": 3}
