@@ -62,7 +62,7 @@ def test_the_view_shows_each_electrode_state_with_its_reason_in_its_muscle_row()
     assert "good" in rows["Triceps brachii, lateral and medial heads"]
     assert "bad: flat line" in rows["Pectoralis major, clavicular part"]
     assert "check: mains interference" in rows["Deltoid, anterior part"]
-    assert "flags electrode_bad" in text  # the frame's flag, in the session line
+    assert "bad electrode left out" in text  # the frame's flag, in words, in the session line
 
 
 def test_the_bridge_forwards_the_electrodes_and_drops_them_with_the_node():

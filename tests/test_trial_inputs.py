@@ -135,3 +135,16 @@ def test_json_outputs_write_null_where_a_number_is_undefined():
     text = json_text({"r": math.nan, "lag": np.float64(np.inf), "per_rep": np.array([0.5, np.nan]), "n": np.int64(3)})
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text) == {"r": None, "lag": None, "per_rep": [0.5, None], "n": 3}
+
+
+def test_a_window_outside_the_file_or_backwards_says_so(tmp_path, pack):
+    backwards = _trial(tmp_path, swap=(("load_kg = 40.0", "load_kg = 40.0\nstart = 9.0\nend = 2.0"),))
+    with pytest.raises(ConfigError) as error:
+        load_trial(backwards, pack)
+    assert error.value.field == "start" and "start must come before end (end = 2)" in str(error.value)
+    beyond = _trial(tmp_path, swap=(("load_kg = 40.0", "load_kg = 40.0\nstart = 100.0\nend = 200.0"),))
+    with pytest.raises(ConfigError) as error:
+        load_trial(beyond, pack)
+    assert "fewer than 3 kinematics frames between start and end (0); the kinematics span 0 .. 13.6 s" in str(
+        error.value
+    ), error.value

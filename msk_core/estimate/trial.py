@@ -63,7 +63,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, EstimationError, InputError
 from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
-from msk_core.estimate.pack import CLAMP_TOLERANCE, PackLike, clamp_to_ranges, fitted_ranges
+from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
 from msk_core.io.storage import uniform_step
@@ -292,8 +292,15 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) 
         sel &= kin.time >= options.start
     if options.end is not None:
         sel &= kin.time <= options.end
+    if options.start is not None and options.end is not None and options.start >= options.end:
+        raise trial.err(f"start must come before end (end = {options.end:g})", "start", options.start)
     if sel.sum() < 3:
-        raise trial.err("fewer than 3 kinematics frames between start and end", "start", (options.start, options.end))
+        raise trial.err(
+            f"fewer than 3 kinematics frames between start and end ({int(sel.sum())}); the kinematics span "
+            f"{kin.time[0]:g} .. {kin.time[-1]:g} s",
+            "start" if options.start is not None else "end",
+            (options.start, options.end),
+        )
     time = kin.time[sel]
     if options.lowpass_coordinates_hz is not None:
         # as OpenSim's AnalyzeTool prepares a coordinates file: whole file filtered, then the window taken
@@ -322,13 +329,11 @@ def _check_within_ranges(kin: Storage, q: np.ndarray, coords: list[str], pack: P
     ranges = fitted_ranges(pack)
     if ranges is None or q.size == 0:
         return
-    _, usable = clamp_to_ranges(q, ranges)
+    clamped, usable = clamp_to_ranges(q, ranges)
     finite = np.all(np.isfinite(q), axis=1)
     if np.count_nonzero(finite & ~usable) <= MOSTLY_OUT_OF_RANGE * max(int(finite.sum()), 1):
         return
-    with np.errstate(invalid="ignore"):
-        outside = (q < ranges[0] - CLAMP_TOLERANCE) | (q > ranges[1] + CLAMP_TOLERANCE)
-    j = int(np.argmax(outside.sum(axis=0)))
+    j = int(np.argmax((np.abs(clamped - q)[finite] > 0).sum(axis=0)))  # the coordinate out most often
     values = np.degrees(q[finite, j])
     looks_like_degrees = not kin.in_degrees and np.nanmax(np.abs(q[finite])) > 2 * np.pi
     raise InputError(

@@ -302,10 +302,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     emd = profile.calibration["emd"]
     print(f"electromechanical delay: {1000 * emd['delay_s']:.0f} ms ({emd['source']})")
     for g, info in result.identifiability(pack.groups).items():
-        std = "" if info["std_data"] is None else f"  std (data) {info['std_data']:7.3f}"
+        # relative, as the status judges it (the legend below): the data-only std over the scale
+        std = "" if info["std_data"] is None else f"  rel. std (data) {info['std_data'] / info['scale']:6.3f}"
         print(
             f"  {g:16s} scale {info['scale']:6.3f}  F_max {info['scale'] * pack.f_max_ref[pack.groups.index(g)]:9.1f} N"
-            f"{std:21s}  {info['status']}"
+            f"{std:24s}  {info['status']}"
         )
     counts = {s: result.status.count(s) for s in dict.fromkeys(result.status)}
     print(
@@ -321,7 +322,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     vague = [g for g, st in zip(pack.groups, result.status) if st in ("unidentified", "combination")]
     if vague and not any(t.isometric for t in trials):
         print(
-            f"hint: the lifts do not separate the strength of {', '.join(vague)} from their synergists'; isometric "
+            f"hint: the trials do not separate the strength of {', '.join(vague)} from their synergists'; isometric "
             "MVC trials with measured torque (trial key `isometric = true`, docs/estimation.md) do"
         )
     print(f"wrote {args.out}")

@@ -110,7 +110,8 @@ def write_report(
         f"({1000 * calibrated_delay(subject):.0f} ms), the activation they imply under the calibration's model.",
         "Torque: model torque vs inverse dynamics (Pearson R; gain, the least-squares factor from the inverse-dynamics "
         "torque to the model's, 1 when the muscles produce all of it, which R alone does not show; RMSE).",
-        f"Published EMG-driven range for such lifts: R {lo_r}-{hi_r}, RMSE {lo_e}-{hi_e} N·m/kg.",
+        f"For lifts, the published EMG-driven range: R {lo_r}-{hi_r}, RMSE {lo_e}-{hi_e} N·m/kg (not like for like: "
+        "those models predict the torque from EMG; these methods take the inverse-dynamics torque as input).",
         "",
         table,
         "",
@@ -189,14 +190,17 @@ def _scores_section(
 
 
 def _medians_line(medians: dict[str, dict[str, float]]) -> str:
-    return ", ".join(f"{m} {v['rmse']:.4f} (r {v['r']:.2f})" for m, v in medians.items())
+    return ", ".join(
+        f"{m} {v['rmse']:.4f} (r {v['r']:.2f})" if np.isfinite(v["r"]) else f"{m} {v['rmse']:.4f} (r none)"
+        for m, v in medians.items()
+    )
 
 
 def _verdict(result: LeaveOutResult, aligned: bool = False) -> list[str]:
     t = result.targets(aligned=aligned)
     lines = [
         f"- median RMSE of {t['method']} {t['median_rmse']:.4f} vs so {t['median_rmse_so']:.4f} "
-        f"({100 * (t['median_rmse'] / t['median_rmse_so'] - 1):+.0f} %; target at least -20 %): "
+        f"({100 * (t['median_rmse'] / t['median_rmse_so'] - 1):+.1f} %; target at least -20 %): "
         + ("**met**" if t["rmse_met"] else "**not met**"),
         f"- median r of {t['method']} {t['median_r']:.2f} vs so {t['median_r_so']:.2f}, paired over the "
         f"{t['r_groups']} groups where both have an r (a constant estimate has none; over all its groups "
@@ -322,7 +326,7 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
             + ("" if r.converged else " (not converged)")
             for r in runs
         )
-        + f"; total {result.cpu_seconds:.0f} s CPU ({result.seconds:.0f} s wall).",
+        + f"; total {result.cpu_seconds:.1f} s CPU ({result.seconds:.1f} s wall).",
         "",
         "Plots: " + ", ".join(f"[{p.name}]({p.name})" for p in plots),
         "",
