@@ -169,6 +169,10 @@ def test_msk_calibrate_recovers_strength_then_estimate_and_evaluate(arm26_trials
     md = (report / "report.md").read_text()
     for method in ("proposed", "so", "hybrid", "prior"):
         assert f"| arm26_emg | {method} |" in md
+    # the trial also calibrated the subject: said, where the declared-load copy (another file) was not
+    assert f"subject calibrated on {arm26_trials['emg'].name}" in md
+    assert "**In sample:** arm26_emg also calibrated the subject" in md
+    assert "In sample" not in (declared_report / "report.md").read_text()
     assert (report / "arm26_emg_TRIlat.png").stat().st_size > 1000
     assert (report / "arm26_emg_torque.png").is_file()
     metrics = json.loads((report / "metrics.json").read_text())

@@ -148,3 +148,9 @@ def test_a_window_outside_the_file_or_backwards_says_so(tmp_path, pack):
     assert "fewer than 3 kinematics frames between start and end (0); the kinematics span 0 .. 13.6 s" in str(
         error.value
     ), error.value
+
+
+def test_a_trial_name_must_be_text(tmp_path, pack):
+    with pytest.raises(ConfigError) as error:
+        load_trial(_trial(tmp_path, swap=(('name = "bench_press_40kg"', "name = 5"),)), pack)
+    assert error.value.field == "name" and "must be a non-empty string" in str(error.value)

@@ -759,4 +759,4 @@ class FrameEstimator:
         first = key not in self.flag_counts
         self.flag_counts[key] = self.flag_counts.get(key, 0) + 1
         if first:
-            log.warning("frame %d flagged %r (further occurrences are counted in flag_counts)", self.frames, key)
+            log.info("frame %d flagged %r (further occurrences are counted in flag_counts)", self.frames, key)

@@ -6,6 +6,7 @@ import datetime as _dt
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import Enum
+from pathlib import Path
 
 import numpy as np
 
@@ -604,7 +605,7 @@ def calibrate_inputs(
         },
         provenance={
             "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            "trials": [str(t.path) for t in trials],
+            "trials": [str(Path(t.path).resolve()) for t in trials],
             "software": f"msk-live {getattr(msk_core, '__version__', 'dev')}",
             "phase_signals": sorted({t.phase_signal for t in trials}),
         },

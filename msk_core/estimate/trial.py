@@ -226,6 +226,8 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
         raise trial.err(f"unknown key{_closest(unknown[0], sorted(KNOWN_KEYS))}", unknown[0], unknown[0])
     if "kinematics" not in spec:
         raise ConfigError("missing required key", path=trial.path, field="kinematics")
+    if not isinstance(spec.get("name", ""), str) or spec.get("name") == "":
+        raise trial.err("must be a non-empty string (the trial's name in reports)", "name", spec.get("name"))
     load_kg = trial.number("load_kg", 0.0)
     if load_kg < 0:
         raise trial.err("must be >= 0", "load_kg", load_kg)

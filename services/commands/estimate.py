@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from msk_core.errors import ConfigError, InputError
+from msk_core.estimate.flags import flag_counts_text
 from services.commands.progress import ProgressBar
 from services.nodes.estimator_options import add_live_synergists_argument, add_solver_argument
 
@@ -353,9 +354,8 @@ def run_estimate(args: argparse.Namespace) -> int:
     write_sto(torque_path, run.time, cols, np.column_stack(data), name=f"torques_{run.method}")
     std_path = args.out.with_name(f"{args.out.stem}_std.sto")
     write_sto(std_path, run.time, run.groups, run.activation_std, name=f"activation_std_{run.method}")
-    flagged = sum(s != "solved" for s in run.status)
     print(
-        f"{trial.n_frames} frames, {flagged} flagged {run.flag_counts or ''}; median solve "
+        f"{trial.n_frames} frames, flagged: {flag_counts_text(run.flag_counts)}; median solve "
         f"{np.median(run.solve_time_s) * 1e6:.1f} µs, {np.median(run.iterations):.0f} iterations"
     )
     if run.load_scale is not None:

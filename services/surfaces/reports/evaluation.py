@@ -82,6 +82,12 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
     return written
 
 
+def _trial_label(path: Path) -> str:
+    """A trial file as a reader tells it from the others: ``bench_press_40kg/trial.toml`` where every trial is
+    named trial.toml, else its file name."""
+    return f"{path.parent.name}/{path.name}" if path.name == "trial.toml" else path.name
+
+
 def write_report(
     pack, subject: SubjectProfile, trials: list[TrialData], out: Path, *, progress: Progress | None = None, **options
 ) -> dict:
@@ -101,10 +107,17 @@ def write_report(
             scaled[t.name] = summary
     lo_r, hi_r = PUBLISHED_EMG_DRIVEN["r"]
     lo_e, hi_e = PUBLISHED_EMG_DRIVEN["rmse_nm_per_kg"]
+    calibrated_on = [Path(p) for p in subject.provenance.get("trials", [])]
+    in_sample = [t.name for t in trials if t.path.resolve() in {p.resolve() for p in calibrated_on}]
     md = [
         f"# Evaluation: pack {pack.name} v{pack.version}, subject calibrated on "
-        f"{', '.join(Path(p).name for p in subject.provenance.get('trials', []))}",
+        f"{', '.join(_trial_label(p) for p in calibrated_on) or 'trials not recorded in the profile'}",
         "",
+        *(
+            [f"**In sample:** {', '.join(in_sample)} also calibrated the subject; their scores are not held out.", ""]
+            if in_sample
+            else []
+        ),
         "Activation RMSE: estimated vs measured (normalised EMG envelope) activation, per group with EMG; "
         f"'aligned': against the envelopes delayed by the calibrated electromechanical delay "
         f"({1000 * calibrated_delay(subject):.0f} ms), the activation they imply under the calibration's model.",
