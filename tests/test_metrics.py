@@ -44,3 +44,14 @@ def test_every_flag_a_frame_can_carry_has_words_and_the_summary_says_them():
         "so: 600 frames estimated; flagged frames: 12 torque beyond the muscles' capacity (reserve), 3 EMG gap "
         "(emg_gap)" in text
     ), text
+
+
+def test_a_constant_estimate_to_rounding_has_no_r_and_no_lag():
+    from msk_core.estimate.metrics import cross_correlation_lag, pearson_r
+
+    measured = np.sin(np.arange(500) / 20.0)
+    constant = 0.05 + 1e-17 * np.random.default_rng(0).normal(size=500)  # the prior at rest, last digits only
+    assert np.isnan(pearson_r(constant, measured)) and np.isnan(
+        cross_correlation_lag([constant], [measured], 0.01, 0.5)
+    )
+    assert pearson_r(0.05 + 0.01 * measured, measured) > 0.999

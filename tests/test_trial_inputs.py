@@ -154,3 +154,10 @@ def test_a_trial_name_must_be_text(tmp_path, pack):
     with pytest.raises(ConfigError) as error:
         load_trial(_trial(tmp_path, swap=(('name = "bench_press_40kg"', "name = 5"),)), pack)
     assert error.value.field == "name" and "must be a non-empty string" in str(error.value)
+
+
+def test_a_trial_without_a_complete_rep_is_said(tmp_path, pack):
+    ik = read_sto(DEMO / "ik.sto")
+    still = _write_like(DEMO / "ik.sto", tmp_path / "ik_still.sto", ik.time, np.repeat(ik.data[:1], ik.n_rows, axis=0))
+    trial = load_trial(_trial(tmp_path, kinematics=still), pack)
+    assert any("every frame counts as rest, and per-cycle plots stay empty" in note for note in trial_notes(trial))

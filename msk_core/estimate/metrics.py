@@ -11,11 +11,20 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2))) if np.any(ok) else float("nan")
 
 
+CONSTANT_RELATIVE_STD = 1e-9  # a series varying less than this, relative to its size, is constant: no r, no lag
+
+
 def pearson_r(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson r over the frames where both are finite; NaN with fewer than 3, or when either is constant (to
+    rounding: a constant estimate's last-digit noise would otherwise correlate with anything, at any lag)."""
     ok = np.isfinite(a) & np.isfinite(b)
-    if ok.sum() < 3 or np.std(a[ok]) == 0 or np.std(b[ok]) == 0:
+    if ok.sum() < 3 or _constant(a[ok]) or _constant(b[ok]):
         return float("nan")
     return float(np.corrcoef(a[ok], b[ok])[0, 1])
+
+
+def _constant(x: np.ndarray) -> bool:
+    return bool(np.std(x) <= CONSTANT_RELATIVE_STD * max(float(np.max(np.abs(x))), 1e-300))
 
 
 def activation_rmse(estimated: np.ndarray, groups: list[str], measured: dict[str, np.ndarray]) -> dict[str, float]:

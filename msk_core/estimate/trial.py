@@ -527,6 +527,8 @@ def _gait_cycles(trial: _TrialFile, time: np.ndarray) -> _Phase:
 def trial_notes(trial: TrialData) -> list[str]:
     """What loading left out of a trial, in words for the commands to print (nothing when it used everything)."""
     notes = []
+    if "no_reps" in trial.extra and not trial.isometric:
+        notes.append(f"{trial.extra['no_reps']}: every frame counts as rest, and per-cycle plots stay empty")
     if trial.dropped_frames:
         notes.append(
             f"{trial.dropped_frames} kinematics frames outside the torque file's time span left out "
