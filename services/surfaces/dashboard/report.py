@@ -610,16 +610,25 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
         fig.subplots_adjust(left=0.07, right=0.98, bottom=0.22, top=0.95)
         x = np.arange(len(groups))
         width = 0.8 / len(methods)
+        # under tension, as the tables' means: the mean of the rep means (the whole set without reps to average)
+        under_tension = bool(result["reps"])
         for k, method in enumerate(methods):
-            means = [100 * result["methods"][method]["groups"][g]["set_mean"] for g in groups]
+            figures = result["methods"][method]["groups"]
+            means = [100 * (_mean_of(figures[g]["mean"]) if under_tension else figures[g]["set_mean"]) for g in groups]
             ax.bar(x + (k - (len(methods) - 1) / 2) * width, means, width, label=method)
         ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)  # abbreviations: the legend is under the plot
-        ax.set_ylabel("mean activation in the set (%)")
+        ax.set_ylabel("mean over the reps (%)" if under_tension else "mean over the set (%)")
         ax.legend(fontsize=8)
         files.append(f"{stem}_methods.png")
         fig.savefig(out / files[-1], dpi=90)
         plt.close(fig)
     return files
+
+
+def _mean_of(values: list[float | None]) -> float:
+    """The mean of the rep figures that exist (NaN when none)."""
+    finite = [v for v in values if v is not None and np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 def plot_devices(devices: dict, duration_s: float, out: Path) -> str | None:
