@@ -43,15 +43,18 @@ def markdown_table(scores: list[MethodScore]) -> str:
 
 
 def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], subject: SubjectProfile, out: Path):
-    """One PNG per measured muscle group: measured EMG, estimates per method, and the prior band mu +- sigma."""
+    """One PNG per measured muscle group: measured EMG, estimates per method, and the prior band mu +- sigma; one of
+    the torques. On the trial file's own time axis (a held-out half starts where it starts in the file), as wide as
+    the trial needs to show each rep (1 inch per 1.5 s, 10 to 30 inches), legends under the axes."""
     plt = pyplot()
     written = []
-    t = trial.time - trial.time[0]
+    t = trial.time
+    width = float(np.clip((t[-1] - t[0]) / 1.5, 10.0, 30.0)) if t.size else 10.0
     prior_mu, prior_sd = prior_band(trial, subject)
     groups = list(subject.groups)
     for g in trial.emg:
         j = groups.index(g)
-        fig, ax = plt.subplots(figsize=(10, 3.2))
+        fig, ax = plt.subplots(figsize=(width, 3.6))
         ax.fill_between(
             t, prior_mu[:, j] - prior_sd[:, j], prior_mu[:, j] + prior_sd[:, j], color="0.85", label="prior μ ± σ"
         )
@@ -64,20 +67,24 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
             if (trial.name, method) in runs:
                 ax.plot(t, runs[(trial.name, method)].activations[:, j], style, lw=1.2, label=method)
         ax.set_title(f"{trial.name}: {g}")
-        ax.set_xlabel("time (s)")
+        ax.set_xlabel("time in the trial's files (s)")
         ax.set_ylabel("activation")
         ax.set_ylim(bottom=0)
-        ax.legend(loc="upper right", fontsize=8, ncol=5)
+        ax.set_xlim(t[0], t[-1])
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.22), fontsize=8, ncol=6, frameon=False)
         written.append(save_figure(fig, out / f"{trial.name}_{g}.png", dpi=80))
     # torque tracking plot
-    fig, ax = plt.subplots(len(trial.torques[0]), 1, figsize=(10, 3 * len(trial.torques[0])), squeeze=False)
-    for k, c in enumerate(runs[next(iter(k for k in runs if k[0] == trial.name))].coordinates):
+    coordinates = runs[next(iter(k for k in runs if k[0] == trial.name))].coordinates
+    fig, ax = plt.subplots(len(coordinates), 1, figsize=(width, 3 * len(coordinates)), squeeze=False)
+    for k, c in enumerate(coordinates):
         ax[k, 0].plot(t, trial.torques[:, k], "k", lw=1.5, label="inverse dynamics")
-        for method, style in (("proposed", "C0-"), ("so", "C3--"), ("prior", "C1:")):
+        for method, style in (("proposed", "C0-"), ("so", "C3--"), ("hybrid", "C2:"), ("prior", "C1-.")):
             if (trial.name, method) in runs:
-                ax[k, 0].plot(t, runs[(trial.name, method)].model_torques[:, k], style, label=method)
+                ax[k, 0].plot(t, runs[(trial.name, method)].model_torques[:, k], style, lw=1.0, label=method)
         ax[k, 0].set_title(f"{trial.name}: {c} torque (N·m)")
-        ax[k, 0].legend(fontsize=8)
+        ax[k, 0].set_xlim(t[0], t[-1])
+        ax[k, 0].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+    ax[-1, 0].set_xlabel("time in the trial's files (s)")
     written.append(save_figure(fig, out / f"{trial.name}_torque.png", dpi=80))
     return written
 
