@@ -216,6 +216,13 @@ def test_two_msk_live_starting_together_cannot_share_a_name_or_folder(tmp_path, 
     # its announcement outlived it, and its pid now belongs to another program (here: this one): stale, not running
     discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(first)), first)
     assert [s.session for s in discovery.running_sessions()] == []  # and its entry withdrawn
+    # a stale announcement by a live pid (1: init), found by the msk live that now holds the name itself
+    discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], 1, str(first)), first)
+    from services.sessions.live import check_not_running
+
+    with discovery.claimed("sim", tmp_path / "fourth"):
+        check_not_running("sim", tmp_path / "fourth")  # was: "a session of this name runs now (pid 1 ...)"
+    assert not list((tmp_path / "registry").glob("sim-1.json"))
     with discovery.claimed("sim", first):
         discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(first)), first)
         assert [s.session for s in discovery.running_sessions()] == ["sim"]

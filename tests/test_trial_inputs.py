@@ -161,3 +161,25 @@ def test_a_trial_without_a_complete_rep_is_said(tmp_path, pack):
     still = _write_like(DEMO / "ik.sto", tmp_path / "ik_still.sto", ik.time, np.repeat(ik.data[:1], ik.n_rows, axis=0))
     trial = load_trial(_trial(tmp_path, kinematics=still), pack)
     assert any("every frame counts as rest, and per-cycle plots stay empty" in note for note in trial_notes(trial))
+
+
+def test_raw_emg_whose_time_column_is_rounded_is_read_at_its_mean_rate(tmp_path, pack):
+    """The Trigno's 1925.926 Hz printed to 5 decimals: intervals of 0.00051 and 0.00052 s are rounding, not gaps."""
+    rate = 1925.926
+    time = np.round(np.arange(0.0, 13.6, 1.0 / rate), 5)
+    raw = np.random.default_rng(2).normal(0.0, 1e-4, (time.size, 10))
+    path = _write_like(DEMO / "emg.sto", tmp_path / "raw_rounded.sto", time, raw)
+    trial = load_trial(_trial(tmp_path, swap=(("emg_is_envelope = true", "emg_is_envelope = false"),), emg=path), pack)
+    assert set(trial.emg) == {
+        "PMCla",
+        "PMSte",
+        "DelAnt",
+        "DelMed",
+        "DelPos",
+        "BicLong",
+        "TriLong",
+        "TriLat",
+        "BRD",
+        "LD",
+    }
+    assert all(np.all(np.isfinite(e[trial.time < 13.5])) for e in trial.emg.values())

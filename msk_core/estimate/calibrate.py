@@ -181,6 +181,8 @@ class CalibrationResult:
     # identifiability pass, which every calibration ends with)
     strength_std: np.ndarray | None = None
     strength_std_data: np.ndarray | None = None
+    #: the data-only std relative to the factor found before any truncation: what the status is judged on
+    strength_rel_std_data: np.ndarray | None = None
     status: list[str] = field(default_factory=list)
     identified_share: np.ndarray | None = None  # diag of the projector on the identified directions
     torque_coefficients: np.ndarray | None = None  # (p,) the torque basis' fitted coefficients (None: no basis)
@@ -197,10 +199,12 @@ class CalibrationResult:
         for j, g in enumerate(groups):
             std = None if self.strength_std is None else self.strength_std[j]
             std_d = None if self.strength_std_data is None else self.strength_std_data[j]
+            rel_d = None if self.strength_rel_std_data is None else self.strength_rel_std_data[j]
             out[g] = {
                 "scale": float(self.scale[j]),
                 "std": None if std is None or not np.isfinite(std) else float(std),
                 "std_data": None if std_d is None or not np.isfinite(std_d) else float(std_d),
+                "rel_std_data": None if rel_d is None or not np.isfinite(rel_d) else float(rel_d),
                 "status": self.status[j] if self.status else None,
                 "identified_share": None
                 if self.identified_share is None or not np.isfinite(self.identified_share[j])
@@ -655,6 +659,7 @@ def _solve_identified(
             status.append(StrengthStatus.UNIDENTIFIED.value)
     result = prob.result(z, method, converged, iterations, message, s, f_ref)
     result.strength_std, result.strength_std_data, result.status = std_post, std_data, status
+    result.strength_rel_std_data = rel_std
     result.identified_share = share
     return result
 

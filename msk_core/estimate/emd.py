@@ -55,20 +55,44 @@ def shift_emg(trial: TrialData, delay_s: float, *, hold_first: bool = True) -> T
     return replace(trial, emg=emg, extra={**trial.extra, "emg_delay_s": float(delay_s)})
 
 
-def _design(pack: PackLike, trials: list[TrialData], delay_s: float, moment_arms: list[np.ndarray]):
+def _envelopes(t: TrialData, emg_groups: list[str], delay_s: float) -> np.ndarray:
+    """(T, len(emg_groups)) the trial's envelopes delayed by ``delay_s``; zeros for a group it has no EMG of (or
+    none finite: an electrode that never worked)."""
+    columns = []
+    for g in emg_groups:
+        e = t.emg.get(g)
+        if e is not None and np.any(np.isfinite(e)):
+            columns.append(np.interp(t.time - delay_s, t.time, e))
+        else:
+            columns.append(np.zeros(t.n_frames))
+    return np.column_stack(columns)
+
+
+def _measured_at_every_delay(trials: list[TrialData], emg_groups: list[str], candidates: np.ndarray) -> list:
+    """Per trial, the frames whose EMG is finite at every candidate delay: one frame set for all candidates, so
+    their residuals compare like with like (a gap, NaN, or an EMG file that ends first, tells nothing)."""
+    return [
+        np.logical_and.reduce([np.all(np.isfinite(_envelopes(t, emg_groups, d)), axis=1) for d in candidates])
+        for t in trials
+    ]
+
+
+def _design(
+    pack: PackLike,
+    trials: list[TrialData],
+    delay_s: float,
+    moment_arms: list[np.ndarray],
+    measured: list[np.ndarray],
+):
     groups = list(pack.groups)
     f_ref = np.asarray(pack.f_max_ref, dtype=float)
     emg_groups = sorted({g for t in trials for g in t.emg})
     cols = [groups.index(g) for g in emg_groups]
     rows, target = [], []
     n_c = len(pack.coordinates)
-    for t, arms in zip(trials, moment_arms):
-        e = np.column_stack(
-            [np.interp(t.time - delay_s, t.time, t.emg[g]) if g in t.emg else np.zeros(t.n_frames) for g in emg_groups]
-        )
-        # frames with a gap in any EMG (NaN: not measured, or the EMG file ends first) tell nothing about the delay
-        ok = np.all(np.isfinite(arms), axis=(1, 2)) & np.all(np.isfinite(t.torques), axis=1)
-        ok &= np.all(np.isfinite(e), axis=1)
+    for t, arms, valid in zip(trials, moment_arms, measured):
+        e = _envelopes(t, emg_groups, delay_s)
+        ok = np.all(np.isfinite(arms), axis=(1, 2)) & np.all(np.isfinite(t.torques), axis=1) & valid
         m = arms[ok] * f_ref[None, None, :]
         scale = 1.0 / np.maximum(np.abs(m).sum(axis=2), 1.0)  # per-coordinate capacity, as in the calibration
         x = m[:, :, cols] * e[ok][:, None, :] * scale[:, :, None]  # (T, n_c, G_emg)
@@ -86,9 +110,12 @@ def estimate_emd(pack: PackLike, trials: list[TrialData], *, max_delay_s: float 
     dt = min(float(np.median(np.diff(t.time))) for t in trials if t.n_frames >= 2)
     candidates = np.arange(0, int(round(max_delay_s / dt)) + 1) * dt
     arms = [t.mechanics(pack).moment_arms for t in trials]
+    measured = _measured_at_every_delay(trials, sorted({g for t in trials for g in t.emg}), candidates)
+    if not any(m.any() for m in measured):
+        raise EstimationError("EMD estimation found no frame with every envelope measured (all EMG NaN?)")
     residual = np.empty(candidates.size)
     for i, d in enumerate(candidates):
-        x, y = _design(pack, trials, d, arms)
+        x, y = _design(pack, trials, d, arms, measured)
         coef, *_ = np.linalg.lstsq(x, y, rcond=None)
         residual[i] = float(np.sum((y - x @ coef) ** 2) / max(float(np.sum((y - y.mean()) ** 2)), 1e-300))
     best = int(np.argmin(residual))

@@ -331,11 +331,16 @@ def _check_within_ranges(kin: Storage, q: np.ndarray, coords: list[str], pack: P
     ranges = fitted_ranges(pack)
     if ranges is None or q.size == 0:
         return
-    clamped, usable = clamp_to_ranges(q, ranges)
+    _, usable = clamp_to_ranges(q, ranges)
     finite = np.all(np.isfinite(q), axis=1)
     if np.count_nonzero(finite & ~usable) <= MOSTLY_OUT_OF_RANGE * max(int(finite.sum()), 1):
         return
-    j = int(np.argmax((np.abs(clamped - q)[finite] > 0).sum(axis=0)))  # the coordinate out most often
+    # the coordinate that leaves its range beyond the clamp most often (one coordinate at a time, by the one rule)
+    refused = [
+        np.count_nonzero(finite & ~clamp_to_ranges(q[:, k : k + 1], (ranges[0][k : k + 1], ranges[1][k : k + 1]))[1])
+        for k in range(q.shape[1])
+    ]
+    j = int(np.argmax(refused))
     values = np.degrees(q[finite, j])
     looks_like_degrees = not kin.in_degrees and np.nanmax(np.abs(q[finite])) > 2 * np.pi
     raise InputError(

@@ -24,23 +24,26 @@ import numpy as np
 from msk_core.errors import FileFormatError, InputError
 
 _KEY_VALUE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_ ]*?)\s*=\s*(.*?)\s*$")
-MAX_INTERVAL_SPREAD = 0.01  # sample intervals may differ by 1 % at most where a filter assumes a uniform rate
+#: an interval this far from the median, as a share of it, is a gap (a lost or doubled sample) and not the rounding of
+#: a time column printed to a few decimals (1925.926 Hz at 5 decimals: intervals of 0.00051 and 0.00052 s)
+MAX_INTERVAL_DEVIATION = 0.25
 
 
 def uniform_step(time: np.ndarray) -> float:
-    """The sample interval of uniformly sampled ``time``; :class:`InputError` saying where it is not (the interval
-    furthest from the median, and when it starts): a filter designed for one rate is wrong across a gap."""
-    dt = np.diff(np.asarray(time, dtype=float))
+    """The mean sample interval of uniformly sampled ``time``; :class:`InputError` saying where it is not (the
+    interval furthest from the median, and when it starts): a filter designed for one rate is wrong across a gap."""
+    time = np.asarray(time, dtype=float)
+    dt = np.diff(time)
     if dt.size == 0:
         raise InputError("needs a uniform sample rate, so at least two samples")
     step = float(np.median(dt))
     worst = int(np.argmax(np.abs(dt - step)))
-    if step <= 0 or abs(dt[worst] - step) > MAX_INTERVAL_SPREAD * step:
+    if step <= 0 or abs(dt[worst] - step) > MAX_INTERVAL_DEVIATION * step:
         raise InputError(
             f"needs a uniform sample rate: samples {step:g} s apart (median), but {dt[worst]:g} s from t = "
             f"{time[worst]:g} s (intervals range {dt.min():g} .. {dt.max():g} s)"
         )
-    return step
+    return float((time[-1] - time[0]) / dt.size)  # the mean: exact for a rounded time column
 
 
 @dataclass

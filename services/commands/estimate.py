@@ -303,8 +303,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     emd = profile.calibration["emd"]
     print(f"electromechanical delay: {1000 * emd['delay_s']:.0f} ms ({emd['source']})")
     for g, info in result.identifiability(pack.groups).items():
-        # relative, as the status judges it (the legend below): the data-only std over the scale
-        std = "" if info["std_data"] is None else f"  rel. std (data) {info['std_data'] / info['scale']:6.3f}"
+        # relative, as the status judges it (the legend below)
+        std = "" if info["rel_std_data"] is None else f"  rel. std (data) {info['rel_std_data']:6.3f}"
         print(
             f"  {g:16s} scale {info['scale']:6.3f}  F_max {info['scale'] * pack.f_max_ref[pack.groups.index(g)]:9.1f} N"
             f"{std:24s}  {info['status']}"
@@ -340,6 +340,8 @@ def run_estimate(args: argparse.Namespace) -> int:
     subject = SubjectProfile.load(args.subject) if args.subject else None
     if subject is None and args.method in ("proposed", "prior"):
         raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
+    if args.trial.is_dir():
+        raise ConfigError("msk estimate takes one trial file, not a folder", field="--trial", value=str(args.trial))
     (trial,) = load_trials([args.trial], pack)
     run = estimate_trial(
         pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False), **estimator_options(args, pack)

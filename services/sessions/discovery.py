@@ -147,6 +147,7 @@ def claimed(session: str, out: Path) -> Iterator[None]:
         (Path(out) / ".msk-live.lock", "out", f"an msk live writes to {out} now"),
     )
     with contextlib.ExitStack() as stack:
+        stack.callback(_claimed_here.discard, session)
         for path, field_name, what in held:
             path.parent.mkdir(parents=True, exist_ok=True)
             handle = stack.enter_context(open(path, "a+"))
@@ -164,6 +165,7 @@ def claimed(session: str, out: Path) -> Iterator[None]:
             handle.truncate(0)
             handle.write(f"{os.getpid()}\n")
             handle.flush()
+        _claimed_here.add(session)
         yield
 
 
@@ -171,9 +173,16 @@ def _claim_path(session: str) -> Path:
     return registry_dir() / "claims" / f"{session}.lock"
 
 
-def _claim_held(session: str) -> bool | None:
-    """Whether a process holds ``session``'s claim (:func:`claimed`); None when it was never claimed here. An
-    announcement whose pid lives but whose claim nobody holds is stale: its pid was reused by another program."""
+#: the session names this process holds (:func:`claimed`): their announcements by other pids are stale
+_claimed_here: set[str] = set()
+
+
+def _claim_held(session: str, pid: int) -> bool | None:
+    """Whether the announcement of ``session`` by ``pid`` has a process holding its claim (:func:`claimed`); None
+    when the name was never claimed here. An announcement whose pid lives but whose claim nobody else holds is stale:
+    its pid was reused by another program."""
+    if session in _claimed_here:
+        return pid == os.getpid()
     path = _claim_path(session)
     try:
         with open(path) as handle:
@@ -195,7 +204,7 @@ def running_sessions() -> list[SessionInfo]:
             info = read_session_file(path)
         except InputError:
             continue
-        if _alive(info.pid) and _claim_held(info.session) is not False:
+        if _alive(info.pid) and _claim_held(info.session, info.pid) is not False:
             found.append(info)
         else:
             withdraw(path)

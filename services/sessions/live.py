@@ -1578,8 +1578,8 @@ def main(
             if simulators is not None:
                 simulators.close()
             raise
-    summary["methods"] = list(plan.methods)
-    (session.out / "summary.json").write_text(json_text(summary))
+        summary["methods"] = list(plan.methods)
+        (session.out / "summary.json").write_text(json_text(summary))  # the folder still held: no one else's run
     log(summary_text(summary))
     log(f"recording: {', '.join(summary.get('recordings', [])) or 'none'}; summary: {session.out / 'summary.json'}")
     return summary
