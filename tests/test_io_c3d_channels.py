@@ -144,3 +144,48 @@ def test_msk_emg_envelope_leaves_the_force_plates_out_and_says_so(tmp_path, caps
     # asked for by name, a force-plate channel is still enveloped (the user's explicit choice)
     assert msk(["emg", "envelope", str(path), "--channels", "Fz1,TA", "-o", str(tmp_path / "two.sto")]) == 0
     assert read_sto(tmp_path / "two.sto").columns == ["Fz1", "TA"]
+
+
+def _write_emg_c3d(path: Path, unit: str, scale: float, gap: bool = False) -> tuple[Path, np.ndarray]:
+    """Three Trigno-style EMG channels (<name>.EMG<slot>) at 2 kHz, 3 s, stored in ``unit`` (values x ``scale``);
+    returns the path and the volts."""
+    volts = np.random.default_rng(4).normal(0.0, 2e-4, (3, 6000))
+    stored = volts * scale
+    if gap:
+        stored[0, 3000:3100] = np.nan  # 1.5 s: the electrode lost contact
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = np.array([100.0])
+    c3d["data"]["points"] = np.zeros((4, 0, 300))
+    c3d["parameters"]["ANALOG"]["RATE"]["value"] = np.array([2000.0])
+    c3d["parameters"]["ANALOG"]["LABELS"]["value"] = ("Biceps.EMG1", "Triceps.EMG2", "Delt.EMG3")
+    c3d.add_parameter("ANALOG", "UNITS", [unit] * 3)
+    c3d["data"]["analogs"] = stored[None]
+    c3d.write(str(path))
+    return path, volts
+
+
+@pytest.mark.parametrize(("unit", "scale"), [("V", 1.0), ("mV", 1e3), ("uV", 1e6), ("µV", 1e6)])
+def test_the_trigno_simulator_streams_volts_whatever_unit_the_c3d_stores(tmp_path, unit, scale):
+    """µV used to stream as volts: every sample at the ±11 mV rail."""
+    from drivers.trigno.source import load_source
+
+    path, volts = _write_emg_c3d(tmp_path / "emg.c3d", unit, scale)
+    source = load_source(path)
+    assert np.allclose(source.samples[:, :3].T, volts, rtol=1e-5, atol=1e-9)
+
+
+def test_c3d_emg_in_newtons_or_with_a_gap_is_refused_naming_the_channel(tmp_path, capsys):
+    from drivers.trigno.source import load_source
+
+    newtons, _ = _write_emg_c3d(tmp_path / "n.c3d", "N", 1.0)
+    with pytest.raises(FileFormatError) as error:
+        load_source(newtons)
+    assert "not a voltage" in str(error.value) and "Biceps.EMG1" in str(error.value)
+    gap, _ = _write_emg_c3d(tmp_path / "gap.c3d", "V", 1.0, gap=True)
+    with pytest.raises(FileFormatError) as error:
+        load_source(gap)
+    assert "NaN or infinite samples, from t = 1.5 s" in str(error.value) and "Biceps.EMG1" in str(error.value)
+    assert msk(["emg", "envelope", str(gap), "-o", str(tmp_path / "env.sto")]) == 2
+    said = capsys.readouterr().err
+    assert "field 'Biceps.EMG1': EMG channel has NaN or infinite samples from t = 1.5 s" in said, said
+    assert not (tmp_path / "env.sto").exists()

@@ -23,7 +23,7 @@ from drivers.xsens.source import synthetic_imu
 from services.cli import main
 from services.nodes import driver_nodes
 from services.transport import messages, topics, zenoh_session
-from services.transport.mcap_io import read_messages
+from services.transport.mcap_io import McapRecorderWriter, read_messages
 
 EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
 
@@ -147,6 +147,37 @@ def test_msk_capture_writes_samples_exactly_as_received(tmp_path, shared_dir, ca
     final = [s for s in status if s.device_id == "trigno"][-1]
     assert final.samples_received == len(rows) and final.samples_lost == 0
     assert "wrote" in capsys.readouterr().out
+
+
+def test_msk_capture_never_writes_over_a_recording_and_leaves_none_when_a_device_fails(tmp_path, capsys):
+    """A capture whose device does not open used to leave an empty MCAP over the file given; and a second capture
+    to the same name continues into the next part, as msk recorder does."""
+    kept = tmp_path / "keep.mcap"
+    with McapRecorderWriter(kept) as writer:
+        writer.write_message(topics.load_key("s"), messages.LoadEvent(barbell_mass_kg=60.0), log_time_ns=1)
+    before = kept.read_bytes()
+    argv = ["capture", "--xsens", str(tmp_path / "no-such-tty"), "--duration", "1", "--out", str(kept)]
+    assert main(argv) == 2
+    assert "no-such-tty" in capsys.readouterr().err
+    assert kept.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["keep.mcap"]
+    with XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0) as xsens_sim:
+        assert main(["capture", "--xsens", xsens_sim.path, "--duration", "0.5", "--out", str(kept)]) == 0
+    said = capsys.readouterr().out
+    assert kept.read_bytes() == before and (tmp_path / "keep-001.mcap").stat().st_size > 1000
+    assert f"({kept} exists: this capture continues into the next part)" in said, said
+    assert re.search(r"xsens: \d+ samples in \d+ messages, 0 lost", said), said
+
+
+def test_msk_capture_says_what_a_faulty_tracker_lost(tmp_path, capsys):
+    from drivers.xsens.simulator import FaultConfig
+
+    faults = FaultConfig(bit_flip=0.05, drop_byte=0.05, garbage=0.05, seed=1)
+    with XsensSimulator(synthetic_imu(seconds=8.0), speed=2.0, faults=faults) as xsens_sim:
+        assert main(["capture", "--xsens", xsens_sim.path, "--duration", "2", "--out", str(tmp_path / "f.mcap")]) == 0
+    said = capsys.readouterr().out
+    lost, errors = map(int, re.search(r"xsens: \d+ samples in \d+ messages, (\d+) lost, (\d+) errors", said).groups())
+    status = [m.decode() for m in read_messages(tmp_path / "f.mcap") if m.type_name == "msk.DeviceStatus"][-1]
+    assert lost == status.samples_lost > 0 and errors == status.errors > 0, (said, status)
 
 
 def test_msk_capture_needs_a_device(tmp_path, capsys):

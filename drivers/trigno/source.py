@@ -21,6 +21,7 @@ import numpy as np
 from drivers import load_source_spec, open_npz
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import FileFormatError, InputError
+from msk_core.io.analog import volts_per_unit
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,22 @@ def load_c3d(path: Path) -> EmgSource:
             raise FileFormatError(
                 "two EMG channels claim the same sensor slot", path=path, field="ANALOG:LABELS", value=label
             )
-        scale = 1e-3 if column < len(units) and units[column].strip().lower() == "mv" else 1.0
+        unit = units[column] if column < len(units) else "V"
+        scale = volts_per_unit(unit or "V")  # the Trigno streams volts
+        if scale is None:
+            raise FileFormatError(
+                "EMG channel in a unit that is not a voltage (V, mV, uV)",
+                path=path,
+                field=f"ANALOG:UNITS {label}",
+                value=unit,
+            )
+        if not np.all(np.isfinite(values)):
+            first = int(np.argmax(~np.isfinite(values)))
+            raise FileFormatError(
+                f"EMG channel holds NaN or infinite samples, from t = {first / rate:g} s (a device streams numbers)",
+                path=path,
+                field=label,
+            )
         samples[:, slot - 1] = values * scale
         names[slot - 1] = match.group("name")
         paired[slot - 1] = True

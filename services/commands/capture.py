@@ -13,6 +13,7 @@ from pathlib import Path
 
 from msk_core.errors import ConfigError
 from services.nodes import driver_nodes
+from services.nodes.recorder import next_part_path
 from services.transport import topics
 from services.transport.mcap_io import McapRecorderWriter
 
@@ -39,13 +40,20 @@ def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     devices = driver_nodes.device_settings(args)
     stop = threading.Event()
-    with McapRecorderWriter(args.out) as writer:
-        sink = driver_nodes.McapSink(writer)
-        reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
-    for name, report in zip([n for n in ("trigno", "xsens") if getattr(devices, n)], reports):
-        gaps = sum(g.n_missing for g in report.gaps)
-        print(
-            f"{name}: {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps ({gaps} samples)"
-        )
-    print(f"wrote {sink.count} messages to {args.out}")
+    # never over an earlier recording: the next free FILE-001.mcap..., as msk recorder continues
+    out = next_part_path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sink = None
+    try:
+        with McapRecorderWriter(out) as writer:
+            sink = driver_nodes.McapSink(writer)
+            reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
+    except BaseException:
+        if sink is None or sink.count == 0:  # a device that did not open: no empty recording left behind
+            out.unlink(missing_ok=True)
+        raise
+    for report in reports:
+        print(report.summary_line())
+    moved = f" ({args.out} exists: this capture continues into the next part)" if out != args.out else ""
+    print(f"wrote {sink.count} messages to {out}{moved}")
     return 0

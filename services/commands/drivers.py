@@ -38,10 +38,5 @@ def run(args: argparse.Namespace) -> int:
         finally:
             sink.close()
     for report in reports:
-        gaps = sum(g.n_missing for g in report.gaps)
-        print(
-            f"published {report.samples} samples in {report.messages} messages, {len(report.gaps)} gaps "
-            f"({gaps} samples)",
-            flush=True,
-        )
+        print(report.summary_line("published"), flush=True)
     return 0

@@ -44,13 +44,24 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
     else:
         raise InputError("unknown EMG file type; expected .anc, .c3d, .csv, .sto or .mot", path=path, value=suffix)
     if channels:
-        return rec.select(channels)  # asked for by name: taken as they are
-    if rec.not_emg:  # e.g. the force-plate channels of a gait C3D
-        print(
-            f"left out {len(rec.not_emg)} channels that are not EMG: "
-            + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items())
-        )
-    return rec.emg_only()
+        rec = rec.select(channels)  # asked for by name: taken as they are
+    else:
+        if rec.not_emg:  # e.g. the force-plate channels of a gait C3D
+            print(
+                f"left out {len(rec.not_emg)} channels that are not EMG: "
+                + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items())
+            )
+        rec = rec.emg_only()
+    for label, column in zip(rec.labels, np.asarray(rec.data).T):
+        if not np.all(np.isfinite(column)):  # the filters would carry it to the end of the file
+            first = int(np.argmax(~np.isfinite(column)))
+            raise InputError(
+                f"EMG channel has NaN or infinite samples from t = {rec.time[first]:g} s; fill or cut the gap "
+                "(the envelope filters would carry it to the end of the recording)",
+                path=path,
+                field=label,
+            )
+    return rec
 
 
 def _channels(text: str | None) -> list[str] | None:

@@ -143,10 +143,26 @@ def device_status(
 class LoopReport:
     """What a loop did (for the CLI summary and tests)."""
 
+    device: str = ""
     messages: int = 0
     samples: int = 0
     gaps: list[GapEvent] = field(default_factory=list)
     states: list[str] = field(default_factory=list)
+    lost: int = 0  # samples known lost: the Trigno's index gaps, the trackers' packet-counter jumps
+    errors: int = 0  # messages that could not be used (the trackers' decode, device and framing errors)
+
+    def summary_line(self, verb: str = "") -> str:
+        """e.g. ``xsens: 545 samples in 552 messages, 56 lost, 163 errors, disconnected 1x`` (``verb`` before the
+        counts, e.g. "published")."""
+        said = [f"{self.device}: {verb + ' ' if verb else ''}{self.samples} samples in {self.messages} messages"]
+        said.append(f"{self.lost} lost" + (f" in {len(self.gaps)} gaps" if self.gaps else ""))
+        if self.errors:
+            said.append(f"{self.errors} errors")
+        if self.states.count("disconnected"):
+            said.append(
+                f"disconnected {self.states.count('disconnected')}x, reconnected {self.states.count('reconnected')}x"
+            )
+        return ", ".join(said)
 
 
 def trigno_loop(
@@ -161,7 +177,7 @@ def trigno_loop(
 ) -> LoopReport:
     """Start acquisition and publish until ``stop``/``duration_s``; then STOP/QUIT. The client must be connected.
     With an AUX port (``TrignoConfig.aux_port``) the sensors' accelerometers go to ``acc/<source_id>``."""
-    report = LoopReport()
+    report = LoopReport(device="trigno")
     emg_key = topics.emg_key(session, source_id)
     acc_key = topics.acc_key(session, source_id)
     status_key = topics.status_key(session, source_id)
@@ -200,6 +216,7 @@ def trigno_loop(
             report.messages += 1
         elif isinstance(event, GapEvent):
             report.gaps.append(event)
+            report.lost += event.n_missing
 
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -232,7 +249,7 @@ def xsens_loop(
     status_interval_s: float = 1.0,
 ) -> LoopReport:
     """Publish every tracker's readings until ``stop``/``duration_s``; an unplugged tracker is reported, not fatal."""
-    report = LoopReport()
+    report = LoopReport(device="xsens")
     segments = segments or {}
     known = dict(trackers.devices)
 
@@ -278,6 +295,14 @@ def xsens_loop(
                 next_status += status_interval_s
     finally:
         publish_status(final=True)
+        report.lost = sum(device.stats.packets_lost for device in known.values())
+        report.errors = sum(
+            d.stats.decode_errors + d.stats.device_errors + d.parser.stats.errors for d in known.values()
+        )
+        # a tracker away since before the loop's first read counts as disconnected too
+        report.states.extend(
+            ["disconnected"] * max(0, len(trackers.disconnected) - report.states.count("disconnected"))
+        )
     return report
 
 
