@@ -11,3 +11,11 @@ GRAVITY = 9.81
 #: rail the quality monitor judges saturation against (msk_core.signal.quality) and where the simulated Trigno's
 #: converter clips (drivers/trigno/simulator.py).
 TRIGNO_EMG_RANGE_V = 0.011
+
+#: volts per unit of the voltage units analog files use (C3D ANALOG:UNITS; lower case)
+VOLTS_PER_UNIT = {"v": 1.0, "volt": 1.0, "volts": 1.0, "mv": 1e-3, "uv": 1e-6, "µv": 1e-6, "μv": 1e-6}
+
+
+def volts_per_unit(unit: str) -> float | None:
+    """Volts per ``unit`` (``"mV"`` -> 1e-3); None for a unit that is not a voltage (N, N.mm, ...) or unknown."""
+    return VOLTS_PER_UNIT.get(unit.strip().lower())

@@ -21,7 +21,7 @@ import numpy as np
 from drivers import load_source_spec, open_npz
 from drivers.trigno.protocol import N_SENSORS
 from msk_core.errors import FileFormatError, InputError
-from msk_core.io.analog import volts_per_unit
+from msk_core.units import volts_per_unit
 
 log = logging.getLogger(__name__)
 

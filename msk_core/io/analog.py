@@ -9,6 +9,7 @@ import numpy as np
 
 from msk_core.errors import FileFormatError, InputError
 from msk_core.io.storage import float_cells
+from msk_core.units import VOLTS_PER_UNIT
 
 
 @dataclass
@@ -139,14 +140,7 @@ def read_anc(path: str | Path) -> AnalogRecording:
 
 
 # units an EMG channel may carry (ANALOG:UNITS, compared case-insensitively); any other given unit is not EMG
-#: volts per unit of the voltage units analog files use (ANALOG:UNITS; lower case)
-VOLTS_PER_UNIT = {"v": 1.0, "volt": 1.0, "volts": 1.0, "mv": 1e-3, "uv": 1e-6, "µv": 1e-6, "μv": 1e-6}
 VOLTAGE_UNITS = frozenset(VOLTS_PER_UNIT)
-
-
-def volts_per_unit(unit: str) -> float | None:
-    """Volts per ``unit`` (``"mV"`` -> 1e-3); None for a unit that is not a voltage (N, N.mm, ...) or unknown."""
-    return VOLTS_PER_UNIT.get(unit.strip().lower())
 
 
 def read_c3d_analogs(path: str | Path) -> AnalogRecording:
