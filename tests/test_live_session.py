@@ -110,6 +110,24 @@ def test_an_electrode_key_the_trigno_does_not_publish_is_refused_with_the_valid_
     assert TRIGNO_CHANNEL_FORM in message and "sensorNN.EMG" in message
 
 
+def test_the_accelerometers_port_follows_the_session_file(tmp_path):
+    """The TCU's AUX port beside its EMG port; a forwarded or simulated base's, as the file says; off with 0. A
+    non-TCU EMG port without one is refused (it read the fixed 50044, another base's on a shared machine)."""
+    from services.sessions.live import _device_ports
+
+    def aux(trigno: str) -> int | None:
+        session = load_session_file(_write(tmp_path, GOOD.replace('host = "192.168.1.20"\n', trigno)))
+        return _device_ports(session).trigno_aux_port
+
+    assert aux('host = "192.168.1.20"\n') == 50044
+    assert aux('host = "192.168.1.20"\nemg_port = 50041\n') == 50042
+    assert aux('host = "127.0.0.2:51740"\nemg_port = 51743\naux_port = 51744\n') == 51744
+    assert aux('host = "192.168.1.20"\naux_port = 0\n') is None
+    with pytest.raises(ConfigError) as error:
+        aux('host = "127.0.0.2:51740"\nemg_port = 51743\n')
+    assert error.value.field == "trigno.aux_port" and "51743 is not the TCU's" in str(error.value)
+
+
 def _published_labels(client) -> list[str]:
     """The channel labels the Trigno driver node puts in EmgChunk.channel_labels for this client."""
     from drivers.trigno.client import EmgBlock

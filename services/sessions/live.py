@@ -1504,8 +1504,18 @@ def _device_ports(session: LiveSession) -> _DevicePorts:
         from drivers.trigno import protocol as tp
 
         trigno = (session.trigno_host, session.trigno_emg_port or int(tp.EmgPort.AVANTI))
-        # the accelerometers: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
-        aux_port = int(tp.DataPort.LEGACY_ACC if trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
+        if session.trigno_aux_port is not None:  # as the file says (0: no accelerometers)
+            aux_port = session.trigno_aux_port or None
+        elif trigno[1] in (tp.EmgPort.AVANTI, tp.EmgPort.LEGACY):
+            # the TCU's: the AUX port beside the Avanti EMG port, the legacy ACC port beside the legacy one
+            aux_port = int(tp.DataPort.LEGACY_ACC if trigno[1] == tp.EmgPort.LEGACY else tp.DataPort.AUX)
+        else:
+            raise ConfigError(
+                f"the EMG port {trigno[1]} is not the TCU's, so the accelerometers' port cannot be guessed: give "
+                "trigno.aux_port (0: none; the EMG clock is then aligned by arrival)",
+                path=session.path,
+                field="trigno.aux_port",
+            )
     return _DevicePorts(trigno, aux_port, session.xsens_ports)
 
 

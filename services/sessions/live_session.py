@@ -38,7 +38,7 @@ def default_method(methods: Iterable[str]) -> str | None:
 
 _SECTIONS = {
     "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete", "rest_s"},
-    "trigno": {"host", "emg_port", "id", "latency_ms"},
+    "trigno": {"host", "emg_port", "aux_port", "id", "latency_ms"},
     "xsens": {"ports", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
     "trackers": None,  # free keys: tracker ids
     "electrodes": None,  # free keys: channel labels
@@ -101,6 +101,7 @@ class LiveSession:
     live_synergists: bool = True  # assisted: groups without EMG follow their measured synergist's live envelope
     trigno_host: str | None = None  # HOST[:PORT]
     trigno_emg_port: int | None = None
+    trigno_aux_port: int | None = None  # the accelerometers' port (None: the TCU's beside its EMG port; 0: off)
     trigno_id: str = "trigno"
     xsens_ports: tuple[str, ...] = ()  # serial ports or "usb"
     imu_rate_hz: int = 100
@@ -253,7 +254,7 @@ def _parse_lift(session: LiveSession, s: dict, path: Path | None, require_device
 
 
 def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devices: bool) -> LiveSession:
-    """[trigno]: host, emg_port, id, latency_ms; the session's values where the file states none."""
+    """[trigno]: host, emg_port, aux_port, id, latency_ms; the session's values where the file states none."""
     given: dict[str, Any] = {}
     if "host" in t:
         given["trigno_host"] = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
@@ -262,6 +263,16 @@ def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devi
     if "emg_port" in t:
         given["trigno_emg_port"] = _int_within(
             path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
+        )
+    if "aux_port" in t:
+        given["trigno_aux_port"] = _int_within(
+            path,
+            "trigno.aux_port",
+            t["aux_port"],
+            0,
+            65535,
+            "a TCP port number",
+            "must be a TCP port 1..65535, or 0: off",
         )
     if "id" in t:
         given["trigno_id"] = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
