@@ -310,3 +310,32 @@ def test_a_live_channel_mapped_to_a_profile_electrode_takes_its_group_and_mvc():
     assert setup.channel_group == {"sensor01.EMG": "PMCla", "sensor03.EMG": "DelAnt", "sensor09.EMG": "LD"}
     assert setup.mvc["sensor01.EMG"] == 0.21 and setup.mvc["sensor03.EMG"] == 0.3 and "sensor09.EMG" not in setup.mvc
     assert EmgSetup.from_profile(profile).channel_group == {"PMCla": "PMCla", "delt_a": "DelAnt"}
+
+
+def test_mapped_channels_no_source_streams_are_counted_and_named_in_the_session_summary():
+    """The electrode map names sensor07.EMG, the base streams sensors 1-4: it was estimated without EMG without a
+    word. Now the counters the estimator logs and prints at its stop, and msk live's summary, name it."""
+    from services.sessions.live import summary_text
+
+    setup = EmgSetup(
+        {"sensor01.EMG": "G1", "sensor07.EMG": "G2"}, {"sensor01.EMG": 1.0, "sensor07.EMG": 1.0}, emd_s=0.0
+    )
+    live_emg = LiveEmg(["G1", "G2"], setup)
+    labels = [f"sensor{k:02d}.EMG" for k in range(1, 5)]
+    live_emg.add_chunk(RawEmgChunk("trigno", labels, 2000.0, 0, 0, np.zeros((27, 4))), 0)
+    assert live_emg.counters.missing_channels == ["sensor07.EMG"]
+    live_emg.add_chunk(RawEmgChunk("other", ["sensor07.EMG"], 2000.0, 0, 0, np.zeros((27, 1))), 0)
+    assert live_emg.counters.missing_channels == []  # a second source streams it
+    summary = {
+        "duration_s": 20.0,
+        "samples": {},
+        "samples_lost": {},
+        "joint_frames": 0,
+        "envelopes": 0,
+        "frames_estimated": {},
+        "flags": {},
+        "electrodes_never_streamed": {"sensor07.EMG": "TriLong"},
+    }
+    assert "electrodes never streamed (their muscles estimated without EMG): sensor07.EMG (TriLong)" in summary_text(
+        summary
+    )

@@ -114,6 +114,9 @@ class EmgCounters:
     duplicates: int = 0
     unmapped_channels: list[str] = field(default_factory=list)
     no_mvc_channels: list[str] = field(default_factory=list)
+    #: channels the electrode map names that no EMG source streams (a sensor not paired, a typo): their groups are
+    #: estimated without EMG
+    missing_channels: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -309,6 +312,8 @@ class LiveEmg:
             )
             state.measured = self._measured.get(source)
             state.exclude(self._excluded.get(source, frozenset()))
+            streamed = {label for other in self.sources.values() for label in other.labels}
+            self.counters.missing_channels = sorted(set(self.setup.channel_group) - streamed)
         self.counters.chunks += 1
         flags: list[str] = []
         if state.next_index is not None and chunk.first_sample_index != state.next_index:

@@ -565,6 +565,7 @@ class EstimatorNode:
         self.quality = LiveQuality(self.live_emg.setup.channel_group) if self.live_emg is not None else None
         self.fatigue = make_fatigue(self.live_emg, stats)  # per electrode and rep: median/mean frequency, their trend
         self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
+        self._missing_said: list[str] = []  # mapped channels no source streams, as last logged
         self.alignment = make_alignment(self.live_emg, timing)
         self.emg_wait_ns = emg_wait_ns(timing.emg_wait_s)
         self._held: deque[_Held] = deque()  # joint frames waiting for their EMG, oldest first
@@ -597,6 +598,16 @@ class EstimatorNode:
         if self.fatigue is not None:
             self.fatigue.add_chunk(raw)
         block = live_emg.add_chunk(raw, arrival_ns, chunk.host_time_ns or arrival_ns)  # the driver's receipt, else ours
+        missing = live_emg.counters.missing_channels
+        if missing and missing != self._missing_said:
+            self._missing_said = list(missing)
+            log.warning(
+                "the electrode map names %s, which no EMG source streams (%s has %s): %s estimated without EMG",
+                ", ".join(missing),
+                chunk.source_id,
+                ", ".join(chunk.channel_labels) or "no channel",
+                ", ".join(sorted({live_emg.setup.channel_group[ch] for ch in missing})),
+            )
         if block is None or not block.groups:
             return None
         self.stats.envelopes_out += 1
@@ -1006,7 +1017,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         + (f"; {outages_text(stats.continuity.report(messages.now_ns()))}" if stats.continuity is not None else "")
         + (
             f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
-            f"EMG flags on frames {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
+            + (f"mapped channels never streamed {stats.emg.missing_channels}, " if stats.emg.missing_channels else "")
+            + f"EMG flags on frames {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
             if stats.emg is not None
             else ""
         )

@@ -688,6 +688,11 @@ def summary_text(summary: dict) -> str:
     faulty = {name: e for name, e in electrodes.items() if e["episodes"]}
     if electrodes:
         lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
+    if summary.get("electrodes_never_streamed"):
+        lines.append(
+            "  electrodes never streamed (their muscles estimated without EMG): "
+            + ", ".join(f"{ch} ({e})" for ch, e in summary["electrodes_never_streamed"].items())
+        )
     for name, e in faulty.items():
         lines.append(
             f"  electrode {name}"
@@ -723,6 +728,7 @@ class LivePlan:
     )
     tracker_latency_ms: dict[str, float] = field(default_factory=dict)
     names: dict[str, str] = field(default_factory=dict)  # the session file's display names (over the pack's)
+    electrodes: dict[str, str] = field(default_factory=dict)  # Trigno channel -> electrode or group, as run
 
 
 def driver_argv(plan: LivePlan, kind: str) -> list[str]:
@@ -996,6 +1002,9 @@ def run_graph(
     summary["stopped_by"] = reason
     summary["exit_codes"] = codes
     summary["joint_frames_paused"] = counts.paused_joints  # while load events declared another exercise
+    # electrodes of the map the estimator never judged: no source streamed their channel (a sensor not paired, a typo)
+    judged = {name.split("/", 1)[-1] for name in summary.get("electrodes", {})}
+    summary["electrodes_never_streamed"] = {ch: e for ch, e in plan.electrodes.items() if ch not in judged}
     if simulators is not None:
         summary["simulators_sent"] = simulators.sent()
         summary["trial_clock"] = simulators.world()
@@ -1363,6 +1372,7 @@ def plan_for(
         trigno_latency_ms=trigno_latency_ms,
         tracker_latency_ms=tracker_latency_ms,
         names=names,
+        electrodes=dict(electrodes),
     )
     return plan, simulators
 
