@@ -301,3 +301,19 @@ def test_sim_plays_a_session_files_own_trackers_by_segment_and_says_which_electr
     assert said == ["--sim: 00B40001 (upper_arm_r) is played by the simulated 00B4EB80"]
     with pytest.raises(ConfigError, match="--sim plays trackers on forearm_r, upper_arm_r only"):
         live._sim_trackers(LiveSession(tmp_path / "s.toml", trackers={"00B40002": "pelvis"}), sources, [], said.append)
+
+
+def test_a_listen_endpoint_in_use_is_one_line_naming_the_flag(capsys):
+    """A second node on a taken endpoint used to end in a zenoh.ZError traceback."""
+    from services import cli
+    from services.transport.zenoh_session import ZenohOptions, free_loopback_endpoint, open_session
+
+    endpoint = free_loopback_endpoint()
+    with open_session(ZenohOptions(listen=(endpoint,))):
+        assert cli.main(["subscribe", "msk/s/joints", "--listen", endpoint, "--count", "1"]) == 2
+    said = capsys.readouterr().err
+    assert (
+        f"field '--listen': cannot open the Zenoh session: Can not create a new TCP listener bound to {endpoint}"
+        in said
+    )
+    assert "Address already in use" in said and "Traceback" not in said, said

@@ -359,3 +359,16 @@ def test_msk_sim_trigno_refuses_a_bad_data_port():
     process = _sim_trigno("--port", "0", "--aux-port", "-1", "--duration", "1")
     _, err = process.communicate(timeout=30)
     assert process.returncode != 0 and "--aux-port" in err and "-1" in err, err
+
+
+def test_msk_sim_trigno_names_the_port_that_is_taken():
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        port = taken.getsockname()[1]
+        process = _sim_trigno("--port", "0", "--emg-port", str(port), "--duration", "1")
+        _, err = process.communicate(timeout=30)
+    finally:
+        taken.close()
+    assert process.returncode == 2 and "field '--emg-port': cannot listen on 127.0.0.1" in err and str(port) in err, err

@@ -20,6 +20,7 @@ from services.sessions import discovery
 from services.sessions.facts import check_facts, new_facts
 from services.transport import messages, topics
 from services.transport.zenoh_session import (
+    SessionUnavailable,
     add_zenoh_arguments,
     declare_data_publisher,
     has_subscribers,
@@ -102,10 +103,10 @@ def publish_facts(
     key = topics.load_key(session)
     try:
         opened = open_session(options)
-    except Exception as error:  # zenoh's ZError: a client whose endpoint nobody answers
+    except SessionUnavailable as error:  # a client whose endpoint nobody answers
         where = ", ".join(options.connect) or (str(options.config_file) if options.config_file else "the default")
         raise ConfigError(
-            f"cannot reach session {session!r} at {where} ({str(error).split(' at /')[0].strip()}); is it running? "
+            f"cannot reach session {session!r} at {where} ({error.reason}); is it running? "
             f"(running sessions are announced in {discovery.registry_dir()})",
             field="--session",
             value=session,

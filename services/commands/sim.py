@@ -109,6 +109,18 @@ def _wait(duration: float | None, alive=lambda: True) -> None:
         time.sleep(0.05)
 
 
+def _free(host: str, port: int) -> bool:
+    """Whether ``port`` on ``host`` can be listened on now (to name the flag whose port is taken)."""
+    import socket
+
+    with socket.socket() as probe:
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
 def _data_ports(args: argparse.Namespace) -> dict[str, int]:
     """Each data port: as given, else the TCU's, or a free one (0) when the command port is free too: a second
     simulator with ``--port 0`` must not collide with the first on the fixed data ports."""
@@ -156,7 +168,14 @@ def run_trigno(args: argparse.Namespace) -> int:
     try:
         sim = TrignoSimulator(source, config).start()
     except OSError as error:
-        raise ConfigError(f"cannot listen: {error}", field="--port", value=args.port) from error
+        asked = {"--port": args.port, **{DATA_PORT_FLAGS[k][0]: v for k, v in ports.items() if k in DATA_PORT_FLAGS}}
+        asked["--legacy-acc-port"] = ports["legacy_acc_port"]
+        taken = [flag for flag, port in asked.items() if port > 0 and not _free(args.host, port)]
+        raise ConfigError(
+            f"cannot listen on {args.host}: {error.strerror or error}",
+            field=", ".join(taken) or "--port",
+            value=", ".join(str(asked[f]) for f in taken) or args.port,
+        ) from error
     with sim:
         paired = [f"{k + 1}:{name}" for k, name in enumerate(source.labels) if source.paired[k]]
         print(

@@ -188,9 +188,29 @@ def run_script(
     sys.exit(run_from_args(parser.parse_args()))
 
 
+class SessionUnavailable(ConfigError):
+    """Zenoh could not open the session (an endpoint already in use, nobody answering a client): ``reason`` is
+    Zenoh's own words, without the source location it appends."""
+
+    def __init__(self, reason: str, options: ZenohOptions) -> None:
+        self.reason = reason
+        flag, where = ("--listen", options.listen) if options.listen else ("--connect", options.connect)
+        super().__init__(
+            f"cannot open the Zenoh session: {reason}",
+            field=flag if where else "zenoh",
+            value=", ".join(where) or (str(options.config_file) if options.config_file else None),
+        )
+
+
 def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
-    """Open a Zenoh session; use it as ``with open_session(options) as session:``."""
-    return zenoh.open((options or ZenohOptions()).to_config())
+    """Open a Zenoh session; use it as ``with open_session(options) as session:``. Raises :class:`SessionUnavailable`
+    (a :class:`ConfigError`, said in one line by the CLI) where Zenoh refuses, e.g. a listen endpoint in use."""
+    options = options or ZenohOptions()
+    config = options.to_config()
+    try:
+        return zenoh.open(config)
+    except Exception as error:  # zenoh's ZError, its message ending in the Rust source location
+        raise SessionUnavailable(str(error).split(" at /")[0].strip(), options) from None
 
 
 def declare_data_publisher(
