@@ -47,3 +47,14 @@ def rotate(q, v) -> tuple[float, float, float]:
     """Rotate vector v by unit quaternion q."""
     w, x, y, z = quat_multiply(quat_multiply(q, (0.0, *v)), quat_conjugate(q))
     return (x, y, z)
+
+
+def quat_from_euler_deg(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """The orientation quaternion (w first) of Xsens Euler angles in degrees: a rotation about the global x axis by
+    roll, then y by pitch, then z by yaw (R_GS = Rz(yaw) Ry(pitch) Rx(roll), the MTi's Euler output definition and the
+    inverse of XsEuler_fromQuaternion)."""
+    r, p, y = (math.radians(a) / 2.0 for a in (roll, pitch, yaw))
+    qx = (math.cos(r), math.sin(r), 0.0, 0.0)
+    qy = (math.cos(p), 0.0, math.sin(p), 0.0)
+    qz = (math.cos(y), 0.0, 0.0, math.sin(y))
+    return quat_multiply(qz, quat_multiply(qy, qx))

@@ -3,7 +3,8 @@
 Formats (docs/devices.md has the full description):
 - ``*.bin``: raw serial bytes of a device (MTData2 frames; other frames ignored). Streamed verbatim while the
   output configuration is the recorded one (``<stem>_outputconfig.bin`` beside it, else the DataIDs of the first
-  message); re-encoded from the decoded values after a SetOutputConfiguration.
+  message); re-encoded from the decoded values after a SetOutputConfiguration (a quaternion from the Euler angles of
+  a capture that has none: the device computes both from one orientation).
 - ``*.npz``: ``rate_hz`` scalar and any of ``quaternion`` (n, 4, w first, ENU), ``acceleration`` (n, 3, m/s^2),
   ``rate_of_turn`` (n, 3, rad/s), ``magnetic_field`` (n, 3, a.u.), ``free_acceleration`` (n, 3), ``euler`` (n, 3, deg).
 - ``synthetic[:SECONDS[:SEED]]``: a sensor swinging about two axes at 100 Hz (consistent quaternion/gyro/acc).
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers import load_source_spec, open_npz
-from drivers.xsens import xbus
+from drivers.xsens import frames, xbus
 from msk_core.errors import FileFormatError, InputError, ProtocolError
 from msk_core.units import GRAVITY
 
@@ -117,7 +118,18 @@ def load_capture(path: Path) -> ImuSource:
             config_path.name,
             rate,
         )
+    if "quaternion" not in arrays and "euler" in arrays:
+        euler_id = next(s.data_id for s in recorded if s.data_id & 0xFFF0 == 0x2030)
+        arrays["quaternion"] = _quaternions_from_euler(arrays["euler"], xbus.frame_of(euler_id))
+        log.info("%s: no quaternion in the capture; the device's own from its Euler angles", path)
     return ImuSource(rate, arrays, path.name, [m.data for m in messages], recorded)
+
+
+def _quaternions_from_euler(euler: np.ndarray, frame: xbus.CoordinateFrame) -> np.ndarray:
+    """(n, 4) ENU quaternions of a capture's Euler output in ``frame``: the device computes both from one
+    orientation, so a device whose driver asks for quaternions gives these (a capture of Euler angles only is
+    replayed as such a device)."""
+    return np.array([frames.to_enu(frames.quat_from_euler_deg(*row), frame) for row in euler.tolist()])
 
 
 def _rate_from_configuration(settings: list[xbus.OutputSetting]) -> float | None:
