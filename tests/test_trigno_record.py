@@ -372,3 +372,25 @@ def test_msk_sim_trigno_names_the_port_that_is_taken():
     finally:
         taken.close()
     assert process.returncode == 2 and "field '--emg-port': cannot listen on 127.0.0.1" in err and str(port) in err, err
+
+
+def test_msk_capture_says_when_another_client_stopped_the_base(tmp_path, capsys):
+    """A second client's STOP stops a Trigno base for every client: the first capture kept 'connected, 0 lost' and
+    said nothing of the missing seconds."""
+    source = synthetic_source(seconds=20.0, seed=3)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL)) as sim:
+        ports = ["--trigno", f"127.0.0.1:{sim.ports['command']}", "--trigno-emg-port", str(sim.ports["emg"])]
+        out = tmp_path / "first.mcap"
+        capture = threading.Thread(target=main, args=(["capture", *ports, "--duration", "4", "--out", str(out)],))
+        capture.start()
+        time.sleep(1.5)
+        second = TrignoClient(TrignoConfig(command_port=sim.ports["command"], emg_port=sim.ports["emg"]))
+        with second:  # a second capture of half a second: its START, then its STOP, stop the base for both
+            second.start()
+            deadline = time.monotonic() + 0.5
+            while time.monotonic() < deadline:
+                second.poll(0.05)
+        capture.join(timeout=30)
+    said = capsys.readouterr().out
+    covered = float(re.search(r"trigno: \d+ samples in \d+ messages, ([\d.]+) s of data", said).group(1))
+    assert covered < 3.0 and f"trigno: its data cover {covered:.1f} s of the 4 s asked" in said, said

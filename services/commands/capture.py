@@ -54,6 +54,12 @@ def run(args: argparse.Namespace) -> int:
         raise
     for report in reports:
         print(report.summary_line())
+        if report.seconds_of_data is not None and report.seconds_of_data < 0.8 * args.duration:
+            print(
+                f"{report.device}: its data cover {report.seconds_of_data:.1f} s of the {args.duration:g} s asked: the "
+                "stream stopped or started late (another client's STOP stops a Trigno base for every client; see its "
+                "status in the recording)"
+            )
     moved = f" ({args.out} exists: this capture continues into the next part)" if out != args.out else ""
     print(f"wrote {sink.count} messages to {out}{moved}")
     return 0

@@ -150,11 +150,14 @@ class LoopReport:
     states: list[str] = field(default_factory=list)
     lost: int = 0  # samples known lost: the Trigno's index gaps, the trackers' packet-counter jumps
     errors: int = 0  # messages that could not be used (the trackers' decode, device and framing errors)
+    seconds_of_data: float | None = None  # the Trigno: the time its samples cover (a stream stopped early shows)
 
     def summary_line(self, verb: str = "") -> str:
         """e.g. ``xsens: 545 samples in 552 messages, 56 lost, 163 errors, disconnected 1x`` (``verb`` before the
         counts, e.g. "published")."""
         said = [f"{self.device}: {verb + ' ' if verb else ''}{self.samples} samples in {self.messages} messages"]
+        if self.seconds_of_data is not None:
+            said.append(f"{self.seconds_of_data:.1f} s of data")
         said.append(f"{self.lost} lost" + (f" in {len(self.gaps)} gaps" if self.gaps else ""))
         if self.errors:
             said.append(f"{self.errors} errors")
@@ -210,6 +213,7 @@ def trigno_loop(
             sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
             report.messages += 1
             report.samples += len(event.samples)
+            report.seconds_of_data = report.samples / event.rate_hz
         elif isinstance(event, AuxBlock):
             accelerations = acc_chunk(event, source_id=source_id, sensors=sensors, layout=layout)
             sink(acc_key, accelerations, event.host_time_ns, accelerations.device_time_ns)
