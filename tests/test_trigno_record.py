@@ -394,3 +394,23 @@ def test_msk_capture_says_when_another_client_stopped_the_base(tmp_path, capsys)
     said = capsys.readouterr().out
     covered = float(re.search(r"trigno: \d+ samples in \d+ messages, ([\d.]+) s of data", said).group(1))
     assert covered < 3.0 and f"trigno: its data cover {covered:.1f} s of the 4 s asked" in said, said
+
+
+def test_msk_capture_stopped_by_ctrl_c_ends_cleanly_with_its_summary(tmp_path):
+    import signal as signals
+
+    with XsensSimulator(synthetic_imu(seconds=30.0)) as xsens_sim:
+        out = tmp_path / "ctrl_c.mcap"
+        process = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "capture", "--xsens", xsens_sim.path, "--duration", "30"]
+            + ["--out", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(4.0)
+        process.send_signal(signals.SIGINT)
+        said, err = process.communicate(timeout=30)
+    assert process.returncode == 0 and re.search(r"xsens: \d+ samples in \d+ messages, 0 lost", said), (said, err)
+    status = [m.decode() for m in read_messages(out) if m.type_name == "msk.DeviceStatus"]
+    assert not status[-1].connected  # the final status, not the last periodic one

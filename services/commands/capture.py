@@ -8,6 +8,7 @@ as decoded from MTData2; DeviceStatus messages report connection, counts, losses
 from __future__ import annotations
 
 import argparse
+import signal
 import threading
 from pathlib import Path
 
@@ -32,6 +33,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=run)
 
 
+def _stop_on_interrupt(stop: threading.Event) -> None:
+    """Ctrl-C (or SIGTERM) ends the capture as its duration would: the loops stop, the devices get their STOP and
+    final status, and the summary is printed (it ended in 'interrupted' with the last status 'connected')."""
+    if threading.current_thread() is not threading.main_thread():
+        return  # signals reach the main thread only (a capture run from a test's thread)
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda *_: stop.set())
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.duration > 0:
         raise ConfigError("must be positive", field="--duration", value=args.duration)
@@ -40,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     devices = driver_nodes.device_settings(args)
     stop = threading.Event()
+    _stop_on_interrupt(stop)
     # never over an earlier recording: the next free FILE-001.mcap..., as msk recorder continues
     out = next_part_path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
