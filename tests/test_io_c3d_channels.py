@@ -189,3 +189,17 @@ def test_c3d_emg_in_newtons_or_with_a_gap_is_refused_naming_the_channel(tmp_path
     said = capsys.readouterr().err
     assert "field 'Biceps.EMG1': EMG channel has NaN or infinite samples from t = 1.5 s" in said, said
     assert not (tmp_path / "env.sto").exists()
+
+
+def test_a_rate_given_for_a_source_that_has_its_own_is_refused(tmp_path):
+    from drivers.trigno.source import load_source
+    from msk_core.errors import ConfigError
+
+    path, _ = _write_emg_c3d(tmp_path / "emg.c3d", "V", 1.0)
+    with pytest.raises(ConfigError) as error:
+        load_source(path, rate_hz=3000.0)
+    assert error.value.field == "--rate" and "raw .bin stream only" in str(error.value)
+    npz = tmp_path / "two_rates.npz"
+    np.savez(npz, emg=np.zeros((100, 2)), rate_hz=np.array([2000.0, 1000.0]))
+    with pytest.raises(FileFormatError, match="rate_hz must be one number"):
+        load_source(npz)

@@ -245,3 +245,13 @@ def test_replay_renames_one_recorded_session_of_several_and_refuses_to_merge_the
         time.sleep(0.2)
     assert stats.published == 4 and stats.other_sessions == 4 and stats.excluded == 0
     assert received == [("msk/new/load", 100.0 + i) for i in range(4)]
+
+
+def test_replay_refuses_an_empty_session_name(tmp_path, capsys):
+    from services import cli
+
+    source = tmp_path / "one.mcap"
+    with McapRecorderWriter(source) as writer:
+        writer.write_message(topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=20.0), log_time_ns=1)
+    assert cli.main(["replay", str(source), "--session", "", "--rate", "max"]) == 2
+    assert "field '--session': must be a single key chunk" in capsys.readouterr().err

@@ -20,7 +20,7 @@ import numpy as np
 
 from drivers import load_source_spec, open_npz
 from drivers.trigno.protocol import N_SENSORS
-from msk_core.errors import FileFormatError, InputError
+from msk_core.errors import ConfigError, FileFormatError, InputError
 from msk_core.units import volts_per_unit
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,12 @@ def load_source(spec: str | Path, *, rate_hz: float | None = None) -> EmgSource:
     ``rate_hz`` is the rate of a raw ``.bin`` stream (default 2000 Hz); other formats carry their own rate.
     """
     raw_rate_hz = 2000.0 if rate_hz is None else rate_hz
+    if rate_hz is not None and not str(spec).lower().endswith(".bin"):
+        raise ConfigError(
+            "a rate is for a raw .bin stream only: .c3d, .npz and synthetic sources carry their own",
+            field="--rate",
+            value=rate_hz,
+        )
     return load_source_spec(
         spec,
         "EMG",
@@ -145,7 +151,10 @@ def load_npz(path: Path) -> EmgSource:
             raise FileFormatError("emg must be (n_samples, 1..16 channels)", path=path, field="emg", value=emg.shape)
         if not np.all(np.isfinite(emg)):
             raise FileFormatError("emg holds NaN or infinite values", path=path, field="emg")
-        rate = float(np.asarray(archive["rate_hz"]).reshape(-1)[0])
+        rates = np.asarray(archive["rate_hz"]).reshape(-1)
+        if rates.size != 1:
+            raise FileFormatError("rate_hz must be one number", path=path, field="rate_hz", value=rates.tolist())
+        rate = float(rates[0])
         if not 100.0 <= rate <= 10000.0:
             raise FileFormatError("rate_hz must be within 100..10000 Hz", path=path, field="rate_hz", value=rate)
         n_channels = emg.shape[1]

@@ -185,6 +185,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     check_mcap_magic(args.mcap)  # an empty or foreign file is no recording, not one cut short
+    if args.session is not None:
+        topics.check_chunk(args.session, "--session")  # '' would replay under the recorded name
     # renamed, several recorded sessions would be merged into one: one of them, named, or the only one
     recorded = args.from_session
     if args.session is not None or recorded is not None:
