@@ -71,13 +71,15 @@ def test_last_status_of_every_device_at_a_clean_stop_is_disconnected_with_final_
 
 
 def test_a_tracker_whose_samples_carry_no_orientation_is_said_in_its_status(shared_dir):
-    """The real MTi-G-710 capture (inertial data and orientation increments, no orientation) played by the simulator:
-    the driver says once, in the tracker's status, that its samples cannot drive the kinematics (every reader that
-    needs an orientation refuses them; they were published without a word)."""
+    """The real MTi-G-710 capture without its orientation outputs (inertial data and orientation increments only, as
+    an MTi-1 gives) played by the simulator: the driver says once, in the tracker's status, that its samples cannot
+    drive the kinematics (every reader that needs an orientation refuses them; they were published without a word)."""
     from drivers.xsens.source import load_imu_source
 
     published: list[tuple[str, object]] = []
     source = load_imu_source(shared_dir / "data/xsens-captures/mtig710_set1.bin")
+    for orientation in ("quaternion", "euler"):  # the capture's Euler angles, and the quaternion made from them
+        del source.arrays[orientation]
     stop = threading.Event()
     trackers = TrackerSet()
     with XsensSimulator(source, speed=1.0, device_id=0x03700ABC) as simulator:

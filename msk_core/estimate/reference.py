@@ -97,7 +97,9 @@ def opensim_filtered_kinematics(
         storage.lowpassIIR(cutoff_hz)
     splines = osim.GCVSplineSet(5, storage)
     out = np.zeros((3, len(times), len(coordinates)))
-    d1, d2 = osim.StdVectorInt([0]), osim.StdVectorInt([0, 0])
+    # plain lists, which SWIG converts: an osim.StdVectorInt was once refused in a long test run ("argument 2 of type
+    # std::vector< int > const &"), another module's wrapper of the same type having been registered first
+    d1, d2 = [0], [0, 0]
     for j, name in enumerate(coordinates):
         spline = splines.get(name)
         for i, t in enumerate(times):
