@@ -187,23 +187,25 @@ def test_replay_can_leave_out_keys(tmp_path, zenoh_endpoint):
             writer.write_message(
                 topics.load_key("old"), messages.LoadEvent(barbell_mass_kg=float(i)), log_time_ns=i + 1
             )
-    received = []
-    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
-        session.declare_subscriber("msk/**", lambda s: received.append(str(s.key_expr)))
+    stats, received = _replayed_as_new(zenoh_endpoint, source, 5, exclude=("msk/*/joints",))
+    assert stats.published == 5 and stats.excluded == 5
+    assert [key for key, _ in received] == ["msk/new/load"] * 5
+
+
+def _replayed_as_new(endpoint: str, source: Path, expected: int, **options) -> tuple[replayer.ReplayStats, list]:
+    """``source`` replayed at full speed under session "new" into a subscriber of msk/**: (stats, [(key, payload)])
+    once ``expected`` samples came (or 5 s passed) and 0.2 s more showed no extra one."""
+    received: list[tuple[str, bytes]] = []
+    with open_session(ZenohOptions(listen=(endpoint,))) as session:
+        session.declare_subscriber("msk/**", lambda s: received.append((str(s.key_expr), s.payload.to_bytes())))
         stats = replayer.main(
-            ZenohOptions(connect=(zenoh_endpoint,)),
-            source,
-            rate=None,
-            session_name="new",
-            wait_subscribers_s=5.0,
-            exclude=("msk/*/joints",),
+            ZenohOptions(connect=(endpoint,)), source, rate=None, session_name="new", wait_subscribers_s=5.0, **options
         )
         deadline = time.monotonic() + 5
-        while len(received) < 5 and time.monotonic() < deadline:
+        while len(received) < expected and time.monotonic() < deadline:
             time.sleep(0.01)
         time.sleep(0.2)
-    assert stats.published == 5 and stats.excluded == 5
-    assert received == ["msk/new/load"] * 5
+    return stats, received
 
 
 def test_replay_renames_one_recorded_session_of_several_and_refuses_to_merge_them(tmp_path, zenoh_endpoint, capsys):
@@ -223,28 +225,10 @@ def test_replay_renames_one_recorded_session_of_several_and_refuses_to_merge_the
     assert "2 sessions: 'rack1' (4 messages), 'rack2' (4 messages); name one with --from-session" in said, said
     assert cli.main([*argv, "--from-session", "rack3"]) == 2
     assert "holds no session 'rack3'" in capsys.readouterr().err
-    received = []
-    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
-        session.declare_subscriber(
-            "msk/**",
-            lambda s: received.append(
-                (str(s.key_expr), messages.decode("msk.LoadEvent", s.payload.to_bytes()).barbell_mass_kg)
-            ),
-        )
-        stats = replayer.main(
-            ZenohOptions(connect=(zenoh_endpoint,)),
-            source,
-            rate=None,
-            session_name="new",
-            wait_subscribers_s=5.0,
-            recorded_session="rack2",
-        )
-        deadline = time.monotonic() + 5
-        while len(received) < 4 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        time.sleep(0.2)
+    stats, received = _replayed_as_new(zenoh_endpoint, source, 4, recorded_session="rack2")
     assert stats.published == 4 and stats.other_sessions == 4 and stats.excluded == 0
-    assert received == [("msk/new/load", 100.0 + i) for i in range(4)]
+    masses = [(key, messages.decode("msk.LoadEvent", payload).barbell_mass_kg) for key, payload in received]
+    assert masses == [("msk/new/load", 100.0 + i) for i in range(4)]
 
 
 def test_replay_refuses_an_empty_session_name(tmp_path, capsys):
