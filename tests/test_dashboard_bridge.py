@@ -128,6 +128,7 @@ def test_reps_from_joints_phase_and_device_health_from_samples():
         "resting": False,
         "time_in_set_s": pytest.approx(1.2),
         "phase": -1.0,
+        "movement": None,  # at rest
     }
     (only,) = update["topics"]["sets"]  # the table of sets: msk_core.signal.sets.SetRecord.as_dict
     assert (only["number"], only["reps"], only["ended_by"]) == (1, 1, "")
@@ -527,3 +528,21 @@ def test_the_bridge_forwards_each_electrodes_fatigue_with_no_value_as_null():
     state.on_message("msk/s/status/estimator", messages.DeviceStatus(device_id="estimator", kind="node"))
     _, update = state.changes(seq)
     assert update["topics"]["fatigue"] == []  # an estimator restarted without EMG: no stale rows
+
+
+@pytest.mark.parametrize(
+    ("torque", "velocity", "said"),
+    [(-300.0, -0.8, "lifting"), (-300.0, 0.8, "lowering"), (-300.0, 0.001, "turning"), (40.0, 0.8, "lifting")],
+)
+def test_lifting_or_lowering_comes_from_the_joint_power_not_the_half_of_the_rep(torque, velocity, said):
+    """A deadlift from the floor lifts in the first half of its rep, a bench press lowers: the page said "lowering"
+    for every first half. The sign of the inverse-dynamics torque times the joint velocity says which."""
+    state = DashboardState("t")
+    frame = activation_frame("so", [0.5, 0.2], t=1.0, phase=0.3, exercise="deadlift")
+    frame.torques.add(coordinate="hip_flexion_r", inverse_dynamics_nm=torque, model_nm=torque, residual_nm=0.0)
+    state.on_message(PREFIX + "activations/so", frame)
+    moving = messages.JointAngles(
+        coordinates=["hip_flexion_r"], q=[1.0], qd=[velocity], phase=0.3, device_time_ns=1_010_000_000
+    )
+    state.on_message(PREFIX + "joints", moving)
+    assert state.changes(0)[1]["topics"]["reps"]["movement"] == said

@@ -366,6 +366,23 @@ class PhaseTracker:
 # -- reps of a phase stream: the live rep count of the dashboards and the report's reps --------------------------------
 
 # A run of in-rep phase shorter than this is no repetition (a tracker that flickers into a rep and out again).
+#: joint power (W) below which a rep is turning (or held), neither lifting nor lowering
+MOVEMENT_POWER_W = 5.0
+
+
+def movement(torques_nm: dict[str, float], velocities: dict[str, float], threshold_w: float = MOVEMENT_POWER_W) -> str:
+    """``"lifting"`` when the net joint power of the inverse-dynamics torques is positive (the muscles do work: the
+    load rises, concentric), ``"lowering"`` when negative (eccentric), ``"turning"`` near zero. Any exercise, any
+    start: a deadlift from the floor lifts first, a bench press lowers first (the phase's halves cannot say which).
+    ``velocities`` in rad/s (or m/s) per coordinate, as the torques are named."""
+    power = sum(tau * velocities[name] for name, tau in torques_nm.items() if name in velocities)
+    if power > threshold_w:
+        return "lifting"
+    if power < -threshold_w:
+        return "lowering"
+    return "turning"
+
+
 MIN_REP_S = 0.3
 # Samples further apart than this do not belong to one rep (the stream had a gap: the rep is closed at its last sample).
 MAX_SAMPLE_GAP_S = 0.5

@@ -38,7 +38,7 @@ from google.protobuf.message import Message
 from msk_core.errors import ConfigError
 from msk_core.estimate.flags import flag_text
 from msk_core.model.pack import names_for
-from msk_core.signal.reps import PhaseRepCounter
+from msk_core.signal.reps import PhaseRepCounter, movement
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.facts import join_late
@@ -97,6 +97,7 @@ class RepCounter:
     def __init__(self) -> None:
         self.total = 0
         self.phase: float | None = None
+        self.movement: str | None = None  # lifting / lowering / turning inside a rep (msk_core.signal.reps.movement)
         self.time_s: float | None = None  # the newest sample's time
         self.sets = SetTracker()
         self._reps = PhaseRepCounter()
@@ -130,6 +131,7 @@ class RepCounter:
             "resting": status["resting"],
             "time_in_set_s": status["time_in_set_s"],
             "phase": self.phase,
+            "movement": self.movement if self.phase is not None and self.phase >= 0 else None,
         }
 
 
@@ -244,6 +246,7 @@ class DashboardState:
         self._sets_key: tuple[int, int, int] | None = None  # what the last ``sets`` entry showed
         self._sets_put_ns = 0
         self._joints_have_phase = False
+        self._torques: dict[str, float] = {}  # the latest frame's inverse-dynamics torques: lifting or lowering
         self._phase_method: str | None = None  # activation stream counted when the joints carry no phase
         self._devices: dict[str, DeviceHealth] = {}
         self._devices_seq = 0
@@ -304,6 +307,7 @@ class DashboardState:
             self._put_session()
         self._phase_method = self._phase_method or frame.method
         if frame.method == self._phase_method:  # the first method's frames: the sets' reps and figures
+            self._torques = {t.coordinate: t.inverse_dynamics_nm for t in frame.torques}
             phase = frame.phase if frame.HasField("phase") else None
             if not self._joints_have_phase:
                 self._reps.update(frame.time_s, phase)
@@ -315,6 +319,8 @@ class DashboardState:
         self.last_data_ns = arrival_ns
         has_phase = joints.HasField("phase")
         self._joints_have_phase = self._joints_have_phase or has_phase
+        if len(joints.qd) == len(joints.coordinates) and self._torques:
+            self._reps.movement = movement(self._torques, dict(zip(joints.coordinates, joints.qd)))
         if has_phase:
             self._reps.update(joints.device_time_ns / 1e9, joints.phase)
             self._put("reps", self._reps.as_dict())

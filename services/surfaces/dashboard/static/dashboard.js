@@ -202,7 +202,7 @@ function renderHeader() {
   else if (phase < 0) { fill.style.width = "0"; text.textContent = "rest"; }
   else {
     fill.style.width = `${(100 * phase).toFixed(0)}%`;
-    text.textContent = phase < 0.5 ? "lowering" : "lifting";
+    text.textContent = reps.movement ?? "in a rep";  // from the joint power: right for any exercise
   }
 }
 
