@@ -40,6 +40,7 @@ from msk_core.errors import ConfigError
 from msk_core.estimate.flags import flag_text
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
+from msk_core.signal.reps import movement
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.facts import join_late
@@ -79,6 +80,8 @@ class ViewState:
     last_frame_s: float | None = None  # the newest frame's time: the frames' clock
     inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
     loads: LoadEventGate = field(default_factory=LoadEventGate)  # load events as the estimator takes them
+    movement: str | None = None  # lifting / lowering / turning: the joint power's sign (msk_core.signal.reps.movement)
+    torques: dict[str, float] = field(default_factory=dict)  # the first method's newest inverse-dynamics torques
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_message(self, key: str, message: Message) -> None:
@@ -95,7 +98,11 @@ class ViewState:
                     if self.first_frame_s is None:
                         self.first_frame_s = message.time_s
                     self.last_frame_s = message.time_s
+                    self.torques = {t.coordinate: t.inverse_dynamics_nm for t in message.torques}
                 self.frames[message.method] = message
+            elif isinstance(message, messages.JointAngles):
+                if len(message.qd) == len(message.coordinates) and self.torques:
+                    self.movement = movement(self.torques, dict(zip(message.coordinates, message.qd)))
             elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
             elif isinstance(message, messages.LoadEvent):
@@ -349,13 +356,18 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     if legend:
         muscles.caption, muscles.caption_justify = legend, "left"
     phase = frame.phase if frame.HasField("phase") else None
-    phase_text = "unknown" if phase is None else ("rest" if phase < 0 else f"{phase:.2f}")
+    # inside a rep: lifting / lowering / turning (the joint power), else how far through it
+    phase_text = (
+        "unknown"
+        if phase is None
+        else ("rest" if phase < 0 else (state.movement or f"{100 * phase:.0f} % through the rep"))
+    )
     latency_ms = (
         (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
     )
     session_line = Text(
         session_facts(load, frame, sets)
-        + f" · phase {phase_text}"
+        + f" · {phase_text}"
         + f" · {set_time_text(set_number, set_start_s, frame.time_s, rest)} · latency {latency_ms:.2f} ms"
         + f" · solver {frame.solver_status}"
         + (f" · {', '.join(flag_text(flag) for flag in frame.flags)}" if frame.flags else "")
