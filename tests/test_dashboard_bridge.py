@@ -546,3 +546,24 @@ def test_lifting_or_lowering_comes_from_the_joint_power_not_the_half_of_the_rep(
     )
     state.on_message(PREFIX + "joints", moving)
     assert state.changes(0)[1]["topics"]["reps"]["movement"] == said
+
+
+def test_the_set_buttons_refuse_when_the_session_sends_nothing(zenoh_endpoint):
+    """After msk live stopped, the page's start button said "set 5 started" and nothing recorded it (msk set refuses
+    when no msk live runs). Now the bridge refuses while the session is silent, and publishes once it speaks."""
+    from services.surfaces.dashboard.bridge import SET_MARK_QUIET_S, Bridge
+    from services.transport.zenoh_session import ZenohOptions
+
+    state = DashboardState("t")
+    bridge = Bridge(ZenohOptions(listen=(zenoh_endpoint,)), state)
+    bridge.start()
+    try:
+        with pytest.raises(RuntimeError, match="session 't' sends nothing yet: is msk live running"):
+            bridge.publish_set_mark("start")
+        state.last_data_ns = messages.now_ns() - int((SET_MARK_QUIET_S + 5) * 1e9)  # the session ended 15 s ago
+        with pytest.raises(RuntimeError, match="sends nothing for 15 s"):
+            bridge.publish_set_mark("start")
+        state.last_data_ns = messages.now_ns()  # it speaks
+        assert bridge.publish_set_mark("start").set_mark == "start"
+    finally:
+        bridge.stop()

@@ -340,3 +340,16 @@ def test_the_view_shows_assisted_where_it_ran_else_proposed_and_names_it():
         ),
     )
     assert "activations · assisted" in screen_text(state)
+
+
+def test_a_session_gone_quiet_is_said_over_the_last_values():
+    """After msk live stopped, the view kept showing the last set, rep and latency as if live."""
+    import time
+
+    from services.surfaces.view import QUIET_S
+
+    state = ViewState()
+    state.on_message("msk/s/activations/so", messages.ActivationFrame(method="so", time_s=1.0, phase=-1.0))
+    assert "Nothing received" not in screen_text(state)
+    state.last_message_at = time.monotonic() - QUIET_S - 3.0
+    assert "Nothing received for 8 s: the session has ended or stopped sending." in screen_text(state)

@@ -59,6 +59,8 @@ log = logging.getLogger(__name__)
 BAR_WIDTH = 30
 #: How long the view's input thread waits for a message before looking at its stop flag again.
 POLL_S = 0.1
+#: After this long without any message the view says the session has gone quiet (ended, or its graph stopped).
+QUIET_S = 5.0
 #: Sets shown in the view's table of sets (the newest).
 SETS_SHOWN = 5
 #: An electrode's state as the muscle table colours it (ElectrodeQuality.state).
@@ -81,6 +83,7 @@ class ViewState:
     inputs: InputCounts = field(default_factory=InputCounts)  # what the view's NodeInputs took and dropped
     loads: LoadEventGate = field(default_factory=LoadEventGate)  # load events as the estimator takes them
     movement: str | None = None  # lifting / lowering / turning: the joint power's sign (msk_core.signal.reps.movement)
+    last_message_at: float | None = None  # time.monotonic() of the newest message: a silent session shows
     torques: dict[str, float] = field(default_factory=dict)  # the first method's newest inverse-dynamics torques
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -89,6 +92,7 @@ class ViewState:
         says the topic)."""
         with self.lock:
             self.received += 1
+            self.last_message_at = time.monotonic()
             if isinstance(message, messages.ActivationFrame):
                 self._apply_loads(key, self.loads.on_frame(message.exercise))
                 if not self.frames or message.method == next(iter(self.frames)):  # sets from the first method only
@@ -311,6 +315,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         paused = state.loads.paused_notice(load.exercise if load is not None else "")
         sets, set_number, set_start_s, rest = set_line(state.sets, state.first_frame_s)
         records = [r.as_dict() for r in state.sets.sets]  # the set under way (or the last) in the muscle table
+        quiet_s = None if state.last_message_at is None else time.monotonic() - state.last_message_at
     methods = list(frames)
     method = primary if primary in frames else default_method(methods)  # named in the muscle table's title
     header = view_header(session, received, state.inputs)
@@ -374,10 +379,18 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     )
     extra = [sets_table(records)] if records else []
     notice = [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]
+    if quiet_s is not None and quiet_s > QUIET_S:
+        notice = [
+            Text(
+                f"Nothing received for {quiet_s:.0f} s: the session has ended or stopped sending. The values below "
+                "are the last.",
+                style="bold red",
+            )
+        ]
     return Group(
         header,
         session_line,
-        *(notice if paused else []),
+        *(notice if paused or (quiet_s is not None and quiet_s > QUIET_S) else []),
         muscles,
         *extra,
         torque_table(frame, names),

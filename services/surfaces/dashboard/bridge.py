@@ -88,6 +88,11 @@ def activation_dict(frame: messages.ActivationFrame, arrival_ns: int) -> dict:
     }
 
 
+#: the page's set buttons publish only while the session has sent something this recently (msk set refuses the same
+#: way when no msk live runs): a mark after the session ended would be confirmed, and nobody would record it
+SET_MARK_QUIET_S = 10.0
+
+
 class RepCounter:
     """Repetitions over the session, from a phase stream ([0, 1) inside a rep, negative at rest, None unknown),
     counted by :class:`msk_core.signal.reps.PhaseRepCounter` (the rule the session report uses), and the sets with
@@ -519,9 +524,15 @@ class Bridge:
     def publish_set_mark(self, mark: str) -> messages.LoadEvent:
         """Publish the operator's set ``mark`` on ``msk/<session>/load`` (the page's buttons, as ``msk set``); the
         bridge reads it back like any session fact. RuntimeError when the bridge is not running."""
-        event = self.state.set_mark_event(mark)
         if self._session is None:
             raise RuntimeError("the dashboard's bridge is not running")
+        quiet_s = (messages.now_ns() - self.state.last_data_ns) / 1e9 if self.state.last_data_ns else None
+        if quiet_s is None or quiet_s > SET_MARK_QUIET_S:  # nobody would record it: msk live has stopped
+            heard = "nothing yet" if quiet_s is None else f"nothing for {quiet_s:.0f} s"
+            raise RuntimeError(
+                f"session {self.state.session!r} sends {heard}: is msk live running? (a set mark goes to its nodes)"
+            )
+        event = self.state.set_mark_event(mark)
         with self._publisher_lock:
             if self._load_publisher is None:
                 key = topics.load_key(self.state.session)
