@@ -386,3 +386,22 @@ def test_a_recording_of_two_sessions_is_reported_one_session_at_a_time(tmp_path)
     for short in (9, 43, 95, 350):  # its summary or footer cut: struct.error inside mcap, read through instead
         cut.write_bytes(both.read_bytes()[:-short])
         assert set(recorded_sessions(cut)) == {"synth", "rack2"}
+
+
+def test_a_sets_peak_and_time_active_are_under_tension_as_the_caption_says(tmp_path):
+    """The table says its figures are over the set's reps; the set peak and 'time > 20 %' counted the rests between
+    them too (a triceps 42 s 'active' in a set with 25 s under tension)."""
+    from services.transport import messages
+
+    recording = tmp_path / "session.mcap"
+    write_small_session(
+        recording, loads=[(0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1))]
+    )
+    summary = report.write_report(recording, tmp_path / "out")
+    for s in summary["sets"]:
+        primary = s["methods"][s["primary"]]["groups"]
+        tension = s["time_under_tension_s"]
+        for g, figures in primary.items():
+            # each rep's frames include both its ends: one 50 ms frame more per rep than its duration
+            assert figures["time_active_s"] <= tension + 0.05 * len(s["reps"]) + 1e-6, (g, figures, tension)
+            assert figures["set_peak"] == pytest.approx(max(p for p in figures["peak"] if p is not None)), (g, figures)

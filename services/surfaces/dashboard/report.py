@@ -467,13 +467,16 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
         rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
         dt = np.median(np.diff(t)) if len(t) > 1 else 0.0
         per_group = {}
+        # the set's figures under tension, as the tables' caption says: over the reps' frames (the whole set when it
+        # has no rep); the set mean over the whole set stays for the set without reps
+        tension = np.logical_or.reduce(rep_masks) if rep_masks else np.ones(len(t), dtype=bool)
         for i, g in enumerate(s.groups):
             per_group[g] = {
                 "peak": [float(np.nanmax(a[rm, i])) if rm.any() else None for rm in rep_masks],
                 "mean": [float(np.nanmean(a[rm, i])) if rm.any() else None for rm in rep_masks],
-                "set_peak": float(np.nanmax(a[:, i])),
+                "set_peak": float(np.nanmax(a[tension, i])) if tension.any() else float("nan"),
                 "set_mean": float(np.nanmean(a[:, i])),
-                "time_active_s": float(np.sum(a[:, i] > ACTIVE_THRESHOLD) * dt),
+                "time_active_s": float(np.sum(a[tension, i] > ACTIVE_THRESHOLD) * dt),
             }
         residual = np.asarray(s.residual, dtype=float)[m]
         methods[method] = {
