@@ -97,6 +97,8 @@ def test_rep_counter_counts_rest_transitions_and_wraps_and_restarts_per_set():
     for t, p in ((4.0, 0.2), (4.4, 0.7), (4.8, -1)):
         reps.update(t, p)
     assert (reps.in_set, reps.total, reps.sets.number) == (1, 4, 2)
+    reps.sets.stop(5.0)  # set 2 done: the header says "2 done" and its last rep, not "rep 0"
+    assert (reps.as_dict()["resting"], reps.as_dict()["rep"]) == (True, 1)
 
 
 def test_reps_from_joints_phase_and_device_health_from_samples():

@@ -128,9 +128,11 @@ class RepCounter:
         """What the page's header shows: set N and rep n of the set (the rep under way, else the last done), reps
         done in the set and in the session, resting, the time in the set (s) and the phase."""
         status = self.sets.status(self.time_s)
+        done = self.sets.sets[-1] if status["resting"] and self.sets.sets else None
         return {
             "in_set": self.in_set,
-            "rep": status["rep"],
+            # resting after a set ("N done"): its reps, the last one done (the set tracker says 0 at rest)
+            "rep": len(done.reps) if done is not None else status["rep"],
             "total": self.total,
             "set": status["set"],
             "resting": status["resting"],
