@@ -569,3 +569,31 @@ def test_the_set_buttons_refuse_when_the_session_sends_nothing(zenoh_endpoint):
         assert bridge.publish_set_mark("start").set_mark == "start"
     finally:
         bridge.stop()
+
+
+@pytest.mark.parametrize(
+    ("median_hz", "slope", "se", "change", "tiring"),
+    [
+        ([120.0, 102.0], -18.0, float("nan"), -15.0, False),  # 2 reps: rep-to-rep scatter, not a trend
+        ([120.0, 104.0, 118.0, 101.0], -4.0, 5.0, -12.0, False),  # 4 reps, the slope within its scatter
+        ([120.0, 114.0, 108.0, 101.0], -6.3, 0.4, -14.0, True),  # a steady fall over 4 reps
+        ([120.0, 118.0, 117.0], -1.5, 0.2, -2.5, False),  # falling, but by less than 10 %
+    ],
+)
+def test_a_muscle_reads_as_tiring_only_on_a_trend(median_hz, slope, se, change, tiring):
+    state = DashboardState("s")
+    fatigue = messages.ElectrodeFatigue(
+        source="trigno",
+        channel="sensor03.EMG",
+        group="TriLat",
+        set_number=1,
+        median_hz=median_hz,
+        median_slope_hz_per_rep=slope,
+        median_slope_se_hz_per_rep=se,
+        median_change_pct=change,
+    )
+    state.on_message(
+        "msk/s/status/estimator", messages.DeviceStatus(device_id="estimator", kind="node", fatigue=[fatigue])
+    )
+    (row,) = state.changes(0)[1]["topics"]["fatigue"]
+    assert row["tiring"] is tiring

@@ -11,7 +11,7 @@ end has arrived (the tracker waits for it).
 Sets: :meth:`LiveFatigue.start_set` (the operator's ``LoadEvent.set_number``) starts the trend again. Samples lost (a
 jump in ``first_sample_index``) start the source's tracker again from the chunk after the gap, keeping the set's
 values; a rep that began before the gap has no values (counted in ``reps_skipped``). Re-sent rows are taken once.
-Samples arrive in the chunk's ``units`` (:data:`msk_core.estimate.live_quality.VOLTS_PER_UNIT`, since the noise
+Samples arrive in the chunk's ``units`` (:func:`msk_core.units.volts_per_unit`, since the noise
 floor below which a rep has no value is in volts); a source in other units has no values.
 """
 
@@ -23,9 +23,24 @@ import numpy as np
 
 from msk_core.errors import InputError
 from msk_core.estimate.emg_chunk import RawEmgChunk
-from msk_core.estimate.live_quality import VOLTS_PER_UNIT
 from msk_core.signal.fatigue import FatigueConfig, FatigueTracker, FatigueTrend, RepSpectrum
 from msk_core.signal.reps import PhaseRepCounter
+from msk_core.units import volts_per_unit
+
+#: A muscle reads as tiring once its median frequency has fallen this much since the set's first reps ...
+TIRING_CHANGE_PCT = -10.0
+#: ... over at least this many reps, with a falling trend beyond two standard errors of its slope: two reps'
+#: difference is rep-to-rep scatter (it lit the dashboard amber after 2 reps of a simulated set that does not tire)
+TIRING_MIN_REPS = 3
+
+
+def tiring(median_hz: list[float], slope_hz_per_rep: float, slope_se_hz_per_rep: float, change_pct: float) -> bool:
+    """Whether an electrode's median frequency says its muscle tires over the set (the rule the surfaces colour)."""
+    reps = sum(1 for v in median_hz if np.isfinite(v))
+    falling = np.isfinite(slope_hz_per_rep) and (
+        not np.isfinite(slope_se_hz_per_rep) or slope_hz_per_rep + 2.0 * slope_se_hz_per_rep < 0.0
+    )
+    return bool(reps >= TIRING_MIN_REPS and np.isfinite(change_pct) and change_pct <= TIRING_CHANGE_PCT and falling)
 
 
 @dataclass
@@ -57,7 +72,7 @@ class _SourceFatigue:
         self.columns = [c for c, ch in enumerate(labels) if ch in channel_group or not channel_group]
         self.rate_hz = rate_hz
         self.units = units
-        self.volts_per_unit = VOLTS_PER_UNIT.get(units)  # None: no values
+        self.volts_per_unit = volts_per_unit(units or "V")  # None: no values (no unit: the Trigno's volts)
         self.config = FatigueConfig(rate_hz=rate_hz)
         self.tracker: FatigueTracker | None = None  # made at the first chunk (its sample 0 is that chunk's row 0)
         self.next_index: int | None = None

@@ -8,7 +8,7 @@ device times of the verdicts' windows' ends (the chunk's ``device_time_ns`` plus
 can be laid beside the samples that caused it. A jump in ``first_sample_index`` (samples lost) restarts the source's
 monitor (a window across the gap would mix two signals): its electrodes are unknown until the first windows after the
 gap are in, and an episode under way stays open through it (it ends only on a good verdict). Repeated rows (a re-sent
-chunk) are judged once. Samples arrive in the chunk's ``units`` (:data:`VOLTS_PER_UNIT`); a source in other units
+chunk) are judged once. Samples arrive in the chunk's ``units`` (:func:`msk_core.units.volts_per_unit`); a source in other units
 (already normalised EMG) is not judged and its electrodes stay unknown with the reason.
 """
 
@@ -25,9 +25,9 @@ from msk_core.signal.quality import (
     QualityConfig,
     QualityVerdict,
 )
+from msk_core.units import volts_per_unit
 
 #: The raw EMG units a chunk may carry (``EmgChunk.units``) and their value in volts; "" is the drivers' default.
-VOLTS_PER_UNIT = {"V": 1.0, "": 1.0, "mV": 1e-3, "uV": 1e-6, "µV": 1e-6}
 #: Episodes kept per electrode for the report (the count and the faults' tallies cover all of them).
 EPISODES_KEPT = 16
 
@@ -108,7 +108,7 @@ class _SourceQuality:
         self.labels = labels
         self.rate_hz = rate_hz
         self.units = units
-        self.volts_per_unit = VOLTS_PER_UNIT.get(units)  # None: units not judged
+        self.volts_per_unit = volts_per_unit(units or "V")  # None: units not judged (no unit: the Trigno's volts)
         self.monitor = ElectrodeQualityMonitor(QualityConfig(rate_hz), len(labels))
         self.electrodes = [_Electrode(ch, channel_group.get(ch, "")) for ch in labels]
         self.next_index: int | None = None

@@ -360,13 +360,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         muscles.add_row(*row)
     if legend:
         muscles.caption, muscles.caption_justify = legend, "left"
-    phase = frame.phase if frame.HasField("phase") else None
-    # inside a rep: lifting / lowering / turning (the joint power), else how far through it
-    phase_text = (
-        "unknown"
-        if phase is None
-        else ("rest" if phase < 0 else (state.movement or f"{100 * phase:.0f} % through the rep"))
-    )
+    phase_text = movement_text(frame.phase if frame.HasField("phase") else None, state.movement)
     latency_ms = (
         (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
     )
@@ -378,24 +372,34 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         + (f" · {', '.join(flag_text(flag) for flag in frame.flags)}" if frame.flags else "")
     )
     extra = [sets_table(records)] if records else []
-    notice = [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]
-    if quiet_s is not None and quiet_s > QUIET_S:
-        notice = [
-            Text(
-                f"Nothing received for {quiet_s:.0f} s: the session has ended or stopped sending. The values below "
-                "are the last.",
-                style="bold red",
-            )
-        ]
     return Group(
         header,
         session_line,
-        *(notice if paused or (quiet_s is not None and quiet_s > QUIET_S) else []),
+        *notices(paused, quiet_s),
         muscles,
         *extra,
         torque_table(frame, names),
         *health_tables(status),
     )
+
+
+def movement_text(phase: float | None, movement: str | None) -> str:
+    """Inside a rep: lifting / lowering / turning (the joint power), else how far through it; rest; unknown."""
+    if phase is None:
+        return "unknown"
+    if phase < 0:
+        return "rest"
+    return movement or f"{100 * phase:.0f} % through the rep"
+
+
+def notices(paused: str, quiet_s: float | None) -> list[Text]:
+    """Over the last values: the session gone quiet (ended, or its graph stopped), else the estimates paused."""
+    if quiet_s is not None and quiet_s > QUIET_S:
+        text = f"Nothing received for {quiet_s:.0f} s: the session has ended or stopped sending."
+        return [Text(f"{text} The values below are the last.", style="bold red")]
+    if paused:
+        return [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]
+    return []
 
 
 def torque_table(frame: messages.ActivationFrame, names: DisplayNames) -> Table:

@@ -37,6 +37,7 @@ from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
 from msk_core.estimate.flags import flag_text
+from msk_core.estimate.live_fatigue import tiring
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter, movement
 from msk_core.signal.sets import SetTracker
@@ -213,6 +214,12 @@ def fatigue_dict(electrode: messages.ElectrodeFatigue) -> dict:
         "median_slope_pct_per_rep": _finite([electrode.median_slope_pct_per_rep])[0],
         "median_change_pct": _finite([electrode.median_change_pct])[0],
         "mean_change_pct": _finite([electrode.mean_change_pct])[0],
+        "tiring": tiring(
+            list(electrode.median_hz),
+            electrode.median_slope_hz_per_rep,
+            electrode.median_slope_se_hz_per_rep,
+            electrode.median_change_pct,
+        ),
     }
 
 
