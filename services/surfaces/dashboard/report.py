@@ -579,8 +579,9 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
         ax.text(
             (rep["start_s"] + rep["end_s"]) / 2 - t0, 102, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue"
         )
+    colours = plt.get_cmap("tab20")  # one colour per muscle, the same in every set's plot (by its place in the pack)
     for i in top:
-        ax.plot(t - t0, 100 * a[:, i], lw=1.4, label=names.group(groups[i]))
+        ax.plot(t - t0, 100 * a[:, i], lw=1.4, label=names.group(groups[i]), color=colours(i % 20))
     ax.set_ylim(0, 108)
     ax.set_xlabel("time in set (s)")
     ax.set_ylabel(f"activation (%, {result['primary']})")
