@@ -501,13 +501,15 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     assert node["dropped"] == 5 and state.received == 3
 
 
+def _triceps_fatigue(**fields) -> messages.ElectrodeFatigue:
+    """The fatigue index of the lateral triceps' electrode (sensor 3) with ``fields``."""
+    return messages.ElectrodeFatigue(source="trigno", channel="sensor03.EMG", group="TriLat", **fields)
+
+
 def test_the_bridge_forwards_each_electrodes_fatigue_with_no_value_as_null():
     state = DashboardState("s")
     nan = float("nan")
-    fatigue = messages.ElectrodeFatigue(
-        source="trigno",
-        channel="sensor03.EMG",
-        group="TriLat",
+    fatigue = _triceps_fatigue(
         set_number=2,
         median_hz=[120.0, nan, 110.0],
         mean_hz=[130.0, nan, 121.0],
@@ -582,10 +584,7 @@ def test_the_set_buttons_refuse_when_the_session_sends_nothing(zenoh_endpoint):
 )
 def test_a_muscle_reads_as_tiring_only_on_a_trend(median_hz, slope, se, change, tiring):
     state = DashboardState("s")
-    fatigue = messages.ElectrodeFatigue(
-        source="trigno",
-        channel="sensor03.EMG",
-        group="TriLat",
+    fatigue = _triceps_fatigue(
         set_number=1,
         median_hz=median_hz,
         median_slope_hz_per_rep=slope,
