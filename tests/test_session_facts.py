@@ -317,3 +317,17 @@ def test_a_listen_endpoint_in_use_is_one_line_naming_the_flag(capsys):
         in said
     )
     assert "Address already in use" in said and "Traceback" not in said, said
+
+
+def test_msk_set_stop_during_a_rest_says_nothing_changes(monkeypatch, capsys):
+    """It printed "the set under way ends" when rest detection had ended the set already."""
+    from services import cli
+    from services.commands import sets
+
+    def publish(args, make_event, command, **_):
+        facts = {"load_kg": 60.0, "set_number": 2, "exercise": "bench_press", "athlete": "", "resting": True}
+        return "gym", make_event(facts), "msk/gym/load"
+
+    monkeypatch.setattr(sets, "publish_facts", publish)
+    assert cli.main(["set", "stop"]) == 0
+    assert "msk set: gym: no set was under way (set 2 had ended): nothing changes" in capsys.readouterr().out

@@ -22,9 +22,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("a set number goes with start", field="--set", value=args.set)
     start = args.action == "start"
     check_facts(None, args.set)
-    session, event, key = publish_facts(
-        args,
-        lambda facts: new_facts(
+    before: dict = {}  # the facts in effect before this mark, as the session announced them
+
+    def mark(facts: dict):
+        before.update(facts)
+        return new_facts(
             facts,
             load_kg=None,
             set_number=args.set if start else None,
@@ -32,10 +34,16 @@ def run(args: argparse.Namespace) -> int:
             exercise=None,
             athlete=None,
             set_mark=args.action,
-        ),
-        "msk set",
-    )
-    what = f"set {event.set_number} starts" if start else "the set under way ends"
+        )
+
+    session, event, key = publish_facts(args, mark, "msk set")
+    facts = before
+    if start:
+        what = f"set {event.set_number} starts"
+    elif facts.get("resting"):  # as the session announced it: rest detection or a mark had ended the set already
+        what = f"no set was under way (set {facts.get('set_number', event.set_number)} had ended): nothing changes"
+    else:
+        what = "the set under way ends"
     print(f"msk set: {session}: {what} ({event.barbell_mass_kg:g} kg) -> {key}")
     return 0
 
