@@ -157,8 +157,8 @@ def claimed(session: str, out: Path) -> Iterator[None]:
                 handle.seek(0)
                 holder = handle.read().strip() or "?"
                 raise ConfigError(
-                    f"{what} (pid {holder}); stop it, or give this one another name and --out",
-                    path=path,
+                    f"{what} (pid {holder}); stop it first, or run this one under another name ([session] name in a "
+                    "session file) with another --out",
                     field=field_name,
                     value=session if field_name == "session" else str(out),
                 ) from None
