@@ -139,7 +139,7 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             replay.join(30)
             assert not replay.is_alive(), "the replay of the first set did not finish within 30 s"
             stopped = wait_for(page, lambda p: p["status"] == "nodata", 10, "'no data' after the replay stopped")
-            assert page.is_visible("#nodata") and "Nothing new" in page.inner_text("#nodata-detail")
+            assert page.is_visible("#nodata") and "it has ended or stopped sending" in page.inner_text("#nodata-detail")
             assert page.evaluate("getComputedStyle(document.querySelector('.panel.bars')).filter") == "grayscale(1)"
             assert stopped["method"] == other and switched["bars"] is not None
             # Where a frame carries measured EMG envelopes (estimator with EMG), they are drawn beside the estimate (checked

@@ -167,7 +167,8 @@ function render() {
         ? state.session.paused
       : age === null || age === undefined || (state.dataAge <= noDataAfter && age > noDataAfter)
         ? `The devices deliver but no muscle estimates arrive on msk/${session}/activations/…: is the estimator running?`
-        : `Nothing new on msk/${session}/… for ${age.toFixed(0)} s. The last values are shown greyed out.`;
+        : `Nothing received from session "${session}" for ${age.toFixed(0)} s: it has ended or stopped sending. `
+          + "The last values are shown greyed out.";
   renderHeader();
   renderMethods();
   const method = currentMethod();
