@@ -550,6 +550,9 @@ def test_lifting_or_lowering_comes_from_the_joint_power_not_the_half_of_the_rep(
     )
     state.on_message(PREFIX + "joints", moving)
     assert state.changes(0)[1]["topics"]["reps"]["movement"] == said
+    still = messages.JointAngles(coordinates=["hip_flexion_r"], q=[1.0], phase=0.4, device_time_ns=1_020_000_000)
+    state.on_message(PREFIX + "joints", still)  # joints without velocities: no word rather than a stale one
+    assert state.changes(0)[1]["topics"]["reps"]["movement"] is None
 
 
 def test_the_set_buttons_refuse_when_the_session_sends_nothing(zenoh_endpoint):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -156,8 +157,10 @@ def test_msk_capture_never_writes_over_a_recording_and_leaves_none_when_a_device
     with McapRecorderWriter(kept) as writer:
         writer.write_message(topics.load_key("s"), messages.LoadEvent(barbell_mass_kg=60.0), log_time_ns=1)
     before = kept.read_bytes()
+    handler = signal.getsignal(signal.SIGINT)
     argv = ["capture", "--xsens", str(tmp_path / "no-such-tty"), "--duration", "1", "--out", str(kept)]
     assert main(argv) == 2
+    assert signal.getsignal(signal.SIGINT) is handler  # Ctrl-C is the caller's again
     assert "no-such-tty" in capsys.readouterr().err
     assert kept.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["keep.mcap"]
     with XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0) as xsens_sim:
@@ -366,12 +369,13 @@ def test_msk_sim_trigno_names_the_port_that_is_taken():
     taken.bind(("127.0.0.1", 0))
     taken.listen()
     try:
-        port = taken.getsockname()[1]
-        process = _sim_trigno("--port", "0", "--emg-port", str(port), "--duration", "1")
+        port = taken.getsockname()[1]  # the command port free and bound first: it was blamed too
+        process = _sim_trigno("--port", str(free_port()), "--emg-port", str(port), "--duration", "1")
         _, err = process.communicate(timeout=30)
     finally:
         taken.close()
-    assert process.returncode == 2 and "field '--emg-port': cannot listen on 127.0.0.1" in err and str(port) in err, err
+    assert process.returncode == 2 and "field '--emg-port': cannot listen on 127.0.0.1" in err, err
+    assert f"(the emg port {port}) (got '{port}')" in err, err
 
 
 def test_msk_capture_says_when_another_client_stopped_the_base(tmp_path, capsys):
@@ -414,3 +418,13 @@ def test_msk_capture_stopped_by_ctrl_c_ends_cleanly_with_its_summary(tmp_path):
     assert process.returncode == 0 and re.search(r"xsens: \d+ samples in \d+ messages, 0 lost", said), (said, err)
     status = [m.decode() for m in read_messages(out) if m.type_name == "msk.DeviceStatus"]
     assert not status[-1].connected  # the final status, not the last periodic one
+
+
+def test_a_device_summary_says_reconnections_and_a_silent_base():
+    report = driver_nodes.LoopReport(device="trigno", seconds_of_data=0.0)
+    assert report.summary_line() == "trigno: 0 samples in 0 messages, 0.0 s of data, 0 lost"
+    report.states = ["streaming", "reconnecting", "streaming", "reconnecting"]
+    assert report.summary_line().endswith("disconnected 2x, reconnected 1x")
+    trackers = driver_nodes.LoopReport(device="xsens", states=["disconnected", "disconnected", "reconnected"])
+    said = trackers.summary_line("published")
+    assert said == "xsens: published 0 samples in 0 messages, 0 lost, disconnected 2x, reconnected 1x"

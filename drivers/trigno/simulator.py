@@ -343,7 +343,13 @@ class TrignoSimulator:
                 continue
             listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((cfg.host, int(port)))
+            try:
+                listener.bind((cfg.host, int(port)))
+            except OSError as error:  # nothing left listening, and the error says which port
+                listener.close()
+                self.close()
+                error.strerror = f"{error.strerror} (the {name} port {port})"
+                raise
             listener.listen(8)
             listener.settimeout(0.1)
             self._listeners[name] = listener

@@ -112,8 +112,8 @@ def load_c3d(path: Path) -> EmgSource:
         if not 1 <= slot <= N_SENSORS:
             raise FileFormatError("EMG slot outside 1..16", path=path, field="ANALOG:LABELS", value=label)
         values = data[column]
-        if not np.any(values):
-            continue  # an unpaired slot exported as zeros; an IM sensor may own the slot instead
+        if not np.any(np.nan_to_num(values)):
+            continue  # an unpaired slot exported as zeros (or NaN); an IM sensor may own the slot instead
         if paired[slot - 1]:
             raise FileFormatError(
                 "two EMG channels claim the same sensor slot", path=path, field="ANALOG:LABELS", value=label

@@ -119,7 +119,9 @@ def load_capture(path: Path) -> ImuSource:
             rate,
         )
     if "quaternion" not in arrays and "euler" in arrays:
-        euler_id = next(s.data_id for s in recorded if s.data_id & 0xFFF0 == 0x2030)
+        # the Euler output's frame from the configuration, else from a message carrying it (ENU: the default)
+        ids = [s.data_id for s in recorded] + [d for m in messages[:50] for d, _ in xbus.item_layout(m.data)]
+        euler_id = next((d for d in ids if d & 0xFFF0 == 0x2030), 0x2030)
         arrays["quaternion"] = _quaternions_from_euler(arrays["euler"], xbus.frame_of(euler_id))
         log.info("%s: no quaternion in the capture; the device's own from its Euler angles", path)
     return ImuSource(rate, arrays, path.name, [m.data for m in messages], recorded)

@@ -8,8 +8,10 @@ as decoded from MTData2; DeviceStatus messages report connection, counts, losses
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 from msk_core.errors import ConfigError
@@ -33,13 +35,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=run)
 
 
-def _stop_on_interrupt(stop: threading.Event) -> None:
+@contextlib.contextmanager
+def _stop_on_interrupt(stop: threading.Event) -> Iterator[None]:
     """Ctrl-C (or SIGTERM) ends the capture as its duration would: the loops stop, the devices get their STOP and
-    final status, and the summary is printed (it ended in 'interrupted' with the last status 'connected')."""
+    final status, and the summary is printed (it ended in 'interrupted' with the last status 'connected'). A second
+    Ctrl-C interrupts at once. The previous handlers are back afterwards."""
     if threading.current_thread() is not threading.main_thread():
-        return  # signals reach the main thread only (a capture run from a test's thread)
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, lambda *_: stop.set())
+        yield  # signals reach the main thread only (a capture run from a test's thread)
+        return
+    previous = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+
+    def ask_stop(number, frame) -> None:
+        if stop.is_set():  # asked twice: do not wait for the devices
+            signal.signal(number, previous[number])
+            raise KeyboardInterrupt
+        stop.set()
+
+    for number in previous:
+        signal.signal(number, ask_stop)
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,13 +68,12 @@ def run(args: argparse.Namespace) -> int:
     topics.check_chunk(args.session, "session")
     devices = driver_nodes.device_settings(args)
     stop = threading.Event()
-    _stop_on_interrupt(stop)
     # never over an earlier recording: the next free FILE-001.mcap..., as msk recorder continues
     out = next_part_path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     sink = None
     try:
-        with McapRecorderWriter(out) as writer:
+        with McapRecorderWriter(out) as writer, _stop_on_interrupt(stop):
             sink = driver_nodes.McapSink(writer)
             reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
     except BaseException:

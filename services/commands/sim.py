@@ -167,7 +167,7 @@ def run_trigno(args: argparse.Namespace) -> int:
     )
     try:
         sim = TrignoSimulator(source, config).start()
-    except OSError as error:
+    except OSError as error:  # the simulator closed what it had bound: the port still taken is the culprit
         asked = {"--port": args.port, **{DATA_PORT_FLAGS[k][0]: v for k, v in ports.items() if k in DATA_PORT_FLAGS}}
         asked["--legacy-acc-port"] = ports["legacy_acc_port"]
         taken = [flag for flag, port in asked.items() if port > 0 and not _free(args.host, port)]

@@ -161,10 +161,15 @@ class LoopReport:
         said.append(f"{self.lost} lost" + (f" in {len(self.gaps)} gaps" if self.gaps else ""))
         if self.errors:
             said.append(f"{self.errors} errors")
-        if self.states.count("disconnected"):
-            said.append(
-                f"disconnected {self.states.count('disconnected')}x, reconnected {self.states.count('reconnected')}x"
-            )
+        # a tracker's disconnection, or the Trigno's link lost (its client reconnects by itself)
+        away = back = 0
+        for state in self.states:
+            if state in ("disconnected", "reconnecting"):
+                away += 1
+            elif state == "reconnected" or (state == "streaming" and away > back):  # streaming again after a loss
+                back += 1
+        if away:
+            said.append(f"disconnected {away}x, reconnected {back}x")
         return ", ".join(said)
 
 
@@ -180,7 +185,7 @@ def trigno_loop(
 ) -> LoopReport:
     """Start acquisition and publish until ``stop``/``duration_s``; then STOP/QUIT. The client must be connected.
     With an AUX port (``TrignoConfig.aux_port``) the sensors' accelerometers go to ``acc/<source_id>``."""
-    report = LoopReport(device="trigno")
+    report = LoopReport(device="trigno", seconds_of_data=0.0)  # a base that sends nothing covers 0 s
     emg_key = topics.emg_key(session, source_id)
     acc_key = topics.acc_key(session, source_id)
     status_key = topics.status_key(session, source_id)
@@ -239,6 +244,7 @@ def trigno_loop(
         for event in client.stop():  # the frames already on their way when we said STOP
             publish_data(event)
         publish_status(final=True)
+        report.errors = int(client.stats.errors)
     return report
 
 
@@ -276,6 +282,7 @@ def xsens_loop(
     publish_status()
     next_status = time.monotonic() + status_interval_s
     lost = set(trackers.disconnected)
+    report.states.extend(["disconnected"] * len(lost))  # trackers away before the first read
     without_orientation: set[str] = set()
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -303,10 +310,7 @@ def xsens_loop(
         report.errors = sum(
             d.stats.decode_errors + d.stats.device_errors + d.parser.stats.errors for d in known.values()
         )
-        # a tracker away since before the loop's first read counts as disconnected too
-        report.states.extend(
-            ["disconnected"] * max(0, len(trackers.disconnected) - report.states.count("disconnected"))
-        )
+
     return report
 
 

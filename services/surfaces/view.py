@@ -107,6 +107,8 @@ class ViewState:
             elif isinstance(message, messages.JointAngles):
                 if len(message.qd) == len(message.coordinates) and self.torques:
                     self.movement = movement(self.torques, dict(zip(message.coordinates, message.qd)))
+                else:  # no velocities or no torques now: no word rather than a stale one
+                    self.movement = None
             elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
             elif isinstance(message, messages.LoadEvent):

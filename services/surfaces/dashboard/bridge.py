@@ -335,6 +335,8 @@ class DashboardState:
         self._joints_have_phase = self._joints_have_phase or has_phase
         if len(joints.qd) == len(joints.coordinates) and self._torques:
             self._reps.movement = movement(self._torques, dict(zip(joints.coordinates, joints.qd)))
+        else:  # no velocities or no torques now: no word rather than a stale one
+            self._reps.movement = None
         if has_phase:
             self._reps.update(joints.device_time_ns / 1e9, joints.phase)
             self._put("reps", self._reps.as_dict())
