@@ -68,30 +68,22 @@ def _envelopes(t: TrialData, emg_groups: list[str], delay_s: float) -> np.ndarra
     return np.column_stack(columns)
 
 
-def _measured_at_every_delay(trials: list[TrialData], emg_groups: list[str], candidates: np.ndarray) -> list:
-    """Per trial, the frames whose EMG is finite at every candidate delay: one frame set for all candidates, so
-    their residuals compare like with like (a gap, NaN, or an EMG file that ends first, tells nothing)."""
-    return [
-        np.logical_and.reduce([np.all(np.isfinite(_envelopes(t, emg_groups, d)), axis=1) for d in candidates])
-        for t in trials
-    ]
-
-
 def _design(
     pack: PackLike,
     trials: list[TrialData],
-    delay_s: float,
+    emg_groups: list[str],
+    envelopes: list[np.ndarray],
     moment_arms: list[np.ndarray],
     measured: list[np.ndarray],
 ):
+    """Least-squares rows and target at one delay: ``envelopes`` per trial (:func:`_envelopes` at that delay),
+    ``measured`` per trial the frames whose EMG is finite at every candidate delay."""
     groups = list(pack.groups)
     f_ref = np.asarray(pack.f_max_ref, dtype=float)
-    emg_groups = sorted({g for t in trials for g in t.emg})
     cols = [groups.index(g) for g in emg_groups]
     rows, target = [], []
     n_c = len(pack.coordinates)
-    for t, arms, valid in zip(trials, moment_arms, measured):
-        e = _envelopes(t, emg_groups, delay_s)
+    for t, e, arms, valid in zip(trials, envelopes, moment_arms, measured):
         ok = np.all(np.isfinite(arms), axis=(1, 2)) & np.all(np.isfinite(t.torques), axis=1) & valid
         m = arms[ok] * f_ref[None, None, :]
         scale = 1.0 / np.maximum(np.abs(m).sum(axis=2), 1.0)  # per-coordinate capacity, as in the calibration
@@ -110,12 +102,19 @@ def estimate_emd(pack: PackLike, trials: list[TrialData], *, max_delay_s: float 
     dt = min(float(np.median(np.diff(t.time))) for t in trials if t.n_frames >= 2)
     candidates = np.arange(0, int(round(max_delay_s / dt)) + 1) * dt
     arms = [t.mechanics(pack).moment_arms for t in trials]
-    measured = _measured_at_every_delay(trials, sorted({g for t in trials for g in t.emg}), candidates)
+    emg_groups = sorted({g for t in trials for g in t.emg})
+    shifted = [[_envelopes(t, emg_groups, d) for t in trials] for d in candidates]  # per candidate, per trial
+    # one frame set for all candidates, so their residuals compare like with like: the frames whose EMG is finite at
+    # every delay (a gap, NaN, or an EMG file that ends first, tells nothing)
+    measured = [
+        np.logical_and.reduce([np.all(np.isfinite(at_delay[k]), axis=1) for at_delay in shifted])
+        for k in range(len(trials))
+    ]
     if not any(m.any() for m in measured):
         raise EstimationError("EMD estimation found no frame with every envelope measured (all EMG NaN?)")
     residual = np.empty(candidates.size)
-    for i, d in enumerate(candidates):
-        x, y = _design(pack, trials, d, arms, measured)
+    for i, envelopes in enumerate(shifted):
+        x, y = _design(pack, trials, emg_groups, envelopes, arms, measured)
         coef, *_ = np.linalg.lstsq(x, y, rcond=None)
         residual[i] = float(np.sum((y - x @ coef) ** 2) / max(float(np.sum((y - y.mean()) ** 2)), 1e-300))
     best = int(np.argmin(residual))
