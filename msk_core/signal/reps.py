@@ -383,6 +383,14 @@ def movement(torques_nm: dict[str, float], velocities: dict[str, float], thresho
     return "turning"
 
 
+def joint_movement(torques_nm: dict[str, float], coordinates, velocities) -> str | None:
+    """:func:`movement` of the newest torques and a joint-angle message's ``coordinates`` and ``velocities``; None
+    (no word rather than a stale one) without torques or without a velocity per coordinate."""
+    if not torques_nm or len(velocities) != len(coordinates):
+        return None
+    return movement(torques_nm, dict(zip(coordinates, velocities)))
+
+
 MIN_REP_S = 0.3
 # Samples further apart than this do not belong to one rep (the stream had a gap: the rep is closed at its last sample).
 MAX_SAMPLE_GAP_S = 0.5

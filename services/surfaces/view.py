@@ -40,7 +40,7 @@ from msk_core.errors import ConfigError
 from msk_core.estimate.flags import flag_text
 from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
-from msk_core.signal.reps import movement
+from msk_core.signal.reps import joint_movement
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.facts import join_late
@@ -105,10 +105,7 @@ class ViewState:
                     self.torques = {t.coordinate: t.inverse_dynamics_nm for t in message.torques}
                 self.frames[message.method] = message
             elif isinstance(message, messages.JointAngles):
-                if len(message.qd) == len(message.coordinates) and self.torques:
-                    self.movement = movement(self.torques, dict(zip(message.coordinates, message.qd)))
-                else:  # no velocities or no torques now: no word rather than a stale one
-                    self.movement = None
+                self.movement = joint_movement(self.torques, message.coordinates, message.qd)
             elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
             elif isinstance(message, messages.LoadEvent):

@@ -39,7 +39,7 @@ from msk_core.errors import ConfigError
 from msk_core.estimate.flags import flag_text
 from msk_core.estimate.live_fatigue import tiring
 from msk_core.model.pack import names_for
-from msk_core.signal.reps import PhaseRepCounter, movement
+from msk_core.signal.reps import PhaseRepCounter, joint_movement
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.facts import join_late
@@ -333,10 +333,7 @@ class DashboardState:
         self.last_data_ns = arrival_ns
         has_phase = joints.HasField("phase")
         self._joints_have_phase = self._joints_have_phase or has_phase
-        if len(joints.qd) == len(joints.coordinates) and self._torques:
-            self._reps.movement = movement(self._torques, dict(zip(joints.coordinates, joints.qd)))
-        else:  # no velocities or no torques now: no word rather than a stale one
-            self._reps.movement = None
+        self._reps.movement = joint_movement(self._torques, joints.coordinates, joints.qd)
         if has_phase:
             self._reps.update(joints.device_time_ns / 1e9, joints.phase)
             self._put("reps", self._reps.as_dict())
