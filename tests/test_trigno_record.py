@@ -370,7 +370,13 @@ def test_msk_sim_trigno_names_the_port_that_is_taken():
     taken.listen()
     try:
         port = taken.getsockname()[1]  # the command port free and bound first: it was blamed too
-        process = _sim_trigno("--port", str(free_port()), "--emg-port", str(port), "--duration", "1")
+        # every other data port free and given: a parallel test may hold the TCU's fixed ones (CI did)
+        others = [
+            flag_value
+            for flag in ("--legacy-emg-port", "--aux-port", "--legacy-acc-port")
+            for flag_value in (flag, str(free_port()))
+        ]
+        process = _sim_trigno("--port", str(free_port()), "--emg-port", str(port), *others, "--duration", "1")
         _, err = process.communicate(timeout=30)
     finally:
         taken.close()
