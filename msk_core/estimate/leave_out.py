@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -71,14 +71,7 @@ class Agreement:
     r_aligned: float = float("nan")
 
     def to_dict(self) -> dict[str, float]:
-        return {
-            "rmse": self.rmse,
-            "r": self.r,
-            "lag_ms": self.lag_ms,
-            "on_off_agreement": self.on_off_agreement,
-            "rmse_aligned": self.rmse_aligned,
-            "r_aligned": self.r_aligned,
-        }
+        return asdict(self)
 
     def scores(self, aligned: bool) -> tuple[float, float]:
         """(RMSE, r) against the envelope as recorded or delay-aligned."""
@@ -107,15 +100,7 @@ class CalibrationRun:
     cpu_seconds: float = float("nan")  # this process' CPU time (time.process_time)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "left_out": self.left_out,
-            "converged": self.converged,
-            "iterations": self.iterations,
-            "emd_ms": self.emd_ms,
-            "seconds": self.seconds,
-            "cpu_seconds": self.cpu_seconds,
-            "strength": self.strength,
-        }
+        return asdict(self)
 
 
 @dataclass
