@@ -34,6 +34,11 @@ def frames(start_s: float, reps: int, rest_after_s: float) -> list[messages.Acti
     return out
 
 
+def _facts(announced: dict) -> dict:
+    """The announced facts without the newest set as counted (``set_counted``, its own tests below)."""
+    return {k: v for k, v in announced.items() if k != "set_counted"}
+
+
 def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_opened(monkeypatch):
     announced: list[dict] = []
     follower = FactsFollower(announced.append)
@@ -42,7 +47,7 @@ def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_ope
     for tracker_event in (follower.on_event, lambda e: apply_load_event(consumer, e)):
         tracker_event(start)
     opening = {"exercise": "bench_press", "load_kg": 50, "set_number": 1, "athlete": "Ana", "resting": False}
-    assert announced[-1] == opening
+    assert _facts(announced[-1]) == opening
     # set 1, a rest longer than rest detection's 20 s, and the first rep of the next set
     for frame in frames(0.0, 3, 25.0) + frames(34.0, 1, 0.5):
         follower.on_frame("so", frame)
@@ -55,7 +60,7 @@ def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_ope
     follower.on_event(load)
     apply_load_event(consumer, load)
     assert consumer.number == 2 and len(consumer.sets) == 2, [s.as_dict() for s in consumer.sets]
-    assert announced[-1] == opening | {"load_kg": 60, "set_number": 2}
+    assert _facts(announced[-1]) == opening | {"load_kg": 60, "set_number": 2}
     # msk load --next-set and msk set start from the announced facts: the set after the one under way
     nxt = new_facts(announced[-1], load_kg=None, set_number=None, next_set=True, exercise=None, athlete=None)
     assert nxt.set_number == 3
@@ -87,6 +92,62 @@ def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_ope
     # an event that names no exercise keeps the one in effect in the facts (as the estimator does)
     follower.on_event(messages.LoadEvent(barbell_mass_kg=62.5, set_number=2, athlete="Ana"))
     assert announced[-1]["exercise"] == "bench_press"
+
+
+def _follow(follower: FactsFollower, trackers: list[SetTracker], batch: list[messages.ActivationFrame]) -> None:
+    for frame in batch:
+        follower.on_frame("so", frame)
+        for tracker in trackers:
+            tracker.update(frame.time_s, frame.phase)
+
+
+def _join(monkeypatch, opening: messages.LoadEvent, announced: dict) -> SetTracker:
+    """A page that starts now: the opening facts msk live's load publisher keeps, then what msk live announces."""
+    late = SetTracker()
+    apply_load_event(late, opening)
+    monkeypatch.setattr("services.sessions.discovery.announced_facts", lambda session: announced)
+    for event in announced_events("sim"):
+        apply_load_event(late, event)
+    return late
+
+
+@pytest.mark.parametrize("join_after_reps", [2, 3])
+def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatch, join_after_reps):
+    """A page opened after rep 2 of 3, or after the set's last rep and before rest detection ended it: it counted no
+    rep of that set, never ended it and put the next set's reps into it (one set behind, reps short)."""
+    announced: list[dict] = []
+    follower = FactsFollower(announced.append)
+    session = SetTracker()  # what a page that ran from the start counts
+    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
+    follower.on_event(opening)
+    apply_load_event(session, opening)
+    set_1 = frames(100.0, 3, 25.0)
+    cut = int(join_after_reps * 3 * RATE_HZ + (RATE_HZ if join_after_reps == 3 else 10))
+    _follow(follower, [session], set_1[:cut])
+    late = _join(monkeypatch, opening, announced[-1])
+    assert late.number == 1 and len(late.sets[0].reps) == join_after_reps
+    assert late.sets[0].start_s == session.sets[0].start_s
+    _follow(follower, [session, late], set_1[cut:] + frames(set_1[-1].time_s + 0.02, 2, 1.0))
+    # the rep under way at the join counts from the page's first sample of it; the rest is the session's
+    assert [(s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in late.sets] == [
+        (s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in session.sets
+    ]
+    assert [len(s.reps) for s in late.sets] == [3, 2] and late.sets[0].ended_by == "rest"
+
+
+def test_a_page_that_joins_during_a_rest_shows_the_set_before_it(monkeypatch):
+    announced: list[dict] = []
+    follower = FactsFollower(announced.append)
+    session = SetTracker()
+    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
+    follower.on_event(opening)
+    apply_load_event(session, opening)
+    _follow(follower, [session], frames(100.0, 3, 25.0))
+    assert announced[-1]["resting"] and announced[-1]["set_counted"]["end_s"] == session.sets[0].end_s
+    late = _join(monkeypatch, opening, announced[-1])
+    assert late.resting and late.number == 1
+    assert late.sets[0].start_s == session.sets[0].start_s and late.sets[0].reps == session.sets[0].reps
+    assert late.sets[0].end_s == pytest.approx(session.sets[0].end_s, abs=1e-9)  # through a time in ns
 
 
 def test_one_shot_commands_refuse_a_misspelt_session_and_unknown_facts(tmp_path, monkeypatch, capsys):

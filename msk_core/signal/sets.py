@@ -183,13 +183,27 @@ class SetTracker:
         self._close(t, "operator")
         self._reset_reps()
 
-    def on_facts(self, t: float | None, *, set_number: int, set_mark: str, mass_kg: float, rest_s: float = 0.0) -> None:
+    def on_facts(
+        self,
+        t: float | None,
+        *,
+        set_number: int,
+        set_mark: str,
+        mass_kg: float,
+        rest_s: float = 0.0,
+        set_start_s: float | None = None,
+        rep_spans: Sequence[tuple[float, float]] = (),
+    ) -> None:
         """A session fact at ``t`` (``LoadEvent``: its time, None when it has none, set number, mark, barbell mass
         and rest-detection time, 0 for the one in effect; a time more than :data:`MAX_FACT_GAP_S` from the newest
         phase sample takes that sample's): "start" starts set ``set_number`` (or the next), "stop" ends the set; without a mark a
         new set number starts that set (``msk load --next-set``), a mass without a number the next set (a load
         change of an operator who does not number sets), and neither mass nor number ends the set (the bar is
-        off); the same set number changes nothing."""
+        off); the same set number changes nothing.
+
+        ``set_start_s`` and ``rep_spans``: set ``set_number`` as another tracker counted it (what ``msk live``
+        announces to a page that joins late, :meth:`counted`): its start and the reps it had, kept beside the reps
+        counted here, so the set's clock, rep count and rest detection are the session's."""
         if set_mark not in SET_MARKS:
             raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
         if rest_s:
@@ -209,6 +223,15 @@ class SetTracker:
             self.start(t, by=by)
         elif set_number == 0 and mass_kg <= 0:
             self.stop(t)
+        if not set_mark and (set_start_s is not None or rep_spans):
+            self._resume(set_number, set_start_s, rep_spans)
+
+    def counted(self) -> SetRecord | None:
+        """The newest set, leaving out one that a rep opened and that has not counted yet (as :attr:`settled`):
+        what a tracker that joins late takes (:meth:`on_facts`); None before the first."""
+        if self._tentative and self.sets and not self.sets[-1].reps:
+            return self.sets[-2] if len(self.sets) > 1 else None
+        return self.sets[-1] if self.sets else None
 
     # ---- data ------------------------------------------------------------------------------------------------------
     def update(self, t: float, phase: float | None) -> None:
@@ -274,6 +297,23 @@ class SetTracker:
             self._close(max(end, current.start_s), "end of data")
 
     # ---- inside ----------------------------------------------------------------------------------------------------
+    def _resume(self, number: int, start_s: float | None, spans: Sequence[tuple[float, float]]) -> None:
+        """Set ``number`` as another tracker counted it (:meth:`on_facts`): its start, and its reps beside those
+        counted here (one that overlaps a rep counted here is that rep)."""
+        record = next((r for r in reversed(self.sets) if r.number == number), None)
+        if record is None:
+            return
+        own = list(record.reps)
+        known = [(float(a), float(b)) for a, b in spans if not any(a < d and c < b for c, d in own)]
+        record.reps = sorted(known + own)
+        if start_s is not None and math.isfinite(start_s):
+            record.start_s = min([float(start_s)] + [a for a, _ in record.reps])
+            for earlier in self.sets[: self.sets.index(record)]:  # a set this one started was ended here later
+                if earlier.end_s is not None and earlier.end_s > record.start_s:
+                    earlier.end_s = max(earlier.start_s, record.start_s)
+        if record is self.current and record.reps:
+            self._tentative = False
+
     def _past(self, t: float) -> bool:
         """``t`` is before the end of the last set (data older than the operator's last mark)."""
         last = self.sets[-1] if self.sets else None

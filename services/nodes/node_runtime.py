@@ -579,6 +579,8 @@ def apply_load_event(sets: SetTracker, event: messages.LoadEvent) -> None:
         set_mark=event.set_mark,
         mass_kg=event.barbell_mass_kg,
         rest_s=event.set_rest_s,
+        set_start_s=event.set_start_s if event.HasField("set_start_s") else None,
+        rep_spans=list(zip(event.set_rep_spans_s[::2], event.set_rep_spans_s[1::2])),
     )
 
 

@@ -17,6 +17,10 @@ from services.nodes.node_runtime import NodeInputs, apply_load_event
 from services.sessions import discovery
 from services.transport import messages
 
+#: The key of the announced facts (``OUT/session.json``) that holds the newest set as ``msk live`` counted it: number,
+#: start, end (None while under way) and rep spans on the activation frames' clock, for pages that join late.
+SET_COUNTED = "set_counted"
+
 
 def check_facts(load_kg: float | None, set_number: int | None) -> None:
     """The operator's load (finite, >= 0 kg) and set number (from 1), each when given."""
@@ -103,9 +107,9 @@ class FactsFollower:
             self._method = self._method or method
             if method != self._method:
                 return
-            settled = self._sets.settled
+            before = self._state()
             self._sets.update(frame.time_s, frame.phase if frame.HasField("phase") else None)
-            if self._sets.settled != settled:
+            if self._state() != before:
                 self._announce()
 
     def wants(self, method: str) -> bool:
@@ -115,7 +119,32 @@ class FactsFollower:
     def _announce(self) -> None:
         if self._facts:
             number, resting = self._sets.settled
-            self._on_facts({**self._facts, "set_number": number or self._facts["set_number"], "resting": resting})
+            self._on_facts(
+                {
+                    **self._facts,
+                    "set_number": number or self._facts["set_number"],
+                    "resting": resting,
+                    SET_COUNTED: self._counted(),
+                }
+            )
+
+    def _state(self) -> tuple:
+        """What the announcement says, cheaply compared per frame: the set number, resting, and the newest set's
+        reps and end."""
+        record = self._sets.counted()
+        return self._sets.settled, None if record is None else (record.number, record.end_s, len(record.reps))
+
+    def _counted(self) -> dict | None:
+        """The newest set as this session counted it (:meth:`SetTracker.counted`), JSON-ready."""
+        record = self._sets.counted()
+        if record is None:
+            return None
+        return {
+            "number": record.number,
+            "start_s": record.start_s,
+            "end_s": record.end_s,
+            "rep_spans_s": [list(r) for r in record.reps],
+        }
 
 
 def announced_events(session: str) -> list[messages.LoadEvent]:
@@ -128,8 +157,16 @@ def announced_events(session: str) -> list[messages.LoadEvent]:
     if not facts:
         return []
     events = [new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)]
+    counted = facts.get(SET_COUNTED)
+    if isinstance(counted, dict) and counted.get("number") == events[0].set_number:
+        # the set as msk live counted it: the page keeps its clock, its reps and (at rest) where it ended
+        events[0].set_start_s = float(counted["start_s"])
+        events[0].set_rep_spans_s.extend(float(x) for span in counted["rep_spans_s"] for x in span)
     if facts.get("resting"):
         events.append(set_mark_event(events[0], int(events[0].set_number), "stop"))
+        end_s = counted.get("end_s") if isinstance(counted, dict) else None
+        if isinstance(end_s, (int, float)) and end_s > 0:
+            events[-1].device_time_ns = round(end_s * 1e9)
     return events
 
 
