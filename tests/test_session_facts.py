@@ -35,8 +35,8 @@ def frames(start_s: float, reps: int, rest_after_s: float) -> list[messages.Acti
 
 
 def _facts(announced: dict) -> dict:
-    """The announced facts without the newest set as counted (``set_counted``, its own tests below)."""
-    return {k: v for k, v in announced.items() if k != "set_counted"}
+    """The announced facts without the sets as counted (``sets_counted``, their own tests below)."""
+    return {k: v for k, v in announced.items() if k != "sets_counted"}
 
 
 def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_opened(monkeypatch):
@@ -135,6 +135,25 @@ def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatc
     assert [len(s.reps) for s in late.sets] == [3, 2] and late.sets[0].ended_by == "rest"
 
 
+def test_a_page_that_joins_in_set_2_shows_set_1_as_the_session_counted_it(monkeypatch):
+    """It showed set 1 with the opening facts' start, no rep and ended by "next set" at the join."""
+    announced: list[dict] = []
+    follower = FactsFollower(announced.append)
+    session = SetTracker()
+    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
+    follower.on_event(opening)
+    apply_load_event(session, opening)
+    both = frames(100.0, 3, 25.0) + frames(134.0, 3, 25.0)
+    cut = len(frames(100.0, 3, 25.0)) + int(4.5 * RATE_HZ)  # in rep 2 of set 2
+    _follow(follower, [session], both[:cut])
+    late = _join(monkeypatch, opening, announced[-1])
+    _follow(follower, [session, late], both[cut:])
+    assert [len(s.reps) for s in session.sets] == [3, 3]
+    assert [(s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in late.sets] == [
+        (s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in session.sets
+    ]
+
+
 def test_a_page_that_joins_during_a_rest_shows_the_set_before_it(monkeypatch):
     announced: list[dict] = []
     follower = FactsFollower(announced.append)
@@ -143,11 +162,11 @@ def test_a_page_that_joins_during_a_rest_shows_the_set_before_it(monkeypatch):
     follower.on_event(opening)
     apply_load_event(session, opening)
     _follow(follower, [session], frames(100.0, 3, 25.0))
-    assert announced[-1]["resting"] and announced[-1]["set_counted"]["end_s"] == session.sets[0].end_s
+    assert announced[-1]["resting"] and announced[-1]["sets_counted"][-1]["end_s"] == session.sets[0].end_s
     late = _join(monkeypatch, opening, announced[-1])
     assert late.resting and late.number == 1
-    assert late.sets[0].start_s == session.sets[0].start_s and late.sets[0].reps == session.sets[0].reps
-    assert late.sets[0].end_s == pytest.approx(session.sets[0].end_s, abs=1e-9)  # through a time in ns
+    assert late.sets[0].as_dict() == session.sets[0].as_dict() | {"groups": [], "peak": [], "mean": []}
+    assert late.sets[0].ended_by == "rest"
 
 
 def test_one_shot_commands_refuse_a_misspelt_session_and_unknown_facts(tmp_path, monkeypatch, capsys):

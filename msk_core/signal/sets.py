@@ -193,6 +193,8 @@ class SetTracker:
         rest_s: float = 0.0,
         set_start_s: float | None = None,
         rep_spans: Sequence[tuple[float, float]] = (),
+        set_end_s: float | None = None,
+        set_ended_by: str = "",
     ) -> None:
         """A session fact at ``t`` (``LoadEvent``: its time, None when it has none, set number, mark, barbell mass
         and rest-detection time, 0 for the one in effect; a time more than :data:`MAX_FACT_GAP_S` from the newest
@@ -201,9 +203,10 @@ class SetTracker:
         change of an operator who does not number sets), and neither mass nor number ends the set (the bar is
         off); the same set number changes nothing.
 
-        ``set_start_s`` and ``rep_spans``: set ``set_number`` as another tracker counted it (what ``msk live``
-        announces to a page that joins late, :meth:`counted`): its start and the reps it had, kept beside the reps
-        counted here, so the set's clock, rep count and rest detection are the session's."""
+        ``set_start_s``, ``rep_spans``, ``set_end_s`` and ``set_ended_by``: set ``set_number`` as another tracker
+        counted it (what ``msk live`` announces to a page that joins late, :meth:`counted`): its start, the reps it
+        had (kept beside the reps counted here) and, once it ended, when and by whom, so the set's clock, reps and
+        end are the session's."""
         if set_mark not in SET_MARKS:
             raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
         if rest_s:
@@ -224,14 +227,14 @@ class SetTracker:
         elif set_number == 0 and mass_kg <= 0:
             self.stop(t)
         if not set_mark and (set_start_s is not None or rep_spans):
-            self._resume(set_number, set_start_s, rep_spans)
+            self._resume(set_number, set_start_s, rep_spans, set_end_s, set_ended_by or "operator")
 
-    def counted(self) -> SetRecord | None:
-        """The newest set, leaving out one that a rep opened and that has not counted yet (as :attr:`settled`):
-        what a tracker that joins late takes (:meth:`on_facts`); None before the first."""
+    def counted(self) -> list[SetRecord]:
+        """The sets, leaving out one that a rep opened and that has not counted yet (as :attr:`settled`): what a
+        tracker that joins late takes, one set after the other (:meth:`on_facts`)."""
         if self._tentative and self.sets and not self.sets[-1].reps:
-            return self.sets[-2] if len(self.sets) > 1 else None
-        return self.sets[-1] if self.sets else None
+            return self.sets[:-1]
+        return list(self.sets)
 
     # ---- data ------------------------------------------------------------------------------------------------------
     def update(self, t: float, phase: float | None) -> None:
@@ -297,9 +300,16 @@ class SetTracker:
             self._close(max(end, current.start_s), "end of data")
 
     # ---- inside ----------------------------------------------------------------------------------------------------
-    def _resume(self, number: int, start_s: float | None, spans: Sequence[tuple[float, float]]) -> None:
-        """Set ``number`` as another tracker counted it (:meth:`on_facts`): its start, and its reps beside those
-        counted here (one that overlaps a rep counted here is that rep)."""
+    def _resume(
+        self,
+        number: int,
+        start_s: float | None,
+        spans: Sequence[tuple[float, float]],
+        end_s: float | None,
+        ended_by: str,
+    ) -> None:
+        """Set ``number`` as another tracker counted it (:meth:`on_facts`): its start, its reps beside those
+        counted here (one that overlaps a rep counted here is that rep) and its end."""
         record = next((r for r in reversed(self.sets) if r.number == number), None)
         if record is None:
             return
@@ -313,6 +323,9 @@ class SetTracker:
                     earlier.end_s = max(earlier.start_s, record.start_s)
         if record is self.current and record.reps:
             self._tentative = False
+        if record is self.current and end_s is not None and math.isfinite(end_s):
+            self._close(max(float(end_s), record.start_s), ended_by)
+            self._reset_reps()
 
     def _past(self, t: float) -> bool:
         """``t`` is before the end of the last set (data older than the operator's last mark)."""

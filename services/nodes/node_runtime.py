@@ -581,6 +581,8 @@ def apply_load_event(sets: SetTracker, event: messages.LoadEvent) -> None:
         rest_s=event.set_rest_s,
         set_start_s=event.set_start_s if event.HasField("set_start_s") else None,
         rep_spans=list(zip(event.set_rep_spans_s[::2], event.set_rep_spans_s[1::2])),
+        set_end_s=event.set_end_s if event.HasField("set_end_s") else None,
+        set_ended_by=event.set_ended_by,
     )
 
 

@@ -12,14 +12,17 @@ import threading
 from collections.abc import Callable
 
 from msk_core.errors import ConfigError
-from msk_core.signal.sets import SetTracker
+from msk_core.signal.sets import SetRecord, SetTracker
 from services.nodes.node_runtime import NodeInputs, apply_load_event
 from services.sessions import discovery
 from services.transport import messages
 
-#: The key of the announced facts (``OUT/session.json``) that holds the newest set as ``msk live`` counted it: number,
-#: start, end (None while under way) and rep spans on the activation frames' clock, for pages that join late.
-SET_COUNTED = "set_counted"
+#: The key of the announced facts (``OUT/session.json``) that holds the sets as ``msk live`` counted them, oldest
+#: first: number, start, end (None while under way), who ended it and rep spans on the activation frames' clock, for
+#: pages that join late.
+SETS_COUNTED = "sets_counted"
+#: The sets announced at the most (the newest): a page that joins a long session shows these.
+MAX_ANNOUNCED_SETS = 50
 
 
 def check_facts(load_kg: float | None, set_number: int | None) -> None:
@@ -124,27 +127,27 @@ class FactsFollower:
                     **self._facts,
                     "set_number": number or self._facts["set_number"],
                     "resting": resting,
-                    SET_COUNTED: self._counted(),
+                    SETS_COUNTED: [_set_dict(r) for r in self._sets.counted()[-MAX_ANNOUNCED_SETS:]],
                 }
             )
 
     def _state(self) -> tuple:
         """What the announcement says, cheaply compared per frame: the set number, resting, and the newest set's
-        reps and end."""
-        record = self._sets.counted()
-        return self._sets.settled, None if record is None else (record.number, record.end_s, len(record.reps))
+        reps and end (a set ends or gets a rep one at a time)."""
+        sets = self._sets.sets
+        newest = (len(sets), sets[-1].end_s, len(sets[-1].reps)) if sets else None
+        return self._sets.settled, newest
 
-    def _counted(self) -> dict | None:
-        """The newest set as this session counted it (:meth:`SetTracker.counted`), JSON-ready."""
-        record = self._sets.counted()
-        if record is None:
-            return None
-        return {
-            "number": record.number,
-            "start_s": record.start_s,
-            "end_s": record.end_s,
-            "rep_spans_s": [list(r) for r in record.reps],
-        }
+
+def _set_dict(record: SetRecord) -> dict:
+    """A set as a session counted it (:meth:`SetTracker.counted`), JSON-ready for the announcement."""
+    return {
+        "number": record.number,
+        "start_s": record.start_s,
+        "end_s": record.end_s,
+        "ended_by": record.ended_by,
+        "rep_spans_s": [list(r) for r in record.reps],
+    }
 
 
 def announced_events(session: str) -> list[messages.LoadEvent]:
@@ -156,18 +159,25 @@ def announced_events(session: str) -> list[messages.LoadEvent]:
     facts = discovery.announced_facts(session)
     if not facts:
         return []
-    events = [new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)]
-    counted = facts.get(SET_COUNTED)
-    if isinstance(counted, dict) and counted.get("number") == events[0].set_number:
-        # the set as msk live counted it: the page keeps its clock, its reps and (at rest) where it ended
-        events[0].set_start_s = float(counted["start_s"])
-        events[0].set_rep_spans_s.extend(float(x) for span in counted["rep_spans_s"] for x in span)
-    if facts.get("resting"):
-        events.append(set_mark_event(events[0], int(events[0].set_number), "stop"))
-        end_s = counted.get("end_s") if isinstance(counted, dict) else None
-        if isinstance(end_s, (int, float)) and end_s > 0:
-            events[-1].device_time_ns = round(end_s * 1e9)
+    in_effect = new_facts(facts, load_kg=None, set_number=None, next_set=False, exercise=None, athlete=None)
+    events = [_counted_set_event(in_effect, record) for record in facts.get(SETS_COUNTED) or []]
+    if not events or events[-1].set_number != in_effect.set_number:
+        events.append(in_effect)
+    if facts.get("resting") and not events[-1].HasField("set_end_s"):
+        events.append(set_mark_event(in_effect, int(in_effect.set_number), "stop"))
     return events
+
+
+def _counted_set_event(in_effect: messages.LoadEvent, record: dict) -> messages.LoadEvent:
+    """The facts in effect naming one set as msk live counted it: the page keeps its clock, its reps and its end."""
+    event = messages.LoadEvent()
+    event.CopyFrom(in_effect)
+    event.set_number = int(record["number"])
+    event.set_start_s = float(record["start_s"])
+    event.set_rep_spans_s.extend(float(x) for span in record["rep_spans_s"] for x in span)
+    if record.get("end_s") is not None:
+        event.set_end_s, event.set_ended_by = float(record["end_s"]), str(record.get("ended_by", ""))
+    return event
 
 
 def join_late(inputs: NodeInputs, session: str) -> str:
