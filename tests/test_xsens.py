@@ -14,7 +14,7 @@ from drivers.xsens.device import TrackerSet, XbusDeviceError, XsensDevice, outpu
 from drivers.xsens.serial_transport import DeviceDisconnected, SerialTransport
 from drivers.xsens.simulator import FaultConfig, XsensSimulator
 from drivers.xsens.source import load_imu_source, synthetic_imu
-from msk_core.errors import ConfigError, FileFormatError, InputError
+from msk_core.errors import ConfigError, FileFormatError, InputError, ProtocolError
 from tests.test_xbus import STEP
 
 
@@ -54,6 +54,39 @@ def test_configure_and_measure_every_precision_and_frame(precision, frame):
         assert reading.quaternion_enu() == pytest.approx(tuple(source.arrays["quaternion"][k]), abs=4 * step)
         assert reading.acceleration == pytest.approx(tuple(source.arrays["acceleration"][k]), abs=10 * step)
         assert reading.device_time_ns == round(k * 1e4 / 100) * 100_000
+
+
+class LosesRequests:
+    """A serial line that loses the first ``count`` requests of message id ``mid`` on their way to the device."""
+
+    def __init__(self, transport: SerialTransport, mid: int, count: int) -> None:
+        self.transport, self.mid, self.count = transport, mid, count
+
+    def write(self, data: bytes) -> None:
+        if data[2] == self.mid and self.count > 0:
+            self.count -= 1
+            return
+        self.transport.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self.transport, name)
+
+
+@pytest.mark.parametrize("lost, identified", [(2, True), (3, False)])
+def test_a_lost_query_is_asked_again_before_the_device_is_given_up(lost, identified):
+    """msk live stopped when one tracker's ReqDID went unanswered for 1 s (the simulator busy on a loaded host)."""
+    with XsensSimulator(synthetic_imu(seconds=5.0), speed=4.0, device_id=0x03700123) as sim:
+        device = XsensDevice(LosesRequests(SerialTransport(sim.path, baudrate=921600), xbus.Mid.REQ_DID, lost))
+        device.reply_timeout_s = 0.3
+        try:
+            if identified:
+                assert device.configure(100)["device_id"] == "03700123"
+                assert device.stats.requests_repeated == lost and len(read_for(device, count=10)) >= 10
+            else:
+                with pytest.raises(ProtocolError, match=r"no reply 0x01 to REQ_DID within 0.3 s \(asked 3 times\)"):
+                    device.configure(100)
+        finally:
+            device.close()
 
 
 def test_without_wakeup_ack_the_device_measures_with_factory_outputs():

@@ -54,6 +54,10 @@ class ImuReading:
         return None if self.quaternion is None else frames.to_enu(self.quaternion, self.frame)
 
 
+#: How often :meth:`XsensDevice.ask` sends a request that changes nothing before it gives up.
+REQUEST_ATTEMPTS = 3
+
+
 @dataclass
 class DeviceStats:
     messages: int = 0
@@ -63,6 +67,7 @@ class DeviceStats:
     device_errors: int = 0
     restarts: int = 0  # WakeUp seen while measuring: the device reset itself (counters start again)
     reconnects: int = 0  # reopened and reconfigured after an unplug
+    requests_repeated: int = 0  # a request that changes nothing asked again when no reply came in time
     last_error: str = ""
 
 
@@ -187,21 +192,28 @@ class XsensDevice:
                     return
         raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
 
-    def go_to_config(self, *, attempts: int = 3) -> None:
-        """Enter Config state (a streaming device may need more than one request at high rates)."""
-        for attempt in range(attempts):
+    def ask(self, mid: int, *, attempts: int = REQUEST_ATTEMPTS) -> xbus.XbusMessage:
+        """:meth:`request` for a request that changes nothing when repeated (GoToConfig, the queries): asked again
+        when no reply comes in time, as a request lost on the line or a device busy streaming (or starting, on a
+        loaded host) would need; a late reply to an earlier ask answers the next one alike."""
+        for attempt in range(1, attempts + 1):
             try:
-                self.request(xbus.Mid.GO_TO_CONFIG)
-                self._queue.clear()  # data from before the configuration is stale
-                return
+                return self.request(mid)
             except XbusDeviceError:
                 raise
-            except ProtocolError:
-                if attempt == attempts - 1:
-                    raise
+            except ProtocolError as error:
+                if attempt == attempts:
+                    raise ProtocolError(f"{error} (asked {attempts} times)") from None
+                self.stats.requests_repeated += 1
+        raise AssertionError("unreachable")
+
+    def go_to_config(self, *, attempts: int = REQUEST_ATTEMPTS) -> None:
+        """Enter Config state (a streaming device may need more than one request at high rates)."""
+        self.ask(xbus.Mid.GO_TO_CONFIG, attempts=attempts)
+        self._queue.clear()  # data from before the configuration is stale
 
     def request_device_id(self) -> int:
-        reply = self.request(xbus.Mid.REQ_DID)
+        reply = self.ask(xbus.Mid.REQ_DID)
         if len(reply.data) not in (4, 8):
             raise ProtocolError(f"DeviceID reply has {len(reply.data)} bytes, expected 4 or 8")
         self.device_id = int.from_bytes(reply.data, "big")  # 8-byte ids (newer devices) kept whole: unique keys
@@ -209,11 +221,11 @@ class XsensDevice:
         return self.device_id
 
     def request_product_code(self) -> str:
-        reply = self.request(xbus.Mid.REQ_PRODUCT_CODE)
+        reply = self.ask(xbus.Mid.REQ_PRODUCT_CODE)
         return reply.data.decode("ascii", errors="replace").strip().strip("\x00")
 
     def request_firmware_revision(self) -> FirmwareRevision:
-        reply = self.request(xbus.Mid.REQ_FW_REV)
+        reply = self.ask(xbus.Mid.REQ_FW_REV)
         if len(reply.data) < 3:
             raise ProtocolError(f"FirmwareRev reply has {len(reply.data)} bytes, expected at least 3")
         return FirmwareRevision(*reply.data[:3])
@@ -233,13 +245,13 @@ class XsensDevice:
 
     def request_baudrate(self) -> int:
         """The device's serial baud rate in bit/s (ReqBaudrate 0x18 with no data; the reply carries the code)."""
-        reply = self.request(xbus.Mid.BAUDRATE)
+        reply = self.ask(xbus.Mid.BAUDRATE)
         if len(reply.data) != 1 or reply.data[0] not in xbus.BAUD_CODES:
             raise ProtocolError(f"Baudrate reply {reply.data.hex() or 'empty'} is not one Xbus baud-rate code")
         return xbus.BAUD_CODES[reply.data[0]]
 
     def request_output_configuration(self) -> list[xbus.OutputSetting]:
-        return xbus.decode_output_configuration(self.request(xbus.Mid.SET_OUTPUT_CONFIGURATION).data)
+        return xbus.decode_output_configuration(self.ask(xbus.Mid.SET_OUTPUT_CONFIGURATION).data)
 
     def go_to_measurement(self) -> None:
         self.request(xbus.Mid.GO_TO_MEASUREMENT)
