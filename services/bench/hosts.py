@@ -710,7 +710,7 @@ def serve_simulators() -> int:
     off by up to 90 deg, most frames ``invalid_input``.) Prints one JSON line (ports, trackers, the trial's electrode
     map and load), then runs until SIGINT or SIGTERM."""
     from services.sessions.live import sim_sources, start_simulators
-    from services.transport.zenoh_session import stop_on_signals
+    from services.transport.stop_signals import stop_on_signals
 
     sources = sim_sources(DEMO, PACK)
     stop = stop_on_signals()

@@ -8,10 +8,7 @@ as decoded from MTData2; DeviceStatus messages report connection, counts, losses
 from __future__ import annotations
 
 import argparse
-import contextlib
-import signal
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 from msk_core.errors import ConfigError
@@ -19,6 +16,7 @@ from services.nodes import driver_nodes
 from services.nodes.recorder import next_part_path
 from services.transport import topics
 from services.transport.mcap_io import McapRecorderWriter
+from services.transport.stop_signals import StopOnSignals
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,31 +33,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=run)
 
 
-@contextlib.contextmanager
-def _stop_on_interrupt(stop: threading.Event) -> Iterator[None]:
-    """Ctrl-C (or SIGTERM) ends the capture as its duration would: the loops stop, the devices get their STOP and
-    final status, and the summary is printed (it ended in 'interrupted' with the last status 'connected'). A second
-    Ctrl-C interrupts at once. The previous handlers are back afterwards."""
-    if threading.current_thread() is not threading.main_thread():
-        yield  # signals reach the main thread only (a capture run from a test's thread)
-        return
-    previous = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
-
-    def ask_stop(number, frame) -> None:
-        if stop.is_set():  # asked twice: do not wait for the devices
-            signal.signal(number, previous[number])
-            raise KeyboardInterrupt
-        stop.set()
-
-    for number in previous:
-        signal.signal(number, ask_stop)
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
-
-
 def run(args: argparse.Namespace) -> int:
     if not args.duration > 0:
         raise ConfigError("must be positive", field="--duration", value=args.duration)
@@ -73,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     sink = None
     try:
-        with McapRecorderWriter(out) as writer, _stop_on_interrupt(stop):
+        with McapRecorderWriter(out) as writer, StopOnSignals(interrupt_twice=True, event=stop):
             sink = driver_nodes.McapSink(writer)
             reports = driver_nodes.run_devices(devices, sink, session=args.session, duration_s=args.duration, stop=stop)
     except BaseException:

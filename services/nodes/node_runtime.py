@@ -43,6 +43,7 @@ from msk_core.signal.host_clock import ClockReport
 from msk_core.signal.sets import SetTracker
 from services.nodes.readiness import ReadySpec, add_ready_arguments, ready_from_args
 from services.transport import messages, topics
+from services.transport.stop_signals import stop_on_signals
 from services.transport.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -50,7 +51,6 @@ from services.transport.zenoh_session import (
     fetch_history,
     options_from_args,
     publish,
-    stop_on_signals,
     type_name_of_sample,
 )
 

@@ -17,6 +17,7 @@ from dataclasses import replace
 
 import zenoh
 
+from services.transport.stop_signals import stop_on_signals
 from services.transport.zenoh_session import (
     DEFAULT_ENDPOINT,
     ZenohOptions,
@@ -24,7 +25,6 @@ from services.transport.zenoh_session import (
     open_session,
     options_from_args,
     run_script,
-    stop_on_signals,
 )
 
 

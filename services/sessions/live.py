@@ -35,7 +35,6 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -50,6 +49,7 @@ from services.sessions.graph import Graph, pids_path, python_module, wait_for, z
 from services.sessions.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.transport import messages, session_graph, topics
 from services.transport.mcap_io import read_messages
+from services.transport.stop_signals import StopOnSignals
 
 if TYPE_CHECKING:  # imported where used: a session without --sim needs no simulator
     from drivers.trial_clock import TrialClock
@@ -866,32 +866,6 @@ def monitor(
             subscriber.undeclare()
 
 
-# what signal.signal takes and returns: a function, SIG_DFL or SIG_IGN, or None (a handler not set from Python)
-_SignalHandler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
-
-
-class _Stopper:
-    """SIGINT/SIGTERM set an event (the main thread then stops the graph in order) instead of raising mid-way."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self.signal: str | None = None
-        self._previous: dict[int, _SignalHandler] = {}
-
-    def __enter__(self) -> _Stopper:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def _handle(self, signum, _frame) -> None:
-        self.signal = signal.Signals(signum).name
-        self.event.set()
-
-    def __exit__(self, *exc) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-
-
 def estimator_settings(plan: LivePlan) -> EstimatorSettings:
     """The estimator of a live session: the session's pack, methods, solver and load, its subject, the EMG path on when
     the profile maps electrodes. The joints are on the host clock already: the kinematics node maps each tracker's
@@ -979,7 +953,7 @@ def run_graph(
     counts = FlowCounts()
     running = _Running()
     announcement = discovery.Announcement()
-    with _Stopper() as stopper:
+    with StopOnSignals() as stopper:
         try:
             graph, endpoint = _start_live_graph(plan, endpoint, pki, counts, announcement, running, log)
             _wait_ready(graph, stopper)
@@ -1072,7 +1046,7 @@ def _announce_live_graph(
     view: bool,
     duration_s: float | None,
     pki: Path | None,
-    stopper: _Stopper,
+    stopper: StopOnSignals,
     announcement: discovery.Announcement,
     running: _Running,
     log,
@@ -1120,7 +1094,9 @@ def _announce_live_graph(
     )
 
 
-def _run_until_stopped(graph: Graph, duration_s: float | None, stopper: _Stopper, logs: Path, log) -> tuple[str, float]:
+def _run_until_stopped(
+    graph: Graph, duration_s: float | None, stopper: StopOnSignals, logs: Path, log
+) -> tuple[str, float]:
     """Run until the duration, a signal or a failed node; returns why it stopped and how long it ran (s)."""
     started = time.monotonic()
     deadline = None if duration_s is None else started + duration_s
@@ -1204,7 +1180,7 @@ def stop_process(process: subprocess.Popen, timeout_s: float = STOP_TIMEOUT_S) -
         return None
 
 
-def _wait_ready(graph: Graph, stopper: _Stopper) -> None:
+def _wait_ready(graph: Graph, stopper: StopOnSignals) -> None:
     done = threading.Event()
     error: list[BaseException] = []
 

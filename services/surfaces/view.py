@@ -46,12 +46,12 @@ from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, 
 from services.sessions.facts import join_late
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
+from services.transport.stop_signals import stop_on_signals
 from services.transport.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
     open_session,
     options_from_args,
-    stop_on_signals,
 )
 
 log = logging.getLogger(__name__)

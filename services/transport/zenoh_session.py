@@ -12,10 +12,8 @@ import argparse
 import json
 import logging
 import re
-import signal
 import socket
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -161,15 +159,6 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
         listen=tuple(check_endpoint(e, "--listen") for e in args.listen),
         config_file=args.zenoh_config,
     )
-
-
-def stop_on_signals() -> threading.Event:
-    """A stop flag that SIGINT (Ctrl-C) and SIGTERM set, so that a process's loops end cleanly and report rather
-    than being torn down (call from the main thread)."""
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    return stop
 
 
 def run_script(
