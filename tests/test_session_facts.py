@@ -101,9 +101,14 @@ def _follow(follower: FactsFollower, trackers: list[SetTracker], batch: list[mes
             tracker.update(frame.time_s, frame.phase)
 
 
-def _join(monkeypatch, opening: messages.LoadEvent, announced: dict) -> SetTracker:
-    """A page that starts now: the opening facts msk live's load publisher keeps, then what msk live announces."""
+def _join(
+    monkeypatch, opening: messages.LoadEvent, announced: dict, seen_first: list[messages.ActivationFrame] = ()
+) -> SetTracker:
+    """A page that starts now: the opening facts msk live's load publisher keeps, then what msk live announces
+    (``seen_first``: frames the page took before them, which it does while it waits for msk live's node)."""
     late = SetTracker()
+    for frame in seen_first:
+        late.update(frame.time_s, frame.phase)
     apply_load_event(late, opening)
     monkeypatch.setattr("services.sessions.discovery.announced_facts", lambda session: announced)
     for event in announced_events("sim"):
@@ -111,10 +116,12 @@ def _join(monkeypatch, opening: messages.LoadEvent, announced: dict) -> SetTrack
     return late
 
 
+@pytest.mark.parametrize("frames_first", [0, 30])
 @pytest.mark.parametrize("join_after_reps", [2, 3])
-def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatch, join_after_reps):
+def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatch, join_after_reps, frames_first):
     """A page opened after rep 2 of 3, or after the set's last rep and before rest detection ended it: it counted no
-    rep of that set, never ended it and put the next set's reps into it (one set behind, reps short)."""
+    rep of that set, never ended it and put the next set's reps into it (one set behind, reps short). With
+    ``frames_first`` it takes that many frames before the facts come (in rep 3: the facts must not drop it)."""
     announced: list[dict] = []
     follower = FactsFollower(announced.append)
     session = SetTracker()  # what a page that ran from the start counts
@@ -124,10 +131,12 @@ def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatc
     set_1 = frames(100.0, 3, 25.0)
     cut = int(join_after_reps * 3 * RATE_HZ + (RATE_HZ if join_after_reps == 3 else 10))
     _follow(follower, [session], set_1[:cut])
-    late = _join(monkeypatch, opening, announced[-1])
+    facts = announced[-1]  # read as the page starts
+    _follow(follower, [session], set_1[cut : cut + frames_first])
+    late = _join(monkeypatch, opening, facts, set_1[cut : cut + frames_first])
     assert late.number == 1 and len(late.sets[0].reps) == join_after_reps
     assert late.sets[0].start_s == session.sets[0].start_s
-    _follow(follower, [session, late], set_1[cut:] + frames(set_1[-1].time_s + 0.02, 2, 1.0))
+    _follow(follower, [session, late], set_1[cut + frames_first :] + frames(set_1[-1].time_s + 0.02, 2, 1.0))
     # the rep under way at the join counts from the page's first sample of it; the rest is the session's
     assert [(s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in late.sets] == [
         (s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in session.sets
@@ -144,10 +153,13 @@ def test_a_page_that_joins_in_set_2_shows_set_1_as_the_session_counted_it(monkey
     follower.on_event(opening)
     apply_load_event(session, opening)
     both = frames(100.0, 3, 25.0) + frames(134.0, 3, 25.0)
-    cut = len(frames(100.0, 3, 25.0)) + int(4.5 * RATE_HZ)  # in rep 2 of set 2
+    cut = len(frames(100.0, 3, 25.0)) + int(2.5 * RATE_HZ)  # rep 1 of set 2 done; in the rest before rep 2
     _follow(follower, [session], both[:cut])
-    late = _join(monkeypatch, opening, announced[-1])
-    _follow(follower, [session, late], both[cut:])
+    facts = announced[-1]
+    seen_first = both[cut : cut + int(1.0 * RATE_HZ)]  # the page takes the start of rep 2 before the facts
+    _follow(follower, [session], seen_first)
+    late = _join(monkeypatch, opening, facts, seen_first)
+    _follow(follower, [session, late], both[cut + len(seen_first) :])
     assert [len(s.reps) for s in session.sets] == [3, 3]
     assert [(s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in late.sets] == [
         (s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in session.sets

@@ -214,6 +214,9 @@ class SetTracker:
         last = self._last_t if math.isfinite(self._last_t) else None
         if t is None or (last is not None and abs(t - last) > MAX_FACT_GAP_S):
             t = last if last is not None else 0.0
+        if not set_mark and set_start_s is not None and math.isfinite(set_start_s):
+            self._resume(set_number, float(set_start_s), rep_spans, set_end_s, set_ended_by or "operator")
+            return
         # facts without a mark start a set as the session's opening facts (before any set) or as a load event
         by = "load event" if self.sets else "session"
         if set_mark == "start":
@@ -226,8 +229,6 @@ class SetTracker:
             self.start(t, by=by)
         elif set_number == 0 and mass_kg <= 0:
             self.stop(t)
-        if not set_mark and (set_start_s is not None or rep_spans):
-            self._resume(set_number, set_start_s, rep_spans, set_end_s, set_ended_by or "operator")
 
     def counted(self) -> list[SetRecord]:
         """The sets, leaving out one that a rep opened and that has not counted yet (as :attr:`settled`): what a
@@ -303,29 +304,34 @@ class SetTracker:
     def _resume(
         self,
         number: int,
-        start_s: float | None,
+        start_s: float,
         spans: Sequence[tuple[float, float]],
         end_s: float | None,
         ended_by: str,
     ) -> None:
-        """Set ``number`` as another tracker counted it (:meth:`on_facts`): its start, its reps beside those
-        counted here (one that overlaps a rep counted here is that rep) and its end."""
+        """Set ``number`` as another tracker counted it (:meth:`on_facts`): it started at ``start_s`` (the set under
+        way here ended then), its reps are kept beside those counted here (one that overlaps a rep counted here is
+        that rep) and it ended at ``end_s``. These are past instants, not a mark made now: the rep under way here
+        still counts, in the set that holds its start."""
+        if self._tentative and self.sets and not self.sets[-1].reps:
+            self.sets.pop()  # opened by the rep under way, which finds its set when it counts
+            self._tentative = False
         record = next((r for r in reversed(self.sets) if r.number == number), None)
         if record is None:
-            return
+            if self.sets and number < self.sets[-1].number:
+                return  # older than the sets here: not one to add behind them
+            self._close(start_s, "next set")
+            record = SetRecord(number, start_s, "session")
+            self.sets.append(record)
         own = list(record.reps)
         known = [(float(a), float(b)) for a, b in spans if not any(a < d and c < b for c, d in own)]
         record.reps = sorted(known + own)
-        if start_s is not None and math.isfinite(start_s):
-            record.start_s = min([float(start_s)] + [a for a, _ in record.reps])
-            for earlier in self.sets[: self.sets.index(record)]:  # a set this one started was ended here later
-                if earlier.end_s is not None and earlier.end_s > record.start_s:
-                    earlier.end_s = max(earlier.start_s, record.start_s)
-        if record is self.current and record.reps:
-            self._tentative = False
+        record.start_s = min([start_s] + [a for a, _ in record.reps])
+        for earlier in self.sets[: self.sets.index(record)]:  # a set this one followed was ended here later
+            if earlier.end_s is not None and earlier.end_s > record.start_s:
+                earlier.end_s = max(earlier.start_s, record.start_s)
         if record is self.current and end_s is not None and math.isfinite(end_s):
             self._close(max(float(end_s), record.start_s), ended_by)
-            self._reset_reps()
 
     def _past(self, t: float) -> bool:
         """``t`` is before the end of the last set (data older than the operator's last mark)."""
