@@ -420,6 +420,12 @@ class PhaseRepCounter:
         """Time of the first sample of the rep under way (None between reps)."""
         return self._start
 
+    def began_at(self, t: float) -> None:
+        """The rep under way began at ``t``, before this counter's first sample of it (another counter saw its
+        start: a page that joined during the rep)."""
+        if self._start is not None and t < self._start:
+            self._start = t
+
     def update(self, t: float, phase: float | None) -> tuple[float, float] | None:
         """The sample at time ``t`` (s); returns the (first, last sample time) of the rep it completed, if any."""
         p = float("nan") if phase is None else float(phase)

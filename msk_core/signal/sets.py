@@ -119,6 +119,7 @@ class SetTracker:
         self._tentative = False  # the set under way was opened by a rep that has not counted yet
         self._last_t = -math.inf
         self._phase: float | None = None
+        self._rep_began: float | None = None  # the start of the rep under way as another tracker saw it
 
     # ---- what the surfaces show ------------------------------------------------------------------------------------
     @property
@@ -146,6 +147,11 @@ class SetTracker:
         if current is None:
             return 0
         return len(current.reps) + (1 if self._counter.in_rep and not self._wait_rest else 0)
+
+    @property
+    def rep_start_s(self) -> float | None:
+        """When the rep under way began (None between reps, or when it does not count: after an operator's mark)."""
+        return None if self._wait_rest else self._counter.rep_start_s
 
     @property
     def resting(self) -> bool:
@@ -195,6 +201,7 @@ class SetTracker:
         rep_spans: Sequence[tuple[float, float]] = (),
         set_end_s: float | None = None,
         set_ended_by: str = "",
+        rep_start_s: float | None = None,
     ) -> None:
         """A session fact at ``t`` (``LoadEvent``: its time, None when it has none, set number, mark, barbell mass
         and rest-detection time, 0 for the one in effect; a time more than :data:`MAX_FACT_GAP_S` from the newest
@@ -203,10 +210,10 @@ class SetTracker:
         change of an operator who does not number sets), and neither mass nor number ends the set (the bar is
         off); the same set number changes nothing.
 
-        ``set_start_s``, ``rep_spans``, ``set_end_s`` and ``set_ended_by``: set ``set_number`` as another tracker
-        counted it (what ``msk live`` announces to a page that joins late, :meth:`counted`): its start, the reps it
-        had (kept beside the reps counted here) and, once it ended, when and by whom, so the set's clock, reps and
-        end are the session's."""
+        ``set_start_s``, ``rep_spans``, ``set_end_s``, ``set_ended_by`` and ``rep_start_s``: set ``set_number`` as
+        another tracker counted it (what ``msk live`` announces to a page that joins late, :meth:`counted`): its
+        start, the reps it had (kept beside the reps counted here), once it ended when and by whom, and when the rep
+        under way began, so the set's clock, reps, time under tension and end are the session's."""
         if set_mark not in SET_MARKS:
             raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
         if rest_s:
@@ -216,6 +223,9 @@ class SetTracker:
             t = last if last is not None else 0.0
         if not set_mark and set_start_s is not None and math.isfinite(set_start_s):
             self._resume(set_number, float(set_start_s), rep_spans, set_end_s, set_ended_by or "operator")
+            if rep_start_s is not None and math.isfinite(rep_start_s) and not self._wait_rest:
+                self._rep_began = float(rep_start_s)  # for the rep under way, or the first this tracker sees
+                self._begin_rep_early()
             return
         # facts without a mark start a set as the session's opening facts (before any set) or as a load event
         by = "load event" if self.sets else "session"
@@ -242,11 +252,14 @@ class SetTracker:
         """The phase of the sample at ``t`` ([0, 1) inside a rep, negative at rest, None or NaN unknown)."""
         self._last_t, self._phase = t, phase
         inside = phase is not None and phase >= 0.0  # NaN compares False
+        if not inside:
+            self._rep_began = None  # the rep another tracker saw under way has ended
         if self._wait_rest:
             if inside:
                 return
             self._wait_rest = False
         done = self._counter.update(t, phase)
+        self._begin_rep_early()
         current = self.current
         if done is not None:
             # a rep belongs to the set under way, else (data that came after the operator's mark) to the set that
@@ -333,6 +346,12 @@ class SetTracker:
         if record is self.current and end_s is not None and math.isfinite(end_s):
             self._close(max(float(end_s), record.start_s), ended_by)
 
+    def _begin_rep_early(self) -> None:
+        """The rep under way began when another tracker saw it begin (:meth:`on_facts`' ``rep_start_s``)."""
+        if self._rep_began is not None and self._counter.in_rep:
+            self._counter.began_at(self._rep_began)
+            self._rep_began = None
+
     def _past(self, t: float) -> bool:
         """``t`` is before the end of the last set (data older than the operator's last mark)."""
         last = self.sets[-1] if self.sets else None
@@ -357,4 +376,5 @@ class SetTracker:
 
     def _reset_reps(self) -> None:
         self._counter = PhaseRepCounter()
+        self._rep_began = None
         self._wait_rest = self._phase is not None and self._phase >= 0.0

@@ -127,7 +127,7 @@ class FactsFollower:
                     **self._facts,
                     "set_number": number or self._facts["set_number"],
                     "resting": resting,
-                    SETS_COUNTED: [_set_dict(r) for r in self._sets.counted()[-MAX_ANNOUNCED_SETS:]],
+                    SETS_COUNTED: self._sets_counted(),
                 }
             )
 
@@ -136,7 +136,14 @@ class FactsFollower:
         reps and end (a set ends or gets a rep one at a time)."""
         sets = self._sets.sets
         newest = (len(sets), sets[-1].end_s, len(sets[-1].reps)) if sets else None
-        return self._sets.settled, newest
+        return self._sets.settled, newest, self._sets.rep_start_s
+
+    def _sets_counted(self) -> list[dict]:
+        """The sets as this session counted them, JSON-ready; the newest with the start of its rep under way."""
+        counted = [_set_dict(r) for r in self._sets.counted()[-MAX_ANNOUNCED_SETS:]]
+        if counted and counted[-1]["end_s"] is None and self._sets.rep_start_s is not None:
+            counted[-1]["rep_start_s"] = self._sets.rep_start_s
+        return counted
 
 
 def _set_dict(record: SetRecord) -> dict:
@@ -177,6 +184,8 @@ def _counted_set_event(in_effect: messages.LoadEvent, record: dict) -> messages.
     event.set_rep_spans_s.extend(float(x) for span in record["rep_spans_s"] for x in span)
     if record.get("end_s") is not None:
         event.set_end_s, event.set_ended_by = float(record["end_s"]), str(record.get("ended_by", ""))
+    if record.get("rep_start_s") is not None:
+        event.set_rep_start_s = float(record["rep_start_s"])
     return event
 
 

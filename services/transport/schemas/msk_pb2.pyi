@@ -121,7 +121,7 @@ class JointAngles(_message.Message):
     def __init__(self, coordinates: _Optional[_Iterable[str]] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., qdd: _Optional[_Iterable[float]] = ..., phase: _Optional[float] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ...) -> None: ...
 
 class LoadEvent(_message.Message):
-    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete", "names", "set_mark", "set_rest_s", "set_start_s", "set_rep_spans_s", "set_end_s", "set_ended_by")
+    __slots__ = ("barbell_mass_kg", "exercise", "device_time_ns", "host_time_ns", "set_number", "athlete", "names", "set_mark", "set_rest_s", "set_start_s", "set_rep_spans_s", "set_end_s", "set_ended_by", "set_rep_start_s")
     class NamesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -142,6 +142,7 @@ class LoadEvent(_message.Message):
     SET_REP_SPANS_S_FIELD_NUMBER: _ClassVar[int]
     SET_END_S_FIELD_NUMBER: _ClassVar[int]
     SET_ENDED_BY_FIELD_NUMBER: _ClassVar[int]
+    SET_REP_START_S_FIELD_NUMBER: _ClassVar[int]
     barbell_mass_kg: float
     exercise: str
     device_time_ns: int
@@ -155,7 +156,8 @@ class LoadEvent(_message.Message):
     set_rep_spans_s: _containers.RepeatedScalarFieldContainer[float]
     set_end_s: float
     set_ended_by: str
-    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ..., names: _Optional[_Mapping[str, str]] = ..., set_mark: _Optional[str] = ..., set_rest_s: _Optional[float] = ..., set_start_s: _Optional[float] = ..., set_rep_spans_s: _Optional[_Iterable[float]] = ..., set_end_s: _Optional[float] = ..., set_ended_by: _Optional[str] = ...) -> None: ...
+    set_rep_start_s: float
+    def __init__(self, barbell_mass_kg: _Optional[float] = ..., exercise: _Optional[str] = ..., device_time_ns: _Optional[int] = ..., host_time_ns: _Optional[int] = ..., set_number: _Optional[int] = ..., athlete: _Optional[str] = ..., names: _Optional[_Mapping[str, str]] = ..., set_mark: _Optional[str] = ..., set_rest_s: _Optional[float] = ..., set_start_s: _Optional[float] = ..., set_rep_spans_s: _Optional[_Iterable[float]] = ..., set_end_s: _Optional[float] = ..., set_ended_by: _Optional[str] = ..., set_rep_start_s: _Optional[float] = ...) -> None: ...
 
 class CoordinateTorque(_message.Message):
     __slots__ = ("coordinate", "inverse_dynamics_nm", "model_nm", "residual_nm")
