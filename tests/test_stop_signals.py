@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -42,3 +43,49 @@ def test_outside_the_main_thread_nothing_is_installed():
     thread.start()
     thread.join(5.0)
     assert seen == [before]
+
+
+def test_a_child_started_to_stop_with_its_parent_stops_when_the_parent_is_killed(tmp_path):
+    """msk live's nodes run in their own process groups; killed (SIGKILL, a crash), it left them all running."""
+    import subprocess
+    import sys
+    import time
+
+    child = (
+        "import sys; from services.transport.stop_signals import stop_on_signals\n"
+        "stop = stop_on_signals(); print('ready', flush=True)\n"
+        "sys.exit(0 if stop.wait(30) else 1)\n"
+    )
+    parent = (
+        "import os, subprocess, sys, time\n"
+        "from services.transport.stop_signals import stop_with_parent_env\n"
+        f"p = subprocess.Popen([sys.executable, '-c', {child!r}], start_new_session=True,\n"
+        "    env={**os.environ, **stop_with_parent_env()})\n"
+        "print(p.pid, flush=True); time.sleep(60)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    process = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        pid = int(process.stdout.readline())
+        time.sleep(1.0)
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait(10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and _alive(pid):
+            time.sleep(0.1)
+        assert not _alive(pid), f"the child {pid} still runs 10 s after its parent was killed"
+    finally:
+        process.kill()
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by init) has ended
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return False

@@ -1,6 +1,6 @@
 """``msk live SESSION.toml``: run a whole session (drivers, kinematics, estimator, recorder, live view) on the
 real devices; ``msk live --sim`` on the Trigno/Xsens simulators fed by the bundled synthetic session. Ctrl-C,
-SIGTERM or ``--duration`` stop it cleanly: OUT/session.mcap and OUT/summary.json, exit code 0. When a node it
+SIGTERM, closing its terminal (SIGHUP) or ``--duration`` stop it cleanly: OUT/session.mcap and OUT/summary.json, exit code 0. When a node it
 started fails (e.g. a driver that cannot reach its device), the session stops, the terminal says which node failed,
 with its exit code and the end of its log (OUT/logs/<node>.log), and the exit code is 3. Docs: docs/live.md."""
 
@@ -206,7 +206,7 @@ def log_tail(path: Path, lines: int) -> str:
 
 def node_failures(summary: dict, logs: Path) -> list[NodeFailure]:
     """The failed nodes of a session from its summary (``stopped_by``, ``exit_codes``); none after a clean stop
-    (``--duration``, SIGINT, SIGTERM) where every node exited 0 when ``msk live`` stopped it."""
+    (``--duration``, SIGINT, SIGTERM, SIGHUP) where every node exited 0 when ``msk live`` stopped it."""
     stopped_by = str(summary.get("stopped_by", ""))
     codes: dict[str, int | None] = summary.get("exit_codes", {})
     ended: dict[str, str] = {}  # node -> detail, for the nodes that ended by themselves

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from services.nodes.readiness import NODE_READY_TIMEOUT_S, GraphTimeout, ReadySpec, ready_key, wait_for_nodes
 from services.transport import topics
+from services.transport.stop_signals import stop_with_parent_env
 from services.transport.zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -144,7 +145,8 @@ class Graph:
         """Start ``argv`` (its Zenoh flags, ``--ready-key`` and ``--ready-after`` appended) as a separate process.
 
         ``own_session``: in its own process group, so a Ctrl-C in the terminal reaches only the caller, which then
-        stops the nodes in the order it chooses (``msk live``)."""
+        stops the nodes in the order it chooses (``msk live``); the node stops by itself if the caller is gone
+        (:func:`~services.transport.stop_signals.stop_with_parent_env`)."""
         options = self.options(role)
         flags = zenoh_flags(options)
         flags += [f"--ready-after={n}" for n in after]
@@ -153,7 +155,7 @@ class Graph:
             [*argv, *flags, "--ready-key", ready_key(self.session, name)],
             stdout=out,
             stderr=subprocess.STDOUT,
-            env={**os.environ, **(env or {})},
+            env={**os.environ, **(stop_with_parent_env() if own_session else {}), **(env or {})},
             start_new_session=own_session,
         )
         self._processes.append(_ProcessNode(name, process, log_path))

@@ -6,7 +6,7 @@ joints, each tracker's clock mapped to the host clock), one driver node per devi
 Xsens) and the live view (``msk view``). The drivers start acquiring only once the recorder, kinematics and estimator
 have declared their subscribers, so nothing a device sends is lost at start.
 
-Stop (``--duration``, Ctrl-C or SIGTERM) runs downstream: (simulators stop sending;) drivers end acquisition and
+Stop (``--duration``, Ctrl-C, SIGTERM or SIGHUP) runs downstream: (simulators stop sending;) drivers end acquisition and
 exit, then kinematics, estimator and last the recorder, which closes the MCAP. The summary (duration, samples per
 device, samples lost, frames estimated, flags) is read back from the MCAP, printed and written to
 ``OUT/summary.json``. With ``--sim`` it also holds what each simulator sent, to compare with what was recorded.
@@ -49,7 +49,7 @@ from services.sessions.graph import Graph, pids_path, python_module, wait_for, z
 from services.sessions.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
 from services.transport import messages, session_graph, topics
 from services.transport.mcap_io import read_messages
-from services.transport.stop_signals import StopOnSignals
+from services.transport.stop_signals import StopOnSignals, stop_with_parent_env
 
 if TYPE_CHECKING:  # imported where used: a session without --sim needs no simulator
     from drivers.trial_clock import TrialClock
@@ -1080,6 +1080,7 @@ def _announce_live_graph(
         running.viewer = subprocess.Popen(
             python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
             start_new_session=True,
+            env={**os.environ, **stop_with_parent_env()},
         )  # Ctrl-C reaches msk live only: it stops in order
     log(
         f"live session {s.name!r} running on {endpoint}"
@@ -1159,7 +1160,7 @@ def start_secured_router(pki: Path, out: Path, log):
         stdout=open(log_path, "wb"),
         stderr=subprocess.STDOUT,
         start_new_session=True,
-        env={**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")},
+        env={**os.environ, **stop_with_parent_env(), "RUST_LOG": os.environ.get("RUST_LOG", "warn")},
     )
     try:
         router_node.wait_until_listening(process, port)

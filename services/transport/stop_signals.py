@@ -9,6 +9,7 @@ recorder still writing and the view spinning on a terminal that was gone.
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 from collections.abc import Callable
@@ -16,6 +17,18 @@ from types import FrameType
 
 #: The signals that ask a process to stop.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: Set by a process in the environment of the children it stops itself (``msk live``'s nodes, in their own process
+#: groups): its pid. Such a child stops as on a signal when that parent is gone (killed, crashed) rather than running
+#: on unattended.
+PARENT_ENV = "MSK_STOP_WITH_PARENT"
+#: How often a child of :data:`PARENT_ENV` looks for its parent (s).
+PARENT_CHECK_S = 0.5
+
+
+def stop_with_parent_env() -> dict[str, str]:
+    """The environment entry that makes a child started now stop with this process (:data:`PARENT_ENV`)."""
+    return {PARENT_ENV: str(os.getpid())}
+
 
 # what signal.signal takes and returns: a function, SIG_DFL or SIG_IGN, or None (a handler not set from Python)
 _Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None
@@ -54,5 +67,16 @@ class StopOnSignals:
 
 def stop_on_signals() -> threading.Event:
     """A stop flag that :data:`STOP_SIGNALS` set for the rest of the process's life (a node's or a page's main,
-    called from the main thread)."""
-    return StopOnSignals().__enter__().event
+    called from the main thread), and the end of the parent that started it with :func:`stop_with_parent_env`."""
+    stop = StopOnSignals().__enter__()
+    parent = os.environ.pop(PARENT_ENV, "")  # not passed on: a grandchild's parent is another process
+    if parent.isdigit():
+        threading.Thread(target=_watch_parent, args=(stop, int(parent)), name="parent-watch", daemon=True).start()
+    return stop.event
+
+
+def _watch_parent(stop: StopOnSignals, parent: int) -> None:
+    while not stop.event.wait(PARENT_CHECK_S):
+        if os.getppid() != parent:  # re-parented: the process that would have stopped this one is gone
+            stop.signal = stop.signal or "parent gone"
+            stop.event.set()
