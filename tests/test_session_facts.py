@@ -101,6 +101,17 @@ def _follow(follower: FactsFollower, trackers: list[SetTracker], batch: list[mes
             tracker.update(frame.time_s, frame.phase)
 
 
+def _session_from_the_start() -> tuple[list[dict], FactsFollower, SetTracker, messages.LoadEvent]:
+    """What msk live announces (its FactsFollower), a page that ran from the start, and the opening facts."""
+    announced: list[dict] = []
+    follower = FactsFollower(announced.append)
+    session = SetTracker()
+    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
+    follower.on_event(opening)
+    apply_load_event(session, opening)
+    return announced, follower, session, opening
+
+
 def _join(
     monkeypatch, opening: messages.LoadEvent, announced: dict, seen_first: list[messages.ActivationFrame] = ()
 ) -> SetTracker:
@@ -122,12 +133,7 @@ def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatc
     """A page opened after rep 2 of 3, or after the set's last rep and before rest detection ended it: it counted no
     rep of that set, never ended it and put the next set's reps into it (one set behind, reps short). With
     ``frames_first`` it takes that many frames before the facts come (in rep 3: the facts must not drop it)."""
-    announced: list[dict] = []
-    follower = FactsFollower(announced.append)
-    session = SetTracker()  # what a page that ran from the start counts
-    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
-    follower.on_event(opening)
-    apply_load_event(session, opening)
+    announced, follower, session, opening = _session_from_the_start()
     set_1 = frames(100.0, 3, 25.0)
     cut = int(join_after_reps * 3 * RATE_HZ + (RATE_HZ if join_after_reps == 3 else 10))
     _follow(follower, [session], set_1[:cut])
@@ -146,12 +152,7 @@ def test_a_page_that_joins_during_a_set_counts_it_as_the_session_does(monkeypatc
 
 def test_a_page_that_joins_in_set_2_shows_set_1_as_the_session_counted_it(monkeypatch):
     """It showed set 1 with the opening facts' start, no rep and ended by "next set" at the join."""
-    announced: list[dict] = []
-    follower = FactsFollower(announced.append)
-    session = SetTracker()
-    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
-    follower.on_event(opening)
-    apply_load_event(session, opening)
+    announced, follower, session, opening = _session_from_the_start()
     both = frames(100.0, 3, 25.0) + frames(134.0, 3, 25.0)
     cut = len(frames(100.0, 3, 25.0)) + int(2.5 * RATE_HZ)  # rep 1 of set 2 done; in the rest before rep 2
     _follow(follower, [session], both[:cut])
@@ -167,12 +168,7 @@ def test_a_page_that_joins_in_set_2_shows_set_1_as_the_session_counted_it(monkey
 
 
 def test_a_page_that_joins_during_a_rest_shows_the_set_before_it(monkeypatch):
-    announced: list[dict] = []
-    follower = FactsFollower(announced.append)
-    session = SetTracker()
-    opening = messages.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, athlete="Ana")
-    follower.on_event(opening)
-    apply_load_event(session, opening)
+    announced, follower, session, opening = _session_from_the_start()
     _follow(follower, [session], frames(100.0, 3, 25.0))
     assert announced[-1]["resting"] and announced[-1]["sets_counted"][-1]["end_s"] == session.sets[0].end_s
     late = _join(monkeypatch, opening, announced[-1])
