@@ -218,10 +218,10 @@ def set_line(tracker: SetTracker, first_frame_s: float | None) -> tuple[str, int
 
 
 def set_time_text(set_number: int, start_s: float | None, time_s: float, rest: tuple[int, float] | None = None) -> str:
-    """``12.3 s in set 2``: the frame's time from its set's start; at rest after set N (``rest``: N and the set's
-    end) ``40.2 s resting after set N``; before any set, from the first frame."""
-    if rest is not None:
-        return f"{time_s - rest[1]:.1f} s resting after set {rest[0]}"
+    """``12.3 s in set 2``: the frame's time from its set's start; at rest after a set (``rest``: its number and end)
+    ``for 40.2 s``, which follows "set N done · resting"; before any set, from the first frame."""
+    if rest is not None:  # a frame from before the set's end (the estimates paused) cannot say how long
+        return f"for {time_s - rest[1]:.1f} s" if time_s >= rest[1] else ""
     if start_s is None:
         return "time in set unknown"
     return f"{time_s - start_s:.1f} s " + (f"in set {set_number}" if set_number else "since the first frame")
@@ -363,10 +363,16 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     latency_ms = (
         (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
     )
+    set_time = set_time_text(set_number, set_start_s, frame.time_s, rest)
     session_line = Text(
         session_facts(load, frame, sets)
-        + f" · {phase_text}"
-        + f" · {set_time_text(set_number, set_start_s, frame.time_s, rest)} · latency {latency_ms:.2f} ms"
+        # resting after a set: "set 2 done · resting for 40.2 s" (the movement is rest)
+        + (
+            f" {set_time}".rstrip()
+            if rest is not None and sets.endswith("resting")
+            else f" · {phase_text} · {set_time}"
+        )
+        + f" · latency {latency_ms:.2f} ms"
         + f" · solver {frame.solver_status}"
         + (f" · {', '.join(flag_text(flag) for flag in frame.flags)}" if frame.flags else "")
     )
