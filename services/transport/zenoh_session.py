@@ -198,7 +198,7 @@ def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
     config = options.to_config()
     try:
         return zenoh.open(config)
-    except Exception as error:  # zenoh's ZError, its message ending in the Rust source location
+    except zenoh.ZError as error:  # its message ends in the Rust source location
         raise SessionUnavailable(str(error).split(" at /")[0].strip(), options) from None
 
 
