@@ -359,23 +359,8 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         muscles.add_row(*row)
     if legend:
         muscles.caption, muscles.caption_justify = legend, "left"
-    phase_text = movement_text(frame.phase if frame.HasField("phase") else None, state.movement)
-    latency_ms = (
-        (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
-    )
     set_time = set_time_text(set_number, set_start_s, frame.time_s, rest)
-    session_line = Text(
-        session_facts(load, frame, sets)
-        # resting after a set: "set 2 done · resting for 40.2 s" (the movement is rest)
-        + (
-            f" {set_time}".rstrip()
-            if rest is not None and sets.endswith("resting")
-            else f" · {phase_text} · {set_time}"
-        )
-        + f" · latency {latency_ms:.2f} ms"
-        + f" · solver {frame.solver_status}"
-        + (f" · {', '.join(flag_text(flag) for flag in frame.flags)}" if frame.flags else "")
-    )
+    session_line = Text(session_line_text(session_facts(load, frame, sets), frame, state.movement, set_time, rest))
     extra = [sets_table(records)] if records else []
     return Group(
         header,
@@ -385,6 +370,27 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         *extra,
         torque_table(frame, names),
         *health_tables(status),
+    )
+
+
+def session_line_text(
+    facts: str, frame: messages.ActivationFrame, movement: str | None, set_time: str, rest: tuple[int, float] | None
+) -> str:
+    """The line under the header: the session's facts, the movement, the time in the set or the rest, latency,
+    solver and flags; resting after a set it reads "set 2 done · resting for 40.2 s" (the movement is rest)."""
+    latency_ms = (
+        (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
+    )
+    if rest is not None and facts.endswith("resting"):
+        moving = f" {set_time}".rstrip()
+    else:
+        moving = f" · {movement_text(frame.phase if frame.HasField('phase') else None, movement)} · {set_time}"
+    return (
+        facts
+        + moving
+        + f" · latency {latency_ms:.2f} ms"
+        + f" · solver {frame.solver_status}"
+        + (f" · {', '.join(flag_text(flag) for flag in frame.flags)}" if frame.flags else "")
     )
 
 
