@@ -35,8 +35,8 @@ def frames(start_s: float, reps: int, rest_after_s: float) -> list[messages.Acti
 
 
 def _facts(announced: dict) -> dict:
-    """The announced facts without the sets as counted (``sets_counted``, their own tests below)."""
-    return {k: v for k, v in announced.items() if k != "sets_counted"}
+    """The announced facts without the sets as counted (``sets_counted``, ``rep_start_s``: their own tests below)."""
+    return {k: v for k, v in announced.items() if k not in ("sets_counted", "rep_start_s")}
 
 
 def test_msk_load_made_from_the_announced_facts_keeps_the_set_rest_detection_opened(monkeypatch):

@@ -205,3 +205,58 @@ def test_a_start_mark_as_the_first_rep_begins_takes_the_place_of_the_set_that_re
     assert mark.set_number == 2
     tracker.on_facts(t + 0.1, set_number=int(mark.set_number), set_mark="start", mass_kg=50)
     assert [s.number for s in tracker.sets] == [1, 2] and tracker.sets[-1].started_by == "operator"
+
+
+def _feed_phase(tracker: SetTracker, t0: float, t1: float, phase) -> None:
+    """Samples at 50 Hz from ``t0`` to ``t1``, phase ``phase(t)`` (>= 0 in a rep, -1 at rest)."""
+    t = t0
+    while t < t1 - 1e-9:
+        tracker.update(round(t, 2), phase(t))
+        t += 0.02
+
+
+def test_a_rep_counted_before_the_facts_came_goes_to_the_set_that_holds_its_start():
+    """A page that joined in set 2 counted the end of its rep, then the facts: set 1 took that rep (3 reps)."""
+    page = SetTracker()
+    _feed_phase(page, 32.0, 33.0, lambda t: t - 32.0)
+    _feed_phase(page, 33.0, 33.2, lambda t: -1.0)
+    page.on_facts(0.0, set_number=1, set_mark="", mass_kg=60)  # the opening facts
+    page.on_facts(
+        None, set_number=1, set_mark="", mass_kg=60, set_start_s=0.0, rep_spans=[(1.0, 2.98), (4.0, 5.98)],
+        set_end_s=5.98, set_ended_by="rest",
+    )  # fmt: skip
+    page.on_facts(None, set_number=2, set_mark="", mass_kg=60, set_start_s=31.0, rep_spans=[(31.0, 32.98)])
+    assert [(s.number, s.start_s, s.end_s, s.reps) for s in page.sets] == [
+        (1, 0.0, 5.98, [(1.0, 2.98), (4.0, 5.98)]),
+        (2, 31.0, None, [(31.0, 32.98)]),  # one rep, seen by both, from where the session saw it start
+    ]
+
+
+@pytest.mark.parametrize("join_s", [10.5, 11.8])
+def test_a_page_that_joins_during_a_sets_first_rep_counts_it_from_its_start(join_s):
+    """The set that rep opens had not counted yet, so no set was announced; the page counted the rep from the join
+    (or, joining late in it, not at all: shorter than a rep)."""
+    session, page = SetTracker(), SetTracker()
+    _feed_phase(session, 0.0, 10.0, lambda t: -1.0)
+    _feed_phase(session, 10.0, join_s, lambda t: (t - 10.0) / 2)
+    page.on_facts(None, set_number=0, set_mark="", mass_kg=0, rep_start_s=session.rep_start_s)
+    for tracker in (session, page):
+        _feed_phase(tracker, join_s, 12.0, lambda t: (t - 10.0) / 2)
+        _feed_phase(tracker, 12.0, 13.0, lambda t: -1.0)
+        tracker.finish()
+    assert [(s.number, s.start_s, s.reps) for s in page.sets] == [(s.number, s.start_s, s.reps) for s in session.sets]
+    assert len(page.sets) == 1 and page.sets[0].reps == [(10.0, 11.98)]
+
+
+def test_facts_that_come_again_do_not_move_a_later_rep_back():
+    page = SetTracker()
+    page.on_facts(0.0, set_number=1, set_mark="", mass_kg=60)
+    announced = dict(set_number=1, set_mark="", mass_kg=60, set_start_s=0.0, rep_spans=[], rep_start_s=1.0)
+    page.on_facts(None, **announced)
+    _feed_phase(page, 2.0, 3.0, lambda t: (t - 1.0) / 2)
+    _feed_phase(page, 3.0, 4.0, lambda t: -1.0)
+    _feed_phase(page, 4.0, 4.2, lambda t: (t - 4.0) / 2)
+    page.on_facts(None, **announced)  # the same announcement once more, 0.2 s into rep 2
+    _feed_phase(page, 4.2, 6.0, lambda t: (t - 4.0) / 2)
+    _feed_phase(page, 6.0, 7.0, lambda t: -1.0)
+    assert page.sets[0].reps == [(1.0, 2.98), (4.0, 5.98)]

@@ -12,8 +12,19 @@ import pytest
 from services.transport.stop_signals import STOP_SIGNALS, StopOnSignals
 
 
+@pytest.fixture
+def handled():
+    """Every stop signal with a handler of its own (a job started with nohup or in the background ignores some)."""
+    found = {n: signal.getsignal(n) for n in STOP_SIGNALS}
+    for number in STOP_SIGNALS:
+        signal.signal(number, signal.default_int_handler)
+    yield
+    for number, handler in found.items():
+        signal.signal(number, handler)
+
+
 @pytest.mark.parametrize("number", STOP_SIGNALS)
-def test_each_stop_signal_sets_the_flag_and_the_previous_handlers_come_back(number):
+def test_each_stop_signal_sets_the_flag_and_the_previous_handlers_come_back(number, handled):
     before = {n: signal.getsignal(n) for n in STOP_SIGNALS}
     with StopOnSignals() as stop:
         os.kill(os.getpid(), number)
@@ -30,6 +41,15 @@ def test_a_second_ctrl_c_interrupts_at_once_when_asked_for():
         os.kill(os.getpid(), signal.SIGINT)
         threading.Event().wait(5.0)  # the handler raises here
     assert signal.getsignal(signal.SIGINT) == before
+
+
+def test_a_process_started_with_nohup_outlives_its_terminal(handled):
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    with StopOnSignals() as stop:
+        assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+        os.kill(os.getpid(), signal.SIGHUP)
+        assert not stop.event.wait(0.3)
+    assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
 
 
 def test_outside_the_main_thread_nothing_is_installed():

@@ -193,7 +193,8 @@ class XsensDevice:
         raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
 
     def ask(self, mid: int, *, attempts: int = REQUEST_ATTEMPTS) -> xbus.XbusMessage:
-        """:meth:`request` for a request that changes nothing when repeated (GoToConfig, the queries): asked again
+        """:meth:`request` for a request that changes nothing when repeated and whose reply no other request shares
+        (GoToConfig, ReqDID, the product code and firmware queries): asked again
         when no reply comes in time, as a request lost on the line or a device busy streaming (or starting, on a
         loaded host) would need; a late reply to an earlier ask answers the next one alike."""
         for attempt in range(1, attempts + 1):
@@ -245,13 +246,14 @@ class XsensDevice:
 
     def request_baudrate(self) -> int:
         """The device's serial baud rate in bit/s (ReqBaudrate 0x18 with no data; the reply carries the code)."""
-        reply = self.ask(xbus.Mid.BAUDRATE)
+        reply = self.request(xbus.Mid.BAUDRATE)  # not repeated: SetBaudrate shares its reply id
         if len(reply.data) != 1 or reply.data[0] not in xbus.BAUD_CODES:
             raise ProtocolError(f"Baudrate reply {reply.data.hex() or 'empty'} is not one Xbus baud-rate code")
         return xbus.BAUD_CODES[reply.data[0]]
 
     def request_output_configuration(self) -> list[xbus.OutputSetting]:
-        return xbus.decode_output_configuration(self.ask(xbus.Mid.SET_OUTPUT_CONFIGURATION).data)
+        # not repeated: a late reply would be taken for the ack of a SetOutputConfiguration after it
+        return xbus.decode_output_configuration(self.request(xbus.Mid.SET_OUTPUT_CONFIGURATION).data)
 
     def go_to_measurement(self) -> None:
         self.request(xbus.Mid.GO_TO_MEASUREMENT)

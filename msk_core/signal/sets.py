@@ -223,9 +223,7 @@ class SetTracker:
             t = last if last is not None else 0.0
         if not set_mark and set_start_s is not None and math.isfinite(set_start_s):
             self._resume(set_number, float(set_start_s), rep_spans, set_end_s, set_ended_by or "operator")
-            if rep_start_s is not None and math.isfinite(rep_start_s) and not self._wait_rest:
-                self._rep_began = float(rep_start_s)  # for the rep under way, or the first this tracker sees
-                self._begin_rep_early()
+            self._rep_begun(rep_start_s)
             return
         # facts without a mark start a set as the session's opening facts (before any set) or as a load event
         by = "load event" if self.sets else "session"
@@ -239,6 +237,8 @@ class SetTracker:
             self.start(t, by=by)
         elif set_number == 0 and mass_kg <= 0:
             self.stop(t)
+        if not set_mark:
+            self._rep_begun(rep_start_s)
 
     def counted(self) -> list[SetRecord]:
         """The sets, leaving out one that a rep opened and that has not counted yet (as :attr:`settled`): what a
@@ -336,15 +336,28 @@ class SetTracker:
             self._close(start_s, "next set")
             record = SetRecord(number, start_s, "session")
             self.sets.append(record)
-        own = list(record.reps)
-        known = [(float(a), float(b)) for a, b in spans if not any(a < d and c < b for c, d in own)]
-        record.reps = sorted(known + own)
+        for earlier in self.sets[: self.sets.index(record)]:
+            # reps this tracker filed in an earlier set (counted before the facts came) that began in this one
+            moved = [r for r in earlier.reps if r[0] >= start_s]
+            earlier.reps = [r for r in earlier.reps if r[0] < start_s]
+            record.reps += moved
+            if earlier.end_s is not None and earlier.end_s > start_s:  # a set this one followed, ended here later
+                earlier.end_s = max(earlier.start_s, start_s)
+        record.reps = _merged([(float(a), float(b)) for a, b in spans] + record.reps)
         record.start_s = min([start_s] + [a for a, _ in record.reps])
-        for earlier in self.sets[: self.sets.index(record)]:  # a set this one followed was ended here later
-            if earlier.end_s is not None and earlier.end_s > record.start_s:
-                earlier.end_s = max(earlier.start_s, record.start_s)
         if record is self.current and end_s is not None and math.isfinite(end_s):
             self._close(max(float(end_s), record.start_s), ended_by)
+
+    def _rep_begun(self, rep_start_s: float | None) -> None:
+        """Another tracker saw the rep under way begin at ``rep_start_s``: for the rep under way here, or the first
+        this tracker sees; not for one after an operator's mark, nor when a rep counted here ended after it (facts
+        that came twice, or late)."""
+        if rep_start_s is None or not math.isfinite(rep_start_s) or self._wait_rest:
+            return
+        last_end = next((r.reps[-1][1] for r in reversed(self.sets) if r.reps), -math.inf)
+        if rep_start_s > last_end:
+            self._rep_began = float(rep_start_s)
+            self._begin_rep_early()
 
     def _begin_rep_early(self) -> None:
         """The rep under way began when another tracker saw it begin (:meth:`on_facts`' ``rep_start_s``)."""
@@ -378,3 +391,15 @@ class SetTracker:
         self._counter = PhaseRepCounter()
         self._rep_began = None
         self._wait_rest = self._phase is not None and self._phase >= 0.0
+
+
+def _merged(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Rep spans in time order, two that overlap being one rep seen by two trackers (its widest extent: one of them
+    joined during it)."""
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(spans):
+        if out and a < out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out

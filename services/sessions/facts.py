@@ -21,6 +21,8 @@ from services.transport import messages
 #: first: number, start, end (None while under way), who ended it and rep spans on the activation frames' clock, for
 #: pages that join late.
 SETS_COUNTED = "sets_counted"
+#: The key of the announced facts that holds when the rep under way began (None between reps).
+REP_START = "rep_start_s"
 #: The sets announced at the most (the newest): a page that joins a long session shows these.
 MAX_ANNOUNCED_SETS = 50
 
@@ -128,6 +130,7 @@ class FactsFollower:
                     "set_number": number or self._facts["set_number"],
                     "resting": resting,
                     SETS_COUNTED: self._sets_counted(),
+                    REP_START: self._sets.rep_start_s,  # also of a rep whose set has not counted yet
                 }
             )
 
@@ -139,11 +142,8 @@ class FactsFollower:
         return self._sets.settled, newest, self._sets.rep_start_s
 
     def _sets_counted(self) -> list[dict]:
-        """The sets as this session counted them, JSON-ready; the newest with the start of its rep under way."""
-        counted = [_set_dict(r) for r in self._sets.counted()[-MAX_ANNOUNCED_SETS:]]
-        if counted and counted[-1]["end_s"] is None and self._sets.rep_start_s is not None:
-            counted[-1]["rep_start_s"] = self._sets.rep_start_s
-        return counted
+        """The sets as this session counted them, JSON-ready."""
+        return [_set_dict(r) for r in self._sets.counted()[-MAX_ANNOUNCED_SETS:]]
 
 
 def _set_dict(record: SetRecord) -> dict:
@@ -170,7 +170,10 @@ def announced_events(session: str) -> list[messages.LoadEvent]:
     events = [_counted_set_event(in_effect, record) for record in facts.get(SETS_COUNTED) or []]
     if not events or events[-1].set_number != in_effect.set_number:
         events.append(in_effect)
-    if facts.get("resting") and not events[-1].HasField("set_end_s"):
+    rep_under_way = isinstance(facts.get(REP_START), (int, float))
+    if rep_under_way:
+        events[-1].set_rep_start_s = float(facts[REP_START])
+    if facts.get("resting") and not events[-1].HasField("set_end_s") and not rep_under_way:
         events.append(set_mark_event(in_effect, int(in_effect.set_number), "stop"))
     return events
 
@@ -184,8 +187,6 @@ def _counted_set_event(in_effect: messages.LoadEvent, record: dict) -> messages.
     event.set_rep_spans_s.extend(float(x) for span in record["rep_spans_s"] for x in span)
     if record.get("end_s") is not None:
         event.set_end_s, event.set_ended_by = float(record["end_s"]), str(record.get("ended_by", ""))
-    if record.get("rep_start_s") is not None:
-        event.set_rep_start_s = float(record["rep_start_s"])
     return event
 
 

@@ -49,6 +49,8 @@ class StopOnSignals:
     def __enter__(self) -> StopOnSignals:
         if threading.current_thread() is threading.main_thread():
             for number in STOP_SIGNALS:
+                if number == signal.SIGHUP and signal.getsignal(number) == signal.SIG_IGN:
+                    continue  # started with nohup: meant to outlive its terminal
                 self._previous[number] = signal.signal(number, self._handle)
         return self
 
