@@ -33,11 +33,15 @@ def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
     ]
     activations = [r for r in recorded if r.type_name == "msk.ActivationFrame"]
     joints = [r for r in recorded if r.type_name == "msk.JointAngles"]
-    assert (
-        len(activations) == 3 * graph["joint_frames"]["bench_press"]
-        and len(joints) == graph["joint_frames"]["bench_press"]
-    )
-    assert len(recorded) == graph["replayed"] + len(joints) + len(activations) == graph["expected_messages"]
+    assert len(joints) == graph["joint_frames"]["bench_press"]  # lossless: all of them
+    assert len(recorded) - len(activations) == graph["replayed"] + len(joints)  # the device data too
+    # activation frames are newest-wins (docs/topics.md): a recorder starved of CPU may miss some, and then the
+    # demo says how many rather than waiting on (CI once hung here for 5 min); on a machine that keeps up, none
+    missed = 3 * graph["joint_frames"]["bench_press"] - len(activations)
+    assert missed == graph["expected_messages"] - graph["recorded"] and len(recorded) == graph["recorded"]
+    said = [line for line in lines if "the recorder missed" in line]
+    assert said == [] if missed == 0 else said and f"missed {missed} data messages" in said[0], (missed, said)
+    assert missed <= 0.01 * len(activations), missed
     scores = {(s["trial"], s["method"]): s for s in summary["scores"]}
     assert {m for _, m in scores} == {"proposed", "so", "hybrid"}
     assert {s["role"] for s in summary["scores"]} == {"calibration", "held out"}
@@ -116,3 +120,26 @@ def test_the_sim_subject_is_calibrated_again_when_the_science_code_changes(tmp_p
     second = demo_subject.sim_subject("bench_press", logged.append)
     assert second.name == "subject_bench_press_0123456789ab.json" and not first.exists()
     assert [p.name for p in cache.iterdir()] == [second.name]
+
+
+def test_a_recorder_that_stops_receiving_short_of_the_count_ends_the_wait_after_the_stall(monkeypatch):
+    import threading
+    import time
+
+    from services.nodes.recorder import RecorderStats
+
+    monkeypatch.setattr(demo, "RECORDER_STALL_S", 0.5)
+    stats = RecorderStats()
+    stats.written = 90
+
+    def write_some_more() -> None:  # 5 more, then nothing: 5 of the 100 never come
+        for _ in range(5):
+            time.sleep(0.1)
+            stats.written += 1
+
+    writer = threading.Thread(target=write_some_more)
+    writer.start()
+    started = time.monotonic()
+    demo._wait_recorded(stats, 100, timeout_s=30)  # noqa: SLF001 - the drain's last wait on its own
+    writer.join()
+    assert stats.written == 95 and 0.5 <= time.monotonic() - started < 5
