@@ -599,3 +599,12 @@ def test_a_muscle_reads_as_tiring_only_on_a_trend(median_hz, slope, se, change, 
     )
     (row,) = state.changes(0)[1]["topics"]["fatigue"]
     assert row["tiring"] is tiring
+
+
+def test_the_dashboards_set_figures_are_of_the_reports_method_not_of_the_first_to_arrive():
+    from tests.test_view import _a_set
+
+    state = DashboardState("s")
+    _a_set(state.on_message, "msk/s/activations")
+    (only,) = state.changes(0)[1]["topics"]["sets"]
+    assert (only["reps"], only["peak"], only["mean"]) == (1, [0.6], [0.6])

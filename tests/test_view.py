@@ -360,3 +360,28 @@ def test_a_session_gone_quiet_is_said_over_the_last_values():
     assert "Nothing received" not in screen_text(state)
     state.last_message_at = time.monotonic() - QUIET_S - 3.0
     assert "Nothing received for 8 s: the session has ended or stopped sending." in screen_text(state)
+
+
+def _methods_frames(t: float, phase: float) -> list[messages.ActivationFrame]:
+    """One instant of three methods, proposed first: their activations differ (proposed 0.2, assisted 0.6, so 0.9)."""
+    return [
+        messages.ActivationFrame(method=m, time_s=t, phase=phase, groups=["TriLat"], activations=[a])
+        for m, a in (("proposed", 0.2), ("assisted", 0.6), ("so", 0.9))
+    ]
+
+
+def _a_set(on_message, key: str) -> None:
+    for k, phase in enumerate((-1, -1, 0.0, 0.3, 0.7, 0.95, -1, -1)):
+        for frame in _methods_frames(0.5 * k, phase):
+            on_message(f"{key}/{frame.method}", frame)
+
+
+def test_the_sets_figures_are_of_the_method_shown_not_of_the_first_to_arrive():
+    """The view drew assisted's bars beside proposed's set figures (the method that came first); the report has
+    assisted's."""
+    state = ViewState()
+    _a_set(state.on_message, "msk/s/activations")
+    assert (state.sets.sets[0].peak, state.sets.sets[0].mean) == ([0.6], [0.6])
+    chosen = ViewState(figures_method="so")  # msk view --method so
+    _a_set(chosen.on_message, "msk/s/activations")
+    assert chosen.sets.sets[0].peak == [0.9]

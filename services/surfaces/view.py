@@ -85,6 +85,7 @@ class ViewState:
     movement: str | None = None  # lifting / lowering / turning: the joint power's sign (msk_core.signal.reps.movement)
     last_message_at: float | None = None  # time.monotonic() of the newest message: a silent session shows
     torques: dict[str, float] = field(default_factory=dict)  # the first method's newest inverse-dynamics torques
+    figures_method: str | None = None  # whose frames the sets' peak and mean are of (--method; else the default)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_message(self, key: str, message: Message) -> None:
@@ -95,15 +96,17 @@ class ViewState:
             self.last_message_at = time.monotonic()
             if isinstance(message, messages.ActivationFrame):
                 self._apply_loads(key, self.loads.on_frame(message.exercise))
-                if not self.frames or message.method == next(iter(self.frames)):  # sets from the first method only
-                    phase = message.phase if message.HasField("phase") else None
+                phase = message.phase if message.HasField("phase") else None
+                if not self.frames or message.method == next(iter(self.frames)):  # reps from the first method
                     self.sets.update(message.time_s, phase)
-                    self.sets.add_activations(message.time_s, phase, message.groups, message.activations)
                     if self.first_frame_s is None:
                         self.first_frame_s = message.time_s
                     self.last_frame_s = message.time_s
                     self.torques = {t.coordinate: t.inverse_dynamics_nm for t in message.torques}
                 self.frames[message.method] = message
+                # the sets' activation figures: of the method shown, as the report's (not of whichever came first)
+                if message.method == (self.figures_method or default_method(list(self.frames))):
+                    self.sets.add_activations(message.time_s, phase, message.groups, message.activations)
             elif isinstance(message, messages.JointAngles):
                 self.movement = joint_movement(self.torques, message.coordinates, message.qd)
             elif isinstance(message, messages.DeviceStatus):
@@ -524,7 +527,7 @@ def main(
     console: Console | None = None,
 ) -> ViewState:
     stop_event = stop_event or threading.Event()
-    state = ViewState()
+    state = ViewState(figures_method=method)
     deadline = None if duration_s is None else time.monotonic() + duration_s
     with open_session(config) as zsession:
         inputs = NodeInputs(zsession, "view")

@@ -43,6 +43,7 @@ from msk_core.signal.reps import PhaseRepCounter, joint_movement
 from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.facts import join_late
+from services.sessions.live_session import default_method
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
@@ -262,6 +263,7 @@ class DashboardState:
         self._joints_have_phase = False
         self._torques: dict[str, float] = {}  # the latest frame's inverse-dynamics torques: lifting or lowering
         self._phase_method: str | None = None  # activation stream counted when the joints carry no phase
+        self._methods: list[str] = []  # the methods seen, in order: the sets' figures are of the default one
         self._devices: dict[str, DeviceHealth] = {}
         self._devices_seq = 0
         self._nodes: dict[str, dict] = {}  # node -> node_dict of its newest status
@@ -320,13 +322,17 @@ class DashboardState:
             self._frame_exercise, self._frame_groups = frame.exercise, tuple(frame.groups)
             self._put_session()
         self._phase_method = self._phase_method or frame.method
-        if frame.method == self._phase_method:  # the first method's frames: the sets' reps and figures
+        if frame.method not in self._methods:
+            self._methods.append(frame.method)
+        phase = frame.phase if frame.HasField("phase") else None
+        if frame.method == self._phase_method:  # the first method's frames: the sets' reps
             self._torques = {t.coordinate: t.inverse_dynamics_nm for t in frame.torques}
-            phase = frame.phase if frame.HasField("phase") else None
             if not self._joints_have_phase:
                 self._reps.update(frame.time_s, phase)
                 self._put("reps", self._reps.as_dict())
+        if frame.method == default_method(self._methods):  # the sets' figures: the report's method, not the first
             self._reps.sets.add_activations(frame.time_s, phase, frame.groups, frame.activations)
+        if frame.method == self._phase_method:
             self._put_sets(arrival_ns)
 
     def _on_joints(self, joints: messages.JointAngles, arrival_ns: int) -> None:
