@@ -333,7 +333,13 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
     facts = state.changes(0)[1]["topics"]["session"]
     assert facts.pop("names")["groups"] == {"A": "A", "B": "B"}  # not the groups of the pack: by their model names
     # no load event yet: the frames'
-    assert facts == {"exercise": "bench_press", "load_kg": None, "athlete": None, "paused": None}
+    assert facts == {
+        "exercise": "bench_press",
+        "load_kg": None,
+        "athlete": None,
+        "paused": None,
+        "set_figures_method": "so",  # the only method: the sets' figures are its
+    }
     for k, p in enumerate((-1.0, 0.2, 0.8, -1.0)):
         state.on_message(PREFIX + "joints", joints(p, 0.4 * k))
     seq, _ = state.changes(0)
@@ -347,6 +353,7 @@ def test_session_facts_from_the_load_event_else_from_the_frames():
         "athlete": "Ana",
         "names": None,
         "paused": None,
+        "set_figures_method": "so",
     }
     assert update["reps"]["set"] == 2 and update["reps"]["in_set"] == 0
     for k, p in enumerate((0.2, 0.8, -1.0)):
@@ -493,7 +500,14 @@ def test_bridge_drops_and_counts_unusable_inputs_over_zenoh_and_goes_on(zenoh_en
     update = state.changes(0)[1]
     assert update["topics"]["activations/so"]["activations"] == [0.25, 0.5]
     session = update["topics"]["session"]
-    expected = {"exercise": "deadlift", "load_kg": 80, "athlete": None, "names": None, "paused": None}
+    expected = {
+        "exercise": "deadlift",
+        "load_kg": 80,
+        "athlete": None,
+        "names": None,
+        "paused": None,
+        "set_figures_method": "so",
+    }
     assert session | {"names": None} == expected
     assert update["devices"]["trigno"]["connected"] is True
     node = update["nodes"]["dashboard"]
@@ -606,5 +620,7 @@ def test_the_dashboards_set_figures_are_of_the_reports_method_not_of_the_first_t
 
     state = DashboardState("s")
     _a_set(state.on_message, "msk/s/activations")
-    (only,) = state.changes(0)[1]["topics"]["sets"]
+    topics = state.changes(0)[1]["topics"]
+    (only,) = topics["sets"]
     assert (only["reps"], only["peak"], only["mean"]) == (1, [0.6], [0.6])
+    assert topics["session"]["set_figures_method"] == "assisted"  # the page says whose figures they are

@@ -127,6 +127,8 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             )
             page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
             assert_readable(page, fits_height=True)
+            # the table of sets says whose figures it holds: the report's method (so before hybrid), not the menu's
+            assert page.inner_text("#sets-hint").endswith("peak / mean activation % of so")
             # Method switch: the bars follow the other method.
             other = "so" if counted["method"] == "hybrid" else "hybrid"
             page.select_option("#method", other)

@@ -323,7 +323,10 @@ class DashboardState:
             self._put_session()
         self._phase_method = self._phase_method or frame.method
         if frame.method not in self._methods:
+            before = default_method(self._methods)
             self._methods.append(frame.method)
+            if default_method(self._methods) != before:
+                self._put_session()  # the page says whose frames the sets' figures are of
         phase = frame.phase if frame.HasField("phase") else None
         if frame.method == self._phase_method:  # the first method's frames: the sets' reps
             self._torques = {t.coordinate: t.inverse_dynamics_nm for t in frame.torques}
@@ -404,6 +407,7 @@ class DashboardState:
                 "load_kg": load.barbell_mass_kg if load is not None else None,
                 "athlete": load.athlete if load is not None and load.athlete else None,
                 "names": names.as_dict(),
+                "set_figures_method": default_method(self._methods),  # whose frames the sets' figures are of
                 # shown when no estimates arrive: the declared exercise is not the one the estimator estimates
                 "paused": self._loads.paused_notice(load.exercise if load is not None else "") or None,
             },

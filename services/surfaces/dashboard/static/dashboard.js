@@ -577,6 +577,10 @@ function renderElectrodes(frame) {
 
 // Sets: one column per set (the newest 3), rows: reps, time under tension, then peak / mean % per muscle group.
 function renderSets() {
+  // the figures are of one method (the report's), whichever the menu shows: say which
+  const figuresOf = state.session && state.session.set_figures_method;
+  document.getElementById("sets-hint").textContent =
+    "reps · time under tension · peak / mean activation %" + (figuresOf ? ` of ${figuresOf}` : "");
   const sets = (state.sets || []).slice(-3);
   const head = document.querySelector("#sets thead"), body = document.querySelector("#sets tbody");
   const pct = (v) => (v === null || v === undefined ? "–" : (100 * v).toFixed(0));
