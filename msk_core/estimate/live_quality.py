@@ -27,7 +27,6 @@ from msk_core.signal.quality import (
 )
 from msk_core.units import volts_per_unit
 
-#: The raw EMG units a chunk may carry (``EmgChunk.units``) and their value in volts; "" is the drivers' default.
 #: Episodes kept per electrode for the report (the count and the faults' tallies cover all of them).
 EPISODES_KEPT = 16
 

@@ -365,7 +365,6 @@ class PhaseTracker:
 
 # -- reps of a phase stream: the live rep count of the dashboards and the report's reps --------------------------------
 
-# A run of in-rep phase shorter than this is no repetition (a tracker that flickers into a rep and out again).
 #: joint power (W) below which a rep is turning (or held), neither lifting nor lowering
 MOVEMENT_POWER_W = 5.0
 
@@ -391,6 +390,7 @@ def joint_movement(torques_nm: dict[str, float], coordinates, velocities) -> str
     return movement(torques_nm, dict(zip(coordinates, velocities)))
 
 
+# A run of in-rep phase shorter than this is no repetition (a tracker that flickers into a rep and out again).
 MIN_REP_S = 0.3
 # Samples further apart than this do not belong to one rep (the stream had a gap: the rep is closed at its last sample).
 MAX_SAMPLE_GAP_S = 0.5

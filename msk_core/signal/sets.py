@@ -123,6 +123,11 @@ class SetTracker:
 
     # ---- what the surfaces show ------------------------------------------------------------------------------------
     @property
+    def _uncounted(self) -> bool:
+        """The newest set was opened by a rep under way that has not counted yet (it may go again)."""
+        return self._tentative and bool(self.sets) and not self.sets[-1].reps
+
+    @property
     def current(self) -> SetRecord | None:
         """The set under way, None at rest."""
         return self.sets[-1] if self.sets and self.sets[-1].end_s is None else None
@@ -136,7 +141,7 @@ class SetTracker:
     def settled(self) -> tuple[int, bool]:
         """(set number, resting) leaving out a set that a rep opened and that has not counted yet (it may go again:
         what an announcement that others start from should say)."""
-        if self._tentative and self.sets and not self.sets[-1].reps:
+        if self._uncounted:
             return (self.sets[-2].number if len(self.sets) > 1 else 0), True
         return self.number, self.resting
 
@@ -176,7 +181,7 @@ class SetTracker:
         ends there; a set that a rep opened and that has not counted yet is replaced (the operator who presses start
         as the first rep begins means that set, not the one after it). ``by``: who started it
         (:attr:`SetRecord.started_by`)."""
-        if self._tentative and self.sets and not self.sets[-1].reps:
+        if self._uncounted:
             self.sets.pop()
         self._close(t, "next set")
         last = self.number
@@ -243,7 +248,7 @@ class SetTracker:
     def counted(self) -> list[SetRecord]:
         """The sets, leaving out one that a rep opened and that has not counted yet (as :attr:`settled`): what a
         tracker that joins late takes, one set after the other (:meth:`on_facts`)."""
-        if self._tentative and self.sets and not self.sets[-1].reps:
+        if self._uncounted:
             return self.sets[:-1]
         return list(self.sets)
 
@@ -326,7 +331,7 @@ class SetTracker:
         way here ended then), its reps are kept beside those counted here (one that overlaps a rep counted here is
         that rep) and it ended at ``end_s``. These are past instants, not a mark made now: the rep under way here
         still counts, in the set that holds its start."""
-        if self._tentative and self.sets and not self.sets[-1].reps:
+        if self._uncounted:
             self.sets.pop()  # opened by the rep under way, which finds its set when it counts
             self._tentative = False
         record = next((r for r in reversed(self.sets) if r.number == number), None)

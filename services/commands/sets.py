@@ -37,11 +37,10 @@ def run(args: argparse.Namespace) -> int:
         )
 
     session, event, key = publish_facts(args, mark, "msk set")
-    facts = before
     if start:
         what = f"set {event.set_number} starts"
-    elif facts.get("resting"):  # as the session announced it: rest detection or a mark had ended the set already
-        what = f"no set was under way (set {facts.get('set_number', event.set_number)} had ended): nothing changes"
+    elif before.get("resting"):  # as the session announced it: rest detection or a mark had ended the set already
+        what = f"no set was under way (set {before.get('set_number', event.set_number)} had ended): nothing changes"
     else:
         what = "the set under way ends"
     print(f"msk set: {session}: {what} ({event.barbell_mass_kg:g} kg) -> {key}")

@@ -310,7 +310,6 @@ def xsens_loop(
         report.errors = sum(
             d.stats.decode_errors + d.stats.device_errors + d.parser.stats.errors for d in known.values()
         )
-
     return report
 
 

@@ -12,14 +12,14 @@ import threading
 from collections.abc import Callable
 
 from msk_core.errors import ConfigError
-from msk_core.signal.sets import SetRecord, SetTracker
+from msk_core.signal.sets import SetTracker
 from services.nodes.node_runtime import NodeInputs, apply_load_event
 from services.sessions import discovery
 from services.transport import messages
 
 #: The key of the announced facts (``OUT/session.json``) that holds the sets as ``msk live`` counted them, oldest
-#: first: number, start, end (None while under way), who ended it and rep spans on the activation frames' clock, for
-#: pages that join late.
+#: first (:meth:`~msk_core.signal.sets.SetRecord.as_dict`: number, start, end, who ended it, rep spans, on the
+#: activation frames' clock), for pages that join late.
 SETS_COUNTED = "sets_counted"
 #: The key of the announced facts that holds when the rep under way began (None between reps).
 REP_START = "rep_start_s"
@@ -142,19 +142,8 @@ class FactsFollower:
         return self._sets.settled, newest, self._sets.rep_start_s
 
     def _sets_counted(self) -> list[dict]:
-        """The sets as this session counted them, JSON-ready."""
-        return [_set_dict(r) for r in self._sets.counted()[-MAX_ANNOUNCED_SETS:]]
-
-
-def _set_dict(record: SetRecord) -> dict:
-    """A set as a session counted it (:meth:`SetTracker.counted`), JSON-ready for the announcement."""
-    return {
-        "number": record.number,
-        "start_s": record.start_s,
-        "end_s": record.end_s,
-        "ended_by": record.ended_by,
-        "rep_spans_s": [list(r) for r in record.reps],
-    }
+        """The sets as this session counted them (:meth:`SetRecord.as_dict`)."""
+        return [record.as_dict() for record in self._sets.counted()[-MAX_ANNOUNCED_SETS:]]
 
 
 def announced_events(session: str) -> list[messages.LoadEvent]:
@@ -184,7 +173,7 @@ def _counted_set_event(in_effect: messages.LoadEvent, record: dict) -> messages.
     event.CopyFrom(in_effect)
     event.set_number = int(record["number"])
     event.set_start_s = float(record["start_s"])
-    event.set_rep_spans_s.extend(float(x) for span in record["rep_spans_s"] for x in span)
+    event.set_rep_spans_s.extend(float(x) for span in record["rep_spans"] for x in span)
     if record.get("end_s") is not None:
         event.set_end_s, event.set_ended_by = float(record["end_s"]), str(record.get("ended_by", ""))
     return event

@@ -384,7 +384,7 @@ def session_line_text(
     latency_ms = (
         (frame.publish_ns - frame.input_arrival_ns) / 1e6 if frame.publish_ns and frame.input_arrival_ns else math.nan
     )
-    if rest is not None and facts.endswith("resting"):
+    if rest is not None:
         moving = f" {set_time}".rstrip()
     else:
         moving = f" · {movement_text(frame.phase if frame.HasField('phase') else None, movement)} · {set_time}"

@@ -263,7 +263,8 @@ class DashboardState:
         self._joints_have_phase = False
         self._torques: dict[str, float] = {}  # the latest frame's inverse-dynamics torques: lifting or lowering
         self._phase_method: str | None = None  # activation stream counted when the joints carry no phase
-        self._methods: list[str] = []  # the methods seen, in order: the sets' figures are of the default one
+        self._methods: list[str] = []  # the methods seen, in order
+        self._figures_method: str | None = None  # the default of those: whose frames the sets' figures are of
         self._devices: dict[str, DeviceHealth] = {}
         self._devices_seq = 0
         self._nodes: dict[str, dict] = {}  # node -> node_dict of its newest status
@@ -323,9 +324,9 @@ class DashboardState:
             self._put_session()
         self._phase_method = self._phase_method or frame.method
         if frame.method not in self._methods:
-            before = default_method(self._methods)
             self._methods.append(frame.method)
-            if default_method(self._methods) != before:
+            if default_method(self._methods) != self._figures_method:
+                self._figures_method = default_method(self._methods)
                 self._put_session()  # the page says whose frames the sets' figures are of
         phase = frame.phase if frame.HasField("phase") else None
         if frame.method == self._phase_method:  # the first method's frames: the sets' reps
@@ -333,7 +334,7 @@ class DashboardState:
             if not self._joints_have_phase:
                 self._reps.update(frame.time_s, phase)
                 self._put("reps", self._reps.as_dict())
-        if frame.method == default_method(self._methods):  # the sets' figures: the report's method, not the first
+        if frame.method == self._figures_method:  # the sets' figures: the report's method, not the first
             self._reps.sets.add_activations(frame.time_s, phase, frame.groups, frame.activations)
         if frame.method == self._phase_method:
             self._put_sets(arrival_ns)
@@ -407,7 +408,7 @@ class DashboardState:
                 "load_kg": load.barbell_mass_kg if load is not None else None,
                 "athlete": load.athlete if load is not None and load.athlete else None,
                 "names": names.as_dict(),
-                "set_figures_method": default_method(self._methods),  # whose frames the sets' figures are of
+                "set_figures_method": self._figures_method,
                 # shown when no estimates arrive: the declared exercise is not the one the estimator estimates
                 "paused": self._loads.paused_notice(load.exercise if load is not None else "") or None,
             },
