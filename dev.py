@@ -59,6 +59,8 @@ def main(argv: list[str]) -> int:
     _install()
     os.chdir(ROOT)
     if command == "lint":
+        # mypy reads msk_pb2.pyi, which the schema package makes from msk.proto on import
+        subprocess.check_call([str(PYTHON), "-c", "import services.transport.schemas"])
         checks = [["ruff", "check", "."], ["ruff", "format", "--check", "."], ["mypy"]]
         failed = [" ".join(c) for c in checks if subprocess.call([str(BIN / c[0]), *c[1:]]) != 0]
         if failed:

@@ -1,15 +1,15 @@
-"""Message schemas: every type round-trips; the committed generated code matches msk.proto; topics are documented."""
+"""Message schemas: every type round-trips; the generated code is protoc's of the current msk.proto; topics are documented."""
 
 from __future__ import annotations
 
-import subprocess
+import os
 import sys
 from pathlib import Path
 
 import pytest
 
 from msk_core.errors import ConfigError
-from services.transport import messages, topics
+from services.transport import messages, schemas, topics
 from services.transport.schemas import msk_pb2
 
 SCHEMA_DIR = Path(msk_pb2.__file__).parent
@@ -111,26 +111,44 @@ def test_decode_rejects_garbage_with_a_precise_error():
         messages.decode("msk.Nope", b"")
 
 
-def test_committed_generated_code_matches_proto(tmp_path):
-    """Regenerate msk_pb2.py from msk.proto with the pinned protoc and compare with the committed file."""
-    pytest.importorskip("grpc_tools")
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "grpc_tools.protoc",
-            f"-I{SCHEMA_DIR}",
-            f"--python_out={tmp_path}",
-            f"--pyi_out={tmp_path}",
-            "msk.proto",
-        ],
-        check=True,
-        cwd=SCHEMA_DIR,
+def test_generated_code_is_protocs_of_the_current_proto(tmp_path):
+    """The imported msk_pb2 is what the pinned protoc makes of msk.proto now."""
+    schemas.generate(tmp_path)
+    for name in schemas.GENERATED:
+        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), f"{name} does not match msk.proto"
+
+
+def test_a_changed_proto_makes_its_code_again(tmp_path):
+    """Code older than its .proto is stale: generation replaces it (a new field appears in the stub)."""
+    proto = tmp_path / "msk.proto"
+    proto.write_text(schemas.PROTO.read_text())
+    schemas.generate(tmp_path, proto)
+    assert schemas.is_current(tmp_path, proto)
+    proto.write_text(
+        schemas.PROTO.read_text().replace("message LoadEvent {", "message LoadEvent {\n  int32 added_here = 999;", 1)
     )
-    for name in ("msk_pb2.py", "msk_pb2.pyi"):
-        assert (tmp_path / name).read_text() == (SCHEMA_DIR / name).read_text(), (
-            f"{name} is stale: regenerate it from msk.proto"
-        )
+    past = proto.stat().st_mtime - 10
+    for name in schemas.GENERATED:
+        os.utime(tmp_path / name, (past, past))
+    assert not schemas.is_current(tmp_path, proto)
+    schemas.generate(tmp_path, proto)
+    assert schemas.is_current(tmp_path, proto)
+    assert "added_here" in (tmp_path / "msk_pb2.pyi").read_text()
+    assert not list(tmp_path.glob(".protoc-*")), "protoc's scratch folder was left behind"
+
+
+def test_missing_protoc_is_named(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "grpc_tools", None)
+    with pytest.raises(schemas.SchemaGenerationError, match=r"msk_pb2\.py is missing or older than .*grpcio-tools"):
+        schemas.generate(tmp_path)
+
+
+def test_a_proto_protoc_refuses_is_reported(tmp_path, capfd):
+    proto = tmp_path / "msk.proto"
+    proto.write_text('syntax = "proto3";\nmessage Broken { int32 x = ; }\n')
+    with pytest.raises(schemas.SchemaGenerationError, match=r"protoc failed on .*msk\.proto \(exit code 1\)"):
+        schemas.generate(tmp_path / "out", proto)
+    assert "msk.proto:2" in capfd.readouterr().err, "protoc's own message (file:line) is not shown"
 
 
 def test_file_descriptor_set_describes_every_type():

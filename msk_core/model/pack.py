@@ -339,9 +339,10 @@ class ModelPack:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Everything a live frame needs in one call: (mtu lengths, moment arms, joint torques).
 
-        With ``Evaluator.COMPILED`` one numba call (:mod:`msk_core.model.kernels`), else :meth:`frame_numpy`."""
+        With ``Evaluator.COMPILED`` one numba call (:mod:`msk_core.model.kernels`), else numpy + pinocchio (the
+        baseline ``msk bench model`` shows)."""
         if self.muscle_tables is None:
-            return self.frame_numpy(q, qd, qdd, hand_load_newton, out_of_range=out_of_range)
+            return self._frame_numpy(q, qd, qdd, hand_load_newton, out_of_range)
         q, qd, qdd = self._vectors(q, qd, qdd)
         out = np.empty(self._frame_size)
         mode = self._modes[out_of_range, self._both]
@@ -349,16 +350,9 @@ class ModelPack:
             self._raise_out_of_range(q)
         return out[self._lengths_at], out[self._arms_at].reshape(self._n, self._g), out[self._tau_at]
 
-    def frame_numpy(
-        self,
-        q: np.ndarray,
-        qd: np.ndarray,
-        qdd: np.ndarray,
-        hand_load_newton: float = 0.0,
-        *,
-        out_of_range: OutOfRange = OutOfRange.RAISE,
+    def _frame_numpy(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, hand_load_newton: float, out_of_range: OutOfRange
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`frame` in numpy + pinocchio (the numpy evaluator; the baseline ``msk bench model`` shows)."""
         q, values = self._values(q, out_of_range)
         tau = self.rigid.inverse_dynamics_numpy(q - self.reference_pose, qd, qdd, hand_load_newton, None)
         return values[: self._g], values[self._g :].reshape(self._n, self._g), tau

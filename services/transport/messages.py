@@ -1,7 +1,7 @@
 """Protobuf message types of msk-live and their (de)serialisation.
 
-The schema is ``services/transport/schemas/msk.proto``; ``msk_pb2`` is generated from it with grpcio-tools' protoc and
-committed (``tests/test_schemas.py`` regenerates it and checks that both agree).
+The schema is ``services/transport/schemas/msk.proto``; ``msk_pb2`` is made from it by grpcio-tools' protoc when the
+package is first imported, and again after the schema changes (:mod:`services.transport.schemas`).
 """
 
 from __future__ import annotations
