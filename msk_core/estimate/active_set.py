@@ -114,7 +114,7 @@ def solve_box_lsq(
     tt = np.empty(m)
     _scale_rows(r, f_max, tau, min_scale, at, tt)
     _feasible_start(state, lb, ub, x)
-    code, changes = _iterate(at, tt, w, d, mu, lb, ub, x, state, max_iter)
+    code, changes = _iterate(at, tt, w, d, mu, lb, ub, x, state, max_iter, False)
     if with_std and code == CERTIFIED:
         _laplace_std(at, w, d, False, x, lb, ub, out[m + 3])
     return code, changes, out, _forces_and_torques(r, f_max, tau, x, out)
@@ -139,15 +139,15 @@ def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
     tt = np.empty(m)
     _scale_rows(r, f_max, tau, min_scale, at, tt)
     _feasible_start(state, lb, ub, x)
-    code, changes = _iterate_equality(at, tt, lb, ub, x, state, max_iter)
+    code, changes = _iterate(at, tt, 0.0, out[m + 2], out[m + 2], lb, ub, x, state, max_iter, True)
     if code == FACTORISATION_FAILED and changes < max_iter:
         # the path from a start off the equality ran into a singular working set: take the working set of the
         # penalty problem min a'a + PENALTY_WEIGHT |A~ a - t~|^2 (strictly convex: always found), start again there
         d = out[m + 2]
-        code, more = _iterate(at, tt, 2.0 * PENALTY_WEIGHT, d, np.zeros(g), lb, ub, x, state, max_iter - changes)
+        code, more = _iterate(at, tt, 2.0 * PENALTY_WEIGHT, d, np.zeros(g), lb, ub, x, state, max_iter - changes, False)
         changes += more
         if code == CERTIFIED:
-            code, more = _iterate_equality(at, tt, lb, ub, x, state, max_iter - changes)
+            code, more = _iterate(at, tt, 0.0, d, d, lb, ub, x, state, max_iter - changes, True)
             changes += more
         elif code == NOT_CONVERGED:
             code = FACTORISATION_FAILED
@@ -157,48 +157,62 @@ def solve_min_norm_eq(r, f_max, tau, lb, ub, min_scale, x, state, max_iter):
 
 
 @_part
-def _iterate_equality(
-    at: Array, tt: Array, lb: Array, ub: Array, x: Array, state: Array, max_iter: int
+def _iterate(
+    at: Array,
+    tt: Array,
+    w: float,
+    d: Array,
+    mu: Array,
+    lb: Array,
+    ub: Array,
+    x: Array,
+    state: Array,
+    max_iter: int,
+    equality: bool,
 ) -> tuple[int, int]:
-    """The active-set iterations of :func:`solve_min_norm_eq`: (code, changes).
+    """The active-set iterations from the working set in ``state`` and ``x`` (in the box): (code, changes). One loop
+    for both problems; they differ in each working set's minimiser and in the bound multipliers:
 
-    Working set W (held groups B at their bounds, free F): its minimiser is a_F = -A_F' lam / 2 with
-    (A_F A_F') lam = -2 (t - A_B a_B), i.e. a_F = A_F' v, (A_F A_F') v = t - A_B a_B, lam = -2 v. The start x need not
-    meet the equality (the last frame's optimum): a blocked step shrinks its residual by (1 - alpha), the first full
-    step removes it, and from there every step stays on the equality (the textbook method). Certified when the full
-    step's x is in the box, meets the equality to ``EQUALITY_TOL`` and every bound multiplier g_i = 2 a_i + A_i' lam
-    has its sign (>= 0 at a lower bound, <= 0 at an upper one)."""
+    * least squares (``equality`` False, :func:`solve_box_lsq`): the minimiser over the free set F, the held groups B
+      fixed at their bounds, solves H_FF y = w A~_F'(t~ - A~_B x_B) + d_F mu_F; a bound's multiplier is its gradient
+      w A~_i'(A~ x - t~) + d_i (x_i - mu_i).
+    * ``so`` (``equality`` True, :func:`solve_min_norm_eq`; ``w``, ``d``, ``mu`` unused): a_F = -A_F' lam / 2 with
+      (A_F A_F') lam = -2 (t - A_B a_B), i.e. a_F = A_F' v, (A_F A_F') v = t - A_B a_B, lam = -2 v; a bound's
+      multiplier is g_i = 2 a_i + A_i' lam. The start need not meet the equality (the last frame's optimum): a
+      blocked step shrinks its residual by (1 - alpha), the first full step removes it, and from there every step
+      stays on the equality (the textbook method); a full step certifies only when it meets the equality to
+      ``EQUALITY_TOL``.
+
+    Certified when the full step's multipliers all have their sign (>= 0 at a lower bound, <= 0 at an upper one)."""
     m, g = at.shape
+    tol = 0.0 if equality else _multiplier_tolerance(at, tt, w, d, mu)
     free_idx = np.empty(g, dtype=np.int64)
+    rhs = np.empty(g)
     y = np.empty(g)
     v = np.empty(m)
+    e = np.empty(m)
     s_mat = np.empty((m, m))
+    z = np.empty(m)
     grad = np.empty(g)
     code = NOT_CONVERGED
     changes = 0
     while True:
         nf = _collect_free(state, free_idx)
-        big = 0.0
-        for i in range(m):  # v = t - A_B a_B; S = A_F A_F' (lower triangle)
-            acc = tt[i]
+        for n in range(m):  # v = t~ - A~_B x_B
+            s = tt[n]
             for j in range(g):
                 if state[j] != FREE:
-                    acc -= at[i, j] * x[j]
-            v[i] = acc
-            for k in range(i + 1):
-                acc = 0.0
-                for a in range(nf):
-                    acc += at[i, free_idx[a]] * at[k, free_idx[a]]
-                s_mat[i, k] = acc
-            big = max(big, s_mat[i, i])
-        if not _cholesky_solve(s_mat, v, m, SINGULAR_TOL * big):
+                    s -= at[n, j] * x[j]
+            v[n] = s
+        if equality:
+            solved = _min_norm_free(at, v, free_idx, nf, s_mat, y)
+        else:
+            _least_squares_rhs(at, w, d, mu, v, free_idx, nf, rhs)
+            solved = nf == 0 or _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y)
+        if not solved:
             code = FACTORISATION_FAILED
             break
-        for a in range(nf):  # y = A_F' v
-            acc = 0.0
-            for i in range(m):
-                acc += at[i, free_idx[a]] * v[i]
-            y[a] = acc
+        # step towards it, stopped by the first bound in the way
         block = _step(free_idx, nf, y, lb, ub, x)
         if block >= 0:
             if changes >= max_iter:
@@ -206,23 +220,88 @@ def _iterate_equality(
             changes += 1
             _hold(block, lb, ub, x, state)
             continue
-        worst_residual = 0.0
-        for i in range(m):
-            acc = -tt[i]
-            for j in range(g):
-                acc += at[i, j] * x[j]
-            worst_residual = max(worst_residual, abs(acc))
-        if worst_residual > EQUALITY_TOL:
-            break  # numerically no solution of the equality in this working set: not certified
-        worst_i = _most_violated(state, grad, MULTIPLIER_TOL * _so_gradient(at, x, v, grad))
+        # full step: x is the working set's minimiser; the multipliers of its bounds decide
+        worst_residual = _residual(at, tt, x, e)
+        if equality:
+            if worst_residual > EQUALITY_TOL:
+                break  # numerically no solution of the equality in this working set: not certified
+            tol = MULTIPLIER_TOL * _so_gradient(at, x, v, grad)
+        else:
+            _least_squares_gradient(at, w, d, mu, x, state, e, grad)
+        worst_i = _most_violated(state, grad, tol)
         if worst_i < 0:
             code = CERTIFIED
             break
         if changes >= max_iter:
             break
         changes += 1
-        state[worst_i] = FREE
+        state[worst_i] = FREE  # the most violated bound is released
     return code, changes
+
+
+@_part
+def _least_squares_rhs(
+    at: Array, w: float, d: Array, mu: Array, v: Array, free_idx: Array, nf: int, rhs: Array
+) -> None:
+    """rhs_F = w A~_F' v + d_F mu_F with v = t~ - A~_B x_B: the right-hand side of the free block's normal equations."""
+    m = at.shape[0]
+    for a in range(nf):
+        fi = free_idx[a]
+        s = 0.0
+        for n in range(m):
+            s += at[n, fi] * v[n]
+        rhs[a] = w * s + d[fi] * mu[fi]
+
+
+@_part
+def _residual(at: Array, tt: Array, x: Array, e: Array) -> float:
+    """e = A~ x - t~; returns max |e|."""
+    m, g = at.shape
+    worst = 0.0
+    for n in range(m):
+        s = -tt[n]
+        for j in range(g):
+            s += at[n, j] * x[j]
+        e[n] = s
+        worst = max(worst, abs(s))
+    return worst
+
+
+@_part
+def _least_squares_gradient(
+    at: Array, w: float, d: Array, mu: Array, x: Array, state: Array, e: Array, grad: Array
+) -> None:
+    """The held groups' gradients w A~_i' e + d_i (x_i - mu_i), e = A~ x - t~: their bound multipliers."""
+    m, g = at.shape
+    for i in range(g):
+        if state[i] != FREE:
+            s = 0.0
+            for n in range(m):
+                s += at[n, i] * e[n]
+            grad[i] = w * s + d[i] * (x[i] - mu[i])
+
+
+@_part
+def _min_norm_free(at: Array, v: Array, free_idx: Array, nf: int, s_mat: Array, y: Array) -> bool:
+    """``so``'s minimiser over the free set: v <- (A~_F A~_F')^-1 v, y = A~_F' v; False when A~_F A~_F' is singular
+    (its squared Cholesky pivots below ``SINGULAR_TOL`` times its largest diagonal entry)."""
+    m = at.shape[0]
+    big = 0.0
+    for i in range(m):  # S = A_F A_F' (lower triangle)
+        for k in range(i + 1):
+            acc = 0.0
+            for a in range(nf):
+                acc += at[i, free_idx[a]] * at[k, free_idx[a]]
+            s_mat[i, k] = acc
+        big = max(big, s_mat[i, i])
+    if not _cholesky_solve(s_mat, v, m, SINGULAR_TOL * big):
+        return False
+    for a in range(nf):  # y = A_F' v
+        acc = 0.0
+        for i in range(m):
+            acc += at[i, free_idx[a]] * v[i]
+        y[a] = acc
+    return True
 
 
 @_part
@@ -240,72 +319,6 @@ def _so_gradient(at: Array, x: Array, v: Array, grad: Array) -> float:
         grad[j] = 2.0 * (x[j] - acc)
         scale = max(scale, 2.0 * size)
     return scale
-
-
-@_part
-def _iterate(
-    at: Array, tt: Array, w: float, d: Array, mu: Array, lb: Array, ub: Array, x: Array, state: Array, max_iter: int
-) -> tuple[int, int]:
-    """The active-set iterations from the working set in ``state`` and the feasible ``x``: (code, changes)."""
-    m, g = at.shape
-    tol = _multiplier_tolerance(at, tt, w, d, mu)
-    free_idx = np.empty(g, dtype=np.int64)
-    rhs = np.empty(g)
-    y = np.empty(g)
-    e = np.empty(m)
-    s_mat = np.empty((m, m))
-    z = np.empty(m)
-    grad = np.empty(g)
-    code = NOT_CONVERGED
-    changes = 0
-    while True:
-        nf = _collect_free(state, free_idx)
-        # equality-constrained minimiser over the free set, the others fixed at their bounds:
-        # H_FF y = w A~_F'(t~ - A~_B x_B) + d_F mu_F
-        for n in range(m):
-            s = tt[n]
-            for j in range(g):
-                if state[j] != FREE:
-                    s -= at[n, j] * x[j]
-            e[n] = s
-        for a in range(nf):
-            fi = free_idx[a]
-            s = 0.0
-            for n in range(m):
-                s += at[n, fi] * e[n]
-            rhs[a] = w * s + d[fi] * mu[fi]
-        if nf > 0 and not _solve_free(at, w, d, rhs, free_idx, nf, s_mat, z, y):
-            code = FACTORISATION_FAILED
-            break
-        # step towards it, stopped by the first bound in the way
-        block = _step(free_idx, nf, y, lb, ub, x)
-        if block >= 0:
-            if changes >= max_iter:
-                break
-            changes += 1
-            _hold(block, lb, ub, x, state)
-            continue
-        # full step: x is the working set's minimiser; the multipliers of its bounds decide
-        for n in range(m):
-            s = -tt[n]
-            for j in range(g):
-                s += at[n, j] * x[j]
-            e[n] = s
-        for i in range(g):
-            if state[i] != FREE:
-                s = 0.0
-                for n in range(m):
-                    s += at[n, i] * e[n]
-                grad[i] = w * s + d[i] * (x[i] - mu[i])
-        worst_i = _most_violated(state, grad, tol)
-        if worst_i < 0:
-            code = CERTIFIED
-            break
-        if changes >= max_iter:
-            break
-        changes += 1
-        state[worst_i] = FREE  # the most violated bound is released
-    return code, changes
 
 
 @_part
