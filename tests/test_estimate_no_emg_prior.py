@@ -9,7 +9,7 @@ import pytest
 
 from msk_core.errors import EstimationError
 from msk_core.estimate import PhasePrior, SubjectProfile
-from msk_core.estimate.pipeline import NoEmgPrior, build_prior, pick_synergists
+from msk_core.estimate.pipeline import NoEmgPrior, PriorSettings, build_prior, pick_synergists
 from msk_core.estimate.prior import NO_EMG_STD
 from msk_core.estimate.trial import TrialData
 from msk_core.signal.reps import REST_PHASE
@@ -71,7 +71,7 @@ def _trial(n_reps: int = 4) -> TrialData:
 
 def test_min_effort_prior_is_static_optimisation_binned_over_reps():
     trial = _trial()
-    prior = build_prior(ConstantPack(), [trial], n_bins=10)
+    prior = build_prior(ConstantPack(), [trial], PriorSettings(n_bins=10))
     assert prior.sources == ("emg", "min_effort", "emg", "min_effort")
     assert list(prior.has_emg) == [True, False, True, False]
     # independent so for one coordinate: a_g = max(A_g, 0) tau / sum max(A_h, 0)^2 while no group saturates
@@ -90,19 +90,19 @@ def test_min_effort_prior_is_static_optimisation_binned_over_reps():
 def test_synergist_prior_copies_the_most_similar_measured_group_and_explicit_mapping_wins():
     pack, trial = ConstantPack(), _trial()
     assert pick_synergists(pack, [trial], ["g1", "g3"], ["g0", "g2"]) == {"g1": "g0", "g3": "g2"}
-    prior = build_prior(pack, [trial], n_bins=10, no_emg=NoEmgPrior.SYNERGIST)
+    prior = build_prior(pack, [trial], PriorSettings(n_bins=10, no_emg=NoEmgPrior.SYNERGIST))
     assert prior.sources == ("emg", "synergist:g0", "emg", "synergist:g2")
     np.testing.assert_allclose(prior.mean[:, 1], prior.mean[:, 0])
     np.testing.assert_allclose(prior.std[:, 3], prior.std[:, 2])
     np.testing.assert_allclose(prior.rest_mean[1], prior.rest_mean[0])
-    explicit = build_prior(pack, [trial], n_bins=10, synergists={"g3": "g0"})  # the rest: minimal effort
+    explicit = build_prior(pack, [trial], PriorSettings(n_bins=10, synergists={"g3": "g0"}))  # the rest: minimal effort
     assert explicit.sources == ("emg", "min_effort", "emg", "synergist:g0")
     with pytest.raises(EstimationError, match="group with EMG"):
-        build_prior(pack, [trial], synergists={"g3": "g1"})
+        build_prior(pack, [trial], PriorSettings(synergists={"g3": "g1"}))
 
 
 def test_wide_prior_is_the_old_default_and_sources_survive_the_profile(tmp_path):
-    prior = build_prior(ConstantPack(), [_trial()], n_bins=10, no_emg="wide")
+    prior = build_prior(ConstantPack(), [_trial()], PriorSettings(n_bins=10, no_emg="wide"))
     assert prior.sources == ("emg", "default", "emg", "default")
     np.testing.assert_allclose(prior.std[:, 1], NO_EMG_STD)
     prof = SubjectProfile(
@@ -111,7 +111,7 @@ def test_wide_prior_is_the_old_default_and_sources_survive_the_profile(tmp_path)
         list(ConstantPack.groups),
         F_REF.copy(),
         F_REF.copy(),
-        build_prior(ConstantPack(), [_trial()], n_bins=10),
+        build_prior(ConstantPack(), [_trial()], PriorSettings(n_bins=10)),
     )
     prof.save(tmp_path / "s.json")
     back = SubjectProfile.load(tmp_path / "s.json")

@@ -109,7 +109,7 @@ def test_phase_prior_of_one_rep_uses_the_spread_within_its_bins_floored(tmp_path
 def test_phase_prior_of_a_real_lift_has_the_back_extensors_working_mid_lift(shared_dir, tmp_path):
     import os
 
-    from msk_core.estimate.pipeline import build_prior
+    from msk_core.estimate.pipeline import PriorSettings, build_prior
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
 
@@ -123,7 +123,7 @@ def test_phase_prior_of_a_real_lift_has_the_back_extensors_working_mid_lift(shar
     )
     trial = load_trial(toml, load_pack("lumbar_lift"))
     assert trial.rep_index.max() + 1 == 4  # the pelvis drops in each of the four lifts, squat or stoop
-    prior = build_prior(load_pack("lumbar_lift"), [trial], n_bins=10, no_emg="wide")
+    prior = build_prior(load_pack("lumbar_lift"), [trial], PriorSettings(n_bins=10, no_emg="wide"))
     ilio = prior.mean[:, list(prior.groups).index("iliocost_r")]
     assert ilio[3:7].max() > 1.3 * ilio[0]  # back extensors work harder mid-lift than at its start (standing)
     measured = [list(prior.groups).index(g) for g in groups]

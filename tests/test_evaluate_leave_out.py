@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from msk_core.estimate.leave_out import LEAVE_OUT_METHODS, MAX_LAG_S, PAPER_METHODS
+from msk_core.estimate.pipeline import PriorSettings
 from services.cli import main
 from tests.conftest import committed_trial
 
@@ -265,7 +266,7 @@ def test_live_synergists_meet_both_targets_on_the_lifts(shared_dir, tmp_path):
     pack = load_pack("lumbar_lift")
     train = load_trial(_trial("squat5kg", shared_dir, tmp_path), pack)
     held = load_trial(_trial("stoop5kg", shared_dir, tmp_path), pack)
-    options = {"no_emg": "synergist", "no_emg_strength": "measured"}
+    options = {"prior_settings": PriorSettings(no_emg="synergist"), "no_emg_strength": "measured"}
     live = leave_one_out(pack, [train], [held], live_synergists=True, **options).targets()
     assert live["method"] == "assisted" and live["rmse_met"] and live["r_met"], live
     assert live["r_groups"] == 6  # so gives both rectus abdominis a constant (their r undefined)

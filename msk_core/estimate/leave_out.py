@@ -42,7 +42,7 @@ from msk_core.estimate.emd import calibrated_delay, shift_emg
 from msk_core.estimate.frame import FrameEstimator, Method
 from msk_core.estimate.metrics import cross_correlation_lag, on_off_agreement, pearson_r, rmse
 from msk_core.estimate.pack import PackLike
-from msk_core.estimate.pipeline import NoEmgPrior, NoEmgStrength, calibrate_inputs, calibration_inputs
+from msk_core.estimate.pipeline import NoEmgStrength, PriorSettings, calibrate_inputs, calibration_inputs
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.estimate.trial import TrialData
 from msk_core.progress import Progress
@@ -204,9 +204,7 @@ def leave_one_out(
     *,
     groups: Sequence[str] | None = None,
     settings: CalibrationSettings | None = None,
-    n_bins: int = 20,
-    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
-    synergists: dict[str, str] | None = None,
+    prior_settings: PriorSettings | None = None,
     emd_s: float | str | None = "auto",
     no_emg_strength: NoEmgStrength | str = NoEmgStrength.REFERENCE,
     solver: str = "reduced",
@@ -215,7 +213,7 @@ def leave_one_out(
 ) -> LeaveOutResult:
     """Leave each of ``groups`` (default: every group with an electrode in both the training and the held-out
     trials) out of calibration and estimation, and score its estimate on the held-out trials; the paper's protocol
-    beside it. Calibration arguments as :func:`msk_core.estimate.pipeline.calibrate_subject`'s (a ``synergists``
+    beside it. Calibration arguments as :func:`msk_core.estimate.pipeline.calibrate_subject`'s (a prior synergist
     entry that names the left-out group as its source is dropped for that run); ``options`` go to every
     :class:`FrameEstimator` (solver, activation bounds). ``solver``: the calibrations' NLP solver
     (:class:`CalibrationSettings`; "reduced" by default, whatever ``settings`` says: the same optimum as "joint" within
@@ -230,14 +228,9 @@ def leave_one_out(
     total = len(chosen) + 1
     if progress is not None:
         progress(0, total, "leave-one-out (calibrations)")
-    kwargs = {
-        "settings": settings,
-        "n_bins": n_bins,
-        "no_emg": no_emg,
-        "emd_s": emd_s,
-        "no_emg_strength": no_emg_strength,
-    }
-    profile, run = _calibrate(pack, train, None, synergists, kwargs)
+    prior_settings = prior_settings or PriorSettings()
+    calibration = _Calibration(settings, emd_s, NoEmgStrength(no_emg_strength))
+    profile, run = calibration.run(pack, train, None, prior_settings)
     if progress is not None:
         progress(1, total, "leave-one-out (calibrations)")
     runs, paper, flags, curves = [run], {}, {}, {}
@@ -249,8 +242,8 @@ def leave_one_out(
     loo = {}
     for done, g in enumerate(chosen, start=2):
         trials_g = [without_electrode(t, g) for t in train]
-        syn = {u: h for u, h in (synergists or {}).items() if h != g}
-        profile_g, run_g = _calibrate(pack, trials_g, g, syn, kwargs)
+        syn = {u: h for u, h in prior_settings.synergists.items() if h != g}
+        profile_g, run_g = calibration.run(pack, trials_g, g, replace(prior_settings, synergists=syn))
         runs.append(run_g)
         delay = calibrated_delay(profile_g)
         live = [shift_emg(without_electrode(t, g), delay) for t in held_out]
@@ -295,31 +288,31 @@ def _groups_to_leave_out(train: list[TrialData], held_out: list[TrialData], grou
     return chosen
 
 
-def _calibrate(
-    pack: PackLike,
-    trials: list[TrialData],
-    left_out: str | None,
-    synergists: dict[str, str] | None,
-    kwargs: dict[str, Any],
-) -> tuple[SubjectProfile, CalibrationRun]:
-    started, cpu_started = time.perf_counter(), time.process_time()
-    inputs = calibration_inputs(
-        pack, trials, n_bins=kwargs["n_bins"], no_emg=kwargs["no_emg"], synergists=synergists, emd_s=kwargs["emd_s"]
-    )
-    profile, result = calibrate_inputs(
-        pack, inputs, settings=kwargs["settings"], no_emg_strength=kwargs["no_emg_strength"]
-    )
-    emg_groups = sorted({g for t in trials for g in t.emg})
-    run = CalibrationRun(
-        left_out=left_out,
-        converged=bool(result.converged),
-        iterations=int(result.iterations),
-        emd_ms=1000.0 * float(inputs.emd["delay_s"]),
-        seconds=time.perf_counter() - started,
-        strength={g: float(result.scale[list(pack.groups).index(g)]) for g in emg_groups},
-        cpu_seconds=time.process_time() - cpu_started,
-    )
-    return profile, run
+@dataclass(frozen=True)
+class _Calibration:
+    """The calibration settings every run of a leave-one-out shares (the prior's synergists differ per run)."""
+
+    settings: CalibrationSettings
+    emd_s: float | str | None
+    no_emg_strength: NoEmgStrength
+
+    def run(
+        self, pack: PackLike, trials: list[TrialData], left_out: str | None, prior_settings: PriorSettings
+    ) -> tuple[SubjectProfile, CalibrationRun]:
+        started, cpu_started = time.perf_counter(), time.process_time()
+        inputs = calibration_inputs(pack, trials, prior_settings=prior_settings, emd_s=self.emd_s)
+        profile, result = calibrate_inputs(pack, inputs, settings=self.settings, no_emg_strength=self.no_emg_strength)
+        emg_groups = sorted({g for t in trials for g in t.emg})
+        run = CalibrationRun(
+            left_out=left_out,
+            converged=bool(result.converged),
+            iterations=int(result.iterations),
+            emd_ms=1000.0 * float(inputs.emd["delay_s"]),
+            seconds=time.perf_counter() - started,
+            strength={g: float(result.scale[list(pack.groups).index(g)]) for g in emg_groups},
+            cpu_seconds=time.process_time() - cpu_started,
+        )
+        return profile, run
 
 
 def _estimate(

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -44,30 +45,42 @@ class NoEmgStrength(str, Enum):
     SYNERGIST = "synergist"
 
 
+@dataclass(frozen=True)
+class PriorSettings:
+    """How :func:`build_prior` learns the N(mu, sigma^2) prior: ``n_bins`` phase bins per movement cycle; the prior of
+    groups without EMG, first from ``synergists`` (unmeasured group -> the measured group whose prior it takes), then
+    by ``no_emg``. Checked when made; ``no_emg`` may be given by its value ("wide")."""
+
+    n_bins: int = 20
+    no_emg: NoEmgPrior = NoEmgPrior.MIN_EFFORT
+    synergists: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.n_bins >= 2:
+            raise EstimationError(f"the prior needs at least 2 phase bins, got n_bins={self.n_bins}")
+        object.__setattr__(self, "no_emg", NoEmgPrior(self.no_emg))
+        object.__setattr__(self, "synergists", MappingProxyType(dict(self.synergists)))
+
+
 SYNERGIST_MIN_COSINE = 0.9  # moment-arm similarity a measured group needs to stand in for an unmeasured one
 
 
-def build_prior(
-    pack: PackLike,
-    trials: list[TrialData],
-    *,
-    n_bins: int = 20,
-    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
-    synergists: dict[str, str] | None = None,
-) -> PhasePrior:
-    """N(mu, sigma^2) per group and phase bin across all reps of all trials.
+def build_prior(pack: PackLike, trials: list[TrialData], prior_settings: PriorSettings | None = None) -> PhasePrior:
+    """N(mu, sigma^2) per group and phase bin across all reps of all trials (:class:`PriorSettings`; default ones
+    when None).
 
-    Groups with EMG: from their normalised envelopes. Groups without: ``synergists`` (unmeasured -> measured group)
-    first, then ``no_emg``: the minimal-effort (``so``) activation over the same reps, a measured synergist, or the
-    wide default. Isometric trials are left out: they have no phase, and their contractions are not the rest between
+    Groups with EMG: from their normalised envelopes. Groups without: the settings' ``synergists`` (unmeasured ->
+    measured group) first, then ``no_emg``: the minimal-effort (``so``) activation over the same reps, a measured
+    synergist, or the wide default. Isometric trials are left out: they have no phase, and their contractions are not the rest between
     reps either.
     """
     isometric = [t.name for t in trials if t.isometric]
     trials = [t for t in trials if not t.isometric]
     groups = list(pack.groups)
-    no_emg = NoEmgPrior(no_emg)
+    ps = prior_settings or PriorSettings()
+    n_bins, no_emg = ps.n_bins, ps.no_emg
     emg_groups = _prior_emg_groups(trials, isometric)
-    synergists, missing = _prior_synergists(pack, trials, emg_groups, synergists, no_emg)
+    synergists, missing = _prior_synergists(pack, trials, emg_groups, ps.synergists, no_emg)
     effort = missing if no_emg is not NoEmgPrior.WIDE else []
     emg, phases, reps = _prior_samples(pack, trials, emg_groups, effort)
     prior = fit_phase_prior(groups, emg, phases, reps, n_bins=n_bins)
@@ -143,13 +156,13 @@ def _prior_synergists(
     pack: PackLike,
     trials: list[TrialData],
     emg_groups: list[str],
-    synergists: dict[str, str] | None,
+    synergists: Mapping[str, str],
     no_emg: NoEmgPrior,
 ) -> tuple[dict[str, str], list[str]]:
     """(unmeasured -> measured group: the given ones checked, then picked ones for ``no_emg=synergist``; the groups
     still without EMG or synergist)."""
     groups = list(pack.groups)
-    synergists = dict(synergists or {})
+    synergists = dict(synergists)
     for g, h in synergists.items():
         if g not in groups or h not in emg_groups:
             raise EstimationError(
@@ -490,9 +503,7 @@ def calibration_inputs(
     pack: PackLike,
     trials: list[TrialData],
     *,
-    n_bins: int = 20,
-    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
-    synergists: dict[str, str] | None = None,
+    prior_settings: PriorSettings | None = None,
     emd_s: float | str | None = "auto",
 ) -> CalibrationInputs:
     """The delay (``emd_s``, as in :func:`calibrate_subject`) applied to the trials' EMG, then the prior and the
@@ -513,7 +524,7 @@ def calibration_inputs(
     else:
         raise EstimationError(f"emd_s must be 'auto', a delay in seconds or None, got {emd_s!r}")
     trials = [shift_emg(t, emd["delay_s"]) for t in trials]
-    prior = build_prior(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists)
+    prior = build_prior(pack, trials, prior_settings)
     me_error = min_effort_error(pack, trials) if "min_effort" in (prior.sources or ()) else float("nan")
     return CalibrationInputs(trials=trials, prior=prior, min_effort_error=me_error, emd=emd)
 
@@ -523,9 +534,7 @@ def calibrate_subject(
     trials: list[TrialData],
     *,
     settings: CalibrationSettings | None = None,
-    n_bins: int = 20,
-    no_emg: NoEmgPrior | str = NoEmgPrior.MIN_EFFORT,
-    synergists: dict[str, str] | None = None,
+    prior_settings: PriorSettings | None = None,
     emd_s: float | str | None = "auto",
     torque_basis: TorqueBasis | None = None,
     force_scale: Callable[[TrialData], np.ndarray] | None = None,
@@ -539,7 +548,7 @@ def calibrate_subject(
     activations do not produce, its coefficients fitted with the strengths (:class:`TorqueBasis`); ``force_scale``:
     a per-frame factor on each group's active force (:func:`calibration_frames`); ``start``: a
     calibration of the same trials to start the solve from (:func:`msk_core.estimate.calibrate.calibrate`)."""
-    inputs = calibration_inputs(pack, trials, n_bins=n_bins, no_emg=no_emg, synergists=synergists, emd_s=emd_s)
+    inputs = calibration_inputs(pack, trials, prior_settings=prior_settings, emd_s=emd_s)
     return calibrate_inputs(
         pack,
         inputs,

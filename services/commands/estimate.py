@@ -158,6 +158,7 @@ def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
     """The calibration settings of :func:`add_calibration_arguments`, checked, as keyword arguments of
     :func:`msk_core.estimate.pipeline.calibrate_subject` (and :func:`msk_core.estimate.leave_out.leave_one_out`)."""
     from msk_core.estimate.calibrate import CalibrationSettings
+    from msk_core.estimate.pipeline import PriorSettings
 
     if args.bins < 2:
         raise ConfigError("need at least 2 phase bins", field="--bins", value=args.bins)
@@ -194,9 +195,7 @@ def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
             raise ConfigError("must be in [0, 0.5] s", field="--emd", value=args.emd)
     return {
         "settings": settings,
-        "n_bins": args.bins,
-        "no_emg": args.no_emg_prior,
-        "synergists": synergists,
+        "prior_settings": PriorSettings(n_bins=args.bins, no_emg=args.no_emg_prior, synergists=synergists),
         "emd_s": emd_s,
         "no_emg_strength": args.no_emg_strength,
     }
