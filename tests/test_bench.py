@@ -40,3 +40,14 @@ def test_bench_rejects_unknown_names(repo_root):
         [sys.executable, "-m", "services.cli", "bench", "nope"], cwd=repo_root, capture_output=True, text=True
     )
     assert run.returncode == 2 and "unknown benchmark" in run.stderr and "emg" in run.stderr
+
+
+def test_a_frame_without_the_opensim_baseline_gets_no_verdict():
+    """Both figures against OpenSim share one rule: <= 20 us and >= 1000x faster, and no verdict (None) rather than a
+    pass when OpenSim could not be timed (the separate-calls figure used to pass then)."""
+    from services.bench.model import _against_opensim
+
+    assert _against_opensim("f", 10e-6, 0.5, {}).passed is True
+    assert _against_opensim("f", 30e-6, 0.5, {}).passed is False  # over 20 us
+    assert _against_opensim("f", 10e-6, 5e-3, {}).passed is False  # only 500x
+    assert _against_opensim("f", 10e-6, float("nan"), {}).passed is None
