@@ -17,8 +17,9 @@ def test_envelope_command_matches_library(shared_dir: Path, tmp_path: Path, caps
     out = tmp_path / "env.sto"
     assert main(["emg", "envelope", str(anc), "--channels", "SOL,TA", "-o", str(out)]) == 0
     s = read_sto(out)
-    raw = read_anc(anc).select(["SOL", "TA"])
-    assert s.columns == ["SOL", "TA"] and s.name == "EMG envelopes, causal"
+    raw, own_unit = read_anc(anc).select(["SOL", "TA"]).in_volts()
+    assert not own_unit and raw.units == ["V", "V"]
+    assert s.columns == ["SOL", "TA"] and s.name == "EMG envelopes (V), causal"
     np.testing.assert_allclose(s.data, envelope_causal(raw.data, EmgFilterConfig(rate_hz=2000.0)), rtol=1e-12, atol=0)
     # offline zero-phase, normalised by an "MVC" trial (here the same file: peak exactly 1)
     out2 = tmp_path / "env_norm.sto"
@@ -65,3 +66,54 @@ def test_errors_exit_2(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureF
     assert "unknown EMG file type" in capsys.readouterr().err
     assert main(["emg", "envelope", str(anc), "--lowpass-hz", "5000", "-o", str(tmp_path / "x.sto")]) == 2
     assert "lowpass_hz" in capsys.readouterr().err
+
+
+def _write_anc(path: Path, names: list[str], ranges: list[int], counts: np.ndarray, rate: float = 1000.0) -> Path:
+    """A Motion Analysis .anc as Cortex writes it: header pairs, Name / Rate / Range rows, time and ADC counts."""
+    lines = [
+        "File_Type:\tAnalog R/C ASCII\tGeneration#:\t2",
+        f"Trial_Name:\tsmall\tTrial#:\t1\tDuration(Sec.):\t{len(counts) / rate:f}\t#Channels:\t{len(names)}",
+        "BitDepth:\t16\tPreciseRate:\t1000.000000",
+        "",
+        "Name\t" + "\t".join(names) + "\t",
+        "Rate\t" + "\t".join(f"{rate:g}" for _ in names) + "\t",
+        "Range\t" + "\t".join(str(r) for r in ranges) + "\t",
+    ]
+    lines += [f"{k / rate:f}\t" + "\t".join(str(int(v)) for v in row) + "\t" for k, row in enumerate(counts)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_anc_counts_become_volts_and_its_force_plates_are_left_out(tmp_path: Path, capsys) -> None:
+    """One EMG signal recorded on a +-1000 mV and on a +-2500 mV channel: in counts 2.5x apart, in volts the same; the
+    force-plate channels (F1X ... M1Z, the .anc naming) are left out unless asked for by name."""
+    volts = 0.2 * np.sin(np.linspace(0, 40, 2000)) * np.random.default_rng(2).normal(1.0, 0.3, 2000)
+    plates = ["F1X", "F1Y", "F1Z", "M1X", "M1Y", "M1Z"]
+    counts = np.column_stack([np.full((2000, 6), 100.0), np.round(volts / 1.0 * 32768), np.round(volts / 2.5 * 32768)])
+    anc = _write_anc(tmp_path / "trial.anc", [*plates, "SOL", "SOL_wide"], [5000] * 6 + [1000, 2500], counts)
+    rec, own = read_anc(anc).in_volts()
+    assert not own and rec.units == ["V"] * 8
+    np.testing.assert_allclose(rec.channel("SOL"), volts, atol=1.0 / 32768)
+    np.testing.assert_allclose(rec.channel("SOL_wide"), volts, atol=2.5 / 32768)
+    out = tmp_path / "env.sto"
+    assert main(["emg", "envelope", str(anc), "-o", str(out)]) == 0
+    assert "left out 6 channels that are not EMG: F1X (force-plate channel" in capsys.readouterr().out
+    env = read_sto(out)
+    assert env.columns == ["SOL", "SOL_wide"] and env.name == "EMG envelopes (V), causal"
+    np.testing.assert_allclose(env.column("SOL_wide"), env.column("SOL"), atol=3e-4 * env.column("SOL").max())
+    assert main(["emg", "envelope", str(anc), "--channels", "F1Z,SOL", "-o", str(tmp_path / "two.sto")]) == 0
+    assert read_sto(tmp_path / "two.sto").columns == ["F1Z", "SOL"]
+
+
+def test_channels_without_a_voltage_unit_stay_in_their_own_and_are_named(tmp_path: Path, capsys) -> None:
+    """A .sto gives no unit: its values are enveloped as they are, and the command says so."""
+    from msk_core.io import write_sto
+
+    t = np.arange(2000) / 1000.0
+    sto = write_sto(tmp_path / "raw.sto", t, ["TA", "SOL"], np.random.default_rng(1).normal(size=(2000, 2)))
+    out = tmp_path / "env.sto"
+    assert main(["emg", "envelope", str(sto), "-o", str(out)]) == 0
+    assert "2 channel(s) left in the file's own unit (it gives none that is a voltage): TA, SOL" in (
+        capsys.readouterr().out
+    )
+    assert read_sto(out).name == "EMG envelopes (file units), causal"

@@ -203,3 +203,17 @@ def test_a_rate_given_for_a_source_that_has_its_own_is_refused(tmp_path):
     np.savez(npz, emg=np.zeros((100, 2)), rate_hz=np.array([2000.0, 1000.0]))
     with pytest.raises(FileFormatError, match="rate_hz must be one number"):
         load_source(npz)
+
+
+def test_msk_emg_envelope_gives_volts_whatever_unit_the_c3d_stores(tmp_path):
+    """The same EMG stored in mV and in µV used to give envelopes 1000x apart (each in its file's unit)."""
+    envelopes = []
+    for unit, scale in (("mV", 1e3), ("uV", 1e6)):
+        path, _ = _write_emg_c3d(tmp_path / f"emg_{unit}.c3d", unit, scale)
+        out = tmp_path / f"env_{unit}.sto"
+        assert msk(["emg", "envelope", str(path), "-o", str(out)]) == 0
+        env = read_sto(out)
+        assert env.name == "EMG envelopes (V), causal"
+        envelopes.append(env.data)
+    np.testing.assert_allclose(envelopes[0], envelopes[1], rtol=1e-5, atol=0)  # C3D stores float32
+    assert 1e-5 < envelopes[0].max() < 1e-3  # volts: the 0.2 mV noise's envelope

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import re
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from msk_core.errors import FileFormatError, InputError
 from msk_core.io.storage import float_cells
-from msk_core.units import VOLTS_PER_UNIT
+from msk_core.units import VOLTS_PER_UNIT, volts_per_unit
 
 
 @dataclass
@@ -39,6 +40,35 @@ class AnalogRecording:
             )
         return self.select(keep)
 
+    def in_volts(self) -> tuple[AnalogRecording, list[str]]:
+        """The recording with every channel whose file says how in volts: a unit V, mV or µV, or an ``.anc``'s ADC
+        counts through the channel's ``Range`` (mV full scale) and the file's ``BitDepth``; and the labels of the
+        channels left in their own unit (none given, or not a voltage)."""
+        scale = np.ones(len(self.labels))
+        units = list(self.units)
+        kept = []
+        for j, label in enumerate(self.labels):
+            factor = self._volts_per_unit(j)
+            if factor is None:
+                kept.append(label)
+            else:
+                scale[j], units[j] = factor, "V"
+        return replace(self, data=self.data * scale, units=units), kept
+
+    def _volts_per_unit(self, j: int) -> float | None:
+        unit = self.units[j]
+        if unit != ADC_COUNTS:
+            return volts_per_unit(unit) if unit else None
+        ranges = self.channel_info.get("Range")
+        try:
+            full_scale_mv = float(ranges[j]) if ranges else float("nan")
+            bits = int(self.header.get("BitDepth", "16"))
+        except ValueError:
+            return None
+        if not (full_scale_mv > 0 and 2 <= bits <= 32):
+            return None
+        return full_scale_mv * 1e-3 / 2 ** (bits - 1)  # a bipolar ADC: +-2^(bits-1) counts span +-Range
+
     def index(self, label: str) -> int:
         try:
             return self.labels.index(label)
@@ -66,9 +96,18 @@ class AnalogRecording:
         )
 
 
+#: the unit of an ``.anc``'s values (:meth:`AnalogRecording.in_volts` converts them)
+ADC_COUNTS = "counts"
+# Motion Analysis names a force plate's analog channels F1X, F1Y, F1Z, M1X, M1Y, M1Z (plate 1), ...; an .anc file
+# carries no unit or plate table that would say so otherwise
+_ANC_FORCE_PLATE_NAME = re.compile(r"^[FM](\d+[XYZ]|[XYZ]\d+)$", re.IGNORECASE)
+ANC_FORCE_PLATE = "force-plate channel (F<plate><axis> / M<plate><axis>, the .anc naming)"
+
+
 def read_anc(path: str | Path) -> AnalogRecording:
     """Read an ``.anc`` file (Motion Analysis "Analog R/C ASCII"): ``key:<tab>value`` header pairs, then ``Name``,
-    ``Rate`` and ``Range`` rows, then one row per sample (time then ADC counts). Values stay in ADC counts."""
+    ``Rate`` and ``Range`` rows, then one row per sample (time then ADC counts). Values stay in ADC counts
+    (:meth:`AnalogRecording.in_volts`); the force-plate channels are named in :attr:`AnalogRecording.not_emg`."""
     path = Path(path)
     try:
         lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
@@ -124,6 +163,7 @@ def read_anc(path: str | Path) -> AnalogRecording:
     if not table:
         raise FileFormatError("no samples", path=path)
     arr = np.array(table)
+    not_emg = {lab: ANC_FORCE_PLATE for lab in labels if _ANC_FORCE_PLATE_NAME.match(lab)}
     info = {"Rate": rows["Rate"][1]}
     if "Range" in rows:
         info["Range"] = rows["Range"][1]
@@ -132,10 +172,11 @@ def read_anc(path: str | Path) -> AnalogRecording:
         labels=labels,
         data=np.ascontiguousarray(arr[:, 1:]),
         rate_hz=rate,
-        units=["counts"] * n,
+        units=[ADC_COUNTS] * n,
         header=header,
         channel_info=info,
         path=path,
+        not_emg=not_emg,
     )
 
 

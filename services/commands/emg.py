@@ -28,7 +28,9 @@ from services.commands import described
 
 
 def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
-    """Raw EMG from .anc, .c3d, Delsys .csv or an OpenSim .sto/.mot (evenly sampled)."""
+    """Raw EMG from .anc, .c3d, Delsys .csv or an OpenSim .sto/.mot (evenly sampled), in volts where the file says
+    how (:meth:`AnalogRecording.in_volts`: its units, an .anc's ranges); the channels it does not say it of are
+    printed."""
     suffix = path.suffix.lower()
     if suffix == ".anc":
         rec = read_anc(path)
@@ -52,6 +54,12 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
                 + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items())
             )
         rec = rec.emg_only()
+    rec, own_unit = rec.in_volts()
+    if own_unit:
+        print(
+            f"{path.name}: {len(own_unit)} channel(s) left in the file's own unit (it gives none that is a voltage): "
+            + ", ".join(own_unit)
+        )
     for label, column in zip(rec.labels, np.asarray(rec.data).T):
         if not np.all(np.isfinite(column)):  # the filters would carry it to the end of the file
             first = int(np.argmax(~np.isfinite(column)))
@@ -94,7 +102,8 @@ def _envelope(args: argparse.Namespace) -> int:
         )
     labels = [lab.replace(",", "_").replace("\t", "_") for lab in rec.labels]
     kind = "zero-phase (non-causal)" if args.zero_phase else "causal"
-    write_sto(args.output, rec.time, labels, env, name=f"EMG envelopes, {kind}")
+    unit = "normalised" if args.mvc else "V" if set(rec.units) == {"V"} else "file units"
+    write_sto(args.output, rec.time, labels, env, name=f"EMG envelopes ({unit}), {kind}")
     print(f"wrote {args.output}: {env.shape[1]} channels x {env.shape[0]} samples at {rec.rate_hz:g} Hz ({kind})")
     return 0
 
