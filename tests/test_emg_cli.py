@@ -97,7 +97,10 @@ def test_anc_counts_become_volts_and_its_force_plates_are_left_out(tmp_path: Pat
     np.testing.assert_allclose(rec.channel("SOL_wide"), volts, atol=2.5 / 32768)
     out = tmp_path / "env.sto"
     assert main(["emg", "envelope", str(anc), "-o", str(out)]) == 0
-    assert "left out 6 channels that are not EMG: F1X (force-plate channel" in capsys.readouterr().out
+    assert (
+        "left out 6 channels that are not EMG: F1X, F1Y, F1Z, M1X, M1Y, M1Z (force-plate channel"
+        in capsys.readouterr().out
+    )
     env = read_sto(out)
     assert env.columns == ["SOL", "SOL_wide"] and env.name == "EMG envelopes (V), causal"
     np.testing.assert_allclose(env.column("SOL_wide"), env.column("SOL"), atol=3e-4 * env.column("SOL").max())

@@ -138,7 +138,10 @@ def test_msk_emg_envelope_leaves_the_force_plates_out_and_says_so(tmp_path, caps
     out = tmp_path / "env.sto"
     assert msk(["emg", "envelope", str(path), "-o", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "left out 12 channels that are not EMG: Fx1 (force plate 1 (FORCE_PLATFORM:CHANNEL))" in printed
+    assert (
+        "left out 12 channels that are not EMG: Fx1, Fy1, Fz1, Mx1, My1, Mz1 (force plate 1 (FORCE_PLATFORM:CHANNEL)); "
+        "Fx2, Fy2, Fz2, Mx2, My2, Mz2 (force plate 2 (FORCE_PLATFORM:CHANNEL))"
+    ) in printed
     env = read_sto(out)
     assert env.columns == EMG
     # asked for by name, a force-plate channel is still enveloped (the user's explicit choice)

@@ -49,9 +49,12 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
         rec = rec.select(channels)  # asked for by name: taken as they are
     else:
         if rec.not_emg:  # e.g. the force-plate channels of a gait C3D
+            by_reason: dict[str, list[str]] = {}
+            for channel, why in rec.not_emg.items():
+                by_reason.setdefault(why, []).append(channel)
             print(
                 f"left out {len(rec.not_emg)} channels that are not EMG: "
-                + ", ".join(f"{c} ({why})" for c, why in rec.not_emg.items())
+                + "; ".join(f"{', '.join(channels)} ({why})" for why, channels in by_reason.items())
             )
         rec = rec.emg_only()
     rec, own_unit = rec.in_volts()
