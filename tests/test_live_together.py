@@ -5,6 +5,7 @@ its topics; and the same graph secured (``--pki``): real simulators, real node p
 from __future__ import annotations
 
 import json
+import signal
 import time
 from collections import Counter
 
@@ -12,7 +13,7 @@ import pytest
 
 from services.transport import messages, topics
 from services.transport.mcap_io import read_messages
-from tests.live_helpers import LiveProcess, live_environment, run_msk
+from tests.live_helpers import LiveProcess, live_environment, run_msk, start_msk
 
 SESSION = "sim"
 
@@ -48,6 +49,8 @@ def _publish_bad_messages(endpoint: str) -> int:
 def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
     env = live_environment(tmp_path)
     out = tmp_path / "live"
+    # a view opened before msk live starts: it waits on the default session, then follows the one announced
+    early = start_msk("view", "--duration", "240", env={**env, "COLUMNS": "200"})
     live = LiveProcess(out, env)
     try:
         line = live.wait_running()
@@ -68,9 +71,16 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
         late = run_msk("view", "--duration", "4", env={**env, "COLUMNS": "200"})
         assert late.returncode == 0, late.stderr
         assert "load 60 kg · set 2" in late.stdout and "load 50 kg" not in late.stdout, late.stdout[-3000:]
+        early.send_signal(signal.SIGTERM)
+        early_output = early.communicate(timeout=30)[0]
         code, output, summary = live.stop()
     finally:
         live.kill()
+        early.kill()
+    assert early.returncode == 0, early_output[-3000:]
+    assert "msk view: no running msk live announced" in early_output, early_output[:2000]
+    assert "msk view: attached to the running session 'sim'" in early_output, early_output[:2000]
+    assert "load 60 kg · set 2" in early_output.rsplit("attached to the running session", 1)[1], early_output[-3000:]
     assert code == 0, output
     assert all(c == 0 for c in summary["exit_codes"].values()), summary["exit_codes"]
     assert not (tmp_path / "sessions").exists() or not list((tmp_path / "sessions").glob("*.json"))  # withdrawn

@@ -253,6 +253,12 @@ def find_session(session: str | None, *, strict: bool = False) -> SessionInfo | 
     return running[0] if running else None
 
 
+def gives_endpoint(explicit: ZenohOptions) -> bool:
+    """Whether the command line says where to attach (``--connect``, ``--listen``, ``--zenoh-config``): then no
+    announced session is looked for."""
+    return bool(explicit.connect or explicit.listen or explicit.config_file is not None)
+
+
 def attach_options(
     explicit: ZenohOptions, session: str | None, *, one_shot: bool = False
 ) -> tuple[ZenohOptions, SessionInfo | None]:
@@ -266,7 +272,7 @@ def attach_options(
     the operator's load event and the estimator did not."""
     if one_shot and explicit.connect and explicit.config_file is None and explicit.mode is None:
         explicit = replace(explicit, mode="client")  # also with --connect: the endpoint's node passes it on
-    if explicit.connect or explicit.listen or explicit.config_file is not None:
+    if gives_endpoint(explicit):
         return explicit, None
     info = find_session(session, strict=one_shot)
     if info is None:
@@ -288,7 +294,7 @@ def client_options(
             file=sys.stderr,
             flush=True,
         )
-    elif not (explicit.connect or explicit.listen or explicit.config_file is not None):
+    elif not gives_endpoint(explicit):
         running = ", ".join(s.session for s in running_sessions())
         print(
             f"{tool}: no running msk live announced in {registry_dir()}"

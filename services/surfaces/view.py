@@ -525,7 +525,10 @@ def main(
     duration_s: float | None = None,
     stop_event: threading.Event | None = None,
     console: Console | None = None,
+    leave_for: Callable[[ViewState], bool] | None = None,
 ) -> ViewState:
+    """Show ``session`` until ``stop_event``, ``duration_s`` or, checked at every redraw, ``leave_for(state)`` (a
+    session to attach to instead: :func:`session_announced`)."""
     stop_event = stop_event or threading.Event()
     state = ViewState(figures_method=method)
     deadline = None if duration_s is None else time.monotonic() + duration_s
@@ -549,6 +552,8 @@ def main(
                 while not stop_event.is_set() and (deadline is None or time.monotonic() < deadline):
                     live.update(Panel(render(state, session, method, width=live.console.width - 4)))  # the panel
                     stop_event.wait(1.0 / refresh_hz)
+                    if leave_for is not None and leave_for(state):
+                        break
         finally:
             taking.set()
             inputs.close()
@@ -584,14 +589,43 @@ def run_from_args(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     from services.sessions import discovery
 
-    options, session = discovery.client_options(options_from_args(args), args.session, "live", "msk view")
-    topics.check_chunk(session, "session")
-    main(
-        options,
-        session=session,
-        method=args.method,
-        refresh_hz=args.refresh_hz,
-        duration_s=args.duration,
-        stop_event=stop,
-    )
-    return 0
+    explicit = options_from_args(args)
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    while True:
+        options, session = discovery.client_options(explicit, args.session, "live", "msk view")
+        topics.check_chunk(session, "session")
+        # no endpoint given: an msk live that starts while this view has received nothing is followed
+        follows = not discovery.gives_endpoint(explicit)
+        main(
+            options,
+            session=session,
+            method=args.method,
+            refresh_hz=args.refresh_hz,
+            duration_s=None if deadline is None else max(0.0, deadline - time.monotonic()),
+            stop_event=stop,
+            leave_for=session_announced(args.session, options) if follows else None,
+        )
+        if not follows or stop.is_set() or (deadline is not None and time.monotonic() >= deadline):
+            return 0
+
+
+def session_announced(session: str | None, attached: ZenohOptions, every_s: float = 1.0) -> Callable[[ViewState], bool]:
+    """For a view started before its ``msk live``: true once a session (the one named ``session``, or the only one)
+    is announced somewhere other than where the view is ``attached``, while the view has received nothing; looked
+    for every ``every_s``."""
+    from services.sessions import discovery
+
+    looked = [-math.inf]
+
+    def announced(state: ViewState) -> bool:
+        now = time.monotonic()
+        if state.received or now - looked[0] < every_s:
+            return False
+        looked[0] = now
+        try:
+            info = discovery.find_session(session)
+        except ConfigError:  # several sessions and none named: stay, as at the start
+            return False
+        return info is not None and info.options() != attached
+
+    return announced
