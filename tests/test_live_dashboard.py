@@ -1,5 +1,5 @@
-"""As a user would, together: ``msk live --sim``, then ``msk dashboard`` started afterwards in another process with no
-endpoint flags, looked at in Chromium (Playwright with Debian's chromium); after the session stops, the last values
+"""As a user would, together: ``msk dashboard`` opened on the tablet first, with no endpoint flags, then ``msk live
+--sim`` started, which the page follows; looked at in Chromium (Playwright with Debian's chromium); after the session stops, the last values
 stay greyed beside a readable "No data" notice; a declared exercise the session does not estimate is named as the
 cause of the pause; ``msk report`` on the recording names exercise, load and date."""
 
@@ -119,20 +119,19 @@ def _declared_another_exercise(page, env: dict[str, str]) -> None:
     assert page.evaluate(FACTS)[0] == "bench press"
 
 
-def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
+def test_dashboard_opened_before_live_follows_the_session_in_chromium(tmp_path):
     require_chromium()
     from playwright import sync_api
 
     env = live_environment(tmp_path)
     out = tmp_path / "live"
-    live = LiveProcess(out, env)
+    live = None
     port = free_tcp_port()
     dashboard = None
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     # MSK_SCREENSHOT_DIR=docs/img: the pictures of docs/dashboard.md, from this run
     screenshots = Path(os.environ.get("MSK_SCREENSHOT_DIR") or ARTIFACTS)
     try:
-        live.wait_running()
         dashboard = start_msk("dashboard", "--port", str(port), env=env)
         with sync_api.sync_playwright() as playwright:
             browser, page, errors = chromium_page(playwright)
@@ -144,6 +143,11 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
                 except sync_api.Error:
                     assert time.monotonic() < deadline and dashboard.poll() is None, "msk dashboard did not serve"
                     time.sleep(0.5)
+            page.wait_for_function("() => document.getElementById('session').textContent === 'lab'", timeout=15000)
+            assert page.evaluate("() => document.getElementById('status').dataset.state") != "live"
+            live = LiveProcess(out, env)
+            live.wait_running()
+            page.wait_for_function("() => document.getElementById('session').textContent === 'sim'", timeout=30000)
             page.wait_for_function("() => document.getElementById('status').dataset.state === 'live'", timeout=30000)
             page.wait_for_function(f"() => ({FACTS})()[0] !== '–' && ({FACTS})()[2] !== '–'", timeout=15000)
             assert page.evaluate(FACTS) == ["bench press", "50.0 kg", "1"]
@@ -179,7 +183,8 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
             assert not errors, errors
             browser.close()
     finally:
-        live.kill()
+        if live is not None:
+            live.kill()
         if dashboard is not None and dashboard.poll() is None:
             dashboard.send_signal(signal.SIGINT)
             try:
@@ -187,6 +192,7 @@ def test_dashboard_attached_to_a_running_live_session_in_chromium(tmp_path):
             except subprocess.TimeoutExpired:
                 dashboard.kill()
                 dashboard_output = dashboard.communicate()[0]
+    assert "no running msk live announced" in dashboard_output, dashboard_output  # opened first: waits on 'lab'
     assert "attached to the running session 'sim'" in dashboard_output, dashboard_output
     # the last values, greyed, beside a readable notice; not one opaque box
     assert stale["noticeVisible"] and stale["noticeTitle"] == "No data" and stale["mapVisibleBesideNotice"], stale

@@ -259,6 +259,17 @@ def gives_endpoint(explicit: ZenohOptions) -> bool:
     return bool(explicit.connect or explicit.listen or explicit.config_file is not None)
 
 
+def announced_elsewhere(session: str | None, attached: ZenohOptions) -> SessionInfo | None:
+    """The running session named ``session`` (or the only one) when it is announced somewhere other than where a
+    tool is ``attached``: a view or dashboard opened before its ``msk live`` then follows it. None when there is none,
+    it is where the tool is, or several run and none is named."""
+    try:
+        info = find_session(session)
+    except ConfigError:
+        return None
+    return info if info is not None and info.options() != attached else None
+
+
 def attach_options(
     explicit: ZenohOptions, session: str | None, *, one_shot: bool = False
 ) -> tuple[ZenohOptions, SessionInfo | None]:

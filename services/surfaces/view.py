@@ -622,10 +622,6 @@ def session_announced(session: str | None, attached: ZenohOptions, every_s: floa
         if state.received or now - looked[0] < every_s:
             return False
         looked[0] = now
-        try:
-            info = discovery.find_session(session)
-        except ConfigError:  # several sessions and none named: stay, as at the start
-            return False
-        return info is not None and info.options() != attached
+        return discovery.announced_elsewhere(session, attached) is not None
 
     return announced

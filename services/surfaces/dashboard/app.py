@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import uvicorn
@@ -75,15 +75,17 @@ def page_config(config: DashboardConfig, pack_index: dict[tuple[str, ...], str])
 
 
 def create_app(
-    config: DashboardConfig,
-    state: DashboardState,
+    attached: DashboardServer,
     *,
     on_startup=(),
     on_shutdown=(),
     on_set_mark: Callable[[str], messages.LoadEvent] | None = None,
 ) -> Starlette:
-    """``on_set_mark(mark)``: publishes the operator's set mark ("start", "stop") and returns its LoadEvent (the
-    page's buttons, ``POST /set/start`` and ``/set/stop``); None: the page has no buttons to press."""
+    """The page and its websocket, serving ``attached``'s session: its ``config`` and ``state`` are read on every
+    request, and a page's websocket closes when ``attached.attachments`` changes (the page then fetches the new
+    session's config and connects again). ``on_set_mark(mark)``: publishes the operator's set mark ("start",
+    "stop") and returns its LoadEvent (the page's buttons, ``POST /set/start`` and ``/set/stop``); None: the page has
+    no buttons to press."""
     pack_index = packs_by_groups()
     svg_cache: dict[str, str] = {}
 
@@ -91,7 +93,7 @@ def create_app(
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
 
     async def config_json(request):
-        return JSONResponse(page_config(config, pack_index))
+        return JSONResponse(page_config(attached.config, pack_index))
 
     async def body_map(request):
         name = request.path_params["pack"]
@@ -118,8 +120,12 @@ def create_app(
     async def frames(websocket: WebSocket):
         await websocket.accept()
         since, last_sent = 0, 0.0
+        attachment, state, config = attached.attachments, attached.state, attached.config
         try:
             while True:
+                if attached.attachments != attachment:  # another session now: the page reconnects to it
+                    await websocket.close(code=1012, reason="the dashboard serves another session now")
+                    return
                 seq, update = state.changes(since)
                 now = time.monotonic()
                 if update["topics"] or now - last_sent >= config.heartbeat_s:
@@ -176,12 +182,13 @@ class DashboardServer:
         self.config = config
         self.state = DashboardState(config.session)
         self.bridge = Bridge(zenoh_options, self.state)
+        self.attachments = 0  # sessions attached to after the first (attach())
+        self._attach_lock = threading.Lock()
         app = create_app(
-            config,
-            self.state,
-            on_startup=(self.bridge.start,),
-            on_shutdown=(self.bridge.stop,),
-            on_set_mark=self.bridge.publish_set_mark,
+            self,
+            on_startup=(lambda: self.bridge.start(),),
+            on_shutdown=(lambda: self.bridge.stop(),),
+            on_set_mark=lambda mark: self.bridge.publish_set_mark(mark),
         )
         certificate, key = (None, None) if pki is None else secured(pki)
         served = app if pki is None else TokenGate(app, TokenStore(pki))
@@ -198,6 +205,18 @@ class DashboardServer:
         )
         self.host, self.port, self.scheme = host, port, "http" if pki is None else "https"
         self._thread: threading.Thread | None = None
+
+    def attach(self, zenoh_options: ZenohOptions, session: str) -> None:
+        """Serve ``session`` from ``zenoh_options`` from now on (a dashboard opened before its ``msk live``): a new
+        bridge and state; the open pages reconnect and fetch the new session's config."""
+        topics.check_chunk(session, "--session")
+        with self._attach_lock:
+            self.bridge.stop()
+            self.config = replace(self.config, session=session)
+            self.state = DashboardState(session)
+            self.bridge = Bridge(zenoh_options, self.state)
+            self.bridge.start()
+            self.attachments += 1
 
     @property
     def url(self) -> str:
@@ -279,16 +298,46 @@ def _drops_text(state: DashboardState) -> str:
     return ", ".join(f"{d.key}: {d.reason} {d.count}" for d in state.input_counts.drops())
 
 
+def follow_announced(
+    server: DashboardServer,
+    explicit: ZenohOptions,
+    session: str | None,
+    attached: ZenohOptions,
+    stop: threading.Event,
+    every_s: float = 1.0,
+) -> None:
+    """A dashboard opened before its ``msk live``: every ``every_s`` until ``stop``, while the page has received
+    nothing, look for a session announced elsewhere than where it is ``attached``, and serve that one."""
+    from services.sessions import discovery
+
+    while not stop.wait(every_s):
+        if server.state.received or discovery.announced_elsewhere(session, attached) is None:
+            continue
+        options, name = discovery.client_options(explicit, session, "lab", "msk dashboard")
+        try:
+            server.attach(options, name)
+        except Exception as error:  # said; tried again a second later
+            log.warning("msk dashboard: could not attach to session %r: %s", name, error)
+            continue
+        attached = options
+
+
 def run_from_args(args: argparse.Namespace) -> int:
     _check_port_free(args.host, args.port)
     from services.sessions import discovery
 
     if args.pki is not None and args.zenoh_config is None and not args.connect:
         args.zenoh_config = args.pki / "zenoh" / "tablet.json5"
-    options, session = discovery.client_options(options_from_args(args), args.session, "lab", "msk dashboard")
+    explicit = options_from_args(args)
+    options, session = discovery.client_options(explicit, args.session, "lab", "msk dashboard")
     server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port, pki=args.pki)
     quiet = threading.Event()
     discovery.silence_notice("msk dashboard", f"msk/{session}/**", options, lambda: server.state.received, stop=quiet)
+    if not discovery.gives_endpoint(explicit):
+        follow = threading.Thread(
+            target=follow_announced, args=(server, explicit, args.session, options, quiet), daemon=True
+        )
+        follow.start()
     where = (
         server.url
         if args.host not in ("0.0.0.0", "::")
