@@ -385,3 +385,34 @@ def test_the_sets_figures_are_of_the_method_shown_not_of_the_first_to_arrive():
     chosen = ViewState(figures_method="so")  # msk view --method so
     _a_set(chosen.on_message, "msk/s/activations")
     assert chosen.sets.sets[0].peak == [0.9]
+
+
+def test_when_the_estimator_stops_the_rep_under_way_counts_as_in_the_report():
+    """A session stopped during a rep: the report (SetTracker.finish at the end of the recording) counts that rep; the
+    view and the dashboard counted it only if a rest followed, which never came. The estimator's last status (its
+    node stopped) now closes the rep and the set in both, as in the report."""
+    from msk_core.signal.sets import SetTracker
+    from services.surfaces.dashboard.bridge import DashboardState
+
+    phases = (-1, 0.0, 0.3, 0.7, 0.95, -1, -1, 0.0, 0.3, 0.6)  # one rep, then one under way when the session stops
+    report = SetTracker()
+    for k, phase in enumerate(phases):
+        report.update(0.5 * k, phase)
+    report.finish()
+    view, dashboard = ViewState(), DashboardState("s")
+    for k, phase in enumerate(phases):
+        for frame in _methods_frames(0.5 * k, phase):
+            for on_message in (view.on_message, dashboard.on_message):
+                on_message(f"msk/s/activations/{frame.method}", frame)
+    assert len(view.sets.sets[-1].reps) == 1  # the one under way not counted yet
+    other_node = messages.DeviceStatus(device_id="recorder", kind="node", connected=False)
+    stopped = messages.DeviceStatus(device_id="estimator", kind="node", connected=False)
+    for status in (other_node, stopped):
+        view.on_message(f"msk/s/status/{status.device_id}", status)
+        dashboard.on_message(f"msk/s/status/{status.device_id}", status)
+    (reported,) = report.sets
+    assert len(reported.reps) == 2 and reported.ended_by == "end of data"
+    assert [(len(s.reps), s.ended_by) for s in view.sets.sets] == [(2, "end of data")]
+    (shown,) = dashboard.changes(0)[1]["topics"]["sets"]
+    assert (shown["reps"], shown["ended_by"]) == (2, "end of data")
+    assert dashboard.changes(0)[1]["topics"]["reps"]["total"] == 2

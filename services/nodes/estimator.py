@@ -63,6 +63,7 @@ from msk_core.signal.sets import SetTracker
 from msk_core.units import GRAVITY
 from services.nodes.estimator_options import SOLVERS, add_live_synergists_argument, add_solver_argument
 from services.nodes.node_runtime import (
+    ESTIMATOR_NODE,
     Inbound,
     InputContinuity,
     InputCounts,
@@ -81,7 +82,7 @@ from services.transport.zenoh_session import ZenohOptions, declare_data_publishe
 log = logging.getLogger(__name__)
 
 
-NODE_NAME = "estimator"
+NODE_NAME = ESTIMATOR_NODE
 ALIGN_ACCELERATION = "acceleration"  # measure each EMG clock against the trackers' (msk_core.estimate.clock_alignment)
 ALIGN_ARRIVAL = "arrival"  # the arrival mapping alone
 

@@ -702,6 +702,16 @@ def _alignment(alignment) -> messages.ClockAlignment:
     )
 
 
+#: The estimator node's name (its status on ``msk/<s>/status/estimator``).
+ESTIMATOR_NODE = "estimator"
+
+
+def estimates_ended(status: messages.DeviceStatus) -> bool:
+    """Whether ``status`` is the estimator's last (:meth:`StatusReporter.final`): no activation frame follows, so a
+    view closes the rep under way as the report does at the end of the recording (``SetTracker.finish``)."""
+    return status.kind == "node" and status.device_id == ESTIMATOR_NODE and not status.connected
+
+
 class StatusReporter:
     """Publishes a node's :class:`DeviceStatus` on ``msk/<session>/status/<node>``: its inputs' counts (and, with
     ``clocks``, the clock mappings it applies; with ``electrodes``, the EMG electrodes' quality; with ``fatigue``, their

@@ -42,6 +42,7 @@ from msk_core.model.names import DisplayNames
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import joint_movement
 from msk_core.signal.sets import SetTracker
+from services.nodes import node_runtime
 from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
 from services.sessions.facts import join_late
 from services.sessions.live_session import default_method
@@ -111,6 +112,8 @@ class ViewState:
                 self.movement = joint_movement(self.torques, message.coordinates, message.qd)
             elif isinstance(message, messages.DeviceStatus):
                 self.status[message.device_id] = message
+                if node_runtime.estimates_ended(message):  # no frame follows: as the report's end of data
+                    self.sets.finish()
             elif isinstance(message, messages.LoadEvent):
                 self._apply_loads(key, self.loads.offer(message))
             elif isinstance(message, messages.EmgEnvelope):

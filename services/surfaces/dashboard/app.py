@@ -117,6 +117,34 @@ def create_app(
             return JSONResponse({"error": f"set {mark} not published: {error}"}, status_code=503)
         return JSONResponse({"mark": mark, "set_number": int(event.set_number)})
 
+    @contextlib.asynccontextmanager
+    async def lifespan(app):
+        for hook in on_startup:
+            hook()
+        try:
+            yield
+        finally:
+            for hook in on_shutdown:
+                hook()
+
+    return Starlette(
+        routes=[
+            Route("/", page),
+            Route("/config.json", config_json),
+            Route("/bodymap/{pack}.svg", body_map),
+            Route("/set/{mark}", set_mark, methods=["POST"]),
+            WebSocketRoute("/ws", _frames(attached)),
+            Mount("/static", StaticFiles(directory=STATIC), name="static"),
+        ],
+        lifespan=lifespan,
+        middleware=[Middleware(GZipMiddleware, minimum_size=1024)],  # Chart.js: 210 kB -> about 70 kB on the wire
+    )
+
+
+def _frames(attached: DashboardServer):
+    """The page's websocket: the session's changes, at most every ``send_interval_s`` (a heartbeat at least every
+    ``heartbeat_s``); closed when the dashboard attaches to another session, so the page fetches its config anew."""
+
     async def frames(websocket: WebSocket):
         await websocket.accept()
         since, last_sent = 0, 0.0
@@ -138,28 +166,7 @@ def create_app(
         except (WebSocketDisconnect, RuntimeError, ConnectionError):
             return
 
-    @contextlib.asynccontextmanager
-    async def lifespan(app):
-        for hook in on_startup:
-            hook()
-        try:
-            yield
-        finally:
-            for hook in on_shutdown:
-                hook()
-
-    return Starlette(
-        routes=[
-            Route("/", page),
-            Route("/config.json", config_json),
-            Route("/bodymap/{pack}.svg", body_map),
-            Route("/set/{mark}", set_mark, methods=["POST"]),
-            WebSocketRoute("/ws", frames),
-            Mount("/static", StaticFiles(directory=STATIC), name="static"),
-        ],
-        lifespan=lifespan,
-        middleware=[Middleware(GZipMiddleware, minimum_size=1024)],  # Chart.js: 210 kB -> about 70 kB on the wire
-    )
+    return frames
 
 
 class DashboardServer:

@@ -41,7 +41,14 @@ from msk_core.estimate.live_fatigue import tiring
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter, joint_movement
 from msk_core.signal.sets import SetTracker
-from services.nodes.node_runtime import InputCounts, LoadEventGate, NodeInputs, apply_load_event, serve
+from services.nodes.node_runtime import (
+    InputCounts,
+    LoadEventGate,
+    NodeInputs,
+    apply_load_event,
+    estimates_ended,
+    serve,
+)
 from services.sessions.facts import join_late
 from services.sessions.live_session import default_method
 from services.transport import messages, topics
@@ -125,6 +132,13 @@ class RepCounter:
         self.sets.update(t, phase)
         if self._reps.update(t, phase) is not None:
             self.total += 1
+
+    def end_of_data(self) -> None:
+        """No sample follows (the estimator stopped): the rep under way counts if long enough, the set under way ends,
+        as in the report."""
+        if self._reps.finish() is not None:
+            self.total += 1
+        self.sets.finish()
 
     def as_dict(self) -> dict:
         """What the page's header shows: set N and rep n of the set (the rep under way, else the last done), reps
@@ -415,6 +429,10 @@ class DashboardState:
         )
 
     def _on_status(self, name: str, status: messages.DeviceStatus) -> None:
+        if estimates_ended(status):
+            self._reps.end_of_data()
+            self._put("reps", self._reps.as_dict())
+            self._put_sets(0)
         if status.kind == "node":
             self._nodes[status.device_id or name] = node_dict(status)
             self._devices_seq = self._next()
