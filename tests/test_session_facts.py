@@ -162,9 +162,10 @@ def test_a_page_that_joins_in_set_2_shows_set_1_as_the_session_counted_it(monkey
     late = _join(monkeypatch, opening, facts, seen_first)
     _follow(follower, [session, late], both[cut + len(seen_first) :])
     assert [len(s.reps) for s in session.sets] == [3, 3]
-    assert [(s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in late.sets] == [
-        (s.number, s.start_s, s.end_s, s.ended_by, len(s.reps)) for s in session.sets
+    assert [(s.number, s.start_s, s.started_by, s.end_s, s.ended_by, len(s.reps)) for s in late.sets] == [
+        (s.number, s.start_s, s.started_by, s.end_s, s.ended_by, len(s.reps)) for s in session.sets
     ]
+    assert [s.started_by for s in late.sets] == ["session", "rep"]  # set 2 by rest detection, as msk live said
 
 
 def test_a_page_that_joins_during_a_rest_shows_the_set_before_it(monkeypatch):

@@ -206,6 +206,7 @@ class SetTracker:
         rep_spans: Sequence[tuple[float, float]] = (),
         set_end_s: float | None = None,
         set_ended_by: str = "",
+        set_started_by: str = "",
         rep_start_s: float | None = None,
     ) -> None:
         """A session fact at ``t`` (``LoadEvent``: its time, None when it has none, set number, mark, barbell mass
@@ -215,10 +216,10 @@ class SetTracker:
         change of an operator who does not number sets), and neither mass nor number ends the set (the bar is
         off); the same set number changes nothing.
 
-        ``set_start_s``, ``rep_spans``, ``set_end_s``, ``set_ended_by`` and ``rep_start_s``: set ``set_number`` as
-        another tracker counted it (what ``msk live`` announces to a page that joins late, :meth:`counted`): its
-        start, the reps it had (kept beside the reps counted here), once it ended when and by whom, and when the rep
-        under way began, so the set's clock, reps, time under tension and end are the session's."""
+        ``set_start_s``, ``set_started_by``, ``rep_spans``, ``set_end_s``, ``set_ended_by`` and ``rep_start_s``: set
+        ``set_number`` as another tracker counted it (what ``msk live`` announces to a page that joins late,
+        :meth:`counted`): its start and who made it, the reps it had (kept beside the reps counted here), once it
+        ended when and by whom, and when the rep under way began, so the set's clock, reps, time under tension and end are the session's."""
         if set_mark not in SET_MARKS:
             raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
         if rest_s:
@@ -227,7 +228,8 @@ class SetTracker:
         if t is None or (last is not None and abs(t - last) > MAX_FACT_GAP_S):
             t = last if last is not None else 0.0
         if not set_mark and set_start_s is not None and math.isfinite(set_start_s):
-            self._resume(set_number, float(set_start_s), rep_spans, set_end_s, set_ended_by or "operator")
+            counted = SetRecord(set_number, float(set_start_s), set_started_by or "session", ended_by=set_ended_by)
+            self._resume(counted, rep_spans, set_end_s)
             self._rep_begun(rep_start_s)
             return
         # facts without a mark start a set as the session's opening facts (before any set) or as a load event
@@ -319,18 +321,12 @@ class SetTracker:
             self._close(max(end, current.start_s), "end of data")
 
     # ---- inside ----------------------------------------------------------------------------------------------------
-    def _resume(
-        self,
-        number: int,
-        start_s: float,
-        spans: Sequence[tuple[float, float]],
-        end_s: float | None,
-        ended_by: str,
-    ) -> None:
-        """Set ``number`` as another tracker counted it (:meth:`on_facts`): it started at ``start_s`` (the set under
-        way here ended then), its reps are kept beside those counted here (one that overlaps a rep counted here is
-        that rep) and it ended at ``end_s``. These are past instants, not a mark made now: the rep under way here
+    def _resume(self, counted: SetRecord, spans: Sequence[tuple[float, float]], end_s: float | None) -> None:
+        """A set as another tracker ``counted`` it (:meth:`on_facts`: its number, start, who started it and who
+        ended it): it started at its ``start_s`` (the set under way here ended then), its reps ``spans`` are kept
+        beside those counted here (one that overlaps a rep counted here is that rep) and it ended at ``end_s``. These are past instants, not a mark made now: the rep under way here
         still counts, in the set that holds its start."""
+        number, start_s = counted.number, counted.start_s
         if self._uncounted:
             self.sets.pop()  # opened by the rep under way, which finds its set when it counts
             self._tentative = False
@@ -339,7 +335,7 @@ class SetTracker:
             if self.sets and number < self.sets[-1].number:
                 return  # older than the sets here: not one to add behind them
             self._close(start_s, "next set")
-            record = SetRecord(number, start_s, "session")
+            record = SetRecord(number, start_s, counted.started_by)
             self.sets.append(record)
         for earlier in self.sets[: self.sets.index(record)]:
             # reps this tracker filed in an earlier set (counted before the facts came) that began in this one
@@ -351,7 +347,7 @@ class SetTracker:
         record.reps = _merged([(float(a), float(b)) for a, b in spans] + record.reps)
         record.start_s = min([start_s] + [a for a, _ in record.reps])
         if record is self.current and end_s is not None and math.isfinite(end_s):
-            self._close(max(float(end_s), record.start_s), ended_by)
+            self._close(max(float(end_s), record.start_s), counted.ended_by or "operator")
 
     def _rep_begun(self, rep_start_s: float | None) -> None:
         """Another tracker saw the rep under way begin at ``rep_start_s``: for the rep under way here, or the first

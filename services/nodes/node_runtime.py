@@ -583,6 +583,7 @@ def apply_load_event(sets: SetTracker, event: messages.LoadEvent) -> None:
         rep_spans=list(zip(event.set_rep_spans_s[::2], event.set_rep_spans_s[1::2])),
         set_end_s=event.set_end_s if event.HasField("set_end_s") else None,
         set_ended_by=event.set_ended_by,
+        set_started_by=event.set_started_by,
         rep_start_s=event.set_rep_start_s if event.HasField("set_rep_start_s") else None,
     )
 

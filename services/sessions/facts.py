@@ -173,6 +173,7 @@ def _counted_set_event(in_effect: messages.LoadEvent, record: dict) -> messages.
     event.CopyFrom(in_effect)
     event.set_number = int(record["number"])
     event.set_start_s = float(record["start_s"])
+    event.set_started_by = str(record.get("started_by", ""))
     event.set_rep_spans_s.extend(float(x) for span in record["rep_spans"] for x in span)
     if record.get("end_s") is not None:
         event.set_end_s, event.set_ended_by = float(record["end_s"]), str(record.get("ended_by", ""))
