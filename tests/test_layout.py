@@ -190,3 +190,22 @@ def test_the_function_length_rule_sees_long_functions_and_exempts_only_numba_ker
     assert lengths["msk_core/model/pack.py:ModelPack.__init__"] > 5  # methods are found, by class
     assert "msk_core/model/kernels.py:rigid_torques" not in lengths  # the numba kernel is exempt ...
     assert "msk_core/estimate/active_set.py:solve_box_lsq" in lengths  # ... numba functions elsewhere are not
+
+
+def test_the_estimate_package_names_resolve_on_first_use():
+    """msk_core.estimate imports its names on first use (a page reading flags or the fatigue verdict does not pay for
+    the estimator's imports): every name it lists resolves, and nothing else does."""
+    import subprocess
+    import sys
+
+    import pytest
+
+    import msk_core.estimate as estimate
+
+    assert sorted(estimate.__all__) == sorted(estimate._WHERE)  # noqa: SLF001
+    for name in estimate.__all__:
+        assert getattr(estimate, name) is not None
+    with pytest.raises(AttributeError, match="no attribute 'Nope'"):
+        _ = estimate.Nope  # type: ignore[attr-defined]
+    light = "import sys, msk_core.estimate.flags, msk_core.estimate.fatigue_verdict; print('scipy' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", light], capture_output=True, text=True, check=True).stdout == "False\n"

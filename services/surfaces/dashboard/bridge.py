@@ -36,8 +36,8 @@ from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from msk_core.errors import ConfigError
+from msk_core.estimate.fatigue_verdict import tiring
 from msk_core.estimate.flags import flag_text
-from msk_core.estimate.live_fatigue import tiring
 from msk_core.model.pack import names_for
 from msk_core.signal.reps import PhaseRepCounter, joint_movement
 from msk_core.signal.sets import SetTracker

@@ -496,7 +496,7 @@ function renderFatigue(frame) {
     const last = reps ? e.median_hz[reps - 1] : null;
     const change = e.median_change_pct;
     tr.dataset.reps = reps;
-    tr.className = e.tiring ? "tiring" : ""; // msk_core.estimate.live_fatigue.tiring: 3+ reps, -10 %, a falling trend
+    tr.className = e.tiring ? "tiring" : ""; // msk_core.estimate.fatigue_verdict.tiring: 3+ reps, -10 %, a falling trend
     tr.title = `median frequency per rep (Hz): ${e.median_hz.map((v) => (v === null ? "–" : v.toFixed(0))).join(", ")}`
       + (e.mean_change_pct === null ? "" : `; mean frequency ${e.mean_change_pct.toFixed(1)} % since the set's first reps`);
     tr.innerHTML = `<td title="${escapeHtml(e.group ? groupName(e.group) : e.channel)}">${escapeHtml(e.group ? shortName(e.group) : e.channel)}</td><td>${reps}</td>`
