@@ -17,6 +17,7 @@ import threading
 import time
 import tty
 
+import numpy as np
 import pytest
 
 from drivers.xsens import xbus
@@ -289,6 +290,60 @@ def test_reconnect_refuses_another_device_on_the_same_port(tmp_path):
     assert device.tracker_id == "03700001" and device.stats.reconnects == 0
 
 
+def _wait_attempts(trackers: TrackerSet, seconds: float = 5.0) -> None:
+    deadline = time.monotonic() + seconds
+    while trackers.reconnecting:
+        assert time.monotonic() < deadline, f"reconnection attempts still under way after {seconds} s"
+        time.sleep(0.005)
+
+
+def test_a_tracker_that_answers_slowly_while_reconnecting_does_not_stall_the_others(tmp_path):
+    """A port back whose device acknowledges GoToConfig and then nothing: its configure() asks each request three
+    times (seconds). The reconnection used to run inside read(), so the other tracker's samples waited that long."""
+    healthy = XsensSimulator(synthetic_imu(seconds=30.0), speed=1.0, device_id=0x03700002).start()
+    link = tmp_path / "slow"
+    lost = XsensSimulator(synthetic_imu(seconds=5.0), speed=2.0, device_id=0x03700001, stable_link=link).start()
+    trackers = TrackerSet(retry_interval_s=0.01)
+    master, slave = os.openpty()
+    answering = threading.Event()
+    try:
+        for port in (healthy.path, str(link)):
+            device = XsensDevice(SerialTransport(port))
+            device.configure(100)
+            trackers.add(device)
+        read_until(trackers, lambda r: {x.tracker_id for x in r} == {"03700001", "03700002"})
+        lost.unplug()
+        read_until(trackers, lambda r: "03700001" in trackers.disconnected)
+        tty.setraw(slave)
+
+        def acknowledge_go_to_config_only() -> None:  # the device behind the port answers the probe, then stalls
+            answering.set()
+            while answering.is_set():
+                if select.select([master], [], [], 0.05)[0] and xbus.encode_message(xbus.Mid.GO_TO_CONFIG) in (
+                    os.read(master, 4096)
+                ):
+                    os.write(master, xbus.encode_message(xbus.Mid.GO_TO_CONFIG + 1))
+
+        threading.Thread(target=acknowledge_go_to_config_only, daemon=True).start()
+        link.symlink_to(os.ttyname(slave))
+        started = time.monotonic()
+        arrivals = []
+        while time.monotonic() - started < 2.5:
+            readings = trackers.read()
+            arrivals += [time.monotonic() for r in readings if r.tracker_id == "03700002"]
+        attempting = trackers.reconnecting
+    finally:
+        answering.clear()
+        trackers.close()
+        healthy.close()
+        lost.close()
+        os.close(master)
+        os.close(slave)
+    assert attempting == ["03700001"], "the slow device's attempt should still be under way"
+    gaps = np.diff([started, *arrivals])
+    assert len(arrivals) > 150 and gaps.max() < 0.5, (len(arrivals), gaps.max())  # 100 Hz went on, no stall
+
+
 def read_until(source: XsensDevice | TrackerSet, done, *, seconds: float = 5.0) -> list:
     """``source.read()`` until ``done(readings)`` or ``seconds`` pass."""
     readings: list = []
@@ -389,7 +444,9 @@ def test_a_port_back_without_its_device_is_probed_once_and_retried_ever_more_slo
         delays = []
         for _ in range(4):
             trackers._next_attempt["03700001"] = 0.0  # attempt now
-            assert trackers.read() == []
+            assert trackers.read() == []  # starts the attempt in its thread
+            _wait_attempts(trackers)
+            assert trackers.read() == []  # takes its outcome
             delays.append(trackers.retry_delay("03700001"))
         time.sleep(0.05)
         received = os.read(master, 4096)

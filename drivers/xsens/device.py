@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -420,7 +421,9 @@ class TrackerSet:
     """Several devices keyed by tracker id (device id as 8 hex digits). An unplugged device moves to
     ``disconnected`` (reason kept); with ``reconnect`` its port is reopened after ``retry_interval_s``, the delay
     doubling after each failure up to ``retry_max_s``, and once the same device answers it is reconfigured as before
-    and returns to ``devices`` (same XsensDevice object)."""
+    and returns to ``devices`` (same XsensDevice object). Each attempt runs in a thread of its own: a device that
+    answers slowly may hold its attempt for seconds (its configure requests are asked again), while the other
+    trackers are read on."""
 
     devices: dict[str, XsensDevice] = field(default_factory=dict)
     disconnected: dict[str, str] = field(default_factory=dict)
@@ -430,6 +433,13 @@ class TrackerSet:
     _lost: dict[str, XsensDevice] = field(default_factory=dict)
     _next_attempt: dict[str, float] = field(default_factory=dict)
     _delay: dict[str, float] = field(default_factory=dict)
+    _attempts: dict[str, threading.Thread] = field(default_factory=dict)  # reconnection attempts under way
+    _failures: dict[str, Exception | None] = field(default_factory=dict)  # a finished attempt's error (None: back)
+
+    @property
+    def reconnecting(self) -> list[str]:
+        """The trackers whose reconnection attempt is under way now."""
+        return [key for key, attempt in self._attempts.items() if attempt.is_alive()]
 
     def add(self, device: XsensDevice) -> str:
         if device.device_id is None:
@@ -459,26 +469,50 @@ class TrackerSet:
         return out
 
     def _try_reconnect(self) -> None:
+        """Take the finished attempts (a device back, or the next attempt's delay doubled) and start those due."""
         now = time.monotonic()
         for key, device in list(self._lost.items()):
-            if now < self._next_attempt[key]:
-                continue
-            try:
-                device.reconnect()
-            except (DeviceDisconnected, ProtocolError) as error:
+            attempt = self._attempts.get(key)
+            if attempt is not None:
+                if attempt.is_alive():
+                    continue
+                del self._attempts[key]
+                error = self._failures.pop(key)
+                if error is None:
+                    del self._lost[key], self._next_attempt[key], self._delay[key], self.disconnected[key]
+                    self.devices[key] = device
+                    continue
                 device.stats.last_error = f"reconnect failed: {error}"  # ``disconnected`` keeps why it went away
                 self._delay[key] = min(2 * self._delay[key], self.retry_max_s)
                 self._next_attempt[key] = time.monotonic() + self._delay[key]
-                continue
-            del self._lost[key], self._next_attempt[key], self._delay[key], self.disconnected[key]
-            self.devices[key] = device
+            elif now >= self._next_attempt[key]:
+                attempt = threading.Thread(
+                    target=self._reconnect, args=(key, device), name=f"xsens-reconnect-{key}", daemon=True
+                )
+                self._attempts[key] = attempt
+                attempt.start()
+
+    def _reconnect(self, key: str, device: XsensDevice) -> None:
+        """One attempt (in its own thread): its outcome for :meth:`_try_reconnect`."""
+        try:
+            device.reconnect()
+        except Exception as error:  # noqa: BLE001 - any failure is this attempt's outcome, said and retried later
+            self._failures[key] = error
+        else:
+            self._failures[key] = None
 
     def retry_delay(self, key: str) -> float | None:
         """Seconds between reconnection attempts for a lost tracker now (None when it is not lost)."""
         return self._delay.get(key)
 
     def close(self) -> None:
+        for attempt in self._attempts.values():  # an attempt holds its device's port until it ends
+            attempt.join(timeout=10.0)
+        for key, device in self._lost.items():
+            if self._failures.get(key, "failed") is None:  # reconnected after the last read: its port is open
+                device.close()
         for device in self.devices.values():
             device.close()
         self.devices.clear()
         self._lost.clear()
+        self._attempts.clear()
