@@ -420,3 +420,32 @@ def test_msk_set_stop_during_a_rest_says_nothing_changes(monkeypatch, capsys):
     monkeypatch.setattr(sets, "publish_facts", publish)
     assert cli.main(["set", "stop"]) == 0
     assert "msk set: gym: no set was under way (set 2 had ended): nothing changes" in capsys.readouterr().out
+
+
+def test_a_tool_probing_the_claim_does_not_stop_msk_live_from_taking_it(tmp_path, monkeypatch):
+    """A view or dashboard that looks for sessions probes each announced one's claim with a shared lock for a moment
+    (discovery._claim_held); an msk live claiming its name at that moment was refused as if the name were taken."""
+    import fcntl
+    import threading
+    import time
+
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    path = discovery._claim_path("sim")  # noqa: SLF001
+    path.parent.mkdir(parents=True)
+    path.touch()
+    probing, released = threading.Event(), threading.Event()
+
+    def probe() -> None:  # as _claim_held, held a little longer than it does
+        with open(path) as handle:
+            fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            probing.set()
+            time.sleep(0.05)
+        released.set()
+
+    threading.Thread(target=probe, daemon=True).start()
+    assert probing.wait(5)
+    with discovery.claimed("sim", tmp_path / "out"):
+        assert released.is_set()  # it waited the probe out
+        assert discovery._claim_held("sim", os.getpid())  # noqa: SLF001

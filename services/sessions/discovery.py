@@ -151,9 +151,7 @@ def claimed(session: str, out: Path) -> Iterator[None]:
         for path, field_name, what in held:
             path.parent.mkdir(parents=True, exist_ok=True)
             handle = stack.enter_context(open(path, "a+"))
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _lock_exclusive(handle):
                 handle.seek(0)
                 holder = handle.read().strip() or "?"
                 raise ConfigError(
@@ -167,6 +165,24 @@ def claimed(session: str, out: Path) -> Iterator[None]:
             handle.flush()
         _claimed_here.add(session)
         yield
+
+
+#: how long a claim waits out a lock held for a moment: another tool's probe (:func:`_claim_held`) holds a shared lock
+#: for microseconds, msk live holds its claim for the whole session
+CLAIM_PROBE_WAIT_S = 0.25
+
+
+def _lock_exclusive(handle) -> bool:
+    """Take ``handle``'s exclusive lock; False when another process keeps it longer than a probe would."""
+    deadline = time.monotonic() + CLAIM_PROBE_WAIT_S
+    while True:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
 
 
 def _claim_path(session: str) -> Path:
