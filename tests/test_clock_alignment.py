@@ -226,3 +226,66 @@ def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waite
     assert len(node.release(second.host_time_ns + 100_000_000)) == 1  # it waited emg_wait_s: estimated anyway
     node.offer_joints(joints(HOST0_NS + 80_000_000), second.host_time_ns)
     assert len(node.release(second.host_time_ns, flush=True)) == 1  # the node stops: every held frame out
+
+
+def test_a_second_emg_source_starting_a_moment_later_is_not_said_missing(caplog):
+    """Two bases: the electrode map names sensor01 of the first and sensor01 of the second. The estimator warned
+    "no EMG source streams" the second's channel at the first chunk of the first base; it says so only once EMG
+    has streamed for MISSING_CHANNEL_GRACE_S without it."""
+    import logging
+
+    from msk_core.estimate.profile import SubjectProfile
+    from msk_core.model import load_pack
+    from services.nodes.estimator import (
+        MISSING_CHANNEL_GRACE_S,
+        EstimatorNode,
+        EstimatorSettings,
+        EstimatorStats,
+    )
+
+    pack = load_pack("bench_press")
+    profile = SubjectProfile(
+        pack.name,
+        str(pack.version),
+        list(pack.groups),
+        pack.f_max_ref.copy(),
+        pack.f_max_ref.copy(),
+        emg_normalisation={
+            "a.EMG": {"group": pack.groups[0], "divisor": 1.0},
+            "b.EMG": {"group": pack.groups[1], "divisor": 1.0},
+        },
+    )
+
+    def chunk(source: str, label: str, k: int) -> messages.EmgChunk:
+        return messages.EmgChunk(
+            source_id=source,
+            channel_labels=[label],
+            sample_rate_hz=EMG_HZ,
+            first_sample_index=27 * k,
+            device_time_ns=int(_ns(27 * k / EMG_HZ)),
+            host_time_ns=HOST0_NS + int(_ns(27 * k / EMG_HZ)),
+            n_samples=27,
+            n_channels=1,
+            samples=[0.001] * 27,
+            units="V",
+        )
+
+    def missing_said() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "no EMG source streams" in r.getMessage()]
+
+    caplog.set_level(logging.WARNING, logger="services.nodes.estimator")
+    frames_per_s = round(EMG_HZ / 27)
+    late = EstimatorNode(
+        EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host"), profile, EstimatorStats()
+    )
+    for k in range(frames_per_s):  # base a for 1 s, then base b joins
+        late.handle_emg(chunk("base-a", "a.EMG", k), HOST0_NS + int(k * 1e9 / frames_per_s))
+    late.handle_emg(chunk("base-b", "b.EMG", 0), HOST0_NS + int(1e9))
+    assert missing_said() == [] and late.live_emg.counters.missing_channels == []
+    never = EstimatorNode(
+        EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host"), profile, EstimatorStats()
+    )
+    for k in range(int((MISSING_CHANNEL_GRACE_S + 0.5) * frames_per_s)):  # base b never comes
+        never.handle_emg(chunk("base-a", "a.EMG", k), HOST0_NS + int(k * 1e9 / frames_per_s))
+    (said,) = missing_said()
+    assert "the electrode map names b.EMG, which no EMG source streams" in said

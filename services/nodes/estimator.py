@@ -87,6 +87,11 @@ ALIGN_ACCELERATION = "acceleration"  # measure each EMG clock against the tracke
 ALIGN_ARRIVAL = "arrival"  # the arrival mapping alone
 
 
+#: A channel the electrode map names is said missing once EMG has streamed this long without it: a second EMG
+#: source (another base) may start a moment after the first
+MISSING_CHANNEL_GRACE_S = 3.0
+
+
 @dataclass(frozen=True)
 class EmgTiming:
     """How the node puts the EMG and the joint frames on one clock, and how long a frame waits for its EMG.
@@ -567,6 +572,7 @@ class EstimatorNode:
         self.fatigue = make_fatigue(self.live_emg, stats)  # per electrode and rep: median/mean frequency, their trend
         self.sets = SetTracker()  # the sets the fatigue trend runs over: operator marks, rest detection
         self._missing_said: list[str] = []  # mapped channels no source streams, as last logged
+        self._first_emg_ns: int | None = None  # arrival of the first EMG chunk: other sources may start later
         self.alignment = make_alignment(self.live_emg, timing)
         self.emg_wait_ns = emg_wait_ns(timing.emg_wait_s)
         self._held: deque[_Held] = deque()  # joint frames waiting for their EMG, oldest first
@@ -600,7 +606,9 @@ class EstimatorNode:
             self.fatigue.add_chunk(raw)
         block = live_emg.add_chunk(raw, arrival_ns, chunk.host_time_ns or arrival_ns)  # the driver's receipt, else ours
         missing = live_emg.counters.missing_channels
-        if missing and missing != self._missing_said:
+        self._first_emg_ns = self._first_emg_ns or arrival_ns
+        waited = arrival_ns - self._first_emg_ns >= MISSING_CHANNEL_GRACE_S * 1e9
+        if missing and missing != self._missing_said and waited:
             self._missing_said = list(missing)
             log.warning(
                 "the electrode map names %s, which no EMG source streams (%s has %s): %s estimated without EMG",
