@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 from msk_core.estimate.leave_out import LEAVE_OUT_METHODS, MAX_LAG_S, PAPER_METHODS
-from msk_core.estimate.pipeline import PriorSettings
 from services.cli import main
 from tests.conftest import committed_trial
 
@@ -262,15 +261,16 @@ def test_live_synergists_meet_both_targets_on_the_lifts(shared_dir, tmp_path):
     from msk_core.estimate.leave_out import leave_one_out
     from msk_core.estimate.trial import load_trial
     from msk_core.model import load_pack
+    from services.bench.leave_out import lift_options
 
     pack = load_pack("lumbar_lift")
     train = load_trial(_trial("squat5kg", shared_dir, tmp_path), pack)
     held = load_trial(_trial("stoop5kg", shared_dir, tmp_path), pack)
-    options = {"prior_settings": PriorSettings(no_emg="synergist"), "no_emg_strength": "measured"}
-    live = leave_one_out(pack, [train], [held], live_synergists=True, **options).targets()
+    live = leave_one_out(pack, [train], [held], **lift_options()).targets()  # as msk bench leave-out runs them
     assert live["method"] == "assisted" and live["rmse_met"] and live["r_met"], live
     assert live["r_groups"] == 6  # so gives both rectus abdominis a constant (their r undefined)
-    assisted = leave_one_out(pack, [train], [held], live_synergists=False, **options).method_targets("assisted")
+    assisted = leave_one_out(pack, [train], [held], **(lift_options() | {"live_synergists": False}))
+    assisted = assisted.method_targets("assisted")
     assert assisted["rmse_met"] and not assisted["r_met"], assisted
 
 
