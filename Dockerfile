@@ -10,7 +10,7 @@ COPY drivers ./drivers
 COPY services ./services
 COPY recordings ./recordings
 RUN pip install --no-cache-dir .
-# the wire schema's Python code (msk_pb2), made once here rather than by the first node to start
-RUN python -c "import services.transport.schemas.msk_pb2"
+# the wire schema's Python code (msk_pb2) made once here, in the installed package (not /app: hence cd /)
+RUN cd / && python -c "import services.transport.schemas.msk_pb2"
 ENTRYPOINT ["msk"]
 CMD ["--help"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -192,3 +193,25 @@ def test_add_packed_floats_is_the_same_message_as_extend() -> None:
         assert fast.SerializeToString() == slow.SerializeToString()
     with pytest.raises(TypeError, match="not a packed repeated float"):
         messages.add_packed_floats(messages.EmgChunk(), "channel_labels", rows)
+
+
+def test_an_installed_package_ships_the_schema_and_makes_its_code_on_first_import(tmp_path, repo_root):
+    """As the Dockerfile installs it (pip install ., not editable): msk.proto is package data, and the first import,
+    from outside the source tree, makes msk_pb2 inside the installed package."""
+    target = tmp_path / "site"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(target),
+         str(repo_root)],
+        check=True, capture_output=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    installed = target / "services" / "transport" / "schemas"
+    assert (installed / "msk.proto").is_file()
+    for name in schemas.GENERATED:  # a working tree may carry its own: the installed package must not need them
+        (installed / name).unlink(missing_ok=True)
+    imported = subprocess.run(
+        [sys.executable, "-c", "import services.transport.schemas.msk_pb2 as m; print(m.__file__)"],
+        env={**os.environ, "PYTHONPATH": str(target)}, cwd=tmp_path, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert imported.returncode == 0, imported.stderr
+    assert imported.stdout.strip() == str(installed / "msk_pb2.py")
+    assert (installed / "msk_pb2.pyi").is_file()
