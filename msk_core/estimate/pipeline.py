@@ -45,13 +45,17 @@ class NoEmgStrength(str, Enum):
     SYNERGIST = "synergist"
 
 
+#: phase bins of the prior per movement cycle, by default
+PRIOR_BINS = 20
+
+
 @dataclass(frozen=True)
 class PriorSettings:
     """How :func:`build_prior` learns the N(mu, sigma^2) prior: ``n_bins`` phase bins per movement cycle; the prior of
     groups without EMG, first from ``synergists`` (unmeasured group -> the measured group whose prior it takes), then
     by ``no_emg``. Checked when made; ``no_emg`` may be given by its value ("wide")."""
 
-    n_bins: int = 20
+    n_bins: int = PRIOR_BINS
     no_emg: NoEmgPrior = NoEmgPrior.MIN_EFFORT
     synergists: Mapping[str, str] = field(default_factory=dict)
 
@@ -60,6 +64,14 @@ class PriorSettings:
             raise EstimationError(f"the prior needs at least 2 phase bins, got n_bins={self.n_bins}")
         object.__setattr__(self, "no_emg", NoEmgPrior(self.no_emg))
         object.__setattr__(self, "synergists", MappingProxyType(dict(self.synergists)))
+
+    def __str__(self) -> str:
+        """As a reader names it, e.g. ``prior synergist`` (``, 10 bins``, ``, synergists g3=g0`` when not the
+        default)."""
+        text = f"prior {self.no_emg.value}" + (f", {self.n_bins} bins" if self.n_bins != PRIOR_BINS else "")
+        return text + (
+            ", synergists " + " ".join(f"{u}={m}" for u, m in self.synergists.items()) if self.synergists else ""
+        )
 
 
 SYNERGIST_MIN_COSINE = 0.9  # moment-arm similarity a measured group needs to stand in for an unmeasured one

@@ -91,7 +91,11 @@ def _run(
         details[f"{prefix}target_median_r_so_paired"] = targets["median_r_so"]
     name = f"{pack_name} {Path(train).stem} -> {Path(held).stem}: leave-one-out of {len(result.groups)} group(s)"
     name += " (gait cycles from the force plate)" if grf else ""
-    name += f" ({', '.join(f'{k}={v}' for k, v in options.items())})" if options else ""
+    name += (
+        f" ({', '.join(str(v) if k == 'prior_settings' else f'{k}={v}' for k, v in options.items())})"
+        if options
+        else ""
+    )
     accuracy = _accuracy(name, result, min_r=WALK_MIN_R if pack_name == "gait2392" else None)
     return cpu, [
         BenchResult(
