@@ -164,21 +164,27 @@ def test_a_frame_awaits_the_emg_of_its_instant_while_the_source_delivers():
     assert not live.awaits(40_000_000, received + 300_000_000)  # unless the source stalled (nothing to wait for)
 
 
-def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waited_long_enough():
+def _reference_profile(pack, electrodes: dict[str, str]):
+    """A subject at the pack's reference strengths whose electrodes (channel -> group) have MVC divisor 1."""
     from msk_core.estimate.profile import SubjectProfile
-    from msk_core.model import load_pack
-    from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
 
-    pack = load_pack("bench_press")
-    group = pack.groups[0]
-    profile = SubjectProfile(
+    normalisation = {channel: {"group": group, "divisor": 1.0} for channel, group in electrodes.items()}
+    return SubjectProfile(
         pack.name,
         str(pack.version),
         list(pack.groups),
         pack.f_max_ref.copy(),
         pack.f_max_ref.copy(),
-        emg_normalisation={"sensor01.EMG": {"group": group, "divisor": 1.0}},
+        emg_normalisation=normalisation,
     )
+
+
+def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waited_long_enough():
+    from msk_core.model import load_pack
+    from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
+
+    pack = load_pack("bench_press")
+    profile = _reference_profile(pack, {"sensor01.EMG": pack.groups[0]})
     stats = EstimatorStats()
     timing = EmgTiming(joints_clock="host", emg_wait_s=0.1)
     settings = EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host", timing=timing)
@@ -234,7 +240,6 @@ def test_a_second_emg_source_starting_a_moment_later_is_not_said_missing(caplog)
     has streamed for MISSING_CHANNEL_GRACE_S without it."""
     import logging
 
-    from msk_core.estimate.profile import SubjectProfile
     from msk_core.model import load_pack
     from services.nodes.estimator import (
         MISSING_CHANNEL_GRACE_S,
@@ -244,17 +249,7 @@ def test_a_second_emg_source_starting_a_moment_later_is_not_said_missing(caplog)
     )
 
     pack = load_pack("bench_press")
-    profile = SubjectProfile(
-        pack.name,
-        str(pack.version),
-        list(pack.groups),
-        pack.f_max_ref.copy(),
-        pack.f_max_ref.copy(),
-        emg_normalisation={
-            "a.EMG": {"group": pack.groups[0], "divisor": 1.0},
-            "b.EMG": {"group": pack.groups[1], "divisor": 1.0},
-        },
-    )
+    profile = _reference_profile(pack, {"a.EMG": pack.groups[0], "b.EMG": pack.groups[1]})
 
     def chunk(source: str, label: str, k: int) -> messages.EmgChunk:
         return messages.EmgChunk(
