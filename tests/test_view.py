@@ -416,3 +416,19 @@ def test_when_the_estimator_stops_the_rep_under_way_counts_as_in_the_report():
     (shown,) = dashboard.changes(0)[1]["topics"]["sets"]
     assert (shown["reps"], shown["ended_by"]) == (2, "end of data")
     assert dashboard.changes(0)[1]["topics"]["reps"]["total"] == 2
+
+
+def test_a_set_closed_by_the_estimators_stop_goes_on_when_its_frames_come_back():
+    """An estimator restarted alone (its last status, then frames again within the rest time): the page's set goes on
+    as msk live's does, rather than a new set being opened under another number."""
+    view = ViewState()
+    phases = (-1, 0.0, 0.3, 0.7, 0.95, -1, -1)
+    for k, phase in enumerate(phases):
+        for frame in _methods_frames(0.5 * k, phase):
+            view.on_message(f"msk/s/activations/{frame.method}", frame)
+    view.on_message("msk/s/status/estimator", messages.DeviceStatus(device_id="estimator", kind="node"))
+    assert [(s.number, len(s.reps), s.ended_by) for s in view.sets.sets] == [(1, 1, "end of data")]
+    for k, phase in enumerate((-1, 0.0, 0.3, 0.7, 0.95, -1), start=len(phases) + 4):  # 2 s later: a second rep
+        for frame in _methods_frames(0.5 * k, phase):
+            view.on_message(f"msk/s/activations/{frame.method}", frame)
+    assert [(s.number, len(s.reps), s.ended_by) for s in view.sets.sets] == [(1, 2, "")]

@@ -41,6 +41,10 @@ MAX_FACT_GAP_S = 6 * 3600.0
 SET_MARKS = ("", "start", "stop")
 
 
+#: :attr:`SetRecord.ended_by` of a set closed by :meth:`SetTracker.finish`
+END_OF_DATA = "end of data"
+
+
 def check_rest_s(rest_s: float, field_name: str = "rest_s") -> float:
     """A rest-detection time: finite and > 0 s."""
     if isinstance(rest_s, bool) or not isinstance(rest_s, (int, float)) or not (math.isfinite(rest_s) and rest_s > 0):
@@ -257,6 +261,7 @@ class SetTracker:
     # ---- data ------------------------------------------------------------------------------------------------------
     def update(self, t: float, phase: float | None) -> None:
         """The phase of the sample at ``t`` ([0, 1) inside a rep, negative at rest, None or NaN unknown)."""
+        self._resume_after_end_of_data(t)
         self._last_t, self._phase = t, phase
         inside = phase is not None and phase >= 0.0  # NaN compares False
         if not inside:
@@ -318,9 +323,18 @@ class SetTracker:
             end = self._last_t if t is None else t
             if current.reps and not under_way:
                 end = min(end, current.reps[-1][1])  # at rest since its last rep
-            self._close(max(end, current.start_s), "end of data")
+            self._close(max(end, current.start_s), END_OF_DATA)
 
     # ---- inside ----------------------------------------------------------------------------------------------------
+    def _resume_after_end_of_data(self, t: float) -> None:
+        """Data after :meth:`finish` (a page closed the set when the estimator said it stopped, and the estimator was
+        restarted): the set goes on when the data come back within ``rest_s`` of its end, as if never closed."""
+        last = self.sets[-1] if self.sets else None
+        if last is None or last.ended_by != END_OF_DATA or last.end_s is None:
+            return
+        if last.end_s <= t < last.end_s + self.rest_s:
+            last.end_s, last.ended_by = None, ""
+
     def _resume(self, counted: SetRecord, spans: Sequence[tuple[float, float]], end_s: float | None) -> None:
         """A set as another tracker ``counted`` it (:meth:`on_facts`: its number, start, who started it and who
         ended it): it started at its ``start_s`` (the set under way here ended then), its reps ``spans`` are kept
