@@ -10,7 +10,8 @@ COPY drivers ./drivers
 COPY services ./services
 COPY recordings ./recordings
 RUN pip install --no-cache-dir .
-# the wire schema's Python code (msk_pb2) made once here, in the installed package (not /app: hence cd /)
-RUN cd / && python -c "import services.transport.schemas.msk_pb2"
+# the wire schema's Python code (msk_pb2) made here, once in /app (msk live starts its nodes with python -m from the
+# working folder) and once in the installed package (the msk command; from / so that /app is not on the path)
+RUN python -c "import services.transport.schemas" && cd / && python -c "import services.transport.schemas"
 ENTRYPOINT ["msk"]
 CMD ["--help"]

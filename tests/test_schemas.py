@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -120,27 +121,32 @@ def test_generated_code_is_protocs_of_the_current_proto(tmp_path):
 
 
 def test_a_changed_proto_makes_its_code_again(tmp_path):
-    """Code older than its .proto is stale: generation replaces it (a new field appears in the stub)."""
+    """Code made from another msk.proto is stale whatever the file times say (pip and git do not keep them): the
+    proto's SHA-256 beside the code decides, and generation replaces it (a new field appears in the stub)."""
     proto = tmp_path / "msk.proto"
     proto.write_text(schemas.PROTO.read_text())
     schemas.generate(tmp_path, proto)
     assert schemas.is_current(tmp_path, proto)
+    made = {name: (tmp_path / name).stat().st_mtime for name in schemas.GENERATED}
     proto.write_text(
         schemas.PROTO.read_text().replace("message LoadEvent {", "message LoadEvent {\n  int32 added_here = 999;", 1)
     )
-    past = proto.stat().st_mtime - 10
-    for name in schemas.GENERATED:
-        os.utime(tmp_path / name, (past, past))
+    os.utime(proto, (min(made.values()) - 3600,) * 2)  # older than the code, as an installed copy can be
     assert not schemas.is_current(tmp_path, proto)
     schemas.generate(tmp_path, proto)
     assert schemas.is_current(tmp_path, proto)
     assert "added_here" in (tmp_path / "msk_pb2.pyi").read_text()
     assert not list(tmp_path.glob(".protoc-*")), "protoc's scratch folder was left behind"
+    (tmp_path / schemas.STAMP).unlink()  # code of unknown origin (a copy without its stamp)
+    assert not schemas.is_current(tmp_path, proto)
 
 
 def test_missing_protoc_is_named(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "grpc_tools", None)
-    with pytest.raises(schemas.SchemaGenerationError, match=r"msk_pb2\.py is missing or older than .*grpcio-tools"):
+    with pytest.raises(
+        schemas.SchemaGenerationError,
+        match=r"msk_pb2\.py is missing or not made from .*msk\.proto as it is, and grpcio-tools",
+    ):
         schemas.generate(tmp_path)
 
 
@@ -195,23 +201,33 @@ def test_add_packed_floats_is_the_same_message_as_extend() -> None:
         messages.add_packed_floats(messages.EmgChunk(), "channel_labels", rows)
 
 
-def test_an_installed_package_ships_the_schema_and_makes_its_code_on_first_import(tmp_path, repo_root):
-    """As the Dockerfile installs it (pip install ., not editable): msk.proto is package data, and the first import,
-    from outside the source tree, makes msk_pb2 inside the installed package."""
+def test_an_installed_package_makes_its_schema_code_anew_from_the_proto_it_ships(tmp_path, repo_root):
+    """As the Dockerfile installs it (pip install ., not editable) from a working tree whose generated code is stale
+    (msk.proto gained a field since): the installed package ships msk.proto, and its first import, from outside the
+    source tree, makes msk_pb2 inside the installed package from that proto."""
+    source = tmp_path / "source"
+    tracked = subprocess.run(["git", "-C", str(repo_root), "ls-files", "-z"], capture_output=True, check=True).stdout
+    for name in filter(None, tracked.decode().split("\0")):  # the working tree's tracked files, as a clone has them
+        if (repo_root / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(repo_root / name, source / name)
+    schema_dir = source / "services" / "transport" / "schemas"
+    schemas.generate(schema_dir, schema_dir / "msk.proto")  # the code of today's proto, then the proto changes
+    proto = schema_dir / "msk.proto"
+    proto.write_text(
+        proto.read_text().replace("message LoadEvent {", "message LoadEvent {\n  int32 added_here = 999;", 1)
+    )
     target = tmp_path / "site"
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(target),
-         str(repo_root)],
+         str(source)],
         check=True, capture_output=True, timeout=120, cwd=tmp_path,
     )  # fmt: skip
     installed = target / "services" / "transport" / "schemas"
     assert (installed / "msk.proto").is_file()
-    for name in schemas.GENERATED:  # a working tree may carry its own: the installed package must not need them
-        (installed / name).unlink(missing_ok=True)
     imported = subprocess.run(
-        [sys.executable, "-c", "import services.transport.schemas.msk_pb2 as m; print(m.__file__)"],
+        [sys.executable, "-c", "import services.transport.schemas.msk_pb2 as m; print(m.__file__, m.LoadEvent(added_here=1))"],
         env={**os.environ, "PYTHONPATH": str(target)}, cwd=tmp_path, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert imported.returncode == 0, imported.stderr
-    assert imported.stdout.strip() == str(installed / "msk_pb2.py")
-    assert (installed / "msk_pb2.pyi").is_file()
+    assert imported.stdout.split()[0] == str(installed / "msk_pb2.py") and "added_here: 1" in imported.stdout
