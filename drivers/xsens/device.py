@@ -435,6 +435,7 @@ class TrackerSet:
     _delay: dict[str, float] = field(default_factory=dict)
     _attempts: dict[str, threading.Thread] = field(default_factory=dict)  # reconnection attempts under way
     _failures: dict[str, Exception | None] = field(default_factory=dict)  # a finished attempt's error (None: back)
+    _closed: threading.Event = field(default_factory=threading.Event)  # close() was called
 
     @property
     def reconnecting(self) -> list[str]:
@@ -493,23 +494,34 @@ class TrackerSet:
                 attempt.start()
 
     def _reconnect(self, key: str, device: XsensDevice) -> None:
-        """One attempt (in its own thread): its outcome for :meth:`_try_reconnect`."""
+        """One attempt (in its own thread): its outcome for :meth:`_try_reconnect`; the port closed again when the
+        set was closed meanwhile."""
+        outcome: Exception | None = RuntimeError("the reconnection attempt ended without an outcome")
         try:
             device.reconnect()
-        except Exception as error:  # noqa: BLE001 - any failure is this attempt's outcome, said and retried later
-            self._failures[key] = error
-        else:
-            self._failures[key] = None
+            outcome = None
+        except (DeviceDisconnected, ProtocolError) as error:
+            outcome = error
+        except Exception as error:  # not a device's answer: a fault here, logged whole, and retried like the others
+            log.exception("%s: reconnection attempt failed", key)
+            outcome = error
+        finally:
+            self._failures[key] = outcome
+            if outcome is None and self._closed.is_set():
+                device.close()
 
     def retry_delay(self, key: str) -> float | None:
         """Seconds between reconnection attempts for a lost tracker now (None when it is not lost)."""
         return self._delay.get(key)
 
     def close(self) -> None:
-        for attempt in self._attempts.values():  # an attempt holds its device's port until it ends
-            attempt.join(timeout=10.0)
+        """Close every port; an attempt still under way closes its own when it ends (waited for up to 5 s here)."""
+        self._closed.set()
+        deadline = time.monotonic() + 5.0
+        for attempt in self._attempts.values():
+            attempt.join(timeout=max(0.0, deadline - time.monotonic()))
         for key, device in self._lost.items():
-            if self._failures.get(key, "failed") is None:  # reconnected after the last read: its port is open
+            if key in self._failures and self._failures[key] is None:  # reconnected after the last read: port open
                 device.close()
         for device in self.devices.values():
             device.close()

@@ -594,11 +594,11 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     explicit = options_from_args(args)
     deadline = None if args.duration is None else time.monotonic() + args.duration
+    # no endpoint given: an msk live that starts while this view has received nothing is followed
+    follows = not discovery.gives_endpoint(explicit)
+    options, session = discovery.client_options(explicit, args.session, "live", "msk view")
     while True:
-        options, session = discovery.client_options(explicit, args.session, "live", "msk view")
         topics.check_chunk(session, "session")
-        # no endpoint given: an msk live that starts while this view has received nothing is followed
-        follows = not discovery.gives_endpoint(explicit)
         main(
             options,
             session=session,
@@ -610,6 +610,10 @@ def run_from_args(args: argparse.Namespace) -> int:
         )
         if not follows or stop.is_set() or (deadline is not None and time.monotonic() >= deadline):
             return 0
+        try:
+            options, session = discovery.client_options(explicit, args.session, "live", "msk view")
+        except ConfigError as error:  # several sessions announced meanwhile, none named: stay, as at the start
+            log.warning("msk view: %s; still on session %r", error, session)
 
 
 def session_announced(session: str | None, attached: ZenohOptions, every_s: float = 1.0) -> Callable[[ViewState], bool]:

@@ -190,11 +190,12 @@ class DashboardServer:
         self.state = DashboardState(config.session)
         self.bridge = Bridge(zenoh_options, self.state)
         self.attachments = 0  # sessions attached to after the first (attach())
-        self._attach_lock = threading.Lock()
+        self._attach_lock = threading.Lock()  # the bridge is started, swapped and stopped under it
+        self._serving = False  # between the server's startup and its shutdown: the bridge runs
         app = create_app(
             self,
-            on_startup=(lambda: self.bridge.start(),),
-            on_shutdown=(lambda: self.bridge.stop(),),
+            on_startup=(self._start_bridge,),
+            on_shutdown=(self._stop_bridge,),
             on_set_mark=lambda mark: self.bridge.publish_set_mark(mark),
         )
         certificate, key = (None, None) if pki is None else secured(pki)
@@ -218,12 +219,24 @@ class DashboardServer:
         bridge and state; the open pages reconnect and fetch the new session's config."""
         topics.check_chunk(session, "--session")
         with self._attach_lock:
-            self.bridge.stop()
+            if self._serving:
+                self.bridge.stop()
             self.config = replace(self.config, session=session)
             self.state = DashboardState(session)
             self.bridge = Bridge(zenoh_options, self.state)
-            self.bridge.start()
+            if self._serving:  # else the server's startup starts it
+                self.bridge.start()
             self.attachments += 1
+
+    def _start_bridge(self) -> None:
+        with self._attach_lock:
+            self.bridge.start()
+            self._serving = True
+
+    def _stop_bridge(self) -> None:
+        with self._attach_lock:
+            self._serving = False
+            self.bridge.stop()
 
     @property
     def url(self) -> str:
@@ -320,11 +333,11 @@ def follow_announced(
     while not stop.wait(every_s):
         if server.state.received or discovery.announced_elsewhere(session, attached) is None:
             continue
-        options, name = discovery.client_options(explicit, session, "lab", "msk dashboard")
         try:
+            options, name = discovery.client_options(explicit, session, "lab", "msk dashboard")
             server.attach(options, name)
-        except Exception as error:  # said; tried again a second later
-            log.warning("msk dashboard: could not attach to session %r: %s", name, error)
+        except Exception as error:  # e.g. a second session announced meanwhile: said, looked at again a second later
+            log.warning("msk dashboard: could not attach to the announced session: %s", error)
             continue
         attached = options
 
