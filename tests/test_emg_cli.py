@@ -68,11 +68,14 @@ def test_errors_exit_2(shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureF
     assert "lowpass_hz" in capsys.readouterr().err
 
 
-def _write_anc(path: Path, names: list[str], ranges: list[int], counts: np.ndarray, rate: float = 1000.0) -> Path:
+def _write_anc(
+    path: Path, names: list[str], ranges: list[int], counts: np.ndarray, rate: float = 1000.0, polarity: str = "Bipolar"
+) -> Path:
     """A Motion Analysis .anc as Cortex writes it: header pairs, Name / Rate / Range rows, time and ADC counts."""
     lines = [
         "File_Type:\tAnalog R/C ASCII\tGeneration#:\t2",
         f"Trial_Name:\tsmall\tTrial#:\t1\tDuration(Sec.):\t{len(counts) / rate:f}\t#Channels:\t{len(names)}",
+        f"Board_Type:\tNI USB-6225\tPolarity:\t{polarity}",
         "BitDepth:\t16\tPreciseRate:\t1000.000000",
         "",
         "Name\t" + "\t".join(names) + "\t",
@@ -120,3 +123,13 @@ def test_channels_without_a_voltage_unit_stay_in_their_own_and_are_named(tmp_pat
         capsys.readouterr().out
     )
     assert read_sto(out).name == "EMG envelopes (file units), causal"
+
+
+def test_a_unipolar_anc_spans_its_range_with_all_its_counts(tmp_path: Path) -> None:
+    """Unipolar: 0 .. 2^16 counts span 0 .. Range (bipolar: +-2^15 counts span +-Range)."""
+    counts = np.column_stack([np.arange(0, 65536, 64.0)])
+    rec, own = read_anc(_write_anc(tmp_path / "u.anc", ["EMG1"], [2000], counts, polarity="Unipolar")).in_volts()
+    assert not own
+    np.testing.assert_allclose(rec.channel("EMG1"), counts[:, 0] * 2.0 / 65536)
+    bipolar, _ = read_anc(_write_anc(tmp_path / "b.anc", ["EMG1"], [2000], counts - 32768)).in_volts()
+    np.testing.assert_allclose(bipolar.channel("EMG1"), (counts[:, 0] - 32768) * 2.0 / 32768)

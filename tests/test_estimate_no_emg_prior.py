@@ -118,3 +118,23 @@ def test_wide_prior_is_the_old_default_and_sources_survive_the_profile(tmp_path)
     assert back.prior.sources == ("emg", "min_effort", "emg", "min_effort")
     with pytest.raises(EstimationError, match="sources"):
         PhasePrior(("a", "b"), np.zeros((2, 2)), np.ones((2, 2)), np.ones(2, dtype=bool), sources=("emg",))
+
+
+def test_prior_settings_are_checked_copied_and_named():
+    import copy
+    import pickle
+
+    from msk_core.errors import EstimationError
+
+    given = {"g3": "g0"}
+    settings = PriorSettings(n_bins=10, no_emg="synergist", synergists=given)
+    given["g4"] = "g0"  # the caller's mapping changes: the settings do not
+    assert settings.no_emg is NoEmgPrior.SYNERGIST and dict(settings.synergists) == {"g3": "g0"}
+    assert pickle.loads(pickle.dumps(settings)) == settings == copy.deepcopy(settings)  # e.g. to a process pool
+    assert hash(settings) == hash(PriorSettings(n_bins=10, no_emg=NoEmgPrior.SYNERGIST, synergists={"g3": "g0"}))
+    assert str(settings) == "prior synergist, 10 bins, synergists g3=g0" and str(PriorSettings()) == "prior min_effort"
+    for bins in (1, 2.5, True):
+        with pytest.raises(EstimationError, match="at least 2 phase bins"):
+            PriorSettings(n_bins=bins)
+    with pytest.raises(EstimationError, match="no_emg must be one of min_effort, synergist, wide, got 'nearby'"):
+        PriorSettings(no_emg="nearby")

@@ -7,7 +7,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
-from types import MappingProxyType
 
 import numpy as np
 
@@ -57,13 +56,20 @@ class PriorSettings:
 
     n_bins: int = PRIOR_BINS
     no_emg: NoEmgPrior = NoEmgPrior.MIN_EFFORT
-    synergists: Mapping[str, str] = field(default_factory=dict)
+    # a copy of the mapping given (a plain dict: the settings pickle and copy; their hash leaves it out)
+    synergists: Mapping[str, str] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
-        if not self.n_bins >= 2:
-            raise EstimationError(f"the prior needs at least 2 phase bins, got n_bins={self.n_bins}")
-        object.__setattr__(self, "no_emg", NoEmgPrior(self.no_emg))
-        object.__setattr__(self, "synergists", MappingProxyType(dict(self.synergists)))
+        if isinstance(self.n_bins, bool) or not isinstance(self.n_bins, int) or self.n_bins < 2:
+            raise EstimationError(
+                f"the prior needs a whole number of at least 2 phase bins, got n_bins={self.n_bins!r}"
+            )
+        try:
+            object.__setattr__(self, "no_emg", NoEmgPrior(self.no_emg))
+        except ValueError:
+            known = ", ".join(p.value for p in NoEmgPrior)
+            raise EstimationError(f"no_emg must be one of {known}, got {self.no_emg!r}") from None
+        object.__setattr__(self, "synergists", {str(u): str(m) for u, m in dict(self.synergists).items()})
 
     def __str__(self) -> str:
         """As a reader names it, e.g. ``prior synergist`` (``, 10 bins``, ``, synergists g3=g0`` when not the

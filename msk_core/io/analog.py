@@ -42,7 +42,7 @@ class AnalogRecording:
 
     def in_volts(self) -> tuple[AnalogRecording, list[str]]:
         """The recording with every channel whose file says how in volts: a unit V, mV or µV, or an ``.anc``'s ADC
-        counts through the channel's ``Range`` (mV full scale) and the file's ``BitDepth``; and the labels of the
+        counts through the channel's ``Range`` (mV full scale), the file's ``BitDepth`` and ``Polarity``; and the labels of the
         channels left in their own unit (none given, or not a voltage)."""
         scale = np.ones(len(self.labels))
         units = list(self.units)
@@ -67,6 +67,8 @@ class AnalogRecording:
             return None
         if not (full_scale_mv > 0 and 2 <= bits <= 32):
             return None
+        if self.header.get("Polarity", "Bipolar").strip().lower().startswith("uni"):
+            return full_scale_mv * 1e-3 / 2**bits  # 0 .. 2^bits counts span 0 .. Range
         return full_scale_mv * 1e-3 / 2 ** (bits - 1)  # a bipolar ADC: +-2^(bits-1) counts span +-Range
 
     def index(self, label: str) -> int:
