@@ -449,3 +449,29 @@ def test_a_tool_probing_the_claim_does_not_stop_msk_live_from_taking_it(tmp_path
     with discovery.claimed("sim", tmp_path / "out"):
         assert released.is_set()  # it waited the probe out
         assert discovery._claim_held("sim", os.getpid())  # noqa: SLF001
+
+
+def test_the_silence_notice_names_what_the_tool_waits_for_now(capsys):
+    """A dashboard that followed a session started later said it still waited for the first one's topics."""
+    import threading
+    import time
+
+    from services.sessions import discovery
+    from services.transport.zenoh_session import ZenohOptions
+
+    target = {"what": "msk/lab/**", "options": ZenohOptions(connect=("tcp/127.0.0.1:7447",))}
+    received, stop = [0], threading.Event()
+    thread = discovery.silence_notice(
+        "msk dashboard", lambda: (target["what"], target["options"]), lambda: received[0], first_s=0.05, every_s=0.1,
+        stop=stop,
+    )  # fmt: skip
+    time.sleep(0.1)
+    target.update(what="msk/sim/**", options=ZenohOptions(connect=("tcp/127.0.0.1:7500",)))
+    time.sleep(0.25)
+    received[0] = 1
+    thread.join(2.0)
+    stop.set()
+    said = capsys.readouterr().err.splitlines()
+    assert not thread.is_alive() and len(said) >= 2, said
+    assert "for msk/lab/** on tcp/127.0.0.1:7447" in said[0] and "0 messages so far" in said[0], said
+    assert "for msk/sim/** on tcp/127.0.0.1:7500" in said[-1], said

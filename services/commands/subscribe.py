@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         inputs.subscribe(args.key)
         print(f"msk subscribe: subscribed to {args.key}", file=sys.stderr, flush=True)
         quiet = threading.Event()
-        discovery.silence_notice("msk subscribe", args.key, options, lambda: printed, stop=quiet)
+        discovery.silence_notice("msk subscribe", lambda: (args.key, options), lambda: printed, stop=quiet)
         try:
             while (args.count is None or printed < args.count) and (deadline is None or time.monotonic() < deadline):
                 inbound = inputs.get(POLL_S)

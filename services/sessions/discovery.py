@@ -17,7 +17,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -335,8 +335,7 @@ def client_options(
 
 def silence_notice(
     tool: str,
-    what: str,
-    options: ZenohOptions,
+    waiting_for: Callable[[], tuple[str, ZenohOptions]],
     received,
     *,
     first_s: float = 3.0,
@@ -344,7 +343,8 @@ def silence_notice(
     stop: threading.Event | None = None,
 ) -> threading.Thread:
     """A thread that says on stderr, ``first_s`` after start and then every ``every_s`` while ``received()`` stays 0,
-    what ``tool`` waits for and where (a wait that says nothing looks like a hang)."""
+    what ``tool`` waits for and where, as ``waiting_for()`` says now (a tool that follows a session it found later
+    waits for that one): a wait that says nothing looks like a hang."""
     stop = stop or threading.Event()
 
     def watch() -> None:
@@ -353,6 +353,7 @@ def silence_notice(
         while not stop.wait(wait):
             if received():
                 return
+            what, options = waiting_for()
             print(
                 f"{tool}: waited {time.monotonic() - started:.0f} s for {what} on {where(options)}: "
                 "0 messages so far (is `msk live` running? `msk live` prints the session and its endpoint)",

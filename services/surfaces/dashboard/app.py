@@ -186,7 +186,7 @@ class DashboardServer:
         topics.check_chunk(config.session, "--session")
         if not 0 < port < 65536:
             raise ConfigError("port must be in 1..65535", field="--port", value=port)
-        self.config = config
+        self.config, self.zenoh_options = config, zenoh_options
         self.state = DashboardState(config.session)
         self.bridge = Bridge(zenoh_options, self.state)
         self.attachments = 0  # sessions attached to after the first (attach())
@@ -221,7 +221,7 @@ class DashboardServer:
         with self._attach_lock:
             if self._serving:
                 self.bridge.stop()
-            self.config = replace(self.config, session=session)
+            self.config, self.zenoh_options = replace(self.config, session=session), zenoh_options
             self.state = DashboardState(session)
             self.bridge = Bridge(zenoh_options, self.state)
             if self._serving:  # else the server's startup starts it
@@ -352,7 +352,12 @@ def run_from_args(args: argparse.Namespace) -> int:
     options, session = discovery.client_options(explicit, args.session, "lab", "msk dashboard")
     server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port, pki=args.pki)
     quiet = threading.Event()
-    discovery.silence_notice("msk dashboard", f"msk/{session}/**", options, lambda: server.state.received, stop=quiet)
+    discovery.silence_notice(
+        "msk dashboard",
+        lambda: (f"msk/{server.config.session}/**", server.zenoh_options),
+        lambda: server.state.received,
+        stop=quiet,
+    )
     if not discovery.gives_endpoint(explicit):
         follow = threading.Thread(
             target=follow_announced, args=(server, explicit, args.session, options, quiet), daemon=True
