@@ -257,6 +257,12 @@ def test_failed_nodes_are_named_with_exit_code_and_log_tail(tmp_path):
     assert "did not stop when asked (SIGINT) and was killed" in texts["recorder"]
     assert "killed by signal 9 (SIGKILL)" in texts["kinematics"]
 
+    # after a node failed, the others stopped by the signal or killed when they did not answer it only followed it
+    failed = node_failures(
+        _summary("node failed: ['recorder: exit 1']", recorder=1, estimator=-2, kinematics=None, drivers=3), tmp_path
+    )
+    assert [(f.node, f.during_session) for f in failed] == [("recorder", True), ("drivers", False)]
+
     # a thread node of msk live itself (no process, no exit code)
     failed = node_failures(_summary("node failed: [\"monitor: RuntimeError('zenoh closed')\"]"), tmp_path)
     assert [f.node for f in failed] == ["monitor"] and "zenoh closed" in failed[0].text()
@@ -343,3 +349,26 @@ def test_msk_live_exits_0_after_a_clean_stop_by_sigterm(tmp_path, calibrated):
     assert summary["stopped_by"] == "SIGTERM" and summary["duration_s"] < 60, output
     assert node_failures(summary, out / "logs") == [] and set(summary["exit_codes"].values()) == {0}, summary
     assert "stopped by SIGTERM" in output and "msk live: error" not in output, output
+
+
+def test_an_endpoint_msk_live_cannot_listen_on_fails_at_once_naming_it(tmp_path, calibrated):
+    """--listen on a port another program holds: the recorder, which listens for the session, cannot open it. msk
+    live said "running", then hung for minutes while the other nodes waited on that endpoint (each given 20 s to
+    stop, one after the other); now it exits 3 at once, without a "running" line, naming the recorder and why."""
+    _, env = calibrated
+    with socket.socket() as holder:  # another program on the port: it accepts, but speaks no Zenoh
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        started = time.monotonic()
+        result = run_msk(
+            "live", "--sim", "--no-view", "--listen", f"tcp/127.0.0.1:{port}", "--duration", "60",
+            "--out", str(tmp_path / "live"), env=env, timeout=150,
+        )  # fmt: skip
+        elapsed = time.monotonic() - started
+    assert result.returncode == EXIT_NODE_FAILED, result.stdout + result.stderr
+    assert elapsed < 45, elapsed  # startup (~10 s on a loaded machine) and FAILED_STOP_S, not minutes
+    assert "running" not in result.stdout, result.stdout
+    errors = [line for line in result.stderr.splitlines() if line.startswith("msk live: error:")]
+    assert len(errors) == 1 and "node recorder failed" in errors[0], result.stderr
+    assert f"tcp/127.0.0.1:{port}" in result.stderr and "Address already in use" in result.stderr, result.stderr

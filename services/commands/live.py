@@ -223,9 +223,12 @@ def node_failures(summary: dict, logs: Path) -> list[NodeFailure]:
     failures = [
         NodeFailure(node, codes.get(node), True, detail, logs / f"{node}.log") for node, detail in ended.items()
     ]
+    # after a node failed, the others were stopped at once: one stopped by the signal, or killed when it did not
+    # answer it (e.g. waiting on the endpoint the failed node should have served), only followed the failure
+    followed = {None, -signal.SIGINT, -signal.SIGTERM} if ended else set()
     failures += [
         NodeFailure(node, code, False, "", logs / f"{node}.log")
         for node, code in codes.items()
-        if node not in ended and code != 0
+        if node not in ended and code != 0 and code not in followed
     ]
     return failures

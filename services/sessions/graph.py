@@ -171,18 +171,26 @@ class Graph:
         """Every node up with its subscribers declared, as seen from a fresh session on the graph's endpoint."""
         started = time.monotonic()
         for thread_node in self._threads:
-            thread_node.ready.wait(max(0.0, started + timeout_s - time.monotonic()))
+            # in slices: a node process that dies meanwhile (e.g. it could not listen) is said now, not at the timeout
+            while not thread_node.ready.wait(min(0.2, max(0.0, started + timeout_s - time.monotonic()))):
+                self._raise_failed()
+                self._raise_exited()
+                if time.monotonic() >= started + timeout_s:
+                    break
             self._raise_failed()
+        self._raise_exited()
+        with open_session(self.observer_options()) as zsession:
+            left = max(0.1, started + timeout_s - time.monotonic())
+            wait_for_nodes(zsession, self.session, self.nodes, left, give_up=self._exited_before_ready)
+        return time.monotonic() - started
+
+    def _raise_exited(self) -> None:
         for node in self._processes:
             if node.process.poll() is not None:
                 raise GraphTimeout(
                     f"node {node.name} exited with code {node.process.returncode} before it was ready"
                     + self._log_tail(node)
                 )
-        with open_session(self.observer_options()) as zsession:
-            left = max(0.1, started + timeout_s - time.monotonic())
-            wait_for_nodes(zsession, self.session, self.nodes, left, give_up=self._exited_before_ready)
-        return time.monotonic() - started
 
     def _exited_before_ready(self) -> str | None:
         """The node processes that exited while the graph waits for readiness (each with its exit code and log)."""

@@ -64,6 +64,7 @@ if TYPE_CHECKING:  # imported where used: a session without --sim needs no simul
 
 READY_TIMEOUT_S = 90.0
 STOP_TIMEOUT_S = 20.0
+FAILED_STOP_S = 5.0  # after a node failed: how long the others have to stop before they are killed
 #: At the stop, an estimator that published nothing for this long answers no more (paused for another exercise)
 ESTIMATOR_IDLE_S = 3.0
 DRAIN_S = 0.6  # after the simulators stop sending: bytes in flight reach the drivers, messages the nodes
@@ -953,20 +954,26 @@ def run_graph(
     counts = FlowCounts()
     running = _Running()
     announcement = discovery.Announcement()
+    failed_at_start = False
     with StopOnSignals() as stopper:
         try:
             graph, endpoint = _start_live_graph(plan, endpoint, pki, counts, announcement, running, log)
             _wait_ready(graph, stopper)
-            _announce_live_graph(plan, graph, endpoint, view, duration_s, pki, stopper, announcement, running, log)
+            failed_at_start = bool(graph.failed())  # e.g. the recorder could not listen: no "running" line
+            if not failed_at_start:
+                _announce_live_graph(plan, graph, endpoint, view, duration_s, pki, stopper, announcement, running, log)
             reason, elapsed = _run_until_stopped(graph, duration_s, stopper, out / "logs", log)
         finally:
             for path in running.announced[1:]:  # the registry entry; OUT/session.json stays as a record
                 discovery.withdraw(path)
             codes = {}
             if running.graph is not None:
-                codes = stop_in_order(
-                    running.graph, running.drivers, simulators, running.viewer, counts, plan.methods, log
-                )
+                if failed_at_start:  # nothing flowed yet: nothing to drain in order, no node worth waiting for
+                    codes = stop_at_once(running.graph, running.viewer, simulators)
+                else:
+                    codes = stop_in_order(
+                        running.graph, running.drivers, simulators, running.viewer, counts, plan.methods, log
+                    )
             if running.router is not None:
                 codes["router"] = stop_process(running.router)
     # the parts this session's recorder wrote (it continues into session-001.mcap ... when OUT holds older ones)
@@ -1220,6 +1227,23 @@ def _unchanged_for(value: Callable[[], int], seconds: float) -> Callable[[], boo
         return time.monotonic() - last[1] >= seconds
 
     return unchanged
+
+
+def stop_at_once(graph: Graph, viewer, simulators: Simulators | None) -> dict:
+    """After a node failed at the start, before any data flowed: every node asked to stop at the same moment, those
+    still running after :data:`FAILED_STOP_S` killed (a node waiting on an endpoint nobody serves does not answer
+    SIGINT)."""
+    if viewer is not None:
+        viewer.send_signal(signal.SIGINT)
+    codes = graph.stop(FAILED_STOP_S)
+    if viewer is not None:
+        try:
+            viewer.wait(5)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
+    if simulators is not None:
+        simulators.close()
+    return codes
 
 
 def stop_in_order(
