@@ -475,3 +475,28 @@ def test_the_silence_notice_names_what_the_tool_waits_for_now(capsys):
     assert not thread.is_alive() and len(said) >= 2, said
     assert "for msk/lab/** on tcp/127.0.0.1:7447" in said[0] and "0 messages so far" in said[0], said
     assert "for msk/sim/** on tcp/127.0.0.1:7500" in said[-1], said
+
+
+def test_a_view_follows_the_next_session_once_the_one_it_shows_has_ended(tmp_path, monkeypatch):
+    """A tablet left open between athletes: the view or dashboard stayed on the ended session while the next one ran.
+    It moves once its announced session is gone and another is announced; it stays while its own runs, and a tool on
+    a session nobody announced (a replay) that receives stays."""
+    from services.sessions import discovery
+    from services.transport.zenoh_session import ZenohOptions
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    first = discovery.SessionInfo("sim", ["tcp/127.0.0.1:40001"], os.getpid(), str(tmp_path / "a"))
+    (first_entry,) = discovery.announce(first, tmp_path / "a")[1:]
+    follower = discovery.SessionFollower(None, first.options(), every_s=0.0)
+    assert follower.next_session(received=0) is None  # its own session is the only one
+    assert follower.next_session(received=120) is None
+    second = discovery.SessionInfo("monday", ["tcp/127.0.0.1:40002"], os.getpid(), str(tmp_path / "b"))
+    discovery.announce(second, tmp_path / "b")
+    assert follower.next_session(received=120) is None  # two run, none named, its own among them: stays
+    discovery.withdraw(first_entry)  # the first athlete's session ends
+    assert follower.next_session(received=120) == second
+    follower.moved(second.options())
+    assert follower.next_session(received=3) is None
+    replay = discovery.SessionFollower(None, ZenohOptions(connect=("tcp/127.0.0.1:7447",)), every_s=0.0)
+    assert replay.next_session(received=50) is None  # never announced: a replay it shows, not an ended session
+    assert replay.next_session(received=0) == second  # opened before any session: follows the one that starts

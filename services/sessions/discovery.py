@@ -286,6 +286,33 @@ def announced_elsewhere(session: str | None, attached: ZenohOptions) -> SessionI
     return info if info is not None and info.options() != attached else None
 
 
+class SessionFollower:
+    """When a view or dashboard attached to ``attached`` moves to another session (:meth:`next_session`): one announced
+    elsewhere (the one named ``session``, or the only one), once the tool has received nothing (it was opened before
+    its ``msk live``) or the announced session it showed has ended (the next athlete's session on a tablet left open).
+    A tool on a session nobody announced (a replay on the well-known endpoint) that receives stays."""
+
+    def __init__(self, session: str | None, attached: ZenohOptions, every_s: float = 1.0) -> None:
+        self.session, self.attached, self.every_s = session, attached, every_s
+        self._was_announced = False  # the session shown was announced by its msk live at some point
+        self._looked = -float("inf")
+
+    def next_session(self, received: int) -> SessionInfo | None:
+        """The session to move to now (looked for at most every ``every_s``; None: stay)."""
+        now = time.monotonic()
+        if now - self._looked < self.every_s:
+            return None
+        self._looked = now
+        here = any(info.options() == self.attached for info in running_sessions())
+        self._was_announced = self._was_announced or here
+        if received and (here or not self._was_announced):
+            return None
+        return announced_elsewhere(self.session, self.attached)
+
+    def moved(self, attached: ZenohOptions) -> None:
+        self.attached, self._was_announced = attached, False
+
+
 def attach_options(
     explicit: ZenohOptions, session: str | None, *, one_shot: bool = False
 ) -> tuple[ZenohOptions, SessionInfo | None]:

@@ -531,7 +531,7 @@ def main(
     leave_for: Callable[[ViewState], bool] | None = None,
 ) -> ViewState:
     """Show ``session`` until ``stop_event``, ``duration_s`` or, checked at every redraw, ``leave_for(state)`` (a
-    session to attach to instead: :func:`session_announced`)."""
+    session to attach to instead: :func:`session_followed`)."""
     stop_event = stop_event or threading.Event()
     state = ViewState(figures_method=method)
     deadline = None if duration_s is None else time.monotonic() + duration_s
@@ -594,7 +594,8 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     explicit = options_from_args(args)
     deadline = None if args.duration is None else time.monotonic() + args.duration
-    # no endpoint given: an msk live that starts while this view has received nothing is followed
+    # no endpoint given: an msk live that starts before this view received anything, or after its session ended,
+    # is followed
     follows = not discovery.gives_endpoint(explicit)
     options, session = discovery.client_options(explicit, args.session, "live", "msk view")
     while True:
@@ -606,7 +607,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             refresh_hz=args.refresh_hz,
             duration_s=None if deadline is None else max(0.0, deadline - time.monotonic()),
             stop_event=stop,
-            leave_for=session_announced(args.session, options) if follows else None,
+            leave_for=session_followed(discovery.SessionFollower(args.session, options)) if follows else None,
         )
         if not follows or stop.is_set() or (deadline is not None and time.monotonic() >= deadline):
             return 0
@@ -616,19 +617,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             log.warning("msk view: %s; still on session %r", error, session)
 
 
-def session_announced(session: str | None, attached: ZenohOptions, every_s: float = 1.0) -> Callable[[ViewState], bool]:
-    """For a view started before its ``msk live``: true once a session (the one named ``session``, or the only one)
-    is announced somewhere other than where the view is ``attached``, while the view has received nothing; looked
-    for every ``every_s``."""
-    from services.sessions import discovery
-
-    looked = [-math.inf]
-
-    def announced(state: ViewState) -> bool:
-        now = time.monotonic()
-        if state.received or now - looked[0] < every_s:
-            return False
-        looked[0] = now
-        return discovery.announced_elsewhere(session, attached) is not None
-
-    return announced
+def session_followed(follower) -> Callable[[ViewState], bool]:
+    """The view leaves its session for the one ``follower`` (:class:`services.sessions.discovery.SessionFollower`)
+    says."""
+    return lambda state: follower.next_session(state.received) is not None

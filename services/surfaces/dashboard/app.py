@@ -326,12 +326,13 @@ def follow_announced(
     stop: threading.Event,
     every_s: float = 1.0,
 ) -> None:
-    """A dashboard opened before its ``msk live``: every ``every_s`` until ``stop``, while the page has received
-    nothing, look for a session announced elsewhere than where it is ``attached``, and serve that one."""
+    """Every ``every_s`` until ``stop``: serve the session a :class:`services.sessions.discovery.SessionFollower` says
+    (one that started after this dashboard, before it received anything or after its session ended)."""
     from services.sessions import discovery
 
+    follower = discovery.SessionFollower(session, attached, every_s=0.0)
     while not stop.wait(every_s):
-        if server.state.received or discovery.announced_elsewhere(session, attached) is None:
+        if follower.next_session(server.state.received) is None:
             continue
         try:
             options, name = discovery.client_options(explicit, session, "lab", "msk dashboard")
@@ -339,7 +340,7 @@ def follow_announced(
         except Exception as error:  # e.g. a second session announced meanwhile: said, looked at again a second later
             log.warning("msk dashboard: could not attach to the announced session: %s", error)
             continue
-        attached = options
+        follower.moved(options)
 
 
 def run_from_args(args: argparse.Namespace) -> int:
