@@ -133,3 +133,31 @@ def test_a_unipolar_anc_spans_its_range_with_all_its_counts(tmp_path: Path) -> N
     np.testing.assert_allclose(rec.channel("EMG1"), counts[:, 0] * 2.0 / 65536)
     bipolar, _ = read_anc(_write_anc(tmp_path / "b.anc", ["EMG1"], [2000], counts - 32768)).in_volts()
     np.testing.assert_allclose(bipolar.channel("EMG1"), (counts[:, 0] - 32768) * 2.0 / 32768)
+
+
+def test_envelope_refuses_what_it_would_get_wrong_and_makes_its_output_folder(tmp_path: Path, capsys) -> None:
+    from msk_core.io import write_sto
+
+    t = np.cumsum(np.r_[0.0, np.full(999, 1e-3), np.full(1000, 2e-3)])  # 1 kHz, then 500 Hz: one rate cannot hold
+    uneven = write_sto(tmp_path / "uneven.sto", t, ["TA"], np.random.default_rng(1).normal(size=(2000, 1)))
+    assert main(["emg", "envelope", str(uneven), "-o", str(tmp_path / "x.sto")]) == 2
+    error = capsys.readouterr().err
+    assert "uneven.sto" in error and "field 'time'" in error and "needs a uniform sample rate" in error, error
+    assert "resample it evenly first" in error, error
+    even = write_sto(tmp_path / "even.sto", t[:1000], ["TA"], np.random.default_rng(1).normal(size=(1000, 1)))
+    assert main(["emg", "envelope", str(even), "--normalise", "max_all_trials", "-o", str(tmp_path / "x.sto")]) == 2
+    assert "field '--normalise': normalising needs the MVC trial(s): add --mvc FILE" in capsys.readouterr().err
+    nested = tmp_path / "not" / "yet" / "env.sto"
+    assert main(["emg", "envelope", str(even), "-o", str(nested)]) == 0 and read_sto(nested).columns == ["TA"]
+    (tmp_path / "a-file").write_text("")
+    assert main(["emg", "envelope", str(even), "-o", str(tmp_path / "a-file" / "env.sto")]) == 2
+    assert "field '--output'" in capsys.readouterr().err
+
+
+def test_envelope_says_which_channels_are_zero_throughout(tmp_path: Path, capsys) -> None:
+    from msk_core.io import write_sto
+
+    data = np.column_stack([np.random.default_rng(1).normal(size=1000), np.zeros(1000)])
+    sto = write_sto(tmp_path / "two.sto", np.arange(1000) / 1000.0, ["TA", "slot16"], data)
+    assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "env.sto")]) == 0
+    assert "two.sto: 1 channel(s) are zero throughout (no sensor?): slot16" in capsys.readouterr().out

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from msk_core.errors import InputError
+from msk_core.errors import ConfigError, InputError
 from msk_core.io import AnalogRecording, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
+from msk_core.io.storage import uniform_step
 from msk_core.signal.emg import (
     EmgFilterConfig,
     NormalisationMode,
@@ -40,8 +41,12 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
         rec = read_delsys_csv(path).recording()
     elif suffix in (".sto", ".mot"):
         s = read_sto(path)
+        try:  # the filters are designed for one rate: an irregular time column would be filtered at its mean rate
+            rate_hz = 1.0 / uniform_step(s.time)
+        except InputError as error:
+            raise InputError(f"{error.args[0]}; resample it evenly first", path=path, field="time") from None
         rec = AnalogRecording(
-            time=s.time, labels=list(s.columns), data=s.data, rate_hz=s.rate, units=[""] * len(s.columns), path=path
+            time=s.time, labels=list(s.columns), data=s.data, rate_hz=rate_hz, units=[""] * len(s.columns), path=path
         )
     else:
         raise InputError("unknown EMG file type; expected .anc, .c3d, .csv, .sto or .mot", path=path, value=suffix)
@@ -58,6 +63,11 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
             )
         rec = rec.emg_only()
     rec, own_unit = rec.in_volts()
+    if suffix == ".anc":
+        print(f"{path.name}: volts at the acquisition board's input (the EMG amplifiers' gain is not removed)")
+    silent = [label for label, column in zip(rec.labels, np.asarray(rec.data).T) if not np.any(column)]
+    if silent:  # e.g. the unpaired slots a Trigno export keeps
+        print(f"{path.name}: {len(silent)} channel(s) are zero throughout (no sensor?): " + ", ".join(silent))
     if own_unit:
         print(
             f"{path.name}: {len(own_unit)} channel(s) left in the file's own unit (it gives none that is a voltage): "
@@ -80,6 +90,13 @@ def _channels(text: str | None) -> list[str] | None:
 
 
 def _envelope(args: argparse.Namespace) -> int:
+    from services.commands.estimate import output_folder
+
+    if args.normalise is not None and not args.mvc:
+        raise ConfigError(
+            "normalising needs the MVC trial(s): add --mvc FILE", field="--normalise", value=args.normalise
+        )
+    output_folder(args.output.parent, "--output")  # before the filtering, as a user would want
     channels = _channels(args.channels)
     rec = read_emg_file(args.input, channels)
     band = None if args.no_bandpass else tuple(args.bandpass_hz)
@@ -90,7 +107,7 @@ def _envelope(args: argparse.Namespace) -> int:
     env = chain(rec.data, cfg)
     if args.mvc:
         mvc = [chain(read_emg_file(p, rec.labels).data, cfg) for p in args.mvc]
-        mode = NormalisationMode(args.normalise)
+        mode = NormalisationMode(args.normalise or NormalisationMode.MVC.value)
         ref = normalisation_reference(
             mvc,
             task_envelopes=[env] if mode is NormalisationMode.MAX_ALL_TRIALS else None,
@@ -141,20 +158,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="emg_command", required=True)
 
     e = sub.add_parser("envelope", help="raw EMG (.anc/.c3d/Delsys .csv/.sto) -> envelope .sto")
-    e.add_argument("input", type=Path)
-    e.add_argument("-o", "--output", type=Path, required=True)
-    e.add_argument("--channels", help="comma-separated channel labels (default: all)")
-    e.add_argument("--bandpass-hz", type=float, nargs=2, default=(20.0, 450.0), metavar=("LOW", "HIGH"))
+    e.add_argument("input", type=Path, help="raw EMG: .anc, .c3d, Delsys .csv, or an evenly sampled .sto/.mot")
+    e.add_argument("-o", "--output", type=Path, required=True, help="the envelopes' .sto (its folder is made)")
+    e.add_argument("--channels", help="comma-separated channel labels (default: all the file's EMG channels)")
+    e.add_argument(
+        "--bandpass-hz",
+        type=float,
+        nargs=2,
+        default=(20.0, 450.0),
+        metavar=("LOW", "HIGH"),
+        help="band-pass before rectifying (default 20 450)",
+    )
     e.add_argument("--no-bandpass", action="store_true", help="rectify the raw signal directly")
-    e.add_argument("--lowpass-hz", type=float, default=6.0)
-    e.add_argument("--lowpass-order", type=int, default=3)
+    e.add_argument("--lowpass-hz", type=float, default=6.0, help="envelope low-pass cut-off (default 6 Hz)")
+    e.add_argument("--lowpass-order", type=int, default=3, help="Butterworth order of the low-pass (default 3)")
     e.add_argument("--zero-phase", action="store_true", help="offline forward-backward filtering (non-causal)")
     e.add_argument("--mvc", type=Path, action="append", default=[], help="MVC trial file(s) for normalisation")
     e.add_argument(
         "--normalise",
         choices=[m.value for m in NormalisationMode],
-        default="mvc",
-        help="divide by the MVC peak, or by the max over MVC and this trial",
+        default=None,
+        help="with --mvc: divide by the MVC peak (mvc, the default), or by the max over MVC and this trial",
     )
     e.set_defaults(handler=_envelope)
 
