@@ -145,6 +145,7 @@ def test_dashboard_opened_before_live_follows_the_session_in_chromium(tmp_path):
                     time.sleep(0.5)
             page.wait_for_function("() => document.getElementById('session').textContent === 'lab'", timeout=15000)
             assert page.evaluate("() => document.getElementById('status').dataset.state") != "live"
+            assert page.evaluate(FACTS)[2] == "–" and page.inner_text("#reps") == "–"  # no set yet, no rep count
             live = LiveProcess(out, env)
             live.wait_running()
             page.wait_for_function("() => document.getElementById('session').textContent === 'sim'", timeout=30000)

@@ -191,7 +191,7 @@ function renderHeader() {
   }
   const reps = state.reps;
   // set N and rep n of the set (the rep under way, else the last done); "N done" while resting after it
-  document.getElementById("reps").textContent = reps ? (reps.rep ?? reps.in_set) : 0;
+  document.getElementById("reps").textContent = reps && reps.set ? (reps.rep ?? reps.in_set) : "–"; // no set yet: "–"
   document.getElementById("set").textContent = reps && reps.set ? (reps.resting ? `${reps.set} done` : reps.set) : "–";
   document.getElementById("set-time").textContent = reps && !reps.resting && reps.time_in_set_s != null
     ? `· ${Math.max(0, reps.time_in_set_s).toFixed(0)} s` : (reps && reps.resting && reps.set ? "· resting" : "");
