@@ -108,6 +108,12 @@ def test_live_sim_with_attach_commands_operator_and_bad_messages(tmp_path):
     # the report takes the load events the estimator took: the one naming no pack is left out, and said so
     written = json.loads((tmp_path / "report" / "report.json").read_text())
     assert written["load_events_refused"] == 1, written["load_events_refused"]
+    # msk live's summary says the sets it counted, as the report counts them from the recording
+    assert summary["sets"] and [s["reps"] for s in summary["sets"]] == [len(s["reps"]) for s in written["sets"]], (
+        summary["sets"],
+        written["sets"],
+    )
+    assert "  sets: 1: " in output and " under tension" in output, output
     assert "1 load event(s) named an exercise" in (tmp_path / "report" / "report.html").read_text()
 
 

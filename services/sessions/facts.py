@@ -94,6 +94,13 @@ class FactsFollower:
         self._method = ""  # the activation stream whose phase counts the reps (the first seen)
         self._lock = threading.Lock()
 
+    def finish(self) -> list[dict]:
+        """The end of the session: the rep under way counted if long enough, the set under way closed (as the
+        report counts them); every set as :meth:`SetRecord.as_dict`."""
+        with self._lock:
+            self._sets.finish()
+            return [record.as_dict() for record in self._sets.sets]
+
     def on_event(self, event: messages.LoadEvent) -> None:
         """A load event every node applies (the caller checked it as the estimator does)."""
         with self._lock:

@@ -643,6 +643,13 @@ def clock_summary(clock: messages.ClockOffset, node: str) -> dict:
     return out
 
 
+def set_summary(record: dict) -> str:
+    """One set of the summary, e.g. ``2: 6 reps, 16.7 s under tension, ended by rest``."""
+    reps = record["reps"]
+    ended = f", ended by {record['ended_by']}" if record.get("ended_by") else ""
+    return f"{record['number']}: {reps} rep{'s' if reps != 1 else ''}, {record['time_under_tension_s']:.1f} s under tension{ended}"
+
+
 def summary_text(summary: dict) -> str:
     lines = [
         f"session of {summary['duration_s']:.1f} s"
@@ -652,6 +659,8 @@ def summary_text(summary: dict) -> str:
         name = device.split("/", 1)[1]
         lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost")
     lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
+    if summary.get("sets"):
+        lines.append("  sets: " + "; ".join(set_summary(record) for record in summary["sets"]))
     if summary.get("joint_frames_paused"):
         lines.append(
             f"  estimates paused for about {summary['joint_frames_paused']} joint frames: load events declared "
@@ -759,6 +768,7 @@ class FlowCounts:
     # load events declare another exercise than the session's: the estimator leaves the joint frames unanswered
     paused: bool = False
     paused_joints: int = 0  # joint frames that arrived meanwhile
+    sets: list[dict] = field(default_factory=list)  # the sets as the monitor counted them, once the session ended
 
     def text(self) -> str:
         return f"{self.joints} joint frames; activation frames " + (
@@ -865,6 +875,8 @@ def monitor(
                 continue
         for subscriber in subscribers:
             subscriber.undeclare()
+    if follower is not None:
+        counts.sets = follower.finish()
 
 
 def estimator_settings(plan: LivePlan) -> EstimatorSettings:
@@ -983,6 +995,7 @@ def run_graph(
     summary["stopped_by"] = reason
     summary["exit_codes"] = codes
     summary["joint_frames_paused"] = counts.paused_joints  # while load events declared another exercise
+    summary["sets"] = counts.sets  # as msk live counted them (the view's and the report's rule)
     # electrodes of the map the estimator never judged: no source streamed their channel (a sensor not paired, a typo)
     judged = {name.split("/", 1)[-1] for name in summary.get("electrodes", {})}
     summary["electrodes_never_streamed"] = {ch: e for ch, e in plan.electrodes.items() if ch not in judged}
