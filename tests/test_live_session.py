@@ -372,3 +372,14 @@ def test_an_endpoint_msk_live_cannot_listen_on_fails_at_once_naming_it(tmp_path,
     errors = [line for line in result.stderr.splitlines() if line.startswith("msk live: error:")]
     assert len(errors) == 1 and "node recorder failed" in errors[0], result.stderr
     assert f"tcp/127.0.0.1:{port}" in result.stderr and "Address already in use" in result.stderr, result.stderr
+
+
+def test_the_summary_lists_the_sets_and_how_each_ended():
+    from services.sessions.live import set_summary
+
+    assert set_summary({"number": 1, "reps": 9, "time_under_tension_s": 25.06, "ended_by": "rest"}) == (
+        "1: 9 reps, 25.1 s under tension, ended by rest"
+    )
+    assert set_summary({"number": 2, "reps": 1, "time_under_tension_s": 2.0, "ended_by": "end of data"}) == (
+        "2: 1 rep, 2.0 s under tension, ended with the session"
+    )

@@ -500,3 +500,23 @@ def test_a_view_follows_the_next_session_once_the_one_it_shows_has_ended(tmp_pat
     replay = discovery.SessionFollower(None, ZenohOptions(connect=("tcp/127.0.0.1:7447",)), every_s=0.0)
     assert replay.next_session(received=50) is None  # never announced: a replay it shows, not an ended session
     assert replay.next_session(received=0) == second  # opened before any session: follows the one that starts
+
+
+def test_a_view_shows_the_next_session_on_its_endpoint_from_its_start(tmp_path, monkeypatch):
+    """The next athlete's msk live often takes the same endpoint and name: the data simply resumed on the same keys,
+    and the tablet showed the new session's sets after the last one's. A new msk live announced where the tool is now
+    makes it start again (fresh state); its own session announced on stays."""
+    from services.sessions import discovery
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    first = discovery.SessionInfo("sim", ["tcp/127.0.0.1:7447"], os.getpid(), str(tmp_path / "a"))
+    (entry,) = discovery.announce(first, tmp_path / "a")[1:]
+    follower = discovery.SessionFollower(None, first.options(), every_s=0.0)
+    assert follower.next_session(received=10) is None  # its own session: stays
+    discovery.announce(first, tmp_path / "a")  # announced again (facts changed): the same msk live
+    assert follower.next_session(received=20) is None
+    discovery.withdraw(entry)  # ended
+    assert follower.next_session(received=20) is None  # nothing runs: stays on its last values
+    second = discovery.SessionInfo("sim", ["tcp/127.0.0.1:7447"], os.getppid(), str(tmp_path / "b"))  # another pid
+    discovery.announce(second, tmp_path / "b")
+    assert follower.next_session(received=20) == second

@@ -289,12 +289,15 @@ def announced_elsewhere(session: str | None, attached: ZenohOptions) -> SessionI
 class SessionFollower:
     """When a view or dashboard attached to ``attached`` moves to another session (:meth:`next_session`): one announced
     elsewhere (the one named ``session``, or the only one), once the tool has received nothing (it was opened before
-    its ``msk live``) or the announced session it showed has ended (the next athlete's session on a tablet left open).
-    A tool on a session nobody announced (a replay on the well-known endpoint) that receives stays."""
+    its ``msk live``) or the announced session it showed has ended (the next athlete's session on a tablet left open);
+    and a new ``msk live`` announced where the tool is (the next session on the same endpoint, often under the same
+    name), which the tool then shows from its start rather than as more of the last one. A tool on a session nobody
+    announced (a replay on the well-known endpoint) that receives stays."""
 
     def __init__(self, session: str | None, attached: ZenohOptions, every_s: float = 1.0) -> None:
         self.session, self.attached, self.every_s = session, attached, every_s
         self._was_announced = False  # the session shown was announced by its msk live at some point
+        self._shown_pid: int | None = None  # the msk live that announced it
         self._looked = -float("inf")
 
     def next_session(self, received: int) -> SessionInfo | None:
@@ -303,14 +306,18 @@ class SessionFollower:
         if now - self._looked < self.every_s:
             return None
         self._looked = now
-        here = any(info.options() == self.attached for info in running_sessions())
-        self._was_announced = self._was_announced or here
+        here = [info for info in running_sessions() if info.options() == self.attached]
+        if here and (self.session is None or here[-1].session == self.session):
+            if self._shown_pid is not None and here[-1].pid != self._shown_pid and received:
+                return here[-1]  # another msk live where the tool is: a new session, shown from its start
+            self._shown_pid = here[-1].pid
+        self._was_announced = self._was_announced or bool(here)
         if received and (here or not self._was_announced):
             return None
         return announced_elsewhere(self.session, self.attached)
 
     def moved(self, attached: ZenohOptions) -> None:
-        self.attached, self._was_announced = attached, False
+        self.attached, self._was_announced, self._shown_pid = attached, False, None
 
 
 def attach_options(

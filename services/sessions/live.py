@@ -42,6 +42,7 @@ import numpy as np
 from msk_core.errors import ConfigError, InputError
 from msk_core.estimate.flags import flag_counts_text
 from msk_core.io.files import json_text
+from msk_core.signal.sets import END_OF_DATA
 from services.nodes.node_runtime import outages_summary, outages_text
 from services.nodes.readiness import GraphTimeout
 from services.sessions.demo_subject import RECORDINGS, sim_subject
@@ -644,9 +645,11 @@ def clock_summary(clock: messages.ClockOffset, node: str) -> dict:
 
 
 def set_summary(record: dict) -> str:
-    """One set of the summary, e.g. ``2: 6 reps, 16.7 s under tension, ended by rest``."""
+    """One set of the summary, e.g. ``2: 6 reps, 16.7 s under tension, ended by rest`` (``ended with the session``:
+    under way when it stopped)."""
     reps = record["reps"]
-    ended = f", ended by {record['ended_by']}" if record.get("ended_by") else ""
+    by = record.get("ended_by", "")
+    ended = ", ended with the session" if by == END_OF_DATA else f", ended by {by}" if by else ""
     return f"{record['number']}: {reps} rep{'s' if reps != 1 else ''}, {record['time_under_tension_s']:.1f} s under tension{ended}"
 
 
