@@ -240,14 +240,16 @@ def announced_facts(session: str) -> dict | None:
     return info.facts if info is not None else None
 
 
-def find_session(session: str | None, *, strict: bool = False) -> SessionInfo | None:
+def find_session(
+    session: str | None, *, strict: bool = False, running: list[SessionInfo] | None = None
+) -> SessionInfo | None:
     """The running session named ``session`` (or the only one when None); None when no session of that name is
     announced (a graph msk live did not start, e.g. a replay, is looked for on the well-known endpoint).
 
     Raises :class:`ConfigError` when the choice is ambiguous, or with ``strict`` (a one-shot command such as
     ``msk load``, which would otherwise publish to nobody's topic and succeed) when sessions are announced and none
-    has that name."""
-    running = running_sessions()
+    has that name. ``running``: the sessions of a registry scan the caller made already (default: scan now)."""
+    running = running_sessions() if running is None else running
     if session is not None:
         named = [s for s in running if s.session == session]
         if not named and running and strict:
@@ -275,12 +277,14 @@ def gives_endpoint(explicit: ZenohOptions) -> bool:
     return bool(explicit.connect or explicit.listen or explicit.config_file is not None)
 
 
-def announced_elsewhere(session: str | None, attached: ZenohOptions) -> SessionInfo | None:
+def announced_elsewhere(
+    session: str | None, attached: ZenohOptions, running: list[SessionInfo] | None = None
+) -> SessionInfo | None:
     """The running session named ``session`` (or the only one) when it is announced somewhere other than where a
     tool is ``attached``: a view or dashboard opened before its ``msk live`` then follows it. None when there is none,
-    it is where the tool is, or several run and none is named."""
+    it is where the tool is, or several run and none is named. ``running`` as :func:`find_session`'s."""
     try:
-        info = find_session(session)
+        info = find_session(session, running=running)
     except ConfigError:
         return None
     return info if info is not None and info.options() != attached else None
@@ -306,7 +310,8 @@ class SessionFollower:
         if now - self._looked < self.every_s:
             return None
         self._looked = now
-        here = [info for info in running_sessions() if info.options() == self.attached]
+        running = running_sessions()  # one registry scan (and claim probe) per look
+        here = [info for info in running if info.options() == self.attached]
         if here and (self.session is None or here[-1].session == self.session):
             if self._shown_pid is not None and here[-1].pid != self._shown_pid and received:
                 return here[-1]  # another msk live where the tool is: a new session, shown from its start
@@ -314,7 +319,7 @@ class SessionFollower:
         self._was_announced = self._was_announced or bool(here)
         if received and (here or not self._was_announced):
             return None
-        return announced_elsewhere(self.session, self.attached)
+        return announced_elsewhere(self.session, self.attached, running)
 
     def moved(self, attached: ZenohOptions) -> None:
         self.attached, self._was_announced, self._shown_pid = attached, False, None

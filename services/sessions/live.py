@@ -984,7 +984,7 @@ def run_graph(
             codes = {}
             if running.graph is not None:
                 if failed_at_start:  # nothing flowed yet: nothing to drain in order, no node worth waiting for
-                    codes = stop_at_once(running.graph, running.viewer, simulators)
+                    codes = stop_at_once(running.graph, simulators)
                 else:
                     codes = stop_in_order(
                         running.graph, running.drivers, simulators, running.viewer, counts, plan.methods, log
@@ -1245,18 +1245,11 @@ def _unchanged_for(value: Callable[[], int], seconds: float) -> Callable[[], boo
     return unchanged
 
 
-def stop_at_once(graph: Graph, viewer, simulators: Simulators | None) -> dict:
-    """After a node failed at the start, before any data flowed: every node asked to stop at the same moment, those
-    still running after :data:`FAILED_STOP_S` killed (a node waiting on an endpoint nobody serves does not answer
-    SIGINT)."""
-    if viewer is not None:
-        viewer.send_signal(signal.SIGINT)
+def stop_at_once(graph: Graph, simulators: Simulators | None) -> dict:
+    """After a node failed at the start, before any data flowed (and before the view was started): every node asked
+    to stop at the same moment, those still running after :data:`FAILED_STOP_S` killed (a node waiting on an endpoint
+    nobody serves does not answer SIGINT)."""
     codes = graph.stop(FAILED_STOP_S)
-    if viewer is not None:
-        try:
-            viewer.wait(5)
-        except subprocess.TimeoutExpired:
-            viewer.kill()
     if simulators is not None:
         simulators.close()
     return codes
