@@ -89,8 +89,8 @@ def build_prior(pack: PackLike, trials: list[TrialData], prior_settings: PriorSe
 
     Groups with EMG: from their normalised envelopes. Groups without: the settings' ``synergists`` (unmeasured ->
     measured group) first, then ``no_emg``: the minimal-effort (``so``) activation over the same reps, a measured
-    synergist, or the wide default. Isometric trials are left out: they have no phase, and their contractions are not the rest between
-    reps either.
+    synergist, or the wide default. Isometric trials are left out: they have no phase, and their contractions are
+    not the rest between reps either.
     """
     isometric = [t.name for t in trials if t.isometric]
     trials = [t for t in trials if not t.isometric]

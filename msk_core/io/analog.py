@@ -42,8 +42,8 @@ class AnalogRecording:
 
     def in_volts(self) -> tuple[AnalogRecording, list[str]]:
         """The recording with every channel whose file says how in volts: a unit V, mV or µV, or an ``.anc``'s ADC
-        counts through the channel's ``Range`` (mV full scale), the file's ``BitDepth`` and ``Polarity``; and the labels of the
-        channels left in their own unit (none given, or not a voltage)."""
+        counts through the channel's ``Range`` (mV full scale), the file's ``BitDepth`` and ``Polarity``; and the
+        labels of the channels left in their own unit (none given, or not a voltage)."""
         scale = np.ones(len(self.labels))
         units = list(self.units)
         kept = []

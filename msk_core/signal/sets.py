@@ -223,7 +223,8 @@ class SetTracker:
         ``set_start_s``, ``set_started_by``, ``rep_spans``, ``set_end_s``, ``set_ended_by`` and ``rep_start_s``: set
         ``set_number`` as another tracker counted it (what ``msk live`` announces to a page that joins late,
         :meth:`counted`): its start and who made it, the reps it had (kept beside the reps counted here), once it
-        ended when and by whom, and when the rep under way began, so the set's clock, reps, time under tension and end are the session's."""
+        ended when and by whom, and when the rep under way began, so the set's clock, reps, time under tension and
+        end are the session's."""
         if set_mark not in SET_MARKS:
             raise ConfigError(f"must be one of {SET_MARKS}", field="set_mark", value=set_mark)
         if rest_s:
@@ -338,8 +339,9 @@ class SetTracker:
     def _resume(self, counted: SetRecord, spans: Sequence[tuple[float, float]], end_s: float | None) -> None:
         """A set as another tracker ``counted`` it (:meth:`on_facts`: its number, start, who started it and who
         ended it): it started at its ``start_s`` (the set under way here ended then), its reps ``spans`` are kept
-        beside those counted here (one that overlaps a rep counted here is that rep) and it ended at ``end_s``. These are past instants, not a mark made now: the rep under way here
-        still counts, in the set that holds its start."""
+        beside those counted here (one that overlaps a rep counted here is that rep) and it ended at ``end_s``.
+        These are past instants, not a mark made now: the rep under way here still counts, in the set that holds its
+        start."""
         number, start_s = counted.number, counted.start_s
         if self._uncounted:
             self.sets.pop()  # opened by the rep under way, which finds its set when it counts
