@@ -829,7 +829,11 @@ def monitor(
 
     prefix = topics.session_prefix(session)
 
-    def on_joints(_sample) -> None:
+    def on_joints(sample) -> None:
+        try:  # as the estimator checks it: a payload it drops is no joint frame it will answer
+            check_payload(str(sample.key_expr), sample.payload.to_bytes(), expected_type="msk.JointAngles")
+        except Rejected:
+            return
         counts.joints += 1
         counts.paused_joints += counts.paused
 
