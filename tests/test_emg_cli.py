@@ -161,3 +161,18 @@ def test_envelope_says_which_channels_are_zero_throughout(tmp_path: Path, capsys
     sto = write_sto(tmp_path / "two.sto", np.arange(1000) / 1000.0, ["TA", "slot16"], data)
     assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "env.sto")]) == 0
     assert "two.sto: 1 channel(s) are zero throughout (no sensor?): slot16" in capsys.readouterr().out
+
+
+def test_an_mvc_trial_sampled_at_another_rate_is_filtered_at_its_own(shared_dir: Path, tmp_path: Path) -> None:
+    """The MVC trial kept at 1000 Hz, the task at 2000 Hz: each envelope with its own rate's filters, so the same EMG
+    normalises to a peak of ~1 (filtered at the task's rate, the MVC's 6 Hz low-pass was a 12 Hz one: peaks 1.03-1.65)."""
+    from msk_core.io import write_sto
+
+    anc = shared_dir / "data/rajagopal-walk/emg_walk_raw.anc"
+    raw, _ = read_anc(anc).select(["SOL", "GAS", "TA"]).in_volts()
+    mvc = tmp_path / "mvc_1000hz.sto"
+    write_sto(mvc, raw.time[::2], ["SOL", "GAS", "TA"], raw.data[::2], name="the same EMG at 1000 Hz")
+    out = tmp_path / "normalised.sto"
+    argv = ["emg", "envelope", str(anc), "--channels", "SOL,GAS,TA", "--zero-phase", "--mvc", str(mvc), "-o", str(out)]
+    assert main(argv) == 0
+    np.testing.assert_allclose(read_sto(out).data.max(axis=0), 1.0, atol=0.05)

@@ -183,3 +183,96 @@ def test_raw_emg_whose_time_column_is_rounded_is_read_at_its_mean_rate(tmp_path,
         "LD",
     }
     assert all(np.all(np.isfinite(e[trial.time < 13.5])) for e in trial.emg.values())
+
+
+def test_several_channels_of_one_group_weigh_the_same(tmp_path, pack):
+    """Three electrodes on one group: their plain mean (a running mean of pairs gave a/4 + b/4 + c/2)."""
+    emg = read_sto(DEMO / "emg.sto")
+    path = _trial(tmp_path, swap=(('PMSte = "PMSte"', 'PMSte = "PMCla"'), ('DelAnt = "DelAnt"', 'DelAnt = "PMCla"')))
+    trial = load_trial(path, pack)
+    assert "PMSte" not in trial.emg and "DelAnt" not in trial.emg
+    maxima = {"PMCla": 0.0003645911353159428, "PMSte": 0.0003662885272659023, "DelAnt": 0.00024246465794182726}
+    columns = [np.interp(trial.time, emg.time, emg.column(ch) / m) for ch, m in maxima.items()]
+    np.testing.assert_allclose(trial.emg["PMCla"], np.mean(columns, axis=0), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("factor", "with_max", "said"),
+    [
+        (100.0, True, "its 99th percentile is"),  # % of MVC under divisors for volts
+        (1.0, False, "its largest value is"),  # the raw envelope in volts, no divisor
+    ],
+)
+def test_emg_that_is_not_a_normalised_envelope_is_refused(tmp_path, pack, factor, with_max, said):
+    emg = read_sto(DEMO / "emg.sto")
+    scaled = _write_like(DEMO / "emg.sto", tmp_path / "emg_units.sto", emg.time, emg.data * factor)
+    path = _trial(tmp_path, emg=scaled)
+    if not with_max:
+        text = path.read_text()
+        path.write_text(text[: text.index("[emg_max]")])
+    with pytest.raises(ConfigError) as error:
+        load_trial(path, pack)
+    message = str(error.value)
+    assert "EMG column 'PMCla' is not a normalised envelope" in message and said in message, message
+    assert error.value.field == ("emg_max.PMCla" if with_max else "emg_map.PMCla"), error.value.field
+    assert (
+        error.value.line
+        == path.read_text()
+        .splitlines()
+        .index(f"PMCla = {'0.0003645911353159428' if with_max else chr(34) + 'PMCla' + chr(34)}")
+        + 1
+    )
+
+
+def test_emg_that_misses_the_trial_or_is_all_nan_there_is_refused_with_both_spans(tmp_path, pack):
+    emg = read_sto(DEMO / "emg.sto")
+    later = _write_like(DEMO / "emg.sto", tmp_path / "emg_later.sto", emg.time + 100.0, emg.data)
+    with pytest.raises(ConfigError) as error:
+        load_trial(_trial(tmp_path, emg=later), pack)
+    assert (
+        "EMG column 'PMCla' has no sample within the trial's frames (0 .. 13.6 s): the EMG file spans 100 .. "
+        in str(error.value)
+    ), error.value
+    data = emg.data.copy()
+    data[:, emg.columns.index("LD")] = np.nan
+    dead = _write_like(DEMO / "emg.sto", tmp_path / "emg_dead.sto", emg.time, data)
+    with pytest.raises(ConfigError, match=r"EMG column 'LD' has no sample .*: its values there are all NaN"):
+        load_trial(_trial(tmp_path, emg=dead), pack)
+
+
+def test_a_trial_name_that_is_not_a_file_name_is_refused(tmp_path, pack):
+    with pytest.raises(ConfigError) as error:
+        load_trial(_trial(tmp_path, swap=(('name = "bench_press_40kg"', 'name = "bench/40kg"'),)), pack)
+    assert error.value.field == "name" and "must not contain /" in str(error.value)
+
+
+def test_torques_that_are_not_finite_are_said_apart_from_a_short_file(tmp_path, pack):
+    torques = read_sto(DEMO / "id.sto")
+    data = torques.data.copy()
+    data[(torques.time >= 5.0) & (torques.time < 5.5), 0] = np.nan
+    holed = _write_like(DEMO / "id.sto", tmp_path / "id_nan.sto", torques.time, data)
+    trial = load_trial(_trial(tmp_path, torques=holed), pack)
+    notes = trial_notes(trial)
+    assert not any("outside the torque file's time span" in note for note in notes), notes
+    assert "50 kinematics frames left out where the torque file is not finite (NaN), the first at t = 5 s" in notes[0]
+
+
+def test_times_of_epoch_stamped_files_are_said_to_the_microsecond(tmp_path, pack):
+    ik = read_sto(DEMO / "ik.sto")
+    time = ik.time + 1667315600.0
+    time[500] = time[499]
+    stamped = _write_like(DEMO / "ik.sto", tmp_path / "ik_epoch.sto", time, ik.data)
+    with pytest.raises(InputError, match=r"data row 501 has t = 1667315604\.99 s after 1667315604\.99 s"):
+        load_trial(_trial(tmp_path, kinematics=stamped), pack)
+
+
+def test_two_trials_of_one_name_are_refused_before_their_reports_overwrite_each_other(tmp_path, pack, capsys):
+    first = _trial(tmp_path)
+    second = tmp_path / "again" / "trial.toml"
+    second.parent.mkdir()
+    second.write_text(first.read_text())
+    argv = ["evaluate", "--pack", "bench_press", "--train", str(first), "--trial", str(first), "--trial", str(second)]
+    assert cli.main([*argv, "--leave-out", "all", "--report", str(tmp_path / "report")]) == 2
+    said = capsys.readouterr().err
+    assert f"two trials are named 'bench_press_40kg' ({first} and {second})" in said, said
+    assert not (tmp_path / "report").exists()

@@ -55,6 +55,7 @@ from __future__ import annotations
 import difflib
 import re
 import tomllib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import overload
@@ -66,7 +67,7 @@ from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
 from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
-from msk_core.io.storage import uniform_step
+from msk_core.io.storage import seconds, uniform_step
 from msk_core.signal.gait import CONTACT_THRESHOLD_N, gait_cycle_phase, heel_strikes
 from msk_core.signal.kinematics_filter import lowpass_coordinates
 from msk_core.signal.reps import REST_PHASE
@@ -147,8 +148,18 @@ def _within(time: np.ndarray, source_time: np.ndarray) -> np.ndarray:
 
 
 def _line_of(text: str, key: str) -> int | None:
-    for i, line in enumerate(text.splitlines(), start=1):
-        if re.match(rf"\s*{re.escape(key)}\s*=", line) or line.strip() == f"[{key}]":
+    """The line of ``key``: a top-level key or table, or ``table.key`` on its own line inside ``[table]`` (else the
+    table's header line)."""
+    table, _, inner = key.partition(".")
+    lines = text.splitlines()
+    for i, line in enumerate(lines, start=1):
+        if re.match(rf"\s*{re.escape(table)}\s*=", line) or line.strip() == f"[{table}]":
+            if inner and line.strip() == f"[{table}]":
+                for j in range(i, len(lines)):
+                    if lines[j].strip().startswith("["):
+                        break
+                    if re.match(rf"\s*[\"']?{re.escape(inner)}[\"']?\s*=", lines[j]):
+                        return j + 1
             return i
     return None
 
@@ -181,7 +192,7 @@ class _TrialFile:
         return cls(path, text, spec)
 
     def err(self, message: str, key: str, value: object = None) -> ConfigError:
-        return ConfigError(message, path=self.path, line=_line_of(self.text, key.split(".")[0]), field=key, value=value)
+        return ConfigError(message, path=self.path, line=_line_of(self.text, key), field=key, value=value)
 
     @overload
     def number(self, key: str, default: float) -> float: ...
@@ -228,6 +239,8 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
         raise ConfigError("missing required key", path=trial.path, field="kinematics")
     if not isinstance(spec.get("name", ""), str) or spec.get("name") == "":
         raise trial.err("must be a non-empty string (the trial's name in reports)", "name", spec.get("name"))
+    if re.search(r"[/\\\x00]", spec.get("name", "")) or spec.get("name") in (".", ".."):
+        raise trial.err("must not contain / or \\ (reports name their files after the trial)", "name", spec.get("name"))
     load_kg = trial.number("load_kg", 0.0)
     if load_kg < 0:
         raise trial.err("must be >= 0", "load_kg", load_kg)
@@ -299,7 +312,7 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) 
     if sel.sum() < 3:
         raise trial.err(
             f"fewer than 3 kinematics frames between start and end ({int(sel.sum())}); the kinematics span "
-            f"{kin.time[0]:g} .. {kin.time[-1]:g} s",
+            f"{seconds(kin.time[0])} .. {seconds(kin.time[-1])} s",
             "start" if options.start is not None else "end",
             (options.start, options.end),
         )
@@ -363,7 +376,7 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
     if "torques" not in trial.spec:
         hand = options.load_kg * GRAVITY
         torques = np.array([pack.inverse_dynamics(kin.q[i], kin.qd[i], kin.qdd[i], hand) for i in range(len(kin.time))])
-        return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", 0
+        return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", _DroppedFrames()
     tq = read_sto(trial.file_of("torques"))
     tq.check_increasing("torque")
     cols = []
@@ -386,8 +399,40 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
         [np.interp(at, tq.time, raw[:, j], left=np.nan, right=np.nan) for j in range(len(coords))]
     )
     keep = np.all(np.isfinite(torques), axis=1)
+    outside = (at < tq.time[0]) | (at > tq.time[-1])
+    dropped = _DroppedFrames(
+        outside=int(np.count_nonzero(outside)),
+        not_finite=int(np.count_nonzero(~keep & ~outside)),
+        first_not_finite_s=float(kin.time[~keep & ~outside][0]) if np.any(~keep & ~outside) else None,
+        torque_span=f"{seconds(tq.time[0])} .. {seconds(tq.time[-1])} s",
+        kinematics_span=f"{seconds(kin.time[0])} .. {seconds(kin.time[-1])} s",
+    )
     kin.time, kin.q, kin.qd, kin.qdd = kin.time[keep], kin.q[keep], kin.qd[keep], kin.qdd[keep]
-    return torques[keep], keep, "file", int((~keep).sum())
+    return torques[keep], keep, "file", dropped
+
+
+@dataclass(frozen=True)
+class _DroppedFrames:
+    """Kinematics frames without a torque: outside the torque file's span, or where it is not finite."""
+
+    outside: int = 0
+    not_finite: int = 0
+    first_not_finite_s: float | None = None
+    torque_span: str = ""
+    kinematics_span: str = ""
+
+    @property
+    def total(self) -> int:
+        return self.outside + self.not_finite
+
+    def notes(self) -> dict:
+        """For ``TrialData.extra`` (what :func:`trial_notes` says)."""
+        out: dict = {}
+        if self.outside:
+            out["torque_frames_outside"] = self.outside
+        if self.not_finite:
+            out["torque_frames_not_finite"] = (self.not_finite, self.first_not_finite_s)
+        return out
 
 
 def _check_held_pose(kin: _Kinematics, coords: list[str]) -> None:
@@ -454,7 +499,9 @@ def _trial_phase(
         )
     if not np.all(np.isfinite(signal)):
         bad = int(np.flatnonzero(~np.isfinite(signal))[0])
-        raise trial.err(f"the phase signal is not finite at t = {kin.time[bad]:g} s", "phase_signal", phase_signal)
+        raise trial.err(
+            f"the phase signal is not finite at t = {seconds(kin.time[bad])} s", "phase_signal", phase_signal
+        )
     try:
         phase, rep_index = phase_of(kin.time, signal)
     except EstimationError as exc:
@@ -534,10 +581,15 @@ def trial_notes(trial: TrialData) -> list[str]:
     notes = []
     if "no_reps" in trial.extra and not trial.isometric:
         notes.append(f"{trial.extra['no_reps']}: every frame counts as rest, and per-cycle plots stay empty")
-    if trial.dropped_frames:
+    if outside := trial.extra.get("torque_frames_outside"):
         notes.append(
-            f"{trial.dropped_frames} kinematics frames outside the torque file's time span left out "
-            f"({trial.n_frames} kept)"
+            f"{outside} kinematics frames outside the torque file's time span left out ({trial.n_frames} kept)"
+        )
+    if not_finite := trial.extra.get("torque_frames_not_finite"):
+        count, first = not_finite
+        notes.append(
+            f"{count} kinematics frames left out where the torque file is not finite (NaN), the first at t = "
+            f"{seconds(first)} s ({trial.n_frames} kept)"
         )
     for group, envelope in trial.emg.items():
         missing = int(np.count_nonzero(~np.isfinite(envelope)))
@@ -558,7 +610,9 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     torques, kin_keep, source, dropped = _attach_torques(trial, options, pack, kin)
     if kin.time.size < 3:
         raise InputError(
-            f"fewer than 3 frames left where the torque file covers the kinematics ({kin.time.size})",
+            f"fewer than 3 frames left where the torque file covers the kinematics ({kin.time.size}): the torque file "
+            f"spans {dropped.torque_span}, the kinematics between start and end {dropped.kinematics_span}"
+            + (f"; {dropped.not_finite} frames have a torque that is not finite" if dropped.not_finite else ""),
             path=trial.path,
             field="torques",
         )
@@ -569,7 +623,7 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     else:
         emg, channels, norm = {}, {}, {}
     phase = _trial_phase(trial, options, pack, kin, torques, kin_keep)
-    extra = dict(phase.extra)
+    extra = dict(phase.extra) | dropped.notes()
     if options.lowpass_coordinates_hz is not None:
         extra["lowpass_coordinates_hz"] = options.lowpass_coordinates_hz
     return TrialData(
@@ -589,7 +643,7 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
         phase=phase.phase,
         rep_index=phase.rep_index,
         phase_signal=phase.signal,
-        dropped_frames=dropped,
+        dropped_frames=dropped.total,
         phase_coordinate=phase.coordinate,
         isometric=options.isometric,
         extra=extra,
@@ -627,19 +681,67 @@ def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
         except InputError as exc:
             raise InputError(f"raw EMG (emg_is_envelope = false) {exc}", path=storage.path, field="time") from None
         raw = envelope_zero_phase_noncausal(raw, EmgFilterConfig(rate_hz=1.0 / step))
-    emg: dict[str, np.ndarray] = {}
+    by_group: dict[str, list[np.ndarray]] = {}
     norm: dict[str, dict] = {}
     for j, ch in enumerate(channels):
         scale = maxima.get(ch, 1.0)
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
             raise err("must be a positive number", f"emg_max.{ch}", scale)
         x = np.interp(_within(time, storage.time), storage.time, raw[:, j] / scale, left=np.nan, right=np.nan)
+        _check_normalised(x, ch, storage, time, err, given=ch in maxima)
         group = mapping[ch]
-        emg[group] = x if group not in emg else np.nanmean([emg[group], x], axis=0)  # several channels: mean
+        by_group.setdefault(group, []).append(x)
         norm[ch] = {
             "group": group,
             "divisor": float(scale),
             "source": "emg_max in trial file" if ch in maxima else "as recorded (already normalised)",
             "envelope": "as recorded" if is_envelope else "zero-phase offline chain (msk_core.signal.emg)",
         }
+    with warnings.catch_warnings():  # a frame no channel of a group measured stays NaN (said by trial_notes)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        # several channels of one group: the mean of all of them, each weighing the same
+        emg = {g: xs[0] if len(xs) == 1 else np.nanmean(xs, axis=0) for g, xs in by_group.items()}
     return emg, dict(mapping), norm
+
+
+#: A normalised envelope is activation, 0-1: above about 1 only briefly (a dynamic effort beyond the MVC test's).
+#: One whose 99th percentile exceeds this is in other units (% of MVC, mV, ADC counts).
+MAX_NORMALISED_P99 = 3.0
+#: One whose largest value is below this is in volts (a raw envelope is 1e-6-1e-3 V) or a dead electrode.
+MIN_NORMALISED_PEAK = 1e-3
+
+
+def _check_normalised(x: np.ndarray, channel: str, storage: Storage, time: np.ndarray, err, given: bool) -> None:
+    """Refuse an EMG column that gives no sample within the trial's frames, or that is not a normalised envelope
+    (activation 0-1) after its ``emg_max`` divisor: it would be fitted as activation without a word."""
+    finite = x[np.isfinite(x)]
+    if finite.size == 0:
+        inside = (storage.time >= time[0]) & (storage.time <= time[-1])
+        why = (
+            f"its values there are all NaN ({int(np.count_nonzero(inside))} samples)"
+            if inside.any()
+            else f"the EMG file spans {seconds(storage.time[0])} .. {seconds(storage.time[-1])} s"
+        )
+        raise err(
+            f"EMG column {channel!r} has no sample within the trial's frames ({seconds(time[0])} .. "
+            f"{seconds(time[-1])} s): {why}",
+            f"emg_map.{channel}",
+            channel,
+        )
+    divisor = f"after its divisor [emg_max] {channel}" if given else "with no [emg_max] divisor"
+    p99, peak = float(np.percentile(finite, 99)), float(np.max(np.abs(finite)))
+    if p99 > MAX_NORMALISED_P99:
+        raise err(
+            f"EMG column {channel!r} is not a normalised envelope ({divisor}): its 99th percentile is {p99:.4g}, where "
+            "activation is 0-1; give its MVC as [emg_max] (e.g. 100 for % of MVC) or export it normalised",
+            f"emg_max.{channel}" if given else f"emg_map.{channel}",
+            p99,
+        )
+    if peak < MIN_NORMALISED_PEAK:
+        raise err(
+            f"EMG column {channel!r} is not a normalised envelope ({divisor}): its largest value is {peak:.3g}, raw "
+            "units such as volts or a dead electrode; give its MVC as [emg_max] (the envelope's value at maximal "
+            "effort, in the file's units) or leave the channel out of [emg_map]",
+            f"emg_max.{channel}" if given else f"emg_map.{channel}",
+            peak,
+        )

@@ -41,7 +41,7 @@ def uniform_step(time: np.ndarray) -> float:
     if step <= 0 or abs(dt[worst] - step) > MAX_INTERVAL_DEVIATION * step:
         raise InputError(
             f"needs a uniform sample rate: samples {step:g} s apart (median), but {dt[worst]:g} s from t = "
-            f"{time[worst]:g} s (intervals range {dt.min():g} .. {dt.max():g} s)"
+            f"{seconds(time[worst])} s (intervals range {dt.min():g} .. {dt.max():g} s)"
         )
     return float((time[-1] - time[0]) / dt.size)  # the mean: exact for a rounded time column
 
@@ -91,7 +91,8 @@ class Storage:
         if back.size:
             k = int(back[0]) + 1
             raise InputError(
-                f"{what} time must increase: data row {k + 1} has t = {self.time[k]:g} s after {self.time[k - 1]:g} s "
+                f"{what} time must increase: data row {k + 1} has t = {seconds(self.time[k])} s after "
+                f"{seconds(self.time[k - 1])} s "
                 f"({back.size} such row{'s' if back.size != 1 else ''})",
                 path=self.path,
                 field="time",
@@ -100,6 +101,12 @@ class Storage:
     def select(self, names: list[str]) -> np.ndarray:
         """Columns ``names`` as an ``(n_rows, len(names))`` array."""
         return np.column_stack([self.column(n) for n in names]) if names else np.empty((self.n_rows, 0))
+
+
+def seconds(t: float) -> str:
+    """A time in a message, exact to the microsecond whatever its origin: ``29.268``, and a Unix-epoch time stamp as
+    ``1667315600.123456`` rather than ``1.66732e+09``, under which two times a minute apart read the same."""
+    return f"{t:.6f}".rstrip("0").rstrip(".")
 
 
 def _strip_cell(line: str) -> str:

@@ -100,13 +100,18 @@ def _envelope(args: argparse.Namespace) -> int:
     channels = _channels(args.channels)
     rec = read_emg_file(args.input, channels)
     band = None if args.no_bandpass else tuple(args.bandpass_hz)
-    cfg = EmgFilterConfig(
-        rate_hz=rec.rate_hz, bandpass_hz=band, lowpass_hz=args.lowpass_hz, lowpass_order=args.lowpass_order
-    )
-    chain = envelope_zero_phase_noncausal if args.zero_phase else envelope_causal
-    env = chain(rec.data, cfg)
+
+    def filtered(recording: AnalogRecording) -> np.ndarray:
+        """The envelope of a recording at its own rate (an MVC trial may be sampled unlike the task)."""
+        cfg = EmgFilterConfig(
+            rate_hz=recording.rate_hz, bandpass_hz=band, lowpass_hz=args.lowpass_hz, lowpass_order=args.lowpass_order
+        )
+        chain = envelope_zero_phase_noncausal if args.zero_phase else envelope_causal
+        return chain(recording.data, cfg)
+
+    env = filtered(rec)
     if args.mvc:
-        mvc = [chain(read_emg_file(p, rec.labels).data, cfg) for p in args.mvc]
+        mvc = [filtered(read_emg_file(p, rec.labels)) for p in args.mvc]
         mode = NormalisationMode(args.normalise or NormalisationMode.MVC.value)
         ref = normalisation_reference(
             mvc,

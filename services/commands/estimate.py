@@ -271,6 +271,17 @@ def load_trials(paths: list[Path], pack) -> list:
     from msk_core.estimate.trial import load_trial, trial_notes
 
     trials = [load_trial(path, pack) for path in _trial_files(paths)]
+    seen: dict[str, Path] = {}
+    for trial in trials:  # reports, plots and the leave-out's tables are keyed by the trial's name
+        if trial.name in seen:
+            raise ConfigError(
+                f"two trials are named {trial.name!r} ({seen[trial.name]} and {trial.path}): their results would "
+                "overwrite each other; give each its own `name = ...`",
+                path=trial.path,
+                field="name",
+                value=trial.name,
+            )
+        seen[trial.name] = trial.path
     for trial in trials:
         for note in trial_notes(trial):
             print(f"trial {trial.name} ({trial.path}): {note}", file=sys.stderr)
