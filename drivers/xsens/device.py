@@ -17,6 +17,12 @@ DEFAULT_QUANTITIES = (0x2010, 0x4020, 0x8020, 0xC020)
 EVERY_MESSAGE = (0, 0xFFFF)
 #: SampleTimeFine (10 kHz ticks) wraps after one day on 10/100-series devices; others wrap at 2^32.
 SAMPLE_TIME_FINE_DAY = 864_000_000
+#: A sample may arrive this much older than the newest (an MTi-G's GNSS messages: 42-62 ms); a step back beyond it is
+#: the device's clock starting again (SampleTimeFine ticks at 10 kHz).
+MAX_LATE_TICKS = 10_000
+#: Error codes a measuring device sends of itself (no request's answer): counted, and a request's wait goes on.
+STREAM_ERROR_CODES = frozenset({0x1E})  # timer overflow: the device could not keep its sample period
+RECONNECT_FAILED = "reconnect failed"
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +151,11 @@ class XsensDevice:
                     return message
                 if message.mid == xbus.Mid.ERROR:
                     self.stats.device_errors += 1
-                    raise XbusDeviceError(message.data[0] if message.data else -1, name)
+                    code = message.data[0] if message.data else -1
+                    if code in STREAM_ERROR_CODES:  # the measurement's, sent while the reply is on its way
+                        self.stats.last_error = f"device error 0x{code:02X} ({xbus.ERROR_CODES[code]}) while measuring"
+                        continue
+                    raise XbusDeviceError(code, name)
                 if message.mid == xbus.Mid.WAKE_UP:
                     self.send(xbus.Mid.WAKE_UP_ACK)
                 elif message.mid == xbus.Mid.MT_DATA2:
@@ -323,28 +333,26 @@ class XsensDevice:
         return readings
 
     def _reading(self, bid: int, data: xbus.MtData2, now: int) -> ImuReading:
-        counter = data.first("packet_counter")
+        counter = data.first("packet_counter")  # first: a counter that went back says "restart", not "wrap"
         if counter is not None:
             last = self._last_counter.get(bid)
             if last is not None:
-                self.stats.packets_lost += (counter - last - 1) & 0xFFFF
+                skipped = (counter - last - 1) & 0xFFFF
+                if skipped >= 0x8000:  # the counter went back: a restart whose WakeUp was lost, not 65k lost packets
+                    self._restarted_without_wakeup(bid, f"its packet counter went back from {last} to {counter}")
+                else:
+                    self.stats.packets_lost += skipped
             self._last_counter[bid] = counter
-        tracker = self.tracker_id if bid == xbus.BID_MASTER else f"{self.tracker_id}-{bid:02d}"
         sample_time = data.first("sample_time_fine")
-        if sample_time is not None:
-            last = self._last_time.get(bid)
-            if last is not None and sample_time < last:
-                period = SAMPLE_TIME_FINE_DAY if last < SAMPLE_TIME_FINE_DAY else 1 << 32
-                if last - sample_time > period // 2:  # a wrap, not a sample arriving late
-                    self._time_offset[bid] = self._time_offset.get(bid, 0) + period
-            self._last_time[bid] = sample_time
+        offset = 0 if sample_time is None else self._unwrapped_offset(bid, sample_time)
+        tracker = self.tracker_id if bid == xbus.BID_MASTER else f"{self.tracker_id}-{bid:02d}"
         return ImuReading(
             tracker_id=tracker,
             bus_id=bid,
             packet_counter=counter,
             sample_time_fine=sample_time,
-            sample_time_offset=self._time_offset.get(bid, 0),
-            quaternion=data.get("quaternion"),
+            sample_time_offset=offset,
+            quaternion=orientation_quaternion(data),
             acceleration=data.get("acceleration"),
             rate_of_turn=data.get("rate_of_turn"),
             magnetic_field=data.get("magnetic_field"),
@@ -352,6 +360,41 @@ class XsensDevice:
             host_time_ns=now,
             data=data,
         )
+
+    def _unwrapped_offset(self, bid: int, sample_time: int) -> int:
+        """Ticks to add to this SampleTimeFine to continue the device's clock past its wraps (a day, or 2^32 on devices
+        that count on). Judged by the signed step from the newest sample, so a sample that arrives late (an MTi-G's
+        GNSS messages carry times some 50 ms older than the message before) is placed before it, also across a wrap,
+        and never moves the newest time back. A step back of more than ``MAX_LATE_TICKS`` is a restart."""
+        last = self._last_time.get(bid)
+        offset = self._time_offset.get(bid, 0)
+        if last is None:
+            self._last_time[bid] = sample_time
+            return offset
+        period = SAMPLE_TIME_FINE_DAY if last < SAMPLE_TIME_FINE_DAY else 1 << 32
+        step = sample_time - last
+        if step < -period // 2:  # the clock wrapped between the newest sample and this one
+            offset += period
+            self._time_offset[bid], self._last_time[bid] = offset, sample_time
+        elif step > period // 2:  # from before a wrap that a newer sample already crossed, arriving late
+            return offset - period
+        elif step >= 0:
+            self._last_time[bid] = sample_time
+        elif step < -MAX_LATE_TICKS:
+            self._restarted_without_wakeup(bid, f"its sample time went back {-step / 10_000:.1f} s")
+            self._last_time[bid] = sample_time
+            return 0
+        return offset
+
+    def _restarted_without_wakeup(self, bid: int, why: str) -> None:
+        """The device started again and its WakeUp never reached us (garbled, or sent while the port was closed):
+        its counters and clock restart, which loses nothing."""
+        if bid in self._last_counter or bid in self._last_time:
+            self.stats.restarts += 1
+            self.stats.last_error = f"device restarted ({why}; its WakeUp was not received)"
+        self._last_counter.pop(bid, None)
+        self._last_time.pop(bid, None)
+        self._time_offset.pop(bid, None)
 
     def close(self) -> None:
         self.transport.close()
@@ -382,17 +425,35 @@ class XsensDevice:
         size = self.device_id_size
         try:
             self.request(xbus.Mid.GO_TO_CONFIG, timeout=probe_timeout_s)
+            self.request_device_id()  # before anything is changed: another device here must be left as it is
+            if previous is not None and self.device_id != previous:
+                found = self.tracker_id
+                self.device_id, self.device_id_size = previous, size  # the tracker keeps its id
+                raise ProtocolError(
+                    f"{transport.name}: device {found} answered where {self.tracker_id} was; left unconfigured"
+                )
             rate_hz, precision, frame = configured
             self.configure(rate_hz, precision=precision, frame=frame)
         except BaseException:
             transport.close()
             raise
-        if previous is not None and self.device_id != previous:
-            found = self.tracker_id
-            self.device_id, self.device_id_size = previous, size  # the tracker keeps its id; another device is here
-            transport.close()
-            raise ProtocolError(f"{transport.name}: device {found} answered where {self.tracker_id} was")
         self.stats.reconnects += 1
+
+
+def orientation_quaternion(data: xbus.MtData2) -> tuple[float, float, float, float] | None:
+    """The message's orientation as a quaternion (w first) in its output frame: the quaternion output, else the one
+    of its rotation matrix or Euler angles (a device that applied one of these instead of the quaternion asked for, or
+    that kept a configuration of its own); None when the message carries no orientation (an MTi-G's GNSS message)."""
+    quaternion = data.get("quaternion")
+    if quaternion is not None:
+        return quaternion
+    matrix = data.get("rotation_matrix")
+    if matrix is not None:
+        return frames.quat_from_rotation_matrix(matrix)
+    euler = data.get("euler")
+    if euler is not None:
+        return frames.quat_from_euler_deg(*euler)
+    return None
 
 
 def configuration_differences(requested: list[xbus.OutputSetting], applied: list[xbus.OutputSetting]) -> list[str]:
@@ -482,8 +543,10 @@ class TrackerSet:
                 if error is None:
                     del self._lost[key], self._next_attempt[key], self._delay[key], self.disconnected[key]
                     self.devices[key] = device
+                    if device.stats.last_error.startswith(RECONNECT_FAILED):  # that is over now
+                        device.stats.last_error = ""
                     continue
-                device.stats.last_error = f"reconnect failed: {error}"  # ``disconnected`` keeps why it went away
+                device.stats.last_error = f"{RECONNECT_FAILED}: {error}"  # ``disconnected`` keeps why it went away
                 self._delay[key] = min(2 * self._delay[key], self.retry_max_s)
                 self._next_attempt[key] = time.monotonic() + self._delay[key]
             elif now >= self._next_attempt[key]:

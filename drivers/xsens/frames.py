@@ -58,3 +58,25 @@ def quat_from_euler_deg(roll: float, pitch: float, yaw: float) -> tuple[float, f
     qy = (math.cos(p), 0.0, math.sin(p), 0.0)
     qz = (math.cos(y), 0.0, 0.0, math.sin(y))
     return quat_multiply(qz, quat_multiply(qy, qx))
+
+
+def quat_from_rotation_matrix(m) -> tuple[float, float, float, float]:
+    """The orientation quaternion (w first) of an MTData2 RotationMatrix, nine values a..i that the Xsens low-level
+    protocol lays out column by column: R_GS = [[a, d, g], [b, e, h], [c, f, i]]. Shepperd's method: the largest of
+    w, x, y, z is found first, so no division by a small number."""
+    a, b, c, d, e, f, g, h, i = m
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = a, d, g, b, e, h, c, f, i
+    trace = r00 + r11 + r22
+    if trace >= max(r00, r11, r22):
+        w = 0.5 * math.sqrt(max(1.0 + trace, 0.0))
+        q = (w, (r21 - r12) / (4 * w), (r02 - r20) / (4 * w), (r10 - r01) / (4 * w))
+    elif r00 >= r11 and r00 >= r22:
+        x = 0.5 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        q = ((r21 - r12) / (4 * x), x, (r01 + r10) / (4 * x), (r02 + r20) / (4 * x))
+    elif r11 >= r22:
+        y = 0.5 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
+        q = ((r02 - r20) / (4 * y), (r01 + r10) / (4 * y), y, (r12 + r21) / (4 * y))
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
+        q = ((r10 - r01) / (4 * z), (r02 + r20) / (4 * z), (r12 + r21) / (4 * z), z)
+    return q if q[0] >= 0.0 else (-q[0], -q[1], -q[2], -q[3])

@@ -23,7 +23,7 @@ from google.protobuf.message import Message
 from drivers.trigno import protocol as tp
 from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, GapEvent, StatusEvent, TrignoClient
 from drivers.xsens import xbus
-from drivers.xsens.device import ImuReading, TrackerSet
+from drivers.xsens.device import RECONNECT_FAILED, ImuReading, TrackerSet
 from services.transport import messages, topics, zenoh_session
 
 log = logging.getLogger(__name__)
@@ -273,7 +273,7 @@ def xsens_loop(
                 received=stats.readings,
                 lost=stats.packets_lost,
                 errors=stats.decode_errors + stats.device_errors + device.parser.stats.errors,
-                last_error=trackers.disconnected.get(tracker_id, stats.last_error),
+                last_error=_tracker_error(trackers.disconnected.get(tracker_id), stats.last_error),
             )
             sink(topics.status_key(session, tracker_id), status, status.host_time_ns, 0)
             report.messages += 1
@@ -283,15 +283,13 @@ def xsens_loop(
     next_status = time.monotonic() + status_interval_s
     lost = set(trackers.disconnected)
     report.states.extend(["disconnected"] * len(lost))  # trackers away before the first read
-    without_orientation: set[str] = set()
+    without_orientation: dict[str, int] = {}  # readings in a row without an orientation, per tracker
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             if not trackers.devices:
                 time.sleep(0.05)
             for reading in trackers.read():
-                if reading.quaternion is None and reading.tracker_id not in without_orientation:
-                    without_orientation.add(reading.tracker_id)
-                    _say_no_orientation(reading.tracker_id, trackers.devices.get(reading.tracker_id))
+                _count_orientation(reading, without_orientation, trackers.devices.get(reading.tracker_id))
                 message = imu_sample(reading, segment=segments.get(reading.tracker_id, ""))
                 sink(topics.imu_key(session, reading.tracker_id), message, reading.host_time_ns, reading.device_time_ns)
                 report.messages += 1
@@ -313,9 +311,32 @@ def xsens_loop(
     return report
 
 
-def _say_no_orientation(tracker_id: str, device) -> None:
-    """Once per tracker: its samples carry no orientation (a device that kept outputs of its own, e.g. inertial data
-    and orientation increments only), so every reader that needs one refuses them; said in its log and status."""
+def _tracker_error(disconnected: str | None, last_error: str) -> str:
+    """A tracker's status text: why it went away and, while it is away, why the last attempt to bring it back failed."""
+    if disconnected is None:
+        return last_error
+    return f"{disconnected}; {last_error}" if last_error.startswith(RECONNECT_FAILED) else disconnected
+
+
+#: Readings in a row without an orientation before it is said: one such message is no fault (an MTi-G's first message
+#: and its GNSS messages carry none), a device configured without one never gives one.
+NO_ORIENTATION_READINGS = 50
+
+
+def _count_orientation(reading, without: dict[str, int], device) -> None:
+    """Say once, when a tracker's samples have carried no orientation ``NO_ORIENTATION_READINGS`` times in a row (a
+    device that kept outputs of its own, e.g. inertial data and orientation increments only), that every reader that
+    needs one refuses them, in its log and status; and take it back when orientations come."""
+    tracker_id = reading.tracker_id
+    if reading.quaternion is not None:
+        if without.pop(tracker_id, 0) >= NO_ORIENTATION_READINGS and device is not None:
+            if device.stats.last_error.startswith(f"tracker {tracker_id}: its samples carry no orientation"):
+                device.stats.last_error = ""
+                log.info("tracker %s: its samples carry an orientation again", tracker_id)
+        return
+    without[tracker_id] = count = without.get(tracker_id, 0) + 1
+    if count != NO_ORIENTATION_READINGS:
+        return
     text = (
         f"tracker {tracker_id}: its samples carry no orientation (the device kept an output configuration without "
         "one); the kinematics and the recorder refuse them: give it an orientation output (quaternion) in MT Manager, "
