@@ -14,7 +14,7 @@ import pytest
 
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.emg_chunk import RawEmgChunk
-from msk_core.estimate.live_emg import FLAG_GAP, FLAG_STALLED, EmgSetup, LiveEmg
+from msk_core.estimate.live_emg import FLAG_GAP, FLAG_NOT_FINITE, FLAG_STALLED, EmgSetup, LiveEmg
 from msk_core.estimate.profile import SubjectProfile
 from msk_core.io import read_sto, write_sto
 from msk_core.signal.emg import EmgFilterConfig, envelope_causal
@@ -339,3 +339,25 @@ def test_mapped_channels_no_source_streams_are_counted_and_named_in_the_session_
     assert "electrodes never streamed (their muscles estimated without EMG): sensor07.EMG (TriLong)" in summary_text(
         summary
     )
+
+
+def test_a_sample_that_is_not_a_number_is_counted_and_does_not_hold_the_envelope_at_nan():
+    """A base that sent one NaN (or inf): the filter carried it on, so that channel's envelope stayed NaN for the rest
+    of the session (still NaN 27 s later in the QA run)."""
+    setup = EmgSetup({"a": "G1", "b": "G2"}, {"a": 1.0, "b": 1.0}, emd_s=0.0)
+    live = LiveEmg(["G1", "G2"], setup)
+    rng = np.random.default_rng(1)
+    rate, n = 2000.0, 27
+    t_ns = lambda i: int(round(i * 1e9 / rate))  # noqa: E731
+    index = 0
+    for k in range(100):
+        samples = rng.normal(size=(n, 2))
+        if k == 20:
+            samples[3, 0], samples[4, 1] = np.nan, np.inf
+        block = live.add_chunk(RawEmgChunk("s", ["a", "b"], rate, index, t_ns(index), samples), t_ns(index))
+        if k == 20:
+            assert FLAG_NOT_FINITE in block.flags
+        index += n
+    assert live.counters.not_finite_samples == 2
+    env, _ = live.at(t_ns(index - 10), t_ns(index))
+    assert np.all(np.isfinite(env)) and np.all(env > 0)

@@ -11,6 +11,7 @@ FLAG_GAP = "emg_gap"
 FLAG_STALLED = "emg_stalled"
 FLAG_NO_MVC = "no_mvc"
 FLAG_ELECTRODE_BAD = "electrode_bad"
+FLAG_NOT_FINITE = "emg_not_finite"
 
 MEANINGS: dict[str, str] = {
     "reserve": "torque beyond the muscles' capacity",
@@ -21,6 +22,7 @@ MEANINGS: dict[str, str] = {
     FLAG_STALLED: "EMG late or stopped",
     FLAG_NO_MVC: "EMG without MVC",
     FLAG_ELECTRODE_BAD: "bad electrode left out",
+    FLAG_NOT_FINITE: "EMG samples that were not numbers, taken as 0",
 }
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from msk_core.errors import ConfigError
 from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.emg_chunk import RawEmgChunk
-from msk_core.estimate.flags import FLAG_ELECTRODE_BAD, FLAG_GAP, FLAG_NO_MVC, FLAG_STALLED
+from msk_core.estimate.flags import FLAG_ELECTRODE_BAD, FLAG_GAP, FLAG_NO_MVC, FLAG_NOT_FINITE, FLAG_STALLED
 from msk_core.signal.emg import EmgEnvelopeFilter, EmgFilterConfig
 from msk_core.signal.host_clock import (
     METHOD_ARRIVAL,
@@ -112,6 +112,9 @@ class EmgCounters:
     gaps: int = 0
     samples_lost: int = 0
     duplicates: int = 0
+    #: NaN or infinite samples (a base's fault, a corrupt value), taken as 0: one would hold every later envelope of
+    #: its channel at NaN (the filter carries it on)
+    not_finite_samples: int = 0
     unmapped_channels: list[str] = field(default_factory=list)
     no_mvc_channels: list[str] = field(default_factory=list)
     #: channels the electrode map names that no EMG source streams (a sensor not paired, a typo): their groups are
@@ -333,6 +336,11 @@ class LiveEmg:
         if n == 0:
             return None
         self.counters.samples += n
+        not_finite = ~np.isfinite(x)
+        if not_finite.any():
+            self.counters.not_finite_samples += int(np.count_nonzero(not_finite))
+            x = np.where(not_finite, 0.0, x)
+            flags.append(FLAG_NOT_FINITE)
         envelope = state.filter.process(x)  # every channel, a bad one too: its filter is settled when it recovers
         group_env = (envelope * state.scale) @ state.weights
         group_env[:, state.without] = np.nan

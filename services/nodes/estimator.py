@@ -1026,6 +1026,11 @@ def run_from_args(args: argparse.Namespace) -> int:
         + (f"; {outages_text(stats.continuity.report(messages.now_ns()))}" if stats.continuity is not None else "")
         + (
             f"; EMG: {stats.emg_chunks} chunks, {stats.emg.gaps} gaps ({stats.emg.samples_lost} samples lost), "
+            + (
+                f"{stats.emg.not_finite_samples} samples not numbers (taken as 0), "
+                if stats.emg.not_finite_samples
+                else ""
+            )
             + (f"mapped channels never streamed {stats.emg.missing_channels}, " if stats.emg.missing_channels else "")
             + f"EMG flags on frames {stats.emg_flags or 'none'}, frames that waited for their EMG {stats.frames_waited}"
             if stats.emg is not None
