@@ -173,6 +173,28 @@ class LoopReport:
         return ", ".join(said)
 
 
+class _TrignoChannels:
+    """The EMG columns and ACC sensors to publish, as the base reported them at its last (re)connection: a base that
+    comes back may have other sensors paired or switched on (a channel then published as zeros, another never)."""
+
+    def __init__(self, client: TrignoClient) -> None:
+        self.client = client
+        self.emg = emg_columns(client)
+        self.acc = acc_sensors(client)
+
+    def refresh(self) -> None:
+        emg, acc = emg_columns(self.client), acc_sensors(self.client)
+        if emg != self.emg:
+            before, after = {label for label, _ in self.emg}, {label for label, _ in emg}
+            text = (
+                f"the base's channels changed at its reconnection: {', '.join(sorted(after - before)) or 'none'} "
+                f"added, {', '.join(sorted(before - after)) or 'none'} gone"
+            )
+            log.warning("%s", text)
+            self.client.stats.last_error = text
+        self.emg, self.acc = emg, acc
+
+
 def trigno_loop(
     client: TrignoClient,
     *,
@@ -189,8 +211,7 @@ def trigno_loop(
     emg_key = topics.emg_key(session, source_id)
     acc_key = topics.acc_key(session, source_id)
     status_key = topics.status_key(session, source_id)
-    columns = emg_columns(client)
-    sensors = acc_sensors(client)
+    channels = _TrignoChannels(client)
     layout = client.config.resolved_aux_layout
 
     def publish_status(*, final: bool = False) -> None:
@@ -208,19 +229,16 @@ def trigno_loop(
         report.messages += 1
 
     deadline = None if duration_s is None else time.monotonic() + duration_s
-    client.start()
-    publish_status()
-    next_status = time.monotonic() + status_interval_s
 
     def publish_data(event) -> None:
         if isinstance(event, EmgBlock):
-            chunk = emg_chunk(event, source_id=source_id, columns=columns)
+            chunk = emg_chunk(event, source_id=source_id, columns=channels.emg)
             sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
             report.messages += 1
             report.samples += len(event.samples)
             report.seconds_of_data = report.samples / event.rate_hz
         elif isinstance(event, AuxBlock):
-            accelerations = acc_chunk(event, source_id=source_id, sensors=sensors, layout=layout)
+            accelerations = acc_chunk(event, source_id=source_id, sensors=channels.acc, layout=layout)
             sink(acc_key, accelerations, event.host_time_ns, accelerations.device_time_ns)
             report.messages += 1
         elif isinstance(event, GapEvent):
@@ -228,10 +246,15 @@ def trigno_loop(
             report.lost += event.n_missing
 
     try:
+        client.start()  # inside: a start that fails still ends with STOP/QUIT and the final status
+        publish_status()
+        next_status = time.monotonic() + status_interval_s
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             for event in client.poll(0.05):
                 if isinstance(event, StatusEvent):
                     report.states.append(event.state.value)
+                    if event.state is ClientState.STREAMING:  # after a reconnection the base may pair other sensors
+                        channels.refresh()
                     publish_status()
                     if event.state is ClientState.STOPPED:
                         return report
