@@ -268,3 +268,13 @@ def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_d
             assert abs(summary["parameters"]["delay_s"] - ARM26_EMD_S) <= 0.02, summary["parameters"]
             assert summary["gap_after"] < 0.7 * summary["gap_before"], summary
     capsys.readouterr()
+
+
+def test_calibrating_trials_without_emg_says_so_before_the_delay_and_points_to_so(arm26_trials, tmp_path, capsys):
+    """The OpenSim tutorial's trial (no EMG, no repetition): it said "EMD estimation needs EMG", and with --emd 0 that
+    "the trials with reps" had none, of a trial without reps."""
+    for options in ((), ("--emd", "0")):
+        rc = _msk_arm26("calibrate", arm26_trials["plain"], "--out", str(tmp_path / "p.json"), *options)
+        said = capsys.readouterr().err
+        assert rc != 0 and "calibration needs EMG, and no trial has any (arm26)" in said, said
+        assert "msk estimate --method so" in said and "EMD" not in said

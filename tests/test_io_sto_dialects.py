@@ -91,3 +91,19 @@ def test_the_walk_emg_header_with_space_padded_labels(shared_dir):
     s = read_sto(shared_dir / "data" / "lowerlimb-walk" / "walk45_emgFilt.sto")
     assert s.columns == EMG_MUSCLES
     assert s.n_rows == 5904 and s.rate == pytest.approx(100.0)
+
+
+def test_rows_separated_by_spaces_under_a_tab_separated_label_line_are_read_as_opensims_storage_reads_them(tmp_path):
+    """OpenSim's ``Storage`` (the reader of its AnalyzeTool, static optimisation and inverse dynamics) splits a row at
+    any whitespace; TimeSeriesTable would not, but a file those tools take is one a lab brings."""
+    path = tmp_path / "spaces.sto"
+    path.write_text(HEADER + "time\tq1\tq2\n" + ROWS.replace("\t", " "))
+    s = read_sto(path)
+    np.testing.assert_array_equal(s.column("q2"), [-2.0, -2.1, -2.2])
+    try:
+        import opensim  # noqa: PLC0415 - optional
+    except ImportError:
+        return
+    storage, column = opensim.Storage(str(path)), opensim.ArrayDouble()
+    storage.getDataColumn("q2", column)
+    assert [column.get(i) for i in range(column.getSize())] == [-2.0, -2.1, -2.2]

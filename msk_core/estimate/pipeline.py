@@ -157,8 +157,8 @@ def _prior_emg_groups(trials: list[TrialData], isometric: list[str]) -> list[str
     emg_groups = sorted({g for t in trials for g in t.emg})
     if not emg_groups:
         raise EstimationError(
-            f"the trials with reps ({', '.join(t.name for t in trials) or 'none'}) have no EMG: the prior needs EMG of at "
-            "least one group in a trial with reps"
+            f"the trials ({', '.join(t.name for t in trials) or 'none'}) have no EMG: the prior needs EMG of at least "
+            "one group in a trial with reps"
             + (f" (isometric trials have no phase: {', '.join(isometric)})" if isometric else "")
         )
     if not any(np.any(t.rep_index >= 0) for t in trials):
@@ -532,6 +532,12 @@ def calibration_inputs(
         raise EstimationError(
             "calibration needs at least one trial with reps besides the isometric ones: the N(mu, sigma^2) prior per "
             f"phase of the movement is learned from reps (trials: {', '.join(t.name for t in trials)})"
+        )
+    if not any(t.emg for t in trials):  # said before the delay, which needs EMG too
+        raise EstimationError(
+            f"calibration needs EMG, and no trial has any ({', '.join(t.name for t in trials)}): give the trials an "
+            "`emg` file and an [emg_map] (docs/estimation.md, 'Trial description'); static optimisation needs no EMG "
+            "and no calibration: msk estimate --method so"
         )
     if emd_s == "auto":
         emd = estimate_emd(pack, trials).to_dict() | {"source": "estimated"}

@@ -240,6 +240,10 @@ def _read_rows(lines: list[str], col_index: int, delimiter: str | None, labels: 
         if not raw.strip(" ,\t"):
             continue
         cells = _split(raw, delimiter)
+        if len(cells) != n_cols and delimiter == "\t" and "\t" not in raw:
+            # labels tab-separated, this row by spaces: OpenSim's Storage (its tools' reader) splits at any
+            # whitespace; a row with tabs keeps them as its separators, so an empty cell still counts
+            cells = raw.split()
         if len(cells) != n_cols:
             raise FileFormatError(
                 f"expected {n_cols} values, found {len(cells)} (one value per column label on line "
