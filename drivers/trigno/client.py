@@ -148,6 +148,8 @@ class ClientStats:
     samples_received: int = 0
     samples_lost: int = 0
     bytes_discarded: int = 0  # partial samples cut by a dropped connection
+    stale_bytes_discarded: int = 0  # data-port bytes of an earlier acquisition, received before our START
+    non_finite_values: int = 0  # NaN/Inf EMG and AUX values received (passed on unchanged)
     reconnects: int = 0
     errors: int = 0
     last_error: str = ""
@@ -163,6 +165,7 @@ class _Link:
     replies: tp.ReplyReader = field(default_factory=tp.ReplyReader)
     pending_replies: list[str] = field(default_factory=list)
     late_replies: int = 0  # commands that timed out: their replies, when they come, belong to nobody
+    start_sent: bool = False  # START went out on this link (a START that failed may still have started the base)
 
     def close(self) -> None:
         for sock in (self.command, self.emg, self.aux):
@@ -198,6 +201,7 @@ class TrignoClient:
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
         self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
+        self._rate_at_loss = 0.0  # EMG rate when the link was lost (a server may come back at another)
         self._backoff = config.backoff_initial_s
         self._next_attempt = 0.0
         self._events: list[Event] = []
@@ -249,25 +253,50 @@ class TrignoClient:
     def stop(self, *, drain_s: float = 1.0) -> list[Event]:
         """End acquisition the configured way (STOP then QUIT, or QUIT alone) and close the connection.
 
-        Returns the data events not yet polled (status events stay for :meth:`poll`): what was read before, and, after STOP, the frames the server had
-        already sent (read until the data ports are quiet for 0.1 s, at most ``drain_s``), which closing the sockets
-        would otherwise throw away."""
+        Returns the data events not yet polled (status events stay for :meth:`poll`): what was read before, and, after
+        STOP, the frames the server had already sent (read until the data ports are quiet for 0.1 s, at most
+        ``drain_s``), which closing the sockets would otherwise throw away. Idempotent, and safe after a failed
+        :meth:`start` or :meth:`close`: QUIT is sent whenever the command connection is up, even when STOP fails, so
+        that the base is always told."""
         self._want_streaming = False
         link = self._link
-        if link is not None:
-            try:
-                if self.config.stop_mode is tp.StopMode.STOP_THEN_QUIT and self.state is ClientState.STREAMING:
-                    self._command("STOP")
-                    self._read_until_quiet(link, drain_s)
-                self._command("QUIT")
-            except (OSError, ProtocolError) as error:
-                self._note_error(f"while stopping: {error}")
-        self._drop_link()
-        self.state = ClientState.STOPPED
+        already = self.state is ClientState.CLOSED or (link is None and self.state is ClientState.STOPPED)
+        try:
+            if link is not None:
+                self._stop_link(link, drain_s)
+        finally:
+            self._drop_link()
         pending: list[Event] = [e for e in self._events if not isinstance(e, StatusEvent)]
         self._events = [e for e in self._events if isinstance(e, StatusEvent)]  # still for poll()
-        self._emit_status(ClientState.STOPPED, "stopped by client")
+        if not already:  # a second stop(), or one after close(), changes nothing and says nothing
+            self.state = ClientState.STOPPED
+            self._emit_status(ClientState.STOPPED, "stopped by client")
         return pending
+
+    def _stop_link(self, link: _Link, drain_s: float) -> None:
+        """STOP (when acquiring, or when a START went out that may have started the base although it failed), then
+        QUIT in a try of its own: a STOP that times out or breaks must not keep the base from being told."""
+        acquiring = self.state is ClientState.STREAMING or (link.start_sent and self.state is ClientState.CONNECTED)
+        if self.config.stop_mode is tp.StopMode.STOP_THEN_QUIT and acquiring:
+            try:
+                self._command("STOP", link)
+                self._read_until_quiet(link, drain_s)
+            except (OSError, ProtocolError) as error:
+                self._note_error(f"while stopping (STOP): {error}")
+        try:
+            link.command.sendall(tp.encode_command("QUIT"))
+        except OSError as error:
+            self._note_error(f"while stopping (QUIT): {error}")
+            return
+        try:
+            reply = self._read_reply(link, "QUIT")
+        except ConnectionResetError:
+            return  # the server closes after QUIT: told, even when its reply went to a STOP that timed out
+        except (OSError, ProtocolError) as error:
+            self._note_error(f"while stopping (QUIT): {error}")
+            return
+        if tp.is_error(reply):
+            self._note_error(f"while stopping: QUIT answered {reply!r}")
 
     def _read_until_quiet(self, link: _Link, drain_s: float, quiet_s: float = 0.1) -> None:
         """Read the data ports after STOP until nothing comes for ``quiet_s`` (or ``drain_s`` has passed)."""
@@ -289,11 +318,14 @@ class TrignoClient:
                         self._read_aux(link)
 
     def close(self) -> None:
-        if self._link is not None:  # also after a stop trigger: QUIT politely
-            self.stop()
-        self._drop_link()
-        self.state = ClientState.CLOSED
-        self._selector.close()
+        """STOP/QUIT as :meth:`stop` does when still connected, then release everything; idempotent."""
+        try:
+            if self._link is not None:  # also after a stop trigger or a failed start(): QUIT politely
+                self.stop()
+        finally:
+            self._drop_link()
+            self.state = ClientState.CLOSED
+            self._selector.close()
 
     # ------------------------------------------------------------------------------------------ commands
     def command(self, text: str) -> str:
@@ -316,15 +348,57 @@ class TrignoClient:
 
     def _start_acquisition(self, link: _Link) -> None:
         """START; a server still acquiring for an earlier connection (ours before a network drop, or a crashed
-        client's) may refuse it, so a refused START is retried once after a STOP."""
+        client's) may refuse it, so a refused START is retried once after a STOP.
+
+        The data ports were opened before START, so they may hold an earlier acquisition's samples: what they hold
+        when START goes out is dropped (nothing of ours can be in it), and after the STOP of a retry, what comes
+        until they are quiet. Only when they were still receiving as START went out (the base was acquiring and
+        took our START) is what beat the START's reply dropped too: its tail, which cannot be told from our first
+        frame. A base idle before START loses nothing, even one that streams at once."""
+        link.start_sent = True
+        receiving = self._discard_stale(link)
         try:
             self._command("START", link)
         except tp.CommandFailed:
             try:
                 self._command("STOP", link)
-            except tp.CommandFailed:
-                pass
+            except tp.CommandFailed:  # not stopped (not master?): no end of the stream to wait for
+                receiving = self._discard_stale(link)
+            else:
+                receiving = not self._discard_stale_until_quiet(link)
             self._command("START", link)
+        if receiving:
+            self._discard_stale(link)
+
+    def _discard_stale(self, link: _Link) -> bool:
+        """Drop the whole samples the data sockets hold now (not waiting for more); a partial sample stays in its
+        decoder, to keep the alignment of a stream that goes on. True when there was anything."""
+        found = False
+        for sock, decoder in ((link.emg, self._emg_decoder), (link.aux, self._aux_decoder)):
+            while sock is not None and (chunk := self._recv(sock)):
+                decoder.feed(chunk)
+                self.stats.stale_bytes_discarded += len(chunk)
+                found = True
+        return found
+
+    def _discard_stale_until_quiet(self, link: _Link, quiet_s: float = 0.1, max_s: float = 1.0) -> bool:
+        """After STOP: drop what the data ports receive until nothing has come for ``quiet_s`` (frames the base sent
+        just before it stopped are still on their way), at most ``max_s``. True when they went quiet; then a partial
+        sample left can never complete and is dropped too."""
+        ports = [sock for sock in (link.emg, link.aux) if sock is not None]
+        deadline = time.monotonic() + max_s
+        with selectors.DefaultSelector() as selector:
+            for sock in ports:
+                selector.register(sock, selectors.EVENT_READ)
+            while (left := deadline - time.monotonic()) > 0:
+                if not selector.select(min(quiet_s, left)):
+                    if left < quiet_s:
+                        break
+                    self._emg_decoder.discard_partial()  # its bytes are counted already
+                    self._aux_decoder.discard_partial()
+                    return True
+                self._discard_stale(link)
+        return False
 
     def _set_option(self, link: _Link, command: str, query: str, wanted: bool | tp.Endianness) -> None:
         """Send a setting; a refusal is an error only when the server is not already set that way (some servers
@@ -488,12 +562,21 @@ class TrignoClient:
             raise ProtocolError(f"FRAME INTERVAL? answered {interval_reply!r}: not a frame interval in seconds")
         self.sensors = self._query_sensors(link)
         per_frame = self._emg_samples_per_frame(link)
-        self.rate_hz = per_frame / interval
         aux_reply = self._query(link, "MAX SAMPLES AUX?")
         aux_per_frame = tp.parse_int(aux_reply, command="MAX SAMPLES AUX?") if aux_reply else 2
-        self.aux_rate_hz = (aux_per_frame if aux_per_frame > 0 else 2) / interval
+        self._set_rates(per_frame / interval, (aux_per_frame if aux_per_frame > 0 else 2) / interval)
         self._emg_decoder = tp.SampleDecoder(tp.FLOATS_PER_SAMPLE[tp.DataPort.EMG], self.endianness)
         self._aux_decoder = tp.SampleDecoder(cfg.resolved_aux_layout.floats_per_sample, self.endianness)
+
+    def _set_rates(self, rate_hz: float, aux_rate_hz: float) -> None:
+        """A server back at another rate (restarted with upsampling switched) goes on counting in the new rate: the
+        samples counted so far become the same span of device time at the new rate, so that index / rate stays
+        continuous and the gap of the reconnection is reckoned in the new rate."""
+        if self.rate_hz > 0 and rate_hz != self.rate_hz:
+            self._next_index = int(round(self._next_index * rate_hz / self.rate_hz))
+        if self.aux_rate_hz > 0 and aux_rate_hz != self.aux_rate_hz:
+            self._next_aux_index = int(round(self._next_aux_index * aux_rate_hz / self.aux_rate_hz))
+        self.rate_hz, self.aux_rate_hz = rate_hz, aux_rate_hz
 
     def _query_sensors(self, link: _Link) -> tuple[SensorInfo, ...]:
         paired: dict[int, str] = {}
@@ -526,7 +609,7 @@ class TrignoClient:
                     )
                 except ProtocolError as error:
                     self._note_error(str(error))
-        slots = tp.normalise_start_indices(starts)
+        slots = tp.normalise_start_indices(starts, channels=channels)
         return tuple(
             SensorInfo(
                 n,
@@ -582,7 +665,9 @@ class TrignoClient:
         ready = self._selector.select(timeout)
         try:
             for key, _ in ready:
-                if key.fileobj is link.emg:
+                if key.fileobj is not link.command and self.state is ClientState.CONNECTED:
+                    self._discard_stale(link)  # no START of ours yet: an earlier acquisition's samples
+                elif key.fileobj is link.emg:
                     self._read_emg(link)
                 elif key.fileobj is link.aux:
                     self._read_aux(link)
@@ -624,6 +709,7 @@ class TrignoClient:
         if self._gap_pending:
             self._report_gap(now, len(rows))
         self._last_data_time = self._last_activity = now
+        self._count_non_finite(rows)
         block = EmgBlock(rows, self._next_index, self.rate_hz, time.time_ns())
         self._next_index += len(rows)
         self.stats.samples_received += len(rows)
@@ -633,10 +719,16 @@ class TrignoClient:
         assert link.aux is not None
         chunk = self._recv(link.aux)
         rows = self._aux_decoder.feed(chunk) if chunk else np.empty((0, 0))
+        self._count_non_finite(rows)
         if len(rows) and self._gap_pending:  # placed on the EMG clock once the EMG says how long the gap was
             self._aux_after_gap.append((rows, time.time_ns()))
         elif len(rows):
             self._emit_aux(rows, time.time_ns())
+
+    def _count_non_finite(self, rows: np.ndarray) -> None:
+        """NaN/Inf from the base are passed on as they came (they are what it sent) but counted, for the status."""
+        if rows.size and not np.isfinite(rows).all():
+            self.stats.non_finite_values += int(rows.size - np.count_nonzero(np.isfinite(rows)))
 
     def _emit_aux(self, rows: np.ndarray, host_time_ns: int) -> None:
         self._events.append(AuxBlock(rows, self._next_aux_index, self.aux_rate_hz, host_time_ns))
@@ -705,6 +797,7 @@ class TrignoClient:
             self._emit_status(ClientState.CLOSED, f"connection lost: {reason}")
             return
         self.state = ClientState.RECONNECTING
+        self._rate_at_loss = self.rate_hz
         self._gap_pending = self._want_streaming
         self._backoff = self.config.backoff_initial_s
         self._next_attempt = time.monotonic() + self._backoff
@@ -726,9 +819,13 @@ class TrignoClient:
             self.stats.last_error = f"reconnect failed: {error}"
             return
         self.stats.reconnects += 1
+        if self.stats.last_error.startswith("reconnect failed"):  # that is over now
+            self.stats.last_error = ""
         self._last_activity = time.monotonic()
         self.state = ClientState.STREAMING if self._want_streaming else ClientState.CONNECTED
-        self._emit_status(self.state, f"reconnected (protocol {self.protocol_version})")
+        was = self._rate_at_loss
+        changed = f"; EMG rate now {self.rate_hz:.3f} Hz, was {was:.3f}" if was and self.rate_hz != was else ""
+        self._emit_status(self.state, f"reconnected (protocol {self.protocol_version}{changed})")
 
     def _drop_link(self) -> None:
         if self._link is not None:

@@ -217,24 +217,29 @@ def is_new_master(reply: str) -> bool:
     return "NEW MASTER" in reply.upper()
 
 
-def normalise_start_indices(reported: dict[int, int], slots: int = N_SENSORS) -> dict[int, int]:
+def normalise_start_indices(
+    reported: dict[int, int], slots: int = N_SENSORS, channels: dict[int, int] | None = None
+) -> dict[int, int]:
     """0-based first slot of each sensor (1..16) from its ``STARTINDEX?`` reply, whatever base the server uses.
 
-    One client reads the reply as 1-based, another as 0-based. The base is decided over all sensors at once: a
-    reply of 0 proves 0-based and a reply of ``slots`` proves 1-based; otherwise the base under which more sensors
-    sit in their own slot wins (ties: 1-based, as in the SDK manual's examples). Multi-channel sensors may start
-    elsewhere than their own slot; only an index outside the port's slots is dropped (-1): slot information is
-    informative, a strange value must not stop acquisition.
+    One client reads the reply as 1-based, another as 0-based, so the base is decided over all sensors at once, from
+    how the port is laid out: its slots are in sensor order, sensor n owning slot n-1 unless a multi-channel sensor
+    before it (``channels``: EMGCHANNELCOUNT?, 1 when unknown) pushed it further. A reading is ruled out first by
+    sensors whose channels fall outside the port (a reply of 0 read 1-based, of ``slots`` read 0-based), then by
+    sensors that would start before their own slot (0-based replies 1 and 3 of a 2-channel sensor 2 and sensor 3,
+    read 1-based, would put sensor 2 in sensor 1's slot); still tied, the base under which more sensors sit in their
+    own slot wins, then 1-based (the SDK manual's examples). Only an index outside the port's slots is dropped (-1):
+    slot information is informative, a strange value must not stop acquisition.
     """
-    values = list(reported.values())
-    if 0 in values:
-        base = 0
-    elif slots in values:
-        base = 1
-    else:
-        own_zero = sum(1 for n, v in reported.items() if v == n - 1)
-        own_one = sum(1 for n, v in reported.items() if v == n)
-        base = 0 if own_zero > own_one else 1
+    width = {n: max(1, (channels or {}).get(n, 1)) for n in reported}
+
+    def misfits(base: int) -> tuple[int, int, int]:
+        outside = sum(1 for n, v in reported.items() if not (0 <= v - base and v - base + width[n] <= slots))
+        early = sum(1 for n, v in reported.items() if 0 <= v - base < n - 1)
+        own = sum(1 for n, v in reported.items() if v - base == n - 1)
+        return outside, early, -own
+
+    base = 0 if misfits(0) < misfits(1) else 1
     return {n: (v - base if 0 <= v - base < slots else -1) for n, v in reported.items()}
 
 

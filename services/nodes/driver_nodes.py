@@ -603,26 +603,29 @@ def run_devices(
 ) -> list[LoopReport]:
     """Open ``devices`` and run their loops side by side into ``sink``: one report per device, the Trigno's first."""
     targets = []
-    trackers = None
-    if devices.trigno:
-        client = open_trigno(devices)
-        targets.append(
-            lambda: trigno_loop(
-                client, session=session, source_id=devices.trigno_id, sink=sink, stop=stop, duration_s=duration_s
+    client: TrignoClient | None = None
+    trackers: TrackerSet | None = None
+    try:  # a device that cannot be opened still lets the other go (the base told QUIT, the ports closed)
+        if devices.trigno:
+            client = open_trigno(devices)
+            targets.append(
+                lambda: trigno_loop(
+                    client, session=session, source_id=devices.trigno_id, sink=sink, stop=stop, duration_s=duration_s
+                )
             )
-        )
-    if devices.xsens:
-        trackers = open_xsens(devices)
-        targets.append(
-            lambda: xsens_loop(
-                trackers, session=session, sink=sink, stop=stop, segments=devices.segments, duration_s=duration_s
+        if devices.xsens:
+            trackers = open_xsens(devices)
+            targets.append(
+                lambda: xsens_loop(
+                    trackers, session=session, sink=sink, stop=stop, segments=devices.segments, duration_s=duration_s
+                )
             )
-        )
-    try:
         results = run_threads(targets, stop)
     finally:
         if trackers is not None:
             trackers.close()
+        if client is not None:
+            client.close()
     reports: list[LoopReport] = []
     for result in results:
         if isinstance(result, BaseException):
