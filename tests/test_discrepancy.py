@@ -258,6 +258,22 @@ def test_input_errors_name_the_file_and_field(tmp_path):
         r"muscles' capacity\)",
     ):
         session_arrays(pack, reference, [train, overloaded])
+    # a copy of the training trial under another name is not held out (only the path was compared)
+    copy = tmp_path / "copy_of_train.toml"
+    copy.write_text(Path(train.path).read_text())
+    twin = replace(train, path=copy)
+    with pytest.raises(InputError, match=r"'--holdout'.*the same frames as .*bench_press_40kg"):
+        check_inputs([train], [twin])
+    # too short: the message says so rather than listing an empty "left out"
+    tiny = replace(held, time=held.time[:12], q=held.q[:12], qd=held.qd[:12], qdd=held.qdd[:12],
+                   torques=held.torques[:12], phase=held.phase[:12], rep_index=held.rep_index[:12],
+                   emg={g: e[:12] for g, e in held.emg.items()})  # fmt: skip
+    with pytest.raises(InputError, match=r"the trial has only 12 frames; the discrepancy analysis needs at least 20$"):
+        session_arrays(pack, reference, [train, tiny])
+    # frames the trial's loading left out (a NaN in the torque file) are counted among those left out
+    holed = replace(held, extra={**held.extra, "torque_frames_not_finite": (7, 1.0)})
+    left = session_arrays(pack, reference, [train, holed]).trials[1].left_out
+    assert left["torque file not finite"] == 7, left
 
 
 # -- detection on synthetic sessions ------------------------------------------------------------------------------
@@ -683,3 +699,29 @@ def test_recalibrate_finds_the_passive_moment_the_calibration_took_into_the_stre
         )
         == 0
     )
+
+
+def test_a_delay_named_with_recalibrate_is_fitted_with_strengths_calibrated_at_it(tmp_path, capsys):
+    """EMG leading by 120 ms on arm26, calibrated without a delay (two strengths at their 0.5 bound): the delay was
+    named, but fitted with the strengths of the wrong delay (62-65 % of the attainable shrink, found by exploratory
+    QA). With --recalibrate it is fitted with a calibration at the named delay; without, the command says so."""
+    from msk_core.discrepancy import run_discrepancy
+    from msk_core.io import read_sto, write_sto
+    from services.bench.discrepancy import arm26_session
+    from services.commands.discrepancy import _say_bounds
+
+    pack, _, _, _ = arm26_session(tmp_path, 0.1, 1, effect=None, calibrate=False)
+    for name in ("train", "held"):  # every EMG time stamp 120 ms earlier: the EMG leads the torque by 120 ms
+        emg = read_sto(tmp_path / f"emg_{name}.sto")
+        write_sto(tmp_path / f"emg_{name}.sto", emg.time - 0.12, emg.columns, emg.data)
+    train, holdout = [load_trial(tmp_path / "train.toml", pack)], [load_trial(tmp_path / "held.toml", pack)]
+    profile = calibrate_subject(pack, train, emd_s=0.0)[0]
+    plain = run_discrepancy(pack, profile, train, holdout, activation=False).summary
+    recal = run_discrepancy(pack, profile, train, holdout, activation=False, recalibrate=True).summary
+    assert plain["effect"] == recal["effect"] == "emd"
+    assert recal["gap_after"] < 0.9 * plain["gap_after"], (plain["gap_after"], recal["gap_after"])
+    assert plain["calibration_at_bounds"]
+    _say_bounds(plain, recalibrated=False)
+    said = capsys.readouterr().out
+    delay = plain["parameters"]["delay_total_s"]
+    assert f"--recalibrate calibrates again with the EMG shifted by it (or msk calibrate --emd {delay:.3f})" in said

@@ -86,9 +86,11 @@ def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: 
     seen = {str(t.path.resolve()) if t.path else t.name: t for t in train}
     for t in holdout:
         key = str(t.path.resolve()) if t.path else t.name
-        if key in seen:
+        twin = seen.get(key) or next((u for u in train if _same_data(t, u)), None)
+        if twin is not None:
             raise InputError(
-                "a held-out trial must not also be a training trial (the score would not be held out)",
+                "a held-out trial must not also be a training trial (the score would not be held out)"
+                + (f": it holds the same frames as {twin.path}" if twin.path != t.path else ""),
                 path=t.path,
                 field="--holdout",
                 value=str(t.path),
@@ -130,13 +132,45 @@ def check_inputs(train: list[TrialData], holdout: list[TrialData], max_delay_s: 
             )
 
 
+def _same_data(a: TrialData, b: TrialData) -> bool:
+    """Whether two trials hold the same frames (a copy of a trial file under another name)."""
+    return (
+        a.n_frames == b.n_frames
+        and np.array_equal(a.time, b.time)
+        and np.array_equal(a.q, b.q, equal_nan=True)
+        and np.array_equal(a.torques, b.torques, equal_nan=True)
+    )
+
+
+def _too_few_frames(trial: TrialData, kept: int, left_out: dict[str, int]) -> InputError:
+    """The error for a trial with fewer than ``MIN_FRAMES`` usable frames: what was left out and why, or that the
+    trial itself is that short."""
+    capacity = left_out.get(f"torque beyond {CAPACITY_MARGIN:.0%} of the muscles' capacity")
+    return InputError(
+        (
+            f"only {kept} of {trial.n_frames} frames are left for the discrepancy analysis "
+            f"(at least {MIN_FRAMES} needed); left out: {describe_left_out(left_out)}"
+            if any(left_out.values())
+            else f"the trial has only {trial.n_frames} frames; the discrepancy analysis needs at least {MIN_FRAMES}"
+        )
+        + (" - for torques beyond the capacity, check the load and the profile's strengths" if capacity else ""),
+        path=trial.path,
+        field="torques" if trial.torque_source == "file" else "kinematics",
+    )
+
+
 def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_groups: list[str]) -> TrialArrays:
     groups = list(pack.groups)
     n_c, g = len(pack.coordinates), len(groups)
     mech = trial.mechanics(pack)  # moment arms and static optimisation, as calibration reads them
     q = mech.q_clamped
     keep = np.all(np.isfinite(trial.q), axis=1) & np.all(np.isfinite(trial.torques), axis=1)
-    left_out = {"non-finite kinematics or torques": int((~keep).sum())}
+    left_out = {
+        # what loading the trial left out already (msk_core.estimate.trial): counted here too, by its reason
+        "outside the torque file's time span": int(trial.extra.get("torque_frames_outside", 0)),
+        "torque file not finite": int((trial.extra.get("torque_frames_not_finite") or (0,))[0]),
+        "non-finite kinematics or torques": int((~keep).sum()),
+    }
 
     def drop(reason: str, ok: np.ndarray) -> None:
         nonlocal keep
@@ -163,13 +197,7 @@ def _arrays(pack: PackLike, profile: SubjectProfile, trial: TrialData, emg_group
     emg = np.column_stack([trial.emg[x] for x in emg_groups]) if emg_groups else np.zeros((trial.n_frames, 0))
     drop("non-finite EMG", np.all(np.isfinite(emg), axis=1))
     if keep.sum() < MIN_FRAMES:
-        raise InputError(
-            f"only {int(keep.sum())} of {trial.n_frames} frames are left for the discrepancy analysis "
-            f"(at least {MIN_FRAMES} needed); left out: {describe_left_out(left_out)}"
-            " - for torques beyond the capacity, check the load and the profile's strengths",
-            path=trial.path,
-            field="torques" if trial.torque_source == "file" else "kinematics",
-        )
+        raise _too_few_frames(trial, int(keep.sum()), left_out)
     hand = trial.hand_load_newton
     if hand > 0:
         tau_load = np.array(

@@ -51,7 +51,7 @@ from msk_core.discrepancy.model import (
     target_ms,
     target_torque,
 )
-from msk_core.discrepancy.recalibrate import RECALIBRATED, Recalibrator
+from msk_core.discrepancy.recalibrate import HONOURED, Recalibrator
 from msk_core.errors import EstimationError
 from msk_core.estimate.effects import Effect
 from msk_core.progress import Progress, counted
@@ -253,9 +253,9 @@ def select_effects(
     progress: Progress | None = None,
     recalibrator: Recalibrator | None = None,
 ) -> Selection:
-    """Greedy forward selection. With a ``recalibrator``, the muscle- and joint-state candidates
-    (recalibrate.RECALIBRATED) are fitted with a calibration that has them in it, against the base model calibrated
-    the same way."""
+    """Greedy forward selection. With a ``recalibrator``, the muscle- and joint-state candidates and the delay
+    (recalibrate.HONOURED) are fitted with a calibration that has them in it, against the base model calibrated the
+    same way."""
     library = candidate_library(data, train)
     none = fit(data, train, {})
     base, base_hold = none, mse(data, holdout, none)
@@ -275,7 +275,7 @@ def select_effects(
             nonlocal rbase
             if (
                 recalibrator is None
-                or c.name not in RECALIBRATED
+                or c.name not in HONOURED  # the delay too: calibrated again with the EMG shifted by it
                 or not recalibrator.supports({**base.model, c.name: {}})
             ):
                 return None

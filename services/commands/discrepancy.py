@@ -37,9 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--recalibrate",
         action="store_true",
         help="fit the muscle- and joint-state candidates (passive force, passive joint moment, damping, "
-        "active force-length, force-velocity) with a re-calibration of the training trials that has "
-        "them in it, against the model without them re-calibrated the same way: for profiles whose "
-        "calibration took such an effect into the strengths (groups at their bounds); costs one "
+        "active force-length, force-velocity) and the delay with a re-calibration of the training trials that has "
+        "them in it (the delay: the EMG shifted by it), against the model without them re-calibrated the same way: "
+        "for profiles whose calibration took such an effect into the strengths (groups at their bounds); costs one "
         "calibration per such candidate and step",
     )
     p.set_defaults(handler=run_discrepancy_command)
@@ -100,18 +100,7 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     for trial, why in (s.get("frames_left_out") or {}).items():
         print(f"frames left out of {trial}: {describe_left_out(why)}")
     if s["calibration_at_bounds"]:
-        print(
-            "calibration strengths at their bounds (look at these coordinates first): "
-            + ", ".join(
-                f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
-                for b in s["calibration_at_bounds"]
-            )
-        )
-        if not args.recalibrate and s["effect"] == "none":
-            print(
-                "  the calibration may have taken a passive moment, damping or a force-length/velocity effect into "
-                "these strengths: --recalibrate fits those candidates with a calibration that has them in it"
-            )
+        _say_bounds(s, recalibrated=args.recalibrate)
     if args.out is not None:
         if result.profile_with_effects is None:
             print(f"no effect named: {args.out} not written (the profile stays as it is)")
@@ -120,3 +109,26 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
             print(f"wrote {args.out}")
     print(f"wrote {report}")
     return 0
+
+
+def _say_bounds(s: dict, *, recalibrated: bool) -> None:
+    """The calibration's strengths at their bounds, and what re-calibrating could do about them."""
+    print(
+        "calibration strengths at their bounds (look at these coordinates first): "
+        + ", ".join(
+            f"{b['group']} {b['scale']:.2f} ({b['side']}; {'/'.join(b['coordinates'])})"
+            for b in s["calibration_at_bounds"]
+        )
+    )
+    if not recalibrated and s["effect"] == "none":
+        print(
+            "  the calibration may have taken a passive moment, damping or a force-length/velocity effect into "
+            "these strengths: --recalibrate fits those candidates with a calibration that has them in it"
+        )
+    elif not recalibrated and "emd" in s["effect"].split("+"):
+        named = s["parameters"].get("emd", s["parameters"])  # keyed by effect when several are named
+        print(
+            "  these strengths were calibrated at another delay than the one named, and the re-fit here cannot "
+            "undo that: --recalibrate calibrates again with the EMG shifted by it (or msk calibrate --emd "
+            f"{named.get('delay_total_s', 0.0):.3f})"
+        )
