@@ -392,6 +392,8 @@ def joint_movement(torques_nm: dict[str, float], coordinates, velocities) -> str
 
 # A run of in-rep phase shorter than this is no repetition (a tracker that flickers into a rep and out again).
 MIN_REP_S = 0.3
+#: A rep under way when the data end counts only if its phase got this far (the phase runs 0-1 over a rep).
+MIN_FINISHED_PHASE = 0.9
 # Samples further apart than this do not belong to one rep (the stream had a gap: the rep is closed at its last sample).
 MAX_SAMPLE_GAP_S = 0.5
 
@@ -433,7 +435,7 @@ class PhaseRepCounter:
         done = None
         last = self._last
         if last is not None and (not inside or p < last[1] - 0.5 or t - last[0] > MAX_SAMPLE_GAP_S):
-            done = self.finish()
+            done = self._close()
         if inside:
             if self._start is None:
                 self._start = t
@@ -441,7 +443,16 @@ class PhaseRepCounter:
         return done
 
     def finish(self) -> tuple[float, float] | None:
-        """Close the rep under way (end of the data); returns its span when it counts."""
+        """The end of the data: close the rep under way; returns its span when it counts, which it does only when its
+        phase reached ``MIN_FINISHED_PHASE`` (a rep the data cut in the middle, e.g. the session stopped during it,
+        was not done: it must not add a rep and its time under tension)."""
+        if self._last is not None and self._last[1] < MIN_FINISHED_PHASE:
+            self._start = self._last = None
+            return None
+        return self._close()
+
+    def _close(self) -> tuple[float, float] | None:
+        """Close the rep under way (rest, the next rep, a gap in the stream); returns its span when it counts."""
         start, last = self._start, self._last
         self._start = self._last = None
         if start is None or last is None or last[0] - start < MIN_REP_S:

@@ -465,7 +465,9 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
         t = np.asarray(s.time)[m]
         a = np.asarray(s.activations, dtype=float)[m]
         rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
-        dt = np.median(np.diff(t)) if len(t) > 1 else 0.0
+        # each frame stands for the time to the next one inside its rep (the rep's last frame for none), so the time
+        # above a threshold is at most the time under tension (frame count x median interval overshot it)
+        held = _frame_durations(t, rep_masks) if rep_masks else np.r_[np.diff(t), 0.0] if len(t) else np.zeros(0)
         per_group = {}
         # the set's figures under tension, as the tables' caption says: over the reps' frames (the whole set when it
         # has no rep); the set mean over the whole set stays for the set without reps
@@ -476,7 +478,7 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
                 "mean": [float(np.nanmean(a[rm, i])) if rm.any() else None for rm in rep_masks],
                 "set_peak": float(np.nanmax(a[tension, i])) if tension.any() else float("nan"),
                 "set_mean": float(np.nanmean(a[:, i])),
-                "time_active_s": float(np.sum(a[tension, i] > ACTIVE_THRESHOLD) * dt),
+                "time_active_s": float(np.sum(held[a[:, i] > ACTIVE_THRESHOLD])),
             }
         residual = np.asarray(s.residual, dtype=float)[m]
         methods[method] = {
@@ -993,6 +995,17 @@ def health_html(data: SessionData, devices: dict, device_plot: str | None) -> st
     )
 
 
+def _frame_durations(t: np.ndarray, rep_masks: list[np.ndarray]) -> np.ndarray:
+    """Per frame, the time it stands for under tension: to the next frame of its rep (0 outside reps and for a rep's
+    last frame)."""
+    held = np.zeros(len(t))
+    for mask in rep_masks:
+        idx = np.flatnonzero(mask)
+        if len(idx) > 1:
+            held[idx[:-1]] = np.diff(t[idx])
+    return held
+
+
 def write_report(recording: Path, out: Path, *, session: str | None = None, progress: bool = False) -> dict:
     data = read_session(recording, session=session, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
@@ -1003,11 +1016,11 @@ def write_report(recording: Path, out: Path, *, session: str | None = None, prog
             result["plots"] = plot_set(result, out, f"set{window.index}")
             sets.append(result)
     devices = device_health(data)
-    # Session length on the devices' clock (a recording of a fast replay is shorter in log time than the session).
+    # Session length on the devices' clock: a recording of a fast replay is shorter in log time than the session, and
+    # the log time of a live one includes the start-up before the first frame
     device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
-    duration = max(
-        (data.end_log_ns - data.start_log_ns) / 1e9, (max(device_times) - min(device_times)) if device_times else 0.0
-    )
+    span = (max(device_times) - min(device_times)) if device_times else 0.0
+    duration = span if span > 0 else (data.end_log_ns - data.start_log_ns) / 1e9
     device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
     methods = sorted({m for m, _ in data.frames})
     facts = session_facts(data)
