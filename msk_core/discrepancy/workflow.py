@@ -120,10 +120,12 @@ def _binned(x: np.ndarray, y: np.ndarray, bins: int = N_BINS) -> tuple[list[floa
     return centres, means
 
 
-def _corr(x: np.ndarray, y: np.ndarray) -> float:
+def _corr(x: np.ndarray, y: np.ndarray, undefined: float = 0.0) -> float:
+    """Pearson r of the finite pairs; ``undefined`` when it is not defined (a constant series, e.g. one held-out
+    load: NaN in the tables, "n/a" in the report; 0 where r is summed over lags)."""
     ok = np.isfinite(x) & np.isfinite(y)
     if ok.sum() < 3 or np.std(x[ok]) == 0 or np.std(y[ok]) == 0:
-        return 0.0
+        return undefined
     return float(np.corrcoef(x[ok], y[ok])[0, 1])
 
 
@@ -143,9 +145,9 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
             "angle": dict(zip(("x", "gap"), _binned(q[:, n], g[:, n]))),
             "velocity": dict(zip(("x", "gap"), _binned(qd[:, n], g[:, n]))),
             "phase": dict(zip(("x", "gap"), _binned(phase[inside], g[inside, n]))),
-            "corr_angle": _corr(q[:, n], g[:, n]),
-            "corr_velocity": _corr(qd[:, n], g[:, n]),
-            "corr_load": _corr(load, g[:, n]),
+            "corr_angle": _corr(q[:, n], g[:, n], np.nan),
+            "corr_velocity": _corr(qd[:, n], g[:, n], np.nan),
+            "corr_load": _corr(load, g[:, n], np.nan),
         }
     if data.optimal is not None and data.slack is not None and trials[0].lengths is not None:
         arms = np.vstack([t.arms * on(data, f).f_max / t.scale[:, :, None] for t in trials])
@@ -155,8 +157,8 @@ def relations(data: SessionArrays, trials, f: Fit) -> dict:
             a = arms[:, :, j]
             along = (a * g).sum(axis=1) / np.maximum((a * a).sum(axis=1), 1e-12)
             out["groups"][data.groups[j]] = {
-                "corr_fibre_length": _corr(lengths[:, j], along),
-                "corr_lengthening_velocity": _corr(vel[:, j], along),
+                "corr_fibre_length": _corr(lengths[:, j], along, np.nan),
+                "corr_lengthening_velocity": _corr(vel[:, j], along, np.nan),
             }
     dt = min(t.frame_interval_s for t in trials)
     lags = np.arange(-int(round(XCORR_MAX_LAG_S / dt)), int(round(XCORR_MAX_LAG_S / dt)) + 1)

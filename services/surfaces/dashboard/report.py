@@ -576,11 +576,11 @@ def plot_set(result: dict, out: Path, stem: str) -> list[str]:
     top = np.argsort(np.nanmax(a, axis=0))[::-1][:6]
     fig, ax = plt.subplots(figsize=(10, 3.6))
     fig.subplots_adjust(left=0.07, right=0.86, bottom=0.14, top=0.93)
-    for k, rep in enumerate(result["reps"]):
+    for k, rep in enumerate(result["reps"]):  # numbered above each shaded rep ("rep 13" and "rep 14" overlapped)
         ax.axvspan(rep["start_s"] - t0, rep["end_s"] - t0, color="tab:blue", alpha=0.08)
-        ax.text(
-            (rep["start_s"] + rep["end_s"]) / 2 - t0, 102, f"rep {k + 1}", ha="center", fontsize=8, color="tab:blue"
-        )
+        ax.text((rep["start_s"] + rep["end_s"]) / 2 - t0, 102, str(k + 1), ha="center", fontsize=8, color="tab:blue")
+    if result["reps"]:
+        ax.text(1.0, 1.01, "reps numbered", transform=ax.transAxes, ha="right", fontsize=7, color="tab:blue")
     colours = plt.get_cmap("tab20")  # one colour per muscle, the same in every set's plot (by its place in the pack)
     for i in top:
         ax.plot(t - t0, 100 * a[:, i], lw=1.4, label=names.group(groups[i]), color=colours(i % 20))

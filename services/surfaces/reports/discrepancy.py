@@ -43,12 +43,13 @@ def _xcorr_plot(path: Path, result: DiscrepancyResult) -> None:
     save_figure(fig, path, dpi=90)
 
 
-def _before_after_bars(ax, per_name: dict, ylabel: str, rotation: int) -> None:
+def _before_after_bars(ax, per_name: dict, title: str, ylabel: str, rotation: int) -> None:
     names = list(per_name)
     x = np.arange(len(names))
     ax.bar(x - 0.2, [per_name[n]["before"] for n in names], 0.4, label="before")
     ax.bar(x + 0.2, [per_name[n]["after"] for n in names], 0.4, label="after")
     ax.set_xticks(x, names, rotation=rotation, fontsize=7)
+    ax.set_title(title, fontsize=9)  # the long words in the title: as a y label they ran off the figure
     ax.set_ylabel(ylabel)
     ax.legend(fontsize=8)
 
@@ -58,9 +59,9 @@ def _rms_plot(path: Path, summary: dict) -> None:
     per_c = summary["gap_per_coordinate"]
     per_g = summary.get("activation_gap_per_group", {})
     fig, axes = plt.subplots(1, 2 if per_g else 1, figsize=(10 if per_g else 5, 3.4), squeeze=False)
-    _before_after_bars(axes[0][0], per_c, "held-out RMS torque gap (fraction of capacity)", 30)
+    _before_after_bars(axes[0][0], per_c, "held-out RMS torque gap", "fraction of capacity", 30)
     if per_g:
-        _before_after_bars(axes[0][1], per_g, "held-out RMS activation gap (estimate - EMG)", 60)
+        _before_after_bars(axes[0][1], per_g, "held-out RMS activation gap", "estimate - EMG", 60)
     save_figure(fig, path, dpi=90)
 
 
@@ -163,6 +164,11 @@ def _candidate_lines(s: dict) -> list[str]:
     return lines
 
 
+def _r(value: float | None) -> str:
+    """A correlation for the tables: "n/a" where it is not defined (a constant series, e.g. one held-out load)."""
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:+.2f}"
+
+
 def _gap_lines(result: DiscrepancyResult) -> list[str]:
     """The gap per coordinate and where the gaps concentrate (correlations, cross-correlation lags)."""
     s = result.summary
@@ -178,15 +184,14 @@ def _gap_lines(result: DiscrepancyResult) -> list[str]:
     ]
     for c, lag in zip(result.data.coordinates, result.relations_before["xcorr"]["peak_lag_s"]):
         lines.append(
-            f"| {c} | {rel[c]['corr_angle']:+.2f} | {rel[c]['corr_velocity']:+.2f} | "
-            f"{rel[c]['corr_load']:+.2f} | {lag * 1000:.0f} |"
+            f"| {c} | {_r(rel[c]['corr_angle'])} | {_r(rel[c]['corr_velocity'])} | "
+            f"{_r(rel[c]['corr_load'])} | {lag * 1000:.0f} |"
         )
     groups = result.relations_before.get("groups", {})
     if groups:
         lines += ["", "| group (gap along its moment arms) | fibre length | lengthening velocity |", "|---|---|---|"]
         lines += [
-            f"| {g} | {v['corr_fibre_length']:+.2f} | {v['corr_lengthening_velocity']:+.2f} |"
-            for g, v in groups.items()
+            f"| {g} | {_r(v['corr_fibre_length'])} | {_r(v['corr_lengthening_velocity'])} |" for g, v in groups.items()
         ]
     return lines
 
