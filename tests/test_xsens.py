@@ -4,6 +4,7 @@ real capture, injected faults, unplugging, several trackers; USB discovery helpe
 from __future__ import annotations
 
 import os
+import re
 import time
 
 import numpy as np
@@ -83,7 +84,8 @@ def test_a_lost_query_is_asked_again_before_the_device_is_given_up(lost, identif
                 assert device.configure(100)["device_id"] == "03700123"
                 assert device.stats.requests_repeated == lost and len(read_for(device, count=10)) >= 10
             else:
-                with pytest.raises(ProtocolError, match=r"no reply 0x01 to REQ_DID within 0.3 s \(asked 3 times\)"):
+                said = rf"{re.escape(sim.path)}: no reply 0x01 to REQ_DID within 0.3 s \(asked 3 times\)"  # which
+                with pytest.raises(ProtocolError, match=said):
                     device.configure(100)
         finally:
             device.close()

@@ -30,9 +30,12 @@ log = logging.getLogger(__name__)
 class XbusDeviceError(ProtocolError):
     """The device answered with an Error (0x42) message."""
 
-    def __init__(self, code: int, request: str) -> None:
+    def __init__(self, code: int, request: str, port: str = "") -> None:
         self.code = code
-        super().__init__(f"Xsens device error 0x{code:02X} ({xbus.ERROR_CODES.get(code, 'unknown')}) after {request}")
+        where = f"{port}: " if port else ""  # with several trackers, which one
+        super().__init__(
+            f"{where}Xsens device error 0x{code:02X} ({xbus.ERROR_CODES.get(code, 'unknown')}) after {request}"
+        )
 
 
 @dataclass(frozen=True)
@@ -155,12 +158,14 @@ class XsensDevice:
                     if code in STREAM_ERROR_CODES:  # the measurement's, sent while the reply is on its way
                         self.stats.last_error = f"device error 0x{code:02X} ({xbus.ERROR_CODES[code]}) while measuring"
                         continue
-                    raise XbusDeviceError(code, name)
+                    raise XbusDeviceError(code, name, self.transport.name)
                 if message.mid == xbus.Mid.WAKE_UP:
                     self.send(xbus.Mid.WAKE_UP_ACK)
                 elif message.mid == xbus.Mid.MT_DATA2:
                     self._queue.append(message)
-        raise ProtocolError(f"no reply 0x{expected:02X} to {name} within {timeout or self.reply_timeout_s} s")
+        raise ProtocolError(
+            f"{self.transport.name}: no reply 0x{expected:02X} to {name} within {timeout or self.reply_timeout_s} s"
+        )
 
     # ------------------------------------------------------------------------------------------ control
     def wait_for_wakeup(self, timeout: float = 1.0) -> bool:
