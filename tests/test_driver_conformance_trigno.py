@@ -36,7 +36,39 @@ def known_rows(n: int, channels: int, paired: tuple[int, ...]) -> np.ndarray:
     return rows
 
 
-class FakeTcu:
+class LoopbackServer:
+    """A listening socket on a free loopback port per name (``ports``), each served by ``_accept(name)`` in a thread
+    (plus any ``extra`` thread targets) until :meth:`close`."""
+
+    def _listen(self, names: tuple[str, ...], timeout_s: float, extra: tuple = ()) -> None:
+        self._stop = threading.Event()
+        self._listeners = {name: socket.create_server(("127.0.0.1", 0)) for name in names}
+        for listener in self._listeners.values():
+            listener.settimeout(timeout_s)  # accept() wakes up to see the stop
+        self.ports = {name: listener.getsockname()[1] for name, listener in self._listeners.items()}
+        self._threads = [threading.Thread(target=self._accept, args=(name,), daemon=True) for name in self._listeners]
+        self._threads += [threading.Thread(target=target, daemon=True) for target in extra]
+
+    def _start(self) -> None:
+        for thread in self._threads:
+            thread.start()
+
+    def _accept(self, name: str) -> None:
+        raise NotImplementedError
+
+    def _connections(self) -> list[socket.socket]:
+        """The accepted sockets to close with the listeners."""
+        return []
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(2)
+        for sock in [*self._listeners.values(), *self._connections()]:
+            sock.close()
+
+
+class FakeTcu(LoopbackServer):
     """One command connection at a time, EMG and AUX data ports; answers from a table, streams on START."""
 
     def __init__(
@@ -65,26 +97,11 @@ class FakeTcu:
         self.commands: list[str] = []
         self.acquiring = False
         self._data: dict[str, list[socket.socket]] = {"emg": [], "aux": []}
-        self._listeners = {}
-        for name in ("command", "emg", "aux"):
-            listener = socket.create_server(("127.0.0.1", 0))
-            listener.settimeout(0.1)
-            self._listeners[name] = listener
-        self.ports = {name: listener.getsockname()[1] for name, listener in self._listeners.items()}
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._accept, args=(name,), daemon=True) for name in self._listeners]
-        for thread in self._threads:
-            thread.start()
+        self._listen(("command", "emg", "aux"), 0.1)
+        self._start()
 
-    def close(self) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(2)
-        for listener in self._listeners.values():
-            listener.close()
-        for socks in self._data.values():
-            for sock in socks:
-                sock.close()
+    def _connections(self) -> list[socket.socket]:
+        return [sock for socks in self._data.values() for sock in socks]
 
     def _accept(self, name: str) -> None:
         listener = self._listeners[name]

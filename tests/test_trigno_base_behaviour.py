@@ -16,13 +16,14 @@ from drivers.trigno.client import ClientState, EmgBlock, GapEvent, StatusEvent, 
 from drivers.trigno.simulator import SimulatorConfig, TrignoSimulator
 from drivers.trigno.source import synthetic_source
 from msk_core.errors import ProtocolError
+from tests.test_driver_conformance_trigno import LoopbackServer
 
 TERM = b"\r\n\r\n"
 SPF = 27  # EMG samples per frame: 2000 Hz
 GEN = 2**20  # EMG slot 0 of sample i of the base's acquisition g holds g * GEN + i (exact in float32)
 
 
-class ScriptedBase:
+class ScriptedBase(LoopbackServer):
     """A Trigno base whose acquisitions can be told apart: each START begins acquisition g (1, 2, ...) and EMG slot 0
     of its sample i is g * GEN + i. Behaviours the tests script: already acquiring before any client (``prestream``),
     START refused while acquiring, a last frame of the stopped acquisition ``late_frame_s`` after the STOP reply,
@@ -58,24 +59,13 @@ class ScriptedBase:
         self._lock = threading.Lock()
         self._emg: list[socket.socket] = []
         self._conns: list[socket.socket] = []
-        self._stop = threading.Event()
-        self._listeners = {name: socket.create_server(("127.0.0.1", 0)) for name in ("command", "emg")}
-        self.ports = {name: listener.getsockname()[1] for name, listener in self._listeners.items()}
-        for listener in self._listeners.values():
-            listener.settimeout(0.05)
-        self._threads = [threading.Thread(target=self._accept, args=(name,), daemon=True) for name in self._listeners]
-        self._threads.append(threading.Thread(target=self._stream, daemon=True))
+        self._listen(("command", "emg"), 0.05, extra=(self._stream,))
         if prestream:  # an earlier client's acquisition, under way for a while
             self._begin(0.0)
-        for thread in self._threads:
-            thread.start()
+        self._start()
 
-    def close(self) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(2)
-        for sock in [*self._listeners.values(), *self._emg, *self._conns]:
-            sock.close()
+    def _connections(self) -> list[socket.socket]:
+        return [*self._emg, *self._conns]
 
     @property
     def emg_connections(self) -> int:
