@@ -130,7 +130,10 @@ def test_reps_of_a_phase_stream_split_on_wrap_rest_and_gaps() -> None:
     assert [(round(a, 1), round(b, 1)) for a, b in phase_rep_spans(t, phase)] == [(0.5, 1.4), (1.5, 2.4), (3.0, 3.9)]
     assert phase_rep_spans(t, [math.nan] * 40) == []
     gap = [0.0, 0.1, 0.2, 0.3, 1.0, 1.1, 1.2, 1.3]  # the stream paused 0.7 s inside what looked like one rep
-    assert phase_rep_spans(gap, [0.1 * i for i in range(8)]) == [(0.0, 0.3), (1.0, 1.3)]
+    gap_phase = [0.0, 0.1, 0.2, 0.3, 0.7, 0.8, 0.9, 0.95]  # the second part is through its cycle when the data end
+    assert phase_rep_spans(gap, gap_phase) == [(0.0, 0.3), (1.0, 1.3)]
+    # a rep the end of the data cuts before its phase got through (0.7 < MIN_FINISHED_PHASE) was not done
+    assert phase_rep_spans(gap, [0.1 * i for i in range(8)]) == [(0.0, 0.3)]
     short = [0.0, 0.1, 0.2]  # shorter than MIN_REP_S: a flicker, no rep
     assert phase_rep_spans(short + [0.3], [0.2, 0.4, 0.6, REST_PHASE]) == []
     counter = PhaseRepCounter()  # live: a rep is counted at the sample that ends it

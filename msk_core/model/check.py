@@ -102,6 +102,8 @@ def check_dynamics(
     Same locked coordinates, couplings, gravity and hand load; random q, qd (±1 rad/s), qdd (±10 rad/s²).
     """
     spec = parse_spec(pack.raw["spec"])
+    if not spec.dynamics.has_hand_load:
+        hand_load = 0.0  # a pack without load points takes none (a walk: the ground's forces are in its ID file)
     model, _ = osim_tools.load_model(osim_path, gravity=spec.dynamics.gravity, forces=False)
     g = np.array(model.getGravity().to_numpy())
     redirect = {}

@@ -122,6 +122,7 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: Progress | 
     names = _member_names(spec)
     table = osim_tools.muscle_table(model, names, spec)
     fits = _fit_lengths(poser, names, spec, progress)
+    _check_groups_cross(spec, fits.report)
     rigid, validation = _dynamics(poser, spec, g)
     source = Path(osim_path)
     return {
@@ -150,9 +151,66 @@ def compile_pack(osim_path: str | Path, spec: PackSpec, *, progress: Progress | 
         "length_coefficients": _group_coefficients(spec, table, fits).tolist(),
         "dynamics": rigid,
         "validation_dynamics": validation,
-        "fit_report": {"samples": fits.n_poses, "holdout": fits.n_test, "muscles": fits.report},
+        "fit_report": {
+            "samples": fits.n_poses,
+            "holdout": fits.n_test,
+            "muscles": fits.report,
+            "notes": _range_notes(poser, spec) + _jump_notes(fits.report, fits.n_poses),
+        },
         "spec": spec.text,
     }
+
+
+NARROW_RANGE_DEG = 5.0  # a pack range narrower than this is likely radians typed as degrees
+JUMP_DROP_SHARE = 0.1  # a muscle whose fit dropped more of its samples as path jumps is said
+
+
+def _range_notes(poser, spec: PackSpec) -> list[str]:
+    """What the compile command says about the spec's ranges: beyond the model's own range for the coordinate (its
+    moment arms there are the model's geometry carried on, which OpenSim's tools clamp away when the coordinate is
+    clamped), or so narrow it looks like radians typed as degrees."""
+    notes = []
+    for c in spec.coordinates:
+        model = poser.coords[c.name]
+        lo, hi = model.getRangeMin(), model.getRangeMax()
+        if c.lower < lo - 1e-6 or c.upper > hi + 1e-6:
+            notes.append(
+                f"coordinates.{c.name}: range [{math.degrees(c.lower):g}, {math.degrees(c.upper):g}] deg goes "
+                f"beyond the model's [{math.degrees(lo):.4g}, {math.degrees(hi):.4g}]"
+                + (" (clamped there in the model)" if model.get_clamped() else "")
+            )
+        if math.degrees(c.upper - c.lower) < NARROW_RANGE_DEG:
+            notes.append(
+                f"coordinates.{c.name}: range [{math.degrees(c.lower):g}, {math.degrees(c.upper):g}] deg is under "
+                f"{NARROW_RANGE_DEG:g} deg wide: radians typed as degrees?"
+            )
+    return notes
+
+
+def _jump_notes(report: dict, poses: int) -> list[str]:
+    """Muscles whose fit dropped many samples as path jumps (a steep but smooth path can look like one): their
+    held-out figures then leave those poses out; msk model check measures every pose."""
+    return [
+        f"{name}: {r['derivative_samples_dropped_at_path_jumps']} of {poses} samples dropped at path jumps; check the "
+        "pack with msk model check"
+        for name, r in report.items()
+        if r.get("derivative_samples_dropped_at_path_jumps", 0) > JUMP_DROP_SHARE * poses
+    ]
+
+
+def _check_groups_cross(spec: PackSpec, report: dict) -> None:
+    """A group none of whose muscles crosses a pack coordinate (its moment arms would be zero everywhere: a muscle of
+    another joint, a coordinate left out) is a spec mistake, refused naming the group."""
+    for group, members in spec.groups.items():
+        if not any(report[m]["spans"] for m in members):
+            raise ConfigError(
+                f"no muscle of this group ({', '.join(members)}) crosses a pack coordinate "
+                f"({', '.join(spec.coordinate_names)}): its moment arms would be zero throughout",
+                path=spec.path,
+                line=spec.line_of(group),
+                field=f"groups.{group}",
+                value=members,
+            )
 
 
 def _member_names(spec: PackSpec) -> list[str]:
@@ -220,7 +278,7 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | N
             continue
         xs = x[:, spanned]
         local_hinges = [(spanned.index(j), xk) for j, xk in knots[name] if j in spanned]
-        exps, coef, info = _fit_muscle(
+        fitted = _fit_muscle(
             xs[fit_idx],
             lengths[fit_idx, i],
             dx[fit_idx, i][:, spanned],
@@ -230,6 +288,15 @@ def _fit_lengths(poser, names: list[str], spec: PackSpec, progress: Progress | N
             spec.fit.max_degree,
             local_hinges,
         )
+        if fitted is None:  # not even a first-degree polynomial has enough poses to be fitted
+            raise ConfigError(
+                f"{len(fit_idx)} poses are too few to fit {name}, which crosses {len(spanned)} pack coordinate(s): "
+                "raise [fit] samples or lower [fit] holdout",
+                path=spec.path,
+                field="fit.samples",
+                value=spec.fit.samples,
+            )
+        exps, coef, info = fitted
         full = np.zeros((len(exps), n), dtype=np.int64)
         full[:, spanned] = exps
         global_hinges = [(spanned[lj], xk) for lj, xk in local_hinges]

@@ -50,7 +50,11 @@ def load_model(path: str | Path, *, gravity: tuple[float, float, float] | None =
         raise ConfigError("OpenSim model not found", path=path)
     osim.Logger.setLevelString("error")
     with _quiet_stderr():
-        model = osim.Model(str(path))
+        try:
+            model = osim.Model(str(path))
+        except RuntimeError as error:  # SWIG's wrapper of OpenSim's exception: not an .osim it can read
+            first = str(error).strip().splitlines()[0] if str(error).strip() else "unreadable"
+            raise ConfigError(f"not an OpenSim model OpenSim can read: {first}", path=path) from None
         if not forces:
             fs = model.updForceSet()
             for i in range(fs.getSize()):
@@ -80,7 +84,7 @@ class OsimPoser:
                     f"unknown coordinate {name!r} ({closest(name, self.all_names)})",
                     path=spec.path,
                     line=spec.line_of(name),
-                    field="coordinates",
+                    field="locked" if name in spec.locked else "coordinates",
                     value=name,
                 )
         self.couplers = []
@@ -92,6 +96,7 @@ class OsimPoser:
             names = ccc.getIndependentCoordinateNames()
             indep = [names.get(k) for k in range(names.getSize())]
             self.couplers.append((ccc.getDependentCoordinateName(), indep, ccc.getFunction()))
+        self._check_free(spec)
         self._osim = osim
         self.base = {n: self.coords[n].getDefaultValue() for n in self.all_names}
         self.base.update(spec.locked)
@@ -103,6 +108,37 @@ class OsimPoser:
             u = state.getU()
             self.u_index[name] = int(np.argmax([abs(u.get(k)) for k in range(u.size())]))
         state.updU().setToZero()
+
+    def _check_free(self, spec: PackSpec) -> None:
+        """Every coordinate the spec sets must be one the model lets it set: a coordinate the model locks, or one a
+        coupler constraint drives from others, keeps the model's value whatever is asked (a pack coordinate would
+        have zero moment arms and torque throughout, a [locked] value would be ignored), without a word."""
+        driven = {dependent: independent for dependent, independent, _ in self.couplers}
+        listed = [
+            *((n, "coordinates") for n in spec.coordinate_names),
+            *((n, "locked") for n in spec.locked),
+            *((d, f"coordinates.{c.name}.coupled") for c in spec.coordinates for d in c.coupled),
+        ]
+        for name, where in listed:
+            coordinate = self.coords[name]
+            if where == "locked" and abs(spec.locked[name] - coordinate.getDefaultValue()) <= 1e-9:
+                continue  # held where the model holds it anyway
+            if coordinate.get_locked():
+                why = (
+                    f"is locked in the model at {coordinate.getDefaultValue():.6g}: it keeps that value whatever the "
+                    "pack asks; unlock it there"
+                )
+            elif name in driven:
+                sources = " and ".join(driven[name])
+                why = (
+                    f"is driven by a coupler constraint of the model from {sources}: it follows {sources} whatever "
+                    f"the pack asks; list {sources} instead"
+                )
+            else:
+                continue
+            raise ConfigError(
+                f"coordinate {name!r} {why}", path=spec.path, line=spec.line_of(name), field=where, value=name
+            )
 
     def values(self, q: np.ndarray) -> dict[str, float]:
         """All coordinate values for pack pose q."""

@@ -129,7 +129,10 @@ class PackSpec:
 
 def closest(name: str, choices: list[str], n: int = 3) -> str:
     """'closest: a, b, c' hint for an unknown name."""
-    hits = difflib.get_close_matches(name, choices, n=n, cutoff=0.4)
+    by_lower: dict[str, str] = {}
+    for choice in choices:  # case aside: "brd" finds "BRD_r"
+        by_lower.setdefault(choice.lower(), choice)
+    hits = [by_lower[h] for h in difflib.get_close_matches(name.lower(), list(by_lower), n=n, cutoff=0.4)]
     return f"closest: {', '.join(hits)}" if hits else "no similar name"
 
 
@@ -164,13 +167,25 @@ def _vector3(values: list[float]) -> tuple[float, float, float]:
     return float(x), float(y), float(z)
 
 
+TOP_KEYS = ("name", "version", "description", "source_model", "coordinates", "locked", "groups", "dynamics", "fit",
+            "scaling",  # read by msk_core.model.scale
+            "names", "balance")  # fmt: skip
+COORDINATE_KEYS = ("range_deg", "reference_deg", "coupled")
+FIT_KEYS = ("samples", "max_degree", "holdout", "seed")
+
+
+def _known_keys(table: dict, known: tuple[str, ...], where: str, path: Path | None, text: str) -> None:
+    """Refuse a key the spec format does not have (a misspelt table or key was ignored: a [lock] table left every
+    coordinate at the model's default), naming the closest known one."""
+    unknown = sorted(set(table) - set(known))
+    if unknown:
+        field_name = f"{where}.{unknown[0]}" if where else unknown[0]
+        message = f"unknown key ({closest(unknown[0], list(known))})"
+        raise _invalid(message, path, text, field_name, None, unknown[0])
+
+
 def _deg_pair(value: object, path: Path | None, text: str, fieldname: str) -> tuple[float, float]:
-    if not (
-        isinstance(value, list)
-        and len(value) == 2
-        and all(isinstance(v, (int, float)) for v in value)
-        and value[0] < value[1]
-    ):
+    if not (isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value) and value[0] < value[1]):
         token = fieldname.split(".")[-2] if "." in fieldname else fieldname
         raise _invalid("must be [lower, upper] in degrees with lower < upper", path, text, fieldname, value, token)
     return math.radians(value[0]), math.radians(value[1])
@@ -182,18 +197,25 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"not valid TOML: {exc}", path=path) from exc
+    _known_keys(raw, TOP_KEYS, "", path, text)
     name = _need(raw, "name", str, path, text, "top level")
     coordinates = _parse_coordinates(_need(raw, "coordinates", dict, path, text, "top level"), path, text)
     locked = _parse_locked(raw.get("locked", {}), path, text)
+    both = sorted(set(locked) & {c.name for c in coordinates})
+    if both:
+        message = "is a pack coordinate and locked at once: leave it in one of [coordinates] and [locked]"
+        raise _invalid(message, path, text, f"locked.{both[0]}", both[0], both[0])
+    for c in coordinates:
+        pack_coordinate = next((d for d in c.coupled if d in {o.name for o in coordinates} | set(locked)), None)
+        if pack_coordinate is not None:
+            message = (
+                f"couples {pack_coordinate!r}, which the spec already sets (a pack coordinate or a locked one): a "
+                "coupled coordinate is a model coordinate that follows this one"
+            )
+            raise _invalid(message, path, text, f"coordinates.{c.name}.coupled", pack_coordinate, c.name)
     groups = _parse_groups(_need(raw, "groups", dict, path, text, "top level"), path, text)
     dynamics = _parse_dynamics(raw.get("dynamics", {}), path, text)
-    fit_raw = raw.get("fit", {})
-    fit = FitSpec(
-        samples=int(fit_raw.get("samples", 300)),
-        max_degree=int(fit_raw.get("max_degree", 6)),
-        holdout=float(fit_raw.get("holdout", 0.2)),
-        seed=int(fit_raw.get("seed", 1)),
-    )
+    fit = _parse_fit(raw.get("fit", {}), path, text)
     return PackSpec(
         name=name,
         version=str(raw.get("version", "1")),
@@ -211,6 +233,26 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
     )
 
 
+def _parse_fit(fit_raw: object, path: Path | None, text: str) -> FitSpec:
+    """The [fit] table: samples per muscle (>= 10), polynomial degree (>= 1), held-out share in [0, 1), seed."""
+    if not isinstance(fit_raw, dict):
+        raise ConfigError("must be a table", path=path, field="fit", line=_line(text, "[fit]"))
+    _known_keys(fit_raw, FIT_KEYS, "fit", path, text)
+    checks = (
+        ("samples", 300, lambda v: isinstance(v, int) and v >= 10, "a whole number >= 10"),
+        ("max_degree", 6, lambda v: isinstance(v, int) and v >= 1, "a whole number >= 1"),
+        ("holdout", 0.2, lambda v: _is_number(v) and 0 <= v < 1, "a share in [0, 1)"),
+        ("seed", 1, lambda v: isinstance(v, int), "a whole number"),
+    )
+    values = {}
+    for key, default, ok, what in checks:
+        value = fit_raw.get(key, default)
+        if isinstance(value, bool) or not ok(value):
+            raise _invalid(f"must be {what}", path, text, f"fit.{key}", value, key)
+        values[key] = value
+    return FitSpec(**values)
+
+
 def _parse_coordinates(coords_raw: dict, path: Path | None, text: str) -> tuple[CoordinateSpec, ...]:
     """The [coordinates] table: at least one, each with range_deg, optional reference_deg and coupled ratios."""
     if not coords_raw:
@@ -220,13 +262,21 @@ def _parse_coordinates(coords_raw: dict, path: Path | None, text: str) -> tuple[
         where = f"coordinates.{cname}"
         if not isinstance(entry, dict):
             raise ConfigError("must be a table", path=path, field=where, line=_line(text, cname))
+        _known_keys(entry, COORDINATE_KEYS, where, path, text)
         lo, hi = _deg_pair(entry.get("range_deg"), path, text, f"{where}.range_deg")
-        ref = math.radians(float(entry.get("reference_deg", 0.0)))
+        reference = entry.get("reference_deg", 0.0)
+        if not _is_number(reference):
+            raise _invalid("must be a number of degrees", path, text, f"{where}.reference_deg", reference, cname)
+        ref = math.radians(float(reference))
         if not lo <= ref <= hi:
-            value = entry.get("reference_deg")
-            raise _invalid("reference_deg outside range_deg", path, text, f"{where}.reference_deg", value, cname)
+            message = (
+                f"reference_deg {reference:g}"
+                + ("" if "reference_deg" in entry else " (the default)")
+                + f" outside range_deg [{math.degrees(lo):g}, {math.degrees(hi):g}]"
+            )
+            raise _invalid(message, path, text, f"{where}.reference_deg", reference, cname)
         coupled = entry.get("coupled", {})
-        if not isinstance(coupled, dict) or not all(isinstance(v, (int, float)) for v in coupled.values()):
+        if not isinstance(coupled, dict) or not all(_is_number(v) for v in coupled.values()):
             message = "coupled must map coordinate names to ratios"
             raise _invalid(message, path, text, f"{where}.coupled", coupled, cname)
         coordinates.append(CoordinateSpec(cname, lo, hi, ref, {k: float(v) for k, v in coupled.items()}))
@@ -236,10 +286,12 @@ def _parse_coordinates(coords_raw: dict, path: Path | None, text: str) -> tuple[
 def _parse_locked(locked_raw: dict, path: Path | None, text: str) -> dict[str, float]:
     """The [locked] table: model coordinate -> value (``{ deg = .. }`` in rad, ``{ m = .. }`` in m)."""
     locked = {}
+    if not isinstance(locked_raw, dict):
+        raise ConfigError("must be a table", path=path, field="locked", line=_line(text, "[locked]"))
     for lname, value in locked_raw.items():
-        if isinstance(value, dict) and "deg" in value:
+        if isinstance(value, dict) and len(value) == 1 and "deg" in value and _is_number(value["deg"]):
             locked[lname] = math.radians(float(value["deg"]))
-        elif isinstance(value, dict) and "m" in value:
+        elif isinstance(value, dict) and len(value) == 1 and "m" in value and _is_number(value["m"]):
             locked[lname] = float(value["m"])
         else:
             raise _invalid("locked values are { deg = .. } or { m = .. }", path, text, f"locked.{lname}", value, lname)
@@ -265,10 +317,7 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
     ``load_share`` is then only meaningful with ``shared_from`` (the share of the shared bodies' mass)."""
     if not isinstance(dyn_raw, dict):
         raise ConfigError("must be a table", path=path, field="dynamics", line=_line(text, "[dynamics]"))
-    unknown = sorted(set(dyn_raw) - set(DYNAMICS_KEYS))
-    if unknown:
-        message = f"unknown key ({closest(unknown[0], list(DYNAMICS_KEYS))})"
-        raise _invalid(message, path, text, f"dynamics.{unknown[0]}", None, unknown[0])
+    _known_keys(dyn_raw, DYNAMICS_KEYS, "dynamics", path, text)
     loads = _parse_load_points(dyn_raw.get("load_points", []), path, text)
     shared_from = str(dyn_raw.get("shared_from", ""))
     share = dyn_raw.get("load_share", 1.0)

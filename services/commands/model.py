@@ -94,7 +94,10 @@ def run_compile(args: argparse.Namespace) -> int:
     from msk_core.model.spec import load_spec  # noqa: PLC0415
 
     spec = load_spec(args.spec)
-    out = write_pack(compile_pack(args.osim, spec, progress=ProgressBar()), args.out)
+    pack = compile_pack(args.osim, spec, progress=ProgressBar())
+    out = write_pack(pack, args.out)
+    for note in pack["fit_report"].get("notes", []):
+        print(f"note: {note}")
     print(f"wrote {out}")
     return 0
 
@@ -116,7 +119,8 @@ def _print_check(report: dict) -> None:
         cells = " ".join(f"{s['moment_arm_rms_mm'][c]:12.3f}/{s['moment_arm_max_mm'][c]:<12.3f}" for c in coords)
         print(f"{g:14s} {cells}   {s['length_max_mm']:.3f} mm")
     print(
-        f"inverse dynamics vs OpenSim InverseDynamicsSolver ({d['poses']} poses, hand load {d['hand_load_newton']} N):"
+        f"inverse dynamics vs OpenSim InverseDynamicsSolver ({d['poses']} poses, "
+        + (f"hand load {d['hand_load_newton']} N):" if d["hand_load_newton"] else "no hand load: the pack has none):")
     )
     for c in d["peak_nm"]:
         print(
