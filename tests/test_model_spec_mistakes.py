@@ -128,3 +128,33 @@ samples = 30
         n.startswith("coordinates.r_elbow_flex: range [-30, 170] deg goes beyond the model's [0, ") for n in notes
     )
     assert "coordinates.r_shoulder_elev: range [0.1, 2] deg is under 5 deg wide: radians typed as degrees?" in notes
+
+
+def test_a_steep_smooth_path_keeps_its_slope_and_a_kink_does_not():
+    """The rectus abdominis of a full-body trunk, its 6 lumbar levels coupled to one pack coordinate, curves at tens of
+    m/rad²: every slope sample there was dropped as a path jump, and the pack was 73 mm off OpenSim there."""
+    import numpy as np
+
+    from msk_core.model.osim_tools import sample_lengths
+
+    class Path_:
+        def __init__(self, length):
+            self.length, self.q = length, 0.0
+
+        def getLength(self, _state):  # noqa: N802 - OpenSim's name
+            return self.length(self.q)
+
+    paths = {"smooth": Path_(lambda q: 20.0 * q**2), "kink": Path_(lambda q: 0.05 * abs(q - 0.01))}
+
+    class Poser:
+        state = None
+        model = type("M", (), {"getMuscles": lambda self: type("S", (), {"get": lambda self, n: paths[n]})()})()
+
+        def set(self, q):
+            for path in paths.values():
+                path.q = float(q[0])
+
+    poses = np.array([[-0.2], [0.01], [0.15]])
+    _, derivs = sample_lengths(Poser(), ["smooth", "kink"], poses)
+    np.testing.assert_allclose(derivs[:, 0, 0], 40.0 * poses[:, 0], rtol=1e-6)  # slope 40 q at every pose
+    assert np.isnan(derivs[1, 1, 0]) and not np.isnan(derivs[[0, 2], 1, 0]).any()  # only the kink's pose has none

@@ -203,6 +203,8 @@ def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str,
 
 
 JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
+#: At twice the step, a smooth path's second difference is 4 x the first's, a kink's 2 x: above this it is smooth.
+SMOOTH_SCALING = 3.0
 GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbours 2e-4 rad apart is an OpenSim glitch
 
 
@@ -235,7 +237,15 @@ def sample_lengths(
             poser.set(q - e)
             minus = read()
             # a path that jumps (wrap-object switch) makes the one-sided slopes disagree: no derivative there
-            jump = np.abs((plus - centre) - (centre - minus)) > JUMP_TOLERANCE * delta
+            second = plus - 2 * centre + minus
+            jump = np.abs(second) > JUMP_TOLERANCE * delta
+            if jump.any():
+                # ... but so does a steep smooth path (the 6 coupled lumbar levels of a full-body trunk): its second
+                # difference grows with the step squared (x4 at twice the step), a kink's only with the step (x2)
+                poser.set(q + 2 * e)
+                plus2 = read()
+                poser.set(q - 2 * e)
+                jump &= ~(np.abs(read() + plus2 - 2 * centre) > SMOOTH_SCALING * np.abs(second))
             derivs[i, :, j] = np.where(jump, np.nan, (plus - minus) / (2 * delta))
             # OpenSim wrapping occasionally fails at an isolated pose (length off by cm): drop that length too
             lengths[i] = np.where(np.abs(plus + minus - 2 * centre) > GLITCH_TOLERANCE, np.nan, lengths[i])
