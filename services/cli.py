@@ -54,6 +54,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MskError as error:
         print(f"msk {args.command}: error: {error}", file=sys.stderr)
         return 2
+    except OSError as error:  # the file system's answer (no such folder, no permission, disk full): said, no traceback
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"msk {args.command}: error: {where}{error.strerror or error}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"msk {args.command}: interrupted", file=sys.stderr)
         return 130

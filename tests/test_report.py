@@ -422,3 +422,17 @@ def test_the_session_length_is_that_of_its_frames_not_of_the_start_up_before_the
             session.joints_and_frame(6.0 + 0.05 * k, -1.0, ["A", "B"], [0.1, 0.1])
     summary = report.write_report(recording, tmp_path / "out")
     assert summary["duration_s"] == pytest.approx(9.95), summary["duration_s"]
+
+
+def test_a_folder_that_cannot_be_made_is_said_without_a_traceback(tmp_path, capsys):
+    """The file system's refusals (no such folder, a file in the way, no permission, disk full) ended in tracebacks
+    of msk report, msk recorder and msk live (found by exploratory QA)."""
+    from services import cli
+
+    recording = tmp_path / "session.mcap"
+    write_small_session(recording, loads=[])
+    in_the_way = tmp_path / "a_file"
+    in_the_way.write_text("not a folder")
+    assert cli.main(["report", str(recording), "--out", str(in_the_way / "report")]) == 2
+    said = capsys.readouterr().err
+    assert said.startswith("msk report: error: ") and str(in_the_way) in said and "Traceback" not in said, said

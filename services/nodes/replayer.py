@@ -117,7 +117,9 @@ def main(
                 continue
             publisher = publishers.get(key)
             if publisher is None:
-                publisher = declare_data_publisher(session, key, recorded.type_name)
+                # every topic lossless, the newest-wins ones too: a replay reproduces the recording whole (at
+                # --rate max a DROP publisher lost activation frames and statuses towards the recorder)
+                publisher = declare_data_publisher(session, key, recorded.type_name, delivery=topics.Delivery.LOSSLESS)
                 publishers[key] = publisher
                 if wait_subscribers_s > 0:
                     wait_for_subscribers(publisher, wait_subscribers_s)
@@ -144,8 +146,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--rate",
         default="1",
         help="speed factor (1 = original timing) or 'max' (default: 1). Faster than the recording, a live estimator "
-        "waits for EMG by the wall clock, so 'assisted' can differ from the original (frames flagged emg_stalled); "
-        "to reproduce a session, replay at 1",
+        "waits for EMG by the wall clock and aligns the EMG clock on what has arrived, so 'assisted' can differ from "
+        "the original without a flag on the frame; to reproduce a session, replay at 1",
     )
     parser.add_argument(
         "--session", default=None, help="republish under msk/<SESSION>/... instead of the recorded session"
