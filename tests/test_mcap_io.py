@@ -75,3 +75,43 @@ def test_a_cut_recording_with_rejected_channels_reads_up_to_the_cut(tmp_path):
     assert report.truncated and 0 < len(typed) < 400
     assert [m.decode().q[0] for m in typed] == [float(i) for i in range(len(typed))]
     assert abs(report.left_out[(JOINTS, "undecodable")] - len(typed)) <= 1
+
+
+def _with_a_damaged_chunk(tmp_path, n: int = 600):
+    """A recording of ``n`` load events in small chunks, 8 bytes in the middle of its second chunk flipped."""
+    from mcap.reader import make_reader
+
+    path = tmp_path / "damaged.mcap"
+    with McapRecorderWriter(path, chunk_size=4096) as writer:
+        for i in range(n):
+            writer.write_message(topics.load_key("s"), messages.LoadEvent(barbell_mass_kg=float(i)), log_time_ns=i + 1)
+    with open(path, "rb") as stream:
+        chunk = make_reader(stream).get_summary().chunk_indexes[1]
+    data = bytearray(path.read_bytes())
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+    data[middle : middle + 8] = bytes(b ^ 0xFF for b in data[middle : middle + 8])
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_a_damaged_chunk_is_skipped_and_the_chunks_after_it_are_read(tmp_path):
+    """A recording with one damaged chunk gave 515 of 26,377 messages ("cut short"): every chunk after it was lost."""
+    path = _with_a_damaged_chunk(tmp_path)
+    report = ReadReport()
+    masses = [m.decode().barbell_mass_kg for m in read_messages(path, report=report)]
+    assert report.damaged_chunks == 1 and not report.truncated
+    lost = 600 - len(masses)
+    assert 0 < lost < 300 and masses[-1] == 599.0  # the chunks after the damaged one are read
+    assert report.messages_expected == 600 and report.messages_lost == lost
+    assert report.damage_text() == f"1 damaged chunk(s) skipped; {lost} of 600 messages lost"
+
+
+def test_the_session_report_says_what_a_damaged_recording_lost(tmp_path, capsys):
+    from services import cli
+
+    path = _with_a_damaged_chunk(tmp_path)
+    assert cli.main(["report", str(path), "--out", str(tmp_path / "out")]) == 0
+    damage = json.loads((tmp_path / "out" / "report.json").read_text())["recording_damage"]
+    assert damage.startswith("1 damaged chunk(s) skipped; ") and damage.endswith(" of 600 messages lost"), damage
+    assert f"warning: {path}: {damage}; the readable part is reported" in capsys.readouterr().err
+    assert damage in (tmp_path / "out" / "report.html").read_text()

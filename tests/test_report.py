@@ -436,3 +436,25 @@ def test_a_folder_that_cannot_be_made_is_said_without_a_traceback(tmp_path, caps
     assert cli.main(["report", str(recording), "--out", str(in_the_way / "report")]) == 2
     said = capsys.readouterr().err
     assert said.startswith("msk report: error: ") and str(in_the_way) in said and "Traceback" not in said, said
+
+
+def test_payloads_that_are_not_their_message_are_counted_not_fatal(tmp_path, capsys):
+    """Four garbage payloads on an activation topic stopped the whole report with "12 bytes are not a valid
+    msk.ActivationFrame", naming neither the file nor the topic (found by exploratory QA)."""
+    from services import cli
+
+    recording = tmp_path / "session.mcap"
+    with timed_recording(recording, 1_773_480_600_000_000_000) as session:
+        for k in range(200):
+            session.joints_and_frame(0.05 * k, -1.0, ["A", "B"], [0.1, 0.1])
+            if k % 50 == 0:
+                ns = session.start_ns + int(0.05 * k * 1e9)
+                session.writer.write("msk/s/activations/so", "msk.ActivationFrame", b"\\xff" * 12, ns, ns)
+    assert cli.main(["report", str(recording), "--out", str(tmp_path / "out")]) == 0
+    summary = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert summary["undecodable_payloads"] == {"msk/s/activations/so": 4} and summary["recording_damage"] == ""
+    said = capsys.readouterr().err
+    assert (
+        f"warning: {recording}: payloads that were not their topic's message, left out: 4 on msk/s/activations/so"
+        in said
+    )

@@ -40,6 +40,7 @@ class ReplayStats:
     excluded: int = 0
     other_sessions: int = 0  # messages of recorded sessions other than the one played
     truncated: bool = False
+    damage: str = ""  # what of the file could not be read (ReadReport.damage_text)
     left_out: dict[tuple[str, str], int] = field(default_factory=dict)  # (topic, reason) -> rejected payloads
 
 
@@ -136,6 +137,7 @@ def main(
         for publisher in publishers.values():
             publisher.undeclare()
     stats.truncated = report.truncated
+    stats.damage = report.damage_text()
     stats.left_out = dict(report.left_out)
     return stats
 
@@ -205,7 +207,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         wait_nodes_s=args.wait_nodes_timeout,
         recorded_session=recorded,
     )
-    note = " (recording was cut short; replayed its readable part)" if stats.truncated else ""
+    note = (
+        f" (the recording could not be read whole: {stats.damage}; replayed its readable part)" if stats.damage else ""
+    )
     skipped = f", left out {stats.excluded} on excluded keys" if stats.excluded else ""
     if stats.other_sessions:
         skipped += f", left out {stats.other_sessions} of other recorded sessions than {recorded!r}"

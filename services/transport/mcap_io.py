@@ -21,12 +21,11 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import overload
+from typing import Any, overload
 
-from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, DataEnd, Footer, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from msk_core.errors import FileFormatError, InputError
@@ -204,6 +203,30 @@ class ReadReport:
     error: str = ""
     #: messages :func:`read_messages` left out, their channel carrying no msk protobuf type: (topic, reason) -> count
     left_out: Counter = field(default_factory=Counter)
+    #: chunks whose bytes are damaged (CRC, compression): skipped, the chunks after them still read
+    damaged_chunks: int = 0
+    #: messages read, and those the file's summary says it holds (None without a readable summary)
+    messages_read: int = 0
+    messages_expected: int | None = None
+
+    @property
+    def messages_lost(self) -> int | None:
+        """Messages the summary counts that could not be read (None when the file has no readable summary)."""
+        if self.messages_expected is None:
+            return None
+        return max(self.messages_expected - self.messages_read - sum(self.left_out.values()), 0)
+
+    def damage_text(self) -> str:
+        """What was not read, in words ("" when everything was)."""
+        said = []
+        if self.damaged_chunks:
+            said.append(f"{self.damaged_chunks} damaged chunk(s) skipped")
+        if self.truncated:
+            said.append("cut short")
+        lost = self.messages_lost
+        if said and lost is not None:
+            said.append(f"{lost} of {self.messages_expected} messages lost")
+        return "; ".join(said)
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -246,26 +269,14 @@ def read_messages(
     channels: dict[int, Channel] = {}
     kinds: dict[int, tuple[str, str]] = {}  # channel id -> (type name, rejected reason)
     with open(path, "rb") as stream:
-        reader = StreamReader(stream, validate_crcs=True, emit_chunks=False)
-        records = reader.records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                return
-            except (McapError, EOFError, ValueError, Exception) as error:  # truncation shows as various errors
-                if not tolerate_truncation:
-                    raise FileFormatError(f"unreadable MCAP record: {error}", path=path) from error
-                report.truncated = True
-                report.error = f"{type(error).__name__}: {error}"
-                return
+        for record in _records(stream, path, report, tolerate_truncation):
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
                 channels[record.id] = record
                 kinds.pop(record.id, None)
             elif isinstance(record, (DataEnd, Footer)):
-                return
+                break
             elif isinstance(record, Message):
                 kind = kinds.get(record.channel_id)
                 if kind is None:
@@ -278,6 +289,7 @@ def read_messages(
                 if rejected and not include_rejected:
                     report.left_out[(topic, rejected)] += 1
                     continue
+                report.messages_read += 1
                 yield RecordedMessage(
                     topic=topic,
                     type_name=type_name,
@@ -287,6 +299,50 @@ def read_messages(
                     sequence=record.sequence,
                     rejected=rejected,
                 )
+    if report.damaged_chunks or report.truncated:  # how much that cost, when the file's summary can say
+        report.messages_expected = _summary_message_count(path)
+
+
+def _records(stream, path: Path, report: ReadReport, tolerate_truncation: bool) -> Iterator[Any]:
+    """The file's records in order, each chunk's unpacked. A chunk whose bytes are damaged (its CRC or compression
+    fails) is skipped and counted, and the chunks after it are read (they are whole records of known length); a
+    record that cannot be read at all ends the file there (cut short)."""
+    records = StreamReader(stream, validate_crcs=True, emit_chunks=True).records
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except Exception as error:  # noqa: BLE001 - truncation shows as various errors of the mcap package
+            if not tolerate_truncation:
+                raise FileFormatError(f"unreadable MCAP record: {error}", path=path) from error
+            report.truncated = True
+            report.error = f"{type(error).__name__}: {error}"
+            return
+        if not isinstance(record, Chunk):
+            yield record
+            continue
+        try:
+            unpacked = breakup_chunk(record, validate_crc=True)
+        except Exception as error:  # noqa: BLE001 - a CRC mismatch or a decompression error
+            if not tolerate_truncation:
+                raise FileFormatError(f"damaged MCAP chunk: {error}", path=path) from error
+            report.damaged_chunks += 1
+            report.error = f"{type(error).__name__}: {error}"
+            continue
+        yield from unpacked
+
+
+def _summary_message_count(path: Path) -> int | None:
+    """The message count of the file's summary (None when it has no readable one: a file cut short)."""
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+    except Exception:  # noqa: BLE001 - no footer, or a damaged summary
+        return None
+    if summary is None or summary.statistics is None:
+        return None
+    return int(summary.statistics.message_count)
 
 
 def recorded_sessions(path: str | Path) -> dict[str, int]:

@@ -96,6 +96,8 @@ class SessionData:
     start_log_ns: int = 0
     end_log_ns: int = 0
     truncated: bool = False
+    damage: str = ""  # what of the file could not be read (ReadReport.damage_text), "" when all of it was
+    undecodable: dict[str, int] = field(default_factory=dict)  # topic -> payloads that were not their message
     refused_loads: int = 0  # load events naming an exercise that no pack has and no frame named (not applied)
 
 
@@ -113,55 +115,68 @@ def read_session(path: Path, *, session: str | None = None, progress: bool = Fal
             continue
         data.start_log_ns = data.start_log_ns or recorded.log_time_ns
         data.end_log_ns = recorded.log_time_ns
-        log_s = (recorded.log_time_ns - data.start_log_ns) / 1e9
-        kind = recorded.type_name
-        if kind == "msk.ActivationFrame":
-            f = recorded.decode(messages.ActivationFrame)
-            key = (f.method, tuple(f.groups))
-            series = data.frames.get(key) or data.frames.setdefault(key, MethodSeries(tuple(f.groups)))
-            series.time.append(f.time_s)
-            series.activations.append(list(f.activations))
-            series.phase.append(f.phase if f.HasField("phase") else math.nan)
-            series.residual.append([t.residual_nm for t in f.torques])
-            series.solve_s.append(f.solve_time_s)
-            series.flagged.append(bool(f.flags))
-            if f.exercise and f.exercise not in data.frame_exercises:
-                data.frame_exercises.append(f.exercise)
-                for e in gate.on_frame(f.exercise):
-                    _add_load(data, e)
-        elif kind == "msk.JointAngles":
-            j = recorded.decode(messages.JointAngles)
-            t = j.device_time_ns / 1e9
-            data.joint_time.append(t)
-            data.joint_phase.append(j.phase if j.HasField("phase") else math.nan)
-            data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
-        elif kind == "msk.LoadEvent":
-            for e in gate.offer(recorded.decode(messages.LoadEvent)):
-                _add_load(data, e)
-        elif kind == "msk.EmgChunk":
-            c = recorded.decode(messages.EmgChunk)
-            data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append(
-                (log_s, c.first_sample_index, c.n_samples)
-            )
-        elif kind == "msk.ImuSample":
-            s = recorded.decode(messages.ImuSample)
-            data.imu.setdefault(s.tracker_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, s.packet_counter))
-        elif kind == "msk.DeviceStatus":
-            status = recorded.decode(messages.DeviceStatus)
-            if status.kind == "node":  # a node's own status: its dropped inputs, not a device
-                data.node_drops[status.device_id] = sum(int(d.count) for d in status.dropped)
-                data.electrodes.update((f"{e.source}/{e.channel}", e) for e in status.electrodes)
-                for fatigue in status.fatigue:
-                    keep_fatigue(data.fatigue.setdefault(f"{fatigue.source}/{fatigue.channel}", []), fatigue)
-            else:
-                data.status.setdefault(status.device_id, []).append(
-                    (log_s, status.connected, status.samples_lost, status.errors)
-                )
+        try:
+            _take(data, gate, recorded, (recorded.log_time_ns - data.start_log_ns) / 1e9)
+        except messages.MessageDecodeError:  # bytes that are not the message their channel says: counted, left out
+            data.undecodable[recorded.topic] = data.undecodable.get(recorded.topic, 0) + 1
     data.truncated = report.truncated
+    data.damage = report.damage_text()
     data.refused_loads = gate.refused + len(gate.held)
     if data.start_log_ns == 0:
-        raise InputError("the recording holds no messages", path=path)
+        left_out = sum(report.left_out.values())
+        raise InputError(
+            "the recording holds no messages"
+            + (f" of this project's ({left_out} others left out: another tool's channels)" if left_out else ""),
+            path=path,
+        )
     return data
+
+
+def _take(data: SessionData, gate: LoadEventGate, recorded, log_s: float) -> None:
+    """One recorded message into ``data`` (``log_s``: seconds since the recording's first message)."""
+    kind = recorded.type_name
+    if kind == "msk.ActivationFrame":
+        f = recorded.decode(messages.ActivationFrame)
+        key = (f.method, tuple(f.groups))
+        series = data.frames.get(key) or data.frames.setdefault(key, MethodSeries(tuple(f.groups)))
+        series.time.append(f.time_s)
+        series.activations.append(list(f.activations))
+        series.phase.append(f.phase if f.HasField("phase") else math.nan)
+        series.residual.append([t.residual_nm for t in f.torques])
+        series.solve_s.append(f.solve_time_s)
+        series.flagged.append(bool(f.flags))
+        if f.exercise and f.exercise not in data.frame_exercises:
+            data.frame_exercises.append(f.exercise)
+            for e in gate.on_frame(f.exercise):
+                _add_load(data, e)
+    elif kind == "msk.JointAngles":
+        j = recorded.decode(messages.JointAngles)
+        t = j.device_time_ns / 1e9
+        data.joint_time.append(t)
+        data.joint_phase.append(j.phase if j.HasField("phase") else math.nan)
+        data.joint_q.setdefault(tuple(j.coordinates), []).append((t, list(j.q)))
+    elif kind == "msk.LoadEvent":
+        for e in gate.offer(recorded.decode(messages.LoadEvent)):
+            _add_load(data, e)
+    elif kind == "msk.EmgChunk":
+        c = recorded.decode(messages.EmgChunk)
+        data.emg.setdefault(c.source_id or recorded.topic.rsplit("/", 1)[-1], []).append(
+            (log_s, c.first_sample_index, c.n_samples)
+        )
+    elif kind == "msk.ImuSample":
+        s = recorded.decode(messages.ImuSample)
+        data.imu.setdefault(s.tracker_id or recorded.topic.rsplit("/", 1)[-1], []).append((log_s, s.packet_counter))
+    elif kind == "msk.DeviceStatus":
+        status = recorded.decode(messages.DeviceStatus)
+        if status.kind == "node":  # a node's own status: its dropped inputs, not a device
+            data.node_drops[status.device_id] = sum(int(d.count) for d in status.dropped)
+            data.electrodes.update((f"{e.source}/{e.channel}", e) for e in status.electrodes)
+            for fatigue in status.fatigue:
+                keep_fatigue(data.fatigue.setdefault(f"{fatigue.source}/{fatigue.channel}", []), fatigue)
+        else:
+            data.status.setdefault(status.device_id, []).append(
+                (log_s, status.connected, status.samples_lost, status.errors)
+            )
 
 
 def _add_load(data: SessionData, e: messages.LoadEvent) -> None:
@@ -990,7 +1005,19 @@ def health_html(data: SessionData, devices: dict, device_plot: str | None) -> st
             if data.refused_loads
             else ""
         )
-        + ("<p class='note'>The recording was cut short; its readable part is reported.</p>" if data.truncated else "")
+        + (
+            f"<p class='note'>The recording could not be read whole ({html.escape(data.damage)}); its readable part "
+            "is reported.</p>"
+            if data.damage
+            else ""
+        )
+        + (
+            "<p class='note'>Payloads that were not the message their topic says, left out: "
+            + html.escape(", ".join(f"{n} on {t}" for t, n in sorted(data.undecodable.items())))
+            + "</p>"
+            if data.undecodable
+            else ""
+        )
         + "</section>"
     )
 
@@ -1064,6 +1091,8 @@ def write_report(recording: Path, out: Path, *, session: str | None = None, prog
         "recording": str(recording),
         **facts,
         "duration_s": duration,
+        "recording_damage": data.damage,  # "" when the whole file was read
+        "undecodable_payloads": dict(sorted(data.undecodable.items())),
         "methods": methods,
         "sets": [
             {k: v for k, v in s.items() if k != "methods" and not k.startswith("_")}
@@ -1093,6 +1122,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     summary = write_report(args.recording, args.out, session=args.session, progress=sys.stderr.isatty())
+    if summary["recording_damage"]:
+        print(
+            f"warning: {args.recording}: {summary['recording_damage']}; the readable part is reported", file=sys.stderr
+        )
+    if summary["undecodable_payloads"]:
+        print(
+            f"warning: {args.recording}: payloads that were not their topic's message, left out: "
+            + ", ".join(f"{n} on {t}" for t, n in summary["undecodable_payloads"].items()),
+            file=sys.stderr,
+        )
     print(
         f"report of {args.recording}: {len(summary['sets'])} set{'' if len(summary['sets']) == 1 else 's'}, {sum(len(s['reps']) for s in summary['sets'])} reps, "
         f"methods {', '.join(summary['methods']) or 'none'} -> {args.out / 'report.html'}",
