@@ -306,3 +306,11 @@ def _run_part(
         _wait(lambda: stats.written >= expected, 20, f"{expected} chunks written", lambda: stats)
         time.sleep(0.2)  # anything more (a copy from the cache) would show in the parts
     return stats
+
+
+def test_a_folder_given_as_the_recording_is_said_as_such(tmp_path, capsys):
+    """It was taken for an earlier part of the recording: "MCAP file not found"."""
+    from services import cli
+
+    assert cli.main(["recorder", "--out", str(tmp_path), "--duration", "1"]) == 2
+    assert "field '--out': is a folder: give the recording's file" in capsys.readouterr().err

@@ -716,6 +716,10 @@ def run_from_args(args: argparse.Namespace) -> int:
         raise ConfigError("must be positive", field="--flush-interval", value=args.flush_interval)
     if not args.history_timeout > 0:
         raise ConfigError("must be positive", field="--history-timeout", value=args.history_timeout)
+    if Path(args.out).is_dir():  # else taken for an earlier part of the recording ("MCAP file not found")
+        raise ConfigError(
+            "is a folder: give the recording's file, e.g. FOLDER/session.mcap", field="--out", value=str(args.out)
+        )
     previous = part_paths(args.out)
     out = next_part_path(args.out)
     already_recorded = recorded_tail_in(previous) if previous else None
