@@ -729,3 +729,7 @@ def test_a_delay_named_with_recalibrate_is_fitted_with_strengths_calibrated_at_i
     said = capsys.readouterr().out
     delay = plain["parameters"]["delay_total_s"]
     assert f"--recalibrate calibrates again with the EMG shifted by it (or msk calibrate --emd {delay:.3f})" in said
+    # two effects named: the summary lists them, and parameters by effect
+    two = plain | {"effect": ["emd", "damping"], "parameters": {"emd": plain["parameters"], "damping": {}}}
+    _say_bounds(two, recalibrated=False)
+    assert f"msk calibrate --emd {delay:.3f})" in capsys.readouterr().out

@@ -77,8 +77,9 @@ def test_a_cut_recording_with_rejected_channels_reads_up_to_the_cut(tmp_path):
     assert abs(report.left_out[(JOINTS, "undecodable")] - len(typed)) <= 1
 
 
-def _with_a_damaged_chunk(tmp_path, n: int = 600):
-    """A recording of ``n`` load events in small chunks, 8 bytes in the middle of its second chunk flipped."""
+def _with_a_damaged_chunk(tmp_path, n: int = 600, chunk_number: int = 1):
+    """A recording of ``n`` load events in small chunks, 8 bytes in the middle of chunk ``chunk_number`` flipped
+    (the first chunk holds the channel's and schema's records too)."""
     from mcap.reader import make_reader
 
     path = tmp_path / "damaged.mcap"
@@ -86,7 +87,7 @@ def _with_a_damaged_chunk(tmp_path, n: int = 600):
         for i in range(n):
             writer.write_message(topics.load_key("s"), messages.LoadEvent(barbell_mass_kg=float(i)), log_time_ns=i + 1)
     with open(path, "rb") as stream:
-        chunk = make_reader(stream).get_summary().chunk_indexes[1]
+        chunk = make_reader(stream).get_summary().chunk_indexes[chunk_number]
     data = bytearray(path.read_bytes())
     middle = chunk.chunk_start_offset + chunk.chunk_length // 2
     data[middle : middle + 8] = bytes(b ^ 0xFF for b in data[middle : middle + 8])
@@ -94,9 +95,11 @@ def _with_a_damaged_chunk(tmp_path, n: int = 600):
     return path
 
 
-def test_a_damaged_chunk_is_skipped_and_the_chunks_after_it_are_read(tmp_path):
-    """A recording with one damaged chunk gave 515 of 26,377 messages ("cut short"): every chunk after it was lost."""
-    path = _with_a_damaged_chunk(tmp_path)
+@pytest.mark.parametrize("chunk_number", [0, 1])
+def test_a_damaged_chunk_is_skipped_and_the_chunks_after_it_are_read(tmp_path, chunk_number):
+    """A recording with one damaged chunk gave 515 of 26,377 messages ("cut short"): every chunk after it was lost.
+    The first chunk also holds the channel's record: the summary names the channel of the messages after it."""
+    path = _with_a_damaged_chunk(tmp_path, chunk_number=chunk_number)
     report = ReadReport()
     masses = [m.decode().barbell_mass_kg for m in read_messages(path, report=report)]
     assert report.damaged_chunks == 1 and not report.truncated

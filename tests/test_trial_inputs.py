@@ -274,3 +274,15 @@ def test_two_trials_of_one_name_are_refused_before_their_reports_overwrite_each_
     said = capsys.readouterr().err
     assert f"two trials are named 'bench_press_40kg' ({first} and {second})" in said, said
     assert not (tmp_path / "report").exists()
+
+
+def test_a_folder_of_unnamed_trial_files_names_each_after_its_folder(tmp_path, pack):
+    """--trial FOLDER takes every trial.toml under it; without a `name` each was 'trial', and two were refused as
+    one name twice."""
+    from services.commands.estimate import load_trials
+
+    text = _trial(tmp_path).read_text().replace('name = "bench_press_40kg"\n', "")
+    for folder in ("monday", "tuesday"):
+        (tmp_path / "trials" / folder).mkdir(parents=True)
+        (tmp_path / "trials" / folder / "trial.toml").write_text(text)
+    assert sorted(t.name for t in load_trials([tmp_path / "trials"], pack)) == ["monday", "tuesday"]

@@ -217,3 +217,14 @@ def test_one_sample_without_orientation_is_no_fault_a_run_of_them_is_said_and_ta
     assert (
         driver_nodes._tracker_error(None, "x") == "x" and driver_nodes._tracker_error("unplugged", "x") == "unplugged"
     )
+
+
+def test_a_late_sample_across_the_wrap_of_a_clock_that_counts_past_a_day():
+    """Devices whose SampleTimeFine goes past a day wrap at 2^32; after the wrap the newest time is small again, and a
+    late sample from before it was judged with the day's period."""
+    line, top = ScriptedLine(), 1 << 32
+    device = XsensDevice(line)
+    times = [top - 100, 50, top - 420, 150]
+    line.feed(*(data_message(k, t) for k, t in enumerate(times)))
+    seconds = [r.device_time_ns / 1e9 for r in device.read()]
+    assert seconds == pytest.approx([(top - 100) / 1e4, (top + 50) / 1e4, (top - 420) / 1e4, (top + 150) / 1e4])

@@ -149,7 +149,7 @@ class ClientStats:
     samples_lost: int = 0
     bytes_discarded: int = 0  # partial samples cut by a dropped connection
     stale_bytes_discarded: int = 0  # data-port bytes of an earlier acquisition, received before our START
-    non_finite_values: int = 0  # NaN/Inf EMG and AUX values received (passed on unchanged)
+    non_finite_values: int = 0  # NaN/Inf EMG and AUX values received (passed on unchanged; the estimator flags them)
     reconnects: int = 0
     errors: int = 0
     last_error: str = ""
@@ -726,7 +726,7 @@ class TrignoClient:
             self._emit_aux(rows, time.time_ns())
 
     def _count_non_finite(self, rows: np.ndarray) -> None:
-        """NaN/Inf from the base are passed on as they came (they are what it sent) but counted, for the status."""
+        """NaN/Inf from the base are passed on as they came (they are what it sent) and counted (``stats``)."""
         if rows.size and not np.isfinite(rows).all():
             self.stats.non_finite_values += int(rows.size - np.count_nonzero(np.isfinite(rows)))
 

@@ -123,6 +123,7 @@ class XsensDevice:
         self._last_counter: dict[int, int] = {}
         self._last_time: dict[int, int] = {}  # last SampleTimeFine per bus id
         self._time_offset: dict[int, int] = {}  # unwrapping offset per bus id
+        self._long_clock: set[int] = set()  # bus ids whose SampleTimeFine went past a day: they wrap at 2^32
         # configure()'s arguments (rate, precision, frame), replayed by reconnect()
         self._configured: tuple[int, xbus.Precision, xbus.CoordinateFrame] | None = None
 
@@ -376,7 +377,9 @@ class XsensDevice:
         if last is None:
             self._last_time[bid] = sample_time
             return offset
-        period = SAMPLE_TIME_FINE_DAY if last < SAMPLE_TIME_FINE_DAY else 1 << 32
+        if last >= SAMPLE_TIME_FINE_DAY:  # this device counts past a day: it wraps at 2^32 (also after a wrap)
+            self._long_clock.add(bid)
+        period = 1 << 32 if bid in self._long_clock else SAMPLE_TIME_FINE_DAY
         step = sample_time - last
         if step < -period // 2:  # the clock wrapped between the newest sample and this one
             offset += period
@@ -430,7 +433,8 @@ class XsensDevice:
         size = self.device_id_size
         try:
             self.request(xbus.Mid.GO_TO_CONFIG, timeout=probe_timeout_s)
-            self.request_device_id()  # before anything is changed: another device here must be left as it is
+            self.request_device_id()  # before its outputs are set: another device here keeps its own (the probe
+            # above did put it in Config state)
             if previous is not None and self.device_id != previous:
                 found = self.tracker_id
                 self.device_id, self.device_id_size = previous, size  # the tracker keeps its id

@@ -627,7 +627,8 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     if options.lowpass_coordinates_hz is not None:
         extra["lowpass_coordinates_hz"] = options.lowpass_coordinates_hz
     return TrialData(
-        name=str(trial.spec.get("name", trial.path.stem)),
+        # without a name: the file's, or its folder's for a trial.toml (a folder of trials, one per folder)
+        name=str(trial.spec.get("name", trial.path.parent.name if trial.path.stem == "trial" else trial.path.stem)),
         path=trial.path,
         time=kin.time,
         q=kin.q,

@@ -128,6 +128,7 @@ def check_dynamics(
     return {
         "poses": n_poses,
         "hand_load_newton": hand_load,
+        "pack_has_hand_load": spec.dynamics.has_hand_load,
         **_torque_errors(pack, ref, fit),
         "opensim": ref,
         "pack": fit,

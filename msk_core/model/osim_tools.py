@@ -121,7 +121,7 @@ class OsimPoser:
         ]
         for name, where in listed:
             coordinate = self.coords[name]
-            if where == "locked" and abs(spec.locked[name] - coordinate.getDefaultValue()) <= 1e-9:
+            if where == "locked" and abs(spec.locked[name] - coordinate.getDefaultValue()) <= LOCKED_MATCH:
                 continue  # held where the model holds it anyway
             if coordinate.get_locked():
                 why = (
@@ -203,8 +203,11 @@ def muscle_table(model, names: list[str], spec: PackSpec) -> dict[str, dict[str,
 
 
 JUMP_TOLERANCE = 1e-3  # m/rad disagreement between forward and backward slopes
-#: At twice the step, a smooth path's second difference is 4 x the first's, a kink's 2 x: above this it is smooth.
-SMOOTH_SCALING = 3.0
+#: a [locked] value this close to where the model locks the coordinate is that value (degrees typed to 3 decimals)
+LOCKED_MATCH = 1e-4
+#: At twice the step a smooth path's second difference is 4 x the first's, a kink's 2 x at the pose (more when the
+#: kink lies off it): within this share of the first of 4 x, it is smooth.
+SMOOTH_TOLERANCE = 0.5
 GLITCH_TOLERANCE = 1e-3  # m: a length this far from the mean of its two neighbours 2e-4 rad apart is an OpenSim glitch
 
 
@@ -245,7 +248,7 @@ def sample_lengths(
                 poser.set(q + 2 * e)
                 plus2 = read()
                 poser.set(q - 2 * e)
-                jump &= ~(np.abs(read() + plus2 - 2 * centre) > SMOOTH_SCALING * np.abs(second))
+                jump &= ~(np.abs(read() + plus2 - 2 * centre - 4 * second) < SMOOTH_TOLERANCE * np.abs(second))
             derivs[i, :, j] = np.where(jump, np.nan, (plus - minus) / (2 * delta))
             # OpenSim wrapping occasionally fails at an isolated pose (length off by cm): drop that length too
             lengths[i] = np.where(np.abs(plus + minus - 2 * centre) > GLITCH_TOLERANCE, np.nan, lengths[i])

@@ -125,7 +125,7 @@ def _say_bounds(s: dict, *, recalibrated: bool) -> None:
             "  the calibration may have taken a passive moment, damping or a force-length/velocity effect into "
             "these strengths: --recalibrate fits those candidates with a calibration that has them in it"
         )
-    elif not recalibrated and "emd" in s["effect"].split("+"):
+    elif not recalibrated and "emd" in ([s["effect"]] if isinstance(s["effect"], str) else s["effect"]):
         named = s["parameters"].get("emd", s["parameters"])  # keyed by effect when several are named
         print(
             "  these strengths were calibrated at another delay than the one named, and the re-fit here cannot "

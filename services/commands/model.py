@@ -120,7 +120,11 @@ def _print_check(report: dict) -> None:
         print(f"{g:14s} {cells}   {s['length_max_mm']:.3f} mm")
     print(
         f"inverse dynamics vs OpenSim InverseDynamicsSolver ({d['poses']} poses, "
-        + (f"hand load {d['hand_load_newton']} N):" if d["hand_load_newton"] else "no hand load: the pack has none):")
+        + (
+            f"hand load {d['hand_load_newton']} N):"
+            if d.get("pack_has_hand_load", True)
+            else "no hand load: the pack has none):"
+        )
     )
     for c in d["peak_nm"]:
         print(

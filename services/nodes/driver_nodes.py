@@ -605,7 +605,7 @@ def run_devices(
     targets = []
     client: TrignoClient | None = None
     trackers: TrackerSet | None = None
-    try:  # a device that cannot be opened still lets the other go (the base told QUIT, the ports closed)
+    try:  # whatever fails (a device that cannot be opened, a loop's error), the base is told QUIT, the ports closed
         if devices.trigno:
             client = open_trigno(devices)
             targets.append(

@@ -281,6 +281,11 @@ def read_messages(
                 kind = kinds.get(record.channel_id)
                 if kind is None:
                     channel = channels.get(record.channel_id)
+                    if channel is None and report.damaged_chunks:  # its record was in a damaged chunk
+                        _from_summary(path, channels, schemas)
+                        channel = channels.get(record.channel_id)
+                        if channel is None:
+                            continue  # no summary to name it: lost (counted as lost against the summary, if any)
                     if channel is None:
                         raise FileFormatError(f"message on unknown channel {record.channel_id}", path=path)
                     kind = kinds[record.channel_id] = channel_kind(channel, schemas.get(channel.schema_id))
@@ -331,6 +336,21 @@ def _records(stream, path: Path, report: ReadReport, tolerate_truncation: bool) 
             report.error = f"{type(error).__name__}: {error}"
             continue
         yield from unpacked
+
+
+def _from_summary(path: Path, channels: dict, schemas: dict) -> None:
+    """The file summary's channels and schemas that ``channels`` and ``schemas`` lack (their records were in a damaged
+    chunk); nothing when the file has no readable summary."""
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+    except Exception:  # noqa: BLE001 - no footer, or a damaged summary
+        return
+    if summary is not None:
+        for key, channel in summary.channels.items():
+            channels.setdefault(key, channel)
+        for key, schema in summary.schemas.items():
+            schemas.setdefault(key, schema)
 
 
 def _summary_message_count(path: Path) -> int | None:

@@ -1047,7 +1047,10 @@ def write_report(recording: Path, out: Path, *, session: str | None = None, prog
     # the log time of a live one includes the start-up before the first frame
     device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
     span = (max(device_times) - min(device_times)) if device_times else 0.0
-    duration = span if span > 0 else (data.end_log_ns - data.start_log_ns) / 1e9
+    log_span = (data.end_log_ns - data.start_log_ns) / 1e9
+    # a device clock that started again (a tracker's power cycle) has no span: the log's then
+    steady = len(device_times) > 1 and all(b >= a for a, b in zip(device_times, device_times[1:]))
+    duration = span if span > 0 and steady else log_span
     device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
     methods = sorted({m for m, _ in data.frames})
     facts = session_facts(data)
