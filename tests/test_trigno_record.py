@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -434,3 +435,21 @@ def test_a_device_summary_says_reconnections_and_a_silent_base():
     trackers = driver_nodes.LoopReport(device="xsens", states=["disconnected", "disconnected", "reconnected"])
     said = trackers.summary_line("published")
     assert said == "xsens: published 0 samples in 0 messages, 0 lost, disconnected 2x, reconnected 1x"
+
+
+def test_msk_capture_reads_a_legacy_acc_stream_on_a_port_of_its_own(tmp_path):
+    """A base whose legacy ACC stream was moved off 50042 was read with the Avanti layout (16 x 9 slots): a third of
+    the samples at the wrong times, sensor 3's accelerometer all zeros (found with an independent server imitation).
+    --trigno-aux-layout says what the port carries."""
+    from drivers.trigno.source import synthetic_source
+
+    config = SimulatorConfig(command_port=0, emg_port=0, legacy_emg_port=None, aux_port=None, legacy_acc_port=0)
+    out = tmp_path / "acc.mcap"
+    with TrignoSimulator(synthetic_source(seconds=5.0), replace(config, speed=2.0)) as sim:
+        argv = ["capture", "--trigno", f"127.0.0.1:{sim.ports['command']}", "--trigno-emg-port", str(sim.ports["emg"])]
+        argv += ["--trigno-aux-port", str(sim.ports["legacy_acc"]), "--trigno-aux-layout", "legacy_acc"]
+        assert main([*argv, "--duration", "0.8", "--out", str(out), "--session", "acc"]) == 0
+    chunks = [m.decode() for m in read_messages(out) if m.topic == "msk/acc/acc/trigno"]
+    assert chunks
+    rows = np.concatenate([np.asarray(c.samples).reshape(c.n_samples, -1, 3) for c in chunks])
+    assert np.all(rows[:, :, 2] == 1.0) and not np.any(rows[:, :, :2])  # the 4 sensors lie flat: z = 1 g, x = y = 0

@@ -454,6 +454,7 @@ class DeviceSettings:
     trigno: str | None = None  # Trigno Control Utility HOST[:PORT]
     trigno_emg_port: int = int(tp.EmgPort.AVANTI)
     trigno_aux_port: int | None = None  # the sensors' accelerometers; None: not read
+    trigno_aux_layout: tp.AuxLayout | None = None  # what that port carries; None: from its number (50042: legacy ACC)
     trigno_stop: tp.StopMode = tp.StopMode.STOP_THEN_QUIT
     trigno_id: str = "trigno"  # source id in topics and messages
     xsens: tuple[str, ...] = ()  # tracker serial ports, or "usb" for every Xsens USB device
@@ -496,6 +497,13 @@ def add_device_arguments(parser) -> None:
         "publish them on msk/<session>/acc/<id> (default: not read)",
     )
     group.add_argument(
+        "--trigno-aux-layout",
+        choices=[layout.value for layout in tp.AuxLayout],
+        default=None,
+        help="what the accelerometer port carries: avanti (9 slots a sensor) or legacy_acc (x, y, z a sensor); "
+        "default: from the port number (50042 legacy_acc, else avanti), for a base whose ports were moved",
+    )
+    group.add_argument(
         "--trigno-stop",
         choices=[m.value for m in tp.StopMode],
         default=tp.StopMode.STOP_THEN_QUIT.value,
@@ -529,6 +537,7 @@ def device_settings(args: argparse.Namespace) -> DeviceSettings:
         trigno=args.trigno,
         trigno_emg_port=args.trigno_emg_port,
         trigno_aux_port=args.trigno_aux_port,
+        trigno_aux_layout=None if args.trigno_aux_layout is None else tp.AuxLayout(args.trigno_aux_layout),
         trigno_stop=tp.StopMode(args.trigno_stop),
         trigno_id=args.trigno_id,
         xsens=tuple(args.xsens),
@@ -554,6 +563,7 @@ def open_trigno(devices: DeviceSettings) -> TrignoClient:
             command_port=port,
             emg_port=devices.trigno_emg_port,
             aux_port=devices.trigno_aux_port,
+            aux_layout=devices.trigno_aux_layout,
             stop_mode=devices.trigno_stop,
         )
     )
