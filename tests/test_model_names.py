@@ -73,7 +73,13 @@ def test_partial_names_and_the_legend_of_abbreviations():
 @pytest.mark.parametrize(
     ("table", "field", "message", "line"),
     [
-        ('VLL = "Vastus lateralis"', "names.VLL", "not a muscle group or coordinate of the pack (closest: VL)", 8),
+        (
+            'VLL = "Vastus lateralis"',
+            "names.VLL",
+            # the table may be right and the group misspelt where the pack defines it
+            "not a muscle group or coordinate of the pack (closest: VL; or is 'VL' the misspelt one, where the pack",
+            8,
+        ),
         ("VL = 3", "names.VL", "must be a display name", 8),
         ('VL = ""', "names.VL", "must be a display name", 8),
         ('VL = "Vastus\\nlateralis"', "names.VL", "one line of printable text", 8),

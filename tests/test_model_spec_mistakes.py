@@ -158,3 +158,18 @@ def test_a_steep_smooth_path_keeps_its_slope_and_a_kink_does_not():
     _, derivs = sample_lengths(Poser(), ["smooth", "kink"], poses)
     np.testing.assert_allclose(derivs[:, 0, 0], 40.0 * poses[:, 0], rtol=1e-6)  # slope 40 q at every pose
     assert np.isnan(derivs[1, 1, 0]) and not np.isnan(derivs[[0, 2], 1, 0]).any()  # only the kink's pose has none
+
+
+def test_a_muscle_in_two_groups_names_both(shared_dir):
+    pytest.importorskip("opensim")
+    from msk_core.model.compile import compile_pack
+
+    text = """name = "arm"
+[coordinates]
+r_elbow_flex = { range_deg = [0, 120], reference_deg = 0 }
+[groups]
+Flexors = ["BIClong", "BRA"]
+Brachialis = ["BRA"]
+"""
+    with pytest.raises(ConfigError, match="a muscle belongs to more than one group: BRA is in Flexors and Brachialis"):
+        compile_pack(shared_dir / "models" / "arm26.osim", parse_spec(text, Path("arm.toml")))

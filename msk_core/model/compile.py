@@ -218,8 +218,9 @@ def _member_names(spec: PackSpec) -> list[str]:
     names = [m for g_ in spec.groups.values() for m in g_]
     if len(set(names)) != len(names):
         dup = sorted({m for m in names if names.count(m) > 1})
+        owners = [g for g, members in spec.groups.items() if dup[0] in members]
         raise ConfigError(
-            "a muscle belongs to more than one group",
+            f"a muscle belongs to more than one group: {dup[0]} is in {' and '.join(owners)}",
             path=spec.path,
             line=spec.line_of(dup[0]),
             field="groups",

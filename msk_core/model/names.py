@@ -129,8 +129,14 @@ def parse_names(
         line = _line(text, key, after=f"[{where}]")
         if key not in known:
             hits = difflib.get_close_matches(key, known, n=3, cutoff=0.4)
+            # the table may be right and the name it names misspelt where it is defined: say both
+            hint = (
+                f"closest: {', '.join(hits)}; or is {hits[0]!r} the misspelt one, where the pack defines it?"
+                if hits
+                else "no similar name"
+            )
             raise ConfigError(
-                f"not {what} ({'closest: ' + ', '.join(hits) if hits else 'no similar name'})",
+                f"not {what} ({hint})",
                 path=path,
                 field=fieldname,
                 value=key,
