@@ -110,10 +110,11 @@ def parse_names(
     text: str = "",
     where: str = "names",
     what: str = "a muscle group or coordinate of the pack",
+    defined_here: bool = False,
 ) -> dict[str, str]:
     """A ``[names]`` table (``model name = "display name"``) checked against the ``known`` model names: a table of
     one-line strings of at most :data:`MAX_NAME_CHARS` characters, every key known. Errors name the file, line,
-    field and value."""
+    field and value (``defined_here``: the file defines the known names too, as a pack spec does)."""
     if not isinstance(table, dict):
         raise ConfigError(
             'must be a table of model name = "display name"',
@@ -130,11 +131,9 @@ def parse_names(
         if key not in known:
             hits = difflib.get_close_matches(key, known, n=3, cutoff=0.4)
             # the table may be right and the name it names misspelt where it is defined: say both
-            hint = (
-                f"closest: {', '.join(hits)}; or is {hits[0]!r} the misspelt one, where the pack defines it?"
-                if hits
-                else "no similar name"
-            )
+            hint = f"closest: {', '.join(hits)}" if hits else "no similar name"
+            if hits and defined_here:  # the spec that has the table defines the names too: either may be misspelt
+                hint += f"; or is {hits[0]!r} the misspelt one, where the pack defines it?"
             raise ConfigError(
                 f"not {what} ({hint})",
                 path=path,

@@ -228,7 +228,9 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
         fit=fit,
         path=path,
         text=text,
-        names=parse_names(raw.get("names", {}), [*groups, *(c.name for c in coordinates)], path=path, text=text),
+        names=parse_names(
+            raw.get("names", {}), [*groups, *(c.name for c in coordinates)], path=path, text=text, defined_here=True
+        ),
         balance=parse_balance(raw.get("balance", {}), groups, [c.name for c in coordinates], path=path, text=text),
     )
 
