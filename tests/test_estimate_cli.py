@@ -267,7 +267,14 @@ def test_msk_discrepancy_on_arm26_with_inverse_dynamics_torques_names_a_hidden_d
         if expected == "emd":
             assert abs(summary["parameters"]["delay_s"] - ARM26_EMD_S) <= 0.02, summary["parameters"]
             assert summary["gap_after"] < 0.7 * summary["gap_before"], summary
-    capsys.readouterr()
+        assert "note: the torques of training trial" not in capsys.readouterr().err  # both from the ID file
+    # a training trial without its torques file: the pack's inverse dynamics against the held-out file's, said
+    computed = folder / "train_computed.toml"
+    computed.write_text("\n".join(line for line in train.read_text().splitlines() if not line.startswith("torques")))
+    assert main(discrepancy_argv("arm26", subject, computed, held, "--report", str(folder / "mixed"))) == 0
+    assert "note: the torques of training trial(s) train_computed are the pack's inverse dynamics" in (
+        capsys.readouterr().err
+    )
 
 
 def test_calibrating_trials_without_emg_says_so_before_the_delay_and_points_to_so(arm26_trials, tmp_path, capsys):

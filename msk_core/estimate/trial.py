@@ -375,7 +375,15 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
     coords = list(pack.coordinates)
     if "torques" not in trial.spec:
         hand = options.load_kg * GRAVITY
-        torques = np.array([pack.inverse_dynamics(kin.q[i], kin.qd[i], kin.qdd[i], hand) for i in range(len(kin.time))])
+        # the one rule for poses outside the fitted ranges, as the estimator applies it: clamped within the tolerance
+        # (a tutorial motion starting 0.1 deg below the range was refused here), no torque further out
+        q, usable = clamp_to_ranges(kin.q, fitted_ranges(pack))
+        torques = np.array(
+            [
+                pack.inverse_dynamics(q[i], kin.qd[i], kin.qdd[i], hand) if usable[i] else np.full(len(coords), np.nan)
+                for i in range(len(kin.time))
+            ]
+        )
         return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", _DroppedFrames()
     tq = read_sto(trial.file_of("torques"))
     tq.check_increasing("torque")

@@ -4,6 +4,7 @@ profile, and the gap shrinking on held-out trials (docs/discrepancy.md)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from msk_core.errors import ConfigError, InputError
@@ -67,6 +68,14 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     pack = load_pack(args.pack)
     profile = SubjectProfile.load(args.subject)
     train, holdout = load_trials(args.trial, pack), load_trials(args.holdout, pack)
+    computed = [t.name for t in train if t.torque_source != "file"]
+    if computed:  # the held-out trials' torques are measured ones: the gap then mixes two sources of torque
+        print(
+            f"note: the torques of training trial(s) {', '.join(computed)} are the pack's inverse dynamics, those of "
+            "the held-out trials an inverse-dynamics file: a gap between the two sources adds to the one searched "
+            "(give the training trials their `torques` file)",
+            file=sys.stderr,
+        )
     output_folder(args.report, "--report")
     result = run_discrepancy(
         pack,
