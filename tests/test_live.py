@@ -121,6 +121,23 @@ def test_maps_must_name_the_packs_segments_and_the_profiles_electrodes():
         check_against_pack(session, ["biceps"], ["upper_arm_r", "forearm_r"], {"PMCla": {}})
 
 
+@pytest.mark.parametrize(
+    ("trackers", "said"),
+    [
+        ({"00B4EB80": "upper_arm_r"}, "field 'trackers': no tracker on forearm_r"),
+        ({"00B4EB80": "upper_arm_r", "00B497B2": "upper_arm_r"}, "trackers.00B497B2': tracker 00B4EB80 is on it too"),
+        ({"00B4EB80": "upper_arm_r", "00b4eb80": "forearm_r"}, "the same tracker as '00B4EB80' (ids ignore case)"),
+    ],
+)
+def test_every_segment_of_the_pack_has_one_tracker(trackers, said):
+    """A segment without a tracker, two trackers on one, or one tracker listed twice in another case: the session ran
+    20 s without a single joint frame, exit 0 (found by exploratory QA)."""
+    with pytest.raises(ConfigError) as error:
+        session = parse_session(_doc(session__subject=None, trackers=trackers), require_devices=False)
+        check_against_pack(session, ["PMCla_group"], ["upper_arm_r", "forearm_r"], {"PMCla": {"group": "x"}})
+    assert said in str(error.value), error.value
+
+
 def test_cli_reports_a_bad_session_file_without_a_traceback(tmp_path):
     path = tmp_path / "session.toml"
     path.write_text('[session]\npack = "bench_press"\nload_kg = "heavy"\n')

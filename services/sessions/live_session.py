@@ -314,9 +314,14 @@ def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devic
 def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSession:
     """[trackers], [names] and [electrodes]; a tracker latency only for a tracker of [trackers]."""
     trackers = dict(session.trackers)
+    listed: dict[str, str] = {}  # tracker id -> as the file writes it
     for tracker, segment in doc.get("trackers", {}).items():
         key = f"trackers.{tracker}"
-        trackers[_tracker_id(path, key, tracker)] = _type(path, key, segment, str, "a body segment name")
+        tracker_id = _tracker_id(path, key, tracker)
+        if tracker_id in listed:  # one device listed twice (ids differing in case): the second replaced the first
+            raise _error(path, key, f"the same tracker as {listed[tracker_id]!r} (ids ignore case)", tracker)
+        listed[tracker_id] = tracker
+        trackers[tracker_id] = _type(path, key, segment, str, "a body segment name")
     for tracker in session.tracker_latency_ms:
         if trackers and tracker not in trackers:
             raise _error(
@@ -388,7 +393,10 @@ def load_session_file(path: Path, *, require_devices: bool = True) -> LiveSessio
 def check_against_pack(
     session: LiveSession, groups: list[str], segments: list[str], profile_electrodes: dict[str, dict]
 ) -> None:
-    """Maps that name things the pack or the profile do not have are errors (file, key, value)."""
+    """Maps that name things the pack or the profile do not have are errors (file, key, value); [trackers], when
+    given, puts one tracker on every segment the pack's IMU table uses (the kinematics needs each: with one missing,
+    or two on one segment, the session ran without a single joint frame)."""
+    by_segment: dict[str, str] = {}
     for tracker, segment in session.trackers.items():
         if segment not in segments:
             raise _error(
@@ -397,6 +405,17 @@ def check_against_pack(
                 f"not a segment the pack's IMU table uses ({', '.join(segments)})",
                 segment,
             )
+        if segment in by_segment:
+            raise _error(session.path, f"trackers.{tracker}", f"tracker {by_segment[segment]} is on it too", segment)
+        by_segment[segment] = tracker
+    missing = [segment for segment in segments if segment not in by_segment]
+    if session.trackers and missing:
+        raise _error(
+            session.path,
+            "trackers",
+            f"no tracker on {', '.join(missing)}: the pack's joint angles need one on each of {', '.join(segments)}",
+            dict(session.trackers),
+        )
     for label, target in session.electrodes.items():
         if target not in profile_electrodes and target not in groups:
             raise _error(
