@@ -140,9 +140,15 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError("must be a positive number of seconds", field="--duration", value=args.duration)
     if args.listen is not None:
-        from services.transport.zenoh_session import check_endpoint
+        from services.transport.zenoh_session import check_endpoint, endpoint_is_free
 
         check_endpoint(args.listen, "--listen")
+        if not endpoint_is_free(args.listen):  # before anything starts (it started the graph, then a traceback)
+            raise ConfigError(
+                "is in use by another program (another msk live? msk router?): choose a free port",
+                field="--listen",
+                value=args.listen,
+            )
     session = session_from_args(args)
     faults = tuple(_sim_fault(text) for text in args.sim_fault)
     from services.sessions.sim_sets import SimSets
