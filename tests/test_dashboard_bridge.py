@@ -624,3 +624,34 @@ def test_the_dashboards_set_figures_are_of_the_reports_method_not_of_the_first_t
     (only,) = topics["sets"]
     assert (only["reps"], only["peak"], only["mean"]) == (1, [0.6], [0.6])
     assert topics["session"]["set_figures_method"] == "assisted"  # the page says whose figures they are
+
+
+def test_a_set_mark_from_another_sites_page_is_refused(zenoh_endpoint):
+    """Any web page open in the coach's browser could POST /set/start to a dashboard on the gym network (found by
+    exploratory QA): a request that carries another origin is refused; the dashboard's own page's goes on to the
+    session (none runs here, which it says)."""
+    import urllib.error
+    import urllib.request
+
+    from services.surfaces.dashboard.app import DashboardConfig, DashboardServer
+    from services.transport.zenoh_session import ZenohOptions
+
+    server = DashboardServer(ZenohOptions(listen=(zenoh_endpoint,)), DashboardConfig(session="s"), port=free_tcp_port())
+    server.start()
+    try:
+        own = server.url.rstrip("/")
+
+        def post(origin: str) -> tuple[int, dict]:
+            request = urllib.request.Request(f"{own}/set/start", method="POST", headers={"Origin": origin})
+            try:
+                with urllib.request.urlopen(request, timeout=10) as answer:
+                    return answer.status, json.loads(answer.read())
+            except urllib.error.HTTPError as error:
+                return error.code, json.loads(error.read())
+
+        code, answer = post("http://evil.example")
+        assert code == 403 and "not http://evil.example" in answer["error"], answer
+        code, answer = post(own)  # past the gate: refused only because no msk live is running
+        assert code == 503 and "sends nothing yet: is msk live running?" in answer["error"], answer
+    finally:
+        server.stop()

@@ -3,8 +3,10 @@
 ``GET /`` the page; ``GET /static/...`` its script, style and the vendored Chart.js; ``GET /config.json`` the session
 and timings; ``GET /bodymap/<pack>.svg`` the body map of a shipped model pack; ``WS /ws`` the frames. Each page
 connection sends, every ``send_interval_s``, the newest value of every topic that changed since its last send (and a
-heartbeat at least every ``heartbeat_s``): a slow tablet skips frames, nothing queues. The page is read-only (the
-method switch is local to each page), so listening on the gym network (``--host``) exposes no control of the session.
+heartbeat at least every ``heartbeat_s``): a slow tablet skips frames, nothing queues. The page's one control of the
+session is the operator's set buttons (``POST /set/start`` and ``/set/stop``, as ``msk set``; the method switch is
+local to each page): a browser's request from another site's page is refused, and on the gym network (``--host``)
+anyone who reaches the page can mark sets unless it is served with ``--pki`` (tablet tokens).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import uvicorn
 from starlette.applications import Starlette
@@ -106,6 +109,10 @@ def create_app(
 
     async def set_mark(request):
         mark = request.path_params["mark"]
+        origin = request.headers.get("origin")
+        if origin is not None and urlsplit(origin).netloc != request.headers.get("host"):
+            # a browser's request from another site's page (it sends its Origin): only this page marks sets
+            return JSONResponse({"error": f"set marks come from this dashboard's page, not {origin}"}, status_code=403)
         if mark not in ("start", "stop"):
             return JSONResponse({"error": f"no set mark {mark!r}: start or stop"}, status_code=404)
         if on_set_mark is None:
