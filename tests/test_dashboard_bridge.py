@@ -590,6 +590,33 @@ def test_the_set_buttons_refuse_when_the_session_sends_nothing(zenoh_endpoint):
         bridge.stop()
 
 
+def test_a_set_mark_the_routers_access_control_would_drop_is_refused_saying_why(zenoh_endpoint):
+    """A tablet's dashboard under --pki answered 200 to the set buttons while the router dropped every mark without a
+    word (found by exploratory QA): the role is asked first, as the nodes ask for their subscriptions."""
+    import dataclasses
+
+    from services.surfaces.dashboard.bridge import Bridge
+    from services.transport.zenoh_session import ZenohOptions
+
+    @dataclasses.dataclass(frozen=True)
+    class TabletOptions(ZenohOptions):  # the role a secured tablet config's certificate names
+        @property
+        def role(self) -> str | None:
+            return "tablet"
+
+    state = DashboardState("t")
+    bridge = Bridge(TabletOptions(listen=(zenoh_endpoint,)), state)
+    bridge.start()
+    try:
+        state.last_data_ns = messages.now_ns()
+        with pytest.raises(
+            RuntimeError, match="this dashboard's role cannot mark sets: role 'tablet' may publish only"
+        ):
+            bridge.publish_set_mark("start")
+    finally:
+        bridge.stop()
+
+
 @pytest.mark.parametrize(
     ("median_hz", "slope", "se", "change", "tiring"),
     [
