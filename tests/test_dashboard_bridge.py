@@ -682,3 +682,18 @@ def test_a_set_mark_from_another_sites_page_is_refused(zenoh_endpoint):
         assert code == 503 and "sends nothing yet: is msk live running?" in answer["error"], answer
     finally:
         server.stop()
+
+
+def test_a_session_the_dashboard_cannot_open_is_said_before_the_server_starts():
+    """Under --pki with the tablet's config and no router where it says: uvicorn printed 'Application startup
+    failed' and a traceback (found by exploratory QA). The bridge opens its session before the server starts, so the
+    command says it in one line."""
+    from msk_core.errors import MskError
+    from services.surfaces.dashboard.app import DashboardConfig, DashboardServer
+    from services.transport.zenoh_session import ZenohOptions
+
+    nowhere = ZenohOptions(mode="client", connect=(f"tcp/127.0.0.1:{free_tcp_port()}",))
+    server = DashboardServer(nowhere, DashboardConfig(session="s"), port=free_tcp_port())
+    with pytest.raises(MskError, match="cannot open the Zenoh session"):
+        server.run()
+    assert not server.server.started

@@ -237,6 +237,8 @@ class DashboardServer:
 
     def _start_bridge(self) -> None:
         with self._attach_lock:
+            if self._serving:  # run() started it before the server
+                return
             self.bridge.start()
             self._serving = True
 
@@ -250,6 +252,9 @@ class DashboardServer:
         return f"{self.scheme}://{self.host}:{self.port}/"
 
     def run(self) -> None:
+        # the bridge first: a session it cannot open (a secured router it cannot reach) is said in one line by the
+        # command, not as a traceback of the server's start-up
+        self._start_bridge()
         self.server.run()
 
     def start(self, timeout_s: float = 20.0) -> None:
