@@ -115,3 +115,20 @@ def test_report_header_names_the_method_shown(tmp_path):
     report.write_report(recording, tmp_path / "out")
     header = (tmp_path / "out" / "report.html").read_text().split("</header>")[0]
     assert "methods: so · method shown: so" in header
+
+
+def test_a_load_corrected_for_a_set_after_its_last_rep_is_its_load(tmp_path):
+    """`msk load 65 --set 1` after set 1's last rep, before the rest ended it: the view showed 65 kg for set 1, the
+    report 55 kg (the set ends at its last rep, and the correction came after; found by exploratory QA)."""
+    facts = [
+        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, set_rest_s=20.0)),
+        (10.0, messages.LoadEvent(barbell_mass_kg=62.5, exercise="bench_press", set_number=1)),  # set 1 ended at 7 s
+    ]
+    recording = tmp_path / "session.mcap"
+    with timed_recording(recording, START_NS) as session:
+        session.load_events(facts)
+        for k in range(int(20 * RATE_HZ)):
+            t_s = k / RATE_HZ
+            session.joints_and_frame(t_s, phase_at(t_s), ["A", "B"], [0.5, 0.1])
+    (first,) = report.write_report(recording, tmp_path / "out")["sets"]
+    assert first["name"] == "set 1: bench press, 62.5 kg", first["name"]

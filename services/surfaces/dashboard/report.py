@@ -239,7 +239,7 @@ def set_windows(data: SessionData) -> list[SetWindow]:
     windows = []
     for index, record in enumerate(tracker.sets, start=1):
         end = record.end_s if record.end_s is not None else math.inf
-        fact = _fact_of(loads, record.start_s, end)
+        fact = _fact_of(loads, record.start_s, end, record.number)
         exercise = (fact.exercise if fact is not None else "") or (
             data.frame_exercises[0] if len(data.frame_exercises) == 1 else ""
         )
@@ -248,10 +248,18 @@ def set_windows(data: SessionData) -> list[SetWindow]:
     return windows
 
 
-def _fact_of(loads: list[Load], start_s: float, end_s: float) -> Load | None:
-    """The load event in effect for a set: the last one before its end (a correction within it counts), else none."""
+def _fact_of(loads: list[Load], start_s: float, end_s: float, number: int = 0) -> Load | None:
+    """The load event in effect for a set: the last one before its end (a correction within it counts), else none;
+    a later correction that names the set (``msk load 65 --set 1`` after its last rep, while the rest has not yet
+    ended it: the set ends at its last rep) counts too."""
     before = [load for load in loads if load.time_s < end_s or load.time_s <= start_s]
-    return before[-1] if before else None
+    fact = before[-1] if before else None
+    named = [
+        load for load in loads if number and load.set_number == number and not load.set_mark and load.time_s >= start_s
+    ]
+    if named and (fact is None or named[-1].time_s > fact.time_s):
+        fact = named[-1]
+    return fact
 
 
 def _frames_with_phase(
