@@ -1000,34 +1000,33 @@ def health_html(data: SessionData, devices: dict, device_plot: str | None) -> st
         "trials of a recording shows as one gap); restarts: the counter went back to an earlier value; disconnected "
         "reports: status messages saying the device was not connected, the last one (the driver's stop) left out.</p>"
         + (f'<img src="{device_plot}" alt="samples per second">' if device_plot else "")
-        + (
-            "<p class='note'>Inputs the nodes dropped as unusable: "
-            + html.escape(", ".join(f"{node} {n}" for node, n in sorted(data.node_drops.items())))
-            + ".</p>"
-            if data.node_drops
-            else ""
-        )
-        + (
-            f"<p class='note'>{data.refused_loads} load event(s) named an exercise that no model pack has and no "
-            "activation frame named; as the estimator refused them, the report leaves them out.</p>"
-            if data.refused_loads
-            else ""
-        )
-        + (
-            f"<p class='note'>The recording could not be read whole ({html.escape(data.damage)}); its readable part "
-            "is reported.</p>"
-            if data.damage
-            else ""
-        )
-        + (
-            "<p class='note'>Payloads that were not the message their topic says, left out: "
-            + html.escape(", ".join(f"{n} on {t}" for t, n in sorted(data.undecodable.items())))
-            + "</p>"
-            if data.undecodable
-            else ""
-        )
+        + "".join(f"<p class='note'>{html.escape(note)}</p>" for note in _recording_notes(data))
         + "</section>"
     )
+
+
+def _recording_notes(data: SessionData) -> list[str]:
+    """What the report left out of the recording, or could not read, in words (none when nothing)."""
+    notes = []
+    if data.node_drops:
+        notes.append(
+            "Inputs the nodes dropped as unusable: "
+            + ", ".join(f"{node} {n}" for node, n in sorted(data.node_drops.items()))
+            + "."
+        )
+    if data.refused_loads:
+        notes.append(
+            f"{data.refused_loads} load event(s) named an exercise that no model pack has and no activation frame "
+            "named; as the estimator refused them, the report leaves them out."
+        )
+    if data.damage:
+        notes.append(f"The recording could not be read whole ({data.damage}); its readable part is reported.")
+    if data.undecodable:
+        notes.append(
+            "Payloads that were not the message their topic says, left out: "
+            + ", ".join(f"{n} on {t}" for t, n in sorted(data.undecodable.items()))
+        )
+    return notes
 
 
 def _frame_durations(t: np.ndarray, rep_masks: list[np.ndarray]) -> np.ndarray:
