@@ -12,6 +12,7 @@ from __future__ import annotations
 import difflib
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard
@@ -174,14 +175,17 @@ COORDINATE_KEYS = ("range_deg", "reference_deg", "coupled")
 FIT_KEYS = ("samples", "max_degree", "holdout", "seed")
 
 
-def _known_keys(table: dict, known: tuple[str, ...], where: str, path: Path | None, text: str) -> None:
+def _known_keys(
+    table: dict, known: tuple[str, ...], where: str, path: Path | None, text: str, error: Callable | None = None
+) -> None:
     """Refuse a key the spec format does not have (a misspelt table or key was ignored: a [lock] table left every
-    coordinate at the model's default), naming the closest known one."""
+    coordinate at the model's default), naming the closest known one; ``error`` makes the error (default
+    :func:`_invalid`; ``[balance]``'s own, which looks for the line inside that table)."""
     unknown = sorted(set(table) - set(known))
     if unknown:
         field_name = f"{where}.{unknown[0]}" if where else unknown[0]
         message = f"unknown key ({closest(unknown[0], list(known))})"
-        raise _invalid(message, path, text, field_name, None, unknown[0])
+        raise (error or _invalid)(message, path, text, field_name, unknown[0], unknown[0])
 
 
 def _deg_pair(value: object, path: Path | None, text: str, fieldname: str) -> tuple[float, float]:
@@ -406,10 +410,7 @@ def parse_balance(
     pair, a pair or list of the wrong shape, an empty label."""
     if not isinstance(table, dict):
         raise ConfigError("must be a table", path=path, field="balance", value=table, line=_line(text, "[balance]"))
-    unknown = sorted(set(table) - set(BALANCE_KEYS))
-    if unknown:
-        message = f"unknown key ({closest(unknown[0], list(BALANCE_KEYS))})"
-        raise _bad(message, path, text, f"balance.{unknown[0]}", unknown[0], unknown[0])
+    _known_keys(table, BALANCE_KEYS, "balance", path, text, _bad)
     known = list(groups)
     pairs_raw = table.get("left_right", [])
     if not isinstance(pairs_raw, list):
@@ -447,10 +448,7 @@ def _joint_balance(
     if not isinstance(entry, dict):
         message = "must be { coordinate = .., agonists = [..], antagonists = [..], label = .. }"
         raise _bad(message, path, text, where, entry, "agonist_antagonist")
-    unknown = sorted(set(entry) - set(JOINT_BALANCE_KEYS))
-    if unknown:
-        message = f"unknown key ({closest(unknown[0], list(JOINT_BALANCE_KEYS))})"
-        raise _bad(message, path, text, f"{where}.{unknown[0]}", unknown[0], unknown[0])
+    _known_keys(entry, JOINT_BALANCE_KEYS, where, path, text, _bad)
     for key in JOINT_BALANCE_KEYS:
         if key not in entry:
             raise _bad("missing required key", path, text, f"{where}.{key}", None, "agonist_antagonist")
