@@ -26,6 +26,7 @@ from typing import Any, overload
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
 from msk_core.errors import FileFormatError, InputError
@@ -268,6 +269,7 @@ def read_messages(
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     kinds: dict[int, tuple[str, str]] = {}  # channel id -> (type name, rejected reason)
+    summary_read = False  # the file's summary, read once if a damaged chunk took channel records with it
     with open(path, "rb") as stream:
         for record in _records(stream, path, report, tolerate_truncation):
             if isinstance(record, Schema):
@@ -282,7 +284,11 @@ def read_messages(
                 if kind is None:
                     channel = channels.get(record.channel_id)
                     if channel is None and report.damaged_chunks:  # its record was in a damaged chunk
-                        _from_summary(path, channels, schemas)
+                        if not summary_read:
+                            summary_read = True
+                            if (summary := file_summary(path)) is not None:
+                                channels = {**summary.channels, **channels}
+                                schemas = {**summary.schemas, **schemas}
                         channel = channels.get(record.channel_id)
                         if channel is None:
                             continue  # no summary to name it: lost (counted as lost against the summary, if any)
@@ -305,7 +311,9 @@ def read_messages(
                     rejected=rejected,
                 )
     if report.damaged_chunks or report.truncated:  # how much that cost, when the file's summary can say
-        report.messages_expected = _summary_message_count(path)
+        summary = file_summary(path)
+        if summary is not None and summary.statistics is not None:
+            report.messages_expected = int(summary.statistics.message_count)
 
 
 def _records(stream, path: Path, report: ReadReport, tolerate_truncation: bool) -> Iterator[Any]:
@@ -338,31 +346,14 @@ def _records(stream, path: Path, report: ReadReport, tolerate_truncation: bool) 
         yield from unpacked
 
 
-def _from_summary(path: Path, channels: dict, schemas: dict) -> None:
-    """The file summary's channels and schemas that ``channels`` and ``schemas`` lack (their records were in a damaged
-    chunk); nothing when the file has no readable summary."""
+def file_summary(path: Path) -> Summary | None:
+    """The file's summary (channels, schemas, statistics); None when it has no readable one (a file cut short: a
+    summary cut short fails in many ways, struct.error, McapError, ...)."""
     try:
         with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
-    except Exception:  # noqa: BLE001 - no footer, or a damaged summary
-        return
-    if summary is not None:
-        for key, channel in summary.channels.items():
-            channels.setdefault(key, channel)
-        for key, schema in summary.schemas.items():
-            schemas.setdefault(key, schema)
-
-
-def _summary_message_count(path: Path) -> int | None:
-    """The message count of the file's summary (None when it has no readable one: a file cut short)."""
-    try:
-        with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
-    except Exception:  # noqa: BLE001 - no footer, or a damaged summary
+            return make_reader(stream).get_summary()
+    except Exception:  # noqa: BLE001
         return None
-    if summary is None or summary.statistics is None:
-        return None
-    return int(summary.statistics.message_count)
 
 
 def recorded_sessions(path: str | Path) -> dict[str, int]:
@@ -372,12 +363,7 @@ def recorded_sessions(path: str | Path) -> dict[str, int]:
     if not path.is_file():
         raise InputError("MCAP file not found", path=path)
     counts: Counter[str] = Counter()
-    summary = None
-    try:
-        with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
-    except Exception:  # noqa: BLE001 - a summary cut short fails in many ways (struct.error, McapError, ...)
-        summary = None
+    summary = file_summary(path)
     if summary is not None and summary.statistics is not None:
         per_channel = summary.statistics.channel_message_counts
         for channel in sorted(summary.channels.values(), key=lambda c: c.id):
