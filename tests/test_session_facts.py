@@ -520,3 +520,18 @@ def test_a_view_shows_the_next_session_on_its_endpoint_from_its_start(tmp_path, 
     second = discovery.SessionInfo("sim", ["tcp/127.0.0.1:7447"], os.getppid(), str(tmp_path / "b"))  # another pid
     discovery.announce(second, tmp_path / "b")
     assert follower.next_session(received=20) == second
+
+
+def test_a_past_set_number_is_refused_where_it_would_have_started_the_next_set():
+    """``msk load 65 --set 2`` during set 3 used to start set 4 without a word (a tracker takes a number it has
+    passed as "the next set"); the facts apply from now on, so a past set's number is refused, naming both sets."""
+    during_set_3 = {"exercise": "bench_press", "load_kg": 60, "set_number": 3, "athlete": "Ana", "resting": False}
+    with pytest.raises(ConfigError) as refused:
+        new_facts(during_set_3, load_kg=65, set_number=2, next_set=False, exercise=None, athlete=None)
+    assert refused.value.field == "--set" and refused.value.value == 2
+    assert "set 2 is over" in str(refused.value) and "set 3" in str(refused.value)
+    # what the message offers works: the set under way, or the next one
+    assert new_facts(during_set_3, load_kg=65, set_number=3, next_set=False, exercise=None, athlete=None).set_number == 3
+    assert new_facts(during_set_3, load_kg=65, set_number=None, next_set=True, exercise=None, athlete=None).set_number == 4
+    # a later number is still the operator's numbering of the next set
+    assert new_facts(during_set_3, load_kg=None, set_number=5, next_set=False, exercise=None, athlete=None).set_number == 5

@@ -50,6 +50,14 @@ def new_facts(
     check_facts(load_kg, set_number)
     now = messages.now_ns()
     number = int(current.get("set_number", 0) or 0)
+    if set_number is not None and set_number < number:
+        # the facts apply to the frames from now on: a past set's number would start set number + 1 instead
+        raise ConfigError(
+            f"set {set_number} is over: the session is at set {number}, and facts apply from now on "
+            f"(the set under way: --set {number} or no --set; a new set: --next-set)",
+            field="--set",
+            value=set_number,
+        )
     if next_set:
         number += 1
     elif set_number is not None:
