@@ -226,7 +226,7 @@ def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp
     write_subject(tmp_path / "subject.json", {"PMCla": {"group": "pec_clav", "divisor": 0.2}})
     doc = _doc(
         session__out="rec",
-        trigno={"host": "10.0.0.5:50040", "emg_port": 50041},
+        trigno={"host": "10.0.0.5:50040", "emg_port": 50041, "aux_layout": "legacy_acc"},
         xsens={"ports": ["/dev/ttyUSB0", "usb"], "rate_hz": 60},
         electrodes={"sensor01.EMG": "PMCla", "sensor02.EMG": "BRA"},
     )  # BRA: a group
@@ -239,6 +239,9 @@ def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp
         trigno[trigno.index("--trigno") + 1] == "10.0.0.5:50040"
         and trigno[trigno.index("--trigno-emg-port") + 1] == "50041"
     )
+    # the legacy EMG port's ACC beside it (50042), read as the file says it carries (a driver option since stop 45)
+    assert trigno[trigno.index("--trigno-aux-port") + 1] == "50042"
+    assert trigno[trigno.index("--trigno-aux-layout") + 1] == "legacy_acc"
     xsens = live.driver_argv(plan, "xsens")
     assert [xsens[i + 1] for i, a in enumerate(xsens) if a == "--xsens"] == ["/dev/ttyUSB0", "usb"]
     assert xsens[xsens.index("--imu-rate") + 1] == "60"

@@ -128,6 +128,21 @@ def test_the_accelerometers_port_follows_the_session_file(tmp_path):
     assert error.value.field == "trigno.aux_port" and "51743 is not the TCU's" in str(error.value)
 
 
+def test_the_accelerometers_layout_is_a_session_key_and_a_wrong_one_is_refused(tmp_path):
+    """A base whose ACC port was moved: ``trigno.aux_layout`` says what the port carries (``msk drivers``'
+    ``--trigno-aux-layout``), as the file states it; a value that is not a layout is refused naming it."""
+    from drivers.trigno.protocol import AuxLayout
+
+    moved = 'host = "127.0.0.2:51740"\nemg_port = 51741\naux_port = 51742\n'
+    session = load_session_file(
+        _write(tmp_path, GOOD.replace('host = "192.168.1.20"\n', moved + 'aux_layout = "legacy_acc"\n'))
+    )
+    assert session.trigno_aux_layout is AuxLayout.LEGACY_ACC
+    assert load_session_file(_write(tmp_path, GOOD)).trigno_aux_layout is None
+    message = _refusal(_write(tmp_path, GOOD.replace('host = "192.168.1.20"\n', moved + 'aux_layout = "acc"\n')))
+    assert "field 'trigno.aux_layout'" in message and "'acc'" in message and "avanti, legacy_acc" in message, message
+
+
 def _published_labels(client) -> list[str]:
     """The channel labels the Trigno driver node puts in EmgChunk.channel_labels for this client."""
     from drivers.trigno.client import EmgBlock

@@ -531,7 +531,13 @@ def test_a_past_set_number_is_refused_where_it_would_have_started_the_next_set()
     assert refused.value.field == "--set" and refused.value.value == 2
     assert "set 2 is over" in str(refused.value) and "set 3" in str(refused.value)
     # what the message offers works: the set under way, or the next one
-    assert new_facts(during_set_3, load_kg=65, set_number=3, next_set=False, exercise=None, athlete=None).set_number == 3
-    assert new_facts(during_set_3, load_kg=65, set_number=None, next_set=True, exercise=None, athlete=None).set_number == 4
+    assert (
+        new_facts(during_set_3, load_kg=65, set_number=3, next_set=False, exercise=None, athlete=None).set_number == 3
+    )
+    assert (
+        new_facts(during_set_3, load_kg=65, set_number=None, next_set=True, exercise=None, athlete=None).set_number == 4
+    )
     # a later number is still the operator's numbering of the next set
-    assert new_facts(during_set_3, load_kg=None, set_number=5, next_set=False, exercise=None, athlete=None).set_number == 5
+    assert (
+        new_facts(during_set_3, load_kg=None, set_number=5, next_set=False, exercise=None, athlete=None).set_number == 5
+    )

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from drivers.trigno.protocol import AuxLayout
 from msk_core.errors import ConfigError, InputError
 from msk_core.estimate.flags import flag_counts_text
 from msk_core.io.files import json_text
@@ -733,6 +734,7 @@ class LivePlan:
     subject: Path
     trigno: tuple[str, int] | None = None  # (HOST[:PORT], EMG port)
     trigno_aux_port: int | None = None  # the sensors' accelerometers (AUX port), for the EMG clock's alignment
+    trigno_aux_layout: AuxLayout | None = None  # what that port carries (the session file's; None: from its number)
     xsens_ports: tuple[str, ...] = ()
     trackers: dict[str, str] = field(default_factory=dict)
     exercise: str = ""  # the pack's name (session.pack may be a path)
@@ -754,6 +756,8 @@ def driver_argv(plan: LivePlan, kind: str) -> list[str]:
         argv += ["--trigno", host, "--trigno-emg-port", str(emg_port), "--trigno-id", s.trigno_id]
         if plan.trigno_aux_port is not None:
             argv += ["--trigno-aux-port", str(plan.trigno_aux_port)]
+            if plan.trigno_aux_layout is not None:
+                argv += ["--trigno-aux-layout", plan.trigno_aux_layout.value]
     else:
         for port in plan.xsens_ports:
             argv += ["--xsens", port]
@@ -1380,6 +1384,7 @@ def plan_for(
         profile_path,
         trigno=ports.trigno,
         trigno_aux_port=ports.trigno_aux_port,
+        trigno_aux_layout=session.trigno_aux_layout if sources is None else None,  # a simulator's ports say theirs
         xsens_ports=ports.xsens,
         trackers=trackers,
         exercise=model.name,

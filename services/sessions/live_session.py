@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from drivers.trigno.protocol import N_SENSORS
+from drivers.trigno.protocol import N_SENSORS, AuxLayout
 from msk_core.errors import ConfigError
 from msk_core.signal.sets import DEFAULT_REST_S
 from services.transport import topics
@@ -38,7 +38,7 @@ def default_method(methods: Iterable[str]) -> str | None:
 
 _SECTIONS = {
     "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete", "rest_s"},
-    "trigno": {"host", "emg_port", "aux_port", "id", "latency_ms"},
+    "trigno": {"host", "emg_port", "aux_port", "aux_layout", "id", "latency_ms"},
     "xsens": {"ports", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
     "trackers": None,  # free keys: tracker ids
     "electrodes": None,  # free keys: channel labels
@@ -102,6 +102,7 @@ class LiveSession:
     trigno_host: str | None = None  # HOST[:PORT]
     trigno_emg_port: int | None = None
     trigno_aux_port: int | None = None  # the accelerometers' port (None: the TCU's beside its EMG port; 0: off)
+    trigno_aux_layout: AuxLayout | None = None  # what that port carries (None: from its number, 50042 legacy ACC)
     trigno_id: str = "trigno"
     xsens_ports: tuple[str, ...] = ()  # serial ports or "usb"
     imu_rate_hz: int = 100
@@ -254,7 +255,8 @@ def _parse_lift(session: LiveSession, s: dict, path: Path | None, require_device
 
 
 def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devices: bool) -> LiveSession:
-    """[trigno]: host, emg_port, aux_port, id, latency_ms; the session's values where the file states none."""
+    """[trigno]: host, emg_port, aux_port, aux_layout, id, latency_ms; the session's values where the file states
+    none."""
     given: dict[str, Any] = {}
     if "host" in t:
         given["trigno_host"] = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
@@ -274,6 +276,11 @@ def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devi
             "a TCP port number",
             "must be a TCP port 1..65535, or 0: off",
         )
+    if "aux_layout" in t:
+        layouts = [layout.value for layout in AuxLayout]
+        if t["aux_layout"] not in layouts:
+            raise _error(path, "trigno.aux_layout", f"must be one of {', '.join(layouts)}", t["aux_layout"])
+        given["trigno_aux_layout"] = AuxLayout(t["aux_layout"])
     if "id" in t:
         given["trigno_id"] = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
     if "latency_ms" in t:
