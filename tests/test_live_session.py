@@ -399,3 +399,16 @@ def test_the_summary_lists_the_sets_and_how_each_ended():
     assert set_summary({"number": 2, "reps": 1, "time_under_tension_s": 2.0, "ended_by": "end of data"}) == (
         "2: 1 rep, 2.0 s under tension, ended with the session"
     )
+
+
+def test_a_refusal_names_the_line_of_the_key_in_the_session_file(tmp_path):
+    """A coach's session file of 40 lines: the refusal points at the line, for the parse and for the checks against
+    the pack and the profile made after it (quoted channel keys too)."""
+    from services.sessions.live_session import check_against_pack
+
+    message = _refusal(_write(tmp_path, GOOD.replace("load_kg = 60", "load_kg = -5")))
+    assert "session.toml, line 5, field 'session.load_kg'" in message, message
+    session = load_session_file(_write(tmp_path, GOOD.replace('"sensor01.EMG" = "PMCla"', '"sensor01.EMG" = "Pec"')))
+    with pytest.raises(ConfigError) as error:
+        check_against_pack(session, ["pec_clav"], [], {"PMCla": {}})
+    assert error.value.line == 11 and "line 11, field 'electrodes.sensor01.EMG'" in str(error.value), error.value

@@ -67,6 +67,7 @@ from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
 from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
 from msk_core.io import Storage, read_sto
+from msk_core.io.files import toml_key_line
 from msk_core.io.storage import seconds, uniform_step
 from msk_core.signal.gait import CONTACT_THRESHOLD_N, gait_cycle_phase, heel_strikes
 from msk_core.signal.kinematics_filter import lowpass_coordinates
@@ -147,23 +148,6 @@ def _within(time: np.ndarray, source_time: np.ndarray) -> np.ndarray:
     return np.where(np.abs(clipped - time) <= 0.05 * dt, clipped, time)
 
 
-def _line_of(text: str, key: str) -> int | None:
-    """The line of ``key``: a top-level key or table, or ``table.key`` on its own line inside ``[table]`` (else the
-    table's header line)."""
-    table, _, inner = key.partition(".")
-    lines = text.splitlines()
-    for i, line in enumerate(lines, start=1):
-        if re.match(rf"\s*{re.escape(table)}\s*=", line) or line.strip() == f"[{table}]":
-            if inner and line.strip() == f"[{table}]":
-                for j in range(i, len(lines)):
-                    if lines[j].strip().startswith("["):
-                        break
-                    if re.match(rf"\s*[\"']?{re.escape(inner)}[\"']?\s*=", lines[j]):
-                        return j + 1
-            return i
-    return None
-
-
 def _closest(name: str, options: list[str]) -> str:
     near = difflib.get_close_matches(name, options, n=3)
     return f"; did you mean {', '.join(near)}?" if near else ""
@@ -192,7 +176,7 @@ class _TrialFile:
         return cls(path, text, spec)
 
     def err(self, message: str, key: str, value: object = None) -> ConfigError:
-        return ConfigError(message, path=self.path, line=_line_of(self.text, key), field=key, value=value)
+        return ConfigError(message, path=self.path, line=toml_key_line(self.text, key), field=key, value=value)
 
     @overload
     def number(self, key: str, default: float) -> float: ...

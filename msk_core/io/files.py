@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -51,3 +52,33 @@ def json_ready(value: Any) -> Any:
 def json_text(value: Any, *, indent: int | None = 2, default: Any = None) -> str:
     """``value`` as strict JSON text (:func:`json_ready`), ending in a newline; ``default`` as json.dumps's."""
     return json.dumps(json_ready(value), indent=indent, allow_nan=False, default=default) + "\n"
+
+
+def line_of(text: str, token: str, *, after: str = "", key: bool = False) -> int | None:
+    """1-based line of the first line of ``text`` holding ``token`` (``key``: a line that assigns it, ``token = ...``,
+    bare or quoted), at or after the line ``after`` (a table's header) when given and present; for the line numbers
+    of error messages about TOML specs, trial and session files."""
+    lines = text.splitlines()
+    start = next((i for i, line in enumerate(lines) if after and line.strip() == after), 0)
+    assigns = re.compile(rf"\s*[\"']?{re.escape(token)}[\"']?\s*=")
+    for number, line in enumerate(lines[start:], start=start + 1):
+        if assigns.match(line) if key else token in line:
+            return number
+    return None
+
+
+def toml_key_line(text: str, key: str) -> int | None:
+    """The line of ``key`` in a TOML ``text``: a top-level key or table, or ``table.key`` inside ``[table]`` (else
+    the table's header line); None when neither is there."""
+    table, _, inner = key.partition(".")
+    header = line_of(text, table, key=True) or next(
+        (n for n, line in enumerate(text.splitlines(), start=1) if line.strip() == f"[{table}]"), None
+    )
+    if header is None or not inner:
+        return header
+    found = line_of(text, inner, after=f"[{table}]", key=True)
+    next_table = next(
+        (n for n, line in enumerate(text.splitlines()[header:], start=header + 1) if line.strip().startswith("[")),
+        None,
+    )
+    return found if found is not None and (next_table is None or found < next_table) else header

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from msk_core.errors import ConfigError
+from msk_core.io.files import line_of
 
 ROTATION_UNIT = "deg"
 TRANSLATION_UNIT = "m"
@@ -121,13 +122,13 @@ def parse_names(
             path=path,
             field=where,
             value=table,
-            line=_line(text, f"[{where}]"),
+            line=line_of(text, f"[{where}]"),
         )
     known = list(known)
     names = {}
     for key, value in table.items():
         fieldname = f"{where}.{key}"
-        line = _line(text, key, after=f"[{where}]")
+        line = line_of(text, key, after=f"[{where}]", key=True)
         if key not in known:
             hits = difflib.get_close_matches(key, known, n=3, cutoff=0.4)
             # the table may be right and the name it names misspelt where it is defined: say both
@@ -155,13 +156,3 @@ def parse_names(
             )
         names[key] = value
     return names
-
-
-def _line(text: str, token: str, after: str = "") -> int | None:
-    """1-based line of the first ``token`` at or after the line holding ``after`` (the table's header)."""
-    lines = text.splitlines()
-    start = next((i for i, line in enumerate(lines) if after and line.strip() == after), 0)
-    for number, line in enumerate(lines[start:], start=start + 1):
-        if line.lstrip().startswith((token, f'"{token}"')):
-            return number
-    return None

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, TypeGuard
 
 from msk_core.errors import ConfigError
+from msk_core.io.files import line_of
 from msk_core.model.names import ROTATION_UNIT, DisplayNames, parse_names
 
 
@@ -125,7 +126,7 @@ class PackSpec:
 
     def line_of(self, token: str) -> int | None:
         """1-based line of the first occurrence of ``token`` in the spec text (for error messages)."""
-        return _line(self.text, token)
+        return line_of(self.text, token)
 
 
 def closest(name: str, choices: list[str], n: int = 3) -> str:
@@ -146,20 +147,9 @@ def _need(table: dict, key: str, kind: type, path: Path | None, text: str, where
     return value
 
 
-def _line(text: str, token: str, after: str = "") -> int | None:
-    """1-based line of the first occurrence of ``token`` in ``text`` (at or after the line ``after``, a table's
-    header, when given and present)."""
-    lines = text.splitlines()
-    start = next((i for i, line in enumerate(lines) if after and line.strip() == after), 0)
-    for number, line in enumerate(lines[start:], start=start + 1):
-        if token in line:
-            return number
-    return None
-
-
 def _invalid(message: str, path: Path | None, text: str, fieldname: str, value: object, token: str) -> ConfigError:
     """The error for a bad value of ``fieldname``, at the spec's first line holding ``token``."""
-    return ConfigError(message, path=path, field=fieldname, value=value, line=_line(text, token))
+    return ConfigError(message, path=path, field=fieldname, value=value, line=line_of(text, token))
 
 
 def _vector3(values: list[float]) -> tuple[float, float, float]:
@@ -242,7 +232,7 @@ def parse_spec(text: str, path: Path | None = None) -> PackSpec:
 def _parse_fit(fit_raw: object, path: Path | None, text: str) -> FitSpec:
     """The [fit] table: samples per muscle (>= 10), polynomial degree (>= 1), held-out share in [0, 1), seed."""
     if not isinstance(fit_raw, dict):
-        raise ConfigError("must be a table", path=path, field="fit", line=_line(text, "[fit]"))
+        raise ConfigError("must be a table", path=path, field="fit", line=line_of(text, "[fit]"))
     _known_keys(fit_raw, FIT_KEYS, "fit", path, text)
     checks = (
         ("samples", 300, lambda v: isinstance(v, int) and v >= 10, "a whole number >= 10"),
@@ -267,7 +257,7 @@ def _parse_coordinates(coords_raw: dict, path: Path | None, text: str) -> tuple[
     for cname, entry in coords_raw.items():
         where = f"coordinates.{cname}"
         if not isinstance(entry, dict):
-            raise ConfigError("must be a table", path=path, field=where, line=_line(text, cname))
+            raise ConfigError("must be a table", path=path, field=where, line=line_of(text, cname))
         _known_keys(entry, COORDINATE_KEYS, where, path, text)
         lo, hi = _deg_pair(entry.get("range_deg"), path, text, f"{where}.range_deg")
         reference = entry.get("reference_deg", 0.0)
@@ -293,7 +283,7 @@ def _parse_locked(locked_raw: dict, path: Path | None, text: str) -> dict[str, f
     """The [locked] table: model coordinate -> value (``{ deg = .. }`` in rad, ``{ m = .. }`` in m)."""
     locked = {}
     if not isinstance(locked_raw, dict):
-        raise ConfigError("must be a table", path=path, field="locked", line=_line(text, "[locked]"))
+        raise ConfigError("must be a table", path=path, field="locked", line=line_of(text, "[locked]"))
     for lname, value in locked_raw.items():
         if isinstance(value, dict) and len(value) == 1 and "deg" in value and _is_number(value["deg"]):
             locked[lname] = math.radians(float(value["deg"]))
@@ -322,7 +312,7 @@ def _parse_dynamics(dyn_raw: object, path: Path | None, text: str) -> DynamicsSp
     """The [dynamics] table. Without ``load_points`` the pack has no hand load (its inverse dynamics takes none);
     ``load_share`` is then only meaningful with ``shared_from`` (the share of the shared bodies' mass)."""
     if not isinstance(dyn_raw, dict):
-        raise ConfigError("must be a table", path=path, field="dynamics", line=_line(text, "[dynamics]"))
+        raise ConfigError("must be a table", path=path, field="dynamics", line=line_of(text, "[dynamics]"))
     _known_keys(dyn_raw, DYNAMICS_KEYS, "dynamics", path, text)
     loads = _parse_load_points(dyn_raw.get("load_points", []), path, text)
     shared_from = str(dyn_raw.get("shared_from", ""))
@@ -409,7 +399,7 @@ def parse_balance(
     Errors name the file, line, field and value: an unknown key, group or coordinate, a group on both sides of a
     pair, a pair or list of the wrong shape, an empty label."""
     if not isinstance(table, dict):
-        raise ConfigError("must be a table", path=path, field="balance", value=table, line=_line(text, "[balance]"))
+        raise ConfigError("must be a table", path=path, field="balance", value=table, line=line_of(text, "[balance]"))
     _known_keys(table, BALANCE_KEYS, "balance", path, text, _bad)
     known = list(groups)
     pairs_raw = table.get("left_right", [])
@@ -482,7 +472,7 @@ def _known_group(group: str, groups: list[str], path: Path | None, text: str, wh
 
 def _bad(message: str, path: Path | None, text: str, fieldname: str, value: object, token: str) -> ConfigError:
     """The error for a bad value in ``[balance]``, at the table's first line holding ``token``."""
-    line = _line(text, token, after="[balance]") or _line(text, "[balance]")
+    line = line_of(text, token, after="[balance]") or line_of(text, "[balance]")
     return ConfigError(message, path=path, field=fieldname, value=value, line=line)
 
 

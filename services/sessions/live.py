@@ -48,7 +48,14 @@ from services.nodes.node_runtime import outages_summary, outages_text
 from services.nodes.readiness import GraphTimeout
 from services.sessions.demo_subject import RECORDINGS, sim_subject
 from services.sessions.graph import Graph, pids_path, python_module, wait_for, zenoh_flags
-from services.sessions.live_session import SIM_METHODS, LiveSession, check_against_pack, session_names, stated_latencies
+from services.sessions.live_session import (
+    SIM_METHODS,
+    LiveSession,
+    check_against_pack,
+    session_error,
+    session_names,
+    stated_latencies,
+)
 from services.transport import messages, session_graph, topics
 from services.transport.mcap_io import read_messages
 from services.transport.stop_signals import StopOnSignals, stop_with_parent_env
@@ -1324,7 +1331,7 @@ def checked_subject(path: Path, pack, session_path: Path | None):
     try:
         profile.check_pack(pack)
     except EstimationError as error:
-        raise ConfigError(str(error), path=session_path, field="session.subject", value=str(path)) from None
+        raise session_error(session_path, "session.subject", str(error), str(path)) from None
     return profile
 
 
@@ -1361,11 +1368,11 @@ def plan_for(
         checked_subject(Path(subject), model, session.path).emg_normalisation,
     )
     if "assisted" in methods and not electrodes:
-        raise ConfigError(
+        raise session_error(
+            session.path,
+            "session.methods",
             "method 'assisted' needs EMG: a [trigno] device and an [electrodes] map",
-            path=session.path,
-            field="session.methods",
-            value="assisted",
+            "assisted",
         )
     profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
     trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
@@ -1438,11 +1445,8 @@ def _sim_trackers(session: LiveSession, sources: SimSources, segments: list[str]
         return {t: seg for seg, t in simulated.items() if seg in segments}
     missing = sorted(set(session.trackers.values()) - set(simulated))
     if missing:
-        raise ConfigError(
-            f"--sim plays trackers on {', '.join(sorted(simulated))} only",
-            path=session.path,
-            field="trackers",
-            value=missing,
+        raise session_error(
+            session.path, "trackers", f"--sim plays trackers on {', '.join(sorted(simulated))} only", missing
         )
     trackers = {simulated[seg]: seg for seg in session.trackers.values()}
     if set(trackers) != set(session.trackers):
@@ -1461,7 +1465,7 @@ def _device_inputs(session: LiveSession) -> _SessionInputs:
     """With devices: the session file's subject (required) and maps; methods by default proposed (+ assisted with
     a Trigno)."""
     if session.subject is None:
-        raise ConfigError("missing: the subject profile (`msk calibrate`)", path=session.path, field="session.subject")
+        raise session_error(session.path, "session.subject", "missing: the subject profile (`msk calibrate`)")
     methods = session.methods or (("proposed", "assisted") if session.trigno_host else ("proposed",))
     return session.subject, session.electrodes, session.trackers, tuple(methods)
 

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from drivers.trigno.protocol import N_SENSORS, AuxLayout
 from msk_core.errors import ConfigError
+from msk_core.io.files import toml_key_line
 from msk_core.signal.sets import DEFAULT_REST_S
 from services.transport import topics
 
@@ -125,7 +126,7 @@ def stated_latencies(
     ``xsens.tracker_latency_ms`` that is not one of ``trackers`` is an error (file, key, value)."""
     for tracker in session.tracker_latency_ms:
         if tracker not in trackers:
-            raise _error(
+            raise session_error(
                 session.path,
                 f"xsens.tracker_latency_ms.{tracker}",
                 f"not a tracker of this session ({', '.join(trackers) or 'none'})",
@@ -140,27 +141,34 @@ def stated_latencies(
     return trigno, {t: session.tracker_latency_ms.get(t, every_tracker) for t in trackers}
 
 
-def _error(path: Path | None, key: str, message: str, value=None) -> ConfigError:
-    return ConfigError(message, path=path, field=key, value=value)
+def session_error(path: Path | None, key: str, message: str, value=None) -> ConfigError:
+    """The refusal of ``key``'s value, at its line of the session file when the file says it."""
+    line = None
+    if path is not None:
+        try:
+            line = toml_key_line(Path(path).read_text(), key)
+        except (OSError, UnicodeDecodeError):  # the message still names the file and the key
+            pass
+    return ConfigError(message, path=path, line=line, field=key, value=value)
 
 
 def _type(path, key, value, kind, what):
     if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
-        raise _error(path, key, f"must be {what}", value)
+        raise session_error(path, key, f"must be {what}", value)
     return value
 
 
 def _latency_ms(path, key, value) -> float:
     number = _type(path, key, value, (int, float), "a latency in milliseconds")
     if not (math.isfinite(number) and 0 <= number <= 1000):
-        raise _error(path, key, "must be a latency within 0..1000 ms", number)
+        raise session_error(path, key, "must be a latency within 0..1000 ms", number)
     return float(number)
 
 
 def _int_within(path, key, value, low: int, high: int, what: str, out_of_range: str) -> int:
     number = _type(path, key, value, int, what)
     if not low <= number <= high:
-        raise _error(path, key, out_of_range, number)
+        raise session_error(path, key, out_of_range, number)
     return number
 
 
@@ -185,13 +193,15 @@ def _check_sections(doc: dict, path: Path | None) -> None:
     """Every section is a known table, with known keys."""
     for section, value in doc.items():
         if section not in _SECTIONS:
-            raise _error(path, section, f"unknown section (expected {', '.join(_SECTIONS)})", section)
+            raise session_error(path, section, f"unknown section (expected {', '.join(_SECTIONS)})", section)
         if not isinstance(value, dict):
-            raise _error(path, section, "must be a table ([" + section + "])", value)
+            raise session_error(path, section, "must be a table ([" + section + "])", value)
         allowed = _SECTIONS[section]
         for key in value:
             if allowed is not None and key not in allowed:
-                raise _error(path, f"{section}.{key}", f"unknown key (expected {', '.join(sorted(allowed))})", key)
+                raise session_error(
+                    path, f"{section}.{key}", f"unknown key (expected {', '.join(sorted(allowed))})", key
+                )
 
 
 def _parse_session_table(
@@ -203,23 +213,23 @@ def _parse_session_table(
         try:
             name = topics.check_chunk(_type(path, "session.name", s["name"], str, "a string"), "session")
         except ConfigError as error:
-            raise _error(path, "session.name", f"not a valid key chunk ({error})", s["name"]) from None
+            raise session_error(path, "session.name", f"not a valid key chunk ({error})", s["name"]) from None
     if "out" in s:
         out = base / _type(path, "session.out", s["out"], str, "a folder path")
     if "athlete" in s:
         athlete = _type(path, "session.athlete", s["athlete"], str, "a string (who lifts)")
         if not athlete.isprintable():
-            raise _error(path, "session.athlete", "must be one line of printable text", athlete)
+            raise session_error(path, "session.athlete", "must be one line of printable text", athlete)
     if "pack" in s:
         pack = _pack(
             path, base, _type(path, "session.pack", s["pack"], str, "a pack name (bench_press, deadlift) or path")
         )
     elif require_devices:
-        raise _error(path, "session.pack", 'missing: the model pack (e.g. "bench_press")')
+        raise session_error(path, "session.pack", 'missing: the model pack (e.g. "bench_press")')
     if "subject" in s:
         subject = base / _type(path, "session.subject", s["subject"], str, "a path to a subject profile JSON")
         if not subject.is_file():
-            raise _error(
+            raise session_error(
                 path, "session.subject", "subject profile not found (make one with `msk calibrate`)", str(subject)
             )
     session = replace(session, name=name, out=out, athlete=athlete, pack=pack, subject=subject)
@@ -232,24 +242,24 @@ def _parse_lift(session: LiveSession, s: dict, path: Path | None, require_device
     if "load_kg" in s:
         load = _type(path, "session.load_kg", s["load_kg"], (int, float), "a number of kilograms")
         if not (math.isfinite(load) and load >= 0):
-            raise _error(path, "session.load_kg", "must be a finite mass >= 0 kg", load)
+            raise session_error(path, "session.load_kg", "must be a finite mass >= 0 kg", load)
         load_kg = float(load)
     elif require_devices:
-        raise _error(path, "session.load_kg", "missing: the barbell mass in kg (0 for none)")
+        raise session_error(path, "session.load_kg", "missing: the barbell mass in kg (0 for none)")
     if "rest_s" in s:
         rest = _type(path, "session.rest_s", s["rest_s"], (int, float), "a number of seconds")
         if not (math.isfinite(rest) and rest > 0):
-            raise _error(
+            raise session_error(
                 path, "session.rest_s", "must be a time > 0 s (a set ends after this long without a rep)", rest
             )
         rest_s = float(rest)
     if "methods" in s:
         listed = _type(path, "session.methods", s["methods"], list, f"a list of methods ({', '.join(METHODS)})")
         if not listed:
-            raise _error(path, "session.methods", "must name at least one method", listed)
+            raise session_error(path, "session.methods", "must name at least one method", listed)
         for m in listed:
             if m not in METHODS:
-                raise _error(path, "session.methods", f"unknown method (expected {', '.join(METHODS)})", m)
+                raise session_error(path, "session.methods", f"unknown method (expected {', '.join(METHODS)})", m)
         methods = tuple(dict.fromkeys(listed))
     return replace(session, load_kg=load_kg, rest_s=rest_s, methods=methods)
 
@@ -261,7 +271,7 @@ def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devi
     if "host" in t:
         given["trigno_host"] = _type(path, "trigno.host", t["host"], str, "HOST or HOST:PORT")
     elif require_devices:  # under --sim the simulator is the device: its other keys (id, latency) still apply
-        raise _error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
+        raise session_error(path, "trigno.host", "missing: the Trigno Control Utility address, HOST or HOST:PORT")
     if "emg_port" in t:
         given["trigno_emg_port"] = _int_within(
             path, "trigno.emg_port", t["emg_port"], 1, 65535, "a TCP port number", "must be a TCP port 1..65535"
@@ -279,7 +289,7 @@ def _parse_trigno(session: LiveSession, t: dict, path: Path | None, require_devi
     if "aux_layout" in t:
         layouts = [layout.value for layout in AuxLayout]
         if t["aux_layout"] not in layouts:
-            raise _error(path, "trigno.aux_layout", f"must be one of {', '.join(layouts)}", t["aux_layout"])
+            raise session_error(path, "trigno.aux_layout", f"must be one of {', '.join(layouts)}", t["aux_layout"])
         given["trigno_aux_layout"] = AuxLayout(t["aux_layout"])
     if "id" in t:
         given["trigno_id"] = topics.check_chunk(_type(path, "trigno.id", t["id"], str, "a name"), "trigno.id")
@@ -294,10 +304,10 @@ def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devic
     if "ports" in x:
         ports = [x["ports"]] if isinstance(x["ports"], str) else x["ports"]
         if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
-            raise _error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
+            raise session_error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
         given["xsens_ports"] = tuple(ports)
     elif require_devices:
-        raise _error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
+        raise session_error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
     if "rate_hz" in x:
         given["imu_rate_hz"] = _int_within(
             path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
@@ -305,12 +315,14 @@ def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devic
     if "baud" in x:
         given["xsens_baud"] = baud = _type(path, "xsens.baud", x["baud"], int, "a baud rate")
         if baud <= 0:
-            raise _error(path, "xsens.baud", "must be a positive baud rate", baud)
+            raise session_error(path, "xsens.baud", "must be a positive baud rate", baud)
     if "latency_ms" in x:
         given["xsens_latency_ms"] = _latency_ms(path, "xsens.latency_ms", x["latency_ms"])
     per_tracker = x.get("tracker_latency_ms", {})
     if not isinstance(per_tracker, dict):
-        raise _error(path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker)
+        raise session_error(
+            path, "xsens.tracker_latency_ms", "must be a table: tracker id -> latency in ms", per_tracker
+        )
     tracker_latency = dict(session.tracker_latency_ms)
     for tracker, value in per_tracker.items():
         key = f"xsens.tracker_latency_ms.{tracker}"
@@ -326,12 +338,12 @@ def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSessi
         key = f"trackers.{tracker}"
         tracker_id = _tracker_id(path, key, tracker)
         if tracker_id in listed:  # one device listed twice (ids differing in case): the second replaced the first
-            raise _error(path, key, f"the same tracker as {listed[tracker_id]!r} (ids ignore case)", tracker)
+            raise session_error(path, key, f"the same tracker as {listed[tracker_id]!r} (ids ignore case)", tracker)
         listed[tracker_id] = tracker
         trackers[tracker_id] = _type(path, key, segment, str, "a body segment name")
     for tracker in session.tracker_latency_ms:
         if trackers and tracker not in trackers:
-            raise _error(
+            raise session_error(
                 path,
                 f"xsens.tracker_latency_ms.{tracker}",
                 f"not a tracker of [trackers] ({', '.join(trackers)})",
@@ -340,7 +352,7 @@ def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSessi
     electrodes = dict(session.electrodes)
     for label, target in doc.get("electrodes", {}).items():
         if not is_trigno_channel(label):
-            raise _error(
+            raise session_error(
                 path, f"electrodes.{label}", f"not a channel the Trigno driver publishes: {TRIGNO_CHANNEL_FORM}", label
             )
         electrodes[label] = _type(path, f"electrodes.{label}", target, str, "an electrode or group name")
@@ -350,11 +362,15 @@ def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSessi
 def _check_devices(session: LiveSession, path: Path | None) -> None:
     """Without --sim: at least one device, and the maps the devices need."""
     if session.trigno_host is None and not session.xsens_ports:
-        raise _error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
+        raise session_error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
     if session.xsens_ports and not session.trackers:
-        raise _error(path, "trackers", 'missing: the tracker -> segment map ([trackers] "00B4EB80" = "upper_arm_r")')
+        raise session_error(
+            path, "trackers", 'missing: the tracker -> segment map ([trackers] "00B4EB80" = "upper_arm_r")'
+        )
     if session.trigno_host is not None and not session.electrodes:
-        raise _error(path, "electrodes", 'missing: the electrode -> group map ([electrodes] "sensor01.EMG" = ...)')
+        raise session_error(
+            path, "electrodes", 'missing: the electrode -> group map ([electrodes] "sensor01.EMG" = ...)'
+        )
 
 
 def _tracker_id(path: Path | None, key: str, tracker: str) -> str:
@@ -362,9 +378,9 @@ def _tracker_id(path: Path | None, key: str, tracker: str) -> str:
     try:
         int(tracker, 16)
     except ValueError:
-        raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker) from None
+        raise session_error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker) from None
     if len(tracker) != 8:
-        raise _error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker)
+        raise session_error(path, key, "a tracker id is the device id in 8 hexadecimal digits", tracker)
     return tracker.upper()
 
 
@@ -379,9 +395,9 @@ def _pack(path: Path | None, base: Path, value: str) -> str:
     candidate = base / value
     if value.endswith(".json") or "/" in value or "\\" in value or candidate.is_file():
         if not candidate.is_file():
-            raise _error(path, "session.pack", "pack file not found", str(candidate))
+            raise session_error(path, "session.pack", "pack file not found", str(candidate))
         return str(candidate)
-    raise _error(
+    raise session_error(
         path, "session.pack", f"unknown pack (shipped: {', '.join(packs)}; or the path of a pack JSON file)", value
     )
 
@@ -406,18 +422,20 @@ def check_against_pack(
     by_segment: dict[str, str] = {}
     for tracker, segment in session.trackers.items():
         if segment not in segments:
-            raise _error(
+            raise session_error(
                 session.path,
                 f"trackers.{tracker}",
                 f"not a segment the pack's IMU table uses ({', '.join(segments)})",
                 segment,
             )
         if segment in by_segment:
-            raise _error(session.path, f"trackers.{tracker}", f"tracker {by_segment[segment]} is on it too", segment)
+            raise session_error(
+                session.path, f"trackers.{tracker}", f"tracker {by_segment[segment]} is on it too", segment
+            )
         by_segment[segment] = tracker
     missing = [segment for segment in segments if segment not in by_segment]
     if session.trackers and missing:
-        raise _error(
+        raise session_error(
             session.path,
             "trackers",
             f"no tracker on {', '.join(missing)}: the pack's joint angles need one on each of {', '.join(segments)}",
@@ -425,7 +443,7 @@ def check_against_pack(
         )
     for label, target in session.electrodes.items():
         if target not in profile_electrodes and target not in groups:
-            raise _error(
+            raise session_error(
                 session.path,
                 f"electrodes.{label}",
                 "neither an electrode of the subject profile "
