@@ -11,6 +11,7 @@ import pytest
 from scipy import signal
 
 from msk_core.errors import ConfigError, InputError
+from msk_core.estimate.clock_alignment import METHOD_ACCELERATION
 from msk_core.estimate.emg_chunk import RawEmgChunk
 from msk_core.io import read_c3d_analogs
 from msk_core.signal.fatigue import (
@@ -312,3 +313,68 @@ def test_the_estimators_fatigue_worker_gives_the_values_of_the_stream_off_its_th
     (electrode,) = worker.report()
     assert electrode.group == "TriLat" and electrode.set_number == 1 and stats.fatigue_reps == N_REPS
     assert len(electrode.median_hz) == N_REPS and electrode.median_slope_pct_per_rep < -1.0, electrode
+
+
+def test_the_fatigue_panel_counts_the_reps_the_set_table_counts_after_a_mark_during_a_rep() -> None:
+    """The operator starts set 2 during rep 5 of set 1 (``msk set start``): the set table (SetTracker) counts that
+    rep in neither set, as it does not know whose it is; the estimator's fatigue index counted it as rep 1 of set 2,
+    so the fatigue panel said 3 reps where the set table said 2. The real estimator node, its fatigue worker and the
+    set tracker, fed the same frames; only the phase is given (the tracker's template is not under test)."""
+    from msk_core.model import load_pack
+    from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
+    from services.transport import messages as msgs
+
+    x, reps, _ = simulated_set(7, same_waveform=False)
+    pack = load_pack("bench_press")
+    norm = {"sensor01.EMG": {"group": pack.groups[0], "divisor": 1.0}}
+    from msk_core.estimate.profile import SubjectProfile
+
+    profile = SubjectProfile(
+        pack.name,
+        str(pack.version),
+        list(pack.groups),
+        pack.f_max_ref.copy(),
+        pack.f_max_ref.copy(),
+        emg_normalisation=norm,
+    )
+    timing = EmgTiming(joints_clock="host", emg_wait_s=0.1)
+    settings = EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host", timing=timing)
+    node = EstimatorNode(settings, profile, EstimatorStats())
+    assert node.fatigue is not None
+    mark_at = 0.5 * (reps[4][0] + reps[4][1])  # the middle of rep 5
+    node._phase = lambda joints, t, q: next(((t - a) / (b - a) for a, b in reps if a <= t < b), -1.0)
+    node.handle_load(msgs.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=1, set_mark="start"))
+    i, marked = 0, False
+    for t in np.arange(0.0, reps[6][1] + 0.3, 0.01):  # 7 reps: 4 before the mark, rep 5 cut by it, 2 after
+        while i < x.shape[0] and i / RATE <= t:
+            chunk = msgs.EmgChunk(
+                source_id="trigno",
+                channel_labels=["sensor01.EMG"],
+                sample_rate_hz=RATE,
+                first_sample_index=i,
+                device_time_ns=int(round(i / RATE * 1e9)),
+                host_time_ns=int(round(i / RATE * 1e9)),
+                n_samples=len(x[i : i + 27]),
+                n_channels=1,
+                samples=x[i : i + 27, 0].tolist(),
+                units="V",
+            )
+            node.handle_emg(chunk, chunk.host_time_ns)
+            if i == 0:
+                node.live_emg.set_offset("trigno", 0, 0, METHOD_ACCELERATION)
+            i += 27
+        if not marked and t >= mark_at:
+            node.handle_load(msgs.LoadEvent(barbell_mass_kg=50, exercise="bench_press", set_number=2, set_mark="start"))
+            marked = True
+        ns = int(round(t * 1e9))
+        node.handle_joints(
+            msgs.JointAngles(
+                coordinates=list(pack.coordinates), q=list(pack.reference_pose), device_time_ns=ns, host_time_ns=ns
+            ),
+            ns,
+        )
+    node.fatigue.close(timeout_s=60.0)
+    table = [len(s.reps) for s in node.sets.sets]
+    (electrode,) = node.fatigue.report()
+    assert table == [4, 2], table  # rep 5: in neither set
+    assert electrode.set_number == 2 and len(electrode.median_hz) == table[-1], (table, electrode.median_hz)

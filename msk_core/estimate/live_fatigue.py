@@ -8,7 +8,9 @@ frame's instant on that source's clock less the electromechanical delay, :attr:`
 own clock, so the rep's raw EMG is cut on the clock it was sampled with. A rep's values exist once the EMG up to its
 end has arrived (the tracker waits for it).
 
-Sets: :meth:`LiveFatigue.start_set` (the operator's ``LoadEvent.set_number``) starts the trend again. Samples lost (a
+Sets: :meth:`LiveFatigue.start_set` (the operator's ``LoadEvent.set_number``) starts the trend again; an operator's
+mark drops the rep under way (:meth:`LiveFatigue.drop_rep_under_way`: counting resumes after the next rest sample, as
+:class:`msk_core.signal.sets.SetTracker` does, so the fatigue panel and the set table count the same reps). Samples lost (a
 jump in ``first_sample_index``) start the source's tracker again from the chunk after the gap, keeping the set's
 values; a rep that began before the gap has no values (counted in ``reps_skipped``). Re-sent rows are taken once.
 Samples arrive in the chunk's ``units`` (:func:`msk_core.units.volts_per_unit`, since the noise
@@ -80,6 +82,8 @@ class LiveFatigue:
         self.set_number = 0
         self.reps_done = 0  # reps with values, over the session
         self.reps_skipped = 0  # reps whose EMG the tracker did not hold whole (a gap, the start of the stream)
+        self._phase: float | None = None  # the newest frame's phase
+        self._wait_rest = False  # an operator's mark dropped the rep under way: no rep until a rest sample
 
     def add_chunk(self, chunk: RawEmgChunk) -> list[RepSpectrum]:
         """One chunk of raw EMG; returns the reps it completed."""
@@ -105,6 +109,11 @@ class LiveFatigue:
         """One estimated frame: its ``phase`` and, per source, the device time of the EMG it reads; returns the reps
         whose EMG had all arrived when they ended."""
         done: list[RepSpectrum] = []
+        self._phase = phase
+        if self._wait_rest:
+            if phase is not None and phase >= 0.0:
+                return done
+            self._wait_rest = False
         for source, t_ns in read_at_ns.items():
             state = self.sources.get(source)
             if state is None or state.tracker is None:
@@ -118,6 +127,13 @@ class LiveFatigue:
                 self.reps_skipped += 1
         self.reps_done += len(done)
         return done
+
+    def drop_rep_under_way(self) -> None:
+        """The operator marked a set (started or ended one) during a rep: that rep is not counted, and counting
+        resumes after the next rest sample."""
+        for state in self.sources.values():
+            state.reps = PhaseRepCounter()
+        self._wait_rest = self._phase is not None and self._phase >= 0.0
 
     def start_set(self, number: int = 0) -> None:
         """The reps from now on belong to set ``number`` (0: not counted): its trend starts again."""

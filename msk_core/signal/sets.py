@@ -124,6 +124,9 @@ class SetTracker:
         self._last_t = -math.inf
         self._phase: float | None = None
         self._rep_began: float | None = None  # the start of the rep under way as another tracker saw it
+        # operator marks that dropped the rep under way (start, stop): a consumer with reps of its own (the estimator's
+        # fatigue index) drops its rep under way too, so both count the same reps
+        self.reps_dropped = 0
 
     # ---- what the surfaces show ------------------------------------------------------------------------------------
     @property
@@ -405,6 +408,7 @@ class SetTracker:
         self._tentative = False
 
     def _reset_reps(self) -> None:
+        self.reps_dropped += 1
         self._counter = PhaseRepCounter()
         self._rep_began = None
         self._wait_rest = self._phase is not None and self._phase >= 0.0

@@ -396,6 +396,9 @@ class FatigueWorker:
         self.set_number = number
         self._queue.put(("set", (number,)))
 
+    def drop_rep_under_way(self) -> None:
+        self._queue.put(("drop", ()))
+
     def report(self) -> list[ElectrodeFatigueReport]:
         return self._report
 
@@ -413,6 +416,9 @@ class FatigueWorker:
                     done = self.fatigue.add_chunk(*args)
                 elif kind == "frame":
                     done = self.fatigue.add_frame(*args)
+                elif kind == "drop":
+                    self.fatigue.drop_rep_under_way()
+                    done = []
                 else:
                     self.fatigue.start_set(*args)
                     done = []
@@ -685,7 +691,10 @@ class EstimatorNode:
         self.loads.add(event.device_time_ns, event.barbell_mass_kg, event.exercise)
         self.stats.load_events += 1
         # the one set logic (msk_core.signal.sets), as the view, the dashboard and the report run it
+        dropped = self.sets.reps_dropped
         apply_load_event(self.sets, event)
+        if self.fatigue is not None and self.sets.reps_dropped != dropped:  # a mark during a rep: not counted
+            self.fatigue.drop_rep_under_way()
         self._follow_set()
 
     def _follow_set(self) -> None:
