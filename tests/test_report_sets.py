@@ -132,3 +132,26 @@ def test_a_load_corrected_for_a_set_after_its_last_rep_is_its_load(tmp_path):
             session.joints_and_frame(t_s, phase_at(t_s), ["A", "B"], [0.5, 0.1])
     (first,) = report.write_report(recording, tmp_path / "out")["sets"]
     assert first["name"] == "set 1: bench press, 62.5 kg", first["name"]
+
+
+def test_two_athletes_on_one_rack_each_set_is_named_with_its_athlete(tmp_path):
+    """Ana lifts set 1, Ben set 2 (``msk load --athlete Ben --next-set``): the header said "Ana, Ben" and no set said
+    whose it was. Each set's name and its report.json entry now say it; a one-athlete session's names stay as they
+    were (the header names the athlete)."""
+    facts = [
+        (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, athlete="Ana")),
+        (20.0, messages.LoadEvent(barbell_mass_kg=80, exercise="bench_press", set_number=2, athlete="Ben")),
+    ]
+    recording = tmp_path / "session.mcap"
+    with timed_recording(recording, START_NS) as session:
+        session.load_events(facts)
+        for k in range(int(40 * RATE_HZ)):
+            t_s = k / RATE_HZ
+            phase = phase_at(t_s % 20.0 + 1.0) if t_s % 20.0 < 6.0 else -1.0  # 3 reps from 1 s and from 21 s
+            session.joints_and_frame(t_s, phase, ["A", "B"], [0.5, 0.1])
+    summary = report.write_report(recording, tmp_path / "out")
+    assert [(s["name"], s["athlete"], len(s["reps"])) for s in summary["sets"]] == [
+        ("set 1 (Ana): bench press, 60 kg", "Ana", 3),
+        ("set 2 (Ben): bench press, 80 kg", "Ben", 3),
+    ], [(s["name"], s["athlete"], len(s["reps"])) for s in summary["sets"]]
+    assert "set 2 (Ben)" in (tmp_path / "out" / "report.html").read_text()

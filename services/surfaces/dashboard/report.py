@@ -205,12 +205,23 @@ class SetWindow:
     number: int = 0  # the operator's set number; 0: not counted (``index`` is shown)
     record: SetRecord | None = None  # the SetTracker's set: its reps and figures; None without a phase stream
     rep_source: str = ""  # what the record's reps were counted on
+    athlete: str = ""  # who lifted (the load event in effect); "" when not named
+    several_athletes: bool = False  # the session's sets name more than one: each set's name says whose it is
 
     @property
     def name(self) -> str:
         exercise = self.exercise.replace("_", " ") or "exercise not named"
         load = f"{self.load_kg:g} kg" if self.load_kg > 0 else "load unknown"
-        return f"set {self.number or self.index}: {exercise}, {load}"
+        who = f" ({self.athlete or 'athlete not named'})" if self.several_athletes else ""
+        return f"set {self.number or self.index}{who}: {exercise}, {load}"
+
+
+def _whose(windows: list[SetWindow]) -> list[SetWindow]:
+    """Two athletes on one rack (``msk load --athlete``): each set is named with its athlete."""
+    several = len({w.athlete for w in windows if w.athlete}) > 1
+    for window in windows:
+        window.several_athletes = several
+    return windows
 
 
 def set_windows(data: SessionData) -> list[SetWindow]:
@@ -244,8 +255,11 @@ def set_windows(data: SessionData) -> list[SetWindow]:
             data.frame_exercises[0] if len(data.frame_exercises) == 1 else ""
         )
         mass = fact.mass_kg if fact is not None else 0.0
-        windows.append(SetWindow(index, exercise, mass, record.start_s, end, record.number, record, source))
-    return windows
+        athlete = fact.athlete if fact is not None else ""
+        windows.append(
+            SetWindow(index, exercise, mass, record.start_s, end, record.number, record, source, athlete=athlete)
+        )
+    return _whose(windows)
 
 
 def _fact_of(loads: list[Load], start_s: float, end_s: float, number: int = 0) -> Load | None:
@@ -319,13 +333,17 @@ def _fact_windows(data: SessionData) -> list[SetWindow]:
         end = record.end_s if record.end_s is not None else math.inf
         fact = _fact_of(loads, record.start_s, end)
         assert fact is not None  # every set here opened at a load event
-        windows.append(SetWindow(len(windows) + 1, fact.exercise, fact.mass_kg, record.start_s, end, record.number))
+        windows.append(
+            SetWindow(
+                len(windows) + 1, fact.exercise, fact.mass_kg, record.start_s, end, record.number, athlete=fact.athlete
+            )
+        )
     if not windows:  # no load events: the whole session is one set, of the frames' exercise when they name one
         times = [t for s in data.frames.values() for t in s.time] or data.joint_time
         if times:
             exercise = data.frame_exercises[0] if len(data.frame_exercises) == 1 else ""
             windows.append(SetWindow(1, exercise, 0.0, min(times), max(times)))
-    return windows
+    return _whose(windows)
 
 
 def session_facts(data: SessionData) -> dict:
@@ -471,6 +489,7 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
         "set_number": window.number,
         "exercise": window.exercise,
         "load_kg": window.load_kg,
+        "athlete": window.athlete or None,
         "start_s": window.start_s,
         "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
         "pack": pack.name if pack else None,
