@@ -155,3 +155,47 @@ def test_two_athletes_on_one_rack_each_set_is_named_with_its_athlete(tmp_path):
         ("set 2 (Ben): bench press, 80 kg", "Ben", 3),
     ], [(s["name"], s["athlete"], len(s["reps"])) for s in summary["sets"]]
     assert "set 2 (Ben)" in (tmp_path / "out" / "report.html").read_text()
+
+
+def test_a_bench_press_then_a_deadlift_each_set_has_the_reps_of_its_own_packs_frames(tmp_path):
+    """``msk demo`` then ``msk report``: the reps are counted on the activation frames' phase, and those came from the
+    one pack with the most frames (the deadlift's), so both bench-press sets had 0 reps (found by QA of the docs).
+    Every pack the primary method ran with now gives its frames, one after the other."""
+    facts = [
+        (0.0, messages.LoadEvent(barbell_mass_kg=40, exercise="bench_press", set_number=1)),
+        (20.0, messages.LoadEvent(barbell_mass_kg=60, exercise="deadlift", set_number=2)),
+    ]
+    recording = tmp_path / "session.mcap"
+    with timed_recording(recording, START_NS) as session:
+        session.load_events(facts)
+        for k in range(int(40 * RATE_HZ)):
+            t_s = k / RATE_HZ
+            phase = phase_at(t_s % 20.0 + 1.0) if t_s % 20.0 < 6.0 else -1.0  # 3 reps from 1 s and from 21 s
+            bench = t_s < 20.0
+            frame = messages.ActivationFrame(
+                time_s=START_NS / 1e9 + t_s,
+                method="so",
+                groups=["A", "B"] if bench else ["C", "D", "E"],
+                activations=[0.5, 0.1] if bench else [0.4, 0.3, 0.2],
+                exercise="bench_press" if bench else "deadlift",
+                phase=phase,
+            )
+            session.write(frame, t_s, "activations/so")
+            if not bench:  # the deadlift's frames outnumber the bench press's
+                session.write(
+                    messages.ActivationFrame(
+                        time_s=START_NS / 1e9 + t_s + 0.5 / RATE_HZ,
+                        method="so",
+                        groups=["C", "D", "E"],
+                        activations=[0.4, 0.3, 0.2],
+                        exercise="deadlift",
+                        phase=phase,
+                    ),
+                    t_s + 0.5 / RATE_HZ,
+                    "activations/so",
+                )
+    sets = report.write_report(recording, tmp_path / "out")["sets"]
+    assert [(s["name"], len(s["reps"]), s["rep_source"]) for s in sets] == [
+        ("set 1: bench press, 40 kg", 3, "phase of the activation frames"),
+        ("set 2: deadlift, 60 kg", 3, "phase of the activation frames"),
+    ], [(s["name"], len(s["reps"]), s["rep_source"]) for s in sets]

@@ -279,45 +279,54 @@ def _fact_of(loads: list[Load], start_s: float, end_s: float, number: int = 0) -
 def _frames_with_phase(
     data: SessionData, phase_t: np.ndarray, phase_p: np.ndarray
 ) -> list[tuple[float, float, tuple[str, ...], list[float]]]:
-    """The primary method's frames as (time, phase, groups, activations): their own phase, else the phase stream's
-    newest sample at the frame (NaN before it)."""
-    key = _primary_series(data)
-    if key is None:
-        return []
-    series = data.frames[key]
-    t = np.asarray(series.time, dtype=float)
-    own = np.asarray(series.phase, dtype=float)
-    at = np.clip(np.searchsorted(phase_t, t, side="right") - 1, 0, phase_t.size - 1)
-    phase = np.where(np.isfinite(own), own, np.where(t >= phase_t[0], phase_p[at], np.nan))
-    return [(float(a), float(b), series.groups, row) for a, b, row in zip(t, phase, series.activations)]
+    """The primary method's frames (of every pack it ran with, :func:`_primary_keys`) as (time, phase, groups,
+    activations), in time order: their own phase, else the phase stream's newest sample at the frame (NaN before
+    it)."""
+    out = []
+    for key in _primary_keys(data):
+        series = data.frames[key]
+        t = np.asarray(series.time, dtype=float)
+        own = np.asarray(series.phase, dtype=float)
+        at = np.clip(np.searchsorted(phase_t, t, side="right") - 1, 0, phase_t.size - 1)
+        phase = np.where(np.isfinite(own), own, np.where(t >= phase_t[0], phase_p[at], np.nan))
+        out += [(float(a), float(b), series.groups, row) for a, b, row in zip(t, phase, series.activations)]
+    return sorted(out, key=lambda frame: frame[0])
 
 
 def _phase_stream(data: SessionData) -> tuple[np.ndarray, np.ndarray, str]:
-    """(times, phases) the reps are counted on: the joint angles' phase, else the primary method's frames'; empty
-    when neither carries one."""
+    """(times, phases) the reps are counted on: the joint angles' phase, else the primary method's frames' (of every
+    pack it ran with); empty when neither carries one."""
     jt, jp = np.asarray(data.joint_time, dtype=float), np.asarray(data.joint_phase, dtype=float)
     if jp.size and np.any(np.isfinite(jp)):
         order = np.argsort(jt, kind="stable")
         return jt[order], jp[order], "phase of the joint angles"
-    key = _primary_series(data)
-    if key is not None:
-        series = data.frames[key]
-        ft, fp = np.asarray(series.time, dtype=float), np.asarray(series.phase, dtype=float)
+    keys = _primary_keys(data)
+    if keys:
+        ft = np.concatenate([np.asarray(data.frames[key].time, dtype=float) for key in keys])
+        fp = np.concatenate([np.asarray(data.frames[key].phase, dtype=float) for key in keys])
         if np.any(np.isfinite(fp)):
             order = np.argsort(ft, kind="stable")
             return ft[order], fp[order], "phase of the activation frames"
     return np.array([]), np.array([]), ""
 
 
-def _primary_series(data: SessionData) -> tuple[str, tuple[str, ...]] | None:
-    """The frames' series the sets' figures come from: of the first of PRIMARY_METHODS present, the one with the
-    most frames (a method may have run with several packs)."""
+def _primary_keys(data: SessionData) -> list[tuple[str, tuple[str, ...]]]:
+    """The frames' series the sets' figures come from: the first of PRIMARY_METHODS present, with every pack it ran
+    with one after the other (a bench press, then a deadlift: each set's reps are in its own pack's frames); where
+    two packs' frames overlap in time (two estimators at once), the one with the most frames."""
     keys = sorted(data.frames, key=lambda key: -len(data.frames[key].time))
-    for method in PRIMARY_METHODS:
-        for key in keys:
-            if key[0] == method:
-                return key
-    return keys[0] if keys else None
+    method = next((m for m in PRIMARY_METHODS if any(key[0] == m for key in keys)), keys[0][0] if keys else None)
+    chosen: list[tuple[str, tuple[str, ...]]] = []
+    spans: list[tuple[float, float]] = []
+    for key in (key for key in keys if key[0] == method):
+        time = data.frames[key].time
+        if not time:
+            continue
+        span = (min(time), max(time))
+        if all(span[1] < a or span[0] > b for a, b in spans):
+            chosen.append(key)
+            spans.append(span)
+    return chosen
 
 
 def _fact_windows(data: SessionData) -> list[SetWindow]:
