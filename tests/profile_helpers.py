@@ -27,3 +27,12 @@ def phased_profile(pack: ModelPack, **fields: Any) -> SubjectProfile:
         rest_std=np.full(len(groups), 0.02),
     )
     return SubjectProfile(pack.name, str(pack.version), groups, f_ref.copy(), f_ref.copy(), prior, **fields)
+
+
+def reference_profile(pack: ModelPack, electrodes: dict[str, str]) -> SubjectProfile:
+    """A subject at the pack's reference strengths whose electrodes (channel -> group) have MVC divisor 1."""
+    normalisation = {channel: {"group": group, "divisor": 1.0} for channel, group in electrodes.items()}
+    f_ref = np.asarray(pack.f_max_ref, dtype=float)
+    return SubjectProfile(
+        pack.name, str(pack.version), list(pack.groups), f_ref.copy(), f_ref.copy(), emg_normalisation=normalisation
+    )

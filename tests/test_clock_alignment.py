@@ -22,6 +22,7 @@ from msk_core.signal.clock_sync import STANDARD_GRAVITY, SyncStatus
 from msk_core.signal.host_clock import METHOD_ARRIVAL, DeviceClocks
 from services.nodes.node_runtime import clock_offsets
 from services.transport import messages
+from tests.profile_helpers import reference_profile
 from tests.test_clock_sync import measured, motion
 
 HOST0_NS = 1_790_000_000_000_000_000  # host clock (ns) at trial time 0
@@ -164,27 +165,12 @@ def test_a_frame_awaits_the_emg_of_its_instant_while_the_source_delivers():
     assert not live.awaits(40_000_000, received + 300_000_000)  # unless the source stalled (nothing to wait for)
 
 
-def _reference_profile(pack, electrodes: dict[str, str]):
-    """A subject at the pack's reference strengths whose electrodes (channel -> group) have MVC divisor 1."""
-    from msk_core.estimate.profile import SubjectProfile
-
-    normalisation = {channel: {"group": group, "divisor": 1.0} for channel, group in electrodes.items()}
-    return SubjectProfile(
-        pack.name,
-        str(pack.version),
-        list(pack.groups),
-        pack.f_max_ref.copy(),
-        pack.f_max_ref.copy(),
-        emg_normalisation=normalisation,
-    )
-
-
 def test_the_estimator_holds_a_joint_frame_until_its_emg_arrives_or_it_has_waited_long_enough():
     from msk_core.model import load_pack
     from services.nodes.estimator import EmgTiming, EstimatorNode, EstimatorSettings, EstimatorStats
 
     pack = load_pack("bench_press")
-    profile = _reference_profile(pack, {"sensor01.EMG": pack.groups[0]})
+    profile = reference_profile(pack, {"sensor01.EMG": pack.groups[0]})
     stats = EstimatorStats()
     timing = EmgTiming(joints_clock="host", emg_wait_s=0.1)
     settings = EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host", timing=timing)
@@ -249,7 +235,7 @@ def test_a_second_emg_source_starting_a_moment_later_is_not_said_missing(caplog)
     )
 
     pack = load_pack("bench_press")
-    profile = _reference_profile(pack, {"a.EMG": pack.groups[0], "b.EMG": pack.groups[1]})
+    profile = reference_profile(pack, {"a.EMG": pack.groups[0], "b.EMG": pack.groups[1]})
 
     def chunk(source: str, label: str, k: int) -> messages.EmgChunk:
         return messages.EmgChunk(

@@ -24,6 +24,7 @@ from msk_core.signal.fatigue import (
 )
 from msk_core.signal.quality import EMG_BAND_HZ
 from msk_core.signal.reps import Rep
+from tests.profile_helpers import reference_profile
 
 RATE = 2000.0
 N_REPS = 12
@@ -326,17 +327,7 @@ def test_the_fatigue_panel_counts_the_reps_the_set_table_counts_after_a_mark_dur
 
     x, reps, _ = simulated_set(7, same_waveform=False)
     pack = load_pack("bench_press")
-    norm = {"sensor01.EMG": {"group": pack.groups[0], "divisor": 1.0}}
-    from msk_core.estimate.profile import SubjectProfile
-
-    profile = SubjectProfile(
-        pack.name,
-        str(pack.version),
-        list(pack.groups),
-        pack.f_max_ref.copy(),
-        pack.f_max_ref.copy(),
-        emg_normalisation=norm,
-    )
+    profile = reference_profile(pack, {"sensor01.EMG": pack.groups[0]})
     timing = EmgTiming(joints_clock="host", emg_wait_s=0.1)
     settings = EstimatorSettings("bench_press", "t", ("so",), emg=True, emg_clock="host", timing=timing)
     node = EstimatorNode(settings, profile, EstimatorStats())

@@ -27,6 +27,11 @@ def phase_at(t: float) -> float:
     return -1.0
 
 
+def two_sets_phase(t_s: float) -> float:
+    """3 reps from 1 s and 3 from 21 s (as ``REPS``' first three)."""
+    return phase_at(t_s % 20.0 + 1.0) if t_s % 20.0 < 6.0 else -1.0
+
+
 def write_session(path) -> None:
     facts = [
         (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, set_rest_s=20.0)),
@@ -147,7 +152,7 @@ def test_two_athletes_on_one_rack_each_set_is_named_with_its_athlete(tmp_path):
         session.load_events(facts)
         for k in range(int(40 * RATE_HZ)):
             t_s = k / RATE_HZ
-            phase = phase_at(t_s % 20.0 + 1.0) if t_s % 20.0 < 6.0 else -1.0  # 3 reps from 1 s and from 21 s
+            phase = two_sets_phase(t_s)
             session.joints_and_frame(t_s, phase, ["A", "B"], [0.5, 0.1])
     summary = report.write_report(recording, tmp_path / "out")
     assert [(s["name"], s["athlete"], len(s["reps"])) for s in summary["sets"]] == [
@@ -170,7 +175,7 @@ def test_a_bench_press_then_a_deadlift_each_set_has_the_reps_of_its_own_packs_fr
         session.load_events(facts)
         for k in range(int(40 * RATE_HZ)):
             t_s = k / RATE_HZ
-            phase = phase_at(t_s % 20.0 + 1.0) if t_s % 20.0 < 6.0 else -1.0  # 3 reps from 1 s and from 21 s
+            phase = two_sets_phase(t_s)
             bench = t_s < 20.0
             frame = messages.ActivationFrame(
                 time_s=START_NS / 1e9 + t_s,
