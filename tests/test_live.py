@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import time
 from collections import Counter
@@ -14,6 +15,7 @@ import pytest
 
 from msk_core.errors import ConfigError
 from services.sessions.live_session import check_against_pack, load_session_file, parse_session
+from services.transport import messages
 from tests.live_helpers import REPO, run_msk, start_msk, wait_running, write_subject
 
 GOOD = {
@@ -149,15 +151,30 @@ def test_cli_reports_a_bad_session_file_without_a_traceback(tmp_path):
 def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_when_its_terminal_closes(tmp_path):
     """SIGHUP (the terminal closed, an SSH link dropped) stops it as Ctrl-C does; it killed msk live at once and left
     every node running (they are in their own process groups), the recorder still writing. Ctrl-C: tests/live_helpers."""
-    from services.transport.mcap_io import read_messages
+    from services.transport.mcap_io import McapRecorderWriter, read_messages
+    from services.transport.zenoh_session import ZenohOptions, declare_data_publisher, open_session, publish
 
     out = tmp_path / "live"
+    # an earlier run in this folder, killed: its recording and its logs (all that is left of it) are kept
+    (out / "logs").mkdir(parents=True)
+    (out / "logs" / "estimator.log").write_text("the earlier run's log\n")
+    with McapRecorderWriter(out / "session.mcap"):
+        pass
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
     process = start_msk("live", "--sim", "--no-view", "--duration", "120", "--out", str(out), env=env)
     lines: list[str] = []
     try:
         wait_running(process, lines)
-        time.sleep(6.0)  # some seconds of live data
+        while not any("recording to" in line for line in lines):  # the next line (the buffer communicate skips)
+            lines.append(line := process.stdout.readline())
+            assert line, "".join(lines)  # msk live ended without it
+        # another session on this endpoint (a replay, a second rack): not this athlete's, not recorded
+        endpoint = re.search(r"running on (\S+?);", "".join(lines)).group(1)
+        with open_session(ZenohOptions(connect=(endpoint,))) as other:
+            publisher = declare_data_publisher(other, "msk/other/joints", "msk.JointAngles")
+            for k in range(20):
+                publish(publisher, messages.JointAngles(coordinates=["elbow_flex_r"], q=[0.1 * k], device_time_ns=k))
+            time.sleep(6.0)  # some seconds of live data
         os.killpg(process.pid, signal.SIGHUP)  # as a closing terminal: to the whole foreground process group
         rest, _ = process.communicate(timeout=60)
     finally:
@@ -178,7 +195,13 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_whe
     # the MCAP is readable and holds every sample each simulator sent (counted independently of the summary)
     emg, imu, frames = Counter(), Counter(), Counter()
     joints = 0
-    for m in read_messages(out / "session.mcap"):
+    assert (out / "logs-001" / "estimator.log").read_text() == "the earlier run's log\n"
+    assert (out / "logs" / "estimator.log").is_file()  # this run's
+    assert f"recording to {out / 'session-001.mcap'}" in output, output
+    assert summary["recordings"] == [str(out / "session-001.mcap")], summary["recordings"]
+    keys = {m.topic for m in read_messages(out / "session-001.mcap")}
+    assert keys and all(key.startswith("msk/sim/") for key in keys), sorted(keys)
+    for m in read_messages(out / "session-001.mcap"):
         if m.type_name == "msk.EmgChunk":
             emg[m.decode().source_id] += m.decode().n_samples
         elif m.type_name == "msk.ImuSample":

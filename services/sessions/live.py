@@ -46,6 +46,7 @@ from msk_core.io.files import json_text
 from msk_core.signal.sets import END_OF_DATA
 from services.nodes.node_runtime import outages_summary, outages_text
 from services.nodes.readiness import GraphTimeout
+from services.nodes.recorder import next_part_path
 from services.sessions.demo_subject import RECORDINGS, sim_subject
 from services.sessions.graph import Graph, pids_path, python_module, wait_for, zenoh_flags
 from services.sessions.live_session import (
@@ -940,8 +941,10 @@ def kinematics_settings(plan: LivePlan) -> KinematicsSettings:
 
 def node_argv(plan: LivePlan, name: str, mcap: Path) -> list[str]:
     """The command line of node ``name`` of the declared graph (services.transport.session_graph.NODES)."""
-    if name == "recorder":
-        return python_module("services.nodes.recorder", "--out", str(mcap))
+    if name == "recorder":  # this session's keys only: another session on the endpoint is not this athlete's
+        return python_module(
+            "services.nodes.recorder", "--out", str(mcap), "--key", f"{topics.session_prefix(plan.session.name)}/**"
+        )
     if name == "estimator":
         return python_module("services.nodes.estimator", *estimator_settings(plan).argv())
     if name == "kinematics":
@@ -961,6 +964,21 @@ class _Running:
     viewer: subprocess.Popen | None = None
     router: subprocess.Popen | None = None
     announced: list[Path] = field(default_factory=list)
+    recording: Path | None = None  # the file this run's recorder writes (session-001.mcap... after earlier runs)
+
+
+def keep_earlier_logs(out: Path) -> Path | None:
+    """An earlier run's ``OUT/logs`` (a session killed, then started again in the same folder: its logs are all that
+    is left of it) moved to the first free ``OUT/logs-NNN``, as the recorder continues into ``session-NNN.mcap``;
+    the new run then writes ``OUT/logs``. Returns where they went (None: nothing to keep)."""
+    logs = out / "logs"
+    if not logs.is_dir() or not any(logs.iterdir()):
+        return None
+    index = 1
+    while (kept := out / f"logs-{index:03d}").exists():
+        index += 1
+    logs.rename(kept)
+    return kept
 
 
 def run_graph(
@@ -979,10 +997,11 @@ def run_graph(
     from services.sessions import discovery
 
     out = plan.session.out
+    keep_earlier_logs(out)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     recorded_before = set(out.glob("session*.mcap"))
     counts = FlowCounts()
-    running = _Running()
+    running = _Running(recording=next_part_path(out / "session.mcap"))
     announcement = discovery.Announcement()
     failed_at_start = False
     with StopOnSignals() as stopper:
@@ -1128,7 +1147,7 @@ def _announce_live_graph(
     log(
         f"running: {', '.join(graph.nodes)}"
         + (" + view" if running.viewer else "")
-        + f"; recording to {s.out / 'session.mcap'}"
+        + f"; recording to {running.recording or s.out / 'session.mcap'}"
         + (f"; stops after {duration_s:g} s" if duration_s else "; Ctrl-C stops")
     )
 
