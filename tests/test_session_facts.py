@@ -541,3 +541,25 @@ def test_a_past_set_number_is_refused_where_it_would_have_started_the_next_set()
     assert (
         new_facts(during_set_3, load_kg=None, set_number=5, next_set=False, exercise=None, athlete=None).set_number == 5
     )
+
+
+def test_two_sessions_starting_at_once_do_not_both_take_the_well_known_endpoint(tmp_path, monkeypatch):
+    """Two ``msk live`` started together (a squad's racks) both found the well-known endpoint free, both took it,
+    and the second one's recorder could not listen: that athlete's session stopped after 0.1 s (found by QA). The
+    first claims it for its whole run; the second, meanwhile, takes a free port."""
+    import contextlib
+
+    from services.sessions import discovery
+    from services.sessions.live import default_live_endpoint
+    from services.transport.zenoh_session import DEFAULT_ENDPOINT, endpoint_is_free
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    with contextlib.ExitStack() as first:
+        taken = default_live_endpoint(first)
+        with contextlib.ExitStack() as second:
+            other = default_live_endpoint(second)  # neither has bound its endpoint yet
+            assert other != taken and other != DEFAULT_ENDPOINT, (taken, other)
+    if endpoint_is_free(DEFAULT_ENDPOINT):  # else another program holds it on this machine
+        assert taken == DEFAULT_ENDPOINT
+        with contextlib.ExitStack() as after:  # the first run ended: its claim went with it
+            assert default_live_endpoint(after) == DEFAULT_ENDPOINT

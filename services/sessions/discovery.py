@@ -167,6 +167,21 @@ def claimed(session: str, out: Path) -> Iterator[None]:
         yield
 
 
+def claim_endpoint(endpoint: str) -> contextlib.AbstractContextManager | None:
+    """An exclusive lock on ``endpoint``'s claim file in the registry folder, held until the returned handle is
+    closed (or the process ends); None when another process holds it. Two ``msk live`` started at the same moment
+    both found the well-known endpoint free and both took it: the second one's recorder could not listen."""
+    path = registry_dir() / "claims" / ("endpoint-" + "".join(c if c.isalnum() else "_" for c in endpoint) + ".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle = open(path, "a+")  # noqa: SIM115 - held for the session, closed by the caller
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        return None
+    return handle
+
+
 #: how long a claim waits out a lock held for a moment: another tool's probe (:func:`_claim_held`) holds a shared lock
 #: for microseconds, msk live holds its claim for the whole session
 CLAIM_PROBE_WAIT_S = 0.25

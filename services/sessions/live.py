@@ -22,6 +22,7 @@ Docs: docs/live.md.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -1571,13 +1572,20 @@ def _device_ports(session: LiveSession) -> _DevicePorts:
     return _DevicePorts(trigno, aux_port, session.xsens_ports)
 
 
-def default_live_endpoint() -> str:
+def default_live_endpoint(stack: contextlib.ExitStack) -> str:
     """The well-known loopback endpoint when no other session holds it (a client with no flags, or the ten-line
     subscriber of docs/apps.md, then finds this session there), else a free loopback port (found through
-    services.sessions.discovery)."""
+    services.sessions.discovery). The well-known one is claimed for as long as ``stack`` lives
+    (:func:`services.sessions.discovery.claim_endpoint`), so a session started at the same moment takes another."""
+    from services.sessions import discovery
     from services.transport.zenoh_session import DEFAULT_ENDPOINT, endpoint_is_free, free_loopback_endpoint
 
-    return DEFAULT_ENDPOINT if endpoint_is_free(DEFAULT_ENDPOINT) else free_loopback_endpoint()
+    claim = discovery.claim_endpoint(DEFAULT_ENDPOINT)
+    if claim is not None:
+        stack.enter_context(claim)
+        if endpoint_is_free(DEFAULT_ENDPOINT):
+            return DEFAULT_ENDPOINT
+    return free_loopback_endpoint()
 
 
 def check_not_running(name: str, out: Path) -> None:
@@ -1623,7 +1631,7 @@ def main(
         )
     from services.sessions import discovery
 
-    with discovery.claimed(session.name, session.out):
+    with discovery.claimed(session.name, session.out), contextlib.ExitStack() as endpoint_claim:
         check_not_running(session.name, session.out)
         plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
         try:
@@ -1631,7 +1639,7 @@ def main(
                 plan,
                 duration_s=duration_s,
                 view=view,
-                endpoint=listen or default_live_endpoint(),
+                endpoint=listen or default_live_endpoint(endpoint_claim),
                 log=log,
                 simulators=simulators,
                 pki=pki,
