@@ -440,3 +440,49 @@ def test_a_set_closed_by_the_estimators_stop_goes_on_when_its_frames_come_back()
         for frame in _methods_frames(0.5 * k, phase):
             view.on_message(f"msk/s/activations/{frame.method}", frame)
     assert [(s.number, len(s.reps), s.ended_by) for s in view.sets.sets] == [(1, 2, "")]
+
+
+def test_set_keys_typed_among_other_keys_mark_nothing_and_a_key_pressed_alone_marks_one_set():
+    """Typed into a running view by mistake, ``clear; msk view --session rackB`` published its letters s and e as
+    set marks (found by QA: 4 empty sets, the athlete's first set called set 5). Through a real pseudo-terminal:
+    the typed line marks nothing and the view says so; ``s`` pressed on its own marks one set start, stamped when it
+    was pressed; ``e`` alone then ends it."""
+    import os
+    import pty
+    import time
+
+    from services.surfaces.view import TYPING_GAP_S, SetKeys, read_keys
+
+    master, slave = pty.openpty()
+    published: list[messages.LoadEvent] = []
+    keys, stop = SetKeys(), threading.Event()
+    pressed: list[int] = []
+
+    def make_event(mark: str) -> messages.LoadEvent:
+        event = messages.LoadEvent(set_mark=mark, device_time_ns=time.monotonic_ns())
+        pressed.append(event.device_time_ns)
+        return event
+
+    reader = threading.Thread(target=read_keys, args=(keys, make_event, published.append, stop, slave), daemon=True)
+    reader.start()
+    try:
+        line = "clear; msk view --session rackB\n"
+        for char in line:  # typed at 50 ms a key
+            os.write(master, char.encode())
+            time.sleep(0.05)
+        time.sleep(2 * TYPING_GAP_S)
+        assert published == [] and keys.ignored == sum(c in "se" for c in line), (published, keys.ignored)
+        assert "press s (start a set) or e (end it) on its own" in keys.notice(time.monotonic())
+        os.write(master, b"s")
+        time.sleep(2 * TYPING_GAP_S)
+        os.write(master, b"E")  # case aside
+        deadline = time.monotonic() + 5.0
+        while len(published) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert [e.set_mark for e in published] == ["start", "stop"], published
+        assert [e.device_time_ns for e in published] == pressed  # made when pressed, sent after the gap
+    finally:
+        stop.set()
+        reader.join(5.0)
+        os.close(master)
+        os.close(slave)

@@ -87,6 +87,7 @@ class ViewState:
     last_message_at: float | None = None  # time.monotonic() of the newest message: a silent session shows
     torques: dict[str, float] = field(default_factory=dict)  # the first method's newest inverse-dynamics torques
     figures_method: str | None = None  # whose frames the sets' peak and mean are of (--method; else the default)
+    keys: SetKeys = field(default_factory=lambda: SetKeys())  # the terminal's set-mark keys (defined below)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_message(self, key: str, message: Message) -> None:
@@ -371,7 +372,7 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
     return Group(
         header,
         session_line,
-        *notices(paused, quiet_s),
+        *notices(paused, quiet_s, state.keys.notice(time.monotonic())),
         muscles,
         *extra,
         torque_table(frame, names),
@@ -409,14 +410,17 @@ def movement_text(phase: float | None, movement: str | None) -> str:
     return movement or f"{100 * phase:.0f} % through the rep"
 
 
-def notices(paused: str, quiet_s: float | None) -> list[Text]:
-    """Over the last values: the session gone quiet (ended, or its graph stopped), else the estimates paused."""
+def notices(paused: str, quiet_s: float | None, keys_notice: str = "") -> list[Text]:
+    """Over the last values: the session gone quiet (ended, or its graph stopped), else the estimates paused; and
+    typed keys not taken for set marks."""
+    typed = [Text(keys_notice, style="bold yellow")] if keys_notice else []
     if quiet_s is not None and quiet_s > QUIET_S:
         text = f"Nothing received for {quiet_s:.0f} s: the session has ended or stopped sending."
-        return [Text(f"{text} The values below are the last.", style="bold red")]
+        return [Text(f"{text} The values below are the last.", style="bold red"), *typed]
     if paused:
-        return [Text(f"Estimates paused. {paused} The values below are the last before it.", style="bold yellow")]
-    return []
+        text = f"Estimates paused. {paused} The values below are the last before it."
+        return [Text(text, style="bold yellow"), *typed]
+    return typed
 
 
 def torque_table(frame: messages.ActivationFrame, names: DisplayNames) -> Table:
@@ -468,6 +472,51 @@ def health_tables(status: dict[str, messages.DeviceStatus]) -> list[Table]:
 
 #: The view's keys: the session fact each publishes (``msk set start|stop``).
 KEYS = {"s": "start", "e": "stop"}
+#: A key this close to another one is typing (a command line typed into the view's terminal by mistake), not a mark:
+#: a mark key counts only when it stands alone, and is published once this long has passed without another key.
+TYPING_GAP_S = 0.5
+#: How long the view says that typed keys were not taken for marks.
+TYPING_NOTICE_S = 5.0
+
+
+class SetKeys:
+    """The view's keys (:data:`KEYS`) as set marks, one key at a time: a key within :data:`TYPING_GAP_S` of another
+    is typing, and no key of that burst marks a set (typed into the view, ``clear; msk view --session B`` published
+    its 8 letters s and e as 8 marks: 4 empty sets, and the athlete's first set called set 5). A mark is made when
+    its key is pressed (the facts in effect then, the time then) and handed out by :meth:`due` once the gap has
+    passed without another key. Explicit state; every time is the caller's (s)."""
+
+    def __init__(self, gap_s: float = TYPING_GAP_S) -> None:
+        self.gap_s = gap_s
+        self.ignored = 0  # mark keys not taken: typed among other keys
+        self.ignored_at: float | None = None  # when the last of them came
+        self._last_key = -math.inf
+        self._pending: tuple[messages.LoadEvent, float] | None = None
+
+    def key(self, key: str, t: float, make_event: Callable[[str], messages.LoadEvent]) -> None:
+        """Key ``key`` at ``t``; ``make_event(mark)`` makes the mark's session fact."""
+        typing = t - self._last_key < self.gap_s
+        self._last_key = t
+        if typing:
+            if self._pending is not None or key in KEYS:
+                self.ignored += (self._pending is not None) + (key in KEYS)
+                self.ignored_at = t
+            self._pending = None
+            return
+        self._pending = (make_event(KEYS[key]), t) if key in KEYS else None
+
+    def due(self, t: float) -> messages.LoadEvent | None:
+        """The mark to publish at ``t``: a key that stayed alone for the gap (else None)."""
+        if self._pending is None or t - self._last_key < self.gap_s:
+            return None
+        event, self._pending = self._pending[0], None
+        return event
+
+    def notice(self, t: float) -> str:
+        """What the view says for a while after typed keys were not taken for marks ("" otherwise)."""
+        if self.ignored_at is None or t - self.ignored_at > TYPING_NOTICE_S:
+            return ""
+        return "Typed keys were not taken for set marks: press s (start a set) or e (end it) on its own."
 
 
 def set_mark_event(state: ViewState, mark: str) -> messages.LoadEvent:
@@ -478,22 +527,30 @@ def set_mark_event(state: ViewState, mark: str) -> messages.LoadEvent:
         return event(state.load if state.load is not None else state.loads.pending, state.sets.settled[0], mark)
 
 
-def read_keys(on_key: Callable[[str], None], stop: threading.Event) -> None:
-    """Keys typed in the terminal (no Enter needed) to ``on_key`` until ``stop``; the terminal's mode is restored."""
+def read_keys(
+    keys: SetKeys,
+    make_event: Callable[[str], messages.LoadEvent],
+    publish_mark: Callable[[messages.LoadEvent], None],
+    stop: threading.Event,
+    fd: int | None = None,
+) -> None:
+    """Keys typed in the terminal ``fd`` (default stdin; no Enter needed) through ``keys`` until ``stop``, each mark
+    it hands out to ``publish_mark``; the terminal's mode is restored."""
     import select
     import sys
     import termios
     import tty
 
-    fd = sys.stdin.fileno()
+    fd = sys.stdin.fileno() if fd is None else fd
     saved = termios.tcgetattr(fd)
     try:
         tty.setcbreak(fd)
         while not stop.is_set():
             if select.select([fd], [], [], POLL_S)[0]:
-                key = os.read(fd, 1).decode(errors="ignore").lower()
-                if key:
-                    on_key(key)
+                for key in os.read(fd, 64).decode(errors="ignore").lower():  # a paste comes as one read
+                    keys.key(key, time.monotonic(), make_event)
+            if (event := keys.due(time.monotonic())) is not None:
+                publish_mark(event)
     finally:
         termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
@@ -501,7 +558,8 @@ def read_keys(on_key: Callable[[str], None], stop: threading.Event) -> None:
 def start_keys(
     zsession: zenoh.Session, session: str, state: ViewState, stop: threading.Event
 ) -> threading.Thread | None:
-    """In a terminal: a thread publishing the set mark of each key of :data:`KEYS` on ``msk/<session>/load``."""
+    """In a terminal: a thread publishing the set mark of each key of :data:`KEYS` (pressed on its own,
+    :class:`SetKeys`) on ``msk/<session>/load``."""
     import sys
 
     if not sys.stdin.isatty():
@@ -509,12 +567,12 @@ def start_keys(
     from services.transport.zenoh_session import declare_data_publisher, publish
 
     publisher = declare_data_publisher(zsession, topics.load_key(session), "msk.LoadEvent")
-
-    def on_key(key: str) -> None:
-        if key in KEYS:
-            publish(publisher, set_mark_event(state, KEYS[key]))
-
-    thread = threading.Thread(target=read_keys, args=(on_key, stop), name="view-keys", daemon=True)
+    thread = threading.Thread(
+        target=read_keys,
+        args=(state.keys, lambda mark: set_mark_event(state, mark), lambda event: publish(publisher, event), stop),
+        name="view-keys",
+        daemon=True,
+    )
     thread.start()
     return thread
 
