@@ -196,8 +196,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         required=True,
         help="direction the coordinate moves away from rest during a rep",
     )
-    r.add_argument("--start-fraction", type=float, default=0.2)
-    r.add_argument("--min-depth-fraction", type=float, default=0.5)
+    r.add_argument(
+        "--start-fraction",
+        type=float,
+        default=0.2,
+        help="a rep is under way above this progress (0 at the trial's rest level, 1 at its full-rep level; "
+        "default 0.2)",
+    )
+    r.add_argument(
+        "--min-depth-fraction", type=float, default=0.5, help="a rep counts once it reaches this progress (default 0.5)"
+    )
     r.add_argument("--mode", choices=[m.value for m in PhaseMode], default=PhaseMode.TURNING_POINT.value)
     r.add_argument("--phase-out", type=Path, help="write time, phase and rep index as .sto")
     r.set_defaults(handler=_reps)

@@ -84,7 +84,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", type=int, default=None, help="override the spec's fit samples (faster, coarser)")
     p.set_defaults(handler=run_scale)
 
-    p = sub.add_parser("show", help="print a pack's coordinates, groups and fit report")
+    p = sub.add_parser("show", help="print a pack's coordinates (ranges) and groups (F_max, members)")
     p.add_argument("pack", help="shipped pack name or pack .json path")
     p.set_defaults(handler=run_show)
 

@@ -1,6 +1,7 @@
 """``msk sim``: run a device simulator standalone.
 
-``msk sim trigno --from FILE`` serves the Trigno SDK protocol on TCP (command 50040, EMG 50043 and 50041, AUX 50044);
+``msk sim trigno --from FILE`` serves the Trigno SDK protocol on TCP (command 50040, EMG 50043 and 50041, AUX 50044,
+legacy ACC 50042 unless ``--legacy-acc-port -1``);
 ``msk sim xsens --from FILE`` opens a pseudo-terminal speaking Xbus and prints its path on the first line.
 FILE formats are described in docs/devices.md (C3D, .npz, raw .bin captures, or ``synthetic[:SECONDS[:SEED]]``).
 """
