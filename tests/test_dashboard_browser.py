@@ -356,7 +356,15 @@ def test_no_data_keeps_the_last_values_greyed_and_every_device_is_a_row(tmp_path
                 "60.0 kg",
                 "2",
             ]
-            assert "Ana" in page.inner_text("#athlete")
+            # who lifts, and on which rack, shown whole at 1280x800 (the header cut them to "msk-live · An…")
+            shown = page.evaluate(
+                """() => ['#athlete', '.brand .where'].map((selector) => {
+                  const e = document.querySelector(selector);
+                  return [e.textContent, e.clientWidth > 0 && e.scrollWidth <= e.clientWidth];
+                })"""
+            )
+            assert shown == [["Ana", True], [f"msk-live · {session}", True]], shown
+            assert page.title().startswith(f"Ana · {session}"), page.title()
             labels = page.evaluate(PROBE)["labels"]
             assert "Upper chest" in labels and "Brachialis" in labels and "PMCla" not in labels, labels
             page.wait_for_function(

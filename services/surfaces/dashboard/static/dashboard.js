@@ -187,7 +187,10 @@ function renderHeader() {
   if (facts) {
     document.getElementById("exercise").textContent = facts.exercise ? facts.exercise.replaceAll("_", " ") : "–";
     document.getElementById("load").textContent = facts.load_kg === null ? "–" : `${facts.load_kg.toFixed(1)} kg`;
-    document.getElementById("athlete").textContent = facts.athlete ? `· ${facts.athlete}` : "";
+    const athlete = document.getElementById("athlete");
+    athlete.textContent = facts.athlete || "";
+    athlete.title = facts.athlete ? `athlete ${facts.athlete}` : "";
+    document.title = `${facts.athlete ? `${facts.athlete} · ` : ""}${state.config ? state.config.session : ""} · msk-live`;
   }
   const reps = state.reps;
   // set N and rep n of the set (the rep under way, else the last done); "N done" while resting after it
