@@ -42,6 +42,8 @@ class SessionInfo:
     attach: list[str] = field(default_factory=list)
     #: the session facts in effect (exercise, load_kg, set_number, athlete): the latest LoadEvent msk live saw
     facts: dict = field(default_factory=dict)
+    #: secured mode: the deployment's folder of ``msk certs`` (``msk live --pki DIR``); "" in the plain mode
+    pki: str = ""
 
     def options(self, mode: str = "peer") -> ZenohOptions:
         """The Zenoh options to attach with: the secured mode's client config, else ``mode`` on msk live's endpoint

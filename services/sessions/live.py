@@ -1131,6 +1131,7 @@ def _announce_live_graph(
         out=str(s.out.resolve()),
         pack=plan.exercise,
         zenoh_config=str(observer.config_file.resolve()) if observer.config_file is not None else "",
+        pki=str(Path(pki).resolve()) if pki is not None else "",
     )
     info = dataclasses.replace(info, attach=discovery.attach_commands(info))
     running.announced = announcement.announce(info, s.out)
