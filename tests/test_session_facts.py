@@ -563,3 +563,26 @@ def test_two_sessions_starting_at_once_do_not_both_take_the_well_known_endpoint(
         assert taken == DEFAULT_ENDPOINT
         with contextlib.ExitStack() as after:  # the first run ended: its claim went with it
             assert default_live_endpoint(after) == DEFAULT_ENDPOINT
+
+
+def test_msk_load_and_msk_set_with_a_role_that_may_not_publish_facts_are_refused(tmp_path):
+    """With the tablet's config, ``msk load 65`` printed "-> msk/sim/load" and the router dropped it: the estimator
+    kept 60 kg while the operator read 65 (found by QA of the secured mode). The role is asked first, as the
+    dashboard's set buttons do, and the command says why, naming the config."""
+    from services.transport import security
+    from tests.live_helpers import run_msk
+
+    pki = security.write_pki(tmp_path / "pki", router_hosts=("localhost",))
+    configs = security.write_configs(
+        tmp_path / "zenoh", pki.directory, router_listen=("tls/127.0.0.1:1",), client_connect=("tls/localhost:1",)
+    )
+    env = {**os.environ, "MSK_SESSIONS_DIR": str(tmp_path / "registry")}
+    for argv in (
+        ("load", "65", "--set", "1", "--exercise", "bench_press", "--session", "sim"),
+        ("set", "start", "--session", "sim"),
+    ):
+        done = run_msk(*argv, "--zenoh-config", str(configs["tablet"]), env=env)
+        said = done.stdout + done.stderr
+        assert done.returncode == 2, said
+        assert "role 'tablet' may publish only" in said and "msk/sim/load" in said, said
+        assert str(configs["tablet"]) in said and "publishing anyway" not in said and "Traceback" not in said, said
