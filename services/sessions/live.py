@@ -696,6 +696,11 @@ def summary_text(summary: dict) -> str:
                 f"  {node}: {outages_text(messages.InputOutages(**{k: v for k, v in outages.items() if k in _COUNTS}))}"
                 + (f", the last {outages['last_start']} to {outages['last_end']}" if outages["count"] else "")
             )
+    for restart in summary.get("router_restarts", []):
+        lines.append(
+            f"  router {restart['exit']} {restart['at_s']:.1f} s into the session; started again, back after "
+            f"{restart['back_after_s']:.1f} s"
+        )
     for source, clock in summary.get("clocks", {}).items():
         lines.append(
             f"  clock of {source}: {clock['method']}, spread {clock['spread_ms']:.1f} ms, latency "
@@ -963,7 +968,7 @@ class _Running:
     graph: Graph | None = None
     drivers: list[str] = field(default_factory=list)
     viewer: subprocess.Popen | None = None
-    router: subprocess.Popen | None = None
+    router: SecuredRouter | None = None
     announced: list[Path] = field(default_factory=list)
     recording: Path | None = None  # the file this run's recorder writes (session-001.mcap... after earlier runs)
 
@@ -1012,7 +1017,7 @@ def run_graph(
             failed_at_start = bool(graph.failed())  # e.g. the recorder could not listen: no "running" line
             if not failed_at_start:
                 _announce_live_graph(plan, graph, endpoint, view, duration_s, pki, stopper, announcement, running, log)
-            reason, elapsed = _run_until_stopped(graph, duration_s, stopper, out / "logs", log)
+            reason, elapsed = _run_until_stopped(graph, duration_s, stopper, out / "logs", log, running.router)
         finally:
             for path in running.announced[1:]:  # the registry entry; OUT/session.json stays as a record
                 discovery.withdraw(path)
@@ -1025,13 +1030,15 @@ def run_graph(
                         running.graph, running.drivers, simulators, running.viewer, counts, plan.methods, log
                     )
             if running.router is not None:
-                codes["router"] = stop_process(running.router)
+                codes["router"] = running.router.stop()
     # the parts this session's recorder wrote (it continues into session-001.mcap ... when OUT holds older ones)
     parts = sorted(set(out.glob("session*.mcap")) - recorded_before)
     summary = summarise(parts, elapsed)
     summary["recordings"] = [str(p) for p in parts]
     summary["stopped_by"] = reason
     summary["exit_codes"] = codes
+    if running.router is not None:  # the secured router's restarts while the session ran
+        summary["router_restarts"] = running.router.restarts
     summary["joint_frames_paused"] = counts.paused_joints  # while load events declared another exercise
     summary["sets"] = counts.sets  # as msk live counted them (the view's and the report's rule)
     # electrodes of the map the estimator never judged: no source streamed their channel (a sensor not paired, a typo)
@@ -1155,14 +1162,19 @@ def _announce_live_graph(
 
 
 def _run_until_stopped(
-    graph: Graph, duration_s: float | None, stopper: StopOnSignals, logs: Path, log
+    graph: Graph, duration_s: float | None, stopper: StopOnSignals, logs: Path, log, router: SecuredRouter | None
 ) -> tuple[str, float]:
-    """Run until the duration, a signal or a failed node; returns why it stopped and how long it ran (s)."""
+    """Run until the duration, a signal or a failed node (the secured ``router`` kept up meanwhile); returns why it
+    stopped and how long it ran (s)."""
     started = time.monotonic()
     deadline = None if duration_s is None else started + duration_s
     reason = "duration"
     while not stopper.event.wait(0.1):
         if deadline is not None and time.monotonic() >= deadline:
+            break
+        if router is not None and (gone := router.keep_up(time.monotonic() - started, log)) is not None:
+            reason = gone
+            log(f"stopping: {reason}")
             break
         failed = graph.failed()
         if failed:
@@ -1199,10 +1211,78 @@ def router_host(pki: Path) -> str:
     )
 
 
-def start_secured_router(pki: Path, out: Path, log):
+#: Restarts of the secured router one session takes (each said and counted); one more stops the session.
+MAX_ROUTER_RESTARTS = 3
+#: How long a restarted router may take to listen again.
+ROUTER_RESTART_TIMEOUT_S = 15.0
+
+
+@dataclass
+class SecuredRouter:
+    """The secured mode's ``msk router``, kept up while the session runs: a router that exits (a crash, a kill) is
+    started again on the same port at once (the nodes reconnect; the recorder fetches what the devices published
+    meanwhile from their history), said and counted (``restarts``: the summary's ``router_restarts``). It ran on
+    without a word before, the nodes cut off: 76 % of the EMG never reached the recording, "0 lost"."""
+
+    argv: list[str]
+    port: int
+    log_path: Path
+    env: dict[str, str]
+    process: subprocess.Popen | None = None
+    restarts: list[dict] = field(default_factory=list)
+
+    @property
+    def pid(self) -> int:
+        assert self.process is not None
+        return self.process.pid
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        from services.nodes import router as router_node
+
+        with open(self.log_path, "ab") as log_file:  # a restart appends: the log of the one that exited stays
+            self.process = subprocess.Popen(
+                self.argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True, env=self.env
+            )
+        try:
+            router_node.wait_until_listening(self.process, self.port, timeout_s=timeout_s)
+        except RuntimeError as error:
+            raise GraphTimeout(f"{error}; router log: {self.log_path}") from None
+
+    def keep_up(self, elapsed_s: float, log) -> str | None:
+        """Called while the session runs: None while the router runs (or came back); else why the session stops."""
+        if self.process is None or (code := self.process.poll()) is None:
+            return None
+        how = exit_text(code)
+        if len(self.restarts) >= MAX_ROUTER_RESTARTS:
+            return f"router failed: it {how}, after {len(self.restarts)} restarts (log: {self.log_path})"
+        log(
+            f"router {how} {elapsed_s:.1f} s into the session; starting it again on port {self.port} (log: {self.log_path})"
+        )
+        started = time.monotonic()
+        try:
+            self.start(ROUTER_RESTART_TIMEOUT_S)
+        except GraphTimeout as error:
+            return f"router failed: it {how}, and did not start again: {error}"
+        back_s = time.monotonic() - started
+        self.restarts.append({"at_s": round(elapsed_s, 3), "exit": how, "back_after_s": round(back_s, 3)})
+        log(f"router back after {back_s:.1f} s; the nodes reconnect by themselves")
+        return None
+
+    def stop(self) -> int | None:
+        return None if self.process is None else stop_process(self.process)
+
+
+def exit_text(code: int) -> str:
+    """How a process ended, from its return code: "exited with code 1", "was killed by signal 9 (SIGKILL)"."""
+    if code >= 0:
+        return f"exited with code {code}"
+    name = f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else ""
+    return f"was killed by signal {-code}{name}"
+
+
+def start_secured_router(pki: Path, out: Path, log) -> tuple[SecuredRouter, str, Callable[[str], Path]]:
     """``msk router`` on a free loopback TLS port with the access control of the declared graph, and one Zenoh client
-    config per role (OUT/zenoh/<role>.json5) connecting to it; returns (process, endpoint, role -> config path)."""
-    from services.nodes import router as router_node
+    config per role (OUT/zenoh/<role>.json5) connecting to it; returns (router, endpoint, role -> config path)."""
     from services.transport import security
     from services.transport.zenoh_session import free_loopback_endpoint
 
@@ -1213,20 +1293,15 @@ def start_secured_router(pki: Path, out: Path, log):
     configs = security.write_configs(
         out / "zenoh", pki, router_listen=(f"tls/127.0.0.1:{port}",), client_connect=(endpoint,)
     )
-    log_path = out / "logs" / "router.log"
-    process = subprocess.Popen(
+    router = SecuredRouter(
         python_module("services.cli", "router", f"--zenoh-config={configs['router']}"),
-        stdout=open(log_path, "wb"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-        env={**os.environ, **stop_with_parent_env(), "RUST_LOG": os.environ.get("RUST_LOG", "warn")},
+        port,
+        out / "logs" / "router.log",
+        {**os.environ, **stop_with_parent_env(), "RUST_LOG": os.environ.get("RUST_LOG", "warn")},
     )
-    try:
-        router_node.wait_until_listening(process, port)
-    except RuntimeError as error:
-        raise GraphTimeout(f"{error}; router log: {log_path}") from None
+    router.start()
     log(f"secured: router on {endpoint} (TLS, client certificates of {pki}, access control of the session graph)")
-    return process, endpoint, lambda role: configs[role]
+    return router, endpoint, lambda role: configs[role]
 
 
 def stop_process(process: subprocess.Popen, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
