@@ -5,6 +5,7 @@ clean stop (SIGTERM) of a ``--sim`` session exits 0."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import threading
@@ -412,3 +413,30 @@ def test_a_refusal_names_the_line_of_the_key_in_the_session_file(tmp_path):
     with pytest.raises(ConfigError) as error:
         check_against_pack(session, ["pec_clav"], [], {"PMCla": {}})
     assert error.value.line == 11 and "line 11, field 'electrodes.sensor01.EMG'" in str(error.value), error.value
+
+
+def test_a_secured_session_refuses_a_swapped_role_certificate_and_a_missing_folder_before_it_starts(tmp_path):
+    """The tablet's certificate copied over the estimator's: the router refused the estimator's subscriptions and
+    msk live waited 88 s for it, then hung (found by QA). Each role's certificate is checked to be that role's. A
+    folder without a router certificate is refused before the calibration and the simulators start."""
+    import shutil
+
+    from services.sessions.live import check_roles
+    from services.transport import security
+    from tests.live_helpers import run_msk
+
+    pki = security.write_pki(tmp_path / "pki", router_hosts=("localhost",)).directory
+    configs = security.write_configs(
+        tmp_path / "zenoh", pki, router_listen=("tls/127.0.0.1:1",), client_connect=("tls/localhost:1",)
+    )
+    check_roles(pki, configs)  # as msk certs made them
+    for suffix in (".pem", ".key"):
+        shutil.copy(pki / f"tablet{suffix}", pki / f"estimator{suffix}")
+    with pytest.raises(ConfigError) as swapped:
+        check_roles(pki, configs)
+    assert swapped.value.path == pki / "estimator.pem" and "the tablet's (CN msk-tablet)" in str(swapped.value)
+    env = {**os.environ, "MSK_SESSIONS_DIR": str(tmp_path / "registry"), "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    done = run_msk("live", "--sim", "--pki", str(tmp_path / "nosuchdir"), "--out", str(tmp_path / "out"), env=env)
+    said = done.stdout + done.stderr
+    assert done.returncode == 2 and "no router certificate" in said and "nosuchdir" in said, said
+    assert "calibrat" not in said and "simulators:" not in said, said

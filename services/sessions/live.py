@@ -1013,7 +1013,11 @@ def run_graph(
     with StopOnSignals() as stopper:
         try:
             graph, endpoint = _start_live_graph(plan, endpoint, pki, counts, announcement, running, log)
-            _wait_ready(graph, stopper)
+            try:
+                _wait_ready(graph, stopper)
+            except GraphTimeout:  # a node never ready: nothing flowed (the drivers start last), stop at once
+                failed_at_start = True
+                raise
             failed_at_start = bool(graph.failed())  # e.g. the recorder could not listen: no "running" line
             if not failed_at_start:
                 _announce_live_graph(plan, graph, endpoint, view, duration_s, pki, stopper, announcement, running, log)
@@ -1272,6 +1276,27 @@ class SecuredRouter:
         return None if self.process is None else stop_process(self.process)
 
 
+def check_roles(pki: Path, configs: dict[str, Path]) -> None:
+    """Each role's certificate in ``pki`` is that role's (its CN): one swapped for another's (the tablet's copied over
+    the estimator's) let the router refuse the node's subscriptions, and the session waited 88 s for it to be ready."""
+    from services.transport import security
+
+    for role, config in configs.items():
+        if role == security.ROUTER_ROLE:
+            continue
+        found = security.role_of_config(config)
+        if found != role:
+            raise ConfigError(
+                f"the certificate for role {role!r} is "
+                + (f"the {found}'s (CN {security.common_name(found)})" if found else "no role's")
+                + f": the router would refuse that node what it needs; make {role}.pem again with `msk certs --out "
+                f"{pki} --role {role}`",
+                path=security.Pki(pki).cert(role),
+                field="role",
+                value=found,
+            )
+
+
 def exit_text(code: int) -> str:
     """How a process ended, from its return code: "exited with code 1", "was killed by signal 9 (SIGKILL)"."""
     if code >= 0:
@@ -1293,6 +1318,7 @@ def start_secured_router(pki: Path, out: Path, log) -> tuple[SecuredRouter, str,
     configs = security.write_configs(
         out / "zenoh", pki, router_listen=(f"tls/127.0.0.1:{port}",), client_connect=(endpoint,)
     )
+    check_roles(pki, configs)
     router = SecuredRouter(
         python_module("services.cli", "router", f"--zenoh-config={configs['router']}"),
         port,
@@ -1709,6 +1735,8 @@ def main(
 
     with discovery.claimed(session.name, session.out), contextlib.ExitStack() as endpoint_claim:
         check_not_running(session.name, session.out)
+        if pki is not None:  # before the calibration and the simulators: a folder without a router certificate
+            router_host(pki)
         plan, simulators = plan_for(session, sim=sim, log=log, sim_faults=tuple(sim_faults), sim_sets=sim_sets)
         try:
             summary = run_graph(
