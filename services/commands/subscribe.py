@@ -24,7 +24,7 @@ from msk_core.errors import ConfigError
 from services.nodes.node_runtime import InputCounts, NodeInputs
 from services.sessions import discovery
 from services.transport import messages, topics
-from services.transport.zenoh_session import add_zenoh_arguments, open_session, options_from_args
+from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, open_session, options_from_args
 
 #: How long the loop waits for a message before looking at the deadline again.
 POLL_S = 0.05
@@ -72,16 +72,33 @@ def dropped_summary(counts: InputCounts) -> str:
     )
 
 
+def check_readable(role: str | None, key_expr: str, options: ZenohOptions) -> tuple[str, ...]:
+    """What of ``key_expr`` the ``role`` of the secured network may read (:func:`services.transport.roles
+    .permitted_parts`): all of it, or its readable parts, said in one line; a :class:`ConfigError` naming the role and
+    what it may read when that is none of it (the router would refuse the subscription without a word)."""
+    from services.transport.roles import parts_text, permitted_parts
+
+    parts = permitted_parts(role, "subscribe", key_expr)
+    if role is None or parts == (key_expr,):
+        return parts
+    if not parts:
+        raise ConfigError(parts_text(role, "subscribe", key_expr, parts), path=options.config_file)
+    print(f"msk subscribe: {parts_text(role, 'subscribe', key_expr, parts)}", file=sys.stderr, flush=True)
+    return parts
+
+
 def run(args: argparse.Namespace) -> int:
     wanted_type = expected_type(args.key)
     printed = 0
     deadline = None if args.duration is None else time.monotonic() + args.duration
     named = args.key.split("/")[1] if args.key.count("/") >= 2 and "*" not in args.key.split("/")[1] else None
     options, _ = discovery.client_options(options_from_args(args), named, named or "", "msk subscribe")
+    readable = check_readable(options.role, args.key, options)
     with open_session(options) as session:
         inputs = NodeInputs(session, "subscribe", expected_type=wanted_type)
-        inputs.subscribe(args.key)
-        print(f"msk subscribe: subscribed to {args.key}", file=sys.stderr, flush=True)
+        for part in readable:
+            inputs.subscribe(part)
+        print(f"msk subscribe: subscribed to {', '.join(readable)}", file=sys.stderr, flush=True)
         quiet = threading.Event()
         discovery.silence_notice("msk subscribe", lambda: (args.key, options), lambda: printed, stop=quiet)
         try:

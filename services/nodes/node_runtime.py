@@ -399,6 +399,30 @@ class NodeInputs:
                 log.error("%s: subscription refused by the router's access control: %s", self.node, reason)
         self._subscribers.append(self._zsession.declare_subscriber(key_expr, self._on_sample))
 
+    def subscribe_readable(self, key_expr: str) -> tuple[str, ...]:
+        """Subscribe to what of ``key_expr`` the node's role may read (all of it without a role), one subscription per
+        part (:func:`services.transport.roles.permitted_parts`: the router refuses a declaration its rules do not
+        wholly cover, so ``msk/<s>/**`` as a tablet would read nothing); what the role may not read is said at once,
+        as :meth:`subscribe` says a refusal. Returns the parts subscribed to (none: the role may read none of it)."""
+        if self.role is None:
+            self.subscribe(key_expr)
+            return (key_expr,)
+        from services.transport.roles import parts_text, permitted_parts
+
+        parts = permitted_parts(self.role, "subscribe", key_expr)
+        if parts == (key_expr,):
+            self.subscribe(key_expr)
+            return parts
+        reason = parts_text(self.role, "subscribe", key_expr, parts)
+        self.refusals.append(reason)
+        if parts:
+            log.warning("%s: subscription narrowed by the router's access control: %s", self.node, reason)
+        else:
+            log.error("%s: subscription refused by the router's access control: %s", self.node, reason)
+        for part in parts:
+            self._subscribers.append(self._zsession.declare_subscriber(part, self._on_sample))
+        return parts
+
     def fetch_history(self, key_expr: str, timeout_s: float = 2.0) -> int:
         """Queue what the publishers' history caches hold on ``key_expr`` (services.transport.zenoh_session.fetch_history),
         e.g. the session facts ``msk live`` published before this reader started; returns how many samples came."""

@@ -125,6 +125,7 @@ class RecorderStats:
     missed: int = 0  # publications of history publishers that never arrived live (skipped sequence numbers)
     recovered: int = 0  # of those, fetched again from the publishers' caches and written
     unrecovered: collections.Counter = field(default_factory=collections.Counter)  # key -> missed, not in the cache
+    unreadable: str = ""  # what of its key expression the recorder's role may not read (the access control), if any
 
 
 def status_session(key_expr: str, ready_key: ReadySpec | None, session: str | None = None) -> str | None:
@@ -171,6 +172,7 @@ def main(
     stop_event = stop_event or threading.Event()
     stats = stats if stats is not None else RecorderStats()
     reporting_session = status_session(key_expr, ready_key, session)
+    check_readable(config, key_expr)
     fetched: queue.SimpleQueue[_Fetched] = queue.SimpleQueue()
 
     fetchers = _Fetchers()
@@ -179,7 +181,9 @@ def main(
             open_session(config) as zsession,
             McapRecorderWriter(out_path, flush_interval_s=flush_interval_s) as writer,
         ):
-            inputs = NodeInputs(zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes)
+            inputs = NodeInputs(
+                zsession, NODE_NAME, keep_rejected=True, max_payload_bytes=max_payload_bytes, role=config.role
+            )
             stats.inputs = inputs.counts
             reporter = (
                 StatusReporter(zsession, reporting_session, NODE_NAME, inputs)
@@ -195,10 +199,7 @@ def main(
                     job = (zsession, scope, merge.take_missing(scope), fetched, inputs.counts, history_timeout_s)
                     fetchers.start(_fetch, (*job, max_payload_bytes), f"history {scope}")
 
-            inputs.subscribe(key_expr)
-            if history:  # after the subscriber: every message is then live, in a cache, or both (written once)
-                merge.begin_fetch(key_expr, initial=True)
-                start_fetches([key_expr])
+            start_fetches(_subscribe(inputs, merge, key_expr, stats, history=history))
             token = declare_ready(zsession, ready_key)  # noqa: F841 - alive while the node runs (readiness)
             if ready_event is not None:
                 ready_event.set()
@@ -222,6 +223,31 @@ def main(
     finally:  # the session is closed: a fetch still running returns
         fetchers.join(FETCH_JOIN_S)
     return stats
+
+
+def _subscribe(
+    inputs: NodeInputs, merge: HistoryMerge, key_expr: str, stats: RecorderStats, *, history: bool
+) -> list[str]:
+    """Subscribe to what the role may read of ``key_expr`` (all of it, or its parts: said in the log, kept in
+    ``stats.unreadable``); returns the scopes whose history to fetch first (with ``history``)."""
+    parts = inputs.subscribe_readable(key_expr)
+    stats.unreadable = inputs.refusals[-1] if inputs.refusals else ""
+    if not history:
+        return []
+    for part in parts:  # after the subscriber: every message is then live, in a cache, or both (written once)
+        merge.begin_fetch(part, initial=True)
+    return list(parts)
+
+
+def check_readable(config: ZenohOptions, key_expr: str) -> None:
+    """A :class:`ConfigError` when the role of ``config`` (the secured network's access control) may read nothing
+    of ``key_expr``: such a recorder would write an empty file and say nothing."""
+    from services.transport.roles import parts_text, permitted_parts
+
+    role = config.role
+    if role is not None and not permitted_parts(role, "subscribe", key_expr):
+        text = parts_text(role, "subscribe", key_expr, ())
+        raise ConfigError(f"{text}: the recorder would record nothing", path=config.config_file)
 
 
 class _Fetchers:
@@ -420,7 +446,7 @@ class HistoryMerge:
         self._earlier: dict[str, collections.Counter] = {
             key: collections.Counter(digests) for key, digests in (already_recorded or {}).items()
         }
-        self._initial_pending = False
+        self._initial_pending = 0  # first fetches out (one per part of the key expression its role may read)
         self._pending_keys: set[str] = set()  # keys with a fetch of their own out
         self._known_keys: set[str] = set()  # keys whose history was fetched (or found absent)
         self._waiting: list[_Item] = []  # live samples held, in arrival order
@@ -432,7 +458,7 @@ class HistoryMerge:
 
     def begin_fetch(self, scope: str, *, initial: bool = False) -> None:
         if initial:
-            self._initial_pending = True
+            self._initial_pending += 1
         else:
             self._pending_keys.add(scope)
 
@@ -482,7 +508,7 @@ class HistoryMerge:
         return self._missing.pop(scope, [])
 
     def release_all(self) -> None:
-        self._initial_pending = False
+        self._initial_pending = 0
         self._pending_keys.clear()
         self._release()
 
@@ -503,7 +529,7 @@ class HistoryMerge:
             self._pending_keys.discard(done.scope)
             self._known_keys.add(done.scope)
         else:
-            self._initial_pending = False
+            self._initial_pending = max(0, self._initial_pending - 1)
         self._release()  # keys live during a fetch that no cache answered for have no history publisher
         return []
 
@@ -602,7 +628,7 @@ class HistoryMerge:
             known.discard(recent.popleft())
 
     def _fetching(self) -> bool:
-        return self._initial_pending or bool(self._pending_keys)
+        return self._initial_pending > 0 or bool(self._pending_keys)
 
     def _release(self) -> None:
         if self._fetching():
@@ -720,6 +746,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         raise ConfigError(
             "is a folder: give the recording's file, e.g. FOLDER/session.mcap", field="--out", value=str(args.out)
         )
+    check_readable(process.options, args.key)  # before saying "recording"
     previous = part_paths(args.out)
     out = next_part_path(args.out)
     already_recorded = recorded_tail_in(previous) if previous else None
@@ -752,6 +779,7 @@ def summary_line(stats: RecorderStats, out: Path) -> str:
     queue_full = sum(reasons.get(DropReason.QUEUE_FULL.value, 0) for reasons in dropped.values())
     return (
         f"recorded {stats.written} messages to {out}"
+        + (f" ({stats.unreadable})" if stats.unreadable else "")
         + (
             f"; kept {stats.rejected} rejected payloads apart, in channels labelled {REJECTED_REASON}"
             if stats.rejected

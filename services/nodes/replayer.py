@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,14 @@ from tqdm import tqdm
 from msk_core.errors import ConfigError
 from services.nodes.readiness import wait_for_nodes
 from services.transport import topics
-from services.transport.mcap_io import ReadReport, check_mcap_magic, chosen_session, read_messages
+from services.transport.mcap_io import (
+    ReadReport,
+    channel_kind,
+    check_mcap_magic,
+    chosen_session,
+    file_summary,
+    read_messages,
+)
 from services.transport.zenoh_session import (
     ZenohOptions,
     add_zenoh_arguments,
@@ -42,6 +50,17 @@ class ReplayStats:
     truncated: bool = False
     damage: str = ""  # what of the file could not be read (ReadReport.damage_text)
     left_out: dict[tuple[str, str], int] = field(default_factory=dict)  # (topic, reason) -> rejected payloads
+    refused: dict[str, int] = field(default_factory=dict)  # key -> messages its role may not publish (not sent)
+    role: str | None = None  # the role it published as (secured network), which may not publish those
+
+    def count_left_out(self, key: str, fate: str) -> None:
+        """One message not published: of another recorded session, on an excluded key, or refused to the role."""
+        if fate == OTHER_SESSION:
+            self.other_sessions += 1
+        elif fate == EXCLUDED:
+            self.excluded += 1
+        else:
+            self.refused[key] = self.refused.get(key, 0) + 1
 
 
 def parse_rate(text: str | float | None) -> float | None:
@@ -66,6 +85,102 @@ def wait_for_subscribers(publisher: zenoh.Publisher, timeout_s: float) -> bool:
     return False
 
 
+class Routes:
+    """Where each recorded topic goes, decided once per topic: the key it is published on (renamed to
+    ``session_name``) and its fate: :data:`PUBLISH`, or left out as :data:`OTHER_SESSION` (not of
+    ``recorded_session``), :data:`EXCLUDED` (matches an ``exclude`` key expression) or :data:`REFUSED` (a key that
+    ``role``, the secured network's access control, may not publish: the router would drop it without a word)."""
+
+    def __init__(
+        self,
+        role: str | None,
+        session_name: str | None = None,
+        recorded_session: str | None = None,
+        exclude: tuple[str, ...] = (),
+    ) -> None:
+        self.role = role
+        self._session_name = session_name
+        self._recorded_session = recorded_session
+        self._excluded = [zenoh.KeyExpr(pattern) for pattern in exclude]
+        self._routes: dict[str, tuple[str, str]] = {}
+        self.refusal = ""  # the access control's words for the first key refused
+
+    def of(self, topic: str) -> tuple[str, str]:
+        """(key, fate) of recorded ``topic``."""
+        route = self._routes.get(topic)
+        if route is None:
+            route = self._routes[topic] = self._route(topic)
+        return route
+
+    def _route(self, topic: str) -> tuple[str, str]:
+        key = topics.rename_session(topic, self._session_name) if self._session_name else topic
+        if self._recorded_session is not None and not topic.startswith(
+            f"{topics.session_prefix(self._recorded_session)}/"
+        ):
+            return key, OTHER_SESSION
+        if any(pattern.intersects(zenoh.KeyExpr(key)) for pattern in self._excluded):
+            return key, EXCLUDED
+        if self.role is not None:
+            from services.transport.security import refused
+
+            reason = refused(self.role, "publish", key)
+            if reason is not None:
+                self.refusal = self.refusal or reason
+                return key, REFUSED
+        return key, PUBLISH
+
+
+PUBLISH, OTHER_SESSION, EXCLUDED, REFUSED = "publish", "other session", "excluded", "refused"
+
+
+def topic_counts(mcap_path: Path) -> Counter[str]:
+    """Messages per topic that :func:`read_messages` hands out (its typed channels): from the file's statistics, or
+    read through when it has none (a file cut short)."""
+    counts: Counter[str] = Counter()
+    summary = file_summary(Path(mcap_path))
+    if summary is not None and summary.statistics is not None:
+        per_channel = summary.statistics.channel_message_counts
+        for channel in summary.channels.values():
+            if channel_kind(channel, summary.schemas.get(channel.schema_id))[0]:
+                counts[channel.topic] += per_channel.get(channel.id, 0)
+        return counts
+    for recorded in read_messages(mcap_path):
+        counts[recorded.topic] += 1
+    return counts
+
+
+def check_publishable(routes: Routes, mcap_path: Path, config_file: Path | None) -> dict[str, int]:
+    """Before publishing: the keys of the recording that ``routes``' role may not publish, with their message
+    counts, said on stderr one per key; a :class:`ConfigError` when it may publish none of what it would play."""
+    if routes.role is None:
+        return {}
+    refused: Counter[str] = Counter()
+    publishable = 0
+    for topic, count in topic_counts(mcap_path).items():
+        key, fate = routes.of(topic)
+        if fate == REFUSED:
+            refused[key] += count
+        elif fate == PUBLISH:
+            publishable += count
+    if not refused:
+        return {}
+    if not publishable:
+        raise ConfigError(
+            f"{routes.refusal.split(';')[0]}: the router would drop all {sum(refused.values())} messages of "
+            f"{Path(mcap_path).name} it would play ({len(refused)} keys)",
+            path=config_file,
+        )
+    print(
+        f"replay: {routes.refusal.split(';')[0]}: not sending the {sum(refused.values())} messages on "
+        f"{len(refused)} keys the router would drop:",
+        file=sys.stderr,
+    )
+    for key, count in sorted(refused.items()):
+        print(f"replay:   {key}: {count} message{'s' if count != 1 else ''}", file=sys.stderr)
+    sys.stderr.flush()
+    return dict(refused)
+
+
 def main(
     config: ZenohOptions,
     mcap_path: Path,
@@ -80,16 +195,16 @@ def main(
     recorded_session: str | None = None,
 ) -> ReplayStats:
     """Publish every message of ``mcap_path`` (only recorded session ``recorded_session``'s when given) except those
-    whose (renamed) key matches an ``exclude`` key expression.
+    whose (renamed) key matches an ``exclude`` key expression, and those the role of ``config`` may not publish
+    (:func:`check_publishable`: said before the first message; none publishable is a :class:`ConfigError`).
 
     ``wait_nodes``: names of graph nodes (:mod:`services.nodes.readiness`) of session ``session_name`` whose subscribers this
     session must know before the first message goes out (:class:`services.nodes.readiness.GraphTimeout` after ``wait_nodes_s``).
     """
     stats = ReplayStats()
-    excluded_keys = [zenoh.KeyExpr(pattern) for pattern in exclude]
-    keep: dict[str, bool] = {}
-    renamed: dict[str, str] = {}  # recorded topic -> key published
-    foreign: set[str] = set()  # recorded topics of other sessions than ``recorded_session``
+    routes = Routes(config.role, session_name, recorded_session, exclude)
+    check_publishable(routes, mcap_path, config.config_file)
+    stats.role = routes.role
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
     with open_session(config) as session:
@@ -100,21 +215,9 @@ def main(
         start: tuple[float, int] | None = None  # (wall clock, log time) of the first message replayed at a rate
         iterator = read_messages(mcap_path, report=report)
         for recorded in tqdm(iterator, desc=f"replay {Path(mcap_path).name}", unit="msg", disable=not progress):
-            key = renamed.get(recorded.topic)
-            if key is None:  # once per topic, not per message
-                key = renamed[recorded.topic] = (
-                    topics.rename_session(recorded.topic, session_name) if session_name else recorded.topic
-                )
-                keep[key] = not any(pattern.intersects(zenoh.KeyExpr(key)) for pattern in excluded_keys)
-                if recorded_session is not None and not recorded.topic.startswith(
-                    f"{topics.session_prefix(recorded_session)}/"
-                ):
-                    foreign.add(recorded.topic)
-            if recorded.topic in foreign:
-                stats.other_sessions += 1
-                continue
-            if not keep[key]:
-                stats.excluded += 1
+            key, fate = routes.of(recorded.topic)  # once per topic, not per message
+            if fate != PUBLISH:
+                stats.count_left_out(key, fate)
                 continue
             publisher = publishers.get(key)
             if publisher is None:
@@ -218,6 +321,11 @@ def run_from_args(args: argparse.Namespace) -> int:
             f", left out {sum(stats.left_out.values())} rejected payloads ("
             + ", ".join(f"{topic}: {n} {reason}" for (topic, reason), n in sorted(stats.left_out.items()))
             + ")"
+        )
+    if stats.refused:
+        skipped += (
+            f"; refused {sum(stats.refused.values())} on {len(stats.refused)} keys role {stats.role!r} may not "
+            "publish (the router would drop them), not sent"
         )
     print(f"published {stats.published} messages from {args.mcap}{skipped}{note}", file=sys.stderr)
     return 0

@@ -88,6 +88,8 @@ class ViewState:
     torques: dict[str, float] = field(default_factory=dict)  # the first method's newest inverse-dynamics torques
     figures_method: str | None = None  # whose frames the sets' peak and mean are of (--method; else the default)
     keys: SetKeys = field(default_factory=lambda: SetKeys())  # the terminal's set-mark keys (defined below)
+    access_note: str = ""  # what the view's role may not read or mark, so cannot show (:func:`access_note`)
+    marks: bool = True  # its keys mark sets (:func:`marks_sets`)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_message(self, key: str, message: Message) -> None:
@@ -294,15 +296,59 @@ def electrode_text(electrodes: list[messages.ElectrodeQuality]) -> Text:
     return text
 
 
-def view_header(session: str, received: int, inputs: InputCounts) -> Text:
-    """The view's first line: the session, the messages taken and dropped, the keys."""
+def view_header(session: str, received: int, inputs: InputCounts, keys: bool = True) -> Text:
+    """The view's first line: the session, the messages taken and dropped, the keys (when they mark sets)."""
     dropped = dropped_text(inputs)
     return Text(
         f"msk view · session {session} · {received} messages"
         + (f" · {dropped}" if dropped else "")
-        + " · keys: s start set, e end set",
+        + (" · keys: s start set, e end set" if keys else ""),
         style="bold",
     )
+
+
+#: What the view shows of each topic of the session (docs/topics.md), for :func:`access_note`.
+VIEW_TOPICS = (
+    ("activations/*", "activations"),
+    ("status/*", "device and node health"),
+    ("load", "exercise, load and sets marked"),
+    ("joints", "movement"),
+)
+
+
+def access_note(role: str | None, session: str) -> str:
+    """What the view cannot show as ``role`` of the secured network (the router's access control,
+    :func:`services.transport.security.refused`), and whether its keys can mark sets; "" when it may read all it
+    shows. A :class:`ConfigError` when it may read nothing of the session: a view that waits for nothing."""
+    if role is None:
+        return ""
+    from services.transport.roles import parts_text, permitted_parts
+    from services.transport.security import refused
+
+    everything = f"{topics.session_prefix(session)}/**"
+    if not permitted_parts(role, "subscribe", everything):
+        raise ConfigError(f"{parts_text(role, 'subscribe', everything, ())}: the view would show nothing")
+    prefix = topics.session_prefix(session)
+    hidden = [
+        f"{what} ({prefix}/{topic})" for topic, what in VIEW_TOPICS if refused(role, "subscribe", f"{prefix}/{topic}")
+    ]
+    unmarked = not marks_sets(role, session)
+    if not hidden and not unmarked:
+        return ""
+    return (
+        f"role {role!r}"
+        + (f" may not read, so the view does not show: {'; '.join(hidden)}" if hidden else "")
+        + (" ·" if hidden and unmarked else "")
+        + (" keys s and e mark no set (it may not publish the load key)" if unmarked else "")
+    )
+
+
+def marks_sets(role: str | None, session: str) -> bool:
+    """Whether the view's keys can mark sets as ``role``: it may publish the session's load key (the router drops a
+    put its access control refuses without a word)."""
+    from services.transport.security import refused
+
+    return role is None or refused(role, "publish", topics.load_key(session)) is None
 
 
 def waiting_text(session: str, paused: str) -> Text:
@@ -324,7 +370,9 @@ def render(state: ViewState, session: str, primary: str | None = None, width: in
         quiet_s = None if state.last_message_at is None else time.monotonic() - state.last_message_at
     methods = list(frames)
     method = primary if primary in frames else default_method(methods)  # named in the muscle table's title
-    header = view_header(session, received, state.inputs)
+    header: Text | Group = view_header(session, received, state.inputs, keys=state.marks)
+    if state.access_note:  # said once, under the header: what this role's view cannot show
+        header = Group(header, Text(state.access_note, style="yellow"))
     if method is None:
         return Group(header, Text(session_facts(load, None, sets)), waiting_text(session, paused))
     frame = frames[method]
@@ -593,15 +641,18 @@ def main(
     stop_event = stop_event or threading.Event()
     state = ViewState(figures_method=method)
     deadline = None if duration_s is None else time.monotonic() + duration_s
+    role = config.role
+    state.access_note = access_note(role, session)
     with open_session(config) as zsession:
-        inputs = NodeInputs(zsession, "view")
+        inputs = NodeInputs(zsession, "view", role=role)
         state.inputs = inputs.counts
-        inputs.subscribe(f"{topics.session_prefix(session)}/**")
+        inputs.subscribe_readable(f"{topics.session_prefix(session)}/**")  # a tablet: activations and statuses
         state.loads.session_exercise = join_late(inputs, session)  # the facts msk live had before this view
         taking = threading.Event()
         taker = threading.Thread(target=take_inputs, args=(inputs, state, taking), name="view-inputs", daemon=True)
         taker.start()
-        keys = start_keys(zsession, session, state, taking)  # s: start a set, e: end it (in a terminal)
+        state.marks = marks_sets(role, session)
+        keys = start_keys(zsession, session, state, taking) if state.marks else None  # s: start a set, e: end it
         try:
             with Live(
                 render(state, session, method),
