@@ -12,11 +12,13 @@ import contextlib
 import http.client
 import io
 import json
+import os
 import ssl
 import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -66,7 +68,8 @@ def _stop(process: subprocess.Popen) -> str:
 @pytest.fixture(scope="module")
 def secured(tmp_path_factory):
     """The PKI of `msk certs` (router and dashboard on localhost/127.0.0.1), a secured `msk router`, an estimator
-    publishing activation frames, and `msk dashboard --pki` joined as the tablet role; yields (pki, dashboard port)."""
+    publishing activation frames, and `msk dashboard --pki` joined as the tablet role; yields (pki, dashboard port,
+    the router's endpoint)."""
     work = tmp_path_factory.mktemp("dashboard-pki")
     pki = work / "pki"
     _certs("--out", str(pki), "--router-host", "localhost", "--router-host", "127.0.0.1")
@@ -107,7 +110,7 @@ def secured(tmp_path_factory):
 
         thread = threading.Thread(target=frames, daemon=True)
         thread.start()
-        yield pki, dashboard_port
+        yield pki, dashboard_port, endpoint
         stop.set()
         thread.join(5)
         estimator.close()
@@ -155,7 +158,7 @@ async def _websocket(pki: Path, port: int, cookie: str | None, *, until_revoked:
 
 
 def test_without_a_token_nothing_of_the_session_is_served(secured):
-    pki, port = secured
+    pki, port, _ = secured
     for path in ("/", "/config.json", "/static/dashboard.js", "/bodymap/bench_press.svg"):
         status, _, body = _get(pki, port, path)
         assert status == 401, (path, status)
@@ -176,7 +179,7 @@ def test_without_a_token_nothing_of_the_session_is_served(secured):
 
 
 def test_a_tablet_token_opens_the_page_and_live_data_until_revoked(secured):
-    pki, port = secured
+    pki, port, _ = secured
     printed = _certs("tablet-token", "coach-ipad", "--out", str(pki), "--dashboard-url", f"https://127.0.0.1:{port}")
     url = next(line for line in printed.splitlines() if line.startswith("https://"))
     token = url.split("token=", 1)[1]
@@ -210,7 +213,7 @@ def test_chromium_sees_the_session_only_with_a_token(secured, tmp_path):
     from tests.dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, chromium_trusting, require_chromium
 
     require_chromium()
-    pki, port = secured
+    pki, port, _ = secured
     environment = chromium_trusting(pki / "ca.pem", tmp_path / "home")
     if environment is None:
         pytest.skip(
@@ -246,3 +249,58 @@ def test_chromium_sees_the_session_only_with_a_token(secured, tmp_path):
             assert page.reload().status == 401
         finally:
             browser.close()
+
+
+def test_pki_attaches_to_the_running_secured_session_and_a_plain_dashboard_stays_on_loopback(
+    secured, tmp_path, monkeypatch
+):
+    """`msk live --pki DIR` runs its router on a free port and writes OUT/zenoh/<role>.json5 for it; `msk dashboard
+    --pki DIR` with no Zenoh flags used DIR/zenoh/tablet.json5 (the port of `msk certs`) and the session 'lab', and
+    failed to connect, while the attach line `msk live` printed led to a plain HTTP dashboard with operator rights (found
+    by QA). Announced here as `msk live --pki` announces itself (services.sessions.discovery), on the module's router:
+    the --pki dashboard takes the session's name and tablet config and streams its frames to a tablet; the attach line
+    says --pki; a plain dashboard is refused on the network and still attaches on loopback."""
+    from services.sessions import discovery
+
+    pki, _, endpoint = secured
+    monkeypatch.setenv("MSK_SESSIONS_DIR", str(tmp_path / "sessions"))
+    out = tmp_path / "out"
+    security.write_configs(out / "zenoh", pki, router_listen=("tls/127.0.0.1:1",), client_connect=(endpoint,))
+    info = discovery.SessionInfo(
+        session=SESSION, connect=[endpoint], pid=os.getpid(), out=str(out), pack="bench_press",
+        zenoh_config=str(out / "zenoh" / "operator.json5"), pki=str(pki),
+    )  # fmt: skip
+    info = replace(info, attach=discovery.attach_commands(info))
+    assert info.attach[0] == f"msk dashboard --pki {pki} --session {SESSION}"
+    with discovery.claimed(SESSION, out):
+        discovery.announce(info, out)
+        port = free_tcp_port()
+        dashboard = _msk("dashboard", "--pki", str(pki), "--port", str(port))  # no --session, no Zenoh flags
+        try:
+            wait_until_listening(dashboard, port, timeout_s=90)
+            printed = _certs(
+                "tablet-token", "attach", "--out", str(pki), "--dashboard-url", f"https://127.0.0.1:{port}"
+            )
+            token = printed.split("token=", 1)[1].split()[0]
+            status, headers, _ = _get(pki, port, f"/login?token={token}")
+            cookie = headers["set-cookie"].split(";", 1)[0]
+            assert json.loads(_get(pki, port, "/config.json", cookie)[2])["session"] == SESSION
+            assert asyncio.run(_websocket(pki, port, cookie))["topics"]["activations/so"]["groups"] == GROUPS
+        finally:
+            said = _stop(dashboard)
+        assert f"attached to the running secured session {SESSION!r} on {endpoint} as the tablet role" in said, said
+        assert str(out / "zenoh" / "tablet.json5") in said
+        refused = subprocess.run(
+            [sys.executable, "-m", "services.cli", "dashboard", "--host", "0.0.0.0", "--port", str(free_tcp_port())],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert refused.returncode == 2, refused.stderr
+        assert refused.stderr.count("\n") == 1 and f"session {SESSION!r} is secured" in refused.stderr, refused.stderr
+        assert f"msk dashboard --pki {pki} --session {SESSION}" in refused.stderr
+        local_port = free_tcp_port()
+        local = _msk("dashboard", "--port", str(local_port))  # loopback: this machine only, as before
+        try:
+            wait_until_listening(local, local_port, timeout_s=90)
+        finally:
+            said = _stop(local)
+        assert f"attached to the running session {SESSION!r}" in said, said

@@ -5,7 +5,9 @@
 writes ``ca.pem``/``ca.key``, ``router.pem``/``router.key``, ``<role>.pem``/``<role>.key``, the dashboard's HTTPS
 certificate ``dashboard.pem``/``dashboard.key`` (for ``--dashboard-host``, default the router's hosts) and, under
 ``--configs`` (default ``<out>/zenoh``), ``router.json5`` (TLS with mutual authentication + access control) and
-``<role>.json5`` (a TLS client of the router presenting that role's certificate). Roles and their rights:
+``<role>.json5`` (a TLS client of the router presenting that role's certificate; for the roles whose certificate is
+in the folder). A folder that already has ``ca.pem``/``ca.key`` keeps its CA: the run issues the asked certificates
+under it, so those issued before stay valid (remove both to start a new deployment). Roles and their rights:
 services/transport/security.py and docs/deployment.md. Keep ``ca.key`` off the nodes: it is only needed to issue more
 certificates.
 
@@ -94,17 +96,26 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("must be a TCP port", field="--port", value=args.port)
     hosts = tuple(args.router_host) or ("localhost", "127.0.0.1")
     roles = tuple(args.role) or tuple(security.ROLE_POLICIES)
-    pki = security.write_pki(args.out, router_hosts=hosts, roles=roles)
+    ca = security.existing_ca(args.out)  # a second run issues under the folder's CA: what it issued stays valid
+    pki = security.write_pki(args.out, router_hosts=hosts, roles=roles, ca=ca)
     pki_path = args.pki_path or str(args.out.resolve())
     configs = security.write_configs(
         args.configs or args.out / "zenoh",
         pki_path,
         router_listen=(f"tls/0.0.0.0:{args.port}",),
         client_connect=(f"tls/{hosts[0]}:{args.port}",),
+        roles=tuple(r for r in security.ROLE_POLICIES if pki.cert(r).is_file()),  # only roles with a certificate
     )
     dashboard_hosts = tuple(args.dashboard_host) or hosts
     security.write_dashboard_certificate(args.out, dashboard_hosts)
-    print(f"CA {pki.ca_cert}; router certificate for {', '.join(hosts)}; client roles: {', '.join(roles)}")
+    if ca is not None:
+        print(
+            f"reusing the CA of {pki.ca_cert} (valid until {ca[1].not_valid_after_utc:%Y-%m-%d}): the certificates "
+            "issued under it before stay valid; remove ca.pem and ca.key to start a new deployment"
+        )
+    else:
+        print(f"new CA {pki.ca_cert}")
+    print(f"router certificate for {', '.join(hosts)}; client roles issued: {', '.join(roles)}")
     print(f"dashboard HTTPS certificate for {', '.join(dashboard_hosts)}: {pki.dashboard_cert}")
     for role, path in configs.items():
         print(f"  {role:10s} {path}")

@@ -8,6 +8,7 @@ every node already uses; the same JSON5 config file works for both. Every other 
 from __future__ import annotations
 
 import argparse
+import json
 import socket
 import subprocess
 import sys
@@ -34,6 +35,15 @@ def router_options(options: ZenohOptions) -> ZenohOptions:
     if options.config_file is None and not options.listen and not options.connect:
         listen = (DEFAULT_ENDPOINT,)
     return replace(options, mode="router", listen=listen)
+
+
+def listen_endpoints(options: ZenohOptions) -> list[str]:
+    """The endpoints a router of ``options`` listens on (its flags', else its config file's; Zenoh's default lists
+    them per mode)."""
+    endpoints = json.loads(options.to_config().get_json("listen/endpoints"))
+    if isinstance(endpoints, dict):
+        endpoints = endpoints.get("router", [])
+    return [str(e) for e in endpoints] or ["nothing (no listen endpoint)"]
 
 
 def wait_until_listening(process: subprocess.Popen, port: int, *, timeout_s: float = 30.0) -> None:
@@ -69,9 +79,10 @@ def main(
     stop_event = stop_event or threading.Event()
     # Zenoh's own log (RUST_LOG, default warn): the access control says there which declaration it refused to whom
     zenoh.init_log_from_env_or("warn")
-    with open_session(router_options(config)) as session:
+    options = router_options(config)
+    with open_session(options) as session:
         zid = str(session.zid())
-        print(f"router {zid} up", file=sys.stderr, flush=True)
+        print(f"router {zid} up, listening on {', '.join(listen_endpoints(options))}", file=sys.stderr, flush=True)
         if ready_event is not None:
             ready_event.set()
         deadline = None if duration_s is None else time.monotonic() + duration_s

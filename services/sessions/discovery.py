@@ -68,13 +68,25 @@ def registry_dir() -> Path:
 
 
 def attach_commands(info: SessionInfo) -> list[str]:
-    """What to type in a second terminal (no flags needed while it is the only session; else ``--session``)."""
+    """What to type in a second terminal (no flags needed while it is the only session; else ``--session``). The
+    dashboard of a secured session is ``--pki``: HTTPS, tablet tokens and the tablet role (:func:`role_config`)."""
+    dashboard = f"msk dashboard --pki {info.pki} --session {info.session}" if info.pki else ""
     return [
-        f"msk dashboard --session {info.session}",
+        dashboard or f"msk dashboard --session {info.session}",
         f"msk view --session {info.session}",
         f"msk subscribe 'msk/{info.session}/activations/*'",
         f"msk load --session {info.session} KG",
     ]
+
+
+def role_config(info: SessionInfo, role: str) -> Path | None:
+    """The Zenoh client config of ``role`` that a secured ``msk live`` wrote for its own router
+    (``OUT/zenoh/<role>.json5``: its actual TLS endpoint, not the port of ``msk certs``); None for a plain session
+    or when the file is not there."""
+    if not info.pki:
+        return None
+    path = Path(info.out) / "zenoh" / f"{role}.json5"
+    return path if path.is_file() else None
 
 
 def announce(info: SessionInfo, out: Path) -> list[Path]:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
+from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -227,6 +228,28 @@ def _general_name(host: str) -> x509.GeneralName:
         return x509.DNSName(host)
 
 
+def existing_ca(directory: Path | str) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate] | None:
+    """The CA ``msk certs`` made in ``directory`` before (``ca.key`` and ``ca.pem``, checked: readable, the key of
+    the certificate, valid now), to issue more certificates under it; None when the folder has neither. One without
+    the other is a :class:`ConfigError`: a new CA would silently invalidate every certificate issued under the old."""
+    pki = Pki(Path(directory))
+    present = [path for path in (pki.ca_cert, pki.ca_key) if path.exists()]
+    if not present:
+        return None
+    if len(present) == 1:
+        missing = pki.ca_key if present[0] == pki.ca_cert else pki.ca_cert
+        raise ConfigError(
+            f"the folder has {present[0].name} but not {missing.name}: a new CA would invalidate every certificate "
+            f"issued under the old one; put {missing.name} back, or remove {present[0].name} to start a new deployment",
+            path=missing,
+        )
+    certificate = check_tls_files(pki.ca_cert, pki.ca_key, fields=("CA certificate", "CA key", ""))
+    key = serialization.load_pem_private_key(pki.ca_key.read_bytes(), password=None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise ConfigError("the CA key is not an EC key of msk certs", path=pki.ca_key)
+    return key, certificate
+
+
 def write_pki(
     directory: Path,
     *,
@@ -396,16 +419,136 @@ def write_configs(
     *,
     router_listen: tuple[str, ...],
     client_connect: tuple[str, ...],
+    roles: tuple[str, ...] = tuple(ROLE_POLICIES),
 ) -> dict[str, Path]:
-    """``router.json5`` and ``<role>.json5`` for every role, referencing the PKI by ``pki_dir_as_seen_by_nodes``."""
+    """``router.json5`` and ``<role>.json5`` for each of ``roles`` (default every role), referencing the PKI by
+    ``pki_dir_as_seen_by_nodes``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = {}
     documents = {ROUTER_ROLE: router_config(pki_dir_as_seen_by_nodes, listen=router_listen)}
-    for role in ROLE_POLICIES:
+    for role in roles:
         documents[role] = client_config(pki_dir_as_seen_by_nodes, role, connect=client_connect)
     for role, document in documents.items():
         path = out_dir / f"{role}.json5"
         path.write_text(json.dumps(document, indent=2) + "\n")
         written[role] = path
     return written
+
+
+# --- checks before use ------------------------------------------------------------------------------------------
+
+
+def _pem_file(path: Path, field: str, origin: str) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as error:
+        raise ConfigError(f"cannot read it ({error.strerror or error}){origin}", path=path, field=field) from None
+
+
+def _certificates(path: Path, field: str, origin: str, now: _dt.datetime) -> list[x509.Certificate]:
+    """The PEM certificates of ``path``, each valid at ``now``."""
+    try:
+        certificates = x509.load_pem_x509_certificates(_pem_file(path, field, origin))
+    except ValueError:
+        raise ConfigError(f"not a PEM certificate{origin}", path=path, field=field) from None
+    for certificate in certificates:
+        if certificate.not_valid_after_utc < now:
+            renew = (
+                "a new deployment: remove ca.pem and ca.key, then `msk certs --out DIR` issues every certificate anew"
+                if _is_ca(certificate)
+                else "issue a new one with `msk certs --out DIR` (it keeps the folder's CA)"
+            )
+            raise ConfigError(
+                f"certificate expired {certificate.not_valid_after_utc:%Y-%m-%d %H:%M} UTC{origin}; {renew}",
+                path=path,
+                field=field,
+            )
+        if certificate.not_valid_before_utc > now:
+            raise ConfigError(
+                f"certificate not valid before {certificate.not_valid_before_utc:%Y-%m-%d %H:%M} UTC (this machine's "
+                f"clock says {now:%Y-%m-%d %H:%M} UTC){origin}",
+                path=path,
+                field=field,
+            )
+    return certificates
+
+
+def _is_ca(certificate: x509.Certificate) -> bool:
+    try:
+        return bool(certificate.extensions.get_extension_for_class(x509.BasicConstraints).value.ca)
+    except x509.ExtensionNotFound:
+        return False
+
+
+def check_tls_files(
+    certificate: Path | str,
+    key: Path | str,
+    ca: Path | str | None = None,
+    *,
+    fields: tuple[str, str, str] = ("certificate", "private_key", "root_ca_certificate"),
+    named_by: Path | str | None = None,
+) -> x509.Certificate:
+    """Check a TLS identity before a server listens or a client connects with it: ``certificate`` and ``key`` (and
+    ``ca`` when given) readable PEM files, the certificate (and the CA) valid now, ``key`` the certificate's private key
+    and the certificate signed by ``ca``. Raises a :class:`ConfigError` naming the file and its field (``fields``:
+    the certificate's, the key's, the CA's; ``named_by``: the config file that names them); returns the certificate.
+    TLS libraries refuse the same files later with a generic handshake error; this costs about a millisecond."""
+    cert_field, key_field, ca_field = fields
+    origin = f" (named by {named_by})" if named_by is not None else ""
+    now = _dt.datetime.now(_dt.UTC)
+    cert_path, key_path = Path(certificate), Path(key)
+    leaf = _certificates(cert_path, cert_field, origin, now)[0]
+    try:
+        private = serialization.load_pem_private_key(_pem_file(key_path, key_field, origin), password=None)
+    except (ValueError, TypeError):
+        raise ConfigError(f"not an unencrypted PEM private key{origin}", path=key_path, field=key_field) from None
+    spki = (serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
+    if private.public_key().public_bytes(*spki) != leaf.public_key().public_bytes(*spki):
+        raise ConfigError(
+            f"not the key of {cert_path} (the key of another certificate, role or msk certs run){origin}",
+            path=key_path,
+            field=key_field,
+        )
+    if ca is not None:
+        authorities = _certificates(Path(ca), ca_field, origin, now)
+        if not any(_issued_by(leaf, authority) for authority in authorities):
+            raise ConfigError(
+                f"not signed by the CA of {ca} (a certificate of another deployment's CA? issue it with "
+                f"`msk certs --out DIR` from the CA the others use){origin}",
+                path=cert_path,
+                field=cert_field,
+            )
+    return leaf
+
+
+def _issued_by(certificate: x509.Certificate, authority: x509.Certificate) -> bool:
+    try:
+        certificate.verify_directly_issued_by(authority)
+    except (ValueError, TypeError, InvalidSignature):
+        return False
+    return True
+
+
+def check_zenoh_tls(tls: dict, named_by: Path | str | None = None) -> None:
+    """:func:`check_tls_files` on the files a Zenoh config's ``transport/link/tls`` section names (``tls``): the
+    listener's and the client's certificate and key, and ``root_ca_certificate``."""
+    ca = tls.get("root_ca_certificate")
+    checked = False
+    for side in ("listen", "connect"):
+        certificate, key = tls.get(f"{side}_certificate"), tls.get(f"{side}_private_key")
+        if not certificate and not key:
+            continue
+        if not certificate or not key:
+            missing = f"{side}_certificate" if not certificate else f"{side}_private_key"
+            raise ConfigError(
+                f"a TLS identity needs both {side}_certificate and {side}_private_key; {missing} is not set",
+                path=named_by,
+                field=missing,
+            )
+        fields = (f"{side}_certificate", f"{side}_private_key", "root_ca_certificate")
+        check_tls_files(certificate, key, ca, fields=fields, named_by=named_by)
+        checked = True
+    if ca and not checked:
+        origin = f" (named by {named_by})" if named_by is not None else ""
+        _certificates(Path(ca), "root_ca_certificate", origin, _dt.datetime.now(_dt.UTC))

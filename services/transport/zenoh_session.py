@@ -193,13 +193,29 @@ class SessionUnavailable(ConfigError):
 
 def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
     """Open a Zenoh session; use it as ``with open_session(options) as session:``. Raises :class:`SessionUnavailable`
-    (a :class:`ConfigError`, said in one line by the CLI) where Zenoh refuses, e.g. a listen endpoint in use."""
+    (a :class:`ConfigError`, said in one line by the CLI) where Zenoh refuses, e.g. a listen endpoint in use, and a
+    :class:`ConfigError` naming the file and its field when a TLS file the config names is unusable (:func:`check_tls`)."""
     options = options or ZenohOptions()
     config = options.to_config()
+    check_tls(config, options.config_file)
     try:
         return zenoh.open(config)
     except zenoh.ZError as error:  # its message ends in the Rust source location
         raise SessionUnavailable(str(error).split(" at /")[0].strip(), options) from None
+
+
+def check_tls(config: zenoh.Config, named_by: Path | None = None) -> None:
+    """The files a config's TLS section names (certificates, keys, CA), checked before Zenoh opens the session
+    (:func:`services.transport.security.check_zenoh_tls`): Zenoh refuses a missing, expired, foreign or mismatched
+    one only as "Unable to connect" (a client) or "Cannot create a new TLS listener" (a router), naming no file."""
+    from services.transport.security import check_zenoh_tls  # security builds on this module
+
+    try:
+        tls = json.loads(config.get_json("transport/link/tls"))
+    except Exception:  # zenoh's ZError: no such section in this Zenoh version
+        return
+    if isinstance(tls, dict):
+        check_zenoh_tls(tls, named_by)
 
 
 def declare_data_publisher(

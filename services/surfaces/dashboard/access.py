@@ -16,6 +16,7 @@ import datetime as _dt
 import hashlib
 import hmac
 import json
+import logging
 import os
 import secrets
 import threading
@@ -27,6 +28,7 @@ from urllib.parse import parse_qs
 from msk_core.errors import ConfigError, InputError
 from msk_core.io.files import write_text_atomic
 
+log = logging.getLogger(__name__)
 TOKENS_FILE = "tablet-tokens.json"
 COOKIE = "msk_tablet"
 LOGIN_PATH = "/login"
@@ -133,16 +135,35 @@ class TokenGate:
 
     def __init__(self, app: App, store: TokenStore) -> None:
         self.app, self.store = app, store
+        self._said: str | None = None  # the tokens file's problem last logged (once, not once per request)
+
+    def _tablet(self, token: str | None) -> str | None:
+        """The tablet of ``token``; raises :class:`InputError` when the tokens file cannot be read now, logged once
+        per new problem (a file that went bad while serving: every request is refused until it is repaired)."""
+        try:
+            tablet = self.store.tablet_of(token)
+        except InputError as error:
+            if str(error) != self._said:
+                self._said = str(error)
+                log.error("msk dashboard: %s; every tablet is refused (503) until the file is repaired", error)
+            raise
+        self._said = None
+        return tablet
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http" and scope["path"] == LOGIN_PATH:
-            await self._login(scope, send)
-            return
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        token = _cookie(scope)
-        if self.store.tablet_of(token) is None:
+        try:
+            if scope["type"] == "http" and scope["path"] == LOGIN_PATH:
+                await self._login(scope, send)
+                return
+            token = _cookie(scope)
+            tablet = self._tablet(token)
+        except InputError:
+            await self._refuse(scope, send, status=503)
+            return
+        if tablet is None:
             await self._refuse(scope, send)
             return
         if scope["type"] == "websocket":
@@ -156,17 +177,24 @@ class TokenGate:
             nonlocal closed
             if closed:
                 raise ConnectionError("the tablet's token was revoked")
-            if message["type"] == "websocket.send" and self.store.tablet_of(token) is None:
-                closed = True
-                await send({"type": "websocket.close", "code": 1008, "reason": "token revoked"})
-                raise ConnectionError("the tablet's token was revoked")
+            if message["type"] == "websocket.send":
+                try:
+                    revoked = self._tablet(token) is None
+                except InputError:  # cannot tell: closed as a server error, the page reconnects (and gets 503)
+                    closed = True
+                    await send({"type": "websocket.close", "code": 1011, "reason": "tablet tokens unreadable"})
+                    raise ConnectionError("the tablet tokens file cannot be read") from None
+                if revoked:
+                    closed = True
+                    await send({"type": "websocket.close", "code": 1008, "reason": "token revoked"})
+                    raise ConnectionError("the tablet's token was revoked")
             await send(message)
 
         return guarded
 
     async def _login(self, scope: Scope, send: Send) -> None:
         token = parse_qs(scope.get("query_string", b"").decode("latin-1")).get("token", [""])[0]
-        if self.store.tablet_of(token) is None:
+        if self._tablet(token) is None:
             await self._refuse(scope, send)
             return
         cookie = f"{COOKIE}={token}; Path=/; HttpOnly; Secure; SameSite=Strict; Max-Age=31536000"
@@ -174,15 +202,18 @@ class TokenGate:
         await send({"type": "http.response.start", "status": 303, "headers": headers})
         await send({"type": "http.response.body", "body": b""})
 
-    @staticmethod
-    async def _refuse(scope: Scope, send: Send) -> None:
+    async def _refuse(self, scope: Scope, send: Send, status: int = 401) -> None:
+        """401: no valid token; 503: the tokens file cannot be read (nobody is let in; the operator repairs it)."""
         if scope["type"] == "websocket":  # before accept: the server answers the handshake with 403
             await send({"type": "websocket.close", "code": 1008})
             return
         body = (
             b"401: this dashboard needs a tablet token. Ask the operator for one "
             b"(msk certs tablet-token NAME prints the URL to open on this tablet).\n"
+            if status == 401
+            else f"503: the dashboard cannot read its tablet tokens ({self.store.path}); ask the operator to "
+            "repair it (or remove it and issue the tablets' tokens again).\n".encode()
         )
         headers = [(b"content-type", b"text/plain; charset=utf-8"), (b"cache-control", b"no-store")]
-        await send({"type": "http.response.start", "status": 401, "headers": headers})
+        await send({"type": "http.response.start", "status": status, "headers": headers})
         await send({"type": "http.response.body", "body": body})

@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 import uvicorn
@@ -41,6 +42,9 @@ from services.surfaces.dashboard.access import TokenGate, TokenStore
 from services.surfaces.dashboard.bridge import Bridge, DashboardState
 from services.transport import messages, topics
 from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args, run_script
+
+if TYPE_CHECKING:
+    from services.sessions.discovery import SessionInfo
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).resolve().parent / "static"
@@ -206,6 +210,8 @@ class DashboardServer:
             on_set_mark=lambda mark: self.bridge.publish_set_mark(mark),
         )
         certificate, key = (None, None) if pki is None else secured(pki)
+        if pki is not None:
+            TokenStore(pki).tablets()  # an unreadable or corrupt tokens file is said now, not as 500s per request
         served = app if pki is None else TokenGate(app, TokenStore(pki))
         self.server = uvicorn.Server(
             uvicorn.Config(
@@ -218,7 +224,7 @@ class DashboardServer:
                 ssl_keyfile=key,
             )
         )
-        self.host, self.port, self.scheme = host, port, "http" if pki is None else "https"
+        self.host, self.port, self.scheme, self.pki = host, port, "http" if pki is None else "https", pki
         self._thread: threading.Thread | None = None
 
     def attach(self, zenoh_options: ZenohOptions, session: str) -> None:
@@ -255,7 +261,10 @@ class DashboardServer:
         # the bridge first: a session it cannot open (a secured router it cannot reach) is said in one line by the
         # command, not as a traceback of the server's start-up
         self._start_bridge()
-        self.server.run()
+        try:
+            self.server.run()
+        finally:  # uvicorn's shutdown stopped it, unless the server failed to start (the bridge would hold the process)
+            self._stop_bridge()
 
     def start(self, timeout_s: float = 20.0) -> None:
         self._thread = threading.Thread(target=self.server.run, name="dashboard", daemon=True)
@@ -298,14 +307,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def secured(pki: Path) -> tuple[str, str]:
-    """uvicorn's TLS files (certificate, key): the dashboard certificate ``msk certs`` made in ``pki``."""
-    from services.transport.security import Pki
+    """uvicorn's TLS files (certificate, key): the dashboard certificate ``msk certs`` made in ``pki``, checked before
+    serving (:func:`services.transport.security.check_tls_files`: readable, valid now, the key the certificate's,
+    signed by ``ca.pem`` when the folder has it; then as the server's TLS loads them). uvicorn itself refused a bad
+    key only once the Zenoh bridge ran, and the process stayed up without listening."""
+    import ssl
+
+    from services.transport.security import Pki, check_tls_files
 
     files = Pki(Path(pki))
     for path in (files.dashboard_cert, files.dashboard_key):
         if not path.is_file():
             raise ConfigError("no dashboard certificate: make the folder with `msk certs --out DIR`", path=path)
+    fields = ("dashboard certificate", "dashboard key", "deployment CA")
+    check_tls_files(
+        files.dashboard_cert, files.dashboard_key, files.ca_cert if files.ca_cert.is_file() else None, fields=fields
+    )
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(files.dashboard_cert, files.dashboard_key)
+    except ssl.SSLError as error:
+        raise ConfigError(f"HTTPS cannot use it: {error.reason or error}", path=files.dashboard_key) from None
     return str(files.dashboard_cert), str(files.dashboard_key)
+
+
+def is_loopback(host: str) -> bool:
+    import ipaddress
+
+    try:
+        return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def refused_plain(info: SessionInfo | None, host: str, pki: Path | None) -> str | None:
+    """Why a dashboard without ``--pki`` may not serve the secured session ``info`` (a ``SessionInfo``) on ``host``:
+    it would join with the session's operator config and serve it, set buttons included, over plain HTTP with no
+    token to whoever reaches ``host``. None: allowed (``--pki``, a plain session, or loopback: this machine only)."""
+    if pki is not None or info is None or not info.pki or is_loopback(host):
+        return None
+    return (
+        f"session {info.session!r} is secured (msk live --pki {info.pki}): without --pki this dashboard would serve it "
+        f"with operator rights over plain HTTP on {host}, with no token; serve it to tablets with `msk dashboard "
+        f"--pki {info.pki} --session {info.session} --host {host}`, or keep --host on loopback"
+    )
 
 
 def _check_port_free(host: str, port: int) -> None:
@@ -343,8 +387,16 @@ def follow_announced(
     from services.sessions import discovery
 
     follower = discovery.SessionFollower(session, attached, every_s=0.0)
+    refused: set[int] = set()  # the secured sessions said once (pids of their msk live)
     while not stop.wait(every_s):
-        if follower.next_session(server.state.received) is None:
+        info = follower.next_session(server.state.received)
+        if info is None:
+            continue
+        refusal = refused_plain(info, server.host, server.pki)
+        if refusal is not None:
+            if info.pid not in refused:
+                refused.add(info.pid)
+                log.warning("msk dashboard: not attached: %s", refusal)
             continue
         try:
             options, name = discovery.client_options(explicit, session, "lab", "msk dashboard")
@@ -355,13 +407,36 @@ def follow_announced(
         follower.moved(options)
 
 
+def pki_zenoh_config(pki: Path, session: str | None) -> tuple[Path, str | None]:
+    """``--pki`` without Zenoh flags: the tablet config a running secured ``msk live`` wrote for its router
+    (``OUT/zenoh/tablet.json5``, its actual endpoint) and its session's name; else ``PKI/zenoh/tablet.json5`` of
+    ``msk certs`` (a standalone ``msk router``) and ``session`` as given."""
+    from services.sessions import discovery
+
+    info = discovery.find_session(session)
+    config = discovery.role_config(info, "tablet") if info is not None else None
+    if info is None or config is None:
+        return Path(pki) / "zenoh" / "tablet.json5", session
+    print(
+        f"msk dashboard: attached to the running secured session {info.session!r} on {', '.join(info.connect)} as "
+        f"the tablet role ({config}; announced in {info.out}/{discovery.SESSION_FILE})",
+        file=sys.stderr,
+        flush=True,
+    )
+    return config, info.session
+
+
 def run_from_args(args: argparse.Namespace) -> int:
     _check_port_free(args.host, args.port)
     from services.sessions import discovery
 
     if args.pki is not None and args.zenoh_config is None and not args.connect:
-        args.zenoh_config = args.pki / "zenoh" / "tablet.json5"
+        args.zenoh_config, args.session = pki_zenoh_config(args.pki, args.session)
     explicit = options_from_args(args)
+    if args.pki is None and not is_loopback(args.host) and not discovery.gives_endpoint(explicit):
+        refusal = refused_plain(discovery.find_session(args.session), args.host, None)
+        if refusal is not None:
+            raise ConfigError(refusal, field="--host", value=args.host)
     options, session = discovery.client_options(explicit, args.session, "lab", "msk dashboard")
     server = DashboardServer(options, DashboardConfig(session=session), host=args.host, port=args.port, pki=args.pki)
     quiet = threading.Event()
@@ -386,7 +461,11 @@ def run_from_args(args: argparse.Namespace) -> int:
         server.run()  # uvicorn handles SIGINT/SIGTERM: closes the sockets, then the lifespan stops the bridge
     except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it handled, once shut down
         pass
-    quiet.set()
+    finally:
+        quiet.set()
+    if not server.server.started:  # uvicorn said why (its log); the bridge is stopped, the command fails
+        print(f"msk dashboard: error: the dashboard did not start serving on {server.url}", file=sys.stderr)
+        return 1
     dropped = server.state.input_counts.total_dropped
     print(
         f"dashboard stopped; the bridge received {server.state.received} messages"

@@ -56,9 +56,11 @@ function connect() {
     merge(JSON.parse(event.data));
     scheduleRender();
   };
-  socket.onclose = () => {
+  socket.onclose = (event) => {
     if (state.socket !== socket) return;
     state.socket = null;
+    // 1008 after the socket opened: the operator revoked this tablet's token (access.py); retrying cannot help
+    if (event.code === 1008) { withdrawn(); return; }
     state.connection = "reconnecting";
     scheduleRender();
     setTimeout(start, state.reconnectMs);
@@ -74,6 +76,12 @@ setInterval(() => {
   }
   scheduleRender();
 }, 500);
+
+// The tablet's token was revoked (msk certs revoke-token): say so and stop reconnecting; only a new link helps.
+function withdrawn() {
+  state.connection = "withdrawn";
+  scheduleRender();
+}
 
 function merge(update) {
   state.updates += 1;
@@ -154,12 +162,16 @@ function render() {
   const delivering = state.dataAge !== null && state.dataAge !== undefined && state.dataAge <= noDataAfter;
   const paused = !live && state.connection === "open" && state.session && state.session.paused && delivering;
   status.textContent = paused ? "paused"
-    : { live: "live", nodata: "no data", connecting: "connecting", reconnecting: "reconnecting" }[pill];
+    : { live: "live", nodata: "no data", connecting: "connecting", reconnecting: "reconnecting",
+      withdrawn: "access withdrawn" }[pill];
   const overlay = document.getElementById("nodata");
   overlay.hidden = pill === "live";
   const session = state.config ? state.config.session : "?";
-  document.querySelector(".nodata-title").textContent = paused ? "Estimates paused" : "No data";
-  document.getElementById("nodata-detail").textContent = state.connection !== "open"
+  document.querySelector(".nodata-title").textContent = paused ? "Estimates paused"
+    : pill === "withdrawn" ? "Access withdrawn" : "No data";
+  document.getElementById("nodata-detail").textContent = pill === "withdrawn"
+    ? "This tablet's access to the dashboard was withdrawn by the operator: ask the operator for a new link."
+    : state.connection !== "open"
     ? "The dashboard server is not answering; reconnecting by itself."
     : state.dataAge === null || state.dataAge === undefined
       ? `Nothing received yet on msk/${session}/…: are the estimator and the devices running for session "${session}"?`
@@ -618,7 +630,11 @@ document.getElementById("set-stop").addEventListener("click", () => setMark("sto
 
 // The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.
 function start() {
-  fetch("/config.json", { cache: "no-store" }).then((r) => r.json()).then((config) => {
+  fetch("/config.json", { cache: "no-store" }).then((r) => {
+    if (r.status === 401) { withdrawn(); return null; } // the token is no longer valid: no retry
+    return r.json();
+  }).then((config) => {
+    if (config === null) return;
     state.config = config;
     const session = document.getElementById("session"); // the name alone (room in the header), "session" on hover
     session.textContent = config.session;
