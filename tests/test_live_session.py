@@ -431,10 +431,17 @@ def test_a_secured_session_refuses_a_swapped_role_certificate_and_a_missing_fold
     )
     check_roles(pki, configs)  # as msk certs made them
     for suffix in (".pem", ".key"):
+        shutil.copy(pki / f"estimator{suffix}", tmp_path / f"estimator{suffix}")
         shutil.copy(pki / f"tablet{suffix}", pki / f"estimator{suffix}")
     with pytest.raises(ConfigError) as swapped:
         check_roles(pki, configs)
     assert swapped.value.path == pki / "estimator.pem" and "the tablet's (CN msk-tablet)" in str(swapped.value)
+    for suffix in (".pem", ".key"):
+        shutil.copy(tmp_path / f"estimator{suffix}", pki / f"estimator{suffix}")
+    (pki / "kinematics.key").write_bytes((pki / "recorder.key").read_bytes())  # another role's key: said here
+    with pytest.raises(ConfigError) as mismatched:
+        check_roles(pki, configs)
+    assert mismatched.value.path == pki / "kinematics.key", mismatched.value
     env = {**os.environ, "MSK_SESSIONS_DIR": str(tmp_path / "registry"), "XDG_CACHE_HOME": str(tmp_path / "cache")}
     done = run_msk("live", "--sim", "--pki", str(tmp_path / "nosuchdir"), "--out", str(tmp_path / "out"), env=env)
     said = done.stdout + done.stderr

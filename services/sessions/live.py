@@ -1277,11 +1277,14 @@ class SecuredRouter:
 
 
 def check_roles(pki: Path, configs: dict[str, Path]) -> None:
-    """Each role's certificate in ``pki`` is that role's (its CN): one swapped for another's (the tablet's copied over
+    """Each role's files usable (:func:`services.transport.security.check_zenoh_tls`) and its certificate in ``pki``
+    that role's (its CN): one swapped for another's (the tablet's copied over
     the estimator's) let the router refuse the node's subscriptions, and the session waited 88 s for it to be ready."""
     from services.transport import security
 
     for role, config in configs.items():
+        # each node checks its files too, but says so only in its log under OUT/logs: here the terminal says it
+        security.check_zenoh_tls(json.loads(config.read_text())["transport"]["link"]["tls"], named_by=config)
         if role == security.ROUTER_ROLE:
             continue
         found = security.role_of_config(config)
