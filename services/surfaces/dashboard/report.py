@@ -59,6 +59,15 @@ class MethodSeries:
     residual: list[list[float]] = field(default_factory=list)
     solve_s: list[float] = field(default_factory=list)
     flagged: list[bool] = field(default_factory=list)  # per frame: carried a flag
+    _arrays: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+
+    def array(self, name: str) -> np.ndarray:
+        """Field ``name`` as an array, made once for the series as read (each set's figures mask it: converting the
+        whole session's lists for every set made a long session's report quadratic in its length)."""
+        cached = self._arrays.get(name)
+        if cached is None or len(cached) != len(self.time):
+            cached = self._arrays[name] = np.asarray(getattr(self, name), dtype=bool if name == "flagged" else float)
+        return cached
 
 
 @dataclass(frozen=True, order=True)
@@ -476,7 +485,7 @@ def _weighted(a: np.ndarray, groups: list[str], index: dict[str, int], strength:
 def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
     in_set = {}
     for (method, frame_groups), series in data.frames.items():
-        t = np.asarray(series.time)
+        t = series.array("time")
         m = (t >= window.start_s) & (t <= window.end_s)
         if m.sum() >= 3 and (window.exercise == "" or _pack_name_matches(frame_groups, window.exercise)):
             in_set[method] = (series, m)
@@ -500,7 +509,7 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
         "load_kg": window.load_kg,
         "athlete": window.athlete or None,
         "start_s": window.start_s,
-        "end_s": window.end_s if math.isfinite(window.end_s) else float(np.asarray(series.time)[mask][-1]),
+        "end_s": window.end_s if math.isfinite(window.end_s) else float(series.array("time")[mask][-1]),
         "pack": pack.name if pack else None,
         "groups": groups,
         "names": names.as_dict(),
@@ -513,8 +522,8 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
         "methods": methods,
     }
     for method, (s, m) in in_set.items():
-        t = np.asarray(s.time)[m]
-        a = np.asarray(s.activations, dtype=float)[m]
+        t = s.array("time")[m]
+        a = s.array("activations")[m]
         rep_masks = [(t >= r0) & (t <= r1) for r0, r1 in reps]
         # each frame stands for the time to the next one inside its rep (the rep's last frame for none), so the time
         # above a threshold is at most the time under tension (frame count x median interval overshot it)
@@ -531,13 +540,13 @@ def summarise_set(data: SessionData, window: SetWindow) -> dict | None:
                 "set_mean": float(np.nanmean(a[:, i])),
                 "time_active_s": float(np.sum(held[a[:, i] > ACTIVE_THRESHOLD])),
             }
-        residual = np.asarray(s.residual, dtype=float)[m]
+        residual = s.array("residual")[m]
         methods[method] = {
             "frames": int(m.sum()),
-            "flagged": int(np.asarray(s.flagged)[m].sum()),
+            "flagged": int(s.array("flagged")[m].sum()),
             "groups": per_group,
             "torque_residual_rms_nm": float(np.sqrt(np.nanmean(residual**2))) if residual.size else None,
-            "solve_ms_median": float(np.median(np.asarray(s.solve_s)[m]) * 1e3),
+            "solve_ms_median": float(np.median(s.array("solve_s")[m]) * 1e3),
             "_t": t,
             "_a": a,
         }
