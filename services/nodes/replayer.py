@@ -14,7 +14,7 @@ import argparse
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import zenoh
@@ -40,6 +40,10 @@ from services.transport.zenoh_session import (
     options_from_args,
     run_script,
 )
+
+#: How long a put may wait for a slow reader before Zenoh lets that reader go (its link closed): longer than a live
+#: node's 5 s, since a replay has no latency to keep and a reader that is only slow must get everything.
+REPLAY_BLOCK_CLOSE_S = 60.0
 
 
 @dataclass
@@ -207,7 +211,11 @@ def main(
     stats.role = routes.role
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
-    with open_session(config) as session:
+    sequence: dict[str, int] = {}  # key -> the number of its last publication
+    # a reader slower than the replay (a recorder on a busy machine) slows it, where Zenoh's 5 s closed that reader's
+    # link and the messages on their way to it were lost (95 % of a 15-min session, at --rate max); a reader hung for
+    # REPLAY_BLOCK_CLOSE_S is still let go
+    with open_session(replace(config, block_close_s=config.block_close_s or REPLAY_BLOCK_CLOSE_S)) as session:
         if wait_nodes:
             if session_name is None:
                 raise ConfigError("waiting for graph nodes needs the session they belong to", field="session_name")
@@ -235,7 +243,9 @@ def main(
                 delay = due - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            publisher.put(recorded.data)
+            # numbered per key, as the drivers' publications are: a reader that misses some counts them
+            sequence[key] = sequence.get(key, 0) + 1
+            publisher.put(recorded.data, source_info=zenoh.SourceInfo(publisher.id, sequence[key]))
             stats.published += 1
         for publisher in publishers.values():
             publisher.undeclare()

@@ -44,6 +44,9 @@ class ZenohOptions:
     listen: tuple[str, ...] = ()
     config_file: Path | None = None
     multicast_scouting: bool = False
+    #: how long a lossless put may wait for a slow reader before Zenoh closes that reader's link (None: Zenoh's 5 s);
+    #: a replay at --rate max waits longer (services.nodes.replayer), a live node must not
+    block_close_s: float | None = None
 
     @property
     def role(self) -> str | None:
@@ -84,6 +87,10 @@ class ZenohOptions:
             config.insert_json5("listen/endpoints", json.dumps(listen))
         if self.config_file is None:
             config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        if self.block_close_s is not None:
+            config.insert_json5(
+                "transport/link/tx/queue/congestion_control/block/wait_before_close", str(int(self.block_close_s * 1e6))
+            )
         return config
 
 
