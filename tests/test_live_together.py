@@ -164,7 +164,7 @@ def test_live_sim_secured_delivers_what_the_plain_graph_does(tmp_path):
             except OSError:
                 assert time.monotonic() < deadline, f"the router did not come back on port {port} within 30 s"
                 time.sleep(0.1)
-        time.sleep(5.0)  # the nodes back on it, the recorder's history fetch done
+        time.sleep(3.0)  # the nodes back on it, the recorder's history fetch done
         code, output, summary = live.stop()
     finally:
         live.kill()
