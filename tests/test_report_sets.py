@@ -32,6 +32,17 @@ def two_sets_phase(t_s: float) -> float:
     return phase_at(t_s % 20.0 + 1.0) if t_s % 20.0 < 6.0 else -1.0
 
 
+def two_sets(tmp_path, facts: list, write) -> object:
+    """A 40 s recording of ``facts`` and, every frame, ``write(session, t_s, phase)`` at :func:`two_sets_phase`."""
+    recording = tmp_path / "session.mcap"
+    with timed_recording(recording, START_NS) as session:
+        session.load_events(facts)
+        for k in range(int(40 * RATE_HZ)):
+            t_s = k / RATE_HZ
+            write(session, t_s, two_sets_phase(t_s))
+    return recording
+
+
 def write_session(path) -> None:
     facts = [
         (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, set_rest_s=20.0)),
@@ -147,13 +158,9 @@ def test_two_athletes_on_one_rack_each_set_is_named_with_its_athlete(tmp_path):
         (0.0, messages.LoadEvent(barbell_mass_kg=60, exercise="bench_press", set_number=1, athlete="Ana")),
         (20.0, messages.LoadEvent(barbell_mass_kg=80, exercise="bench_press", set_number=2, athlete="Ben")),
     ]
-    recording = tmp_path / "session.mcap"
-    with timed_recording(recording, START_NS) as session:
-        session.load_events(facts)
-        for k in range(int(40 * RATE_HZ)):
-            t_s = k / RATE_HZ
-            phase = two_sets_phase(t_s)
-            session.joints_and_frame(t_s, phase, ["A", "B"], [0.5, 0.1])
+    recording = two_sets(
+        tmp_path, facts, lambda session, t_s, phase: session.joints_and_frame(t_s, phase, ["A", "B"], [0.5, 0.1])
+    )
     summary = report.write_report(recording, tmp_path / "out")
     assert [(s["name"], s["athlete"], len(s["reps"])) for s in summary["sets"]] == [
         ("set 1 (Ana): bench press, 60 kg", "Ana", 3),
@@ -170,35 +177,33 @@ def test_a_bench_press_then_a_deadlift_each_set_has_the_reps_of_its_own_packs_fr
         (0.0, messages.LoadEvent(barbell_mass_kg=40, exercise="bench_press", set_number=1)),
         (20.0, messages.LoadEvent(barbell_mass_kg=60, exercise="deadlift", set_number=2)),
     ]
-    recording = tmp_path / "session.mcap"
-    with timed_recording(recording, START_NS) as session:
-        session.load_events(facts)
-        for k in range(int(40 * RATE_HZ)):
-            t_s = k / RATE_HZ
-            phase = two_sets_phase(t_s)
-            bench = t_s < 20.0
-            frame = messages.ActivationFrame(
-                time_s=START_NS / 1e9 + t_s,
-                method="so",
-                groups=["A", "B"] if bench else ["C", "D", "E"],
-                activations=[0.5, 0.1] if bench else [0.4, 0.3, 0.2],
-                exercise="bench_press" if bench else "deadlift",
-                phase=phase,
+
+    def write(session, t_s: float, phase: float) -> None:
+        bench = t_s < 20.0
+        frame = messages.ActivationFrame(
+            time_s=START_NS / 1e9 + t_s,
+            method="so",
+            groups=["A", "B"] if bench else ["C", "D", "E"],
+            activations=[0.5, 0.1] if bench else [0.4, 0.3, 0.2],
+            exercise="bench_press" if bench else "deadlift",
+            phase=phase,
+        )
+        session.write(frame, t_s, "activations/so")
+        if not bench:  # the deadlift's frames outnumber the bench press's
+            session.write(
+                messages.ActivationFrame(
+                    time_s=START_NS / 1e9 + t_s + 0.5 / RATE_HZ,
+                    method="so",
+                    groups=["C", "D", "E"],
+                    activations=[0.4, 0.3, 0.2],
+                    exercise="deadlift",
+                    phase=phase,
+                ),
+                t_s + 0.5 / RATE_HZ,
+                "activations/so",
             )
-            session.write(frame, t_s, "activations/so")
-            if not bench:  # the deadlift's frames outnumber the bench press's
-                session.write(
-                    messages.ActivationFrame(
-                        time_s=START_NS / 1e9 + t_s + 0.5 / RATE_HZ,
-                        method="so",
-                        groups=["C", "D", "E"],
-                        activations=[0.4, 0.3, 0.2],
-                        exercise="deadlift",
-                        phase=phase,
-                    ),
-                    t_s + 0.5 / RATE_HZ,
-                    "activations/so",
-                )
+
+    recording = two_sets(tmp_path, facts, write)
     sets = report.write_report(recording, tmp_path / "out")["sets"]
     assert [(s["name"], len(s["reps"]), s["rep_source"]) for s in sets] == [
         ("set 1: bench press, 40 kg", 3, "phase of the activation frames"),
