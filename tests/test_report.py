@@ -458,3 +458,30 @@ def test_payloads_that_are_not_their_message_are_counted_not_fatal(tmp_path, cap
         f"warning: {recording}: payloads that were not their topic's message, left out: 4 on msk/s/activations/so"
         in said
     )
+
+
+def test_the_session_length_of_two_exercises_replayed_together_and_of_a_restarted_clock(tmp_path):
+    """``msk demo`` replays a bench press and a deadlift together: their frames interleave in the log, 40 s apart on
+    the devices' clock, and the report said "16 s recorded" (the fast replay's log span) of a 60 s session. Each
+    pack's frames are one stream; a stream whose clock starts again (a power cycle) still falls back to the log."""
+    from services.transport import messages
+
+    def frame(t_s: float, bench: bool) -> messages.ActivationFrame:
+        return messages.ActivationFrame(
+            time_s=1_773_480_600 + t_s,
+            method="so",
+            groups=["A", "B"] if bench else ["C", "D", "E"],
+            activations=[0.1, 0.1] if bench else [0.1, 0.1, 0.1],
+            exercise="bench_press" if bench else "deadlift",
+        )
+
+    together, restarted = tmp_path / "together.mcap", tmp_path / "restarted.mcap"
+    with timed_recording(together, 1_773_480_600_000_000_000) as session:
+        for k in range(200):  # 10 s of log time: bench 0-20 s, deadlift 40-60 s of device time, interleaved
+            session.write(frame(0.1 * k, True), 0.05 * k, "activations/so")
+            session.write(frame(40.0 + 0.1 * k, False), 0.05 * k + 0.01, "activations/so")
+    assert report.write_report(together, tmp_path / "a")["duration_s"] == pytest.approx(59.9)
+    with timed_recording(restarted, 1_773_480_600_000_000_000) as session:
+        for k in range(200):  # 10 s of frames at 5000 s of the device's clock, then it starts again at 0
+            session.write(frame(0.1 * (k % 100) + (5000.0 if k < 100 else 0.0), True), 0.1 * k, "activations/so")
+    assert report.write_report(restarted, tmp_path / "b")["duration_s"] == pytest.approx(19.9)

@@ -1077,6 +1077,22 @@ def _frame_durations(t: np.ndarray, rep_masks: list[np.ndarray]) -> np.ndarray:
     return held
 
 
+def session_length_s(data: SessionData) -> float:
+    """The session's length on the devices' clock: a recording of a fast replay is shorter in log time than the
+    session, and the log time of a live one includes the start-up before the first frame. Each pack's frames are one
+    stream (two exercises replayed together interleave theirs: the demo's joint frames go 34 s back and forth, and its
+    report said "16 s recorded" of 73 s); a stream whose clock started again (a tracker's power cycle) has no span, and
+    the log's is taken then."""
+    streams = [series.array("time") for series in data.frames.values() if series.time]
+    if not streams and data.joint_time:
+        streams = [np.asarray(data.joint_time, dtype=float)]
+    log_span = (data.end_log_ns - data.start_log_ns) / 1e9
+    if not streams or not all(np.all(np.diff(t) >= 0) for t in streams):
+        return log_span
+    span = max(float(t[-1]) for t in streams) - min(float(t[0]) for t in streams)
+    return span if span > 0 else log_span
+
+
 def write_report(recording: Path, out: Path, *, session: str | None = None, progress: bool = False) -> dict:
     data = read_session(recording, session=session, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
@@ -1087,14 +1103,7 @@ def write_report(recording: Path, out: Path, *, session: str | None = None, prog
             result["plots"] = plot_set(result, out, f"set{window.index}")
             sets.append(result)
     devices = device_health(data)
-    # Session length on the devices' clock: a recording of a fast replay is shorter in log time than the session, and
-    # the log time of a live one includes the start-up before the first frame
-    device_times = data.joint_time or [t for series in data.frames.values() for t in series.time]
-    span = (max(device_times) - min(device_times)) if device_times else 0.0
-    log_span = (data.end_log_ns - data.start_log_ns) / 1e9
-    # a device clock that started again (a tracker's power cycle) has no span: the log's then
-    steady = len(device_times) > 1 and all(b >= a for a, b in zip(device_times, device_times[1:]))
-    duration = span if span > 0 and steady else log_span
+    duration = session_length_s(data)
     device_plot = plot_devices(devices, (data.end_log_ns - data.start_log_ns) / 1e9, out)
     methods = sorted({m for m, _ in data.frames})
     facts = session_facts(data)
