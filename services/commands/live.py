@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from msk_core.errors import ConfigError
 from services.nodes.estimator_options import add_live_synergists_argument, add_solver_argument
 from services.sessions.sim_sets import DEFAULT_REPS, DEFAULT_REST_S
+from services.transport.stop_signals import exit_text
 
 if TYPE_CHECKING:
     from drivers.trigno.simulator import SensorFault
@@ -190,12 +191,7 @@ class NodeFailure:
                 else "did not stop when asked (SIGINT) and was killed"
             )
         else:
-            if code < 0:
-                how = f"was killed by signal {-code}" + (
-                    f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else ""
-                )
-            else:
-                how = f"exited with code {code}"
+            how = exit_text(code)
             how += " while the session ran, which stopped the session" if self.during_session else " when stopped"
         return f"node {self.node} failed: it {how}; " + log_tail(self.log, LOG_TAIL_LINES)
 

@@ -90,17 +90,16 @@ def publish_facts(
             f"{discovery.registry_dir()}); name the session and its endpoint with --session and --connect",
             field="--session",
         )
-    if options.role is not None:  # the router drops a put its access control refuses without a word: ask first
-        from services.transport.security import refused
+    from services.transport.roles import facts_refusal
 
-        reason = refused(options.role, "publish", topics.load_key(session))
-        if reason is not None:
-            raise ConfigError(
-                f"{command} cannot change the session's facts: {reason} (the operator's config may: "
-                "OUT/zenoh/operator.json5 of the secured msk live)",
-                path=options.config_file,
-                field="--zenoh-config",
-            )
+    reason = facts_refusal(options.role, session)
+    if reason is not None:
+        raise ConfigError(
+            f"{command} cannot change the session's facts: {reason} (the operator's config may: "
+            "OUT/zenoh/operator.json5 of the secured msk live)",
+            path=options.config_file,
+            field="--zenoh-config",
+        )
     facts = info.facts if info is not None else discovery.announced_facts(session)
     if not facts and not complete:
         raise ConfigError(

@@ -42,7 +42,8 @@ from services.transport.zenoh_session import (
 )
 
 #: How long a put may wait for a slow reader before Zenoh lets that reader go (its link closed): longer than a live
-#: node's 5 s, since a replay has no latency to keep and a reader that is only slow must get everything.
+#: node's 5 s, since a replay has no latency to keep. A reader far slower than the replay can still lose its link
+#: (docs/topics.md, "Known limit").
 REPLAY_BLOCK_CLOSE_S = 60.0
 
 
@@ -212,9 +213,8 @@ def main(
     report = ReadReport()
     publishers: dict[str, zenoh.Publisher] = {}
     sequence: dict[str, int] = {}  # key -> the number of its last publication
-    # a reader slower than the replay (a recorder on a busy machine) slows it, where Zenoh's 5 s closed that reader's
-    # link and the messages on their way to it were lost (95 % of a 15-min session, at --rate max); a reader hung for
-    # REPLAY_BLOCK_CLOSE_S is still let go
+    # a reader slower than the replay (a recorder on a busy machine) slows it for up to REPLAY_BLOCK_CLOSE_S a put,
+    # where Zenoh lets it go after 5 s; a reader hung longer is still let go
     with open_session(replace(config, block_close_s=config.block_close_s or REPLAY_BLOCK_CLOSE_S)) as session:
         if wait_nodes:
             if session_name is None:

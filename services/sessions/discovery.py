@@ -188,9 +188,7 @@ def claim_endpoint(endpoint: str) -> contextlib.AbstractContextManager | None:
     path = registry_dir() / "claims" / ("endpoint-" + "".join(c if c.isalnum() else "_" for c in endpoint) + ".lock")
     path.parent.mkdir(parents=True, exist_ok=True)
     handle = open(path, "a+")  # noqa: SIM115 - held for the session, closed by the caller
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+    if not _lock_exclusive(handle):
         handle.close()
         return None
     return handle

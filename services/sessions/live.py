@@ -60,7 +60,7 @@ from services.sessions.live_session import (
 )
 from services.transport import messages, session_graph, topics
 from services.transport.mcap_io import read_messages
-from services.transport.stop_signals import StopOnSignals, stop_with_parent_env
+from services.transport.stop_signals import StopOnSignals, exit_text, stop_with_parent_env
 
 if TYPE_CHECKING:  # imported where used: a session without --sim needs no simulator
     from drivers.trial_clock import TrialClock
@@ -1281,10 +1281,11 @@ def check_roles(pki: Path, configs: dict[str, Path]) -> None:
     that role's (its CN): one swapped for another's (the tablet's copied over
     the estimator's) let the router refuse the node's subscriptions, and the session waited 88 s for it to be ready."""
     from services.transport import security
+    from services.transport.zenoh_session import ZenohOptions, check_tls
 
     for role, config in configs.items():
         # each node checks its files too, but says so only in its log under OUT/logs: here the terminal says it
-        security.check_zenoh_tls(json.loads(config.read_text())["transport"]["link"]["tls"], named_by=config)
+        check_tls(ZenohOptions(mode=None, config_file=config).to_config(), config)
         if role == security.ROUTER_ROLE:
             continue
         found = security.role_of_config(config)
@@ -1298,14 +1299,6 @@ def check_roles(pki: Path, configs: dict[str, Path]) -> None:
                 field="role",
                 value=found,
             )
-
-
-def exit_text(code: int) -> str:
-    """How a process ended, from its return code: "exited with code 1", "was killed by signal 9 (SIGKILL)"."""
-    if code >= 0:
-        return f"exited with code {code}"
-    name = f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else ""
-    return f"was killed by signal {-code}{name}"
 
 
 def start_secured_router(pki: Path, out: Path, log) -> tuple[SecuredRouter, str, Callable[[str], Path]]:

@@ -344,11 +344,10 @@ def access_note(role: str | None, session: str) -> str:
 
 
 def marks_sets(role: str | None, session: str) -> bool:
-    """Whether the view's keys can mark sets as ``role``: it may publish the session's load key (the router drops a
-    put its access control refuses without a word)."""
-    from services.transport.security import refused
+    """Whether the view's keys can mark sets as ``role`` (:func:`services.transport.roles.facts_refusal`)."""
+    from services.transport.roles import facts_refusal
 
-    return role is None or refused(role, "publish", topics.load_key(session)) is None
+    return facts_refusal(role, session) is None
 
 
 def waiting_text(session: str, paused: str) -> Text:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import zenoh
 
+from services.transport import topics
 from services.transport.security import ROLE_POLICIES, refused
 
 
@@ -65,3 +66,10 @@ def parts_text(role: str, action: str, key_expr: str, parts: tuple[str, ...]) ->
         return refused(role, action, key_expr) or f"role {role!r} may {action} nothing of {key_expr}"
     verb = "read" if action == "subscribe" else action
     return f"role {role!r} may {verb} only {', '.join(parts)} of {key_expr}; the router refuses the rest"
+
+
+def facts_refusal(role: str | None, session: str) -> str | None:
+    """Why ``role`` may not publish session ``session``'s facts (its load key: loads and set marks); None when it may,
+    or without a role. The router drops a put its access control refuses without a word, so what changes the facts
+    (``msk load``, ``msk set``, the dashboard's set buttons, the view's keys) asks here first."""
+    return None if role is None else refused(role, "publish", topics.load_key(session))

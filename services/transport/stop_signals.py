@@ -82,3 +82,11 @@ def _watch_parent(stop: StopOnSignals, parent: int) -> None:
         if os.getppid() != parent:  # re-parented: the process that would have stopped this one is gone
             stop.signal = stop.signal or "parent gone"
             stop.event.set()
+
+
+def exit_text(code: int) -> str:
+    """How a process ended, from its return code: "exited with code 1", "was killed by signal 9 (SIGKILL)"."""
+    if code >= 0:
+        return f"exited with code {code}"
+    name = f" ({signal.Signals(-code).name})" if -code in signal.valid_signals() else ""
+    return f"was killed by signal {-code}{name}"

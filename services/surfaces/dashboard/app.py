@@ -210,9 +210,10 @@ class DashboardServer:
             on_set_mark=lambda mark: self.bridge.publish_set_mark(mark),
         )
         certificate, key = (None, None) if pki is None else secured(pki)
-        if pki is not None:
-            TokenStore(pki).tablets()  # an unreadable or corrupt tokens file is said now, not as 500s per request
-        served = app if pki is None else TokenGate(app, TokenStore(pki))
+        store = None if pki is None else TokenStore(pki)
+        if store is not None:
+            store.tablets()  # an unreadable or corrupt tokens file is said now, not as 500s per request
+        served = app if store is None else TokenGate(app, store)
         self.server = uvicorn.Server(
             uvicorn.Config(
                 served,

@@ -570,13 +570,11 @@ class Bridge:
                 f"session {self.state.session!r} sends {heard}: is msk live running? (a set mark goes to its nodes)"
             )
         key = topics.load_key(self.state.session)
-        role = self.options.role
-        if role is not None:  # the router drops a put its access control refuses without a word: ask first
-            from services.transport.security import refused
+        from services.transport.roles import facts_refusal
 
-            reason = refused(role, "publish", key)
-            if reason is not None:
-                raise RuntimeError(f"this dashboard's role cannot mark sets: {reason}")
+        reason = facts_refusal(self.options.role, self.state.session)
+        if reason is not None:
+            raise RuntimeError(f"this dashboard's role cannot mark sets: {reason}")
         event = self.state.set_mark_event(mark)
         with self._publisher_lock:
             if self._load_publisher is None:
