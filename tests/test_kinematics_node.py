@@ -316,6 +316,37 @@ def test_node_counts_and_names_a_missing_segment(zenoh_endpoint):
     assert "no sample from segment(s) ['forearm_r']" in stats.last_error and "upper_arm_r" in stats.last_error
 
 
+def test_trackers_starting_apart_are_information_and_a_tracker_lost_later_is_one_error(caplog):
+    """Found in every `msk live --sim` log: the forearm's first sample came a few ms after the upper arm's, and the
+    kinematics log said ERROR "no sample from segment(s) ['forearm_r'] at t=1795830150843775418 ns" on a normal start.
+    Within the start's grace, before any complete instant, it is information; a tracker lost later is an error, said
+    once, with the time since the first sample."""
+    node = kinematics_node.KinematicsNode(
+        kinematics_node.KinematicsSettings(pack="bench_press", session="synth"), kinematics_node.KinematicsStats()
+    )
+    period = 16_666_667
+    forearm_silent = set(range(0, 6)) | set(range(120, 180))  # starts 0.1 s late; drops 1 s from t = 2 s
+
+    def sample(segment: str, k: int) -> messages.ImuSample:
+        return messages.ImuSample(
+            tracker_id=segment, segment=segment, orientation=messages.Quaternion(w=1.0),
+            coordinate_frame="ENU", device_time_ns=5_000_000_000 + k * period,
+        )  # fmt: skip
+
+    with caplog.at_level("INFO", logger=kinematics_node.log.name):
+        for k in range(240):
+            node.handle(topics.imu_key("synth", "upper_arm_r"), sample("upper_arm_r", k))
+            if k not in forearm_silent:
+                node.handle(topics.imu_key("synth", "forearm_r"), sample("forearm_r", k))
+            if k == 100:
+                start = [r for r in caplog.records if "no sample from segment" in r.getMessage()]
+                assert start and {r.levelname for r in start} == {"INFO"}, [r.getMessage() for r in start]
+                assert "waiting for every tracker's first sample" in start[0].getMessage()
+    said = [r for r in caplog.records if r.levelname == "ERROR"]
+    assert len(said) == 1 and "no sample from segment(s) ['forearm_r'] 2.00 s after the first" in said[0].getMessage()
+    assert node.stats.frames_incomplete >= 6 + 60 - 31 and node.stats.frames_synced > 100, node.stats
+
+
 def test_cli_rejects_a_pack_without_table_and_a_bad_pose(capsys):
     assert cli_main(["kinematics", "--pack", "arm26", "--session", "x"]) == 2
     assert "no IMU mapping for pack 'arm26'" in capsys.readouterr().err

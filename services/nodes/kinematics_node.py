@@ -56,6 +56,7 @@ from services.transport.zenoh_session import ZenohOptions, declare_data_publishe
 log = logging.getLogger(__name__)
 NODE_NAME = "kinematics"
 CLOCKS = ("device", "host")
+START_GRACE_S = 1.0  # trackers' first samples this far apart are a normal start, logged as information only
 
 
 @dataclass(frozen=True)
@@ -256,6 +257,8 @@ class KinematicsNode:
             self.mapper.segments, tolerance_ns=int(s.sync_tolerance_s * 1e9), max_wait_ns=int(s.max_wait_s * 1e9)
         )
         self.needed = set(self.mapper.segments)
+        self._first_instant_ns: int | None = None  # of the first instant synchronised, complete or not
+        self._incomplete_said = False  # an incomplete instant is logged as an error once, after start-up's grace
         self.coordinates = list(self.mapper.coordinates)
         self.prefix = f"{topics.session_prefix(s.session)}/imu/"
 
@@ -313,17 +316,25 @@ class KinematicsNode:
 
     def _frame(self, event) -> messages.JointAngles | None:
         stats = self.stats
+        if self._first_instant_ns is None:
+            self._first_instant_ns = event.time_ns
         if isinstance(event, IncompleteFrame):
             stats.frames_incomplete += 1
             stats.samples_discarded += event.samples
             for s in event.missing:
                 stats.missing[s] = stats.missing.get(s, 0) + 1
+            after_s = (event.time_ns - self._first_instant_ns) / 1e9
             stats.last_error = (
-                f"no sample from segment(s) {list(event.missing)} at t={event.time_ns} ns "
-                f"(topics {self.prefix}<tracker>; pack {self.model.name!r} needs "
+                f"no sample from segment(s) {list(event.missing)} {after_s:.2f} s after the first tracker sample "
+                f"(t={event.time_ns} ns; topics {self.prefix}<tracker>; pack {self.model.name!r} needs "
                 f"{self.mapper.segments})"
             )
-            if stats.frames_incomplete == 1:
+            # trackers start streaming a few samples apart: an instant missing one before any was complete, within
+            # the grace, is the start, not a fault
+            if stats.frames_synced == 0 and after_s <= START_GRACE_S:
+                log.info("%s: waiting for every tracker's first sample", stats.last_error)
+            elif not self._incomplete_said:
+                self._incomplete_said = True
                 log.error("%s", stats.last_error)
             return None
         stats.frames_synced += 1
