@@ -100,6 +100,7 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             # the first rep ends 2.45 s into the replay at rate 2: on busy cores the page may first be seen after it
             assert first["set"] == "1" and first["reps"] in ("0", "1"), first
             assert set(first["torqueCharts"]) == {"elv_angle_r", "elbow_flex_r"}
+            assert not page.is_disabled("#set-start") and page.inner_text("#set-reply") == ""  # no role: may mark
             # muscles and joints by their display names, torques with their unit
             named = wait_for(page, lambda p: "Biceps brachii, long head" in p["labels"], 5, "display names on the bars")
             assert "Triceps brachii, lateral and medial heads" in named["labels"] and "BicLong" not in named["labels"]

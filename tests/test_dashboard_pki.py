@@ -193,6 +193,7 @@ def test_a_tablet_token_opens_the_page_and_live_data_until_revoked(secured):
     assert status == 200 and b"<html" in page.lower()
     status, _, config = _get(pki, port, "/config.json", cookie)
     assert status == 200 and json.loads(config)["session"] == SESSION
+    assert "role 'tablet' may publish only" in json.loads(config)["set_marks_refused"]  # the buttons are not offered
     update = asyncio.run(_websocket(pki, port, cookie))
     frame = update["topics"]["activations/so"]
     assert frame["groups"] == GROUPS, frame
@@ -245,6 +246,10 @@ def test_chromium_sees_the_session_only_with_a_token(secured, tmp_path):
             )
             shown = page.evaluate("() => window.mskDashboard.state.activations.so.activations")
             assert shown == [0.2, 0.5, 0.8]
+            # the tablet may not mark sets: its buttons are disabled, the header says so in two lines at most
+            assert page.is_disabled("#set-start") and page.is_disabled("#set-stop")
+            assert page.inner_text("#set-reply") == "view only: sets are marked at the rack"
+            assert "role 'tablet' may publish only" in (page.get_attribute("#set-reply", "title") or "")
             _certs("revoke-token", "chromium", "--out", str(pki))
             assert page.reload().status == 401
         finally:

@@ -41,6 +41,7 @@ from services.surfaces.dashboard import bodymap
 from services.surfaces.dashboard.access import TokenGate, TokenStore
 from services.surfaces.dashboard.bridge import Bridge, DashboardState
 from services.transport import messages, topics
+from services.transport.roles import facts_refusal
 from services.transport.zenoh_session import ZenohOptions, add_zenoh_arguments, options_from_args, run_script
 
 if TYPE_CHECKING:
@@ -69,11 +70,13 @@ def packs_by_groups() -> dict[tuple[str, ...], str]:
     return found
 
 
-def page_config(config: DashboardConfig, pack_index: dict[tuple[str, ...], str]) -> dict:
+def page_config(config: DashboardConfig, pack_index: dict[tuple[str, ...], str], role: str | None = None) -> dict:
     """What the page reads at /config.json: the session, its timings, the method shown by default (the first of
-    ``default_methods`` that ran, as in the view and the report) and each pack's groups."""
+    ``default_methods`` that ran, as in the view and the report), each pack's groups, and why this dashboard's Zenoh
+    ``role`` may not mark sets (None when it may): the page then offers no buttons that would be refused."""
     return {
         "session": config.session,
+        "set_marks_refused": facts_refusal(role, config.session),
         "no_data_after_s": config.no_data_after_s,
         "heartbeat_s": config.heartbeat_s,
         "default_methods": list(PREFERRED_METHODS),
@@ -100,7 +103,7 @@ def create_app(
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
 
     async def config_json(request):
-        return JSONResponse(page_config(attached.config, pack_index))
+        return JSONResponse(page_config(attached.config, pack_index, attached.zenoh_options.role))
 
     async def body_map(request):
         name = request.path_params["pack"]

@@ -623,10 +623,23 @@ function setMark(mark) {
   const reply = document.getElementById("set-reply");
   fetch(`/set/${mark}`, { method: "POST" }).then((r) => r.json()).then((answer) => {
     reply.textContent = answer.error ? answer.error : (mark === "start" ? `set ${answer.set_number} started` : "set ended");
-  }).catch((error) => { reply.textContent = `not sent: ${error}`; });
+    reply.title = reply.textContent; // the reply is clamped to two lines in the header; whole on hover
+  }).catch((error) => { reply.textContent = `not sent: ${error}`; reply.title = reply.textContent; });
 }
 document.getElementById("set-start").addEventListener("click", () => setMark("start"));
 document.getElementById("set-stop").addEventListener("click", () => setMark("stop"));
+// A dashboard whose role may not publish the session's facts offers no buttons that the router would refuse: they
+// are disabled, the reason in their tooltip and in the reply's.
+function showSetMarks(refused) {
+  for (const id of ["set-start", "set-stop"]) {
+    const button = document.getElementById(id);
+    button.disabled = Boolean(refused);
+    button.title = refused ? `this dashboard cannot mark sets: ${refused}` : "";
+  }
+  const reply = document.getElementById("set-reply");
+  reply.textContent = refused ? "view only: sets are marked at the rack" : "";
+  reply.title = refused || "";
+}
 
 // The configuration is fetched again on every (re)connection: a restarted dashboard may serve another session.
 function start() {
@@ -639,6 +652,7 @@ function start() {
     const session = document.getElementById("session"); // the name alone (room in the header), "session" on hover
     session.textContent = config.session;
     session.title = `session ${config.session} (msk/${config.session}/...)`;
+    showSetMarks(config.set_marks_refused);
     connect();
   }).catch(() => {
     state.connection = state.connection === "connecting" ? "connecting" : "reconnecting";
