@@ -186,6 +186,9 @@ def start_estimator(
 REPLAY_RATE = 8.0
 
 
+RECORDER_SETTLED_S = 3.0  # the estimators done, this long without a new record: nothing more is on its way
+
+
 def record_with_estimates(
     source: Path, out: Path, endpoint: str, *, packs: dict[str, list[str]], session: str = "rep"
 ) -> dict:
@@ -221,7 +224,14 @@ def record_with_estimates(
     while time.monotonic() < deadline and not all(s.frames_done >= joints for s in stats.values()):
         time.sleep(0.1)
     expected = replayed.published + sum(s.frames_out * len(packs[p]) for p, s in stats.items())
-    while time.monotonic() < deadline and rec_stats.written - rec_stats.node_status < expected:
+    # newest-wins frames may have been dropped (below): once the estimators are done, a recorder that has written
+    # nothing new for 3 s has all it will get (waiting for `expected` itself took the whole 120 s then)
+    last, settled_at = -1, time.monotonic()
+    while time.monotonic() < deadline and (written := rec_stats.written - rec_stats.node_status) < expected:
+        if written != last:
+            last, settled_at = written, time.monotonic()
+        elif time.monotonic() - settled_at > RECORDER_SETTLED_S:
+            break
         time.sleep(0.1)
     stop.set()
     rec.join(30)
