@@ -25,6 +25,8 @@ import functools
 import html
 import math
 import sys
+from array import array
+from collections.abc import MutableSequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,21 +54,45 @@ ACTIVE_THRESHOLD = 0.2  # "time active" of a muscle: activation above this
 
 @dataclass
 class MethodSeries:
+    """One method's frames of one pack, as read, in typed arrays: ``activations`` flat, frame after frame,
+    ``len(groups)`` values each; ``residual`` likewise, ``residual_width`` each (the first frame's torque count; a frame
+    with another count has NaN there). Python lists of float objects made a long session's report take ~0.27 MB per
+    recorded second, 2 GB for two hours."""
+
     groups: tuple[str, ...]
-    time: list[float] = field(default_factory=list)
-    activations: list[list[float]] = field(default_factory=list)
-    phase: list[float] = field(default_factory=list)  # NaN when unset
-    residual: list[list[float]] = field(default_factory=list)
-    solve_s: list[float] = field(default_factory=list)
-    flagged: list[bool] = field(default_factory=list)  # per frame: carried a flag
+    time: MutableSequence[float] = field(default_factory=lambda: array("d"))
+    activations: MutableSequence[float] = field(default_factory=lambda: array("d"))
+    phase: MutableSequence[float] = field(default_factory=lambda: array("d"))  # NaN when unset
+    residual: MutableSequence[float] = field(default_factory=lambda: array("d"))
+    residual_width: int = -1  # -1 until a frame is added
+    solve_s: MutableSequence[float] = field(default_factory=lambda: array("d"))
+    flagged: MutableSequence[int] = field(default_factory=lambda: array("b"))  # per frame: 1 when it carried a flag
     _arrays: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
+    def add(self, frame: messages.ActivationFrame) -> None:
+        """One recorded frame of this series."""
+        self.time.append(frame.time_s)
+        self.activations.extend(frame.activations)
+        self.phase.append(frame.phase if frame.HasField("phase") else math.nan)
+        if self.residual_width < 0:
+            self.residual_width = len(frame.torques)
+        if len(frame.torques) == self.residual_width:
+            self.residual.extend(t.residual_nm for t in frame.torques)
+        else:
+            self.residual.extend([math.nan] * self.residual_width)
+        self.solve_s.append(frame.solve_time_s)
+        self.flagged.append(bool(frame.flags))
+
     def array(self, name: str) -> np.ndarray:
-        """Field ``name`` as an array, made once for the series as read (each set's figures mask it: converting the
-        whole session's lists for every set made a long session's report quadratic in its length)."""
+        """Field ``name`` as an array, one row per frame, made once for the series as read (each set's figures mask
+        it: converting the whole session's lists for every set made a long session's report quadratic in its
+        length)."""
         cached = self._arrays.get(name)
         if cached is None or len(cached) != len(self.time):
-            cached = self._arrays[name] = np.asarray(getattr(self, name), dtype=bool if name == "flagged" else float)
+            values = np.array(getattr(self, name), dtype=bool if name == "flagged" else float)
+            if name in ("activations", "residual"):
+                values = values.reshape(len(self.time), -1 if name == "residual" else len(self.groups))
+            cached = self._arrays[name] = values
         return cached
 
 
@@ -148,12 +174,7 @@ def _take(data: SessionData, gate: LoadEventGate, recorded, log_s: float) -> Non
         f = recorded.decode(messages.ActivationFrame)
         key = (f.method, tuple(f.groups))
         series = data.frames.get(key) or data.frames.setdefault(key, MethodSeries(tuple(f.groups)))
-        series.time.append(f.time_s)
-        series.activations.append(list(f.activations))
-        series.phase.append(f.phase if f.HasField("phase") else math.nan)
-        series.residual.append([t.residual_nm for t in f.torques])
-        series.solve_s.append(f.solve_time_s)
-        series.flagged.append(bool(f.flags))
+        series.add(f)
         if f.exercise and f.exercise not in data.frame_exercises:
             data.frame_exercises.append(f.exercise)
             for e in gate.on_frame(f.exercise):
@@ -254,7 +275,7 @@ def set_windows(data: SessionData) -> list[SetWindow]:
         elif kind == 1:
             tracker.update(t, float(phase_p[k]))
         else:
-            tracker.add_activations(t, frames[k][1], frames[k][2], frames[k][3])
+            tracker.add_activations(t, frames[k][1], frames[k][2], frames[k][3].tolist())
     tracker.finish()
     windows = []
     for index, record in enumerate(tracker.sets, start=1):
@@ -287,7 +308,7 @@ def _fact_of(loads: list[Load], start_s: float, end_s: float, number: int = 0) -
 
 def _frames_with_phase(
     data: SessionData, phase_t: np.ndarray, phase_p: np.ndarray
-) -> list[tuple[float, float, tuple[str, ...], list[float]]]:
+) -> list[tuple[float, float, tuple[str, ...], np.ndarray]]:
     """The primary method's frames (of every pack it ran with, :func:`_primary_keys`) as (time, phase, groups,
     activations), in time order: their own phase, else the phase stream's newest sample at the frame (NaN before
     it)."""
@@ -298,7 +319,7 @@ def _frames_with_phase(
         own = np.asarray(series.phase, dtype=float)
         at = np.clip(np.searchsorted(phase_t, t, side="right") - 1, 0, phase_t.size - 1)
         phase = np.where(np.isfinite(own), own, np.where(t >= phase_t[0], phase_p[at], np.nan))
-        out += [(float(a), float(b), series.groups, row) for a, b, row in zip(t, phase, series.activations)]
+        out += [(float(a), float(b), series.groups, row) for a, b, row in zip(t, phase, series.array("activations"))]
     return sorted(out, key=lambda frame: frame[0])
 
 
