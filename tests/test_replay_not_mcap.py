@@ -26,3 +26,41 @@ def test_replay_of_a_truncated_mcap_still_replays_its_readable_part(tmp_path, ze
     err = capsys.readouterr().err
     assert code == 0, err
     assert "cut short" in err and "published 0 " not in err
+
+
+def test_keys_nobody_reads_are_named_and_the_paced_clock_does_not_burst_after_the_wait(
+    tmp_path, zenoh_endpoint, capsys
+):
+    """The wait for a reader on each new key used to be ignored: a replay under the wrong --session said
+    "published N messages" and nothing else. Keys with no subscriber after the wait are named in the last line; a key
+    with one is not. At a rate, the wait is not counted as replay time (the next messages went out in a burst)."""
+    import time
+
+    from services.transport import messages, topics
+    from services.transport.zenoh_session import ZenohOptions, open_session
+    from tests.dashboard_helpers import timed_recording
+
+    path = tmp_path / "two_keys.mcap"
+    with timed_recording(path, 1_773_480_600_000_000_000) as recording:
+        for k in range(20):  # 1 s of joints; the load key first appears half-way
+            recording.write(messages.JointAngles(coordinates=["c"], q=[0.1 * k]), 0.05 * k, "joints")
+            if k == 10:
+                recording.write(messages.LoadEvent(barbell_mass_kg=40.0), 0.05 * k, "load")
+    received: list[float] = []
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        subscriber = session.declare_subscriber(
+            topics.joints_key("s"), lambda sample: received.append(time.monotonic())
+        )
+        started = time.monotonic()
+        code = msk(["replay", str(path), "--wait-subscribers", "0.5", "--connect", zenoh_endpoint])
+        took = time.monotonic() - started
+        subscriber.undeclare()
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "published 21 messages" in err
+    assert "no subscriber within 0.5 s on 1 of the keys (msk/s/load)" in err, err
+    assert len(received) == 20
+    # the joints after the load key's 0.5 s wait keep their 50 ms spacing (not sent at once when the wait ends)
+    gaps = [b - a for a, b in zip(received[10:], received[11:])]
+    assert min(gaps) > 0.02, gaps
+    assert took < 1.0 + 0.5 + 0.5 + 5.0, took

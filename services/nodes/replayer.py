@@ -11,6 +11,7 @@ without an msk protobuf type) are left out and counted per key and reason, never
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from collections import Counter
@@ -44,6 +45,7 @@ from services.transport.zenoh_session import (
 #: How long a put may wait for a slow reader before Zenoh lets that reader go (its link closed): longer than a live
 #: node's 5 s, since a replay has no latency to keep. A reader far slower than the replay can still lose its link
 #: (docs/topics.md, "Known limit").
+log = logging.getLogger(__name__)
 REPLAY_BLOCK_CLOSE_S = 60.0
 
 
@@ -57,6 +59,7 @@ class ReplayStats:
     left_out: dict[tuple[str, str], int] = field(default_factory=dict)  # (topic, reason) -> rejected payloads
     refused: dict[str, int] = field(default_factory=dict)  # key -> messages its role may not publish (not sent)
     role: str | None = None  # the role it published as (secured network), which may not publish those
+    unread: list[str] = field(default_factory=list)  # keys with no subscriber after the wait (published anyway)
 
     def count_left_out(self, key: str, fate: str) -> None:
         """One message not published: of another recorded session, on an excluded key, or refused to the role."""
@@ -234,7 +237,12 @@ def main(
                 publisher = declare_data_publisher(session, key, recorded.type_name, delivery=topics.Delivery.LOSSLESS)
                 publishers[key] = publisher
                 if wait_subscribers_s > 0:
-                    wait_for_subscribers(publisher, wait_subscribers_s)
+                    waited_from = time.monotonic()
+                    if not wait_for_subscribers(publisher, wait_subscribers_s):
+                        stats.unread.append(key)
+                        log.info("waited %g s for a subscriber of %s: none; publishing anyway", wait_subscribers_s, key)
+                    if start is not None:  # the paced clock does not count the wait: no burst after it
+                        start = (start[0] + time.monotonic() - waited_from, start[1])
             if rate is not None:
                 if start is None:
                     start = (time.monotonic(), recorded.log_time_ns)
@@ -336,6 +344,13 @@ def run_from_args(args: argparse.Namespace) -> int:
         skipped += (
             f"; refused {sum(stats.refused.values())} on {len(stats.refused)} keys role {stats.role!r} may not "
             "publish (the router would drop them), not sent"
+        )
+    if stats.unread:
+        skipped += (
+            f"; no subscriber within {args.wait_subscribers:g} s on {len(stats.unread)} of the keys ("
+            + ", ".join(stats.unread[:3])
+            + (", ..." if len(stats.unread) > 3 else "")
+            + "): is the reader running, on this --session?"
         )
     print(f"published {stats.published} messages from {args.mcap}{skipped}{note}", file=sys.stderr)
     return 0
