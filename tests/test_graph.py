@@ -74,6 +74,21 @@ def test_wait_for_nodes_names_what_is_missing_when_it_expires(zenoh_endpoint):
         wait_for("the answer", lambda: False, lambda: "41 of 42", timeout_s=0.2)
 
 
+def test_a_thread_node_never_ready_is_named_with_the_whole_wait(zenoh_endpoint):
+    """A thread node (msk live's monitor, the demo's recorder) that never became ready made the graph say "waited 0.1 s
+    for N nodes" after the whole wait: the thread phase broke out and left the observer 0.1 s."""
+    with Graph(SESSION, zenoh_endpoint) as graph:
+        graph.add_thread("present", counting_node, counts={}, label="present", delay_s=0.0)
+        graph.add_thread("stuck", counting_node, counts={}, label="stuck", delay_s=3.0)
+        started = time.monotonic()
+        with pytest.raises(
+            GraphTimeout,
+            match=r"waited 1.5 s for node stuck \(a thread of this process\).*1 of its 2 thread nodes ready",
+        ):
+            graph.wait_ready(1.5)
+        assert 1.4 < time.monotonic() - started < 5
+
+
 def failing_node(options, *, stop_event, ready_event, ready_key):
     raise RuntimeError("device not found")
 

@@ -176,11 +176,17 @@ class Graph:
                 self._raise_failed()
                 self._raise_exited()
                 if time.monotonic() >= started + timeout_s:
-                    break
+                    ready = sum(n.ready.is_set() for n in self._threads)
+                    raise GraphTimeout(
+                        f"waited {timeout_s:g} s for node {thread_node.name} (a thread of this process) of session "
+                        f"{self.session!r} to be ready: not ready; {ready} of its {len(self._threads)} thread nodes "
+                        "ready"
+                    )
             self._raise_failed()
         self._raise_exited()
         with open_session(self.observer_options()) as zsession:
-            left = max(0.1, started + timeout_s - time.monotonic())
+            # at least a second for the tokens' history to arrive, however long the threads took
+            left = max(1.0, started + timeout_s - time.monotonic())
             wait_for_nodes(zsession, self.session, self.nodes, left, give_up=self._exited_before_ready)
         return time.monotonic() - started
 
