@@ -397,3 +397,30 @@ def test_stop_returns_the_frames_already_sent_so_the_client_receives_every_sampl
     assert drained_rows >= 400, f"only {drained_rows} samples read after STOP (0.3 s at 2 kHz = 600 were in flight)"
     assert len(rows) == sim.stats.samples_sent, f"received {len(rows)} of {sim.stats.samples_sent} samples sent"
     assert_bit_exact(rows, source.samples[: len(rows)])
+
+
+@pytest.mark.parametrize("greeting, said", [(b"", "received nothing"), (b"Delsys Trigno", "received 13 bytes without")])
+def test_a_server_without_a_banner_is_named_with_what_it_sent(greeting, said):
+    """A port that accepts but never greets (another service on 50040, a server still starting) said only "no banner";
+    the error now says whether anything came, and what."""
+    import socket
+    import threading
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def accept() -> None:
+        connection, _ = listener.accept()
+        connection.sendall(greeting)
+        held.append(connection)
+
+    threading.Thread(target=accept, daemon=True).start()
+    client = TrignoClient(TrignoConfig(command_port=listener.getsockname()[1], reply_timeout_s=0.5))
+    try:
+        with pytest.raises(ProtocolError, match=f"no banner from the Trigno server within 0.5 s \\({said}"):
+            client.connect()
+    finally:
+        client.close()
+        for connection in held:
+            connection.close()
+        listener.close()

@@ -84,9 +84,25 @@ def test_a_lost_query_is_asked_again_before_the_device_is_given_up(lost, identif
                 assert device.configure(100)["device_id"] == "03700123"
                 assert device.stats.requests_repeated == lost and len(read_for(device, count=10)) >= 10
             else:
-                said = rf"{re.escape(sim.path)}: no reply 0x01 to REQ_DID within 0.3 s \(asked 3 times\)"  # which
+                said = rf"{re.escape(sim.path)}: no reply 0x01 to REQ_DID within 0.3 s \(received 0 bytes\) \(asked 3 times\)"
                 with pytest.raises(ProtocolError, match=said):
                     device.configure(100)
+        finally:
+            device.close()
+
+
+def test_an_unanswered_request_says_what_came_instead():
+    """A device that streams but never answers (its requests lost, a wrong bus id) said only "no reply"; the error
+    now counts what arrived meanwhile, so a measuring device, line noise and silence read differently."""
+    with XsensSimulator(synthetic_imu(seconds=5.0), speed=4.0, wakeup_window_s=0.1) as sim:
+        device = XsensDevice(LosesRequests(SerialTransport(sim.path, baudrate=921600), xbus.Mid.GO_TO_CONFIG, 99))
+        device.reply_timeout_s = 0.3
+        try:
+            read_for(device, count=5)  # measuring with the factory outputs
+            with pytest.raises(
+                ProtocolError, match=r"within 0.3 s \(received \d+ bytes: \d+ Xbus messages \(\d+ MT_DATA2\)"
+            ):
+                device.request(xbus.Mid.GO_TO_CONFIG)
         finally:
             device.close()
 

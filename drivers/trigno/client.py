@@ -498,7 +498,12 @@ class TrignoClient:
                 if line is not None:
                     return line
             if now >= deadline:
-                raise ProtocolError(f"no banner from the Trigno server within {self.config.reply_timeout_s} s")
+                came = link.replies.pending()
+                raise ProtocolError(
+                    f"no banner from the Trigno server within {self.config.reply_timeout_s} s ("
+                    + (f"received {len(came)} bytes without a line end: {came[:40]!r}" if came else "received nothing")
+                    + ")"
+                )
             grace_end = start + self.config.banner_line_grace_s
             self._receive(
                 link,

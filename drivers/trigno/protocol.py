@@ -141,6 +141,10 @@ class ReplyReader:
             raise ProtocolError(f"no reply terminator in {size} bytes from the Trigno command port")
         return replies
 
+    def pending(self) -> bytes:
+        """What is buffered and not yet a reply (for errors: what came instead)."""
+        return bytes(self._buffer)
+
     def take_line(self) -> str | None:
         """The first complete CRLF- (or LF-) terminated line still buffered, for a banner that lacks the blank
         line; None when there is none."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 from drivers.xsens import frames, xbus
@@ -146,8 +147,12 @@ class XsensDevice:
         self.send(mid, data)
         deadline = time.monotonic() + (self.reply_timeout_s if timeout is None else timeout)
         name = _mid_name(mid)
+        parsed = self.parser.stats
+        before = (parsed.bytes_in, parsed.bytes_skipped, parsed.errors)
+        other: Counter[str] = Counter()  # the messages that came instead of the reply
         while time.monotonic() < deadline:
             messages = self._read_messages()
+            other.update(_mid_name(m.mid) for m in messages if m.mid != expected)
             for index, message in enumerate(messages):
                 if message.mid == expected:
                     # frames after the reply (data right after GoToMeasurementAck) belong to read()
@@ -164,8 +169,16 @@ class XsensDevice:
                     self.send(xbus.Mid.WAKE_UP_ACK)
                 elif message.mid == xbus.Mid.MT_DATA2:
                     self._queue.append(message)
+        got = parsed.bytes_in - before[0]
+        arrived = f"received {got} bytes" + (
+            f": {sum(other.values())} Xbus messages ({', '.join(f'{n} {m}' for m, n in other.most_common())}), "
+            f"{parsed.bytes_skipped - before[1]} bytes not Xbus, {parsed.errors - before[2]} bad frames"
+            if got
+            else ""
+        )
         raise ProtocolError(
-            f"{self.transport.name}: no reply 0x{expected:02X} to {name} within {timeout or self.reply_timeout_s} s"
+            f"{self.transport.name}: no reply 0x{expected:02X} to {name} within {timeout or self.reply_timeout_s} s "
+            f"({arrived})"
         )
 
     # ------------------------------------------------------------------------------------------ control
