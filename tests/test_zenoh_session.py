@@ -56,3 +56,16 @@ def test_bad_configuration_is_reported_precisely(tmp_path):
     with pytest.raises(messages.MessageDecodeError, match="unknown message type"):
         with open_session(ZenohOptions(listen=("tcp/127.0.0.1:0",))) as session:
             declare_data_publisher(session, "msk/x/y", "msk.Nope")
+
+
+def test_a_recovery_nobody_answers_says_so(zenoh_endpoint):
+    """A recorder's recovery query that no cache answered (its publisher gone, or not yet known to a restarted
+    router) was reported as publications "no longer in their publisher's cache"; it now comes back as an error
+    naming the publisher and the wait."""
+    from services.transport.zenoh_session import fetch_missed
+
+    with open_session(ZenohOptions(listen=(zenoh_endpoint,))) as session:
+        started = time.monotonic()
+        samples, errors = fetch_missed(session, "msk/s/emg/trigno", ("0123abcd", 7), 3, 9, timeout_s=0.6)
+    assert samples == [] and errors == ["no answer from publisher 0123abcd/7's cache of msk/s/emg/trigno within 0.6 s"]
+    assert time.monotonic() - started < 3

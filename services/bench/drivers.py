@@ -18,6 +18,7 @@ from pathlib import Path
 from services.bench import BenchResult
 
 NAME = "drivers"
+REPLY_TIMEOUT_S = 5.0  # the bare client: longest wait for a reply of the simulator
 DESCRIPTION = "Trigno client CPU (16 ch x 2000 Hz, target < 5 % of a core); Xbus parse+decode (target >= 50,000 msg/s)"
 
 SHARED = Path(os.environ.get("MSK_SHARED_DIR", Path(__file__).resolve().parents[2].parent / "shared"))
@@ -81,19 +82,31 @@ def _bare_run(ports: dict):
     from drivers.trigno import protocol as tp
 
     def run(deadline: float) -> int:
-        command = socket.create_connection(("127.0.0.1", ports["command"]))
-        data = socket.create_connection(("127.0.0.1", ports["emg"]))
+        command = socket.create_connection(("127.0.0.1", ports["command"]), timeout=REPLY_TIMEOUT_S)
+        data = socket.create_connection(("127.0.0.1", ports["emg"]), timeout=REPLY_TIMEOUT_S)
         reader = tp.ReplyReader()
         replies: list[str] = []
 
+        def reply(awaited: str) -> None:
+            """One more reply, within REPLY_TIMEOUT_S a read (socket timeout), else an error naming what came."""
+            while not replies:
+                try:
+                    chunk = command.recv(4096)
+                except TimeoutError:
+                    raise RuntimeError(
+                        f"bench: no {awaited} from the Trigno simulator within {REPLY_TIMEOUT_S:g} s "
+                        f"(buffered: {reader.pending()!r})"
+                    ) from None
+                if not chunk:
+                    raise RuntimeError(f"bench: the Trigno simulator closed its command port before the {awaited}")
+                replies.extend(reader.feed(chunk))
+
         def ask(text: str) -> None:
             command.sendall(tp.encode_command(text))
-            while len(replies) < 1:
-                replies.extend(reader.feed(command.recv(4096)))
+            reply(f"reply to {text}")
             replies.pop(0)
 
-        while not replies:  # the banner
-            replies.extend(reader.feed(command.recv(4096)))
+        reply("banner")
         replies.clear()
         ask("START")
         total = 0

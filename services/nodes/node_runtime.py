@@ -460,8 +460,8 @@ class NodeInputs:
                 wait_for_nodes(self._zsession, session, (NODES["monitor"].name,), timeout_s, give_up=closed)
                 if not self._closed:
                     self.fetch_history(topics.load_key(session))
-            except GraphTimeout:
-                pass
+            except GraphTimeout as error:  # a replay has no msk live: not a fault, but said
+                log.info("%s: no opening session facts fetched (%s)", self.node, error)
             except Exception as error:  # a session closed meanwhile: the facts come with the next change
                 log.info("%s: session facts not fetched: %s", self.node, error)
                 return

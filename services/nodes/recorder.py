@@ -555,13 +555,15 @@ class HistoryMerge:
             if lost:
                 self._stats.unrecovered[done.scope] += lost
                 log.warning(
-                    "%s: %d of the %d publications missed (numbers %d..%d) are no longer in their publisher's cache: "
-                    "lost",
+                    "%s: %d of the %d publications missed (numbers %d..%d) %s: lost",
                     done.scope,
                     lost,
                     gap.last - gap.first + 1,
                     gap.first,
                     gap.last,
+                    f"were not recovered ({'; '.join(done.errors[:2])})"
+                    if done.errors
+                    else "are no longer in their publisher's cache",
                 )
         self._stats.recovered += len(kept)
         for source in kept:

@@ -342,7 +342,7 @@ def fetch_missed(
     still holds them, and the error replies. Its cache answers the ``_sn`` range itself (zenoh-ext's AdvancedCache).
     The publication after ``last`` (the one that showed the gap) is asked too, so that a running cache always answers
     (with that one at least, left out here); until it answers (a publisher whose declarations have not reached the
-    router again yet) it is asked again, up to ``timeout_s``."""
+    router again yet) it is asked again, up to ``timeout_s``; then an error says nobody answered."""
     zid, eid = publisher
     selector = zenoh.Selector(f"{key}/@adv/pub/{zid}/{eid}/**", {"_sn": f"{first}..{last + 1}"})
     deadline = time.monotonic() + float(timeout_s)
@@ -364,8 +364,10 @@ def fetch_missed(
                     samples.append(reply.ok)
             elif reply.err is not None:
                 errors.append(reply.err.payload.to_string())
-        if answered or time.monotonic() > deadline - 0.3:
+        if answered:
             return samples, errors
+        if time.monotonic() > deadline - 0.3:  # said as an error reply: not "no longer in the cache"
+            return samples, [*errors, f"no answer from publisher {zid}/{eid}'s cache of {key} within {timeout_s:g} s"]
         time.sleep(0.3)
 
 
