@@ -243,6 +243,25 @@ def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_pat
     assert documented == keys
 
 
+def test_an_athlete_not_calibrated_yet_runs_static_optimisation_alone(tmp_path):
+    """A session file without a subject profile was refused ("missing: the subject profile"), so a lab could not even
+    see its devices in msk live before calibrating. It now runs `so` (the estimates need no EMG; the EMG is
+    recorded, not used: there is no MVC), says so, and refuses the methods that need a profile, naming them."""
+    from services.sessions import live
+
+    said: list[str] = []
+    doc = _doc(session__subject=None, session__methods=None, electrodes={"sensor01.EMG": "PMCla"}, session__out="rec")
+    path = tmp_path / "session.toml"
+    path.write_text(_toml(doc))
+    plan, _ = live.plan_for(load_session_file(path), sim=False, log=said.append)
+    assert plan.subject is None and plan.methods == ("so",)
+    assert live.estimator_settings(plan).subject_path is None
+    assert any("no subject profile" in line and "estimating with so only" in line for line in said), said
+    path.write_text(_toml(_doc(session__subject=None, session__methods=["proposed", "so"])))
+    with pytest.raises(ConfigError, match=r"field 'session.methods'.*proposed need session.subject"):
+        live.plan_for(load_session_file(path), sim=False, log=said.append)
+
+
 def test_a_device_session_file_becomes_driver_commands_and_a_session_profile(tmp_path):
     from services.sessions import live
 

@@ -85,6 +85,7 @@ log = logging.getLogger(__name__)
 NODE_NAME = ESTIMATOR_NODE
 ALIGN_ACCELERATION = "acceleration"  # measure each EMG clock against the trackers' (msk_core.estimate.clock_alignment)
 ALIGN_ARRIVAL = "arrival"  # the arrival mapping alone
+METHODS_NEEDING_PROFILE = ("proposed", "assisted")  # their prior and strengths are the subject profile's
 
 
 #: A channel the electrode map names is said missing once EMG has streamed this long without it: a second EMG
@@ -172,7 +173,7 @@ class EstimatorSettings:
         object.__setattr__(self, "methods", methods)
         if self.solver not in SOLVERS:
             raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=self.solver)
-        for needs_prior in ("proposed", "assisted"):
+        for needs_prior in METHODS_NEEDING_PROFILE:
             if needs_prior in methods and self.subject_path is None:
                 raise ConfigError(
                     f"method {needs_prior!r} needs --subject (a calibrated profile with its prior)",

@@ -745,7 +745,7 @@ class LivePlan:
 
     session: LiveSession
     methods: tuple[str, ...]
-    subject: Path
+    subject: Path | None  # the session's copy of the profile; None: not calibrated yet, 'so' alone
     trigno: tuple[str, int] | None = None  # (HOST[:PORT], EMG port)
     trigno_aux_port: int | None = None  # the sensors' accelerometers (AUX port), for the EMG clock's alignment
     trigno_aux_layout: AuxLayout | None = None  # what that port carries (the session file's; None: from its number)
@@ -1046,8 +1046,11 @@ def run_graph(
     summary["joint_frames_paused"] = counts.paused_joints  # while load events declared another exercise
     summary["sets"] = counts.sets  # as msk live counted them (the view's and the report's rule)
     # electrodes of the map the estimator never judged: no source streamed their channel (a sensor not paired, a typo)
+    # (without a subject profile the estimator reads no EMG and judges none: nothing to say about them)
     judged = {name.split("/", 1)[-1] for name in summary.get("electrodes", {})}
-    summary["electrodes_never_streamed"] = {ch: e for ch, e in plan.electrodes.items() if ch not in judged}
+    summary["electrodes_never_streamed"] = (
+        {ch: e for ch, e in plan.electrodes.items() if ch not in judged} if plan.subject is not None else {}
+    )
     if simulators is not None:
         summary["simulators_sent"] = simulators.sent()
         summary["trial_clock"] = simulators.world()
@@ -1483,8 +1486,15 @@ def plan_for(
         LiveSession(session.path, trackers=trackers, electrodes=electrodes),
         list(model.groups),
         segments,
-        checked_subject(Path(subject), model, session.path).emg_normalisation,
+        {} if subject is None else checked_subject(Path(subject), model, session.path).emg_normalisation,
     )
+    if subject is None:
+        log(
+            "no subject profile (session.subject): estimating with "
+            + ", ".join(methods)
+            + " only; the EMG is recorded, not used (no MVC to normalise it by). Calibrate one with `msk calibrate` "
+            "for proposed and assisted (docs/estimation.md)"
+        )
     if "assisted" in methods and not electrodes:
         raise session_error(
             session.path,
@@ -1492,7 +1502,9 @@ def plan_for(
             "method 'assisted' needs EMG: a [trigno] device and an [electrodes] map",
             "assisted",
         )
-    profile_path = session_profile(Path(subject), electrodes, list(model.groups), session.out)
+    profile_path = (
+        None if subject is None else session_profile(Path(subject), electrodes, list(model.groups), session.out)
+    )
     trigno_latency_ms, tracker_latency_ms = stated_latencies(session, trackers, simulated=sim)
     names = session_names(session, model.display_names)
     simulators = None
@@ -1521,8 +1533,8 @@ def plan_for(
     return plan, simulators
 
 
-# (subject profile, electrode map, tracker -> segment map, methods) of a session
-_SessionInputs = tuple[Path, dict[str, str], dict[str, str], tuple[str, ...]]
+# (subject profile or None, electrode map, tracker -> segment map, methods) of a session
+_SessionInputs = tuple[Path | None, dict[str, str], dict[str, str], tuple[str, ...]]
 
 
 def _sim_inputs(
@@ -1580,10 +1592,22 @@ def _sim_trackers(session: LiveSession, sources: SimSources, segments: list[str]
 
 
 def _device_inputs(session: LiveSession) -> _SessionInputs:
-    """With devices: the session file's subject (required) and maps; methods by default proposed (+ assisted with
-    a Trigno)."""
+    """With devices: the session file's subject and maps; methods by default proposed (+ assisted with a Trigno).
+    Without a subject profile (an athlete not calibrated yet) the session runs static optimisation alone: the
+    estimates need no EMG, the EMG is recorded but not used (no MVC to normalise it by)."""
+    from services.nodes.estimator import METHODS_NEEDING_PROFILE  # noqa: PLC0415
+
     if session.subject is None:
-        raise session_error(session.path, "session.subject", "missing: the subject profile (`msk calibrate`)")
+        needing = [m for m in session.methods if m in METHODS_NEEDING_PROFILE]
+        if needing:
+            raise session_error(
+                session.path,
+                "session.methods",
+                f"{', '.join(needing)} need session.subject, a subject profile (`msk calibrate`); without one the "
+                "session runs 'so' (static optimisation)",
+                needing,
+            )
+        return None, session.electrodes, session.trackers, tuple(session.methods or ("so",))
     methods = session.methods or (("proposed", "assisted") if session.trigno_host else ("proposed",))
     return session.subject, session.electrodes, session.trackers, tuple(methods)
 
