@@ -282,6 +282,31 @@ def test_unsolicited_stopped_ends_acquisition_without_reconnecting():
     assert len(emg_rows(events)) == math.ceil(0.3 / tp.FRAME_INTERVAL_S) * 27
 
 
+def test_a_stop_trigger_is_named_by_msk_capture_and_msk_drivers_exits_2(tmp_path, zenoh_endpoint, capsys):
+    """Found by an independent base imitation: the base's STOPPED ended a capture early with a guess ("another client's
+    STOP") and msk drivers with exit code 0, so msk live said "exited with code 0" and nothing in the status named
+    it. Both now say the base stopped acquiring and why it may have; the driver exits 2."""
+    from services.cli import main as msk
+
+    quirks = TrignoQuirks(stop_trigger_after_s=0.5)
+    for command in ("capture", "drivers"):
+        with TrignoSimulator(synthetic_source(seconds=10.0), SimulatorConfig(**EPHEMERAL, quirks=quirks)) as sim:
+            where = ["--trigno", f"127.0.0.1:{sim.ports['command']}", "--trigno-emg-port", str(sim.ports["emg"])]
+            if command == "capture":
+                argv = ["capture", *where, "--duration", "5", "--out", str(tmp_path / "c.mcap")]
+            else:
+                argv = ["drivers", *where, "--duration", "5", "--listen", zenoh_endpoint, "--session", "trig"]
+            started = time.monotonic()
+            code = msk(argv)
+        said = capsys.readouterr()
+        assert time.monotonic() - started < 4, said  # ended at the trigger, not at --duration
+        assert "ended early: the base stopped acquiring: it sent STOPPED (its stop trigger fired" in said.out, said
+        if command == "capture":
+            assert code == 0 and "trigno: the base stopped acquiring" in said.out and "started late" not in said.out
+        else:
+            assert code == 2 and "msk drivers: error: trigno: the base stopped acquiring" in said.err, said
+
+
 def test_master_rule():
     source = synthetic_source(seconds=1.0)
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=4.0)) as sim:

@@ -198,6 +198,46 @@ def test_tracker_set_keys_devices_by_id_and_survives_an_unplug():
     assert "00B41001" in trackers.disconnected and {r.tracker_id for r in later} == {"00B41002"}
 
 
+class FallsSilent:
+    """A serial line on which the device stops streaming while its port stays open (found by an independent
+    imitation: the status said connected, 0 errors, through 7 s of silence)."""
+
+    def __init__(self, transport: SerialTransport) -> None:
+        self.transport, self.silent = transport, False
+
+    def read(self, size: int) -> bytes:
+        data = self.transport.read(size)
+        return b"" if self.silent else data
+
+    def __getattr__(self, name: str):
+        return getattr(self.transport, name)
+
+
+def test_a_tracker_that_stops_streaming_is_lost_with_the_reason_and_the_others_read_on():
+    source = synthetic_imu(seconds=10.0)
+    with (
+        XsensSimulator(source, speed=1.0, device_id=0x00B41001) as sim_a,
+        XsensSimulator(source, speed=1.0, device_id=0x00B41002) as sim_b,
+    ):
+        trackers = TrackerSet(reconnect=False, stall_s=0.5)
+        line = FallsSilent(SerialTransport(sim_a.path, baudrate=921600))
+        for device in (XsensDevice(line), open_device(sim_b)):
+            device.configure(100)
+            trackers.add(device)
+        assert len(read_for(trackers, count=20)) >= 20
+        line.silent = True
+        started, later = time.monotonic(), []
+        while "00B41001" not in trackers.disconnected and time.monotonic() - started < 5:
+            later += trackers.read()
+        noticed_s = time.monotonic() - started
+        later += read_for(trackers, count=20)
+        trackers.close()
+    assert 0.5 <= noticed_s < 1.5, noticed_s
+    assert "no reading from tracker 00B41001 for" in trackers.disconnected["00B41001"]
+    assert "it stopped streaming" in trackers.disconnected["00B41001"]
+    assert "00B41002" in {r.tracker_id for r in later[-20:]}
+
+
 def test_imu_npz_source_and_errors(tmp_path):
     path = tmp_path / "imu.npz"
     q = np.tile([1.0, 0.0, 0.0, 0.0], (50, 1))

@@ -133,6 +133,12 @@ class GapEvent:
     reason: str
 
 
+#: why the data ended when the base sends an unsolicited STOPPED
+STOPPED_BY_SERVER = (
+    "the base stopped acquiring: it sent STOPPED (its stop trigger fired, or another client on it sent STOP)"
+)
+
+
 @dataclass(frozen=True)
 class StatusEvent:
     state: ClientState
@@ -757,7 +763,9 @@ class TrignoClient:
             self._drain(self._link)  # frames sent before STOPPED are already here: deliver them first
         self._want_streaming = False
         self.state = ClientState.STOPPED
-        self._emit_status(ClientState.STOPPED, "STOPPED received from the server (stop trigger)")
+        said = STOPPED_BY_SERVER
+        self.stats.last_error = said  # the status carries it: not an error of the link, but why the data ended
+        self._emit_status(ClientState.STOPPED, said)
 
     def _report_gap(self, now: float, n_rows: int) -> None:
         # The first rows after the reconnection were sampled n_rows/rate before they arrived.

@@ -513,6 +513,8 @@ class TrackerSet:
     reconnect: bool = True
     retry_interval_s: float = 0.5
     retry_max_s: float = 5.0
+    stall_s: float = 3.0  # a connected tracker that gives no reading for this long has stopped streaming: lost
+    _last_data: dict[str, float] = field(default_factory=dict)  # monotonic time of each tracker's newest reading
     _lost: dict[str, XsensDevice] = field(default_factory=dict)
     _next_attempt: dict[str, float] = field(default_factory=dict)
     _delay: dict[str, float] = field(default_factory=dict)
@@ -532,25 +534,44 @@ class TrackerSet:
         if key in self.devices:
             raise ProtocolError(f"two devices report the same id {key}")
         self.devices[key] = device
+        self._last_data[key] = time.monotonic()
         return key
 
     def read(self) -> list[ImuReading]:
-        """Readings of every connected tracker; an unplugged one moves to ``disconnected`` (reason kept)."""
+        """Readings of every connected tracker; an unplugged one, or one silent for ``stall_s`` (a tracker that
+        stopped streaming while its port stays open: nothing else would notice), moves to ``disconnected`` with the
+        reason, and is reconnected (reconfigured) like an unplugged one."""
         out = []
         for key, device in list(self.devices.items()):
+            now = time.monotonic()
             try:
-                out += device.read()
+                readings = device.read()
             except DeviceDisconnected as error:
-                self.disconnected[key] = str(error)
-                del self.devices[key]
-                device.close()
-                if self.reconnect and device.can_reconnect:
-                    self._lost[key] = device
-                    self._delay[key] = self.retry_interval_s
-                    self._next_attempt[key] = time.monotonic() + self.retry_interval_s
+                self._lose(key, device, str(error))
+                continue
+            out += readings
+            if readings:
+                self._last_data[key] = now
+            elif now - self._last_data.get(key, now) > self.stall_s:
+                self._lose(
+                    key,
+                    device,
+                    f"{device.transport.name}: no reading from tracker {key} for {now - self._last_data[key]:.1f} s "
+                    f"(its port open, {device.parser.stats.bytes_in} bytes received in all): it stopped streaming",
+                )
         if self._lost:
             self._try_reconnect()
         return out
+
+    def _lose(self, key: str, device: XsensDevice, reason: str) -> None:
+        log.warning("tracker %s lost: %s", key, reason)
+        self.disconnected[key] = reason
+        del self.devices[key]
+        device.close()
+        if self.reconnect and device.can_reconnect:
+            self._lost[key] = device
+            self._delay[key] = self.retry_interval_s
+            self._next_attempt[key] = time.monotonic() + self.retry_interval_s
 
     def _try_reconnect(self) -> None:
         """Take the finished attempts (a device back, or the next attempt's delay doubled) and start those due."""
@@ -565,6 +586,7 @@ class TrackerSet:
                 if error is None:
                     del self._lost[key], self._next_attempt[key], self._delay[key], self.disconnected[key]
                     self.devices[key] = device
+                    self._last_data[key] = time.monotonic()
                     if device.stats.last_error.startswith(RECONNECT_FAILED):  # that is over now
                         device.stats.last_error = ""
                     continue

@@ -55,7 +55,9 @@ def run(args: argparse.Namespace) -> int:
         raise
     for report in reports:
         print(report.summary_line())
-        if report.seconds_of_data is not None and report.seconds_of_data < 0.8 * args.duration:
+        if report.ended:
+            print(f"{report.device}: {report.ended}; the capture of it ended there")
+        elif report.seconds_of_data is not None and report.seconds_of_data < 0.8 * args.duration:
             print(
                 f"{report.device}: its data cover {report.seconds_of_data:.1f} s of the {args.duration:g} s asked: the "
                 "stream stopped or started late (another client's STOP stops a Trigno base for every client; see its "

@@ -6,6 +6,7 @@ Ctrl-C or SIGTERM ends acquisition cleanly (STOP/QUIT, final status) and prints 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from services.nodes import driver_nodes
 from services.nodes.node_runtime import NodeProcess, add_process_arguments
@@ -39,4 +40,8 @@ def run(args: argparse.Namespace) -> int:
             sink.close()
     for report in reports:
         print(report.summary_line("published"), flush=True)
+    ended = [f"{r.device}: {r.ended}" for r in reports if r.ended]
+    if ended:  # not asked to stop: the session has lost this device's data (msk live names this node and why)
+        print("msk drivers: error: " + "; ".join(ended), file=sys.stderr, flush=True)
+        return 2
     return 0

@@ -151,6 +151,7 @@ class LoopReport:
     lost: int = 0  # samples known lost: the Trigno's index gaps, the trackers' packet-counter jumps
     errors: int = 0  # messages that could not be used (the trackers' decode, device and framing errors)
     seconds_of_data: float | None = None  # the Trigno: the time its samples cover (a stream stopped early shows)
+    ended: str = ""  # why the device ended the stream before it was asked to (e.g. the Trigno's STOPPED)
 
     def summary_line(self, verb: str = "") -> str:
         """e.g. ``xsens: 545 samples in 552 messages, 56 lost, 163 errors, disconnected 1x`` (``verb`` before the
@@ -170,7 +171,7 @@ class LoopReport:
                 back += 1
         if away:
             said.append(f"disconnected {away}x, reconnected {back}x")
-        return ", ".join(said)
+        return ", ".join(said) + (f"; ended early: {self.ended}" if self.ended else "")
 
 
 class _TrignoChannels:
@@ -257,6 +258,7 @@ def trigno_loop(
                         channels.refresh()
                     publish_status()
                     if event.state is ClientState.STOPPED:
+                        report.ended = event.detail
                         return report
                 else:
                     publish_data(event)
