@@ -107,6 +107,51 @@ def test_an_unanswered_request_says_what_came_instead():
             device.close()
 
 
+class LosesAcks:
+    """A serial line that loses the device's GoToMeasurementAck (FA FF 11 00 F0) on its way to us."""
+
+    ACK = bytes([0xFA, 0xFF, 0x11, 0x00, 0xF0])
+
+    def __init__(self, transport: SerialTransport) -> None:
+        self.transport = transport
+
+    def read(self, size: int) -> bytes:
+        return self.transport.read(size).replace(self.ACK, b"")
+
+    def __getattr__(self, name: str):
+        return getattr(self.transport, name)
+
+
+def test_a_lost_measurement_ack_with_data_flowing_is_measuring():
+    """An independent imitation whose GoToMeasurement ack came late was given up (exit 2) while it streamed."""
+    with XsensSimulator(synthetic_imu(seconds=5.0), speed=4.0, device_id=0x03700123) as sim:
+        device = XsensDevice(LosesAcks(SerialTransport(sim.path, baudrate=921600)), reply_timeout_s=0.3)
+        try:
+            assert device.configure(100)["device_id"] == "03700123"
+            assert len(read_for(device, count=10)) >= 10
+        finally:
+            device.close()
+
+
+class WrongBaud:
+    """What a port opened at another baud rate than the device's reads: bytes, never an Xbus frame."""
+
+    name, baudrate = "/dev/ttyUSB9", 921600
+
+    def write(self, data: bytes) -> None:
+        pass
+
+    def read(self, size: int) -> bytes:
+        time.sleep(0.01)
+        return bytes([0x80, 0x00, 0xF8, 0x78, 0x80, 0x00])
+
+
+def test_a_port_at_another_baud_rate_than_the_device_is_named_as_such():
+    device = XsensDevice(WrongBaud(), reply_timeout_s=0.2)
+    with pytest.raises(ProtocolError, match=r"bytes but no Xbus frame: is the device's baud rate 921600\?"):
+        device.go_to_config()
+
+
 def test_without_wakeup_ack_the_device_measures_with_factory_outputs():
     with XsensSimulator(synthetic_imu(seconds=5.0), speed=4.0, wakeup_window_s=0.1) as sim:
         device = open_device(sim)
@@ -169,6 +214,8 @@ def test_injected_faults_every_intact_message_recovered_and_corrupted_counted():
     trailing = sum(1 for k in range(599, -1, -1) if k in corrupted and all(j in corrupted for j in range(k, 600)))
     assert device.stats.packets_lost == len(corrupted) - trailing
     assert device.parser.stats.errors >= len(corrupted) - trailing
+    # the errors are described for the status, not only counted (they were: last_error stayed empty)
+    assert re.search(r"^\d+ bad Xbus frames so far \(checksum \d+.*\); \d+ bytes skipped", device.stats.last_error)
 
 
 def test_tracker_set_keys_devices_by_id_and_survives_an_unplug():

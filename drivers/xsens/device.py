@@ -170,11 +170,21 @@ class XsensDevice:
                 elif message.mid == xbus.Mid.MT_DATA2:
                     self._queue.append(message)
         got = parsed.bytes_in - before[0]
-        arrived = f"received {got} bytes" + (
-            f": {sum(other.values())} Xbus messages ({', '.join(f'{n} {m}' for m, n in other.most_common())}), "
-            f"{parsed.bytes_skipped - before[1]} bytes not Xbus, {parsed.errors - before[2]} bad frames"
-            if got
-            else ""
+        garbled = got and not other and parsed.bytes_skipped > before[1]
+        arrived = (
+            f"received {got} bytes"
+            + (
+                f": {sum(other.values())} Xbus messages ({', '.join(f'{n} {m}' for m, n in other.most_common())}), "
+                f"{parsed.bytes_skipped - before[1]} bytes not Xbus, {parsed.errors - before[2]} bad frames"
+                if got
+                else ""
+            )
+            + (
+                f"; bytes but no Xbus frame: is the device's baud rate {getattr(self.transport, 'baudrate', '?')}? "
+                "(--xsens-baud sets the host side only; the device keeps the rate set in MT Manager, factory 115200)"
+                if garbled
+                else ""
+            )
         )
         raise ProtocolError(
             f"{self.transport.name}: no reply 0x{expected:02X} to {name} within {timeout or self.reply_timeout_s} s "
@@ -222,14 +232,14 @@ class XsensDevice:
                     return
         raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
 
-    def ask(self, mid: int, *, attempts: int = REQUEST_ATTEMPTS) -> xbus.XbusMessage:
-        """:meth:`request` for a request that changes nothing when repeated and whose reply no other request shares
-        (GoToConfig, ReqDID, the product code and firmware queries): asked again
-        when no reply comes in time, as a request lost on the line or a device busy streaming (or starting, on a
-        loaded host) would need; a late reply to an earlier ask answers the next one alike."""
+    def ask(self, mid: int, data: bytes = b"", *, attempts: int = REQUEST_ATTEMPTS) -> xbus.XbusMessage:
+        """:meth:`request` for a request that changes nothing when repeated and whose late reply says what the next
+        one's would (GoToConfig, ReqDID, the product code and firmware queries, one output configuration set
+        again, GoToMeasurement): asked again when no reply comes in time, as a request lost on the line or a device
+        busy streaming (or starting, on a loaded host) would need."""
         for attempt in range(1, attempts + 1):
             try:
-                return self.request(mid)
+                return self.request(mid, data)
             except XbusDeviceError:
                 raise
             except ProtocolError as error:
@@ -265,7 +275,7 @@ class XsensDevice:
         """Apply an output configuration; returns what the device says it applied (its ack echoes the applied
         configuration, which may differ from the request: rates rounded to what the device can do, 0 for 0xFFFF).
         Differences are logged and counted in ``stats.last_error``; an echo without payload means "as requested"."""
-        reply = self.request(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
+        reply = self.ask(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
         applied = xbus.decode_output_configuration(reply.data) if reply.data else list(settings)
         differences = configuration_differences(settings, applied)
         if differences:
@@ -286,7 +296,16 @@ class XsensDevice:
         return xbus.decode_output_configuration(self.request(xbus.Mid.SET_OUTPUT_CONFIGURATION).data)
 
     def go_to_measurement(self) -> None:
-        self.request(xbus.Mid.GO_TO_MEASUREMENT)
+        """Enter Measurement. A device whose acknowledgement is late or lost but whose data already flow is
+        measuring: taken as done (a slow tracker was given up while it streamed)."""
+        try:
+            self.ask(xbus.Mid.GO_TO_MEASUREMENT)
+        except XbusDeviceError:
+            raise
+        except ProtocolError as error:
+            if not any(m.mid == xbus.Mid.MT_DATA2 for m in self._queue):
+                raise
+            log.warning("%s; its data flow: measuring", error)
         self._last_counter.clear()
 
     def configure(
@@ -319,7 +338,10 @@ class XsensDevice:
     def read(self) -> list[ImuReading]:
         """Readings available now (waits at most the transport timeout). Raises DeviceDisconnected when unplugged."""
         messages, self._queue = self._queue, []
+        errors_before = self.parser.stats.errors
         messages += self._read_messages()
+        if self.parser.stats.errors != errors_before:  # counted by the parser: said here, for the status
+            self.stats.last_error = line_errors_text(self.parser.stats)
         readings: list[ImuReading] = []
         now = time.time_ns()
         for message in messages:
@@ -490,6 +512,21 @@ def configuration_differences(requested: list[xbus.OutputSetting], applied: list
     out += [f"0x{i:04X} at {got[i]} Hz instead of {f}" for i, f in wanted.items() if i in got and got[i] != f]
     out += [f"0x{i:04X} added" for i in got if i not in wanted]
     return out
+
+
+def line_errors_text(parsed: xbus.ParserStats) -> str:
+    """What the serial line delivered that was not a frame, so far: e.g. "14 bad Xbus frames so far (checksum 12,
+    length 2); 310 bytes skipped" (a noisy cable, a wrong baud rate or another device's protocol)."""
+    kinds = [
+        f"{name} {n}"
+        for name, n in (
+            ("checksum", parsed.checksum_errors),
+            ("length", parsed.length_errors),
+            ("structure", parsed.structure_errors),
+        )
+        if n
+    ]
+    return f"{parsed.errors} bad Xbus frames so far ({', '.join(kinds)}); {parsed.bytes_skipped} bytes skipped"
 
 
 def _mid_name(mid: int) -> str:
