@@ -150,3 +150,32 @@ def test_msk_view_shows_each_nodes_outages():
         console.print(table)
     text = console.export_text()
     assert "outages" in text and "2 (7.5 s), silent 1.5 s" in text, text
+
+
+def test_msk_live_summary_says_a_tracker_lost_during_the_session(tmp_path):
+    """Found by an independent tracker imitation unplugged mid-session: the printed summary said "799 samples, 0 lost"
+    and nothing else. Its losses and why are now on its line; a tracker connected until the stop is not a loss."""
+    from services.sessions.live import summarise, summary_text
+    from services.transport.mcap_io import McapRecorderWriter
+
+    def status(device: str, connected: bool, error: str = "") -> bytes:
+        return messages.encode(
+            messages.DeviceStatus(device_id=device, kind="xsens", connected=connected, last_error=error)
+        )
+
+    gone = "/dev/pts/4: device unplugged (read failed: [Errno 5] Input/output error)"
+    timeline = {"A": [True, True, True, False], "B": [True, False, False, False]}  # the last: the stop's status
+    with McapRecorderWriter(tmp_path / "s.mcap") as writer:
+        for k in range(4):
+            for device, states in timeline.items():
+                error = gone if device == "B" and not states[k] else ""
+                writer.write(
+                    topics.status_key("o", device), "msk.DeviceStatus", status(device, states[k], error), k * S, k * S
+                )
+                sample = messages.ImuSample(tracker_id=device, orientation=messages.Quaternion(w=1.0))
+                writer.write(topics.imu_key("o", device), "msk.ImuSample", messages.encode(sample), k * S, k * S)
+    summary = summarise(tmp_path / "s.mcap", 4.0)
+    assert summary["devices"]["A"]["disconnections"] == 0 and summary["devices"]["B"]["disconnections"] == 1
+    text = summary_text(summary)
+    assert "imu/A: 4 samples, 0 lost\n" in text + "\n", text
+    assert f"imu/B: 4 samples, 0 lost; connection lost 1x; last said: {gone}" in text, text

@@ -496,6 +496,11 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     imu: Counter[str] = Counter()  # samples per tracker
     lost: dict[str, int] = {}
     status_seen: dict[str, dict[str, object]] = {}
+    # per device: connection losses while the session ran, and the newest problem it reported
+    drops: Counter[str] = Counter()
+    connected: dict[str, bool] = {}
+    was_connected: dict[str, bool] = {}  # before its newest status
+    problem: dict[str, str] = {}
     frames: Counter[str] = Counter()  # per method
     flags: dict[str, Counter[str]] = {}  # per method, per flag
     envelopes = joints = chunks = 0
@@ -518,6 +523,10 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                         keep_fatigue(fatigue.setdefault(f"{e.source}/{e.channel}", []), e)
                     continue
                 lost[s.device_id] = int(s.samples_lost)
+                drops[s.device_id] += int(connected.get(s.device_id, False) and not s.connected)
+                was_connected[s.device_id] = connected.get(s.device_id, False)
+                connected[s.device_id] = s.connected
+                problem[s.device_id] = s.last_error or problem.get(s.device_id, "")
                 status_seen[s.device_id] = {
                     "kind": s.kind,
                     "connected": s.connected,
@@ -533,6 +542,10 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                 envelopes += 1
             elif t == "msk.JointAngles":
                 joints += 1
+    for device, seen in status_seen.items():  # its last status says disconnected at the end: not a loss
+        ended = was_connected.get(device, False) and not connected[device]
+        seen["disconnections"] = drops[device] - int(ended)
+        seen["problem"] = problem.get(device, "")
     dropped: dict[str, dict[str, dict[str, int]]] = {}
     for name, status in nodes.items():
         per_key = dropped.setdefault(name, {})
@@ -670,7 +683,13 @@ def summary_text(summary: dict) -> str:
     ]
     for device, n in summary["samples"].items():
         name = device.split("/", 1)[1]
-        lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost")
+        status = summary.get("devices", {}).get(name, {})
+        away = int(status.get("disconnections", 0))
+        lines.append(
+            f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost"
+            + (f"; connection lost {away}x" if away else "")
+            + (f"; last said: {status['problem']}" if (away or status.get("errors")) and status.get("problem") else "")
+        )
     lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
     if summary.get("sets"):
         lines.append("  sets: " + "; ".join(set_summary(record) for record in summary["sets"]))
