@@ -336,9 +336,14 @@ def test_mapped_channels_no_source_streams_are_counted_and_named_in_the_session_
         "flags": {},
         "electrodes_never_streamed": {"sensor07.EMG": "TriLong"},
     }
-    assert "electrodes never streamed (their muscles estimated without EMG): sensor07.EMG (TriLong)" in summary_text(
-        summary
+    said = summary_text({**summary, "samples": {"emg/trigno": 40_000}})
+    assert (
+        "electrodes never streamed (their sensors not paired or not on, or a wrong channel in [electrodes]; their"
+        in said
     )
+    assert "estimated without EMG): sensor07.EMG (TriLong)" in said
+    # no EMG at all (a silent EMG port, found by an independent base imitation): not blamed on pairing
+    assert "electrodes never streamed (no EMG arrived from the Trigno at all: see its line" in summary_text(summary)
 
 
 def test_a_sample_that_is_not_a_number_is_counted_and_does_not_hold_the_envelope_at_nan():

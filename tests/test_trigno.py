@@ -231,6 +231,52 @@ def test_refused_aux_port_leaves_emg_streaming_and_says_why():
     assert f"AUX port {closed} refused" in client.aux_unavailable and client.stats.last_error == client.aux_unavailable
 
 
+def test_a_silent_aux_port_is_said_once():
+    """Found by an independent base imitation: an AUX port that accepts but never sends was reported nowhere, while
+    the EMG clock's alignment depends on it."""
+    quirks = TrignoQuirks(aux_silent=True)
+    source = synthetic_source(seconds=10.0, seed=6)
+    with (
+        TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=10.0, quirks=quirks)) as sim,
+        client_for(sim, aux=True) as client,
+    ):
+        client.start()
+        events = collect(client, samples=int(6 * source.rate_hz), seconds=10)
+    assert not [e for e in events if isinstance(e, AuxBlock)] and len(emg_rows(events)) >= 6 * source.rate_hz
+    assert client.stats.last_error.startswith(f"the AUX port {sim.ports['aux']} is connected but sent nothing in 5 s")
+    assert client.stats.errors == 0  # a condition of the setup, said; not an error of the link
+
+
+def test_aux_rows_held_for_an_emg_stream_that_does_not_resume_are_dropped_and_counted():
+    """After a lost link the AUX rows wait for the EMG to say how long the gap was; an EMG port that stayed silent
+    made them wait forever and vanish (1186 sent, 742 recorded, none counted lost, in an independent imitation)."""
+    import socket
+
+    from drivers.trigno.client import AUX_HOLD_S, _Link
+
+    client = TrignoClient(TrignoConfig(aux_port=tp.DataPort.AUX))
+    client.aux_rate_hz, client._gap_pending = 148.148, True
+    ours, base = socket.socketpair()
+    link = _Link(command=ours, emg=None, aux=ours)
+    width = client.config.resolved_aux_layout.floats_per_sample
+    rows_per_write, writes = 100, 20  # 2000 rows: 13.5 s at the AUX rate
+    try:
+        for _ in range(writes):
+            base.sendall(np.ones((rows_per_write, width), dtype="<f4").tobytes())
+            received = 0
+            while received < rows_per_write:
+                before = sum(len(r) for r, _ in client._aux_after_gap) + client.stats.aux_samples_dropped
+                client._read_aux(link)
+                received += sum(len(r) for r, _ in client._aux_after_gap) + client.stats.aux_samples_dropped - before
+    finally:
+        ours.close()
+        base.close()
+    held = sum(len(r) for r, _ in client._aux_after_gap)
+    assert held <= AUX_HOLD_S * client.aux_rate_hz + rows_per_write
+    assert held + client.stats.aux_samples_dropped == rows_per_write * writes
+    assert client.stats.aux_samples_dropped > 0 and "AUX samples dropped" in client.stats.last_error
+
+
 @pytest.mark.parametrize(
     "quirks, stop_mode",
     [

@@ -9,6 +9,7 @@ Everything already received has been returned before the disconnection is report
 from __future__ import annotations
 
 import enum
+import logging
 import selectors
 import socket
 import time
@@ -18,6 +19,8 @@ import numpy as np
 
 from drivers.trigno import protocol as tp
 from msk_core.errors import ConfigError, ProtocolError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,10 @@ class GapEvent:
     reason: str
 
 
+#: AUX rows of a resumed stream are held until its EMG says how long the gap was; beyond this span they are dropped
+AUX_HOLD_S = 10.0
+#: an AUX port that has sent nothing over this much EMG is said (once)
+AUX_SILENT_S = 5.0
 #: why the data ended when the base sends an unsolicited STOPPED
 STOPPED_BY_SERVER = (
     "the base stopped acquiring: it sent STOPPED (its stop trigger fired, or another client on it sent STOP)"
@@ -156,6 +163,7 @@ class ClientStats:
     bytes_discarded: int = 0  # partial samples cut by a dropped connection
     stale_bytes_discarded: int = 0  # data-port bytes of an earlier acquisition, received before our START
     non_finite_values: int = 0  # NaN/Inf EMG and AUX values received (passed on unchanged; the estimator flags them)
+    aux_samples_dropped: int = 0  # AUX rows held for an EMG stream that did not resume in time, then dropped
     reconnects: int = 0
     errors: int = 0
     last_error: str = ""
@@ -204,6 +212,9 @@ class TrignoClient:
         self._next_index = 0
         self._next_aux_index = 0
         self._aux_after_gap: list[tuple[np.ndarray, int]] = []  # AUX rows of a resumed stream, before its gap is known
+        self._aux_rows_seen = False  # any AUX row since START (a silent AUX port is said once)
+        self._aux_silence_said = False
+        self._emg_rows_since_aux = 0
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
         self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
@@ -720,19 +731,44 @@ class TrignoClient:
         if self._gap_pending:
             self._report_gap(now, len(rows))
         self._last_data_time = self._last_activity = now
+        self._check_aux_silence(link, len(rows))
         self._count_non_finite(rows)
         block = EmgBlock(rows, self._next_index, self.rate_hz, time.time_ns())
         self._next_index += len(rows)
         self.stats.samples_received += len(rows)
         self._events.append(block)
 
+    def _check_aux_silence(self, link: _Link, rows: int) -> None:
+        """Say once when the AUX port is open but has sent nothing over AUX_SILENT_S of EMG (sensors whose AUX
+        channels are off, a server that does not stream them): without accelerations the EMG clock is mapped by
+        arrival times alone."""
+        if link.aux is None or self._aux_rows_seen or self._aux_silence_said or self.rate_hz <= 0:
+            return
+        self._emg_rows_since_aux += rows
+        if self._emg_rows_since_aux > AUX_SILENT_S * self.rate_hz:
+            self._aux_silence_said = True  # a condition, not an error of the link: said, not counted
+            self.stats.last_error = (
+                f"the AUX port {self.config.aux_port} is connected but sent nothing in {AUX_SILENT_S:g} s of EMG: no "
+                "accelerations (the EMG clock is mapped by arrival times)"
+            )
+            log.warning("%s", self.stats.last_error)
+
     def _read_aux(self, link: _Link) -> None:
         assert link.aux is not None
         chunk = self._recv(link.aux)
         rows = self._aux_decoder.feed(chunk) if chunk else np.empty((0, 0))
         self._count_non_finite(rows)
+        self._aux_rows_seen = self._aux_rows_seen or bool(len(rows))
         if len(rows) and self._gap_pending:  # placed on the EMG clock once the EMG says how long the gap was
             self._aux_after_gap.append((rows, time.time_ns()))
+            held = sum(len(r) for r, _ in self._aux_after_gap)
+            if self.aux_rate_hz > 0 and held > AUX_HOLD_S * self.aux_rate_hz:  # the EMG is not coming back soon
+                dropped = len(self._aux_after_gap.pop(0)[0])
+                self.stats.aux_samples_dropped += dropped
+                self._note_error(
+                    f"{self.stats.aux_samples_dropped} AUX samples dropped: the EMG stream has not resumed for "
+                    f"{AUX_HOLD_S:g} s to place them on its clock"
+                )
         elif len(rows):
             self._emit_aux(rows, time.time_ns())
 

@@ -79,6 +79,7 @@ class TrignoQuirks:
     stop_trigger_after_s: float | None = None  # fire the stop trigger (unsolicited STOPPED) after streaming this long
     quit_stops_acquisition: bool = True  # QUIT alone (one client's way) also ends streaming
     start_delay_s: float = 0.0  # a real system sends its first data ~2 s after START
+    aux_silent: bool = False  # the AUX ports accept connections but send nothing (sensors with their AUX off)
 
 
 class FaultKind(str, enum.Enum):
@@ -699,7 +700,11 @@ class TrignoSimulator:
             self._fault_signals.apply(emg, frame * spf, lambda k, column: samples[(self._first_index + k) % n, column])
         np.clip(emg, -TRIGNO_EMG_RANGE_V, TRIGNO_EMG_RANGE_V, out=emg)  # the converter's range
         with self._lock:
-            listening = {kind: list(conns) for kind, conns in self._data_conns.items() if conns}
+            listening = {
+                kind: list(conns)
+                for kind, conns in self._data_conns.items()
+                if conns and (kind == "emg" or not self.config.quirks.aux_silent)
+            }
         for kind, conns in listening.items():  # a port nobody reads costs nothing (the AUX rows are interpolated)
             payload = tp.encode_samples(emg if kind == "emg" else self._aux_payload(kind, start), self._endianness)
             for sock in conns:

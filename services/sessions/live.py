@@ -736,8 +736,14 @@ def summary_text(summary: dict) -> str:
     if electrodes:
         lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
     if summary.get("electrodes_never_streamed"):
+        emg = sum(n for device, n in summary["samples"].items() if device.startswith("emg/"))
+        why = (
+            "no EMG arrived from the Trigno at all: see its line and status"
+            if not emg
+            else "their sensors not paired or not on, or a wrong channel in [electrodes]"
+        )
         lines.append(
-            "  electrodes never streamed (their muscles estimated without EMG): "
+            f"  electrodes never streamed ({why}; their muscles estimated without EMG): "
             + ", ".join(f"{ch} ({e})" for ch, e in summary["electrodes_never_streamed"].items())
         )
     for name, e in faulty.items():
