@@ -407,6 +407,20 @@ def test_msk_capture_says_when_another_client_stopped_the_base(tmp_path, capsys)
     assert covered < 3.0 and f"trigno: its data cover {covered:.1f} s of the 4 s asked" in said, said
 
 
+def test_msk_capture_counts_its_duration_from_the_bases_first_data(tmp_path, capsys):
+    """A real base sends its first data ~2 s after START: a 5 s capture held 3 s (independent imitation). The
+    duration now counts the data, from the first EMG."""
+    from drivers.trigno.simulator import TrignoQuirks
+
+    quirks = TrignoQuirks(start_delay_s=1.5)
+    with TrignoSimulator(synthetic_source(seconds=20.0, seed=3), SimulatorConfig(**EPHEMERAL, quirks=quirks)) as sim:
+        ports = ["--trigno", f"127.0.0.1:{sim.ports['command']}", "--trigno-emg-port", str(sim.ports["emg"])]
+        assert main(["capture", *ports, "--duration", "2", "--out", str(tmp_path / "late.mcap")]) == 0
+    said = capsys.readouterr().out
+    covered = float(re.search(r"trigno: \d+ samples in \d+ messages, ([\d.]+) s of data", said).group(1))
+    assert covered >= 1.9 and "of the 2 s asked" not in said, said
+
+
 def test_msk_capture_stopped_by_ctrl_c_ends_cleanly_with_its_summary(tmp_path):
     import signal as signals
 

@@ -27,7 +27,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__,
     )
     driver_nodes.add_device_arguments(parser)
-    parser.add_argument("--duration", type=float, required=True, metavar="SECONDS", help="how long to record")
+    parser.add_argument(
+        "--duration",
+        type=float,
+        required=True,
+        metavar="SECONDS",
+        help="how long to record: seconds of data per device (the Trigno's from its first EMG, waited for up to 10 s)",
+    )
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.mcap", help="MCAP file to write")
     parser.add_argument("--session", default="live", help="session name used in the topic keys (default: live)")
     parser.set_defaults(handler=run)

@@ -196,6 +196,10 @@ class _TrignoChannels:
         self.emg, self.acc = emg, acc
 
 
+#: ``--duration`` counts the Trigno's data from its first EMG; this long at most is waited for it after START
+FIRST_DATA_WAIT_S = 10.0
+
+
 def trigno_loop(
     client: TrignoClient,
     *,
@@ -229,10 +233,17 @@ def trigno_loop(
         sink(status_key, status, status.host_time_ns, 0)
         report.messages += 1
 
-    deadline = None if duration_s is None else time.monotonic() + duration_s
+    # ``duration_s`` of data: counted from the first EMG (a real base sends it ~2 s after START), waiting at most
+    # FIRST_DATA_WAIT_S for it
+    deadline = None if duration_s is None else time.monotonic() + duration_s + FIRST_DATA_WAIT_S
+    data_started = False
 
     def publish_data(event) -> None:
+        nonlocal deadline, data_started
         if isinstance(event, EmgBlock):
+            if not data_started and duration_s is not None:
+                deadline = time.monotonic() + duration_s
+            data_started = True
             chunk = emg_chunk(event, source_id=source_id, columns=channels.emg)
             sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
             report.messages += 1
