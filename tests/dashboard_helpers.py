@@ -8,7 +8,7 @@ import os
 import shutil
 import subprocess
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -186,7 +186,20 @@ def start_estimator(
 REPLAY_RATE = 8.0
 
 
-RECORDER_SETTLED_S = 3.0  # the estimators done, this long without a new record: nothing more is on its way
+RECORDER_SETTLED_S = 3.0  # a count that has not moved for this long after the replay: nothing more is on its way
+
+
+def _settle(count: Callable[[], int], wanted: int, deadline: float) -> None:
+    """Until ``count()`` reaches ``wanted``, stays unchanged for RECORDER_SETTLED_S, or ``deadline`` (monotonic)."""
+    import time
+
+    last, since = -1, time.monotonic()
+    while time.monotonic() < deadline and (now := count()) < wanted:
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since > RECORDER_SETTLED_S:
+            return
+        time.sleep(0.1)
 
 
 def record_with_estimates(
@@ -221,18 +234,12 @@ def record_with_estimates(
         ZenohOptions(connect=(endpoint,)), source, rate=REPLAY_RATE, session_name=session, wait_subscribers_s=5.0
     )
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not all(s.frames_done >= joints for s in stats.values()):
-        time.sleep(0.1)
+    # Newest-wins messages may be dropped on a busy machine (joint frames on their way to an estimator, activation
+    # frames to the recorder): waiting for every one ran to the 120 s deadline then. Each wait ends when its count
+    # is reached or has not moved for RECORDER_SETTLED_S.
+    _settle(lambda: sum(min(s.frames_done, joints) for s in stats.values()), joints * len(stats), deadline)
     expected = replayed.published + sum(s.frames_out * len(packs[p]) for p, s in stats.items())
-    # newest-wins frames may have been dropped (below): once the estimators are done, a recorder that has written
-    # nothing new for 3 s has all it will get (waiting for `expected` itself took the whole 120 s then)
-    last, settled_at = -1, time.monotonic()
-    while time.monotonic() < deadline and (written := rec_stats.written - rec_stats.node_status) < expected:
-        if written != last:
-            last, settled_at = written, time.monotonic()
-        elif time.monotonic() - settled_at > RECORDER_SETTLED_S:
-            break
-        time.sleep(0.1)
+    _settle(lambda: rec_stats.written - rec_stats.node_status, expected, deadline)
     stop.set()
     rec.join(30)
     # the replayed data and the estimates; the nodes' status messages (kind "node") come on top

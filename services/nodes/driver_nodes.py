@@ -200,6 +200,27 @@ class _TrignoChannels:
 FIRST_DATA_WAIT_S = 10.0
 
 
+@dataclass
+class _DataDeadline:
+    """``duration_s`` of data, counted from the first data (:meth:`data_came`), waited for up to FIRST_DATA_WAIT_S;
+    None: no deadline."""
+
+    duration_s: float | None
+    at: float = 0.0
+    started: bool = False
+
+    def __post_init__(self) -> None:
+        self.at = time.monotonic() + (self.duration_s or 0.0) + FIRST_DATA_WAIT_S
+
+    def data_came(self) -> None:
+        if not self.started and self.duration_s is not None:
+            self.at = time.monotonic() + self.duration_s
+        self.started = True
+
+    def passed(self) -> bool:
+        return self.duration_s is not None and time.monotonic() >= self.at
+
+
 def trigno_loop(
     client: TrignoClient,
     *,
@@ -233,17 +254,11 @@ def trigno_loop(
         sink(status_key, status, status.host_time_ns, 0)
         report.messages += 1
 
-    # ``duration_s`` of data: counted from the first EMG (a real base sends it ~2 s after START), waiting at most
-    # FIRST_DATA_WAIT_S for it
-    deadline = None if duration_s is None else time.monotonic() + duration_s + FIRST_DATA_WAIT_S
-    data_started = False
+    deadline = _DataDeadline(duration_s)  # a real base sends its first EMG ~2 s after START
 
     def publish_data(event) -> None:
-        nonlocal deadline, data_started
         if isinstance(event, EmgBlock):
-            if not data_started and duration_s is not None:
-                deadline = time.monotonic() + duration_s
-            data_started = True
+            deadline.data_came()
             chunk = emg_chunk(event, source_id=source_id, columns=channels.emg)
             sink(emg_key, chunk, event.host_time_ns, event.device_time_ns)
             report.messages += 1
@@ -261,7 +276,7 @@ def trigno_loop(
         client.start()  # inside: a start that fails still ends with STOP/QUIT and the final status
         publish_status()
         next_status = time.monotonic() + status_interval_s
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+        while not stop.is_set() and not deadline.passed():
             for event in client.poll(0.05):
                 if isinstance(event, StatusEvent):
                     report.states.append(event.state.value)

@@ -487,6 +487,42 @@ def session_profile(subject: Path, electrodes: dict[str, str], groups: list[str]
 # ------------------------------------------------------------------------------------------------ summary
 
 
+class _DeviceStatuses:
+    """The devices' statuses of a recording, in order: each one's last state, and the connection losses while the
+    session ran with the newest problem it reported."""
+
+    def __init__(self) -> None:
+        self.lost: dict[str, int] = {}
+        self.last: dict[str, messages.DeviceStatus] = {}
+        self.drops: Counter[str] = Counter()
+        self.was_connected: dict[str, bool] = {}  # before its newest status
+        self.problem: dict[str, str] = {}
+
+    def add(self, status: messages.DeviceStatus) -> None:
+        device, before = status.device_id, self.last.get(status.device_id)
+        connected = before is not None and before.connected
+        self.lost[device] = int(status.samples_lost)
+        self.drops[device] += int(connected and not status.connected)
+        self.was_connected[device] = connected
+        self.problem[device] = status.last_error or self.problem.get(device, "")
+        self.last[device] = status
+
+    def summary(self) -> dict[str, dict[str, object]]:
+        """Per device: kind, connected, errors and last error of its last status, disconnections (the last status,
+        disconnected at the stop, is not a loss) and problem."""
+        return {
+            device: {
+                "kind": s.kind,
+                "connected": s.connected,
+                "errors": int(s.errors),
+                "last_error": s.last_error,
+                "disconnections": self.drops[device] - int(self.was_connected[device] and not s.connected),
+                "problem": self.problem[device],
+            }
+            for device, s in self.last.items()
+        }
+
+
 def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     """What the recording (one file, or the parts this session wrote) holds: samples per device, samples lost and the
     final state of each device (its last DeviceStatus), frames and flags per method, per node of the graph what
@@ -494,13 +530,7 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     clock mapping the node that maps it reported last (offset, spread, latency, method)."""
     emg: Counter[str] = Counter()  # samples per source
     imu: Counter[str] = Counter()  # samples per tracker
-    lost: dict[str, int] = {}
-    status_seen: dict[str, dict[str, object]] = {}
-    # per device: connection losses while the session ran, and the newest problem it reported
-    drops: Counter[str] = Counter()
-    connected: dict[str, bool] = {}
-    was_connected: dict[str, bool] = {}  # before its newest status
-    problem: dict[str, str] = {}
+    devices = _DeviceStatuses()
     frames: Counter[str] = Counter()  # per method
     flags: dict[str, Counter[str]] = {}  # per method, per flag
     envelopes = joints = chunks = 0
@@ -522,17 +552,7 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                     for e in s.fatigue:
                         keep_fatigue(fatigue.setdefault(f"{e.source}/{e.channel}", []), e)
                     continue
-                lost[s.device_id] = int(s.samples_lost)
-                drops[s.device_id] += int(connected.get(s.device_id, False) and not s.connected)
-                was_connected[s.device_id] = connected.get(s.device_id, False)
-                connected[s.device_id] = s.connected
-                problem[s.device_id] = s.last_error or problem.get(s.device_id, "")
-                status_seen[s.device_id] = {
-                    "kind": s.kind,
-                    "connected": s.connected,
-                    "errors": int(s.errors),
-                    "last_error": s.last_error,
-                }
+                devices.add(s)
             elif t == "msk.ActivationFrame":
                 f = m.decode(messages.ActivationFrame)
                 frames[f.method] += 1
@@ -542,10 +562,6 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
                 envelopes += 1
             elif t == "msk.JointAngles":
                 joints += 1
-    for device, seen in status_seen.items():  # its last status says disconnected at the end: not a loss
-        ended = was_connected.get(device, False) and not connected[device]
-        seen["disconnections"] = drops[device] - int(ended)
-        seen["problem"] = problem.get(device, "")
     dropped: dict[str, dict[str, dict[str, int]]] = {}
     for name, status in nodes.items():
         per_key = dropped.setdefault(name, {})
@@ -554,8 +570,8 @@ def summarise(mcap: Path | list[Path], duration_s: float) -> dict:
     return {
         "duration_s": round(duration_s, 3),
         "samples": {**{f"emg/{k}": v for k, v in emg.items()}, **{f"imu/{k}": v for k, v in imu.items()}},
-        "samples_lost": lost,
-        "devices": status_seen,
+        "samples_lost": devices.lost,
+        "devices": devices.summary(),
         "joint_frames": joints,
         "emg_chunks": chunks,
         "envelopes": envelopes,
@@ -676,6 +692,36 @@ def set_summary(record: dict) -> str:
     return f"{record['number']}: {reps} rep{'s' if reps != 1 else ''}, {record['time_under_tension_s']:.1f} s under tension{ended}"
 
 
+def _electrode_lines(summary: dict) -> list[str]:
+    """The summary's lines on the electrodes: how many judged, those that never streamed and why, each with fault
+    episodes."""
+    lines: list[str] = []
+    electrodes = summary.get("electrodes", {})
+    faulty = {name: e for name, e in electrodes.items() if e["episodes"]}
+    if electrodes:
+        lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
+    if summary.get("electrodes_never_streamed"):
+        emg = sum(n for device, n in summary["samples"].items() if device.startswith("emg/"))
+        why = (
+            "no EMG arrived from the Trigno at all: see its line and status"
+            if not emg
+            else "their sensors not paired or not on, or a wrong channel in [electrodes]"
+        )
+        lines.append(
+            f"  electrodes never streamed ({why}; their muscles estimated without EMG): "
+            + ", ".join(f"{ch} ({e})" for ch, e in summary["electrodes_never_streamed"].items())
+        )
+    for name, e in faulty.items():
+        lines.append(
+            f"  electrode {name}"
+            + (f" ({e['group']})" if e["group"] else "")
+            + f": {e['episodes']} fault episode{'s' if e['episodes'] != 1 else ''} ("
+            + ", ".join(f"{reason} {n}" for reason, n in e["episode_reasons"].items())
+            + f"), {e['check_s']:.1f} s check, {e['bad_s']:.1f} s bad; now {e['state']}"
+        )
+    return lines
+
+
 def summary_text(summary: dict) -> str:
     lines = [
         f"session of {summary['duration_s']:.1f} s"
@@ -731,29 +777,7 @@ def summary_text(summary: dict) -> str:
             )
             + (f"; {clock['reason']}" if clock.get("method") == "arrival" and clock.get("reason") else "")
         )
-    electrodes = summary.get("electrodes", {})
-    faulty = {name: e for name, e in electrodes.items() if e["episodes"]}
-    if electrodes:
-        lines.append(f"  electrodes: {len(electrodes)} judged, {len(faulty)} with fault episodes")
-    if summary.get("electrodes_never_streamed"):
-        emg = sum(n for device, n in summary["samples"].items() if device.startswith("emg/"))
-        why = (
-            "no EMG arrived from the Trigno at all: see its line and status"
-            if not emg
-            else "their sensors not paired or not on, or a wrong channel in [electrodes]"
-        )
-        lines.append(
-            f"  electrodes never streamed ({why}; their muscles estimated without EMG): "
-            + ", ".join(f"{ch} ({e})" for ch, e in summary["electrodes_never_streamed"].items())
-        )
-    for name, e in faulty.items():
-        lines.append(
-            f"  electrode {name}"
-            + (f" ({e['group']})" if e["group"] else "")
-            + f": {e['episodes']} fault episode{'s' if e['episodes'] != 1 else ''} ("
-            + ", ".join(f"{reason} {n}" for reason, n in e["episode_reasons"].items())
-            + f"), {e['check_s']:.1f} s check, {e['bad_s']:.1f} s bad; now {e['state']}"
-        )
+    lines += _electrode_lines(summary)
     if "simulators_sent" in summary:
         lines.append(
             "  simulators sent: " + ", ".join(f"{k} {v['samples']}" for k, v in summary["simulators_sent"].items())
