@@ -243,6 +243,24 @@ def test_the_documented_session_file_is_accepted_and_documents_every_key(tmp_pat
     assert documented == keys
 
 
+def test_an_mvn_suit_is_a_device_of_the_session_file(tmp_path):
+    """`[xsens] mvn = PORT` (a suit's network stream) needs no serial ports and no [trackers]: its segments come
+    named; the xsens driver node listens for it. A value that is no port is refused, naming the key."""
+    from services.sessions import live
+
+    path = tmp_path / "session.toml"
+    doc = _doc(
+        trigno=None, electrodes=None, trackers=None, xsens={"mvn": 9763}, session__subject=None, session__methods=None
+    )
+    path.write_text(_toml(doc))
+    plan, _ = live.plan_for(load_session_file(path), sim=False, log=lambda *_: None)
+    argv = live.driver_argv(plan, "xsens")
+    assert argv[argv.index("--mvn") + 1] == "9763" and "--xsens" not in argv
+    path.write_text(_toml({**doc, "xsens": {"mvn": "suit:port"}}))
+    with pytest.raises(ConfigError, match=r"field 'xsens.mvn'.*must be a UDP port"):
+        load_session_file(path)
+
+
 def test_an_athlete_not_calibrated_yet_runs_static_optimisation_alone(tmp_path):
     """A session file without a subject profile was refused ("missing: the subject profile"), so a lab could not even
     see its devices in msk live before calibrating. It now runs `so` (the estimates need no EMG; the EMG is

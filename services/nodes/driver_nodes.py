@@ -24,6 +24,8 @@ from drivers.trigno import protocol as tp
 from drivers.trigno.client import AuxBlock, ClientState, EmgBlock, GapEvent, StatusEvent, TrignoClient
 from drivers.xsens import xbus
 from drivers.xsens.device import RECONNECT_FAILED, ImuReading, TrackerSet
+from drivers.xsens.mvn import PACK_SEGMENTS as MVN_PACK_SEGMENTS
+from drivers.xsens.mvn import MvnReceiver, Pose, SegmentPose
 from services.transport import messages, topics, zenoh_session
 
 log = logging.getLogger(__name__)
@@ -362,6 +364,84 @@ def xsens_loop(
     return report
 
 
+#: an MVN stream silent this long is said (the suit's software stopped streaming, or the network)
+MVN_SILENT_S = 3.0
+
+
+def open_mvn(address: str) -> MvnReceiver:
+    """A receiver listening on ``[HOST:]PORT`` (all interfaces without a host)."""
+    from msk_core.errors import ConfigError
+
+    host, _, port = address.rpartition(":")
+    if not port.isdigit() or not 0 <= int(port) < 65536:
+        raise ConfigError("a UDP port, with a host to listen on before it or not", field="--mvn", value=address)
+    return MvnReceiver(host or "0.0.0.0", int(port)).open()
+
+
+def mvn_loop(
+    receiver: MvnReceiver,
+    *,
+    session: str,
+    sink: Sink,
+    stop: threading.Event,
+    duration_s: float | None = None,
+    status_interval_s: float = 1.0,
+) -> LoopReport:
+    """Publish the packs' segments of each MVN quaternion pose as IMU samples of trackers ``mvn-<MVN segment>``
+    (their ``segment`` the pack's name, e.g. upper_arm_r), until ``stop``/``duration_s``."""
+    report, stats = LoopReport(device="mvn"), receiver.stats
+    wanted = {mvn: pack for pack, mvn in MVN_PACK_SEGMENTS.items()}
+    last_pose, said_silent = time.monotonic(), False
+
+    def publish_status(*, final: bool = False) -> None:
+        quiet = time.monotonic() - last_pose > MVN_SILENT_S
+        status = device_status(
+            device_id="mvn", kind="mvn", connected=stats.poses > 0 and not quiet and not final,
+            received=stats.poses, lost=stats.samples_lost, errors=stats.errors + stats.incomplete,
+            last_error=stats.last_error,
+        )  # fmt: skip
+        sink(topics.status_key(session, "mvn"), status, status.host_time_ns, 0)
+        report.messages += 1
+
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    next_status = time.monotonic()
+    while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+        for pose in receiver.read(0.05):
+            last_pose, said_silent = time.monotonic(), False
+            for segment in pose.segments:
+                if segment.name in wanted:
+                    sample = mvn_sample(pose, segment, wanted[segment.name])
+                    sink(topics.imu_key(session, sample.tracker_id), sample, pose.host_time_ns, sample.device_time_ns)
+                    report.messages += 1
+                    report.samples += 1
+        if not said_silent and time.monotonic() - last_pose > MVN_SILENT_S:
+            said_silent = True
+            stats.last_error = f"no MVN quaternion pose on UDP port {receiver.port} for {MVN_SILENT_S:g} s"
+            report.states.append("disconnected")
+            log.warning("%s (%d datagrams of other types)", stats.last_error, stats.other_types)
+        if time.monotonic() >= next_status:
+            publish_status()
+            next_status += status_interval_s
+    publish_status(final=True)
+    report.lost, report.errors = stats.samples_lost, stats.errors + stats.incomplete
+    return report
+
+
+def mvn_sample(pose: Pose, segment: SegmentPose, pack_segment: str) -> messages.ImuSample:
+    """One segment of an MVN pose as an IMU sample (MVN's global frame passed on as NWU; its time in ms)."""
+    sample = messages.ImuSample(
+        tracker_id=f"mvn-{segment.name}" if pose.character == 0 else f"mvn{pose.character}-{segment.name}",
+        segment=pack_segment,
+        packet_counter=pose.sample_counter & 0xFFFFFFFF,
+        device_time_ns=pose.time_ms * 1_000_000,
+        host_time_ns=pose.host_time_ns,
+        coordinate_frame="NWU",
+    )
+    orientation = sample.orientation
+    orientation.w, orientation.x, orientation.y, orientation.z = segment.quaternion
+    return sample
+
+
 def _tracker_error(disconnected: str | None, last_error: str) -> str:
     """A tracker's status text: why it went away and, while it is away, why the last attempt to bring it back failed."""
     if disconnected is None:
@@ -491,12 +571,16 @@ class DeviceSettings:
     imu_precision: xbus.Precision = xbus.Precision.FLOAT32
     imu_frame: xbus.CoordinateFrame = xbus.CoordinateFrame.ENU
     segments: dict[str, str] = field(default_factory=dict)  # tracker id (upper case) -> body segment
+    mvn: str | None = None  # [HOST:]PORT to listen on for an Xsens MVN network stream (UDP)
 
     def __post_init__(self) -> None:
-        if not self.trigno and not self.xsens:
+        if not self.trigno and not self.xsens and not self.mvn:
             from msk_core.errors import ConfigError
 
-            raise ConfigError("name at least one device: --trigno HOST[:PORT] and/or --xsens PORT|usb", field="devices")
+            raise ConfigError(
+                "name at least one device: --trigno HOST[:PORT], --xsens PORT|usb and/or --mvn [HOST:]PORT",
+                field="devices",
+            )
 
 
 def add_device_arguments(parser) -> None:
@@ -557,6 +641,14 @@ def add_device_arguments(parser) -> None:
         metavar="TRACKER=SEGMENT",
         help="body segment of a tracker id, e.g. 03700ABC=upper_arm_r",
     )
+    group = parser.add_argument_group("Xsens MVN (a suit's network stream)")
+    group.add_argument(
+        "--mvn",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="listen for MVN's network streamer (UDP, quaternion pose, default port 9763) and publish the packs' "
+        "segments as trackers mvn-<segment>",
+    )
 
 
 def device_settings(args: argparse.Namespace) -> DeviceSettings:
@@ -573,6 +665,7 @@ def device_settings(args: argparse.Namespace) -> DeviceSettings:
         imu_rate_hz=args.imu_rate,
         imu_precision=xbus.Precision[args.imu_precision.upper()],
         imu_frame=xbus.CoordinateFrame[args.imu_frame],
+        mvn=args.mvn,
     )
     return replace(devices, segments=parse_segments(args.segment))
 
@@ -643,6 +736,7 @@ def run_devices(
     targets = []
     client: TrignoClient | None = None
     trackers: TrackerSet | None = None
+    receiver: MvnReceiver | None = None
     try:  # whatever fails (a device that cannot be opened, a loop's error), the base is told QUIT, the ports closed
         if devices.trigno:
             client = open_trigno(devices)
@@ -658,10 +752,15 @@ def run_devices(
                     trackers, session=session, sink=sink, stop=stop, segments=devices.segments, duration_s=duration_s
                 )
             )
+        if devices.mvn:
+            receiver = open_mvn(devices.mvn)
+            targets.append(lambda: mvn_loop(receiver, session=session, sink=sink, stop=stop, duration_s=duration_s))
         results = run_threads(targets, stop)
     finally:
         if trackers is not None:
             trackers.close()
+        if receiver is not None:
+            receiver.close()
         if client is not None:
             client.close()
     reports: list[LoopReport] = []

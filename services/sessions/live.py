@@ -824,6 +824,8 @@ def driver_argv(plan: LivePlan, kind: str) -> list[str]:
     else:
         for port in plan.xsens_ports:
             argv += ["--xsens", port]
+        if s.xsens_mvn is not None:
+            argv += ["--mvn", s.xsens_mvn]
         argv += ["--imu-rate", str(s.imu_rate_hz), "--xsens-baud", str(s.xsens_baud)]
         argv += [f"--segment={t}={seg}" for t, seg in plan.trackers.items()]
     return argv
@@ -1126,7 +1128,9 @@ def _start_live_graph(
     else:
         graph = Graph(s.name, endpoint)
     running.graph = graph
-    nodes = session_graph.live_nodes(trigno=plan.trigno is not None, xsens=bool(plan.xsens_ports))
+    nodes = session_graph.live_nodes(
+        trigno=plan.trigno is not None, xsens=bool(plan.xsens_ports) or plan.session.xsens_mvn is not None
+    )
     running.drivers = [n.name for n in nodes if n.role == "driver"]
 
     def start(decl: session_graph.NodeDecl, after: tuple[str, ...]) -> None:

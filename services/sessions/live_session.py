@@ -40,7 +40,7 @@ def default_method(methods: Iterable[str]) -> str | None:
 _SECTIONS = {
     "session": {"name", "out", "pack", "subject", "load_kg", "methods", "athlete", "rest_s"},
     "trigno": {"host", "emg_port", "aux_port", "aux_layout", "id", "latency_ms"},
-    "xsens": {"ports", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
+    "xsens": {"ports", "mvn", "rate_hz", "baud", "latency_ms", "tracker_latency_ms"},
     "trackers": None,  # free keys: tracker ids
     "electrodes": None,  # free keys: channel labels
     "names": None,  # free keys: the pack's groups and coordinates (session_names checks them against the pack)
@@ -106,6 +106,7 @@ class LiveSession:
     trigno_aux_layout: AuxLayout | None = None  # what that port carries (None: from its number, 50042 legacy ACC)
     trigno_id: str = "trigno"
     xsens_ports: tuple[str, ...] = ()  # serial ports or "usb"
+    xsens_mvn: str | None = None  # [HOST:]PORT of an MVN network stream (UDP) to listen on
     imu_rate_hz: int = 100
     xsens_baud: int = 115200
     trigno_latency_ms: float | None = None  # stated Trigno latency (None: TRIGNO_LATENCY_MS, or the simulator's)
@@ -306,8 +307,14 @@ def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devic
         if not isinstance(ports, list) or not ports or not all(isinstance(p, str) and p for p in ports):
             raise session_error(path, "xsens.ports", 'must be a list of serial ports or "usb"', x["ports"])
         given["xsens_ports"] = tuple(ports)
-    elif require_devices:
-        raise session_error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"]')
+    elif require_devices and "mvn" not in x:
+        raise session_error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"] (or mvn = PORT)')
+    if "mvn" in x:  # a suit's network stream: a UDP port (9763 by default in MVN), or "HOST:PORT"
+        mvn = str(x["mvn"]) if isinstance(x["mvn"], int) and not isinstance(x["mvn"], bool) else x["mvn"]
+        host, _, port = mvn.rpartition(":") if isinstance(mvn, str) else ("", "", "")
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise session_error(path, "xsens.mvn", 'must be a UDP port, e.g. 9763, or "HOST:PORT"', x["mvn"])
+        given["xsens_mvn"] = mvn
     if "rate_hz" in x:
         given["imu_rate_hz"] = _int_within(
             path, "xsens.rate_hz", x["rate_hz"], 1, 2000, "an integer rate in Hz", "must be within 1..2000 Hz"
@@ -361,8 +368,8 @@ def _parse_maps(session: LiveSession, doc: dict, path: Path | None) -> LiveSessi
 
 def _check_devices(session: LiveSession, path: Path | None) -> None:
     """Without --sim: at least one device, and the maps the devices need."""
-    if session.trigno_host is None and not session.xsens_ports:
-        raise session_error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports")
+    if session.trigno_host is None and not session.xsens_ports and session.xsens_mvn is None:
+        raise session_error(path, "trigno", "no device: give [trigno] host and/or [xsens] ports or mvn")
     if session.xsens_ports and not session.trackers:
         raise session_error(
             path, "trackers", 'missing: the tracker -> segment map ([trackers] "00B4EB80" = "upper_arm_r")'
