@@ -119,30 +119,35 @@ def test_a_bad_mvn_address_is_refused(tmp_path, capsys):
     assert struct.calcsize(">4s2sIBBIBBBB2xH") == mvn.HEADER.size == 24
 
 
-def demo_bench_press_poses() -> list[tuple[int, list[mvn.SegmentPose]]]:
-    """The demo recording's bench-press upper-arm and forearm orientations as an MVN suit streams them (type 02,
-    its global frame NWU; every other segment still): (ms since the first, segments)."""
+def test_msk_sim_mvn_streams_a_recordings_segments_that_msk_capture_records_as_they_were(tmp_path, capsys):
+    """`msk sim mvn` (the demo's deadlift as a suit) into `msk capture --mvn`: each pack segment's orientation,
+    brought back from MVN's NWU to ENU, is the recording's."""
     from drivers.xsens import frames, xbus
+    from services.commands.sim import recorded_segment_poses
     from tests.dashboard_helpers import DEMO_MCAP
 
-    rows: dict[int, dict[str, tuple[float, float, float, float]]] = {}
-    for recorded in read_messages(DEMO_MCAP):
-        if recorded.type_name == "msk.ImuSample" and recorded.topic.endswith(("/upper_arm_r", "/forearm_r")):
-            s = recorded.decode()
-            rows.setdefault(s.device_time_ns, {})[s.segment] = (s.orientation.w, s.orientation.x, s.orientation.y,
-                                                                 s.orientation.z)  # fmt: skip
-    times = sorted(t for t, both in rows.items() if len(both) == 2)
-    to_nwu = frames.ENU_TO[xbus.CoordinateFrame.NWU]
-    ids = {mvn.SEGMENTS.index(m) + 1: pack for pack, m in mvn.PACK_SEGMENTS.items() if pack.endswith("_r")}
-    poses = []
-    for t in times:
-        segments = [
-            mvn.SegmentPose(i, (0.0, 0.0, 1.0),
-                            frames.quat_multiply(to_nwu, rows[t][ids[i]]) if ids.get(i) in rows[t] else (1.0, 0, 0, 0))
-            for i in range(1, len(mvn.SEGMENTS) + 1)
-        ]  # fmt: skip
-        poses.append(((t - times[0]) // 1_000_000, segments))
-    return poses
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    sim = threading.Thread(
+        target=msk, args=(["sim", "mvn", "--to", f"127.0.0.1:{port}", "--exercise", "deadlift", "--duration", "3"],)
+    )
+    threading.Timer(0.5, sim.start).start()
+    out = tmp_path / "sim.mcap"
+    assert msk(["capture", "--mvn", f"127.0.0.1:{port}", "--duration", "2.5", "--out", str(out)]) == 0
+    sim.join(10)
+    segments = ["pelvis", "torso", "thigh_r", "shank_r"]
+    sent = recorded_segment_poses(DEMO_MCAP, segments)
+    every = [r.decode() for r in read_messages(out) if r.type_name == "msk.ImuSample"]
+    assert {s.segment for s in every} == set(mvn.PACK_SEGMENTS)  # the suit sends the whole body
+    recorded = [s for s in every if s.segment in segments]
+    assert len(recorded) > 4 * 60
+    for sample in recorded[:: len(recorded) // 20]:
+        o = sample.orientation
+        back = frames.to_enu((o.w, o.x, o.y, o.z), xbus.CoordinateFrame.NWU)
+        k = sample.packet_counter % len(sent)
+        assert back == pytest.approx(sent[k][1][sample.segment], abs=1e-6), (sample.segment, k)
+    assert "sent " in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -151,7 +156,7 @@ def test_msk_live_estimates_a_bench_press_from_an_mvn_suit(tmp_path):
     estimator of a real `msk live` (no subject profile: static optimisation). The elbow angle of the joint frames
     spans the demo's (15-126 degrees)."""
     from services.transport.zenoh_session import free_loopback_endpoint
-    from tests.live_helpers import start_msk
+    from tests.live_helpers import run_msk, start_msk
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
@@ -160,7 +165,6 @@ def test_msk_live_estimates_a_bench_press_from_an_mvn_suit(tmp_path):
     session.write_text(
         f'[session]\nname = "suit"\npack = "bench_press"\nload_kg = 50\nout = "out"\n\n[xsens]\nmvn = "127.0.0.1:{port}"\n'
     )
-    poses = demo_bench_press_poses()
     process = start_msk("live", str(session), "--no-view", "--duration", "16", "--listen", free_loopback_endpoint(),
                         env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
     try:
@@ -171,12 +175,8 @@ def test_msk_live_estimates_a_bench_press_from_an_mvn_suit(tmp_path):
             assert line, "msk live ended before it ran:\n" + "".join(lines)
             lines.append(line)
         assert time.monotonic() < deadline, "msk live did not start within 60 s:\n" + "".join(lines)
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
-            started = time.monotonic()
-            for k, (ms, segments) in enumerate(poses[: 60 * 12]):  # 12 s of the bench press
-                time.sleep(max(0.0, started + ms / 1000 - time.monotonic()))
-                for datagram in mvn.encode_pose(k, ms, segments):
-                    sender.sendto(datagram, ("127.0.0.1", port))
+        simulated = run_msk("sim", "mvn", "--to", f"127.0.0.1:{port}", "--duration", "12", timeout=60)
+        assert simulated.returncode == 0, simulated.stderr
         output = "".join(lines) + process.communicate(timeout=60)[0]
     finally:
         if process.poll() is None:

@@ -20,6 +20,7 @@ import struct
 import time
 from dataclasses import dataclass, field
 
+from drivers.xsens import frames, xbus
 from msk_core.errors import ProtocolError
 
 MAGIC = b"MXTP"
@@ -114,6 +115,22 @@ def parse_pose_items(payload: bytes) -> list[SegmentPose]:
         )
     return [
         SegmentPose(segment, (x, y, z), (w, i, j, k)) for segment, x, y, z, w, i, j, k in POSE_ITEM.iter_unpack(payload)
+    ]
+
+
+def body_pose(orientations_enu: dict[str, tuple[float, float, float, float]]) -> list[SegmentPose]:
+    """The 23 body segments of a pose as MVN streams them: the packs' segments given (by the pack's name, e.g.
+    upper_arm_r; orientation sensor-to-world in ENU, w first) turned into MVN's frame (NWU), every other segment
+    still (identity). What ``msk sim mvn`` and the tests send."""
+    to_nwu = frames.ENU_TO[xbus.CoordinateFrame.NWU]
+    by_mvn = {PACK_SEGMENTS[pack]: q for pack, q in orientations_enu.items()}
+    return [
+        SegmentPose(
+            index + 1,
+            (0.0, 0.0, 1.0),
+            frames.quat_multiply(to_nwu, by_mvn[name]) if name in by_mvn else (1.0, 0.0, 0.0, 0.0),
+        )
+        for index, name in enumerate(SEGMENTS)
     ]
 
 

@@ -2,7 +2,8 @@
 
 ``msk sim trigno --from FILE`` serves the Trigno SDK protocol on TCP (command 50040, EMG 50043 and 50041, AUX 50044,
 legacy ACC 50042 unless ``--legacy-acc-port -1``);
-``msk sim xsens --from FILE`` opens a pseudo-terminal speaking Xbus and prints its path on the first line.
+``msk sim xsens --from FILE`` opens a pseudo-terminal speaking Xbus and prints its path on the first line;
+``msk sim mvn --to HOST:PORT`` streams a recording's segment orientations as an Xsens MVN suit does (UDP).
 FILE formats are described in docs/devices.md (C3D, .npz, raw .bin captures, or ``synthetic[:SECONDS[:SEED]]``).
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 from drivers.trigno.protocol import COMMAND_PORT, DataPort
 from msk_core.errors import ConfigError
@@ -102,6 +104,87 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     xsens.add_argument("--seed", type=int, default=0)
     xsens.add_argument("--duration", type=float, default=None, metavar="S")
     xsens.set_defaults(handler=run_xsens)
+    _add_mvn(devices)
+
+
+def _add_mvn(devices: argparse._SubParsersAction) -> None:
+    mvn = devices.add_parser("mvn", help="Xsens MVN network streamer simulator (UDP)")
+    mvn.add_argument(
+        "--to", default="127.0.0.1:9763", metavar="HOST:PORT", help="where to send (default 127.0.0.1:9763)"
+    )
+    mvn.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        default=None,
+        metavar="RECORDING.mcap",
+        help="an msk recording whose IMU samples carry the packs' segments (default: the bundled demo session)",
+    )
+    mvn.add_argument(
+        "--exercise",
+        choices=("bench_press", "deadlift"),
+        default="bench_press",
+        help="whose segments: the bench press's upper arm and forearm (default), or the deadlift's pelvis, torso, "
+        "thigh and shank",
+    )
+    mvn.add_argument("--speed", type=float, default=1.0, help="time scale (>1 faster than the recording)")
+    mvn.add_argument("--no-loop", action="store_true", help="stop at the end of the recording")
+    mvn.add_argument("--duration", type=float, default=None, metavar="S", help="exit after S seconds")
+    mvn.set_defaults(handler=run_mvn)
+
+
+def recorded_segment_poses(recording: Path, segments: list[str]) -> list[tuple[int, dict]]:
+    """(ns since the first, {segment: quaternion ENU}) of every instant of ``recording`` at which each of ``segments``
+    has an IMU sample (its orientation in ENU)."""
+    from drivers.xsens import frames, xbus
+    from services.transport import messages
+    from services.transport.mcap_io import read_messages
+
+    rows: dict[int, dict[str, tuple[float, float, float, float]]] = {}
+    for recorded in read_messages(recording):
+        if recorded.type_name != "msk.ImuSample":
+            continue
+        sample = recorded.decode(messages.ImuSample)
+        if sample.segment in segments and sample.HasField("orientation"):
+            o = sample.orientation
+            frame = xbus.CoordinateFrame[(sample.coordinate_frame or "ENU").upper()]
+            rows.setdefault(sample.device_time_ns, {})[sample.segment] = frames.to_enu((o.w, o.x, o.y, o.z), frame)
+    times = sorted(t for t, found in rows.items() if len(found) == len(segments))
+    if not times:
+        raise ConfigError(f"no instant with an orientation of each of {segments}", field="--from", value=str(recording))
+    return [(t - times[0], rows[t]) for t in times]
+
+
+def run_mvn(args: argparse.Namespace) -> int:
+    import socket
+
+    from drivers.xsens import mvn
+    from msk_core.imu.mapping import mapping_for
+
+    host, _, port = args.to.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError("HOST:PORT", field="--to", value=args.to)
+    if not args.speed > 0:
+        raise ConfigError("must be positive", field="--speed", value=args.speed)
+    recording = args.source or Path(__file__).resolve().parents[2] / "recordings" / "demo_session.mcap"
+    poses = recorded_segment_poses(recording, list(mapping_for(args.exercise).segments))
+    period_ns = poses[-1][0] + (poses[-1][0] - poses[-2][0] if len(poses) > 1 else 16_666_667)
+    print(f"MVN simulator -> udp {args.to}: {args.exercise} from {recording}, {len(poses)} poses", file=sys.stderr)
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    sent, start = 0, time.monotonic()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+        while deadline is None or time.monotonic() < deadline:
+            loop, k = divmod(sent, len(poses))
+            if loop and args.no_loop:
+                break
+            t_ns, orientations = poses[k]
+            due_ns = loop * period_ns + t_ns
+            time.sleep(max(0.0, start + due_ns / 1e9 / args.speed - time.monotonic()))
+            for datagram in mvn.encode_pose(sent, due_ns // 1_000_000, mvn.body_pose(orientations)):
+                sender.sendto(datagram, (host, int(port)))
+            sent += 1
+    print(f"sent {sent} poses", file=sys.stderr)
+    return 0
 
 
 def _wait(duration: float | None, alive=lambda: True) -> None:
