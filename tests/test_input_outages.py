@@ -179,3 +179,21 @@ def test_msk_live_summary_says_a_tracker_lost_during_the_session(tmp_path):
     text = summary_text(summary)
     assert "imu/A: 4 samples, 0 lost\n" in text + "\n", text
     assert f"imu/B: 4 samples, 0 lost; connection lost 1x; last said: {gone}" in text, text
+
+
+def test_msk_live_summary_says_what_an_mvn_suit_lost_and_said():
+    """An MVN suit's status is keyed `mvn`, its samples `mvn-<segment>`: the printed summary showed neither its 120
+    lost samples nor why it stopped (independent MVN imitation)."""
+    from services.sessions.live import summary_text
+
+    summary = {
+        "duration_s": 30.0,
+        "samples": {"imu/mvn-right_upper_arm": 1440, "imu/mvn-right_forearm": 1440},
+        "samples_lost": {"mvn": 120},
+        "devices": {"mvn": {"kind": "mvn", "connected": False, "errors": 0, "last_error": "", "disconnections": 0,
+                            "problem": "no MVN quaternion pose (type 02) on UDP 0.0.0.0:9763 for 3 s"}},
+        "joint_frames": 0, "envelopes": 0, "frames_estimated": {}, "flags": {},
+    }  # fmt: skip
+    text = summary_text(summary)
+    assert "  mvn: 120 samples lost; last said: no MVN quaternion pose (type 02) on UDP 0.0.0.0:9763 for 3 s" in text
+    assert "imu/mvn-right_forearm: 1440 samples, 0 lost\n" in text

@@ -528,6 +528,34 @@ def test_a_gap_of_samples_lost_on_their_way_keeps_the_calibration():
     np.testing.assert_allclose(outs[-1].q, q0, atol=np.radians(0.05))
 
 
+@pytest.mark.parametrize("jump, resumed", [(180, True), (0, False)])
+def test_samples_the_trackers_counted_but_never_came_keep_the_set(jump, resumed):
+    """Found with an independent MVN suit imitation: 2 s of its stream lost on the network (its sample counter went
+    on) was taken for a new set and recalibrated mid-rep, every later elbow angle 96 deg off. A packet-counter jump
+    now resumes the set, as publications lost between nodes do; a gap without one is still a new set."""
+    node = kinematics_node.KinematicsNode(
+        kinematics_node.KinematicsSettings(pack="bench_press", session="synth", static_s=0.2),
+        kinematics_node.KinematicsStats(),
+    )
+    mapper, period = node.mapper, 16_666_667
+    q0 = mapper.static_pose()
+
+    def send(k: int, counter: int, q: np.ndarray) -> None:
+        for segment, rotation in mapper.segment_orientations(q).items():
+            w, x, y, z = rotation.as_quat(scalar_first=True)
+            node.handle(topics.imu_key("synth", segment), messages.ImuSample(
+                tracker_id=segment, segment=segment, packet_counter=counter & 0xFFFF, coordinate_frame="ENU",
+                orientation=messages.Quaternion(w=w, x=x, y=y, z=z), device_time_ns=10**9 + k * period,
+            ))  # fmt: skip
+
+    for k in range(60):
+        send(k, 65_500 + k, q0)  # through the 16-bit wrap
+    for k in range(60 + 180, 60 + 180 + 60):  # 3 s later
+        send(k, 65_500 + k - 180 + jump, q0 + np.radians([20.0, 60.0]))
+    stats = node.stats
+    assert (stats.resumes, stats.restarts) == ((1, 0) if resumed else (0, 1)), stats
+
+
 @pytest.mark.parametrize("clock", ["device", "host"])
 def test_host_clock_syncs_trackers_whose_device_clocks_differ(zenoh_endpoint, clock):
     """Separate trackers count SampleTimeFine from their own power-up (here 7.3 s apart): only ``--imu-clock host``

@@ -18,6 +18,7 @@ from __future__ import annotations
 import socket
 import struct
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 from drivers.xsens import frames, xbus
@@ -29,6 +30,7 @@ assert HEADER.size == 24
 POSE_QUATERNION = "02"
 POSE_ITEM = struct.Struct(">i3f4f")
 DEFAULT_PORT = 9763
+PENDING_SAMPLES = 30  # a sample whose datagrams are not all in by this many samples later is left out
 #: MVN's 23 body segments in streaming order (segment id = index + 1)
 SEGMENTS = (
     "pelvis", "l5", "l3", "t12", "t8", "neck", "head",
@@ -161,22 +163,29 @@ class ReceiverStats:
     datagrams: int = 0
     poses: int = 0
     samples_lost: int = 0  # sample-counter jumps
-    other_types: int = 0  # datagrams of other message types (left out)
+    other_types: Counter[str] = field(default_factory=Counter)  # datagrams of other message types, per type (left out)
     errors: int = 0  # datagrams that are not MVN's, or broken
     incomplete: int = 0  # samples whose datagrams did not all arrive
+    repeated: int = 0  # datagrams that came again or too late for their sample (left out)
+    other_characters: Counter[int] = field(default_factory=Counter)  # poses of characters not followed (left out)
+    restarts: int = 0  # the stream started again (its sample counter went back)
     last_error: str = ""
 
 
 @dataclass
 class MvnReceiver:
-    """Listens on a UDP port and assembles each sample's quaternion pose from its datagrams."""
+    """Listens on a UDP port and assembles each sample's quaternion pose from its datagrams, in whatever order they
+    come (by the sample counter and the datagram index; the last one's index says how many there are), once each.
+    It follows one character: ``character``, or the first one heard; the others are counted and left out (two suits
+    streamed as one athlete's segments alternated in the joint angles)."""
 
     host: str = "0.0.0.0"
     port: int = DEFAULT_PORT
+    character: int | None = None
     stats: ReceiverStats = field(default_factory=ReceiverStats)
     _socket: socket.socket | None = None
-    _pending: dict[tuple[int, int], list[Datagram]] = field(default_factory=dict)  # (character, sample) -> parts
-    _last_counter: dict[int, int] = field(default_factory=dict)  # per character
+    _pending: dict[int, dict[int, Datagram]] = field(default_factory=dict)  # sample -> datagram index -> datagram
+    _last_counter: int | None = None  # of the newest sample put together
 
     def open(self) -> MvnReceiver:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -221,29 +230,55 @@ class MvnReceiver:
         try:
             datagram = parse_datagram(data)
             if datagram.message_type != POSE_QUATERNION:
-                self.stats.other_types += 1
+                if not datagram.message_type.isdigit():
+                    raise ProtocolError(f"MVN datagram of type {datagram.message_type!r}: not two digits")
+                self.stats.other_types[datagram.message_type] += 1
                 return None
-            key = (datagram.character, datagram.sample_counter)
-            parts = self._pending.setdefault(key, [])
-            parts.append(datagram)
-            if not datagram.last:
+            if self.character is None:
+                self.character = datagram.character
+            if datagram.character != self.character:
+                self.stats.other_characters[datagram.character] += int(datagram.last)
                 return None
-            del self._pending[key]
-            if sorted(p.datagram_index for p in parts) != list(range(len(parts))):
-                self.stats.incomplete += 1
-                self.stats.last_error = f"MVN sample {datagram.sample_counter}: datagrams missing, sample left out"
+            parts = self._assembled(datagram)
+            if parts is None:
                 return None
-            segments = [s for p in sorted(parts, key=lambda p: p.datagram_index) for s in parse_pose_items(p.payload)]
+            segments = [s for p in parts for s in parse_pose_items(p.payload)]
         except ProtocolError as error:
             self.stats.errors += 1
             self.stats.last_error = str(error)
             return None
-        for stale in [k for k in self._pending if k[0] == datagram.character and k[1] < datagram.sample_counter]:
-            del self._pending[stale]  # earlier samples whose last datagram never came
+        return self._pose(datagram, tuple(segments), host_time_ns)
+
+    def _assembled(self, datagram: Datagram) -> list[Datagram] | None:
+        """The sample's datagrams in order once all have come (None until then, or for one seen already)."""
+        counter, last = datagram.sample_counter, self._last_counter
+        if last is not None and last - PENDING_SAMPLES <= counter <= last:
+            # a datagram of a sample put together (or passed) already, or the whole sample again: the poses go
+            # out in counter order, a late one is left out (counted lost when its successor came)
+            self.stats.repeated += 1
+            return None
+        parts = self._pending.setdefault(counter, {})
+        if datagram.datagram_index in parts:
+            self.stats.repeated += 1
+            return None
+        parts[datagram.datagram_index] = datagram
+        final = next((p for p in parts.values() if p.last), None)
+        if final is None or len(parts) < final.datagram_index + 1:
+            return None
+        del self._pending[counter]
+        return [parts[k] for k in sorted(parts)]
+
+    def _pose(self, datagram: Datagram, segments: tuple[SegmentPose, ...], host_time_ns: int) -> Pose:
+        counter, last = datagram.sample_counter, self._last_counter
+        for stale in [k for k in self._pending if k < counter - PENDING_SAMPLES or k > counter + PENDING_SAMPLES]:
+            del self._pending[stale]  # samples a datagram of which never came
             self.stats.incomplete += 1
-        last = self._last_counter.get(datagram.character)
-        if last is not None and datagram.sample_counter > last + 1:
-            self.stats.samples_lost += datagram.sample_counter - last - 1
-        self._last_counter[datagram.character] = datagram.sample_counter
+            self.stats.last_error = f"MVN sample {stale}: a datagram never came, sample left out"
+        if last is not None and counter > last + 1:
+            self.stats.samples_lost += counter - last - 1
+        elif last is not None and counter < last:  # far back (near ones are left out as late): a new stream
+            self.stats.restarts += 1
+            self.stats.last_error = f"the MVN stream started again (sample {counter} after {last})"
+        self._last_counter = counter
         self.stats.poses += 1
-        return Pose(datagram.sample_counter, datagram.time_ms, datagram.character, host_time_ns, tuple(segments))
+        return Pose(counter, datagram.time_ms, datagram.character, host_time_ns, segments)

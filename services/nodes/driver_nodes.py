@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -388,37 +389,36 @@ def mvn_loop(
     status_interval_s: float = 1.0,
 ) -> LoopReport:
     """Publish the packs' segments of each MVN quaternion pose as IMU samples of trackers ``mvn-<MVN segment>``
-    (their ``segment`` the pack's name, e.g. upper_arm_r), until ``stop``/``duration_s``."""
+    (their ``segment`` the pack's name, e.g. upper_arm_r), until ``stop`` or ``duration_s`` of data."""
     report, stats = LoopReport(device="mvn"), receiver.stats
-    wanted = {mvn: pack for pack, mvn in MVN_PACK_SEGMENTS.items()}
-    last_pose, said_silent = time.monotonic(), False
+    watch = _MvnWatch(receiver, report)
+    deadline = _DataDeadline(duration_s)  # a suit may start streaming after the capture
 
     def publish_status(*, final: bool = False) -> None:
-        quiet = time.monotonic() - last_pose > MVN_SILENT_S
         status = device_status(
-            device_id="mvn", kind="mvn", connected=stats.poses > 0 and not quiet and not final,
-            received=stats.poses, lost=stats.samples_lost, errors=stats.errors + stats.incomplete,
-            last_error=stats.last_error,
+            device_id="mvn", kind="mvn", connected=watch.streaming and not final, received=stats.poses,
+            lost=stats.samples_lost, errors=stats.errors + stats.incomplete, last_error=stats.last_error,
         )  # fmt: skip
         sink(topics.status_key(session, "mvn"), status, status.host_time_ns, 0)
         report.messages += 1
 
-    deadline = None if duration_s is None else time.monotonic() + duration_s
     next_status = time.monotonic()
-    while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+    while not stop.is_set() and not deadline.passed():
         for pose in receiver.read(0.05):
-            last_pose, said_silent = time.monotonic(), False
+            deadline.data_came()
+            watch.pose()
             for segment in pose.segments:
-                if segment.name in wanted:
-                    sample = mvn_sample(pose, segment, wanted[segment.name])
-                    sink(topics.imu_key(session, sample.tracker_id), sample, pose.host_time_ns, sample.device_time_ns)
-                    report.messages += 1
-                    report.samples += 1
-        if not said_silent and time.monotonic() - last_pose > MVN_SILENT_S:
-            said_silent = True
-            stats.last_error = f"no MVN quaternion pose on UDP port {receiver.port} for {MVN_SILENT_S:g} s"
-            report.states.append("disconnected")
-            log.warning("%s (%d datagrams of other types)", stats.last_error, stats.other_types)
+                if segment.name not in MVN_SEGMENT_OF_PACK:
+                    continue
+                if not _unit_quaternion(segment.quaternion):
+                    stats.errors += 1
+                    stats.last_error = f"MVN sample {pose.sample_counter}: {segment.name}'s quaternion is not one"
+                    continue
+                sample = mvn_sample(pose, segment, MVN_SEGMENT_OF_PACK[segment.name])
+                sink(topics.imu_key(session, sample.tracker_id), sample, pose.host_time_ns, sample.device_time_ns)
+                report.messages += 1
+                report.samples += 1
+        watch.check()
         if time.monotonic() >= next_status:
             publish_status()
             next_status += status_interval_s
@@ -427,12 +427,62 @@ def mvn_loop(
     return report
 
 
+#: MVN's segment name -> the packs' segment it is
+MVN_SEGMENT_OF_PACK = {mvn: pack for pack, mvn in MVN_PACK_SEGMENTS.items()}
+
+
+def _unit_quaternion(q: tuple[float, float, float, float]) -> bool:
+    return abs(math.fsum(v * v for v in q) - 1.0) < 0.01  # NaN fails too
+
+
+class _MvnWatch:
+    """What an MVN stream's loop says on its own: a stream silent for MVN_SILENT_S (and when it comes back), other
+    message types only (a suit set to stream Euler poses), other characters left out."""
+
+    def __init__(self, receiver: MvnReceiver, report: LoopReport) -> None:
+        self.receiver, self.report = receiver, report
+        self.last_pose = time.monotonic()
+        self.silent = False
+        self.characters_said: set[int] = set()
+
+    @property
+    def streaming(self) -> bool:
+        return self.receiver.stats.poses > 0 and not self.silent
+
+    def pose(self) -> None:
+        self.last_pose = time.monotonic()
+        if self.silent:
+            self.silent = False
+            self.report.states.append("reconnected")
+
+    def check(self) -> None:
+        stats = self.receiver.stats
+        others = set(stats.other_characters) - self.characters_said
+        if others:
+            self.characters_said |= others
+            stats.last_error = (
+                f"MVN streams characters {sorted(self.characters_said)} besides {self.receiver.character}: left out "
+                f"(one athlete's segments follow character {self.receiver.character}, the first heard)"
+            )
+            log.warning("%s", stats.last_error)
+        if not self.silent and time.monotonic() - self.last_pose > MVN_SILENT_S:
+            self.silent = True
+            types = ", ".join(f"{n} of type {t}" for t, n in stats.other_types.most_common()) or "none"
+            stats.last_error = (
+                f"no MVN quaternion pose (type 02) on UDP {self.receiver.host}:{self.receiver.port} for "
+                f"{MVN_SILENT_S:g} s; datagrams of other types so far: {types}"
+            )
+            self.report.states.append("disconnected")
+            log.warning("%s", stats.last_error)
+
+
 def mvn_sample(pose: Pose, segment: SegmentPose, pack_segment: str) -> messages.ImuSample:
-    """One segment of an MVN pose as an IMU sample (MVN's global frame passed on as NWU; its time in ms)."""
+    """One segment of an MVN pose as an IMU sample (MVN's global frame passed on as NWU; its time in ms; the sample
+    counter's low 16 bits as the packet counter, as an Xbus tracker's, so that readers count gaps alike)."""
     sample = messages.ImuSample(
         tracker_id=f"mvn-{segment.name}" if pose.character == 0 else f"mvn{pose.character}-{segment.name}",
         segment=pack_segment,
-        packet_counter=pose.sample_counter & 0xFFFFFFFF,
+        packet_counter=pose.sample_counter & 0xFFFF,
         device_time_ns=pose.time_ms * 1_000_000,
         host_time_ns=pose.host_time_ns,
         coordinate_frame="NWU",

@@ -722,6 +722,20 @@ def _electrode_lines(summary: dict) -> list[str]:
     return lines
 
 
+def _troubles(summary: dict, name: str, *, alone: bool = False) -> str:
+    """What device ``name``'s statuses said went wrong (``; ...`` parts, "" for nothing): its connection losses
+    and, with them or errors, the problem it last reported. ``alone``: a device without a samples line of its own
+    (an MVN suit, whose samples are its segments'), whose samples lost and problem are said whatever."""
+    status = summary.get("devices", {}).get(name, {})
+    away, missing = int(status.get("disconnections", 0)), summary["samples_lost"].get(name, 0)
+    problem = status.get("problem") if (away or status.get("errors") or alone) else ""
+    return (
+        (f"; {missing} samples lost" if alone and missing else "")
+        + (f"; connection lost {away}x" if away else "")
+        + (f"; last said: {problem}" if problem else "")
+    )
+
+
 def summary_text(summary: dict) -> str:
     lines = [
         f"session of {summary['duration_s']:.1f} s"
@@ -729,13 +743,11 @@ def summary_text(summary: dict) -> str:
     ]
     for device, n in summary["samples"].items():
         name = device.split("/", 1)[1]
-        status = summary.get("devices", {}).get(name, {})
-        away = int(status.get("disconnections", 0))
-        lines.append(
-            f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost"
-            + (f"; connection lost {away}x" if away else "")
-            + (f"; last said: {status['problem']}" if (away or status.get("errors")) and status.get("problem") else "")
-        )
+        lines.append(f"  {device}: {n} samples, {summary['samples_lost'].get(name, 0)} lost{_troubles(summary, name)}")
+    shown = {device.split("/", 1)[1] for device in summary["samples"]}
+    for name in summary.get("devices", {}):  # a device whose samples are another's (an MVN suit's segments), or none
+        if name not in shown and (troubles := _troubles(summary, name, alone=True)):
+            lines.append(f"  {name}:{troubles.removeprefix(';')}")
     lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
     if summary.get("sets"):
         lines.append("  sets: " + "; ".join(set_summary(record) for record in summary["sets"]))
