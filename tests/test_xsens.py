@@ -279,8 +279,9 @@ def test_a_tracker_that_stops_streaming_is_lost_with_the_reason_and_the_others_r
         noticed_s = time.monotonic() - started
         later += read_for(trackers, count=20)
         trackers.close()
-    assert 0.5 <= noticed_s < 1.5, noticed_s
-    assert "no reading from tracker 00B41001 for" in trackers.disconnected["00B41001"]
+    assert noticed_s < 2.0, noticed_s  # its stall_s (0.5 s) after its last reading, which came before the silence
+    said = re.search(r"no reading from tracker 00B41001 for ([\d.]+) s", trackers.disconnected["00B41001"])
+    assert said is not None and float(said.group(1)) >= 0.5, trackers.disconnected
     assert "it stopped streaming" in trackers.disconnected["00B41001"]
     assert "00B41002" in {r.tracker_id for r in later[-20:]}
 
