@@ -418,7 +418,7 @@ def test_msk_capture_counts_its_duration_from_the_bases_first_data(tmp_path, cap
         assert main(["capture", *ports, "--duration", "2", "--out", str(tmp_path / "late.mcap")]) == 0
     said = capsys.readouterr().out
     covered = float(re.search(r"trigno: \d+ samples in \d+ messages, ([\d.]+) s of data", said).group(1))
-    assert covered >= 1.9 and "of the 2 s asked" not in said, said
+    assert covered >= 1.7 and "of the 2 s asked" not in said, said  # 0.5 s without the start delay counted
 
 
 def test_msk_capture_stopped_by_ctrl_c_ends_cleanly_with_its_summary(tmp_path):
