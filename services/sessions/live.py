@@ -751,6 +751,8 @@ def summary_text(summary: dict) -> str:
     lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
     if summary.get("sets"):
         lines.append("  sets: " + "; ".join(set_summary(record) for record in summary["sets"]))
+    if summary.get("reps_not_counted"):
+        lines.append(f"  reps not counted live: {summary['reps_not_counted']}")
     if summary.get("joint_frames_paused"):
         lines.append(
             f"  estimates paused for about {summary['joint_frames_paused']} joint frames: load events declared "
@@ -1108,6 +1110,11 @@ def run_graph(
         summary["router_restarts"] = running.router.restarts
     summary["joint_frames_paused"] = counts.paused_joints  # while load events declared another exercise
     summary["sets"] = counts.sets  # as msk live counted them (the view's and the report's rule)
+    if plan.subject is None:  # the live rep phase follows the profile's rep template
+        summary["reps_not_counted"] = (
+            "no subject profile: no rep template to follow the reps live (msk report counts them afterwards "
+            "from the joint angles)"
+        )
     # electrodes of the map the estimator never judged: no source streamed their channel (a sensor not paired, a typo)
     # (without a subject profile the estimator reads no EMG and judges none: nothing to say about them)
     judged = {name.split("/", 1)[-1] for name in summary.get("electrodes", {})}
