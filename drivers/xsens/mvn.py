@@ -50,6 +50,14 @@ PACK_SEGMENTS = {
 }
 
 
+def parse_address(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` -> (host, "" when none, port 0..65535); ValueError naming the expected form."""
+    host, _, port = text.rpartition(":")
+    if not port.isdigit() or not 0 <= int(port) < 65536:
+        raise ValueError('a UDP port, e.g. 9763, or "HOST:PORT"')
+    return host, int(port)
+
+
 @dataclass(frozen=True)
 class Datagram:
     """One datagram: its header fields and the raw items."""

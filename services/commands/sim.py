@@ -161,8 +161,11 @@ def run_mvn(args: argparse.Namespace) -> int:
     from drivers.xsens import mvn
     from msk_core.imu.mapping import mapping_for
 
-    host, _, port = args.to.rpartition(":")
-    if not host or not port.isdigit():
+    try:
+        host, port = mvn.parse_address(args.to)
+    except ValueError:
+        host = ""
+    if not host:
         raise ConfigError("HOST:PORT", field="--to", value=args.to)
     if not args.speed > 0:
         raise ConfigError("must be positive", field="--speed", value=args.speed)
@@ -181,7 +184,7 @@ def run_mvn(args: argparse.Namespace) -> int:
             due_ns = loop * period_ns + t_ns
             time.sleep(max(0.0, start + due_ns / 1e9 / args.speed - time.monotonic()))
             for datagram in mvn.encode_pose(sent, due_ns // 1_000_000, mvn.body_pose(orientations)):
-                sender.sendto(datagram, (host, int(port)))
+                sender.sendto(datagram, (host, port))
             sent += 1
     print(f"sent {sent} poses", file=sys.stderr)
     return 0

@@ -27,6 +27,7 @@ from drivers.xsens import xbus
 from drivers.xsens.device import RECONNECT_FAILED, ImuReading, TrackerSet
 from drivers.xsens.mvn import PACK_SEGMENTS as MVN_PACK_SEGMENTS
 from drivers.xsens.mvn import MvnReceiver, Pose, SegmentPose
+from drivers.xsens.mvn import parse_address as parse_mvn_address
 from services.transport import messages, topics, zenoh_session
 
 log = logging.getLogger(__name__)
@@ -373,10 +374,11 @@ def open_mvn(address: str) -> MvnReceiver:
     """A receiver listening on ``[HOST:]PORT`` (all interfaces without a host)."""
     from msk_core.errors import ConfigError
 
-    host, _, port = address.rpartition(":")
-    if not port.isdigit() or not 0 <= int(port) < 65536:
-        raise ConfigError("a UDP port, with a host to listen on before it or not", field="--mvn", value=address)
-    return MvnReceiver(host or "0.0.0.0", int(port)).open()
+    try:
+        host, port = parse_mvn_address(address)
+    except ValueError as error:
+        raise ConfigError(str(error), field="--mvn", value=address) from None
+    return MvnReceiver(host or "0.0.0.0", port).open()
 
 
 def mvn_loop(

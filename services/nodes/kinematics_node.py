@@ -301,12 +301,11 @@ class KinematicsNode:
         o = imu.orientation
         quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
         before = self.sync.out_of_order
-        time_ns = int(imu.device_time_ns)
+        time_ns, tracker = int(imu.device_time_ns), key.rsplit("/", 1)[1]
         if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
-            time_ns = self.host_clocks.to_host(key.rsplit("/", 1)[1], time_ns, int(imu.host_time_ns))
+            time_ns = self.host_clocks.to_host(tracker, time_ns, int(imu.host_time_ns))
         else:
-            self.device_trackers.add(key.rsplit("/", 1)[1])
-        tracker = key.rsplit("/", 1)[1]
+            self.device_trackers.add(tracker)
         counter, previous = int(imu.packet_counter), self._last_counter.get(tracker)
         self._last_counter[tracker] = counter
         # samples the tracker counted but that never came (lost between the device and its driver: a serial line,

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from drivers.trigno.protocol import N_SENSORS, AuxLayout
+from drivers.xsens.mvn import parse_address as parse_mvn_address
 from msk_core.errors import ConfigError
 from msk_core.io.files import toml_key_line
 from msk_core.signal.sets import DEFAULT_REST_S
@@ -311,9 +312,11 @@ def _parse_xsens(session: LiveSession, x: dict, path: Path | None, require_devic
         raise session_error(path, "xsens.ports", 'missing: the trackers\' serial ports, or ["usb"] (or mvn = PORT)')
     if "mvn" in x:  # a suit's network stream: a UDP port (9763 by default in MVN), or "HOST:PORT"
         mvn = str(x["mvn"]) if isinstance(x["mvn"], int) and not isinstance(x["mvn"], bool) else x["mvn"]
-        host, _, port = mvn.rpartition(":") if isinstance(mvn, str) else ("", "", "")
-        if not port.isdigit() or not 0 < int(port) < 65536:
-            raise session_error(path, "xsens.mvn", 'must be a UDP port, e.g. 9763, or "HOST:PORT"', x["mvn"])
+        try:
+            if not isinstance(mvn, str) or parse_mvn_address(mvn)[1] == 0:  # the suit is told where to send: no port 0
+                raise ValueError('a UDP port, e.g. 9763, or "HOST:PORT"')
+        except ValueError as error:
+            raise session_error(path, "xsens.mvn", f"must be {error}", x["mvn"]) from None
         given["xsens_mvn"] = mvn
     if "rate_hz" in x:
         given["imu_rate_hz"] = _int_within(
