@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import socket
 import struct
 import threading
@@ -218,6 +219,8 @@ def test_msk_live_estimates_a_bench_press_from_an_mvn_suit(tmp_path):
             r.decode() for r in read_messages(tmp_path / "out" / "session.mcap") if r.type_name == "msk.JointAngles"
         )
     ]
-    frames_so = sum(1 for r in read_messages(tmp_path / "out" / "session.mcap") if r.topic.endswith("/activations/so"))
-    assert len(elbow) > 500 and frames_so == len(elbow), (len(elbow), frames_so)
+    # every joint frame estimated, as the estimator counts them (the recorder may drop activation frames on a busy
+    # machine: they are newest-wins, services.transport.topics)
+    estimated = re.search(r"estimated (\d+) frames", (tmp_path / "out" / "logs" / "estimator.log").read_text())
+    assert estimated is not None and len(elbow) > 500 and int(estimated.group(1)) == len(elbow), (len(elbow), estimated)
     assert math.degrees(min(elbow)) < 25 and math.degrees(max(elbow)) > 115, (min(elbow), max(elbow))
