@@ -799,9 +799,8 @@ class TrignoClient:
             self._drain(self._link)  # frames sent before STOPPED are already here: deliver them first
         self._want_streaming = False
         self.state = ClientState.STOPPED
-        said = STOPPED_BY_SERVER
-        self.stats.last_error = said  # the status carries it: not an error of the link, but why the data ended
-        self._emit_status(ClientState.STOPPED, said)
+        self.stats.last_error = STOPPED_BY_SERVER  # the status carries it: not a link error, but why the data ended
+        self._emit_status(ClientState.STOPPED, STOPPED_BY_SERVER)
 
     def _report_gap(self, now: float, n_rows: int) -> None:
         # The first rows after the reconnection were sampled n_rows/rate before they arrived.

@@ -42,10 +42,10 @@ from services.transport.zenoh_session import (
     run_script,
 )
 
+log = logging.getLogger(__name__)
 #: How long a put may wait for a slow reader before Zenoh lets that reader go (its link closed): longer than a live
 #: node's 5 s, since a replay has no latency to keep. A reader far slower than the replay can still lose its link
 #: (docs/topics.md, "Known limit").
-log = logging.getLogger(__name__)
 REPLAY_BLOCK_CLOSE_S = 60.0
 
 
