@@ -95,15 +95,23 @@ def test_node_streams_envelopes_equal_to_the_offline_chain_and_assisted_frames(z
 
             wait_for_nodes(zsession, SESSION, graph.nodes, 30)
             publishers = {}
-            start_wall, start_log = time_module.monotonic(), inputs[0].log_time_ns
-            for recorded in inputs:  # paced at 4x real time: EMG and joints interleave as on a rig, not in a burst
-                delay = start_wall + (recorded.log_time_ns - start_log) / 4e9 - time_module.monotonic()
-                if delay > 0:
-                    time_module.sleep(delay)
+            for recorded in inputs:
                 key = topics.rename_session(recorded.topic, SESSION)
                 if key not in publishers:
                     publishers[key] = declare_data_publisher(zsession, key, recorded.type_name)
-                publishers[key].put(recorded.data)
+            # the EMG is on before the first joint frame, as on a rig whose base streams before the trackers: the
+            # frames after it must all carry it (a frame before any EMG is flagged stalled, by design)
+            first_emg = next(r for r in inputs if r.type_name == "msk.EmgChunk")
+            publishers[topics.rename_session(first_emg.topic, SESSION)].put(first_emg.data)
+            wait_for("the first EMG chunk", lambda: stats.emg_chunks == 1, lambda: f"{stats.emg_chunks} chunks", 30)
+            start_wall, start_log = time_module.monotonic(), inputs[0].log_time_ns
+            for recorded in inputs:  # paced at 4x real time: EMG and joints interleave as on a rig, not in a burst
+                if recorded is first_emg:
+                    continue
+                delay = start_wall + (recorded.log_time_ns - start_log) / 4e9 - time_module.monotonic()
+                if delay > 0:
+                    time_module.sleep(delay)
+                publishers[topics.rename_session(recorded.topic, SESSION)].put(recorded.data)
             wait_for(
                 "every envelope and frame",
                 lambda: len(envelopes) == len(chunks) and all(len(f) == n_joints for f in frames.values()),
