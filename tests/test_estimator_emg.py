@@ -34,10 +34,8 @@ STALL_S = 1.0  # generous: on a loaded 2-core machine delivery may pause for a f
 
 
 @pytest.fixture(scope="module")
-def profile_path(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("subject")
-    path, _ = demo_subject.calibrate(RECORDINGS, out, "bench_press", lambda _: None)
-    return path
+def profile_path() -> Path:
+    return demo_subject.sim_subject("bench_press", lambda _: None)  # msk live --sim's: calibrated once, cached
 
 
 def session_messages(until_s: float | None = None):

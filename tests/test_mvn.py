@@ -193,7 +193,7 @@ def test_msk_live_estimates_a_bench_press_from_an_mvn_suit(tmp_path):
     session.write_text(
         f'[session]\nname = "suit"\npack = "bench_press"\nload_kg = 50\nout = "out"\n\n[xsens]\nmvn = "127.0.0.1:{port}"\n'
     )
-    process = start_msk("live", str(session), "--no-view", "--duration", "16", "--listen", free_loopback_endpoint(),
+    process = start_msk("live", str(session), "--no-view", "--duration", "13", "--listen", free_loopback_endpoint(),
                         env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
     try:
         lines: list[str] = []

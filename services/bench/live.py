@@ -210,14 +210,13 @@ def _assisted_result(name: str, rmse: dict[str, float], details: dict[str, float
 
 
 def run(quick: bool = False) -> list[BenchResult]:
-    seconds = 4.0 if quick else 20.0
+    seconds = 2.0 if quick else 20.0
     inputs = session_slice(seconds)
-    with tempfile.TemporaryDirectory() as tmp:
-        subject, _ = demo_subject.calibrate(demo_subject.RECORDINGS, Path(tmp), "bench_press", lambda _: None)
-        full = run_node(subject, ALL_METHODS, True, inputs, rate=1.0)
-        base = run_node(subject, ("so",), False, inputs, rate=1.0)
-        fast = run_node(subject, ALL_METHODS, True, inputs, rate=None)
-        fast_base = run_node(subject, ("so",), False, inputs, rate=None)
+    subject = demo_subject.sim_subject("bench_press", lambda _: None)  # msk live --sim's: calibrated once, cached
+    full = run_node(subject, ALL_METHODS, True, inputs, rate=1.0)
+    base = run_node(subject, ("so",), False, inputs, rate=1.0)
+    fast = run_node(subject, ALL_METHODS, True, inputs, rate=None)
+    fast_base = run_node(subject, ("so",), False, inputs, rate=None)
     return [
         BenchResult(
             "latency p99, real time, 4 methods + EMG",
