@@ -597,3 +597,41 @@ def test_host_clock_syncs_trackers_whose_device_clocks_differ(zenoh_endpoint, cl
         assert stats.frames_synced == 0 and stats.frames_incomplete > n // 2
     else:
         assert stats.frames_synced >= n - 2 and stats.frames_incomplete <= 2, stats
+
+
+def test_a_tracker_clock_that_counts_again_is_a_new_set_mapped_at_once():
+    """Found with an independent MVN suit imitation: a stream started again (its time and counter back to 0 after a
+    2 s pause) gave no joint frame for 5-7 s, as the host mapping held the old clock's offset for its window, then a
+    calibration taken mid-rep. Now the mapping starts anew with the clock, the pause is a new set (the trackers may
+    have been put on again: not 'lost on their way', whatever the counter says) calibrated on its first still pose,
+    and the joint frames come back within the calibration's time."""
+    node = kinematics_node.KinematicsNode(
+        kinematics_node.KinematicsSettings(pack="bench_press", session="synth", static_s=0.2, clock="host"),
+        kinematics_node.KinematicsStats(),
+    )
+    mapper, period = node.mapper, 16_666_667
+    q0, bent = mapper.static_pose(), mapper.static_pose() + np.radians([10.0, 50.0])
+    host0 = 1_767_225_600 * 10**9
+    outs: list[tuple[int, messages.JointAngles]] = []
+
+    def send(k: int, device_k: int, q: np.ndarray) -> None:
+        for segment, rotation in mapper.segment_orientations(q).items():
+            w, x, y, z = rotation.as_quat(scalar_first=True)
+            sample = messages.ImuSample(
+                tracker_id=f"mvn-{segment}", segment=segment, packet_counter=device_k & 0xFFFF, coordinate_frame="ENU",
+                orientation=messages.Quaternion(w=w, x=x, y=y, z=z), device_time_ns=device_k * period,
+                host_time_ns=host0 + k * period + 1_000_000,
+            )  # fmt: skip
+            outs.extend((k, j) for j in node.handle(topics.imu_key("synth", f"mvn-{segment}"), sample))
+
+    for k in range(600):  # 10 s of a stream whose time began 600 s ago: still, then bent
+        send(k, 36_000 + k, q0 if k < 60 else bent)
+    restart = 600 + 120  # 2 s of silence, then the stream from time 0: still for 1 s, then bent
+    for k in range(restart, restart + 300):
+        send(k, k - restart, q0 if k < restart + 60 else bent)
+    stats = node.stats
+    assert (stats.restarts, stats.resumes, stats.calibrations) == (1, 0, 2), stats
+    after = [(k, j) for k, j in outs if k >= restart]
+    assert after and after[0][0] - restart <= 0.2 / (period / 1e9) + 2  # mapped at once: out after the static pose
+    assert all(abs(j.device_time_ns - (host0 + k * period)) < 5_000_000 for k, j in after)  # on the host clock
+    np.testing.assert_allclose(after[-1][1].q, bent, atol=np.radians(0.1))  # calibrated on the still start

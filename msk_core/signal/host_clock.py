@@ -11,8 +11,10 @@ The fastest delivery in the window bounds the offset from above; the device's st
 delivery no sample escapes: a Trigno base's buffering, a USB link's polling) is taken off, so that what is left is
 the host instant the sample was measured at, up to the fastest delivery's excess over the stated latency. The window
 (default :data:`WINDOW_S`, by receipt time) lets the mapping follow a device clock that drifts against the host's
-(tens of ppm: ms per minute) and recover, within the window, from a device clock that restarts (a power-cycled
-tracker) or a host clock that steps; a minimum over all time keeps an offset that no longer holds. A route that
+(tens of ppm: ms per minute) and recover, within the window, from a host clock that steps; a minimum over all time
+keeps an offset that no longer holds. A device clock that restarts (a power-cycled tracker, a Trigno's new
+acquisition, an MVN stream started again: its time back by more than :data:`RESTART_BACK_S`) starts the window anew
+at once: the old clock's samples would hold the offset of a clock that is gone for a whole window. A route that
 becomes slower for good (a busier hub) reads as a longer latency: the mapping moves by as much, as with a wrong
 stated latency.
 
@@ -37,6 +39,9 @@ import numpy as np
 from msk_core.errors import ConfigError
 
 WINDOW_S = 5.0  # long enough to hold a fast delivery every few seconds, short enough to follow drift (ms per minute)
+#: A device time this far behind the stream's newest is its clock counting again (a device never goes back; samples
+#: of one stream arrive in order, give or take a reordered datagram's milliseconds)
+RESTART_BACK_S = 1.0
 SPREAD_PERCENTILE = 95.0
 
 METHOD_ARRIVAL = "arrival"  # offset from the host's receipt times (this module)
@@ -126,10 +131,20 @@ class HostClock:
         self._window: deque[tuple[int, int]] = deque()  # (receipt, receipt - device time), in receipt order
         self._minimum: deque[tuple[int, int]] = deque()  # increasing delays: the window's minimum first
         self._newest_ns: int | None = None
+        self._newest_device_ns: int | None = None
+        self.restarts = 0  # times the device clock counted again (:data:`RESTART_BACK_S`)
 
     def add(self, device_ns: int, receipt_ns: int) -> None:
         """One sample (a block's last one) with device time ``device_ns`` received by the host at ``receipt_ns``."""
         receipt_ns, delay = int(receipt_ns), int(receipt_ns) - int(device_ns)
+        if self._newest_device_ns is not None and device_ns < self._newest_device_ns - RESTART_BACK_S * 1e9:
+            self.restarts += 1  # the device clock counts again: the window's offsets belong to the clock that was
+            self._window.clear()
+            self._minimum.clear()
+            self._newest_device_ns = None
+        self._newest_device_ns = (
+            int(device_ns) if self._newest_device_ns is None else max(self._newest_device_ns, int(device_ns))
+        )
         self._newest_ns = receipt_ns if self._newest_ns is None else max(self._newest_ns, receipt_ns)
         self._window.append((receipt_ns, delay))
         while self._minimum and self._minimum[-1][1] >= delay:
@@ -212,8 +227,8 @@ class DeviceClocks:
 
 def windowed_offsets(device_ns, receipt_ns, *, latency_ns: int = 0, window_s: float = WINDOW_S) -> np.ndarray:
     """:class:`HostClock`'s offset after each sample of a whole stream at once (receipt times non-decreasing): per
-    sample i, the smallest (receipt - device time) of the samples j <= i received no more than the window before it,
-    minus the latency."""
+    sample i, the smallest (receipt - device time) of the samples j <= i received no more than the window before it
+    and since the device clock last counted again (:data:`RESTART_BACK_S`), minus the latency."""
     device = np.asarray(device_ns, dtype=np.int64)
     receipt = np.asarray(receipt_ns, dtype=np.int64)
     if device.shape != receipt.shape or device.ndim != 1:
@@ -228,7 +243,9 @@ def windowed_offsets(device_ns, receipt_ns, *, latency_ns: int = 0, window_s: fl
         )
     latency_ns = check_latency_ns(latency_ns)
     delay = receipt - device
-    first = np.searchsorted(receipt, receipt - int(round(window_s * 1e9)), side="left")
+    first = np.maximum(
+        np.searchsorted(receipt, receipt - int(round(window_s * 1e9)), side="left"), _clock_starts(device)
+    )
     # range minimum over [first[i], i] from a sparse table of minimums over runs of 2^k samples
     table = [delay]
     while 2 ** len(table) <= len(delay):
@@ -242,3 +259,20 @@ def windowed_offsets(device_ns, receipt_ns, *, latency_ns: int = 0, window_s: fl
         rows = level == k
         out[rows] = np.minimum(table[k][first[rows]], table[k][index[rows] - 2**k + 1])
     return out - latency_ns
+
+
+def _clock_starts(device: np.ndarray) -> np.ndarray:
+    """Per sample, the index where its device clock's count began: 0, or the latest sample whose time was more than
+    :data:`RESTART_BACK_S` behind the newest before it since the previous such start (:meth:`HostClock.add`)."""
+    starts = np.zeros(len(device), dtype=np.int64)
+    begin, back_ns = 0, RESTART_BACK_S * 1e9
+    while begin < len(device):
+        newest_before = np.maximum.accumulate(device[begin:])[:-1]
+        restarted = np.flatnonzero(device[begin + 1 :] < newest_before - back_ns)
+        if restarted.size == 0:
+            starts[begin:] = begin
+            break
+        nxt = begin + 1 + int(restarted[0])
+        starts[begin:nxt] = begin
+        begin = nxt
+    return starts

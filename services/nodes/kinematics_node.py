@@ -34,6 +34,7 @@ from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJ
 from msk_core.model import load_pack
 from msk_core.signal.host_clock import (
     METHOD_DEVICE,
+    RESTART_BACK_S,
     WINDOW_S,
     ClockReport,
     DeviceClocks,
@@ -261,6 +262,7 @@ class KinematicsNode:
         )
         self.needed = set(self.mapper.segments)
         self._last_counter: dict[str, int] = {}  # per tracker, the packet counter of its newest sample
+        self._newest_device_ns: dict[str, int] = {}  # per tracker, its newest device time since its clock started
         self._first_instant_ns: int | None = None  # of the first instant synchronised, complete or not
         self._incomplete_said = False  # an incomplete instant is logged as an error once, after start-up's grace
         self.coordinates = list(self.mapper.coordinates)
@@ -302,6 +304,10 @@ class KinematicsNode:
         quat = np.array(to_enu((o.w, o.x, o.y, o.z), frame))
         before = self.sync.out_of_order
         time_ns, tracker = int(imu.device_time_ns), key.rsplit("/", 1)[1]
+        newest = self._newest_device_ns.get(tracker)
+        # the tracker's clock counting again (power cycle, a stream started again): a new start, whatever its counter
+        clock_restarted = newest is not None and time_ns < newest - RESTART_BACK_S * 1e9
+        self._newest_device_ns[tracker] = time_ns if newest is None or clock_restarted else max(newest, time_ns)
         if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
             time_ns = self.host_clocks.to_host(tracker, time_ns, int(imu.host_time_ns))
         else:
@@ -311,7 +317,7 @@ class KinematicsNode:
         # samples the tracker counted but that never came (lost between the device and its driver: a serial line,
         # an MVN suit's network): the set goes on as for publications lost on their way
         skipped = 0 if previous is None else (counter - previous - 1) & 0xFFFF
-        if missed or 0 < skipped < COUNTER_GAP_LIMIT:
+        if not clock_restarted and (missed or 0 < skipped < COUNTER_GAP_LIMIT):
             self.kinematics.lost_before(time_ns)
         events = self.sync.push(segment, time_ns, quat)
         stats.out_of_order += self.sync.out_of_order - before
