@@ -285,3 +285,16 @@ def test_calibrating_trials_without_emg_says_so_before_the_delay_and_points_to_s
         said = capsys.readouterr().err
         assert rc != 0 and "calibration needs EMG, and no trial has any (arm26)" in said, said
         assert "msk estimate --method so" in said and "EMD" not in said
+
+
+@pytest.mark.parametrize("command", ["calibrate", "estimate"])
+def test_an_out_that_is_a_folder_is_refused_before_the_work(command, arm26_trials, tmp_path, capsys):
+    """Found by a new user's walk: `msk calibrate --out FOLDER` ran the whole calibration, then failed on a hidden
+    temporary file. Both commands now refuse it first, naming --out and a file name to give."""
+    folder = tmp_path / "profiles"
+    folder.mkdir()
+    extra = ["--method", "so"] if command == "estimate" else []
+    rc = _msk_arm26(command, str(arm26_trials["plain"]), *extra, "--out", str(folder))
+    err = capsys.readouterr()
+    assert rc == 2 and "field '--out': is a folder" in err.err and str(folder) in err.err, err
+    assert err.out == "" and list(folder.iterdir()) == []  # nothing was computed, nothing written

@@ -114,6 +114,17 @@ def test_leave_out_refuses_a_group_without_an_electrode(shared_dir, tmp_path, ca
     assert "psoas_r" in err and "iliocost_r" in err  # names the group and the ones that can be left out
 
 
+def test_leave_out_refuses_a_held_out_trial_that_is_also_a_training_trial(shared_dir, tmp_path, capsys):
+    """Found by a new user's walk: the same trial as --train and --trial gave "target met" verdicts on in-sample
+    data, where `msk discrepancy` refuses it; both now refuse it alike, before any calibration."""
+    squat = str(_trial("squat5kg", shared_dir, tmp_path))
+    argv = ["evaluate", "--pack", "lumbar_lift", "--report", str(tmp_path / "r"), "--leave-out", "all"]
+    assert main([*argv, "--train", squat, "--trial", squat]) == 2
+    err = capsys.readouterr().err
+    assert "field '--trial'" in err and "must not also be a training trial" in err and squat in err, err
+    assert not (tmp_path / "r").exists()
+
+
 def test_no_emg_strength_measured_puts_unmeasured_groups_on_the_measured_scale(shared_dir, tmp_path):
     """``--no-emg-strength measured``: the groups without EMG take the geometric median of the measured groups'
     calibrated factors, and their minimal-effort prior is re-derived at those strengths (lower here: the extensors'

@@ -42,6 +42,14 @@ def _trial(tmp_path: Path, swap: tuple[tuple[str, str], ...] = (), **files: Path
     return path
 
 
+def _training_copy(tmp_path: Path) -> Path:
+    """The demo trial as another file and name, for --train beside it held out (one file as both is refused)."""
+    path = tmp_path / "train" / "trial.toml"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(_trial(tmp_path).read_text().replace('name = "bench_press_40kg"', 'name = "training"'))
+    return path
+
+
 def _write_like(source: Path, out: Path, time: np.ndarray, data: np.ndarray, in_degrees: bool = False) -> Path:
     storage = read_sto(source)
     write_sto(out, time, list(storage.columns), data, name="edited", in_degrees=in_degrees)
@@ -126,7 +134,15 @@ def test_frames_beyond_a_short_torque_file_are_said_by_the_commands(tmp_path, pa
 def test_a_report_folder_that_is_a_file_is_refused_before_the_work(tmp_path, capsys):
     taken = tmp_path / "report"
     taken.write_text("not a folder")
-    argv = ["evaluate", "--pack", "bench_press", "--train", str(_trial(tmp_path)), "--trial", str(_trial(tmp_path))]
+    argv = [
+        "evaluate",
+        "--pack",
+        "bench_press",
+        "--train",
+        str(_training_copy(tmp_path)),
+        "--trial",
+        str(_trial(tmp_path)),
+    ]
     assert cli.main([*argv, "--leave-out", "all", "--report", str(taken)]) == 2
     assert "field '--report': is a file, not a folder" in capsys.readouterr().err
 
@@ -269,7 +285,8 @@ def test_two_trials_of_one_name_are_refused_before_their_reports_overwrite_each_
     second = tmp_path / "again" / "trial.toml"
     second.parent.mkdir()
     second.write_text(first.read_text())
-    argv = ["evaluate", "--pack", "bench_press", "--train", str(first), "--trial", str(first), "--trial", str(second)]
+    argv = ["evaluate", "--pack", "bench_press", "--train", str(_training_copy(tmp_path)), "--trial", str(first)]
+    argv += ["--trial", str(second)]
     assert cli.main([*argv, "--leave-out", "all", "--report", str(tmp_path / "report")]) == 2
     said = capsys.readouterr().err
     assert f"two trials are named 'bench_press_40kg' ({first} and {second})" in said, said
@@ -286,3 +303,38 @@ def test_a_folder_of_unnamed_trial_files_names_each_after_its_folder(tmp_path, p
         (tmp_path / "trials" / folder).mkdir(parents=True)
         (tmp_path / "trials" / folder / "trial.toml").write_text(text)
     assert sorted(t.name for t in load_trials([tmp_path / "trials"], pack)) == ["monday", "tuesday"]
+
+
+@pytest.mark.parametrize(
+    "column, values, refused",
+    [("pelvis_tilt", (0.0, 1.13), "pelvis_tilt spans 64.7 deg"), ("pelvis_tx", (0.0, 0.05), None)],
+)
+def test_without_a_torques_file_a_moving_pelvis_is_refused_a_still_one_is_not(tmp_path, pack, column, values, refused):
+    """Found by a new user's walk through the offline commands: a stoop without its `torques` line got L5/S1 torques
+    of half the recorded ones, printed as "flagged: none": the pack's inverse dynamics holds the pelvis fixed and
+    upright. A pelvis that turns (here 64.7 deg) or moves (> 0.1 m) within the trial is now refused naming the file,
+    the column and its span; one that stays (5 cm) is used as before."""
+    kin = read_sto(DEMO / "ik.sto")
+    pelvis = np.linspace(*values, kin.n_rows)[:, None]
+    moved = tmp_path / "ik_pelvis.sto"
+    write_sto(moved, kin.time, [*kin.columns, column], np.hstack([kin.data, pelvis]), name="edited")
+    without = _trial(tmp_path, (('torques = "' + str(DEMO / "id.sto") + '"\n', ""),), kinematics=moved)
+    if refused is None:
+        assert load_trial(without, pack).torque_source == "inverse_dynamics"
+        return
+    with pytest.raises(ConfigError) as error:
+        load_trial(without, pack)
+    assert error.value.field == "torques" and str(moved) in str(error.value) and refused in str(error.value)
+    assert load_trial(_trial(tmp_path, kinematics=moved), pack) is not None  # with its torques file: as before
+
+
+def test_more_phase_bins_than_a_rep_has_frames_are_refused(tmp_path, capsys):
+    """Found by a new user's walk: `--bins 100000` on 405 frames wrote a 52 MB profile whose prior was its empty
+    bins' fill (worse held out), without a word. More bins than the longest rep has frames is now refused before the
+    calibration, naming how many the reps allow."""
+    out = tmp_path / "s.json"
+    argv = ["calibrate", "--pack", "bench_press", "--trial", str(_trial(tmp_path)), "--emd", "0"]
+    assert cli.main([*argv, "--bins", "100000", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "field 'bins': 100000 phase bins, but the longest of the" in err and "choose at most" in err, err
+    assert not out.exists()

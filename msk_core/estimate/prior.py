@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from msk_core.errors import EstimationError
+from msk_core.errors import ConfigError, EstimationError
 from msk_core.units import GRAVITY
 
 # Groups without EMG: the prior must not pretend to know them. A zero mean with sigma 0.5 is a weak pull towards
@@ -320,8 +320,15 @@ def fit_phase_prior(
     rest_std = np.full(n_groups, NO_EMG_STD)
     if not np.any(in_rep):
         raise EstimationError("no repetition found: cannot build a phase prior")
+    reps, rep_frames = np.unique(rep_index[in_rep], return_counts=True)
+    if n_bins > rep_frames.max():  # every rep would leave bins empty: a prior made of its neighbours' fill
+        raise ConfigError(
+            f"{n_bins} phase bins, but the longest of the {len(reps)} repetitions has {int(rep_frames.max())} frames: "
+            f"choose at most {int(rep_frames.min())} bins (each rep then has a frame in every bin; default 20)",
+            field="bins",
+            value=n_bins,
+        )
     bins = phase_bins(phases, n_bins)
-    reps = np.unique(rep_index[in_rep])
     for g, name in enumerate(groups):
         if name not in emg:
             continue

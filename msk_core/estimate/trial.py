@@ -354,10 +354,49 @@ def _check_within_ranges(kin: Storage, q: np.ndarray, coords: list[str], pack: P
     )
 
 
+#: The model's root (OpenSim's pelvis free joint) columns of a kinematics file: rotations (deg or rad as the file
+#: says) and translations (m)
+ROOT_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")
+ROOT_TRANSLATIONS = ("pelvis_tx", "pelvis_ty", "pelvis_tz")
+#: A root that turns or moves this much within the trial is not the fixed, upright root of the pack's dynamics
+ROOT_MAX_TURN_DEG = 5.0
+ROOT_MAX_MOVE_M = 0.10
+
+
+def _check_root_still(trial: _TrialFile, kin: _Kinematics) -> None:
+    """Refuse to compute a trial's torques with the pack's inverse dynamics when its kinematics move the model's root:
+    the pack holds the pelvis fixed and upright (its dynamics are rooted at the ground) and knows no ground reaction
+    force, so a stoop whose pelvis tilts 65 deg got an L5/S1 torque of half the recorded one, without a word."""
+    storage, rows = kin.storage, kin.selected
+    moved = []
+    for name in ROOT_ROTATIONS:
+        if storage.has_column(name):
+            values = storage.column(name)[rows]
+            span = float(np.ptp(values if storage.in_degrees else np.degrees(values))) if values.size else 0.0
+            if span > ROOT_MAX_TURN_DEG:
+                moved.append(f"{name} spans {span:.1f} deg")
+    for name in ROOT_TRANSLATIONS:
+        if storage.has_column(name):
+            values = storage.column(name)[rows]
+            span = float(np.ptp(values)) if values.size else 0.0
+            if span > ROOT_MAX_MOVE_M:
+                moved.append(f"{name} spans {span:.2f} m")
+    if moved:
+        raise trial.err(
+            f"no torques file, and the pack's inverse dynamics cannot stand in for one here: in {storage.path} the "
+            f"pelvis moves by more than {ROOT_MAX_TURN_DEG:g} deg or {ROOT_MAX_MOVE_M:g} m ({'; '.join(moved)}), "
+            "where the pack holds it fixed and upright, with no ground reaction force. Give the trial's inverse "
+            "dynamics as torques (e.g. OpenSim's, with its external loads)",
+            "torques",
+            None,
+        )
+
+
 def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin: _Kinematics):
     """(torques, frames kept of the kinematics window, torque source, frames dropped); trims ``kin`` to the kept frames."""
     coords = list(pack.coordinates)
     if "torques" not in trial.spec:
+        _check_root_still(trial, kin)
         hand = options.load_kg * GRAVITY
         # the one rule for poses outside the fitted ranges, as the estimator applies it: clamped within the tolerance
         # (a tutorial motion starting 0.1 deg below the range was refused here), no torque further out

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from msk_core.errors import ConfigError, InputError
+from msk_core.errors import ConfigError
 from services.commands.progress import ProgressBar
 
 
@@ -51,20 +51,12 @@ def run_discrepancy_command(args: argparse.Namespace) -> int:
     from msk_core.discrepancy.workflow import run_discrepancy
     from msk_core.estimate.profile import SubjectProfile
     from msk_core.model import load_pack
-    from services.commands.estimate import load_trials, output_folder
+    from services.commands.estimate import load_trials, output_folder, refuse_in_sample
     from services.surfaces.reports.discrepancy import consistency_sentences, write_report
 
     if args.max_effects < 1:
         raise ConfigError("must be >= 1", field="--max-effects", value=args.max_effects)
-    train_paths = [p.resolve() for p in args.trial]
-    for p in args.holdout:
-        if p.resolve() in train_paths:
-            raise InputError(
-                "a held-out trial must not also be a training trial (the score would not be held out)",
-                path=p,
-                field="--holdout",
-                value=str(p),
-            )
+    refuse_in_sample(args.trial, args.holdout, "--holdout")
     pack = load_pack(args.pack)
     profile = SubjectProfile.load(args.subject)
     train, holdout = load_trials(args.trial, pack), load_trials(args.holdout, pack)

@@ -263,6 +263,21 @@ def output_folder(path: Path, flag: str) -> Path:
     return path
 
 
+def output_file(path: Path, flag: str, example: str) -> Path:
+    """``path``'s folder made before the work that writes it: a :class:`ConfigError` naming ``flag`` when ``path``
+    is a folder (it was found only after the calibration, as an error about a hidden temporary file) or its folder
+    cannot be made."""
+    if path.is_dir():
+        raise ConfigError(f"is a folder: name the file to write, e.g. {path / example}", field=flag, value=str(path))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ConfigError("its folder is a file", field=flag, value=str(path)) from None
+    except OSError as error:
+        raise ConfigError(f"cannot make its folder: {error.strerror}", field=flag, value=str(path)) from None
+    return path
+
+
 def load_trials(paths: list[Path], pack) -> list:
     """The trials of ``paths`` (a folder: every ``trial.toml`` under it), saying on stderr what loading left out of
     each (frames beyond the torque file, EMG not measured): a user should not find it only in the numbers."""
@@ -294,8 +309,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     options = calibration_options(args)
     pack = _pack(args.pack)
+    output_file(args.out, "--out", "subject.json")  # before the calibration's minutes, as msk estimate does
     trials = load_trials(args.trial, pack)
-    args.out.parent.mkdir(parents=True, exist_ok=True)  # before the calibration's minutes, as msk estimate does
     print(
         f"calibrating {pack.name} v{pack.version} on {sum(t.n_frames for t in trials)} frames "
         f"of {len(trials)} trial(s)"
@@ -352,11 +367,11 @@ def run_estimate(args: argparse.Namespace) -> int:
         raise ConfigError(f"method {args.method!r} needs --subject (a calibrated profile)", field="--subject")
     if args.trial.is_dir():
         raise ConfigError("msk estimate takes one trial file, not a folder", field="--trial", value=str(args.trial))
+    output_file(args.out, "--out", "activations.sto")
     (trial,) = load_trials([args.trial], pack)
     run = estimate_trial(
         pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False), **estimator_options(args, pack)
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_sto(args.out, run.time, run.groups, run.activations, name=f"activations_{run.method}")
     torque_path = args.out.with_name(f"{args.out.stem}_torques.sto")
     cols, data = [], []
@@ -398,6 +413,20 @@ def run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def refuse_in_sample(training: list[Path], held_out: list[Path], field: str) -> None:
+    """A held-out trial that is also a training trial: :class:`InputError` naming it and ``field`` (its score would
+    be an in-sample one reported as held out)."""
+    train_paths = [p.resolve() for p in training]
+    for p in held_out:
+        if p.resolve() in train_paths:
+            raise InputError(
+                "a held-out trial must not also be a training trial (the score would not be held out)",
+                path=p,
+                field=field,
+                value=str(p),
+            )
+
+
 def run_leave_out(args: argparse.Namespace) -> int:
     """``msk evaluate --leave-out``: calibrations without each electrode in turn, scored on the held-out trials."""
     from msk_core.estimate.leave_out import leave_one_out
@@ -409,6 +438,7 @@ def run_leave_out(args: argparse.Namespace) -> int:
         )
     if not args.train:
         raise ConfigError("--leave-out needs training trials (--train)", field="--train")
+    refuse_in_sample(args.train, args.trial, "--trial")
     names = [n.strip() for item in args.leave_out for n in item.split(",") if n.strip()]
     if not names:
         raise ConfigError("expected all or group names", field="--leave-out", value=args.leave_out)
