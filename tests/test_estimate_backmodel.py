@@ -74,6 +74,9 @@ def test_proposed_beats_so_and_prior_alone_on_held_out_technique(shared_dir, tmp
     )
     assert rmse["proposed"] < rmse["so"]
     assert rmse["proposed"] < rmse["prior"]
+    # docs/estimation.md's table (0.0226 / 0.0224): a change that moves it past this is said there (26 Nov's moved
+    # it from 0.0204 / 0.0213 and the table did not follow)
+    assert rmse["proposed"] < 0.0235, rmse
     assert torque["r"] >= 0.95
     assert np.isfinite(torque["rmse_nm_per_kg"])
     assert all(not s["flag_counts"].get("solver_failed") for s in scores.values())
