@@ -76,6 +76,9 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
     text = (report / "report.md").read_text()
     assert "## Left out" in text and "paper's protocol" in text and all(g in text for g in LEFT_OUT)
     assert "## Against the delay-aligned envelope" in text
+    # the lifts' calibrations find no delay: one sentence, not the scores above again under another title
+    assert "No calibration found an electromechanical delay (0 ms in every run)" in text
+    assert text.count("Medians over the left-out groups") == 1, text
     r_groups = summary["targets"]["r_groups"]
     assert f"paired over the {r_groups} groups where both have an r" in text  # the r target's comparison, said
     # a lag is said only where the curves correlate and not at the edge of the lags searched; a constant so has no r

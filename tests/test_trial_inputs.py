@@ -338,3 +338,17 @@ def test_more_phase_bins_than_a_rep_has_frames_are_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "field 'bins': 100000 phase bins, but the longest of the" in err and "choose at most" in err, err
     assert not out.exists()
+
+
+def test_plots_of_trials_on_epoch_seconds_count_from_the_trials_start():
+    """Found by a new user's walk: the evaluation plots of the real lifts (files on Unix epoch seconds) read
+    "+1.6673156e9" under their time axis. They now count seconds from the trial's first frame and say its UTC time;
+    files on seconds from their start keep their own axis."""
+    from services.surfaces.reports.evaluation import time_axis
+
+    axis, label = time_axis(np.array([1_667_315_607.25, 1_667_315_608.5]))
+    np.testing.assert_allclose(axis, [0.0, 1.25])
+    assert label == "time (s) from 2022-11-01 15:13:27 UTC (the files' clock)"
+    axis, label = time_axis(np.array([12.0, 13.0]))
+    np.testing.assert_array_equal(axis, [12.0, 13.0])
+    assert label == "time in the trial's files (s)"

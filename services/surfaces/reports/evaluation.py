@@ -4,6 +4,7 @@ plot per left-out group from :mod:`msk_core.estimate.leave_out`."""
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +49,7 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
     the trial needs to show each rep (1 inch per 1.5 s, 10 to 30 inches), legends under the axes."""
     plt = pyplot()
     written = []
-    t = trial.time
+    t, time_label = time_axis(trial.time)
     width = float(np.clip((t[-1] - t[0]) / 1.5, 10.0, 30.0)) if t.size else 10.0
     prior_mu, prior_sd = prior_band(trial, subject)
     groups = list(subject.groups)
@@ -67,7 +68,7 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
             if (trial.name, method) in runs:
                 ax.plot(t, runs[(trial.name, method)].activations[:, j], style, lw=1.2, label=method)
         ax.set_title(f"{trial.name}: {g}")
-        ax.set_xlabel("time in the trial's files (s)")
+        ax.set_xlabel(time_label)
         ax.set_ylabel("activation")
         ax.set_ylim(bottom=0)
         ax.set_xlim(t[0], t[-1])
@@ -84,9 +85,22 @@ def plot_trial(trial: TrialData, runs: dict[tuple[str, str], TrialEstimate], sub
         ax[k, 0].set_title(f"{trial.name}: {c} torque (N·m)")
         ax[k, 0].set_xlim(t[0], t[-1])
         ax[k, 0].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
-    ax[-1, 0].set_xlabel("time in the trial's files (s)")
+    ax[-1, 0].set_xlabel(time_label)
     written.append(save_figure(fig, out / f"{trial.name}_torque.png", dpi=80))
     return written
+
+
+#: File times beyond this are Unix epoch seconds (a recording's clock), not seconds from the recording's start
+EPOCH_TIME_S = 1e8
+
+
+def time_axis(time: np.ndarray) -> tuple[np.ndarray, str]:
+    """A trial's times for a plot's axis and its label: the file's own seconds, or, for Unix epoch seconds (which
+    matplotlib shows as offsets like +1.667e9), seconds from the trial's first frame with its UTC clock time."""
+    if not time.size or abs(float(time[0])) < EPOCH_TIME_S:
+        return time, "time in the trial's files (s)"
+    start = datetime.fromtimestamp(float(time[0]), tz=UTC)
+    return time - time[0], f"time (s) from {start:%Y-%m-%d %H:%M:%S} UTC (the files' clock)"
 
 
 def _trial_label(path: Path) -> str:
@@ -261,7 +275,9 @@ def plot_leave_out_group(result: LeaveOutResult, group: str, out: Path) -> Path:
     plt = pyplot()
     curves = result.curves[group]
     x = 100.0 * np.linspace(0.0, 1.0, curves["envelope"].mean.size)
-    fig, ax = plt.subplots(figsize=(8, 3.6))
+    aligned = curves.get("envelope_aligned")
+    delayed = aligned is not None and not np.allclose(aligned.mean, curves["envelope"].mean, equal_nan=True)
+    fig, ax = plt.subplots(figsize=(8, 4.6))
     styles = {
         "envelope": ("k", "-", "measured envelope"),
         "envelope_aligned": ("0.45", "--", "envelope delayed by the calibrated delay"),
@@ -274,23 +290,58 @@ def plot_leave_out_group(result: LeaveOutResult, group: str, out: Path) -> Path:
     }
     for key, (color, ls, label) in styles.items():
         c = curves.get(key)
-        if c is None or c.reps == 0:
+        if c is None or c.reps == 0 or (key == "envelope_aligned" and not delayed):  # no delay: the same curve
             continue
         if key in ("envelope", "proposed", "assisted", "so"):
             ax.fill_between(x, c.mean - c.std, c.mean + c.std, color=color, alpha=0.12, lw=0)
         ax.plot(x, c.mean, color=color, ls=ls, lw=2.0 if key == "envelope" else 1.3, label=label)
     s = result.leave_one_out[group]
-    ax.set_title(
+    title = (
         f"{group} without its electrode: RMSE proposed {s['proposed'].rmse:.3f}, assisted {s['assisted'].rmse:.3f}, "
-        f"so {s['so'].rmse:.3f} ({curves['envelope'].reps} reps)\nagainst the delayed envelope: proposed "
-        f"{s['proposed'].rmse_aligned:.3f}, assisted {s['assisted'].rmse_aligned:.3f}, so {s['so'].rmse_aligned:.3f}",
-        fontsize=9,
+        f"so {s['so'].rmse:.3f} ({curves['envelope'].reps} reps)"
     )
+    if delayed:
+        title += (
+            f"\nagainst the delayed envelope: proposed {s['proposed'].rmse_aligned:.3f}, "
+            f"assisted {s['assisted'].rmse_aligned:.3f}, so {s['so'].rmse_aligned:.3f}"
+        )
+    ax.set_title(title, fontsize=9)
     ax.set_xlabel("repetition (%)")
     ax.set_ylabel("activation (mean ± sd over reps)")
     ax.set_ylim(bottom=0)
-    ax.legend(fontsize=7, ncol=2, loc="upper right")
+    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)  # off the curves
     return save_figure(fig, out / f"leave_out_{group}.png", dpi=80)
+
+
+def _aligned_section(result: LeaveOutResult) -> list[str]:
+    """The leave-out report's scores against the delay-aligned envelope; one sentence when no calibration found a
+    delay (the aligned envelope is then the recorded one, and its section repeated the scores word for word)."""
+    runs = result.calibrations
+    if all(r.emd_ms == 0 for r in runs):
+        return [
+            "## Against the delay-aligned envelope",
+            "",
+            "No calibration found an electromechanical delay (0 ms in every run): the delay-aligned envelope is the "
+            "envelope as recorded, and the scores above are those against it.",
+            "",
+        ]
+    return [
+        "## Against the delay-aligned envelope",
+        "",
+        "Every method estimates activation, which the calibration models as the envelope delayed by the "
+        f"electromechanical delay: a(t) = e(t - d), d = {runs[0].emd_ms:.0f} ms from the calibration with every "
+        "electrode, the reference of every run (the left-out calibrations found "
+        + ", ".join(f"{r.left_out} {r.emd_ms:.0f} ms" for r in runs[1:])
+        + ", by which `assisted`'s live envelopes were shifted). The same scores against that delayed envelope (per "
+        "group: `rmse_aligned`, `r_aligned` in summary.json; the plots show it dashed):",
+        "",
+        f"Medians over the left-out groups: {_medians_line(result.medians('leave_one_out', aligned=True))}",
+        "",
+        *_verdict(result, aligned=True),
+        "",
+        f"The paper's protocol: {_medians_line(result.medians('paper', aligned=True))}",
+        "",
+    ]
 
 
 def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) -> dict[str, Any]:
@@ -324,21 +375,7 @@ def write_leave_out_report(pack: PackLike, result: LeaveOutResult, out: Path) ->
             result.groups,
             _medians_line(result.medians("paper")),
         ),
-        "## Against the delay-aligned envelope",
-        "",
-        "Every method estimates activation, which the calibration models as the envelope delayed by the "
-        f"electromechanical delay: a(t) = e(t - d), d = {runs[0].emd_ms:.0f} ms from the calibration with every "
-        "electrode, the reference of every run (the left-out calibrations found "
-        + ", ".join(f"{r.left_out} {r.emd_ms:.0f} ms" for r in runs[1:])
-        + ", by which `assisted`'s live envelopes were shifted). The same scores against that delayed envelope (per "
-        "group: `rmse_aligned`, `r_aligned` in summary.json; the plots show it dashed):",
-        "",
-        f"Medians over the left-out groups: {_medians_line(result.medians('leave_one_out', aligned=True))}",
-        "",
-        *_verdict(result, aligned=True),
-        "",
-        f"The paper's protocol: {_medians_line(result.medians('paper', aligned=True))}",
-        "",
+        *_aligned_section(result),
         *(f"{load_scale_line(name, v)}\n" for name, v in result.load_scale.items()),
         f"Calibrations: {len(runs)}, "
         + ", ".join(
