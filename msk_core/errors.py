@@ -26,6 +26,7 @@ class InputError(MskError):
         field: str | None = None,
         value: object = None,
     ) -> None:
+        self.message = message  # without the place and the value: for a caller that names them otherwise
         self.path = Path(path) if path is not None else None
         self.line = line
         self.field = field

@@ -224,7 +224,10 @@ def test_bad_values_are_named_before_anything_starts(tmp_path, monkeypatch, caps
             "--connect",
             "tcp/localhost",
         ): "field '--connect': a tcp endpoint is tcp/HOST:PORT",
-        ("live", "--sim", "--sim-fault", "99:hum:1-2"): "field '--sim-fault': field 'sensor': a sensor is numbered",
+        ("live", "--sim", "--sim-fault", "99:hum:1-2"): "field '--sim-fault': sensor: a sensor is numbered",
+        # the text given once, not once per wrapping
+        ("live", "--sim", "--sim-fault", "x:y:1-2"): "fault: expected SENSOR:KIND:START-END with a sensor number, "
+        "one of lift_off, hum, saturation, flat and times in seconds (got 'x:y:1-2')\n",
         ("view", "--refresh-hz", "0"): "field '--refresh-hz': redraws per second must be in (0, 100]",
         ("dashboard", "--port", "99999"): "field '--port': port must be in 1..65535 (got 99999)",
         # every fact given, to a session whose endpoint nobody answers (a one-shot Zenoh client fails at once)
@@ -359,7 +362,7 @@ def test_a_subject_profile_that_does_not_fit_stops_msk_live_before_anything_star
     SubjectProfile("bench_press", str(bench.version), groups, np.ones(len(groups)), np.ones(len(groups))).save(subject)
     session_file = tmp_path / "monday.toml"
     for pack, subject_file, said in (
-        ("deadlift", subject, "subject profile was calibrated for pack 'bench_press'"),
+        ("deadlift", subject, f"subject profile {subject} was calibrated for pack 'bench_press' (13 groups), not for"),
         ("bench_press", session_file, "not valid JSON"),
     ):
         session_file.write_text(

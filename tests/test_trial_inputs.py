@@ -352,3 +352,35 @@ def test_plots_of_trials_on_epoch_seconds_count_from_the_trials_start():
     axis, label = time_axis(np.array([12.0, 13.0]))
     np.testing.assert_array_equal(axis, [12.0, 13.0])
     assert label == "time in the trial's files (s)"
+
+
+def test_a_profile_of_another_pack_or_other_groups_is_named_in_a_short_message(tmp_path, pack):
+    """Found by a new user's walk: a profile of another pack was refused with an 881-character list of both packs'
+    57 groups that did not name the profile file. It now names the file, both packs and what to do; other groups of
+    the same pack are named, a few at a time."""
+    from msk_core.errors import EstimationError
+    from msk_core.estimate.profile import SubjectProfile
+
+    groups = list(pack.groups)
+    path = tmp_path / "ana.json"
+    SubjectProfile("deadlift", "1.0", groups, np.ones(len(groups)), np.ones(len(groups))).save(path)
+    with pytest.raises(EstimationError) as error:
+        SubjectProfile.load(path).check_pack(pack)
+    said = str(error.value)
+    assert said == (
+        f"subject profile {path} was calibrated for pack 'deadlift' (13 groups), not for pack 'bench_press': give a "
+        "profile calibrated on 'bench_press', or --pack deadlift"
+    )
+    renamed = [*groups[:-1], "TriMed"]
+    SubjectProfile("bench_press", str(pack.version), renamed, np.ones(13), np.ones(13)).save(path)
+    with pytest.raises(EstimationError) as error:
+        SubjectProfile.load(path).check_pack(pack)
+    assert f"the pack's {groups[-1]} are not in it; its TriMed are not in the pack; recalibrate" in str(error.value)
+
+
+def test_a_data_file_given_as_the_trial_says_what_a_trial_is(pack):
+    """Found by a new user's walk: `--trial ik.sto` said "invalid TOML: Expected '=' after a key"."""
+    with pytest.raises(ConfigError) as error:
+        load_trial(DEMO / "ik.sto", pack)
+    assert "a trial is a description (TOML) of its data files, not a .sto data file" in str(error.value)
+    assert 'kinematics = "ik.sto"' in str(error.value) and error.value.path == DEMO / "ik.sto"

@@ -39,6 +39,7 @@ class SubjectProfile:
     # model effects beyond F = F_max a found by `msk discrepancy` (msk_core.estimate.effects; versioned, with the
     # evidence); None: the plain model, and the JSON has no `effects` key (profiles without it behave as before)
     effects: dict | None = None
+    source: Path | None = field(default=None, compare=False)  # the file it was loaded from, for messages
 
     @property
     def scale_factors(self) -> np.ndarray:
@@ -46,14 +47,31 @@ class SubjectProfile:
 
     def check_pack(self, pack: PackLike) -> None:
         """The profile only makes sense with the pack it was calibrated on."""
-        if pack.name != self.pack_name or list(pack.groups) != list(self.groups):
+        profile = "subject profile" if self.source is None else f"subject profile {self.source}"
+        if pack.name != self.pack_name:
             raise EstimationError(
-                f"subject profile was calibrated for pack {self.pack_name!r} v{self.pack_version} "
-                f"with groups {self.groups}; got pack {pack.name!r} with groups {list(pack.groups)}"
+                f"{profile} was calibrated for pack {self.pack_name!r} ({len(self.groups)} groups), not for pack "
+                f"{pack.name!r}: give a profile calibrated on {pack.name!r}, or --pack {self.pack_name}"
+            )
+        if list(pack.groups) != list(self.groups):
+            missing = [g for g in pack.groups if g not in self.groups]
+            extra = [g for g in self.groups if g not in pack.groups]
+            raise EstimationError(
+                f"{profile} was calibrated on other groups of pack {pack.name!r}: "
+                + "; ".join(
+                    part
+                    for part in (
+                        f"the pack's {_few(missing)} are not in it" if missing else "",
+                        f"its {_few(extra)} are not in the pack" if extra else "",
+                        "" if missing or extra else "the same groups in another order",
+                    )
+                    if part
+                )
+                + "; recalibrate"
             )
         if str(pack.version) != str(self.pack_version):
             raise EstimationError(
-                f"subject profile was calibrated for pack {self.pack_name!r} version {self.pack_version!r}, "
+                f"{profile} was calibrated for pack {self.pack_name!r} version {self.pack_version!r}, "
                 f"but the loaded pack is version {pack.version!r}; recalibrate"
             )
 
@@ -105,11 +123,18 @@ class SubjectProfile:
                 provenance=data.get("provenance", {}),
                 phase_model=phase_model,
                 effects=_checked_effects(data.get("effects"), groups, path),
+                source=path,
             )
         except KeyError as exc:
             raise FileFormatError("missing field", path=path, field=str(exc.args[0])) from None
         except (TypeError, ValueError, MskError) as exc:
             raise FileFormatError(f"invalid value: {exc}", path=path) from None
+
+
+def _few(names: list[str], shown: int = 5) -> str:
+    """Group names for a message: the first ``shown`` and how many more."""
+    more = len(names) - shown
+    return ", ".join(names[:shown]) + (f" and {more} more" if more > 0 else "")
 
 
 def _checked_effects(effects, groups: list[str], path: Path) -> dict | None:

@@ -74,6 +74,9 @@ from msk_core.signal.kinematics_filter import lowpass_coordinates
 from msk_core.signal.reps import REST_PHASE
 from msk_core.units import GRAVITY
 
+#: Data files a trial describes: given where the trial's TOML is expected, they are named as such
+DATA_SUFFIXES = frozenset({".sto", ".mot", ".trc", ".c3d", ".csv", ".txt", ".npz", ".mcap"})
+
 KNOWN_KEYS = {
     "kinematics",
     "torques",
@@ -164,10 +167,18 @@ class _TrialFile:
     @classmethod
     def read(cls, path: str | Path) -> _TrialFile:
         path = Path(path)
+        if path.suffix.lower() in DATA_SUFFIXES:
+            raise ConfigError(
+                f"a trial is a description (TOML) of its data files, not a {path.suffix} data file: write a "
+                f'trial.toml with kinematics = "{path.name}" (and torques, emg, load_kg; docs/estimation.md, '
+                "'Trial description') and give that",
+                path=path,
+            )
         try:
             text = path.read_text()
-        except OSError as exc:
-            raise ConfigError(f"cannot read trial file: {exc.strerror}", path=path) from None
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) else "not text (a binary file?)"
+            raise ConfigError(f"cannot read trial file: {why}", path=path) from None
         try:
             spec = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:

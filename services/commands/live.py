@@ -132,7 +132,8 @@ def _sim_fault(text: str) -> SensorFault:
     try:
         return SensorFault.parse(text)
     except ConfigError as error:
-        raise ConfigError(str(error), field="--sim-fault", value=text) from None
+        said = f"{error.field}: {error.message}" if error.field else error.message  # its value is the flag's
+        raise ConfigError(said, field="--sim-fault", value=text) from None
 
 
 def run(args: argparse.Namespace) -> int:

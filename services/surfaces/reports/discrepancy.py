@@ -3,6 +3,7 @@ sentences saying how consistently the named effect helps, rep by rep (printed by
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,9 @@ from msk_core.io.files import json_text
 from services.surfaces.reports import pyplot, save_figure
 
 
-def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str) -> None:
+def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str, scale: float = 1.0) -> None:
+    """The mean torque gap against ``key`` (binned by the workflow) per coordinate, before and after; x times
+    ``scale`` (radians shown as degrees)."""
     plt = pyplot()
     coords = result.data.coordinates
     fig, axes = plt.subplots(1, len(coords), figsize=(3.6 * len(coords), 3.2), squeeze=False)
@@ -21,7 +24,7 @@ def _relation_plot(path: Path, result: DiscrepancyResult, key: str, xlabel: str)
         for rel, label, style in ((result.relations_before, "before", "o-"), (result.relations_after, "after", "s--")):
             r = rel["coordinates"][c][key]
             if r.get("x"):
-                ax.plot(r["x"], r["gap"], style, ms=3, label=label)
+                ax.plot(np.asarray(r["x"], dtype=float) * scale, r["gap"], style, ms=3, label=label)
         ax.axhline(0, color="0.6", lw=0.8)
         ax.set_title(c, fontsize=9)
         ax.set_xlabel(xlabel)
@@ -94,8 +97,8 @@ def write_report(result: DiscrepancyResult, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     s = result.summary
     (folder / "summary.json").write_text(json_text(s, default=float))
-    _relation_plot(folder / "gap_vs_angle.png", result, "angle", "joint angle (rad)")
-    _relation_plot(folder / "gap_vs_velocity.png", result, "velocity", "joint velocity (rad/s)")
+    _relation_plot(folder / "gap_vs_angle.png", result, "angle", "joint angle (deg)", math.degrees(1.0))
+    _relation_plot(folder / "gap_vs_velocity.png", result, "velocity", "joint velocity (deg/s)", math.degrees(1.0))
     _relation_plot(folder / "gap_vs_phase.png", result, "phase", "phase of the rep")
     _xcorr_plot(folder / "xcorr_vs_lag.png", result)
     _rms_plot(folder / "gap_rms.png", s)
