@@ -176,3 +176,17 @@ def test_an_mvc_trial_sampled_at_another_rate_is_filtered_at_its_own(shared_dir:
     argv = ["emg", "envelope", str(anc), "--channels", "SOL,GAS,TA", "--zero-phase", "--mvc", str(mvc), "-o", str(out)]
     assert main(argv) == 0
     np.testing.assert_allclose(read_sto(out).data.max(axis=0), 1.0, atol=0.05)
+
+
+def test_an_envelope_file_given_as_raw_emg_is_named_with_what_to_do(tmp_path: Path, capsys) -> None:
+    """Found by a new user's walk: a 100 Hz envelope file gave "field 'bandpass_hz': band-pass edges must satisfy
+    ... < 50.0 Hz (Nyquist)", naming neither the file nor a way out. It now names the file and --no-bandpass."""
+    from msk_core.io import write_sto
+
+    t = np.arange(500) / 100.0
+    sto = write_sto(tmp_path / "env.sto", t, ["TA"], np.abs(np.random.default_rng(2).normal(size=(500, 1))))
+    assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "out.sto")]) == 2
+    error = capsys.readouterr().err
+    assert f"{sto}, field '--bandpass-hz': sampled at 100 Hz, too slowly for raw EMG's 20-450 Hz band-pass" in error
+    assert "--no-bandpass" in error
+    assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "out.sto"), "--no-bandpass"]) == 0

@@ -298,3 +298,6 @@ def test_an_out_that_is_a_folder_is_refused_before_the_work(command, arm26_trial
     err = capsys.readouterr()
     assert rc == 2 and "field '--out': is a folder" in err.err and str(folder) in err.err, err
     assert err.out == "" and list(folder.iterdir()) == []  # nothing was computed, nothing written
+    if command == "estimate":  # .sto content under another name: refused too
+        assert _msk_arm26(command, str(arm26_trials["plain"]), *extra, "--out", str(folder / "a.csv")) == 2
+        assert "field '--out': msk estimate writes OpenSim .sto tables" in capsys.readouterr().err

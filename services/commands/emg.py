@@ -103,6 +103,15 @@ def _envelope(args: argparse.Namespace) -> int:
 
     def filtered(recording: AnalogRecording) -> np.ndarray:
         """The envelope of a recording at its own rate (an MVC trial may be sampled unlike the task)."""
+        if band is not None and band[1] >= recording.rate_hz / 2:  # raw EMG is sampled at 1-2 kHz or more
+            raise ConfigError(
+                f"sampled at {recording.rate_hz:g} Hz, too slowly for raw EMG's {band[0]:g}-{band[1]:g} Hz "
+                "band-pass: it looks like an envelope or a resampled signal already. Give the raw EMG, or "
+                "--no-bandpass (rectify and low-pass only) if this is raw EMG at a low rate",
+                path=recording.path,
+                field="--bandpass-hz",
+                value=list(band),
+            )
         cfg = EmgFilterConfig(
             rate_hz=recording.rate_hz, bandpass_hz=band, lowpass_hz=args.lowpass_hz, lowpass_order=args.lowpass_order
         )

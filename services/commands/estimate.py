@@ -368,6 +368,12 @@ def run_estimate(args: argparse.Namespace) -> int:
     if args.trial.is_dir():
         raise ConfigError("msk estimate takes one trial file, not a folder", field="--trial", value=str(args.trial))
     output_file(args.out, "--out", "activations.sto")
+    if args.out.suffix.lower() != ".sto":  # its content is an OpenSim table whatever the name says
+        raise ConfigError(
+            "msk estimate writes OpenSim .sto tables (and _torques.sto, _std.sto beside it): name it .sto",
+            field="--out",
+            value=str(args.out),
+        )
     (trial,) = load_trials([args.trial], pack)
     run = estimate_trial(
         pack, trial, args.method, subject=subject, progress=ProgressBar(leave=False), **estimator_options(args, pack)
