@@ -197,3 +197,16 @@ def test_msk_live_summary_says_what_an_mvn_suit_lost_and_said():
     text = summary_text(summary)
     assert "  mvn: 120 samples lost; last said: no MVN quaternion pose (type 02) on UDP 0.0.0.0:9763 for 3 s" in text
     assert "imu/mvn-right_forearm: 1440 samples, 0 lost\n" in text
+
+
+def test_a_session_without_a_joint_frame_prints_no_set_of_0_reps():
+    """Found by a new user's walk: `msk live` that failed at the start (no device) printed "sets: 1: 0 reps"."""
+    from services.sessions.live import summary_text
+
+    summary = {
+        "duration_s": 2.0, "samples": {}, "samples_lost": {}, "devices": {}, "joint_frames": 0, "envelopes": 0,
+        "frames_estimated": {}, "flags": {}, "sets": [{"number": 1, "reps": 0, "time_under_tension_s": 0.0, "ended_by": "end of data"}],
+    }  # fmt: skip
+    assert "sets:" not in summary_text(summary)
+    summary["joint_frames"] = 120  # frames but no rep yet: the set is said, with its 0 reps
+    assert "  sets: 1: 0 reps" in summary_text(summary)

@@ -749,7 +749,8 @@ def summary_text(summary: dict) -> str:
         if name not in shown and (troubles := _troubles(summary, name, alone=True)):
             lines.append(f"  {name}:{troubles.removeprefix(';')}")
     lines.append(f"  joint frames: {summary['joint_frames']}; EMG envelopes: {summary['envelopes']}")
-    if summary.get("sets"):
+    # without a joint frame there was no lift to count (a session that failed at the start): no "1: 0 reps"
+    if summary.get("sets") and (summary["joint_frames"] or any(record.get("reps") for record in summary["sets"])):
         lines.append("  sets: " + "; ".join(set_summary(record) for record in summary["sets"]))
     if summary.get("reps_not_counted"):
         lines.append(f"  reps not counted live: {summary['reps_not_counted']}")

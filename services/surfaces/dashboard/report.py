@@ -1012,7 +1012,9 @@ def fatigue_html(data: SessionData, facts: dict) -> str:
         + _table(headers, rows)
         + "<p class='note'>Computed live by the estimator from the raw EMG of each rep's active part (20-450 Hz, "
         "Welch): the median frequency of the set's first and last rep, its least-squares slope per rep (in brackets, "
-        "in % of the first reps' mean) and the change from the first to the last reps (up to 3 each). A falling median "
+        "in % of the first reps' mean) and the change from the mean of the first reps to that of the last reps (3 each, "
+        "or half the set's reps in a set of fewer than 6: a set's single first and last reps can both read the same "
+        "while the change does not). A falling median "
         "frequency is the standard EMG sign of fatigue.</p></section>"
     )
 
