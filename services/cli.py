@@ -50,7 +50,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 0
     try:
-        return int(handler(args) or 0)
+        try:
+            return int(handler(args) or 0)
+        except BaseException:
+            from services.commands.estimate import remove_unfilled_folders
+
+            remove_unfilled_folders()  # a report folder made for work that never came is not left behind, empty
+            raise
     except MskError as error:
         print(f"msk {args.command}: error: {error}", file=sys.stderr)
         return 2

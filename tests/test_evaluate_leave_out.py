@@ -115,6 +115,8 @@ def test_leave_out_refuses_a_group_without_an_electrode(shared_dir, tmp_path, ca
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "psoas_r" in err and "iliocost_r" in err  # names the group and the ones that can be left out
+    # the report folder, made before the work to refuse a bad one early, is not left behind empty
+    assert not (tmp_path / "r").exists()
 
 
 def test_leave_out_refuses_a_held_out_trial_that_is_also_a_training_trial(shared_dir, tmp_path, capsys):

@@ -249,9 +249,16 @@ def _trial_files(paths: list[Path]) -> list[Path]:
     return files
 
 
+#: Folders :func:`output_folder` made in this process: those still empty when a command fails or is interrupted are
+#: removed again (:func:`remove_unfilled_folders`), not left behind as if there were a report
+MADE_FOLDERS: list[Path] = []
+
+
 def output_folder(path: Path, flag: str) -> Path:
     """``path`` made as a folder before the work that fills it (minutes of calibration): a :class:`ConfigError`
     naming ``flag`` when it is a file, or cannot be made."""
+    if not path.exists():
+        MADE_FOLDERS.append(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
@@ -261,6 +268,16 @@ def output_folder(path: Path, flag: str) -> Path:
     except OSError as error:
         raise ConfigError(f"cannot make the folder: {error.strerror}", field=flag, value=str(path)) from None
     return path
+
+
+def remove_unfilled_folders() -> None:
+    """Remove the folders :func:`output_folder` made that are still empty (a command failed or was interrupted)."""
+    while MADE_FOLDERS:
+        folder = MADE_FOLDERS.pop()
+        try:
+            folder.rmdir()  # only when empty
+        except OSError:
+            pass
 
 
 def output_file(path: Path, flag: str, example: str) -> Path:
