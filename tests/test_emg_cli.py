@@ -190,3 +190,13 @@ def test_an_envelope_file_given_as_raw_emg_is_named_with_what_to_do(tmp_path: Pa
     assert f"{sto}, field '--bandpass-hz': sampled at 100 Hz, too slowly for raw EMG's 20-450 Hz band-pass" in error
     assert "--no-bandpass" in error
     assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "out.sto"), "--no-bandpass"]) == 0
+
+
+def test_a_channel_asked_for_in_another_case_is_suggested(tmp_path: Path, capsys) -> None:
+    """Found by a new user's walk: `--channels sol` listed every channel, force plates among them, without a hint."""
+    from msk_core.io import write_sto
+
+    t = np.arange(2000) / 1000.0
+    sto = write_sto(tmp_path / "raw.sto", t, ["TA", "SOL"], np.random.default_rng(1).normal(size=(2000, 2)))
+    assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "e.sto"), "--channels", "sol"]) == 2
+    assert "no channel 'sol'; did you mean SOL?; EMG channels: TA, SOL" in capsys.readouterr().err

@@ -83,6 +83,15 @@ def test_leave_out_command_writes_a_sensible_summary(shared_dir, tmp_path):
     assert f"paired over the {r_groups} groups where both have an r" in text  # the r target's comparison, said
     # a lag is said only where the curves correlate and not at the edge of the lags searched; a constant so has no r
     assert "vs so nan" not in text
+    # and the table shows '–' for such a lag (found by a new user's walk: -483 to -500 ms read as if meaningful)
+    table = text.split("## Left out", 1)[1].split("\n\n", 2)[1].splitlines()
+    methods = [h.split(" RMSE")[0] for h in table[0].strip("| ").split(" | ")[1:]]
+    for row in table[2:]:
+        group, *cells = row.strip("| ").split(" | ")
+        for method, cell in zip(methods, cells):
+            scores = summary["leave_one_out"][group][method]
+            delay = scores["r"] is not None and scores["r"] >= 0.3 and abs(scores["lag_ms"]) < 0.95 * 1000 * MAX_LAG_S
+            assert (cell.split(" / ")[2] == "–") != delay, (group, method, cell, scores)
     for g, method, _ in re.findall(r"^- (\w+) \((\w+)\): not met: .*its estimate is (\d+) ms", text, re.M):
         scores = summary["leave_one_out"][g][method]
         assert scores["r"] >= 0.3 and abs(scores["lag_ms"]) < 0.95 * 1000 * MAX_LAG_S, (g, method, scores)

@@ -20,6 +20,17 @@ def test_model_show_and_unknown_pack(capsys):
     assert "no shipped model pack 'squat_pack'" in capsys.readouterr().err
 
 
+def test_model_list_names_every_shipped_pack_and_which_msk_live_drives(capsys):
+    """A new user found the packs' names only in error messages."""
+    from msk_core.model.pack import available_packs
+
+    assert cli.main(["model", "list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines[:-1]] == available_packs()
+    assert any(line.startswith("bench_press") and "msk live: yes" in line for line in lines)
+    assert any(line.startswith("lumbar_lift") and "1 coordinate, " in line and "offline only" in line for line in lines)
+
+
 def test_model_compile_and_check_cli(shared_dir, tmp_path, capsys, repo_root):
     spec = (repo_root / "msk_core" / "model" / "specs" / "arm26.toml").read_text()
     spec = spec.replace("samples = 400", "samples = 100")

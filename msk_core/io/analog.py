@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -75,8 +76,16 @@ class AnalogRecording:
         try:
             return self.labels.index(label)
         except ValueError:
+            by_lower = {lab.lower(): lab for lab in self.labels}  # case aside: "sol" finds "SOL"
+            near = [by_lower[h] for h in difflib.get_close_matches(label.lower(), list(by_lower), n=3, cutoff=0.5)]
+            emg = [lab for lab in self.labels if lab not in self.not_emg]
+            other = f"; not EMG: {', '.join(self.not_emg)}" if self.not_emg else ""
             raise InputError(
-                f"no channel {label!r}; available: {', '.join(self.labels)}", path=self.path, field=label
+                f"no channel {label!r}"
+                + (f"; did you mean {', '.join(near)}?" if near else "")
+                + f"; EMG channels: {', '.join(emg)}{other}",
+                path=self.path,
+                field=label,
             ) from None
 
     def channel(self, label: str) -> np.ndarray:

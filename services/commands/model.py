@@ -1,4 +1,5 @@
-"""``msk model compile|check|scale|show``: build model packs from OpenSim models, validate them, scale them."""
+"""``msk model list|compile|check|scale|show``: list the shipped packs, build packs from OpenSim models, validate them,
+scale them."""
 
 from __future__ import annotations
 
@@ -83,6 +84,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output pack (.json); the scaled .osim is written beside it")
     p.add_argument("--samples", type=int, default=None, help="override the spec's fit samples (faster, coarser)")
     p.set_defaults(handler=run_scale)
+
+    p = sub.add_parser("list", help="list the shipped packs: coordinates, groups, whether msk live can drive them")
+    p.set_defaults(handler=run_list)
 
     p = sub.add_parser("show", help="print a pack's coordinates (ranges) and groups (F_max, members)")
     p.add_argument("pack", help="shipped pack name or pack .json path")
@@ -184,6 +188,22 @@ def run_scale(args: argparse.Namespace) -> int:
     print(f"wrote {out}")
     for key, value in summary.items():
         print(f"  {key}: {value}")
+    return 0
+
+
+def run_list(args: argparse.Namespace) -> int:
+    """The shipped packs, one line each (a new user found their names only in error messages)."""
+    from msk_core.imu.mapping import MAPPINGS  # noqa: PLC0415
+    from msk_core.model import load_pack  # noqa: PLC0415
+    from msk_core.model.pack import available_packs  # noqa: PLC0415
+
+    for name in available_packs():
+        pack = load_pack(name)
+        live = "msk live: yes (IMU table)" if name in MAPPINGS else "offline only (no IMU table)"
+        n = len(pack.coordinates)
+        counts = f"{n:2d} coordinate{'' if n == 1 else 's'}, {len(pack.groups):3d} groups"
+        print(f"{name:12s} {counts}; {live}; {pack.description}")
+    print("details: msk model show NAME")
     return 0
 
 

@@ -208,10 +208,15 @@ def leave_out_table(scores: dict[str, dict[str, Agreement]], groups: list[str]) 
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for g in groups:
         cells = [
-            f"{_fmt(a.rmse, '.3f')} / {_fmt(a.r, '.2f')} / {_fmt(a.lag_ms, '.0f')} / {_fmt(a.on_off_agreement, '.2f')}"
+            f"{_fmt(a.rmse, '.3f')} / {_fmt(a.r, '.2f')} / {_lag_cell(a)} / {_fmt(a.on_off_agreement, '.2f')}"
             for a in (scores[g][m] for m in methods)
         ]
         lines.append("| " + " | ".join([g] + cells) + " |")
+    lines += [
+        "",
+        f"(lag '–': the curves correlate below r {LAG_MIN_R:g}, or the peak sits at the edge of the ±"
+        f"{1000 * MAX_LAG_S:.0f} ms searched; either way no delay can be read; summary.json keeps the value)",
+    ]
     return "\n".join(lines)
 
 
@@ -258,9 +263,7 @@ def _verdict(result: LeaveOutResult, aligned: bool = False) -> list[str]:
             so_r = f"{r_so:.2f}" if np.isfinite(r_so) else "none (its estimate does not vary)"
             why.append(f"r {r_best:.2f} vs so {so_r}")
         lag = s[v["method"]].lag_ms
-        # a lag is a delay only where the two curves correlate, and not at the edge of the lags searched
-        meaningful = np.isfinite(lag) and r_best >= LAG_MIN_R and abs(lag) < 0.95 * 1000 * MAX_LAG_S
-        if not aligned and meaningful and abs(lag) >= 100:
+        if not aligned and lag_is_a_delay(lag, r_best) and abs(lag) >= 100:
             why.append(f"its estimate is {abs(lag):.0f} ms {'late' if lag > 0 else 'early'}")
         lines.append(f"- {g} ({v['method']}): " + ("met" if v["met"] else "not met: " + "; ".join(why)))
     return lines
@@ -268,6 +271,17 @@ def _verdict(result: LeaveOutResult, aligned: bool = False) -> list[str]:
 
 #: below this r, the lag of the cross-correlation peak says nothing about a delay (the report leaves it out)
 LAG_MIN_R = 0.3
+
+
+def lag_is_a_delay(lag_ms: float, r: float) -> bool:
+    """Whether a cross-correlation peak's lag says a delay: the two curves correlate, and the peak is not at the
+    edge of the lags searched (there, the true peak lies beyond them)."""
+    return bool(np.isfinite(lag_ms) and r >= LAG_MIN_R and abs(lag_ms) < 0.95 * 1000 * MAX_LAG_S)
+
+
+def _lag_cell(a: Agreement) -> str:
+    """A table's lag: the value, or '–' where it says no delay (:func:`lag_is_a_delay`; the table's note says why)."""
+    return _fmt(a.lag_ms, ".0f") if lag_is_a_delay(a.lag_ms, a.r) else "–"
 
 
 def plot_leave_out_group(result: LeaveOutResult, group: str, out: Path) -> Path:
