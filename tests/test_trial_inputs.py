@@ -384,3 +384,14 @@ def test_a_data_file_given_as_the_trial_says_what_a_trial_is(pack):
         load_trial(DEMO / "ik.sto", pack)
     assert "a trial is a description (TOML) of its data files, not a .sto data file" in str(error.value)
     assert 'kinematics = "ik.sto"' in str(error.value) and error.value.path == DEMO / "ik.sto"
+
+
+def test_a_table_header_with_a_comment_keeps_the_line_of_its_keys(tmp_path, pack):
+    """Found by a new user's walk: `[emg_map]  # ...` (the committed lift trials) gave its errors no line number."""
+    trial = _trial(
+        tmp_path, swap=(("[emg_map]", "[emg_map]  # the electrodes"), ('TriLat = "TriLat"', 'TriLat = "TriMed"'))
+    )
+    with pytest.raises(ConfigError) as error:
+        load_trial(trial, pack)
+    line = trial.read_text().splitlines().index('TriLat = "TriMed"') + 1
+    assert error.value.line == line and error.value.field == "emg_map.TriLat", str(error.value)

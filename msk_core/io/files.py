@@ -59,7 +59,7 @@ def line_of(text: str, token: str, *, after: str = "", key: bool = False) -> int
     bare or quoted), at or after the line ``after`` (a table's header) when given and present; for the line numbers
     of error messages about TOML specs, trial and session files."""
     lines = text.splitlines()
-    start = next((i for i, line in enumerate(lines) if after and line.strip() == after), 0)
+    start = next((i for i, line in enumerate(lines) if after and line.split("#", 1)[0].strip() == after), 0)
     assigns = re.compile(rf"\s*[\"']?{re.escape(token)}[\"']?\s*=")
     for number, line in enumerate(lines[start:], start=start + 1):
         if assigns.match(line) if key else token in line:
@@ -72,7 +72,10 @@ def toml_key_line(text: str, key: str) -> int | None:
     the table's header line); None when neither is there."""
     table, _, inner = key.partition(".")
     header = line_of(text, table, key=True) or next(
-        (n for n, line in enumerate(text.splitlines(), start=1) if line.strip() == f"[{table}]"), None
+        (  # a header may carry a comment: "[emg_map]  # the envelopes ..."
+            n for n, line in enumerate(text.splitlines(), start=1) if line.split("#", 1)[0].strip() == f"[{table}]"
+        ),
+        None,
     )
     if header is None or not inner:
         return header
