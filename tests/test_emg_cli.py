@@ -200,3 +200,21 @@ def test_a_channel_asked_for_in_another_case_is_suggested(tmp_path: Path, capsys
     sto = write_sto(tmp_path / "raw.sto", t, ["TA", "SOL"], np.random.default_rng(1).normal(size=(2000, 2)))
     assert main(["emg", "envelope", str(sto), "-o", str(tmp_path / "e.sto"), "--channels", "sol"]) == 2
     assert "no channel 'sol'; did you mean SOL?; EMG channels: TA, SOL" in capsys.readouterr().err
+
+
+def test_a_ground_reaction_force_file_is_not_enveloped_as_emg(tmp_path: Path, capsys) -> None:
+    """Found by a new user's walk: OpenSim's external-load .mot (forces, points, torques) was enveloped as if its
+    columns were muscles, with only a units warning. They are named as not EMG; a file of nothing else is refused."""
+    from msk_core.io import write_sto
+
+    t = np.arange(2000) / 1000.0
+    data = np.random.default_rng(3).normal(size=(2000, 4))
+    loads = write_sto(tmp_path / "grf.mot", t, ["ground_force_vy", "l_ground_force_px", "ground_torque_z", "TA"], data)
+    out = tmp_path / "env.sto"
+    assert main(["emg", "envelope", str(loads), "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "left out 3 channels that are not EMG: ground_force_vy, l_ground_force_px, ground_torque_z" in printed
+    assert read_sto(out).columns == ["TA"]
+    only = write_sto(tmp_path / "only.mot", t, ["ground_force_vy", "ground_force_px"], data[:, :2])
+    assert main(["emg", "envelope", str(only), "-o", str(out)]) == 2
+    assert "no EMG channel: all 2 analog channels are not EMG (an external load's force" in capsys.readouterr().err

@@ -33,9 +33,12 @@ class AnalogRecording:
         """The recording without the channels :attr:`not_emg` names (all of them when it is empty)."""
         keep = [lab for lab in self.labels if lab not in self.not_emg]
         if not keep:
+            by_reason: dict[str, list[str]] = {}
+            for channel, why in self.not_emg.items():
+                by_reason.setdefault(why, []).append(channel)
             raise InputError(
                 f"no EMG channel: all {len(self.labels)} analog channels are not EMG ("
-                + "; ".join(f"{c}: {why}" for c, why in self.not_emg.items())
+                + "; ".join(f"{why}: {', '.join(channels)}" for why, channels in by_reason.items())
                 + ")",
                 path=self.path,
             )

@@ -10,6 +10,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,13 @@ from msk_core.signal.emg import (
 )
 from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, rep_phase
 from services.commands import described
+
+#: OpenSim's external-load columns (a .mot of ground reaction forces): ground_force_vx, l_ground_torque_y, 1_force_px
+EXTERNAL_LOAD_COLUMN = re.compile(r"(^|_)(ground_)?(force_[vp][xyz]|torque_[xyz])$")
+
+
+def _is_load(column: str) -> bool:
+    return EXTERNAL_LOAD_COLUMN.search(column) is not None
 
 
 def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
@@ -46,7 +54,15 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
         except InputError as error:
             raise InputError(f"{error.args[0]}; resample it evenly first", path=path, field="time") from None
         rec = AnalogRecording(
-            time=s.time, labels=list(s.columns), data=s.data, rate_hz=rate_hz, units=[""] * len(s.columns), path=path
+            time=s.time,
+            labels=list(s.columns),
+            data=s.data,
+            rate_hz=rate_hz,
+            units=[""] * len(s.columns),
+            path=path,
+            not_emg={
+                c: "an external load's force, point or torque (OpenSim's naming)" for c in s.columns if _is_load(c)
+            },
         )
     else:
         raise InputError("unknown EMG file type; expected .anc, .c3d, .csv, .sto or .mot", path=path, value=suffix)
