@@ -1,4 +1,4 @@
-"""`msk trials`: a recorded session's sets as the trial files `msk calibrate` reads (services.surfaces.trial_export.py),
+"""`msk trials`: a recorded session's sets as the trial files `msk calibrate` reads (services/surfaces/trial_export.py),
 on the demo recording, whose trials were made from the files of recordings/demo: the exported trials hold the
 recorded angles and raw EMG, and a profile calibrated on them estimates the other set as well as one calibrated on
 the original files."""

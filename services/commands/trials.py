@@ -9,7 +9,7 @@ The EMG needs each electrode's MVC: record each muscle's maximal voluntary contr
 start`` / ``msk set stop`` around it) and name those sets with ``--mvc-set`` (they are not exported as lift trials), or
 take the divisors of an earlier profile or trial with ``--mvc-from``. The electrode map is the session file's
 ``[electrodes]`` (``--session-file``, the file `msk live` ran); without one, the channels of the ``--mvc-from``
-profile (e.g. OUT/subject_session.json), else channels named as the pack's groups. Details: services.surfaces.trial_export.py.
+profile (e.g. OUT/subject_session.json), else channels named as the pack's groups. Details: services/surfaces/trial_export.py.
 """
 
 from __future__ import annotations
@@ -49,16 +49,16 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("which pack: give --pack, or the session file (--session-file)", field="--pack")
     pack = load_pack(pack_name)
     mvc = None if args.mvc_from is None else given_divisors(args.mvc_from)
-
-    def electrodes_of(path: Path | None) -> dict[str, str]:  # a profile's channels and groups, when no session file
-        return {} if path is None else profile_electrodes(path)
-
+    if live is not None and live.electrodes:
+        electrodes = dict(live.electrodes)
+    else:  # the --mvc-from profile's channels and groups
+        electrodes = {} if args.mvc_from is None else profile_electrodes(args.mvc_from)
     output_folder(args.out, "--out")
     trials = export_trials(
         args.recording,
         args.out,
         pack,
-        electrodes=dict(live.electrodes) if live is not None and live.electrodes else electrodes_of(args.mvc_from),
+        electrodes=electrodes,
         mvc_sets=tuple(args.mvc_set),
         mvc=mvc,
         session=args.session,

@@ -78,23 +78,35 @@ class ExportedTrial:
     emg_channels: int
 
 
-def _session_chunks(recording: Path, session: str | None):
-    """(stream key, decoded chunk) of every EMG chunk of the recording (of ``session``), in recorded order."""
+def _session_messages(recording: Path, session: str | None, types: tuple[str, ...]):
+    """(topic, decoded message) of every message of ``types`` of the recording (of ``session``), in recorded order."""
     prefix = None if session is None else f"{topics.session_prefix(session)}/"
     for recorded in read_messages(recording):
-        if recorded.type_name != "msk.EmgChunk" or (prefix is not None and not recorded.topic.startswith(prefix)):
-            continue
-        chunk = recorded.decode(messages.EmgChunk)
-        yield (chunk.source_id or recorded.topic.rsplit("/", 1)[-1], tuple(chunk.channel_labels)), chunk
+        if recorded.type_name in types and (prefix is None or recorded.topic.startswith(prefix)):
+            yield recorded.topic, recorded.decode()
 
 
-def read_emg(recording: Path, session: str | None) -> dict[tuple[str, tuple[str, ...]], EmgStream]:
-    """Every EMG stream of the recording, by (source, channel labels): its chunks' indices and times."""
+def _stream_key(topic: str, chunk: messages.EmgChunk) -> tuple[str, tuple[str, ...]]:
+    return chunk.source_id or topic.rsplit("/", 1)[-1], tuple(chunk.channel_labels)
+
+
+def read_timing(
+    recording: Path, session: str | None
+) -> tuple[dict[tuple[str, tuple[str, ...]], EmgStream], np.ndarray]:
+    """In one pass over the recording: every EMG stream, by (source, channel labels), its chunks' indices and times;
+    and how long after its instant each joint frame was received (s; none for frames without a receipt time)."""
     rows: dict[tuple[str, tuple[str, ...]], list[tuple[int, int, int, int, float]]] = {}
-    for key, c in _session_chunks(recording, session):
-        n, rate = int(c.n_samples), float(c.sample_rate_hz)
-        device_last = int(c.device_time_ns) + round((n - 1) * 1e9 / rate)
-        rows.setdefault(key, []).append((int(c.first_sample_index), n, device_last, int(c.host_time_ns), rate))
+    late_s = []
+    for topic, m in _session_messages(recording, session, ("msk.EmgChunk", "msk.JointAngles")):
+        if isinstance(m, messages.JointAngles):
+            if m.host_time_ns:
+                late_s.append((m.host_time_ns - m.device_time_ns) / 1e9)
+            continue
+        n, rate = int(m.n_samples), float(m.sample_rate_hz)
+        device_last = int(m.device_time_ns) + round((n - 1) * 1e9 / rate)
+        rows.setdefault(_stream_key(topic, m), []).append(
+            (int(m.first_sample_index), n, device_last, int(m.host_time_ns), rate)
+        )
     streams = {}
     for key, chunks in rows.items():
         a = np.array(sorted(chunks), dtype=float)
@@ -102,22 +114,24 @@ def read_emg(recording: Path, session: str | None) -> dict[tuple[str, tuple[str,
             key[0], key[1], float(a[0, 4]), a[:, 0].astype(np.int64), a[:, 1].astype(np.int64),
             a[:, 2].astype(np.int64), a[:, 3].astype(np.int64),
         )  # fmt: skip
-    return streams
+    return streams, np.array(late_s)
 
 
 def read_rows(recording: Path, session: str | None, key, spans: dict[int, tuple[int, int]]) -> dict[int, np.ndarray]:
     """Per set, the raw rows of stream ``key`` over its sample-index span [first, first + n): NaN where the base
     delivered none."""
     out = {number: np.full((n, len(key[1])), np.nan) for number, (_, n) in spans.items()}
-    for chunk_key, c in _session_chunks(recording, session):
-        if chunk_key != key:
-            continue
+    for topic, c in _session_messages(recording, session, ("msk.EmgChunk",)):
         first, n = int(c.first_sample_index), int(c.n_samples)
-        for number, (start, count) in spans.items():
+        overlaps = [
+            (nb, start, count) for nb, (start, count) in spans.items() if start < first + n and first < start + count
+        ]
+        if not overlaps or _stream_key(topic, c) != key:
+            continue
+        block = np.asarray(c.samples, dtype=float).reshape(n, int(c.n_channels))
+        for number, start, count in overlaps:
             lo, hi = max(first, start), min(first + n, start + count)
-            if lo < hi:
-                block = np.asarray(c.samples, dtype=float).reshape(n, int(c.n_channels))
-                out[number][lo - start : hi - start] = block[lo - first : hi - first]
+            out[number][lo - start : hi - start] = block[lo - first : hi - first]
     return out
 
 
@@ -138,9 +152,12 @@ def stated_offsets_ns(recording: Path) -> dict[str, tuple[float, str]]:
     }
 
 
-def joint_series(recording: Path, data: SessionData, coordinates: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def joint_series(
+    recording: Path, data: SessionData, coordinates: list[str], late_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(time in s on the joints' clock, angles (n, coordinates)) of the recorded joint frames of ``coordinates``;
-    refused when there are none, or when they are on a device clock of their own (their EMG could not be placed)."""
+    refused when there are none, or when they are on a device clock of their own, received ``late_s`` after their
+    instants by far more than a delivery (their EMG could not be placed)."""
     frames = data.joint_q.get(tuple(coordinates))
     if not frames:
         found = ", ".join("/".join(c) for c in data.joint_q) or "none"
@@ -150,12 +167,6 @@ def joint_series(recording: Path, data: SessionData, coordinates: list[str]) -> 
             path=recording,
         )
     time = np.array([t for t, _ in frames])
-    stamps = [
-        (j.host_time_ns, j.device_time_ns)
-        for j in (r.decode(messages.JointAngles) for r in read_messages(recording) if r.type_name == "msk.JointAngles")
-        if j.host_time_ns
-    ]
-    late_s = np.array([host - device for host, device in stamps], dtype=float) / 1e9  # receipt after the instant
     if late_s.size and abs(float(np.median(late_s))) > HOST_CLOCK_TOLERANCE_S:
         raise InputError(
             "the joint frames are on a device clock of their own (the kinematics node's --imu-clock device), not the "
@@ -194,14 +205,19 @@ def electrode_channels(streams: dict, electrodes: dict[str, str], groups: list[s
     return having[0], mapping
 
 
-def set_offset_ns(stream: EmgStream, window: SetWindow, stated_ns: float | None) -> float:
-    """The offset placing the stream on the joints' clock for a set: the stated one, none without receipt times
-    (a synthetic recording, on one clock), else the set's median arrival offset."""
-    if stated_ns is not None:
-        return stated_ns
+def arrival_offsets_ns(stream: EmgStream) -> np.ndarray | None:
+    """Per chunk, the arrival mapping's offset (device time + offset = host instant); None without receipt times
+    (a synthetic recording, on one clock)."""
     if not np.any(stream.host_ns):
+        return None
+    return windowed_offsets(stream.device_ns, np.maximum.accumulate(stream.host_ns))
+
+
+def set_offset_ns(stream: EmgStream, window: SetWindow, offsets: np.ndarray | None) -> float:
+    """The offset placing the stream on the joints' clock for a set: the set's median arrival offset (``offsets``,
+    :func:`arrival_offsets_ns`), 0 without them."""
+    if offsets is None:
         return 0.0
-    offsets = windowed_offsets(stream.device_ns, np.maximum.accumulate(stream.host_ns))
     mapped = (stream.device_ns + offsets) / 1e9
     within = (mapped >= window.start_s) & (mapped <= window.end_s)
     return float(np.median(offsets[within] if within.any() else offsets))
@@ -231,7 +247,8 @@ def export_trials(
         )
     data = read_session(recording, session=session)
     coordinates, groups = list(pack.coordinates), list(pack.groups)
-    joint_time, joint_q = joint_series(recording, data, coordinates)
+    streams, late_s = read_timing(recording, session)
+    joint_time, joint_q = joint_series(recording, data, coordinates, late_s)
     windows = [w for w in set_windows(data) if w.exercise in ("", pack.name)]
     if not windows:
         raise InputError(f"no set of pack {pack.name!r} in the recording", path=recording)
@@ -239,7 +256,6 @@ def export_trials(
     unknown = sorted(set(mvc_sets) - numbers)
     if unknown:
         raise ConfigError(f"not a set of the recording (its sets: {sorted(numbers)})", field="--mvc-set", value=unknown)
-    streams = read_emg(recording, session)
     if not streams:
         raise InputError("no EMG recorded: calibration needs the electrodes' EMG", path=recording)
     key, mapping = electrode_channels(streams, electrodes or {}, groups)
@@ -285,9 +301,10 @@ def sets_emg(recording: Path, session: str | None, key, stream: EmgStream, windo
     """Per set number: (its window, its EMG rows' instants on the joints' clock, the rows of ``columns``), with the
     margins :data:`EMG_MARGIN_S` on either side."""
     by_number = {window.number or window.index: window for window in windows}
+    arrival = None if stated is not None else arrival_offsets_ns(stream)
     spans, times = {}, {}
     for number, window in by_number.items():
-        offset = set_offset_ns(stream, window, None if stated is None else stated[0])
+        offset = stated[0] if stated is not None else set_offset_ns(stream, window, arrival)
         first, times[number] = stream.row_span(window.start_s - EMG_MARGIN_S, window.end_s + EMG_MARGIN_S, offset)
         spans[number] = (first, times[number].size)
     rows = read_rows(recording, session, key, spans)
