@@ -44,6 +44,19 @@ WINDOW_S = 5.0  # long enough to hold a fast delivery every few seconds, short e
 RESTART_BACK_S = 1.0
 SPREAD_PERCENTILE = 95.0
 
+
+def counts_again(newest_device_ns: int | None, device_ns: int) -> bool:
+    """Whether a sample at ``device_ns`` is its device clock counting again: more than :data:`RESTART_BACK_S`
+    behind the stream's newest time (None: the stream's first sample)."""
+    return newest_device_ns is not None and device_ns < newest_device_ns - RESTART_BACK_S * 1e9
+
+
+def newest_device_time(newest_device_ns: int | None, device_ns: int) -> int:
+    """A stream's newest device time after a sample at ``device_ns`` (``newest_device_ns`` None: the clock began
+    again, or this is the first sample)."""
+    return int(device_ns) if newest_device_ns is None else max(newest_device_ns, int(device_ns))
+
+
 METHOD_ARRIVAL = "arrival"  # offset from the host's receipt times (this module)
 METHOD_DEVICE = "device"  # the streams share one clock: no mapping (recordings, synthetic sessions)
 METHOD_HOST = "host"  # the stream's times are on the host clock already (a node upstream mapped them)
@@ -137,14 +150,12 @@ class HostClock:
     def add(self, device_ns: int, receipt_ns: int) -> None:
         """One sample (a block's last one) with device time ``device_ns`` received by the host at ``receipt_ns``."""
         receipt_ns, delay = int(receipt_ns), int(receipt_ns) - int(device_ns)
-        if self._newest_device_ns is not None and device_ns < self._newest_device_ns - RESTART_BACK_S * 1e9:
-            self.restarts += 1  # the device clock counts again: the window's offsets belong to the clock that was
+        if counts_again(self._newest_device_ns, device_ns):
+            self.restarts += 1  # the window's offsets belong to the clock that was
             self._window.clear()
             self._minimum.clear()
             self._newest_device_ns = None
-        self._newest_device_ns = (
-            int(device_ns) if self._newest_device_ns is None else max(self._newest_device_ns, int(device_ns))
-        )
+        self._newest_device_ns = newest_device_time(self._newest_device_ns, device_ns)
         self._newest_ns = receipt_ns if self._newest_ns is None else max(self._newest_ns, receipt_ns)
         self._window.append((receipt_ns, delay))
         while self._minimum and self._minimum[-1][1] >= delay:

@@ -34,11 +34,12 @@ from msk_core.imu.stream import IncompleteFrame, SegmentSynchroniser, StreamingJ
 from msk_core.model import load_pack
 from msk_core.signal.host_clock import (
     METHOD_DEVICE,
-    RESTART_BACK_S,
     WINDOW_S,
     ClockReport,
     DeviceClocks,
+    counts_again,
     latency_argv,
+    newest_device_time,
     parse_latencies,
 )
 from msk_core.signal.reps import RepTemplate
@@ -306,8 +307,8 @@ class KinematicsNode:
         time_ns, tracker = int(imu.device_time_ns), key.rsplit("/", 1)[1]
         newest = self._newest_device_ns.get(tracker)
         # the tracker's clock counting again (power cycle, a stream started again): a new start, whatever its counter
-        clock_restarted = newest is not None and time_ns < newest - RESTART_BACK_S * 1e9
-        self._newest_device_ns[tracker] = time_ns if newest is None or clock_restarted else max(newest, time_ns)
+        clock_restarted = counts_again(newest, time_ns)
+        self._newest_device_ns[tracker] = newest_device_time(None if clock_restarted else newest, time_ns)
         if self.clock == "host":  # each tracker's own clock mapped onto the host clock (see main)
             time_ns = self.host_clocks.to_host(tracker, time_ns, int(imu.host_time_ns))
         else:
