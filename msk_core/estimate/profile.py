@@ -56,17 +56,11 @@ class SubjectProfile:
         if list(pack.groups) != list(self.groups):
             missing = [g for g in pack.groups if g not in self.groups]
             extra = [g for g in self.groups if g not in pack.groups]
+            differences = [f"the pack's {_few(missing)} are not in it"] if missing else []
+            differences += [f"its {_few(extra)} are not in the pack"] if extra else []
             raise EstimationError(
                 f"{profile} was calibrated on other groups of pack {pack.name!r}: "
-                + "; ".join(
-                    part
-                    for part in (
-                        f"the pack's {_few(missing)} are not in it" if missing else "",
-                        f"its {_few(extra)} are not in the pack" if extra else "",
-                        "" if missing or extra else "the same groups in another order",
-                    )
-                    if part
-                )
+                + "; ".join(differences or ["the same groups in another order"])
                 + "; recalibrate"
             )
         if str(pack.version) != str(self.pack_version):

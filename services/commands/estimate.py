@@ -281,17 +281,12 @@ def remove_unfilled_folders() -> None:
 
 
 def output_file(path: Path, flag: str, example: str) -> Path:
-    """``path``'s folder made before the work that writes it: a :class:`ConfigError` naming ``flag`` when ``path``
-    is a folder (it was found only after the calibration, as an error about a hidden temporary file) or its folder
-    cannot be made."""
+    """``path``'s folder made before the work that writes it (:func:`output_folder`): a :class:`ConfigError` naming
+    ``flag`` when ``path`` is a folder (it was found only after the calibration, as an error about a hidden temporary
+    file) or its folder cannot be made."""
     if path.is_dir():
         raise ConfigError(f"is a folder: name the file to write, e.g. {path / example}", field=flag, value=str(path))
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except (FileExistsError, NotADirectoryError):
-        raise ConfigError("its folder is a file", field=flag, value=str(path)) from None
-    except OSError as error:
-        raise ConfigError(f"cannot make its folder: {error.strerror}", field=flag, value=str(path)) from None
+    output_folder(path.parent, flag)
     return path
 
 
