@@ -1,8 +1,10 @@
-"""Typed exceptions of msk-live. Every message names the file, line, field and value involved where there is one; and
-the one check of ``KEY=VALUE`` option items (:func:`parse_pairs`), whose error names the option and the item."""
+"""Typed exceptions of msk-live. Every message names the file, line, field and value involved where there is one; the
+one check of ``KEY=VALUE`` option items (:func:`parse_pairs`), whose error names the option and the item; and the one
+search for the names a misspelt one may have meant (:func:`close_names`)."""
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -73,3 +75,16 @@ def parse_pairs(items: Iterable[str], *, field: str, form: str) -> dict[str, str
             raise ConfigError(f"expected {form}", field=field, value=item)
         pairs[key] = value
     return pairs
+
+
+def close_names(
+    name: str, choices: Iterable[str], *, n: int = 3, cutoff: float = 0.4, ignore_case: bool = True
+) -> list[str]:
+    """Up to ``n`` of ``choices`` close to ``name`` (difflib's ratio at least ``cutoff``), best first, for an error's
+    hint; ``ignore_case``: "brd" finds "BRD_r" (the first of choices that differ only in case)."""
+    if not ignore_case:
+        return difflib.get_close_matches(name, list(choices), n=n, cutoff=cutoff)
+    by_lower: dict[str, str] = {}
+    for choice in choices:
+        by_lower.setdefault(choice.lower(), choice)
+    return [by_lower[hit] for hit in difflib.get_close_matches(name.lower(), list(by_lower), n=n, cutoff=cutoff)]

@@ -52,7 +52,6 @@ torque file does not cover are dropped (counted in ``dropped_frames``). Reps and
 
 from __future__ import annotations
 
-import difflib
 import re
 import tomllib
 import warnings
@@ -62,7 +61,7 @@ from typing import overload
 
 import numpy as np
 
-from msk_core.errors import ConfigError, EstimationError, InputError
+from msk_core.errors import ConfigError, EstimationError, InputError, close_names
 from msk_core.estimate.mechanics import TrialMechanics, mechanics_of
 from msk_core.estimate.pack import PackLike, clamp_to_ranges, fitted_ranges
 from msk_core.estimate.phase import DEFAULT_PHASE_COORDINATES, kinematic_phase, torque_phase
@@ -152,7 +151,7 @@ def _within(time: np.ndarray, source_time: np.ndarray) -> np.ndarray:
 
 
 def _closest(name: str, options: list[str]) -> str:
-    near = difflib.get_close_matches(name, options, n=3)
+    near = close_names(name, options, cutoff=0.6, ignore_case=False)  # difflib's default cutoff
     return f"; did you mean {', '.join(near)}?" if near else ""
 
 

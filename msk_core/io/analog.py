@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import difflib
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from msk_core.errors import FileFormatError, InputError
+from msk_core.errors import FileFormatError, InputError, close_names
 from msk_core.io.storage import float_cells
 from msk_core.units import VOLTS_PER_UNIT, volts_per_unit
 
@@ -79,8 +78,7 @@ class AnalogRecording:
         try:
             return self.labels.index(label)
         except ValueError:
-            by_lower = {lab.lower(): lab for lab in self.labels}  # case aside: "sol" finds "SOL"
-            near = [by_lower[h] for h in difflib.get_close_matches(label.lower(), list(by_lower), n=3, cutoff=0.5)]
+            near = close_names(label, self.labels, cutoff=0.5)  # case aside: "sol" finds "SOL"
             emg = [lab for lab in self.labels if lab not in self.not_emg]
             other = f"; not EMG: {', '.join(self.not_emg)}" if self.not_emg else ""
             raise InputError(

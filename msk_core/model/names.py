@@ -12,12 +12,11 @@ translation would be read in metres, its force in N (:data:`TORQUE_UNITS`).
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from msk_core.errors import ConfigError
+from msk_core.errors import ConfigError, close_names
 from msk_core.io.files import line_of
 
 ROTATION_UNIT = "deg"
@@ -130,7 +129,7 @@ def parse_names(
         fieldname = f"{where}.{key}"
         line = line_of(text, key, after=f"[{where}]", key=True)
         if key not in known:
-            hits = difflib.get_close_matches(key, known, n=3, cutoff=0.4)
+            hits = close_names(key, known, ignore_case=False)
             # the table may be right and the name it names misspelt where it is defined: say both
             hint = f"closest: {', '.join(hits)}" if hits else "no similar name"
             if hits and defined_here:  # the spec that has the table defines the names too: either may be misspelt

@@ -9,7 +9,6 @@ pairs the report compares: left/right groups, agonists/antagonists of a coordina
 
 from __future__ import annotations
 
-import difflib
 import math
 import tomllib
 from collections.abc import Callable
@@ -17,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard
 
-from msk_core.errors import ConfigError
+from msk_core.errors import ConfigError, close_names
 from msk_core.io.files import line_of
 from msk_core.model.names import ROTATION_UNIT, DisplayNames, parse_names
 
@@ -130,11 +129,8 @@ class PackSpec:
 
 
 def closest(name: str, choices: list[str], n: int = 3) -> str:
-    """'closest: a, b, c' hint for an unknown name."""
-    by_lower: dict[str, str] = {}
-    for choice in choices:  # case aside: "brd" finds "BRD_r"
-        by_lower.setdefault(choice.lower(), choice)
-    hits = [by_lower[h] for h in difflib.get_close_matches(name.lower(), list(by_lower), n=n, cutoff=0.4)]
+    """'closest: a, b, c' hint for an unknown name (case aside: "brd" finds "BRD_r")."""
+    hits = close_names(name, choices, n=n)
     return f"closest: {', '.join(hits)}" if hits else "no similar name"
 
 
