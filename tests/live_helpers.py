@@ -34,7 +34,9 @@ def run_msk(*argv: str, env: dict[str, str] | None = None, timeout: float = 60.0
 
 
 def start_msk(*argv: str, env: dict[str, str]) -> subprocess.Popen[str]:
-    """``msk ARGV`` started in a process group of its own (a Ctrl-C goes to it and its nodes), stderr into stdout."""
+    """``msk ARGV`` started in a process group of its own (a Ctrl-C goes to it and its nodes), stderr into stdout, with
+    SIGHUP's default action as under a terminal: a suite started with ``nohup`` passes its ignored SIGHUP on, and
+    ``msk live`` rightly keeps running when started so (services.transport.stop_signals)."""
     return subprocess.Popen(
         [sys.executable, "-m", "services.cli", *argv],
         cwd=REPO,
@@ -43,7 +45,12 @@ def start_msk(*argv: str, env: dict[str, str]) -> subprocess.Popen[str]:
         stderr=subprocess.STDOUT,
         text=True,
         start_new_session=True,
+        preexec_fn=_sighup_as_under_a_terminal,
     )
+
+
+def _sighup_as_under_a_terminal() -> None:
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 def start_subscribe(key: str, *options: str) -> subprocess.Popen[str]:
