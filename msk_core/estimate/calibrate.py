@@ -34,8 +34,10 @@ with c_tn = sum_g |R_tng| F_ref,g the reference torque capacity of coordinate n 
 estimator, fixed so it does not depend on k). Groups without EMG have no EMG term, and by default
 (``calibrate="emg"``) keep k = 1: nothing in the data identifies their strength separately from their activation.
 
-The problem is smooth and bound-constrained (bilinear in k and a), so it is solved as such: L-BFGS-B on all variables
-with the analytic gradient (:func:`calibrate`). :func:`calibrate_alternating` is an independent second method (block
+The problem is smooth and bound-constrained (bilinear in k and a), so it is solved as such (:func:`calibrate`): by
+default ("reduced") L-BFGS-B on the free strength factors, every frame's activations the exact optimum of its QP at
+those strengths; or ("joint", and always with a torque basis) L-BFGS-B on all variables with the analytic gradient.
+:func:`calibrate_alternating` is an independent second method (block
 coordinate descent: per-frame bounded QPs in a by PIQP, bounded least squares in k by scipy's ``lsq_linear``) used to
 show both reach the same optimum. Convergence is reported (iterations, projected-gradient norm, objective terms).
 """
@@ -154,9 +156,9 @@ class CalibrationSettings:
     precondition: bool = True  # Jacobi-scaled variables in the joint solve (False: as written; msk bench calibrate)
     # "joint": L-BFGS-B on (k, a, beta) together; "reduced": L-BFGS-B on the free strengths only, every frame's
     # activations the exact optimum of its box QP at those strengths (compiled active set, warm from the last
-    # evaluation), the gradient in k by the envelope theorem (:func:`calibrate`; same optimum, ~20x less CPU on the
-    # walk; a calibration with a torque basis is solved jointly either way)
-    solver: str = "joint"
+    # evaluation), the gradient in k by the envelope theorem (:func:`calibrate`; same optimum, ~15x less CPU on the
+    # walk; the default since 28 Nov; a calibration with a torque basis is solved jointly either way)
+    solver: str = "reduced"
     # "reduced": activations that no term but the torque pins down (groups without EMG between reps) get this tiny
     # pull to 0 (the joint solve's start), so that each frame's QP has one optimum
     reduced_ridge: float = 1e-3
@@ -400,11 +402,14 @@ class _Problem:
         series += [(a - self.e)[:, j] for j in range(self.g) if np.all(self.w_e[:, j] > 0)]
         return max(1.0, float(np.median([integrated_autocorrelation(x) for x in series])))
 
-    def projected_gradient(self, z: np.ndarray) -> float:
+    def projected_gradient(self, z: np.ndarray, *, strengths_only: bool = False) -> float:
+        """Infinity norm of the projected gradient of J at z; ``strengths_only``: over the strength factors alone
+        (the "reduced" solve, whose activations are each frame's exact optimum, with its ridge: J's gradient in
+        those activations is that ridge's pull, not a distance from the optimum)."""
         _, grad = self.value_grad(z)
         lower, upper = self.bounds()
         pg = np.clip(z - grad, lower, upper) - z
-        return float(np.max(np.abs(pg)))
+        return float(np.max(np.abs(pg[: self.g] if strengths_only else pg)))
 
     def start(self) -> np.ndarray:
         a0 = np.clip(np.where(self.w_e > 0, self.e, self.mu), self.a_min, 1.0)
@@ -471,7 +476,12 @@ def calibrate(
 
     if s.solver == "reduced" and prob.p == 0:
         reduced = _ReducedSolve(prob, s)
-        return _solve_identified(prob, s, f_ref, reduced.solve, "L-BFGS-B (strengths, exact activations)", start=start)
+        result = _solve_identified(
+            prob, s, f_ref, reduced.solve, "L-BFGS-B (strengths, exact activations)", start=start
+        )
+        z = np.concatenate([result.scale, result.activations.ravel()])
+        result.projected_gradient = prob.projected_gradient(z, strengths_only=True)
+        return result
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)", start=start)
 
 

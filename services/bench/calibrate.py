@@ -1,6 +1,7 @@
-"""Calibration of the demo subject (lift + isometric MVC trials) with the Jacobi-preconditioned joint solve, beside the
-same problem solved as written (``precondition=False``), in the same run: time, iterations, the distance between the
-two optima and the strength error against the generator's truth."""
+"""Calibration of the demo subject (lift + isometric MVC trials) by the default "reduced" solve beside the joint solve
+(L-BFGS-B on strengths and activations, Jacobi-preconditioned), and (full run) the joint solve beside the same
+problem as written (``precondition=False``), in the same run: time, iterations, the distance between the optima and
+the strength error against the generator's truth."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 from services.bench import BenchResult
 
 NAME = "calibrate"
-DESCRIPTION = "calibration NLP on the demo lift + isometric MVC trials: preconditioned vs as written (same run)"
+DESCRIPTION = "calibration NLP on the demo lift + isometric MVC trials: reduced vs joint, preconditioned vs as written"
 
 
 QUICK_ISOMETRIC = 2  # --quick: the lift and the first two MVC blocks (1761 frames: ~2 s + ~8 s CPU; all ten: ~56 s)
@@ -33,32 +34,48 @@ def _frames(exercise: str, n_isometric: int | None = None):
 
 
 def run(quick: bool) -> list[BenchResult]:
-    from msk_core.estimate.calibrate import CalibrationSettings, calibrate
+    from msk_core.estimate.calibrate import CalibrationSettings
 
     results = []
     for exercise in ("bench_press",) if quick else ("bench_press", "deadlift"):
         pack, frames, f_true = _frames(exercise, QUICK_ISOMETRIC if quick else None)
-        runs = {}
-        for precondition in (True, False):
-            started = time.perf_counter()
-            res = calibrate(pack.f_max_ref, frames, CalibrationSettings(precondition=precondition))
-            runs[precondition] = (time.perf_counter() - started, res)
-        (t_pre, pre), (t_raw, raw) = runs[True], runs[False]
-        results.append(
-            BenchResult(
-                name=f"{exercise} calibration ({frames.torques.shape[0]} frames, preconditioned)",
-                value=t_pre,
-                unit="s",
-                baseline_name="as written",
-                baseline_value=t_raw,
-                details={
-                    "iterations": pre.iterations,
-                    "baseline_iterations": raw.iterations,
-                    "max_abs_strength_difference": float(np.max(np.abs(pre.scale - raw.scale))),
-                    "objective": pre.objective,
-                    "baseline_objective": raw.objective,
-                    "strength_error_median": float(np.median(np.abs(pre.f_max / f_true - 1.0))),
-                },
+        comparisons = [("reduced", CalibrationSettings(solver="reduced"), "joint", CalibrationSettings(solver="joint"))]
+        if not quick:
+            comparisons.append(
+                (
+                    "joint, preconditioned",
+                    CalibrationSettings(solver="joint"),
+                    "joint as written",
+                    CalibrationSettings(solver="joint", precondition=False),
+                )
             )
-        )
+        for name, settings, baseline_name, baseline in comparisons:
+            results.append(_compared(pack, frames, f_true, exercise, name, settings, baseline_name, baseline))
     return results
+
+
+def _compared(pack, frames, f_true, exercise, name, settings, baseline_name, baseline) -> BenchResult:
+    """One calibration timed beside its baseline on the same frames."""
+    from msk_core.estimate.calibrate import calibrate
+
+    runs = []
+    for each in (settings, baseline):
+        started = time.perf_counter()
+        res = calibrate(pack.f_max_ref, frames, each)
+        runs.append((time.perf_counter() - started, res))
+    (t_new, new), (t_base, base) = runs
+    return BenchResult(
+        name=f"{exercise} calibration ({frames.torques.shape[0]} frames, {name})",
+        value=t_new,
+        unit="s",
+        baseline_name=baseline_name,
+        baseline_value=t_base,
+        details={
+            "iterations": new.iterations,
+            "baseline_iterations": base.iterations,
+            "max_abs_strength_difference": float(np.max(np.abs(new.scale - base.scale))),
+            "objective": new.objective,
+            "baseline_objective": base.objective,
+            "strength_error_median": float(np.median(np.abs(new.f_max / f_true - 1.0))),
+        },
+    )
