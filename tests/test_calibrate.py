@@ -42,6 +42,7 @@ def test_joint_lbfgsb_and_alternating_reach_the_same_optimum(strength_prior_std,
         precondition=precondition,
         emg_relative_std=emg_relative_std,
         identify_max_std=None,
+        solver="joint",
     )  # the NLP optimum itself
     joint = calibrate(f_ref, frames, s)
     alt = calibrate_alternating(f_ref, frames, s)
@@ -72,8 +73,8 @@ def test_reduced_solver_reaches_the_joint_optimum(strength_prior_std):
     f_ref, _, _, frames = _synthetic(seed=3, t=50, noise=0.03)
     frames.prior_std[:10, 4] = np.inf  # "between reps": the group without EMG has no prior there
     base = {"torque_tolerance": 0.02, "strength_prior_std": strength_prior_std, "identify_max_std": None}
-    joint = calibrate(f_ref, frames, CalibrationSettings(**base))
-    reduced = calibrate(f_ref, frames, CalibrationSettings(**base, solver="reduced"))
+    joint = calibrate(f_ref, frames, CalibrationSettings(**base, solver="joint"))
+    reduced = calibrate(f_ref, frames, CalibrationSettings(**base))  # the default
     assert joint.converged and reduced.converged, (joint.message, reduced.message)
     assert reduced.method.startswith("L-BFGS-B (strengths")
     np.testing.assert_allclose(reduced.objective, joint.objective, rtol=1e-6)
@@ -83,6 +84,29 @@ def test_reduced_solver_reaches_the_joint_optimum(strength_prior_std):
     assert reduced.projected_gradient <= CalibrationSettings().reduced_ridge and reduced.scale[4] == 1.0
     with pytest.raises(EstimationError, match="solver"):
         CalibrationSettings(solver="newton")
+
+
+def test_a_reduced_solve_that_does_not_converge_is_continued_by_the_joint_solve(monkeypatch):
+    """The reduced solve is the default; where it ends unconverged (here: made to stop after one L-BFGS-B iteration),
+    the joint solve takes over from its end and reaches the joint optimum, and the message says what happened."""
+    from msk_core.estimate import calibrate as module
+
+    f_ref, _, _, frames = _synthetic(seed=3, t=50, noise=0.03)
+    settings = CalibrationSettings(torque_tolerance=0.02, identify_max_std=None)
+    joint = calibrate(f_ref, frames, dataclasses.replace(settings, solver="joint"))
+    solve = module._ReducedSolve.solve
+
+    def one_iteration(self, z0):  # the reduced solve cut short: L-BFGS-B away from a stationary point
+        self.max_iter = 1
+        z, _, iterations, message = solve(self, z0)
+        return z, False, iterations, message
+
+    monkeypatch.setattr(module._ReducedSolve, "solve", one_iteration)
+    continued = calibrate(f_ref, frames, settings)
+    assert continued.converged and continued.method == "L-BFGS-B (joint)", continued.message
+    assert continued.message.startswith("the reduced solve did not converge"), continued.message
+    np.testing.assert_allclose(continued.scale, joint.scale, atol=1e-4)
+    np.testing.assert_allclose(continued.objective, joint.objective, rtol=1e-6)
 
 
 def test_calibration_recovers_true_strength_from_clean_emg():

@@ -44,7 +44,7 @@ show both reach the same optimum. Convergence is reported (iterations, projected
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
 
 import numba
@@ -443,10 +443,12 @@ def calibrate(
     *,
     start: CalibrationResult | None = None,
 ) -> CalibrationResult:
-    """Joint bound-constrained solve (L-BFGS-B, analytic gradient) of the calibration problem, with the
-    identifiability pass (unidentified factors held at the reference, then re-solved). ``start``: a calibration of
-    the same frames to start from (its strengths and activations; the torque basis' coefficients from 0), which a
-    re-calibration with a torque basis reaches in fewer iterations."""
+    """Bound-constrained solve of the calibration problem (``settings.solver``: "reduced" by default, "joint"
+    always with a torque basis), with the identifiability pass (unidentified factors held at the reference, then
+    re-solved). A reduced solve that does not converge (a frame's QP not certified, L-BFGS-B stopped away from a
+    stationary point) is continued by the joint solve from where it ended, and its message says so. ``start``: a
+    calibration of the same frames to start from (its strengths and activations; the torque basis' coefficients
+    from 0), which a re-calibration with a torque basis reaches in fewer iterations."""
     s = settings or CalibrationSettings()
     f_ref = np.asarray(f_max_ref, dtype=float)
     prob = _Problem(f_ref, frames, s)
@@ -481,7 +483,13 @@ def calibrate(
         )
         z = np.concatenate([result.scale, result.activations.ravel()])
         result.projected_gradient = prob.projected_gradient(z, strengths_only=True)
-        return result
+        if result.converged:
+            return result
+        joint = calibrate(f_ref, frames, replace(s, solver="joint"), start=result)
+        joint.message = (
+            f"the reduced solve did not converge ({result.message}); joint solve from its end: {joint.message}"
+        )
+        return joint
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)", start=start)
 
 
