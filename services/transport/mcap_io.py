@@ -83,7 +83,9 @@ class McapRecorderWriter:
         self,
         path: str | Path,
         *,
-        chunk_size: int = 256 * 1024,
+        # 1 MiB: a live session's chunks then close on the flush interval, once a second, rather than about twice on
+        # size; the writer keeps each chunk's index until close (the file's summary), 8.8 -> 5.3 MB/h on msk live --sim
+        chunk_size: int = 1024 * 1024,
         flush_interval_s: float = 1.0,
         compression: CompressionType = CompressionType.ZSTD,
     ) -> None:
