@@ -38,19 +38,20 @@ def start_msk(*argv: str, env: dict[str, str]) -> subprocess.Popen[str]:
     SIGHUP's default action as under a terminal: a suite started with ``nohup`` passes its ignored SIGHUP on, and
     ``msk live`` rightly keeps running when started so (services.transport.stop_signals)."""
     return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *argv],
+        [sys.executable, "-c", _MSK_WITH_SIGHUP_DEFAULT, *argv],  # not preexec_fn: unsafe in a threaded parent
         cwd=REPO,
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
         start_new_session=True,
-        preexec_fn=_sighup_as_under_a_terminal,
     )
 
 
-def _sighup_as_under_a_terminal() -> None:
-    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+_MSK_WITH_SIGHUP_DEFAULT = (
+    "import runpy, signal; signal.signal(signal.SIGHUP, signal.SIG_DFL); "
+    "runpy.run_module('services.cli', run_name='__main__', alter_sys=True)"
+)
 
 
 def start_subscribe(key: str, *options: str) -> subprocess.Popen[str]:

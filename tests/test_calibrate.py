@@ -86,25 +86,33 @@ def test_reduced_solver_reaches_the_joint_optimum(strength_prior_std):
         CalibrationSettings(solver="newton")
 
 
-def test_a_reduced_solve_that_does_not_converge_is_continued_by_the_joint_solve(monkeypatch):
-    """The reduced solve is the default; where it ends unconverged (here: made to stop after one L-BFGS-B iteration),
-    the joint solve takes over from its end and reaches the joint optimum, and the message says what happened."""
+@pytest.mark.parametrize("identify,max_std", [("report", None), ("truncate", 1e-6)])
+def test_a_reduced_solve_that_does_not_converge_is_continued_by_the_joint_solve(monkeypatch, identify, max_std):
+    """The reduced solve is the default; where it ends unconverged (here: its first solve made to stop after one
+    L-BFGS-B iteration), the joint solve takes over from its end and reaches the joint optimum, the message says what
+    happened and the result keeps the caller's settings. With truncation the second solve (every direction held)
+    converges: the result is still the unconverged first solve's, so it is continued all the same."""
     from msk_core.estimate import calibrate as module
 
     f_ref, _, _, frames = _synthetic(seed=3, t=50, noise=0.03)
-    settings = CalibrationSettings(torque_tolerance=0.02, identify_max_std=None)
+    settings = CalibrationSettings(torque_tolerance=0.02, identify=identify, identify_max_std=max_std)
     joint = calibrate(f_ref, frames, dataclasses.replace(settings, solver="joint"))
-    solve = module._ReducedSolve.solve
+    solve, calls = module._ReducedSolve.solve, []
 
-    def one_iteration(self, z0):  # the reduced solve cut short: L-BFGS-B away from a stationary point
+    def first_cut_short(self, z0):  # L-BFGS-B stopped away from a stationary point, the first time only
+        calls.append(1)
+        if len(calls) > 1:
+            return solve(self, z0)
         self.max_iter = 1
         z, _, iterations, message = solve(self, z0)
         return z, False, iterations, message
 
-    monkeypatch.setattr(module._ReducedSolve, "solve", one_iteration)
+    monkeypatch.setattr(module._ReducedSolve, "solve", first_cut_short)
     continued = calibrate(f_ref, frames, settings)
+    assert len(calls) == (2 if identify == "truncate" else 1)
     assert continued.converged and continued.method == "L-BFGS-B (joint)", continued.message
     assert continued.message.startswith("the reduced solve did not converge"), continued.message
+    assert continued.settings.solver == "reduced"
     np.testing.assert_allclose(continued.scale, joint.scale, atol=1e-4)
     np.testing.assert_allclose(continued.objective, joint.objective, rtol=1e-6)
 

@@ -46,8 +46,8 @@ def synthetic(
     """(folder, pack, trials, profile, truth): the last load is held out, the others train (default: the lighter
     load trains, the heavier is held out). The profile is calibrated on the training trials as a user would
     (``msk calibrate --emd 0``: the paper's model without a delay), as in `msk bench discrepancy`, by the ``reduced``
-    solver: the same NLP as the default joint one (test_calibrate.test_reduced_solver_reaches_the_joint_optimum), in
-    1.5-2.5 s per session instead of 10-14 s. On the 12 sessions of this module (27 Nov) the strengths agreed within
+    solver (the default since 28 Nov): the same NLP as the joint one (test_calibrate.test_reduced_solver_reaches_the_
+    joint_optimum), in 1.5-2.5 s per session instead of 10-14 s. On the 12 sessions of this module (27 Nov) the strengths agreed within
     1e-3 relative and every summary was the same: effect named, candidates in the same order, held-out reductions
     and gaps to 3 decimals. ``calibrated=False``: no profile (None)."""
     ex = Exercise(exercise)

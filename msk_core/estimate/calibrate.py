@@ -489,6 +489,8 @@ def calibrate(
         joint.message = (
             f"the reduced solve did not converge ({result.message}); joint solve from its end: {joint.message}"
         )
+        joint.iterations += result.iterations
+        joint.settings = s  # what the caller asked for (a re-calibration of the profile starts reduced again)
         return joint
     return _solve_identified(prob, s, f_ref, solve, "L-BFGS-B (joint)", start=start)
 
@@ -536,6 +538,8 @@ class _ReducedSolve:
             np.where(d > 0, (prob.w_p * prob.mu + prob.w_e * prob.e) / np.where(d > 0, d, 1.0), 0.0)
         )
         self.prec = np.ascontiguousarray(np.where(d > 0, d, 0.0) + s.reduced_ridge)
+        self.ridge = s.reduced_ridge
+        self.ftol = s.ftol
         self.lb = np.full(prob.g, prob.a_min)
         self.ub = np.ones(prob.g)
         self.scale = 1.01 * max(s.strength_bounds[1], 1.0) / s.torque_tolerance
@@ -576,7 +580,9 @@ class _ReducedSolve:
             terms, rho = prob.terms(k, a, beta)
             back = np.einsum("tn,tng->tg", rho * prob.inv_s, prob.m)
             grad = np.sum(back * a, axis=0) + prob.w_k_obj * (k - 1.0)
-            return sum(terms.values()), grad[free]
+            # the value of what is minimised, min_a (J + the ridge's pull), whose gradient in k this is
+            pull = 0.5 * self.ridge * float(np.sum((a - self.mean) ** 2))
+            return sum(terms.values()) + pull, grad[free]
 
         if not np.any(free):
             value_grad(k[free])
@@ -588,7 +594,8 @@ class _ReducedSolve:
             jac=True,
             method="L-BFGS-B",
             bounds=Bounds(lo[free], hi[free]),
-            options={"maxiter": self.max_iter, "gtol": 1e-10, "ftol": 1e-15, "maxcor": 10},
+            # gtol on the unscaled strengths (the joint solve's gtol is for its preconditioned variables)
+            options={"maxiter": self.max_iter, "gtol": 1e-10, "ftol": self.ftol, "maxcor": 10},
         )
         _, grad = value_grad(res.x)  # the activations at the returned strengths
         # L-BFGS-B may end its line search at the precision of J (ABNORMAL) at a stationary point: converged when
@@ -598,6 +605,20 @@ class _ReducedSolve:
         converged = self.failed == 0 and (bool(res.success) or float(np.max(step)) < 1e-6)
         message = str(res.message) + (f"; {self.failed} frame QPs not certified" if self.failed else "")
         return np.concatenate([k, self.x.ravel(), beta]), converged, int(res.nit), message
+
+
+def _start_vector(prob: _Problem, start: CalibrationResult | None) -> np.ndarray:
+    """The solve's start: the problem's own, or the strengths and activations of ``start`` (same frames)."""
+    z0 = prob.start()
+    if start is not None:
+        if start.activations.shape != (prob.t, prob.g):
+            raise EstimationError(
+                f"calibration start: activations {start.activations.shape} for {(prob.t, prob.g)} frames x groups"
+            )
+        lo, hi = np.array(prob.k_bounds).T
+        z0[: prob.g] = np.clip(start.scale, lo, hi)
+        z0[prob.g : prob.g * (1 + prob.t)] = np.clip(start.activations, prob.a_min, 1.0).ravel()
+    return z0
 
 
 def _solve_identified(
@@ -616,23 +637,14 @@ def _solve_identified(
     per-group stds and statuses: a group alone unidentified is a ``combination`` when a large enough share of it lies
     in identified directions (left/right pairs, muscles with the same moment arms: only their common factor is
     known)."""
-    z0 = prob.start()
-    if start is not None:
-        if start.activations.shape != (prob.t, prob.g):
-            raise EstimationError(
-                f"calibration start: activations {start.activations.shape} for {(prob.t, prob.g)} frames x groups"
-            )
-        lo, hi = np.array(prob.k_bounds).T
-        z0[: prob.g] = np.clip(start.scale, lo, hi)
-        z0[prob.g : prob.g * (1 + prob.t)] = np.clip(start.activations, prob.a_min, 1.0).ravel()
-    z, converged, iterations, message = solve(z0)
+    z, converged, iterations, message = solve(_start_vector(prob, start))
     tau = prob.correlation_frames(z)
     if s.identify is IdentifyMode.SHRINK and prob.w_k and tau > 1.0:
         # the data terms count T frames, but carry the information of T / tau_int: weigh the strength prior up by
         # tau_int so that the MAP shrinks what the data cannot determine towards the reference, and re-solve
         prob.w_k_obj = prob.w_k * tau
-        z, converged, more, message = solve(z)
-        iterations += more
+        z, again, more, message = solve(z)
+        converged, iterations = converged and again, iterations + more  # both solves must have converged
         message += f"; strength prior weighed by tau_int = {tau:.1f} frames"
     std_data, cov = prob.strength_std(z, with_prior=False, return_cov=True)
     std_post = prob.strength_std(z, with_prior=True)
@@ -652,8 +664,8 @@ def _solve_identified(
             for j in np.flatnonzero(free).tolist():
                 prob.k_bounds[j] = (float(k[j]), float(k[j]))
             z[: prob.g] = k
-            z, converged, more, message = solve(z)
-            iterations += more
+            z, again, more, message = solve(z)  # the directions held come from the first solve: it must have converged
+            converged, iterations = converged and again, iterations + more
             message += "; unidentified directions held at the reference"
     if s.identify_max_std is not None and np.any(free):  # share of each factor in the identified directions
         rel_cov = cov / np.outer(k_hat[free], k_hat[free])
