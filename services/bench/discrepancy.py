@@ -434,9 +434,10 @@ def _detection_matrix() -> list[tuple[str, str, str, str, bool]]:
 
 
 def _hidden_effect_result(
-    row: tuple[str, str, str, str, bool], seeds: tuple[int, ...], none_gap: dict[tuple, float]
+    row: tuple[str, str, str, str, bool], seeds: tuple[int, ...], none_gap: dict[tuple, float], every: list[dict]
 ) -> BenchResult:
-    """One row of the matrix: is the hidden effect named first, and how much of the held-out gap does it remove."""
+    """One row of the matrix: is the hidden effect named first, and how much of the held-out gap does it remove (its
+    cases also added to ``every``, labelled, for :func:`_worth_naming_result`)."""
     key, setting, expected, label, heavier = row
     cases = []
     for exercise in ("bench_press", "deadlift"):
@@ -446,6 +447,7 @@ def _hidden_effect_result(
             c["case"] = f"{exercise}/{seed}"
             c["attainable"] = _attainable(none_gap, exercise, seed, three, c["gap_before"], heavier)
             cases.append(c)
+            every.append({**c, "expected": expected, "case": f"{setting}{label}, {exercise}/{seed}"})
     hits = [expected in c["named"][:1] for c in cases]
     shrink = float(np.median([c["shrink"] for c in cases]))
     return BenchResult(
@@ -460,6 +462,36 @@ def _hidden_effect_result(
             "wrong": sum(bool(c["named"]) and c["named"][0] != expected for c in cases),
             **_case_texts(cases),
         },
+    )
+
+
+#: The detection targets as restated after the issue of the workflow was blocked on its own (docs/discrepancy.md,
+#: "Synthetic detection"): where removing the hidden effect altogether would take at least ATTAINABLE_MIN off the
+#: held-out gap, the effect is named and its shrink reaches SHARE_OF_ATTAINABLE_MIN of that; "none" on every
+#: effect-free session (the result of its own).
+ATTAINABLE_MIN = 0.20
+SHARE_OF_ATTAINABLE_MIN = 0.80
+
+
+def _worth_naming_result(every: list[dict]) -> BenchResult:
+    """The restated targets over every single-effect case of the matrix whose attainable shrink is at least
+    :data:`ATTAINABLE_MIN`: the share named right with at least :data:`SHARE_OF_ATTAINABLE_MIN` of it; the misses
+    in the details."""
+    due = [c for c in every if c["attainable"] >= ATTAINABLE_MIN]
+    met = [  # (1e-9: exactly 80 % is met, whatever the rounding of the product)
+        c["expected"] in c["named"] and c["shrink"] >= SHARE_OF_ATTAINABLE_MIN * c["attainable"] - 1e-9 for c in due
+    ]
+    misses = [c for c, ok in zip(due, met, strict=True) if not ok]
+    return BenchResult(
+        name=(
+            f"hidden effects worth naming (attainable shrink >= {ATTAINABLE_MIN:.0%}): named right, with >= "
+            f"{SHARE_OF_ATTAINABLE_MIN:.0%} of the attainable"
+        ),
+        value=float(np.mean(met)) if met else 1.0,
+        unit="fraction of cases",
+        target="1.0",
+        passed=all(met),
+        details={"cases": len(due), "met": int(sum(met)), "misses": _case_texts(misses)},
     )
 
 
@@ -494,8 +526,10 @@ def run(quick: bool) -> list[BenchResult]:
     results += _arm26(quick)
     seeds = (1,) if quick else (1, 2, 3)
     none_cases, none_gap = _effect_free_cases(quick)
+    every: list[dict] = []
     for row in _detection_matrix():
-        results.append(_hidden_effect_result(row, seeds, none_gap))
+        results.append(_hidden_effect_result(row, seeds, none_gap, every))
+    results.append(_worth_naming_result(every))
     clean = [not c["named"] for c in none_cases]
     details = {c["case"]: f"{'+'.join(c['named']) or 'none'} (gap {c['gap_before']:.4f})" for c in none_cases}
     results.append(_named_share("no hidden effect: 'none' named", clean, details, all_cases=True))
