@@ -491,7 +491,7 @@ def _worth_naming_result(every: list[dict]) -> BenchResult:
         unit="fraction of cases",
         target="1.0",
         passed=all(met),
-        details={"cases": len(due), "met": int(sum(met)), "misses": _case_texts(misses)},
+        details={"cases": len(due), "met": int(sum(met)), **_case_texts(misses)},  # the misses, by case
     )
 
 
