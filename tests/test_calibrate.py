@@ -150,11 +150,12 @@ def _with_passive_moment(seed: int, t: int = 80):
     return f_ref, k_true, beta_true, plain, with_basis
 
 
-def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
+@pytest.mark.parametrize("solver", ["reduced", "joint"])
+def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true(solver):
     """A moment the activations do not produce goes into the strengths of a plain calibration; with its basis the
-    calibration fits its coefficients instead, and both solvers agree on that optimum."""
+    calibration fits its coefficients instead, and the solvers (reduced, joint, alternating) agree on that optimum."""
     f_ref, k_true, beta_true, plain, with_basis = _with_passive_moment(seed=6)
-    s = CalibrationSettings(strength_prior_std=None, identify_max_std=None)
+    s = CalibrationSettings(strength_prior_std=None, identify_max_std=None, solver=solver)
     absorbed = calibrate(f_ref, plain, s)
     fitted = calibrate(f_ref, with_basis, s)
     alt = calibrate_alternating(f_ref, with_basis, s)
@@ -165,6 +166,9 @@ def test_a_torque_basis_is_fitted_jointly_and_keeps_the_strengths_true():
     assert fitted.report()["torque_coefficients"] == pytest.approx(list(fitted.torque_coefficients))
     assert fitted.report()["torque_basis"] == pytest.approx(
         dict(zip(("passive:0", "passive:1"), fitted.torque_coefficients))
+    )
+    assert fitted.converged and fitted.method.startswith(
+        "L-BFGS-B (strengths" if solver == "reduced" else "L-BFGS-B (j"
     )
     assert fitted.projected_gradient < 1e-4 and alt.projected_gradient < 1e-4
     np.testing.assert_allclose(fitted.objective, alt.objective, rtol=1e-5)

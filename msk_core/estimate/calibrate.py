@@ -36,7 +36,8 @@ estimator, fixed so it does not depend on k). Groups without EMG have no EMG ter
 
 The problem is smooth and bound-constrained (bilinear in k and a), so it is solved as such (:func:`calibrate`): by
 default ("reduced") L-BFGS-B on the free strength factors, every frame's activations the exact optimum of its QP at
-those strengths; or ("joint", and always with a torque basis) L-BFGS-B on all variables with the analytic gradient.
+those strengths (and the torque basis' coefficients, if any); or ("joint") L-BFGS-B on all variables with the
+analytic gradient.
 :func:`calibrate_alternating` is an independent second method (block
 coordinate descent: per-frame bounded QPs in a by PIQP, bounded least squares in k by scipy's ``lsq_linear``) used to
 show both reach the same optimum. Convergence is reported (iterations, projected-gradient norm, objective terms).
@@ -157,7 +158,7 @@ class CalibrationSettings:
     # "joint": L-BFGS-B on (k, a, beta) together; "reduced": L-BFGS-B on the free strengths only, every frame's
     # activations the exact optimum of its box QP at those strengths (compiled active set, warm from the last
     # evaluation), the gradient in k by the envelope theorem (:func:`calibrate`; same optimum, ~15x less CPU on the
-    # walk; the default since 28 Nov; a calibration with a torque basis is solved jointly either way)
+    # walk; the default since 28 Nov; with a torque basis its coefficients are variables beside the strengths)
     solver: str = "reduced"
     # "reduced": activations that no term but the torque pins down (groups without EMG between reps) get this tiny
     # pull to 0 (the joint solve's start), so that each frame's QP has one optimum
@@ -403,13 +404,15 @@ class _Problem:
         return max(1.0, float(np.median([integrated_autocorrelation(x) for x in series])))
 
     def projected_gradient(self, z: np.ndarray, *, strengths_only: bool = False) -> float:
-        """Infinity norm of the projected gradient of J at z; ``strengths_only``: over the strength factors alone
-        (the "reduced" solve, whose activations are each frame's exact optimum, with its ridge: J's gradient in
-        those activations is that ridge's pull, not a distance from the optimum)."""
+        """Infinity norm of the projected gradient of J at z; ``strengths_only``: over the strength factors (and the
+        torque basis' coefficients) alone, as the "reduced" solve sees them: its activations are each frame's exact
+        optimum, with its ridge, so J's gradient in them is that ridge's pull, not a distance from the optimum."""
         _, grad = self.value_grad(z)
         lower, upper = self.bounds()
         pg = np.clip(z - grad, lower, upper) - z
-        return float(np.max(np.abs(pg[: self.g] if strengths_only else pg)))
+        if strengths_only:
+            pg = np.concatenate([pg[: self.g], pg[self.g + self.t * self.g :]])
+        return float(np.max(np.abs(pg))) if pg.size else 0.0
 
     def start(self) -> np.ndarray:
         a0 = np.clip(np.where(self.w_e > 0, self.e, self.mu), self.a_min, 1.0)
@@ -443,8 +446,8 @@ def calibrate(
     *,
     start: CalibrationResult | None = None,
 ) -> CalibrationResult:
-    """Bound-constrained solve of the calibration problem (``settings.solver``: "reduced" by default, "joint"
-    always with a torque basis), with the identifiability pass (unidentified factors held at the reference, then
+    """Bound-constrained solve of the calibration problem (``settings.solver``: "reduced" by default, or "joint"),
+    with the identifiability pass (unidentified factors held at the reference, then
     re-solved). A reduced solve that does not converge (a frame's QP not certified, L-BFGS-B stopped away from a
     stationary point) is continued by the joint solve from where it ended, and its message says so. ``start``: a
     calibration of the same frames to start from (its strengths and activations; the torque basis' coefficients
@@ -476,12 +479,12 @@ def calibrate(
         z = np.clip(res.x * d, lower, upper)
         return z, bool(res.success), int(res.nit), str(res.message)
 
-    if s.solver == "reduced" and prob.p == 0:
+    if s.solver == "reduced":
         reduced = _ReducedSolve(prob, s)
         result = _solve_identified(
             prob, s, f_ref, reduced.solve, "L-BFGS-B (strengths, exact activations)", start=start
         )
-        z = np.concatenate([result.scale, result.activations.ravel()])
+        z = np.concatenate([result.scale, result.activations.ravel(), _coefficients(result)])
         result.projected_gradient = prob.projected_gradient(z, strengths_only=True)
         if result.converged:
             return result
@@ -516,15 +519,17 @@ def _frames_box_lsq(r, k, tau, w, mean, prec, lb, ub, scale, x, state, max_iter)
 
 
 class _ReducedSolve:
-    """The calibration as a problem in the free strength factors alone: J(k) = min_a J(k, a) (+ the strength prior).
-    At fixed k the frames decouple into box-constrained least squares in their activations,
+    """The calibration as a problem in the free strength factors (and the torque basis' coefficients beta) alone:
+    J(k, beta) = min_a J(k, a, beta) (+ the strength prior). At fixed (k, beta) the frames decouple into
+    box-constrained least squares in their activations,
 
-        1/2 |diag(inv_s) (m diag(k) a - tau)|^2 + 1/2 sum_g d_g (a_g - nu_g)^2,   d = w_p + w_e,
+        1/2 |diag(inv_s) (m diag(k) a + Z beta - tau)|^2 + 1/2 sum_g d_g (a_g - nu_g)^2,   d = w_p + w_e,
         nu = (w_p mu + w_e e) / d,   a_min <= a <= 1,
 
     strictly convex (d > 0: activations only the torque sees get ``reduced_ridge``), solved exactly and certified by
-    the compiled active-set kernel, each from its last working set. By the envelope theorem dJ/dk is the partial
-    derivative at the optimal activations, so L-BFGS-B on <= G variables sees J's exact value and gradient. The
+    the compiled active-set kernel, each from its last working set. By the envelope theorem dJ/dk and dJ/dbeta are
+    the partial derivatives at the optimal activations, so L-BFGS-B on <= G + p variables sees the exact value and
+    gradient of what it minimises (J plus the ridge's pull). The
     kernel scales each torque row by c_n = max(sum_g |A_ng|, min_scale); a min_scale above every row sum (the rows
     are divided by eps c_tn beforehand, so sum_g |A_ng| <= max k / eps) makes c constant, and w = min_scale^2
     restores the calibration's weighting."""
@@ -548,16 +553,19 @@ class _ReducedSolve:
         self.failed = 0
         self.max_iter = s.max_iter
 
-    def activations(self, k: np.ndarray) -> np.ndarray:
-        """The frames' optimal activations at strengths k (warm from the last call; a frame whose active set does
-        not certify within its budget starts again from everything free, with a larger budget)."""
-        args = (self.rows, k, self.target, self.scale**2, self.mean, self.prec, self.lb, self.ub, self.scale)
+    def activations(self, k: np.ndarray, beta: np.ndarray) -> np.ndarray:
+        """The frames' optimal activations at strengths k and basis coefficients beta (warm from the last call; a
+        frame whose active set does not certify within its budget starts again from everything free, with a larger
+        budget)."""
+        prob = self.prob
+        target = np.ascontiguousarray((prob.tau - prob.offset(beta)) * prob.inv_s) if prob.p else self.target
+        args = (self.rows, k, target, self.scale**2, self.mean, self.prec, self.lb, self.ub, self.scale)
         codes = _frames_box_lsq(*args, self.x, self.state, 4 * self.prob.g)
         bad = np.flatnonzero(codes != CERTIFIED)
         if bad.size:
             x, state = self.x[bad].copy(), np.zeros((bad.size, self.prob.g), dtype=np.int8)
             x[:] = np.clip(self.mean[bad], self.lb, self.ub)
-            sub = (self.rows[bad], k, self.target[bad], self.scale**2, self.mean[bad], self.prec[bad])
+            sub = (self.rows[bad], k, target[bad], self.scale**2, self.mean[bad], self.prec[bad])
             again = _frames_box_lsq(*sub, self.lb, self.ub, self.scale, x, state, 40 * self.prob.g)
             self.x[bad], self.state[bad] = x, state
             self.failed += int(np.sum(again != CERTIFIED))
@@ -565,46 +573,70 @@ class _ReducedSolve:
 
     def solve(self, z0: np.ndarray) -> tuple[np.ndarray, bool, int, str]:
         prob = self.prob
-        k0, a0, beta = prob.split(z0)
+        k0, a0, beta0 = prob.split(z0)
         self.x[:] = np.clip(a0, self.lb, self.ub)
         for t in range(prob.t):
             seed_state(self.x[t], self.lb, self.ub, 1e-12, self.state[t])
         lo, hi = np.array(prob.k_bounds, dtype=float).T
         free = lo < hi
-        k = np.clip(k0, lo, hi)
+        n_free = int(free.sum())
+        k, beta = np.clip(k0, lo, hi), np.maximum(beta0, prob.beta_lower)
+        # the variables: the free strengths, then the torque basis' coefficients (none without a basis)
+        lower = np.concatenate([lo[free], prob.beta_lower])
+        upper = np.concatenate([hi[free], np.full(prob.p, np.inf)])
         self.failed = 0
 
-        def value_grad(kf: np.ndarray) -> tuple[float, np.ndarray]:
-            k[free] = kf
-            a = self.activations(k)
+        def value_grad(v: np.ndarray) -> tuple[float, np.ndarray]:
+            k[free], beta[:] = v[:n_free], v[n_free:]
+            a = self.activations(k, beta)
             terms, rho = prob.terms(k, a, beta)
             back = np.einsum("tn,tng->tg", rho * prob.inv_s, prob.m)
-            grad = np.sum(back * a, axis=0) + prob.w_k_obj * (k - 1.0)
-            # the value of what is minimised, min_a (J + the ridge's pull), whose gradient in k this is
+            grad_k = np.sum(back * a, axis=0) + prob.w_k_obj * (k - 1.0)
+            grad_beta = np.einsum("tn,tnp->p", rho * prob.inv_s, prob.basis)
+            # the value of what is minimised, min_a (J + the ridge's pull), whose gradient in (k, beta) this is
             pull = 0.5 * self.ridge * float(np.sum((a - self.mean) ** 2))
-            return sum(terms.values()) + pull, grad[free]
+            return sum(terms.values()) + pull, np.concatenate([grad_k[free], grad_beta])
 
-        if not np.any(free):
-            value_grad(k[free])
+        if lower.size == 0:
+            value_grad(lower)
             z = np.concatenate([k, self.x.ravel(), beta])
             return z, self.failed == 0, 0, "no free strength: activations solved at the held ones"
+        # with a basis, Jacobi-scaled variables (as the joint solve's): a coefficient's curvature is the whole torque
+        # term's, a strength's that of its group, and unscaled L-BFGS-B ran out of evaluations between them
+        d = np.ones(lower.size)
+        if prob.p:
+            curvature = prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))
+            h = np.concatenate([curvature[: prob.g][free], curvature[prob.g * (1 + prob.t) :]])
+            d = 1.0 / np.sqrt(np.maximum(h, 1e-12))
+
+        def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
+            value, grad = value_grad(d * y)
+            return value, grad * d
+
         res = minimize(
-            value_grad,
-            k[free],
+            scaled,
+            np.concatenate([k[free], beta]) / d,
             jac=True,
             method="L-BFGS-B",
-            bounds=Bounds(lo[free], hi[free]),
-            # gtol on the unscaled strengths (the joint solve's gtol is for its preconditioned variables)
+            bounds=Bounds(lower / d, upper / d),
+            # gtol on the unscaled variables (the joint solve's gtol is for its preconditioned ones)
             options={"maxiter": self.max_iter, "gtol": 1e-10, "ftol": self.ftol, "maxcor": 10},
         )
+        res.x = np.clip(res.x * d, lower, upper)
         _, grad = value_grad(res.x)  # the activations at the returned strengths
         # L-BFGS-B may end its line search at the precision of J (ABNORMAL) at a stationary point: converged when
-        # the step the projected gradient implies (over the Gauss-Newton curvature of each factor) is below 1e-6
-        pg = np.clip(res.x - grad, lo[free], hi[free]) - res.x
-        step = np.abs(pg) / prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))[: prob.g][free]
+        # the step the projected gradient implies (over the Gauss-Newton curvature of each variable) is below 1e-6
+        pg = np.clip(res.x - grad, lower, upper) - res.x
+        curvature = prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))
+        step = np.abs(pg) / np.concatenate([curvature[: prob.g][free], curvature[prob.g * (1 + prob.t) :]])
         converged = self.failed == 0 and (bool(res.success) or float(np.max(step)) < 1e-6)
         message = str(res.message) + (f"; {self.failed} frame QPs not certified" if self.failed else "")
         return np.concatenate([k, self.x.ravel(), beta]), converged, int(res.nit), message
+
+
+def _coefficients(result: CalibrationResult) -> np.ndarray:
+    """The torque basis' fitted coefficients of ``result`` (none without a basis)."""
+    return result.torque_coefficients if result.torque_coefficients is not None else np.zeros(0)
 
 
 def _start_vector(prob: _Problem, start: CalibrationResult | None) -> np.ndarray:
