@@ -18,7 +18,8 @@ from typing import IO, Any
 from services.sessions.graph import kill_live
 
 REPO = Path(__file__).resolve().parents[1]
-STARTUP_S = 150.0  # calibration (~3 s when not cached) + five processes importing and warming up on 2 shared cores
+STARTUP_S = 150.0  # calibration (~3 s when not cached, ~20 s more when numba compiles its kernel) + five processes
+# importing and warming up on 2 shared cores
 
 
 def run_msk(*argv: str, env: dict[str, str] | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:

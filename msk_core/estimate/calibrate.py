@@ -47,6 +47,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
+from typing import Any
 
 import numba
 import numpy as np
@@ -460,23 +461,10 @@ def calibrate(
         # Jacobi preconditioning (z = d y, d = curvature^-1/2 at the start): one strength factor collects the
         # curvature of thousands of frames, one activation that of one frame; unscaled, L-BFGS-B spends most of its
         # iterations on that spread (bench press demo with its isometric trials: 2203 -> 170 iterations, same optimum)
-        d = 1.0 / np.sqrt(np.maximum(prob.diagonal_curvature(z0), 1e-12)) if s.precondition else np.ones_like(z0)
-
-        def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
-            value, grad = prob.value_grad(d * y)
-            return value, grad * d
-
+        d = _jacobi_scale(prob.diagonal_curvature(z0)) if s.precondition else np.ones_like(z0)
         lower, upper = prob.bounds()
-        bounds = Bounds(lower / d, upper / d)
-        res = minimize(
-            scaled,
-            z0 / d,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=bounds,
-            options={"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": s.ftol, "maxcor": 10},
-        )
-        z = np.clip(res.x * d, lower, upper)
+        options = {"maxiter": s.max_iter, "maxfun": 2 * s.max_iter, "gtol": s.gtol, "ftol": s.ftol, "maxcor": 10}
+        z, res = _scaled_lbfgsb(prob.value_grad, z0, lower, upper, d, options)
         return z, bool(res.success), int(res.nit), str(res.message)
 
     if s.solver == "reduced":
@@ -597,41 +585,45 @@ class _ReducedSolve:
             pull = 0.5 * self.ridge * float(np.sum((a - self.mean) ** 2))
             return sum(terms.values()) + pull, np.concatenate([grad_k[free], grad_beta])
 
+        def curvature() -> np.ndarray:  # the Gauss-Newton curvature of each variable, at the current point
+            c = prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))
+            return np.concatenate([c[: prob.g][free], c[prob.g * (1 + prob.t) :]])
+
         if lower.size == 0:
             value_grad(lower)
             z = np.concatenate([k, self.x.ravel(), beta])
             return z, self.failed == 0, 0, "no free strength: activations solved at the held ones"
         # with a basis, Jacobi-scaled variables (as the joint solve's): a coefficient's curvature is the whole torque
         # term's, a strength's that of its group, and unscaled L-BFGS-B ran out of evaluations between them
-        d = np.ones(lower.size)
-        if prob.p:
-            curvature = prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))
-            h = np.concatenate([curvature[: prob.g][free], curvature[prob.g * (1 + prob.t) :]])
-            d = 1.0 / np.sqrt(np.maximum(h, 1e-12))
-
-        def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
-            value, grad = value_grad(d * y)
-            return value, grad * d
-
-        res = minimize(
-            scaled,
-            np.concatenate([k[free], beta]) / d,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=Bounds(lower / d, upper / d),
-            # gtol on the unscaled variables (the joint solve's gtol is for its preconditioned ones)
-            options={"maxiter": self.max_iter, "gtol": 1e-10, "ftol": self.ftol, "maxcor": 10},
-        )
-        res.x = np.clip(res.x * d, lower, upper)
-        _, grad = value_grad(res.x)  # the activations at the returned strengths
+        d = _jacobi_scale(curvature()) if prob.p else np.ones(lower.size)
+        # gtol on the unscaled variables (the joint solve's gtol is for its preconditioned ones)
+        options = {"maxiter": self.max_iter, "gtol": 1e-10, "ftol": self.ftol, "maxcor": 10}
+        x, res = _scaled_lbfgsb(value_grad, np.concatenate([k[free], beta]), lower, upper, d, options)
+        _, grad = value_grad(x)  # the activations at the returned strengths
         # L-BFGS-B may end its line search at the precision of J (ABNORMAL) at a stationary point: converged when
         # the step the projected gradient implies (over the Gauss-Newton curvature of each variable) is below 1e-6
-        pg = np.clip(res.x - grad, lower, upper) - res.x
-        curvature = prob.diagonal_curvature(np.concatenate([k, self.x.ravel(), beta]))
-        step = np.abs(pg) / np.concatenate([curvature[: prob.g][free], curvature[prob.g * (1 + prob.t) :]])
+        pg = np.clip(x - grad, lower, upper) - x
+        step = np.abs(pg) / curvature()
         converged = self.failed == 0 and (bool(res.success) or float(np.max(step)) < 1e-6)
         message = str(res.message) + (f"; {self.failed} frame QPs not certified" if self.failed else "")
         return np.concatenate([k, self.x.ravel(), beta]), converged, int(res.nit), message
+
+
+def _jacobi_scale(curvature: np.ndarray) -> np.ndarray:
+    """The variables' Jacobi scales d = curvature^-1/2 (the solves run on y = z / d)."""
+    return 1.0 / np.sqrt(np.maximum(curvature, 1e-12))
+
+
+def _scaled_lbfgsb(value_grad, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, d: np.ndarray, options: Any):
+    """L-BFGS-B on ``value_grad`` (value and gradient of x) in the scaled variables y = x / d, within [lower,
+    upper]; returns (x at the end, clipped to the bounds; scipy's result)."""
+
+    def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
+        value, grad = value_grad(d * y)
+        return value, grad * d
+
+    res = minimize(scaled, x0 / d, jac=True, method="L-BFGS-B", bounds=Bounds(lower / d, upper / d), options=options)
+    return np.clip(res.x * d, lower, upper), res
 
 
 def _coefficients(result: CalibrationResult) -> np.ndarray:
