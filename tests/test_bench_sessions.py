@@ -3,6 +3,10 @@ is judged by `msk bench sessions` on a quiet machine, never here)."""
 
 from __future__ import annotations
 
+import os
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -15,7 +19,8 @@ def test_one_live_session_is_measured_without_loss():
     # beside the rest of the suite the start may never look settled: the smoke run waits for it 5 s at most
     figures = sessions.measure(1, seconds=2.0, settle_timeout_s=5.0)
     assert figures["sessions"] == 1
-    assert figures["frames"] > 50, figures  # ~80 joint frames/s, each one activation frame
+    # 100 joint frames/s while lifting (the window counts no rest), each answered by one activation frame
+    assert figures["frames"] > 50, str(figures)
     assert figures["joint_frames_lost"] == 0 and figures["emg_samples_lost"] == 0 and figures["emg_index_jumps"] == 0
     assert 0 < figures["p50_ms"] <= figures["p99_ms"] <= figures["max_ms"]
     assert 0 < figures["cpu_cores_per_session"] < 2.0
@@ -52,3 +57,38 @@ def test_the_window_waits_for_the_start_up_backlog_to_drain():
     ):
         waited = sessions._wait_settled(_observed_with(case), names, timeout_s=0.5)
         assert waited["settled"] == 0.0 and waited["settle_s"] >= 0.5, (case.keys(), waited)
+
+
+class _Pid:
+    """What _cpu_by_role reads of a process: its pid (this test's own)."""
+
+    pid = os.getpid()
+
+
+def test_the_window_counts_the_lifting_only():
+    # one session whose joints stop for a rest of 1.5 s after 0.6 s: the 1 s asked is counted outside the rest
+    observed = sessions._Observed()
+    rate = sessions.recorded_joint_rate_hz()
+    stop = threading.Event()
+
+    def lift() -> None:
+        start = time.monotonic()
+        while not stop.is_set():
+            if not 0.6 < time.monotonic() - start < 2.1:
+                with observed.lock:
+                    observed.joints_seen["a"] = observed.joints_seen.get("a", 0) + 1
+            time.sleep(1 / rate)
+
+    lifter = threading.Thread(target=lift, daemon=True)
+    lifter.start()
+    try:
+        measured = sessions._lifting_slices(observed, {"a": [_Pid()] * len(sessions.ROLES)}, {"router": _Pid()}, 1.0)
+        assert 1.0 <= measured["lifting_s"] < 1.6, measured
+        assert measured["window_s"] >= measured["lifting_s"] + 1.0, measured  # the rest was not counted
+        assert set(measured["cpu_s"]) == {*(("a", role) for role in sessions.ROLES), ("", "router")}
+        # a session that never lifts: the bound says what it waited for and what arrived
+        with pytest.raises(RuntimeError, match=r"0\.0 s of the 1 s asked .* joint frames received per session"):
+            sessions._lifting_slices(observed, {"b": [_Pid()] * len(sessions.ROLES)}, {}, 1.0, timeout_s=1.0)
+    finally:
+        stop.set()
+        lifter.join()

@@ -2,8 +2,9 @@
 
 A session is what one rack runs: a Trigno (``msk sim trigno``, 16 channels at 2 kHz, real TCP) read by
 ``msk drivers``; the Xsens trackers and the kinematics node replaced by the demo recording's IMU, joint angles and
-load played at real time (``msk replay``, 6 trackers at 100 Hz, joints at ~80 Hz); and ``msk estimator`` (SO) on
-the joints. All sessions join one ``msk router``. This process subscribes to every session and measures:
+load played at real time (``msk replay``, 6 trackers at 100 Hz, joints at 100 Hz in sets 5 s of rest apart); and
+``msk estimator`` (SO) on the joints. All sessions join one ``msk router``. This process subscribes to every session
+and measures:
 
 * latency: the estimator's ``publish_ns - input_arrival_ns`` of every activation frame (joint angles in to
   activations out, one host clock), p99 over all sessions, in a window that starts once the backlog of the start-up
@@ -11,7 +12,8 @@ the joints. All sessions join one ``msk router``. This process subscribes to eve
   frames; at 8 sessions on 2 cores that queue took up to 5 s to drain, and a fixed 2 s wait measured it as latency);
 * loss: EMG samples (``first_sample_index`` jumps, DeviceStatus ``samples_lost``) and joint frames without their
   activation frame;
-* CPU per session: user + system time of the session's processes (/proc) over the measured window, in cores, and
+* CPU per session: user + system time of the session's processes (/proc) while the athletes lift (the window counts
+  only the slices in which every session's joints flow, :func:`_lifting_slices`; rests would lower it), in cores, and
   per process (:data:`ROLES`; the router's share per session apart).
 
 Baselines: the same figures with one session, from the same run; and one session of :data:`BASELINE_COMMIT` (the
@@ -97,6 +99,8 @@ class _Observed:
     emg_jumps: int = 0
     status_lost: dict[str, int] = field(default_factory=dict)
     measuring: bool = False
+    #: session -> joint frames received since the start, measuring or not (the window's lifting test reads it)
+    joints_seen: dict[str, int] = field(default_factory=dict)
     #: session -> (arrival monotonic s, latency ms) of its latest activation frames, measuring or not
     recent: dict[str, deque[tuple[float, float]]] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -117,8 +121,10 @@ def _observe(zsession, observed: _Observed) -> list:
                 if observed.measuring:
                     observed.latencies_ns.append(frame.publish_ns - frame.input_arrival_ns)
                     observed.activations[session] = observed.activations.get(session, 0) + 1
-            elif kind == "joints" and observed.measuring:
-                observed.joints[session] = observed.joints.get(session, 0) + 1
+            elif kind == "joints":
+                observed.joints_seen[session] = observed.joints_seen.get(session, 0) + 1
+                if observed.measuring:
+                    observed.joints[session] = observed.joints.get(session, 0) + 1
             elif kind == "emg":
                 chunk = messages.decode(messages.EmgChunk, sample.payload.to_bytes())
                 expected = observed.emg_next.get(session)
@@ -252,6 +258,66 @@ def _wait_answered(observed: _Observed, timeout_s: float) -> None:
         time.sleep(0.1)
 
 
+#: The window measures the athletes lifting: the demo's sets are 13-15 s long, 5 s of rest apart, in which the joints
+#: (and so the estimator's work) stop. The window advances in slices of LIFTING_SLICE_S and counts a slice's CPU and
+#: time only when every session received at least LIFTING_MIN_SHARE of the recording's joint rate in it; the window
+#: ends after ``seconds`` of such slices, at most LIFTING_TIMEOUT_S of wall time after it starts.
+LIFTING_SLICE_S = 0.5
+LIFTING_MIN_SHARE = 0.5
+LIFTING_TIMEOUT_S = 45.0
+
+
+def recorded_joint_rate_hz(recording: Path = DEMO) -> float:
+    """The joint frames' rate of ``recording`` while lifting: the inverse of the median interval between them."""
+    from mcap.reader import make_reader
+
+    with recording.open("rb") as stream:
+        times = [
+            message.log_time
+            for _, channel, message in make_reader(stream).iter_messages()
+            if channel.topic.endswith("/joints")
+        ]
+    if len(times) < 2:
+        raise ValueError(f"{recording}: fewer than two joint frames (topic msk/<session>/joints); no rate to expect")
+    return float(1e9 / np.median(np.diff(np.asarray(times, dtype=float))))
+
+
+def _lifting_slices(
+    observed: _Observed,
+    per_session: dict[str, list[subprocess.Popen]],
+    shared: dict[str, subprocess.Popen],
+    seconds: float,
+    timeout_s: float = LIFTING_TIMEOUT_S,
+) -> dict[str, Any]:
+    """Advance slice by slice until ``seconds`` of slices in which every session lifted (:data:`LIFTING_MIN_SHARE`);
+    return their CPU seconds by (session, role), their time, and the wall time spanned. A RuntimeError after
+    ``timeout_s`` says how many slices had every session lifting and each session's joint frames."""
+    needed = LIFTING_MIN_SHARE * recorded_joint_rate_hz() * LIFTING_SLICE_S
+    cpu_used = dict.fromkeys(_cpu_by_role(per_session, shared), 0.0)
+    lifting_s, slices, start = 0.0, 0, time.monotonic()
+    with observed.lock:
+        seen_before = dict(observed.joints_seen)
+    cpu_before, wall_before = _cpu_by_role(per_session, shared), time.monotonic()
+    while lifting_s < seconds - 1e-9:
+        if time.monotonic() - start > timeout_s:
+            raise RuntimeError(
+                f"after {timeout_s:.0f} s of measuring, {lifting_s:.1f} s of the {seconds:g} s asked had every session "
+                f"lifting (at least {needed:.0f} joint frames per {LIFTING_SLICE_S:g} s slice) in {slices} slices; "
+                f"joint frames received per session: {seen_before}"
+            )
+        time.sleep(LIFTING_SLICE_S)
+        cpu_now, wall_now = _cpu_by_role(per_session, shared), time.monotonic()
+        with observed.lock:
+            seen_now = dict(observed.joints_seen)
+        slices += 1
+        if all(seen_now.get(name, 0) - seen_before.get(name, 0) >= needed for name in per_session):
+            for key, value in cpu_now.items():
+                cpu_used[key] += value - cpu_before[key]
+            lifting_s += wall_now - wall_before
+        cpu_before, wall_before, seen_before = cpu_now, wall_now, seen_now
+    return {"cpu_s": cpu_used, "lifting_s": lifting_s, "window_s": time.monotonic() - start}
+
+
 def _measure_window(
     observed: _Observed,
     per_session: dict[str, list[subprocess.Popen]],
@@ -259,9 +325,9 @@ def _measure_window(
     seconds: float,
     settle_timeout_s: float = SETTLE_TIMEOUT_S,
 ) -> dict[str, float]:
-    """``seconds`` of steady state: every latency, the joint frames without their activation frame, the EMG lost
-    (status and index jumps), CPU of each session's processes by role (:data:`ROLES`) and its share of the
-    router's (``shared``). Stops the replays at its end."""
+    """``seconds`` of steady state while lifting (:func:`_lifting_slices`): every latency, the joint frames without
+    their activation frame, the EMG lost (status and index jumps), CPU of each session's processes by role
+    (:data:`ROLES`) and its share of the router's (``shared``). Stops the replays at its end."""
     time.sleep(2.0)  # first solves of each estimator (lazy caches) are not the steady state
     settling = _wait_settled(observed, list(per_session), settle_timeout_s)
     with observed.lock:  # the measured window starts now
@@ -270,11 +336,7 @@ def _measure_window(
         observed.activations.clear()
         observed.emg_jumps = 0
         lost_before = sum(observed.status_lost.values())
-    cpu0 = _cpu_by_role(per_session, shared)
-    wall0 = time.monotonic()
-    time.sleep(seconds)
-    cpu1 = _cpu_by_role(per_session, shared)
-    wall = time.monotonic() - wall0
+    lifting = _lifting_slices(observed, per_session, shared, seconds)
     for group in per_session.values():
         group[-1].send_signal(signal.SIGINT)  # the replay
     _wait_answered(observed, IN_FLIGHT_TIMEOUT_S)
@@ -284,7 +346,7 @@ def _measure_window(
         joints_without_frame = sum(max(0, n - observed.activations.get(s, 0)) for s, n in observed.joints.items())
         emg_lost = sum(observed.status_lost.values()) - lost_before
         jumps = observed.emg_jumps
-    cores = {key: (cpu1[key] - cpu0[key]) / wall for key in cpu0}
+    cores = {key: used / lifting["lifting_s"] for key, used in lifting["cpu_s"].items()}
     per_role = {role: float(np.mean([cores[(name, role)] for name in per_session])) for role in ROLES}
     router_share = cores[("", "router")] / len(per_session)
     return {
@@ -298,6 +360,8 @@ def _measure_window(
         "cpu_cores_per_session": sum(per_role.values()),  # the session's own processes, as in docs/deployment.md
         **{f"cpu_{role}_cores": value for role, value in per_role.items()},
         "cpu_router_share_cores": router_share,
+        "lifting_s": lifting["lifting_s"],
+        "window_s": lifting["window_s"],
         **settling,
     }
 
