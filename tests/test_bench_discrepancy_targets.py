@@ -28,3 +28,25 @@ def test_only_effects_worth_naming_count_and_each_needs_most_of_its_attainable_s
     assert set(misses) == {"fv, short of 80 %", "crosstalk, not named", "load, wrong name"}
     assert misses["fv, short of 80 %"] == "fv (40% of 57% attainable)"
     assert _worth_naming_result([_case("emd", "emd", ["emd"], 0.45, 0.5)]).passed
+
+
+def test_the_recalibrate_bench_runs_every_session_of_the_matrix_with_the_flag(monkeypatch):
+    # the sessions take minutes (the bench runs them); here each one states what it would have named
+    from services.bench import discrepancy, discrepancy_recalibrate
+
+    asked: list[tuple[str, bool]] = []
+
+    def stated_case(exercise, effects, seed, **options):
+        asked.append((effects, options.get("recalibrate", False)))
+        named = [] if effects == "none" else [effects.split("=")[0]]
+        return {"named": named, "shrink": 0.5, "gap_before": 0.02 if effects == "none" else 0.04, "gap_after": 0.02}
+
+    monkeypatch.setattr(discrepancy, "detection_case", stated_case)
+    results = discrepancy_recalibrate.run(quick=True)
+    assert asked and all(recalibrate for _, recalibrate in asked), asked
+    assert {effects for effects, _ in asked} >= {"none", "fv", "crosstalk=0.5"}
+    assert all(r.name.startswith("--recalibrate: ") for r in results)
+    worth = next(r for r in results if "worth naming" in r.name)
+    assert worth.details["cases"] > 0 and worth.passed  # every stated case names its effect with all it can take
+    none = next(r for r in results if r.name.endswith("'none' named"))
+    assert none.passed and none.value == 1.0
