@@ -495,3 +495,74 @@ def test_a_server_without_a_banner_is_named_with_what_it_sent(greeting, said):
         for connection in held:
             connection.close()
         listener.close()
+
+
+def _paused(drop: bool) -> tuple[TrignoSimulator, TrignoClient, list, list]:
+    """1000 samples, then the base quiet for 0.8 s (dropping or buffering what it measures), then 1500 more."""
+    source = synthetic_source(seconds=20.0, seed=5)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=5)) as sim:
+        client = client_for(sim)
+        client.connect()
+        client.start()
+        before = collect(client, samples=1000, seconds=5)
+        sim.pause(0.8, drop=drop)
+        after = collect(client, seconds=6, until=lambda ev: len(emg_rows(ev)) >= 1500)
+        client.close()
+    return sim, client, before, after
+
+
+def test_a_pause_in_which_the_base_drops_what_it_measures_is_counted_and_the_index_jumps_over_it():
+    # the stream has no counter: the gap is measured from host time once the data resume at the present
+    sim, client, before, after = _paused(drop=True)
+    at = [i for i, e in enumerate(after) if isinstance(e, GapEvent)]
+    assert len(at) == 1 and after[at[0]].reason.startswith("no EMG data for"), [after[i] for i in at]
+    gap = after[at[0]]
+    dropped = sim.stats.frames_dropped * sim.samples_per_frame
+    assert dropped > 1000 and abs(gap.n_missing - dropped) <= sim.samples_per_frame, (gap, dropped)
+    received = len(emg_rows(before + after[: at[0]]))
+    assert gap.first_missing_index == received
+    first_after = next(e for e in after[at[0] :] if isinstance(e, EmgBlock))
+    assert first_after.first_sample_index == received + gap.n_missing
+    truly = received + dropped  # the sample the base measured first after the pause
+    resumed = emg_rows(after[at[0] :])
+    assert_bit_exact(resumed, synthetic_source(seconds=20.0, seed=5).samples[truly : truly + len(resumed)])
+    assert client.stats.samples_lost == gap.n_missing and "EMG samples lost" in client.stats.last_error
+
+
+def test_a_pause_the_base_buffers_loses_nothing_and_counts_nothing():
+    sim, client, before, after = _paused(drop=False)
+    assert sim.stats.frames_dropped == 0 and not [e for e in before + after if isinstance(e, GapEvent)]
+    rows = emg_rows(before + after)
+    assert_bit_exact(rows, synthetic_source(seconds=20.0, seed=5).samples[: len(rows)])
+    blocks = [e for e in before + after if isinstance(e, EmgBlock)]
+    assert all(a.first_sample_index + len(a.samples) == b.first_sample_index for a, b in zip(blocks, blocks[1:]))
+    assert client.stats.samples_lost == 0
+
+
+def test_a_restarted_base_whose_first_data_come_as_one_burst_is_dated_by_the_whole_burst():
+    # its first data come 1 s after START, as one burst of what it measured since (more than one read holds)
+    source = synthetic_source(seconds=20.0, seed=6)
+    sim = TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=6)).start()
+    ports = dict(sim.ports)
+    client = client_for(sim, backoff_initial_s=0.02, backoff_max_s=0.1)
+    try:
+        client.connect()
+        client.start()
+        collect(client, samples=1000, seconds=5)
+        killed = time.monotonic()
+        sim.kill()
+        collect(client, seconds=0.4)
+        ported = {k: ports[k] for k in ("command", "emg", "legacy_emg", "aux")}
+        restarted = SimulatorConfig(
+            **{f"{k}_port": v for k, v in ported.items()}, speed=1.0, seed=7, quirks=TrignoQuirks(start_burst_s=1.0)
+        )
+        sim = TrignoSimulator(source, restarted).start()
+        after = collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 3000)
+    finally:
+        client.close()
+        sim.close()
+    gap = next(e for e in after if isinstance(e, GapEvent))
+    assert sim.stats.started_s is not None
+    # from the last sample before the kill (received within a frame and a poll of it) to the restart's first
+    expected = (sim.stats.started_s - killed) * 2000.0
+    assert expected - 40 <= gap.n_missing <= expected + 100, (gap.n_missing, expected)

@@ -128,7 +128,7 @@ class AuxBlock:
 
 @dataclass(frozen=True)
 class GapEvent:
-    """Samples that never arrived (estimated from host time across a reconnection)."""
+    """Samples that never arrived (estimated from host time across a reconnection or a pause in the data)."""
 
     first_missing_index: int
     n_missing: int
@@ -138,6 +138,15 @@ class GapEvent:
 
 #: AUX rows of a resumed stream are held until its EMG says how long the gap was; beyond this span they are dropped
 AUX_HOLD_S = 10.0
+#: EMG that resumes after this much silence on a live link may have lost what was measured meanwhile: the stream has
+#: no counter, so the gap is measured from host time (frames come every 13.5 ms; a base that buffered the pause
+#: sends it as a burst, one that dropped it resumes at the present)
+PAUSE_CHECK_S = 0.25
+#: after a reconnection or such a pause, the resumed EMG is held this long to measure its backlog: the first row was
+#: measured at min over the reads of (arrival - rows received so far / rate), whatever size the first read had
+RESUME_WINDOW_S = 0.25
+#: a pause's estimate below this is arrival jitter, not samples lost (a reconnection counts any)
+PAUSE_TOLERANCE_S = 0.05
 #: an AUX port that has sent nothing over this much EMG is said (once)
 AUX_SILENT_S = 5.0
 #: why the data ended when the base sends an unsolicited STOPPED
@@ -218,6 +227,9 @@ class TrignoClient:
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
         self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
+        self._gap_reason = ""  # why the gap being measured began: "connection lost" or the pause's silence
+        #: EMG rows received since the gap's data resumed, with their arrival (monotonic, ns), held until it is known
+        self._emg_after_gap: list[tuple[np.ndarray, float, int]] = []
         self._rate_at_loss = 0.0  # EMG rate when the link was lost (a server may come back at another)
         self._backoff = config.backoff_initial_s
         self._next_attempt = 0.0
@@ -264,7 +276,8 @@ class TrignoClient:
         self._start_acquisition(self._require_link())
         self._want_streaming = True
         self.state = ClientState.STREAMING
-        self._last_data_time = self._last_activity = time.monotonic()
+        self._last_activity = time.monotonic()
+        self._last_data_time = 0.0  # no EMG yet: its first row is sample 0, however long after START it comes
         self._emit_status(ClientState.STREAMING, "started")
 
     def stop(self, *, drain_s: float = 1.0) -> list[Event]:
@@ -283,6 +296,7 @@ class TrignoClient:
                 self._stop_link(link, drain_s)
         finally:
             self._drop_link()
+            self._settle_gap()
         pending: list[Event] = [e for e in self._events if not isinstance(e, StatusEvent)]
         self._events = [e for e in self._events if isinstance(e, StatusEvent)]  # still for poll()
         if not already:  # a second stop(), or one after close(), changes nothing and says nothing
@@ -667,6 +681,8 @@ class TrignoClient:
             self._try_reconnect(timeout)
         elif self._link is not None:
             self._wait_and_read(timeout)
+            if self._emg_after_gap and time.monotonic() - self._emg_after_gap[0][1] >= RESUME_WINDOW_S:
+                self._report_gap()
             stall = self.config.stall_timeout_s
             if (
                 stall is not None
@@ -728,15 +744,39 @@ class TrignoClient:
         rows = self._emg_decoder.feed(chunk)
         if not len(rows):
             return
-        if self._gap_pending:
-            self._report_gap(now, len(rows))
-        self._last_data_time = self._last_activity = now
+        silence = now - self._last_data_time
+        if not self._gap_pending and self._last_data_time and silence > PAUSE_CHECK_S and self.rate_hz > 0:
+            rows = self._with_queued_rows(link.emg, rows)  # a reader that was late finds the pause queued here
+            if now - len(rows) / self.rate_hz - self._last_data_time >= PAUSE_TOLERANCE_S:
+                self._gap_pending, self._gap_reason = True, f"no EMG data for {silence:.2f} s"
+        self._last_activity = now
         self._check_aux_silence(link, len(rows))
         self._count_non_finite(rows)
-        block = EmgBlock(rows, self._next_index, self.rate_hz, time.time_ns())
-        self._next_index += len(rows)
         self.stats.samples_received += len(rows)
-        self._events.append(block)
+        if self._gap_pending:  # held until the backlog of the resumed stream says how long the gap was
+            self._emg_after_gap.append((rows, now, time.time_ns()))
+            if now - self._emg_after_gap[0][1] >= RESUME_WINDOW_S:
+                self._report_gap()
+            return
+        self._last_data_time = now
+        self._emit_emg(rows, time.time_ns())
+
+    def _with_queued_rows(self, sock: socket.socket, rows: np.ndarray, max_reads: int = 64) -> np.ndarray:
+        """``rows`` and the whole rows the socket holds already (not waiting for more)."""
+        parts = [rows]
+        for _ in range(max_reads):
+            try:
+                chunk = self._recv(sock)
+            except ConnectionResetError:  # closed: the next read says so, after these rows are delivered
+                break
+            if not chunk:
+                break
+            parts.append(self._emg_decoder.feed(chunk))
+        return np.concatenate([p for p in parts if len(p)]) if len(parts) > 1 else rows
+
+    def _emit_emg(self, rows: np.ndarray, host_time_ns: int) -> None:
+        self._events.append(EmgBlock(rows, self._next_index, self.rate_hz, host_time_ns))
+        self._next_index += len(rows)
 
     def _check_aux_silence(self, link: _Link, rows: int) -> None:
         """Say once when the AUX port is open but has sent nothing over AUX_SILENT_S of EMG (sensors whose AUX
@@ -797,17 +837,33 @@ class TrignoClient:
         """The server's stop trigger fired: acquisition is over, not a fault (no reconnection)."""
         if self._link is not None:
             self._drain(self._link)  # frames sent before STOPPED are already here: deliver them first
+        self._settle_gap()
         self._want_streaming = False
         self.state = ClientState.STOPPED
         self.stats.last_error = STOPPED_BY_SERVER  # the status carries it: not a link error, but why the data ended
         self._emit_status(ClientState.STOPPED, STOPPED_BY_SERVER)
 
-    def _report_gap(self, now: float, n_rows: int) -> None:
-        # The first rows after the reconnection were sampled n_rows/rate before they arrived.
-        elapsed = now - n_rows / self.rate_hz - self._last_data_time
-        missing = max(0, int(round(elapsed * self.rate_hz)))
+    def _report_gap(self) -> None:
+        """The gap before the held EMG: its first row was measured at the earliest of (arrival - rows received up to
+        then / rate) over the held reads (a burst of backlog arrives at once, later rows at the pace they are
+        measured), and the last row before the gap when it arrived."""
+        held, self._emg_after_gap = self._emg_after_gap, []
+        counts = np.cumsum([len(rows) for rows, _, _ in held])
+        first_measured = min(arrived - n / self.rate_hz for (_, arrived, _), n in zip(held, counts, strict=True))
+        missing = max(0, int(round((first_measured - self._last_data_time) * self.rate_hz)))
+        pause = self._gap_reason != "connection lost"
+        if pause and missing < PAUSE_TOLERANCE_S * self.rate_hz:
+            missing = 0  # a buffered pause: arrival jitter, not samples lost
         self._gap_pending = False
-        self._events.append(GapEvent(self._next_index, missing, time.time_ns(), "connection lost"))
+        if missing:
+            reason = (
+                f"{self._gap_reason}: the base resumed without what it measured meanwhile"
+                if pause
+                else "connection lost"
+            )
+            self._events.append(GapEvent(self._next_index, missing, time.time_ns(), reason))
+            if pause:
+                self._note_error(f"{missing} EMG samples lost ({reason})")
         self._next_index += missing
         self.stats.samples_lost += missing
         # the AUX stream resumed with the EMG: its sample index jumps over the same gap, so that AUX sample k stays
@@ -815,9 +871,18 @@ class TrignoClient:
         if self.aux_rate_hz > 0 and self.rate_hz > 0:
             resumed = int(round(self._next_index * self.aux_rate_hz / self.rate_hz))
             self._next_aux_index = max(self._next_aux_index, resumed)
+        for rows, _, host_time_ns in held:
+            self._emit_emg(rows, host_time_ns)
+        self._last_data_time = held[-1][1]
         for rows, host_time_ns in self._aux_after_gap:
             self._emit_aux(rows, host_time_ns)
         self._aux_after_gap = []
+
+    def _settle_gap(self) -> None:
+        """Place the EMG held for a gap's measurement now (the data end: a stop, STOPPED, a lost link), with what has
+        arrived of its backlog."""
+        if self._emg_after_gap:
+            self._report_gap()
 
     # ------------------------------------------------------------------------------------------ reconnection
     def _drain(self, link: _Link) -> None:
@@ -838,6 +903,7 @@ class TrignoClient:
         self._note_error(f"connection lost: {reason}")
         if self._link is not None:
             self._drain(self._link)
+        self._settle_gap()
         self.stats.bytes_discarded += self._emg_decoder.discard_partial() + self._aux_decoder.discard_partial()
         self._drop_link()
         if not self.config.reconnect:
@@ -846,7 +912,7 @@ class TrignoClient:
             return
         self.state = ClientState.RECONNECTING
         self._rate_at_loss = self.rate_hz
-        self._gap_pending = self._want_streaming
+        self._gap_pending, self._gap_reason = self._want_streaming, "connection lost"
         self._backoff = self.config.backoff_initial_s
         self._next_attempt = time.monotonic() + self._backoff
         self._emit_status(ClientState.RECONNECTING, f"connection lost: {reason}")

@@ -79,6 +79,9 @@ class TrignoQuirks:
     stop_trigger_after_s: float | None = None  # fire the stop trigger (unsolicited STOPPED) after streaming this long
     quit_stops_acquisition: bool = True  # QUIT alone (one client's way) also ends streaming
     start_delay_s: float = 0.0  # a real system sends its first data ~2 s after START
+    #: the first data after START come this much later as one burst of what was measured since START (a base that
+    #: buffers until its link is ready), instead of start_delay_s's later start of the measurement
+    start_burst_s: float = 0.0
     aux_silent: bool = False  # the AUX ports accept connections but send nothing (sensors with their AUX off)
 
 
@@ -260,10 +263,12 @@ class SimulatorConfig:
 class SimulatorStats:
     frames_sent: int = 0
     samples_sent: int = 0
+    frames_dropped: int = 0  # measured during a pause that drops them (TrignoSimulator.pause), never sent
     commands: int = 0
     connections: int = 0
     latency_s: float = 0.0  # the stated device latency applied to every frame (SimulatorConfig.latency_s)
     start_index: int | None = None  # trial (stream) sample index the latest START streamed first; None: no START yet
+    started_s: float | None = None  # time.monotonic() at which the latest START's first sample was measured
 
 
 class _CommandConnection:
@@ -303,6 +308,8 @@ class TrignoSimulator:
         self._next_conn_id = 1
         self._running = False
         self._held = False
+        self._send_after = 0.0  # no frame leaves before this instant (time.monotonic): a pause or a start burst
+        self._drop_until = 0.0  # frames due before this instant are lost (a pause that drops), not sent late
         self._run_started = 0.0  # wall instant (time.monotonic) the latest START took effect
         self._first_index = 0  # stream sample index of the run's sample 0 (0 without a trial clock)
         self._frame = 0  # frames sent since START
@@ -378,6 +385,13 @@ class TrignoSimulator:
             except OSError:
                 pass
         self.close()
+
+    def pause(self, seconds: float, *, drop: bool) -> None:
+        """The base goes quiet for ``seconds`` from now, its connections open. ``drop``: what it measures meanwhile
+        is lost and it resumes at the present; else it sends that as one burst when it resumes (a buffering link)."""
+        self._send_after = time.monotonic() + seconds
+        if drop:
+            self._drop_until = self._send_after
 
     def stall(self) -> None:
         """Stop sending data without telling anyone, as when a cable is pulled (no FIN, no RST, no STOPPED)."""
@@ -637,6 +651,8 @@ class TrignoSimulator:
         self._run_started = time.monotonic() + self.config.quirks.start_delay_s / self.config.speed
         self._first_index = self._index_at(self._run_started)
         self.stats.start_index = self._first_index
+        self.stats.started_s = self._run_started
+        self._send_after = time.monotonic() + self.config.quirks.start_burst_s / self.config.speed
         self._running = True
 
     def _index_at(self, wall_s: float) -> int:
@@ -671,9 +687,14 @@ class TrignoSimulator:
             if not self._running or self._held:
                 self._stop.wait(0.005)
                 continue
-            delay = self._frame_due(self._frame) - time.monotonic()
+            due = self._frame_due(self._frame)
+            delay = max(due, self._send_after) - time.monotonic()
             if delay > 0:
                 self._stop.wait(min(delay, 0.05))
+                continue
+            if due < self._drop_until:  # measured during a pause that drops: never sent
+                self._frame += 1
+                self.stats.frames_dropped += 1
                 continue
             limit = self.config.quirks.stop_trigger_after_s
             if limit is not None and self._frame * tp.FRAME_INTERVAL_S >= limit:
