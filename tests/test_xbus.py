@@ -338,3 +338,14 @@ def test_frame_that_lost_a_byte_cannot_swallow_the_next_preamble(shared_dir):
     received = parser.feed(b"".join(frames_[:index]) + damaged + b"".join(frames_[index + 1 :]))
     assert received == [m for k, m in enumerate(messages) if k != index]
     assert parser.stats.structure_errors >= 1
+
+
+def test_noise_that_looks_like_a_header_releases_the_frames_behind_it_once_nothing_more_comes():
+    # 200 bytes claimed by an MTData2 header in the noise; the device then answers three times and goes quiet
+    ack = xbus.encode_message(xbus.Mid.GO_TO_CONFIG_ACK)
+    parser = xbus.XbusParser()
+    assert parser.feed(bytes.fromhex("0102030405FAFF36C8112233") + ack * 3) == []  # waits for the 200 bytes
+    released = parser.release_stalled()
+    assert [m.mid for m in released] == [xbus.Mid.GO_TO_CONFIG_ACK] * 3 and parser.pending == 0
+    assert parser.stats.length_errors == 1
+    assert xbus.XbusParser().release_stalled() == []

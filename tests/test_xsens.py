@@ -389,3 +389,49 @@ def test_a_capture_of_euler_angles_gives_the_quaternion_a_configured_device_woul
     up = np.array([rotate(q, a) for q, a in zip(source.arrays["quaternion"], source.arrays["acceleration"])])
     assert np.allclose(up.mean(axis=0), (0.0, 0.0, 9.79), atol=0.05), up.mean(axis=0)
     assert np.allclose(np.linalg.norm(source.arrays["quaternion"], axis=1), 1.0)
+
+
+@pytest.mark.parametrize("unsupported", [{0x1060}, {0x1060, 0x1020}])
+def test_a_device_without_sample_time_fine_is_timed_by_its_counter_else_by_arrival(unsupported):
+    # valid per the protocol (any item may be absent; the ack echoes what was applied): device time must still move
+    source = synthetic_imu(seconds=5.0, seed=2)
+    with XsensSimulator(source, speed=4.0, unsupported_outputs=frozenset(unsupported)) as sim:
+        device = open_device(sim)
+        try:
+            device.reset()
+            device.configure(100)
+            readings = read_for(device, count=40)
+        finally:
+            device.close()
+    assert len(readings) >= 40 and all(r.sample_time_fine is None for r in readings)
+    times = np.array([r.device_time_ns for r in readings], dtype=float)
+    assert np.all(np.diff(times) >= 0) and times[-1] > times[0]
+    if 0x1020 not in unsupported:  # "+1 per message" at the applied 100 Hz: 10 ms a message, from the first one
+        counters = np.array([r.packet_counter for r in readings])
+        assert np.array_equal(times, (counters - counters[0]) * 1e7)
+        assert "timed by its PacketCounter at 100 Hz" in device.stats.last_error
+    else:  # nothing to count: their arrival (the host clock, ns)
+        assert np.all(np.abs(times - np.array([r.host_time_ns for r in readings])) == 0)
+        assert "timed by their arrival" in device.stats.last_error
+
+
+def test_a_reply_behind_noise_that_looks_like_a_header_is_found_once_the_line_is_quiet():
+    # a real line: the device's reply sits behind noise claiming a 200-byte frame, and nothing more comes
+    import pty
+
+    import threading
+
+    controller, line = pty.openpty()
+    answer = bytes.fromhex("0102030405FAFF36C8112233") + xbus.encode_message(xbus.Mid.GO_TO_CONFIG_ACK)
+    try:
+        device = XsensDevice(SerialTransport(os.ttyname(line), baudrate=115200), reply_timeout_s=1.0)
+        try:
+            threading.Timer(0.05, os.write, (controller, answer)).start()  # once the port is open and asked
+            started = time.monotonic()
+            reply = device.request(xbus.Mid.GO_TO_CONFIG)
+            assert reply.mid == xbus.Mid.GO_TO_CONFIG_ACK and time.monotonic() - started < 0.8
+        finally:
+            device.close()
+    finally:
+        os.close(controller)
+        os.close(line)

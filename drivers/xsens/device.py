@@ -55,15 +55,25 @@ class ImuReading:
     host_time_ns: int
     data: xbus.MtData2
     sample_time_offset: int = 0  # ticks added by unwrapping SampleTimeFine (a day per wrap on 10/100-series)
+    #: without SampleTimeFine: the time :meth:`XsensDevice.read` gave it instead (its unwrapped PacketCounter times
+    #: the message period of the applied outputs, else its arrival), ns
+    time_without_clock_ns: int | None = None
 
     @property
     def device_time_ns(self) -> int:
-        """Device time since power-up, continuous across SampleTimeFine wraps (0 without SampleTimeFine)."""
-        return 0 if self.sample_time_fine is None else (self.sample_time_fine + self.sample_time_offset) * 100_000
+        """Device time since power-up, continuous across SampleTimeFine wraps; without SampleTimeFine the time the
+        reader gave it (:attr:`time_without_clock_ns`), 0 when it gave none."""
+        if self.sample_time_fine is not None:
+            return (self.sample_time_fine + self.sample_time_offset) * 100_000
+        return self.time_without_clock_ns or 0
 
     def quaternion_enu(self) -> tuple[float, float, float, float] | None:
         return None if self.quaternion is None else frames.to_enu(self.quaternion, self.frame)
 
+
+#: An incomplete frame that stays so this long while nothing arrives is noise that looked like a header (a frame
+#: of the longest standard length takes 22 ms at 115200 baud): the frames behind it are released.
+STALLED_FRAME_S = 0.2
 
 #: How often :meth:`XsensDevice.ask` sends a request that changes nothing before it gives up.
 REQUEST_ATTEMPTS = 3
@@ -121,10 +131,13 @@ class XsensDevice:
         self.device_id_size = 4  # bytes of the DeviceID reply (4, or 8 on newer devices): hex digits of tracker_id
         self.output_configuration: list[xbus.OutputSetting] = []  # as the device echoed it (what it applied)
         self._queue: list[xbus.XbusMessage] = []  # data frames read while waiting for a reply
+        self._stalled_since: float | None = None  # since when an incomplete frame waits with nothing arriving
         self._last_counter: dict[int, int] = {}
         self._last_time: dict[int, int] = {}  # last SampleTimeFine per bus id
         self._time_offset: dict[int, int] = {}  # unwrapping offset per bus id
         self._long_clock: set[int] = set()  # bus ids whose SampleTimeFine went past a day: they wrap at 2^32
+        self._counter_ticks: dict[int, int] = {}  # messages since the counter's first (unwrapped), per bus id
+        self._untimed: set[int] = set()  # bus ids whose messages came without SampleTimeFine (said once)
         # configure()'s arguments (rate, precision, frame), replayed by reconnect()
         self._configured: tuple[int, xbus.Precision, xbus.CoordinateFrame] | None = None
 
@@ -137,7 +150,20 @@ class XsensDevice:
         self.transport.write(xbus.encode_message(mid, data, self.bid))
 
     def _read_messages(self) -> list[xbus.XbusMessage]:
-        return self.parser.feed(self.transport.read(4096))
+        """The frames of what the transport has now; an incomplete frame that stays incomplete while nothing arrives
+        for STALLED_FRAME_S is a false header and is released (:meth:`XbusParser.release_stalled`)."""
+        chunk = self.transport.read(4096)
+        messages = self.parser.feed(chunk)
+        if chunk or messages or not self.parser.pending:
+            self._stalled_since = None
+            return messages
+        now = time.monotonic()
+        if self._stalled_since is None:
+            self._stalled_since = now
+        elif now - self._stalled_since >= STALLED_FRAME_S:
+            self._stalled_since = None
+            messages = self.parser.release_stalled()
+        return messages
 
     def request(
         self, mid: int, data: bytes = b"", *, reply_mid: int | None = None, timeout: float | None = None
@@ -377,16 +403,20 @@ class XsensDevice:
         counter = data.first("packet_counter")  # first: a counter that went back says "restart", not "wrap"
         if counter is not None:
             last = self._last_counter.get(bid)
+            ticks = 0  # the first message, or the first after a restart
             if last is not None:
                 skipped = (counter - last - 1) & 0xFFFF
                 if skipped >= 0x8000:  # the counter went back: a restart whose WakeUp was lost, not 65k lost packets
                     self._restarted_without_wakeup(bid, f"its packet counter went back from {last} to {counter}")
                 else:
                     self.stats.packets_lost += skipped
+                    ticks = self._counter_ticks.get(bid, 0) + skipped + 1
             self._last_counter[bid] = counter
+            self._counter_ticks[bid] = ticks
         sample_time = data.first("sample_time_fine")
         offset = 0 if sample_time is None else self._unwrapped_offset(bid, sample_time)
         tracker = self.tracker_id if bid == xbus.BID_MASTER else f"{self.tracker_id}-{bid:02d}"
+        untimed = None if sample_time is not None else self._time_without_clock(bid, tracker, counter is not None, now)
         return ImuReading(
             tracker_id=tracker,
             bus_id=bid,
@@ -400,7 +430,23 @@ class XsensDevice:
             frame=data.frame(),
             host_time_ns=now,
             data=data,
+            time_without_clock_ns=untimed,
         )
+
+    def _time_without_clock(self, bid: int, tracker: str, counted: bool, now: int) -> int:
+        """The time of a message without SampleTimeFine (a device that did not apply it, or keeps its own outputs):
+        its unwrapped PacketCounter ("+1 per message") times the message period of the applied outputs, else its
+        arrival. Said once per bus id: downstream the samples are placed by it."""
+        rate = message_rate_hz(self.output_configuration)
+        if counted and rate:
+            how, value = f"its PacketCounter at {rate:g} Hz", int(round(self._counter_ticks[bid] * 1e9 / rate))
+        else:
+            how, value = "their arrival (nor a PacketCounter and an output rate)", now
+        if bid not in self._untimed:
+            self._untimed.add(bid)
+            self.stats.last_error = f"{tracker}: its messages carry no SampleTimeFine; timed by {how}"
+            log.warning("%s", self.stats.last_error)
+        return value
 
     def _unwrapped_offset(self, bid: int, sample_time: int) -> int:
         """Ticks to add to this SampleTimeFine to continue the device's clock past its wraps (a day, or 2^32 on devices
@@ -498,6 +544,13 @@ def orientation_quaternion(data: xbus.MtData2) -> tuple[float, float, float, flo
     if euler is not None:
         return frames.quat_from_euler_deg(*euler)
     return None
+
+
+def message_rate_hz(settings: list[xbus.OutputSetting]) -> float | None:
+    """The MTData2 message rate of an output configuration: its highest output frequency (0 and 0xFFFF, "with every
+    message", say none); None when no output states one."""
+    rates = [s.frequency for s in settings if s.frequency not in (0, 0xFFFF)]
+    return float(max(rates)) if rates else None
 
 
 def configuration_differences(requested: list[xbus.OutputSetting], applied: list[xbus.OutputSetting]) -> list[str]:

@@ -88,6 +88,7 @@ class XsensSimulator:
         latency_s: float = 0.0,
         measure_not_before: Callable[[], float | None] | None = None,
         stable_link: str | os.PathLike[str] | None = None,
+        unsupported_outputs: frozenset[int] = frozenset(),
     ) -> None:
         """``trial_clock``: the one world a session's simulators sample (None: each entry into Measurement continues
         the trial from where it stopped); ``latency_s``: device seconds between measuring a sample and its bytes
@@ -96,7 +97,8 @@ class XsensSimulator:
         device, e.g. a given time after the Trigno starts; ``stable_link``: a path that names this tracker while it
         is plugged in, as udev's ``/dev/serial/by-id`` link does: created at :meth:`start`, removed at
         :meth:`unplug` and :meth:`close`. A host reconnecting through it finds nothing while the tracker is away,
-        even when the freed pseudo-terminal goes to another device meanwhile."""
+        even when the freed pseudo-terminal goes to another device meanwhile. ``unsupported_outputs``: data ids this
+        device does not apply, left out of what it acknowledges and sends (0x1060: a device without SampleTimeFine)."""
         if not (math.isfinite(speed) and speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=speed)
         if not (math.isfinite(latency_s) and latency_s >= 0):
@@ -119,6 +121,7 @@ class XsensSimulator:
         self.baudrate = DEFAULT_BAUDRATE
         self.path = ""
         self.stable_link = os.fspath(stable_link) if stable_link is not None else None
+        self.unsupported_outputs = frozenset(unsupported_outputs)
         self._linked = False  # stable_link names this simulator's pty (until unplug/close)
         self.measuring = False
         self.unplugged = False
@@ -407,6 +410,7 @@ class XsensSimulator:
             if not known or (setting.frequency not in (0, 0xFFFF) and not 1 <= setting.frequency <= 2000):
                 self._error(0x21)
                 return
+        settings = [s for s in settings if s.data_id not in self.unsupported_outputs]  # the ack says what was applied
         self._outputs = settings
         self._verbatim = False
         self._reply(xbus.Mid.OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))

@@ -376,6 +376,18 @@ class XbusParser:
             del buf[:pos]
         return out
 
+    def release_stalled(self) -> list[XbusMessage]:
+        """Give up on the incomplete frame the buffer starts with and parse the rest again; returns the frames found.
+        Noise that looks like a header holds every frame behind it until the bytes its length claims arrive, which a
+        device that went quiet (waiting for our next request) never sends: its first byte is skipped, counted as a
+        length error."""
+        if not self._buffer:
+            return []
+        self.stats.length_errors += 1
+        self._skip(1)
+        del self._buffer[:1]
+        return self.feed(b"")
+
     def _skip(self, count: int) -> None:
         if count <= 0:
             return
