@@ -418,7 +418,6 @@ def test_a_device_without_sample_time_fine_is_timed_by_its_counter_else_by_arriv
 def test_a_reply_behind_noise_that_looks_like_a_header_is_found_once_the_line_is_quiet():
     # a real line: the device's reply sits behind noise claiming a 200-byte frame, and nothing more comes
     import pty
-
     import threading
 
     controller, line = pty.openpty()
