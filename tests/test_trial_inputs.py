@@ -395,3 +395,31 @@ def test_a_table_header_with_a_comment_keeps_the_line_of_its_keys(tmp_path, pack
         load_trial(trial, pack)
     line = trial.read_text().splitlines().index('TriLat = "TriMed"') + 1
     assert error.value.line == line and error.value.field == "emg_map.TriLat", str(error.value)
+
+
+def test_kinematics_given_as_the_torques_are_refused_and_moment_columns_beat_angle_columns(tmp_path, pack):
+    # a kinematics file in the torques' place (in radians and in degrees) holds angles under the coordinates' names
+    ik = read_sto(DEMO / "ik.sto")
+    for name, data, degrees in (("rad", ik.data, False), ("deg", np.degrees(ik.data), True)):
+        angles = _write_like(DEMO / "ik.sto", tmp_path / f"ik_{name}.sto", ik.time, data, in_degrees=degrees)
+        with pytest.raises(InputError, match="hold the same values as the kinematics file .*: angles, not torques"):
+            load_trial(_trial(tmp_path, torques=angles), pack)
+    # OpenSim's inverse dynamics beside the bare angle columns: the <coordinate>_moment columns are the torques
+    tq = read_sto(DEMO / "id.sto")
+    coordinates = list(pack.coordinates)
+    moments = tq.select([f"{c}_moment" for c in coordinates])
+    angles_then = np.column_stack([np.interp(tq.time, ik.time, ik.column(c)) for c in coordinates])
+    both = tmp_path / "id_and_angles.sto"
+    columns = [f"{c}_moment" for c in coordinates] + coordinates
+    write_sto(both, tq.time, columns, np.column_stack([moments, angles_then]), name="edited")
+    assert np.array_equal(
+        load_trial(_trial(tmp_path, torques=both), pack).torques, load_trial(_trial(tmp_path), pack).torques
+    )
+
+
+def test_times_in_milliseconds_are_refused_naming_the_file_and_the_rate(tmp_path, pack):
+    ik = read_sto(DEMO / "ik.sto")
+    slow = _write_like(DEMO / "ik.sto", tmp_path / "ik_ms.sto", ik.time * 1000.0, ik.data)
+    with pytest.raises(InputError, match=r"sampled every 10 s \(0\.1 Hz\).*times in milliseconds") as error:
+        load_trial(_trial(tmp_path, kinematics=slow), pack)
+    assert "ik_ms.sto" in str(error.value) and "time" in str(error.value)

@@ -3,7 +3,8 @@
 Keys (paths relative to the TOML file)::
 
     kinematics = "ik.sto"            # required; columns named as the pack's coordinates (radians, or inDegrees=yes)
-    torques = "id.sto"               # optional; columns <coordinate> or <coordinate>_moment. When absent the pack's
+    torques = "id.sto"               # optional; columns <coordinate>_moment (or _force), else <coordinate>; the
+                                     # kinematics' own angles are refused. When absent the pack's
                                      # inverse dynamics computes them from q, qd, qdd (finite differences) and load_kg
     emg = "emg.sto"                  # optional
     emg_is_envelope = true           # false: raw EMG, made an envelope offline (zero-phase chain of msk_core.signal.emg)
@@ -284,10 +285,29 @@ class _Kinematics:
     qdd: np.ndarray
 
 
+#: Kinematics sampled slower than this are not a movement's (motion capture and IMUs give 15-200 Hz): times in
+#: milliseconds read as seconds would otherwise pass, with every delay and rate 1000 times off.
+MIN_KINEMATICS_RATE_HZ = 5.0
+
+
+def _check_motion_rate(kin: Storage) -> None:
+    if kin.n_rows < 2:
+        return
+    interval = float(np.median(np.diff(kin.time)))
+    if interval > 1.0 / MIN_KINEMATICS_RATE_HZ:
+        raise InputError(
+            f"the kinematics are sampled every {interval:g} s ({1 / interval:.3g} Hz), slower than any movement's "
+            f"{MIN_KINEMATICS_RATE_HZ:g} Hz: are the times in milliseconds? The time column must be in seconds",
+            path=kin.path,
+            field="time",
+        )
+
+
 def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) -> _Kinematics:
     coords = list(pack.coordinates)
     kin = read_sto(trial.file_of("kinematics"))
     kin.check_increasing("kinematics")
+    _check_motion_rate(kin)
     for c in coords:
         if not kin.has_column(c):
             raise InputError(
@@ -402,6 +422,37 @@ def _check_root_still(trial: _TrialFile, kin: _Kinematics) -> None:
         )
 
 
+def _torque_column(tq: Storage, coordinate: str) -> str:
+    """The torque column of ``coordinate``: OpenSim's inverse-dynamics name (``<c>_moment``, ``<c>_force`` for a
+    translation) before the bare name, which in a file that also holds the angles is the angle."""
+    for name in (f"{coordinate}_moment", f"{coordinate}_force", coordinate):
+        if tq.has_column(name):
+            return name
+    raise InputError(
+        f"torque file has neither {coordinate!r} nor {coordinate + '_moment'!r}{_closest(coordinate, tq.columns)}",
+        path=tq.path,
+        field=coordinate,
+    )
+
+
+def _check_not_angles(tq: Storage, cols: list[str], raw: np.ndarray, kin: _Kinematics) -> None:
+    """Refuse torque columns that are the kinematics' angles (a kinematics file given as the torques): the same
+    values, in radians or in degrees, at the same times."""
+    angles = kin.storage
+    if not all(angles.has_column(c) for c in cols) or not np.array_equal(tq.time, angles.time):
+        return
+    q = angles.select(cols)
+    same = np.allclose(raw, q, equal_nan=True) or np.allclose(raw, np.degrees(q), equal_nan=True)
+    same = same or np.allclose(raw, np.radians(q), equal_nan=True)
+    if same:
+        raise InputError(
+            f"the torque columns ({', '.join(cols)}) hold the same values as the kinematics file {angles.path}: "
+            "angles, not torques. Give the trial's inverse dynamics (e.g. OpenSim's, columns <coordinate>_moment)",
+            path=tq.path,
+            field="torques",
+        )
+
+
 def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, kin: _Kinematics):
     """(torques, frames kept of the kinematics window, torque source, frames dropped); trims ``kin`` to the kept frames."""
     coords = list(pack.coordinates)
@@ -420,15 +471,9 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
         return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", _DroppedFrames()
     tq = read_sto(trial.file_of("torques"))
     tq.check_increasing("torque")
-    cols = []
-    for c in coords:
-        name = c if tq.has_column(c) else f"{c}_moment"
-        if not tq.has_column(name):
-            raise InputError(
-                f"torque file has neither {c!r} nor {c + '_moment'!r}{_closest(c, tq.columns)}", path=tq.path, field=c
-            )
-        cols.append(name)
+    cols = [_torque_column(tq, c) for c in coords]
     raw = tq.select(cols)
+    _check_not_angles(tq, cols, raw, kin)
     if options.lowpass_torques_hz is not None:
         # the same zero-phase filter as the coordinates' (whole file, then the window), without the spline's derivatives
         try:
