@@ -423,3 +423,14 @@ def test_times_in_milliseconds_are_refused_naming_the_file_and_the_rate(tmp_path
     with pytest.raises(InputError, match=r"sampled every 10 s \(0\.1 Hz\).*times in milliseconds") as error:
         load_trial(_trial(tmp_path, kinematics=slow), pack)
     assert "ik_ms.sto" in str(error.value) and "time" in str(error.value)
+
+
+@pytest.mark.parametrize("factor, said", [(1 / 81.31, "N·m/kg"), (1000.0, "N·mm")])
+def test_torques_in_other_units_than_newton_metres_are_refused(tmp_path, pack, factor, said):
+    tq = read_sto(DEMO / "id.sto")
+    scaled = _write_like(DEMO / "id.sto", tmp_path / "id_scaled.sto", tq.time, tq.data * factor)
+    with pytest.raises(InputError, match=f"times the pack's inverse dynamics of the same motion .* in {said}"):
+        load_trial(_trial(tmp_path, torques=scaled), pack)
+    load_trial(
+        _trial(tmp_path, torques=_write_like(DEMO / "id.sto", tmp_path / "id_same.sto", tq.time, tq.data * 1.5)), pack
+    )

@@ -494,7 +494,39 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
         kinematics_span=f"{seconds(kin.time[0])} .. {seconds(kin.time[-1])} s",
     )
     kin.time, kin.q, kin.qd, kin.qdd = kin.time[keep], kin.q[keep], kin.qd[keep], kin.qdd[keep]
+    if not options.isometric:  # a maximal contraction's torques are its own, far above the pose's gravity
+        _check_torque_units(tq, pack, kin, torques[keep], options.load_kg)
     return torques[keep], keep, "file", dropped
+
+
+#: The recorded torques' RMS against the pack's inverse dynamics of the same motion: 1.0-1.3 on every trial of
+#: recordings/ (the walk with its ground reaction forces, the real lifts, the synthetic lifts); N·m/kg gives about
+#: 1/60-1/80, N·mm 1000. Outside these bounds the file is not in N·m.
+TORQUE_SCALE_BOUNDS = (0.1, 10.0)
+
+
+def _check_torque_units(tq: Storage, pack: PackLike, kin: _Kinematics, torques: np.ndarray, load_kg: float) -> None:
+    """Refuse torques that are not in N·m: their RMS over 60 frames against the pack's inverse dynamics there."""
+    q, usable = clamp_to_ranges(kin.q, fitted_ranges(pack))
+    frames = np.flatnonzero(usable)
+    if frames.size < 10:
+        return
+    frames = frames[np.linspace(0, frames.size - 1, 60).astype(int)]
+    modelled = np.array([pack.inverse_dynamics(q[i], kin.qd[i], kin.qdd[i], load_kg * GRAVITY) for i in frames])
+    expected = float(np.sqrt(np.mean(modelled**2)))
+    if not expected > 0:
+        return
+    scale = float(np.sqrt(np.mean(torques[frames] ** 2))) / expected
+    low, high = TORQUE_SCALE_BOUNDS
+    if not low <= scale <= high:
+        guess = "N·m/kg (divided by the body mass)?" if scale < low else "N·mm?"
+        raise InputError(
+            f"the torques are {scale:.3g} times the pack's inverse dynamics of the same motion (RMS over "
+            f"{frames.size} frames; between {low:g} and {high:g} for torques in N·m): are they in {guess} "
+            "Torques must be N·m (body_mass_kg only adds N·m/kg to the reports)",
+            path=tq.path,
+            field="torques",
+        )
 
 
 @dataclass(frozen=True)
