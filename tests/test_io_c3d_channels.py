@@ -220,3 +220,17 @@ def test_msk_emg_envelope_gives_volts_whatever_unit_the_c3d_stores(tmp_path):
         envelopes.append(env.data)
     np.testing.assert_allclose(envelopes[0], envelopes[1], rtol=1e-5, atol=0)  # C3D stores float32
     assert 1e-5 < envelopes[0].max() < 1e-3  # volts: the 0.2 mV noise's envelope
+
+
+def test_channels_named_twice_are_refused_naming_them_and_one_named_once_can_be_chosen(tmp_path, capsys):
+    # a lab's export that cut the labels to the sensor's name: "TA" from "Sensor 1.EMG1" and "Sensor 1.IM EMG1"
+    labels = ["TA", "SOL", "TA", "VL"]
+    path = _gait_c3d(tmp_path / "twice.c3d", labels=labels, units=["V"] * 4, plates_used=0, channel_numbers=None)
+    out = tmp_path / "env.sto"
+    assert msk(["emg", "envelope", str(path), "-o", str(out)]) == 2
+    said = capsys.readouterr().err
+    assert "names 1 channel(s) more than once: TA" in said and "twice.c3d" in said and not out.exists(), said
+    assert msk(["emg", "envelope", str(path), "--channels", "TA", "-o", str(out)]) == 2
+    assert "2 channels are named 'TA' (analog columns 1, 3)" in capsys.readouterr().err
+    assert msk(["emg", "envelope", str(path), "--channels", "SOL,VL", "-o", str(out)]) == 0
+    assert read_sto(out).columns == ["SOL", "VL"]

@@ -107,3 +107,24 @@ def test_rows_separated_by_spaces_under_a_tab_separated_label_line_are_read_as_o
     storage, column = opensim.Storage(str(path)), opensim.ArrayDouble()
     storage.getDataColumn("q2", column)
     assert [column.get(i) for i in range(column.getSize())] == [-2.0, -2.1, -2.2]
+
+
+def test_nan_and_infinity_as_other_c_runtimes_print_them_are_read(tmp_path):
+    # MSVC's printf writes "-nan(ind)", older runtimes "1.#QNAN" / "-1.#IND" / "1.#INF": OpenSim reads them back
+    path = tmp_path / "id.sto"
+    path.write_text("id\nendheader\ntime\ta\tb\n0.0\t-nan(ind)\t1.#INF\n0.01\t1.#QNAN\t-1.#INF\n0.02\t-1.#IND\t2.5\n")
+    storage = read_sto(path)
+    assert np.isnan(storage.column("a")).all()
+    assert storage.column("b").tolist() == [np.inf, -np.inf, 2.5]
+    path.write_text("id\nendheader\ntime\ta\n0.0\tnan(what)\n")
+    with pytest.raises(FileFormatError, match="not a number"):
+        read_sto(path)
+
+
+def test_simm_motion_headers_are_in_degrees_as_opensim_reads_them(tmp_path):
+    path = tmp_path / "old.mot"
+    path.write_text("name old.mot\ndatacolumns 2\ndatarows 2\nrange 0 0.01\nendheader\ntime\tknee\n0\t45\n0.01\t50\n")
+    storage = read_sto(path)
+    assert storage.in_degrees and storage.column("knee").tolist() == [45.0, 50.0]
+    path.write_text("datacolumns 2\ndatarows 2\ninDegrees=no\nendheader\ntime\tknee\n0\t0.7\n0.01\t0.8\n")
+    assert not read_sto(path).in_degrees  # a stated inDegrees wins

@@ -434,3 +434,25 @@ def test_torques_in_other_units_than_newton_metres_are_refused(tmp_path, pack, f
     load_trial(
         _trial(tmp_path, torques=_write_like(DEMO / "id.sto", tmp_path / "id_same.sto", tq.time, tq.data * 1.5)), pack
     )
+
+
+def test_emg_labels_in_another_case_are_suggested_and_a_missing_in_degrees_line_is_named(tmp_path, pack):
+    emg = read_sto(DEMO / "emg.sto")
+    upper = tmp_path / "emg_upper.sto"
+    write_sto(upper, emg.time, [c.upper() for c in emg.columns], emg.data, name="edited")
+    with pytest.raises(ConfigError, match="EMG file has no column 'PMCla'; did you mean PMCLA"):
+        load_trial(_trial(tmp_path, emg=upper), pack)
+    ik = read_sto(DEMO / "ik.sto")
+    degrees = _write_like(DEMO / "ik.sto", tmp_path / "ik_deg.sto", ik.time, np.degrees(ik.data))
+    text = degrees.read_text().replace("inDegrees=no\n", "")
+    degrees.write_text(text)
+    with pytest.raises(InputError, match="header has no inDegrees line .*add inDegrees=yes"):
+        load_trial(_trial(tmp_path, kinematics=degrees), pack)
+
+
+def test_a_c3d_as_the_trials_emg_says_how_to_make_the_storage_it_needs(tmp_path, pack):
+    recording = tmp_path / "session.c3d"
+    recording.write_bytes(b"\x02\x50")  # never opened: the key's value says what it is
+    with pytest.raises(ConfigError, match=r"msk emg envelope .*session\.c3d -o emg\.sto") as error:
+        load_trial(_trial(tmp_path, emg=recording), pack)
+    assert "emg" in str(error.value)

@@ -152,7 +152,7 @@ def _within(time: np.ndarray, source_time: np.ndarray) -> np.ndarray:
 
 
 def _closest(name: str, options: list[str]) -> str:
-    near = close_names(name, options, cutoff=0.6, ignore_case=False)  # difflib's default cutoff
+    near = close_names(name, options, cutoff=0.6)  # difflib's default cutoff; 'rectabd_r' finds 'RECTABD_R'
     return f"; did you mean {', '.join(near)}?" if near else ""
 
 
@@ -375,7 +375,12 @@ def _check_within_ranges(kin: Storage, q: np.ndarray, coords: list[str], pack: P
         f"{pack.name!r}, e.g. {coords[j]} at {values.min():.1f} .. {values.max():.1f} deg against "
         f"[{np.degrees(ranges[0][j]):.1f}, {np.degrees(ranges[1][j]):.1f}] deg"
         + (
-            "; the angles look like degrees in a file whose header says inDegrees=no"
+            (
+                "; the angles look like degrees in a file whose header says inDegrees=no"
+                if any(key.lower() == "indegrees" for key in kin.header)
+                else "; the angles look like degrees in a file whose header has no inDegrees line (read as radians): "
+                "add inDegrees=yes before endheader"
+            )
             if looks_like_degrees
             else "; is this the pack's model and sign convention?"
         ),
@@ -769,8 +774,20 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     )
 
 
+#: EMG recordings that are not OpenSim storages: ``msk emg envelope`` reads them and writes one
+_EMG_RECORDING_SUFFIXES = (".c3d", ".anc", ".csv")
+
+
 def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
-    storage: Storage = read_sto(file_of("emg"))
+    emg_file = file_of("emg")
+    if Path(emg_file).suffix.lower() in _EMG_RECORDING_SUFFIXES:
+        raise err(
+            f"a trial's EMG is an OpenSim storage (.sto/.mot) of envelopes or raw EMG; make one from this recording "
+            f'with: msk emg envelope {emg_file} -o emg.sto (then emg = "emg.sto")',
+            "emg",
+            str(spec.get("emg")),
+        )
+    storage: Storage = read_sto(emg_file)
     storage.check_increasing("EMG")
     mapping = spec.get("emg_map")
     if not isinstance(mapping, dict) or not mapping:

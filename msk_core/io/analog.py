@@ -75,6 +75,14 @@ class AnalogRecording:
         return full_scale_mv * 1e-3 / 2 ** (bits - 1)  # a bipolar ADC: +-2^(bits-1) counts span +-Range
 
     def index(self, label: str) -> int:
+        if self.labels.count(label) > 1:  # which of them is meant cannot be said by the name
+            columns = [str(k + 1) for k, lab in enumerate(self.labels) if lab == label]
+            raise InputError(
+                f"{self.labels.count(label)} channels are named {label!r} (analog columns {', '.join(columns)}): "
+                "rename them in the file to choose one",
+                path=self.path,
+                field=label,
+            )
         try:
             return self.labels.index(label)
         except ValueError:

@@ -2,7 +2,9 @@
 
 The reader accepts every dialect found in real files: OpenSim 4 headers (``version=1``, ``nRows``, ``nColumns``,
 ``inDegrees``), old headers without ``version``, free-text header lines, tab-, comma- (spreadsheet exports with
-trailing commas) or space-delimited columns, padded numbers, trailing delimiters, and CRLF line ends.
+trailing commas) or space-delimited columns, padded numbers, trailing delimiters, CRLF line ends, NaN and infinity as
+MSVC and older C runtimes print them (``-nan(ind)``, ``1.#QNAN``, ``1.#INF``), and SIMM's motion headers
+(``datacolumns``/``datarows``/``range``, in degrees as OpenSim reads them unless ``inDegrees`` says otherwise).
 ``nRows``/``nColumns`` are kept in :attr:`Storage.header` but not trusted: real files disagree with them.
 
 The column-label line is split as OpenSim 4 splits it (``FileAdapter::tokenize``, what ``TimeSeriesTable`` and the
@@ -24,6 +26,7 @@ import numpy as np
 from msk_core.errors import FileFormatError, InputError
 
 _KEY_VALUE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_ ]*?)\s*=\s*(.*?)\s*$")
+_SIMM_KEY = re.compile(r"^(datacolumns|datarows|range)(\s|$)", re.IGNORECASE)  # SIMM .mot header lines: "datarows 100"
 #: an interval this far from the median, as a share of it, is a gap (a lost or doubled sample) and not the rounding of
 #: a time column printed to a few decimals (1925.926 Hz at 5 decimals: intervals of 0.00051 and 0.00052 s)
 MAX_INTERVAL_DEVIATION = 0.25
@@ -189,8 +192,12 @@ def _read_header(lines: list[str], path: Path) -> tuple[dict[str, str], str, boo
             header[key] = value
             if key.lower() == "indegrees":
                 in_degrees = _parse_bool(value, path, i + 1, key)
+        elif _SIMM_KEY.match(cell):
+            header[cell.split()[0].lower()] = cell.split(maxsplit=1)[1] if len(cell.split()) > 1 else ""
         elif i == 0:
             name = cell
+    if not any(k.lower() == "indegrees" for k in header) and {"datacolumns", "datarows"} & set(header):
+        in_degrees = True  # SIMM's motion format (datacolumns/datarows/range): angles in degrees, as OpenSim reads it
     return header, name, in_degrees
 
 
@@ -216,18 +223,33 @@ def _read_labels(lines: list[str], end: int, path: Path) -> tuple[int, str | Non
     return col_index, delimiter, labels
 
 
+#: How C runtimes other than glibc's print NaN and infinity (MSVC's printf: "-nan(ind)", older ones "1.#QNAN",
+#: "-1.#IND", "1.#INF"): OpenSim's reader, built with them, reads them back; Python's float() does not.
+_OTHER_SPELLINGS = {
+    **dict.fromkeys(
+        ("nan(ind)", "-nan(ind)", "nan(snan)", "-nan(snan)", "1.#qnan", "-1.#qnan", "1.#ind", "-1.#ind"), float("nan")
+    ),
+    "1.#inf": float("inf"),
+    "-1.#inf": float("-inf"),
+}
+
+
 def float_cells(cells: list[str], labels: list[str], path: Path, line: int) -> list[float]:
     """One row of a text table as numbers; a cell that is not a number is a FileFormatError naming the file, the
     line and the cell's column (``labels[j]`` for ``cells[j]``)."""
     try:
         return [float(c) for c in cells]
     except ValueError:
+        values = []
         for label, cell in zip(labels, cells, strict=False):
             try:
-                float(cell)
+                values.append(float(cell))
             except ValueError:
-                raise FileFormatError("not a number", path=path, line=line, field=label, value=cell) from None
-        raise  # pragma: no cover - float() failed above, so a cell must fail here
+                spelled = _OTHER_SPELLINGS.get(cell.strip().lower())
+                if spelled is None:
+                    raise FileFormatError("not a number", path=path, line=line, field=label, value=cell) from None
+                values.append(spelled)
+        return values
 
 
 def _read_rows(lines: list[str], col_index: int, delimiter: str | None, labels: list[str], path: Path) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 
 from msk_core.errors import ConfigError, InputError
 from msk_core.io import AnalogRecording, read_anc, read_c3d_analogs, read_delsys_csv, read_sto, write_sto
-from msk_core.io.storage import uniform_step
+from msk_core.io.storage import seconds, uniform_step
 from msk_core.signal.emg import (
     EmgFilterConfig,
     NormalisationMode,
@@ -77,6 +77,15 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
                 f"left out {len(rec.not_emg)} channels that are not EMG: "
                 + "; ".join(f"{', '.join(channels)} ({why})" for why, channels in by_reason.items())
             )
+        emg = [label for label in rec.labels if label not in rec.not_emg]
+        twice = sorted({label for label in emg if emg.count(label) > 1})
+        if twice:  # the envelopes' columns must be told apart (a C3D's labels cut to the sensor name, say)
+            raise InputError(
+                f"the file names {len(twice)} channel(s) more than once: {', '.join(twice)}; rename them in the file, "
+                "or choose channels named once with --channels",
+                path=path,
+                field="channels",
+            )
         rec = rec.emg_only()
     rec, own_unit = rec.in_volts()
     if suffix == ".anc":
@@ -93,7 +102,7 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
         if not np.all(np.isfinite(column)):  # the filters would carry it to the end of the file
             first = int(np.argmax(~np.isfinite(column)))
             raise InputError(
-                f"EMG channel has NaN or infinite samples from t = {rec.time[first]:g} s; fill or cut the gap "
+                f"EMG channel has NaN or infinite samples from t = {seconds(rec.time[first])} s; fill or cut the gap "
                 "(the envelope filters would carry it to the end of the recording)",
                 path=path,
                 field=label,
