@@ -434,3 +434,29 @@ def test_a_reply_behind_noise_that_looks_like_a_header_is_found_once_the_line_is
     finally:
         os.close(controller)
         os.close(line)
+
+
+def test_an_error_to_the_informative_queries_leaves_the_device_configured_and_says_so():
+    # the product code and firmware only inform; an Error to a request that matters still stops the start
+    source = synthetic_imu(seconds=5.0, seed=3)
+    errors = {xbus.Mid.REQ_PRODUCT_CODE: 0x04, xbus.Mid.REQ_FW_REV: 0x04}
+    with XsensSimulator(source, speed=4.0, error_replies=errors) as sim:
+        device = open_device(sim)
+        try:
+            device.reset()
+            info = device.configure(100)
+            readings = read_for(device, count=20)
+        finally:
+            device.close()
+    assert info["product_code"] == "unknown" and info["firmware"] == "unknown" and len(readings) >= 20
+    assert "its firmware is not known, the device is configured without it" in device.stats.last_error
+    with XsensSimulator(source, speed=4.0, error_replies={xbus.Mid.SET_OUTPUT_CONFIGURATION: 0x21}) as sim:
+        device = open_device(sim)
+        try:
+            device.reset()
+            with pytest.raises(
+                XbusDeviceError, match=r"0x21 .*after SET_OUTPUT_CONFIGURATION; asked for 0x1020 .*--imu-rate"
+            ):
+                device.configure(100)
+        finally:
+            device.close()

@@ -301,7 +301,15 @@ class XsensDevice:
         """Apply an output configuration; returns what the device says it applied (its ack echoes the applied
         configuration, which may differ from the request: rates rounded to what the device can do, 0 for 0xFFFF).
         Differences are logged and counted in ``stats.last_error``; an echo without payload means "as requested"."""
-        reply = self.ask(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
+        try:
+            reply = self.ask(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
+        except XbusDeviceError as error:  # which outputs, so that the user knows what to change
+            asked = ", ".join(
+                f"0x{s.data_id:04X} at {'every message' if s.frequency in (0, 0xFFFF) else f'{s.frequency} Hz'}"
+                for s in settings
+            )
+            error.args = (f"{error.args[0]}; asked for {asked} (a lower --imu-rate may be what it can do)",)
+            raise
         applied = xbus.decode_output_configuration(reply.data) if reply.data else list(settings)
         differences = configuration_differences(settings, applied)
         if differences:
@@ -341,12 +349,24 @@ class XsensDevice:
         self._configured = (rate_hz, precision, frame)
         self.go_to_config()
         self.request_device_id()
-        product = self.request_product_code()
-        firmware = self.request_firmware_revision()
+        product, firmware = self._informative_identity()
         applied = self.set_output_configuration(output_settings(rate_hz, precision=precision, frame=frame))
         self._check_line_capacity(applied)
         self.go_to_measurement()
         return {"device_id": self.tracker_id, "product_code": product, "firmware": str(firmware), "outputs": applied}
+
+    def _informative_identity(self) -> tuple[str, FirmwareRevision | str]:
+        """The product code and firmware, which only inform: a device that answers either with an Error is still
+        configured (said in the status), as its outputs and data do not depend on them."""
+        answers: list[str | FirmwareRevision] = []
+        for name, ask in (("product code", self.request_product_code), ("firmware", self.request_firmware_revision)):
+            try:
+                answers.append(ask())
+            except XbusDeviceError as error:
+                answers.append("unknown")
+                self.stats.last_error = f"{error}: its {name} is not known, the device is configured without it"
+                log.warning("%s", self.stats.last_error)
+        return str(answers[0]), answers[1]
 
     def _check_line_capacity(self, settings: list[xbus.OutputSetting]) -> None:
         """Warn when the outputs need more than the serial line carries (the device then drops messages; the

@@ -89,6 +89,7 @@ class XsensSimulator:
         measure_not_before: Callable[[], float | None] | None = None,
         stable_link: str | os.PathLike[str] | None = None,
         unsupported_outputs: frozenset[int] = frozenset(),
+        error_replies: dict[int, int] | None = None,
     ) -> None:
         """``trial_clock``: the one world a session's simulators sample (None: each entry into Measurement continues
         the trial from where it stopped); ``latency_s``: device seconds between measuring a sample and its bytes
@@ -98,7 +99,8 @@ class XsensSimulator:
         is plugged in, as udev's ``/dev/serial/by-id`` link does: created at :meth:`start`, removed at
         :meth:`unplug` and :meth:`close`. A host reconnecting through it finds nothing while the tracker is away,
         even when the freed pseudo-terminal goes to another device meanwhile. ``unsupported_outputs``: data ids this
-        device does not apply, left out of what it acknowledges and sends (0x1060: a device without SampleTimeFine)."""
+        device does not apply, left out of what it acknowledges and sends (0x1060: a device without SampleTimeFine);
+        ``error_replies``: message id -> the Error code this device answers it with (a request it does not support)."""
         if not (math.isfinite(speed) and speed > 0):
             raise ConfigError("must be a positive number", field="speed", value=speed)
         if not (math.isfinite(latency_s) and latency_s >= 0):
@@ -122,6 +124,7 @@ class XsensSimulator:
         self.path = ""
         self.stable_link = os.fspath(stable_link) if stable_link is not None else None
         self.unsupported_outputs = frozenset(unsupported_outputs)
+        self.error_replies = dict(error_replies or {})
         self._linked = False  # stable_link names this simulator's pty (until unplug/close)
         self.measuring = False
         self.unplugged = False
@@ -359,7 +362,9 @@ class XsensSimulator:
         mid, data = message.mid, message.data
         if self._awaiting_ack:
             self._awaiting_ack = False  # WakeUpAck (or any command) inside the window: stay in Config
-        if mid == xbus.Mid.GO_TO_CONFIG:
+        if mid in self.error_replies:
+            self._error(self.error_replies[mid])
+        elif mid == xbus.Mid.GO_TO_CONFIG:
             self.measuring = False
             self._reply(xbus.Mid.GO_TO_CONFIG_ACK)
         elif mid == xbus.Mid.GO_TO_MEASUREMENT:
