@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from msk_core.errors import InputError
-from msk_core.io import read_sto
+from msk_core.estimate.trial import load_trial
+from msk_core.io import read_sto, write_sto
+from msk_core.model import load_pack
 from msk_core.signal.gait import gait_cycle_phase, heel_strikes
 from msk_core.signal.reps import REST_PHASE
 
@@ -84,3 +86,19 @@ def test_the_walk_trials_split_at_a_heel_strike_and_its_reps_are_gait_cycles(sha
         # a hip-flexion rep starts when the hip leaves its flexed heel-strike level: a tenth of a cycle after the
         # strike, never before it (docs/estimation.md, "The walk")
         assert 0.0 < np.median(lag) < 0.15 and np.percentile(np.abs(lag), 90) < 0.2
+
+
+def test_a_grf_file_on_another_clock_than_the_trial_names_both_spans(shared_dir, tmp_path):
+    walk = shared_dir / "data" / "lowerlimb-walk"
+    grf = read_sto(walk / "walk45_XLD.mot")
+    shifted = tmp_path / "grf_epoch.mot"
+    write_sto(shifted, grf.time + 1.7e9, list(grf.columns), grf.data, name="grf on epoch seconds")
+    text = (WALK_TRIALS / "walk_train.toml").read_text().replace("../../../shared", str(shared_dir))
+    text = text.replace('phase_signal = "hip_flexion_r"', f'grf = "{shifted}"')
+    (tmp_path / "walk.toml").write_text(text)
+    trial = load_trial(tmp_path / "walk.toml", load_pack("gait2392"))
+    said = trial.extra["no_reps"]
+    assert (
+        said.startswith("0 heel strike(s) of ground_force_vy")
+        and "(0 .. 29.26 s; grf_epoch.mot spans 1700000000 .. 1700000059.03 s)" in said
+    ), said

@@ -693,7 +693,11 @@ def _gait_cycles(trial: _TrialFile, time: np.ndarray) -> _Phase:
     strikes = strikes[(strikes >= time[0] - half) & (strikes <= time[-1] + half)]
     signal = f"grf:{column}"
     if strikes.size < 2:
-        no = f"{strikes.size} heel strike(s) of {column} > {threshold:g} N within the trial: no complete gait cycle"
+        no = (
+            f"{strikes.size} heel strike(s) of {column} > {threshold:g} N within the trial "
+            f"({seconds(time[0])} .. {seconds(time[-1])} s; {path.name} spans {seconds(grf.time[0])} .. "
+            f"{seconds(grf.time[-1])} s): no complete gait cycle"
+        )
         return _Phase(np.full(time.size, REST_PHASE), np.full(time.size, -1), signal, None, {"no_reps": no})
     phase, index = gait_cycle_phase(time, strikes)
     return _Phase(phase, index, signal, None, {"heel_strikes": strikes})
