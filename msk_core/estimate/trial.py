@@ -307,7 +307,8 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) 
     coords = list(pack.coordinates)
     kin = read_sto(trial.file_of("kinematics"))
     kin.check_increasing("kinematics")
-    _check_motion_rate(kin)
+    if not options.isometric:  # a held pose may be written as two rows seconds apart
+        _check_motion_rate(kin)
     for c in coords:
         if not kin.has_column(c):
             raise InputError(
