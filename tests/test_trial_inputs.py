@@ -431,9 +431,9 @@ def test_torques_in_other_units_than_newton_metres_are_refused(tmp_path, pack, f
     scaled = _write_like(DEMO / "id.sto", tmp_path / "id_scaled.sto", tq.time, tq.data * factor)
     with pytest.raises(InputError, match=f"times the pack's inverse dynamics of the same motion .* in {said}"):
         load_trial(_trial(tmp_path, torques=scaled), pack)
-    load_trial(
-        _trial(tmp_path, torques=_write_like(DEMO / "id.sto", tmp_path / "id_same.sto", tq.time, tq.data * 1.5)), pack
-    )
+    # physics, not units: heavier than declared with the load left out (about 11x the pack's), not refused
+    heavier = _write_like(DEMO / "id.sto", tmp_path / "id_heavier.sto", tq.time, tq.data * 1.4)
+    load_trial(_trial(tmp_path, (("load_kg = 40.0", "load_kg = 0.0"),), torques=heavier), pack)
 
 
 def test_emg_labels_in_another_case_are_suggested_and_a_missing_in_degrees_line_is_named(tmp_path, pack):
@@ -456,3 +456,20 @@ def test_a_c3d_as_the_trials_emg_says_how_to_make_the_storage_it_needs(tmp_path,
     with pytest.raises(ConfigError, match=r"msk emg envelope .*session\.c3d -o emg\.sto") as error:
         load_trial(_trial(tmp_path, emg=recording), pack)
     assert "emg" in str(error.value)
+
+
+def test_an_isometric_trials_held_pose_may_be_sampled_slowly(tmp_path, pack):
+    # the 2 Hz floor on the kinematics' rate is for movements: a held pose written once a second is read
+    mvc = DEMO.parent / "mvc" / "BRD"
+    ik = read_sto(mvc / "ik.sto")
+    every = np.searchsorted(ik.time, [0.0, 1.0, 2.0, 3.0])
+    sparse = _write_like(mvc / "ik.sto", tmp_path / "ik_1hz.sto", ik.time[every], ik.data[every])
+    text = (mvc / "trial.toml").read_text().replace('kinematics = "ik.sto"', f'kinematics = "{sparse}"')
+    text = text.replace('torques = "id.sto"', f'torques = "{mvc / "id.sto"}"').replace(
+        'emg = "emg.sto"', f'emg = "{mvc / "emg.sto"}"'
+    )
+    (tmp_path / "mvc.toml").write_text(text)
+    assert load_trial(tmp_path / "mvc.toml", pack).n_frames == 4
+    (tmp_path / "moving.toml").write_text(text.replace("isometric = true\n", ""))
+    with pytest.raises(InputError, match="slower than 2 Hz"):
+        load_trial(tmp_path / "moving.toml", pack)

@@ -566,3 +566,26 @@ def test_a_restarted_base_whose_first_data_come_as_one_burst_is_dated_by_the_who
     # from the last sample before the kill (received within a frame and a poll of it) to the restart's first
     expected = (sim.stats.started_s - killed) * 2000.0
     assert expected - 40 <= gap.n_missing <= expected + 100, (gap.n_missing, expected)
+
+
+def test_a_link_lost_before_the_first_emg_starts_the_index_at_the_first_sample_received():
+    # a real base sends its first data ~2 s after START: a link lost in between has received nothing to count from
+    source = synthetic_source(seconds=20.0, seed=6)
+    delayed = SimulatorConfig(**EPHEMERAL, speed=1.0, seed=6, quirks=TrignoQuirks(start_delay_s=1.0))
+    sim = TrignoSimulator(source, delayed).start()
+    ports = dict(sim.ports)
+    client = client_for(sim, backoff_initial_s=0.02, backoff_max_s=0.1)
+    try:
+        client.connect()
+        client.start()
+        assert not emg_rows(collect(client, seconds=0.2)).size
+        sim.kill()
+        collect(client, seconds=0.3)
+        ported = {f"{k}_port": ports[k] for k in ("command", "emg", "legacy_emg", "aux")}
+        sim = TrignoSimulator(source, SimulatorConfig(**ported, speed=1.0, seed=7)).start()
+        after = collect(client, seconds=5, until=lambda ev: len(emg_rows(ev)) >= 500)
+    finally:
+        client.close()
+        sim.close()
+    first = next(e for e in after if isinstance(e, EmgBlock))
+    assert first.first_sample_index == 0 and client.stats.samples_lost == 0, (first.first_sample_index, client.stats)

@@ -460,3 +460,43 @@ def test_an_error_to_the_informative_queries_leaves_the_device_configured_and_sa
                 device.configure(100)
         finally:
             device.close()
+
+
+class _Line:
+    """Bytes a device sent, read once (what a serial port returns); writes go nowhere."""
+
+    name = "line"
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def read(self, max_bytes: int = 4096) -> bytes:
+        data, self.data = self.data, b""
+        return data
+
+    def write(self, data: bytes) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def test_messages_without_sample_time_fine_between_ones_with_it_stay_on_its_clock():
+    # a device that sends SampleTimeFine at a lower rate than its other outputs: every message on one clock
+    quaternion = xbus.make_data_id(0x2010, xbus.Precision.FLOAT32, xbus.CoordinateFrame.ENU)
+    messages = [(0, 1000), (1, None), (2, 1200), (3, None)]  # (PacketCounter, SampleTimeFine in 10 kHz ticks)
+    data = b"".join(
+        xbus.encode_message(
+            xbus.Mid.MT_DATA2,
+            xbus.encode_mtdata2(
+                [(0x1020, (counter,))]
+                + ([(0x1060, (ticks,))] if ticks is not None else [])
+                + [(quaternion, (1, 0, 0, 0))]
+            ),
+        )
+        for counter, ticks in messages
+    )
+    device = XsensDevice(_Line(data))
+    device.output_configuration = output_settings(50)  # messages at 50 Hz: 20 ms apart
+    times = [reading.device_time_ns for reading in device.read()]
+    assert times == [100_000_000, 120_000_000, 120_000_000, 140_000_000]

@@ -141,10 +141,13 @@ AUX_HOLD_S = 10.0
 #: EMG that resumes after this much silence on a live link may have lost what was measured meanwhile: the stream has
 #: no counter, so the gap is measured from host time (frames come every 13.5 ms; a base that buffered the pause
 #: sends it as a burst, one that dropped it resumes at the present)
-PAUSE_CHECK_S = 0.25
+PAUSE_CHECK_S = 0.1
 #: after a reconnection or such a pause, the resumed EMG is held this long to measure its backlog: the first row was
-#: measured at min over the reads of (arrival - rows received so far / rate), whatever size the first read had
+#: measured at min over the burst's reads of (arrival - rows received so far / rate), whatever size the first read had
 RESUME_WINDOW_S = 0.25
+#: reads of one burst follow each other within this (a backlog read from the kernel's buffer, or still arriving);
+#: the stream's own frames are 13.5 ms apart (a faster-than-life simulator's too: 6.75 ms at speed 2)
+BURST_READ_GAP_S = 0.005
 #: a pause's estimate below this is arrival jitter, not samples lost (a reconnection counts any)
 PAUSE_TOLERANCE_S = 0.05
 #: an AUX port that has sent nothing over this much EMG is said (once)
@@ -197,6 +200,17 @@ class _Link:
                     sock.close()
                 except OSError:
                     pass
+
+
+def _first_measured(reads: list[tuple[int, float]], rate_hz: float) -> float:
+    """When the first row of resumed data was measured, from its reads' (rows, arrival): the earliest of (arrival -
+    rows so far / rate) over the first burst's reads (:data:`BURST_READ_GAP_S` apart at most). Later reads come at
+    the stream's pace and say nothing more, except from a simulator faster than life, whose pace would drift it."""
+    burst = 1
+    while burst < len(reads) and reads[burst][1] - reads[burst - 1][1] <= BURST_READ_GAP_S:
+        burst += 1
+    counts = np.cumsum([rows for rows, _ in reads[:burst]])
+    return min(arrived - n / rate_hz for (_, arrived), n in zip(reads[:burst], counts, strict=True))
 
 
 class TrignoClient:
@@ -278,6 +292,9 @@ class TrignoClient:
         self.state = ClientState.STREAMING
         self._last_activity = time.monotonic()
         self._last_data_time = 0.0  # no EMG yet: its first row is sample 0, however long after START it comes
+        self._gap_pending = False  # a gap of an earlier acquisition (stopped while reconnecting) is not this one's
+        self.stats.aux_samples_dropped += sum(len(rows) for rows, _ in self._aux_after_gap)
+        self._aux_after_gap = []
         self._emit_status(ClientState.STREAMING, "started")
 
     def stop(self, *, drain_s: float = 1.0) -> list[Event]:
@@ -760,6 +777,9 @@ class TrignoClient:
             return
         self._last_data_time = now
         self._emit_emg(rows, time.time_ns())
+        for aux_rows, host_time_ns in self._aux_after_gap:  # held while the EMG was quiet: there was no gap
+            self._emit_aux(aux_rows, host_time_ns)
+        self._aux_after_gap = []
 
     def _with_queued_rows(self, sock: socket.socket, rows: np.ndarray, max_reads: int = 64) -> np.ndarray:
         """``rows`` and the whole rows the socket holds already (not waiting for more)."""
@@ -767,7 +787,7 @@ class TrignoClient:
         for _ in range(max_reads):
             try:
                 chunk = self._recv(sock)
-            except ConnectionResetError:  # closed: the next read says so, after these rows are delivered
+            except OSError:  # closed or broken: the next read says so, after these rows are delivered
                 break
             if not chunk:
                 break
@@ -799,7 +819,8 @@ class TrignoClient:
         rows = self._aux_decoder.feed(chunk) if chunk else np.empty((0, 0))
         self._count_non_finite(rows)
         self._aux_rows_seen = self._aux_rows_seen or bool(len(rows))
-        if len(rows) and self._gap_pending:  # placed on the EMG clock once the EMG says how long the gap was
+        # placed on the EMG clock once the EMG says how long the gap was (or, silent for now, whether there is one)
+        if len(rows) and (self._gap_pending or (self.state is ClientState.STREAMING and self._emg_quiet())):
             self._aux_after_gap.append((rows, time.time_ns()))
             held = sum(len(r) for r, _ in self._aux_after_gap)
             if self.aux_rate_hz > 0 and held > AUX_HOLD_S * self.aux_rate_hz:  # the EMG is not coming back soon
@@ -848,14 +869,15 @@ class TrignoClient:
         then / rate) over the held reads (a burst of backlog arrives at once, later rows at the pace they are
         measured), and the last row before the gap when it arrived."""
         held, self._emg_after_gap = self._emg_after_gap, []
-        counts = np.cumsum([len(rows) for rows, _, _ in held])
-        first_measured = min(arrived - n / self.rate_hz for (_, arrived, _), n in zip(held, counts, strict=True))
-        missing = max(0, int(round((first_measured - self._last_data_time) * self.rate_hz)))
+        first_measured = _first_measured([(len(rows), arrived) for rows, arrived, _ in held], self.rate_hz)
+        # before any EMG since START the first row is sample 0: nothing was received to count a gap from
+        since = self._last_data_time or first_measured
+        missing = max(0, int(round((first_measured - since) * self.rate_hz)))
         pause = self._gap_reason != "connection lost"
         if pause and missing < PAUSE_TOLERANCE_S * self.rate_hz:
             missing = 0  # a buffered pause: arrival jitter, not samples lost
         self._gap_pending = False
-        if missing:
+        if missing or not pause:
             reason = (
                 f"{self._gap_reason}: the base resumed without what it measured meanwhile"
                 if pause
@@ -877,6 +899,10 @@ class TrignoClient:
         for rows, host_time_ns in self._aux_after_gap:
             self._emit_aux(rows, host_time_ns)
         self._aux_after_gap = []
+
+    def _emg_quiet(self) -> bool:
+        """The EMG has been silent long enough on a live stream that its return will be checked for a gap."""
+        return bool(self._last_data_time) and time.monotonic() - self._last_data_time > PAUSE_CHECK_S
 
     def _settle_gap(self) -> None:
         """Place the EMG held for a gap's measurement now (the data end: a stop, STOPPED, a lost link), with what has

@@ -137,6 +137,8 @@ class XsensDevice:
         self._time_offset: dict[int, int] = {}  # unwrapping offset per bus id
         self._long_clock: set[int] = set()  # bus ids whose SampleTimeFine went past a day: they wrap at 2^32
         self._counter_ticks: dict[int, int] = {}  # messages since the counter's first (unwrapped), per bus id
+        #: per bus id, (device time ns, counter ticks) of the latest message with SampleTimeFine
+        self._clock_anchor: dict[int, tuple[int, int]] = {}
         self._untimed: set[int] = set()  # bus ids whose messages came without SampleTimeFine (said once)
         # configure()'s arguments (rate, precision, frame), replayed by reconnect()
         self._configured: tuple[int, xbus.Precision, xbus.CoordinateFrame] | None = None
@@ -255,6 +257,7 @@ class XsensDevice:
                         switch(rate)
                     self.send(xbus.Mid.WAKE_UP_ACK)
                     self._last_counter.clear()
+                    self._clock_anchor.clear()  # its counter ticks start again
                     return
         raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
 
@@ -341,6 +344,7 @@ class XsensDevice:
                 raise
             log.warning("%s; its data flow: measuring", error)
         self._last_counter.clear()
+        self._clock_anchor.clear()  # its counter ticks start again
 
     def configure(
         self, rate_hz: int = 100, *, precision=xbus.Precision.FLOAT32, frame=xbus.CoordinateFrame.ENU
@@ -406,6 +410,7 @@ class XsensDevice:
                 self._last_counter.clear()
                 self._last_time.clear()
                 self._time_offset.clear()
+                self._clock_anchor.clear()
                 continue
             if message.mid != xbus.Mid.MT_DATA2:
                 continue
@@ -437,6 +442,8 @@ class XsensDevice:
         offset = 0 if sample_time is None else self._unwrapped_offset(bid, sample_time)
         tracker = self.tracker_id if bid == xbus.BID_MASTER else f"{self.tracker_id}-{bid:02d}"
         untimed = None if sample_time is not None else self._time_without_clock(bid, tracker, counter is not None, now)
+        if sample_time is not None and counter is not None:  # where a message without it continues from
+            self._clock_anchor[bid] = ((sample_time + offset) * 100_000, self._counter_ticks[bid])
         return ImuReading(
             tracker_id=tracker,
             bus_id=bid,
@@ -458,8 +465,10 @@ class XsensDevice:
         its unwrapped PacketCounter ("+1 per message") times the message period of the applied outputs, else its
         arrival. Said once per bus id: downstream the samples are placed by it."""
         rate = message_rate_hz(self.output_configuration)
-        if counted and rate:
-            how, value = f"its PacketCounter at {rate:g} Hz", int(round(self._counter_ticks[bid] * 1e9 / rate))
+        if counted and rate:  # from the last message that had SampleTimeFine, when one had: the one clock
+            anchor_ns, anchor_ticks = self._clock_anchor.get(bid, (0, 0))
+            how = f"its PacketCounter at {rate:g} Hz"
+            value = anchor_ns + int(round((self._counter_ticks[bid] - anchor_ticks) * 1e9 / rate))
         else:
             how, value = "their arrival (nor a PacketCounter and an output rate)", now
         if bid not in self._untimed:
@@ -503,6 +512,7 @@ class XsensDevice:
             self.stats.last_error = f"device restarted ({why}; its WakeUp was not received)"
         self._last_counter.pop(bid, None)
         self._last_time.pop(bid, None)
+        self._clock_anchor.pop(bid, None)
         self._time_offset.pop(bid, None)
 
     def close(self) -> None:
@@ -531,6 +541,7 @@ class XsensDevice:
         self._last_counter.clear()
         self._last_time.clear()
         self._time_offset.clear()
+        self._clock_anchor.clear()
         size = self.device_id_size
         try:
             self.request(xbus.Mid.GO_TO_CONFIG, timeout=probe_timeout_s)

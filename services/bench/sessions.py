@@ -297,13 +297,15 @@ def _lifting_slices(
     lifting_s, slices, start = 0.0, 0, time.monotonic()
     with observed.lock:
         seen_before = dict(observed.joints_seen)
+    seen_at_start = dict(seen_before)
     cpu_before, wall_before = _cpu_by_role(per_session, shared), time.monotonic()
     while lifting_s < seconds - 1e-9:
         if time.monotonic() - start > timeout_s:
             raise RuntimeError(
                 f"after {timeout_s:.0f} s of measuring, {lifting_s:.1f} s of the {seconds:g} s asked had every session "
                 f"lifting (at least {needed:.0f} joint frames per {LIFTING_SLICE_S:g} s slice) in {slices} slices; "
-                f"joint frames received per session: {seen_before}"
+                "joint frames received per session in that time: "
+                f"{ {name: seen_before.get(name, 0) - seen_at_start.get(name, 0) for name in per_session} }"
             )
         time.sleep(LIFTING_SLICE_S)
         cpu_now, wall_now = _cpu_by_role(per_session, shared), time.monotonic()
