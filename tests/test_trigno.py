@@ -373,7 +373,8 @@ def test_master_rule():
 
 def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_samples():
     source = synthetic_source(seconds=20.0, seed=9)
-    config = SimulatorConfig(**EPHEMERAL, speed=2.0, fragment_max=300, seed=1)
+    # at real time: the gap is estimated from host time, for a base that samples in real time
+    config = SimulatorConfig(**EPHEMERAL, speed=1.0, fragment_max=300, seed=1)
     sim = TrignoSimulator(source, config).start()
     ports = dict(sim.ports)
     client = client_for(sim, aux=True, backoff_initial_s=0.02, backoff_max_s=0.2)
@@ -388,7 +389,7 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
             emg_port=ports["emg"],
             legacy_emg_port=ports["legacy_emg"],
             aux_port=ports["aux"],
-            speed=2.0,
+            speed=1.0,
             fragment_max=300,
             seed=2,
         )
@@ -409,7 +410,7 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
     assert len(emg_rows(events[lost_at:gap_at])) == 0
     gap = events[gap_at]
     assert gap.first_missing_index == len(received_before)
-    assert gap.n_missing > 0.3 * 2000 * 0.5  # down >= 0.6 s of wall time at 2000 Hz (speed 2: half as many frames)
+    assert gap.n_missing > 0.6 * 2000  # down >= 0.6 s of wall time at 2000 Hz
     resumed = emg_rows(events[gap_at:])
     assert len(resumed) >= 1000
     assert_bit_exact(resumed, source.samples[: len(resumed)])  # the restarted server streams from its start
@@ -429,7 +430,7 @@ def test_killed_simulator_gives_gap_and_resumed_stream_without_losing_received_s
 
 def test_stalled_stream_is_treated_as_a_lost_link_and_resumes():
     source = synthetic_source(seconds=10.0, seed=8)
-    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=2.0)) as sim:
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0)) as sim:  # real time: see the killed test
         client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
         client.connect()
         client.start()
