@@ -14,8 +14,6 @@ from msk_core.errors import ProtocolError
 
 #: What the project asks a tracker for (PacketCounter and SampleTimeFine with every message).
 DEFAULT_QUANTITIES = (0x2010, 0x4020, 0x8020, 0xC020)
-#: Output frequencies meaning "with every message" (equivalent in a SetOutputConfiguration echo).
-EVERY_MESSAGE = (0, 0xFFFF)
 #: SampleTimeFine (10 kHz ticks) wraps after one day on 10/100-series devices; others wrap at 2^32.
 SAMPLE_TIME_FINE_DAY = 864_000_000
 #: A sample may arrive this much older than the newest (an MTi-G's GNSS messages: 42-62 ms); a step back beyond it is
@@ -308,7 +306,7 @@ class XsensDevice:
             reply = self.ask(xbus.Mid.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(settings))
         except XbusDeviceError as error:  # which outputs, so that the user knows what to change
             asked = ", ".join(
-                f"0x{s.data_id:04X} at {'every message' if s.frequency in (0, 0xFFFF) else f'{s.frequency} Hz'}"
+                f"0x{s.data_id:04X} at {'every message' if s.frequency in xbus.EVERY_MESSAGE else f'{s.frequency} Hz'}"
                 for s in settings
             )
             error.args = (f"{error.args[0]}; asked for {asked} (a lower --imu-rate may be what it can do)",)
@@ -464,7 +462,7 @@ class XsensDevice:
         """The time of a message without SampleTimeFine (a device that did not apply it, or keeps its own outputs):
         its unwrapped PacketCounter ("+1 per message") times the message period of the applied outputs, else its
         arrival. Said once per bus id: downstream the samples are placed by it."""
-        rate = message_rate_hz(self.output_configuration)
+        rate = xbus.message_rate_hz(self.output_configuration)
         if counted and rate:  # from the last message that had SampleTimeFine, when one had: the one clock
             anchor_ns, anchor_ticks = self._clock_anchor.get(bid, (0, 0))
             how = f"its PacketCounter at {rate:g} Hz"
@@ -577,18 +575,11 @@ def orientation_quaternion(data: xbus.MtData2) -> tuple[float, float, float, flo
     return None
 
 
-def message_rate_hz(settings: list[xbus.OutputSetting]) -> float | None:
-    """The MTData2 message rate of an output configuration: its highest output frequency (0 and 0xFFFF, "with every
-    message", say none); None when no output states one."""
-    rates = [s.frequency for s in settings if s.frequency not in (0, 0xFFFF)]
-    return float(max(rates)) if rates else None
-
-
 def configuration_differences(requested: list[xbus.OutputSetting], applied: list[xbus.OutputSetting]) -> list[str]:
     """What the device applied differently from the request (0 and 0xFFFF, "every message", are the same)."""
 
     def normal(frequency: int) -> int:
-        return 0xFFFF if frequency in EVERY_MESSAGE else frequency
+        return 0xFFFF if frequency in xbus.EVERY_MESSAGE else frequency
 
     wanted = {s.data_id: normal(s.frequency) for s in requested}
     got = {s.data_id: normal(s.frequency) for s in applied}

@@ -345,10 +345,8 @@ class XsensSimulator:
         self._next_due = self._measured_at + latency
 
     def _rate(self) -> float:
-        rates = [s.frequency for s in self._outputs if s.frequency not in (0, 0xFFFF)]
-        if self._verbatim or not rates:
-            return self.source.rate_hz
-        return float(max(rates))
+        rate = xbus.message_rate_hz(self._outputs)
+        return self.source.rate_hz if self._verbatim or rate is None else rate
 
     # ------------------------------------------------------------------------------------------ commands
     def _reply(self, mid: int, data: bytes = b"") -> None:
@@ -412,7 +410,7 @@ class XsensSimulator:
                 or xbus.FLOAT_QUANTITIES.get(setting.data_id & 0xFFF0)
                 or setting.data_id in ACCEPTED_WITHOUT_DATA
             )
-            if not known or (setting.frequency not in (0, 0xFFFF) and not 1 <= setting.frequency <= 2000):
+            if not known or (setting.frequency not in xbus.EVERY_MESSAGE and not 1 <= setting.frequency <= 2000):
                 self._error(0x21)
                 return
         settings = [s for s in settings if s.data_id not in self.unsupported_outputs]  # the ack says what was applied

@@ -108,7 +108,7 @@ def load_capture(path: Path) -> ImuSource:
         recorded = [xbus.OutputSetting(data_id, 0xFFFF) for data_id, _ in xbus.item_layout(messages[0].data)]
     rate = _rate_from_counters(messages)
     if rate is None and config_path.is_file():
-        rate = _rate_from_configuration(recorded)
+        rate = xbus.message_rate_hz(recorded)
     if rate is None:
         rate = DEFAULT_RATE_HZ
         log.warning(
@@ -132,13 +132,6 @@ def _quaternions_from_euler(euler: np.ndarray, frame: xbus.CoordinateFrame) -> n
     orientation, so a device whose driver asks for quaternions gives these (a capture of Euler angles only is
     replayed as such a device)."""
     return np.array([frames.to_enu(frames.quat_from_euler_deg(*row), frame) for row in euler.tolist()])
-
-
-def _rate_from_configuration(settings: list[xbus.OutputSetting]) -> float | None:
-    """The output rate the device was configured for: the highest real frequency in its SetOutputConfiguration
-    (0 and 0xFFFF mean "with every message" and carry no rate)."""
-    rates = [s.frequency for s in settings if 0 < s.frequency < 0xFFFF]
-    return float(max(rates)) if rates else None
 
 
 def _rate_from_counters(messages: list[xbus.XbusMessage]) -> float | None:

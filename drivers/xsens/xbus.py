@@ -708,13 +708,23 @@ def item_size(data_id: int) -> int | None:
     return None if spec is None else spec[1] * PRECISION_SIZE[Precision(data_id & 0x3)]
 
 
+#: Output frequencies meaning "with every message" (equivalent in a SetOutputConfiguration echo).
+EVERY_MESSAGE = (0, 0xFFFF)
+
+
+def message_rate_hz(settings: list[OutputSetting]) -> float | None:
+    """The MTData2 message rate of an output configuration: its highest output frequency (:data:`EVERY_MESSAGE`
+    carries no rate); None when no output states one."""
+    rates = [s.frequency for s in settings if s.frequency not in EVERY_MESSAGE]
+    return float(max(rates)) if rates else None
+
+
 def output_bits_per_second(settings: list[OutputSetting]) -> float:
     """Serial line load of an output configuration (8N1: 10 bits per byte): MTData2 messages at the highest output
     rate, each item at its own rate (0/0xFFFF: in every message). Unknown DataIDs count their 3-byte header only."""
-    rates = [s.frequency for s in settings if s.frequency not in (0, 0xFFFF)]
-    message_rate = float(max(rates)) if rates else 100.0
+    message_rate = message_rate_hz(settings) or 100.0
     payload = sum(
-        (3 + (item_size(s.data_id) or 0)) * (message_rate if s.frequency in (0, 0xFFFF) else s.frequency)
+        (3 + (item_size(s.data_id) or 0)) * (message_rate if s.frequency in EVERY_MESSAGE else s.frequency)
         for s in settings
     )
     overhead = message_rate * (6 + 1)  # FA BID MID LEN [LENext] ... CS (extended header counted: worst case)
