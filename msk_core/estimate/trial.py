@@ -467,16 +467,7 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
     coords = list(pack.coordinates)
     if "torques" not in trial.spec:
         _check_root_still(trial, kin)
-        hand = options.load_kg * GRAVITY
-        # the one rule for poses outside the fitted ranges, as the estimator applies it: clamped within the tolerance
-        # (a tutorial motion starting 0.1 deg below the range was refused here), no torque further out
-        q, usable = clamp_to_ranges(kin.q, fitted_ranges(pack))
-        torques = np.array(
-            [
-                pack.inverse_dynamics(q[i], kin.qd[i], kin.qdd[i], hand) if usable[i] else np.full(len(coords), np.nan)
-                for i in range(len(kin.time))
-            ]
-        )
+        torques = _modelled_torques(pack, kin, options.load_kg, np.arange(len(kin.time)))
         return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", _DroppedFrames()
     tq = read_sto(trial.file_of("torques"))
     tq.check_increasing("torque")
@@ -515,14 +506,25 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
 TORQUE_SCALE_BOUNDS = (1 / 30, 300.0)
 
 
+def _modelled_torques(pack: PackLike, kin: _Kinematics, load_kg: float, frames: np.ndarray) -> np.ndarray:
+    """The pack's inverse dynamics at ``frames`` of the kinematics with ``load_kg`` in the hands; NaN where a pose lies
+    outside the fitted ranges by the one rule the estimator applies (clamped within the tolerance: a tutorial motion
+    starting 0.1 deg below the range was refused here; no torque further out)."""
+    q, usable = clamp_to_ranges(kin.q[frames], fitted_ranges(pack))
+    qd, qdd, hand = kin.qd[frames], kin.qdd[frames], load_kg * GRAVITY
+    n_c = len(pack.coordinates)
+    return np.array(
+        [pack.inverse_dynamics(q[i], qd[i], qdd[i], hand) if usable[i] else np.full(n_c, np.nan) for i in range(len(q))]
+    ).reshape(len(q), n_c)
+
+
 def _check_torque_units(tq: Storage, pack: PackLike, kin: _Kinematics, torques: np.ndarray, load_kg: float) -> None:
     """Refuse torques that are not in N·m: their RMS over 60 frames against the pack's inverse dynamics there."""
-    q, usable = clamp_to_ranges(kin.q, fitted_ranges(pack))
-    frames = np.flatnonzero(usable)
+    frames = np.flatnonzero(clamp_to_ranges(kin.q, fitted_ranges(pack))[1])
     if frames.size < 10:
         return
     frames = frames[np.linspace(0, frames.size - 1, 60).astype(int)]
-    modelled = np.array([pack.inverse_dynamics(q[i], kin.qd[i], kin.qdd[i], load_kg * GRAVITY) for i in frames])
+    modelled = _modelled_torques(pack, kin, load_kg, frames)
     expected = float(np.sqrt(np.mean(modelled**2)))
     if not expected > 0:
         return
