@@ -694,7 +694,7 @@ class TrignoClient:
             self._try_reconnect(timeout)
         elif self._link is not None:
             self._wait_and_read(timeout)
-            if self._emg_after_gap and time.monotonic() - self._emg_after_gap[0][1] >= RESUME_WINDOW_S:
+            if self._gap_measured(time.monotonic()):
                 self._report_gap()
             stall = self.config.stall_timeout_s
             if (
@@ -757,25 +757,23 @@ class TrignoClient:
         rows = self._emg_decoder.feed(chunk)
         if not len(rows):
             return
-        silence = now - self._last_data_time
-        if not self._gap_pending and self._last_data_time and silence > PAUSE_CHECK_S and self.rate_hz > 0:
+        if not self._gap_pending and self.rate_hz > 0 and self._emg_quiet(now):
             rows = self._with_queued_rows(link.emg, rows)  # a reader that was late finds the pause queued here
             if now - len(rows) / self.rate_hz - self._last_data_time >= PAUSE_TOLERANCE_S:
-                self._gap_pending, self._gap_reason = True, f"no EMG data for {silence:.2f} s"
+                self._gap_pending = True
+                self._gap_reason = f"no EMG data for {now - self._last_data_time:.2f} s"
         self._last_activity = now
         self._check_aux_silence(link, len(rows))
         self._count_non_finite(rows)
         self.stats.samples_received += len(rows)
         if self._gap_pending:  # held until the backlog of the resumed stream says how long the gap was
             self._emg_after_gap.append((rows, now, time.time_ns()))
-            if now - self._emg_after_gap[0][1] >= RESUME_WINDOW_S:
+            if self._gap_measured(now):
                 self._report_gap()
             return
         self._last_data_time = now
         self._emit_emg(rows, time.time_ns())
-        for aux_rows, host_time_ns in self._aux_after_gap:  # held while the EMG was quiet: there was no gap
-            self._emit_aux(aux_rows, host_time_ns)
-        self._aux_after_gap = []
+        self._release_held_aux()  # held while the EMG was quiet: there was no gap
 
     def _with_queued_rows(self, sock: socket.socket, rows: np.ndarray, max_reads: int = 64) -> np.ndarray:
         """``rows`` and the whole rows the socket holds already (not waiting for more)."""
@@ -816,7 +814,8 @@ class TrignoClient:
         self._count_non_finite(rows)
         self._aux_rows_seen = self._aux_rows_seen or bool(len(rows))
         # placed on the EMG clock once the EMG says how long the gap was (or, silent for now, whether there is one)
-        if len(rows) and (self._gap_pending or (self.state is ClientState.STREAMING and self._emg_quiet())):
+        quiet = self.state is ClientState.STREAMING and self._emg_quiet(time.monotonic())
+        if len(rows) and (self._gap_pending or quiet):
             self._aux_after_gap.append((rows, time.time_ns()))
             held = sum(len(r) for r, _ in self._aux_after_gap)
             if self.aux_rate_hz > 0 and held > AUX_HOLD_S * self.aux_rate_hz:  # the EMG is not coming back soon
@@ -892,13 +891,21 @@ class TrignoClient:
         for rows, _, host_time_ns in held:
             self._emit_emg(rows, host_time_ns)
         self._last_data_time = held[-1][1]
+        self._release_held_aux()
+
+    def _release_held_aux(self) -> None:
+        """Emit the AUX rows held until the EMG said whether (and how long) there was a gap, on the index it left."""
         for rows, host_time_ns in self._aux_after_gap:
             self._emit_aux(rows, host_time_ns)
         self._aux_after_gap = []
 
-    def _emg_quiet(self) -> bool:
+    def _gap_measured(self, now: float) -> bool:
+        """The EMG held for a gap has been received for :data:`RESUME_WINDOW_S`: its backlog is known."""
+        return bool(self._emg_after_gap) and now - self._emg_after_gap[0][1] >= RESUME_WINDOW_S
+
+    def _emg_quiet(self, now: float) -> bool:
         """The EMG has been silent long enough on a live stream that its return will be checked for a gap."""
-        return bool(self._last_data_time) and time.monotonic() - self._last_data_time > PAUSE_CHECK_S
+        return bool(self._last_data_time) and now - self._last_data_time > PAUSE_CHECK_S
 
     def _settle_gap(self) -> None:
         """Place the EMG held for a gap's measurement now (the data end: a stop, STOPPED, a lost link), with what has
