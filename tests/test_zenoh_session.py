@@ -69,3 +69,39 @@ def test_a_recovery_nobody_answers_says_so(zenoh_endpoint):
         samples, errors = fetch_missed(session, "msk/s/emg/trigno", ("0123abcd", 7), 3, 9, timeout_s=0.6)
     assert samples == [] and errors == ["no answer from publisher 0123abcd/7's cache of msk/s/emg/trigno within 0.6 s"]
     assert time.monotonic() - started < 3
+
+
+def test_a_client_waits_a_moment_for_its_router_and_says_how_long_it_tried(zenoh_endpoint):
+    """A Zenoh client tries its endpoints once: a node started while its router was still coming up (or whose TLS
+    handshake a busy machine delayed) failed at once; seen on CI as a secured session's monitor node that could not
+    connect. A client now tries a few times, bounded, and a refusal says how often and for how long."""
+    import threading
+
+    import zenoh
+
+    from services.transport.zenoh_session import (
+        CLIENT_CONNECT_ATTEMPTS,
+        CLIENT_CONNECT_RETRY_S,
+        SessionUnavailable,
+    )
+
+    routers: list = []
+    late_router = threading.Timer(
+        0.6, lambda: routers.append(open_session(ZenohOptions(mode="router", listen=(zenoh_endpoint,))))
+    )
+    started = time.monotonic()
+    late_router.start()
+    try:
+        with open_session(ZenohOptions(mode="client", connect=(zenoh_endpoint,))) as client:
+            assert isinstance(client, zenoh.Session)
+        assert time.monotonic() - started >= 0.6
+    finally:
+        late_router.join()
+        for router in routers:
+            router.close()
+    # nobody ever answers: refused after the bounded attempts, with their count
+    started = time.monotonic()
+    with pytest.raises(SessionUnavailable, match=rf"Unable to connect.*\({CLIENT_CONNECT_ATTEMPTS} attempts over"):
+        open_session(ZenohOptions(mode="client", connect=(zenoh_endpoint,)))
+    elapsed = time.monotonic() - started
+    assert (CLIENT_CONNECT_ATTEMPTS - 1) * CLIENT_CONNECT_RETRY_S <= elapsed < 10.0

@@ -198,17 +198,35 @@ class SessionUnavailable(ConfigError):
         )
 
 
+#: Zenoh's words when a client reached none of its endpoints.
+UNABLE_TO_CONNECT = "Unable to connect"
+#: A Zenoh client tries its endpoints once; a router still starting (or restarting), or a TLS handshake on a busy
+#: machine, made a node fail at once (seen on CI: a secured session's monitor). Bounded: a client nobody answers is
+#: said after these attempts, with their count.
+CLIENT_CONNECT_ATTEMPTS = 4
+CLIENT_CONNECT_RETRY_S = 0.5
+
+
 def open_session(options: ZenohOptions | None = None) -> zenoh.Session:
     """Open a Zenoh session; use it as ``with open_session(options) as session:``. Raises :class:`SessionUnavailable`
-    (a :class:`ConfigError`, said in one line by the CLI) where Zenoh refuses, e.g. a listen endpoint in use, and a
+    (a :class:`ConfigError`, said in one line by the CLI) where Zenoh refuses, e.g. a listen endpoint in use or a
+    client that reached none of its endpoints in :data:`CLIENT_CONNECT_ATTEMPTS` tries, and a
     :class:`ConfigError` naming the file and its field when a TLS file the config names is unusable (:func:`check_tls`)."""
     options = options or ZenohOptions()
     config = options.to_config()
     check_tls(config, options.config_file)
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as error:  # its message ends in the Rust source location
-        raise SessionUnavailable(str(error).split(" at /")[0].strip(), options) from None
+    started = time.monotonic()
+    for attempt in range(1, CLIENT_CONNECT_ATTEMPTS + 1):
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError as error:  # its message ends in the Rust source location
+            reason = str(error).split(" at /")[0].strip()
+        if not reason.startswith(UNABLE_TO_CONNECT) or attempt == CLIENT_CONNECT_ATTEMPTS:
+            break
+        time.sleep(CLIENT_CONNECT_RETRY_S)
+    if reason.startswith(UNABLE_TO_CONNECT):
+        reason += f" ({attempt} attempts over {time.monotonic() - started:.1f} s)"
+    raise SessionUnavailable(reason, options) from None
 
 
 def check_tls(config: zenoh.Config, named_by: Path | None = None) -> None:
