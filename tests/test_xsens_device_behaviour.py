@@ -244,3 +244,38 @@ def test_the_real_captures_euler_angles_turn_their_accelerometer_into_gravity_up
     assert len(readings) >= 90
     up = np.array([frames.rotate(r.quaternion_enu(), r.acceleration) for r in readings])
     assert np.allclose(up.mean(axis=0), (0.0, 0.0, 9.79), atol=0.05), up.mean(axis=0)
+
+
+def test_the_real_mti_gs_gnss_messages_are_recorded_in_their_count_not_dropped_as_a_loss(shared_dir):
+    """The real MTi-G-710 sends a GNSS message (PVT, no orientation) every ~25 samples, numbered by the same
+    PacketCounter. The recorder and the kinematics refused those as "no orientation": every one a dropped input, and the
+    counter stepping by 2 around it, which the session report counted as a lost sample (4 % of a tracker's samples
+    "lost" that the device never lost). Now they are taken as the device's own messages with no pose in them."""
+    from services.nodes import driver_nodes, kinematics_node, node_runtime
+    from services.transport import topics
+
+    line = ScriptedLine()
+    device = XsensDevice(line)
+    line.feed((shared_dir / "data" / "xsens-captures" / "mtig710_set1.bin").read_bytes())
+    readings = []
+    while line.incoming:  # 4 kB a read, as from a serial port
+        readings += device.read()
+    without = [r for r in readings if r.quaternion is None]
+    assert len(readings) == 100 and len(without) == 5  # the capture: its first message and four GNSS messages
+    node = kinematics_node.KinematicsNode(
+        kinematics_node.KinematicsSettings(pack="bench_press", session="s", static_s=0.2, clock="device"),
+        kinematics_node.KinematicsStats(),
+    )
+    segments = list(node.mapper.segments)
+    for reading in readings:  # the one device worn on every segment the pack needs, as that many trackers
+        for k, segment in enumerate(segments):
+            key = topics.imu_key("s", f"T{k}")
+            checked = node_runtime.check_payload(
+                key, driver_nodes.imu_sample(reading, segment=segment).SerializeToString()
+            )
+            node.handle(key, checked)
+    stats = node.stats
+    assert stats.rejected == 0 and stats.without_orientation == 5 * len(segments), stats
+    assert stats.frames_synced >= 90 and stats.resumes == 0 and stats.restarts == 0, stats
+    counters = [r.packet_counter for r in readings]  # what the recording holds, in the report's loss count
+    assert np.all(np.diff(counters) % 65536 == 1)

@@ -522,7 +522,7 @@ def _count_orientation(reading, without: dict[str, int], device) -> None:
         return
     text = (
         f"tracker {tracker_id}: its samples carry no orientation (the device kept an output configuration without "
-        "one); the kinematics and the recorder refuse them: give it an orientation output (quaternion) in MT Manager, "
+        "one); the kinematics gets no pose from them: give it an orientation output (quaternion) in MT Manager, "
         "or let the driver configure it (docs/devices.md)"
     )
     log.warning("%s", text)

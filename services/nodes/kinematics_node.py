@@ -174,6 +174,7 @@ class KinematicsSettings:
 class KinematicsStats:
     samples_in: int = 0
     ignored: int = 0  # samples of segments the pack's table does not use (e.g. another exercise's trackers)
+    without_orientation: int = 0  # samples that carry no orientation (an MTi-G's GNSS messages): no pose in them
     undecodable: int = 0
     unknown_frame: int = 0  # samples in a global frame other than ENU/NED/NWU
     out_of_order: int = 0  # a tracker's sample not newer than its previous one
@@ -294,6 +295,13 @@ class KinematicsNode:
         segment = _segment_of(key, imu)
         if segment not in self.needed:
             stats.ignored += 1
+            return []
+        if not imu.HasField("orientation"):  # an MTi-G's GNSS message (its first one too): no pose, but counted by
+            stats.without_orientation += 1  # the tracker, so its counter is taken in turn (no false gap after it)
+            tracker, counter = key.rsplit("/", 1)[1], int(imu.packet_counter)
+            previous = self._last_counter.get(tracker)
+            if previous is None or (counter - previous) & 0xFFFF == 1:  # a gap before it stays for the next sample
+                self._last_counter[tracker] = counter
             return []
         try:
             frame = CoordinateFrame[(imu.coordinate_frame or "ENU").upper()]  # Xsens' default output is ENU
@@ -479,7 +487,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     print(
         f"published {stats.frames_out} frames; calibrations {stats.calibrations} (gaps: {stats.restarts} new sets, "
         f"{stats.resumes} resumed after samples lost on their way); incomplete instants "
-        f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}"
+        f"{stats.frames_incomplete} (missing {stats.missing or 'none'}); ignored samples {stats.ignored}; "
+        f"samples without orientation {stats.without_orientation}"
         + (f"; last error: {stats.last_error}" if stats.last_error else ""),
         file=sys.stderr,
     )

@@ -172,9 +172,8 @@ def problems(message: Message) -> list[str]:
             found.append(f"{len(message.sensor_labels)} sensor labels for {message.n_sensors} sensors")
         if not (_finite(message.sample_rate_hz) and message.sample_rate_hz > 0):
             found.append(f"sample_rate_hz {message.sample_rate_hz} is not a positive rate")
-    elif isinstance(message, ImuSample):  # the tracker is also in the key: an empty tracker_id is tolerated
-        if not message.HasField("orientation"):
-            found.append("no orientation")
+    # ImuSample: the tracker is also in the key (an empty tracker_id is tolerated), and a sample without orientation
+    # is the device's (an MTi-G's GNSS message): recorded, and in the tracker's packet count, with no pose in it
     elif isinstance(message, JointAngles):
         n = len(message.coordinates)
         if n == 0:
