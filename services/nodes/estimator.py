@@ -646,6 +646,8 @@ class EstimatorNode:
         if self.alignment is None:
             return
         sample = messages.as_message(messages.ImuSample, sample)
+        if not sample.HasField("orientation"):  # an MTi-G's GNSS message, up to 62 ms late: as the kinematics node,
+            return  # which maps the tracker's clock on the samples with a pose only
         self.stats.imu_samples += 1
         a = sample.acceleration
         self.alignment.add_tracker_sample(
