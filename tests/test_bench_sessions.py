@@ -94,3 +94,31 @@ def test_the_window_counts_the_lifting_only():
     finally:
         stop.set()
         lifter.join()
+
+
+def test_a_bounded_wait_that_expires_fails_its_row_not_the_bench(monkeypatch, capsys):
+    """A lifting window (or a start) that timed out at N sessions raised out of `msk bench sessions` and lost the figures
+    of the N before it; now that N is said and the bench reports what it measured."""
+    one = {
+        "sessions": 1, "frames": 1000, "p50_ms": 0.5, "p99_ms": 1.0, "max_ms": 3.0, "frames_over_2ms": 0,
+        "joint_frames_lost": 0, "emg_samples_lost": 0, "emg_index_jumps": 0, "cpu_cores_per_session": 0.15,
+        **{f"cpu_{role}_cores": 0.03 for role in sessions.ROLES}, "cpu_router_share_cores": 0.03, "lifting_s": 6.0,
+        "window_s": 6.0, "settle_s": 0.0, "settled": 1.0,
+    }  # fmt: skip
+
+    def measure(n, *, seconds, root=None):
+        if n == 2 or root is not None:
+            raise RuntimeError(f"the lifting window saw 1.5 s of lifting in 90 slices within 45 s ({n} sessions)")
+        return dict(one)
+
+    monkeypatch.setattr(sessions, "measure", measure)
+    monkeypatch.setattr(sessions, "_across_hosts", lambda seconds: [])
+    results = sessions.run(quick=True)
+    printed = capsys.readouterr().out
+    assert "2 session(s): the lifting window saw 1.5 s" in printed and "baseline" in printed and "failed" in printed
+    served = results[0]
+    assert served.value == 1 and served.passed and "2 session(s)" in served.details["failed"]
+    assert results[3].name == "CPU per session" and results[3].value == 0.15
+    monkeypatch.setattr(sessions, "measure", lambda n, **_: measure(2, seconds=1.0))  # the first N fails: one row
+    (only,) = sessions.run(quick=True)
+    assert only.passed is False and "1 session(s)" in only.details["failed"]
