@@ -361,3 +361,42 @@ def test_non_finite_values_are_counted_and_passed_on_unchanged(scripted):
     rows = emg(collect(client, samples=SPF))
     assert np.isnan(rows[3, 5]) and rows[4, 5] == np.inf and rows[4, 6] == -np.inf
     assert client.stats.non_finite_values == 3
+
+
+# ------------------------------------------------------------------------------------ found by the second imitation
+
+
+def test_a_late_reply_to_an_informative_query_is_taken_as_unanswered_not_the_end_of_the_start(scripted):
+    """One reply to `SENSOR 1 TYPE?` 0.6 s late (the client waits 0.4 s) ended `msk drivers` at start-up. An
+    informative query (type, slot, channel count) that times out is now said and taken as unanswered; its late reply
+    is not taken as the next command's; the stream starts and its samples are the base's."""
+    base, client = scripted(
+        {"reply_timeout_s": 0.4},
+        answers={"SENSOR 1 TYPE?": "O", "SENSOR 1 STARTINDEX?": "1"},
+        delays={"SENSOR 1 TYPE?": 0.6},
+    )
+    assert "no reply to 'SENSOR 1 TYPE?' within 0.4 s: taken as unanswered" in client.stats.last_error
+    assert client.sensors[0].type_code == "" and client.sensors[0].start_index == 0  # STARTINDEX? got its own reply
+    client.start()
+    samples = emg(collect(client, samples=100))[:, 0]
+    assert len(samples) >= 100 and np.array_equal(samples, GEN + np.arange(len(samples)))
+
+
+def test_a_query_that_decides_how_samples_are_read_still_fails_when_unanswered(scripted):
+    """Only informative queries are forgiven: a sensor whose pairing the base does not say in time is not guessed."""
+    with pytest.raises(ProtocolError, match="no reply to 'SENSOR 1 PAIRED\\?'"):
+        scripted({"reply_timeout_s": 0.3}, silent=("SENSOR 1 PAIRED?",))
+
+
+def test_without_max_samples_the_rate_is_the_fastest_sensors(scripted):
+    """`MAX SAMPLES EMG?` refused and a Trigno IM (15 samples a frame) in slot 1 beside an Avanti (27): the client took
+    the first sensor's count and dated a 2000 Hz stream at 1111 Hz (9.6 s of device time in 5.5 s)."""
+    base, client = scripted(
+        answers={
+            "MAX SAMPLES EMG?": "CANNOT COMPLETE",
+            "SENSOR 2 PAIRED?": "YES",
+            "SENSOR 1 CHANNEL 1 SAMPLES?": "15",
+            "SENSOR 2 CHANNEL 1 SAMPLES?": str(SPF),
+        }
+    )
+    assert client.rate_hz == pytest.approx(SPF / tp.FRAME_INTERVAL_S)

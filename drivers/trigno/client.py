@@ -181,6 +181,17 @@ class ClientStats:
     last_error: str = ""
 
 
+def _samples_per_frame(command: str, reply: str) -> int:
+    per_frame = tp.parse_int(reply, command=command)
+    if not 1 <= per_frame <= 1000:
+        raise ProtocolError(f"{command} answered {reply!r}: not a sample count per frame")
+    return per_frame
+
+
+#: Informative queries of one connection that may go unanswered in time before the server is taken as not answering.
+INFORMATIVE_TIMEOUTS = 3
+
+
 @dataclass
 class _Link:
     """The sockets of one connection to the server."""
@@ -191,6 +202,7 @@ class _Link:
     replies: tp.ReplyReader = field(default_factory=tp.ReplyReader)
     pending_replies: list[str] = field(default_factory=list)
     late_replies: int = 0  # commands that timed out: their replies, when they come, belong to nobody
+    informative_timeouts: int = 0  # informative queries that timed out and were taken as unanswered
     start_sent: bool = False  # START went out on this link (a START that failed may still have started the base)
 
     def close(self) -> None:
@@ -487,7 +499,7 @@ class TrignoClient:
                 if stopped_seen:
                     return tp.UNSOLICITED_STOPPED
                 link.late_replies += 1  # so a late reply is not taken as the next command's
-                raise ProtocolError(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
+                raise tp.NoReply(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
             self._receive(link, remaining, f"Trigno server closed the command connection (waiting for {command!r})")
 
     @staticmethod
@@ -504,11 +516,19 @@ class TrignoClient:
             raise ConnectionResetError(closed_message)
         link.pending_replies.extend(link.replies.feed(chunk))
 
-    def _query(self, link: _Link, text: str) -> str | None:
-        """A query whose failure is tolerated (servers differ in what they support)."""
+    def _query(self, link: _Link, text: str, *, informative: bool = False) -> str | None:
+        """A query whose failure is tolerated (servers differ in what they support). ``informative``: its answer only
+        describes (a sensor's type, slot, channel count), so one the server does not answer in time is taken as
+        unanswered too, said, up to :data:`INFORMATIVE_TIMEOUTS` a connection (one slow reply ended the start)."""
         try:
             return self._command(text, link)
         except tp.CommandFailed:
+            return None
+        except tp.NoReply as error:
+            if not informative or link.informative_timeouts >= INFORMATIVE_TIMEOUTS:
+                raise
+            link.informative_timeouts += 1
+            self._note_error(f"{error}: taken as unanswered")
             return None
 
     # ------------------------------------------------------------------------------------------ handshake
@@ -643,14 +663,14 @@ class TrignoClient:
             if reply is not None and not tp.parse_yes_no(reply, command=f"SENSOR {n} ACTIVE?"):
                 continue
             active.add(n)
-            paired[n] = (self._query(link, f"SENSOR {n} TYPE?") or "").strip()
-            start_reply = self._query(link, f"SENSOR {n} STARTINDEX?")
+            paired[n] = (self._query(link, f"SENSOR {n} TYPE?", informative=True) or "").strip()
+            start_reply = self._query(link, f"SENSOR {n} STARTINDEX?", informative=True)
             if start_reply is not None:
                 try:
                     starts[n] = tp.parse_int(start_reply, command=f"SENSOR {n} STARTINDEX?")
                 except ProtocolError as error:  # informative only: never a reason to refuse the server
                     self._note_error(str(error))
-            count_reply = self._query(link, f"SENSOR {n} EMGCHANNELCOUNT?")
+            count_reply = self._query(link, f"SENSOR {n} EMGCHANNELCOUNT?", informative=True)
             if count_reply is not None:
                 try:
                     channels[n] = max(
@@ -672,20 +692,22 @@ class TrignoClient:
         )
 
     def _emg_samples_per_frame(self, link: _Link) -> int:
-        """EMG samples per frame: ``MAX SAMPLES EMG?``; else ``SENSOR n CHANNEL 1 SAMPLES?`` of the first active
-        sensor; else 27 with upsampling on, 26 otherwise (the counts a real system reported)."""
+        """EMG samples per frame: ``MAX SAMPLES EMG?``; else the most ``SENSOR n CHANNEL 1 SAMPLES?`` of the active
+        sensors with EMG (the port carries every sensor at its fastest sensor's count: the first sensor's, a
+        Trigno IM's 15 beside Avantis' 26, dated the stream at 1111 Hz instead of 1926); else 27 with upsampling on,
+        26 otherwise (the counts a real system reported)."""
         reply = self._query(link, "MAX SAMPLES EMG?")
-        command = "MAX SAMPLES EMG?"
-        if reply is None:
-            first = next((s.sensor for s in self.sensors if s.active), None)
-            command = f"SENSOR {first} CHANNEL 1 SAMPLES?"
-            reply = self._query(link, command) if first is not None else None
-        if reply is None:
-            return 27 if self.upsampling else 26
-        per_frame = tp.parse_int(reply, command=command)
-        if not 1 <= per_frame <= 1000:
-            raise ProtocolError(f"{command} answered {reply!r}: not a sample count per frame")
-        return per_frame
+        if reply is not None:
+            return _samples_per_frame("MAX SAMPLES EMG?", reply)
+        counts = []
+        for sensor in self.sensors:
+            if sensor.active and sensor.emg_channels > 0:
+                command = f"SENSOR {sensor.sensor} CHANNEL 1 SAMPLES?"
+                if (reply := self._query(link, command)) is not None:
+                    counts.append(_samples_per_frame(command, reply))
+        if counts:
+            return max(counts)
+        return 27 if self.upsampling else 26
 
     # ------------------------------------------------------------------------------------------ streaming
     def poll(self, timeout: float = 0.1) -> list[Event]:

@@ -87,6 +87,10 @@ class StopMode(enum.Enum):
     QUIT_ONLY = "quit"
 
 
+class NoReply(ProtocolError):
+    """A command the server did not answer within the reply timeout (its reply, if it comes, is discarded)."""
+
+
 class CommandFailed(ProtocolError):
     """The server answered ``INVALID COMMAND`` or ``CANNOT COMPLETE``."""
 
