@@ -500,3 +500,25 @@ def test_messages_without_sample_time_fine_between_ones_with_it_stay_on_its_cloc
     device.output_configuration = output_settings(50)  # messages at 50 Hz: 20 ms apart
     times = [reading.device_time_ns for reading in device.read()]
     assert times == [100_000_000, 120_000_000, 120_000_000, 140_000_000]
+
+
+def test_a_device_without_packet_counter_counts_what_its_sample_time_says_was_lost():
+    """Found by an independent device imitation: a device that did not apply PacketCounter lost 1 message in 10 and
+    `packets_lost` stayed 0. Its SampleTimeFine says how many message periods (of the applied output rate) each
+    step spans; the missing ones are now counted as the counter would have counted them."""
+    source = synthetic_imu(seconds=5.0, seed=3)
+    faults = FaultConfig(bit_flip=0.1, seed=5)  # a corrupted message fails its checksum: lost on the line
+    with XsensSimulator(source, speed=2.0, unsupported_outputs=frozenset({0x1020}), faults=faults) as sim:
+        device = open_device(sim)
+        try:
+            device.reset()
+            device.configure(100)
+            readings = read_for(device, count=150)
+        finally:
+            device.close()
+        corrupted = len(sim.stats.corrupted_counters)
+    ticks = np.array([r.sample_time_fine for r in readings if r.packet_counter is None], dtype=np.int64)
+    assert len(ticks) == len(readings) >= 150
+    missing = int(np.sum(np.round(np.diff(ticks) / 100.0) - 1))  # 100 ticks a message at 100 Hz
+    assert 5 <= missing <= corrupted, (missing, corrupted)
+    assert device.stats.packets_lost == missing
