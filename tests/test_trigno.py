@@ -540,6 +540,41 @@ def test_a_pause_the_base_buffers_loses_nothing_and_counts_nothing():
     assert client.stats.samples_lost == 0
 
 
+@pytest.mark.parametrize("lag_s", [0.0, 0.3])
+def test_aux_rows_keep_their_index_across_a_dropping_pause_whether_or_not_they_come_behind_the_emg(lag_s):
+    """Found by a second independent base imitation: with its AUX frames 0.3 s behind the EMG, a pause in which the
+    base drops what it measures put the AUX rows measured before the pause (arriving while the EMG was quiet) after
+    the gap, and every later AUX row 46 samples (0.31 s) late on the EMG clock. Each AUX row here carries its own
+    instant (the accelerometer is a ramp: AUX sample k reads 13.5 k), so its index is checked row by row."""
+    import dataclasses
+
+    base = synthetic_source(seconds=20.0, seed=9)
+    ramp = np.zeros((base.samples.shape[0], tp.N_SENSORS, 3), np.float32)
+    ramp[:, :, 0] = np.arange(base.samples.shape[0], dtype=np.float32)[:, None]  # EMG sample i's instant, at 2 kHz
+    source = dataclasses.replace(base, acc=ramp, acc_rate_hz=base.rate_hz)
+    quirks = TrignoQuirks(aux_lag_s=lag_s)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=9, quirks=quirks)) as sim:
+        client = client_for(sim, aux=True)
+        client.connect()
+        client.start()
+        events = collect(client, samples=1000, seconds=5)
+        sim.pause(0.8, drop=True)
+        events += collect(client, seconds=6, until=lambda ev: len(emg_rows(ev)) >= 2000)
+        events += collect(client, seconds=lag_s + 0.3)  # the AUX behind the EMG's last rows
+        client.close()
+    (gap,) = [e for e in events if isinstance(e, GapEvent)]
+    assert abs(gap.n_missing - sim.stats.frames_dropped * sim.samples_per_frame) <= sim.samples_per_frame
+    aux = [e for e in events if isinstance(e, AuxBlock)]
+    index = np.concatenate([e.first_sample_index + np.arange(len(e.samples)) for e in aux])
+    measured_at = np.concatenate([e.samples[:, 0] for e in aux]) / 13.5  # the AUX sample each row truly is
+    gap_at = gap.first_missing_index * 2 / 27
+    before, after = measured_at < gap_at, measured_at >= gap_at
+    assert before.sum() > 50 and after.sum() > 50, (before.sum(), after.sum())
+    assert np.array_equal(index[before], measured_at[before])  # measured before the pause: their own indices
+    assert np.all(np.abs(index[after] - measured_at[after]) <= 1), np.unique(index[after] - measured_at[after])
+    assert np.all(np.diff(index) > 0)
+
+
 def test_a_restarted_base_whose_first_data_come_as_one_burst_is_dated_by_the_whole_burst():
     # its first data come 1 s after START, as one burst of what it measured since (more than one read holds)
     source = synthetic_source(seconds=20.0, seed=6)

@@ -243,6 +243,8 @@ class TrignoClient:
         self._next_index = 0
         self._next_aux_index = 0
         self._aux_after_gap: list[tuple[np.ndarray, int]] = []  # AUX rows of a resumed stream, before its gap is known
+        # gaps of a pause the AUX stream has still to reach: (its first missing AUX index, AUX samples missing)
+        self._aux_gaps: list[tuple[int, int]] = []
         self._aux_rows_seen = False  # any AUX row since START (a silent AUX port is said once)
         self._aux_silence_said = False
         self._emg_rows_since_aux = 0
@@ -303,6 +305,7 @@ class TrignoClient:
         self._gap_pending = False  # a gap of an earlier acquisition (stopped while reconnecting) is not this one's
         self.stats.aux_samples_dropped += sum(len(rows) for rows, _ in self._aux_after_gap)
         self._aux_after_gap = []
+        self._pass_aux_gaps()
         self._emit_status(ClientState.STREAMING, "started")
 
     def stop(self, *, drain_s: float = 1.0) -> list[Event]:
@@ -856,8 +859,26 @@ class TrignoClient:
             self.stats.non_finite_values += int(rows.size - np.count_nonzero(np.isfinite(rows)))
 
     def _emit_aux(self, rows: np.ndarray, host_time_ns: int) -> None:
-        self._events.append(AuxBlock(rows, self._next_aux_index, self.aux_rate_hz, host_time_ns))
-        self._next_aux_index += len(rows)
+        """AUX rows on the next AUX index; a pause's gap the rows reach is jumped where it starts, so that the rows
+        measured before it (late behind the EMG) keep their indices and those after it are placed after it."""
+        while self._aux_gaps and self._next_aux_index + len(rows) > self._aux_gaps[0][0]:
+            start, missing = self._aux_gaps.pop(0)
+            before = max(0, start - self._next_aux_index)
+            if before:
+                self._events.append(AuxBlock(rows[:before], self._next_aux_index, self.aux_rate_hz, host_time_ns))
+                self._next_aux_index += before
+                rows = rows[before:]
+            self._next_aux_index += missing
+        if len(rows):
+            self._events.append(AuxBlock(rows, self._next_aux_index, self.aux_rate_hz, host_time_ns))
+            self._next_aux_index += len(rows)
+
+    def _pass_aux_gaps(self) -> None:
+        """The pauses' gaps the AUX stream never reached (its rows before them lost with a link, or a new START):
+        its index jumps past them, so that it stays on the EMG's."""
+        for start, missing in self._aux_gaps:
+            self._next_aux_index = max(self._next_aux_index, start) + missing
+        self._aux_gaps = []
 
     def _read_command(self, link: _Link) -> None:
         chunk = link.command.recv(4096)
@@ -903,13 +924,22 @@ class TrignoClient:
             self._events.append(GapEvent(self._next_index, missing, time.time_ns(), reason))
             if pause:
                 self._note_error(f"{missing} EMG samples lost ({reason})")
+        first_missing = self._next_index
         self._next_index += missing
         self.stats.samples_lost += missing
-        # the AUX stream resumed with the EMG: its sample index jumps over the same gap, so that AUX sample k stays
-        # measured at EMG device time k / aux rate (the accelerometers on the EMG clock)
+        # the AUX stream's sample index jumps over the same gap, so that AUX sample k stays measured at EMG device time
+        # k / aux rate (the accelerometers on the EMG clock). After a pause, where the AUX stream reaches it: AUX may
+        # come behind the EMG, and its rows measured before the pause still arrive after the EMG resumed (0.3 s behind
+        # an imitated base: every later AUX row was placed 46 samples late). After a lost link, at once: its rows
+        # before the gap came before the link closed or never will.
         if self.aux_rate_hz > 0 and self.rate_hz > 0:
-            resumed = int(round(self._next_index * self.aux_rate_hz / self.rate_hz))
-            self._next_aux_index = max(self._next_aux_index, resumed)
+            ratio = self.aux_rate_hz / self.rate_hz
+            if pause:
+                if missing:
+                    self._aux_gaps.append((int(round(first_missing * ratio)), int(round(missing * ratio))))
+            else:
+                self._pass_aux_gaps()
+                self._next_aux_index = max(self._next_aux_index, int(round(self._next_index * ratio)))
         for rows, _, host_time_ns in held:
             self._emit_emg(rows, host_time_ns)
         self._last_data_time = held[-1][1]

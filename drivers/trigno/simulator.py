@@ -38,6 +38,7 @@ carry; a new START plays the faults again from 0. Every frame is clipped to the 
 
 from __future__ import annotations
 
+import collections
 import enum
 import math
 import select
@@ -83,6 +84,9 @@ class TrignoQuirks:
     #: buffers until its link is ready), instead of start_delay_s's later start of the measurement
     start_burst_s: float = 0.0
     aux_silent: bool = False  # the AUX ports accept connections but send nothing (sensors with their AUX off)
+    #: each AUX frame leaves this much after the EMG frame of the same instant (the ports are separate streams with no
+    #: counter: a base may send the AUX behind), also while the EMG pauses
+    aux_lag_s: float = 0.0
 
 
 class FaultKind(str, enum.Enum):
@@ -304,6 +308,7 @@ class TrignoSimulator:
         self._command_conns: list[_CommandConnection] = []
         self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": [], "legacy_acc": []}
         self._threads: list[threading.Thread] = []
+        self._lagged_aux: collections.deque = collections.deque()  # (due, kind, connections, payload): aux_lag_s
         self._master: int | None = None
         self._next_conn_id = 1
         self._running = False
@@ -365,6 +370,8 @@ class TrignoSimulator:
             self.ports[name] = listener.getsockname()[1]
             self._spawn(self._accept_loop, name, listener)
         self._spawn(self._stream_loop)
+        if cfg.quirks.aux_lag_s > 0:
+            self._spawn(self._lagged_aux_loop)
         return self
 
     def close(self) -> None:
@@ -726,16 +733,13 @@ class TrignoSimulator:
                 for kind, conns in self._data_conns.items()
                 if conns and (kind == "emg" or not self.config.quirks.aux_silent)
             }
+        lag_s = self.config.quirks.aux_lag_s / self.config.speed
         for kind, conns in listening.items():  # a port nobody reads costs nothing (the AUX rows are interpolated)
             payload = tp.encode_samples(emg if kind == "emg" else self._aux_payload(kind, start), self._endianness)
-            for sock in conns:
-                try:
-                    self._send_fragmented(sock, payload)
-                except OSError:
-                    with self._lock:
-                        if sock in self._data_conns[kind]:
-                            self._data_conns[kind].remove(sock)
-                    sock.close()
+            if kind != "emg" and lag_s > 0:
+                self._lagged_aux.append((time.monotonic() + lag_s, kind, conns, payload))
+            else:
+                self._send_data(kind, conns, payload)
         self.stats.frames_sent += 1
         self.stats.samples_sent += spf
         return True
@@ -771,6 +775,23 @@ class TrignoSimulator:
         w = ((t - times[i]) / (times[i + 1] - times[i]))[:, None, None]
         aux[:, paired, :3] = ((1.0 - w) * values[i] + w * values[i + 1])[:, paired]
         return aux.reshape(AUX_SAMPLES_PER_FRAME, -1)
+
+    def _send_data(self, kind: str, conns: list[socket.socket], payload: bytes) -> None:
+        for sock in conns:
+            try:
+                self._send_fragmented(sock, payload)
+            except OSError:
+                with self._lock:
+                    if sock in self._data_conns[kind]:
+                        self._data_conns[kind].remove(sock)
+                sock.close()
+
+    def _lagged_aux_loop(self) -> None:
+        """The AUX frames of the ``aux_lag_s`` quirk, each sent when its lag has passed."""
+        while not self._stop.wait(0.002):
+            while self._lagged_aux and self._lagged_aux[0][0] <= time.monotonic():
+                _, kind, conns, payload = self._lagged_aux.popleft()
+                self._send_data(kind, conns, payload)
 
     def _send_fragmented(self, sock: socket.socket, payload: bytes) -> None:
         limit = self.config.fragment_max
