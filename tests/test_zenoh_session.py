@@ -105,3 +105,23 @@ def test_a_client_waits_a_moment_for_its_router_and_says_how_long_it_tried(zenoh
         open_session(ZenohOptions(mode="client", connect=(zenoh_endpoint,)))
     elapsed = time.monotonic() - started
     assert (CLIENT_CONNECT_ATTEMPTS - 1) * CLIENT_CONNECT_RETRY_S <= elapsed < 10.0
+
+
+def test_a_port_whose_connections_wait_in_time_wait_is_free_one_with_a_listener_is_not():
+    """Found by a new user: `msk live` started again at once after a stop was refused for about a minute ("--listen
+    ... is in use by another program") while only TIME_WAIT sockets of the stopped session were on its port."""
+    import socket
+
+    from services.transport.zenoh_session import endpoint_is_free
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    assert not endpoint_is_free(endpoint)  # listening: in use
+    client = socket.create_connection(("127.0.0.1", port))
+    accepted, _ = listener.accept()
+    accepted.close()  # the listening side closes first: its end waits in TIME_WAIT on the port
+    time.sleep(0.05)
+    client.close()
+    listener.close()
+    assert endpoint_is_free(endpoint)

@@ -100,6 +100,9 @@ def endpoint_is_free(endpoint: str) -> bool:
         return True
     host, _, port = address.rpartition(":")
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        # as Zenoh's own listener: a port whose last connections wait in TIME_WAIT (a session just stopped) is free,
+        # and one with a listener is not (Linux refuses that bind even so); without it a restart was refused ~1 min
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, int(port)))
         except OSError:
