@@ -409,6 +409,8 @@ def test_a_refusal_names_the_line_of_the_key_in_the_session_file(tmp_path):
 
     message = _refusal(_write(tmp_path, GOOD.replace("load_kg = 60", "load_kg = -5")))
     assert "session.toml, line 5, field 'session.load_kg'" in message, message
+    message = _refusal(_write(tmp_path, GOOD.replace("load_kg = 60", "load_kg = 60000")))
+    assert "field 'session.load_kg': 60000 kg is more than any lift's load" in message, message
     session = load_session_file(_write(tmp_path, GOOD.replace('"sensor01.EMG" = "PMCla"', '"sensor01.EMG" = "Pec"')))
     with pytest.raises(ConfigError) as error:
         check_against_pack(session, ["pec_clav"], [], {"PMCla": {}})

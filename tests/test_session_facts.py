@@ -215,6 +215,11 @@ def test_bad_values_are_named_before_anything_starts(tmp_path, monkeypatch, caps
     cases = {
         ("load", "--", "-5"): "field 'KG': must be a finite mass >= 0 kg (got -5.0)",
         ("load", "nan"): "field 'KG': must be a finite mass >= 0 kg (got nan)",
+        # a new user's typo (or grams): the estimate chased 99 % unexplained torque, reported "solved"
+        (
+            "load",
+            "60000",
+        ): "field 'KG': 60000 kg is more than any lift's load (at most 1000 kg here): is it in grams (60 kg)?",
         ("load", "--set", "0"): "field '--set': sets are counted from 1 (got 0)",
         ("set", "start", "--set", "0"): "field '--set': sets are counted from 1 (got 0)",
         ("live", "--sim", "--listen", "foo"): "field '--listen': not a Zenoh endpoint",

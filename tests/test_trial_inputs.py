@@ -473,3 +473,18 @@ def test_an_isometric_trials_held_pose_may_be_sampled_slowly(tmp_path, pack):
     (tmp_path / "moving.toml").write_text(text.replace("isometric = true\n", ""))
     with pytest.raises(InputError, match="slower than 2 Hz"):
         load_trial(tmp_path / "moving.toml", pack)
+
+
+@pytest.mark.parametrize(
+    "swap, field, said",
+    [
+        (("load_kg = 40.0", "load_kg = 40000.0"), "load_kg", "is it in grams (40 kg)?"),
+        (("body_mass_kg = 81.31", "body_mass_kg = 81310"), "body_mass_kg", "within 20-400 (grams?"),
+    ],
+)
+def test_a_load_or_body_mass_in_grams_is_refused_naming_its_key(tmp_path, pack, swap, field, said):
+    """Found by a new user: `load_kg = 50000` was refused as torques "0.00112 times" the model's ("are they in
+    N·m/kg?"), blaming the torque file; `body_mass_kg = 81310` went through. Both are now refused where they are."""
+    with pytest.raises(ConfigError) as error:
+        load_trial(_trial(tmp_path, swap=(swap,)), pack)
+    assert error.value.field == field and said in str(error.value), error.value

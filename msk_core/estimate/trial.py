@@ -72,7 +72,7 @@ from msk_core.io.storage import seconds, uniform_step
 from msk_core.signal.gait import CONTACT_THRESHOLD_N, gait_cycle_phase, heel_strikes
 from msk_core.signal.kinematics_filter import lowpass_coordinates
 from msk_core.signal.reps import REST_PHASE
-from msk_core.units import GRAVITY
+from msk_core.units import GRAVITY, body_mass_problem, load_problem
 
 #: Data files a trial describes: given where the trial's TOML is expected, they are named as such
 DATA_SUFFIXES = frozenset({".sto", ".mot", ".trc", ".c3d", ".csv", ".txt", ".npz", ".mcap"})
@@ -237,11 +237,11 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
     if re.search(r"[/\\\x00]", spec.get("name", "")) or spec.get("name") in (".", ".."):
         raise trial.err("must not contain / or \\ (reports name their files after the trial)", "name", spec.get("name"))
     load_kg = trial.number("load_kg", 0.0)
-    if load_kg < 0:
-        raise trial.err("must be >= 0", "load_kg", load_kg)
+    if (problem := load_problem(load_kg)) is not None:
+        raise trial.err(problem, "load_kg", load_kg)
     body_mass = trial.number("body_mass_kg", None)
-    if body_mass is not None and body_mass <= 0:
-        raise trial.err("must be > 0", "body_mass_kg", body_mass)
+    if body_mass is not None and (problem := body_mass_problem(body_mass)) is not None:
+        raise trial.err(problem, "body_mass_kg", body_mass)
     isometric = spec.get("isometric", False)
     if not isinstance(isometric, bool):
         raise trial.err("must be true or false", "isometric", isometric)

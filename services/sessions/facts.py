@@ -7,12 +7,12 @@ and the dashboard's set button (services.surfaces).
 
 from __future__ import annotations
 
-import math
 import threading
 from collections.abc import Callable
 
 from msk_core.errors import ConfigError
 from msk_core.signal.sets import SetTracker
+from msk_core.units import load_problem
 from services.nodes.node_runtime import NodeInputs, apply_load_event
 from services.sessions import discovery
 from services.transport import messages
@@ -28,9 +28,9 @@ MAX_ANNOUNCED_SETS = 50
 
 
 def check_facts(load_kg: float | None, set_number: int | None) -> None:
-    """The operator's load (finite, >= 0 kg) and set number (from 1), each when given."""
-    if load_kg is not None and not (math.isfinite(load_kg) and load_kg >= 0):
-        raise ConfigError("must be a finite mass >= 0 kg", field="KG", value=load_kg)
+    """The operator's load (finite, 0 to ``MAX_LOAD_KG``) and set number (from 1), each when given."""
+    if load_kg is not None and (problem := load_problem(load_kg)) is not None:
+        raise ConfigError(problem, field="KG", value=load_kg)
     if set_number is not None and set_number < 1:
         raise ConfigError("sets are counted from 1", field="--set", value=set_number)
 

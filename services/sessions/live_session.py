@@ -19,6 +19,7 @@ from drivers.xsens.mvn import parse_address as parse_mvn_address
 from msk_core.errors import ConfigError
 from msk_core.io.files import toml_key_line
 from msk_core.signal.sets import DEFAULT_REST_S
+from msk_core.units import load_problem
 from services.transport import topics
 
 if TYPE_CHECKING:
@@ -243,8 +244,8 @@ def _parse_lift(session: LiveSession, s: dict, path: Path | None, require_device
     load_kg, rest_s, methods = session.load_kg, session.rest_s, session.methods
     if "load_kg" in s:
         load = _type(path, "session.load_kg", s["load_kg"], (int, float), "a number of kilograms")
-        if not (math.isfinite(load) and load >= 0):
-            raise session_error(path, "session.load_kg", "must be a finite mass >= 0 kg", load)
+        if (problem := load_problem(load)) is not None:
+            raise session_error(path, "session.load_kg", problem, load)
         load_kg = float(load)
     elif require_devices:
         raise session_error(path, "session.load_kg", "missing: the barbell mass in kg (0 for none)")
