@@ -158,6 +158,8 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_whe
     # an earlier run in this folder, killed: its recording and its logs (all that is left of it) are kept
     (out / "logs").mkdir(parents=True)
     (out / "logs" / "estimator.log").write_text("the earlier run's log\n")
+    earlier_summary = json.dumps({"recordings": [str(out / "session.mcap")]}) + "\n"
+    (out / "summary.json").write_text(earlier_summary)  # a run that ended: its summary was overwritten (a new user)
     with McapRecorderWriter(out / "session.mcap"):
         pass
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
@@ -196,6 +198,8 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_whe
     emg, imu, frames = Counter(), Counter(), Counter()
     joints = 0
     assert (out / "logs-001" / "estimator.log").read_text() == "the earlier run's log\n"
+    assert (out / "logs-001" / "summary.json").read_text() == earlier_summary
+    assert f"{out} held an earlier run: its logs and summary are now in {out / 'logs-001'}" in output, output
     assert (out / "logs" / "estimator.log").is_file()  # this run's
     assert f"recording to {out / 'session-001.mcap'}" in output, output
     assert summary["recordings"] == [str(out / "session-001.mcap")], summary["recordings"]

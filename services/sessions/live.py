@@ -1039,17 +1039,31 @@ class _Running:
     recording: Path | None = None  # the file this run's recorder writes (session-001.mcap... after earlier runs)
 
 
-def keep_earlier_logs(out: Path) -> Path | None:
-    """An earlier run's ``OUT/logs`` (a session killed, then started again in the same folder: its logs are all that
-    is left of it) moved to the first free ``OUT/logs-NNN``, as the recorder continues into ``session-NNN.mcap``;
-    the new run then writes ``OUT/logs``. Returns where they went (None: nothing to keep)."""
+#: What an earlier run in the same folder leaves besides its recording, kept with its logs (the new run writes its own;
+#: subject_session.json is written again from the same profile, by this run's plan, before this is called).
+EARLIER_RUN_FILES = ("summary.json",)
+
+
+def keep_earlier_run(out: Path) -> Path | None:
+    """An earlier run's ``OUT/logs`` and ``summary.json`` (a session stopped or killed, then
+    started again in the same folder) moved together to the first free ``OUT/logs-NNN``, as the recorder continues
+    into ``session-NNN.mcap``; the new run then writes its own. Its summary names its recordings. The summary was
+    overwritten before (found by a new user running ``msk live --sim`` twice). Returns where they went (None: nothing
+    to keep)."""
     logs = out / "logs"
-    if not logs.is_dir() or not any(logs.iterdir()):
+    has_logs = logs.is_dir() and any(logs.iterdir())
+    files = [out / name for name in EARLIER_RUN_FILES if (out / name).is_file()]
+    if not has_logs and not files:
         return None
     index = 1
     while (kept := out / f"logs-{index:03d}").exists():
         index += 1
-    logs.rename(kept)
+    if has_logs:
+        logs.rename(kept)
+    else:
+        kept.mkdir()
+    for path in files:
+        path.rename(kept / path.name)
     return kept
 
 
@@ -1069,7 +1083,8 @@ def run_graph(
     from services.sessions import discovery
 
     out = plan.session.out
-    keep_earlier_logs(out)
+    if (kept := keep_earlier_run(out)) is not None:
+        log(f"{out} held an earlier run: its logs and summary are now in {kept} (its recordings stay in {out})")
     (out / "logs").mkdir(parents=True, exist_ok=True)
     recorded_before = set(out.glob("session*.mcap"))
     counts = FlowCounts()
