@@ -154,12 +154,14 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
     qdd = -0.6 * np.sin(np.outer(t, [1.0, 1.3, 0.7, 2.1])) * np.array([1.0, 1.69, 0.49, 4.41])
     phases = [None if i % 97 == 0 else (REST_PHASE if (i // 150) % 2 else (i % 150) / 150) for i in range(600)]
     sources = {"active_set": 0, "piqp": 0}
-    bound_disagreements = kernel_std = 0
+    bound_disagreements = kernel_std = reserve = 0
     for i in range(600):
         a = hot.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
         b = piqp_only.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
         c = limited.step(q[i], None, qdd[i], phase=phases[i], emg=emg[i])
-        assert a.status.value == b.status.value == c.status.value == "solved"
+        # "reserve": the toy pack's torque beyond its muscles' capacity at some poses (the same flag for all three)
+        assert a.status.value == b.status.value == c.status.value in ("solved", "reserve")
+        reserve += a.status.value == "reserve"
         kernel_std += _kernel_std_is_laplace_std(a)
         np.testing.assert_allclose(a.activations, b.activations, atol=2e-4)
         np.testing.assert_allclose(c.activations, a.activations, atol=2e-4)
@@ -176,6 +178,7 @@ def test_estimator_hot_start_gives_piqps_optimum_frame_by_frame(method):
     if method != "hybrid":  # hybrid sends many groups to 0, where PIQP stops ~1e-5 above it in most frames
         assert bound_disagreements < 60  # measured 33 of 600 (PIQP eps 1e-8)
     assert hot.solver_counts == {"active_set": 600, "piqp": 0} and kernel_std == 600
+    assert hot.flag_counts == piqp_only.flag_counts == limited.flag_counts == ({"reserve": reserve} if reserve else {})
     assert piqp_only.solver_counts == {"active_set": 0, "piqp": 600}
     # one change allowed: frames needing more go to PIQP, which then seeds the next frame's working set
     assert limited.solver_counts == sources and sources["piqp"] > 0 and sources["active_set"] > 300

@@ -142,6 +142,24 @@ def test_infeasible_and_nan_frames_are_flagged_and_counted_not_raised(backend):
     assert est.flag_counts["reserve"] >= 1 and est.flag_counts["invalid_input"] == 3
 
 
+@pytest.mark.parametrize("method", ["hybrid", "proposed"])
+@pytest.mark.parametrize("hot_start", [True, False])
+def test_a_torque_beyond_the_muscles_capacity_is_flagged_by_every_method(method, hot_start):
+    """Found by a new user: `msk load 60000` left `proposed` and `assisted` reporting "solved" with 99 % of the
+    shoulder torque unexplained; only `so` said "reserve". A torque some coordinate's muscles cannot make at any
+    activation is now the reserve flag whichever the method (its activations are still its own)."""
+    pack = LinearPack()
+    q = np.array([0.1, 0.2])
+    capacity = np.abs(pack.moment_arms(q) * pack.f_max_ref).sum(axis=1)
+    prior = None if method == "hybrid" else _prior(pack.groups, np.random.default_rng(4))
+    est = FrameEstimator(pack, method=method, prior=prior, hot_start=hot_start)
+    beyond = est.step(q, torques=3.0 * capacity, phase=0.5)
+    assert beyond.status is FrameStatus.RESERVE and beyond.flagged and np.all(np.isfinite(beyond.activations))
+    within = est.step(q, torques=0.1 * capacity * np.sign(pack.moment_arms(q).sum(axis=1)), phase=0.5)
+    assert within.status is FrameStatus.SOLVED
+    assert est.flag_counts == {"reserve": 1}
+
+
 def test_reserve_fallback_when_equality_infeasible_but_within_per_coordinate_ranges():
     # Two coordinates driven by one shared muscle: each torque alone is reachable, together they are not.
     class Coupled(LinearPack):

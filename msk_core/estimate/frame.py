@@ -101,7 +101,9 @@ INVALID_REASONS = (
 
 class FrameStatus(str, Enum):
     SOLVED = "solved"
-    RESERVE = "reserve"  # so: torque beyond capacity, least-squares fallback used
+    # torque beyond the muscles' capacity at the pose: so uses its least-squares fallback; the other methods keep their
+    # solution, the torque left unexplained said (they reported "solved" with 99 % of a torque unexplained)
+    RESERVE = "reserve"
     MAX_ITER = "max_iter"  # solver stopped early; result is the last iterate
     INVALID_INPUT = "invalid_input"  # NaN/inf kinematics, torques or model output; activations are NaN
     SOLVER_FAILED = "solver_failed"  # numerical failure; activations are NaN
@@ -516,6 +518,17 @@ class FrameEstimator:
         return r, tau, phase
 
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
+        result = self._solve_method(r, tau, phase)
+        if (
+            self.method in (Method.PROPOSED, Method.ASSISTED, Method.HYBRID)
+            and result.status is FrameStatus.SOLVED
+            and self._beyond_capacity(r * self.f_max, tau)
+        ):
+            result.status = FrameStatus.RESERVE
+            self._count(FrameStatus.RESERVE)
+        return result
+
+    def _solve_method(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         method = self.method
         if self.hot_start and method is not Method.PRIOR:
             hot = self._hot_solve(r, tau, phase)
@@ -534,7 +547,7 @@ class FrameEstimator:
             result.solver = "none"
             return result
         if method is Method.SO:
-            if self._so_certainly_infeasible(at, tt):
+            if self._beyond_capacity(at, tt):
                 return self._so_fallback(a_mat, tau, at, tt, phase)
             assert isinstance(self._qp, EqualityQP)  # SO's, made with the method
             status, x, it, dt = self._qp.solve(at, tt)
@@ -686,12 +699,14 @@ class FrameEstimator:
             x = np.minimum(np.maximum(x, self._lb), self._ub)  # interior-point iterates may sit 1e-9 outside
         return self._result(x, a_mat, tau, fs, it, dt, phase, hess_parts, equality)
 
-    def _so_certainly_infeasible(self, at: np.ndarray, tt: np.ndarray) -> bool:
-        """Cheap necessary condition: each coordinate's torque must lie within its muscles' range (a in bounds)."""
+    def _beyond_capacity(self, at: np.ndarray, tt: np.ndarray) -> bool:
+        """Some coordinate's torque ``tt`` lies outside what its muscles ``at`` (torque per unit activation, as both
+        are scaled) can make with activations in bounds: so's certain infeasibility, the others' reserve flag."""
         pos, neg = np.clip(at, 0.0, None), np.clip(at, None, 0.0)
         hi = pos @ self._ub + neg @ self._lb
         lo = pos @ self._lb + neg @ self._ub
-        return bool(np.any(tt > hi + 1e-9) or np.any(tt < lo - 1e-9))
+        margin = 1e-9 * np.maximum(np.abs(at).sum(axis=1), 1.0)  # at scaled (so's) or in N·m
+        return bool(np.any(tt > hi + margin) or np.any(tt < lo - margin))
 
     def _so_fallback(self, a_mat, tau, at, tt, phase) -> FrameResult:
         """min sum a^2 + RESERVE_WEIGHT |A~ a - t~|^2: the least-squares reserve solution, flagged."""
