@@ -74,6 +74,8 @@ def test_estimator_node_publishes_one_frame_per_input_and_method(zenoh_endpoint)
             assert [t.coordinate for t in frame.torques] == coords
             np.testing.assert_allclose([t.inverse_dynamics_nm for t in frame.torques], expected.torques, rtol=1e-9)
             assert frame.publish_ns >= frame.input_arrival_ns > 0
+            # no uncertainty from so's or hybrid's objective: a dashboard showed their 1/sqrt(2) as +-70 % bars
+            assert len(frame.activation_std) == 0
         assert [f.time_s for f in frames[:-1]] == pytest.approx([(i + 1) * 0.01 for i in range(len(poses))])
         assert frames[-1].flags == ["invalid_input"] and frames[-1].solver_status == "invalid_input"
     assert stats.flagged.get("invalid_input") == 2  # the NaN frame, once per method

@@ -88,6 +88,12 @@ class Method(str, Enum):
     ASSISTED = "assisted"
 
 
+#: The methods whose objective is a negative log-density of activation (a prior, EMG and torque noise with stated
+#: spreads), so that its Laplace std is an uncertainty: published with their frames. ``so``'s Σa² and ``hybrid``'s
+#: weights are no such density (their "std" is 1/√2 ≈ 0.71 for every free group, which a new user's dashboard showed
+#: as ±70 % bars); :attr:`FrameResult.activation_std` still gives it for every method.
+UNCERTAIN_METHODS = frozenset({Method.PROPOSED, Method.ASSISTED, Method.PRIOR})
+
 #: why a frame is ``invalid_input`` (FrameResult.reason; the estimator's summary counts them)
 INVALID_REASONS = (
     "q wrong shape",

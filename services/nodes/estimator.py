@@ -51,7 +51,7 @@ from msk_core.errors import ConfigError, MskError, parse_pairs
 from msk_core.estimate import FrameEstimator
 from msk_core.estimate.clock_alignment import AccelerationAlignment
 from msk_core.estimate.emg_chunk import RawEmgChunk
-from msk_core.estimate.frame import FrameResult, Method
+from msk_core.estimate.frame import UNCERTAIN_METHODS, FrameResult, Method
 from msk_core.estimate.live_emg import ClockMode, EmgCounters, EmgSetup, JointsClock, LiveEmg
 from msk_core.estimate.live_fatigue import ElectrodeFatigueReport, LiveFatigue
 from msk_core.estimate.live_quality import ElectrodeReport, LiveQuality
@@ -320,12 +320,12 @@ def to_message(
     )
     if result.phase is not None:
         frame.phase = float(result.phase)
-    if not result.flagged:
+    if result.flagged:
+        frame.flags.append(result.status.value)
+    elif method in UNCERTAIN_METHODS:  # so's and hybrid's objectives give no uncertainty (and ~70 µs a frame saved)
         std = result.activation_std
         if std is not None and np.all(np.isfinite(std)):
             frame.activation_std.extend(std.tolist())
-    else:
-        frame.flags.append(result.status.value)
     for name, tau_id, tau_model, residual in zip(coordinates, result.torques, result.model_torques, result.residual):
         frame.torques.add(
             coordinate=name, inverse_dynamics_nm=float(tau_id), model_nm=float(tau_model), residual_nm=float(residual)
