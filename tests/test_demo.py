@@ -56,7 +56,10 @@ def test_demo_runs_the_live_graph_and_scores_every_frame(tmp_path, repo_root):
     assert (out / "bench_press_50kg.png").stat().st_size > 10_000
     assert (out / "strength.png").stat().st_size > 10_000
     strength_section = report.split("## Calibrated strength")[1]
-    assert "10 isometric MVC trials" in strength_section and "| DelAnt | identified |" in strength_section
+    assert (
+        "10 isometric MVC trials" in strength_section
+        and "| Deltoid, anterior part (DelAnt) | identified |" in strength_section
+    )
     profile = json.loads((out / "subject_bench_press.json").read_text())
     assert profile["pack"]["name"] == "bench_press"
     assert any("calibrated" in line for line in lines)

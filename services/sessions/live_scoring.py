@@ -138,7 +138,7 @@ def score(recorded_mcap: Path, recordings: Path) -> tuple[list[MethodScore], dic
 
 def markdown(scores: list[MethodScore]) -> str:
     lines = [
-        "| trial | role | method | frames | activation RMSE | torque residual RMS (N·m) | flagged | solve µs (median / p99) | latency ms (median / p99) |",
+        "| trial | role | method | frames | activation RMSE (0 to 1) | torque residual RMS (N·m) | flagged | solve µs (median / p99) | latency ms (median / p99) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for s in scores:

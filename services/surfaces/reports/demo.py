@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msk_core.model.pack import names_for
 from services.sessions.live_scoring import METHODS, MethodScore
 from services.surfaces.reports import pyplot, save_figure
 
@@ -26,13 +27,19 @@ def strength_markdown(calibration: dict) -> str:
             "| group | status | calibrated F_max (N) | true F_max (N) | error | reference (N) | reference error |",
             "|---|---|---|---|---|---|---|",
         ]
+        names = names_for(exercise, list(rep["groups"]))
         for g, v in rep["groups"].items():
             lines.append(
-                f"| {g} | {v['status']} | {v['f_max_n']:.0f} | {v['truth_n']:.0f} | {100 * (v['f_max_n'] / v['truth_n'] - 1):+.0f} % "
+                f"| {_named(names.group(g), g)} | {v['status']} | {v['f_max_n']:.0f} | {v['truth_n']:.0f} | {100 * (v['f_max_n'] / v['truth_n'] - 1):+.0f} % "
                 f"| {v['reference_n']:.0f} | {100 * (v['reference_n'] / v['truth_n'] - 1):+.0f} % |"
             )
         lines.append("")
     return "\n".join(lines)
+
+
+def _named(display: str, model: str) -> str:
+    """A group as a coach reads it, with the model's name the tables and files use: "Brachioradialis (BRD)"."""
+    return model if display == model else f"{display} ({model})"
 
 
 STRENGTH_COLOURS = {"identified": "tab:green", "not_calibrated": "dimgrey"}
@@ -41,7 +48,7 @@ STRENGTH_COLOURS = {"identified": "tab:green", "not_calibrated": "dimgrey"}
 def plot_strength(calibration: dict, out: Path) -> Path:
     """F_max / truth per group: calibrated and the model's reference (1 = exact)."""
     plt = pyplot()
-    fig, axes = plt.subplots(len(calibration), 1, figsize=(13, 2.8 * len(calibration)), squeeze=False)
+    fig, axes = plt.subplots(len(calibration), 1, figsize=(13, 4.6 * len(calibration)), squeeze=False)
     for ax, (exercise, rep) in zip(axes[:, 0], calibration.items()):
         groups = list(rep["groups"])
         x = np.arange(len(groups))
@@ -52,7 +59,8 @@ def plot_strength(calibration: dict, out: Path) -> Path:
         ax.bar(x + 0.2, cal, 0.4, color=[STRENGTH_COLOURS.get(st, "tab:orange") for st in status])
         ax.axhline(1.0, color="black", lw=1)
         ax.axhspan(0.9, 1.1, color="tab:green", alpha=0.08)
-        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=8)
+        names = names_for(exercise, groups)
+        ax.set_xticks(x, [names.group(g) for g in groups], rotation=45, ha="right", fontsize=8)
         ax.set_ylim(0.0, max(1.5, 1.05 * max(cal + ref)))
         ax.set_ylabel("F_max / truth")
         ax.set_title(
@@ -78,8 +86,10 @@ def plot_activations(curves: dict, scores: list[MethodScore], out: Path) -> list
     :func:`services.sessions.live_scoring.score`."""
     plt = pyplot()
     written = []
+    exercises = {s.trial: s.exercise for s in scores}
     for trial in sorted({s.trial for s in scores if s.role == "held out"}):
         truth_t, _, truth, groups = curves[(trial, "proposed")]
+        names = names_for(exercises[trial], list(groups))
         top = np.argsort(truth.max(axis=0))[::-1][:4]
         fig, axes = plt.subplots(len(top), 1, figsize=(10, 2.2 * len(top)), sharex=True)
         for ax, gi in zip(np.atleast_1d(axes), top):
@@ -87,7 +97,7 @@ def plot_activations(curves: dict, scores: list[MethodScore], out: Path) -> list
             for method, colour in zip(METHODS, ("tab:green", "tab:red", "tab:blue")):
                 t, est, _, _ = curves[(trial, method)]
                 ax.plot(t, est[:, gi], color=colour, lw=1, label=method)
-            ax.set_ylabel(groups[gi])
+            ax.set_title(f"{names.group(groups[gi])}: activation (0 to 1)", fontsize=9, loc="left")
             ax.set_ylim(0, 1)
         np.atleast_1d(axes)[0].legend(loc="upper right", ncol=4, fontsize=8)
         np.atleast_1d(axes)[-1].set_xlabel("time in trial (s)")
