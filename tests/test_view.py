@@ -503,3 +503,19 @@ def test_set_keys_typed_among_other_keys_mark_nothing_and_a_key_pressed_alone_ma
         reader.join(5.0)
         os.close(master)
         os.close(slave)
+
+
+def test_a_view_waiting_for_a_session_nobody_runs_names_the_ones_that_run(tmp_path, monkeypatch):
+    """Found by a new user: `msk view --session simm` (a typo) waited in silence under its full screen, while `sim` ran."""
+    import os
+
+    from services.sessions import discovery
+    from services.surfaces.view import waiting_text
+
+    monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    assert str(waiting_text("simm", "")) == "waiting for activations on msk/simm/activations/* ..."  # nothing runs
+    running = tmp_path / "running"
+    discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(running)), running)
+    said = str(waiting_text("simm", ""))
+    assert "No msk live here is named 'simm' (running: sim): msk view --session NAME" in said, said
+    assert "No msk live" not in str(waiting_text("sim", ""))  # the session runs: it is only starting

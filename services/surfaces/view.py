@@ -354,7 +354,14 @@ def waiting_text(session: str, paused: str) -> Text:
     """What the view says before its first activation frame: why the estimator is paused, or what it waits for."""
     if paused:
         return Text(f"Estimates paused. {paused}", style="bold yellow")
-    return Text(f"waiting for activations on msk/{session}/activations/* ...")
+    from services.sessions import discovery
+
+    # a typo waited in silence (the line on stderr that says so is under the full screen): the sessions that do run
+    running = [s.session for s in discovery.running_sessions()]
+    text = f"waiting for activations on msk/{session}/activations/* ..."
+    if running and session not in running:
+        text += f" No msk live here is named {session!r} (running: {', '.join(running)}): msk view --session NAME"
+    return Text(text)
 
 
 def render(state: ViewState, session: str, primary: str | None = None, width: int | None = None) -> Group:
