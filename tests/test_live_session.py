@@ -415,6 +415,10 @@ def test_a_refusal_names_the_line_of_the_key_in_the_session_file(tmp_path):
     with pytest.raises(ConfigError) as error:
         check_against_pack(session, ["pec_clav"], [], {"PMCla": {}})
     assert error.value.line == 11 and "line 11, field 'electrodes.sensor01.EMG'" in str(error.value), error.value
+    # a typo gets the closest name (found by a new user: "PMCal" for "PMCla" was said without one)
+    session = load_session_file(_write(tmp_path, GOOD.replace('"sensor01.EMG" = "PMCla"', '"sensor01.EMG" = "PMCal"')))
+    with pytest.raises(ConfigError, match="did you mean 'PMCla'"):
+        check_against_pack(session, ["pec_clav"], [], {"PMCla": {}})
 
 
 def test_a_secured_session_refuses_a_swapped_role_certificate_and_a_missing_folder_before_it_starts(tmp_path):

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from drivers.trigno.protocol import N_SENSORS, AuxLayout
 from drivers.xsens.mvn import parse_address as parse_mvn_address
-from msk_core.errors import ConfigError
+from msk_core.errors import ConfigError, close_names
 from msk_core.io.files import toml_key_line
 from msk_core.signal.sets import DEFAULT_REST_S
 from msk_core.units import load_problem
@@ -454,11 +454,13 @@ def check_against_pack(
         )
     for label, target in session.electrodes.items():
         if target not in profile_electrodes and target not in groups:
+            close = close_names(target, [*profile_electrodes, *groups], n=1)
             raise session_error(
                 session.path,
                 f"electrodes.{label}",
                 "neither an electrode of the subject profile "
-                f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack",
+                f"({', '.join(profile_electrodes) or 'none'}) nor a muscle group of the pack"
+                + (f"; did you mean {close[0]!r}?" if close else ""),
                 target,
             )
 
