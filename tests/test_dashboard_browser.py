@@ -286,7 +286,13 @@ TEXT_SIZES = """() => {
   sizes.sort((a, b) => a[0] - b[0]);
   const colours = (s) => [...new Set([...document.querySelectorAll(s)].map((e) => getComputedStyle(e).color))];
   const html = document.documentElement;
+  const wrapped = [...document.querySelectorAll('#sets td:not(:first-child), #devices td:nth-child(n+3)')].filter((td) => {
+    const range = document.createRange();
+    range.selectNodeContents(td);
+    return new Set([...range.getClientRects()].map((r) => Math.round(r.top))).size > 1;  // on two lines
+  }).map((td) => td.textContent);
   return {
+    wrapped,
     min: sizes.length ? sizes[0][0] : null, count: sizes.length, smallest: sizes.slice(0, 5),
     panelLabels: colours('main h2, main .hint, main th, .scale, .torque-title'), headerLabels: colours('header .label'),
     overflowX: html.scrollWidth - window.innerWidth, overflowY: html.scrollHeight - window.innerHeight,
@@ -298,11 +304,13 @@ FOREGROUND = "rgb(29, 38, 48)"  # the panels' text colour (#1d2630); the header'
 
 def assert_readable(page, *, fits_height: bool) -> dict:
     """Every visible text at least MIN_TEXT_PX, the labels in the foreground colour, nothing wider than the window
-    (and, ``fits_height``, nothing below it: the landscape layout is one screen)."""
+    (and, ``fits_height``, nothing below it: the landscape layout is one screen), no number of the sets' and devices'
+    tables broken over two lines."""
     seen = page.evaluate(TEXT_SIZES)
     assert seen["count"] > 50 and seen["min"] >= MIN_TEXT_PX, seen
     assert seen["panelLabels"] == [FOREGROUND] and seen["headerLabels"] == ["rgb(255, 255, 255)"], seen
     assert seen["overflowX"] <= 0 and (seen["overflowY"] <= 0 or not fits_height), seen
+    assert seen["wrapped"] == [], seen["wrapped"]  # a number and its unit on one line (a new user saw "25.1⏎s")
     return seen
 
 
