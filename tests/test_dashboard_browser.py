@@ -128,6 +128,20 @@ def test_dashboard_follows_a_replayed_session_in_chromium(tmp_path, zenoh_endpoi
             )
             page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
             assert_readable(page, fits_height=True)
+            # an arm exercise's map is the upper body, also in a box taller than it (a new user saw the legs drawn)
+            drawn = page.evaluate(
+                """() => { const svg = document.querySelector('#bodymap svg'), r = svg.getBoundingClientRect();
+                  const vb = svg.viewBox.baseVal, rows = [];
+                  for (let fy = 0.025; fy < 1; fy += 0.05) { let n = 0;
+                    for (let fx = 0.01; fx < 1; fx += 0.02) {
+                      const e = document.elementFromPoint(r.x + fx * r.width, r.y + fy * r.height);
+                      n += e !== null && e.classList.contains('body'); }
+                    rows.push([fy, n]); }
+                  return {rows, band: (r.width * vb.height / vb.width) / r.height}; }"""
+            )  # per twentieth of the map's box, top to bottom: the points that hit the grey figure
+            band = drawn["band"]  # the part shown, fitted in the box and centred: the share of its height it fills
+            outside = [(fy, n) for fy, n in drawn["rows"] if n and abs(fy - 0.5) > band / 2 + 0.03]
+            assert band < 0.9 and not outside, drawn
             # the table of sets says whose figures it holds: the report's method (so before hybrid), not the menu's
             assert page.inner_text("#sets-hint").endswith("peak / mean activation % of so")
             # Method switch: the bars follow the other method.

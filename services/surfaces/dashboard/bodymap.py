@@ -315,9 +315,17 @@ def render_svg(
                 + _ellipse(cx, region.cy, region.rx, region.ry, tilt, attrs)
                 + "</g>"
             )
+    # the drawing clipped to the part shown: a page that gives the map a taller box than the part's (the viewBox is
+    # fitted, centred, and the rest of the box drawn too) showed the legs under an arm exercise (found by a new user)
+    view_clip = f"part-{escape(body.pack)}-{part}"
+    out.append(
+        f'<clipPath id="{view_clip}"><rect x="{left}" y="{top:g}" width="{total_w}" height="{height:g}"/></clipPath>'
+    )
     out.append("</defs>")
+    out.append(f'<g clip-path="url(#{view_clip})">')
     out += _silhouette(0) + _silhouette(VIEW_WIDTH + 20)
     out += shapes
+    out.append("</g>")
     # each view named in its top left corner, beside the head (nothing is drawn there)
     text = 'font-family="sans-serif" font-size="15" fill="#1d2630"'
     out.append(f'<text x="{MIDLINE - 68}" y="{top + 16:g}" {text}>front</text>')
