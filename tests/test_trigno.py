@@ -540,38 +540,64 @@ def test_a_pause_the_base_buffers_loses_nothing_and_counts_nothing():
     assert client.stats.samples_lost == 0
 
 
-@pytest.mark.parametrize("lag_s", [0.0, 0.3])
-def test_aux_rows_keep_their_index_across_a_dropping_pause_whether_or_not_they_come_behind_the_emg(lag_s):
-    """Found by a second independent base imitation: with its AUX frames 0.3 s behind the EMG, a pause in which the
-    base drops what it measures put the AUX rows measured before the pause (arriving while the EMG was quiet) after
-    the gap, and every later AUX row 46 samples (0.31 s) late on the EMG clock. Each AUX row here carries its own
-    instant (the accelerometer is a ramp: AUX sample k reads 13.5 k), so its index is checked row by row."""
+def _ramp_source(seconds: float, seed: int):
+    """A synthetic Trigno trial whose accelerometers carry their own instant: AUX sample k reads 13.5 k (a ramp at the
+    EMG's 2 kHz, sampled by the AUX port's 2 samples per 27 EMG samples), so every AUX row's index can be checked."""
     import dataclasses
 
-    base = synthetic_source(seconds=20.0, seed=9)
+    base = synthetic_source(seconds=seconds, seed=seed)
     ramp = np.zeros((base.samples.shape[0], tp.N_SENSORS, 3), np.float32)
-    ramp[:, :, 0] = np.arange(base.samples.shape[0], dtype=np.float32)[:, None]  # EMG sample i's instant, at 2 kHz
-    source = dataclasses.replace(base, acc=ramp, acc_rate_hz=base.rate_hz)
+    ramp[:, :, 0] = np.arange(base.samples.shape[0], dtype=np.float32)[:, None]
+    return dataclasses.replace(base, acc=ramp, acc_rate_hz=base.rate_hz)
+
+
+def _aux_index_errors(events: list) -> tuple[np.ndarray, np.ndarray]:
+    """Each AUX row's (index given, index it truly is) of a :func:`_ramp_source` stream."""
+    aux = [e for e in events if isinstance(e, AuxBlock)]
+    index = np.concatenate([e.first_sample_index + np.arange(len(e.samples)) for e in aux])
+    return index, np.concatenate([e.samples[:, 0] for e in aux]) / 13.5
+
+
+@pytest.mark.parametrize("lag_s", [0.0, 0.3])
+@pytest.mark.parametrize("ending", ["pause", "stalled link", "stop"])
+def test_aux_rows_keep_their_index_across_a_dropping_pause_whether_or_not_they_come_behind_the_emg(lag_s, ending):
+    """Found by a second independent base imitation: with its AUX frames 0.3 s behind the EMG, a pause in which the
+    base drops what it measures put the AUX rows measured before the pause (arriving while the EMG was quiet) after
+    the gap, and every later AUX row 46 samples (0.31 s) late on the EMG clock. A review found the same when the
+    pause outlasts the stall timeout (a lost link, reconnected: the held rows put after its gap) and at a stop
+    during the pause (the held rows never returned)."""
+    source = _ramp_source(20.0, 9)
     quirks = TrignoQuirks(aux_lag_s=lag_s)
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=9, quirks=quirks)) as sim:
-        client = client_for(sim, aux=True)
+        client = client_for(sim, aux=True, stall_timeout_s=1.0 if ending == "stalled link" else 5.0)
         client.connect()
         client.start()
         events = collect(client, samples=1000, seconds=5)
-        sim.pause(0.8, drop=True)
-        events += collect(client, seconds=6, until=lambda ev: len(emg_rows(ev)) >= 2000)
-        events += collect(client, seconds=lag_s + 0.3)  # the AUX behind the EMG's last rows
+        sim.pause(2.0 if ending == "stalled link" else 0.8, drop=True)
+        if ending == "stop":
+            events += collect(client, seconds=0.5)  # into the pause, its AUX rows behind the EMG held
+            events += client.stop()
+        else:
+            events += collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 2000 + len(emg_rows(events)))
+            events += collect(client, seconds=lag_s + 0.3)  # the AUX behind the EMG's last rows
         client.close()
+    index, measured_at = _aux_index_errors(events)
+    received = len(emg_rows(events))
+    if ending == "stop":  # every AUX row of the EMG received is returned, each with its own index
+        assert len(index) == int(received * 2 / 27) and np.array_equal(index, measured_at), (len(index), received)
+        return
     (gap,) = [e for e in events if isinstance(e, GapEvent)]
-    assert abs(gap.n_missing - sim.stats.frames_dropped * sim.samples_per_frame) <= sim.samples_per_frame
-    aux = [e for e in events if isinstance(e, AuxBlock)]
-    index = np.concatenate([e.first_sample_index + np.arange(len(e.samples)) for e in aux])
-    measured_at = np.concatenate([e.samples[:, 0] for e in aux]) / 13.5  # the AUX sample each row truly is
+    if ending == "pause":
+        assert abs(gap.n_missing - sim.stats.frames_dropped * sim.samples_per_frame) <= sim.samples_per_frame
     gap_at = gap.first_missing_index * 2 / 27
     before, after = measured_at < gap_at, measured_at >= gap_at
     assert before.sum() > 50 and after.sum() > 50, (before.sum(), after.sum())
-    assert np.array_equal(index[before], measured_at[before])  # measured before the pause: their own indices
-    assert np.all(np.abs(index[after] - measured_at[after]) <= 1), np.unique(index[after] - measured_at[after])
+    assert np.array_equal(index[before], measured_at[before])  # measured before the gap: their own indices
+    if ending == "pause":
+        assert np.all(np.abs(index[after] - measured_at[after]) <= 1), np.unique(index[after] - measured_at[after])
+    else:  # a reconnection's gap is measured from host time (+- the reconnection's jitter): one offset after it
+        offsets = np.unique(index[after] - measured_at[after])
+        assert len(offsets) == 1 and abs(offsets[0]) <= 3, offsets
     assert np.all(np.diff(index) > 0)
 
 

@@ -960,10 +960,14 @@ class TrignoClient:
         return bool(self._last_data_time) and now - self._last_data_time > PAUSE_CHECK_S
 
     def _settle_gap(self) -> None:
-        """Place the EMG held for a gap's measurement now (the data end: a stop, STOPPED, a lost link), with what has
-        arrived of its backlog."""
+        """The data end (a stop, STOPPED, a lost link): the EMG held for a gap's measurement placed now, with what has
+        arrived of its backlog; the AUX rows held while the EMG was quiet (measured before the end: behind the EMG,
+        they were put after the reconnection's gap, or lost at a stop) placed after it; and the pauses' gaps the AUX
+        stream never reached passed, in the AUX rate they were measured in (a reconnection may bring another)."""
         if self._emg_after_gap:
             self._report_gap()
+        self._release_held_aux()
+        self._pass_aux_gaps()
 
     # ------------------------------------------------------------------------------------------ reconnection
     def _drain(self, link: _Link) -> None:
