@@ -287,6 +287,15 @@ def _check_scale(scale: np.ndarray) -> np.ndarray:
     return scale
 
 
+#: The MVC amplitude convention: the highest 0.5 s mean of the envelope (:func:`windowed_peak`).
+MVC_WINDOW_S = 0.5
+
+
+def mvc_window_samples(rate_hz: float) -> int:
+    """:data:`MVC_WINDOW_S` in samples of an envelope at ``rate_hz`` (at least 1)."""
+    return max(1, int(round(MVC_WINDOW_S * rate_hz)))
+
+
 def windowed_peak(envelope: np.ndarray, window_samples: int = 1) -> np.ndarray:
     """Per channel, the highest mean of the envelope over ``window_samples`` consecutive samples.
 

@@ -27,7 +27,7 @@ import numpy as np
 import tomli_w
 
 from msk_core.io import write_sto
-from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, windowed_peak
+from msk_core.signal.emg import EmgFilterConfig, envelope_zero_phase_noncausal, mvc_window_samples, windowed_peak
 from msk_core.synth.session import ExerciseSession, Session, Trial
 
 TRUTH_FORMAT = "msk-synth-truth/1"
@@ -53,12 +53,9 @@ def _envelope(emg: np.ndarray, rate_hz: float) -> np.ndarray:
     return envelope_zero_phase_noncausal(emg, EmgFilterConfig(rate_hz=rate_hz))
 
 
-MVC_WINDOW_S = 0.5  # MVC amplitude = highest 0.5 s mean of the envelope (msk_core.signal.emg.windowed_peak)
-
-
 def mvc_maxima(channels: list[str], envelope: np.ndarray, rate_hz: float) -> dict[str, float]:
     """MVC amplitude per channel from the MVC recording's envelope (``_envelope`` of its raw EMG)."""
-    peaks = windowed_peak(envelope, int(round(MVC_WINDOW_S * rate_hz)))
+    peaks = windowed_peak(envelope, mvc_window_samples(rate_hz))
     return {ch: float(peaks[k]) for k, ch in enumerate(channels)}
 
 

@@ -23,7 +23,9 @@ from msk_core.signal.emg import (
     NormalisationMode,
     envelope_causal,
     envelope_zero_phase_noncausal,
+    mvc_window_samples,
     normalisation_reference,
+    windowed_peak,
 )
 from msk_core.signal.reps import Excursion, PhaseMode, RepDetectionConfig, detect_reps, rep_phase
 from services.commands import described
@@ -143,13 +145,19 @@ def _envelope(args: argparse.Namespace) -> int:
         chain = envelope_zero_phase_noncausal if args.zero_phase else envelope_causal
         return chain(recording.data, cfg)
 
+    def amplitude(recording: AnalogRecording, envelope: np.ndarray) -> np.ndarray:
+        """Per channel, the highest MVC_WINDOW_S mean of an envelope at its recording's rate, as one row (the plain
+        peak, used before, read a steady maximal contraction 21 % high: every normalised envelope that much low)."""
+        return windowed_peak(envelope, mvc_window_samples(recording.rate_hz))[None, :]
+
     env = filtered(rec)
     if args.mvc:
-        mvc = [filtered(read_emg_file(p, rec.labels)) for p in args.mvc]
+        mvc_recordings = [read_emg_file(p, rec.labels) for p in args.mvc]
+        mvc = [amplitude(r, filtered(r)) for r in mvc_recordings]
         mode = NormalisationMode(args.normalise or NormalisationMode.MVC.value)
         ref = normalisation_reference(
             mvc,
-            task_envelopes=[env] if mode is NormalisationMode.MAX_ALL_TRIALS else None,
+            task_envelopes=[amplitude(rec, env)] if mode is NormalisationMode.MAX_ALL_TRIALS else None,
             mode=mode,
             channels=tuple(rec.labels),
         )
@@ -217,7 +225,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--normalise",
         choices=[m.value for m in NormalisationMode],
         default=None,
-        help="with --mvc: divide by the MVC peak (mvc, the default), or by the max over MVC and this trial",
+        help="with --mvc: divide by the MVC amplitude (mvc, the default: the highest 0.5 s mean of the MVC trials' "
+        "envelopes), or by the highest over MVC and this trial",
     )
     e.set_defaults(handler=_envelope)
 
