@@ -453,7 +453,9 @@ def test_emg_labels_in_another_case_are_suggested_and_a_missing_in_degrees_line_
 def test_a_c3d_as_the_trials_emg_says_how_to_make_the_storage_it_needs(tmp_path, pack):
     recording = tmp_path / "session.c3d"
     recording.write_bytes(b"\x02\x50")  # never opened: the key's value says what it is
-    with pytest.raises(ConfigError, match=r"msk emg envelope .*session\.c3d -o emg\.sto") as error:
+    with pytest.raises(
+        ConfigError, match=r"msk emg envelope .*session\.c3d --zero-phase --mvc MVC_TRIAL -o emg\.sto"
+    ) as error:
         load_trial(_trial(tmp_path, emg=recording), pack)
     assert "emg" in str(error.value)
 
@@ -488,3 +490,28 @@ def test_a_load_or_body_mass_in_grams_is_refused_naming_its_key(tmp_path, pack, 
     with pytest.raises(ConfigError) as error:
         load_trial(_trial(tmp_path, swap=(swap,)), pack)
     assert error.value.field == field and said in str(error.value), error.value
+
+
+def test_envelopes_msk_emg_envelope_left_in_volts_are_refused_as_activation(tmp_path, pack):
+    """Found with held-out data: the trial's own hint led to `msk emg envelope RAW -o emg.sto`, whose envelopes are in
+    volts ("EMG envelopes (V), causal"); an amplifier's volts (peaks 0.007-0.12) passed the range checks and were
+    fitted as activation: scores ~10x better than true, strengths at the wrong bound. Its first line says what it
+    holds: refused unless each channel's MVC is given as [emg_max]."""
+    import tomllib
+
+    demo = read_sto(DEMO / "emg.sto")  # the demo's envelopes, in volts, with their MVCs in the trial's [emg_max]
+    volts = tmp_path / "emg_v.sto"
+    write_sto(volts, demo.time, list(demo.columns), demo.data, name="EMG envelopes (V), causal")
+    with_max = _trial(tmp_path, emg=volts).read_text()
+    without_max = with_max.split("[emg_max]")[0]
+    (tmp_path / "no_max.toml").write_text(without_max)
+    with pytest.raises(ConfigError) as error:
+        load_trial(tmp_path / "no_max.toml", pack)
+    assert "emg_v.sto holds EMG envelopes that are not normalised" in str(error.value), error.value
+    assert error.value.field.startswith("emg_map.")
+    assert len(tomllib.loads(with_max)["emg_max"]) == len(tomllib.loads(with_max)["emg_map"])
+    (tmp_path / "with_max.toml").write_text(with_max)  # each channel's MVC in volts: the envelopes as the demo's
+    loaded, reference = load_trial(tmp_path / "with_max.toml", pack).emg, load_trial(_trial(tmp_path), pack).emg
+    assert loaded.keys() == reference.keys()
+    for group in reference:
+        np.testing.assert_allclose(loaded[group], reference[group], equal_nan=True)

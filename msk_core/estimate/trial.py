@@ -789,12 +789,17 @@ def load_trial(path: str | Path, pack: PackLike) -> TrialData:
 _EMG_RECORDING_SUFFIXES = (".c3d", ".anc", ".csv")
 
 
+#: The first line of an envelope file ``msk emg envelope`` wrote without ``--mvc`` (services/commands/emg.py).
+_UNNORMALISED_ENVELOPES = re.compile(r"^EMG envelopes \((V|file units)\)")
+
+
 def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
     emg_file = file_of("emg")
     if Path(emg_file).suffix.lower() in _EMG_RECORDING_SUFFIXES:
         raise err(
-            f"a trial's EMG is an OpenSim storage (.sto/.mot) of envelopes or raw EMG; make one from this recording "
-            f'with: msk emg envelope {emg_file} -o emg.sto (then emg = "emg.sto")',
+            f"a trial's EMG is an OpenSim storage (.sto/.mot) of normalised envelopes or raw EMG; make one from this "
+            f"recording with: msk emg envelope {emg_file} --zero-phase --mvc MVC_TRIAL -o emg.sto (normalised by the "
+            f'MVC trial; then emg = "emg.sto"), or without --mvc and each channel\'s MVC as [emg_max]',
             "emg",
             str(spec.get("emg")),
         )
@@ -803,10 +808,21 @@ def _load_emg(spec, path, text, file_of, err, pack: PackLike, time):
     mapping = spec.get("emg_map")
     if not isinstance(mapping, dict) or not mapping:
         raise err("an [emg_map] table (EMG column -> group) is required with emg", "emg_map", mapping)
+    maxima = spec.get("emg_max", {})
+    unscaled = [ch for ch in mapping if not isinstance(maxima, dict) or ch not in maxima]
+    if _UNNORMALISED_ENVELOPES.match(storage.name) and unscaled:
+        # volts at an amplifier's output pass the range checks below (peaks 0.007-0.12 V on a held-out walk): the
+        # file's own first line says what it holds
+        raise err(
+            f"{Path(emg_file).name} holds EMG envelopes that are not normalised (its first line: {storage.name!r}, as "
+            "msk emg envelope writes them without --mvc), and activation is 0-1: make them again with --mvc "
+            "MVC_TRIAL, or give each channel's MVC amplitude in the file's units as [emg_max]",
+            f"emg_map.{unscaled[0]}",
+            unscaled[0],
+        )
     is_envelope = spec.get("emg_is_envelope", True)
     if not isinstance(is_envelope, bool):
         raise err("must be true or false", "emg_is_envelope", is_envelope)
-    maxima = spec.get("emg_max", {})
     if not isinstance(maxima, dict):
         raise err("must be a table channel -> value", "emg_max", maxima)
     groups = list(pack.groups)
