@@ -515,3 +515,22 @@ def test_envelopes_msk_emg_envelope_left_in_volts_are_refused_as_activation(tmp_
     assert loaded.keys() == reference.keys()
     for group in reference:
         np.testing.assert_allclose(loaded[group], reference[group], equal_nan=True)
+
+
+def test_torques_of_the_opposite_sign_are_refused_or_said(tmp_path, pack):
+    """Found with held-out data: a walk exported with the other model's knee convention (its knee moment left
+    unflipped), or every moment negated (external moments), loaded and calibrated without a word. Every column against
+    the pack's inverse dynamics of the same motion is refused; one column is said in the trial's notes."""
+    tq = read_sto(DEMO / "id.sto")
+    negated = _write_like(DEMO / "id.sto", tmp_path / "id_external.sto", tq.time, -tq.data)
+    with pytest.raises(InputError, match="every torque column runs against the pack's inverse dynamics") as error:
+        load_trial(_trial(tmp_path, torques=negated), pack)
+    assert error.value.field == "torques" and "external moments" in str(error.value)
+    elbow = list(tq.columns).index("elbow_flex_r_moment")
+    one = tq.data.copy()
+    one[:, elbow] *= -1
+    flipped = _write_like(DEMO / "id.sto", tmp_path / "id_elbow.sto", tq.time, one)
+    notes = trial_notes(load_trial(_trial(tmp_path, torques=flipped), pack))
+    said = [n for n in notes if "runs against" in n]
+    assert len(said) == 1 and said[0].startswith("the torque of elbow_flex_r runs against"), notes
+    assert not [n for n in trial_notes(load_trial(_trial(tmp_path), pack)) if "runs against" in n]
