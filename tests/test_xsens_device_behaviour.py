@@ -279,3 +279,24 @@ def test_the_real_mti_gs_gnss_messages_are_recorded_in_their_count_not_dropped_a
     assert stats.frames_synced >= 90 and stats.resumes == 0 and stats.restarts == 0, stats
     counters = [r.packet_counter for r in readings]  # what the recording holds, in the report's loss count
     assert np.all(np.diff(counters) % 65536 == 1)
+
+
+def test_without_a_packet_counter_losses_are_counted_by_the_devices_own_period():
+    """A device without PacketCounter: losses come from SampleTimeFine steps. A review found the configured rate taken
+    as the period, so a tracker sending slower than configured (an Awinda MTw's rate limit: 50 Hz for 100 asked)
+    counted every message as one lost; late GNSS messages and a restart of the clock must count nothing either."""
+    line = ScriptedLine()
+    device = XsensDevice(line)
+    device.output_configuration = [xbus.OutputSetting(0x1060, 100), xbus.OutputSetting(QUATERNION, 100)]
+    q = {"q": (QUATERNION, (1.0, 0.0, 0.0, 0.0))}
+    times = [1000 + 200 * k for k in range(40)]  # 50 Hz: a step of 200 ticks
+    del times[20:23]  # three messages lost on the line
+    times.insert(10, times[9] - 450)  # a late GNSS-like message, 45 ms older than the one before
+    line.feed(*(data_message(None, t, **q) for t in times))
+    while line.incoming:
+        device.read()
+    assert device.stats.packets_lost == 3, device.stats
+    line.feed(*(data_message(None, 500 + 200 * k, **q) for k in range(10)))  # the clock starts again (a restart)
+    while line.incoming:
+        device.read()
+    assert device.stats.packets_lost == 3, device.stats

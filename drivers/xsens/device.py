@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -17,6 +18,8 @@ DEFAULT_QUANTITIES = (0x2010, 0x4020, 0x8020, 0xC020)
 #: SampleTimeFine counts at 10 kHz; it wraps after one day on 10/100-series devices, others wrap at 2^32.
 SAMPLE_TIME_FINE_HZ = 10_000
 SAMPLE_TIME_FINE_DAY = 864_000_000
+#: Steps of SampleTimeFine whose smallest is a device's own message period when it sends slower than configured.
+LOSS_PERIOD_STEPS = 32
 #: A sample may arrive this much older than the newest (an MTi-G's GNSS messages: 42-62 ms); a step back beyond it is
 #: the device's clock starting again (SampleTimeFine ticks at 10 kHz).
 MAX_LATE_TICKS = 10_000
@@ -133,6 +136,8 @@ class XsensDevice:
         self._stalled_since: float | None = None  # since when an incomplete frame waits with nothing arriving
         self._last_counter: dict[int, int] = {}
         self._last_time: dict[int, int] = {}  # last SampleTimeFine per bus id
+        #: per bus id, without a PacketCounter: (newest unwrapped SampleTimeFine, its recent steps) for the loss count
+        self._time_loss: dict[int, tuple[int, collections.deque]] = {}
         self._time_offset: dict[int, int] = {}  # unwrapping offset per bus id
         self._long_clock: set[int] = set()  # bus ids whose SampleTimeFine went past a day: they wrap at 2^32
         self._counter_ticks: dict[int, int] = {}  # messages since the counter's first (unwrapped), per bus id
@@ -256,6 +261,7 @@ class XsensDevice:
                         switch(rate)
                     self.send(xbus.Mid.WAKE_UP_ACK)
                     self._last_counter.clear()
+                    self._time_loss.clear()
                     self._clock_anchor.clear()  # its counter ticks start again
                     return
         raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
@@ -343,6 +349,7 @@ class XsensDevice:
                 raise
             log.warning("%s; its data flow: measuring", error)
         self._last_counter.clear()
+        self._time_loss.clear()
         self._clock_anchor.clear()  # its counter ticks start again
 
     def configure(
@@ -407,6 +414,7 @@ class XsensDevice:
                     self.stats.restarts += 1
                     self.stats.last_error = "device restarted (WakeUp while measuring)"
                 self._last_counter.clear()
+                self._time_loss.clear()
                 self._last_time.clear()
                 self._time_offset.clear()
                 self._clock_anchor.clear()
@@ -438,11 +446,9 @@ class XsensDevice:
             self._last_counter[bid] = counter
             self._counter_ticks[bid] = ticks
         sample_time = data.first("sample_time_fine")
-        newest = self._last_time.get(bid)
-        newest_ticks = None if newest is None else newest + self._time_offset.get(bid, 0)
         offset = 0 if sample_time is None else self._unwrapped_offset(bid, sample_time)
-        if counter is None and sample_time is not None and newest_ticks is not None:
-            self._count_lost_by_time(sample_time + offset - newest_ticks)
+        if counter is None and sample_time is not None:
+            self._count_lost_by_time(bid, sample_time + offset)
         tracker = self.tracker_id if bid == xbus.BID_MASTER else f"{self.tracker_id}-{bid:02d}"
         untimed = None if sample_time is not None else self._time_without_clock(bid, tracker, counter is not None, now)
         if sample_time is not None and counter is not None:  # where a message without it continues from
@@ -463,13 +469,24 @@ class XsensDevice:
             time_without_clock_ns=untimed,
         )
 
-    def _count_lost_by_time(self, step_ticks: int) -> None:
+    def _count_lost_by_time(self, bid: int, ticks: int) -> None:
         """A device that sends no PacketCounter (it did not apply 0x1020): the messages missing between two
-        SampleTimeFines more than a message period apart (the applied outputs' rate) are counted lost, as the counter
-        would have counted them. Uncounted before 28 Nov: 1 message in 10 lost, ``packets_lost`` 0."""
+        SampleTimeFines more than a message period apart are counted lost, as the counter would have counted them
+        (uncounted before 28 Nov: 1 message in 10 lost, ``packets_lost`` 0). The period is the applied outputs' rate's,
+        or the smallest of the recent steps when longer: a device sending slower than configured (an Awinda tracker's
+        rate limit with many trackers) is not losing every other message. ``ticks``: unwrapped SampleTimeFine."""
+        newest, steps = self._time_loss.get(bid, (None, None))
+        if newest is None or steps is None or ticks < newest - MAX_LATE_TICKS:  # the first, or the clock restarted
+            self._time_loss[bid] = (ticks, collections.deque(maxlen=LOSS_PERIOD_STEPS))
+            return
+        step = ticks - newest
+        if step <= 0:  # late (an MTi-G's GNSS message, 42-62 ms older) or the same instant: no step of the clock
+            return
+        steps.append(step)
+        self._time_loss[bid] = (ticks, steps)
         rate = xbus.message_rate_hz(self.output_configuration)
-        if rate and step_ticks > 0:
-            self.stats.packets_lost += max(0, round(step_ticks * rate / SAMPLE_TIME_FINE_HZ) - 1)
+        period = max(SAMPLE_TIME_FINE_HZ / rate if rate else 0.0, float(min(steps)))
+        self.stats.packets_lost += max(0, round(step / period) - 1)
 
     def _time_without_clock(self, bid: int, tracker: str, counted: bool, now: int) -> int:
         """The time of a message without SampleTimeFine (a device that did not apply it, or keeps its own outputs):
@@ -523,6 +540,7 @@ class XsensDevice:
             self.stats.last_error = f"device restarted ({why}; its WakeUp was not received)"
         self._last_counter.pop(bid, None)
         self._last_time.pop(bid, None)
+        self._time_loss.pop(bid, None)
         self._clock_anchor.pop(bid, None)
         self._time_offset.pop(bid, None)
 
@@ -550,6 +568,7 @@ class XsensDevice:
         self.parser = xbus.XbusParser()
         self._queue.clear()
         self._last_counter.clear()
+        self._time_loss.clear()
         self._last_time.clear()
         self._time_offset.clear()
         self._clock_anchor.clear()
