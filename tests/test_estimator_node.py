@@ -152,3 +152,14 @@ def test_node_fills_the_phase_from_the_profiles_rep_template(zenoh_endpoint, tmp
     for k in (50, 150, 300):
         ref = offline_est.step(q[k], np.zeros(2), np.zeros(2), phase=float(expected[k]))
         np.testing.assert_allclose(received[k].activations, ref.activations, atol=1e-6)
+
+
+@pytest.mark.parametrize("load_kg", [60000.0, float("nan"), -1.0])
+def test_the_estimators_own_load_is_checked_as_msk_loads(load_kg):
+    """Found by review: `msk load` and the session file refused 60000 kg, the estimator's own --load-kg did not."""
+    from msk_core.errors import ConfigError
+    from services.nodes.estimator import EstimatorSettings
+
+    with pytest.raises(ConfigError) as error:
+        EstimatorSettings("arm26", "t", initial_load_kg=load_kg)
+    assert error.value.field == "--load-kg"

@@ -60,7 +60,7 @@ from msk_core.estimate.profile import SubjectProfile
 from msk_core.model.pack import available_packs, is_known_exercise
 from msk_core.signal.host_clock import ClockReport, DeviceClocks, latency_argv, parse_latencies
 from msk_core.signal.sets import SetTracker
-from msk_core.units import GRAVITY
+from msk_core.units import GRAVITY, load_problem
 from services.nodes.estimator_options import SOLVERS, add_live_synergists_argument, add_solver_argument
 from services.nodes.node_runtime import (
     ESTIMATOR_NODE,
@@ -173,6 +173,8 @@ class EstimatorSettings:
         object.__setattr__(self, "methods", methods)
         if self.solver not in SOLVERS:
             raise ConfigError(f"unknown solver; choose {', '.join(SOLVERS)}", field="--solver", value=self.solver)
+        if (problem := load_problem(self.initial_load_kg)) is not None:  # as msk load and the session file
+            raise ConfigError(problem, field="--load-kg", value=self.initial_load_kg)
         for needs_prior in METHODS_NEEDING_PROFILE:
             if needs_prior in methods and self.subject_path is None:
                 raise ConfigError(

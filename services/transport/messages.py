@@ -16,7 +16,7 @@ from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 
 from msk_core.errors import MskError
-from msk_core.units import MAX_LOAD_KG, load_problem
+from msk_core.units import load_problem
 from services.transport.schemas import msk_pb2
 
 EmgChunk = msk_pb2.EmgChunk
@@ -185,8 +185,8 @@ def problems(message: Message) -> list[str]:
             if len(getattr(message, name)) not in (0, n):
                 found.append(f"{len(getattr(message, name))} values of {name} for {n} coordinates")
     elif isinstance(message, LoadEvent):
-        if load_problem(message.barbell_mass_kg) is not None:
-            found.append(f"barbell_mass_kg {message.barbell_mass_kg} is not a load (0 to {MAX_LOAD_KG:g} kg)")
+        if (problem := load_problem(message.barbell_mass_kg)) is not None:
+            found.append(f"barbell_mass_kg {message.barbell_mass_kg}: {problem}")
         if message.set_mark not in ("", "start", "stop"):  # msk_core.signal.sets.SET_MARKS
             found.append(f"set_mark {message.set_mark!r} is not start, stop or empty")
         if not (_finite(message.set_rest_s) and message.set_rest_s >= 0):
