@@ -534,3 +534,15 @@ def test_torques_of_the_opposite_sign_are_refused_or_said(tmp_path, pack):
     said = [n for n in notes if "runs against" in n]
     assert len(said) == 1 and said[0].startswith("the torque of elbow_flex_r runs against"), notes
     assert not [n for n in trial_notes(load_trial(_trial(tmp_path), pack)) if "runs against" in n]
+
+
+def test_kinematics_of_another_model_say_what_each_side_has(tmp_path, pack):
+    """Found with held-out data: another model's kinematics got "no column for pack coordinate 'elv_angle_r'" with
+    neither a close name nor the file's columns."""
+    ik = read_sto(DEMO / "ik.sto")
+    other = tmp_path / "ik_other.sto"
+    write_sto(other, ik.time, ["shoulder_ele", "elbow_flexion"], ik.data, name="another model", in_degrees=False)
+    with pytest.raises(InputError) as error:
+        load_trial(_trial(tmp_path, kinematics=other), pack)
+    said = str(error.value)
+    assert "its columns: shoulder_ele, elbow_flexion; pack 'bench_press' needs elv_angle_r, elbow_flex_r" in said, said

@@ -151,6 +151,11 @@ def _within(time: np.ndarray, source_time: np.ndarray) -> np.ndarray:
     return np.where(np.abs(clipped - time) <= 0.05 * dt, clipped, time)
 
 
+def _listed(names: list[str], most: int = 12) -> str:
+    """``names`` for a message, the first ``most`` and how many more."""
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 def _closest(name: str, options: list[str]) -> str:
     near = close_names(name, options, cutoff=0.6)  # difflib's default cutoff; 'rectabd_r' finds 'RECTABD_R'
     return f"; did you mean {', '.join(near)}?" if near else ""
@@ -313,9 +318,12 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) 
         _check_motion_rate(kin)
     for c in coords:
         if not kin.has_column(c):
-            raise InputError(
-                f"kinematics has no column for pack coordinate {c!r}{_closest(c, kin.columns)}", path=kin.path, field=c
+            # no close name: another model's kinematics (found with held-out data); say what each side has
+            hint = _closest(c, kin.columns) or (
+                f" (its columns: {_listed(kin.columns)}; pack {pack.name!r} needs {_listed(coords)}: kinematics of "
+                "the pack's model, or columns renamed to its coordinates)"
             )
+            raise InputError(f"kinematics has no column for pack coordinate {c!r}{hint}", path=kin.path, field=c)
     q_all = kin.select(coords)
     if kin.in_degrees:
         q_all = np.deg2rad(q_all)  # pack coordinates are rotational
