@@ -510,9 +510,11 @@ def test_a_view_waiting_for_a_session_nobody_runs_names_the_ones_that_run(tmp_pa
     import os
 
     from services.sessions import discovery
+    from services.surfaces import view
     from services.surfaces.view import waiting_text
 
     monkeypatch.setenv(discovery.REGISTRY_ENV, str(tmp_path / "registry"))
+    monkeypatch.setattr(view, "RUNNING_SCAN_S", 0.0)  # each call scans (a render reuses a scan for 2 s)
     assert str(waiting_text("simm", "")) == "waiting for activations on msk/simm/activations/* ..."  # nothing runs
     running = tmp_path / "running"
     discovery.announce(discovery.SessionInfo("sim", ["tcp/127.0.0.1:1"], os.getpid(), str(running)), running)

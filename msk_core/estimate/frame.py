@@ -93,6 +93,9 @@ class Method(str, Enum):
 #: weights are no such density (their "std" is 1/√2 ≈ 0.71 for every free group, which a new user's dashboard showed
 #: as ±70 % bars); :attr:`FrameResult.activation_std` still gives it for every method.
 UNCERTAIN_METHODS = frozenset({Method.PROPOSED, Method.ASSISTED, Method.PRIOR})
+#: The methods that follow the torque softly (a weighted residual, never a reserve): a frame whose torque is beyond
+#: the muscles' capacity is flagged ``reserve`` all the same.
+SOFT_TORQUE_METHODS = frozenset({Method.PROPOSED, Method.ASSISTED, Method.HYBRID})
 
 #: why a frame is ``invalid_input`` (FrameResult.reason; the estimator's summary counts them)
 INVALID_REASONS = (
@@ -526,7 +529,7 @@ class FrameEstimator:
     def _solve(self, r: np.ndarray, tau: np.ndarray, phase: float | None) -> FrameResult:
         result = self._solve_method(r, tau, phase)
         if (
-            self.method in (Method.PROPOSED, Method.ASSISTED, Method.HYBRID)
+            self.method in SOFT_TORQUE_METHODS
             and result.status is FrameStatus.SOLVED
             and self._beyond_capacity(r * self.f_max, tau)
         ):

@@ -350,14 +350,29 @@ def marks_sets(role: str | None, session: str) -> bool:
     return facts_refusal(role, session) is None
 
 
+#: How long the registry scan of a waiting view is reused (a render runs several times a second).
+RUNNING_SCAN_S = 2.0
+_running_scan: tuple[float, list[str]] = (-RUNNING_SCAN_S, [])
+
+
+def _running_names() -> list[str]:
+    """The sessions msk live announces here, scanned at most every :data:`RUNNING_SCAN_S`."""
+    global _running_scan
+    from services.sessions import discovery
+
+    scanned_at, names = _running_scan
+    if time.monotonic() - scanned_at >= RUNNING_SCAN_S:
+        names = [s.session for s in discovery.running_sessions()]
+        _running_scan = (time.monotonic(), names)
+    return names
+
+
 def waiting_text(session: str, paused: str) -> Text:
     """What the view says before its first activation frame: why the estimator is paused, or what it waits for."""
     if paused:
         return Text(f"Estimates paused. {paused}", style="bold yellow")
-    from services.sessions import discovery
-
     # a typo waited in silence (the line on stderr that says so is under the full screen): the sessions that do run
-    running = [s.session for s in discovery.running_sessions()]
+    running = _running_names()
     text = f"waiting for activations on msk/{session}/activations/* ..."
     if running and session not in running:
         text += f" No msk live here is named {session!r} (running: {', '.join(running)}): msk view --session NAME"
