@@ -546,3 +546,23 @@ def test_kinematics_of_another_model_say_what_each_side_has(tmp_path, pack):
         load_trial(_trial(tmp_path, kinematics=other), pack)
     said = str(error.value)
     assert "its columns: shoulder_ele, elbow_flexion; pack 'bench_press' needs elv_angle_r, elbow_flex_r" in said, said
+
+
+def test_a_reports_trials_notes_end_the_report(tmp_path, pack):
+    """Found with held-out data: a trial without a complete repetition was scored as rest throughout, said only on
+    stderr, and its report did not say so. The trials' notes now end report.md."""
+    from services.commands.estimate import append_trial_notes
+
+    tq = read_sto(DEMO / "id.sto")
+    half = tq.time <= tq.time[len(tq.time) // 2]
+    short = _write_like(DEMO / "id.sto", tmp_path / "id_short.sto", tq.time[half], tq.data[half])
+    trial = load_trial(_trial(tmp_path, torques=short), pack)
+    assert trial_notes(trial)
+    report = tmp_path / "report.md"
+    report.write_text("# scores\n")
+    append_trial_notes(report, [trial])
+    text = report.read_text()
+    assert "## Notes on the trials" in text and "outside the torque file's time span left out" in text, text
+    report.write_text("# scores\n")
+    append_trial_notes(report, [load_trial(_trial(tmp_path), pack)])  # nothing left out: nothing added
+    assert report.read_text() == "# scores\n"

@@ -427,8 +427,21 @@ def run_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
     output_folder(args.report, "--report")
     write_report(pack, subject, trials, args.report, progress=ProgressBar(leave=False), **estimator_options(args, pack))
+    append_trial_notes(args.report / "report.md", trials)
     print((args.report / "report.md").read_text())
     return 0
+
+
+def append_trial_notes(report: Path, trials) -> None:
+    """What loading left out of or found in the trials (:func:`trial_notes`), at the end of a report: said only on
+    stderr before, so a report of a trial without a complete repetition (every frame scored as rest) did not say so
+    (found with held-out data)."""
+    from msk_core.estimate.trial import trial_notes
+
+    lines = [f"- {trial.name} ({trial.path}): {note}" for trial in trials for note in trial_notes(trial)]
+    if lines:
+        with report.open("a") as out:
+            out.write("\n## Notes on the trials\n\n" + "\n".join(lines) + "\n")
 
 
 def refuse_in_sample(training: list[Path], held_out: list[Path], field: str) -> None:
@@ -477,6 +490,7 @@ def run_leave_out(args: argparse.Namespace) -> int:
         pack, train, held, groups=groups, progress=ProgressBar(), **options, **estimator_options(args, pack)
     )
     write_leave_out_report(pack, result, args.report)
+    append_trial_notes(args.report / "report.md", [*train, *held])
     print((args.report / "report.md").read_text())
     print(f"wrote {args.report / 'summary.json'} ({result.seconds:.0f} s)")
     return 0
