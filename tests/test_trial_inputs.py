@@ -566,3 +566,13 @@ def test_a_reports_trials_notes_end_the_report(tmp_path, pack):
     report.write_text("# scores\n")
     append_trial_notes(report, [load_trial(_trial(tmp_path), pack)])  # nothing left out: nothing added
     assert report.read_text() == "# scores\n"
+
+
+def test_a_calibration_whose_every_emg_strength_ends_at_a_bound_is_warned():
+    """Found with held-out data: EMG 0.5 s off its torques put 10 of 10 strengths at a bound, reported "converged"."""
+    from services.commands.estimate import all_at_bound_warning
+
+    said = all_at_bound_warning(["at_bound"] * 10 + ["not_calibrated"] * 3)
+    assert said is not None and "all 10 muscles with EMG ended at a strength bound" in said
+    assert all_at_bound_warning(["at_bound"] * 7 + ["unidentified"]) is None  # the real stoop: 7 of 8
+    assert all_at_bound_warning(["at_bound", "not_calibrated"]) is None  # one measured muscle says little
