@@ -31,6 +31,17 @@ def open_device(sim: XsensSimulator) -> XsensDevice:
     return XsensDevice(SerialTransport(sim.path, baudrate=921600))
 
 
+def configured_readings(sim: XsensSimulator, count: int) -> tuple[XsensDevice, list]:
+    """The simulator's device reset, configured at 100 Hz and read for ``count`` readings; the device closed after."""
+    device = open_device(sim)
+    try:
+        device.reset()
+        device.configure(100)
+        return device, read_for(device, count=count)
+    finally:
+        device.close()
+
+
 @pytest.mark.parametrize("precision", list(xbus.Precision))
 @pytest.mark.parametrize("frame", [xbus.CoordinateFrame.ENU, xbus.CoordinateFrame.NED, xbus.CoordinateFrame.NWU])
 def test_configure_and_measure_every_precision_and_frame(precision, frame):
@@ -396,13 +407,7 @@ def test_a_device_without_sample_time_fine_is_timed_by_its_counter_else_by_arriv
     # valid per the protocol (any item may be absent; the ack echoes what was applied): device time must still move
     source = synthetic_imu(seconds=5.0, seed=2)
     with XsensSimulator(source, speed=4.0, unsupported_outputs=frozenset(unsupported)) as sim:
-        device = open_device(sim)
-        try:
-            device.reset()
-            device.configure(100)
-            readings = read_for(device, count=40)
-        finally:
-            device.close()
+        device, readings = configured_readings(sim, 40)
     assert len(readings) >= 40 and all(r.sample_time_fine is None for r in readings)
     times = np.array([r.device_time_ns for r in readings], dtype=float)
     assert np.all(np.diff(times) >= 0) and times[-1] > times[0]
@@ -509,13 +514,7 @@ def test_a_device_without_packet_counter_counts_what_its_sample_time_says_was_lo
     source = synthetic_imu(seconds=5.0, seed=3)
     faults = FaultConfig(bit_flip=0.1, seed=5)  # a corrupted message fails its checksum: lost on the line
     with XsensSimulator(source, speed=2.0, unsupported_outputs=frozenset({0x1020}), faults=faults) as sim:
-        device = open_device(sim)
-        try:
-            device.reset()
-            device.configure(100)
-            readings = read_for(device, count=150)
-        finally:
-            device.close()
+        device, readings = configured_readings(sim, 150)
         corrupted = len(sim.stats.corrupted_counters)
     ticks = np.array([r.sample_time_fine for r in readings if r.packet_counter is None], dtype=np.int64)
     assert len(ticks) == len(readings) >= 150
