@@ -78,18 +78,27 @@ def start_subscribe(key: str, *options: str) -> subprocess.Popen[str]:
 
 
 def wait_running(process: subprocess.Popen[str], lines: list[str]) -> None:
-    """Read ``process``'s output into ``lines`` until msk live says its session is running (at most STARTUP_S)."""
+    """Read ``process``'s output into ``lines`` until msk live says its session is running (at most STARTUP_S), whole
+    lines only. Read from the pipe itself: a buffered ``readline`` after ``select`` left the lines that came in the same
+    chunk in Python's buffer, unseen by the next ``select``, which then waited for output that had already come (a
+    line more before "running" made a test wait out msk live's whole duration). The reader's own buffer stays empty,
+    so ``readline`` and ``communicate`` go on from here."""
     stdout: IO[str] | None = process.stdout
     assert stdout is not None
+    fd = stdout.fileno()
     deadline = time.monotonic() + STARTUP_S
-    while not any("live session" in line and "running" in line for line in lines):
+    partial = b""
+    while partial or not any("live session" in line and "running" in line for line in lines):
         left = deadline - time.monotonic()
         assert left > 0 and process.poll() is None, (
-            f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines)
+            f"msk live --sim not running after {STARTUP_S:g} s; output:\n" + "".join(lines) + partial.decode()
         )
-        ready, _, _ = select.select([stdout], [], [], min(left, 1.0))
+        ready, _, _ = select.select([fd], [], [], min(left, 1.0))
         if ready:
-            lines.append(stdout.readline())
+            chunk = os.read(fd, 65536)
+            assert chunk, "msk live closed its output; output:\n" + "".join(lines) + partial.decode()
+            *complete, partial = (partial + chunk).split(b"\n")
+            lines.extend(line.decode() + "\n" for line in complete)
 
 
 def kill_session(process: subprocess.Popen[str], out: Path) -> None:

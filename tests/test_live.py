@@ -163,7 +163,8 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_whe
     with McapRecorderWriter(out / "session.mcap"):
         pass
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
-    process = start_msk("live", "--sim", "--no-view", "--duration", "120", "--out", str(out), env=env)
+    # no --no-view: its output is a pipe, where a view would draw unseen (a new user's `| tee` showed "+ view")
+    process = start_msk("live", "--sim", "--duration", "120", "--out", str(out), env=env)
     lines: list[str] = []
     try:
         wait_running(process, lines)
@@ -199,6 +200,8 @@ def test_live_sim_records_every_sample_the_simulators_sent_and_stops_cleanly_whe
     joints = 0
     assert (out / "logs-001" / "estimator.log").read_text() == "the earlier run's log\n"
     assert (out / "logs-001" / "summary.json").read_text() == earlier_summary
+    assert "no view: the output is not a terminal; watch from one with msk view --session sim" in output, output
+    assert "+ view" not in output
     assert f"{out} held an earlier run: its logs and summary are now in {out / 'logs-001'}" in output, output
     assert (out / "logs" / "estimator.log").is_file()  # this run's
     assert f"recording to {out / 'session-001.mcap'}" in output, output

@@ -30,6 +30,7 @@ import os
 import queue
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections import Counter
@@ -1237,6 +1238,9 @@ def _announce_live_graph(
     )
     info = dataclasses.replace(info, attach=discovery.attach_commands(info))
     running.announced = announcement.announce(info, s.out)
+    if view and not sys.stdout.isatty():  # piped (| tee, a log file): the view would draw into the pipe, unseen
+        log(f"no view: the output is not a terminal; watch from one with msk view --session {s.name}")
+        view = False
     if view and not stopper.event.is_set():
         running.viewer = subprocess.Popen(
             python_module("services.cli", "view", "--session", s.name, *zenoh_flags(observer)),
