@@ -260,9 +260,7 @@ class XsensDevice:
                     if not switched:
                         switch(rate)
                     self.send(xbus.Mid.WAKE_UP_ACK)
-                    self._last_counter.clear()
-                    self._time_loss.clear()
-                    self._clock_anchor.clear()  # its counter ticks start again
+                    self._counting_starts_again()
                     return
         raise ProtocolError(f"{self.transport.name}: no WakeUp at {rate} bit/s within {timeout} s of the reset")
 
@@ -348,9 +346,7 @@ class XsensDevice:
             if not any(m.mid == xbus.Mid.MT_DATA2 for m in self._queue):
                 raise
             log.warning("%s; its data flow: measuring", error)
-        self._last_counter.clear()
-        self._time_loss.clear()
-        self._clock_anchor.clear()  # its counter ticks start again
+        self._counting_starts_again()
 
     def configure(
         self, rate_hz: int = 100, *, precision=xbus.Precision.FLOAT32, frame=xbus.CoordinateFrame.ENU
@@ -413,11 +409,7 @@ class XsensDevice:
                 if self.stats.readings or readings:
                     self.stats.restarts += 1
                     self.stats.last_error = "device restarted (WakeUp while measuring)"
-                self._last_counter.clear()
-                self._time_loss.clear()
-                self._last_time.clear()
-                self._time_offset.clear()
-                self._clock_anchor.clear()
+                self._counting_starts_again(clock_too=True)
                 continue
             if message.mid != xbus.Mid.MT_DATA2:
                 continue
@@ -468,6 +460,17 @@ class XsensDevice:
             data=data,
             time_without_clock_ns=untimed,
         )
+
+    def _counting_starts_again(self, *, clock_too: bool = False) -> None:
+        """The device's messages are counted anew (it entered Measurement again): no loss is reckoned across the
+        break, by counter or by SampleTimeFine, and a message without SampleTimeFine no longer continues the old count.
+        ``clock_too``: its SampleTimeFine starts again as well (a restart, another device on the port)."""
+        self._last_counter.clear()
+        self._time_loss.clear()
+        self._clock_anchor.clear()
+        if clock_too:
+            self._last_time.clear()
+            self._time_offset.clear()
 
     def _count_lost_by_time(self, bid: int, ticks: int) -> None:
         """A device that sends no PacketCounter (it did not apply 0x1020): the messages missing between two
@@ -567,11 +570,7 @@ class XsensDevice:
         self.transport = transport
         self.parser = xbus.XbusParser()
         self._queue.clear()
-        self._last_counter.clear()
-        self._time_loss.clear()
-        self._last_time.clear()
-        self._time_offset.clear()
-        self._clock_anchor.clear()
+        self._counting_starts_again(clock_too=True)
         size = self.device_id_size
         try:
             self.request(xbus.Mid.GO_TO_CONFIG, timeout=probe_timeout_s)
