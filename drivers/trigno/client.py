@@ -931,14 +931,13 @@ class TrignoClient:
         # k / aux rate (the accelerometers on the EMG clock). After a pause, where the AUX stream reaches it: AUX may
         # come behind the EMG, and its rows measured before the pause still arrive after the EMG resumed (0.3 s behind
         # an imitated base: every later AUX row was placed 46 samples late). After a lost link, at once: its rows
-        # before the gap came before the link closed or never will.
+        # before the gap came before the link closed or never will (the loss's _settle_gap passed the pending gaps).
         if self.aux_rate_hz > 0 and self.rate_hz > 0:
             ratio = self.aux_rate_hz / self.rate_hz
             if pause:
                 if missing:
                     self._aux_gaps.append((int(round(first_missing * ratio)), int(round(missing * ratio))))
             else:
-                self._pass_aux_gaps()
                 self._next_aux_index = max(self._next_aux_index, int(round(self._next_index * ratio)))
         for rows, _, host_time_ns in held:
             self._emit_emg(rows, host_time_ns)
