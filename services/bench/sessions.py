@@ -527,11 +527,10 @@ def run(*, quick: bool = False) -> list[BenchResult]:
     runs = []
     failed: str | None = None
     for n in range(1, max_sessions + 1):
+        # a bounded wait that expires (it says what it saw) fails this N; the figures of the Ns before it are kept
         try:
             figures = measure(n, seconds=seconds)
-        except (
-            RuntimeError
-        ) as error:  # a bounded wait that expired (it says what it saw): this N fails, the rest is kept
+        except RuntimeError as error:
             failed = f"{n} session(s): {error}"
             print(f"    {failed}", flush=True)
             break
