@@ -46,6 +46,9 @@ Keys (paths relative to the TOML file)::
     [emg_map]                        # EMG column -> pack group
     rectabd_r = "rectabd_r"
     [emg_max]                        # optional: divide each EMG channel by this (normalisation); default: as is
+    [coordinates]                    # optional: pack coordinate -> its column in the kinematics and torque files,
+    knee_angle_r = "-knee_angle_r"   # "-" before it for a model whose coordinate runs the other way: the angle and
+    hip_flexion_r = "hip_flex"       # its moment are both negated. Default: each pack coordinate's own name
 
 The time base is the kinematics within [start, end]; torques and EMG are linearly interpolated onto it, and frames the
 torque file does not cover are dropped (counted in ``dropped_frames``). Reps and phase: :mod:`msk_core.estimate.phase`.
@@ -97,6 +100,7 @@ KNOWN_KEYS = {
     "grf_foot",
     "grf_column",
     "heel_strike_n",
+    "coordinates",
 }
 ISOMETRIC_MAX_MOTION_DEG = 10.0  # an isometric trial's coordinates stay within this range (a held test position)
 
@@ -228,9 +232,42 @@ class _TrialOptions:
     isometric: bool
     lowpass_coordinates_hz: float | None
     lowpass_torques_hz: float | None = None
+    #: pack coordinate -> (its column in the kinematics and torque files, +1 or -1 for its sign convention)
+    sources: dict[str, tuple[str, float]] = field(default_factory=dict)
+
+    def column(self, coordinate: str) -> str:
+        return self.sources.get(coordinate, (coordinate, 1.0))[0]
+
+    def signs(self, coordinates: list[str]) -> np.ndarray:
+        return np.array([self.sources.get(c, (c, 1.0))[1] for c in coordinates])
 
 
-def _parse_options(trial: _TrialFile) -> _TrialOptions:
+def _coordinate_sources(trial: _TrialFile, pack: PackLike) -> dict[str, tuple[str, float]]:
+    """The ``[coordinates]`` table: pack coordinate -> (file column, sign); a leading "-" flips the convention."""
+    table = trial.spec.get("coordinates", {})
+    if not isinstance(table, dict):
+        raise trial.err('must be a table: pack coordinate = "column" (or "-column" to flip its sign)', "coordinates")
+    coords = list(pack.coordinates)
+    sources: dict[str, tuple[str, float]] = {}
+    for coordinate, column in table.items():
+        if coordinate not in coords:
+            raise trial.err(
+                f"[coordinates] names {coordinate!r}, not a coordinate of pack {pack.name!r}"
+                + (_closest(coordinate, coords) or f" (its coordinates: {_listed(coords)})"),
+                coordinate,
+                coordinate,
+            )
+        if not isinstance(column, str) or column.lstrip("-").strip() == "" or column.startswith("--"):
+            raise trial.err(
+                'must be the column name, with "-" before it to flip its sign (e.g. "-knee_angle_r")',
+                coordinate,
+                column,
+            )
+        sources[coordinate] = (column[1:], -1.0) if column.startswith("-") else (column, 1.0)
+    return sources
+
+
+def _parse_options(trial: _TrialFile, pack: PackLike) -> _TrialOptions:
     spec = trial.spec
     unknown = sorted(set(spec) - KNOWN_KEYS)
     if unknown:
@@ -277,6 +314,7 @@ def _parse_options(trial: _TrialFile) -> _TrialOptions:
         isometric,
         cutoffs["lowpass_coordinates_hz"],
         cutoffs["lowpass_torques_hz"],
+        _coordinate_sources(trial, pack),
     )
 
 
@@ -317,14 +355,17 @@ def _read_kinematics(trial: _TrialFile, options: _TrialOptions, pack: PackLike) 
     if not options.isometric:  # a held pose may be written as two rows seconds apart
         _check_motion_rate(kin)
     for c in coords:
-        if not kin.has_column(c):
+        column = options.column(c)
+        if not kin.has_column(column):
             # no close name: another model's kinematics (found with held-out data); say what each side has
-            hint = _closest(c, kin.columns) or (
-                f" (its columns: {_listed(kin.columns)}; pack {pack.name!r} needs {_listed(coords)}: kinematics of "
-                "the pack's model, or columns renamed to its coordinates)"
+            hint = (
+                f"{_closest(column, kin.columns)} (its columns: {_listed(kin.columns)}; pack {pack.name!r} needs "
+                f"{_listed(coords)}: kinematics of the pack's model, or the trial's [coordinates] table naming each "
+                f'one\'s column: {c} = "<its column>", or "-<its column>" for the other sign convention)'
             )
-            raise InputError(f"kinematics has no column for pack coordinate {c!r}{hint}", path=kin.path, field=c)
-    q_all = kin.select(coords)
+            named = f"column {column!r} (its [coordinates] entry) for" if column != c else "column for"
+            raise InputError(f"kinematics has no {named} pack coordinate {c!r}{hint}", path=kin.path, field=column)
+    q_all = kin.select([options.column(c) for c in coords]) * options.signs(coords)
     if kin.in_degrees:
         q_all = np.deg2rad(q_all)  # pack coordinates are rotational
     sel = np.ones(kin.n_rows, dtype=bool)
@@ -479,9 +520,10 @@ def _attach_torques(trial: _TrialFile, options: _TrialOptions, pack: PackLike, k
         return torques, np.ones(len(kin.time), dtype=bool), "inverse_dynamics", _DroppedFrames()
     tq = read_sto(trial.file_of("torques"))
     tq.check_increasing("torque")
-    cols = [_torque_column(tq, c) for c in coords]
+    cols = [_torque_column(tq, options.column(c)) for c in coords]
     raw = tq.select(cols)
     _check_not_angles(tq, cols, raw, kin)
+    raw = raw * options.signs(coords)  # a flipped coordinate's moment flips with its angle
     if options.lowpass_torques_hz is not None:
         # the same zero-phase filter as the coordinates' (whole file, then the window), without the spline's derivatives
         try:
@@ -776,7 +818,8 @@ def trial_notes(trial: TrialData) -> list[str]:
         notes.append(
             f"the torque of {coordinate} runs against the pack's inverse dynamics of the same motion (correlation "
             f"{r:+.2f}): is its sign the pack's (the muscles' moment along its coordinate; a model whose coordinate "
-            "runs the other way, or external moments, give the opposite)?"
+            "runs the other way, or external moments, give the opposite)? A coordinate of the other convention is "
+            f'flipped, angle and moment, by the trial file\'s [coordinates] table: {coordinate} = "-<its column>"'
         )
     for group, envelope in trial.emg.items():
         missing = int(np.count_nonzero(~np.isfinite(envelope)))
@@ -791,7 +834,7 @@ def trial_notes(trial: TrialData) -> list[str]:
 def load_trial(path: str | Path, pack: PackLike) -> TrialData:
     """Read a trial TOML and everything it points to, checked against the pack."""
     trial = _TrialFile.read(path)
-    options = _parse_options(trial)
+    options = _parse_options(trial, pack)
     coords = list(pack.coordinates)
     kin = _read_kinematics(trial, options, pack)
     torques, kin_keep, source, dropped = _attach_torques(trial, options, pack, kin)
