@@ -18,6 +18,7 @@ from services.transport import messages, topics
 
 EPHEMERAL = dict(command_port=0, emg_port=0, legacy_emg_port=0, aux_port=0)
 TRACKERS = {"00B4EB80": 0x00B4EB80, "00B497B2": 0x00B497B2}
+SEGMENTS = {"00B4EB80": "upper_arm_r", "00B497B2": "forearm_r"}
 
 
 def test_last_status_of_every_device_at_a_clean_stop_is_disconnected_with_final_counts():
@@ -44,7 +45,9 @@ def test_last_status_of_every_device_at_a_clean_stop_is_disconnected_with_final_
             reports = driver_nodes.run_threads(
                 [
                     lambda: driver_nodes.trigno_loop(client, session="s", source_id="trigno", sink=sink, stop=stop),
-                    lambda: driver_nodes.xsens_loop(trackers, session="s", sink=sink, stop=stop, status_interval_s=0.2),
+                    lambda: driver_nodes.xsens_loop(
+                        trackers, session="s", sink=sink, stop=stop, status_interval_s=0.2, segments=SEGMENTS
+                    ),
                 ],
                 stop,
             )
@@ -68,6 +71,14 @@ def test_last_status_of_every_device_at_a_clean_stop_is_disconnected_with_final_
         assert readings > 50 and isinstance(last, messages.DeviceStatus)
         assert (last.kind, last.connected, last.samples_received) == ("xsens", False, readings), (tracker, last)
         assert all(s.connected for s in statuses[tracker][:-1])  # streaming until the stop
+        # the terminal view reads statuses, not the 600 IMU samples a second: each status names the tracker's segment
+        assert {s.segment for s in statuses[tracker]} == {SEGMENTS[tracker]}
+    assert statuses["trigno"][-1].segment == ""
+    from services.surfaces.view import health_tables
+
+    table = health_tables({d: statuses[d][-1] for d in statuses})[0]
+    shown = list(table.columns[0].cells)
+    assert "00B4EB80 (upper_arm_r)" in shown and "00B497B2 (forearm_r)" in shown and "trigno" in shown, shown
 
 
 def test_a_tracker_whose_samples_carry_no_orientation_is_said_in_its_status(shared_dir):

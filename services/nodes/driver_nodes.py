@@ -126,11 +126,20 @@ def imu_sample(reading: ImuReading, *, segment: str = "") -> messages.ImuSample:
 
 
 def device_status(
-    *, device_id: str, kind: str, connected: bool, received: int, lost: int, errors: int, last_error: str
+    *,
+    device_id: str,
+    kind: str,
+    connected: bool,
+    received: int,
+    lost: int,
+    errors: int,
+    last_error: str,
+    segment: str = "",
 ) -> messages.DeviceStatus:
     return messages.DeviceStatus(
         device_id=device_id,
         kind=kind,
+        segment=segment,
         connected=connected,
         samples_received=received,
         samples_lost=lost,
@@ -329,6 +338,7 @@ def xsens_loop(
                 lost=stats.packets_lost,
                 errors=stats.decode_errors + stats.device_errors + device.parser.stats.errors,
                 last_error=_tracker_error(trackers.disconnected.get(tracker_id), stats.last_error),
+                segment=segments.get(tracker_id, ""),  # the views that read no IMU samples name it by this
             )
             sink(topics.status_key(session, tracker_id), status, status.host_time_ns, 0)
             report.messages += 1

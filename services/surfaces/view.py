@@ -516,7 +516,12 @@ def health_tables(status: dict[str, messages.DeviceStatus]) -> list[Table]:
         health.add_column(column)
     for name, s in devices.items():
         health.add_row(
-            name, s.kind, "yes" if s.connected else "NO", str(s.samples_received), str(s.samples_lost), str(s.errors)
+            f"{name} ({s.segment})" if s.segment else name,
+            s.kind,
+            "yes" if s.connected else "NO",
+            str(s.samples_received),
+            str(s.samples_lost),
+            str(s.errors),
         )
     if not devices:
         health.add_row("(no device status on this session)", "", "", "", "", "")

@@ -444,6 +444,7 @@ class DashboardState:
                 self._put("fatigue", [f for node in sorted(self._fatigue) for f in self._fatigue[node]])
             return
         device = self._device(status.device_id or name, status.kind)
+        device.segment = status.segment or device.segment
         device.connected = bool(status.connected)
         device.samples_lost = max(device.samples_lost, int(status.samples_lost))
         device.errors, device.last_error = int(status.errors), status.last_error
