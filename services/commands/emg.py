@@ -88,7 +88,7 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
                 path=path,
                 field="channels",
             )
-        rec = rec.emg_only()
+        rec = _without_slow_channels(rec.emg_only())
     rec, own_unit = rec.in_volts()
     if suffix == ".anc":
         print(f"{path.name}: volts at the acquisition board's input (the EMG amplifiers' gain is not removed)")
@@ -110,6 +110,36 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
                 field=label,
             )
     return rec
+
+
+def _without_slow_channels(rec: AnalogRecording) -> AnalogRecording:
+    """The recording without the channels whose power lies below 10 Hz and whose label does not say EMG (found with
+    held-out data: a C3D's Voltage.1-6, a load cell's forces in volts, were enveloped as six muscles). A channel
+    labelled EMG with such a spectrum is kept and said (a DC-coupled amplifier's drift). ``--channels`` takes any."""
+    from msk_core.signal.spectrum import NOT_EMG_SLOW_FRACTION, SLOW_BAND_HZ, slow_power_fraction
+
+    slow = slow_power_fraction(rec.data, rec.rate_hz)
+    flagged = [(label, f) for label, f in zip(rec.labels, slow) if f >= NOT_EMG_SLOW_FRACTION]
+    left_out = [(label, f) for label, f in flagged if "emg" not in label.lower()]
+    kept_slow = [(label, f) for label, f in flagged if "emg" in label.lower()]
+    band = "surface EMG's lies at 20-450 Hz; --channels takes them"
+    if left_out:
+        print(
+            f"left out {len(left_out)} channel(s) whose power lies below {SLOW_BAND_HZ:g} Hz, not EMG (a force, a load "
+            f"cell, a goniometer or a trigger?; {band}): " + ", ".join(f"{label} ({f:.0%})" for label, f in left_out)
+        )
+    if kept_slow:
+        print(
+            f"{len(kept_slow)} EMG channel(s) with most of their power below {SLOW_BAND_HZ:g} Hz, enveloped as EMG: "
+            + ", ".join(f"{label} ({f:.0%})" for label, f in kept_slow)
+            + " (drift or motion artefact? the band-pass removes it)"
+        )
+    if len(left_out) == len(rec.labels):
+        raise InputError(
+            f"no EMG channel: all {len(rec.labels)} channels have their power below {SLOW_BAND_HZ:g} Hz ({band})",
+            path=rec.path,
+        )
+    return rec.select([label for label in rec.labels if label not in dict(left_out)]) if left_out else rec
 
 
 def _channels(text: str | None) -> list[str] | None:
