@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from msk_core.errors import EstimationError
-from msk_core.estimate.calibrate import CalibrationSettings
+from msk_core.estimate.calibrate import CalibrationSettings, StrengthStatus
 from msk_core.estimate.emd import calibrated_delay, shift_emg
 from msk_core.estimate.frame import FrameEstimator, Method
 from msk_core.estimate.metrics import cross_correlation_lag, on_off_agreement, pearson_r, rmse
@@ -98,6 +98,7 @@ class CalibrationRun:
     seconds: float  # wall
     strength: dict[str, float]  # scale factor of each group with EMG in that calibration
     cpu_seconds: float = float("nan")  # this process' CPU time (time.process_time)
+    at_bound: int = 0  # of the groups with EMG, how many ended at a strength bound (StrengthStatus.AT_BOUND)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -120,6 +121,9 @@ class LeaveOutResult:
     load_scale: dict[str, dict] = field(default_factory=dict)
     seconds: float = 0.0  # wall
     cpu_seconds: float = 0.0  # this process' CPU time (time.process_time): the machine may be shared
+    # what made the numbers, for the report and summary.json: the prior and strength of the left-out group, the prior's
+    # synergists, `assisted`'s live synergists, the held-out trials' phase signal (what a "repetition" is)
+    settings: dict[str, Any] = field(default_factory=dict)
 
     def medians(self, table: str = "leave_one_out", *, aligned: bool = False) -> dict[str, dict[str, float]]:
         """Per method, the median over the left-out groups of RMSE and r (``table``: leave_one_out or paper;
@@ -269,6 +273,13 @@ def leave_one_out(
         load_scale=_load_scales(pack, held_out, profile, options),
         seconds=time.perf_counter() - started,
         cpu_seconds=time.process_time() - cpu_started,
+        settings={
+            "no_emg_prior": prior_settings.no_emg.value,
+            "no_emg_strength": calibration.no_emg_strength.value,
+            "prior_synergists": dict(prior_settings.synergists),
+            "live_synergists": bool(options.get("live_synergists", True)),
+            "phase_signal": sorted({t.phase_signal for t in held_out}),
+        },
     )
 
 
@@ -281,9 +292,20 @@ def _groups_to_leave_out(train: list[TrialData], held_out: list[TrialData], grou
     chosen = measured if groups is None else list(dict.fromkeys(groups))
     unknown = [g for g in chosen if g not in measured]
     if unknown or not chosen:
+        trained = {g for t in train if not t.isometric for g in t.emg}
+        held = {g for t in held_out for g in t.emg}
+        where = [
+            f"{g}: no electrode in "
+            + " nor ".join(
+                side
+                for side, has in (("the training trials with reps", g in trained), ("the held-out trials", g in held))
+                if not has
+            )
+            for g in unknown
+        ]
         raise EstimationError(
-            f"cannot leave out {unknown or 'no group'}: a left-out group needs an electrode in a training trial with "
-            f"reps and in a held-out trial (groups with both: {measured})"
+            f"cannot leave out {'; '.join(where) or 'any group'}: a left-out group needs an electrode in a training "
+            f"trial with reps and in a held-out trial (groups with both: {', '.join(measured) or 'none'})"
         )
     return chosen
 
@@ -311,6 +333,11 @@ class _Calibration:
             seconds=time.perf_counter() - started,
             strength={g: float(result.scale[list(pack.groups).index(g)]) for g in emg_groups},
             cpu_seconds=time.process_time() - cpu_started,
+            at_bound=sum(
+                result.status[list(pack.groups).index(g)] == StrengthStatus.AT_BOUND.value
+                for g in emg_groups
+                if result.status
+            ),
         )
         return profile, run
 

@@ -473,6 +473,27 @@ def refuse_in_sample(training: list[Path], held_out: list[Path], field: str) -> 
             )
 
 
+def leave_out_group(pack, name: str) -> str:
+    """The pack group ``--leave-out`` names: its model name, in any case, or its display name ("Tibialis anterior");
+    otherwise a ConfigError with the closest names."""
+    from msk_core.errors import close_names
+
+    groups = list(pack.groups)
+    names = getattr(pack, "display_names", None)
+    shown = {names.group(g).casefold(): g for g in groups} if names is not None else {}
+    found = {g.casefold(): g for g in groups}.get(name.casefold()) or shown.get(name.casefold())
+    if found is not None:
+        return found
+    near = close_names(name, groups + [names.group(g) for g in groups] if names is not None else groups)
+    raise ConfigError(
+        f"not a group of pack {pack.name!r}"
+        + (f"; did you mean {', '.join(near)}?" if near else "")
+        + " (all: every group with an electrode in the training and the held-out trials)",
+        field="--leave-out",
+        value=name,
+    )
+
+
 def run_leave_out(args: argparse.Namespace) -> int:
     """``msk evaluate --leave-out``: calibrations without each electrode in turn, scored on the held-out trials."""
     from msk_core.estimate.leave_out import leave_one_out
@@ -494,8 +515,15 @@ def run_leave_out(args: argparse.Namespace) -> int:
     missing = [t.path for t in held if not t.emg]
     if missing:
         raise ConfigError("evaluation trials need EMG (the measured activation)", path=missing[0], field="emg")
+    if not any(t.emg for t in train if not t.isometric):
+        raise ConfigError(
+            "a leave-one-out needs EMG in the training trials too: a left-out group is one whose electrode the "
+            "calibration could have used (no training trial with reps has an [emg_map])",
+            path=train[0].path,
+            field="emg",
+        )
     output_folder(args.report, "--report")
-    groups = None if "all" in names else names
+    groups = None if "all" in names else [leave_out_group(pack, n) for n in names]
     print(
         f"leave-one-electrode-out on {pack.name}: {sum(t.n_frames for t in train)} training frames of {len(train)} "
         f"trial(s), {sum(t.n_frames for t in held)} held-out frames of {len(held)} trial(s)",
