@@ -651,3 +651,25 @@ def test_a_link_lost_before_the_first_emg_starts_the_index_at_the_first_sample_r
         sim.close()
     first = next(e for e in after if isinstance(e, EmgBlock))
     assert first.first_sample_index == 0 and client.stats.samples_lost == 0, (first.first_sample_index, client.stats)
+
+
+def test_a_buffered_pause_drained_slowly_loses_nothing_and_keeps_every_index():
+    """Found by an independent imitation: a base that held 1 s and sent it at twice real time (not in one burst) was
+    dated by the backlog of a fixed 0.25 s window: 1,455 samples counted lost that all arrived, and every later
+    sample 0.75 s late. The EMG is now held until the backlog stops growing earlier (docs/devices.md)."""
+    source = synthetic_source(seconds=20.0, seed=5)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=5)) as sim:
+        client = client_for(sim)
+        client.connect()
+        client.start()
+        before = collect(client, samples=1000, seconds=5)
+        sim.pause(1.0, drop=False, catch_up=2.0)
+        after = collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 5000)
+        client.close()
+    assert sim.stats.frames_dropped == 0 and not [e for e in before + after if isinstance(e, GapEvent)]
+    rows = emg_rows(before + after)
+    assert len(rows) >= 5000
+    assert_bit_exact(rows, source.samples[: len(rows)])
+    blocks = [e for e in before + after if isinstance(e, EmgBlock)]
+    assert all(a.first_sample_index + len(a.samples) == b.first_sample_index for a, b in zip(blocks, blocks[1:]))
+    assert client.stats.samples_lost == 0, client.stats

@@ -145,8 +145,14 @@ PAUSE_CHECK_S = 0.1
 #: after a reconnection or such a pause, the resumed EMG is held this long to measure its backlog: the first row was
 #: measured at min over the reads of (arrival - rows received so far / rate), whatever size the first read had and
 #: however slowly a sender that fell behind catches up within it (the estimate assumes a base that samples in real
-#: time: a simulator at speed 2 is undercounted by up to this window's worth)
+#: time: a simulator at speed 2 samples faster than the host clock and is undercounted)
 RESUME_WINDOW_S = 0.25
+#: a base that buffered a pause and sends its backlog faster than real time but not in one burst (an imitation at 2x:
+#: 1 s held, drained over 1 s) keeps moving that estimate earlier: the EMG is held until the estimate has not moved by
+#: more than CATCH_UP_STEP_S for RESUME_WINDOW_S (the backlog drained), at most MAX_RESUME_HOLD_S. A fixed window read
+#: the undrained backlog as 0.75 s lost, and every later sample 0.75 s late
+CATCH_UP_STEP_S = 0.010
+MAX_RESUME_HOLD_S = 5.0
 #: a pause's estimate below this is not counted: a sender (or a simulator on a loaded host) that fell behind and
 #: catches up slower than the window measures reads as a short loss (a reconnection counts any)
 PAUSE_TOLERANCE_S = 0.2
@@ -951,8 +957,18 @@ class TrignoClient:
         self._aux_after_gap = []
 
     def _gap_measured(self, now: float) -> bool:
-        """The EMG held for a gap has been received for :data:`RESUME_WINDOW_S`: its backlog is known."""
-        return bool(self._emg_after_gap) and now - self._emg_after_gap[0][1] >= RESUME_WINDOW_S
+        """The backlog of the EMG held for a gap is known: it has been received for :data:`RESUME_WINDOW_S` and the
+        estimate of when its first row was measured has stopped moving earlier for as long (a sender catching up
+        faster than real time moves it with every read), or it has been held :data:`MAX_RESUME_HOLD_S`."""
+        held = self._emg_after_gap
+        if not held or now - held[0][1] < RESUME_WINDOW_S:
+            return False
+        if now - held[0][1] >= MAX_RESUME_HOLD_S or self.rate_hz <= 0:
+            return True
+        arrivals = np.array([arrived for _, arrived, _ in held])
+        earliest = np.minimum.accumulate(arrivals - np.cumsum([len(r) for r, _, _ in held]) / self.rate_hz)
+        before = int(np.searchsorted(arrivals, now - RESUME_WINDOW_S, side="right")) - 1  # >= 0: the first read is
+        return bool(earliest[before] - earliest[-1] <= CATCH_UP_STEP_S)  # not moved over the last window
 
     def _emg_quiet(self, now: float) -> bool:
         """The EMG has been silent long enough on a live stream that its return will be checked for a gap."""

@@ -315,6 +315,9 @@ class TrignoSimulator:
         self._held = False
         self._send_after = 0.0  # no frame leaves before this instant (time.monotonic): a pause or a start burst
         self._drop_until = 0.0  # frames due before this instant are lost (a pause that drops), not sent late
+        # a buffering pause drained at a pace: (pause start, resume, speed); frame due d >= start leaves at
+        # resume + (d - start) / speed until that is earlier than d (caught up)
+        self._catch_up: tuple[float, float, float] | None = None
         self._run_started = 0.0  # wall instant (time.monotonic) the latest START took effect
         self._first_index = 0  # stream sample index of the run's sample 0 (0 without a trial clock)
         self._frame = 0  # frames sent since START
@@ -393,12 +396,18 @@ class TrignoSimulator:
                 pass
         self.close()
 
-    def pause(self, seconds: float, *, drop: bool) -> None:
+    def pause(self, seconds: float, *, drop: bool, catch_up: float | None = None) -> None:
         """The base goes quiet for ``seconds`` from now, its connections open. ``drop``: what it measures meanwhile
-        is lost and it resumes at the present; else it sends that as one burst when it resumes (a buffering link)."""
-        self._send_after = time.monotonic() + seconds
+        is lost and it resumes at the present; else it sends that as one burst when it resumes (a buffering link),
+        or, with ``catch_up``, at that many times real time until it has caught up (a link that drains slowly)."""
+        now = time.monotonic()
+        self._send_after = now + seconds
         if drop:
             self._drop_until = self._send_after
+        elif catch_up is not None:
+            if not catch_up > 1:
+                raise ValueError(f"catch_up must be > 1 (times real time), got {catch_up}")
+            self._catch_up = (now, self._send_after, catch_up)
 
     def stall(self) -> None:
         """Stop sending data without telling anyone, as when a cable is pulled (no FIN, no RST, no STOPPED)."""
@@ -695,7 +704,14 @@ class TrignoSimulator:
                 self._stop.wait(0.005)
                 continue
             due = self._frame_due(self._frame)
-            delay = max(due, self._send_after) - time.monotonic()
+            send_at = max(due, self._send_after)
+            if self._catch_up is not None:
+                start, resume, pace = self._catch_up
+                if due >= start:
+                    send_at = max(due, resume + (due - start) / pace)
+                    if send_at == due:  # caught up
+                        self._catch_up = None
+            delay = send_at - time.monotonic()
             if delay > 0:
                 self._stop.wait(min(delay, 0.05))
                 continue
