@@ -673,3 +673,75 @@ def test_a_buffered_pause_drained_slowly_loses_nothing_and_keeps_every_index():
     blocks = [e for e in before + after if isinstance(e, EmgBlock)]
     assert all(a.first_sample_index + len(a.samples) == b.first_sample_index for a, b in zip(blocks, blocks[1:]))
     assert client.stats.samples_lost == 0, client.stats
+
+
+def _other_client(sim: TrignoSimulator, *commands: str) -> list[str]:
+    """Another program on the same base: its own command connection, ``commands`` sent in turn, their replies."""
+    import socket
+
+    from drivers.trigno import protocol as tp
+
+    with socket.create_connection(("127.0.0.1", sim.ports["command"]), timeout=3.0) as sock:
+        buffer = b""
+
+        def reply() -> str:
+            nonlocal buffer
+            while b"\r\n\r\n" not in buffer:
+                buffer += sock.recv(4096)
+            text, buffer = buffer.split(b"\r\n\r\n", 1)
+            return text.decode().strip()
+
+        reply()  # the banner
+        out = []
+        for command in commands:
+            sock.sendall(tp.encode_command(command))
+            out.append(reply())
+        return out
+
+
+def test_a_start_trigger_holds_the_first_data_without_a_lost_link():
+    """Found by an independent imitation: a start trigger that fired 8 s after START was reported as "connection
+    lost: no EMG data for 5 s", and the summary said disconnected and reconnected. TRIGGER? is asked; while START ON
+    holds the first data back, the silence is waited for and said."""
+    from drivers.trigno.client import WAITING_FOR_TRIGGER
+
+    source = synthetic_source(seconds=10.0, seed=8)
+    quirks = TrignoQuirks(start_trigger_fires_after_s=1.0)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, quirks=quirks)) as sim:
+        assert _other_client(sim, "TRIGGER START ON") == ["OK"]
+        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
+        client.connect()
+        assert client.start_trigger
+        client.start()
+        events = collect(client, samples=500, seconds=5)
+        client.close()
+    states = [e for e in events if isinstance(e, StatusEvent)]
+    assert not [s for s in states if s.state is ClientState.RECONNECTING], states
+    assert [s for s in states if s.detail == WAITING_FOR_TRIGGER], states
+    assert not [e for e in events if isinstance(e, GapEvent)] and client.stats.samples_lost == 0
+    rows = emg_rows(events)
+    assert len(rows) >= 500
+    assert_bit_exact(rows, source.samples[: len(rows)])
+    assert client.stats.last_error != WAITING_FOR_TRIGGER  # it fired
+
+
+def test_another_client_taking_the_base_over_ends_the_stream_without_a_restart():
+    """Found by an independent imitation: another client's STOP without STOPPED read as a lost link, counted what was
+    never measured as lost, and the driver took MASTER back and restarted acquisition over it. Only the master may
+    STOP: silence, with MASTER? now answering NO, is the end of our acquisition, said, and not fought."""
+    from drivers.trigno.client import TAKEN_OVER
+
+    source = synthetic_source(seconds=10.0, seed=8)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0)) as sim:
+        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
+        client.connect()
+        client.start()
+        before = collect(client, samples=500, seconds=5)
+        assert _other_client(sim, "MASTER", "STOP")[0] == "NEW MASTER"
+        events = collect(client, seconds=2.0)
+        assert not sim._running  # not restarted
+        client.close()
+    states = [e for e in events if isinstance(e, StatusEvent)]
+    assert not [s for s in states if s.state is ClientState.RECONNECTING], states
+    assert states[-1].state is ClientState.STOPPED and client.stats.last_error == TAKEN_OVER, states
+    assert not [e for e in before + events if isinstance(e, GapEvent)] and client.stats.samples_lost == 0

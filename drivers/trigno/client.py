@@ -162,6 +162,14 @@ AUX_SILENT_S = 5.0
 STOPPED_BY_SERVER = (
     "the base stopped acquiring: it sent STOPPED (its stop trigger fired, or another client on it sent STOP)"
 )
+#: why the data ended when the base went silent and answers that this connection is no longer its master: another
+#: client took control and stopped acquisition (only the master may START/STOP); restarting would override it
+TAKEN_OVER = (
+    "the base stopped sending data and another client is now its master (MASTER? answers NO): that client stopped "
+    "acquisition; not restarted, as it controls the base now"
+)
+#: said while the base's start trigger holds the first data back (TRIGGER? answered START ON): no stall before it
+WAITING_FOR_TRIGGER = "waiting for the base's start trigger (TRIGGER? answered START ON): no data until it fires"
 
 
 @dataclass(frozen=True)
@@ -239,6 +247,7 @@ class TrignoClient:
         self.rate_hz = 0.0
         self.aux_rate_hz = 0.0
         self.aux_unavailable = ""  # why the AUX port asked for is not read (refused), empty while it is
+        self.start_trigger = False  # TRIGGER? said START ON: the first data wait for the trigger, however long
         self.endianness = tp.Endianness.LITTLE
         self.upsampling: bool | None = None
         self.emg_port = 0  # the EMG port actually connected (emg_port, or emg_port_fallback when it was refused)
@@ -638,6 +647,8 @@ class TrignoClient:
         interval = tp.parse_float(interval_reply, command="FRAME INTERVAL?") if interval_reply else tp.FRAME_INTERVAL_S
         if not 0.001 <= interval <= 1.0:
             raise ProtocolError(f"FRAME INTERVAL? answered {interval_reply!r}: not a frame interval in seconds")
+        trigger = self._query(link, "TRIGGER?", informative=True)
+        self.start_trigger = trigger is not None and "START ON" in " ".join(trigger.upper().split())
         self.sensors = self._query_sensors(link)
         per_frame = self._emg_samples_per_frame(link)
         aux_reply = self._query(link, "MAX SAMPLES AUX?")
@@ -734,7 +745,7 @@ class TrignoClient:
                 and self._link is not None
                 and time.monotonic() - self._last_activity > stall
             ):
-                self._on_connection_lost(f"no EMG data for {stall:g} s")
+                self._on_silence(self._link, stall)
         else:
             time.sleep(timeout)
         events, self._events = self._events, []
@@ -794,6 +805,8 @@ class TrignoClient:
                 self._gap_pending = True
                 self._gap_reason = f"no EMG data for {now - self._last_data_time:.2f} s"
         self._last_activity = now
+        if self.stats.last_error == WAITING_FOR_TRIGGER:  # it fired
+            self.stats.last_error = ""
         self._check_aux_silence(link, len(rows))
         self._count_non_finite(rows)
         self.stats.samples_received += len(rows)
@@ -898,15 +911,41 @@ class TrignoClient:
             else:
                 self._note_error(f"unexpected reply {reply!r} on the command port")
 
-    def _on_stopped(self) -> None:
-        """The server's stop trigger fired: acquisition is over, not a fault (no reconnection)."""
+    def _on_silence(self, link: _Link, stall_s: float) -> None:
+        """No EMG for ``stall_s`` while streaming: the base's start trigger not fired yet (said once, waited for),
+        another client that took the base over and stopped it (its command port answers that we are no longer master:
+        the end of our acquisition, not a fault), else a lost link (a pulled cable sends neither FIN nor RST)."""
+        if self.start_trigger and self._last_data_time == 0.0 and not self._gap_pending:
+            if self.stats.last_error != WAITING_FOR_TRIGGER:
+                self.stats.last_error = WAITING_FOR_TRIGGER  # a condition, not an error: said, not counted
+                self._emit_status(ClientState.STREAMING, WAITING_FOR_TRIGGER)
+            self._last_activity = time.monotonic()
+            return
+        try:
+            master = self._query(link, "MASTER?")
+            still_master = None if master is None else tp.parse_yes_no(master, command="MASTER?")
+        except (OSError, ProtocolError):  # no answer either: the link is gone
+            master, still_master = None, None
+        if still_master is False:
+            self._on_stopped(TAKEN_OVER)
+        elif master is not None:  # restarted like a lost link, but said as what it is
+            self._on_connection_lost(
+                f"no EMG data for {stall_s:g} s though the base answers on its command port (acquisition stopped "
+                "at the base or its utility, the base station unplugged, or its data path stuck)"
+            )
+        else:
+            self._on_connection_lost(f"no EMG data for {stall_s:g} s")
+
+    def _on_stopped(self, why: str = STOPPED_BY_SERVER) -> None:
+        """The base stopped acquiring (its stop trigger fired; another client took it over): acquisition is over,
+        not a fault (no reconnection)."""
         if self._link is not None:
             self._drain(self._link)  # frames sent before STOPPED are already here: deliver them first
         self._settle_gap()
         self._want_streaming = False
         self.state = ClientState.STOPPED
-        self.stats.last_error = STOPPED_BY_SERVER  # the status carries it: not a link error, but why the data ended
-        self._emit_status(ClientState.STOPPED, STOPPED_BY_SERVER)
+        self.stats.last_error = why  # the status carries it: not a link error, but why the data ended
+        self._emit_status(ClientState.STOPPED, why)
 
     def _report_gap(self) -> None:
         """The gap before the held EMG: its first row was measured at the earliest of (arrival - rows received up to

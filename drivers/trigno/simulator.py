@@ -83,6 +83,8 @@ class TrignoQuirks:
     #: the first data after START come this much later as one burst of what was measured since START (a base that
     #: buffers until its link is ready), instead of start_delay_s's later start of the measurement
     start_burst_s: float = 0.0
+    #: with TRIGGER START ON, the measurement starts when the start trigger fires, this long after START
+    start_trigger_fires_after_s: float = 1.0
     aux_silent: bool = False  # the AUX ports accept connections but send nothing (sensors with their AUX off)
     #: each AUX frame leaves this much after the EMG frame of the same instant (the ports are separate streams with no
     #: counter: a base may send the AUX behind), also while the EMG pauses
@@ -664,7 +666,9 @@ class TrignoSimulator:
             return
         self._accept_pending_data()
         self._frame = 0
-        self._run_started = time.monotonic() + self.config.quirks.start_delay_s / self.config.speed
+        quirks = self.config.quirks
+        delay = quirks.start_delay_s + (quirks.start_trigger_fires_after_s if self._triggers["START"] else 0.0)
+        self._run_started = time.monotonic() + delay / self.config.speed
         self._first_index = self._index_at(self._run_started)
         self.stats.start_index = self._first_index
         self.stats.started_s = self._run_started
