@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from drivers.xsens import xbus
-from drivers.xsens.device import TrackerSet, XsensDevice
+from drivers.xsens.device import DeviceStats, TrackerSet, XsensDevice
 from drivers.xsens.serial_transport import SerialTransport
 from drivers.xsens.simulator import XsensSimulator
 from drivers.xsens.source import load_imu_source, synthetic_imu
@@ -85,8 +85,10 @@ class FakeMti:
         stf0: int = 0,
         pieces=(1, 7, 3, 64, 17, 250),
         device_id: bytes = struct.pack(">I", DEVICE_ID),
+        garbage_at: int | None = None,
     ) -> None:
         self.device_id = device_id
+        self.garbage_at = garbage_at  # a frame with a wrong checksum before this message (line noise)
         self.master, slave = os.openpty()
         tty.setraw(slave)
         self._slave = slave
@@ -165,6 +167,10 @@ class FakeMti:
                 self._write(frame(0xFF, 0x43, struct.pack(">I", 0x1234)))  # a Warning between data
             if k == 25:
                 self._write(frame(0xFF, 0x42, b"\x1e"))  # Error: timer overflow
+            if k == self.garbage_at:
+                bad = bytearray(frame(0xFF, 0x36, mtdata2(counter, self.stf0)))
+                bad[-1] ^= 0xFF
+                self._write(bytes(bad))
             self._write(frame(0xFF, 0x36, mtdata2(counter, self.stf0)))
             time.sleep(0.002)
 
@@ -198,7 +204,32 @@ def test_independent_device_bus_01_replies_modified_echo_extended_unknown_items_
     stats = device.stats
     assert stats.packets_lost == 0 and stats.restarts == 1 and stats.decode_errors == 0
     assert stats.device_errors == 1 and "timer overflow" in stats.last_error
+    assert stats.device_warnings == 1  # the Warning at message 5: counted (it was dropped without a trace)
     assert device.parser.stats.errors == 0 and device.parser.stats.bytes_skipped == 0
+
+
+def test_line_noise_does_not_hide_a_device_error_in_the_status():
+    """Found by an independent imitation: "device error 0x28" and "device restarted" were replaced in last_error by
+    "N bad Xbus frames so far" within a second. Line noise and warnings are said only over what they said themselves;
+    their counts go on."""
+    fake = FakeMti(restart_at=None, garbage_at=30)
+    device = XsensDevice(SerialTransport(fake.path, baudrate=921600))
+    try:
+        device.configure(100)
+        readings = read_until(device, lambda got: len(got) >= fake.count - 1)
+    finally:
+        device.close()
+        fake.close()
+    assert len(readings) == fake.count - 1  # the corrupted one left out
+    assert device.parser.stats.errors == 1 and device.stats.device_errors == 1
+    assert device.stats.last_error == "device error 0x1E (timer overflow)", device.stats.last_error
+    stats = DeviceStats()
+    stats.note("3 bad Xbus frames so far", minor=True)
+    stats.note("4 bad Xbus frames so far", minor=True)  # a minor message replaces its own kind
+    assert stats.last_error == "4 bad Xbus frames so far"
+    stats.note("device restarted (WakeUp while measuring)")
+    stats.note("1 device warning(s) (Xbus Warning 0x43) so far, the last", minor=True)
+    assert stats.last_error == "device restarted (WakeUp while measuring)"
 
 
 def test_baudrate_request_to_independent_device_and_simulator():

@@ -91,7 +91,22 @@ class DeviceStats:
     restarts: int = 0  # WakeUp seen while measuring: the device reset itself (counters start again)
     reconnects: int = 0  # reopened and reconfigured after an unplug
     requests_repeated: int = 0  # a request that changes nothing asked again when no reply came in time
+    device_warnings: int = 0  # Xbus Warning (0x43) messages: said in last_error, not counted as errors
     last_error: str = ""
+    _minor_text: str = field(
+        default="", repr=False
+    )  # the last_error a minor condition set (note(minor=True)), which the next one may replace
+
+    def note(self, text: str, *, minor: bool = False) -> None:
+        """Say ``text`` in last_error. A minor condition (line noise counted so far, a device warning) does not
+        replace a message it did not set: a device error, a restart or a configuration the device applied otherwise
+        would be lost within a second to "N bad Xbus frames so far" (found by an independent imitation), and its
+        count alone does not say what it was."""
+        if minor:
+            if self.last_error and self.last_error != self._minor_text:
+                return
+            self._minor_text = text
+        self.last_error = text
 
 
 @dataclass(frozen=True)
@@ -393,7 +408,7 @@ class XsensDevice:
         errors_before = self.parser.stats.errors
         messages += self._read_messages()
         if self.parser.stats.errors != errors_before:  # counted by the parser: said here, for the status
-            self.stats.last_error = line_errors_text(self.parser.stats)
+            self.stats.note(line_errors_text(self.parser.stats), minor=True)
         readings: list[ImuReading] = []
         now = time.time_ns()
         for message in messages:
@@ -401,7 +416,15 @@ class XsensDevice:
             if message.mid == xbus.Mid.ERROR:
                 self.stats.device_errors += 1
                 code = message.data[0] if message.data else 0
-                self.stats.last_error = f"device error 0x{code:02X} ({xbus.ERROR_CODES.get(code, 'unknown')})"
+                self.stats.note(f"device error 0x{code:02X} ({xbus.ERROR_CODES.get(code, 'unknown')})")
+                continue
+            if message.mid == xbus.Mid.WARNING:  # reported by the device, not a fault of the data: said, counted
+                self.stats.device_warnings += 1
+                detail = f" (payload {message.data.hex(' ')})" if message.data else ""
+                self.stats.note(
+                    f"{self.stats.device_warnings} device warning(s) (Xbus Warning 0x43) so far, the last{detail}",
+                    minor=True,
+                )
                 continue
             if message.mid == xbus.Mid.WAKE_UP:
                 # The device reset itself (power dip, watchdog). Not acknowledged: without a WakeUpAck it returns
