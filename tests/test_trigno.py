@@ -745,3 +745,25 @@ def test_another_client_taking_the_base_over_ends_the_stream_without_a_restart()
     assert not [s for s in states if s.state is ClientState.RECONNECTING], states
     assert states[-1].state is ClientState.STOPPED and client.stats.last_error == TAKEN_OVER, states
     assert not [e for e in before + events if isinstance(e, GapEvent)] and client.stats.samples_lost == 0
+
+
+def test_a_sensor_unpaired_while_streaming_is_said():
+    """Found by an independent imitation: a sensor unpaired while streaming went on as 5,000 samples of exactly 0.0
+    ("Empty slots are 0.0") with no word. A slot of an active sensor at exactly 0.0 for 0.5 s is said in the status;
+    real EMG is never exactly 0 that long."""
+    source = synthetic_source(seconds=20.0, seed=5)
+    sensor = next(k + 1 for k, paired in enumerate(source.paired) if paired)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=5)) as sim:
+        client = client_for(sim)
+        client.connect()
+        client.start()
+        collect(client, samples=2000, seconds=5)
+        assert client.stats.last_error == ""  # real EMG: no slot said
+        sim.unpair(sensor)
+        events = collect(client, seconds=5, until=lambda ev: "exactly 0.0" in client.stats.last_error)
+        client.close()
+    said = client.stats.last_error
+    assert f"sensor {sensor} (EMG slot {sensor}) sends exactly 0.0 for 0.5 s and more" in said, said
+    rows = emg_rows(events)
+    assert len(rows) >= 0.5 * 1925 and not rows[-500:, sensor - 1].any()
+    assert client.stats.errors == 0  # a condition of the sensors, not an error of the link

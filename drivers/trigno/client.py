@@ -158,6 +158,9 @@ MAX_RESUME_HOLD_S = 5.0
 PAUSE_TOLERANCE_S = 0.2
 #: an AUX port that has sent nothing over this much EMG is said (once)
 AUX_SILENT_S = 5.0
+#: "Empty slots are 0.0": an active sensor's slot exactly 0.0 this long was emptied (its sensor unpaired or switched
+#: off while streaming: an imitation's went on as 5,000 zeros without a word); real EMG is never exactly 0 that long
+EMPTY_SLOT_S = 0.5
 #: why the data ended when the base sends an unsolicited STOPPED
 STOPPED_BY_SERVER = (
     "the base stopped acquiring: it sent STOPPED (its stop trigger fired, or another client on it sent STOP)"
@@ -263,6 +266,11 @@ class TrignoClient:
         self._aux_rows_seen = False  # any AUX row since START (a silent AUX port is said once)
         self._aux_silence_said = False
         self._emg_rows_since_aux = 0
+        self._zero_run = np.zeros(tp.N_SENSORS, dtype=np.int64)  # per EMG slot: exact 0.0 rows in a row, up to now
+        self._slot_said = np.zeros(tp.N_SENSORS, dtype=bool)  # active slots said empty; inactive ones said carrying
+        self._slot_owner: dict[int, int] = {}  # EMG slot -> its active sensor (of the handshake's sensors)
+        self._slot_active = np.zeros(tp.N_SENSORS, dtype=bool)
+        self._slot_owner_of: tuple[SensorInfo, ...] | None = None
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
         self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
@@ -809,6 +817,7 @@ class TrignoClient:
             self.stats.last_error = ""
         self._check_aux_silence(link, len(rows))
         self._count_non_finite(rows)
+        self._check_slots(rows)
         self.stats.samples_received += len(rows)
         if self._gap_pending:  # held until the backlog of the resumed stream says how long the gap was
             self._emg_after_gap.append((rows, now, time.time_ns()))
@@ -871,6 +880,42 @@ class TrignoClient:
                 )
         elif len(rows):
             self._emit_aux(rows, time.time_ns())
+
+    def _check_slots(self, rows: np.ndarray) -> None:
+        """Say (once each, in last_error: a condition, not counted) an active sensor's slot that has become exactly 0.0
+        for :data:`EMPTY_SLOT_S` (unpaired or switched off while streaming) and when it sends again, and a slot that
+        carries data though no active sensor had it at the handshake (paired while streaming: read after a restart).
+        Vectorised over the slots: a read that changes nothing runs no Python loop."""
+        if self.rate_hz <= 0 or rows.ndim != 2 or rows.shape[1] != tp.N_SENSORS:
+            return
+        if self._slot_owner_of is not self.sensors:  # the sensors of this handshake
+            self._slot_owner = {slot: s.sensor for s in self.sensors if s.active for slot in s.emg_slots}
+            self._slot_active = np.isin(np.arange(tp.N_SENSORS), list(self._slot_owner))
+            self._slot_owner_of = self.sensors
+        zero = rows == 0.0
+        carries = ~zero.all(axis=0)
+        last_nonzero = len(rows) - 1 - np.argmax(~zero[::-1], axis=0)  # per slot, meaningful where it carries
+        self._zero_run = np.where(carries, len(rows) - 1 - last_nonzero, self._zero_run + len(rows))
+        empty = self._zero_run >= EMPTY_SLOT_S * self.rate_hz
+        active, said = self._slot_active, self._slot_said
+        changed = np.flatnonzero((active & empty & ~said) | (active & said & carries) | (~active & carries & ~said))
+        if not changed.size:
+            return
+        said[changed] = ~said[changed]
+        conditions = []  # every slot's condition now, in one line (one slot's would hide another's)
+        for slot in np.flatnonzero(said):
+            sensor = self._slot_owner.get(int(slot))
+            conditions.append(
+                f"EMG slot {slot + 1} carries data though no active sensor had it at the start (a sensor paired or "
+                "switched on while streaming): not published until the acquisition is restarted"
+                if sensor is None
+                else f"sensor {sensor} (EMG slot {slot + 1}) sends exactly 0.0 for {EMPTY_SLOT_S:g} s and more: the "
+                "base empties the slot of a sensor unpaired or switched off"
+            )
+        back = [self._slot_owner[int(k)] for k in changed if not said[k] and int(k) in self._slot_owner]
+        conditions += [f"sensor {sensor} sends again" for sensor in back]
+        self.stats.last_error = "; ".join(conditions)
+        log.warning("%s", self.stats.last_error)
 
     def _count_non_finite(self, rows: np.ndarray) -> None:
         """NaN/Inf from the base are passed on as they came (they are what it sent) and counted (``stats``)."""

@@ -320,6 +320,7 @@ class TrignoSimulator:
         # a buffering pause drained at a pace: (pause start, resume, speed); frame due d >= start leaves at
         # resume + (d - start) / speed until that is earlier than d (caught up)
         self._catch_up: tuple[float, float, float] | None = None
+        self._unpaired: set[int] = set()  # sensors (1-16) unpaired while running: PAIRED? NO, their slot 0.0
         self._run_started = 0.0  # wall instant (time.monotonic) the latest START took effect
         self._first_index = 0  # stream sample index of the run's sample 0 (0 without a trial clock)
         self._frame = 0  # frames sent since START
@@ -410,6 +411,11 @@ class TrignoSimulator:
             if not catch_up > 1:
                 raise ValueError(f"catch_up must be > 1 (times real time), got {catch_up}")
             self._catch_up = (now, self._send_after, catch_up)
+
+    def unpair(self, sensor: int) -> None:
+        """Sensor ``sensor`` (1-16) is unpaired (or switched off) while the base runs: it answers PAIRED? NO and the
+        base sends its slot as 0.0 ("Empty slots are 0.0")."""
+        self._unpaired.add(sensor)
 
     def stall(self) -> None:
         """Stop sending data without telling anyone, as when a cable is pulled (no FIN, no RST, no STOPPED)."""
@@ -625,7 +631,7 @@ class TrignoSimulator:
             return "INVALID COMMAND"
         n = int(words[1])
         rest = " ".join(words[2:])
-        paired = self.source.paired[n - 1]
+        paired = self.source.paired[n - 1] and n not in self._unpaired
         if rest in ("PAIRED?", "ACTIVE?"):
             return "YES" if paired else "NO"
         if not paired:
@@ -747,6 +753,8 @@ class TrignoSimulator:
                 self._fault_signals = _FaultSignals(self.config.faults, self.rate_hz, self.config.seed)
             self._fault_signals.apply(emg, frame * spf, lambda k, column: samples[(self._first_index + k) % n, column])
         np.clip(emg, -TRIGNO_EMG_RANGE_V, TRIGNO_EMG_RANGE_V, out=emg)  # the converter's range
+        for sensor in self._unpaired:
+            emg[:, sensor - 1] = 0.0
         with self._lock:
             listening = {
                 kind: list(conns)
