@@ -892,6 +892,7 @@ class TrignoClient:
             self._slot_owner = {slot: s.sensor for s in self.sensors if s.active for slot in s.emg_slots}
             self._slot_active = np.isin(np.arange(tp.N_SENSORS), list(self._slot_owner))
             self._slot_owner_of = self.sensors
+            self._slot_said[:], self._zero_run[:] = False, 0  # judged afresh against these sensors
         zero = rows == 0.0
         carries = ~zero.all(axis=0)
         last_nonzero = len(rows) - 1 - np.argmax(~zero[::-1], axis=0)  # per slot, meaningful where it carries
