@@ -265,13 +265,13 @@ def test_aux_rows_held_for_an_emg_stream_that_does_not_resume_are_dropped_and_co
             base.sendall(np.ones((rows_per_write, width), dtype="<f4").tobytes())
             received = 0
             while received < rows_per_write:
-                before = sum(len(r) for r, _ in client._aux_after_gap) + client.stats.aux_samples_dropped
+                before = sum(len(r) for r, *_ in client._aux_after_gap) + client.stats.aux_samples_dropped
                 client._read_aux(link)
-                received += sum(len(r) for r, _ in client._aux_after_gap) + client.stats.aux_samples_dropped - before
+                received += sum(len(r) for r, *_ in client._aux_after_gap) + client.stats.aux_samples_dropped - before
     finally:
         ours.close()
         base.close()
-    held = sum(len(r) for r, _ in client._aux_after_gap)
+    held = sum(len(r) for r, *_ in client._aux_after_gap)
     assert held <= AUX_HOLD_S * client.aux_rate_hz + rows_per_write
     assert held + client.stats.aux_samples_dropped == rows_per_write * writes
     assert client.stats.aux_samples_dropped > 0 and "AUX samples dropped" in client.stats.last_error
@@ -767,3 +767,32 @@ def test_a_sensor_unpaired_while_streaming_is_said():
     rows = emg_rows(events)
     assert len(rows) >= 0.5 * 1925 and not rows[-500:, sensor - 1].any()
     assert client.stats.errors == 0  # a condition of the sensors, not an error of the link
+
+
+@pytest.mark.parametrize("lag_s", [0.0, 0.1])
+def test_aux_rows_after_a_lost_link_to_a_base_still_acquiring_stay_on_the_emg_clock(lag_s):
+    """Found by an independent imitation: after a lost link to a base that went on acquiring, the AUX index was
+    anchored to the EMG's at the gap, whatever the AUX rows received first had been measured: with the AUX frames
+    leaving 5 ms after their EMG frames every later AUX row was a frame (2 rows) late, with 0.1 s eight frames. The
+    AUX is now placed by when its first resumed rows were measured, less the port's lag measured before the loss."""
+    source = _ramp_source(20.0, 9)
+    quirks = TrignoQuirks(aux_lag_s=lag_s)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=9, quirks=quirks)) as sim:
+        client = client_for(sim, aux=True, backoff_initial_s=0.02)
+        client.connect()
+        client.start()
+        events = collect(client, samples=3000, seconds=5)
+        sim.drop_connections()  # the base acquires on: the reconnection finds its streams mid-way
+        events += collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 3000)
+        events += collect(client, seconds=lag_s + 0.3)
+        client.close()
+    (gap,) = [e for e in events if isinstance(e, GapEvent)]
+    blocks = [e for e in events if isinstance(e, EmgBlock)]
+    resumed = next(b for b in blocks if b.first_sample_index >= gap.first_missing_index + gap.n_missing)
+    truly = int(np.flatnonzero((source.samples == resumed.samples[0]).all(axis=1))[0])  # its sample of the source
+    emg_offset = resumed.first_sample_index - truly  # the gap estimate's error, which the AUX shares
+    index, measured_at = _aux_index_errors(events)
+    after = index >= (gap.first_missing_index + gap.n_missing) * 2 / 27
+    assert after.sum() > 100, after.sum()
+    offsets = index[after] - measured_at[after] - emg_offset * 2 / 27
+    assert np.all(np.abs(offsets) <= 1.0), np.unique(np.round(offsets, 2))

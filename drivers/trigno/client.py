@@ -8,6 +8,7 @@ Everything already received has been returned before the disconnection is report
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
 import selectors
@@ -260,7 +261,15 @@ class TrignoClient:
         self._aux_decoder = tp.SampleDecoder(config.resolved_aux_layout.floats_per_sample)
         self._next_index = 0
         self._next_aux_index = 0
-        self._aux_after_gap: list[tuple[np.ndarray, int]] = []  # AUX rows of a resumed stream, before its gap is known
+        # AUX rows of a resumed stream, before its gap is known: (rows, host time ns, arrival time.monotonic)
+        self._aux_after_gap: list[tuple[np.ndarray, int, float]] = []
+        # the AUX port's lag behind the EMG port, per AUX read: its arrival minus that of the EMG read that reached the
+        # same instant (s); and the EMG reads' (end index, arrival) it is measured against
+        self._aux_lags: collections.deque[float] = collections.deque(maxlen=64)
+        self._emg_arrivals: collections.deque[tuple[int, float]] = collections.deque(maxlen=256)
+        # after a lost link, the resumed EMG's (first index, when its first row was measured) until the first AUX read
+        # places the AUX stream against it
+        self._aux_anchor: tuple[int, float] | None = None
         # gaps of a pause the AUX stream has still to reach: (its first missing AUX index, AUX samples missing)
         self._aux_gaps: list[tuple[int, int]] = []
         self._aux_rows_seen = False  # any AUX row since START (a silent AUX port is said once)
@@ -326,8 +335,9 @@ class TrignoClient:
         self._last_activity = time.monotonic()
         self._last_data_time = 0.0  # no EMG yet: its first row is sample 0, however long after START it comes
         self._gap_pending = False  # a gap of an earlier acquisition (stopped while reconnecting) is not this one's
-        self.stats.aux_samples_dropped += sum(len(rows) for rows, _ in self._aux_after_gap)
+        self.stats.aux_samples_dropped += sum(len(rows) for rows, _, _ in self._aux_after_gap)
         self._aux_after_gap = []
+        self._aux_anchor = None
         self._pass_aux_gaps()
         self._emit_status(ClientState.STREAMING, "started")
 
@@ -826,6 +836,7 @@ class TrignoClient:
             return
         self._last_data_time = now
         self._emit_emg(rows, time.time_ns())
+        self._emg_arrivals.append((self._next_index, now))
         self._release_held_aux()  # held while the EMG was quiet: there was no gap
 
     def _with_queued_rows(self, sock: socket.socket, rows: np.ndarray, max_reads: int = 64) -> np.ndarray:
@@ -869,8 +880,8 @@ class TrignoClient:
         # placed on the EMG clock once the EMG says how long the gap was (or, silent for now, whether there is one)
         quiet = self.state is ClientState.STREAMING and self._emg_quiet(time.monotonic())
         if len(rows) and (self._gap_pending or quiet):
-            self._aux_after_gap.append((rows, time.time_ns()))
-            held = sum(len(r) for r, _ in self._aux_after_gap)
+            self._aux_after_gap.append((rows, time.time_ns(), time.monotonic()))
+            held = sum(len(r) for r, _, _ in self._aux_after_gap)
             if self.aux_rate_hz > 0 and held > AUX_HOLD_S * self.aux_rate_hz:  # the EMG is not coming back soon
                 dropped = len(self._aux_after_gap.pop(0)[0])
                 self.stats.aux_samples_dropped += dropped
@@ -879,7 +890,40 @@ class TrignoClient:
                     f"{AUX_HOLD_S:g} s to place them on its clock"
                 )
         elif len(rows):
+            now = time.monotonic()
+            if self._aux_anchor is not None:
+                self._place_aux_after_loss([(len(rows), now)])
             self._emit_aux(rows, time.time_ns())
+            self._measure_aux_lag(now)
+
+    def _measure_aux_lag(self, now: float) -> None:
+        """One sample of the AUX port's lag behind the EMG port: this AUX read's arrival minus the arrival of the EMG
+        read that first reached the same instant (none yet: the AUX is not behind; left out)."""
+        if self.rate_hz <= 0 or self.aux_rate_hz <= 0:
+            return
+        instant = self._next_aux_index * self.rate_hz / self.aux_rate_hz  # in EMG samples
+        reached = None
+        for end, arrived in reversed(self._emg_arrivals):  # the matching read is among the last few
+            if end < instant:
+                break
+            reached = arrived
+        if reached is not None and (not self._emg_arrivals or self._emg_arrivals[0][0] < instant):
+            self._aux_lags.append(now - reached)
+
+    def _place_aux_after_loss(self, reads: list[tuple[int, float]]) -> None:
+        """After a lost link the base may have gone on acquiring: the first AUX rows received then were measured
+        (their arrival, less the reads' rows, less the port's lag measured before) at an instant the EMG's resumed
+        first row (measured at its own arrival estimate) puts on the EMG index. Anchoring the AUX on the EMG's index
+        at the moment of the gap instead put it a frame late with 5 ms of lag, eight frames with 0.1 s (an
+        independent imitation whose AUX frames leave after their EMG frames)."""
+        first_index, emg_measured = self._aux_anchor or (0, 0.0)
+        self._aux_anchor = None
+        lag = float(np.median(self._aux_lags)) if self._aux_lags else 0.0
+        aux_measured = _first_measured(reads, self.aux_rate_hz) - lag
+        anchor = int(
+            round(first_index * self.aux_rate_hz / self.rate_hz + (aux_measured - emg_measured) * self.aux_rate_hz)
+        )
+        self._next_aux_index = max(self._next_aux_index, anchor)
 
     def _check_slots(self, rows: np.ndarray) -> None:
         """Say (once each, in last_error: a condition, not counted) an active sensor's slot that has become exactly 0.0
@@ -1028,8 +1072,10 @@ class TrignoClient:
             if pause:
                 if missing:
                     self._aux_gaps.append((int(round(first_missing * ratio)), int(round(missing * ratio))))
-            else:
-                self._next_aux_index = max(self._next_aux_index, int(round(self._next_index * ratio)))
+            else:  # placed by when its first rows were measured: now from those held, else from the next AUX read
+                self._aux_anchor = (self._next_index, first_measured)
+                if self._aux_after_gap:
+                    self._place_aux_after_loss([(len(rows), arrived) for rows, _, arrived in self._aux_after_gap])
         for rows, _, host_time_ns in held:
             self._emit_emg(rows, host_time_ns)
         self._last_data_time = held[-1][1]
@@ -1037,7 +1083,7 @@ class TrignoClient:
 
     def _release_held_aux(self) -> None:
         """Emit the AUX rows held until the EMG said whether (and how long) there was a gap, on the index it left."""
-        for rows, host_time_ns in self._aux_after_gap:
+        for rows, host_time_ns, _ in self._aux_after_gap:
             self._emit_aux(rows, host_time_ns)
         self._aux_after_gap = []
 

@@ -310,7 +310,7 @@ class TrignoSimulator:
         self._command_conns: list[_CommandConnection] = []
         self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": [], "legacy_acc": []}
         self._threads: list[threading.Thread] = []
-        self._lagged_aux: collections.deque = collections.deque()  # (due, kind, connections, payload): aux_lag_s
+        self._lagged_aux: collections.deque = collections.deque()  # (due, kind, connections then, payload): aux_lag_s
         self._master: int | None = None
         self._next_conn_id = 1
         self._running = False
@@ -411,6 +411,22 @@ class TrignoSimulator:
             if not catch_up > 1:
                 raise ValueError(f"catch_up must be > 1 (times real time), got {catch_up}")
             self._catch_up = (now, self._send_after, catch_up)
+
+    def drop_connections(self) -> None:
+        """Close every client connection, the base still acquiring (its utility restarted its SDK server, or the
+        network between them failed): a client that reconnects finds the streams going on, mid-way."""
+        with self._lock:
+            socks = [c.sock for c in self._command_conns] + [s for group in self._data_conns.values() for s in group]
+            self._command_conns.clear()
+            self._master = None
+            for group in self._data_conns.values():
+                group.clear()
+        for sock in socks:
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            sock.close()
 
     def unpair(self, sensor: int) -> None:
         """Sensor ``sensor`` (1-16) is unpaired (or switched off) while the base runs: it answers PAIRED? NO and the
@@ -755,13 +771,14 @@ class TrignoSimulator:
         np.clip(emg, -TRIGNO_EMG_RANGE_V, TRIGNO_EMG_RANGE_V, out=emg)  # the converter's range
         for sensor in self._unpaired:
             emg[:, sensor - 1] = 0.0
+        lag_s = self.config.quirks.aux_lag_s / self.config.speed
         with self._lock:
             listening = {
                 kind: list(conns)
                 for kind, conns in self._data_conns.items()
-                if conns and (kind == "emg" or not self.config.quirks.aux_silent)
+                # a lagged AUX frame goes to whoever reads the port when it leaves, maybe nobody yet
+                if (conns or (kind != "emg" and lag_s > 0)) and (kind == "emg" or not self.config.quirks.aux_silent)
             }
-        lag_s = self.config.quirks.aux_lag_s / self.config.speed
         for kind, conns in listening.items():  # a port nobody reads costs nothing (the AUX rows are interpolated)
             payload = tp.encode_samples(emg if kind == "emg" else self._aux_payload(kind, start), self._endianness)
             if kind != "emg" and lag_s > 0:
@@ -818,8 +835,11 @@ class TrignoSimulator:
         """The AUX frames of the ``aux_lag_s`` quirk, each sent when its lag has passed."""
         while not self._stop.wait(0.002):
             while self._lagged_aux and self._lagged_aux[0][0] <= time.monotonic():
-                _, kind, conns, payload = self._lagged_aux.popleft()
-                self._send_data(kind, conns, payload)
+                _, kind, _, payload = self._lagged_aux.popleft()
+                with self._lock:  # whoever reads the port when the frame leaves (a client that just connected too)
+                    conns = list(self._data_conns[kind])
+                if conns:
+                    self._send_data(kind, conns, payload)
 
     def _send_fragmented(self, sock: socket.socket, payload: bytes) -> None:
         limit = self.config.fragment_max
