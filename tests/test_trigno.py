@@ -769,6 +769,26 @@ def test_a_sensor_unpaired_while_streaming_is_said():
     assert client.stats.errors == 0  # a condition of the sensors, not an error of the link
 
 
+def test_a_sensor_paired_again_sends_again_and_one_paired_while_streaming_is_said():
+    source = synthetic_source(seconds=20.0, seed=5)
+    first, second = [k + 1 for k, paired in enumerate(source.paired) if paired][:2]
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=5)) as sim:
+        sim.unpair(second)  # unpaired at the handshake: not an active sensor of this acquisition
+        client = client_for(sim)
+        client.connect()
+        assert second not in [s.sensor for s in client.sensors if s.active]
+        client.start()
+        sim.unpair(first)
+        collect(client, seconds=5, until=lambda ev: "exactly 0.0" in client.stats.last_error)
+        sim.pair(first)
+        sim.pair(second)
+        collect(client, seconds=3, until=lambda ev: "sends again" in client.stats.last_error)
+        said = client.stats.last_error
+        client.close()
+    assert f"sensor {first} sends again" in said, said
+    assert f"EMG slot {second} carries data though no active sensor had it at the start" in said, said
+
+
 @pytest.mark.parametrize("lag_s", [0.0, 0.1])
 def test_aux_rows_after_a_lost_link_to_a_base_still_acquiring_stay_on_the_emg_clock(lag_s):
     """Found by an independent imitation: after a lost link to a base that went on acquiring, the AUX index was
@@ -796,3 +816,47 @@ def test_aux_rows_after_a_lost_link_to_a_base_still_acquiring_stay_on_the_emg_cl
     assert after.sum() > 100, after.sum()
     offsets = index[after] - measured_at[after] - emg_offset * 2 / 27
     assert np.all(np.abs(offsets) <= 1.0), np.unique(np.round(offsets, 2))
+
+
+def test_a_pulled_cable_is_found_without_a_long_blocking_probe():
+    """Found by a review: the MASTER? that tells another client's take-over from a lost link waited the whole reply
+    timeout (3 s) on a pulled cable, during which the driver's loop published nothing and could not stop."""
+    source = synthetic_source(seconds=10.0, seed=8)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0)) as sim:
+        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
+        client.connect()
+        client.start()
+        collect(client, samples=500, seconds=5)
+        sim.stall(commands_too=True)
+        longest, events = 0.0, []
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not [e for e in events if isinstance(e, StatusEvent)]:
+            began = time.monotonic()
+            events += client.poll(0.02)
+            longest = max(longest, time.monotonic() - began)
+        client.close()
+    states = [e for e in events if isinstance(e, StatusEvent)]
+    assert states and states[0].state is ClientState.RECONNECTING and "no EMG data for 0.3 s" in states[0].detail
+    assert "command port" not in states[0].detail  # it did not answer: not said to
+    assert longest < client.config.reply_timeout_s / 2, longest
+
+
+def test_a_start_trigger_is_still_waited_for_after_a_lost_link():
+    """Found by a review: a link lost before the first data, then reconnected, waited for the trigger no more: six
+    reconnections "though the base answers" until it fired."""
+    source = synthetic_source(seconds=10.0, seed=8)
+    quirks = TrignoQuirks(start_trigger_fires_after_s=2.0)
+    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, quirks=quirks)) as sim:
+        assert _other_client(sim, "TRIGGER START ON") == ["OK"]
+        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
+        client.connect()
+        client.start()
+        events = collect(client, seconds=0.4)
+        sim.drop_connections()  # before the trigger fires; the base waits on for it
+        events += collect(client, samples=500, seconds=6)
+        client.close()
+    reconnecting = [e for e in events if isinstance(e, StatusEvent) and e.state is ClientState.RECONNECTING]
+    assert len(reconnecting) == 1, reconnecting  # the dropped link, and no more
+    rows = emg_rows(events)
+    assert len(rows) >= 500
+    assert_bit_exact(rows, source.samples[: len(rows)])

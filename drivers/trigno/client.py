@@ -153,7 +153,7 @@ RESUME_WINDOW_S = 0.25
 #: more than CATCH_UP_STEP_S for RESUME_WINDOW_S (the backlog drained), at most MAX_RESUME_HOLD_S. A fixed window read
 #: the undrained backlog as 0.75 s lost, and every later sample 0.75 s late
 CATCH_UP_STEP_S = 0.010
-MAX_RESUME_HOLD_S = 5.0
+MAX_RESUME_HOLD_S = 2.0
 #: a pause's estimate below this is not counted: a sender (or a simulator on a loaded host) that fell behind and
 #: catches up slower than the window measures reads as a short loss (a reconnection counts any)
 PAUSE_TOLERANCE_S = 0.2
@@ -172,6 +172,8 @@ TAKEN_OVER = (
     "the base stopped sending data and another client is now its master (MASTER? answers NO): that client stopped "
     "acquisition; not restarted, as it controls the base now"
 )
+#: how long a silent stream's MASTER? may take: a pulled cable answers nothing, and the poll must not block long
+MASTER_PROBE_S = 0.5
 #: said while the base's start trigger holds the first data back (TRIGGER? answered START ON): no stall before it
 WAITING_FOR_TRIGGER = "waiting for the base's start trigger (TRIGGER? answered START ON): no data until it fires"
 
@@ -430,10 +432,10 @@ class TrignoClient:
             raise ProtocolError(f"Trigno client is not connected (state {self.state.value})")
         return self._link
 
-    def _command(self, text: str, link: _Link | None = None) -> str:
+    def _command(self, text: str, link: _Link | None = None, timeout_s: float | None = None) -> str:
         link = link or self._require_link()
         link.command.sendall(tp.encode_command(text))
-        reply = self._read_reply(link, text)
+        reply = self._read_reply(link, text, timeout_s)
         if tp.is_error(reply):
             raise tp.CommandFailed(text, reply)
         return reply
@@ -509,11 +511,12 @@ class TrignoClient:
             if current != wanted:
                 raise
 
-    def _read_reply(self, link: _Link, command: str) -> str:
-        """The next reply on the command port. An unsolicited ``STOPPED`` is never taken as the reply: it is the
-        stop trigger (handled at once), except while we STOP/QUIT ourselves, where it is the reply only when
-        nothing else arrives shortly after it."""
-        deadline = time.monotonic() + self.config.reply_timeout_s
+    def _read_reply(self, link: _Link, command: str, timeout_s: float | None = None) -> str:
+        """The next reply on the command port (within ``timeout_s``, default ``reply_timeout_s``). An unsolicited
+        ``STOPPED`` is never taken as the reply: it is the stop trigger (handled at once), except while we STOP/QUIT
+        ourselves, where it is the reply only when nothing else arrives shortly after it."""
+        timeout_s = self.config.reply_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
         stopping = command.upper() in ("STOP", "QUIT")
         stopped_seen = False
         while True:
@@ -535,7 +538,7 @@ class TrignoClient:
                 if stopped_seen:
                     return tp.UNSOLICITED_STOPPED
                 link.late_replies += 1  # so a late reply is not taken as the next command's
-                raise tp.NoReply(f"no reply to {command!r} within {self.config.reply_timeout_s} s")
+                raise tp.NoReply(f"no reply to {command!r} within {timeout_s:g} s")
             self._receive(link, remaining, f"Trigno server closed the command connection (waiting for {command!r})")
 
     @staticmethod
@@ -552,12 +555,14 @@ class TrignoClient:
             raise ConnectionResetError(closed_message)
         link.pending_replies.extend(link.replies.feed(chunk))
 
-    def _query(self, link: _Link, text: str, *, informative: bool = False) -> str | None:
+    def _query(
+        self, link: _Link, text: str, *, informative: bool = False, timeout_s: float | None = None
+    ) -> str | None:
         """A query whose failure is tolerated (servers differ in what they support). ``informative``: its answer only
         describes (a sensor's type, slot, channel count), so one the server does not answer in time is taken as
         unanswered too, said, up to :data:`INFORMATIVE_TIMEOUTS` a connection (one slow reply ended the start)."""
         try:
-            return self._command(text, link)
+            return self._command(text, link, timeout_s)
         except tp.CommandFailed:
             return None
         except tp.NoReply as error:
@@ -937,12 +942,15 @@ class TrignoClient:
             self._slot_active = np.isin(np.arange(tp.N_SENSORS), list(self._slot_owner))
             self._slot_owner_of = self.sensors
             self._slot_said[:], self._zero_run[:] = False, 0  # judged afresh against these sensors
-        zero = rows == 0.0
-        carries = ~zero.all(axis=0)
-        last_nonzero = len(rows) - 1 - np.argmax(~zero[::-1], axis=0)  # per slot, meaningful where it carries
-        self._zero_run = np.where(carries, len(rows) - 1 - last_nonzero, self._zero_run + len(rows))
-        empty = self._zero_run >= EMPTY_SLOT_S * self.rate_hz
+        carries = rows.any(axis=0)  # NaN counts as data
+        run = self._zero_run  # reads wholly 0.0 in a row, in rows (a read's trailing zeros are not counted: < a read)
+        run += len(rows)
+        run[carries] = 0
         active, said = self._slot_active, self._slot_said
+        # what is said is what is so: active slots carry data, inactive ones do not (~4 us a read when nothing changed)
+        if np.array_equal(carries, active ^ said) and not (run[active & ~said] >= EMPTY_SLOT_S * self.rate_hz).any():
+            return
+        empty = run >= EMPTY_SLOT_S * self.rate_hz
         changed = np.flatnonzero((active & empty & ~said) | (active & said & carries) | (~active & carries & ~said))
         if not changed.size:
             return
@@ -1005,14 +1013,14 @@ class TrignoClient:
         """No EMG for ``stall_s`` while streaming: the base's start trigger not fired yet (said once, waited for),
         another client that took the base over and stopped it (its command port answers that we are no longer master:
         the end of our acquisition, not a fault), else a lost link (a pulled cable sends neither FIN nor RST)."""
-        if self.start_trigger and self._last_data_time == 0.0 and not self._gap_pending:
+        if self.start_trigger and self._last_data_time == 0.0:  # nothing since START, also after a reconnection
             if self.stats.last_error != WAITING_FOR_TRIGGER:
                 self.stats.last_error = WAITING_FOR_TRIGGER  # a condition, not an error: said, not counted
                 self._emit_status(ClientState.STREAMING, WAITING_FOR_TRIGGER)
             self._last_activity = time.monotonic()
             return
         try:
-            master = self._query(link, "MASTER?")
+            master = self._query(link, "MASTER?", timeout_s=MASTER_PROBE_S)  # a pulled cable: not 3 s more
             still_master = None if master is None else tp.parse_yes_no(master, command="MASTER?")
         except (OSError, ProtocolError):  # no answer either: the link is gone
             master, still_master = None, None
@@ -1094,7 +1102,9 @@ class TrignoClient:
         held = self._emg_after_gap
         if not held or now - held[0][1] < RESUME_WINDOW_S:
             return False
-        if now - held[0][1] >= MAX_RESUME_HOLD_S or self.rate_hz <= 0:
+        # a re-START after a lost link has no backlog to drain (and a sender at another pace than the rate, a
+        # simulator at speed 2, would move the estimate until the cap)
+        if self._gap_reason == "connection lost" or now - held[0][1] >= MAX_RESUME_HOLD_S or self.rate_hz <= 0:
             return True
         arrivals = np.array([arrived for _, arrived, _ in held])
         earliest = np.minimum.accumulate(arrivals - np.cumsum([len(r) for r, _, _ in held]) / self.rate_hz)

@@ -321,6 +321,7 @@ class TrignoSimulator:
         # resume + (d - start) / speed until that is earlier than d (caught up)
         self._catch_up: tuple[float, float, float] | None = None
         self._unpaired: set[int] = set()  # sensors (1-16) unpaired while running: PAIRED? NO, their slot 0.0
+        self._deaf = False  # stall(commands_too=True): commands are read and never answered
         self._run_started = 0.0  # wall instant (time.monotonic) the latest START took effect
         self._first_index = 0  # stream sample index of the run's sample 0 (0 without a trial clock)
         self._frame = 0  # frames sent since START
@@ -433,9 +434,15 @@ class TrignoSimulator:
         base sends its slot as 0.0 ("Empty slots are 0.0")."""
         self._unpaired.add(sensor)
 
-    def stall(self) -> None:
-        """Stop sending data without telling anyone, as when a cable is pulled (no FIN, no RST, no STOPPED)."""
+    def pair(self, sensor: int) -> None:
+        """Sensor ``sensor`` (1-16), unpaired by :meth:`unpair`, is paired again: its slot carries its EMG."""
+        self._unpaired.discard(sensor)
+
+    def stall(self, *, commands_too: bool = False) -> None:
+        """Stop sending data without telling anyone, as when a cable is pulled (no FIN, no RST, no STOPPED);
+        ``commands_too``: the command port answers nothing either (the cable between the client and the utility)."""
         self._running = False
+        self._deaf = commands_too
 
     def _close_all(self) -> None:
         with self._lock:
@@ -547,6 +554,8 @@ class TrignoSimulator:
                     del buffer[: index + len(tp.TERMINATOR)]
                     for command in tp.split_packet(packet):
                         self.stats.commands += 1
+                        if self._deaf:
+                            continue
                         reply = self._handle(conn, command)
                         conn.send_reply(reply)
                         if command.upper() == "QUIT":

@@ -817,9 +817,11 @@ def trial_notes(trial: TrialData) -> list[str]:
     for coordinate, r in trial.extra.get("torques_against_model", {}).items():
         notes.append(
             f"the torque of {coordinate} runs against the pack's inverse dynamics of the same motion (correlation "
-            f"{r:+.2f}): is its sign the pack's (the muscles' moment along its coordinate; a model whose coordinate "
-            "runs the other way, or external moments, give the opposite)? A coordinate of the other convention is "
-            f'flipped, angle and moment, by the trial file\'s [coordinates] table: {coordinate} = "-<its column>"'
+            f"{r:+.2f}): is its sign the pack's (the muscles' moment along its coordinate)? Its angles are (they lie "
+            "in the pack's ranges), so the moment alone runs the other way: an external moment, or inverse dynamics "
+            "of another convention than the kinematics; negate that column of the torque file (the trial file's "
+            "[coordinates] table flips a coordinate's angle and moment together, for kinematics of the other "
+            "convention too)"
         )
     for group, envelope in trial.emg.items():
         missing = int(np.count_nonzero(~np.isfinite(envelope)))

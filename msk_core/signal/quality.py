@@ -58,6 +58,31 @@ RAISE_HOPS = 2  # a fault shows in 2 windows in a row before it is raised: no si
 CLEAR_HOPS = 3  # ... and is gone from 3 in a row before it clears: worst case 0.5 + 3 * 0.125 s after it ends
 
 
+#: A channel with this share of its power below the EMG band is not surface EMG (a force, a load cell, a goniometer, a
+#: trigger): on the real recordings of ../shared, 0.2-43 % of every EMG channel's power lies below 20 Hz (the most, a
+#: quiet electrode), 99.3-100 % of every force-plate and load-cell channel's
+NOT_EMG_BELOW_BAND_SHARE = 0.9
+
+
+def below_band_share(x: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Per channel of a whole recording ``x[n_samples, n_channels]``, the share of its power (Welch, ~2 s Hann segments,
+    each segment's mean removed) below the EMG band (:data:`EMG_BAND_HZ`); its finite samples only; NaN for a channel
+    with no power (zero throughout) or fewer finite samples than a segment. One channel at a time (memory: a segment
+    matrix of one channel, not of all)."""
+    x = np.asarray(x, dtype=float).reshape(len(x), -1)
+    n = int(2 ** np.ceil(np.log2(max(rate_hz, 1.0) * 2.0)))  # ~2 s segments: ~0.5 Hz bins
+    shares = np.full(x.shape[1], np.nan)
+    for c in range(x.shape[1]):
+        column = x[np.isfinite(x[:, c]), c]  # a gap left out (a NaN would make every bin NaN)
+        if column.size < n:
+            continue
+        freqs, psd = hann_welch(column, rate_hz, n)
+        total = psd.sum()
+        if total > 0:
+            shares[c] = psd[freqs < EMG_BAND_HZ[0]].sum() / total
+    return shares
+
+
 def check_emg_rate(rate_hz: float) -> None:
     """Refuse an EMG rate that cannot carry the 20-450 Hz band (the quality monitor's and the fatigue index's)."""
     if not (np.isfinite(rate_hz) and rate_hz > 2 * EMG_BAND_HZ[1]):

@@ -113,31 +113,31 @@ def read_emg_file(path: Path, channels: list[str] | None) -> AnalogRecording:
 
 
 def _without_slow_channels(rec: AnalogRecording) -> AnalogRecording:
-    """The recording without the channels whose power lies below 10 Hz and whose label does not say EMG (found with
-    held-out data: a C3D's Voltage.1-6, a load cell's forces in volts, were enveloped as six muscles). A channel
+    """The recording without the channels whose power lies below the EMG band and whose label does not say EMG (found
+    with held-out data: a C3D's Voltage.1-6, a load cell's forces in volts, were enveloped as six muscles). A channel
     labelled EMG with such a spectrum is kept and said (a DC-coupled amplifier's drift). ``--channels`` takes any."""
-    from msk_core.signal.spectrum import NOT_EMG_SLOW_FRACTION, SLOW_BAND_HZ, slow_power_fraction
+    from msk_core.signal.quality import EMG_BAND_HZ, NOT_EMG_BELOW_BAND_SHARE, below_band_share
 
-    slow = slow_power_fraction(rec.data, rec.rate_hz)
-    flagged = [(label, f) for label, f in zip(rec.labels, slow) if f >= NOT_EMG_SLOW_FRACTION]
+    below = f"{EMG_BAND_HZ[0]:g} Hz"
+    shares = below_band_share(rec.data, rec.rate_hz)
+    flagged = [(label, f) for label, f in zip(rec.labels, shares) if f >= NOT_EMG_BELOW_BAND_SHARE]
     left_out = [(label, f) for label, f in flagged if "emg" not in label.lower()]
     kept_slow = [(label, f) for label, f in flagged if "emg" in label.lower()]
-    band = "surface EMG's lies at 20-450 Hz; --channels takes them"
+    band = f"surface EMG's lies at {EMG_BAND_HZ[0]:g}-{EMG_BAND_HZ[1]:g} Hz; --channels takes them"
     if left_out:
         print(
-            f"left out {len(left_out)} channel(s) whose power lies below {SLOW_BAND_HZ:g} Hz, not EMG (a force, a load "
-            f"cell, a goniometer or a trigger?; {band}): " + ", ".join(f"{label} ({f:.0%})" for label, f in left_out)
+            f"left out {len(left_out)} channel(s) whose power lies below {below}, not EMG (a force, a load cell, a "
+            f"goniometer or a trigger?; {band}): " + ", ".join(f"{label} ({f:.0%})" for label, f in left_out)
         )
     if kept_slow:
         print(
-            f"{len(kept_slow)} EMG channel(s) with most of their power below {SLOW_BAND_HZ:g} Hz, enveloped as EMG: "
+            f"{len(kept_slow)} EMG channel(s) with most of their power below {below}, enveloped as EMG: "
             + ", ".join(f"{label} ({f:.0%})" for label, f in kept_slow)
             + " (drift or motion artefact? the band-pass removes it)"
         )
     if len(left_out) == len(rec.labels):
         raise InputError(
-            f"no EMG channel: all {len(rec.labels)} channels have their power below {SLOW_BAND_HZ:g} Hz ({band})",
-            path=rec.path,
+            f"no EMG channel: all {len(rec.labels)} channels have their power below {below} ({band})", path=rec.path
         )
     return rec.select([label for label in rec.labels if label not in dict(left_out)]) if left_out else rec
 

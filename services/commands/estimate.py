@@ -519,7 +519,7 @@ def run_leave_out(args: argparse.Namespace) -> int:
         raise ConfigError(
             "a leave-one-out needs EMG in the training trials too: a left-out group is one whose electrode the "
             "calibration could have used (no training trial with reps has an [emg_map])",
-            path=train[0].path,
+            path=next((t.path for t in train if not t.isometric and not t.emg), train[0].path),
             field="emg",
         )
     output_folder(args.report, "--report")

@@ -210,17 +210,27 @@ def group_label(pack: PackLike, group: str) -> str:
     return group if shown == group else f"{shown} ({group})"
 
 
+def _apart(value: float, other: float, digits: int, sign: bool = False) -> str:
+    """``value`` with ``digits`` decimals or more, as many as it takes not to read as ``other`` (a target or the
+    figure beside it) unless the two are equal: -19.97 % must not read as the -20 % it misses, 0.597 as 0.60."""
+    spec = "+" if sign else ""
+    for d in range(digits, digits + 4):
+        text, beside = f"{value:{spec}.{d}f}", f"{other:{spec}.{d}f}"
+        if text != beside or value == other:
+            return text
+    return text
+
+
 def _percent(x: float, target: float) -> str:
-    """``x`` (a fraction) in per cent with one decimal, or two where one would round onto ``target`` (-19.97 % must not
-    read as the -20 % it misses)."""
-    text = f"{100 * x:+.1f}"
-    return f"{100 * x:+.2f}" if float(text) == round(100 * target, 1) else text
+    """``x`` (a fraction) in per cent, one decimal or as many as keep it off ``target`` (:func:`_apart`)."""
+    return _apart(100 * x, 100 * target, 1, sign=True)
 
 
 def _two_r(a: float, b: float) -> tuple[str, str]:
-    """Two correlations with two decimals, or three where two would show them equal."""
-    digits = 3 if f"{a:.2f}" == f"{b:.2f}" and a != b else 2
-    return tuple("none" if not np.isfinite(v) else f"{v:.{digits}f}" for v in (a, b))  # type: ignore[return-value]
+    """Two correlations, two decimals or as many as keep them apart (:func:`_apart`); "none" for an undefined one."""
+    if not (np.isfinite(a) and np.isfinite(b)):
+        return tuple("none" if not np.isfinite(v) else f"{v:.2f}" for v in (a, b))  # type: ignore[return-value]
+    return _apart(a, b, 2), _apart(b, a, 2)
 
 
 def leave_out_table(scores: dict[str, dict[str, Agreement]], groups: list[str], pack: PackLike | None = None) -> str:
@@ -304,7 +314,8 @@ def _verdict(result: LeaveOutResult, aligned: bool = False, pack: PackLike | Non
         f"{r_groups} where both have an r (a constant estimate has none; over all its groups "
         f"{t['median_r_unpaired']:.2f} vs so {t['median_r_so_unpaired']:.2f}): "
         + ("**met**" if t["r_met"] else "**not met**"),
-        f"- median r of {t['method']} over all its groups {t['median_r_unpaired']:.2f} (target at least "
+        f"- median r of {t['method']} over all its groups {_apart(t['median_r_unpaired'], MEDIAN_R_TARGET, 2)} "
+        "(target at least "
         f"{MEDIAN_R_TARGET:g}, set for the walk): "
         + ("**met**" if t["median_r_unpaired"] >= MEDIAN_R_TARGET else "**not met**"),
         "",
