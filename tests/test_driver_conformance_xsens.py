@@ -213,13 +213,7 @@ def test_line_noise_does_not_hide_a_device_error_in_the_status():
     "N bad Xbus frames so far" within a second. Line noise and warnings are said only over what they said themselves;
     their counts go on."""
     fake = FakeMti(restart_at=None, garbage_at=30)
-    device = XsensDevice(SerialTransport(fake.path, baudrate=921600))
-    try:
-        device.configure(100)
-        readings = read_until(device, lambda got: len(got) >= fake.count)
-    finally:
-        device.close()
-        fake.close()
+    device, readings = readings_of(fake, baudrate=921600)
     assert len(readings) == fake.count  # every good frame; the corrupted copy before message 30 left out
     assert device.parser.stats.errors == 1 and device.stats.device_errors == 1
     assert device.stats.last_error == "device error 0x1E (timer overflow)", device.stats.last_error
@@ -375,6 +369,18 @@ def test_a_tracker_that_answers_slowly_while_reconnecting_does_not_stall_the_oth
     assert len(arrivals) > 150 and gaps.max() < 0.5, (len(arrivals), gaps.max())  # 100 Hz went on, no stall
 
 
+def readings_of(fake: FakeMti, **transport) -> tuple[XsensDevice, list]:
+    """The device on ``fake``'s port configured at 100 Hz and every message it streams read, then both closed."""
+    device = XsensDevice(SerialTransport(fake.path, **transport))
+    try:
+        device.configure(100)
+        readings = read_until(device, lambda got: len(got) >= fake.count)
+    finally:
+        device.close()
+        fake.close()
+    return device, readings
+
+
 def read_until(source: XsensDevice | TrackerSet, done, *, seconds: float = 5.0) -> list:
     """``source.read()`` until ``done(readings)`` or ``seconds`` pass."""
     readings: list = []
@@ -388,13 +394,7 @@ def read_until(source: XsensDevice | TrackerSet, done, *, seconds: float = 5.0) 
 
 def test_sample_time_fine_wrapping_after_a_day_keeps_device_time_continuous():
     fake = FakeMti(count=30, restart_at=None, stf0=864_000_000 - 1000)  # wraps after 10 messages
-    device = XsensDevice(SerialTransport(fake.path))
-    try:
-        device.configure(100)
-        readings = read_until(device, lambda got: len(got) >= fake.count)
-    finally:
-        device.close()
-        fake.close()
+    _, readings = readings_of(fake)
     ticks = [r.sample_time_fine for r in readings]
     assert len(readings) == 30 and ticks[9] == 863_999_900 and ticks[10] == 0
     times = [r.device_time_ns for r in readings]

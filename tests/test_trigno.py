@@ -498,16 +498,19 @@ def test_a_server_without_a_banner_is_named_with_what_it_sent(greeting, said):
         listener.close()
 
 
-def _paused(drop: bool) -> tuple[TrignoSimulator, TrignoClient, list, list]:
-    """1000 samples, then the base quiet for 0.8 s (dropping or buffering what it measures), then 1500 more."""
+def _paused(
+    drop: bool, seconds: float = 0.8, catch_up: float | None = None, then: int = 1500
+) -> tuple[TrignoSimulator, TrignoClient, list, list]:
+    """1000 samples, then the base quiet for ``seconds`` (dropping or buffering what it measures, its backlog sent
+    at once or at ``catch_up`` times real time), then ``then`` more."""
     source = synthetic_source(seconds=20.0, seed=5)
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=5)) as sim:
         client = client_for(sim)
         client.connect()
         client.start()
         before = collect(client, samples=1000, seconds=5)
-        sim.pause(0.8, drop=drop)
-        after = collect(client, seconds=6, until=lambda ev: len(emg_rows(ev)) >= 1500)
+        sim.pause(seconds, drop=drop, catch_up=catch_up)
+        after = collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= then)
         client.close()
     return sim, client, before, after
 
@@ -658,14 +661,7 @@ def test_a_buffered_pause_drained_slowly_loses_nothing_and_keeps_every_index():
     dated by the backlog of a fixed 0.25 s window: 1,455 samples counted lost that all arrived, and every later
     sample 0.75 s late. The EMG is now held until the backlog stops growing earlier (docs/devices.md)."""
     source = synthetic_source(seconds=20.0, seed=5)
-    with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, seed=5)) as sim:
-        client = client_for(sim)
-        client.connect()
-        client.start()
-        before = collect(client, samples=1000, seconds=5)
-        sim.pause(1.0, drop=False, catch_up=2.0)
-        after = collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 5000)
-        client.close()
+    sim, client, before, after = _paused(drop=False, seconds=1.0, catch_up=2.0, then=4000)
     assert sim.stats.frames_dropped == 0 and not [e for e in before + after if isinstance(e, GapEvent)]
     rows = emg_rows(before + after)
     assert len(rows) >= 5000

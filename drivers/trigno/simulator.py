@@ -416,18 +416,7 @@ class TrignoSimulator:
     def drop_connections(self) -> None:
         """Close every client connection, the base still acquiring (its utility restarted its SDK server, or the
         network between them failed): a client that reconnects finds the streams going on, mid-way."""
-        with self._lock:
-            socks = [c.sock for c in self._command_conns] + [s for group in self._data_conns.values() for s in group]
-            self._command_conns.clear()
-            self._master = None
-            for group in self._data_conns.values():
-                group.clear()
-        for sock in socks:
-            try:
-                sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-            sock.close()
+        self._close_all(listeners=False)
 
     def unpair(self, sensor: int) -> None:
         """Sensor ``sensor`` (1-16) is unpaired (or switched off) while the base runs: it answers PAIRED? NO and the
@@ -444,11 +433,13 @@ class TrignoSimulator:
         self._running = False
         self._deaf = commands_too
 
-    def _close_all(self) -> None:
+    def _close_all(self, *, listeners: bool = True) -> None:
+        """Close every client connection, and the listeners too unless ``listeners`` is False (the base serves on)."""
         with self._lock:
-            socks = list(self._listeners.values()) + [c.sock for c in self._command_conns]
-            socks += [s for group in self._data_conns.values() for s in group]
+            socks = list(self._listeners.values()) if listeners else []
+            socks += [c.sock for c in self._command_conns] + [s for group in self._data_conns.values() for s in group]
             self._command_conns.clear()
+            self._master = None
             for group in self._data_conns.values():
                 group.clear()
         for sock in socks:

@@ -12,6 +12,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from msk_core.model.names import DisplayNames
+
 CLAMP_TOLERANCE = np.deg2rad(5.0)  # poses this far outside a pack's fitted range are clamped (and counted)
 
 
@@ -95,6 +97,14 @@ class MusclePackLike(PackLike, Protocol):
         """((n_groups,) muscle-tendon lengths, (n_coordinates, n_groups) moment arms, (n_coordinates,) generalised
         forces) at one state, in one call."""
         ...
+
+
+@runtime_checkable
+class NamedPackLike(PackLike, Protocol):
+    """A pack with display names for its groups and coordinates (``ModelPack`` has them): what reports show people."""
+
+    @property
+    def display_names(self) -> DisplayNames: ...
 
 
 def resolve_pack(pack: PackLike | str) -> PackLike:

@@ -477,14 +477,15 @@ def leave_out_group(pack, name: str) -> str:
     """The pack group ``--leave-out`` names: its model name, in any case, or its display name ("Tibialis anterior");
     otherwise a ConfigError with the closest names."""
     from msk_core.errors import close_names
+    from msk_core.estimate.pack import NamedPackLike
 
     groups = list(pack.groups)
-    names = getattr(pack, "display_names", None)
-    shown = {names.group(g).casefold(): g for g in groups} if names is not None else {}
+    displayed = [pack.display_names.group(g) for g in groups] if isinstance(pack, NamedPackLike) else []
+    shown = {d.casefold(): g for d, g in zip(displayed, groups)}
     found = {g.casefold(): g for g in groups}.get(name.casefold()) or shown.get(name.casefold())
     if found is not None:
         return found
-    near = close_names(name, groups + [names.group(g) for g in groups] if names is not None else groups)
+    near = close_names(name, groups + displayed)
     raise ConfigError(
         f"not a group of pack {pack.name!r}"
         + (f"; did you mean {', '.join(near)}?" if near else "")

@@ -12,7 +12,7 @@ import numpy as np
 
 from msk_core.estimate.emd import calibrated_delay
 from msk_core.estimate.leave_out import MAX_LAG_S, ON_FACTOR, Agreement, LeaveOutResult
-from msk_core.estimate.pack import PackLike
+from msk_core.estimate.pack import NamedPackLike, PackLike
 from msk_core.estimate.pipeline import TrialEstimate
 from msk_core.estimate.prior import load_scale_line
 from msk_core.estimate.profile import SubjectProfile
@@ -205,8 +205,7 @@ def _fmt(x: float, spec: str) -> str:
 def group_label(pack: PackLike, group: str) -> str:
     """A group as people read it, with the model's name that summary.json keys it by: "Tibialis anterior
     (tib_ant_r)"; the model name alone where the pack has no display name for it."""
-    names = getattr(pack, "display_names", None)
-    shown = names.group(group) if names is not None else group
+    shown = pack.display_names.group(group) if isinstance(pack, NamedPackLike) else group
     return group if shown == group else f"{shown} ({group})"
 
 
