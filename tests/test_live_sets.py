@@ -77,7 +77,7 @@ def test_msk_set_marks_sets_in_a_live_session_and_its_report(tmp_path, monkeypat
     from services.cli import build_parser
 
     build_parser()  # every command imported now: msk set's marks then leave within a second of the call
-    live = LiveProcess(out, env, str(session_file), "--sim-reps", "1", "--sim-rest", "8")
+    live = LiveProcess(out, env, str(session_file), "--sim-reps", "1", "--sim-rest", "6")
     try:
         live.wait_running()
         info = json.loads((out / "session.json").read_text())
@@ -103,7 +103,7 @@ def test_msk_set_marks_sets_in_a_live_session_and_its_report(tmp_path, monkeypat
     finally:
         live.kill()
     assert code == 0, output
-    assert "as sets of 1 rep with 8 s rests" in output
+    assert "as sets of 1 rep with 6 s rests" in output
     assert summary["trial_clock"]["cycle_s"] > 0 and summary["trial_clock"]["schedule"]  # the schedule is stated
     recording = out / "session.mcap"
     loads = [m.decode(messages.LoadEvent) for m in read_messages(recording) if m.type_name == "msk.LoadEvent"]

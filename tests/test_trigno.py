@@ -753,7 +753,7 @@ def test_a_sensor_unpaired_while_streaming_is_said():
         client = client_for(sim)
         client.connect()
         client.start()
-        collect(client, samples=2000, seconds=5)
+        collect(client, samples=1000, seconds=5)
         assert client.stats.last_error == ""  # real EMG: no slot said
         sim.unpair(sensor)
         events = collect(client, seconds=5, until=lambda ev: "exactly 0.0" in client.stats.last_error)
@@ -785,8 +785,7 @@ def test_a_sensor_paired_again_sends_again_and_one_paired_while_streaming_is_sai
     assert f"EMG slot {second} carries data though no active sensor had it at the start" in said, said
 
 
-@pytest.mark.parametrize("lag_s", [0.0, 0.1])
-def test_aux_rows_after_a_lost_link_to_a_base_still_acquiring_stay_on_the_emg_clock(lag_s):
+def test_aux_rows_after_a_lost_link_to_a_base_still_acquiring_stay_on_the_emg_clock(lag_s=0.1):
     """Found by an independent imitation: after a lost link to a base that went on acquiring, the AUX index was
     anchored to the EMG's at the gap, whatever the AUX rows received first had been measured: with the AUX frames
     leaving 5 ms after their EMG frames every later AUX row was a frame (2 rows) late, with 0.1 s eight frames. The
@@ -797,9 +796,9 @@ def test_aux_rows_after_a_lost_link_to_a_base_still_acquiring_stay_on_the_emg_cl
         client = client_for(sim, aux=True, backoff_initial_s=0.02)
         client.connect()
         client.start()
-        events = collect(client, samples=3000, seconds=5)
+        events = collect(client, samples=1500, seconds=5)
         sim.drop_connections()  # the base acquires on: the reconnection finds its streams mid-way
-        events += collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 3000)
+        events += collect(client, seconds=8, until=lambda ev: len(emg_rows(ev)) >= 2000)
         events += collect(client, seconds=lag_s + 0.3)
         client.close()
     (gap,) = [e for e in events if isinstance(e, GapEvent)]
@@ -841,7 +840,7 @@ def test_a_start_trigger_is_still_waited_for_after_a_lost_link():
     """Found by a review: a link lost before the first data, then reconnected, waited for the trigger no more: six
     reconnections "though the base answers" until it fired."""
     source = synthetic_source(seconds=10.0, seed=8)
-    quirks = TrignoQuirks(start_trigger_fires_after_s=2.0)
+    quirks = TrignoQuirks(start_trigger_fires_after_s=1.2)
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, quirks=quirks)) as sim:
         assert _other_client(sim, "TRIGGER START ON") == ["OK"]
         client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
