@@ -695,6 +695,14 @@ def _other_client(sim: TrignoSimulator, *commands: str) -> list[str]:
         return out
 
 
+def _client_with_start_trigger(sim: TrignoSimulator) -> TrignoClient:
+    """Another program sets the base's start trigger; then a client with a 0.3 s stall timeout connects."""
+    assert _other_client(sim, "TRIGGER START ON") == ["OK"]
+    client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
+    client.connect()
+    return client
+
+
 def test_a_start_trigger_holds_the_first_data_without_a_lost_link():
     """Found by an independent imitation: a start trigger that fired 8 s after START was reported as "connection
     lost: no EMG data for 5 s", and the summary said disconnected and reconnected. TRIGGER? is asked; while START ON
@@ -704,9 +712,7 @@ def test_a_start_trigger_holds_the_first_data_without_a_lost_link():
     source = synthetic_source(seconds=10.0, seed=8)
     quirks = TrignoQuirks(start_trigger_fires_after_s=1.0)
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, quirks=quirks)) as sim:
-        assert _other_client(sim, "TRIGGER START ON") == ["OK"]
-        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
-        client.connect()
+        client = _client_with_start_trigger(sim)
         assert client.start_trigger
         client.start()
         events = collect(client, samples=500, seconds=5)
@@ -842,9 +848,7 @@ def test_a_start_trigger_is_still_waited_for_after_a_lost_link():
     source = synthetic_source(seconds=10.0, seed=8)
     quirks = TrignoQuirks(start_trigger_fires_after_s=1.2)
     with TrignoSimulator(source, SimulatorConfig(**EPHEMERAL, speed=1.0, quirks=quirks)) as sim:
-        assert _other_client(sim, "TRIGGER START ON") == ["OK"]
-        client = client_for(sim, stall_timeout_s=0.3, backoff_initial_s=0.02)
-        client.connect()
+        client = _client_with_start_trigger(sim)
         client.start()
         events = collect(client, seconds=0.4)
         sim.drop_connections()  # before the trigger fires; the base waits on for it

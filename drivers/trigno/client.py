@@ -281,7 +281,6 @@ class TrignoClient:
         self._slot_said = np.zeros(tp.N_SENSORS, dtype=bool)  # active slots said empty; inactive ones said carrying
         self._slot_owner: dict[int, int] = {}  # EMG slot -> its active sensor (of the handshake's sensors)
         self._slot_active = np.zeros(tp.N_SENSORS, dtype=bool)
-        self._slot_owner_of: tuple[SensorInfo, ...] | None = None
         self._last_data_time = 0.0  # time.monotonic() of the last EMG bytes
         self._last_activity = 0.0  # last EMG bytes, START or reconnection: the stall timer's origin
         self._gap_pending = False
@@ -673,6 +672,7 @@ class TrignoClient:
         trigger = self._query(link, "TRIGGER?", informative=True)
         self.start_trigger = trigger is not None and "START ON" in " ".join(trigger.upper().split())
         self.sensors = self._query_sensors(link)
+        self._watch_slots()
         per_frame = self._emg_samples_per_frame(link)
         aux_reply = self._query(link, "MAX SAMPLES AUX?")
         aux_per_frame = tp.parse_int(aux_reply, command="MAX SAMPLES AUX?") if aux_reply else 2
@@ -912,7 +912,7 @@ class TrignoClient:
             if end < instant:
                 break
             reached = arrived
-        if reached is not None and (not self._emg_arrivals or self._emg_arrivals[0][0] < instant):
+        if reached is not None and self._emg_arrivals[0][0] < instant:  # the first read to reach it is still kept
             self._aux_lags.append(now - reached)
 
     def _place_aux_after_loss(self, reads: list[tuple[int, float]]) -> None:
@@ -921,7 +921,8 @@ class TrignoClient:
         first row (measured at its own arrival estimate) puts on the EMG index. Anchoring the AUX on the EMG's index
         at the moment of the gap instead put it a frame late with 5 ms of lag, eight frames with 0.1 s (an
         independent imitation whose AUX frames leave after their EMG frames)."""
-        first_index, emg_measured = self._aux_anchor or (0, 0.0)
+        assert self._aux_anchor is not None  # set by _report_gap before any call
+        first_index, emg_measured = self._aux_anchor
         self._aux_anchor = None
         lag = float(np.median(self._aux_lags)) if self._aux_lags else 0.0
         aux_measured = _first_measured(reads, self.aux_rate_hz) - lag
@@ -930,6 +931,12 @@ class TrignoClient:
         )
         self._next_aux_index = max(self._next_aux_index, anchor)
 
+    def _watch_slots(self) -> None:
+        """The EMG slots of the handshake's active sensors, whose conditions :meth:`_check_slots` judges afresh."""
+        self._slot_owner = {slot: s.sensor for s in self.sensors if s.active for slot in s.emg_slots}
+        self._slot_active = np.isin(np.arange(tp.N_SENSORS), list(self._slot_owner))
+        self._slot_said[:], self._zero_run[:] = False, 0
+
     def _check_slots(self, rows: np.ndarray) -> None:
         """Say (once each, in last_error: a condition, not counted) an active sensor's slot that has become exactly 0.0
         for :data:`EMPTY_SLOT_S` (unpaired or switched off while streaming) and when it sends again, and a slot that
@@ -937,11 +944,6 @@ class TrignoClient:
         Vectorised over the slots: a read that changes nothing runs no Python loop."""
         if self.rate_hz <= 0 or rows.ndim != 2 or rows.shape[1] != tp.N_SENSORS:
             return
-        if self._slot_owner_of is not self.sensors:  # the sensors of this handshake
-            self._slot_owner = {slot: s.sensor for s in self.sensors if s.active for slot in s.emg_slots}
-            self._slot_active = np.isin(np.arange(tp.N_SENSORS), list(self._slot_owner))
-            self._slot_owner_of = self.sensors
-            self._slot_said[:], self._zero_run[:] = False, 0  # judged afresh against these sensors
         carries = rows.any(axis=0)  # NaN counts as data
         run = self._zero_run  # reads wholly 0.0 in a row, in rows (a read's trailing zeros are not counted: < a read)
         run += len(rows)
@@ -952,7 +954,7 @@ class TrignoClient:
             return
         empty = run >= EMPTY_SLOT_S * self.rate_hz
         changed = np.flatnonzero((active & empty & ~said) | (active & said & carries) | (~active & carries & ~said))
-        if not changed.size:
+        if not changed.size:  # an active slot at 0.0 for less than EMPTY_SLOT_S so far
             return
         said[changed] = ~said[changed]
         conditions = []  # every slot's condition now, in one line (one slot's would hide another's)

@@ -310,7 +310,7 @@ class TrignoSimulator:
         self._command_conns: list[_CommandConnection] = []
         self._data_conns: dict[str, list[socket.socket]] = {"emg": [], "aux": [], "legacy_acc": []}
         self._threads: list[threading.Thread] = []
-        self._lagged_aux: collections.deque = collections.deque()  # (due, kind, connections then, payload): aux_lag_s
+        self._lagged_aux: collections.deque = collections.deque()  # (due, kind, payload): aux_lag_s
         self._master: int | None = None
         self._next_conn_id = 1
         self._running = False
@@ -782,7 +782,7 @@ class TrignoSimulator:
         for kind, conns in listening.items():  # a port nobody reads costs nothing (the AUX rows are interpolated)
             payload = tp.encode_samples(emg if kind == "emg" else self._aux_payload(kind, start), self._endianness)
             if kind != "emg" and lag_s > 0:
-                self._lagged_aux.append((time.monotonic() + lag_s, kind, conns, payload))
+                self._lagged_aux.append((time.monotonic() + lag_s, kind, payload))
             else:
                 self._send_data(kind, conns, payload)
         self.stats.frames_sent += 1
@@ -835,7 +835,7 @@ class TrignoSimulator:
         """The AUX frames of the ``aux_lag_s`` quirk, each sent when its lag has passed."""
         while not self._stop.wait(0.002):
             while self._lagged_aux and self._lagged_aux[0][0] <= time.monotonic():
-                _, kind, _, payload = self._lagged_aux.popleft()
+                _, kind, payload = self._lagged_aux.popleft()
                 with self._lock:  # whoever reads the port when the frame leaves (a client that just connected too)
                     conns = list(self._data_conns[kind])
                 if conns:

@@ -93,9 +93,8 @@ class DeviceStats:
     requests_repeated: int = 0  # a request that changes nothing asked again when no reply came in time
     device_warnings: int = 0  # Xbus Warning (0x43) messages: said in last_error, not counted as errors
     last_error: str = ""
-    _minor_text: str = field(
-        default="", repr=False
-    )  # the last_error a minor condition set (note(minor=True)), which the next one may replace
+    # the last_error a minor condition set (note(minor=True)), which the next one may replace
+    _minor_text: str = field(default="", repr=False)
 
     def note(self, text: str, *, minor: bool = False) -> None:
         """Say ``text`` in last_error. A minor condition (line noise counted so far, a device warning) does not

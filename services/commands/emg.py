@@ -139,7 +139,8 @@ def _without_slow_channels(rec: AnalogRecording) -> AnalogRecording:
         raise InputError(
             f"no EMG channel: all {len(rec.labels)} channels have their power below {below} ({band})", path=rec.path
         )
-    return rec.select([label for label in rec.labels if label not in dict(left_out)]) if left_out else rec
+    out = {label for label, _ in left_out}
+    return rec.select([label for label in rec.labels if label not in out]) if left_out else rec
 
 
 def _channels(text: str | None) -> list[str] | None:

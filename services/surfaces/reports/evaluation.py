@@ -202,9 +202,9 @@ def _fmt(x: float, spec: str) -> str:
     return "—" if not np.isfinite(x) else format(x, spec)
 
 
-def group_label(pack: PackLike, group: str) -> str:
+def group_label(pack: PackLike | None, group: str) -> str:
     """A group as people read it, with the model's name that summary.json keys it by: "Tibialis anterior
-    (tib_ant_r)"; the model name alone where the pack has no display name for it."""
+    (tib_ant_r)"; the model name alone where the pack (or none given) has no display name for it."""
     shown = pack.display_names.group(group) if isinstance(pack, NamedPackLike) else group
     return group if shown == group else f"{shown} ({group})"
 
@@ -242,7 +242,7 @@ def leave_out_table(scores: dict[str, dict[str, Agreement]], groups: list[str], 
             f"{_fmt(a.rmse, '.3f')} / {_fmt(a.r, '.2f')} / {_lag_cell(a)} / {_fmt(a.on_off_agreement, '.2f')}"
             for a in (scores[g][m] for m in methods)
         ]
-        lines.append("| " + " | ".join([group_label(pack, g) if pack is not None else g] + cells) + " |")
+        lines.append("| " + " | ".join([group_label(pack, g)] + cells) + " |")
     lines += [
         "",
         f"(lag '–': the curves correlate below r {LAG_MIN_R:g}, or the peak sits at the edge of the ±"
@@ -342,8 +342,9 @@ def _verdict(result: LeaveOutResult, aligned: bool = False, pack: PackLike | Non
         lag = s[v["method"]].lag_ms
         if not aligned and lag_is_a_delay(lag, r_best) and abs(lag) >= 100:
             why.append(f"its estimate is {abs(lag):.0f} ms {'late' if lag > 0 else 'early'}")
-        label = group_label(pack, g) if pack is not None else g
-        lines.append(f"- {label} ({v['method']}): " + ("met" if v["met"] else "not met: " + "; ".join(why)))
+        lines.append(
+            f"- {group_label(pack, g)} ({v['method']}): " + ("met" if v["met"] else "not met: " + "; ".join(why))
+        )
     return lines
 
 
@@ -389,7 +390,7 @@ def plot_leave_out_group(result: LeaveOutResult, group: str, out: Path, pack: Pa
         ax.plot(x, c.mean, color=color, ls=ls, lw=2.0 if key == "envelope" else 1.3, label=label)
     s = result.leave_one_out[group]
     title = (
-        f"{group_label(pack, group) if pack is not None else group} without its electrode: RMSE proposed {s['proposed'].rmse:.3f}, assisted {s['assisted'].rmse:.3f}, "
+        f"{group_label(pack, group)} without its electrode: RMSE proposed {s['proposed'].rmse:.3f}, assisted {s['assisted'].rmse:.3f}, "
         f"so {s['so'].rmse:.3f} ({curves['envelope'].reps} reps)"
     )
     if delayed:
@@ -444,9 +445,7 @@ def _settings_text(settings: dict[str, Any]) -> str:
     """The options that made a leave-one-out's numbers, in words (what report.md says and summary.json keeps)."""
     if not settings:
         return "settings not recorded"
-    prior = {"min_effort": "minimal-effort", "synergist": "synergist", "wide": "wide"}.get(
-        settings["no_emg_prior"], settings["no_emg_prior"]
-    )
+    prior = {"min_effort": "minimal-effort"}.get(settings["no_emg_prior"], settings["no_emg_prior"])
     text = f"{prior} prior, {settings['no_emg_strength']} strength; `assisted` with live synergists "
     text += "on" if settings["live_synergists"] else "off"
     if settings.get("prior_synergists"):
